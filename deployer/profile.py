@@ -7,11 +7,13 @@ checks with FILE:LINE:COL diagnostics) lives in this module too.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+import os
+from dataclasses import dataclass, field, replace
 from decimal import Decimal
-from typing import Literal
+from typing import Any, Literal
 
-from . import codec
+from . import codec, units, yamlsrc
+from .diagnostics import Diagnostic, InputError, UsageError
 
 Access = Literal["read-write", "read-only", "write-only"]
 Addressing = Literal["address", "register-number", "modicon"]
@@ -175,3 +177,247 @@ class Profile:
 
     def names(self) -> list[str]:
         return [p.name for p in self.parameters]
+
+
+# ---- loading ------------------------------------------------------------------------------
+
+_BUILTIN_DIR = os.path.join(os.path.dirname(__file__), "profiles")
+
+
+def builtin_profile_ids() -> list[str]:
+    return sorted(f[: -len(".yaml")] for f in os.listdir(_BUILTIN_DIR) if f.endswith(".yaml"))
+
+
+def builtin_profile(id_: str) -> Profile:
+    path = os.path.join(_BUILTIN_DIR, f"{id_}.yaml")
+    if not os.path.isfile(path):
+        known = ", ".join(builtin_profile_ids())
+        raise UsageError(f"unknown built-in profile '{id_}' (built-in: {known})")
+    prof = load_profile(path)
+    return replace(prof, source=None)
+
+
+def resolve_profile(ref: str, relative_to: str | os.PathLike[str] | None = None) -> Profile:
+    """A built-in id, or a profile file (relative to the directory of ``relative_to``)."""
+    looks_like_path = ref.endswith((".yaml", ".yml", ".json")) or os.sep in ref or "/" in ref
+    if not looks_like_path:
+        return builtin_profile(ref)
+    base = os.path.dirname(os.path.abspath(os.fspath(relative_to))) if relative_to else os.getcwd()
+    return load_profile(os.path.normpath(os.path.join(base, ref)))
+
+
+def parse_register(value: object) -> int:
+    """1103 / 0x1103 (YAML int) / "1103h" / "0x1103" -> int."""
+    if isinstance(value, int):
+        return value
+    text = str(value).strip()
+    if text[-1:] in "hH":
+        return int(text[:-1], 16)
+    if text[:2].lower() == "0x":
+        return int(text[2:], 16)
+    return int(text)
+
+
+def wire_address(number: int, addressing: str) -> int:
+    """Profile address -> 0-based protocol address. Raises ValueError with a user message."""
+    if addressing == "address":
+        return number
+    if addressing == "register-number":
+        if number < 1:
+            raise ValueError(f"register number {number} is below 1 (addressing: register-number)")
+        return number - 1
+    # modicon: 4xxxx (5 digits) or 4xxxxx (6 digits) holding-register references
+    if 40001 <= number <= 49999:
+        return number - 40001
+    if 400001 <= number <= 465536:
+        return number - 400001
+    raise ValueError(f"{number} is not a holding-register reference (40001-49999 or 400001-465536)")
+
+
+def _hex(n: int) -> str:
+    return f"0x{n:04X}"
+
+
+def load_profile(path: str | os.PathLike[str]) -> Profile:
+    """Load and check a profile file; all problems at once as an InputError."""
+    p = os.fspath(path)
+    data, src = yamlsrc.load(p)
+    if not isinstance(data, dict):
+        raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
+    errors = yamlsrc.validate(data, "profile", src)
+    if errors:
+        raise InputError(errors)
+    return _build_profile(data, src)
+
+
+def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
+    errors: list[Diagnostic] = []
+    addressing = data.get("addressing", "address")
+    word_order = data.get("word_order", "big")
+    rounding = data.get("rounding")
+    limits = Limits(**data.get("limits", {}))
+    if limits.write_registers < 1:
+        errors.append(src.error(("limits",), "limits leave no room for a single register per write"))
+
+    def address_of(value: object, at: yamlsrc.Path_, extra: int = 0) -> int | None:
+        try:
+            wire = wire_address(parse_register(value), addressing) + extra
+        except ValueError as e:
+            errors.append(src.error(at, str(e) if "holding" in str(e) or "below" in str(e)
+                                    else f"not a register: {value!r}"))
+            return None
+        if wire > 0xFFFF:
+            errors.append(src.error(at, f"wire address {wire} is beyond 65535"))
+            return None
+        return wire
+
+    params: list[Parameter] = []
+
+    def make(name: str, spec: dict[str, Any], address: int, at: yamlsrc.Path_,
+             eng_offset: object = 0) -> None:
+        type_ = spec["type"]
+        param = Parameter(
+            name=name,
+            address=address,
+            type=type_,
+            word_order=spec.get("word_order", word_order),
+            scale=Decimal(spec.get("scale", 1)),
+            offset=Decimal(eng_offset),  # type: ignore[arg-type]
+            unit=units.normalize(spec["unit"]) if "unit" in spec else None,
+            min=_dec(spec.get("min")),
+            max=_dec(spec.get("max")),
+            access=spec.get("access", "read-write"),
+            values=tuple((str(k), int(v)) for k, v in (spec.get("values") or {}).items()),
+            stage=int(spec.get("stage", 0)),
+            rounding=spec.get("rounding", rounding),
+            description=spec.get("description", ""),
+            line=src.pos(at, key=True)[0],
+            col=src.pos(at, key=True)[1],
+        )
+        local: list[Diagnostic] = []
+        if param.scale == 0:
+            local.append(src.error((*at, "scale"), "scale must not be 0"))
+        if address + param.count > 0x10000:
+            local.append(src.error(at, f"{name}: registers {address}..{address + param.count - 1} run past 65535"))
+        if "unit" in spec:
+            problem = units.check(spec["unit"])
+            if problem:
+                local.append(src.error((*at, "unit"), problem))
+        if param.min is not None and param.max is not None and param.min > param.max:
+            local.append(src.error((*at, "min"), f"min {param.min} is greater than max {param.max}"))
+        if not local:
+            for key in ("min", "max"):
+                bound = getattr(param, key)
+                if bound is None:
+                    continue
+                try:
+                    codec.to_raw(bound, type_, param.scale, param.offset, rounding="nearest")
+                except codec.CodecError as e:
+                    local.append(src.error((*at, key), f"{key} {_fmt(bound)} is not representable: {e}"))
+        rng = codec.raw_range(type_)
+        for label, raw in param.values:
+            if rng and not rng[0] <= raw <= rng[1]:
+                local.append(src.error((*at, "values", label), f"value {raw} of '{label}' does not fit in {type_}"))
+        if "default" in spec and not local:
+            d = spec["default"]
+            try:
+                if isinstance(d, str):
+                    labels = dict(param.values)
+                    if d not in labels:
+                        raise codec.CodecError(f"'{d}' is not one of the labels {', '.join(labels) or '(none)'}")
+                    default_eng = codec.from_raw(labels[d], param.scale, param.offset)
+                else:
+                    default_eng = Decimal(d)
+                    codec.to_raw(default_eng, type_, param.scale, param.offset)
+                if (param.min is not None and default_eng < param.min) or (
+                    param.max is not None and default_eng > param.max
+                ):
+                    raise codec.CodecError(f"{_fmt(default_eng)} is outside {_fmt(param.min)}..{_fmt(param.max)}")
+                param = replace(param, default=default_eng)
+            except codec.CodecError as e:
+                local.append(src.error((*at, "default"), f"default: {e}"))
+        errors.extend(local)
+        params.append(param)
+
+    for name, spec in (data.get("parameters") or {}).items():
+        at: yamlsrc.Path_ = ("parameters", name)
+        addr = address_of(spec["register"], (*at, "register"))
+        if addr is not None:
+            make(name, spec, addr, at, spec.get("offset", 0))
+
+    for tname, table in (data.get("tables") or {}).items():
+        tat: yamlsrc.Path_ = ("tables", tname)
+        base = address_of(table["base"], (*tat, "base"))
+        if base is None:
+            continue
+        count, stride = table["count"], table["stride"]
+        last_end = base + (count - 1) * stride + max(
+            f["offset"] + codec.register_count(f["type"]) for f in table["fields"].values()
+        )
+        if last_end > 0x10000:
+            errors.append(src.error(tat, f"table {tname}: entry {count - 1} ends at register {last_end - 1}, "
+                                         "beyond 65535"))
+            continue
+        for fname, fspec in table["fields"].items():
+            if fspec["offset"] + codec.register_count(fspec["type"]) > stride:
+                errors.append(src.error((*tat, "fields", fname, "offset"),
+                                        f"field {fname} runs past the table's stride {stride}"))
+        for i in range(count):
+            for fname, fspec in table["fields"].items():
+                make(f"{tname}[{i}].{fname}", fspec, base + i * stride + fspec["offset"],
+                     (*tat, "fields", fname))
+
+    # overlapping registers: name both parameters and both lines
+    params.sort(key=lambda q: (q.address, q.name))
+    prev: Parameter | None = None
+    reported = 0
+    for q in params:
+        if prev is not None and q.address < prev.end:
+            if reported < 20:  # a bad table can overlap thousands of times; the first ones say it
+                errors.append(Diagnostic(
+                    src.path, q.line, q.col,
+                    f"{q.name} (registers {_hex(q.address)}-{_hex(q.end - 1)}) overlaps {prev.name} "
+                    f"(registers {_hex(prev.address)}-{_hex(prev.end - 1)}, line {prev.line})"))
+            reported += 1
+        if prev is None or q.end > prev.end:
+            prev = q
+
+    identity = []
+    for i, item in enumerate(data.get("identity") or []):
+        a = address_of(item["register"], ("identity", i, "register"))
+        if a is not None:
+            identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", "")))
+    commits = []
+    for i, item in enumerate(data.get("commit") or []):
+        at2: yamlsrc.Path_ = ("commit", i)
+        a = address_of(item["register"], (*at2, "register"))
+        raw = item["raw"]
+        try:
+            regs = tuple(int(r) for r in raw) if isinstance(raw, list) else codec.encode(
+                int(raw), item.get("type", "uint16"), word_order)
+        except codec.CodecError as e:
+            errors.append(src.error((*at2, "raw"), str(e)))
+            continue
+        if a is not None:
+            commits.append(CommitAction(a, regs, item.get("description", "")))
+    if errors:
+        raise InputError(errors)
+    return Profile(
+        id=str(data["profile"]),
+        description=str(data.get("description", "")),
+        addressing=addressing,
+        word_order=word_order,
+        limits=limits,
+        identity=tuple(identity),
+        parameters=tuple(params),
+        commit=tuple(commits),
+        source=os.path.abspath(src.path),
+    )
+
+
+def _dec(v: object) -> Decimal | None:
+    return None if v is None else Decimal(v)  # type: ignore[arg-type]
+
+
+def _fmt(d: Decimal | None) -> str:
+    return "-" if d is None else codec.format_decimal(d)
