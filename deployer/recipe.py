@@ -6,9 +6,19 @@ entries and ``{raw: N}``, and checks ranges and resolution, all before any devic
 
 from __future__ import annotations
 
+import json
+import os
+import re
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from decimal import Decimal, InvalidOperation
+from typing import Any, Literal
 
-from .profile import Parameter, Profile
+from . import codec, units, yamlsrc
+from .diagnostics import Diagnostic, InputError, UsageError
+from .profile import Parameter, Profile, resolve_profile
+
+RECIPE_SCHEMA = "recipe"
 
 
 @dataclass(frozen=True)
@@ -38,3 +48,289 @@ class Recipe:
     desired: tuple[Desired, ...]  # sorted by (stage, address)
     device: DeviceSpec | None = None
     rounding: str = "exact"
+    profile_ref: str | None = None  # as written: built-in id or a path (absolute once loaded)
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One parameter value as written, with where it was written (for error positions)."""
+
+    name: str
+    value: Any
+    src: yamlsrc.Source
+    at: yamlsrc.Path_
+
+
+# ---- loading ----------------------------------------------------------------------------
+
+
+def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
+                profile: Profile | None = None) -> Recipe:
+    """Load, resolve and check a recipe; all problems at once as an InputError.
+
+    ``extra`` entries (an inventory's per-device overrides) win over the file's values;
+    ``profile`` forces the profile (an inventory device's), else the recipe's is resolved.
+    """
+    p = os.fspath(path)
+    errors: list[Diagnostic] = []
+    layers = _load_chain(p, [], errors)  # base first, this file last
+    if errors:
+        raise InputError(errors)
+    top_data, top_src = layers[-1]
+    prof_ref: str | None = None
+    prof_src: yamlsrc.Source | None = None
+    device = DeviceSpec()
+    rounding = "exact"
+    entries: dict[str, Entry] = {}
+    for data, src in layers:
+        if "profile" in data:
+            prof_ref, prof_src = data["profile"], src
+        dev = data.get("device") or {}
+        device = DeviceSpec(dev.get("url", device.url), dev.get("unit", device.unit))
+        rounding = data.get("rounding", rounding)
+        for name, value in (data.get("parameters") or {}).items():
+            for e in _expand(name, value, src, ("parameters", name)):
+                entries.pop(e.name, None)  # re-insert: a later file decides the order too
+                entries[e.name] = e
+    for e in extra:
+        entries.pop(e.name, None)
+        entries[e.name] = e
+
+    prof = profile
+    resolved_ref = prof_ref
+    if prof is None:
+        assert prof_ref is not None and prof_src is not None  # the schema requires one in the chain
+        try:
+            prof = resolve_profile(prof_ref, relative_to=prof_src.path)
+        except UsageError as e:
+            raise InputError([prof_src.error(("profile",), str(e))]) from None
+        except InputError as e:
+            # the profile's own errors, plus where the recipe points at it
+            raise InputError([*e.diagnostics, prof_src.error(("profile",), f"profile '{prof_ref}' is invalid")]) from None
+        if prof.source is not None:
+            resolved_ref = prof.source
+    desired: list[Desired] = []
+    for e in entries.values():
+        d = _desired(prof, e, rounding, errors)
+        if d is not None:
+            desired.append(d)
+    if errors:
+        raise InputError(errors)
+    desired.sort(key=lambda d: (d.parameter.stage, d.parameter.address))
+    return Recipe(
+        name=str(top_data["recipe"]),
+        path=p,
+        profile=prof,
+        desired=tuple(desired),
+        device=device if (device.url is not None or device.unit is not None) else None,
+        rounding=rounding,
+        profile_ref=resolved_ref,
+    )
+
+
+def _load_chain(path: str, stack: list[str], errors: list[Diagnostic],
+                ref: tuple[yamlsrc.Source, yamlsrc.Path_] | None = None) -> list[tuple[dict[str, Any], yamlsrc.Source]]:
+    """The recipe at ``path`` and its ``extends`` bases, bases first."""
+    real = os.path.realpath(path)
+    if real in stack:
+        assert ref is not None
+        chain = " -> ".join(os.path.basename(s) for s in [*stack[stack.index(real):], real])
+        errors.append(ref[0].error(ref[1], f"'extends' makes a cycle: {chain}"))
+        return []
+    try:
+        data, src = yamlsrc.load(path)
+    except InputError as e:
+        errors.extend(e.diagnostics)
+        if ref is not None and any(d.line == 0 for d in e.diagnostics):
+            errors.append(ref[0].error(ref[1], f"cannot load '{os.path.basename(path)}'"))
+        return []
+    if not isinstance(data, dict):
+        errors.append(src.error((), "a recipe must be a mapping (recipe: ..., profile: ..., parameters: ...)"))
+        return []
+    schema_errors = yamlsrc.validate(data, RECIPE_SCHEMA, src)
+    if schema_errors:
+        errors.extend(schema_errors)
+        return []
+    ext = data.get("extends")
+    bases: list[tuple[str, yamlsrc.Path_]] = []
+    if isinstance(ext, str):
+        bases = [(ext, ("extends",))]
+    elif isinstance(ext, list):
+        bases = [(b, ("extends", i)) for i, b in enumerate(ext)]
+    out: list[tuple[dict[str, Any], yamlsrc.Source]] = []
+    for base, at in bases:
+        base_path = os.path.normpath(os.path.join(os.path.dirname(path), base))
+        out.extend(_load_chain(base_path, [*stack, real], errors, (src, at)))
+    out.append((data, src))
+    return out
+
+
+_TABLE_ENTRY = re.compile(r"^[A-Za-z_][\w-]*\[\d+\]$")
+
+
+def _expand(name: str, value: Any, src: yamlsrc.Source, at: yamlsrc.Path_) -> Iterable[Entry]:
+    """``tbl[3]: {field: v}`` -> ``tbl[3].field: v``; everything else as is."""
+    if isinstance(value, dict) and _TABLE_ENTRY.match(name) and not ({"raw", "value"} & value.keys()):
+        for field, v in value.items():
+            yield Entry(f"{name}.{field}", v, src, (*at, field))
+    else:
+        yield Entry(name, value, src, at)
+
+
+_PLAIN_KEY = re.compile(r"^[A-Za-z_][\w.\[\]-]*$")
+_NUMBER = re.compile(r"^\s*([-+]?(?:\d[\d_]*(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*$")
+
+
+def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnostic]) -> Desired | None:
+    param = prof.get(e.name)
+
+    def fail(msg: str, *, key: bool = False) -> None:
+        errors.append(e.src.error(e.at, f"{e.name}: {msg}" if not key else msg, key=key))
+
+    if param is None:
+        hint = yamlsrc.closest(e.name, prof.names())
+        fail(f"unknown parameter '{e.name}' in profile {prof.id}" + (f"; did you mean '{hint}'?" if hint else ""),
+             key=True)
+        return None
+    if not param.writable:
+        fail(f"{e.name} is read-only in profile {prof.id}", key=True)
+        return None
+    value = e.value
+    rounding: Literal["exact", "nearest"] = (
+        "nearest" if "nearest" in (param.rounding, recipe_rounding) else "exact")
+    if isinstance(value, dict) and "raw" in value:
+        return _from_raw(param, value["raw"], e, fail)
+    if isinstance(value, dict):  # {value: ..., rounding: ...}
+        rounding = value.get("rounding", rounding)
+        value = value["value"]
+    try:
+        eng = _engineering(param, value)
+    except ValueError as err:
+        fail(str(err))
+        return None
+    if isinstance(eng, tuple):  # an enumeration label: raw value given directly
+        return Desired(param, eng[0], param.encode(eng[1]))
+    try:
+        raw = codec.to_raw(eng, param.type, param.scale, param.offset, rounding)
+    except codec.CodecError as err:
+        msg = str(err)
+        if "resolution" in msg and param.unit:
+            msg = msg.replace(f"resolution {codec.format_decimal(param.scale)}",
+                              f"resolution {codec.format_decimal(param.scale)} {param.unit}")
+            msg = msg.replace(codec.format_decimal(eng), f"{codec.format_decimal(eng)} {param.unit}", 1)
+        fail(msg)
+        return None
+    effective = codec.from_raw(raw, param.scale, param.offset)
+    lo, hi = param.min, param.max
+    if (lo is not None and effective < lo) or (hi is not None and effective > hi):
+        fail(f"{_with_unit(eng, param)} is out of range {_range_text(param)}")
+        return None
+    regs = param.encode(raw)
+    return Desired(param, param.format_registers(regs), regs)
+
+
+def _from_raw(param: Parameter, raw_v: Any, e: Entry, fail: Any) -> Desired | None:
+    raw: codec.Raw
+    if codec.is_float(param.type):
+        raw = float(raw_v)
+    elif isinstance(raw_v, int) or (isinstance(raw_v, Decimal) and raw_v == raw_v.to_integral_value()):
+        raw = int(raw_v)
+    else:
+        fail(f"raw value {raw_v} is not an integer")
+        return None
+    bounds = param.raw_bounds()
+    if bounds is not None and not bounds[0] <= raw <= bounds[1]:
+        fail(f"raw value {raw} is out of range {bounds[0]}..{bounds[1]} ({_range_text(param)})")
+        return None
+    try:
+        regs = param.encode(raw)
+    except codec.CodecError as err:
+        fail(str(err))
+        return None
+    return Desired(param, param.format_registers(regs), regs)
+
+
+def _engineering(param: Parameter, value: Any) -> Decimal | tuple[str, int]:
+    """A written value -> engineering Decimal in the parameter's unit, or (label, raw)."""
+    if isinstance(value, bool) or value is None:
+        raise ValueError(f"expected a number, a value with a unit or a label, got {json.dumps(value)}")
+    if isinstance(value, int | Decimal):
+        return Decimal(value)
+    text = str(value)
+    labels = dict(param.values)
+    if text in labels:
+        return text, labels[text]
+    m = _NUMBER.match(text)
+    if not m:
+        choices = f" or one of: {', '.join(labels)}" if labels else ""
+        raise ValueError(f"'{text}' is not a number with a unit{choices}")
+    try:
+        number = Decimal(m.group(1).replace("_", ""))
+    except InvalidOperation:
+        raise ValueError(f"'{text}' is not a number") from None
+    unit = m.group(2)
+    if not unit:
+        return number
+    target = param.unit or "dimensionless"
+    if param.unit is not None and units.normalize(unit) == param.unit:
+        return number
+    return units.convert(number, unit, target)
+
+
+def _with_unit(d: Decimal, param: Parameter) -> str:
+    text = codec.format_decimal(d)
+    return f"{text} {param.unit}" if param.unit else text
+
+
+def _range_text(param: Parameter) -> str:
+    lo = "-" if param.min is None else codec.format_decimal(param.min)
+    hi = "-" if param.max is None else codec.format_decimal(param.max)
+    unit = f" {param.unit}" if param.unit else ""
+    return f"{lo}..{hi}{unit}"
+
+
+# ---- writing recipes (snapshots, pull) ---------------------------------------------------
+
+
+def value_text(param: Parameter, registers: Sequence[int]) -> Any:
+    """A register value as a recipe value that loads back to exactly these registers."""
+    raw = param.decode(tuple(registers))
+    label = param.label_for(raw)
+    if label is not None:
+        return label
+    bounds = param.raw_bounds()
+    if bounds is not None and not bounds[0] <= raw <= bounds[1]:
+        return {"raw": raw}  # outside the profile's range: keep it loadable (raw bypasses scaling)
+    eng = param.to_engineering(tuple(registers))
+    text = codec.format_decimal(eng)
+    if codec.is_float(param.type) and param.scale == 1 and param.offset == 0:
+        text = codec.shortest_float_repr(float(raw), param.type)
+    return f"{text} {param.unit}" if param.unit else text
+
+
+def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, name: str,
+                device: DeviceSpec | None = None, comment: str = "") -> str:
+    """A recipe that sets every given parameter to the given registers (YAML text)."""
+    lines = [f"# {c}" for c in comment.splitlines()] if comment else []
+    lines.append(f"recipe: {json.dumps(name)}")
+    lines.append(f"profile: {json.dumps(profile_ref)}")
+    if device is not None and (device.url or device.unit is not None):
+        dev = {k: v for k, v in (("url", device.url), ("unit", device.unit)) if v is not None}
+        lines.append(f"device: {json.dumps(dev)}")
+    lines.append("parameters:")
+    if not values:
+        lines[-1] = "parameters: {}"
+    for param, regs in sorted(values.items(), key=lambda kv: kv[0].address):
+        v = value_text(param, regs)
+        if isinstance(v, str):
+            # numbers stay numbers (in the profile's unit); other text is quoted so YAML keeps it a string
+            try:
+                Decimal(v)
+                rendered = v
+            except InvalidOperation:
+                rendered = json.dumps(v)
+        else:
+            rendered = json.dumps(v)
+        key = param.name if _PLAIN_KEY.match(param.name) else json.dumps(param.name)
+        lines.append(f"  {key}: {rendered}")
+    return "\n".join(lines) + "\n"
