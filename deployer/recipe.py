@@ -76,7 +76,7 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
     layers = _load_chain(p, [], errors)  # base first, this file last
     if errors:
         raise InputError(errors)
-    top_data, top_src = layers[-1]
+    top_data = layers[-1][0]
     prof_ref: str | None = None
     prof_src: yamlsrc.Source | None = None
     device = DeviceSpec()
@@ -106,7 +106,8 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
             raise InputError([prof_src.error(("profile",), str(e))]) from None
         except InputError as e:
             # the profile's own errors, plus where the recipe points at it
-            raise InputError([*e.diagnostics, prof_src.error(("profile",), f"profile '{prof_ref}' is invalid")]) from None
+            where = prof_src.error(("profile",), f"profile '{prof_ref}' is invalid")
+            raise InputError([*e.diagnostics, where]) from None
         if prof.source is not None:
             resolved_ref = prof.source
     desired: list[Desired] = []
