@@ -111,8 +111,8 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
         if prof.source is not None:
             resolved_ref = prof.source
     desired: list[Desired] = []
-    for e in entries.values():
-        d = _desired(prof, e, rounding, errors)
+    for entry in entries.values():
+        d = _desired(prof, entry, rounding, errors)
         if d is not None:
             desired.append(d)
     if errors:
