@@ -10,7 +10,7 @@ import json
 import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
 from typing import Any, Literal
 
@@ -57,7 +57,7 @@ class Entry:
 
     name: str
     value: Any
-    src: yamlsrc.Source
+    src: yamlsrc.Source = field(repr=False)
     at: yamlsrc.Path_
 
 
@@ -89,7 +89,7 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
         device = DeviceSpec(dev.get("url", device.url), dev.get("unit", device.unit))
         rounding = data.get("rounding", rounding)
         for name, value in (data.get("parameters") or {}).items():
-            for e in _expand(name, value, src, ("parameters", name)):
+            for e in expand(name, value, src, ("parameters", name)):
                 entries.pop(e.name, None)  # re-insert: a later file decides the order too
                 entries[e.name] = e
     for e in extra:
@@ -169,7 +169,7 @@ def _load_chain(path: str, stack: list[str], errors: list[Diagnostic],
 _TABLE_ENTRY = re.compile(r"^[A-Za-z_][\w-]*\[\d+\]$")
 
 
-def _expand(name: str, value: Any, src: yamlsrc.Source, at: yamlsrc.Path_) -> Iterable[Entry]:
+def expand(name: str, value: Any, src: yamlsrc.Source, at: yamlsrc.Path_) -> Iterable[Entry]:
     """``tbl[3]: {field: v}`` -> ``tbl[3].field: v``; everything else as is."""
     if isinstance(value, dict) and _TABLE_ENTRY.match(name) and not ({"raw", "value"} & value.keys()):
         for field, v in value.items():
