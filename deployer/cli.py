@@ -2,14 +2,34 @@
 
 from __future__ import annotations
 
+import asyncio
+import json
+import os
 import sys
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import click
 from rich.console import Console
 from rich.table import Table
 
-from .diagnostics import EXIT_INVALID, EXIT_OK, Diagnostic, InputError, UsageError
+from .diagnostics import (
+    EXIT_CHANGES,
+    EXIT_INVALID,
+    EXIT_OK,
+    EXIT_UNREACHABLE,
+    Diagnostic,
+    InputError,
+    UsageError,
+)
+from .transport import DeviceURL, TransportError, describe
+
+if TYPE_CHECKING:
+    from .planner import Plan
+    from .profile import Profile
+    from .recipe import Recipe
+    from .report import DeviceResult, Report
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -154,9 +174,413 @@ def profiles_show(profile: str) -> int:
 
 # --- plan (planner) ---------------------------------------------------------------------
 
+_device_options = [
+    click.option("--device", "device", metavar="URL", help="device URL (default: the recipe's device.url)"),
+    click.option("--unit", type=click.IntRange(0, 247), help="unit id (default: the recipe's, else 1)"),
+    click.option("--timeout", type=click.FloatRange(min=0, min_open=True), help="seconds per attempt"),
+    click.option("--retries", type=click.IntRange(0, 20), help="retries after a timeout or busy answer"),
+]
+
+
+def device_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    for opt in reversed(_device_options):
+        f = opt(f)
+    return f
+
+
+def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
+            retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
+    """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
+    from .transport import BadURL, parse_url
+
+    text = device or (recipe.device.url if recipe.device else None)
+    u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
+    if text is None:
+        if required:
+            raise UsageError("no device: pass --device URL or set device.url in the recipe")
+        return None, u
+    try:
+        return parse_url(text, timeout=timeout, retries=retries), u
+    except BadURL as e:
+        raise UsageError(str(e)) from None
+
+
+def _hexwords(regs: Sequence[int] | None) -> str:
+    return "-" if regs is None else " ".join(f"{w:04X}" for w in regs)
+
+
+def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console) -> None:
+    from .planner import wire_stats
+
+    req_of: dict[str, list[int]] = {}
+    for i, w in enumerate(plan.writes, 1):
+        for n in w.parameters:
+            req_of.setdefault(n, []).append(i)
+    table = Table("parameter", "address", "raw", "value", "request", box=None)
+    if changes_only:
+        table = Table("parameter", "address", "current -> desired", "raw", "action", "request", box=None)
+    for pp in plan.parameters:
+        if changes_only and pp.action == "unchanged":
+            continue
+        addr = f"0x{pp.address:04X} ({pp.address})"
+        reqs = ",".join(str(i) for i in req_of.get(pp.name, [])) or "-"
+        if changes_only:
+            p = profile.parameter(pp.name)
+            cur = p.format_registers(pp.current_raw) if pp.current_raw is not None else "?"
+            table.add_row(pp.name, addr, f"{cur} -> {pp.desired}", _hexwords(pp.desired_raw), pp.action, reqs)
+        else:
+            table.add_row(pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs)
+    if table.row_count:
+        out.print(table)
+    elif changes_only:
+        out.print("No changes: the device already holds every value of the recipe.")
+    st = wire_stats(plan)
+    naive = sum(1 for pp in plan.parameters if pp.action != "unchanged")
+    unchanged = sum(1 for pp in plan.parameters if pp.action == "unchanged")
+    out.print(
+        f"{len(plan.writes)} write request{'s' if len(plan.writes) != 1 else ''} "
+        f"({st['registers']} registers; one request per parameter would take {naive})"
+        + (f", {unchanged} unchanged" if unchanged else "")
+        + f"; {st['rtu_bytes']} bytes on an RTU line, about {float(st['seconds_19200']) * 1000:.0f} ms at 19200 baud")
+
+
+def print_frames(plan: Plan, out: Console) -> None:
+    from .frames import request_frame, response_frame
+
+    unit = plan.device.unit
+    for i, w in enumerate(plan.writes, 1):
+        names = ", ".join(w.parameters)
+        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {w.count} registers ({names})")
+        for framing in ("rtu", "ascii", "tcp"):
+            q = request_frame(w, unit, framing, transaction_id=i)  # type: ignore[arg-type]
+            a = response_frame(w, unit, framing)  # type: ignore[arg-type]
+            show = (lambda b: b.decode("ascii").strip()) if framing == "ascii" else (lambda b: b.hex(" ").upper())
+            out.print(f"  {framing:5} query    {show(q)}")
+            out.print(f"  {'':5} response {show(a)}")
+
+
+@cli.command()
+@click.argument("recipe", type=click.Path(dir_okay=False))
+@device_options
+@click.option("--json", "as_json", is_flag=True, help="print the plan as JSON")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), help="write the plan (JSON) for 'apply PLAN.json'")
+@click.option("--detailed-exitcode", is_flag=True, help="exit 2 when something would change, 0 when nothing would")
+@click.option("--show-frames", is_flag=True, help="print the exact bytes of each request (RTU, ASCII, TCP)")
+@click.option("--write-all", is_flag=True, help="plan every parameter, even those the device already holds")
+def plan(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
+         as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool) -> int:
+    """Show the requests that apply would send. Offline, or with --device against what the device holds."""
+    from .executor import read_current
+    from .planner import Target, make_plan, plan_to_json
+    from .recipe import load_recipe
+    from .report import write_json
+
+    rec = load_recipe(recipe)
+    url, u = _target(rec, device, unit, timeout, retries, required=False)
+    current = None
+    if device is not None:
+        assert url is not None
+        try:
+            current = asyncio.run(read_current(rec.profile, [d.name for d in rec.desired], url, u))
+        except TransportError as e:
+            click.echo(f"error: {e}", err=True)
+            return EXIT_UNREACHABLE
+    target = Target(describe(url) if url else None, u, rec.profile_ref or rec.profile.id)
+    p = make_plan(rec, target, current, write_all=write_all)
+    data = plan_to_json(p)
+    if out_path:
+        write_json(data, out_path)
+    if as_json:
+        click.echo(json.dumps(data, indent=2))
+    else:
+        out = console()
+        print_plan(p, rec.profile, changes_only=current is not None, out=out)
+        if show_frames:
+            print_frames(p, out)
+        if out_path:
+            out.print(f"plan written to {out_path}; run it unchanged with: deployer apply {out_path}")
+    if detailed_exitcode and p.writes:
+        return EXIT_CHANGES
+    return EXIT_OK
+
+
 # --- simulate (simulator) ---------------------------------------------------------------
 
 # --- apply, diff, pull, rollback, demo (executor) ---------------------------------------
+
+_STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "skipped": 3, "ok": 4, "unchanged": 5}
+_STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red",
+                 "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red"}
+
+
+def print_report(report: Report, out: Console) -> None:
+    for d in report.devices:
+        style = _STATUS_STYLE.get(d.status, "")
+        out.print(f"[bold]{d.name}[/bold] {d.url} unit {d.unit} ({d.profile}): [{style}]{d.status}[/{style}]"
+                  + (f" - {d.error}" if d.error else ""))
+        rows = sorted(d.parameters, key=lambda p: (_STATUS_ORDER.get(p.status, 9), p.address))
+        if d.status != "unreachable" and rows:
+            table = Table("parameter", "before", "desired", "after", "status", "", box=None)
+            for p in rows:
+                st = _STATUS_STYLE.get(p.status, "")
+                table.add_row(p.name, p.before or "-", p.desired, p.after or "-", f"[{st}]{p.status}[/{st}]",
+                              p.error or "")
+            out.print(table)
+        if d.snapshot:
+            out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
+        out.print(f"{d.write_requests} write and {d.read_requests} read requests")
+    s = report.to_json()["summary"]
+    if len(report.devices) > 1:
+        out.print(f"{s['devices']} devices: {s['ok']} ok, {s['partial']} partial, {s['failed']} failed, "
+                  f"{s['unreachable']} unreachable in {s['seconds']:.2f} s")
+
+
+def _is_plan_file(path: str) -> bool:
+    if path.endswith(".json"):
+        return True
+    try:
+        with open(path, "rb") as f:
+            return f.read(200).lstrip().startswith(b"{") and b"deployer.plan/" in f.read(4096)
+    except OSError:
+        return False
+
+
+def recipe_from_plan(path: str) -> tuple[Recipe, Plan]:
+    """A saved plan -> (the recipe it carries, the plan); checked against its profile."""
+    from . import yamlsrc
+    from .planner import plan_from_json
+    from .profile import resolve_profile
+    from .recipe import Desired, DeviceSpec
+
+    data, src = yamlsrc.load(path)
+    p = plan_from_json(data, path)
+    try:
+        prof = resolve_profile(p.device.profile)
+    except UsageError as e:
+        raise InputError([src.error(("device", "profile"), str(e))]) from None
+    errors = []
+    desired = []
+    for i, pp in enumerate(p.parameters):
+        param = prof.get(pp.name)
+        if param is None or param.address != pp.address or param.count != len(pp.desired_raw):
+            errors.append(src.error(("parameters", i, "name"),
+                                    f"{pp.name} does not match profile {prof.id} (address or size differ)"))
+            continue
+        desired.append(Desired(param, pp.desired, pp.desired_raw))
+    if errors:
+        raise InputError(errors)
+    rec = Recipe(name=os.path.basename(p.recipe or path), path=p.recipe, profile=prof, desired=tuple(desired),
+                 device=DeviceSpec(p.device.url, p.device.unit), profile_ref=p.device.profile)
+    return rec, p
+
+
+def run_apply(source: str, *, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
+              yes: bool, report_path: str | None, as_json: bool, inventory: str | None, limit: str | None,
+              parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
+              command: str = "apply") -> int:
+    """apply / rollback: everything validated, then confirmed, then sent."""
+    from .executor import ApplyOptions, Job, apply_many
+    from .fleet import load_inventory
+    from .recipe import load_recipe
+    from .report import audit, write_json
+    from .transport import BadURL, parse_url
+
+    expected: Plan | None = None
+    if _is_plan_file(source):
+        if inventory or write_all:
+            raise UsageError("a saved plan runs unchanged: --inventory and --write-all do not apply to it")
+        rec, expected = recipe_from_plan(source)
+    else:
+        rec = load_recipe(source)
+    jobs: list[Job] = []
+    if inventory:
+        if device:
+            raise UsageError("--device and --inventory exclude each other")
+        inv = load_inventory(inventory)
+        errors: list[Diagnostic] = []
+        for dev in inv.select(limit):
+            try:
+                r = rec
+                if dev.overrides or (dev.profile and dev.profile != rec.profile_ref):
+                    from .profile import resolve_profile
+                    prof = resolve_profile(dev.profile) if dev.profile else None
+                    r = load_recipe(source, extra=dev.overrides, profile=prof)
+                url = parse_url(dev.url, timeout=timeout or dev.timeout, retries=retries if retries is not None
+                                else dev.retries)
+                jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit))
+            except InputError as e:
+                errors.extend(e.diagnostics)
+            except (BadURL, UsageError) as e:
+                errors.append(Diagnostic(inventory, 0, 0, f"{dev.name}: {e}"))
+        if errors:
+            raise InputError(errors)
+        if not jobs:
+            raise UsageError(f"--limit {limit!r} matches no device in {inventory}")
+    else:
+        url, u = _target(rec, device, unit, timeout, retries, required=True)
+        assert url is not None
+        name = rec.name if command != "rollback" else f"rollback-{rec.name}"
+        jobs.append(Job(name, rec, url, u))
+    for j in jobs:
+        if j.unit == 0 and not allow_broadcast:
+            raise UsageError(f"{j.name}: unit 0 is broadcast (no device answers, nothing can be verified); "
+                             "pass --allow-broadcast to send it anyway")
+
+    out = console()
+    err = Console(stderr=True, highlight=False)
+    confirm = None
+    if not yes:
+        if not sys.stdin.isatty():
+            raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
+        lock = asyncio.Lock()
+
+        async def confirm(p: Plan, res: DeviceResult) -> bool:
+            async with lock:  # one question at a time, even for fleets
+                err.print(f"[bold]{res.name}[/bold] {res.url} unit {res.unit}:")
+                print_plan(p, rec.profile if len(jobs) == 1 else jobs[0].recipe.profile, changes_only=True, out=err)
+                return await asyncio.to_thread(click.confirm, "Write these values?", default=False, err=True)
+
+    options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
+                           allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm)
+    report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=source))
+    data = report.to_json()
+    if report_path:
+        write_json(data, report_path)
+    audit(state_dir, report, command=command, argv=sys.argv[1:])
+    if as_json:
+        click.echo(json.dumps(data, indent=2))
+    else:
+        print_report(report, out)
+    return report.exit_code
+
+
+def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    opts = [
+        click.option("--yes", "-y", is_flag=True, help="do not ask for confirmation"),
+        click.option("--report", "report_path", type=click.Path(dir_okay=False), help="write the report JSON here"),
+        click.option("--json", "as_json", is_flag=True, help="print the report JSON"),
+        click.option("--inventory", type=click.Path(dir_okay=False), help="apply to the devices of an inventory"),
+        click.option("--limit", metavar="GROUP|NAME", help="only these inventory devices or groups (comma-separated)"),
+        click.option("--parallel", type=click.IntRange(1, 1000), default=8, show_default=True,
+                     help="devices at once (devices on one bus always go one at a time)"),
+        click.option("--on-error", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
+                     help="after a rejected value: send the rest, or skip it"),
+        click.option("--write-all", is_flag=True, help="write every parameter, even those already right"),
+        click.option("--allow-broadcast", is_flag=True, help="allow unit 0 (broadcast; nothing can be verified)"),
+        click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
+                     help="where snapshots and the audit log go"),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return device_options(f)
+
+
+@cli.command()
+@click.argument("source", metavar="RECIPE|PLAN.json", type=click.Path(dir_okay=False))
+@apply_options
+def apply(source: str, **kw: Any) -> int:
+    """Write a recipe (or a saved plan) to a device, read it back, report what it holds."""
+    return run_apply(source, **kw)
+
+
+@cli.command()
+@click.argument("snapshot", type=click.Path(dir_okay=False, exists=True))
+@apply_options
+def rollback(snapshot: str, **kw: Any) -> int:
+    """Restore a snapshot that apply saved (a snapshot is itself a recipe)."""
+    return run_apply(snapshot, command="rollback", **kw)
+
+
+@cli.command()
+@click.argument("recipe", type=click.Path(dir_okay=False))
+@device_options
+@click.option("--json", "as_json", is_flag=True, help="print the differences as JSON")
+def diff(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
+         as_json: bool) -> int:
+    """Drift check: exit 2 when the device differs from the recipe, 0 when it matches."""
+    from .executor import read_current
+    from .recipe import load_recipe
+
+    rec = load_recipe(recipe)
+    url, u = _target(rec, device, unit, timeout, retries, required=True)
+    assert url is not None
+    try:
+        current = asyncio.run(read_current(rec.profile, [d.name for d in rec.desired], url, u))
+    except TransportError as e:
+        click.echo(f"error: {e}", err=True)
+        return EXIT_UNREACHABLE
+    rows = []
+    for d in rec.desired:
+        cur = current.get(d.name)
+        if cur is None:
+            rows.append({"name": d.name, "desired": d.text, "device": None, "status": "not readable"})
+        elif cur != d.registers:
+            rows.append({"name": d.name, "desired": d.text, "device": d.parameter.format_registers(cur),
+                         "device_raw": list(cur), "desired_raw": list(d.registers), "status": "drift"})
+    drift = [r for r in rows if r["status"] == "drift"]
+    if as_json:
+        click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u, "drift": rows}, indent=2))
+    elif rows:
+        table = Table("parameter", "recipe", "device", "", box=None)
+        for r in rows:
+            table.add_row(str(r["name"]), str(r["desired"]), str(r["device"] or "-"), str(r["status"]))
+        console().print(table)
+        console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
+    else:
+        console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
+    return EXIT_CHANGES if drift else EXIT_OK
+
+
+@cli.command()
+@click.option("--profile", "profile_ref", required=True, metavar="ID|FILE", help="the device's profile")
+@click.option("--device", required=True, metavar="URL")
+@click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True)
+@click.option("--timeout", type=click.FloatRange(min=0, min_open=True))
+@click.option("--retries", type=click.IntRange(0, 20))
+@click.option("-o", "--output", type=click.Path(dir_okay=False), help="write the recipe here (default: stdout)")
+@click.option("--name", help="the recipe's name (default: pulled-PROFILE)")
+def pull(profile_ref: str, device: str, unit: int, timeout: float | None, retries: int | None,
+         output: str | None, name: str | None) -> int:
+    """Read every writable parameter of a device into a recipe that applies back as a no-op."""
+    from .executor import read_current
+    from .profile import resolve_profile
+    from .recipe import DeviceSpec, recipe_text
+    from .transport import BadURL, parse_url
+
+    prof = resolve_profile(profile_ref)
+    try:
+        url = parse_url(device, timeout=timeout, retries=retries)
+    except BadURL as e:
+        raise UsageError(str(e)) from None
+    names = [p.name for p in prof.parameters if p.readable and p.writable]
+    try:
+        current = asyncio.run(read_current(prof, names, url, unit))
+    except TransportError as e:
+        click.echo(f"error: {e}", err=True)
+        return EXIT_UNREACHABLE
+    ref = prof.source if prof.source and output is None else (
+        os.path.relpath(prof.source, os.path.dirname(os.path.abspath(output))) if prof.source and output else prof.id)
+    text = recipe_text(ref, {prof.parameter(n): v for n, v in current.items()}, name=name or f"pulled-{prof.id}",
+                       device=DeviceSpec(describe(url), unit),
+                       comment=f"Pulled from {describe(url)} unit {unit} at "
+                               f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}")
+    if output:
+        with open(output, "w", encoding="utf-8") as f:
+            f.write(text)
+        click.echo(f"{len(current)} parameters written to {output}", err=True)
+    else:
+        click.echo(text, nl=False)
+    return EXIT_OK
+
+
+@cli.command()
+@click.option("--fast", is_flag=True, hidden=True, help="no pauses between steps (tests)")
+def demo(fast: bool) -> int:
+    """The whole story against a built-in simulated device: validate, plan, apply, verify, drift, rollback."""
+    from .demo import run_demo
+
+    return run_demo(fast=fast)
+
 
 
 def main(argv: Sequence[str] | None = None) -> None:

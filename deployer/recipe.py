@@ -293,45 +293,50 @@ def _range_text(param: Parameter) -> str:
 # ---- writing recipes (snapshots, pull) ---------------------------------------------------
 
 
-def value_text(param: Parameter, registers: Sequence[int]) -> Any:
-    """A register value as a recipe value that loads back to exactly these registers."""
+def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
+    """A register value as recipe text that loads back to exactly these registers.
+
+    None when the value lies outside the profile's range (a recipe could not set it).
+    """
     raw = param.decode(tuple(registers))
     label = param.label_for(raw)
     if label is not None:
         return label
     bounds = param.raw_bounds()
     if bounds is not None and not bounds[0] <= raw <= bounds[1]:
-        return {"raw": raw}  # outside the profile's range: keep it loadable (raw bypasses scaling)
-    eng = param.to_engineering(tuple(registers))
-    text = codec.format_decimal(eng)
+        return None
     if codec.is_float(param.type) and param.scale == 1 and param.offset == 0:
         text = codec.shortest_float_repr(float(raw), param.type)
+    else:
+        text = codec.format_decimal(param.to_engineering(tuple(registers)))
     return f"{text} {param.unit}" if param.unit else text
 
 
 def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, name: str,
                 device: DeviceSpec | None = None, comment: str = "") -> str:
-    """A recipe that sets every given parameter to the given registers (YAML text)."""
+    """A recipe that sets every given parameter to the given registers (YAML text).
+
+    Values outside the profile's range are kept as comments: a recipe cannot set them.
+    """
     lines = [f"# {c}" for c in comment.splitlines()] if comment else []
     lines.append(f"recipe: {json.dumps(name)}")
     lines.append(f"profile: {json.dumps(profile_ref)}")
     if device is not None and (device.url or device.unit is not None):
         dev = {k: v for k, v in (("url", device.url), ("unit", device.unit)) if v is not None}
         lines.append(f"device: {json.dumps(dev)}")
-    lines.append("parameters:")
-    if not values:
-        lines[-1] = "parameters: {}"
+    body = []
     for param, regs in sorted(values.items(), key=lambda kv: kv[0].address):
-        v = value_text(param, regs)
-        if isinstance(v, str):
-            # numbers stay numbers (in the profile's unit); other text is quoted so YAML keeps it a string
-            try:
-                Decimal(v)
-                rendered = v
-            except InvalidOperation:
-                rendered = json.dumps(v)
-        else:
-            rendered = json.dumps(v)
         key = param.name if _PLAIN_KEY.match(param.name) else json.dumps(param.name)
-        lines.append(f"  {key}: {rendered}")
-    return "\n".join(lines) + "\n"
+        v = value_text(param, regs)
+        if v is None:
+            words = " ".join(f"{w:04X}h" for w in regs)
+            body.append(f"  # {key}: raw {words} is outside the profile's range {_range_text(param)}")
+            continue
+        try:  # numbers stay numbers (in the profile's unit); other text is quoted so YAML keeps it a string
+            Decimal(v)
+            rendered = v
+        except InvalidOperation:
+            rendered = json.dumps(v)
+        body.append(f"  {key}: {rendered}")
+    lines.append("parameters:" if any(not b.lstrip().startswith("#") for b in body) else "parameters: {}")
+    return "\n".join(lines + body) + "\n"

@@ -1,0 +1,160 @@
+"""Results of an apply, per device and per parameter, as the report JSON (DESIGN.md, "Report")."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from .diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE
+
+REPORT_SCHEMA = "deployer.report/1"
+ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
+DeviceStatus = Literal["ok", "partial", "failed", "unreachable"]
+
+
+@dataclass
+class RequestRecord:
+    function: int
+    address: int
+    count: int
+    result: str = "ok"  # ok | exception | no response | connection lost | broadcast
+    exception_code: int | None = None
+    attempts: int = 1
+
+    def to_json(self) -> dict[str, Any]:
+        return {"function": self.function, "address": self.address, "count": self.count, "result": self.result,
+                "exception_code": self.exception_code, "attempts": self.attempts}
+
+
+@dataclass
+class ParameterResult:
+    name: str
+    address: int
+    count: int
+    desired: str
+    desired_raw: tuple[int, ...]
+    before_raw: tuple[int, ...] | None = None
+    after_raw: tuple[int, ...] | None = None
+    status: ParamStatus = "skipped"
+    error: str | None = None
+    # engineering texts for the human table (not in the JSON contract)
+    before: str | None = None
+    after: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "address": self.address, "count": self.count, "desired": self.desired,
+                "desired_raw": list(self.desired_raw),
+                "before_raw": None if self.before_raw is None else list(self.before_raw),
+                "after_raw": None if self.after_raw is None else list(self.after_raw),
+                "status": self.status, "error": self.error}
+
+
+@dataclass
+class DeviceResult:
+    name: str
+    url: str
+    unit: int
+    profile: str
+    status: DeviceStatus = "ok"
+    snapshot: str | None = None
+    requests: list[RequestRecord] = field(default_factory=list)
+    parameters: list[ParameterResult] = field(default_factory=list)
+    error: str | None = None  # why the device failed or was unreachable
+
+    @property
+    def write_requests(self) -> int:
+        return sum(1 for r in self.requests if r.function in (6, 16))
+
+    @property
+    def read_requests(self) -> int:
+        return sum(1 for r in self.requests if r.function == 3)
+
+    def settle(self) -> None:
+        """Device status from its parameters (unless already failed/unreachable)."""
+        if self.status in ("unreachable", "failed"):
+            return
+        bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
+        if not bad:
+            self.status = "ok"
+        elif len(bad) == len(self.parameters) and not any(p.status == "unverified" for p in bad):
+            self.status = "failed"
+        else:
+            self.status = "partial"
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "name": self.name, "url": self.url, "unit": self.unit, "profile": self.profile,
+            "status": self.status, "snapshot": self.snapshot,
+            "requests": [r.to_json() for r in self.requests],
+            "parameters": [p.to_json() for p in self.parameters],
+        }
+        if self.error is not None:
+            out["error"] = self.error
+        return out
+
+
+@dataclass
+class Report:
+    recipe: str | None
+    devices: list[DeviceResult]
+    seconds: float = 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        counts = {s: sum(1 for d in self.devices if d.status == s) for s in ("ok", "partial", "failed", "unreachable")}
+        return {
+            "schema": REPORT_SCHEMA,
+            "recipe": self.recipe,
+            "devices": [d.to_json() for d in self.devices],
+            "summary": {"devices": len(self.devices), **counts,
+                        "write_requests": sum(d.write_requests for d in self.devices),
+                        "read_requests": sum(d.read_requests for d in self.devices),
+                        "seconds": round(self.seconds, 3)},
+        }
+
+    @property
+    def exit_code(self) -> int:
+        """DESIGN.md exit codes: 3 only when every device was unreachable (nothing written anywhere)."""
+        if not self.devices:
+            return EXIT_OK
+        if all(d.status == "unreachable" for d in self.devices):
+            return EXIT_UNREACHABLE
+        if any(d.status != "ok" for d in self.devices):
+            return EXIT_FAILED
+        return EXIT_OK
+
+
+def write_json(data: dict[str, Any], path: str) -> None:
+    """Write atomically and durably: a report or plan is evidence, keep it whole."""
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=2)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def audit(state_dir: str, report: Report, *, command: str, argv: Sequence[str] = ()) -> None:
+    """Append one line per apply to STATE/audit.jsonl (who, when, what, outcome)."""
+    os.makedirs(state_dir, exist_ok=True)
+    line = {
+        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "user": os.environ.get("USER") or os.environ.get("LOGNAME") or str(os.getuid()),
+        "command": command,
+        "argv": list(argv),
+        "recipe": report.recipe,
+        "exit_code": report.exit_code,
+        "devices": [{"name": d.name, "url": d.url, "unit": d.unit, "status": d.status, "snapshot": d.snapshot,
+                     "written": [p.name for p in d.parameters if p.status in ("ok", "failed", "mismatch")],
+                     "write_requests": d.write_requests} for d in report.devices],
+    }
+    with open(os.path.join(state_dir, "audit.jsonl"), "a", encoding="utf-8") as f:
+        f.write(json.dumps(line) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
