@@ -66,8 +66,12 @@ def _kind(data: object) -> str | None:
         return "recipe"
     if "devices" in data:
         return "inventory"
-    if "profile" in data and ("parameters" in data or "tables" in data):
+    params = data.get("parameters")
+    declares = isinstance(params, dict) and any(isinstance(v, dict) and "register" in v for v in params.values())
+    if "profile" in data and (declares or data.keys() & {"tables", "addressing", "limits", "identity", "commit"}):
         return "profile"
+    if "profile" in data or "extends" in data:
+        return "recipe"  # a recipe without its 'recipe' key: let the schema say so
     return None
 
 
@@ -105,8 +109,10 @@ def validate_file(path: str) -> str:
 
         plan = plan_from_json(data, path)
         return f"plan: {len(plan.writes)} write requests for {plan.device.profile}"
-    raise InputError([src.error((), "cannot tell what this file is: a profile has 'profile' and 'parameters', "
-                                     "a recipe has 'recipe', an inventory has 'devices'")])
+    what = ("cannot tell what this file is" if isinstance(data, dict) else
+            f"expected a mapping, got {'a list' if isinstance(data, list) else 'a single value'}")
+    raise InputError([src.error((), f"{what}: a profile has 'profile' and 'parameters', a recipe has 'recipe', "
+                                     "an inventory has 'devices'")])
 
 
 @cli.command()

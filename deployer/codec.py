@@ -78,6 +78,9 @@ def to_raw(
             except OverflowError:
                 raise CodecError(f"{value} does not fit in float32") from None
         return raw_f
+    lo, hi = raw_range(type_) or (0, 0)
+    if exact.adjusted() > 40:  # far outside any type: do not print a 400-digit number
+        raise CodecError(f"{value:g} is far outside the range of {type_}")
     integral = exact.to_integral_value(rounding=ROUND_HALF_EVEN)
     if integral != exact and rounding == "exact":
         raise CodecError(
@@ -86,7 +89,6 @@ def to_raw(
             + "; set 'rounding: nearest' to round"
         )
     raw = int(integral)
-    lo, hi = raw_range(type_) or (0, 0)
     if not lo <= raw <= hi:
         raise CodecError(f"raw value {raw} does not fit in {type_} ({lo}..{hi})")
     return raw

@@ -178,6 +178,7 @@ def expand(name: str, value: Any, src: yamlsrc.Source, at: yamlsrc.Path_) -> Ite
         yield Entry(name, value, src, at)
 
 
+_INDEXED = re.compile(r"^([A-Za-z_][\w-]*)\[(\d+)\]\.(.+)$")
 _PLAIN_KEY = re.compile(r"^[A-Za-z_][\w.\[\]-]*$")
 _NUMBER = re.compile(r"^\s*([-+]?(?:\d[\d_]*(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*$")
 
@@ -189,6 +190,11 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
         errors.append(e.src.error(e.at, f"{e.name}: {msg}" if not key else msg, key=key))
 
     if param is None:
+        m = _INDEXED.match(e.name)
+        if m and prof.get(f"{m[1]}[0].{m[3]}") is not None:
+            size = sum(1 for n in prof.names() if n.startswith(f"{m[1]}[") and n.endswith(f"].{m[3]}"))
+            fail(f"{e.name}: index {m[2]} is out of range; table {m[1]} has entries 0..{size - 1}", key=True)
+            return None
         hint = yamlsrc.closest(e.name, prof.names())
         fail(f"unknown parameter '{e.name}' in profile {prof.id}" + (f"; did you mean '{hint}'?" if hint else ""),
              key=True)
@@ -329,8 +335,9 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
         key = param.name if _PLAIN_KEY.match(param.name) else json.dumps(param.name)
         v = value_text(param, regs)
         if v is None:
-            words = " ".join(f"{w:04X}h" for w in regs)
-            body.append(f"  # {key}: raw {words} is outside the profile's range {_range_text(param)}")
+            words = " ".join(f"{w:04X}" for w in regs)
+            raw = param.decode(tuple(regs))
+            body.append(f"  # {key}: raw {raw} ({words}h) is outside the profile's range {_range_text(param)}")
             continue
         try:  # numbers stay numbers (in the profile's unit); other text is quoted so YAML keeps it a string
             Decimal(v)
