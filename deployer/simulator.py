@@ -1,0 +1,400 @@
+"""A simulated device that behaves like a real drive, on pymodbus's server.
+
+Registers come from a profile: only declared registers exist (others answer exception 02),
+read-only ones refuse writes, writes are applied in address order and stop at the first bad
+value with exception 03 (the earlier registers stay written, as real drives do), requests
+beyond the device's limits or splitting a multi-register value answer 03, unit 0 writes
+everywhere and answers nothing. Faults (latency, line time, dropped answers, busy, failing
+registers, disconnects) make the failure paths of the executor testable on a real socket.
+
+    async with Simulator(profile) as sim:      # tcp://127.0.0.1:<free port>
+        ... sim.url ... sim.log ... sim.read("F07")
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import threading
+import time
+import urllib.parse
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from pymodbus import FramerType
+from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import NoSuchIdException
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from . import codec
+from .profile import Parameter, Profile
+from .recipe import Recipe
+
+
+@dataclass
+class Faults:
+    """Misbehaviour on demand. Mutable: tests and the demo switch faults while serving."""
+
+    latency_ms: float = 0
+    baud: int | None = None  # delay answers by the line time of request + answer on a B-baud 8E1 line
+    drop_every: int = 0  # swallow every Nth request (no answer)
+    busy_first: int = 0  # answer the first N write requests with exception 06, writing nothing
+    fail_registers: frozenset[int] = frozenset()  # a write reaching one of these answers exception 04
+    disconnect_after: int = 0  # close the connection(s) after every N requests (TCP)
+
+
+@dataclass
+class LogEntry:
+    time: float
+    unit: int
+    function: int
+    address: int
+    count: int
+    values: list[int] | None
+    request_hex: str
+    result: str = "ok"  # ok | exception NN | dropped | broadcast | no answer | disconnected
+
+
+@dataclass
+class _Listen:
+    scheme: str
+    host: str = "127.0.0.1"
+    port: int = 5020
+    path: str = ""
+    baudrate: int = 19200
+
+
+def parse_listen(url: str) -> _Listen:
+    u = urllib.parse.urlsplit(url)
+    if u.scheme in ("rtu", "ascii"):
+        q = urllib.parse.parse_qs(u.query)
+        return _Listen(u.scheme, path=urllib.parse.unquote(u.netloc + u.path),
+                       baudrate=int(q.get("baudrate", ["19200"])[-1]))
+    if u.scheme in ("tcp", "rtu+tcp"):
+        return _Listen(u.scheme, host=u.hostname or "127.0.0.1", port=5020 if u.port is None else u.port)
+    raise ValueError(f"cannot listen on '{url}' (tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/X, ascii:///dev/X)")
+
+
+def _frame_chars(function: int, count: int, request: bool) -> int:
+    """Characters of an RTU frame (unit + PDU + CRC) for a read or write of ``count`` registers."""
+    if function == 3:
+        return 8 if request else 5 + 2 * count
+    if function == 16:
+        return 9 + 2 * count if request else 8
+    return 8
+
+
+def initial_registers(profile: Profile) -> dict[int, int]:
+    """Power-on values: each parameter's default (engineering), else zero."""
+    regs: dict[int, int] = {}
+    for p in profile.parameters:
+        words: tuple[int, ...] = (0,) * p.count
+        if p.default is not None:
+            words = codec.engineering_to_registers(p.default, p.type, p.scale, p.offset, p.word_order, "nearest")
+        for i, w in enumerate(words):
+            regs[p.address + i] = w
+    return regs
+
+
+def init_from_recipe(recipe: Recipe) -> dict[int, int]:
+    """Wire address -> raw register for every value of a recipe (for ``--init``)."""
+    return {d.parameter.address + i: w for d in recipe.desired for i, w in enumerate(d.registers)}
+
+
+class _Units:
+    """pymodbus's SimCore answers 04 for an unknown unit; a bus stays silent, a gateway says 0x0B."""
+
+    def __init__(self, core: Any) -> None:
+        self.core = core
+
+    def device_ids(self) -> list[int]:
+        return list(self.core.device_ids())
+
+    async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1) -> Any:  # noqa: N802
+        if device_id not in self.core.devices:
+            raise NoSuchIdException(device_id)
+        return await self.core.async_getValues(device_id, func_code, address, count)
+
+    async def async_setValues(self, device_id: int, func_code: int, address: int, values: Any) -> Any:  # noqa: N802
+        if device_id not in self.core.devices:
+            raise NoSuchIdException(device_id)
+        return await self.core.async_setValues(device_id, func_code, address, values)
+
+
+class Simulator:
+    def __init__(self, profile: Profile, *, listen: str = "tcp://127.0.0.1:0", units: Sequence[int] = (1,),
+                 init: Mapping[int, int] | None = None, faults: Faults | None = None,
+                 log_path: str | None = None, state_path: str | None = None, strict_limits: bool = True) -> None:
+        if not profile.parameters:
+            raise ValueError(f"profile {profile.id} declares no registers to simulate")
+        self.profile = profile
+        self.listen = parse_listen(listen)
+        self.units = tuple(units)
+        self.faults = faults or Faults()
+        self.log: list[LogEntry] = []
+        self.log_path = log_path
+        self.state_path = state_path
+        self.strict_limits = strict_limits
+        self.url = ""
+        self._server: Any = None
+        self._log_file: Any = None
+        self._requests = 0  # since start, for drop_every / disconnect_after
+        self._window = 0
+        self._writes = 0  # write requests, for busy_first
+        self._pending: dict[tuple[int, int, int], LogEntry] = {}
+        self._owner: dict[int, Parameter] = {}
+        for p in profile.parameters:
+            for a in range(p.address, p.end):
+                self._owner[a] = p
+        start = initial_registers(profile)
+        for a, v in (init or {}).items():
+            if a not in self._owner:
+                raise ValueError(f"init: register {a} is not declared in profile {profile.id}")
+            start[a] = v
+        self._start_values = start
+
+    # ---- lifecycle ---------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        devices = [self._device(unit) for unit in self.units]
+        lst = self.listen
+        common: dict[str, Any] = {"broadcast_enable": True, "trace_pdu": self._trace_pdu}
+        if lst.scheme == "tcp":
+            self._server = ModbusTcpServer(devices, framer=FramerType.SOCKET, address=(lst.host, lst.port), **common)
+        elif lst.scheme == "rtu+tcp":
+            self._server = ModbusTcpServer(devices, framer=FramerType.RTU, address=(lst.host, lst.port),
+                                           ignore_missing_devices=True, **common)
+        else:
+            self._server = ModbusSerialServer(devices, framer=FramerType.RTU if lst.scheme == "rtu" else FramerType.ASCII,
+                                              port=lst.path, baudrate=lst.baudrate, ignore_missing_devices=True,
+                                              **common)
+        self._core = self._server.context
+        self._server.context = _Units(self._core)
+        if self.log_path:
+            self._log_file = open(self.log_path, "a", encoding="utf-8")  # noqa: SIM115 - open for the server's life
+        await self._server.serve_forever(background=True)
+        if lst.scheme in ("tcp", "rtu+tcp"):
+            port = lst.port
+            sockets = getattr(self._server.transport, "sockets", None)
+            if sockets:
+                port = sockets[0].getsockname()[1]
+            self.url = f"{lst.scheme}://{lst.host}:{port}"
+        else:
+            self.url = f"{lst.scheme}://{lst.path}"
+
+    async def stop(self) -> None:
+        if self._server is not None:
+            await self._server.shutdown()
+            self._server = None
+        if self.state_path:
+            self.dump_state(self.state_path)
+        if self._log_file is not None:
+            self._log_file.close()
+            self._log_file = None
+
+    async def __aenter__(self) -> Simulator:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    # ---- registers from outside ------------------------------------------------------------
+
+    def _block(self, unit: int) -> tuple[int, list[int]]:
+        runtime = self._core.devices[unit]
+        start, _count, registers, _flags = runtime.block["x"]
+        return start, registers
+
+    def registers(self, unit: int = 1) -> dict[int, int]:
+        start, regs = self._block(unit)
+        return {a: regs[a - start] for a in sorted(self._owner)}
+
+    def read(self, name: str, unit: int = 1) -> tuple[int, ...]:
+        p = self.profile.parameter(name)
+        start, regs = self._block(unit)
+        return tuple(regs[p.address - start: p.end - start])
+
+    def write(self, name: str, registers: Sequence[int], unit: int = 1) -> None:
+        p = self.profile.parameter(name)
+        if len(registers) != p.count:
+            raise ValueError(f"{name} has {p.count} registers")
+        start, regs = self._block(unit)
+        regs[p.address - start: p.end - start] = list(registers)
+
+    def dump_state(self, path: str) -> None:
+        state = {str(u): {str(a): v for a, v in self.registers(u).items()} for u in self.units}
+        tmp = f"{path}.tmp"
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump({"profile": self.profile.id, "units": state}, f, indent=1)
+        os.replace(tmp, path)
+
+    # ---- the device ----------------------------------------------------------------------------
+
+    def _device(self, unit: int) -> SimDevice:
+        blocks = [SimData(address=p.address, values=[self._start_values[a] for a in range(p.address, p.end)],
+                          datatype=DataType.REGISTERS, readonly=not p.writable)
+                  for p in self.profile.parameters]
+
+        async def action(fc: int, start: int, address: int, count: int, registers: list[int],
+                         values: list[int] | None) -> ExcCodes | None:
+            return await self._action(fc, start, address, count, registers, values)
+
+        return SimDevice(id=unit, simdata=blocks, action=action)
+
+    def _params_in(self, address: int, count: int) -> list[Parameter]:
+        seen: dict[str, Parameter] = {}
+        for a in range(address, address + count):
+            p = self._owner.get(a)
+            if p is not None:
+                seen.setdefault(p.name, p)
+        return sorted(seen.values(), key=lambda p: p.address)
+
+    async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int],
+                      values: list[int] | None) -> ExcCodes | None:
+        f = self.faults
+        delay = f.latency_ms / 1000
+        if f.baud:
+            chars = _frame_chars(fc, count, True) + _frame_chars(fc, count, False)
+            delay += (chars + 7) * 11 / f.baud  # 8E1 = 11 bits a character; 3.5 characters of silence per frame
+        if delay:
+            await asyncio.sleep(delay)
+        limits = self.profile.limits
+        params = self._params_in(address, count)
+        if values is None:  # a read (or pymodbus reading back an FC06 write)
+            if fc == 3:
+                if self.strict_limits and count > limits.read_registers:
+                    return ExcCodes.ILLEGAL_VALUE
+                if any(not p.readable for p in params):
+                    return ExcCodes.ILLEGAL_ADDRESS
+            return None
+        self._writes += 1
+        if self._writes <= f.busy_first:
+            return ExcCodes.DEVICE_BUSY
+        if self.strict_limits and fc == 16 and count > limits.write_registers:
+            return ExcCodes.ILLEGAL_VALUE
+        single_words = fc == 6 and limits.write_function == 6  # FC06 devices take a 32-bit value word by word
+        if not single_words and any(p.address < address or p.end > address + count for p in params):
+            return ExcCodes.ILLEGAL_VALUE  # the upper and lower word must come in one request
+        for p in params:  # in address order, stopping at the first bad one: the partial write of real drives
+            lo, hi = max(p.address, address), min(p.end, address + count)
+            if any(a in f.fail_registers for a in range(lo, hi)):
+                return ExcCodes.DEVICE_FAILURE
+            new = list(values[lo - address: hi - address])
+            if hi - lo == p.count and not self._in_range(p, new):
+                return ExcCodes.ILLEGAL_VALUE
+            registers[lo - start: hi - start] = new
+        return None
+
+    @staticmethod
+    def _in_range(p: Parameter, words: list[int]) -> bool:
+        raw = p.decode(words)
+        if isinstance(raw, float) and raw != raw:  # NaN
+            return False
+        bounds = p.raw_bounds()
+        return bounds is None or bounds[0] <= raw <= bounds[1]
+
+    # ---- request log, dropped answers, disconnects --------------------------------------------
+
+    def _trace_pdu(self, sending: bool, pdu: Any) -> Any:
+        fc = int(pdu.function_code) & 0x7F
+        if sending:
+            entry = self._pending.pop((pdu.dev_id, pdu.transaction_id, fc), None)
+            if entry is not None:
+                if pdu.isError():
+                    entry.result = f"exception {int(pdu.exception_code):02d}"
+                self._write_log(entry)
+            return pdu
+        regs = list(getattr(pdu, "registers", None) or [])
+        count = int(getattr(pdu, "count", 0) or len(regs) or 1)
+        try:
+            body = pdu.encode()
+        except Exception:  # an unknown function: nothing to re-encode
+            body = b""
+        entry = LogEntry(time.time(), int(pdu.dev_id), fc, int(getattr(pdu, "address", 0) or 0), count,
+                         regs if fc in (6, 16) else None, bytes([pdu.dev_id, fc]).hex() + body.hex())
+        self.log.append(entry)
+        self._requests += 1
+        self._window += 1
+        f = self.faults
+        if f.drop_every and self._requests % f.drop_every == 0:
+            entry.result = "dropped"
+            self._write_log(entry)
+            return None
+        if f.disconnect_after and self._window > f.disconnect_after:
+            entry.result = "disconnected"
+            self._window = 0
+            self._write_log(entry)
+            self._drop_connections()
+            return None
+        if pdu.dev_id == 0:
+            entry.result = "broadcast"
+            self._write_log(entry)
+        elif pdu.dev_id not in self.units and self.listen.scheme != "tcp":
+            entry.result = "no answer"  # nobody on the bus has this address
+            self._write_log(entry)
+        else:
+            self._pending[(pdu.dev_id, pdu.transaction_id, fc)] = entry
+        return pdu
+
+    def _drop_connections(self) -> None:
+        server = self._server
+        for conn in list(getattr(server, "active_connections", {}).values()):
+            loop = asyncio.get_running_loop()
+            loop.call_soon(conn.close)
+
+    def _write_log(self, entry: LogEntry) -> None:
+        if self._log_file is not None:
+            self._log_file.write(json.dumps(asdict(entry)) + "\n")
+            self._log_file.flush()
+
+
+class SimulatorThread:
+    """A Simulator on its own event loop in a background thread (for code that calls asyncio.run)."""
+
+    def __init__(self, profile: Profile, **kwargs: Any) -> None:
+        self.sim = Simulator(profile, **kwargs)
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="deployer-simulator", daemon=True)
+
+    def __enter__(self) -> Simulator:
+        self._thread.start()
+        asyncio.run_coroutine_threadsafe(self.sim.start(), self._loop).result(timeout=30)
+        return self.sim
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            asyncio.run_coroutine_threadsafe(self.sim.stop(), self._loop).result(timeout=30)
+        finally:
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(timeout=30)
+            self._loop.close()
+
+
+async def serve(sim: Simulator, *, on_ready: Any = None) -> None:
+    """Run until SIGINT/SIGTERM; SIGUSR1 dumps the state file."""
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    if sim.state_path and hasattr(signal, "SIGUSR1"):
+        path = sim.state_path
+        loop.add_signal_handler(signal.SIGUSR1, lambda: sim.dump_state(path))
+    await sim.start()
+    if on_ready:
+        on_ready(sim)
+    try:
+        await stop.wait()
+    finally:
+        await sim.stop()
+
+
+def fields_of(faults: Faults) -> dict[str, Any]:
+    return {k: (sorted(v) if isinstance(v, frozenset) else v) for k, v in asdict(faults).items()}
+
+
+__all__ = ["Faults", "LogEntry", "Simulator", "SimulatorThread", "field", "init_from_recipe", "serve"]
