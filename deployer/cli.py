@@ -425,8 +425,7 @@ def run_apply(source: str, *, device: str | None, unit: int | None, timeout: flo
     else:
         url, u = _target(rec, device, unit, timeout, retries, required=True)
         assert url is not None
-        name = rec.name if command != "rollback" else f"rollback-{rec.name}"
-        jobs.append(Job(name, rec, url, u))
+        jobs.append(Job(rec.name, rec, url, u))
     for j in jobs:
         if j.unit == 0 and not allow_broadcast:
             raise UsageError(f"{j.name}: unit 0 is broadcast (no device answers, nothing can be verified); "

@@ -114,12 +114,12 @@ class _Units:
     def device_ids(self) -> list[int]:
         return list(self.core.device_ids())
 
-    async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1) -> Any:  # noqa: N802
+    async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1) -> Any:
         if device_id not in self.core.devices:
             raise NoSuchIdException(device_id)
         return await self.core.async_getValues(device_id, func_code, address, count)
 
-    async def async_setValues(self, device_id: int, func_code: int, address: int, values: Any) -> Any:  # noqa: N802
+    async def async_setValues(self, device_id: int, func_code: int, address: int, values: Any) -> Any:
         if device_id not in self.core.devices:
             raise NoSuchIdException(device_id)
         return await self.core.async_setValues(device_id, func_code, address, values)
