@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
 from typing import Any, Literal
 
+import yaml
+
 from . import codec, units, yamlsrc
 from .diagnostics import Diagnostic, InputError, UsageError
 from .profile import Parameter, Profile, resolve_profile
@@ -318,6 +320,18 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
     return f"{text} {param.unit}" if param.unit else text
 
 
+def _reads_back(text: str) -> bool:
+    try:
+        Decimal(text)
+        return True
+    except InvalidOperation:
+        pass
+    try:
+        return bool(yaml.safe_load(f"k: {text}") == {"k": text})
+    except yaml.YAMLError:
+        return False
+
+
 def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, name: str,
                 device: DeviceSpec | None = None, comment: str = "") -> str:
     """A recipe that sets every given parameter to the given registers (YAML text).
@@ -339,11 +353,8 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
             raw = param.decode(tuple(regs))
             body.append(f"  # {key}: raw {raw} ({words}h) is outside the profile's range {_range_text(param)}")
             continue
-        try:  # numbers stay numbers (in the profile's unit); other text is quoted so YAML keeps it a string
-            Decimal(v)
-            rendered = v
-        except InvalidOperation:
-            rendered = json.dumps(v)
+        # numbers stay numbers (in the profile's unit); text stays plain where YAML reads it back as the same text
+        rendered = v if _reads_back(v) else json.dumps(v)
         body.append(f"  {key}: {rendered}")
     lines.append("parameters:" if any(not b.lstrip().startswith("#") for b in body) else "parameters: {}")
     return "\n".join(lines + body) + "\n"

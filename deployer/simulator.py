@@ -169,8 +169,8 @@ class Simulator:
             self._server = ModbusTcpServer(devices, framer=FramerType.RTU, address=(lst.host, lst.port),
                                            ignore_missing_devices=True, **common)
         else:
-            self._server = ModbusSerialServer(devices, framer=FramerType.RTU if lst.scheme == "rtu" else FramerType.ASCII,
-                                              port=lst.path, baudrate=lst.baudrate, ignore_missing_devices=True,
+            framer = FramerType.RTU if lst.scheme == "rtu" else FramerType.ASCII
+            self._server = ModbusSerialServer(devices, framer=framer, port=lst.path, baudrate=lst.baudrate, ignore_missing_devices=True,
                                               **common)
         self._core = self._server.context
         self._server.context = _Units(self._core)
@@ -256,6 +256,8 @@ class Simulator:
 
     async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int],
                       values: list[int] | None) -> ExcCodes | None:
+        if fc not in (3, 6, 16):  # a drive's parameter area: holding registers only (coils, inputs: 01)
+            return ExcCodes.ILLEGAL_FUNCTION
         f = self.faults
         delay = f.latency_ms / 1000
         if f.baud:
