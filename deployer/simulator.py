@@ -170,7 +170,8 @@ class Simulator:
                                            ignore_missing_devices=True, **common)
         else:
             framer = FramerType.RTU if lst.scheme == "rtu" else FramerType.ASCII
-            self._server = ModbusSerialServer(devices, framer=framer, port=lst.path, baudrate=lst.baudrate, ignore_missing_devices=True,
+            self._server = ModbusSerialServer(devices, framer=framer, port=lst.path, baudrate=lst.baudrate,
+                                              ignore_missing_devices=True,
                                               **common)
         self._core = self._server.context
         self._server.context = _Units(self._core)

@@ -40,8 +40,8 @@ def recipe_file(tmp: Path, body: str, profile: str = "example-inverter") -> str:
 
 
 def line3(tmp: Path) -> str:
-    return recipe_file(tmp, "  F07: 10 s\n  F08: 8 s\n  stop_mode: coast\n  base_speed: 1750 rpm\n"
-                            "  pid_gain: 2.5\n  preset[0]: {speed: 300, time: 2 s}\n  control_mode: sensorless-vector\n")
+    return recipe_file(tmp, "  F07: 10 s\n  F08: 8 s\n  stop_mode: coast\n  base_speed: 1750 rpm\n  pid_gain: 2.5\n"
+                            "  preset[0]: {speed: 300, time: 2 s}\n  control_mode: sensorless-vector\n")
 
 
 def apply(sim: Simulator, recipe_path: str, tmp: Path, unit: int = 1, url_suffix: str = "?timeout=0.3",
