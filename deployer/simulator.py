@@ -17,6 +17,7 @@ import asyncio
 import json
 import os
 import signal
+import ssl
 import threading
 import time
 import urllib.parse
@@ -27,7 +28,7 @@ from typing import Any
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import NoSuchIdException
-from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from . import codec
@@ -66,6 +67,7 @@ class _Listen:
     port: int = 5020
     path: str = ""
     baudrate: int = 19200
+    options: dict[str, str] = field(default_factory=dict)
 
 
 def parse_listen(url: str) -> _Listen:
@@ -74,9 +76,14 @@ def parse_listen(url: str) -> _Listen:
         q = urllib.parse.parse_qs(u.query)
         return _Listen(u.scheme, path=urllib.parse.unquote(u.netloc + u.path),
                        baudrate=int(q.get("baudrate", ["19200"])[-1]))
-    if u.scheme in ("tcp", "rtu+tcp"):
-        return _Listen(u.scheme, host=u.hostname or "127.0.0.1", port=5020 if u.port is None else u.port)
-    raise ValueError(f"cannot listen on '{url}' (tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/X, ascii:///dev/X)")
+    if u.scheme in ("tcp", "rtu+tcp", "tls"):
+        opts = {k: v[-1] for k, v in urllib.parse.parse_qs(u.query).items()}
+        if u.scheme == "tls" and not {"cert", "key"} <= opts.keys():
+            raise ValueError("tls listen URL needs ?cert=FILE&key=FILE (and ca=FILE to require client certificates)")
+        return _Listen(u.scheme, host=u.hostname or "127.0.0.1", port=5020 if u.port is None else u.port,
+                       options=opts)
+    raise ValueError(f"cannot listen on '{url}' (tcp://HOST:PORT, tls://HOST:PORT?cert=&key=&ca=, "
+                     "rtu+tcp://HOST:PORT, rtu:///dev/X, ascii:///dev/X)")
 
 
 def _frame_chars(function: int, count: int, request: bool) -> int:
@@ -165,6 +172,13 @@ class Simulator:
         common: dict[str, Any] = {"broadcast_enable": True, "trace_pdu": self._trace_pdu}
         if lst.scheme == "tcp":
             self._server = ModbusTcpServer(devices, framer=FramerType.SOCKET, address=(lst.host, lst.port), **common)
+        elif lst.scheme == "tls":
+            ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH, cafile=lst.options.get("ca"))
+            ctx.load_cert_chain(lst.options["cert"], lst.options["key"])
+            if "ca" in lst.options:  # Modbus/TCP Security: mutual authentication
+                ctx.verify_mode = ssl.CERT_REQUIRED
+            self._server = ModbusTlsServer(devices, framer=FramerType.TLS, sslctx=ctx, address=(lst.host, lst.port),
+                                           **common)
         elif lst.scheme == "rtu+tcp":
             self._server = ModbusTcpServer(devices, framer=FramerType.RTU, address=(lst.host, lst.port),
                                            ignore_missing_devices=True, **common)
@@ -178,7 +192,7 @@ class Simulator:
         if self.log_path:
             self._log_file = open(self.log_path, "a", encoding="utf-8")  # noqa: SIM115 - open for the server's life
         await self._server.serve_forever(background=True)
-        if lst.scheme in ("tcp", "rtu+tcp"):
+        if lst.scheme in ("tcp", "rtu+tcp", "tls"):
             port = lst.port
             sockets = getattr(self._server.transport, "sockets", None)
             if sockets:
@@ -337,7 +351,7 @@ class Simulator:
         if pdu.dev_id == 0:
             entry.result = "broadcast"
             self._write_log(entry)
-        elif pdu.dev_id not in self.units and self.listen.scheme != "tcp":
+        elif pdu.dev_id not in self.units and self.listen.scheme not in ("tcp", "tls"):
             entry.result = "no answer"  # nobody on the bus has this address
             self._write_log(entry)
         else:
