@@ -118,6 +118,11 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
         if d is not None:
             desired.append(d)
     if errors:
+        top_src = layers[-1][1]
+        bad_bases = sorted({d.path for d in errors} & {src.path for _, src in layers[:-1]})
+        if bad_bases:  # point at this file too: the error is in a recipe it extends
+            rel = ", ".join(os.path.relpath(b, os.path.dirname(os.path.abspath(p))) for b in bad_bases)
+            errors.append(top_src.error(("extends",), f"the extended recipe {rel} has errors"))
         raise InputError(errors)
     desired.sort(key=lambda d: (d.parameter.stage, d.parameter.address))
     return Recipe(
@@ -163,7 +168,10 @@ def _load_chain(path: str, stack: list[str], errors: list[Diagnostic],
     out: list[tuple[dict[str, Any], yamlsrc.Source]] = []
     for base, at in bases:
         base_path = os.path.normpath(os.path.join(os.path.dirname(path), base))
+        before = len(errors)
         out.extend(_load_chain(base_path, [*stack, real], errors, (src, at)))
+        if len(errors) > before and not any(d.path == src.path for d in errors[before:]):
+            errors.append(src.error(at, f"the extended recipe {base} has errors"))
     out.append((data, src))
     return out
 
