@@ -415,7 +415,7 @@ def recipe_from_plan(path: str) -> tuple[Recipe, Plan]:
     from . import yamlsrc
     from .planner import plan_from_json
     from .profile import resolve_profile
-    from .recipe import Desired, DeviceSpec
+    from .recipe import Desired, DeviceSpec, Recipe
 
     data, src = yamlsrc.load(path)
     p = plan_from_json(data, path)
@@ -430,6 +430,12 @@ def recipe_from_plan(path: str) -> tuple[Recipe, Plan]:
         if param is None or param.address != pp.address or param.count != len(pp.desired_raw):
             errors.append(src.error(("parameters", i, "name"),
                                     f"{pp.name} does not match profile {prof.id} (address or size differ)"))
+            continue
+        raw = param.decode(pp.desired_raw)
+        bounds = param.raw_bounds()
+        if not param.writable or (bounds is not None and not bounds[0] <= raw <= bounds[1]):
+            errors.append(src.error(("parameters", i, "desired_raw"),
+                                    f"{pp.name}: raw {raw} is not writable within the profile's range"))
             continue
         desired.append(Desired(param, pp.desired, pp.desired_raw))
     if errors:

@@ -1,0 +1,217 @@
+"""The command line as users and scripts see it: output, files, exit codes (DESIGN.md)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jsonschema
+import pytest
+
+from deployer import yamlsrc
+from deployer.cli import main
+from deployer.profile import builtin_profile
+from deployer.simulator import SimulatorThread
+from tests.conftest import free_port
+
+pytestmark = pytest.mark.timeout(60)
+EXAMPLES = Path(__file__).parent.parent / "recipes" / "examples"
+
+
+def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    with pytest.raises(SystemExit) as exc:
+        main(list(args))
+    out, err = capsys.readouterr()
+    return int(exc.value.code or 0), out, err
+
+
+@pytest.fixture
+def inverter() -> SimulatorThread:
+    return SimulatorThread(builtin_profile("example-inverter"))
+
+
+def recipe(tmp: Path, body: str = "  F07: 10 s\n  stop_mode: coast\n", name: str = "r.yaml") -> str:
+    p = tmp / name
+    p.write_text(f"recipe: line\nprofile: example-inverter\nparameters:\n{body}")
+    return str(p)
+
+
+def test_validate_examples(capsys: pytest.CaptureFixture[str]) -> None:
+    files = sorted(str(p) for p in EXAMPLES.glob("*.yaml"))
+    code, out, _ = cli(capsys, "validate", *files)
+    assert code == 0 and out.count(": ok (") == len(files)
+
+
+def test_profiles_list_and_show(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, _ = cli(capsys, "profiles", "list")
+    assert code == 0 and "omron-m1" in out and "oriental-az" in out
+    code, out, _ = cli(capsys, "profiles", "show", "omron-m1")
+    assert code == 0 and "0x1102 (4354)" in out and "uint32" in out
+    code, _, err = cli(capsys, "profiles", "show", "nope")
+    assert code == 1 and "unknown built-in profile 'nope'" in err
+
+
+def test_plan_offline_table_json_out_and_frames(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    code, out, _ = cli(capsys, "plan", str(EXAMPLES / "omron-m1-accel.yaml"), "--show-frames")
+    assert code == 0
+    assert "0x1102 (4354)" in out and "0000 03E8" in out and "10 s" in out
+    assert "1 write request" in out
+    assert "01 10 11 02 00 02 04 00 00 03 E8 B2 98" in out and "01 10 11 02 00 02 E5 34" in out
+    assert ":01101102000204000003E8EB" in out
+    plan_file = tmp_path / "plan.json"
+    code, out, _ = cli(capsys, "plan", str(EXAMPLES / "omron-m1-accel.yaml"), "--json", "--out", str(plan_file))
+    data = json.loads(out)
+    jsonschema.validate(data, yamlsrc.schema("plan"))
+    assert data == json.loads(plan_file.read_text())
+    assert data["writes"] == [{"function": 16, "address": 4354, "count": 2, "registers": [0, 1000],
+                               "parameters": ["F07"], "stage": 0}]
+    assert data["parameters"][0]["current_raw"] is None and data["parameters"][0]["action"] == "write"
+
+
+def test_plan_against_the_device_and_detailed_exitcode(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                                                       inverter: SimulatorThread) -> None:
+    path = recipe(tmp_path)
+    with inverter as sim:
+        code, out, _ = cli(capsys, "plan", path, "--device", sim.url, "--detailed-exitcode")
+        assert code == 2
+        assert "5 s -> 10 s" in out and "ramp -> coast" in out
+        assert len(sim.log) > 0 and all(e.function == 3 for e in sim.log)  # plan only reads
+        code, _, _ = cli(capsys, "apply", path, "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"))
+        assert code == 0
+        code, out, _ = cli(capsys, "plan", path, "--device", sim.url, "--detailed-exitcode")
+        assert code == 0 and "No changes" in out
+
+
+def test_apply_saved_plan_and_stale_plan(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                                         inverter: SimulatorThread) -> None:
+    path = recipe(tmp_path)
+    plan_file = str(tmp_path / "plan.json")
+    with inverter as sim:
+        assert cli(capsys, "plan", path, "--device", sim.url, "--out", plan_file)[0] == 0
+        n = len(sim.log)
+        code, out, _ = cli(capsys, "apply", plan_file, "--yes", "--json", "--state-dir", str(tmp_path / "s"))
+        assert code == 0, out
+        report = json.loads(out)
+        jsonschema.validate(report, yamlsrc.schema("report"))
+        plan = json.loads(Path(plan_file).read_text())
+        sent = [(e.address, e.count) for e in sim.log[n:] if e.function == 16][:len(plan["writes"])]
+        assert sent == [(w["address"], w["count"]) for w in plan["writes"]]
+        # the device changed since: the same plan is refused, nothing written
+        sim.write("F07", (0, 123))
+        n = len(sim.log)
+        code, _, err = cli(capsys, "apply", plan_file, "--yes", "--state-dir", str(tmp_path / "s"))
+        assert code == 1 and "changed since the plan was made" in err and "F07: now 1.23 s" in err
+        assert not any(e.function == 16 for e in sim.log[n:])
+
+
+def test_diff_exit_codes(capsys: pytest.CaptureFixture[str], tmp_path: Path, inverter: SimulatorThread) -> None:
+    path = recipe(tmp_path)
+    with inverter as sim:
+        code, out, _ = cli(capsys, "diff", path, "--device", sim.url)
+        assert code == 2 and "F07" in out and "5 s" in out
+        cli(capsys, "apply", path, "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(capsys, "diff", path, "--device", sim.url, "--json")
+        assert code == 0 and json.loads(out)["drift"] == []
+
+
+def test_pull_writes_a_valid_recipe_that_applies_as_a_no_op(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                                                           inverter: SimulatorThread) -> None:
+    out_file = tmp_path / "pulled.yaml"
+    with inverter as sim:
+        sim.write("F07", (0, 4321))
+        code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--device", sim.url, "-o", str(out_file))
+        assert code == 0 and "parameters written" in err
+        assert "F07: 43.21 s" in out_file.read_text()
+        assert cli(capsys, "validate", str(out_file))[0] == 0
+        n = len(sim.log)
+        code, _, _ = cli(capsys, "apply", str(out_file), "--yes", "--state-dir", str(tmp_path / "s"))
+        assert code == 0 and not any(e.function == 16 for e in sim.log[n:])
+
+
+def test_apply_refuses_without_confirmation_when_not_a_terminal(tmp_path: Path) -> None:
+    path = recipe(tmp_path)
+    proc = subprocess.run([sys.executable, "-m", "deployer", "apply", path, "--device", "tcp://127.0.0.1:1"],
+                          capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=30)
+    assert proc.returncode == 1 and "pass --yes" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_broadcast_refused(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    code, _, err = cli(capsys, "apply", recipe(tmp_path), "--device", "tcp://127.0.0.1:1", "--unit", "0", "--yes")
+    assert code == 1 and "--allow-broadcast" in err
+
+
+def test_unreachable_exit_3(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    port = free_port()
+    code, out, err = cli(capsys, "apply", recipe(tmp_path), "--device", f"tcp://127.0.0.1:{port}?timeout=0.3",
+                         "--yes", "--state-dir", str(tmp_path / "s"))
+    assert code == 3 and "unreachable" in out and "connection refused" in out
+    assert not (tmp_path / "s" / "snapshots").exists()
+    code, _, err = cli(capsys, "diff", recipe(tmp_path), "--device", f"tcp://127.0.0.1:{port}")
+    assert code == 3 and "connection refused" in err
+
+
+def test_bad_url_exit_1(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    code, _, err = cli(capsys, "apply", recipe(tmp_path), "--device", "tcp://h?baud=1", "--yes")
+    assert code == 1 and "unknown option 'baud'" in err
+
+
+def test_fleet_in_parallel_with_per_device_overrides(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    prof = builtin_profile("example-inverter")
+    with SimulatorThread(prof) as a, SimulatorThread(prof) as b, SimulatorThread(prof) as c:
+        inv = tmp_path / "inventory.yaml"
+        inv.write_text(
+            "defaults: {timeout: 1.0, retries: 2}\ndevices:\n"
+            f"  press-1: {{url: '{a.url}', unit: 1, groups: [line3]}}\n"
+            f"  press-2: {{url: '{b.url}', unit: 1, groups: [line3], parameters: {{F07: 12 s}}}}\n"
+            f"  press-3: {{url: '{c.url}', unit: 1, groups: [line4]}}\n")
+        assert cli(capsys, "validate", str(inv))[0] == 0
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", str(inv), "--limit", "line3", "--yes",
+                           "--json", "--state-dir", str(tmp_path / "s"))
+        assert code == 0
+        report = json.loads(out)
+        assert [d["name"] for d in report["devices"]] == ["press-1", "press-2"]
+        assert report["summary"]["ok"] == 2
+        assert a.read("F07") == (0, 1000) and b.read("F07") == (0, 1200) and c.read("F07") == (0, 500)
+        snaps = os.listdir(tmp_path / "s" / "snapshots")
+        assert sorted(s.split("-2026")[0] for s in snaps) == ["press-1", "press-2"]
+
+
+def test_fleet_on_one_serial_line_goes_one_device_at_a_time(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                                                          socat_pair: tuple[str, str]) -> None:
+    a, b = socat_pair
+    with SimulatorThread(builtin_profile("example-inverter"), listen=f"rtu://{a}", units=(1, 2)) as sim:
+        inv = tmp_path / "inventory.yaml"
+        inv.write_text("devices:\n"
+                       f"  d1: {{url: 'rtu://{b}?baudrate=19200&timeout=1', unit: 1}}\n"
+                       f"  d2: {{url: 'rtu://{b}?baudrate=19200&timeout=1', unit: 2, parameters: {{F07: 7 s}}}}\n")
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", str(inv), "--yes", "--json",
+                           "--parallel", "8", "--state-dir", str(tmp_path / "s"))
+        assert code == 0, out
+        assert sim.read("F07", 1) == (0, 1000) and sim.read("F07", 2) == (0, 700)
+        units = [e.unit for e in sim.log]
+        # all of d1's requests, then all of d2's: never interleaved on the line
+        assert units == sorted(units)
+
+
+def test_rollback_command(capsys: pytest.CaptureFixture[str], tmp_path: Path, inverter: SimulatorThread) -> None:
+    path = recipe(tmp_path)
+    with inverter as sim:
+        before = sim.registers()
+        code, out, _ = cli(capsys, "apply", path, "--device", sim.url, "--yes", "--json",
+                           "--state-dir", str(tmp_path / "s"))
+        snapshot = json.loads(out)["devices"][0]["snapshot"]
+        code, _, _ = cli(capsys, "rollback", snapshot, "--yes", "--state-dir", str(tmp_path / "s"))
+        assert code == 0
+        store = builtin_profile("example-inverter").parameter("eeprom_store").address
+        assert {k: v for k, v in sim.registers().items() if k != store} == {
+            k: v for k, v in before.items() if k != store}
+
+
+def test_demo_runs(capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    code, out, _ = cli(capsys, "demo", "--fast")
+    assert code == 0, out
+    assert "demo finished" in out and "exception 04" in out and "no drift" in out
