@@ -251,18 +251,22 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
 
 
 def print_frames(plan: Plan, out: Console) -> None:
-    from .frames import request_frame, response_frame
+    from .frames import Framing, request_frame, response_frame
 
     unit = plan.device.unit
     for i, w in enumerate(plan.writes, 1):
         names = ", ".join(w.parameters)
         out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {w.count} registers ({names})")
+        framing: Framing
         for framing in ("rtu", "ascii", "tcp"):
-            q = request_frame(w, unit, framing, transaction_id=i)  # type: ignore[arg-type]
-            a = response_frame(w, unit, framing)  # type: ignore[arg-type]
-            show = (lambda b: b.decode("ascii").strip()) if framing == "ascii" else (lambda b: b.hex(" ").upper())
-            out.print(f"  {framing:5} query    {show(q)}")
-            out.print(f"  {'':5} response {show(a)}")
+            q = request_frame(w, unit, framing, transaction_id=i)
+            a = response_frame(w, unit, framing, transaction_id=i)
+            out.print(f"  {framing:5} query    {_show(q, framing)}")
+            out.print(f"  {'':5} response {_show(a, framing)}")
+
+
+def _show(frame: bytes, framing: str) -> str:
+    return frame.decode("ascii").strip() if framing == "ascii" else frame.hex(" ").upper()
 
 
 @cli.command()
@@ -488,9 +492,9 @@ def run_apply(source: str, *, device: str | None, unit: int | None, timeout: flo
         if not jobs:
             raise UsageError(f"--limit {limit!r} matches no device in {inventory}")
     else:
-        url, u = _target(rec, device, unit, timeout, retries, required=True)
-        assert url is not None
-        jobs.append(Job(rec.name, rec, url, u))
+        one, u = _target(rec, device, unit, timeout, retries, required=True)
+        assert one is not None
+        jobs.append(Job(rec.name, rec, one, u))
     for j in jobs:
         if j.unit == 0 and not allow_broadcast:
             raise UsageError(f"{j.name}: unit 0 is broadcast (no device answers, nothing can be verified); "
@@ -579,7 +583,7 @@ def diff(recipe: str, device: str | None, unit: int | None, timeout: float | Non
     except TransportError as e:
         click.echo(f"error: {e}", err=True)
         return EXIT_UNREACHABLE
-    rows = []
+    rows: list[dict[str, Any]] = []
     for d in rec.desired:
         cur = current.get(d.name)
         if cur is None:

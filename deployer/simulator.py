@@ -123,12 +123,12 @@ class _Units:
 
     async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1) -> Any:
         if device_id not in self.core.devices:
-            raise NoSuchIdException(device_id)
+            raise NoSuchIdException(str(device_id))
         return await self.core.async_getValues(device_id, func_code, address, count)
 
     async def async_setValues(self, device_id: int, func_code: int, address: int, values: Any) -> Any:
         if device_id not in self.core.devices:
-            raise NoSuchIdException(device_id)
+            raise NoSuchIdException(str(device_id))
         return await self.core.async_setValues(device_id, func_code, address, values)
 
 
@@ -256,8 +256,9 @@ class Simulator:
                   for p in self.profile.parameters]
 
         async def action(fc: int, start: int, address: int, count: int, registers: list[int],
-                         values: list[int] | None) -> ExcCodes | None:
-            return await self._action(fc, start, address, count, registers, values)
+                         values: list[int] | list[bool] | None) -> ExcCodes | None:
+            words = None if values is None else [int(v) for v in values]
+            return await self._action(fc, start, address, count, registers, words)
 
         return SimDevice(id=unit, simdata=blocks, action=action)
 

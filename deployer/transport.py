@@ -268,18 +268,19 @@ class PymodbusTransport(Transport):
 
     def _make_client(self) -> Any:
         u = self.url
+        host, port, path = u.host or "", u.port or 0, u.path or ""
         common: dict[str, Any] = {"timeout": u.timeout, "retries": 0, "trace_packet": self._trace,
                                   "reconnect_delay": 0, "reconnect_delay_max": 0}
         if u.scheme == "tcp":
-            return AsyncModbusTcpClient(u.host, port=u.port, framer=FramerType.SOCKET, **common)
+            return AsyncModbusTcpClient(host, port=port, framer=FramerType.SOCKET, **common)
         if u.scheme == "rtu+tcp":
-            return AsyncModbusTcpClient(u.host, port=u.port, framer=FramerType.RTU, **common)
+            return AsyncModbusTcpClient(host, port=port, framer=FramerType.RTU, **common)
         if u.scheme == "tls":
-            return AsyncModbusTlsClient(u.host, port=u.port, sslctx=self._ssl_context(), **common)
+            return AsyncModbusTlsClient(host, port=port, sslctx=self._ssl_context(), **common)
         framer = FramerType.RTU if u.scheme == "rtu" else FramerType.ASCII
         o = u.options
         return AsyncModbusSerialClient(
-            u.path, framer=framer, baudrate=int(o.get("baudrate", 19200)), bytesize=int(o.get("bytesize", 8)),
+            path, framer=framer, baudrate=int(o.get("baudrate", 19200)), bytesize=int(o.get("bytesize", 8)),
             parity=o.get("parity", "N"), stopbits=int(o.get("stopbits", 1)), **common)
 
     def _ssl_context(self) -> ssl.SSLContext:
