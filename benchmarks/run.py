@@ -23,6 +23,11 @@ def _rows(prefix: str, value: Any) -> list[tuple[str, str]]:
         for k, v in value.items():
             out.extend(_rows(f"{prefix}.{k}" if prefix else str(k), v))
         return out
+    if isinstance(value, list):
+        out = []
+        for i, v in enumerate(value):
+            out.extend(_rows(f"{prefix}[{i}]", v))
+        return out
     if isinstance(value, float):
         return [(prefix, f"{value:,.4g}")]
     return [(prefix, str(value))]
