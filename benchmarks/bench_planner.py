@@ -8,8 +8,8 @@ import random
 import time
 from typing import Any
 
-from deployer.profile import Limits, Parameter
 from deployer.planner import plan_writes
+from deployer.profile import Limits, Parameter
 from deployer.recipe import Desired
 
 TYPES = ("uint16", "uint32", "uint16", "int32", "uint64")
