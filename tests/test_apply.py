@@ -286,3 +286,16 @@ def test_audit_and_report_files_from_the_cli(tmp_path: Path) -> None:
     assert data["devices"][0]["status"] == "ok"
     lines = (tmp_path / ".d" / "audit.jsonl").read_text().splitlines()
     assert len(lines) == 1 and json.loads(lines[0])["exit_code"] == 0
+
+
+def test_device_without_fc16_gets_one_fc06_per_register(tmp_path: Path) -> None:
+    prof = profile_from(tmp_path, "profile: old\nlimits: {write_function: 6}\nparameters:\n"
+                                  "  speed: {register: 10, type: uint16}\n  ramp: {register: 11, type: uint32}\n",
+                        "old.yaml")
+    path = recipe_file(tmp_path, "  speed: 5\n  ramp: 70000\n", profile="old.yaml")
+    sim = Simulator(prof)
+    res = apply(sim, path, tmp_path)
+    assert res.status == "ok", res
+    assert [(e.function, e.address, e.values) for e in sim.log if e.function != 3] == [
+        (6, 10, [5]), (6, 11, [1]), (6, 12, [4464])]
+    assert sim.read("ramp") == (1, 4464)

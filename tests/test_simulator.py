@@ -255,10 +255,16 @@ def test_cli_simulate_serves_and_dumps_state(tmp_path: Path) -> None:
             await c.write_registers(0x1102, [0, 1000], device_id=1)
             c.close()
         asyncio.run(query())
+        proc.send_signal(signal.SIGUSR1)  # dump while serving
+        deadline = time.monotonic() + 10
+        while not state.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert json.loads(state.read_text())["units"]["1"]["4355"] == 1000
+        state.unlink()
     finally:
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
-    assert json.loads(state.read_text())["units"]["1"]["4355"] == 1000
+    assert json.loads(state.read_text())["units"]["1"]["4355"] == 1000  # and again on exit
 
 
 MBPOLL = shutil.which("mbpoll")
