@@ -211,6 +211,18 @@ def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float
         raise UsageError(str(e)) from None
 
 
+def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: int
+                ) -> dict[str, tuple[int, ...]] | None:
+    """Current values for plan --device, diff and pull; None (after saying why) when unreachable."""
+    from .executor import read_current
+
+    try:
+        return asyncio.run(read_current(profile, names, url, unit))
+    except TransportError as e:
+        click.echo(f"error: {e}", err=True)
+        return None
+
+
 def _hexwords(regs: Sequence[int] | None) -> str:
     return "-" if regs is None else " ".join(f"{w:04X}" for w in regs)
 
@@ -280,7 +292,6 @@ def _show(frame: bytes, framing: str) -> str:
 def plan(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool) -> int:
     """Show the requests that apply would send. Offline, or with --device against what the device holds."""
-    from .executor import read_current
     from .planner import Target, make_plan, plan_to_json
     from .recipe import load_recipe
     from .report import write_json
@@ -290,10 +301,8 @@ def plan(recipe: str, device: str | None, unit: int | None, timeout: float | Non
     current = None
     if device is not None:
         assert url is not None
-        try:
-            current = asyncio.run(read_current(rec.profile, [d.name for d in rec.desired], url, u))
-        except TransportError as e:
-            click.echo(f"error: {e}", err=True)
+        current = read_device(rec.profile, [d.name for d in rec.desired], url, u)
+        if current is None:
             return EXIT_UNREACHABLE
     target = Target(describe(url) if url else None, u, rec.profile_ref or rec.profile.id)
     p = make_plan(rec, target, current, write_all=write_all)
@@ -572,16 +581,13 @@ def rollback(snapshot: str, **kw: Any) -> int:
 def diff(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool) -> int:
     """Drift check: exit 2 when the device differs from the recipe, 0 when it matches."""
-    from .executor import read_current
     from .recipe import load_recipe
 
     rec = load_recipe(recipe)
     url, u = _target(rec, device, unit, timeout, retries, required=True)
     assert url is not None
-    try:
-        current = asyncio.run(read_current(rec.profile, [d.name for d in rec.desired], url, u))
-    except TransportError as e:
-        click.echo(f"error: {e}", err=True)
+    current = read_device(rec.profile, [d.name for d in rec.desired], url, u)
+    if current is None:
         return EXIT_UNREACHABLE
     rows: list[dict[str, Any]] = []
     for d in rec.desired:
@@ -616,7 +622,6 @@ def diff(recipe: str, device: str | None, unit: int | None, timeout: float | Non
 def pull(profile_ref: str, device: str, unit: int, timeout: float | None, retries: int | None,
          output: str | None, name: str | None) -> int:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
-    from .executor import read_current
     from .profile import resolve_profile
     from .recipe import DeviceSpec, recipe_text
     from .transport import BadURL, parse_url
@@ -627,10 +632,8 @@ def pull(profile_ref: str, device: str, unit: int, timeout: float | None, retrie
     except BadURL as e:
         raise UsageError(str(e)) from None
     names = [p.name for p in prof.parameters if p.readable and p.writable]
-    try:
-        current = asyncio.run(read_current(prof, names, url, unit))
-    except TransportError as e:
-        click.echo(f"error: {e}", err=True)
+    current = read_device(prof, names, url, unit)
+    if current is None:
         return EXIT_UNREACHABLE
     ref = prof.source if prof.source and output is None else (
         os.path.relpath(prof.source, os.path.dirname(os.path.abspath(output))) if prof.source and output else prof.id)
