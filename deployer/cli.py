@@ -418,9 +418,10 @@ def _is_plan_file(path: str) -> bool:
         return True
     try:
         with open(path, "rb") as f:
-            return f.read(200).lstrip().startswith(b"{") and b"deployer.plan/" in f.read(4096)
+            head = f.read(4096)
     except OSError:
         return False
+    return head.lstrip().startswith(b"{") and b"deployer.plan/" in head
 
 
 def recipe_from_plan(path: str) -> tuple[Recipe, Plan]:
@@ -516,11 +517,12 @@ def run_apply(source: str, *, device: str | None, unit: int | None, timeout: flo
         if not sys.stdin.isatty():
             raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
         lock = asyncio.Lock()
+        profiles = {j.name: j.recipe.profile for j in jobs}
 
         async def confirm(p: Plan, res: DeviceResult) -> bool:
             async with lock:  # one question at a time, even for fleets
                 err.print(f"[bold]{res.name}[/bold] {res.url} unit {res.unit}:")
-                print_plan(p, rec.profile if len(jobs) == 1 else jobs[0].recipe.profile, changes_only=True, out=err)
+                print_plan(p, profiles[res.name], changes_only=True, out=err)
                 return await asyncio.to_thread(click.confirm, "Write these values?", default=False, err=True)
 
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
@@ -529,7 +531,7 @@ def run_apply(source: str, *, device: str | None, unit: int | None, timeout: flo
     data = report.to_json()
     if report_path:
         write_json(data, report_path)
-    audit(state_dir, report, command=command, argv=sys.argv[1:])
+    audit(state_dir, report, command=command, argv=_ARGV)
     if as_json:
         click.echo(json.dumps(data, indent=2))
     else:
@@ -660,8 +662,12 @@ def demo(fast: bool) -> int:
 
 
 
+_ARGV: list[str] = []  # the command line, for the audit log
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: map every user error to its exit code, never a traceback."""
+    _ARGV[:] = list(argv) if argv is not None else sys.argv[1:]
     try:
         rv = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)
     except click.exceptions.UsageError as e:  # DESIGN.md: usage errors exit 1, not click's 2

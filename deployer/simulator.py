@@ -21,6 +21,7 @@ import ssl
 import threading
 import time
 import urllib.parse
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -152,7 +153,8 @@ class Simulator:
         self._requests = 0  # since start, for drop_every / disconnect_after
         self._window = 0
         self._writes = 0  # write requests, for busy_first
-        self._pending: dict[tuple[int, int, int], LogEntry] = {}
+        # requests awaiting their answer; several TCP clients may reuse a transaction id, so FIFO per key
+        self._pending: dict[tuple[int, int, int], deque[LogEntry]] = {}
         self._owner: dict[int, Parameter] = {}
         for p in profile.parameters:
             for a in range(p.address, p.end):
@@ -321,7 +323,8 @@ class Simulator:
     def _trace_pdu(self, sending: bool, pdu: Any) -> Any:
         fc = int(pdu.function_code) & 0x7F
         if sending:
-            entry = self._pending.pop((pdu.dev_id, pdu.transaction_id, fc), None)
+            waiting = self._pending.get((pdu.dev_id, pdu.transaction_id, fc))
+            entry = waiting.popleft() if waiting else None
             if entry is not None:
                 if pdu.isError():
                     entry.result = f"exception {int(pdu.exception_code):02d}"
@@ -356,7 +359,7 @@ class Simulator:
             entry.result = "no answer"  # nobody on the bus has this address
             self._write_log(entry)
         else:
-            self._pending[(pdu.dev_id, pdu.transaction_id, fc)] = entry
+            self._pending.setdefault((pdu.dev_id, pdu.transaction_id, fc), deque()).append(entry)
         return pdu
 
     def _drop_connections(self) -> None:

@@ -313,10 +313,24 @@ class PymodbusTransport(Transport):
             raise Unreachable(f"{where}: cannot connect: {e}") from None
         if not ok or not self._client.connected:
             self._client.close()
-            what = "TLS handshake failed or connection refused" if self.url.scheme == "tls" else "connection refused"
+            self._client = None
+            what = "connection refused or timed out"
             if self.url.scheme in ("rtu", "ascii"):
                 what = "cannot open the serial port"
+            elif self.url.scheme == "tls" and await self._tcp_reachable():
+                what = ("TLS handshake failed (check ca=, cert= and key=, or verify=false for a self-signed "
+                        "device certificate)")
             raise Unreachable(f"{where}: {what}")
+
+    async def _tcp_reachable(self) -> bool:
+        """Whether a plain TCP connection opens: tells a refused port from a failed TLS handshake."""
+        try:
+            _, writer = await asyncio.wait_for(asyncio.open_connection(self.url.host, self.url.port),
+                                               self.url.timeout)
+        except (TimeoutError, OSError):
+            return False
+        writer.close()
+        return True
 
     async def reconnect(self) -> None:
         await self.close()
