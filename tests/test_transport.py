@@ -283,3 +283,24 @@ def test_simulator_thread_serves_plain_clients() -> None:
             finally:
                 await t.close()
         assert asyncio.run(main()) == [0, 0]
+
+
+def test_rtu_keeps_the_silent_interval_between_frames(socat_pair: tuple[str, str]) -> None:
+    """pymodbus 3.16 sends the next frame at once; the transport waits 3.5 characters (29 ms at 1200 baud)."""
+    a, b = socat_pair
+    import time
+
+    async def main() -> None:
+        async with Simulator(builtin_profile("omron-m1"), listen=f"rtu://{a}"):
+            t = tp.open_transport(f"rtu://{b}?baudrate=1200&timeout=2")
+            events: list[tuple[str, float]] = []
+            t.on_frame = lambda d, data: events.append((d, time.monotonic()))  # type: ignore[attr-defined]
+            await t.connect()
+            for i in range(5):
+                await t.write_registers(0x1102, [0, i], 1)
+            await t.close()
+            sends = [ts for d, ts in events if d == "send"]
+            last_recv_before = [max(ts for d, ts in events if d == "recv" and ts < s) for s in sends[1:]]
+            gap = 3.5 * 10 / 1200  # 8N1: 10 bits a character
+            assert all(s - r >= gap * 0.95 for s, r in zip(sends[1:], last_recv_before, strict=True))
+    asyncio.run(main())
