@@ -215,3 +215,47 @@ def test_demo_runs(capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypat
     code, out, _ = cli(capsys, "demo", "--fast")
     assert code == 0, out
     assert "demo finished" in out and "exception 04" in out and "no drift" in out
+
+
+def _run_on_a_terminal(args: list[str], answer: bytes, timeout: float = 30) -> tuple[int, str]:
+    """Run deployer with a pseudo-terminal as stdin/stdout/stderr and type ``answer`` at the prompt."""
+    import pty
+    import select
+    import time
+
+    master, slave = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "deployer", *args], stdin=slave, stdout=slave, stderr=slave,
+                            close_fds=True)
+    os.close(slave)
+    out = b""
+    answered = False
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        ready, _, _ = select.select([master], [], [], 0.1)
+        if ready:
+            try:
+                chunk = os.read(master, 4096)
+            except OSError:
+                break
+            if not chunk:
+                break
+            out += chunk
+            if not answered and b"Write these values?" in out:
+                os.write(master, answer)
+                answered = True
+        elif proc.poll() is not None:
+            break
+    code = proc.wait(timeout=10)
+    os.close(master)
+    return code, out.decode(errors="replace")
+
+
+@pytest.mark.parametrize(("answer", "expected_code", "written"), [(b"y\n", 0, True), (b"n\n", 1, False)])
+def test_apply_asks_on_a_terminal(tmp_path: Path, answer: bytes, expected_code: int, written: bool) -> None:
+    with SimulatorThread(builtin_profile("example-inverter")) as sim:
+        code, out = _run_on_a_terminal(["apply", recipe(tmp_path), "--device", sim.url,
+                                        "--state-dir", str(tmp_path / "s")], answer)
+        assert code == expected_code, out
+        assert "5 s -> 10 s" in out  # the changes are shown before the question
+        assert (sim.read("F07") == (0, 1000)) is written
+        assert any(e.function == 16 for e in sim.log) is written

@@ -146,3 +146,19 @@ def test_recipe_text_keeps_out_of_range_values_as_comments(tmp_path: Path) -> No
 
 def test_default_values_are_decimal() -> None:
     assert builtin_profile("example-inverter").parameter("F07").default == Decimal(5)
+
+
+def test_word_order_per_profile_and_per_parameter(tmp_path: Path) -> None:
+    p = write(tmp_path, "p.yaml", "profile: p\nword_order: little\nparameters:\n"
+                                  "  lo: {register: 0, type: uint32}\n"
+                                  "  hi: {register: 2, type: uint32, word_order: big}\n"
+                                  "  f: {register: 4, type: float32}\n")
+    r = write(tmp_path, "r.yaml", "recipe: r\nprofile: p.yaml\nparameters: {lo: 300000, hi: 300000, f: 2.5}\n")
+    assert values(r) == {"lo": (0x93E0, 0x0004), "hi": (0x0004, 0x93E0), "f": (0x0000, 0x4020)}
+
+
+def test_modicon_profile(tmp_path: Path) -> None:
+    p = write(tmp_path, "p.yaml", "profile: p\naddressing: modicon\nparameters:\n"
+                                  "  a: {register: 44355, type: uint16}\n  b: {register: 404356, type: uint16}\n")
+    prof = load_profile(p)
+    assert (prof.parameter("a").address, prof.parameter("b").address) == (4354, 4355)
