@@ -149,7 +149,7 @@ def test_default_values_are_decimal() -> None:
 
 
 def test_word_order_per_profile_and_per_parameter(tmp_path: Path) -> None:
-    p = write(tmp_path, "p.yaml", "profile: p\nword_order: little\nparameters:\n"
+    write(tmp_path, "p.yaml", "profile: p\nword_order: little\nparameters:\n"
                                   "  lo: {register: 0, type: uint32}\n"
                                   "  hi: {register: 2, type: uint32, word_order: big}\n"
                                   "  f: {register: 4, type: float32}\n")
