@@ -19,8 +19,9 @@ import urllib.parse
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
+import serial
 from pymodbus import FramerType
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient, AsyncModbusTlsClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
@@ -81,7 +82,9 @@ class DeviceURL:
     def bus(self) -> str:
         """Key of the half-duplex bus this device sits on; devices on one bus never talk at once."""
         if self.scheme in ("rtu", "ascii"):
-            return f"serial:{self.path}"
+            # a symlink (/dev/serial/by-id/..., a socat link) is the same wire as its target
+            path = self.path or ""
+            return f"serial:{path if '://' in path else os.path.realpath(path)}"
         if self.scheme == "rtu+tcp":
             return f"gateway:{self.host}:{self.port}"
         return f"{self.scheme}:{self.host}:{self.port}"
@@ -133,7 +136,7 @@ DEFAULT_PORTS = {"tcp": 502, "tls": 802}
 _COMMON = {"timeout", "retries"}
 _OPTIONS: dict[str, set[str]] = {
     "tcp": _COMMON,
-    "tls": _COMMON | {"cert", "key", "ca", "verify", "server_hostname"},
+    "tls": _COMMON | {"cert", "key", "ca", "verify", "server_hostname"},  # server_hostname: name to verify
     "rtu": _COMMON | {"baudrate", "parity", "bytesize", "stopbits"},
     "ascii": _COMMON | {"baudrate", "parity", "bytesize", "stopbits"},
     "rtu+tcp": _COMMON,
@@ -196,6 +199,8 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
         raise BadURL(f"{scheme} URL needs a host: {scheme}://HOST:PORT")
     if u.path not in ("", "/"):
         raise BadURL(f"unexpected path '{u.path}' in {scheme} URL")
+    if port == 0:
+        raise BadURL(f"bad port in '{text}' (1..65535)")
     if port is None:
         if scheme == "rtu+tcp":
             raise BadURL("rtu+tcp URL needs a port: rtu+tcp://HOST:PORT (the gateway's TCP port)")
@@ -212,32 +217,83 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
 
 
 def describe(url: DeviceURL) -> str:
-    """The URL as text, without file paths of keys (for reports and logs)."""
+    """The URL as text without secrets: no key/cert/CA file paths; serial line settings are kept."""
     if url.scheme in ("rtu", "ascii"):
         opts = {k: v for k, v in url.options.items() if k not in _COMMON}
         q = ("?" + "&".join(f"{k}={v}" for k, v in sorted(opts.items()))) if opts else ""
         return f"{url.scheme}://{url.path}{q}"
     host = f"[{url.host}]" if url.host and ":" in url.host else url.host
-    return f"{url.scheme}://{host}:{url.port}"
+    q = "?verify=false" if url.scheme == "tls" and not _verify(url) else ""
+    return f"{url.scheme}://{host}:{url.port}{q}"
+
+
+def _verify(url: DeviceURL) -> bool:
+    return url.options.get("verify", "true").lower() in ("true", "1", "yes")
 
 
 # ---- buses ---------------------------------------------------------------------------------
 
-_LOCKS: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, dict[str, asyncio.Lock]] = weakref.WeakKeyDictionary()
+
+class BusLock(asyncio.Lock):
+    """An asyncio.Lock that the task holding it may take again (reentrant per task).
+
+    Rule: the executor may hold the bus for a whole device session and issue requests from the
+    same task; each request's own acquire then nests instead of deadlocking. Another task waits
+    until the holder released as often as it acquired. Do not hold it and then await child tasks
+    that talk on the same bus: they are other tasks and would wait for ever.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._owner: asyncio.Task[Any] | None = None
+        self._depth = 0
+
+    async def acquire(self) -> Literal[True]:
+        task = asyncio.current_task()
+        if task is not None and self._owner is task:
+            self._depth += 1
+            return True
+        await super().acquire()
+        self._owner, self._depth = task, 1
+        return True
+
+    def release(self) -> None:
+        if self._owner is not asyncio.current_task():
+            raise RuntimeError("bus lock released by a task that does not hold it")
+        self._depth -= 1
+        if self._depth == 0:
+            self._owner = None
+            super().release()
+
+
+class _Bus:
+    """What devices on one half-duplex bus share within one event loop."""
+
+    def __init__(self) -> None:
+        self.lock = BusLock()
+        self.quiet_until = 0.0  # monotonic time before which nobody may start a frame
+        self.line: _SerialLine | None = None  # the open serial port, shared by its transports
+        self.opening = asyncio.Lock()
+
+
+_BUSES: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, dict[str, _Bus]] = weakref.WeakKeyDictionary()
+
+
+def _bus(url: DeviceURL) -> _Bus:
+    buses = _BUSES.setdefault(asyncio.get_running_loop(), {})
+    return buses.setdefault(url.bus, _Bus())
 
 
 def bus_lock(url: DeviceURL) -> asyncio.Lock:
-    """The lock of the half-duplex bus ``url`` sits on (one per serial path or gateway, per loop).
+    """The lock of the bus ``url`` sits on: one per url.bus key (serial path, gateway) per event loop.
 
-    Transports hold it around each request, so two devices on one RS-485 line never talk at
-    once; the lock is not held between requests (fleets keep one device per bus anyway).
+    Transports on a shared bus (rtu, ascii, rtu+tcp) hold it around each request, so two devices
+    on one RS-485 line never talk at once. It is a BusLock: reentrant for the task holding it.
     """
-    loop = asyncio.get_running_loop()
-    locks = _LOCKS.setdefault(loop, {})
-    return locks.setdefault(url.bus, asyncio.Lock())
+    return _bus(url).lock
 
 
-# ---- the pymodbus-backed transport -----------------------------------------------------------
+# ---- pymodbus-backed transports ----------------------------------------------------------------
 
 
 def _char_time(url: DeviceURL) -> float:
@@ -248,8 +304,19 @@ def _char_time(url: DeviceURL) -> float:
     return bits / baud
 
 
+def _silent_interval(url: DeviceURL) -> float:
+    """Modbus over serial line 2.5.1.1: 3.5 character times between frames, fixed 1.75 ms above 19200 baud."""
+    if int(url.options.get("baudrate", 19200)) > 19200:
+        return 0.00175
+    return 3.5 * _char_time(url)
+
+
 class PymodbusTransport(Transport):
-    """All schemes on pymodbus's async clients, with pymodbus's own retries off."""
+    """Base of the transports: one pymodbus async client, its retries off, one request per call.
+
+    Results are translated: exception response -> ExceptionResponse, no answer -> NoResponse,
+    dropped/not connected -> ConnectionLost, failed connect -> Unreachable naming the URL.
+    """
 
     def __init__(self, url: DeviceURL) -> None:
         self.url = url
@@ -257,80 +324,49 @@ class PymodbusTransport(Transport):
         self.on_frame: Callable[[str, bytes], None] | None = None
         self._client: Any = None
         self._shared = url.shared_bus
-        # Modbus RTU: at least 3.5 character times of silence between frames (1.75 ms above 19200 baud)
-        self._gap = (max(3.5 * _char_time(url), 0.00175) if url.scheme in ("rtu", "ascii", "rtu+tcp") else 0.0)
-        self._last = 0.0
+        # pymodbus 3.16's async clients send the next frame at once: the transport keeps the silence
+        self._gap = _silent_interval(url) if self._shared else 0.0
+
+    # -- hooks for the subclasses
+
+    @abc.abstractmethod
+    def _make_client(self) -> Any:
+        """A new, unconnected pymodbus async client."""
+
+    def _common(self) -> dict[str, Any]:
+        # retries=0: a late answer to a first copy would hide a double write (PYMODBUS.md);
+        # reconnect_delay=0: pymodbus must not reconnect behind our back, the executor decides
+        return {"timeout": self.url.timeout, "retries": 0, "trace_packet": self._trace,
+                "reconnect_delay": 0, "reconnect_delay_max": 0}
+
+    async def _why_not(self) -> str:
+        """Why connect() returned False (pymodbus swallows the reason): probe once more ourselves."""
+        return "connection failed"
 
     def _trace(self, sending: bool, data: bytes) -> bytes:
         if self.on_frame is not None:
             self.on_frame("send" if sending else "recv", data)
         return data
 
-    def _make_client(self) -> Any:
-        u = self.url
-        host, port, path = u.host or "", u.port or 0, u.path or ""
-        common: dict[str, Any] = {"timeout": u.timeout, "retries": 0, "trace_packet": self._trace,
-                                  "reconnect_delay": 0, "reconnect_delay_max": 0}
-        if u.scheme == "tcp":
-            return AsyncModbusTcpClient(host, port=port, framer=FramerType.SOCKET, **common)
-        if u.scheme == "rtu+tcp":
-            return AsyncModbusTcpClient(host, port=port, framer=FramerType.RTU, **common)
-        if u.scheme == "tls":
-            return AsyncModbusTlsClient(host, port=port, sslctx=self._ssl_context(), **common)
-        framer = FramerType.RTU if u.scheme == "rtu" else FramerType.ASCII
-        o = u.options
-        return AsyncModbusSerialClient(
-            path, framer=framer, baudrate=int(o.get("baudrate", 19200)), bytesize=int(o.get("bytesize", 8)),
-            parity=o.get("parity", "N"), stopbits=int(o.get("stopbits", 1)), **common)
-
-    def _ssl_context(self) -> ssl.SSLContext:
-        o = self.url.options
-        verify = o.get("verify", "true").lower() in ("true", "1", "yes")
-        ctx = ssl.create_default_context(ssl.Purpose.SERVER_AUTH, cafile=o.get("ca"))
-        if not verify:
-            ctx.check_hostname = False
-            ctx.verify_mode = ssl.CERT_NONE
-        if "cert" in o:
-            ctx.load_cert_chain(o["cert"], o["key"])
-        return ctx
+    # -- connection
 
     async def connect(self) -> None:
         where = describe(self.url)
-        if self.url.scheme in ("rtu", "ascii") and self.url.path and not self.url.path.startswith(
-                ("socket://", "rfc2217://", "loop://")) and not os.path.exists(self.url.path):
-            raise Unreachable(f"{where}: no such serial device '{self.url.path}'")
         try:
-            self._client = self._make_client()
+            client = self._make_client()
         except ssl.SSLError as e:
             raise Unreachable(f"{where}: TLS setup failed: {e.reason or e}") from None
         except (OSError, ValueError) as e:
             raise Unreachable(f"{where}: {e}") from None
         try:
-            ok = await self._client.connect()
-        except ssl.SSLError as e:
-            raise Unreachable(f"{where}: TLS handshake failed: {e.reason or e}") from None
-        except Exception as e:  # pyserial and asyncio raise a zoo of errors for a bad port
+            ok = await client.connect()
+        except Exception as e:  # asyncio and pyserial raise a zoo of errors for a bad peer
+            client.close()
             raise Unreachable(f"{where}: cannot connect: {e}") from None
-        if not ok or not self._client.connected:
-            self._client.close()
-            self._client = None
-            what = "connection refused or timed out"
-            if self.url.scheme in ("rtu", "ascii"):
-                what = "cannot open the serial port"
-            elif self.url.scheme == "tls" and await self._tcp_reachable():
-                what = ("TLS handshake failed (check ca=, cert= and key=, or verify=false for a self-signed "
-                        "device certificate)")
-            raise Unreachable(f"{where}: {what}")
-
-    async def _tcp_reachable(self) -> bool:
-        """Whether a plain TCP connection opens: tells a refused port from a failed TLS handshake."""
-        try:
-            _, writer = await asyncio.wait_for(asyncio.open_connection(self.url.host, self.url.port),
-                                               self.url.timeout)
-        except (TimeoutError, OSError):
-            return False
-        writer.close()
-        return True
+        if not ok or not client.connected:
+            client.close()
+            raise Unreachable(f"{where}: {await self._why_not()}")
+        self._client = client
 
     async def reconnect(self) -> None:
         await self.close()
@@ -341,38 +377,45 @@ class PymodbusTransport(Transport):
             self._client.close()
             self._client = None
 
+    # -- requests
+
     async def _run(self, function: int, call: Callable[[Any], Any], *, no_answer: bool = False) -> Any:
         if self._client is None or not self._client.connected:
-            raise ConnectionLost("not connected")
-        lock = bus_lock(self.url) if self._shared else None
-        if lock is not None:
-            await lock.acquire()
+            raise ConnectionLost(f"{describe(self.url)}: not connected")
+        bus = _bus(self.url) if self._shared else None
+        if bus is not None:
+            await bus.lock.acquire()
         try:
-            if self._gap:
-                wait = self._last + self._gap - time.monotonic()
+            if bus is not None:
+                self._claim(bus)
+                wait = bus.quiet_until - time.monotonic()
                 if wait > 0:
                     await asyncio.sleep(wait)
             self.requests_sent += 1
             try:
                 result = await call(self._client)
             except ConnectionException as e:
-                raise ConnectionLost(str(e)) from None
+                raise ConnectionLost(f"{describe(self.url)}: {e}") from None
             except ModbusIOException:
                 if self._client is None or not self._client.connected:
-                    raise ConnectionLost("the connection closed") from None
+                    raise ConnectionLost(f"{describe(self.url)}: the connection closed") from None
                 raise NoResponse(f"no answer within {self.url.timeout:g} s") from None
             except ModbusException as e:
                 raise NoResponse(str(e)) from None
             finally:
-                self._last = time.monotonic()
+                if bus is not None:
+                    bus.quiet_until = time.monotonic() + self._gap
             if no_answer:
                 return None
             if result.isError():
                 raise ExceptionResponse(function, int(getattr(result, "exception_code", 0)))
             return result
         finally:
-            if lock is not None:
-                lock.release()
+            if bus is not None:
+                bus.lock.release()
+
+    def _claim(self, bus: _Bus) -> None:
+        """Called under the bus lock before a request (the shared serial line routes its frames here)."""
 
     async def read_holding_registers(self, address: int, count: int, unit: int) -> list[int]:
         r = await self._run(3, lambda c: c.read_holding_registers(address, count=count, device_id=unit))
@@ -390,6 +433,186 @@ class PymodbusTransport(Transport):
                                                       no_response_expected=unit == 0), no_answer=unit == 0)
 
 
+class TcpTransport(PymodbusTransport):
+    """tcp://: Modbus/TCP (MBAP header)."""
+
+    def _make_client(self) -> Any:
+        return AsyncModbusTcpClient(self.url.host or "", port=self.url.port or 502, framer=FramerType.SOCKET,
+                                    **self._common())
+
+    async def _why_not(self) -> str:
+        try:
+            _, writer = await asyncio.wait_for(asyncio.open_connection(self.url.host, self.url.port),
+                                               self.url.timeout)
+        except ConnectionRefusedError:
+            return "connection refused"
+        except TimeoutError:
+            return f"connection timed out after {self.url.timeout:g} s"
+        except OSError as e:
+            return f"cannot connect: {e.strerror or e}"
+        writer.close()
+        return "connection failed"
+
+
+class RtuOverTcpTransport(TcpTransport):
+    """rtu+tcp://: RTU frames (unit id + CRC) over a TCP socket to a serial gateway; shares the gateway's bus."""
+
+    def _make_client(self) -> Any:
+        return AsyncModbusTcpClient(self.url.host or "", port=self.url.port or 0, framer=FramerType.RTU,
+                                    **self._common())
+
+
+class _HostnameContext(ssl.SSLContext):
+    """An SSLContext that verifies a fixed name (server_hostname=) instead of the host connected to."""
+
+    hostname: str | None = None
+
+    def wrap_bio(self, incoming: ssl.MemoryBIO, outgoing: ssl.MemoryBIO, server_side: bool = False,
+                 server_hostname: str | bytes | None = None, session: ssl.SSLSession | None = None) -> ssl.SSLObject:
+        return super().wrap_bio(incoming, outgoing, server_side, self.hostname or server_hostname, session)
+
+
+class TlsTransport(TcpTransport):
+    """tls://: Modbus/TCP Security; client certificate from cert=/key=, trust from ca= (else the system's)."""
+
+    def ssl_context(self) -> ssl.SSLContext:
+        o = self.url.options
+        ctx = _HostnameContext(ssl.PROTOCOL_TLS_CLIENT)
+        ctx.hostname = o.get("server_hostname") or None
+        ctx.minimum_version = ssl.TLSVersion.TLSv1_2  # Modbus/TCP Security requires TLS 1.2 or later
+        if _verify(self.url):
+            if "ca" in o:
+                ctx.load_verify_locations(cafile=o["ca"])
+            else:
+                ctx.load_default_certs(ssl.Purpose.SERVER_AUTH)
+        else:  # a self-signed device certificate: encryption without authentication, on request only
+            ctx.check_hostname = False
+            ctx.verify_mode = ssl.CERT_NONE
+        if "cert" in o:
+            ctx.load_cert_chain(o["cert"], o["key"])
+        return ctx
+
+    def _make_client(self) -> Any:
+        return AsyncModbusTlsClient(self.url.host or "", port=self.url.port or 802, sslctx=self.ssl_context(),
+                                    **self._common())
+
+    async def _why_not(self) -> str:
+        try:
+            _, writer = await asyncio.wait_for(
+                asyncio.open_connection(self.url.host, self.url.port, ssl=self.ssl_context()), self.url.timeout)
+        except ssl.SSLError as e:
+            return (f"TLS handshake failed: {e.reason or e} (check ca=, cert= and key=, or verify=false for a "
+                    f"self-signed device certificate)")
+        except ConnectionRefusedError:
+            return "connection refused"
+        except TimeoutError:
+            return f"connection or TLS handshake timed out after {self.url.timeout:g} s"
+        except OSError as e:
+            return f"cannot connect: {e.strerror or e}"
+        writer.close()
+        return "TLS connection failed"
+
+
+class _SerialLine:
+    """One open serial port shared by every transport on it (pymodbus locks the port exclusively)."""
+
+    def __init__(self, settings: tuple[str, ...]) -> None:
+        self.client: Any = None
+        self.settings = settings
+        self.users = 0
+        self.active: PymodbusTransport | None = None  # who sent the last request: gets the frames
+
+    def trace(self, sending: bool, data: bytes) -> bytes:
+        return self.active._trace(sending, data) if self.active is not None else data
+
+
+class SerialTransport(PymodbusTransport):
+    """rtu:// and ascii://: a serial port; transports on one port share one pymodbus client."""
+
+    def __init__(self, url: DeviceURL) -> None:
+        super().__init__(url)
+        self._line: _SerialLine | None = None
+        self._opening: _SerialLine | None = None
+
+    def _settings(self) -> tuple[str, ...]:
+        o = self.url.options
+        return (self.url.scheme, o.get("baudrate", "19200"), o.get("bytesize", "8"), o.get("parity", "N"),
+                o.get("stopbits", "1"))
+
+    def _make_client(self) -> Any:
+        o = self.url.options
+        common = self._common()
+        # one client serves every transport on the port: the line routes frames to the active one
+        common["trace_packet"] = self._opening.trace if self._opening is not None else self._trace
+        return AsyncModbusSerialClient(
+            self.url.path or "", framer=FramerType.RTU if self.url.scheme == "rtu" else FramerType.ASCII,
+            baudrate=int(o.get("baudrate", 19200)), bytesize=int(o.get("bytesize", 8)),
+            parity=o.get("parity", "N"), stopbits=int(o.get("stopbits", 1)), **common)
+
+    async def connect(self) -> None:
+        path = self.url.path or ""
+        where = describe(self.url)
+        if not path.startswith(("socket://", "rfc2217://", "loop://")) and not os.path.exists(path):
+            raise Unreachable(f"{where}: no such serial device '{path}'")
+        if self._line is not None:
+            return
+        bus = _bus(self.url)
+        async with bus.opening:  # two transports connecting at once must not both open the port
+            line = bus.line
+            if line is not None and not line.client.connected:
+                line.client.close()  # dropped (e.g. USB adapter unplugged): open it afresh
+                bus.line = line = None
+            if line is None:
+                line = self._opening = _SerialLine(self._settings())
+                try:
+                    await super().connect()
+                finally:
+                    self._opening = None
+                line.client = self._client
+                bus.line = line
+            elif line.settings != self._settings():
+                have = "{} baudrate={} bytesize={} parity={} stopbits={}".format(*line.settings)
+                raise Unreachable(f"{where}: the port is already open here as {have}; devices on one line must "
+                                  f"use the same framing and settings")
+            line.users += 1
+            self._line, self._client = line, line.client
+
+    async def _why_not(self) -> str:
+        o = self.url.options
+        try:  # open it as pymodbus did, to get pyserial's reason
+            port = serial.serial_for_url(self.url.path, exclusive=True, baudrate=int(o.get("baudrate", 19200)),
+                                         bytesize=int(o.get("bytesize", 8)), parity=o.get("parity", "N"),
+                                         stopbits=int(o.get("stopbits", 1)))
+        except (OSError, ValueError) as e:
+            return f"cannot open the serial port: {e}"
+        port.close()
+        return "cannot open the serial port"
+
+    def _claim(self, bus: _Bus) -> None:
+        if self._line is not None:
+            self._line.active = self
+
+    async def close(self) -> None:
+        line, self._line, self._client = self._line, None, None
+        if line is None:
+            return
+        line.users -= 1
+        if line.active is self:
+            line.active = None
+        if line.users <= 0:
+            line.client.close()
+            bus = _bus(self.url)
+            if bus.line is line:
+                bus.line = None
+
+
+_CLASSES: dict[str, type[PymodbusTransport]] = {
+    "tcp": TcpTransport, "tls": TlsTransport, "rtu+tcp": RtuOverTcpTransport,
+    "rtu": SerialTransport, "ascii": SerialTransport,
+}
+
+
 def open_transport(url: DeviceURL | str) -> Transport:
-    """The transport for a URL (not yet connected)."""
-    return PymodbusTransport(parse_url(url) if isinstance(url, str) else url)
+    """The transport for a URL, chosen by scheme (not yet connected). A string goes through parse_url."""
+    u = parse_url(url) if isinstance(url, str) else url
+    return _CLASSES[u.scheme](u)
