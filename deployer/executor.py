@@ -280,28 +280,22 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         raise Declined("nothing was written (declined)")
 
     # 3. the snapshot is on disk before the first write
-    readable_before = {n: v for n, v in before.items()}
-    res.snapshot = save_snapshot(opts.state_dir, res.name, recipe, readable_before, res.url, res.unit)
+    res.snapshot = save_snapshot(opts.state_dir, res.name, recipe, before, res.url, res.unit)
 
     # 4. writes, in plan order; recover from partial failures
-    written = await _write_all(session, prof, plan, opts, results)
-    if written is None:  # the device stopped answering: report what is known
-        try:
-            after = values_of(params, await session.read_blocks(plan.reads))
-        except (DeviceGone, tp.ExceptionResponse):
-            return
-        _verify(results, prof, after, written=set())
-        return
+    written, gone = await _write_all(session, prof, plan, opts, results)
 
-    # 5. read back everything the plan reads, compare raw values
+    # 5. read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
         after = values_of(params, await session.read_blocks(plan.reads))
     except (DeviceGone, tp.ExceptionResponse) as e:
         for n in written:
-            if results[n].status == "skipped":
-                results[n].status, results[n].error = "unverified", f"read-back failed: {e}"
+            if results[n].error == PENDING:
+                results[n].error = f"read-back failed: {e}"
         return
     _verify(results, prof, after, written)
+    if gone:
+        return
 
     # 6. commit (e.g. store to EEPROM) only when everything is verified
     if prof.commit and all(r.status in ("ok", "unchanged") for r in results.values()):
@@ -317,9 +311,20 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
                 return
 
 
+PENDING = "not read back yet"
+
+
+def _attempted(results: dict[str, ParameterResult], names: Iterable[str], written: set[str],
+               error: str = PENDING) -> None:
+    """Mark parameters as sent: unverified until the read-back says ok or mismatch."""
+    for n in names:
+        written.add(n)
+        results[n].status, results[n].error = "unverified", error
+
+
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,
-                     results: dict[str, ParameterResult]) -> set[str] | None:
-    """Send the plan's writes. Returns the names written, or None if the device went away."""
+                     results: dict[str, ParameterResult]) -> tuple[set[str], bool]:
+    """Send the plan's writes. Returns the names sent, and whether the device went away."""
     desired = {pp.name: pp.desired_raw for pp in plan.parameters}
     written: set[str] = set()
     queue = deque(plan.writes)
@@ -328,12 +333,12 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
         req = queue.popleft()
         if stopped:
             for n in req.parameters:
-                if results[n].status not in ("failed",):
+                if results[n].status != "failed":
                     results[n].status = "skipped"
             continue
         try:
             await session.write(req)
-            written.update(req.parameters)
+            _attempted(results, req.parameters, written)
         except tp.ExceptionResponse as e:
             follow_up = await _recover(session, prof, req, e, desired, results, written)
             if opts.on_error == "continue":
@@ -345,13 +350,13 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
                     for n in follow_up.parameters:
                         results[n].status = "skipped"
         except DeviceGone as e:
-            for n in req.parameters:
-                results[n].status, results[n].error = "unverified", f"device stopped answering: {e}"
+            # the request may or may not have been applied: the read-back (if any) decides
+            _attempted(results, req.parameters, written, f"device stopped answering: {e}")
             for rest in queue:
                 for n in rest.parameters:
                     results[n].status = "skipped"
-            return None
-    return written
+            return written, True
+    return written, False
 
 
 async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.ExceptionResponse,
@@ -361,50 +366,55 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
 
     Devices write in address order and stop at the bad value, so the first parameter that
     does not hold its desired value is the rejected one; the ones after it were not written
-    and go into a follow-up request.
+    and go into a follow-up request. Write-only parameters cannot be read: they count as
+    taken when a later parameter took.
     """
     params = sorted({prof.parameter(n) for n in req.parameters}, key=lambda p: p.address)
-    readable = [p.name for p in params if p.readable]
+    error = f"exception {exc.code:02d} ({tp.ExceptionResponse.NAMES.get(exc.code, 'unknown')})"
     try:
-        now = values_of(params, await session.read_blocks(plan_reads(prof, readable)))
-    except (DeviceGone, tp.ExceptionResponse):
-        now = {}
+        now = values_of(params, await session.read_blocks(plan_reads(prof, [p.name for p in params if p.readable])))
+    except (DeviceGone, tp.ExceptionResponse) as e:  # cannot tell what took: say so, send nothing more of it
+        _attempted(results, req.parameters, written, f"{error}; reading back failed: {e}")
+        return None
     rejected: Parameter | None = None
+    unknown: list[str] = []  # write-only parameters seen so far
     for p in params:
+        if not p.readable:
+            unknown.append(p.name)
+            continue
         if now.get(p.name) == desired[p.name]:
-            written.add(p.name)
+            _attempted(results, [*unknown, p.name], written)
+            unknown = []
             continue
         rejected = p
         break
-    error = f"exception {exc.code:02d} ({tp.ExceptionResponse.NAMES.get(exc.code, 'unknown')})"
-    if rejected is None:  # everything took although the device complained: verify decides
+    _attempted(results, unknown, written, f"write-only, next to a rejected value ({error})")
+    if rejected is None:  # everything took although the device complained: the read-back decides
         return None
     results[rejected.name].status, results[rejected.name].error = "failed", error
     rest = [p for p in params if p.address > rejected.address]
-    if not rest:
+    if not rest or req.function == 6:  # an FC06 request carries one register: nothing after it
         return None
     regs = tuple(w for p in rest for w in desired[p.name])
-    if req.function == 6:  # FC06 requests carry one register: nothing after it in the same request
-        return None
     return replace(req, address=rest[0].address, registers=regs, parameters=tuple(p.name for p in rest))
 
 
 def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[str, tuple[int, ...]],
             written: set[str]) -> None:
-    """Statuses from the read-back: what was written must read back equal; the rest is reported as is."""
+    """Statuses from the read-back: what was sent must read back equal; the rest is reported as is."""
     for n, r in results.items():
         p = prof.parameter(n)
         got = after.get(n)
         if got is not None:
             r.after_raw, r.after = got, _text(p, got)
-        if r.status in ("failed", "unverified") or (r.status == "skipped" and n not in written):
+        if r.status in ("failed", "skipped"):
             continue
-        if got is None:
-            if n in written:
-                r.status, r.error = "unverified", "write-only: cannot be read back"
+        if got is None:  # not read back: sent ones stay unverified, with the reason
+            if n in written and r.error == PENDING:
+                r.error = "write-only: cannot be read back"
             continue
         if got == r.desired_raw:
-            r.status = "ok" if n in written else "unchanged"
+            r.status, r.error = ("ok" if n in written else "unchanged"), None
         else:
             r.status = "mismatch"
             r.error = f"reads back {_text(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
