@@ -415,9 +415,12 @@ def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[s
             continue
         if got == r.desired_raw:
             r.status, r.error = ("ok" if n in written else "unchanged"), None
+            continue
+        reads_back = f"reads back {_text(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
+        if r.error and r.error.startswith("device stopped answering"):
+            r.error = f"{r.error}; {reads_back}"  # no answer and not applied: unverified, not "accepted"
         else:
-            r.status = "mismatch"
-            r.error = f"reads back {_text(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
+            r.status, r.error = "mismatch", reads_back
 
 
 # ---- reading without writing: plan --device, diff, pull ----------------------------------

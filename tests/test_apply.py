@@ -299,3 +299,27 @@ def test_device_without_fc16_gets_one_fc06_per_register(tmp_path: Path) -> None:
     assert [(e.function, e.address, e.values) for e in sim.log if e.function != 3] == [
         (6, 10, [5]), (6, 11, [1]), (6, 12, [4464])]
     assert sim.read("ramp") == (1, 4464)
+
+
+def test_silence_mid_plan_then_the_read_back_tells_what_took(tmp_path: Path) -> None:
+    """The 2nd write gets no answer (no retries): the 1st is verified ok, the 2nd unverified, the rest skipped."""
+    faults = Faults()
+    sim = Simulator(builtin_profile("example-inverter"), faults=faults)
+    rec = load_recipe(line3(tmp_path))
+
+    async def body(s: Simulator) -> DeviceResult:
+        async def confirm(plan: object, res: object) -> bool:
+            faults.drop_every = len(s.log) + 2  # the request after the first write
+            return True
+        return await apply_device(rec, parse_url(s.url + "?timeout=0.2&retries=0"), 1,
+                                  options=ApplyOptions(state_dir=str(tmp_path / ".d"), confirm=confirm))
+    res = run_with(sim, body)
+    plan = make_plan(rec, Target(None, 1, "example-inverter"), {p.name: p.before_raw for p in res.parameters
+                                                                if p.before_raw is not None})
+    first, second, *rest = plan.writes
+    st = {p.name: p for p in res.parameters}
+    assert all(st[n].status == "ok" for n in first.parameters)
+    assert all(st[n].status == "unverified" and "device stopped answering" in (st[n].error or "")
+               and "reads back" in (st[n].error or "") for n in second.parameters)
+    assert all(st[n].status == "skipped" and st[n].after_raw is not None for r in rest for n in r.parameters)
+    assert res.status == "partial" and Report("r", [res]).exit_code == 4
