@@ -527,7 +527,13 @@ def run_apply(source: str, *, device: str | None, unit: int | None, timeout: flo
 
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm)
-    report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=source))
+    def done(r: DeviceResult) -> None:  # fleets: a line per device as it finishes
+        style = _STATUS_STYLE.get(r.status, "")
+        err.print(f"{r.name}: [{style}]{r.status}[/{style}] ({r.write_requests} writes)"
+                  + (f" - {r.error}" if r.error else ""))
+
+    report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=source,
+                                    on_done=done if len(jobs) > 1 else None))
     data = report.to_json()
     if report_path:
         write_json(data, report_path)
