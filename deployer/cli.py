@@ -108,7 +108,7 @@ def validate_file(path: str) -> str:
         from .planner import plan_from_json
 
         plan = plan_from_json(data, path)
-        return f"plan: {len(plan.writes)} write requests for {plan.device.profile}"
+        return f"plan: {_n(len(plan.writes), 'write request')} for profile {plan.device.profile}"
     what = ("cannot tell what this file is" if isinstance(data, dict) else
             f"expected a mapping, got {'a list' if isinstance(data, list) else 'a single value'}")
     raise InputError([src.error((), f"{what}: a profile has 'profile' and 'parameters', a recipe has 'recipe', "

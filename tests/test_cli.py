@@ -259,3 +259,20 @@ def test_apply_asks_on_a_terminal(tmp_path: Path, answer: bytes, expected_code: 
         assert "5 s -> 10 s" in out  # the changes are shown before the question
         assert (sim.read("F07") == (0, 1000)) is written
         assert any(e.function == 16 for e in sim.log) is written
+
+
+def test_validate_a_saved_plan_and_write_all(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                                             inverter: SimulatorThread) -> None:
+    path = recipe(tmp_path)
+    plan_file = tmp_path / "plan.json"
+    assert cli(capsys, "plan", path, "--out", str(plan_file))[0] == 0
+    code, out, _ = cli(capsys, "validate", str(plan_file))
+    assert code == 0 and "plan: 1 write request for profile example-inverter" in out
+    with inverter as sim:
+        cli(capsys, "apply", path, "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"))
+        n = len(sim.log)
+        code, out, _ = cli(capsys, "apply", path, "--device", sim.url, "--yes", "--write-all", "--json",
+                           "--state-dir", str(tmp_path / "s"))
+        assert code == 0
+        assert {p["status"] for p in json.loads(out)["devices"][0]["parameters"]} == {"ok"}
+        assert any(e.function == 16 for e in sim.log[n:])
