@@ -267,7 +267,7 @@ def test_validate_a_saved_plan_and_write_all(capsys: pytest.CaptureFixture[str],
     plan_file = tmp_path / "plan.json"
     assert cli(capsys, "plan", path, "--out", str(plan_file))[0] == 0
     code, out, _ = cli(capsys, "validate", str(plan_file))
-    assert code == 0 and "plan: 1 write request for profile example-inverter" in out
+    assert code == 0 and "plan: 2 write requests for profile example-inverter" in out
     with inverter as sim:
         cli(capsys, "apply", path, "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"))
         n = len(sim.log)
