@@ -23,7 +23,6 @@ from .profile import Parameter, Profile
 from .recipe import DeviceSpec, Recipe, recipe_text
 from .report import DeviceResult, ParameterResult, Report, RequestRecord
 
-TURNAROUND = 0.1  # seconds after a broadcast before the next request (the spec's turnaround delay)
 Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
 
 
@@ -108,8 +107,6 @@ class Session:
             await self._call(rec, lambda: _none(t.write_register(req.address, req.registers[0], unit)))
         else:
             await self._call(rec, lambda: _none(t.write_registers(req.address, list(req.registers), unit)))
-        if unit == 0:
-            await asyncio.sleep(TURNAROUND)  # nobody answers a broadcast: give every device time to process it
 
     async def read_blocks(self, reads: Iterable[ReadRequest]) -> dict[int, int]:
         regs: dict[int, int] = {}

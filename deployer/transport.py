@@ -5,6 +5,11 @@ ascii:///dev/X?...  rtu+tcp://HOST:PORT.  Options on all: timeout (s), retries.
 
 A transport sends exactly one request per call and never retries by itself (pymodbus's own
 retries are off): the executor retries, counts attempts and reports them.
+
+Serial timing: pymodbus 3.16's async serial client writes the next frame as soon as it is asked
+(its RTU framer finds frame ends by length and CRC, not by silence), so the transports keep the
+3.5-character silent interval themselves, per bus, and hold bus_lock() around each request.
+Transports on one serial port share one open port: pymodbus opens ports with an exclusive lock.
 """
 
 from __future__ import annotations
@@ -98,6 +103,8 @@ class Transport(abc.ABC):
     """One connection to one URL; any unit id on it. One request in flight at a time."""
 
     url: DeviceURL
+    requests_sent: int  # requests put on the wire (every attempt counts)
+    on_frame: Callable[[str, bytes], None] | None  # ("send" | "recv", raw bytes); recv may come in chunks
 
     @abc.abstractmethod
     async def connect(self) -> None:
@@ -281,7 +288,11 @@ _BUSES: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, dict[str, _Bus]] = 
 
 def _bus(url: DeviceURL) -> _Bus:
     buses = _BUSES.setdefault(asyncio.get_running_loop(), {})
-    return buses.setdefault(url.bus, _Bus())
+    key = url.bus
+    bus = buses.get(key)
+    if bus is None:
+        bus = buses[key] = _Bus()
+    return bus
 
 
 def bus_lock(url: DeviceURL) -> asyncio.Lock:
@@ -302,6 +313,9 @@ def _char_time(url: DeviceURL) -> float:
     bits = 1 + int(url.options.get("bytesize", 8)) + (0 if url.options.get("parity", "N") == "N" else 1) + int(
         url.options.get("stopbits", 1))
     return bits / baud
+
+
+BROADCAST_TURNAROUND = 0.1  # seconds of silence after a unit-0 write
 
 
 def _silent_interval(url: DeviceURL) -> float:
@@ -326,6 +340,9 @@ class PymodbusTransport(Transport):
         self._shared = url.shared_bus
         # pymodbus 3.16's async clients send the next frame at once: the transport keeps the silence
         self._gap = _silent_interval(url) if self._shared else 0.0
+        self._quiet_until = 0.0  # this connection's own quiet time (after a broadcast)
+        self._answered = False  # any answer on this connection yet (tells a refused TLS session)
+        self._sent_bytes = 0  # length of the last frame sent: a broadcast's own line time
 
     # -- hooks for the subclasses
 
@@ -343,7 +360,12 @@ class PymodbusTransport(Transport):
         """Why connect() returned False (pymodbus swallows the reason): probe once more ourselves."""
         return "connection failed"
 
+    def _lost(self, why: str) -> ConnectionLost:
+        return ConnectionLost(f"{describe(self.url)}: {why}")
+
     def _trace(self, sending: bool, data: bytes) -> bytes:
+        if sending:
+            self._sent_bytes = len(data)
         if self.on_frame is not None:
             self.on_frame("send" if sending else "recv", data)
         return data
@@ -352,6 +374,7 @@ class PymodbusTransport(Transport):
 
     async def connect(self) -> None:
         where = describe(self.url)
+        self._answered = False
         try:
             client = self._make_client()
         except ssl.SSLError as e:
@@ -372,8 +395,15 @@ class PymodbusTransport(Transport):
         await self.close()
         await self.connect()
 
+    async def _settle(self) -> None:
+        """Before closing: let a last broadcast's turnaround pass, so the devices carry it out."""
+        wait = self._quiet_until - time.monotonic()
+        if wait > 0:
+            await asyncio.sleep(wait)
+
     async def close(self) -> None:
         if self._client is not None:
+            await self._settle()
             self._client.close()
             self._client = None
 
@@ -388,25 +418,34 @@ class PymodbusTransport(Transport):
         try:
             if bus is not None:
                 self._claim(bus)
-                wait = bus.quiet_until - time.monotonic()
-                if wait > 0:
-                    await asyncio.sleep(wait)
+            wait = max(self._quiet_until, bus.quiet_until if bus is not None else 0.0) - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
             self.requests_sent += 1
             try:
                 result = await call(self._client)
             except ConnectionException as e:
-                raise ConnectionLost(f"{describe(self.url)}: {e}") from None
+                raise self._lost(str(e)) from None
             except ModbusIOException:
                 if self._client is None or not self._client.connected:
-                    raise ConnectionLost(f"{describe(self.url)}: the connection closed") from None
+                    raise self._lost("the connection closed") from None
                 raise NoResponse(f"no answer within {self.url.timeout:g} s") from None
             except ModbusException as e:
                 raise NoResponse(str(e)) from None
             finally:
+                # the next frame may start only after the silent interval (serial buses)
+                quiet = time.monotonic() + self._gap
+                if no_answer:
+                    # broadcast: nobody answers, so give the devices the turnaround delay to carry it out
+                    # (serial line spec 2.4.1: 100-200 ms); pymodbus returned as soon as the frame was
+                    # queued, so its own time on the line comes first
+                    quiet += BROADCAST_TURNAROUND + (self._sent_bytes * _char_time(self.url) if self._shared else 0)
+                self._quiet_until = quiet
                 if bus is not None:
-                    bus.quiet_until = time.monotonic() + self._gap
+                    bus.quiet_until = quiet
             if no_answer:
                 return None
+            self._answered = True
             if result.isError():
                 raise ExceptionResponse(function, int(getattr(result, "exception_code", 0)))
             return result
@@ -492,6 +531,11 @@ class TlsTransport(TcpTransport):
             ctx.load_cert_chain(o["cert"], o["key"])
         return ctx
 
+    def _lost(self, why: str) -> ConnectionLost:
+        if not self._answered:  # TLS 1.3: the server checks our certificate after the handshake, then closes
+            why += " before any answer (did the device refuse our client certificate? check cert= and key=)"
+        return super()._lost(why)
+
     def _make_client(self) -> Any:
         return AsyncModbusTlsClient(self.url.host or "", port=self.url.port or 802, sslctx=self.ssl_context(),
                                     **self._common())
@@ -501,7 +545,10 @@ class TlsTransport(TcpTransport):
             _, writer = await asyncio.wait_for(
                 asyncio.open_connection(self.url.host, self.url.port, ssl=self.ssl_context()), self.url.timeout)
         except ssl.SSLError as e:
-            return (f"TLS handshake failed: {e.reason or e} (check ca=, cert= and key=, or verify=false for a "
+            why = e.reason or str(e)
+            if isinstance(e, ssl.SSLCertVerificationError) and e.verify_message:
+                why += f": {e.verify_message}"  # e.g. "Hostname mismatch, certificate is not valid for 'x'"
+            return (f"TLS handshake failed: {why} (check ca=, cert= and key=, or verify=false for a "
                     f"self-signed device certificate)")
         except ConnectionRefusedError:
             return "connection refused"
@@ -563,6 +610,9 @@ class SerialTransport(PymodbusTransport):
                 line.client.close()  # dropped (e.g. USB adapter unplugged): open it afresh
                 bus.line = line = None
             if line is None:
+                problem = self._probe()
+                if problem is not None:
+                    raise Unreachable(f"{where}: {problem}")
                 line = self._opening = _SerialLine(self._settings())
                 try:
                     await super().connect()
@@ -577,22 +627,42 @@ class SerialTransport(PymodbusTransport):
             line.users += 1
             self._line, self._client = line, line.client
 
-    async def _why_not(self) -> str:
+    def _probe(self) -> str | None:
+        """Open and configure the port as pymodbus will, then close it: why it cannot be used, or None.
+
+        pymodbus swallows the reason, and when configuring fails after the port opened (a pty refusing
+        7E1) its half-built transport keeps the port locked until garbage collection; our own probe
+        closes it for certain and says what went wrong.
+        """
         o = self.url.options
-        try:  # open it as pymodbus did, to get pyserial's reason
+        port: Any = None
+        try:
             port = serial.serial_for_url(self.url.path, exclusive=True, baudrate=int(o.get("baudrate", 19200)),
                                          bytesize=int(o.get("bytesize", 8)), parity=o.get("parity", "N"),
-                                         stopbits=int(o.get("stopbits", 1)))
-        except (OSError, ValueError) as e:
-            return f"cannot open the serial port: {e}"
-        port.close()
-        return "cannot open the serial port"
+                                         stopbits=int(o.get("stopbits", 1)), timeout=self.url.timeout)
+            port.timeout = 0  # what pymodbus sets next: it reconfigures the port
+            port.write_timeout = 0
+        except Exception as e:  # pyserial raises SerialException, termios.error, ValueError
+            text = str(e.args[1]) if isinstance(e.args, tuple) and len(e.args) == 2 and e.args[0] == 22 else str(e)
+            if text == "Invalid argument":
+                settings = " ".join(f"{k}={o[k]}" for k in ("baudrate", "bytesize", "parity", "stopbits") if k in o)
+                return f"the port rejects these line settings ({settings or 'defaults'}): Invalid argument"
+            return f"cannot open the serial port: {text}"
+        finally:
+            if port is not None:
+                port.close()
+        return None
+
+    async def _why_not(self) -> str:
+        return self._probe() or "cannot open the serial port"
 
     def _claim(self, bus: _Bus) -> None:
         if self._line is not None:
             self._line.active = self
 
     async def close(self) -> None:
+        if self._line is not None:
+            await self._settle()
         line, self._line, self._client = self._line, None, None
         if line is None:
             return
