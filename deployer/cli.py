@@ -424,81 +424,29 @@ def _is_plan_file(path: str) -> bool:
     return head.lstrip().startswith(b"{") and b"deployer.plan/" in head
 
 
-def recipe_from_plan(path: str) -> tuple[Recipe, Plan]:
-    """A saved plan -> (the recipe it carries, the plan); checked against its profile."""
-    from . import yamlsrc
-    from .planner import plan_from_json
-    from .profile import resolve_profile
-    from .recipe import Desired, DeviceSpec, Recipe
-
-    data, src = yamlsrc.load(path)
-    p = plan_from_json(data, path)
-    try:
-        prof = resolve_profile(p.device.profile)
-    except UsageError as e:
-        raise InputError([src.error(("device", "profile"), str(e))]) from None
-    errors = []
-    desired = []
-    for i, pp in enumerate(p.parameters):
-        param = prof.get(pp.name)
-        if param is None or param.address != pp.address or param.count != len(pp.desired_raw):
-            errors.append(src.error(("parameters", i, "name"),
-                                    f"{pp.name} does not match profile {prof.id} (address or size differ)"))
-            continue
-        raw = param.decode(pp.desired_raw)
-        bounds = param.raw_bounds()
-        if not param.writable or (bounds is not None and not bounds[0] <= raw <= bounds[1]):
-            errors.append(src.error(("parameters", i, "desired_raw"),
-                                    f"{pp.name}: raw {raw} is not writable within the profile's range"))
-            continue
-        desired.append(Desired(param, pp.desired, pp.desired_raw))
-    if errors:
-        raise InputError(errors)
-    rec = Recipe(name=os.path.basename(p.recipe or path), path=p.recipe, profile=prof, desired=tuple(desired),
-                 device=DeviceSpec(p.device.url, p.device.unit), profile_ref=p.device.profile)
-    return rec, p
-
-
 def run_apply(source: str, *, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
               yes: bool, report_path: str | None, as_json: bool, inventory: str | None, limit: str | None,
               parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
               command: str = "apply") -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
     from .executor import ApplyOptions, Job, apply_many
-    from .fleet import load_inventory
+    from .fleet import fleet_jobs, load_inventory
+    from .planner import load_plan
     from .recipe import load_recipe
     from .report import audit, write_json
-    from .transport import BadURL, parse_url
 
     expected: Plan | None = None
     if _is_plan_file(source):
         if inventory or write_all:
             raise UsageError("a saved plan runs unchanged: --inventory and --write-all do not apply to it")
-        rec, expected = recipe_from_plan(source)
+        rec, expected = load_plan(source)
     else:
         rec = load_recipe(source)
     jobs: list[Job] = []
     if inventory:
         if device:
             raise UsageError("--device and --inventory exclude each other")
-        inv = load_inventory(inventory)
-        errors: list[Diagnostic] = []
-        for dev in inv.select(limit):
-            try:
-                r = rec
-                if dev.overrides or (dev.profile and dev.profile != rec.profile_ref):
-                    from .profile import resolve_profile
-                    prof = resolve_profile(dev.profile) if dev.profile else None
-                    r = load_recipe(source, extra=dev.overrides, profile=prof)
-                url = parse_url(dev.url, timeout=timeout or dev.timeout, retries=retries if retries is not None
-                                else dev.retries)
-                jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit))
-            except InputError as e:
-                errors.extend(e.diagnostics)
-            except (BadURL, UsageError) as e:
-                errors.append(Diagnostic(inventory, 0, 0, f"{dev.name}: {e}"))
-        if errors:
-            raise InputError(errors)
+        jobs = fleet_jobs(load_inventory(inventory), rec, limit, timeout=timeout, retries=retries, unit=unit)
         if not jobs:
             raise UsageError(f"--limit {limit!r} matches no device in {inventory}")
     else:

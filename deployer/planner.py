@@ -293,6 +293,42 @@ def plan_from_json(data: Any, path: str = "<plan>") -> Plan:
     return Plan(data.get("recipe"), Target(dev.get("url"), int(dev["unit"]), dev["profile"]), params, writes, reads)
 
 
+def load_plan(path: str) -> tuple[Recipe, Plan]:
+    """A saved plan file -> (the recipe it carries, the plan), checked against its profile first."""
+    import os
+
+    from . import yamlsrc
+    from .profile import resolve_profile
+    from .recipe import Desired, DeviceSpec, Recipe
+
+    data, src = yamlsrc.load(path)
+    p = plan_from_json(data, path)
+    try:
+        prof = resolve_profile(p.device.profile)
+    except UsageError as e:
+        raise InputError([src.error(("device", "profile"), str(e))]) from None
+    errors = []
+    desired = []
+    for i, pp in enumerate(p.parameters):
+        param = prof.get(pp.name)
+        if param is None or param.address != pp.address or param.count != len(pp.desired_raw):
+            errors.append(src.error(("parameters", i, "name"),
+                                    f"{pp.name} does not match profile {prof.id} (address or size differ)"))
+            continue
+        raw = param.decode(pp.desired_raw)
+        bounds = param.raw_bounds()
+        if not param.writable or (bounds is not None and not bounds[0] <= raw <= bounds[1]):
+            errors.append(src.error(("parameters", i, "desired_raw"),
+                                    f"{pp.name}: raw {raw} is not writable within the profile's range"))
+            continue
+        desired.append(Desired(param, pp.desired, pp.desired_raw))
+    if errors:
+        raise InputError(errors)
+    rec = Recipe(name=os.path.basename(p.recipe or path), path=p.recipe, profile=prof, desired=tuple(desired),
+                 device=DeviceSpec(p.device.url, p.device.unit), profile_ref=p.device.profile)
+    return rec, p
+
+
 # ---- cost on the wire --------------------------------------------------------------------------
 
 
