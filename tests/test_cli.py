@@ -276,3 +276,15 @@ def test_validate_a_saved_plan_and_write_all(capsys: pytest.CaptureFixture[str],
         assert code == 0
         assert {p["status"] for p in json.loads(out)["devices"][0]["parameters"]} == {"ok"}
         assert any(e.function == 16 for e in sim.log[n:])
+
+
+def test_fleet_problems_are_reported_before_anything_is_sent(capsys: pytest.CaptureFixture[str],
+                                                            tmp_path: Path) -> None:
+    inv = tmp_path / "inventory.yaml"
+    inv.write_text("devices:\n"
+                   "  a: {url: 'tcp://127.0.0.1:1?baud=3'}\n"
+                   "  b: {url: 'tcp://127.0.0.1:1', parameters: {F07: 7000 s}}\n")
+    code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", str(inv), "--yes")
+    assert code == 1
+    assert f"{inv}:2:12: error: a: unknown option 'baud'" in err
+    assert f"{inv}:3:51: error: F07: 7000 s is out of range 0..6000 s" in err
