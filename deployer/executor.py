@@ -176,10 +176,6 @@ def save_snapshot(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
     return path
 
 
-def _open(url: tp.DeviceURL | str) -> tp.Transport:
-    return tp.open_transport(url)
-
-
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
     return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers)
             for d in recipe.desired}
@@ -206,7 +202,7 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
         raise UsageError("unit 0 is broadcast (no device answers, nothing can be verified); "
                          "pass --allow-broadcast to send it anyway")
     target = Target(tp.describe(url), unit, recipe.profile_ref or prof.id)
-    transport = _open(url)
+    transport = tp.open_transport(url)
     try:
         await transport.connect()
     except tp.Unreachable as e:
@@ -429,7 +425,7 @@ async def read_current(profile: Profile, names: Sequence[str], url: tp.DeviceURL
     """Current registers of the named readable parameters. Raises tp.Unreachable / UsageError."""
     if unit == 0:
         raise UsageError("unit 0 is broadcast: nothing can be read from it")
-    transport = _open(url)
+    transport = tp.open_transport(url)
     await transport.connect()
     session = Session(transport, unit, retries=url.retries, backoff=backoff,
                       records=records if records is not None else [])

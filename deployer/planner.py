@@ -7,7 +7,7 @@ JSON (schemas/plan.schema.json) and ``apply PLAN.json`` executes it unchanged.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
 from .diagnostics import Diagnostic, InputError, UsageError
@@ -67,7 +67,6 @@ class Plan:
     writes: tuple[WriteRequest, ...]
     reads: tuple[ReadRequest, ...]
     schema: str = PLAN_SCHEMA
-    extra: dict[str, Any] = field(default_factory=dict, compare=False)
 
 
 # ---- write planning ------------------------------------------------------------------------

@@ -412,10 +412,3 @@ async def serve(sim: Simulator, *, on_ready: Any = None) -> None:
         await stop.wait()
     finally:
         await sim.stop()
-
-
-def fields_of(faults: Faults) -> dict[str, Any]:
-    return {k: (sorted(v) if isinstance(v, frozenset) else v) for k, v in asdict(faults).items()}
-
-
-__all__ = ["Faults", "LogEntry", "Simulator", "SimulatorThread", "field", "init_from_recipe", "serve"]
