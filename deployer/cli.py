@@ -107,7 +107,7 @@ def validate_file(path: str) -> str:
     if kind == "plan":
         from .planner import plan_from_json
 
-        plan = plan_from_json(data, path)
+        plan = plan_from_json(data, path, src=src)
         return f"plan: {_n(len(plan.writes), 'write request')} for profile {plan.device.profile}"
     what = ("cannot tell what this file is" if isinstance(data, dict) else
             f"expected a mapping, got {'a list' if isinstance(data, list) else 'a single value'}")

@@ -15,6 +15,7 @@ from .diagnostics import Diagnostic, InputError, UsageError
 if TYPE_CHECKING:
     from .profile import Limits, Profile
     from .recipe import Desired, Recipe
+    from .yamlsrc import Source
 
 PLAN_SCHEMA = "deployer.plan/1"
 Action = Literal["write", "unchanged", "bridge"]
@@ -86,106 +87,141 @@ class Plan:
 # where costs compare lexicographically as (requests, registers written). Each request is a
 # contiguous slice of whole parameters, so no parameter is ever split, and every way to cover
 # the must-parameters is one path through the DP: the result is optimal. It costs O(n * k),
-# k = parameters that fit in one request (<= 123).
+# k = parameters that fit in one request (<= 123): the inner loop stops once the slice passes L.
+# (Requests only start and end on must-parameters: see _plan_run.)
 #
-# Without optional parameters this reduces to greedy packing left to right, which is optimal
-# by exchange: take any optimal plan; its first request starts at p[0] and ends at or before
-# where greedy's first request ends; moving that boundary right to greedy's end shrinks the
-# second request without adding any, and induction on the rest gives greedy's count.
+# Without optional parameters (no current values, or --write-all) the DP reduces to greedy
+# packing left to right, O(n). Proof that greedy is optimal ("greedy stays ahead", an exchange
+# argument): let any valid plan cut the run into requests ending at o1 < o2 < ... < om, greedy's
+# at g1 < g2 < .... Greedy's first request is the longest prefix of whole parameters that fits
+# in L, so g1 >= o1. If g(i-1) >= o(i-1), the plan's i-th request [o(i-1), oi) fits in L, so
+# its sub-slice [g(i-1), oi) fits too, and greedy, taking the longest slice that fits from
+# g(i-1), ends at gi >= oi. So greedy has covered the run after at most m requests: no plan
+# needs fewer. All registers are written either way, so the register count ties.
 # tests/test_planner.py checks both against brute force on random small profiles.
 
-_Cost = tuple[int, int]
+_REQUEST = 1 << 40  # cost = requests * _REQUEST + registers: one int compares like (requests, registers)
 
 
-def _plan_run(run: Sequence[Desired], must: Sequence[bool], limit: int) -> list[tuple[int, int]]:
-    """Slices [i, j) of ``run`` to write, fewest requests then fewest registers."""
-    n = len(run)
+def _plan_run(sizes: Sequence[int], must: Sequence[bool], limit: int) -> list[tuple[int, int]]:
+    """Slices [i, j) of a run (parameter sizes in registers) to write: fewest requests, then registers."""
+    n = len(sizes)
     if all(must):  # greedy is optimal here (exchange argument above) and O(n)
         slices: list[tuple[int, int]] = []
         start, regs = 0, 0
-        for k, d in enumerate(run):
-            if regs + d.parameter.count > limit:
+        for k, size in enumerate(sizes):
+            if regs + size > limit:
                 slices.append((start, k))
                 start, regs = k, 0
-            regs += d.parameter.count
+            regs += size
         slices.append((start, n))
         return slices
-    inf: _Cost = (1 << 30, 1 << 30)
-    best: list[_Cost] = [inf] * (n + 1)
-    back: list[tuple[int, bool]] = [(-1, False)] * (n + 1)  # (previous position, wrote a request)
-    best[0] = (0, 0)
+    if not any(must):
+        return []
+    # An optimal plan never starts or ends a request on an optional parameter: trimming it keeps
+    # the request count and writes fewer registers. So requests run from a must-parameter i to a
+    # must-parameter j-1; every other position is only "skip". Same optimum, far fewer candidates.
+    pre = [0] * (n + 1)  # prefix sums: registers of run[i:j] = pre[j] - pre[i]
+    for k, size in enumerate(sizes):
+        pre[k + 1] = pre[k] + size
+    inf = 1 << 62
+    best = [inf] * (n + 1)
+    back = [-1] * (n + 1)  # previous position; negative -(i + 1) marks "skipped run[i]", no request
+    best[0] = 0
     for i in range(n):
-        if best[i] == inf:
+        here = best[i]
+        if here == inf:
             continue
-        if not must[i] and best[i] < best[i + 1]:
-            best[i + 1], back[i + 1] = best[i], (i, False)
-        regs = 0
+        if not must[i]:
+            if here < best[i + 1]:
+                best[i + 1], back[i + 1] = here, -(i + 1)
+            continue
+        base = here + _REQUEST - pre[i]
         for j in range(i + 1, n + 1):
-            regs += run[j - 1].parameter.count
-            if regs > limit:
+            if pre[j] - pre[i] > limit:
                 break
-            cost = (best[i][0] + 1, best[i][1] + regs)
-            if cost < best[j]:
-                best[j], back[j] = cost, (i, True)
+            if must[j - 1]:
+                cost = base + pre[j]
+                if cost < best[j]:
+                    best[j], back[j] = cost, i
     slices = []
     j = n
     while j > 0:
-        i, wrote = back[j]
-        if wrote:
+        i = back[j]
+        if i < 0:
+            j = -i - 1
+        else:
             slices.append((i, j))
-        j = i
+            j = i
     slices.reverse()
     return slices
 
 
 def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str, tuple[int, ...]] | None = None,
                 *, write_all: bool = False) -> tuple[tuple[PlannedParameter, ...], tuple[WriteRequest, ...]]:
-    """The fewest write requests carrying ``desired`` (see the proof above)."""
+    """The fewest write requests carrying ``desired`` (see the proof above).
+
+    ``current``: parameter name -> registers the device holds; a missing name (or None for all)
+    means unknown, so that parameter is written. Returns the parameters in write order (stage,
+    address) with their action, and the requests in the order to send them.
+    """
     limit = limits.write_registers
+    fc6 = limits.write_function == 6
     ordered = sorted(desired, key=lambda d: (d.parameter.stage, d.parameter.address))
-    for d in ordered:
-        if limits.write_function == 16 and d.parameter.count > limit:
-            raise UsageError(f"{d.name} needs {d.parameter.count} registers in one request, but the device takes "
+    # attributes read once into flat lists: properties cost more than the planning itself at 1M
+    params_ = [d.parameter for d in ordered]
+    names = [p.name for p in params_]
+    addrs = [p.address for p in params_]
+    sizes = [p.count for p in params_]
+    stages = [p.stage for p in params_]
+    regs = [tuple(d.registers) for d in ordered]
+    n = len(ordered)
+    for k in range(n):
+        if not fc6 and sizes[k] > limit:
+            raise UsageError(f"{names[k]} needs {sizes[k]} registers in one request, but the device takes "
                              f"at most {limit} per request (limits in the profile)")
+        if len(regs[k]) != sizes[k]:
+            raise UsageError(f"{names[k]}: {len(regs[k])} register values for a {sizes[k]}-register parameter")
+        # two values for one register would make the plan's outcome depend on request order
+        if k and stages[k - 1] == stages[k] and addrs[k] < addrs[k - 1] + sizes[k - 1]:
+            raise UsageError(f"{names[k]} overlaps {names[k - 1]} (registers {addrs[k]} and "
+                             f"{addrs[k - 1]}..{addrs[k - 1] + sizes[k - 1] - 1}): each register may be planned once")
 
-    def needs_write(d: Desired) -> bool:
-        if write_all or current is None:
-            return True
-        return current.get(d.name) != tuple(d.registers)
-
-    actions: dict[str, Action] = {d.name: "write" if needs_write(d) else "unchanged" for d in ordered}
+    if write_all or current is None:
+        must = [True] * n
+    else:
+        must = [current.get(names[k]) != regs[k] for k in range(n)]
+    actions: list[Action] = ["write" if m else "unchanged" for m in must]
     writes: list[WriteRequest] = []
     i = 0
-    while i < len(ordered):
+    while i < n:
         j = i + 1  # a maximal run: same stage, contiguous registers
-        while (j < len(ordered) and ordered[j].parameter.stage == ordered[i].parameter.stage
-               and ordered[j].parameter.address == ordered[j - 1].parameter.end):
+        while j < n and stages[j] == stages[i] and addrs[j] == addrs[j - 1] + sizes[j - 1]:
             j += 1
-        run = ordered[i:j]
-        stage = run[0].parameter.stage
-        if limits.write_function == 6:
-            # FC06 carries one register: a 32-bit value goes as two requests, upper word first in
-            # address order. "Never split" cannot hold on such devices; they latch words themselves.
-            for d in run:
-                if actions[d.name] == "write":
-                    for k, word in enumerate(d.registers):
-                        writes.append(WriteRequest(6, d.parameter.address + k, (word,), (d.name,), stage))
+        stage = stages[i]
+        if fc6:
+            # FC06 carries one register, so the "never split" rule cannot hold on such devices: a
+            # 2/4-register value goes as one FC06 per word, in ascending address order (the word at
+            # the lower address first, whatever the word order), the words of one parameter back to
+            # back with nothing in between. No bridges: one request per register saves nothing.
+            for k in range(i, j):
+                if must[k]:
+                    writes.extend(WriteRequest(6, addrs[k] + w, (word,), (names[k],), stage)
+                                  for w, word in enumerate(regs[k]))
         else:
-            for a, b in _plan_run(run, [actions[d.name] == "write" for d in run], limit):
-                part = run[a:b]
-                for d in part:
-                    if actions[d.name] == "unchanged":
-                        actions[d.name] = "bridge"
-                writes.append(WriteRequest(16, part[0].parameter.address,
-                                           tuple(w for d in part for w in d.registers),
-                                           tuple(d.name for d in part), stage))
+            for a, b in _plan_run(sizes[i:j], must[i:j], limit):
+                for k in range(i + a, i + b):
+                    if not must[k]:
+                        actions[k] = "bridge"
+                writes.append(WriteRequest(16, addrs[i + a], tuple(w for k in range(i + a, i + b) for w in regs[k]),
+                                           tuple(names[i + a:i + b]), stage))
         i = j
-    params = tuple(
-        PlannedParameter(d.name, d.parameter.address, d.parameter.count, d.text, tuple(d.registers),
-                         None if current is None or d.name not in current else tuple(current[d.name]),
-                         actions[d.name], d.parameter.stage)
-        for d in ordered)
-    return params, tuple(writes)
+    planned = tuple(
+        PlannedParameter(names[k], addrs[k], sizes[k], ordered[k].text, regs[k],
+                         None if current is None or names[k] not in current else tuple(current[names[k]]),
+                         actions[k], stages[k])
+        for k in range(n))
+    return planned, tuple(writes)
 
 
 # ---- read planning -------------------------------------------------------------------------
@@ -194,14 +230,22 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
 def plan_reads(profile: Profile, names: Iterable[str]) -> tuple[ReadRequest, ...]:
     """FC03 blocks covering ``names`` with the fewest requests, spanning declared readable registers only.
 
-    Greedy per run of contiguous readable parameters: open a block at the first parameter still
-    to read and stretch it over every needed parameter that fits. A standard interval-covering
-    argument makes this optimal (no block can start earlier and still cover that parameter).
+    A block may only span a maximal run of contiguous declared readable registers (reading an
+    undeclared gap or a write-only register can fail the whole read), may cover parameters the
+    caller did not ask for, and never cuts a parameter. Greedy per run: open a block at the first
+    parameter still to read and stretch it over every needed parameter that still fits. Optimal
+    by the interval-covering argument: any cover has a block containing that first parameter,
+    which can start no earlier, so it reaches no further than greedy's block; induction on the
+    rest. tests/test_planner.py checks it against every partition of the needed parameters.
     """
     wanted = set(names)
     limit = profile.limits.read_registers
     reads: list[ReadRequest] = []
-    params = [p for p in profile.parameters if p.readable]
+    # profiles built in code need not be sorted; loaded ones are (cheap to be sure)
+    params = sorted((p for p in profile.parameters if p.readable), key=lambda p: p.address)
+    missing = wanted - {p.name for p in params}
+    if missing:
+        raise UsageError(f"not readable in profile {profile.id}: {', '.join(sorted(missing))}")
     i = 0
     while i < len(params):
         j = i + 1
@@ -223,14 +267,12 @@ def plan_reads(profile: Profile, names: Iterable[str]) -> tuple[ReadRequest, ...
         if start is not None:
             reads.append(ReadRequest(start, end - start))
         i = j
-    missing = wanted - {p.name for p in params}
-    if missing:
-        raise UsageError(f"not readable in profile {profile.id}: {', '.join(sorted(missing))}")
     return tuple(reads)
 
 
 def make_plan(recipe: Recipe, target: Target, current: Mapping[str, tuple[int, ...]] | None = None,
               *, write_all: bool = False) -> Plan:
+    """The whole plan; reads cover every readable recipe parameter (snapshot before, read-back after)."""
     prof = recipe.profile
     params, writes = plan_writes(recipe.desired, prof.limits, current, write_all=write_all)
     reads = plan_reads(prof, [d.name for d in recipe.desired if d.parameter.readable])
@@ -241,7 +283,13 @@ def make_plan(recipe: Recipe, target: Target, current: Mapping[str, tuple[int, .
 
 
 def plan_to_json(plan: Plan) -> dict[str, Any]:
-    """The plan as DESIGN.md's "Plan JSON" (parameters also carry their stage)."""
+    """The plan as DESIGN.md's "Plan JSON".
+
+    Extra keys beyond DESIGN.md (readers ignore them; plan_from_json does not need them):
+    ``parameters[].stage`` and ``writes[].stage`` (write order), and ``summary`` = wire_stats()
+    plus the number of parameters per action.
+    """
+    actions = {a: sum(1 for p in plan.parameters if p.action == a) for a in ("write", "bridge", "unchanged")}
     return {
         "schema": plan.schema,
         "recipe": plan.recipe,
@@ -253,43 +301,93 @@ def plan_to_json(plan: Plan) -> dict[str, Any]:
         "writes": [{"function": w.function, "address": w.address, "count": w.count, "registers": list(w.registers),
                     "parameters": list(w.parameters), "stage": w.stage} for w in plan.writes],
         "reads": [{"function": r.function, "address": r.address, "count": r.count} for r in plan.reads],
+        "summary": {**wire_stats(plan), **actions},
     }
 
 
-def plan_from_json(data: Any, path: str = "<plan>") -> Plan:
-    """A plan back from JSON: schema first, then consistency (writes carry the desired values)."""
+def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None) -> Plan:
+    """A plan back from JSON: the schema first, then consistency, all problems at once (InputError).
+
+    ``src`` (a yamlsrc.Source from yamlsrc.load) gives every problem its FILE:LINE:COL; without
+    it problems print as FILE:0:0 with the JSON path in the message. Consistency: each write's
+    ``count`` matches its registers, carries exactly the desired values of the parameters it names
+    (whole parameters, contiguous, in order; FC06 one word of one parameter), and the actions agree
+    with the writes (``write``/``bridge`` written, ``unchanged`` not) — a hand-edited plan can
+    not make ``apply`` write a register no parameter names.
+    """
     from . import yamlsrc
 
-    src = yamlsrc.Source(path)
+    source = src
+
+    def error(at: yamlsrc.Path_, message: str) -> Diagnostic:
+        if source is not None:
+            return source.error(at, message)
+        where = "".join(f"[{x}]" if isinstance(x, int) else f".{x}" for x in at).lstrip(".")
+        return Diagnostic(path, 0, 0, f"{where}: {message}" if where else message)
+
     if not isinstance(data, dict):
-        raise InputError([Diagnostic(path, 1, 1, "a plan must be a JSON object")])
-    errors = yamlsrc.validate(data, "plan", src)
+        raise InputError([error((), "a plan must be a JSON object")])
+    errors = yamlsrc.validate(data, "plan", source or yamlsrc.Source(path))
     if errors:
-        raise InputError(errors)
+        raise InputError(errors if source is not None else [Diagnostic(path, 0, 0, e.message) for e in errors])
     dev = data["device"]
-    params = tuple(PlannedParameter(p["name"], int(p["address"]), int(p["count"]), p["desired"],
+    params = tuple(PlannedParameter(str(p["name"]), int(p["address"]), int(p["count"]), str(p["desired"]),
                                     tuple(int(x) for x in p["desired_raw"]),
                                     None if p.get("current_raw") is None else tuple(int(x) for x in p["current_raw"]),
                                     p["action"], int(p.get("stage", 0))) for p in data["parameters"])
     writes = tuple(WriteRequest(int(w["function"]), int(w["address"]), tuple(int(x) for x in w["registers"]),
-                                tuple(w["parameters"]), int(w.get("stage", 0))) for w in data["writes"])
+                                tuple(str(n) for n in w["parameters"]), int(w.get("stage", 0)))
+                   for w in data["writes"])
     reads = tuple(ReadRequest(int(r["address"]), int(r["count"]), int(r.get("function", 3))) for r in data["reads"])
-    problems: list[str] = []
-    by_name = {p.name: p for p in params}
-    for k, w in enumerate(writes):
+    problems: list[Diagnostic] = []
+    by_name: dict[str, PlannedParameter] = {}
+    for k, pp in enumerate(params):
+        if pp.name in by_name:
+            problems.append(error(("parameters", k, "name"), f"{pp.name} is listed twice"))
+        by_name[pp.name] = pp
+        if len(pp.desired_raw) != pp.count:
+            problems.append(error(("parameters", k, "desired_raw"),
+                                  f"{pp.name}: {len(pp.desired_raw)} registers for count {pp.count}"))
+        if pp.current_raw is not None and len(pp.current_raw) != pp.count:
+            problems.append(error(("parameters", k, "current_raw"),
+                                  f"{pp.name}: {len(pp.current_raw)} registers for count {pp.count}"))
+        if pp.address + pp.count > 0x10000:
+            problems.append(error(("parameters", k, "address"), f"{pp.name} runs past register 65535"))
+    written: set[str] = set()
+    for k, (w, wj) in enumerate(zip(writes, data["writes"], strict=True)):
+        if int(wj["count"]) != w.count:
+            problems.append(error(("writes", k, "count"), f"count {wj['count']} but {w.count} registers"))
+        if w.address + w.count > 0x10000:
+            problems.append(error(("writes", k, "address"), "the request runs past register 65535"))
         regs: dict[int, int] = {}
         for n in w.parameters:
-            pp = by_name.get(n)
-            if pp is None:
-                problems.append(f"writes[{k}] names '{n}', which is not among the parameters")
+            pp_ = by_name.get(n)
+            if pp_ is None:
+                problems.append(error(("writes", k, "parameters"), f"names '{n}', which is not among the parameters"))
                 continue
-            regs.update({pp.address + i: v for i, v in enumerate(pp.desired_raw)})
-        if [regs.get(w.address + i) for i in range(w.count)] != list(w.registers):
-            problems.append(f"writes[{k}] at {w.address} does not carry exactly the desired values of "
-                            f"{', '.join(w.parameters)}")
+            written.add(n)
+            regs.update({pp_.address + i: v for i, v in enumerate(pp_.desired_raw)})
+        if w.function == 6:  # one word of one parameter
+            ok = w.count == 1 and len(w.parameters) == 1 and regs.get(w.address) == w.registers[0]
+        else:  # whole parameters, back to back from the request's address, nothing more
+            ok = sorted(regs) == list(range(w.address, w.address + w.count)) and \
+                [regs[a] for a in sorted(regs)] == list(w.registers)
+        if not ok and all(n in by_name for n in w.parameters):
+            problems.append(error(("writes", k, "registers"),
+                                  f"the request at {w.address} does not carry exactly the desired values of "
+                                  f"{', '.join(w.parameters)}"))
+    for k, pp in enumerate(params):
+        if (pp.name in written) != (pp.action != "unchanged"):
+            problems.append(error(("parameters", k, "action"),
+                                  f"{pp.name} is '{pp.action}' but is {'' if pp.name in written else 'not '}"
+                                  "in a write request"))
+    for k, r in enumerate(reads):
+        if r.address + r.count > 0x10000:
+            problems.append(error(("reads", k, "address"), "the read runs past register 65535"))
     if problems:
-        raise InputError([Diagnostic(path, 1, 1, m) for m in problems])
-    return Plan(data.get("recipe"), Target(dev.get("url"), int(dev["unit"]), dev["profile"]), params, writes, reads)
+        raise InputError(problems)
+    return Plan(data.get("recipe"), Target(dev.get("url"), int(dev["unit"]), str(dev["profile"])),
+                params, writes, reads)
 
 
 def load_plan(path: str) -> tuple[Recipe, Plan]:
@@ -301,7 +399,7 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
     from .recipe import Desired, DeviceSpec, Recipe
 
     data, src = yamlsrc.load(path)
-    p = plan_from_json(data, path)
+    p = plan_from_json(data, path, src=src)
     try:
         prof = resolve_profile(p.device.profile)
     except UsageError as e:
@@ -330,17 +428,44 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
 
 # ---- cost on the wire --------------------------------------------------------------------------
 
+BAUD = 19200
+CHAR_BITS = 11  # 8E1: start + 8 data + parity + stop
 
-def wire_stats(plan: Plan, baud: int = 19200) -> dict[str, Any]:
-    """Bytes and line time of the write requests and their answers on an RTU line (8E1)."""
-    frames = 0
-    total = 0
-    for w in plan.writes:
-        if w.function == 6:
-            total += 8 + 8
-        else:
-            total += (9 + 2 * w.count) + 8
-        frames += 2
-    char = 11 / baud  # start + 8 data + parity + stop
-    return {"requests": len(plan.writes), "registers": sum(w.count for w in plan.writes), "rtu_bytes": total,
-            "seconds_19200": round(total * char + frames * 3.5 * char, 6)}
+
+def _rtu_request_bytes(function: int, count: int) -> int:
+    # unit(1) + PDU + CRC(2); PDU: FC16 fc addr qty bytecount data = 6 + 2n, FC06 and FC03 = 5
+    return 9 + 2 * count if function == 16 else 8
+
+
+def _rtu_response_bytes(function: int, count: int) -> int:
+    # FC16 echoes address and quantity, FC06 echoes the request, FC03 carries bytecount + data
+    return 5 + 2 * count if function == 3 else 8
+
+
+def wire_stats(plan: Plan) -> dict[str, float | int]:
+    """Bytes and line time of the plan's write requests and their answers on an RTU line.
+
+    ``rtu_bytes`` counts requests plus the answers the device gives (none for unit 0, broadcast);
+    ``seconds_19200`` is that at 19200 baud, 8E1 (11 bits a character), plus the 3.5-character
+    silent interval that ends every frame. ``read_*`` is the same for the plan's FC03 blocks
+    (one pass: snapshot or read-back).
+    """
+    char = CHAR_BITS / BAUD
+    answers = plan.device.unit != 0
+
+    def cost(reqs: Iterable[tuple[int, int]]) -> tuple[int, int]:
+        total = frames = 0
+        for function, count in reqs:
+            total += _rtu_request_bytes(function, count)
+            frames += 1
+            if answers:
+                total += _rtu_response_bytes(function, count)
+                frames += 1
+        return total, frames
+
+    w_bytes, w_frames = cost((w.function, w.count) for w in plan.writes)
+    r_bytes, r_frames = cost((r.function, r.count) for r in plan.reads)
+    return {"requests": len(plan.writes), "registers": sum(w.count for w in plan.writes), "rtu_bytes": w_bytes,
+            "seconds_19200": round((w_bytes + 3.5 * w_frames) * char, 6),
+            "read_requests": len(plan.reads), "read_registers": sum(r.count for r in plan.reads),
+            "read_rtu_bytes": r_bytes, "read_seconds_19200": round((r_bytes + 3.5 * r_frames) * char, 6)}

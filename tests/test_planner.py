@@ -6,15 +6,18 @@ import itertools
 import json
 from collections.abc import Sequence
 
+import jsonschema
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from deployer import yamlsrc
 from deployer.codec import register_count
-from deployer.diagnostics import InputError
+from deployer.diagnostics import InputError, UsageError
 from deployer.planner import (
     Plan,
     Target,
+    WriteRequest,
     make_plan,
     plan_from_json,
     plan_reads,
@@ -180,12 +183,13 @@ def test_stages_in_order_and_ascending_within_a_stage(case) -> None:  # type: ig
 @given(layouts())
 def test_json_round_trip_is_identity(case) -> None:  # type: ignore[no-untyped-def]
     ds, limits, current = case
-    prof = Profile(id="t", parameters=tuple(sorted((d.parameter for d in ds), key=lambda p: p.address)),
-                   limits=limits)
-    recipe = Recipe("r", "r.yaml", prof, tuple(ds))
-    plan = make_plan(recipe, Target("tcp://127.0.0.1:502", 3, "t"), current)
-    again = plan_from_json(json.loads(json.dumps(plan_to_json(plan))))
-    assert again == plan
+    ps = tuple(sorted((d.parameter for d in ds), key=lambda p: p.address))
+    for lim in (limits, Limits(write_function=6)):  # FC16 and FC06 plans
+        recipe = Recipe("r", "r.yaml", Profile(id="t", parameters=ps, limits=lim), tuple(ds))
+        for cur in (None, current):
+            plan = make_plan(recipe, Target("tcp://127.0.0.1:502", 3, "t"), cur)
+            again = plan_from_json(json.loads(json.dumps(plan_to_json(plan))))
+            assert again == plan
 
 
 # ---- rules, one by one --------------------------------------------------------------------------
@@ -274,3 +278,247 @@ def test_wire_stats() -> None:
     st_ = wire_stats(plan)
     assert st_["rtu_bytes"] == 13 + 8 and st_["requests"] == 1
     assert register_count("uint32") == 2
+
+
+# ---- FC06 devices, partial knowledge, refusals ----------------------------------------------------
+
+
+@settings(max_examples=200, deadline=None)
+@given(layouts())
+def test_fc06_plans_write_each_named_register_once_in_order(case) -> None:  # type: ignore[no-untyped-def]
+    ds, _, current = case
+    params, writes = plan_writes(ds, Limits(write_function=6), current)
+    changed = [d for d in ds if current[d.name] != d.registers]
+    assert all(w.function == 6 and w.count == 1 and len(w.parameters) == 1 for w in writes)
+    # exactly the changed parameters' registers, whole parameters, with their values
+    assert [(w.address, w.registers[0]) for w in writes] == [
+        (d.parameter.address + k, v)
+        for d in sorted(changed, key=lambda d: (d.parameter.stage, d.parameter.address))
+        for k, v in enumerate(d.registers)]
+    assert {p.name for p in params if p.action == "write"} == {d.name for d in changed}
+    assert all(p.action != "bridge" for p in params)  # one request per register: bridging saves nothing
+
+
+def test_unknown_current_value_is_written() -> None:
+    ds = [desired(param(n, i)) for i, n in enumerate("abc")]
+    params, writes = plan_writes(ds, Limits(), {"a": ds[0].registers, "c": ds[2].registers})
+    assert [p.action for p in params] == ["unchanged", "write", "unchanged"]
+    assert [p.current_raw for p in params] == [ds[0].registers, None, ds[2].registers]
+    assert [(w.address, w.parameters) for w in writes] == [(1, ("b",))]
+
+
+def test_bridge_is_not_used_when_it_would_overflow_the_limit() -> None:
+    # a, b, c of 2 registers each; limit 4: a+b+c (6) does not fit, so a and c go separately
+    ds = [desired(param(n, 2 * i, 2)) for i, n in enumerate("abc")]
+    current = {"a": (0, 0), "b": ds[1].registers, "c": (0, 0)}
+    params, writes = plan_writes(ds, Limits(max_write_registers=4), current)
+    assert [(w.address, w.parameters) for w in writes] == [(0, ("a",)), (4, ("c",))]
+    assert [p.action for p in params] == ["write", "unchanged", "write"]
+
+
+def test_bridge_chooses_the_cheaper_of_equal_request_counts() -> None:
+    # changed a, d; unchanged b (1 register), c (1 register): one request a..d (4) beats nothing else
+    ds = [desired(param(n, i)) for i, n in enumerate("abcd")]
+    current = {"a": (0,), "b": ds[1].registers, "c": ds[2].registers, "d": (0,)}
+    params, writes = plan_writes(ds, Limits(max_write_registers=4), current)
+    assert [(w.address, w.count) for w in writes] == [(0, 4)]
+    assert [p.action for p in params] == ["write", "bridge", "bridge", "write"]
+    # limit 3: a..d does not fit; two requests, and no bridge register is written for nothing
+    params, writes = plan_writes(ds, Limits(max_write_registers=3), current)
+    assert [(w.address, w.count) for w in writes] == [(0, 1), (3, 1)]
+    assert [p.action for p in params] == ["write", "unchanged", "unchanged", "write"]
+
+
+def test_stages_are_written_in_order_even_when_addresses_are_not() -> None:
+    ds = [desired(param("late", 0, stage=1)), desired(param("early", 1, stage=0))]
+    params, writes = plan_writes(ds, Limits())
+    assert [(w.stage, w.parameters) for w in writes] == [(0, ("early",)), (1, ("late",))]
+    assert [p.name for p in params] == ["early", "late"]
+
+
+def test_contiguous_parameters_in_different_stages_are_not_merged() -> None:
+    ds = [desired(param("a", 0, stage=0)), desired(param("b", 1, stage=1))]
+    _, writes = plan_writes(ds, Limits())
+    assert len(writes) == 2
+
+
+def test_refusals_are_user_errors() -> None:
+    with pytest.raises(UsageError, match="needs 4 registers"):
+        plan_writes([desired(param("big", 0, 4))], Limits(max_write_registers=3))
+    with pytest.raises(UsageError, match="overlaps"):
+        plan_writes([desired(param("a", 0, 2)), desired(param("b", 1))], Limits())
+    with pytest.raises(UsageError, match="overlaps"):
+        d = desired(param("a", 0))
+        plan_writes([d, d], Limits())
+    with pytest.raises(UsageError, match="register values"):
+        plan_writes([Desired(param("a", 0, 2), "1", (1,))], Limits())
+    prof = Profile(id="t", parameters=(param("a", 0), param("wo", 1, access="write-only")))
+    with pytest.raises(UsageError, match="not readable.*nope.*wo"):
+        plan_reads(prof, ["a", "wo", "nope"])
+
+
+# ---- reads: against every partition of the needed parameters ---------------------------------------
+
+
+@st.composite
+def read_layouts(draw: st.DrawFn) -> tuple[Profile, list[str]]:
+    n = draw(st.integers(1, 8))
+    address = draw(st.integers(0, 20))
+    ps = []
+    for i in range(n):
+        address += draw(st.sampled_from([0, 0, 0, 2]))
+        count = draw(st.sampled_from([1, 1, 2, 4]))
+        access = draw(st.sampled_from(["read-write", "read-write", "read-only", "write-only"]))
+        ps.append(param(f"p{i}", address, count, access=access))
+        address += count
+    readable = [p.name for p in ps if p.readable]
+    names = draw(st.lists(st.sampled_from(readable), unique=True)) if readable else []
+    limits = Limits(max_read_registers=draw(st.integers(4, 10)))
+    draw(st.randoms()).shuffle(ps)  # plan_reads must not rely on the profile's order
+    return Profile(id="t", parameters=tuple(ps), limits=limits), names
+
+
+def brute_force_reads(prof: Profile, names: list[str]) -> int:
+    """Fewest blocks: try every split of the needed parameters (in address order) into groups."""
+    ps = sorted(prof.parameters, key=lambda p: p.address)
+    need = sorted((p for p in ps if p.name in names), key=lambda p: p.address)
+    if not need:
+        return 0
+
+    def one_block(group: list[Parameter]) -> bool:
+        lo, hi = group[0].address, group[-1].end
+        if hi - lo > prof.limits.read_registers:
+            return False
+        covered = [p for p in ps if lo <= p.address < hi]  # must tile [lo, hi) with readable ones
+        return all(p.readable for p in covered) and sum(p.count for p in covered) == hi - lo
+
+    best = len(need) + 1
+    for cuts in itertools.product([False, True], repeat=len(need) - 1):
+        groups, cur = [], [need[0]]
+        for p, cut in zip(need[1:], cuts, strict=True):
+            if cut:
+                groups.append(cur)
+                cur = [p]
+            else:
+                cur.append(p)
+        groups.append(cur)
+        if all(one_block(g) for g in groups):
+            best = min(best, len(groups))
+    return best
+
+
+@settings(max_examples=300, deadline=None)
+@given(read_layouts())
+def test_reads_cover_only_declared_readable_registers_with_the_fewest_blocks(case) -> None:  # type: ignore[no-untyped-def]
+    prof, names = case
+    reads = plan_reads(prof, names)
+    by_addr = {p.address: p for p in prof.parameters}
+    starts_ends = {p.address for p in prof.parameters} | {p.end for p in prof.parameters}
+    covered: set[str] = set()
+    for r in reads:
+        assert r.function == 3 and 1 <= r.count <= prof.limits.read_registers
+        assert r.address in starts_ends and r.address + r.count in starts_ends  # never cuts a parameter
+        a = r.address
+        while a < r.address + r.count:  # the block is tiled by declared readable parameters
+            p = by_addr[a]
+            assert p.readable
+            covered.add(p.name)
+            a = p.end
+        assert a == r.address + r.count
+    assert set(names) <= covered
+    assert len(reads) == brute_force_reads(prof, names)
+    keys = [r.address for r in reads]
+    assert keys == sorted(keys)
+
+
+def test_reads_with_a_small_frame_limit() -> None:
+    """max_frame_bytes 64 -> the answer (5 + 2n bytes) allows 29 registers per FC03."""
+    ps = tuple(param(f"p{i}", i) for i in range(60))
+    prof = Profile(id="t", parameters=ps, limits=Limits(max_frame_bytes=64))
+    assert [r.count for r in plan_reads(prof, [p.name for p in ps])] == [29, 29, 2]
+
+
+def test_make_plan_reads_only_readable_recipe_parameters() -> None:
+    ps = (param("a", 0), param("wo", 1, access="write-only"), param("b", 2), param("other", 3))
+    prof = Profile(id="t", parameters=ps)
+    rec = Recipe("r", None, prof, (desired(ps[0]), desired(ps[1]), desired(ps[2])))
+    plan = make_plan(rec, Target(None, 1, "t"))
+    assert [(r.address, r.count) for r in plan.reads] == [(0, 1), (2, 1)]
+    assert [(w.address, w.count) for w in plan.writes] == [(0, 3)]  # write-only is written, not read
+
+
+# ---- plan JSON ------------------------------------------------------------------------------------
+
+
+def _plan() -> Plan:
+    ds = [desired(param("a", 0, 2)), desired(param("b", 2)), desired(param("c", 3))]
+    prof = Profile(id="t", parameters=tuple(d.parameter for d in ds))
+    return make_plan(Recipe("r", "r.yaml", prof, tuple(ds)), Target("tcp://h:502", 1, "t"),
+                     {"a": (0, 0), "b": ds[1].registers, "c": (0,)})
+
+
+def test_plan_json_has_the_design_shape_and_validates() -> None:
+    data = json.loads(json.dumps(plan_to_json(_plan())))
+    jsonschema.Draft202012Validator(yamlsrc.schema("plan")).validate(data)
+    assert set(data) == {"schema", "recipe", "device", "parameters", "writes", "reads", "summary"}
+    assert data["parameters"][0] == {"name": "a", "address": 0, "count": 2, "desired": "7", "desired_raw": [0, 7],
+                                     "current_raw": [0, 0], "action": "write", "stage": 0}
+    assert data["writes"] == [{"function": 16, "address": 0, "count": 4, "registers": [0, 7, 7, 7],
+                               "parameters": ["a", "b", "c"], "stage": 0}]
+    assert data["reads"] == [{"function": 3, "address": 0, "count": 4}]
+    assert data["summary"]["bridge"] == 1 and data["summary"]["requests"] == 1
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d["writes"][0]["registers"].__setitem__(0, 65536), "65536 is greater than the maximum"),
+    (lambda d: d.pop("reads"), "'reads' is a required property"),
+    (lambda d: d["writes"][0].__setitem__("count", 3), "count 3 but 4 registers"),
+    (lambda d: d["parameters"][1].__setitem__("action", "unchanged"), "b is 'unchanged' but is in a write"),
+    (lambda d: d["writes"][0].__setitem__("parameters", ["a", "b"]), "does not carry exactly"),
+    (lambda d: d["writes"][0].__setitem__("parameters", ["a", "b", "zz"]), "names 'zz'"),
+    (lambda d: d["parameters"][0].__setitem__("desired_raw", [7]), "1 registers for count 2"),
+    (lambda d: d["writes"][0].__setitem__("function", 6), "does not carry exactly"),
+])
+def test_inconsistent_plans_are_refused_at_file_0_0(edit, message) -> None:  # type: ignore[no-untyped-def]
+    data = json.loads(json.dumps(plan_to_json(_plan())))
+    edit(data)
+    with pytest.raises(InputError) as e:
+        plan_from_json(data, "p.json")
+    text = str(e.value)
+    assert message in text and text.startswith("p.json:0:0: error: ")
+
+
+def test_plan_errors_carry_positions_with_a_source(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    data = plan_to_json(_plan())
+    data["writes"][0]["registers"][1] = 8
+    f = tmp_path / "p.json"
+    f.write_text(json.dumps(data, indent=1))
+    loaded, src = yamlsrc.load(str(f))
+    with pytest.raises(InputError) as e:
+        plan_from_json(loaded, str(f), src=src)
+    (d,) = e.value.diagnostics
+    lines = f.read_text().splitlines()
+    assert d.line > 1 and '"registers"' in lines[d.line - 1]
+    assert plan_from_json(yamlsrc.load(str(tmp_path / "ok.json"), json.dumps(plan_to_json(_plan())))[0]) == _plan()
+
+
+def test_not_a_plan() -> None:
+    with pytest.raises(InputError, match="p.json:0:0: error: a plan must be a JSON object"):
+        plan_from_json([1], "p.json")
+
+
+# ---- wire statistics --------------------------------------------------------------------------------
+
+
+def test_wire_stats_numbers() -> None:
+    plan = _plan()  # one FC16 of 4 registers, one FC03 of 4
+    char = 11 / 19200
+    s = wire_stats(plan)
+    assert (s["requests"], s["registers"], s["rtu_bytes"]) == (1, 4, 17 + 8)
+    assert s["seconds_19200"] == pytest.approx((25 + 2 * 3.5) * char, abs=1e-6)
+    assert (s["read_requests"], s["read_rtu_bytes"]) == (1, 8 + 13)
+    broadcast = wire_stats(Plan(plan.recipe, Target(None, 0, "t"), plan.parameters, plan.writes, plan.reads))
+    assert broadcast["rtu_bytes"] == 17  # unit 0: nobody answers
+    assert broadcast["seconds_19200"] == pytest.approx((17 + 3.5) * char, abs=1e-6)
+    fc6 = wire_stats(Plan(None, Target(None, 1, "t"), (), (WriteRequest(6, 0, (1,), ("a",)),), ()))
+    assert fc6["rtu_bytes"] == 16
