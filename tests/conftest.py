@@ -43,3 +43,17 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
+    """Test certificates: a CA, a server certificate for 127.0.0.1, a client certificate, another CA."""
+    from tests.certs import issue, make_ca
+
+    d = tmp_path_factory.mktemp("pki")
+    ca, ca_key, ca_cert = make_ca(d)
+    server_crt, server_key = issue(d, "server", ca_key, ca_cert, server=True)
+    client_crt, client_key = issue(d, "client", ca_key, ca_cert, server=False)
+    other_ca, _, _ = make_ca(d, "other-ca")
+    return {"ca": ca, "server_crt": server_crt, "server_key": server_key, "client_crt": client_crt,
+            "client_key": client_key, "other_ca": other_ca}

@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable
+import socketserver
+import threading
+from collections.abc import Awaitable, Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
+
+import pytest
 
 from deployer.profile import Profile, load_profile
 from deployer.simulator import LogEntry, Simulator
@@ -28,3 +33,31 @@ def run_with(sim: Simulator, body: Callable[[Simulator], Awaitable[T]]) -> T:
 
 def count(log: list[LogEntry], function: int, **where: Any) -> int:
     return sum(1 for e in log if e.function == function and all(getattr(e, k) == v for k, v in where.items()))
+
+
+@contextmanager
+def umodbus_server(store: dict[int, int]) -> Iterator[int]:
+    """A Modbus/TCP server from another library (umodbus), unit 1, holding registers in ``store``; yields its port."""
+    pytest.importorskip("umodbus", reason="umodbus is a test extra (pip install -e '.[test]')")
+    from umodbus import conf
+    from umodbus.server.tcp import RequestHandler, get_server
+
+    conf.SIGNED_VALUES = False
+    socketserver.TCPServer.allow_reuse_address = True
+    server = get_server(socketserver.TCPServer, ("127.0.0.1", 0), RequestHandler)
+
+    @server.route(slave_ids=[1], function_codes=[3], addresses=list(store))  # type: ignore[untyped-decorator]
+    def read(slave_id: int, function_code: int, address: int) -> int:
+        return store[address]
+
+    @server.route(slave_ids=[1], function_codes=[6, 16], addresses=list(store))  # type: ignore[untyped-decorator]
+    def write(slave_id: int, function_code: int, address: int, value: int) -> None:
+        store[address] = value
+
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield int(server.server_address[1])
+    finally:
+        server.shutdown()
+        server.server_close()

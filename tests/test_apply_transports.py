@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-import socketserver
 import struct
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -16,22 +14,11 @@ from deployer.executor import ApplyOptions, apply_device
 from deployer.profile import builtin_profile
 from deployer.recipe import load_recipe
 from deployer.simulator import Simulator, SimulatorThread
-from tests.certs import issue, make_ca
 from tests.conftest import free_port
 from tests.helpers import profile_from
+from tests.helpers import umodbus_server as start_umodbus
 
 pytestmark = pytest.mark.timeout(60)
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
-    d = tmp_path_factory.mktemp("pki")
-    ca, ca_key, ca_cert = make_ca(d)
-    server_crt, server_key = issue(d, "server", ca_key, ca_cert, server=True)
-    client_crt, client_key = issue(d, "client", ca_key, ca_cert, server=False)
-    other_ca, _, _ = make_ca(d, "other-ca")
-    return {"ca": ca, "server_crt": server_crt, "server_key": server_key, "client_crt": client_crt,
-            "client_key": client_key, "other_ca": other_ca}
 
 
 def test_tls_apply_with_client_certificate(pki: dict[str, str], tmp_path: Path) -> None:
@@ -124,30 +111,9 @@ def test_rtu_over_tcp_gateway(tmp_path: Path) -> None:
 
 @pytest.fixture
 def umodbus_server() -> Iterator[tuple[int, dict[int, int]]]:
-    pytest.importorskip("umodbus", reason="umodbus is a test extra (pip install -e '.[test]')")
-    from umodbus import conf
-    from umodbus.server.tcp import RequestHandler, get_server
-
-    conf.SIGNED_VALUES = False
     store: dict[int, int] = {0x1102: 0, 0x1103: 500}
-    socketserver.TCPServer.allow_reuse_address = True
-    server = get_server(socketserver.TCPServer, ("127.0.0.1", 0), RequestHandler)
-
-    @server.route(slave_ids=[1], function_codes=[3], addresses=list(store))  # type: ignore[misc]
-    def read(slave_id: int, function_code: int, address: int) -> int:
-        return store[address]
-
-    @server.route(slave_ids=[1], function_codes=[6, 16], addresses=list(store))  # type: ignore[misc]
-    def write(slave_id: int, function_code: int, address: int, value: int) -> None:
-        store[address] = value
-
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield server.server_address[1], store
-    finally:
-        server.shutdown()
-        server.server_close()
+    with start_umodbus(store) as port:
+        yield port, store
 
 
 def test_apply_to_a_umodbus_server(umodbus_server: tuple[int, dict[int, int]], tmp_path: Path) -> None:

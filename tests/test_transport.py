@@ -6,21 +6,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
-import os
-import shutil
-import signal
 import socket
-import socketserver
 import ssl
-import subprocess
-import threading
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from certs import issue, make_ca  # tests/ has no __init__.py: pytest puts it on sys.path
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerAscii, FramerRTU
@@ -30,6 +23,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from deployer import transport as tp
+from tests.helpers import umodbus_server as start_umodbus
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -84,27 +78,9 @@ async def serve(kind: str, *, units: tuple[int, ...] = (1,), path: str = "", ssl
 
 
 @pytest.fixture
-def pty_pair(tmp_path: Path) -> Iterator[tuple[str, str]]:
-    """Two linked pseudo-terminals (a null-modem cable): (server end, client end)."""
-    if shutil.which("socat") is None:
-        pytest.skip("socat is not installed (apt-get install socat): serial transports need a pty pair")
-    a, b = str(tmp_path / "ttyA"), str(tmp_path / "ttyB")
-    proc = subprocess.Popen(["socat", "-d", "-d", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 5
-    while not (os.path.exists(a) and os.path.exists(b)):
-        if time.monotonic() > deadline or proc.poll() is not None:
-            proc.kill()
-            pytest.fail("socat did not create the pty pair")
-        time.sleep(0.01)
-    try:
-        yield a, b
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+def pty_pair(socat_pair: tuple[str, str]) -> tuple[str, str]:
+    """Two linked pseudo-terminals (conftest's socat pair): (server end, client end)."""
+    return socat_pair
 
 
 def closed_port() -> int:
@@ -301,17 +277,6 @@ def test_broadcast_does_not_wait_for_an_answer() -> None:
 
 
 # ---- TLS ---------------------------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def pki(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
-    d = tmp_path_factory.mktemp("pki")
-    ca, ca_key, ca_cert = make_ca(d)
-    server_crt, server_key = issue(d, "server", ca_key, ca_cert, server=True)
-    client_crt, client_key = issue(d, "client", ca_key, ca_cert, server=False)
-    other_ca, _, _ = make_ca(d, "other-ca")
-    return {"ca": ca, "server_crt": server_crt, "server_key": server_key, "client_crt": client_crt,
-            "client_key": client_key, "other_ca": other_ca}
 
 
 def server_context(pki: dict[str, str]) -> ssl.SSLContext:
@@ -590,30 +555,9 @@ def test_bus_lock_is_reentrant_for_its_holder(pty_pair: tuple[str, str]) -> None
 
 @pytest.fixture
 def umodbus_server() -> Iterator[tuple[int, dict[int, int]]]:
-    pytest.importorskip("umodbus", reason="umodbus is a test extra (pip install -e '.[test]')")
-    from umodbus import conf
-    from umodbus.server.tcp import RequestHandler, get_server
-
-    conf.SIGNED_VALUES = False
     store: dict[int, int] = {100: 0, 101: 500, 102: 7}
-    socketserver.TCPServer.allow_reuse_address = True
-    server = get_server(socketserver.TCPServer, ("127.0.0.1", 0), RequestHandler)
-
-    @server.route(slave_ids=[1], function_codes=[3], addresses=list(store))  # type: ignore[untyped-decorator]
-    def read(slave_id: int, function_code: int, address: int) -> int:
-        return store[address]
-
-    @server.route(slave_ids=[1], function_codes=[6, 16], addresses=list(store))  # type: ignore[untyped-decorator]
-    def write(slave_id: int, function_code: int, address: int, value: int) -> None:
-        store[address] = value
-
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield server.server_address[1], store
-    finally:
-        server.shutdown()
-        server.server_close()
+    with start_umodbus(store) as port:
+        yield port, store
 
 
 def test_umodbus_interop(umodbus_server: tuple[int, dict[int, int]]) -> None:
