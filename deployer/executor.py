@@ -137,7 +137,7 @@ async def check_identity(session: Session, profile: Profile) -> str | None:
         if value != chk.raw:
             what = f" ({chk.description})" if chk.description else ""
             return (f"identity check failed: register 0x{chk.address:04X}{what} holds 0x{value:04X}, expected "
-                    f"0x{chk.raw:04X}: another kind of device answers here; nothing was written")
+                    f"0x{chk.raw:04X}: another kind of device answers here")
     return None
 
 
@@ -238,7 +238,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     try:
         why = await check_identity(session, prof)
         if why:
-            res.status, res.error = "failed", why
+            res.status, res.error = "failed", f"{why}; nothing was written"
             return
         offline = make_plan(recipe, target, None)
         before = values_of(params, await session.read_blocks(offline.reads))
@@ -432,7 +432,7 @@ async def read_current(profile: Profile, names: Sequence[str], url: tp.DeviceURL
     try:
         why = await check_identity(session, profile)
         if why:
-            raise tp.Unreachable(why.replace("; nothing was written", ""))
+            raise tp.Unreachable(why)
         params = [profile.parameter(n) for n in names]
         reads = plan_reads(profile, [p.name for p in params if p.readable])
         return values_of(params, await session.read_blocks(reads))
