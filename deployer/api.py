@@ -26,8 +26,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from .diagnostics import InputError, UsageError
-from .executor import ApplyOptions, Job, ReadJob, apply_many, read_current, read_many
-from .fleet import Inventory, LiveReport, batch_sizes, failure_budget, fleet_jobs, load_inventory
+from .executor import ApplyOptions, Job, ReadJob, apply_many, read_current, read_many, skipped_result
+from .fleet import NOT_FINISHED, Inventory, LiveReport, batch_sizes, failure_budget, fleet_jobs, load_inventory
 from .planner import Plan, Target, make_plan
 from .profile import Profile, resolve_profile
 from .recipe import Entry, Recipe, load_recipe, recipe_text, with_overrides
@@ -227,29 +227,34 @@ def fleet(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = Non
     return jobs
 
 
-async def apply_fleet_async(recipe: Recipe, inventory: str | Inventory | Sequence[Job], *, limit: str | None = None,
+async def apply_fleet_async(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None,
                             parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
                             options: ApplyOptions | None = None, report_path: str | None = None,
                             on_start: Callable[[Job], None] | None = None,
                             on_done: Callable[[DeviceResult], None] | None = None) -> Report:
-    """Apply to the devices of an inventory: staged (``batch``), with a failure budget, the report kept on disk.
+    """Apply to the devices of an inventory (``limit`` selects): staged, with a failure budget, see ``run_fleet``."""
+    return await run_fleet_async(fleet(recipe, inventory, limit=limit), recipe_name=recipe.path or recipe.name,
+                                 parallel=parallel, batch=batch, max_failures=max_failures, options=options,
+                                 report_path=report_path, on_start=on_start, on_done=on_done)
+
+
+async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None, parallel: int = 8,
+                          batch: str | None = None, max_failures: str | None = None,
+                          options: ApplyOptions | None = None, report_path: str | None = None,
+                          on_start: Callable[[Job], None] | None = None,
+                          on_done: Callable[[DeviceResult], None] | None = None) -> Report:
+    """Apply jobs as one fleet run: ``batch`` ("1,10%,100%") stages it, ``max_failures`` ("2", "5%") caps it.
 
     ``report_path``: written before the first device starts (every device ``skipped``, "not
     finished") and rewritten as devices finish, so after a crash ``limit="@REPORT"`` retries
     exactly what did not end ok.
     """
-    jobs = list(inventory) if isinstance(inventory, Sequence) and not isinstance(inventory, str) else \
-        fleet(recipe, inventory, limit=limit)
     sizes = batch_sizes(batch, len(jobs))
     budget = failure_budget(max_failures, len(jobs))
     ensure_files(parallel, len(jobs))
-    name = recipe.path or recipe.name
     live = None
     if report_path:
-        from .executor import skipped_result
-        from .fleet import NOT_FINISHED
-
-        live = LiveReport(report_path, name, [skipped_result(j, NOT_FINISHED) for j in jobs])
+        live = LiveReport(report_path, recipe_name, [skipped_result(j, NOT_FINISHED) for j in jobs])
 
     def done(r: DeviceResult) -> None:
         if live is not None:
@@ -257,15 +262,23 @@ async def apply_fleet_async(recipe: Recipe, inventory: str | Inventory | Sequenc
         if on_done is not None:
             on_done(r)
 
-    report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=name, on_start=on_start,
-                              on_done=done, batches=sizes, max_failures=budget)
+    try:
+        report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
+                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget)
+    finally:
+        if live is not None:
+            live.stop()
     if live is not None:
         live.close(report)
     return report
 
 
-def apply_fleet(recipe: Recipe, inventory: str | Inventory | Sequence[Job], **kw: Any) -> Report:
+def apply_fleet(recipe: Recipe, inventory: str | Inventory, **kw: Any) -> Report:
     return asyncio.run(apply_fleet_async(recipe, inventory, **kw))
+
+
+def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
+    return asyncio.run(run_fleet_async(jobs, **kw))
 
 
 async def read_fleet_async(jobs: Sequence[ReadJob], *, parallel: int = 8,

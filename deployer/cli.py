@@ -505,36 +505,57 @@ def _is_plan_file(path: str) -> bool:
     return head.lstrip().startswith(b"{") and b"deployer.plan/" in head
 
 
-def run_apply(source: str, *, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-              yes: bool, report_path: str | None, as_json: bool, inventory: str | None, limit: str | None,
-              parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
+def run_apply(source: str | None, *, device: str | None, unit: int | None, timeout: float | None,
+              retries: int | None, yes: bool, report_path: str | None, as_json: bool, inventory: str | None,
+              limit: str | None, parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
+              lock_timeout: float = 0.0, force: bool = False, from_report: str | None = None,
               batch: str | None = None, max_failures: str | None = None, command: str = "apply") -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
-    from .api import apply_fleet_async
+    from . import journal
+    from .api import run_fleet_async
     from .executor import ApplyOptions, Job, apply_many
     from .planner import load_plan
     from .progress import FleetProgress, fleet_summary
     from .recipe import load_recipe
-    from .report import audit, write_json
+    from .report import write_json
 
     expected: Plan | None = None
-    if _is_plan_file(source):
-        if inventory or write_all:
-            raise UsageError("a saved plan runs unchanged: --inventory and --write-all do not apply to it")
-        rec, expected = load_plan(source)
-    else:
-        rec = load_recipe(source)
-    if not inventory and (batch or max_failures or limit):
-        raise UsageError("--limit, --batch and --max-failures need --inventory")
     jobs: list[Job] = []
-    if inventory:
-        if device:
-            raise UsageError("--device and --inventory exclude each other")
-        jobs = _fleet(rec, inventory, limit, timeout, retries, unit)
+    moved: list[str] = []  # rollback to another device than the snapshot's: asked about first
+    if not (inventory or from_report) and (batch or max_failures or limit):
+        raise UsageError("--limit, --batch and --max-failures need --inventory")
+    if from_report is not None:  # rollback --report: every device of that run from its own snapshot
+        if inventory or device or unit is not None:
+            raise UsageError("rollback --report restores each device from its own snapshot, to the device it was "
+                             "taken from: --inventory, --device and --unit do not apply")
+        jobs = _rollback_report_jobs(from_report, force=force, timeout=timeout, retries=retries)
+        label = from_report
     else:
-        one, u = _target(rec, device, unit, timeout, retries, required=True)
-        assert one is not None
-        jobs.append(Job(rec.name, rec, one, u))
+        assert source is not None
+        label = source
+        if _is_plan_file(source):
+            if inventory or write_all:
+                raise UsageError("a saved plan runs unchanged: --inventory and --write-all do not apply to it")
+            rec, expected = load_plan(source)
+        else:
+            rec = load_recipe(source, force=force)
+        if rec.snapshot is not None and inventory:
+            raise UsageError(f"{source} is one device's snapshot: it restores only the device it was taken from. "
+                             "To roll back a fleet run, use: deployer rollback --report REPORT.json")
+        if inventory:
+            if device:
+                raise UsageError("--device and --inventory exclude each other")
+            jobs = _fleet(rec, inventory, limit, timeout, retries, unit)
+        else:
+            one, u = _target(rec, device, unit, timeout, retries, required=True)
+            assert one is not None
+            jobs.append(Job(rec.name, rec, one, u))
+            if rec.snapshot is not None and rec.device is not None and rec.device.url is not None:
+                taken, taken_unit = _target(rec, None, None, timeout, retries, required=True)
+                assert taken is not None
+                if (taken.bus, taken_unit) != (one.bus, u):
+                    moved.append(f"{source} was taken from {describe(taken)} unit {taken_unit}, not "
+                                 f"{describe(one)} unit {u}")
     for j in jobs:
         if j.unit == 0 and not allow_broadcast:
             raise UsageError(f"{j.name}: unit 0 is broadcast (no device answers, nothing can be verified); "
@@ -546,32 +567,43 @@ def run_apply(source: str, *, device: str | None, unit: int | None, timeout: flo
     if not yes:
         if not sys.stdin.isatty():
             raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
-        lock = asyncio.Lock()
+        for why in moved:
+            if not click.confirm(f"{why}. Restore it to that other device?", default=False, err=True):
+                raise UsageError("nothing was written (declined)")
+        ask_lock = asyncio.Lock()
         profiles = {j.name: j.recipe.profile for j in jobs}
 
         async def confirm(p: Plan, res: DeviceResult) -> bool:
-            async with lock:  # one question at a time, even for fleets
+            async with ask_lock:  # one question at a time, even for fleets
                 err.print(f"[bold]{res.name}[/bold] {res.url} unit {res.unit}:")
                 print_plan(p, profiles[res.name], changes_only=True, out=err)
                 return await asyncio.to_thread(click.confirm, "Write these values?", default=False, err=True)
+    elif moved:
+        for why in moved:
+            err.print(f"warning: {why}; restoring it there (--yes)")
 
+    run_id = journal.new_run_id()
+    journal.run_started(state_dir, run_id, command=command, argv=_ARGV, recipe=label,
+                        devices=[(j.name, describe(j.url), j.unit) for j in jobs])
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
-                           allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm)
-    if inventory:
+                           allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
+                           run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
+    fleet_run = bool(inventory or from_report)
+    if fleet_run:
         # a live display on a terminal (not while asking questions), else a line per device
         progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes)
         with progress:
-            report = asyncio.run(apply_fleet_async(
-                rec, jobs, parallel=parallel, batch=batch, max_failures=max_failures, options=options,
+            report = asyncio.run(run_fleet_async(
+                jobs, recipe_name=label, parallel=parallel, batch=batch, max_failures=max_failures, options=options,
                 report_path=report_path, on_start=lambda j: progress.start(j.name), on_done=progress.device_done))
     else:
-        report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=source))
+        report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=label))
         if report_path:
             write_json(report.to_json(), report_path)
-    audit(state_dir, report, command=command, argv=_ARGV)
+    journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     if as_json:
         click.echo(json.dumps(report.to_json(), indent=2))
-    elif inventory:
+    elif fleet_run:
         print_report(report, out, only_not_ok=True)
         fleet_summary(report, out)
     else:
@@ -584,6 +616,38 @@ def _fleet(rec: Recipe, inventory: str, limit: str | None, timeout: float | None
     from .api import fleet
 
     return fleet(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)
+
+
+def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retries: int | None) -> list[Job]:
+    """One job per device of an earlier run that has a snapshot: its own snapshot, to its own device."""
+    from .executor import Job
+    from .recipe import load_recipe
+    from .snapshot import snapshots_of_report
+
+    found, without = snapshots_of_report(path)
+    if without:
+        click.echo(f"nothing to roll back on {', '.join(without)}: nothing was written there", err=True)
+    if not found:
+        raise UsageError(f"{path}: no device of that run has a snapshot (nothing was written): nothing to roll back")
+    jobs: list[Job] = []
+    errors: list[Diagnostic] = []
+    for rs in found:
+        try:
+            rec = load_recipe(rs.snapshot, force=force)
+        except InputError as e:
+            errors.extend(e.diagnostics)
+            continue
+        if rec.snapshot is None or rec.device is None or rec.device.url is None:
+            errors.append(Diagnostic(rs.snapshot, 1, 1, f"{rs.name}: not a snapshot with its device (made by an "
+                                                        "older deployer?): roll it back with rollback SNAPSHOT "
+                                                        "--device URL"))
+            continue
+        url, u = _target(rec, None, None, timeout, retries, required=True)
+        assert url is not None
+        jobs.append(Job(rs.name, rec, url, u))
+    if errors:
+        raise InputError(errors)
+    return jobs
 
 
 def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -605,6 +669,8 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--allow-broadcast", is_flag=True, help="allow unit 0 (broadcast; nothing can be verified)"),
         click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
                      help="where snapshots and the audit log go"),
+        click.option("--lock-timeout", type=click.FloatRange(min=0), default=0, show_default=True, metavar="S",
+                     help="wait up to S seconds for a device another run on this machine is writing"),
     ]
     for opt in reversed(opts):
         f = opt(f)
@@ -620,11 +686,66 @@ def apply(source: str, **kw: Any) -> int:
 
 
 @cli.command()
-@click.argument("snapshot", type=click.Path(dir_okay=False, exists=True))
+@click.argument("snapshot", required=False, type=click.Path(dir_okay=False, exists=True))
 @apply_options
-def rollback(snapshot: str, **kw: Any) -> int:
-    """Restore a snapshot that apply saved (a snapshot is itself a recipe)."""
+@click.option("--force", is_flag=True,
+              help="restore the recorded raw registers although the profile changed since the snapshot")
+@click.option("--save-report", type=click.Path(dir_okay=False), metavar="FILE",
+              help="with --report RUN.json: write this rollback's own report here")
+def rollback(snapshot: str | None, **kw: Any) -> int:
+    """Restore a snapshot that apply saved, to the device it was taken from.
+
+    \b
+    rollback SNAPSHOT            that device, from that snapshot (--report FILE writes this run's report)
+    rollback --report RUN.json   every device of an earlier run, each from its own snapshot
+                                 (--save-report FILE writes this run's report)
+    """
+    save = kw.pop("save_report")
+    if snapshot is None:
+        if not kw["report_path"]:
+            raise UsageError("rollback needs a SNAPSHOT, or --report REPORT.json to roll back every device of a run")
+        from_report, kw["report_path"] = kw["report_path"], save
+        return run_apply(None, from_report=from_report, command="rollback", **kw)
+    if save:
+        raise UsageError("--save-report goes with rollback --report RUN.json; with a SNAPSHOT use --report FILE")
     return run_apply(snapshot, command="rollback", **kw)
+
+
+@cli.command()
+@click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
+              help="where snapshots and the audit log are")
+@click.option("--json", "as_json", is_flag=True, help="print the unfinished runs as JSON")
+def status(state_dir: str, as_json: bool) -> int:
+    """Runs that never finished (a crash, kill -9, a laptop asleep): which devices were being written."""
+    from .journal import unfinished
+
+    runs, torn = unfinished(state_dir)
+    if as_json:
+        click.echo(json.dumps({"unfinished": [
+            {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
+             "argv": r.argv, "recipe": r.recipe, "devices": r.devices, "interrupted": r.interrupted,
+             "finished": r.finished} for r in runs]}, indent=2))
+        return EXIT_OK
+    out = console()
+    if not runs:
+        out.print(f"no unfinished runs in {os.path.join(state_dir, 'audit.jsonl')}")
+    for r in runs:
+        state = "still running" if r.running else "did not finish"
+        out.print(f"[bold]{r.command}[/bold] {r.recipe or ''} by {r.user} at {r.time} (run {r.run}, PID {r.pid}): "
+                  f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished")
+        for d in r.interrupted:
+            out.print(f"  interrupted while writing: {d.get('name')} {d.get('url')} unit {d.get('unit')}; "
+                      f"snapshot {d.get('snapshot')}")
+            out.print(f"    check with: deployer diff RECIPE --device {d.get('url')} --unit {d.get('unit')}; "
+                      f"undo with: deployer rollback {d.get('snapshot')}")
+        done = {(d.get("name"), d.get("url"), d.get("unit")) for d in (*r.finished, *r.interrupted)}
+        never = [d for d in r.devices if (d.get("name"), d.get("url"), d.get("unit")) not in done]
+        if never and not r.running:
+            out.print(f"  not written (never started or nothing to write): "
+                      f"{', '.join(str(d.get('name')) for d in never)}")
+    if torn:
+        out.print(f"({_n(torn, 'line')} of the log could not be read: cut off by the crash)")
+    return EXIT_OK
 
 
 @cli.command()
@@ -746,7 +867,7 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
     if output:
         with open(output, "w", encoding="utf-8") as f:
             f.write(text)
-        click.echo(f"{len(current)} parameters written to {output}", err=True)
+        click.echo(f"{_n(len(current), 'parameter')} written to {output}", err=True)
     else:
         click.echo(text, nl=False)
     return EXIT_OK

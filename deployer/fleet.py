@@ -275,14 +275,18 @@ class LiveReport:
             self._dirty = True
             self._cond.notify()
 
-    def close(self, report: Report) -> None:
-        """Stop the writer and write the final report (the same document ``--json`` prints)."""
-        from .report import write_json
-
+    def stop(self) -> None:
+        """Stop the writer thread (what is on disk stays: at worst one write behind)."""
         with self._cond:
             self._closing = True
             self._cond.notify()
         self._thread.join()
+
+    def close(self, report: Report) -> None:
+        """Write the final report (the same document ``--json`` prints)."""
+        from .report import write_json
+
+        self.stop()
         write_json(report.to_json(), self.path)
 
     def _document(self) -> str:
@@ -312,7 +316,7 @@ class LiveReport:
             with self._cond:
                 while not self._dirty and not self._closing:
                     self._cond.wait()
-                if self._closing:
+                if not self._dirty:  # closing, and the file already says everything
                     return
                 self._dirty = False
             with contextlib.suppress(OSError):  # keep the fleet running; close() raises if the disk stays bad

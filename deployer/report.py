@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -65,6 +63,8 @@ class DeviceResult:
     parameters: list[ParameterResult] = field(default_factory=list)
     error: str | None = None  # why the device failed, was unreachable or was skipped
     seconds: float | None = None  # how long the device's session took (fleets: for the summary table)
+    profile_ref: str | None = None  # the profile used: its file's absolute path, or the built-in id
+    notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
 
     @property
     def write_requests(self) -> int:
@@ -97,6 +97,10 @@ class DeviceResult:
             out["error"] = self.error
         if self.seconds is not None:
             out["seconds"] = round(self.seconds, 3)
+        if self.profile_ref is not None:
+            out["profile_ref"] = self.profile_ref
+        if self.notices:
+            out["notices"] = list(self.notices)
         return out
 
 
@@ -145,23 +149,3 @@ def write_json(data: dict[str, Any], path: str) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
-
-
-def audit(state_dir: str, report: Report, *, command: str, argv: Sequence[str] = ()) -> None:
-    """Append one line per apply to STATE/audit.jsonl (who, when, what, outcome)."""
-    os.makedirs(state_dir, exist_ok=True)
-    line = {
-        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "user": os.environ.get("USER") or os.environ.get("LOGNAME") or str(os.getuid()),
-        "command": command,
-        "argv": list(argv),
-        "recipe": report.recipe,
-        "exit_code": report.exit_code,
-        "devices": [{"name": d.name, "url": d.url, "unit": d.unit, "status": d.status, "snapshot": d.snapshot,
-                     "written": [p.name for p in d.parameters if p.status in ("ok", "failed", "mismatch")],
-                     "write_requests": d.write_requests} for d in report.devices],
-    }
-    with open(os.path.join(state_dir, "audit.jsonl"), "a", encoding="utf-8") as f:
-        f.write(json.dumps(line) + "\n")
-        f.flush()
-        os.fsync(f.fileno())
