@@ -15,7 +15,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Literal, Protocol, TypeVar
+from typing import Literal, Protocol, TypeVar, cast
 
 from . import journal, lock
 from . import transport as tp
@@ -131,9 +131,10 @@ def values_of(params: Iterable[Parameter], regs: Mapping[int, int]) -> dict[str,
     """Parameter name -> registers, for every parameter whose registers were all read."""
     out = {}
     for p in params:
-        words = [regs.get(a) for a in range(p.address, p.end)]
-        if all(w is not None for w in words):
-            out[p.name] = tuple(w for w in words if w is not None)
+        a = p.address
+        words = tuple(regs.get(a + i) for i in range(p.count))
+        if None not in words:
+            out[p.name] = cast(tuple[int, ...], words)  # no None left
     return out
 
 
@@ -149,8 +150,25 @@ async def check_identity(session: Session, profile: Profile) -> str | None:
 
 
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
-    return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers)
+    return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers,
+                                    show=_shower(d.parameter))
             for d in recipe.desired}
+
+
+def _shower(p: Parameter) -> Callable[[tuple[int, ...]], str | None]:
+    return lambda regs: _text(p, regs)
+
+
+# read plans per recipe: every device of a fleet that shares a recipe reads the same blocks
+_READS: dict[int, tuple[Recipe, tuple[ReadRequest, ...]]] = {}
+
+
+def _reads_of(recipe: Recipe) -> tuple[ReadRequest, ...]:
+    hit = _READS.get(id(recipe))
+    if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
+        hit = _READS[id(recipe)] = (recipe, plan_reads(recipe.profile, [d.name for d in recipe.desired
+                                                                        if d.parameter.readable]))
+    return hit[1]
 
 
 def _text(p: Parameter, regs: Sequence[int] | None) -> str | None:
@@ -229,8 +247,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         if why:
             res.status, res.error = "failed", f"{why}; nothing was written"
             return
-        offline = make_plan(recipe, target, None)
-        before = values_of(params, await session.read_blocks(offline.reads))
+        before = values_of(params, await session.read_blocks(_reads_of(recipe)))
     except DeviceGone as e:
         res.status, res.error = "unreachable", f"{e}; nothing was written"
         return
@@ -238,7 +255,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         res.status, res.error = "failed", f"reading the current values answered {e}; nothing was written"
         return
     for n, regs in before.items():
-        results[n].before_raw, results[n].before = regs, _text(prof.parameter(n), regs)
+        results[n].before_raw = regs
 
     # 2. the plan: a saved one must still match the device, else a fresh diff-aware plan
     if opts.expected is not None:
@@ -394,7 +411,7 @@ def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[s
         p = prof.parameter(n)
         got = after.get(n)
         if got is not None:
-            r.after_raw, r.after = got, _text(p, got)
+            r.after_raw = got
         if r.status in ("failed", "skipped"):
             continue
         if got is None:  # not read back: sent ones stay unverified, with the reason

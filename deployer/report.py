@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -39,9 +40,17 @@ class ParameterResult:
     after_raw: tuple[int, ...] | None = None
     status: ParamStatus = "skipped"
     error: str | None = None
-    # engineering texts for the human table (not in the JSON contract)
-    before: str | None = None
-    after: str | None = None
+    # registers -> engineering text for the human table (not in the JSON contract); made only when shown,
+    # since a fleet's report is mostly written as JSON and formatting every value costs more than the I/O
+    show: Callable[[tuple[int, ...]], str | None] | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def before(self) -> str | None:
+        return None if self.before_raw is None or self.show is None else self.show(self.before_raw)
+
+    @property
+    def after(self) -> str | None:
+        return None if self.after_raw is None or self.show is None else self.show(self.after_raw)
 
     def to_json(self) -> dict[str, Any]:
         return {"name": self.name, "address": self.address, "count": self.count, "desired": self.desired,
