@@ -324,3 +324,46 @@ def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path
                                       options=ApplyOptions(state_dir=str(tmp_path / "s")))
         assert seen == [{n: "not finished (interrupted run)" for n in names(3)}]
         assert report.exit_code == 0 and json.loads(report_file.read_text())["summary"]["ok"] == 3
+
+
+def test_open_file_limit_is_raised_or_the_run_refused_up_front(tmp_path: Path) -> None:
+    import resource
+
+    urls = {n: f"tcp://127.0.0.1:{free_port()}?timeout=0.2&retries=0" for n in names(3)}
+    inv = inventory(tmp_path, urls)
+
+    def run(soft: int, hard: int) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "deployer", "apply", recipe(tmp_path), "--inventory", inv,
+                               "--yes", "--parallel", "8", "--state-dir", str(tmp_path / "s")],
+                              capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
+                              preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard)))
+
+    low = run(40, 50)  # 3 sockets + headroom do not fit under a hard limit of 50
+    assert low.returncode == 1 and "allows 50 (ulimit -Hn)" in low.stderr and "Traceback" not in low.stderr
+    raised = run(40, 4096)  # the soft limit goes up towards the hard one; the devices are simply dead
+    assert raised.returncode == 3, raised.stderr
+    assert raised.stderr.count("unreachable") >= 3
+
+
+def test_python_api_one_device_and_a_cheap_import(tmp_path: Path) -> None:
+    import deployer
+
+    proc = subprocess.run([sys.executable, "-c", "import sys, deployer; print('deployer.api' in sys.modules, "
+                           "'pymodbus' in sys.modules)"], capture_output=True, text=True, timeout=60)
+    assert proc.stdout.split() == ["False", "False"]  # the API (and pymodbus) load on first use
+    with fleet(1) as (sim,):
+        rec = deployer.load_recipe(recipe(tmp_path))
+        plan = deployer.plan(rec, sim.url)
+        assert [w.parameters for w in plan.writes] == [("F07", "F08", "stop_mode")]
+        assert all(e.function == 3 for e in sim.log)  # plan and diff only read
+        assert [d.name for d in deployer.diff(rec, sim.url)] == ["F07", "F08", "stop_mode"]
+        from deployer.executor import ApplyOptions
+
+        report = deployer.apply(rec, sim.url, options=ApplyOptions(state_dir=str(tmp_path / "s")))
+        assert report.exit_code == 0 and holds_recipe(sim)
+        assert deployer.diff(rec, sim.url) == []
+        assert deployer.pull("example-inverter", sim.url)["F07"] == (0, 1000)
+        inline = deployer.recipe_from("example-inverter", {"F07": "20 s"})
+        assert [(d.name, d.registers) for d in inline.desired] == [("F07", (0, 2000))]
+        with pytest.raises(deployer.InputError, match="unknown parameter 'F7'"):
+            deployer.recipe_from("example-inverter", {"F7": "20 s"})
