@@ -23,7 +23,7 @@ from .diagnostics import UsageError
 from .planner import Plan, ReadRequest, Target, WriteRequest, make_plan, plan_reads, plan_to_json
 from .profile import Parameter, Profile, profile_ref
 from .recipe import Recipe
-from .report import DeviceResult, ParameterResult, Report, RequestRecord
+from .report import DeviceResult, ParameterResult, Report, RequestRecord, show_registers
 from .snapshot import save_snapshot
 
 Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
@@ -151,12 +151,8 @@ async def check_identity(session: Session, profile: Profile) -> str | None:
 
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
     return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers,
-                                    show=_shower(d.parameter))
+                                    parameter=d.parameter)
             for d in recipe.desired}
-
-
-def _shower(p: Parameter) -> Callable[[tuple[int, ...]], str | None]:
-    return lambda regs: _text(p, regs)
 
 
 # read plans per recipe: every device of a fleet that shares a recipe reads the same blocks
@@ -171,13 +167,7 @@ def _reads_of(recipe: Recipe) -> tuple[ReadRequest, ...]:
     return hit[1]
 
 
-def _text(p: Parameter, regs: Sequence[int] | None) -> str | None:
-    if regs is None:
-        return None
-    try:
-        return p.format_registers(tuple(regs))
-    except Exception:  # a value the codec cannot show (e.g. NaN): show raw words
-        return " ".join(f"{w:04X}h" for w in regs)
+_text = show_registers
 
 
 async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None = None,
@@ -509,6 +499,21 @@ def skipped_result(job: Job, reason: str) -> DeviceResult:
     return r
 
 
+@dataclass
+class Budget:
+    """``--max-failures``: how many devices may end failed or partial before no new device starts."""
+
+    limit: int | None
+    failures: int = 0
+
+    def spent(self) -> str | None:
+        """Why no new device may start, or None."""
+        n = self.failures
+        if self.limit is None or n < self.limit:
+            return None
+        return f"not started: {n} device{'s' if n != 1 else ''} ended failed or partial (--max-failures {self.limit})"
+
+
 async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOptions | None = None,
                      recipe_name: str | None = None,
                      on_done: Callable[[DeviceResult], None] | None = None,
@@ -523,12 +528,13 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     """
     started = time.monotonic()
     done: dict[str, DeviceResult] = {}
-    failures = 0
+    budget = Budget(max_failures)
     stop: str | None = None
 
     async def one(j: Job) -> None:
-        nonlocal failures, stop
-        if stop is not None:  # checked when the device's turn comes, not when it was queued
+        nonlocal stop
+        stop = stop or budget.spent()  # checked when the device's turn comes, not when it was queued
+        if stop is not None:
             done[j.name] = skipped_result(j, stop)
             return
         if on_start:
@@ -545,10 +551,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         r.seconds = time.monotonic() - t
         done[j.name] = r
         if r.status in ("failed", "partial"):
-            failures += 1
-            if max_failures is not None and failures >= max_failures and stop is None:
-                stop = (f"not started: {failures} device{'s' if failures != 1 else ''} ended failed or partial "
-                        f"(--max-failures {max_failures})")
+            budget.failures += 1
         if on_done:
             on_done(r)
 
@@ -558,11 +561,18 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         batch = jobs[pos:pos + size]
         pos += size
         await on_buses(batch, parallel, one)
-        ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
-        if stop is None and pos < len(jobs) and ran and all(r.status != "ok" for r in ran):
-            which = f"the canary {ran[0].name}" if len(batch) == 1 else f"all {len(ran)} devices"
-            stop = f"not started: batch {number} failed ({which} did not end ok)"
+        if stop is None and pos < len(jobs):
+            stop = batch_failed(number, batch, done)
     return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
+
+
+def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:
+    """Ansible's ``serial`` rule: a batch in which no device that ran ended ok ends the rollout."""
+    ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
+    if not ran or any(r.status == "ok" for r in ran):
+        return None
+    which = f"the canary {ran[0].name}" if len(batch) == 1 else f"all {len(ran)} devices"
+    return f"not started: batch {number} failed ({which} did not end ok)"
 
 
 async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,
