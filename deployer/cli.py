@@ -26,7 +26,10 @@ from .diagnostics import (
 from .transport import DeviceURL, TransportError, describe
 
 if TYPE_CHECKING:
-    from .executor import Job
+    from collections.abc import Mapping
+
+    from .api import Drift
+    from .executor import Job, ReadJob
     from .planner import Plan
     from .profile import Profile
     from .recipe import Recipe
@@ -195,6 +198,14 @@ def device_options(f: Callable[..., Any]) -> Callable[..., Any]:
     return f
 
 
+LIMIT_HELP = ("inventory devices: names, groups and glob patterns, comma-separated (!X excludes); "
+              "@REPORT.json = the devices of that report that did not end ok")
+fleet_option = click.option("--inventory", type=click.Path(dir_okay=False), help="every device of an inventory")
+limit_option = click.option("--limit", metavar="SEL", help=LIMIT_HELP)
+parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), default=8, show_default=True,
+                               help="devices at once (devices on one bus always go one at a time)")
+
+
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
@@ -310,14 +321,25 @@ def _show(frame: bytes, framing: str) -> str:
 @click.option("--detailed-exitcode", is_flag=True, help="exit 2 when something would change, 0 when nothing would")
 @click.option("--show-frames", is_flag=True, help="print the exact bytes of each request (RTU, ASCII, TCP)")
 @click.option("--write-all", is_flag=True, help="plan every parameter, even those the device already holds")
+@fleet_option
+@limit_option
+@parallel_option
 def plan(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-         as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool) -> int:
+         as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
+         inventory: str | None, limit: str | None, parallel: int) -> int:
     """Show the requests that apply would send. Offline, or with --device against what the device holds."""
     from .planner import Target, make_plan, plan_to_json
     from .recipe import load_recipe
     from .report import write_json
 
     rec = load_recipe(recipe)
+    if inventory:
+        if device or out_path or show_frames:
+            raise UsageError("with --inventory, --device, --out and --show-frames do not apply (one plan per device)")
+        return plan_fleet(rec, _fleet(rec, inventory, limit, timeout, retries, unit), parallel=parallel,
+                          as_json=as_json, detailed_exitcode=detailed_exitcode, write_all=write_all)
+    if limit:
+        raise UsageError("--limit needs --inventory")
     url, u = _target(rec, device, unit, timeout, retries, required=False)
     current = None
     if device is not None:
@@ -343,6 +365,59 @@ def plan(recipe: str, device: str | None, unit: int | None, timeout: float | Non
     if detailed_exitcode and p.writes:
         return EXIT_CHANGES
     return EXIT_OK
+
+
+def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tuple[int, ...]] | Exception]:
+    """Current values of every device (a live display on a terminal); errors are said on stderr."""
+    from .api import read_fleet_async
+    from .progress import FleetProgress
+
+    err = Console(stderr=True, highlight=False)
+    progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
+    with progress:
+        values = asyncio.run(read_fleet_async(
+            jobs, parallel=parallel, on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")))
+    for name, v in values.items():
+        if isinstance(v, Exception):
+            click.echo(f"{name}: unreachable - {v}", err=True)
+    return dict(values)
+
+
+def _unreachable(values: Mapping[str, object]) -> list[str]:
+    return [n for n, v in values.items() if isinstance(v, Exception)]
+
+
+def plan_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool, detailed_exitcode: bool,
+               write_all: bool) -> int:
+    """A plan per device against what it holds; exit 3 if any device could not be read, else as plan."""
+    from .api import read_jobs
+    from .planner import Target, make_plan, plan_to_json
+
+    values = read_fleet(read_jobs(jobs), parallel)
+    plans = {}
+    for j in jobs:
+        cur = values[j.name]
+        if not isinstance(cur, Exception):
+            plans[j.name] = make_plan(j.recipe, Target(describe(j.url), j.unit, j.recipe.profile_ref
+                                                       or j.recipe.profile.id), cur, write_all=write_all)
+    changing = [n for n, p in plans.items() if p.writes]
+    if as_json:
+        click.echo(json.dumps({"recipe": rec.path, "devices": [
+            {"name": j.name, "plan": plan_to_json(plans[j.name])} if j.name in plans
+            else {"name": j.name, "error": str(values[j.name])} for j in jobs]}, indent=2))
+    else:
+        out = console()
+        for j in jobs:
+            if j.name in plans and plans[j.name].writes:
+                out.print(f"[bold]{j.name}[/bold] {describe(j.url)} unit {j.unit}:")
+                print_plan(plans[j.name], j.recipe.profile, changes_only=True, out=out)
+        down = _unreachable(values)
+        out.print(f"{len(changing)} of {len(jobs)} devices would change" + (f": {', '.join(changing)}" if changing
+                                                                            else "")
+                  + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
+    if _unreachable(values):
+        return EXIT_UNREACHABLE
+    return EXIT_CHANGES if detailed_exitcode and changing else EXIT_OK
 
 
 # --- simulate (simulator) ---------------------------------------------------------------
@@ -413,12 +488,17 @@ _STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "misma
                  "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red"}
 
 
-def print_report(report: Report, out: Console) -> None:
+def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> None:
+    """Per device, every parameter; ``only_not_ok`` (fleets): only the devices that need a look, by parameter."""
     for d in report.devices:
+        if only_not_ok and d.status in ("ok", "skipped"):
+            continue
         style = _STATUS_STYLE.get(d.status, "")
         out.print(f"[bold]{d.name}[/bold] {d.url} unit {d.unit} ({d.profile}): [{style}]{d.status}[/{style}]"
                   + (f" - {d.error}" if d.error else ""))
         rows = sorted(d.parameters, key=lambda p: (_STATUS_ORDER.get(p.status, 9), p.address))
+        if only_not_ok:
+            rows = [p for p in rows if p.status not in ("ok", "unchanged")]
         if d.status != "unreachable" and rows:
             table = Table("parameter", "before", "desired", "after", "status", "", box=None)
             for p in rows:
@@ -431,8 +511,8 @@ def print_report(report: Report, out: Console) -> None:
         if d.snapshot:
             out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
-    s = report.to_json()["summary"]
-    if len(report.devices) > 1:
+    s = report.summary()
+    if len(report.devices) > 1 and not only_not_ok:
         out.print(f"{s['devices']} devices: {s['ok']} ok, {s['partial']} partial, {s['failed']} failed, "
                   f"{s['unreachable']} unreachable in {s['seconds']:.2f} s")
 
@@ -452,18 +532,21 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               retries: int | None, yes: bool, report_path: str | None, as_json: bool, inventory: str | None,
               limit: str | None, parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
               lock_timeout: float = 0.0, force: bool = False, from_report: str | None = None,
-              command: str = "apply") -> int:
+              batch: str | None = None, max_failures: str | None = None, command: str = "apply") -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
     from . import journal
+    from .api import run_fleet_async
     from .executor import ApplyOptions, Job, apply_many
-    from .fleet import fleet_jobs, load_inventory
     from .planner import load_plan
+    from .progress import FleetProgress, fleet_summary
     from .recipe import load_recipe
     from .report import write_json
 
     expected: Plan | None = None
     jobs: list[Job] = []
     moved: list[str] = []  # rollback to another device than the snapshot's: asked about first
+    if not (inventory or from_report) and (batch or max_failures or limit):
+        raise UsageError("--limit, --batch and --max-failures need --inventory")
     if from_report is not None:  # rollback --report: every device of that run from its own snapshot
         if inventory or device or unit is not None:
             raise UsageError("rollback --report restores each device from its own snapshot, to the device it was "
@@ -485,9 +568,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         if inventory:
             if device:
                 raise UsageError("--device and --inventory exclude each other")
-            jobs = fleet_jobs(load_inventory(inventory), rec, limit, timeout=timeout, retries=retries, unit=unit)
-            if not jobs:
-                raise UsageError(f"--limit {limit!r} matches no device in {inventory}")
+            jobs = _fleet(rec, inventory, limit, timeout, retries, unit)
         else:
             one, u = _target(rec, device, unit, timeout, retries, required=True)
             assert one is not None
@@ -530,23 +611,34 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
-
-    def done(r: DeviceResult) -> None:  # fleets: a line per device as it finishes
-        style = _STATUS_STYLE.get(r.status, "")
-        err.print(f"{r.name}: [{style}]{r.status}[/{style}] ({_n(r.write_requests, 'write')})"
-                  + (f" - {r.error}" if r.error else ""))
-
-    report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=label,
-                                    on_done=done if len(jobs) > 1 else None))
-    data = report.to_json()
-    if report_path:
-        write_json(data, report_path)
+    fleet_run = bool(inventory or from_report)
+    if fleet_run:
+        # a live display on a terminal (not while asking questions), else a line per device
+        progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes)
+        with progress:
+            report = asyncio.run(run_fleet_async(
+                jobs, recipe_name=label, parallel=parallel, batch=batch, max_failures=max_failures, options=options,
+                report_path=report_path, on_start=lambda j: progress.start(j.name), on_done=progress.device_done))
+    else:
+        report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=label))
+        if report_path:
+            write_json(report.to_json(), report_path)
     journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     if as_json:
-        click.echo(json.dumps(data, indent=2))
+        click.echo(json.dumps(report.to_json(), indent=2))
+    elif fleet_run:
+        print_report(report, out, only_not_ok=True)
+        fleet_summary(report, out)
     else:
         print_report(report, out)
     return report.exit_code
+
+
+def _fleet(rec: Recipe, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
+           unit: int | None) -> list[Job]:
+    from .api import fleet
+
+    return fleet(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)
 
 
 def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retries: int | None) -> list[Job]:
@@ -586,10 +678,14 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--yes", "-y", is_flag=True, help="do not ask for confirmation"),
         click.option("--report", "report_path", type=click.Path(dir_okay=False), help="write the report JSON here"),
         click.option("--json", "as_json", is_flag=True, help="print the report JSON"),
-        click.option("--inventory", type=click.Path(dir_okay=False), help="apply to the devices of an inventory"),
-        click.option("--limit", metavar="GROUP|NAME", help="only these inventory devices or groups (comma-separated)"),
-        click.option("--parallel", type=click.IntRange(1, 1000), default=8, show_default=True,
-                     help="devices at once (devices on one bus always go one at a time)"),
+        fleet_option,
+        limit_option,
+        click.option("--batch", metavar="1,10%,100%",
+                     help="staged rollout: batch sizes (count or % of the selected devices; the last repeats); "
+                          "each batch finishes before the next, a batch with no ok device ends the rollout"),
+        click.option("--max-failures", metavar="N|P%",
+                     help="after this many devices ended failed or partial, start no new device"),
+        parallel_option,
         click.option("--on-error", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
                      help="after a rejected value: send the rest, or skip it"),
         click.option("--write-all", is_flag=True, help="write every parameter, even those already right"),
@@ -679,69 +775,118 @@ def status(state_dir: str, as_json: bool) -> int:
 @click.argument("recipe", type=click.Path(dir_okay=False))
 @device_options
 @click.option("--json", "as_json", is_flag=True, help="print the differences as JSON")
+@fleet_option
+@limit_option
+@parallel_option
 def diff(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-         as_json: bool) -> int:
-    """Drift check: exit 2 when the device differs from the recipe, 0 when it matches."""
+         as_json: bool, inventory: str | None, limit: str | None, parallel: int) -> int:
+    """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches."""
+    from .api import diff_values
     from .recipe import load_recipe
 
     rec = load_recipe(recipe)
+    if inventory:
+        if device:
+            raise UsageError("--device and --inventory exclude each other")
+        return diff_fleet(rec, _fleet(rec, inventory, limit, timeout, retries, unit), parallel=parallel,
+                          as_json=as_json)
+    if limit:
+        raise UsageError("--limit needs --inventory")
     url, u = _target(rec, device, unit, timeout, retries, required=True)
     assert url is not None
     current = read_device(rec.profile, [d.name for d in rec.desired], url, u)
     if current is None:
         return EXIT_UNREACHABLE
-    rows: list[dict[str, Any]] = []
-    for d in rec.desired:
-        cur = current.get(d.name)
-        if cur is None:
-            rows.append({"name": d.name, "desired": d.text, "device": None, "status": "not readable"})
-        elif cur != d.registers:
-            rows.append({"name": d.name, "desired": d.text, "device": d.parameter.format_registers(cur),
-                         "device_raw": list(cur), "desired_raw": list(d.registers), "status": "drift"})
-    drift = [r for r in rows if r["status"] == "drift"]
+    rows = diff_values(rec, current)
+    drift = [r for r in rows if r.device_raw is not None]
     if as_json:
-        click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u, "drift": rows}, indent=2))
+        click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u,
+                               "drift": [r.to_json() for r in rows]}, indent=2))
     elif rows:
-        table = Table("parameter", "recipe", "device", "", box=None)
-        for r in rows:
-            table.add_row(str(r["name"]), str(r["desired"]), str(r["device"] or "-"), str(r["status"]))
-        console().print(table)
+        console().print(drift_table(rows, None))
         console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
     else:
         console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
     return EXIT_CHANGES if drift else EXIT_OK
 
 
+def drift_table(rows: Sequence[Drift], device: str | None, table: Table | None = None) -> Table:
+    """parameter, recipe, device value (with a device column for fleets)."""
+    if table is None:
+        table = Table(*(["device"] if device is not None else []), "parameter", "recipe", "device value", "",
+                      box=None)
+    for r in rows:
+        status = "drift" if r.device_raw is not None else "not readable"
+        table.add_row(*([device] if device is not None else []), r.name, r.desired, r.device or "-", status)
+    return table
+
+
+def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool) -> int:
+    """One table for the whole fleet; exit 2 naming every drifted device, 3 if any could not be read."""
+    from .api import diff_values, read_jobs
+
+    values = read_fleet(read_jobs(jobs), parallel)
+    rows = {j.name: diff_values(j.recipe, v) for j in jobs if not isinstance(v := values[j.name], Exception)}
+    drifted = [n for n, r in rows.items() if any(d.device_raw is not None for d in r)]
+    down = _unreachable(values)
+    if as_json:
+        click.echo(json.dumps({"recipe": rec.path, "devices": [
+            {"name": j.name, "url": describe(j.url), "unit": j.unit, "drift": [d.to_json() for d in rows[j.name]]}
+            if j.name in rows else {"name": j.name, "url": describe(j.url), "unit": j.unit,
+                                    "error": str(values[j.name])} for j in jobs],
+            "drifted": drifted, "unreachable": down}, indent=2))
+    else:
+        out = console()
+        table = Table("device", "parameter", "recipe", "device value", "", box=None)
+        for j in jobs:
+            drift_table(rows.get(j.name, []), j.name, table)
+        if table.row_count:
+            out.print(table)
+        out.print(f"drift on {len(drifted)} of {len(jobs)} devices" + (f": {', '.join(drifted)}" if drifted else "")
+                  + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
+    if down:
+        return EXIT_UNREACHABLE
+    return EXIT_CHANGES if drifted else EXIT_OK
+
+
 @cli.command()
-@click.option("--profile", "profile_ref", required=True, metavar="ID|FILE", help="the device's profile")
-@click.option("--device", required=True, metavar="URL")
-@click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True)
+@click.option("--profile", "profile_ref", metavar="ID|FILE",
+              help="the device's profile (with --inventory: for devices whose entry names none)")
+@click.option("--device", metavar="URL")
+@click.option("--unit", type=click.IntRange(1, 247), help="unit id (default 1, or the inventory's)")
 @click.option("--timeout", type=click.FloatRange(min=0, min_open=True))
 @click.option("--retries", type=click.IntRange(0, 20))
-@click.option("-o", "--output", type=click.Path(dir_okay=False), help="write the recipe here (default: stdout)")
+@click.option("-o", "--output", type=click.Path(), help="write the recipe here (default: stdout); "
+              "with --inventory a folder: one NAME.yaml per device")
 @click.option("--name", help="the recipe's name (default: pulled-PROFILE)")
-def pull(profile_ref: str, device: str, unit: int, timeout: float | None, retries: int | None,
-         output: str | None, name: str | None) -> int:
+@fleet_option
+@limit_option
+@parallel_option
+def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
+         output: str | None, name: str | None, inventory: str | None, limit: str | None, parallel: int) -> int:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
+    from .api import device_url, pull_names, pulled_recipe
     from .profile import resolve_profile
-    from .recipe import DeviceSpec, recipe_text
-    from .transport import BadURL, parse_url
 
+    if inventory:
+        if device or name:
+            raise UsageError("with --inventory, --device and --name do not apply (one recipe per device)")
+        if not output:
+            raise UsageError("with --inventory, pass -o DIR: one recipe per device goes there")
+        return pull_fleet(inventory, limit, profile_ref, output, timeout=timeout, retries=retries, unit=unit,
+                          parallel=parallel)
+    if limit:
+        raise UsageError("--limit needs --inventory")
+    if not profile_ref or not device:
+        raise UsageError("pass --profile ID|FILE and --device URL (or --inventory FILE -o DIR)")
     prof = resolve_profile(profile_ref)
-    try:
-        url = parse_url(device, timeout=timeout, retries=retries)
-    except BadURL as e:
-        raise UsageError(str(e)) from None
-    names = [p.name for p in prof.parameters if p.readable and p.writable]
-    current = read_device(prof, names, url, unit)
+    url = device_url(device, timeout=timeout, retries=retries)
+    u = unit if unit is not None else 1
+    current = read_device(prof, pull_names(prof), url, u)
     if current is None:
         return EXIT_UNREACHABLE
-    ref = prof.source if prof.source and output is None else (
-        os.path.relpath(prof.source, os.path.dirname(os.path.abspath(output))) if prof.source and output else prof.id)
-    text = recipe_text(ref, {prof.parameter(n): v for n, v in current.items()}, name=name or f"pulled-{prof.id}",
-                       device=DeviceSpec(describe(url), unit),
-                       comment=f"Pulled from {describe(url)} unit {unit} at "
-                               f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}")
+    text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
+                         comment=_pulled_from(describe(url), u), relative_to=output)
     if output:
         with open(output, "w", encoding="utf-8") as f:
             f.write(text)
@@ -749,6 +894,61 @@ def pull(profile_ref: str, device: str, unit: int, timeout: float | None, retrie
     else:
         click.echo(text, nl=False)
     return EXIT_OK
+
+
+def _pulled_from(url: str, unit: int) -> str:
+    return f"Pulled from {url} unit {unit} at {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}"
+
+
+def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folder: str, *, timeout: float | None,
+               retries: int | None, unit: int | None, parallel: int) -> int:
+    """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
+    from .api import device_url, load_inventory, pull_names, pulled_recipe
+    from .executor import ReadJob
+    from .profile import resolve_profile
+
+    inv = load_inventory(inventory)
+    devices = inv.select(limit)
+    profiles: dict[str, Profile] = {}
+    jobs: list[ReadJob] = []
+    errors: list[Diagnostic] = []
+    for dev in devices:
+        ref = dev.profile or profile_ref
+        try:
+            if ref is None:
+                raise UsageError("no profile: set profile in the inventory or pass --profile")
+            if ref not in profiles:
+                profiles[ref] = resolve_profile(ref)
+            prof = profiles[ref]
+            url = device_url(dev.url, timeout=timeout or dev.timeout,
+                             retries=retries if retries is not None else dev.retries)
+        except UsageError as e:
+            errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
+            continue
+        jobs.append(ReadJob(dev.name, prof, tuple(pull_names(prof)), url, unit if unit is not None else dev.unit))
+    if errors:
+        raise InputError(errors)
+    os.makedirs(folder, exist_ok=True)
+    values = read_fleet(jobs, parallel)
+    written = 0
+    for j in jobs:
+        cur = values[j.name]
+        if isinstance(cur, Exception):
+            continue
+        path = os.path.join(folder, f"{_safe(j.name)}.yaml")
+        text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
+                             comment=_pulled_from(describe(j.url), j.unit), relative_to=path)
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(text)
+        written += 1
+    down = _unreachable(values)
+    click.echo(f"{written} recipes written to {folder}" + (f"; {len(down)} unreachable: {', '.join(down)}"
+                                                          if down else ""), err=True)
+    return EXIT_UNREACHABLE if down else EXIT_OK
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
 
 
 @cli.command()

@@ -15,7 +15,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Literal, Protocol, TypeVar
 
 from . import journal, lock
 from . import transport as tp
@@ -450,31 +450,118 @@ class Job:
     unit: int
 
 
-async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOptions | None = None,
-                     recipe_name: str | None = None,
-                     on_done: Callable[[DeviceResult], None] | None = None) -> Report:
-    """Apply to many devices: in parallel, except that devices on one bus go one at a time."""
-    started = time.monotonic()
-    buses: dict[str, list[Job]] = {}
+@dataclass(frozen=True)
+class ReadJob:
+    """Read some parameters of one fleet device (plan, diff, pull)."""
+
+    name: str
+    profile: Profile
+    names: tuple[str, ...]
+    url: tp.DeviceURL
+    unit: int
+
+
+class _HasBus(Protocol):
+    @property
+    def url(self) -> tp.DeviceURL: ...
+
+
+_J = TypeVar("_J", bound=_HasBus)
+
+
+async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Awaitable[None]]) -> None:
+    """Run ``work`` for every job, at most ``parallel`` at once; jobs on one bus strictly one after the other."""
+    buses: dict[str, list[_J]] = {}
     for j in jobs:
         buses.setdefault(j.url.bus, []).append(j)
     gate = asyncio.Semaphore(max(1, parallel))
-    done: dict[str, DeviceResult] = {}
 
-    async def run_bus(group: list[Job]) -> None:
-        for j in group:  # half-duplex bus: strictly one device after the other
+    async def run_bus(group: list[_J]) -> None:
+        for j in group:  # half-duplex bus: the next device starts when the last one is done
             async with gate:
-                try:
-                    r = await apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
-                except (StalePlan, Declined):
-                    raise
-                except UsageError as e:
-                    r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed",
-                                     error=str(e), profile_ref=profile_ref(j.recipe.profile))
-                    r.parameters = list(_results(j.recipe).values())
-                done[j.name] = r
-                if on_done:
-                    on_done(r)
+                await work(j)
 
     await asyncio.gather(*(run_bus(g) for g in buses.values()))
-    return Report(recipe_name, [done[j.name] for j in jobs if j.name in done], time.monotonic() - started)
+
+
+def skipped_result(job: Job, reason: str) -> DeviceResult:
+    """A device a fleet run did not start: nothing was sent to it."""
+    r = DeviceResult(job.name, tp.describe(job.url), job.unit, job.recipe.profile.id, status="skipped", error=reason,
+                     profile_ref=profile_ref(job.recipe.profile))
+    r.parameters = list(_results(job.recipe).values())
+    return r
+
+
+async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOptions | None = None,
+                     recipe_name: str | None = None,
+                     on_done: Callable[[DeviceResult], None] | None = None,
+                     on_start: Callable[[Job], None] | None = None,
+                     batches: Sequence[int] | None = None, max_failures: int | None = None) -> Report:
+    """Apply to many devices: in parallel, except that devices on one bus go one at a time.
+
+    ``batches`` (sizes, in job order) stage the rollout: each batch finishes before the next
+    starts, and a batch in which no device ended ok ends the rollout (Ansible's ``serial``).
+    ``max_failures``: once that many devices ended failed or partial, no new device starts.
+    Devices never started are in the report as ``skipped`` with the reason.
+    """
+    started = time.monotonic()
+    done: dict[str, DeviceResult] = {}
+    failures = 0
+    stop: str | None = None
+
+    async def one(j: Job) -> None:
+        nonlocal failures, stop
+        if stop is not None:  # checked when the device's turn comes, not when it was queued
+            done[j.name] = skipped_result(j, stop)
+            return
+        if on_start:
+            on_start(j)
+        t = time.monotonic()
+        try:
+            r = await apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
+        except (StalePlan, Declined):
+            raise
+        except UsageError as e:
+            r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),
+                             profile_ref=profile_ref(j.recipe.profile))
+            r.parameters = list(_results(j.recipe).values())
+        r.seconds = time.monotonic() - t
+        done[j.name] = r
+        if r.status in ("failed", "partial"):
+            failures += 1
+            if max_failures is not None and failures >= max_failures and stop is None:
+                stop = (f"not started: {failures} device{'s' if failures != 1 else ''} ended failed or partial "
+                        f"(--max-failures {max_failures})")
+        if on_done:
+            on_done(r)
+
+    sizes = list(batches) if batches else [len(jobs)]
+    pos = 0
+    for number, size in enumerate(sizes, 1):
+        batch = jobs[pos:pos + size]
+        pos += size
+        await on_buses(batch, parallel, one)
+        ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
+        if stop is None and pos < len(jobs) and ran and all(r.status != "ok" for r in ran):
+            which = f"the canary {ran[0].name}" if len(batch) == 1 else f"all {len(ran)} devices"
+            stop = f"not started: batch {number} failed ({which} did not end ok)"
+    return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
+
+
+async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,
+                    on_done: Callable[[str, str | None], None] | None = None,
+                    ) -> dict[str, dict[str, tuple[int, ...]] | tp.TransportError | UsageError]:
+    """Current values of many devices (fleet plan, diff, pull): per device its registers or why not."""
+    out: dict[str, dict[str, tuple[int, ...]] | tp.TransportError | UsageError] = {}
+
+    async def one(j: ReadJob) -> None:
+        try:
+            out[j.name] = await read_current(j.profile, j.names, j.url, j.unit)
+        except (tp.TransportError, UsageError) as e:
+            out[j.name] = e
+        if on_done:
+            res = out[j.name]
+            on_done(j.name, str(res) if isinstance(res, Exception) else None)
+
+    await on_buses(jobs, parallel, one)
+    return {j.name: out[j.name] for j in jobs}

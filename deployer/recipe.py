@@ -11,7 +11,7 @@ import math
 import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from decimal import Decimal, InvalidOperation
 from typing import Any, Literal
 
@@ -160,6 +160,24 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
         profile_ref=resolved_ref,
         snapshot=snapshot,
     )
+
+
+def with_overrides(recipe: Recipe, extra: Sequence[Entry]) -> Recipe:
+    """``recipe`` with some values replaced (an inventory device's overrides), its files not read again.
+
+    Same result as ``load_recipe(recipe.path, extra=extra)`` when the profile is the same.
+    """
+    errors: list[Diagnostic] = []
+    new = {}
+    for e in extra:
+        d = _desired(recipe.profile, e, recipe.rounding, errors)
+        if d is not None:
+            new[d.name] = d
+    if errors:
+        raise InputError(errors)
+    desired = [d for d in recipe.desired if d.name not in new] + list(new.values())
+    desired.sort(key=lambda d: (d.parameter.stage, d.parameter.address))
+    return replace(recipe, desired=tuple(desired))
 
 
 def _is_relative_path(ref: str) -> bool:
