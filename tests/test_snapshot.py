@@ -19,13 +19,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from deployer.cli import main
 from deployer.executor import ApplyOptions, apply_device
 from deployer.profile import load_profile
 from deployer.recipe import load_recipe
 from deployer.simulator import Simulator, SimulatorThread
 from deployer.transport import parse_url
 from tests.helpers import umodbus_server
+from tests.test_cli import cli
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -37,13 +37,6 @@ parameters:
   mode: {{register: 0x104, type: uint16, values: {{ramp: 0, coast: 1}}}}
   gain: {{register: 0x105, type: float32}}
 """
-
-
-def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as exc:
-        main(list(args))
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 @pytest.fixture
