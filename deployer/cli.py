@@ -239,8 +239,20 @@ def _hexwords(regs: Sequence[int] | None) -> str:
     return "-" if regs is None else " ".join(f"{w:04X}" for w in regs)
 
 
-def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console) -> None:
-    from .planner import wire_stats
+def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:
+    """(framing, baud, bits per character, text) of the line the plan goes over: the URL's serial settings,
+    else the Modbus default 19200 baud 8E1 on RTU."""
+    if url is not None and url.scheme in ("rtu", "ascii"):
+        o = url.options
+        baud, data, parity, stop = int(o.get("baudrate", 19200)), int(o.get("bytesize", 8)), o.get("parity", "N"), \
+            int(o.get("stopbits", 1))
+        return url.scheme, baud, 1 + data + (parity != "N") + stop, f"{baud} baud {data}{parity}{stop}"
+    return "rtu", 19200, 11, "19200 baud"
+
+
+def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console,
+               url: DeviceURL | None = None) -> None:
+    from .planner import line_cost, wire_stats
 
     req_of: dict[str, list[int]] = {}
     for i, w in enumerate(plan.writes, 1):
@@ -267,11 +279,16 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
     st = wire_stats(plan)
     naive = sum(1 for pp in plan.parameters if pp.action != "unchanged")
     unchanged = sum(1 for pp in plan.parameters if pp.action == "unchanged")
+    framing, baud, bits, line = _line_of(url)
+    chars, seconds = line_cost(plan, framing=framing, baud=baud, char_bits=bits)
+    units = (f"{_n(chars, 'character')} on an ASCII line" if framing == "ascii"
+             else f"{_n(chars, 'byte')} on an RTU line")
     out.print(
-        f"{len(plan.writes)} write request{'s' if len(plan.writes) != 1 else ''} "
-        f"({st['registers']} registers; one request per parameter would take {naive})"
+        f"{_n(len(plan.writes), 'write request')} "
+        f"({_n(int(st['registers']), 'register')}; one request per parameter would take {naive})"
         + (f", {unchanged} unchanged" if unchanged else "")
-        + f"; {st['rtu_bytes']} bytes on an RTU line, about {float(st['seconds_19200']) * 1000:.0f} ms at 19200 baud")
+        + f"; {units}, about {seconds * 1000:.0f} ms at {line}"
+        + (" (broadcast: no answers)" if plan.device.unit == 0 else ""))
 
 
 def print_frames(plan: Plan, out: Console) -> None:
@@ -284,8 +301,11 @@ def print_frames(plan: Plan, out: Console) -> None:
         framing: Framing
         for framing in ("rtu", "ascii", "tcp"):
             q = request_frame(w, unit, framing, transaction_id=i)
-            a = response_frame(w, unit, framing, transaction_id=i)
             out.print(f"  {framing:5} query    {_show(q, framing)}")
+            if unit == 0:  # broadcast: no device answers
+                out.print(f"  {'':5} response none (broadcast)")
+                continue
+            a = response_frame(w, unit, framing, transaction_id=i)
             out.print(f"  {'':5} response {_show(a, framing)}")
 
 
@@ -336,7 +356,8 @@ def plan(recipe: str, device: str | None, unit: int | None, timeout: float | Non
         click.echo(json.dumps(data, indent=2))
     else:
         out = console()
-        print_plan(p, rec.profile, changes_only=current is not None, out=out)
+        out.print(f"profile: {rec.profile.id} ({rec.profile.source or 'built-in'})")
+        print_plan(p, rec.profile, changes_only=current is not None, out=out, url=url)
         if show_frames:
             print_frames(p, out)
         if out_path:
@@ -485,6 +506,8 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
                 table.add_row(p.name, p.before or "-", p.desired, p.after or "-", f"[{st}]{p.status}[/{st}]",
                               p.error or "")
             out.print(table)
+        for note in d.notices:
+            out.print(f"note: {note}")
         if d.snapshot:
             out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
