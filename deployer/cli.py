@@ -535,7 +535,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               batch: str | None = None, max_failures: str | None = None, command: str = "apply") -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
     from . import journal
-    from .api import run_fleet_async
+    from .api import fleet_options, run_fleet_async
     from .executor import ApplyOptions, Job, apply_many
     from .planner import load_plan
     from .progress import FleetProgress, fleet_summary
@@ -605,13 +605,15 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         for why in moved:
             err.print(f"warning: {why}; restoring it there (--yes)")
 
+    fleet_run = bool(inventory or from_report)
+    if fleet_run:
+        fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures)
     run_id = journal.new_run_id()
     journal.run_started(state_dir, run_id, command=command, argv=_ARGV, recipe=label,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
-    fleet_run = bool(inventory or from_report)
     if fleet_run:
         # a live display on a terminal (not while asking questions), else a line per device
         progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes)

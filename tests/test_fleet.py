@@ -367,3 +367,21 @@ def test_python_api_one_device_and_a_cheap_import(tmp_path: Path) -> None:
         assert [(d.name, d.registers) for d in inline.desired] == [("F07", (0, 2000))]
         with pytest.raises(deployer.InputError, match="unknown parameter 'F7'"):
             deployer.recipe_from("example-inverter", {"F7": "20 s"})
+
+
+def test_bad_fleet_options_are_refused_before_anything_is_sent(capsys: pytest.CaptureFixture[str],
+                                                               tmp_path: Path) -> None:
+    with fleet(2) as sims:
+        inv = inventory(tmp_path, {n: s.url for n, s in zip(names(2), sims, strict=True)})
+        state = tmp_path / "s"
+        for args, message in [(["--batch", "0"], "--batch: '0' is not a positive count"),
+                              (["--max-failures", "x%"], "--max-failures: 'x%'"),
+                              (["--limit", "d9*"], "'d9*' matches no device name or group"),
+                              (["--limit", f"@{tmp_path / 'none.json'}"], "cannot read the report")]:
+            code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir",
+                               str(state), *args)
+            assert code == 1 and message in err, err
+        code, _, err = cli(capsys, "apply", recipe(tmp_path), "--device", sims[0].url, "--yes", "--batch", "1")
+        assert code == 1 and "need --inventory" in err
+        assert not any(s.log for s in sims)
+        assert not (state / "audit.jsonl").exists()  # not even a journal line: nothing started
