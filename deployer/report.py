@@ -162,12 +162,18 @@ class Report:
 
 def write_json(data: dict[str, Any], path: str) -> None:
     """Write atomically and durably: a report or plan is evidence, keep it whole."""
+    write_atomic(path, json.dumps(data, indent=2) + "\n")
+
+
+def write_atomic(path: str, text: str) -> None:
+    """Replace ``path`` with ``text``: a temporary file, fsync'ed, then renamed over it."""
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=2)
-        f.write("\n")
+        f.write(text)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
