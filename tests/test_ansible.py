@@ -59,6 +59,7 @@ def inventory(tmp: Path, sites: dict[str, list[Simulator]], recipe: Path) -> Pat
         lines += [f"    {site}:", "      ansible_connection: local",
                   f"      ansible_python_interpreter: {sys.executable}",
                   f"      deployer_recipe: {recipe}", f"      deployer_state_dir: {tmp / 'state'}",
+                  f"      deployer_pulled_dir: {tmp / 'pulled' / site}",
                   "      modbus_devices:"]
         lines += [f"        - {{name: {site}-d{i}, url: '{s.url}?timeout=1&retries=0'}}" for i, s in enumerate(sims)]
     p = tmp / "hosts.yml"
@@ -90,13 +91,15 @@ def test_playbook_check_apply_idempotent_and_a_rejected_value(tmp_path: Path) ->
         assert "site-b-d1" in out  # the diff names each device
         assert writes(sims) == 0 and all(s.log for s in sims)
 
-        # a real run writes and verifies every device
+        # a real run writes and verifies every device (and the facts task writes the recipe files)
         code, out, results = playbook(tmp_path, inv)
         assert code == 0, out
-        assert recap(out, "site-a")["changed"] == 1 and recap(out, "site-b")["changed"] == 1
+        assert recap(out, "site-a")["changed"] == 2 and recap(out, "site-b")["changed"] == 2
         assert all(s.read(n) == v for s in sims for n, v in WANT.items())
         facts = results["site-b"][0]["ansible_facts"]["modbus_devices"]  # the last task: facts
         assert facts["site-b-d0"] == {"F07": "10 s", "F08": "12 s", "stop_mode": "coast"}
+        pulled = tmp_path / "pulled" / "site-a" / "site-a-d1.yaml"  # the facts task also wrote recipe files
+        assert "F07: 10 s" in pulled.read_text() and f"url\": \"{sims[1].url}" in pulled.read_text()
 
         # a second run has nothing to do
         before = writes(sims)

@@ -25,9 +25,14 @@ options:
     description: Several devices (e.g. from host vars), each with name, url, unit, and optional profile and parameters.
     type: list
     elements: dict
-  inventory: {description: A deployer inventory file on the target (all its devices or those I(limit) selects)., type: path}
+  inventory:
+    description: A deployer inventory file on the target (all its devices or those I(limit) selects).
+    type: path
   limit: {description: Inventory selection (names, groups, globs; @REPORT.json)., type: str}
-  parallel: {description: Devices at once on this gateway (one bus is always one device at a time)., type: int, default: 8}
+  parallel:
+    description: Devices at once on this gateway (one bus is always one device at a time).
+    type: int
+    default: 8
   batch: {description: 'Staged rollout within this task, e.g. "1,50%".', type: str}
   max_failures: {description: After this many failed or partial devices start no new one (N or P%)., type: str}
   timeout: {description: Seconds per request attempt., type: float}
@@ -51,12 +56,16 @@ RETURN = r"""
 changed: {description: Whether any write request was sent., type: bool, returned: always}
 devices: {description: Per device its status and the parameters it changed or failed., type: list, returned: always}
 report: {description: The deployer report (schema deployer.report/1); not in check mode., type: dict, returned: success}
-plans: {description: 'Check mode: per device what would be written (deployer.plan/1).', type: list, returned: check mode}
+plans:
+  description: 'Check mode: per device what would be written (deployer.plan/1).'
+  type: list
+  returned: check mode
 """
 
 import asyncio  # noqa: E402
 
 from ansible.module_utils.basic import AnsibleModule  # noqa: E402
+
 from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common import (  # noqa: E402
     TARGET_ARGS,
     input_error,

@@ -24,7 +24,9 @@ options:
   parallel: {description: Devices read at once., type: int, default: 8}
   timeout: {description: Seconds per request attempt., type: float}
   retries: {description: Retries after a timeout or busy answer., type: int}
-  dest: {description: A folder on the target; one recipe per device (NAME.yaml) that applies back as a no-op., type: path}
+  dest:
+    description: A folder on the target; one recipe per device (NAME.yaml) that applies back as a no-op.
+    type: path
 """
 
 EXAMPLES = r"""
@@ -36,13 +38,17 @@ EXAMPLES = r"""
 """
 
 RETURN = r"""
-ansible_facts: {description: 'modbus_devices: device name -> parameter -> value (e.g. "10 s").', type: dict, returned: success}
+ansible_facts:
+  description: 'modbus_devices: device name -> parameter -> value (e.g. "10 s").'
+  type: dict
+  returned: success
 raw: {description: device name -> parameter -> register words., type: dict, returned: success}
 """
 
 import os  # noqa: E402
 
 from ansible.module_utils.basic import AnsibleModule  # noqa: E402
+
 from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common import (  # noqa: E402
     TARGET_ARGS,
     input_error,
@@ -72,7 +78,6 @@ def main():
             base = deployer.recipe_from(p["profile"], {}, name=p.get("name") or "pulled")
         else:
             raise UsageError("pass profile (or recipe)")
-        module.params = {**p, "parameters": None}  # jobs_of reads 'parameters' as values; here they are names
         jobs = jobs_of(module, base)
         read = []
         for j in jobs:
@@ -96,7 +101,10 @@ def main():
             path = os.path.join(p["dest"], f"{j.name}.yaml")
             text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
                                  relative_to=path)
-            old = open(path, encoding="utf-8").read() if os.path.exists(path) else None
+            old = None
+            if os.path.exists(path):
+                with open(path, encoding="utf-8") as f:
+                    old = f.read()
             if old != text:
                 with open(path, "w", encoding="utf-8") as f:
                     f.write(text)
