@@ -552,6 +552,12 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             raise UsageError("rollback --report restores each device from its own snapshot, to the device it was "
                              "taken from: --inventory, --device and --unit do not apply")
         jobs = _rollback_report_jobs(from_report, force=force, timeout=timeout, retries=retries)
+        if limit:  # names and patterns select among that run's devices (it has no groups)
+            from .fleet import FleetDevice, Inventory, select
+
+            chosen = {d.name for d in select(Inventory(from_report, tuple(FleetDevice(j.name, describe(j.url))
+                                                                          for j in jobs)), limit)}
+            jobs = [j for j in jobs if j.name in chosen]
         label = from_report
     else:
         assert source is not None

@@ -385,3 +385,19 @@ def test_bad_fleet_options_are_refused_before_anything_is_sent(capsys: pytest.Ca
         assert code == 1 and "need --inventory" in err
         assert not any(s.log for s in sims)
         assert not (state / "audit.jsonl").exists()  # not even a journal line: nothing started
+
+
+def test_rollback_of_a_fleet_run_takes_a_limit(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    with fleet(3) as sims:
+        inv = inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)})
+        run = str(tmp_path / "run.json")
+        assert cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--report", run,
+                   "--state-dir", str(tmp_path / "s"))[0] == 0
+        for s in sims:
+            s.log.clear()
+        code, out, err = cli(capsys, "rollback", "--report", run, "--limit", "d0[12]", "--yes", "--json",
+                             "--state-dir", str(tmp_path / "s"))
+        assert code == 0, out + err
+        assert [d["name"] for d in json.loads(out)["devices"]] == ["d01", "d02"]
+        assert not sims[0].log and holds_recipe(sims[0])
+        assert sims[1].read("F07") == sims[2].read("F07") == (0, 500)  # back to what they held
