@@ -542,7 +542,12 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         t = time.monotonic()
         try:
             r = await apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
-        except (StalePlan, Declined):
+        except Declined:
+            if len(jobs) == 1:
+                raise
+            # in a fleet, a "no" is about that device: the others were asked (or are being written) on their own
+            r = skipped_result(j, "not written: declined at the confirmation prompt")
+        except StalePlan:
             raise
         except UsageError as e:
             r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),

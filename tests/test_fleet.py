@@ -401,3 +401,22 @@ def test_rollback_of_a_fleet_run_takes_a_limit(capsys: pytest.CaptureFixture[str
         assert [d["name"] for d in json.loads(out)["devices"]] == ["d01", "d02"]
         assert not sims[0].log and holds_recipe(sims[0])
         assert sims[1].read("F07") == sims[2].read("F07") == (0, 500)  # back to what they held
+
+
+def test_declining_one_device_of_a_fleet_skips_only_that_one(tmp_path: Path) -> None:
+    import asyncio
+
+    import deployer
+    from deployer.executor import ApplyOptions, apply_many
+
+    with fleet(3) as sims:
+        rec = deployer.load_recipe(recipe(tmp_path))
+        jobs = deployer.api.fleet(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)}))
+
+        async def confirm(plan: object, res: deployer.DeviceResult) -> bool:
+            return res.name != "d01"
+
+        report = asyncio.run(apply_many(jobs, options=ApplyOptions(state_dir=str(tmp_path / "s"), confirm=confirm)))
+        assert [d.status for d in report.devices] == ["ok", "skipped", "ok"]
+        assert report.devices[1].error == "not written: declined at the confirmation prompt"
+        assert report.exit_code == 4 and not any(e.function == 16 for e in sims[1].log)
