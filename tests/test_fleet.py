@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -420,3 +421,21 @@ def test_declining_one_device_of_a_fleet_skips_only_that_one(tmp_path: Path) -> 
         assert [d.status for d in report.devices] == ["ok", "skipped", "ok"]
         assert report.devices[1].error == "not written: declined at the confirmation prompt"
         assert report.exit_code == 4 and not any(e.function == 16 for e in sims[1].log)
+
+
+def test_live_progress_on_a_terminal_and_the_summary(tmp_path: Path) -> None:
+    from tests.test_cli import _run_on_a_terminal
+
+    with fleet(6, {i: Faults(latency_ms=40) for i in range(6)} | {2: Faults(fail_registers=frozenset({F08}))}) \
+            as sims:
+        inv = inventory(tmp_path, {n: s.url for n, s in zip(names(6), sims, strict=True)})
+        code, out = _run_on_a_terminal(["apply", recipe(tmp_path), "--inventory", inv, "--yes", "--parallel", "2",
+                                        "--state-dir", str(tmp_path / "s")], b"", prompt=b"never asked")
+        assert code == 4, out
+        assert "in flight" in out and "ETA" in out and "writing: d0" in out  # the live display
+        out = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", out)  # colours and cursor movements
+        rows = {line.split()[0]: line.split()[1:] for line in out.splitlines()
+                if line.strip().startswith("d0") and len(line.split()) >= 6}
+        assert rows["d02"][:3] == ["partial", "2", "1"]  # status, changed, failed
+        assert rows["d00"][:3] == ["ok", "3", "0"]
+        assert "6 devices: 5 ok, 1 partial" in out
