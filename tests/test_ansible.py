@@ -1,7 +1,8 @@
 """The Ansible collection (ansible_collections/deployer/modbus) run by ansible-playbook for real.
 
 Two "site gateway" hosts (connection local, the venv's Python) each with two simulated devices
-on loopback, the example playbook playbooks/sites.yml: check mode, a real run, a second run,
+on loopback (one site's devices as host vars, the other's in a deployer inventory on the gateway),
+the example playbook playbooks/sites.yml: check mode, a real run, a second run,
 and a rejected value that fails its host naming the parameter.
 """
 
@@ -54,13 +55,20 @@ def playbook(tmp: Path, inventory: Path, *args: str) -> tuple[int, str, dict[str
 
 
 def inventory(tmp: Path, sites: dict[str, list[Simulator]], recipe: Path) -> Path:
+    """Ansible's inventory: site-a lists its devices as host vars, site-b points at a deployer inventory."""
     lines = ["site_gateways:", "  hosts:"]
     for site, sims in sites.items():
         lines += [f"    {site}:", "      ansible_connection: local",
                   f"      ansible_python_interpreter: {sys.executable}",
                   f"      deployer_recipe: {recipe}", f"      deployer_state_dir: {tmp / 'state'}",
-                  f"      deployer_pulled_dir: {tmp / 'pulled' / site}",
-                  "      modbus_devices:"]
+                  f"      deployer_pulled_dir: {tmp / 'pulled' / site}"]
+        if site == "site-b":
+            own = tmp / f"{site}-inventory.yaml"
+            own.write_text("defaults: {timeout: 1.0, retries: 0}\ndevices:\n" + "".join(
+                f"  {site}-d{i}: {{url: '{s.url}'}}\n" for i, s in enumerate(sims)))
+            lines.append(f"      deployer_inventory: {own}")
+            continue
+        lines.append("      modbus_devices:")
         lines += [f"        - {{name: {site}-d{i}, url: '{s.url}?timeout=1&retries=0'}}" for i, s in enumerate(sims)]
     p = tmp / "hosts.yml"
     p.write_text("\n".join(lines) + "\n")
