@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import json
 import os
 import sys
@@ -11,8 +10,6 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import click
-from rich.console import Console
-from rich.table import Table
 
 from .diagnostics import (
     EXIT_CHANGES,
@@ -23,13 +20,16 @@ from .diagnostics import (
     InputError,
     UsageError,
 )
-from .transport import DeviceURL, TransportError, describe
+from .tables import Cell, show
 
 if TYPE_CHECKING:
+    from rich.console import Console
+
     from .planner import Plan
     from .profile import Profile
     from .recipe import Recipe
     from .report import DeviceResult, Report
+    from .transport import DeviceURL
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -48,9 +48,12 @@ def report_input_error(err: InputError) -> None:
 # --- validate, profiles (foundation) ---------------------------------------------------
 
 
-def console() -> Console:
-    """stdout console; wide when not a terminal so piped tables are not squeezed."""
-    return Console(width=None if sys.stdout.isatty() else 200, highlight=False)
+def console(*, stderr: bool = False) -> Console:
+    """stdout (or stderr) console; wide when not a terminal so piped lines are not squeezed."""
+    from rich.console import Console  # only commands that print tables pay for importing rich
+
+    tty = (sys.stderr if stderr else sys.stdout).isatty()
+    return Console(stderr=stderr, width=None if tty else 200, highlight=False)
 
 
 def _n(count: int, noun: str) -> str:
@@ -143,12 +146,12 @@ def profiles_list() -> int:
     """List the built-in profiles."""
     from .profile import builtin_profile, builtin_profile_ids
 
-    table = Table("profile", "parameters", "description", box=None)
+    rows: list[list[Cell]] = []
     for pid in builtin_profile_ids():
         prof = builtin_profile(pid)
         first = prof.description.split(". ")[0].rstrip(".")
-        table.add_row(pid, str(len(prof.parameters)), first)
-    console().print(table)
+        rows.append([pid, str(len(prof.parameters)), first])
+    show(console(), ["profile", "parameters", "description"], rows)
     return EXIT_OK
 
 
@@ -165,17 +168,17 @@ def profiles_show(profile: str) -> int:
     lim = prof.limits
     out.print(f"addressing {prof.addressing}, word order {prof.word_order}; up to {lim.write_registers} registers "
               f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read")
-    table = Table("parameter", "address", "type", "unit", "resolution", "range", "access", "default",
-                  "description", box=None)
+    rows: list[list[Cell]] = []
     for p in prof.parameters:
         rng = "" if p.min is None and p.max is None else (
             f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
         if p.values:
             rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
         default = "" if p.default is None else format_decimal(p.default)
-        table.add_row(p.name, f"0x{p.address:04X} ({p.address})", p.type, p.unit or "",
-                      format_decimal(p.scale), rng, p.access, default, p.description)
-    out.print(table)
+        rows.append([p.name, f"0x{p.address:04X} ({p.address})", p.type, p.unit or "",
+                     format_decimal(p.scale), rng, p.access, default, p.description])
+    show(out, ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"],
+         rows)
     return EXIT_OK
 
 # --- plan (planner) ---------------------------------------------------------------------
@@ -214,7 +217,10 @@ def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float
 def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: int
                 ) -> dict[str, tuple[int, ...]] | None:
     """Current values for plan --device, diff and pull; None (after saying why) when unreachable."""
+    import asyncio
+
     from .executor import read_current
+    from .transport import TransportError
 
     try:
         return asyncio.run(read_current(profile, names, url, unit))
@@ -234,9 +240,10 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
     for i, w in enumerate(plan.writes, 1):
         for n in w.parameters:
             req_of.setdefault(n, []).append(i)
-    table = Table("parameter", "address", "raw", "value", "request", box=None)
+    headers = ["parameter", "address", "raw", "value", "request"]
     if changes_only:
-        table = Table("parameter", "address", "current -> desired", "raw", "action", "request", box=None)
+        headers = ["parameter", "address", "current -> desired", "raw", "action", "request"]
+    rows: list[list[Cell]] = []
     for pp in plan.parameters:
         if changes_only and pp.action == "unchanged":
             continue
@@ -245,11 +252,11 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
         if changes_only:
             p = profile.parameter(pp.name)
             cur = p.format_registers(pp.current_raw) if pp.current_raw is not None else "?"
-            table.add_row(pp.name, addr, f"{cur} -> {pp.desired}", _hexwords(pp.desired_raw), pp.action, reqs)
+            rows.append([pp.name, addr, f"{cur} -> {pp.desired}", _hexwords(pp.desired_raw), pp.action, reqs])
         else:
-            table.add_row(pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs)
-    if table.row_count:
-        out.print(table)
+            rows.append([pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs])
+    if rows:
+        show(out, headers, rows)
     elif changes_only:
         out.print("No changes: the device already holds every value of the recipe.")
     st = wire_stats(plan)
@@ -295,6 +302,7 @@ def plan(recipe: str, device: str | None, unit: int | None, timeout: float | Non
     from .planner import Target, make_plan, plan_to_json
     from .recipe import load_recipe
     from .report import write_json
+    from .transport import describe
 
     rec = load_recipe(recipe)
     url, u = _target(rec, device, unit, timeout, retries, required=False)
@@ -355,6 +363,8 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
              baud: int | None, drop_every: int, busy_first: int, fail_registers: tuple[str, ...],
              disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
+    import asyncio
+
     from .profile import resolve_profile
     from .recipe import load_recipe
     from .simulator import Faults, Simulator, init_from_recipe, parse_listen, serve
@@ -398,12 +408,9 @@ def print_report(report: Report, out: Console) -> None:
                   + (f" - {d.error}" if d.error else ""))
         rows = sorted(d.parameters, key=lambda p: (_STATUS_ORDER.get(p.status, 9), p.address))
         if d.status != "unreachable" and rows:
-            table = Table("parameter", "before", "desired", "after", "status", "", box=None)
-            for p in rows:
-                st = _STATUS_STYLE.get(p.status, "")
-                table.add_row(p.name, p.before or "-", p.desired, p.after or "-", f"[{st}]{p.status}[/{st}]",
-                              p.error or "")
-            out.print(table)
+            show(out, ["parameter", "before", "desired", "after", "status", ""],
+                 [[p.name, p.before or "-", p.desired, p.after or "-", (p.status, _STATUS_STYLE.get(p.status, "")),
+                   p.error or ""] for p in rows])
         if d.snapshot:
             out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
@@ -429,6 +436,8 @@ def run_apply(source: str, *, device: str | None, unit: int | None, timeout: flo
               parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
               command: str = "apply") -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
+    import asyncio
+
     from .executor import ApplyOptions, Job, apply_many
     from .fleet import fleet_jobs, load_inventory
     from .planner import load_plan
@@ -459,7 +468,7 @@ def run_apply(source: str, *, device: str | None, unit: int | None, timeout: flo
                              "pass --allow-broadcast to send it anyway")
 
     out = console()
-    err = Console(stderr=True, highlight=False)
+    err = console(stderr=True)
     confirm = None
     if not yes:
         if not sys.stdin.isatty():
@@ -538,6 +547,7 @@ def diff(recipe: str, device: str | None, unit: int | None, timeout: float | Non
          as_json: bool) -> int:
     """Drift check: exit 2 when the device differs from the recipe, 0 when it matches."""
     from .recipe import load_recipe
+    from .transport import describe
 
     rec = load_recipe(recipe)
     url, u = _target(rec, device, unit, timeout, retries, required=True)
@@ -557,10 +567,8 @@ def diff(recipe: str, device: str | None, unit: int | None, timeout: float | Non
     if as_json:
         click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u, "drift": rows}, indent=2))
     elif rows:
-        table = Table("parameter", "recipe", "device", "", box=None)
-        for r in rows:
-            table.add_row(str(r["name"]), str(r["desired"]), str(r["device"] or "-"), str(r["status"]))
-        console().print(table)
+        show(console(), ["parameter", "recipe", "device", ""],
+             [[str(r["name"]), str(r["desired"]), str(r["device"] or "-"), str(r["status"])] for r in rows])
         console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
     else:
         console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
@@ -580,7 +588,7 @@ def pull(profile_ref: str, device: str, unit: int, timeout: float | None, retrie
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
     from .profile import resolve_profile
     from .recipe import DeviceSpec, recipe_text
-    from .transport import BadURL, parse_url
+    from .transport import BadURL, describe, parse_url
 
     prof = resolve_profile(profile_ref)
     try:

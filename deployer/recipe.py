@@ -328,14 +328,26 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
     return f"{text} {param.unit}" if param.unit else text
 
 
+# Text YAML certainly reads back as the same plain string when the implicit resolvers call it a
+# string: word characters, spaces, '.', '-', '/', '%' and '°' only (no ':', '#', quotes or
+# indicators), neither starting nor ending with a space or an indicator.
+_PLAIN_SAFE = re.compile(r"^\w(?:[\w .\-/%°]*[\w.%°])?$")
+_RESOLVER = yaml.resolver.Resolver()
+
+
 def _reads_back(text: str) -> bool:
+    """True when ``k: TEXT`` loads back as exactly ``TEXT`` (a number or the same string)."""
     try:
         Decimal(text)
         return True
     except InvalidOperation:
         pass
-    try:
-        return bool(yaml.safe_load(f"k: {text}") == {"k": text})
+    if _PLAIN_SAFE.match(text):  # the common case, without running a parser per value
+        tag = _RESOLVER.resolve(yaml.ScalarNode, text, (True, False))  # type: ignore[no-untyped-call]
+        return bool(tag == "tag:yaml.org,2002:str")
+    try:  # both parsers must agree (libyaml reads some text with tabs differently)
+        return all(yaml.load(f"k: {text}", Loader=loader) == {"k": text}
+                   for loader in (yamlsrc.FastLoader, yaml.SafeLoader))
     except yaml.YAMLError:
         return False
 

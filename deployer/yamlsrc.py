@@ -37,10 +37,8 @@ from .diagnostics import Diagnostic, InputError
 if TYPE_CHECKING:
     import jsonschema
 
-try:  # libyaml's parser when PyYAML has it; the pure-Python one gives the same events
-    from yaml import CSafeLoader as FastLoader
-except ImportError:  # pragma: no cover - depends on how PyYAML was built
-    from yaml import SafeLoader as FastLoader  # type: ignore[assignment]
+# libyaml's parser when PyYAML has it; the pure-Python one gives the same events
+FastLoader: type[yaml.SafeLoader] | type[yaml.CSafeLoader] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 # Limits on input (issue #11, hostile files). A real recipe or profile is far inside each one.
 MAX_FILE_BYTES = 8 * 1024 * 1024  # a 50,000-parameter profile is about 4 MB
