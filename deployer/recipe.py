@@ -218,6 +218,10 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
     if isinstance(value, dict) and "raw" in value:
         return _from_raw(param, value["raw"], e, fail)
     if isinstance(value, dict):  # {value: ..., rounding: ...}
+        if "value" not in value:  # table-entry style keys on a plain parameter
+            keys = ", ".join(yamlsrc.clip(str(k)) for k in value)
+            fail(f"expected a value, {{raw: N}} or {{value: V, rounding: nearest}}, got a mapping with {keys}")
+            return None
         rounding = value.get("rounding", rounding)
         value = value["value"]
     try:

@@ -78,10 +78,13 @@ def convert(magnitude: Decimal, from_unit: str, to_unit: str) -> Decimal:
     how = _conversion(from_unit, to_unit)
     if isinstance(how, str):
         raise ValueError(how)
-    if how is not None:
-        return magnitude * how
-    q = registry().Quantity(magnitude, _pint_text(from_unit))  # offsets: pint's own arithmetic
-    return Decimal(q.to(_pint_text(to_unit)).magnitude)
+    try:
+        if how is not None:
+            return magnitude * how
+        q = registry().Quantity(magnitude, _pint_text(from_unit))  # offsets: pint's own arithmetic
+        return Decimal(q.to(_pint_text(to_unit)).magnitude)
+    except ArithmeticError:  # 1e999999999 ms: beyond Decimal's exponent range
+        raise ValueError(f"{magnitude:g} {_clip(from_unit)} is too large to convert to '{_clip(to_unit)}'") from None
 
 
 def _dim(unit: str) -> str:

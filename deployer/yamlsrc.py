@@ -24,6 +24,7 @@ import json
 import os
 import re
 import stat
+import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
@@ -68,6 +69,19 @@ def clipped_repr(value: object, limit: int = MAX_ECHO) -> str:
     return clip(repr(value), limit)
 
 
+_LONG_WORD = re.compile(r"\S{121,}")  # longer than any path or name a message means to show whole
+
+
+def clip_message(message: str) -> str:
+    """A message with every overlong word (an echoed value) cut, and at most about 1,000 characters."""
+    if len(message) <= 120:
+        return message
+    message = _LONG_WORD.sub(lambda m: clip(m.group()), message)
+    if len(message) > 1000:
+        message = f"{message[:600]} … {message[-300:]}"
+    return message
+
+
 @dataclass
 class Source:
     """Positions of one loaded document: path tuple -> (line, col), 1-based."""
@@ -90,7 +104,7 @@ class Source:
 
     def error(self, at: Path_, message: str, *, key: bool = False) -> Diagnostic:
         line, col = self.pos(at, key=key)
-        return Diagnostic(self.path, line, col, message)
+        return Diagnostic(self.path, line, col, clip_message(message))
 
 
 class _Stop(Exception):
@@ -141,7 +155,7 @@ class _Builder:
         self.tags: dict[tuple[str, tuple[bool, bool]], str] = {}
 
     def err(self, pos: tuple[int, int], message: str) -> None:
-        self.errors.append(Diagnostic(self.src.path, pos[0], pos[1], message))
+        self.errors.append(Diagnostic(self.src.path, pos[0], pos[1], clip_message(message)))
 
     def put(self, is_key: bool, at: Path_, pos: tuple[int, int]) -> None:
         (self.src.keys if is_key else self.src.values)[at] = pos
@@ -255,7 +269,7 @@ class _Builder:
             self.err(pos, f"duplicate key '{clip(key)}' (first at line {line})")
             return False
         if len(out) >= MAX_ENTRIES:
-            self.err(pos, f"more than {MAX_ENTRIES} entries in one mapping")
+            self.err(pos, f"more than {MAX_ENTRIES} entries in one mapping (a device has {MAX_ENTRIES} registers)")
             raise _Stop
         self.put(True, (*parent.at, key), pos)
         parent.key = key
@@ -264,13 +278,17 @@ class _Builder:
         return True
 
     def _skip(self) -> None:
-        """Drop the rest of a collection whose start event was just read."""
+        """Drop the rest of a collection whose start event was just read (within the depth limit)."""
         depth = 1
         get = self.loader.get_event
         while depth:
             ev = get()
             if isinstance(ev, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
                 depth += 1
+                if depth > MAX_DEPTH:
+                    mark = ev.start_mark
+                    self.err((mark.line + 1, mark.column + 1), f"nested deeper than {MAX_DEPTH} levels")
+                    raise _Stop
             elif isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
                 depth -= 1
 
@@ -423,9 +441,18 @@ def _python_error(text: str, err: yaml.MarkedYAMLError) -> yaml.MarkedYAMLError:
     mark = err.problem_mark or err.context_mark
     if mark is None or mark.index > _REPARSE_BYTES:
         return err
-    try:
-        for _ in yaml.parse(text, Loader=yaml.SafeLoader):
-            pass
+    depth = 0
+    deadline = time.monotonic() + 0.25
+    try:  # the pure-Python scanner is quadratic in nesting depth: stop where the builder would
+        for i, ev in enumerate(yaml.parse(text, Loader=yaml.SafeLoader)):
+            if isinstance(ev, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    return err
+            elif isinstance(ev, yaml.CollectionEndEvent):
+                depth -= 1
+            if i % 256 == 0 and time.monotonic() > deadline:
+                return err
     except yaml.MarkedYAMLError as e:
         mine = e.problem_mark or e.context_mark
         if mine is not None and (mine.line, mine.column) == (mark.line, mark.column):
