@@ -286,7 +286,7 @@ class _Builder:
             if isinstance(ev, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
                 depth += 1
                 if depth > MAX_DEPTH:
-                    mark = ev.start_mark
+                    mark: Any = ev.start_mark
                     self.err((mark.line + 1, mark.column + 1), f"nested deeper than {MAX_DEPTH} levels")
                     raise _Stop
             elif isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
