@@ -359,9 +359,11 @@ def _register(text: str) -> int:
 @click.option("--state", "state_path", type=click.Path(dir_okay=False), help="dump registers as JSON on exit/SIGUSR1")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False), help="one JSON line per request")
 @click.option("--loose-limits", is_flag=True, help="accept requests beyond the profile's limits")
+@click.option("--gap-reads", is_flag=True, help="answer reads of undeclared registers between declared ones (zeros)")
 def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str | None, latency_ms: float,
              baud: int | None, drop_every: int, busy_first: int, fail_registers: tuple[str, ...],
-             disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool) -> int:
+             disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool,
+             gap_reads: bool) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
     import asyncio
 
@@ -379,7 +381,7 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
                     fail_registers=frozenset(_register(r) for r in fail_registers),
                     disconnect_after=disconnect_after)
     sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
-                    state_path=state_path, strict_limits=not loose_limits)
+                    state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads)
 
     def ready(s: Simulator) -> None:
         which = ", ".join(str(u) for u in s.units)
