@@ -166,8 +166,33 @@ class _Builder:
         """The document's value; the loader must stand before the document's root node."""
         get = self.loader.get_event
         stack: list[_Frame] = []
+        scalar_event, tags, keys, values = yaml.ScalarEvent, self.tags, self.src.keys, self.src.values
         while True:
-            ev = get()
+            ev: Any = get()
+            # fast path, most events of a file: an unanchored plain scalar key or value in a mapping
+            if ev.__class__ is scalar_event and ev.anchor is None and stack and not self.open_anchors:
+                top = stack[-1]
+                if top.is_map and not top.skip_value:
+                    mark: Any = ev.start_mark
+                    pos = (mark.line + 1, mark.column + 1)
+                    out: dict[str, Any] = top.value  # type: ignore[assignment]
+                    key = top.key
+                    if key is not None:  # the value of that key
+                        values[(*top.at, key)] = pos
+                        self.nodes += 1
+                        out[key] = self._scalar(ev, pos)
+                        top.key = None
+                        continue
+                    text = ev.value
+                    tag = ev.tag
+                    if tag is None or tag == "!":
+                        tag = tags.get((text, ev.implicit)) or self._tag(ev)
+                    if tag != _MERGE and text not in out and len(out) < MAX_ENTRIES:
+                        keys[(*top.at, text)] = pos
+                        top.key = text
+                        out[text] = None  # keeps the key's place (and finds duplicates) until its value
+                        continue
+                    # a refused key: the general path below says why
             if isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
                 frame = stack.pop()
                 if frame.anchored:
@@ -325,7 +350,9 @@ class _Builder:
         return tag
 
     def _scalar(self, ev: Any, pos: tuple[int, int]) -> Any:
-        tag = self._tag(ev)
+        tag = ev.tag
+        if tag is None or tag == "!":
+            tag = self.tags.get((ev.value, ev.implicit)) or self._tag(ev)
         if tag not in _SCALAR_TAGS:
             self.err(pos, f"tag {clipped_repr(tag)} is not allowed")
             return None
