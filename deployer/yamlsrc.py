@@ -487,13 +487,38 @@ def _python_error(text: str, err: yaml.MarkedYAMLError) -> yaml.MarkedYAMLError:
     return err
 
 
-def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[Any] = FastLoader
-         ) -> tuple[Any, Source]:
+# documents loaded with hand_over=True, for the next load of the same unchanged file (once)
+_handed_over: dict[str, tuple[tuple[int, int, int], Any, Source]] = {}
+
+
+def _stamp(path: str) -> tuple[int, int, int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
+def forget(path: str | os.PathLike[str]) -> None:
+    """Drop a document kept by ``load(..., hand_over=True)`` that nobody loaded again."""
+    _handed_over.pop(os.fspath(path), None)
+
+
+def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[Any] = FastLoader,
+         hand_over: bool = False) -> tuple[Any, Source]:
     """Load one YAML (or JSON, a subset) document. Raises InputError.
 
     ``loader``: a PyYAML loader class (``yaml.SafeLoader`` forces the pure-Python parser).
+    ``hand_over``: keep the result for the next ``load`` of this file, if it is unchanged by then
+    (``validate`` looks at a file to tell its kind, then the right loader loads it: parsed once).
+    The caller must then only read the value: the next loader gets the same objects.
     """
     p = os.fspath(path)
+    if text is None and p in _handed_over:
+        stamp, kept, kept_src = _handed_over.pop(p)
+        if stamp == _stamp(p):
+            return kept, kept_src
+    stamp_before = _stamp(p) if hand_over else None
     if text is None:
         text = read_text(p)
     src = Source(p)
@@ -525,6 +550,8 @@ def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[
         ldr.dispose()
     if b.errors:
         raise InputError(b.errors)
+    if stamp_before is not None and stamp_before == _stamp(p):
+        _handed_over[p] = (stamp_before, value, src)
     return value, src
 
 # ---- JSON Schema with positions ---------------------------------------------------------
