@@ -41,28 +41,16 @@ from benchmarks import drive
 N = 500
 ROOT = Path(__file__).resolve().parent.parent
 
-NAIVE = """
+# naive: one FC16 and one FC03 per parameter; skilled: the same contiguous blocks as deployer's writes
+SCRIPT = """
 import json, sys
 from pymodbus.client import ModbusTcpClient
-host, port, plan = sys.argv[1], int(sys.argv[2]), json.load(open(sys.argv[3]))
+host, port, plan, kind = sys.argv[1], int(sys.argv[2]), json.load(open(sys.argv[3])), sys.argv[4]
 c = ModbusTcpClient(host, port=port, retries=0, timeout=3)
 c.connect()
-for address, regs in plan["parameters"]:
+for address, regs in plan[kind]:
     assert not c.write_registers(address, regs, device_id=1).isError()
-for address, regs in plan["parameters"]:
-    assert c.read_holding_registers(address, count=len(regs), device_id=1).registers == regs
-c.close()
-"""
-
-SKILLED = """
-import json, sys
-from pymodbus.client import ModbusTcpClient
-host, port, plan = sys.argv[1], int(sys.argv[2]), json.load(open(sys.argv[3]))
-c = ModbusTcpClient(host, port=port, retries=0, timeout=3)
-c.connect()
-for address, regs in plan["blocks"]:
-    assert not c.write_registers(address, regs, device_id=1).isError()
-for address, regs in plan["blocks"]:
+for address, regs in plan[kind]:
     assert c.read_holding_registers(address, count=len(regs), device_id=1).registers == regs
 c.close()
 """
@@ -136,9 +124,8 @@ def _plan_file(work: str, recipe_path: str) -> str:
 
 def _contenders(work: str, latency: float, rounds: int) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    naive_py, skilled_py = os.path.join(work, "naive.py"), os.path.join(work, "skilled.py")
-    Path(naive_py).write_text(NAIVE)
-    Path(skilled_py).write_text(SKILLED)
+    script = os.path.join(work, "script.py")
+    Path(script).write_text(SCRIPT)
     startup = min(timed([sys.executable, "-c", "pass"])[0] for _ in range(5))
     for name, gap in (("deployer", 0), ("deployer_gap_reads", 1), ("skilled", 0), ("naive", 0)):
         files = drive.write(os.path.join(work, name), N, max_read_gap=gap)
@@ -151,8 +138,8 @@ def _contenders(work: str, latency: float, rounds: int) -> dict[str, Any]:
                     args = [sys.executable, "-m", "deployer", "apply", files["recipe"], "--device",
                             f"tcp://127.0.0.1:{port}", "--yes", "--state-dir", os.path.join(work, "state")]
                 else:
-                    script = naive_py if name == "naive" else skilled_py
-                    args = [sys.executable, script, "127.0.0.1", str(port), _plan_file(work, files["recipe"])]
+                    args = [sys.executable, script, "127.0.0.1", str(port), _plan_file(work, files["recipe"]),
+                            "parameters" if name == "naive" else "blocks"]
                 seen = len(_log_lines(log))
                 wall, cpu, _rss, _ = timed(args)
                 walls.append(wall)
