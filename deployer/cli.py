@@ -27,7 +27,6 @@ if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from rich.console import Console
-    from rich.table import Table
 
     from .api import Drift
     from .executor import Job, ReadJob
@@ -833,24 +832,17 @@ def diff(recipe: str, device: str | None, unit: int | None, timeout: float | Non
         click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u,
                                "drift": [r.to_json() for r in rows]}, indent=2))
     elif rows:
-        console().print(drift_table(rows, None))
+        show(console(), ["parameter", "recipe", "device value", ""], drift_rows(rows))
         console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
     else:
         console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
     return EXIT_CHANGES if drift else EXIT_OK
 
 
-def drift_table(rows: Sequence[Drift], device: str | None, table: Table | None = None) -> Table:
-    """parameter, recipe, device value (with a device column for fleets)."""
-    from rich.table import Table
-
-    if table is None:
-        table = Table(*(["device"] if device is not None else []), "parameter", "recipe", "device value", "",
-                      box=None)
-    for r in rows:
-        status = "drift" if r.device_raw is not None else "not readable"
-        table.add_row(*([device] if device is not None else []), r.name, r.desired, r.device or "-", status)
-    return table
+def drift_rows(rows: Sequence[Drift], device: str | None = None) -> list[list[Cell]]:
+    """parameter, recipe, device value, status (with the device's name first for fleets)."""
+    return [[*([device] if device is not None else []), r.name, r.desired, r.device or "-",
+             ("drift", "yellow") if r.device_raw is not None else "not readable"] for r in rows]
 
 
 def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool) -> int:
@@ -868,14 +860,9 @@ def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool
                                     "error": str(values[j.name])} for j in jobs],
             "drifted": drifted, "unreachable": down}, indent=2))
     else:
-        from rich.table import Table
-
         out = console()
-        table = Table("device", "parameter", "recipe", "device value", "", box=None)
-        for j in jobs:
-            drift_table(rows.get(j.name, []), j.name, table)
-        if table.row_count:
-            out.print(table)
+        show(out, ["device", "parameter", "recipe", "device value", ""],
+             [row for j in jobs for row in drift_rows(rows.get(j.name, []), j.name)])
         out.print(f"drift on {len(drifted)} of {len(jobs)} devices" + (f": {', '.join(drifted)}" if drifted else "")
                   + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
     if down:
