@@ -176,17 +176,17 @@ def _results(recipe: Recipe) -> dict[str, ParameterResult]:
 
 # read plans per recipe: every device of a fleet that shares a recipe reads the same blocks
 _READS: dict[int, tuple[Recipe, tuple[ReadRequest, ...]]] = {}
+_READS_KEPT = 64  # recipes remembered (a long-lived API user loads new ones)
 
 
 def _reads_of(recipe: Recipe) -> tuple[ReadRequest, ...]:
     hit = _READS.get(id(recipe))
     if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
+        while len(_READS) >= _READS_KEPT:
+            del _READS[next(iter(_READS))]  # the oldest
         hit = _READS[id(recipe)] = (recipe, plan_reads(recipe.profile, [d.name for d in recipe.desired
                                                                         if d.parameter.readable]))
     return hit[1]
-
-
-_text = show_registers
 
 
 async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None = None,
@@ -273,7 +273,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         if changed:
             raise StalePlan(
                 "the device changed since the plan was made (" + ", ".join(
-                    f"{n}: now {_text(prof.parameter(n), before.get(n))}" for n in changed)
+                    f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed)
                 + "); make a new plan")
         plan = opts.expected
     else:
@@ -431,7 +431,7 @@ def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[s
         if got == r.desired_raw:
             r.status, r.error = ("ok" if n in written else "unchanged"), None
             continue
-        reads_back = f"reads back {_text(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
+        reads_back = f"reads back {show_registers(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
         if r.error and r.error.startswith("device stopped answering"):
             r.error = f"{r.error}; {reads_back}"  # no answer and not applied: unverified, not "accepted"
         else:
