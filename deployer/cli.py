@@ -654,7 +654,12 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             write_json(report.to_json(), report_path)
     journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     if as_json:
-        click.echo(json.dumps(report.to_json(), indent=2))
+        if fleet_run:
+            from .fleet import report_text
+
+            click.echo(report_text(report), nl=False)
+        else:
+            click.echo(json.dumps(report.to_json(), indent=2))
     elif fleet_run:
         print_report(report, out, only_not_ok=True)
         fleet_summary(report, out)
