@@ -210,8 +210,7 @@ class RecipeCache:
 
 
 def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: float | None = None,
-               retries: int | None = None, unit: int | None = None,
-               devices: Sequence[FleetDevice] | None = None) -> list[Job]:
+               retries: int | None = None, unit: int | None = None) -> list[Job]:
     """One job per selected device: the recipe with the device's profile and overrides, its URL parsed.
 
     Everything is checked before any device is touched; all problems at once as an InputError.
@@ -222,7 +221,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: fl
     jobs: list[Job] = []
     errors: list[Diagnostic] = []
     cache = RecipeCache(recipe)
-    for dev in (devices if devices is not None else inv.select(limit)):
+    for dev in inv.select(limit):
         try:
             r = cache.for_device(dev.profile, dev.overrides)
             url = parse_url(dev.url, timeout=timeout or dev.timeout,

@@ -439,3 +439,39 @@ def test_live_progress_on_a_terminal_and_the_summary(tmp_path: Path) -> None:
         assert rows["d02"][:3] == ["partial", "2", "1"]  # status, changed, failed
         assert rows["d00"][:3] == ["ok", "3", "0"]
         assert "6 devices: 5 ok, 1 partial" in out
+
+
+def test_each_distinct_recipe_is_checked_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import deployer
+    from deployer import fleet as fleet_module
+    from deployer.fleet import fleet_jobs, load_inventory
+
+    calls: dict[str, int] = {"load_recipe": 0, "with_overrides": 0}
+    for name in calls:
+        real = getattr(fleet_module, name)
+
+        def counting(*a: object, _real: object = real, _name: str = name, **k: object) -> object:
+            calls[_name] += 1
+            return _real(*a, **k)  # type: ignore[operator]
+        monkeypatch.setattr(fleet_module, name, counting)
+    other = tmp_path / "other.yaml"  # another device type: the same parameters, other registers
+    other.write_text("profile: other\nparameters:\n  F07: {register: 10, type: uint32, unit: s, scale: 0.01}\n"
+                     "  F08: {register: 12, type: uint32, unit: s, scale: 0.01}\n"
+                     "  stop_mode: {register: 14, type: uint16, values: {ramp: 0, coast: 1}}\n")
+    lines = ["devices:"]
+    for i in range(60):
+        extra = ""
+        if i % 3 == 1:
+            extra = ", parameters: {F07: 7 s}"
+        elif i % 3 == 2:
+            extra = ", profile: other.yaml" + (", parameters: {F07: 8 s}" if i % 2 else "")
+        lines.append(f"  d{i:02d}: {{url: 'tcp://127.0.0.1:{1000 + i}'{extra}}}")
+    (tmp_path / "inv.yaml").write_text("\n".join(lines) + "\n")
+    jobs = fleet_jobs(load_inventory(tmp_path / "inv.yaml"), deployer.load_recipe(recipe(tmp_path)), None)
+    assert len(jobs) == 60
+    # one reload for the other profile; overrides: F07 7 s on the base, F07 8 s on the other profile
+    assert calls == {"load_recipe": 1, "with_overrides": 2}
+    by = {j.name: j.recipe for j in jobs}
+    assert by["d00"] is by["d03"] and by["d01"] is by["d04"] and by["d02"] is not by["d00"]
+    assert {d.name: d.registers for d in by["d05"].desired}["F07"] == (0, 800)
+    assert by["d05"].profile.id == "other" and by["d02"].profile is by["d05"].profile
