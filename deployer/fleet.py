@@ -60,6 +60,7 @@ def select(inv: Inventory, limit: str | None) -> tuple[FleetDevice, ...]:
         return inv.devices
     chosen: set[str] = set()
     excluded: set[str] = set()
+    retried: list[str] = []  # reports named with @
     positive = False
     for word in (w.strip() for w in limit.split(",")):
         if not word:
@@ -67,6 +68,7 @@ def select(inv: Inventory, limit: str | None) -> tuple[FleetDevice, ...]:
         exclude = word.startswith("!")
         word = word[1:] if exclude else word
         if word.startswith("@"):
+            retried.append(word[1:])
             names = set(not_ok(word[1:]))
             unknown = sorted(names - {d.name for d in inv.devices})
             if unknown:
@@ -84,7 +86,10 @@ def select(inv: Inventory, limit: str | None) -> tuple[FleetDevice, ...]:
             chosen |= names
     if not positive:  # only exclusions: everything else
         chosen = {d.name for d in inv.devices}
-    return tuple(d for d in inv.devices if d.name in chosen and d.name not in excluded)
+    out = tuple(d for d in inv.devices if d.name in chosen and d.name not in excluded)
+    if not out and retried:
+        raise UsageError(f"--limit {limit}: nothing to retry (every device of {', '.join(retried)} ended ok)")
+    return out
 
 
 def not_ok(report_path: str) -> list[str]:

@@ -84,6 +84,9 @@ def test_limit_takes_names_groups_globs_exclusions_and_reports(tmp_path: Path) -
     assert not_ok(str(report)) == ["press-2", "saw-1"]
     assert [d.name for d in select(inv, f"@{report}")] == ["press-2", "saw-1"]
     assert [d.name for d in select(inv, f"@{report},!saw*")] == ["press-2"]
+    report.write_text(json.dumps({"schema": "deployer.report/1", "devices": [{"name": "saw-1", "status": "ok"}]}))
+    with pytest.raises(UsageError, match="nothing to retry"):
+        select(inv, f"@{report}")
 
 
 def test_batches_follow_ansible_serial_and_failure_budgets() -> None:
