@@ -218,11 +218,21 @@ def ensure_files(parallel: int, devices: int) -> None:
 
 
 def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failures: str | None,
-                  ) -> tuple[list[int], int | None]:
-    """Check a fleet run's options before anything happens: batch sizes, failure budget, open files."""
+                  report_path: str | None = None) -> tuple[list[int], int | None]:
+    """Check a fleet run's options before anything happens: batch sizes, failure budget, open files,
+    and that the report file can be written (it is written before the first device starts)."""
     sizes = batch_sizes(batch, devices)
     budget = failure_budget(max_failures, devices)
     ensure_files(parallel, devices)
+    if report_path:
+        probe = f"{report_path}.tmp{os.getpid()}"
+        try:
+            os.makedirs(os.path.dirname(os.path.abspath(report_path)), exist_ok=True)
+            with open(probe, "w", encoding="utf-8"):
+                pass
+            os.remove(probe)
+        except OSError as e:
+            raise UsageError(f"cannot write the report {report_path}: {e.strerror}") from None
     return sizes, budget
 
 
@@ -258,7 +268,8 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     finished") and rewritten as devices finish, so after a crash ``limit="@REPORT"`` retries
     exactly what did not end ok.
     """
-    sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures)
+    sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
+                                  report_path=report_path)
     live = None
     if report_path:
         live = LiveReport(report_path, recipe_name, [skipped_result(j, NOT_FINISHED) for j in jobs])

@@ -634,7 +634,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
 
     fleet_run = bool(inventory or from_report)
     if fleet_run:
-        fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures)
+        fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures, report_path=report_path)
     run_id = journal.new_run_id()
     journal.run_started(state_dir, run_id, command=command, argv=_ARGV, recipe=label,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])

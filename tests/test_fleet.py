@@ -381,7 +381,8 @@ def test_bad_fleet_options_are_refused_before_anything_is_sent(capsys: pytest.Ca
         for args, message in [(["--batch", "0"], "--batch: '0' is not a positive count"),
                               (["--max-failures", "x%"], "--max-failures: 'x%'"),
                               (["--limit", "d9*"], "'d9*' matches no device name or group"),
-                              (["--limit", f"@{tmp_path / 'none.json'}"], "cannot read the report")]:
+                              (["--limit", f"@{tmp_path / 'none.json'}"], "cannot read the report"),
+                              (["--report", "/proc/deployer-report.json"], "cannot write the report")]:
             code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir",
                                str(state), *args)
             assert code == 1 and message in err, err
