@@ -225,15 +225,20 @@ def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failure
     budget = failure_budget(max_failures, devices)
     ensure_files(parallel, devices)
     if report_path:
-        probe = f"{report_path}.tmp{os.getpid()}"
-        try:
-            os.makedirs(os.path.dirname(os.path.abspath(report_path)), exist_ok=True)
-            with open(probe, "w", encoding="utf-8"):
-                pass
-            os.remove(probe)
-        except OSError as e:
-            raise UsageError(f"cannot write the report {report_path}: {e.strerror}") from None
+        check_writable(os.path.dirname(os.path.abspath(report_path)), f"the report {report_path}")
     return sizes, budget
+
+
+def check_writable(folder: str, what: str) -> None:
+    """Create ``folder`` if needed and make sure a file can be written there, or say why not (UsageError)."""
+    probe = os.path.join(folder, f".deployer-probe-{os.getpid()}")
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with open(probe, "w", encoding="utf-8"):
+            pass
+        os.remove(probe)
+    except OSError as e:
+        raise UsageError(f"cannot write {what}: {e.strerror}") from None
 
 
 def fleet(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None, timeout: float | None = None,

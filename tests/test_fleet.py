@@ -308,6 +308,8 @@ def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path)
         assert cli(capsys, "validate", *(str(folder / f) for f in os.listdir(folder)))[0] == 0
         code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "-o", str(folder))
         assert code == 3 and "dead" in err
+        code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "-o", "/proc/x")
+        assert code == 1 and "cannot write recipes into /proc/x" in err
 
 
 def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path: Path) -> None:
