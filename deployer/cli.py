@@ -560,7 +560,6 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     from .api import run_fleet_async
     from .executor import ApplyOptions, Job, apply_many
     from .planner import load_plan
-    from .progress import FleetProgress, fleet_summary
     from .recipe import load_recipe
     from .report import write_json
 
@@ -635,6 +634,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                            run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
     fleet_run = bool(inventory or from_report)
     if fleet_run:
+        from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
+
         # a live display on a terminal (not while asking questions), else a line per device
         progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes)
         with progress:
@@ -649,6 +650,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     if as_json:
         click.echo(json.dumps(report.to_json(), indent=2))
     elif fleet_run:
+        from .progress import fleet_summary
+
         print_report(report, out, only_not_ok=True)
         fleet_summary(report, out)
     else:
