@@ -65,8 +65,8 @@ def console(*, stderr: bool = False) -> Console:
 
 
 def describe(url: DeviceURL) -> str:
-    """The URL as users write it (transport imports pymodbus: only when a device is involved)."""
-    from .transport import describe as describe_url
+    """The URL as users write it."""
+    from .urls import describe as describe_url
 
     return describe_url(url)
 
@@ -230,7 +230,7 @@ parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), defau
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
-    from .transport import BadURL, parse_url
+    from .urls import BadURL, parse_url  # not transport: an offline plan does not import pymodbus
 
     text = device or (recipe.device.url if recipe.device else None)
     u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
