@@ -27,7 +27,6 @@ if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from rich.console import Console
-    from rich.table import Table
 
     from .api import Drift
     from .executor import Job, ReadJob
@@ -557,7 +556,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               batch: str | None = None, max_failures: str | None = None, command: str = "apply") -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
     from . import journal
-    from .api import run_fleet_async
+    from .api import fleet_options, run_fleet_async
     from .executor import ApplyOptions, Job, apply_many
     from .planner import load_plan
     from .recipe import load_recipe
@@ -573,6 +572,12 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             raise UsageError("rollback --report restores each device from its own snapshot, to the device it was "
                              "taken from: --inventory, --device and --unit do not apply")
         jobs = _rollback_report_jobs(from_report, force=force, timeout=timeout, retries=retries)
+        if limit:  # names and patterns select among that run's devices (it has no groups)
+            from .fleet import FleetDevice, Inventory, select
+
+            chosen = {d.name for d in select(Inventory(from_report, tuple(FleetDevice(j.name, describe(j.url))
+                                                                          for j in jobs)), limit)}
+            jobs = [j for j in jobs if j.name in chosen]
         label = from_report
     else:
         assert source is not None
@@ -626,13 +631,15 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         for why in moved:
             err.print(f"warning: {why}; restoring it there (--yes)")
 
+    fleet_run = bool(inventory or from_report)
+    if fleet_run:
+        fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures)
     run_id = journal.new_run_id()
     journal.run_started(state_dir, run_id, command=command, argv=_ARGV, recipe=label,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
-    fleet_run = bool(inventory or from_report)
     if fleet_run:
         from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
 
@@ -648,7 +655,12 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             write_json(report.to_json(), report_path)
     journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     if as_json:
-        click.echo(json.dumps(report.to_json(), indent=2))
+        if fleet_run:
+            from .fleet import report_text
+
+            click.echo(report_text(report), nl=False)
+        else:
+            click.echo(json.dumps(report.to_json(), indent=2))
     elif fleet_run:
         from .progress import fleet_summary
 
@@ -828,24 +840,17 @@ def diff(recipe: str, device: str | None, unit: int | None, timeout: float | Non
         click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u,
                                "drift": [r.to_json() for r in rows]}, indent=2))
     elif rows:
-        console().print(drift_table(rows, None))
+        show(console(), ["parameter", "recipe", "device value", ""], drift_rows(rows))
         console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
     else:
         console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
     return EXIT_CHANGES if drift else EXIT_OK
 
 
-def drift_table(rows: Sequence[Drift], device: str | None, table: Table | None = None) -> Table:
-    """parameter, recipe, device value (with a device column for fleets)."""
-    from rich.table import Table
-
-    if table is None:
-        table = Table(*(["device"] if device is not None else []), "parameter", "recipe", "device value", "",
-                      box=None)
-    for r in rows:
-        status = "drift" if r.device_raw is not None else "not readable"
-        table.add_row(*([device] if device is not None else []), r.name, r.desired, r.device or "-", status)
-    return table
+def drift_rows(rows: Sequence[Drift], device: str | None = None) -> list[list[Cell]]:
+    """parameter, recipe, device value, status (with the device's name first for fleets)."""
+    return [[*([device] if device is not None else []), r.name, r.desired, r.device or "-",
+             ("drift", "yellow") if r.device_raw is not None else "not readable"] for r in rows]
 
 
 def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool) -> int:
@@ -863,14 +868,9 @@ def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool
                                     "error": str(values[j.name])} for j in jobs],
             "drifted": drifted, "unreachable": down}, indent=2))
     else:
-        from rich.table import Table
-
         out = console()
-        table = Table("device", "parameter", "recipe", "device value", "", box=None)
-        for j in jobs:
-            drift_table(rows.get(j.name, []), j.name, table)
-        if table.row_count:
-            out.print(table)
+        show(out, ["device", "parameter", "recipe", "device value", ""],
+             [row for j in jobs for row in drift_rows(rows.get(j.name, []), j.name)])
         out.print(f"drift on {len(drifted)} of {len(jobs)} devices" + (f": {', '.join(drifted)}" if drifted else "")
                   + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
     if down:
