@@ -64,8 +64,8 @@ def console(*, stderr: bool = False) -> Console:
 
 
 def describe(url: DeviceURL) -> str:
-    """The URL as users write it (transport imports pymodbus: only when a device is involved)."""
-    from .transport import describe as describe_url
+    """The URL as users write it."""
+    from .urls import describe as describe_url
 
     return describe_url(url)
 
@@ -229,7 +229,7 @@ parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), defau
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
-    from .transport import BadURL, parse_url
+    from .urls import BadURL, parse_url  # not transport: an offline plan does not import pymodbus
 
     text = device or (recipe.device.url if recipe.device else None)
     u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
@@ -559,7 +559,6 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     from .api import fleet_options, run_fleet_async
     from .executor import ApplyOptions, Job, apply_many
     from .planner import load_plan
-    from .progress import FleetProgress, fleet_summary
     from .recipe import load_recipe
     from .report import write_json
 
@@ -642,6 +641,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
     if fleet_run:
+        from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
+
         # a live display on a terminal (not while asking questions), else a line per device
         progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes)
         with progress:
@@ -661,6 +662,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         else:
             click.echo(json.dumps(report.to_json(), indent=2))
     elif fleet_run:
+        from .progress import fleet_summary
+
         print_report(report, out, only_not_ok=True)
         fleet_summary(report, out)
     else:
