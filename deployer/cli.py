@@ -152,6 +152,17 @@ def profiles_list() -> int:
     return EXIT_OK
 
 
+def _type_text(p: Any) -> str:
+    """'uint32 CDAB', 'bool bit 3', 'uint16 bits 3..5', 'string[8] ascii' (the layout only when not the default)."""
+    if p.is_string:
+        return f"string[{p.count}] {p.encoding}" + (" BA" if p.byte_swap else "")
+    if p.mask:
+        shift = (p.mask & -p.mask).bit_length() - 1
+        width = (p.mask >> shift).bit_length()
+        return f"{p.type} bit{'' if width == 1 else 's'} {shift}{'' if width == 1 else f'..{shift + width - 1}'}"
+    return p.type if p.layout in ("AB", "ABCD", "ABCDEFGH") else f"{p.type} {p.layout}"
+
+
 @profiles.command("show")
 @click.argument("profile")
 def profiles_show(profile: str) -> int:
@@ -172,8 +183,8 @@ def profiles_show(profile: str) -> int:
             f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
         if p.values:
             rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
-        default = "" if p.default is None else format_decimal(p.default)
-        table.add_row(p.name, f"0x{p.address:04X} ({p.address})", p.type, p.unit or "",
+        default = "" if p.default is None else p.default if isinstance(p.default, str) else format_decimal(p.default)
+        table.add_row(p.name, f"0x{p.address:04X} ({p.address})", _type_text(p), p.unit or "",
                       format_decimal(p.scale), rng, p.access, default, p.description)
     out.print(table)
     return EXIT_OK
@@ -404,6 +415,8 @@ def print_report(report: Report, out: Console) -> None:
                 table.add_row(p.name, p.before or "-", p.desired, p.after or "-", f"[{st}]{p.status}[/{st}]",
                               p.error or "")
             out.print(table)
+        for note in d.notices:
+            out.print(f"[yellow]notice:[/yellow] {note}")
         if d.snapshot:
             out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")

@@ -10,10 +10,11 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
+from . import codec
 from .diagnostics import Diagnostic, InputError, UsageError
 
 if TYPE_CHECKING:
-    from .profile import Limits, Profile
+    from .profile import Limits, Parameter, Profile
     from .recipe import Desired, Recipe
     from .yamlsrc import Source
 
@@ -157,6 +158,16 @@ def _plan_run(sizes: Sequence[int], must: Sequence[bool], limit: int) -> list[tu
     return slices
 
 
+def merge_fields(fields: Sequence[Parameter], bits: Sequence[int], current: int | None) -> int:
+    """One register's word: the fields' new bits over what the device holds (0 where unknown)."""
+    mask = 0
+    word = 0
+    for p, b in zip(fields, bits, strict=True):
+        mask |= p.mask
+        word |= b & p.mask
+    return ((current or 0) & ~mask & 0xFFFF) | word
+
+
 def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str, tuple[int, ...]] | None = None,
                 *, write_all: bool = False) -> tuple[tuple[PlannedParameter, ...], tuple[WriteRequest, ...]]:
     """The fewest write requests carrying ``desired`` (see the proof above).
@@ -176,29 +187,53 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
     stages = [p.stage for p in params_]
     regs = [tuple(d.registers) for d in ordered]
     n = len(ordered)
+    # bit fields of one register form one unit: one merged word, written or left together
+    groups: list[list[int]] = []
     for k in range(n):
+        if k and params_[k].mask and params_[k - 1].mask and addrs[k] == addrs[k - 1] and stages[k] == stages[k - 1]:
+            groups[-1].append(k)
+        else:
+            groups.append([k])
+    for gi, g in enumerate(groups):
+        k = g[0]
         if not fc6 and sizes[k] > limit:
             raise UsageError(f"{names[k]} needs {sizes[k]} registers in one request, but the device takes "
                              f"at most {limit} per request (limits in the profile)")
-        if len(regs[k]) != sizes[k]:
-            raise UsageError(f"{names[k]}: {len(regs[k])} register values for a {sizes[k]}-register parameter")
+        for m in g:
+            if len(regs[m]) != sizes[m]:
+                raise UsageError(f"{names[m]}: {len(regs[m])} register values for a {sizes[m]}-register parameter")
         # two values for one register would make the plan's outcome depend on request order
-        if k and stages[k - 1] == stages[k] and addrs[k] < addrs[k - 1] + sizes[k - 1]:
-            raise UsageError(f"{names[k]} overlaps {names[k - 1]} (registers {addrs[k]} and "
-                             f"{addrs[k - 1]}..{addrs[k - 1] + sizes[k - 1] - 1}): each register may be planned once")
+        h = groups[gi - 1][-1] if gi else 0
+        if gi and stages[h] == stages[k] and addrs[k] < addrs[h] + sizes[h]:
+            raise UsageError(f"{names[k]} overlaps {names[h]} (registers {addrs[k]} and "
+                             f"{addrs[h]}..{addrs[h] + sizes[h] - 1}): each register may be planned once")
 
     if write_all or current is None:
-        must = [True] * n
+        must_p = [True] * n
     else:
-        must = [current.get(names[k]) != regs[k] for k in range(n)]
-    actions: list[Action] = ["write" if m else "unchanged" for m in must]
+        must_p = [not params_[k].same_value(current.get(names[k]), regs[k]) for k in range(n)]
+    for g in groups:
+        if params_[g[0]].mask:
+            merged = (merge_fields([params_[k] for k in g], [regs[k][0] for k in g],
+                                    None if current is None else next(
+                                        (current[names[k]][0] for k in g if names[k] in current), None)),)
+            for k in g:
+                regs[k] = merged
+    u_names = [tuple(names[k] for k in g) for g in groups]
+    u_addrs = [addrs[g[0]] for g in groups]
+    u_sizes = [sizes[g[0]] for g in groups]
+    u_stages = [stages[g[0]] for g in groups]
+    u_regs = [regs[g[0]] for g in groups]
+    must = [any(must_p[k] for k in g) for g in groups]
+    written = list(must)
     writes: list[WriteRequest] = []
+    nu = len(groups)
     i = 0
-    while i < n:
+    while i < nu:
         j = i + 1  # a maximal run: same stage, contiguous registers
-        while j < n and stages[j] == stages[i] and addrs[j] == addrs[j - 1] + sizes[j - 1]:
+        while j < nu and u_stages[j] == u_stages[i] and u_addrs[j] == u_addrs[j - 1] + u_sizes[j - 1]:
             j += 1
-        stage = stages[i]
+        stage = u_stages[i]
         if fc6:
             # FC06 carries one register, so the "never split" rule cannot hold on such devices: a
             # 2/4-register value goes as one FC06 per word, in ascending address order (the word at
@@ -206,16 +241,20 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
             # back with nothing in between. No bridges: one request per register saves nothing.
             for k in range(i, j):
                 if must[k]:
-                    writes.extend(WriteRequest(6, addrs[k] + w, (word,), (names[k],), stage)
-                                  for w, word in enumerate(regs[k]))
+                    writes.extend(WriteRequest(6, u_addrs[k] + w, (word,), u_names[k], stage)
+                                  for w, word in enumerate(u_regs[k]))
         else:
-            for a, b in _plan_run(sizes[i:j], must[i:j], limit):
+            for a, b in _plan_run(u_sizes[i:j], must[i:j], limit):
                 for k in range(i + a, i + b):
-                    if not must[k]:
-                        actions[k] = "bridge"
-                writes.append(WriteRequest(16, addrs[i + a], tuple(w for k in range(i + a, i + b) for w in regs[k]),
-                                           tuple(names[i + a:i + b]), stage))
+                    written[k] = True
+                writes.append(WriteRequest(16, u_addrs[i + a], tuple(w for k in range(i + a, i + b) for w in u_regs[k]),
+                                           tuple(nm for k in range(i + a, i + b) for nm in u_names[k]), stage))
         i = j
+    actions: list[Action] = ["unchanged"] * n
+    for gi, g in enumerate(groups):
+        if written[gi]:
+            for k in g:
+                actions[k] = "write" if must_p[k] else "bridge"
     planned = tuple(
         PlannedParameter(names[k], addrs[k], sizes[k], ordered[k].text, regs[k],
                          None if current is None or names[k] not in current else tuple(current[names[k]]),
@@ -249,7 +288,8 @@ def plan_reads(profile: Profile, names: Iterable[str]) -> tuple[ReadRequest, ...
     i = 0
     while i < len(params):
         j = i + 1
-        while j < len(params) and params[j].address == params[j - 1].end:
+        # bit fields of one register share its address: they continue the run too
+        while j < len(params) and params[j].address in (params[j - 1].end, params[j - 1].address):
             j += 1
         start: int | None = None
         end = 0
@@ -412,9 +452,15 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
             errors.append(src.error(("parameters", i, "name"),
                                     f"{pp.name} does not match profile {prof.id} (address or size differ)"))
             continue
-        raw = param.decode(pp.desired_raw)
+        try:
+            raw = None if param.is_string else param.decode(pp.desired_raw)
+            if param.is_string:
+                param.text_of(pp.desired_raw)
+        except codec.CodecError:
+            raw = float("nan")
         bounds = param.raw_bounds()
-        if not param.writable or (bounds is not None and not bounds[0] <= raw <= bounds[1]):
+        if not param.writable or raw != raw or (  # NaN: text that is not the profile's encoding
+                raw is not None and bounds is not None and not bounds[0] <= raw <= bounds[1]):
             errors.append(src.error(("parameters", i, "desired_raw"),
                                     f"{pp.name}: raw {raw} is not writable within the profile's range"))
             continue

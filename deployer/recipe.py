@@ -215,6 +215,18 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
     value = e.value
     rounding: Literal["exact", "nearest"] = (
         "nearest" if "nearest" in (param.rounding, recipe_rounding) else "exact")
+    if param.is_string:
+        if isinstance(value, dict) or value is None:
+            fail("a string parameter takes text")
+            return None
+        try:
+            regs = param.encode_text(str(value))
+        except codec.CodecError as err:
+            fail(str(err))
+            return None
+        return Desired(param, str(value), regs)
+    if param.type == codec.BOOL and (isinstance(value, bool) or value in ("true", "false")):
+        value = int(value in (True, "true"))
     if isinstance(value, dict) and "raw" in value:
         return _from_raw(param, value["raw"], e, fail)
     if isinstance(value, dict):  # {value: ..., rounding: ...}
@@ -228,7 +240,7 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
     if isinstance(eng, tuple):  # an enumeration label: raw value given directly
         return Desired(param, eng[0], param.encode(eng[1]))
     try:
-        raw = codec.to_raw(eng, param.type, param.scale, param.offset, rounding)
+        raw = param.to_raw(eng, rounding)
     except codec.CodecError as err:
         msg = str(err)
         if "resolution" in msg and param.unit:
@@ -248,7 +260,7 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
 
 def _from_raw(param: Parameter, raw_v: Any, e: Entry, fail: Any) -> Desired | None:
     raw: codec.Raw
-    if codec.is_float(param.type):
+    if param.is_float:
         raw = float(raw_v)
     elif isinstance(raw_v, int) or (isinstance(raw_v, Decimal) and raw_v == raw_v.to_integral_value()):
         raw = int(raw_v)
@@ -314,6 +326,12 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
 
     None when the value lies outside the profile's range (a recipe could not set it).
     """
+    if param.is_string:
+        try:
+            text = param.text_of(tuple(registers))
+            return text if param.encode_text(text) == tuple(registers) else None
+        except codec.CodecError:
+            return None
     raw = param.decode(tuple(registers))
     label = param.label_for(raw)
     if label is not None:
@@ -321,7 +339,9 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
     bounds = param.raw_bounds()
     if bounds is not None and not bounds[0] <= raw <= bounds[1]:
         return None
-    if codec.is_float(param.type) and param.scale == 1 and param.offset == 0:
+    if param.type == codec.BOOL:
+        return "true" if raw else "false"
+    if param.is_float and param.scale == 1 and param.offset == 0:
         text = codec.shortest_float_repr(float(raw), param.type)
     else:
         text = codec.format_decimal(param.to_engineering(tuple(registers)))
@@ -358,6 +378,9 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
         v = value_text(param, regs)
         if v is None:
             words = " ".join(f"{w:04X}" for w in regs)
+            if param.is_string:
+                body.append(f"  # {key}: registers {words}h are not {param.encoding} text padded with {param.padding}")
+                continue
             raw = param.decode(tuple(regs))
             body.append(f"  # {key}: raw {raw} ({words}h) is outside the profile's range {_range_text(param)}")
             continue

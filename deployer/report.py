@@ -64,6 +64,7 @@ class DeviceResult:
     requests: list[RequestRecord] = field(default_factory=list)
     parameters: list[ParameterResult] = field(default_factory=list)
     error: str | None = None  # why the device failed or was unreachable
+    notices: list[str] = field(default_factory=list)  # e.g. "F07 takes effect after a power cycle"
 
     @property
     def write_requests(self) -> int:
@@ -94,6 +95,8 @@ class DeviceResult:
         }
         if self.error is not None:
             out["error"] = self.error
+        if self.notices:
+            out["notices"] = list(self.notices)
         return out
 
 
