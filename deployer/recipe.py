@@ -385,7 +385,7 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
             body.append(f"  # {key}: raw {raw} ({words}h) is outside the profile's range {_range_text(param)}")
             continue
         # numbers stay numbers (in the profile's unit); text stays plain where YAML reads it back as the same text
-        rendered = v if _reads_back(v) else json.dumps(v)
+        rendered = v if param.type == codec.BOOL or (not param.is_string and _reads_back(v)) else json.dumps(v)
         body.append(f"  {key}: {rendered}")
     lines.append("parameters:" if any(not b.lstrip().startswith("#") for b in body) else "parameters: {}")
     return "\n".join(lines + body) + "\n"

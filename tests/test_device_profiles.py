@@ -1,0 +1,300 @@
+"""Profiles for real devices end to end: layouts, strings, bit fields, guarded and sequenced writes."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from deployer import yamlsrc
+from deployer.cli import main
+from deployer.diagnostics import InputError
+from deployer.executor import ApplyOptions, apply_device
+from deployer.planner import Target, make_plan
+from deployer.profile import Profile
+from deployer.recipe import load_recipe
+from deployer.report import DeviceResult, Report
+from deployer.simulator import Simulator, SimulatorThread
+from deployer.transport import parse_url
+from tests.helpers import count, profile_from, run_with
+
+pytestmark = pytest.mark.timeout(60)
+
+FIELDS = """\
+profile: fields
+parameters:
+  running: {register: 0x10, type: bool, bits: 3, access: read-only, description: drive running}
+  fault: {register: 0x10, type: bool, bits: 0, access: read-only}
+  enable: {register: 0x30, type: bool, bits: 0}
+  direction: {register: 0x30, type: bool, bits: 1, values: {forward: 0, reverse: 1}}
+  mode: {register: 0x30, type: uint16, bits: 3..5, values: {speed: 0, torque: 1, position: 2}}
+  jog_step: {register: 0x30, type: uint16, mask: 0xF000, scale: 0.5, unit: mm}
+  name: {register: 0x31, type: string, count: 4, padding: space}
+  gain: {register: 0x35, type: float32, byte_order: CDAB, default: 1.5}
+  limit: {register: 0x37, type: int32, swap: word_byte}
+  accel: {register: 0x40, type: uint16, scale: 0.1, unit: s, stage: 1, restart: true}
+"""
+
+GUARDS = """\
+preconditions:
+  - {register: 0x10, bits: 3, equals: 0, description: drive stopped}
+unlock:
+  - {register: 0x20, raw: 0x5AA5, description: parameter password, wait: 120}
+lock:
+  - {register: 0x20, raw: 0, description: lock parameters}
+commit:
+  - {register: 0x21, raw: 1, description: store to EEPROM, wait: 150}
+stages:
+  - {stage: 0, wait: 100}
+"""
+
+
+@pytest.fixture
+def fields(tmp_path: Path) -> Profile:
+    return profile_from(tmp_path, FIELDS)
+
+
+@pytest.fixture
+def drive(tmp_path: Path) -> Profile:
+    return profile_from(tmp_path, FIELDS.replace("profile: fields", "profile: drive") + GUARDS, "drive.yaml")
+
+
+def recipe(tmp: Path, body: str, profile: str = "dev.yaml") -> str:
+    p = tmp / "r.yaml"
+    p.write_text(f"recipe: r\nprofile: {profile}\nparameters:\n{body}")
+    return str(p)
+
+
+def apply(sim: Simulator, path: str, tmp: Path, *, between: object = None) -> DeviceResult:
+    """Apply; ``between(sim)`` runs after the snapshot read and before the first write."""
+    rec = load_recipe(path)
+
+    async def body(s: Simulator) -> DeviceResult:
+        async def confirm(plan: object, res: object) -> bool:
+            if callable(between):
+                between(s)
+            return True
+        return await apply_device(rec, parse_url(s.url + "?timeout=0.5"), 1,
+                                  options=ApplyOptions(state_dir=str(tmp / ".d"), backoff=0.01, confirm=confirm))
+    return run_with(sim, body)
+
+
+# ---- the profile ------------------------------------------------------------------------------
+
+
+def test_layouts_fields_and_strings_load(fields: Profile) -> None:
+    assert fields.parameter("gain").layout == "CDAB"
+    assert fields.parameter("limit").layout == "DCBA"
+    assert fields.parameter("mode").mask == 0x0038 and fields.parameter("jog_step").mask == 0xF000
+    assert fields.parameter("name").count == 4
+    assert fields.parameter("gain").encode(1.5) == (0x0000, 0x3FC0)  # 3FC00000h, words swapped
+    assert fields.parameter("limit").encode(-2) == (0xFEFF, 0xFFFF)  # FFFFFFFEh reversed bytewise
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    ("  whole: {register: 0x30, type: uint16}\n", "whole (registers 0x0030-0x0030) overlaps"),
+    ("  clash: {register: 0x30, type: uint16, bits: 5..6}\n",
+     "mode (bits 3..5 of register 0x0030) overlaps clash (bits 5..6"),
+    ("  late: {register: 0x30, type: bool, bits: 7, stage: 2}\n", "a register is written as one unit"),
+    ("  wide: {register: 0x50, type: bool, bits: 1..2}\n", "a bool field is one bit"),
+    ("  odd: {register: 0x50, type: uint16, mask: 0x0101}\n", "not one contiguous group of bits"),
+    ("  big: {register: 0x50, type: uint32, bits: 1}\n", "a bit field is uint16, int16 or bool"),
+    ("  s: {register: 0x50, type: string}\n", "a string needs 'count'"),
+    ("  s: {register: 0x50, type: string, count: 2, unit: s}\n", "'unit' does not apply to a string"),
+    ("  n: {register: 0x50, type: uint16, count: 2}\n", "'count' applies to strings only"),
+    ("  both: {register: 0x50, type: uint32, swap: word, byte_order: ABCD}\n", "both set the layout"),
+    ("  e: {register: 0x50, type: uint16, bits: 0..1, values: {a: 4}}\n", "value 4 of 'a' does not fit in 2 bits"),
+])
+def test_profile_errors_with_positions(tmp_path: Path, extra: str, message: str) -> None:
+    with pytest.raises(InputError) as e:
+        profile_from(tmp_path, FIELDS + extra)
+    text = "\n".join(str(d) for d in e.value.diagnostics)
+    assert message in text
+    assert all(d.line > 0 for d in e.value.diagnostics)
+
+
+def test_recipe_values_for_strings_and_fields(tmp_path: Path, fields: Profile) -> None:
+    path = recipe(tmp_path, "  name: PUMP\n  enable: true\n  direction: reverse\n  jog_step: 3.5 mm\n")
+    rec = load_recipe(path)
+    got = {d.name: d.registers for d in rec.desired}
+    assert got["name"] == (0x5055, 0x4D50, 0x2020, 0x2020)
+    assert got["enable"] == (0x0001,) and got["direction"] == (0x0002,) and got["jog_step"] == (0x7000,)
+    bad = recipe(tmp_path, '  name: "A NAME TOO LONG"\n  mode: 9\n  enable: maybe\n')
+    with pytest.raises(InputError) as e:
+        load_recipe(bad)
+    text = "\n".join(str(d) for d in e.value.diagnostics)
+    assert "r.yaml:4:9: error: name: 'A NAME TOO LONG' is 15 characters; 4 registers hold at most 8" in text
+    assert "r.yaml:5:9: error: mode: raw value 9 does not fit in the field's 3 bits (0..7)" in text
+    assert "r.yaml:6:11: error: enable:" in text
+
+
+def test_two_fields_of_one_register_plan_as_one_word(tmp_path: Path, fields: Profile) -> None:
+    rec = load_recipe(recipe(tmp_path, "  direction: reverse\n  mode: torque\n  name: AB\n"))
+    target = Target(None, 1, "dev.yaml")
+    plan = make_plan(rec, target, {"direction": (0xF001,), "mode": (0xF001,), "name": (0, 0, 0, 0)})
+    assert [(w.address, w.registers, w.parameters) for w in plan.writes] == [  # 0x30 and 0x31.. in one request
+        (0x30, (0xF00B, 0x4142, 0x2020, 0x2020, 0x2020), ("direction", "mode", "name"))]  # F001h's other bits kept
+    # one field already right: the register still goes as one unit, that field as a bridge
+    plan = make_plan(rec, target, {"direction": (0x0002,), "mode": (0x0002,)})
+    assert {p.name: p.action for p in plan.parameters} == {"direction": "bridge", "mode": "write", "name": "write"}
+    assert plan.writes[0].registers[0] == 0x000A
+    assert make_plan(rec, target, {"direction": (0x000A,), "mode": (0x000A,),
+                                   "name": rec.desired[-1].registers}).writes == ()
+
+
+# ---- bit fields against the simulator -------------------------------------------------------
+
+
+def test_other_bits_changed_between_snapshot_and_write_are_kept(tmp_path: Path, fields: Profile) -> None:
+    sim = Simulator(fields, init={0x30: 0x0000})
+    path = recipe(tmp_path, "  direction: reverse\n  mode: torque\n")
+
+    def operator_changes_other_fields(s: Simulator) -> None:
+        s.write("enable", (0x7001,))  # jog_step 7 and enable set on the panel after our snapshot
+
+    res = apply(sim, path, tmp_path, between=operator_changes_other_fields)
+    assert res.status == "ok", res.to_json()
+    assert sim.read("mode") == (0x700B,)  # 7xxxh and bit 0 kept, direction and mode written
+    writes = [e for e in sim.log if e.function == 16]
+    assert [(w.address, w.values) for w in writes] == [(0x30, [0x700B])]  # two fields, one write
+    before_write = sim.log[sim.log.index(writes[0]) - 1]
+    assert (before_write.function, before_write.address) == (3, 0x30)  # read right before the write
+    assert {p.name: p.status for p in res.parameters} == {"direction": "ok", "mode": "ok"}
+    # the snapshot holds each field's value and loads back as a recipe
+    snap = load_recipe(res.snapshot or "")
+    assert {d.name: d.text for d in snap.desired} == {"direction": "forward", "mode": "speed"}
+
+
+def test_pull_fields_strings_and_layouts(tmp_path: Path, fields: Profile, capsys: pytest.CaptureFixture[str]) -> None:
+    init = {0x30: 0x3013, 0x31: 0x4142, 0x32: 0x4320, 0x33: 0x2020, 0x34: 0x2020, 0x37: 0xFEFF, 0x38: 0xFFFF}
+    with SimulatorThread(fields, init=init) as sim:
+        out = tmp_path / "pulled.yaml"
+        with pytest.raises(SystemExit) as exc:
+            main(["pull", "--profile", str(tmp_path / "dev.yaml"), "--device", sim.url, "-o", str(out)])
+        assert exc.value.code == 0, capsys.readouterr()
+    text = out.read_text()
+    for line in ("enable: true", "direction: reverse", "mode: position", "jog_step: 1.5 mm", "name: \"ABC\"",
+                 "limit: -2", "gain: 1.5"):
+        assert f"  {line}\n" in text, text
+    pulled = load_recipe(str(out))
+    assert {d.name: d.registers for d in pulled.desired}["name"] == (0x4142, 0x4320, 0x2020, 0x2020)
+
+
+# ---- guarded and sequenced writes -------------------------------------------------------------
+
+
+def test_guarded_profile_refuses_while_running(tmp_path: Path, drive: Profile,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    path = recipe(tmp_path, "  mode: torque\n  accel: 2 s\n", "drive.yaml")
+    report = tmp_path / "report.json"
+    with SimulatorThread(drive) as sim:
+        sim.write("running", (0x0008,))  # the drive runs
+        with pytest.raises(SystemExit) as exc:
+            main(["apply", path, "--device", sim.url, "--yes", "--report", str(report),
+                  "--state-dir", str(tmp_path / ".d")])
+        log = list(sim.log)
+    assert exc.value.code == 4
+    assert count(log, 16) == 0 and count(log, 6) == 0  # nothing written, not even the unlock
+    dev = json.loads(report.read_text())["devices"][0]
+    assert dev["status"] == "failed"
+    assert dev["error"] == ("precondition failed: register 0x0010 bit 3 (drive stopped) is 1, expected 0; "
+                            "nothing was written")
+    assert "drive stopped" in capsys.readouterr().out
+
+
+def test_unlock_writes_commit_lock_in_order_with_waits(tmp_path: Path, drive: Profile) -> None:
+    path = recipe(tmp_path, "  mode: torque\n  gain: 2.5\n  accel: 2 s\n", "drive.yaml")
+    sim = Simulator(drive)
+    res = apply(sim, path, tmp_path)
+    assert res.status == "ok", res.to_json()
+    assert res.notices == ["accel takes effect after a power cycle"]
+    assert Report("r", [res]).exit_code == 0
+    writes = [e for e in sim.log if e.function in (6, 16)]
+    assert [(w.address, w.values) for w in writes] == [
+        (0x20, [0x5AA5]),  # unlock
+        (0x30, [0x0008]), (0x35, [0x0000, 0x4020]),  # stage 0: mode, gain (2.5 = 40200000h, CDAB)
+        (0x40, [20]),  # stage 1: accel
+        (0x21, [1]),  # commit: store to EEPROM
+        (0x20, [0])]  # lock
+    assert not any(e.result.startswith("exception") for e in sim.log)  # never busy: every wait was kept
+    # the request log's timestamps (taken as each request arrives) show every wait
+    first_after_unlock = sim.log[sim.log.index(writes[0]) + 1]
+    assert first_after_unlock.time - writes[0].time >= 0.12  # unlock wait: 120 ms
+    assert writes[3].time - writes[2].time >= 0.10  # after stage 0: 100 ms
+    assert writes[5].time - writes[4].time >= 0.15  # after commit: 150 ms
+    assert writes[2].time - writes[1].time < 0.10  # no wait inside a stage
+    assert sim.read("mode") == (0x0008,) and sim.registers()[0x20] == 0  # locked again
+
+
+def test_simulator_models_the_lock_and_the_busy_wait(tmp_path: Path, drive: Profile) -> None:
+    from pymodbus.client import ModbusTcpClient
+
+    with SimulatorThread(drive) as sim:
+        client = ModbusTcpClient("127.0.0.1", port=int(sim.url.rsplit(":", 1)[1]), retries=0)
+        assert client.connect()
+        try:
+            assert client.write_register(0x40, 5, device_id=1).exception_code == 4  # locked
+            assert not client.write_register(0x20, 0x5AA5, device_id=1).isError()
+            assert client.write_register(0x40, 5, device_id=1).exception_code == 6  # busy for 120 ms
+            import time
+            time.sleep(0.15)
+            assert not client.write_register(0x40, 5, device_id=1).isError()
+            sim.write("running", (0x0008,))
+            assert client.write_register(0x40, 6, device_id=1).exception_code == 4  # refused while running
+        finally:
+            client.close()
+
+
+def test_lock_is_sent_after_a_failed_write(tmp_path: Path, drive: Profile) -> None:
+    path = recipe(tmp_path, "  mode: torque\n  accel: 2 s\n", "drive.yaml")
+    sim = Simulator(drive)
+    sim.faults.fail_registers = frozenset({0x40})
+    res = apply(sim, path, tmp_path)
+    assert res.status == "partial"
+    writes = [(e.address, e.values) for e in sim.log if e.function == 16]
+    assert writes[0] == (0x20, [0x5AA5]) and writes[-1] == (0x20, [0])  # unlocked, then locked again
+    assert (0x21, [1]) not in writes  # no commit after a failure
+    assert res.notices == []  # accel failed: nothing to restart for
+
+
+def test_restart_notice_in_report_json(tmp_path: Path, drive: Profile) -> None:
+    res = apply(Simulator(drive), recipe(tmp_path, "  accel: 3 s\n", "drive.yaml"), tmp_path)
+    data = Report("r", [res]).to_json()
+    import jsonschema
+    jsonschema.validate(data, yamlsrc.schema("report"))
+    assert data["devices"][0]["notices"] == ["accel takes effect after a power cycle"]
+    assert data["devices"][0]["status"] == "ok"
+
+
+# ---- an independent client: mbpoll (libmodbus) ----------------------------------------------
+
+MBPOLL = shutil.which("mbpoll")
+
+
+@pytest.mark.skipif(MBPOLL is None, reason="mbpoll (libmodbus) is not installed")
+def test_mbpoll_reads_our_layouts(tmp_path: Path, fields: Profile) -> None:
+    path = recipe(tmp_path, "  gain: 123.456\n  limit: 305419896\n  name: ABC\n")
+    sim = SimulatorThread(fields)
+    with sim as s:
+        rec = load_recipe(path)
+        import asyncio
+        res = asyncio.run(apply_device(rec, parse_url(s.url), 1, options=ApplyOptions(state_dir=str(tmp_path / ".d"))))
+        assert res.status == "ok"
+        port = s.url.rsplit(":", 1)[1]
+
+        def poll(*args: str) -> str:
+            assert MBPOLL is not None
+            out = subprocess.run([MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", *args, "127.0.0.1"],
+                                 capture_output=True, text=True, timeout=20)
+            assert out.returncode == 0, out.stderr
+            return out.stdout
+
+        # mbpoll's 32-bit types take the low word first (CDAB) unless -B: our CDAB float reads as is
+        assert "[53]: \t123.456" in poll("-r", "53", "-t", "4:float")
+        # DCBA 12345678h = registers 7856h 3412h: mbpoll shows the words as they are
+        assert "[55]: \t0x7856" in poll("-r", "55", "-c", "2", "-t", "4:hex")
+        assert "[56]: \t0x3412" in poll("-r", "55", "-c", "2", "-t", "4:hex")
+        assert "[49]: \t0x4142" in poll("-r", "49", "-c", "2", "-t", "4:hex")
