@@ -135,7 +135,7 @@ def validate(files: tuple[str, ...]) -> int:
 
 @cli.group()
 def profiles() -> None:
-    """The built-in device profiles."""
+    """The built-in device profiles, and importing new ones."""
 
 
 @profiles.command("list")
@@ -154,13 +154,87 @@ def profiles_list() -> int:
 
 def _type_text(p: Any) -> str:
     """'uint32 CDAB', 'bool bit 3', 'uint16 bits 3..5', 'string[8] ascii' (the layout only when not the default)."""
+    from .codec import mask_shift
+
     if p.is_string:
         return f"string[{p.count}] {p.encoding}" + (" BA" if p.byte_swap else "")
     if p.mask:
-        shift = (p.mask & -p.mask).bit_length() - 1
-        width = (p.mask >> shift).bit_length()
-        return f"{p.type} bit{'' if width == 1 else 's'} {shift}{'' if width == 1 else f'..{shift + width - 1}'}"
+        shift, width = mask_shift(p.mask)
+        return f"{p.type} bit {shift}" if width == 1 else f"{p.type} bits {shift}..{shift + width - 1}"
     return p.type if p.layout in ("AB", "ABCD", "ABCDEFGH") else f"{p.type} {p.layout}"
+
+
+@profiles.group("import")
+def profiles_import() -> None:
+    """Write a profile from a vendor's register list (CSV) or a SunSpec model."""
+
+
+def _pairs(items: Sequence[str], what: str) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip() or not value.strip():
+            raise UsageError(f"{what} '{item}': expected NAME=VALUE")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence[str] = ()) -> int:
+    from .profile.emit import check
+
+    for w in warnings:
+        click.echo(f"warning: {w}", err=True)
+    text, prof = check(draft, out or "<stdout>", f"Imported by 'deployer profiles import' from {source}.\n"
+                                                "Check it against the manual before the first deployment.")
+    if out:
+        with open(out, "w", encoding="utf-8") as f:
+            f.write(text)
+        click.echo(f"{out}: profile {prof.id} with {_n(len(prof.parameters), 'parameter')}", err=True)
+    else:
+        click.echo(text, nl=False)
+    return EXIT_OK
+
+
+@profiles_import.command("csv")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--id", "profile_id", required=True, help="Profile id to write (e.g. acme-drive).")
+@click.option("-o", "--out", help="Profile file to write (default: stdout).")
+@click.option("--column", "columns", multiple=True, metavar="OURS=HEADER",
+              help="Which header holds a column, e.g. --column address='Reg No'. Repeatable.")
+@click.option("--addressing", type=click.Choice(["address", "register-number", "modicon"]), default="address",
+              show_default=True, help="How the address column counts.")
+@click.option("--delimiter", help="Cell separator (default: sniffed from , ; or tab).")
+@click.option("--word-order", type=click.Choice(["big", "little"]), help="Word order of 32/64-bit rows.")
+def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Sequence[str], addressing: str,
+                        delimiter: str | None, word_order: str | None) -> int:
+    """A profile from a CSV register list (columns: name, address, type, unit, scale, min, max, access ...)."""
+    from .profile.csv_import import read_csv
+
+    draft = read_csv(file, profile_id=profile_id, columns=_pairs(columns, "--column"), addressing=addressing,
+                     delimiter=delimiter, word_order=word_order)
+    return _write_imported(draft, out, file)
+
+
+@profiles_import.command("sunspec")
+@click.argument("model")
+@click.option("--at", "at", default="40002", show_default=True,
+              help="Protocol address of the model's ID register (the first model after 'SunS' sits at 40002).")
+@click.option("--sf", "sfs", multiple=True, metavar="NAME=N", help="A scale factor the device reports, e.g. "
+              "--sf WMax_SF=0. Repeatable.")
+@click.option("--id", "profile_id", help="Profile id (default: sunspec-MODEL-NAME).")
+@click.option("-o", "--out", help="Profile file to write (default: stdout).")
+def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], profile_id: str | None, out: str | None) -> int:
+    """A profile from a SunSpec model (number, name or model JSON), using pysunspec2's definitions."""
+    from .profile import parse_register
+    from .profile.sunspec import read_model
+
+    try:
+        factors = {k: int(v) for k, v in _pairs(sfs, "--sf").items()}
+        address = parse_register(at)
+    except ValueError as e:
+        raise UsageError(f"--sf/--at: {e}") from None
+    draft, warnings = read_model(model, at=address, scale_factors=factors, profile_id=profile_id)
+    return _write_imported(draft, out, f"SunSpec model {model}", warnings)
 
 
 @profiles.command("show")

@@ -70,10 +70,10 @@ def _hex(n: int) -> str:
     return f"0x{n:04X}"
 
 
-def load_profile(path: str | os.PathLike[str]) -> Profile:
-    """Load and check a profile file; all problems at once as an InputError."""
+def load_profile(path: str | os.PathLike[str], text: str | None = None) -> Profile:
+    """Load and check a profile file (or ``text`` shown as that file); all problems at once as an InputError."""
     p = os.fspath(path)
-    data, src = yamlsrc.load(p)
+    data, src = yamlsrc.load(p, text)
     if not isinstance(data, dict):
         raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
     errors = yamlsrc.validate(data, "profile", src)
