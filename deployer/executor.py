@@ -260,7 +260,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     params = [d.parameter for d in recipe.desired]
     # 1. before any write: identity and current values; a silent device here is "unreachable"
     try:
-        why = await check_identity(session, prof) or await check_preconditions(session, prof)
+        why = await check_identity(session, prof)
         if why:
             res.status, res.error = "failed", f"{why}; nothing was written"
             return
@@ -291,8 +291,19 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     for pp in plan.parameters:
         if pp.action == "unchanged":
             results[pp.name].status = "unchanged"
+    for pp in plan.parameters:  # a field's register goes whole: report the word planned
+        if prof.parameter(pp.name).mask:
+            results[pp.name].desired_raw = pp.desired_raw
     if not plan.writes:
         _verify(results, prof, before, written=set())
+        return
+    # guards (e.g. "drive stopped") only matter when something is to be written
+    try:
+        why = await check_preconditions(session, prof)
+    except (DeviceGone, tp.ExceptionResponse) as e:
+        why = f"reading the preconditions failed: {e}"
+    if why:
+        res.status, res.error = "failed", f"{why}; nothing was written"
         return
     if opts.confirm is not None and not await opts.confirm(plan, res):
         raise Declined("nothing was written (declined)")

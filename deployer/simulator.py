@@ -123,7 +123,13 @@ def _action_registers(profile: Profile) -> set[int]:
 
 def init_from_recipe(recipe: Recipe) -> dict[int, int]:
     """Wire address -> raw register for every value of a recipe (for ``--init``)."""
-    return {d.parameter.address + i: w for d in recipe.desired for i, w in enumerate(d.registers)}
+    regs: dict[int, int] = {}
+    for d in recipe.desired:
+        if d.parameter.mask:  # fields of one register: each sets its own bits
+            regs[d.parameter.address] = (regs.get(d.parameter.address, 0) & ~d.parameter.mask) | d.registers[0]
+            continue
+        regs.update((d.parameter.address + i, w) for i, w in enumerate(d.registers))
+    return regs
 
 
 class _Units:

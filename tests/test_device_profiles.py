@@ -298,3 +298,24 @@ def test_mbpoll_reads_our_layouts(tmp_path: Path, fields: Profile) -> None:
         assert "[55]: \t0x7856" in poll("-r", "55", "-c", "2", "-t", "4:hex")
         assert "[56]: \t0x3412" in poll("-r", "55", "-c", "2", "-t", "4:hex")
         assert "[49]: \t0x4142" in poll("-r", "49", "-c", "2", "-t", "4:hex")
+
+
+def test_nothing_to_write_needs_no_guard(tmp_path: Path, drive: Profile) -> None:
+    sim = Simulator(drive, init={0x30: 0x0008})  # mode already torque
+    path = recipe(tmp_path, "  mode: torque\n", "drive.yaml")
+    rec = load_recipe(path)
+
+    async def body(s: Simulator) -> DeviceResult:
+        s.write("running", (0x0008,))
+        return await apply_device(rec, parse_url(s.url), 1, options=ApplyOptions(state_dir=str(tmp_path / ".d")))
+    res = run_with(sim, body)
+    assert res.status == "ok" and res.parameters[0].status == "unchanged"
+    assert res.parameters[0].desired_raw == (0x0008,)  # the register's word, like before_raw and after_raw
+    assert count(sim.log, 16) == 0
+
+
+def test_simulator_init_from_a_recipe_with_fields(tmp_path: Path, fields: Profile) -> None:
+    from deployer.simulator import init_from_recipe
+
+    rec = load_recipe(recipe(tmp_path, "  enable: true\n  mode: position\n  jog_step: 2 mm\n"))
+    assert init_from_recipe(rec) == {0x30: 0x4011}
