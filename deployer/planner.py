@@ -69,6 +69,7 @@ class Plan:
     writes: tuple[WriteRequest, ...]
     reads: tuple[ReadRequest, ...]
     schema: str = PLAN_SCHEMA
+    recipe_name: str | None = None  # the recipe's own name: snapshots of 'apply PLAN.json' are named after it
 
 
 # ---- write planning ------------------------------------------------------------------------
@@ -316,7 +317,7 @@ def make_plan(recipe: Recipe, target: Target, current: Mapping[str, tuple[int, .
     prof = recipe.profile
     params, writes = plan_writes(recipe.desired, prof.limits, current, write_all=write_all)
     reads = plan_reads(prof, [d.name for d in recipe.desired if d.parameter.readable])
-    return Plan(recipe.path, target, params, writes, reads)
+    return Plan(recipe.path, target, params, writes, reads, recipe_name=recipe.name)
 
 
 # ---- JSON ------------------------------------------------------------------------------------
@@ -342,6 +343,7 @@ def plan_to_json(plan: Plan) -> dict[str, Any]:
                     "parameters": list(w.parameters), "stage": w.stage} for w in plan.writes],
         "reads": [{"function": r.function, "address": r.address, "count": r.count} for r in plan.reads],
         "summary": {**wire_stats(plan), **actions},
+        **({"recipe_name": plan.recipe_name} if plan.recipe_name is not None else {}),
     }
 
 
@@ -426,8 +428,9 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
             problems.append(error(("reads", k, "address"), "the read runs past register 65535"))
     if problems:
         raise InputError(problems)
+    name = data.get("recipe_name")
     return Plan(data.get("recipe"), Target(dev.get("url"), int(dev["unit"]), str(dev["profile"])),
-                params, writes, reads)
+                params, writes, reads, recipe_name=None if name is None else str(name))
 
 
 def load_plan(path: str) -> tuple[Recipe, Plan]:
@@ -467,7 +470,9 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
         desired.append(Desired(param, pp.desired, pp.desired_raw))
     if errors:
         raise InputError(errors)
-    rec = Recipe(name=os.path.basename(p.recipe or path), path=p.recipe, profile=prof, desired=tuple(desired),
+    # named after the recipe it was made from (snapshots, reports), not after the plan file
+    name = p.recipe_name or os.path.splitext(os.path.basename(p.recipe or path))[0]
+    rec = Recipe(name=name, path=p.recipe, profile=prof, desired=tuple(desired),
                  device=DeviceSpec(p.device.url, p.device.unit), profile_ref=p.device.profile)
     return rec, p
 
@@ -486,6 +491,27 @@ def _rtu_request_bytes(function: int, count: int) -> int:
 def _rtu_response_bytes(function: int, count: int) -> int:
     # FC16 echoes address and quantity, FC06 echoes the request, FC03 carries bytecount + data
     return 5 + 2 * count if function == 3 else 8
+
+
+def line_cost(plan: Plan, *, framing: str = "rtu", baud: int = BAUD, char_bits: int = CHAR_BITS) -> tuple[int, float]:
+    """Characters on a serial line and seconds for the plan's write requests and their answers.
+
+    RTU: binary frames plus the 3.5-character silence that ends each; ASCII: every byte but the CRC
+    becomes two hex characters, plus ':', the LRC (two characters) and CR LF (2n + 1 characters for an
+    n-byte RTU frame), and no silence. ``char_bits``: start + data + parity + stop bits.
+    """
+    answers = plan.device.unit != 0
+    chars = 0.0
+    frames = 0
+    for w in plan.writes:
+        sizes = [_rtu_request_bytes(w.function, w.count)]
+        if answers:
+            sizes.append(_rtu_response_bytes(w.function, w.count))
+        for n in sizes:
+            frames += 1
+            chars += 2 * n + 1 if framing == "ascii" else n
+    silence = 0.0 if framing == "ascii" else 3.5 * frames
+    return int(chars), (chars + silence) * char_bits / baud
 
 
 def wire_stats(plan: Plan) -> dict[str, float | int]:

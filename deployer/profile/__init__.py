@@ -9,6 +9,7 @@ from .loader import (
     builtin_profile_ids,
     load_profile,
     parse_register,
+    profile_ref,
     resolve_profile,
     wire_address,
 )
@@ -42,6 +43,7 @@ __all__ = [
     "builtin_profile_ids",
     "load_profile",
     "parse_register",
+    "profile_ref",
     "resolve_profile",
     "wire_address",
 ]

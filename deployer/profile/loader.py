@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import replace
 from decimal import Decimal
@@ -73,13 +74,20 @@ def _hex(n: int) -> str:
 def load_profile(path: str | os.PathLike[str], text: str | None = None) -> Profile:
     """Load and check a profile file (or ``text`` shown as that file); all problems at once as an InputError."""
     p = os.fspath(path)
+    if text is None:
+        text = yamlsrc.read_text(p)
     data, src = yamlsrc.load(p, text)
     if not isinstance(data, dict):
         raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
     errors = yamlsrc.validate(data, "profile", src)
     if errors:
         raise InputError(errors)
-    return _build_profile(data, src)
+    return replace(_build_profile(data, src), digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
+
+
+def profile_ref(profile: Profile) -> str:
+    """The one well-defined name of a profile: its file's absolute path, or its built-in id."""
+    return profile.source or profile.id
 
 
 def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:

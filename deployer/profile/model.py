@@ -260,7 +260,8 @@ class Profile:
     # sorted by address; table entries expanded to "table[i].field"
     parameters: tuple[Parameter, ...] = ()
     commit: tuple[CommitAction, ...] = ()
-    source: str | None = None  # file the profile came from (None for profiles built in code)
+    source: str | None = None  # file the profile came from (None for built-ins and profiles built in code)
+    digest: str | None = None  # sha256 of the profile file's text: snapshots record it, rollback compares it
     preconditions: tuple[Precondition, ...] = ()
     unlock: tuple[WriteAction, ...] = ()
     lock: tuple[WriteAction, ...] = ()
