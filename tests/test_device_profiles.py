@@ -319,3 +319,17 @@ def test_simulator_init_from_a_recipe_with_fields(tmp_path: Path, fields: Profil
 
     rec = load_recipe(recipe(tmp_path, "  enable: true\n  mode: position\n  jog_step: 2 mm\n"))
     assert init_from_recipe(rec) == {0x30: 0x4011}
+
+
+def test_rollback_restores_a_fields_bits_and_keeps_the_rest(tmp_path: Path, fields: Profile) -> None:
+    sim = Simulator(fields, init={0x30: 0x0000})
+    res = apply(sim, recipe(tmp_path, "  direction: reverse\n  mode: torque\n"), tmp_path)
+    assert res.status == "ok" and sim.read("mode") == (0x000A,)
+    snapshot = load_recipe(res.snapshot or "")
+
+    async def rollback(s: Simulator) -> DeviceResult:
+        s.write("enable", (s.read("enable")[0] | 0x5001,))  # meanwhile: enable and jog_step changed on the panel
+        return await apply_device(snapshot, parse_url(s.url), 1, options=ApplyOptions(state_dir=str(tmp_path / ".d")))
+    back = run_with(sim, rollback)
+    assert back.status == "ok", back.to_json()
+    assert sim.read("mode") == (0x5001,)  # direction and mode as before the apply, the panel's bits kept
