@@ -128,9 +128,10 @@ def test_csv_errors_point_at_cells(tmp_path: Path, capsys: pytest.CaptureFixture
     assert f"{src}:6:15: error: access 'maybe' is not R, W or RW" in err
     assert f"{src}:7:21: error: run_forward: a bool needs the bit number in the 'bits' column" in err
     # problems only the whole profile shows (an overlap) still point at the row
-    src.write_text("Name,Address,Type\nspeed,0x10,U16\nwide,0x10,U32\n")
+    src.write_text("Name,Address,Type\n# a comment row\nspeed,0x10,U16\nwide,0x10,U32\n")
     code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "x")
-    assert code == 1 and f"{src}:3:1: error: wide (registers 0x0010-0x0011) overlaps speed" in err
+    assert code == 1
+    assert f"{src}:4:1: error: wide (registers 0x0010-0x0011) overlaps speed (registers 0x0010-0x0010, line 3)" in err
     code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "x", "--column", "adress=Reg")
     assert code == 1 and "--column adress=...: unknown column" in err
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from decimal import Decimal
@@ -84,5 +85,11 @@ def traced(diagnostics: Sequence[Diagnostic], origins: Mapping[int, Origin], out
     out = []
     for d in diagnostics:
         o = origins.get(d.line) if os.path.abspath(d.path) == os.path.abspath(out_path) else None
-        out.append(Diagnostic(o.path, o.line, o.col, d.message) if o else d)
+        if o is None:
+            out.append(d)
+            continue
+        # "... (line N)" names another generated line: say its source line instead
+        message = re.sub(r"\bline (\d+)", lambda m: f"line {origins[int(m[1])].line}" if int(m[1]) in origins
+                         else m[0], d.message)
+        out.append(Diagnostic(o.path, o.line, o.col, message))
     return out
