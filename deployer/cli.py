@@ -190,13 +190,18 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
         click.echo(f"warning: {w}", err=True)
     text, prof = check(draft, out or "<stdout>", f"Imported by 'deployer profiles import' from {source}.\n"
                                                 "Check it against the manual before the first deployment.")
-    if out:
-        with open(out, "w", encoding="utf-8") as f:
+    _output(text, out, f"{out}: profile {prof.id} with {_n(len(prof.parameters), 'parameter')}")
+    return EXIT_OK
+
+
+def _output(text: str, path: str | None, summary: str) -> None:
+    """``text`` into the file ``path`` (saying ``summary`` on stderr), or onto stdout."""
+    if path:
+        with open(path, "w", encoding="utf-8") as f:
             f.write(text)
-        click.echo(f"{out}: profile {prof.id} with {_n(len(prof.parameters), 'parameter')}", err=True)
+        click.echo(summary, err=True)
     else:
         click.echo(text, nl=False)
-    return EXIT_OK
 
 
 @profiles_import.command("csv")
@@ -972,12 +977,7 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
         return EXIT_UNREACHABLE
     text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
                          comment=_pulled_from(describe(url), u), relative_to=output)
-    if output:
-        with open(output, "w", encoding="utf-8") as f:
-            f.write(text)
-        click.echo(f"{_n(len(current), 'parameter')} written to {output}", err=True)
-    else:
-        click.echo(text, nl=False)
+    _output(text, output, f"{_n(len(current), 'parameter')} written to {output}")
     return EXIT_OK
 
 
