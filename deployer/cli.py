@@ -250,14 +250,15 @@ def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], profile_id:
 @click.argument("profile")
 def profiles_show(profile: str) -> int:
     """Show a profile's parameters in engineering units (a built-in id or a file)."""
-    from .codec import format_decimal
+    from .codec import format_decimal, layout_name
     from .profile import resolve_profile
 
     prof = resolve_profile(profile)
     out = console()
     out.print(f"[bold]{prof.id}[/bold]: {prof.description}")
     lim = prof.limits
-    out.print(f"addressing {prof.addressing}, word order {prof.word_order}; up to {lim.write_registers} registers "
+    layout = layout_name(prof.word_order, prof.byte_swap)
+    out.print(f"addressing {prof.addressing}, byte order {layout}; up to {lim.write_registers} registers "
               f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read")
     table = Table("parameter", "address", "type", "unit", "resolution", "range", "access", "default",
                   "description", box=None)
@@ -364,6 +365,9 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
             table.add_row(pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs)
     if table.row_count:
         out.print(table)
+        if not changes_only and any(profile.parameter(pp.name).mask for pp in plan.parameters):
+            out.print("bit fields: raw shows their own bits; apply reads each such register right before writing "
+                      "it and keeps its other bits as the device holds them")
     elif changes_only:
         out.print("No changes: the device already holds every value of the recipe.")
     st = wire_stats(plan)

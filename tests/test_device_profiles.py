@@ -333,3 +333,19 @@ def test_rollback_restores_a_fields_bits_and_keeps_the_rest(tmp_path: Path, fiel
     back = run_with(sim, rollback)
     assert back.status == "ok", back.to_json()
     assert sim.read("mode") == (0x5001,)  # direction and mode as before the apply, the panel's bits kept
+
+
+def test_diff_compares_a_fields_own_bits(tmp_path: Path, fields: Profile, capsys: pytest.CaptureFixture[str]) -> None:
+    from deployer.api import diff_values
+
+    rec = load_recipe(recipe(tmp_path, "  direction: reverse\n  mode: torque\n"))
+    assert diff_values(rec, {"direction": (0xF00B,), "mode": (0xF00B,)}) == []  # other bits differ: no drift
+    drift = diff_values(rec, {"direction": (0xF001,), "mode": (0xF00B,)})
+    assert [(d.name, d.device) for d in drift] == [("direction", "forward")]
+    with pytest.raises(SystemExit):
+        main(["profiles", "show", str(tmp_path / "dev.yaml")])
+    out = capsys.readouterr().out
+    assert "mode" in out and "uint16 bits 3..5" in out and "float32 CDAB" in out and "string[4] ascii" in out
+    with pytest.raises(SystemExit):
+        main(["plan", str(tmp_path / "r.yaml")])
+    assert "keeps its other bits as the device holds them" in capsys.readouterr().out

@@ -236,14 +236,14 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             continue
         count, stride = table["count"], table["stride"]
         last_end = base + (count - 1) * stride + max(
-            f["offset"] + codec.register_count(f["type"]) for f in table["fields"].values()
+            f["offset"] + _spec_count(f) for f in table["fields"].values()
         )
         if last_end > 0x10000:
             errors.append(src.error(tat, f"table {tname}: entry {count - 1} ends at register {last_end - 1}, "
                                          "beyond 65535"))
             continue
         for fname, fspec in table["fields"].items():
-            if fspec["offset"] + codec.register_count(fspec["type"]) > stride:
+            if fspec["offset"] + _spec_count(fspec) > stride:
                 errors.append(src.error((*tat, "fields", fname, "offset"),
                                         f"field {fname} runs past the table's stride {stride}"))
         for i in range(count):
@@ -330,6 +330,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         description=str(data.get("description", "")),
         addressing=addressing,
         word_order=default_layout[0],
+        byte_swap=default_layout[1],
         limits=limits,
         identity=tuple(identity),
         parameters=tuple(params),
@@ -348,6 +349,15 @@ def _dec(v: object) -> Decimal | None:
 
 def _fmt(d: Decimal | None) -> str:
     return "-" if d is None else codec.format_decimal(d)
+
+
+def _spec_count(spec: dict[str, Any]) -> int:
+    """Registers a parameter spec occupies, before it is checked (strings: count, bit fields: 1)."""
+    if spec["type"] == codec.STRING:
+        return int(spec.get("count", 1))
+    if spec["type"] == codec.BOOL or "bits" in spec or "mask" in spec:
+        return 1
+    return codec.register_count(spec["type"])
 
 
 def _bits(mask: int) -> str:

@@ -254,7 +254,8 @@ class Profile:
     id: str
     description: str = ""
     addressing: Addressing = "address"
-    word_order: str = "big"
+    word_order: str = "big"  # the profile's default layout: word order ...
+    byte_swap: bool = False  # ... and byte swap (codec.layout_name gives ABCD/CDAB/BADC/DCBA)
     limits: Limits = field(default_factory=Limits)
     identity: tuple[IdentityCheck, ...] = ()
     # sorted by address; table entries expanded to "table[i].field"
