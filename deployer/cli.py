@@ -224,6 +224,24 @@ def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Se
     return _write_imported(draft, out, file)
 
 
+@profiles.group("export")
+def profiles_export() -> None:
+    """Write a profile in another format."""
+
+
+@profiles_export.command("csv")
+@click.argument("profile")
+@click.option("-o", "--out", help="CSV file to write (default: stdout).")
+def profiles_export_csv(profile: str, out: str | None) -> int:
+    """A profile as a CSV register list ('profiles import csv' reads it back; wire addresses, tables as rows)."""
+    from .profile import resolve_profile
+    from .profile.csv_import import profile_to_csv
+
+    prof = resolve_profile(profile)
+    _output(profile_to_csv(prof), out, f"{out}: {_n(len(prof.parameters), 'register row')} of profile {prof.id}")
+    return EXIT_OK
+
+
 @profiles_import.command("sunspec")
 @click.argument("model")
 @click.option("--at", "at", default="40002", show_default=True,

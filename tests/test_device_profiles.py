@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import shutil
 import subprocess
@@ -349,3 +350,44 @@ def test_diff_compares_a_fields_own_bits(tmp_path: Path, fields: Profile, capsys
     with pytest.raises(SystemExit):
         main(["plan", str(tmp_path / "r.yaml")])
     assert "keeps its other bits as the device holds them" in capsys.readouterr().out
+
+
+# ---- a device we did not write: umodbus -------------------------------------------------------
+
+
+class _Recording(dict[int, int]):
+    """umodbus's register store, remembering every write in order (umodbus has no request log)."""
+
+    def __init__(self, values: dict[int, int]) -> None:
+        super().__init__(values)
+        self.writes: list[tuple[int, int, float]] = []
+
+    def __setitem__(self, address: int, value: int) -> None:
+        import time
+        self.writes.append((address, value, time.monotonic()))
+        super().__setitem__(address, value)
+
+
+def test_guarded_sequence_against_umodbus(tmp_path: Path, drive: Profile) -> None:
+    from tests.helpers import umodbus_server
+
+    store = _Recording({a: 0 for a in (0x10, 0x20, 0x21, 0x30, 0x31, 0x32, 0x33, 0x34, 0x35, 0x36, 0x37, 0x38,
+                                       0x40)})
+    store[0x10] = 0x0009  # running (bit 3) and a fault bit
+    store[0x30] = 0x4001  # jog_step 4, enabled
+    store.writes.clear()
+    rec = load_recipe(recipe(tmp_path, "  mode: position\n  accel: 1.5 s\n", "drive.yaml"))
+    with umodbus_server(store) as port:
+        def run() -> DeviceResult:
+            return asyncio.run(apply_device(rec, parse_url(f"tcp://127.0.0.1:{port}?timeout=1"), 1,
+                                            options=ApplyOptions(state_dir=str(tmp_path / ".d"))))
+        refused = run()
+        assert refused.status == "failed" and "drive stopped" in (refused.error or "")
+        assert store.writes == []  # nothing written
+        store[0x10] = 0x0001  # stopped (the fault bit stays)
+        store.writes.clear()
+        res = run()
+    assert res.status == "ok", res.to_json()
+    assert [(a, v) for a, v, _ in store.writes] == [(0x20, 0x5AA5), (0x30, 0x4011), (0x40, 15), (0x21, 1), (0x20, 0)]
+    t = [w[2] for w in store.writes]
+    assert t[1] - t[0] >= 0.12 and t[2] - t[1] >= 0.10 and t[4] - t[3] >= 0.15  # unlock, stage 0, commit waits

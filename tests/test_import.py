@@ -174,3 +174,38 @@ def test_sunspec_unknown_model(capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip("sunspec2")
     code, _, err = cli(capsys, "profiles", "import", "sunspec", "99999")
     assert code == 1 and "no SunSpec model 99999" in err
+
+
+def test_csv_round_trip_profile_csv_profile(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """import -> export -> import gives the same parameters (the 240-row sheet, and a profile with layouts)."""
+    import dataclasses
+
+    def same(p: object) -> dict[str, object]:
+        return {k: v for k, v in dataclasses.asdict(p).items() if k not in ("line", "col")}  # type: ignore[call-overload]
+
+    src = tmp_path / "vendor.csv"
+    write_csv(src, vendor_rows())
+    first = tmp_path / "first.yaml"
+    assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "v", "-o", str(first),
+               "--column", "address=Reg No")[0] == 0
+    exported = tmp_path / "exported.csv"
+    assert cli(capsys, "profiles", "export", "csv", str(first), "-o", str(exported))[0] == 0
+    second = tmp_path / "second.yaml"
+    assert cli(capsys, "profiles", "import", "csv", str(exported), "--id", "v", "-o", str(second))[0] == 0
+    a, b = load_profile(first), load_profile(second)
+    assert len(a.parameters) == len(b.parameters) >= 200
+    assert [same(p) for p in a.parameters] == [same(p) for p in b.parameters]
+    # layouts, strings with a byte swap, defaults and labels survive too
+    prof = tmp_path / "dev.yaml"
+    prof.write_text("profile: dev\nbyte_order: CDAB\nparameters:\n"
+                    "  f: {register: 0, type: float32, default: 1.5}\n"
+                    "  q: {register: 2, type: uint64, byte_order: HGFEDCBA, min: 0, max: 1000000}\n"
+                    "  s: {register: 6, type: string, count: 3, swap: byte, padding: space, default: ab}\n"
+                    "  e: {register: 9, type: int16, bits: 4..7, values: {low: -2, high: 3}, default: high}\n")
+    code, text, _ = cli(capsys, "profiles", "export", "csv", str(prof))
+    assert code == 0 and "s,6,string,,,,,read-write,,,,3,byte,ab" in text
+    (tmp_path / "dev.csv").write_text(text)
+    assert cli(capsys, "profiles", "import", "csv", str(tmp_path / "dev.csv"), "--id", "dev", "-o",
+               str(tmp_path / "back.yaml"))[0] == 0
+    assert [same(p) for p in load_profile(prof).parameters] == [same(p) for p in
+                                                                load_profile(tmp_path / "back.yaml").parameters]

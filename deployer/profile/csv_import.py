@@ -1,4 +1,5 @@
-"""Import a vendor's register list (CSV, as exported from the manual's spreadsheet) as a profile.
+"""Import a vendor's register list (CSV, as exported from the manual's spreadsheet) as a profile,
+and write a profile back as such a list.
 
 Columns are found by header name (case and spaces ignored); ``columns`` maps our names to
 other headers. Every problem points at its cell: FILE:LINE:COL.
@@ -19,6 +20,7 @@ from .. import codec, units, yamlsrc
 from ..diagnostics import Diagnostic, InputError
 from .emit import Draft, Origin
 from .loader import parse_register
+from .model import Profile
 
 # our column -> headers vendors use for it (lower case, spaces and underscores removed)
 COLUMNS: dict[str, tuple[str, ...]] = {
@@ -36,6 +38,10 @@ COLUMNS: dict[str, tuple[str, ...]] = {
     "values": ("values", "enum", "enumeration", "options"),
     "byte_order": ("byteorder", "layout", "endianness", "swap"),
     "default": ("default", "defaultvalue", "initial"),
+    "encoding": ("encoding", "charset"),
+    "padding": ("padding", "pad"),
+    "stage": ("stage",),
+    "restart": ("restart", "powercycle", "restartrequired"),
 }
 REQUIRED = ("name", "address", "type")
 
@@ -202,6 +208,21 @@ def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = 
                 spec["values"] = _values(values)
             except ValueError as e:
                 err("values", str(e))
+        for col, choices in (("encoding", codec.ENCODINGS), ("padding", codec.PADDING)):
+            v = cell(col).lower()
+            if v and type_ != "string":
+                err(col, f"'{col}' applies to strings only")
+            elif v and v not in choices:
+                err(col, f"{col} '{v}' is not one of {', '.join(choices)}")
+            elif v:
+                spec[col] = v
+        if cell("stage"):
+            if cell("stage").isdigit():
+                spec["stage"] = int(cell("stage"))
+            else:
+                err("stage", f"stage '{cell('stage')}' is not a number")
+        if cell("restart").lower() in ("yes", "y", "true", "1", "x"):
+            spec["restart"] = True
         default = cell("default")
         if default:
             try:
@@ -238,3 +259,32 @@ def _values(text: str) -> dict[str, int]:
         else:
             raise ValueError(f"values: '{part.strip()}' has no number")
     return out
+
+
+EXPORT_COLUMNS = ("name", "address", "type", "unit", "scale", "min", "max", "access", "description", "values",
+                  "bits", "count", "byte_order", "default", "encoding", "padding", "stage", "restart")
+
+
+def profile_to_csv(profile: Profile) -> str:
+    """The profile as a register list in the columns read_csv reads (wire addresses; tables as rows)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(EXPORT_COLUMNS)
+    swaps = {v: k for k, v in codec.SWAPS.items()}
+    for p in profile.parameters:
+        bits = ""
+        if p.mask:
+            shift, width = codec.mask_shift(p.mask)
+            bits = str(shift) if width == 1 else f"{shift}..{shift + width - 1}"
+        swap = swaps[(p.word_order, p.byte_swap)]
+        default = "" if p.default is None else p.default if isinstance(p.default, str) else codec.format_decimal(
+            p.default)
+        w.writerow([p.name, p.address, p.type, p.unit or "",
+                    "" if p.scale == 1 else codec.format_decimal(p.scale),
+                    "" if p.min is None else codec.format_decimal(p.min),
+                    "" if p.max is None else codec.format_decimal(p.max),
+                    p.access, p.description, ";".join(f"{v}={k}" for k, v in p.values), bits,
+                    p.count if p.is_string else "", "" if swap == "none" else swap, default,
+                    p.encoding if p.is_string else "", p.padding if p.is_string else "", p.stage or "",
+                    "yes" if p.restart else ""])
+    return buf.getvalue()
