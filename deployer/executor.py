@@ -460,6 +460,9 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
     if rejected is None:  # everything took although the device complained: the read-back decides
         return None
     results[rejected.name].status, results[rejected.name].error = "failed", error
+    for p in params:  # bit fields of the rejected register went with it
+        if p.mask and p.address == rejected.address and p is not rejected:
+            results[p.name].status, results[p.name].error = "failed", f"{error} (register of {rejected.name})"
     rest = [p for p in params if p.address > rejected.address]
     if not rest or req.function == 6:  # an FC06 request carries one register: nothing after it
         return None

@@ -391,3 +391,27 @@ def test_guarded_sequence_against_umodbus(tmp_path: Path, drive: Profile) -> Non
     assert [(a, v) for a, v, _ in store.writes] == [(0x20, 0x5AA5), (0x30, 0x4011), (0x40, 15), (0x21, 1), (0x20, 0)]
     t = [w[2] for w in store.writes]
     assert t[1] - t[0] >= 0.12 and t[2] - t[1] >= 0.10 and t[4] - t[3] >= 0.15  # unlock, stage 0, commit waits
+
+
+def test_rejected_field_register_and_a_saved_plan(tmp_path: Path, fields: Profile,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(InputError, match="a bit field must be readable"):
+        profile_from(tmp_path, FIELDS + "  cmd: {register: 0x50, type: bool, bits: 0, access: write-only}\n", "wo.yaml")
+    # the device refuses the control word: both fields of it fail, the string after it still goes
+    sim = Simulator(fields)
+    sim.faults.fail_registers = frozenset({0x30})
+    res = apply(sim, recipe(tmp_path, "  direction: reverse\n  mode: torque\n  name: AB\n"), tmp_path)
+    st = {p.name: p.status for p in res.parameters}
+    assert st == {"direction": "failed", "mode": "failed", "name": "ok"}, res.to_json()
+    # plan --out against the device, then apply PLAN.json: the field register is merged again at write time
+    with SimulatorThread(fields, init={0x30: 0x0001}) as s:
+        plan = tmp_path / "plan.json"
+        path = recipe(tmp_path, "  mode: torque\n")
+        with pytest.raises(SystemExit):
+            main(["plan", path, "--device", s.url, "--out", str(plan)])
+        assert json.loads(plan.read_text())["writes"][0]["registers"] == [0x0009]
+        s.write("enable", (0x3001,))  # jog_step changes after the plan was made
+        with pytest.raises(SystemExit) as exc:
+            main(["apply", str(plan), "--yes", "--state-dir", str(tmp_path / ".d")])
+        assert exc.value.code == 0, capsys.readouterr()
+        assert s.read("mode") == (0x3009,)

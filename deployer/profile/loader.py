@@ -131,6 +131,9 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
                 local.append(src.error((*at, "type"), f"a bit field is uint16, int16 or bool, not {type_}"))
             elif type_ == codec.BOOL and mask and mask & (mask - 1):
                 local.append(src.error((*at, "type"), "a bool field is one bit"))
+            if spec.get("access") == "write-only":  # its register is written whole: the other bits come from a read
+                local.append(src.error((*at, "access"), "a bit field must be readable: apply reads its register "
+                                                        "to keep the other bits"))
         elif type_ == codec.BOOL:
             local.append(src.error((*at, "type"), "type bool is a one-bit field: give 'bits: N'"))
         if type_ == codec.STRING:
