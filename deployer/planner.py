@@ -188,74 +188,77 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
     stages = [p.stage for p in params_]
     regs = [tuple(d.registers) for d in ordered]
     n = len(ordered)
-    # bit fields of one register form one unit: one merged word, written or left together
-    groups: list[list[int]] = []
-    for k in range(n):
-        if k and params_[k].mask and params_[k - 1].mask and addrs[k] == addrs[k - 1] and stages[k] == stages[k - 1]:
-            groups[-1].append(k)
-        else:
-            groups.append([k])
-    for gi, g in enumerate(groups):
-        k = g[0]
+    # Bit fields of one register form one unit: one merged word, written or left together. Units are
+    # slices of ``ordered``: unit u is params bounds[u]:bounds[u + 1] (one parameter each without fields).
+    fields = any(p.mask for p in params_)
+    bounds: Sequence[int] = range(n + 1)
+    if fields:
+        bounds = [0, *(k for k in range(1, n) if not (params_[k].mask and params_[k - 1].mask
+                                                       and addrs[k] == addrs[k - 1] and stages[k] == stages[k - 1])), n]
+    nu = len(bounds) - 1
+    for u in range(nu):
+        k = bounds[u]
         if not fc6 and sizes[k] > limit:
             raise UsageError(f"{names[k]} needs {sizes[k]} registers in one request, but the device takes "
                              f"at most {limit} per request (limits in the profile)")
-        for m in g:
+        for m in range(k, bounds[u + 1]):
             if len(regs[m]) != sizes[m]:
                 raise UsageError(f"{names[m]}: {len(regs[m])} register values for a {sizes[m]}-register parameter")
         # two values for one register would make the plan's outcome depend on request order
-        h = groups[gi - 1][-1] if gi else 0
-        if gi and stages[h] == stages[k] and addrs[k] < addrs[h] + sizes[h]:
+        h = k - 1
+        if u and stages[h] == stages[k] and addrs[k] < addrs[h] + sizes[h]:
             raise UsageError(f"{names[k]} overlaps {names[h]} (registers {addrs[k]} and "
                              f"{addrs[h]}..{addrs[h] + sizes[h] - 1}): each register may be planned once")
 
     if write_all or current is None:
         must_p = [True] * n
-    else:
+    elif fields:
         must_p = [not params_[k].same_value(current.get(names[k]), regs[k]) for k in range(n)]
-    for g in groups:
-        if params_[g[0]].mask:
-            merged = (merge_fields([params_[k] for k in g], [regs[k][0] for k in g],
-                                    None if current is None else next(
-                                        (current[names[k]][0] for k in g if names[k] in current), None)),)
-            for k in g:
-                regs[k] = merged
-    u_names = [tuple(names[k] for k in g) for g in groups]
-    u_addrs = [addrs[g[0]] for g in groups]
-    u_sizes = [sizes[g[0]] for g in groups]
-    u_stages = [stages[g[0]] for g in groups]
-    u_regs = [regs[g[0]] for g in groups]
-    must = [any(must_p[k] for k in g) for g in groups]
-    written = list(must)
+    else:
+        must_p = [current.get(names[k]) != regs[k] for k in range(n)]
+    must = must_p
+    if fields:
+        for u in range(nu):
+            lo, hi = bounds[u], bounds[u + 1]
+            if params_[lo].mask:
+                known = None if current is None else next((current[names[k]][0] for k in range(lo, hi)
+                                                            if names[k] in current), None)
+                merged = (merge_fields(params_[lo:hi], [regs[k][0] for k in range(lo, hi)], known),)
+                for k in range(lo, hi):
+                    regs[k] = merged
+        must = [any(must_p[bounds[u]:bounds[u + 1]]) for u in range(nu)]
+    actions: list[Action] = ["write" if m else "unchanged" for m in must_p]
     writes: list[WriteRequest] = []
-    nu = len(groups)
     i = 0
     while i < nu:
-        j = i + 1  # a maximal run: same stage, contiguous registers
-        while j < nu and u_stages[j] == u_stages[i] and u_addrs[j] == u_addrs[j - 1] + u_sizes[j - 1]:
+        j = i + 1  # a maximal run of units: same stage, contiguous registers
+        while j < nu and stages[bounds[j]] == stages[bounds[i]] and \
+                addrs[bounds[j]] == addrs[bounds[j - 1]] + sizes[bounds[j - 1]]:
             j += 1
-        stage = u_stages[i]
+        stage = stages[bounds[i]]
         if fc6:
             # FC06 carries one register, so the "never split" rule cannot hold on such devices: a
             # 2/4-register value goes as one FC06 per word, in ascending address order (the word at
             # the lower address first, whatever the word order), the words of one parameter back to
             # back with nothing in between. No bridges: one request per register saves nothing.
-            for k in range(i, j):
-                if must[k]:
-                    writes.extend(WriteRequest(6, u_addrs[k] + w, (word,), u_names[k], stage)
-                                  for w, word in enumerate(u_regs[k]))
+            for u in range(i, j):
+                if must[u]:
+                    k = bounds[u]
+                    writes.extend(WriteRequest(6, addrs[k] + w, (word,), tuple(names[k:bounds[u + 1]]), stage)
+                                  for w, word in enumerate(regs[k]))
+                    for m in range(k, bounds[u + 1]):
+                        if not must_p[m]:
+                            actions[m] = "bridge"
         else:
-            for a, b in _plan_run(u_sizes[i:j], must[i:j], limit):
-                for k in range(i + a, i + b):
-                    written[k] = True
-                writes.append(WriteRequest(16, u_addrs[i + a], tuple(w for k in range(i + a, i + b) for w in u_regs[k]),
-                                           tuple(nm for k in range(i + a, i + b) for nm in u_names[k]), stage))
+            sizes_u = sizes[i:j] if not fields else [sizes[bounds[u]] for u in range(i, j)]
+            for a, b in _plan_run(sizes_u, must[i:j], limit):
+                lo, hi = bounds[i + a], bounds[i + b]
+                for k in range(lo, hi):
+                    if not must_p[k]:
+                        actions[k] = "bridge"
+                writes.append(WriteRequest(16, addrs[lo], tuple(w for u in range(i + a, i + b) for w in regs[bounds[u]]),
+                                           tuple(names[lo:hi]), stage))
         i = j
-    actions: list[Action] = ["unchanged"] * n
-    for gi, g in enumerate(groups):
-        if written[gi]:
-            for k in g:
-                actions[k] = "write" if must_p[k] else "bridge"
     planned = tuple(
         PlannedParameter(names[k], addrs[k], sizes[k], ordered[k].text, regs[k],
                          None if current is None or names[k] not in current else tuple(current[names[k]]),
