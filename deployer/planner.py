@@ -256,8 +256,8 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
                 for k in range(lo, hi):
                     if not must_p[k]:
                         actions[k] = "bridge"
-                writes.append(WriteRequest(16, addrs[lo], tuple(w for u in range(i + a, i + b) for w in regs[bounds[u]]),
-                                           tuple(names[lo:hi]), stage))
+                words = tuple(w for u in range(i + a, i + b) for w in regs[bounds[u]])
+                writes.append(WriteRequest(16, addrs[lo], words, tuple(names[lo:hi]), stage))
         i = j
     planned = tuple(
         PlannedParameter(names[k], addrs[k], sizes[k], ordered[k].text, regs[k],
