@@ -9,14 +9,16 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from deployer import yamlsrc
 from deployer.cli import main
 from deployer.diagnostics import InputError
 from deployer.executor import ApplyOptions, apply_device
-from deployer.planner import Target, make_plan
-from deployer.profile import Profile
-from deployer.recipe import load_recipe
+from deployer.planner import Target, make_plan, plan_writes
+from deployer.profile import Limits, Parameter, Profile
+from deployer.recipe import Desired, load_recipe
 from deployer.report import DeviceResult, Report
 from deployer.simulator import Simulator, SimulatorThread
 from deployer.transport import parse_url
@@ -415,3 +417,58 @@ def test_rejected_field_register_and_a_saved_plan(tmp_path: Path, fields: Profil
             main(["apply", str(plan), "--yes", "--state-dir", str(tmp_path / ".d")])
         assert exc.value.code == 0, capsys.readouterr()
         assert s.read("mode") == (0x3009,)
+
+
+# ---- planner property: a register of fields plans like one whole register ----------------------
+
+@st.composite
+def _field_case(draw: st.DrawFn) -> tuple[list[Desired], dict[str, tuple[int, ...]], list[Desired], int]:
+    """Registers 0..n-1 (some gaps), each a whole uint16 or 1-3 fields; the same recipe with whole registers."""
+    n = draw(st.integers(1, 12))
+    desired: list[Desired] = []
+    whole: list[Desired] = []
+    current: dict[str, tuple[int, ...]] = {}
+    for a in range(n):
+        if draw(st.booleans()) and a:
+            continue  # a gap the recipe does not name
+        word = draw(st.integers(0, 0xFFFF))
+        if draw(st.booleans()):
+            p = Parameter(f"r{a}", a, "uint16")
+            value = draw(st.integers(0, 0xFFFF))
+            desired.append(Desired(p, str(value), (value,)))
+            whole.append(Desired(p, str(value), (value,)))
+            current[p.name] = (word,)
+            continue
+        merged = word
+        for k, (lo, width) in enumerate([(0, 2), (4, 3), (12, 4)][: draw(st.integers(1, 3))]):
+            mask = ((1 << width) - 1) << lo
+            p = Parameter(f"r{a}f{k}", a, "uint16", mask=mask)
+            raw = draw(st.integers(0, (1 << width) - 1))
+            desired.append(Desired(p, str(raw), p.encode(raw)))
+            current[p.name] = (word,)
+            merged = (merged & ~mask) | (raw << lo)
+        q = Parameter(f"r{a}", a, "uint16")
+        whole.append(Desired(q, str(merged), (merged,)))
+        current[q.name] = (word,)
+    return desired, current, whole, draw(st.integers(1, 5))
+
+
+@settings(max_examples=200, deadline=None)
+@given(_field_case())
+def test_fields_plan_like_whole_registers(case: tuple[list[Desired], dict[str, tuple[int, ...]], list[Desired], int]
+                                          ) -> None:
+    desired, current, whole, limit = case
+    limits = Limits(max_write_registers=limit)
+    _, writes = plan_writes(desired, limits, current)
+    _, expected = plan_writes(whole, limits, current)
+    # the same requests, registers and words as if each field register were one merged uint16
+    assert [(w.address, w.registers) for w in writes] == [(w.address, w.registers) for w in expected]
+    named = {d.parameter.address for d in desired}
+    for w in writes:
+        assert set(range(w.address, w.address + w.count)) <= named  # never a register the recipe does not name
+        for i, word in enumerate(w.registers):
+            for d in desired:
+                if d.parameter.address == w.address + i and d.parameter.mask:
+                    assert d.parameter.same_value((word,), d.registers)  # the field's new bits
+                    others = ~sum(e.parameter.mask for e in desired if e.parameter.address == d.parameter.address)
+                    assert word & others & 0xFFFF == current[d.name][0] & others & 0xFFFF  # the rest as held
