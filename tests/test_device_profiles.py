@@ -98,9 +98,9 @@ def test_layouts_fields_and_strings_load(fields: Profile) -> None:
 
 
 @pytest.mark.parametrize(("extra", "message"), [
-    ("  whole: {register: 0x30, type: uint16}\n", "whole (registers 0x0030-0x0030) overlaps"),
+    ("  whole: {register: 0x30, type: uint16}\n", "whole (registers 0x0030-0x0030) overlaps the bit field"),
     ("  clash: {register: 0x30, type: uint16, bits: 5..6}\n",
-     "mode (bits 3..5 of register 0x0030) overlaps clash (bits 5..6"),
+     "clash (bits 5..6 of register 0x0030) overlaps mode (bits 3..5, line 7)"),
     ("  late: {register: 0x30, type: bool, bits: 7, stage: 2}\n", "a register is written as one unit"),
     ("  wide: {register: 0x50, type: bool, bits: 1..2}\n", "a bool field is one bit"),
     ("  odd: {register: 0x50, type: uint16, mask: 0x0101}\n", "not one contiguous group of bits"),

@@ -256,7 +256,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
 
     # overlapping registers: name both parameters and both lines. Bit fields of one register
     # share it when their bits do not overlap; a field never shares with a whole-register value.
-    params.sort(key=lambda q: (q.address, q.name))
+    params.sort(key=lambda q: (q.address, q.line, q.name))  # of two at one address, the later one is reported
     prev: Parameter | None = None
     reported = 0
     fields_at: dict[int, list[Parameter]] = {}
@@ -278,7 +278,16 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             continue
         if q.mask:
             fields_at[q.address] = [q]
-        if prev is not None and q.address < prev.end:
+        if prev is not None and q.address < prev.end and (q.mask or prev.mask) and reported < 20:
+            if q.mask:
+                what = (f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) shares its register with "
+                        f"{prev.name} (line {prev.line}), which is not a bit field")
+            else:
+                what = (f"{q.name} (registers {_hex(q.address)}-{_hex(q.end - 1)}) overlaps the bit field {prev.name} "
+                        f"(bits {_bits(prev.mask)} of register {_hex(prev.address)}, line {prev.line})")
+            errors.append(Diagnostic(src.path, q.line, q.col, f"{what}: only bit fields share a register"))
+            reported += 1
+        elif prev is not None and q.address < prev.end:
             if reported < 20:  # a bad table can overlap thousands of times; the first ones say it
                 errors.append(Diagnostic(
                     src.path, q.line, q.col,
