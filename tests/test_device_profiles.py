@@ -472,3 +472,29 @@ def test_fields_plan_like_whole_registers(case: tuple[list[Desired], dict[str, t
                     assert d.parameter.same_value((word,), d.registers)  # the field's new bits
                     others = ~sum(e.parameter.mask for e in desired if e.parameter.address == d.parameter.address)
                     assert word & others & 0xFFFF == current[d.name][0] & others & 0xFFFF  # the rest as held
+
+
+def test_builtin_example_drive_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from deployer.profile import builtin_profile
+
+    example = Path(__file__).parent.parent / "recipes" / "examples" / "example-drive-axis1.yaml"
+    prof = builtin_profile("example-drive")
+    report = tmp_path / "report.json"
+    with SimulatorThread(prof) as sim:
+        sim.write("ready", (0x0008 | 0x0001,))  # running
+        with pytest.raises(SystemExit) as exc:
+            main(["apply", str(example), "--device", sim.url, "--yes", "--report", str(report),
+                  "--state-dir", str(tmp_path / ".d")])
+        assert exc.value.code == 4 and count(sim.log, 16) == 0
+        sim.write("ready", (0x0001,))  # stopped
+        with pytest.raises(SystemExit) as exc:
+            main(["apply", str(example), "--device", sim.url, "--yes", "--report", str(report),
+                  "--state-dir", str(tmp_path / ".d")])
+        assert exc.value.code == 0, capsys.readouterr()
+        writes = [(e.address, e.values) for e in sim.log if e.function == 16]
+        assert sim.read("axis_name")[:3] == (0x582D, 0x4158, 0x4953)  # "X-AXIS"
+    dev = json.loads(report.read_text())["devices"][0]
+    assert dev["status"] == "ok"
+    assert dev["notices"] == ["motor_poles takes effect after a power cycle"]
+    assert writes[0] == (0x1F, [0x5AA5]) and writes[-2:] == [(0x20, [1]), (0x1F, [0])]  # unlock ... commit, lock
+    assert "note: motor_poles takes effect after a power cycle" in capsys.readouterr().out
