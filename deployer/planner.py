@@ -458,15 +458,15 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
             errors.append(src.error(("parameters", i, "name"),
                                     f"{pp.name} does not match profile {prof.id} (address or size differ)"))
             continue
-        try:
-            raw = None if param.is_string else param.decode(pp.desired_raw)
-            if param.is_string:
+        if param.is_string:
+            try:
                 param.text_of(pp.desired_raw)
-        except codec.CodecError:
-            raw = float("nan")
+            except codec.CodecError as e:
+                errors.append(src.error(("parameters", i, "desired_raw"), f"{pp.name}: {e}"))
+                continue
+        raw = None if param.is_string else param.decode(pp.desired_raw)
         bounds = param.raw_bounds()
-        if not param.writable or raw != raw or (  # NaN: text that is not the profile's encoding
-                raw is not None and bounds is not None and not bounds[0] <= raw <= bounds[1]):
+        if not param.writable or (raw is not None and bounds is not None and not bounds[0] <= raw <= bounds[1]):
             errors.append(src.error(("parameters", i, "desired_raw"),
                                     f"{pp.name}: raw {raw} is not writable within the profile's range"))
             continue

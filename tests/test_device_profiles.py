@@ -408,15 +408,15 @@ def test_rejected_field_register_and_a_saved_plan(tmp_path: Path, fields: Profil
     # plan --out against the device, then apply PLAN.json: the field register is merged again at write time
     with SimulatorThread(fields, init={0x30: 0x0001}) as s:
         plan = tmp_path / "plan.json"
-        path = recipe(tmp_path, "  mode: torque\n")
+        path = recipe(tmp_path, "  mode: torque\n  name: AB\n")
         with pytest.raises(SystemExit):
             main(["plan", path, "--device", s.url, "--out", str(plan)])
-        assert json.loads(plan.read_text())["writes"][0]["registers"] == [0x0009]
+        assert json.loads(plan.read_text())["writes"][0]["registers"] == [0x0009, 0x4142, 0x2020, 0x2020, 0x2020]
         s.write("enable", (0x3001,))  # jog_step changes after the plan was made
         with pytest.raises(SystemExit) as exc:
             main(["apply", str(plan), "--yes", "--state-dir", str(tmp_path / ".d")])
         assert exc.value.code == 0, capsys.readouterr()
-        assert s.read("mode") == (0x3009,)
+        assert s.read("mode") == (0x3009,) and s.read("name") == (0x4142, 0x2020, 0x2020, 0x2020)
 
 
 # ---- planner property: a register of fields plans like one whole register ----------------------
