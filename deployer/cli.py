@@ -213,14 +213,15 @@ def _output(text: str, path: str | None, summary: str) -> None:
 @click.option("--addressing", type=click.Choice(["address", "register-number", "modicon"]), default="address",
               show_default=True, help="How the address column counts.")
 @click.option("--delimiter", help="Cell separator (default: sniffed from , ; or tab).")
-@click.option("--word-order", type=click.Choice(["big", "little"]), help="Word order of 32/64-bit rows.")
+@click.option("--byte-order", help="Layout of rows without a byte_order cell: ABCD, CDAB, BADC, DCBA (or "
+              "none, byte, word, word_byte).")
 def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Sequence[str], addressing: str,
-                        delimiter: str | None, word_order: str | None) -> int:
+                        delimiter: str | None, byte_order: str | None) -> int:
     """A profile from a CSV register list (columns: name, address, type, unit, scale, min, max, access ...)."""
     from .profile.csv_import import read_csv
 
     draft = read_csv(file, profile_id=profile_id, columns=_pairs(columns, "--column"), addressing=addressing,
-                     delimiter=delimiter, word_order=word_order)
+                     delimiter=delimiter, byte_order=byte_order)
     return _write_imported(draft, out, file)
 
 

@@ -209,3 +209,15 @@ def test_csv_round_trip_profile_csv_profile(tmp_path: Path, capsys: pytest.Captu
                str(tmp_path / "back.yaml"))[0] == 0
     assert [same(p) for p in load_profile(prof).parameters] == [same(p) for p in
                                                                 load_profile(tmp_path / "back.yaml").parameters]
+
+
+def test_csv_default_byte_order(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src = tmp_path / "m.csv"
+    src.write_text("name\taddress\ttype\tbyte order\npower\t0\tFLOAT\t\ncounter\t2\tU32\tABCD\n")
+    out = tmp_path / "m.yaml"
+    code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "m", "--byte-order", "CDAB", "-o", str(out))
+    assert code == 0, err
+    prof = load_profile(out)
+    assert prof.parameter("power").layout == "CDAB" and prof.parameter("counter").layout == "ABCD"
+    code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "m", "--byte-order", "ACBD")
+    assert code == 1 and "--byte-order ACBD: expected one of ABCD" in err

@@ -81,7 +81,7 @@ def _cell_starts(line: str, delimiter: str) -> list[int]:
 
 
 def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = None,
-             addressing: str = "address", delimiter: str | None = None, word_order: str | None = None) -> Draft:
+             addressing: str = "address", delimiter: str | None = None, byte_order: str | None = None) -> Draft:
     """The register list at ``path`` as a Draft profile; InputError with every bad cell at once."""
     text = yamlsrc.read_text(path)
     if delimiter is None:
@@ -101,6 +101,9 @@ def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = 
         raise InputError([Diagnostic(path, 1, 1, "the file is empty: expected a header row")])
     header = rows[0][1]
     wanted = {k: tuple(_key(h) for h in v) for k, v in COLUMNS.items()}
+    if byte_order and byte_order not in codec.LAYOUTS and byte_order not in codec.SWAPS:
+        raise InputError([Diagnostic(path, 1, 1, f"--byte-order {byte_order}: expected one of "
+                                                 f"{', '.join([*codec.LAYOUTS, *codec.SWAPS])}")])
     for ours, theirs in (columns or {}).items():
         if ours not in COLUMNS:
             raise InputError([Diagnostic(path, 1, 1, f"--column {ours}=...: unknown column; known: "
@@ -179,8 +182,6 @@ def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = 
                 spec["swap"] = order.lower()
             else:
                 err("byte_order", f"unknown byte order '{order}' (ABCD, CDAB, BADC, DCBA or none/byte/word/word_byte)")
-        elif word_order:
-            spec["word_order"] = word_order
         unit = cell("unit")
         if unit and type_ != "string":
             if units.check(unit) is None:
@@ -234,8 +235,12 @@ def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = 
         raise InputError(errors)
     if not parameters:
         raise InputError([Diagnostic(path, 1, 1, "no register rows below the header")])
-    return Draft({"profile": profile_id, "description": f"imported from {path}", "addressing": addressing},
-                 parameters, [])
+    head: dict[str, Any] = {"profile": profile_id, "description": f"imported from {path}", "addressing": addressing}
+    if byte_order in codec.LAYOUTS:  # the default of rows without a byte_order cell
+        head["byte_order"] = byte_order
+    elif byte_order:
+        head["swap"] = byte_order
+    return Draft(head, parameters, [])
 
 
 def _number(text: str) -> int | float:
