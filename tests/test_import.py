@@ -215,7 +215,8 @@ def test_csv_default_byte_order(tmp_path: Path, capsys: pytest.CaptureFixture[st
     src = tmp_path / "m.csv"
     src.write_text("name\taddress\ttype\tbyte order\npower\t0\tFLOAT\t\ncounter\t2\tU32\tABCD\n")
     out = tmp_path / "m.yaml"
-    code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "m", "--byte-order", "CDAB", "-o", str(out))
+    code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "m", "--byte-order", "CDAB",
+                       "-o", str(out))
     assert code == 0, err
     prof = load_profile(out)
     assert prof.parameter("power").layout == "CDAB" and prof.parameter("counter").layout == "ABCD"
