@@ -225,6 +225,27 @@ def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Se
     return _write_imported(draft, out, file)
 
 
+@profiles_import.command("xlsx")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--id", "profile_id", required=True, help="Profile id to write (e.g. acme-drive).")
+@click.option("--sheet", help="Worksheet to read (default: the first).")
+@click.option("-o", "--out", help="Profile file to write (default: stdout).")
+@click.option("--column", "columns", multiple=True, metavar="OURS=HEADER",
+              help="Which header holds a column, e.g. --column address='Reg No'. Repeatable.")
+@click.option("--addressing", type=click.Choice(["address", "register-number", "modicon"]), default="address",
+              show_default=True, help="How the address column counts.")
+@click.option("--byte-order", help="Layout of rows without a byte_order cell: ABCD, CDAB, BADC, DCBA (or "
+              "none, byte, word, word_byte).")
+def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str | None, columns: Sequence[str],
+                         addressing: str, byte_order: str | None) -> int:
+    """A profile from an Excel register list (the same columns as csv; needs openpyxl)."""
+    from .profile.csv_import import read_xlsx
+
+    draft = read_xlsx(file, profile_id=profile_id, sheet=sheet, columns=_pairs(columns, "--column"),
+                      addressing=addressing, byte_order=byte_order)
+    return _write_imported(draft, out, file)
+
+
 @profiles.group("export")
 def profiles_export() -> None:
     """Write a profile in another format."""

@@ -222,3 +222,30 @@ def test_csv_default_byte_order(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert prof.parameter("power").layout == "CDAB" and prof.parameter("counter").layout == "ABCD"
     code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "m", "--byte-order", "ACBD")
     assert code == 1 and "--byte-order ACBD: expected one of ABCD" in err
+
+
+def test_xlsx_with_a_title_block(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    openpyxl = pytest.importorskip("openpyxl", reason="openpyxl is the optional 'xlsx' extra")
+    book = openpyxl.Workbook()
+    ws = book.active
+    ws.title = "Registers"
+    ws.append(["ACME AD-200 drive: Modbus register map"])  # a title block above the header
+    ws.append([])
+    ws.append(HEADER)
+    rows = vendor_rows(60)
+    for row in rows:
+        ws.append([int(c) if c.isdigit() else c for c in row])  # addresses as numbers, as Excel keeps them
+    path = tmp_path / "map.xlsx"
+    book.save(path)
+    out = tmp_path / "map.yaml"
+    code, _, err = cli(capsys, "profiles", "import", "xlsx", str(path), "--id", "acme", "--column", "address=Reg No",
+                       "-o", str(out))
+    assert code == 0, err
+    prof = load_profile(out)
+    assert len(prof.parameters) == len(rows)
+    ws.cell(row=5, column=3, value="U24")  # the second register row's type
+    book.save(path)
+    code, _, err = cli(capsys, "profiles", "import", "xlsx", str(path), "--id", "acme", "--column", "address=Reg No")
+    assert code == 1 and f"{path}[Registers]:5:3: error: unknown type 'U24'" in err
+    code, _, err = cli(capsys, "profiles", "import", "xlsx", str(path), "--id", "acme", "--sheet", "Nope")
+    assert code == 1 and "no sheet 'Nope' (sheets: Registers)" in err

@@ -12,12 +12,13 @@ from __future__ import annotations
 import csv
 import io
 import re
+import zipfile
 from collections.abc import Mapping
 from decimal import Decimal, InvalidOperation
 from typing import Any
 
 from .. import codec, units, yamlsrc
-from ..diagnostics import Diagnostic, InputError
+from ..diagnostics import Diagnostic, InputError, UsageError
 from .emit import Draft, Origin
 from .loader import parse_register
 from .model import Profile
@@ -80,6 +81,9 @@ def _cell_starts(line: str, delimiter: str) -> list[int]:
     return starts
 
 
+Row = tuple[int, list[str], list[int]]  # the line (sheet row) it starts on, its cells, each cell's column
+
+
 def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = None,
              addressing: str = "address", delimiter: str | None = None, byte_order: str | None = None) -> Draft:
     """The register list at ``path`` as a Draft profile; InputError with every bad cell at once."""
@@ -91,15 +95,50 @@ def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = 
             delimiter = ","
     physical = text.splitlines()
     reader = csv.reader(io.StringIO(text), delimiter=delimiter)
-    rows: list[tuple[int, list[str]]] = []  # (the line a row starts on, its cells)
+    rows: list[Row] = []
     prev = 0
     for cells in reader:
-        rows.append((prev + 1, cells))
+        rows.append((prev + 1, cells, _cell_starts(physical[prev], delimiter)))
         prev = reader.line_num  # a quoted cell may span lines
+    return _draft(path, rows, profile_id=profile_id, columns=columns, addressing=addressing, byte_order=byte_order)
+
+
+def read_xlsx(path: str, *, profile_id: str, sheet: str | None = None, columns: Mapping[str, str] | None = None,
+              addressing: str = "address", byte_order: str | None = None) -> Draft:
+    """A register list in an Excel workbook (openpyxl, the 'xlsx' extra); problems point at FILE[SHEET]:ROW:COLUMN."""
+    try:
+        import openpyxl
+    except ImportError:
+        raise UsageError("reading .xlsx needs openpyxl: pip install 'modbus-deployer[xlsx]'") from None
+    try:
+        book = openpyxl.load_workbook(path, read_only=True, data_only=True)
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
+        raise InputError([Diagnostic(path, 0, 0, f"cannot read the workbook: {e}")]) from None
+    if sheet is not None and sheet not in book.sheetnames:
+        raise InputError([Diagnostic(path, 0, 0, f"no sheet '{sheet}' (sheets: {', '.join(book.sheetnames)})")])
+    ws = book[sheet] if sheet is not None else book.worksheets[0]
+    rows: list[Row] = []
+    for r, values in enumerate(ws.iter_rows(values_only=True), 1):
+        cells = [_cell_text(v) for v in values]
+        rows.append((r, cells, list(range(1, len(cells) + 1))))
+    book.close()
+    return _draft(f"{path}[{ws.title}]", rows, profile_id=profile_id, columns=columns, addressing=addressing,
+                  byte_order=byte_order)
+
+
+def _cell_text(v: object) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float) and v.is_integer():
+        return str(int(v))
+    return str(v)
+
+
+def _draft(path: str, rows: list[Row], *, profile_id: str, columns: Mapping[str, str] | None, addressing: str,
+           byte_order: str | None) -> Draft:
     errors: list[Diagnostic] = []
     if not rows:
         raise InputError([Diagnostic(path, 1, 1, "the file is empty: expected a header row")])
-    header = rows[0][1]
     wanted = {k: tuple(_key(h) for h in v) for k, v in COLUMNS.items()}
     if byte_order and byte_order not in codec.LAYOUTS and byte_order not in codec.SWAPS:
         raise InputError([Diagnostic(path, 1, 1, f"--byte-order {byte_order}: expected one of "
@@ -109,19 +148,26 @@ def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = 
             raise InputError([Diagnostic(path, 1, 1, f"--column {ours}=...: unknown column; known: "
                                                      f"{', '.join(COLUMNS)}")])
         wanted[ours] = (_key(theirs),)
-    where: dict[str, int] = {}
-    for i, h in enumerate(header):
-        for ours, keys in wanted.items():
-            if _key(h) in keys and ours not in where:
-                where[ours] = i
+
+    def columns_of(header: list[str]) -> dict[str, int]:
+        where: dict[str, int] = {}
+        for i, h in enumerate(header):
+            for ours, keys in wanted.items():
+                if _key(h) in keys and ours not in where:
+                    where[ours] = i
+        return where
+
+    # the header is the first row naming the required columns (vendor sheets open with a title block)
+    first = next((i for i, (_, cells, _) in enumerate(rows[:20]) if all(c in columns_of(cells) for c in REQUIRED)), 0)
+    header = rows[first][1]
+    where = columns_of(header)
     missing = [c for c in REQUIRED if c not in where]
     if missing:
         raise InputError([Diagnostic(path, 1, 1, f"no column for {', '.join(missing)} in the header "
                                                  f"({', '.join(header)}); name it with --column {missing[0]}=HEADER")])
     parameters: list[tuple[str, dict[str, Any], Origin]] = []
     seen: dict[str, int] = {}
-    for line, row in rows[1:]:
-        starts = _cell_starts(physical[line - 1], delimiter)
+    for line, row, starts in rows[first + 1:]:
         if not any(c.strip() for c in row) or row[0].lstrip().startswith("#"):
             continue
 
