@@ -382,6 +382,7 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
         except (DeviceGone, tp.ExceptionResponse) as e:  # nothing of this request was sent
             for n in req.parameters:
                 results[n].status, results[n].error = "failed", f"reading the register to keep its other bits: {e}"
+            stopped = opts.on_error == "stop"
             continue
         try:
             await session.write(req)
