@@ -498,3 +498,19 @@ def test_builtin_example_drive_end_to_end(tmp_path: Path, capsys: pytest.Capture
     assert dev["notices"] == ["motor_poles takes effect after a power cycle"]
     assert writes[0] == (0x1F, [0x5AA5]) and writes[-2:] == [(0x20, [1]), (0x1F, [0])]  # unlock ... commit, lock
     assert "note: motor_poles takes effect after a power cycle" in capsys.readouterr().out
+
+
+def test_field_register_unreadable_before_its_write_is_not_written(tmp_path: Path, fields: Profile) -> None:
+    sim = Simulator(fields)
+    rec = load_recipe(recipe(tmp_path, "  direction: reverse\n"))
+
+    async def body(s: Simulator) -> DeviceResult:
+        async def confirm(plan: object, res: object) -> bool:
+            s.faults.drop_every = 2  # the next request (the read right before the write) gets no answer
+            return True
+        return await apply_device(rec, parse_url(s.url + "?timeout=0.2&retries=0"), 1,
+                                  options=ApplyOptions(state_dir=str(tmp_path / ".d"), confirm=confirm))
+    res = run_with(sim, body)
+    assert res.parameters[0].status == "failed"
+    assert (res.parameters[0].error or "").startswith("reading the register to keep its other bits")
+    assert count(sim.log, 16) == 0 and sim.read("direction") == (0,)
