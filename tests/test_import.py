@@ -249,3 +249,18 @@ def test_xlsx_with_a_title_block(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert code == 1 and f"{path}[Registers]:5:3: error: unknown type 'U24'" in err
     code, _, err = cli(capsys, "profiles", "import", "xlsx", str(path), "--id", "acme", "--sheet", "Nope")
     assert code == 1 and "no sheet 'Nope' (sheets: Registers)" in err
+
+
+def test_sunspec_first_model_carries_the_suns_marker(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("sunspec2")
+    out = tmp_path / "common.yaml"
+    code, _, err = cli(capsys, "profiles", "import", "sunspec", "common", "-o", str(out))
+    assert code == 0, err
+    prof = load_profile(out)
+    assert prof.parameter("SunS").address == 40000 and prof.parameter("ID").address == 40002
+    assert [(c.address, c.raw) for c in prof.identity] == [(40000, 0x5375), (40001, 0x6E53), (40002, 1)]
+    assert prof.parameter("Mn").type == "string" and prof.parameter("Mn").count == 16
+    with SimulatorThread(prof) as sim:  # the simulated device passes its own identity check
+        from deployer.executor import read_current
+        values = asyncio.run(read_current(prof, ["Mn", "DA"], parse_url(sim.url), 1))
+    assert set(values) == {"Mn", "DA"}

@@ -170,11 +170,18 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
         offset += stride * count
     if errors:
         raise InputError(errors)
+    identity = [{"register": at, "raw": model_id, "description": f"SunSpec model ID {model_id}"}]
+    if at == SUNSPEC_BASE + 2:  # the first model: the "SunS" marker right before it is part of the map
+        marker = {"description": "SunSpec marker 'SunS'", "type": "string", "count": 2, "access": "read-only",
+                  "default": "SunS"}
+        parameters.insert(0, ("SunS", {"register": SUNSPEC_BASE, **marker}, Origin(path, 1, 1)))
+        identity[:0] = [{"register": SUNSPEC_BASE, "raw": 0x5375, "description": "'Su' of the SunS marker"},
+                        {"register": SUNSPEC_BASE + 1, "raw": 0x6E53, "description": "'nS' of the SunS marker"}]
     header = {"profile": profile_id or f"sunspec-{model_id}-{group.get('name', 'model')}",
               "description": f"SunSpec model {model_id} ({group.get('label', group.get('name'))}) at address {at}, "
                              "imported from pysunspec2's model definitions",
               "addressing": "address",
-              "identity": [{"register": at, "raw": model_id, "description": f"SunSpec model ID {model_id}"}]}
+              "identity": identity}
     return Draft(header, parameters, tables), warnings
 
 
