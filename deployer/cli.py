@@ -270,19 +270,23 @@ def profiles_export_csv(profile: str, out: str | None) -> int:
               help="Protocol address of the model's ID register (the first model after 'SunS' sits at 40002).")
 @click.option("--sf", "sfs", multiple=True, metavar="NAME=N", help="A scale factor the device reports, e.g. "
               "--sf WMax_SF=0. Repeatable.")
+@click.option("--count", "counts", multiple=True, metavar="GROUP=N", help="Repetitions of a group whose count the "
+              "device reports, e.g. --count curve=4. Repeatable.")
 @click.option("--id", "profile_id", help="Profile id (default: sunspec-MODEL-NAME).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
-def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], profile_id: str | None, out: str | None) -> int:
+def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], counts: Sequence[str], profile_id: str | None,
+                            out: str | None) -> int:
     """A profile from a SunSpec model (number, name or model JSON), using pysunspec2's definitions."""
     from .profile import parse_register
     from .profile.sunspec import read_model
 
     try:
         factors = {k: int(v) for k, v in _pairs(sfs, "--sf").items()}
+        repeats = {k: int(v) for k, v in _pairs(counts, "--count").items()}
         address = parse_register(at)
     except ValueError as e:
-        raise UsageError(f"--sf/--at: {e}") from None
-    draft, warnings = read_model(model, at=address, scale_factors=factors, profile_id=profile_id)
+        raise UsageError(f"--sf/--count/--at: {e}") from None
+    draft, warnings = read_model(model, at=address, scale_factors=factors, counts=repeats, profile_id=profile_id)
     return _write_imported(draft, out, f"SunSpec model {model}", warnings)
 
 

@@ -264,3 +264,20 @@ def test_sunspec_first_model_carries_the_suns_marker(tmp_path: Path, capsys: pyt
         from deployer.executor import read_current
         values = asyncio.run(read_current(prof, ["Mn", "DA"], parse_url(sim.url), 1))
     assert set(values) == {"Mn", "DA"}
+
+
+def test_sunspec_repeating_groups_and_counts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("sunspec2")
+    out = tmp_path / "vv.yaml"
+    code, _, err = cli(capsys, "profiles", "import", "sunspec", "126", "--at", "40200", "-o", str(out))
+    assert code == 0 and "--count curve=N" in err  # the device says how many curves it has
+    code, _, err = cli(capsys, "profiles", "import", "sunspec", "126", "--at", "40200", "--count", "curve=4",
+                       "-o", str(out))
+    assert code == 0, err
+    prof = load_profile(out)
+    # model 126 (volt-var): 10 registers of header, then 4 curves of 54 registers each; L = 226
+    assert prof.parameter("L").default == 226
+    assert prof.parameter("curve[0].ActPt").address == 40200 + 12
+    assert prof.parameter("curve[3].ActPt").address == 40200 + 12 + 3 * 54
+    code, _, err = cli(capsys, "profiles", "import", "sunspec", "126", "--count", "curve=x")
+    assert code == 1 and "--count" in err

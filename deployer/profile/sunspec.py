@@ -64,8 +64,12 @@ def model_path(model: str) -> str:
 
 
 def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping[str, int] | None = None,
-               profile_id: str | None = None) -> tuple[Draft, list[str]]:
-    """The model as a Draft profile with its ID point at protocol address ``at``, and warnings."""
+               counts: Mapping[str, int] | None = None, profile_id: str | None = None) -> tuple[Draft, list[str]]:
+    """The model as a Draft profile with its ID point at protocol address ``at``, and warnings.
+
+    ``counts``: repetitions of groups whose count the device reports (group name -> N).
+    """
+    counts = dict(counts or {})
     path = model_path(model)
     data, src = yamlsrc.load(path)
     sfs = dict(scale_factors or {})
@@ -139,17 +143,22 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
                                        Origin(path, line, col)))
             else:
                 if name == "L":
-                    spec["default"] = _model_length(group)
+                    spec["default"] = _model_length(group, counts)
                 if point.get("type") == "sunssf" and name in sfs:
                     spec["default"] = sfs[name]  # the value given: what a simulated device reports
                 parameters.append((name, {"register": at + offset, **spec}, Origin(path, line, col)))
         offset += size
     for j, sub in enumerate(group.get("groups") or []):
         at_ = ("group", "groups", j)
-        count = sub.get("count", 1)
+        count = sub.get("count")
+        if count is None:  # a group that is there once
+            count = 1
+        if str(sub.get("name")) in counts:
+            count = counts[str(sub["name"])]
         if not isinstance(count, int) or count < 1:
             what = f"the point {count}" if isinstance(count, str) else "variable"
-            warnings.append(f"group {sub.get('name')}: its count is {what} (set by the device); not imported")
+            warnings.append(f"group {sub.get('name')}: its count is {what} (set by the device); not imported "
+                            f"(give it with --count {sub.get('name')}=N)")
             break  # later groups' addresses depend on it
         if sub.get("groups"):
             warnings.append(f"group {sub.get('name')}: nested groups are not imported")
@@ -190,10 +199,12 @@ def _pow10(sf: int) -> float | int:
     return int(d) if sf >= 0 else float(d)
 
 
-def _model_length(group: dict[str, Any]) -> int:
-    """Registers after ID and L (what the L point holds), fixed part and fixed-count groups."""
+def _model_length(group: dict[str, Any], counts: Mapping[str, int]) -> int:
+    """Registers after ID and L (what the L point holds): the fixed part and the groups imported."""
     n = sum(int(p.get("size", 1)) for p in group["points"]) - 2
     for sub in group.get("groups") or []:
-        if isinstance(sub.get("count", 1), int) and not sub.get("groups"):
-            n += int(sub.get("count", 1)) * sum(int(p.get("size", 1)) for p in sub.get("points", []))
+        count = counts.get(str(sub.get("name")), 1 if sub.get("count") is None else sub.get("count"))
+        if not isinstance(count, int) or count < 1 or sub.get("groups"):
+            break
+        n += count * sum(int(p.get("size", 1)) for p in sub.get("points", []))
     return n
