@@ -71,7 +71,8 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
     """
     counts = dict(counts or {})
     path = model_path(model)
-    data, src = yamlsrc.load(path)
+    # JSON allows tabs where YAML (our loader, which keeps positions) does not: same columns with spaces
+    data, src = yamlsrc.load(path, yamlsrc.read_text(path).expandtabs(1))
     sfs = dict(scale_factors or {})
     warnings: list[str] = []
     errors: list[Diagnostic] = []
