@@ -184,7 +184,13 @@ def _pairs(items: Sequence[str], what: str) -> dict[str, str]:
 
 
 def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence[str] = ()) -> int:
+    import re
+
     from .profile.emit import check
+
+    pid = str(draft.header["profile"])
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", pid):  # the profile schema's pattern
+        raise UsageError(f"--id '{pid}': letters, digits, '.', '_' and '-', starting with a letter or digit")
 
     for w in warnings:
         click.echo(f"warning: {w}", err=True)
@@ -283,9 +289,12 @@ def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], counts: Seq
     try:
         factors = {k: int(v) for k, v in _pairs(sfs, "--sf").items()}
         repeats = {k: int(v) for k, v in _pairs(counts, "--count").items()}
-        address = parse_register(at)
     except ValueError as e:
-        raise UsageError(f"--sf/--count/--at: {e}") from None
+        raise UsageError(f"--sf/--count: a count or scale factor is a whole number ({e})") from None
+    try:
+        address = parse_register(at)
+    except ValueError:
+        raise UsageError(f"--at {at}: not a register address (40002, 0x9C42 or 9C42h)") from None
     draft, warnings = read_model(model, at=address, scale_factors=factors, counts=repeats, profile_id=profile_id)
     return _write_imported(draft, out, f"SunSpec model {model}", warnings)
 

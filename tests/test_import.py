@@ -281,3 +281,20 @@ def test_sunspec_repeating_groups_and_counts(tmp_path: Path, capsys: pytest.Capt
     assert prof.parameter("curve[3].ActPt").address == 40200 + 12 + 3 * 54
     code, _, err = cli(capsys, "profiles", "import", "sunspec", "126", "--count", "curve=x")
     assert code == 1 and "--count" in err
+
+
+def test_import_usage_errors_are_messages(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src = tmp_path / "m.csv"
+    src.write_text("name,address,type\na,1,U16\n")
+    code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "bad id")
+    assert code == 1 and "--id 'bad id': letters, digits" in err
+    code, _, err = cli(capsys, "profiles", "import", "csv", str(tmp_path / "none.csv"), "--id", "x")
+    assert code == 1 and "none.csv:0:0: error: no such file" in err
+    pytest.importorskip("openpyxl")
+    code, _, err = cli(capsys, "profiles", "import", "xlsx", str(src), "--id", "x")
+    assert code == 1 and "cannot read the workbook" in err and "Traceback" not in err
+    pytest.importorskip("sunspec2")
+    code, _, err = cli(capsys, "profiles", "import", "sunspec", "121", "--at", "65530")
+    assert code == 1 and "would end past register 65535" in err
+    code, _, err = cli(capsys, "profiles", "import", "sunspec", "121", "--at", "zz")
+    assert code == 1 and "--at zz: not a register address" in err

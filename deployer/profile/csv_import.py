@@ -12,7 +12,6 @@ from __future__ import annotations
 import csv
 import io
 import re
-import zipfile
 from collections.abc import Mapping
 from decimal import Decimal, InvalidOperation
 from typing import Any
@@ -112,7 +111,7 @@ def read_xlsx(path: str, *, profile_id: str, sheet: str | None = None, columns: 
         raise UsageError("reading .xlsx needs openpyxl: pip install 'modbus-deployer[xlsx]'") from None
     try:
         book = openpyxl.load_workbook(path, read_only=True, data_only=True)
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
+    except Exception as e:  # openpyxl raises its own, zipfile's and XML errors for files it cannot read
         raise InputError([Diagnostic(path, 0, 0, f"cannot read the workbook: {e}")]) from None
     if sheet is not None and sheet not in book.sheetnames:
         raise InputError([Diagnostic(path, 0, 0, f"no sheet '{sheet}' (sheets: {', '.join(book.sheetnames)})")])

@@ -178,6 +178,8 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
             tables.append((str(sub["name"]), {"count": count, "base": at + offset, "stride": stride, "fields": fields},
                            Origin(path, line, col)))
         offset += stride * count
+    if at + offset > 0x10000:
+        raise UsageError(f"--at {at}: model {model_id} is {offset} registers long and would end past register 65535")
     if errors:
         raise InputError(errors)
     identity = [{"register": at, "raw": model_id, "description": f"SunSpec model ID {model_id}"}]
