@@ -44,9 +44,10 @@ BOOL = "bool"  # a one-bit field: false/true
 # Layout names users find in manuals (and Home Assistant's ``swap``) -> (word_order, byte_swap)
 LAYOUTS: dict[str, tuple[str, bool]] = {
     "ABCD": ("big", False), "ABCDEFGH": ("big", False), "big-endian": ("big", False),
-    "CDAB": ("little", False), "GHEFCDAB": ("little", False), "little-endian-word-swap": ("little", False),
-    "big-endian-word-swap": ("little", False),
+    "CDAB": ("little", False), "GHEFCDAB": ("little", False), "big-endian-word-swap": ("little", False),
+    "little-endian-byte-swap": ("little", False),  # Modbus Poll's name for CDAB
     "BADC": ("big", True), "BADCFEHG": ("big", True), "big-endian-byte-swap": ("big", True),
+    "little-endian-word-swap": ("big", True),
     "DCBA": ("little", True), "HGFEDCBA": ("little", True), "little-endian": ("little", True),
 }
 # Home Assistant modbus: swap: none | byte | word | word_byte

@@ -212,3 +212,12 @@ def test_field_round_trip_keeps_other_bits(lo: int, width: int, word: int, data:
     new = codec.insert_field(raw, mask, word=word)
     assert codec.extract_field(new, mask) == raw
     assert new & ~mask == word & ~mask
+
+
+@pytest.mark.parametrize(("name", "layout"), [
+    ("big-endian", "ABCD"), ("little-endian", "DCBA"),
+    ("big-endian-byte-swap", "BADC"), ("big-endian-word-swap", "CDAB"),
+    ("little-endian-byte-swap", "CDAB"), ("little-endian-word-swap", "BADC"),  # DCBA with bytes / words swapped
+])
+def test_layout_names_from_tools(name: str, layout: str) -> None:
+    assert codec.LAYOUTS[name] == codec.LAYOUTS[layout]
