@@ -298,3 +298,14 @@ def test_import_usage_errors_are_messages(tmp_path: Path, capsys: pytest.Capture
     assert code == 1 and "would end past register 65535" in err
     code, _, err = cli(capsys, "profiles", "import", "sunspec", "121", "--at", "zz")
     assert code == 1 and "--at zz: not a register address" in err
+
+
+def test_csv_numbers_as_manuals_write_them(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src = tmp_path / "m.csv"
+    src.write_text('name;address;type;scale;min;max\nmask;0x10;U16;;0;0xFFFF\nlimit;11h;U16;0,01;0;FFh\n'
+                   'gain;0x12;FLOAT;;-1e3;1.5E3\n')
+    out = tmp_path / "m.yaml"
+    assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "m", "-o", str(out))[0] == 0
+    prof = load_profile(out)
+    assert prof.parameter("mask").max == 0xFFFF and prof.parameter("limit").max == 0xFF
+    assert str(prof.parameter("limit").scale) == "0.01" and prof.parameter("gain").min == -1000

@@ -289,6 +289,8 @@ def _draft(path: str, rows: list[Row], *, profile_id: str, columns: Mapping[str,
 
 
 def _number(text: str) -> int | float:
+    if re.fullmatch(r"0[xX][0-9A-Fa-f]+|[0-9A-Fa-f]+[hH]", text):  # hex, as manuals write limits too
+        return parse_register(text)
     d = Decimal(text.replace(",", ".") if text.count(",") == 1 and "." not in text else text)
     return int(d) if d == d.to_integral_value() and "." not in text and "e" not in text.lower() else float(d)
 
