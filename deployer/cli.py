@@ -585,6 +585,9 @@ def _register(text: str) -> int:
               help="tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/X?baudrate=B, ascii:///dev/X")
 @click.option("--unit", "units", type=click.IntRange(1, 247), multiple=True, help="unit id(s) served (default 1)")
 @click.option("--init", "init_recipe", type=click.Path(dir_okay=False), help="start with a recipe's values")
+@click.option("--set", "set_registers", multiple=True, metavar="ADDR=RAW",
+              help="start a register (protocol address) with a raw value, read-only ones too, e.g. a status word "
+                   "saying 'running': --set 0x10=8. Repeatable.")
 @click.option("--latency-ms", type=click.FloatRange(min=0), default=0, help="delay every answer")
 @click.option("--baud", type=click.IntRange(min=50), help="delay answers by their line time at this baud rate (8E1)")
 @click.option("--drop-every", type=click.IntRange(min=0), default=0, help="never answer every Nth request")
@@ -595,7 +598,8 @@ def _register(text: str) -> int:
 @click.option("--state", "state_path", type=click.Path(dir_okay=False), help="dump registers as JSON on exit/SIGUSR1")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False), help="one JSON line per request")
 @click.option("--loose-limits", is_flag=True, help="accept requests beyond the profile's limits")
-def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str | None, latency_ms: float,
+def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str | None,
+             set_registers: tuple[str, ...], latency_ms: float,
              baud: int | None, drop_every: int, busy_first: int, fail_registers: tuple[str, ...],
              disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
@@ -608,12 +612,26 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
         parse_listen(listen)
     except ValueError as e:
         raise UsageError(str(e)) from None
-    init = init_from_recipe(load_recipe(init_recipe)) if init_recipe else None
+    init = init_from_recipe(load_recipe(init_recipe)) if init_recipe else {}
+    for item in set_registers:
+        addr, sep, raw = item.partition("=")
+        if not sep:
+            raise UsageError(f"--set {item}: expected ADDR=RAW, e.g. 0x10=8")
+        try:
+            address, value = _register(addr.strip()), _register(raw.strip())
+        except click.BadParameter:
+            raise UsageError(f"--set {item}: expected ADDR=RAW with numbers, e.g. 0x10=8") from None
+        if value > 0xFFFF:
+            raise UsageError(f"--set {item}: a register holds 0..65535")
+        init[address] = value
     faults = Faults(latency_ms=latency_ms, baud=baud, drop_every=drop_every, busy_first=busy_first,
                     fail_registers=frozenset(_register(r) for r in fail_registers),
                     disconnect_after=disconnect_after)
-    sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
-                    state_path=state_path, strict_limits=not loose_limits)
+    try:
+        sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
+                        state_path=state_path, strict_limits=not loose_limits)
+    except ValueError as e:  # a --set register the profile does not declare
+        raise UsageError(str(e)) from None
 
     def ready(s: Simulator) -> None:
         which = ", ".join(str(u) for u in s.units)

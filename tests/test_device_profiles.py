@@ -514,3 +514,31 @@ def test_field_register_unreadable_before_its_write_is_not_written(tmp_path: Pat
     assert res.parameters[0].status == "failed"
     assert (res.parameters[0].error or "").startswith("reading the register to keep its other bits")
     assert count(sim.log, 16) == 0 and sim.read("direction") == (0,)
+
+
+def test_simulate_set_makes_the_drive_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import signal
+    import sys
+
+    from tests.conftest import free_port
+
+    port = free_port()
+    example = Path(__file__).parent.parent / "recipes" / "examples" / "example-drive-axis1.yaml"
+    proc = subprocess.Popen([sys.executable, "-m", "deployer", "simulate", "example-drive", "--listen",
+                             f"tcp://127.0.0.1:{port}", "--set", "0x10=9"], stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        assert "simulating example-drive" in proc.stderr.readline()
+        with pytest.raises(SystemExit) as exc:
+            main(["apply", str(example), "--device", f"tcp://127.0.0.1:{port}", "--yes",
+                  "--state-dir", str(tmp_path / ".d")])
+        assert exc.value.code == 4
+        assert "precondition failed: register 0x0010 bit 3 (drive stopped) is 1" in capsys.readouterr().out
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    for bad, message in (("0x10", "expected ADDR=RAW"), ("0x999=1", "not declared in profile example-drive"),
+                         ("0x10=70000", "a register holds 0..65535")):
+        with pytest.raises(SystemExit) as exc:
+            main(["simulate", "example-drive", "--set", bad])
+        assert exc.value.code == 1 and message in capsys.readouterr().err
