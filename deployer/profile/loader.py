@@ -334,6 +334,12 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         elif a is not None:
             preconditions.append(Precondition(a, mask, int(item["equals"]), item.get("description", "")))
     stage_waits = tuple((int(w["stage"]), int(w["wait"])) for w in data.get("stages") or [])
+    seen_stages: dict[int, int] = {}
+    for i, (stage, _) in enumerate(stage_waits):
+        if stage in seen_stages:
+            errors.append(src.error(("stages", i, "stage"),
+                                    f"stage {stage} is already set (stages item {seen_stages[stage]})"))
+        seen_stages.setdefault(stage, i)
     commits, unlock, lock = actions("commit"), actions("unlock"), actions("lock")
     if errors:
         raise InputError(errors)
