@@ -309,3 +309,22 @@ def test_csv_numbers_as_manuals_write_them(tmp_path: Path, capsys: pytest.Captur
     prof = load_profile(out)
     assert prof.parameter("mask").max == 0xFFFF and prof.parameter("limit").max == 0xFF
     assert str(prof.parameter("limit").scale) == "0.01" and prof.parameter("gain").min == -1000
+
+
+def test_sunspec_curves_with_points(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Model 705 (DER volt-var): curves (NCrv) of points (NPt), both counts reported by the device."""
+    pytest.importorskip("sunspec2")
+    out = tmp_path / "vv.yaml"
+    code, _, err = cli(capsys, "profiles", "import", "sunspec", "705", "--at", "40300", "--count", "Crv=3",
+                       "--count", "Pt=4", "-o", str(out))
+    assert code == 0, err
+    prof = load_profile(out)
+    # 15 registers of header (ID and L included), then curves of 10 registers + 4 points x (V, Var)
+    assert prof.parameter("L").default == 13 + 3 * 18
+    assert prof.parameter("Crv[0].ActPt").address == 40300 + 15
+    assert prof.parameter("Crv[1].Pt2_V").address == 40300 + 15 + 18 + 10 + 2 * 2
+    assert prof.parameter("Crv[2].Pt3_Var").address == 40300 + 15 + 2 * 18 + 10 + 3 * 2 + 1
+    (tmp_path / "r.yaml").write_text("recipe: vv\nprofile: vv.yaml\nparameters:\n"
+                                     "  Crv[1]: {ActPt: 2, Pt0_V: 920, Pt0_Var: 300, Pt1_V: 1080, Pt1_Var: -300}\n")
+    plan = make_plan(load_recipe(tmp_path / "r.yaml"), Target(None, 1, str(out)))
+    assert [(w.address, w.count) for w in plan.writes] == [(40300 + 15 + 18, 1), (40300 + 15 + 18 + 10, 4)]

@@ -83,6 +83,7 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
     parameters: list[tuple[str, dict[str, Any], Origin]] = []
     tables: list[tuple[str, dict[str, Any], Origin]] = []
     offset = 0
+    length_spec: dict[str, Any] | None = None
 
     def spec_of(point: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any] | None, int]:
         ptype = str(point.get("type"))
@@ -143,41 +144,63 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
                     parameters.append((f"{name}.{s['name']}", {"register": at + offset, **field_spec},
                                        Origin(path, line, col)))
             else:
-                if name == "L":
-                    spec["default"] = _model_length(group, counts)
                 if point.get("type") == "sunssf" and name in sfs:
                     spec["default"] = sfs[name]  # the value given: what a simulated device reports
-                parameters.append((name, {"register": at + offset, **spec}, Origin(path, line, col)))
+                entry = {"register": at + offset, **spec}
+                parameters.append((name, entry, Origin(path, line, col)))
+                if name == "L":
+                    length_spec = entry  # its default is the model's length, known once the groups are laid out
         offset += size
-    for j, sub in enumerate(group.get("groups") or []):
-        at_ = ("group", "groups", j)
-        count = sub.get("count")
-        if count is None:  # a group that is there once
-            count = 1
-        if str(sub.get("name")) in counts:
-            count = counts[str(sub["name"])]
+    def count_of(sub: dict[str, Any]) -> int | None:
+        """How often a group repeats: the model's fixed count, one, or --count; None when unknown."""
+        count = counts.get(str(sub.get("name")), 1 if sub.get("count") is None else sub.get("count"))
         if not isinstance(count, int) or count < 1:
-            what = f"the point {count}" if isinstance(count, str) else "variable"
+            what = f"the point {sub.get('count')}" if isinstance(sub.get("count"), str) else "variable"
             warnings.append(f"group {sub.get('name')}: its count is {what} (set by the device); not imported "
                             f"(give it with --count {sub.get('name')}=N)")
-            break  # later groups' addresses depend on it
-        if sub.get("groups"):
-            warnings.append(f"group {sub.get('name')}: nested groups are not imported")
-            break
-        stride = sum(int(p.get("size", 1)) for p in sub.get("points", []))
-        fields: dict[str, Any] = {}
-        f_off = 0
+            return None
+        return count
+
+    def fields_of(sub: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any], int] | None:
+        """A group's points as table fields (offset from the entry's start), and the entry's size. A group
+        nested in it (a curve's points) becomes fields Pt0_V, Pt0_Var, Pt1_V ... after the group's own."""
+        out: dict[str, Any] = {}
+        size = 0
         for k, point in enumerate(sub.get("points", [])):
-            spec, size = spec_of(point, (*at_, "points", k), f"{sub.get('name')}.")
+            spec, n = spec_of(point, (*at_, "points", k), f"{sub.get('name')}.")
             if spec is not None and point.get("type") != "pad":
                 spec.pop("default", None)
-                fields[str(point["name"])] = {"offset": f_off, **spec}
-            f_off += size
+                out[f"{prefix}{point['name']}"] = {"offset": size, **spec}
+            size += n
+        for k, inner in enumerate(sub.get("groups") or []):
+            if prefix:  # a third level: no model in pysunspec2 has one
+                warnings.append(f"group {inner.get('name')}: groups nested twice are not imported")
+                return None
+            n_inner = count_of(inner)
+            got = None if n_inner is None else fields_of(inner, (*at_, "groups", k), "-")
+            if n_inner is None or got is None:
+                return None
+            inner_fields, inner_size = got
+            for i in range(n_inner):
+                for name, spec in inner_fields.items():
+                    out[f"{inner['name']}{i}_{name[1:]}"] = {**spec, "offset": size + i * inner_size + spec["offset"]}
+            size += n_inner * inner_size
+        return out, size
+
+    for j, sub in enumerate(group.get("groups") or []):
+        at_ = ("group", "groups", j)
+        count = count_of(sub)
+        got = None if count is None else fields_of(sub, at_)
+        if count is None or got is None:
+            break  # later groups' addresses depend on it
+        fields, stride = got
         line, col = src.pos(at_)
         if fields:
             tables.append((str(sub["name"]), {"count": count, "base": at + offset, "stride": stride, "fields": fields},
                            Origin(path, line, col)))
         offset += stride * count
+    if length_spec is not None:
+        length_spec["default"] = offset - 2  # the registers after ID and L
     if at + offset > 0x10000:
         raise UsageError(f"--at {at}: model {model_id} is {offset} registers long and would end past register 65535")
     if errors:
@@ -200,14 +223,3 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
 def _pow10(sf: int) -> float | int:
     d = Decimal(10) ** sf
     return int(d) if sf >= 0 else float(d)
-
-
-def _model_length(group: dict[str, Any], counts: Mapping[str, int]) -> int:
-    """Registers after ID and L (what the L point holds): the fixed part and the groups imported."""
-    n = sum(int(p.get("size", 1)) for p in group["points"]) - 2
-    for sub in group.get("groups") or []:
-        count = counts.get(str(sub.get("name")), 1 if sub.get("count") is None else sub.get("count"))
-        if not isinstance(count, int) or count < 1 or sub.get("groups"):
-            break
-        n += count * sum(int(p.get("size", 1)) for p in sub.get("points", []))
-    return n
