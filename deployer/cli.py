@@ -322,7 +322,8 @@ def profiles_show(profile: str) -> int:
             rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
         default = "" if p.default is None else p.default if isinstance(p.default, str) else format_decimal(p.default)
         table.add_row(p.name, f"0x{p.address:04X} ({p.address})", _type_text(p), p.unit or "",
-                      format_decimal(p.scale), rng, p.access, default, p.description)
+                      "" if p.is_string or p.type == "bool" else format_decimal(p.scale), rng, p.access, default,
+                      p.description)
     out.print(table)
     return EXIT_OK
 
