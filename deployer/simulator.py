@@ -182,7 +182,9 @@ class Simulator:
         self._extra = sorted(self._action_regs - self._owner.keys())
         self._unlock_regs = {a.address + i: w for a in profile.unlock for i, w in enumerate(a.registers)}
         self._lock_regs = {a.address + i for a in profile.lock for i in range(len(a.registers))}
-        self._waits = {a.address: a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit) if a.wait_ms}
+        # the writes after which the device is busy for a while: (address, the words written) -> ms
+        self._waits = {(a.address, a.registers): a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit)
+                       if a.wait_ms}
         self._busy_until = 0.0  # a declared wait after an unlock/commit/lock write: busy (06) meanwhile
         start = initial_registers(profile)
         for a, v in (init or {}).items():
@@ -361,8 +363,9 @@ class Simulator:
         for a in range(address, address + count):  # registers of unlock/lock/commit writes only
             if not self._owner.get(a):
                 registers[a - start] = values[a - address]
-            wait = self._waits.get(a)
-            if wait:
+        for (a, words), wait in self._waits.items():  # e.g. storing to EEPROM: busy for the declared time
+            if address <= a and a + len(words) <= address + count and \
+                    tuple(values[a - address:a - address + len(words)]) == words:
                 self._busy_until = time.monotonic() + wait / 1000
         return None
 

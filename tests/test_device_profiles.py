@@ -542,3 +542,29 @@ def test_simulate_set_makes_the_drive_run(tmp_path: Path, capsys: pytest.Capture
         with pytest.raises(SystemExit) as exc:
             main(["simulate", "example-drive", "--set", bad])
         assert exc.value.code == 1 and message in capsys.readouterr().err
+
+
+@pytest.mark.skipif(MBPOLL is None, reason="mbpoll (libmodbus) is not installed")
+def test_mbpoll_sees_the_guarded_drive(tmp_path: Path, drive: Profile) -> None:
+    """An independent client (libmodbus) checks the simulated drive: locked, refusing, then what apply wrote."""
+    assert MBPOLL is not None
+    with SimulatorThread(drive) as sim:
+        port = sim.url.rsplit(":", 1)[1]
+
+        def poll(*args: str, write: str | None = None) -> subprocess.CompletedProcess[str]:
+            assert MBPOLL is not None
+            return subprocess.run([MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", *args, "127.0.0.1",
+                                   *([write] if write else [])], capture_output=True, text=True, timeout=20)
+
+        refused = poll("-r", "64", "-t", "4", write="15")  # accel while the parameters are locked
+        assert refused.returncode != 0 and "Slave device or server failure" in refused.stdout + refused.stderr
+        rec = load_recipe(recipe(tmp_path, "  mode: torque\n  direction: reverse\n  accel: 2 s\n", "drive.yaml"))
+        options = ApplyOptions(state_dir=str(tmp_path / ".d"))
+        res = asyncio.run(apply_device(rec, parse_url(sim.url), 1, options=options))
+        assert res.status == "ok"
+        out = poll("-r", "48", "-t", "4:hex")
+        assert out.returncode == 0 and "[48]: \t0x000A" in out.stdout  # direction and mode bits
+        out = poll("-r", "32", "-c", "2", "-t", "4")
+        assert "[32]: \t0" in out.stdout and "[33]: \t1" in out.stdout  # locked again, stored to EEPROM
+        again = poll("-r", "64", "-t", "4", write="15")
+        assert "Slave device or server failure" in again.stdout + again.stderr  # and refusing again
