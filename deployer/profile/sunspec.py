@@ -2,8 +2,9 @@
 
 A SunSpec device lays its models one after the other from holding register 40000 ("SunS"),
 so a model's points sit at fixed offsets from the address of its ``ID`` point. pysunspec2
-ships the official model definitions as JSON; this module reads them (the package is an
-optional extra: ``pip install 'modbus-deployer[sunspec]'``).
+ships the official model definitions as JSON; this module reads those files with our own loader
+rather than ``sunspec2.mdef`` so that every problem points at a line of the model file (the
+package is an optional extra: ``pip install 'modbus-deployer[sunspec]'``).
 
 Scale factors (``sf``) name another point whose value the device reports at run time; a
 profile's scale is fixed, so give the values you know (``--sf WMax_SF=0``), else the point is
@@ -12,6 +13,7 @@ imported unscaled and its description says which scale factor applies.
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Mapping
 from decimal import Decimal
@@ -54,7 +56,6 @@ def model_path(model: str) -> str:
         if not os.path.isfile(path):
             raise UsageError(f"no SunSpec model {model} in pysunspec2's definitions")
         return path
-    import json
     for f in sorted(os.listdir(directory)):
         if f.startswith("model_") and f.endswith(".json"):
             with open(os.path.join(directory, f), encoding="utf-8") as fh:
