@@ -12,7 +12,7 @@ from __future__ import annotations
 import csv
 import io
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from decimal import Decimal, InvalidOperation
 from typing import Any
 
@@ -189,92 +189,9 @@ def _draft(path: str, rows: list[Row], *, profile_id: str, columns: Mapping[str,
             err("name", f"'{name}' is already defined on line {seen[name]}")
             continue
         seen[name] = line
-        spec: dict[str, Any] = {}
-        desc = cell("description")
-        if raw_name != name:
-            desc = f"{raw_name}: {desc}" if desc else raw_name
-        if desc:
-            spec["description"] = desc
-        try:
-            spec["register"] = parse_register(cell("address"))
-        except (ValueError, IndexError):
-            err("address", f"not a register address: '{cell('address')}'")
+        spec = _row_spec(name, raw_name, cell, err)
+        if spec is None:
             continue
-        type_text = cell("type")
-        type_ = TYPES.get(type_text.lower().replace(" ", "").replace("_", ""))
-        if type_ is None:
-            err("type", f"unknown type '{type_text}' (known: {', '.join(sorted(set(TYPES.values())))} "
-                        f"and names like U16, S32, REAL, DWORD)")
-            continue
-        bits = cell("bits")
-        if type_ == "bool" and not bits:
-            err("type", f"{name}: a bool needs the bit number in the 'bits' column")
-            continue
-        spec["type"] = "uint16" if bits and type_ != "bool" and type_ not in ("uint16", "int16") else type_
-        if bits:
-            spec["bits"] = int(bits) if bits.isdigit() else bits
-        if type_ == "string":
-            n = cell("count")
-            if not n.isdigit() or int(n) < 1:
-                err("count", f"{name}: a string needs its register count in the 'count' column")
-                continue
-            spec["count"] = int(n)
-        if cell("byte_order"):
-            order = cell("byte_order")
-            if order in codec.LAYOUTS:
-                spec["byte_order"] = order
-            elif order.lower() in codec.SWAPS:
-                spec["swap"] = order.lower()
-            else:
-                err("byte_order", f"unknown byte order '{order}' (ABCD, CDAB, BADC, DCBA or none/byte/word/word_byte)")
-        unit = cell("unit")
-        if unit and type_ != "string":
-            if units.check(unit) is None:
-                spec["unit"] = unit
-            else:  # kept for people, not for conversions
-                spec["description"] = f"{spec.get('description', name)} [{unit}]"
-        for col in ("scale", "min", "max"):
-            v = cell(col)
-            if not v or type_ == "string":
-                continue
-            try:
-                spec[col] = _number(v)
-            except InvalidOperation:
-                err(col, f"{col} '{v}' is not a number")
-        access = cell("access")
-        if access:
-            a = ACCESS.get(access.lower().replace(" ", ""))
-            if a is None:
-                err("access", f"access '{access}' is not R, W or RW (read-only, write-only, read-write)")
-            else:
-                spec["access"] = a
-        values = cell("values")
-        if values:
-            try:
-                spec["values"] = _values(values)
-            except ValueError as e:
-                err("values", str(e))
-        for col, choices in (("encoding", codec.ENCODINGS), ("padding", codec.PADDING)):
-            v = cell(col).lower()
-            if v and type_ != "string":
-                err(col, f"'{col}' applies to strings only")
-            elif v and v not in choices:
-                err(col, f"{col} '{v}' is not one of {', '.join(choices)}")
-            elif v:
-                spec[col] = v
-        if cell("stage"):
-            if cell("stage").isdigit():
-                spec["stage"] = int(cell("stage"))
-            else:
-                err("stage", f"stage '{cell('stage')}' is not a number")
-        if cell("restart").lower() in ("yes", "y", "true", "1", "x"):
-            spec["restart"] = True
-        default = cell("default")
-        if default:
-            try:
-                spec["default"] = default if type_ == "string" else _number(default)
-            except InvalidOperation:
-                spec["default"] = default  # a label
         parameters.append((name, spec, Origin(path, line, starts[where["name"]] if where["name"] < len(starts) else 1)))
     if errors:
         raise InputError(errors)
@@ -287,6 +204,97 @@ def _draft(path: str, rows: list[Row], *, profile_id: str, columns: Mapping[str,
         head["swap"] = byte_order
     return Draft(head, parameters, [])
 
+
+def _row_spec(name: str, raw_name: str, cell: Callable[[str], str], err: Callable[[str, str], None]
+              ) -> dict[str, Any] | None:
+    """One register row as a profile parameter spec; None (with the problems reported) when it cannot be."""
+    spec: dict[str, Any] = {}
+    desc = cell("description")
+    if raw_name != name:
+        desc = f"{raw_name}: {desc}" if desc else raw_name
+    if desc:
+        spec["description"] = desc
+    try:
+        spec["register"] = parse_register(cell("address"))
+    except (ValueError, IndexError):
+        err("address", f"not a register address: '{cell('address')}'")
+        return None
+    type_text = cell("type")
+    type_ = TYPES.get(type_text.lower().replace(" ", "").replace("_", ""))
+    if type_ is None:
+        err("type", f"unknown type '{type_text}' (known: {', '.join(sorted(set(TYPES.values())))} "
+                    f"and names like U16, S32, REAL, DWORD)")
+        return None
+    bits = cell("bits")
+    if type_ == "bool" and not bits:
+        err("type", f"{name}: a bool needs the bit number in the 'bits' column")
+        return None
+    spec["type"] = type_  # bits of a 32-bit row: the profile check says a field is 16 bits, at this row
+    if bits:
+        spec["bits"] = int(bits) if bits.isdigit() else bits
+    if type_ == "string":
+        n = cell("count")
+        if not n.isdigit() or int(n) < 1:
+            err("count", f"{name}: a string needs its register count in the 'count' column")
+            return None
+        spec["count"] = int(n)
+    if cell("byte_order"):
+        order = cell("byte_order")
+        if order in codec.LAYOUTS:
+            spec["byte_order"] = order
+        elif order.lower() in codec.SWAPS:
+            spec["swap"] = order.lower()
+        else:
+            err("byte_order", f"unknown byte order '{order}' (ABCD, CDAB, BADC, DCBA or none/byte/word/word_byte)")
+    unit = cell("unit")
+    if unit and type_ != "string":
+        if units.check(unit) is None:
+            spec["unit"] = unit
+        else:  # kept for people, not for conversions
+            spec["description"] = f"{spec.get('description', name)} [{unit}]"
+    for col in ("scale", "min", "max"):
+        v = cell(col)
+        if not v or type_ == "string":
+            continue
+        try:
+            spec[col] = _number(v)
+        except InvalidOperation:
+            err(col, f"{col} '{v}' is not a number")
+    access = cell("access")
+    if access:
+        a = ACCESS.get(access.lower().replace(" ", ""))
+        if a is None:
+            err("access", f"access '{access}' is not R, W or RW (read-only, write-only, read-write)")
+        else:
+            spec["access"] = a
+    values = cell("values")
+    if values:
+        try:
+            spec["values"] = _values(values)
+        except ValueError as e:
+            err("values", str(e))
+    for col, choices in (("encoding", codec.ENCODINGS), ("padding", codec.PADDING)):
+        v = cell(col).lower()
+        if v and type_ != "string":
+            err(col, f"'{col}' applies to strings only")
+        elif v and v not in choices:
+            err(col, f"{col} '{v}' is not one of {', '.join(choices)}")
+        elif v:
+            spec[col] = v
+    if cell("stage"):
+        if cell("stage").isdigit():
+            spec["stage"] = int(cell("stage"))
+        else:
+            err("stage", f"stage '{cell('stage')}' is not a number")
+    if cell("restart").lower() in ("yes", "y", "true", "1", "x"):
+        spec["restart"] = True
+    default = cell("default")
+    if default:
+        try:
+            spec["default"] = default if type_ == "string" else _number(default)
+        except InvalidOperation:
+            spec["default"] = default  # a label
+    return spec
 
 def _number(text: str) -> int | float:
     if re.fullmatch(r"0[xX][0-9A-Fa-f]+|[0-9A-Fa-f]+[hH]", text):  # hex, as manuals write limits too
