@@ -278,10 +278,13 @@ def profiles_export_csv(profile: str, out: str | None) -> int:
               "--sf WMax_SF=0. Repeatable.")
 @click.option("--count", "counts", multiple=True, metavar="GROUP=N", help="Repetitions of a group whose count the "
               "device reports, e.g. --count curve=4. Repeatable.")
+@click.option("--device", metavar="URL", help="Read the scale factors from this device (the model at --at); "
+              "--sf wins over what it says.")
+@click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True, help="unit id of --device")
 @click.option("--id", "profile_id", help="Profile id (default: sunspec-MODEL-NAME).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
-def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], counts: Sequence[str], profile_id: str | None,
-                            out: str | None) -> int:
+def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], counts: Sequence[str], device: str | None,
+                            unit: int, profile_id: str | None, out: str | None) -> int:
     """A profile from a SunSpec model (number, name or model JSON), using pysunspec2's definitions."""
     from .profile import parse_register
     from .profile.sunspec import read_model
@@ -295,8 +298,37 @@ def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], counts: Seq
         address = parse_register(at)
     except ValueError:
         raise UsageError(f"--at {at}: not a register address (40002, 0x9C42 or 9C42h)") from None
+    if device is not None:  # the device says its scale factors: read them with a first, unscaled profile
+        found = _device_scale_factors(model, address, repeats, device, unit)
+        if found is None:
+            return EXIT_UNREACHABLE
+        factors = {**found, **factors}
     draft, warnings = read_model(model, at=address, scale_factors=factors, counts=repeats, profile_id=profile_id)
     return _write_imported(draft, out, f"SunSpec model {model}", warnings)
+
+
+def _device_scale_factors(model: str, at: int, counts: dict[str, int], device: str, unit: int
+                          ) -> dict[str, int] | None:
+    """The model's scale factors as the device reports them; None (after saying why) when it cannot be read."""
+    from .codec import decode
+    from .profile.emit import check
+    from .profile.sunspec import read_model, scale_factor_points
+    from .transport import BadURL, parse_url
+
+    try:
+        url = parse_url(device)
+    except BadURL as e:
+        raise UsageError(str(e)) from None
+    names = scale_factor_points(model)
+    if not names:
+        return {}
+    _, first = check(read_model(model, at=at, counts=counts)[0], "<model>")
+    current = read_device(first, names, url, unit)  # checks the model ID at --at first (identity)
+    if current is None:
+        return None
+    found = {n: int(decode(current[n], "int16")) for n in names if n in current}
+    click.echo(f"scale factors from {device}: " + ", ".join(f"{n}={v}" for n, v in found.items()), err=True)
+    return found
 
 
 @profiles.command("show")

@@ -328,3 +328,24 @@ def test_sunspec_curves_with_points(tmp_path: Path, capsys: pytest.CaptureFixtur
                                      "  Crv[1]: {ActPt: 2, Pt0_V: 920, Pt0_Var: 300, Pt1_V: 1080, Pt1_Var: -300}\n")
     plan = make_plan(load_recipe(tmp_path / "r.yaml"), Target(None, 1, str(out)))
     assert [(w.address, w.count) for w in plan.writes] == [(40300 + 15 + 18, 1), (40300 + 15 + 18 + 10, 4)]
+
+
+def test_sunspec_scale_factors_read_from_the_device(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("sunspec2")
+    from deployer.profile.emit import check
+    from deployer.profile.sunspec import read_model
+
+    _, device_profile = check(read_model("121", at=40122)[0], str(tmp_path / "dev.yaml"))
+    sf = {n: device_profile.parameter(n).address for n in ("WMax_SF", "VRef_SF", "VMinMax_SF")}
+    init = {sf["WMax_SF"]: 1, sf["VRef_SF"]: 0xFFFF, sf["VMinMax_SF"]: 0xFFFF}  # 1, -1, -1 as int16
+    out = tmp_path / "inv.yaml"
+    with SimulatorThread(device_profile, init=init) as sim:
+        code, _, err = cli(capsys, "profiles", "import", "sunspec", "121", "--at", "40122", "--device", sim.url,
+                           "--sf", "VMinMax_SF=-2", "-o", str(out))
+        assert code == 0, err
+        assert "scale factors from" in err and "WMax_SF=1" in err and "VRef_SF=-1" in err
+        code, _, err = cli(capsys, "profiles", "import", "sunspec", "121", "--at", "40002", "--device", sim.url)
+        assert code == 3 and "exception 02 (illegal data address)" in err  # no model 121 there
+    prof = load_profile(out)
+    assert prof.parameter("WMax").scale == 10 and str(prof.parameter("VRef").scale) == "0.1"
+    assert str(prof.parameter("VMax").scale) == "0.01"  # --sf wins over the device

@@ -64,6 +64,12 @@ def model_path(model: str) -> str:
     raise UsageError(f"no SunSpec model named '{model}' in pysunspec2's definitions")
 
 
+def scale_factor_points(model: str) -> list[str]:
+    """The model's top-level scale-factor points (type sunssf): what --device reads."""
+    data, _ = yamlsrc.load(model_path(model), yamlsrc.read_text(model_path(model)).expandtabs(1))
+    return [str(p["name"]) for p in data["group"]["points"] if p.get("type") == "sunssf"]
+
+
 def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping[str, int] | None = None,
                counts: Mapping[str, int] | None = None, profile_id: str | None = None) -> tuple[Draft, list[str]]:
     """The model as a Draft profile with its ID point at protocol address ``at``, and warnings.
