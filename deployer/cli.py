@@ -11,8 +11,6 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import click
-from rich.console import Console
-from rich.table import Table
 
 from .diagnostics import (
     EXIT_CHANGES,
@@ -23,10 +21,13 @@ from .diagnostics import (
     InputError,
     UsageError,
 )
-from .transport import DeviceURL, TransportError, describe
+from .tables import Cell, show
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
+
+    from rich.console import Console
+    from rich.table import Table
 
     from .api import Drift
     from .executor import Job, ReadJob
@@ -34,6 +35,8 @@ if TYPE_CHECKING:
     from .profile import Profile
     from .recipe import Recipe
     from .report import DeviceResult, Report
+    from .transport import DeviceURL
+    from .yamlsrc import Source
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -52,9 +55,20 @@ def report_input_error(err: InputError) -> None:
 # --- validate, profiles (foundation) ---------------------------------------------------
 
 
-def console() -> Console:
-    """stdout console; wide when not a terminal so piped tables are not squeezed."""
+def console(*, stderr: bool = False) -> Console:
+    """stdout (or stderr) console; wide when not a terminal so piped lines are not squeezed."""
+    from rich.console import Console  # only commands that print pay for importing rich
+
+    if stderr:
+        return Console(stderr=True, highlight=False)
     return Console(width=None if sys.stdout.isatty() else 200, highlight=False)
+
+
+def describe(url: DeviceURL) -> str:
+    """The URL as users write it (transport imports pymodbus: only when a device is involved)."""
+    from .transport import describe as describe_url
+
+    return describe_url(url)
 
 
 def _n(count: int, noun: str) -> str:
@@ -82,12 +96,19 @@ def _kind(data: object) -> str | None:
 def validate_file(path: str) -> str:
     """Check one file of any kind; returns a one-line summary or raises InputError."""
     from . import yamlsrc
+
+    data, src = yamlsrc.load(path, hand_over=True)  # the loader below takes it over: parsed once
+    try:
+        return _validate_kind(path, _kind(data), data, src)
+    finally:
+        yamlsrc.forget(path)
+
+
+def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
     from .fleet import load_inventory
     from .profile import load_profile, resolve_profile
     from .recipe import load_recipe
 
-    data, src = yamlsrc.load(path)
-    kind = _kind(data)
     if kind == "profile":
         prof = load_profile(path)
         return f"profile {prof.id}: {_n(len(prof.parameters), 'parameter')}"
@@ -147,12 +168,12 @@ def profiles_list() -> int:
     """List the built-in profiles."""
     from .profile import builtin_profile, builtin_profile_ids
 
-    table = Table("profile", "parameters", "description", box=None)
+    rows: list[list[Cell]] = []
     for pid in builtin_profile_ids():
         prof = builtin_profile(pid)
         first = prof.description.split(". ")[0].rstrip(".")
-        table.add_row(pid, str(len(prof.parameters)), first)
-    console().print(table)
+        rows.append([pid, str(len(prof.parameters)), first])
+    show(console(), ["profile", "parameters", "description"], rows)
     return EXIT_OK
 
 
@@ -345,18 +366,18 @@ def profiles_show(profile: str) -> int:
     layout = layout_name(prof.word_order, prof.byte_swap)
     out.print(f"addressing {prof.addressing}, byte order {layout}; up to {lim.write_registers} registers "
               f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read")
-    table = Table("parameter", "address", "type", "unit", "resolution", "range", "access", "default",
-                  "description", box=None)
+    rows: list[list[Cell]] = []
     for p in prof.parameters:
         rng = "" if p.min is None and p.max is None else (
             f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
         if p.values:
             rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
         default = "" if p.default is None else p.default if isinstance(p.default, str) else format_decimal(p.default)
-        table.add_row(p.name, f"0x{p.address:04X} ({p.address})", _type_text(p), p.unit or "",
-                      "" if p.is_string or p.type == "bool" else format_decimal(p.scale), rng, p.access, default,
-                      p.description)
-    out.print(table)
+        rows.append([p.name, f"0x{p.address:04X} ({p.address})", _type_text(p), p.unit or "",
+                     "" if p.is_string or p.type == "bool" else format_decimal(p.scale), rng, p.access, default,
+                     p.description])
+    show(out, ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"],
+         rows)
     return EXIT_OK
 
 # --- plan (planner) ---------------------------------------------------------------------
@@ -404,6 +425,7 @@ def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: in
                 ) -> dict[str, tuple[int, ...]] | None:
     """Current values for plan --device, diff and pull; None (after saying why) when unreachable."""
     from .executor import read_current
+    from .transport import TransportError
 
     try:
         return asyncio.run(read_current(profile, names, url, unit))
@@ -435,9 +457,10 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
     for i, w in enumerate(plan.writes, 1):
         for n in w.parameters:
             req_of.setdefault(n, []).append(i)
-    table = Table("parameter", "address", "raw", "value", "request", box=None)
+    headers = ["parameter", "address", "raw", "value", "request"]
     if changes_only:
-        table = Table("parameter", "address", "current -> desired", "raw", "action", "request", box=None)
+        headers = ["parameter", "address", "current -> desired", "raw", "action", "request"]
+    rows: list[list[Cell]] = []
     for pp in plan.parameters:
         if changes_only and pp.action == "unchanged":
             continue
@@ -446,11 +469,11 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
         if changes_only:
             p = profile.parameter(pp.name)
             cur = p.format_registers(pp.current_raw) if pp.current_raw is not None else "?"
-            table.add_row(pp.name, addr, f"{cur} -> {pp.desired}", _hexwords(pp.desired_raw), pp.action, reqs)
+            rows.append([pp.name, addr, f"{cur} -> {pp.desired}", _hexwords(pp.desired_raw), pp.action, reqs])
         else:
-            table.add_row(pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs)
-    if table.row_count:
-        out.print(table)
+            rows.append([pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs])
+    if rows:
+        show(out, headers, rows)
         if not changes_only and any(profile.parameter(pp.name).mask for pp in plan.parameters):
             out.print("bit fields: raw shows their own bits; apply reads each such register right before writing "
                       "it and keeps its other bits as the device holds them")
@@ -552,7 +575,7 @@ def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tu
     from .api import read_fleet_async
     from .progress import FleetProgress
 
-    err = Console(stderr=True, highlight=False)
+    err = console(stderr=True)
     progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
     with progress:
         values = asyncio.run(read_fleet_async(
@@ -631,10 +654,12 @@ def _register(text: str) -> int:
 @click.option("--state", "state_path", type=click.Path(dir_okay=False), help="dump registers as JSON on exit/SIGUSR1")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False), help="one JSON line per request")
 @click.option("--loose-limits", is_flag=True, help="accept requests beyond the profile's limits")
+@click.option("--gap-reads", is_flag=True, help="answer reads of undeclared registers between declared ones (zeros)")
 def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str | None,
              set_registers: tuple[str, ...], latency_ms: float,
              baud: int | None, drop_every: int, busy_first: int, fail_registers: tuple[str, ...],
-             disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool) -> int:
+             disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool,
+             gap_reads: bool) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
     from .profile import resolve_profile
     from .recipe import load_recipe
@@ -662,7 +687,7 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
                     disconnect_after=disconnect_after)
     try:
         sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
-                        state_path=state_path, strict_limits=not loose_limits)
+                        state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads)
     except ValueError as e:  # a --set register the profile does not declare
         raise UsageError(str(e)) from None
 
@@ -698,12 +723,9 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
         if only_not_ok:
             rows = [p for p in rows if p.status not in ("ok", "unchanged")]
         if d.status != "unreachable" and rows:
-            table = Table("parameter", "before", "desired", "after", "status", "", box=None)
-            for p in rows:
-                st = _STATUS_STYLE.get(p.status, "")
-                table.add_row(p.name, p.before or "-", p.desired, p.after or "-", f"[{st}]{p.status}[/{st}]",
-                              p.error or "")
-            out.print(table)
+            show(out, ["parameter", "before", "desired", "after", "status", ""],
+                 [[p.name, p.before or "-", p.desired, p.after or "-", (p.status, _STATUS_STYLE.get(p.status, "")),
+                   p.error or ""] for p in rows])
         for note in d.notices:
             out.print(f"note: {note}")
         if d.snapshot:
@@ -783,7 +805,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                              "pass --allow-broadcast to send it anyway")
 
     out = console()
-    err = Console(stderr=True, highlight=False)
+    err = console(stderr=True)
     confirm = None
     if not yes:
         if not sys.stdin.isatty():
@@ -1010,6 +1032,8 @@ def diff(recipe: str, device: str | None, unit: int | None, timeout: float | Non
 
 def drift_table(rows: Sequence[Drift], device: str | None, table: Table | None = None) -> Table:
     """parameter, recipe, device value (with a device column for fleets)."""
+    from rich.table import Table
+
     if table is None:
         table = Table(*(["device"] if device is not None else []), "parameter", "recipe", "device value", "",
                       box=None)
@@ -1034,6 +1058,8 @@ def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool
                                     "error": str(values[j.name])} for j in jobs],
             "drifted": drifted, "unreachable": down}, indent=2))
     else:
+        from rich.table import Table
+
         out = console()
         table = Table("device", "parameter", "recipe", "device value", "", box=None)
         for j in jobs:

@@ -20,7 +20,17 @@ from typing import Literal, Protocol, TypeVar
 from . import codec, journal, lock
 from . import transport as tp
 from .diagnostics import UsageError
-from .planner import Plan, ReadRequest, Target, WriteRequest, make_plan, merge_fields, plan_reads, plan_to_json
+from .planner import (
+    Plan,
+    ReadRequest,
+    Target,
+    WriteRequest,
+    gap_free_reads,
+    make_plan,
+    merge_fields,
+    plan_reads,
+    plan_to_json,
+)
 from .profile import Parameter, Profile, WriteAction, profile_ref
 from .recipe import Recipe
 from .report import DeviceResult, ParameterResult, Report, RequestRecord
@@ -71,6 +81,7 @@ class Session:
         self.retries = retries
         self.backoff = backoff
         self.records = records
+        self.gap_reads = True  # False once the device refused a read across undeclared registers
 
     async def _call(self, record: RequestRecord, op: Callable[[], Awaitable[list[int] | None]]) -> list[int] | None:
         self.records.append(record)
@@ -115,11 +126,29 @@ class Session:
         else:
             await self._call(rec, lambda: _none(t.write_registers(req.address, list(req.registers), unit)))
 
-    async def read_blocks(self, reads: Iterable[ReadRequest]) -> dict[int, int]:
+    async def read_blocks(self, reads: Iterable[ReadRequest], profile: Profile | None = None) -> dict[int, int]:
+        """Registers of every block. With ``profile``: when the device refuses a read across
+        undeclared registers (exception 02), the rest of the reads, that one included, and every
+        later read of this session go in gap-free blocks (the refused request stays in the
+        report, followed by the fallback reads)."""
+        todo = list(reads)
         regs: dict[int, int] = {}
-        for r in reads:
-            for i, v in enumerate(await self.read(r.address, r.count)):
-                regs[r.address + i] = v
+        i = 0
+        while i < len(todo):
+            if profile is not None and profile.limits.max_read_gap and not self.gap_reads:
+                todo[i:] = gap_free_reads(profile, todo[i:])
+                profile = None  # planned once: read on as planned
+            r = todo[i]
+            try:
+                values = await self.read(r.address, r.count)
+            except tp.ExceptionResponse as e:
+                if (profile is None or not profile.limits.max_read_gap or e.code != 2
+                        or gap_free_reads(profile, [r]) == (r,)):
+                    raise  # not about a gap
+                self.gap_reads = False
+                continue
+            regs.update(zip(range(r.address, r.address + r.count), values, strict=False))
+            i += 1
         return regs
 
 
@@ -253,7 +282,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
             res.status, res.error = "failed", f"{why}; nothing was written"
             return
         offline = make_plan(recipe, target, None)
-        before = values_of(params, await session.read_blocks(offline.reads))
+        before = values_of(params, await session.read_blocks(offline.reads, prof))
     except DeviceGone as e:
         res.status, res.error = "unreachable", f"{e}; nothing was written"
         return
@@ -332,7 +361,7 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
 
     # read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
-        after = values_of(params, await session.read_blocks(plan.reads))
+        after = values_of(params, await session.read_blocks(plan.reads, prof))
     except (DeviceGone, tp.ExceptionResponse) as e:
         for n in written:
             if results[n].error == PENDING:
@@ -441,7 +470,8 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
     params = sorted({prof.parameter(n) for n in req.parameters}, key=lambda p: p.address)
     error = f"exception {exc.code:02d} ({tp.ExceptionResponse.NAMES.get(exc.code, 'unknown')})"
     try:
-        now = values_of(params, await session.read_blocks(plan_reads(prof, [p.name for p in params if p.readable])))
+        now = values_of(params, await session.read_blocks(plan_reads(prof, [p.name for p in params if p.readable]),
+                                                           prof))
     except (DeviceGone, tp.ExceptionResponse) as e:  # cannot tell what took: say so, send nothing more of it
         _attempted(results, req.parameters, written, f"{error}; reading back failed: {e}")
         return None
@@ -514,7 +544,7 @@ async def read_current(profile: Profile, names: Sequence[str], url: tp.DeviceURL
             raise tp.Unreachable(why)
         params = [profile.parameter(n) for n in names]
         reads = plan_reads(profile, [p.name for p in params if p.readable])
-        return values_of(params, await session.read_blocks(reads))
+        return values_of(params, await session.read_blocks(reads, profile))
     except DeviceGone as e:
         raise tp.Unreachable(f"{tp.describe(url)} unit {unit}: {e}") from None
     except tp.ExceptionResponse as e:

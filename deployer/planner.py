@@ -6,6 +6,7 @@ JSON (schemas/plan.schema.json) and ``apply PLAN.json`` executes it unchanged.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
@@ -270,30 +271,45 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
 # ---- read planning -------------------------------------------------------------------------
 
 
-def plan_reads(profile: Profile, names: Iterable[str]) -> tuple[ReadRequest, ...]:
+def plan_reads(profile: Profile, names: Iterable[str], *, gaps: bool = True) -> tuple[ReadRequest, ...]:
     """FC03 blocks covering ``names`` with the fewest requests, spanning declared readable registers only.
 
     A block may only span a maximal run of contiguous declared readable registers (reading an
     undeclared gap or a write-only register can fail the whole read), may cover parameters the
-    caller did not ask for, and never cuts a parameter. Greedy per run: open a block at the first
-    parameter still to read and stretch it over every needed parameter that still fits. Optimal
-    by the interval-covering argument: any cover has a block containing that first parameter,
-    which can start no earlier, so it reaches no further than greedy's block; induction on the
-    rest. tests/test_planner.py checks it against every partition of the needed parameters.
+    caller did not ask for, and never cuts a parameter. With the profile's ``max_read_gap`` N > 0
+    (and ``gaps``), a run also continues across at most N consecutive undeclared registers (never
+    across a declared write-only one): the device answers them, the values are ignored. Greedy per
+    run: open a block at the first parameter still to read and stretch it over every needed
+    parameter that still fits. Optimal by the interval-covering argument: any cover has a block
+    containing that first parameter, which can start no earlier, so it reaches no further than
+    greedy's block; induction on the rest. tests/test_planner.py checks it against every partition
+    of the needed parameters.
     """
     wanted = set(names)
     limit = profile.limits.read_registers
+    max_gap = profile.limits.max_read_gap if gaps else 0
     reads: list[ReadRequest] = []
     # profiles built in code need not be sorted; loaded ones are (cheap to be sure)
     params = sorted((p for p in profile.parameters if p.readable), key=lambda p: p.address)
     missing = wanted - {p.name for p in params}
     if missing:
         raise UsageError(f"not readable in profile {profile.id}: {', '.join(sorted(missing))}")
+    barriers: list[int] = []  # start addresses of write-only parameters: a read never spans them
+    if max_gap:
+        barriers = sorted(p.address for p in profile.parameters if not p.readable)
+
+    def joins(prev: Parameter, nxt: Parameter) -> bool:
+        if nxt.address in (prev.end, prev.address):  # adjacent, or bit fields sharing one register
+            return True
+        if nxt.address - prev.end > max_gap:
+            return False
+        k = bisect.bisect_left(barriers, prev.end)
+        return k == len(barriers) or barriers[k] >= nxt.address
+
     i = 0
     while i < len(params):
         j = i + 1
-        # bit fields of one register share its address: they continue the run too
-        while j < len(params) and params[j].address in (params[j - 1].end, params[j - 1].address):
+        while j < len(params) and joins(params[j - 1], params[j]):
             j += 1
         start: int | None = None
         end = 0
@@ -312,6 +328,18 @@ def plan_reads(profile: Profile, names: Iterable[str]) -> tuple[ReadRequest, ...
             reads.append(ReadRequest(start, end - start))
         i = j
     return tuple(reads)
+
+
+def gap_free_reads(profile: Profile, reads: Sequence[ReadRequest]) -> tuple[ReadRequest, ...]:
+    """The blocks that replace ``reads`` on a device that refuses reads across gaps (DESIGN rule 5)."""
+    spans = sorted((r.address, r.address + r.count) for r in reads)
+    starts = [a for a, _ in spans]
+    inside = []
+    for p in profile.parameters:
+        k = bisect.bisect_right(starts, p.address) - 1
+        if p.readable and k >= 0 and p.end <= spans[k][1]:
+            inside.append(p.name)
+    return plan_reads(profile, inside, gaps=False)
 
 
 def make_plan(recipe: Recipe, target: Target, current: Mapping[str, tuple[int, ...]] | None = None,

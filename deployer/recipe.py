@@ -351,6 +351,10 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
     if isinstance(value, dict) and "raw" in value:
         return _from_raw(param, value["raw"], e, fail, trusted=trusted)
     if isinstance(value, dict):  # {value: ..., rounding: ...}
+        if "value" not in value:  # table-entry style keys on a plain parameter
+            keys = ", ".join(yamlsrc.clip(str(k)) for k in value)
+            fail(f"expected a value, {{raw: N}} or {{value: V, rounding: nearest}}, got a mapping with {keys}")
+            return None
         rounding = value.get("rounding", rounding)
         value = value["value"]
     try:
@@ -471,14 +475,26 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
     return f"{text} {param.unit}" if param.unit else text
 
 
+# Text YAML certainly reads back as the same plain string when the implicit resolvers call it a
+# string: word characters, spaces, '.', '-', '/', '%' and '°' only (no ':', '#', quotes or
+# indicators), neither starting nor ending with a space or an indicator.
+_PLAIN_SAFE = re.compile(r"^\w(?:[\w .\-/%°]*[\w.%°])?$")
+_RESOLVER = yaml.resolver.Resolver()
+
+
 def _reads_back(text: str) -> bool:
+    """True when ``k: TEXT`` loads back as exactly ``TEXT`` (a number or the same string)."""
     try:
         Decimal(text)
         return True
     except InvalidOperation:
         pass
-    try:
-        return bool(yaml.safe_load(f"k: {text}") == {"k": text})
+    if _PLAIN_SAFE.match(text):  # the common case, without running a parser per value
+        tag = _RESOLVER.resolve(yaml.ScalarNode, text, (True, False))  # type: ignore[no-untyped-call]
+        return bool(tag == "tag:yaml.org,2002:str")
+    try:  # both parsers must agree (libyaml reads some text with tabs differently)
+        return all(yaml.load(f"k: {text}", Loader=loader) == {"k": text}
+                   for loader in (yamlsrc.FastLoader, yaml.SafeLoader))
     except yaml.YAMLError:
         return False
 

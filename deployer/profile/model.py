@@ -25,6 +25,8 @@ class Limits:
     max_read_registers: int = PROTOCOL_MAX_READ
     max_frame_bytes: int = 256  # whole RTU frame: unit id + PDU + CRC
     write_function: Literal[6, 16] = 16
+    # reads may span up to this many consecutive undeclared registers (0: never; DESIGN planning rule 5)
+    max_read_gap: int = 0
 
     @property
     def write_registers(self) -> int:
