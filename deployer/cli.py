@@ -372,7 +372,8 @@ def profiles_show(profile: str) -> int:
             f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
         if p.values:
             rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
-        default = "" if p.default is None else p.default if isinstance(p.default, str) else format_decimal(p.default)
+        default = "" if p.default is None else p.default if isinstance(p.default, str) else (
+            str(bool(p.default)).lower() if p.type == "bool" else format_decimal(p.default))
         rows.append([p.name, f"0x{p.address:04X} ({p.address})", _type_text(p), p.unit or "",
                      "" if p.is_string or p.type == "bool" else format_decimal(p.scale), rng, p.access, default,
                      p.description])
