@@ -159,7 +159,7 @@ def diff_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]]) -> list[
     out = []
     for d in recipe.desired:
         cur = current.get(d.name)
-        if cur != d.registers:
+        if cur is None or not d.parameter.same_value(cur, d.registers):  # a bit field compares its own bits
             out.append(Drift(d.name, d.text, d.registers,
                              None if cur is None else d.parameter.format_registers(cur), cur))
     return out

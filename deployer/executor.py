@@ -17,11 +17,21 @@ from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Literal, Protocol, TypeVar, cast
 
-from . import journal, lock
+from . import codec, journal, lock
 from . import transport as tp
 from .diagnostics import UsageError
-from .planner import Plan, ReadRequest, Target, WriteRequest, gap_free_reads, make_plan, plan_reads, plan_to_json
-from .profile import Parameter, Profile, profile_ref
+from .planner import (
+    Plan,
+    ReadRequest,
+    Target,
+    WriteRequest,
+    gap_free_reads,
+    make_plan,
+    merge_fields,
+    plan_reads,
+    plan_to_json,
+)
+from .profile import Parameter, Profile, WriteAction, profile_ref
 from .recipe import Recipe
 from .report import DeviceResult, ParameterResult, Report, RequestRecord, show_registers
 from .snapshot import save_snapshot
@@ -168,6 +178,26 @@ async def check_identity(session: Session, profile: Profile) -> str | None:
     return None
 
 
+async def check_preconditions(session: Session, profile: Profile) -> str | None:
+    """None if every precondition holds (e.g. 'drive stopped'), else which one does not."""
+    for c in profile.preconditions:
+        (word,) = await session.read(c.address, 1)
+        if not c.holds(word):
+            return f"precondition failed: {c.what()} is {codec.extract_field(word, c.mask)}, expected {c.equals}"
+    return None
+
+
+async def _send_actions(session: Session, prof: Profile, actions: Iterable[WriteAction]) -> None:
+    """The profile's own writes (unlock, commit, lock), each followed by its wait."""
+    for action in actions:
+        reqs = ([WriteRequest(6, action.address + i, (w,), ()) for i, w in enumerate(action.registers)]
+                if prof.limits.write_function == 6 else [WriteRequest(16, action.address, action.registers, ())])
+        for r in reqs:
+            await session.write(r)
+        if action.wait_ms:
+            await asyncio.sleep(action.wait_ms / 1000)
+
+
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
     return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers,
                                     parameter=d.parameter)
@@ -204,6 +234,9 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
     if unit == 0 and not opts.allow_broadcast:
         raise UsageError("unit 0 is broadcast (no device answers, nothing can be verified); "
                          "pass --allow-broadcast to send it anyway")
+    if unit == 0 and (prof.preconditions or any(d.parameter.mask for d in recipe.desired)):
+        raise UsageError("a broadcast cannot read: bit fields (which keep the register's other bits) and "
+                         f"preconditions of profile {prof.id} need a device that answers")
     try:
         held = await lock.acquire(lock.device_key(url.bus, unit), timeout=opts.lock_timeout,
                                   command=lock.command_line(), directory=opts.lock_dir)
@@ -272,7 +305,8 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     # 2. the plan: a saved one must still match the device, else a fresh diff-aware plan
     if opts.expected is not None:
         changed = [pp.name for pp in opts.expected.parameters
-                   if pp.current_raw is not None and before.get(pp.name) != pp.current_raw]
+                   if pp.current_raw is not None and not prof.parameter(pp.name).same_value(before.get(pp.name),
+                                                                                            pp.current_raw)]
         if changed:
             raise StalePlan(
                 "the device changed since the plan was made (" + ", ".join(
@@ -284,8 +318,19 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     for pp in plan.parameters:
         if pp.action == "unchanged":
             results[pp.name].status = "unchanged"
+    for pp in plan.parameters:  # a field's register goes whole: report the word planned
+        if prof.parameter(pp.name).mask:
+            results[pp.name].desired_raw = pp.desired_raw
     if not plan.writes:
         _verify(results, prof, before, written=set())
+        return
+    # guards (e.g. "drive stopped") only matter when something is to be written
+    try:
+        why = await check_preconditions(session, prof)
+    except (DeviceGone, tp.ExceptionResponse) as e:
+        why = f"reading the preconditions failed: {e}"
+    if why:
+        res.status, res.error = "failed", f"{why}; nothing was written"
         return
     if opts.confirm is not None and not await opts.confirm(plan, res):
         raise Declined("nothing was written (declined)")
@@ -299,10 +344,32 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         await asyncio.to_thread(journal.device_started, opts.state_dir, opts.run_id, name=res.name, url=res.url,
                                 unit=res.unit, snapshot=res.snapshot, plan_digest=digest)
 
-    # 4. writes, in plan order; recover from partial failures
+    # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock
+    if prof.unlock:
+        try:
+            await _send_actions(session, prof, prof.unlock)
+        except (DeviceGone, tp.ExceptionResponse) as e:
+            res.status, res.error = "failed", f"unlock failed: {e}; no parameter was written"
+            return
+    try:
+        await _write_verify_commit(session, prof, recipe, plan, opts, res, results)
+    finally:
+        if prof.unlock and prof.lock:
+            try:
+                await _send_actions(session, prof, prof.lock)
+            except (DeviceGone, tp.ExceptionResponse) as e:
+                res.status = "partial"
+                res.error = f"{res.error + '; ' if res.error else ''}lock failed: {e}; the device may be left unlocked"
+    res.notices.extend(f"{n} takes effect after a power cycle" for n, r in results.items()
+                       if r.status == "ok" and prof.parameter(n).restart)
+
+
+async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, plan: Plan, opts: ApplyOptions,
+                               res: DeviceResult, results: dict[str, ParameterResult]) -> None:
+    params = [d.parameter for d in recipe.desired]
     written, gone = await _write_all(session, prof, plan, opts, results)
 
-    # 5. read back everything the plan reads, compare raw values (after a silence too: it may be back)
+    # read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
         after = values_of(params, await session.read_blocks(plan.reads, prof))
     except (DeviceGone, tp.ExceptionResponse) as e:
@@ -314,15 +381,11 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     if gone:
         return
 
-    # 6. commit (e.g. store to EEPROM) only when everything is verified
+    # commit (e.g. store to EEPROM) only when everything is verified
     if prof.commit and all(r.status in ("ok", "unchanged") for r in results.values()):
         for action in prof.commit:
-            fn = prof.limits.write_function
-            reqs = ([WriteRequest(6, action.address + i, (w,), ("(commit)",)) for i, w in enumerate(action.registers)]
-                    if fn == 6 else [WriteRequest(16, action.address, action.registers, ("(commit)",))])
             try:
-                for r in reqs:
-                    await session.write(r)
+                await _send_actions(session, prof, [action])
             except (DeviceGone, tp.ExceptionResponse) as e:
                 res.status, res.error = "partial", f"commit '{action.description or hex(action.address)}' failed: {e}"
                 return
@@ -342,7 +405,7 @@ def _attempted(results: dict[str, ParameterResult], names: Iterable[str], writte
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,
                      results: dict[str, ParameterResult]) -> tuple[set[str], bool]:
     """Send the plan's writes. Returns the names sent, and whether the device went away."""
-    desired = {pp.name: pp.desired_raw for pp in plan.parameters}
+    desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
     written: set[str] = set()
     queue = deque(plan.writes)
     stopped = False
@@ -354,8 +417,18 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
                     results[n].status = "skipped"
             continue
         try:
+            req = await _remerge(session, prof, req, desired, results)
+        except (DeviceGone, tp.ExceptionResponse) as e:  # nothing of this request was sent
+            for n in req.parameters:
+                results[n].status, results[n].error = "failed", f"reading the register to keep its other bits: {e}"
+            stopped = opts.on_error == "stop"
+            continue
+        try:
             await session.write(req)
             _attempted(results, req.parameters, written)
+            wait = prof.wait_after(req.stage)
+            if wait and (not queue or queue[0].stage != req.stage):
+                await asyncio.sleep(wait / 1000)
         except tp.ExceptionResponse as e:
             follow_up = await _recover(session, prof, req, e, desired, results, written)
             if opts.on_error == "continue":
@@ -374,6 +447,24 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
                     results[n].status = "skipped"
             return written, True
     return written, False
+
+
+async def _remerge(session: Session, prof: Profile, req: WriteRequest, desired: dict[str, tuple[int, ...]],
+                   results: dict[str, ParameterResult]) -> WriteRequest:
+    """Bit fields: read their registers right before the write and merge the new bits into what the
+    device holds now (another field may have changed since the snapshot: keep it, never guess)."""
+    fields = [p for p in (prof.parameter(n) for n in req.parameters) if p.mask and p.readable]
+    if not fields:
+        return req
+    fresh = await session.read_blocks(plan_reads(prof, [f.name for f in fields]))
+    regs = list(req.registers)
+    for a in sorted({f.address for f in fields}):
+        mates = [prof.parameter(n) for n in req.parameters if prof.parameter(n).address == a]
+        word = merge_fields(mates, [desired[m.name][0] for m in mates], fresh[a])
+        regs[a - req.address] = word
+        for m in mates:
+            desired[m.name] = results[m.name].desired_raw = (word,)
+    return replace(req, registers=tuple(regs))
 
 
 async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.ExceptionResponse,
@@ -400,7 +491,7 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
         if not p.readable:
             unknown.append(p.name)
             continue
-        if now.get(p.name) == desired[p.name]:
+        if p.same_value(now.get(p.name), desired[p.name]):
             _attempted(results, [*unknown, p.name], written)
             unknown = []
             continue
@@ -410,6 +501,9 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
     if rejected is None:  # everything took although the device complained: the read-back decides
         return None
     results[rejected.name].status, results[rejected.name].error = "failed", error
+    for p in params:  # bit fields of the rejected register went with it
+        if p.mask and p.address == rejected.address and p is not rejected:
+            results[p.name].status, results[p.name].error = "failed", f"{error} (register of {rejected.name})"
     rest = [p for p in params if p.address > rejected.address]
     if not rest or req.function == 6:  # an FC06 request carries one register: nothing after it
         return None
@@ -431,7 +525,7 @@ def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[s
             if n in written and r.error == PENDING:
                 r.error = "write-only: cannot be read back"
             continue
-        if got == r.desired_raw:
+        if p.same_value(got, r.desired_raw):
             r.status, r.error = ("ok" if n in written else "unchanged"), None
             continue
         reads_back = f"reads back {show_registers(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"

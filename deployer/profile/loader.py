@@ -1,0 +1,398 @@
+"""Loading profiles from YAML: schema + semantic checks with FILE:LINE:COL diagnostics."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import replace
+from decimal import Decimal
+from typing import Any
+
+from .. import codec, units, yamlsrc
+from ..diagnostics import Diagnostic, InputError, UsageError
+from .model import CommitAction, IdentityCheck, Limits, Parameter, Precondition, Profile
+
+# ---- loading ------------------------------------------------------------------------------
+
+_BUILTIN_DIR = os.path.join(os.path.dirname(os.path.dirname(__file__)), "profiles")
+
+
+def builtin_profile_ids() -> list[str]:
+    return sorted(f[: -len(".yaml")] for f in os.listdir(_BUILTIN_DIR) if f.endswith(".yaml"))
+
+
+def builtin_profile(id_: str) -> Profile:
+    path = os.path.join(_BUILTIN_DIR, f"{id_}.yaml")
+    if not os.path.isfile(path):
+        known = ", ".join(builtin_profile_ids())
+        raise UsageError(f"unknown built-in profile '{id_}' (built-in: {known})")
+    prof = load_profile(path)
+    return replace(prof, source=None)
+
+
+def resolve_profile(ref: str, relative_to: str | os.PathLike[str] | None = None) -> Profile:
+    """A built-in id, or a profile file (relative to the directory of ``relative_to``)."""
+    looks_like_path = ref.endswith((".yaml", ".yml", ".json")) or os.sep in ref or "/" in ref
+    if not looks_like_path:
+        return builtin_profile(ref)
+    base = os.path.dirname(os.path.abspath(os.fspath(relative_to))) if relative_to else os.getcwd()
+    return load_profile(os.path.normpath(os.path.join(base, ref)))
+
+
+def parse_register(value: object) -> int:
+    """1103 / 0x1103 (YAML int) / "1103h" / "0x1103" -> int."""
+    if isinstance(value, int):
+        return value
+    text = str(value).strip()
+    if text[-1:] in "hH":
+        return int(text[:-1], 16)
+    if text[:2].lower() == "0x":
+        return int(text[2:], 16)
+    return int(text)
+
+
+def wire_address(number: int, addressing: str) -> int:
+    """Profile address -> 0-based protocol address. Raises ValueError with a user message."""
+    if addressing == "address":
+        return number
+    if addressing == "register-number":
+        if number < 1:
+            raise ValueError(f"register number {number} is below 1 (addressing: register-number)")
+        return number - 1
+    # modicon: 4xxxx (5 digits) or 4xxxxx (6 digits) holding-register references
+    if 40001 <= number <= 49999:
+        return number - 40001
+    if 400001 <= number <= 465536:
+        return number - 400001
+    raise ValueError(f"{number} is not a holding-register reference (40001-49999 or 400001-465536)")
+
+
+def _hex(n: int) -> str:
+    return f"0x{n:04X}"
+
+
+def load_profile(path: str | os.PathLike[str], text: str | None = None) -> Profile:
+    """Load and check a profile file (or ``text`` shown as that file); all problems at once as an InputError."""
+    p = os.fspath(path)
+    if text is None:
+        text = yamlsrc.read_text(p)
+    data, src = yamlsrc.load(p, text)
+    if not isinstance(data, dict):
+        raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
+    errors = yamlsrc.validate(data, "profile", src)
+    if errors:
+        raise InputError(errors)
+    return replace(_build_profile(data, src), digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
+
+
+def profile_ref(profile: Profile) -> str:
+    """The one well-defined name of a profile: its file's absolute path, or its built-in id."""
+    return profile.source or profile.id
+
+
+def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
+    errors: list[Diagnostic] = []
+    addressing = data.get("addressing", "address")
+    rounding = data.get("rounding")
+    limits = Limits(**data.get("limits", {}))
+    if limits.write_registers < 1:
+        errors.append(src.error(("limits",), "limits leave no room for a single register per write"))
+
+    def address_of(value: object, at: yamlsrc.Path_, extra: int = 0) -> int | None:
+        try:
+            wire = wire_address(parse_register(value), addressing) + extra
+        except ValueError as e:
+            errors.append(src.error(at, str(e) if "holding" in str(e) or "below" in str(e)
+                                    else f"not a register: {value!r}"))
+            return None
+        if wire > 0xFFFF:
+            errors.append(src.error(at, f"wire address {wire} is beyond 65535"))
+            return None
+        return wire
+
+    params: list[Parameter] = []
+
+    default_layout = _layout(data, ("big", False), (), src, errors)
+
+    def make(name: str, spec: dict[str, Any], address: int, at: yamlsrc.Path_,
+             eng_offset: object = 0) -> None:
+        type_ = spec["type"]
+        local: list[Diagnostic] = []
+        order, swap = _layout(spec, default_layout, at, src, local)
+        mask = 0
+        if "bits" in spec or "mask" in spec:
+            try:
+                mask = codec.parse_bits(spec["bits"]) if "bits" in spec else int(spec["mask"])
+                codec.mask_shift(mask)
+            except ValueError as e:
+                local.append(src.error((*at, "bits" if "bits" in spec else "mask"), str(e)))
+                mask = 0xFFFF
+            if type_ not in ("uint16", "int16", codec.BOOL):
+                local.append(src.error((*at, "type"), f"a bit field is uint16, int16 or bool, not {type_}"))
+            elif type_ == codec.BOOL and mask and mask & (mask - 1):
+                local.append(src.error((*at, "type"), "a bool field is one bit"))
+            if spec.get("access") == "write-only":  # its register is written whole: the other bits come from a read
+                local.append(src.error((*at, "access"), "a bit field must be readable: apply reads its register "
+                                                        "to keep the other bits"))
+        elif type_ == codec.BOOL:
+            local.append(src.error((*at, "type"), "type bool is a one-bit field: give 'bits: N'"))
+        if type_ == codec.STRING:
+            if "count" not in spec:
+                local.append(src.error(at, f"{name}: a string needs 'count' (its registers)"))
+            for key in ("scale", "unit", "min", "max", "values"):
+                if key in spec:
+                    local.append(src.error((*at, key), f"'{key}' does not apply to a string"))
+        elif "count" in spec or "encoding" in spec or "padding" in spec:
+            key = next(k for k in ("count", "encoding", "padding") if k in spec)
+            local.append(src.error((*at, key), f"'{key}' applies to strings only (type: string)"))
+        param = Parameter(
+            name=name,
+            address=address,
+            type=type_,
+            word_order=order,
+            byte_swap=swap,
+            scale=Decimal(spec.get("scale", 1)),
+            offset=Decimal(eng_offset),  # type: ignore[arg-type]
+            unit=units.normalize(spec["unit"]) if "unit" in spec else None,
+            min=_dec(spec.get("min")),
+            max=_dec(spec.get("max")),
+            access=spec.get("access", "read-write"),
+            values=tuple((str(k), int(v)) for k, v in (spec.get("values") or {}).items()),
+            stage=int(spec.get("stage", 0)),
+            rounding=spec.get("rounding", rounding),
+            description=spec.get("description", ""),
+            line=src.pos(at, key=True)[0],
+            col=src.pos(at, key=True)[1],
+            mask=mask,
+            size=int(spec.get("count", 1)),
+            encoding=spec.get("encoding", "ascii"),
+            padding=spec.get("padding", "nul"),
+            restart=bool(spec.get("restart", False)),
+        )
+        if local:  # the rest of the checks assume a well-formed parameter
+            errors.extend(local)
+            params.append(param)
+            return
+        if param.scale == 0:
+            local.append(src.error((*at, "scale"), "scale must not be 0"))
+        if address + param.count > 0x10000:
+            local.append(src.error(at, f"{name}: registers {address}..{address + param.count - 1} run past 65535"))
+        if "unit" in spec:
+            problem = units.check(spec["unit"])
+            if problem:
+                local.append(src.error((*at, "unit"), problem))
+        if param.min is not None and param.max is not None and param.min > param.max:
+            local.append(src.error((*at, "min"), f"min {param.min} is greater than max {param.max}"))
+        if not local:
+            for key in ("min", "max"):
+                bound = getattr(param, key)
+                if bound is None:
+                    continue
+                try:
+                    param.to_raw(bound, rounding="nearest")
+                except codec.CodecError as e:
+                    local.append(src.error((*at, key), f"{key} {_fmt(bound)} is not representable: {e}"))
+        rng = param.type_range()
+        for label, raw in param.values:
+            if rng and not rng[0] <= raw <= rng[1]:
+                what = f"{codec.mask_shift(mask)[1]} bits" if mask else type_
+                local.append(src.error((*at, "values", label), f"value {raw} of '{label}' does not fit in {what}"))
+        if "default" in spec and not local and param.is_string:
+            try:
+                param.encode_text(str(spec["default"]))
+                param = replace(param, default=str(spec["default"]))
+            except codec.CodecError as e:
+                local.append(src.error((*at, "default"), f"default: {e}"))
+        elif "default" in spec and not local:
+            d = spec["default"]
+            try:
+                if isinstance(d, bool):
+                    default_eng = Decimal(int(d))
+                elif isinstance(d, str):
+                    labels = dict(param.values)
+                    if d not in labels:
+                        raise codec.CodecError(f"'{d}' is not one of the labels {', '.join(labels) or '(none)'}")
+                    default_eng = codec.from_raw(labels[d], param.scale, param.offset)
+                else:
+                    default_eng = Decimal(d)
+                    param.to_raw(default_eng)
+                if (param.min is not None and default_eng < param.min) or (
+                    param.max is not None and default_eng > param.max
+                ):
+                    raise codec.CodecError(f"{_fmt(default_eng)} is outside {_fmt(param.min)}..{_fmt(param.max)}")
+                param = replace(param, default=default_eng)
+            except codec.CodecError as e:
+                local.append(src.error((*at, "default"), f"default: {e}"))
+        errors.extend(local)
+        params.append(param)
+
+    for name, spec in (data.get("parameters") or {}).items():
+        at: yamlsrc.Path_ = ("parameters", name)
+        addr = address_of(spec["register"], (*at, "register"))
+        if addr is not None:
+            make(name, spec, addr, at, spec.get("offset", 0))
+
+    for tname, table in (data.get("tables") or {}).items():
+        tat: yamlsrc.Path_ = ("tables", tname)
+        base = address_of(table["base"], (*tat, "base"))
+        if base is None:
+            continue
+        count, stride = table["count"], table["stride"]
+        last_end = base + (count - 1) * stride + max(
+            f["offset"] + _spec_count(f) for f in table["fields"].values()
+        )
+        if last_end > 0x10000:
+            errors.append(src.error(tat, f"table {tname}: entry {count - 1} ends at register {last_end - 1}, "
+                                         "beyond 65535"))
+            continue
+        for fname, fspec in table["fields"].items():
+            if fspec["offset"] + _spec_count(fspec) > stride:
+                errors.append(src.error((*tat, "fields", fname, "offset"),
+                                        f"field {fname} runs past the table's stride {stride}"))
+        for i in range(count):
+            for fname, fspec in table["fields"].items():
+                make(f"{tname}[{i}].{fname}", fspec, base + i * stride + fspec["offset"],
+                     (*tat, "fields", fname))
+
+    # overlapping registers: name both parameters and both lines. Bit fields of one register
+    # share it when their bits do not overlap; a field never shares with a whole-register value.
+    params.sort(key=lambda q: (q.address, q.line, q.name))  # of two at one address, the later one is reported
+    prev: Parameter | None = None
+    reported = 0
+    fields_at: dict[int, list[Parameter]] = {}
+    for q in params:
+        if q.mask and prev is not None and prev.mask and prev.address == q.address:
+            mates = fields_at[q.address]
+            clash = next((f for f in mates if f.mask & q.mask), None)
+            if clash is not None:
+                errors.append(Diagnostic(src.path, q.line, q.col,
+                                         f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) overlaps "
+                                         f"{clash.name} (bits {_bits(clash.mask)}, line {clash.line})"))
+            other = next((f for f in mates if f.stage != q.stage), None)
+            if other is not None:
+                errors.append(Diagnostic(src.path, q.line, q.col,
+                                         f"{q.name} is in stage {q.stage} but {other.name} (line {other.line}) of the "
+                                         f"same register {_hex(q.address)} is in stage {other.stage}: a register is "
+                                         "written as one unit"))
+            mates.append(q)
+            continue
+        if q.mask:
+            fields_at[q.address] = [q]
+        if prev is not None and q.address < prev.end and (q.mask or prev.mask) and reported < 20:
+            if q.mask:
+                what = (f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) shares its register with "
+                        f"{prev.name} (line {prev.line}), which is not a bit field")
+            else:
+                what = (f"{q.name} (registers {_hex(q.address)}-{_hex(q.end - 1)}) overlaps the bit field {prev.name} "
+                        f"(bits {_bits(prev.mask)} of register {_hex(prev.address)}, line {prev.line})")
+            errors.append(Diagnostic(src.path, q.line, q.col, f"{what}: only bit fields share a register"))
+            reported += 1
+        elif prev is not None and q.address < prev.end:
+            if reported < 20:  # a bad table can overlap thousands of times; the first ones say it
+                errors.append(Diagnostic(
+                    src.path, q.line, q.col,
+                    f"{q.name} (registers {_hex(q.address)}-{_hex(q.end - 1)}) overlaps {prev.name} "
+                    f"(registers {_hex(prev.address)}-{_hex(prev.end - 1)}, line {prev.line})"))
+            reported += 1
+        if prev is None or q.end > prev.end:
+            prev = q
+
+    identity = []
+    for i, item in enumerate(data.get("identity") or []):
+        a = address_of(item["register"], ("identity", i, "register"))
+        if a is not None:
+            identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", "")))
+    def actions(key: str) -> tuple[CommitAction, ...]:
+        out = []
+        for i, item in enumerate(data.get(key) or []):
+            at2: yamlsrc.Path_ = (key, i)
+            a = address_of(item["register"], (*at2, "register"))
+            raw = item["raw"]
+            try:
+                regs = tuple(int(r) for r in raw) if isinstance(raw, list) else codec.encode(
+                    int(raw), item.get("type", "uint16"), default_layout[0], default_layout[1])
+            except codec.CodecError as e:
+                errors.append(src.error((*at2, "raw"), str(e)))
+                continue
+            if a is not None:
+                out.append(CommitAction(a, regs, item.get("description", ""), int(item.get("wait", 0))))
+        return tuple(out)
+
+    preconditions = []
+    for i, item in enumerate(data.get("preconditions") or []):
+        at3: yamlsrc.Path_ = ("preconditions", i)
+        a = address_of(item["register"], (*at3, "register"))
+        try:
+            mask = codec.parse_bits(item["bits"]) if "bits" in item else int(item.get("mask", 0xFFFF))
+            lo, hi = codec.field_range(mask)
+        except ValueError as e:
+            errors.append(src.error((*at3, "bits" if "bits" in item else "mask"), str(e)))
+            continue
+        if not lo <= int(item["equals"]) <= hi:
+            errors.append(src.error((*at3, "equals"),
+                                    f"{item['equals']} does not fit in the selected bits ({lo}..{hi})"))
+        elif a is not None:
+            preconditions.append(Precondition(a, mask, int(item["equals"]), item.get("description", "")))
+    stage_waits = tuple((int(w["stage"]), int(w["wait"])) for w in data.get("stages") or [])
+    seen_stages: dict[int, int] = {}
+    for i, (stage, _) in enumerate(stage_waits):
+        if stage in seen_stages:
+            errors.append(src.error(("stages", i, "stage"),
+                                    f"stage {stage} is already set (stages item {seen_stages[stage]})"))
+        seen_stages.setdefault(stage, i)
+    commits, unlock, lock = actions("commit"), actions("unlock"), actions("lock")
+    if errors:
+        raise InputError(errors)
+    return Profile(
+        id=str(data["profile"]),
+        description=str(data.get("description", "")),
+        addressing=addressing,
+        word_order=default_layout[0],
+        byte_swap=default_layout[1],
+        limits=limits,
+        identity=tuple(identity),
+        parameters=tuple(params),
+        commit=commits,
+        source=os.path.abspath(src.path),
+        preconditions=tuple(preconditions),
+        unlock=unlock,
+        lock=lock,
+        stage_waits=stage_waits,
+    )
+
+
+def _dec(v: object) -> Decimal | None:
+    return None if v is None else Decimal(v)  # type: ignore[arg-type]
+
+
+def _fmt(d: Decimal | None) -> str:
+    return "-" if d is None else codec.format_decimal(d)
+
+
+def _spec_count(spec: dict[str, Any]) -> int:
+    """Registers a parameter spec occupies, before it is checked (strings: count, bit fields: 1)."""
+    if spec["type"] == codec.STRING:
+        return int(spec.get("count", 1))
+    if spec["type"] == codec.BOOL or "bits" in spec or "mask" in spec:
+        return 1
+    return codec.register_count(spec["type"])
+
+
+def _bits(mask: int) -> str:
+    shift, width = codec.mask_shift(mask)
+    return str(shift) if width == 1 else f"{shift}..{shift + width - 1}"
+
+
+def _layout(spec: dict[str, Any], default: tuple[str, bool], at: yamlsrc.Path_, src: yamlsrc.Source,
+            errors: list[Diagnostic]) -> tuple[str, bool]:
+    """(word_order, byte_swap) from ``byte_order`` (ABCD ...), ``swap`` (Home Assistant) or ``word_order``."""
+    given = [k for k in ("byte_order", "swap", "word_order") if k in spec]
+    if len(given) > 1:
+        errors.append(src.error((*at, given[1]), f"'{given[0]}' and '{given[1]}' both set the layout: keep one"))
+    if "byte_order" in spec:
+        return codec.LAYOUTS[spec["byte_order"]]
+    if "swap" in spec:
+        return codec.SWAPS[spec["swap"]]
+    if "word_order" in spec:
+        return str(spec["word_order"]), default[1]
+    return default
