@@ -169,10 +169,11 @@ async def _phases(work: str, port: int, salt: int) -> dict[str, float]:
     """The apply pipeline step by step with the library's calls, timed (wall) per phase, plus process CPU."""
     from deployer import yamlsrc
     from deployer.cli import print_report
-    from deployer.executor import Session, save_snapshot, values_of
+    from deployer.executor import Session, values_of
     from deployer.planner import Target, make_plan
     from deployer.recipe import load_recipe
     from deployer.report import DeviceResult, Report
+    from deployer.snapshot import save_snapshot
     from deployer.transport import open_transport, parse_url
 
     files = drive.write(os.path.join(work, "phases"), N, salt=salt)

@@ -20,6 +20,7 @@ from typing import Literal, Protocol, TypeVar, cast
 from . import codec, journal, lock
 from . import transport as tp
 from .diagnostics import UsageError
+from .durable import Line, durable
 from .planner import (
     Plan,
     ReadRequest,
@@ -34,7 +35,7 @@ from .planner import (
 from .profile import Parameter, Profile, WriteAction, profile_ref
 from .recipe import Recipe
 from .report import DeviceResult, ParameterResult, Report, RequestRecord, show_registers
-from .snapshot import save_snapshot
+from .snapshot import snapshot_file
 
 Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
 
@@ -263,7 +264,7 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
             await transport.close()
         res.settle()
         if res.snapshot is not None and opts.run_id is not None:
-            await asyncio.to_thread(journal.device_finished, opts.state_dir, opts.run_id, res)
+            await durable(Line(journal.path_of(opts.state_dir), journal.device_finished(opts.run_id, res)))
         return res
     finally:
         held.release()
@@ -335,14 +336,14 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     if opts.confirm is not None and not await opts.confirm(plan, res):
         raise Declined("nothing was written (declined)")
 
-    # 3. the snapshot is on disk before the first write, and the journal says this device is being written
-    #    (in a thread: two fsyncs must not stall the other devices of a fleet)
-    res.snapshot = await asyncio.to_thread(save_snapshot, opts.state_dir, res.name, recipe, before, res.url,
-                                           res.unit, applied=opts.applied)
+    # 3. the snapshot is on disk before the first write, and the journal says this device is being written:
+    #    both made durable by the group-commit thread, sharing fsyncs with the other devices of a fleet
+    snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=opts.applied)
     if opts.run_id is not None:
         digest = hashlib.sha256(json.dumps(plan_to_json(plan), sort_keys=True).encode()).hexdigest()
-        await asyncio.to_thread(journal.device_started, opts.state_dir, opts.run_id, name=res.name, url=res.url,
-                                unit=res.unit, snapshot=res.snapshot, plan_digest=digest)
+        snap.journal = journal.path_of(opts.state_dir)
+        snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest)
+    res.snapshot = await durable(snap)
 
     # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock
     if prof.unlock:

@@ -18,6 +18,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from .durable import append_lines
+
 if TYPE_CHECKING:
     from .report import DeviceResult, Report
 
@@ -39,16 +41,13 @@ def _now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
+def path_of(state_dir: str) -> str:
+    return os.path.join(state_dir, AUDIT)
+
+
 def append(state_dir: str, record: dict[str, Any]) -> None:
     """One line, written with a single append and fsync'ed: concurrent runs never interleave inside a line."""
-    os.makedirs(state_dir, exist_ok=True)
-    data = (json.dumps(record) + "\n").encode()
-    fd = os.open(os.path.join(state_dir, AUDIT), os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-    try:
-        os.write(fd, data)
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    append_lines(path_of(state_dir), [record])
 
 
 def run_started(state_dir: str, run: str, *, command: str, argv: Sequence[str], recipe: str | None,
@@ -58,16 +57,17 @@ def run_started(state_dir: str, run: str, *, command: str, argv: Sequence[str], 
                        "devices": [{"name": n, "url": u, "unit": un} for n, u, un in devices]})
 
 
-def device_started(state_dir: str, run: str, *, name: str, url: str, unit: int, snapshot: str,
-                   plan_digest: str) -> None:
-    append(state_dir, {"event": "device-started", "run": run, "time": _now(), "name": name, "url": url,
-                       "unit": unit, "snapshot": snapshot, "plan_sha256": plan_digest})
+def device_started(run: str, *, name: str, url: str, unit: int, plan_digest: str) -> dict[str, Any]:
+    """The ``device-started`` record, without its ``snapshot`` (``durable`` adds the file's final path)."""
+    return {"event": "device-started", "run": run, "time": _now(), "name": name, "url": url, "unit": unit,
+            "snapshot": None, "plan_sha256": plan_digest}
 
 
-def device_finished(state_dir: str, run: str, res: DeviceResult) -> None:
-    append(state_dir, {"event": "device-finished", "run": run, "time": _now(), "name": res.name, "url": res.url,
-                       "unit": res.unit, "status": res.status, "snapshot": res.snapshot,
-                       "written": _written(res), "write_requests": res.write_requests})
+def device_finished(run: str, res: DeviceResult) -> dict[str, Any]:
+    """The ``device-finished`` record (status after the read-back)."""
+    return {"event": "device-finished", "run": run, "time": _now(), "name": res.name, "url": res.url,
+            "unit": res.unit, "status": res.status, "snapshot": res.snapshot,
+            "written": _written(res), "write_requests": res.write_requests}
 
 
 def _written(res: DeviceResult) -> list[str]:
@@ -116,7 +116,7 @@ class Unfinished:
 
 def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:
     """Runs that never finished, oldest first, and the number of lines that were not JSON (a torn last line)."""
-    path = os.path.join(state_dir, AUDIT)
+    path = path_of(state_dir)
     runs: dict[str, Unfinished] = {}
     bad = 0
     try:

@@ -10,6 +10,7 @@ this module writes snapshots and finds them again for a fleet rollback.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import time
@@ -18,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .diagnostics import Diagnostic, InputError
+from .durable import NewFile, durable_now
 from .profile import profile_ref
 from .recipe import DeviceSpec, Recipe, SnapshotInfo, recipe_text
 
@@ -26,12 +28,10 @@ def snapshot_dir(state_dir: str) -> str:
     return os.path.join(os.path.abspath(state_dir), "snapshots")
 
 
-def save_snapshot(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
-                  url: str, unit: int, *, applied: str | None = None) -> str:
-    """Write the values the device held as a snapshot, fsync'ed (file and directory) before any write.
-
-    Returns the snapshot's absolute path. ``values``: parameter name -> registers as read.
-    """
+def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
+                  url: str, unit: int, *, applied: str | None = None) -> NewFile:
+    """The snapshot of what the device held, ready for ``durable``: a new file (never overwriting
+    another run's snapshot from the same second), rendered for its first candidate path."""
     directory = snapshot_dir(state_dir)
     os.makedirs(directory, exist_ok=True)
     now = time.gmtime()
@@ -39,34 +39,31 @@ def save_snapshot(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
     safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
     prof = recipe.profile
     info = SnapshotInfo(prof.digest, dict(values), time.strftime("%Y-%m-%dT%H:%M:%SZ", now), applied)
-    n = 1
-    path = os.path.join(directory, f"{safe}-{stamp}.yaml")
-    while True:
-        text = recipe_text(
-            profile_ref(prof),
-            {prof.parameter(k): v for k, v in values.items()},
-            name=f"snapshot-{safe}-{stamp}",
-            device=DeviceSpec(url, unit),
+    ref = profile_ref(prof)
+    by_param = {prof.parameter(k): v for k, v in values.items()}
+
+    def text(path: str) -> str:
+        return recipe_text(
+            ref, by_param, name=f"snapshot-{safe}-{stamp}", device=DeviceSpec(url, unit),
             comment=f"Snapshot: what {url} unit {unit} held before applying '{applied or recipe.name}'.\n"
                     f"Restore with: deployer rollback {path}",
             snapshot=info,
         )
-        try:  # O_EXCL: two runs in one second never overwrite each other's snapshot
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-            break
-        except FileExistsError:
-            n += 1
-            path = os.path.join(directory, f"{safe}-{stamp}-{n}.yaml")
-    try:
-        os.write(fd, text.encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    dfd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(dfd)  # the directory entry too, or a crash can lose the file
-    finally:
-        os.close(dfd)
+
+    first = os.path.join(directory, f"{safe}-{stamp}.yaml")
+    later = (os.path.join(directory, f"{safe}-{stamp}-{n}.yaml") for n in itertools.count(2))
+    return NewFile(later, text, (first, text(first)))
+
+
+def save_snapshot(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
+                  url: str, unit: int, *, applied: str | None = None) -> str:
+    """Write the values the device held as a snapshot, fsync'ed (file and directory) before any write.
+
+    Returns the snapshot's absolute path. ``values``: parameter name -> registers as read.
+    (``apply`` uses ``snapshot_file`` with ``durable``, which shares the fsyncs with other devices.)
+    """
+    path = durable_now(snapshot_file(state_dir, name, recipe, values, url, unit, applied=applied))
+    assert path is not None
     return path
 
 

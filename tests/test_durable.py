@@ -1,0 +1,100 @@
+"""Group commit (deployer.durable): files and journal lines durable in as few fsyncs as the guarantees allow."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import os
+import stat
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from deployer import durable
+from deployer.durable import Line, NewFile, _Pending, commit
+
+
+def _file(folder: Path, stem: str, journal: Path | None = None, line: dict[str, Any] | None = None) -> NewFile:
+    def text(path: str) -> str:
+        return f"# I am {path}\n"
+
+    first = str(folder / f"{stem}.yaml")
+    later = (str(folder / f"{stem}-{n}.yaml") for n in itertools.count(2))
+    return NewFile(later, text, (first, text(first)), str(journal) if journal else None, line)
+
+
+def _lines(path: Path) -> list[dict[str, Any]]:
+    return [json.loads(x) for x in path.read_text().splitlines()]
+
+
+def test_a_batch_fsyncs_each_file_its_folder_once_then_the_journal_once(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    journal = tmp_path / "audit.jsonl"
+    synced: list[str] = []
+    real = os.fsync
+
+    def fsync(fd: int) -> None:
+        mode = os.fstat(fd).st_mode
+        synced.append("dir" if stat.S_ISDIR(mode) else "journal" if os.fstat(fd).st_ino == _ino(journal)
+                      else "file")
+        real(fd)
+
+    journal.touch()
+    monkeypatch.setattr(os, "fsync", fsync)
+    batch = [_Pending(_file(tmp_path, f"dev{i}", journal, {"event": "device-started", "name": f"dev{i}"}))
+             for i in range(3)]
+    batch.append(_Pending(Line(str(journal), {"event": "device-finished", "name": "dev9"})))
+    commit(batch)
+    assert synced == ["file", "file", "file", "dir", "journal"]  # the lines only after the files they name
+    assert [p.done.result() for p in batch] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)] + [None]
+    lines = _lines(journal)
+    assert [x["name"] for x in lines] == ["dev0", "dev1", "dev2", "dev9"]  # submission order
+    assert [x.get("snapshot") for x in lines[:3]] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)]
+
+
+def _ino(path: Path) -> int:
+    return os.stat(path).st_ino
+
+
+def test_a_taken_name_moves_on_and_the_text_names_the_final_path(tmp_path: Path) -> None:
+    (tmp_path / "dev.yaml").write_text("another run's snapshot\n")
+    path = durable.durable_now(_file(tmp_path, "dev"))
+    assert path == str(tmp_path / "dev-2.yaml")
+    assert Path(path).read_text() == f"# I am {path}\n"
+    assert (tmp_path / "dev.yaml").read_text() == "another run's snapshot\n"  # never overwritten
+
+
+def test_a_failure_is_that_operations_own_and_its_line_is_not_written(tmp_path: Path) -> None:
+    journal = tmp_path / "audit.jsonl"
+    good = _Pending(_file(tmp_path, "good", journal, {"name": "good"}))
+    bad = _Pending(_file(tmp_path / "missing", "bad", journal, {"name": "bad"}))
+    commit([good, bad])
+    assert good.done.result() == str(tmp_path / "good.yaml")
+    with pytest.raises(FileNotFoundError):
+        bad.done.result()
+    assert [x["name"] for x in _lines(journal)] == ["good"]  # no line names a snapshot that is not there
+
+
+def test_many_devices_at_once_each_get_their_own_durable_file_and_line(tmp_path: Path) -> None:
+    journal = tmp_path / "audit.jsonl"
+
+    async def device(i: int) -> str | None:
+        path = await durable.durable(_file(tmp_path, "same-second", journal, {"name": f"dev{i}"}))
+        assert path is not None and os.path.exists(path)  # on disk when the device goes on to write
+        await durable.durable(Line(str(journal), {"name": f"dev{i}", "event": "device-finished"}))
+        return path
+
+    async def main() -> list[str | None]:
+        return await asyncio.gather(*(device(i) for i in range(40)))
+
+    paths = asyncio.run(main())
+    assert len(set(paths)) == 40  # one name collision after another, none overwritten
+    lines = _lines(journal)
+    started = {x["name"]: x["snapshot"] for x in lines if "snapshot" in x}
+    assert sorted(started.values()) == sorted(p for p in paths if p)
+    for name, snap in started.items():  # each device's finished line comes after its started line
+        order = [i for i, x in enumerate(lines) if x["name"] == name]
+        assert len(order) == 2 and lines[order[0]].get("snapshot") == snap
+        assert Path(snap).read_text() == f"# I am {snap}\n"
