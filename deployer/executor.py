@@ -159,10 +159,16 @@ async def _none(aw: Awaitable[None]) -> None:
 
 def values_of(params: Iterable[Parameter], regs: Mapping[int, int]) -> dict[str, tuple[int, ...]]:
     """Parameter name -> registers, for every parameter whose registers were all read."""
-    out = {}
+    out: dict[str, tuple[int, ...]] = {}
+    get = regs.get
     for p in params:
-        a = p.address
-        words = tuple(regs.get(a + i) for i in range(p.count))
+        a, n = p.address, p.count
+        if n == 1:  # most parameters: no generator per value (a fleet does this 200 times per device)
+            w = get(a)
+            if w is not None:
+                out[p.name] = (w,)
+            continue
+        words = tuple(get(a + i) for i in range(n))
         if None not in words:
             out[p.name] = cast(tuple[int, ...], words)  # no None left
     return out
@@ -315,7 +321,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
                 + "); make a new plan")
         plan = opts.expected
     else:
-        plan = make_plan(recipe, target, before, write_all=opts.write_all)
+        plan = make_plan(recipe, target, before, write_all=opts.write_all, reads=_reads_of(recipe))
     for pp in plan.parameters:
         if pp.action == "unchanged":
             results[pp.name].status = "unchanged"

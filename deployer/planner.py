@@ -343,11 +343,15 @@ def gap_free_reads(profile: Profile, reads: Sequence[ReadRequest]) -> tuple[Read
 
 
 def make_plan(recipe: Recipe, target: Target, current: Mapping[str, tuple[int, ...]] | None = None,
-              *, write_all: bool = False) -> Plan:
-    """The whole plan; reads cover every readable recipe parameter (snapshot before, read-back after)."""
+              *, write_all: bool = False, reads: tuple[ReadRequest, ...] | None = None) -> Plan:
+    """The whole plan; reads cover every readable recipe parameter (snapshot before, read-back after).
+
+    ``reads``: those blocks, when the caller already planned them for this recipe (a fleet plans them once).
+    """
     prof = recipe.profile
     params, writes = plan_writes(recipe.desired, prof.limits, current, write_all=write_all)
-    reads = plan_reads(prof, [d.name for d in recipe.desired if d.parameter.readable])
+    if reads is None:
+        reads = plan_reads(prof, [d.name for d in recipe.desired if d.parameter.readable])
     return Plan(recipe.path, target, params, writes, reads, recipe_name=recipe.name)
 
 

@@ -35,6 +35,9 @@ class FleetProgress:
         self.counts: dict[str, int] = {}
         self._live: Live | None = None
         self._bar: Progress | None = None
+        # logs and CI (no terminal): plain lines, unwrapped and without markup (a per-device rich render
+        # was a visible share of a big fleet's CPU)
+        self._plain = None if err.is_terminal else err.file
         if live:
             self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                                  TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=err)
@@ -71,6 +74,8 @@ class FleetProgress:
         self.counts[status] = self.counts.get(status, 0) + 1
         if self._bar is not None:
             self._bar.advance(self._task)
+        elif self.lines and self._plain is not None:
+            self._plain.write(f"{name}: {status}" + (f" {detail}" if detail else "") + "\n")
         elif self.lines:
             style = STYLE.get(status, "")
             self.err.print(f"{name}: [{style}]{status}[/{style}]" + (f" {detail}" if detail else ""))

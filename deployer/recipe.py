@@ -6,6 +6,7 @@ entries and ``{raw: N}``, and checks ranges and resolution, all before any devic
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -541,28 +542,32 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
                 lines.append(f"  {k}: {json.dumps(v)}")
         lines.append("  registers:" if ordered else "  registers: {}")
         lines.extend(f"    {_key(param.name)}: [{', '.join(str(w) for w in regs)}]" for param, regs in ordered)
-    body = []
-    for param, regs in ordered:
-        key = _key(param.name)
-        v = snapshot_value(param, regs) if snapshot is not None else value_text(param, regs)
-        words = " ".join(f"{w:04X}" for w in regs)
-        if v is None:
-            if param.is_string:
-                body.append(f"  # {key}: registers {words}h are not {param.encoding} text padded with {param.padding}")
-                continue
-            raw = param.decode(tuple(regs))
-            why = ("restored from snapshot.registers" if snapshot is not None
-                   else f"is outside the profile's range {_range_text(param)}")
-            body.append(f"  # {key}: raw {raw} ({words}h) {why}")
-            continue
-        if v.startswith("{raw:"):
-            body.append(f"  {key}: {v}  # {words}h, outside the profile's range {_range_text(param)}")
-            continue
-        # numbers stay numbers (in the profile's unit); text stays plain where YAML reads it back as the same text
-        rendered = v if param.type == codec.BOOL or (not param.is_string and _reads_back(v)) else json.dumps(v)
-        body.append(f"  {key}: {rendered}")
+    body = [_body_line(param, tuple(regs), snapshot is not None) for param, regs in ordered]
     lines.append("parameters:" if any(not b.lstrip().startswith("#") for b in body) else "parameters: {}")
     return "\n".join(lines + body) + "\n"
+
+
+@functools.lru_cache(maxsize=1 << 16)
+def _body_line(param: Parameter, regs: tuple[int, ...], snapshot: bool) -> str:
+    """One parameter's line of a written recipe (a comment when no value can say it).
+
+    Cached: the devices of a fleet mostly hold the same values, and rendering a value (decode,
+    range, engineering text, does YAML read it back) was most of a snapshot's CPU.
+    """
+    key = _key(param.name)
+    v = snapshot_value(param, regs) if snapshot else value_text(param, regs)
+    words = " ".join(f"{w:04X}" for w in regs)
+    if v is None:
+        if param.is_string:
+            return f"  # {key}: registers {words}h are not {param.encoding} text padded with {param.padding}"
+        raw = param.decode(regs)
+        why = "restored from snapshot.registers" if snapshot else f"is outside the profile's range {_range_text(param)}"
+        return f"  # {key}: raw {raw} ({words}h) {why}"
+    if v.startswith("{raw:"):
+        return f"  {key}: {v}  # {words}h, outside the profile's range {_range_text(param)}"
+    # numbers stay numbers (in the profile's unit); text stays plain where YAML reads it back as the same text
+    rendered = v if param.type == codec.BOOL or (not param.is_string and _reads_back(v)) else json.dumps(v)
+    return f"  {key}: {rendered}"
 
 
 def _key(name: str) -> str:

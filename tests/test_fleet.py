@@ -351,6 +351,19 @@ def test_open_file_limit_is_raised_or_the_run_refused_up_front(tmp_path: Path) -
     assert raised.stderr.count("unreachable") >= 3
 
 
+def test_without_a_terminal_one_plain_unwrapped_line_per_device(tmp_path: Path) -> None:
+    long = [f"line3-press-{i}-in-the-north-hall-next-to-the-big-door" for i in range(3)]
+    urls = {n: f"tcp://127.0.0.1:{free_port()}?timeout=0.2&retries=0" for n in long}
+    done = subprocess.run([sys.executable, "-m", "deployer", "apply", recipe(tmp_path), "--inventory",
+                           inventory(tmp_path, urls), "--yes", "--state-dir", str(tmp_path / "s")],
+                          capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    assert done.returncode == 3, done.stderr
+    lines = [x for x in done.stderr.splitlines() if x.startswith("line3-")]
+    assert sorted(x.split(":")[0] for x in lines) == long  # one line each, for logs and CI
+    for x in lines:  # the whole error on the device's line (a console would wrap at 80 columns)
+        assert x.startswith(f"{x.split(':')[0]}: unreachable (0 writes) - ") and x.endswith("connection refused"), x
+
+
 def test_python_api_one_device_and_a_cheap_import(tmp_path: Path) -> None:
     import deployer
 
