@@ -26,8 +26,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from .diagnostics import InputError, UsageError
-from .executor import ApplyOptions, Job, ReadJob, apply_many, read_current, read_many, skipped_result
-from .fleet import NOT_FINISHED, Inventory, LiveReport, batch_sizes, failure_budget, fleet_jobs, load_inventory
+from .executor import ApplyOptions, Job, ReadJob, apply_many, read_current, read_many
+from .fleet import Inventory, LiveReport, batch_sizes, failure_budget, fleet_jobs, load_inventory, not_finished
 from .planner import Plan, Target, make_plan
 from .profile import Profile, resolve_profile
 from .recipe import Entry, Recipe, load_recipe, recipe_text, with_overrides
@@ -277,7 +277,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
                                   report_path=report_path)
     live = None
     if report_path:
-        live = LiveReport(report_path, recipe_name, [skipped_result(j, NOT_FINISHED) for j in jobs])
+        live = LiveReport(report_path, recipe_name, not_finished(jobs))
 
     def done(r: DeviceResult) -> None:
         if live is not None:

@@ -63,8 +63,13 @@ class GroupCommit:
         self._queue: list[_Pending] = []
         self._thread: threading.Thread | None = None
 
-    def submit(self, op: NewFile | Line) -> Future[str | None]:
+    def submit(self, op: NewFile | Line) -> _Pending:
+        """Queue ``op``; a NewFile is created and written here, by the caller (OSError: nothing queued),
+        so the writer thread only has to fsync it: each call it makes waits for the GIL, which a busy
+        event loop holds, and that wait, not the disk, was most of a device's time here."""
         p = _Pending(op)
+        if isinstance(op, NewFile):
+            _create(p)
         with self._cond:
             self._queue.append(p)
             if self._thread is None or not self._thread.is_alive():
@@ -72,7 +77,7 @@ class GroupCommit:
                 self._thread = threading.Thread(target=self._loop, name="deployer-group-commit", daemon=True)
                 self._thread.start()
             self._cond.notify()
-        return p.done
+        return p
 
     def _loop(self) -> None:
         while True:
@@ -84,23 +89,17 @@ class GroupCommit:
 
 
 def commit(batch: list[_Pending]) -> None:
-    """Make a batch durable: files (each fsync'ed), their folders (once each), then the journal lines."""
+    """Make a batch durable: its files (each fsync'ed), their folders (once each), then the journal lines."""
     failed: dict[int, BaseException] = {}
     files = [p for p in batch if isinstance(p.op, NewFile)]
     for p in files:
-        try:
-            _create(p)
-        except OSError as e:
-            failed[id(p)] = e
-    for p in files:
+        if p.fd < 0:
+            _create_or_fail(p, failed)
         if p.fd >= 0:
             try:
                 os.fsync(p.fd)
             except OSError as e:
                 failed[id(p)] = e
-            finally:
-                os.close(p.fd)
-                p.fd = -1
     folders: dict[str, list[_Pending]] = {}
     for p in files:
         if id(p) not in failed and p.path is not None:
@@ -133,6 +132,7 @@ def commit(batch: list[_Pending]) -> None:
 
 
 def _create(p: _Pending) -> None:
+    """Create a NewFile (never over an existing one) and write its text; the fd stays open for the fsync."""
     op = p.op
     assert isinstance(op, NewFile)
     path, text = op.first
@@ -151,6 +151,19 @@ def _create(p: _Pending) -> None:
         os.close(fd)
         raise
     p.path, p.fd = path, fd
+
+
+def _create_or_fail(p: _Pending, failed: dict[int, BaseException]) -> None:
+    try:
+        _create(p)
+    except OSError as e:
+        failed[id(p)] = e
+
+
+def _close(p: _Pending) -> None:
+    if p.fd >= 0:
+        os.close(p.fd)
+        p.fd = -1
 
 
 def _fsync_dir(folder: str) -> None:
@@ -178,9 +191,20 @@ _WRITER = GroupCommit()
 
 async def durable(op: NewFile | Line) -> str | None:
     """Wait until ``op`` is on disk (with whatever else was pending); a NewFile's final path."""
-    return await asyncio.wrap_future(_WRITER.submit(op))
+    p = _WRITER.submit(op)
+    try:
+        return await asyncio.wrap_future(p.done)
+    finally:
+        if p.done.done():
+            _close(p)
+        else:  # cancelled while the writer may be using the fd: it closes when it is done with it
+            p.done.add_done_callback(lambda _: _close(p))
 
 
 def durable_now(op: NewFile | Line) -> str | None:
     """The same, from synchronous code (no event loop)."""
-    return _WRITER.submit(op).result()
+    p = _WRITER.submit(op)
+    try:
+        return p.done.result()
+    finally:
+        _close(p)

@@ -159,18 +159,21 @@ async def _none(aw: Awaitable[None]) -> None:
 
 def values_of(params: Iterable[Parameter], regs: Mapping[int, int]) -> dict[str, tuple[int, ...]]:
     """Parameter name -> registers, for every parameter whose registers were all read."""
+    return _values(((p.name, p.address, p.count) for p in params), regs)
+
+
+def _values(layout: Iterable[tuple[str, int, int]], regs: Mapping[int, int]) -> dict[str, tuple[int, ...]]:
     out: dict[str, tuple[int, ...]] = {}
     get = regs.get
-    for p in params:
-        a, n = p.address, p.count
+    for name, a, n in layout:
         if n == 1:  # most parameters: no generator per value (a fleet does this 200 times per device)
             w = get(a)
             if w is not None:
-                out[p.name] = (w,)
+                out[name] = (w,)
             continue
         words = tuple(get(a + i) for i in range(n))
         if None not in words:
-            out[p.name] = cast(tuple[int, ...], words)  # no None left
+            out[name] = cast(tuple[int, ...], words)  # no None left
     return out
 
 
@@ -206,23 +209,34 @@ async def _send_actions(session: Session, prof: Profile, actions: Iterable[Write
 
 
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
-    return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers,
-                                    parameter=d.parameter)
-            for d in recipe.desired}
+    return {name: ParameterResult(name, a, n, text, regs, parameter=p) for name, a, n, text, regs, p
+            in _shared(recipe).results}
 
 
-# read plans per recipe: every device of a fleet that shares a recipe reads the same blocks
-_READS: dict[int, tuple[Recipe, tuple[ReadRequest, ...]]] = {}
-_READS_KEPT = 64  # recipes remembered (a long-lived API user loads new ones)
+@dataclass(frozen=True)
+class _Shared:
+    """What every device applying one recipe shares, worked out once (a fleet has hundreds of them)."""
+
+    reads: tuple[ReadRequest, ...]  # the blocks covering the readable parameters (snapshot, read-back)
+    layout: tuple[tuple[str, int, int], ...]  # name, address, registers of each recipe parameter
+    results: tuple[tuple[str, int, int, str, tuple[int, ...], Parameter], ...]  # a ParameterResult's fields
 
 
-def _reads_of(recipe: Recipe) -> tuple[ReadRequest, ...]:
-    hit = _READS.get(id(recipe))
+_SHARED: dict[int, tuple[Recipe, _Shared]] = {}
+_SHARED_KEPT = 64  # recipes remembered (a long-lived API user loads new ones)
+
+
+def _shared(recipe: Recipe) -> _Shared:
+    hit = _SHARED.get(id(recipe))
     if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
-        while len(_READS) >= _READS_KEPT:
-            del _READS[next(iter(_READS))]  # the oldest
-        hit = _READS[id(recipe)] = (recipe, plan_reads(recipe.profile, [d.name for d in recipe.desired
-                                                                        if d.parameter.readable]))
+        while len(_SHARED) >= _SHARED_KEPT:
+            del _SHARED[next(iter(_SHARED))]  # the oldest
+        params = [d.parameter for d in recipe.desired]
+        hit = _SHARED[id(recipe)] = (recipe, _Shared(
+            plan_reads(recipe.profile, [p.name for p in params if p.readable]),
+            tuple((p.name, p.address, p.count) for p in params),
+            tuple((d.name, d.parameter.address, d.parameter.count, d.text, d.registers, d.parameter)
+                  for d in recipe.desired)))
     return hit[1]
 
 
@@ -289,14 +303,14 @@ async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: App
 async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,
                  results: dict[str, ParameterResult]) -> None:
     prof = recipe.profile
-    params = [d.parameter for d in recipe.desired]
+    shared = _shared(recipe)
     # 1. before any write: identity and current values; a silent device here is "unreachable"
     try:
         why = await check_identity(session, prof)
         if why:
             res.status, res.error = "failed", f"{why}; nothing was written"
             return
-        before = values_of(params, await session.read_blocks(_reads_of(recipe), prof))
+        before = _values(shared.layout, await session.read_blocks(shared.reads, prof))
     except DeviceGone as e:
         res.status, res.error = "unreachable", f"{e}; nothing was written"
         return
@@ -321,7 +335,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
                 + "); make a new plan")
         plan = opts.expected
     else:
-        plan = make_plan(recipe, target, before, write_all=opts.write_all, reads=_reads_of(recipe))
+        plan = make_plan(recipe, target, before, write_all=opts.write_all, reads=shared.reads)
     for pp in plan.parameters:
         if pp.action == "unchanged":
             results[pp.name].status = "unchanged"
@@ -373,12 +387,11 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
 
 async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, plan: Plan, opts: ApplyOptions,
                                res: DeviceResult, results: dict[str, ParameterResult]) -> None:
-    params = [d.parameter for d in recipe.desired]
     written, gone = await _write_all(session, prof, plan, opts, results)
 
     # read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
-        after = values_of(params, await session.read_blocks(plan.reads, prof))
+        after = _values(_shared(recipe).layout, await session.read_blocks(plan.reads, prof))
     except (DeviceGone, tp.ExceptionResponse) as e:
         for n in written:
             if results[n].error == PENDING:

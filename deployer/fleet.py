@@ -14,7 +14,7 @@ import os
 import threading
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 from . import yamlsrc
@@ -246,6 +246,31 @@ def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: fl
 NOT_FINISHED = "not finished (interrupted run)"
 
 
+def not_finished(jobs: Sequence[Job]) -> list[DeviceResult]:
+    """Every job as ``skipped``, "not finished": the report file's first state. The devices of one
+    recipe share one (read-only) parameter list, so its JSON is made once (``LiveReport``)."""
+    from .executor import skipped_result
+    from .transport import describe
+
+    first: dict[int, DeviceResult] = {}
+    out = []
+    for j in jobs:
+        proto = first.get(id(j.recipe))
+        if proto is None:
+            proto = first[id(j.recipe)] = skipped_result(j, NOT_FINISHED)
+        out.append(replace(proto, name=j.name, url=describe(j.url), unit=j.unit, requests=[], notices=[]))
+    return out
+
+
+def _device_json(d: DeviceResult, made: dict[int, str]) -> str:
+    """``json.dumps(d.to_json())``, with the JSON of a parameter list shared by several devices made once."""
+    params = made.get(id(d.parameters))
+    if params is None:
+        params = made[id(d.parameters)] = json.dumps([p.to_json() for p in d.parameters])
+    # no string value can hold this text unescaped, so the first match is the key itself
+    return json.dumps(replace(d, parameters=[]).to_json()).replace('"parameters": []', f'"parameters": {params}', 1)
+
+
 def _report_text(recipe: str | None, devices: Sequence[str], summary: dict[str, Any]) -> str:
     # one device per line, each encoded by the C encoder: the pure-Python indenting one took a
     # second for 200 devices x 100 parameters
@@ -275,7 +300,8 @@ class LiveReport:
         self.path = path
         self.recipe = recipe
         self._order = [d.name for d in skeleton]
-        self._parts = {d.name: json.dumps(d.to_json()) for d in skeleton}
+        made: dict[int, str] = {}  # the skeleton's devices share their parameter lists (not_finished)
+        self._parts = {d.name: _device_json(d, made) for d in skeleton}
         self._finished: list[DeviceResult] = []
         self._cond = threading.Condition()
         self._dirty = False

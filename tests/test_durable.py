@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from deployer import durable
-from deployer.durable import Line, NewFile, _Pending, commit
+from deployer.durable import Line, NewFile, _close, _Pending, commit
 
 
 def _file(folder: Path, stem: str, journal: Path | None = None, line: dict[str, Any] | None = None) -> NewFile:
@@ -47,6 +47,8 @@ def test_a_batch_fsyncs_each_file_its_folder_once_then_the_journal_once(tmp_path
              for i in range(3)]
     batch.append(_Pending(Line(str(journal), {"event": "device-finished", "name": "dev9"})))
     commit(batch)
+    for p in batch:
+        _close(p)
     assert synced == ["file", "file", "file", "dir", "journal"]  # the lines only after the files they name
     assert [p.done.result() for p in batch] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)] + [None]
     lines = _lines(journal)
@@ -71,6 +73,7 @@ def test_a_failure_is_that_operations_own_and_its_line_is_not_written(tmp_path: 
     good = _Pending(_file(tmp_path, "good", journal, {"name": "good"}))
     bad = _Pending(_file(tmp_path / "missing", "bad", journal, {"name": "bad"}))
     commit([good, bad])
+    _close(good)
     assert good.done.result() == str(tmp_path / "good.yaml")
     with pytest.raises(FileNotFoundError):
         bad.done.result()

@@ -494,3 +494,25 @@ def test_each_distinct_recipe_is_checked_once(tmp_path: Path, monkeypatch: pytes
     assert by["d00"] is by["d03"] and by["d01"] is by["d04"] and by["d02"] is not by["d00"]
     assert {d.name: d.registers for d in by["d05"].desired}["F07"] == (0, 800)
     assert by["d05"].profile.id == "other" and by["d02"].profile is by["d05"].profile
+
+
+def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Path) -> None:
+    from deployer.executor import skipped_result
+    from deployer.fleet import NOT_FINISHED, LiveReport, _report_text, fleet_jobs, load_inventory, not_finished
+    from deployer.recipe import load_recipe
+
+    inv = tmp_path / "inventory.yaml"
+    inv.write_text("devices:\n" + "".join(f"  {n}: {{url: 'tcp://127.0.0.1:{1000 + i}'}}\n"
+                                          for i, n in enumerate(names(3)))
+                   + f"  {names(4)[3]}: {{url: 'tcp://127.0.0.1:1003', parameters: {{F07: 12 s}}}}\n")  # own values
+    jobs = fleet_jobs(load_inventory(str(inv)), load_recipe(recipe(tmp_path)), None)
+    assert jobs[3].recipe is not jobs[0].recipe
+    skeleton = not_finished(jobs)
+    naive = [skipped_result(j, NOT_FINISHED) for j in jobs]
+    assert [d.to_json() for d in skeleton] == [d.to_json() for d in naive]
+    live = LiveReport(str(tmp_path / "r.json"), "r.yaml", skeleton)
+    live.stop()
+    text = (tmp_path / "r.json").read_text()
+    expected = _report_text("r.yaml", [json.dumps(d.to_json()) for d in naive], {})
+    assert text.split('"summary"')[0] == expected.split('"summary"')[0]  # byte for byte, but the summary
+    assert {d["name"]: d["error"] for d in json.loads(text)["devices"]} == {n: NOT_FINISHED for n in names(4)}
