@@ -10,12 +10,11 @@ import time
 from types import TracebackType
 from typing import TYPE_CHECKING
 
-from rich.console import Console, Group, RenderableType
-from rich.live import Live
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rich.text import Text
-
 if TYPE_CHECKING:
+    from rich.console import Console, RenderableType
+    from rich.live import Live
+    from rich.progress import Progress
+
     from .report import DeviceResult, Report
     from .tables import Cell
 
@@ -38,7 +37,17 @@ class FleetProgress:
         # logs and CI (no terminal): plain lines, unwrapped and without markup (a per-device rich render
         # was a visible share of a big fleet's CPU)
         self._plain = None if err.is_terminal else err.file
-        if live:
+        if live:  # rich's live display is only imported for a terminal (logs and CI runs start faster)
+            from rich.live import Live
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
+
             self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                                  TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=err)
             self._task = self._bar.add_task(self._description(), total=total)
@@ -59,6 +68,9 @@ class FleetProgress:
         return f"{self.counts.get('ok', 0)} ok, {bad} not ok, {len(self.in_flight)} in flight"
 
     def __rich__(self) -> RenderableType:
+        from rich.console import Group
+        from rich.text import Text
+
         assert self._bar is not None
         self._bar.update(self._task, description=self._description())
         now = sorted(self.in_flight, key=self.in_flight.__getitem__)
