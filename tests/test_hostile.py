@@ -21,7 +21,8 @@ from deployer.diagnostics import InputError
 ROOT = Path(__file__).resolve().parent.parent
 BAD = ROOT / "tests" / "bad"
 HOSTILE = ["yaml-alias-bomb.yaml", "yaml-deep-nesting.yaml", "yaml-recursive-alias.yaml", "recipe-100000-digits.yaml",
-           "recipe-100000-digit-string.yaml", "recipe-extends-dev-zero.yaml"]
+           "recipe-100000-digit-string.yaml", "recipe-extends-dev-zero.yaml", "profile-table-bomb.yaml",
+           "recipe-extends-diamond.yaml"]
 
 
 def _limited() -> None:  # a child that tries to take gigabytes fails instead of taking the machine
