@@ -46,6 +46,7 @@ MAX_FILE_BYTES = 8 * 1024 * 1024  # a 50,000-parameter profile is about 4 MB
 MAX_DEPTH = 64  # nesting of mappings and lists; recipes need 5
 MAX_ALIAS_NODES = 100_000  # values that aliases may add in total ("billion laughs" stops here)
 MAX_ENTRIES = 65_536  # entries in one mapping or list: a device has 65,536 holding registers
+MAX_NODES = 1_000_000  # values in one file (keys not counted): 15 per parameter of the largest profile
 MAX_NUMBER_CHARS = 100  # a number written with more characters is refused (no 100,000-digit numbers)
 MAX_ECHO = 60  # characters of a value echoed in a message; longer ones are cut with an ellipsis
 
@@ -193,6 +194,8 @@ class _Builder:
                     if key is not None:  # the value of that key
                         values[top.key_at] = pos
                         self.nodes += 1
+                        if self.nodes > MAX_NODES:
+                            self._too_many(pos)
                         out[key] = self._scalar(ev, pos)
                         top.key = None
                         continue
@@ -242,6 +245,8 @@ class _Builder:
                 parent.skip_value = False
                 continue
             self.nodes += 1
+            if self.nodes > MAX_NODES:
+                self._too_many(pos)
             if isinstance(ev, yaml.AliasEvent):
                 value = self._alias(ev, at, pos)
             elif isinstance(ev, yaml.ScalarEvent):
@@ -278,6 +283,10 @@ class _Builder:
             if parent is None:
                 return value
             self._attach(parent, value)
+
+    def _too_many(self, pos: Pos) -> None:
+        self.err(pos, f"more than {MAX_NODES} values in one file")
+        raise _Stop
 
     def _attach(self, parent: _Frame | None, value: Any) -> None:
         if parent is None:
