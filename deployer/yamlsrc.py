@@ -367,10 +367,13 @@ class _Builder:
     def _tag(self, ev: Any) -> str:
         tag: str | None = ev.tag
         if tag is None or tag == "!":
-            k = (ev.value, ev.implicit)
+            text: str = ev.value
+            if ev.implicit[0] and text.isdigit() and text.isascii() and (text[0] != "0" or len(text) == 1):
+                return _INT  # a plain decimal integer (registers, counts): what YAML 1.1's int pattern says
+            k = (text, ev.implicit)
             tag = self.tags.get(k)
             if tag is None:
-                tag = self.tags[k] = self.loader.resolve(yaml.ScalarNode, ev.value, ev.implicit)
+                tag = self.tags[k] = self.loader.resolve(yaml.ScalarNode, text, ev.implicit)
         return tag
 
     def _scalar(self, ev: Any, pos: Pos) -> Any:
