@@ -388,7 +388,8 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
 
 _STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "skipped": 3, "ok": 4, "unchanged": 5}
 _STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red",
-                 "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red"}
+                 "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red",
+                 "sent": "cyan"}
 
 
 def print_report(report: Report, out: Console) -> None:
@@ -404,13 +405,17 @@ def print_report(report: Report, out: Console) -> None:
                 table.add_row(p.name, p.before or "-", p.desired, p.after or "-", f"[{st}]{p.status}[/{st}]",
                               p.error or "")
             out.print(table)
+        if d.status == "sent":
+            out.print("broadcast sent: every request went out; no device answers a broadcast, so nothing was "
+                      "read back or verified")
         if d.snapshot:
             out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
     s = report.to_json()["summary"]
     if len(report.devices) > 1:
-        out.print(f"{s['devices']} devices: {s['ok']} ok, {s['partial']} partial, {s['failed']} failed, "
-                  f"{s['unreachable']} unreachable in {s['seconds']:.2f} s")
+        out.print(f"{s['devices']} devices: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
+                  + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable "
+                  f"in {s['seconds']:.2f} s")
 
 
 def _is_plan_file(path: str) -> bool:

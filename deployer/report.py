@@ -13,7 +13,7 @@ from .diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE
 
 REPORT_SCHEMA = "deployer.report/1"
 ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
-DeviceStatus = Literal["ok", "partial", "failed", "unreachable"]
+DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable"]  # sent: a broadcast that went out
 
 
 @dataclass
@@ -74,8 +74,8 @@ class DeviceResult:
         return sum(1 for r in self.requests if r.function == 3)
 
     def settle(self) -> None:
-        """Device status from its parameters (unless already failed/unreachable)."""
-        if self.status in ("unreachable", "failed"):
+        """Device status from its parameters (unless already sent/failed/unreachable)."""
+        if self.status in ("unreachable", "failed", "sent"):
             return
         bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
         if not bad:
@@ -104,7 +104,8 @@ class Report:
     seconds: float = 0.0
 
     def to_json(self) -> dict[str, Any]:
-        counts = {s: sum(1 for d in self.devices if d.status == s) for s in ("ok", "partial", "failed", "unreachable")}
+        counts = {s: sum(1 for d in self.devices if d.status == s)
+                  for s in ("ok", "sent", "partial", "failed", "unreachable")}
         return {
             "schema": REPORT_SCHEMA,
             "recipe": self.recipe,
@@ -117,12 +118,15 @@ class Report:
 
     @property
     def exit_code(self) -> int:
-        """DESIGN.md exit codes: 3 only when every device was unreachable (nothing written anywhere)."""
+        """DESIGN.md exit codes: 3 only when every device was unreachable (nothing written anywhere).
+
+        A broadcast that went out (``sent``) counts as success: the user asked for an unverifiable write.
+        """
         if not self.devices:
             return EXIT_OK
         if all(d.status == "unreachable" for d in self.devices):
             return EXIT_UNREACHABLE
-        if any(d.status != "ok" for d in self.devices):
+        if any(d.status not in ("ok", "sent") for d in self.devices):
             return EXIT_FAILED
         return EXIT_OK
 

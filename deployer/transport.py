@@ -74,6 +74,23 @@ class ExceptionResponse(TransportError):
 
 
 @dataclass(frozen=True)
+class LineSettings:
+    """A serial line's settings, the URL's options over SERIAL_DEFAULTS."""
+
+    baudrate: int
+    bytesize: int
+    parity: str
+    stopbits: int
+
+    def __str__(self) -> str:
+        return (f"{self.baudrate} baud, {self.bytesize} data bits, parity {self.parity}, "
+                f"{self.stopbits} stop bit{'s' if self.stopbits != 1 else ''}")
+
+
+SERIAL_DEFAULTS = LineSettings(19200, 8, "N", 1)  # rtu:// and ascii:// alike
+
+
+@dataclass(frozen=True)
 class DeviceURL:
     scheme: str  # tcp | tls | rtu | ascii | rtu+tcp
     host: str | None = None
@@ -97,6 +114,26 @@ class DeviceURL:
     @property
     def shared_bus(self) -> bool:
         return self.scheme in ("rtu", "ascii", "rtu+tcp")
+
+    @property
+    def line(self) -> LineSettings:
+        """Serial line settings (rtu, ascii; for other schemes only the defaults, used for timing)."""
+        o = self.options
+        d = SERIAL_DEFAULTS
+        return LineSettings(int(o.get("baudrate", d.baudrate)), int(o.get("bytesize", d.bytesize)),
+                            o.get("parity", d.parity), int(o.get("stopbits", d.stopbits)))
+
+
+def no_answer_hint(url: DeviceURL, unit: int) -> str:
+    """What to check when a device does not answer: on serial lines, mostly the line settings and unit id."""
+    if url.scheme in ("rtu", "ascii"):
+        return (f" at {url.line}, unit {unit}: check that the device uses the same baud rate, parity, data bits "
+                f"and stop bits and answers to unit {unit} (URL options baudrate, parity, bytesize, stopbits; "
+                f"--unit)")
+    if url.scheme == "rtu+tcp":
+        return (f" through the gateway, unit {unit}: check the unit id and that the gateway's serial line "
+                f"settings (baud rate, parity, data bits, stop bits) match the device's")
+    return ""
 
 
 class Transport(abc.ABC):
@@ -309,10 +346,8 @@ def bus_lock(url: DeviceURL) -> asyncio.Lock:
 
 def _char_time(url: DeviceURL) -> float:
     """Seconds per character on a serial line: start + data + parity + stop bits."""
-    baud = int(url.options.get("baudrate", 19200))
-    bits = 1 + int(url.options.get("bytesize", 8)) + (0 if url.options.get("parity", "N") == "N" else 1) + int(
-        url.options.get("stopbits", 1))
-    return bits / baud
+    line = url.line
+    return (1 + line.bytesize + (0 if line.parity == "N" else 1) + line.stopbits) / line.baudrate
 
 
 BROADCAST_TURNAROUND = 0.1  # seconds of silence after a unit-0 write
@@ -320,7 +355,7 @@ BROADCAST_TURNAROUND = 0.1  # seconds of silence after a unit-0 write
 
 def _silent_interval(url: DeviceURL) -> float:
     """Modbus over serial line 2.5.1.1: 3.5 character times between frames, fixed 1.75 ms above 19200 baud."""
-    if int(url.options.get("baudrate", 19200)) > 19200:
+    if url.line.baudrate > 19200:
         return 0.00175
     return 3.5 * _char_time(url)
 
@@ -582,19 +617,17 @@ class SerialTransport(PymodbusTransport):
         self._opening: _SerialLine | None = None
 
     def _settings(self) -> tuple[str, ...]:
-        o = self.url.options
-        return (self.url.scheme, o.get("baudrate", "19200"), o.get("bytesize", "8"), o.get("parity", "N"),
-                o.get("stopbits", "1"))
+        line = self.url.line
+        return (self.url.scheme, str(line.baudrate), str(line.bytesize), line.parity, str(line.stopbits))
 
     def _make_client(self) -> Any:
-        o = self.url.options
+        line = self.url.line
         common = self._common()
         # one client serves every transport on the port: the line routes frames to the active one
         common["trace_packet"] = self._opening.trace if self._opening is not None else self._trace
         return AsyncModbusSerialClient(
             self.url.path or "", framer=FramerType.RTU if self.url.scheme == "rtu" else FramerType.ASCII,
-            baudrate=int(o.get("baudrate", 19200)), bytesize=int(o.get("bytesize", 8)),
-            parity=o.get("parity", "N"), stopbits=int(o.get("stopbits", 1)), **common)
+            baudrate=line.baudrate, bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits, **common)
 
     async def connect(self) -> None:
         path = self.url.path or ""
@@ -637,9 +670,10 @@ class SerialTransport(PymodbusTransport):
         o = self.url.options
         port: Any = None
         try:
-            port = serial.serial_for_url(self.url.path, exclusive=True, baudrate=int(o.get("baudrate", 19200)),
-                                         bytesize=int(o.get("bytesize", 8)), parity=o.get("parity", "N"),
-                                         stopbits=int(o.get("stopbits", 1)), timeout=self.url.timeout)
+            line = self.url.line
+            port = serial.serial_for_url(self.url.path, exclusive=True, baudrate=line.baudrate,
+                                         bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits,
+                                         timeout=self.url.timeout)
             port.timeout = 0  # what pymodbus sets next: it reconfigures the port
             port.write_timeout = 0
         except Exception as e:  # pyserial raises SerialException, termios.error, ValueError
