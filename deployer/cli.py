@@ -178,6 +178,69 @@ def profiles_show(profile: str) -> int:
     out.print(table)
     return EXIT_OK
 
+@profiles.command("new")
+@click.argument("output", type=click.Path(dir_okay=False))
+@click.option("--id", "profile_id", help="the profile's id (default: the file name without .yaml)")
+@click.option("--force", is_flag=True, help="overwrite an existing file")
+def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
+    """Write a commented profile skeleton to OUTPUT, ready to fill in from the device's manual."""
+    import re
+
+    from .skeleton import profile_skeleton
+    from .yamlsrc import schema
+
+    pid = profile_id or os.path.splitext(os.path.basename(output))[0]
+    pattern = schema("profile")["properties"]["profile"]["pattern"]
+    if not re.match(pattern, pid):
+        raise UsageError(f"'{pid}' is not a profile id (letters, digits, '.', '_', '-'); pass --id ID")
+    text = profile_skeleton(pid, output)
+    if os.path.exists(output) and not force:
+        raise UsageError(f"{output} exists; pass --force to overwrite it")
+    with open(output, "w", encoding="utf-8") as f:
+        f.write(text)
+    click.echo(f"wrote {output}: fill it in from the manual, then run: deployer validate {output}", err=True)
+    return EXIT_OK
+
+
+# --- reference docs, explain (docgen) ----------------------------------------------------
+
+
+@cli.command("docs")
+@click.option("--out", "out_dir", default=os.path.join("docs", "reference"), show_default=True,
+              type=click.Path(file_okay=False), help="where the reference pages go")
+@click.option("--check", is_flag=True, help="write nothing; exit 1 when a page differs from the schemas")
+def docs_command(out_dir: str, check: bool) -> int:
+    """Generate the reference pages (one per file kind) from the JSON Schemas."""
+    from .docgen import stale_pages, write_pages
+
+    if check:
+        stale = stale_pages(out_dir)
+        for path in stale:
+            click.echo(f"{path}: stale (run: deployer docs --out {out_dir})", err=True)
+        return EXIT_INVALID if stale else EXIT_OK
+    changed = write_pages(out_dir)
+    click.echo(f"{len(changed)} page{'s' if len(changed) != 1 else ''} updated in {out_dir}", err=True)
+    return EXIT_OK
+
+
+@cli.command()
+@click.argument("key")
+def explain(key: str) -> int:
+    """Explain a key of a profile, recipe, inventory, plan or report (e.g. max_frame_bytes, profile:scale)."""
+    import difflib
+
+    from .docgen import all_keys, find_keys, render_text
+
+    found = find_keys(key)
+    if not found:
+        names = sorted({k.path for k in all_keys()} | {k.path.rsplit(".", 1)[-1] for k in all_keys()})
+        hint = difflib.get_close_matches(key.rpartition(":")[2], names, n=3)
+        raise UsageError(f"no key '{key}' in any schema" + (f"; did you mean {', '.join(hint)}?" if hint else
+                                                            "; try e.g. 'deployer explain scale'"))
+    click.echo("\n\n".join(render_text(k) for k in found))
+    return EXIT_OK
+
+
 # --- plan (planner) ---------------------------------------------------------------------
 
 _device_options = [
