@@ -45,7 +45,7 @@ parameters:
     # scale: 0.01          # resolution: engineering = raw x scale + offset ("0.01 s units")
     # offset: 0
     # min: 0               # range in engineering units, inclusive (from the manual's parameter list)
-    # max: 6000
+    # max: 600
     # access: read-write   # read-only: recipes may not set it; write-only: cannot be read back
     # values: {{ramp: 0, coast: 1}}   # enumeration labels recipes may use instead of numbers
     # stage: 0             # lower stages are written first (e.g. a control mode before what it changes)

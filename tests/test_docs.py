@@ -133,3 +133,24 @@ def test_url_page_covers_every_scheme_and_option() -> None:
 def test_report_example_matches_the_exit_code_rules() -> None:
     ex = yamlsrc.schema("report")["examples"][0]
     assert json.loads(json.dumps(ex))["summary"]["partial"] == 1
+
+
+def test_profiles_new_writes_a_skeleton_that_validates(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    path = tmp_path / "pid-ctrl.yaml"
+    code, _, err = cli(capsys, "profiles", "new", str(path))
+    assert code == 0 and err == f"wrote {path}: fill it in from the manual, then run: deployer validate {path}\n"
+    text = path.read_text()
+    assert text.count("\n#") > 10 and "profile: pid-ctrl\n" in text
+    assert validate_file(str(path)) == "profile pid-ctrl: 1 parameter"
+    code, _, err = cli(capsys, "profiles", "new", str(path))
+    assert code == 1 and err == f"error: {path} exists; pass --force to overwrite it\n"
+    code, _, _ = cli(capsys, "profiles", "new", str(path), "--force", "--id", "other")
+    assert code == 0 and validate_file(str(path)) == "profile other: 1 parameter"
+    code, _, err = cli(capsys, "profiles", "new", str(tmp_path / "my drive.yaml"))
+    assert code == 1 and "'my drive' is not a profile id" in err
+    # every commented-out key, uncommented, is still a valid profile key
+    lines = [re.sub(r"^(\s*)# ?(\s*)([a-z_]+:(\s.*)?|- \{.*)$", r"\1\2\3", ln) for ln in text.splitlines()]
+    assert sum(a != b for a, b in zip(lines, text.splitlines(), strict=True)) >= 20
+    full = tmp_path / "full.yaml"
+    full.write_text("\n".join(lines) + "\n")
+    assert validate_file(str(full)) == "profile pid-ctrl: 1 parameter"
