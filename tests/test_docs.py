@@ -153,4 +153,4 @@ def test_profiles_new_writes_a_skeleton_that_validates(capsys: pytest.CaptureFix
     assert sum(a != b for a, b in zip(lines, text.splitlines(), strict=True)) >= 20
     full = tmp_path / "full.yaml"
     full.write_text("\n".join(lines) + "\n")
-    assert validate_file(str(full)) == "profile pid-ctrl: 1 parameter"
+    assert validate_file(str(full)) == "profile pid-ctrl: 257 parameters"  # the table's 256 entries too
