@@ -1,91 +1,241 @@
-"""apply vs a hand-written script (one FC16 and one FC03 per parameter), and vs the line's physical limit.
+"""apply on the issue-#9 drive, end to end, against a device answering after 0, 5 and 20 ms.
 
-The simulated device delays every answer by the time its request and answer frames take on a
-19200-baud 8E1 line (plus the 3.5-character gaps), so wall time behaves like a real RS-485 bus.
+The drive: 500 parameters, every 3rd 32-bit, one undeclared register after every 40 (679
+registers, 13 runs). The device is the simulator in its own process (`deployer simulate
+--latency-ms D`), so its CPU is not ours. Each contender runs as a fresh process, timed from
+spawn to exit (interpreter start-up and imports included), with new values each run so
+everything is written:
+
+* ``deployer``: ``deployer apply RECIPE --yes`` (snapshot read, writes, read-back, report);
+  ``deployer_gap_reads``: the same with ``limits: {max_read_gap: 1}`` and a device that answers
+  reads of its gaps;
+* ``naive``: a pymodbus script doing one FC16 and one FC03 per parameter;
+* ``skilled``: a pymodbus script writing the same 13 contiguous blocks and reading them back
+  once (no snapshot, no checks, values precomputed);
+* ``floor``: requests x answer delay, and ``floor_plus_startup``: that plus a bare
+  ``python -c pass``.
+
+Also the time split by phase (the library's own calls, step by step, in one process: load,
+validate, plan, connect, snapshot read, writes, read-back, report), and the CPU per parameter
+at 0 ms (process CPU of those phases / parameters).
 """
 
 from __future__ import annotations
 
 import asyncio
+import io
 import json
+import os
+import socket
+import statistics
+import subprocess
+import sys
 import tempfile
 import time
-from decimal import Decimal
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
-from deployer.executor import ApplyOptions, apply_device
-from deployer.planner import Target, make_plan
-from deployer.profile import Limits, Parameter, Profile
-from deployer.recipe import Desired, Recipe
-from deployer.simulator import Faults, Simulator
-from deployer.transport import open_transport, parse_url
+from benchmarks import drive
 
-BAUD = 19200
+N = 500
+ROOT = Path(__file__).resolve().parent.parent
 
-
-def setup(n: int) -> Recipe:
-    params = []
-    address = 0
-    for i in range(n):
-        t = "uint32" if i % 4 == 0 else "uint16"
-        params.append(Parameter(name=f"p{i}", address=address, type=t, max=Decimal(60000)))
-        address += params[-1].count + (5 if i % 50 == 49 else 0)  # parameter groups with gaps
-    prof = Profile(id="bench", parameters=tuple(params), limits=Limits())
-    desired = tuple(Desired(p, str(i + 1), p.encode(i + 1)) for i, p in enumerate(params))
-    return Recipe("bench", None, prof, desired)
+# naive: one FC16 and one FC03 per parameter; skilled: the same contiguous blocks as deployer's writes
+SCRIPT = """
+import json, sys
+from pymodbus.client import ModbusTcpClient
+host, port, plan, kind = sys.argv[1], int(sys.argv[2]), json.load(open(sys.argv[3])), sys.argv[4]
+c = ModbusTcpClient(host, port=port, retries=0, timeout=3)
+c.connect()
+for address, regs in plan[kind]:
+    assert not c.write_registers(address, regs, device_id=1).isError()
+for address, regs in plan[kind]:
+    assert c.read_holding_registers(address, count=len(regs), device_id=1).registers == regs
+c.close()
+"""
 
 
-def line_seconds(frames_bytes: int, frames: int) -> float:
-    char = 11 / BAUD
-    return frames_bytes * char + frames * 3.5 * char
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
-async def ours(recipe: Recipe) -> tuple[float, float, int]:
-    async with Simulator(recipe.profile, faults=Faults(baud=BAUD)) as sim:
-        t = time.perf_counter()
-        res = await apply_device(recipe, parse_url(sim.url), 1,
-                                 options=ApplyOptions(state_dir=tempfile.mkdtemp(), write_all=True))
-        dt = time.perf_counter() - t
-        assert res.status == "ok"
-        wire = 0
-        for e in sim.log:
-            if e.function == 16:
-                wire += (9 + 2 * e.count) + 8
-            else:
-                wire += 8 + (5 + 2 * e.count)
-        return dt, line_seconds(wire, 2 * len(sim.log)), len(sim.log)
+@contextmanager
+def device(profile: str, latency_ms: float, log: str, gap_reads: bool = False) -> Any:
+    port = _free_port()
+    args = [sys.executable, "-m", "deployer", "simulate", profile, "--listen", f"tcp://127.0.0.1:{port}",
+            "--latency-ms", str(latency_ms), "--log", log] + (["--gap-reads"] if gap_reads else [])
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    raise RuntimeError("the simulator did not start") from None
+                time.sleep(0.05)
+        yield port
+    finally:
+        proc.terminate()
+        proc.wait(10)
 
 
-async def naive(recipe: Recipe) -> tuple[float, int]:
-    async with Simulator(recipe.profile, faults=Faults(baud=BAUD)) as sim:
-        t = open_transport(sim.url)
-        await t.connect()
-        start = time.perf_counter()
-        for d in recipe.desired:
-            await t.write_registers(d.parameter.address, list(d.registers), 1)
-        for d in recipe.desired:
-            assert tuple(await t.read_holding_registers(d.parameter.address, d.parameter.count, 1)) == d.registers
-        dt = time.perf_counter() - start
-        await t.close()
-        return dt, len(sim.log)
+def timed(args: list[str], cwd: Path = ROOT) -> tuple[float, float, int, int]:
+    """Wall seconds, CPU seconds, peak RSS (KB) and exit code of one child process."""
+    t = time.perf_counter()
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=cwd)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode not in (0,):
+        err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+        raise RuntimeError(f"{' '.join(args[:4])} exited {proc.returncode}: {err[-800:]}")
+    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss, proc.returncode
+
+
+def _log_lines(log: str) -> list[str]:
+    return Path(log).read_text().splitlines() if os.path.exists(log) else []
+
+
+def _requests(lines: list[str]) -> dict[str, int]:
+    out = {"fc16": 0, "fc03": 0}
+    for line in lines:
+        out["fc16" if json.loads(line)["function"] == 16 else "fc03"] += 1
+    return out
+
+
+def _plan_file(work: str, recipe_path: str) -> str:
+    """The registers a hand-written script would hard-code: per parameter and per contiguous block."""
+    from deployer.planner import Target, make_plan
+    from deployer.recipe import load_recipe
+
+    rec = load_recipe(recipe_path)
+    plan = make_plan(rec, Target(None, 1, "x"), write_all=True)
+    data = {"parameters": [[d.parameter.address, list(d.registers)] for d in rec.desired],
+            "blocks": [[w.address, list(w.registers)] for w in plan.writes]}
+    path = os.path.join(work, "plan.json")
+    Path(path).write_text(json.dumps(data))
+    return path
+
+
+def _contenders(work: str, latency: float, rounds: int) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    script = os.path.join(work, "script.py")
+    Path(script).write_text(SCRIPT)
+    startup = min(timed([sys.executable, "-c", "pass"])[0] for _ in range(5))
+    for name, gap in (("deployer", 0), ("deployer_gap_reads", 1), ("skilled", 0), ("naive", 0)):
+        files = drive.write(os.path.join(work, name), N, max_read_gap=gap)
+        log = os.path.join(work, f"{name}.log")
+        walls, cpus, reqs = [], [], {}
+        with device(files["profile"], latency, log, gap_reads=bool(gap)) as port:
+            for r in range(rounds if name != "naive" or latency < 20 else 1):
+                files = drive.write(os.path.join(work, name), N, max_read_gap=gap, salt=r + 1)
+                if name.startswith("deployer"):
+                    args = [sys.executable, "-m", "deployer", "apply", files["recipe"], "--device",
+                            f"tcp://127.0.0.1:{port}", "--yes", "--state-dir", os.path.join(work, "state")]
+                else:
+                    args = [sys.executable, script, "127.0.0.1", str(port), _plan_file(work, files["recipe"]),
+                            "parameters" if name == "naive" else "blocks"]
+                seen = len(_log_lines(log))
+                wall, cpu, _rss, _ = timed(args)
+                walls.append(wall)
+                cpus.append(cpu)
+                time.sleep(0.2)  # the simulator's log line for the last answer
+                reqs = _requests(_log_lines(log)[seen:])
+        requests = reqs["fc16"] + reqs["fc03"]
+        floor = requests * latency / 1000
+        out[name] = {"seconds": round(min(walls), 3), "median_seconds": round(statistics.median(walls), 3),
+                     "cpu_seconds": round(min(cpus), 3), "fc16": reqs["fc16"], "fc03": reqs["fc03"],
+                     "floor_seconds": round(floor, 3),
+                     "vs_floor_plus_startup": round(min(walls) / (floor + startup), 2)}
+    out["python_startup_seconds"] = round(startup, 3)
+    out["deployer_vs_naive"] = round(out["naive"]["seconds"] / out["deployer"]["seconds"], 1)
+    out["deployer_vs_skilled"] = round(out["deployer"]["seconds"] / out["skilled"]["seconds"], 2)
+    return out
+
+
+async def _phases(work: str, port: int, salt: int) -> dict[str, float]:
+    """The apply pipeline step by step with the library's calls, timed (wall) per phase, plus process CPU."""
+    from deployer import yamlsrc
+    from deployer.cli import print_report
+    from deployer.executor import Session, save_snapshot, values_of
+    from deployer.planner import Target, make_plan
+    from deployer.recipe import load_recipe
+    from deployer.report import DeviceResult, Report
+    from deployer.transport import open_transport, parse_url
+
+    files = drive.write(os.path.join(work, "phases"), N, salt=salt)
+    ph: dict[str, float] = {}
+    cpu0 = time.process_time()
+    t = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t
+        now = time.perf_counter()
+        ph[name] = round(now - t, 4)
+        t = now
+
+    yamlsrc.load(files["recipe"])
+    yamlsrc.load(files["profile"])
+    lap("load")
+    rec = load_recipe(files["recipe"])  # loads again, then schema, units, ranges: validate = this - load
+    ph["validate"] = round(time.perf_counter() - t - ph["load"], 4)
+    t = time.perf_counter()
+    url = parse_url(f"tcp://127.0.0.1:{port}")
+    target = Target("tcp://127.0.0.1", 1, "bench")
+    offline = make_plan(rec, target)
+    lap("plan")
+    transport = open_transport(url)
+    await transport.connect()
+    res = DeviceResult("bench", "tcp://127.0.0.1", 1, "bench")
+    session = Session(transport, 1, retries=0, backoff=0.01, records=res.requests)
+    lap("connect")
+    params = [d.parameter for d in rec.desired]
+    before = values_of(params, await session.read_blocks(offline.reads, rec.profile))
+    plan = make_plan(rec, target, before)
+    save_snapshot(os.path.join(work, "state"), "bench", rec, before, "tcp://127.0.0.1", 1)
+    lap("snapshot_read")
+    for w in plan.writes:
+        await session.write(w)
+    lap("writes")
+    after = values_of(params, await session.read_blocks(plan.reads, rec.profile))
+    lap("read_back")
+    await transport.close()
+    assert all(after[d.name] == d.registers for d in rec.desired)
+    from deployer.report import ParameterResult
+
+    res.parameters = [ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers,
+                                      before.get(d.name), after[d.name], "ok") for d in rec.desired]
+    report = Report(files["recipe"], [res])
+    json.dumps(report.to_json())
+    from rich.console import Console
+
+    print_report(report, Console(file=io.StringIO(), width=200))
+    lap("report")
+    ph["total"] = round(sum(v for k, v in ph.items()), 4)
+    ph["cpu_seconds"] = round(time.process_time() - cpu0, 4)
+    ph["cpu_ms_per_parameter"] = round(ph["cpu_seconds"] / N * 1000, 3)
+    return ph
 
 
 def run(quick: bool = False) -> dict[str, Any]:
-    n = 100 if quick else 400
-    recipe = setup(n)
-    plan = make_plan(recipe, Target(None, 1, "bench"))
-    ours_s, physical_s, ours_requests = asyncio.run(ours(recipe))
-    naive_s, naive_requests = asyncio.run(naive(recipe))
-    return {"parameters": n, "baud": BAUD, "plan_write_requests": len(plan.writes),
-            "ours_seconds": round(ours_s, 3), "ours_requests": ours_requests,
-            "naive_seconds": round(naive_s, 3), "naive_requests": naive_requests,
-            "speedup_vs_naive": round(naive_s / ours_s, 2),
-            "line_limit_seconds": round(physical_s, 3),
-            "ours_vs_line_limit": round(ours_s / physical_s, 2)}
+    latencies = [5.0] if quick else [0.0, 5.0, 20.0]
+    rounds = 2 if quick else 3
+    out: dict[str, Any] = {"parameters": N}
+    with tempfile.TemporaryDirectory() as work:
+        for lat in latencies:
+            out[f"{lat:g}ms"] = _contenders(work, lat, rounds)
+        files = drive.write(os.path.join(work, "phases"), N)
+        with device(files["profile"], 0.0, os.path.join(work, "ph.log")) as port:
+            runs = [asyncio.run(_phases(work, port, salt)) for salt in range(1, rounds + 2)]
+        best = min(runs, key=lambda r: r["total"])
+        out["phases_0ms"] = best
+    return out
 
 
 if __name__ == "__main__":
-    res = run()
-    print(json.dumps(res, indent=2))
-    for k, v in res.items():
-        print(f"{k:<24}{v:>12}")
+    print(json.dumps(run("--quick" in sys.argv), indent=2))

@@ -33,6 +33,40 @@ def _rows(prefix: str, value: Any) -> list[tuple[str, str]]:
     return [(prefix, str(value))]
 
 
+def _get(results: dict[str, Any], path: str) -> Any:
+    cur: Any = results
+    for part in path.split("/"):
+        if not isinstance(cur, dict) or part not in cur:
+            return None
+        cur = cur[part]
+    return cur
+
+
+# issue #9, "Must show": (what, result path, comparison, target)
+TARGETS = [
+    ("validate, 5,000 parameters (s)", "scale/5000/validate_seconds", "<=", 0.5),
+    ("plan, 5,000 parameters (s)", "scale/5000/plan_seconds", "<=", 0.5),
+    ("validate, 50,000 parameters (s)", "scale/50000/validate_seconds", "<=", 5.0),
+    ("plan, 50,000 parameters (s)", "scale/50000/plan_seconds", "<=", 5.0),
+    ("apply @5 ms: naive script / deployer", "apply/5ms/deployer_vs_naive", ">=", 10.0),
+    ("apply @5 ms: deployer / (floor + start-up)", "apply/5ms/deployer/vs_floor_plus_startup", "<=", 1.3),
+    ("apply @0 ms: CPU per parameter (ms)", "apply/phases_0ms/cpu_ms_per_parameter", "<", 0.2),
+    ("tcp transport vs bare pymodbus", "transport/tcp/ours_vs_bare", ">=", 0.83),
+    ("FC03 of a full apply with gap reads", "apply/5ms/deployer_gap_reads/fc03", "<=", 12),
+]
+
+
+def targets(results: dict[str, Any]) -> list[dict[str, Any]]:
+    out = []
+    for what, path, op, target in TARGETS:
+        got = _get(results, path)
+        if got is None:
+            continue
+        ok = {"<=": got <= target, ">=": got >= target, "<": got < target}[op]
+        out.append({"target": f"{what} {op} {target}", "measured": got, "met": ok})
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
@@ -45,12 +79,18 @@ def main(argv: list[str] | None = None) -> int:
             continue
         module = importlib.import_module(f"benchmarks.{mod}")
         results[name] = module.run(quick=args.quick)
+    results["targets"] = targets(results)
     print(json.dumps(results, indent=2))
-    rows = _rows("", {k: v for k, v in results.items() if k not in ("python", "time")})
+    rows = _rows("", {k: v for k, v in results.items() if k not in ("python", "time", "targets")})
     width = max((len(k) for k, _ in rows), default=10)
     print()
     for k, v in rows:
         print(f"{k:<{width}}  {v}")
+    if results["targets"]:
+        print("\nissue #9 targets")
+        tw = max(len(t["target"]) for t in results["targets"])
+        for t in results["targets"]:
+            print(f"  {t['target']:<{tw}}  {t['measured']!s:>8}  {'met' if t['met'] else 'MISSED'}")
     return 0
 
 

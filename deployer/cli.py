@@ -11,8 +11,6 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import click
-from rich.console import Console
-from rich.table import Table
 
 from .diagnostics import (
     EXIT_CHANGES,
@@ -23,13 +21,22 @@ from .diagnostics import (
     InputError,
     UsageError,
 )
-from .transport import DeviceURL, TransportError, describe
+from .tables import Cell, show
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from .api import Drift
+    from .executor import Job, ReadJob
     from .planner import Plan
     from .profile import Profile
     from .recipe import Recipe
     from .report import DeviceResult, Report
+    from .transport import DeviceURL
+    from .yamlsrc import Source
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -48,9 +55,20 @@ def report_input_error(err: InputError) -> None:
 # --- validate, profiles (foundation) ---------------------------------------------------
 
 
-def console() -> Console:
-    """stdout console; wide when not a terminal so piped tables are not squeezed."""
+def console(*, stderr: bool = False) -> Console:
+    """stdout (or stderr) console; wide when not a terminal so piped lines are not squeezed."""
+    from rich.console import Console  # only commands that print pay for importing rich
+
+    if stderr:
+        return Console(stderr=True, highlight=False)
     return Console(width=None if sys.stdout.isatty() else 200, highlight=False)
+
+
+def describe(url: DeviceURL) -> str:
+    """The URL as users write it (transport imports pymodbus: only when a device is involved)."""
+    from .transport import describe as describe_url
+
+    return describe_url(url)
 
 
 def _n(count: int, noun: str) -> str:
@@ -78,12 +96,19 @@ def _kind(data: object) -> str | None:
 def validate_file(path: str) -> str:
     """Check one file of any kind; returns a one-line summary or raises InputError."""
     from . import yamlsrc
+
+    data, src = yamlsrc.load(path, hand_over=True)  # the loader below takes it over: parsed once
+    try:
+        return _validate_kind(path, _kind(data), data, src)
+    finally:
+        yamlsrc.forget(path)
+
+
+def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
     from .fleet import load_inventory
     from .profile import load_profile, resolve_profile
     from .recipe import load_recipe
 
-    data, src = yamlsrc.load(path)
-    kind = _kind(data)
     if kind == "profile":
         prof = load_profile(path)
         return f"profile {prof.id}: {_n(len(prof.parameters), 'parameter')}"
@@ -143,12 +168,12 @@ def profiles_list() -> int:
     """List the built-in profiles."""
     from .profile import builtin_profile, builtin_profile_ids
 
-    table = Table("profile", "parameters", "description", box=None)
+    rows: list[list[Cell]] = []
     for pid in builtin_profile_ids():
         prof = builtin_profile(pid)
         first = prof.description.split(". ")[0].rstrip(".")
-        table.add_row(pid, str(len(prof.parameters)), first)
-    console().print(table)
+        rows.append([pid, str(len(prof.parameters)), first])
+    show(console(), ["profile", "parameters", "description"], rows)
     return EXIT_OK
 
 
@@ -165,17 +190,17 @@ def profiles_show(profile: str) -> int:
     lim = prof.limits
     out.print(f"addressing {prof.addressing}, word order {prof.word_order}; up to {lim.write_registers} registers "
               f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read")
-    table = Table("parameter", "address", "type", "unit", "resolution", "range", "access", "default",
-                  "description", box=None)
+    rows: list[list[Cell]] = []
     for p in prof.parameters:
         rng = "" if p.min is None and p.max is None else (
             f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
         if p.values:
             rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
         default = "" if p.default is None else format_decimal(p.default)
-        table.add_row(p.name, f"0x{p.address:04X} ({p.address})", p.type, p.unit or "",
-                      format_decimal(p.scale), rng, p.access, default, p.description)
-    out.print(table)
+        rows.append([p.name, f"0x{p.address:04X} ({p.address})", p.type, p.unit or "",
+                     format_decimal(p.scale), rng, p.access, default, p.description])
+    show(out, ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"],
+         rows)
     return EXIT_OK
 
 @profiles.command("new")
@@ -257,6 +282,14 @@ def device_options(f: Callable[..., Any]) -> Callable[..., Any]:
     return f
 
 
+LIMIT_HELP = ("inventory devices: names, groups and glob patterns, comma-separated (!X excludes); "
+              "@REPORT.json = the devices of that report that did not end ok")
+fleet_option = click.option("--inventory", type=click.Path(dir_okay=False), help="every device of an inventory")
+limit_option = click.option("--limit", metavar="SEL", help=LIMIT_HELP)
+parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), default=8, show_default=True,
+                               help="devices at once (devices on one bus always go one at a time)")
+
+
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
@@ -278,6 +311,7 @@ def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: in
                 ) -> dict[str, tuple[int, ...]] | None:
     """Current values for plan --device, diff and pull; None (after saying why) when unreachable."""
     from .executor import read_current
+    from .transport import TransportError
 
     try:
         return asyncio.run(read_current(profile, names, url, unit))
@@ -290,16 +324,29 @@ def _hexwords(regs: Sequence[int] | None) -> str:
     return "-" if regs is None else " ".join(f"{w:04X}" for w in regs)
 
 
-def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console) -> None:
-    from .planner import wire_stats
+def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:
+    """(framing, baud, bits per character, text) of the line the plan goes over: the URL's serial settings,
+    else the Modbus default 19200 baud 8E1 on RTU."""
+    if url is not None and url.scheme in ("rtu", "ascii"):
+        o = url.options
+        baud, data, parity, stop = int(o.get("baudrate", 19200)), int(o.get("bytesize", 8)), o.get("parity", "N"), \
+            int(o.get("stopbits", 1))
+        return url.scheme, baud, 1 + data + (parity != "N") + stop, f"{baud} baud {data}{parity}{stop}"
+    return "rtu", 19200, 11, "19200 baud"
+
+
+def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console,
+               url: DeviceURL | None = None) -> None:
+    from .planner import line_cost, wire_stats
 
     req_of: dict[str, list[int]] = {}
     for i, w in enumerate(plan.writes, 1):
         for n in w.parameters:
             req_of.setdefault(n, []).append(i)
-    table = Table("parameter", "address", "raw", "value", "request", box=None)
+    headers = ["parameter", "address", "raw", "value", "request"]
     if changes_only:
-        table = Table("parameter", "address", "current -> desired", "raw", "action", "request", box=None)
+        headers = ["parameter", "address", "current -> desired", "raw", "action", "request"]
+    rows: list[list[Cell]] = []
     for pp in plan.parameters:
         if changes_only and pp.action == "unchanged":
             continue
@@ -308,21 +355,26 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
         if changes_only:
             p = profile.parameter(pp.name)
             cur = p.format_registers(pp.current_raw) if pp.current_raw is not None else "?"
-            table.add_row(pp.name, addr, f"{cur} -> {pp.desired}", _hexwords(pp.desired_raw), pp.action, reqs)
+            rows.append([pp.name, addr, f"{cur} -> {pp.desired}", _hexwords(pp.desired_raw), pp.action, reqs])
         else:
-            table.add_row(pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs)
-    if table.row_count:
-        out.print(table)
+            rows.append([pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs])
+    if rows:
+        show(out, headers, rows)
     elif changes_only:
         out.print("No changes: the device already holds every value of the recipe.")
     st = wire_stats(plan)
     naive = sum(1 for pp in plan.parameters if pp.action != "unchanged")
     unchanged = sum(1 for pp in plan.parameters if pp.action == "unchanged")
+    framing, baud, bits, line = _line_of(url)
+    chars, seconds = line_cost(plan, framing=framing, baud=baud, char_bits=bits)
+    units = (f"{_n(chars, 'character')} on an ASCII line" if framing == "ascii"
+             else f"{_n(chars, 'byte')} on an RTU line")
     out.print(
-        f"{len(plan.writes)} write request{'s' if len(plan.writes) != 1 else ''} "
-        f"({st['registers']} registers; one request per parameter would take {naive})"
+        f"{_n(len(plan.writes), 'write request')} "
+        f"({_n(int(st['registers']), 'register')}; one request per parameter would take {naive})"
         + (f", {unchanged} unchanged" if unchanged else "")
-        + f"; {st['rtu_bytes']} bytes on an RTU line, about {float(st['seconds_19200']) * 1000:.0f} ms at 19200 baud")
+        + f"; {units}, about {seconds * 1000:.0f} ms at {line}"
+        + (" (broadcast: no answers)" if plan.device.unit == 0 else ""))
 
 
 def print_frames(plan: Plan, out: Console) -> None:
@@ -335,8 +387,11 @@ def print_frames(plan: Plan, out: Console) -> None:
         framing: Framing
         for framing in ("rtu", "ascii", "tcp"):
             q = request_frame(w, unit, framing, transaction_id=i)
-            a = response_frame(w, unit, framing, transaction_id=i)
             out.print(f"  {framing:5} query    {_show(q, framing)}")
+            if unit == 0:  # broadcast: no device answers
+                out.print(f"  {'':5} response none (broadcast)")
+                continue
+            a = response_frame(w, unit, framing, transaction_id=i)
             out.print(f"  {'':5} response {_show(a, framing)}")
 
 
@@ -352,14 +407,25 @@ def _show(frame: bytes, framing: str) -> str:
 @click.option("--detailed-exitcode", is_flag=True, help="exit 2 when something would change, 0 when nothing would")
 @click.option("--show-frames", is_flag=True, help="print the exact bytes of each request (RTU, ASCII, TCP)")
 @click.option("--write-all", is_flag=True, help="plan every parameter, even those the device already holds")
+@fleet_option
+@limit_option
+@parallel_option
 def plan(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-         as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool) -> int:
+         as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
+         inventory: str | None, limit: str | None, parallel: int) -> int:
     """Show the requests that apply would send. Offline, or with --device against what the device holds."""
     from .planner import Target, make_plan, plan_to_json
     from .recipe import load_recipe
     from .report import write_json
 
     rec = load_recipe(recipe)
+    if inventory:
+        if device or out_path or show_frames:
+            raise UsageError("with --inventory, --device, --out and --show-frames do not apply (one plan per device)")
+        return plan_fleet(rec, _fleet(rec, inventory, limit, timeout, retries, unit), parallel=parallel,
+                          as_json=as_json, detailed_exitcode=detailed_exitcode, write_all=write_all)
+    if limit:
+        raise UsageError("--limit needs --inventory")
     url, u = _target(rec, device, unit, timeout, retries, required=False)
     current = None
     if device is not None:
@@ -376,7 +442,8 @@ def plan(recipe: str, device: str | None, unit: int | None, timeout: float | Non
         click.echo(json.dumps(data, indent=2))
     else:
         out = console()
-        print_plan(p, rec.profile, changes_only=current is not None, out=out)
+        out.print(f"profile: {rec.profile.id} ({rec.profile.source or 'built-in'})")
+        print_plan(p, rec.profile, changes_only=current is not None, out=out, url=url)
         if show_frames:
             print_frames(p, out)
         if out_path:
@@ -384,6 +451,59 @@ def plan(recipe: str, device: str | None, unit: int | None, timeout: float | Non
     if detailed_exitcode and p.writes:
         return EXIT_CHANGES
     return EXIT_OK
+
+
+def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tuple[int, ...]] | Exception]:
+    """Current values of every device (a live display on a terminal); errors are said on stderr."""
+    from .api import read_fleet_async
+    from .progress import FleetProgress
+
+    err = console(stderr=True)
+    progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
+    with progress:
+        values = asyncio.run(read_fleet_async(
+            jobs, parallel=parallel, on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")))
+    for name, v in values.items():
+        if isinstance(v, Exception):
+            click.echo(f"{name}: unreachable - {v}", err=True)
+    return dict(values)
+
+
+def _unreachable(values: Mapping[str, object]) -> list[str]:
+    return [n for n, v in values.items() if isinstance(v, Exception)]
+
+
+def plan_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool, detailed_exitcode: bool,
+               write_all: bool) -> int:
+    """A plan per device against what it holds; exit 3 if any device could not be read, else as plan."""
+    from .api import read_jobs
+    from .planner import Target, make_plan, plan_to_json
+
+    values = read_fleet(read_jobs(jobs), parallel)
+    plans = {}
+    for j in jobs:
+        cur = values[j.name]
+        if not isinstance(cur, Exception):
+            plans[j.name] = make_plan(j.recipe, Target(describe(j.url), j.unit, j.recipe.profile_ref
+                                                       or j.recipe.profile.id), cur, write_all=write_all)
+    changing = [n for n, p in plans.items() if p.writes]
+    if as_json:
+        click.echo(json.dumps({"recipe": rec.path, "devices": [
+            {"name": j.name, "plan": plan_to_json(plans[j.name])} if j.name in plans
+            else {"name": j.name, "error": str(values[j.name])} for j in jobs]}, indent=2))
+    else:
+        out = console()
+        for j in jobs:
+            if j.name in plans and plans[j.name].writes:
+                out.print(f"[bold]{j.name}[/bold] {describe(j.url)} unit {j.unit}:")
+                print_plan(plans[j.name], j.recipe.profile, changes_only=True, out=out)
+        down = _unreachable(values)
+        out.print(f"{len(changing)} of {len(jobs)} devices would change" + (f": {', '.join(changing)}" if changing
+                                                                            else "")
+                  + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
+    if _unreachable(values):
+        return EXIT_UNREACHABLE
+    return EXIT_CHANGES if detailed_exitcode and changing else EXIT_OK
 
 
 # --- simulate (simulator) ---------------------------------------------------------------
@@ -414,9 +534,11 @@ def _register(text: str) -> int:
 @click.option("--state", "state_path", type=click.Path(dir_okay=False), help="dump registers as JSON on exit/SIGUSR1")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False), help="one JSON line per request")
 @click.option("--loose-limits", is_flag=True, help="accept requests beyond the profile's limits")
+@click.option("--gap-reads", is_flag=True, help="answer reads of undeclared registers between declared ones (zeros)")
 def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str | None, latency_ms: float,
              baud: int | None, drop_every: int, busy_first: int, fail_registers: tuple[str, ...],
-             disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool) -> int:
+             disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool,
+             gap_reads: bool) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
     from .profile import resolve_profile
     from .recipe import load_recipe
@@ -432,7 +554,7 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
                     fail_registers=frozenset(_register(r) for r in fail_registers),
                     disconnect_after=disconnect_after)
     sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
-                    state_path=state_path, strict_limits=not loose_limits)
+                    state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads)
 
     def ready(s: Simulator) -> None:
         which = ", ".join(str(u) for u in s.units)
@@ -455,27 +577,31 @@ _STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "misma
                  "sent": "cyan"}
 
 
-def print_report(report: Report, out: Console) -> None:
+def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> None:
+    """Per device, every parameter; ``only_not_ok`` (fleets): only the devices that need a look, by parameter."""
     for d in report.devices:
+        if only_not_ok and d.status in ("ok", "skipped"):
+            continue
         style = _STATUS_STYLE.get(d.status, "")
         out.print(f"[bold]{d.name}[/bold] {d.url} unit {d.unit} ({d.profile}): [{style}]{d.status}[/{style}]"
                   + (f" - {d.error}" if d.error else ""))
         rows = sorted(d.parameters, key=lambda p: (_STATUS_ORDER.get(p.status, 9), p.address))
+        if only_not_ok:
+            rows = [p for p in rows if p.status not in ("ok", "unchanged")]
         if d.status != "unreachable" and rows:
-            table = Table("parameter", "before", "desired", "after", "status", "", box=None)
-            for p in rows:
-                st = _STATUS_STYLE.get(p.status, "")
-                table.add_row(p.name, p.before or "-", p.desired, p.after or "-", f"[{st}]{p.status}[/{st}]",
-                              p.error or "")
-            out.print(table)
+            show(out, ["parameter", "before", "desired", "after", "status", ""],
+                 [[p.name, p.before or "-", p.desired, p.after or "-", (p.status, _STATUS_STYLE.get(p.status, "")),
+                   p.error or ""] for p in rows])
         if d.status == "sent":
             out.print("broadcast sent: every request went out; no device answers a broadcast, so nothing was "
                       "read back or verified")
+        for note in d.notices:
+            out.print(f"note: {note}")
         if d.snapshot:
             out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
-    s = report.to_json()["summary"]
-    if len(report.devices) > 1:
+    s = report.summary()
+    if len(report.devices) > 1 and not only_not_ok:
         out.print(f"{s['devices']} devices: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
                   + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable "
                   f"in {s['seconds']:.2f} s")
@@ -492,73 +618,149 @@ def _is_plan_file(path: str) -> bool:
     return head.lstrip().startswith(b"{") and b"deployer.plan/" in head
 
 
-def run_apply(source: str, *, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-              yes: bool, report_path: str | None, as_json: bool, inventory: str | None, limit: str | None,
-              parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
-              command: str = "apply") -> int:
+def run_apply(source: str | None, *, device: str | None, unit: int | None, timeout: float | None,
+              retries: int | None, yes: bool, report_path: str | None, as_json: bool, inventory: str | None,
+              limit: str | None, parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
+              lock_timeout: float = 0.0, force: bool = False, from_report: str | None = None,
+              batch: str | None = None, max_failures: str | None = None, command: str = "apply") -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
+    from . import journal
+    from .api import run_fleet_async
     from .executor import ApplyOptions, Job, apply_many
-    from .fleet import fleet_jobs, load_inventory
     from .planner import load_plan
+    from .progress import FleetProgress, fleet_summary
     from .recipe import load_recipe
-    from .report import audit, write_json
+    from .report import write_json
 
     expected: Plan | None = None
-    if _is_plan_file(source):
-        if inventory or write_all:
-            raise UsageError("a saved plan runs unchanged: --inventory and --write-all do not apply to it")
-        rec, expected = load_plan(source)
-    else:
-        rec = load_recipe(source)
     jobs: list[Job] = []
-    if inventory:
-        if device:
-            raise UsageError("--device and --inventory exclude each other")
-        jobs = fleet_jobs(load_inventory(inventory), rec, limit, timeout=timeout, retries=retries, unit=unit)
-        if not jobs:
-            raise UsageError(f"--limit {limit!r} matches no device in {inventory}")
+    moved: list[str] = []  # rollback to another device than the snapshot's: asked about first
+    if not (inventory or from_report) and (batch or max_failures or limit):
+        raise UsageError("--limit, --batch and --max-failures need --inventory")
+    if from_report is not None:  # rollback --report: every device of that run from its own snapshot
+        if inventory or device or unit is not None:
+            raise UsageError("rollback --report restores each device from its own snapshot, to the device it was "
+                             "taken from: --inventory, --device and --unit do not apply")
+        jobs = _rollback_report_jobs(from_report, force=force, timeout=timeout, retries=retries)
+        label = from_report
     else:
-        one, u = _target(rec, device, unit, timeout, retries, required=True)
-        assert one is not None
-        jobs.append(Job(rec.name, rec, one, u))
+        assert source is not None
+        label = source
+        if _is_plan_file(source):
+            if inventory or write_all:
+                raise UsageError("a saved plan runs unchanged: --inventory and --write-all do not apply to it")
+            rec, expected = load_plan(source)
+        else:
+            rec = load_recipe(source, force=force)
+        if rec.snapshot is not None and inventory:
+            raise UsageError(f"{source} is one device's snapshot: it restores only the device it was taken from. "
+                             "To roll back a fleet run, use: deployer rollback --report REPORT.json")
+        if inventory:
+            if device:
+                raise UsageError("--device and --inventory exclude each other")
+            jobs = _fleet(rec, inventory, limit, timeout, retries, unit)
+        else:
+            one, u = _target(rec, device, unit, timeout, retries, required=True)
+            assert one is not None
+            jobs.append(Job(rec.name, rec, one, u))
+            if rec.snapshot is not None and rec.device is not None and rec.device.url is not None:
+                taken, taken_unit = _target(rec, None, None, timeout, retries, required=True)
+                assert taken is not None
+                if (taken.bus, taken_unit) != (one.bus, u):
+                    moved.append(f"{source} was taken from {describe(taken)} unit {taken_unit}, not "
+                                 f"{describe(one)} unit {u}")
     for j in jobs:
         if j.unit == 0 and not allow_broadcast:
             raise UsageError(f"{j.name}: unit 0 is broadcast (no device answers, nothing can be verified); "
                              "pass --allow-broadcast to send it anyway")
 
     out = console()
-    err = Console(stderr=True, highlight=False)
+    err = console(stderr=True)
     confirm = None
     if not yes:
         if not sys.stdin.isatty():
             raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
-        lock = asyncio.Lock()
+        for why in moved:
+            if not click.confirm(f"{why}. Restore it to that other device?", default=False, err=True):
+                raise UsageError("nothing was written (declined)")
+        ask_lock = asyncio.Lock()
         profiles = {j.name: j.recipe.profile for j in jobs}
 
         async def confirm(p: Plan, res: DeviceResult) -> bool:
-            async with lock:  # one question at a time, even for fleets
+            async with ask_lock:  # one question at a time, even for fleets
                 err.print(f"[bold]{res.name}[/bold] {res.url} unit {res.unit}:")
                 print_plan(p, profiles[res.name], changes_only=True, out=err)
                 return await asyncio.to_thread(click.confirm, "Write these values?", default=False, err=True)
+    elif moved:
+        for why in moved:
+            err.print(f"warning: {why}; restoring it there (--yes)")
 
+    run_id = journal.new_run_id()
+    journal.run_started(state_dir, run_id, command=command, argv=_ARGV, recipe=label,
+                        devices=[(j.name, describe(j.url), j.unit) for j in jobs])
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
-                           allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm)
-    def done(r: DeviceResult) -> None:  # fleets: a line per device as it finishes
-        style = _STATUS_STYLE.get(r.status, "")
-        err.print(f"{r.name}: [{style}]{r.status}[/{style}] ({r.write_requests} writes)"
-                  + (f" - {r.error}" if r.error else ""))
-
-    report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=source,
-                                    on_done=done if len(jobs) > 1 else None))
-    data = report.to_json()
-    if report_path:
-        write_json(data, report_path)
-    audit(state_dir, report, command=command, argv=_ARGV)
+                           allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
+                           run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
+    fleet_run = bool(inventory or from_report)
+    if fleet_run:
+        # a live display on a terminal (not while asking questions), else a line per device
+        progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes)
+        with progress:
+            report = asyncio.run(run_fleet_async(
+                jobs, recipe_name=label, parallel=parallel, batch=batch, max_failures=max_failures, options=options,
+                report_path=report_path, on_start=lambda j: progress.start(j.name), on_done=progress.device_done))
+    else:
+        report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=label))
+        if report_path:
+            write_json(report.to_json(), report_path)
+    journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     if as_json:
-        click.echo(json.dumps(data, indent=2))
+        click.echo(json.dumps(report.to_json(), indent=2))
+    elif fleet_run:
+        print_report(report, out, only_not_ok=True)
+        fleet_summary(report, out)
     else:
         print_report(report, out)
     return report.exit_code
+
+
+def _fleet(rec: Recipe, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
+           unit: int | None) -> list[Job]:
+    from .api import fleet
+
+    return fleet(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)
+
+
+def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retries: int | None) -> list[Job]:
+    """One job per device of an earlier run that has a snapshot: its own snapshot, to its own device."""
+    from .executor import Job
+    from .recipe import load_recipe
+    from .snapshot import snapshots_of_report
+
+    found, without = snapshots_of_report(path)
+    if without:
+        click.echo(f"nothing to roll back on {', '.join(without)}: nothing was written there", err=True)
+    if not found:
+        raise UsageError(f"{path}: no device of that run has a snapshot (nothing was written): nothing to roll back")
+    jobs: list[Job] = []
+    errors: list[Diagnostic] = []
+    for rs in found:
+        try:
+            rec = load_recipe(rs.snapshot, force=force)
+        except InputError as e:
+            errors.extend(e.diagnostics)
+            continue
+        if rec.snapshot is None or rec.device is None or rec.device.url is None:
+            errors.append(Diagnostic(rs.snapshot, 1, 1, f"{rs.name}: not a snapshot with its device (made by an "
+                                                        "older deployer?): roll it back with rollback SNAPSHOT "
+                                                        "--device URL"))
+            continue
+        url, u = _target(rec, None, None, timeout, retries, required=True)
+        assert url is not None
+        jobs.append(Job(rs.name, rec, url, u))
+    if errors:
+        raise InputError(errors)
+    return jobs
 
 
 def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -566,16 +768,22 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--yes", "-y", is_flag=True, help="do not ask for confirmation"),
         click.option("--report", "report_path", type=click.Path(dir_okay=False), help="write the report JSON here"),
         click.option("--json", "as_json", is_flag=True, help="print the report JSON"),
-        click.option("--inventory", type=click.Path(dir_okay=False), help="apply to the devices of an inventory"),
-        click.option("--limit", metavar="GROUP|NAME", help="only these inventory devices or groups (comma-separated)"),
-        click.option("--parallel", type=click.IntRange(1, 1000), default=8, show_default=True,
-                     help="devices at once (devices on one bus always go one at a time)"),
+        fleet_option,
+        limit_option,
+        click.option("--batch", metavar="1,10%,100%",
+                     help="staged rollout: batch sizes (count or % of the selected devices; the last repeats); "
+                          "each batch finishes before the next, a batch with no ok device ends the rollout"),
+        click.option("--max-failures", metavar="N|P%",
+                     help="after this many devices ended failed or partial, start no new device"),
+        parallel_option,
         click.option("--on-error", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
                      help="after a rejected value: send the rest, or skip it"),
         click.option("--write-all", is_flag=True, help="write every parameter, even those already right"),
         click.option("--allow-broadcast", is_flag=True, help="allow unit 0 (broadcast; nothing can be verified)"),
         click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
                      help="where snapshots and the audit log go"),
+        click.option("--lock-timeout", type=click.FloatRange(min=0), default=0, show_default=True, metavar="S",
+                     help="wait up to S seconds for a device another run on this machine is writing"),
     ]
     for opt in reversed(opts):
         f = opt(f)
@@ -591,87 +799,250 @@ def apply(source: str, **kw: Any) -> int:
 
 
 @cli.command()
-@click.argument("snapshot", type=click.Path(dir_okay=False, exists=True))
+@click.argument("snapshot", required=False, type=click.Path(dir_okay=False, exists=True))
 @apply_options
-def rollback(snapshot: str, **kw: Any) -> int:
-    """Restore a snapshot that apply saved (a snapshot is itself a recipe)."""
+@click.option("--force", is_flag=True,
+              help="restore the recorded raw registers although the profile changed since the snapshot")
+@click.option("--save-report", type=click.Path(dir_okay=False), metavar="FILE",
+              help="with --report RUN.json: write this rollback's own report here")
+def rollback(snapshot: str | None, **kw: Any) -> int:
+    """Restore a snapshot that apply saved, to the device it was taken from.
+
+    \b
+    rollback SNAPSHOT            that device, from that snapshot (--report FILE writes this run's report)
+    rollback --report RUN.json   every device of an earlier run, each from its own snapshot
+                                 (--save-report FILE writes this run's report)
+    """
+    save = kw.pop("save_report")
+    if snapshot is None:
+        if not kw["report_path"]:
+            raise UsageError("rollback needs a SNAPSHOT, or --report REPORT.json to roll back every device of a run")
+        from_report, kw["report_path"] = kw["report_path"], save
+        return run_apply(None, from_report=from_report, command="rollback", **kw)
+    if save:
+        raise UsageError("--save-report goes with rollback --report RUN.json; with a SNAPSHOT use --report FILE")
     return run_apply(snapshot, command="rollback", **kw)
+
+
+@cli.command()
+@click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
+              help="where snapshots and the audit log are")
+@click.option("--json", "as_json", is_flag=True, help="print the unfinished runs as JSON")
+def status(state_dir: str, as_json: bool) -> int:
+    """Runs that never finished (a crash, kill -9, a laptop asleep): which devices were being written."""
+    from .journal import unfinished
+
+    runs, torn = unfinished(state_dir)
+    if as_json:
+        click.echo(json.dumps({"unfinished": [
+            {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
+             "argv": r.argv, "recipe": r.recipe, "devices": r.devices, "interrupted": r.interrupted,
+             "finished": r.finished} for r in runs]}, indent=2))
+        return EXIT_OK
+    out = console()
+    if not runs:
+        out.print(f"no unfinished runs in {os.path.join(state_dir, 'audit.jsonl')}")
+    for r in runs:
+        state = "still running" if r.running else "did not finish"
+        out.print(f"[bold]{r.command}[/bold] {r.recipe or ''} by {r.user} at {r.time} (run {r.run}, PID {r.pid}): "
+                  f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished")
+        for d in r.interrupted:
+            out.print(f"  interrupted while writing: {d.get('name')} {d.get('url')} unit {d.get('unit')}; "
+                      f"snapshot {d.get('snapshot')}")
+            out.print(f"    check with: deployer diff RECIPE --device {d.get('url')} --unit {d.get('unit')}; "
+                      f"undo with: deployer rollback {d.get('snapshot')}")
+        done = {(d.get("name"), d.get("url"), d.get("unit")) for d in (*r.finished, *r.interrupted)}
+        never = [d for d in r.devices if (d.get("name"), d.get("url"), d.get("unit")) not in done]
+        if never and not r.running:
+            out.print(f"  not written (never started or nothing to write): "
+                      f"{', '.join(str(d.get('name')) for d in never)}")
+    if torn:
+        out.print(f"({_n(torn, 'line')} of the log could not be read: cut off by the crash)")
+    return EXIT_OK
 
 
 @cli.command()
 @click.argument("recipe", type=click.Path(dir_okay=False))
 @device_options
 @click.option("--json", "as_json", is_flag=True, help="print the differences as JSON")
+@fleet_option
+@limit_option
+@parallel_option
 def diff(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-         as_json: bool) -> int:
-    """Drift check: exit 2 when the device differs from the recipe, 0 when it matches."""
+         as_json: bool, inventory: str | None, limit: str | None, parallel: int) -> int:
+    """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches."""
+    from .api import diff_values
     from .recipe import load_recipe
 
     rec = load_recipe(recipe)
+    if inventory:
+        if device:
+            raise UsageError("--device and --inventory exclude each other")
+        return diff_fleet(rec, _fleet(rec, inventory, limit, timeout, retries, unit), parallel=parallel,
+                          as_json=as_json)
+    if limit:
+        raise UsageError("--limit needs --inventory")
     url, u = _target(rec, device, unit, timeout, retries, required=True)
     assert url is not None
     current = read_device(rec.profile, [d.name for d in rec.desired], url, u)
     if current is None:
         return EXIT_UNREACHABLE
-    rows: list[dict[str, Any]] = []
-    for d in rec.desired:
-        cur = current.get(d.name)
-        if cur is None:
-            rows.append({"name": d.name, "desired": d.text, "device": None, "status": "not readable"})
-        elif cur != d.registers:
-            rows.append({"name": d.name, "desired": d.text, "device": d.parameter.format_registers(cur),
-                         "device_raw": list(cur), "desired_raw": list(d.registers), "status": "drift"})
-    drift = [r for r in rows if r["status"] == "drift"]
+    rows = diff_values(rec, current)
+    drift = [r for r in rows if r.device_raw is not None]
     if as_json:
-        click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u, "drift": rows}, indent=2))
+        click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u,
+                               "drift": [r.to_json() for r in rows]}, indent=2))
     elif rows:
-        table = Table("parameter", "recipe", "device", "", box=None)
-        for r in rows:
-            table.add_row(str(r["name"]), str(r["desired"]), str(r["device"] or "-"), str(r["status"]))
-        console().print(table)
+        console().print(drift_table(rows, None))
         console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
     else:
         console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
     return EXIT_CHANGES if drift else EXIT_OK
 
 
+def drift_table(rows: Sequence[Drift], device: str | None, table: Table | None = None) -> Table:
+    """parameter, recipe, device value (with a device column for fleets)."""
+    from rich.table import Table
+
+    if table is None:
+        table = Table(*(["device"] if device is not None else []), "parameter", "recipe", "device value", "",
+                      box=None)
+    for r in rows:
+        status = "drift" if r.device_raw is not None else "not readable"
+        table.add_row(*([device] if device is not None else []), r.name, r.desired, r.device or "-", status)
+    return table
+
+
+def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool) -> int:
+    """One table for the whole fleet; exit 2 naming every drifted device, 3 if any could not be read."""
+    from .api import diff_values, read_jobs
+
+    values = read_fleet(read_jobs(jobs), parallel)
+    rows = {j.name: diff_values(j.recipe, v) for j in jobs if not isinstance(v := values[j.name], Exception)}
+    drifted = [n for n, r in rows.items() if any(d.device_raw is not None for d in r)]
+    down = _unreachable(values)
+    if as_json:
+        click.echo(json.dumps({"recipe": rec.path, "devices": [
+            {"name": j.name, "url": describe(j.url), "unit": j.unit, "drift": [d.to_json() for d in rows[j.name]]}
+            if j.name in rows else {"name": j.name, "url": describe(j.url), "unit": j.unit,
+                                    "error": str(values[j.name])} for j in jobs],
+            "drifted": drifted, "unreachable": down}, indent=2))
+    else:
+        from rich.table import Table
+
+        out = console()
+        table = Table("device", "parameter", "recipe", "device value", "", box=None)
+        for j in jobs:
+            drift_table(rows.get(j.name, []), j.name, table)
+        if table.row_count:
+            out.print(table)
+        out.print(f"drift on {len(drifted)} of {len(jobs)} devices" + (f": {', '.join(drifted)}" if drifted else "")
+                  + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
+    if down:
+        return EXIT_UNREACHABLE
+    return EXIT_CHANGES if drifted else EXIT_OK
+
+
 @cli.command()
-@click.option("--profile", "profile_ref", required=True, metavar="ID|FILE", help="the device's profile")
-@click.option("--device", required=True, metavar="URL")
-@click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True)
+@click.option("--profile", "profile_ref", metavar="ID|FILE",
+              help="the device's profile (with --inventory: for devices whose entry names none)")
+@click.option("--device", metavar="URL")
+@click.option("--unit", type=click.IntRange(1, 247), help="unit id (default 1, or the inventory's)")
 @click.option("--timeout", type=click.FloatRange(min=0, min_open=True))
 @click.option("--retries", type=click.IntRange(0, 20))
-@click.option("-o", "--output", type=click.Path(dir_okay=False), help="write the recipe here (default: stdout)")
+@click.option("-o", "--output", type=click.Path(), help="write the recipe here (default: stdout); "
+              "with --inventory a folder: one NAME.yaml per device")
 @click.option("--name", help="the recipe's name (default: pulled-PROFILE)")
-def pull(profile_ref: str, device: str, unit: int, timeout: float | None, retries: int | None,
-         output: str | None, name: str | None) -> int:
+@fleet_option
+@limit_option
+@parallel_option
+def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
+         output: str | None, name: str | None, inventory: str | None, limit: str | None, parallel: int) -> int:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
+    from .api import device_url, pull_names, pulled_recipe
     from .profile import resolve_profile
-    from .recipe import DeviceSpec, recipe_text
-    from .transport import BadURL, parse_url
 
+    if inventory:
+        if device or name:
+            raise UsageError("with --inventory, --device and --name do not apply (one recipe per device)")
+        if not output:
+            raise UsageError("with --inventory, pass -o DIR: one recipe per device goes there")
+        return pull_fleet(inventory, limit, profile_ref, output, timeout=timeout, retries=retries, unit=unit,
+                          parallel=parallel)
+    if limit:
+        raise UsageError("--limit needs --inventory")
+    if not profile_ref or not device:
+        raise UsageError("pass --profile ID|FILE and --device URL (or --inventory FILE -o DIR)")
     prof = resolve_profile(profile_ref)
-    try:
-        url = parse_url(device, timeout=timeout, retries=retries)
-    except BadURL as e:
-        raise UsageError(str(e)) from None
-    names = [p.name for p in prof.parameters if p.readable and p.writable]
-    current = read_device(prof, names, url, unit)
+    url = device_url(device, timeout=timeout, retries=retries)
+    u = unit if unit is not None else 1
+    current = read_device(prof, pull_names(prof), url, u)
     if current is None:
         return EXIT_UNREACHABLE
-    ref = prof.source if prof.source and output is None else (
-        os.path.relpath(prof.source, os.path.dirname(os.path.abspath(output))) if prof.source and output else prof.id)
-    text = recipe_text(ref, {prof.parameter(n): v for n, v in current.items()}, name=name or f"pulled-{prof.id}",
-                       device=DeviceSpec(describe(url), unit),
-                       comment=f"Pulled from {describe(url)} unit {unit} at "
-                               f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}")
+    text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
+                         comment=_pulled_from(describe(url), u), relative_to=output)
     if output:
         with open(output, "w", encoding="utf-8") as f:
             f.write(text)
-        click.echo(f"{len(current)} parameters written to {output}", err=True)
+        click.echo(f"{_n(len(current), 'parameter')} written to {output}", err=True)
     else:
         click.echo(text, nl=False)
     return EXIT_OK
+
+
+def _pulled_from(url: str, unit: int) -> str:
+    return f"Pulled from {url} unit {unit} at {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}"
+
+
+def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folder: str, *, timeout: float | None,
+               retries: int | None, unit: int | None, parallel: int) -> int:
+    """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
+    from .api import device_url, load_inventory, pull_names, pulled_recipe
+    from .executor import ReadJob
+    from .profile import resolve_profile
+
+    inv = load_inventory(inventory)
+    devices = inv.select(limit)
+    profiles: dict[str, Profile] = {}
+    jobs: list[ReadJob] = []
+    errors: list[Diagnostic] = []
+    for dev in devices:
+        ref = dev.profile or profile_ref
+        try:
+            if ref is None:
+                raise UsageError("no profile: set profile in the inventory or pass --profile")
+            if ref not in profiles:
+                profiles[ref] = resolve_profile(ref)
+            prof = profiles[ref]
+            url = device_url(dev.url, timeout=timeout or dev.timeout,
+                             retries=retries if retries is not None else dev.retries)
+        except UsageError as e:
+            errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
+            continue
+        jobs.append(ReadJob(dev.name, prof, tuple(pull_names(prof)), url, unit if unit is not None else dev.unit))
+    if errors:
+        raise InputError(errors)
+    os.makedirs(folder, exist_ok=True)
+    values = read_fleet(jobs, parallel)
+    written = 0
+    for j in jobs:
+        cur = values[j.name]
+        if isinstance(cur, Exception):
+            continue
+        path = os.path.join(folder, f"{_safe(j.name)}.yaml")
+        text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
+                             comment=_pulled_from(describe(j.url), j.unit), relative_to=path)
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(text)
+        written += 1
+    down = _unreachable(values)
+    click.echo(f"{written} recipes written to {folder}" + (f"; {len(down)} unreachable: {', '.join(down)}"
+                                                          if down else ""), err=True)
+    return EXIT_UNREACHABLE if down else EXIT_OK
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
 
 
 @cli.command()

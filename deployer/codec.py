@@ -12,7 +12,7 @@ Terms:
 from __future__ import annotations
 
 import struct
-from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
+from decimal import ROUND_HALF_EVEN, Decimal
 from typing import Literal
 
 TypeName = Literal["uint16", "int16", "uint32", "int32", "uint64", "int64", "float32", "float64"]
@@ -68,8 +68,8 @@ def to_raw(
         raise CodecError("scale must not be 0")
     try:
         exact = (value - offset) / scale
-    except InvalidOperation as e:  # pragma: no cover - Decimal traps
-        raise CodecError(f"cannot convert {value}: {e}") from None
+    except ArithmeticError:  # 1e999999999 overflows Decimal's context: far outside any type
+        raise CodecError(f"{value:g} is far outside the range of {type_}") from None
     if is_float(type_):
         raw_f = float(exact)
         if type_ == "float32":

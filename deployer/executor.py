@@ -9,19 +9,22 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
+import hashlib
+import json
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Literal, Protocol, TypeVar
 
+from . import journal, lock
 from . import transport as tp
 from .diagnostics import UsageError
-from .planner import Plan, ReadRequest, Target, WriteRequest, make_plan, plan_reads
-from .profile import Parameter, Profile
-from .recipe import DeviceSpec, Recipe, recipe_text
+from .planner import Plan, ReadRequest, Target, WriteRequest, gap_free_reads, make_plan, plan_reads, plan_to_json
+from .profile import Parameter, Profile, profile_ref
+from .recipe import Recipe
 from .report import DeviceResult, ParameterResult, Report, RequestRecord
+from .snapshot import save_snapshot
 
 Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
 
@@ -43,6 +46,10 @@ class ApplyOptions:
     backoff: float = 0.05  # first retry delay in seconds; doubles per attempt
     expected: Plan | None = None  # apply PLAN.json: run exactly this plan
     confirm: Confirm | None = None
+    run_id: str | None = None  # journal lines in STATE/audit.jsonl carry it (None: no journal)
+    applied: str | None = None  # what is being applied (recipe or plan file), recorded in the snapshot
+    lock_timeout: float = 0.0  # seconds to wait for a device another run holds (0: fail at once)
+    lock_dir: str | None = None  # None: $DEPLOYER_LOCK_DIR or <tmp>/deployer-locks
 
 
 class DeviceGone(tp.TransportError):
@@ -64,6 +71,7 @@ class Session:
         self.retries = retries
         self.backoff = backoff
         self.records = records
+        self.gap_reads = True  # False once the device refused a read across undeclared registers
 
     async def _call(self, record: RequestRecord, op: Callable[[], Awaitable[list[int] | None]]) -> list[int] | None:
         self.records.append(record)
@@ -81,12 +89,12 @@ class Session:
                 if e.code != 6 or attempt > self.retries:
                     raise
             except tp.NoResponse:
-                record.result = "no response"
+                record.result, record.exception_code = "no response", None
                 if attempt > self.retries:
                     hint = tp.no_answer_hint(self.transport.url, self.unit)
                     raise DeviceGone(f"no answer after {attempt} attempt{'s' if attempt > 1 else ''}{hint}") from None
             except tp.ConnectionLost as e:
-                record.result = "connection lost"
+                record.result, record.exception_code = "connection lost", None
                 if attempt > self.retries:
                     raise DeviceGone(f"connection lost ({e})") from None
                 await asyncio.sleep(self.backoff * 2 ** (attempt - 1))
@@ -109,11 +117,29 @@ class Session:
         else:
             await self._call(rec, lambda: _none(t.write_registers(req.address, list(req.registers), unit)))
 
-    async def read_blocks(self, reads: Iterable[ReadRequest]) -> dict[int, int]:
+    async def read_blocks(self, reads: Iterable[ReadRequest], profile: Profile | None = None) -> dict[int, int]:
+        """Registers of every block. With ``profile``: when the device refuses a read across
+        undeclared registers (exception 02), the rest of the reads, that one included, and every
+        later read of this session go in gap-free blocks (the refused request stays in the
+        report, followed by the fallback reads)."""
+        todo = list(reads)
         regs: dict[int, int] = {}
-        for r in reads:
-            for i, v in enumerate(await self.read(r.address, r.count)):
-                regs[r.address + i] = v
+        i = 0
+        while i < len(todo):
+            if profile is not None and profile.limits.max_read_gap and not self.gap_reads:
+                todo[i:] = gap_free_reads(profile, todo[i:])
+                profile = None  # planned once: read on as planned
+            r = todo[i]
+            try:
+                values = await self.read(r.address, r.count)
+            except tp.ExceptionResponse as e:
+                if (profile is None or not profile.limits.max_read_gap or e.code != 2
+                        or gap_free_reads(profile, [r]) == (r,)):
+                    raise  # not about a gap
+                self.gap_reads = False
+                continue
+            regs.update(zip(range(r.address, r.address + r.count), values, strict=False))
+            i += 1
         return regs
 
 
@@ -142,41 +168,6 @@ async def check_identity(session: Session, profile: Profile) -> str | None:
     return None
 
 
-def save_snapshot(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
-                  url: str, unit: int) -> str:
-    """Write the values the device held as a recipe, fsync'ed before any write happens."""
-    directory = os.path.join(state_dir, "snapshots")
-    os.makedirs(directory, exist_ok=True)
-    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
-    path = os.path.join(directory, f"{safe}-{stamp}.yaml")
-    n = 1
-    while os.path.exists(path):
-        n += 1
-        path = os.path.join(directory, f"{safe}-{stamp}-{n}.yaml")
-    prof = recipe.profile
-    text = recipe_text(
-        recipe.profile_ref or prof.id,
-        {prof.parameter(k): v for k, v in values.items()},
-        name=f"snapshot-{safe}-{stamp}",
-        device=DeviceSpec(url, unit),
-        comment=f"Snapshot: what {url} unit {unit} held before applying recipe '{recipe.name}'.\n"
-                f"Restore with: deployer rollback {path}",
-    )
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    try:
-        os.write(fd, text.encode())
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    dfd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(dfd)  # the directory entry too, or a crash can lose the file
-    finally:
-        os.close(dfd)
-    return path
-
-
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
     return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers)
             for d in recipe.desired}
@@ -193,32 +184,49 @@ def _text(p: Parameter, regs: Sequence[int] | None) -> str | None:
 
 async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None = None,
                        options: ApplyOptions | None = None) -> DeviceResult:
-    """Apply ``recipe`` to one device and say exactly what it holds afterwards."""
+    """Apply ``recipe`` to one device and say exactly what it holds afterwards.
+
+    The device's lock is held from before the first read until the read-back is done, so no
+    other run on this machine can write it in between.
+    """
     opts = options or ApplyOptions()
     prof = recipe.profile
-    res = DeviceResult(name or recipe.name, tp.describe(url), unit, prof.id)
+    res = DeviceResult(name or recipe.name, tp.describe(url), unit, prof.id, profile_ref=profile_ref(prof))
     results = _results(recipe)
     res.parameters = list(results.values())
     if unit == 0 and not opts.allow_broadcast:
         raise UsageError("unit 0 is broadcast (no device answers, nothing can be verified); "
                          "pass --allow-broadcast to send it anyway")
-    target = Target(tp.describe(url), unit, recipe.profile_ref or prof.id)
-    transport = tp.open_transport(url)
     try:
-        await transport.connect()
-    except tp.Unreachable as e:
-        res.status, res.error = "unreachable", str(e)
+        held = await lock.acquire(lock.device_key(url.bus, unit), timeout=opts.lock_timeout,
+                                  command=lock.command_line(), directory=opts.lock_dir)
+    except lock.Locked as e:
+        res.status, res.error = "unreachable", f"{e}; nothing was sent"
         return res
-    session = Session(transport, unit, retries=url.retries, backoff=opts.backoff, records=res.requests)
     try:
-        if unit == 0:
-            await _broadcast(session, recipe, target, opts, res, results)
-        else:
-            await _apply(session, recipe, target, opts, res, results)
+        if held.stale:
+            res.notices.append(held.stale)
+        target = Target(tp.describe(url), unit, profile_ref(prof))
+        transport = tp.open_transport(url)
+        try:
+            await transport.connect()
+        except tp.Unreachable as e:
+            res.status, res.error = "unreachable", str(e)
+            return res
+        session = Session(transport, unit, retries=url.retries, backoff=opts.backoff, records=res.requests)
+        try:
+            if unit == 0:
+                await _broadcast(session, recipe, target, opts, res, results)
+            else:
+                await _apply(session, recipe, target, opts, res, results)
+        finally:
+            await transport.close()
+        res.settle()
+        if res.snapshot is not None and opts.run_id is not None:
+            await asyncio.to_thread(journal.device_finished, opts.state_dir, opts.run_id, res)
+        return res
     finally:
-        await transport.close()
-    res.settle()
-    return res
+        held.release()
 
 
 async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,
@@ -257,7 +265,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
             res.status, res.error = "failed", f"{why}; nothing was written"
             return
         offline = make_plan(recipe, target, None)
-        before = values_of(params, await session.read_blocks(offline.reads))
+        before = values_of(params, await session.read_blocks(offline.reads, prof))
     except DeviceGone as e:
         res.status, res.error = "unreachable", f"{e}; nothing was written"
         return
@@ -288,15 +296,21 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     if opts.confirm is not None and not await opts.confirm(plan, res):
         raise Declined("nothing was written (declined)")
 
-    # 3. the snapshot is on disk before the first write
-    res.snapshot = save_snapshot(opts.state_dir, res.name, recipe, before, res.url, res.unit)
+    # 3. the snapshot is on disk before the first write, and the journal says this device is being written
+    #    (in a thread: two fsyncs must not stall the other devices of a fleet)
+    res.snapshot = await asyncio.to_thread(save_snapshot, opts.state_dir, res.name, recipe, before, res.url,
+                                           res.unit, applied=opts.applied)
+    if opts.run_id is not None:
+        digest = hashlib.sha256(json.dumps(plan_to_json(plan), sort_keys=True).encode()).hexdigest()
+        await asyncio.to_thread(journal.device_started, opts.state_dir, opts.run_id, name=res.name, url=res.url,
+                                unit=res.unit, snapshot=res.snapshot, plan_digest=digest)
 
     # 4. writes, in plan order; recover from partial failures
     written, gone = await _write_all(session, prof, plan, opts, results)
 
     # 5. read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
-        after = values_of(params, await session.read_blocks(plan.reads))
+        after = values_of(params, await session.read_blocks(plan.reads, prof))
     except (DeviceGone, tp.ExceptionResponse) as e:
         for n in written:
             if results[n].error == PENDING:
@@ -381,7 +395,8 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
     params = sorted({prof.parameter(n) for n in req.parameters}, key=lambda p: p.address)
     error = f"exception {exc.code:02d} ({tp.ExceptionResponse.NAMES.get(exc.code, 'unknown')})"
     try:
-        now = values_of(params, await session.read_blocks(plan_reads(prof, [p.name for p in params if p.readable])))
+        now = values_of(params, await session.read_blocks(plan_reads(prof, [p.name for p in params if p.readable]),
+                                                           prof))
     except (DeviceGone, tp.ExceptionResponse) as e:  # cannot tell what took: say so, send nothing more of it
         _attempted(results, req.parameters, written, f"{error}; reading back failed: {e}")
         return None
@@ -451,7 +466,7 @@ async def read_current(profile: Profile, names: Sequence[str], url: tp.DeviceURL
             raise tp.Unreachable(why)
         params = [profile.parameter(n) for n in names]
         reads = plan_reads(profile, [p.name for p in params if p.readable])
-        return values_of(params, await session.read_blocks(reads))
+        return values_of(params, await session.read_blocks(reads, profile))
     except DeviceGone as e:
         raise tp.Unreachable(f"{tp.describe(url)} unit {unit}: {e}") from None
     except tp.ExceptionResponse as e:
@@ -471,31 +486,118 @@ class Job:
     unit: int
 
 
-async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOptions | None = None,
-                     recipe_name: str | None = None,
-                     on_done: Callable[[DeviceResult], None] | None = None) -> Report:
-    """Apply to many devices: in parallel, except that devices on one bus go one at a time."""
-    started = time.monotonic()
-    buses: dict[str, list[Job]] = {}
+@dataclass(frozen=True)
+class ReadJob:
+    """Read some parameters of one fleet device (plan, diff, pull)."""
+
+    name: str
+    profile: Profile
+    names: tuple[str, ...]
+    url: tp.DeviceURL
+    unit: int
+
+
+class _HasBus(Protocol):
+    @property
+    def url(self) -> tp.DeviceURL: ...
+
+
+_J = TypeVar("_J", bound=_HasBus)
+
+
+async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Awaitable[None]]) -> None:
+    """Run ``work`` for every job, at most ``parallel`` at once; jobs on one bus strictly one after the other."""
+    buses: dict[str, list[_J]] = {}
     for j in jobs:
         buses.setdefault(j.url.bus, []).append(j)
     gate = asyncio.Semaphore(max(1, parallel))
-    done: dict[str, DeviceResult] = {}
 
-    async def run_bus(group: list[Job]) -> None:
-        for j in group:  # half-duplex bus: strictly one device after the other
+    async def run_bus(group: list[_J]) -> None:
+        for j in group:  # half-duplex bus: the next device starts when the last one is done
             async with gate:
-                try:
-                    r = await apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
-                except (StalePlan, Declined):
-                    raise
-                except UsageError as e:
-                    r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed",
-                                     error=str(e))
-                    r.parameters = list(_results(j.recipe).values())
-                done[j.name] = r
-                if on_done:
-                    on_done(r)
+                await work(j)
 
     await asyncio.gather(*(run_bus(g) for g in buses.values()))
-    return Report(recipe_name, [done[j.name] for j in jobs if j.name in done], time.monotonic() - started)
+
+
+def skipped_result(job: Job, reason: str) -> DeviceResult:
+    """A device a fleet run did not start: nothing was sent to it."""
+    r = DeviceResult(job.name, tp.describe(job.url), job.unit, job.recipe.profile.id, status="skipped", error=reason,
+                     profile_ref=profile_ref(job.recipe.profile))
+    r.parameters = list(_results(job.recipe).values())
+    return r
+
+
+async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOptions | None = None,
+                     recipe_name: str | None = None,
+                     on_done: Callable[[DeviceResult], None] | None = None,
+                     on_start: Callable[[Job], None] | None = None,
+                     batches: Sequence[int] | None = None, max_failures: int | None = None) -> Report:
+    """Apply to many devices: in parallel, except that devices on one bus go one at a time.
+
+    ``batches`` (sizes, in job order) stage the rollout: each batch finishes before the next
+    starts, and a batch in which no device ended ok ends the rollout (Ansible's ``serial``).
+    ``max_failures``: once that many devices ended failed or partial, no new device starts.
+    Devices never started are in the report as ``skipped`` with the reason.
+    """
+    started = time.monotonic()
+    done: dict[str, DeviceResult] = {}
+    failures = 0
+    stop: str | None = None
+
+    async def one(j: Job) -> None:
+        nonlocal failures, stop
+        if stop is not None:  # checked when the device's turn comes, not when it was queued
+            done[j.name] = skipped_result(j, stop)
+            return
+        if on_start:
+            on_start(j)
+        t = time.monotonic()
+        try:
+            r = await apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
+        except (StalePlan, Declined):
+            raise
+        except UsageError as e:
+            r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),
+                             profile_ref=profile_ref(j.recipe.profile))
+            r.parameters = list(_results(j.recipe).values())
+        r.seconds = time.monotonic() - t
+        done[j.name] = r
+        if r.status in ("failed", "partial"):
+            failures += 1
+            if max_failures is not None and failures >= max_failures and stop is None:
+                stop = (f"not started: {failures} device{'s' if failures != 1 else ''} ended failed or partial "
+                        f"(--max-failures {max_failures})")
+        if on_done:
+            on_done(r)
+
+    sizes = list(batches) if batches else [len(jobs)]
+    pos = 0
+    for number, size in enumerate(sizes, 1):
+        batch = jobs[pos:pos + size]
+        pos += size
+        await on_buses(batch, parallel, one)
+        ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
+        if stop is None and pos < len(jobs) and ran and all(r.status != "ok" for r in ran):
+            which = f"the canary {ran[0].name}" if len(batch) == 1 else f"all {len(ran)} devices"
+            stop = f"not started: batch {number} failed ({which} did not end ok)"
+    return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
+
+
+async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,
+                    on_done: Callable[[str, str | None], None] | None = None,
+                    ) -> dict[str, dict[str, tuple[int, ...]] | tp.TransportError | UsageError]:
+    """Current values of many devices (fleet plan, diff, pull): per device its registers or why not."""
+    out: dict[str, dict[str, tuple[int, ...]] | tp.TransportError | UsageError] = {}
+
+    async def one(j: ReadJob) -> None:
+        try:
+            out[j.name] = await read_current(j.profile, j.names, j.url, j.unit)
+        except (tp.TransportError, UsageError) as e:
+            out[j.name] = e
+        if on_done:
+            res = out[j.name]
+            on_done(j.name, str(res) if isinstance(res, Exception) else None)
+
+    await on_buses(jobs, parallel, one)
+    return {j.name: out[j.name] for j in jobs}

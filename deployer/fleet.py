@@ -1,17 +1,30 @@
-"""Fleets: an inventory of devices, applied in parallel except where devices share a bus."""
+"""Fleets: an inventory of devices, which of them a run selects, and how a rollout is staged.
+
+Pure decisions (selection, batch sizes, failure budget, one job per device) plus the live
+report file that a fleet run keeps current on disk. Talking to devices is the executor's job.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import fnmatch
+import json
+import math
 import os
+import threading
+import time
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from . import yamlsrc
 from .diagnostics import Diagnostic, InputError, UsageError
-from .recipe import Entry, Recipe, expand, load_recipe
+from .recipe import Entry, Recipe, expand, load_recipe, with_overrides
 
 if TYPE_CHECKING:
     from .executor import Job
+    from .profile import Profile
+    from .report import DeviceResult, Report
 
 
 @dataclass(frozen=True)
@@ -33,11 +46,105 @@ class Inventory:
     devices: tuple[FleetDevice, ...]
 
     def select(self, limit: str | None) -> tuple[FleetDevice, ...]:
-        """All devices, or those named ``limit`` or in group ``limit`` (comma-separated list)."""
-        if not limit:
-            return self.devices
-        wanted = {w.strip() for w in limit.split(",") if w.strip()}
-        return tuple(d for d in self.devices if d.name in wanted or wanted & set(d.groups))
+        """The devices ``limit`` selects, in inventory order (see ``select``)."""
+        return select(self, limit)
+
+
+def select(inv: Inventory, limit: str | None) -> tuple[FleetDevice, ...]:
+    """``--limit``: comma-separated names, groups and glob patterns (on both); ``!x`` excludes;
+    ``@REPORT.json`` selects the devices of that report whose status is not ok.
+
+    A word that matches nothing is an error (a typo must not silently shrink a rollout).
+    """
+    if not limit or not limit.strip():
+        return inv.devices
+    chosen: set[str] = set()
+    excluded: set[str] = set()
+    positive = False
+    for word in (w.strip() for w in limit.split(",")):
+        if not word:
+            continue
+        exclude = word.startswith("!")
+        word = word[1:] if exclude else word
+        if word.startswith("@"):
+            names = set(not_ok(word[1:]))
+            unknown = sorted(names - {d.name for d in inv.devices})
+            if unknown:
+                raise UsageError(f"--limit {word}: devices {', '.join(unknown)} are not in {inv.path} "
+                                 "(a report of another inventory?)")
+        else:
+            names = {d.name for d in inv.devices
+                     if fnmatch.fnmatchcase(d.name, word) or any(fnmatch.fnmatchcase(g, word) for g in d.groups)}
+            if not names:
+                raise UsageError(f"--limit: '{word}' matches no device name or group in {inv.path}")
+        if exclude:
+            excluded |= names
+        else:
+            positive = True
+            chosen |= names
+    if not positive:  # only exclusions: everything else
+        chosen = {d.name for d in inv.devices}
+    return tuple(d for d in inv.devices if d.name in chosen and d.name not in excluded)
+
+
+def not_ok(report_path: str) -> list[str]:
+    """Names of the devices of a report (``--report`` of an earlier run) whose status is not ok."""
+    try:
+        with open(report_path, encoding="utf-8") as f:
+            data = json.load(f)
+    except OSError as e:
+        raise UsageError(f"--limit @{report_path}: cannot read the report: {e.strerror}") from None
+    except json.JSONDecodeError as e:
+        raise InputError([Diagnostic(report_path, e.lineno, e.colno, f"not a report (invalid JSON: {e.msg})")]
+                         ) from None
+    if not isinstance(data, dict) or not str(data.get("schema", "")).startswith("deployer.report/") \
+            or not isinstance(data.get("devices"), list):
+        raise InputError([Diagnostic(report_path, 1, 1, "not a deployer report (no 'schema: deployer.report/1')")])
+    return [str(d.get("name")) for d in data["devices"] if isinstance(d, dict) and d.get("status") != "ok"]
+
+
+# ---- staged rollouts ---------------------------------------------------------------------------
+
+
+def _count(word: str, total: int, what: str) -> int:
+    """``N`` or ``P%`` of ``total`` (a percentage rounds down, but never to zero)."""
+    w = word.strip()
+    try:
+        if w.endswith("%"):
+            pct = float(w[:-1])
+            if not 0 < pct <= 100:
+                raise ValueError
+            return max(1, math.floor(total * pct / 100))
+        n = int(w)
+        if n < 1:
+            raise ValueError
+        return n
+    except ValueError:
+        raise UsageError(f"{what}: '{word}' is not a positive count or a percentage (e.g. 1, 10%, 100%)") from None
+
+
+def batch_sizes(spec: str | None, total: int) -> list[int]:
+    """``--batch 1,10%,100%``: Ansible's ``serial``; the last size repeats until every device had its turn."""
+    if not spec:
+        return [total] if total else []
+    sizes = [_count(w, total, "--batch") for w in spec.split(",")]
+    out: list[int] = []
+    left = total
+    i = 0
+    while left > 0:
+        n = min(sizes[min(i, len(sizes) - 1)], left)
+        out.append(n)
+        left -= n
+        i += 1
+    return out
+
+
+def failure_budget(spec: str | None, total: int) -> int | None:
+    """``--max-failures N|P%``: after this many failed or partial devices no new device starts."""
+    return None if spec is None else _count(spec, total, "--max-failures")
+
+
+# ---- jobs --------------------------------------------------------------------------------------
 
 
 def load_inventory(path: str | os.PathLike[str]) -> Inventory:
@@ -67,25 +174,57 @@ def load_inventory(path: str | os.PathLike[str]) -> Inventory:
     return Inventory(p, tuple(devices))
 
 
+def _overrides_key(entries: Iterable[Entry]) -> str:
+    return json.dumps([[e.name, e.value] for e in entries], default=str)
+
+
+class RecipeCache:
+    """Each distinct (recipe, profile, overrides) is parsed and checked once, however many devices share it."""
+
+    def __init__(self, recipe: Recipe) -> None:
+        self.recipe = recipe
+        self._by_profile: dict[str, Recipe] = {}
+        self._profiles: dict[str, Profile] = {}
+        self._by_key: dict[tuple[str, str], Recipe] = {}
+
+    def profile(self, ref: str) -> Profile:
+        from .profile import resolve_profile
+
+        if ref not in self._profiles:
+            self._profiles[ref] = resolve_profile(ref)
+        return self._profiles[ref]
+
+    def for_device(self, profile_ref: str | None, overrides: Sequence[Entry]) -> Recipe:
+        base = self.recipe
+        if profile_ref and profile_ref != self.recipe.profile_ref:
+            if profile_ref not in self._by_profile:
+                assert self.recipe.path is not None
+                self._by_profile[profile_ref] = load_recipe(self.recipe.path, profile=self.profile(profile_ref))
+            base = self._by_profile[profile_ref]
+        if not overrides:
+            return base
+        key = (profile_ref or "", _overrides_key(overrides))
+        if key not in self._by_key:
+            self._by_key[key] = with_overrides(base, overrides)
+        return self._by_key[key]
+
+
 def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: float | None = None,
-               retries: int | None = None, unit: int | None = None) -> list[Job]:
+               retries: int | None = None, unit: int | None = None,
+               devices: Sequence[FleetDevice] | None = None) -> list[Job]:
     """One job per selected device: the recipe with the device's profile and overrides, its URL parsed.
 
     Everything is checked before any device is touched; all problems at once as an InputError.
     """
     from .executor import Job
-    from .profile import resolve_profile
     from .transport import BadURL, parse_url
 
     jobs: list[Job] = []
     errors: list[Diagnostic] = []
-    for dev in inv.select(limit):
+    cache = RecipeCache(recipe)
+    for dev in (devices if devices is not None else inv.select(limit)):
         try:
-            r = recipe
-            if dev.overrides or (dev.profile and dev.profile != recipe.profile_ref):
-                assert recipe.path is not None
-                prof = resolve_profile(dev.profile) if dev.profile else None
-                r = load_recipe(recipe.path, extra=dev.overrides, profile=prof)
+            r = cache.for_device(dev.profile, dev.overrides)
             url = parse_url(dev.url, timeout=timeout or dev.timeout,
                             retries=retries if retries is not None else dev.retries)
             jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit))
@@ -96,3 +235,89 @@ def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: fl
     if errors:
         raise InputError(errors)
     return jobs
+
+
+# ---- the report file of a running fleet ------------------------------------------------------
+
+NOT_FINISHED = "not finished (interrupted run)"
+
+
+class LiveReport:
+    """The ``--report`` file of a fleet run, true at every moment, even after a ``kill -9``.
+
+    Before the first device starts, every selected device is in it as ``skipped`` with the error
+    "not finished (interrupted run)"; as devices finish the file is rewritten atomically
+    (``report.write_json``: temporary file, fsync, rename) so ``--limit @FILE`` retries exactly
+    the devices that did not end ok. Each device's JSON is built once; a writer thread rewrites
+    the file while the run goes on, coalescing devices that finish during one write, so a big
+    fleet does not wait for its own report (the file then lags by at most one write).
+    """
+
+    def __init__(self, path: str, recipe: str | None, skeleton: Sequence[DeviceResult]) -> None:
+        self.path = path
+        self.recipe = recipe
+        self._order = [d.name for d in skeleton]
+        self._parts = {d.name: json.dumps(d.to_json()) for d in skeleton}
+        self._finished: list[DeviceResult] = []
+        self._cond = threading.Condition()
+        self._dirty = False
+        self._closing = False
+        self._started = time.monotonic()
+        self._write(self._document())  # on disk before the first device starts
+        self._thread = threading.Thread(target=self._loop, name="deployer-report", daemon=True)
+        self._thread.start()
+
+    def finished(self, result: DeviceResult) -> None:
+        part = json.dumps(result.to_json())
+        with self._cond:
+            self._parts[result.name] = part
+            self._finished.append(result)
+            self._dirty = True
+            self._cond.notify()
+
+    def stop(self) -> None:
+        """Stop the writer thread (what is on disk stays: at worst one write behind)."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        self._thread.join()
+
+    def close(self, report: Report) -> None:
+        """Write the final report (the same document ``--json`` prints)."""
+        from .report import write_json
+
+        self.stop()
+        write_json(report.to_json(), self.path)
+
+    def _document(self) -> str:
+        from .report import Report
+
+        with self._cond:
+            parts = [self._parts[n] for n in self._order]
+            finished = list(self._finished)
+        # the summary counts finished devices for real and the rest as skipped, like the file says
+        summary = Report(self.recipe, finished, time.monotonic() - self._started).summary()
+        summary["devices"] = len(self._order)
+        summary["skipped"] += len(self._order) - len(finished)
+        head = json.dumps({"schema": "deployer.report/1", "recipe": self.recipe})[:-1]
+        return f'{head}, "devices": [\n' + ",\n".join(parts) + f'\n], "summary": {json.dumps(summary)}}}\n'
+
+    def _write(self, text: str) -> None:
+        tmp = f"{self.path}.tmp{os.getpid()}"
+        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.path)
+
+    def _loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._dirty and not self._closing:
+                    self._cond.wait()
+                if not self._dirty:  # closing, and the file already says everything
+                    return
+                self._dirty = False
+            with contextlib.suppress(OSError):  # keep the fleet running; close() raises if the disk stays bad
+                self._write(self._document())

@@ -6,6 +6,7 @@ JSON (schemas/plan.schema.json) and ``apply PLAN.json`` executes it unchanged.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
@@ -13,7 +14,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from .diagnostics import Diagnostic, InputError, UsageError
 
 if TYPE_CHECKING:
-    from .profile import Limits, Profile
+    from .profile import Limits, Parameter, Profile
     from .recipe import Desired, Recipe
     from .yamlsrc import Source
 
@@ -68,6 +69,7 @@ class Plan:
     writes: tuple[WriteRequest, ...]
     reads: tuple[ReadRequest, ...]
     schema: str = PLAN_SCHEMA
+    recipe_name: str | None = None  # the recipe's own name: snapshots of 'apply PLAN.json' are named after it
 
 
 # ---- write planning ------------------------------------------------------------------------
@@ -227,29 +229,45 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
 # ---- read planning -------------------------------------------------------------------------
 
 
-def plan_reads(profile: Profile, names: Iterable[str]) -> tuple[ReadRequest, ...]:
+def plan_reads(profile: Profile, names: Iterable[str], *, gaps: bool = True) -> tuple[ReadRequest, ...]:
     """FC03 blocks covering ``names`` with the fewest requests, spanning declared readable registers only.
 
     A block may only span a maximal run of contiguous declared readable registers (reading an
     undeclared gap or a write-only register can fail the whole read), may cover parameters the
-    caller did not ask for, and never cuts a parameter. Greedy per run: open a block at the first
-    parameter still to read and stretch it over every needed parameter that still fits. Optimal
-    by the interval-covering argument: any cover has a block containing that first parameter,
-    which can start no earlier, so it reaches no further than greedy's block; induction on the
-    rest. tests/test_planner.py checks it against every partition of the needed parameters.
+    caller did not ask for, and never cuts a parameter. With the profile's ``max_read_gap`` N > 0
+    (and ``gaps``), a run also continues across at most N consecutive undeclared registers (never
+    across a declared write-only one): the device answers them, the values are ignored. Greedy per
+    run: open a block at the first parameter still to read and stretch it over every needed
+    parameter that still fits. Optimal by the interval-covering argument: any cover has a block
+    containing that first parameter, which can start no earlier, so it reaches no further than
+    greedy's block; induction on the rest. tests/test_planner.py checks it against every partition
+    of the needed parameters.
     """
     wanted = set(names)
     limit = profile.limits.read_registers
+    max_gap = profile.limits.max_read_gap if gaps else 0
     reads: list[ReadRequest] = []
     # profiles built in code need not be sorted; loaded ones are (cheap to be sure)
     params = sorted((p for p in profile.parameters if p.readable), key=lambda p: p.address)
     missing = wanted - {p.name for p in params}
     if missing:
         raise UsageError(f"not readable in profile {profile.id}: {', '.join(sorted(missing))}")
+    barriers: list[int] = []  # start addresses of write-only parameters: a read never spans them
+    if max_gap:
+        barriers = sorted(p.address for p in profile.parameters if not p.readable)
+
+    def joins(prev: Parameter, nxt: Parameter) -> bool:
+        if nxt.address == prev.end:
+            return True
+        if nxt.address - prev.end > max_gap:
+            return False
+        k = bisect.bisect_left(barriers, prev.end)
+        return k == len(barriers) or barriers[k] >= nxt.address
+
     i = 0
     while i < len(params):
         j = i + 1
-        while j < len(params) and params[j].address == params[j - 1].end:
+        while j < len(params) and joins(params[j - 1], params[j]):
             j += 1
         start: int | None = None
         end = 0
@@ -270,13 +288,25 @@ def plan_reads(profile: Profile, names: Iterable[str]) -> tuple[ReadRequest, ...
     return tuple(reads)
 
 
+def gap_free_reads(profile: Profile, reads: Sequence[ReadRequest]) -> tuple[ReadRequest, ...]:
+    """The blocks that replace ``reads`` on a device that refuses reads across gaps (DESIGN rule 5)."""
+    spans = sorted((r.address, r.address + r.count) for r in reads)
+    starts = [a for a, _ in spans]
+    inside = []
+    for p in profile.parameters:
+        k = bisect.bisect_right(starts, p.address) - 1
+        if p.readable and k >= 0 and p.end <= spans[k][1]:
+            inside.append(p.name)
+    return plan_reads(profile, inside, gaps=False)
+
+
 def make_plan(recipe: Recipe, target: Target, current: Mapping[str, tuple[int, ...]] | None = None,
               *, write_all: bool = False) -> Plan:
     """The whole plan; reads cover every readable recipe parameter (snapshot before, read-back after)."""
     prof = recipe.profile
     params, writes = plan_writes(recipe.desired, prof.limits, current, write_all=write_all)
     reads = plan_reads(prof, [d.name for d in recipe.desired if d.parameter.readable])
-    return Plan(recipe.path, target, params, writes, reads)
+    return Plan(recipe.path, target, params, writes, reads, recipe_name=recipe.name)
 
 
 # ---- JSON ------------------------------------------------------------------------------------
@@ -302,6 +332,7 @@ def plan_to_json(plan: Plan) -> dict[str, Any]:
                     "parameters": list(w.parameters), "stage": w.stage} for w in plan.writes],
         "reads": [{"function": r.function, "address": r.address, "count": r.count} for r in plan.reads],
         "summary": {**wire_stats(plan), **actions},
+        **({"recipe_name": plan.recipe_name} if plan.recipe_name is not None else {}),
     }
 
 
@@ -386,8 +417,9 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
             problems.append(error(("reads", k, "address"), "the read runs past register 65535"))
     if problems:
         raise InputError(problems)
+    name = data.get("recipe_name")
     return Plan(data.get("recipe"), Target(dev.get("url"), int(dev["unit"]), str(dev["profile"])),
-                params, writes, reads)
+                params, writes, reads, recipe_name=None if name is None else str(name))
 
 
 def load_plan(path: str) -> tuple[Recipe, Plan]:
@@ -421,7 +453,9 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
         desired.append(Desired(param, pp.desired, pp.desired_raw))
     if errors:
         raise InputError(errors)
-    rec = Recipe(name=os.path.basename(p.recipe or path), path=p.recipe, profile=prof, desired=tuple(desired),
+    # named after the recipe it was made from (snapshots, reports), not after the plan file
+    name = p.recipe_name or os.path.splitext(os.path.basename(p.recipe or path))[0]
+    rec = Recipe(name=name, path=p.recipe, profile=prof, desired=tuple(desired),
                  device=DeviceSpec(p.device.url, p.device.unit), profile_ref=p.device.profile)
     return rec, p
 
@@ -440,6 +474,27 @@ def _rtu_request_bytes(function: int, count: int) -> int:
 def _rtu_response_bytes(function: int, count: int) -> int:
     # FC16 echoes address and quantity, FC06 echoes the request, FC03 carries bytecount + data
     return 5 + 2 * count if function == 3 else 8
+
+
+def line_cost(plan: Plan, *, framing: str = "rtu", baud: int = BAUD, char_bits: int = CHAR_BITS) -> tuple[int, float]:
+    """Characters on a serial line and seconds for the plan's write requests and their answers.
+
+    RTU: binary frames plus the 3.5-character silence that ends each; ASCII: every byte but the CRC
+    becomes two hex characters, plus ':', the LRC (two characters) and CR LF (2n + 1 characters for an
+    n-byte RTU frame), and no silence. ``char_bits``: start + data + parity + stop bits.
+    """
+    answers = plan.device.unit != 0
+    chars = 0.0
+    frames = 0
+    for w in plan.writes:
+        sizes = [_rtu_request_bytes(w.function, w.count)]
+        if answers:
+            sizes.append(_rtu_response_bytes(w.function, w.count))
+        for n in sizes:
+            frames += 1
+            chars += 2 * n + 1 if framing == "ascii" else n
+    silence = 0.0 if framing == "ascii" else 3.5 * frames
+    return int(chars), (chars + silence) * char_bits / baud
 
 
 def wire_stats(plan: Plan) -> dict[str, float | int]:

@@ -6,6 +6,7 @@ checks with FILE:LINE:COL diagnostics) lives in this module too.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from dataclasses import dataclass, field, replace
@@ -30,6 +31,8 @@ class Limits:
     max_frame_bytes: int = 256  # whole RTU frame: unit id + PDU + CRC
     write_function: Literal[6, 16] = 16
     max_ascii_chars: int = ASCII_MAX_CHARS  # whole ASCII frame: ':' + hex pairs + LRC + CR LF
+    # reads may span up to this many consecutive undeclared registers (0: never; DESIGN planning rule 5)
+    max_read_gap: int = 0
 
     @property
     def write_registers(self) -> int:
@@ -167,7 +170,8 @@ class Profile:
     # sorted by address; table entries expanded to "table[i].field"
     parameters: tuple[Parameter, ...] = ()
     commit: tuple[CommitAction, ...] = ()
-    source: str | None = None  # file the profile came from (None for profiles built in code)
+    source: str | None = None  # file the profile came from (None for built-ins and profiles built in code)
+    digest: str | None = None  # sha256 of the profile file's text: snapshots record it, rollback compares it
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "_by_name", {p.name: p for p in self.parameters})
@@ -268,13 +272,19 @@ def _hex(n: int) -> str:
 def load_profile(path: str | os.PathLike[str]) -> Profile:
     """Load and check a profile file; all problems at once as an InputError."""
     p = os.fspath(path)
-    data, src = yamlsrc.load(p)
+    text = yamlsrc.read_text(p)
+    data, src = yamlsrc.load(p, text)
     if not isinstance(data, dict):
         raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
     errors = yamlsrc.validate(data, "profile", src)
     if errors:
         raise InputError(errors)
-    return _build_profile(data, src)
+    return replace(_build_profile(data, src), digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
+
+
+def profile_ref(profile: Profile) -> str:
+    """The one well-defined name of a profile: its file's absolute path, or its built-in id."""
+    return profile.source or profile.id
 
 
 def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:

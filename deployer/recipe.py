@@ -7,10 +7,11 @@ entries and ``{raw: N}``, and checks ranges and resolution, all before any devic
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from decimal import Decimal, InvalidOperation
 from typing import Any, Literal
 
@@ -43,6 +44,17 @@ class Desired:
 
 
 @dataclass(frozen=True)
+class SnapshotInfo:
+    """What makes a recipe a snapshot: where it came from and the raw registers it restores."""
+
+    profile_sha256: str | None  # digest of the profile the values were decoded with
+    registers: Mapping[str, tuple[int, ...]]  # parameter -> raw words as the device held them
+    taken: str | None = None
+    applied: str | None = None  # the recipe applied after the snapshot was taken
+    profile_changed: bool = False  # loaded with --force although the profile's digest differs
+
+
+@dataclass(frozen=True)
 class Recipe:
     name: str
     path: str | None  # file the recipe came from
@@ -50,7 +62,8 @@ class Recipe:
     desired: tuple[Desired, ...]  # sorted by (stage, address)
     device: DeviceSpec | None = None
     rounding: str = "exact"
-    profile_ref: str | None = None  # as written: built-in id or a path (absolute once loaded)
+    profile_ref: str | None = None  # built-in id, or the profile file's absolute path
+    snapshot: SnapshotInfo | None = None  # set when the file is a snapshot that apply saved
 
 
 @dataclass(frozen=True)
@@ -67,11 +80,13 @@ class Entry:
 
 
 def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
-                profile: Profile | None = None) -> Recipe:
+                profile: Profile | None = None, force: bool = False) -> Recipe:
     """Load, resolve and check a recipe; all problems at once as an InputError.
 
     ``extra`` entries (an inventory's per-device overrides) win over the file's values;
     ``profile`` forces the profile (an inventory device's), else the recipe's is resolved.
+    A snapshot (a recipe with a ``snapshot`` block) is checked against the profile digest it
+    records (``force`` accepts a changed profile and restores the recorded raw registers).
     """
     p = os.fspath(path)
     errors: list[Diagnostic] = []
@@ -98,8 +113,13 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
         entries.pop(e.name, None)
         entries[e.name] = e
 
+    top_src = layers[-1][1]
+    snap_data = top_data.get("snapshot")
+    if snap_data is not None and prof_ref is not None and _is_relative_path(prof_ref) and profile is None:
+        # a snapshot lives in the snapshots folder: a relative profile path would resolve there by accident
+        raise InputError([top_src.error(("profile",), f"a snapshot names its profile by absolute path or built-in "
+                                                      f"id, not the relative path '{prof_ref}'")])
     prof = profile
-    resolved_ref = prof_ref
     if prof is None:
         assert prof_ref is not None and prof_src is not None  # the schema requires one in the chain
         try:
@@ -110,15 +130,20 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
             # the profile's own errors, plus where the recipe points at it
             where = prof_src.error(("profile",), f"profile '{prof_ref}' is invalid")
             raise InputError([*e.diagnostics, where]) from None
-        if prof.source is not None:
-            resolved_ref = prof.source
+    # whatever path the profile was named by, the recipe carries one well-defined reference
+    resolved_ref = prof.source or prof.id
+    snapshot = _snapshot_info(snap_data, prof, top_src, force) if snap_data is not None else None
     desired: list[Desired] = []
-    for entry in entries.values():
-        d = _desired(prof, entry, rounding, errors)
-        if d is not None:
-            desired.append(d)
+    if snapshot is not None and snapshot.profile_changed:
+        desired = _from_registers(prof, snapshot, top_src, errors)
+    else:
+        for entry in entries.values():
+            d = _desired(prof, entry, rounding, errors, trusted=snapshot is not None)
+            if d is not None:
+                desired.append(d)
+        if snapshot is not None and not errors:
+            desired += _check_snapshot(prof, desired, snapshot, entries, top_src, errors)
     if errors:
-        top_src = layers[-1][1]
         bad_bases = sorted({d.path for d in errors} & {src.path for _, src in layers[:-1]})
         if bad_bases:  # point at this file too: the error is in a recipe it extends
             rel = ", ".join(os.path.relpath(b, os.path.dirname(os.path.abspath(p))) for b in bad_bases)
@@ -133,7 +158,100 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
         device=device if (device.url is not None or device.unit is not None) else None,
         rounding=rounding,
         profile_ref=resolved_ref,
+        snapshot=snapshot,
     )
+
+
+def with_overrides(recipe: Recipe, extra: Sequence[Entry]) -> Recipe:
+    """``recipe`` with some values replaced (an inventory device's overrides), its files not read again.
+
+    Same result as ``load_recipe(recipe.path, extra=extra)`` when the profile is the same.
+    """
+    errors: list[Diagnostic] = []
+    new = {}
+    for e in extra:
+        d = _desired(recipe.profile, e, recipe.rounding, errors)
+        if d is not None:
+            new[d.name] = d
+    if errors:
+        raise InputError(errors)
+    desired = [d for d in recipe.desired if d.name not in new] + list(new.values())
+    desired.sort(key=lambda d: (d.parameter.stage, d.parameter.address))
+    return replace(recipe, desired=tuple(desired))
+
+
+def _is_relative_path(ref: str) -> bool:
+    looks_like_path = ref.endswith((".yaml", ".yml", ".json")) or os.sep in ref or "/" in ref
+    return looks_like_path and not os.path.isabs(ref)
+
+
+def _snapshot_info(data: Mapping[str, Any], prof: Profile, src: yamlsrc.Source, force: bool) -> SnapshotInfo:
+    """The snapshot block, checked: the profile must be the one the values were decoded with."""
+    recorded = data.get("profile_sha256")
+    changed = recorded is not None and prof.digest is not None and recorded != prof.digest
+    if changed and not force:
+        raise InputError([src.error(("snapshot", "profile_sha256"), (
+            f"profile {prof.source or prof.id} changed since this snapshot was taken (sha256 {str(recorded)[:12]}... "
+            f"then, {str(prof.digest)[:12]}... now): its values were decoded with the old profile. Check the profile; "
+            "--force restores the recorded raw registers"))])
+    regs = {str(k): tuple(int(w) for w in v) for k, v in (data.get("registers") or {}).items()}
+    return SnapshotInfo(recorded, regs, data.get("taken"), data.get("applied"), changed)
+
+
+def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source,
+                    errors: list[Diagnostic]) -> list[Desired]:
+    """--force with a changed profile: the recorded raw words, at parameters that still fit them."""
+    out = []
+    for name, words in snap.registers.items():
+        at: yamlsrc.Path_ = ("snapshot", "registers", name)
+        param = prof.get(name)
+        if param is None:
+            errors.append(src.error(at, f"{name} is no longer in profile {prof.id}: cannot restore it", key=True))
+        elif param.count != len(words):
+            errors.append(src.error(at, f"{name} now has {param.count} registers, the snapshot recorded {len(words)}"))
+        elif not param.writable:
+            errors.append(src.error(at, f"{name} is read-only in profile {prof.id} now", key=True))
+        else:
+            out.append(Desired(param, _show(param, words), words))
+    return out
+
+
+def _show(param: Parameter, words: Sequence[int]) -> str:
+    try:
+        return param.format_registers(tuple(words))
+    except Exception:  # a value the codec cannot show (e.g. NaN): raw words
+        return " ".join(f"{w:04X}h" for w in words)
+
+
+def _check_snapshot(prof: Profile, desired: Sequence[Desired], snap: SnapshotInfo, entries: Mapping[str, Entry],
+                    src: yamlsrc.Source, errors: list[Diagnostic]) -> list[Desired]:
+    """The engineering values must say what the recorded registers say: an edited snapshot is refused.
+
+    Returns the recorded values no text can say (NaN, infinity): restored from their registers.
+    """
+    for d in desired:
+        rec = snap.registers.get(d.name)
+        e = entries[d.name]
+        if rec is None:
+            errors.append(e.src.error(e.at, f"{d.name} is not among the snapshot's recorded registers", key=True))
+        elif rec != d.registers:
+            errors.append(e.src.error(e.at, (
+                f"{d.name}: {d.text} does not match the registers the snapshot recorded "
+                f"({' '.join(f'{w:04X}h' for w in rec)}); a snapshot restores what the device held: "
+                "to write other values, use a recipe")))
+    named = {d.name for d in desired}
+    extra = []
+    for name, words in snap.registers.items():
+        if name in named:
+            continue
+        param = prof.get(name)
+        if param is not None and param.writable and param.count == len(words) and snapshot_value(param, words) is None:
+            extra.append(Desired(param, _show(param, words), words))
+            continue
+        errors.append(src.error(("snapshot", "registers", name),
+                                f"{name} was recorded but is missing from parameters: a snapshot restores every "
+                                "value it recorded (edit neither; use a recipe to restore fewer)", key=True))
+    return extra
 
 
 def _load_chain(path: str, stack: list[str], errors: list[Diagnostic],
@@ -193,7 +311,10 @@ _PLAIN_KEY = re.compile(r"^[A-Za-z_][\w.\[\]-]*$")
 _NUMBER = re.compile(r"^\s*([-+]?(?:\d[\d_]*(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*$")
 
 
-def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnostic]) -> Desired | None:
+def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnostic], *,
+             trusted: bool = False) -> Desired | None:
+    """One entry -> its Desired value (or an error). ``trusted``: a snapshot's ``{raw}`` value held by the
+    device itself, which the profile's documented range does not block (the type's range still does)."""
     param = prof.get(e.name)
 
     def fail(msg: str, *, key: bool = False) -> None:
@@ -216,8 +337,12 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
     rounding: Literal["exact", "nearest"] = (
         "nearest" if "nearest" in (param.rounding, recipe_rounding) else "exact")
     if isinstance(value, dict) and "raw" in value:
-        return _from_raw(param, value["raw"], e, fail)
+        return _from_raw(param, value["raw"], e, fail, trusted=trusted)
     if isinstance(value, dict):  # {value: ..., rounding: ...}
+        if "value" not in value:  # table-entry style keys on a plain parameter
+            keys = ", ".join(yamlsrc.clip(str(k)) for k in value)
+            fail(f"expected a value, {{raw: N}} or {{value: V, rounding: nearest}}, got a mapping with {keys}")
+            return None
         rounding = value.get("rounding", rounding)
         value = value["value"]
     try:
@@ -246,7 +371,7 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
     return Desired(param, param.format_registers(regs), regs)
 
 
-def _from_raw(param: Parameter, raw_v: Any, e: Entry, fail: Any) -> Desired | None:
+def _from_raw(param: Parameter, raw_v: Any, e: Entry, fail: Any, *, trusted: bool = False) -> Desired | None:
     raw: codec.Raw
     if codec.is_float(param.type):
         raw = float(raw_v)
@@ -256,7 +381,7 @@ def _from_raw(param: Parameter, raw_v: Any, e: Entry, fail: Any) -> Desired | No
         fail(f"raw value {raw_v} is not an integer")
         return None
     bounds = param.raw_bounds()
-    if bounds is not None and not bounds[0] <= raw <= bounds[1]:
+    if not trusted and bounds is not None and not bounds[0] <= raw <= bounds[1]:
         fail(f"raw value {raw} is out of range {bounds[0]}..{bounds[1]} ({_range_text(param)})")
         return None
     try:
@@ -318,6 +443,8 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
     label = param.label_for(raw)
     if label is not None:
         return label
+    if isinstance(raw, float) and not math.isfinite(raw):
+        return None  # no recipe text loads back to a NaN or an infinity
     bounds = param.raw_bounds()
     if bounds is not None and not bounds[0] <= raw <= bounds[1]:
         return None
@@ -328,23 +455,54 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
     return f"{text} {param.unit}" if param.unit else text
 
 
+# Text YAML certainly reads back as the same plain string when the implicit resolvers call it a
+# string: word characters, spaces, '.', '-', '/', '%' and '°' only (no ':', '#', quotes or
+# indicators), neither starting nor ending with a space or an indicator.
+_PLAIN_SAFE = re.compile(r"^\w(?:[\w .\-/%°]*[\w.%°])?$")
+_RESOLVER = yaml.resolver.Resolver()
+
+
 def _reads_back(text: str) -> bool:
+    """True when ``k: TEXT`` loads back as exactly ``TEXT`` (a number or the same string)."""
     try:
         Decimal(text)
         return True
     except InvalidOperation:
         pass
-    try:
-        return bool(yaml.safe_load(f"k: {text}") == {"k": text})
+    if _PLAIN_SAFE.match(text):  # the common case, without running a parser per value
+        tag = _RESOLVER.resolve(yaml.ScalarNode, text, (True, False))  # type: ignore[no-untyped-call]
+        return bool(tag == "tag:yaml.org,2002:str")
+    try:  # both parsers must agree (libyaml reads some text with tabs differently)
+        return all(yaml.load(f"k: {text}", Loader=loader) == {"k": text}
+                   for loader in (yamlsrc.FastLoader, yaml.SafeLoader))
     except yaml.YAMLError:
         return False
 
 
+def snapshot_value(param: Parameter, registers: Sequence[int]) -> str | None:
+    """Recipe text for exactly these registers, even outside the profile's range (``{raw: N}``).
+
+    None only for values no text can say (a NaN or infinite float): snapshots restore those from
+    their recorded registers.
+    """
+    raw = param.decode(tuple(registers))
+    if isinstance(raw, float) and not math.isfinite(raw):
+        return None
+    text = value_text(param, registers)
+    if text is not None:
+        return text
+    if isinstance(raw, float):
+        r = repr(raw)
+        return f"{{raw: {r if '.' in r or 'e' not in r else r.replace('e', '.0e', 1)}}}"
+    return f"{{raw: {raw}}}"
+
+
 def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, name: str,
-                device: DeviceSpec | None = None, comment: str = "") -> str:
+                device: DeviceSpec | None = None, comment: str = "", snapshot: SnapshotInfo | None = None) -> str:
     """A recipe that sets every given parameter to the given registers (YAML text).
 
-    Values outside the profile's range are kept as comments: a recipe cannot set them.
+    Values outside the profile's range are kept as comments (a recipe cannot set them), except in
+    a snapshot (``snapshot`` given), which records them as ``{raw: N}`` plus every raw register.
     """
     lines = [f"# {c}" for c in comment.splitlines()] if comment else []
     lines.append(f"recipe: {json.dumps(name)}")
@@ -352,17 +510,35 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
     if device is not None and (device.url or device.unit is not None):
         dev = {k: v for k, v in (("url", device.url), ("unit", device.unit)) if v is not None}
         lines.append(f"device: {json.dumps(dev)}")
+    ordered = sorted(values.items(), key=lambda kv: kv[0].address)
+    if snapshot is not None:
+        lines.append("snapshot:  # what rollback restores: these raw registers, as the device held them")
+        for k, v in (("profile_sha256", snapshot.profile_sha256), ("taken", snapshot.taken),
+                     ("applied", snapshot.applied)):
+            if v is not None:
+                lines.append(f"  {k}: {json.dumps(v)}")
+        lines.append("  registers:" if ordered else "  registers: {}")
+        lines.extend(f"    {_key(param.name)}: [{', '.join(str(w) for w in regs)}]" for param, regs in ordered)
     body = []
-    for param, regs in sorted(values.items(), key=lambda kv: kv[0].address):
-        key = param.name if _PLAIN_KEY.match(param.name) else json.dumps(param.name)
-        v = value_text(param, regs)
+    for param, regs in ordered:
+        key = _key(param.name)
+        v = snapshot_value(param, regs) if snapshot is not None else value_text(param, regs)
+        words = " ".join(f"{w:04X}" for w in regs)
         if v is None:
-            words = " ".join(f"{w:04X}" for w in regs)
             raw = param.decode(tuple(regs))
-            body.append(f"  # {key}: raw {raw} ({words}h) is outside the profile's range {_range_text(param)}")
+            why = ("restored from snapshot.registers" if snapshot is not None
+                   else f"is outside the profile's range {_range_text(param)}")
+            body.append(f"  # {key}: raw {raw} ({words}h) {why}")
+            continue
+        if v.startswith("{raw:"):
+            body.append(f"  {key}: {v}  # {words}h, outside the profile's range {_range_text(param)}")
             continue
         # numbers stay numbers (in the profile's unit); text stays plain where YAML reads it back as the same text
         rendered = v if _reads_back(v) else json.dumps(v)
         body.append(f"  {key}: {rendered}")
     lines.append("parameters:" if any(not b.lstrip().startswith("#") for b in body) else "parameters: {}")
     return "\n".join(lines + body) + "\n"
+
+
+def _key(name: str) -> str:
+    return name if _PLAIN_KEY.match(name) else json.dumps(name)

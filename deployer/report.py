@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -13,7 +11,8 @@ from .diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE
 
 REPORT_SCHEMA = "deployer.report/1"
 ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
-DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable"]  # sent: a broadcast that went out
+# sent: a broadcast that went out; skipped: a fleet never started it
+DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped"]
 
 
 @dataclass
@@ -63,7 +62,10 @@ class DeviceResult:
     snapshot: str | None = None
     requests: list[RequestRecord] = field(default_factory=list)
     parameters: list[ParameterResult] = field(default_factory=list)
-    error: str | None = None  # why the device failed or was unreachable
+    error: str | None = None  # why the device failed, was unreachable or was skipped
+    seconds: float | None = None  # how long the device's session took (fleets: for the summary table)
+    profile_ref: str | None = None  # the profile used: its file's absolute path, or the built-in id
+    notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
 
     @property
     def write_requests(self) -> int:
@@ -74,8 +76,8 @@ class DeviceResult:
         return sum(1 for r in self.requests if r.function == 3)
 
     def settle(self) -> None:
-        """Device status from its parameters (unless already sent/failed/unreachable)."""
-        if self.status in ("unreachable", "failed", "sent"):
+        """Device status from its parameters (unless already sent/failed/unreachable/skipped)."""
+        if self.status in ("unreachable", "failed", "skipped", "sent"):
             return
         bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
         if not bad:
@@ -94,6 +96,12 @@ class DeviceResult:
         }
         if self.error is not None:
             out["error"] = self.error
+        if self.seconds is not None:
+            out["seconds"] = round(self.seconds, 3)
+        if self.profile_ref is not None:
+            out["profile_ref"] = self.profile_ref
+        if self.notices:
+            out["notices"] = list(self.notices)
         return out
 
 
@@ -103,17 +111,20 @@ class Report:
     devices: list[DeviceResult]
     seconds: float = 0.0
 
-    def to_json(self) -> dict[str, Any]:
+    def summary(self) -> dict[str, Any]:
         counts = {s: sum(1 for d in self.devices if d.status == s)
-                  for s in ("ok", "sent", "partial", "failed", "unreachable")}
+                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped")}
+        return {"devices": len(self.devices), **counts,
+                "write_requests": sum(d.write_requests for d in self.devices),
+                "read_requests": sum(d.read_requests for d in self.devices),
+                "seconds": round(self.seconds, 3)}
+
+    def to_json(self) -> dict[str, Any]:
         return {
             "schema": REPORT_SCHEMA,
             "recipe": self.recipe,
             "devices": [d.to_json() for d in self.devices],
-            "summary": {"devices": len(self.devices), **counts,
-                        "write_requests": sum(d.write_requests for d in self.devices),
-                        "read_requests": sum(d.read_requests for d in self.devices),
-                        "seconds": round(self.seconds, 3)},
+            "summary": self.summary(),
         }
 
     @property
@@ -142,23 +153,3 @@ def write_json(data: dict[str, Any], path: str) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
-
-
-def audit(state_dir: str, report: Report, *, command: str, argv: Sequence[str] = ()) -> None:
-    """Append one line per apply to STATE/audit.jsonl (who, when, what, outcome)."""
-    os.makedirs(state_dir, exist_ok=True)
-    line = {
-        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "user": os.environ.get("USER") or os.environ.get("LOGNAME") or str(os.getuid()),
-        "command": command,
-        "argv": list(argv),
-        "recipe": report.recipe,
-        "exit_code": report.exit_code,
-        "devices": [{"name": d.name, "url": d.url, "unit": d.unit, "status": d.status, "snapshot": d.snapshot,
-                     "written": [p.name for p in d.parameters if p.status in ("ok", "failed", "mismatch")],
-                     "write_requests": d.write_requests} for d in report.devices],
-    }
-    with open(os.path.join(state_dir, "audit.jsonl"), "a", encoding="utf-8") as f:
-        f.write(json.dumps(line) + "\n")
-        f.flush()
-        os.fsync(f.fileno())

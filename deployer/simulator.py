@@ -14,6 +14,7 @@ registers, disconnects) make the failure paths of the executor testable on a rea
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import os
 import signal
@@ -136,7 +137,8 @@ class _Units:
 class Simulator:
     def __init__(self, profile: Profile, *, listen: str = "tcp://127.0.0.1:0", units: Sequence[int] = (1,),
                  init: Mapping[int, int] | None = None, faults: Faults | None = None,
-                 log_path: str | None = None, state_path: str | None = None, strict_limits: bool = True) -> None:
+                 log_path: str | None = None, state_path: str | None = None, strict_limits: bool = True,
+                 gap_reads: bool = False) -> None:
         if not profile.parameters:
             raise ValueError(f"profile {profile.id} declares no registers to simulate")
         self.profile = profile
@@ -147,6 +149,9 @@ class Simulator:
         self.log_path = log_path
         self.state_path = state_path
         self.strict_limits = strict_limits
+        # answer reads of undeclared registers between declared ones (with zeros), as many devices do;
+        # writes to them still answer 02
+        self.gap_reads = gap_reads
         self.url = ""
         self._server: Any = None
         self._log_file: Any = None
@@ -256,6 +261,10 @@ class Simulator:
         blocks = [SimData(address=p.address, values=[self._start_values[a] for a in range(p.address, p.end)],
                           datatype=DataType.REGISTERS, readonly=not p.writable)
                   for p in self.profile.parameters]
+        if self.gap_reads:  # read-only zeros in every gap between declared registers
+            declared = sorted(self._owner)
+            blocks += [SimData(address=a + 1, values=[0] * (b - a - 1), datatype=DataType.REGISTERS, readonly=True)
+                       for a, b in itertools.pairwise(declared) if b - a > 1]
 
         async def action(fc: int, start: int, address: int, count: int, registers: list[int],
                          values: list[int] | list[bool] | None) -> ExcCodes | None:

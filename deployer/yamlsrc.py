@@ -1,11 +1,20 @@
 """YAML (and JSON) loading that remembers where every key and value came from.
 
-PyYAML's node tree carries marks; we build plain Python values from it ourselves so that:
+We build plain Python values from PyYAML's event stream ourselves so that:
   * only safe, standard tags are accepted (no Python object tags),
   * decimal numbers become ``Decimal`` built from the text (``10.005`` stays exact),
   * duplicate keys are errors, not silent overwrites,
   * every value and key has a (line, col), so schema and semantic errors print
-    ``FILE:LINE:COL: error: message``.
+    ``FILE:LINE:COL: error: message``,
+  * hostile files end in such an error quickly and in little memory: only regular files of
+    bounded size are read, nesting depth, alias expansion ("billion laughs"), entries per
+    mapping and number length are bounded, and values echoed in messages are cut.
+
+The events come from libyaml (``CParser``, about 10x faster than PyYAML's pure-Python scanner;
+it keeps line and column marks) when PyYAML was built with it, else from the pure-Python
+parser: the same events, so the same values, positions and errors. Building from events
+instead of composed nodes keeps every step iterative (no recursion at any depth) and lets
+aliases be counted as they are expanded.
 """
 
 from __future__ import annotations
@@ -13,22 +22,64 @@ from __future__ import annotations
 import difflib
 import json
 import os
+import re
+import stat
+import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
-from typing import Any
+from functools import cache
+from typing import TYPE_CHECKING, Any
 
-import jsonschema
 import yaml
 
 from .diagnostics import Diagnostic, InputError
 
-MAX_FILE_BYTES = 4 * 1024 * 1024  # a recipe or profile is kilobytes; refuse runaway files early
+if TYPE_CHECKING:
+    import jsonschema
+
+# libyaml's parser when PyYAML has it; the pure-Python one gives the same events
+FastLoader: type[yaml.SafeLoader] | type[yaml.CSafeLoader] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+# Limits on input (issue #11, hostile files). A real recipe or profile is far inside each one.
+MAX_FILE_BYTES = 8 * 1024 * 1024  # a 50,000-parameter profile is about 4 MB
+MAX_DEPTH = 64  # nesting of mappings and lists; recipes need 5
+MAX_ALIAS_NODES = 100_000  # values that aliases may add in total ("billion laughs" stops here)
+MAX_ENTRIES = 65_536  # entries in one mapping or list: a device has 65,536 holding registers
+MAX_NUMBER_CHARS = 100  # a number written with more characters is refused (no 100,000-digit numbers)
+MAX_ECHO = 60  # characters of a value echoed in a message; longer ones are cut with an ellipsis
 
 Path_ = tuple[str | int, ...]
 
 _STD = "tag:yaml.org,2002:"
-_SCALAR_TAGS = {f"{_STD}{t}" for t in ("str", "int", "float", "bool", "null", "timestamp")}
+_STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP = (
+    f"{_STD}{t}" for t in ("str", "int", "float", "bool", "null", "timestamp"))
+_MAP, _SEQ, _MERGE = f"{_STD}map", f"{_STD}seq", f"{_STD}merge"
+_SCALAR_TAGS = {_STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP}
+
+
+def clip(text: str, limit: int = MAX_ECHO) -> str:
+    """``text`` cut to about ``limit`` characters with an ellipsis (values echoed in errors)."""
+    if len(text) <= limit:
+        return text
+    return f"{text[: limit - 10]}…{text[-8:]} ({len(text)} characters)"
+
+
+def clipped_repr(value: object, limit: int = MAX_ECHO) -> str:
+    return clip(repr(value), limit)
+
+
+_LONG_WORD = re.compile(r"\S{121,}")  # longer than any path or name a message means to show whole
+
+
+def clip_message(message: str) -> str:
+    """A message with every overlong word (an echoed value) cut, and at most about 1,000 characters."""
+    if len(message) <= 120:
+        return message
+    message = _LONG_WORD.sub(lambda m: clip(m.group()), message)
+    if len(message) > 1000:
+        message = f"{message[:600]} … {message[-300:]}"
+    return message
 
 
 @dataclass
@@ -53,80 +104,283 @@ class Source:
 
     def error(self, at: Path_, message: str, *, key: bool = False) -> Diagnostic:
         line, col = self.pos(at, key=key)
-        return Diagnostic(self.path, line, col, message)
+        return Diagnostic(self.path, line, col, clip_message(message))
 
 
-def _mark(node: yaml.Node) -> tuple[int, int]:
-    return node.start_mark.line + 1, node.start_mark.column + 1
+class _Stop(Exception):
+    """A limit was hit: stop building, report what was found so far."""
+
+
+class _Frame:
+    """One open mapping or list while building."""
+
+    __slots__ = ("anchored", "at", "is_map", "key", "skip_value", "value")
+
+    def __init__(self, value: dict[str, Any] | list[Any], at: Path_, anchored: bool) -> None:
+        self.value = value
+        self.at = at
+        self.is_map = isinstance(value, dict)
+        self.anchored = anchored  # an anchor is open for this collection
+        self.key: str | None = None  # a mapping's key waiting for its value
+        self.skip_value = False  # the key was refused: drop its value
+
+
+class _Anchor:
+    __slots__ = ("at", "log", "nodes", "value")
+
+    def __init__(self, value: Any, at: Path_, log: list[tuple[bool, Path_, tuple[int, int]]], nodes: int) -> None:
+        self.value, self.at, self.log, self.nodes = value, at, log, nodes
+
+
+def _copy(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _copy(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_copy(v) for v in value]
+    return value
 
 
 class _Builder:
-    def __init__(self, src: Source) -> None:
+    """Plain values with positions from a stream of YAML events; iterative, with limits."""
+
+    def __init__(self, src: Source, loader: Any) -> None:
         self.src = src
+        self.loader = loader
         self.errors: list[Diagnostic] = []
-        self._resolver = yaml.SafeLoader  # for implicit scalar resolution helpers
+        self.nodes = 0  # values built, aliases included
+        self.alias_nodes = 0
+        self.anchors: dict[str, _Anchor] = {}
+        self.open_anchors: list[tuple[str, int, int]] = []  # (name, log start, nodes at start)
+        self.log: list[tuple[bool, Path_, tuple[int, int]]] = []  # positions seen while an anchor is open
+        self.tags: dict[tuple[str, tuple[bool, bool]], str] = {}
 
-    def err(self, node: yaml.Node, message: str) -> None:
-        line, col = _mark(node)
-        self.errors.append(Diagnostic(self.src.path, line, col, message))
+    def err(self, pos: tuple[int, int], message: str) -> None:
+        self.errors.append(Diagnostic(self.src.path, pos[0], pos[1], clip_message(message)))
 
-    def build(self, node: yaml.Node, at: Path_) -> Any:
-        self.src.values[at] = _mark(node)
-        if isinstance(node, yaml.MappingNode):
-            if node.tag != f"{_STD}map":
-                self.err(node, f"tag {node.tag!r} is not allowed")
-                return None
-            out: dict[str, Any] = {}
-            for knode, vnode in node.value:
-                if knode.tag == f"{_STD}merge":
-                    self.err(knode, "YAML merge keys ('<<') are not supported; use 'extends'")
-                    continue
-                if not isinstance(knode, yaml.ScalarNode):
-                    self.err(knode, "a mapping key must be a plain scalar")
-                    continue
-                key = str(knode.value)
-                if key in out:
-                    line, _ = self.src.keys[(*at, key)]
-                    self.err(knode, f"duplicate key '{key}' (first at line {line})")
-                    continue
-                self.src.keys[(*at, key)] = _mark(knode)
-                out[key] = self.build(vnode, (*at, key))
-            return out
-        if isinstance(node, yaml.SequenceNode):
-            if node.tag != f"{_STD}seq":
-                self.err(node, f"tag {node.tag!r} is not allowed")
-                return None
-            return [self.build(v, (*at, i)) for i, v in enumerate(node.value)]
-        assert isinstance(node, yaml.ScalarNode)
-        return self.scalar(node)
+    def put(self, is_key: bool, at: Path_, pos: tuple[int, int]) -> None:
+        (self.src.keys if is_key else self.src.values)[at] = pos
+        if self.open_anchors:
+            self.log.append((is_key, at, pos))
 
-    def scalar(self, node: yaml.ScalarNode) -> Any:
-        tag = node.tag
+    def build(self) -> Any:
+        """The document's value; the loader must stand before the document's root node."""
+        get = self.loader.get_event
+        stack: list[_Frame] = []
+        scalar_event, tags, keys, values = yaml.ScalarEvent, self.tags, self.src.keys, self.src.values
+        while True:
+            ev: Any = get()
+            # fast path, most events of a file: an unanchored plain scalar key or value in a mapping
+            if ev.__class__ is scalar_event and ev.anchor is None and stack and not self.open_anchors:
+                top = stack[-1]
+                if top.is_map and not top.skip_value:
+                    mark: Any = ev.start_mark
+                    pos = (mark.line + 1, mark.column + 1)
+                    out: dict[str, Any] = top.value  # type: ignore[assignment]
+                    key = top.key
+                    if key is not None:  # the value of that key
+                        values[(*top.at, key)] = pos
+                        self.nodes += 1
+                        out[key] = self._scalar(ev, pos)
+                        top.key = None
+                        continue
+                    text = ev.value
+                    tag = ev.tag
+                    if tag is None or tag == "!":
+                        tag = tags.get((text, ev.implicit)) or self._tag(ev)
+                    if tag != _MERGE and text not in out and len(out) < MAX_ENTRIES:
+                        keys[(*top.at, text)] = pos
+                        top.key = text
+                        out[text] = None  # keeps the key's place (and finds duplicates) until its value
+                        continue
+                    # a refused key: the general path below says why
+            if isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+                frame = stack.pop()
+                if frame.anchored:
+                    self._end_anchor(frame.value, frame.at)
+                if not stack:
+                    return frame.value
+                continue
+            mark = ev.start_mark
+            pos = (mark.line + 1, mark.column + 1)
+            # where this event's value goes
+            parent = stack[-1] if stack else None
+            at: Path_ = ()
+            skip = False
+            if parent is not None:
+                if parent.is_map and parent.key is None and not parent.skip_value:
+                    # this event is a key
+                    if not self._key(parent, ev, pos) and not isinstance(ev, yaml.ScalarEvent | yaml.AliasEvent):
+                        self._skip()
+                    continue
+                if parent.is_map:
+                    skip = parent.skip_value
+                    at = (*parent.at, parent.key) if parent.key is not None else parent.at
+                else:
+                    lst: list[Any] = parent.value  # type: ignore[assignment]
+                    if len(lst) >= MAX_ENTRIES:
+                        self.err(pos, f"more than {MAX_ENTRIES} entries in one list")
+                        raise _Stop
+                    at = (*parent.at, len(lst))
+            if skip:
+                if not isinstance(ev, yaml.ScalarEvent | yaml.AliasEvent):
+                    self._skip()
+                assert parent is not None
+                parent.skip_value = False
+                continue
+            self.nodes += 1
+            if isinstance(ev, yaml.AliasEvent):
+                value = self._alias(ev, at, pos)
+            elif isinstance(ev, yaml.ScalarEvent):
+                self.put(False, at, pos)
+                if ev.anchor is not None:
+                    self.open_anchors.append((ev.anchor, len(self.log), self.nodes - 1))
+                    self.log.append((False, at, pos))
+                value = self._scalar(ev, pos)
+                if ev.anchor is not None:
+                    self._end_anchor(value, at)
+            elif isinstance(ev, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+                if len(stack) >= MAX_DEPTH:
+                    self.err(pos, f"nested deeper than {MAX_DEPTH} levels")
+                    raise _Stop
+                self.put(False, at, pos)
+                if ev.anchor is not None:
+                    self.open_anchors.append((ev.anchor, len(self.log), self.nodes - 1))
+                    self.log.append((False, at, pos))
+                is_map = isinstance(ev, yaml.MappingStartEvent)
+                tag = ev.tag
+                if tag is not None and tag != "!" and tag != (_MAP if is_map else _SEQ):
+                    self.err(pos, f"tag {clipped_repr(tag)} is not allowed")
+                    self._skip()
+                    value = None
+                    if ev.anchor is not None:
+                        self._end_anchor(value, at)
+                else:  # filled in place as its events arrive
+                    frame = _Frame({} if is_map else [], at, ev.anchor is not None)
+                    self._attach(parent, frame.value)
+                    stack.append(frame)
+                    continue
+            else:  # pragma: no cover - the parser yields nothing else inside a document
+                raise _Stop
+            if parent is None:
+                return value
+            self._attach(parent, value)
+
+    def _attach(self, parent: _Frame | None, value: Any) -> None:
+        if parent is None:
+            return
+        if parent.is_map:
+            key = parent.key
+            assert key is not None
+            parent.value[key] = value  # type: ignore[call-overload]
+            parent.key = None
+        else:
+            parent.value.append(value)  # type: ignore[union-attr]
+
+    def _key(self, parent: _Frame, ev: Any, pos: tuple[int, int]) -> bool:
+        """Take a mapping key; False (and the value is dropped) when it is refused."""
+        parent.skip_value = True
+        if not isinstance(ev, yaml.ScalarEvent):
+            self.err(pos, "a mapping key must be a plain scalar")
+            return False
+        if self._tag(ev) == _MERGE:
+            self.err(pos, "YAML merge keys ('<<') are not supported; use 'extends'")
+            return False
+        key = str(ev.value)
+        if ev.anchor is not None:
+            self.anchors[ev.anchor] = _Anchor(key, (), [], 1)
+        out: dict[str, Any] = parent.value  # type: ignore[assignment]
+        if key in out:
+            line, _ = self.src.keys[(*parent.at, key)]
+            self.err(pos, f"duplicate key '{clip(key)}' (first at line {line})")
+            return False
+        if len(out) >= MAX_ENTRIES:
+            self.err(pos, f"more than {MAX_ENTRIES} entries in one mapping (a device has {MAX_ENTRIES} registers)")
+            raise _Stop
+        self.put(True, (*parent.at, key), pos)
+        parent.key = key
+        parent.skip_value = False
+        out[key] = None  # keeps the key's place (and finds duplicates) until its value is built
+        return True
+
+    def _skip(self) -> None:
+        """Drop the rest of a collection whose start event was just read (within the depth limit)."""
+        depth = 1
+        get = self.loader.get_event
+        while depth:
+            ev = get()
+            if isinstance(ev, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    mark: Any = ev.start_mark
+                    self.err((mark.line + 1, mark.column + 1), f"nested deeper than {MAX_DEPTH} levels")
+                    raise _Stop
+            elif isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+                depth -= 1
+
+    def _end_anchor(self, value: Any, at: Path_) -> None:
+        name, start, nodes_before = self.open_anchors.pop()
+        self.anchors[name] = _Anchor(value, at, self.log[start:], self.nodes - nodes_before)
+        if not self.open_anchors:
+            self.log.clear()
+
+    def _alias(self, ev: Any, at: Path_, pos: tuple[int, int]) -> Any:
+        anchor = self.anchors.get(ev.anchor)
+        if anchor is None:
+            open_names = {name for name, _, _ in self.open_anchors}
+            why = "refers to itself" if ev.anchor in open_names else "is not defined before this point"
+            self.err(pos, f"alias '*{clip(ev.anchor)}' {why}")
+            return None
+        self.alias_nodes += anchor.nodes
+        if self.alias_nodes > MAX_ALIAS_NODES:
+            self.err(pos, f"aliases expand to more than {MAX_ALIAS_NODES} values (an alias bomb?)")
+            raise _Stop
+        self.nodes += anchor.nodes - 1
+        cut = len(anchor.at)
+        for is_key, p, ppos in anchor.log:
+            self.put(is_key, at + p[cut:], ppos)
+        return _copy(anchor.value)
+
+    def _tag(self, ev: Any) -> str:
+        tag: str | None = ev.tag
+        if tag is None or tag == "!":
+            k = (ev.value, ev.implicit)
+            tag = self.tags.get(k)
+            if tag is None:
+                tag = self.tags[k] = self.loader.resolve(yaml.ScalarNode, ev.value, ev.implicit)
+        return tag
+
+    def _scalar(self, ev: Any, pos: tuple[int, int]) -> Any:
+        tag = ev.tag
+        if tag is None or tag == "!":
+            tag = self.tags.get((ev.value, ev.implicit)) or self._tag(ev)
         if tag not in _SCALAR_TAGS:
-            self.err(node, f"tag {tag!r} is not allowed")
+            self.err(pos, f"tag {clipped_repr(tag)} is not allowed")
             return None
-        text = node.value
-        if tag == f"{_STD}str" or tag == f"{_STD}timestamp":
-            return str(text)
-        if tag == f"{_STD}null":
+        text: str = ev.value
+        if tag in (_STR, _TIMESTAMP):
+            return text
+        if tag == _NULL:
             return None
-        if tag == f"{_STD}bool":
+        if tag == _BOOL:
             return text.lower() in ("true", "yes", "on", "y")
-        if tag == f"{_STD}int":
+        if len(text) > MAX_NUMBER_CHARS:
+            self.err(pos, f"number too long ({len(text)} characters; at most {MAX_NUMBER_CHARS}): {clip(text)}")
+            return None
+        if tag == _INT:
             try:
                 return _int(text)
             except (ValueError, TypeError):
-                self.err(node, f"not an integer: {text!r}")
+                self.err(pos, f"not an integer: {clipped_repr(text)}")
                 return None
         # float: keep the exact decimal text
         t = text.replace("_", "")
         if t.lower() in (".inf", "+.inf", "-.inf", ".nan"):
-            self.err(node, f"{text} is not a finite number")
+            self.err(pos, f"{text} is not a finite number")
             return None
         try:
             return Decimal(t)
         except InvalidOperation:
-            self.err(node, f"not a number: {text!r}")
+            self.err(pos, f"not a number: {clipped_repr(text)}")
             return None
 
 
@@ -152,22 +406,45 @@ def _int(text: str) -> int:
 
 
 def read_text(path: str) -> str:
-    """Read a UTF-8 file; problems become diagnostics."""
+    """Read a UTF-8 file; problems become diagnostics.
+
+    Only regular files are read, and only after their size is known to be within the limit:
+    ``/dev/zero``, FIFOs and devices never block or fill memory.
+    """
     try:
-        size = os.path.getsize(path)
-        if size > MAX_FILE_BYTES:
-            raise InputError(
-                [Diagnostic(path, 1, 1, f"file too large ({size / 1e6:.1f} MB; limit "
-                                       f"{MAX_FILE_BYTES // (1024 * 1024)} MiB)")]
-            )
-        with open(path, "rb") as f:
-            data = f.read()
+        # O_NONBLOCK: opening a FIFO must not wait for a writer
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
         raise InputError([Diagnostic(path, 0, 0, "no such file")]) from None
     except IsADirectoryError:
         raise InputError([Diagnostic(path, 0, 0, "is a directory, not a file")]) from None
     except OSError as e:
         raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e.strerror}")]) from None
+    try:
+        st = os.fstat(fd)
+        if stat.S_ISDIR(st.st_mode):
+            raise InputError([Diagnostic(path, 0, 0, "is a directory, not a file")])
+        if not stat.S_ISREG(st.st_mode):
+            raise InputError([Diagnostic(path, 0, 0, "not a regular file (a device, FIFO or socket)")])
+        if st.st_size > MAX_FILE_BYTES:
+            raise InputError([Diagnostic(path, 1, 1, f"file too large ({st.st_size / 1e6:.1f} MB; limit "
+                                                     f"{MAX_FILE_BYTES // (1024 * 1024)} MiB)")])
+        chunks = []
+        left = MAX_FILE_BYTES + 1  # the file may grow while we read
+        while left > 0:
+            chunk = os.read(fd, min(left, 1 << 20))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            left -= len(chunk)
+        data = b"".join(chunks)
+        if len(data) > MAX_FILE_BYTES:
+            raise InputError([Diagnostic(path, 1, 1, f"file too large (more than "
+                                                     f"{MAX_FILE_BYTES // (1024 * 1024)} MiB)")])
+    except OSError as e:
+        raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e.strerror}")]) from None
+    finally:
+        os.close(fd)
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as e:
@@ -179,28 +456,103 @@ def read_text(path: str) -> str:
         ) from None
 
 
-def load(path: str | os.PathLike[str], text: str | None = None) -> tuple[Any, Source]:
-    """Load one YAML (or JSON, a subset) document. Raises InputError."""
+_REPARSE_BYTES = 256 * 1024
+
+
+def _python_error(text: str, err: yaml.MarkedYAMLError) -> yaml.MarkedYAMLError:
+    """The pure-Python parser's wording of a syntax error libyaml found (same position).
+
+    libyaml words some errors differently ("did not find expected key"); the messages stay the
+    same whichever parser PyYAML has. Only for errors early in the file: it parses up to there.
+    """
+    mark = err.problem_mark or err.context_mark
+    if mark is None or mark.index > _REPARSE_BYTES:
+        return err
+    depth = 0
+    deadline = time.monotonic() + 0.25
+    try:  # the pure-Python scanner is quadratic in nesting depth: stop where the builder would
+        for i, ev in enumerate(yaml.parse(text, Loader=yaml.SafeLoader)):
+            if isinstance(ev, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    return err
+            elif isinstance(ev, yaml.CollectionEndEvent):
+                depth -= 1
+            if i % 256 == 0 and time.monotonic() > deadline:
+                return err
+    except yaml.MarkedYAMLError as e:
+        mine = e.problem_mark or e.context_mark
+        if mine is not None and (mine.line, mine.column) == (mark.line, mark.column):
+            return e
+    return err
+
+
+# documents loaded with hand_over=True, for the next load of the same unchanged file (once)
+_handed_over: dict[str, tuple[tuple[int, int, int], Any, Source]] = {}
+
+
+def _stamp(path: str) -> tuple[int, int, int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
+def forget(path: str | os.PathLike[str]) -> None:
+    """Drop a document kept by ``load(..., hand_over=True)`` that nobody loaded again."""
+    _handed_over.pop(os.fspath(path), None)
+
+
+def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[Any] = FastLoader,
+         hand_over: bool = False) -> tuple[Any, Source]:
+    """Load one YAML (or JSON, a subset) document. Raises InputError.
+
+    ``loader``: a PyYAML loader class (``yaml.SafeLoader`` forces the pure-Python parser).
+    ``hand_over``: keep the result for the next ``load`` of this file, if it is unchanged by then
+    (``validate`` looks at a file to tell its kind, then the right loader loads it: parsed once).
+    The caller must then only read the value: the next loader gets the same objects.
+    """
     p = os.fspath(path)
+    if text is None and p in _handed_over:
+        stamp, kept, kept_src = _handed_over.pop(p)
+        if stamp == _stamp(p):
+            return kept, kept_src
+    stamp_before = _stamp(p) if hand_over else None
     if text is None:
         text = read_text(p)
     src = Source(p)
+    ldr = loader(text)
+    b = _Builder(src, ldr)
+    value: Any = None
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        ldr.get_event()  # StreamStart
+        if ldr.check_event(yaml.StreamEndEvent):
+            raise InputError([Diagnostic(p, 1, 1, "the file is empty")])
+        ldr.get_event()  # DocumentStart
+        value = b.build()
+        ldr.get_event()  # DocumentEnd
+        if not ldr.check_event(yaml.StreamEndEvent):
+            ev = ldr.get_event()
+            raise InputError([Diagnostic(p, ev.start_mark.line + 1, ev.start_mark.column + 1,
+                                         "expected a single document in the file, found another one")])
     except yaml.MarkedYAMLError as e:
+        if loader is not yaml.SafeLoader:
+            e = _python_error(text, e)
         mark = e.problem_mark or e.context_mark
         line, col = (mark.line + 1, mark.column + 1) if mark else (1, 1)
-        raise InputError([Diagnostic(p, line, col, f"invalid YAML: {e.problem or e.context}")]) from None
+        b.errors.append(Diagnostic(p, line, col, f"invalid YAML: {clip(str(e.problem or e.context), 200)}"))
     except yaml.YAMLError as e:
-        raise InputError([Diagnostic(p, 1, 1, f"invalid YAML: {e}")]) from None
-    if node is None:
-        raise InputError([Diagnostic(p, 1, 1, "the file is empty")])
-    b = _Builder(src)
-    value = b.build(node, ())
+        b.errors.append(Diagnostic(p, 1, 1, f"invalid YAML: {clip(str(e), 200)}"))
+    except _Stop:
+        pass
+    finally:
+        ldr.dispose()
     if b.errors:
         raise InputError(b.errors)
+    if stamp_before is not None and stamp_before == _stamp(p):
+        _handed_over[p] = (stamp_before, value, src)
     return value, src
-
 
 # ---- JSON Schema with positions ---------------------------------------------------------
 
@@ -217,27 +569,62 @@ def _is_integer(_checker: Any, instance: Any) -> bool:
     return isinstance(instance, Decimal) and instance == instance.to_integral_value()
 
 
-_TYPE_CHECKER = jsonschema.Draft202012Validator.TYPE_CHECKER.redefine_many(
-    {"number": _is_number, "integer": _is_integer}
-)
-_Validator = jsonschema.validators.extend(  # type: ignore[no-untyped-call]
-    jsonschema.Draft202012Validator, type_checker=_TYPE_CHECKER
-)
-
-
+@cache
 def schema(name: str) -> dict[str, Any]:
-    """A bundled JSON Schema by name ('profile', 'recipe', 'inventory', 'plan', 'report')."""
+    """A bundled JSON Schema by name ('profile', 'recipe', 'inventory', 'plan', 'report').
+
+    Cached: callers must not modify it.
+    """
     here = os.path.join(os.path.dirname(__file__), "schemas", f"{name}.schema.json")
     with open(here, encoding="utf-8") as f:
         data: dict[str, Any] = json.load(f)
     return data
 
 
+@cache
+def validator(name: str) -> jsonschema.protocols.Validator:
+    """The validator of a bundled schema, built once per process (building one costs milliseconds)."""
+    import jsonschema  # only commands that check files pay for importing it
+
+    checker = jsonschema.Draft202012Validator.TYPE_CHECKER.redefine_many(
+        {"number": _is_number, "integer": _is_integer})
+    cls = jsonschema.validators.extend(jsonschema.Draft202012Validator,  # type: ignore[no-untyped-call]
+                                       type_checker=checker)
+    v: jsonschema.protocols.Validator = cls(schema(name))
+    return v
+
+
+@cache
+def _fast_validator(name: str) -> Any:
+    """jsonschema-rs's validator of a bundled schema, or None when the package is missing."""
+    try:
+        import jsonschema_rs
+    except ImportError:  # pragma: no cover - a declared dependency; still usable without it
+        return None
+    return jsonschema_rs.validator_for(schema(name))
+
+
+def is_valid(value: Any, schema_name: str) -> bool | None:
+    """jsonschema-rs's verdict (about 100x faster than jsonschema); None when it cannot say."""
+    fast = _fast_validator(schema_name)
+    if fast is None:
+        return None
+    try:
+        return bool(fast.is_valid(value))
+    except Exception:  # values it cannot convert: let jsonschema decide
+        return None
+
+
 def validate(value: Any, schema_name: str, src: Source) -> list[Diagnostic]:
-    """All schema errors of ``value``, each at the position of the offending key or value."""
-    validator = _Validator(schema(schema_name))
+    """All schema errors of ``value``, each at the position of the offending key or value.
+
+    A valid document (the common case) is confirmed by jsonschema-rs alone; jsonschema (and
+    its precise, positioned messages) runs only on documents that have errors.
+    """
+    if is_valid(value, schema_name):
+        return []
     out: list[Diagnostic] = []
-    for err in validator.iter_errors(value):
+    for err in validator(schema_name).iter_errors(value):
         out.extend(_explain(err, src))
     return out
 
@@ -267,18 +654,16 @@ def _explain(err: jsonschema.ValidationError, src: Source) -> Iterable[Diagnosti
             sch: Any = e.schema
             allowed = list((sch.get("properties") or {}).keys())
             patterns = list((sch.get("patternProperties") or {}).keys())
-            import re
-
             for k in e.instance:
                 if k in allowed or any(re.search(p, k) for p in patterns):
                     continue
                 hint = difflib.get_close_matches(k, allowed, n=1)
-                msg = f"unknown key '{k}'" + (f" in {where}" if where else "")
+                msg = f"unknown key '{clip(k)}'" + (f" in {where}" if where else "")
                 msg += f"; did you mean '{hint[0]}'?" if hint else (
                     f" (expected one of: {', '.join(allowed)})" if allowed else "")
                 yield src.error((*at, k), msg, key=True)
         elif e.validator == "required":
-            yield src.error(at, f"{prefix}{e.message}")
+            yield src.error(at, f"{prefix}{_clip_message(e)}")
         elif e.validator == "type":
             yield src.error(at, f"{prefix}expected {_type_words(e.validator_value)}, got {_describe(e.instance)}")
         elif e.validator == "enum":
@@ -288,9 +673,17 @@ def _explain(err: jsonschema.ValidationError, src: Source) -> Iterable[Diagnosti
         elif e.validator in ("oneOf", "anyOf"):
             yield src.error(at, f"{prefix}{_describe(e.instance)} is not valid here")
         elif e.validator == "propertyNames":
-            yield src.error(at, f"{prefix}{e.message}", key=True)
+            yield src.error(at, f"{prefix}{_clip_message(e)}", key=True)
         else:
-            yield src.error(at, f"{prefix}{e.message}")
+            yield src.error(at, f"{prefix}{_clip_message(e)}")
+
+
+def _clip_message(e: jsonschema.ValidationError) -> str:
+    """jsonschema's message with the offending value cut (it repeats the value whole)."""
+    whole = repr(e.instance)
+    if len(whole) > MAX_ECHO and whole in e.message:
+        return e.message.replace(whole, clip(whole))
+    return clip(e.message, 300)
 
 
 def _type_words(t: Any) -> str:
@@ -311,8 +704,8 @@ def _describe(v: Any) -> str:
     if isinstance(v, Sequence) and not isinstance(v, str):
         return "a list"
     if isinstance(v, str):
-        return repr(v)
-    return str(v)
+        return clipped_repr(v)
+    return clip(str(v))
 
 
 def closest(name: str, choices: Iterable[str]) -> str | None:

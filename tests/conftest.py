@@ -57,3 +57,9 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     other_ca, _, _ = make_ca(d, "other-ca")
     return {"ca": ca, "server_crt": server_crt, "server_key": server_key, "client_crt": client_crt,
             "client_key": client_key, "other_ca": other_ca}
+
+
+@pytest.fixture(autouse=True)
+def _own_lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Device locks in a folder of this test session: parallel test runs on one machine stay apart."""
+    monkeypatch.setenv("DEPLOYER_LOCK_DIR", str(tmp_path_factory.getbasetemp() / "locks"))

@@ -61,3 +61,33 @@ def umodbus_server(store: dict[int, int]) -> Iterator[int]:
     finally:
         server.shutdown()
         server.server_close()
+
+
+class Simulators:
+    """Many simulators served by one event loop in one background thread (fleet tests).
+
+        with Simulators([Simulator(prof) for _ in range(50)]) as sims: ... sims[0].url ...
+    """
+
+    def __init__(self, sims: list[Simulator]) -> None:
+        self.sims = sims
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="deployer-simulators", daemon=True)
+
+    def _each(self, method: str) -> None:
+        async def all_of() -> None:
+            await asyncio.gather(*(getattr(s, method)() for s in self.sims))
+        asyncio.run_coroutine_threadsafe(all_of(), self._loop).result(timeout=60)
+
+    def __enter__(self) -> list[Simulator]:
+        self._thread.start()
+        self._each("start")
+        return self.sims
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self._each("stop")
+        finally:
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(timeout=30)
+            self._loop.close()

@@ -312,8 +312,13 @@ def test_audit_and_report_files_from_the_cli(tmp_path: Path) -> None:
     data = json.loads(report.read_text())
     jsonschema.validate(data, yamlsrc.schema("report"))
     assert data["devices"][0]["status"] == "ok"
-    lines = (tmp_path / ".d" / "audit.jsonl").read_text().splitlines()
-    assert len(lines) == 1 and json.loads(lines[0])["exit_code"] == 0
+    events = [json.loads(line) for line in (tmp_path / ".d" / "audit.jsonl").read_text().splitlines()]
+    # the journal: the run, the device before its first write (with its snapshot), its outcome, the run's end
+    assert [e["event"] for e in events] == ["run-started", "device-started", "device-finished", "run-finished"]
+    assert len({e["run"] for e in events}) == 1
+    assert events[1]["snapshot"] == data["devices"][0]["snapshot"] and len(events[1]["plan_sha256"]) == 64
+    assert events[2]["status"] == "ok" and events[-1]["exit_code"] == 0
+    assert events[0]["user"] == events[-1]["user"] != str(os.getuid())  # a name, not the uid
 
 
 def test_device_without_fc16_gets_one_fc06_per_register(tmp_path: Path) -> None:

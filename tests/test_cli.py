@@ -217,7 +217,8 @@ def test_demo_runs(capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypat
     assert "demo finished" in out and "exception 04" in out and "no drift" in out
 
 
-def _run_on_a_terminal(args: list[str], answer: bytes, timeout: float = 30) -> tuple[int, str]:
+def _run_on_a_terminal(args: list[str], answer: bytes, timeout: float = 30,
+                       prompt: bytes = b"Write these values?") -> tuple[int, str]:
     """Run deployer with a pseudo-terminal as stdin/stdout/stderr and type ``answer`` at the prompt."""
     import pty
     import select
@@ -240,7 +241,7 @@ def _run_on_a_terminal(args: list[str], answer: bytes, timeout: float = 30) -> t
             if not chunk:
                 break
             out += chunk
-            if not answered and b"Write these values?" in out:
+            if not answered and prompt in out:
                 os.write(master, answer)
                 answered = True
         elif proc.poll() is not None:
@@ -288,3 +289,54 @@ def test_fleet_problems_are_reported_before_anything_is_sent(capsys: pytest.Capt
     assert code == 1
     assert f"{inv}:2:12: error: a: unknown option 'baud'" in err
     assert f"{inv}:3:51: error: F07: 7000 s is out of range 0..6000 s" in err
+
+
+def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pytest.CaptureFixture[str],
+                                                                    tmp_path: Path) -> None:
+    r = str(EXAMPLES / "omron-m1-accel.yaml")
+    code, out, _ = cli(capsys, "plan", r)
+    assert code == 0 and "21 bytes on an RTU line, about 16 ms at 19200 baud" in out
+    # with a serial URL the estimate uses its line settings and framing (ASCII counts characters)
+    from deployer.cli import _line_of
+    from deployer.planner import Target, line_cost, make_plan
+    from deployer.recipe import load_recipe
+    from deployer.transport import parse_url
+
+    plan = make_plan(load_recipe(r), Target(None, 1, "omron-m1"))
+    framing, baud, bits, text = _line_of(parse_url("ascii:///dev/ttyS0?baudrate=9600&bytesize=7&parity=E"))
+    assert (framing, baud, bits, text) == ("ascii", 9600, 10, "9600 baud 7E1")
+    chars, seconds = line_cost(plan, framing=framing, baud=baud, char_bits=bits)
+    assert chars == len(":01101102000204000003E8EB\r\n") + len(":011011020002DA\r\n")  # the manual's frames
+    assert abs(seconds - chars * 10 / 9600) < 1e-9
+    code, out, _ = cli(capsys, "plan", r, "--unit", "0", "--show-frames")
+    assert code == 0 and "response none (broadcast)" in out and "E5 34" not in out
+    assert "13 bytes on an RTU line" in out  # the request only
+
+
+def test_apply_saved_plan_names_its_snapshot_after_the_recipe(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                                                              inverter: SimulatorThread) -> None:
+    with inverter as sim:
+        r = recipe(tmp_path)
+        code, _, _ = cli(capsys, "plan", r, "--device", sim.url, "--out", str(tmp_path / "p.json"))
+        assert code == 0
+        code, out, err = cli(capsys, "apply", str(tmp_path / "p.json"), "--device", sim.url, "--yes",
+                             "--state-dir", str(tmp_path / "s"), "--json")
+        assert code == 0, err
+        snap = json.loads(out)["devices"][0]["snapshot"]
+        assert os.path.basename(snap).startswith("line-") and ".json" not in os.path.basename(snap)
+
+
+def test_no_answer_after_busy_has_no_exception_code(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    from deployer.simulator import Faults
+
+    # requests: identity read, snapshot read, write (busy: 06), the same write again (no answer: dropped)
+    faults = Faults(busy_first=1, drop_every=4)
+    with SimulatorThread(builtin_profile("example-inverter"), faults=faults) as sim:
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--device", sim.url + "?timeout=0.2", "--yes",
+                           "--retries", "1", "--state-dir", str(tmp_path / "s"), "--json")
+    assert code == 4
+    requests = json.loads(out)["devices"][0]["requests"]
+    assert {"function": 16, "address": 4354, "count": 2, "result": "no response", "exception_code": None,
+            "attempts": 2} in requests
+    for req in requests:
+        assert (req["result"] == "exception") == (req["exception_code"] is not None), req

@@ -460,7 +460,7 @@ def _plan() -> Plan:
 def test_plan_json_has_the_design_shape_and_validates() -> None:
     data = json.loads(json.dumps(plan_to_json(_plan())))
     jsonschema.Draft202012Validator(yamlsrc.schema("plan")).validate(data)
-    assert set(data) == {"schema", "recipe", "device", "parameters", "writes", "reads", "summary"}
+    assert set(data) == {"schema", "recipe", "device", "parameters", "writes", "reads", "summary", "recipe_name"}
     assert data["parameters"][0] == {"name": "a", "address": 0, "count": 2, "desired": "7", "desired_raw": [0, 7],
                                      "current_raw": [0, 0], "action": "write", "stage": 0}
     assert data["writes"] == [{"function": 16, "address": 0, "count": 4, "registers": [0, 7, 7, 7],

@@ -1,0 +1,151 @@
+"""The audit log as a journal: STATE/audit.jsonl, one JSON object per line, each fsync'ed.
+
+A run appends ``run-started`` before touching any device, ``device-started`` (device, snapshot,
+plan digest) before its first write to a device, ``device-finished`` after that device's
+read-back, and ``run-finished`` (the whole outcome) at the end. After a crash (``kill -9``, a
+laptop going to sleep) the log still says which devices were being written and where their
+snapshots are: ``deployer status`` lists the runs that never finished.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import pwd
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .report import DeviceResult, Report
+
+AUDIT = "audit.jsonl"
+
+
+def user_name() -> str:
+    """The login name (not the uid): who ran it is what an audit trail is for."""
+    with contextlib.suppress(KeyError, OSError):
+        return pwd.getpwuid(os.getuid()).pw_name
+    return os.environ.get("USER") or os.environ.get("LOGNAME") or str(os.getuid())
+
+
+def new_run_id() -> str:
+    return f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{os.getpid()}"
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def append(state_dir: str, record: dict[str, Any]) -> None:
+    """One line, written with a single append and fsync'ed: concurrent runs never interleave inside a line."""
+    os.makedirs(state_dir, exist_ok=True)
+    data = (json.dumps(record) + "\n").encode()
+    fd = os.open(os.path.join(state_dir, AUDIT), os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(fd, data)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def run_started(state_dir: str, run: str, *, command: str, argv: Sequence[str], recipe: str | None,
+                devices: Iterable[tuple[str, str, int]]) -> None:
+    append(state_dir, {"event": "run-started", "run": run, "time": _now(), "user": user_name(), "pid": os.getpid(),
+                       "command": command, "argv": list(argv), "recipe": recipe,
+                       "devices": [{"name": n, "url": u, "unit": un} for n, u, un in devices]})
+
+
+def device_started(state_dir: str, run: str, *, name: str, url: str, unit: int, snapshot: str,
+                   plan_digest: str) -> None:
+    append(state_dir, {"event": "device-started", "run": run, "time": _now(), "name": name, "url": url,
+                       "unit": unit, "snapshot": snapshot, "plan_sha256": plan_digest})
+
+
+def device_finished(state_dir: str, run: str, res: DeviceResult) -> None:
+    append(state_dir, {"event": "device-finished", "run": run, "time": _now(), "name": res.name, "url": res.url,
+                       "unit": res.unit, "status": res.status, "snapshot": res.snapshot,
+                       "written": _written(res), "write_requests": res.write_requests})
+
+
+def _written(res: DeviceResult) -> list[str]:
+    return [p.name for p in res.parameters if p.status in ("ok", "failed", "mismatch", "unverified")]
+
+
+def run_finished(state_dir: str, run: str | None, report: Report, *, command: str, argv: Sequence[str] = ()) -> None:
+    """The run's outcome: who, when, what, and per device its status and snapshot."""
+    append(state_dir, {
+        "event": "run-finished", "run": run,
+        "time": _now(), "user": user_name(), "command": command, "argv": list(argv), "recipe": report.recipe,
+        "exit_code": report.exit_code,
+        "devices": [{"name": d.name, "url": d.url, "unit": d.unit, "status": d.status, "snapshot": d.snapshot,
+                     "written": _written(d), "write_requests": d.write_requests} for d in report.devices],
+    })
+
+
+@dataclass
+class Unfinished:
+    """A run with a run-started line and no run-finished line."""
+
+    run: str
+    time: str
+    user: str
+    pid: int | None
+    command: str
+    argv: list[str]
+    recipe: str | None
+    devices: list[dict[str, Any]]  # every device the run selected
+    interrupted: list[dict[str, Any]] = field(default_factory=list)  # started writing, never finished
+    finished: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def running(self) -> bool:
+        """The process is still alive (a run in progress, not a crash)."""
+        if self.pid is None:
+            return False
+        try:
+            os.kill(self.pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+        return True
+
+
+def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:
+    """Runs that never finished, oldest first, and the number of lines that were not JSON (a torn last line)."""
+    path = os.path.join(state_dir, AUDIT)
+    runs: dict[str, Unfinished] = {}
+    bad = 0
+    try:
+        f = open(path, encoding="utf-8")  # noqa: SIM115 - closed below
+    except FileNotFoundError:
+        return [], 0
+    with f:
+        for line in f:
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                bad += 1
+                continue
+            if not isinstance(rec, dict):
+                continue
+            run, event = rec.get("run"), rec.get("event")
+            if not run:
+                continue
+            if event == "run-started":
+                runs[run] = Unfinished(run, rec.get("time", ""), rec.get("user", ""), rec.get("pid"),
+                                       rec.get("command", ""), rec.get("argv", []), rec.get("recipe"),
+                                       rec.get("devices", []))
+            elif event == "device-started" and run in runs:
+                runs[run].interrupted.append(rec)
+            elif event == "device-finished" and run in runs:
+                u = runs[run]
+                u.interrupted = [d for d in u.interrupted if (d.get("name"), d.get("url"), d.get("unit")) !=
+                                 (rec.get("name"), rec.get("url"), rec.get("unit"))]
+                u.finished.append(rec)
+            elif event == "run-finished":
+                runs.pop(run, None)
+    return list(runs.values()), bad

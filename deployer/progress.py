@@ -1,0 +1,96 @@
+"""What a person sees while a fleet runs, and the summary at the end (command-line output only).
+
+On a terminal: a live display (done, failed, in flight, a bar, elapsed and ETA, the devices
+being worked on now). Without one: a line per device as it finishes, for logs and CI.
+"""
+
+from __future__ import annotations
+
+import time
+from types import TracebackType
+from typing import TYPE_CHECKING
+
+from rich.console import Console, Group, RenderableType
+from rich.live import Live
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+from rich.text import Text
+
+if TYPE_CHECKING:
+    from .report import DeviceResult, Report
+
+STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red", "unverified": "yellow",
+         "skipped": "yellow", "partial": "yellow", "unreachable": "bold red", "drift": "yellow", "sent": "cyan"}
+
+
+class FleetProgress:
+    """Feed it ``start(name)`` and ``done(name, status, detail)``; use it as a context manager."""
+
+    def __init__(self, total: int, err: Console, *, live: bool, verb: str = "writing", lines: bool = True) -> None:
+        self.total = total
+        self.err = err
+        self.verb = verb
+        self.lines = lines
+        self.in_flight: dict[str, float] = {}
+        self.counts: dict[str, int] = {}
+        self._live: Live | None = None
+        self._bar: Progress | None = None
+        if live:
+            self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=err)
+            self._task = self._bar.add_task(self._description(), total=total)
+            self._live = Live(self, console=err, refresh_per_second=8, transient=False)
+
+    def __enter__(self) -> FleetProgress:
+        if self._live is not None:
+            self._live.__enter__()
+        return self
+
+    def __exit__(self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None) -> None:
+        if self._live is not None:
+            self.in_flight.clear()
+            self._live.__exit__(t, e, tb)
+
+    def _description(self) -> str:
+        bad = sum(n for s, n in self.counts.items() if s not in ("ok", "skipped"))
+        return f"{self.counts.get('ok', 0)} ok, {bad} not ok, {len(self.in_flight)} in flight"
+
+    def __rich__(self) -> RenderableType:
+        assert self._bar is not None
+        self._bar.update(self._task, description=self._description())
+        now = sorted(self.in_flight, key=self.in_flight.__getitem__)
+        shown = ", ".join(now[:8]) + (f" and {len(now) - 8} more" if len(now) > 8 else "")
+        return Group(self._bar, Text(f"{self.verb}: {shown}" if now else "", style="dim", overflow="ellipsis",
+                                     no_wrap=True))
+
+    def start(self, name: str) -> None:
+        self.in_flight[name] = time.monotonic()
+
+    def done(self, name: str, status: str, detail: str = "") -> None:
+        self.in_flight.pop(name, None)
+        self.counts[status] = self.counts.get(status, 0) + 1
+        if self._bar is not None:
+            self._bar.advance(self._task)
+        elif self.lines:
+            style = STYLE.get(status, "")
+            self.err.print(f"{name}: [{style}]{status}[/{style}]" + (f" {detail}" if detail else ""))
+
+    def device_done(self, r: DeviceResult) -> None:
+        self.done(r.name, r.status, f"({r.write_requests} writes)" + (f" - {r.error}" if r.error else ""))
+
+
+def fleet_summary(report: Report, out: Console) -> None:
+    """One row per device (status, parameters changed and failed, requests, seconds), then the totals."""
+    table = Table("device", "status", "changed", "failed", "requests", "seconds", "", box=None)
+    for d in report.devices:
+        style = STYLE.get(d.status, "")
+        changed = sum(1 for p in d.parameters if p.status == "ok" and p.before_raw != p.after_raw)
+        failed = sum(1 for p in d.parameters if p.status in ("failed", "mismatch", "unverified"))
+        secs = "-" if d.seconds is None else f"{d.seconds:.2f}"
+        table.add_row(d.name, f"[{style}]{d.status}[/{style}]", str(changed), str(failed), str(len(d.requests)),
+                      secs, d.error or "")
+    out.print(table)
+    s = report.summary()
+    parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "skipped") if s[k] or k == "ok"]
+    out.print(f"{s['devices']} devices: {', '.join(parts)}; {s['write_requests']} write and "
+              f"{s['read_requests']} read requests in {s['seconds']:.2f} s")

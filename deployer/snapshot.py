@@ -1,0 +1,115 @@
+"""Snapshots: what a device held before apply wrote to it, saved as a self-contained recipe.
+
+A snapshot names its profile unambiguously (absolute path or built-in id, plus the SHA-256 of
+the profile's text), the device it was read from (URL and unit), and the raw registers beside
+the engineering values, so ``rollback`` restores the device bit for bit from any working
+directory, and refuses when the profile it would decode with is not the one used to read.
+Loading (the checks) lives with the recipe loader (``load_recipe`` knows the ``snapshot`` block);
+this module writes snapshots and finds them again for a fleet rollback.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from .diagnostics import Diagnostic, InputError
+from .profile import profile_ref
+from .recipe import DeviceSpec, Recipe, SnapshotInfo, recipe_text
+
+
+def snapshot_dir(state_dir: str) -> str:
+    return os.path.join(os.path.abspath(state_dir), "snapshots")
+
+
+def save_snapshot(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
+                  url: str, unit: int, *, applied: str | None = None) -> str:
+    """Write the values the device held as a snapshot, fsync'ed (file and directory) before any write.
+
+    Returns the snapshot's absolute path. ``values``: parameter name -> registers as read.
+    """
+    directory = snapshot_dir(state_dir)
+    os.makedirs(directory, exist_ok=True)
+    now = time.gmtime()
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", now)
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+    prof = recipe.profile
+    info = SnapshotInfo(prof.digest, dict(values), time.strftime("%Y-%m-%dT%H:%M:%SZ", now), applied)
+    n = 1
+    path = os.path.join(directory, f"{safe}-{stamp}.yaml")
+    while True:
+        text = recipe_text(
+            profile_ref(prof),
+            {prof.parameter(k): v for k, v in values.items()},
+            name=f"snapshot-{safe}-{stamp}",
+            device=DeviceSpec(url, unit),
+            comment=f"Snapshot: what {url} unit {unit} held before applying '{applied or recipe.name}'.\n"
+                    f"Restore with: deployer rollback {path}",
+            snapshot=info,
+        )
+        try:  # O_EXCL: two runs in one second never overwrite each other's snapshot
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            break
+        except FileExistsError:
+            n += 1
+            path = os.path.join(directory, f"{safe}-{stamp}-{n}.yaml")
+    try:
+        os.write(fd, text.encode())
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    dfd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(dfd)  # the directory entry too, or a crash can lose the file
+    finally:
+        os.close(dfd)
+    return path
+
+
+@dataclass(frozen=True)
+class ReportedSnapshot:
+    """One device of an earlier run's report that has a snapshot to restore."""
+
+    name: str
+    url: str
+    unit: int
+    snapshot: str  # absolute path
+
+
+def snapshots_of_report(path: str) -> tuple[list[ReportedSnapshot], list[str]]:
+    """The devices of a report with a snapshot, and the names of those without one (nothing was written).
+
+    Relative snapshot paths (reports before snapshots were absolute) resolve against the report's folder
+    first, then the working directory. Raises InputError for a file that is not a deployer report.
+    """
+    try:
+        with open(path, encoding="utf-8") as f:
+            data: Any = json.load(f)
+    except FileNotFoundError:
+        raise InputError([Diagnostic(path, 0, 0, "no such file")]) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e}")]) from None
+    except json.JSONDecodeError as e:
+        raise InputError([Diagnostic(path, e.lineno, e.colno, f"not JSON: {e.msg}")]) from None
+    if not isinstance(data, dict) or not str(data.get("schema", "")).startswith("deployer.report/"):
+        raise InputError([Diagnostic(path, 1, 1, "not a deployer report (no \"schema\": \"deployer.report/1\")")])
+    found: list[ReportedSnapshot] = []
+    without: list[str] = []
+    base = os.path.dirname(os.path.abspath(path))
+    for dev in data.get("devices") or []:
+        if not isinstance(dev, dict) or "name" not in dev:
+            continue
+        snap = dev.get("snapshot")
+        if not snap:
+            without.append(str(dev["name"]))
+            continue
+        snap = str(snap)
+        if not os.path.isabs(snap):
+            beside = os.path.join(base, snap)
+            snap = beside if os.path.exists(beside) else os.path.abspath(snap)
+        found.append(ReportedSnapshot(str(dev["name"]), str(dev.get("url", "")), int(dev.get("unit", 1)), snap))
+    return found, without

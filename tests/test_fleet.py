@@ -1,0 +1,326 @@
+"""Fleets against many simulated devices on loopback: staged rollouts, failure budgets, retries, fleet reads."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import jsonschema
+import pytest
+
+from deployer import yamlsrc
+from deployer.diagnostics import UsageError
+from deployer.fleet import FleetDevice, Inventory, batch_sizes, failure_budget, not_ok, select
+from deployer.profile import builtin_profile
+from deployer.simulator import Faults, Simulator
+from tests.conftest import free_port
+from tests.helpers import Simulators
+from tests.test_cli import cli
+
+pytestmark = pytest.mark.timeout(120)
+PROFILE = builtin_profile("example-inverter")
+F08 = PROFILE.parameter("F08").address
+RECIPE = "recipe: line\nprofile: example-inverter\nparameters:\n  F07: 10 s\n  F08: 12 s\n  stop_mode: coast\n"
+WANT = {"F07": (0, 1000), "F08": (0, 1200), "stop_mode": (1,)}
+
+
+def recipe(tmp: Path) -> str:
+    p = tmp / "r.yaml"
+    p.write_text(RECIPE)
+    return str(p)
+
+
+def inventory(tmp: Path, urls: dict[str, str], groups: dict[str, str] | None = None, extra: str = "") -> str:
+    lines = ["defaults: {timeout: 1.0, retries: 0}", "devices:"]
+    for name, url in urls.items():
+        g = f", groups: [{groups[name]}]" if groups and name in groups else ""
+        lines.append(f"  {name}: {{url: '{url}'{g}}}")
+    p = tmp / "inventory.yaml"
+    p.write_text("\n".join(lines) + "\n" + extra)
+    return str(p)
+
+
+def holds_recipe(sim: Simulator, unit: int = 1) -> bool:
+    return all(sim.read(n, unit) == v for n, v in WANT.items())
+
+
+@contextmanager
+def fleet(n: int, faults: dict[int, Faults] | None = None) -> Iterator[list[Simulator]]:
+    faults = faults or {}
+    with Simulators([Simulator(PROFILE, faults=faults.get(i)) for i in range(n)]) as sims:
+        yield sims
+
+
+def names(n: int) -> list[str]:
+    return [f"d{i:02d}" for i in range(n)]
+
+
+# ---- selection and staging (pure) ----------------------------------------------------------------
+
+
+def test_limit_takes_names_groups_globs_exclusions_and_reports(tmp_path: Path) -> None:
+    inv = Inventory("inv.yaml", tuple(FleetDevice(n, "tcp://h", groups=(g,)) for n, g in
+                                      [("press-1", "line3"), ("press-2", "line3"), ("saw-1", "line4")]))
+    assert [d.name for d in select(inv, "line3")] == ["press-1", "press-2"]
+    assert [d.name for d in select(inv, "saw-1, press-2")] == ["press-2", "saw-1"]  # inventory order
+    assert [d.name for d in select(inv, "press-*")] == ["press-1", "press-2"]
+    assert [d.name for d in select(inv, "line*,!press-1")] == ["press-2", "saw-1"]
+    assert [d.name for d in select(inv, "!line3")] == ["saw-1"]
+    with pytest.raises(UsageError, match="'pres-1' matches no device"):
+        select(inv, "pres-1")
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps({"schema": "deployer.report/1", "devices": [
+        {"name": "press-1", "status": "ok"}, {"name": "press-2", "status": "skipped"},
+        {"name": "saw-1", "status": "partial"}]}))
+    assert not_ok(str(report)) == ["press-2", "saw-1"]
+    assert [d.name for d in select(inv, f"@{report}")] == ["press-2", "saw-1"]
+    assert [d.name for d in select(inv, f"@{report},!saw*")] == ["press-2"]
+
+
+def test_batches_follow_ansible_serial_and_failure_budgets() -> None:
+    assert batch_sizes("1,10%,100%", 50) == [1, 5, 44]
+    assert batch_sizes("1,50%", 50) == [1, 25, 24]
+    assert batch_sizes("2", 5) == [2, 2, 1]  # the last size repeats
+    assert batch_sizes("1%", 10) == [1] * 10  # a percentage never rounds to zero
+    assert batch_sizes(None, 3) == [3]
+    assert failure_budget("2", 50) == 2 and failure_budget("10%", 50) == 5 and failure_budget(None, 5) is None
+    for bad in ("0", "x", "150%", "-1"):
+        with pytest.raises(UsageError, match="not a positive count"):
+            batch_sizes(bad, 5)
+
+
+# ---- apply over an inventory -------------------------------------------------------------------
+
+
+def test_fifty_devices_three_faulty(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    # d07: dead (nothing listens), d23: rejects F08 (partial), d41: slow (but within the timeout)
+    with fleet(50, {23: Faults(fail_registers=frozenset({F08})), 41: Faults(latency_ms=150)}) as sims:
+        urls = {n: s.url for n, s in zip(names(50), sims, strict=True)}
+        urls["d07"] = f"tcp://127.0.0.1:{free_port()}"
+        report_file = tmp_path / "report.json"
+        code, out, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
+                             "--parallel", "16", "--json", "--report", str(report_file),
+                             "--state-dir", str(tmp_path / "s"))
+        assert code == 4
+        report = json.loads(out)
+        jsonschema.validate(report, yamlsrc.schema("report"))
+        assert report == json.loads(report_file.read_text())
+        by = {d["name"]: d for d in report["devices"]}
+        assert list(by) == names(50)
+        assert by["d07"]["status"] == "unreachable" and "connection refused" in by["d07"]["error"]
+        assert not any(r["function"] == 16 for r in by["d07"]["requests"])
+        bad = {p["name"]: p for p in by["d23"]["parameters"]}
+        assert by["d23"]["status"] == "partial"
+        assert bad["F08"]["status"] == "failed" and "exception 04" in bad["F08"]["error"]
+        assert bad["F07"]["status"] == "ok" and bad["stop_mode"]["status"] == "ok"
+        assert by["d41"]["status"] == "ok" and by["d41"]["seconds"] > 0.15 * 4
+        healthy = [n for n in names(50) if n not in ("d07", "d23")]
+        assert all(by[n]["status"] == "ok" for n in healthy)
+        for n, sim in zip(names(50), sims, strict=True):
+            if n in healthy:
+                assert holds_recipe(sim), n
+        assert report["summary"] == {**report["summary"], "devices": 50, "ok": 48, "partial": 1, "unreachable": 1,
+                                     "failed": 0, "skipped": 0}
+        assert "d07: unreachable" in err and "d23: partial" in err  # a line per device without a terminal
+        assert err.count("\n") >= 50
+
+
+def test_failing_canary_stops_the_rollout_before_any_other_device_hears_a_request(
+        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    with fleet(10, {0: Faults(fail_registers=frozenset({F08}))}) as sims:
+        urls = {n: s.url for n, s in zip(names(10), sims, strict=True)}
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
+                           "--batch", "1,50%", "--parallel", "8", "--json", "--state-dir", str(tmp_path / "s"))
+        assert code == 4
+        report = json.loads(out)
+        jsonschema.validate(report, yamlsrc.schema("report"))
+        assert report["devices"][0]["status"] == "partial"
+        assert sims[0].log and all(not s.log for s in sims[1:])  # not a single request to the others
+        for d in report["devices"][1:]:
+            assert d["status"] == "skipped" and d["requests"] == []
+            assert "batch 1 failed (the canary d00 did not end ok)" in d["error"]
+            assert all(p["status"] == "skipped" for p in d["parameters"])
+        assert report["summary"]["skipped"] == 9
+
+
+def test_batches_run_one_after_the_other(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    with fleet(7) as sims:
+        urls = {n: s.url for n, s in zip(names(7), sims, strict=True)}
+        code, _, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
+                         "--batch", "1,2", "--parallel", "8", "--json", "--state-dir", str(tmp_path / "s"))
+        assert code == 0
+        spans = [(min(e.time for e in s.log), max(e.time for e in s.log)) for s in sims]
+        batches = [[0], [1, 2], [3, 4], [5, 6]]
+        for before, after in itertools.pairwise(batches):
+            assert max(spans[i][1] for i in before) <= min(spans[i][0] for i in after)
+
+
+def test_max_failures_stops_starting_devices(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    bad = {1, 3, 4, 6, 8}
+    with fleet(12, {i: Faults(fail_registers=frozenset({F08})) for i in bad}) as sims:
+        urls = {n: s.url for n, s in zip(names(12), sims, strict=True)}
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
+                           "--max-failures", "2", "--parallel", "2", "--json", "--state-dir", str(tmp_path / "s"))
+        assert code == 4
+        devices = json.loads(out)["devices"]
+        failed = [d["name"] for d in devices if d["status"] in ("failed", "partial")]
+        skipped = [d for d in devices if d["status"] == "skipped"]
+        assert 2 <= len(failed) <= 2 + 1  # the budget, plus at most the other device in flight
+        assert skipped and all("--max-failures 2" in d["error"] for d in skipped)
+        for d, sim in zip(devices, sims, strict=True):
+            if d["status"] == "skipped":
+                assert not sim.log
+        # the devices after the skipped ones were skipped too: no device starts once the budget is spent
+        first = devices.index(skipped[0])
+        assert all(d["status"] == "skipped" for d in devices[first:])
+
+
+def test_retry_from_the_report_touches_exactly_the_devices_that_failed(capsys: pytest.CaptureFixture[str],
+                                                                       tmp_path: Path) -> None:
+    with fleet(6, {2: Faults(fail_registers=frozenset({F08})), 4: Faults(busy_first=100)}) as sims:
+        urls = {n: s.url for n, s in zip(names(6), sims, strict=True)}
+        inv = inventory(tmp_path, urls)
+        report_file = str(tmp_path / "run1.json")
+        code, _, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--report", report_file,
+                         "--state-dir", str(tmp_path / "s"))
+        assert code == 4 and sorted(not_ok(report_file)) == ["d02", "d04"]
+        for s in sims:  # the faults are fixed on site
+            s.faults.fail_registers, s.faults.busy_first = frozenset(), 0
+            s.log.clear()
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--json",
+                           "--limit", f"@{report_file}", "--state-dir", str(tmp_path / "s"))
+        assert code == 0
+        assert [d["name"] for d in json.loads(out)["devices"]] == ["d02", "d04"]
+        assert [i for i, s in enumerate(sims) if s.log] == [2, 4]
+        assert all(holds_recipe(s) for s in sims)
+
+
+def test_report_file_survives_kill_9(tmp_path: Path) -> None:
+    """Killed mid-run: the report names the finished devices as they ended, the rest 'not finished'."""
+    with fleet(6, {i: Faults(latency_ms=60) for i in range(6)} | {1: Faults(fail_registers=frozenset({F08}))}) \
+            as sims:
+        urls = {n: s.url for n, s in zip(names(6), sims, strict=True)}
+        inv = inventory(tmp_path, urls)
+        report_file = tmp_path / "report.json"
+        proc = subprocess.Popen([sys.executable, "-m", "deployer", "apply", recipe(tmp_path), "--inventory", inv,
+                                 "--yes", "--parallel", "1", "--report", str(report_file), "--state-dir",
+                                 str(tmp_path / "s")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:  # until two devices have finished
+                if report_file.exists() and sum(d["status"] != "skipped" for d in
+                                                 json.loads(report_file.read_text())["devices"]) >= 2:
+                    break
+                time.sleep(0.01)
+            os.kill(proc.pid, signal.SIGKILL)
+        finally:
+            proc.wait(timeout=30)
+        data = json.loads(report_file.read_text())
+        jsonschema.validate(data, yamlsrc.schema("report"))
+        status = {d["name"]: d["status"] for d in data["devices"]}
+        assert status["d00"] == "ok" and status["d01"] == "partial"
+        unfinished = [d for d in data["devices"] if d["status"] == "skipped"]
+        assert unfinished and all(d["error"] == "not finished (interrupted run)" for d in unfinished)
+        assert not_ok(str(report_file)) == [n for n in names(6) if status[n] != "ok"]
+        assert "d00" not in not_ok(str(report_file))
+
+
+def test_devices_on_one_gateway_are_never_served_at_once(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    gw = Simulator(PROFILE, listen="rtu+tcp://127.0.0.1:0", units=(1, 2, 3, 4), faults=Faults(latency_ms=5))
+    with Simulators([gw, Simulator(PROFILE), Simulator(PROFILE)]) as (gateway, a, b):
+        inv = tmp_path / "inventory.yaml"
+        inv.write_text("devices:\n" + "".join(f"  g{u}: {{url: '{gateway.url}', unit: {u}}}\n" for u in (1, 2, 3, 4))
+                       + f"  a: {{url: '{a.url}'}}\n  b: {{url: '{b.url}'}}\n")
+        code, _, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", str(inv), "--yes", "--json",
+                         "--parallel", "8", "--state-dir", str(tmp_path / "s"))
+        assert code == 0
+        assert all(holds_recipe(gateway, u) for u in (1, 2, 3, 4)) and holds_recipe(a) and holds_recipe(b)
+        times = {u: [e.time for e in gateway.log if e.unit == u] for u in (1, 2, 3, 4)}
+        spans = sorted((min(t), max(t)) for t in times.values())
+        for (_, end), (start, _) in itertools.pairwise(spans):
+            assert end < start  # one unit's session ends before the next one's first request
+        assert [e.unit for e in sorted(gateway.log, key=lambda e: e.time)] == sorted(e.unit for e in gateway.log)
+
+
+# ---- reading fleets: plan, diff, pull ---------------------------------------------------------
+
+
+def test_fleet_diff_names_exactly_the_drifted_devices(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    with fleet(8) as sims:
+        urls = {n: s.url for n, s in zip(names(8), sims, strict=True)}
+        inv = inventory(tmp_path, urls)
+        assert cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir",
+                   str(tmp_path / "s"))[0] == 0
+        code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv)
+        assert code == 0 and "drift on 0 of 8 devices" in out
+        sims[2].write("F07", (0, 999))
+        sims[5].write("stop_mode", (0,))
+        for s in sims:
+            s.log.clear()
+        code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv)
+        assert code == 2
+        assert "drift on 2 of 8 devices: d02, d05" in out
+        rows = [line.split() for line in out.splitlines() if line.split()[:1] in (["d02"], ["d05"])]
+        assert rows == [["d02", "F07", "10", "s", "9.99", "s", "drift"], ["d05", "stop_mode", "coast", "ramp", "drift"]]
+        code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv, "--json")
+        data = json.loads(out)
+        assert code == 2 and data["drifted"] == ["d02", "d05"]
+        assert [d["name"] for d in data["devices"][5]["drift"]] == ["stop_mode"]
+        assert all(e.function == 3 for s in sims for e in s.log)  # diff only reads
+
+
+def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    with fleet(3) as sims:
+        urls = {n: s.url for n, s in zip(names(3), sims, strict=True)}
+        urls["dead"] = f"tcp://127.0.0.1:{free_port()}"
+        inv = inventory(tmp_path, urls, groups={"d00": "a", "d01": "a", "d02": "b", "dead": "c"})
+        sims[1].write("F07", (0, 1000))
+        sims[1].write("F08", (0, 1200))
+        sims[1].write("stop_mode", (1,))
+        code, out, _ = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "a,b",
+                           "--detailed-exitcode")
+        assert code == 2 and "2 of 3 devices would change: d00, d02" in out and "5 s -> 10 s" in out
+        code, out, _ = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "d01",
+                           "--detailed-exitcode", "--json")
+        assert code == 0 and json.loads(out)["devices"][0]["plan"]["writes"] == []
+        code, _, err = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--detailed-exitcode")
+        assert code == 3 and "dead: unreachable" in err
+        assert not any(e.function == 16 for s in sims for e in s.log)  # plan only reads
+
+        folder = tmp_path / "pulled"
+        code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "--limit", "a,b",
+                           "-o", str(folder))
+        assert code == 0 and "3 recipes written" in err
+        assert sorted(os.listdir(folder)) == ["d00.yaml", "d01.yaml", "d02.yaml"]
+        assert "F07: 10 s" in (folder / "d01.yaml").read_text() and "F07: 5 s" in (folder / "d00.yaml").read_text()
+        assert cli(capsys, "validate", *(str(folder / f) for f in os.listdir(folder)))[0] == 0
+        code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "-o", str(folder))
+        assert code == 3 and "dead" in err
+
+
+def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path: Path) -> None:
+    import deployer
+    from deployer.executor import ApplyOptions
+
+    seen: list[dict[str, str]] = []
+    with fleet(3) as sims:
+        urls = {n: s.url for n, s in zip(names(3), sims, strict=True)}
+        rec = deployer.load_recipe(recipe(tmp_path))
+        report_file = tmp_path / "r.json"
+
+        def started(job: object) -> None:
+            if not seen:
+                seen.append({d["name"]: d.get("error") for d in json.loads(report_file.read_text())["devices"]})
+
+        report = deployer.apply_fleet(rec, inventory(tmp_path, urls), report_path=str(report_file), on_start=started,
+                                      options=ApplyOptions(state_dir=str(tmp_path / "s")))
+        assert seen == [{n: "not finished (interrupted run)" for n in names(3)}]
+        assert report.exit_code == 0 and json.loads(report_file.read_text())["summary"]["ok"] == 3
