@@ -121,7 +121,7 @@ def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
         for dev in inv.devices:
             if dev.profile is not None:
                 try:
-                    resolve_profile(dev.profile)
+                    resolve_profile(dev.profile, relative_to=path, kind="inventory")
                 except UsageError as e:
                     errors.append(src.error(("devices", dev.name, "profile"), str(e)))
                 except InputError as e:

@@ -197,11 +197,14 @@ def builtin_profile_ids() -> list[str]:
     return sorted(f[: -len(".yaml")] for f in os.listdir(_BUILTIN_DIR) if f.endswith(".yaml"))
 
 
-def unknown_profile(id_: str, relative_to: str | os.PathLike[str] | None = None) -> str:
-    """Why ``id_`` names no profile, and how to name a profile file instead (users often forget '.yaml')."""
+def unknown_profile(id_: str, relative_to: str | os.PathLike[str] | None = None, kind: str = "recipe") -> str:
+    """Why ``id_`` names no profile, and how to name a profile file instead (users often forget '.yaml').
+
+    ``kind``: what ``relative_to`` is (paths in a recipe or an inventory are relative to that file).
+    """
     known = ", ".join(builtin_profile_ids())
     base = _profile_base(relative_to)
-    where = "the recipe" if relative_to else "the current directory"
+    where = f"the {kind}" if relative_to else "the current directory"
     guess = next((id_ + ext for ext in (".yaml", ".yml") if os.path.isfile(os.path.join(base, id_ + ext))), None)
     hint = f"did you mean '{guess}'?" if guess else f"e.g. '{id_}.yaml'"
     return (f"unknown built-in profile '{id_}' (built-in: {known}); a profile file works too: "
@@ -220,12 +223,12 @@ def _profile_base(relative_to: str | os.PathLike[str] | None) -> str:
     return os.path.dirname(os.path.abspath(os.fspath(relative_to))) if relative_to else os.getcwd()
 
 
-def resolve_profile(ref: str, relative_to: str | os.PathLike[str] | None = None) -> Profile:
-    """A built-in id, or a profile file (relative to the directory of ``relative_to``)."""
+def resolve_profile(ref: str, relative_to: str | os.PathLike[str] | None = None, kind: str = "recipe") -> Profile:
+    """A built-in id, or a profile file (relative to the directory of ``relative_to``, a ``kind`` file)."""
     looks_like_path = ref.endswith((".yaml", ".yml", ".json")) or os.sep in ref or "/" in ref
     if not looks_like_path:
         if not os.path.isfile(os.path.join(_BUILTIN_DIR, f"{ref}.yaml")):
-            raise UsageError(unknown_profile(ref, relative_to))
+            raise UsageError(unknown_profile(ref, relative_to, kind))
         return builtin_profile(ref)
     return load_profile(os.path.normpath(os.path.join(_profile_base(relative_to), ref)))
 

@@ -94,3 +94,13 @@ def test_bad_modicon_reference_says_which_ranges_are_accepted(tmp_path: Path, re
     assert messages(prof) == [
         f"{prof}:4:17: error: {register} is not a holding-register reference: addressing: modicon accepts "
         f"40001-49999 (5 digits, addresses 0-9998) or 400001-465536 (6 digits, addresses 0-65535){hint}"]
+
+
+def test_unknown_profile_in_an_inventory_says_paths_are_relative_to_it(tmp_path: Path) -> None:
+    inv = tmp_path / "fleet.yaml"
+    inv.write_text("devices:\n  press-1: {url: 'tcp://127.0.0.1', profile: drive-b}\n")
+    (tmp_path / "drive-b.yaml").write_text("profile: drive-b\nparameters: {sp: {register: 1, type: uint16}}\n")
+    assert messages(inv) == [
+        f"{inv}:2:46: error: unknown built-in profile 'drive-b' (built-in: example-inverter, omron-m1, "
+        "oriental-az); a profile file works too: its path relative to the inventory, ending in .yaml, "
+        "did you mean 'drive-b.yaml'?"]
