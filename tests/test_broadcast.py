@@ -9,18 +9,13 @@ import jsonschema
 import pytest
 
 from deployer import yamlsrc
-from deployer.cli import main
 from deployer.profile import builtin_profile
 from deployer.simulator import SimulatorThread
+from tests.helpers import run_cli as cli
 
 pytestmark = pytest.mark.timeout(60)
 
 
-def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as exc:
-        main(list(args))
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 def test_broadcast_ends_sent_with_exit_0(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

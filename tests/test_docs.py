@@ -11,9 +11,10 @@ import pytest
 import yaml
 
 from deployer import docgen, yamlsrc
-from deployer.cli import main, validate_file
+from deployer.cli import validate_file
 from deployer.profile import Limits
 from deployer.transport import _OPTIONS, DEFAULT_PORTS, SERIAL_DEFAULTS
+from tests.helpers import run_cli as cli
 
 ROOT = Path(__file__).parent.parent
 DOCS = ROOT / "docs"
@@ -23,11 +24,6 @@ FENCE = re.compile(r"(?:<!--\s*example:\s*(?P<mark>[^>]*?)\s*-->\s*\n)?```(?P<la
                    re.S)
 
 
-def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as exc:
-        main(list(args))
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 @pytest.mark.parametrize("name", docgen.SCHEMAS)

@@ -7,19 +7,15 @@ from pathlib import Path
 
 import pytest
 
-from deployer.cli import main, validate_file
+from deployer.cli import validate_file
 from deployer.diagnostics import InputError
 from deployer.profile import builtin_profile
 from deployer.simulator import SimulatorThread
+from tests.helpers import run_cli as cli
 
 pytestmark = pytest.mark.timeout(60)
 
 
-def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as exc:
-        main(list(args))
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 def messages(path: Path) -> list[str]:
