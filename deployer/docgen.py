@@ -171,7 +171,8 @@ def allowed_text(node: Mapping[str, Any], root: Mapping[str, Any]) -> str:
     return "; ".join(parts)
 
 
-_PLACEHOLDERS = {"parameters": "PARAM", "values": "LABEL", "fields": "FIELD", "tables": "TABLE", "devices": "DEVICE"}
+_PLACEHOLDERS = {"parameters": "PARAM", "values": "LABEL", "fields": "FIELD", "tables": "TABLE", "devices": "DEVICE",
+                 "registers": "PARAM"}
 
 
 def _placeholder(path: str) -> str:
