@@ -10,7 +10,8 @@ import pytest
 from deployer.cli import validate_file
 from deployer.diagnostics import InputError
 from deployer.profile import builtin_profile
-from deployer.simulator import SimulatorThread
+from deployer.simulator import Faults, SimulatorThread
+from tests.conftest import free_port
 from tests.helpers import run_cli as cli
 
 pytestmark = pytest.mark.timeout(60)
@@ -51,8 +52,6 @@ def test_no_answer_on_a_serial_line_names_the_line_settings(capsys: pytest.Captu
 def test_no_answer_over_tcp_has_no_line_settings_hint(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     recipe = tmp_path / "r.yaml"
     recipe.write_text("recipe: r\nprofile: example-inverter\nparameters: {F07: 10 s}\n")
-    from deployer.simulator import Faults
-
     with SimulatorThread(builtin_profile("example-inverter"), faults=Faults(drop_every=1)) as sim:
         code, _, err = cli(capsys, "diff", str(recipe), "--device", f"{sim.url}?timeout=0.1&retries=0")
     assert code == 3 and err.endswith("unit 1: no answer after 1 attempt\n")
@@ -100,3 +99,15 @@ def test_unknown_profile_in_an_inventory_says_paths_are_relative_to_it(tmp_path:
         f"{inv}:2:46: error: unknown built-in profile 'drive-b' (built-in: example-inverter, omron-m1, "
         "oriental-az); a profile file works too: its path relative to the inventory, ending in .yaml, "
         "did you mean 'drive-b.yaml'?"]
+
+
+def test_no_answer_through_a_gateway_points_at_the_gateway_settings(capsys: pytest.CaptureFixture[str],
+                                                                    tmp_path: Path) -> None:
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("recipe: r\nprofile: example-inverter\nparameters: {F07: 10 s}\n")
+    url = f"rtu+tcp://127.0.0.1:{free_port()}"
+    with SimulatorThread(builtin_profile("example-inverter"), listen=url, faults=Faults(drop_every=1)):
+        code, _, err = cli(capsys, "diff", str(recipe), "--device", f"{url}?timeout=0.1&retries=0", "--unit", "3")
+    assert code == 3 and err.endswith(
+        "unit 3: no answer after 1 attempt through the gateway, unit 3: check the unit id and that the gateway's "
+        "serial line settings (baud rate, parity, data bits, stop bits) match the device's\n")
