@@ -36,7 +36,7 @@ bench: $(VENV)/.installed
 	$(BIN)/python -m benchmarks.run
 
 fuzz: $(VENV)/.installed-test
-	$(BIN)/python -m tests.fuzz --files 50000 --seconds 900
+	$(BIN)/python -m tests.fuzz --files 200000 --seconds 900
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build *.egg-info

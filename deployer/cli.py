@@ -65,8 +65,8 @@ def console(*, stderr: bool = False) -> Console:
 
 
 def describe(url: DeviceURL) -> str:
-    """The URL as users write it (transport imports pymodbus: only when a device is involved)."""
-    from .transport import describe as describe_url
+    """The URL as users write it."""
+    from .urls import describe as describe_url
 
     return describe_url(url)
 
@@ -293,7 +293,7 @@ parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), defau
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
-    from .transport import BadURL, parse_url
+    from .urls import BadURL, parse_url  # not transport: an offline plan does not import pymodbus
 
     text = device or (recipe.device.url if recipe.device else None)
     u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
@@ -328,10 +328,9 @@ def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:
     """(framing, baud, bits per character, text) of the line the plan goes over: the URL's serial settings,
     else the Modbus default 19200 baud 8E1 on RTU."""
     if url is not None and url.scheme in ("rtu", "ascii"):
-        o = url.options
-        baud, data, parity, stop = int(o.get("baudrate", 19200)), int(o.get("bytesize", 8)), o.get("parity", "N"), \
-            int(o.get("stopbits", 1))
-        return url.scheme, baud, 1 + data + (parity != "N") + stop, f"{baud} baud {data}{parity}{stop}"
+        ln = url.line
+        bits = 1 + ln.bytesize + (ln.parity != "N") + ln.stopbits
+        return url.scheme, ln.baudrate, bits, f"{ln.baudrate} baud {ln.bytesize}{ln.parity}{ln.stopbits}"
     return "rtu", 19200, 11, "19200 baud"
 
 
@@ -628,7 +627,6 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     from .api import run_fleet_async
     from .executor import ApplyOptions, Job, apply_many
     from .planner import load_plan
-    from .progress import FleetProgress, fleet_summary
     from .recipe import load_recipe
     from .report import write_json
 
@@ -703,6 +701,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                            run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
     fleet_run = bool(inventory or from_report)
     if fleet_run:
+        from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
+
         # a live display on a terminal (not while asking questions), else a line per device
         progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes)
         with progress:
@@ -717,6 +717,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     if as_json:
         click.echo(json.dumps(report.to_json(), indent=2))
     elif fleet_run:
+        from .progress import fleet_summary
+
         print_report(report, out, only_not_ok=True)
         fleet_summary(report, out)
     else:

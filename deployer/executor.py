@@ -272,6 +272,9 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     except tp.ExceptionResponse as e:
         res.status, res.error = "failed", f"reading the current values answered {e}; nothing was written"
         return
+    if not session.gap_reads:  # the refused read is in res.requests; say why the reads that follow differ
+        res.notices.append("the device refused a read across undeclared registers (exception 02): "
+                           "it is read in gap-free blocks (the profile's limits.max_read_gap is not for it)")
     for n, regs in before.items():
         results[n].before_raw, results[n].before = regs, _text(prof.parameter(n), regs)
 

@@ -13,7 +13,7 @@ import yaml
 from deployer import docgen, yamlsrc
 from deployer.cli import validate_file
 from deployer.profile import Limits
-from deployer.transport import _OPTIONS, DEFAULT_PORTS, SERIAL_DEFAULTS
+from deployer.urls import _OPTIONS, DEFAULT_PORTS, SERIAL_DEFAULTS
 from tests.helpers import run_cli as cli
 
 ROOT = Path(__file__).parent.parent
