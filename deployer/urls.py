@@ -128,6 +128,17 @@ _OPTIONS: dict[str, set[str]] = {
     "ascii": _COMMON | {"baudrate", "parity", "bytesize", "stopbits"},
     "rtu+tcp": _COMMON,
 }
+# numeric options: (type, lowest, highest); docs/urls.md shows the same ranges (a test compares them)
+NUMERIC_OPTIONS: dict[str, tuple[type[int] | type[float], float, float]] = {
+    "timeout": (float, 0.001, 600), "retries": (int, 0, 20),
+    "baudrate": (int, 50, 4_000_000), "bytesize": (int, 5, 8), "stopbits": (int, 1, 2),
+}
+
+
+def range_text(option: str) -> str:
+    """'50..4000000', '0.001..600': a numeric option's allowed range as users write numbers."""
+    _, lo, hi = NUMERIC_OPTIONS[option]
+    return "..".join(str(int(x)) if float(x).is_integer() else f"{x:g}" for x in (lo, hi))
 
 
 def parse_url(text: str, *, timeout: float | None = None, retries: int | None = None) -> DeviceURL:
@@ -152,27 +163,25 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
                          f" (known: {', '.join(sorted(_OPTIONS[scheme]))})"))
         options[key] = values[-1]
 
-    def number(key: str, kind: type[float] | type[int], lo: float, hi: float) -> Any:
+    def number(key: str) -> Any:
+        kind, lo, hi = NUMERIC_OPTIONS[key]
         try:
             v = kind(options[key])
         except ValueError:
             raise BadURL(f"option {key}={options[key]!r} is not a{'n integer' if kind is int else ' number'}") from None
         if not lo <= v <= hi:
-            raise BadURL(f"option {key}={options[key]} is out of range ({lo:g}..{hi:g})")
+            raise BadURL(f"option {key}={options[key]} is out of range ({range_text(key)})")
         return v
 
-    to = number("timeout", float, 0.001, 600) if "timeout" in options else (timeout if timeout is not None else 1.0)
-    rt = number("retries", int, 0, 20) if "retries" in options else (retries if retries is not None else 2)
+    to = number("timeout") if "timeout" in options else (timeout if timeout is not None else 1.0)
+    rt = number("retries") if "retries" in options else (retries if retries is not None else 2)
     if scheme in ("rtu", "ascii"):
         path = urllib.parse.unquote(u.netloc + u.path)
         if not path:
             raise BadURL(f"{scheme} URL needs a serial device path: {scheme}:///dev/ttyUSB0")
-        if "baudrate" in options:
-            number("baudrate", int, 50, 4_000_000)
-        if "bytesize" in options:
-            number("bytesize", int, 5, 8)
-        if "stopbits" in options:
-            number("stopbits", int, 1, 2)
+        for key in ("baudrate", "bytesize", "stopbits"):
+            if key in options:
+                number(key)
         if "parity" in options:
             options["parity"] = options["parity"].upper()
             if options["parity"] not in ("N", "E", "O"):

@@ -13,7 +13,7 @@ import yaml
 from deployer import docgen, yamlsrc
 from deployer.cli import validate_file
 from deployer.profile import Limits
-from deployer.urls import _OPTIONS, DEFAULT_PORTS, SERIAL_DEFAULTS
+from deployer.urls import _OPTIONS, DEFAULT_PORTS, NUMERIC_OPTIONS, SERIAL_DEFAULTS, DeviceURL, range_text
 from tests.helpers import run_cli as cli
 
 ROOT = Path(__file__).parent.parent
@@ -124,6 +124,12 @@ def test_url_page_covers_every_scheme_and_option() -> None:
         assert f"{scheme}://HOST[:PORT]` | {port}" in text
     line = SERIAL_DEFAULTS
     assert f"{line.baudrate} baud, {line.bytesize} data bits, parity {line.parity}, {line.stopbits} stop bit" in text
+    # each numeric option's row: default and range as the code has them
+    defaults = {"timeout": DeviceURL("tcp").timeout, "retries": DeviceURL("tcp").retries, "baudrate": line.baudrate,
+                "bytesize": line.bytesize, "stopbits": line.stopbits}
+    for opt in NUMERIC_OPTIONS:
+        assert f"| `{opt}` | {defaults[opt]} | {range_text(opt)} |" in text, opt
+    assert f"| `parity` | {line.parity} |" in text
 
 
 def test_report_example_matches_the_exit_code_rules() -> None:
