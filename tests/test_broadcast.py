@@ -42,3 +42,13 @@ def test_broadcast_ends_sent_with_exit_0(capsys: pytest.CaptureFixture[str], tmp
     assert report["summary"]["sent"] == 1 and report["summary"]["ok"] == 0
     audit = [json.loads(line) for line in (tmp_path / "s" / "audit.jsonl").read_text().splitlines()]
     assert [a["exit_code"] for a in audit if a["event"] == "run-finished"] == [0, 0]
+
+
+def test_retrying_a_report_leaves_sent_broadcasts_alone(tmp_path: Path) -> None:
+    from deployer.fleet import not_ok
+
+    report = tmp_path / "run.json"
+    report.write_text(json.dumps({"schema": "deployer.report/1", "devices": [
+        {"name": "a", "status": "ok"}, {"name": "all", "status": "sent"}, {"name": "b", "status": "partial"},
+        {"name": "c", "status": "skipped"}]}))
+    assert not_ok(str(report)) == ["b", "c"]
