@@ -22,11 +22,11 @@ demo: $(VENV)/.installed
 
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q
-	$(BIN)/ruff check deployer tests benchmarks
+	$(BIN)/ruff check deployer tests benchmarks ansible_collections
 	$(BIN)/mypy deployer
 
 lint: $(VENV)/.installed-test
-	$(BIN)/ruff check deployer tests benchmarks
+	$(BIN)/ruff check deployer tests benchmarks ansible_collections
 	$(BIN)/mypy deployer
 
 docs: $(VENV)/.installed

@@ -159,7 +159,7 @@ def diff_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]]) -> list[
     out = []
     for d in recipe.desired:
         cur = current.get(d.name)
-        if cur != d.registers:
+        if cur is None or not d.parameter.same_value(cur, d.registers):  # a bit field compares its own bits
             out.append(Drift(d.name, d.text, d.registers,
                              None if cur is None else d.parameter.format_registers(cur), cur))
     return out
@@ -217,6 +217,15 @@ def ensure_files(parallel: int, devices: int) -> None:
     resource.setrlimit(resource.RLIMIT_NOFILE, (need if hard == resource.RLIM_INFINITY else hard, hard))
 
 
+def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failures: str | None,
+                  ) -> tuple[list[int], int | None]:
+    """Check a fleet run's options before anything happens: batch sizes, failure budget, open files."""
+    sizes = batch_sizes(batch, devices)
+    budget = failure_budget(max_failures, devices)
+    ensure_files(parallel, devices)
+    return sizes, budget
+
+
 def fleet(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None, timeout: float | None = None,
           retries: int | None = None, unit: int | None = None) -> list[Job]:
     """One checked job per selected device (the recipe with the device's profile and overrides)."""
@@ -249,9 +258,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     finished") and rewritten as devices finish, so after a crash ``limit="@REPORT"`` retries
     exactly what did not end ok.
     """
-    sizes = batch_sizes(batch, len(jobs))
-    budget = failure_budget(max_failures, len(jobs))
-    ensure_files(parallel, len(jobs))
+    sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures)
     live = None
     if report_path:
         live = LiveReport(report_path, recipe_name, [skipped_result(j, NOT_FINISHED) for j in jobs])

@@ -27,7 +27,6 @@ if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from rich.console import Console
-    from rich.table import Table
 
     from .api import Drift
     from .executor import Job, ReadJob
@@ -160,7 +159,7 @@ def validate(files: tuple[str, ...]) -> int:
 
 @cli.group()
 def profiles() -> None:
-    """The built-in device profiles."""
+    """The built-in device profiles, and importing new ones."""
 
 
 @profiles.command("list")
@@ -177,18 +176,194 @@ def profiles_list() -> int:
     return EXIT_OK
 
 
+def _type_text(p: Any) -> str:
+    """'uint32 CDAB', 'bool bit 3', 'uint16 bits 3..5', 'string[8] ascii' (the layout only when not the default)."""
+    from .codec import mask_shift
+
+    if p.is_string:
+        return f"string[{p.count}] {p.encoding}" + (" BA" if p.byte_swap else "")
+    if p.mask:
+        shift, width = mask_shift(p.mask)
+        return f"{p.type} bit {shift}" if width == 1 else f"{p.type} bits {shift}..{shift + width - 1}"
+    return p.type if p.layout in ("AB", "ABCD", "ABCDEFGH") else f"{p.type} {p.layout}"
+
+
+@profiles.group("import")
+def profiles_import() -> None:
+    """Write a profile from a vendor's register list (CSV) or a SunSpec model."""
+
+
+def _pairs(items: Sequence[str], what: str) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip() or not value.strip():
+            raise UsageError(f"{what} '{item}': expected NAME=VALUE")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence[str] = ()) -> int:
+    import re
+
+    from .profile.emit import check
+
+    pid = str(draft.header["profile"])
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", pid):  # the profile schema's pattern
+        raise UsageError(f"--id '{pid}': letters, digits, '.', '_' and '-', starting with a letter or digit")
+
+    for w in warnings:
+        click.echo(f"warning: {w}", err=True)
+    text, prof = check(draft, out or "<stdout>", f"Imported by 'deployer profiles import' from {source}.\n"
+                                                "Check it against the manual before the first deployment.")
+    _output(text, out, f"{out}: profile {prof.id} with {_n(len(prof.parameters), 'parameter')}")
+    return EXIT_OK
+
+
+def _output(text: str, path: str | None, summary: str) -> None:
+    """``text`` into the file ``path`` (saying ``summary`` on stderr), or onto stdout."""
+    if path:
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(text)
+        click.echo(summary, err=True)
+    else:
+        click.echo(text, nl=False)
+
+
+@profiles_import.command("csv")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--id", "profile_id", required=True, help="Profile id to write (e.g. acme-drive).")
+@click.option("-o", "--out", help="Profile file to write (default: stdout).")
+@click.option("--column", "columns", multiple=True, metavar="OURS=HEADER",
+              help="Which header holds a column, e.g. --column address='Reg No'. Repeatable.")
+@click.option("--addressing", type=click.Choice(["address", "register-number", "modicon"]), default="address",
+              show_default=True, help="How the address column counts.")
+@click.option("--delimiter", help="Cell separator (default: sniffed from , ; or tab).")
+@click.option("--byte-order", help="Layout of rows without a byte_order cell: ABCD, CDAB, BADC, DCBA (or "
+              "none, byte, word, word_byte).")
+def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Sequence[str], addressing: str,
+                        delimiter: str | None, byte_order: str | None) -> int:
+    """A profile from a CSV register list (columns: name, address, type, unit, scale, min, max, access ...)."""
+    from .profile.csv_import import read_csv
+
+    draft = read_csv(file, profile_id=profile_id, columns=_pairs(columns, "--column"), addressing=addressing,
+                     delimiter=delimiter, byte_order=byte_order)
+    return _write_imported(draft, out, file)
+
+
+@profiles_import.command("xlsx")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--id", "profile_id", required=True, help="Profile id to write (e.g. acme-drive).")
+@click.option("--sheet", help="Worksheet to read (default: the first).")
+@click.option("-o", "--out", help="Profile file to write (default: stdout).")
+@click.option("--column", "columns", multiple=True, metavar="OURS=HEADER",
+              help="Which header holds a column, e.g. --column address='Reg No'. Repeatable.")
+@click.option("--addressing", type=click.Choice(["address", "register-number", "modicon"]), default="address",
+              show_default=True, help="How the address column counts.")
+@click.option("--byte-order", help="Layout of rows without a byte_order cell: ABCD, CDAB, BADC, DCBA (or "
+              "none, byte, word, word_byte).")
+def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str | None, columns: Sequence[str],
+                         addressing: str, byte_order: str | None) -> int:
+    """A profile from an Excel register list (the same columns as csv; needs openpyxl)."""
+    from .profile.csv_import import read_xlsx
+
+    draft = read_xlsx(file, profile_id=profile_id, sheet=sheet, columns=_pairs(columns, "--column"),
+                      addressing=addressing, byte_order=byte_order)
+    return _write_imported(draft, out, file)
+
+
+@profiles.group("export")
+def profiles_export() -> None:
+    """Write a profile in another format."""
+
+
+@profiles_export.command("csv")
+@click.argument("profile")
+@click.option("-o", "--out", help="CSV file to write (default: stdout).")
+def profiles_export_csv(profile: str, out: str | None) -> int:
+    """A profile as a CSV register list ('profiles import csv' reads it back; wire addresses, tables as rows)."""
+    from .profile import resolve_profile
+    from .profile.csv_import import profile_to_csv
+
+    prof = resolve_profile(profile)
+    _output(profile_to_csv(prof), out, f"{out}: {_n(len(prof.parameters), 'register row')} of profile {prof.id}")
+    return EXIT_OK
+
+
+@profiles_import.command("sunspec")
+@click.argument("model")
+@click.option("--at", "at", default="40002", show_default=True,
+              help="Protocol address of the model's ID register (the first model after 'SunS' sits at 40002).")
+@click.option("--sf", "sfs", multiple=True, metavar="NAME=N", help="A scale factor the device reports, e.g. "
+              "--sf WMax_SF=0. Repeatable.")
+@click.option("--count", "counts", multiple=True, metavar="GROUP=N", help="Repetitions of a group whose count the "
+              "device reports, e.g. --count curve=4. Repeatable.")
+@click.option("--device", metavar="URL", help="Read the scale factors from this device (the model at --at); "
+              "--sf wins over what it says.")
+@click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True, help="unit id of --device")
+@click.option("--id", "profile_id", help="Profile id (default: sunspec-MODEL-NAME).")
+@click.option("-o", "--out", help="Profile file to write (default: stdout).")
+def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], counts: Sequence[str], device: str | None,
+                            unit: int, profile_id: str | None, out: str | None) -> int:
+    """A profile from a SunSpec model (number, name or model JSON), using pysunspec2's definitions."""
+    from .profile import parse_register
+    from .profile.sunspec import read_model
+
+    try:
+        factors = {k: int(v) for k, v in _pairs(sfs, "--sf").items()}
+        repeats = {k: int(v) for k, v in _pairs(counts, "--count").items()}
+    except ValueError as e:
+        raise UsageError(f"--sf/--count: a count or scale factor is a whole number ({e})") from None
+    try:
+        address = parse_register(at)
+    except ValueError:
+        raise UsageError(f"--at {at}: not a register address (40002, 0x9C42 or 9C42h)") from None
+    if device is not None:  # the device says its scale factors: read them with a first, unscaled profile
+        found = _device_scale_factors(model, address, repeats, device, unit)
+        if found is None:
+            return EXIT_UNREACHABLE
+        factors = {**found, **factors}
+    draft, warnings = read_model(model, at=address, scale_factors=factors, counts=repeats, profile_id=profile_id)
+    return _write_imported(draft, out, f"SunSpec model {model}", warnings)
+
+
+def _device_scale_factors(model: str, at: int, counts: dict[str, int], device: str, unit: int
+                          ) -> dict[str, int] | None:
+    """The model's scale factors as the device reports them; None (after saying why) when it cannot be read."""
+    from .codec import decode
+    from .profile.emit import check
+    from .profile.sunspec import read_model, scale_factor_points
+    from .transport import BadURL, parse_url
+
+    try:
+        url = parse_url(device)
+    except BadURL as e:
+        raise UsageError(str(e)) from None
+    names = scale_factor_points(model)
+    if not names:
+        return {}
+    _, first = check(read_model(model, at=at, counts=counts)[0], "<model>")
+    current = read_device(first, names, url, unit)  # checks the model ID at --at first (identity)
+    if current is None:
+        return None
+    found = {n: int(decode(current[n], "int16")) for n in names if n in current}
+    click.echo(f"scale factors from {device}: " + ", ".join(f"{n}={v}" for n, v in found.items()), err=True)
+    return found
+
+
 @profiles.command("show")
 @click.argument("profile")
 def profiles_show(profile: str) -> int:
     """Show a profile's parameters in engineering units (a built-in id or a file)."""
-    from .codec import format_decimal
+    from .codec import format_decimal, layout_name
     from .profile import resolve_profile
 
     prof = resolve_profile(profile)
     out = console()
     out.print(f"[bold]{prof.id}[/bold]: {prof.description}")
     lim = prof.limits
-    out.print(f"addressing {prof.addressing}, word order {prof.word_order}; up to {lim.write_registers} registers "
+    layout = layout_name(prof.word_order, prof.byte_swap)
+    out.print(f"addressing {prof.addressing}, byte order {layout}; up to {lim.write_registers} registers "
               f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read")
     rows: list[list[Cell]] = []
     for p in prof.parameters:
@@ -196,9 +371,11 @@ def profiles_show(profile: str) -> int:
             f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
         if p.values:
             rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
-        default = "" if p.default is None else format_decimal(p.default)
-        rows.append([p.name, f"0x{p.address:04X} ({p.address})", p.type, p.unit or "",
-                     format_decimal(p.scale), rng, p.access, default, p.description])
+        default = "" if p.default is None else p.default if isinstance(p.default, str) else (
+            str(bool(p.default)).lower() if p.type == "bool" else format_decimal(p.default))
+        rows.append([p.name, f"0x{p.address:04X} ({p.address})", _type_text(p), p.unit or "",
+                     "" if p.is_string or p.type == "bool" else format_decimal(p.scale), rng, p.access, default,
+                     p.description])
     show(out, ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"],
          rows)
     return EXIT_OK
@@ -359,6 +536,9 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
             rows.append([pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs])
     if rows:
         show(out, headers, rows)
+        if not changes_only and any(profile.parameter(pp.name).mask for pp in plan.parameters):
+            out.print("bit fields: raw shows their own bits; apply reads each such register right before writing "
+                      "it and keeps its other bits as the device holds them")
     elif changes_only:
         out.print("No changes: the device already holds every value of the recipe.")
     st = wire_stats(plan)
@@ -523,6 +703,9 @@ def _register(text: str) -> int:
               help="tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/X?baudrate=B, ascii:///dev/X")
 @click.option("--unit", "units", type=click.IntRange(1, 247), multiple=True, help="unit id(s) served (default 1)")
 @click.option("--init", "init_recipe", type=click.Path(dir_okay=False), help="start with a recipe's values")
+@click.option("--set", "set_registers", multiple=True, metavar="ADDR=RAW",
+              help="start a register (protocol address) with a raw value, read-only ones too, e.g. a status word "
+                   "saying 'running': --set 0x10=8. Repeatable.")
 @click.option("--latency-ms", type=click.FloatRange(min=0), default=0, help="delay every answer")
 @click.option("--baud", type=click.IntRange(min=50), help="delay answers by their line time at this baud rate (8E1)")
 @click.option("--drop-every", type=click.IntRange(min=0), default=0, help="never answer every Nth request")
@@ -534,7 +717,8 @@ def _register(text: str) -> int:
 @click.option("--log", "log_path", type=click.Path(dir_okay=False), help="one JSON line per request")
 @click.option("--loose-limits", is_flag=True, help="accept requests beyond the profile's limits")
 @click.option("--gap-reads", is_flag=True, help="answer reads of undeclared registers between declared ones (zeros)")
-def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str | None, latency_ms: float,
+def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str | None,
+             set_registers: tuple[str, ...], latency_ms: float,
              baud: int | None, drop_every: int, busy_first: int, fail_registers: tuple[str, ...],
              disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool,
              gap_reads: bool) -> int:
@@ -548,12 +732,26 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
         parse_listen(listen)
     except ValueError as e:
         raise UsageError(str(e)) from None
-    init = init_from_recipe(load_recipe(init_recipe)) if init_recipe else None
+    init = init_from_recipe(load_recipe(init_recipe)) if init_recipe else {}
+    for item in set_registers:
+        addr, sep, raw = item.partition("=")
+        if not sep:
+            raise UsageError(f"--set {item}: expected ADDR=RAW, e.g. 0x10=8")
+        try:
+            address, value = _register(addr.strip()), _register(raw.strip())
+        except click.BadParameter:
+            raise UsageError(f"--set {item}: expected ADDR=RAW with numbers, e.g. 0x10=8") from None
+        if value > 0xFFFF:
+            raise UsageError(f"--set {item}: a register holds 0..65535")
+        init[address] = value
     faults = Faults(latency_ms=latency_ms, baud=baud, drop_every=drop_every, busy_first=busy_first,
                     fail_registers=frozenset(_register(r) for r in fail_registers),
                     disconnect_after=disconnect_after)
-    sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
-                    state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads)
+    try:
+        sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
+                        state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads)
+    except ValueError as e:  # a --set register the profile does not declare
+        raise UsageError(str(e)) from None
 
     def ready(s: Simulator) -> None:
         which = ", ".join(str(u) for u in s.units)
@@ -624,7 +822,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               batch: str | None = None, max_failures: str | None = None, command: str = "apply") -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
     from . import journal
-    from .api import run_fleet_async
+    from .api import fleet_options, run_fleet_async
     from .executor import ApplyOptions, Job, apply_many
     from .planner import load_plan
     from .recipe import load_recipe
@@ -640,6 +838,12 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             raise UsageError("rollback --report restores each device from its own snapshot, to the device it was "
                              "taken from: --inventory, --device and --unit do not apply")
         jobs = _rollback_report_jobs(from_report, force=force, timeout=timeout, retries=retries)
+        if limit:  # names and patterns select among that run's devices (it has no groups)
+            from .fleet import FleetDevice, Inventory, select
+
+            chosen = {d.name for d in select(Inventory(from_report, tuple(FleetDevice(j.name, describe(j.url))
+                                                                          for j in jobs)), limit)}
+            jobs = [j for j in jobs if j.name in chosen]
         label = from_report
     else:
         assert source is not None
@@ -693,13 +897,15 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         for why in moved:
             err.print(f"warning: {why}; restoring it there (--yes)")
 
+    fleet_run = bool(inventory or from_report)
+    if fleet_run:
+        fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures)
     run_id = journal.new_run_id()
     journal.run_started(state_dir, run_id, command=command, argv=_ARGV, recipe=label,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
-    fleet_run = bool(inventory or from_report)
     if fleet_run:
         from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
 
@@ -715,7 +921,12 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             write_json(report.to_json(), report_path)
     journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     if as_json:
-        click.echo(json.dumps(report.to_json(), indent=2))
+        if fleet_run:
+            from .fleet import report_text
+
+            click.echo(report_text(report), nl=False)
+        else:
+            click.echo(json.dumps(report.to_json(), indent=2))
     elif fleet_run:
         from .progress import fleet_summary
 
@@ -895,24 +1106,17 @@ def diff(recipe: str, device: str | None, unit: int | None, timeout: float | Non
         click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u,
                                "drift": [r.to_json() for r in rows]}, indent=2))
     elif rows:
-        console().print(drift_table(rows, None))
+        show(console(), ["parameter", "recipe", "device value", ""], drift_rows(rows))
         console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
     else:
         console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
     return EXIT_CHANGES if drift else EXIT_OK
 
 
-def drift_table(rows: Sequence[Drift], device: str | None, table: Table | None = None) -> Table:
-    """parameter, recipe, device value (with a device column for fleets)."""
-    from rich.table import Table
-
-    if table is None:
-        table = Table(*(["device"] if device is not None else []), "parameter", "recipe", "device value", "",
-                      box=None)
-    for r in rows:
-        status = "drift" if r.device_raw is not None else "not readable"
-        table.add_row(*([device] if device is not None else []), r.name, r.desired, r.device or "-", status)
-    return table
+def drift_rows(rows: Sequence[Drift], device: str | None = None) -> list[list[Cell]]:
+    """parameter, recipe, device value, status (with the device's name first for fleets)."""
+    return [[*([device] if device is not None else []), r.name, r.desired, r.device or "-",
+             ("drift", "yellow") if r.device_raw is not None else "not readable"] for r in rows]
 
 
 def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool) -> int:
@@ -930,14 +1134,9 @@ def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool
                                     "error": str(values[j.name])} for j in jobs],
             "drifted": drifted, "unreachable": down}, indent=2))
     else:
-        from rich.table import Table
-
         out = console()
-        table = Table("device", "parameter", "recipe", "device value", "", box=None)
-        for j in jobs:
-            drift_table(rows.get(j.name, []), j.name, table)
-        if table.row_count:
-            out.print(table)
+        show(out, ["device", "parameter", "recipe", "device value", ""],
+             [row for j in jobs for row in drift_rows(rows.get(j.name, []), j.name)])
         out.print(f"drift on {len(drifted)} of {len(jobs)} devices" + (f": {', '.join(drifted)}" if drifted else "")
                   + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
     if down:
@@ -983,12 +1182,7 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
         return EXIT_UNREACHABLE
     text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
                          comment=_pulled_from(describe(url), u), relative_to=output)
-    if output:
-        with open(output, "w", encoding="utf-8") as f:
-            f.write(text)
-        click.echo(f"{_n(len(current), 'parameter')} written to {output}", err=True)
-    else:
-        click.echo(text, nl=False)
+    _output(text, output, f"{_n(len(current), 'parameter')} written to {output}")
     return EXIT_OK
 
 

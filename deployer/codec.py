@@ -7,6 +7,13 @@ Terms:
   engineering = raw * scale + offset        (what the user writes, in the profile's unit)
   raw         = the integer (or IEEE float) the device stores
   registers   = raw encoded as 16-bit words in the parameter's word order
+
+Layouts: a value's bytes A B C D (most significant first) go into registers as ABCD
+(big-endian, the Modbus default), CDAB (word swap), BADC (byte swap) or DCBA (both);
+64-bit values alike (ABCDEFGH, GHEFCDAB, BADCFEHG, HGFEDCBA). Internally a layout is
+``word_order`` ("big"/"little": which word comes first) plus ``byte_swap`` (low byte first
+inside each word). Strings are bytes in address order, two per register; bit fields are
+bits of one register under a contiguous mask.
 """
 
 from __future__ import annotations
@@ -31,6 +38,36 @@ _TYPES: dict[str, tuple[int, bool, bool]] = {
     "float64": (4, True, True),
 }
 TYPE_NAMES: tuple[str, ...] = tuple(_TYPES)
+STRING = "string"  # registers holding text; its register count comes from the parameter
+BOOL = "bool"  # a one-bit field: false/true
+
+# Layout names users find in manuals (and Home Assistant's ``swap``) -> (word_order, byte_swap)
+LAYOUTS: dict[str, tuple[str, bool]] = {
+    "ABCD": ("big", False), "ABCDEFGH": ("big", False), "big-endian": ("big", False),
+    "CDAB": ("little", False), "GHEFCDAB": ("little", False), "big-endian-word-swap": ("little", False),
+    "little-endian-byte-swap": ("little", False),  # Modbus Poll's name for CDAB
+    "BADC": ("big", True), "BADCFEHG": ("big", True), "big-endian-byte-swap": ("big", True),
+    "little-endian-word-swap": ("big", True),
+    "DCBA": ("little", True), "HGFEDCBA": ("little", True), "little-endian": ("little", True),
+}
+# Home Assistant modbus: swap: none | byte | word | word_byte
+SWAPS: dict[str, tuple[str, bool]] = {
+    "none": ("big", False), "byte": ("big", True), "word": ("little", False), "word_byte": ("little", True),
+}
+ENCODINGS: dict[str, str] = {"ascii": "ascii", "latin-1": "latin-1"}  # profile name -> Python codec
+PADDING: dict[str, bytes] = {"nul": b"\0", "space": b" "}
+
+
+def layout_name(word_order: str, byte_swap: bool, type_: str = "uint32") -> str:
+    """The manual's name for a layout of ``type_``: 'CDAB', 'BADCFEHG', 'BA' ..."""
+    size = 2 * _TYPES[type_][0] if type_ in _TYPES else 4
+    letters = list("ABCDEFGH"[:size])
+    words = [letters[i:i + 2] for i in range(0, size, 2)]
+    if byte_swap:
+        words = [w[::-1] for w in words]
+    if word_order == "little":
+        words.reverse()
+    return "".join("".join(w) for w in words)
 
 
 class CodecError(ValueError):
@@ -100,8 +137,8 @@ def from_raw(raw: Raw, scale: Decimal = Decimal(1), offset: Decimal = Decimal(0)
     return base * scale + offset
 
 
-def encode(raw: Raw, type_: str, word_order: str = "big") -> tuple[int, ...]:
-    """Raw value -> registers. Words are big-endian bytes; word_order orders the words."""
+def encode(raw: Raw, type_: str, word_order: str = "big", byte_swap: bool = False) -> tuple[int, ...]:
+    """Raw value -> registers. word_order orders the words; byte_swap puts each word's low byte first."""
     count, signed, flt = _TYPES[type_]
     if flt:
         data = struct.pack(">f" if count == 2 else ">d", float(raw))
@@ -112,13 +149,14 @@ def encode(raw: Raw, type_: str, word_order: str = "big") -> tuple[int, ...]:
         if not lo <= raw <= hi:
             raise CodecError(f"raw value {raw} does not fit in {type_} ({lo}..{hi})")
         data = raw.to_bytes(2 * count, "big", signed=signed)
-    words = [int.from_bytes(data[i : i + 2], "big") for i in range(0, len(data), 2)]
+    words = [int.from_bytes(data[i : i + 2], "little" if byte_swap else "big") for i in range(0, len(data), 2)]
     if word_order == "little":
         words.reverse()
     return tuple(words)
 
 
-def decode(registers: tuple[int, ...] | list[int], type_: str, word_order: str = "big") -> Raw:
+def decode(registers: tuple[int, ...] | list[int], type_: str, word_order: str = "big",
+           byte_swap: bool = False) -> Raw:
     """Registers -> raw value (inverse of encode)."""
     count, signed, flt = _TYPES[type_]
     if len(registers) != count:
@@ -126,7 +164,7 @@ def decode(registers: tuple[int, ...] | list[int], type_: str, word_order: str =
     words = list(registers)
     if word_order == "little":
         words.reverse()
-    data = b"".join(int(w).to_bytes(2, "big") for w in words)
+    data = b"".join(int(w).to_bytes(2, "little" if byte_swap else "big") for w in words)
     if flt:
         return float(struct.unpack(">f" if count == 2 else ">d", data)[0])
     return int.from_bytes(data, "big", signed=signed)
@@ -150,8 +188,9 @@ def engineering_to_registers(
     offset: Decimal = Decimal(0),
     word_order: str = "big",
     rounding: Literal["exact", "nearest"] = "exact",
+    byte_swap: bool = False,
 ) -> tuple[int, ...]:
-    return encode(to_raw(value, type_, scale, offset, rounding), type_, word_order)
+    return encode(to_raw(value, type_, scale, offset, rounding), type_, word_order, byte_swap)
 
 
 def registers_to_engineering(
@@ -160,11 +199,94 @@ def registers_to_engineering(
     scale: Decimal = Decimal(1),
     offset: Decimal = Decimal(0),
     word_order: str = "big",
+    byte_swap: bool = False,
 ) -> Decimal:
-    raw = decode(registers, type_, word_order)
+    raw = decode(registers, type_, word_order, byte_swap)
     if isinstance(raw, float) and type_ == "float32":
         raw = float(shortest_float_repr(raw, "float32"))
     return from_raw(raw, scale, offset)
+
+
+# ---- strings ---------------------------------------------------------------------------------
+
+
+def encode_string(text: str, count: int, encoding: str = "ascii", padding: str = "nul",
+                  byte_swap: bool = False) -> tuple[int, ...]:
+    """Text -> ``count`` registers, two characters each, padded. CodecError if it does not fit."""
+    try:
+        data = text.encode(ENCODINGS[encoding])
+    except UnicodeEncodeError as e:
+        raise CodecError(f"{text[e.start:e.end]!r} at character {e.start + 1} is not {encoding}") from None
+    if len(data) > 2 * count:
+        raise CodecError(f"'{text}' is {len(data)} characters; {count} registers hold at most {2 * count}")
+    data = data.ljust(2 * count, PADDING[padding])
+    return tuple(int.from_bytes(data[i:i + 2], "little" if byte_swap else "big") for i in range(0, len(data), 2))
+
+
+def decode_string(registers: tuple[int, ...] | list[int], encoding: str = "ascii",
+                  byte_swap: bool = False) -> str:
+    """Registers -> text without trailing NUL/space padding. CodecError for bytes outside the encoding."""
+    data = b"".join(int(w).to_bytes(2, "little" if byte_swap else "big") for w in registers)
+    try:
+        return data.decode(ENCODINGS[encoding]).rstrip("\0 ")
+    except UnicodeDecodeError as e:
+        raise CodecError(f"byte {data[e.start]:02X}h at offset {e.start} is not {encoding} text") from None
+
+
+# ---- bit fields --------------------------------------------------------------------------------
+
+
+def parse_bits(spec: object) -> int:
+    """``3`` / ``"3..5"`` / ``"3-5"`` -> a mask over those bits (0..15). ValueError for a user message."""
+    text = str(spec).strip()
+    for sep in ("..", "-", ":"):
+        if sep in text:
+            lo_s, hi_s = text.split(sep, 1)
+            break
+    else:
+        lo_s = hi_s = text
+    try:
+        lo, hi = sorted((int(lo_s), int(hi_s)))
+    except ValueError:
+        raise ValueError(f"bits: {spec!r} is not a bit number or a range like 3..5") from None
+    if not 0 <= lo <= hi <= 15:
+        raise ValueError(f"bits: {spec!r} is outside 0..15 (a register has 16 bits)")
+    return ((1 << (hi - lo + 1)) - 1) << lo
+
+
+def mask_shift(mask: int) -> tuple[int, int]:
+    """(lowest bit, width) of a contiguous mask; ValueError otherwise."""
+    if not 0 < mask <= 0xFFFF:
+        raise ValueError(f"mask 0x{mask:04X} selects no bit of a 16-bit register")
+    shift = (mask & -mask).bit_length() - 1
+    width = (mask >> shift).bit_length()
+    if (mask >> shift) != (1 << width) - 1:
+        raise ValueError(f"mask 0x{mask:04X} is not one contiguous group of bits")
+    return shift, width
+
+
+def field_range(mask: int, signed: bool = False) -> tuple[int, int]:
+    width = mask_shift(mask)[1]
+    if signed:
+        return -(1 << (width - 1)), (1 << (width - 1)) - 1
+    return 0, (1 << width) - 1
+
+
+def extract_field(word: int, mask: int, signed: bool = False) -> int:
+    shift, width = mask_shift(mask)
+    raw = (word & mask) >> shift
+    if signed and raw >> (width - 1):
+        raw -= 1 << width
+    return raw
+
+
+def insert_field(raw: int, mask: int, signed: bool = False, word: int = 0) -> int:
+    """``word`` with the field's bits replaced by ``raw``. CodecError if it does not fit."""
+    lo, hi = field_range(mask, signed)
+    if not lo <= raw <= hi:
+        raise CodecError(f"raw value {raw} does not fit in {mask_shift(mask)[1]} bits ({lo}..{hi})")
+    shift = mask_shift(mask)[0]
+    return (word & ~mask & 0xFFFF) | ((raw << shift) & mask)
 
 
 def _plain(d: Decimal) -> str:

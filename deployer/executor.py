@@ -15,15 +15,25 @@ import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Literal, Protocol, TypeVar
+from typing import Literal, Protocol, TypeVar, cast
 
-from . import journal, lock
+from . import codec, journal, lock
 from . import transport as tp
 from .diagnostics import UsageError
-from .planner import Plan, ReadRequest, Target, WriteRequest, gap_free_reads, make_plan, plan_reads, plan_to_json
-from .profile import Parameter, Profile, profile_ref
+from .planner import (
+    Plan,
+    ReadRequest,
+    Target,
+    WriteRequest,
+    gap_free_reads,
+    make_plan,
+    merge_fields,
+    plan_reads,
+    plan_to_json,
+)
+from .profile import Parameter, Profile, WriteAction, profile_ref
 from .recipe import Recipe
-from .report import DeviceResult, ParameterResult, Report, RequestRecord
+from .report import DeviceResult, ParameterResult, Report, RequestRecord, show_registers
 from .snapshot import save_snapshot
 
 Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
@@ -151,9 +161,10 @@ def values_of(params: Iterable[Parameter], regs: Mapping[int, int]) -> dict[str,
     """Parameter name -> registers, for every parameter whose registers were all read."""
     out = {}
     for p in params:
-        words = [regs.get(a) for a in range(p.address, p.end)]
-        if all(w is not None for w in words):
-            out[p.name] = tuple(w for w in words if w is not None)
+        a = p.address
+        words = tuple(regs.get(a + i) for i in range(p.count))
+        if None not in words:
+            out[p.name] = cast(tuple[int, ...], words)  # no None left
     return out
 
 
@@ -168,18 +179,45 @@ async def check_identity(session: Session, profile: Profile) -> str | None:
     return None
 
 
+async def check_preconditions(session: Session, profile: Profile) -> str | None:
+    """None if every precondition holds (e.g. 'drive stopped'), else which one does not."""
+    for c in profile.preconditions:
+        (word,) = await session.read(c.address, 1)
+        if not c.holds(word):
+            return f"precondition failed: {c.what()} is {codec.extract_field(word, c.mask)}, expected {c.equals}"
+    return None
+
+
+async def _send_actions(session: Session, prof: Profile, actions: Iterable[WriteAction]) -> None:
+    """The profile's own writes (unlock, commit, lock), each followed by its wait."""
+    for action in actions:
+        reqs = ([WriteRequest(6, action.address + i, (w,), ()) for i, w in enumerate(action.registers)]
+                if prof.limits.write_function == 6 else [WriteRequest(16, action.address, action.registers, ())])
+        for r in reqs:
+            await session.write(r)
+        if action.wait_ms:
+            await asyncio.sleep(action.wait_ms / 1000)
+
+
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
-    return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers)
+    return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers,
+                                    parameter=d.parameter)
             for d in recipe.desired}
 
 
-def _text(p: Parameter, regs: Sequence[int] | None) -> str | None:
-    if regs is None:
-        return None
-    try:
-        return p.format_registers(tuple(regs))
-    except Exception:  # a value the codec cannot show (e.g. NaN): show raw words
-        return " ".join(f"{w:04X}h" for w in regs)
+# read plans per recipe: every device of a fleet that shares a recipe reads the same blocks
+_READS: dict[int, tuple[Recipe, tuple[ReadRequest, ...]]] = {}
+_READS_KEPT = 64  # recipes remembered (a long-lived API user loads new ones)
+
+
+def _reads_of(recipe: Recipe) -> tuple[ReadRequest, ...]:
+    hit = _READS.get(id(recipe))
+    if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
+        while len(_READS) >= _READS_KEPT:
+            del _READS[next(iter(_READS))]  # the oldest
+        hit = _READS[id(recipe)] = (recipe, plan_reads(recipe.profile, [d.name for d in recipe.desired
+                                                                        if d.parameter.readable]))
+    return hit[1]
 
 
 async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None = None,
@@ -197,6 +235,9 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
     if unit == 0 and not opts.allow_broadcast:
         raise UsageError("unit 0 is broadcast (no device answers, nothing can be verified); "
                          "pass --allow-broadcast to send it anyway")
+    if unit == 0 and (prof.preconditions or any(d.parameter.mask for d in recipe.desired)):
+        raise UsageError("a broadcast cannot read: bit fields (which keep the register's other bits) and "
+                         f"preconditions of profile {prof.id} need a device that answers")
     try:
         held = await lock.acquire(lock.device_key(url.bus, unit), timeout=opts.lock_timeout,
                                   command=lock.command_line(), directory=opts.lock_dir)
@@ -264,8 +305,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         if why:
             res.status, res.error = "failed", f"{why}; nothing was written"
             return
-        offline = make_plan(recipe, target, None)
-        before = values_of(params, await session.read_blocks(offline.reads, prof))
+        before = values_of(params, await session.read_blocks(_reads_of(recipe), prof))
     except DeviceGone as e:
         res.status, res.error = "unreachable", f"{e}; nothing was written"
         return
@@ -276,16 +316,17 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         res.notices.append("the device refused a read across undeclared registers (exception 02): "
                            "it is read in gap-free blocks (the profile's limits.max_read_gap is not for it)")
     for n, regs in before.items():
-        results[n].before_raw, results[n].before = regs, _text(prof.parameter(n), regs)
+        results[n].before_raw = regs
 
     # 2. the plan: a saved one must still match the device, else a fresh diff-aware plan
     if opts.expected is not None:
         changed = [pp.name for pp in opts.expected.parameters
-                   if pp.current_raw is not None and before.get(pp.name) != pp.current_raw]
+                   if pp.current_raw is not None and not prof.parameter(pp.name).same_value(before.get(pp.name),
+                                                                                            pp.current_raw)]
         if changed:
             raise StalePlan(
                 "the device changed since the plan was made (" + ", ".join(
-                    f"{n}: now {_text(prof.parameter(n), before.get(n))}" for n in changed)
+                    f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed)
                 + "); make a new plan")
         plan = opts.expected
     else:
@@ -293,8 +334,19 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     for pp in plan.parameters:
         if pp.action == "unchanged":
             results[pp.name].status = "unchanged"
+    for pp in plan.parameters:  # a field's register goes whole: report the word planned
+        if prof.parameter(pp.name).mask:
+            results[pp.name].desired_raw = pp.desired_raw
     if not plan.writes:
         _verify(results, prof, before, written=set())
+        return
+    # guards (e.g. "drive stopped") only matter when something is to be written
+    try:
+        why = await check_preconditions(session, prof)
+    except (DeviceGone, tp.ExceptionResponse) as e:
+        why = f"reading the preconditions failed: {e}"
+    if why:
+        res.status, res.error = "failed", f"{why}; nothing was written"
         return
     if opts.confirm is not None and not await opts.confirm(plan, res):
         raise Declined("nothing was written (declined)")
@@ -308,10 +360,32 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         await asyncio.to_thread(journal.device_started, opts.state_dir, opts.run_id, name=res.name, url=res.url,
                                 unit=res.unit, snapshot=res.snapshot, plan_digest=digest)
 
-    # 4. writes, in plan order; recover from partial failures
+    # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock
+    if prof.unlock:
+        try:
+            await _send_actions(session, prof, prof.unlock)
+        except (DeviceGone, tp.ExceptionResponse) as e:
+            res.status, res.error = "failed", f"unlock failed: {e}; no parameter was written"
+            return
+    try:
+        await _write_verify_commit(session, prof, recipe, plan, opts, res, results)
+    finally:
+        if prof.unlock and prof.lock:
+            try:
+                await _send_actions(session, prof, prof.lock)
+            except (DeviceGone, tp.ExceptionResponse) as e:
+                res.status = "partial"
+                res.error = f"{res.error + '; ' if res.error else ''}lock failed: {e}; the device may be left unlocked"
+    res.notices.extend(f"{n} takes effect after a power cycle" for n, r in results.items()
+                       if r.status == "ok" and prof.parameter(n).restart)
+
+
+async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, plan: Plan, opts: ApplyOptions,
+                               res: DeviceResult, results: dict[str, ParameterResult]) -> None:
+    params = [d.parameter for d in recipe.desired]
     written, gone = await _write_all(session, prof, plan, opts, results)
 
-    # 5. read back everything the plan reads, compare raw values (after a silence too: it may be back)
+    # read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
         after = values_of(params, await session.read_blocks(plan.reads, prof))
     except (DeviceGone, tp.ExceptionResponse) as e:
@@ -323,15 +397,11 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     if gone:
         return
 
-    # 6. commit (e.g. store to EEPROM) only when everything is verified
+    # commit (e.g. store to EEPROM) only when everything is verified
     if prof.commit and all(r.status in ("ok", "unchanged") for r in results.values()):
         for action in prof.commit:
-            fn = prof.limits.write_function
-            reqs = ([WriteRequest(6, action.address + i, (w,), ("(commit)",)) for i, w in enumerate(action.registers)]
-                    if fn == 6 else [WriteRequest(16, action.address, action.registers, ("(commit)",))])
             try:
-                for r in reqs:
-                    await session.write(r)
+                await _send_actions(session, prof, [action])
             except (DeviceGone, tp.ExceptionResponse) as e:
                 res.status, res.error = "partial", f"commit '{action.description or hex(action.address)}' failed: {e}"
                 return
@@ -351,7 +421,7 @@ def _attempted(results: dict[str, ParameterResult], names: Iterable[str], writte
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,
                      results: dict[str, ParameterResult]) -> tuple[set[str], bool]:
     """Send the plan's writes. Returns the names sent, and whether the device went away."""
-    desired = {pp.name: pp.desired_raw for pp in plan.parameters}
+    desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
     written: set[str] = set()
     queue = deque(plan.writes)
     stopped = False
@@ -363,8 +433,18 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
                     results[n].status = "skipped"
             continue
         try:
+            req = await _remerge(session, prof, req, desired, results)
+        except (DeviceGone, tp.ExceptionResponse) as e:  # nothing of this request was sent
+            for n in req.parameters:
+                results[n].status, results[n].error = "failed", f"reading the register to keep its other bits: {e}"
+            stopped = opts.on_error == "stop"
+            continue
+        try:
             await session.write(req)
             _attempted(results, req.parameters, written)
+            wait = prof.wait_after(req.stage)
+            if wait and (not queue or queue[0].stage != req.stage):
+                await asyncio.sleep(wait / 1000)
         except tp.ExceptionResponse as e:
             follow_up = await _recover(session, prof, req, e, desired, results, written)
             if opts.on_error == "continue":
@@ -383,6 +463,24 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
                     results[n].status = "skipped"
             return written, True
     return written, False
+
+
+async def _remerge(session: Session, prof: Profile, req: WriteRequest, desired: dict[str, tuple[int, ...]],
+                   results: dict[str, ParameterResult]) -> WriteRequest:
+    """Bit fields: read their registers right before the write and merge the new bits into what the
+    device holds now (another field may have changed since the snapshot: keep it, never guess)."""
+    fields = [p for p in (prof.parameter(n) for n in req.parameters) if p.mask and p.readable]
+    if not fields:
+        return req
+    fresh = await session.read_blocks(plan_reads(prof, [f.name for f in fields]))
+    regs = list(req.registers)
+    for a in sorted({f.address for f in fields}):
+        mates = [prof.parameter(n) for n in req.parameters if prof.parameter(n).address == a]
+        word = merge_fields(mates, [desired[m.name][0] for m in mates], fresh[a])
+        regs[a - req.address] = word
+        for m in mates:
+            desired[m.name] = results[m.name].desired_raw = (word,)
+    return replace(req, registers=tuple(regs))
 
 
 async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.ExceptionResponse,
@@ -409,7 +507,7 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
         if not p.readable:
             unknown.append(p.name)
             continue
-        if now.get(p.name) == desired[p.name]:
+        if p.same_value(now.get(p.name), desired[p.name]):
             _attempted(results, [*unknown, p.name], written)
             unknown = []
             continue
@@ -419,6 +517,9 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
     if rejected is None:  # everything took although the device complained: the read-back decides
         return None
     results[rejected.name].status, results[rejected.name].error = "failed", error
+    for p in params:  # bit fields of the rejected register went with it
+        if p.mask and p.address == rejected.address and p is not rejected:
+            results[p.name].status, results[p.name].error = "failed", f"{error} (register of {rejected.name})"
     rest = [p for p in params if p.address > rejected.address]
     if not rest or req.function == 6:  # an FC06 request carries one register: nothing after it
         return None
@@ -433,17 +534,17 @@ def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[s
         p = prof.parameter(n)
         got = after.get(n)
         if got is not None:
-            r.after_raw, r.after = got, _text(p, got)
+            r.after_raw = got
         if r.status in ("failed", "skipped"):
             continue
         if got is None:  # not read back: sent ones stay unverified, with the reason
             if n in written and r.error == PENDING:
                 r.error = "write-only: cannot be read back"
             continue
-        if got == r.desired_raw:
+        if p.same_value(got, r.desired_raw):
             r.status, r.error = ("ok" if n in written else "unchanged"), None
             continue
-        reads_back = f"reads back {_text(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
+        reads_back = f"reads back {show_registers(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
         if r.error and r.error.startswith("device stopped answering"):
             r.error = f"{r.error}; {reads_back}"  # no answer and not applied: unverified, not "accepted"
         else:
@@ -531,6 +632,21 @@ def skipped_result(job: Job, reason: str) -> DeviceResult:
     return r
 
 
+@dataclass
+class Budget:
+    """``--max-failures``: how many devices may end failed or partial before no new device starts."""
+
+    limit: int | None
+    failures: int = 0
+
+    def spent(self) -> str | None:
+        """Why no new device may start, or None."""
+        n = self.failures
+        if self.limit is None or n < self.limit:
+            return None
+        return f"not started: {n} device{'s' if n != 1 else ''} ended failed or partial (--max-failures {self.limit})"
+
+
 async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOptions | None = None,
                      recipe_name: str | None = None,
                      on_done: Callable[[DeviceResult], None] | None = None,
@@ -545,12 +661,13 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     """
     started = time.monotonic()
     done: dict[str, DeviceResult] = {}
-    failures = 0
+    budget = Budget(max_failures)
     stop: str | None = None
 
     async def one(j: Job) -> None:
-        nonlocal failures, stop
-        if stop is not None:  # checked when the device's turn comes, not when it was queued
+        nonlocal stop
+        stop = stop or budget.spent()  # checked when the device's turn comes, not when it was queued
+        if stop is not None:
             done[j.name] = skipped_result(j, stop)
             return
         if on_start:
@@ -558,7 +675,12 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         t = time.monotonic()
         try:
             r = await apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
-        except (StalePlan, Declined):
+        except Declined:
+            if len(jobs) == 1:
+                raise
+            # in a fleet, a "no" is about that device: the others were asked (or are being written) on their own
+            r = skipped_result(j, "not written: declined at the confirmation prompt")
+        except StalePlan:
             raise
         except UsageError as e:
             r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),
@@ -567,10 +689,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         r.seconds = time.monotonic() - t
         done[j.name] = r
         if r.status in ("failed", "partial"):
-            failures += 1
-            if max_failures is not None and failures >= max_failures and stop is None:
-                stop = (f"not started: {failures} device{'s' if failures != 1 else ''} ended failed or partial "
-                        f"(--max-failures {max_failures})")
+            budget.failures += 1
         if on_done:
             on_done(r)
 
@@ -580,11 +699,18 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         batch = jobs[pos:pos + size]
         pos += size
         await on_buses(batch, parallel, one)
-        ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
-        if stop is None and pos < len(jobs) and ran and all(r.status != "ok" for r in ran):
-            which = f"the canary {ran[0].name}" if len(batch) == 1 else f"all {len(ran)} devices"
-            stop = f"not started: batch {number} failed ({which} did not end ok)"
+        if stop is None and pos < len(jobs):
+            stop = batch_failed(number, batch, done)
     return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
+
+
+def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:
+    """Ansible's ``serial`` rule: a batch in which no device that ran ended ok ends the rollout."""
+    ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
+    if not ran or any(r.status == "ok" for r in ran):
+        return None
+    which = f"the canary {ran[0].name}" if len(batch) == 1 else f"all {len(ran)} devices"
+    return f"not started: batch {number} failed ({which} did not end ok)"
 
 
 async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,

@@ -11,6 +11,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
+from . import codec
 from .diagnostics import Diagnostic, InputError, UsageError
 
 if TYPE_CHECKING:
@@ -159,6 +160,16 @@ def _plan_run(sizes: Sequence[int], must: Sequence[bool], limit: int) -> list[tu
     return slices
 
 
+def merge_fields(fields: Sequence[Parameter], bits: Sequence[int], current: int | None) -> int:
+    """One register's word: the fields' new bits over what the device holds (0 where unknown)."""
+    mask = 0
+    word = 0
+    for p, b in zip(fields, bits, strict=True):
+        mask |= p.mask
+        word |= b & p.mask
+    return ((current or 0) & ~mask & 0xFFFF) | word
+
+
 def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str, tuple[int, ...]] | None = None,
                 *, write_all: bool = False) -> tuple[tuple[PlannedParameter, ...], tuple[WriteRequest, ...]]:
     """The fewest write requests carrying ``desired`` (see the proof above).
@@ -178,45 +189,76 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
     stages = [p.stage for p in params_]
     regs = [tuple(d.registers) for d in ordered]
     n = len(ordered)
-    for k in range(n):
+    # Bit fields of one register form one unit: one merged word, written or left together. Units are
+    # slices of ``ordered``: unit u is params bounds[u]:bounds[u + 1] (one parameter each without fields).
+    fields = any(p.mask for p in params_)
+    bounds: Sequence[int] = range(n + 1)
+    if fields:
+        bounds = [0, *(k for k in range(1, n) if not (params_[k].mask and params_[k - 1].mask
+                                                       and addrs[k] == addrs[k - 1] and stages[k] == stages[k - 1])), n]
+    nu = len(bounds) - 1
+    for u in range(nu):
+        k = bounds[u]
         if not fc6 and sizes[k] > limit:
             raise UsageError(f"{names[k]} needs {sizes[k]} registers in one request, but the device takes "
                              f"at most {limit} per request (limits in the profile)")
-        if len(regs[k]) != sizes[k]:
-            raise UsageError(f"{names[k]}: {len(regs[k])} register values for a {sizes[k]}-register parameter")
+        for m in range(k, bounds[u + 1]):
+            if len(regs[m]) != sizes[m]:
+                raise UsageError(f"{names[m]}: {len(regs[m])} register values for a {sizes[m]}-register parameter")
         # two values for one register would make the plan's outcome depend on request order
-        if k and stages[k - 1] == stages[k] and addrs[k] < addrs[k - 1] + sizes[k - 1]:
-            raise UsageError(f"{names[k]} overlaps {names[k - 1]} (registers {addrs[k]} and "
-                             f"{addrs[k - 1]}..{addrs[k - 1] + sizes[k - 1] - 1}): each register may be planned once")
+        h = k - 1
+        if u and stages[h] == stages[k] and addrs[k] < addrs[h] + sizes[h]:
+            raise UsageError(f"{names[k]} overlaps {names[h]} (registers {addrs[k]} and "
+                             f"{addrs[h]}..{addrs[h] + sizes[h] - 1}): each register may be planned once")
 
     if write_all or current is None:
-        must = [True] * n
+        must_p = [True] * n
+    elif fields:
+        must_p = [not params_[k].same_value(current.get(names[k]), regs[k]) for k in range(n)]
     else:
-        must = [current.get(names[k]) != regs[k] for k in range(n)]
-    actions: list[Action] = ["write" if m else "unchanged" for m in must]
+        must_p = [current.get(names[k]) != regs[k] for k in range(n)]
+    must = must_p
+    if fields:
+        for u in range(nu):
+            lo, hi = bounds[u], bounds[u + 1]
+            if params_[lo].mask:
+                known = None if current is None else next((current[names[k]][0] for k in range(lo, hi)
+                                                            if names[k] in current), None)
+                merged = (merge_fields(params_[lo:hi], [regs[k][0] for k in range(lo, hi)], known),)
+                for k in range(lo, hi):
+                    regs[k] = merged
+        must = [any(must_p[bounds[u]:bounds[u + 1]]) for u in range(nu)]
+    actions: list[Action] = ["write" if m else "unchanged" for m in must_p]
     writes: list[WriteRequest] = []
     i = 0
-    while i < n:
-        j = i + 1  # a maximal run: same stage, contiguous registers
-        while j < n and stages[j] == stages[i] and addrs[j] == addrs[j - 1] + sizes[j - 1]:
+    while i < nu:
+        j = i + 1  # a maximal run of units: same stage, contiguous registers
+        while j < nu and stages[bounds[j]] == stages[bounds[i]] and \
+                addrs[bounds[j]] == addrs[bounds[j - 1]] + sizes[bounds[j - 1]]:
             j += 1
-        stage = stages[i]
+        stage = stages[bounds[i]]
         if fc6:
             # FC06 carries one register, so the "never split" rule cannot hold on such devices: a
             # 2/4-register value goes as one FC06 per word, in ascending address order (the word at
             # the lower address first, whatever the word order), the words of one parameter back to
             # back with nothing in between. No bridges: one request per register saves nothing.
-            for k in range(i, j):
-                if must[k]:
-                    writes.extend(WriteRequest(6, addrs[k] + w, (word,), (names[k],), stage)
+            for u in range(i, j):
+                if must[u]:
+                    k = bounds[u]
+                    writes.extend(WriteRequest(6, addrs[k] + w, (word,), tuple(names[k:bounds[u + 1]]), stage)
                                   for w, word in enumerate(regs[k]))
+                    for m in range(k, bounds[u + 1]):
+                        if not must_p[m]:
+                            actions[m] = "bridge"
         else:
-            for a, b in _plan_run(sizes[i:j], must[i:j], limit):
-                for k in range(i + a, i + b):
-                    if not must[k]:
+            sizes_u = sizes[i:j] if not fields else [sizes[bounds[u]] for u in range(i, j)]
+            for a, b in _plan_run(sizes_u, must[i:j], limit):
+                lo, hi = bounds[i + a], bounds[i + b]
+                for k in range(lo, hi):
+                    if not must_p[k]:
                         actions[k] = "bridge"
-                writes.append(WriteRequest(16, addrs[i + a], tuple(w for k in range(i + a, i + b) for w in regs[k]),
-                                           tuple(names[i + a:i + b]), stage))
+                words = tuple(w for u in range(i + a, i + b) for w in regs[bounds[u]])
+                writes.append(WriteRequest(16, addrs[lo], words, tuple(names[lo:hi]), stage))
         i = j
     planned = tuple(
         PlannedParameter(names[k], addrs[k], sizes[k], ordered[k].text, regs[k],
@@ -257,7 +299,7 @@ def plan_reads(profile: Profile, names: Iterable[str], *, gaps: bool = True) -> 
         barriers = sorted(p.address for p in profile.parameters if not p.readable)
 
     def joins(prev: Parameter, nxt: Parameter) -> bool:
-        if nxt.address == prev.end:
+        if nxt.address in (prev.end, prev.address):  # adjacent, or bit fields sharing one register
             return True
         if nxt.address - prev.end > max_gap:
             return False
@@ -444,9 +486,15 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
             errors.append(src.error(("parameters", i, "name"),
                                     f"{pp.name} does not match profile {prof.id} (address or size differ)"))
             continue
-        raw = param.decode(pp.desired_raw)
+        if param.is_string:
+            try:
+                param.text_of(pp.desired_raw)
+            except codec.CodecError as e:
+                errors.append(src.error(("parameters", i, "desired_raw"), f"{pp.name}: {e}"))
+                continue
+        raw = None if param.is_string else param.decode(pp.desired_raw)
         bounds = param.raw_bounds()
-        if not param.writable or (bounds is not None and not bounds[0] <= raw <= bounds[1]):
+        if not param.writable or (raw is not None and bounds is not None and not bounds[0] <= raw <= bounds[1]):
             errors.append(src.error(("parameters", i, "desired_raw"),
                                     f"{pp.name}: raw {raw} is not writable within the profile's range"))
             continue

@@ -234,7 +234,7 @@ def _check_snapshot(prof: Profile, desired: Sequence[Desired], snap: SnapshotInf
         e = entries[d.name]
         if rec is None:
             errors.append(e.src.error(e.at, f"{d.name} is not among the snapshot's recorded registers", key=True))
-        elif rec != d.registers:
+        elif not d.parameter.same_value(rec, d.registers):  # a bit field: its own bits of the word
             errors.append(e.src.error(e.at, (
                 f"{d.name}: {d.text} does not match the registers the snapshot recorded "
                 f"({' '.join(f'{w:04X}h' for w in rec)}); a snapshot restores what the device held: "
@@ -336,6 +336,18 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
     value = e.value
     rounding: Literal["exact", "nearest"] = (
         "nearest" if "nearest" in (param.rounding, recipe_rounding) else "exact")
+    if param.is_string:
+        if isinstance(value, dict) or value is None:
+            fail("a string parameter takes text")
+            return None
+        try:
+            regs = param.encode_text(str(value))
+        except codec.CodecError as err:
+            fail(str(err))
+            return None
+        return Desired(param, str(value), regs)
+    if param.type == codec.BOOL and (isinstance(value, bool) or value in ("true", "false")):
+        value = int(value in (True, "true"))
     if isinstance(value, dict) and "raw" in value:
         return _from_raw(param, value["raw"], e, fail, trusted=trusted)
     if isinstance(value, dict):  # {value: ..., rounding: ...}
@@ -353,7 +365,7 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
     if isinstance(eng, tuple):  # an enumeration label: raw value given directly
         return Desired(param, eng[0], param.encode(eng[1]))
     try:
-        raw = codec.to_raw(eng, param.type, param.scale, param.offset, rounding)
+        raw = param.to_raw(eng, rounding)
     except codec.CodecError as err:
         msg = str(err)
         if "resolution" in msg and param.unit:
@@ -373,7 +385,7 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
 
 def _from_raw(param: Parameter, raw_v: Any, e: Entry, fail: Any, *, trusted: bool = False) -> Desired | None:
     raw: codec.Raw
-    if codec.is_float(param.type):
+    if param.is_float:
         raw = float(raw_v)
     elif isinstance(raw_v, int) or (isinstance(raw_v, Decimal) and raw_v == raw_v.to_integral_value()):
         raw = int(raw_v)
@@ -439,6 +451,12 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
 
     None when the value lies outside the profile's range (a recipe could not set it).
     """
+    if param.is_string:
+        try:
+            text = param.text_of(tuple(registers))
+            return text if param.encode_text(text) == tuple(registers) else None
+        except codec.CodecError:
+            return None
     raw = param.decode(tuple(registers))
     label = param.label_for(raw)
     if label is not None:
@@ -448,7 +466,9 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
     bounds = param.raw_bounds()
     if bounds is not None and not bounds[0] <= raw <= bounds[1]:
         return None
-    if codec.is_float(param.type) and param.scale == 1 and param.offset == 0:
+    if param.type == codec.BOOL:
+        return "true" if raw else "false"
+    if param.is_float and param.scale == 1 and param.offset == 0:
         text = codec.shortest_float_repr(float(raw), param.type)
     else:
         text = codec.format_decimal(param.to_engineering(tuple(registers)))
@@ -485,6 +505,8 @@ def snapshot_value(param: Parameter, registers: Sequence[int]) -> str | None:
     None only for values no text can say (a NaN or infinite float): snapshots restore those from
     their recorded registers.
     """
+    if param.is_string:  # text that does not read back exactly is restored from its registers
+        return value_text(param, registers)
     raw = param.decode(tuple(registers))
     if isinstance(raw, float) and not math.isfinite(raw):
         return None
@@ -525,6 +547,9 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
         v = snapshot_value(param, regs) if snapshot is not None else value_text(param, regs)
         words = " ".join(f"{w:04X}" for w in regs)
         if v is None:
+            if param.is_string:
+                body.append(f"  # {key}: registers {words}h are not {param.encoding} text padded with {param.padding}")
+                continue
             raw = param.decode(tuple(regs))
             why = ("restored from snapshot.registers" if snapshot is not None
                    else f"is outside the profile's range {_range_text(param)}")
@@ -534,7 +559,7 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
             body.append(f"  {key}: {v}  # {words}h, outside the profile's range {_range_text(param)}")
             continue
         # numbers stay numbers (in the profile's unit); text stays plain where YAML reads it back as the same text
-        rendered = v if _reads_back(v) else json.dumps(v)
+        rendered = v if param.type == codec.BOOL or (not param.is_string and _reads_back(v)) else json.dumps(v)
         body.append(f"  {key}: {rendered}")
     lines.append("parameters:" if any(not b.lstrip().startswith("#") for b in body) else "parameters: {}")
     return "\n".join(lines + body) + "\n"

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from .diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE
+
+if TYPE_CHECKING:
+    from .profile import Parameter
 
 REPORT_SCHEMA = "deployer.report/1"
 ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
@@ -29,6 +33,16 @@ class RequestRecord:
                 "exception_code": self.exception_code, "attempts": self.attempts}
 
 
+def show_registers(p: Parameter, regs: Sequence[int] | None) -> str | None:
+    """Engineering text for registers ('10 s', 'coast'), or the raw words where the codec cannot show them."""
+    if regs is None:
+        return None
+    try:
+        return p.format_registers(tuple(regs))
+    except Exception:  # a value the codec cannot show (e.g. NaN): show raw words
+        return " ".join(f"{w:04X}h" for w in regs)
+
+
 @dataclass
 class ParameterResult:
     name: str
@@ -40,9 +54,17 @@ class ParameterResult:
     after_raw: tuple[int, ...] | None = None
     status: ParamStatus = "skipped"
     error: str | None = None
-    # engineering texts for the human table (not in the JSON contract)
-    before: str | None = None
-    after: str | None = None
+    # the profile's parameter, for engineering texts in the human table (not in the JSON contract); the
+    # texts are made only when shown: a fleet's report is mostly JSON, and formatting every value cost more
+    parameter: Parameter | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def before(self) -> str | None:
+        return None if self.parameter is None else show_registers(self.parameter, self.before_raw)
+
+    @property
+    def after(self) -> str | None:
+        return None if self.parameter is None else show_registers(self.parameter, self.after_raw)
 
     def to_json(self) -> dict[str, Any]:
         return {"name": self.name, "address": self.address, "count": self.count, "desired": self.desired,
@@ -144,12 +166,18 @@ class Report:
 
 def write_json(data: dict[str, Any], path: str) -> None:
     """Write atomically and durably: a report or plan is evidence, keep it whole."""
+    write_atomic(path, json.dumps(data, indent=2) + "\n")
+
+
+def write_atomic(path: str, text: str) -> None:
+    """Replace ``path`` with ``text``: a temporary file, fsync'ed, then renamed over it."""
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=2)
-        f.write("\n")
+        f.write(text)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+

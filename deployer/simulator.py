@@ -25,6 +25,7 @@ import urllib.parse
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from decimal import Decimal
 from typing import Any
 
 from pymodbus import FramerType
@@ -33,7 +34,6 @@ from pymodbus.exceptions import NoSuchIdException
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from . import codec
 from .profile import Parameter, Profile
 from .recipe import Recipe
 
@@ -98,20 +98,39 @@ def _frame_chars(function: int, count: int, request: bool) -> int:
 
 
 def initial_registers(profile: Profile) -> dict[int, int]:
-    """Power-on values: each parameter's default (engineering), else zero."""
-    regs: dict[int, int] = {}
+    """Power-on values: each parameter's default (engineering), else zero; fields OR'ed into their register."""
+    regs: dict[int, int] = {a: 0 for a in _action_registers(profile)}
     for p in profile.parameters:
         words: tuple[int, ...] = (0,) * p.count
-        if p.default is not None:
-            words = codec.engineering_to_registers(p.default, p.type, p.scale, p.offset, p.word_order, "nearest")
+        if p.is_string:
+            words = p.encode_text(p.default if isinstance(p.default, str) else "")
+        elif isinstance(p.default, Decimal):
+            words = p.encode(p.to_raw(p.default, "nearest"))
+        if p.mask:
+            regs[p.address] = regs.get(p.address, 0) | words[0]
+            continue
         for i, w in enumerate(words):
             regs[p.address + i] = w
     return regs
 
 
+def _action_registers(profile: Profile) -> set[int]:
+    """Registers the profile's unlock/lock/commit writes and preconditions use (they exist on the device)."""
+    regs = {c.address for c in profile.preconditions}
+    for act in (*profile.unlock, *profile.lock, *profile.commit):
+        regs.update(range(act.address, act.address + len(act.registers)))
+    return regs
+
+
 def init_from_recipe(recipe: Recipe) -> dict[int, int]:
     """Wire address -> raw register for every value of a recipe (for ``--init``)."""
-    return {d.parameter.address + i: w for d in recipe.desired for i, w in enumerate(d.registers)}
+    regs: dict[int, int] = {}
+    for d in recipe.desired:
+        if d.parameter.mask:  # fields of one register: each sets its own bits
+            regs[d.parameter.address] = (regs.get(d.parameter.address, 0) & ~d.parameter.mask) | d.registers[0]
+            continue
+        regs.update((d.parameter.address + i, w) for i, w in enumerate(d.registers))
+    return regs
 
 
 class _Units:
@@ -160,13 +179,21 @@ class Simulator:
         self._writes = 0  # write requests, for busy_first
         # requests awaiting their answer; several TCP clients may reuse a transaction id, so FIFO per key
         self._pending: dict[tuple[int, int, int], deque[LogEntry]] = {}
-        self._owner: dict[int, Parameter] = {}
+        self._owner: dict[int, list[Parameter]] = {}  # several bit fields may share a register
         for p in profile.parameters:
             for a in range(p.address, p.end):
-                self._owner[a] = p
+                self._owner.setdefault(a, []).append(p)
+        self._action_regs = _action_registers(profile)
+        self._extra = sorted(self._action_regs - self._owner.keys())
+        self._unlock_regs = {a.address + i: w for a in profile.unlock for i, w in enumerate(a.registers)}
+        self._lock_regs = {a.address + i for a in profile.lock for i in range(len(a.registers))}
+        # the writes after which the device is busy for a while: (address, the words written) -> ms
+        self._waits = {(a.address, a.registers): a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit)
+                       if a.wait_ms}
+        self._busy_until = 0.0  # a declared wait after an unlock/commit/lock write: busy (06) meanwhile
         start = initial_registers(profile)
         for a, v in (init or {}).items():
-            if a not in self._owner:
+            if a not in self._owner and a not in self._extra:
                 raise ValueError(f"init: register {a} is not declared in profile {profile.id}")
             start[a] = v
         self._start_values = start
@@ -234,7 +261,7 @@ class Simulator:
 
     def registers(self, unit: int = 1) -> dict[int, int]:
         start, regs = self._block(unit)
-        return {a: regs[a - start] for a in sorted(self._owner)}
+        return {a: regs[a - start] for a in sorted({*self._owner, *self._extra})}
 
     def read(self, name: str, unit: int = 1) -> tuple[int, ...]:
         p = self.profile.parameter(name)
@@ -258,13 +285,22 @@ class Simulator:
     # ---- the device ----------------------------------------------------------------------------
 
     def _device(self, unit: int) -> SimDevice:
-        blocks = [SimData(address=p.address, values=[self._start_values[a] for a in range(p.address, p.end)],
-                          datatype=DataType.REGISTERS, readonly=not p.writable)
-                  for p in self.profile.parameters]
+        blocks = []
+        done: set[int] = set()
+        for p in self.profile.parameters:
+            if p.address in done:  # bit fields sharing a register: one block
+                continue
+            done.add(p.address)
+            writable = any(q.writable for q in self._owner[p.address])
+            blocks.append(SimData(address=p.address, values=[self._start_values[a] for a in range(p.address, p.end)],
+                                  datatype=DataType.REGISTERS, readonly=not writable))
+        blocks += [SimData(address=a, values=[self._start_values.get(a, 0)], datatype=DataType.REGISTERS)
+                   for a in self._extra]
         if self.gap_reads:  # read-only zeros in every gap between declared registers
-            declared = sorted(self._owner)
+            declared = sorted({*self._owner, *self._extra})
             blocks += [SimData(address=a + 1, values=[0] * (b - a - 1), datatype=DataType.REGISTERS, readonly=True)
                        for a, b in itertools.pairwise(declared) if b - a > 1]
+        blocks.sort(key=lambda b: b.address)
 
         async def action(fc: int, start: int, address: int, count: int, registers: list[int],
                          values: list[int] | list[bool] | None) -> ExcCodes | None:
@@ -276,10 +312,20 @@ class Simulator:
     def _params_in(self, address: int, count: int) -> list[Parameter]:
         seen: dict[str, Parameter] = {}
         for a in range(address, address + count):
-            p = self._owner.get(a)
-            if p is not None:
+            for p in self._owner.get(a, ()):
                 seen.setdefault(p.name, p)
         return sorted(seen.values(), key=lambda p: p.address)
+
+    def unlocked(self, registers: Mapping[int, int]) -> bool:
+        """The profile's unlock values are in place (a device without unlock is always unlocked)."""
+        return all(registers.get(a) == v for a, v in self._unlock_regs.items())
+
+    def guarded(self, registers: Mapping[int, int]) -> str | None:
+        """Why parameter writes are refused now (a failing precondition, e.g. 'drive running'), or None."""
+        for c in self.profile.preconditions:
+            if not c.holds(registers.get(c.address, 0)):
+                return c.what()
+        return None
 
     async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int],
                       values: list[int] | None) -> ExcCodes | None:
@@ -302,8 +348,14 @@ class Simulator:
                     return ExcCodes.ILLEGAL_ADDRESS
             return None
         self._writes += 1
-        if self._writes <= f.busy_first:
+        if self._writes <= f.busy_first or time.monotonic() < self._busy_until:
             return ExcCodes.DEVICE_BUSY
+        touches_parameters = any(a not in self._action_regs for a in range(address, address + count))
+        if touches_parameters and (self._unlock_regs or self.profile.preconditions):
+            current = {a: registers[a - start] for a in (*self._unlock_regs, *(
+                c.address for c in self.profile.preconditions)) if 0 <= a - start < len(registers)}
+            if not self.unlocked(current) or self.guarded(current):
+                return ExcCodes.DEVICE_FAILURE  # parameters locked, or the drive is running
         if self.strict_limits and fc == 16 and count > limits.write_registers:
             return ExcCodes.ILLEGAL_VALUE
         single_words = fc == 6 and limits.write_function == 6  # FC06 devices take a 32-bit value word by word
@@ -317,10 +369,19 @@ class Simulator:
             if hi - lo == p.count and not self._in_range(p, new):
                 return ExcCodes.ILLEGAL_VALUE
             registers[lo - start: hi - start] = new
+        for a in range(address, address + count):  # registers of unlock/lock/commit writes only
+            if not self._owner.get(a):
+                registers[a - start] = values[a - address]
+        for (a, words), wait in self._waits.items():  # e.g. storing to EEPROM: busy for the declared time
+            if address <= a and a + len(words) <= address + count and \
+                    tuple(values[a - address:a - address + len(words)]) == words:
+                self._busy_until = time.monotonic() + wait / 1000
         return None
 
     @staticmethod
     def _in_range(p: Parameter, words: list[int]) -> bool:
+        if p.is_string:
+            return True  # a device stores whatever bytes it is sent
         raw = p.decode(words)
         if isinstance(raw, float) and raw != raw:  # NaN
             return False

@@ -90,3 +90,134 @@ def test_engineering_round_trip(case: tuple[str, int], scale: Decimal, offset: D
     regs = codec.engineering_to_registers(eng, type_, scale, offset, order)
     assert codec.decode(regs, type_, order) == raw
     assert codec.registers_to_engineering(regs, type_, scale, offset, order) == eng
+
+
+# ---- layouts: ABCD, CDAB, BADC, DCBA and their 64-bit forms ---------------------------------
+
+# Honeywell HC900 Communications User Guide, "Modbus Double Register Format" (Table 3-1 and 3.2):
+# the value 12345678h in its four selectable formats, register N then register N+1.
+#   FP B  (byte order 4,3,2,1) = ABCD: 1234 5678     FP BB (3,4,1,2) = BADC: 3412 7856
+#   FP L  (1,2,3,4)            = DCBA: 7856 3412     FP LB (2,1,4,3) = CDAB: 5678 1234 (Modicon standard)
+HC900 = {"ABCD": (0x1234, 0x5678), "BADC": (0x3412, 0x7856), "DCBA": (0x7856, 0x3412), "CDAB": (0x5678, 0x1234)}
+
+
+@pytest.mark.parametrize("layout", sorted(HC900))
+def test_hc900_manual_example_per_layout(layout: str) -> None:
+    order, swap = codec.LAYOUTS[layout]
+    assert codec.encode(0x12345678, "uint32", order, swap) == HC900[layout]
+    assert codec.decode(HC900[layout], "uint32", order, swap) == 0x12345678
+    assert codec.layout_name(order, swap, "uint32") == layout
+
+
+@pytest.mark.parametrize(("swap", "layout"), [("none", "ABCD"), ("byte", "BADC"), ("word", "CDAB"),
+                                              ("word_byte", "DCBA")])
+def test_home_assistant_swap_names(swap: str, layout: str) -> None:
+    # Home Assistant modbus integration: swap none|byte|word|word_byte
+    assert codec.SWAPS[swap] == codec.LAYOUTS[layout]
+
+
+def test_float32_layouts_of_one_value() -> None:
+    # IEEE 754: 123.456f = 42F6E979h (bytes A=42 B=F6 C=E9 D=79)
+    expected = {"ABCD": (0x42F6, 0xE979), "CDAB": (0xE979, 0x42F6), "BADC": (0xF642, 0x79E9),
+                "DCBA": (0x79E9, 0xF642)}
+    for layout, regs in expected.items():
+        assert codec.encode(123.456, "float32", *codec.LAYOUTS[layout]) == regs
+
+
+@pytest.mark.parametrize(("layout", "regs"), [
+    ("ABCDEFGH", (0x0102, 0x0304, 0x0506, 0x0708)),
+    ("GHEFCDAB", (0x0708, 0x0506, 0x0304, 0x0102)),
+    ("BADCFEHG", (0x0201, 0x0403, 0x0605, 0x0807)),
+    ("HGFEDCBA", (0x0807, 0x0605, 0x0403, 0x0201)),
+])
+def test_64_bit_layouts(layout: str, regs: tuple[int, ...]) -> None:
+    # bytes A..H = 01..08: each name spells which byte lands where
+    order, swap = codec.LAYOUTS[layout]
+    assert codec.encode(0x0102030405060708, "uint64", order, swap) == regs
+    assert codec.layout_name(order, swap, "uint64") == layout
+
+
+_LAYOUT_PAIRS = sorted(set(codec.LAYOUTS.values()))
+
+
+@given(_int_case(), st.sampled_from(_LAYOUT_PAIRS))
+def test_integer_round_trip_every_layout(case: tuple[str, int], layout: tuple[str, bool]) -> None:
+    type_, raw = case
+    regs = codec.encode(raw, type_, *layout)
+    assert codec.decode(regs, type_, *layout) == raw
+    # a layout is a permutation of the bytes of the big-endian form
+    big = b"".join(w.to_bytes(2, "big") for w in codec.encode(raw, type_))
+    assert sorted(b"".join(w.to_bytes(2, "big") for w in regs)) == sorted(big)
+
+
+@given(st.floats(allow_nan=False), st.sampled_from(_LAYOUT_PAIRS), st.sampled_from(["float32", "float64"]))
+def test_float_round_trip_every_layout(x: float, layout: tuple[str, bool], type_: str) -> None:
+    if type_ == "float32":
+        x = codec.decode(codec.encode(x if abs(x) < 3e38 else 0.0, "float32"), "float32")
+    assert codec.decode(codec.encode(x, type_, *layout), type_, *layout) == x
+
+
+# ---- strings ----------------------------------------------------------------------------------
+
+
+def test_string_golden_bytes() -> None:
+    # two characters per register, the first in the high byte (e.g. Vaisala's Modbus API, SunSpec);
+    # NUL padding; byte swap puts the first character in the low byte
+    assert codec.encode_string("ABC", 2) == (0x4142, 0x4300)
+    assert codec.encode_string("ABC", 2, padding="space") == (0x4142, 0x4320)
+    assert codec.encode_string("ABC", 2, byte_swap=True) == (0x4241, 0x0043)
+    assert codec.encode_string("Müller", 3, "latin-1") == (0x4DFC, 0x6C6C, 0x6572)
+
+
+def test_string_errors() -> None:
+    with pytest.raises(codec.CodecError, match="5 characters; 2 registers hold at most 4"):
+        codec.encode_string("ABCDE", 2)
+    with pytest.raises(codec.CodecError, match="'ü' at character 2 is not ascii"):
+        codec.encode_string("Mü", 2)
+    with pytest.raises(codec.CodecError, match="not ascii text"):
+        codec.decode_string((0x41FC,))
+
+
+@given(st.text(alphabet=st.characters(min_codepoint=0x21, max_codepoint=0xFF), max_size=16),
+       st.sampled_from(["nul", "space"]), st.booleans())
+def test_string_round_trip(text: str, padding: str, swap: bool) -> None:
+    regs = codec.encode_string(text, 8, "latin-1", padding, swap)
+    assert len(regs) == 8
+    assert codec.decode_string(regs, "latin-1", swap) == text
+
+
+# ---- bit fields -------------------------------------------------------------------------------
+
+
+def test_bits_and_masks() -> None:
+    assert codec.parse_bits(3) == 0x0008
+    assert codec.parse_bits("3..5") == 0x0038
+    assert codec.mask_shift(0x0038) == (3, 3)
+    with pytest.raises(ValueError, match="contiguous"):
+        codec.mask_shift(0x0101)
+    with pytest.raises(ValueError, match="outside 0..15"):
+        codec.parse_bits("14..16")
+    assert codec.insert_field(5, 0x0038, word=0xFFFF) == 0xFFEF
+    assert codec.extract_field(0xFFEF, 0x0038) == 5
+    assert codec.extract_field(0x0030, 0x0038, signed=True) == -2
+    with pytest.raises(codec.CodecError, match="does not fit in 3 bits"):
+        codec.insert_field(8, 0x0038)
+
+
+@given(st.integers(0, 15), st.integers(1, 16), st.integers(0, 0xFFFF), st.data())
+def test_field_round_trip_keeps_other_bits(lo: int, width: int, word: int, data: st.DataObject) -> None:
+    width = min(width, 16 - lo)
+    mask = ((1 << width) - 1) << lo
+    raw = data.draw(st.integers(0, (1 << width) - 1))
+    new = codec.insert_field(raw, mask, word=word)
+    assert codec.extract_field(new, mask) == raw
+    assert new & ~mask == word & ~mask
+
+
+@pytest.mark.parametrize(("name", "layout"), [
+    ("big-endian", "ABCD"), ("little-endian", "DCBA"),
+    ("big-endian-byte-swap", "BADC"), ("big-endian-word-swap", "CDAB"),
+    ("little-endian-byte-swap", "CDAB"), ("little-endian-word-swap", "BADC"),  # DCBA with bytes / words swapped
+])
+def test_layout_names_from_tools(name: str, layout: str) -> None:
+    assert codec.LAYOUTS[name] == codec.LAYOUTS[layout]

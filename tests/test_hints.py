@@ -9,12 +9,13 @@ import pytest
 
 from deployer.cli import validate_file
 from deployer.diagnostics import InputError
-from deployer.profile import builtin_profile
+from deployer.profile import builtin_profile, builtin_profile_ids
 from deployer.simulator import Faults, SimulatorThread
 from tests.conftest import free_port
 from tests.helpers import run_cli as cli
 
 pytestmark = pytest.mark.timeout(60)
+BUILTINS = ", ".join(builtin_profile_ids())  # example-inverter, omron-m1, ... as the message lists them
 
 
 
@@ -61,8 +62,8 @@ def test_unknown_builtin_profile_lists_the_builtins_and_says_a_path_works(tmp_pa
     recipe = tmp_path / "r.yaml"
     recipe.write_text("recipe: r\nprofile: pid-ctrl\nparameters: {sp: 1}\n")
     assert messages(recipe) == [
-        f"{recipe}:2:10: error: unknown built-in profile 'pid-ctrl' (built-in: example-inverter, omron-m1, "
-        "oriental-az); a profile file works too: its path relative to the recipe, ending in .yaml, "
+        f"{recipe}:2:10: error: unknown built-in profile 'pid-ctrl' (built-in: {BUILTINS}"
+        "); a profile file works too: its path relative to the recipe, ending in .yaml, "
         "e.g. 'pid-ctrl.yaml'"]
     (tmp_path / "pid-ctrl.yaml").write_text("profile: pid-ctrl\nparameters: {sp: {register: 1, type: uint16}}\n")
     assert messages(recipe)[0].endswith("ending in .yaml, did you mean 'pid-ctrl.yaml'?")
@@ -73,7 +74,7 @@ def test_unknown_builtin_profile_lists_the_builtins_and_says_a_path_works(tmp_pa
 def test_unknown_builtin_profile_on_the_command_line(capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = cli(capsys, "profiles", "show", "pid-ctrl")
     assert code == 1 and err == (
-        "error: unknown built-in profile 'pid-ctrl' (built-in: example-inverter, omron-m1, oriental-az); a profile "
+        f"error: unknown built-in profile 'pid-ctrl' (built-in: {BUILTINS}); a profile "
         "file works too: its path relative to the current directory, ending in .yaml, e.g. 'pid-ctrl.yaml'\n")
 
 
@@ -96,8 +97,8 @@ def test_unknown_profile_in_an_inventory_says_paths_are_relative_to_it(tmp_path:
     inv.write_text("devices:\n  press-1: {url: 'tcp://127.0.0.1', profile: drive-b}\n")
     (tmp_path / "drive-b.yaml").write_text("profile: drive-b\nparameters: {sp: {register: 1, type: uint16}}\n")
     assert messages(inv) == [
-        f"{inv}:2:46: error: unknown built-in profile 'drive-b' (built-in: example-inverter, omron-m1, "
-        "oriental-az); a profile file works too: its path relative to the inventory, ending in .yaml, "
+        f"{inv}:2:46: error: unknown built-in profile 'drive-b' (built-in: {BUILTINS}"
+        "); a profile file works too: its path relative to the inventory, ending in .yaml, "
         "did you mean 'drive-b.yaml'?"]
 
 

@@ -1,196 +1,20 @@
-"""Device profiles: the object dictionary of one device type (where each parameter lives).
-
-The data model below is shared by every module. Loading from YAML (schema + semantic
-checks with FILE:LINE:COL diagnostics) lives in this module too.
-"""
+"""Loading profiles from YAML: schema + semantic checks with FILE:LINE:COL diagnostics."""
 
 from __future__ import annotations
 
 import hashlib
-import math
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from decimal import Decimal
-from typing import Any, Literal
+from typing import Any
 
-from . import codec, units, yamlsrc
-from .diagnostics import Diagnostic, InputError, UsageError
-
-Access = Literal["read-write", "read-only", "write-only"]
-Addressing = Literal["address", "register-number", "modicon"]
-
-PROTOCOL_MAX_WRITE = 123  # FC16: 0x7B registers (Modbus Application Protocol v1.1b3, 6.12)
-PROTOCOL_MAX_READ = 125  # FC03: 0x7D registers (6.3)
-ASCII_MAX_CHARS = 513  # ':' + 2 x (address + 253-byte PDU) + LRC + CR LF (Modbus over serial line 2.5.2.1)
-
-
-@dataclass(frozen=True)
-class Limits:
-    max_write_registers: int = PROTOCOL_MAX_WRITE
-    max_read_registers: int = PROTOCOL_MAX_READ
-    max_frame_bytes: int = 256  # whole RTU frame: unit id + PDU + CRC
-    write_function: Literal[6, 16] = 16
-    max_ascii_chars: int = ASCII_MAX_CHARS  # whole ASCII frame: ':' + hex pairs + LRC + CR LF
-    # reads may span up to this many consecutive undeclared registers (0: never; DESIGN planning rule 5)
-    max_read_gap: int = 0
-
-    @property
-    def write_registers(self) -> int:
-        """Registers one write request may carry (DESIGN.md, planning rule 2)."""
-        if self.write_function == 6:
-            return 1
-        # FC16 RTU frame: unit(1) fc(1) addr(2) qty(2) bytecount(1) data(2n) crc(2) = 9 + 2n;
-        # the same in ASCII: ':' + 2 x (7 + 2n) + LRC(2) + CR LF(2) = 19 + 4n characters
-        return max(0, min(PROTOCOL_MAX_WRITE, self.max_write_registers, (self.max_frame_bytes - 9) // 2,
-                          (self.max_ascii_chars - 19) // 4))
-
-    @property
-    def read_registers(self) -> int:
-        """Registers one FC03 request may ask for; the answer frame is 5 + 2n bytes (11 + 4n ASCII characters)."""
-        return max(0, min(PROTOCOL_MAX_READ, self.max_read_registers, (self.max_frame_bytes - 5) // 2,
-                          (self.max_ascii_chars - 11) // 4))
-
-
-@dataclass(frozen=True)
-class Parameter:
-    """One parameter at its wire address (0-based protocol address)."""
-
-    name: str  # "F07", or "operation_data[3].position" for table entries
-    address: int
-    type: str  # a codec.TYPE_NAMES member
-    word_order: str = "big"
-    scale: Decimal = Decimal(1)
-    offset: Decimal = Decimal(0)
-    unit: str | None = None  # pint unit text; None = dimensionless
-    min: Decimal | None = None  # engineering units, inclusive
-    max: Decimal | None = None
-    access: Access = "read-write"
-    values: tuple[tuple[str, int], ...] = ()  # enumeration: label -> raw value
-    stage: int = 0
-    default: Decimal | None = None  # engineering; the simulator's power-on value
-    rounding: Literal["exact", "nearest"] | None = None
-    description: str = ""
-    line: int = 0  # where the parameter is defined in the profile file (1-based)
-    col: int = 0
-
-    @property
-    def count(self) -> int:
-        return codec.register_count(self.type)
-
-    @property
-    def end(self) -> int:
-        """One past the last register."""
-        return self.address + self.count
-
-    @property
-    def readable(self) -> bool:
-        return self.access != "write-only"
-
-    @property
-    def writable(self) -> bool:
-        return self.access != "read-only"
-
-    def label_for(self, raw: codec.Raw) -> str | None:
-        for label, value in self.values:
-            if value == raw:
-                return label
-        return None
-
-    def raw_bounds(self) -> tuple[codec.Raw, codec.Raw] | None:
-        """Inclusive raw range allowed by min/max (and the type); None for unbounded floats."""
-        rng = codec.raw_range(self.type)
-        lo: codec.Raw | None = rng[0] if rng else None
-        hi: codec.Raw | None = rng[1] if rng else None
-        for bound in (self.min, self.max):
-            if bound is None:
-                continue
-            r = (bound - self.offset) / self.scale
-            # a negative scale swaps which engineering bound limits which raw bound
-            is_low = (bound is self.min) == (self.scale > 0)
-            raw_b: codec.Raw
-            if codec.is_float(self.type):
-                raw_b = float(r)
-            else:  # the nearest raw value inside the range
-                raw_b = math.ceil(r) if is_low else math.floor(r)
-            if is_low:
-                lo = raw_b if lo is None else max(lo, raw_b)
-            else:
-                hi = raw_b if hi is None else min(hi, raw_b)
-        if lo is None or hi is None:
-            return None
-        return lo, hi
-
-    def encode(self, raw: codec.Raw) -> tuple[int, ...]:
-        return codec.encode(raw, self.type, self.word_order)
-
-    def decode(self, registers: tuple[int, ...] | list[int]) -> codec.Raw:
-        return codec.decode(registers, self.type, self.word_order)
-
-    def to_engineering(self, registers: tuple[int, ...] | list[int]) -> Decimal:
-        return codec.registers_to_engineering(
-            registers, self.type, self.scale, self.offset, self.word_order
-        )
-
-    def format_registers(self, registers: tuple[int, ...] | list[int]) -> str:
-        """Human text for a register value: '10 s', 'coast', '1000' ..."""
-        raw = self.decode(registers)
-        label = self.label_for(raw)
-        if label is not None:
-            return label
-        text = codec.format_decimal(self.to_engineering(registers))
-        return f"{text} {self.unit}" if self.unit else text
-
-
-@dataclass(frozen=True)
-class IdentityCheck:
-    """A register read before any write; a different value means the wrong device."""
-
-    address: int
-    raw: int
-    description: str = ""
-
-
-@dataclass(frozen=True)
-class CommitAction:
-    """Written after a fully verified apply (e.g. 'store to EEPROM')."""
-
-    address: int
-    registers: tuple[int, ...]
-    description: str = ""
-
-
-@dataclass(frozen=True)
-class Profile:
-    id: str
-    description: str = ""
-    addressing: Addressing = "address"
-    word_order: str = "big"
-    limits: Limits = field(default_factory=Limits)
-    identity: tuple[IdentityCheck, ...] = ()
-    # sorted by address; table entries expanded to "table[i].field"
-    parameters: tuple[Parameter, ...] = ()
-    commit: tuple[CommitAction, ...] = ()
-    source: str | None = None  # file the profile came from (None for built-ins and profiles built in code)
-    digest: str | None = None  # sha256 of the profile file's text: snapshots record it, rollback compares it
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "_by_name", {p.name: p for p in self.parameters})
-
-    def parameter(self, name: str) -> Parameter:
-        by_name: dict[str, Parameter] = self._by_name  # type: ignore[attr-defined]
-        return by_name[name]
-
-    def get(self, name: str) -> Parameter | None:
-        by_name: dict[str, Parameter] = self._by_name  # type: ignore[attr-defined]
-        return by_name.get(name)
-
-    def names(self) -> list[str]:
-        return [p.name for p in self.parameters]
-
+from .. import codec, units, yamlsrc
+from ..diagnostics import Diagnostic, InputError, UsageError
+from .model import CommitAction, IdentityCheck, Limits, Parameter, Precondition, Profile
 
 # ---- loading ------------------------------------------------------------------------------
 
-_BUILTIN_DIR = os.path.join(os.path.dirname(__file__), "profiles")
+_BUILTIN_DIR = os.path.join(os.path.dirname(os.path.dirname(__file__)), "profiles")
 
 
 def builtin_profile_ids() -> list[str]:
@@ -272,10 +96,11 @@ def _hex(n: int) -> str:
     return f"0x{n:04X}"
 
 
-def load_profile(path: str | os.PathLike[str]) -> Profile:
-    """Load and check a profile file; all problems at once as an InputError."""
+def load_profile(path: str | os.PathLike[str], text: str | None = None) -> Profile:
+    """Load and check a profile file (or ``text`` shown as that file); all problems at once as an InputError."""
     p = os.fspath(path)
-    text = yamlsrc.read_text(p)
+    if text is None:
+        text = yamlsrc.read_text(p)
     data, src = yamlsrc.load(p, text)
     if not isinstance(data, dict):
         raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
@@ -293,7 +118,6 @@ def profile_ref(profile: Profile) -> str:
 def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
     errors: list[Diagnostic] = []
     addressing = data.get("addressing", "address")
-    word_order = data.get("word_order", "big")
     rounding = data.get("rounding")
     limits = Limits(**data.get("limits", {}))
     if limits.write_registers < 1:
@@ -313,14 +137,45 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
 
     params: list[Parameter] = []
 
+    default_layout = _layout(data, ("big", False), (), src, errors)
+
     def make(name: str, spec: dict[str, Any], address: int, at: yamlsrc.Path_,
              eng_offset: object = 0) -> None:
         type_ = spec["type"]
+        local: list[Diagnostic] = []
+        order, swap = _layout(spec, default_layout, at, src, local)
+        mask = 0
+        if "bits" in spec or "mask" in spec:
+            try:
+                mask = codec.parse_bits(spec["bits"]) if "bits" in spec else int(spec["mask"])
+                codec.mask_shift(mask)
+            except ValueError as e:
+                local.append(src.error((*at, "bits" if "bits" in spec else "mask"), str(e)))
+                mask = 0xFFFF
+            if type_ not in ("uint16", "int16", codec.BOOL):
+                local.append(src.error((*at, "type"), f"a bit field is uint16, int16 or bool, not {type_}"))
+            elif type_ == codec.BOOL and mask and mask & (mask - 1):
+                local.append(src.error((*at, "type"), "a bool field is one bit"))
+            if spec.get("access") == "write-only":  # its register is written whole: the other bits come from a read
+                local.append(src.error((*at, "access"), "a bit field must be readable: apply reads its register "
+                                                        "to keep the other bits"))
+        elif type_ == codec.BOOL:
+            local.append(src.error((*at, "type"), "type bool is a one-bit field: give 'bits: N'"))
+        if type_ == codec.STRING:
+            if "count" not in spec:
+                local.append(src.error(at, f"{name}: a string needs 'count' (its registers)"))
+            for key in ("scale", "unit", "min", "max", "values"):
+                if key in spec:
+                    local.append(src.error((*at, key), f"'{key}' does not apply to a string"))
+        elif "count" in spec or "encoding" in spec or "padding" in spec:
+            key = next(k for k in ("count", "encoding", "padding") if k in spec)
+            local.append(src.error((*at, key), f"'{key}' applies to strings only (type: string)"))
         param = Parameter(
             name=name,
             address=address,
             type=type_,
-            word_order=spec.get("word_order", word_order),
+            word_order=order,
+            byte_swap=swap,
             scale=Decimal(spec.get("scale", 1)),
             offset=Decimal(eng_offset),  # type: ignore[arg-type]
             unit=units.normalize(spec["unit"]) if "unit" in spec else None,
@@ -333,8 +188,16 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             description=spec.get("description", ""),
             line=src.pos(at, key=True)[0],
             col=src.pos(at, key=True)[1],
+            mask=mask,
+            size=int(spec.get("count", 1)),
+            encoding=spec.get("encoding", "ascii"),
+            padding=spec.get("padding", "nul"),
+            restart=bool(spec.get("restart", False)),
         )
-        local: list[Diagnostic] = []
+        if local:  # the rest of the checks assume a well-formed parameter
+            errors.extend(local)
+            params.append(param)
+            return
         if param.scale == 0:
             local.append(src.error((*at, "scale"), "scale must not be 0"))
         if address + param.count > 0x10000:
@@ -351,24 +214,33 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
                 if bound is None:
                     continue
                 try:
-                    codec.to_raw(bound, type_, param.scale, param.offset, rounding="nearest")
+                    param.to_raw(bound, rounding="nearest")
                 except codec.CodecError as e:
                     local.append(src.error((*at, key), f"{key} {_fmt(bound)} is not representable: {e}"))
-        rng = codec.raw_range(type_)
+        rng = param.type_range()
         for label, raw in param.values:
             if rng and not rng[0] <= raw <= rng[1]:
-                local.append(src.error((*at, "values", label), f"value {raw} of '{label}' does not fit in {type_}"))
-        if "default" in spec and not local:
+                what = f"{codec.mask_shift(mask)[1]} bits" if mask else type_
+                local.append(src.error((*at, "values", label), f"value {raw} of '{label}' does not fit in {what}"))
+        if "default" in spec and not local and param.is_string:
+            try:
+                param.encode_text(str(spec["default"]))
+                param = replace(param, default=str(spec["default"]))
+            except codec.CodecError as e:
+                local.append(src.error((*at, "default"), f"default: {e}"))
+        elif "default" in spec and not local:
             d = spec["default"]
             try:
-                if isinstance(d, str):
+                if isinstance(d, bool):
+                    default_eng = Decimal(int(d))
+                elif isinstance(d, str):
                     labels = dict(param.values)
                     if d not in labels:
                         raise codec.CodecError(f"'{d}' is not one of the labels {', '.join(labels) or '(none)'}")
                     default_eng = codec.from_raw(labels[d], param.scale, param.offset)
                 else:
                     default_eng = Decimal(d)
-                    codec.to_raw(default_eng, type_, param.scale, param.offset)
+                    param.to_raw(default_eng)
                 if (param.min is not None and default_eng < param.min) or (
                     param.max is not None and default_eng > param.max
                 ):
@@ -392,14 +264,14 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             continue
         count, stride = table["count"], table["stride"]
         last_end = base + (count - 1) * stride + max(
-            f["offset"] + codec.register_count(f["type"]) for f in table["fields"].values()
+            f["offset"] + _spec_count(f) for f in table["fields"].values()
         )
         if last_end > 0x10000:
             errors.append(src.error(tat, f"table {tname}: entry {count - 1} ends at register {last_end - 1}, "
                                          "beyond 65535"))
             continue
         for fname, fspec in table["fields"].items():
-            if fspec["offset"] + codec.register_count(fspec["type"]) > stride:
+            if fspec["offset"] + _spec_count(fspec) > stride:
                 errors.append(src.error((*tat, "fields", fname, "offset"),
                                         f"field {fname} runs past the table's stride {stride}"))
         for i in range(count):
@@ -407,12 +279,40 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
                 make(f"{tname}[{i}].{fname}", fspec, base + i * stride + fspec["offset"],
                      (*tat, "fields", fname))
 
-    # overlapping registers: name both parameters and both lines
-    params.sort(key=lambda q: (q.address, q.name))
+    # overlapping registers: name both parameters and both lines. Bit fields of one register
+    # share it when their bits do not overlap; a field never shares with a whole-register value.
+    params.sort(key=lambda q: (q.address, q.line, q.name))  # of two at one address, the later one is reported
     prev: Parameter | None = None
     reported = 0
+    fields_at: dict[int, list[Parameter]] = {}
     for q in params:
-        if prev is not None and q.address < prev.end:
+        if q.mask and prev is not None and prev.mask and prev.address == q.address:
+            mates = fields_at[q.address]
+            clash = next((f for f in mates if f.mask & q.mask), None)
+            if clash is not None:
+                errors.append(Diagnostic(src.path, q.line, q.col,
+                                         f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) overlaps "
+                                         f"{clash.name} (bits {_bits(clash.mask)}, line {clash.line})"))
+            other = next((f for f in mates if f.stage != q.stage), None)
+            if other is not None:
+                errors.append(Diagnostic(src.path, q.line, q.col,
+                                         f"{q.name} is in stage {q.stage} but {other.name} (line {other.line}) of the "
+                                         f"same register {_hex(q.address)} is in stage {other.stage}: a register is "
+                                         "written as one unit"))
+            mates.append(q)
+            continue
+        if q.mask:
+            fields_at[q.address] = [q]
+        if prev is not None and q.address < prev.end and (q.mask or prev.mask) and reported < 20:
+            if q.mask:
+                what = (f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) shares its register with "
+                        f"{prev.name} (line {prev.line}), which is not a bit field")
+            else:
+                what = (f"{q.name} (registers {_hex(q.address)}-{_hex(q.end - 1)}) overlaps the bit field {prev.name} "
+                        f"(bits {_bits(prev.mask)} of register {_hex(prev.address)}, line {prev.line})")
+            errors.append(Diagnostic(src.path, q.line, q.col, f"{what}: only bit fields share a register"))
+            reported += 1
+        elif prev is not None and q.address < prev.end:
             if reported < 20:  # a bad table can overlap thousands of times; the first ones say it
                 errors.append(Diagnostic(
                     src.path, q.line, q.col,
@@ -427,31 +327,62 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         a = address_of(item["register"], ("identity", i, "register"))
         if a is not None:
             identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", "")))
-    commits = []
-    for i, item in enumerate(data.get("commit") or []):
-        at2: yamlsrc.Path_ = ("commit", i)
-        a = address_of(item["register"], (*at2, "register"))
-        raw = item["raw"]
+    def actions(key: str) -> tuple[CommitAction, ...]:
+        out = []
+        for i, item in enumerate(data.get(key) or []):
+            at2: yamlsrc.Path_ = (key, i)
+            a = address_of(item["register"], (*at2, "register"))
+            raw = item["raw"]
+            try:
+                regs = tuple(int(r) for r in raw) if isinstance(raw, list) else codec.encode(
+                    int(raw), item.get("type", "uint16"), default_layout[0], default_layout[1])
+            except codec.CodecError as e:
+                errors.append(src.error((*at2, "raw"), str(e)))
+                continue
+            if a is not None:
+                out.append(CommitAction(a, regs, item.get("description", ""), int(item.get("wait", 0))))
+        return tuple(out)
+
+    preconditions = []
+    for i, item in enumerate(data.get("preconditions") or []):
+        at3: yamlsrc.Path_ = ("preconditions", i)
+        a = address_of(item["register"], (*at3, "register"))
         try:
-            regs = tuple(int(r) for r in raw) if isinstance(raw, list) else codec.encode(
-                int(raw), item.get("type", "uint16"), word_order)
-        except codec.CodecError as e:
-            errors.append(src.error((*at2, "raw"), str(e)))
+            mask = codec.parse_bits(item["bits"]) if "bits" in item else int(item.get("mask", 0xFFFF))
+            lo, hi = codec.field_range(mask)
+        except ValueError as e:
+            errors.append(src.error((*at3, "bits" if "bits" in item else "mask"), str(e)))
             continue
-        if a is not None:
-            commits.append(CommitAction(a, regs, item.get("description", "")))
+        if not lo <= int(item["equals"]) <= hi:
+            errors.append(src.error((*at3, "equals"),
+                                    f"{item['equals']} does not fit in the selected bits ({lo}..{hi})"))
+        elif a is not None:
+            preconditions.append(Precondition(a, mask, int(item["equals"]), item.get("description", "")))
+    stage_waits = tuple((int(w["stage"]), int(w["wait"])) for w in data.get("stages") or [])
+    seen_stages: dict[int, int] = {}
+    for i, (stage, _) in enumerate(stage_waits):
+        if stage in seen_stages:
+            errors.append(src.error(("stages", i, "stage"),
+                                    f"stage {stage} is already set (stages item {seen_stages[stage]})"))
+        seen_stages.setdefault(stage, i)
+    commits, unlock, lock = actions("commit"), actions("unlock"), actions("lock")
     if errors:
         raise InputError(errors)
     return Profile(
         id=str(data["profile"]),
         description=str(data.get("description", "")),
         addressing=addressing,
-        word_order=word_order,
+        word_order=default_layout[0],
+        byte_swap=default_layout[1],
         limits=limits,
         identity=tuple(identity),
         parameters=tuple(params),
-        commit=tuple(commits),
+        commit=commits,
         source=os.path.abspath(src.path),
+        preconditions=tuple(preconditions),
+        unlock=unlock,
+        lock=lock,
+        stage_waits=stage_waits,
     )
 
 
@@ -461,3 +392,32 @@ def _dec(v: object) -> Decimal | None:
 
 def _fmt(d: Decimal | None) -> str:
     return "-" if d is None else codec.format_decimal(d)
+
+
+def _spec_count(spec: dict[str, Any]) -> int:
+    """Registers a parameter spec occupies, before it is checked (strings: count, bit fields: 1)."""
+    if spec["type"] == codec.STRING:
+        return int(spec.get("count", 1))
+    if spec["type"] == codec.BOOL or "bits" in spec or "mask" in spec:
+        return 1
+    return codec.register_count(spec["type"])
+
+
+def _bits(mask: int) -> str:
+    shift, width = codec.mask_shift(mask)
+    return str(shift) if width == 1 else f"{shift}..{shift + width - 1}"
+
+
+def _layout(spec: dict[str, Any], default: tuple[str, bool], at: yamlsrc.Path_, src: yamlsrc.Source,
+            errors: list[Diagnostic]) -> tuple[str, bool]:
+    """(word_order, byte_swap) from ``byte_order`` (ABCD ...), ``swap`` (Home Assistant) or ``word_order``."""
+    given = [k for k in ("byte_order", "swap", "word_order") if k in spec]
+    if len(given) > 1:
+        errors.append(src.error((*at, given[1]), f"'{given[0]}' and '{given[1]}' both set the layout: keep one"))
+    if "byte_order" in spec:
+        return codec.LAYOUTS[spec["byte_order"]]
+    if "swap" in spec:
+        return codec.SWAPS[spec["swap"]]
+    if "word_order" in spec:
+        return str(spec["word_order"]), default[1]
+    return default

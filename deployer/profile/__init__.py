@@ -1,0 +1,49 @@
+"""Device profiles: the object dictionary of one device type (where each parameter lives).
+
+``model`` holds the data, ``loader`` reads profile files, ``csv_import`` and ``sunspec``
+turn vendors' register maps into profile files.
+"""
+
+from .loader import (
+    builtin_profile,
+    builtin_profile_ids,
+    load_profile,
+    parse_register,
+    profile_ref,
+    resolve_profile,
+    wire_address,
+)
+from .model import (
+    PROTOCOL_MAX_READ,
+    PROTOCOL_MAX_WRITE,
+    Access,
+    Addressing,
+    CommitAction,
+    IdentityCheck,
+    Limits,
+    Parameter,
+    Precondition,
+    Profile,
+    WriteAction,
+)
+
+__all__ = [
+    "PROTOCOL_MAX_READ",
+    "PROTOCOL_MAX_WRITE",
+    "Access",
+    "Addressing",
+    "CommitAction",
+    "IdentityCheck",
+    "Limits",
+    "Parameter",
+    "Precondition",
+    "Profile",
+    "WriteAction",
+    "builtin_profile",
+    "builtin_profile_ids",
+    "load_profile",
+    "parse_register",
+    "profile_ref",
+    "resolve_profile",
+    "wire_address",
+]

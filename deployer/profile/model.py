@@ -1,0 +1,293 @@
+"""The profile data model: one device type's parameters at their wire addresses.
+
+Plain frozen data shared by every module; loading and importing live next to it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from decimal import Decimal
+from typing import Literal
+
+from .. import codec
+
+Access = Literal["read-write", "read-only", "write-only"]
+Addressing = Literal["address", "register-number", "modicon"]
+
+PROTOCOL_MAX_WRITE = 123  # FC16: 0x7B registers (Modbus Application Protocol v1.1b3, 6.12)
+PROTOCOL_MAX_READ = 125  # FC03: 0x7D registers (6.3)
+ASCII_MAX_CHARS = 513  # ':' + 2 x (address + 253-byte PDU) + LRC + CR LF (Modbus over serial line 2.5.2.1)
+
+
+@dataclass(frozen=True)
+class Limits:
+    max_write_registers: int = PROTOCOL_MAX_WRITE
+    max_read_registers: int = PROTOCOL_MAX_READ
+    max_frame_bytes: int = 256  # whole RTU frame: unit id + PDU + CRC
+    write_function: Literal[6, 16] = 16
+    max_ascii_chars: int = ASCII_MAX_CHARS  # whole ASCII frame: ':' + hex pairs + LRC + CR LF
+    # reads may span up to this many consecutive undeclared registers (0: never; DESIGN planning rule 5)
+    max_read_gap: int = 0
+
+    @property
+    def write_registers(self) -> int:
+        """Registers one write request may carry (DESIGN.md, planning rule 2)."""
+        if self.write_function == 6:
+            return 1
+        # FC16 RTU frame: unit(1) fc(1) addr(2) qty(2) bytecount(1) data(2n) crc(2) = 9 + 2n;
+        # the same in ASCII: ':' + 2 x (7 + 2n) + LRC(2) + CR LF(2) = 19 + 4n characters
+        return max(0, min(PROTOCOL_MAX_WRITE, self.max_write_registers, (self.max_frame_bytes - 9) // 2,
+                          (self.max_ascii_chars - 19) // 4))
+
+    @property
+    def read_registers(self) -> int:
+        """Registers one FC03 request may ask for; the answer frame is 5 + 2n bytes (11 + 4n ASCII characters)."""
+        return max(0, min(PROTOCOL_MAX_READ, self.max_read_registers, (self.max_frame_bytes - 5) // 2,
+                          (self.max_ascii_chars - 11) // 4))
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One parameter at its wire address (0-based protocol address).
+
+    A bit field (``mask`` != 0) is some bits of one register; several fields share a register
+    and their registers hold the whole word (the planner merges, the codec extracts).
+    """
+
+    name: str  # "F07", or "operation_data[3].position" for table entries
+    address: int
+    type: str  # a codec.TYPE_NAMES member, codec.STRING or codec.BOOL (fields)
+    word_order: str = "big"
+    scale: Decimal = Decimal(1)
+    offset: Decimal = Decimal(0)
+    unit: str | None = None  # pint unit text; None = dimensionless
+    min: Decimal | None = None  # engineering units, inclusive
+    max: Decimal | None = None
+    access: Access = "read-write"
+    values: tuple[tuple[str, int], ...] = ()  # enumeration: label -> raw value
+    stage: int = 0
+    default: Decimal | str | None = None  # engineering (text for strings); the simulator's power-on value
+    rounding: Literal["exact", "nearest"] | None = None
+    description: str = ""
+    line: int = 0  # where the parameter is defined in the profile file (1-based)
+    col: int = 0
+    byte_swap: bool = False  # low byte first inside each register (layouts BADC, DCBA)
+    mask: int = 0  # bit field: the bits of the register it owns; 0 = the whole value
+    size: int = 0  # strings: registers
+    encoding: str = "ascii"  # strings
+    padding: str = "nul"  # strings
+    restart: bool = False  # takes effect after a power cycle (the report says so)
+
+    @property
+    def count(self) -> int:
+        if self.type == codec.STRING:
+            return self.size
+        if self.mask:
+            return 1
+        return codec.register_count(self.type)
+
+    @property
+    def end(self) -> int:
+        """One past the last register."""
+        return self.address + self.count
+
+    @property
+    def readable(self) -> bool:
+        return self.access != "write-only"
+
+    @property
+    def writable(self) -> bool:
+        return self.access != "read-only"
+
+    @property
+    def is_string(self) -> bool:
+        return self.type == codec.STRING
+
+    @property
+    def layout(self) -> str:
+        """The manual's name of the byte layout: ABCD, CDAB, BADC, DCBA (AB/BA for 16 bits)."""
+        return codec.layout_name(self.word_order, self.byte_swap, self.type)
+
+    def label_for(self, raw: codec.Raw) -> str | None:
+        for label, value in self.values:
+            if value == raw:
+                return label
+        return None
+
+    def type_range(self) -> tuple[int, int] | None:
+        """Raw range the type (or the field's width) allows; None for floats and strings."""
+        if self.mask:
+            return codec.field_range(self.mask, self.type == "int16")
+        if self.is_string:
+            return None
+        return codec.raw_range(self.type)
+
+    def raw_bounds(self) -> tuple[codec.Raw, codec.Raw] | None:
+        """Inclusive raw range allowed by min/max (and the type); None for unbounded floats."""
+        rng = self.type_range()
+        lo: codec.Raw | None = rng[0] if rng else None
+        hi: codec.Raw | None = rng[1] if rng else None
+        for bound in (self.min, self.max):
+            if bound is None:
+                continue
+            r = (bound - self.offset) / self.scale
+            # a negative scale swaps which engineering bound limits which raw bound
+            is_low = (bound is self.min) == (self.scale > 0)
+            raw_b: codec.Raw
+            if self.is_float:
+                raw_b = float(r)
+            else:  # the nearest raw value inside the range
+                raw_b = math.ceil(r) if is_low else math.floor(r)
+            if is_low:
+                lo = raw_b if lo is None else max(lo, raw_b)
+            else:
+                hi = raw_b if hi is None else min(hi, raw_b)
+        if lo is None or hi is None:
+            return None
+        return lo, hi
+
+    @property
+    def is_float(self) -> bool:
+        return not self.mask and self.type in codec.TYPE_NAMES and codec.is_float(self.type)
+
+    @property
+    def codec_type(self) -> str:
+        """The numeric type raw values are converted as (a field's bits count as uint16/int16)."""
+        return "uint16" if self.type == codec.BOOL else self.type
+
+    def to_raw(self, value: Decimal, rounding: Literal["exact", "nearest"] = "exact") -> codec.Raw:
+        """Engineering -> raw; CodecError when the type (or the field's width) cannot hold it."""
+        raw = codec.to_raw(value, self.codec_type, self.scale, self.offset, rounding)
+        rng = self.type_range()
+        if self.mask and rng and not rng[0] <= raw <= rng[1]:
+            raise codec.CodecError(f"raw value {raw} does not fit in the field's "
+                                   f"{codec.mask_shift(self.mask)[1]} bits ({rng[0]}..{rng[1]})")
+        return raw
+
+    def encode(self, raw: codec.Raw) -> tuple[int, ...]:
+        """Raw -> registers; a field's register carries only its own bits (the planner merges)."""
+        if self.mask:
+            if not isinstance(raw, int):
+                raise codec.CodecError(f"a bit field needs an integer raw value, not {raw!r}")
+            return (codec.insert_field(raw, self.mask, self.type == "int16"),)
+        return codec.encode(raw, self.type, self.word_order, self.byte_swap)
+
+    def decode(self, registers: tuple[int, ...] | list[int]) -> codec.Raw:
+        """Registers -> raw value; a field's value is its bits of the register."""
+        if self.mask:
+            return codec.extract_field(int(registers[0]), self.mask, self.type == "int16")
+        if self.is_string:
+            raise codec.CodecError(f"{self.name} is a string: use text_of")
+        return codec.decode(registers, self.type, self.word_order, self.byte_swap)
+
+    def encode_text(self, text: str) -> tuple[int, ...]:
+        return codec.encode_string(text, self.size, self.encoding, self.padding, self.byte_swap)
+
+    def text_of(self, registers: tuple[int, ...] | list[int]) -> str:
+        return codec.decode_string(registers, self.encoding, self.byte_swap)
+
+    def same_value(self, a: tuple[int, ...] | list[int] | None, b: tuple[int, ...] | list[int] | None) -> bool:
+        """Do two register readings hold the same value of this parameter (a field compares its bits)?"""
+        if a is None or b is None:
+            return a is b
+        if self.mask:
+            return len(a) == len(b) == 1 and not (a[0] ^ b[0]) & self.mask
+        return tuple(a) == tuple(b)
+
+    def to_engineering(self, registers: tuple[int, ...] | list[int]) -> Decimal:
+        if self.mask:
+            return codec.from_raw(self.decode(registers), self.scale, self.offset)
+        return codec.registers_to_engineering(
+            registers, self.type, self.scale, self.offset, self.word_order, self.byte_swap
+        )
+
+    def format_registers(self, registers: tuple[int, ...] | list[int]) -> str:
+        """Human text for a register value: '10 s', 'coast', '1000', a string's text ..."""
+        if self.is_string:
+            return self.text_of(registers)
+        raw = self.decode(registers)
+        label = self.label_for(raw)
+        if label is not None:
+            return label
+        if self.type == codec.BOOL:
+            return "true" if raw else "false"
+        text = codec.format_decimal(self.to_engineering(registers))
+        return f"{text} {self.unit}" if self.unit else text
+
+
+@dataclass(frozen=True)
+class IdentityCheck:
+    """A register read before any write; a different value means the wrong device."""
+
+    address: int
+    raw: int
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class Precondition:
+    """Bits of a register read before any write; another value refuses the device ("drive running")."""
+
+    address: int
+    mask: int  # 0xFFFF for the whole register
+    equals: int  # the expected value of the masked bits, shifted down
+    description: str = ""
+
+    def holds(self, word: int) -> bool:
+        return codec.extract_field(word, self.mask) == self.equals
+
+    def what(self) -> str:
+        shift, width = codec.mask_shift(self.mask)
+        bits = "" if self.mask == 0xFFFF else (f" bit {shift}" if width == 1 else f" bits {shift}..{shift + width - 1}")
+        return f"register 0x{self.address:04X}{bits}" + (f" ({self.description})" if self.description else "")
+
+
+@dataclass(frozen=True)
+class CommitAction:
+    """A write the profile declares: commit (after a verified apply), unlock (before), lock (after)."""
+
+    address: int
+    registers: tuple[int, ...]
+    description: str = ""
+    wait_ms: int = 0  # the device needs this long before it accepts the next request
+
+
+WriteAction = CommitAction
+
+
+@dataclass(frozen=True)
+class Profile:
+    id: str
+    description: str = ""
+    addressing: Addressing = "address"
+    word_order: str = "big"  # the profile's default layout: word order ...
+    byte_swap: bool = False  # ... and byte swap (codec.layout_name gives ABCD/CDAB/BADC/DCBA)
+    limits: Limits = field(default_factory=Limits)
+    identity: tuple[IdentityCheck, ...] = ()
+    # sorted by address; table entries expanded to "table[i].field"
+    parameters: tuple[Parameter, ...] = ()
+    commit: tuple[CommitAction, ...] = ()
+    source: str | None = None  # file the profile came from (None for built-ins and profiles built in code)
+    digest: str | None = None  # sha256 of the profile file's text: snapshots record it, rollback compares it
+    preconditions: tuple[Precondition, ...] = ()
+    unlock: tuple[WriteAction, ...] = ()
+    lock: tuple[WriteAction, ...] = ()
+    stage_waits: tuple[tuple[int, int], ...] = ()  # (stage, ms to wait after it)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_by_name", {p.name: p for p in self.parameters})
+
+    def parameter(self, name: str) -> Parameter:
+        by_name: dict[str, Parameter] = self._by_name  # type: ignore[attr-defined]
+        return by_name[name]
+
+    def get(self, name: str) -> Parameter | None:
+        by_name: dict[str, Parameter] = self._by_name  # type: ignore[attr-defined]
+        return by_name.get(name)
+
+    def names(self) -> list[str]:
+        return [p.name for p in self.parameters]
+
+    def wait_after(self, stage: int) -> int:
+        return dict(self.stage_waits).get(stage, 0)
