@@ -23,6 +23,7 @@ description: >-
 addressing: address
 # Multi-register values: big = upper word first (most manuals), little = lower word first.
 word_order: big
+# (Or byte_order: ABCD / CDAB / BADC / DCBA, as manuals name layouts, instead of word_order.)
 # rounding: nearest        # let recipe values round to the resolution instead of being refused
 
 limits:                    # what the device accepts per request (defaults: the protocol maximums)
@@ -31,6 +32,7 @@ limits:                    # what the device accepts per request (defaults: the 
   max_frame_bytes: 256     # whole RTU frame incl. unit id and CRC; a 64-byte buffer -> 64
   # max_ascii_chars: 513   # whole ASCII frame in characters (':' ... CR LF), for devices that count so
   write_function: 16       # 6 for devices without FC16 (one register per request)
+  # max_read_gap: 0        # reads may span this many undeclared registers (if the device allows it)
 
 # identity:                # read before any write; another value means the wrong device: nothing is written
 #   - {{register: 0, raw: 0x0000, description: model code}}
@@ -50,6 +52,7 @@ parameters:
     # values: {{ramp: 0, coast: 1}}   # enumeration labels recipes may use instead of numbers
     # stage: 0             # lower stages are written first (e.g. a control mode before what it changes)
     # word_order: big      # overrides the profile's word_order
+    # (A bit field sets bits: 3..5 - only those bits of the register; type: bool for one bit.)
     # default: 0           # the simulator's power-on value
 
 # tables:                  # repeated blocks: point tables, operation data No.0..255
@@ -59,6 +62,9 @@ parameters:
 #     stride: 0x40         # registers from one entry to the next
 #     fields:
 #       position: {{offset: 2, type: int32}}
+
+# preconditions:           # read before anything is written; another value refuses the device
+#   - {{register: 0x0010, bits: 3, equals: 0, description: drive stopped}}
 
 # commit:                  # written after an apply whose every value verified, e.g. store to EEPROM
 #   - {{register: 0x0900, raw: 1, description: store parameters to EEPROM}}
