@@ -180,3 +180,16 @@ def test_every_key_example_is_valid_for_its_key(name: str) -> None:
 
     visit(root, "#")
     assert checked >= (10 if name in ("profile", "recipe", "inventory") else 0)
+
+
+@pytest.mark.parametrize("page", PAGES, ids=[str(p.relative_to(ROOT)) for p in PAGES])
+def test_links_between_pages_resolve(page: Path) -> None:
+    """Relative links point at files that exist, and at anchors the generated pages define."""
+    for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
+        if re.match(r"[a-z]+:", target):
+            continue
+        path, _, frag = target.partition("#")
+        dest = (page.parent / path).resolve() if path else page
+        assert dest.exists(), (page.name, target)
+        if frag and dest.suffix == ".md" and "reference" in dest.parts:
+            assert f'id="{frag}"' in dest.read_text(), (page.name, target)
