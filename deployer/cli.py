@@ -428,18 +428,22 @@ def docs_command(out_dir: str, check: bool) -> int:
 @cli.command()
 @click.argument("key")
 def explain(key: str) -> int:
-    """Explain a key of a profile, recipe, inventory, plan or report (e.g. max_frame_bytes, profile:scale)."""
+    """Explain a key of a profile, recipe, inventory, plan or report, or a device URL option
+    (e.g. max_frame_bytes, profile:scale, baudrate)."""
     import difflib
 
-    from .docgen import all_keys, find_keys, render_text
+    from .docgen import all_keys, find_keys, render_text, url_option_text
 
-    found = find_keys(key)
-    if not found:
+    texts = [render_text(k) for k in find_keys(key)]
+    kind, _, name = key.rpartition(":")
+    if kind in ("", "url"):
+        texts += [t for t in [url_option_text(name)] if t]
+    if not texts:
         names = sorted({k.path for k in all_keys()} | {k.path.rsplit(".", 1)[-1] for k in all_keys()})
-        hint = difflib.get_close_matches(key.rpartition(":")[2], names, n=3)
+        hint = difflib.get_close_matches(name, names, n=3)
         raise UsageError(f"no key '{key}' in any schema" + (f"; did you mean {', '.join(hint)}?" if hint else
                                                             "; try e.g. 'deployer explain scale'"))
-    click.echo("\n\n".join(render_text(k) for k in found))
+    click.echo("\n\n".join(texts))
     return EXIT_OK
 
 

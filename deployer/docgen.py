@@ -482,6 +482,18 @@ def stale_pages(directory: str) -> list[str]:
     return stale
 
 
+def url_option_text(name: str) -> str | None:
+    """A device URL option for the terminal (`deployer explain baudrate`); None if no scheme takes it."""
+    from .urls import option_facts
+
+    schemes, default, allowed = option_facts(name)
+    if not schemes:
+        return None
+    facts = [f"device URL option ({', '.join(schemes)})"] + ([f"default {default}"] if default else []) + (
+        [f"allowed: {allowed}"] if allowed else [])
+    return f"url: {name}\n  " + " · ".join(facts) + "\n  Every scheme and option, with what they mean: docs/urls.md"
+
+
 def find_keys(query: str) -> list[Key]:
     """Keys matching ``query``: a full path (``limits.max_frame_bytes``), its tail (``max_frame_bytes``),
     optionally prefixed by the file kind (``profile:scale``)."""

@@ -69,6 +69,8 @@ class LineSettings:
 
 
 SERIAL_DEFAULTS = LineSettings(19200, 8, "N", 1)  # rtu:// and ascii:// alike
+DEFAULT_TIMEOUT = 1.0  # seconds per attempt
+DEFAULT_RETRIES = 2
 
 
 @dataclass(frozen=True)
@@ -78,8 +80,8 @@ class DeviceURL:
     port: int | None = None
     path: str | None = None  # serial device
     options: dict[str, str] = field(default_factory=dict)
-    timeout: float = 1.0
-    retries: int = 2
+    timeout: float = DEFAULT_TIMEOUT
+    retries: int = DEFAULT_RETRIES
 
     @property
     def bus(self) -> str:
@@ -135,6 +137,20 @@ NUMERIC_OPTIONS: dict[str, tuple[type[int] | type[float], float, float]] = {
 }
 
 
+def option_facts(option: str) -> tuple[list[str], str | None, str | None]:
+    """(schemes that take it, its default, what it allows) for a URL option: what `explain` shows."""
+    schemes = [s for s, opts in _OPTIONS.items() if option in opts]
+    line = SERIAL_DEFAULTS
+    defaults = {"timeout": DEFAULT_TIMEOUT, "retries": DEFAULT_RETRIES, "baudrate": line.baudrate,
+                "bytesize": line.bytesize, "parity": line.parity, "stopbits": line.stopbits, "verify": "true",
+                "server_hostname": "the URL's host"}
+    allowed = {"parity": "N, E, O", "verify": "true, false (also 1, 0, yes, no)",
+               "cert": "a PEM file", "key": "a PEM file", "ca": "a PEM file"}
+    default = defaults.get(option)
+    return schemes, None if default is None else str(default), (
+        range_text(option) if option in NUMERIC_OPTIONS else allowed.get(option))
+
+
 def range_text(option: str) -> str:
     """'50..4000000', '0.001..600': a numeric option's allowed range as users write numbers."""
     _, lo, hi = NUMERIC_OPTIONS[option]
@@ -173,8 +189,8 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
             raise BadURL(f"option {key}={options[key]} is out of range ({range_text(key)})")
         return v
 
-    to = number("timeout") if "timeout" in options else (timeout if timeout is not None else 1.0)
-    rt = number("retries") if "retries" in options else (retries if retries is not None else 2)
+    to = number("timeout") if "timeout" in options else (timeout if timeout is not None else DEFAULT_TIMEOUT)
+    rt = number("retries") if "retries" in options else (retries if retries is not None else DEFAULT_RETRIES)
     if scheme in ("rtu", "ascii"):
         path = urllib.parse.unquote(u.netloc + u.path)
         if not path:

@@ -13,7 +13,7 @@ import yaml
 from deployer import docgen, yamlsrc
 from deployer.cli import validate_file
 from deployer.profile import Limits
-from deployer.urls import _OPTIONS, DEFAULT_PORTS, NUMERIC_OPTIONS, SERIAL_DEFAULTS, DeviceURL, range_text
+from deployer.urls import _OPTIONS, DEFAULT_PORTS, NUMERIC_OPTIONS, SERIAL_DEFAULTS, option_facts
 from tests.helpers import run_cli as cli
 
 ROOT = Path(__file__).parent.parent
@@ -79,6 +79,11 @@ def test_explain(capsys: pytest.CaptureFixture[str]) -> None:
     assert code == 0 and out.splitlines()[0] == "recipe: device.unit" and "profile:" not in out
     code, _, err = cli(capsys, "explain", "max_frame")
     assert code == 1 and err == "error: no key 'max_frame' in any schema; did you mean max_frame_bytes?\n"
+    code, out, _ = cli(capsys, "explain", "baudrate")
+    assert code == 0 and out == ("url: baudrate\n  device URL option (rtu, ascii) · default 19200 · allowed: "
+                                 "50..4000000\n  Every scheme and option, with what they mean: docs/urls.md\n")
+    code, out, _ = cli(capsys, "explain", "timeout")  # an inventory key and a URL option
+    assert code == 0 and "inventory: defaults.timeout" in out and "url: timeout\n" in out
 
 
 def _blocks(page: Path) -> list[tuple[str, str, str]]:
@@ -125,11 +130,10 @@ def test_url_page_covers_every_scheme_and_option() -> None:
     line = SERIAL_DEFAULTS
     assert f"{line.baudrate} baud, {line.bytesize} data bits, parity {line.parity}, {line.stopbits} stop bit" in text
     # each numeric option's row: default and range as the code has them
-    defaults = {"timeout": DeviceURL("tcp").timeout, "retries": DeviceURL("tcp").retries, "baudrate": line.baudrate,
-                "bytesize": line.bytesize, "stopbits": line.stopbits}
     for opt in NUMERIC_OPTIONS:
-        assert f"| `{opt}` | {defaults[opt]} | {range_text(opt)} |" in text, opt
-    assert f"| `parity` | {line.parity} |" in text
+        _, default, allowed = option_facts(opt)
+        assert f"| `{opt}` | {default} | {allowed} |" in text, opt
+    assert f"| `parity` | {line.parity} |" in text and f"| `verify` | {option_facts('verify')[1]} |" in text
 
 
 def test_report_example_matches_the_exit_code_rules() -> None:
