@@ -903,7 +903,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
 
     fleet_run = bool(inventory or from_report)
     if fleet_run:
-        fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures)
+        fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures, report_path=report_path)
     run_id = journal.new_run_id()
     journal.run_started(state_dir, run_id, command=command, argv=_ARGV, recipe=label,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
@@ -1197,7 +1197,7 @@ def _pulled_from(url: str, unit: int) -> str:
 def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folder: str, *, timeout: float | None,
                retries: int | None, unit: int | None, parallel: int) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
-    from .api import device_url, load_inventory, pull_names, pulled_recipe
+    from .api import check_writable, device_url, load_inventory, pull_names, pulled_recipe
     from .executor import ReadJob
     from .profile import resolve_profile
 
@@ -1222,7 +1222,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
         jobs.append(ReadJob(dev.name, prof, tuple(pull_names(prof)), url, unit if unit is not None else dev.unit))
     if errors:
         raise InputError(errors)
-    os.makedirs(folder, exist_ok=True)
+    check_writable(folder, f"recipes into {folder}")
     values = read_fleet(jobs, parallel)
     written = 0
     for j in jobs:
