@@ -248,26 +248,28 @@ def all_keys() -> Iterator[Key]:
         yield from schema_keys(name)
 
 
+def schema_nodes(node: Any, at: str = "#") -> Iterator[tuple[str, dict[str, Any]]]:
+    """Every mapping in a schema with its JSON pointer, parents first."""
+    if isinstance(node, dict):
+        yield at, node
+        for key, sub in node.items():
+            yield from schema_nodes(sub, f"{at}/{key}")
+    elif isinstance(node, list):
+        for i, sub in enumerate(node):
+            yield from schema_nodes(sub, f"{at}/{i}")
+
+
 def undescribed(name: str) -> list[str]:
     """JSON pointers of properties and $defs without a description (a test requires none)."""
     root = yamlsrc.schema(name)
     missing: list[str] = []
-
-    def visit(node: Any, at: str) -> None:
-        if isinstance(node, dict):
-            for key, sub in (node.get("properties") or {}).items():
-                if not isinstance(sub, dict) or not str(sub.get("description", "")).strip():
-                    missing.append(f"{at}/properties/{key}")
-            extra = node.get("additionalProperties")  # a user-named key (parameters.PARAM): documented too
-            if isinstance(extra, dict) and not str(_deref(extra, root)[0].get("description", "")).strip():
-                missing.append(f"{at}/additionalProperties")
-            for key, sub in node.items():
-                visit(sub, f"{at}/{key}")
-        elif isinstance(node, list):
-            for i, sub in enumerate(node):
-                visit(sub, f"{at}/{i}")
-
-    visit(root, "#")
+    for at, node in schema_nodes(root):
+        for key, sub in (node.get("properties") or {}).items():
+            if not isinstance(sub, dict) or not str(sub.get("description", "")).strip():
+                missing.append(f"{at}/properties/{key}")
+        extra = node.get("additionalProperties")  # a user-named key (parameters.PARAM): documented too
+        if isinstance(extra, dict) and not str(_deref(extra, root)[0].get("description", "")).strip():
+            missing.append(f"{at}/additionalProperties")
     for key, sub in (root.get("$defs") or {}).items():
         if not str(sub.get("description", "")).strip():
             missing.append(f"#/$defs/{key}")
@@ -450,17 +452,21 @@ def pages() -> dict[str, str]:
     return out
 
 
+def _on_disk(path: str) -> str | None:
+    try:
+        with open(path, encoding="utf-8") as f:
+            return f.read()
+    except OSError:
+        return None
+
+
 def write_pages(directory: str) -> list[str]:
     """Write the pages; returns the files whose content changed."""
     os.makedirs(directory, exist_ok=True)
     changed = []
     for fname, text in pages().items():
         path = os.path.join(directory, fname)
-        old = None
-        if os.path.exists(path):
-            with open(path, encoding="utf-8") as f:
-                old = f.read()
-        if old != text:
+        if _on_disk(path) != text:
             with open(path, "w", encoding="utf-8") as f:
                 f.write(text)
             changed.append(path)
@@ -469,17 +475,8 @@ def write_pages(directory: str) -> list[str]:
 
 def stale_pages(directory: str) -> list[str]:
     """Pages in ``directory`` that differ from what the schemas generate now (or are missing)."""
-    stale = []
-    for fname, text in pages().items():
-        path = os.path.join(directory, fname)
-        try:
-            with open(path, encoding="utf-8") as f:
-                if f.read() == text:
-                    continue
-        except OSError:
-            pass
-        stale.append(path)
-    return stale
+    return [os.path.join(directory, fname) for fname, text in pages().items()
+            if _on_disk(os.path.join(directory, fname)) != text]
 
 
 def url_option_text(name: str) -> str | None:

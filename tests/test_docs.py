@@ -166,23 +166,13 @@ def test_profiles_new_writes_a_skeleton_that_validates(capsys: pytest.CaptureFix
 def test_every_key_example_is_valid_for_its_key(name: str) -> None:
     root = yamlsrc.schema(name)
     checked = 0
-
-    def visit(node: object, at: str) -> None:
-        nonlocal checked
-        if isinstance(node, dict):
-            if "examples" in node and at != "#":
-                sub = {**{k: v for k, v in node.items() if k != "examples"}, "$defs": root.get("$defs", {})}
-                for ex in node["examples"]:
-                    errors = list(jsonschema.Draft202012Validator(sub).iter_errors(ex))
-                    assert not errors, (at, ex, errors[0].message)
-                    checked += 1
-            for k, v in node.items():
-                visit(v, f"{at}/{k}")
-        elif isinstance(node, list):
-            for i, v in enumerate(node):
-                visit(v, f"{at}/{i}")
-
-    visit(root, "#")
+    for at, node in docgen.schema_nodes(root):
+        if "examples" in node and at != "#":
+            sub = {**{k: v for k, v in node.items() if k != "examples"}, "$defs": root.get("$defs", {})}
+            for ex in node["examples"]:
+                errors = list(jsonschema.Draft202012Validator(sub).iter_errors(ex))
+                assert not errors, (at, ex, errors[0].message)
+                checked += 1
     assert checked >= (10 if name in ("profile", "recipe", "inventory") else 0)
 
 
