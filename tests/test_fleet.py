@@ -308,6 +308,8 @@ def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path)
         assert cli(capsys, "validate", *(str(folder / f) for f in os.listdir(folder)))[0] == 0
         code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "-o", str(folder))
         assert code == 3 and "dead" in err
+        code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "-o", "/proc/x")
+        assert code == 1 and "cannot write recipes into /proc/x" in err
 
 
 def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path: Path) -> None:
@@ -381,7 +383,8 @@ def test_bad_fleet_options_are_refused_before_anything_is_sent(capsys: pytest.Ca
         for args, message in [(["--batch", "0"], "--batch: '0' is not a positive count"),
                               (["--max-failures", "x%"], "--max-failures: 'x%'"),
                               (["--limit", "d9*"], "'d9*' matches no device name or group"),
-                              (["--limit", f"@{tmp_path / 'none.json'}"], "cannot read the report")]:
+                              (["--limit", f"@{tmp_path / 'none.json'}"], "cannot read the report"),
+                              (["--report", "/proc/deployer-report.json"], "cannot write the report")]:
             code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir",
                                str(state), *args)
             assert code == 1 and message in err, err
