@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 FastLoader: type[yaml.SafeLoader] | type[yaml.CSafeLoader] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 # Limits on input (issue #11, hostile files). A real recipe or profile is far inside each one.
-MAX_FILE_BYTES = 8 * 1024 * 1024  # a 50,000-parameter profile is about 4 MB
+MAX_FILE_BYTES = 32 * 1024 * 1024  # a saved plan of 50,000 parameters is 13 MB; values are bounded below
 MAX_DEPTH = 64  # nesting of mappings and lists; recipes need 5
 MAX_ALIAS_NODES = 100_000  # values that aliases may add in total ("billion laughs" stops here)
 MAX_ENTRIES = 65_536  # entries in one mapping or list: a device has 65,536 holding registers
