@@ -210,6 +210,16 @@ class _Builder:
                         out[text] = None  # keeps the key's place (and finds duplicates) until its value
                         continue
                     # a refused key: the general path below says why
+                elif not top.is_map and len(top.value) < MAX_ENTRIES:  # an item of a list
+                    mark = ev.start_mark
+                    pos = (mark.line + 1) << 24 | (mark.column + 1)
+                    items: list[Any] = top.value  # type: ignore[assignment]
+                    values[(*top.at, len(items))] = pos
+                    self.nodes += 1
+                    if self.nodes > MAX_NODES:
+                        self._too_many(pos)
+                    items.append(self._scalar(ev, pos))
+                    continue
             if isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
                 frame = stack.pop()
                 if frame.anchored:
