@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test lint bench fuzz clean
+.PHONY: demo test lint bench fuzz docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +28,9 @@ test: $(VENV)/.installed-test
 lint: $(VENV)/.installed-test
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections
 	$(BIN)/mypy deployer
+
+docs: $(VENV)/.installed
+	$(BIN)/deployer docs --out docs/reference
 
 bench: $(VENV)/.installed
 	$(BIN)/python -m benchmarks.run

@@ -120,7 +120,7 @@ def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
         for dev in inv.devices:
             if dev.profile is not None:
                 try:
-                    resolve_profile(dev.profile)
+                    resolve_profile(dev.profile, relative_to=path, kind="inventory")
                 except UsageError as e:
                     errors.append(src.error(("devices", dev.name, "profile"), str(e)))
                 except InputError as e:
@@ -380,6 +380,73 @@ def profiles_show(profile: str) -> int:
          rows)
     return EXIT_OK
 
+@profiles.command("new")
+@click.argument("output", type=click.Path(dir_okay=False))
+@click.option("--id", "profile_id", help="the profile's id (default: the file name without .yaml)")
+@click.option("--force", is_flag=True, help="overwrite an existing file")
+def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
+    """Write a commented profile skeleton to OUTPUT, ready to fill in from the device's manual."""
+    import re
+
+    from .skeleton import profile_skeleton
+    from .yamlsrc import schema
+
+    pid = profile_id or os.path.splitext(os.path.basename(output))[0]
+    pattern = schema("profile")["properties"]["profile"]["pattern"]
+    if not re.match(pattern, pid):
+        raise UsageError(f"'{pid}' is not a profile id (letters, digits, '.', '_', '-'); pass --id ID")
+    text = profile_skeleton(pid, output)
+    if os.path.exists(output) and not force:
+        raise UsageError(f"{output} exists; pass --force to overwrite it")
+    with open(output, "w", encoding="utf-8") as f:
+        f.write(text)
+    click.echo(f"wrote {output}: fill it in from the manual, then run: deployer validate {output}", err=True)
+    return EXIT_OK
+
+
+# --- reference docs, explain (docgen) ----------------------------------------------------
+
+
+@cli.command("docs")
+@click.option("--out", "out_dir", default=os.path.join("docs", "reference"), show_default=True,
+              type=click.Path(file_okay=False), help="where the reference pages go")
+@click.option("--check", is_flag=True, help="write nothing; exit 1 when a page differs from the schemas")
+def docs_command(out_dir: str, check: bool) -> int:
+    """Generate the reference pages (one per file kind) from the JSON Schemas."""
+    from .docgen import stale_pages, write_pages
+
+    if check:
+        stale = stale_pages(out_dir)
+        for path in stale:
+            click.echo(f"{path}: stale (run: deployer docs --out {out_dir})", err=True)
+        return EXIT_INVALID if stale else EXIT_OK
+    changed = write_pages(out_dir)
+    click.echo(f"{len(changed)} page{'s' if len(changed) != 1 else ''} updated in {out_dir}", err=True)
+    return EXIT_OK
+
+
+@cli.command()
+@click.argument("key")
+def explain(key: str) -> int:
+    """Explain a key of a profile, recipe, inventory, plan or report, or a device URL option
+    (e.g. max_frame_bytes, profile:scale, baudrate)."""
+    import difflib
+
+    from .docgen import all_keys, find_keys, render_text, url_option_text
+
+    texts = [render_text(k) for k in find_keys(key)]
+    kind, _, name = key.rpartition(":")
+    if kind in ("", "url"):
+        texts += [t for t in [url_option_text(name)] if t]
+    if not texts:
+        names = sorted({k.path for k in all_keys()} | {k.path.rsplit(".", 1)[-1] for k in all_keys()})
+        hint = difflib.get_close_matches(name, names, n=3)
+        raise UsageError(f"no key '{key}' in any schema" + (f"; did you mean {', '.join(hint)}?" if hint else
+                                                            "; try e.g. 'deployer explain scale'"))
+    click.echo("\n\n".join(texts))
+    return EXIT_OK
+
+
 # --- plan (planner) ---------------------------------------------------------------------
 
 _device_options = [
@@ -435,17 +502,16 @@ def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: in
 
 
 def _hexwords(regs: Sequence[int] | None) -> str:
-    return "-" if regs is None else " ".join(f"{w:04X}" for w in regs)
+    return "-" if regs is None else " ".join([format(w, "04X") for w in regs])
 
 
 def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:
     """(framing, baud, bits per character, text) of the line the plan goes over: the URL's serial settings,
     else the Modbus default 19200 baud 8E1 on RTU."""
     if url is not None and url.scheme in ("rtu", "ascii"):
-        o = url.options
-        baud, data, parity, stop = int(o.get("baudrate", 19200)), int(o.get("bytesize", 8)), o.get("parity", "N"), \
-            int(o.get("stopbits", 1))
-        return url.scheme, baud, 1 + data + (parity != "N") + stop, f"{baud} baud {data}{parity}{stop}"
+        ln = url.line
+        bits = 1 + ln.bytesize + (ln.parity != "N") + ln.stopbits
+        return url.scheme, ln.baudrate, bits, f"{ln.baudrate} baud {ln.bytesize}{ln.parity}{ln.stopbits}"
     return "rtu", 19200, 11, "19200 baud"
 
 
@@ -708,7 +774,8 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
 
 _STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "skipped": 3, "ok": 4, "unchanged": 5}
 _STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red",
-                 "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red"}
+                 "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red",
+                 "sent": "cyan"}
 
 
 def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> None:
@@ -726,6 +793,9 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
             show(out, ["parameter", "before", "desired", "after", "status", ""],
                  [[p.name, p.before or "-", p.desired, p.after or "-", (p.status, _STATUS_STYLE.get(p.status, "")),
                    p.error or ""] for p in rows])
+        if d.status == "sent":
+            out.print("broadcast sent: every request went out; no device answers a broadcast, so nothing was "
+                      "read back or verified")
         for note in d.notices:
             out.print(f"note: {note}")
         if d.snapshot:
@@ -733,8 +803,9 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
     s = report.summary()
     if len(report.devices) > 1 and not only_not_ok:
-        out.print(f"{s['devices']} devices: {s['ok']} ok, {s['partial']} partial, {s['failed']} failed, "
-                  f"{s['unreachable']} unreachable in {s['seconds']:.2f} s")
+        out.print(f"{s['devices']} devices: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
+                  + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable "
+                  f"in {s['seconds']:.2f} s")
 
 
 def _is_plan_file(path: str) -> bool:

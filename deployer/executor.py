@@ -102,7 +102,8 @@ class Session:
             except tp.NoResponse:
                 record.result, record.exception_code = "no response", None
                 if attempt > self.retries:
-                    raise DeviceGone(f"no answer after {attempt} attempt{'s' if attempt > 1 else ''}") from None
+                    hint = tp.no_answer_hint(self.transport.url, self.unit)
+                    raise DeviceGone(f"no answer after {attempt} attempt{'s' if attempt > 1 else ''}{hint}") from None
             except tp.ConnectionLost as e:
                 record.result, record.exception_code = "connection lost", None
                 if attempt > self.retries:
@@ -259,14 +260,13 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
         raise UsageError("a broadcast cannot read: bit fields (which keep the register's other bits) and "
                          f"preconditions of profile {prof.id} need a device that answers")
     try:
-        held = await lock.acquire(lock.device_key(url.bus, unit), timeout=opts.lock_timeout,
-                                  command=lock.command_line(), directory=opts.lock_dir)
+        held = await lock.acquire_device(url.bus, unit, timeout=opts.lock_timeout, command=lock.command_line(),
+                                         directory=opts.lock_dir)
     except lock.Locked as e:
         res.status, res.error = "unreachable", f"{e}; nothing was sent"
         return res
     try:
-        if held.stale:
-            res.notices.append(held.stale)
+        res.notices.extend(h.stale for h in held if h.stale)
         target = Target(tp.describe(url), unit, profile_ref(prof))
         transport = tp.open_transport(url)
         try:
@@ -277,7 +277,7 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
         session = Session(transport, unit, retries=url.retries, backoff=opts.backoff, records=res.requests)
         try:
             if unit == 0:
-                await _broadcast(session, recipe, target, opts, results)
+                await _broadcast(session, recipe, target, opts, res, results)
             else:
                 await _apply(session, recipe, target, opts, res, results)
         finally:
@@ -287,17 +287,33 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
             await durable(Line(journal.path_of(opts.state_dir), journal.device_finished(opts.run_id, res)))
         return res
     finally:
-        held.release()
+        for h in reversed(held):
+            h.release()
 
 
-async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions,
+async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,
                      results: dict[str, ParameterResult]) -> None:
-    """Unit 0: nobody answers, so nothing is read; every parameter is sent and unverified."""
+    """Unit 0: nobody answers, so nothing is read; every parameter is sent and unverified.
+
+    The device ends ``sent`` when every request went out, ``failed`` when one could not be sent.
+    """
     plan = opts.expected or make_plan(recipe, target, None, write_all=True)
-    for req in plan.writes:
-        await session.write(req)
+    queue = deque(plan.writes)
+    while queue:
+        req = queue.popleft()
+        try:
+            await session.write(req)
+        except DeviceGone as e:
+            for n in req.parameters:
+                results[n].status, results[n].error = "unverified", f"broadcast may not have gone out: {e}"
+            for rest in queue:
+                for n in rest.parameters:
+                    results[n].status, results[n].error = "skipped", "not sent: an earlier broadcast request failed"
+            res.status, res.error = "failed", f"broadcast request at 0x{req.address:04X} could not be sent: {e}"
+            return
         for n in req.parameters:
             results[n].status, results[n].error = "unverified", "broadcast: no device answers"
+    res.status = "sent"
 
 
 async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,

@@ -93,7 +93,10 @@ def select(inv: Inventory, limit: str | None) -> tuple[FleetDevice, ...]:
 
 
 def not_ok(report_path: str) -> list[str]:
-    """Names of the devices of a report (``--report`` of an earlier run) whose status is not ok."""
+    """Names of the devices of a report (``--report`` of an earlier run) whose status is not ok.
+
+    A ``sent`` broadcast succeeded as far as anything can tell (exit 0): it is not retried.
+    """
     try:
         with open(report_path, encoding="utf-8") as f:
             data = json.load(f)
@@ -105,7 +108,8 @@ def not_ok(report_path: str) -> list[str]:
     if not isinstance(data, dict) or not str(data.get("schema", "")).startswith("deployer.report/") \
             or not isinstance(data.get("devices"), list):
         raise InputError([Diagnostic(report_path, 1, 1, "not a deployer report (no 'schema: deployer.report/1')")])
-    return [str(d.get("name")) for d in data["devices"] if isinstance(d, dict) and d.get("status") != "ok"]
+    return [str(d.get("name")) for d in data["devices"]
+            if isinstance(d, dict) and d.get("status") not in ("ok", "sent")]
 
 
 # ---- staged rollouts ---------------------------------------------------------------------------

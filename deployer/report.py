@@ -15,7 +15,8 @@ if TYPE_CHECKING:
 
 REPORT_SCHEMA = "deployer.report/1"
 ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
-DeviceStatus = Literal["ok", "partial", "failed", "unreachable", "skipped"]  # skipped: a fleet never started it
+# sent: a broadcast that went out; skipped: a fleet never started it
+DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped"]
 
 
 @dataclass
@@ -97,8 +98,8 @@ class DeviceResult:
         return sum(1 for r in self.requests if r.function == 3)
 
     def settle(self) -> None:
-        """Device status from its parameters (unless already failed/unreachable/skipped)."""
-        if self.status in ("unreachable", "failed", "skipped"):
+        """Device status from its parameters (unless already sent/failed/unreachable/skipped)."""
+        if self.status in ("unreachable", "failed", "skipped", "sent"):
             return
         bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
         if not bad:
@@ -140,7 +141,7 @@ class Report:
 
     def summary(self) -> dict[str, Any]:
         counts = {s: sum(1 for d in self.devices if d.status == s)
-                  for s in ("ok", "partial", "failed", "unreachable", "skipped")}
+                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped")}
         return {"devices": len(self.devices), **counts,
                 "write_requests": sum(d.write_requests for d in self.devices),
                 "read_requests": sum(d.read_requests for d in self.devices),
@@ -156,12 +157,15 @@ class Report:
 
     @property
     def exit_code(self) -> int:
-        """DESIGN.md exit codes: 3 only when every device was unreachable (nothing written anywhere)."""
+        """DESIGN.md exit codes: 3 only when every device was unreachable (nothing written anywhere).
+
+        A broadcast that went out (``sent``) counts as success: the user asked for an unverifiable write.
+        """
         if not self.devices:
             return EXIT_OK
         if all(d.status == "unreachable" for d in self.devices):
             return EXIT_UNREACHABLE
-        if any(d.status != "ok" for d in self.devices):
+        if any(d.status not in ("ok", "sent") for d in self.devices):
             return EXIT_FAILED
         return EXIT_OK
 

@@ -30,14 +30,17 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 
 # URLs and errors live apart from pymodbus (commands that only parse URLs stay light); re-exported here
 from .urls import DEFAULT_PORTS as DEFAULT_PORTS
+from .urls import SERIAL_DEFAULTS as SERIAL_DEFAULTS
 from .urls import BadURL as BadURL
 from .urls import ConnectionLost as ConnectionLost
 from .urls import DeviceURL as DeviceURL
 from .urls import ExceptionResponse as ExceptionResponse
+from .urls import LineSettings as LineSettings
 from .urls import NoResponse as NoResponse
 from .urls import TransportError as TransportError
 from .urls import Unreachable as Unreachable
 from .urls import describe as describe
+from .urls import no_answer_hint as no_answer_hint
 from .urls import parse_url as parse_url
 from .urls import verify as _verify
 
@@ -151,10 +154,8 @@ def bus_lock(url: DeviceURL) -> asyncio.Lock:
 
 def _char_time(url: DeviceURL) -> float:
     """Seconds per character on a serial line: start + data + parity + stop bits."""
-    baud = int(url.options.get("baudrate", 19200))
-    bits = 1 + int(url.options.get("bytesize", 8)) + (0 if url.options.get("parity", "N") == "N" else 1) + int(
-        url.options.get("stopbits", 1))
-    return bits / baud
+    line = url.line
+    return (1 + line.bytesize + (0 if line.parity == "N" else 1) + line.stopbits) / line.baudrate
 
 
 BROADCAST_TURNAROUND = 0.1  # seconds of silence after a unit-0 write
@@ -162,7 +163,7 @@ BROADCAST_TURNAROUND = 0.1  # seconds of silence after a unit-0 write
 
 def _silent_interval(url: DeviceURL) -> float:
     """Modbus over serial line 2.5.1.1: 3.5 character times between frames, fixed 1.75 ms above 19200 baud."""
-    if int(url.options.get("baudrate", 19200)) > 19200:
+    if url.line.baudrate > 19200:
         return 0.00175
     return 3.5 * _char_time(url)
 
@@ -424,19 +425,17 @@ class SerialTransport(PymodbusTransport):
         self._opening: _SerialLine | None = None
 
     def _settings(self) -> tuple[str, ...]:
-        o = self.url.options
-        return (self.url.scheme, o.get("baudrate", "19200"), o.get("bytesize", "8"), o.get("parity", "N"),
-                o.get("stopbits", "1"))
+        line = self.url.line
+        return (self.url.scheme, str(line.baudrate), str(line.bytesize), line.parity, str(line.stopbits))
 
     def _make_client(self) -> Any:
-        o = self.url.options
+        line = self.url.line
         common = self._common()
         # one client serves every transport on the port: the line routes frames to the active one
         common["trace_packet"] = self._opening.trace if self._opening is not None else self._trace
         return AsyncModbusSerialClient(
             self.url.path or "", framer=FramerType.RTU if self.url.scheme == "rtu" else FramerType.ASCII,
-            baudrate=int(o.get("baudrate", 19200)), bytesize=int(o.get("bytesize", 8)),
-            parity=o.get("parity", "N"), stopbits=int(o.get("stopbits", 1)), **common)
+            baudrate=line.baudrate, bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits, **common)
 
     async def connect(self) -> None:
         path = self.url.path or ""
@@ -479,9 +478,10 @@ class SerialTransport(PymodbusTransport):
         o = self.url.options
         port: Any = None
         try:
-            port = serial.serial_for_url(self.url.path, exclusive=True, baudrate=int(o.get("baudrate", 19200)),
-                                         bytesize=int(o.get("bytesize", 8)), parity=o.get("parity", "N"),
-                                         stopbits=int(o.get("stopbits", 1)), timeout=self.url.timeout)
+            line = self.url.line
+            port = serial.serial_for_url(self.url.path, exclusive=True, baudrate=line.baudrate,
+                                         bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits,
+                                         timeout=self.url.timeout)
             port.timeout = 0  # what pymodbus sets next: it reconfigures the port
             port.write_timeout = 0
         except Exception as e:  # pyserial raises SerialException, termios.error, ValueError

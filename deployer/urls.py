@@ -55,14 +55,33 @@ class ExceptionResponse(TransportError):
 
 
 @dataclass(frozen=True)
+class LineSettings:
+    """A serial line's settings, the URL's options over SERIAL_DEFAULTS."""
+
+    baudrate: int
+    bytesize: int
+    parity: str
+    stopbits: int
+
+    def __str__(self) -> str:
+        return (f"{self.baudrate} baud, {self.bytesize} data bits, parity {self.parity}, "
+                f"{self.stopbits} stop bit{'s' if self.stopbits != 1 else ''}")
+
+
+SERIAL_DEFAULTS = LineSettings(19200, 8, "N", 1)  # rtu:// and ascii:// alike
+DEFAULT_TIMEOUT = 1.0  # seconds per attempt
+DEFAULT_RETRIES = 2
+
+
+@dataclass(frozen=True)
 class DeviceURL:
     scheme: str  # tcp | tls | rtu | ascii | rtu+tcp
     host: str | None = None
     port: int | None = None
     path: str | None = None  # serial device
     options: dict[str, str] = field(default_factory=dict)
-    timeout: float = 1.0
-    retries: int = 2
+    timeout: float = DEFAULT_TIMEOUT
+    retries: int = DEFAULT_RETRIES
 
     @property
     def bus(self) -> str:
@@ -79,6 +98,26 @@ class DeviceURL:
     def shared_bus(self) -> bool:
         return self.scheme in ("rtu", "ascii", "rtu+tcp")
 
+    @property
+    def line(self) -> LineSettings:
+        """Serial line settings (rtu, ascii; for other schemes only the defaults, used for timing)."""
+        o = self.options
+        d = SERIAL_DEFAULTS
+        return LineSettings(int(o.get("baudrate", d.baudrate)), int(o.get("bytesize", d.bytesize)),
+                            o.get("parity", d.parity), int(o.get("stopbits", d.stopbits)))
+
+
+def no_answer_hint(url: DeviceURL, unit: int) -> str:
+    """What to check when a device does not answer: on serial lines, mostly the line settings and unit id."""
+    if url.scheme in ("rtu", "ascii"):
+        return (f" at {url.line}, unit {unit}: check that the device uses the same baud rate, parity, data bits "
+                f"and stop bits and answers to unit {unit} (URL options baudrate, parity, bytesize, stopbits; "
+                f"--unit)")
+    if url.scheme == "rtu+tcp":
+        return (f" through the gateway, unit {unit}: check the unit id and that the gateway's serial line "
+                f"settings (baud rate, parity, data bits, stop bits) match the device's")
+    return ""
+
 
 # ---- URLs ----------------------------------------------------------------------------------
 
@@ -91,6 +130,31 @@ _OPTIONS: dict[str, set[str]] = {
     "ascii": _COMMON | {"baudrate", "parity", "bytesize", "stopbits"},
     "rtu+tcp": _COMMON,
 }
+# numeric options: (type, lowest, highest); docs/urls.md shows the same ranges (a test compares them)
+NUMERIC_OPTIONS: dict[str, tuple[type[int] | type[float], float, float]] = {
+    "timeout": (float, 0.001, 600), "retries": (int, 0, 20),
+    "baudrate": (int, 50, 4_000_000), "bytesize": (int, 5, 8), "stopbits": (int, 1, 2),
+}
+
+
+def option_facts(option: str) -> tuple[list[str], str | None, str | None]:
+    """(schemes that take it, its default, what it allows) for a URL option: what `explain` shows."""
+    schemes = [s for s, opts in _OPTIONS.items() if option in opts]
+    line = SERIAL_DEFAULTS
+    defaults = {"timeout": DEFAULT_TIMEOUT, "retries": DEFAULT_RETRIES, "baudrate": line.baudrate,
+                "bytesize": line.bytesize, "parity": line.parity, "stopbits": line.stopbits, "verify": "true",
+                "server_hostname": "the URL's host"}
+    allowed = {"parity": "N, E, O", "verify": "true, false (also 1, 0, yes, no)",
+               "cert": "a PEM file", "key": "a PEM file", "ca": "a PEM file"}
+    default = defaults.get(option)
+    return schemes, None if default is None else str(default), (
+        range_text(option) if option in NUMERIC_OPTIONS else allowed.get(option))
+
+
+def range_text(option: str) -> str:
+    """'50..4000000', '0.001..600': a numeric option's allowed range as users write numbers."""
+    _, lo, hi = NUMERIC_OPTIONS[option]
+    return "..".join(str(int(x)) if float(x).is_integer() else f"{x:g}" for x in (lo, hi))
 
 
 def parse_url(text: str, *, timeout: float | None = None, retries: int | None = None) -> DeviceURL:
@@ -115,27 +179,25 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
                          f" (known: {', '.join(sorted(_OPTIONS[scheme]))})"))
         options[key] = values[-1]
 
-    def number(key: str, kind: type[float] | type[int], lo: float, hi: float) -> Any:
+    def number(key: str) -> Any:
+        kind, lo, hi = NUMERIC_OPTIONS[key]
         try:
             v = kind(options[key])
         except ValueError:
             raise BadURL(f"option {key}={options[key]!r} is not a{'n integer' if kind is int else ' number'}") from None
         if not lo <= v <= hi:
-            raise BadURL(f"option {key}={options[key]} is out of range ({lo:g}..{hi:g})")
+            raise BadURL(f"option {key}={options[key]} is out of range ({range_text(key)})")
         return v
 
-    to = number("timeout", float, 0.001, 600) if "timeout" in options else (timeout if timeout is not None else 1.0)
-    rt = number("retries", int, 0, 20) if "retries" in options else (retries if retries is not None else 2)
+    to = number("timeout") if "timeout" in options else (timeout if timeout is not None else DEFAULT_TIMEOUT)
+    rt = number("retries") if "retries" in options else (retries if retries is not None else DEFAULT_RETRIES)
     if scheme in ("rtu", "ascii"):
         path = urllib.parse.unquote(u.netloc + u.path)
         if not path:
             raise BadURL(f"{scheme} URL needs a serial device path: {scheme}:///dev/ttyUSB0")
-        if "baudrate" in options:
-            number("baudrate", int, 50, 4_000_000)
-        if "bytesize" in options:
-            number("bytesize", int, 5, 8)
-        if "stopbits" in options:
-            number("stopbits", int, 1, 2)
+        for key in ("baudrate", "bytesize", "stopbits"):
+            if key in options:
+                number(key)
         if "parity" in options:
             options["parity"] = options["parity"].upper()
             if options["parity"] not in ("N", "E", "O"):
