@@ -101,3 +101,14 @@ def test_many_devices_at_once_each_get_their_own_durable_file_and_line(tmp_path:
         order = [i for i, x in enumerate(lines) if x["name"] == name]
         assert len(order) == 2 and lines[order[0]].get("snapshot") == snap
         assert Path(snap).read_text() == f"# I am {snap}\n"
+
+
+def test_write_atomic_from_pieces_more_than_one_writev_takes(tmp_path: Path) -> None:
+    from deployer.report import write_atomic
+
+    pieces = [f"{i}:{'x' * (i % 7)}\n".encode() for i in range(5000)] + [b"", b"end\n"]  # beyond IOV_MAX
+    write_atomic(str(tmp_path / "r.json"), pieces)
+    assert (tmp_path / "r.json").read_bytes() == b"".join(pieces)
+    write_atomic(str(tmp_path / "r.json"), "text too: \u00b0C\n")
+    assert (tmp_path / "r.json").read_text(encoding="utf-8") == "text too: \u00b0C\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.json"]  # no temporary file left
