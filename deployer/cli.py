@@ -1260,6 +1260,16 @@ _ARGV: list[str] = []  # the command line, for the audit log
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: map every user error to its exit code, never a traceback."""
+    try:
+        _main(argv)
+    finally:
+        if argv is None:  # the process itself (not a test calling in): its objects end with it, so the
+            import gc  # interpreter's last collection need not walk them (40 ms after a 200-device fleet)
+
+            gc.freeze()
+
+
+def _main(argv: Sequence[str] | None) -> None:
     _ARGV[:] = list(argv) if argv is not None else sys.argv[1:]
     try:
         rv = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)
