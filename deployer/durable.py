@@ -208,3 +208,8 @@ def durable_now(op: NewFile | Line) -> str | None:
         return p.done.result()
     finally:
         _close(p)
+
+
+def queue(op: Line) -> asyncio.Future[str | None]:
+    """Queue a line now and hand back its wait, to be awaited later (a fleet device frees its slot first)."""
+    return asyncio.wrap_future(_WRITER.submit(op).done)

@@ -20,7 +20,7 @@ from typing import Literal, Protocol, TypeVar, cast
 from . import codec, journal, lock
 from . import transport as tp
 from .diagnostics import UsageError
-from .durable import Line, durable
+from .durable import Line, durable, queue
 from .planner import (
     Plan,
     ReadRequest,
@@ -246,8 +246,19 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
     """Apply ``recipe`` to one device and say exactly what it holds afterwards.
 
     The device's lock is held from before the first read until the read-back is done, so no
-    other run on this machine can write it in between.
+    other run on this machine can write it in between. Returns once the journal's
+    ``device-finished`` line is on disk.
     """
+    res, finishing = await _apply_device(recipe, url, unit, name=name, options=options)
+    if finishing is not None:
+        await finishing
+    return res
+
+
+async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None,
+                        options: ApplyOptions | None) -> tuple[DeviceResult, Awaitable[object] | None]:
+    """``apply_device``, handing back the wait for its ``device-finished`` line instead of waiting:
+    a fleet frees the device's slot (and lock) for the next device while that fsync happens."""
     opts = options or ApplyOptions()
     prof = recipe.profile
     res = DeviceResult(name or recipe.name, tp.describe(url), unit, prof.id, profile_ref=profile_ref(prof))
@@ -264,7 +275,7 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
                                          directory=opts.lock_dir)
     except lock.Locked as e:
         res.status, res.error = "unreachable", f"{e}; nothing was sent"
-        return res
+        return res, None
     try:
         res.notices.extend(h.stale for h in held if h.stale)
         target = Target(tp.describe(url), unit, profile_ref(prof))
@@ -273,7 +284,7 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
             await transport.connect()
         except tp.Unreachable as e:
             res.status, res.error = "unreachable", str(e)
-            return res
+            return res, None
         session = Session(transport, unit, retries=url.retries, backoff=opts.backoff, records=res.requests)
         try:
             if unit == 0:
@@ -283,9 +294,9 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
         finally:
             await transport.close()
         res.settle()
-        if res.snapshot is not None and opts.run_id is not None:
-            await durable(Line(journal.path_of(opts.state_dir), journal.device_finished(opts.run_id, res)))
-        return res
+        if res.snapshot is not None and opts.run_id is not None:  # queued now, after the read-back
+            return res, queue(Line(journal.path_of(opts.state_dir), journal.device_finished(opts.run_id, res)))
+        return res, None
     finally:
         for h in reversed(held):
             h.release()
@@ -629,8 +640,13 @@ class _HasBus(Protocol):
 _J = TypeVar("_J", bound=_HasBus)
 
 
-async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Awaitable[None]]) -> None:
-    """Run ``work`` for every job, at most ``parallel`` at once; jobs on one bus strictly one after the other."""
+async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Awaitable[Awaitable[None] | None]]
+                   ) -> None:
+    """Run ``work`` for every job, at most ``parallel`` at once; jobs on one bus strictly one after the other.
+
+    ``work`` may hand back what its job still waits for without needing its slot (a journal fsync):
+    that is awaited after the slot is free, before the bus's next job.
+    """
     buses: dict[str, list[_J]] = {}
     for j in jobs:
         buses.setdefault(j.url.bus, []).append(j)
@@ -639,7 +655,9 @@ async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Await
     async def run_bus(group: list[_J]) -> None:
         for j in group:  # half-duplex bus: the next device starts when the last one is done
             async with gate:
-                await work(j)
+                after = await work(j)
+            if after is not None:
+                await after
 
     await asyncio.gather(*(run_bus(g) for g in buses.values()))
 
@@ -684,17 +702,18 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     budget = Budget(max_failures)
     stop: str | None = None
 
-    async def one(j: Job) -> None:
+    async def one(j: Job) -> Awaitable[None] | None:
         nonlocal stop
         stop = stop or budget.spent()  # checked when the device's turn comes, not when it was queued
         if stop is not None:
             done[j.name] = skipped_result(j, stop)
-            return
+            return None
         if on_start:
             on_start(j)
         t = time.monotonic()
+        finishing: Awaitable[object] | None = None
         try:
-            r = await apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
+            r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
         except Declined:
             if len(jobs) == 1:
                 raise
@@ -710,7 +729,12 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         done[j.name] = r
         if r.status in ("failed", "partial"):
             budget.failures += 1
-        if on_done:
+        return finished(r, finishing)
+
+    async def finished(r: DeviceResult, finishing: Awaitable[object] | None) -> None:
+        if finishing is not None:  # outside the device's slot: the next device is already connecting
+            await finishing
+        if on_done:  # the device is done (report file, progress) once its journal line is on disk
             on_done(r)
 
     sizes = list(batches) if batches else [len(jobs)]

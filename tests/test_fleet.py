@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import json
 import os
@@ -516,3 +517,25 @@ def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Pat
     expected = b"".join(_report_parts("r.yaml", [json.dumps(d.to_json()).encode() for d in naive], {})).decode()
     assert text.split('"summary"')[0] == expected.split('"summary"')[0]  # byte for byte, but the summary
     assert {d["name"]: d["error"] for d in json.loads(text)["devices"]} == {n: NOT_FINISHED for n in names(4)}
+
+
+def test_a_device_is_reported_done_once_its_journal_line_is_on_disk(tmp_path: Path) -> None:
+    from deployer.executor import ApplyOptions, apply_many
+    from deployer.fleet import fleet_jobs, load_inventory
+    from deployer.recipe import load_recipe
+
+    state = tmp_path / "s"
+    seen: dict[str, list[str]] = {}
+
+    def on_done(r: object) -> None:  # what the journal says when the report and the progress hear of a device
+        name = getattr(r, "name", "")
+        lines = [json.loads(x) for x in (state / "audit.jsonl").read_text().splitlines()]
+        seen[name] = [x["event"] for x in lines if x.get("name") == name]
+
+    with fleet(6) as sims:
+        inv = inventory(tmp_path, {n: s.url for n, s in zip(names(6), sims, strict=True)})
+        jobs = fleet_jobs(load_inventory(inv), load_recipe(recipe(tmp_path)), None)
+        report = asyncio.run(apply_many(jobs, parallel=2, on_done=on_done,
+                                        options=ApplyOptions(state_dir=str(state), run_id="run-1")))
+        assert report.exit_code == 0 and all(holds_recipe(s) for s in sims)
+    assert seen == {n: ["device-started", "device-finished"] for n in names(6)}
