@@ -79,6 +79,31 @@ def _apply(work: str, inventory: str, variant: int, parallel: int, devices: int)
             "requests": summary["write_requests"] + summary["read_requests"]}
 
 
+def _bare_client(urls: list[str], parallel: int) -> float:
+    """The devices' floor: a bare pymodbus client sending each device deployer's 6 requests (no snapshot,
+    journal, report or start-up), ``parallel`` devices at once, in this process. Seconds."""
+    import asyncio
+
+    from pymodbus.client import AsyncModbusTcpClient
+
+    async def device(url: str, gate: asyncio.Semaphore) -> None:
+        host, port = url.split("//", 1)[1].rsplit(":", 1)
+        async with gate:
+            client = AsyncModbusTcpClient(host, port=int(port))
+            await client.connect()
+            for _ in range(6):
+                await client.read_holding_registers(0, count=60, device_id=1)
+            client.close()
+
+    async def main() -> float:
+        gate = asyncio.Semaphore(parallel)
+        t = time.perf_counter()
+        await asyncio.gather(*(device(u, gate) for u in urls))
+        return time.perf_counter() - t
+
+    return asyncio.run(main())
+
+
 def run(quick: bool = False) -> dict[str, Any]:
     devices = 40 if quick else DEVICES
     parallel = (1, 8, 32) if quick else PARALLEL
@@ -107,6 +132,8 @@ def run(quick: bool = False) -> dict[str, Any]:
                 "cpu_ms_per_device": round(m["cpu"] * 1000 / devices, 1),
                 "cpu_ms_per_device_after_startup": round((m["cpu"] - startup[1]) * 1000 / devices, 1),
                 "peak_rss_mb": round(m["rss"], 1), "requests_per_device": round(m["requests"] / devices, 1)}
+            if p > 8:  # what the devices alone allow at this --parallel (see README: the targets' floor)
+                results[f"parallel_{p}"]["bare_client_seconds"] = round(_bare_client(urls[:devices], p), 2)
         if scale:
             n, p = scale
             m = _apply(work, _inventory(work, "inventory-scale.yaml", urls[:n]), len(parallel) + 1, p, n)

@@ -42,7 +42,7 @@ def _get(results: dict[str, Any], path: str) -> Any:
     return cur
 
 
-# issue #9, "Must show": (what, result path, comparison, target)
+# issue #9's and #10's targets: (what, result path, comparison, target)
 TARGETS = [
     ("validate, 5,000 parameters (s)", "scale/5000/validate_seconds", "<=", 0.5),
     ("plan, 5,000 parameters (s)", "scale/5000/plan_seconds", "<=", 0.5),
@@ -53,6 +53,9 @@ TARGETS = [
     ("apply @0 ms: CPU per parameter (ms)", "apply/phases_0ms/cpu_ms_per_parameter", "<", 0.2),
     ("tcp transport vs bare pymodbus", "transport/tcp/ours_vs_bare", ">=", 0.83),
     ("FC03 of a full apply with gap reads", "apply/5ms/deployer_gap_reads/fc03", "<=", 12),
+    # issue #10: 200 devices x 100 parameters answering after 20 ms, the command timed from outside
+    ("fleet --parallel 32: speed-up over 1", "fleet/parallel_32/speedup", ">=", 20.0),
+    ("fleet --parallel 128: speed-up over 1", "fleet/parallel_128/speedup", ">=", 40.0),
 ]
 
 
