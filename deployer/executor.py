@@ -246,8 +246,8 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
     """Apply ``recipe`` to one device and say exactly what it holds afterwards.
 
     The device's lock is held from before the first read until the read-back is done, so no
-    other run on this machine can write it in between. Returns once the journal's
-    ``device-finished`` line is on disk.
+    other run on this machine can write it in between. With a journal (``options.run_id``) it
+    returns once the ``device-finished`` line is on disk.
     """
     res, finishing = await _apply_device(recipe, url, unit, name=name, options=options)
     if finishing is not None:
