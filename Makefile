@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test lint bench fuzz clean
+.PHONY: demo test lint bench fuzz docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -22,18 +22,21 @@ demo: $(VENV)/.installed
 
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q
-	$(BIN)/ruff check deployer tests benchmarks
+	$(BIN)/ruff check deployer tests benchmarks ansible_collections
 	$(BIN)/mypy deployer
 
 lint: $(VENV)/.installed-test
-	$(BIN)/ruff check deployer tests benchmarks
+	$(BIN)/ruff check deployer tests benchmarks ansible_collections
 	$(BIN)/mypy deployer
+
+docs: $(VENV)/.installed
+	$(BIN)/deployer docs --out docs/reference
 
 bench: $(VENV)/.installed
 	$(BIN)/python -m benchmarks.run
 
 fuzz: $(VENV)/.installed-test
-	$(BIN)/python -m tests.fuzz --files 50000 --seconds 900
+	$(BIN)/python -m tests.fuzz --files 200000 --seconds 900
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build *.egg-info

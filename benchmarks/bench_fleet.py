@@ -5,7 +5,8 @@ deployer's own: each run is the real command line (`deployer apply --inventory .
 started as a child process, measured from the outside (wall time; CPU time and peak memory
 from the child's rusage). The `fleet_seconds` are the report's own time for the parallel
 phase, without start-up, loading and the final output. Each run writes new values (the
-recipe alternates), so every device really is written and verified.
+recipe alternates), so every device really is written and verified. Last, the scale check:
+1,000 such devices at --parallel 256 (open-file limit, memory per device).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ DEVICES = 200
 PARAMETERS = 100
 LATENCY_MS = 20
 PARALLEL = (1, 8, 32, 128)
+SCALE = (1000, 256)  # and then: this many devices at this --parallel (memory should grow linearly)
 
 
 def _profile(n: int) -> str:
@@ -50,52 +52,70 @@ def _run(cmd: list[str], cwd: str) -> tuple[float, float, float, int]:
     return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024, proc.returncode
 
 
+def _inventory(work: str, name: str, urls: list[str]) -> str:
+    path = os.path.join(work, name)
+    with open(path, "w") as f:
+        f.write("defaults: {timeout: 3.0, retries: 1}\ndevices:\n")
+        f.writelines(f"  dev{i:04d}: {{url: '{u}'}}\n" for i, u in enumerate(urls))
+    return name
+
+
+def _apply(work: str, inventory: str, variant: int, parallel: int, devices: int) -> dict[str, Any]:
+    recipe = os.path.join(work, f"recipe{variant}.yaml")
+    with open(recipe, "w") as f:
+        f.write(_recipe(PARAMETERS, variant))
+    report = os.path.join(work, f"report{variant}.json")
+    deployer = os.path.join(os.path.dirname(sys.executable), "deployer")
+    wall, cpu, rss, code = _run([deployer, "apply", recipe, "--inventory", inventory, "--yes",
+                                 "--parallel", str(parallel), "--report", report, "--state-dir", "state"], work)
+    with open(report) as f:
+        summary = json.load(f)["summary"]
+    assert code == 0 and summary["ok"] == devices, (code, summary)
+    return {"wall": wall, "cpu": cpu, "rss": rss, "fleet": summary["seconds"],
+            "requests": summary["write_requests"] + summary["read_requests"]}
+
+
 def run(quick: bool = False) -> dict[str, Any]:
     devices = 40 if quick else DEVICES
     parallel = (1, 8, 32) if quick else PARALLEL
+    scale = None if quick else SCALE
     work = tempfile.mkdtemp(prefix="bench-fleet-")
     with open(os.path.join(work, "profile.yaml"), "w") as f:
         f.write(_profile(PARAMETERS))
+    served = max(devices, scale[0] if scale else 0)
     server = subprocess.Popen([sys.executable, "-m", "benchmarks.fleet_devices", os.path.join(work, "profile.yaml"),
-                               str(devices), str(LATENCY_MS)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                               str(served), str(LATENCY_MS)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert server.stdout is not None
         urls = json.loads(server.stdout.readline())
-        with open(os.path.join(work, "inventory.yaml"), "w") as f:
-            f.write("defaults: {timeout: 2.0, retries: 1}\ndevices:\n")
-            f.writelines(f"  dev{i:03d}: {{url: '{u}'}}\n" for i, u in enumerate(urls))
-        deployer = os.path.join(os.path.dirname(sys.executable), "deployer")
-        start_cpu = _run([deployer, "--help"], work)
+        inventory = _inventory(work, "inventory.yaml", urls[:devices])
+        startup = _run([os.path.join(os.path.dirname(sys.executable), "deployer"), "--help"], work)
         results: dict[str, Any] = {"devices": devices, "parameters": PARAMETERS, "latency_ms": LATENCY_MS,
-                                   "startup_seconds": round(start_cpu[0], 3)}
-        base_wall = base_fleet = 0.0
+                                   "startup_seconds": round(startup[0], 3)}
+        base: dict[str, Any] = {}
         for variant, p in enumerate(parallel, 1):
-            recipe = os.path.join(work, f"recipe{variant}.yaml")
-            with open(recipe, "w") as f:
-                f.write(_recipe(PARAMETERS, variant))
-            report = os.path.join(work, f"report{p}.json")
-            wall, cpu, rss, code = _run([deployer, "apply", recipe, "--inventory", "inventory.yaml", "--yes",
-                                         "--parallel", str(p), "--report", report, "--state-dir", "state"], work)
-            with open(report) as f:
-                data = json.load(f)
-            summary = data["summary"]
-            assert code == 0 and summary["ok"] == devices, (code, summary)
-            fleet = summary["seconds"]
-            if p == 1:
-                base_wall, base_fleet = wall, fleet
+            m = _apply(work, inventory, variant, p, devices)
+            base = base or m
             results[f"parallel_{p}"] = {
-                "wall_seconds": round(wall, 2), "speedup": round(base_wall / wall, 1),
-                "fleet_seconds": round(fleet, 2), "fleet_speedup": round(base_fleet / fleet, 1),
-                "cpu_ms_per_device": round(cpu * 1000 / devices, 1),
-                "cpu_ms_per_device_after_startup": round((cpu - start_cpu[1]) * 1000 / devices, 1),
-                "peak_rss_mb": round(rss, 1),
-                "requests_per_device": round((summary["write_requests"] + summary["read_requests"]) / devices, 1)}
+                "wall_seconds": round(m["wall"], 2), "speedup": round(base["wall"] / m["wall"], 1),
+                "fleet_seconds": round(m["fleet"], 2), "fleet_speedup": round(base["fleet"] / m["fleet"], 1),
+                "cpu_ms_per_device": round(m["cpu"] * 1000 / devices, 1),
+                "cpu_ms_per_device_after_startup": round((m["cpu"] - startup[1]) * 1000 / devices, 1),
+                "peak_rss_mb": round(m["rss"], 1), "requests_per_device": round(m["requests"] / devices, 1)}
+        if scale:
+            n, p = scale
+            m = _apply(work, _inventory(work, "inventory-scale.yaml", urls[:n]), len(parallel) + 1, p, n)
+            small = results[f"parallel_{parallel[-1]}"]
+            results[f"scale_{n}_devices_parallel_{p}"] = {
+                "wall_seconds": round(m["wall"], 2), "fleet_seconds": round(m["fleet"], 2),
+                "cpu_ms_per_device": round(m["cpu"] * 1000 / n, 1), "peak_rss_mb": round(m["rss"], 1),
+                "memory_kb_per_extra_device": round((m["rss"] - small["peak_rss_mb"]) * 1024 / (n - devices), 1)}
         return results
     finally:
         if server.stdin:
             server.stdin.close()
         try:
-            server.wait(timeout=30)
+            server.wait(timeout=60)
         except subprocess.TimeoutExpired:
             server.kill()
 

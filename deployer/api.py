@@ -217,6 +217,30 @@ def ensure_files(parallel: int, devices: int) -> None:
     resource.setrlimit(resource.RLIMIT_NOFILE, (need if hard == resource.RLIM_INFINITY else hard, hard))
 
 
+def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failures: str | None,
+                  report_path: str | None = None) -> tuple[list[int], int | None]:
+    """Check a fleet run's options before anything happens: batch sizes, failure budget, open files,
+    and that the report file can be written (it is written before the first device starts)."""
+    sizes = batch_sizes(batch, devices)
+    budget = failure_budget(max_failures, devices)
+    ensure_files(parallel, devices)
+    if report_path:
+        check_writable(os.path.dirname(os.path.abspath(report_path)), f"the report {report_path}")
+    return sizes, budget
+
+
+def check_writable(folder: str, what: str) -> None:
+    """Create ``folder`` if needed and make sure a file can be written there, or say why not (UsageError)."""
+    probe = os.path.join(folder, f".deployer-probe-{os.getpid()}")
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with open(probe, "w", encoding="utf-8"):
+            pass
+        os.remove(probe)
+    except OSError as e:
+        raise UsageError(f"cannot write {what}: {e.strerror}") from None
+
+
 def fleet(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None, timeout: float | None = None,
           retries: int | None = None, unit: int | None = None) -> list[Job]:
     """One checked job per selected device (the recipe with the device's profile and overrides)."""
@@ -249,9 +273,8 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     finished") and rewritten as devices finish, so after a crash ``limit="@REPORT"`` retries
     exactly what did not end ok.
     """
-    sizes = batch_sizes(batch, len(jobs))
-    budget = failure_budget(max_failures, len(jobs))
-    ensure_files(parallel, len(jobs))
+    sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
+                                  report_path=report_path)
     live = None
     if report_path:
         live = LiveReport(report_path, recipe_name, [skipped_result(j, NOT_FINISHED) for j in jobs])

@@ -27,7 +27,6 @@ if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from rich.console import Console
-    from rich.table import Table
 
     from .api import Drift
     from .executor import Job, ReadJob
@@ -65,8 +64,8 @@ def console(*, stderr: bool = False) -> Console:
 
 
 def describe(url: DeviceURL) -> str:
-    """The URL as users write it (transport imports pymodbus: only when a device is involved)."""
-    from .transport import describe as describe_url
+    """The URL as users write it."""
+    from .urls import describe as describe_url
 
     return describe_url(url)
 
@@ -121,7 +120,7 @@ def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
         for dev in inv.devices:
             if dev.profile is not None:
                 try:
-                    resolve_profile(dev.profile)
+                    resolve_profile(dev.profile, relative_to=path, kind="inventory")
                 except UsageError as e:
                     errors.append(src.error(("devices", dev.name, "profile"), str(e)))
                 except InputError as e:
@@ -381,6 +380,73 @@ def profiles_show(profile: str) -> int:
          rows)
     return EXIT_OK
 
+@profiles.command("new")
+@click.argument("output", type=click.Path(dir_okay=False))
+@click.option("--id", "profile_id", help="the profile's id (default: the file name without .yaml)")
+@click.option("--force", is_flag=True, help="overwrite an existing file")
+def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
+    """Write a commented profile skeleton to OUTPUT, ready to fill in from the device's manual."""
+    import re
+
+    from .skeleton import profile_skeleton
+    from .yamlsrc import schema
+
+    pid = profile_id or os.path.splitext(os.path.basename(output))[0]
+    pattern = schema("profile")["properties"]["profile"]["pattern"]
+    if not re.match(pattern, pid):
+        raise UsageError(f"'{pid}' is not a profile id (letters, digits, '.', '_', '-'); pass --id ID")
+    text = profile_skeleton(pid, output)
+    if os.path.exists(output) and not force:
+        raise UsageError(f"{output} exists; pass --force to overwrite it")
+    with open(output, "w", encoding="utf-8") as f:
+        f.write(text)
+    click.echo(f"wrote {output}: fill it in from the manual, then run: deployer validate {output}", err=True)
+    return EXIT_OK
+
+
+# --- reference docs, explain (docgen) ----------------------------------------------------
+
+
+@cli.command("docs")
+@click.option("--out", "out_dir", default=os.path.join("docs", "reference"), show_default=True,
+              type=click.Path(file_okay=False), help="where the reference pages go")
+@click.option("--check", is_flag=True, help="write nothing; exit 1 when a page differs from the schemas")
+def docs_command(out_dir: str, check: bool) -> int:
+    """Generate the reference pages (one per file kind) from the JSON Schemas."""
+    from .docgen import stale_pages, write_pages
+
+    if check:
+        stale = stale_pages(out_dir)
+        for path in stale:
+            click.echo(f"{path}: stale (run: deployer docs --out {out_dir})", err=True)
+        return EXIT_INVALID if stale else EXIT_OK
+    changed = write_pages(out_dir)
+    click.echo(f"{len(changed)} page{'s' if len(changed) != 1 else ''} updated in {out_dir}", err=True)
+    return EXIT_OK
+
+
+@cli.command()
+@click.argument("key")
+def explain(key: str) -> int:
+    """Explain a key of a profile, recipe, inventory, plan or report, or a device URL option
+    (e.g. max_frame_bytes, profile:scale, baudrate)."""
+    import difflib
+
+    from .docgen import all_keys, find_keys, render_text, url_option_text
+
+    texts = [render_text(k) for k in find_keys(key)]
+    kind, _, name = key.rpartition(":")
+    if kind in ("", "url"):
+        texts += [t for t in [url_option_text(name)] if t]
+    if not texts:
+        names = sorted({k.path for k in all_keys()} | {k.path.rsplit(".", 1)[-1] for k in all_keys()})
+        hint = difflib.get_close_matches(name, names, n=3)
+        raise UsageError(f"no key '{key}' in any schema" + (f"; did you mean {', '.join(hint)}?" if hint else
+                                                            "; try e.g. 'deployer explain scale'"))
+    click.echo("\n\n".join(texts))
+    return EXIT_OK
+
+
 # --- plan (planner) ---------------------------------------------------------------------
 
 _device_options = [
@@ -408,7 +474,7 @@ parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), defau
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
-    from .transport import BadURL, parse_url
+    from .urls import BadURL, parse_url  # not transport: an offline plan does not import pymodbus
 
     text = device or (recipe.device.url if recipe.device else None)
     u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
@@ -443,10 +509,9 @@ def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:
     """(framing, baud, bits per character, text) of the line the plan goes over: the URL's serial settings,
     else the Modbus default 19200 baud 8E1 on RTU."""
     if url is not None and url.scheme in ("rtu", "ascii"):
-        o = url.options
-        baud, data, parity, stop = int(o.get("baudrate", 19200)), int(o.get("bytesize", 8)), o.get("parity", "N"), \
-            int(o.get("stopbits", 1))
-        return url.scheme, baud, 1 + data + (parity != "N") + stop, f"{baud} baud {data}{parity}{stop}"
+        ln = url.line
+        bits = 1 + ln.bytesize + (ln.parity != "N") + ln.stopbits
+        return url.scheme, ln.baudrate, bits, f"{ln.baudrate} baud {ln.bytesize}{ln.parity}{ln.stopbits}"
     return "rtu", 19200, 11, "19200 baud"
 
 
@@ -709,7 +774,8 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
 
 _STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "skipped": 3, "ok": 4, "unchanged": 5}
 _STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red",
-                 "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red"}
+                 "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red",
+                 "sent": "cyan"}
 
 
 def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> None:
@@ -727,6 +793,9 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
             show(out, ["parameter", "before", "desired", "after", "status", ""],
                  [[p.name, p.before or "-", p.desired, p.after or "-", (p.status, _STATUS_STYLE.get(p.status, "")),
                    p.error or ""] for p in rows])
+        if d.status == "sent":
+            out.print("broadcast sent: every request went out; no device answers a broadcast, so nothing was "
+                      "read back or verified")
         for note in d.notices:
             out.print(f"note: {note}")
         if d.snapshot:
@@ -734,8 +803,9 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
     s = report.summary()
     if len(report.devices) > 1 and not only_not_ok:
-        out.print(f"{s['devices']} devices: {s['ok']} ok, {s['partial']} partial, {s['failed']} failed, "
-                  f"{s['unreachable']} unreachable in {s['seconds']:.2f} s")
+        out.print(f"{s['devices']} devices: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
+                  + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable "
+                  f"in {s['seconds']:.2f} s")
 
 
 def _is_plan_file(path: str) -> bool:
@@ -756,10 +826,9 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               batch: str | None = None, max_failures: str | None = None, command: str = "apply") -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
     from . import journal
-    from .api import run_fleet_async
+    from .api import fleet_options, run_fleet_async
     from .executor import ApplyOptions, Job, apply_many
     from .planner import load_plan
-    from .progress import FleetProgress, fleet_summary
     from .recipe import load_recipe
     from .report import write_json
 
@@ -773,6 +842,12 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             raise UsageError("rollback --report restores each device from its own snapshot, to the device it was "
                              "taken from: --inventory, --device and --unit do not apply")
         jobs = _rollback_report_jobs(from_report, force=force, timeout=timeout, retries=retries)
+        if limit:  # names and patterns select among that run's devices (it has no groups)
+            from .fleet import FleetDevice, Inventory, select
+
+            chosen = {d.name for d in select(Inventory(from_report, tuple(FleetDevice(j.name, describe(j.url))
+                                                                          for j in jobs)), limit)}
+            jobs = [j for j in jobs if j.name in chosen]
         label = from_report
     else:
         assert source is not None
@@ -826,14 +901,18 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         for why in moved:
             err.print(f"warning: {why}; restoring it there (--yes)")
 
+    fleet_run = bool(inventory or from_report)
+    if fleet_run:
+        fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures, report_path=report_path)
     run_id = journal.new_run_id()
     journal.run_started(state_dir, run_id, command=command, argv=_ARGV, recipe=label,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
-    fleet_run = bool(inventory or from_report)
     if fleet_run:
+        from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
+
         # a live display on a terminal (not while asking questions), else a line per device
         progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes)
         with progress:
@@ -846,8 +925,15 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             write_json(report.to_json(), report_path)
     journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     if as_json:
-        click.echo(json.dumps(report.to_json(), indent=2))
+        if fleet_run:
+            from .fleet import report_text
+
+            click.echo(report_text(report), nl=False)
+        else:
+            click.echo(json.dumps(report.to_json(), indent=2))
     elif fleet_run:
+        from .progress import fleet_summary
+
         print_report(report, out, only_not_ok=True)
         fleet_summary(report, out)
     else:
@@ -1024,24 +1110,17 @@ def diff(recipe: str, device: str | None, unit: int | None, timeout: float | Non
         click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u,
                                "drift": [r.to_json() for r in rows]}, indent=2))
     elif rows:
-        console().print(drift_table(rows, None))
+        show(console(), ["parameter", "recipe", "device value", ""], drift_rows(rows))
         console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
     else:
         console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
     return EXIT_CHANGES if drift else EXIT_OK
 
 
-def drift_table(rows: Sequence[Drift], device: str | None, table: Table | None = None) -> Table:
-    """parameter, recipe, device value (with a device column for fleets)."""
-    from rich.table import Table
-
-    if table is None:
-        table = Table(*(["device"] if device is not None else []), "parameter", "recipe", "device value", "",
-                      box=None)
-    for r in rows:
-        status = "drift" if r.device_raw is not None else "not readable"
-        table.add_row(*([device] if device is not None else []), r.name, r.desired, r.device or "-", status)
-    return table
+def drift_rows(rows: Sequence[Drift], device: str | None = None) -> list[list[Cell]]:
+    """parameter, recipe, device value, status (with the device's name first for fleets)."""
+    return [[*([device] if device is not None else []), r.name, r.desired, r.device or "-",
+             ("drift", "yellow") if r.device_raw is not None else "not readable"] for r in rows]
 
 
 def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool) -> int:
@@ -1059,14 +1138,9 @@ def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool
                                     "error": str(values[j.name])} for j in jobs],
             "drifted": drifted, "unreachable": down}, indent=2))
     else:
-        from rich.table import Table
-
         out = console()
-        table = Table("device", "parameter", "recipe", "device value", "", box=None)
-        for j in jobs:
-            drift_table(rows.get(j.name, []), j.name, table)
-        if table.row_count:
-            out.print(table)
+        show(out, ["device", "parameter", "recipe", "device value", ""],
+             [row for j in jobs for row in drift_rows(rows.get(j.name, []), j.name)])
         out.print(f"drift on {len(drifted)} of {len(jobs)} devices" + (f": {', '.join(drifted)}" if drifted else "")
                   + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
     if down:
@@ -1123,7 +1197,7 @@ def _pulled_from(url: str, unit: int) -> str:
 def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folder: str, *, timeout: float | None,
                retries: int | None, unit: int | None, parallel: int) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
-    from .api import device_url, load_inventory, pull_names, pulled_recipe
+    from .api import check_writable, device_url, load_inventory, pull_names, pulled_recipe
     from .executor import ReadJob
     from .profile import resolve_profile
 
@@ -1148,7 +1222,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
         jobs.append(ReadJob(dev.name, prof, tuple(pull_names(prof)), url, unit if unit is not None else dev.unit))
     if errors:
         raise InputError(errors)
-    os.makedirs(folder, exist_ok=True)
+    check_writable(folder, f"recipes into {folder}")
     values = read_fleet(jobs, parallel)
     written = 0
     for j in jobs:

@@ -115,8 +115,9 @@ def run_demo(*, fast: bool = False) -> int:
         codes.append(run(["apply", retune, "--yes", "--state-dir", state, "--device", url]))
         faults.fail_registers = frozenset()
         if first_snapshot:
-            step("8. Rollback", "The first snapshot is a recipe: applying it restores what the device held.")
-            codes.append(run(["rollback", first_snapshot, "--yes", "--state-dir", state, "--device", url]))
+            step("8. Rollback", "The first snapshot is a recipe that knows its device and profile: rollback "
+                                "writes back exactly the registers the device held, to that device.")
+            codes.append(run(["rollback", first_snapshot, "--yes", "--state-dir", state]))
             step("9. Verify", "Diff against the snapshot: no drift left.")
             codes.append(run(["diff", first_snapshot, "--device", url]))
         click.echo()

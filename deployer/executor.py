@@ -15,7 +15,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Literal, Protocol, TypeVar
+from typing import Literal, Protocol, TypeVar, cast
 
 from . import codec, journal, lock
 from . import transport as tp
@@ -33,7 +33,7 @@ from .planner import (
 )
 from .profile import Parameter, Profile, WriteAction, profile_ref
 from .recipe import Recipe
-from .report import DeviceResult, ParameterResult, Report, RequestRecord
+from .report import DeviceResult, ParameterResult, Report, RequestRecord, show_registers
 from .snapshot import save_snapshot
 
 Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
@@ -101,7 +101,8 @@ class Session:
             except tp.NoResponse:
                 record.result, record.exception_code = "no response", None
                 if attempt > self.retries:
-                    raise DeviceGone(f"no answer after {attempt} attempt{'s' if attempt > 1 else ''}") from None
+                    hint = tp.no_answer_hint(self.transport.url, self.unit)
+                    raise DeviceGone(f"no answer after {attempt} attempt{'s' if attempt > 1 else ''}{hint}") from None
             except tp.ConnectionLost as e:
                 record.result, record.exception_code = "connection lost", None
                 if attempt > self.retries:
@@ -160,9 +161,10 @@ def values_of(params: Iterable[Parameter], regs: Mapping[int, int]) -> dict[str,
     """Parameter name -> registers, for every parameter whose registers were all read."""
     out = {}
     for p in params:
-        words = [regs.get(a) for a in range(p.address, p.end)]
-        if all(w is not None for w in words):
-            out[p.name] = tuple(w for w in words if w is not None)
+        a = p.address
+        words = tuple(regs.get(a + i) for i in range(p.count))
+        if None not in words:
+            out[p.name] = cast(tuple[int, ...], words)  # no None left
     return out
 
 
@@ -198,17 +200,24 @@ async def _send_actions(session: Session, prof: Profile, actions: Iterable[Write
 
 
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
-    return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers)
+    return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers,
+                                    parameter=d.parameter)
             for d in recipe.desired}
 
 
-def _text(p: Parameter, regs: Sequence[int] | None) -> str | None:
-    if regs is None:
-        return None
-    try:
-        return p.format_registers(tuple(regs))
-    except Exception:  # a value the codec cannot show (e.g. NaN): show raw words
-        return " ".join(f"{w:04X}h" for w in regs)
+# read plans per recipe: every device of a fleet that shares a recipe reads the same blocks
+_READS: dict[int, tuple[Recipe, tuple[ReadRequest, ...]]] = {}
+_READS_KEPT = 64  # recipes remembered (a long-lived API user loads new ones)
+
+
+def _reads_of(recipe: Recipe) -> tuple[ReadRequest, ...]:
+    hit = _READS.get(id(recipe))
+    if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
+        while len(_READS) >= _READS_KEPT:
+            del _READS[next(iter(_READS))]  # the oldest
+        hit = _READS[id(recipe)] = (recipe, plan_reads(recipe.profile, [d.name for d in recipe.desired
+                                                                        if d.parameter.readable]))
+    return hit[1]
 
 
 async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None = None,
@@ -248,7 +257,7 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
         session = Session(transport, unit, retries=url.retries, backoff=opts.backoff, records=res.requests)
         try:
             if unit == 0:
-                await _broadcast(session, recipe, target, opts, results)
+                await _broadcast(session, recipe, target, opts, res, results)
             else:
                 await _apply(session, recipe, target, opts, res, results)
         finally:
@@ -261,14 +270,29 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
         held.release()
 
 
-async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions,
+async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,
                      results: dict[str, ParameterResult]) -> None:
-    """Unit 0: nobody answers, so nothing is read; every parameter is sent and unverified."""
+    """Unit 0: nobody answers, so nothing is read; every parameter is sent and unverified.
+
+    The device ends ``sent`` when every request went out, ``failed`` when one could not be sent.
+    """
     plan = opts.expected or make_plan(recipe, target, None, write_all=True)
-    for req in plan.writes:
-        await session.write(req)
+    queue = deque(plan.writes)
+    while queue:
+        req = queue.popleft()
+        try:
+            await session.write(req)
+        except DeviceGone as e:
+            for n in req.parameters:
+                results[n].status, results[n].error = "unverified", f"broadcast may not have gone out: {e}"
+            for rest in queue:
+                for n in rest.parameters:
+                    results[n].status, results[n].error = "skipped", "not sent: an earlier broadcast request failed"
+            res.status, res.error = "failed", f"broadcast request at 0x{req.address:04X} could not be sent: {e}"
+            return
         for n in req.parameters:
             results[n].status, results[n].error = "unverified", "broadcast: no device answers"
+    res.status = "sent"
 
 
 async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,
@@ -281,16 +305,18 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         if why:
             res.status, res.error = "failed", f"{why}; nothing was written"
             return
-        offline = make_plan(recipe, target, None)
-        before = values_of(params, await session.read_blocks(offline.reads, prof))
+        before = values_of(params, await session.read_blocks(_reads_of(recipe), prof))
     except DeviceGone as e:
         res.status, res.error = "unreachable", f"{e}; nothing was written"
         return
     except tp.ExceptionResponse as e:
         res.status, res.error = "failed", f"reading the current values answered {e}; nothing was written"
         return
+    if not session.gap_reads:  # the refused read is in res.requests; say why the reads that follow differ
+        res.notices.append("the device refused a read across undeclared registers (exception 02): "
+                           "it is read in gap-free blocks (the profile's limits.max_read_gap is not for it)")
     for n, regs in before.items():
-        results[n].before_raw, results[n].before = regs, _text(prof.parameter(n), regs)
+        results[n].before_raw = regs
 
     # 2. the plan: a saved one must still match the device, else a fresh diff-aware plan
     if opts.expected is not None:
@@ -300,7 +326,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         if changed:
             raise StalePlan(
                 "the device changed since the plan was made (" + ", ".join(
-                    f"{n}: now {_text(prof.parameter(n), before.get(n))}" for n in changed)
+                    f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed)
                 + "); make a new plan")
         plan = opts.expected
     else:
@@ -508,7 +534,7 @@ def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[s
         p = prof.parameter(n)
         got = after.get(n)
         if got is not None:
-            r.after_raw, r.after = got, _text(p, got)
+            r.after_raw = got
         if r.status in ("failed", "skipped"):
             continue
         if got is None:  # not read back: sent ones stay unverified, with the reason
@@ -518,7 +544,7 @@ def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[s
         if p.same_value(got, r.desired_raw):
             r.status, r.error = ("ok" if n in written else "unchanged"), None
             continue
-        reads_back = f"reads back {_text(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
+        reads_back = f"reads back {show_registers(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
         if r.error and r.error.startswith("device stopped answering"):
             r.error = f"{r.error}; {reads_back}"  # no answer and not applied: unverified, not "accepted"
         else:
@@ -606,6 +632,21 @@ def skipped_result(job: Job, reason: str) -> DeviceResult:
     return r
 
 
+@dataclass
+class Budget:
+    """``--max-failures``: how many devices may end failed or partial before no new device starts."""
+
+    limit: int | None
+    failures: int = 0
+
+    def spent(self) -> str | None:
+        """Why no new device may start, or None."""
+        n = self.failures
+        if self.limit is None or n < self.limit:
+            return None
+        return f"not started: {n} device{'s' if n != 1 else ''} ended failed or partial (--max-failures {self.limit})"
+
+
 async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOptions | None = None,
                      recipe_name: str | None = None,
                      on_done: Callable[[DeviceResult], None] | None = None,
@@ -620,12 +661,13 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     """
     started = time.monotonic()
     done: dict[str, DeviceResult] = {}
-    failures = 0
+    budget = Budget(max_failures)
     stop: str | None = None
 
     async def one(j: Job) -> None:
-        nonlocal failures, stop
-        if stop is not None:  # checked when the device's turn comes, not when it was queued
+        nonlocal stop
+        stop = stop or budget.spent()  # checked when the device's turn comes, not when it was queued
+        if stop is not None:
             done[j.name] = skipped_result(j, stop)
             return
         if on_start:
@@ -633,7 +675,12 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         t = time.monotonic()
         try:
             r = await apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
-        except (StalePlan, Declined):
+        except Declined:
+            if len(jobs) == 1:
+                raise
+            # in a fleet, a "no" is about that device: the others were asked (or are being written) on their own
+            r = skipped_result(j, "not written: declined at the confirmation prompt")
+        except StalePlan:
             raise
         except UsageError as e:
             r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),
@@ -642,10 +689,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         r.seconds = time.monotonic() - t
         done[j.name] = r
         if r.status in ("failed", "partial"):
-            failures += 1
-            if max_failures is not None and failures >= max_failures and stop is None:
-                stop = (f"not started: {failures} device{'s' if failures != 1 else ''} ended failed or partial "
-                        f"(--max-failures {max_failures})")
+            budget.failures += 1
         if on_done:
             on_done(r)
 
@@ -655,11 +699,18 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         batch = jobs[pos:pos + size]
         pos += size
         await on_buses(batch, parallel, one)
-        ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
-        if stop is None and pos < len(jobs) and ran and all(r.status != "ok" for r in ran):
-            which = f"the canary {ran[0].name}" if len(batch) == 1 else f"all {len(ran)} devices"
-            stop = f"not started: batch {number} failed ({which} did not end ok)"
+        if stop is None and pos < len(jobs):
+            stop = batch_failed(number, batch, done)
     return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
+
+
+def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:
+    """Ansible's ``serial`` rule: a batch in which no device that ran ended ok ends the rollout."""
+    ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
+    if not ran or any(r.status == "ok" for r in ran):
+        return None
+    which = f"the canary {ran[0].name}" if len(batch) == 1 else f"all {len(ran)} devices"
+    return f"not started: batch {number} failed ({which} did not end ok)"
 
 
 async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,

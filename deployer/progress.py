@@ -13,14 +13,14 @@ from typing import TYPE_CHECKING
 from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rich.table import Table
 from rich.text import Text
 
 if TYPE_CHECKING:
     from .report import DeviceResult, Report
+    from .tables import Cell
 
 STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red", "unverified": "yellow",
-         "skipped": "yellow", "partial": "yellow", "unreachable": "bold red", "drift": "yellow"}
+         "skipped": "yellow", "partial": "yellow", "unreachable": "bold red", "drift": "yellow", "sent": "cyan"}
 
 
 class FleetProgress:
@@ -81,16 +81,17 @@ class FleetProgress:
 
 def fleet_summary(report: Report, out: Console) -> None:
     """One row per device (status, parameters changed and failed, requests, seconds), then the totals."""
-    table = Table("device", "status", "changed", "failed", "requests", "seconds", "", box=None)
+    from .tables import show
+
+    rows: list[list[Cell]] = []
     for d in report.devices:
-        style = STYLE.get(d.status, "")
         changed = sum(1 for p in d.parameters if p.status == "ok" and p.before_raw != p.after_raw)
         failed = sum(1 for p in d.parameters if p.status in ("failed", "mismatch", "unverified"))
         secs = "-" if d.seconds is None else f"{d.seconds:.2f}"
-        table.add_row(d.name, f"[{style}]{d.status}[/{style}]", str(changed), str(failed), str(len(d.requests)),
-                      secs, d.error or "")
-    out.print(table)
+        rows.append([d.name, (d.status, STYLE.get(d.status, "")), str(changed), str(failed), str(len(d.requests)),
+                     secs, d.error or ""])
+    show(out, ["device", "status", "changed", "failed", "requests", "seconds", ""], rows)
     s = report.summary()
-    parts = [f"{s[k]} {k}" for k in ("ok", "partial", "failed", "unreachable", "skipped") if s[k] or k == "ok"]
+    parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "skipped") if s[k] or k == "ok"]
     out.print(f"{s['devices']} devices: {', '.join(parts)}; {s['write_requests']} write and "
               f"{s['read_requests']} read requests in {s['seconds']:.2f} s")

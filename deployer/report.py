@@ -4,14 +4,19 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from .diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE
 
+if TYPE_CHECKING:
+    from .profile import Parameter
+
 REPORT_SCHEMA = "deployer.report/1"
 ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
-DeviceStatus = Literal["ok", "partial", "failed", "unreachable", "skipped"]  # skipped: a fleet never started it
+# sent: a broadcast that went out; skipped: a fleet never started it
+DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped"]
 
 
 @dataclass
@@ -28,6 +33,16 @@ class RequestRecord:
                 "exception_code": self.exception_code, "attempts": self.attempts}
 
 
+def show_registers(p: Parameter, regs: Sequence[int] | None) -> str | None:
+    """Engineering text for registers ('10 s', 'coast'), or the raw words where the codec cannot show them."""
+    if regs is None:
+        return None
+    try:
+        return p.format_registers(tuple(regs))
+    except Exception:  # a value the codec cannot show (e.g. NaN): show raw words
+        return " ".join(f"{w:04X}h" for w in regs)
+
+
 @dataclass
 class ParameterResult:
     name: str
@@ -39,9 +54,17 @@ class ParameterResult:
     after_raw: tuple[int, ...] | None = None
     status: ParamStatus = "skipped"
     error: str | None = None
-    # engineering texts for the human table (not in the JSON contract)
-    before: str | None = None
-    after: str | None = None
+    # the profile's parameter, for engineering texts in the human table (not in the JSON contract); the
+    # texts are made only when shown: a fleet's report is mostly JSON, and formatting every value cost more
+    parameter: Parameter | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def before(self) -> str | None:
+        return None if self.parameter is None else show_registers(self.parameter, self.before_raw)
+
+    @property
+    def after(self) -> str | None:
+        return None if self.parameter is None else show_registers(self.parameter, self.after_raw)
 
     def to_json(self) -> dict[str, Any]:
         return {"name": self.name, "address": self.address, "count": self.count, "desired": self.desired,
@@ -75,8 +98,8 @@ class DeviceResult:
         return sum(1 for r in self.requests if r.function == 3)
 
     def settle(self) -> None:
-        """Device status from its parameters (unless already failed/unreachable/skipped)."""
-        if self.status in ("unreachable", "failed", "skipped"):
+        """Device status from its parameters (unless already sent/failed/unreachable/skipped)."""
+        if self.status in ("unreachable", "failed", "skipped", "sent"):
             return
         bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
         if not bad:
@@ -112,7 +135,7 @@ class Report:
 
     def summary(self) -> dict[str, Any]:
         counts = {s: sum(1 for d in self.devices if d.status == s)
-                  for s in ("ok", "partial", "failed", "unreachable", "skipped")}
+                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped")}
         return {"devices": len(self.devices), **counts,
                 "write_requests": sum(d.write_requests for d in self.devices),
                 "read_requests": sum(d.read_requests for d in self.devices),
@@ -128,24 +151,33 @@ class Report:
 
     @property
     def exit_code(self) -> int:
-        """DESIGN.md exit codes: 3 only when every device was unreachable (nothing written anywhere)."""
+        """DESIGN.md exit codes: 3 only when every device was unreachable (nothing written anywhere).
+
+        A broadcast that went out (``sent``) counts as success: the user asked for an unverifiable write.
+        """
         if not self.devices:
             return EXIT_OK
         if all(d.status == "unreachable" for d in self.devices):
             return EXIT_UNREACHABLE
-        if any(d.status != "ok" for d in self.devices):
+        if any(d.status not in ("ok", "sent") for d in self.devices):
             return EXIT_FAILED
         return EXIT_OK
 
 
 def write_json(data: dict[str, Any], path: str) -> None:
     """Write atomically and durably: a report or plan is evidence, keep it whole."""
+    write_atomic(path, json.dumps(data, indent=2) + "\n")
+
+
+def write_atomic(path: str, text: str) -> None:
+    """Replace ``path`` with ``text``: a temporary file, fsync'ed, then renamed over it."""
     directory = os.path.dirname(os.path.abspath(path))
     os.makedirs(directory, exist_ok=True)
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=2)
-        f.write("\n")
+        f.write(text)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+

@@ -16,87 +16,33 @@ from __future__ import annotations
 
 import abc
 import asyncio
-import difflib
 import os
 import ssl
 import time
-import urllib.parse
 import weakref
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal
+from typing import Any, Literal
 
 import serial
 from pymodbus import FramerType
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient, AsyncModbusTlsClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
-
-class TransportError(Exception):
-    """Base of everything a transport raises; the message is meant for the user."""
-
-
-class BadURL(TransportError):
-    """Malformed URL, unknown scheme or option (a usage error: exit 1)."""
-
-
-class Unreachable(TransportError):
-    """Could not connect (refused, no such serial device, TLS handshake failed)."""
-
-
-class NoResponse(TransportError):
-    """The device did not answer within the timeout (one attempt)."""
-
-
-class ConnectionLost(TransportError):
-    """The connection dropped; reconnect() may bring it back."""
-
-
-class ExceptionResponse(TransportError):
-    """The device answered with a Modbus exception response."""
-
-    NAMES: ClassVar[dict[int, str]] = {
-        1: "illegal function",
-        2: "illegal data address",
-        3: "illegal data value",
-        4: "server device failure",
-        5: "acknowledge",
-        6: "server device busy",
-        8: "memory parity error",
-        10: "gateway path unavailable",
-        11: "gateway target device failed to respond",
-    }
-
-    def __init__(self, function: int, code: int) -> None:
-        self.function = function
-        self.code = code
-        super().__init__(f"exception {code:02d} ({self.NAMES.get(code, 'unknown')})")
-
-
-@dataclass(frozen=True)
-class DeviceURL:
-    scheme: str  # tcp | tls | rtu | ascii | rtu+tcp
-    host: str | None = None
-    port: int | None = None
-    path: str | None = None  # serial device
-    options: dict[str, str] = field(default_factory=dict)
-    timeout: float = 1.0
-    retries: int = 2
-
-    @property
-    def bus(self) -> str:
-        """Key of the half-duplex bus this device sits on; devices on one bus never talk at once."""
-        if self.scheme in ("rtu", "ascii"):
-            # a symlink (/dev/serial/by-id/..., a socat link) is the same wire as its target
-            path = self.path or ""
-            return f"serial:{path if '://' in path else os.path.realpath(path)}"
-        if self.scheme == "rtu+tcp":
-            return f"gateway:{self.host}:{self.port}"
-        return f"{self.scheme}:{self.host}:{self.port}"
-
-    @property
-    def shared_bus(self) -> bool:
-        return self.scheme in ("rtu", "ascii", "rtu+tcp")
+# URLs and errors live apart from pymodbus (commands that only parse URLs stay light); re-exported here
+from .urls import DEFAULT_PORTS as DEFAULT_PORTS
+from .urls import SERIAL_DEFAULTS as SERIAL_DEFAULTS
+from .urls import BadURL as BadURL
+from .urls import ConnectionLost as ConnectionLost
+from .urls import DeviceURL as DeviceURL
+from .urls import ExceptionResponse as ExceptionResponse
+from .urls import LineSettings as LineSettings
+from .urls import NoResponse as NoResponse
+from .urls import TransportError as TransportError
+from .urls import Unreachable as Unreachable
+from .urls import describe as describe
+from .urls import no_answer_hint as no_answer_hint
+from .urls import parse_url as parse_url
+from .urls import verify as _verify
 
 
 class Transport(abc.ABC):
@@ -135,107 +81,6 @@ class Transport(abc.ABC):
 
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
-
-
-# ---- URLs ----------------------------------------------------------------------------------
-
-DEFAULT_PORTS = {"tcp": 502, "tls": 802}
-_COMMON = {"timeout", "retries"}
-_OPTIONS: dict[str, set[str]] = {
-    "tcp": _COMMON,
-    "tls": _COMMON | {"cert", "key", "ca", "verify", "server_hostname"},  # server_hostname: name to verify
-    "rtu": _COMMON | {"baudrate", "parity", "bytesize", "stopbits"},
-    "ascii": _COMMON | {"baudrate", "parity", "bytesize", "stopbits"},
-    "rtu+tcp": _COMMON,
-}
-
-
-def parse_url(text: str, *, timeout: float | None = None, retries: int | None = None) -> DeviceURL:
-    """Parse a device URL (DESIGN.md, "Device URLs"). Raises BadURL with a precise message.
-
-    ``timeout`` / ``retries`` apply where the URL itself does not set them.
-    """
-    raw = text.strip()
-    if "://" not in raw:
-        raise BadURL(f"'{text}' is not a device URL (expected e.g. tcp://HOST:502 or rtu:///dev/ttyUSB0)")
-    u = urllib.parse.urlsplit(raw)
-    scheme = u.scheme.lower()
-    if scheme not in _OPTIONS:
-        hint = difflib.get_close_matches(scheme, list(_OPTIONS), n=1)
-        raise BadURL(f"unknown scheme '{scheme}' in '{text}'" + (f"; did you mean '{hint[0]}'?" if hint else
-                                                                  f" (known: {', '.join(_OPTIONS)})"))
-    options: dict[str, str] = {}
-    for key, values in urllib.parse.parse_qs(u.query, keep_blank_values=True).items():
-        if key not in _OPTIONS[scheme]:
-            hint = difflib.get_close_matches(key, sorted(_OPTIONS[scheme]), n=1)
-            raise BadURL(f"unknown option '{key}' in {scheme} URL" + (f"; did you mean '{hint[0]}'?" if hint else
-                         f" (known: {', '.join(sorted(_OPTIONS[scheme]))})"))
-        options[key] = values[-1]
-
-    def number(key: str, kind: type[float] | type[int], lo: float, hi: float) -> Any:
-        try:
-            v = kind(options[key])
-        except ValueError:
-            raise BadURL(f"option {key}={options[key]!r} is not a{'n integer' if kind is int else ' number'}") from None
-        if not lo <= v <= hi:
-            raise BadURL(f"option {key}={options[key]} is out of range ({lo:g}..{hi:g})")
-        return v
-
-    to = number("timeout", float, 0.001, 600) if "timeout" in options else (timeout if timeout is not None else 1.0)
-    rt = number("retries", int, 0, 20) if "retries" in options else (retries if retries is not None else 2)
-    if scheme in ("rtu", "ascii"):
-        path = urllib.parse.unquote(u.netloc + u.path)
-        if not path:
-            raise BadURL(f"{scheme} URL needs a serial device path: {scheme}:///dev/ttyUSB0")
-        if "baudrate" in options:
-            number("baudrate", int, 50, 4_000_000)
-        if "bytesize" in options:
-            number("bytesize", int, 5, 8)
-        if "stopbits" in options:
-            number("stopbits", int, 1, 2)
-        if "parity" in options:
-            options["parity"] = options["parity"].upper()
-            if options["parity"] not in ("N", "E", "O"):
-                raise BadURL(f"option parity={options['parity']} must be N, E or O")
-        return DeviceURL(scheme, path=path, options=options, timeout=to, retries=rt)
-    try:
-        host, port = u.hostname, u.port
-    except ValueError:
-        raise BadURL(f"bad port in '{text}'") from None
-    if not host:
-        raise BadURL(f"{scheme} URL needs a host: {scheme}://HOST:PORT")
-    if u.path not in ("", "/"):
-        raise BadURL(f"unexpected path '{u.path}' in {scheme} URL")
-    if port == 0:
-        raise BadURL(f"bad port in '{text}' (1..65535)")
-    if port is None:
-        if scheme == "rtu+tcp":
-            raise BadURL("rtu+tcp URL needs a port: rtu+tcp://HOST:PORT (the gateway's TCP port)")
-        port = DEFAULT_PORTS[scheme]
-    if scheme == "tls":
-        if "verify" in options and options["verify"].lower() not in ("true", "false", "1", "0", "yes", "no"):
-            raise BadURL(f"option verify={options['verify']} must be true or false")
-        for key in ("cert", "key", "ca"):
-            if key in options and not os.path.isfile(options[key]):
-                raise BadURL(f"tls option {key}: no such file '{options[key]}'")
-        if ("cert" in options) != ("key" in options):
-            raise BadURL("tls options cert and key go together (the client certificate and its key)")
-    return DeviceURL(scheme, host=host, port=port, options=options, timeout=to, retries=rt)
-
-
-def describe(url: DeviceURL) -> str:
-    """The URL as text without secrets: no key/cert/CA file paths; serial line settings are kept."""
-    if url.scheme in ("rtu", "ascii"):
-        opts = {k: v for k, v in url.options.items() if k not in _COMMON}
-        q = ("?" + "&".join(f"{k}={v}" for k, v in sorted(opts.items()))) if opts else ""
-        return f"{url.scheme}://{url.path}{q}"
-    host = f"[{url.host}]" if url.host and ":" in url.host else url.host
-    q = "?verify=false" if url.scheme == "tls" and not _verify(url) else ""
-    return f"{url.scheme}://{host}:{url.port}{q}"
-
-
-def _verify(url: DeviceURL) -> bool:
-    return url.options.get("verify", "true").lower() in ("true", "1", "yes")
 
 
 # ---- buses ---------------------------------------------------------------------------------
@@ -309,10 +154,8 @@ def bus_lock(url: DeviceURL) -> asyncio.Lock:
 
 def _char_time(url: DeviceURL) -> float:
     """Seconds per character on a serial line: start + data + parity + stop bits."""
-    baud = int(url.options.get("baudrate", 19200))
-    bits = 1 + int(url.options.get("bytesize", 8)) + (0 if url.options.get("parity", "N") == "N" else 1) + int(
-        url.options.get("stopbits", 1))
-    return bits / baud
+    line = url.line
+    return (1 + line.bytesize + (0 if line.parity == "N" else 1) + line.stopbits) / line.baudrate
 
 
 BROADCAST_TURNAROUND = 0.1  # seconds of silence after a unit-0 write
@@ -320,7 +163,7 @@ BROADCAST_TURNAROUND = 0.1  # seconds of silence after a unit-0 write
 
 def _silent_interval(url: DeviceURL) -> float:
     """Modbus over serial line 2.5.1.1: 3.5 character times between frames, fixed 1.75 ms above 19200 baud."""
-    if int(url.options.get("baudrate", 19200)) > 19200:
+    if url.line.baudrate > 19200:
         return 0.00175
     return 3.5 * _char_time(url)
 
@@ -582,19 +425,17 @@ class SerialTransport(PymodbusTransport):
         self._opening: _SerialLine | None = None
 
     def _settings(self) -> tuple[str, ...]:
-        o = self.url.options
-        return (self.url.scheme, o.get("baudrate", "19200"), o.get("bytesize", "8"), o.get("parity", "N"),
-                o.get("stopbits", "1"))
+        line = self.url.line
+        return (self.url.scheme, str(line.baudrate), str(line.bytesize), line.parity, str(line.stopbits))
 
     def _make_client(self) -> Any:
-        o = self.url.options
+        line = self.url.line
         common = self._common()
         # one client serves every transport on the port: the line routes frames to the active one
         common["trace_packet"] = self._opening.trace if self._opening is not None else self._trace
         return AsyncModbusSerialClient(
             self.url.path or "", framer=FramerType.RTU if self.url.scheme == "rtu" else FramerType.ASCII,
-            baudrate=int(o.get("baudrate", 19200)), bytesize=int(o.get("bytesize", 8)),
-            parity=o.get("parity", "N"), stopbits=int(o.get("stopbits", 1)), **common)
+            baudrate=line.baudrate, bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits, **common)
 
     async def connect(self) -> None:
         path = self.url.path or ""
@@ -637,9 +478,10 @@ class SerialTransport(PymodbusTransport):
         o = self.url.options
         port: Any = None
         try:
-            port = serial.serial_for_url(self.url.path, exclusive=True, baudrate=int(o.get("baudrate", 19200)),
-                                         bytesize=int(o.get("bytesize", 8)), parity=o.get("parity", "N"),
-                                         stopbits=int(o.get("stopbits", 1)), timeout=self.url.timeout)
+            line = self.url.line
+            port = serial.serial_for_url(self.url.path, exclusive=True, baudrate=line.baudrate,
+                                         bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits,
+                                         timeout=self.url.timeout)
             port.timeout = 0  # what pymodbus sets next: it reconfigures the port
             port.write_timeout = 0
         except Exception as e:  # pyserial raises SerialException, termios.error, ValueError

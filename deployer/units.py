@@ -18,7 +18,7 @@ import os
 import tempfile
 import zlib
 from decimal import Decimal
-from functools import cache
+from functools import cache, lru_cache
 from typing import Any
 
 _ALIASES = {"%": "percent", "‰": "permille"}
@@ -89,7 +89,7 @@ def _disk() -> _DiskCache:
     return d
 
 
-@cache
+@lru_cache(maxsize=4096)  # bounded: a long-running process may see garbage from many files
 def check(text: str) -> str | None:
     """None if pint knows the unit, else a message for the user."""
     disk = _disk()
@@ -110,7 +110,7 @@ def _clip(text: str) -> str:
     return text if len(text) <= 40 else f"{text[:30]}…"
 
 
-@cache
+@lru_cache(maxsize=4096)
 def _conversion(from_unit: str, to_unit: str) -> Decimal | str | None:
     """The factor from ``from_unit`` to ``to_unit``; None when an offset is involved; a message when impossible."""
     disk = _disk()

@@ -82,25 +82,36 @@ def clip_message(message: str) -> str:
     return message
 
 
+Pos = int  # a position packed in one int: line << 24 | col (a tuple of two ints takes 3x the memory)
+
+
+def pack(line: int, col: int) -> Pos:
+    return line << 24 | col
+
+
+def unpack(pos: Pos) -> tuple[int, int]:
+    return pos >> 24, pos & 0xFFFFFF
+
+
 @dataclass
 class Source:
-    """Positions of one loaded document: path tuple -> (line, col), 1-based."""
+    """Positions of one loaded document: path tuple -> packed (line, col), 1-based; ``pos`` unpacks."""
 
     path: str
-    values: dict[Path_, tuple[int, int]] = field(default_factory=dict)
-    keys: dict[Path_, tuple[int, int]] = field(default_factory=dict)
+    values: dict[Path_, Pos] = field(default_factory=dict)
+    keys: dict[Path_, Pos] = field(default_factory=dict)
 
     def pos(self, at: Path_, *, key: bool = False) -> tuple[int, int]:
-        """Position of the value (or key) at ``at``; falls back to the nearest parent."""
+        """(line, col) of the value (or key) at ``at``; falls back to the nearest parent."""
         table = self.keys if key else self.values
         p = tuple(at)
         while p:
             if p in table:
-                return table[p]
+                return unpack(table[p])
             if p in self.values:
-                return self.values[p]
+                return unpack(self.values[p])
             p = p[:-1]
-        return self.values.get((), (1, 1))
+        return unpack(self.values.get((), pack(1, 1)))
 
     def error(self, at: Path_, message: str, *, key: bool = False) -> Diagnostic:
         line, col = self.pos(at, key=key)
@@ -114,7 +125,7 @@ class _Stop(Exception):
 class _Frame:
     """One open mapping or list while building."""
 
-    __slots__ = ("anchored", "at", "is_map", "key", "skip_value", "value")
+    __slots__ = ("anchored", "at", "is_map", "key", "key_at", "skip_value", "value")
 
     def __init__(self, value: dict[str, Any] | list[Any], at: Path_, anchored: bool) -> None:
         self.value = value
@@ -122,13 +133,14 @@ class _Frame:
         self.is_map = isinstance(value, dict)
         self.anchored = anchored  # an anchor is open for this collection
         self.key: str | None = None  # a mapping's key waiting for its value
+        self.key_at: Path_ = at  # its path: one tuple for the key's and the value's position
         self.skip_value = False  # the key was refused: drop its value
 
 
 class _Anchor:
     __slots__ = ("at", "log", "nodes", "value")
 
-    def __init__(self, value: Any, at: Path_, log: list[tuple[bool, Path_, tuple[int, int]]], nodes: int) -> None:
+    def __init__(self, value: Any, at: Path_, log: list[tuple[bool, Path_, Pos]], nodes: int) -> None:
         self.value, self.at, self.log, self.nodes = value, at, log, nodes
 
 
@@ -151,13 +163,14 @@ class _Builder:
         self.alias_nodes = 0
         self.anchors: dict[str, _Anchor] = {}
         self.open_anchors: list[tuple[str, int, int]] = []  # (name, log start, nodes at start)
-        self.log: list[tuple[bool, Path_, tuple[int, int]]] = []  # positions seen while an anchor is open
+        self.log: list[tuple[bool, Path_, Pos]] = []  # positions seen while an anchor is open
         self.tags: dict[tuple[str, tuple[bool, bool]], str] = {}
 
-    def err(self, pos: tuple[int, int], message: str) -> None:
-        self.errors.append(Diagnostic(self.src.path, pos[0], pos[1], clip_message(message)))
+    def err(self, pos: Pos, message: str) -> None:
+        line, col = unpack(pos)
+        self.errors.append(Diagnostic(self.src.path, line, col, clip_message(message)))
 
-    def put(self, is_key: bool, at: Path_, pos: tuple[int, int]) -> None:
+    def put(self, is_key: bool, at: Path_, pos: Pos) -> None:
         (self.src.keys if is_key else self.src.values)[at] = pos
         if self.open_anchors:
             self.log.append((is_key, at, pos))
@@ -174,11 +187,11 @@ class _Builder:
                 top = stack[-1]
                 if top.is_map and not top.skip_value:
                     mark: Any = ev.start_mark
-                    pos = (mark.line + 1, mark.column + 1)
+                    pos = (mark.line + 1) << 24 | (mark.column + 1)
                     out: dict[str, Any] = top.value  # type: ignore[assignment]
                     key = top.key
                     if key is not None:  # the value of that key
-                        values[(*top.at, key)] = pos
+                        values[top.key_at] = pos
                         self.nodes += 1
                         out[key] = self._scalar(ev, pos)
                         top.key = None
@@ -188,7 +201,8 @@ class _Builder:
                     if tag is None or tag == "!":
                         tag = tags.get((text, ev.implicit)) or self._tag(ev)
                     if tag != _MERGE and text not in out and len(out) < MAX_ENTRIES:
-                        keys[(*top.at, text)] = pos
+                        top.key_at = kat = (*top.at, text)
+                        keys[kat] = pos
                         top.key = text
                         out[text] = None  # keeps the key's place (and finds duplicates) until its value
                         continue
@@ -201,7 +215,7 @@ class _Builder:
                     return frame.value
                 continue
             mark = ev.start_mark
-            pos = (mark.line + 1, mark.column + 1)
+            pos = (mark.line + 1) << 24 | (mark.column + 1)
             # where this event's value goes
             parent = stack[-1] if stack else None
             at: Path_ = ()
@@ -214,7 +228,7 @@ class _Builder:
                     continue
                 if parent.is_map:
                     skip = parent.skip_value
-                    at = (*parent.at, parent.key) if parent.key is not None else parent.at
+                    at = parent.key_at if parent.key is not None else parent.at
                 else:
                     lst: list[Any] = parent.value  # type: ignore[assignment]
                     if len(lst) >= MAX_ENTRIES:
@@ -276,7 +290,7 @@ class _Builder:
         else:
             parent.value.append(value)  # type: ignore[union-attr]
 
-    def _key(self, parent: _Frame, ev: Any, pos: tuple[int, int]) -> bool:
+    def _key(self, parent: _Frame, ev: Any, pos: Pos) -> bool:
         """Take a mapping key; False (and the value is dropped) when it is refused."""
         parent.skip_value = True
         if not isinstance(ev, yaml.ScalarEvent):
@@ -290,13 +304,14 @@ class _Builder:
             self.anchors[ev.anchor] = _Anchor(key, (), [], 1)
         out: dict[str, Any] = parent.value  # type: ignore[assignment]
         if key in out:
-            line, _ = self.src.keys[(*parent.at, key)]
+            line, _ = unpack(self.src.keys[(*parent.at, key)])
             self.err(pos, f"duplicate key '{clip(key)}' (first at line {line})")
             return False
         if len(out) >= MAX_ENTRIES:
             self.err(pos, f"more than {MAX_ENTRIES} entries in one mapping (a device has {MAX_ENTRIES} registers)")
             raise _Stop
-        self.put(True, (*parent.at, key), pos)
+        parent.key_at = kat = (*parent.at, key)
+        self.put(True, kat, pos)
         parent.key = key
         parent.skip_value = False
         out[key] = None  # keeps the key's place (and finds duplicates) until its value is built
@@ -312,7 +327,7 @@ class _Builder:
                 depth += 1
                 if depth > MAX_DEPTH:
                     mark: Any = ev.start_mark
-                    self.err((mark.line + 1, mark.column + 1), f"nested deeper than {MAX_DEPTH} levels")
+                    self.err(pack(mark.line + 1, mark.column + 1), f"nested deeper than {MAX_DEPTH} levels")
                     raise _Stop
             elif isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
                 depth -= 1
@@ -323,7 +338,7 @@ class _Builder:
         if not self.open_anchors:
             self.log.clear()
 
-    def _alias(self, ev: Any, at: Path_, pos: tuple[int, int]) -> Any:
+    def _alias(self, ev: Any, at: Path_, pos: Pos) -> Any:
         anchor = self.anchors.get(ev.anchor)
         if anchor is None:
             open_names = {name for name, _, _ in self.open_anchors}
@@ -349,7 +364,7 @@ class _Builder:
                 tag = self.tags[k] = self.loader.resolve(yaml.ScalarNode, ev.value, ev.implicit)
         return tag
 
-    def _scalar(self, ev: Any, pos: tuple[int, int]) -> Any:
+    def _scalar(self, ev: Any, pos: Pos) -> Any:
         tag = ev.tag
         if tag is None or tag == "!":
             tag = self.tags.get((ev.value, ev.implicit)) or self._tag(ev)

@@ -96,6 +96,8 @@ def run_cli(args: list[str]) -> int:
 def fuzz(files: int, seconds: float, seed: int, keep: str | None = None) -> dict[str, object]:
     rnd = random.Random(seed)
     seeds = corpus()
+    if keep:
+        os.makedirs(keep, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="deployer-fuzz-"))
     shutil.copytree(ROOT / "tests" / "bad" / "lib", work / "lib")
     for p in ROOT.glob("recipes/examples/*.yaml"):  # recipes that extend their neighbours

@@ -18,6 +18,16 @@ from deployer.simulator import LogEntry, Simulator
 T = TypeVar("T")
 
 
+def run_cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    """Run the command line in-process: (exit code, stdout, stderr)."""
+    from deployer.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(list(args))
+    out, err = capsys.readouterr()
+    return int(exc.value.code or 0), out, err
+
+
 def profile_from(tmp: Path, text: str, name: str = "dev.yaml") -> Profile:
     p = tmp / name
     p.write_text(text)

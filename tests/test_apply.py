@@ -207,12 +207,40 @@ def test_broadcast_refused_without_the_flag(tmp_path: Path) -> None:
     assert sim.log == []
 
 
-def test_broadcast_with_the_flag_writes_unverified(tmp_path: Path) -> None:
+def test_broadcast_with_the_flag_is_sent_unverified_and_exit_0(tmp_path: Path) -> None:
     sim = Simulator(builtin_profile("example-inverter"))
     res = apply(sim, recipe_file(tmp_path, "  F07: 10 s\n"), tmp_path, unit=0, allow_broadcast=True)
-    assert [p.status for p in res.parameters] == ["unverified"]
+    assert res.status == "sent" and res.error is None
+    assert [(p.status, p.error) for p in res.parameters] == [("unverified", "broadcast: no device answers")]
     assert sim.read("F07") == (0, 1000)
     assert [e.result for e in sim.log] == ["broadcast"]
+    report = Report("r", [res])
+    assert report.exit_code == 0
+    data = report.to_json()
+    assert data["summary"]["sent"] == 1 and data["summary"]["ok"] == 0
+    jsonschema.validate(data, yamlsrc.schema("report"))
+
+
+def test_broadcast_that_cannot_be_sent_fails_with_exit_4(tmp_path: Path) -> None:
+    # three requests (gaps between the registers); the simulator drops the connection at the second,
+    # so the third finds no connection and, with no retries, cannot be sent
+    prof = profile_from(tmp_path, "profile: dev\nparameters:\n  a: {register: 0, type: uint16}\n"
+                                  "  b: {register: 10, type: uint16}\n  c: {register: 20, type: uint16}\n")
+    sim = Simulator(prof, faults=Faults(disconnect_after=1))
+    path = recipe_file(tmp_path, "  a: 1\n  b: 2\n  c: 3\n", profile=str(tmp_path / "dev.yaml"))
+    res = apply(sim, path, tmp_path, unit=0, allow_broadcast=True, url_suffix="?timeout=0.3&retries=0")
+    assert res.status == "failed"
+    assert (res.error or "").startswith("broadcast request at 0x0014 could not be sent: connection lost")
+    assert [r.result for r in res.requests] == ["broadcast", "broadcast", "connection lost"]
+    by_name = {p.name: p for p in res.parameters}
+    assert by_name["a"].status == by_name["b"].status == "unverified"
+    assert by_name["c"].status == "unverified"
+    assert (by_name["c"].error or "").startswith("broadcast may not have gone out: connection lost")
+    # the device saw the first broadcast; the second went into a closing connection (the sender cannot
+    # know: nobody answers a broadcast), the third never left
+    assert [e.result for e in sim.log] == ["broadcast", "disconnected"]
+    assert sim.read("a") == (1,) and sim.read("c") == (0,)
+    assert Report("r", [res]).exit_code == 4
 
 
 def test_identity_mismatch_writes_nothing(tmp_path: Path) -> None:

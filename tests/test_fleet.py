@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -83,6 +84,9 @@ def test_limit_takes_names_groups_globs_exclusions_and_reports(tmp_path: Path) -
     assert not_ok(str(report)) == ["press-2", "saw-1"]
     assert [d.name for d in select(inv, f"@{report}")] == ["press-2", "saw-1"]
     assert [d.name for d in select(inv, f"@{report},!saw*")] == ["press-2"]
+    report.write_text(json.dumps({"schema": "deployer.report/1", "devices": [{"name": "saw-1", "status": "ok"}]}))
+    with pytest.raises(UsageError, match="nothing to retry"):
+        select(inv, f"@{report}")
 
 
 def test_batches_follow_ansible_serial_and_failure_budgets() -> None:
@@ -304,6 +308,8 @@ def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path)
         assert cli(capsys, "validate", *(str(folder / f) for f in os.listdir(folder)))[0] == 0
         code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "-o", str(folder))
         assert code == 3 and "dead" in err
+        code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "-o", "/proc/x")
+        assert code == 1 and "cannot write recipes into /proc/x" in err
 
 
 def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path: Path) -> None:
@@ -324,3 +330,154 @@ def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path
                                       options=ApplyOptions(state_dir=str(tmp_path / "s")))
         assert seen == [{n: "not finished (interrupted run)" for n in names(3)}]
         assert report.exit_code == 0 and json.loads(report_file.read_text())["summary"]["ok"] == 3
+
+
+def test_open_file_limit_is_raised_or_the_run_refused_up_front(tmp_path: Path) -> None:
+    import resource
+
+    urls = {n: f"tcp://127.0.0.1:{free_port()}?timeout=0.2&retries=0" for n in names(3)}
+    inv = inventory(tmp_path, urls)
+
+    def run(soft: int, hard: int) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "deployer", "apply", recipe(tmp_path), "--inventory", inv,
+                               "--yes", "--parallel", "8", "--state-dir", str(tmp_path / "s")],
+                              capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
+                              preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard)))
+
+    low = run(40, 50)  # 3 sockets + headroom do not fit under a hard limit of 50
+    assert low.returncode == 1 and "allows 50 (ulimit -Hn)" in low.stderr and "Traceback" not in low.stderr
+    raised = run(40, 4096)  # the soft limit goes up towards the hard one; the devices are simply dead
+    assert raised.returncode == 3, raised.stderr
+    assert raised.stderr.count("unreachable") >= 3
+
+
+def test_python_api_one_device_and_a_cheap_import(tmp_path: Path) -> None:
+    import deployer
+
+    proc = subprocess.run([sys.executable, "-c", "import sys, deployer; print('deployer.api' in sys.modules, "
+                           "'pymodbus' in sys.modules)"], capture_output=True, text=True, timeout=60)
+    assert proc.stdout.split() == ["False", "False"]  # the API (and pymodbus) load on first use
+    with fleet(1) as (sim,):
+        rec = deployer.load_recipe(recipe(tmp_path))
+        plan = deployer.plan(rec, sim.url)
+        assert [w.parameters for w in plan.writes] == [("F07", "F08", "stop_mode")]
+        assert all(e.function == 3 for e in sim.log)  # plan and diff only read
+        assert [d.name for d in deployer.diff(rec, sim.url)] == ["F07", "F08", "stop_mode"]
+        from deployer.executor import ApplyOptions
+
+        report = deployer.apply(rec, sim.url, options=ApplyOptions(state_dir=str(tmp_path / "s")))
+        assert report.exit_code == 0 and holds_recipe(sim)
+        assert deployer.diff(rec, sim.url) == []
+        assert deployer.pull("example-inverter", sim.url)["F07"] == (0, 1000)
+        inline = deployer.recipe_from("example-inverter", {"F07": "20 s"})
+        assert [(d.name, d.registers) for d in inline.desired] == [("F07", (0, 2000))]
+        with pytest.raises(deployer.InputError, match="unknown parameter 'F7'"):
+            deployer.recipe_from("example-inverter", {"F7": "20 s"})
+
+
+def test_bad_fleet_options_are_refused_before_anything_is_sent(capsys: pytest.CaptureFixture[str],
+                                                               tmp_path: Path) -> None:
+    with fleet(2) as sims:
+        inv = inventory(tmp_path, {n: s.url for n, s in zip(names(2), sims, strict=True)})
+        state = tmp_path / "s"
+        for args, message in [(["--batch", "0"], "--batch: '0' is not a positive count"),
+                              (["--max-failures", "x%"], "--max-failures: 'x%'"),
+                              (["--limit", "d9*"], "'d9*' matches no device name or group"),
+                              (["--limit", f"@{tmp_path / 'none.json'}"], "cannot read the report"),
+                              (["--report", "/proc/deployer-report.json"], "cannot write the report")]:
+            code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir",
+                               str(state), *args)
+            assert code == 1 and message in err, err
+        code, _, err = cli(capsys, "apply", recipe(tmp_path), "--device", sims[0].url, "--yes", "--batch", "1")
+        assert code == 1 and "need --inventory" in err
+        assert not any(s.log for s in sims)
+        assert not (state / "audit.jsonl").exists()  # not even a journal line: nothing started
+
+
+def test_rollback_of_a_fleet_run_takes_a_limit(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    with fleet(3) as sims:
+        inv = inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)})
+        run = str(tmp_path / "run.json")
+        assert cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--report", run,
+                   "--state-dir", str(tmp_path / "s"))[0] == 0
+        for s in sims:
+            s.log.clear()
+        code, out, err = cli(capsys, "rollback", "--report", run, "--limit", "d0[12]", "--yes", "--json",
+                             "--state-dir", str(tmp_path / "s"))
+        assert code == 0, out + err
+        assert [d["name"] for d in json.loads(out)["devices"]] == ["d01", "d02"]
+        assert not sims[0].log and holds_recipe(sims[0])
+        assert sims[1].read("F07") == sims[2].read("F07") == (0, 500)  # back to what they held
+
+
+def test_declining_one_device_of_a_fleet_skips_only_that_one(tmp_path: Path) -> None:
+    import asyncio
+
+    import deployer
+    from deployer.executor import ApplyOptions, apply_many
+
+    with fleet(3) as sims:
+        rec = deployer.load_recipe(recipe(tmp_path))
+        jobs = deployer.api.fleet(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)}))
+
+        async def confirm(plan: object, res: deployer.DeviceResult) -> bool:
+            return res.name != "d01"
+
+        report = asyncio.run(apply_many(jobs, options=ApplyOptions(state_dir=str(tmp_path / "s"), confirm=confirm)))
+        assert [d.status for d in report.devices] == ["ok", "skipped", "ok"]
+        assert report.devices[1].error == "not written: declined at the confirmation prompt"
+        assert report.exit_code == 4 and not any(e.function == 16 for e in sims[1].log)
+
+
+def test_live_progress_on_a_terminal_and_the_summary(tmp_path: Path) -> None:
+    from tests.test_cli import _run_on_a_terminal
+
+    with fleet(6, {i: Faults(latency_ms=40) for i in range(6)} | {2: Faults(fail_registers=frozenset({F08}))}) \
+            as sims:
+        inv = inventory(tmp_path, {n: s.url for n, s in zip(names(6), sims, strict=True)})
+        code, out = _run_on_a_terminal(["apply", recipe(tmp_path), "--inventory", inv, "--yes", "--parallel", "2",
+                                        "--state-dir", str(tmp_path / "s")], b"", prompt=b"never asked")
+        assert code == 4, out
+        assert "in flight" in out and "ETA" in out and "writing: d0" in out  # the live display
+        out = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", out)  # colours and cursor movements
+        rows = {line.split()[0]: line.split()[1:] for line in out.splitlines()
+                if line.strip().startswith("d0") and len(line.split()) >= 6}
+        assert rows["d02"][:3] == ["partial", "2", "1"]  # status, changed, failed
+        assert rows["d00"][:3] == ["ok", "3", "0"]
+        assert "6 devices: 5 ok, 1 partial" in out
+
+
+def test_each_distinct_recipe_is_checked_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import deployer
+    from deployer import fleet as fleet_module
+    from deployer.fleet import fleet_jobs, load_inventory
+
+    calls: dict[str, int] = {"load_recipe": 0, "with_overrides": 0}
+    for name in calls:
+        real = getattr(fleet_module, name)
+
+        def counting(*a: object, _real: object = real, _name: str = name, **k: object) -> object:
+            calls[_name] += 1
+            return _real(*a, **k)  # type: ignore[operator]
+        monkeypatch.setattr(fleet_module, name, counting)
+    other = tmp_path / "other.yaml"  # another device type: the same parameters, other registers
+    other.write_text("profile: other\nparameters:\n  F07: {register: 10, type: uint32, unit: s, scale: 0.01}\n"
+                     "  F08: {register: 12, type: uint32, unit: s, scale: 0.01}\n"
+                     "  stop_mode: {register: 14, type: uint16, values: {ramp: 0, coast: 1}}\n")
+    lines = ["devices:"]
+    for i in range(60):
+        extra = ""
+        if i % 3 == 1:
+            extra = ", parameters: {F07: 7 s}"
+        elif i % 3 == 2:
+            extra = ", profile: other.yaml" + (", parameters: {F07: 8 s}" if i % 2 else "")
+        lines.append(f"  d{i:02d}: {{url: 'tcp://127.0.0.1:{1000 + i}'{extra}}}")
+    (tmp_path / "inv.yaml").write_text("\n".join(lines) + "\n")
+    jobs = fleet_jobs(load_inventory(tmp_path / "inv.yaml"), deployer.load_recipe(recipe(tmp_path)), None)
+    assert len(jobs) == 60
+    # one reload for the other profile; overrides: F07 7 s on the base, F07 8 s on the other profile
+    assert calls == {"load_recipe": 1, "with_overrides": 2}
+    by = {j.name: j.recipe for j in jobs}
+    assert by["d00"] is by["d03"] and by["d01"] is by["d04"] and by["d02"] is not by["d00"]
+    assert {d.name: d.registers for d in by["d05"].desired}["F07"] == (0, 800)
+    assert by["d05"].profile.id == "other" and by["d02"].profile is by["d05"].profile

@@ -75,6 +75,7 @@ def test_apply_with_gap_reads_on_a_device_that_answers_them(tmp_path: Path) -> N
     assert res.status == "ok"
     reads = [r for r in res.requests if r.function == 3]
     assert len(reads) == 12 and all(r.result == "ok" for r in reads)  # 6 snapshot + 6 read-back (was 26)
+    assert not res.notices
     assert sum(1 for r in res.requests if r.function == 16) == 13
     assert all(e.function == 3 for e in sim.log if e.count > 123)  # only reads are that long
     assert all(p.status in ("ok", "unchanged") for p in res.parameters)
@@ -91,6 +92,7 @@ def test_fallback_on_a_device_that_refuses_gap_reads(tmp_path: Path) -> None:
     assert reads[0] == (0, 125, "exception", 2)  # the refused read is in the report ...
     assert all(r[2] == "ok" for r in reads[1:])  # ... followed by the gap-free reads
     assert len(reads) == 1 + 13 + 13
+    assert any("refused a read across undeclared registers" in n for n in res.notices)
     assert all(p.status in ("ok", "unchanged") for p in res.parameters)
     # the device never saw a write to an undeclared register
     declared = {a for p in rec.profile.parameters for a in range(p.address, p.end)}

@@ -60,7 +60,8 @@ def held_locks() -> list[dict[str, object]]:
 
 
 def test_two_applies_on_one_device_one_is_refused(tmp_path: Path) -> None:
-    with SimulatorThread(builtin_profile("example-inverter"), faults=Faults(latency_ms=60)) as sim:
+    # each answer takes 0.4 s: the first run holds the lock for about 3 s, long enough for the second to start
+    with SimulatorThread(builtin_profile("example-inverter"), faults=Faults(latency_ms=400)) as sim:
         a = start("apply", recipe(tmp_path, "first", FIRST), "--device", sim.url, "--yes", "--state-dir",
                   str(tmp_path / "sa"), "--report", str(tmp_path / "a.json"))
         wait_for(lambda: any(h.get("pid") == a.pid for h in held_locks()))

@@ -21,22 +21,40 @@ def builtin_profile_ids() -> list[str]:
     return sorted(f[: -len(".yaml")] for f in os.listdir(_BUILTIN_DIR) if f.endswith(".yaml"))
 
 
+def unknown_profile(id_: str, relative_to: str | os.PathLike[str] | None = None, kind: str = "recipe") -> str:
+    """Why ``id_`` names no profile, and how to name a profile file instead (users often forget '.yaml').
+
+    ``kind``: what ``relative_to`` is (paths in a recipe or an inventory are relative to that file).
+    """
+    known = ", ".join(builtin_profile_ids())
+    base = _profile_base(relative_to)
+    where = f"the {kind}" if relative_to else "the current directory"
+    guess = next((id_ + ext for ext in (".yaml", ".yml") if os.path.isfile(os.path.join(base, id_ + ext))), None)
+    hint = f"did you mean '{guess}'?" if guess else f"e.g. '{id_}.yaml'"
+    return (f"unknown built-in profile '{id_}' (built-in: {known}); a profile file works too: "
+            f"its path relative to {where}, ending in .yaml, {hint}")
+
+
 def builtin_profile(id_: str) -> Profile:
     path = os.path.join(_BUILTIN_DIR, f"{id_}.yaml")
     if not os.path.isfile(path):
-        known = ", ".join(builtin_profile_ids())
-        raise UsageError(f"unknown built-in profile '{id_}' (built-in: {known})")
+        raise UsageError(unknown_profile(id_))
     prof = load_profile(path)
     return replace(prof, source=None)
 
 
-def resolve_profile(ref: str, relative_to: str | os.PathLike[str] | None = None) -> Profile:
-    """A built-in id, or a profile file (relative to the directory of ``relative_to``)."""
+def _profile_base(relative_to: str | os.PathLike[str] | None) -> str:
+    return os.path.dirname(os.path.abspath(os.fspath(relative_to))) if relative_to else os.getcwd()
+
+
+def resolve_profile(ref: str, relative_to: str | os.PathLike[str] | None = None, kind: str = "recipe") -> Profile:
+    """A built-in id, or a profile file (relative to the directory of ``relative_to``, a ``kind`` file)."""
     looks_like_path = ref.endswith((".yaml", ".yml", ".json")) or os.sep in ref or "/" in ref
     if not looks_like_path:
+        if not os.path.isfile(os.path.join(_BUILTIN_DIR, f"{ref}.yaml")):
+            raise UsageError(unknown_profile(ref, relative_to, kind))
         return builtin_profile(ref)
-    base = os.path.dirname(os.path.abspath(os.fspath(relative_to))) if relative_to else os.getcwd()
-    return load_profile(os.path.normpath(os.path.join(base, ref)))
+    return load_profile(os.path.normpath(os.path.join(_profile_base(relative_to), ref)))
 
 
 def parse_register(value: object) -> int:
@@ -64,7 +82,14 @@ def wire_address(number: int, addressing: str) -> int:
         return number - 40001
     if 400001 <= number <= 465536:
         return number - 400001
-    raise ValueError(f"{number} is not a holding-register reference (40001-49999 or 400001-465536)")
+    if 30001 <= number <= 39999 or 300001 <= number <= 365536:
+        hint = "; 3xxxx references are input registers, which cannot be written"
+    elif number < 40001:
+        hint = "; for 0-based addresses use addressing: address, for 1-based numbers addressing: register-number"
+    else:
+        hint = ""
+    raise ValueError(f"{number} is not a holding-register reference: addressing: modicon accepts 40001-49999 "
+                     f"(5 digits, addresses 0-9998) or 400001-465536 (6 digits, addresses 0-65535){hint}")
 
 
 def _hex(n: int) -> str:

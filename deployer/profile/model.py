@@ -17,6 +17,7 @@ Addressing = Literal["address", "register-number", "modicon"]
 
 PROTOCOL_MAX_WRITE = 123  # FC16: 0x7B registers (Modbus Application Protocol v1.1b3, 6.12)
 PROTOCOL_MAX_READ = 125  # FC03: 0x7D registers (6.3)
+ASCII_MAX_CHARS = 513  # ':' + 2 x (address + 253-byte PDU) + LRC + CR LF (Modbus over serial line 2.5.2.1)
 
 
 @dataclass(frozen=True)
@@ -25,6 +26,7 @@ class Limits:
     max_read_registers: int = PROTOCOL_MAX_READ
     max_frame_bytes: int = 256  # whole RTU frame: unit id + PDU + CRC
     write_function: Literal[6, 16] = 16
+    max_ascii_chars: int = ASCII_MAX_CHARS  # whole ASCII frame: ':' + hex pairs + LRC + CR LF
     # reads may span up to this many consecutive undeclared registers (0: never; DESIGN planning rule 5)
     max_read_gap: int = 0
 
@@ -33,13 +35,16 @@ class Limits:
         """Registers one write request may carry (DESIGN.md, planning rule 2)."""
         if self.write_function == 6:
             return 1
-        # FC16 RTU frame: unit(1) fc(1) addr(2) qty(2) bytecount(1) data(2n) crc(2) = 9 + 2n
-        return max(0, min(PROTOCOL_MAX_WRITE, self.max_write_registers, (self.max_frame_bytes - 9) // 2))
+        # FC16 RTU frame: unit(1) fc(1) addr(2) qty(2) bytecount(1) data(2n) crc(2) = 9 + 2n;
+        # the same in ASCII: ':' + 2 x (7 + 2n) + LRC(2) + CR LF(2) = 19 + 4n characters
+        return max(0, min(PROTOCOL_MAX_WRITE, self.max_write_registers, (self.max_frame_bytes - 9) // 2,
+                          (self.max_ascii_chars - 19) // 4))
 
     @property
     def read_registers(self) -> int:
-        """Registers one FC03 request may ask for; the answer frame is 5 + 2n bytes."""
-        return max(0, min(PROTOCOL_MAX_READ, self.max_read_registers, (self.max_frame_bytes - 5) // 2))
+        """Registers one FC03 request may ask for; the answer frame is 5 + 2n bytes (11 + 4n ASCII characters)."""
+        return max(0, min(PROTOCOL_MAX_READ, self.max_read_registers, (self.max_frame_bytes - 5) // 2,
+                          (self.max_ascii_chars - 11) // 4))
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,244 @@
+"""Device URLs and the errors of transports, without pymodbus.
+
+Parsing a URL (plan, validate, inventories) must not cost importing pymodbus; transport.py
+re-exports everything here.
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+import urllib.parse
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+
+class TransportError(Exception):
+    """Base of everything a transport raises; the message is meant for the user."""
+
+
+class BadURL(TransportError):
+    """Malformed URL, unknown scheme or option (a usage error: exit 1)."""
+
+
+class Unreachable(TransportError):
+    """Could not connect (refused, no such serial device, TLS handshake failed)."""
+
+
+class NoResponse(TransportError):
+    """The device did not answer within the timeout (one attempt)."""
+
+
+class ConnectionLost(TransportError):
+    """The connection dropped; reconnect() may bring it back."""
+
+
+class ExceptionResponse(TransportError):
+    """The device answered with a Modbus exception response."""
+
+    NAMES: ClassVar[dict[int, str]] = {
+        1: "illegal function",
+        2: "illegal data address",
+        3: "illegal data value",
+        4: "server device failure",
+        5: "acknowledge",
+        6: "server device busy",
+        8: "memory parity error",
+        10: "gateway path unavailable",
+        11: "gateway target device failed to respond",
+    }
+
+    def __init__(self, function: int, code: int) -> None:
+        self.function = function
+        self.code = code
+        super().__init__(f"exception {code:02d} ({self.NAMES.get(code, 'unknown')})")
+
+
+@dataclass(frozen=True)
+class LineSettings:
+    """A serial line's settings, the URL's options over SERIAL_DEFAULTS."""
+
+    baudrate: int
+    bytesize: int
+    parity: str
+    stopbits: int
+
+    def __str__(self) -> str:
+        return (f"{self.baudrate} baud, {self.bytesize} data bits, parity {self.parity}, "
+                f"{self.stopbits} stop bit{'s' if self.stopbits != 1 else ''}")
+
+
+SERIAL_DEFAULTS = LineSettings(19200, 8, "N", 1)  # rtu:// and ascii:// alike
+DEFAULT_TIMEOUT = 1.0  # seconds per attempt
+DEFAULT_RETRIES = 2
+
+
+@dataclass(frozen=True)
+class DeviceURL:
+    scheme: str  # tcp | tls | rtu | ascii | rtu+tcp
+    host: str | None = None
+    port: int | None = None
+    path: str | None = None  # serial device
+    options: dict[str, str] = field(default_factory=dict)
+    timeout: float = DEFAULT_TIMEOUT
+    retries: int = DEFAULT_RETRIES
+
+    @property
+    def bus(self) -> str:
+        """Key of the half-duplex bus this device sits on; devices on one bus never talk at once."""
+        if self.scheme in ("rtu", "ascii"):
+            # a symlink (/dev/serial/by-id/..., a socat link) is the same wire as its target
+            path = self.path or ""
+            return f"serial:{path if '://' in path else os.path.realpath(path)}"
+        if self.scheme == "rtu+tcp":
+            return f"gateway:{self.host}:{self.port}"
+        return f"{self.scheme}:{self.host}:{self.port}"
+
+    @property
+    def shared_bus(self) -> bool:
+        return self.scheme in ("rtu", "ascii", "rtu+tcp")
+
+    @property
+    def line(self) -> LineSettings:
+        """Serial line settings (rtu, ascii; for other schemes only the defaults, used for timing)."""
+        o = self.options
+        d = SERIAL_DEFAULTS
+        return LineSettings(int(o.get("baudrate", d.baudrate)), int(o.get("bytesize", d.bytesize)),
+                            o.get("parity", d.parity), int(o.get("stopbits", d.stopbits)))
+
+
+def no_answer_hint(url: DeviceURL, unit: int) -> str:
+    """What to check when a device does not answer: on serial lines, mostly the line settings and unit id."""
+    if url.scheme in ("rtu", "ascii"):
+        return (f" at {url.line}, unit {unit}: check that the device uses the same baud rate, parity, data bits "
+                f"and stop bits and answers to unit {unit} (URL options baudrate, parity, bytesize, stopbits; "
+                f"--unit)")
+    if url.scheme == "rtu+tcp":
+        return (f" through the gateway, unit {unit}: check the unit id and that the gateway's serial line "
+                f"settings (baud rate, parity, data bits, stop bits) match the device's")
+    return ""
+
+
+# ---- URLs ----------------------------------------------------------------------------------
+
+DEFAULT_PORTS = {"tcp": 502, "tls": 802}
+_COMMON = {"timeout", "retries"}
+_OPTIONS: dict[str, set[str]] = {
+    "tcp": _COMMON,
+    "tls": _COMMON | {"cert", "key", "ca", "verify", "server_hostname"},  # server_hostname: name to verify
+    "rtu": _COMMON | {"baudrate", "parity", "bytesize", "stopbits"},
+    "ascii": _COMMON | {"baudrate", "parity", "bytesize", "stopbits"},
+    "rtu+tcp": _COMMON,
+}
+# numeric options: (type, lowest, highest); docs/urls.md shows the same ranges (a test compares them)
+NUMERIC_OPTIONS: dict[str, tuple[type[int] | type[float], float, float]] = {
+    "timeout": (float, 0.001, 600), "retries": (int, 0, 20),
+    "baudrate": (int, 50, 4_000_000), "bytesize": (int, 5, 8), "stopbits": (int, 1, 2),
+}
+
+
+def option_facts(option: str) -> tuple[list[str], str | None, str | None]:
+    """(schemes that take it, its default, what it allows) for a URL option: what `explain` shows."""
+    schemes = [s for s, opts in _OPTIONS.items() if option in opts]
+    line = SERIAL_DEFAULTS
+    defaults = {"timeout": DEFAULT_TIMEOUT, "retries": DEFAULT_RETRIES, "baudrate": line.baudrate,
+                "bytesize": line.bytesize, "parity": line.parity, "stopbits": line.stopbits, "verify": "true",
+                "server_hostname": "the URL's host"}
+    allowed = {"parity": "N, E, O", "verify": "true, false (also 1, 0, yes, no)",
+               "cert": "a PEM file", "key": "a PEM file", "ca": "a PEM file"}
+    default = defaults.get(option)
+    return schemes, None if default is None else str(default), (
+        range_text(option) if option in NUMERIC_OPTIONS else allowed.get(option))
+
+
+def range_text(option: str) -> str:
+    """'50..4000000', '0.001..600': a numeric option's allowed range as users write numbers."""
+    _, lo, hi = NUMERIC_OPTIONS[option]
+    return "..".join(str(int(x)) if float(x).is_integer() else f"{x:g}" for x in (lo, hi))
+
+
+def parse_url(text: str, *, timeout: float | None = None, retries: int | None = None) -> DeviceURL:
+    """Parse a device URL (DESIGN.md, "Device URLs"). Raises BadURL with a precise message.
+
+    ``timeout`` / ``retries`` apply where the URL itself does not set them.
+    """
+    raw = text.strip()
+    if "://" not in raw:
+        raise BadURL(f"'{text}' is not a device URL (expected e.g. tcp://HOST:502 or rtu:///dev/ttyUSB0)")
+    u = urllib.parse.urlsplit(raw)
+    scheme = u.scheme.lower()
+    if scheme not in _OPTIONS:
+        hint = difflib.get_close_matches(scheme, list(_OPTIONS), n=1)
+        raise BadURL(f"unknown scheme '{scheme}' in '{text}'" + (f"; did you mean '{hint[0]}'?" if hint else
+                                                                  f" (known: {', '.join(_OPTIONS)})"))
+    options: dict[str, str] = {}
+    for key, values in urllib.parse.parse_qs(u.query, keep_blank_values=True).items():
+        if key not in _OPTIONS[scheme]:
+            hint = difflib.get_close_matches(key, sorted(_OPTIONS[scheme]), n=1)
+            raise BadURL(f"unknown option '{key}' in {scheme} URL" + (f"; did you mean '{hint[0]}'?" if hint else
+                         f" (known: {', '.join(sorted(_OPTIONS[scheme]))})"))
+        options[key] = values[-1]
+
+    def number(key: str) -> Any:
+        kind, lo, hi = NUMERIC_OPTIONS[key]
+        try:
+            v = kind(options[key])
+        except ValueError:
+            raise BadURL(f"option {key}={options[key]!r} is not a{'n integer' if kind is int else ' number'}") from None
+        if not lo <= v <= hi:
+            raise BadURL(f"option {key}={options[key]} is out of range ({range_text(key)})")
+        return v
+
+    to = number("timeout") if "timeout" in options else (timeout if timeout is not None else DEFAULT_TIMEOUT)
+    rt = number("retries") if "retries" in options else (retries if retries is not None else DEFAULT_RETRIES)
+    if scheme in ("rtu", "ascii"):
+        path = urllib.parse.unquote(u.netloc + u.path)
+        if not path:
+            raise BadURL(f"{scheme} URL needs a serial device path: {scheme}:///dev/ttyUSB0")
+        for key in ("baudrate", "bytesize", "stopbits"):
+            if key in options:
+                number(key)
+        if "parity" in options:
+            options["parity"] = options["parity"].upper()
+            if options["parity"] not in ("N", "E", "O"):
+                raise BadURL(f"option parity={options['parity']} must be N, E or O")
+        return DeviceURL(scheme, path=path, options=options, timeout=to, retries=rt)
+    try:
+        host, port = u.hostname, u.port
+    except ValueError:
+        raise BadURL(f"bad port in '{text}'") from None
+    if not host:
+        raise BadURL(f"{scheme} URL needs a host: {scheme}://HOST:PORT")
+    if u.path not in ("", "/"):
+        raise BadURL(f"unexpected path '{u.path}' in {scheme} URL")
+    if port == 0:
+        raise BadURL(f"bad port in '{text}' (1..65535)")
+    if port is None:
+        if scheme == "rtu+tcp":
+            raise BadURL("rtu+tcp URL needs a port: rtu+tcp://HOST:PORT (the gateway's TCP port)")
+        port = DEFAULT_PORTS[scheme]
+    if scheme == "tls":
+        if "verify" in options and options["verify"].lower() not in ("true", "false", "1", "0", "yes", "no"):
+            raise BadURL(f"option verify={options['verify']} must be true or false")
+        for key in ("cert", "key", "ca"):
+            if key in options and not os.path.isfile(options[key]):
+                raise BadURL(f"tls option {key}: no such file '{options[key]}'")
+        if ("cert" in options) != ("key" in options):
+            raise BadURL("tls options cert and key go together (the client certificate and its key)")
+    return DeviceURL(scheme, host=host, port=port, options=options, timeout=to, retries=rt)
+
+
+def describe(url: DeviceURL) -> str:
+    """The URL as text without secrets: no key/cert/CA file paths; serial line settings are kept."""
+    if url.scheme in ("rtu", "ascii"):
+        opts = {k: v for k, v in url.options.items() if k not in _COMMON}
+        q = ("?" + "&".join(f"{k}={v}" for k, v in sorted(opts.items()))) if opts else ""
+        return f"{url.scheme}://{url.path}{q}"
+    host = f"[{url.host}]" if url.host and ":" in url.host else url.host
+    q = "?verify=false" if url.scheme == "tls" and not verify(url) else ""
+    return f"{url.scheme}://{host}:{url.port}{q}"
+
+
+def verify(url: DeviceURL) -> bool:
+    """tls: whether the server certificate is checked (verify=false turns it off)."""
+    return url.options.get("verify", "true").lower() in ("true", "1", "yes")
