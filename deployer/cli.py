@@ -502,7 +502,7 @@ def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: in
 
 
 def _hexwords(regs: Sequence[int] | None) -> str:
-    return "-" if regs is None else " ".join(f"{w:04X}" for w in regs)
+    return "-" if regs is None else " ".join([format(w, "04X") for w in regs])
 
 
 def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:

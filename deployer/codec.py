@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import struct
 from decimal import ROUND_HALF_EVEN, Decimal
+from functools import cache
 from typing import Literal
 
 TypeName = Literal["uint16", "int16", "uint32", "int32", "uint64", "int64", "float32", "float64"]
@@ -82,6 +83,7 @@ def is_float(type_: str) -> bool:
     return _TYPES[type_][2]
 
 
+@cache  # called for every bound of every parameter: a lookup, not arithmetic on big ints
 def raw_range(type_: str) -> tuple[int, int] | None:
     """Inclusive integer range of an integer type; None for floats."""
     count, signed, flt = _TYPES[type_]

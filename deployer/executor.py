@@ -239,14 +239,13 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
         raise UsageError("a broadcast cannot read: bit fields (which keep the register's other bits) and "
                          f"preconditions of profile {prof.id} need a device that answers")
     try:
-        held = await lock.acquire(lock.device_key(url.bus, unit), timeout=opts.lock_timeout,
-                                  command=lock.command_line(), directory=opts.lock_dir)
+        held = await lock.acquire_device(url.bus, unit, timeout=opts.lock_timeout, command=lock.command_line(),
+                                         directory=opts.lock_dir)
     except lock.Locked as e:
         res.status, res.error = "unreachable", f"{e}; nothing was sent"
         return res
     try:
-        if held.stale:
-            res.notices.append(held.stale)
+        res.notices.extend(h.stale for h in held if h.stale)
         target = Target(tp.describe(url), unit, profile_ref(prof))
         transport = tp.open_transport(url)
         try:
@@ -267,7 +266,8 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
             await asyncio.to_thread(journal.device_finished, opts.state_dir, opts.run_id, res)
         return res
     finally:
-        held.release()
+        for h in reversed(held):
+            h.release()
 
 
 async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,

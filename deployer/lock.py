@@ -50,12 +50,14 @@ class DeviceLock:
     path: str
     fd: int
     stale: str | None = None  # a warning when a dead process's record was taken over
+    shared: bool = False
 
     def release(self) -> None:
         if self.fd < 0:
             return
-        with contextlib.suppress(OSError):
-            os.ftruncate(self.fd, 0)  # a clean release leaves no record to call stale
+        if not self.shared:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self.fd, 0)  # a clean release leaves no record to call stale
         with contextlib.suppress(OSError):
             fcntl.flock(self.fd, fcntl.LOCK_UN)
         os.close(self.fd)
@@ -89,9 +91,12 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def try_lock(key: str, *, command: str = "", directory: str | None = None) -> DeviceLock:
-    """Take the lock now or raise Locked naming the holder."""
-    d = directory or lock_dir()
+_ready: set[str] = set()  # lock directories made and opened to every user by this process
+
+
+def _directory(d: str) -> None:
+    if d in _ready:
+        return
     try:
         os.makedirs(d, exist_ok=True)
         # every user's runs share the directory (sticky, like /tmp)
@@ -99,6 +104,17 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None) -> De
             os.chmod(d, 0o1777)
     except OSError as e:
         raise Locked(f"cannot use the lock directory {d}: {e.strerror} (set {ENV} to another folder)") from None
+    _ready.add(d)
+
+
+def try_lock(key: str, *, command: str = "", directory: str | None = None, shared: bool = False) -> DeviceLock:
+    """Take the lock now or raise Locked naming the holder.
+
+    ``shared``: many holders at once (the bus lock of runs writing single units); an exclusive holder
+    (a broadcast to the whole bus) excludes them all. Shared holders leave no record.
+    """
+    d = directory or lock_dir()
+    _directory(d)
     name = hashlib.sha256(key.encode()).hexdigest()[:24] + ".lock"
     path = os.path.join(d, name)
     try:
@@ -106,14 +122,18 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None) -> De
     except OSError as e:
         raise Locked(f"cannot open the lock file {path}: {e.strerror}") from None
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
     except BlockingIOError:
         record = _read_record(fd)
         os.close(fd)
+        if not record:  # held shared: runs writing devices of this bus, one by one
+            raise Locked("the bus is in use: another run is writing a device on it") from None
         raise Locked(f"locked by {_holder_text(record)}") from None
     except OSError as e:
         os.close(fd)
         raise Locked(f"cannot lock {path}: {e.strerror}") from None
+    if shared:
+        return DeviceLock(key, path, fd, None, shared=True)
     old = _read_record(fd)
     stale = None
     host = socket.gethostname()
@@ -129,18 +149,38 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None) -> De
 
 
 async def acquire(key: str, *, timeout: float = 0.0, command: str = "", directory: str | None = None,
-                  poll: float = 0.1) -> DeviceLock:
-    """The device's lock; waits up to ``timeout`` seconds (0: fail at once). Raises Locked."""
+                  poll: float = 0.1, shared: bool = False) -> DeviceLock:
+    """One lock; waits up to ``timeout`` seconds (0: fail at once). Raises Locked."""
     deadline = time.monotonic() + timeout
     while True:
         try:
-            return try_lock(key, command=command, directory=directory)
+            return try_lock(key, command=command, directory=directory, shared=shared)
         except Locked as e:
             if time.monotonic() >= deadline or str(e).startswith("cannot"):
                 if timeout > 0 and not str(e).startswith("cannot"):
                     raise Locked(f"{e}; still locked after waiting {timeout:g} s") from None
                 raise
         await asyncio.sleep(poll)
+
+
+async def acquire_device(bus: str, unit: int, *, timeout: float = 0.0, command: str = "",
+                         directory: str | None = None) -> list[DeviceLock]:
+    """The locks a run writing ``unit`` on ``bus`` holds: the bus's, shared, then the unit's, exclusive.
+
+    A broadcast (unit 0) writes every unit of the bus: it takes the bus's lock exclusively, so it waits
+    for (or is refused by) any run writing a unit there, and they for it. Always bus first, then unit:
+    two runs can never hold one each and wait for the other.
+    """
+    start = time.monotonic()
+    bus_lock = await acquire(f"{bus}#bus", timeout=timeout, command=command, directory=directory, shared=unit != 0)
+    if unit == 0:
+        return [bus_lock]
+    try:
+        left = max(0.0, timeout - (time.monotonic() - start))
+        return [bus_lock, await acquire(device_key(bus, unit), timeout=left, command=command, directory=directory)]
+    except BaseException:
+        bus_lock.release()
+        raise
 
 
 def command_line() -> str:

@@ -254,14 +254,26 @@ def _check_snapshot(prof: Profile, desired: Sequence[Desired], snap: SnapshotInf
     return extra
 
 
+MAX_EXTENDS_FILES = 256  # files one recipe may load through 'extends', repeats counted
+
+
 def _load_chain(path: str, stack: list[str], errors: list[Diagnostic],
-                ref: tuple[yamlsrc.Source, yamlsrc.Path_] | None = None) -> list[tuple[dict[str, Any], yamlsrc.Source]]:
+                ref: tuple[yamlsrc.Source, yamlsrc.Path_] | None = None,
+                loaded: list[int] | None = None) -> list[tuple[dict[str, Any], yamlsrc.Source]]:
     """The recipe at ``path`` and its ``extends`` bases, bases first."""
     real = os.path.realpath(path)
     if real in stack:
         assert ref is not None
         chain = " -> ".join(os.path.basename(s) for s in [*stack[stack.index(real):], real])
         errors.append(ref[0].error(ref[1], f"'extends' makes a cycle: {chain}"))
+        return []
+    loaded = loaded if loaded is not None else [0]
+    loaded[0] += 1
+    if loaded[0] > MAX_EXTENDS_FILES:  # hostile input: bases that extend the same bases many times over
+        assert ref is not None
+        if loaded[0] == MAX_EXTENDS_FILES + 1:
+            errors.append(ref[0].error(ref[1], f"'extends' loads more than {MAX_EXTENDS_FILES} files "
+                                               "(repeats counted)"))
         return []
     try:
         data, src = yamlsrc.load(path)
@@ -287,9 +299,11 @@ def _load_chain(path: str, stack: list[str], errors: list[Diagnostic],
     for base, at in bases:
         base_path = os.path.normpath(os.path.join(os.path.dirname(path), base))
         before = len(errors)
-        out.extend(_load_chain(base_path, [*stack, real], errors, (src, at)))
+        out.extend(_load_chain(base_path, [*stack, real], errors, (src, at), loaded))
         if len(errors) > before and not any(d.path == src.path for d in errors[before:]):
             errors.append(src.error(at, f"the extended recipe {base} has errors"))
+        if loaded[0] > MAX_EXTENDS_FILES:
+            break
     out.append((data, src))
     return out
 

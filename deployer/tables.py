@@ -19,19 +19,12 @@ RICH_ROWS = 200
 Cell = str | tuple[str, str]  # text, or (text, rich style) for a coloured cell
 
 
-def _text(cell: Cell) -> str:
-    return cell if isinstance(cell, str) else cell[0]
-
-
 def plain(headers: Sequence[str], rows: Sequence[Sequence[Cell]]) -> str:
     """The table as aligned text, one line per row (header first), trailing spaces removed."""
-    texts = [list(headers), *([_text(c) for c in row] for row in rows)]
-    widths = [max(len(r[i]) for r in texts) for i in range(len(headers))]
-    lines = []
-    for r in texts:
-        line = "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True))
-        lines.append(f" {line}".rstrip())
-    return "\n".join(lines) + "\n"
+    texts = [list(headers), *([c if isinstance(c, str) else c[0] for c in row] for row in rows)]
+    widths = [max(map(len, column)) for column in zip(*texts, strict=True)]
+    line = " " + "  ".join(f"{{:<{w}}}" for w in widths)  # one format string: the padding happens in C
+    return "".join(line.format(*r).rstrip() + "\n" for r in texts)
 
 
 def show(out: Console, headers: Sequence[str], rows: Sequence[Sequence[Cell]]) -> None:

@@ -156,10 +156,19 @@ def convert(magnitude: Decimal, from_unit: str, to_unit: str) -> Decimal:
     try:
         if how is not None:
             return magnitude * how
-        q = registry().Quantity(magnitude, _pint_text(from_unit))  # offsets: pint's own arithmetic
-        return Decimal(q.to(_pint_text(to_unit)).magnitude)
+        return _offset_convert(magnitude, from_unit, to_unit)
     except ArithmeticError:  # 1e999999999 ms: beyond Decimal's exponent range
         raise ValueError(f"{magnitude:g} {_clip(from_unit)} is too large to convert to '{_clip(to_unit)}'") from None
+
+
+@lru_cache(maxsize=4096)
+def _offset_convert(magnitude: Decimal, from_unit: str, to_unit: str) -> Decimal:
+    """A conversion with an offset (degF -> degC), by pint's own arithmetic, once per distinct value.
+
+    Not reduced to one factor and one offset: pint rounds its intermediate steps at Decimal's
+    precision, and a reordered formula would differ from it in the last digit."""
+    q = registry().Quantity(magnitude, _pint_text(from_unit))
+    return Decimal(q.to(_pint_text(to_unit)).magnitude)
 
 
 def _dim(unit: str) -> str:

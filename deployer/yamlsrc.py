@@ -42,10 +42,11 @@ if TYPE_CHECKING:
 FastLoader: type[yaml.SafeLoader] | type[yaml.CSafeLoader] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 # Limits on input (issue #11, hostile files). A real recipe or profile is far inside each one.
-MAX_FILE_BYTES = 8 * 1024 * 1024  # a 50,000-parameter profile is about 4 MB
+MAX_FILE_BYTES = 32 * 1024 * 1024  # a saved plan of 50,000 parameters is 13 MB; values are bounded below
 MAX_DEPTH = 64  # nesting of mappings and lists; recipes need 5
 MAX_ALIAS_NODES = 100_000  # values that aliases may add in total ("billion laughs" stops here)
 MAX_ENTRIES = 65_536  # entries in one mapping or list: a device has 65,536 holding registers
+MAX_NODES = 1_000_000  # values in one file (keys not counted): 15 per parameter of the largest profile
 MAX_NUMBER_CHARS = 100  # a number written with more characters is refused (no 100,000-digit numbers)
 MAX_ECHO = 60  # characters of a value echoed in a message; longer ones are cut with an ellipsis
 
@@ -193,6 +194,8 @@ class _Builder:
                     if key is not None:  # the value of that key
                         values[top.key_at] = pos
                         self.nodes += 1
+                        if self.nodes > MAX_NODES:
+                            self._too_many(pos)
                         out[key] = self._scalar(ev, pos)
                         top.key = None
                         continue
@@ -207,6 +210,16 @@ class _Builder:
                         out[text] = None  # keeps the key's place (and finds duplicates) until its value
                         continue
                     # a refused key: the general path below says why
+                elif not top.is_map and len(top.value) < MAX_ENTRIES:  # an item of a list
+                    mark = ev.start_mark
+                    pos = (mark.line + 1) << 24 | (mark.column + 1)
+                    items: list[Any] = top.value  # type: ignore[assignment]
+                    values[(*top.at, len(items))] = pos
+                    self.nodes += 1
+                    if self.nodes > MAX_NODES:
+                        self._too_many(pos)
+                    items.append(self._scalar(ev, pos))
+                    continue
             if isinstance(ev, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
                 frame = stack.pop()
                 if frame.anchored:
@@ -242,6 +255,8 @@ class _Builder:
                 parent.skip_value = False
                 continue
             self.nodes += 1
+            if self.nodes > MAX_NODES:
+                self._too_many(pos)
             if isinstance(ev, yaml.AliasEvent):
                 value = self._alias(ev, at, pos)
             elif isinstance(ev, yaml.ScalarEvent):
@@ -278,6 +293,10 @@ class _Builder:
             if parent is None:
                 return value
             self._attach(parent, value)
+
+    def _too_many(self, pos: Pos) -> None:
+        self.err(pos, f"more than {MAX_NODES} values in one file")
+        raise _Stop
 
     def _attach(self, parent: _Frame | None, value: Any) -> None:
         if parent is None:
@@ -358,10 +377,13 @@ class _Builder:
     def _tag(self, ev: Any) -> str:
         tag: str | None = ev.tag
         if tag is None or tag == "!":
-            k = (ev.value, ev.implicit)
+            text: str = ev.value
+            if ev.implicit[0] and text.isdigit() and text.isascii() and (text[0] != "0" or len(text) == 1):
+                return _INT  # a plain decimal integer (registers, counts): what YAML 1.1's int pattern says
+            k = (text, ev.implicit)
             tag = self.tags.get(k)
             if tag is None:
-                tag = self.tags[k] = self.loader.resolve(yaml.ScalarNode, ev.value, ev.implicit)
+                tag = self.tags[k] = self.loader.resolve(yaml.ScalarNode, text, ev.implicit)
         return tag
 
     def _scalar(self, ev: Any, pos: Pos) -> Any:

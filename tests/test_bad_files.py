@@ -47,11 +47,13 @@ def test_bad_file(name: str, where: str, fragment: str) -> None:
 
 
 def test_huge_file(tmp_path: Path) -> None:
-    """A 10 MB file is refused up front with a position, not parsed."""
+    """A file beyond the size limit (32 MiB) is refused up front with a position, not parsed."""
+    from deployer.yamlsrc import MAX_FILE_BYTES
+
     big = tmp_path / "huge.yaml"
     with big.open("w") as f:
         f.write("recipe: x\nprofile: omron-m1\nparameters:\n")
-        f.write("  # padding\n" * (10 * 1024 * 1024 // 12))
+        f.write("  # padding\n" * (MAX_FILE_BYTES // 12 + 1))
     with pytest.raises(InputError) as err:
         validate_file(str(big))
     (d,) = err.value.diagnostics

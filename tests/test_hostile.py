@@ -21,7 +21,8 @@ from deployer.diagnostics import InputError
 ROOT = Path(__file__).resolve().parent.parent
 BAD = ROOT / "tests" / "bad"
 HOSTILE = ["yaml-alias-bomb.yaml", "yaml-deep-nesting.yaml", "yaml-recursive-alias.yaml", "recipe-100000-digits.yaml",
-           "recipe-100000-digit-string.yaml", "recipe-extends-dev-zero.yaml"]
+           "recipe-100000-digit-string.yaml", "recipe-extends-dev-zero.yaml", "profile-table-bomb.yaml",
+           "recipe-extends-diamond.yaml"]
 
 
 def _limited() -> None:  # a child that tries to take gigabytes fails instead of taking the machine
@@ -132,3 +133,16 @@ def test_fuzz_bounded() -> None:
     assert res["files_tried"] >= 200
     assert res["peak_rss_mb"] < 400
     assert res["slowest_file_seconds"] < 10  # a hang guard, not a speed target
+
+
+def test_values_per_file_are_bounded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An 8 MB file of small lists would build millions of values: the count stops it (here at 1,000)."""
+    monkeypatch.setattr(yamlsrc, "MAX_NODES", 1000)
+    f = tmp_path / "wide.yaml"
+    f.write_text("junk:\n" + "".join(f"  - [{', '.join(['1'] * 100)}]\n" for _ in range(20)))
+    with pytest.raises(InputError) as err:
+        yamlsrc.load(f)
+    (d,) = err.value.diagnostics
+    assert "more than 1000 values in one file" in d.message
+    # the 1,001st value: root, list, 9 rows of 1 + 100, row 10 itself, then its 89th entry (column 6 + 3 x 88)
+    assert (d.line, d.col) == (11, 6 + 3 * 88)

@@ -140,3 +140,34 @@ def test_kill_9_mid_write_is_found_in_the_journal_and_retried(tmp_path: Path) ->
         assert retry["status"] == "ok"
         assert any(f"stale lock of PID {proc.pid}" in n for n in retry["notices"])
         assert run("diff", r, "--device", sim.url)[0] == 0
+
+
+def test_a_broadcast_and_a_unit_on_one_bus_exclude_each_other(tmp_path: Path) -> None:
+    """Unit 0 writes every device of the bus: it takes the bus's lock exclusively, single units share it."""
+    import asyncio
+
+    from deployer.transport import parse_url
+
+    r = recipe(tmp_path, "first", FIRST)
+    with SimulatorThread(builtin_profile("example-inverter")) as sim:
+        bus = parse_url(sim.url).bus
+        other = asyncio.run(lock.acquire_device(bus, 2, command="another run"))  # a run writing unit 2
+        try:
+            code, out, err = run("apply", r, "--device", sim.url, "--unit", "0", "--allow-broadcast", "--yes",
+                                 "--state-dir", str(tmp_path / "s"))
+            assert code == 3 and "the bus is in use" in out + err, out + err
+            assert not any(e.function == 16 for e in sim.log)
+            # another unit of the bus is not blocked by it
+            code, _, err = run("apply", r, "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"))
+            assert code == 0, err
+        finally:
+            for h in other:
+                h.release()
+        broadcast = asyncio.run(lock.acquire_device(bus, 0, command="a broadcast"))
+        try:
+            code, out, err = run("apply", recipe(tmp_path, "second", SECOND), "--device", sim.url, "--yes",
+                                 "--state-dir", str(tmp_path / "s"))
+            assert code == 3 and f"locked by PID {os.getpid()}" in out + err and "a broadcast" in out + err
+        finally:
+            for h in broadcast:
+                h.release()

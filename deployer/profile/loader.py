@@ -257,6 +257,16 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         if addr is not None:
             make(name, spec, addr, at, spec.get("offset", 0))
 
+    # hostile input: tables multiply (count x fields); refuse before building millions of parameters
+    declared = len(data.get("parameters") or {})
+    for tname, table in (data.get("tables") or {}).items():
+        declared += int(table["count"]) * len(table["fields"])
+        if declared > yamlsrc.MAX_ENTRIES:
+            errors.append(src.error(("tables", tname, "count"),
+                                    f"table {tname}: the profile would declare at least {declared} parameters; at "
+                                    f"most {yamlsrc.MAX_ENTRIES} (a device has {yamlsrc.MAX_ENTRIES} registers)"))
+            raise InputError(errors)
+
     for tname, table in (data.get("tables") or {}).items():
         tat: yamlsrc.Path_ = ("tables", tname)
         base = address_of(table["base"], (*tat, "base"))

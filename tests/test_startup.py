@@ -1,0 +1,47 @@
+"""What a command pays for: lazy imports, and validate parsing each file once (issue #9)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from deployer import yamlsrc
+from deployer.cli import validate_file
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _imported(*args: str) -> set[str]:
+    proc = subprocess.run([sys.executable, "-X", "importtime", "-m", "deployer", *args], capture_output=True,
+                          text=True, timeout=60, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return {line.rsplit("|", 1)[1].strip() for line in proc.stderr.splitlines() if line.startswith("import time:")}
+
+
+def test_help_imports_neither_pint_rich_nor_pymodbus() -> None:
+    mods = _imported("--help")
+    assert not {m for m in mods if m.split(".")[0] in ("pint", "rich", "pymodbus", "jsonschema")}
+
+
+def test_validate_and_offline_plan_do_not_import_pymodbus() -> None:
+    recipe = "recipes/examples/conveyor-line3.yaml"  # it names a device URL: parsed, not connected
+    for args in (("validate", recipe), ("plan", recipe, "--json")):
+        mods = _imported(*args)
+        assert not {m for m in mods if m.split(".")[0] in ("pymodbus", "serial")}, args
+    assert not {m for m in _imported("validate", recipe) if m.startswith("rich")}
+
+
+def test_validate_parses_each_file_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    parsed: list[str] = []
+    build = yamlsrc._Builder.build
+
+    def counting(self: yamlsrc._Builder) -> object:
+        parsed.append(self.src.path)
+        return build(self)
+    monkeypatch.setattr(yamlsrc._Builder, "build", counting)
+    validate_file(str(ROOT / "recipes/examples/omron-m1-accel.yaml"))
+    assert len(parsed) == len(set(parsed)), parsed  # the recipe once, its profile once
+    assert not yamlsrc._handed_over
