@@ -521,6 +521,8 @@ def _python_error(text: str, err: yaml.MarkedYAMLError) -> yaml.MarkedYAMLError:
         mine = e.problem_mark or e.context_mark
         if mine is not None and (mine.line, mine.column) == (mark.line, mark.column):
             return e
+    except yaml.YAMLError:  # the pure-Python reader refuses the whole text at once (a NUL after the error)
+        return err
     return err
 
 

@@ -349,3 +349,18 @@ def test_sunspec_scale_factors_read_from_the_device(tmp_path: Path, capsys: pyte
     prof = load_profile(out)
     assert prof.parameter("WMax").scale == 10 and str(prof.parameter("VRef").scale) == "0.1"
     assert str(prof.parameter("VMax").scale) == "0.01"  # --sf wins over the device
+
+
+def test_nul_after_a_syntax_error_is_a_message(tmp_path: Path) -> None:
+    """Found by fuzzing the SunSpec import: libyaml stops at the syntax error, the pure-Python re-parse
+    (for its wording) refuses the whole text because of a NUL further on; that must stay a message."""
+    from deployer.cli import validate_file
+    from deployer.diagnostics import InputError
+
+    bad = tmp_path / "r.yaml"
+    head = "recipe: r\nprofile: omron-m1\nparameters:\n  F07: 10 s\n F08: 8 s\n"  # line 5: a bad indent
+    bad.write_text(head + "# " + "x" * 20000 + "\ne: \x00\n")
+    with pytest.raises(InputError) as e:
+        validate_file(str(bad))
+    assert [(d.line, d.col) for d in e.value.diagnostics] == [(5, 2)]
+    assert e.value.diagnostics[0].message.startswith("invalid YAML:")

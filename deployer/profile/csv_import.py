@@ -63,6 +63,7 @@ ACCESS: dict[str, str] = {
     **{k: "read-write" for k in ("rw", "r/w", "wr", "read-write", "readwrite", "read/write")},
 }
 _NAME_OK = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]*$")
+_DIGITS = re.compile(r"[0-9]+")  # str.isdigit() also accepts digits of other scripts
 
 
 def _key(header: str) -> str:
@@ -92,13 +93,16 @@ def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = 
             delimiter = csv.Sniffer().sniff(text[:4096], delimiters=",;\t").delimiter
         except csv.Error:
             delimiter = ","
-    physical = text.splitlines()
-    reader = csv.reader(io.StringIO(text), delimiter=delimiter)
+    physical = io.StringIO(text, newline="").readlines()  # lines as the csv module counts them (\r too)
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
     rows: list[Row] = []
     prev = 0
-    for cells in reader:
-        rows.append((prev + 1, cells, _cell_starts(physical[prev], delimiter)))
-        prev = reader.line_num  # a quoted cell may span lines
+    try:
+        for cells in reader:
+            rows.append((prev + 1, cells, _cell_starts(physical[prev], delimiter)))
+            prev = reader.line_num  # a quoted cell may span lines
+    except csv.Error as e:
+        raise InputError([Diagnostic(path, reader.line_num, 1, f"not a CSV row: {e}")]) from None
     return _draft(path, rows, profile_id=profile_id, columns=columns, addressing=addressing, byte_order=byte_order)
 
 
@@ -231,10 +235,10 @@ def _row_spec(name: str, raw_name: str, cell: Callable[[str], str], err: Callabl
         return None
     spec["type"] = type_  # bits of a 32-bit row: the profile check says a field is 16 bits, at this row
     if bits:
-        spec["bits"] = int(bits) if bits.isdigit() else bits
+        spec["bits"] = int(bits) if _DIGITS.fullmatch(bits) else bits
     if type_ == "string":
         n = cell("count")
-        if not n.isdigit() or int(n) < 1:
+        if not _DIGITS.fullmatch(n) or int(n) < 1:
             err("count", f"{name}: a string needs its register count in the 'count' column")
             return None
         spec["count"] = int(n)
@@ -282,7 +286,7 @@ def _row_spec(name: str, raw_name: str, cell: Callable[[str], str], err: Callabl
         elif v:
             spec[col] = v
     if cell("stage"):
-        if cell("stage").isdigit():
+        if _DIGITS.fullmatch(cell("stage")):
             spec["stage"] = int(cell("stage"))
         else:
             err("stage", f"stage '{cell('stage')}' is not a number")

@@ -51,7 +51,7 @@ def model_path(model: str) -> str:
     if model.endswith(".json") or os.sep in model:
         return model
     directory = models_dir()
-    if model.isdigit():
+    if model.isascii() and model.isdigit():
         path = os.path.join(directory, f"model_{int(model)}.json")
         if not os.path.isfile(path):
             raise UsageError(f"no SunSpec model {model} in pysunspec2's definitions")
@@ -83,9 +83,12 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
     sfs = dict(scale_factors or {})
     warnings: list[str] = []
     errors: list[Diagnostic] = []
-    group = data.get("group") if isinstance(data, dict) else None
-    if not isinstance(group, dict) or "points" not in group:
-        raise InputError([src.error((), "not a SunSpec model definition (expected group.points)")])
+    problems = _schema_problems(data, src)
+    if problems:
+        raise InputError(problems)
+    group = data["group"]
+    if "points" not in group:
+        raise InputError([src.error(("group",), "not a SunSpec model definition (expected group.points)")])
     model_id = int(data.get("id", 0) or next((p.get("value", 0) for p in group["points"] if p["name"] == "ID"), 0))
     parameters: list[tuple[str, dict[str, Any], Origin]] = []
     tables: list[tuple[str, dict[str, Any], Origin]] = []
@@ -131,8 +134,11 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
                 warnings.append(f"{prefix}{point['name']}: scale factor {sf} unknown, imported unscaled")
         symbols = point.get("symbols") or []
         if ptype in ("enum16", "enum32") and symbols:
-            spec["values"] = {str(s["name"]): int(s["value"]) for s in symbols}
-        if point.get("value") is not None and not isinstance(point["value"], str):
+            if not all(isinstance(sym.get("value"), int) for sym in symbols):
+                errors.append(src.error((*at_, "symbols"), f"{point['name']}: symbol values must be integers"))
+                return None, size
+            spec["values"] = {str(sym["name"]): int(sym["value"]) for sym in symbols}
+        if isinstance(point.get("value"), int) and not isinstance(point["value"], bool):
             spec["default"] = point["value"]
         if desc:
             spec = {"description": desc, **spec}
@@ -144,7 +150,8 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
         line, col = src.pos(at_)
         if spec is not None:
             name = str(point["name"])
-            if point.get("type") == "bitfield16" and point.get("symbols"):
+            if point.get("type") == "bitfield16" and point.get("symbols") and all(
+                    isinstance(sym.get("value"), int) and 0 <= sym["value"] <= 15 for sym in point["symbols"]):
                 for s in point["symbols"]:  # one bool field per documented bit
                     field_spec = {"description": f"{spec.get('description', name)}: {s['name']}",
                                   "type": "bool", "bits": int(s["value"]), "access": spec["access"]}
@@ -230,3 +237,14 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
 def _pow10(sf: int) -> float | int:
     d = Decimal(10) ** sf
     return int(d) if sf >= 0 else float(d)
+
+
+def _schema_problems(data: Any, src: yamlsrc.Source) -> list[Diagnostic]:
+    """The model file checked against pysunspec2's own JSON Schema for model definitions, with positions."""
+    import jsonschema
+
+    with open(os.path.join(models_dir(), "schema.json"), encoding="utf-8") as f:
+        schema = json.load(f)
+    errors = sorted(jsonschema.Draft7Validator(schema).iter_errors(data), key=lambda e: list(map(str, e.path)))
+    return [src.error(tuple(e.absolute_path), f"{'.'.join(map(str, e.absolute_path)) or 'model'}: {e.message}")
+            for e in errors[:20]]
