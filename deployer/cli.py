@@ -911,8 +911,16 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
     if fleet_run:
+        import gc
+
         from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
 
+        if _OWN_PROCESS:  # the command's own process only: the library and callers keep their collector
+            # what is loaded now (modules, profiles, recipes) lives as long as the command: later collections
+            # need not walk it, and a fleet allocates fast, so collect less often (the cyclic collector
+            # took 35-50 ms of a 0.7 s run of 200 devices, a 20 ms pause among them)
+            gc.freeze()
+            gc.set_threshold(20_000, 20, 10)
         # a live display on a terminal (not while asking questions), else a line per device
         progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes)
         with progress:
@@ -1256,10 +1264,13 @@ def demo(fast: bool) -> int:
 
 
 _ARGV: list[str] = []  # the command line, for the audit log
+_OWN_PROCESS: list[bool] = []  # main() without argv: this process is the command, not a caller's
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: map every user error to its exit code, never a traceback."""
+    if argv is None:
+        _OWN_PROCESS[:] = [True]
     try:
         _main(argv)
     finally:

@@ -539,3 +539,16 @@ def test_a_device_is_reported_done_once_its_journal_line_is_on_disk(tmp_path: Pa
                                         options=ApplyOptions(state_dir=str(state), run_id="run-1")))
         assert report.exit_code == 0 and all(holds_recipe(s) for s in sims)
     assert seen == {n: ["device-started", "device-finished"] for n in names(6)}
+
+
+def test_a_caller_running_the_cli_in_process_keeps_its_garbage_collector(capsys: pytest.CaptureFixture[str],
+                                                                         tmp_path: Path) -> None:
+    import gc
+
+    threshold, frozen = gc.get_threshold(), gc.get_freeze_count()
+    with fleet(2) as sims:
+        inv = inventory(tmp_path, {n: s.url for n, s in zip(names(2), sims, strict=True)})
+        code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes",
+                           "--state-dir", str(tmp_path / "s"))
+    assert code == 0, err
+    assert (gc.get_threshold(), gc.get_freeze_count()) == (threshold, frozen)  # tuned only in the command's process
