@@ -85,7 +85,12 @@ class GroupCommit:
                 while not self._queue:
                     self._cond.wait()
                 batch, self._queue = self._queue, []
-            commit(batch)
+            try:
+                commit(batch)
+            except Exception as e:  # a bug (say, a record JSON cannot say) must not leave its callers waiting
+                for p in batch:
+                    if not p.done.done():
+                        p.done.set_exception(e)
 
 
 def commit(batch: list[_Pending]) -> None:

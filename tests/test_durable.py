@@ -112,3 +112,11 @@ def test_write_atomic_from_pieces_more_than_one_writev_takes(tmp_path: Path) -> 
     write_atomic(str(tmp_path / "r.json"), "text too: \u00b0C\n")
     assert (tmp_path / "r.json").read_text(encoding="utf-8") == "text too: \u00b0C\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.json"]  # no temporary file left
+
+
+def test_an_unexpected_error_reaches_the_caller_and_the_writer_goes_on(tmp_path: Path) -> None:
+    journal = tmp_path / "audit.jsonl"
+    with pytest.raises(TypeError):
+        durable.durable_now(Line(str(journal), {"not JSON": object()}))
+    assert durable.durable_now(Line(str(journal), {"name": "next"})) is None
+    assert _lines(journal) == [{"name": "next"}]
