@@ -526,6 +526,16 @@ def _python_error(text: str, err: yaml.MarkedYAMLError) -> yaml.MarkedYAMLError:
     return err
 
 
+def _reader_error(path: str, text: str, e: yaml.reader.ReaderError) -> Diagnostic:
+    """A character YAML does not allow (a NUL, a control character), at its line and column, worded alike
+    whichever parser PyYAML has (libyaml finds it while parsing, the pure-Python reader before)."""
+    pos = max(0, min(int(e.position), len(text)))
+    line = text.count("\n", 0, pos) + 1
+    col = pos - (text.rfind("\n", 0, pos) + 1) + 1
+    char = e.character if isinstance(e.character, int) else ord(str(e.character)[:1] or "\0")
+    return Diagnostic(path, line, col, f"invalid YAML: character #x{char:04X} is not allowed in a YAML file")
+
+
 # documents loaded with hand_over=True, for the next load of the same unchanged file (once)
 _handed_over: dict[str, tuple[tuple[int, int, int], Any, Source]] = {}
 
@@ -561,7 +571,10 @@ def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[
     if text is None:
         text = read_text(p)
     src = Source(p)
-    ldr = loader(text)
+    try:
+        ldr = loader(text)  # the pure-Python reader checks every character of the text here
+    except yaml.reader.ReaderError as e:
+        raise InputError([_reader_error(p, text, e)]) from None
     b = _Builder(src, ldr)
     value: Any = None
     try:
@@ -581,6 +594,8 @@ def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[
         mark = e.problem_mark or e.context_mark
         line, col = (mark.line + 1, mark.column + 1) if mark else (1, 1)
         b.errors.append(Diagnostic(p, line, col, f"invalid YAML: {clip(str(e.problem or e.context), 200)}"))
+    except yaml.reader.ReaderError as e:
+        b.errors.append(_reader_error(p, text, e))
     except yaml.YAMLError as e:
         b.errors.append(Diagnostic(p, 1, 1, f"invalid YAML: {clip(str(e), 200)}"))
     except _Stop:
