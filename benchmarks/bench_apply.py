@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import drive
+from benchmarks.child import measured
 
 N = 500
 ROOT = Path(__file__).resolve().parent.parent
@@ -92,16 +93,11 @@ def device(profile: str, latency_ms: float, log: str, gap_reads: bool = False) -
 
 
 def timed(args: list[str], cwd: Path = ROOT) -> tuple[float, float, int, int]:
-    """Wall seconds, CPU seconds, peak RSS (KB) and exit code of one child process."""
-    t = time.perf_counter()
-    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=cwd)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    if proc.returncode not in (0,):
-        err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
-        raise RuntimeError(f"{' '.join(args[:4])} exited {proc.returncode}: {err[-800:]}")
-    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss, proc.returncode
+    """Wall seconds, CPU seconds, peak RSS (KB) and exit code of one child process (its own peak: see child.py)."""
+    wall, cpu, rss, code, err = measured(args, str(cwd))
+    if code != 0:
+        raise RuntimeError(f"{' '.join(args[:4])} exited {code}: {err[-800:]}")
+    return wall, cpu, rss, code
 
 
 def _log_lines(log: str) -> list[str]:

@@ -22,6 +22,7 @@ import time
 from typing import Any
 
 from benchmarks.bench_apply import as_installed
+from benchmarks.child import measured
 
 DEVICES = 200
 PARAMETERS = 100
@@ -46,14 +47,9 @@ def _recipe(n: int, variant: int) -> str:
 
 
 def _run(cmd: list[str], cwd: str) -> tuple[float, float, float, int]:
-    """Wall seconds, CPU seconds (user + system), peak RSS in MB, exit code of one child."""
-    t = time.perf_counter()
-    proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            stdin=subprocess.DEVNULL)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024, proc.returncode
+    """Wall seconds, CPU seconds (user + system), peak RSS in MB (the command's own: see child.py), exit code."""
+    wall, cpu, rss, code, _ = measured(cmd, cwd)
+    return wall, cpu, rss / 1024, code
 
 
 def _inventory(work: str, name: str, urls: list[str]) -> str:

@@ -1,0 +1,46 @@
+"""Run one command and report its own wall time, CPU time and peak memory, measured from a small launcher.
+
+Linux counts a child's peak memory (``ru_maxrss``) from the moment it is forked, and a fork is a copy
+of its parent: a command that a 150 MB benchmark process starts reports at least 150 MB, whatever it
+used itself. So the benchmarks start this small launcher (a bare Python, about 10 MB, below any
+command measured), which starts the command and reads the command's own rusage from ``wait4``.
+Run as a script (``python benchmarks/child.py SPEC``): it imports nothing from the project.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+HERE = os.path.abspath(__file__)
+
+
+def measured(args: list[str], cwd: str | None = None) -> tuple[float, float, int, int, str]:
+    """Wall seconds, CPU seconds (user + system), peak RSS in KB, exit code and stderr of one command.
+
+    The command's stdin and stdout are /dev/null; wall time is taken by the launcher around the command
+    alone (not the launcher's own start-up).
+    """
+    spec = json.dumps({"args": args, "cwd": cwd})
+    proc = subprocess.run([sys.executable, HERE, spec], capture_output=True, stdin=subprocess.DEVNULL)
+    if proc.returncode != 0 or not proc.stdout.strip():
+        raise RuntimeError(f"the launcher failed for {' '.join(args[:4])}: {proc.stderr.decode(errors='replace')}")
+    out = json.loads(proc.stdout.decode().strip().splitlines()[-1])
+    return out["wall"], out["cpu"], out["maxrss_kb"], out["code"], proc.stderr.decode(errors="replace")
+
+
+def _main() -> None:
+    spec = json.loads(sys.argv[1])
+    t = time.perf_counter()
+    proc = subprocess.Popen(spec["args"], cwd=spec["cwd"], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t
+    print(json.dumps({"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "maxrss_kb": usage.ru_maxrss,
+                      "code": os.waitstatus_to_exitcode(status)}))
+
+
+if __name__ == "__main__":
+    _main()
