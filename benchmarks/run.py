@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     for k, v in rows:
         print(f"{k:<{width}}  {v}")
     if results["targets"]:
-        print("\nissue #9 targets")
+        print("\ntargets (issues #9 and #10)")
         tw = max(len(t["target"]) for t in results["targets"])
         for t in results["targets"]:
             print(f"  {t['target']:<{tw}}  {t['measured']!s:>8}  {'met' if t['met'] else 'MISSED'}")
