@@ -309,15 +309,15 @@ async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: App
     The device ends ``sent`` when every request went out, ``failed`` when one could not be sent.
     """
     plan = opts.expected or make_plan(recipe, target, None, write_all=True)
-    queue = deque(plan.writes)
-    while queue:
-        req = queue.popleft()
+    pending = deque(plan.writes)
+    while pending:
+        req = pending.popleft()
         try:
             await session.write(req)
         except DeviceGone as e:
             for n in req.parameters:
                 results[n].status, results[n].error = "unverified", f"broadcast may not have gone out: {e}"
-            for rest in queue:
+            for rest in pending:
                 for n in rest.parameters:
                     results[n].status, results[n].error = "skipped", "not sent: an earlier broadcast request failed"
             res.status, res.error = "failed", f"broadcast request at 0x{req.address:04X} could not be sent: {e}"
@@ -454,10 +454,10 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
     """Send the plan's writes. Returns the names sent, and whether the device went away."""
     desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
     written: set[str] = set()
-    queue = deque(plan.writes)
+    pending = deque(plan.writes)
     stopped = False
-    while queue:
-        req = queue.popleft()
+    while pending:
+        req = pending.popleft()
         if stopped:
             for n in req.parameters:
                 if results[n].status != "failed":
@@ -474,13 +474,13 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
             await session.write(req)
             _attempted(results, req.parameters, written)
             wait = prof.wait_after(req.stage)
-            if wait and (not queue or queue[0].stage != req.stage):
+            if wait and (not pending or pending[0].stage != req.stage):
                 await asyncio.sleep(wait / 1000)
         except tp.ExceptionResponse as e:
             follow_up = await _recover(session, prof, req, e, desired, results, written)
             if opts.on_error == "continue":
                 if follow_up is not None:
-                    queue.appendleft(follow_up)
+                    pending.appendleft(follow_up)
             else:
                 stopped = True
                 if follow_up is not None:
@@ -489,7 +489,7 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
         except DeviceGone as e:
             # the request may or may not have been applied: the read-back (if any) decides
             _attempted(results, req.parameters, written, f"device stopped answering: {e}")
-            for rest in queue:
+            for rest in pending:
                 for n in rest.parameters:
                     results[n].status = "skipped"
             return written, True
