@@ -1,0 +1,186 @@
+"""Command line frame: the click group ``cli``, the entry point ``main`` and the helpers every command shares."""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
+
+import click
+
+from ..diagnostics import EXIT_INVALID, InputError, UsageError
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from rich.console import Console
+
+    from ..executor import Job, ReadJob
+    from ..profile import Profile
+    from ..recipe import Recipe
+    from ..transport import DeviceURL
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="modbus-deployer")
+def cli() -> None:
+    """Deploy parameter sets (recipes) to Modbus devices: plan, apply, verify, report."""
+
+
+def report_input_error(err: InputError) -> None:
+    for d in err.diagnostics:
+        click.echo(str(d), err=True)
+    n = len(err.diagnostics)
+    click.echo(f"{n} error{'s' if n != 1 else ''}; nothing was sent to any device", err=True)
+
+
+def console(*, stderr: bool = False) -> Console:
+    """stdout (or stderr) console; wide when not a terminal so piped lines are not squeezed."""
+    from rich.console import Console  # only commands that print pay for importing rich
+
+    if stderr:
+        return Console(stderr=True, highlight=False)
+    return Console(width=None if sys.stdout.isatty() else 200, highlight=False)
+
+
+def describe(url: DeviceURL) -> str:
+    """The URL as users write it."""
+    from ..urls import describe as describe_url
+
+    return describe_url(url)
+
+
+def _n(count: int, noun: str) -> str:
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
+def _output(text: str, path: str | None, summary: str) -> None:
+    """``text`` into the file ``path`` (saying ``summary`` on stderr), or onto stdout."""
+    if path:
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(text)
+        click.echo(summary, err=True)
+    else:
+        click.echo(text, nl=False)
+
+
+_device_options = [
+    click.option("--device", "device", metavar="URL", help="device URL (default: the recipe's device.url)"),
+    click.option("--unit", type=click.IntRange(0, 247), help="unit id (default: the recipe's, else 1)"),
+    click.option("--timeout", type=click.FloatRange(min=0, min_open=True), help="seconds per attempt"),
+    click.option("--retries", type=click.IntRange(0, 20), help="retries after a timeout or busy answer"),
+]
+
+
+def device_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    for opt in reversed(_device_options):
+        f = opt(f)
+    return f
+
+
+LIMIT_HELP = ("inventory devices: names, groups and glob patterns, comma-separated (!X excludes); "
+              "@REPORT.json = the devices of that report that did not end ok")
+fleet_option = click.option("--inventory", type=click.Path(dir_okay=False), help="every device of an inventory")
+limit_option = click.option("--limit", metavar="SEL", help=LIMIT_HELP)
+parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), default=8, show_default=True,
+                               help="devices at once (devices on one bus always go one at a time)")
+
+
+def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
+            retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
+    """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
+    from ..urls import BadURL, parse_url  # not transport: an offline plan does not import pymodbus
+
+    text = device or (recipe.device.url if recipe.device else None)
+    u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
+    if text is None:
+        if required:
+            raise UsageError("no device: pass --device URL or set device.url in the recipe")
+        return None, u
+    try:
+        return parse_url(text, timeout=timeout, retries=retries), u
+    except BadURL as e:
+        raise UsageError(str(e)) from None
+
+
+def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: int
+                ) -> dict[str, tuple[int, ...]] | None:
+    """Current values for plan --device, diff and pull; None (after saying why) when unreachable."""
+    from ..executor import read_current
+    from ..transport import TransportError
+
+    try:
+        return asyncio.run(read_current(profile, names, url, unit))
+    except TransportError as e:
+        click.echo(f"error: {e}", err=True)
+        return None
+
+
+def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tuple[int, ...]] | Exception]:
+    """Current values of every device (a live display on a terminal); errors are said on stderr."""
+    from ..api import read_fleet_async
+    from ..progress import FleetProgress
+
+    err = console(stderr=True)
+    progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
+    with progress:
+        values = asyncio.run(read_fleet_async(
+            jobs, parallel=parallel, on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")))
+    for name, v in values.items():
+        if isinstance(v, Exception):
+            click.echo(f"{name}: unreachable - {v}", err=True)
+    return dict(values)
+
+
+def _unreachable(values: Mapping[str, object]) -> list[str]:
+    return [n for n, v in values.items() if isinstance(v, Exception)]
+
+
+def _fleet(rec: Recipe, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
+           unit: int | None) -> list[Job]:
+    from ..api import fleet
+
+    return fleet(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)
+
+
+_ARGV: list[str] = []  # the command line, for the audit log
+_OWN_PROCESS: list[bool] = []  # main() without argv: this process is the command, not a caller's
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Entry point: map every user error to its exit code, never a traceback."""
+    if argv is None:
+        _OWN_PROCESS[:] = [True]
+    try:
+        _main(argv)
+    finally:
+        if argv is None:  # the process itself (not a test calling in): its objects end with it, so the
+            import gc  # interpreter's last collection need not walk them (40 ms after a 200-device fleet)
+
+            gc.freeze()
+
+
+def _main(argv: Sequence[str] | None) -> None:
+    _ARGV[:] = list(argv) if argv is not None else sys.argv[1:]
+    try:
+        rv = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)
+    except click.exceptions.UsageError as e:  # DESIGN.md: usage errors exit 1, not click's 2
+        e.show()
+        sys.exit(EXIT_INVALID)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(EXIT_INVALID)
+    except click.exceptions.ClickException as e:
+        e.show()
+        sys.exit(EXIT_INVALID)
+    except InputError as e:
+        report_input_error(e)
+        sys.exit(EXIT_INVALID)
+    except UsageError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(EXIT_INVALID)
+    except KeyboardInterrupt:
+        click.echo("interrupted", err=True)
+        sys.exit(130)
+    sys.exit(rv if isinstance(rv, int) else 0)

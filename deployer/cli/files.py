@@ -1,0 +1,137 @@
+"""validate, docs and explain: commands about the files and their schemas."""
+
+from __future__ import annotations
+
+import os
+from typing import TYPE_CHECKING, Any
+
+import click
+
+from ..diagnostics import EXIT_INVALID, EXIT_OK, Diagnostic, InputError, UsageError
+from .base import _n, cli
+
+if TYPE_CHECKING:
+    from ..yamlsrc import Source
+
+
+def _kind(data: object) -> str | None:
+    if not isinstance(data, dict):
+        return None
+    if data.get("schema") == "deployer.plan/1":
+        return "plan"
+    if "recipe" in data:
+        return "recipe"
+    if "devices" in data:
+        return "inventory"
+    params = data.get("parameters")
+    declares = isinstance(params, dict) and any(isinstance(v, dict) and "register" in v for v in params.values())
+    if "profile" in data and (declares or data.keys() & {"tables", "addressing", "limits", "identity", "commit"}):
+        return "profile"
+    if "profile" in data or "extends" in data:
+        return "recipe"  # a recipe without its 'recipe' key: let the schema say so
+    return None
+
+
+def validate_file(path: str) -> str:
+    """Check one file of any kind; returns a one-line summary or raises InputError."""
+    from .. import yamlsrc
+
+    data, src = yamlsrc.load(path, hand_over=True)  # the loader below takes it over: parsed once
+    try:
+        return _validate_kind(path, _kind(data), data, src)
+    finally:
+        yamlsrc.forget(path)
+
+
+def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
+    from ..fleet import load_inventory
+    from ..profile import load_profile, resolve_profile
+    from ..recipe import load_recipe
+
+    if kind == "profile":
+        prof = load_profile(path)
+        return f"profile {prof.id}: {_n(len(prof.parameters), 'parameter')}"
+    if kind == "recipe":
+        rec = load_recipe(path)
+        return f"recipe {rec.name}: {_n(len(rec.desired), 'parameter')} for profile {rec.profile.id}"
+    if kind == "inventory":
+        inv = load_inventory(path)
+        errors: list[Diagnostic] = []
+        for dev in inv.devices:
+            if dev.profile is not None:
+                try:
+                    resolve_profile(dev.profile, relative_to=path, kind="inventory")
+                except UsageError as e:
+                    errors.append(src.error(("devices", dev.name, "profile"), str(e)))
+                except InputError as e:
+                    errors.extend(e.diagnostics)
+        if errors:
+            raise InputError(errors)
+        return f"inventory: {_n(len(inv.devices), 'device')}"
+    if kind == "plan":
+        from ..planner import plan_from_json
+
+        plan = plan_from_json(data, path, src=src)
+        return f"plan: {_n(len(plan.writes), 'write request')} for profile {plan.device.profile}"
+    what = ("cannot tell what this file is" if isinstance(data, dict) else
+            f"expected a mapping, got {'a list' if isinstance(data, list) else 'a single value'}")
+    raise InputError([src.error((), f"{what}: a profile has 'profile' and 'parameters', a recipe has 'recipe', "
+                                     "an inventory has 'devices'")])
+
+
+@cli.command()
+@click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
+def validate(files: tuple[str, ...]) -> int:
+    """Check profiles, recipes and inventories (and saved plans); exit 1 if any is invalid."""
+    bad = 0
+    for f in files:
+        try:
+            click.echo(f"{f}: ok ({validate_file(f)})")
+        except InputError as e:
+            bad += 1
+            for d in e.diagnostics:
+                click.echo(str(d), err=True)
+    if bad:
+        click.echo(f"{bad} of {len(files)} file{'s' if len(files) != 1 else ''} invalid", err=True)
+        return EXIT_INVALID
+    return EXIT_OK
+
+
+@cli.command("docs")
+@click.option("--out", "out_dir", default=os.path.join("docs", "reference"), show_default=True,
+              type=click.Path(file_okay=False), help="where the reference pages go")
+@click.option("--check", is_flag=True, help="write nothing; exit 1 when a page differs from the schemas")
+def docs_command(out_dir: str, check: bool) -> int:
+    """Generate the reference pages (one per file kind) from the JSON Schemas."""
+    from ..docgen import stale_pages, write_pages
+
+    if check:
+        stale = stale_pages(out_dir)
+        for path in stale:
+            click.echo(f"{path}: stale (run: deployer docs --out {out_dir})", err=True)
+        return EXIT_INVALID if stale else EXIT_OK
+    changed = write_pages(out_dir)
+    click.echo(f"{len(changed)} page{'s' if len(changed) != 1 else ''} updated in {out_dir}", err=True)
+    return EXIT_OK
+
+
+@cli.command()
+@click.argument("key")
+def explain(key: str) -> int:
+    """Explain a key of a profile, recipe, inventory, plan or report, or a device URL option
+    (e.g. max_frame_bytes, profile:scale, baudrate)."""
+    import difflib
+
+    from ..docgen import all_keys, find_keys, render_text, url_option_text
+
+    texts = [render_text(k) for k in find_keys(key)]
+    kind, _, name = key.rpartition(":")
+    if kind in ("", "url"):
+        texts += [t for t in [url_option_text(name)] if t]
+    if not texts:
+        names = sorted({k.path for k in all_keys()} | {k.path.rsplit(".", 1)[-1] for k in all_keys()})
+        hint = difflib.get_close_matches(name, names, n=3)
+        raise UsageError(f"no key '{key}' in any schema" + (f"; did you mean {', '.join(hint)}?" if hint else
+                                                            "; try e.g. 'deployer explain scale'"))
+    click.echo("\n\n".join(texts))
+    return EXIT_OK

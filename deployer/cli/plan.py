@@ -1,0 +1,204 @@
+"""plan: one device or a fleet, as a table, JSON or frames."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+import click
+
+from ..diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, UsageError
+from ..tables import Cell, show
+from .base import (
+    _fleet,
+    _n,
+    _target,
+    _unreachable,
+    cli,
+    console,
+    describe,
+    device_options,
+    fleet_option,
+    limit_option,
+    parallel_option,
+    read_device,
+    read_fleet,
+)
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from ..executor import Job
+    from ..planner import Plan
+    from ..profile import Profile
+    from ..recipe import Recipe
+    from ..transport import DeviceURL
+
+
+def _hexwords(regs: Sequence[int] | None) -> str:
+    return "-" if regs is None else " ".join([format(w, "04X") for w in regs])
+
+
+def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:
+    """(framing, baud, bits per character, text) of the line the plan goes over: the URL's serial settings,
+    else the Modbus default 19200 baud 8E1 on RTU."""
+    if url is not None and url.scheme in ("rtu", "ascii"):
+        ln = url.line
+        bits = 1 + ln.bytesize + (ln.parity != "N") + ln.stopbits
+        return url.scheme, ln.baudrate, bits, f"{ln.baudrate} baud {ln.bytesize}{ln.parity}{ln.stopbits}"
+    return "rtu", 19200, 11, "19200 baud"
+
+
+def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console,
+               url: DeviceURL | None = None) -> None:
+    from ..planner import line_cost, wire_stats
+
+    req_of: dict[str, list[int]] = {}
+    for i, w in enumerate(plan.writes, 1):
+        for n in w.parameters:
+            req_of.setdefault(n, []).append(i)
+    headers = ["parameter", "address", "raw", "value", "request"]
+    if changes_only:
+        headers = ["parameter", "address", "current -> desired", "raw", "action", "request"]
+    rows: list[list[Cell]] = []
+    for pp in plan.parameters:
+        if changes_only and pp.action == "unchanged":
+            continue
+        addr = f"0x{pp.address:04X} ({pp.address})"
+        reqs = ",".join(str(i) for i in req_of.get(pp.name, [])) or "-"
+        if changes_only:
+            p = profile.parameter(pp.name)
+            cur = p.format_registers(pp.current_raw) if pp.current_raw is not None else "?"
+            rows.append([pp.name, addr, f"{cur} -> {pp.desired}", _hexwords(pp.desired_raw), pp.action, reqs])
+        else:
+            rows.append([pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs])
+    if rows:
+        show(out, headers, rows)
+        if not changes_only and any(profile.parameter(pp.name).mask for pp in plan.parameters):
+            out.print("bit fields: raw shows their own bits; apply reads each such register right before writing "
+                      "it and keeps its other bits as the device holds them")
+    elif changes_only:
+        out.print("No changes: the device already holds every value of the recipe.")
+    st = wire_stats(plan)
+    naive = sum(1 for pp in plan.parameters if pp.action != "unchanged")
+    unchanged = sum(1 for pp in plan.parameters if pp.action == "unchanged")
+    framing, baud, bits, line = _line_of(url)
+    chars, seconds = line_cost(plan, framing=framing, baud=baud, char_bits=bits)
+    units = (f"{_n(chars, 'character')} on an ASCII line" if framing == "ascii"
+             else f"{_n(chars, 'byte')} on an RTU line")
+    out.print(
+        f"{_n(len(plan.writes), 'write request')} "
+        f"({_n(int(st['registers']), 'register')}; one request per parameter would take {naive})"
+        + (f", {unchanged} unchanged" if unchanged else "")
+        + f"; {units}, about {seconds * 1000:.0f} ms at {line}"
+        + (" (broadcast: no answers)" if plan.device.unit == 0 else ""))
+
+
+def print_frames(plan: Plan, out: Console) -> None:
+    from ..frames import Framing, request_frame, response_frame
+
+    unit = plan.device.unit
+    for i, w in enumerate(plan.writes, 1):
+        names = ", ".join(w.parameters)
+        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {w.count} registers ({names})")
+        framing: Framing
+        for framing in ("rtu", "ascii", "tcp"):
+            q = request_frame(w, unit, framing, transaction_id=i)
+            out.print(f"  {framing:5} query    {_show(q, framing)}")
+            if unit == 0:  # broadcast: no device answers
+                out.print(f"  {'':5} response none (broadcast)")
+                continue
+            a = response_frame(w, unit, framing, transaction_id=i)
+            out.print(f"  {'':5} response {_show(a, framing)}")
+
+
+def _show(frame: bytes, framing: str) -> str:
+    return frame.decode("ascii").strip() if framing == "ascii" else frame.hex(" ").upper()
+
+
+@cli.command()
+@click.argument("recipe", type=click.Path(dir_okay=False))
+@device_options
+@click.option("--json", "as_json", is_flag=True, help="print the plan as JSON")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), help="write the plan (JSON) for 'apply PLAN.json'")
+@click.option("--detailed-exitcode", is_flag=True, help="exit 2 when something would change, 0 when nothing would")
+@click.option("--show-frames", is_flag=True, help="print the exact bytes of each request (RTU, ASCII, TCP)")
+@click.option("--write-all", is_flag=True, help="plan every parameter, even those the device already holds")
+@fleet_option
+@limit_option
+@parallel_option
+def plan(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
+         as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
+         inventory: str | None, limit: str | None, parallel: int) -> int:
+    """Show the requests that apply would send. Offline, or with --device against what the device holds."""
+    from ..planner import Target, make_plan, plan_to_json
+    from ..recipe import load_recipe
+    from ..report import write_json
+
+    rec = load_recipe(recipe)
+    if inventory:
+        if device or out_path or show_frames:
+            raise UsageError("with --inventory, --device, --out and --show-frames do not apply (one plan per device)")
+        return plan_fleet(rec, _fleet(rec, inventory, limit, timeout, retries, unit), parallel=parallel,
+                          as_json=as_json, detailed_exitcode=detailed_exitcode, write_all=write_all)
+    if limit:
+        raise UsageError("--limit needs --inventory")
+    url, u = _target(rec, device, unit, timeout, retries, required=False)
+    current = None
+    if device is not None:
+        assert url is not None
+        current = read_device(rec.profile, [d.name for d in rec.desired], url, u)
+        if current is None:
+            return EXIT_UNREACHABLE
+    target = Target(describe(url) if url else None, u, rec.profile_ref or rec.profile.id)
+    p = make_plan(rec, target, current, write_all=write_all)
+    data = plan_to_json(p)
+    if out_path:
+        write_json(data, out_path)
+    if as_json:
+        click.echo(json.dumps(data, indent=2))
+    else:
+        out = console()
+        out.print(f"profile: {rec.profile.id} ({rec.profile.source or 'built-in'})")
+        print_plan(p, rec.profile, changes_only=current is not None, out=out, url=url)
+        if show_frames:
+            print_frames(p, out)
+        if out_path:
+            out.print(f"plan written to {out_path}; run it unchanged with: deployer apply {out_path}")
+    if detailed_exitcode and p.writes:
+        return EXIT_CHANGES
+    return EXIT_OK
+
+
+def plan_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool, detailed_exitcode: bool,
+               write_all: bool) -> int:
+    """A plan per device against what it holds; exit 3 if any device could not be read, else as plan."""
+    from ..api import read_jobs
+    from ..planner import Target, make_plan, plan_to_json
+
+    values = read_fleet(read_jobs(jobs), parallel)
+    plans = {}
+    for j in jobs:
+        cur = values[j.name]
+        if not isinstance(cur, Exception):
+            plans[j.name] = make_plan(j.recipe, Target(describe(j.url), j.unit, j.recipe.profile_ref
+                                                       or j.recipe.profile.id), cur, write_all=write_all)
+    changing = [n for n, p in plans.items() if p.writes]
+    if as_json:
+        click.echo(json.dumps({"recipe": rec.path, "devices": [
+            {"name": j.name, "plan": plan_to_json(plans[j.name])} if j.name in plans
+            else {"name": j.name, "error": str(values[j.name])} for j in jobs]}, indent=2))
+    else:
+        out = console()
+        for j in jobs:
+            if j.name in plans and plans[j.name].writes:
+                out.print(f"[bold]{j.name}[/bold] {describe(j.url)} unit {j.unit}:")
+                print_plan(plans[j.name], j.recipe.profile, changes_only=True, out=out)
+        down = _unreachable(values)
+        out.print(f"{len(changing)} of {len(jobs)} devices would change" + (f": {', '.join(changing)}" if changing
+                                                                            else "")
+                  + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
+    if _unreachable(values):
+        return EXIT_UNREACHABLE
+    return EXIT_CHANGES if detailed_exitcode and changing else EXIT_OK

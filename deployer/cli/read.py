@@ -1,0 +1,203 @@
+"""diff and pull: the commands that only read devices."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+import click
+
+from ..diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError, UsageError
+from ..tables import Cell, show
+from .base import (
+    _fleet,
+    _n,
+    _output,
+    _target,
+    _unreachable,
+    cli,
+    console,
+    describe,
+    device_options,
+    fleet_option,
+    limit_option,
+    parallel_option,
+    read_device,
+    read_fleet,
+)
+
+if TYPE_CHECKING:
+    from ..api import Drift
+    from ..executor import Job, ReadJob
+    from ..profile import Profile
+    from ..recipe import Recipe
+
+
+@cli.command()
+@click.argument("recipe", type=click.Path(dir_okay=False))
+@device_options
+@click.option("--json", "as_json", is_flag=True, help="print the differences as JSON")
+@fleet_option
+@limit_option
+@parallel_option
+def diff(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
+         as_json: bool, inventory: str | None, limit: str | None, parallel: int) -> int:
+    """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches."""
+    from ..api import diff_values
+    from ..recipe import load_recipe
+
+    rec = load_recipe(recipe)
+    if inventory:
+        if device:
+            raise UsageError("--device and --inventory exclude each other")
+        return diff_fleet(rec, _fleet(rec, inventory, limit, timeout, retries, unit), parallel=parallel,
+                          as_json=as_json)
+    if limit:
+        raise UsageError("--limit needs --inventory")
+    url, u = _target(rec, device, unit, timeout, retries, required=True)
+    assert url is not None
+    current = read_device(rec.profile, [d.name for d in rec.desired], url, u)
+    if current is None:
+        return EXIT_UNREACHABLE
+    rows = diff_values(rec, current)
+    drift = [r for r in rows if r.device_raw is not None]
+    if as_json:
+        click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u,
+                               "drift": [r.to_json() for r in rows]}, indent=2))
+    elif rows:
+        show(console(), ["parameter", "recipe", "device value", ""], drift_rows(rows))
+        console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
+    else:
+        console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
+    return EXIT_CHANGES if drift else EXIT_OK
+
+
+def drift_rows(rows: Sequence[Drift], device: str | None = None) -> list[list[Cell]]:
+    """parameter, recipe, device value, status (with the device's name first for fleets)."""
+    return [[*([device] if device is not None else []), r.name, r.desired, r.device or "-",
+             ("drift", "yellow") if r.device_raw is not None else "not readable"] for r in rows]
+
+
+def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool) -> int:
+    """One table for the whole fleet; exit 2 naming every drifted device, 3 if any could not be read."""
+    from ..api import diff_values, read_jobs
+
+    values = read_fleet(read_jobs(jobs), parallel)
+    rows = {j.name: diff_values(j.recipe, v) for j in jobs if not isinstance(v := values[j.name], Exception)}
+    drifted = [n for n, r in rows.items() if any(d.device_raw is not None for d in r)]
+    down = _unreachable(values)
+    if as_json:
+        click.echo(json.dumps({"recipe": rec.path, "devices": [
+            {"name": j.name, "url": describe(j.url), "unit": j.unit, "drift": [d.to_json() for d in rows[j.name]]}
+            if j.name in rows else {"name": j.name, "url": describe(j.url), "unit": j.unit,
+                                    "error": str(values[j.name])} for j in jobs],
+            "drifted": drifted, "unreachable": down}, indent=2))
+    else:
+        out = console()
+        show(out, ["device", "parameter", "recipe", "device value", ""],
+             [row for j in jobs for row in drift_rows(rows.get(j.name, []), j.name)])
+        out.print(f"drift on {len(drifted)} of {len(jobs)} devices" + (f": {', '.join(drifted)}" if drifted else "")
+                  + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
+    if down:
+        return EXIT_UNREACHABLE
+    return EXIT_CHANGES if drifted else EXIT_OK
+
+
+@cli.command()
+@click.option("--profile", "profile_ref", metavar="ID|FILE",
+              help="the device's profile (with --inventory: for devices whose entry names none)")
+@click.option("--device", metavar="URL")
+@click.option("--unit", type=click.IntRange(1, 247), help="unit id (default 1, or the inventory's)")
+@click.option("--timeout", type=click.FloatRange(min=0, min_open=True))
+@click.option("--retries", type=click.IntRange(0, 20))
+@click.option("-o", "--output", type=click.Path(), help="write the recipe here (default: stdout); "
+              "with --inventory a folder: one NAME.yaml per device")
+@click.option("--name", help="the recipe's name (default: pulled-PROFILE)")
+@fleet_option
+@limit_option
+@parallel_option
+def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
+         output: str | None, name: str | None, inventory: str | None, limit: str | None, parallel: int) -> int:
+    """Read every writable parameter of a device into a recipe that applies back as a no-op."""
+    from ..api import device_url, pull_names, pulled_recipe
+    from ..profile import resolve_profile
+
+    if inventory:
+        if device or name:
+            raise UsageError("with --inventory, --device and --name do not apply (one recipe per device)")
+        if not output:
+            raise UsageError("with --inventory, pass -o DIR: one recipe per device goes there")
+        return pull_fleet(inventory, limit, profile_ref, output, timeout=timeout, retries=retries, unit=unit,
+                          parallel=parallel)
+    if limit:
+        raise UsageError("--limit needs --inventory")
+    if not profile_ref or not device:
+        raise UsageError("pass --profile ID|FILE and --device URL (or --inventory FILE -o DIR)")
+    prof = resolve_profile(profile_ref)
+    url = device_url(device, timeout=timeout, retries=retries)
+    u = unit if unit is not None else 1
+    current = read_device(prof, pull_names(prof), url, u)
+    if current is None:
+        return EXIT_UNREACHABLE
+    text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
+                         comment=_pulled_from(describe(url), u), relative_to=output)
+    _output(text, output, f"{_n(len(current), 'parameter')} written to {output}")
+    return EXIT_OK
+
+
+def _pulled_from(url: str, unit: int) -> str:
+    return f"Pulled from {url} unit {unit} at {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}"
+
+
+def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folder: str, *, timeout: float | None,
+               retries: int | None, unit: int | None, parallel: int) -> int:
+    """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
+    from ..api import check_writable, device_url, load_inventory, pull_names, pulled_recipe
+    from ..executor import ReadJob
+    from ..profile import resolve_profile
+
+    inv = load_inventory(inventory)
+    devices = inv.select(limit)
+    profiles: dict[str, Profile] = {}
+    jobs: list[ReadJob] = []
+    errors: list[Diagnostic] = []
+    for dev in devices:
+        ref = dev.profile or profile_ref
+        try:
+            if ref is None:
+                raise UsageError("no profile: set profile in the inventory or pass --profile")
+            if ref not in profiles:
+                profiles[ref] = resolve_profile(ref)
+            prof = profiles[ref]
+            url = device_url(dev.url, timeout=timeout or dev.timeout,
+                             retries=retries if retries is not None else dev.retries)
+        except UsageError as e:
+            errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
+            continue
+        jobs.append(ReadJob(dev.name, prof, tuple(pull_names(prof)), url, unit if unit is not None else dev.unit))
+    if errors:
+        raise InputError(errors)
+    check_writable(folder, f"recipes into {folder}")
+    values = read_fleet(jobs, parallel)
+    written = 0
+    for j in jobs:
+        cur = values[j.name]
+        if isinstance(cur, Exception):
+            continue
+        path = os.path.join(folder, f"{_safe(j.name)}.yaml")
+        text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
+                             comment=_pulled_from(describe(j.url), j.unit), relative_to=path)
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(text)
+        written += 1
+    down = _unreachable(values)
+    click.echo(f"{written} recipes written to {folder}" + (f"; {len(down)} unreachable: {', '.join(down)}"
+                                                          if down else ""), err=True)
+    return EXIT_UNREACHABLE if down else EXIT_OK
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)

@@ -1,0 +1,97 @@
+"""simulate, and demo (the whole story against a built-in simulated device)."""
+
+from __future__ import annotations
+
+import asyncio
+
+import click
+
+from ..diagnostics import EXIT_INVALID, EXIT_OK, UsageError
+from .base import cli
+
+
+def _register(text: str) -> int:
+    from ..profile import parse_register
+
+    try:
+        return parse_register(text)
+    except ValueError:
+        raise click.BadParameter(f"not a register address: {text!r} (e.g. 4354, 0x1102, 1102h)") from None
+
+
+@cli.command()
+@click.argument("profile")
+@click.option("--listen", default="tcp://127.0.0.1:5020", show_default=True, metavar="URL",
+              help="tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/X?baudrate=B, ascii:///dev/X")
+@click.option("--unit", "units", type=click.IntRange(1, 247), multiple=True, help="unit id(s) served (default 1)")
+@click.option("--init", "init_recipe", type=click.Path(dir_okay=False), help="start with a recipe's values")
+@click.option("--set", "set_registers", multiple=True, metavar="ADDR=RAW",
+              help="start a register (protocol address) with a raw value, read-only ones too, e.g. a status word "
+                   "saying 'running': --set 0x10=8. Repeatable.")
+@click.option("--latency-ms", type=click.FloatRange(min=0), default=0, help="delay every answer")
+@click.option("--baud", type=click.IntRange(min=50), help="delay answers by their line time at this baud rate (8E1)")
+@click.option("--drop-every", type=click.IntRange(min=0), default=0, help="never answer every Nth request")
+@click.option("--busy-first", type=click.IntRange(min=0), default=0, help="answer the first N writes with 06 (busy)")
+@click.option("--fail-register", "fail_registers", multiple=True, metavar="ADDR",
+              help="writes reaching this wire address answer 04 (repeatable; 4354, 0x1102 or 1102h)")
+@click.option("--disconnect-after", type=click.IntRange(min=0), default=0, help="drop the connection every N requests")
+@click.option("--state", "state_path", type=click.Path(dir_okay=False), help="dump registers as JSON on exit/SIGUSR1")
+@click.option("--log", "log_path", type=click.Path(dir_okay=False), help="one JSON line per request")
+@click.option("--loose-limits", is_flag=True, help="accept requests beyond the profile's limits")
+@click.option("--gap-reads", is_flag=True, help="answer reads of undeclared registers between declared ones (zeros)")
+def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str | None,
+             set_registers: tuple[str, ...], latency_ms: float,
+             baud: int | None, drop_every: int, busy_first: int, fail_registers: tuple[str, ...],
+             disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool,
+             gap_reads: bool) -> int:
+    """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
+    from ..profile import resolve_profile
+    from ..recipe import load_recipe
+    from ..simulator import Faults, Simulator, init_from_recipe, parse_listen, serve
+
+    prof = resolve_profile(profile)
+    try:
+        parse_listen(listen)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    init = init_from_recipe(load_recipe(init_recipe)) if init_recipe else {}
+    for item in set_registers:
+        addr, sep, raw = item.partition("=")
+        if not sep:
+            raise UsageError(f"--set {item}: expected ADDR=RAW, e.g. 0x10=8")
+        try:
+            address, value = _register(addr.strip()), _register(raw.strip())
+        except click.BadParameter:
+            raise UsageError(f"--set {item}: expected ADDR=RAW with numbers, e.g. 0x10=8") from None
+        if value > 0xFFFF:
+            raise UsageError(f"--set {item}: a register holds 0..65535")
+        init[address] = value
+    faults = Faults(latency_ms=latency_ms, baud=baud, drop_every=drop_every, busy_first=busy_first,
+                    fail_registers=frozenset(_register(r) for r in fail_registers),
+                    disconnect_after=disconnect_after)
+    try:
+        sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
+                        state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads)
+    except ValueError as e:  # a --set register the profile does not declare
+        raise UsageError(str(e)) from None
+
+    def ready(s: Simulator) -> None:
+        which = ", ".join(str(u) for u in s.units)
+        click.echo(f"simulating {prof.id} unit{'s' if len(s.units) > 1 else ''} {which} on {s.url} (Ctrl-C to stop)",
+                   err=True)
+
+    try:
+        asyncio.run(serve(sim, on_ready=ready))
+    except (OSError, RuntimeError) as e:
+        click.echo(f"error: cannot listen on {listen}: {e}", err=True)
+        return EXIT_INVALID
+    return EXIT_OK
+
+
+@cli.command()
+@click.option("--fast", is_flag=True, hidden=True, help="no pauses between steps (tests)")
+def demo(fast: bool) -> int:
+    """The whole story against a built-in simulated device: validate, plan, apply, verify, drift, rollback."""
+    from ..demo import run_demo
+
+    return run_demo(fast=fast)
