@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 from . import yamlsrc
 from .diagnostics import Diagnostic, InputError, UsageError
+from .profile import is_profile_path
 from .recipe import Entry, Recipe, expand, load_recipe, with_overrides
 
 if TYPE_CHECKING:
@@ -168,7 +169,7 @@ def load_inventory(path: str | os.PathLike[str]) -> Inventory:
     devices = []
     for name, spec in data["devices"].items():
         prof = spec.get("profile", defaults.get("profile"))
-        if prof is not None and (prof.endswith((".yaml", ".yml")) or "/" in prof):
+        if prof is not None and is_profile_path(prof):
             prof = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(p)), prof))
         overrides = tuple(e for k, v in (spec.get("parameters") or {}).items()
                           for e in expand(k, v, src, ("devices", name, "parameters", k)))

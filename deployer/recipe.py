@@ -20,7 +20,7 @@ import yaml
 
 from . import codec, units, yamlsrc
 from .diagnostics import Diagnostic, InputError, UsageError
-from .profile import Parameter, Profile, resolve_profile
+from .profile import Parameter, Profile, is_profile_path, resolve_profile
 
 RECIPE_SCHEMA = "recipe"
 
@@ -182,8 +182,7 @@ def with_overrides(recipe: Recipe, extra: Sequence[Entry]) -> Recipe:
 
 
 def _is_relative_path(ref: str) -> bool:
-    looks_like_path = ref.endswith((".yaml", ".yml", ".json")) or os.sep in ref or "/" in ref
-    return looks_like_path and not os.path.isabs(ref)
+    return is_profile_path(ref) and not os.path.isabs(ref)
 
 
 def _snapshot_info(data: Mapping[str, Any], prof: Profile, src: yamlsrc.Source, force: bool) -> SnapshotInfo:

@@ -7,6 +7,7 @@ turn vendors' register maps into profile files.
 from .loader import (
     builtin_profile,
     builtin_profile_ids,
+    is_profile_path,
     load_profile,
     parse_register,
     profile_ref,
@@ -41,6 +42,7 @@ __all__ = [
     "WriteAction",
     "builtin_profile",
     "builtin_profile_ids",
+    "is_profile_path",
     "load_profile",
     "parse_register",
     "profile_ref",

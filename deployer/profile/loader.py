@@ -47,10 +47,14 @@ def _profile_base(relative_to: str | os.PathLike[str] | None) -> str:
     return os.path.dirname(os.path.abspath(os.fspath(relative_to))) if relative_to else os.getcwd()
 
 
+def is_profile_path(ref: str) -> bool:
+    """Whether a profile reference names a file (else it is a built-in id)."""
+    return ref.endswith((".yaml", ".yml", ".json")) or os.sep in ref or "/" in ref
+
+
 def resolve_profile(ref: str, relative_to: str | os.PathLike[str] | None = None, kind: str = "recipe") -> Profile:
     """A built-in id, or a profile file (relative to the directory of ``relative_to``, a ``kind`` file)."""
-    looks_like_path = ref.endswith((".yaml", ".yml", ".json")) or os.sep in ref or "/" in ref
-    if not looks_like_path:
+    if not is_profile_path(ref):
         if not os.path.isfile(os.path.join(_BUILTIN_DIR, f"{ref}.yaml")):
             raise UsageError(unknown_profile(ref, relative_to, kind))
         return builtin_profile(ref)
