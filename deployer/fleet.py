@@ -98,17 +98,12 @@ def not_ok(report_path: str) -> list[str]:
 
     A ``sent`` broadcast succeeded as far as anything can tell (exit 0): it is not retried.
     """
+    from .report import read_report
+
     try:
-        with open(report_path, encoding="utf-8") as f:
-            data = json.load(f)
+        data = read_report(report_path)
     except OSError as e:
         raise UsageError(f"--limit @{report_path}: cannot read the report: {e.strerror}") from None
-    except json.JSONDecodeError as e:
-        raise InputError([Diagnostic(report_path, e.lineno, e.colno, f"not a report (invalid JSON: {e.msg})")]
-                         ) from None
-    if not isinstance(data, dict) or not str(data.get("schema", "")).startswith("deployer.report/") \
-            or not isinstance(data.get("devices"), list):
-        raise InputError([Diagnostic(report_path, 1, 1, "not a deployer report (no 'schema: deployer.report/1')")])
     return [str(d.get("name")) for d in data["devices"]
             if isinstance(d, dict) and d.get("status") not in ("ok", "sent")]
 

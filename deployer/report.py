@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
-from .diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE
+from .diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
 
 if TYPE_CHECKING:
     from .profile import Parameter
@@ -211,3 +211,16 @@ def _writev(fd: int, pieces: list[bytes]) -> None:
             n -= len(c)
 
 
+def read_report(path: str) -> dict[str, Any]:
+    """An earlier run's report file, checked to be a deployer report (InputError); OSError is the caller's."""
+    with open(path, encoding="utf-8") as f:
+        try:
+            data = json.load(f)
+        except json.JSONDecodeError as e:
+            raise InputError([Diagnostic(path, e.lineno, e.colno, f"not a report (invalid JSON: {e.msg})")]) from None
+        except UnicodeDecodeError:
+            raise InputError([Diagnostic(path, 1, 1, "not a report (not UTF-8 text)")]) from None
+    if not isinstance(data, dict) or not str(data.get("schema", "")).startswith("deployer.report/") \
+            or not isinstance(data.get("devices"), list):
+        raise InputError([Diagnostic(path, 1, 1, f"not a deployer report (no \"schema\": \"{REPORT_SCHEMA}\")")])
+    return data

@@ -186,7 +186,6 @@ class Simulator:
         self._action_regs = _action_registers(profile)
         self._extra = sorted(self._action_regs - self._owner.keys())
         self._unlock_regs = {a.address + i: w for a in profile.unlock for i, w in enumerate(a.registers)}
-        self._lock_regs = {a.address + i for a in profile.lock for i in range(len(a.registers))}
         # the writes after which the device is busy for a while: (address, the words written) -> ms
         self._waits = {(a.address, a.registers): a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit)
                        if a.wait_ms}

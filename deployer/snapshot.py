@@ -11,17 +11,16 @@ this module writes snapshots and finds them again for a fleet rollback.
 from __future__ import annotations
 
 import itertools
-import json
 import os
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 from .diagnostics import Diagnostic, InputError
 from .durable import NewFile, durable_now
 from .profile import profile_ref
 from .recipe import DeviceSpec, Recipe, SnapshotInfo, recipe_text
+from .report import read_report
 
 
 def snapshot_dir(state_dir: str) -> str:
@@ -84,16 +83,11 @@ def snapshots_of_report(path: str) -> tuple[list[ReportedSnapshot], list[str]]:
     first, then the working directory. Raises InputError for a file that is not a deployer report.
     """
     try:
-        with open(path, encoding="utf-8") as f:
-            data: Any = json.load(f)
+        data = read_report(path)
     except FileNotFoundError:
         raise InputError([Diagnostic(path, 0, 0, "no such file")]) from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e}")]) from None
-    except json.JSONDecodeError as e:
-        raise InputError([Diagnostic(path, e.lineno, e.colno, f"not JSON: {e.msg}")]) from None
-    if not isinstance(data, dict) or not str(data.get("schema", "")).startswith("deployer.report/"):
-        raise InputError([Diagnostic(path, 1, 1, "not a deployer report (no \"schema\": \"deployer.report/1\")")])
+    except OSError as e:
+        raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e.strerror}")]) from None
     found: list[ReportedSnapshot] = []
     without: list[str] = []
     base = os.path.dirname(os.path.abspath(path))
