@@ -57,14 +57,21 @@ def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
     if kind == "inventory":
         inv = load_inventory(path)
         errors: list[Diagnostic] = []
+        checked: dict[str, str | None] = {}  # each distinct profile is loaded once, however many devices use it
         for dev in inv.devices:
-            if dev.profile is not None:
+            if dev.profile is None:
+                continue
+            if dev.profile not in checked:
+                checked[dev.profile] = None
                 try:
                     resolve_profile(dev.profile, relative_to=path, kind="inventory")
                 except UsageError as e:
-                    errors.append(src.error(("devices", dev.name, "profile"), str(e)))
+                    checked[dev.profile] = str(e)
                 except InputError as e:
                     errors.extend(e.diagnostics)
+            why = checked[dev.profile]
+            if why is not None:  # said at every device that names it
+                errors.append(src.error(("devices", dev.name, "profile"), why))
         if errors:
             raise InputError(errors)
         return f"inventory: {_n(len(inv.devices), 'device')}"
