@@ -212,15 +212,8 @@ def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source,
         elif not param.writable:
             errors.append(src.error(at, f"{name} is read-only in profile {prof.id} now", key=True))
         else:
-            out.append(Desired(param, _show(param, words), words))
+            out.append(Desired(param, param.show_registers(tuple(words)), words))
     return out
-
-
-def _show(param: Parameter, words: Sequence[int]) -> str:
-    try:
-        return param.format_registers(tuple(words))
-    except Exception:  # a value the codec cannot show (e.g. NaN): raw words
-        return " ".join(f"{w:04X}h" for w in words)
 
 
 def _check_snapshot(prof: Profile, desired: Sequence[Desired], snap: SnapshotInfo, entries: Mapping[str, Entry],
@@ -246,7 +239,7 @@ def _check_snapshot(prof: Profile, desired: Sequence[Desired], snap: SnapshotInf
             continue
         param = prof.get(name)
         if param is not None and param.writable and param.count == len(words) and snapshot_value(param, words) is None:
-            extra.append(Desired(param, _show(param, words), words))
+            extra.append(Desired(param, param.show_registers(tuple(words)), words))
             continue
         errors.append(src.error(("snapshot", "registers", name),
                                 f"{name} was recorded but is missing from parameters: a snapshot restores every "

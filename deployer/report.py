@@ -35,12 +35,7 @@ class RequestRecord:
 
 def show_registers(p: Parameter, regs: Sequence[int] | None) -> str | None:
     """Engineering text for registers ('10 s', 'coast'), or the raw words where the codec cannot show them."""
-    if regs is None:
-        return None
-    try:
-        return p.format_registers(tuple(regs))
-    except Exception:  # a value the codec cannot show (e.g. NaN): show raw words
-        return " ".join(f"{w:04X}h" for w in regs)
+    return None if regs is None else p.show_registers(tuple(regs))
 
 
 @dataclass

@@ -215,6 +215,13 @@ class Parameter:
         text = codec.format_decimal(self.to_engineering(registers))
         return f"{text} {self.unit}" if self.unit else text
 
+    def show_registers(self, registers: tuple[int, ...] | list[int]) -> str:
+        """``format_registers``, or the raw words where the codec cannot show the value (e.g. NaN)."""
+        try:
+            return self.format_registers(registers)
+        except Exception:
+            return " ".join(f"{w:04X}h" for w in registers)
+
 
 @dataclass(frozen=True)
 class IdentityCheck:
