@@ -113,8 +113,9 @@ def _requests(lines: list[str]) -> dict[str, int]:
 
 def _plan_file(work: str, recipe_path: str) -> str:
     """The registers a hand-written script would hard-code: per parameter and per contiguous block."""
-    from deployer.planner import Target, make_plan
-    from deployer.recipe import load_recipe
+    from deployer.planning.model import Target
+    from deployer.planning.planner import make_plan
+    from deployer.recipe.loader import load_recipe
 
     rec = load_recipe(recipe_path)
     plan = make_plan(rec, Target(None, 1, "x"), write_all=True)
@@ -163,14 +164,16 @@ def _contenders(work: str, latency: float, rounds: int) -> dict[str, Any]:
 
 async def _phases(work: str, port: int, salt: int) -> dict[str, float]:
     """The apply pipeline step by step with the library's calls, timed (wall) per phase, plus process CPU."""
-    from deployer import yamlsrc
     from deployer.cli import print_report
-    from deployer.executor import Session, values_of
-    from deployer.planner import Target, make_plan
-    from deployer.recipe import load_recipe
+    from deployer.execute.session import Session
+    from deployer.execute.verify import values_of
+    from deployer.load import yamlsrc
+    from deployer.planning.model import Target
+    from deployer.planning.planner import make_plan
+    from deployer.recipe.loader import load_recipe
     from deployer.report import DeviceResult, Report
-    from deployer.snapshot import save_snapshot
-    from deployer.transport import open_transport, parse_url
+    from deployer.state.snapshot import save_snapshot
+    from deployer.transport.clients import open_transport, parse_url
 
     files = drive.write(os.path.join(work, "phases"), N, salt=salt)
     ph: dict[str, float] = {}

@@ -18,9 +18,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from deployer.planner import plan_writes
+from deployer.planning.planner import plan_writes
 from deployer.profile import Limits, Parameter
-from deployer.recipe import Desired
+from deployer.recipe.loader import Desired
 
 TYPES = ("uint16", "uint32", "uint16", "int32", "uint64")
 Current = dict[str, tuple[int, ...]] | None

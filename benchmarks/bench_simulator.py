@@ -10,7 +10,7 @@ from typing import Any
 from pymodbus.client import AsyncModbusTcpClient
 
 from deployer.profile import Parameter, Profile
-from deployer.simulator import Simulator
+from deployer.testing.simulator import Simulator
 
 
 def profile(n: int = 123) -> Profile:

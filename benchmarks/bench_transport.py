@@ -16,8 +16,8 @@ from pymodbus import FramerType
 from pymodbus.client import AsyncModbusTcpClient
 
 from deployer.profile import Parameter, Profile
-from deployer.simulator import Simulator
-from deployer.transport import open_transport
+from deployer.testing.simulator import Simulator
+from deployer.transport.clients import open_transport
 
 
 def _profile() -> Profile:

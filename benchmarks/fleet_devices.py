@@ -14,7 +14,7 @@ import json
 import sys
 
 from deployer.profile import load_profile
-from deployer.simulator import Faults, Simulator
+from deployer.testing.simulator import Faults, Simulator
 
 
 async def main(profile_path: str, n: int, latency_ms: float) -> None:

@@ -25,15 +25,19 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from .diagnostics import InputError, UsageError
-from .executor import ApplyOptions, Job, ReadJob, apply_many, read_current, read_many
-from .fleet import Inventory, LiveReport, batch_sizes, failure_budget, fleet_jobs, load_inventory, not_finished
-from .planner import Plan, Target, make_plan
+from .execute.read import read_current
+from .execute.session import ApplyOptions
+from .fleet.inventory import Inventory, fleet_jobs, load_inventory
+from .fleet.livereport import LiveReport, not_finished
+from .fleet.rollout import Job, ReadJob, apply_many, batch_sizes, failure_budget, read_many
+from .load.diagnostics import InputError, UsageError
+from .load.yamlsrc import Source
+from .planning.model import Plan, Target
+from .planning.planner import make_plan
 from .profile import Profile, resolve_profile
-from .recipe import Entry, Recipe, load_recipe, recipe_text, with_overrides
+from .recipe.loader import Entry, Recipe, load_recipe, recipe_text, with_overrides
 from .report import DeviceResult, Report
-from .transport import BadURL, DeviceURL, TransportError, describe, parse_url
-from .yamlsrc import Source
+from .transport.clients import BadURL, DeviceURL, TransportError, describe, parse_url
 
 __all__ = [
     "ApplyOptions",
@@ -177,7 +181,7 @@ def diff(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
 def pulled_recipe(profile: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
                   comment: str = "", relative_to: str | None = None) -> str:
     """Recipe text that sets every given parameter to the values read (applies back as a no-op)."""
-    from .recipe import DeviceSpec
+    from .recipe.loader import DeviceSpec
 
     ref = profile.id
     if profile.source:

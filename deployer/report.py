@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
-from .diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
+from .load.diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
 
 if TYPE_CHECKING:
     from .profile import Parameter

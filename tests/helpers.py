@@ -13,7 +13,7 @@ from typing import Any, TypeVar
 import pytest
 
 from deployer.profile import Profile, load_profile
-from deployer.simulator import LogEntry, Simulator
+from deployer.testing.simulator import LogEntry, Simulator
 
 T = TypeVar("T")
 

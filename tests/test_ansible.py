@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 
 from deployer.profile import builtin_profile
-from deployer.simulator import Faults, Simulator
+from deployer.testing.simulator import Faults, Simulator
 from tests.helpers import Simulators
 
 ROOT = Path(__file__).parent.parent

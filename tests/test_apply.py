@@ -9,15 +9,18 @@ from pathlib import Path
 import jsonschema
 import pytest
 
-from deployer import yamlsrc
-from deployer.diagnostics import UsageError
-from deployer.executor import ApplyOptions, apply_device, read_current
-from deployer.planner import Target, make_plan
+from deployer.execute.device import apply_device
+from deployer.execute.read import read_current
+from deployer.execute.session import ApplyOptions
+from deployer.load import yamlsrc
+from deployer.load.diagnostics import UsageError
+from deployer.planning.model import Target
+from deployer.planning.planner import make_plan
 from deployer.profile import builtin_profile
-from deployer.recipe import load_recipe
+from deployer.recipe.loader import load_recipe
 from deployer.report import DeviceResult, Report
-from deployer.simulator import Faults, Simulator
-from deployer.transport import parse_url
+from deployer.testing.simulator import Faults, Simulator
+from deployer.transport.clients import parse_url
 from tests.helpers import count, profile_from, run_with
 
 pytestmark = pytest.mark.timeout(60)
@@ -280,7 +283,7 @@ def test_commit_runs_only_after_full_verification(tmp_path: Path) -> None:
 
 
 def test_read_current_and_pull_round_trip(tmp_path: Path) -> None:
-    from deployer.recipe import DeviceSpec, recipe_text
+    from deployer.recipe.loader import DeviceSpec, recipe_text
 
     prof = builtin_profile("example-inverter")
     sim = Simulator(prof)
@@ -301,7 +304,7 @@ def test_read_current_and_pull_round_trip(tmp_path: Path) -> None:
 
 def test_audit_and_report_files_from_the_cli(tmp_path: Path) -> None:
     from deployer.cli import main
-    from deployer.simulator import SimulatorThread
+    from deployer.testing.simulator import SimulatorThread
 
     with SimulatorThread(builtin_profile("example-inverter")) as sim:
         report = tmp_path / "report.json"

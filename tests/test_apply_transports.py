@@ -9,11 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from deployer import transport as tp
-from deployer.executor import ApplyOptions, apply_device
+from deployer.execute.device import apply_device
+from deployer.execute.session import ApplyOptions
 from deployer.profile import builtin_profile
-from deployer.recipe import load_recipe
-from deployer.simulator import Simulator, SimulatorThread
+from deployer.recipe.loader import load_recipe
+from deployer.testing.simulator import Simulator, SimulatorThread
+from deployer.transport import clients as tp
 from tests.conftest import free_port
 from tests.helpers import profile_from
 from tests.helpers import umodbus_server as start_umodbus

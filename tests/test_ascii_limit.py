@@ -9,11 +9,12 @@ from pathlib import Path
 import pytest
 
 from deployer.cli import main
-from deployer.frames import request_frame, response_frame
-from deployer.planner import Target, make_plan
+from deployer.planning.frames import request_frame, response_frame
+from deployer.planning.model import Target
+from deployer.planning.planner import make_plan
 from deployer.profile import Limits
-from deployer.recipe import load_recipe
-from deployer.simulator import SimulatorThread
+from deployer.recipe.loader import load_recipe
+from deployer.testing.simulator import SimulatorThread
 from tests.helpers import profile_from
 
 pytestmark = pytest.mark.timeout(60)

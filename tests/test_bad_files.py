@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from deployer.cli import validate_file
-from deployer.diagnostics import InputError
+from deployer.load.diagnostics import InputError
 
 BAD = Path(__file__).parent / "bad"
 
@@ -48,7 +48,7 @@ def test_bad_file(name: str, where: str, fragment: str) -> None:
 
 def test_huge_file(tmp_path: Path) -> None:
     """A file beyond the size limit (32 MiB) is refused up front with a position, not parsed."""
-    from deployer.yamlsrc import MAX_FILE_BYTES
+    from deployer.load.yamlsrc import MAX_FILE_BYTES
 
     big = tmp_path / "huge.yaml"
     with big.open("w") as f:

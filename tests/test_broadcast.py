@@ -8,9 +8,9 @@ from pathlib import Path
 import jsonschema
 import pytest
 
-from deployer import yamlsrc
+from deployer.load import yamlsrc
 from deployer.profile import builtin_profile
-from deployer.simulator import SimulatorThread
+from deployer.testing.simulator import SimulatorThread
 from tests.helpers import run_cli as cli
 
 pytestmark = pytest.mark.timeout(60)
@@ -45,7 +45,7 @@ def test_broadcast_ends_sent_with_exit_0(capsys: pytest.CaptureFixture[str], tmp
 
 
 def test_retrying_a_report_leaves_sent_broadcasts_alone(tmp_path: Path) -> None:
-    from deployer.fleet import not_ok
+    from deployer.fleet.inventory import not_ok
 
     report = tmp_path / "run.json"
     report.write_text(json.dumps({"schema": "deployer.report/1", "devices": [

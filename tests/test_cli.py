@@ -11,10 +11,10 @@ from pathlib import Path
 import jsonschema
 import pytest
 
-from deployer import yamlsrc
 from deployer.cli import main
+from deployer.load import yamlsrc
 from deployer.profile import builtin_profile
-from deployer.simulator import SimulatorThread
+from deployer.testing.simulator import SimulatorThread
 from tests.conftest import free_port
 
 pytestmark = pytest.mark.timeout(60)
@@ -298,9 +298,11 @@ def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pyt
     assert code == 0 and "21 bytes on an RTU line, about 16 ms at 19200 baud" in out
     # with a serial URL the estimate uses its line settings and framing (ASCII counts characters)
     from deployer.cli import _line_of
-    from deployer.planner import Target, line_cost, make_plan
-    from deployer.recipe import load_recipe
-    from deployer.transport import parse_url
+    from deployer.planning.model import Target
+    from deployer.planning.planner import make_plan
+    from deployer.planning.wire import line_cost
+    from deployer.recipe.loader import load_recipe
+    from deployer.transport.clients import parse_url
 
     plan = make_plan(load_recipe(r), Target(None, 1, "omron-m1"))
     framing, baud, bits, text = _line_of(parse_url("ascii:///dev/ttyS0?baudrate=9600&bytesize=7&parity=E"))
@@ -327,7 +329,7 @@ def test_apply_saved_plan_names_its_snapshot_after_the_recipe(capsys: pytest.Cap
 
 
 def test_no_answer_after_busy_has_no_exception_code(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    from deployer.simulator import Faults
+    from deployer.testing.simulator import Faults
 
     # requests: identity read, snapshot read, write (busy: 06), the same write again (no answer: dropped)
     faults = Faults(busy_first=1, drop_every=4)

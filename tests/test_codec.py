@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from deployer import codec
+from deployer.profile import codec
 
 
 def test_omron_f07_ten_seconds_is_0000_03e8() -> None:

@@ -12,16 +12,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from deployer import yamlsrc
 from deployer.cli import main
-from deployer.diagnostics import InputError
-from deployer.executor import ApplyOptions, apply_device
-from deployer.planner import Target, make_plan, plan_writes
+from deployer.execute.device import apply_device
+from deployer.execute.session import ApplyOptions
+from deployer.load import yamlsrc
+from deployer.load.diagnostics import InputError
+from deployer.planning.model import Target
+from deployer.planning.planner import make_plan, plan_writes
 from deployer.profile import Limits, Parameter, Profile
-from deployer.recipe import Desired, load_recipe
+from deployer.recipe.loader import Desired, load_recipe
 from deployer.report import DeviceResult, Report
-from deployer.simulator import Simulator, SimulatorThread
-from deployer.transport import parse_url
+from deployer.testing.simulator import Simulator, SimulatorThread
+from deployer.transport.clients import parse_url
 from tests.helpers import count, profile_from, run_with
 
 pytestmark = pytest.mark.timeout(60)
@@ -318,7 +320,7 @@ def test_nothing_to_write_needs_no_guard(tmp_path: Path, drive: Profile) -> None
 
 
 def test_simulator_init_from_a_recipe_with_fields(tmp_path: Path, fields: Profile) -> None:
-    from deployer.simulator import init_from_recipe
+    from deployer.testing.simulator import init_from_recipe
 
     rec = load_recipe(recipe(tmp_path, "  enable: true\n  mode: position\n  jog_step: 2 mm\n"))
     assert init_from_recipe(rec) == {0x30: 0x4011}

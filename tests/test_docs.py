@@ -10,10 +10,10 @@ import jsonschema
 import pytest
 import yaml
 
-from deployer import docgen, yamlsrc
-from deployer.cli import validate_file
+from deployer.cli import docgen, validate_file
+from deployer.load import yamlsrc
 from deployer.profile import Limits
-from deployer.urls import _OPTIONS, DEFAULT_PORTS, NUMERIC_OPTIONS, SERIAL_DEFAULTS, option_facts
+from deployer.transport.urls import _OPTIONS, DEFAULT_PORTS, NUMERIC_OPTIONS, SERIAL_DEFAULTS, option_facts
 from tests.helpers import run_cli as cli
 
 ROOT = Path(__file__).parent.parent

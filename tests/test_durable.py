@@ -12,8 +12,8 @@ from typing import Any
 
 import pytest
 
-from deployer import durable
-from deployer.durable import Line, NewFile, _close, _Pending, commit
+from deployer.state import durable
+from deployer.state.durable import Line, NewFile, _close, _Pending, commit
 
 
 def _file(folder: Path, stem: str, journal: Path | None = None, line: dict[str, Any] | None = None) -> NewFile:

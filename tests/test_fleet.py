@@ -18,11 +18,12 @@ from pathlib import Path
 import jsonschema
 import pytest
 
-from deployer import yamlsrc
-from deployer.diagnostics import UsageError
-from deployer.fleet import FleetDevice, Inventory, batch_sizes, failure_budget, not_ok, select
+from deployer.fleet.inventory import FleetDevice, Inventory, not_ok, select
+from deployer.fleet.rollout import batch_sizes, failure_budget
+from deployer.load import yamlsrc
+from deployer.load.diagnostics import UsageError
 from deployer.profile import builtin_profile
-from deployer.simulator import Faults, Simulator
+from deployer.testing.simulator import Faults, Simulator
 from tests.conftest import free_port
 from tests.helpers import Simulators
 from tests.test_cli import cli
@@ -315,7 +316,7 @@ def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path)
 
 def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path: Path) -> None:
     import deployer
-    from deployer.executor import ApplyOptions
+    from deployer.execute.session import ApplyOptions
 
     seen: list[dict[str, str]] = []
     with fleet(3) as sims:
@@ -377,7 +378,7 @@ def test_python_api_one_device_and_a_cheap_import(tmp_path: Path) -> None:
         assert [w.parameters for w in plan.writes] == [("F07", "F08", "stop_mode")]
         assert all(e.function == 3 for e in sim.log)  # plan and diff only read
         assert [d.name for d in deployer.diff(rec, sim.url)] == ["F07", "F08", "stop_mode"]
-        from deployer.executor import ApplyOptions
+        from deployer.execute.session import ApplyOptions
 
         report = deployer.apply(rec, sim.url, options=ApplyOptions(state_dir=str(tmp_path / "s")))
         assert report.exit_code == 0 and holds_recipe(sim)
@@ -428,7 +429,8 @@ def test_declining_one_device_of_a_fleet_skips_only_that_one(tmp_path: Path) -> 
     import asyncio
 
     import deployer
-    from deployer.executor import ApplyOptions, apply_many
+    from deployer.execute.session import ApplyOptions
+    from deployer.fleet.rollout import apply_many
 
     with fleet(3) as sims:
         rec = deployer.load_recipe(recipe(tmp_path))
@@ -463,8 +465,8 @@ def test_live_progress_on_a_terminal_and_the_summary(tmp_path: Path) -> None:
 
 def test_each_distinct_recipe_is_checked_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import deployer
-    from deployer import fleet as fleet_module
-    from deployer.fleet import fleet_jobs, load_inventory
+    from deployer.fleet import inventory as fleet_module
+    from deployer.fleet.inventory import fleet_jobs, load_inventory
 
     calls: dict[str, int] = {"load_recipe": 0, "with_overrides": 0}
     for name in calls:
@@ -498,9 +500,10 @@ def test_each_distinct_recipe_is_checked_once(tmp_path: Path, monkeypatch: pytes
 
 
 def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Path) -> None:
-    from deployer.executor import skipped_result
-    from deployer.fleet import NOT_FINISHED, LiveReport, _report_parts, fleet_jobs, load_inventory, not_finished
-    from deployer.recipe import load_recipe
+    from deployer.fleet.inventory import fleet_jobs, load_inventory
+    from deployer.fleet.livereport import NOT_FINISHED, LiveReport, _report_parts, not_finished
+    from deployer.fleet.rollout import skipped_result
+    from deployer.recipe.loader import load_recipe
 
     inv = tmp_path / "inventory.yaml"
     inv.write_text("devices:\n" + "".join(f"  {n}: {{url: 'tcp://127.0.0.1:{1000 + i}'}}\n"
@@ -520,9 +523,10 @@ def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Pat
 
 
 def test_a_device_is_reported_done_once_its_journal_line_is_on_disk(tmp_path: Path) -> None:
-    from deployer.executor import ApplyOptions, apply_many
-    from deployer.fleet import fleet_jobs, load_inventory
-    from deployer.recipe import load_recipe
+    from deployer.execute.session import ApplyOptions
+    from deployer.fleet.inventory import fleet_jobs, load_inventory
+    from deployer.fleet.rollout import apply_many
+    from deployer.recipe.loader import load_recipe
 
     state = tmp_path / "s"
     seen: dict[str, list[str]] = {}

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from deployer import codec
-from deployer.diagnostics import UsageError
-from deployer.frames import Framing, request_frame, response_frame
-from deployer.planner import ReadRequest, Target, WriteRequest, make_plan
-from deployer.profile import builtin_profile
-from deployer.recipe import Desired, Recipe, load_recipe
-from deployer.simulator import SimulatorThread
+from deployer.load.diagnostics import UsageError
+from deployer.planning.frames import Framing, request_frame, response_frame
+from deployer.planning.model import ReadRequest, Target, WriteRequest
+from deployer.planning.planner import make_plan
+from deployer.profile import builtin_profile, codec
+from deployer.recipe.loader import Desired, Recipe, load_recipe
+from deployer.testing.simulator import SimulatorThread
 
 EXAMPLES = Path(__file__).parent.parent / "recipes" / "examples"
 

@@ -7,13 +7,16 @@ from pathlib import Path
 import pytest
 
 from benchmarks import drive
-from deployer.diagnostics import InputError
-from deployer.executor import ApplyOptions, apply_device, read_current
-from deployer.planner import Target, make_plan, plan_reads
-from deployer.recipe import load_recipe
+from deployer.execute.device import apply_device
+from deployer.execute.read import read_current
+from deployer.execute.session import ApplyOptions
+from deployer.load.diagnostics import InputError
+from deployer.planning.model import Target
+from deployer.planning.planner import make_plan, plan_reads
+from deployer.recipe.loader import load_recipe
 from deployer.report import DeviceResult
-from deployer.simulator import Simulator
-from deployer.transport import parse_url
+from deployer.testing.simulator import Simulator
+from deployer.transport.clients import parse_url
 from tests.helpers import profile_from, run_with
 
 pytestmark = pytest.mark.timeout(60)
@@ -113,7 +116,7 @@ def test_read_current_falls_back_too(tmp_path: Path) -> None:
 def test_simulator_gap_reads_answer_zeros_and_refuse_writes(tmp_path: Path) -> None:
     prof = profile_from(tmp_path, "profile: dev\nparameters:\n  a: {register: 0, type: uint16, default: 7}\n"
                                   "  b: {register: 2, type: uint16, default: 9}\n")
-    from deployer.transport import ExceptionResponse, open_transport
+    from deployer.transport.clients import ExceptionResponse, open_transport
 
     async def body(s: Simulator) -> tuple[list[int], int]:
         t = open_transport(s.url)

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 from deployer.cli import validate_file
-from deployer.diagnostics import InputError
+from deployer.load.diagnostics import InputError
 from deployer.profile import builtin_profile, builtin_profile_ids
-from deployer.simulator import Faults, SimulatorThread
+from deployer.testing.simulator import Faults, SimulatorThread
 from tests.conftest import free_port
 from tests.helpers import run_cli as cli
 

@@ -15,8 +15,10 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from deployer import recipe, units, yamlsrc
-from deployer.diagnostics import InputError
+from deployer.load import yamlsrc
+from deployer.load.diagnostics import InputError
+from deployer.profile import units
+from deployer.recipe import loader as recipe
 
 ROOT = Path(__file__).resolve().parent.parent
 BAD = ROOT / "tests" / "bad"

@@ -10,12 +10,14 @@ from pathlib import Path
 import pytest
 
 from deployer.cli import main
-from deployer.executor import ApplyOptions, apply_device
-from deployer.planner import Target, make_plan
+from deployer.execute.device import apply_device
+from deployer.execute.session import ApplyOptions
+from deployer.planning.model import Target
+from deployer.planning.planner import make_plan
 from deployer.profile import load_profile
-from deployer.recipe import load_recipe
-from deployer.simulator import SimulatorThread
-from deployer.transport import parse_url
+from deployer.recipe.loader import load_recipe
+from deployer.testing.simulator import SimulatorThread
+from deployer.transport.clients import parse_url
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -261,7 +263,7 @@ def test_sunspec_first_model_carries_the_suns_marker(tmp_path: Path, capsys: pyt
     assert [(c.address, c.raw) for c in prof.identity] == [(40000, 0x5375), (40001, 0x6E53), (40002, 1)]
     assert prof.parameter("Mn").type == "string" and prof.parameter("Mn").count == 16
     with SimulatorThread(prof) as sim:  # the simulated device passes its own identity check
-        from deployer.executor import read_current
+        from deployer.execute.read import read_current
         values = asyncio.run(read_current(prof, ["Mn", "DA"], parse_url(sim.url), 1))
     assert set(values) == {"Mn", "DA"}
 
@@ -333,7 +335,7 @@ def test_sunspec_curves_with_points(tmp_path: Path, capsys: pytest.CaptureFixtur
 def test_sunspec_scale_factors_read_from_the_device(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip("sunspec2")
     from deployer.profile.emit import check
-    from deployer.profile.sunspec import read_model
+    from deployer.profile.importers.sunspec import read_model
 
     _, device_profile = check(read_model("121", at=40122)[0], str(tmp_path / "dev.yaml"))
     sf = {n: device_profile.parameter(n).address for n in ("WMax_SF", "VRef_SF", "VMinMax_SF")}
@@ -355,7 +357,7 @@ def test_nul_after_a_syntax_error_is_a_message(tmp_path: Path) -> None:
     """Found by fuzzing the SunSpec import: libyaml stops at the syntax error, the pure-Python re-parse
     (for its wording) refuses the whole text because of a NUL further on; that must stay a message."""
     from deployer.cli import validate_file
-    from deployer.diagnostics import InputError
+    from deployer.load.diagnostics import InputError
 
     bad = tmp_path / "r.yaml"
     head = "recipe: r\nprofile: omron-m1\nparameters:\n  F07: 10 s\n F08: 8 s\n"  # line 5: a bad indent

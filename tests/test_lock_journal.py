@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from deployer import lock
 from deployer.profile import builtin_profile
-from deployer.simulator import Faults, SimulatorThread
+from deployer.state import lock
+from deployer.testing.simulator import Faults, SimulatorThread
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -93,7 +93,7 @@ def test_lock_timeout_waits_for_the_other_run(tmp_path: Path) -> None:
 
 
 def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path: Path) -> None:
-    from deployer.transport import parse_url
+    from deployer.transport.clients import parse_url
 
     with SimulatorThread(builtin_profile("example-inverter")) as sim:
         url = parse_url(sim.url)
@@ -146,7 +146,7 @@ def test_a_broadcast_and_a_unit_on_one_bus_exclude_each_other(tmp_path: Path) ->
     """Unit 0 writes every device of the bus: it takes the bus's lock exclusively, single units share it."""
     import asyncio
 
-    from deployer.transport import parse_url
+    from deployer.transport.clients import parse_url
 
     r = recipe(tmp_path, "first", FIRST)
     with SimulatorThread(builtin_profile("example-inverter")) as sim:

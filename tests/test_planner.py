@@ -11,22 +11,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from deployer import yamlsrc
-from deployer.codec import register_count
-from deployer.diagnostics import InputError, UsageError
-from deployer.planner import (
-    Plan,
-    Target,
-    WriteRequest,
-    make_plan,
-    plan_from_json,
-    plan_reads,
-    plan_to_json,
-    plan_writes,
-    wire_stats,
-)
+from deployer.load import yamlsrc
+from deployer.load.diagnostics import InputError, UsageError
+from deployer.planning.model import Plan, Target, WriteRequest
+from deployer.planning.planfile import plan_from_json, plan_to_json
+from deployer.planning.planner import make_plan, plan_reads, plan_writes
+from deployer.planning.wire import wire_stats
 from deployer.profile import Limits, Parameter, Profile
-from deployer.recipe import Desired, Recipe
+from deployer.profile.codec import register_count
+from deployer.recipe.loader import Desired, Recipe
 
 TYPES = {1: "uint16", 2: "uint32", 4: "uint64"}
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from deployer.diagnostics import InputError
+from deployer.load.diagnostics import InputError
 from deployer.profile import builtin_profile, builtin_profile_ids, load_profile, wire_address
-from deployer.recipe import load_recipe, recipe_text
+from deployer.recipe.loader import load_recipe, recipe_text
 
 EXAMPLES = Path(__file__).parent.parent / "recipes" / "examples"
 

@@ -20,7 +20,7 @@ from pymodbus.exceptions import ModbusException
 from pymodbus.pdu import ModbusPDU
 
 from deployer.profile import Profile, builtin_profile
-from deployer.simulator import Faults, Simulator, SimulatorThread
+from deployer.testing.simulator import Faults, Simulator, SimulatorThread
 from tests.conftest import free_port
 from tests.helpers import profile_from
 
@@ -305,8 +305,8 @@ def test_mbpoll_over_rtu(dev: Profile, socat_pair: tuple[str, str]) -> None:
 
 
 def test_init_from_recipe(dev: Profile, tmp_path: Path) -> None:
-    from deployer.recipe import load_recipe
-    from deployer.simulator import init_from_recipe
+    from deployer.recipe.loader import load_recipe
+    from deployer.testing.simulator import init_from_recipe
 
     (tmp_path / "r.yaml").write_text("recipe: r\nprofile: dev.yaml\nparameters: {a: 9, b: 300}\n")
     init = init_from_recipe(load_recipe(str(tmp_path / "r.yaml")))

@@ -19,11 +19,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from deployer.executor import ApplyOptions, apply_device
+from deployer.execute.device import apply_device
+from deployer.execute.session import ApplyOptions
 from deployer.profile import load_profile
-from deployer.recipe import load_recipe
-from deployer.simulator import Simulator, SimulatorThread
-from deployer.transport import parse_url
+from deployer.recipe.loader import load_recipe
+from deployer.testing.simulator import Simulator, SimulatorThread
+from deployer.transport.clients import parse_url
 from tests.helpers import umodbus_server
 from tests.test_cli import cli
 
@@ -340,7 +341,7 @@ def test_edited_snapshot_is_refused(tmp_path: Path, devices: list[Simulator], la
     assert res.snapshot is not None
     snap = Path(res.snapshot)
     snap.write_text(snap.read_text().replace("  accel: 3000 s", "  accel: 12 s"))
-    from deployer.diagnostics import InputError
+    from deployer.load.diagnostics import InputError
 
     with pytest.raises(InputError, match="does not match the registers the snapshot recorded"):
         load_recipe(snap)

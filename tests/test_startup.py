@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from deployer import yamlsrc
 from deployer.cli import validate_file
+from deployer.load import yamlsrc
 
 ROOT = Path(__file__).resolve().parent.parent
 

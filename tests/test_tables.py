@@ -10,7 +10,7 @@ from pathlib import Path
 from rich.console import Console
 
 from benchmarks import drive
-from deployer.tables import RICH_ROWS, plain, show
+from deployer.cli.tables import RICH_ROWS, plain, show
 
 
 def test_plain_columns_are_aligned_like_rich() -> None:

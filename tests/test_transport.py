@@ -22,7 +22,7 @@ from pymodbus.pdu.register_message import WriteMultipleRegistersRequest
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from deployer import transport as tp
+from deployer.transport import clients as tp
 from tests.helpers import umodbus_server as start_umodbus
 
 pytestmark = pytest.mark.timeout(30)

@@ -11,8 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..diagnostics import EXIT_OK, Diagnostic, InputError, UsageError
-from ..tables import show
+from ..load.diagnostics import EXIT_OK, Diagnostic, InputError, UsageError
 from .base import (
     _ARGV,
     _OWN_PROCESS,
@@ -28,12 +27,13 @@ from .base import (
     parallel_option,
 )
 from .plan import print_plan
+from .tables import show
 
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..executor import Job
-    from ..planner import Plan
+    from ..fleet.rollout import Job
+    from ..planning.model import Plan
     from ..report import DeviceResult, Report
 
 
@@ -90,12 +90,13 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               lock_timeout: float = 0.0, force: bool = False, from_report: str | None = None,
               batch: str | None = None, max_failures: str | None = None, command: str = "apply") -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
-    from .. import journal
     from ..api import fleet_options, run_fleet_async
-    from ..executor import ApplyOptions, Job, apply_many
-    from ..planner import load_plan
-    from ..recipe import load_recipe
+    from ..execute.session import ApplyOptions
+    from ..fleet.rollout import Job, apply_many
+    from ..planning.planfile import load_plan
+    from ..recipe.loader import load_recipe
     from ..report import write_json
+    from ..state import journal
 
     expected: Plan | None = None
     jobs: list[Job] = []
@@ -108,7 +109,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                              "taken from: --inventory, --device and --unit do not apply")
         jobs = _rollback_report_jobs(from_report, force=force, timeout=timeout, retries=retries)
         if limit:  # names and patterns select among that run's devices (it has no groups)
-            from ..fleet import FleetDevice, Inventory, select
+            from ..fleet.inventory import FleetDevice, Inventory, select
 
             chosen = {d.name for d in select(Inventory(from_report, tuple(FleetDevice(j.name, describe(j.url))
                                                                           for j in jobs)), limit)}
@@ -178,7 +179,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     if fleet_run:
         import gc
 
-        from ..progress import FleetProgress  # rich's live display: only fleets pay for importing it
+        from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
 
         if _OWN_PROCESS:  # the command's own process only: the library and callers keep their collector
             # what is loaded now (modules, profiles, recipes) lives as long as the command: later collections
@@ -199,13 +200,13 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     if as_json:
         if fleet_run:
-            from ..fleet import report_text
+            from ..fleet.livereport import report_text
 
             click.echo(report_text(report), nl=False)
         else:
             click.echo(json.dumps(report.to_json(), indent=2))
     elif fleet_run:
-        from ..progress import fleet_summary
+        from .progress import fleet_summary
 
         print_report(report, out, only_not_ok=True)
         fleet_summary(report, out)
@@ -216,9 +217,9 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
 
 def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retries: int | None) -> list[Job]:
     """One job per device of an earlier run that has a snapshot: its own snapshot, to its own device."""
-    from ..executor import Job
-    from ..recipe import load_recipe
-    from ..snapshot import snapshots_of_report
+    from ..fleet.rollout import Job
+    from ..recipe.loader import load_recipe
+    from ..state.snapshot import snapshots_of_report
 
     found, without = snapshots_of_report(path)
     if without:
@@ -313,7 +314,7 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
 @click.option("--json", "as_json", is_flag=True, help="print the unfinished runs as JSON")
 def status(state_dir: str, as_json: bool) -> int:
     """Runs that never finished (a crash, kill -9, a laptop asleep): which devices were being written."""
-    from ..journal import unfinished
+    from ..state.journal import unfinished
 
     runs, torn = unfinished(state_dir)
     if as_json:

@@ -9,17 +9,17 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..diagnostics import EXIT_INVALID, InputError, UsageError
+from ..load.diagnostics import EXIT_INVALID, InputError, UsageError
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from rich.console import Console
 
-    from ..executor import Job, ReadJob
+    from ..fleet.rollout import Job, ReadJob
     from ..profile import Profile
-    from ..recipe import Recipe
-    from ..transport import DeviceURL
+    from ..recipe.loader import Recipe
+    from ..transport.clients import DeviceURL
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -46,7 +46,7 @@ def console(*, stderr: bool = False) -> Console:
 
 def describe(url: DeviceURL) -> str:
     """The URL as users write it."""
-    from ..urls import describe as describe_url
+    from ..transport.urls import describe as describe_url
 
     return describe_url(url)
 
@@ -90,7 +90,7 @@ parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), defau
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
-    from ..urls import BadURL, parse_url  # not transport: an offline plan does not import pymodbus
+    from ..transport.urls import BadURL, parse_url  # not transport: an offline plan does not import pymodbus
 
     text = device or (recipe.device.url if recipe.device else None)
     u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
@@ -107,8 +107,8 @@ def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float
 def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: int
                 ) -> dict[str, tuple[int, ...]] | None:
     """Current values for plan --device, diff and pull; None (after saying why) when unreachable."""
-    from ..executor import read_current
-    from ..transport import TransportError
+    from ..execute.read import read_current
+    from ..transport.clients import TransportError
 
     try:
         return asyncio.run(read_current(profile, names, url, unit))
@@ -120,7 +120,7 @@ def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: in
 def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tuple[int, ...]] | Exception]:
     """Current values of every device (a live display on a terminal); errors are said on stderr."""
     from ..api import read_fleet_async
-    from ..progress import FleetProgress
+    from .progress import FleetProgress
 
     err = console(stderr=True)
     progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)

@@ -7,11 +7,11 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..diagnostics import EXIT_INVALID, EXIT_OK, Diagnostic, InputError, UsageError
+from ..load.diagnostics import EXIT_INVALID, EXIT_OK, Diagnostic, InputError, UsageError
 from .base import _n, cli
 
 if TYPE_CHECKING:
-    from ..yamlsrc import Source
+    from ..load.yamlsrc import Source
 
 
 def _kind(data: object) -> str | None:
@@ -34,7 +34,7 @@ def _kind(data: object) -> str | None:
 
 def validate_file(path: str) -> str:
     """Check one file of any kind; returns a one-line summary or raises InputError."""
-    from .. import yamlsrc
+    from ..load import yamlsrc
 
     data, src = yamlsrc.load(path, hand_over=True)  # the loader below takes it over: parsed once
     try:
@@ -44,9 +44,9 @@ def validate_file(path: str) -> str:
 
 
 def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
-    from ..fleet import load_inventory
+    from ..fleet.inventory import load_inventory
     from ..profile import load_profile, resolve_profile
-    from ..recipe import load_recipe
+    from ..recipe.loader import load_recipe
 
     if kind == "profile":
         prof = load_profile(path)
@@ -76,7 +76,7 @@ def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
             raise InputError(errors)
         return f"inventory: {_n(len(inv.devices), 'device')}"
     if kind == "plan":
-        from ..planner import plan_from_json
+        from ..planning.planfile import plan_from_json
 
         plan = plan_from_json(data, path, src=src)
         return f"plan: {_n(len(plan.writes), 'write request')} for profile {plan.device.profile}"
@@ -110,7 +110,7 @@ def validate(files: tuple[str, ...]) -> int:
 @click.option("--check", is_flag=True, help="write nothing; exit 1 when a page differs from the schemas")
 def docs_command(out_dir: str, check: bool) -> int:
     """Generate the reference pages (one per file kind) from the JSON Schemas."""
-    from ..docgen import stale_pages, write_pages
+    from .docgen import stale_pages, write_pages
 
     if check:
         stale = stale_pages(out_dir)
@@ -129,7 +129,7 @@ def explain(key: str) -> int:
     (e.g. max_frame_bytes, profile:scale, baudrate)."""
     import difflib
 
-    from ..docgen import all_keys, find_keys, render_text, url_option_text
+    from .docgen import all_keys, find_keys, render_text, url_option_text
 
     texts = [render_text(k) for k in find_keys(key)]
     kind, _, name = key.rpartition(":")

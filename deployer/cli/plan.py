@@ -8,8 +8,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from ..diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, UsageError
-from ..tables import Cell, show
+from ..load.diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, UsageError
 from .base import (
     _fleet,
     _n,
@@ -25,15 +24,16 @@ from .base import (
     read_device,
     read_fleet,
 )
+from .tables import Cell, show
 
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..executor import Job
-    from ..planner import Plan
+    from ..fleet.rollout import Job
+    from ..planning.model import Plan
     from ..profile import Profile
-    from ..recipe import Recipe
-    from ..transport import DeviceURL
+    from ..recipe.loader import Recipe
+    from ..transport.clients import DeviceURL
 
 
 def _hexwords(regs: Sequence[int] | None) -> str:
@@ -52,7 +52,7 @@ def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:
 
 def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console,
                url: DeviceURL | None = None) -> None:
-    from ..planner import line_cost, wire_stats
+    from ..planning.wire import line_cost, wire_stats
 
     req_of: dict[str, list[int]] = {}
     for i, w in enumerate(plan.writes, 1):
@@ -96,7 +96,7 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
 
 
 def print_frames(plan: Plan, out: Console) -> None:
-    from ..frames import Framing, request_frame, response_frame
+    from ..planning.frames import Framing, request_frame, response_frame
 
     unit = plan.device.unit
     for i, w in enumerate(plan.writes, 1):
@@ -132,8 +132,10 @@ def plan(recipe: str, device: str | None, unit: int | None, timeout: float | Non
          as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
          inventory: str | None, limit: str | None, parallel: int) -> int:
     """Show the requests that apply would send. Offline, or with --device against what the device holds."""
-    from ..planner import Target, make_plan, plan_to_json
-    from ..recipe import load_recipe
+    from ..planning.model import Target
+    from ..planning.planfile import plan_to_json
+    from ..planning.planner import make_plan
+    from ..recipe.loader import load_recipe
     from ..report import write_json
 
     rec = load_recipe(recipe)
@@ -175,7 +177,9 @@ def plan_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool
                write_all: bool) -> int:
     """A plan per device against what it holds; exit 3 if any device could not be read, else as plan."""
     from ..api import read_jobs
-    from ..planner import Target, make_plan, plan_to_json
+    from ..planning.model import Target
+    from ..planning.planfile import plan_to_json
+    from ..planning.planner import make_plan
 
     values = read_fleet(read_jobs(jobs), parallel)
     plans = {}

@@ -8,9 +8,9 @@ from typing import Any
 
 import click
 
-from ..diagnostics import EXIT_OK, EXIT_UNREACHABLE, UsageError
-from ..tables import Cell, show
+from ..load.diagnostics import EXIT_OK, EXIT_UNREACHABLE, UsageError
 from .base import _n, _output, cli, console, read_device
+from .tables import Cell, show
 
 
 @cli.group()
@@ -34,7 +34,7 @@ def profiles_list() -> int:
 
 def _type_text(p: Any) -> str:
     """'uint32 CDAB', 'bool bit 3', 'uint16 bits 3..5', 'string[8] ascii' (the layout only when not the default)."""
-    from ..codec import mask_shift
+    from ..profile.codec import mask_shift
 
     if p.is_string:
         return f"string[{p.count}] {p.encoding}" + (" BA" if p.byte_swap else "")
@@ -90,7 +90,7 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
 def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Sequence[str], addressing: str,
                         delimiter: str | None, byte_order: str | None) -> int:
     """A profile from a CSV register list (columns: name, address, type, unit, scale, min, max, access ...)."""
-    from ..profile.csv_import import read_csv
+    from ..profile.importers.spreadsheet import read_csv
 
     draft = read_csv(file, profile_id=profile_id, columns=_pairs(columns, "--column"), addressing=addressing,
                      delimiter=delimiter, byte_order=byte_order)
@@ -111,7 +111,7 @@ def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Se
 def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str | None, columns: Sequence[str],
                          addressing: str, byte_order: str | None) -> int:
     """A profile from an Excel register list (the same columns as csv; needs openpyxl)."""
-    from ..profile.csv_import import read_xlsx
+    from ..profile.importers.spreadsheet import read_xlsx
 
     draft = read_xlsx(file, profile_id=profile_id, sheet=sheet, columns=_pairs(columns, "--column"),
                       addressing=addressing, byte_order=byte_order)
@@ -129,7 +129,7 @@ def profiles_export() -> None:
 def profiles_export_csv(profile: str, out: str | None) -> int:
     """A profile as a CSV register list ('profiles import csv' reads it back; wire addresses, tables as rows)."""
     from ..profile import resolve_profile
-    from ..profile.csv_import import profile_to_csv
+    from ..profile.importers.spreadsheet import profile_to_csv
 
     prof = resolve_profile(profile)
     _output(profile_to_csv(prof), out, f"{out}: {_n(len(prof.parameters), 'register row')} of profile {prof.id}")
@@ -153,7 +153,7 @@ def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], counts: Seq
                             unit: int, profile_id: str | None, out: str | None) -> int:
     """A profile from a SunSpec model (number, name or model JSON), using pysunspec2's definitions."""
     from ..profile import parse_register
-    from ..profile.sunspec import read_model
+    from ..profile.importers.sunspec import read_model
 
     try:
         factors = {k: int(v) for k, v in _pairs(sfs, "--sf").items()}
@@ -176,10 +176,10 @@ def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], counts: Seq
 def _device_scale_factors(model: str, at: int, counts: dict[str, int], device: str, unit: int
                           ) -> dict[str, int] | None:
     """The model's scale factors as the device reports them; None (after saying why) when it cannot be read."""
-    from ..codec import decode
+    from ..profile.codec import decode
     from ..profile.emit import check
-    from ..profile.sunspec import read_model, scale_factor_points
-    from ..transport import BadURL, parse_url
+    from ..profile.importers.sunspec import read_model, scale_factor_points
+    from ..transport.clients import BadURL, parse_url
 
     try:
         url = parse_url(device)
@@ -201,8 +201,8 @@ def _device_scale_factors(model: str, at: int, counts: dict[str, int], device: s
 @click.argument("profile")
 def profiles_show(profile: str) -> int:
     """Show a profile's parameters in engineering units (a built-in id or a file)."""
-    from ..codec import format_decimal, layout_name
     from ..profile import resolve_profile
+    from ..profile.codec import format_decimal, layout_name
 
     prof = resolve_profile(profile)
     out = console()
@@ -234,8 +234,8 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
     """Write a commented profile skeleton to OUTPUT, ready to fill in from the device's manual."""
     import re
 
-    from ..skeleton import profile_skeleton
-    from ..yamlsrc import schema
+    from ..load.yamlsrc import schema
+    from ..profile.skeleton import profile_skeleton
 
     pid = profile_id or os.path.splitext(os.path.basename(output))[0]
     pattern = schema("profile")["properties"]["profile"]["pattern"]

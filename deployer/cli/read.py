@@ -10,8 +10,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from ..diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError, UsageError
-from ..tables import Cell, show
+from ..load.diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError, UsageError
 from .base import (
     _fleet,
     _n,
@@ -28,12 +27,13 @@ from .base import (
     read_device,
     read_fleet,
 )
+from .tables import Cell, show
 
 if TYPE_CHECKING:
     from ..api import Drift
-    from ..executor import Job, ReadJob
+    from ..fleet.rollout import Job, ReadJob
     from ..profile import Profile
-    from ..recipe import Recipe
+    from ..recipe.loader import Recipe
 
 
 @cli.command()
@@ -47,7 +47,7 @@ def diff(recipe: str, device: str | None, unit: int | None, timeout: float | Non
          as_json: bool, inventory: str | None, limit: str | None, parallel: int) -> int:
     """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches."""
     from ..api import diff_values
-    from ..recipe import load_recipe
+    from ..recipe.loader import load_recipe
 
     rec = load_recipe(recipe)
     if inventory:
@@ -156,7 +156,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
                retries: int | None, unit: int | None, parallel: int) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
     from ..api import check_writable, device_url, load_inventory, pull_names, pulled_recipe
-    from ..executor import ReadJob
+    from ..fleet.rollout import ReadJob
     from ..profile import resolve_profile
 
     inv = load_inventory(inventory)

@@ -6,7 +6,7 @@ import asyncio
 
 import click
 
-from ..diagnostics import EXIT_INVALID, EXIT_OK, UsageError
+from ..load.diagnostics import EXIT_INVALID, EXIT_OK, UsageError
 from .base import cli
 
 
@@ -46,8 +46,8 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
              gap_reads: bool) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
     from ..profile import resolve_profile
-    from ..recipe import load_recipe
-    from ..simulator import Faults, Simulator, init_from_recipe, parse_listen, serve
+    from ..recipe.loader import load_recipe
+    from ..testing.simulator import Faults, Simulator, init_from_recipe, parse_listen, serve
 
     prof = resolve_profile(profile)
     try:
@@ -92,6 +92,6 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
 @click.option("--fast", is_flag=True, hidden=True, help="no pauses between steps (tests)")
 def demo(fast: bool) -> int:
     """The whole story against a built-in simulated device: validate, plan, apply, verify, drift, rollback."""
-    from ..demo import run_demo
+    from .demo import run_demo
 
     return run_demo(fast=fast)

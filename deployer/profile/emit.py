@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
 
-from ..diagnostics import Diagnostic, InputError
+from ..load.diagnostics import Diagnostic, InputError
 from .loader import load_profile
 from .model import Profile
 

@@ -8,8 +8,9 @@ from dataclasses import replace
 from decimal import Decimal
 from typing import Any
 
-from .. import codec, units, yamlsrc
-from ..diagnostics import Diagnostic, InputError, UsageError
+from ..load import yamlsrc
+from ..load.diagnostics import Diagnostic, InputError, UsageError
+from . import codec, units
 from .model import CommitAction, IdentityCheck, Limits, Parameter, Precondition, Profile
 
 # ---- loading ------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from decimal import Decimal
 from typing import Literal
 
-from .. import codec
+from . import codec
 
 Access = Literal["read-write", "read-only", "write-only"]
 Addressing = Literal["address", "register-number", "modicon"]

@@ -10,11 +10,11 @@ import traceback
 try:
     import deployer
     from deployer.api import device_url, load_inventory
-    from deployer.diagnostics import InputError, UsageError
-    from deployer.executor import Job
-    from deployer.fleet import FleetDevice, Inventory, fleet_jobs
-    from deployer.recipe import Entry
-    from deployer.yamlsrc import Source
+    from deployer.fleet.inventory import FleetDevice, Inventory, fleet_jobs
+    from deployer.fleet.rollout import Job
+    from deployer.load.diagnostics import InputError, UsageError
+    from deployer.load.yamlsrc import Source
+    from deployer.recipe.loader import Entry
     HAS_DEPLOYER = True
     IMPORT_ERROR = ""
 except ImportError:  # said clearly by the module, not as a traceback

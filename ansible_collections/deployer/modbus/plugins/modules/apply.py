@@ -84,8 +84,10 @@ def _diff(name, rows):
 def check(module, jobs):
     """Check mode: read each device, plan against what it holds, write nothing."""
     from deployer.api import read_fleet, read_jobs
-    from deployer.planner import Target, make_plan, plan_to_json
-    from deployer.transport import describe
+    from deployer.planning.model import Target
+    from deployer.planning.planfile import plan_to_json
+    from deployer.planning.planner import make_plan
+    from deployer.transport.clients import describe
 
     values = read_fleet(read_jobs(jobs), parallel=module.params["parallel"])
     plans, diffs, devices, down = [], [], [], []
@@ -114,7 +116,7 @@ def check(module, jobs):
 
 def apply(module, rec, jobs):
     from deployer.api import run_fleet_async
-    from deployer.executor import ApplyOptions
+    from deployer.execute.session import ApplyOptions
 
     p = module.params
     options = ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"])
@@ -151,7 +153,7 @@ def main():
         supports_check_mode=True,
     )
     require_deployer(module)
-    from deployer.diagnostics import InputError, UsageError
+    from deployer.load.diagnostics import InputError, UsageError
 
     try:
         rec = recipe_of(module)

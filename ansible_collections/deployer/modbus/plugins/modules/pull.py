@@ -66,9 +66,9 @@ def main():
     require_deployer(module)
     import deployer
     from deployer.api import pull_names, pulled_recipe, read_fleet
-    from deployer.diagnostics import InputError, UsageError
-    from deployer.executor import ReadJob
-    from deployer.transport import describe
+    from deployer.fleet.rollout import ReadJob
+    from deployer.load.diagnostics import InputError, UsageError
+    from deployer.transport.clients import describe
 
     p = module.params
     try:

@@ -16,11 +16,11 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from .diagnostics import Diagnostic, InputError
+from ..load.diagnostics import Diagnostic, InputError
+from ..profile import profile_ref
+from ..recipe.loader import DeviceSpec, Recipe, SnapshotInfo, recipe_text
+from ..report import read_report
 from .durable import NewFile, durable_now
-from .profile import profile_ref
-from .recipe import DeviceSpec, Recipe, SnapshotInfo, recipe_text
-from .report import read_report
 
 
 def snapshot_dir(state_dir: str) -> str:

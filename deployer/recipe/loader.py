@@ -18,9 +18,9 @@ from typing import Any, Literal
 
 import yaml
 
-from . import codec, units, yamlsrc
-from .diagnostics import Diagnostic, InputError, UsageError
-from .profile import Parameter, Profile, is_profile_path, resolve_profile
+from ..load import yamlsrc
+from ..load.diagnostics import Diagnostic, InputError, UsageError
+from ..profile import Parameter, Profile, codec, is_profile_path, resolve_profile, units
 
 RECIPE_SCHEMA = "recipe"
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from . import yamlsrc
+from ..load import yamlsrc
 
 SCHEMAS = ("profile", "recipe", "inventory", "plan", "report")
 _NO_DEFAULT = object()
@@ -428,8 +428,8 @@ the apply; parameters the recipe did not name are not in it (apply never wrote t
 
 def render_snapshot_page() -> str:
     """The snapshot page; its example is written by the code that writes snapshots (recipe_text)."""
-    from .profile import builtin_profile
-    from .recipe import DeviceSpec, SnapshotInfo, recipe_text
+    from ..profile import builtin_profile
+    from ..recipe.loader import DeviceSpec, SnapshotInfo, recipe_text
 
     prof = builtin_profile("example-inverter")
     before = {"F07": (0, 500), "F08": (0, 500), "stop_mode": (0,), "base_speed": (0x6590,)}
@@ -481,7 +481,7 @@ def stale_pages(directory: str) -> list[str]:
 
 def url_option_text(name: str) -> str | None:
     """A device URL option for the terminal (`deployer explain baudrate`); None if no scheme takes it."""
-    from .urls import option_facts
+    from ..transport.urls import option_facts
 
     schemes, default, allowed = option_facts(name)
     if not schemes:

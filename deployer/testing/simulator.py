@@ -34,8 +34,8 @@ from pymodbus.exceptions import NoSuchIdException
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from .profile import Parameter, Profile
-from .recipe import Recipe
+from ..profile import Parameter, Profile
+from ..recipe.loader import Recipe
 
 
 @dataclass

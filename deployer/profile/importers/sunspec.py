@@ -19,9 +19,10 @@ from collections.abc import Mapping
 from decimal import Decimal
 from typing import Any
 
-from .. import units, yamlsrc
-from ..diagnostics import Diagnostic, InputError, UsageError
-from .emit import Draft, Origin
+from ...load import yamlsrc
+from ...load.diagnostics import Diagnostic, InputError, UsageError
+from .. import units
+from ..emit import Draft, Origin
 
 SUNSPEC_BASE = 40000  # protocol address of "SunS"; the first model's ID follows at 40002
 

@@ -14,8 +14,8 @@ from collections.abc import Sequence
 
 import click
 
-from .profile import builtin_profile
-from .simulator import Faults, SimulatorThread
+from ..profile import builtin_profile
+from ..testing.simulator import Faults, SimulatorThread
 
 BASE = """\
 # Settings shared by every conveyor inverter; line recipes extend this file.
@@ -57,7 +57,7 @@ parameters:
 
 
 def run_demo(*, fast: bool = False) -> int:
-    from .cli import cli
+    from ..cli import cli
 
     profile = builtin_profile("example-inverter")
     bad = profile.parameter("speed_offset").address

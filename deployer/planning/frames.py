@@ -19,8 +19,8 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterResponse,
 )
 
-from .diagnostics import UsageError
-from .planner import ReadRequest, WriteRequest
+from ..load.diagnostics import UsageError
+from .model import ReadRequest, WriteRequest
 
 Framing = Literal["rtu", "ascii", "tcp"]
 _FRAMERS = {"rtu": FramerRTU, "ascii": FramerAscii, "tcp": FramerSocket}

@@ -16,11 +16,12 @@ from collections.abc import Callable, Mapping
 from decimal import Decimal, InvalidOperation
 from typing import Any
 
-from .. import codec, units, yamlsrc
-from ..diagnostics import Diagnostic, InputError, UsageError
-from .emit import Draft, Origin
-from .loader import parse_register
-from .model import Profile
+from ...load import yamlsrc
+from ...load.diagnostics import Diagnostic, InputError, UsageError
+from .. import codec, units
+from ..emit import Draft, Origin
+from ..loader import parse_register
+from ..model import Profile
 
 # our column -> headers vendors use for it (lower case, spaces and underscores removed)
 COLUMNS: dict[str, tuple[str, ...]] = {

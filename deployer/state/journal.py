@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 from .durable import append_lines
 
 if TYPE_CHECKING:
-    from .report import DeviceResult, Report
+    from ..report import DeviceResult, Report
 
 AUDIT = "audit.jsonl"
 

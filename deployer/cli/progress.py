@@ -15,7 +15,7 @@ if TYPE_CHECKING:
     from rich.live import Live
     from rich.progress import Progress
 
-    from .report import DeviceResult, Report
+    from ..report import DeviceResult, Report
     from .tables import Cell
 
 STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red", "unverified": "yellow",

@@ -629,7 +629,7 @@ def schema(name: str) -> dict[str, Any]:
 
     Cached: callers must not modify it.
     """
-    here = os.path.join(os.path.dirname(__file__), "schemas", f"{name}.schema.json")
+    here = os.path.join(os.path.dirname(os.path.dirname(__file__)), "schemas", f"{name}.schema.json")
     with open(here, encoding="utf-8") as f:
         data: dict[str, Any] = json.load(f)
     return data

@@ -1,0 +1,307 @@
+"""The executor: the only code that talks to devices.
+
+connect -> identity check -> read current values -> snapshot (fsync) -> diff-aware plan ->
+write requests in order (retries with backoff, partial-failure recovery) -> read back ->
+commit actions -> DeviceResult. Everything it sends is recorded for the report.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+from collections import deque
+from collections.abc import Awaitable
+from dataclasses import dataclass
+
+from ..load.diagnostics import UsageError
+from ..planning.model import Plan, ReadRequest, Target
+from ..planning.planfile import plan_to_json
+from ..planning.planner import make_plan, plan_reads
+from ..profile import Parameter, Profile, profile_ref
+from ..recipe.loader import Recipe
+from ..report import DeviceResult, ParameterResult, show_registers
+from ..state import journal, lock
+from ..state.durable import Line, durable, queue
+from ..state.snapshot import snapshot_file
+from ..transport import clients as tp
+from .recovery import _recover, _remerge
+from .session import ApplyOptions, Declined, DeviceGone, Session, StalePlan
+from .steps import _send_actions, check_identity, check_preconditions
+from .verify import PENDING, _attempted, _values, _verify
+
+
+def _results(recipe: Recipe) -> dict[str, ParameterResult]:
+    return {name: ParameterResult(name, a, n, text, regs, parameter=p) for name, a, n, text, regs, p
+            in _shared(recipe).results}
+
+
+@dataclass(frozen=True)
+class _Shared:
+    """What every device applying one recipe shares, worked out once (a fleet has hundreds of them)."""
+
+    reads: tuple[ReadRequest, ...]  # the blocks covering the readable parameters (snapshot, read-back)
+    layout: tuple[tuple[str, int, int], ...]  # name, address, registers of each recipe parameter
+    results: tuple[tuple[str, int, int, str, tuple[int, ...], Parameter], ...]  # a ParameterResult's fields
+
+
+_SHARED: dict[int, tuple[Recipe, _Shared]] = {}
+_SHARED_KEPT = 64  # recipes remembered (a long-lived API user loads new ones)
+
+
+def _shared(recipe: Recipe) -> _Shared:
+    hit = _SHARED.get(id(recipe))
+    if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
+        while len(_SHARED) >= _SHARED_KEPT:
+            del _SHARED[next(iter(_SHARED))]  # the oldest
+        params = [d.parameter for d in recipe.desired]
+        hit = _SHARED[id(recipe)] = (recipe, _Shared(
+            plan_reads(recipe.profile, [p.name for p in params if p.readable]),
+            tuple((p.name, p.address, p.count) for p in params),
+            tuple((d.name, d.parameter.address, d.parameter.count, d.text, d.registers, d.parameter)
+                  for d in recipe.desired)))
+    return hit[1]
+
+
+async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None = None,
+                       options: ApplyOptions | None = None) -> DeviceResult:
+    """Apply ``recipe`` to one device and say exactly what it holds afterwards.
+
+    The device's lock is held from before the first read until the read-back is done, so no
+    other run on this machine can write it in between. With a journal (``options.run_id``) it
+    returns once the ``device-finished`` line is on disk.
+    """
+    res, finishing = await _apply_device(recipe, url, unit, name=name, options=options)
+    if finishing is not None:
+        await finishing
+    return res
+
+
+async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None,
+                        options: ApplyOptions | None) -> tuple[DeviceResult, Awaitable[object] | None]:
+    """``apply_device``, handing back the wait for its ``device-finished`` line instead of waiting:
+    a fleet frees the device's slot (and lock) for the next device while that fsync happens."""
+    opts = options or ApplyOptions()
+    prof = recipe.profile
+    res = DeviceResult(name or recipe.name, tp.describe(url), unit, prof.id, profile_ref=profile_ref(prof))
+    results = _results(recipe)
+    res.parameters = list(results.values())
+    if unit == 0 and not opts.allow_broadcast:
+        raise UsageError("unit 0 is broadcast (no device answers, nothing can be verified); "
+                         "pass --allow-broadcast to send it anyway")
+    if unit == 0 and (prof.preconditions or any(d.parameter.mask for d in recipe.desired)):
+        raise UsageError("a broadcast cannot read: bit fields (which keep the register's other bits) and "
+                         f"preconditions of profile {prof.id} need a device that answers")
+    try:
+        held = await lock.acquire_device(url.bus, unit, timeout=opts.lock_timeout, command=lock.command_line(),
+                                         directory=opts.lock_dir)
+    except lock.Locked as e:
+        res.status, res.error = "unreachable", f"{e}; nothing was sent"
+        return res, None
+    try:
+        res.notices.extend(h.stale for h in held if h.stale)
+        target = Target(tp.describe(url), unit, profile_ref(prof))
+        transport = tp.open_transport(url)
+        try:
+            await transport.connect()
+        except tp.Unreachable as e:
+            res.status, res.error = "unreachable", str(e)
+            return res, None
+        session = Session(transport, unit, retries=url.retries, backoff=opts.backoff, records=res.requests)
+        try:
+            if unit == 0:
+                await _broadcast(session, recipe, target, opts, res, results)
+            else:
+                await _apply(session, recipe, target, opts, res, results)
+        finally:
+            await transport.close()
+        res.settle()
+        if res.snapshot is not None and opts.run_id is not None:  # queued now, after the read-back
+            return res, queue(Line(journal.path_of(opts.state_dir), journal.device_finished(opts.run_id, res)))
+        return res, None
+    finally:
+        for h in reversed(held):
+            h.release()
+
+
+async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,
+                     results: dict[str, ParameterResult]) -> None:
+    """Unit 0: nobody answers, so nothing is read; every parameter is sent and unverified.
+
+    The device ends ``sent`` when every request went out, ``failed`` when one could not be sent.
+    """
+    plan = opts.expected or make_plan(recipe, target, None, write_all=True)
+    pending = deque(plan.writes)
+    while pending:
+        req = pending.popleft()
+        try:
+            await session.write(req)
+        except DeviceGone as e:
+            for n in req.parameters:
+                results[n].status, results[n].error = "unverified", f"broadcast may not have gone out: {e}"
+            for rest in pending:
+                for n in rest.parameters:
+                    results[n].status, results[n].error = "skipped", "not sent: an earlier broadcast request failed"
+            res.status, res.error = "failed", f"broadcast request at 0x{req.address:04X} could not be sent: {e}"
+            return
+        for n in req.parameters:
+            results[n].status, results[n].error = "unverified", "broadcast: no device answers"
+    res.status = "sent"
+
+
+async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,
+                 results: dict[str, ParameterResult]) -> None:
+    prof = recipe.profile
+    shared = _shared(recipe)
+    # 1. before any write: identity and current values; a silent device here is "unreachable"
+    try:
+        why = await check_identity(session, prof)
+        if why:
+            res.status, res.error = "failed", f"{why}; nothing was written"
+            return
+        before = _values(shared.layout, await session.read_blocks(shared.reads, prof))
+    except DeviceGone as e:
+        res.status, res.error = "unreachable", f"{e}; nothing was written"
+        return
+    except tp.ExceptionResponse as e:
+        res.status, res.error = "failed", f"reading the current values answered {e}; nothing was written"
+        return
+    if not session.gap_reads:  # the refused read is in res.requests; say why the reads that follow differ
+        res.notices.append("the device refused a read across undeclared registers (exception 02): "
+                           "it is read in gap-free blocks (the profile's limits.max_read_gap is not for it)")
+    for n, regs in before.items():
+        results[n].before_raw = regs
+
+    # 2. the plan: a saved one must still match the device, else a fresh diff-aware plan
+    if opts.expected is not None:
+        changed = [pp.name for pp in opts.expected.parameters
+                   if pp.current_raw is not None and not prof.parameter(pp.name).same_value(before.get(pp.name),
+                                                                                            pp.current_raw)]
+        if changed:
+            raise StalePlan(
+                "the device changed since the plan was made (" + ", ".join(
+                    f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed)
+                + "); make a new plan")
+        plan = opts.expected
+    else:
+        plan = make_plan(recipe, target, before, write_all=opts.write_all, reads=shared.reads)
+    for pp in plan.parameters:
+        if pp.action == "unchanged":
+            results[pp.name].status = "unchanged"
+    for pp in plan.parameters:  # a field's register goes whole: report the word planned
+        if prof.parameter(pp.name).mask:
+            results[pp.name].desired_raw = pp.desired_raw
+    if not plan.writes:
+        _verify(results, prof, before, written=set())
+        return
+    # guards (e.g. "drive stopped") only matter when something is to be written
+    try:
+        why = await check_preconditions(session, prof)
+    except (DeviceGone, tp.ExceptionResponse) as e:
+        why = f"reading the preconditions failed: {e}"
+    if why:
+        res.status, res.error = "failed", f"{why}; nothing was written"
+        return
+    if opts.confirm is not None and not await opts.confirm(plan, res):
+        raise Declined("nothing was written (declined)")
+
+    # 3. the snapshot is on disk before the first write, and the journal says this device is being written:
+    #    both made durable by the group-commit thread, sharing fsyncs with the other devices of a fleet
+    snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=opts.applied)
+    if opts.run_id is not None:
+        digest = hashlib.sha256(json.dumps(plan_to_json(plan), sort_keys=True).encode()).hexdigest()
+        snap.journal = journal.path_of(opts.state_dir)
+        snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest)
+    res.snapshot = await durable(snap)
+
+    # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock
+    if prof.unlock:
+        try:
+            await _send_actions(session, prof, prof.unlock)
+        except (DeviceGone, tp.ExceptionResponse) as e:
+            res.status, res.error = "failed", f"unlock failed: {e}; no parameter was written"
+            return
+    try:
+        await _write_verify_commit(session, prof, recipe, plan, opts, res, results)
+    finally:
+        if prof.unlock and prof.lock:
+            try:
+                await _send_actions(session, prof, prof.lock)
+            except (DeviceGone, tp.ExceptionResponse) as e:
+                res.status = "partial"
+                res.error = f"{res.error + '; ' if res.error else ''}lock failed: {e}; the device may be left unlocked"
+    res.notices.extend(f"{n} takes effect after a power cycle" for n, r in results.items()
+                       if r.status == "ok" and prof.parameter(n).restart)
+
+
+async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, plan: Plan, opts: ApplyOptions,
+                               res: DeviceResult, results: dict[str, ParameterResult]) -> None:
+    written, gone = await _write_all(session, prof, plan, opts, results)
+
+    # read back everything the plan reads, compare raw values (after a silence too: it may be back)
+    try:
+        after = _values(_shared(recipe).layout, await session.read_blocks(plan.reads, prof))
+    except (DeviceGone, tp.ExceptionResponse) as e:
+        for n in written:
+            if results[n].error == PENDING:
+                results[n].error = f"read-back failed: {e}"
+        return
+    _verify(results, prof, after, written)
+    if gone:
+        return
+
+    # commit (e.g. store to EEPROM) only when everything is verified
+    if prof.commit and all(r.status in ("ok", "unchanged") for r in results.values()):
+        for action in prof.commit:
+            try:
+                await _send_actions(session, prof, [action])
+            except (DeviceGone, tp.ExceptionResponse) as e:
+                res.status, res.error = "partial", f"commit '{action.description or hex(action.address)}' failed: {e}"
+                return
+
+
+async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,
+                     results: dict[str, ParameterResult]) -> tuple[set[str], bool]:
+    """Send the plan's writes. Returns the names sent, and whether the device went away."""
+    desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
+    written: set[str] = set()
+    pending = deque(plan.writes)
+    stopped = False
+    while pending:
+        req = pending.popleft()
+        if stopped:
+            for n in req.parameters:
+                if results[n].status != "failed":
+                    results[n].status = "skipped"
+            continue
+        try:
+            req = await _remerge(session, prof, req, desired, results)
+        except (DeviceGone, tp.ExceptionResponse) as e:  # nothing of this request was sent
+            for n in req.parameters:
+                results[n].status, results[n].error = "failed", f"reading the register to keep its other bits: {e}"
+            stopped = opts.on_error == "stop"
+            continue
+        try:
+            await session.write(req)
+            _attempted(results, req.parameters, written)
+            wait = prof.wait_after(req.stage)
+            if wait and (not pending or pending[0].stage != req.stage):
+                await asyncio.sleep(wait / 1000)
+        except tp.ExceptionResponse as e:
+            follow_up = await _recover(session, prof, req, e, desired, results, written)
+            if opts.on_error == "continue":
+                if follow_up is not None:
+                    pending.appendleft(follow_up)
+            else:
+                stopped = True
+                if follow_up is not None:
+                    for n in follow_up.parameters:
+                        results[n].status = "skipped"
+        except DeviceGone as e:
+            # the request may or may not have been applied: the read-back (if any) decides
+            _attempted(results, req.parameters, written, f"device stopped answering: {e}")
+            for rest in pending:
+                for n in rest.parameters:
+                    results[n].status = "skipped"
+            return written, True
+    return written, False

@@ -1,0 +1,136 @@
+"""One device's connection for a run: retries, the request log, options of an apply."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Awaitable, Callable, Iterable
+from dataclasses import dataclass
+from typing import Literal
+
+from ..load.diagnostics import UsageError
+from ..planning.model import Plan, ReadRequest, WriteRequest
+from ..planning.planner import gap_free_reads
+from ..profile import Profile
+from ..report import DeviceResult, RequestRecord
+from ..transport import clients as tp
+
+Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
+
+
+class StalePlan(UsageError):
+    """apply PLAN.json: the device no longer holds what the plan was made against."""
+
+
+class Declined(UsageError):
+    """The user answered no at the confirmation prompt."""
+
+
+@dataclass(frozen=True)
+class ApplyOptions:
+    on_error: Literal["continue", "stop"] = "continue"
+    write_all: bool = False
+    allow_broadcast: bool = False
+    state_dir: str = ".deployer"
+    backoff: float = 0.05  # first retry delay in seconds; doubles per attempt
+    expected: Plan | None = None  # apply PLAN.json: run exactly this plan
+    confirm: Confirm | None = None
+    run_id: str | None = None  # journal lines in STATE/audit.jsonl carry it (None: no journal)
+    applied: str | None = None  # what is being applied (recipe or plan file), recorded in the snapshot
+    lock_timeout: float = 0.0  # seconds to wait for a device another run holds (0: fail at once)
+    lock_dir: str | None = None  # None: $DEPLOYER_LOCK_DIR or <tmp>/deployer-locks
+
+
+class DeviceGone(tp.TransportError):
+    """The device stopped answering and the retry budget is spent."""
+
+
+class Session:
+    """Requests to one unit over one transport, with our own retries, each one recorded.
+
+    pymodbus's retries are off (a late answer to a first copy would hide a double write);
+    here every attempt is counted and reported. Timeouts and exception 06 (busy) are
+    retried with exponential backoff; FC03 and FC16 are idempotent, so a resend is safe.
+    """
+
+    def __init__(self, transport: tp.Transport, unit: int, *, retries: int, backoff: float,
+                 records: list[RequestRecord]) -> None:
+        self.transport = transport
+        self.unit = unit
+        self.retries = retries
+        self.backoff = backoff
+        self.records = records
+        self.gap_reads = True  # False once the device refused a read across undeclared registers
+
+    async def _call(self, record: RequestRecord, op: Callable[[], Awaitable[list[int] | None]]) -> list[int] | None:
+        self.records.append(record)
+        attempt = 0
+        while True:
+            attempt += 1
+            record.attempts = attempt
+            try:
+                result = await op()
+                record.result = "broadcast" if self.unit == 0 and record.function != 3 else "ok"
+                record.exception_code = None
+                return result
+            except tp.ExceptionResponse as e:
+                record.result, record.exception_code = "exception", e.code
+                if e.code != 6 or attempt > self.retries:
+                    raise
+            except tp.NoResponse:
+                record.result, record.exception_code = "no response", None
+                if attempt > self.retries:
+                    hint = tp.no_answer_hint(self.transport.url, self.unit)
+                    raise DeviceGone(f"no answer after {attempt} attempt{'s' if attempt > 1 else ''}{hint}") from None
+            except tp.ConnectionLost as e:
+                record.result, record.exception_code = "connection lost", None
+                if attempt > self.retries:
+                    raise DeviceGone(f"connection lost ({e})") from None
+                await asyncio.sleep(self.backoff * 2 ** (attempt - 1))
+                with contextlib.suppress(tp.Unreachable):  # counts as an attempt; the next try reports
+                    await self.transport.reconnect()
+                continue
+            await asyncio.sleep(self.backoff * 2 ** (attempt - 1))
+
+    async def read(self, address: int, count: int) -> list[int]:
+        rec = RequestRecord(3, address, count)
+        out = await self._call(rec, lambda: self.transport.read_holding_registers(address, count, self.unit))
+        assert out is not None
+        return out
+
+    async def write(self, req: WriteRequest) -> None:
+        rec = RequestRecord(req.function, req.address, req.count)
+        t, unit = self.transport, self.unit
+        if req.function == 6:
+            await self._call(rec, lambda: _none(t.write_register(req.address, req.registers[0], unit)))
+        else:
+            await self._call(rec, lambda: _none(t.write_registers(req.address, list(req.registers), unit)))
+
+    async def read_blocks(self, reads: Iterable[ReadRequest], profile: Profile | None = None) -> dict[int, int]:
+        """Registers of every block. With ``profile``: when the device refuses a read across
+        undeclared registers (exception 02), the rest of the reads, that one included, and every
+        later read of this session go in gap-free blocks (the refused request stays in the
+        report, followed by the fallback reads)."""
+        todo = list(reads)
+        regs: dict[int, int] = {}
+        i = 0
+        while i < len(todo):
+            if profile is not None and profile.limits.max_read_gap and not self.gap_reads:
+                todo[i:] = gap_free_reads(profile, todo[i:])
+                profile = None  # planned once: read on as planned
+            r = todo[i]
+            try:
+                values = await self.read(r.address, r.count)
+            except tp.ExceptionResponse as e:
+                if (profile is None or not profile.limits.max_read_gap or e.code != 2
+                        or gap_free_reads(profile, [r]) == (r,)):
+                    raise  # not about a gap
+                self.gap_reads = False
+                continue
+            regs.update(zip(range(r.address, r.address + r.count), values, strict=False))
+            i += 1
+        return regs
+
+
+async def _none(aw: Awaitable[None]) -> None:
+    await aw

@@ -1,0 +1,64 @@
+"""Register values of parameters, and verification of read-back values against the plan."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import cast
+
+from ..profile import Parameter, Profile
+from ..report import ParameterResult, show_registers
+
+
+def values_of(params: Iterable[Parameter], regs: Mapping[int, int]) -> dict[str, tuple[int, ...]]:
+    """Parameter name -> registers, for every parameter whose registers were all read."""
+    return _values(((p.name, p.address, p.count) for p in params), regs)
+
+
+def _values(layout: Iterable[tuple[str, int, int]], regs: Mapping[int, int]) -> dict[str, tuple[int, ...]]:
+    out: dict[str, tuple[int, ...]] = {}
+    get = regs.get
+    for name, a, n in layout:
+        if n == 1:  # most parameters: no generator per value (a fleet does this 200 times per device)
+            w = get(a)
+            if w is not None:
+                out[name] = (w,)
+            continue
+        words = tuple(get(a + i) for i in range(n))
+        if None not in words:
+            out[name] = cast(tuple[int, ...], words)  # no None left
+    return out
+
+
+PENDING = "not read back yet"
+
+
+def _attempted(results: dict[str, ParameterResult], names: Iterable[str], written: set[str],
+               error: str = PENDING) -> None:
+    """Mark parameters as sent: unverified until the read-back says ok or mismatch."""
+    for n in names:
+        written.add(n)
+        results[n].status, results[n].error = "unverified", error
+
+
+def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[str, tuple[int, ...]],
+            written: set[str]) -> None:
+    """Statuses from the read-back: what was sent must read back equal; the rest is reported as is."""
+    for n, r in results.items():
+        p = prof.parameter(n)
+        got = after.get(n)
+        if got is not None:
+            r.after_raw = got
+        if r.status in ("failed", "skipped"):
+            continue
+        if got is None:  # not read back: sent ones stay unverified, with the reason
+            if n in written and r.error == PENDING:
+                r.error = "write-only: cannot be read back"
+            continue
+        if p.same_value(got, r.desired_raw):
+            r.status, r.error = ("ok" if n in written else "unchanged"), None
+            continue
+        reads_back = f"reads back {show_registers(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
+        if r.error and r.error.startswith("device stopped answering"):
+            r.error = f"{r.error}; {reads_back}"  # no answer and not applied: unverified, not "accepted"
+        else:
+            r.status, r.error = "mismatch", reads_back

@@ -1,0 +1,1 @@
+"""Fleets: inventories, the rollout over many devices, and the live report file."""

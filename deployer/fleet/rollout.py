@@ -1,0 +1,232 @@
+"""The rollout over many devices: buses in parallel, batches, the failure budget."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections.abc import Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol, TypeVar
+
+from ..execute.device import _apply_device, _results
+from ..execute.read import read_current
+from ..execute.session import ApplyOptions, Declined, StalePlan
+from ..load.diagnostics import UsageError
+from ..profile import Profile, profile_ref
+from ..recipe.loader import Recipe
+from ..report import DeviceResult, Report
+from ..transport import clients as tp
+
+if TYPE_CHECKING:
+    from ..profile import Profile
+    from ..report import DeviceResult, Report
+
+
+# ---- fleets ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Job:
+    name: str
+    recipe: Recipe
+    url: tp.DeviceURL
+    unit: int
+
+
+@dataclass(frozen=True)
+class ReadJob:
+    """Read some parameters of one fleet device (plan, diff, pull)."""
+
+    name: str
+    profile: Profile
+    names: tuple[str, ...]
+    url: tp.DeviceURL
+    unit: int
+
+
+class _HasBus(Protocol):
+    @property
+    def url(self) -> tp.DeviceURL: ...
+
+
+_J = TypeVar("_J", bound=_HasBus)
+
+
+async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Awaitable[Awaitable[None] | None]]
+                   ) -> None:
+    """Run ``work`` for every job, at most ``parallel`` at once; jobs on one bus strictly one after the other.
+
+    ``work`` may hand back what its job still waits for without needing its slot (a journal fsync):
+    that is awaited after the slot is free, before the bus's next job.
+    """
+    buses: dict[str, list[_J]] = {}
+    for j in jobs:
+        buses.setdefault(j.url.bus, []).append(j)
+    gate = asyncio.Semaphore(max(1, parallel))
+
+    async def run_bus(group: list[_J]) -> None:
+        for j in group:  # half-duplex bus: the next device starts when the last one is done
+            async with gate:
+                after = await work(j)
+            if after is not None:
+                await after
+
+    await asyncio.gather(*(run_bus(g) for g in buses.values()))
+
+
+def skipped_result(job: Job, reason: str) -> DeviceResult:
+    """A device a fleet run did not start: nothing was sent to it."""
+    r = DeviceResult(job.name, tp.describe(job.url), job.unit, job.recipe.profile.id, status="skipped", error=reason,
+                     profile_ref=profile_ref(job.recipe.profile))
+    r.parameters = list(_results(job.recipe).values())
+    return r
+
+
+@dataclass
+class Budget:
+    """``--max-failures``: how many devices may end failed or partial before no new device starts."""
+
+    limit: int | None
+    failures: int = 0
+
+    def spent(self) -> str | None:
+        """Why no new device may start, or None."""
+        n = self.failures
+        if self.limit is None or n < self.limit:
+            return None
+        return f"not started: {n} device{'s' if n != 1 else ''} ended failed or partial (--max-failures {self.limit})"
+
+
+async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOptions | None = None,
+                     recipe_name: str | None = None,
+                     on_done: Callable[[DeviceResult], None] | None = None,
+                     on_start: Callable[[Job], None] | None = None,
+                     batches: Sequence[int] | None = None, max_failures: int | None = None) -> Report:
+    """Apply to many devices: in parallel, except that devices on one bus go one at a time.
+
+    ``batches`` (sizes, in job order) stage the rollout: each batch finishes before the next
+    starts, and a batch in which no device ended ok ends the rollout (Ansible's ``serial``).
+    ``max_failures``: once that many devices ended failed or partial, no new device starts.
+    Devices never started are in the report as ``skipped`` with the reason.
+    """
+    started = time.monotonic()
+    done: dict[str, DeviceResult] = {}
+    budget = Budget(max_failures)
+    stop: str | None = None
+
+    async def one(j: Job) -> Awaitable[None] | None:
+        nonlocal stop
+        stop = stop or budget.spent()  # checked when the device's turn comes, not when it was queued
+        if stop is not None:
+            done[j.name] = skipped_result(j, stop)
+            return None
+        if on_start:
+            on_start(j)
+        t = time.monotonic()
+        finishing: Awaitable[object] | None = None
+        try:
+            r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
+        except Declined:
+            if len(jobs) == 1:
+                raise
+            # in a fleet, a "no" is about that device: the others were asked (or are being written) on their own
+            r = skipped_result(j, "not written: declined at the confirmation prompt")
+        except StalePlan:
+            raise
+        except UsageError as e:
+            r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),
+                             profile_ref=profile_ref(j.recipe.profile))
+            r.parameters = list(_results(j.recipe).values())
+        r.seconds = time.monotonic() - t
+        done[j.name] = r
+        if r.status in ("failed", "partial"):
+            budget.failures += 1
+        return finished(r, finishing)
+
+    async def finished(r: DeviceResult, finishing: Awaitable[object] | None) -> None:
+        if finishing is not None:  # outside the device's slot: the next device is already connecting
+            await finishing
+        if on_done:  # the device is done (report file, progress) once its journal line is on disk
+            on_done(r)
+
+    sizes = list(batches) if batches else [len(jobs)]
+    pos = 0
+    for number, size in enumerate(sizes, 1):
+        batch = jobs[pos:pos + size]
+        pos += size
+        await on_buses(batch, parallel, one)
+        if stop is None and pos < len(jobs):
+            stop = batch_failed(number, batch, done)
+    return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
+
+
+def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:
+    """Ansible's ``serial`` rule: a batch in which no device that ran ended ok ends the rollout."""
+    ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
+    if not ran or any(r.status == "ok" for r in ran):
+        return None
+    which = f"the canary {ran[0].name}" if len(batch) == 1 else f"all {len(ran)} devices"
+    return f"not started: batch {number} failed ({which} did not end ok)"
+
+
+async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,
+                    on_done: Callable[[str, str | None], None] | None = None,
+                    ) -> dict[str, dict[str, tuple[int, ...]] | tp.TransportError | UsageError]:
+    """Current values of many devices (fleet plan, diff, pull): per device its registers or why not."""
+    out: dict[str, dict[str, tuple[int, ...]] | tp.TransportError | UsageError] = {}
+
+    async def one(j: ReadJob) -> None:
+        try:
+            out[j.name] = await read_current(j.profile, j.names, j.url, j.unit)
+        except (tp.TransportError, UsageError) as e:
+            out[j.name] = e
+        if on_done:
+            res = out[j.name]
+            on_done(j.name, str(res) if isinstance(res, Exception) else None)
+
+    await on_buses(jobs, parallel, one)
+    return {j.name: out[j.name] for j in jobs}
+
+
+
+
+# ---- staged rollouts ---------------------------------------------------------------------------
+
+
+def _count(word: str, total: int, what: str) -> int:
+    """``N`` or ``P%`` of ``total`` (a percentage rounds down, but never to zero)."""
+    w = word.strip()
+    try:
+        if w.endswith("%"):
+            pct = float(w[:-1])
+            if not 0 < pct <= 100:
+                raise ValueError
+            return max(1, math.floor(total * pct / 100))
+        n = int(w)
+        if n < 1:
+            raise ValueError
+        return n
+    except ValueError:
+        raise UsageError(f"{what}: '{word}' is not a positive count or a percentage (e.g. 1, 10%, 100%)") from None
+
+
+def batch_sizes(spec: str | None, total: int) -> list[int]:
+    """``--batch 1,10%,100%``: Ansible's ``serial``; the last size repeats until every device had its turn."""
+    if not spec:
+        return [total] if total else []
+    sizes = [_count(w, total, "--batch") for w in spec.split(",")]
+    out: list[int] = []
+    left = total
+    i = 0
+    while left > 0:
+        n = min(sizes[min(i, len(sizes) - 1)], left)
+        out.append(n)
+        left -= n
+        i += 1
+    return out
+
+
+def failure_budget(spec: str | None, total: int) -> int | None:
+    """``--max-failures N|P%``: after this many failed or partial devices no new device starts."""
+    return None if spec is None else _count(spec, total, "--max-failures")

@@ -1,0 +1,1 @@
+"""Loading input files: safe YAML with positions, schema checks, diagnostics."""

@@ -1,0 +1,1 @@
+"""Profile importers: vendor register tables (CSV, xlsx) and SunSpec models."""

@@ -1,0 +1,1 @@
+"""Recipes: loading, validation against a profile, and recipe text."""

@@ -1,0 +1,1 @@
+"""State kept between runs: durable writes, the journal, device locks and snapshots."""

@@ -1,0 +1,1 @@
+"""Test doubles for users of deployer: the simulated Modbus device."""

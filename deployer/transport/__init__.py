@@ -1,0 +1,1 @@
+"""Transports: device URLs and the clients behind them, chosen by URL scheme."""
