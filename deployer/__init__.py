@@ -21,6 +21,7 @@ _log.propagate = False
 
 _API = frozenset({
     "ApplyOptions", "DeviceResult", "Drift", "InputError", "Inventory", "Plan", "Profile", "Recipe", "Report",
+    "RunInterrupted",
     "TransportError", "UsageError", "apply", "apply_async", "apply_fleet", "apply_fleet_async", "diff",
     "diff_async", "diff_values", "device_url", "load_inventory", "load_profile", "load_recipe", "plan",
     "plan_async", "pull", "pull_async", "pulled_recipe", "recipe_from", "read_fleet", "read_fleet_async",

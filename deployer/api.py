@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import resource
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -28,8 +27,7 @@ from typing import Any
 from .execute.read import read_current
 from .execute.session import ApplyOptions
 from .fleet.inventory import Inventory, fleet_jobs, load_inventory
-from .fleet.livereport import LiveReport, not_finished
-from .fleet.rollout import Job, ReadJob, apply_many, batch_sizes, failure_budget, read_many
+from .fleet.rollout import Job, ReadJob, RunInterrupted, read_many
 from .load.diagnostics import InputError, UsageError
 from .load.yamlsrc import Source
 from .planning.model import Plan, Target
@@ -37,6 +35,7 @@ from .planning.planner import make_plan
 from .profile import Profile, resolve_profile
 from .recipe.loader import Entry, Recipe, load_recipe, recipe_text, with_overrides
 from .report import DeviceResult, Report
+from .run.runner import ensure_files, run_async
 from .transport.clients import BadURL, DeviceURL, TransportError, describe, parse_url
 
 __all__ = [
@@ -49,6 +48,7 @@ __all__ = [
     "Profile",
     "Recipe",
     "Report",
+    "RunInterrupted",
     "TransportError",
     "UsageError",
     "apply",
@@ -129,16 +129,21 @@ def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
 
 
 async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-                      options: ApplyOptions | None = None, name: str | None = None) -> Report:
-    """Apply to one device; the report says per parameter what it holds now (never raises for a device fault)."""
+                      options: ApplyOptions | None = None, name: str | None = None,
+                      report_path: str | None = None) -> Report:
+    """Apply to one device; the report says per parameter what it holds now (never raises for a device fault).
+
+    The run is journaled in ``options.state_dir`` (``deployer status`` sees it). Raises RunInterrupted
+    (with its ``report``) when the task is cancelled mid-run.
+    """
     url, u = _target(recipe, device, unit)
-    return await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=options,
-                            recipe_name=recipe.path or recipe.name)
+    return await run_async([Job(name or recipe.name, recipe, url, u)], label=recipe.path or recipe.name,
+                           parallel=1, options=options, report_path=report_path)
 
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-          options: ApplyOptions | None = None, name: str | None = None) -> Report:
-    return asyncio.run(apply_async(recipe, device, unit, options=options, name=name))
+          options: ApplyOptions | None = None, name: str | None = None, report_path: str | None = None) -> Report:
+    return asyncio.run(apply_async(recipe, device, unit, options=options, name=name, report_path=report_path))
 
 
 @dataclass(frozen=True)
@@ -209,42 +214,6 @@ def pull(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict
 # ---- fleets ----------------------------------------------------------------------------------
 
 
-def ensure_files(parallel: int, devices: int) -> None:
-    """One socket per device in flight: raise the soft open-file limit towards the hard one, or say why not."""
-    need = min(parallel, devices) + 64  # sockets, plus the report, snapshots, logs and the interpreter's own
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if soft == resource.RLIM_INFINITY or soft >= need:
-        return
-    if hard != resource.RLIM_INFINITY and hard < need:
-        raise UsageError(f"--parallel {parallel} needs about {need} open files, but this system allows {hard} "
-                         f"(ulimit -Hn); use --parallel {max(1, hard - 64)} or raise the limit")
-    resource.setrlimit(resource.RLIMIT_NOFILE, (need if hard == resource.RLIM_INFINITY else hard, hard))
-
-
-def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failures: str | None,
-                  report_path: str | None = None) -> tuple[list[int], int | None]:
-    """Check a fleet run's options before anything happens: batch sizes, failure budget, open files,
-    and that the report file can be written (it is written before the first device starts)."""
-    sizes = batch_sizes(batch, devices)
-    budget = failure_budget(max_failures, devices)
-    ensure_files(parallel, devices)
-    if report_path:
-        check_writable(os.path.dirname(os.path.abspath(report_path)), f"the report {report_path}")
-    return sizes, budget
-
-
-def check_writable(folder: str, what: str) -> None:
-    """Create ``folder`` if needed and make sure a file can be written there, or say why not (UsageError)."""
-    probe = os.path.join(folder, f".deployer-probe-{os.getpid()}")
-    try:
-        os.makedirs(folder, exist_ok=True)
-        with open(probe, "w", encoding="utf-8"):
-            pass
-        os.remove(probe)
-    except OSError as e:
-        raise UsageError(f"cannot write {what}: {e.strerror}") from None
-
-
 def fleet(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None, timeout: float | None = None,
           retries: int | None = None, unit: int | None = None) -> list[Job]:
     """One checked job per selected device (the recipe with the device's profile and overrides)."""
@@ -270,34 +239,18 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
                           batch: str | None = None, max_failures: str | None = None,
                           options: ApplyOptions | None = None, report_path: str | None = None,
                           on_start: Callable[[Job], None] | None = None,
-                          on_done: Callable[[DeviceResult], None] | None = None) -> Report:
-    """Apply jobs as one fleet run: ``batch`` ("1,10%,100%") stages it, ``max_failures`` ("2", "5%") caps it.
+                          on_done: Callable[[DeviceResult], None] | None = None, via: str = "api",
+                          signals: bool = False) -> Report:
+    """Apply jobs as one journaled fleet run: ``batch`` ("1,10%,100%") stages it, ``max_failures`` ("2",
+    "5%") caps it (``run.runner.run_async``).
 
     ``report_path``: written before the first device starts (every device ``skipped``, "not
     finished") and rewritten as devices finish, so after a crash ``limit="@REPORT"`` retries
-    exactly what did not end ok.
+    exactly what did not end ok, and ``rollback --from-report`` restores what it wrote.
     """
-    sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
-                                  report_path=report_path)
-    live = None
-    if report_path:
-        live = LiveReport(report_path, recipe_name, not_finished(jobs))
-
-    def done(r: DeviceResult) -> None:
-        if live is not None:
-            live.finished(r)
-        if on_done is not None:
-            on_done(r)
-
-    try:
-        report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
-                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget)
-    finally:
-        if live is not None:
-            live.stop()
-    if live is not None:
-        live.close(report)
-    return report
+    return await run_async(jobs, label=recipe_name, parallel=parallel, batch=batch, max_failures=max_failures,
+                           options=options, report_path=report_path, on_start=on_start, on_done=on_done, via=via,
+                           signals=signals)
 
 
 def apply_fleet(recipe: Recipe, inventory: str | Inventory, **kw: Any) -> Report:

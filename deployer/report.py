@@ -15,8 +15,11 @@ if TYPE_CHECKING:
 
 REPORT_SCHEMA = "deployer.report/1"
 ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
-# sent: a broadcast that went out; skipped: a fleet never started it
-DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped"]
+# sent: a broadcast that went out; skipped: a fleet never started it (nothing sent); interrupted: the run
+# stopped (Ctrl-C, SIGTERM, a crash) while the device was in flight: with a snapshot, writes may have gone out
+DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped", "interrupted"]
+DEVICE_STATUSES: tuple[DeviceStatus, ...] = ("ok", "sent", "partial", "failed", "unreachable", "skipped",
+                                             "interrupted")
 
 
 @dataclass
@@ -24,7 +27,7 @@ class RequestRecord:
     function: int
     address: int
     count: int
-    result: str = "ok"  # ok | exception | no response | connection lost | broadcast
+    result: str = "ok"  # ok | exception | no response | connection lost | broadcast | interrupted
     exception_code: int | None = None
     attempts: int = 1
 
@@ -83,6 +86,7 @@ class DeviceResult:
     seconds: float | None = None  # how long the device's session took (fleets: for the summary table)
     profile_ref: str | None = None  # the profile used: its file's absolute path, or the built-in id
     notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
+    restored: str | None = None  # a rollback: the snapshot (absolute path) this device was restored from
 
     @property
     def write_requests(self) -> int:
@@ -93,8 +97,8 @@ class DeviceResult:
         return sum(1 for r in self.requests if r.function == 3)
 
     def settle(self) -> None:
-        """Device status from its parameters (unless already sent/failed/unreachable/skipped)."""
-        if self.status in ("unreachable", "failed", "skipped", "sent"):
+        """Device status from its parameters (unless already sent/failed/unreachable/skipped/interrupted)."""
+        if self.status in ("unreachable", "failed", "skipped", "sent", "interrupted"):
             return
         bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
         if not bad:
@@ -119,6 +123,8 @@ class DeviceResult:
             out["profile_ref"] = self.profile_ref
         if self.notices:
             out["notices"] = list(self.notices)
+        if self.restored is not None:
+            out["restored"] = self.restored
         return out
 
 
@@ -127,6 +133,9 @@ class Report:
     recipe: str | None
     devices: list[DeviceResult]
     seconds: float = 0.0
+    run: str | None = None  # the run id in the journal (None: a run without one)
+    state_dir: str | None = None  # absolute path of the folder with the journal and the snapshots
+    interrupted: str | None = None  # why the run stopped early ("SIGINT", "SIGTERM", "cancelled"), else None
 
     def __repr__(self) -> str:
         # short on purpose: asyncio.run's SIGINT bookkeeping (signal.getsignal on a partial holding the
@@ -135,20 +144,18 @@ class Report:
         return f"Report(recipe={self.recipe!r}, devices={len(self.devices)}, seconds={self.seconds:.3f})"
 
     def summary(self) -> dict[str, Any]:
-        counts = {s: sum(1 for d in self.devices if d.status == s)
-                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped")}
+        counts: dict[str, int] = {s: sum(1 for d in self.devices if d.status == s) for s in DEVICE_STATUSES}
         return {"devices": len(self.devices), **counts,
                 "write_requests": sum(d.write_requests for d in self.devices),
                 "read_requests": sum(d.read_requests for d in self.devices),
                 "seconds": round(self.seconds, 3)}
 
+    def head(self) -> dict[str, Any]:
+        """The report's keys before ``devices``: format, recipe, and the run in the journal."""
+        return report_head(self.recipe, self.run, self.state_dir, self.interrupted)
+
     def to_json(self) -> dict[str, Any]:
-        return {
-            "schema": REPORT_SCHEMA,
-            "recipe": self.recipe,
-            "devices": [d.to_json() for d in self.devices],
-            "summary": self.summary(),
-        }
+        return {**self.head(), "devices": [d.to_json() for d in self.devices], "summary": self.summary()}
 
     @property
     def exit_code(self) -> int:
@@ -163,6 +170,18 @@ class Report:
         if any(d.status not in ("ok", "sent") for d in self.devices):
             return EXIT_FAILED
         return EXIT_OK
+
+
+def report_head(recipe: str | None, run: str | None, state_dir: str | None,
+                interrupted: str | None = None) -> dict[str, Any]:
+    out: dict[str, Any] = {"schema": REPORT_SCHEMA, "recipe": recipe}
+    if run is not None:
+        out["run"] = run
+    if state_dir is not None:
+        out["state_dir"] = state_dir
+    if interrupted is not None:
+        out["interrupted"] = interrupted
+    return out
 
 
 def write_json(data: dict[str, Any], path: str) -> None:

@@ -517,7 +517,8 @@ def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Pat
     live = LiveReport(str(tmp_path / "r.json"), "r.yaml", skeleton)
     live.stop()
     text = (tmp_path / "r.json").read_text()
-    expected = b"".join(_report_parts("r.yaml", [json.dumps(d.to_json()).encode() for d in naive], {})).decode()
+    head = {"schema": "deployer.report/1", "recipe": "r.yaml"}
+    expected = b"".join(_report_parts(head, [json.dumps(d.to_json()).encode() for d in naive], {})).decode()
     assert text.split('"summary"')[0] == expected.split('"summary"')[0]  # byte for byte, but the summary
     assert {d["name"]: d["error"] for d in json.loads(text)["devices"]} == {n: NOT_FINISHED for n in names(4)}
 

@@ -39,6 +39,8 @@ class ApplyOptions:
     applied: str | None = None  # what is being applied (recipe or plan file), recorded in the snapshot
     lock_timeout: float = 0.0  # seconds to wait for a device another run holds (0: fail at once)
     lock_dir: str | None = None  # None: $DEPLOYER_LOCK_DIR or <tmp>/deployer-locks
+    # called when a device's snapshot and device-started line are on disk, right before its first write
+    on_writing: Callable[[DeviceResult], None] | None = None
 
 
 class DeviceGone(tp.TransportError):
@@ -82,6 +84,9 @@ class Session:
                 if attempt > self.retries:
                     hint = tp.no_answer_hint(self.transport.url, self.unit)
                     raise DeviceGone(f"no answer after {attempt} attempt{'s' if attempt > 1 else ''}{hint}") from None
+            except asyncio.CancelledError:  # the run was interrupted while this request was out
+                record.result, record.exception_code = "interrupted", None
+                raise
             except tp.ConnectionLost as e:
                 record.result, record.exception_code = "connection lost", None
                 if attempt > self.retries:

@@ -18,6 +18,7 @@ if TYPE_CHECKING:
 # ---- the report file of a running fleet ------------------------------------------------------
 
 NOT_FINISHED = "not finished (interrupted run)"
+WRITING = "interrupted while writing (the run did not finish): some parameters may hold new values"
 
 
 def not_finished(jobs: Sequence[Job]) -> list[DeviceResult]:
@@ -46,11 +47,11 @@ def _device_json(d: DeviceResult, made: dict[int, str]) -> bytes:
                                                                    1).encode()
 
 
-def _report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str, Any]) -> list[bytes]:
+def _report_parts(head_keys: dict[str, Any], devices: Sequence[bytes], summary: dict[str, Any]) -> list[bytes]:
     # one device per line, each encoded by the C encoder (the pure-Python indenting one took a second
     # for 200 devices x 100 parameters), kept as the devices' own bytes: the live report file is
     # rewritten from these pieces with one gathering write, never joined into one big string
-    head = json.dumps({"schema": "deployer.report/1", "recipe": recipe})[:-1]
+    head = json.dumps(head_keys)[:-1]
     out = [f'{head}, "devices": [\n'.encode()]
     for i, d in enumerate(devices):
         if i:
@@ -62,7 +63,7 @@ def _report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[st
 
 def report_text(report: Report) -> str:
     """A fleet's report as JSON text, one device per line (``--json`` and the ``--report`` file)."""
-    return b"".join(_report_parts(report.recipe, [json.dumps(d.to_json()).encode() for d in report.devices],
+    return b"".join(_report_parts(report.head(), [json.dumps(d.to_json()).encode() for d in report.devices],
                                   report.summary())).decode()
 
 
@@ -79,13 +80,18 @@ class LiveReport:
     window would be retried by ``@FILE``, which writes nothing to a device that already matches).
     """
 
-    def __init__(self, path: str, recipe: str | None, skeleton: Sequence[DeviceResult]) -> None:
+    def __init__(self, path: str, recipe: str | None, skeleton: Sequence[DeviceResult], *, run: str | None = None,
+                 state_dir: str | None = None) -> None:
+        from ..report import report_head
+
         self.path = path
         self.recipe = recipe
+        self._head = report_head(recipe, run, state_dir)  # rollback --report finds the run's journal by these
         self._order = [d.name for d in skeleton]
         made: dict[int, str] = {}  # the skeleton's devices share their parameter lists (not_finished)
         self._parts = {d.name: _device_json(d, made) for d in skeleton}
         self._finished: list[DeviceResult] = []
+        self._writing: set[str] = set()  # started writing, not finished yet
         self._cond = threading.Condition()
         self._dirty = False
         self._closing = False
@@ -99,6 +105,23 @@ class LiveReport:
         with self._cond:
             self._parts[result.name] = part
             self._finished.append(result)
+            self._dirty = True
+            self._cond.notify()
+
+    def writing(self, result: DeviceResult) -> None:
+        """A device's snapshot is on disk and its writes start: until it finishes, the file says
+        ``interrupted`` with its snapshot, which is what it is if the run dies now. (The file may lag
+        the run: the journal's ``device-started`` line, on disk before the first write, is what
+        ``rollback --report`` trusts.)"""
+        doc = replace(result, status="interrupted", requests=[], notices=[],
+                      error=f"{WRITING}; restore it with: deployer rollback {result.snapshot}").to_json()
+        doc["parameters"] = [{**p, "status": "unverified" if p["status"] != "unchanged" else p["status"],
+                              "error": "the run did not finish: not read back" if p["status"] != "unchanged"
+                              else None} for p in doc["parameters"]]
+        part = json.dumps(doc).encode()
+        with self._cond:  # always before the same device's ``finished`` (one coroutine calls both)
+            self._writing.add(result.name)
+            self._parts[result.name] = part
             self._dirty = True
             self._cond.notify()
 
@@ -119,19 +142,21 @@ class LiveReport:
             for d in report.devices:
                 if d.name not in done:  # skipped by the rollout: never reported as finished
                     self._parts[d.name] = json.dumps(d.to_json()).encode()
-        write_atomic(self.path, self._document(report.summary()))
+        write_atomic(self.path, self._document(report.summary(), report.head()))
 
-    def _document(self, summary: dict[str, Any] | None = None) -> list[bytes]:
+    def _document(self, summary: dict[str, Any] | None = None, head: dict[str, Any] | None = None) -> list[bytes]:
         from ..report import Report
 
         with self._cond:
             parts = [self._parts[n] for n in self._order]
             finished = list(self._finished)
-        if summary is None:  # finished devices count for real, the rest as skipped, like the file says
+            writing = len(self._writing - {r.name for r in finished})
+        if summary is None:  # finished devices count for real, the rest as the file says (skipped or writing)
             summary = Report(self.recipe, finished, time.monotonic() - self._started).summary()
             summary["devices"] = len(self._order)
-            summary["skipped"] += len(self._order) - len(finished)
-        return _report_parts(self.recipe, parts, summary)
+            summary["interrupted"] += writing
+            summary["skipped"] += len(self._order) - len(finished) - writing
+        return _report_parts(self._head if head is None else head, parts, summary)
 
     def _write(self, text: list[bytes]) -> None:
         from ..report import write_atomic

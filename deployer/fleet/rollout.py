@@ -9,7 +9,7 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, TypeVar
 
-from ..execute.device import _apply_device, _results
+from ..execute.device import DeviceInterrupted, _apply_device, _results
 from ..execute.read import read_current
 from ..execute.session import ApplyOptions, Declined, StalePlan
 from ..load.diagnostics import UsageError
@@ -83,6 +83,9 @@ def skipped_result(job: Job, reason: str) -> DeviceResult:
     return r
 
 
+FAILURES = ("failed", "partial", "interrupted")  # what spends --max-failures
+
+
 @dataclass
 class Budget:
     """``--max-failures``: how many devices may end failed or partial before no new device starts."""
@@ -127,6 +130,10 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         finishing: Awaitable[object] | None = None
         try:
             r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
+        except DeviceInterrupted as e:
+            e.result.seconds = time.monotonic() - t
+            done[j.name] = e.result
+            raise
         except Declined:
             if len(jobs) == 1:
                 raise
@@ -140,7 +147,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
             r.parameters = list(_results(j.recipe).values())
         r.seconds = time.monotonic() - t
         done[j.name] = r
-        if r.status in ("failed", "partial"):
+        if r.status in FAILURES:
             budget.failures += 1
         return finished(r, finishing)
 
@@ -152,13 +159,29 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
 
     sizes = list(batches) if batches else [len(jobs)]
     pos = 0
-    for number, size in enumerate(sizes, 1):
-        batch = jobs[pos:pos + size]
-        pos += size
-        await on_buses(batch, parallel, one)
-        if stop is None and pos < len(jobs):
-            stop = batch_failed(number, batch, done)
+    try:
+        for number, size in enumerate(sizes, 1):
+            batch = jobs[pos:pos + size]
+            pos += size
+            await on_buses(batch, parallel, one)
+            if stop is None and pos < len(jobs):
+                stop = batch_failed(number, batch, done)
+    except asyncio.CancelledError:
+        # every device in flight has said what it holds (gather waits for them); the rest never started
+        report = Report(recipe_name, [done.get(j.name) or skipped_result(j, "not started: the run was interrupted")
+                                      for j in jobs], time.monotonic() - started)
+        raise RunInterrupted(report) from None
     return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
+
+
+class RunInterrupted(Exception):
+    """A run stopped early (Ctrl-C, SIGTERM, its task cancelled): ``report`` says what every device holds as far
+    as known (in flight: ``interrupted``, never started: ``skipped``). ``reason``: the signal's name, if any."""
+
+    def __init__(self, report: Report, reason: str = "cancelled") -> None:
+        super().__init__(f"the run was interrupted ({reason})")
+        self.report = report
+        self.reason = reason
 
 
 def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:

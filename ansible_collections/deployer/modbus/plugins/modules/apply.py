@@ -56,6 +56,10 @@ RETURN = r"""
 changed: {description: Whether any write request was sent., type: bool, returned: always}
 devices: {description: Per device its status and the parameters it changed or failed., type: list, returned: always}
 report: {description: The deployer report (schema deployer.report/1); not in check mode., type: dict, returned: success}
+run:
+  description: The run's id in the journal (STATE/audit.jsonl; deployer status lists it); not in check mode.
+  type: str
+  returned: success
 plans:
   description: 'Check mode: per device what would be written (deployer.plan/1).'
   type: list
@@ -115,14 +119,19 @@ def check(module, jobs):
 
 
 def apply(module, rec, jobs):
-    from deployer.api import run_fleet_async
+    from deployer.api import RunInterrupted, run_fleet_async
     from deployer.execute.session import ApplyOptions
 
     p = module.params
     options = ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"])
-    report = asyncio.run(run_fleet_async(jobs, recipe_name=rec.path or rec.name, parallel=p["parallel"],
-                                         batch=p.get("batch"), max_failures=p.get("max_failures"), options=options,
-                                         report_path=p.get("report")))
+    interrupted = None
+    try:  # one journaled run (deployer status sees it); SIGINT/SIGTERM end it with its report
+        report = asyncio.run(run_fleet_async(jobs, recipe_name=rec.path or rec.name, parallel=p["parallel"],
+                                             batch=p.get("batch"), max_failures=p.get("max_failures"),
+                                             options=options, report_path=p.get("report"), via="ansible",
+                                             signals=True))
+    except RunInterrupted as e:
+        report, interrupted = e.report, e
     devices, diffs, problems = [], [], []
     for d in report.devices:
         changed = [(q.name, q.before or "?", q.after or q.desired) for q in d.parameters
@@ -137,7 +146,9 @@ def apply(module, rec, jobs):
             problems.append(f"{d.name} {d.status}" + (f": {what}" if what else "") + (f" - {d.error}" if d.error
                                                                                      else ""))
     result = {"changed": any(d.write_requests for d in report.devices), "devices": devices,
-              "report": report.to_json(), "diff": diffs}
+              "report": report.to_json(), "diff": diffs, "run": report.run}
+    if interrupted is not None:
+        problems.insert(0, f"{interrupted} (run {report.run} in {report.state_dir})")
     if problems:
         module.fail_json(msg="; ".join(problems), **result)
     module.exit_json(**result)
