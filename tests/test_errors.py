@@ -94,7 +94,8 @@ def test_no_decision_is_taken_on_message_text() -> None:
 
 
 def test_the_text_check_finds_what_it_looks_for() -> None:
-    code = 'try:\n    pass\nexcept Exception as e:\n    if str(e).startswith("cannot") or "x" in str(e):\n        pass\n'
+    code = ('try:\n    pass\nexcept Exception as e:\n'
+            '    if str(e).startswith("cannot") or "x" in str(e):\n        pass\n')
     assert _text_decisions(ast.parse(code)) == [4, 4]
 
 
