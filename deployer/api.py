@@ -24,19 +24,21 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from .errors import RunInterrupted
 from .execute.read import read_current
 from .execute.session import ApplyOptions
 from .fleet.inventory import Inventory, fleet_jobs, load_inventory
-from .fleet.rollout import Job, ReadJob, RunInterrupted, read_many
+from .fleet.rollout import Job, ReadJob, read_many
 from .load.diagnostics import InputError, UsageError
 from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planner import make_plan
 from .profile import Profile, resolve_profile
-from .recipe.loader import Entry, Recipe, load_recipe, recipe_text, with_overrides
+from .recipe.loader import Entry, Recipe, load_recipe, with_overrides
+from .recipe.text import recipe_text
 from .report import DeviceResult, Report
 from .run.runner import ensure_files, run_async
-from .transport.clients import BadURL, DeviceURL, TransportError, describe, parse_url
+from .transport.clients import DeviceURL, TransportError, describe, parse_url
 
 __all__ = [
     "ApplyOptions",
@@ -94,10 +96,7 @@ def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: i
     """Parse a device URL (``tcp://HOST:PORT``, ``rtu:///dev/ttyUSB0?baudrate=19200`` ...); UsageError if bad."""
     if isinstance(url, DeviceURL):
         return url
-    try:
-        return parse_url(url, timeout=timeout, retries=retries)
-    except BadURL as e:
-        raise UsageError(str(e)) from None
+    return parse_url(url, timeout=timeout, retries=retries)  # BadURL is a UsageError
 
 
 def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) -> tuple[DeviceURL, int]:

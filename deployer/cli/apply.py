@@ -90,8 +90,9 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               batch: str | None = None, max_failures: str | None = None, command: str = "apply",
               to_other_device: bool = False) -> int:
     """apply / rollback: everything validated, then confirmed, then run by the library (``run.runner``)."""
+    from ..errors import RunInterrupted
     from ..execute.session import ApplyOptions
-    from ..fleet.rollout import Job, RunInterrupted
+    from ..fleet.rollout import Job
     from ..planning.planfile import load_plan
     from ..recipe.loader import load_recipe
     from ..run.rollback import report_jobs, snapshot_job

@@ -9,10 +9,10 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, TypeVar
 
+from ..errors import RunInterrupted, UsageError
 from ..execute.device import DeviceInterrupted, _apply_device, _results
 from ..execute.read import read_current
 from ..execute.session import ApplyOptions, Declined, StalePlan
-from ..load.diagnostics import UsageError
 from ..profile import Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..report import DeviceResult, Report
@@ -173,15 +173,6 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         raise RunInterrupted(report) from None
     return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
 
-
-class RunInterrupted(Exception):
-    """A run stopped early (Ctrl-C, SIGTERM, its task cancelled): ``report`` says what every device holds as far
-    as known (in flight: ``interrupted``, never started: ``skipped``). ``reason``: the signal's name, if any."""
-
-    def __init__(self, report: Report, reason: str = "cancelled") -> None:
-        super().__init__(f"the run was interrupted ({reason})")
-        self.report = report
-        self.reason = reason
 
 
 def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:

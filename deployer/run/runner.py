@@ -28,9 +28,10 @@ import threading
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 
+from ..errors import RunInterrupted
 from ..execute.session import ApplyOptions, Declined, StalePlan
 from ..fleet.livereport import LiveReport, not_finished
-from ..fleet.rollout import Job, RunInterrupted, apply_many, batch_sizes, failure_budget
+from ..fleet.rollout import Job, apply_many, batch_sizes, failure_budget
 from ..load.diagnostics import UsageError
 from ..report import DeviceResult, Report
 from ..state import journal
