@@ -14,7 +14,6 @@ from .base import (
     _n,
     _target,
     _unreachable,
-    cli,
     console,
     describe,
     device_options,
@@ -117,7 +116,7 @@ def _show(frame: bytes, framing: str) -> str:
     return frame.decode("ascii").strip() if framing == "ascii" else frame.hex(" ").upper()
 
 
-@cli.command()
+@click.command()
 @click.argument("recipe", type=click.Path(dir_okay=False))
 @device_options
 @click.option("--json", "as_json", is_flag=True, help="print the plan as JSON")

@@ -9,11 +9,11 @@ from typing import Any
 import click
 
 from ..load.diagnostics import EXIT_OK, EXIT_UNREACHABLE, UsageError
-from .base import _n, _output, cli, console, read_device
+from .base import _n, _output, console, read_device
 from .tables import Cell, show
 
 
-@cli.group()
+@click.group()
 def profiles() -> None:
     """The built-in device profiles, and importing new ones."""
 

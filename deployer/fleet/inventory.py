@@ -9,7 +9,7 @@ from __future__ import annotations
 import fnmatch
 import json
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -107,8 +107,33 @@ def not_ok(report_path: str) -> list[str]:
 
 
 def load_inventory(path: str | os.PathLike[str]) -> Inventory:
+    """Load and check an inventory file; profile paths in it are relative to it. Raises InputError."""
     p = os.fspath(path)
     data, src = yamlsrc.load(p)
+    return _inventory(p, data, src, os.path.dirname(os.path.abspath(p)))
+
+
+def inventory_from(devices: Iterable[Mapping[str, Any]], name: str = "<devices>") -> Inventory:
+    """An inventory from devices given in code (each a mapping with ``name``, ``url`` and the keys of an
+    inventory file's device), checked as a file is; profile paths are relative to the working directory."""
+    src = yamlsrc.Source(name)
+    errors: list[Diagnostic] = []
+    table: dict[str, Any] = {}
+    for i, spec in enumerate(devices):
+        rest = {k: v for k, v in spec.items() if k != "name" and v is not None}
+        dev = spec.get("name")
+        if not isinstance(dev, str) or not dev:
+            errors.append(src.error((i,), f"device {i + 1}: a device needs a name"))
+        elif dev in table:
+            errors.append(src.error((i,), f"device {dev!r} is listed twice"))
+        else:
+            table[dev] = rest
+    if errors:
+        raise InputError(errors)
+    return _inventory(name, {"devices": table}, src, os.getcwd())
+
+
+def _inventory(p: str, data: Any, src: yamlsrc.Source, base: str) -> Inventory:
     if not isinstance(data, dict):
         raise InputError([src.error((), "an inventory must be a mapping (defaults: ..., devices: ...)")])
     errors: list[Diagnostic] = schema.validate(data, "inventory", src)
@@ -119,7 +144,7 @@ def load_inventory(path: str | os.PathLike[str]) -> Inventory:
     for name, spec in data["devices"].items():
         prof = spec.get("profile", defaults.get("profile"))
         if prof is not None and is_profile_path(prof):
-            prof = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(p)), prof))
+            prof = os.path.normpath(os.path.join(base, prof))
         overrides = tuple(e for k, v in (spec.get("parameters") or {}).items()
                           for e in expand(k, v, src, ("devices", name, "parameters", k)))
         devices.append(FleetDevice(

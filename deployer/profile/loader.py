@@ -40,7 +40,7 @@ def builtin_profile(id_: str) -> Profile:
     path = os.path.join(_BUILTIN_DIR, f"{id_}.yaml")
     if not os.path.isfile(path):
         raise UsageError(unknown_profile(id_))
-    prof = load_profile(path)
+    prof = load_profile_file(path)
     return replace(prof, source=None)
 
 
@@ -59,7 +59,7 @@ def resolve_profile(ref: str, relative_to: str | os.PathLike[str] | None = None,
         if not os.path.isfile(os.path.join(_BUILTIN_DIR, f"{ref}.yaml")):
             raise UsageError(unknown_profile(ref, relative_to, kind))
         return builtin_profile(ref)
-    return load_profile(os.path.normpath(os.path.join(_profile_base(relative_to), ref)))
+    return load_profile_file(os.path.normpath(os.path.join(_profile_base(relative_to), ref)))
 
 
 def parse_register(value: object) -> int:
@@ -101,7 +101,16 @@ def _hex(n: int) -> str:
     return f"0x{n:04X}"
 
 
-def load_profile(path: str | os.PathLike[str], text: str | None = None) -> Profile:
+def load_profile(ref: str | os.PathLike[str]) -> Profile:
+    """A profile by reference: a built-in id (``example-inverter``) or a profile file's path.
+
+    Raises InputError (an invalid file, every problem with its position) or UsageError (an
+    unknown built-in id). A reference is a file when it ends in .yaml/.yml/.json or has a slash.
+    """
+    return resolve_profile(os.fspath(ref))
+
+
+def load_profile_file(path: str | os.PathLike[str], text: str | None = None) -> Profile:
     """Load and check a profile file (or ``text`` shown as that file); all problems at once as an InputError."""
     p = os.fspath(path)
     if text is None:
