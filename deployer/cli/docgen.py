@@ -396,7 +396,7 @@ def render_page(name: str) -> str:
            "key's entry below on the command line.", ""]
     for i, ex in enumerate(root.get("examples", [])):
         out += ["## Example" + (f" {i + 1}" if len(root["examples"]) > 1 else ""), ""]
-        if name == "inventory" and _names_files(ex):  # its recipe and profile files are the reader's: the docs test cannot validate it alone
+        if name == "inventory" and _names_files(ex):  # names the reader's files: not checkable on its own
             out += ["<!-- example: partial -->"]
         out += [_example_block(name, ex)]
     out += ["## Keys", "", "| key | type | required | default |", "|---|---|---|---|"]
