@@ -14,7 +14,7 @@ import pytest
 
 from deployer.cli.files import validate_file
 from deployer.fleet.inventory import load_inventory
-from deployer.load import yamlsrc
+from deployer.load import schema, yamlsrc
 from deployer.load.diagnostics import InputError
 from deployer.profile import builtin_profile, load_profile
 from deployer.testing.simulator import Simulator
@@ -129,7 +129,7 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
                              "--state-dir", state)
         assert code == 0, err
         data = json.loads(out)
-        jsonschema.validate(data, yamlsrc.schema("report"))
+        jsonschema.validate(data, schema.schema("report"))
         assert data["recipe"] is None  # no one recipe: each device says its own
         by = {d["name"]: d for d in data["devices"]}
         assert by["zone-1"]["recipe"] == str(tmp_path / "recipes" / "zone.yaml")

@@ -13,7 +13,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from ..load import yamlsrc
+from ..load import schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
 from ..profile import is_profile_path
 from ..recipe.loader import Entry, Recipe, expand, load_recipe, with_overrides
@@ -121,7 +121,7 @@ def load_inventory(path: str | os.PathLike[str]) -> Inventory:
     data, src = yamlsrc.load(p)
     if not isinstance(data, dict):
         raise InputError([src.error((), "an inventory must be a mapping (defaults: ..., devices: ...)")])
-    errors: list[Diagnostic] = yamlsrc.validate(data, "inventory", src)
+    errors: list[Diagnostic] = schema.validate(data, "inventory", src)
     if errors:
         raise InputError(errors)
     here = os.path.dirname(os.path.abspath(p))
@@ -240,7 +240,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
     said once and naming the devices it concerns. ``require_recipe`` False (validate): a device without
     a recipe is checked for what it has (profile, URL) and gets no job.
     """
-    from ..transport.clients import BadURL, parse_url
+    from ..transport.clients import parse_url
     from .rollout import Job
 
     jobs: list[Job] = []
@@ -279,7 +279,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
                         jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit))
             except InputError as e:
                 found = [_at_inventory(inv, dev, d) for d in e.diagnostics]
-            except (BadURL, UsageError) as e:
+            except UsageError as e:  # BadURL too
                 found = [Diagnostic(inv.path, *dev.where, str(e))]
         for d in found:
             concerns.setdefault(d, []).append(dev.name)
