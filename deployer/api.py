@@ -338,15 +338,17 @@ def check_writable(folder: str, what: str) -> None:
         raise UsageError(f"cannot write {what}: {e.strerror}") from None
 
 
-def fleet_jobs(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None,
+def fleet_jobs(recipe: Recipe | None, inventory: str | Inventory, *, limit: str | None = None,
                timeout: float | None = None, retries: int | None = None, unit: int | None = None) -> list[Job]:
-    """One checked job per selected device (the recipe with the device's profile and overrides).
+    """One checked job per selected device: ``recipe`` (None: each device's own from the inventory) with
+    the device's profile and overrides.
 
     ``inventory``: a file or an Inventory (``inventory_from``); ``limit``: names, groups, globs, ``!x``,
     ``@REPORT.json`` (as ``--limit``). ``timeout``, ``retries`` and ``unit`` override every device's.
 
     Raises:
-        InputError: an invalid inventory, or a device's profile, overrides or URL (all devices at once).
+        InputError: an invalid inventory, or devices that cannot have their job (profile, recipe, overrides,
+            URL), naming the devices, all at once.
         UsageError: nothing selected, or a ``limit`` word that matches nothing.
     """
     inv = inventory if isinstance(inventory, Inventory) else load_inventory(inventory)
@@ -356,13 +358,16 @@ def fleet_jobs(recipe: Recipe, inventory: str | Inventory, *, limit: str | None 
     return jobs
 
 
-async def apply_fleet_async(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None,
+async def apply_fleet_async(recipe: Recipe | None, inventory: str | Inventory, *, limit: str | None = None,
                             parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
                             options: ApplyOptions | None = None, report_path: str | None = None,
                             on_start: Callable[[Job], None] | None = None,
                             on_done: Callable[[DeviceResult], None] | None = None) -> Report:
-    """Apply to the devices of an inventory (``limit`` selects): staged, with a failure budget, see ``run_fleet``."""
-    return await run_fleet_async(fleet_jobs(recipe, inventory, limit=limit), recipe_name=recipe.path or recipe.name,
+    """Apply to the devices of an inventory (``limit`` selects): staged, with a failure budget, see ``run_fleet``.
+
+    ``recipe`` None: each device gets the recipe the inventory gives it."""
+    return await run_fleet_async(fleet_jobs(recipe, inventory, limit=limit),
+                                 recipe_name=None if recipe is None else recipe.path or recipe.name,
                                  parallel=parallel, batch=batch, max_failures=max_failures, options=options,
                                  report_path=report_path, on_start=on_start, on_done=on_done)
 
@@ -382,7 +387,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
                                   report_path=report_path)
     live = None
     if report_path:
-        live = LiveReport(report_path, recipe_name, not_finished(jobs))
+        live = LiveReport(report_path, recipe_name, not_finished(jobs, sizes))
 
     def done(r: DeviceResult) -> None:
         if live is not None:
@@ -401,8 +406,9 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     return report
 
 
-def apply_fleet(recipe: Recipe, inventory: str | Inventory, **kw: Any) -> Report:
-    """Apply to the devices of an inventory; ``kw`` as for ``apply_fleet_async``.
+def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) -> Report:
+    """Apply to the devices of an inventory; ``kw`` as for ``apply_fleet_async`` (``recipe`` None: each device's
+    own from the inventory).
 
     Raises:
         InputError: an invalid inventory, or a device's profile or overrides (all devices checked first).
