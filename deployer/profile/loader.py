@@ -78,6 +78,7 @@ def parse_register(value: object) -> int:
 # 3xxxx input registers, 4xxxx holding registers)
 _MODICON_DIGIT = {"coil": 0, "discrete": 1, "input": 3, "holding": 4}
 _TABLE_WORDS = {"coil": "coil", "discrete": "discrete-input", "input": "input-register", "holding": "holding-register"}
+_PLURAL = {"coil": "coils", "discrete": "discrete inputs", "input": "input registers", "holding": "holding registers"}
 
 
 def wire_address(number: int, addressing: str, register_type: str = "holding") -> int:
@@ -101,8 +102,7 @@ def wire_address(number: int, addressing: str, register_type: str = "holding") -
     if other == "input" and register_type == "holding":
         hint = "; 3xxxx references are input registers, which cannot be written"
     elif other is not None and other != "coil":
-        hint = (f"; {_MODICON_DIGIT[other]}xxxx references are {_TABLE_WORDS[other]}s: "
-                f"set register_type: {other}")
+        hint = f"; {_MODICON_DIGIT[other]}xxxx references are {_PLURAL[other]}: set register_type: {other}"
     elif register_type == "holding" and number < 40001:
         hint = "; for 0-based addresses use addressing: address, for 1-based numbers addressing: register-number"
     else:
@@ -177,9 +177,9 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         table = spec.get("register_type", "holding")
         local: list[Diagnostic] = []
         if "type" not in spec and table not in model.BIT_TABLES:
-            local.append(src.error(at, f"{name}: 'type' is required (a {table} register's uint16, int32, "
-                                       "float32 ...); only coils and discrete inputs default to bool"))
-        type_ = spec.get("type", codec.BOOL)
+            local.append(src.error(at, f"{name}: 'type' is required for {_PLURAL[table]} (uint16, int32, "
+                                       "float32 ...); only coils and discrete inputs are bool without it"))
+        type_ = spec.get("type", codec.BOOL if table in model.BIT_TABLES else "uint16")
         order, swap = _layout(spec, default_layout, at, src, local)
         access = spec.get("access", "read-only" if table in ("discrete", "input") else "read-write")
         mask = 0
@@ -191,8 +191,8 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
                 if key in spec:
                     local.append(src.error((*at, key), f"'{key}' does not apply to a {table} (one bit, 0 or 1)"))
         if table in ("discrete", "input") and access != "read-only":
-            local.append(src.error((*at, "access"), f"a {'discrete input' if table == 'discrete' else 'input register'}"
-                                                    " is read-only (it cannot be written)"))
+            what = "a discrete input" if table == "discrete" else "an input register"
+            local.append(src.error((*at, "access"), f"{what} is read-only (it cannot be written)"))
         if table in model.BIT_TABLES:
             pass
         elif "bits" in spec or "mask" in spec:
