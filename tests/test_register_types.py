@@ -18,9 +18,8 @@ from deployer.execute.device import apply_device
 from deployer.execute.session import ApplyOptions
 from deployer.load.diagnostics import InputError
 from deployer.planning.frames import request_frame, response_frame
-from deployer.planning.model import ReadRequest, WriteRequest
+from deployer.planning.model import ReadRequest, Target, WriteRequest
 from deployer.planning.planner import make_plan, plan_reads
-from deployer.planning.model import Target
 from deployer.profile import Profile, load_profile
 from deployer.recipe.loader import load_recipe
 from deployer.testing.simulator import Simulator, SimulatorThread
@@ -315,7 +314,8 @@ def test_simulator_refuses_like_a_device(plc: Profile, tmp_path: Path) -> None:
 
 def test_simulator_counts_coil_limits(tmp_path: Path) -> None:
     body = "".join(f"  c{i}: {{register: {i}, register_type: coil}}\n" for i in range(20))
-    prof = profile_from(tmp_path, f"profile: c\nlimits: {{max_write_coils: 8, max_read_coils: 10}}\nparameters:\n{body}")
+    prof = profile_from(tmp_path, f"profile: c\nlimits: {{max_write_coils: 8, max_read_coils: 10}}\n"
+                                  f"parameters:\n{body}")
 
     async def run(sim: Simulator) -> list[int]:
         t = tp.open_transport(sim.url + "?timeout=2")
