@@ -18,7 +18,6 @@ from .base import (
     _fleet,
     _n,
     _target,
-    cli,
     console,
     device_options,
     fleet_option,
@@ -110,9 +109,16 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         jobs, notices = report_jobs(from_reports, limit=limit, force=force, timeout=timeout, retries=retries)
         for n in notices:
             click.echo(n, err=True)
-        label = from_reports[0] if len(from_reports) == 1 else ", ".join(from_reports)
+        label: str | None = from_reports[0] if len(from_reports) == 1 else ", ".join(from_reports)
+    elif source is None:  # each device's recipe from the inventory
+        if not inventory:
+            raise UsageError(f"pass {'SNAPSHOT' if command == 'rollback' else 'RECIPE'}, or --inventory FILE "
+                             "whose devices name their recipes")
+        if device:
+            raise UsageError("--device and --inventory exclude each other")
+        label = None
+        jobs = _fleet(None, inventory, limit, timeout, retries, unit)
     elif command == "rollback":
-        assert source is not None
         if inventory:
             raise UsageError(f"{source} is one device's snapshot: it restores only the device it was taken from. "
                              "To roll back a fleet run, use: deployer rollback --from-report REPORT.json")
@@ -120,7 +126,6 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         job, moved = snapshot_job(source, device=device, unit=unit, timeout=timeout, retries=retries, force=force)
         jobs.append(job)
     else:
-        assert source is not None
         label = source
         if _is_plan_file(source):
             if inventory or write_all:
@@ -170,7 +175,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     interrupted = None
     try:
         if fleet_run:
-            report = _run_fleet(jobs, kw, err, live=err.is_terminal and yes)
+            report = _run_fleet(jobs, kw, err, live=err.is_terminal and yes, staged=bool(batch))
         else:
             report = asyncio.run(run_async(jobs, **kw))
     except RunInterrupted as e:
@@ -181,7 +186,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     return report.exit_code
 
 
-def _run_fleet(jobs: list[Job], kw: dict[str, Any], err: Console, *, live: bool) -> Report:
+
+def _run_fleet(jobs: list[Job], kw: dict[str, Any], err: Console, *, live: bool, staged: bool) -> Report:
     """A fleet run with its progress display (a live one on a terminal, else a line per device)."""
     import gc
 
@@ -195,7 +201,7 @@ def _run_fleet(jobs: list[Job], kw: dict[str, Any], err: Console, *, live: bool)
         gc.freeze()
         gc.set_threshold(20_000, 20, 10)
     # a live display on a terminal (not while asking questions), else a line per device
-    progress = FleetProgress(len(jobs), err, live=live)
+    progress = FleetProgress(len(jobs), err, live=live, staged=staged)
     with progress:
         return asyncio.run(run_async(jobs, on_start=lambda j: progress.start(j.name), on_done=progress.device_done,
                                      **kw))
@@ -245,7 +251,8 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
                      help="staged rollout: batch sizes (count or % of the selected devices; the last repeats); "
                           "each batch finishes before the next, a batch with no ok device ends the rollout"),
         click.option("--max-failures", metavar="N|P%",
-                     help="after this many devices ended failed or partial, start no new device"),
+                     help="after this many devices did not end ok (failed, partial or unreachable count; skipped "
+                          "ones never), start no new device"),
         parallel_option,
         click.option("--on-error", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
                      help="after a rejected value: send the rest, or skip it"),
@@ -261,15 +268,17 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
     return device_options(f)
 
 
-@cli.command()
-@click.argument("source", metavar="RECIPE|PLAN.json", type=click.Path(dir_okay=False))
+@click.command()
+@click.argument("source", metavar="[RECIPE|PLAN.json]", required=False, type=click.Path(dir_okay=False))
 @apply_options
-def apply(source: str, **kw: Any) -> int:
-    """Write a recipe (or a saved plan) to a device, read it back, report what it holds."""
+def apply(source: str | None, **kw: Any) -> int:
+    """Write a recipe (or a saved plan) to a device, read it back, report what it holds.
+
+    With --inventory and no RECIPE, each device gets its recipe from the inventory."""
     return run_apply(source, **kw)
 
 
-@cli.command()
+@click.command()
 @click.argument("snapshot", required=False, type=click.Path(dir_okay=False, exists=True))
 @apply_options
 @click.option("--from-report", "from_reports", multiple=True, type=click.Path(dir_okay=False), metavar="RUN.json",
@@ -306,7 +315,7 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
     return run_apply(snapshot, from_reports=from_reports, command="rollback", **kw)
 
 
-@cli.command()
+@click.command()
 @click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
               help="where snapshots and the audit log are")
 @click.option("--json", "as_json", is_flag=True, help="print the runs that need a look as JSON")

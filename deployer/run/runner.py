@@ -114,7 +114,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     run_id = journal.new_run_id()
     journal.run_started(state_dir, run_id, command=command, argv=argv, recipe=applied, via=via,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
-    live = LiveReport(report_path, label, not_finished(jobs), run=run_id, state_dir=state_dir) \
+    live = LiveReport(report_path, label, not_finished(jobs, sizes), run=run_id, state_dir=state_dir) \
         if report_path else None
     opts = replace(opts, run_id=run_id, applied=applied, state_dir=state_dir,
                    on_writing=_both(opts.on_writing, live.writing if live is not None else None))

@@ -59,11 +59,13 @@ def run_started(state_dir: str, run: str, *, command: str, argv: Sequence[str], 
 
 
 def device_started(run: str, *, name: str, url: str, unit: int, plan_digest: str,
-                   restoring: str | None = None) -> dict[str, Any]:
+                   batch: int | None = None, restoring: str | None = None) -> dict[str, Any]:
     """The ``device-started`` record, without its ``snapshot`` (``durable`` adds the file's final path).
-    ``restoring``: a rollback's snapshot that this device is being restored from."""
+    ``batch``: a fleet run's batch number (not in the record of a single device's run); ``restoring``:
+    a rollback's snapshot that this device is being restored from."""
     rec: dict[str, Any] = {"event": "device-started", "run": run, "time": _now(), "name": name, "url": url,
-                           "unit": unit, "snapshot": None, "plan_sha256": plan_digest}
+                           "unit": unit, **({"batch": batch} if batch is not None else {}), "snapshot": None,
+                           "plan_sha256": plan_digest}
     if restoring is not None:
         rec["restoring"] = restoring
     return rec
@@ -75,11 +77,15 @@ def device_finished(run: str, res: DeviceResult) -> dict[str, Any]:
 
 
 def _device(d: DeviceResult) -> dict[str, Any]:
-    out = {"name": d.name, "url": d.url, "unit": d.unit, "status": d.status, "snapshot": d.snapshot,
+    out = {"name": d.name, "url": d.url, "unit": d.unit, **_batch(d), "status": d.status, "snapshot": d.snapshot,
            "written": _written(d), "write_requests": d.write_requests}
     if d.restored is not None:
         out["restored"] = d.restored
     return out
+
+
+def _batch(res: DeviceResult) -> dict[str, int]:
+    return {} if res.batch is None else {"batch": res.batch}
 
 
 def _written(res: DeviceResult) -> list[str]:
