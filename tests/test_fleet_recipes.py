@@ -118,10 +118,14 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)})
         before = {n: {p: s.read(p) for p in WANT[n]} for n, s in zip(NAMES, sims, strict=True)}
 
-        code, out, err = cli(capsys, "plan", "--inventory", inv, "--detailed-exitcode")
+        code, out, err = cli(capsys, "plan", "--inventory", inv, "--detailed-exitcode", "--per-device")
         assert code == 2, err
         assert "5 of 5 devices would change" in out
         assert "zone-2 " in out and "200 degC" in out and "25 s" in out
+        code, out, err = cli(capsys, "plan", "--inventory", inv)  # the summary: one line per distinct change
+        assert code == 0 and out.splitlines()[:2] == [
+            "1 device: P 0 percent -> 12 percent, I 0 s -> 120 s, D 0 s -> 30 s, setpoint 0 degC -> 180 degC",
+            "  zone-1"]
         assert writes(sims) == 0
 
         report = tmp_path / "run.json"
@@ -144,7 +148,7 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         code, out, err = cli(capsys, "diff", "--inventory", inv)
         assert code == 0, out + err
         sims[3].write("F08", (0, 1000))  # drive-2 moved on the panel
-        code, out, err = cli(capsys, "diff", "--inventory", inv)
+        code, out, err = cli(capsys, "diff", "--inventory", inv, "--per-device")
         assert code == 2 and "drift on 1 of 5 devices: drive-2" in out and "10 s" in out
 
         code, out, err = cli(capsys, "rollback", "--report", str(report), "--yes", "--state-dir", state)
