@@ -102,7 +102,7 @@ def print_frames(plan: Plan, out: Console) -> None:
     unit = plan.device.unit
     for i, w in enumerate(plan.writes, 1):
         names = ", ".join(w.parameters)
-        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {w.count} registers ({names})")
+        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {_n(w.count, 'register')} ({names})")
         framing: Framing
         for framing in ("rtu", "ascii", "tcp"):
             q = request_frame(w, unit, framing, transaction_id=i)

@@ -80,9 +80,11 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
                                "drift": [r.to_json() for r in rows]}, indent=2))
     elif rows:
         show(console(), ["parameter", "recipe", "device value", ""], drift_rows(rows))
-        console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
+        console().print(f"{len(drift)} of {_n(len(rec.desired), 'parameter')} "
+                        f"differ{'s' if len(drift) == 1 else ''} from the recipe")
     else:
-        console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
+        console().print("no drift: the device holds " + ("the recipe's value" if len(rec.desired) == 1 else
+                                                         f"all {len(rec.desired)} values of the recipe"))
     return EXIT_CHANGES if drift else EXIT_OK
 
 
@@ -218,7 +220,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
             f.write(text)
         written += 1
     down = _unreachable(values)
-    click.echo(f"{written} recipes written to {folder}" + (f"; {len(down)} unreachable: {', '.join(down)}"
+    click.echo(f"{_n(written, 'recipe')} written to {folder}" + (f"; {len(down)} unreachable: {', '.join(down)}"
                                                           if down else ""), err=True)
     return EXIT_UNREACHABLE if down else EXIT_OK
 

@@ -161,8 +161,9 @@ class Parameter:
         raw = codec.to_raw(value, self.codec_type, self.scale, self.offset, rounding)
         rng = self.type_range()
         if self.mask and rng and not rng[0] <= raw <= rng[1]:
+            width = codec.mask_shift(self.mask)[1]
             raise codec.CodecError(f"raw value {raw} does not fit in the field's "
-                                   f"{codec.mask_shift(self.mask)[1]} bits ({rng[0]}..{rng[1]})")
+                                   f"{width} bit{'s' if width != 1 else ''} ({rng[0]}..{rng[1]})")
         return raw
 
     def encode(self, raw: codec.Raw) -> tuple[int, ...]:
