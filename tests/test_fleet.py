@@ -331,7 +331,7 @@ def test_fleet_plan_and_diff_group_identical_changes(capsys: pytest.CaptureFixtu
         urls = {n: s.url for n, s in zip(names(6), sims[:6], strict=True)}
         urls["dead-1"] = f"tcp://127.0.0.1:{free_port()}"
         urls["dead-2"] = f"tcp://127.0.0.1:{free_port()}"
-        inv = inventory(tmp_path, urls, extra="  d06: {url: '%s', parameters: {F08: 20 s}}\n" % sims[6].url)
+        inv = inventory(tmp_path, urls, extra=f"  d06: {{url: '{sims[6].url}', parameters: {{F08: 20 s}}}}\n")
         for n, v in WANT.items():  # d05 already holds the recipe
             sims[5].write(n, v)
         sims[4].write("F08", (0, 1200))  # d04 needs only two of the three
@@ -522,7 +522,8 @@ def test_declining_one_device_of_a_fleet_skips_only_that_one(tmp_path: Path) -> 
 
     with fleet(3) as sims:
         rec = deployer.load_recipe(recipe(tmp_path))
-        jobs = deployer.api.fleet(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)}))
+        jobs = deployer.api.fleet_jobs(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims,
+                                                                                          strict=True)}))
 
         async def confirm(plan: object, res: deployer.DeviceResult) -> bool:
             return res.name != "d01"
