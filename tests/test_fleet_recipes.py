@@ -167,7 +167,8 @@ def test_a_recipe_for_one_type_over_a_mixed_line_names_the_devices_once(capsys: 
     # the RECIPE goes to every device, with each device's profile: the drives do not know P
     problem = [ln for ln in err.splitlines() if "unknown parameter 'P'" in ln]
     assert problem == [f"{zone}:4:3: error: unknown parameter 'P' in profile example-inverter "
-                       "(devices drive-1, drive-2, drive-3)"]
+                       "(devices drive-1, drive-2, drive-3; the inventory gives them recipes of their own: "
+                       "leave out RECIPE to use those)"]
     assert "nothing was sent to any device" in err
 
 
@@ -231,3 +232,21 @@ def test_counts_read_as_english_and_percent_as_a_symbol(capsys: pytest.CaptureFi
         sim.write("P", (100,))
         code, out, _ = cli(capsys, "diff", str(one), "--device", sim.url)
         assert code == 2 and "1 of 1 parameter differs from the recipe" in out and "10 %" in out
+
+
+def test_the_ansible_module_takes_the_inventorys_recipes(tmp_path: Path) -> None:
+    from ansible_collections.deployer.modbus.plugins.module_utils import deployer_common as common
+
+    class Module:
+        def __init__(self, **params: object) -> None:
+            self.params = {"timeout": None, "retries": None, "unit": None, "limit": None, **params}
+
+    inv = line(tmp_path, {n: "tcp://127.0.0.1:1502" for n in NAMES})
+    task = Module(inventory=inv)
+    assert common.recipe_of(task) is None  # no recipe, profile or parameters: each device's own
+    jobs = common.jobs_of(task, None)
+    assert {j.name: j.recipe.name for j in jobs} == {"zone-1": "zone", "zone-2": "zone", "drive-1": "drive",
+                                                     "drive-2": "drive", "drive-3": "drive"}
+    with pytest.raises(InputError, match=r"unknown parameter 'F07' in profile pid-controller \(devices zone-1, "
+                                         "zone-2; the inventory gives them recipes of their own"):
+        common.jobs_of(task, common.recipe_of(Module(inventory=inv, recipe=str(tmp_path / "recipes" / "drive.yaml"))))

@@ -309,7 +309,11 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
         for d in found:
             concerns.setdefault(d, []).append(dev.name)
     if concerns:
-        raise InputError(Diagnostic(d.path, d.line, d.col, f"{d.message} ({_devices(names)})")
+        # the RECIPE argument replaces the recipes the inventory gives: say so where that is likely the mistake
+        own = {d.name for d in inv.devices if recipe is not None and d.recipe is not None and d.recipe != recipe.path}
+        raise InputError(Diagnostic(d.path, d.line, d.col, f"{d.message} ({_devices(names)}"
+                                    + ("; the inventory gives them recipes of their own: leave out RECIPE to use "
+                                       "those" if set(names) <= own else "") + ")")
                          for d, names in concerns.items())
     return jobs
 
