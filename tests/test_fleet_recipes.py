@@ -109,6 +109,16 @@ def test_settings_come_from_device_then_groups_in_order_then_defaults(tmp_path: 
     assert values["drive-3"] == {"F07": "20 s", "F08": "25 s"}  # slow is listed after drives: it wins
     assert values["odd-1"] == {"F07": "15 s", "F08": "25 s"}  # here drives comes last
     assert by["odd-1"].unit == 9 and by["odd-1"].timeout == 3.0
+    # parameters merge per name: defaults < groups (in the device's order) < the device
+    small = tmp_path / "small.yaml"
+    small.write_text("defaults: {parameters: {F07: 1 s, F08: 1 s, stop_mode: ramp}, unit: 2}\n"
+                     "groups: {a: {parameters: {F08: 2 s}, unit: 3}, b: {parameters: {F08: 3 s, stop_mode: coast}}}\n"
+                     "devices:\n  x: {url: 'tcp://h', groups: [b, a], parameters: {F07: 4 s}}\n"
+                     "  y: {url: 'tcp://h', groups: [a, b, line9]}\n  z: {url: 'tcp://h'}\n")
+    got = {d.name: ({e.name: e.value for e in d.overrides}, d.unit) for d in load_inventory(small).devices}
+    assert got == {"x": ({"F07": "4 s", "F08": "2 s", "stop_mode": "coast"}, 3),
+                   "y": ({"F07": "1 s", "F08": "3 s", "stop_mode": "coast"}, 3),
+                   "z": ({"F07": "1 s", "F08": "1 s", "stop_mode": "ramp"}, 2)}
 
 
 def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str], tmp_path: Path,
@@ -177,13 +187,14 @@ def test_a_device_without_a_recipe_stops_the_run_before_anything_is_sent(capsys:
                                                                          sims: list[Simulator]) -> None:
     with Simulators(sims):
         inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)},
-                   "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:1', groups: [slow]}\n")
+                   "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:1', groups: [zone]}\n")
         for command in ("plan", "diff", "apply"):
             more = ["--yes", "--state-dir", str(tmp_path / "s")] if command == "apply" else []
             code, _, err = cli(capsys, command, "--inventory", inv, *more)
             assert code == 1, command
             assert f"{inv}:12:3: error: no recipe: give the device one" in err and "(device spare-1)\n" in err
-            assert f"{inv}:13:3: error: no recipe" in err and "(device spare-2)\n" in err
+            assert f"{inv}:13:3: error: no recipe" in err
+            assert "its group 'zone' has no entry under groups: (did you mean 'zones'?) (device spare-2)\n" in err
         assert sum(len(s.log) for s in sims) == 0  # not even read
         # leaving them out, the rest goes
         code, _, err = cli(capsys, "plan", "--inventory", inv, "--limit", "!spare-*")
