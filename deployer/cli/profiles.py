@@ -155,9 +155,12 @@ def profiles_export() -> None:
 def profiles_export_csv(profile: str, out: str | None) -> int:
     """A profile as a CSV register list ('profiles import csv' reads it back; wire addresses, tables as rows)."""
     from ..profile import resolve_profile
-    from ..profile.importers.spreadsheet import profile_to_csv
+    from ..profile.importers.spreadsheet import not_exported, profile_to_csv
 
     prof = resolve_profile(profile)
+    for what in not_exported(prof):
+        click.echo(f"warning: {prof.source or prof.id}: {what}: not in a register list; importing the list "
+                   "will not bring it back", err=True)
     _output(profile_to_csv(prof), out, f"{out}: {_n(len(prof.parameters), 'register row')} of profile {prof.id}")
     return EXIT_OK
 

@@ -762,8 +762,32 @@ def _safe_cell(v: object) -> object:
     return v
 
 
+def not_exported(profile: Any) -> list[str]:
+    """What a register list cannot say about ``profile`` (each a warning for 'profiles export csv')."""
+    from ..model import Limits
+
+    lost: list[str] = []
+    for what, items in (("identity check", profile.identity), ("precondition", profile.preconditions),
+                        ("unlock write", profile.unlock), ("lock write", profile.lock),
+                        ("commit action", profile.commit), ("stage wait", profile.stage_waits)):
+        if items:
+            lost.append(f"{len(items)} {what}{'' if len(items) == 1 else 's'}")
+    if profile.limits != Limits():
+        lost.append("the limits")
+    if profile.addressing != "address":
+        lost.append(f"addressing: {profile.addressing} (the list has wire addresses; they import as they are)")
+    offsets = [p.name for p in profile.parameters if p.offset]
+    if offsets:
+        lost.append(f"the offset of {len(offsets)} parameter{'' if len(offsets) == 1 else 's'} ({offsets[0]} ...)")
+    rounding = [p.name for p in profile.parameters if p.rounding]
+    if rounding:
+        lost.append(f"the rounding of {len(rounding)} parameter{'' if len(rounding) == 1 else 's'}")
+    return lost
+
+
 def profile_to_csv(profile: Any) -> str:
-    """The profile as a register list in the columns read_csv reads (wire addresses; tables as rows)."""
+    """The profile as a register list in the columns read_csv reads (wire addresses; tables as rows).
+    ``not_exported`` says what it leaves out."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(EXPORT_COLUMNS)
