@@ -8,7 +8,7 @@ from dataclasses import replace
 from decimal import Decimal
 from typing import Any
 
-from ..load import yamlsrc
+from ..load import schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
 from . import codec, units
 from .model import CommitAction, IdentityCheck, Limits, Parameter, Precondition, Profile
@@ -114,7 +114,7 @@ def profile_from_data(path: str, text: str, data: Any, src: yamlsrc.Source) -> P
     """A profile from its text already read as data (the importers compare that data with what they wrote)."""
     if not isinstance(data, dict):
         raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
-    errors = yamlsrc.validate(data, "profile", src)
+    errors = schema.validate(data, "profile", src)
     if errors:
         raise InputError(errors)
     return replace(_build_profile(data, src), digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
