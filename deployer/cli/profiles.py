@@ -199,7 +199,7 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
     except ValueError:
         address = -1
     if not 2 <= address <= 0xFFFF:
-        raise UsageError(f"--at {yamlsrc_clip(at)}: not a register address (40002, 0x9C42 or 9C42h)")
+        raise UsageError(f"--at {_clip(at)}: not a register address (40002, 0x9C42 or 9C42h)")
     if model is None and device is None:
         raise UsageError("give a MODEL (121, settings or a model JSON file), or --device URL to read the device's "
                          "models")
@@ -225,8 +225,8 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
         return _write_imported(draft, out, f"SunSpec model {model}", warnings)
 
 
-def yamlsrc_clip(text: str) -> str:
-    from ..load.yamlsrc import clip
+def _clip(text: str) -> str:
+    from ..load.messages import clip
 
     return clip(text)
 
@@ -235,7 +235,7 @@ def _whole(text: str, what: str) -> int:
     import re
 
     if not re.fullmatch(r"[-+]?[0-9]{1,9}", text.strip()):
-        raise UsageError(f"{yamlsrc_clip(what)}={yamlsrc_clip(text)}: a whole number")
+        raise UsageError(f"{_clip(what)}={_clip(text)}: a whole number")
     return int(text)
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
 
-from ..load import yamlsrc
+from ..load import messages, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError
 from .loader import profile_from_data
 from .model import Profile
@@ -114,10 +114,10 @@ _SAFE_CHAR = re.compile("[ !#-\\[\\]-~\u00a0-\u2027\u202a-\ud7ff\ue000-\ufefe\uf
 
 def _name_problem(name: str, pattern: re.Pattern[str]) -> str | None:
     if len(name) > MAX_NAME:
-        return f"of {len(name)} characters: at most {MAX_NAME} ({yamlsrc.clip(name, 40)})"
+        return f"of {len(name)} characters: at most {MAX_NAME} ({messages.clip(name, 40)})"
     if not pattern.match(name):
         allowed = "_ . -" if pattern is _PARAM_NAME else "_ -"
-        return f"{yamlsrc.clipped_repr(name, 60)}: letters, digits and {allowed}, starting with a letter or '_'"
+        return f"{messages.clipped_repr(name, 60)}: letters, digits and {allowed}, starting with a letter or '_'"
     return None
 
 
@@ -127,7 +127,7 @@ def _bad_values(v: Any) -> list[str]:
     if isinstance(v, Mapping):
         for k, x in v.items():
             if len(str(k)) > MAX_NAME:
-                out.append(f"the key {yamlsrc.clip(str(k), 40)} is longer than {MAX_NAME} characters")
+                out.append(f"the key {messages.clip(str(k), 40)} is longer than {MAX_NAME} characters")
             out.extend(_bad_values(x))
     elif isinstance(v, list | tuple):
         for x in v:

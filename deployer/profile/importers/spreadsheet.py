@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from typing import Any
 
-from ...load import yamlsrc
+from ...load import messages, yamlsrc
 from ...load.diagnostics import Diagnostic, InputError, UsageError
 from .. import codec, units
 from ..emit import MAX_DIGITS, Draft, Origin
@@ -99,7 +99,7 @@ def _key(header: str) -> str:
 
 def _show(text: str) -> str:
     """A cell's text in a message: quoted, cut, control characters visible."""
-    return yamlsrc.clipped_repr(text)
+    return messages.clipped_repr(text)
 
 
 @dataclass
@@ -238,11 +238,11 @@ def read_xlsx(path: str, *, profile_id: str, sheet: str | None = None, columns: 
     try:
         book = openpyxl.load_workbook(path, read_only=True, data_only=True)
     except Exception as e:  # openpyxl raises its own, zipfile's and XML errors for files it cannot read
-        raise InputError([Diagnostic(path, 1, 1, f"cannot read the workbook: {yamlsrc.clip(str(e), 200)}")]) from None
+        raise InputError([Diagnostic(path, 1, 1, f"cannot read the workbook: {messages.clip(str(e), 200)}")]) from None
     try:
         if sheet is not None and sheet not in book.sheetnames:
             raise InputError([Diagnostic(path, 1, 1, f"no sheet {_show(sheet)} (sheets: "
-                                                     f"{yamlsrc.clip(', '.join(book.sheetnames), 200)})")])
+                                                     f"{messages.clip(', '.join(book.sheetnames), 200)})")])
         ws = book[sheet] if sheet is not None else book.worksheets[0]
         where = f"{path}[{ws.title}]"
         part = getattr(ws, "_worksheet_path", None)  # openpyxl's read-only sheet knows its part in the zip
@@ -360,7 +360,7 @@ def _cell_value(el: Any, strings: list[str], v_tag: str, f_tag: str, is_tag: str
         return None, None if f is None else "=" + (f.text or "")
     if kind == "s":
         i = int(v) if v.isdigit() and len(v) <= 9 else -1
-        return (strings[i] if 0 <= i < len(strings) else f"#REF! (shared string {yamlsrc.clip(v, 20)})"), None
+        return (strings[i] if 0 <= i < len(strings) else f"#REF! (shared string {messages.clip(v, 20)})"), None
     if kind == "b":
         return ("true" if v.strip() == "1" else "false"), None
     if kind == "n":
@@ -380,7 +380,7 @@ def _draft(path: str, rows: Iterable[Row], *, profile_id: str, columns: Mapping[
     errors: list[Diagnostic] = []
     warnings: list[str] = []
     if byte_order and byte_order not in codec.LAYOUTS and byte_order not in codec.SWAPS:
-        raise UsageError(f"--byte-order {yamlsrc.clip(byte_order)}: expected one of "
+        raise UsageError(f"--byte-order {messages.clip(byte_order)}: expected one of "
                          f"{', '.join([*codec.LAYOUTS, *codec.SWAPS])}")
     if decimal not in (None, "comma", "point"):
         raise UsageError(f"decimal mark {_show(str(decimal))}: comma or point")
@@ -390,7 +390,7 @@ def _draft(path: str, rows: Iterable[Row], *, profile_id: str, columns: Mapping[
             wanted.setdefault(_key(k), ours)
     for ours, theirs in (columns or {}).items():
         if ours not in COLUMNS:
-            raise UsageError(f"--column {yamlsrc.clip(ours)}=...: unknown column; known: {', '.join(COLUMNS)}")
+            raise UsageError(f"--column {messages.clip(ours)}=...: unknown column; known: {', '.join(COLUMNS)}")
         for k in [k for k, v in wanted.items() if v == ours]:
             del wanted[k]
         wanted[_key(theirs)] = ours
@@ -424,7 +424,7 @@ def _draft(path: str, rows: Iterable[Row], *, profile_id: str, columns: Mapping[
             first = head_rows[0]
             where = columns_of(first.cells)
             missing = [c for c in REQUIRED if c not in where]
-            shown = yamlsrc.clip(", ".join(yamlsrc.clip(c, 30) for c in first.cells[:30]), 300)
+            shown = messages.clip(", ".join(messages.clip(c, 30) for c in first.cells[:30]), 300)
             raise InputError([Diagnostic(path, first.line, 1, f"no column for {', '.join(missing)} in the header "
                                                               f"({shown}); name it with --column {missing[0]}=HEADER")])
         for i, h in enumerate(header_row.cells):
@@ -467,7 +467,7 @@ def _one_row(path: str, row: Row, where: dict[str, int], seen: dict[str, int],
         return starts[i] if i < len(starts) else 1
 
     def err(col: str, message: str) -> None:
-        errors.append(Diagnostic(path, row.line, col_of(col), yamlsrc.clip_message(message)))
+        errors.append(Diagnostic(path, row.line, col_of(col), messages.clip_message(message)))
 
     def cell(col: str) -> str:
         i = where.get(col)
@@ -490,7 +490,7 @@ def _one_row(path: str, row: Row, where: dict[str, int], seen: dict[str, int],
         err("name", "empty name")
         return
     if name in seen:
-        err("name", f"'{yamlsrc.clip(name)}' is already defined on line {seen[name]}")
+        err("name", f"'{messages.clip(name)}' is already defined on line {seen[name]}")
         return
     seen[name] = row.line
     spec = _row_spec(name, raw_name, cell, err, decimal)

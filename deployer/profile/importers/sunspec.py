@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
 
-from ...load import yamlsrc
+from ...load import messages, yamlsrc
 from ...load.diagnostics import Diagnostic, InputError, UsageError
 from .. import units
 from ..emit import Draft, Origin
@@ -93,10 +93,10 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
     counts = dict(counts or {})
     for g, n in counts.items():
         if not 1 <= n < MAX_REGISTERS:
-            raise UsageError(f"--count {yamlsrc.clip(g)}={n}: a group repeats 1 to 65535 times")
+            raise UsageError(f"--count {messages.clip(g)}={n}: a group repeats 1 to 65535 times")
     for k, n in (scale_factors or {}).items():
         if n not in SF_RANGE:
-            raise UsageError(f"--sf {yamlsrc.clip(k)}={n}: a SunSpec scale factor is -10 to 10")
+            raise UsageError(f"--sf {messages.clip(k)}={n}: a SunSpec scale factor is -10 to 10")
     path = model_path(model)
     # JSON allows tabs where YAML (our loader, which keeps positions) does not: same columns with spaces
     data, src = yamlsrc.load(path, yamlsrc.read_text(path).expandtabs(1))
