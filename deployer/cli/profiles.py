@@ -234,7 +234,7 @@ def _clip(text: str) -> str:
 def _whole(text: str, what: str) -> int:
     import re
 
-    if not re.fullmatch(r"[-+]?[0-9]{1,9}", text.strip()):
+    if not re.fullmatch(r"[-+]?[0-9]{1,18}", text.strip()):
         raise UsageError(f"{_clip(what)}={_clip(text)}: a whole number")
     return int(text)
 
@@ -329,7 +329,10 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
     text = profile_skeleton(pid, output)
     if os.path.exists(output) and not force:
         raise UsageError(f"{output} exists; pass --force to overwrite it")
-    with open(output, "w", encoding="utf-8") as f:
-        f.write(text)
+    try:
+        with open(output, "w", encoding="utf-8") as f:
+            f.write(text)
+    except OSError as e:
+        raise UsageError(f"cannot write {_clip(output)}: {e.strerror or e}") from None
     click.echo(f"wrote {output}: fill it in from the manual, then run: deployer validate {output}", err=True)
     return EXIT_OK

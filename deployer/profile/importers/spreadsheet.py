@@ -35,6 +35,7 @@ MAX_ROWS = 131_072  # rows read, blank and comment rows included (a profile hold
 MAX_PARAMETERS = yamlsrc.MAX_ENTRIES
 MAX_COLUMNS = 256  # cells in one row
 MAX_CELL = 65_536  # characters in one cell
+MAX_XLSX_CELLS = 2_000_000  # cell elements of a sheet, empty ones included (65,536 rows of 30 columns)
 MAX_RECORD = 1 << 20  # characters in one CSV record (a row, with the lines a quoted cell spans)
 MAX_XLSX_BYTES = 32 * 1024 * 1024  # uncompressed bytes of a workbook's parts, summed (what the zip declares)
 MAX_XLSX_PARTS = 1000  # files in a workbook's zip
@@ -249,12 +250,11 @@ def read_xlsx(path: str, *, profile_id: str, sheet: str | None = None, columns: 
         if not isinstance(part, str):
             raise InputError([Diagnostic(where, 1, 1, "not a worksheet (a chart sheet?)")])
         strings = list(getattr(ws, "_shared_strings", None) or [])
-        with zipfile.ZipFile(path) as z:
-            rows = list(_sheet_rows(where, z, part, strings))
     finally:
         book.close()
-    return _draft(where, rows, profile_id=profile_id, columns=columns, addressing=addressing, byte_order=byte_order,
-                  decimal=decimal)
+    with zipfile.ZipFile(path) as z:
+        return _draft(where, _sheet_rows(where, z, part, strings), profile_id=profile_id, columns=columns,
+                      addressing=addressing, byte_order=byte_order, decimal=decimal)
 
 
 def _regular_file(path: str) -> None:
@@ -272,7 +272,6 @@ def _regular_file(path: str) -> None:
                                                  f"{MAX_XLSX_BYTES // (1024 * 1024)} MiB)")])
 
 
-_NS = "{http://schemas.openxmlformats.org/spreadsheetml/2006/main}"
 _REF = re.compile(r"([A-Z]{1,3})([0-9]{1,7})\Z")
 
 
@@ -283,93 +282,137 @@ def _column_number(letters: str) -> int:
     return n
 
 
-def _sheet_rows(where: str, z: zipfile.ZipFile, part: str, strings: list[str]) -> Iterator[Row]:
-    """The sheet's rows streamed from its XML, each cell freed once read: a row of a million cells, a cell at
-    XFD1048576 or a lying ``dimension`` cost what their XML costs, never a padded grid (openpyxl's read-only
-    rows are padded to the dimension's width)."""
-    import xml.etree.ElementTree as ET
+class _SheetReader:
+    """The sheet's XML read with expat's callbacks, keeping only the row being read: a row of a million
+    cells, a cell at XFD1048576 or a lying ``dimension`` cost what their XML costs, never a padded grid
+    (openpyxl's read-only rows are padded to the dimension's width) nor a tree of elements."""
 
-    row_tag, c_tag, v_tag, f_tag, is_tag, t_tag = (f"{_NS}{t}" for t in ("row", "c", "v", "f", "is", "t"))
-    n_rows = 0
-    line = 0
-    cells: dict[int, str] = {}
-    formulas: dict[int, str] = {}
-    col = 0
-    parent: Any = None
-    sheet_data: Any = None
+    def __init__(self, where: str, strings: list[str]) -> None:
+        self.where = where
+        self.strings = strings
+        self.done: list[Row] = []
+        self.n_rows = 0
+        self.n_cells = 0
+        self.line = 0
+        self.cells: dict[int, str] = {}
+        self.formulas: dict[int, str] = {}
+        self.col = 0
+        self.kind = "n"
+        self.value: list[str] | None = None  # text of the cell's <v> (or inline <t>)
+        self.formula: list[str] | None = None
+        self.text: list[str] | None = None  # the element whose characters are collected
+        self.has_formula = False
+        self.inline = False
+        self.in_phonetic = False
+
+    def start(self, tag: str, attrs: dict[str, str]) -> None:
+        tag = tag.rpartition(":")[2]
+        if tag == "c":
+            self.n_cells += 1
+            if self.n_cells > MAX_XLSX_CELLS:
+                raise _Stop(Diagnostic(self.where, self.line, self.col + 1, f"more than {MAX_XLSX_CELLS:,} cells, "
+                                                                            "empty ones included"))
+            ref = _REF.match(attrs.get("r", ""))
+            self.col = _column_number(ref[1]) if ref else self.col + 1
+            self.kind = attrs.get("t", "n")
+            self.value = self.formula = None
+            self.has_formula = self.inline = False
+        elif tag == "v":
+            self.value = self.text = []
+        elif tag == "f":
+            self.has_formula = True
+            self.formula = self.text = []
+        elif tag == "is":
+            self.inline = True
+            self.value = []
+        elif tag == "t" and self.inline and not self.in_phonetic:
+            self.text = self.value
+        elif tag == "rPh":
+            self.in_phonetic = True
+        elif tag == "row":
+            self.n_rows += 1
+            if self.n_rows > MAX_ROWS:
+                raise _Stop(Diagnostic(self.where, self.line + 1, 1, f"more than {MAX_ROWS:,} rows"))
+            r = attrs.get("r", "")
+            self.line = int(r) if r.isdigit() and len(r) <= 7 else self.line + 1
+            self.cells, self.formulas, self.col = {}, {}, 0
+
+    def chars(self, data: str) -> None:
+        if self.text is not None:
+            self.text.append(data)
+            if len(self.text) > 64 and sum(map(len, self.text)) > MAX_CELL:
+                raise _Stop(Diagnostic(self.where, self.line, self.col, f"a cell of more than {MAX_CELL:,} "
+                                                                         "characters"))
+
+    def end(self, tag: str) -> None:
+        tag = tag.rpartition(":")[2]
+        if tag in ("v", "f", "t"):
+            self.text = None
+        elif tag == "rPh":
+            self.in_phonetic = False
+        elif tag == "c":
+            value = self._value()
+            if value is None and not self.has_formula:
+                return
+            if self.col > MAX_COLUMNS:
+                raise _Stop(Diagnostic(self.where, self.line, self.col, f"a cell in column {self.col:,}; a register "
+                                                                        f"list has at most {MAX_COLUMNS} columns"))
+            if value is not None and len(value) > MAX_CELL:
+                raise _Stop(Diagnostic(self.where, self.line, self.col, f"a cell of {len(value):,} characters; at "
+                                                                        f"most {MAX_CELL:,}"))
+            self.cells[self.col] = value or ""
+            if value is None:
+                self.formulas[self.col - 1] = "=" + "".join(self.formula or [])
+        elif tag == "row":
+            width = max(self.cells, default=0)
+            self.done.append(Row(self.line, [self.cells.get(i, "") for i in range(1, width + 1)],
+                                 list(range(1, width + 1)), self.formulas or None))
+
+    def _value(self) -> str | None:
+        """The cell's saved value as text; None when it has none (empty, or a formula never calculated)."""
+        if self.inline:
+            return "".join(self.value or [])
+        v = "".join(self.value) if self.value is not None else ""
+        if v == "":
+            return None
+        if self.kind == "s":
+            i = int(v) if v.isdigit() and len(v) <= 9 else -1
+            return self.strings[i] if 0 <= i < len(self.strings) else f"#REF! (shared string {messages.clip(v, 20)})"
+        if self.kind == "b":
+            return "true" if v.strip() == "1" else "false"
+        if self.kind == "n":
+            try:
+                x = float(v)
+            except ValueError:
+                return v
+            return str(int(x)) if x.is_integer() and abs(x) < 1e16 else repr(x)
+        return v  # str (a formula's text result), e (an error such as #DIV/0!), d (an ISO date)
+
+
+def _sheet_rows(where: str, z: zipfile.ZipFile, part: str, strings: list[str]) -> Iterator[Row]:
+    """The sheet's rows, each yielded once read (bounds checked while the XML is read)."""
+    from xml.parsers import expat
+
+    reader = _SheetReader(where, strings)
+    parser = expat.ParserCreate()
+    parser.buffer_text = True
+    parser.StartElementHandler = reader.start
+    parser.EndElementHandler = reader.end
+    parser.CharacterDataHandler = reader.chars
     try:
         with z.open(part) as f:
-            for event, el in ET.iterparse(f, events=("start", "end")):
-                tag = el.tag
-                if event == "start":
-                    if tag == f"{_NS}sheetData":
-                        sheet_data = el
-                    elif tag == row_tag:
-                        n_rows += 1
-                        if n_rows > MAX_ROWS:
-                            raise _Stop(Diagnostic(where, line + 1, 1, f"more than {MAX_ROWS:,} rows"))
-                        r = el.get("r")
-                        line = int(r) if r is not None and r.isdigit() and len(r) <= 7 else line + 1
-                        cells, formulas, col, parent = {}, {}, 0, el
-                    continue
-                if tag == c_tag:
-                    ref = _REF.match(el.get("r") or "")
-                    col = _column_number(ref[1]) if ref else col + 1
-                    value, formula = _cell_value(el, strings, v_tag, f_tag, is_tag, t_tag)
-                    if parent is not None:
-                        parent.remove(el)  # the row keeps no cell it has read
-                    if value is None and formula is None:
-                        continue
-                    if col > MAX_COLUMNS:
-                        raise _Stop(Diagnostic(where, line, col, f"a cell in column {col:,}; a register list has "
-                                                                 f"at most {MAX_COLUMNS} columns"))
-                    if value is not None and len(value) > MAX_CELL:
-                        raise _Stop(Diagnostic(where, line, col, f"a cell of {len(value):,} characters; at most "
-                                                                 f"{MAX_CELL:,}"))
-                    cells[col] = value or ""
-                    if value is None and formula is not None:
-                        formulas[col - 1] = formula
-                elif tag == row_tag:
-                    if sheet_data is not None:
-                        sheet_data.remove(el)  # the sheet keeps no row it has read
-                    el.clear()
-                    width = max(cells, default=0)
-                    yield Row(line, [cells.get(i, "") for i in range(1, width + 1)], list(range(1, width + 1)),
-                              formulas or None)
-                    parent = None
-                elif tag != f"{_NS}sheetData" and parent is None:
-                    el.clear()
-    except ET.ParseError as e:
-        raise _Stop(Diagnostic(where, 1, 1, f"the sheet's XML ({part}) is broken at its line {e.position[0]}, "
-                                            f"column {e.position[1]}")) from None
+            while True:
+                chunk = f.read(1 << 16)
+                parser.Parse(chunk, not chunk)
+                yield from reader.done
+                reader.done.clear()
+                if not chunk:
+                    return
+    except expat.ExpatError as e:
+        raise _Stop(Diagnostic(where, 1, 1, f"the sheet's XML ({part}) is broken at its line {e.lineno}, column "
+                                            f"{e.offset + 1}: {expat.ErrorString(e.code)}")) from None
     except (zipfile.BadZipFile, OSError, EOFError) as e:
         raise _Stop(Diagnostic(where, 1, 1, f"cannot read the sheet from the workbook: {e}")) from None
-
-
-def _cell_value(el: Any, strings: list[str], v_tag: str, f_tag: str, is_tag: str, t_tag: str
-                ) -> tuple[str | None, str | None]:
-    """A cell's saved value as text (None: empty), and its formula when it has one but no saved value."""
-    kind = el.get("t", "n")
-    v = el.findtext(v_tag)
-    f = el.find(f_tag)
-    if kind == "inlineStr":
-        node = el.find(is_tag)
-        text = None if node is None else "".join(t.text or "" for t in node.iter(t_tag))
-        return text, None
-    if v is None or v == "":
-        return None, None if f is None else "=" + (f.text or "")
-    if kind == "s":
-        i = int(v) if v.isdigit() and len(v) <= 9 else -1
-        return (strings[i] if 0 <= i < len(strings) else f"#REF! (shared string {messages.clip(v, 20)})"), None
-    if kind == "b":
-        return ("true" if v.strip() == "1" else "false"), None
-    if kind == "n":
-        try:
-            x = float(v)
-        except ValueError:
-            return v, None
-        return (str(int(x)) if x.is_integer() and abs(x) < 1e16 else repr(x)), None
-    return v, None  # str (a formula's text result), e (an error such as #DIV/0!), d (an ISO date)
 
 
 # ------------------------------------------------------------------------------------------ the rows
