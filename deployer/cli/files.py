@@ -121,7 +121,7 @@ def docs_command(out_dir: str, check: bool) -> int:
     try:
         changed = write_pages(out_dir)
     except OSError as e:
-        raise UsageError(f"cannot write the pages into {clip(out_dir)}: {e.strerror or e}") from None
+        raise UsageError(f"cannot write the pages into {clip(out_dir, 300)}: {e.strerror or e}") from None
     click.echo(f"{len(changed)} page{'s' if len(changed) != 1 else ''} updated in {out_dir}", err=True)
     return EXIT_OK
 

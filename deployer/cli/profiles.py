@@ -225,10 +225,10 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
         return _write_imported(draft, out, f"SunSpec model {model}", warnings)
 
 
-def _clip(text: str) -> str:
+def _clip(text: str, limit: int = 60) -> str:
     from ..load.messages import clip
 
-    return clip(text)
+    return clip(text, limit)
 
 
 def _whole(text: str, what: str) -> int:
@@ -333,6 +333,6 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
         with open(output, "w", encoding="utf-8") as f:
             f.write(text)
     except OSError as e:
-        raise UsageError(f"cannot write {_clip(output)}: {e.strerror or e}") from None
+        raise UsageError(f"cannot write {_clip(output, 300)}: {e.strerror or e}") from None
     click.echo(f"wrote {output}: fill it in from the manual, then run: deployer validate {output}", err=True)
     return EXIT_OK

@@ -476,8 +476,8 @@ def _draft(path: str, rows: Iterable[Row], *, profile_id: str, columns: Mapping[
                 why = (f"a second '{used}' column (the first is column {header_row.starts[where[used]]})" if used
                        else f"not a column this importer knows; name it with --column OURS={_show(h.strip())} "
                             f"(ours: {', '.join(COLUMNS)})")
-                warnings.append(f"{path}:{header_row.line}:{header_row.starts[i]}: column {_show(h.strip())} is "
-                                "not used: " + why)
+                warnings.append(f"{path}:{header_row.line}:{header_row.starts[i]}: warning: column "
+                                f"{_show(h.strip())} is not used: {why}")
         seen: dict[str, int] = {}
         for row in it:
             _one_row(path, row, where, seen, parameters, errors, decimal)
@@ -580,8 +580,11 @@ def _row_spec(name: str, raw_name: str, cell: Callable[[str], str], err: Callabl
             err("bits", f"bits {_show(bits)}: a bit number (3) or a range (3..5)")
     if type_ == "string":
         n = cell("count")
-        if not _DIGITS.fullmatch(n) or int(n) < 1:
+        if not n:
             err("count", f"{name}: a string needs its register count in the 'count' column")
+            return None
+        if not _DIGITS.fullmatch(n) or not 1 <= int(n) <= 123:
+            err("count", f"{name}: count {_show(n)} is not a string's register count (1 to 123)")
             return None
         spec["count"] = int(n)
     if cell("byte_order"):
@@ -716,6 +719,9 @@ def _quantities(spec: dict[str, Any], cell: Callable[[str], str], err: Callable[
             spec["default"] = v
 
 
+_NUMBER = re.compile(r"([-+]?)([0-9.,]*)((?:[eE][-+]?[0-9]+)?)")
+
+
 def number(text: str, decimal: str | None = None) -> int | float:
     """A number cell as manuals write it: 10, -1.5, 0x1F, 1Fh, 1e3, 0,5 and 1.000,5 (decimal comma),
     1,000 and 1,234.5 (thousands separators); _Bad when it is none, or when ``3,000`` could be either
@@ -725,7 +731,9 @@ def number(text: str, decimal: str | None = None) -> int | float:
         raise _Bad(f"a number of {len(t):,} characters; at most {MAX_NUMBER}")
     if re.fullmatch(r"0[xX][0-9A-Fa-f]{1,16}|[0-9A-Fa-f]{1,16}[hH]", t):  # hex, as manuals write limits too
         return int(t[2:], 16) if t[:2].lower() == "0x" else int(t[:-1], 16)
-    m = re.fullmatch(r"([-+]?)([0-9.,]*)((?:[eE][-+]?[0-9]+)?)", t)
+    if t.lower().lstrip("+-") in ("inf", "infinity", "nan", "snan"):
+        raise _Bad(f"{_show(text)} is not a finite number")
+    m = _NUMBER.fullmatch(t)
     if m is None or not re.search(r"[0-9]", m[2]):
         raise _Bad(f"{_show(text)} is not a number")
     sign, body, exp = m[1], m[2], m[3]
