@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..load.diagnostics import EXIT_INVALID, InputError, UsageError
+from ..errors import EXIT_INVALID, DeployerError, InputError, UsageError
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -22,7 +22,49 @@ if TYPE_CHECKING:
     from ..transport.clients import DeviceURL
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class LazyGroup(click.Group):
+    """A group whose commands are imported when one runs (click's documented pattern), not at start-up.
+
+    ``lazy``: command name -> ``"module:object"``. ``--help`` imports every command's module for its
+    summary line; those modules import their heavy dependencies inside the commands.
+    """
+
+    def __init__(self, *args: Any, lazy: Mapping[str, str] | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.lazy = dict(lazy or {})
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted([*super().list_commands(ctx), *self.lazy])
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in self.lazy:
+            return super().get_command(ctx, cmd_name)
+        import importlib
+
+        module, _, attr = self.lazy[cmd_name].partition(":")
+        command = getattr(importlib.import_module(module), attr)
+        if not isinstance(command, click.Command):  # pragma: no cover - a wrong entry in the table below
+            raise TypeError(f"{self.lazy[cmd_name]} is not a click command")
+        return command
+
+
+_COMMANDS = {
+    "apply": "deployer.cli.apply:apply",
+    "demo": "deployer.cli.simulate:demo",
+    "diff": "deployer.cli.read:diff",
+    "docs": "deployer.cli.files:docs_command",
+    "explain": "deployer.cli.files:explain",
+    "plan": "deployer.cli.plan:plan",
+    "profiles": "deployer.cli.profiles:profiles",
+    "pull": "deployer.cli.read:pull",
+    "rollback": "deployer.cli.apply:rollback",
+    "simulate": "deployer.cli.simulate:simulate",
+    "status": "deployer.cli.apply:status",
+    "validate": "deployer.cli.files:validate",
+}
+
+
+@click.group(cls=LazyGroup, lazy=_COMMANDS, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="modbus-deployer")
 def cli() -> None:
     """Deploy parameter sets (recipes) to Modbus devices: plan, apply, verify, report."""
@@ -90,7 +132,7 @@ parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), defau
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
-    from ..transport.urls import BadURL, parse_url  # not transport: an offline plan does not import pymodbus
+    from ..transport.urls import parse_url  # not transport: an offline plan does not import pymodbus
 
     text = device or (recipe.device.url if recipe.device else None)
     u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
@@ -98,10 +140,7 @@ def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float
         if required:
             raise UsageError("no device: pass --device URL or set device.url in the recipe")
         return None, u
-    try:
-        return parse_url(text, timeout=timeout, retries=retries), u
-    except BadURL as e:
-        raise UsageError(str(e)) from None
+    return parse_url(text, timeout=timeout, retries=retries), u  # BadURL is a UsageError
 
 
 def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: int
@@ -137,11 +176,22 @@ def _unreachable(values: Mapping[str, object]) -> list[str]:
     return [n for n, v in values.items() if isinstance(v, Exception)]
 
 
-def _fleet(rec: Recipe, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
+def _fleet(rec: Recipe | None, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
            unit: int | None) -> list[Job]:
-    from ..api import fleet
+    from ..api import fleet_jobs
 
-    return fleet(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)
+    return fleet_jobs(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)
+
+
+def recipe_or_inventory(recipe: str | None, inventory: str | None, *, what: str = "RECIPE") -> Recipe | None:
+    """The command line's recipe, loaded; None when there is none and the inventory's devices name theirs."""
+    from ..recipe.loader import load_recipe
+
+    if recipe is not None:
+        return load_recipe(recipe)
+    if inventory is None:
+        raise UsageError(f"pass {what}, or --inventory FILE whose devices name their recipes")
+    return None
 
 
 _ARGV: list[str] = []  # the command line, for the audit log
@@ -165,21 +215,18 @@ def _main(argv: Sequence[str] | None) -> None:
     _ARGV[:] = list(argv) if argv is not None else sys.argv[1:]
     try:
         rv = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)
-    except click.exceptions.UsageError as e:  # DESIGN.md: usage errors exit 1, not click's 2
-        e.show()
-        sys.exit(EXIT_INVALID)
     except click.exceptions.Abort:
         click.echo("aborted", err=True)
         sys.exit(EXIT_INVALID)
-    except click.exceptions.ClickException as e:
+    except click.exceptions.ClickException as e:  # usage errors exit 1 (docs/design.md), not click's 2
         e.show()
         sys.exit(EXIT_INVALID)
-    except InputError as e:
-        report_input_error(e)
-        sys.exit(EXIT_INVALID)
-    except UsageError as e:
-        click.echo(f"error: {e}", err=True)
-        sys.exit(EXIT_INVALID)
+    except DeployerError as e:  # each class carries its exit code (deployer/errors.py)
+        if isinstance(e, InputError):
+            report_input_error(e)
+        else:
+            click.echo(f"error: {e}", err=True)
+        sys.exit(e.exit_code)
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)
         sys.exit(130)

@@ -10,11 +10,12 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
+import os
 from collections import deque
 from collections.abc import Awaitable
 from dataclasses import dataclass
 
-from ..load.diagnostics import UsageError
+from ..errors import Declined, DeviceGone, IdentityMismatch, StalePlan, UsageError
 from ..planning.model import Plan, ReadRequest, Target
 from ..planning.planfile import plan_to_json
 from ..planning.planner import make_plan, plan_reads
@@ -26,13 +27,14 @@ from ..state.durable import Line, durable, queue
 from ..state.snapshot import snapshot_file
 from ..transport import clients as tp
 from .recovery import _recover, _remerge
-from .session import ApplyOptions, Declined, DeviceGone, Session, StalePlan
+from .session import ApplyOptions, Session
 from .steps import _send_actions, check_identity, check_preconditions
 from .verify import PENDING, _attempted, _values, _verify
 
 
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
-    return {name: ParameterResult(name, a, n, text, regs, parameter=p) for name, a, n, text, regs, p
+    return {name: ParameterResult(name, a, n, text, regs, parameter=p, register_type=p.register_type)
+            for name, a, n, text, regs, p
             in _shared(recipe).results}
 
 
@@ -41,7 +43,7 @@ class _Shared:
     """What every device applying one recipe shares, worked out once (a fleet has hundreds of them)."""
 
     reads: tuple[ReadRequest, ...]  # the blocks covering the readable parameters (snapshot, read-back)
-    layout: tuple[tuple[str, int, int], ...]  # name, address, registers of each recipe parameter
+    layout: tuple[tuple[str, int, int], ...]  # name, key (Parameter.key), registers of each recipe parameter
     results: tuple[tuple[str, int, int, str, tuple[int, ...], Parameter], ...]  # a ParameterResult's fields
 
 
@@ -57,7 +59,7 @@ def _shared(recipe: Recipe) -> _Shared:
         params = [d.parameter for d in recipe.desired]
         hit = _SHARED[id(recipe)] = (recipe, _Shared(
             plan_reads(recipe.profile, [p.name for p in params if p.readable]),
-            tuple((p.name, p.address, p.count) for p in params),
+            tuple((p.name, p.key, p.count) for p in params),
             tuple((d.name, d.parameter.address, d.parameter.count, d.text, d.registers, d.parameter)
                   for d in recipe.desired)))
     return hit[1]
@@ -78,12 +80,15 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
 
 
 async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None,
-                        options: ApplyOptions | None) -> tuple[DeviceResult, Awaitable[object] | None]:
+                        options: ApplyOptions | None, batch: int | None = None,
+                        ) -> tuple[DeviceResult, Awaitable[object] | None]:
     """``apply_device``, handing back the wait for its ``device-finished`` line instead of waiting:
-    a fleet frees the device's slot (and lock) for the next device while that fsync happens."""
+    a fleet frees the device's slot (and lock) for the next device while that fsync happens.
+    ``batch``: a staged fleet's batch number, for the report and the journal."""
     opts = options or ApplyOptions()
     prof = recipe.profile
-    res = DeviceResult(name or recipe.name, tp.describe(url), unit, prof.id, profile_ref=profile_ref(prof))
+    res = DeviceResult(name or recipe.name, tp.describe(url), unit, prof.id, profile_ref=profile_ref(prof),
+                       recipe=recipe.path, batch=batch)
     results = _results(recipe)
     res.parameters = list(results.values())
     if unit == 0 and not opts.allow_broadcast:
@@ -155,9 +160,10 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     shared = _shared(recipe)
     # 1. before any write: identity and current values; a silent device here is "unreachable"
     try:
-        why = await check_identity(session, prof)
-        if why:
-            res.status, res.error = "failed", f"{why}; nothing was written"
+        try:
+            await check_identity(session, prof)
+        except IdentityMismatch as e:
+            res.status, res.error = "failed", f"{e}; nothing was written"
             return
         before = _values(shared.layout, await session.read_blocks(shared.reads, prof))
     except DeviceGone as e:
@@ -207,11 +213,13 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
 
     # 3. the snapshot is on disk before the first write, and the journal says this device is being written:
     #    both made durable by the group-commit thread, sharing fsyncs with the other devices of a fleet
-    snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=opts.applied)
+    applied = opts.applied or (os.path.abspath(recipe.path) if recipe.path else None)  # a fleet: the device's own
+    snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=applied)
     if opts.run_id is not None:
         digest = hashlib.sha256(json.dumps(plan_to_json(plan), sort_keys=True).encode()).hexdigest()
         snap.journal = journal.path_of(opts.state_dir)
-        snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest)
+        snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest,
+                                           batch=res.batch)
     res.snapshot = await durable(snap)
 
     # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock
@@ -236,7 +244,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
 
 async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, plan: Plan, opts: ApplyOptions,
                                res: DeviceResult, results: dict[str, ParameterResult]) -> None:
-    written, gone = await _write_all(session, prof, plan, opts, results)
+    written, unanswered = await _write_all(session, prof, plan, opts, results)
 
     # read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
@@ -246,8 +254,8 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
             if results[n].error == PENDING:
                 results[n].error = f"read-back failed: {e}"
         return
-    _verify(results, prof, after, written)
-    if gone:
+    _verify(results, prof, after, written, unanswered or ())
+    if unanswered is not None:
         return
 
     # commit (e.g. store to EEPROM) only when everything is verified
@@ -261,8 +269,9 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
 
 
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,
-                     results: dict[str, ParameterResult]) -> tuple[set[str], bool]:
-    """Send the plan's writes. Returns the names sent, and whether the device went away."""
+                     results: dict[str, ParameterResult]) -> tuple[set[str], set[str] | None]:
+    """Send the plan's writes. Returns the names sent, and, when the device went away, the names of the
+    request it did not answer (None while it answers)."""
     desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
     written: set[str] = set()
     pending = deque(plan.writes)
@@ -303,5 +312,5 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
             for rest in pending:
                 for n in rest.parameters:
                     results[n].status = "skipped"
-            return written, True
-    return written, False
+            return written, set(req.parameters)
+    return written, None
