@@ -182,7 +182,7 @@ def _csv_rows(path: str, text: str, delimiter: str) -> Iterator[Row]:
             yield ln
 
     old = csv.field_size_limit()
-    csv.field_size_limit(MAX_CELL)  # the csv module's own check, while the cell is read
+    csv.field_size_limit(MAX_RECORD + 1)  # the record bound comes first; cells are checked once read
     reader = csv.reader(lines(), delimiter=delimiter)
     try:
         n = 0
@@ -193,17 +193,20 @@ def _csv_rows(path: str, text: str, delimiter: str) -> Iterator[Row]:
             except StopIteration:
                 return
             except csv.Error as e:
-                what = (f"a cell of more than {MAX_CELL:,} characters" if "field larger" in str(e)
-                        else f"not a CSV row: {e}")
-                raise _Stop(Diagnostic(path, state.line, 1, what)) from None
+                raise _Stop(Diagnostic(path, state.line, 1, f"not a CSV row: {e}")) from None
             n += 1
             if n > MAX_ROWS:
                 raise _Stop(Diagnostic(path, start, 1, f"more than {MAX_ROWS:,} rows"))
             if len(cells) > MAX_COLUMNS:
-                starts = _cell_starts(state.first, delimiter)
+                starts = _cell_starts(state.first[:MAX_RECORD], delimiter)
                 raise _Stop(Diagnostic(path, start, starts[MAX_COLUMNS] if len(starts) > MAX_COLUMNS else 1,
                                        f"a row of {len(cells):,} cells; at most {MAX_COLUMNS}"))
-            yield Row(start, cells, _cell_starts(state.first, delimiter))
+            starts = _cell_starts(state.first, delimiter)
+            for i, c in enumerate(cells):
+                if len(c) > MAX_CELL:
+                    raise _Stop(Diagnostic(path, start, starts[i] if i < len(starts) else 1,
+                                           f"a cell of {len(c):,} characters; at most {MAX_CELL:,}"))
+            yield Row(start, cells, starts)
             state.chars = 0
     finally:
         csv.field_size_limit(old)
