@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from .durable import append_lines
+from .lock import pid_alive
 
 if TYPE_CHECKING:
     from ..report import DeviceResult, Report
@@ -134,15 +135,7 @@ class Unfinished:
     @property
     def running(self) -> bool:
         """The process is still alive (a run in progress, not a crash)."""
-        if self.pid is None or self.ended is not None:
-            return False
-        try:
-            os.kill(self.pid, 0)
-        except ProcessLookupError:
-            return False
-        except PermissionError:
-            return True
-        return True
+        return self.ended is None and self.pid is not None and pid_alive(self.pid)
 
 
 def _key(rec: dict[str, Any]) -> tuple[Any, Any, Any]:
