@@ -132,7 +132,8 @@ def profiles_import_wb_template(file: str, profile_id: str | None, out: str | No
     imported = read_wb_template(file, profile_id=profile_id, channels=not no_channels)
     warnings = imported.warnings
     if imported.left_out:
-        warnings = [*warnings, f"{file}: {imported.left_out} {'entry' if imported.left_out == 1 else 'entries'} of the template left out "
+        n = imported.left_out
+        warnings = [*warnings, f"{file}: {n} {'entry' if n == 1 else 'entries'} of the template left out "
                                "(see the warnings above)"]
     return _write_imported(imported.draft, out, file, warnings)
 

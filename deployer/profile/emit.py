@@ -61,10 +61,23 @@ class Draft:
 def _flow(v: Any) -> str:
     """A value in YAML flow style (JSON is YAML); registers in hex like the manuals."""
     if isinstance(v, Mapping):
-        return "{" + ", ".join(f"{k}: {_hex(v[k]) if k == 'register' else _flow(v[k])}" for k in v) + "}"
+        return "{" + ", ".join(f"{_key(k)}: {_hex(v[k]) if k == 'register' else _flow(v[k])}" for k in v) + "}"
     if isinstance(v, float):  # YAML reads 1e-07 as text: write 0.0000001
         return format(Decimal(repr(v)), "f")
     return json.dumps(v, ensure_ascii=False)
+
+
+_PLAIN_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_.-]*")
+_YAML_WORDS = frozenset({"true", "false", "null", "yes", "no", "on", "off", "y", "n"})
+
+
+def _key(k: Any) -> str:
+    """A mapping key: plain when YAML reads it back as the same string, else quoted (labels such as
+    'heater, end by time' or '°C')."""
+    text = str(k)
+    if _PLAIN_KEY.fullmatch(text) and text.lower() not in _YAML_WORDS:
+        return text
+    return json.dumps(text, ensure_ascii=False)
 
 
 def _hex(v: Any) -> str:

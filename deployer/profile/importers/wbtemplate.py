@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from decimal import Decimal
 from typing import Any
 
@@ -110,7 +110,11 @@ class WbImport:
 def read_wb_template(path: str, *, profile_id: str | None = None, channels: bool = True) -> WbImport:
     """A profile draft from a wb-mqtt-serial template file, and the warnings about what it could not say."""
     text = strip_comments(yamlsrc.read_text(path))
-    data, src = yamlsrc.load(path, text)
+    try:
+        data, src = yamlsrc.load(path, text)
+    except InputError as bad:  # the YAML parser reads the JSON: say JSON
+        raise InputError([replace(d, message=d.message.replace("invalid YAML", "invalid JSON"))
+                          for d in bad.diagnostics]) from None
     if not isinstance(data, dict) or not isinstance(data.get("device"), dict):
         raise InputError([src.error((), "not a wb-mqtt-serial device template: expected an object with 'device' "
                                          "(and 'device_type')")])
@@ -128,48 +132,42 @@ def read_wb_template(path: str, *, profile_id: str | None = None, channels: bool
 
     raw_params = dev.get("parameters") or []
     if isinstance(raw_params, Mapping):
-        items = [((("device", "parameters", k)), {**v, "id": k} if isinstance(v, Mapping) else v)
-                 for k, v in raw_params.items()]
+        items: list[tuple[yamlsrc.Path_, Any]] = [
+            (("device", "parameters", k), {**v, "id": k} if isinstance(v, Mapping) else v)
+            for k, v in raw_params.items()]
     elif isinstance(raw_params, list):
         items = [(("device", "parameters", i), v) for i, v in enumerate(raw_params)]
     else:
         raise InputError([src.error(("device", "parameters"), "parameters: expected a list or an object")])
-    chans = [(("device", "channels", i), v) for i, v in enumerate(dev.get("channels") or [])] if channels else []
+    chans: list[tuple[yamlsrc.Path_, Any]] = (
+        [(("device", "channels", i), v) for i, v in enumerate(dev.get("channels") or [])] if channels else [])
     if len(items) + len(chans) > MAX_TEMPLATE_ENTRIES:
         raise InputError([src.error(("device",), f"{len(items) + len(chans)} parameters and channels; at most "
                                                  f"{MAX_TEMPLATE_ENTRIES}")])
     errors = []
     entries: list[_Entry] = []
     left_out = 0
-    for at, item in items:
-        if not isinstance(item, Mapping):
-            errors.append(src.error(at, "a parameter must be an object"))
-            continue
-        e = _entry(item, at, src, path, warn, translate, channel=False)
-        if e is None:
-            left_out += 1
-        else:
-            entries.append(e)
-    for at, item in chans:
-        if not isinstance(item, Mapping):
-            errors.append(src.error(at, "a channel must be an object"))
-            continue
-        e = _entry(item, at, src, path, warn, translate, channel=True)
-        if e is None:
-            left_out += 1
-        else:
-            entries.append(e)
+    for channel, group in ((False, items), (True, chans)):
+        for at, item in group:
+            if not isinstance(item, Mapping):
+                errors.append(src.error(at, f"a {'channel' if channel else 'parameter'} must be an object"))
+                continue
+            entry = _entry(item, at, src, path, warn, translate, channel=channel)
+            if entry is None:
+                left_out += 1
+            else:
+                entries.append(entry)
     if errors:
         raise InputError(errors)
 
     kept, dropped = _resolve_shared(entries, warnings)
     left_out += dropped
-    for at, what in (((("device", "setup")), "setup"), ((("device", "subdevices")), "subdevices")):
+    for what in ("setup", "subdevices"):
         if dev.get(what):
             n = len(dev[what]) if isinstance(dev[what], list) else 1
             why = ("writes the driver sends at start-up; a recipe sets parameters instead" if what == "setup"
                    else "nested device templates")
-            warn(at, f"{what}: {n} {why}: not imported")
+            warn(("device", what), f"{what}: {n} {why}: not imported")
     if not kept:
         raise InputError([src.error(("device",), "the template has no parameter or channel with a Modbus register")])
 
@@ -182,19 +180,19 @@ def read_wb_template(path: str, *, profile_id: str | None = None, channels: bool
     for key in ("max_write_registers", "max_read_registers"):
         v = dev.get(key)
         top = 123 if key == "max_write_registers" else 125
-        if isinstance(v, int) and 0 < v:  # 0 means "as many as the protocol allows" in wb-mqtt-serial
+        if isinstance(v, int) and v > 0:  # 0 means "as many as the protocol allows" in wb-mqtt-serial
             limits[key] = min(v, top)
-    if kept and all(e.spec.get("_single") for e in kept if e.table == "holding" and "access" not in e.spec):
-        if any(e.table == "holding" and "access" not in e.spec for e in kept):
-            limits["write_function"] = 6  # holding_single: "always written one by one, with 06"
+    writable = [e for e in kept if e.table == "holding" and "access" not in e.spec]
+    if writable and all(e.spec.get("_single") for e in writable):
+        limits["write_function"] = 6  # holding_single: "always written one by one, with 06"
     if limits:
         header["limits"] = limits
     params = []
-    for e in kept:
-        spec = {k: _plain(v) for k, v in e.spec.items() if not k.startswith("_")}
-        if e.notes:
-            spec["description"] = "; ".join([*([spec["description"]] if spec.get("description") else []), *e.notes])
-        params.append((e.name, spec, e.origin))
+    for k in kept:
+        spec = {key: _plain(v) for key, v in k.spec.items() if not key.startswith("_")}
+        if k.notes:
+            spec["description"] = "; ".join([*([spec["description"]] if spec.get("description") else []), *k.notes])
+        params.append((k.name, spec, k.origin))
     return WbImport(Draft(header, params, []), warnings, left_out)
 
 
@@ -416,6 +414,10 @@ def _entry(item: Mapping[str, Any], at: yamlsrc.Path_, src: yamlsrc.Source, path
             v = _number(item[key])
             if v is None:
                 warn((*at, key), f"{label}: {key} {item[key]!r} is not a number: ignored")
+            elif not _fits(v, spec, scale, offset):
+                warn((*at, key), f"{label}: {key} {v} does not fit in {spec.get('type', 'the register')} "
+                                 f"({fmt}): kept in the description")
+                notes.append(f"{key} {v}")
             else:
                 spec[key] = v
     if "default" in item:
@@ -432,8 +434,9 @@ def _entry(item: Mapping[str, Any], at: yamlsrc.Path_, src: yamlsrc.Source, path
                 spec["default"] = match
         elif is_bit:
             spec["default"] = bool(d)
-        elif ("min" in spec and d < spec["min"]) or ("max" in spec and d > spec["max"]):
-            warn((*at, "default"), f"{label}: default {d} is outside min..max: kept in the description")
+        elif ("min" in spec and d < spec["min"]) or ("max" in spec and d > spec["max"]) or \
+                not _fits(d, spec, scale, offset):
+            warn((*at, "default"), f"{label}: default {d} is outside min..max or the type: kept in the description")
             notes.append(f"default {d}")
         else:
             spec["default"] = d
@@ -457,6 +460,19 @@ def _entry(item: Mapping[str, Any], at: yamlsrc.Path_, src: yamlsrc.Source, path
     return _Entry(name, spec, origin, table, address, mask, count, notes)
 
 
+def _fits(value: Decimal, spec: Mapping[str, Any], scale: Decimal, offset: Decimal) -> bool:
+    """Whether an engineering bound is a raw value the parameter's type (or bits) can hold."""
+    type_ = spec.get("type")
+    if type_ not in codec.TYPE_NAMES or codec.is_float(type_):
+        return True
+    raw = (value - offset) / scale
+    if "mask" in spec:
+        lo, hi = codec.field_range(int(spec["mask"]), type_ == "int16")
+    else:
+        lo, hi = codec.raw_range(type_) or (0, 0)
+    return bool(lo - 1 < raw < hi + 1)
+
+
 def _resolve_shared(entries: list[_Entry], warnings: list[str]) -> tuple[list[_Entry], int]:
     """Registers two entries share: the first keeps them (parameters before channels, in file order).
 
@@ -475,12 +491,13 @@ def _resolve_shared(entries: list[_Entry], warnings: list[str]) -> tuple[list[_E
         if clash is not None:
             at = f"line {clash.origin.line}"
             if (clash.address, clash.mask, clash.count) == (e.address, e.mask, e.count):
-                clash.notes.append(f"also named {e.name} in the template")
+                when = [n for n in e.notes if n.startswith(("applies when", "needs firmware"))]
+                clash.notes.append(f"also named {e.name} in the template" + (f" ({'; '.join(when)})" if when else ""))
                 warnings.append(f"{where}: {e.name} shares its register {e.address} with {clash.name} ({at}): "
                                 f"imported once, as {clash.name}; {e.name} is named in its description")
             else:
                 warnings.append(f"{where}: {e.name} overlaps {clash.name} ({at}) in register {e.address}: left out")
-            dropped += 1
+                dropped += 1
             continue
         name = e.name
         k = 2
