@@ -590,9 +590,10 @@ def test_each_distinct_recipe_is_checked_once(tmp_path: Path, monkeypatch: pytes
 
 def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Path) -> None:
     from deployer.fleet.inventory import fleet_jobs, load_inventory
-    from deployer.fleet.livereport import NOT_FINISHED, LiveReport, _report_parts, not_finished
+    from deployer.fleet.livereport import NOT_FINISHED, LiveReport, not_finished
     from deployer.fleet.rollout import skipped_result
     from deployer.recipe.loader import load_recipe
+    from deployer.report import report_parts
 
     inv = tmp_path / "inventory.yaml"
     inv.write_text("devices:\n" + "".join(f"  {n}: {{url: 'tcp://127.0.0.1:{1000 + i}'}}\n"
@@ -606,7 +607,7 @@ def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Pat
     live = LiveReport(str(tmp_path / "r.json"), "r.yaml", skeleton)
     live.stop()
     text = (tmp_path / "r.json").read_text()
-    expected = b"".join(_report_parts("r.yaml", [json.dumps(d.to_json()).encode() for d in naive], {})).decode()
+    expected = b"".join(report_parts("r.yaml", [json.dumps(d.to_json()).encode() for d in naive], {})).decode()
     assert text.split('"summary"')[0] == expected.split('"summary"')[0]  # byte for byte, but the summary
     assert {d["name"]: d["error"] for d in json.loads(text)["devices"]} == {n: NOT_FINISHED for n in names(4)}
 
@@ -645,3 +646,18 @@ def test_a_caller_running_the_cli_in_process_keeps_its_garbage_collector(capsys:
                            "--state-dir", str(tmp_path / "s"))
     assert code == 0, err
     assert (gc.get_threshold(), gc.get_freeze_count()) == (threshold, frozen)  # tuned only in the command's process
+
+
+def test_one_report_document_in_both_forms() -> None:
+    """report_text (files, --json of fleets) and Report.to_json (the API) are one document."""
+    from deployer.report import DeviceResult, ParameterResult, Report, RequestRecord, report_text
+
+    a = DeviceResult("a", "tcp://127.0.0.1:1", 1, "example-inverter", status="ok", seconds=0.5,
+                     error='quote " and "devices": [] inside', notices=["n"])
+    a.parameters = [ParameterResult("F07", 0x100, 1, "10 s", (100,), (50,), (100,), "ok")]
+    a.requests = [RequestRecord(16, 0x100, 1)]
+    b = DeviceResult("b", "rtu:///dev/x", 0, "example-inverter", status="unreachable", error="gone")
+    report = Report('r "devices": [].yaml', [a, b], seconds=1.25)
+    text = report_text(report)
+    assert json.loads(text) == report.to_json()
+    assert len(text.splitlines()) == 4  # head, one line per device, tail

@@ -206,7 +206,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     if as_json:
         if fleet_run:
-            from ..fleet.livereport import report_text
+            from ..report import report_text
 
             click.echo(report_text(report), nl=False)
         else:
