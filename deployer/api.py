@@ -270,12 +270,14 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
                           batch: str | None = None, max_failures: str | None = None,
                           options: ApplyOptions | None = None, report_path: str | None = None,
                           on_start: Callable[[Job], None] | None = None,
-                          on_done: Callable[[DeviceResult], None] | None = None) -> Report:
+                          on_done: Callable[[DeviceResult], None] | None = None,
+                          **safe: Any) -> Report:
     """Apply jobs as one fleet run: ``batch`` ("1,10%,100%") stages it, ``max_failures`` ("2", "5%") caps it.
 
     ``report_path``: written before the first device starts (every device ``skipped``, "not
     finished") and rewritten as devices finish, so after a crash ``limit="@REPORT"`` retries
-    exactly what did not end ok.
+    exactly what did not end ok. ``safe``: ``rollback_on_failure``, ``between_batches`` and
+    ``on_confirm_wait`` of ``fleet.rollout.apply_many`` (the soak itself is in ``options``).
     """
     sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                                   report_path=report_path)
@@ -291,7 +293,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
 
     try:
         report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
-                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget)
+                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget, **safe)
     finally:
         if live is not None:
             live.stop()

@@ -14,9 +14,12 @@ if TYPE_CHECKING:
     from .profile import Parameter
 
 REPORT_SCHEMA = "deployer.report/1"
-ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
-# sent: a broadcast that went out; skipped: a fleet never started it
-DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped"]
+# rolled-back: written and verified, then restored from the snapshot (a failed health check, no confirmation)
+ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped", "rolled-back"]
+# sent: a broadcast that went out; skipped: a fleet never started it; rolled-back: restored after the write
+DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back"]
+# the profile's commit steps: sent, held back (a soak or a confirmation waits), never sent, failed
+CommitState = Literal["sent", "held", "not sent", "failed"]
 
 
 @dataclass
@@ -83,6 +86,7 @@ class DeviceResult:
     seconds: float | None = None  # how long the device's session took (fleets: for the summary table)
     profile_ref: str | None = None  # the profile used: its file's absolute path, or the built-in id
     notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
+    commit: CommitState | None = None  # None: the profile has no commit steps, or nothing was written
 
     @property
     def write_requests(self) -> int:
@@ -94,7 +98,7 @@ class DeviceResult:
 
     def settle(self) -> None:
         """Device status from its parameters (unless already sent/failed/unreachable/skipped)."""
-        if self.status in ("unreachable", "failed", "skipped", "sent"):
+        if self.status in ("unreachable", "failed", "skipped", "sent", "rolled-back"):
             return
         bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
         if not bad:
@@ -119,6 +123,8 @@ class DeviceResult:
             out["profile_ref"] = self.profile_ref
         if self.notices:
             out["notices"] = list(self.notices)
+        if self.commit is not None:
+            out["commit"] = self.commit
         return out
 
 
@@ -136,7 +142,7 @@ class Report:
 
     def summary(self) -> dict[str, Any]:
         counts = {s: sum(1 for d in self.devices if d.status == s)
-                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped")}
+                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back")}
         return {"devices": len(self.devices), **counts,
                 "write_requests": sum(d.write_requests for d in self.devices),
                 "read_requests": sum(d.read_requests for d in self.devices),

@@ -73,6 +73,25 @@ _device_options = [
 ]
 
 
+class Duration(click.ParamType[float]):
+    """A duration option: ``250ms``, ``30s``, ``5m``, ``1h``; a bare number is seconds. The value is in seconds."""
+
+    name = "duration"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> float:
+        if isinstance(value, float):
+            return value
+        from ..load.durations import parse_duration
+
+        try:
+            return parse_duration(value)
+        except ValueError as e:
+            self.fail(str(e), param, ctx)
+
+
+DURATION = Duration()
+
+
 def device_options(f: Callable[..., Any]) -> Callable[..., Any]:
     for opt in reversed(_device_options):
         f = opt(f)

@@ -18,7 +18,8 @@ if TYPE_CHECKING:
     from ..report import DeviceResult, Report
     from .tables import Cell
 
-STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red", "unverified": "yellow",
+STYLE = {"rolled-back": "bold yellow",
+         "ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red", "unverified": "yellow",
          "skipped": "yellow", "partial": "yellow", "unreachable": "bold red", "drift": "yellow", "sent": "cyan"}
 
 
@@ -109,6 +110,7 @@ def fleet_summary(report: Report, out: Console) -> None:
                      secs, d.error or ""])
     show(out, ["device", "status", "changed", "failed", "requests", "seconds", ""], rows)
     s = report.summary()
-    parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "skipped") if s[k] or k == "ok"]
+    parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "rolled-back", "skipped")
+             if s[k] or k == "ok"]
     out.print(f"{s['devices']} devices: {', '.join(parts)}; {s['write_requests']} write and "
               f"{s['read_requests']} read requests in {s['seconds']:.2f} s")

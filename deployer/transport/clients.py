@@ -68,6 +68,10 @@ class Transport(abc.ABC):
         """FC03. Raises ExceptionResponse, NoResponse, ConnectionLost."""
 
     @abc.abstractmethod
+    async def read_input_registers(self, address: int, count: int, unit: int) -> list[int]:
+        """FC04. Raises ExceptionResponse, NoResponse, ConnectionLost."""
+
+    @abc.abstractmethod
     async def write_registers(self, address: int, values: list[int], unit: int) -> None:
         """FC16. unit 0 (broadcast) returns without waiting for an answer."""
 
@@ -301,6 +305,13 @@ class PymodbusTransport(Transport):
 
     async def read_holding_registers(self, address: int, count: int, unit: int) -> list[int]:
         r = await self._run(3, lambda c: c.read_holding_registers(address, count=count, device_id=unit))
+        regs = list(r.registers)
+        if len(regs) != count:
+            raise NoResponse(f"answer has {len(regs)} registers, asked for {count}")
+        return regs
+
+    async def read_input_registers(self, address: int, count: int, unit: int) -> list[int]:
+        r = await self._run(4, lambda c: c.read_input_registers(address, count=count, device_id=unit))
         regs = list(r.registers)
         if len(regs) != count:
             raise NoResponse(f"answer has {len(regs)} registers, asked for {count}")
