@@ -254,8 +254,9 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
         import time
 
         left = max(0.0, deadline - time.time())
+        left = round(left) if left >= 1 else round(left, 3)
         err.print(f"[bold]waiting for confirmation[/bold] until {time.strftime('%H:%M:%S UTC', time.gmtime(deadline))} "
-                  f"({format_duration(round(left))} left): confirm from another shell with\n"
+                  f"({format_duration(left)} left): confirm from another shell with\n"
                   f"    deployer confirm {run} --state-dir {state_dir}\n"
                   "without it every device written is rolled back and the commit is never sent")
 
@@ -268,9 +269,14 @@ def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retr
     from ..recipe.loader import load_recipe
     from ..state.snapshot import snapshots_of_report
 
-    found, without = snapshots_of_report(path)
+    restored: list[str] = []
+    found, without = snapshots_of_report(path, restored)
     if without:
         click.echo(f"nothing to roll back on {', '.join(without)}: nothing was written there", err=True)
+    if restored:
+        click.echo(f"nothing to roll back on {', '.join(restored)}: that run already rolled it back", err=True)
+    if not found and restored and not without:
+        raise UsageError(f"{path}: every device of that run was already rolled back: nothing to roll back")
     if not found:
         raise UsageError(f"{path}: no device of that run has a snapshot (nothing was written): nothing to roll back")
     jobs: list[Job] = []
@@ -410,12 +416,14 @@ def status(state_dir: str, as_json: bool) -> int:
                   f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished")
         a = waits.get(r.run)
         if a is not None and a.alive:
-            out.print(f"  awaits confirmation until {a.deadline}: deployer confirm {r.run} --state-dir {state_dir}")
+            out.print(f"  awaits confirmation until {a.deadline}: deployer confirm {r.run} --state-dir {state_dir}",
+                      soft_wrap=True)
         elif a is not None:
             out.print(f"  awaited confirmation (until {a.deadline}) when its process died: its devices hold values "
                       "that were never committed (a power cycle also reverts them on devices whose commit stores "
                       "to non-volatile memory)")
-            out.print(f"    restore them with: deployer rollback --report {a.report} --state-dir {state_dir} --yes")
+            out.print(f"    restore them with: deployer rollback --report {a.report} --state-dir {state_dir} --yes",
+                      soft_wrap=True)
         for d in r.interrupted:
             out.print(f"  interrupted while writing: {d.get('name')} {d.get('url')} unit {d.get('unit')}; "
                       f"snapshot {d.get('snapshot')}")

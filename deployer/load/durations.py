@@ -39,6 +39,7 @@ def parse_duration(text: str | float | int, *, bare: str = "s") -> float:
 
 def format_duration(seconds: float) -> str:
     """The shortest exact text for a duration: 0.25 -> '250ms', 90 -> '90s', 300 -> '5m', 3600 -> '1h'."""
+    seconds = float(seconds)
     if seconds < 1 and (seconds * 1000).is_integer():
         return f"{int(seconds * 1000)}ms"
     for unit, size in (("h", 3600), ("m", 60)):
