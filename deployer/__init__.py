@@ -24,7 +24,7 @@ _API = frozenset({
     "TransportError", "UsageError", "apply", "apply_async", "apply_fleet", "apply_fleet_async", "diff",
     "diff_async", "diff_values", "device_url", "load_inventory", "load_profile", "load_recipe", "plan",
     "plan_async", "pull", "pull_async", "pulled_recipe", "recipe_from", "read_fleet", "read_fleet_async",
-    "run_fleet", "run_fleet_async",
+    "run_fleet", "run_fleet_async", "confirm", "safe_options",
 })
 
 

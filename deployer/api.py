@@ -27,6 +27,7 @@ from typing import Any
 
 from .execute.read import read_current
 from .execute.session import ApplyOptions
+from .execute.soak import check_soak_profiles, confirm_run
 from .fleet.inventory import Inventory, fleet_jobs, load_inventory
 from .fleet.livereport import LiveReport, not_finished
 from .fleet.rollout import Job, ReadJob, apply_many, batch_sizes, failure_budget, read_many
@@ -56,6 +57,7 @@ __all__ = [
     "apply_async",
     "apply_fleet",
     "apply_fleet_async",
+    "confirm",
     "device_url",
     "diff",
     "diff_async",
@@ -71,6 +73,7 @@ __all__ = [
     "read_fleet",
     "read_fleet_async",
     "recipe_from",
+    "safe_options",
 ]
 
 
@@ -130,16 +133,60 @@ def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
 
 
 async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-                      options: ApplyOptions | None = None, name: str | None = None) -> Report:
-    """Apply to one device; the report says per parameter what it holds now (never raises for a device fault)."""
+                      options: ApplyOptions | None = None, name: str | None = None,
+                      soak: float | str | None = None, health_interval: float | str | None = None,
+                      confirm_within: float | str | None = None,
+                      on_confirm_wait: Callable[[str, float], None] | None = None) -> Report:
+    """Apply to one device; the report says per parameter what it holds now (never raises for a device fault).
+
+    A safe change: ``soak`` ("30s", or seconds) watches the profile's health checks after the write and
+    rolls the device back when one fails; ``confirm_within`` holds the profile's commit until ``confirm``
+    is called (from another thread, task or process with the same state directory), else rolls back.
+    ``on_confirm_wait(run, deadline)`` is told the run id to confirm once it waits.
+    """
     url, u = _target(recipe, device, unit)
-    return await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=options,
-                            recipe_name=recipe.path or recipe.name)
+    opts = safe_options(options, soak=soak, health_interval=health_interval, confirm_within=confirm_within)
+    if opts.soak is not None:
+        check_soak_profiles([recipe.profile])
+    return await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=opts,
+                            recipe_name=recipe.path or recipe.name, on_confirm_wait=on_confirm_wait)
 
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-          options: ApplyOptions | None = None, name: str | None = None) -> Report:
-    return asyncio.run(apply_async(recipe, device, unit, options=options, name=name))
+          options: ApplyOptions | None = None, name: str | None = None, **safe: Any) -> Report:
+    return asyncio.run(apply_async(recipe, device, unit, options=options, name=name, **safe))
+
+
+def safe_options(options: ApplyOptions | None, *, soak: float | str | None = None,
+                 health_interval: float | str | None = None,
+                 confirm_within: float | str | None = None) -> ApplyOptions:
+    """``options`` with a soak and a confirmation window (durations as "30s" or seconds); UsageError if bad.
+
+    A confirmation needs a run id to be named by: one is made when ``options`` has none."""
+    from dataclasses import replace
+
+    from .load.durations import parse_duration
+    from .state.journal import new_run_id
+
+    opts = options or ApplyOptions()
+    changes: dict[str, Any] = {}
+    for key, value in (("soak", soak), ("health_interval", health_interval), ("confirm_within", confirm_within)):
+        if value is not None:
+            try:
+                changes[key] = parse_duration(value)
+            except ValueError as e:
+                raise UsageError(f"{key}: {e}") from None
+    opts = replace(opts, **changes)
+    if opts.confirm_within is not None and opts.run_id is None:
+        opts = replace(opts, run_id=new_run_id())
+    return opts
+
+
+def confirm(run: str | None = None, *, state_dir: str = ".deployer") -> str:
+    """Confirm a run that waits (``confirm_within``): its held-back commit is sent. Returns the run id.
+
+    UsageError when no run (or several, and ``run`` is None) waits in ``state_dir``."""
+    return confirm_run(state_dir, run).run
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ import jsonschema
 import pytest
 
 from deployer.execute.soak import awaiting, confirm_run
-from deployer.load import yamlsrc
+from deployer.load import schema
 from deployer.load.diagnostics import UsageError
 from deployer.load.durations import format_duration, parse_duration
 from deployer.profile import builtin_profile
@@ -146,7 +146,7 @@ def test_a_fault_during_the_soak_rolls_back_exactly_and_never_commits(capsys: py
         log = list(sim.log)
     assert code == 4
     report = json.loads(out)
-    jsonschema.validate(report, yamlsrc.schema("report"))
+    jsonschema.validate(report, schema.schema("report"))
     dev = report["devices"][0]
     assert dev["status"] == "rolled-back" and dev["commit"] == "not sent"
     assert "register 0x2000 (drive fault code is zero) is 7, expected 0" in dev["error"]
@@ -319,7 +319,7 @@ def test_a_canary_failing_health_is_rolled_back_and_the_rest_skipped(capsys: pyt
         logs = [list(s.log) for s in sims]
     assert code == 4
     report = json.loads(out)
-    jsonschema.validate(report, yamlsrc.schema("report"))
+    jsonschema.validate(report, schema.schema("report"))
     first, *rest = report["devices"]
     assert first["status"] == "rolled-back" and writes_to(logs[0], COMMIT) == []
     for d, log in zip(rest, logs[1:], strict=True):
@@ -376,3 +376,64 @@ def test_pause_between_batches_is_announced(capsys: pytest.CaptureFixture[str], 
         code, _, err = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", inventory(tmp_path, urls),
                            "--yes", "--batch", "1", "--pause", "100ms", "--state-dir", str(tmp_path / "s"))
     assert code == 0 and "batch 1 done (1 ok); batch 2 starts in 100ms" in err
+
+
+# ---- the Ansible module --------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(not Path(sys.executable).with_name("ansible-playbook").exists()
+                    and shutil.which("ansible-playbook") is None, reason="ansible-core is a test extra")
+def test_the_ansible_module_soaks_and_rolls_back_a_tripping_device(tmp_path: Path) -> None:
+    from tests.test_ansible import inventory as hosts
+    from tests.test_ansible import playbook, recap
+
+    recipe_file = Path(recipe(tmp_path, "1.5 s"))
+    with Simulators([Simulator(PROFILE, faults=Faults(rules=(TRIP,)) if i == 3 else None) for i in range(4)]) as sims:
+        code, out, _ = playbook(tmp_path, hosts(tmp_path, {"site-a": sims[:2], "site-b": sims[2:]}, recipe_file),
+                                "-e", "deployer_soak=300ms", "-e", "deployer_health_interval=100ms")
+        logs = [list(s.log) for s in sims]
+    assert code != 0
+    assert recap(out, "site-a")["failed"] == 0 and recap(out, "site-b")["failed"] == 1
+    assert "site-b-d1 rolled-back" in out and "is 7, expected 0" in out
+    assert all(len(writes_to(log, COMMIT)) == 1 for log in logs[:3]) and writes_to(logs[3], COMMIT) == []
+    assert sims[3].read("F07") == (0, 500) and sims[2].read("F07") == (0, 150)
+
+
+# ---- the Python API -----------------------------------------------------------------------------
+
+
+def test_the_api_soaks_and_confirms(tmp_path: Path) -> None:
+    import asyncio
+
+    import deployer
+    from deployer.execute.session import ApplyOptions
+    from tests.helpers import run_with
+
+    state = str(tmp_path / "s")
+
+    async def body(sim: Simulator) -> tuple[deployer.Report, deployer.Report, list[str]]:
+        rec = deployer.load_recipe(recipe(tmp_path, "3 s", sim.url))
+        soaked = await deployer.apply_async(rec, options=ApplyOptions(state_dir=state), soak="200ms",
+                                            health_interval="100ms")
+        rec = deployer.load_recipe(recipe(tmp_path, "4 s", sim.url, "r2.yaml"))
+        waiting = asyncio.Event()
+        runs: list[str] = []
+
+        def on_wait(run: str, deadline: float) -> None:
+            runs.append(run)
+            waiting.set()
+
+        task = asyncio.create_task(deployer.apply_async(rec, options=ApplyOptions(state_dir=state),
+                                                        confirm_within="1h", on_confirm_wait=on_wait))
+        await waiting.wait()
+        assert writes_to(list(sim.log), COMMIT) == [writes_to(list(sim.log), COMMIT)[0]]  # only the first run's
+        assert deployer.confirm(state_dir=state) == runs[0]
+        return soaked, await task, runs
+
+    sim = Simulator(PROFILE)
+    soaked, confirmed, _ = run_with(sim, body)
+    assert soaked.devices[0].status == "ok" and soaked.devices[0].commit == "sent"
+    assert confirmed.devices[0].status == "ok" and confirmed.devices[0].commit == "sent"
+    assert len(writes_to(list(sim.log), COMMIT)) == 2 and sim.read("F07") == (0, 400)
+    with pytest.raises(UsageError, match="soak: "):
+        deployer.apply(deployer.load_recipe(recipe(tmp_path, "3 s", sim.url)), soak="soon")

@@ -63,9 +63,11 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
                       "read back or verified")
         for note in d.notices:
             out.print(f"note: {note}")
-        if d.commit in ("held", "not sent"):
-            out.print(f"commit: {d.commit} (the profile's commit steps; the values are not stored to "
-                      "non-volatile memory and revert at a power cycle on devices that keep Modbus writes in RAM)")
+        if d.status == "rolled-back" and d.commit == "not sent":
+            out.print("commit: not sent (the profile's commit steps)")
+        elif d.commit in ("held", "not sent"):
+            out.print(f"commit: {d.commit} (the profile's commit steps): the values written are not stored to "
+                      "non-volatile memory; on devices that keep Modbus writes in RAM they revert at a power cycle")
         if d.snapshot and d.status != "rolled-back":
             out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
