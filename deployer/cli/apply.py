@@ -313,7 +313,7 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
                      help="staged rollout: batch sizes (count or % of the selected devices; the last repeats); "
                           "each batch finishes before the next, a batch with no ok device ends the rollout"),
         click.option("--max-failures", metavar="N|P%",
-                     help="after this many devices ended failed or partial, start no new device"),
+                     help="after this many devices ended failed, partial or rolled back, start no new device"),
         parallel_option,
         click.option("--on-error", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
                      help="after a rejected value: send the rest, or skip it"),
