@@ -39,7 +39,7 @@ from .profile import Profile, resolve_profile
 from .recipe.loader import Entry, Recipe, load_recipe, with_overrides
 from .recipe.text import recipe_text
 from .report import DeviceResult, Report
-from .transport.clients import BadURL, DeviceURL, TransportError, describe, parse_url
+from .transport.clients import DeviceURL, TransportError, describe, parse_url
 
 __all__ = [
     "ApplyOptions",
@@ -98,10 +98,7 @@ def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: i
     """Parse a device URL (``tcp://HOST:PORT``, ``rtu:///dev/ttyUSB0?baudrate=19200`` ...); UsageError if bad."""
     if isinstance(url, DeviceURL):
         return url
-    try:
-        return parse_url(url, timeout=timeout, retries=retries)
-    except BadURL as e:
-        raise UsageError(str(e)) from None
+    return parse_url(url, timeout=timeout, retries=retries)  # BadURL is a UsageError
 
 
 def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) -> tuple[DeviceURL, int]:

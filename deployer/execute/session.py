@@ -8,7 +8,9 @@ from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal
 
-from ..load.diagnostics import UsageError
+from ..errors import Declined as Declined  # importable from here as before
+from ..errors import DeviceGone as DeviceGone
+from ..errors import StalePlan as StalePlan
 from ..planning.model import Plan, ReadRequest, WriteRequest
 from ..planning.planner import gap_free_reads
 from ..profile import Profile
@@ -16,14 +18,6 @@ from ..report import DeviceResult, RequestRecord
 from ..transport import clients as tp
 
 Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
-
-
-class StalePlan(UsageError):
-    """apply PLAN.json: the device no longer holds what the plan was made against."""
-
-
-class Declined(UsageError):
-    """The user answered no at the confirmation prompt."""
 
 
 @dataclass(frozen=True)
@@ -49,10 +43,6 @@ class ApplyOptions:
     def holds_commit(self) -> bool:
         """The commit waits: for the soak, the confirmation, or for ever (a rollback)."""
         return self.hold_commit or self.soak is not None or self.confirm_within is not None
-
-
-class DeviceGone(tp.TransportError):
-    """The device stopped answering and the retry budget is spent."""
 
 
 class Session:
