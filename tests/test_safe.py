@@ -201,7 +201,8 @@ def test_the_simulator_trips_only_when_the_rule_holds(tmp_path: Path) -> None:
     coast = parse_fault_rule("stop_mode == coast: 0x2000=3", PROFILE)
     assert coast.by_label and coast.value == 1
     assert parse_fault_rule("F07 <= 1500 ms: 8192=1", PROFILE).value == 1.5
-    for bad, why in [("F07 ~ 2 s: 1=1", "not a fault rule"), ("nope < 2: 1=1", "not a numeric parameter"),
+    for bad, why in [("F07 ~ 2 s: 1=1", "not a fault rule"),
+                     ("nope < 2: 1=1", "not a numeric holding-register parameter"),
                      ("F07 < 2 Hz: 1=1", "convertible"), ("F07 < x: 1=1", "not a number")]:
         with pytest.raises(ValueError, match=why):
             parse_fault_rule(bad, PROFILE)
@@ -218,13 +219,13 @@ commit:
 parameters:
   x: {register: 0x40, type: uint16}
 """, "p.yaml")
-    with SimulatorThread(prof, init={0x10: 900}) as sim:
+    with SimulatorThread(prof, init={prof.health[0].key: 900}) as sim:
         r = tmp_path / "r.yaml"
         r.write_text(f"recipe: r\nprofile: p.yaml\ndevice: {{url: '{sim.url}'}}\nparameters:\n  x: 5\n")
         code, out, _ = cli(capsys, "apply", str(r), "--yes", "--json", "--soak", "10s", "--health-interval", "100ms",
                            "--state-dir", str(tmp_path / "s"))
         log = list(sim.log)
-        assert sim.registers()[0x40] == 0
+        assert sim.read("x") == (0,)
     assert code == 4
     dev = json.loads(out)["devices"][0]
     assert "input register 0x0010 (DC bus below 850) is 900, expected at most 850" in dev["error"]

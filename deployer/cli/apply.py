@@ -18,7 +18,6 @@ from .base import (
     _fleet,
     _n,
     _target,
-    cli,
     console,
     describe,
     device_options,
@@ -362,7 +361,7 @@ def safe_options(f: Callable[..., Any]) -> Callable[..., Any]:
     return f
 
 
-@cli.command()
+@click.command()
 @click.argument("source", metavar="[RECIPE|PLAN.json]", required=False, type=click.Path(dir_okay=False))
 @apply_options
 @safe_options
@@ -373,7 +372,7 @@ def apply(source: str | None, **kw: Any) -> int:
     return run_apply(source, **kw)
 
 
-@cli.command()
+@click.command()
 @click.argument("snapshot", required=False, type=click.Path(dir_okay=False, exists=True))
 @apply_options
 @click.option("--force", is_flag=True,
@@ -399,7 +398,7 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
     return run_apply(snapshot, command="rollback", **kw)
 
 
-@cli.command()
+@click.command()
 @click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
               help="where snapshots and the audit log are")
 @click.option("--json", "as_json", is_flag=True, help="print the unfinished runs as JSON")
@@ -451,7 +450,7 @@ def status(state_dir: str, as_json: bool) -> int:
     return EXIT_OK
 
 
-@cli.command()
+@click.command()
 @click.argument("run", required=False)
 @click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
               help="the state directory of the run that waits (apply --confirm-within)")

@@ -60,10 +60,7 @@ def check_soak_profiles(profiles: Sequence[Profile]) -> None:
 async def read_health(session: Session, prof: Profile) -> tuple[HealthCheck, int] | None:
     """The first failed check and the word read, or None when the device is healthy."""
     for c in prof.health:
-        if c.register_type == "input":
-            (word,) = await session.read_input(c.address, 1)
-        else:
-            (word,) = await session.read(c.address, 1)
+        (word,) = await session.read(c.address, 1, c.function)
         if not c.holds(word):
             return c, word
     return None
