@@ -1,4 +1,4 @@
-"""Results of an apply, per device and per parameter, as the report JSON (DESIGN.md, "Report")."""
+"""Results of an apply, per device and per parameter, as the report JSON (docs/reference/report.md)."""
 
 from __future__ import annotations
 
@@ -14,12 +14,16 @@ if TYPE_CHECKING:
     from .profile import Parameter
 
 REPORT_SCHEMA = "deployer.report/1"
-ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
-# sent: a broadcast that went out; skipped: a fleet never started it (nothing sent); interrupted: the run
-# stopped (Ctrl-C, SIGTERM, a crash) while the device was in flight: with a snapshot, writes may have gone out
-DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped", "interrupted"]
+# rolled-back: written and verified, then restored from the snapshot (a failed health check, no confirmation)
+ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped", "rolled-back"]
+# sent: a broadcast that went out; skipped: a fleet never started it (nothing sent); rolled-back: restored after
+# the write; interrupted: the run stopped (Ctrl-C, SIGTERM, a crash) while the device was in flight: with a
+# snapshot, writes may have gone out
+DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back", "interrupted"]
 DEVICE_STATUSES: tuple[DeviceStatus, ...] = ("ok", "sent", "partial", "failed", "unreachable", "skipped",
-                                             "interrupted")
+                                             "rolled-back", "interrupted")
+# the profile's commit steps: sent, held back (a soak or a confirmation waits), never sent, failed
+CommitState = Literal["sent", "held", "not sent", "failed"]
 
 
 @dataclass
@@ -91,6 +95,7 @@ class DeviceResult:
     restored: str | None = None  # a rollback: the snapshot (absolute path) this device was restored from
     recipe: str | None = None  # the recipe (or snapshot, plan) file this device was given
     batch: int | None = None  # fleets: the batch the device ran in (or would have: skipped)
+    commit: CommitState | None = None  # None: the profile has no commit steps, or nothing was written
 
     @property
     def write_requests(self) -> int:
@@ -101,8 +106,8 @@ class DeviceResult:
         return sum(1 for r in self.requests if r.function in (1, 2, 3, 4))
 
     def settle(self) -> None:
-        """Device status from its parameters (unless already sent/failed/unreachable/skipped/interrupted)."""
-        if self.status in ("unreachable", "failed", "skipped", "sent", "interrupted"):
+        """Device status from its parameters (unless already decided: sent, failed, unreachable, skipped ...)."""
+        if self.status in ("unreachable", "failed", "skipped", "sent", "rolled-back", "interrupted"):
             return
         bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
         if not bad:
@@ -133,6 +138,8 @@ class DeviceResult:
             out["recipe"] = self.recipe
         if self.batch is not None:
             out["batch"] = self.batch
+        if self.commit is not None:
+            out["commit"] = self.commit
         return out
 
 
@@ -168,7 +175,7 @@ class Report:
 
     @property
     def exit_code(self) -> int:
-        """DESIGN.md exit codes: 3 only when every device was unreachable (nothing written anywhere).
+        """The run's exit code (docs/design.md): 3 only when every device was unreachable (nothing written anywhere).
 
         A broadcast that went out (``sent``) counts as success: the user asked for an unverifiable write.
         """

@@ -35,10 +35,10 @@ if TYPE_CHECKING:
     from ..report import DeviceResult, Report
 
 
-_STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "skipped": 3, "ok": 4, "unchanged": 5}
+_STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "rolled-back": 3, "skipped": 4, "ok": 5, "unchanged": 6}
 _STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red",
                  "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red",
-                 "sent": "cyan", "interrupted": "bold red"}
+                 "sent": "cyan", "interrupted": "bold red", "rolled-back": "bold yellow"}
 
 
 def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> None:
@@ -61,13 +61,19 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
                       "read back or verified")
         for note in d.notices:
             out.print(f"note: {note}")
-        if d.snapshot:
+        if d.status == "rolled-back" and d.commit == "not sent":
+            out.print("commit: not sent (the profile's commit steps)")
+        elif d.commit in ("held", "not sent"):
+            out.print(f"commit: {d.commit} (the profile's commit steps): the values written are not stored to "
+                      "non-volatile memory; on devices that keep Modbus writes in RAM they revert at a power cycle")
+        if d.snapshot and d.status != "rolled-back":
             out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
     s = report.summary()
     if len(report.devices) > 1 and not only_not_ok:
         out.print(f"{_n(s['devices'], 'device')}: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
                   + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable"
+                  + (f", {s['rolled-back']} rolled back" if s["rolled-back"] else "")
                   + (f", {s['interrupted']} interrupted" if s["interrupted"] else "") + f" in {s['seconds']:.2f} s")
 
 
@@ -87,7 +93,9 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               limit: str | None, parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
               lock_timeout: float = 0.0, force: bool = False, from_reports: tuple[str, ...] = (),
               batch: str | None = None, max_failures: str | None = None, command: str = "apply",
-              to_other_device: bool = False) -> int:
+              to_other_device: bool = False, soak: float | None = None, health_interval: float = 1.0,
+              confirm_within: float | None = None, rollback_on_failure: bool = False, pause: float | None = None,
+              ask: bool = False) -> int:
     """apply / rollback: everything validated, then confirmed, then run by the library (``run.runner``)."""
     from ..errors import RunInterrupted
     from ..execute.session import ApplyOptions
@@ -143,6 +151,14 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             one, u = _target(rec, device, unit, timeout, retries, required=True)
             assert one is not None
             jobs.append(Job(rec.name, rec, one, u))
+    if soak is not None:
+        from ..execute.soak import check_soak_profiles
+
+        check_soak_profiles([j.recipe.profile for j in jobs])
+    if (pause is not None or ask) and not batch:
+        raise UsageError("--pause and --ask go between batches: give --batch too")
+    if ask and not sys.stdin.isatty():
+        raise UsageError("--ask asks before each batch: stdin is not a terminal (use --pause for an unattended run)")
 
     err = console(stderr=True)
     confirm = None
@@ -169,13 +185,16 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     fleet_run = bool(inventory or from_reports)
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
-                           lock_timeout=lock_timeout)
+                           lock_timeout=lock_timeout, soak=soak, health_interval=health_interval,
+                           confirm_within=confirm_within)
+    safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure)
     kw: dict[str, Any] = dict(command=command, label=label, argv=_ARGV, via="cli", options=options, parallel=parallel,
-                              batch=batch, max_failures=max_failures, report_path=report_path, signals=True)
+                              batch=batch, max_failures=max_failures, report_path=report_path, signals=True, **safe)
     interrupted = None
     try:
         if fleet_run:
-            report = _run_fleet(jobs, kw, err, live=err.is_terminal and yes, staged=bool(batch))
+            report = _run_fleet(jobs, kw, err, live=err.is_terminal and yes and not ask and confirm_within is None,
+                                staged=bool(batch))
         else:
             report = asyncio.run(run_async(jobs, **kw))
     except RunInterrupted as e:
@@ -238,6 +257,36 @@ def _said_interrupted(report: Report, report_path: str | None) -> None:
         click.echo(f"undo with: deployer rollback --from-report {report_path}", err=True)
     elif written:
         click.echo("undo with: deployer rollback SNAPSHOT, for each snapshot above", err=True)
+def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool
+                ) -> dict[str, Any]:
+    """apply_many's keywords for a safe change: a pause and a question between batches, the confirmation wait."""
+    from ..load.durations import format_duration
+
+    async def between(number: int, so_far: Report) -> str | None:
+        s = so_far.summary()
+        done = ", ".join(f"{s[k]} {k}" for k in ("ok", "partial", "failed", "unreachable", "rolled-back") if s[k])
+        if pause:
+            err.print(f"batch {number - 1} done ({done}); batch {number} starts in {format_duration(pause)}")
+            await asyncio.sleep(pause)
+        if ask and not await asyncio.to_thread(click.confirm, f"batch {number - 1} done ({done}). "
+                                                              f"Continue with batch {number}?", default=False,
+                                               err=True):
+            return f"not started: stopped at the question before batch {number} (--ask)"
+        return None
+
+    def waiting(run: str, deadline: float) -> None:
+        import time
+
+        left = max(0.0, deadline - time.time())
+        left = round(left) if left >= 1 else round(left, 3)
+        err.print(f"[bold]waiting for confirmation[/bold] until {time.strftime('%H:%M:%S UTC', time.gmtime(deadline))} "
+                  f"({format_duration(left)} left): confirm from another shell with\n"
+                  f"    deployer confirm {run} --state-dir {state_dir}\n"
+                  "without it every device written is rolled back and the commit is never sent")
+
+    return {"rollback_on_failure": rollback_on_failure, "between_batches": between, "on_confirm_wait": waiting}
+
+
 
 
 def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -251,8 +300,8 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
                      help="staged rollout: batch sizes (count or % of the selected devices; the last repeats); "
                           "each batch finishes before the next, a batch with no ok device ends the rollout"),
         click.option("--max-failures", metavar="N|P%",
-                     help="after this many devices did not end ok (failed, partial or unreachable count; skipped "
-                          "ones never), start no new device"),
+                     help="after this many devices did not end ok (failed, partial, unreachable or rolled back "
+                          "count; skipped ones never), start no new device"),
         parallel_option,
         click.option("--on-error", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
                      help="after a rejected value: send the rest, or skip it"),
@@ -268,9 +317,35 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
     return device_options(f)
 
 
+def safe_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    from .base import DURATION
+
+    opts = [
+        click.option("--soak", type=DURATION, metavar="DURATION",
+                     help="after the verified write, read the profile's health checks for this long (30s, 5m, 1h; "
+                          "a bare number is seconds); a failed check rolls that device back from its snapshot "
+                          "(status rolled-back, exit 4); the commit is sent only after the soak passed"),
+        click.option("--health-interval", type=DURATION, default="1s", show_default=True, metavar="DURATION",
+                     help="time between two rounds of health checks during --soak"),
+        click.option("--confirm-within", type=DURATION, metavar="DURATION",
+                     help="hold the profile's commit back until `deployer confirm` (another shell, same "
+                          "--state-dir); not confirmed in time: every device written is rolled back"),
+        click.option("--rollback-on-failure", is_flag=True,
+                     help="when the rollout stops (a failed batch or canary, --max-failures), roll back every "
+                          "device it wrote"),
+        click.option("--pause", type=DURATION, metavar="DURATION", help="wait this long between batches"),
+        click.option("--ask", is_flag=True,
+                     help="ask before each batch after the first (needs a terminal; --yes does not answer it)"),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
 @click.command()
 @click.argument("source", metavar="[RECIPE|PLAN.json]", required=False, type=click.Path(dir_okay=False))
 @apply_options
+@safe_options
 def apply(source: str | None, **kw: Any) -> int:
     """Write a recipe (or a saved plan) to a device, read it back, report what it holds.
 
@@ -325,6 +400,7 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
 
     A run drops out once the devices it left half-written are rolled back, or with --resolve RUN.
     """
+    from ..execute.soak import awaiting
     from ..state import journal
 
     if resolve is not None:
@@ -337,11 +413,15 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
                    f"recorded in {journal.path_of(state_dir)}")
         return EXIT_OK
     runs, torn = journal.unfinished(state_dir)
+    waits = {a.run: a for a in awaiting(state_dir)}
     if as_json:
         click.echo(json.dumps({"unfinished": [
             {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
              "via": r.via, "argv": r.argv, "recipe": r.recipe, "devices": r.devices, "interrupted": r.interrupted,
-             "finished": r.finished, "ended": r.ended} for r in runs]}, indent=2))
+             "finished": r.finished, "ended": r.ended,
+             **({"awaiting_confirmation": {"deadline": waits[r.run].deadline, "report": waits[r.run].report,
+                                           "waiting": waits[r.run].alive}} if r.run in waits else {}),
+             } for r in runs]}, indent=2))
         return EXIT_OK
     if not runs:
         click.echo(f"no unfinished runs in {journal.path_of(state_dir)}")
@@ -350,6 +430,15 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
         via = {"api": " (through the Python API)", "ansible": " (through Ansible)"}.get(r.via, "")
         click.echo(f"{r.command}{via} {r.recipe or ''} by {r.user} at {r.time} (run {r.run}, PID {r.pid}): "
                    f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished")
+        a = waits.get(r.run)
+        if a is not None and a.alive:
+            click.echo(f"  awaits confirmation until {a.deadline}: deployer confirm {r.run} --state-dir {state_dir}")
+        elif a is not None:
+            click.echo(f"  awaited confirmation (until {a.deadline}) when its process died: its devices hold values "
+                       "that were never committed (a power cycle also reverts them on devices whose commit stores "
+                       "to non-volatile memory)")
+            click.echo(f"    restore them with: deployer rollback --from-report {a.report} --state-dir {state_dir} "
+                       "--yes")
         for d in r.interrupted:
             where = f"{d.get('url')} unit {d.get('unit')}"
             click.echo(f"  interrupted while writing: {d.get('name')} {where}; snapshot {d.get('snapshot')}")
@@ -382,3 +471,19 @@ def _diff_command(r: Any, d: dict[str, Any]) -> str:
     if recipe:
         return f"deployer diff {recipe} --device {d.get('url')} --unit {d.get('unit')}"
     return f"deployer pull --profile PROFILE --device {d.get('url')} --unit {d.get('unit')}"
+
+
+@click.command()
+@click.argument("run", required=False)
+@click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
+              help="the state directory of the run that waits (apply --confirm-within)")
+def confirm(run: str | None, state_dir: str) -> int:
+    """Confirm a run that waits (apply --confirm-within): its held-back commit is sent.
+
+    RUN is needed only when several runs wait (deployer status lists them).
+    """
+    from ..execute.soak import confirm_run
+
+    target = confirm_run(state_dir, run)
+    click.echo(f"confirmed run {target.run}: it sends the commit now (deployer status shows the outcome)")
+    return EXIT_OK

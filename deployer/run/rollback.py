@@ -67,6 +67,9 @@ class Restores:
 
     found: list[RunSnapshot] = field(default_factory=list)
     notices: list[str] = field(default_factory=list)
+    nothing: list[str] = field(default_factory=list)  # nothing was written there
+    undone: list[str] = field(default_factory=list)  # the run already rolled it back itself
+    problem: str | None = None  # why devices that may have been written have no known snapshot
 
 
 def _absolute(snap: str, report: str) -> str:
@@ -99,11 +102,14 @@ def read_run(path: str) -> Restores:
     else:
         journal_problem = "it names no run journal (made by an older deployer)"
     out = Restores()
-    nothing: list[str] = []
+    nothing, undone = out.nothing, out.undone
     for dev in data["devices"]:
         if not isinstance(dev, dict) or "name" not in dev:
             continue
         name = str(dev["name"])
+        if dev.get("status") == "rolled-back":  # that run restored it from this snapshot itself, verified
+            undone.append(name)
+            continue
         url, unit = str(dev.get("url", "")), int(dev.get("unit", 1))
         snap = dev.get("snapshot")
         if snap:
@@ -123,8 +129,10 @@ def read_run(path: str) -> Restores:
             nothing.append(name)
     if nothing:
         out.notices.append(f"nothing to roll back on {', '.join(nothing)}: nothing was written there")
+    if undone:
+        out.notices.append(f"nothing to roll back on {', '.join(undone)}: that run already rolled it back")
     if journal_problem and any(f.snapshot is None for f in out.found):
-        out.notices.append(f"{path}: the run did not finish and {journal_problem}")
+        out.problem = f"{path}: the run did not finish and {journal_problem}"
     return out
 
 
@@ -137,10 +145,16 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
     and when nothing at all was written."""
     found: list[RunSnapshot] = []
     notices: list[str] = []
+    nothing = undone = 0
+    problems: list[str] = []
     for p in paths:
         r = read_run(p)
         found.extend(r.found)
         notices.extend(r.notices)
+        nothing += len(r.nothing)
+        undone += len(r.undone)
+        if r.problem is not None:
+            problems.append(r.problem)
     if limit:  # names and patterns select among that run's devices (it has no groups)
         chosen = {d.name for d in select(Inventory(paths[0], tuple(FleetDevice(f.name, f.url) for f in found)),
                                          limit)}
@@ -148,9 +162,12 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
     blind = [f.name for f in found if f.snapshot is None]
     if blind:
         raise UsageError(f"{', '.join(blind)} may have been written by the run of {', '.join(paths)}, and no "
-                         "snapshot of them is known (" + "; ".join(n for n in notices if "did not finish" in n)
-                         + "): nothing was sent. Find their snapshots with deployer status, restore them with "
+                         "snapshot of them is known (" + "; ".join(problems) + "): nothing was sent. Find their "
+                         "snapshots with deployer status, restore them with "
                          "deployer rollback SNAPSHOT, and leave them out here with --limit '!NAME'")
+    if not found and undone and not nothing:
+        raise UsageError(f"{', '.join(paths)}: every device of that run was already rolled back ("
+                         + "; ".join(notices) + "): nothing to roll back")
     if not found:
         raise UsageError(f"{', '.join(paths)}: no device of that run has a snapshot (nothing was written): "
                          "nothing to roll back")

@@ -27,6 +27,7 @@ import signal
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from typing import Any
 
 from ..errors import RunInterrupted
 from ..execute.session import ApplyOptions, Declined, StalePlan
@@ -90,13 +91,14 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
                     parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
                     report_path: str | None = None, signals: bool = False,
                     on_start: Callable[[Job], None] | None = None,
-                    on_done: Callable[[DeviceResult], None] | None = None) -> Report:
+                    on_done: Callable[[DeviceResult], None] | None = None, **safe: Any) -> Report:
     """Run ``jobs`` as one journaled run (see the module's docstring); the report of every device.
 
     ``label``: what is applied (recipe, plan or snapshot file; the report's ``recipe``). ``command``,
     ``argv`` and ``via`` ("cli", "api", "ansible") go into the journal. ``batch`` ("1,10%,100%")
     stages the rollout, ``max_failures`` ("2", "5%") caps it. ``signals``: SIGINT and SIGTERM
     interrupt the run (its own process's main thread only; the command line and Ansible set it).
+    ``safe``: ``rollback_on_failure``, ``between_batches``, ``on_confirm_wait`` of ``fleet.rollout.apply_many``.
 
     Raises UsageError (nothing sent) for bad options, StalePlan or Declined when the run was refused
     before any write, RunInterrupted (with ``.report``) when it was interrupted.
@@ -111,7 +113,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     applied = opts.applied  # the journal and the snapshots name it so that it is found from anywhere
     if applied is None and label is not None:
         applied = os.path.abspath(label) if os.path.exists(label) else label
-    run_id = journal.new_run_id()
+    run_id = opts.run_id or journal.new_run_id()  # a confirmation window names its run before it starts
     journal.run_started(state_dir, run_id, command=command, argv=argv, recipe=applied, via=via,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
     live = LiveReport(report_path, label, not_finished(jobs, sizes), run=run_id, state_dir=state_dir) \
@@ -129,7 +131,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     installed = _on_signals(why) if signals else []
     try:
         report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
-                                  on_done=done, batches=sizes, max_failures=budget)
+                                  on_done=done, batches=sizes, max_failures=budget, **safe)
     except RunInterrupted as e:
         report = e.report
         report.interrupted = why[0] if why else "cancelled"
