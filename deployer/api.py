@@ -35,7 +35,8 @@ from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planner import make_plan
 from .profile import Profile, resolve_profile
-from .recipe.loader import Entry, Recipe, load_recipe, recipe_text, with_overrides
+from .recipe.loader import Entry, Recipe, load_recipe, with_overrides
+from .recipe.text import recipe_text
 from .report import DeviceResult, Report
 from .transport.clients import BadURL, DeviceURL, TransportError, describe, parse_url
 

@@ -234,7 +234,7 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
     """Write a commented profile skeleton to OUTPUT, ready to fill in from the device's manual."""
     import re
 
-    from ..load.yamlsrc import schema
+    from ..load.schema import schema
     from ..profile.skeleton import profile_skeleton
 
     pid = profile_id or os.path.splitext(os.path.basename(output))[0]

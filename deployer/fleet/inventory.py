@@ -13,7 +13,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from ..load import yamlsrc
+from ..load import schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
 from ..profile import is_profile_path
 from ..recipe.loader import Entry, Recipe, expand, load_recipe, with_overrides
@@ -111,7 +111,7 @@ def load_inventory(path: str | os.PathLike[str]) -> Inventory:
     data, src = yamlsrc.load(p)
     if not isinstance(data, dict):
         raise InputError([src.error((), "an inventory must be a mapping (defaults: ..., devices: ...)")])
-    errors: list[Diagnostic] = yamlsrc.validate(data, "inventory", src)
+    errors: list[Diagnostic] = schema.validate(data, "inventory", src)
     if errors:
         raise InputError(errors)
     defaults: dict[str, Any] = data.get("defaults") or {}

@@ -8,7 +8,7 @@ from dataclasses import replace
 from decimal import Decimal
 from typing import Any
 
-from ..load import yamlsrc
+from ..load import schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
 from . import codec, units
 from .model import CommitAction, IdentityCheck, Limits, Parameter, Precondition, Profile
@@ -109,7 +109,7 @@ def load_profile(path: str | os.PathLike[str], text: str | None = None) -> Profi
     data, src = yamlsrc.load(p, text)
     if not isinstance(data, dict):
         raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
-    errors = yamlsrc.validate(data, "profile", src)
+    errors = schema.validate(data, "profile", src)
     if errors:
         raise InputError(errors)
     return replace(_build_profile(data, src), digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
