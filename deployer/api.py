@@ -21,9 +21,9 @@ from __future__ import annotations
 import asyncio
 import os
 import resource
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from .execute.read import read_current
 from .execute.session import ApplyOptions
@@ -35,7 +35,8 @@ from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planner import make_plan
 from .profile import Profile, resolve_profile
-from .recipe.loader import Entry, Recipe, load_recipe, with_overrides
+from .recipe.loader import Entry, Recipe, with_overrides
+from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
 from .report import DeviceResult, Report
 from .transport.clients import BadURL, DeviceURL, TransportError, describe, parse_url
@@ -74,6 +75,46 @@ __all__ = [
 ]
 
 
+_T = TypeVar("_T")
+
+
+def _kind(value: object) -> str:
+    text = repr(value)
+    return f"{type(value).__name__} {text if len(text) <= 40 else text[:39] + '...'}"
+
+
+def _need_recipe(recipe: object, call: str) -> None:
+    """Refuse, before anything is sent, what a caller passed where a loaded Recipe belongs."""
+    if not isinstance(recipe, Recipe):
+        hint = " (load it first: deployer.load_recipe(path))" if isinstance(recipe, (str, os.PathLike)) else ""
+        raise UsageError(f"{call} takes a Recipe{hint}, got {_kind(recipe)}")
+
+
+def _need_unit(unit: object) -> None:
+    if unit is None:
+        return
+    if isinstance(unit, bool) or not isinstance(unit, int):
+        raise UsageError(f"unit must be an int from 1 to 247 (0 is broadcast), got {_kind(unit)}")
+    if not 0 <= unit <= 247:
+        raise UsageError(f"unit must be from 1 to 247 (0 is broadcast), got {unit}")
+
+
+def _sync(call: str, coro: Callable[[], Coroutine[Any, Any, _T]]) -> _T:
+    """Run a coroutine for a sync API call; inside a running event loop, say to await the async twin."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return asyncio.run(coro())
+    raise UsageError(f"deployer.{call}() cannot run inside a running event loop; await deployer.{call}_async()")
+
+
+def load_recipe(path: str | os.PathLike[str], **kw: Any) -> Recipe:
+    """A recipe file, validated against its profile; InputError lists every problem with its position."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise UsageError(f"load_recipe takes a path (str or os.PathLike), got {_kind(path)}")
+    return _load_recipe(path, **kw)
+
+
 def load_profile(ref: str) -> Profile:
     """A built-in profile id or a profile file."""
     return resolve_profile(ref)
@@ -82,6 +123,12 @@ def load_profile(ref: str) -> Profile:
 def recipe_from(profile: str | Profile, parameters: Mapping[str, Any], *, name: str = "inline",
                 base: Recipe | None = None) -> Recipe:
     """A recipe from values given in code (``{"F07": "10 s"}``), on its own or over ``base``'s values."""
+    if not isinstance(parameters, Mapping):
+        raise UsageError(f"recipe_from takes the parameters as a mapping (name -> value), got {_kind(parameters)}")
+    if not isinstance(profile, (str, Profile)):
+        raise UsageError(f"recipe_from takes a profile id, a profile file or a Profile, got {_kind(profile)}")
+    if base is not None:
+        _need_recipe(base, "recipe_from(base=...)")
     src = Source(f"<{name}>")
     entries = [Entry(k, v, src, ("parameters", k)) for k, v in parameters.items()]
     if base is None:
@@ -95,6 +142,8 @@ def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: i
     """Parse a device URL (``tcp://HOST:PORT``, ``rtu:///dev/ttyUSB0?baudrate=19200`` ...); UsageError if bad."""
     if isinstance(url, DeviceURL):
         return url
+    if not isinstance(url, str):
+        raise UsageError(f"device_url takes a URL such as tcp://10.0.0.11:502, got {_kind(url)}")
     try:
         return parse_url(url, timeout=timeout, retries=retries)
     except BadURL as e:
@@ -102,6 +151,7 @@ def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: i
 
 
 def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) -> tuple[DeviceURL, int]:
+    _need_unit(unit)
     text = device if device is not None else (recipe.device.url if recipe.device else None)
     if text is None:
         raise UsageError("no device: pass a device URL or set device.url in the recipe")
@@ -115,6 +165,8 @@ def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) ->
 async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
                      write_all: bool = False, offline: bool = False) -> Plan:
     """The requests apply would send: against what the device holds now, or ``offline`` the full write plan."""
+    _need_recipe(recipe, "plan")
+    _need_unit(unit)
     if offline:
         u = unit if unit is not None else 1
         return make_plan(recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all)
@@ -126,12 +178,14 @@ async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit
 
 def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
          write_all: bool = False, offline: bool = False) -> Plan:
-    return asyncio.run(plan_async(recipe, device, unit, write_all=write_all, offline=offline))
+    _need_recipe(recipe, "plan")
+    return _sync("plan", lambda: plan_async(recipe, device, unit, write_all=write_all, offline=offline))
 
 
 async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
                       options: ApplyOptions | None = None, name: str | None = None) -> Report:
     """Apply to one device; the report says per parameter what it holds now (never raises for a device fault)."""
+    _need_recipe(recipe, "apply")
     url, u = _target(recipe, device, unit)
     return await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=options,
                             recipe_name=recipe.path or recipe.name)
@@ -139,7 +193,8 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
           options: ApplyOptions | None = None, name: str | None = None) -> Report:
-    return asyncio.run(apply_async(recipe, device, unit, options=options, name=name))
+    _need_recipe(recipe, "apply")
+    return _sync("apply", lambda: apply_async(recipe, device, unit, options=options, name=name))
 
 
 @dataclass(frozen=True)
@@ -171,12 +226,14 @@ def diff_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]]) -> list[
 
 
 async def diff_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None) -> list[Drift]:
+    _need_recipe(recipe, "diff")
     url, u = _target(recipe, device, unit)
     return diff_values(recipe, await read_current(recipe.profile, [d.name for d in recipe.desired], url, u))
 
 
 def diff(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None) -> list[Drift]:
-    return asyncio.run(diff_async(recipe, device, unit))
+    _need_recipe(recipe, "diff")
+    return _sync("diff", lambda: diff_async(recipe, device, unit))
 
 
 def pulled_recipe(profile: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
@@ -199,12 +256,15 @@ def pull_names(profile: Profile) -> list[str]:
 
 async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict[str, tuple[int, ...]]:
     """Every readable, writable parameter of a device: name -> registers."""
+    _need_unit(unit)
+    if not isinstance(profile, (str, Profile)):
+        raise UsageError(f"pull takes a profile id, a profile file or a Profile, got {_kind(profile)}")
     prof = profile if isinstance(profile, Profile) else resolve_profile(profile)
     return await read_current(prof, pull_names(prof), device_url(device), unit)
 
 
 def pull(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict[str, tuple[int, ...]]:
-    return asyncio.run(pull_async(profile, device, unit))
+    return _sync("pull", lambda: pull_async(profile, device, unit))
 
 
 # ---- fleets ----------------------------------------------------------------------------------
@@ -302,11 +362,12 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
 
 
 def apply_fleet(recipe: Recipe, inventory: str | Inventory, **kw: Any) -> Report:
-    return asyncio.run(apply_fleet_async(recipe, inventory, **kw))
+    _need_recipe(recipe, "apply_fleet")
+    return _sync("apply_fleet", lambda: apply_fleet_async(recipe, inventory, **kw))
 
 
 def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
-    return asyncio.run(run_fleet_async(jobs, **kw))
+    return _sync("run_fleet", lambda: run_fleet_async(jobs, **kw))
 
 
 async def read_fleet_async(jobs: Sequence[ReadJob], *, parallel: int = 8,
@@ -319,7 +380,7 @@ async def read_fleet_async(jobs: Sequence[ReadJob], *, parallel: int = 8,
 
 def read_fleet(jobs: Sequence[ReadJob], *, parallel: int = 8) -> dict[str, dict[str, tuple[int, ...]] | TransportError
                                                                     | UsageError]:
-    return asyncio.run(read_fleet_async(jobs, parallel=parallel))
+    return _sync("read_fleet", lambda: read_fleet_async(jobs, parallel=parallel))
 
 
 def read_jobs(jobs: Sequence[Job]) -> list[ReadJob]:
