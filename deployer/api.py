@@ -39,7 +39,7 @@ from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
 from .report import DeviceResult, Report
-from .transport.clients import BadURL, DeviceURL, TransportError, describe, parse_url
+from .transport.clients import DeviceURL, TransportError, describe, parse_url
 
 __all__ = [
     "ApplyOptions",
@@ -144,10 +144,7 @@ def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: i
         return url
     if not isinstance(url, str):
         raise UsageError(f"device_url takes a URL such as tcp://10.0.0.11:502, got {_kind(url)}")
-    try:
-        return parse_url(url, timeout=timeout, retries=retries)
-    except BadURL as e:
-        raise UsageError(str(e)) from None
+    return parse_url(url, timeout=timeout, retries=retries)  # BadURL is a UsageError
 
 
 def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) -> tuple[DeviceURL, int]:

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from deployer.cli import docgen, validate_file
-from deployer.load import schema, yamlsrc
+from deployer.load import schema
 from deployer.profile import Limits
 from deployer.transport.urls import _OPTIONS, DEFAULT_PORTS, NUMERIC_OPTIONS, SERIAL_DEFAULTS, option_facts
 from tests.helpers import run_cli as cli

@@ -174,7 +174,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: fl
 
     Everything is checked before any device is touched; all problems at once as an InputError.
     """
-    from ..transport.clients import BadURL, parse_url
+    from ..transport.clients import parse_url
     from .rollout import Job
 
     jobs: list[Job] = []
@@ -188,7 +188,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: fl
             jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit))
         except InputError as e:
             errors.extend(e.diagnostics)
-        except (BadURL, UsageError) as e:
+        except UsageError as e:  # BadURL too
             errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
     if errors:
         raise InputError(errors)

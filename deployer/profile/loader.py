@@ -130,10 +130,14 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
 
     def address_of(value: object, at: yamlsrc.Path_, extra: int = 0) -> int | None:
         try:
-            wire = wire_address(parse_register(value), addressing) + extra
-        except ValueError as e:
-            errors.append(src.error(at, str(e) if "holding" in str(e) or "below" in str(e)
-                                    else f"not a register: {value!r}"))
+            number = parse_register(value)
+        except ValueError:
+            errors.append(src.error(at, f"not a register: {value!r}"))
+            return None
+        try:
+            wire = wire_address(number, addressing) + extra
+        except ValueError as e:  # the message says which references the addressing accepts
+            errors.append(src.error(at, str(e)))
             return None
         if wire > 0xFFFF:
             errors.append(src.error(at, f"wire address {wire} is beyond 65535"))
