@@ -144,6 +144,11 @@ def load_profile_file(path: str | os.PathLike[str], text: str | None = None) -> 
     if text is None:
         text = yamlsrc.read_text(p)
     data, src = yamlsrc.load(p, text)
+    return profile_from_data(p, text, data, src)
+
+
+def profile_from_data(path: str, text: str, data: Any, src: yamlsrc.Source) -> Profile:
+    """A profile from its text already read as data (the importers compare that data with what they wrote)."""
     if not isinstance(data, dict):
         raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
     errors = schema.validate(data, "profile", src)

@@ -33,7 +33,10 @@ attributes:
     platforms: posix
 options:
   recipe:
-    description: A recipe file on the target.
+    description:
+      - A recipe file on the target.
+      - With O(inventory) it may be left out (and O(profile) with O(parameters) too); then each device
+        gets the recipe the inventory gives it.
     type: path
   profile:
     description: A built-in profile id or a profile file, when no recipe file is given.
@@ -49,7 +52,8 @@ options:
     type: str
   max_failures:
     description:
-      - After this many devices did not end ok (failed, partial, unreachable), start no new one.
+      - After this many devices did not end ok (failed, partial and unreachable count, skipped ones
+        never), start no new one.
       - A number V(N) or a percentage V(P%).
     type: str
   write_all:
@@ -161,7 +165,8 @@ def apply(module, rec, jobs):
     p = module.params
     options = ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"],
                            allow_broadcast=p["allow_broadcast"])
-    report = asyncio.run(run_fleet_async(jobs, recipe_name=rec.path or rec.name, parallel=p["parallel"],
+    report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
+                                         parallel=p["parallel"],
                                          batch=p.get("batch"), max_failures=p.get("max_failures"), options=options,
                                          report_path=p.get("report")))
     devices, diffs, problems = [], [], []
