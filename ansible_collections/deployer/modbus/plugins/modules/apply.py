@@ -72,6 +72,22 @@ options:
   report:
     description: Also write the report JSON to this file on the target (a new path or a regular file).
     type: path
+  soak:
+    description:
+      - After the verified write, read the profile's health checks for this long (for example V(30s),
+        V(5m); a bare number is seconds).
+      - A failed check rolls that device back from its snapshot (status C(rolled-back), the task fails);
+        the profile's commit is sent only after the soak passed.
+      - With O(batch), each batch soaks together and a health failure in the first batch ends the rollout.
+    type: str
+  health_interval:
+    description: Time between two rounds of health checks during the soak.
+    type: str
+    default: 1s
+  rollback_on_failure:
+    description: When the rollout stops (a failed batch, O(max_failures)), roll back every device it wrote.
+    type: bool
+    default: false
 notes:
   - One bus is one device at a time whatever O(parallel) says; a device is locked for the run.
 seealso:
@@ -84,6 +100,13 @@ EXAMPLES = r"""
     recipe: /srv/recipes/line3.yaml
     devices: "{{ modbus_devices }}"
     state_dir: /var/lib/deployer
+
+- name: New ramps, kept only if the drives stay healthy for 5 minutes (one canary first)
+  deployer.modbus.apply:
+    recipe: /srv/recipes/line3.yaml
+    inventory: /srv/inventory.yaml
+    batch: "1,100%"
+    soak: 5m
 """
 
 RETURN = r"""
@@ -159,16 +182,21 @@ def check(module, jobs):
 
 
 def apply(module, rec, jobs):
-    from deployer.api import run_fleet_async
+    from deployer.api import run_fleet_async, safe_options
     from deployer.execute.session import ApplyOptions
+    from deployer.execute.soak import check_soak_profiles
 
     p = module.params
-    options = ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"],
-                           allow_broadcast=p["allow_broadcast"])
+    options = safe_options(ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"],
+                                        allow_broadcast=p["allow_broadcast"]),
+                           soak=p.get("soak"), health_interval=p["health_interval"])
+    if options.soak is not None:
+        check_soak_profiles([j.recipe.profile for j in jobs])
     report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
                                          parallel=p["parallel"],
                                          batch=p.get("batch"), max_failures=p.get("max_failures"), options=options,
-                                         report_path=p.get("report")))
+                                         report_path=p.get("report"),
+                                         rollback_on_failure=p["rollback_on_failure"]))
     devices, diffs, problems = [], [], []
     for d in report.devices:
         changed = [(q.name, q.before or "?", q.after or q.desired) for q in d.parameters
@@ -195,7 +223,9 @@ def main():
             recipe=dict(type="path"), profile=dict(type="str"), parameters=dict(type="dict"), name=dict(type="str"),
             batch=dict(type="str"), max_failures=dict(type="str"), write_all=dict(type="bool", default=False),
             on_error=dict(type="str", default="continue", choices=["continue", "stop"]),
-            state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), **TARGET_ARGS),
+            state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), soak=dict(type="str"),
+            health_interval=dict(type="str", default="1s"), rollback_on_failure=dict(type="bool", default=False),
+            **TARGET_ARGS),
         mutually_exclusive=TARGET_EXCLUSIVE,
         supports_check_mode=True,
     )
