@@ -520,7 +520,8 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
 
     try:
         report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
-                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget, **safe)
+                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget,
+                                  on_changed=None if live is None else live.update, **safe)
     finally:
         if live is not None:
             live.stop()

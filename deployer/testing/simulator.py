@@ -456,6 +456,13 @@ class Simulator:
         for k, v in zip(range(p.key, p.key + p.count), registers, strict=True):
             self._set(unit, k, v)
 
+    def set_register(self, address: int, value: int, unit: int = 1, table: RegisterType = "holding") -> None:
+        """Set a declared register from outside (a fault code clears after a reset, a status word changes)."""
+        key = SPACE[table] << 16 | address
+        if key not in self._owner and key not in self._extra:
+            raise ValueError(f"{table} register {address} is not declared in profile {self.profile.id}")
+        self._set(unit, key, value)
+
     def dump_state(self, path: str) -> None:
         state = {str(u): {str(a): v for a, v in self.registers(u).items()} for u in self.units}
         data: dict[str, Any] = {"profile": self.profile.id, "units": state}
