@@ -53,7 +53,8 @@ def test_diff_defaults_names_what_was_changed(tmp_path: Path, th: Profile, capsy
         assert code == 2, err
         data = json.loads(out)
         assert data["differs"] == [
-            {"name": "setpoint", "default": "21.5 degC", "device": "23 degC", "default_raw": [215], "device_raw": [230]},
+            {"name": "setpoint", "default": "21.5 degC", "device": "23 degC", "default_raw": [215],
+             "device_raw": [230]},
             {"name": "led", "default": "true", "device": "false", "default_raw": [1], "device_raw": [0x30]},
             {"name": "unit_f", "default": "celsius", "device": "fahrenheit", "default_raw": [0], "device_raw": [1]}]
         assert (data["compared"], data["no_default"]) == (8, ["trim"])
@@ -73,8 +74,8 @@ def test_pull_non_default_is_the_difference_from_the_factory(tmp_path: Path, th:
         sim.write("mode", (2,))
         sim.write("level", (0x0051,))  # led on, level 5
         sim.write("buzzer", (0,))
-        code, out, err = run_cli(capsys, "pull", "--profile", str(tmp_path / "th.yaml"), "--device", sim.url,
-                                 "--non-default", "-o", str(tmp_path / "pulled.yaml"))
+        code, _, err = run_cli(capsys, "pull", "--profile", str(tmp_path / "th.yaml"), "--device", sim.url,
+                               "--non-default", "-o", str(tmp_path / "pulled.yaml"))
         assert code == 0, err
         text = (tmp_path / "pulled.yaml").read_text()
         assert "# Only the values that differ from the factory defaults of profile th: 4 parameters at the default " \
