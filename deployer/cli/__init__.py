@@ -6,7 +6,7 @@ registers its commands on the group.
 
 from __future__ import annotations
 
-from . import apply, files, plan, profiles, read, simulate  # noqa: F401  (registers the commands)
+from . import apply, field, files, plan, profiles, read, simulate  # noqa: F401  (registers the commands)
 from .apply import print_report
 from .base import cli, main
 from .files import validate_file
