@@ -28,6 +28,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from ..errors import Locked as Locked  # importable from here as before
+
 ENV = "DEPLOYER_LOCK_DIR"
 
 
@@ -38,10 +40,6 @@ def lock_dir() -> str:
 def device_key(bus: str, unit: int) -> str:
     """The device's identity: its bus (serial path after symlinks, host:port) and unit id."""
     return f"{bus}#unit{unit}"
-
-
-class Locked(Exception):
-    """Another run holds the device's lock."""
 
 
 @dataclass
@@ -103,7 +101,8 @@ def _directory(d: str) -> None:
         if os.stat(d).st_uid == os.getuid():
             os.chmod(d, 0o1777)
     except OSError as e:
-        raise Locked(f"cannot use the lock directory {d}: {e.strerror} (set {ENV} to another folder)") from None
+        raise Locked(f"cannot use the lock directory {d}: {e.strerror} (set {ENV} to another folder)",
+                     busy=False) from None
     _ready.add(d)
 
 
@@ -120,7 +119,7 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
     try:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
     except OSError as e:
-        raise Locked(f"cannot open the lock file {path}: {e.strerror}") from None
+        raise Locked(f"cannot open the lock file {path}: {e.strerror}", busy=False) from None
     try:
         fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -131,7 +130,7 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
         raise Locked(f"locked by {_holder_text(record)}") from None
     except OSError as e:
         os.close(fd)
-        raise Locked(f"cannot lock {path}: {e.strerror}") from None
+        raise Locked(f"cannot lock {path}: {e.strerror}", busy=False) from None
     if shared:
         return DeviceLock(key, path, fd, None, shared=True)
     old = _read_record(fd)
@@ -156,8 +155,8 @@ async def acquire(key: str, *, timeout: float = 0.0, command: str = "", director
         try:
             return try_lock(key, command=command, directory=directory, shared=shared)
         except Locked as e:
-            if time.monotonic() >= deadline or str(e).startswith("cannot"):
-                if timeout > 0 and not str(e).startswith("cannot"):
+            if time.monotonic() >= deadline or not e.busy:
+                if timeout > 0 and e.busy:
                     raise Locked(f"{e}; still locked after waiting {timeout:g} s") from None
                 raise
         await asyncio.sleep(poll)
