@@ -243,9 +243,10 @@ def check_writable(folder: str, what: str) -> None:
         raise UsageError(f"cannot write {what}: {e.strerror}") from None
 
 
-def fleet(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None, timeout: float | None = None,
-          retries: int | None = None, unit: int | None = None) -> list[Job]:
-    """One checked job per selected device (the recipe with the device's profile and overrides)."""
+def fleet(recipe: Recipe | None, inventory: str | Inventory, *, limit: str | None = None,
+          timeout: float | None = None, retries: int | None = None, unit: int | None = None) -> list[Job]:
+    """One checked job per selected device: ``recipe`` (None: each device's own from the inventory) with
+    the device's profile and overrides. InputError naming the devices when any device cannot have its job."""
     inv = inventory if isinstance(inventory, Inventory) else load_inventory(inventory)
     jobs = fleet_jobs(inv, recipe, limit, timeout=timeout, retries=retries, unit=unit)
     if not jobs:
@@ -253,13 +254,16 @@ def fleet(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = Non
     return jobs
 
 
-async def apply_fleet_async(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None,
+async def apply_fleet_async(recipe: Recipe | None, inventory: str | Inventory, *, limit: str | None = None,
                             parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
                             options: ApplyOptions | None = None, report_path: str | None = None,
                             on_start: Callable[[Job], None] | None = None,
                             on_done: Callable[[DeviceResult], None] | None = None) -> Report:
-    """Apply to the devices of an inventory (``limit`` selects): staged, with a failure budget, see ``run_fleet``."""
-    return await run_fleet_async(fleet(recipe, inventory, limit=limit), recipe_name=recipe.path or recipe.name,
+    """Apply to the devices of an inventory (``limit`` selects): staged, with a failure budget, see ``run_fleet``.
+
+    ``recipe`` None: each device gets the recipe the inventory gives it."""
+    return await run_fleet_async(fleet(recipe, inventory, limit=limit),
+                                 recipe_name=None if recipe is None else recipe.path or recipe.name,
                                  parallel=parallel, batch=batch, max_failures=max_failures, options=options,
                                  report_path=report_path, on_start=on_start, on_done=on_done)
 
@@ -279,7 +283,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
                                   report_path=report_path)
     live = None
     if report_path:
-        live = LiveReport(report_path, recipe_name, not_finished(jobs))
+        live = LiveReport(report_path, recipe_name, not_finished(jobs, sizes))
 
     def done(r: DeviceResult) -> None:
         if live is not None:
@@ -298,7 +302,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     return report
 
 
-def apply_fleet(recipe: Recipe, inventory: str | Inventory, **kw: Any) -> Report:
+def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) -> Report:
     return asyncio.run(apply_fleet_async(recipe, inventory, **kw))
 
 

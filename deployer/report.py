@@ -85,6 +85,8 @@ class DeviceResult:
     notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
     identity: dict[str, str] | None = None  # Function 43 objects (vendor, product_code, revision ...), if it answers
     learned: dict[str, int] = field(default_factory=dict)  # profile limits this run's refusals taught
+    recipe: str | None = None  # the recipe (or snapshot, plan) file this device was given
+    batch: int | None = None  # fleets: the batch the device ran in (or would have: skipped)
 
     @property
     def write_requests(self) -> int:
@@ -125,6 +127,10 @@ class DeviceResult:
             out["identity"] = dict(self.identity)
         if self.learned:
             out["learned"] = dict(self.learned)
+        if self.recipe is not None:
+            out["recipe"] = self.recipe
+        if self.batch is not None:
+            out["batch"] = self.batch
         return out
 
 

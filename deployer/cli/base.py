@@ -134,11 +134,22 @@ def _unreachable(values: Mapping[str, object]) -> list[str]:
     return [n for n, v in values.items() if isinstance(v, Exception)]
 
 
-def _fleet(rec: Recipe, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
+def _fleet(rec: Recipe | None, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
            unit: int | None) -> list[Job]:
     from ..api import fleet
 
     return fleet(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)
+
+
+def recipe_or_inventory(recipe: str | None, inventory: str | None, *, what: str = "RECIPE") -> Recipe | None:
+    """The command line's recipe, loaded; None when there is none and the inventory's devices name theirs."""
+    from ..recipe.loader import load_recipe
+
+    if recipe is not None:
+        return load_recipe(recipe)
+    if inventory is None:
+        raise UsageError(f"pass {what}, or --inventory FILE whose devices name their recipes")
+    return None
 
 
 _ARGV: list[str] = []  # the command line, for the audit log

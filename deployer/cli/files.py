@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..load.diagnostics import EXIT_INVALID, EXIT_OK, Diagnostic, InputError, UsageError
+from ..load.diagnostics import EXIT_INVALID, EXIT_OK, InputError, UsageError
 from .base import _n, cli
 
 if TYPE_CHECKING:
@@ -45,7 +45,7 @@ def validate_file(path: str) -> str:
 
 def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
     from ..fleet.inventory import load_inventory
-    from ..profile import load_profile, resolve_profile
+    from ..profile import load_profile
     from ..recipe.loader import load_recipe
 
     if kind == "profile":
@@ -55,26 +55,14 @@ def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
         rec = load_recipe(path)
         return f"recipe {rec.name}: {_n(len(rec.desired), 'parameter')} for profile {rec.profile.id}"
     if kind == "inventory":
+        from ..fleet.inventory import fleet_jobs
+
         inv = load_inventory(path)
-        errors: list[Diagnostic] = []
-        checked: dict[str, str | None] = {}  # each distinct profile is loaded once, however many devices use it
-        for dev in inv.devices:
-            if dev.profile is None:
-                continue
-            if dev.profile not in checked:
-                checked[dev.profile] = None
-                try:
-                    resolve_profile(dev.profile, relative_to=path, kind="inventory")
-                except UsageError as e:
-                    checked[dev.profile] = str(e)
-                except InputError as e:
-                    errors.extend(e.diagnostics)
-            why = checked[dev.profile]
-            if why is not None:  # said at every device that names it
-                errors.append(src.error(("devices", dev.name, "profile"), why))
-        if errors:
-            raise InputError(errors)
-        return f"inventory: {_n(len(inv.devices), 'device')}"
+        # what plan and apply would check before sending anything: each device's profile, URL, and its
+        # recipe (from the inventory) with its overrides; devices without one get theirs on the command line
+        jobs = fleet_jobs(inv, None, None, require_recipe=False)
+        recipes = {j.recipe.path for j in jobs}
+        return f"inventory: {_n(len(inv.devices), 'device')}" + (f", {_n(len(recipes), 'recipe')}" if recipes else "")
     if kind == "plan":
         from ..planning.planfile import plan_from_json
 
