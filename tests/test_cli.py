@@ -297,7 +297,7 @@ def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pyt
     code, out, _ = cli(capsys, "plan", r)
     assert code == 0 and "21 bytes on an RTU line, about 16 ms at 19200 baud" in out
     # with a serial URL the estimate uses its line settings and framing (ASCII counts characters)
-    from deployer.cli import _line_of
+    from deployer.cli.plan import _line_of
     from deployer.planning.model import Target
     from deployer.planning.planner import make_plan
     from deployer.planning.wire import line_cost

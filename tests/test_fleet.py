@@ -473,7 +473,8 @@ def test_declining_one_device_of_a_fleet_skips_only_that_one(tmp_path: Path) -> 
 
     with fleet(3) as sims:
         rec = deployer.load_recipe(recipe(tmp_path))
-        jobs = deployer.api.fleet(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)}))
+        jobs = deployer.api.fleet_jobs(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims,
+                                                                                          strict=True)}))
 
         async def confirm(plan: object, res: deployer.DeviceResult) -> bool:
             return res.name != "d01"

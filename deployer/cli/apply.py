@@ -18,7 +18,6 @@ from .base import (
     _fleet,
     _n,
     _target,
-    cli,
     console,
     describe,
     device_options,
@@ -282,7 +281,7 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
     return device_options(f)
 
 
-@cli.command()
+@click.command()
 @click.argument("source", metavar="[RECIPE|PLAN.json]", required=False, type=click.Path(dir_okay=False))
 @apply_options
 def apply(source: str | None, **kw: Any) -> int:
@@ -292,7 +291,7 @@ def apply(source: str | None, **kw: Any) -> int:
     return run_apply(source, **kw)
 
 
-@cli.command()
+@click.command()
 @click.argument("snapshot", required=False, type=click.Path(dir_okay=False, exists=True))
 @apply_options
 @click.option("--force", is_flag=True,
@@ -318,7 +317,7 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
     return run_apply(snapshot, command="rollback", **kw)
 
 
-@cli.command()
+@click.command()
 @click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
               help="where snapshots and the audit log are")
 @click.option("--json", "as_json", is_flag=True, help="print the unfinished runs as JSON")

@@ -7,14 +7,14 @@ import json
 import click
 
 from ..load.diagnostics import EXIT_OK, UsageError
-from .base import cli, console
+from .base import console
 from .tables import show
 
 _STATE = click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
                       help="the state directory apply keeps what devices taught in")
 
 
-@cli.group()
+@click.group()
 def learned() -> None:
     """Limits devices taught by their refusals (STATE/learned.json): list or forget them."""
 

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from ..load.diagnostics import EXIT_INVALID, EXIT_OK, InputError, UsageError
-from .base import _n, cli
+from .base import _n
 
 if TYPE_CHECKING:
     from ..load.yamlsrc import Source
@@ -45,11 +45,11 @@ def validate_file(path: str) -> str:
 
 def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
     from ..fleet.inventory import load_inventory
-    from ..profile import load_profile
+    from ..profile import load_profile_file
     from ..recipe.loader import load_recipe
 
     if kind == "profile":
-        prof = load_profile(path)
+        prof = load_profile_file(path)
         return f"profile {prof.id}: {_n(len(prof.parameters), 'parameter')}"
     if kind == "recipe":
         rec = load_recipe(path)
@@ -74,7 +74,7 @@ def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
                                      "an inventory has 'devices'")])
 
 
-@cli.command()
+@click.command()
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
 def validate(files: tuple[str, ...]) -> int:
     """Check profiles, recipes and inventories (and saved plans); exit 1 if any is invalid."""
@@ -92,7 +92,7 @@ def validate(files: tuple[str, ...]) -> int:
     return EXIT_OK
 
 
-@cli.command("docs")
+@click.command("docs")
 @click.option("--out", "out_dir", default=os.path.join("docs", "reference"), show_default=True,
               type=click.Path(file_okay=False), help="where the reference pages go")
 @click.option("--check", is_flag=True, help="write nothing; exit 1 when a page differs from the schemas")
@@ -110,7 +110,7 @@ def docs_command(out_dir: str, check: bool) -> int:
     return EXIT_OK
 
 
-@cli.command()
+@click.command()
 @click.argument("key")
 def explain(key: str) -> int:
     """Explain a key of a profile, recipe, inventory, plan or report, or a device URL option

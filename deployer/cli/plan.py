@@ -14,7 +14,6 @@ from .base import (
     _n,
     _target,
     _unreachable,
-    cli,
     console,
     describe,
     device_options,
@@ -54,6 +53,7 @@ def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:
 def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console,
                url: DeviceURL | None = None) -> None:
     from ..planning.wire import line_cost, wire_stats
+    from ..profile.model import address_text
     from ..transport.urls import DeviceURL, pacing
 
     req_of: dict[str, list[int]] = {}
@@ -67,7 +67,7 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
     for pp in plan.parameters:
         if changes_only and pp.action == "unchanged":
             continue
-        addr = f"0x{pp.address:04X} ({pp.address})"
+        addr = address_text(pp.register_type, pp.address)
         reqs = ",".join(str(i) for i in req_of.get(pp.name, [])) or "-"
         if changes_only:
             p = profile.parameter(pp.name)
@@ -110,7 +110,8 @@ def print_frames(plan: Plan, out: Console) -> None:
     unit = plan.device.unit
     for i, w in enumerate(plan.writes, 1):
         names = ", ".join(w.parameters)
-        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {w.count} registers ({names})")
+        what = _n(w.count, "coil") if w.function in (5, 15) else f"{w.count} registers"
+        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {what} ({names})")
         framing: Framing
         for framing in ("rtu", "ascii", "tcp"):
             q = request_frame(w, unit, framing, transaction_id=i)
@@ -126,7 +127,7 @@ def _show(frame: bytes, framing: str) -> str:
     return frame.decode("ascii").strip() if framing == "ascii" else frame.hex(" ").upper()
 
 
-@cli.command()
+@click.command()
 @click.argument("recipe", required=False, type=click.Path(dir_okay=False))
 @device_options
 @click.option("--json", "as_json", is_flag=True, help="print the plan as JSON")

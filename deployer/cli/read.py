@@ -17,7 +17,6 @@ from .base import (
     _output,
     _target,
     _unreachable,
-    cli,
     console,
     describe,
     device_options,
@@ -37,7 +36,7 @@ if TYPE_CHECKING:
     from ..recipe.loader import Recipe
 
 
-@cli.command()
+@click.command()
 @click.argument("recipe", required=False, type=click.Path(dir_okay=False))
 @device_options
 @click.option("--json", "as_json", is_flag=True, help="print the differences as JSON")
@@ -110,7 +109,7 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     return EXIT_CHANGES if drifted else EXIT_OK
 
 
-@cli.command()
+@click.command()
 @click.option("--profile", "profile_ref", metavar="ID|FILE",
               help="the device's profile (with --inventory: for devices whose entry names none)")
 @click.option("--device", metavar="URL")

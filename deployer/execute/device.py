@@ -33,7 +33,8 @@ from .verify import PENDING, _attempted, _values, _verify
 
 
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
-    return {name: ParameterResult(name, a, n, text, regs, parameter=p) for name, a, n, text, regs, p
+    return {name: ParameterResult(name, a, n, text, regs, parameter=p, register_type=p.register_type)
+            for name, a, n, text, regs, p
             in _shared(recipe).results}
 
 
@@ -42,7 +43,7 @@ class _Shared:
     """What every device applying one recipe shares, worked out once (a fleet has hundreds of them)."""
 
     reads: tuple[ReadRequest, ...]  # the blocks covering the readable parameters (snapshot, read-back)
-    layout: tuple[tuple[str, int, int], ...]  # name, address, registers of each recipe parameter
+    layout: tuple[tuple[str, int, int], ...]  # name, key (Parameter.key), registers of each recipe parameter
     results: tuple[tuple[str, int, int, str, tuple[int, ...], Parameter], ...]  # a ParameterResult's fields
 
 
@@ -58,7 +59,7 @@ def _shared(recipe: Recipe) -> _Shared:
         params = [d.parameter for d in recipe.desired]
         hit = _SHARED[id(recipe)] = (recipe, _Shared(
             plan_reads(recipe.profile, [p.name for p in params if p.readable]),
-            tuple((p.name, p.address, p.count) for p in params),
+            tuple((p.name, p.key, p.count) for p in params),
             tuple((d.name, d.parameter.address, d.parameter.count, d.text, d.registers, d.parameter)
                   for d in recipe.desired)))
     return hit[1]

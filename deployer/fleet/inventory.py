@@ -114,17 +114,42 @@ _LAYERED = ("recipe", "profile", "unit", "timeout", "retries")
 
 
 def load_inventory(path: str | os.PathLike[str]) -> Inventory:
-    """Load and check an inventory. Each device's settings: its own entry, else its groups (in the
-    order it lists them, the later winning), else ``defaults``; ``parameters`` merge per name in
-    that order (defaults < groups < device), over the recipe's own values."""
+    """Load and check an inventory file (profile and recipe paths in it are relative to it).
+
+    Each device's settings: its own entry, else its groups (in the order it lists them, the later
+    winning), else ``defaults``; ``parameters`` merge per name in that order (defaults < groups <
+    device), over the recipe's own values. Raises InputError."""
     p = os.fspath(path)
     data, src = yamlsrc.load(p)
+    return _inventory(p, data, src, os.path.dirname(os.path.abspath(p)))
+
+
+def inventory_from(devices: Iterable[Mapping[str, Any]], name: str = "<devices>") -> Inventory:
+    """An inventory from devices given in code (each a mapping with ``name``, ``url`` and the keys of an
+    inventory file's device), checked as a file is; profile paths are relative to the working directory."""
+    src = yamlsrc.Source(name)
+    errors: list[Diagnostic] = []
+    table: dict[str, Any] = {}
+    for i, spec in enumerate(devices):
+        rest = {k: v for k, v in spec.items() if k != "name" and v is not None}
+        dev = spec.get("name")
+        if not isinstance(dev, str) or not dev:
+            errors.append(src.error((i,), f"device {i + 1}: a device needs a name"))
+        elif dev in table:
+            errors.append(src.error((i,), f"device {dev!r} is listed twice"))
+        else:
+            table[dev] = rest
+    if errors:
+        raise InputError(errors)
+    return _inventory(name, {"devices": table}, src, os.getcwd())
+
+
+def _inventory(p: str, data: Any, src: yamlsrc.Source, here: str) -> Inventory:
     if not isinstance(data, dict):
         raise InputError([src.error((), "an inventory must be a mapping (defaults: ..., devices: ...)")])
     errors: list[Diagnostic] = schema.validate(data, "inventory", src)
     if errors:
         raise InputError(errors)
-    here = os.path.dirname(os.path.abspath(p))
     defaults: dict[str, Any] = data.get("defaults") or {}
     groups: dict[str, Any] = data.get("groups") or {}
     devices = []

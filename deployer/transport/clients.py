@@ -78,6 +78,18 @@ class Transport(abc.ABC):
         """FC06."""
 
     @abc.abstractmethod
+    async def read(self, function: int, address: int, count: int, unit: int) -> list[int]:
+        """FC03 or FC04 (registers), FC01 or FC02 (bits, as 0/1). Raises like read_holding_registers."""
+
+    @abc.abstractmethod
+    async def write_coil(self, address: int, value: bool, unit: int) -> None:
+        """FC05."""
+
+    @abc.abstractmethod
+    async def write_coils(self, address: int, values: list[bool], unit: int) -> None:
+        """FC15."""
+
+    @abc.abstractmethod
     async def read_device_identification(self, unit: int, read_code: int = 1) -> dict[int, bytes]:
         """FC43 / 14: object id -> bytes (basic objects with read code 1). Raises like the others."""
 
@@ -341,6 +353,33 @@ class PymodbusTransport(Transport):
     async def write_register(self, address: int, value: int, unit: int) -> None:
         await self._run(6, lambda c: c.write_register(address, value, device_id=unit,
                                                       no_response_expected=unit == 0), no_answer=unit == 0)
+
+    async def read(self, function: int, address: int, count: int, unit: int) -> list[int]:
+        if function == 3:
+            return await self.read_holding_registers(address, count, unit)
+        if function == 4:
+            r = await self._run(4, lambda c: c.read_input_registers(address, count=count, device_id=unit))
+            values = list(r.registers)
+        elif function in (1, 2):
+            call = "read_coils" if function == 1 else "read_discrete_inputs"
+            r = await self._run(function, lambda c: getattr(c, call)(address, count=count, device_id=unit))
+            bits = list(r.bits)  # padded to whole bytes: the answer carries ceil(count / 8) bytes
+            if len(bits) < count:
+                raise NoResponse(f"answer has {len(bits)} bits, asked for {count}")
+            return [1 if b else 0 for b in bits[:count]]
+        else:
+            raise ValueError(f"function {function} is not a read")
+        if len(values) != count:
+            raise NoResponse(f"answer has {len(values)} registers, asked for {count}")
+        return values
+
+    async def write_coil(self, address: int, value: bool, unit: int) -> None:
+        await self._run(5, lambda c: c.write_coil(address, value, device_id=unit,
+                                                  no_response_expected=unit == 0), no_answer=unit == 0)
+
+    async def write_coils(self, address: int, values: list[bool], unit: int) -> None:
+        await self._run(15, lambda c: c.write_coils(address, values, device_id=unit,
+                                                    no_response_expected=unit == 0), no_answer=unit == 0)
 
     async def read_device_identification(self, unit: int, read_code: int = 1) -> dict[int, bytes]:
         objects: dict[int, bytes] = {}
