@@ -35,7 +35,7 @@ parameters:
   D: {register: 0x0012, type: uint16, unit: s, min: 0, max: 600}
   setpoint: {register: 0x0020, type: int16, unit: degC, scale: 0.1, min: -50, max: 400}
 """
-ZONE = "recipe: zone\nprofile: ../profiles/pid.yaml\nparameters:\n  P: 12 percent\n  I: 120 s\n  setpoint: 180 degC\n"
+ZONE = "recipe: zone\nprofile: ../profiles/pid.yaml\nparameters:\n  P: 12.0 %\n  I: 120 s\n  setpoint: 180 degC\n"
 DRIVE = "recipe: drive\nprofile: example-inverter\nparameters:\n  F07: 10 s\n  F08: 12 s\n  stop_mode: coast\n"
 
 
@@ -118,10 +118,14 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)})
         before = {n: {p: s.read(p) for p in WANT[n]} for n, s in zip(NAMES, sims, strict=True)}
 
-        code, out, err = cli(capsys, "plan", "--inventory", inv, "--detailed-exitcode")
+        code, out, err = cli(capsys, "plan", "--inventory", inv, "--detailed-exitcode", "--per-device")
         assert code == 2, err
         assert "5 of 5 devices would change" in out
         assert "zone-2 " in out and "200 degC" in out and "25 s" in out
+        code, out, err = cli(capsys, "plan", "--inventory", inv)  # the summary: one line per distinct change
+        assert code == 0 and out.splitlines()[:2] == [
+            "1 device: P 0 % -> 12 %, I 0 s -> 120 s, D 0 s -> 30 s, setpoint 0 degC -> 180 degC",
+            "  zone-1"]
         assert writes(sims) == 0
 
         report = tmp_path / "run.json"
@@ -144,7 +148,7 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         code, out, err = cli(capsys, "diff", "--inventory", inv)
         assert code == 0, out + err
         sims[3].write("F08", (0, 1000))  # drive-2 moved on the panel
-        code, out, err = cli(capsys, "diff", "--inventory", inv)
+        code, out, err = cli(capsys, "diff", "--inventory", inv, "--per-device")
         assert code == 2 and "drift on 1 of 5 devices: drive-2" in out and "10 s" in out
 
         code, out, err = cli(capsys, "rollback", "--report", str(report), "--yes", "--state-dir", state)
@@ -205,3 +209,25 @@ def test_inventory_errors_name_their_devices_and_validate_checks_the_recipes(tmp
     Path(inv).write_text(text.replace("slow: {parameters", "slow: {url: 'tcp://x', parameters"))
     with pytest.raises(InputError, match=r"line5.yaml:5:10: error: .*url"):
         validate_file(inv)
+
+
+def test_counts_read_as_english_and_percent_as_a_symbol(capsys: pytest.CaptureFixture[str],
+                                                        tmp_path: Path) -> None:
+    (tmp_path / "profiles").mkdir()
+    (tmp_path / "profiles" / "pid.yaml").write_text(PID_PROFILE)
+    one = tmp_path / "one.yaml"
+    one.write_text("recipe: one\nprofile: profiles/pid.yaml\nparameters:\n  P: 12.0 %\n")
+    code, out, _ = cli(capsys, "plan", str(one), "--show-frames")
+    assert code == 0 and " 12 % " in out and "request 1: FC16 at 0x0010, 1 register (P)" in out
+    sim = Simulator(load_profile(str(tmp_path / "profiles" / "pid.yaml")))
+    with Simulators([sim]):
+        state = str(tmp_path / "s")
+        inv = tmp_path / "inv.yaml"
+        inv.write_text(f"devices:\n  z1: {{url: '{sim.url}', recipe: one.yaml}}\n")
+        code, out, err = cli(capsys, "apply", "--inventory", str(inv), "--yes", "--state-dir", state)
+        assert code == 0 and "z1: ok (1 write)" in err and "1 device: 1 ok; 1 write request and " in out
+        code, out, _ = cli(capsys, "diff", str(one), "--device", sim.url)
+        assert code == 0 and out == "no drift: the device holds the recipe's value\n"
+        sim.write("P", (100,))
+        code, out, _ = cli(capsys, "diff", str(one), "--device", sim.url)
+        assert code == 2 and "1 of 1 parameter differs from the recipe" in out and "10 %" in out

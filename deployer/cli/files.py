@@ -110,6 +110,19 @@ def docs_command(out_dir: str, check: bool) -> int:
     return EXIT_OK
 
 
+# words of manuals and other tools -> (our key, what it is called here)
+_TERMS = {
+    "resolution": ("scale", "a parameter's resolution (a manual's '0.01 s units') is its scale"),
+    "multiplier": ("scale", "a multiplier is a parameter's scale"),
+    "factor": ("scale", "a scaling factor is a parameter's scale"),
+    "gain": ("scale", "a register's gain (multiplier) is its scale"),
+    "slave": ("recipe:device.unit", "a slave address is the unit id, device.unit (or --unit)"),
+    "slave_id": ("recipe:device.unit", "a slave address is the unit id, device.unit (or --unit)"),
+    "endianness": ("byte_order", "the byte and word order of multi-register values is byte_order"),
+    "word_swap": ("byte_order", "a word swap is byte_order: CDAB (or swap: word)"),
+}
+
+
 @click.command()
 @click.argument("key")
 def explain(key: str) -> int:
@@ -123,6 +136,9 @@ def explain(key: str) -> int:
     kind, _, name = key.rpartition(":")
     if kind in ("", "url"):
         texts += [t for t in [url_option_text(name)] if t]
+    if not texts and name.strip().lower() in _TERMS:  # a manual's word for what a key is called here
+        ours = _TERMS[name.strip().lower()]
+        texts = [f"'{name}' is not a key here: {ours[1]}.", *(render_text(k) for k in find_keys(ours[0]))]
     if not texts:
         names = sorted({k.path for k in all_keys()} | {k.path.rsplit(".", 1)[-1] for k in all_keys()})
         hint = difflib.get_close_matches(name, names, n=3)

@@ -207,7 +207,7 @@ def profiles_show(profile: str) -> int:
     out.print(f"[bold]{prof.id}[/bold]: {prof.description}")
     lim = prof.limits
     layout = layout_name(prof.word_order, prof.byte_swap)
-    out.print(f"addressing {prof.addressing}, byte order {layout}; up to {lim.write_registers} registers "
+    out.print(f"addressing {prof.addressing}, byte order {layout}; up to {_n(lim.write_registers, 'register')} "
               f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read"
               + (f"; {lim.write_coils} coils per write (FC15), {lim.read_coils} per read"
                  if any(p.register_type == "coil" for p in prof.parameters) else ""))

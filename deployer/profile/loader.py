@@ -302,7 +302,8 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         rng = param.type_range()
         for label, raw in param.values:
             if rng and not rng[0] <= raw <= rng[1]:
-                what = f"{codec.mask_shift(mask)[1]} bits" if mask else type_
+                width = codec.mask_shift(mask)[1] if mask else 0
+                what = f"{width} bit{'s' if width != 1 else ''}" if mask else type_
                 local.append(src.error((*at, "values", label), f"value {raw} of '{label}' does not fit in {what}"))
         if "default" in spec and not local and param.is_string:
             try:
