@@ -14,9 +14,12 @@ if TYPE_CHECKING:
     from .profile import Parameter
 
 REPORT_SCHEMA = "deployer.report/1"
-ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
-# sent: a broadcast that went out; skipped: a fleet never started it
-DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped"]
+# rolled-back: written and verified, then restored from the snapshot (a failed health check, no confirmation)
+ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped", "rolled-back"]
+# sent: a broadcast that went out; skipped: a fleet never started it; rolled-back: restored after the write
+DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back"]
+# the profile's commit steps: sent, held back (a soak or a confirmation waits), never sent, failed
+CommitState = Literal["sent", "held", "not sent", "failed"]
 
 
 @dataclass
@@ -89,6 +92,7 @@ class DeviceResult:
     learned: dict[str, int] = field(default_factory=dict)  # profile limits this run's refusals taught
     recipe: str | None = None  # the recipe (or snapshot, plan) file this device was given
     batch: int | None = None  # fleets: the batch the device ran in (or would have: skipped)
+    commit: CommitState | None = None  # None: the profile has no commit steps, or nothing was written
 
     @property
     def write_requests(self) -> int:
@@ -100,7 +104,7 @@ class DeviceResult:
 
     def settle(self) -> None:
         """Device status from its parameters (unless already sent/failed/unreachable/skipped)."""
-        if self.status in ("unreachable", "failed", "skipped", "sent"):
+        if self.status in ("unreachable", "failed", "skipped", "sent", "rolled-back"):
             return
         bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
         if not bad:
@@ -133,6 +137,8 @@ class DeviceResult:
             out["recipe"] = self.recipe
         if self.batch is not None:
             out["batch"] = self.batch
+        if self.commit is not None:
+            out["commit"] = self.commit
         return out
 
 
@@ -150,7 +156,7 @@ class Report:
 
     def summary(self) -> dict[str, Any]:
         counts = {s: sum(1 for d in self.devices if d.status == s)
-                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped")}
+                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back")}
         return {"devices": len(self.devices), **counts,
                 "write_requests": sum(d.write_requests for d in self.devices),
                 "read_requests": sum(d.read_requests for d in self.devices),

@@ -50,6 +50,7 @@ class LazyGroup(click.Group):
 
 _COMMANDS = {
     "apply": "deployer.cli.apply:apply",
+    "confirm": "deployer.cli.apply:confirm",
     "demo": "deployer.cli.simulate:demo",
     "diff": "deployer.cli.read:diff",
     "docs": "deployer.cli.files:docs_command",
@@ -71,11 +72,11 @@ def cli() -> None:
     """Deploy parameter sets (recipes) to Modbus devices: plan, apply, verify, report."""
 
 
-def report_input_error(err: InputError) -> None:
+def report_input_error(err: InputError, outcome: str = "nothing was sent to any device") -> None:
     for d in err.diagnostics:
         click.echo(str(d), err=True)
     n = len(err.diagnostics)
-    click.echo(f"{n} error{'s' if n != 1 else ''}; nothing was sent to any device", err=True)
+    click.echo(f"{n} error{'s' if n != 1 else ''}; {outcome}", err=True)
 
 
 def console(*, stderr: bool = False) -> Console:
@@ -114,6 +115,25 @@ _device_options = [
     click.option("--timeout", type=click.FloatRange(min=0, min_open=True), help="seconds per attempt"),
     click.option("--retries", type=click.IntRange(0, 20), help="retries after a timeout or busy answer"),
 ]
+
+
+class Duration(click.ParamType[float]):
+    """A duration option: ``250ms``, ``30s``, ``5m``, ``1h``; a bare number is seconds. The value is in seconds."""
+
+    name = "duration"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> float:
+        if isinstance(value, float):
+            return value
+        from ..load.durations import parse_duration
+
+        try:
+            return parse_duration(value)
+        except ValueError as e:
+            self.fail(str(e), param, ctx)
+
+
+DURATION = Duration()
 
 
 def device_options(f: Callable[..., Any]) -> Callable[..., Any]:

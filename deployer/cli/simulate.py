@@ -33,6 +33,9 @@ def _register(text: str) -> int:
 @click.option("--busy-first", type=click.IntRange(min=0), default=0, help="answer the first N writes with 06 (busy)")
 @click.option("--fail-register", "fail_registers", multiple=True, metavar="ADDR",
               help="writes reaching this wire address answer 04 (repeatable; 4354, 0x1102 or 1102h)")
+@click.option("--fault", "fault_rules", multiple=True, metavar="RULE",
+              help="after a write, set a register when a condition on a parameter holds, e.g. "
+                   "'F07 < 2 s: 48=7' (the drive trips on a short acceleration time; wire address=raw). Repeatable.")
 @click.option("--disconnect-after", type=click.IntRange(min=0), default=0, help="drop the connection every N requests")
 @click.option("--state", "state_path", type=click.Path(dir_okay=False), help="dump registers as JSON on exit/SIGUSR1")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False), help="one JSON line per request")
@@ -56,12 +59,13 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
              baud: int | None, drop_every: int, busy_first: int, fail_registers: tuple[str, ...],
              disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool,
              gap_reads: bool, max_write_registers: int | None, all_or_nothing: bool, fc06_only: bool,
-             pause_after_connect: str, pause_between_requests: str, identity: tuple[str, ...]) -> int:
+             pause_after_connect: str, pause_between_requests: str, identity: tuple[str, ...],
+             fault_rules: tuple[str, ...] = ()) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
-    from ..load.durations import parse_ms
+    from ..load.durations import parse_duration
     from ..profile import IDENTITY_OBJECTS, resolve_profile
     from ..recipe.loader import load_recipe
-    from ..testing.simulator import Faults, Quirks, Simulator, init_from_recipe, parse_listen, serve
+    from ..testing.simulator import Faults, Quirks, Simulator, init_from_recipe, parse_fault_rule, parse_listen, serve
 
     prof = resolve_profile(profile)
     try:
@@ -80,14 +84,18 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
         if value > 0xFFFF:
             raise UsageError(f"--set {item}: a register holds 0..65535")
         init[address] = value
+    try:
+        rules = tuple(parse_fault_rule(r, prof) for r in fault_rules)
+    except ValueError as e:
+        raise UsageError(f"--fault {e}") from None
     faults = Faults(latency_ms=latency_ms, baud=baud, drop_every=drop_every, busy_first=busy_first,
                     fail_registers=frozenset(_register(r) for r in fail_registers),
-                    disconnect_after=disconnect_after)
+                    disconnect_after=disconnect_after, rules=rules)
     pauses = []
     for option, text in (("--pause-after-connect", pause_after_connect),
                          ("--pause-between-requests", pause_between_requests)):
         try:
-            pauses.append(parse_ms(text))
+            pauses.append(parse_duration(text) * 1000)
         except ValueError as e:
             raise UsageError(f"{option}: {e}") from None
     objects: dict[int, str] | None = None

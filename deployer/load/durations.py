@@ -1,32 +1,48 @@
-"""Durations as people write them: ``250ms``, ``1s``, ``1.5 s``; a bare number is milliseconds."""
+"""Durations as people write them: ``250ms``, ``30s``, ``5m``, ``1h`` (also ``1.5 s``, ``2min``).
+
+One parser for every duration the tool reads (``apply --soak``, ``--pause``, pacing in profiles).
+A bare number is in the caller's unit: seconds on the command line, milliseconds in a profile
+(where ``wait`` has always been milliseconds).
+"""
 
 from __future__ import annotations
 
+import math
 import re
 
-_DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(ms|s)?\s*$")
-PATTERN = r"^\s*\d+(\.\d+)?\s*(ms|s)?\s*$"  # the same, for the JSON Schemas
-MAX_MS = 600_000  # ten minutes: longer pauses are a typing mistake, not a device's need
+_UNITS = {"ms": 0.001, "s": 1.0, "sec": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
+_FORM = re.compile(r"\s*(\d+(?:\.\d*)?|\.\d+)\s*([a-z]*)\s*", re.IGNORECASE)
+MAX_SECONDS = 7 * 24 * 3600.0  # a week: longer is a typo (and overflows asyncio's timers on some systems)
 
 
-def parse_ms(value: object) -> float:
-    """Milliseconds of a duration (``250ms``, ``1s``, ``250``). Raises ValueError with what is accepted."""
-    if isinstance(value, bool):
-        raise ValueError(f"not a duration: {value!r} (e.g. 250ms, 1s; a bare number is milliseconds)")
-    if isinstance(value, int | float):
-        ms = float(value)
+def parse_duration(text: str | float | int, *, bare: str = "s") -> float:
+    """Seconds in ``text``; ValueError with a message that shows the accepted forms.
+
+    ``bare``: the unit of a number without one ("s" or "ms").
+    """
+    if isinstance(text, bool):
+        raise ValueError(f"{text!r} is not a duration (e.g. 250ms, 30s, 5m, 1h)")
+    if isinstance(text, int | float):
+        number, unit = float(text), bare
     else:
-        m = _DURATION.match(str(value))
+        m = _FORM.fullmatch(text)
         if m is None:
-            raise ValueError(f"not a duration: {value!r} (e.g. 250ms, 1s; a bare number is milliseconds)")
-        ms = float(m.group(1)) * (1000 if m.group(2) == "s" else 1)
-    if not 0 <= ms <= MAX_MS:
-        raise ValueError(f"duration {value!r} is out of range (0 to 600s)")
-    return ms
+            raise ValueError(f"'{text}' is not a duration (e.g. 250ms, 30s, 5m, 1h)")
+        number, unit = float(m.group(1)), (m.group(2).lower() or bare)
+    if unit not in _UNITS:
+        raise ValueError(f"'{text}': unknown unit '{unit}' (ms, s, m, h)")
+    seconds = number * _UNITS[unit]
+    if not math.isfinite(seconds) or seconds > MAX_SECONDS:
+        raise ValueError(f"'{text}' is longer than a week")
+    return seconds
 
 
-def show_ms(ms: float) -> str:
-    """'250ms', '1s', '1.5s': the shortest way to write a duration back."""
-    if ms >= 1000 and ms % 100 == 0:
-        return f"{ms / 1000:g}s"
-    return f"{ms:g}ms"
+def format_duration(seconds: float) -> str:
+    """The shortest exact text for a duration: 0.25 -> '250ms', 90 -> '90s', 300 -> '5m', 3600 -> '1h'."""
+    seconds = float(seconds)
+    if seconds < 1 and (seconds * 1000).is_integer():
+        return f"{int(seconds * 1000)}ms"
+    for unit, size in (("h", 3600), ("m", 60)):
+        if seconds >= size and (seconds / size).is_integer():
+            return f"{int(seconds / size)}{unit}"
+    return f"{seconds:g}s"

@@ -103,6 +103,8 @@ def to_raw(
     """Engineering value -> raw value. Raises CodecError if not exactly representable."""
     if scale == 0:
         raise CodecError("scale must not be 0")
+    if value and value.adjusted() < -60:  # the arithmetic below would round it to 0 without a word
+        raise CodecError(f"{value:g} is too close to 0 to be meant (at most 60 decimal places)")
     try:
         exact = (value - offset) / scale
     except ArithmeticError:  # 1e999999999 overflows Decimal's context: far outside any type

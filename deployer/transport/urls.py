@@ -18,7 +18,7 @@ from ..errors import ExceptionResponse as ExceptionResponse
 from ..errors import NoResponse as NoResponse
 from ..errors import TransportError as TransportError
 from ..errors import Unreachable as Unreachable
-from ..load.durations import parse_ms
+from ..load.durations import parse_duration
 
 
 @dataclass(frozen=True)
@@ -113,8 +113,8 @@ def option_facts(option: str) -> tuple[list[str], str | None, str | None]:
                 "pause_between_requests": "the profile's limits.pause_between_requests (0)",
                 "bytesize": line.bytesize, "parity": line.parity, "stopbits": line.stopbits, "verify": "true",
                 "server_hostname": "the URL's host"}
-    allowed = {"parity": "N, E, O", "pause_after_connect": "a duration: 250ms, 1s (a bare number is ms)",
-               "pause_between_requests": "a duration: 250ms, 1s (a bare number is ms)",
+    allowed = {"parity": "N, E, O", "pause_after_connect": "a duration: 250ms, 1s (a bare number is seconds)",
+               "pause_between_requests": "a duration: 250ms, 1s (a bare number is seconds)",
                "verify": "true, false (also 1, 0, yes, no)",
                "cert": "a PEM file", "key": "a PEM file", "ca": "a PEM file"}
     default = defaults.get(option)
@@ -163,7 +163,7 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
     for key in ("pause_after_connect", "pause_between_requests"):
         if key in options:
             try:
-                parse_ms(options[key])
+                parse_duration(options[key])
             except ValueError as e:
                 raise BadURL(f"option {key}: {e}") from None
     to = number("timeout") if "timeout" in options else (timeout if timeout is not None else DEFAULT_TIMEOUT)
@@ -209,9 +209,11 @@ def pacing(url: DeviceURL, after_connect_ms: float = 0, between_ms: float = 0) -
     """Seconds of (pause after connecting, least gap between requests): the URL's options, else the
     profile's ``limits`` given here."""
     o = url.options
-    after = parse_ms(o["pause_after_connect"]) if "pause_after_connect" in o else after_connect_ms
-    between = parse_ms(o["pause_between_requests"]) if "pause_between_requests" in o else between_ms
-    return after / 1000, between / 1000
+    after = (parse_duration(o["pause_after_connect"]) if "pause_after_connect" in o
+             else after_connect_ms / 1000)
+    between = (parse_duration(o["pause_between_requests"]) if "pause_between_requests" in o
+               else between_ms / 1000)
+    return after, between
 
 
 def describe(url: DeviceURL) -> str:

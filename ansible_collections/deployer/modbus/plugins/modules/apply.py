@@ -15,7 +15,10 @@ description:
     C(partial), C(failed), C(unreachable) or C(skipped), naming the devices and parameters.
   - Runs deployer's Python API; the target's Python (ansible_python_interpreter) needs deployer installed.
 options:
-  recipe: {description: A recipe file on the target., type: path}
+  recipe:
+    description: A recipe file on the target. With I(inventory) it may be left out (with I(profile) and
+      I(parameters)); then each device gets the recipe the inventory gives it.
+    type: path
   profile: {description: A built-in profile id or a profile file, when no recipe file is given., type: str}
   parameters: {description: Parameter values (engineering units, e.g. "10 s"); over the recipe's., type: dict}
   name: {description: The device's name in the report (one device)., type: str}
@@ -34,7 +37,10 @@ options:
     type: int
     default: 8
   batch: {description: 'Staged rollout within this task, e.g. "1,50%".', type: str}
-  max_failures: {description: After this many failed or partial devices start no new one (N or P%)., type: str}
+  max_failures:
+    description: After this many devices did not end ok (failed, partial and unreachable count, skipped ones
+      never) start no new one (N or P%).
+    type: str
   timeout: {description: Seconds per request attempt., type: float}
   retries: {description: Retries after a timeout or a busy answer., type: int}
   write_all: {description: Write every parameter even when the device already holds it., type: bool, default: false}
@@ -42,6 +48,19 @@ options:
              choices: [continue, stop]}
   state_dir: {description: Where snapshots and the journal go on the target., type: path, default: .deployer}
   report: {description: Also write the report JSON to this file on the target., type: path}
+  soak:
+    description:
+      - After the verified write, read the profile's health checks for this long (e.g. "30s", "5m"; a bare
+        number is seconds). A failed check rolls that device back from its snapshot (status rolled-back,
+        the task fails); the profile's commit is sent only after the soak passed. With I(batch), each batch
+        soaks together and a health failure in the first batch ends the rollout.
+    type: str
+  health_interval: {description: 'Time between two rounds of health checks during the soak.', type: str,
+                    default: 1s}
+  rollback_on_failure:
+    description: When the rollout stops (a failed batch, I(max_failures)), roll back every device it wrote.
+    type: bool
+    default: false
 """
 
 EXAMPLES = r"""
@@ -50,6 +69,13 @@ EXAMPLES = r"""
     recipe: /srv/recipes/line3.yaml
     devices: "{{ modbus_devices }}"
     state_dir: /var/lib/deployer
+
+- name: New ramps, kept only if the drives stay healthy for 5 minutes (one canary first)
+  deployer.modbus.apply:
+    recipe: /srv/recipes/line3.yaml
+    inventory: /srv/inventory.yaml
+    batch: "1,100%"
+    soak: 5m
 """
 
 RETURN = r"""
@@ -115,14 +141,20 @@ def check(module, jobs):
 
 
 def apply(module, rec, jobs):
-    from deployer.api import run_fleet_async
+    from deployer.api import run_fleet_async, safe_options
     from deployer.execute.session import ApplyOptions
+    from deployer.execute.soak import check_soak_profiles
 
     p = module.params
-    options = ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"])
-    report = asyncio.run(run_fleet_async(jobs, recipe_name=rec.path or rec.name, parallel=p["parallel"],
+    options = safe_options(ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"]),
+                           soak=p.get("soak"), health_interval=p["health_interval"])
+    if options.soak is not None:
+        check_soak_profiles([j.recipe.profile for j in jobs])
+    report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
+                                         parallel=p["parallel"],
                                          batch=p.get("batch"), max_failures=p.get("max_failures"), options=options,
-                                         report_path=p.get("report")))
+                                         report_path=p.get("report"),
+                                         rollback_on_failure=p["rollback_on_failure"]))
     devices, diffs, problems = [], [], []
     for d in report.devices:
         changed = [(q.name, q.before or "?", q.after or q.desired) for q in d.parameters
@@ -149,7 +181,9 @@ def main():
             recipe=dict(type="path"), profile=dict(type="str"), parameters=dict(type="dict"), name=dict(type="str"),
             batch=dict(type="str"), max_failures=dict(type="str"), write_all=dict(type="bool", default=False),
             on_error=dict(type="str", default="continue", choices=["continue", "stop"]),
-            state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), **TARGET_ARGS),
+            state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), soak=dict(type="str"),
+            health_interval=dict(type="str", default="1s"), rollback_on_failure=dict(type="bool", default=False),
+            **TARGET_ARGS),
         supports_check_mode=True,
     )
     require_deployer(module)
