@@ -1,4 +1,4 @@
-"""Results of an apply, per device and per parameter, as the report JSON (DESIGN.md, "Report")."""
+"""Results of an apply, per device and per parameter, as the report JSON (docs/reference/report.md)."""
 
 from __future__ import annotations
 
@@ -168,7 +168,7 @@ class Report:
 
     @property
     def exit_code(self) -> int:
-        """DESIGN.md exit codes: 3 only when every device was unreachable (nothing written anywhere).
+        """The run's exit code (docs/design.md): 3 only when every device was unreachable (nothing written anywhere).
 
         A broadcast that went out (``sent``) counts as success: the user asked for an unverifiable write.
         """

@@ -47,7 +47,7 @@ class Limits:
 
     @property
     def write_registers(self) -> int:
-        """Registers one write request may carry (DESIGN.md, planning rule 2)."""
+        """Registers one write request may carry (docs/design.md, planning rule 2)."""
         if self.write_function == 6:
             return 1
         # FC16 RTU frame: unit(1) fc(1) addr(2) qty(2) bytecount(1) data(2n) crc(2) = 9 + 2n;
