@@ -257,6 +257,14 @@ class Parameter:
     def text_of(self, registers: tuple[int, ...] | list[int]) -> str:
         return codec.decode_string(registers, self.encoding, self.byte_swap)
 
+    def default_registers(self) -> tuple[int, ...] | None:
+        """The factory default as registers (a field: its bits in place), or None when the profile gives none."""
+        if self.default is None:
+            return None
+        if isinstance(self.default, str):
+            return self.encode_text(self.default)
+        return self.encode(self.to_raw(self.default, "nearest"))
+
     def same_value(self, a: tuple[int, ...] | list[int] | None, b: tuple[int, ...] | list[int] | None) -> bool:
         """Do two register readings hold the same value of this parameter (a field compares its bits)?"""
         if a is None or b is None:

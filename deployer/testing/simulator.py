@@ -190,11 +190,7 @@ def initial_registers(profile: Profile) -> dict[int, int]:
     default (its factory setting, engineering), else zero; fields OR'ed into their register."""
     regs: dict[int, int] = {a: 0 for a in _action_registers(profile)}
     for p in profile.parameters:
-        words: tuple[int, ...] = (0,) * p.count
-        if p.is_string:
-            words = p.encode_text(p.default if isinstance(p.default, str) else "")
-        elif isinstance(p.default, Decimal):
-            words = p.encode(p.to_raw(p.default, "nearest"))
+        words = p.default_registers() or (p.encode_text("") if p.is_string else (0,) * p.count)
         if p.mask:
             regs[p.key] = regs.get(p.key, 0) | words[0]
             continue
