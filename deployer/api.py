@@ -29,9 +29,9 @@ from __future__ import annotations
 
 import asyncio
 import os
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from .errors import (
     BadURL,
@@ -58,7 +58,8 @@ from .planning.model import Plan, Target
 from .planning.planfile import load_plan, plan_to_json
 from .planning.planner import make_plan
 from .profile import Profile, load_profile, resolve_profile
-from .recipe.loader import Entry, Recipe, load_recipe, with_overrides
+from .recipe.loader import Entry, Recipe, with_overrides
+from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
 from .report import DeviceResult, ParameterResult, Report
 from .run.runner import ensure_files, run_async
@@ -67,8 +68,8 @@ from .transport.clients import DeviceURL, describe, parse_url
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
 _REEXPORTED = (BadURL, CodecError, Declined, DeployerError, IdentityMismatch, InputError, Locked, RunInterrupted,
                StalePlan, TransportError, UsageError, ApplyOptions, FleetDevice, Inventory, load_inventory, Job,
-               ReadJob, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, load_recipe, DeviceResult,
-               ParameterResult, Report, DeviceURL)
+               ReadJob, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult, ParameterResult,
+               Report, DeviceURL)
 
 
 __all__ = [
@@ -81,6 +82,7 @@ __all__ = [
     "DeviceURL",
     "Drift",
     "FleetDevice",
+    "FromDefault",
     "IdentityMismatch",
     "InputError",
     "Inventory",
@@ -101,6 +103,7 @@ __all__ = [
     "apply_fleet",
     "apply_fleet_async",
     "confirm",
+    "defaults_diff",
     "describe_url",
     "device_url",
     "diff",
@@ -112,6 +115,7 @@ __all__ = [
     "load_plan",
     "load_profile",
     "load_recipe",
+    "non_default",
     "plan",
     "plan_async",
     "plan_fleet",
@@ -131,6 +135,51 @@ __all__ = [
 ]
 
 
+_T = TypeVar("_T")
+
+
+def _kind(value: object) -> str:
+    text = repr(value)
+    return f"{type(value).__name__} {text if len(text) <= 40 else text[:39] + '...'}"
+
+
+def _need_recipe(recipe: object, call: str) -> None:
+    """Refuse, before anything is sent, what a caller passed where a loaded Recipe belongs."""
+    if not isinstance(recipe, Recipe):
+        hint = " (load it first: deployer.load_recipe(path))" if isinstance(recipe, (str, os.PathLike)) else ""
+        raise UsageError(f"{call} takes a Recipe{hint}, got {_kind(recipe)}")
+
+
+def _need_unit(unit: object) -> None:
+    if unit is None:
+        return
+    if isinstance(unit, bool) or not isinstance(unit, int):
+        raise UsageError(f"unit must be an int from 1 to 247 (0 is broadcast), got {_kind(unit)}")
+    if not 0 <= unit <= 247:
+        raise UsageError(f"unit must be from 1 to 247 (0 is broadcast), got {unit}")
+
+
+def _sync(call: str, coro: Callable[[], Coroutine[Any, Any, _T]]) -> _T:
+    """Run a coroutine for a sync API call; inside a running event loop, say to await the async twin."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return asyncio.run(coro())
+    raise UsageError(f"deployer.{call}() cannot run inside a running event loop; await deployer.{call}_async()")
+
+
+def load_recipe(path: str | os.PathLike[str], **kw: Any) -> Recipe:
+    """A recipe file, validated against its profile.
+
+    Raises:
+        InputError: every problem of the recipe (and its profile), with its position.
+        UsageError: ``path`` is not a path.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise UsageError(f"load_recipe takes a path (str or os.PathLike), got {_kind(path)}")
+    return _load_recipe(path, **kw)
+
+
 def describe_url(url: DeviceURL) -> str:
     """A device URL as text, without secrets (no key, certificate or CA paths): for reports and logs."""
     return describe(url)
@@ -144,8 +193,14 @@ def recipe_from(profile: str | Profile, parameters: Mapping[str, Any], *, name: 
 
     Raises:
         InputError: a value that is not valid for its parameter (all of them at once).
-        UsageError: an unknown built-in profile id.
+        UsageError: an unknown built-in profile id; arguments of the wrong type.
     """
+    if not isinstance(parameters, Mapping):
+        raise UsageError(f"recipe_from takes the parameters as a mapping (name -> value), got {_kind(parameters)}")
+    if not isinstance(profile, (str, Profile)):
+        raise UsageError(f"recipe_from takes a profile id, a profile file or a Profile, got {_kind(profile)}")
+    if base is not None:
+        _need_recipe(base, "recipe_from(base=...)")
     src = Source(f"<{name}>")
     entries = [Entry(k, v, src, ("parameters", k)) for k, v in parameters.items()]
     if base is None:
@@ -163,10 +218,13 @@ def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: i
     """
     if isinstance(url, DeviceURL):
         return url
+    if not isinstance(url, str):
+        raise UsageError(f"device_url takes a URL such as tcp://10.0.0.11:502, got {_kind(url)}")
     return parse_url(url, timeout=timeout, retries=retries)  # BadURL is a UsageError
 
 
 def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) -> tuple[DeviceURL, int]:
+    _need_unit(unit)
     text = device if device is not None else (recipe.device.url if recipe.device else None)
     if text is None:
         raise UsageError("no device: pass a device URL or set device.url in the recipe")
@@ -180,6 +238,8 @@ def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) ->
 async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
                      write_all: bool = False, offline: bool = False) -> Plan:
     """The requests apply would send: against what the device holds now, or ``offline`` the full write plan."""
+    _need_recipe(recipe, "plan")
+    _need_unit(unit)
     if offline:
         u = unit if unit is not None else 1
         return make_plan(recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all)
@@ -198,7 +258,8 @@ def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
         UsageError: no device (none given and none in the recipe), a bad URL, unit 0 (broadcast).
         TransportError: the device cannot be read (Unreachable also when its identity does not match).
     """
-    return asyncio.run(plan_async(recipe, device, unit, write_all=write_all, offline=offline))
+    _need_recipe(recipe, "plan")
+    return _sync("plan", lambda: plan_async(recipe, device, unit, write_all=write_all, offline=offline))
 
 
 async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
@@ -216,6 +277,7 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
     ``options.state_dir`` (``deployer status`` sees it); ``report_path``: the report file, written before
     the first request and at the end. Raises RunInterrupted (with its ``report``) when cancelled mid-run.
     """
+    _need_recipe(recipe, "apply")
     url, u = _target(recipe, device, unit)
     opts = safe_options(options, soak=soak, health_interval=health_interval, confirm_within=confirm_within)
     if opts.soak is not None:
@@ -240,7 +302,8 @@ def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | Non
     ``safe``: ``soak``, ``health_interval``, ``confirm_within``, ``on_confirm_wait``, ``report_path`` (see
     ``apply_async``).
     """
-    return asyncio.run(apply_async(recipe, device, unit, options=options, name=name, **safe))
+    _need_recipe(recipe, "apply")
+    return _sync("apply", lambda: apply_async(recipe, device, unit, options=options, name=name, **safe))
 
 
 def safe_options(options: ApplyOptions | None, *, soak: float | str | None = None,
@@ -312,6 +375,7 @@ def diff_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]]) -> list[
 
 async def diff_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None) -> list[Drift]:
     """``diff`` for callers with their own event loop."""
+    _need_recipe(recipe, "diff")
     url, u = _target(recipe, device, unit)
     return diff_values(recipe, await read_current(recipe.profile, [d.name for d in recipe.desired], url, u))
 
@@ -323,7 +387,51 @@ def diff(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
         UsageError: no device, a bad URL, unit 0.
         TransportError: the device cannot be read.
     """
-    return asyncio.run(diff_async(recipe, device, unit))
+    _need_recipe(recipe, "diff")
+    return _sync("diff", lambda: diff_async(recipe, device, unit))
+
+
+@dataclass(frozen=True)
+class FromDefault:
+    """One parameter whose device value is not its factory default (the profile's ``default``)."""
+
+    name: str
+    default: str
+    default_raw: tuple[int, ...]
+    device: str
+    device_raw: tuple[int, ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "default": self.default, "device": self.device,
+                "default_raw": list(self.default_raw), "device_raw": list(self.device_raw)}
+
+
+def defaults_diff(profile: Profile, current: Mapping[str, tuple[int, ...]]) -> tuple[list[FromDefault], list[str]]:
+    """The parameters read (``current``) that differ from their factory default, in profile order; and the
+    names read that have no default in the profile (they cannot be compared). A bit field compares its bits."""
+    differs, unknown = [], []
+    for p in profile.parameters:
+        regs = current.get(p.name)
+        if regs is None:
+            continue
+        want = p.default_registers()
+        if want is None:
+            unknown.append(p.name)
+        elif not p.same_value(regs, want):
+            differs.append(FromDefault(p.name, p.show_registers(want), want, p.show_registers(regs), tuple(regs)))
+    return differs, unknown
+
+
+def non_default(profile: Profile, values: Mapping[str, tuple[int, ...]]) -> dict[str, tuple[int, ...]]:
+    """``values`` without the parameters that hold their factory default (those with no default are kept:
+    nobody can say they are factory settings). ``pull --non-default`` writes this."""
+    out = {}
+    for n, v in values.items():
+        p = profile.parameter(n)
+        want = p.default_registers()
+        if want is None or not p.same_value(v, want):
+            out[n] = v
+    return out
 
 
 def pulled_recipe(profile: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
@@ -346,6 +454,9 @@ def pull_names(profile: Profile) -> list[str]:
 
 async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict[str, tuple[int, ...]]:
     """Every readable, writable parameter of a device: name -> registers."""
+    _need_unit(unit)
+    if not isinstance(profile, (str, Profile)):
+        raise UsageError(f"pull takes a profile id, a profile file or a Profile, got {_kind(profile)}")
     prof = profile if isinstance(profile, Profile) else resolve_profile(profile)
     return await read_current(prof, pull_names(prof), device_url(device), unit)
 
@@ -358,7 +469,7 @@ def pull(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict
         InputError: an invalid profile file.
         TransportError: the device cannot be read.
     """
-    return asyncio.run(pull_async(profile, device, unit))
+    return _sync("pull", lambda: pull_async(profile, device, unit))
 
 
 # ---- fleets ----------------------------------------------------------------------------------
@@ -429,7 +540,9 @@ def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) ->
             be written, too few open files for ``parallel``.
         StalePlan: a saved plan (``options.expected``) no longer matches its device.
     """
-    return asyncio.run(apply_fleet_async(recipe, inventory, **kw))
+    if recipe is not None:
+        _need_recipe(recipe, "apply_fleet")
+    return _sync("apply_fleet", lambda: apply_fleet_async(recipe, inventory, **kw))
 
 
 def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
@@ -439,7 +552,7 @@ def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
         UsageError: a bad ``batch``/``max_failures``, a report file that cannot be written, too few open files.
         StalePlan: a saved plan (``options.expected``) no longer matches its device.
     """
-    return asyncio.run(run_fleet_async(jobs, **kw))
+    return _sync("run_fleet", lambda: run_fleet_async(jobs, **kw))
 
 
 async def read_fleet_async(jobs: Sequence[ReadJob], *, parallel: int = 8,
@@ -458,7 +571,7 @@ def read_fleet(jobs: Sequence[ReadJob], *, parallel: int = 8) -> dict[str, dict[
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return asyncio.run(read_fleet_async(jobs, parallel=parallel))
+    return _sync("read_fleet", lambda: read_fleet_async(jobs, parallel=parallel))
 
 
 def read_jobs(jobs: Sequence[Job]) -> list[ReadJob]:
@@ -490,7 +603,7 @@ def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = Fals
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return asyncio.run(plan_fleet_async(jobs, parallel=parallel, write_all=write_all))
+    return _sync("plan_fleet", lambda: plan_fleet_async(jobs, parallel=parallel, write_all=write_all))
 
 
 def inventory_from(devices: Iterable[Mapping[str, Any]], *, name: str = "<devices>") -> Inventory:

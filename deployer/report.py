@@ -93,6 +93,8 @@ class DeviceResult:
     profile_ref: str | None = None  # the profile used: its file's absolute path, or the built-in id
     notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
     restored: str | None = None  # a rollback: the snapshot (absolute path) this device was restored from
+    identity: dict[str, str] | None = None  # Function 43 objects (vendor, product_code, revision ...), if it answers
+    learned: dict[str, int] = field(default_factory=dict)  # profile limits this run's refusals taught
     recipe: str | None = None  # the recipe (or snapshot, plan) file this device was given
     batch: int | None = None  # fleets: the batch the device ran in (or would have: skipped)
     commit: CommitState | None = None  # None: the profile has no commit steps, or nothing was written
@@ -134,6 +136,10 @@ class DeviceResult:
             out["notices"] = list(self.notices)
         if self.restored is not None:
             out["restored"] = self.restored
+        if self.identity is not None:
+            out["identity"] = dict(self.identity)
+        if self.learned:
+            out["learned"] = dict(self.learned)
         if self.recipe is not None:
             out["recipe"] = self.recipe
         if self.batch is not None:

@@ -104,9 +104,9 @@ def test_playbook_check_apply_idempotent_and_a_rejected_value(tmp_path: Path) ->
         assert code == 0, out
         assert recap(out, "site-a")["changed"] == 2 and recap(out, "site-b")["changed"] == 2
         assert all(s.read(n) == v for s in sims for n, v in WANT.items())
-        facts = results["site-b"][0]["ansible_facts"]["modbus_devices"]  # the last task: facts
-        assert facts["site-b-d0"] == {"F07": "10 s", "F08": "12 s", "stop_mode": "coast"}
-        pulled = tmp_path / "pulled" / "site-a" / "site-a-d1.yaml"  # the facts task also wrote recipe files
+        values = results["site-b"][0]["values"]  # the last task: pull (its values are the info task's facts)
+        assert values["site-b-d0"] == {"F07": "10 s", "F08": "12 s", "stop_mode": "coast"}
+        pulled = tmp_path / "pulled" / "site-a" / "site-a-d1.yaml"  # the pull task wrote recipe files
         assert "F07: 10 s" in pulled.read_text() and f"url\": \"{sims[1].url}" in pulled.read_text()
         # each host's apply is one journaled run (deployer status would list it, had it not finished)
         lines = [json.loads(x) for x in (tmp_path / "state" / "audit.jsonl").read_text().splitlines()]
@@ -116,6 +116,7 @@ def test_playbook_check_apply_idempotent_and_a_rejected_value(tmp_path: Path) ->
                                                                             for i in range(2)]
         finished = {x["run"]: x for x in lines if x["event"] == "run-finished"}
         assert all(finished[x["run"]]["exit_code"] == 0 for x in started)
+        assert "ok: [site-a]" in out and "modbus_devices" not in out.split("Keep them as recipe files")[1]
 
         # a second run has nothing to do
         before = writes(sims)

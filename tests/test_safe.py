@@ -121,9 +121,9 @@ def test_soak_without_health_checks_is_refused_up_front(capsys: pytest.CaptureFi
 
 def test_a_healthy_soak_ends_ok_and_the_commit_follows_it(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with SimulatorThread(PROFILE) as sim:
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "300ms",
-                           "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
-        assert code == 0
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "300ms",
+                             "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
+        assert code == 0 and "watching the health of ramp for 300ms (every 100ms)" in err
         dev = json.loads(out)["devices"][0]
         assert dev["status"] == "ok" and dev["commit"] == "sent"
         log = list(sim.log)
@@ -438,3 +438,116 @@ def test_the_api_soaks_and_confirms(tmp_path: Path) -> None:
     assert len(writes_to(list(sim.log), COMMIT)) == 2 and sim.read("F07") == (0, 400)
     with pytest.raises(UsageError, match="soak: "):
         deployer.apply(deployer.load_recipe(recipe(tmp_path, "3 s", sim.url)), soak="soon")
+
+
+def test_a_run_killed_during_its_soak_is_shown_by_status_with_its_restore_command(
+        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    state = str(tmp_path / "s")
+    with SimulatorThread(PROFILE) as sim:
+        before = sim.registers()
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1h", "--health-interval",
+                        "100ms", "--state-dir", state)
+        try:
+            wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 1 or proc.poll() is not None)
+        finally:
+            proc.send_signal(signal.SIGKILL)
+            proc.communicate(timeout=60)
+        assert writes_to(list(sim.log), COMMIT) == []
+        code, out, _ = cli(capsys, "status", "--state-dir", state)
+        assert code == 0 and "died while its change soaked" in out
+        restore = next(line.split("restore them with: ", 1)[1] for line in out.splitlines() if "restore them" in line)
+        code, _, err = cli(capsys, *restore.split()[1:])
+        assert code == 0, err
+        assert {a: v for a, v in sim.registers().items() if a != COMMIT} == {
+            a: v for a, v in before.items() if a != COMMIT}
+
+
+def test_limit_from_a_report_retries_the_rolled_back_devices(capsys: pytest.CaptureFixture[str],
+                                                             tmp_path: Path) -> None:
+    with Simulators([Simulator(PROFILE, faults=Faults(rules=(TRIP,)) if i == 1 else None) for i in range(3)]) as sims:
+        urls = {f"d{i}": s.url for i, s in enumerate(sims)}
+        inv, run = inventory(tmp_path, urls), str(tmp_path / "run.json")
+        code, _, _ = cli(capsys, "apply", recipe(tmp_path, "1.5 s"), "--inventory", inv, "--yes", "--soak", "200ms",
+                         "--health-interval", "100ms", "--report", run, "--state-dir", str(tmp_path / "s"))
+        assert code == 4
+        sims[1].set_register(FAULT, 0)  # the drive's fault was reset
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "2.5 s", name="safer.yaml"), "--inventory", inv,
+                           "--limit", f"@{run}", "--yes", "--json", "--soak", "200ms", "--health-interval", "100ms",
+                           "--state-dir", str(tmp_path / "s"))
+    assert code == 0, err
+    assert [(d["name"], d["status"]) for d in json.loads(out)["devices"]] == [("d1", "ok")]
+
+
+def test_ask_on_a_terminal_stops_the_rollout_on_no(tmp_path: Path) -> None:
+    """--yes answers the write confirmation only: --ask still asks before batch 2, on a real terminal (a pty)."""
+    import pty
+    import select
+
+    with Simulators([Simulator(PROFILE) for _ in range(2)]) as sims:
+        urls = {f"d{i}": s.url for i, s in enumerate(sims)}
+        master, slave = pty.openpty()
+        proc = subprocess.Popen([sys.executable, "-m", "deployer", "apply", recipe(tmp_path, "3 s"), "--inventory",
+                                 inventory(tmp_path, urls), "--yes", "--batch", "1", "--ask", "--report",
+                                 str(tmp_path / "run.json"), "--state-dir", str(tmp_path / "s")],
+                                stdin=slave, stdout=slave, stderr=slave, close_fds=True)
+        os.close(slave)
+        seen = b""
+        try:
+            end = time.monotonic() + 120
+            while b"Continue with batch 2?" not in seen:
+                assert time.monotonic() < end and proc.poll() is None, seen.decode(errors="replace")
+                if select.select([master], [], [], 0.5)[0]:
+                    seen += os.read(master, 4096)
+            os.write(master, b"n\n")
+            proc.wait(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            os.close(master)
+        assert proc.returncode == 4
+        assert sims[1].log == []
+    d0, d1 = json.loads((tmp_path / "run.json").read_text())["devices"]
+    assert d0["status"] == "ok" and d1["status"] == "skipped"
+    assert "stopped at the question before batch 2 (--ask)" in d1["error"]
+
+
+def test_devices_behind_one_gateway_soak_together(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """Two units behind one address: written one after the other (one bus), then watched together over one
+    connection; only the unit whose new ramp trips it is rolled back."""
+    with Simulators([Simulator(PROFILE, units=(1, 2), faults=Faults(rules=(TRIP,)))]) as (sim,):
+        inv = tmp_path / "inventory.yaml"
+        inv.write_text(f"defaults: {{timeout: 2.0, retries: 1}}\ndevices:\n  d1: {{url: '{sim.url}', unit: 1}}\n"
+                       f"  d2: {{url: '{sim.url}', unit: 2, parameters: {{F07: 1.5 s}}}}\n")
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", str(inv), "--yes", "--json",
+                           "--soak", "1s", "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
+        log = list(sim.log)
+    assert code == 4
+    d1, d2 = json.loads(out)["devices"]
+    assert d1["status"] == "ok" and d2["status"] == "rolled-back"
+    health = [e.unit for e in (log[i] for i in reads_of(log, FAULT))]
+    written = writes_to(log, F07)[:2]  # the apply's writes (the rollback's come after the soak's reads)
+    assert sorted(log[i].unit for i in written) == [1, 2]
+    assert reads_of(log, FAULT)[0] > max(written)  # the soak starts once the whole batch is written
+    assert health[:2] in ([1, 2], [2, 1])  # then both are watched at once
+    assert [log[i].unit for i in writes_to(log, COMMIT)] == [1]
+
+
+@pytest.mark.parametrize("held", [["--confirm-within", "1h"], ["--soak", "1h", "--health-interval", "100ms"]])
+def test_ctrl_c_while_a_change_is_held_rolls_it_back(tmp_path: Path, held: list[str]) -> None:
+    """Ctrl-C during the confirmation wait (or the soak) is a no: the devices are restored at once, no commit."""
+    state = str(tmp_path / "s")
+    with SimulatorThread(PROFILE) as sim:
+        before = sim.registers()
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", *held, "--state-dir", state)
+        try:
+            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), FAULT)) >= 1
+                     or proc.poll() is not None)
+            proc.send_signal(signal.SIGINT)
+            proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert sim.registers() == before and writes_to(list(sim.log), COMMIT) == []
+    assert awaiting(state) == [] and not os.listdir(os.path.join(state, "pending"))
+    events = [json.loads(x)["event"] for x in Path(state, "audit.jsonl").read_text().splitlines()]
+    assert "rolled-back" in events

@@ -187,9 +187,11 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            lock_timeout=lock_timeout, soak=soak, health_interval=health_interval,
                            confirm_within=confirm_within)
-    safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure)
+    safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
+                       interval=health_interval, staged=bool(batch))
     kw: dict[str, Any] = dict(command=command, label=label, argv=_ARGV, via="cli", options=options, parallel=parallel,
-                              batch=batch, max_failures=max_failures, report_path=report_path, signals=True, **safe)
+                              batch=batch, max_failures=max_failures, report_path=report_path, signals=True,
+                              refuse_broadcast=True, **safe)
     interrupted = None
     try:
         if fleet_run:
@@ -257,8 +259,10 @@ def _said_interrupted(report: Report, report_path: str | None) -> None:
         click.echo(f"undo with: deployer rollback --from-report {report_path}", err=True)
     elif written:
         click.echo("undo with: deployer rollback SNAPSHOT, for each snapshot above", err=True)
-def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool
-                ) -> dict[str, Any]:
+
+
+def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool,
+                soak: float | None = None, interval: float = 1.0, staged: bool = False) -> dict[str, Any]:
     """apply_many's keywords for a safe change: a pause and a question between batches, the confirmation wait."""
     from ..load.durations import format_duration
 
@@ -284,7 +288,14 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
                   f"    deployer confirm {run} --state-dir {state_dir}\n"
                   "without it every device written is rolled back and the commit is never sent")
 
-    return {"rollback_on_failure": rollback_on_failure, "between_batches": between, "on_confirm_wait": waiting}
+    def soaking(number: int, names: list[str]) -> None:
+        which = names[0] if len(names) == 1 else _n(len(names), "device")
+        err.print(f"{f'batch {number}: ' if number > 1 or staged else ''}watching the health of {which} for "
+                  f"{format_duration(soak or 0)} (every {format_duration(interval)}); a failed check rolls that device "
+                  "back", soft_wrap=True)
+
+    return {"rollback_on_failure": rollback_on_failure, "between_batches": between, "on_confirm_wait": waiting,
+            "on_soak": soaking}
 
 
 
@@ -400,7 +411,7 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
 
     A run drops out once the devices it left half-written are rolled back, or with --resolve RUN.
     """
-    from ..execute.soak import awaiting
+    from ..execute.soak import awaiting, soaking
     from ..state import journal
 
     if resolve is not None:
@@ -414,6 +425,7 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
         return EXIT_OK
     runs, torn = journal.unfinished(state_dir)
     waits = {a.run: a for a in awaiting(state_dir)}
+    soaks = soaking(state_dir)
     if as_json:
         click.echo(json.dumps({"unfinished": [
             {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
@@ -421,6 +433,7 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
              "finished": r.finished, "ended": r.ended,
              **({"awaiting_confirmation": {"deadline": waits[r.run].deadline, "report": waits[r.run].report,
                                            "waiting": waits[r.run].alive}} if r.run in waits else {}),
+             **({"soaking": {"report": soaks[r.run]}} if r.run in soaks else {}),
              } for r in runs]}, indent=2))
         return EXIT_OK
     if not runs:
@@ -439,6 +452,13 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
                        "to non-volatile memory)")
             click.echo(f"    restore them with: deployer rollback --from-report {a.report} --state-dir {state_dir} "
                        "--yes")
+        if r.run in soaks and not r.running:
+            click.echo("  died while its change soaked: its devices hold values whose health was not proven and "
+                       "that were never committed (a power cycle also reverts them on devices whose commit stores "
+                       "to non-volatile memory)")
+            if soaks[r.run]:
+                click.echo(f"    restore them with: deployer rollback --from-report {soaks[r.run]} "
+                           f"--state-dir {state_dir} --yes")
         for d in r.interrupted:
             where = f"{d.get('url')} unit {d.get('unit')}"
             click.echo(f"  interrupted while writing: {d.get('name')} {where}; snapshot {d.get('snapshot')}")

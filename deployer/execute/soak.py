@@ -67,8 +67,11 @@ async def read_health(session: Session, prof: Profile) -> tuple[HealthCheck, int
 
 
 async def soak(devices: Sequence[Written], options: ApplyOptions, *,
-               on_failed: Callable[[Written], None] | None = None) -> list[Written]:
+               on_failed: Callable[[Written], None] | None = None, report: str | None = None) -> list[Written]:
     """Watch ``devices`` together for ``options.soak`` seconds; roll back each one whose health fails.
+
+    ``report``: a report of the run so far (its snapshots), named in the journal's ``soak-started`` line so
+    that ``deployer status`` can point a rollback at it should the process die during the soak.
 
     Returns the devices that passed. Health reads are counted in each device's notices, not logged
     request by request (a 5-minute soak at 1 s would add 300 reads per device to the report).
@@ -80,40 +83,49 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
     run = options.run_id
     if run is not None:
         _journal(options, {"event": "soak-started", "run": run, "time": journal._now(), "seconds": options.soak,
-                           "interval": options.health_interval, "devices": [w.name for w in todo]})
+                           "interval": options.health_interval, "devices": [w.name for w in todo],
+                           "report": report})
     start = time.monotonic()
     deadline = start + options.soak
     passed: list[Written] = []
     failed: list[Written] = []
 
+    # one connection per bus, one request at a time on it: a gateway allows few connections, and the
+    # devices behind it share one line anyway
+    lines: dict[str, tuple[tp.Transport, asyncio.Lock, asyncio.Future[str | None]]] = {}
+
+    async def connect(transport: tp.Transport) -> str | None:
+        try:
+            await transport.connect()
+        except tp.Unreachable as e:
+            return f"the device could not be reached: {e}"
+        return None
+
     async def watch(w: Written) -> None:
-        transport = tp.open_transport(w.url)
+        if w.url.bus not in lines:
+            transport = tp.open_transport(w.url)
+            lines[w.url.bus] = (transport, asyncio.Lock(), asyncio.ensure_future(connect(transport)))
+        transport, one_at_a_time, connected = lines[w.url.bus]
         records: list[Any] = []
         session = Session(transport, w.unit, retries=w.url.retries, backoff=options.backoff, records=records)
         reads = 0
-        why: str | None = None
-        try:
+        why: str | None = await asyncio.shield(connected)
+        while why is None:
             try:
-                await transport.connect()
-            except tp.Unreachable as e:
-                why = f"the device could not be reached: {e}"
-            while why is None:
-                try:
+                async with one_at_a_time:
                     bad = await read_health(session, w.recipe.profile)
-                    reads += len(w.recipe.profile.health)
-                except (DeviceGone, tp.ExceptionResponse) as e:
-                    why = f"could not be read: {e}"
-                    break
-                if bad is not None:
-                    check, word = bad
-                    why = check.failure(word)
-                    break
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    break
-                await asyncio.sleep(min(options.health_interval, left))
-        finally:
-            await transport.close()
+                reads += len(w.recipe.profile.health)
+            except (DeviceGone, tp.ExceptionResponse) as e:
+                why = f"could not be read: {e}"
+                break
+            if bad is not None:
+                check, word = bad
+                why = check.failure(word)
+                break
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            await asyncio.sleep(min(options.health_interval, left))
         seen = time.monotonic() - start
         if why is None:
             w.result.notices.append(f"soak passed: {reads} health reads over {format_duration(options.soak or 0)}")
@@ -126,14 +138,30 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
         failed.append(w)
         if on_failed is not None:
             on_failed(w)
-        await roll_back(w, why, options)
+        rollbacks.append(asyncio.ensure_future(roll_back(w, why, options)))
+        await asyncio.shield(rollbacks[-1])  # an interrupt must not cut a rollback short
 
-    await asyncio.gather(*(watch(w) for w in todo))
-    if run is not None:
-        _journal(options, {"event": "soak-finished", "run": run, "time": journal._now(),
-                           "passed": [w.name for w in passed], "rolled_back": [w.name for w in failed
-                                                                              if w.result.status == "rolled-back"],
-                           "failed": [w.name for w in failed if w.result.status != "rolled-back"]})
+    rollbacks: list[asyncio.Future[None]] = []
+    interrupted = False
+    try:
+        await asyncio.gather(*(watch(w) for w in todo))
+    except asyncio.CancelledError:  # Ctrl-C: a change that has not proven itself is undone, not left behind
+        interrupted = True
+        for w in todo:
+            if w not in passed and w not in failed:
+                failed.append(w)
+                rollbacks.append(asyncio.ensure_future(roll_back(w, "interrupted during the soak", options)))
+        await asyncio.gather(*rollbacks, return_exceptions=True)
+        raise
+    finally:
+        for transport, _, _ in lines.values():
+            await transport.close()
+        if run is not None:
+            _journal(options, {"event": "soak-finished", "run": run, "time": journal._now(),
+                               "passed": [w.name for w in passed],
+                               "rolled_back": [w.name for w in failed if w.result.status == "rolled-back"],
+                               "failed": [w.name for w in failed if w.result.status != "rolled-back"],
+                               **({"interrupted": True} if interrupted else {})})
     return [w for w in todo if w in passed]
 
 
@@ -270,7 +298,11 @@ async def await_confirmation(run: str, seconds: float, options: ApplyOptions, *,
         if left <= 0:
             _journal(options, {"event": "confirm-expired", "run": run, "time": journal._now()})
             return False
-        await asyncio.sleep(min(poll, left))
+        try:
+            await asyncio.sleep(min(poll, left))
+        except asyncio.CancelledError:
+            _journal(options, {"event": "confirm-interrupted", "run": run, "time": journal._now()})
+            raise
 
 
 def _confirmed_since(path: str, offset: int, run: str) -> tuple[int, bool]:
@@ -312,7 +344,8 @@ class Awaiting:
 
 
 def awaiting(state_dir: str) -> list[Awaiting]:
-    """Runs whose ``confirm-awaited`` line has no ``confirmed``, ``confirm-expired`` or ``run-finished`` after it."""
+    """Runs whose ``confirm-awaited`` line has no answer (``confirmed``, ``confirm-expired``,
+    ``confirm-interrupted``) or ``run-finished`` after it."""
     out: dict[str, Awaiting] = {}
     recipes: dict[str, str | None] = {}
     try:
@@ -334,9 +367,33 @@ def awaiting(state_dir: str) -> list[Awaiting]:
                 out[run] = Awaiting(run, rec.get("pid"), str(rec.get("deadline", "")),
                                     float(rec.get("deadline_epoch", 0)), str(rec.get("report", "")),
                                     recipes.get(run))
-            elif event in ("confirmed", "confirm-expired", "run-finished"):
+            elif event in ("confirmed", "confirm-expired", "confirm-interrupted", "run-finished"):
                 out.pop(run, None)
     return list(out.values())
+
+
+def soaking(state_dir: str) -> dict[str, str | None]:
+    """Runs whose last ``soak-started`` line has no ``soak-finished`` or ``run-finished`` after it: run -> the
+    report of the run so far (None from a run without one)."""
+    out: dict[str, str | None] = {}
+    try:
+        f = open(journal.path_of(state_dir), encoding="utf-8")  # noqa: SIM115 - closed below
+    except FileNotFoundError:
+        return {}
+    with f:
+        for line in f:
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue
+            if not isinstance(rec, dict) or not rec.get("run"):
+                continue
+            run, event = str(rec["run"]), rec.get("event")
+            if event == "soak-started":
+                out[run] = rec.get("report")
+            elif event in ("soak-finished", "run-finished"):
+                out.pop(run, None)
+    return out
 
 
 def confirm_run(state_dir: str, run: str | None = None) -> Awaiting:

@@ -43,12 +43,6 @@ def not_finished(jobs: Sequence[Job], batches: Sequence[int] | None = None) -> l
     return out
 
 
-def _state(d: DeviceResult) -> tuple[object, ...]:
-    """What can change in a device's result after it finished (the rest of its JSON stays as it was)."""
-    return d.status, d.error, d.commit, d.seconds, len(d.notices), len(d.requests), \
-        tuple((p.status, p.after_raw) for p in d.parameters)
-
-
 class LiveReport:
     """The ``--report`` file of a fleet run, true at every moment, even after a ``kill -9``.
 
@@ -72,7 +66,6 @@ class LiveReport:
         self._parts = {d.name: device_json(d, made) for d in skeleton}
         self._finished: list[DeviceResult] = []
         self._writing: set[str] = set()  # started writing, not finished yet
-        self._as_finished: dict[str, tuple[object, ...]] = {}  # what each device's JSON said when it was made
         self._cond = threading.Condition()
         self._dirty = False
         self._closing = False
@@ -86,7 +79,6 @@ class LiveReport:
         with self._cond:
             self._parts[result.name] = part
             self._finished.append(result)
-            self._as_finished[result.name] = _state(result)
             self._dirty = True
             self._cond.notify()
 
@@ -107,6 +99,14 @@ class LiveReport:
             self._dirty = True
             self._cond.notify()
 
+    def update(self, result: DeviceResult) -> None:
+        """A finished device changed since (a soak rolled it back, its held commit was sent): write it anew."""
+        part = device_json(result)
+        with self._cond:
+            self._parts[result.name] = part
+            self._dirty = True
+            self._cond.notify()
+
     def stop(self) -> None:
         """Stop the writer thread (what is on disk stays: at worst one write behind)."""
         with self._cond:
@@ -120,10 +120,9 @@ class LiveReport:
 
         self.stop()
         with self._cond:
+            done = {r.name for r in self._finished}
             for d in report.devices:
-                # skipped by the rollout (never reported as finished), or changed since it finished (a soak that
-                # rolled it back, a commit sent after a confirmation): its JSON anew
-                if self._as_finished.get(d.name) != _state(d):
+                if d.name not in done:  # skipped by the rollout: never reported as finished
                     self._parts[d.name] = device_json(d)
         write_atomic(self.path, self._document(report.summary(), report))
 

@@ -89,7 +89,7 @@ def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failure
 async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str | None = None,
                     argv: Sequence[str] = (), via: str = "api", options: ApplyOptions | None = None,
                     parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
-                    report_path: str | None = None, signals: bool = False,
+                    report_path: str | None = None, signals: bool = False, refuse_broadcast: bool = False,
                     on_start: Callable[[Job], None] | None = None,
                     on_done: Callable[[DeviceResult], None] | None = None, **safe: Any) -> Report:
     """Run ``jobs`` as one journaled run (see the module's docstring); the report of every device.
@@ -98,6 +98,8 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     ``argv`` and ``via`` ("cli", "api", "ansible") go into the journal. ``batch`` ("1,10%,100%")
     stages the rollout, ``max_failures`` ("2", "5%") caps it. ``signals``: SIGINT and SIGTERM
     interrupt the run (its own process's main thread only; the command line and Ansible set it).
+    ``refuse_broadcast``: a unit 0 without ``options.allow_broadcast`` is a UsageError before anything
+    happens (the command line), not a ``failed`` device in the report.
     ``safe``: ``rollback_on_failure``, ``between_batches``, ``on_confirm_wait`` of ``fleet.rollout.apply_many``.
 
     Raises UsageError (nothing sent) for bad options, StalePlan or Declined when the run was refused
@@ -106,7 +108,8 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     opts = options or ApplyOptions()
     if not jobs:
         raise UsageError("no device to write")
-    check_broadcast(jobs, opts.allow_broadcast)
+    if refuse_broadcast:
+        check_broadcast(jobs, opts.allow_broadcast)
     sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                                   report_path=report_path)
     state_dir = os.path.abspath(opts.state_dir)
@@ -131,7 +134,8 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     installed = _on_signals(why) if signals else []
     try:
         report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
-                                  on_done=done, batches=sizes, max_failures=budget, **safe)
+                                  on_done=done, batches=sizes, max_failures=budget,
+                                  on_changed=None if live is None else live.update, **safe)
     except RunInterrupted as e:
         report = e.report
         report.interrupted = why[0] if why else "cancelled"
