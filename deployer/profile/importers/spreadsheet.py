@@ -513,7 +513,7 @@ def _draft(path: str, rows: Iterable[Row], *, profile_id: str, columns: Mapping[
 def _one_row(path: str, row: Row, where: dict[str, int], seen: dict[str, int],
              parameters: list[tuple[str, dict[str, Any], Origin]], errors: list[Diagnostic], decimal: str | None
              ) -> None:
-    cells, starts = row.cells, row.starts
+    cells = row.cells
     if not any(c.strip() for c in cells) or cells[0].lstrip().startswith("#"):
         return
 
