@@ -48,6 +48,7 @@ from .errors import (
 )
 from .execute.read import read_current
 from .execute.session import ApplyOptions
+from .execute.soak import check_soak_profiles, confirm_run
 from .fleet.inventory import FleetDevice, Inventory, load_inventory
 from .fleet.inventory import fleet_jobs as _fleet_jobs
 from .fleet.inventory import inventory_from as _inventory_from
@@ -98,6 +99,7 @@ __all__ = [
     "apply_async",
     "apply_fleet",
     "apply_fleet_async",
+    "confirm",
     "describe_url",
     "device_url",
     "diff",
@@ -124,6 +126,7 @@ __all__ = [
     "recipe_from",
     "run_fleet",
     "run_fleet_async",
+    "safe_options",
 ]
 
 
@@ -198,15 +201,27 @@ def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
 
 
 async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-                      options: ApplyOptions | None = None, name: str | None = None) -> Report:
-    """Apply to one device; the report says per parameter what it holds now (never raises for a device fault)."""
+                      options: ApplyOptions | None = None, name: str | None = None,
+                      soak: float | str | None = None, health_interval: float | str | None = None,
+                      confirm_within: float | str | None = None,
+                      on_confirm_wait: Callable[[str, float], None] | None = None) -> Report:
+    """Apply to one device; the report says per parameter what it holds now (never raises for a device fault).
+
+    A safe change: ``soak`` ("30s", or seconds) watches the profile's health checks after the write and
+    rolls the device back when one fails; ``confirm_within`` holds the profile's commit until ``confirm``
+    is called (from another thread, task or process with the same state directory), else rolls back.
+    ``on_confirm_wait(run, deadline)`` is told the run id to confirm once it waits.
+    """
     url, u = _target(recipe, device, unit)
-    return await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=options,
-                            recipe_name=recipe.path or recipe.name)
+    opts = safe_options(options, soak=soak, health_interval=health_interval, confirm_within=confirm_within)
+    if opts.soak is not None:
+        check_soak_profiles([recipe.profile])
+    return await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=opts,
+                            recipe_name=recipe.path or recipe.name, on_confirm_wait=on_confirm_wait)
 
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-          options: ApplyOptions | None = None, name: str | None = None) -> Report:
+          options: ApplyOptions | None = None, name: str | None = None, **safe: Any) -> Report:
     """Apply the recipe to one device: plan against what it holds, write, read back, verify, report.
 
     A device fault (unreachable, refused, not verified, locked by another run) is the device's
@@ -216,8 +231,49 @@ def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | Non
         UsageError: no device, a bad URL, a broadcast without ``options.allow_broadcast``.
         StalePlan: ``options.expected`` (a saved plan) no longer matches the device.
         Declined: ``options.confirm`` answered no.
+
+    ``safe``: ``soak``, ``health_interval``, ``confirm_within``, ``on_confirm_wait`` (see ``apply_async``).
     """
-    return asyncio.run(apply_async(recipe, device, unit, options=options, name=name))
+    return asyncio.run(apply_async(recipe, device, unit, options=options, name=name, **safe))
+
+
+def safe_options(options: ApplyOptions | None, *, soak: float | str | None = None,
+                 health_interval: float | str | None = None,
+                 confirm_within: float | str | None = None) -> ApplyOptions:
+    """``options`` with a soak and a confirmation window (durations as "30s" or seconds).
+
+    A confirmation needs a run id to be named by: one is made when ``options`` has none.
+
+    Raises:
+        UsageError: a duration that is not one (e.g. "soon").
+    """
+    from dataclasses import replace
+
+    from .load.durations import parse_duration
+    from .state.journal import new_run_id
+
+    opts = options or ApplyOptions()
+    changes: dict[str, Any] = {}
+    for key, value in (("soak", soak), ("health_interval", health_interval), ("confirm_within", confirm_within)):
+        if value is not None:
+            try:
+                changes[key] = parse_duration(value)
+            except ValueError as e:
+                raise UsageError(f"{key}: {e}") from None
+    opts = replace(opts, **changes)
+    if opts.confirm_within is not None and opts.run_id is None:
+        opts = replace(opts, run_id=new_run_id())
+    return opts
+
+
+def confirm(run: str | None = None, *, state_dir: str = ".deployer") -> str:
+    """Confirm a run that waits (``confirm_within``): its held-back commit is sent. Returns the run id.
+
+    Raises:
+        UsageError: no run (or several, and ``run`` is None) waits in ``state_dir``, or the waiting
+            process is gone, or its time ran out.
+    """
+    return confirm_run(state_dir, run).run
 
 
 @dataclass(frozen=True)
@@ -376,12 +432,14 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
                           batch: str | None = None, max_failures: str | None = None,
                           options: ApplyOptions | None = None, report_path: str | None = None,
                           on_start: Callable[[Job], None] | None = None,
-                          on_done: Callable[[DeviceResult], None] | None = None) -> Report:
+                          on_done: Callable[[DeviceResult], None] | None = None,
+                          **safe: Any) -> Report:
     """Apply jobs as one fleet run: ``batch`` ("1,10%,100%") stages it, ``max_failures`` ("2", "5%") caps it.
 
     ``report_path``: written before the first device starts (every device ``skipped``, "not
     finished") and rewritten as devices finish, so after a crash ``limit="@REPORT"`` retries
-    exactly what did not end ok.
+    exactly what did not end ok. ``safe``: ``rollback_on_failure``, ``between_batches`` and
+    ``on_confirm_wait`` of ``fleet.rollout.apply_many`` (the soak itself is in ``options``).
     """
     sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                                   report_path=report_path)
@@ -397,7 +455,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
 
     try:
         report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
-                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget)
+                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget, **safe)
     finally:
         if live is not None:
             live.stop()

@@ -258,14 +258,23 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
     if unanswered is not None:
         return
 
-    # commit (e.g. store to EEPROM) only when everything is verified
-    if prof.commit and all(r.status in ("ok", "unchanged") for r in results.values()):
-        for action in prof.commit:
-            try:
-                await _send_actions(session, prof, [action])
-            except (DeviceGone, tp.ExceptionResponse) as e:
-                res.status, res.error = "partial", f"commit '{action.description or hex(action.address)}' failed: {e}"
-                return
+    # commit (e.g. store to EEPROM) only when everything is verified; a soak or a confirmation holds it back
+    if not prof.commit:
+        return
+    if not all(r.status in ("ok", "unchanged") for r in results.values()):
+        res.commit = "not sent"
+        return
+    if opts.holds_commit:
+        res.commit = "held"
+        return
+    for action in prof.commit:
+        try:
+            await _send_actions(session, prof, [action])
+        except (DeviceGone, tp.ExceptionResponse) as e:
+            res.status, res.error = "partial", f"commit '{action.description or hex(action.address)}' failed: {e}"
+            res.commit = "failed"
+            return
+    res.commit = "sent"
 
 
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,

@@ -48,6 +48,19 @@ options:
              choices: [continue, stop]}
   state_dir: {description: Where snapshots and the journal go on the target., type: path, default: .deployer}
   report: {description: Also write the report JSON to this file on the target., type: path}
+  soak:
+    description:
+      - After the verified write, read the profile's health checks for this long (e.g. "30s", "5m"; a bare
+        number is seconds). A failed check rolls that device back from its snapshot (status rolled-back,
+        the task fails); the profile's commit is sent only after the soak passed. With I(batch), each batch
+        soaks together and a health failure in the first batch ends the rollout.
+    type: str
+  health_interval: {description: 'Time between two rounds of health checks during the soak.', type: str,
+                    default: 1s}
+  rollback_on_failure:
+    description: When the rollout stops (a failed batch, I(max_failures)), roll back every device it wrote.
+    type: bool
+    default: false
 """
 
 EXAMPLES = r"""
@@ -56,6 +69,13 @@ EXAMPLES = r"""
     recipe: /srv/recipes/line3.yaml
     devices: "{{ modbus_devices }}"
     state_dir: /var/lib/deployer
+
+- name: New ramps, kept only if the drives stay healthy for 5 minutes (one canary first)
+  deployer.modbus.apply:
+    recipe: /srv/recipes/line3.yaml
+    inventory: /srv/inventory.yaml
+    batch: "1,100%"
+    soak: 5m
 """
 
 RETURN = r"""
@@ -121,15 +141,20 @@ def check(module, jobs):
 
 
 def apply(module, rec, jobs):
-    from deployer.api import run_fleet_async
+    from deployer.api import run_fleet_async, safe_options
     from deployer.execute.session import ApplyOptions
+    from deployer.execute.soak import check_soak_profiles
 
     p = module.params
-    options = ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"])
+    options = safe_options(ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"]),
+                           soak=p.get("soak"), health_interval=p["health_interval"])
+    if options.soak is not None:
+        check_soak_profiles([j.recipe.profile for j in jobs])
     report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
                                          parallel=p["parallel"],
                                          batch=p.get("batch"), max_failures=p.get("max_failures"), options=options,
-                                         report_path=p.get("report")))
+                                         report_path=p.get("report"),
+                                         rollback_on_failure=p["rollback_on_failure"]))
     devices, diffs, problems = [], [], []
     for d in report.devices:
         changed = [(q.name, q.before or "?", q.after or q.desired) for q in d.parameters
@@ -156,7 +181,9 @@ def main():
             recipe=dict(type="path"), profile=dict(type="str"), parameters=dict(type="dict"), name=dict(type="str"),
             batch=dict(type="str"), max_failures=dict(type="str"), write_all=dict(type="bool", default=False),
             on_error=dict(type="str", default="continue", choices=["continue", "stop"]),
-            state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), **TARGET_ARGS),
+            state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), soak=dict(type="str"),
+            health_interval=dict(type="str", default="1s"), rollback_on_failure=dict(type="bool", default=False),
+            **TARGET_ARGS),
         supports_check_mode=True,
     )
     require_deployer(module)
