@@ -30,9 +30,9 @@ from __future__ import annotations
 import asyncio
 import os
 import resource
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from .errors import (
     BadURL,
@@ -59,7 +59,8 @@ from .planning.model import Plan, Target
 from .planning.planfile import load_plan, plan_to_json
 from .planning.planner import make_plan
 from .profile import Profile, load_profile, resolve_profile
-from .recipe.loader import Entry, Recipe, load_recipe, with_overrides
+from .recipe.loader import Entry, Recipe, with_overrides
+from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
 from .report import DeviceResult, ParameterResult, Report
 from .transport.clients import DeviceURL, describe, parse_url
@@ -67,7 +68,7 @@ from .transport.clients import DeviceURL, describe, parse_url
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
 _REEXPORTED = (BadURL, CodecError, Declined, DeployerError, IdentityMismatch, InputError, Locked, StalePlan,
                TransportError, UsageError, ApplyOptions, FleetDevice, Inventory, load_inventory, Job, ReadJob, Plan,
-               load_plan, plan_to_json, Profile, load_profile, Recipe, load_recipe, DeviceResult, ParameterResult,
+               load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult, ParameterResult,
                Report, DeviceURL)
 
 
@@ -130,6 +131,51 @@ __all__ = [
 ]
 
 
+_T = TypeVar("_T")
+
+
+def _kind(value: object) -> str:
+    text = repr(value)
+    return f"{type(value).__name__} {text if len(text) <= 40 else text[:39] + '...'}"
+
+
+def _need_recipe(recipe: object, call: str) -> None:
+    """Refuse, before anything is sent, what a caller passed where a loaded Recipe belongs."""
+    if not isinstance(recipe, Recipe):
+        hint = " (load it first: deployer.load_recipe(path))" if isinstance(recipe, (str, os.PathLike)) else ""
+        raise UsageError(f"{call} takes a Recipe{hint}, got {_kind(recipe)}")
+
+
+def _need_unit(unit: object) -> None:
+    if unit is None:
+        return
+    if isinstance(unit, bool) or not isinstance(unit, int):
+        raise UsageError(f"unit must be an int from 1 to 247 (0 is broadcast), got {_kind(unit)}")
+    if not 0 <= unit <= 247:
+        raise UsageError(f"unit must be from 1 to 247 (0 is broadcast), got {unit}")
+
+
+def _sync(call: str, coro: Callable[[], Coroutine[Any, Any, _T]]) -> _T:
+    """Run a coroutine for a sync API call; inside a running event loop, say to await the async twin."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return asyncio.run(coro())
+    raise UsageError(f"deployer.{call}() cannot run inside a running event loop; await deployer.{call}_async()")
+
+
+def load_recipe(path: str | os.PathLike[str], **kw: Any) -> Recipe:
+    """A recipe file, validated against its profile.
+
+    Raises:
+        InputError: every problem of the recipe (and its profile), with its position.
+        UsageError: ``path`` is not a path.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise UsageError(f"load_recipe takes a path (str or os.PathLike), got {_kind(path)}")
+    return _load_recipe(path, **kw)
+
+
 def describe_url(url: DeviceURL) -> str:
     """A device URL as text, without secrets (no key, certificate or CA paths): for reports and logs."""
     return describe(url)
@@ -143,8 +189,14 @@ def recipe_from(profile: str | Profile, parameters: Mapping[str, Any], *, name: 
 
     Raises:
         InputError: a value that is not valid for its parameter (all of them at once).
-        UsageError: an unknown built-in profile id.
+        UsageError: an unknown built-in profile id; arguments of the wrong type.
     """
+    if not isinstance(parameters, Mapping):
+        raise UsageError(f"recipe_from takes the parameters as a mapping (name -> value), got {_kind(parameters)}")
+    if not isinstance(profile, (str, Profile)):
+        raise UsageError(f"recipe_from takes a profile id, a profile file or a Profile, got {_kind(profile)}")
+    if base is not None:
+        _need_recipe(base, "recipe_from(base=...)")
     src = Source(f"<{name}>")
     entries = [Entry(k, v, src, ("parameters", k)) for k, v in parameters.items()]
     if base is None:
@@ -162,10 +214,13 @@ def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: i
     """
     if isinstance(url, DeviceURL):
         return url
+    if not isinstance(url, str):
+        raise UsageError(f"device_url takes a URL such as tcp://10.0.0.11:502, got {_kind(url)}")
     return parse_url(url, timeout=timeout, retries=retries)  # BadURL is a UsageError
 
 
 def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) -> tuple[DeviceURL, int]:
+    _need_unit(unit)
     text = device if device is not None else (recipe.device.url if recipe.device else None)
     if text is None:
         raise UsageError("no device: pass a device URL or set device.url in the recipe")
@@ -179,6 +234,8 @@ def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) ->
 async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
                      write_all: bool = False, offline: bool = False) -> Plan:
     """The requests apply would send: against what the device holds now, or ``offline`` the full write plan."""
+    _need_recipe(recipe, "plan")
+    _need_unit(unit)
     if offline:
         u = unit if unit is not None else 1
         return make_plan(recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all)
@@ -197,7 +254,8 @@ def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
         UsageError: no device (none given and none in the recipe), a bad URL, unit 0 (broadcast).
         TransportError: the device cannot be read (Unreachable also when its identity does not match).
     """
-    return asyncio.run(plan_async(recipe, device, unit, write_all=write_all, offline=offline))
+    _need_recipe(recipe, "plan")
+    return _sync("plan", lambda: plan_async(recipe, device, unit, write_all=write_all, offline=offline))
 
 
 async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
@@ -212,6 +270,7 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
     is called (from another thread, task or process with the same state directory), else rolls back.
     ``on_confirm_wait(run, deadline)`` is told the run id to confirm once it waits.
     """
+    _need_recipe(recipe, "apply")
     url, u = _target(recipe, device, unit)
     opts = safe_options(options, soak=soak, health_interval=health_interval, confirm_within=confirm_within)
     if opts.soak is not None:
@@ -234,7 +293,8 @@ def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | Non
 
     ``safe``: ``soak``, ``health_interval``, ``confirm_within``, ``on_confirm_wait`` (see ``apply_async``).
     """
-    return asyncio.run(apply_async(recipe, device, unit, options=options, name=name, **safe))
+    _need_recipe(recipe, "apply")
+    return _sync("apply", lambda: apply_async(recipe, device, unit, options=options, name=name, **safe))
 
 
 def safe_options(options: ApplyOptions | None, *, soak: float | str | None = None,
@@ -306,6 +366,7 @@ def diff_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]]) -> list[
 
 async def diff_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None) -> list[Drift]:
     """``diff`` for callers with their own event loop."""
+    _need_recipe(recipe, "diff")
     url, u = _target(recipe, device, unit)
     return diff_values(recipe, await read_current(recipe.profile, [d.name for d in recipe.desired], url, u))
 
@@ -317,7 +378,8 @@ def diff(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
         UsageError: no device, a bad URL, unit 0.
         TransportError: the device cannot be read.
     """
-    return asyncio.run(diff_async(recipe, device, unit))
+    _need_recipe(recipe, "diff")
+    return _sync("diff", lambda: diff_async(recipe, device, unit))
 
 
 def pulled_recipe(profile: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
@@ -340,6 +402,9 @@ def pull_names(profile: Profile) -> list[str]:
 
 async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict[str, tuple[int, ...]]:
     """Every readable, writable parameter of a device: name -> registers."""
+    _need_unit(unit)
+    if not isinstance(profile, (str, Profile)):
+        raise UsageError(f"pull takes a profile id, a profile file or a Profile, got {_kind(profile)}")
     prof = profile if isinstance(profile, Profile) else resolve_profile(profile)
     return await read_current(prof, pull_names(prof), device_url(device), unit)
 
@@ -352,7 +417,7 @@ def pull(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict
         InputError: an invalid profile file.
         TransportError: the device cannot be read.
     """
-    return asyncio.run(pull_async(profile, device, unit))
+    return _sync("pull", lambda: pull_async(profile, device, unit))
 
 
 # ---- fleets ----------------------------------------------------------------------------------
@@ -455,7 +520,8 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
 
     try:
         report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
-                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget, **safe)
+                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget,
+                                  on_changed=None if live is None else live.update, **safe)
     finally:
         if live is not None:
             live.stop()
@@ -474,7 +540,9 @@ def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) ->
             be written, too few open files for ``parallel``.
         StalePlan: a saved plan (``options.expected``) no longer matches its device.
     """
-    return asyncio.run(apply_fleet_async(recipe, inventory, **kw))
+    if recipe is not None:
+        _need_recipe(recipe, "apply_fleet")
+    return _sync("apply_fleet", lambda: apply_fleet_async(recipe, inventory, **kw))
 
 
 def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
@@ -484,7 +552,7 @@ def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
         UsageError: a bad ``batch``/``max_failures``, a report file that cannot be written, too few open files.
         StalePlan: a saved plan (``options.expected``) no longer matches its device.
     """
-    return asyncio.run(run_fleet_async(jobs, **kw))
+    return _sync("run_fleet", lambda: run_fleet_async(jobs, **kw))
 
 
 async def read_fleet_async(jobs: Sequence[ReadJob], *, parallel: int = 8,
@@ -503,7 +571,7 @@ def read_fleet(jobs: Sequence[ReadJob], *, parallel: int = 8) -> dict[str, dict[
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return asyncio.run(read_fleet_async(jobs, parallel=parallel))
+    return _sync("read_fleet", lambda: read_fleet_async(jobs, parallel=parallel))
 
 
 def read_jobs(jobs: Sequence[Job]) -> list[ReadJob]:
@@ -535,7 +603,7 @@ def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = Fals
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return asyncio.run(plan_fleet_async(jobs, parallel=parallel, write_all=write_all))
+    return _sync("plan_fleet", lambda: plan_fleet_async(jobs, parallel=parallel, write_all=write_all))
 
 
 def inventory_from(devices: Iterable[Mapping[str, Any]], *, name: str = "<devices>") -> Inventory:

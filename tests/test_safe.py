@@ -439,3 +439,74 @@ def test_the_api_soaks_and_confirms(tmp_path: Path) -> None:
     assert len(writes_to(list(sim.log), COMMIT)) == 2 and sim.read("F07") == (0, 400)
     with pytest.raises(UsageError, match="soak: "):
         deployer.apply(deployer.load_recipe(recipe(tmp_path, "3 s", sim.url)), soak="soon")
+
+
+def test_a_run_killed_during_its_soak_is_shown_by_status_with_its_restore_command(
+        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    state = str(tmp_path / "s")
+    with SimulatorThread(PROFILE) as sim:
+        before = sim.registers()
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1h", "--health-interval",
+                        "100ms", "--state-dir", state)
+        try:
+            wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 1 or proc.poll() is not None)
+        finally:
+            proc.send_signal(signal.SIGKILL)
+            proc.communicate(timeout=60)
+        assert writes_to(list(sim.log), COMMIT) == []
+        code, out, _ = cli(capsys, "status", "--state-dir", state)
+        assert code == 0 and "died while its change soaked" in out
+        restore = next(line.split("restore them with: ", 1)[1] for line in out.splitlines() if "restore them" in line)
+        code, _, err = cli(capsys, *restore.split()[1:])
+        assert code == 0, err
+        assert {a: v for a, v in sim.registers().items() if a != COMMIT} == {
+            a: v for a, v in before.items() if a != COMMIT}
+
+
+def test_limit_from_a_report_retries_the_rolled_back_devices(capsys: pytest.CaptureFixture[str],
+                                                             tmp_path: Path) -> None:
+    with Simulators([Simulator(PROFILE, faults=Faults(rules=(TRIP,)) if i == 1 else None) for i in range(3)]) as sims:
+        urls = {f"d{i}": s.url for i, s in enumerate(sims)}
+        inv, run = inventory(tmp_path, urls), str(tmp_path / "run.json")
+        code, _, _ = cli(capsys, "apply", recipe(tmp_path, "1.5 s"), "--inventory", inv, "--yes", "--soak", "200ms",
+                         "--health-interval", "100ms", "--report", run, "--state-dir", str(tmp_path / "s"))
+        assert code == 4
+        sims[1].set_register(FAULT, 0)  # the drive's fault was reset
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "2.5 s", name="safer.yaml"), "--inventory", inv,
+                           "--limit", f"@{run}", "--yes", "--json", "--soak", "200ms", "--health-interval", "100ms",
+                           "--state-dir", str(tmp_path / "s"))
+    assert code == 0, err
+    assert [(d["name"], d["status"]) for d in json.loads(out)["devices"]] == [("d1", "ok")]
+
+
+def test_ask_on_a_terminal_stops_the_rollout_on_no(tmp_path: Path) -> None:
+    """--yes answers the write confirmation only: --ask still asks before batch 2, on a real terminal (a pty)."""
+    import pty
+    import select
+
+    with Simulators([Simulator(PROFILE) for _ in range(2)]) as sims:
+        urls = {f"d{i}": s.url for i, s in enumerate(sims)}
+        master, slave = pty.openpty()
+        proc = subprocess.Popen([sys.executable, "-m", "deployer", "apply", recipe(tmp_path, "3 s"), "--inventory",
+                                 inventory(tmp_path, urls), "--yes", "--batch", "1", "--ask", "--report",
+                                 str(tmp_path / "run.json"), "--state-dir", str(tmp_path / "s")],
+                                stdin=slave, stdout=slave, stderr=slave, close_fds=True)
+        os.close(slave)
+        seen = b""
+        try:
+            end = time.monotonic() + 120
+            while b"Continue with batch 2?" not in seen:
+                assert time.monotonic() < end and proc.poll() is None, seen.decode(errors="replace")
+                if select.select([master], [], [], 0.5)[0]:
+                    seen += os.read(master, 4096)
+            os.write(master, b"n\n")
+            proc.wait(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            os.close(master)
+        assert proc.returncode == 4
+        assert sims[1].log == []
+    d0, d1 = json.loads((tmp_path / "run.json").read_text())["devices"]
+    assert d0["status"] == "ok" and d1["status"] == "skipped"
+    assert "stopped at the question before batch 2 (--ask)" in d1["error"]

@@ -404,11 +404,12 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
 @click.option("--json", "as_json", is_flag=True, help="print the unfinished runs as JSON")
 def status(state_dir: str, as_json: bool) -> int:
     """Runs that never finished (a crash, kill -9, a laptop asleep): which devices were being written."""
-    from ..execute.soak import awaiting
+    from ..execute.soak import awaiting, soaking
     from ..state.journal import unfinished
 
     runs, torn = unfinished(state_dir)
     waits = {a.run: a for a in awaiting(state_dir)}
+    soaks = soaking(state_dir)
     if as_json:
         click.echo(json.dumps({"unfinished": [
             {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
@@ -416,6 +417,7 @@ def status(state_dir: str, as_json: bool) -> int:
              "finished": r.finished,
              **({"awaiting_confirmation": {"deadline": waits[r.run].deadline, "report": waits[r.run].report,
                                            "waiting": waits[r.run].alive}} if r.run in waits else {}),
+             **({"soaking": {"report": soaks[r.run]}} if r.run in soaks else {}),
              } for r in runs]}, indent=2))
         return EXIT_OK
     out = console()
@@ -435,6 +437,13 @@ def status(state_dir: str, as_json: bool) -> int:
                       "to non-volatile memory)")
             out.print(f"    restore them with: deployer rollback --report {a.report} --state-dir {state_dir} --yes",
                       soft_wrap=True)
+        if r.run in soaks and not r.running:
+            out.print("  died while its change soaked: its devices hold values whose health was not proven and "
+                      "that were never committed (a power cycle also reverts them on devices whose commit stores "
+                      "to non-volatile memory)")
+            if soaks[r.run]:
+                out.print(f"    restore them with: deployer rollback --report {soaks[r.run]} --state-dir {state_dir} "
+                          "--yes", soft_wrap=True)
         for d in r.interrupted:
             out.print(f"  interrupted while writing: {d.get('name')} {d.get('url')} unit {d.get('unit')}; "
                       f"snapshot {d.get('snapshot')}")

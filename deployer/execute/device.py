@@ -92,8 +92,8 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
     results = _results(recipe)
     res.parameters = list(results.values())
     if unit == 0 and not opts.allow_broadcast:
-        raise UsageError("unit 0 is broadcast (no device answers, nothing can be verified); "
-                         "pass --allow-broadcast to send it anyway")
+        raise UsageError("unit 0 is broadcast (no device answers, nothing can be verified); to send it anyway, "
+                         "allow broadcast (--allow-broadcast; ApplyOptions(allow_broadcast=True) in Python)")
     if unit == 0 and (prof.preconditions or any(d.parameter.mask for d in recipe.desired)):
         raise UsageError("a broadcast cannot read: bit fields (which keep the register's other bits) and "
                          f"preconditions of profile {prof.id} need a device that answers")

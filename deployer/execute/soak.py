@@ -67,8 +67,11 @@ async def read_health(session: Session, prof: Profile) -> tuple[HealthCheck, int
 
 
 async def soak(devices: Sequence[Written], options: ApplyOptions, *,
-               on_failed: Callable[[Written], None] | None = None) -> list[Written]:
+               on_failed: Callable[[Written], None] | None = None, report: str | None = None) -> list[Written]:
     """Watch ``devices`` together for ``options.soak`` seconds; roll back each one whose health fails.
+
+    ``report``: a report of the run so far (its snapshots), named in the journal's ``soak-started`` line so
+    that ``deployer status`` can point a rollback at it should the process die during the soak.
 
     Returns the devices that passed. Health reads are counted in each device's notices, not logged
     request by request (a 5-minute soak at 1 s would add 300 reads per device to the report).
@@ -80,7 +83,8 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
     run = options.run_id
     if run is not None:
         _journal(options, {"event": "soak-started", "run": run, "time": journal._now(), "seconds": options.soak,
-                           "interval": options.health_interval, "devices": [w.name for w in todo]})
+                           "interval": options.health_interval, "devices": [w.name for w in todo],
+                           "report": report})
     start = time.monotonic()
     deadline = start + options.soak
     passed: list[Written] = []
@@ -337,6 +341,30 @@ def awaiting(state_dir: str) -> list[Awaiting]:
             elif event in ("confirmed", "confirm-expired", "run-finished"):
                 out.pop(run, None)
     return list(out.values())
+
+
+def soaking(state_dir: str) -> dict[str, str | None]:
+    """Runs whose last ``soak-started`` line has no ``soak-finished`` or ``run-finished`` after it: run -> the
+    report of the run so far (None from a run without one)."""
+    out: dict[str, str | None] = {}
+    try:
+        f = open(journal.path_of(state_dir), encoding="utf-8")  # noqa: SIM115 - closed below
+    except FileNotFoundError:
+        return {}
+    with f:
+        for line in f:
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue
+            if not isinstance(rec, dict) or not rec.get("run"):
+                continue
+            run, event = str(rec["run"]), rec.get("event")
+            if event == "soak-started":
+                out[run] = rec.get("report")
+            elif event in ("soak-finished", "run-finished"):
+                out.pop(run, None)
+    return out
 
 
 def confirm_run(state_dir: str, run: str | None = None) -> Awaiting:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import os
 import time
@@ -131,7 +132,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                      batches: Sequence[int] | None = None, max_failures: int | None = None,
                      rollback_on_failure: bool = False,
                      between_batches: Callable[[int, Report], Awaitable[str | None]] | None = None,
-                     on_confirm_wait: Callable[[str, float], None] | None = None) -> Report:
+                     on_confirm_wait: Callable[[str, float], None] | None = None,
+                     on_changed: Callable[[DeviceResult], None] | None = None) -> Report:
     """Apply to many devices: in parallel, except that devices on one bus go one at a time.
 
     ``batches`` (sizes, in job order) stage the rollout: each batch finishes before the next
@@ -146,7 +148,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     commit is sent after the soak passed, or once the run is confirmed; not confirmed in time, every
     written device is rolled back. ``rollback_on_failure``: when the rollout stops, every device written
     is rolled back. ``between_batches(number, report so far)`` runs before batches 2, 3 ... (a pause, a
-    question) and may end the rollout by returning the reason.
+    question) and may end the rollout by returning the reason. ``on_changed`` is told of a device whose
+    result changed after ``on_done`` (rolled back, committed).
     """
     started = time.monotonic()
     done: dict[str, DeviceResult] = {}
@@ -194,6 +197,12 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     def written(batch: Sequence[Job]) -> list[Written]:
         return [Written(j.name, j.recipe, j.url, j.unit, done[j.name]) for j in batch if j.name in done]
 
+    def changed(devices: Sequence[Written]) -> None:
+        if on_changed is not None:
+            for w in devices:
+                if w.result.snapshot is not None:
+                    on_changed(w.result)
+
     def so_far() -> Report:
         return Report(recipe_name, [done[j.name] for j in jobs if j.name in done], time.monotonic() - started)
 
@@ -207,10 +216,12 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         await on_buses(batch, parallel, one)
         if opts.soak is not None:
             unhealthy: list[str] = []
-            passed = await soak(written(batch), opts, on_failed=unhealthy_into(unhealthy))
+            pending = _write_pending(opts, so_far())
+            passed = await soak(written(batch), opts, on_failed=unhealthy_into(unhealthy), report=pending)
             budget.failures += len(unhealthy)
             if opts.confirm_within is None:  # the soak passed: the change is kept
                 await asyncio.gather(*(send_commit(w, opts) for w in passed))
+            changed(written(batch))
             if number == 1 and unhealthy and stop is None and pos < len(jobs):
                 stop = (f"not started: the canary batch 1 failed its health checks "
                         f"({', '.join(unhealthy)} rolled back)")
@@ -228,6 +239,11 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     for w in written(jobs):  # a commit never sent to a device that ended other than ok
         if w.result.commit == "held" and w.result.status != "ok":
             w.result.commit = "not sent"
+    if rollback_on_failure or opts.confirm_within is not None:
+        changed(written(jobs))
+    if opts.run_id is not None and (opts.soak is not None or opts.confirm_within is not None):
+        with contextlib.suppress(FileNotFoundError):  # the run ended: its report says the rest
+            os.remove(pending_path(opts.state_dir, opts.run_id))
     return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
 
 
@@ -243,14 +259,11 @@ async def _confirm_or_roll_back(devices: Sequence[Written], opts: ApplyOptions, 
 
     While it waits, a report of the run lies in STATE/pending/ (``deployer status`` points a rollback at it
     should this process die)."""
-    from ..report import write_json
-
     assert opts.confirm_within is not None and opts.run_id is not None
     waiting = [w for w in devices if needs_soak(w.result)]
     if not waiting:
         return
-    path = pending_path(opts.state_dir, opts.run_id)
-    write_json(Report(recipe_name, [w.result for w in devices]).to_json(), path)
+    _write_pending(opts, Report(recipe_name, [w.result for w in devices]))
     run = opts.run_id
     confirmed = await await_confirmation(run, opts.confirm_within, opts,
                                          on_wait=None if on_wait is None else lambda t: on_wait(run, t))
@@ -261,7 +274,18 @@ async def _confirm_or_roll_back(devices: Sequence[Written], opts: ApplyOptions, 
 
         why = f"not confirmed within {format_duration(opts.confirm_within)}"
         await asyncio.gather(*(roll_back(w, why, opts) for w in waiting))
-    os.remove(path)
+
+
+def _write_pending(opts: ApplyOptions, report: Report) -> str | None:
+    """While devices hold uncommitted values (a soak, a confirmation wait), the run's report so far lies in
+    STATE/pending/RUN.json: ``deployer status`` points a rollback at it should this process die."""
+    from ..report import write_json
+
+    if opts.run_id is None:
+        return None
+    path = pending_path(opts.state_dir, opts.run_id)
+    write_json(report.to_json(), path)
+    return path
 
 
 def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:

@@ -32,8 +32,10 @@ from typing import Any
 
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import NoSuchIdException
+from pymodbus.exceptions import ModbusIOException, NoSuchIdException
+from pymodbus.pdu import ExceptionResponse
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
+from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from ..profile import Parameter, Profile
@@ -239,6 +241,68 @@ class _Units:
         return await self.core.async_setValues(device_id, func_code, address, values)
 
 
+# What the simulated device answers (the tables its profile does not use answer 01 as well); every
+# other function code gets exception 01, as a drive's does (pymodbus's server would also answer
+# diagnostics, event counters, report server id, file records, FIFO queues, device identification).
+FUNCTIONS = frozenset({1, 2, 3, 4, 5, 6, 15, 16})
+
+
+class _InOrderHandler(ServerRequestHandler):
+    """One connection: every request of a segment answered, in order, one at a time.
+
+    pymodbus's handler decodes one frame per segment and keeps the rest until more bytes arrive,
+    so requests a client pipelines (as gateways and real clients do) went unanswered.
+    """
+
+    def __init__(self, owner: Any, functions: frozenset[int]) -> None:
+        super().__init__(owner, owner.trace_packet, owner.trace_pdu, owner.trace_connect)  # type: ignore[no-untyped-call]
+        self._functions = functions
+        # pymodbus drops a whole buffer longer than one frame; complete frames are taken out at once
+        # here, so only a partial frame stays, and a read of many pipelined requests is kept whole
+        self.max_buffer_size = 1 << 20
+        self._queue: asyncio.Queue[tuple[Any, Any]] = asyncio.Queue()
+        self._worker: asyncio.Task[None] | None = None
+
+    def callback_data(self, data: bytes, addr: tuple[Any, ...] | None = None) -> int:
+        used = 0
+        while used < len(data):
+            try:
+                n, pdu = self.framer.handleFrame(self.trace_packet(False, data[used:]), self.request_dev_id,
+                                                 self.request_transaction_id)
+            except ModbusIOException as exc:  # what pymodbus's handler answers to an undecodable frame
+                reply = ExceptionResponse(exc.fcode or 0, exception_code=ExcCodes.ILLEGAL_FUNCTION,
+                                          device_id=exc.dev_id, transaction=exc.transaction_id)
+                self.server_send(reply, addr)  # type: ignore[no-untyped-call]
+                return len(data)
+            if not n:
+                break
+            used += n
+            if pdu is not None:
+                pdu = self.trace_pdu(False, pdu)
+            if pdu is not None:
+                self._queue.put_nowait((pdu, addr))
+        if self._worker is None and not self._queue.empty():
+            self._worker = asyncio.get_running_loop().create_task(self._answer())
+        return used
+
+    async def _answer(self) -> None:
+        while True:
+            pdu, addr = await self._queue.get()
+            if pdu.function_code not in self._functions and pdu.dev_id in self.server.context.device_ids():
+                reply = ExceptionResponse(pdu.function_code, ExcCodes.ILLEGAL_FUNCTION)
+                reply.transaction_id, reply.dev_id = pdu.transaction_id, pdu.dev_id
+                if pdu.dev_id:
+                    self.server_send(reply, addr)  # type: ignore[no-untyped-call]
+                continue
+            self.last_pdu, self.last_addr = pdu, addr
+            await self.handle_request()  # type: ignore[no-untyped-call]
+
+    def callback_disconnected(self, exc: Exception | None) -> None:
+        if self._worker is not None:
+            self._worker.cancel()
+        super().callback_disconnected(exc)
+
+
 class Simulator:
     def __init__(self, profile: Profile, *, listen: str = "tcp://127.0.0.1:0", units: Sequence[int] = (1,),
                  init: Mapping[int, int] | None = None, faults: Faults | None = None,
@@ -291,6 +355,7 @@ class Simulator:
             if rule.register not in self._owner and rule.register not in self._extra:
                 raise ValueError(f"fault rule '{rule.text}': register {rule.register} is not declared in profile "
                                  f"{profile.id} (a parameter, or a register of its health checks)")
+        self.functions = FUNCTIONS  # the function codes this device answers; others get exception 01
 
     # ---- lifecycle ---------------------------------------------------------------------------
 
@@ -317,6 +382,8 @@ class Simulator:
                                               **common)
         self._core = self._server.context
         self._server.context = _Units(self._core, self)
+        server = self._server
+        server.callback_new_connection = lambda: _InOrderHandler(server, self.functions)
         if self.log_path:
             self._log_file = open(self.log_path, "a", encoding="utf-8")  # noqa: SIM115 - open for the server's life
         await self._server.serve_forever(background=True)
@@ -388,6 +455,13 @@ class Simulator:
             raise ValueError(f"{name} is a {p.register_type}: 0 or 1")
         for k, v in zip(range(p.key, p.key + p.count), registers, strict=True):
             self._set(unit, k, v)
+
+    def set_register(self, address: int, value: int, unit: int = 1, table: RegisterType = "holding") -> None:
+        """Set a declared register from outside (a fault code clears after a reset, a status word changes)."""
+        key = SPACE[table] << 16 | address
+        if key not in self._owner and key not in self._extra:
+            raise ValueError(f"{table} register {address} is not declared in profile {self.profile.id}")
+        self._set(unit, key, value)
 
     def dump_state(self, path: str) -> None:
         state = {str(u): {str(a): v for a, v in self.registers(u).items()} for u in self.units}
