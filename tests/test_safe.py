@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from decimal import Decimal
 from pathlib import Path
 
 import jsonschema
@@ -121,9 +122,9 @@ def test_soak_without_health_checks_is_refused_up_front(capsys: pytest.CaptureFi
 
 def test_a_healthy_soak_ends_ok_and_the_commit_follows_it(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with SimulatorThread(PROFILE) as sim:
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "300ms",
-                           "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
-        assert code == 0
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "300ms",
+                             "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
+        assert code == 0 and "watching the health of ramp for 300ms (every 100ms)" in err
         dev = json.loads(out)["devices"][0]
         assert dev["status"] == "ok" and dev["commit"] == "sent"
         log = list(sim.log)
@@ -197,7 +198,7 @@ def test_a_fault_written_by_mbpoll_during_the_soak_rolls_back(tmp_path: Path) ->
 
 
 def test_the_simulator_trips_only_when_the_rule_holds(tmp_path: Path) -> None:
-    assert (TRIP.parameter, TRIP.op, TRIP.value, TRIP.register, TRIP.raw) == ("F07", "<", 2, 0x2000, 7)
+    assert (TRIP.parameter, TRIP.op, TRIP.value, TRIP.register, TRIP.raw) == ("F07", "<", Decimal(2), 0x2000, 7)
     coast = parse_fault_rule("stop_mode == coast: 0x2000=3", PROFILE)
     assert coast.by_label and coast.value == 1
     assert parse_fault_rule("F07 <= 1500 ms: 8192=1", PROFILE).value == 1.5
