@@ -93,7 +93,7 @@ def fleet(files: Path) -> Iterator[list[Simulator]]:
 def half_way(sims: list[Simulator]) -> bool:
     """The first devices are done writing and later ones are in the middle of it."""
     done = [writes(s) for s in sims]
-    return any(n == N for n in done) and any(0 < n < N for n in done)
+    return any(n == N for n in done) and any(0 < n <= N - 5 for n in done)  # 5 writes (0.5 s) of margin
 
 
 def fleet_apply(files: Path) -> subprocess.Popen[str]:
@@ -108,9 +108,10 @@ def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=30)
     half = [f"d{i}" for i, s in enumerate(fleet) if 0 < writes(s) < N]
+    by_run = [writes(s) for s in fleet]
     assert half and any(holds(s) != before(i) for i, s in enumerate(fleet))
     report = json.loads((files / "run.json").read_text())
-    assert report["run"] and report["state_dir"] == str(files / "state")
+    assert report["run"]["id"] and report["run"]["state_dir"] == str(files / "state")
     by_name = {d["name"]: d for d in report["devices"]}
     for name in half:  # the file says not finished (or interrupted, if its writer got there): never ok
         assert by_name[name]["status"] in ("skipped", "interrupted")
@@ -125,9 +126,10 @@ def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
     back = json.loads((files / "back.json").read_text())
     restored = {d["name"] for d in back["devices"]}
     assert set(half) <= restored
-    never = {f"d{i}" for i, s in enumerate(fleet) if not any(e.function in (6, 16) for e in s.log)}
-    assert not never & restored  # nothing was written there: nothing to restore
-    assert "nothing was written there" in err or not never
+    # devices the run never wrote got no write from the rollback either (at most a snapshot taken right
+    # before the kill, whose restore finds nothing to change)
+    assert all(writes(s) == 0 for s, n in zip(fleet, by_run, strict=True) if n == 0)
+    assert "nothing was written there" in err  # the devices never started (d9 at least)
 
 
 def test_sigint_mid_fleet_ends_with_an_exact_report_and_rolls_back(files: Path, fleet: list[Simulator]) -> None:
@@ -138,7 +140,7 @@ def test_sigint_mid_fleet_ends_with_an_exact_report_and_rolls_back(files: Path, 
     assert proc.returncode == 4, out + err
     report = json.loads((files / "run.json").read_text())
     statuses = {d["name"]: d["status"] for d in report["devices"]}
-    assert "interrupted" in statuses.values() and report["interrupted"] == "SIGINT"
+    assert "interrupted" in statuses.values() and report["run"]["interrupted"] == "SIGINT"
     assert report["summary"]["interrupted"] == sum(1 for s in statuses.values() if s == "interrupted")
     for i, (s, d) in enumerate(zip(fleet, report["devices"], strict=True)):
         now = holds(s)
@@ -161,7 +163,7 @@ def test_sigint_mid_fleet_ends_with_an_exact_report_and_rolls_back(files: Path, 
         assert "undo with: deployer rollback --from-report run.json" in err
     lines = audit(files / "state")
     assert lines[-1]["event"] == "run-finished" and lines[-1]["interrupted"] == "SIGINT"
-    assert lines[-1]["run"] == report["run"] and lines[-1]["exit_code"] == 4
+    assert lines[-1]["run"] == report["run"]["id"] and lines[-1]["exit_code"] == 4
 
     code, out, err = deployer("rollback", "--from-report", "run.json", "--yes", "--state-dir", "state", cwd=files)
     assert code == 0, out + err
@@ -176,10 +178,10 @@ def test_sigterm_mid_apply_of_one_device(files: Path) -> None:
             sim.write(f"p{k}", (v,))
         proc = start("apply", "new.yaml", "--device", sim.url, "--yes", "--report", "one.json",
                      "--state-dir", "state", cwd=files)
-        wait_for(lambda: 2 <= writes(sim) < N - 2, "writes")
+        wait_for(lambda: 2 <= writes(sim) <= N - 6, "writes")
         # the report file was written before the first request, like a fleet's
         first = json.loads((files / "one.json").read_text())
-        assert first["devices"][0]["status"] in ("skipped", "interrupted") and first["run"]
+        assert first["devices"][0]["status"] in ("skipped", "interrupted") and first["run"]["id"]
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 4, out + err
@@ -210,7 +212,7 @@ import deployer
 from deployer.api import ApplyOptions
 rec = deployer.load_recipe(sys.argv[1])
 report = deployer.apply(rec, sys.argv[2], options=ApplyOptions(state_dir=sys.argv[3]), name="press")
-print(report.run, report.exit_code)
+print(report.run_id, report.exit_code)
 """
 
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import shlex
 import sys
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -95,7 +97,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               batch: str | None = None, max_failures: str | None = None, command: str = "apply",
               to_other_device: bool = False, soak: float | None = None, health_interval: float = 1.0,
               confirm_within: float | None = None, rollback_on_failure: bool = False, pause: float | None = None,
-              ask: bool = False) -> int:
+              ask: bool = False, html_path: str | None = None) -> int:
     """apply / rollback: everything validated, then confirmed, then run by the library (``run.runner``)."""
     from ..errors import RunInterrupted
     from ..execute.session import ApplyOptions
@@ -186,7 +188,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            lock_timeout=lock_timeout, soak=soak, health_interval=health_interval,
-                           confirm_within=confirm_within)
+                           confirm_within=confirm_within,
+                           command=shlex.join(["deployer", *_ARGV]) if _ARGV else f"deployer {command}")
     safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
                        interval=health_interval, staged=bool(batch))
     kw: dict[str, Any] = dict(command=command, label=label, argv=_ARGV, via="cli", options=options, parallel=parallel,
@@ -201,6 +204,12 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             report = asyncio.run(run_async(jobs, **kw))
     except RunInterrupted as e:
         report, interrupted = e.report, e
+    if html_path:
+        from ..pages import run_page
+        from .base import write_page
+
+        write_page(run_page(report), html_path)
+        err.print(f"page: {html_path}")
     _print_outcome(report, fleet_run=fleet_run, as_json=as_json, report_path=report_path)
     if interrupted is not None:
         _said_interrupted(report, report_path)
@@ -252,7 +261,7 @@ def _said_interrupted(report: Report, report_path: str | None) -> None:
     click.echo(f"interrupted ({report.interrupted}): " + (
         f"{_n(len(written), 'device')} may hold some new values ({', '.join(d.name for d in written)})"
         if written else "nothing was written") + f"; the journal {report.state_dir}/audit.jsonl has it as run "
-        f"{report.run}", err=True)
+        f"{report.run_id}", err=True)
     if len(written) == 1:
         click.echo(f"undo with: deployer rollback {written[0].snapshot}", err=True)
     elif written and report_path:
@@ -279,7 +288,6 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
         return None
 
     def waiting(run: str, deadline: float) -> None:
-        import time
 
         left = max(0.0, deadline - time.time())
         left = round(left) if left >= 1 else round(left, 3)
@@ -305,6 +313,9 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--yes", "-y", is_flag=True, help="do not ask for confirmation"),
         click.option("--report", "report_path", type=click.Path(dir_okay=False), help="write the report JSON here"),
         click.option("--json", "as_json", is_flag=True, help="print the report JSON"),
+        click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
+                     help="also write the report as one self-contained HTML page (sortable, filterable; it "
+                          "prints as the commissioning record: as found / as left per device)"),
         fleet_option,
         limit_option,
         click.option("--batch", metavar="1,10%,100%",

@@ -56,11 +56,11 @@ class LiveReport:
     window would be retried by ``@FILE``, which writes nothing to a device that already matches).
     """
 
-    def __init__(self, path: str, recipe: str | None, skeleton: Sequence[DeviceResult], *, run: str | None = None,
-                 state_dir: str | None = None) -> None:
+    def __init__(self, path: str, recipe: str | None, skeleton: Sequence[DeviceResult], *,
+                 run: dict[str, Any] | None = None) -> None:
         self.path = path
         self.recipe = recipe
-        self.run, self.state_dir = run, state_dir  # rollback --from-report finds the run's journal by these
+        self.run = run  # who, what, where and when (report.run_info)
         self._order = [d.name for d in skeleton]
         made: dict[int, str] = {}  # the skeleton's devices share their parameter lists (not_finished)
         self._parts = {d.name: device_json(d, made) for d in skeleton}
@@ -138,9 +138,7 @@ class LiveReport:
             summary["devices"] = len(self._order)
             summary["interrupted"] += writing
             summary["skipped"] += len(self._order) - len(finished) - writing
-        run = report if report is not None else self
-        return report_parts(self.recipe, parts, summary, run=run.run, state_dir=run.state_dir,
-                            interrupted=report.interrupted if report is not None else None)
+        return report_parts(self.recipe, parts, summary, self.run if report is None else report.run_doc())
 
     def _write(self, text: list[bytes]) -> None:
         from ..report import write_atomic

@@ -90,7 +90,8 @@ def read_run(path: str) -> Restores:
         raise InputError([Diagnostic(path, 0, 0, "no such file")]) from None
     except OSError as e:
         raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e.strerror}")]) from None
-    run, state = data.get("run"), data.get("state_dir")
+    info = data.get("run")
+    run, state = (info.get("id"), info.get("state_dir")) if isinstance(info, dict) else (None, None)
     started: dict[str, dict[str, object]] = {}
     journal_problem = None
     if isinstance(run, str) and isinstance(state, str):

@@ -25,6 +25,7 @@ import os
 import resource
 import signal
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
@@ -34,7 +35,7 @@ from ..execute.session import ApplyOptions, Declined, StalePlan
 from ..fleet.livereport import LiveReport, not_finished
 from ..fleet.rollout import Job, apply_many, batch_sizes, failure_budget
 from ..load.diagnostics import UsageError
-from ..report import DeviceResult, Report
+from ..report import DeviceResult, Report, run_info
 from ..state import journal
 from ..transport.urls import describe
 
@@ -112,6 +113,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         check_broadcast(jobs, opts.allow_broadcast)
     sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                                   report_path=report_path)
+    started = time.time()
     state_dir = os.path.abspath(opts.state_dir)
     applied = opts.applied  # the journal and the snapshots name it so that it is found from anywhere
     if applied is None and label is not None:
@@ -119,8 +121,8 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     run_id = opts.run_id or journal.new_run_id()  # a confirmation window names its run before it starts
     journal.run_started(state_dir, run_id, command=command, argv=argv, recipe=applied, via=via,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
-    live = LiveReport(report_path, label, not_finished(jobs, sizes), run=run_id, state_dir=state_dir) \
-        if report_path else None
+    info = {**run_info(opts.command or f"Python API: {command}", started), "id": run_id, "state_dir": state_dir}
+    live = LiveReport(report_path, label, not_finished(jobs, sizes), run=info) if report_path else None
     opts = replace(opts, run_id=run_id, applied=applied, state_dir=state_dir,
                    on_writing=_both(opts.on_writing, live.writing if live is not None else None))
 
@@ -148,7 +150,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         loop = asyncio.get_running_loop()
         for sig in installed:
             loop.remove_signal_handler(sig)
-    report.run, report.state_dir = run_id, state_dir
+    report.run, report.run_id, report.state_dir = info, run_id, state_dir
     if live is not None:
         live.close(report)
     journal.run_finished(state_dir, run_id, report, command=command, argv=argv)

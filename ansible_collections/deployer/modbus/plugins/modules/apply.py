@@ -116,7 +116,7 @@ devices:
   elements: dict
   returned: always
 report:
-  description: The deployer report (schema C(deployer.report/1)).
+  description: The deployer report (schema C(deployer.report/2)).
   type: dict
   returned: when not in check mode
 run:
@@ -219,9 +219,9 @@ def apply(module, rec, jobs):
             problems.append(f"{d.name} {d.status}" + (f": {what}" if what else "") + (f" - {d.error}" if d.error
                                                                                      else ""))
     result = {"changed": any(d.write_requests for d in report.devices), "devices": devices,
-              "report": report.to_json(), "diff": diffs, "run": report.run}
+              "report": report.to_json(), "diff": diffs, "run": report.run_id}
     if interrupted is not None:
-        problems.insert(0, f"{interrupted} (run {report.run} in {report.state_dir})")
+        problems.insert(0, f"{interrupted} (run {report.run_id} in {report.state_dir})")
     if problems:
         module.fail_json(msg="; ".join(problems), **result)
     module.exit_json(**result)
