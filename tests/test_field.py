@@ -233,3 +233,67 @@ def test_umodbus_fc06_only_device(tmp_path: Path) -> None:
     assert res.status == "ok" and res.learned == {"write_function": 6}
     assert [(fc, a) for fc, a, _ in wire if fc in (6, 16)] == [(16, 100)] + [(6, 100 + i) for i in range(N)]
     assert [store[100 + i] for i in range(N)] == [10 + i for i in range(N)]
+
+
+# ---- pauses the device needs ------------------------------------------------------------------------
+
+
+def _pacing_profile(tmp: Path, limits: str = "") -> tuple[Profile, str]:
+    text = _profile_text(strict=False)
+    if limits:
+        text = text.replace("parameters:", f"limits: {limits}\nparameters:")
+    (tmp / "dev.yaml").write_text(text)
+    body = "".join(f"  p{i}: {10 + i}\n" for i in range(3))
+    path = tmp / "r.yaml"
+    path.write_text(f"recipe: r\nprofile: dev.yaml\nparameters:\n{body}")
+    return profile_from(tmp, text, "dev.yaml"), str(path)
+
+
+def _too_soon(sim: Simulator) -> int:
+    return sum(1 for e in sim.log if e.result == "too soon")
+
+
+def test_device_needing_pauses_drops_requests_that_come_too_soon(tmp_path: Path) -> None:
+    prof, recipe = _pacing_profile(tmp_path)
+    sim = Simulator(prof, quirks=Quirks(pause_after_connect_ms=200, request_gap_ms=100))
+    res = _apply_sim(sim, recipe, tmp_path, url_suffix="?timeout=0.3&retries=3")
+    assert _too_soon(sim) > 0  # without pauses: requests lost, each costing a timeout and a retry
+    assert any(r.result == "no response" or r.attempts > 1 for r in res.requests)
+
+
+@pytest.mark.parametrize("where", ["url", "profile"])
+def test_pauses_from_the_url_or_the_profile_are_kept(tmp_path: Path, where: str) -> None:
+    limits = "{pause_after_connect: 300ms, pause_between_requests: 150}" if where == "profile" else ""
+    prof, recipe = _pacing_profile(tmp_path, limits)
+    suffix = "?timeout=2&retries=0" + ("&pause_after_connect=0.3&pause_between_requests=150ms" if where == "url" else "")
+    sim = Simulator(prof, quirks=Quirks(pause_after_connect_ms=200, request_gap_ms=100))
+    res = _apply_sim(sim, recipe, tmp_path, url_suffix=suffix)
+    assert res.status == "ok", res.to_json()
+    assert _too_soon(sim) == 0 and all(r.attempts == 1 and r.result in ("ok", "exception") for r in res.requests)
+    assert [sim.read(f"p{i}")[0] for i in range(3)] == [10, 11, 12]
+
+
+def test_plan_time_estimate_includes_the_pauses(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _, recipe = _pacing_profile(tmp_path, "{pause_after_connect: 1s, pause_between_requests: 250ms}")
+    code, out, err = run_cli(capsys, "plan", recipe)
+    assert code == 0, err
+    # one write request: 1 s after connecting + 250 ms before it
+    assert "(pauses the device needs included: 1250 ms)" in out
+    # the device URL's options override the profile's (a recipe's device.url: still an offline plan)
+    text = Path(recipe).read_text().replace(
+        "parameters:", 'device: {url: "tcp://127.0.0.1:502?pause_after_connect=0&pause_between_requests=0.1"}\n'
+                       "parameters:")
+    Path(recipe).write_text(text)
+    code, out, err = run_cli(capsys, "plan", recipe)
+    assert code == 0, err
+    assert "(pauses the device needs included: 100 ms)" in out
+
+
+def test_bad_pause_is_an_error_at_its_position(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "dev.yaml").write_text(_profile_text(strict=False).replace(
+        "parameters:", "limits: {pause_between_requests: soon}\nparameters:"))
+    code, _, err = run_cli(capsys, "validate", str(tmp_path / "dev.yaml"))
+    assert code == 1
+    assert f"{tmp_path / 'dev.yaml'}:2:" in err and "pause_between_requests" in err
+    code, _, err = run_cli(capsys, "plan", _recipe(tmp_path), "--device", "tcp://127.0.0.1:502?pause_after_connect=x")
+    assert code == 1 and "pause_after_connect" in err and "is not a duration" in err
