@@ -265,7 +265,8 @@ def test_device_needing_pauses_drops_requests_that_come_too_soon(tmp_path: Path)
 def test_pauses_from_the_url_or_the_profile_are_kept(tmp_path: Path, where: str) -> None:
     limits = "{pause_after_connect: 300ms, pause_between_requests: 150}" if where == "profile" else ""
     prof, recipe = _pacing_profile(tmp_path, limits)
-    suffix = "?timeout=2&retries=0" + ("&pause_after_connect=0.3&pause_between_requests=150ms" if where == "url" else "")
+    pauses = "&pause_after_connect=0.3&pause_between_requests=150ms" if where == "url" else ""
+    suffix = "?timeout=2&retries=0" + pauses
     sim = Simulator(prof, quirks=Quirks(pause_after_connect_ms=200, request_gap_ms=100))
     res = _apply_sim(sim, recipe, tmp_path, url_suffix=suffix)
     assert res.status == "ok", res.to_json()
@@ -297,3 +298,85 @@ def test_bad_pause_is_an_error_at_its_position(tmp_path: Path, capsys: pytest.Ca
     assert f"{tmp_path / 'dev.yaml'}:2:" in err and "pause_between_requests" in err
     code, _, err = run_cli(capsys, "plan", _recipe(tmp_path), "--device", "tcp://127.0.0.1:502?pause_after_connect=x")
     assert code == 1 and "pause_after_connect" in err and "is not a duration" in err
+
+
+# ---- identity (Function 43 / 14) ---------------------------------------------------------------------
+
+ACME = {0: "ACME", 1: "AC-7", 2: "2.1"}
+
+
+def test_simulator_answers_function_43_as_the_spec_frames_it(device_profile: Profile) -> None:
+    """Raw Modbus/TCP bytes, no client library: request 2B 0E 01 00 (read basic identification from
+    object 0); the answer lists each object as id, length, text (Modbus Application Protocol 6.21)."""
+    import socket
+
+    with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
+        host, port = sim.url.removeprefix("tcp://").split(":")
+        with socket.create_connection((host, int(port)), timeout=5) as s:
+            s.sendall(bytes.fromhex("0001 0000 0005 01 2B0E0100"))
+            answer = s.recv(260)
+    objects = b"".join(bytes([i, len(t)]) + t.encode() for i, t in ACME.items())
+    pdu = bytes.fromhex("2B 0E 01 83 00 00 03") + objects  # conformity 83h, no more follows, 3 objects
+    assert answer == bytes.fromhex("0001 0000") + (len(pdu) + 1).to_bytes(2, "big") + b"\x01" + pdu
+
+
+def test_identity_is_read_reported_snapshotted_and_journaled(tmp_path: Path, device_profile: Profile,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    recipe = _recipe(tmp_path, bad=False)
+    state = tmp_path / ".deployer"
+    with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
+        code, out, err = run_cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--json",
+                                 "--state-dir", str(state))
+    assert code == 0, err
+    dev = json.loads(out)["devices"][0]
+    assert dev["identity"] == {"vendor": "ACME", "product_code": "AC-7", "revision": "2.1"}
+    assert "identity:" in Path(dev["snapshot"]).read_text()
+    snap = load_recipe(dev["snapshot"])
+    assert snap.snapshot is not None and snap.snapshot.identity == dev["identity"]
+    finished = [json.loads(line) for line in (state / "audit.jsonl").read_text().splitlines()
+                if '"device-finished"' in line]
+    assert finished[-1]["identity"] == dev["identity"]
+
+
+def test_a_replaced_device_is_noted(tmp_path: Path, device_profile: Profile,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    state = str(tmp_path / ".deployer")
+    with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
+        code, _, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False), "--device", sim.url, "--yes",
+                               "--state-dir", state)
+        assert code == 0, err
+        sim.set_identity({0: "ACME", 1: "AC-9", 2: "3.0"})  # swapped for another model
+        code, out, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False, offset=40), "--device", sim.url,
+                                 "--yes", "--json", "--state-dir", state)
+    assert code == 0, err
+    (note,) = [n for n in json.loads(out)["devices"][0]["notices"] if "identity changed" in n]
+    assert "product_code 'AC-7'" in note and "product_code 'AC-9'" in note and "replaced" in note
+
+
+def test_identity_object_check(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    text = _profile_text(strict=False).replace(
+        "parameters:", "identity:\n  - {object: vendor, equals: ACME}\n  - {object: product_code, equals: AC-7}\n"
+                       "parameters:")
+    (tmp_path / "dev.yaml").write_text(text)
+    body = "".join(f"  p{i}: {10 + i}\n" for i in range(N))
+    (tmp_path / "r.yaml").write_text(f"recipe: r\nprofile: dev.yaml\nparameters:\n{body}")
+    prof = profile_from(tmp_path, text, "dev.yaml")
+    with SimulatorThread(prof) as sim:  # serves the profile's identity objects
+        code, out, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--json",
+                                 "--state-dir", str(tmp_path / "s"))
+        assert code == 0, err
+    with SimulatorThread(prof, quirks=Quirks(identity={0: "ACME", 1: "AC-9"})) as sim:
+        code, out, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--json",
+                                 "--state-dir", str(tmp_path / "s"))
+        dev = json.loads(out)["devices"][0]
+        assert code == 4 and dev["status"] == "failed"
+        assert dev["error"] == ("identity check failed: product_code is 'AC-9', expected 'AC-7': another kind of "
+                                "device answers here; nothing was written")
+        assert not [e for e in sim.log if e.function in (6, 16)]
+    store = _store()
+    with quirky_umodbus(store) as port:  # no Function 43 at all
+        code, out, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", f"tcp://127.0.0.1:{port}",
+                                 "--yes", "--json", "--state-dir", str(tmp_path / "s"))
+    dev = json.loads(out)["devices"][0]
+    assert code == 4 and dev["error"].startswith("identity check failed: the device does not answer Function 43")
+    assert set(store.values()) == {0}
