@@ -380,3 +380,43 @@ def test_identity_object_check(tmp_path: Path, capsys: pytest.CaptureFixture[str
     dev = json.loads(out)["devices"][0]
     assert code == 4 and dev["error"].startswith("identity check failed: the device does not answer Function 43")
     assert set(store.values()) == {0}
+
+
+# ---- scan ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scheme", ["rtu+tcp", "tcp"])
+def test_scan_finds_the_units_that_answer_and_writes_an_inventory(
+        tmp_path: Path, device_profile: Profile, capsys: pytest.CaptureFixture[str], scheme: str) -> None:
+    out_file = tmp_path / "inventory.yaml"
+    with SimulatorThread(device_profile, listen=f"{scheme}://127.0.0.1:0", units=(1, 3, 7),
+                         quirks=Quirks(identity=ACME)) as sim:
+        code, out, err = run_cli(capsys, "scan", sim.url, "--unit", "1-5", "--unit", "7,8", "--timeout", "0.3",
+                                 "-o", str(out_file), "--json")
+        log = list(sim.log)
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["asked"] == 7
+    assert [(u["unit"], u["answer"], u["identity"]) for u in data["units"]] == [
+        (unit, "exception 02", {"vendor": "ACME", "product_code": "AC-7", "revision": "2.1"}) for unit in (1, 3, 7)]
+    # bounded: one request per silent unit (no retry), an FC03 and an FC43 per unit that answers
+    assert sorted((e.unit, e.function) for e in log) == sorted(
+        [(u, 3) for u in (1, 2, 3, 4, 5, 7, 8)] + [(u, 43) for u in (1, 3, 7)])
+    if scheme == "rtu+tcp":  # a serial line: silent units cost their timeout
+        assert [e.result for e in log if e.unit not in (1, 3, 7)] == ["no answer"] * 4
+    else:  # a TCP gateway answers 0Bh for units it cannot reach: no wait at all
+        assert {e.result for e in log if e.unit not in (1, 3, 7)} == {"exception 11"}
+    assert "asking 7 unit ids" in err and "at most 2.1 s" in err
+    text = out_file.read_text()
+    assert "unit-3:  # vendor ACME, product_code AC-7, revision 2.1" in text
+    code, _, err = run_cli(capsys, "validate", str(out_file))
+    assert code == 0, err
+
+
+def test_scan_of_a_silent_bus_exits_3_and_bad_units_are_usage_errors(
+        device_profile: Profile, capsys: pytest.CaptureFixture[str]) -> None:
+    with SimulatorThread(device_profile, listen="rtu+tcp://127.0.0.1:0", units=(9,)) as sim:
+        code, out, _ = run_cli(capsys, "scan", sim.url, "--unit", "1-2", "--timeout", "0.1")
+    assert code == 3 and "0 of 2 unit ids answered" in out
+    code, _, err = run_cli(capsys, "scan", "tcp://127.0.0.1:1", "--unit", "0-300")
+    assert code == 1 and "unit ids are 1..247" in err

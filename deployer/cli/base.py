@@ -60,6 +60,7 @@ _COMMANDS = {
     "profiles": "deployer.cli.profiles:profiles",
     "pull": "deployer.cli.read:pull",
     "rollback": "deployer.cli.apply:rollback",
+    "scan": "deployer.cli.field:scan",
     "simulate": "deployer.cli.simulate:simulate",
     "status": "deployer.cli.apply:status",
     "validate": "deployer.cli.files:validate",
