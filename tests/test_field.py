@@ -420,3 +420,71 @@ def test_scan_of_a_silent_bus_exits_3_and_bad_units_are_usage_errors(
     assert code == 3 and "0 of 2 unit ids answered" in out
     code, _, err = run_cli(capsys, "scan", "tcp://127.0.0.1:1", "--unit", "0-300")
     assert code == 1 and "unit ids are 1..247" in err
+
+
+# ---- probe ---------------------------------------------------------------------------------------------
+
+DRIVE_TRUTH = """\
+profile: drive
+byte_order: CDAB
+parameters:
+  gain: {register: 10, type: float32, default: 2.5}
+  count: {register: 12, type: uint32, max: 100000, default: 70000}
+  speed: {register: 14, type: uint16, scale: 0.1, unit: Hz, max: 400, default: 50}
+  command: {register: 15, type: uint16, access: write-only}
+"""
+DRIVE_GUESS = """\
+profile: drive-guess
+parameters:
+  gain: {register: 10, type: float32}
+  count: {register: 12, type: uint32, max: 100000}
+  speed: {register: 14, type: uint16, scale: 0.01, unit: Hz, max: 400}
+  command: {register: 15, type: uint16}
+"""
+
+
+def test_probe_finds_word_order_scale_unreadable_register_and_identity(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    truth = profile_from(tmp_path, DRIVE_TRUTH, "truth.yaml")
+    guess = tmp_path / "guess.yaml"
+    guess.write_text(DRIVE_GUESS)
+    with SimulatorThread(truth, quirks=Quirks(identity=ACME)) as sim:
+        code, out, err = run_cli(capsys, "probe", str(guess), "--device", sim.url, "--expect", "gain=2.5",
+                                 "--expect", "count=70000", "--expect", "speed=50 Hz", "--json")
+        writes = [e for e in sim.log if e.function in (5, 6, 15, 16)]
+    assert code == 2, err
+    data = json.loads(out)
+    assert data["identity"] == {"vendor": "ACME", "product_code": "AC-7", "revision": "2.1"}
+    assert data["changes"] == [
+        "identity: - {object: product_code, equals: 'AC-7'} (recognises the device before any write)",
+        "command: access: write-only if it is a command register, else check its address (0x000F)",
+        "count: check its scale, type and byte_order, or widen min/max",
+        "gain: byte_order: CDAB",
+        "count: byte_order: CDAB",
+        "speed: scale: 0.1",
+        "byte_order: CDAB for the whole profile (top level) instead of per parameter"]
+    seen = {f["parameter"]: f["seen"] for f in data["findings"] if f["parameter"] == "gain"}
+    assert seen["gain"].startswith("gain: 2.5 is held as CDAB (the profile reads ABCD")
+    assert writes == []  # read-only
+
+    # the fixed profile fits: exit 0
+    fixed = tmp_path / "fixed.yaml"
+    fixed.write_text(DRIVE_TRUTH.replace("profile: drive", "profile: drive-fixed").replace(
+        "parameters:", "identity:\n  - {object: product_code, equals: AC-7}\nparameters:"))
+    with SimulatorThread(truth, quirks=Quirks(identity=ACME)) as sim:
+        code, out, err = run_cli(capsys, "probe", str(fixed), "--device", sim.url, "--expect", "gain=2.5")
+    assert code == 0, out + err
+    assert "gain reads 2.5 as expected (CDAB)" in out and "the profile fits" in out
+
+
+def test_probe_against_umodbus_finds_the_word_order(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    guess = tmp_path / "guess.yaml"
+    guess.write_text("profile: meter\nparameters:\n  energy: {register: 100, type: uint32}\n")
+    store = {100: 0x1170, 101: 0x0001}  # 70000 with the low word first
+    with quirky_umodbus(store) as port:
+        code, out, err = run_cli(capsys, "probe", str(guess), "--device", f"tcp://127.0.0.1:{port}",
+                                 "--expect", "energy=70000")
+    assert code == 2, err
+    assert "energy: 70000 is held as CDAB (the profile reads ABCD: 292552705)" in out
+    assert "  - energy: byte_order: CDAB" in out
+    assert "identity none (no Function 43)" in out

@@ -57,6 +57,7 @@ _COMMANDS = {
     "explain": "deployer.cli.files:explain",
     "learned": "deployer.cli.field:learned",
     "plan": "deployer.cli.plan:plan",
+    "probe": "deployer.cli.field:probe",
     "profiles": "deployer.cli.profiles:profiles",
     "pull": "deployer.cli.read:pull",
     "rollback": "deployer.cli.apply:rollback",

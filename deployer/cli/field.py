@@ -146,3 +146,66 @@ def scan(url: str, units: tuple[str, ...], timeout: float, register: int, output
         out.print(f"{len(result.units)} of {result.asked} unit ids answered on {result.url} "
                   f"in {result.seconds:.1f} s" + (f"; inventory written to {output}" if output else ""))
     return EXIT_OK if result.units else EXIT_UNREACHABLE
+
+
+@click.command()
+@click.argument("profile")
+@click.option("--device", "device", metavar="URL", required=True, help="the live device to check the profile against")
+@click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True, help="its unit id")
+@click.option("--expect", "expect", multiple=True, metavar="NAME=VALUE",
+              help="a value you know the device holds (e.g. read on its panel), in the parameter's unit: "
+                   "finds the byte/word layout or scale that gives it. Repeatable.")
+@click.option("--timeout", type=click.FloatRange(min=0.001, max=600), help="seconds per attempt")
+@click.option("--json", "as_json", is_flag=True, help="print the findings as JSON")
+def probe(profile: str, device: str, unit: int, expect: tuple[str, ...], timeout: float | None, as_json: bool) -> int:
+    """Check PROFILE against a live device, read-only, and suggest profile changes.
+
+    Reads the identity (registers and Function 43), every readable parameter (registers answering
+    02, values outside their declared range) and, for --expect NAME=VALUE, which byte/word layout or
+    scale gives that value. Exit 0 when the profile fits, 2 when changes are suggested, 3 when the
+    device does not answer. Nothing is written.
+    """
+    import asyncio
+
+    from ..errors import EXIT_CHANGES, EXIT_UNREACHABLE, TransportError
+    from ..execute.probe import probe as run_probe
+    from ..profile import resolve_profile
+    from ..transport.urls import BadURL, parse_url
+
+    prof = resolve_profile(profile)
+    wanted: dict[str, str] = {}
+    for item in expect:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise UsageError(f"--expect {item}: expected NAME=VALUE, e.g. --expect F07='10 s'")
+        if prof.get(name.strip()) is None:
+            raise UsageError(f"--expect {item}: profile {prof.id} has no parameter {name.strip()!r}")
+        wanted[name.strip()] = value
+    try:
+        url = parse_url(device, timeout=timeout)
+    except BadURL as e:
+        raise UsageError(str(e)) from None
+    try:
+        result = asyncio.run(run_probe(prof, url, unit, wanted))
+    except TransportError as e:
+        click.echo(f"error: {e}", err=True)
+        return EXIT_UNREACHABLE
+    changes = result.changes
+    if as_json:
+        click.echo(json.dumps({"profile": prof.id, "identity": result.identity, "values": result.values,
+                               "findings": [{"parameter": f.name, "seen": f.what, "change": f.change}
+                                            for f in result.findings], "changes": changes}, indent=2))
+    else:
+        out = console()
+        ident = ", ".join(f"{k} {v!r}" for k, v in (result.identity or {}).items())
+        out.print(f"profile {prof.id} against {device} unit {unit}: identity {ident or 'none (no Function 43)'}; "
+                  f"{len(result.values)} of {sum(1 for p in prof.parameters if p.readable)} readable parameters read")
+        for f in result.findings:
+            out.print(f"  {f.what}")
+        if changes:
+            out.print("suggested profile changes:")
+            for c in changes:
+                out.print(f"  - {c}")
+        else:
+            out.print("the profile fits what the device answers")
+    return EXIT_CHANGES if changes else EXIT_OK
