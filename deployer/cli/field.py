@@ -51,7 +51,6 @@ def learned_forget(state_dir: str, profile: str | None, device: str | None, unit
 
     from ..profile import is_profile_path
     from ..state import learned as store
-    from ..state.lock import device_key
     from ..transport.urls import BadURL, parse_url
 
     if not (profile or device or everything):
@@ -62,7 +61,7 @@ def learned_forget(state_dir: str, profile: str | None, device: str | None, unit
     key = None
     if device:
         try:
-            key = device_key(parse_url(device).bus, unit)
+            key = store.device_id(parse_url(device), unit)
         except BadURL as e:
             raise UsageError(str(e)) from None
     gone = store.forget(state_dir, profile=ref, device=key)

@@ -118,7 +118,7 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
             if unit == 0:
                 await _broadcast(session, recipe, target, opts, res, results)
             else:
-                await _apply(session, recipe, target, opts, res, results, lock.device_key(url.bus, unit))
+                await _apply(session, recipe, target, opts, res, results, learned.device_id(url, unit))
         finally:
             await transport.close()
         res.settle()
