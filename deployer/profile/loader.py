@@ -411,9 +411,10 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
 
     identity = []
     for i, item in enumerate(data.get("identity") or []):
-        a = address_of(item["register"], ("identity", i, "register"))
+        table = item.get("register_type", "holding")
+        a = address_of(item["register"], ("identity", i, "register"), register_type=table)
         if a is not None:
-            identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", "")))
+            identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", ""), table))
     def actions(key: str) -> tuple[CommitAction, ...]:
         out = []
         for i, item in enumerate(data.get(key) or []):

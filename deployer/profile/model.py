@@ -306,6 +306,7 @@ class IdentityCheck:
     address: int
     raw: int
     description: str = ""
+    register_type: RegisterType = "holding"  # or "input": where many devices report model and firmware
 
 
 @dataclass(frozen=True)
