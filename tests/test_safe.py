@@ -121,9 +121,9 @@ def test_soak_without_health_checks_is_refused_up_front(capsys: pytest.CaptureFi
 
 def test_a_healthy_soak_ends_ok_and_the_commit_follows_it(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with SimulatorThread(PROFILE) as sim:
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "300ms",
-                           "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
-        assert code == 0
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "300ms",
+                             "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
+        assert code == 0 and "watching the health of ramp for 300ms (every 100ms)" in err
         dev = json.loads(out)["devices"][0]
         assert dev["status"] == "ok" and dev["commit"] == "sent"
         log = list(sim.log)

@@ -133,7 +133,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                      rollback_on_failure: bool = False,
                      between_batches: Callable[[int, Report], Awaitable[str | None]] | None = None,
                      on_confirm_wait: Callable[[str, float], None] | None = None,
-                     on_changed: Callable[[DeviceResult], None] | None = None) -> Report:
+                     on_changed: Callable[[DeviceResult], None] | None = None,
+                     on_soak: Callable[[int, list[str]], None] | None = None) -> Report:
     """Apply to many devices: in parallel, except that devices on one bus go one at a time.
 
     ``batches`` (sizes, in job order) stage the rollout: each batch finishes before the next
@@ -149,7 +150,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     written device is rolled back. ``rollback_on_failure``: when the rollout stops, every device written
     is rolled back. ``between_batches(number, report so far)`` runs before batches 2, 3 ... (a pause, a
     question) and may end the rollout by returning the reason. ``on_changed`` is told of a device whose
-    result changed after ``on_done`` (rolled back, committed).
+    result changed after ``on_done`` (rolled back, committed); ``on_soak(batch number, device names)`` when a
+    soak starts.
     """
     started = time.monotonic()
     done: dict[str, DeviceResult] = {}
@@ -218,6 +220,9 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
             if opts.soak is not None:
                 unhealthy: list[str] = []
                 pending = _write_pending(opts, so_far())
+                soaking = [w.name for w in written(batch) if needs_soak(w.result)]
+                if on_soak is not None and soaking:
+                    on_soak(number, soaking)
                 passed = await soak(written(batch), opts, on_failed=unhealthy_into(unhealthy), report=pending)
                 budget.failures += len(unhealthy)
                 if opts.confirm_within is None:  # the soak passed: the change is kept

@@ -40,6 +40,8 @@ class Limits:
     max_ascii_chars: int = ASCII_MAX_CHARS  # whole ASCII frame: ':' + hex pairs + LRC + CR LF
     # reads may span up to this many consecutive undeclared registers (0: never; DESIGN planning rule 5)
     max_read_gap: int = 0
+    pause_after_connect: int = 0  # ms of silence the device needs after a connection opens
+    pause_between_requests: int = 0  # ms from one answer to the next request, at least
     max_write_coils: int = PROTOCOL_MAX_WRITE_COILS  # per FC15; 1: every coil goes as one FC05
     max_read_coils: int = PROTOCOL_MAX_READ_COILS  # per FC01 (coils) and FC02 (discrete inputs)
 
@@ -309,6 +311,28 @@ class IdentityCheck:
     register_type: RegisterType = "holding"  # or "input": where many devices report model and firmware
 
 
+# Function 43 / 14 objects by name (Modbus Application Protocol v1.1b3, 6.21)
+IDENTITY_OBJECTS = {"vendor": 0, "product_code": 1, "revision": 2, "vendor_url": 3, "product_name": 4,
+                    "model_name": 5, "application_name": 6}
+
+
+def object_name(object_id: int) -> str:
+    """'vendor', 'product_code' ... for the basic and regular objects, else '0x80'."""
+    for name, i in IDENTITY_OBJECTS.items():
+        if i == object_id:
+            return name
+    return f"0x{object_id:02X}"
+
+
+@dataclass(frozen=True)
+class IdentityObject:
+    """A Device Identification object (Function 43 / 14) that must hold a text, read before any write."""
+
+    object_id: int
+    equals: str
+    description: str = ""
+
+
 @dataclass(frozen=True)
 class Precondition:
     """Bits of a register read before any write; another value refuses the device ("drive running")."""
@@ -398,6 +422,7 @@ class Profile:
     byte_swap: bool = False  # ... and byte swap (codec.layout_name gives ABCD/CDAB/BADC/DCBA)
     limits: Limits = field(default_factory=Limits)
     identity: tuple[IdentityCheck, ...] = ()
+    identity_objects: tuple[IdentityObject, ...] = ()
     # sorted by address; table entries expanded to "table[i].field"
     parameters: tuple[Parameter, ...] = ()
     commit: tuple[CommitAction, ...] = ()

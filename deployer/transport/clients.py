@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import functools
 import os
 import ssl
 import time
@@ -41,6 +42,7 @@ from .urls import TransportError as TransportError
 from .urls import Unreachable as Unreachable
 from .urls import describe as describe
 from .urls import no_answer_hint as no_answer_hint
+from .urls import pacing as pacing
 from .urls import parse_url as parse_url
 from .urls import verify as _verify
 
@@ -86,6 +88,14 @@ class Transport(abc.ABC):
     @abc.abstractmethod
     async def write_coils(self, address: int, values: list[bool], unit: int) -> None:
         """FC15."""
+
+    @abc.abstractmethod
+    async def read_device_identification(self, unit: int, read_code: int = 1) -> dict[int, bytes]:
+        """FC43 / 14: object id -> bytes (basic objects with read code 1). Raises like the others."""
+
+    @abc.abstractmethod
+    def set_pacing(self, after_connect: float, between: float) -> None:
+        """Seconds of silence after connecting and at least between two requests on this device's bus."""
 
     async def __aenter__(self) -> Transport:
         await self.connect()
@@ -198,12 +208,27 @@ class PymodbusTransport(Transport):
         self._quiet_until = 0.0  # this connection's own quiet time (after a broadcast)
         self._answered = False  # any answer on this connection yet (tells a refused TLS session)
         self._sent_bytes = 0  # length of the last frame sent: a broadcast's own line time
+        self._after_connect, self._between = pacing(url)  # pauses some devices need (URL options, profile)
 
     # -- hooks for the subclasses
 
     @abc.abstractmethod
     def _make_client(self) -> Any:
         """A new, unconnected pymodbus async client."""
+
+    def set_pacing(self, after_connect: float, between: float) -> None:
+        self._after_connect, self._between = after_connect, between
+
+    def _paced(self) -> bool:
+        return self._shared or bool(self._after_connect or self._between)
+
+    def _connected(self) -> None:
+        """A connection opened: nothing is sent before the device's pause after connecting."""
+        if self._after_connect:
+            quiet = time.monotonic() + self._after_connect
+            self._quiet_until = max(self._quiet_until, quiet)
+            bus = _bus(self.url)
+            bus.quiet_until = max(bus.quiet_until, quiet)
 
     def _common(self) -> dict[str, Any]:
         # retries=0: a late answer to a first copy would hide a double write (docs/design.md, transports)
@@ -245,6 +270,7 @@ class PymodbusTransport(Transport):
             client.close()
             raise Unreachable(f"{where}: {await self._why_not()}")
         self._client = client
+        self._connected()
 
     async def reconnect(self) -> None:
         await self.close()
@@ -267,7 +293,8 @@ class PymodbusTransport(Transport):
     async def _run(self, function: int, call: Callable[[Any], Any], *, no_answer: bool = False) -> Any:
         if self._client is None or not self._client.connected:
             raise ConnectionLost(f"{describe(self.url)}: not connected")
-        bus = _bus(self.url) if self._shared else None
+        # a shared line, or a device that needs pauses: requests of every device on its bus take turns
+        bus = _bus(self.url) if self._paced() else None
         if bus is not None:
             await bus.lock.acquire()
         try:
@@ -288,8 +315,9 @@ class PymodbusTransport(Transport):
             except ModbusException as e:
                 raise NoResponse(str(e)) from None
             finally:
-                # the next frame may start only after the silent interval (serial buses)
-                quiet = time.monotonic() + self._gap
+                # the next frame may start only after the silent interval (serial buses) and the pause
+                # the device needs between requests
+                quiet = time.monotonic() + max(self._gap, self._between)
                 if no_answer:
                     # broadcast: nobody answers, so give the devices the turnaround delay to carry it out
                     # (serial line spec 2.4.1: 100-200 ms); pymodbus returned as soon as the frame was
@@ -352,6 +380,23 @@ class PymodbusTransport(Transport):
     async def write_coils(self, address: int, values: list[bool], unit: int) -> None:
         await self._run(15, lambda c: c.write_coils(address, values, device_id=unit,
                                                     no_response_expected=unit == 0), no_answer=unit == 0)
+
+    async def read_device_identification(self, unit: int, read_code: int = 1) -> dict[int, bytes]:
+        objects: dict[int, bytes] = {}
+        object_id = 0
+        for _ in range(8):  # 'more follows' pages; a device repeating itself must not loop for ever
+            r = await self._run(43, functools.partial(_read_identification, read_code=read_code,
+                                                      object_id=object_id, unit=unit))
+            for oid, value in dict(r.information).items():
+                objects[int(oid)] = value[0] if isinstance(value, list) else bytes(value)
+            if not r.more_follows or r.next_object_id <= object_id:
+                break
+            object_id = r.next_object_id
+        return objects
+
+
+def _read_identification(client: Any, *, read_code: int, object_id: int, unit: int) -> Any:
+    return client.read_device_information(read_code=read_code, object_id=object_id, device_id=unit)
 
 
 class TcpTransport(PymodbusTransport):
