@@ -401,6 +401,7 @@ def test_mbpoll_reads_what_apply_wrote(tmp_path: Path, plc: Profile) -> None:
         assert "[196]: \t1\n[197]: \t0\n" in poll("-t", "1", "-r", "196", "-c", "2")  # discrete inputs, FC02
         assert "[8]: \t215\n" in poll("-t", "3", "-r", "8")  # input register, FC04
         # mbpoll writes a coil (FC05); our diff sees it
+        assert MBPOLL is not None
         subprocess.run([MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", "-t", "0", "-r", "40",
                         "127.0.0.1", "1"], capture_output=True, text=True, timeout=20, check=True)
         assert sim.read("relay9") == (1,)
