@@ -571,10 +571,18 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
         if on_done is not None:
             on_done(r)
 
+    on_changed: Callable[[DeviceResult], None] | None = safe.pop("on_changed", None)
+
+    def changed(r: DeviceResult) -> None:  # a finished device's result changed (a soak rolled it back)
+        if live is not None:
+            live.update(r)
+        if on_changed is not None:
+            on_changed(r)
+
     try:
         report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
                                   on_start=on_start, on_done=done, batches=sizes, max_failures=budget,
-                                  on_changed=None if live is None else live.update, **safe)
+                                  on_changed=changed, **safe)
     finally:
         if live is not None:
             live.stop()
