@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import os
 import resource
+import time
 from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -62,7 +63,7 @@ from .profile import Profile, load_profile, resolve_profile
 from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
-from .report import DeviceResult, ParameterResult, Report
+from .report import DeviceResult, ParameterResult, Report, run_info
 from .transport.clients import DeviceURL, describe, parse_url
 
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
@@ -278,8 +279,11 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
     opts = safe_options(options, soak=soak, health_interval=health_interval, confirm_within=confirm_within)
     if opts.soak is not None:
         check_soak_profiles([recipe.profile])
-    return await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=opts,
-                            recipe_name=recipe.path or recipe.name, on_confirm_wait=on_confirm_wait)
+    started = time.time()
+    report = await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=opts,
+                              recipe_name=recipe.path or recipe.name, on_confirm_wait=on_confirm_wait)
+    report.run = run_info(opts.command or "Python API: apply", started)
+    return report
 
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
@@ -552,11 +556,14 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     exactly what did not end ok. ``safe``: ``rollback_on_failure``, ``between_batches`` and
     ``on_confirm_wait`` of ``fleet.rollout.apply_many`` (the soak itself is in ``options``).
     """
+    if options is not None and options.soak is not None:
+        check_soak_profiles([j.recipe.profile for j in jobs])
     sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                                   report_path=report_path)
+    info = run_info((options or ApplyOptions()).command or "Python API: run_fleet", time.time())
     live = None
     if report_path:
-        live = LiveReport(report_path, recipe_name, not_finished(jobs, sizes))
+        live = LiveReport(report_path, recipe_name, not_finished(jobs, sizes), run=info)
 
     def done(r: DeviceResult) -> None:
         if live is not None:
@@ -564,13 +571,22 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
         if on_done is not None:
             on_done(r)
 
+    on_changed: Callable[[DeviceResult], None] | None = safe.pop("on_changed", None)
+
+    def changed(r: DeviceResult) -> None:  # a finished device's result changed (a soak rolled it back)
+        if live is not None:
+            live.update(r)
+        if on_changed is not None:
+            on_changed(r)
+
     try:
         report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
                                   on_start=on_start, on_done=done, batches=sizes, max_failures=budget,
-                                  on_changed=None if live is None else live.update, **safe)
+                                  on_changed=changed, **safe)
     finally:
         if live is not None:
             live.stop()
+    report.run = info
     if live is not None:
         live.close(report)
     return report

@@ -5,7 +5,9 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import shlex
 import sys
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -95,7 +97,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               lock_timeout: float = 0.0, force: bool = False, from_report: str | None = None,
               batch: str | None = None, max_failures: str | None = None, command: str = "apply",
               soak: float | None = None, health_interval: float = 1.0, confirm_within: float | None = None,
-              rollback_on_failure: bool = False, pause: float | None = None, ask: bool = False) -> int:
+              rollback_on_failure: bool = False, pause: float | None = None, ask: bool = False,
+              html_path: str | None = None) -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
     from ..api import fleet_options, run_fleet_async
     from ..execute.session import ApplyOptions
@@ -198,9 +201,10 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            run_id=run_id, applied=os.path.abspath(label) if label else None, lock_timeout=lock_timeout,
-                           soak=soak, health_interval=health_interval, confirm_within=confirm_within)
+                           soak=soak, health_interval=health_interval, confirm_within=confirm_within,
+                           command=shlex.join(["deployer", *_ARGV]) if _ARGV else f"deployer {command}")
     safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
-                       interval=health_interval, staged=bool(batch))
+                       interval=health_interval, staged=bool(batch), fleet=fleet_run)
     if fleet_run:
         import gc
 
@@ -221,10 +225,20 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                 report_path=report_path, on_start=lambda j: progress.start(j.name), on_done=progress.device_done,
                 **safe))
     else:
+        started = time.time()
         report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=label, **safe))
+        from ..report import run_info
+
+        report.run = run_info(options.command, started)
         if report_path:
             write_json(report.to_json(), report_path)
     journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
+    if html_path:
+        from ..pages import run_page
+        from .base import write_page
+
+        write_page(run_page(report), html_path)
+        err.print(f"page: {html_path}")
     if as_json:
         if fleet_run:
             from ..report import report_text
@@ -243,7 +257,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
 
 
 def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool,
-                soak: float | None = None, interval: float = 1.0, staged: bool = False) -> dict[str, Any]:
+                soak: float | None = None, interval: float = 1.0, staged: bool = False, fleet: bool = False
+                ) -> dict[str, Any]:
     """apply_many's keywords for a safe change: a pause and a question between batches, the confirmation wait."""
     from ..load.durations import format_duration
 
@@ -275,8 +290,18 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
                   f"{format_duration(soak or 0)} (every {format_duration(interval)}); a failed check rolls that device "
                   "back", soft_wrap=True)
 
+    told: set[str] = set()
+
+    def changed(r: DeviceResult) -> None:  # fleets: a progress line for a device its soak rolled back
+        if r.status != "ok" and r.name not in told:
+            from rich.markup import escape
+
+            told.add(r.name)
+            err.print(f"{escape(r.name)}: [bold yellow]{r.status}[/bold yellow]"
+                      + (f" - {escape(r.error)}" if r.error else ""), soft_wrap=True, highlight=False)
+
     return {"rollback_on_failure": rollback_on_failure, "between_batches": between, "on_confirm_wait": waiting,
-            "on_soak": soaking}
+            "on_soak": soaking, **({"on_changed": changed} if fleet else {})}
 
 
 def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retries: int | None) -> list[Job]:
@@ -321,6 +346,9 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--yes", "-y", is_flag=True, help="do not ask for confirmation"),
         click.option("--report", "report_path", type=click.Path(dir_okay=False), help="write the report JSON here"),
         click.option("--json", "as_json", is_flag=True, help="print the report JSON"),
+        click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
+                     help="also write the report as one self-contained HTML page (sortable, filterable; it "
+                          "prints as the commissioning record: as found / as left per device)"),
         fleet_option,
         limit_option,
         click.option("--batch", metavar="1,10%,100%",

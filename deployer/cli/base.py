@@ -57,9 +57,12 @@ _COMMANDS = {
     "explain": "deployer.cli.files:explain",
     "learned": "deployer.cli.field:learned",
     "plan": "deployer.cli.plan:plan",
+    "probe": "deployer.cli.field:probe",
     "profiles": "deployer.cli.profiles:profiles",
     "pull": "deployer.cli.read:pull",
+    "report": "deployer.cli.report:report",
     "rollback": "deployer.cli.apply:rollback",
+    "scan": "deployer.cli.field:scan",
     "simulate": "deployer.cli.simulate:simulate",
     "status": "deployer.cli.apply:status",
     "validate": "deployer.cli.files:validate",
@@ -97,6 +100,13 @@ def describe(url: DeviceURL) -> str:
 
 def _n(count: int, noun: str) -> str:
     return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
+def write_page(text: str, path: str) -> None:
+    """An HTML page (``--html FILE``), written whole or not at all."""
+    from ..report import write_atomic
+
+    write_atomic(path, text)
 
 
 def _output(text: str, path: str | None, summary: str) -> None:
