@@ -315,11 +315,12 @@ def test_a_canary_failing_health_is_rolled_back_and_the_rest_skipped(capsys: pyt
                                                                      tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults(rules=(TRIP,)) if i == 0 else None) for i in range(4)]) as sims:
         urls = {f"d{i}": s.url for i, s in enumerate(sims)}
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "1.5 s"), "--inventory", inventory(tmp_path, urls),
-                           "--yes", "--json", "--batch", "1,100%", "--soak", "1h", "--health-interval", "100ms",
-                           "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "1.5 s"), "--inventory", inventory(tmp_path, urls),
+                             "--yes", "--json", "--batch", "1,100%", "--soak", "1h", "--health-interval", "100ms",
+                             "--state-dir", str(tmp_path / "s"))
         logs = [list(s.log) for s in sims]
     assert code == 4
+    assert "d0: rolled-back - health check failed after" in err  # a progress line when the soak rolls it back
     report = json.loads(out)
     jsonschema.validate(report, schema.schema("report"))
     first, *rest = report["devices"]
@@ -552,3 +553,17 @@ def test_ctrl_c_while_a_change_is_held_rolls_it_back(tmp_path: Path, held: list[
     assert awaiting(state) == [] and not os.listdir(os.path.join(state, "pending"))
     events = [json.loads(x)["event"] for x in Path(state, "audit.jsonl").read_text().splitlines()]
     assert "rolled-back" in events
+
+
+def test_confirm_during_the_soak_says_it_comes_after(tmp_path: Path) -> None:
+    state = str(tmp_path / "s")
+    with SimulatorThread(PROFILE) as sim:
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1h", "--health-interval",
+                        "100ms", "--confirm-within", "1h", "--state-dir", state)
+        try:
+            wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 1 or proc.poll() is not None)
+            with pytest.raises(UsageError, match="is still soaking: it asks for the confirmation once its soak"):
+                confirm_run(state)
+        finally:
+            proc.send_signal(signal.SIGINT)
+            proc.communicate(timeout=120)
