@@ -556,6 +556,8 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     exactly what did not end ok. ``safe``: ``rollback_on_failure``, ``between_batches`` and
     ``on_confirm_wait`` of ``fleet.rollout.apply_many`` (the soak itself is in ``options``).
     """
+    if options is not None and options.soak is not None:
+        check_soak_profiles([j.recipe.profile for j in jobs])
     sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                                   report_path=report_path)
     info = run_info((options or ApplyOptions()).command or "Python API: run_fleet", time.time())
