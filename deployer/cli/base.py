@@ -57,10 +57,12 @@ _COMMANDS = {
     "explain": "deployer.cli.files:explain",
     "learned": "deployer.cli.field:learned",
     "plan": "deployer.cli.plan:plan",
+    "probe": "deployer.cli.field:probe",
     "profiles": "deployer.cli.profiles:profiles",
     "pull": "deployer.cli.read:pull",
     "report": "deployer.cli.report:report",
     "rollback": "deployer.cli.apply:rollback",
+    "scan": "deployer.cli.field:scan",
     "simulate": "deployer.cli.simulate:simulate",
     "status": "deployer.cli.apply:status",
     "validate": "deployer.cli.files:validate",
@@ -241,6 +243,9 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 
 def _main(argv: Sequence[str] | None) -> None:
+    from ..state.caches import allow_writes
+
+    allow_writes()  # the command line keeps pint's answers on disk; library callers do not write there
     _ARGV[:] = list(argv) if argv is not None else sys.argv[1:]
     try:
         rv = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)

@@ -98,10 +98,18 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
              else f"{_n(chars, 'byte')} on an RTU line")
     out.print(
         f"{_n(len(plan.writes), 'write request')} "
-        f"({_n(int(st['registers']), 'register')}; one request per parameter would take {naive})"
+        f"({_what(plan, int(st['registers']))}; one request per parameter would take {naive})"
         + (f", {unchanged} unchanged" if unchanged else "")
         + f"; {units}, about {seconds * 1000:.0f} ms at {line}{paused}"
         + (" (broadcast: no answers)" if plan.device.unit == 0 else ""))
+
+
+def _what(plan: Plan, registers: int) -> str:
+    """'5 registers', or '1 register, 4 coils' when coils are written too."""
+    coils = sum(w.count for w in plan.writes if w.function in (5, 15))
+    if not coils:
+        return _n(registers, "register")
+    return f"{_n(registers - coils, 'register')}, {_n(coils, 'coil')}"
 
 
 def print_frames(plan: Plan, out: Console) -> None:
@@ -169,7 +177,7 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     if url is not None:
         from ..state import learned
 
-        rec, taught = learned.for_recipe(rec, state_dir, url.bus, u)
+        rec, taught = learned.for_recipe(rec, state_dir, url, u)
         if taught is not None:
             click.echo(f"note: {learned.note(taught)}", err=as_json)
     current = None
@@ -212,7 +220,7 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
 
     taught_jobs = []
     for j in jobs:
-        r, taught = learned.for_recipe(j.recipe, state_dir, j.url.bus, j.unit)
+        r, taught = learned.for_recipe(j.recipe, state_dir, j.url, j.unit)
         if taught is not None:
             click.echo(f"note: {j.name}: {learned.note(taught)}", err=as_json)
             j = replace(j, recipe=r)

@@ -48,6 +48,15 @@ class ApplyOptions:
         return self.hold_commit or self.soak is not None or self.confirm_within is not None
 
 
+def raise_if_cancelled() -> None:
+    """Stop here when the task was cancelled (the run interrupted), even where the CancelledError itself got
+    lost: Python 3.11's ``asyncio.wait_for`` (in pymodbus) swallows a cancellation that arrives together
+    with the answer, and the device would go on writing after Ctrl-C."""
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError
+
+
 class Session:
     """Requests to one unit over one transport, with our own retries, each one recorded.
 
@@ -69,6 +78,7 @@ class Session:
         self.records.append(record)
         attempt = 0
         while True:
+            raise_if_cancelled()
             attempt += 1
             record.attempts = attempt
             try:

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Protocol, TypeVar
 from ..errors import RunInterrupted, UsageError
 from ..execute.device import DeviceInterrupted, _apply_device, _results
 from ..execute.read import read_current
-from ..execute.session import ApplyOptions, Declined, StalePlan
+from ..execute.session import ApplyOptions, Declined, StalePlan, raise_if_cancelled
 from ..execute.soak import Written, await_confirmation, needs_soak, pending_path, roll_back, send_commit, soak
 from ..profile import Profile, profile_ref
 from ..recipe.loader import Recipe
@@ -75,7 +75,11 @@ async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Await
             if after is not None:
                 await after
 
-    await asyncio.gather(*(run_bus(g) for g in buses.values()))
+    # every bus ends before this does, also when the run is cancelled (Ctrl-C): gather would otherwise raise at
+    # the first cancelled bus while devices on others still say what they hold, or write on
+    for outcome in await asyncio.gather(*(run_bus(g) for g in buses.values()), return_exceptions=True):
+        if isinstance(outcome, BaseException):
+            raise outcome
 
 
 def skipped_result(job: Job, reason: str, batch: int | None = None) -> DeviceResult:
@@ -162,6 +166,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
 
     async def one(j: Job) -> Awaitable[None] | None:
         nonlocal stop
+        raise_if_cancelled()  # interrupted while this device waited for its turn: it never starts
         stop = stop or budget.spent()  # checked when the device's turn comes, not when it was queued
         batch = batch_of.get(j.name)
         if stop is not None:

@@ -183,7 +183,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             try:
                 limit_data[key] = round(parse_duration(limit_data[key], bare="ms") * 1000)
             except ValueError as e:
-                errors.append(src.error(("limits", key), str(e)))
+                errors.append(src.error(("limits", key), f"limits.{key}: {e}"))
                 limit_data[key] = 0
     limits = Limits(**limit_data)
     if limits.write_registers < 1:
@@ -440,9 +440,10 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             oid = IDENTITY_OBJECTS[obj] if isinstance(obj, str) else int(obj)
             identity_objects.append(IdentityObject(oid, str(item["equals"]).strip(), item.get("description", "")))
             continue
-        a = address_of(item["register"], ("identity", i, "register"))
+        table = item.get("register_type", "holding")
+        a = address_of(item["register"], ("identity", i, "register"), register_type=table)
         if a is not None:
-            identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", "")))
+            identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", ""), table))
     def actions(key: str) -> tuple[CommitAction, ...]:
         out = []
         for i, item in enumerate(data.get(key) or []):

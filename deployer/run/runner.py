@@ -32,11 +32,13 @@ from typing import Any
 
 from ..errors import RunInterrupted
 from ..execute.session import ApplyOptions, Declined, StalePlan
+from ..execute.soak import check_soak_profiles
 from ..fleet.livereport import LiveReport, not_finished
 from ..fleet.rollout import Job, apply_many, batch_sizes, failure_budget
 from ..load.diagnostics import UsageError
 from ..report import DeviceResult, Report, run_info
 from ..state import journal
+from ..state.durable import Line, durable
 from ..transport.urls import describe
 
 __all__ = ["RunInterrupted", "check_broadcast", "check_writable", "ensure_files", "fleet_options", "run",
@@ -111,6 +113,8 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         raise UsageError("no device to write")
     if refuse_broadcast:
         check_broadcast(jobs, opts.allow_broadcast)
+    if opts.soak is not None:  # a soak watches the profiles' health checks: each profile must have some
+        check_soak_profiles([j.recipe.profile for j in jobs])
     sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                                   report_path=report_path)
     started = time.time()
@@ -132,12 +136,20 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         if on_done is not None:
             on_done(r)
 
+    on_changed: Callable[[DeviceResult], None] | None = safe.pop("on_changed", None)
+
+    def changed(r: DeviceResult) -> None:  # a finished device's result changed (a soak rolled it back)
+        if live is not None:
+            live.update(r)
+        if on_changed is not None:
+            on_changed(r)
+
     why: list[str] = []
     installed = _on_signals(why) if signals else []
     try:
         report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
                                   on_done=done, batches=sizes, max_failures=budget,
-                                  on_changed=None if live is None else live.update, **safe)
+                                  on_changed=changed, **safe)
     except RunInterrupted as e:
         report = e.report
         report.interrupted = why[0] if why else "cancelled"
@@ -153,7 +165,10 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     report.run, report.run_id, report.state_dir = info, run_id, state_dir
     if live is not None:
         live.close(report)
-    journal.run_finished(state_dir, run_id, report, command=command, argv=argv)
+    # through the group commit: after every line it still holds (a device interrupted while its snapshot and
+    # device-started line were being made durable), so the run-finished line is the run's last
+    await durable(Line(journal.path_of(state_dir), journal.finished_record(run_id, report, command=command,
+                                                                           argv=argv)))
     if report.interrupted is not None:
         raise RunInterrupted(report, report.interrupted)
     return report

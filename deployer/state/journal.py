@@ -78,10 +78,13 @@ def device_finished(run: str, res: DeviceResult) -> dict[str, Any]:
 
 
 def _device(d: DeviceResult) -> dict[str, Any]:
-    out = {"name": d.name, "url": d.url, "unit": d.unit, **_batch(d), "status": d.status, "snapshot": d.snapshot,
-           "written": _written(d), "write_requests": d.write_requests}
+    out: dict[str, Any] = {"name": d.name, "url": d.url, "unit": d.unit, **_batch(d), "status": d.status,
+                           "snapshot": d.snapshot,
+                           "written": _written(d), "write_requests": d.write_requests}
     if d.restored is not None:
         out["restored"] = d.restored
+    if d.identity is not None:
+        out["identity"] = dict(d.identity)
     return out
 
 
@@ -96,6 +99,11 @@ def _written(res: DeviceResult) -> list[str]:
 def run_finished(state_dir: str, run: str | None, report: Report, *, command: str, argv: Sequence[str] = ()) -> None:
     """The run's outcome: who, when, what, and per device its status and snapshot (``interrupted``: the
     signal that stopped it early)."""
+    append(state_dir, finished_record(run, report, command=command, argv=argv))
+
+
+def finished_record(run: str | None, report: Report, *, command: str, argv: Sequence[str] = ()) -> dict[str, Any]:
+    """The ``run-finished`` record (``run_finished`` appends it; the runner queues it behind its devices' lines)."""
     rec: dict[str, Any] = {
         "event": "run-finished", "run": run,
         "time": _now(), "user": user_name(), "command": command, "argv": list(argv), "recipe": report.recipe,
@@ -104,7 +112,7 @@ def run_finished(state_dir: str, run: str | None, report: Report, *, command: st
     }
     if report.interrupted is not None:
         rec["interrupted"] = report.interrupted
-    append(state_dir, rec)
+    return rec
 
 
 def run_refused(state_dir: str, run: str, why: str, *, command: str, argv: Sequence[str] = (),
