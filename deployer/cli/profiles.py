@@ -194,8 +194,8 @@ def profiles_export_csv(profile: str, out: str | None) -> int:
 @click.option("--count", "counts", multiple=True, metavar="GROUP=N", help="Repetitions of a group whose count the "
               "device reports, e.g. --count curve=4. Repeatable.")
 @click.option("--device", metavar="URL", help="Read the scale factors and group counts from this device (the "
-              "model at --at); without MODEL, read the device's whole model chain from 'SunS' (2 registers before "
-              "--at) into one profile. --sf and --count win over what it says.")
+              "model at --at); without MODEL, read the device's whole model chain from 'SunS' (see --at) into one "
+              "profile. --sf and --count win over what it says.")
 @click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True, help="unit id of --device")
 @click.option("--id", "profile_id", help="Profile id (default: sunspec-MODEL-NAME, or sunspec-device).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
