@@ -543,3 +543,24 @@ def test_fleet_run_notes_the_replaced_device(tmp_path: Path, device_profile: Pro
     assert notes["a"] == [] and notes["c"] == []
     (note,) = notes["b"]
     assert "vendor 'ACME'" in note and "vendor 'OTHER'" in note and "it may have been replaced" in note
+
+
+def test_pauses_are_kept_per_bus_across_the_devices_of_a_gateway(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two units behind one RTU gateway that drops requests coming within 100 ms of its last answer: with
+    the pause on both devices' URL, a fleet run of both loses no request (the bus keeps it between them)."""
+    from tests.helpers import Simulators
+
+    prof, recipe = _pacing_profile(tmp_path)
+    gateway = Simulator(prof, listen="rtu+tcp://127.0.0.1:0", units=(1, 2), quirks=Quirks(request_gap_ms=100))
+    with Simulators([gateway]) as (gw,):
+        inv = tmp_path / "inventory.yaml"
+        url = f"{gw.url}?pause_between_requests=150ms&timeout=2"
+        inv.write_text(f"defaults: {{retries: 0}}\ndevices:\n  a: {{url: '{url}', unit: 1}}\n"
+                       f"  b: {{url: '{url}', unit: 2}}\n")
+        code, out, err = run_cli(capsys, "apply", recipe, "--inventory", str(inv), "--yes", "--json",
+                                 "--state-dir", str(tmp_path / "s"), "--parallel", "2")
+        log = list(gw.log)
+    assert code == 0, err
+    assert [d["status"] for d in json.loads(out)["devices"]] == ["ok", "ok"]
+    assert {e.unit for e in log} == {1, 2} and _too_soon(gw) == 0
