@@ -564,3 +564,25 @@ def test_pauses_are_kept_per_bus_across_the_devices_of_a_gateway(
     assert code == 0, err
     assert [d["status"] for d in json.loads(out)["devices"]] == ["ok", "ok"]
     assert {e.unit for e in log} == {1, 2} and _too_soon(gw) == 0
+
+
+def test_scan_of_a_serial_line(socat_pair: tuple[str, str], device_profile: Profile) -> None:
+    """A real serial line (socat pty pair): units 2 and 5 answer, the others stay silent; every unit is
+    asked once (unit, 03, register 0, 1 register, as the device decoded it off the line), no retry."""
+    import asyncio
+
+    from deployer.execute.scan import scan
+    from deployer.transport.urls import parse_url
+
+    a, b = socat_pair
+
+    async def main() -> tuple[list[int], list[bytes]]:
+        sim = Simulator(device_profile, listen=f"rtu://{a}", units=(2, 5), quirks=Quirks(identity=ACME))
+        async with sim:
+            result = await scan(parse_url(f"rtu://{b}?baudrate=19200&timeout=0.2"), range(1, 7))
+            return [u.unit for u in result.units], [bytes.fromhex(e.request_hex) for e in sim.log]
+    found, requests = asyncio.run(main())
+    assert found == [2, 5]
+    # the simulator hears every request on the line; units 2 and 5 are also asked for their identity
+    assert [r for r in requests if r[1] == 3] == [bytes([u, 3, 0, 0, 0, 1]) for u in range(1, 7)]
+    assert [r for r in requests if r[1] == 0x2B] == [bytes([u, 0x2B, 0x0E, 1, 0]) for u in (2, 5)]
