@@ -285,6 +285,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest,
                                            batch=res.batch, restoring=res.restored)
     res.snapshot = await durable(snap)
+    res.snapshot_sha256 = snap.digest
     if opts.on_writing is not None:
         opts.on_writing(res)
 
