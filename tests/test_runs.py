@@ -336,3 +336,28 @@ def test_a_rollout_and_its_retry_roll_back_in_one_command(files: Path) -> None:
         restored = {d["name"]: d["restored"] for d in json.loads((files / "back.json").read_text())["devices"]}
         first = {d["name"]: d["snapshot"] for d in json.loads((files / "run1.json").read_text())["devices"]}
         assert restored == first
+
+
+def test_rollback_force_restores_only_where_the_snapshot_read(files: Path) -> None:
+    prof = load_profile(files / "slow.yaml")
+    with SimulatorThread(prof, gap_reads=True) as sim:
+        for k, v in enumerate(before(0)):
+            sim.write(f"p{k}", (v,))
+        code, out, err = deployer("apply", "new.yaml", "--device", sim.url, "--yes", "--json", "--state-dir", "state",
+                                  cwd=files)
+        assert code == 0, err
+        snap = json.loads(out)["devices"][0]["snapshot"]
+        assert "  addresses:\n    p0: [0, 1]\n    p1: [10, 1]\n" in Path(snap).read_text()
+        # the profile moved p1 (10 -> 12): --force must not write the old value at the new address
+        (files / "slow.yaml").write_text(PROFILE.replace("p1: {register: 10,", "p1: {register: 12,"))
+        code, out, err = deployer("rollback", snap, "--yes", "--state-dir", "state", cwd=files)
+        assert code == 1 and "changed since this snapshot was taken" in err
+        writes_before = writes(sim)
+        code, out, err = deployer("rollback", snap, "--yes", "--force", "--state-dir", "state", cwd=files)
+        assert code == 1 and "p1 moved: the snapshot read it at 10 (0x000A), profile slow now puts it at 12" in err
+        assert writes(sim) == writes_before
+        # a profile changed elsewhere (every parameter where it was): --force restores the recorded registers
+        (files / "slow.yaml").write_text(PROFILE + "# reviewed\n")
+        code, out, err = deployer("rollback", snap, "--yes", "--force", "--state-dir", "state", cwd=files)
+        assert code == 0, out + err
+        assert holds(sim) == before(0)

@@ -51,6 +51,7 @@ class SnapshotInfo:
     applied: str | None = None  # the recipe applied after the snapshot was taken
     profile_changed: bool = False  # loaded with --force although the profile's digest differs
     identity: Mapping[str, str] | None = None  # the device's Function 43 objects when it was read
+    addresses: Mapping[str, tuple[int, int]] | None = None  # parameter -> (address, registers) as read
 
 
 @dataclass(frozen=True)
@@ -195,7 +196,9 @@ def _snapshot_info(data: Mapping[str, Any], prof: Profile, src: yamlsrc.Source, 
     regs = {str(k): tuple(int(w) for w in v) for k, v in (data.get("registers") or {}).items()}
     ident = data.get("identity")
     identity = {str(k): str(v) for k, v in ident.items()} if isinstance(ident, dict) else None
-    return SnapshotInfo(recorded, regs, data.get("taken"), data.get("applied"), changed, identity)
+    addresses = {str(k): (int(v[0]), int(v[1])) for k, v in (data.get("addresses") or {}).items()} \
+        if "addresses" in data else None  # snapshots of older versions do not say
+    return SnapshotInfo(recorded, regs, data.get("taken"), data.get("applied"), changed, identity, addresses)
 
 
 def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source,
@@ -211,6 +214,11 @@ def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source,
             errors.append(src.error(at, f"{name} now has {param.count} registers, the snapshot recorded {len(words)}"))
         elif not param.writable:
             errors.append(src.error(at, f"{name} is read-only in profile {prof.id} now", key=True))
+        elif snap.addresses is not None and name in snap.addresses and snap.addresses[name][0] != param.address:
+            errors.append(src.error(("snapshot", "addresses", name), (
+                f"{name} moved: the snapshot read it at {snap.addresses[name][0]} (0x{snap.addresses[name][0]:04X}), "
+                f"profile {prof.id} now puts it at {param.address} (0x{param.address:04X}); --force restores only "
+                "parameters that are where they were read (restore this one with a recipe)")))
         else:
             out.append(Desired(param, param.show_registers(tuple(words)), words))
     return out

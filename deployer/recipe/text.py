@@ -125,6 +125,9 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
             lines.append(f"  identity: {json.dumps(dict(snapshot.identity))}")
         lines.append("  registers:" if ordered else "  registers: {}")
         lines.extend(f"    {_key(param.name)}: [{', '.join(str(w) for w in regs)}]" for param, regs in ordered)
+        # where they were: rollback --force (the profile changed) restores a parameter only where it was
+        lines.append("  addresses:" if ordered else "  addresses: {}")
+        lines.extend(f"    {_key(param.name)}: [{param.address}, {param.count}]" for param, _ in ordered)
     body = [_body_line(param, tuple(regs), snapshot is not None) for param, regs in ordered]
     lines.append("parameters:" if any(not b.lstrip().startswith("#") for b in body) else "parameters: {}")
     return "\n".join(lines + body) + "\n"
