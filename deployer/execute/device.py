@@ -115,6 +115,8 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
                 await _apply(session, recipe, target, opts, res, results)
         finally:
             await transport.close()
+        if transport.late_answers:
+            res.notices.append(tp.late_notice(transport.late_answers, url))
         res.settle()
         if res.snapshot is not None and opts.run_id is not None:  # queued now, after the read-back
             return res, queue(Line(journal.path_of(opts.state_dir), journal.device_finished(opts.run_id, res)))

@@ -29,6 +29,13 @@ class NoResponse(TransportError):
     """The device did not answer within the timeout (one attempt)."""
 
 
+class BadAnswer(NoResponse):
+    """Something answered, but not this request: wrong unit, function, byte count or echo, or garbled.
+
+    A NoResponse for retrying (nothing usable came back), with its own message: it is not silence.
+    """
+
+
 class ConnectionLost(TransportError):
     """The connection dropped; reconnect() may bring it back."""
 
