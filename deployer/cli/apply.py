@@ -244,7 +244,16 @@ def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retr
         jobs.append(Job(rs.name, rec, url, u))
     if errors:
         raise InputError(errors)
-    return jobs
+    # one device in the run twice (older deployers allowed it): its snapshots are restored last written
+    # first, so the earliest one, what it held before the run, is the one that stays
+    slots: dict[tuple[tuple[str, ...], int], list[int]] = {}
+    for i, j in enumerate(jobs):
+        slots.setdefault((j.url.lock_keys, j.unit), []).append(i)
+    order = list(range(len(jobs)))
+    for same in slots.values():
+        for i, k in zip(same, reversed(same), strict=True):
+            order[i] = k
+    return [jobs[k] for k in order]
 
 
 def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:

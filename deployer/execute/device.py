@@ -93,7 +93,7 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
         raise UsageError("a broadcast cannot read: bit fields (which keep the register's other bits) and "
                          f"preconditions of profile {prof.id} need a device that answers")
     try:
-        held = await lock.acquire_device(url.bus, unit, timeout=opts.lock_timeout, command=lock.command_line(),
+        held = await lock.acquire_device(url.lock_keys, unit, timeout=opts.lock_timeout, command=lock.command_line(),
                                          directory=opts.lock_dir)
     except lock.Locked as e:
         res.status, res.error = "unreachable", f"{e}; nothing was sent"

@@ -130,7 +130,36 @@ def load_inventory(path: str | os.PathLike[str]) -> Inventory:
             overrides=overrides,
             where=src.pos(("devices", name, "url")),
         ))
+    errors = _same_devices(p, [(d, d.unit) for d in devices], check_urls=True)
+    if errors:
+        raise InputError(errors)
     return Inventory(p, tuple(devices))
+
+
+def _same_devices(path: str, devices: Sequence[tuple[FleetDevice, int]], *, check_urls: bool) -> list[Diagnostic]:
+    """Devices named twice (one address and unit, however spelled), and with ``check_urls`` bad URLs.
+
+    Two entries for one device would write it twice in one run, and their snapshots would hold each
+    other's in-between values: one device, one entry.
+    """
+    from ..transport.urls import BadURL, parse_url
+
+    errors: list[Diagnostic] = []
+    seen: dict[tuple[str, int], FleetDevice] = {}
+    for dev, unit in devices:
+        try:
+            keys = parse_url(dev.url).lock_keys
+        except BadURL as e:
+            if check_urls:
+                errors.append(Diagnostic(path, *dev.where, f"{dev.name}: {e}"))
+            continue
+        for k in keys:
+            first = seen.setdefault((k, unit), dev)
+            if first is not dev:
+                errors.append(Diagnostic(path, *dev.where, f"devices {first.name} and {dev.name} are one device "
+                                         f"({first.url} and {dev.url}, unit {unit}): name each device once"))
+                break
+    return errors
 
 
 def _overrides_key(entries: Iterable[Entry]) -> str:
@@ -190,6 +219,8 @@ def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: fl
             errors.extend(e.diagnostics)
         except (BadURL, UsageError) as e:
             errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
+    if unit is not None:  # --unit puts every selected device on one unit id
+        errors += _same_devices(inv.path, [(d, unit) for d in inv.select(limit)], check_urls=False)
     if errors:
         raise InputError(errors)
     return jobs
