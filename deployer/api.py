@@ -35,9 +35,10 @@ from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planner import make_plan
 from .profile import Profile, resolve_profile
-from .recipe.loader import Entry, Recipe, load_recipe, recipe_text, with_overrides
+from .recipe.loader import Entry, Recipe, load_recipe, with_overrides
+from .recipe.text import recipe_text
 from .report import DeviceResult, Report
-from .transport.clients import BadURL, DeviceURL, TransportError, describe, parse_url
+from .transport.clients import DeviceURL, TransportError, describe, parse_url
 
 __all__ = [
     "ApplyOptions",
@@ -94,10 +95,7 @@ def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: i
     """Parse a device URL (``tcp://HOST:PORT``, ``rtu:///dev/ttyUSB0?baudrate=19200`` ...); UsageError if bad."""
     if isinstance(url, DeviceURL):
         return url
-    try:
-        return parse_url(url, timeout=timeout, retries=retries)
-    except BadURL as e:
-        raise UsageError(str(e)) from None
+    return parse_url(url, timeout=timeout, retries=retries)  # BadURL is a UsageError
 
 
 def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) -> tuple[DeviceURL, int]:

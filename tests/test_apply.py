@@ -12,7 +12,7 @@ import pytest
 from deployer.execute.device import apply_device
 from deployer.execute.read import read_current
 from deployer.execute.session import ApplyOptions
-from deployer.load import yamlsrc
+from deployer.load import schema
 from deployer.load.diagnostics import UsageError
 from deployer.planning.model import Target
 from deployer.planning.planner import make_plan
@@ -82,7 +82,7 @@ def test_full_success_minimal_requests_and_snapshot(tmp_path: Path) -> None:
     assert os.stat(res.snapshot).st_mtime <= first_write
     # the report validates against its schema
     data = Report("r", [res]).to_json()
-    jsonschema.validate(data, yamlsrc.schema("report"))
+    jsonschema.validate(data, schema.schema("report"))
     assert data["summary"]["write_requests"] == 5
 
 
@@ -221,7 +221,7 @@ def test_broadcast_with_the_flag_is_sent_unverified_and_exit_0(tmp_path: Path) -
     assert report.exit_code == 0
     data = report.to_json()
     assert data["summary"]["sent"] == 1 and data["summary"]["ok"] == 0
-    jsonschema.validate(data, yamlsrc.schema("report"))
+    jsonschema.validate(data, schema.schema("report"))
 
 
 def test_broadcast_that_cannot_be_sent_fails_with_exit_4(tmp_path: Path) -> None:
@@ -283,7 +283,8 @@ def test_commit_runs_only_after_full_verification(tmp_path: Path) -> None:
 
 
 def test_read_current_and_pull_round_trip(tmp_path: Path) -> None:
-    from deployer.recipe.loader import DeviceSpec, recipe_text
+    from deployer.recipe.loader import DeviceSpec
+    from deployer.recipe.text import recipe_text
 
     prof = builtin_profile("example-inverter")
     sim = Simulator(prof)
@@ -313,7 +314,7 @@ def test_audit_and_report_files_from_the_cli(tmp_path: Path) -> None:
                   "--state-dir", str(tmp_path / ".d")])
     assert exc.value.code == 0
     data = json.loads(report.read_text())
-    jsonschema.validate(data, yamlsrc.schema("report"))
+    jsonschema.validate(data, schema.schema("report"))
     assert data["devices"][0]["status"] == "ok"
     events = [json.loads(line) for line in (tmp_path / ".d" / "audit.jsonl").read_text().splitlines()]
     # the journal: the run, the device before its first write (with its snapshot), its outcome, the run's end

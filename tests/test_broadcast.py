@@ -8,7 +8,7 @@ from pathlib import Path
 import jsonschema
 import pytest
 
-from deployer.load import yamlsrc
+from deployer.load import schema
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import SimulatorThread
 from tests.helpers import run_cli as cli
@@ -34,7 +34,7 @@ def test_broadcast_ends_sent_with_exit_0(capsys: pytest.CaptureFixture[str], tmp
         assert sim.read("F07", 1) == sim.read("F07", 2) == (0, 1000)
     report = json.loads(out)
     assert report == json.loads((tmp_path / "report.json").read_text())
-    jsonschema.validate(report, yamlsrc.schema("report"))
+    jsonschema.validate(report, schema.schema("report"))
     (dev,) = report["devices"]
     assert dev["status"] == "sent" and dev["snapshot"] is None
     assert {p["status"] for p in dev["parameters"]} == {"unverified"}

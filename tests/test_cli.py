@@ -12,7 +12,7 @@ import jsonschema
 import pytest
 
 from deployer.cli import main
-from deployer.load import yamlsrc
+from deployer.load import schema
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import SimulatorThread
 from tests.conftest import free_port
@@ -64,7 +64,7 @@ def test_plan_offline_table_json_out_and_frames(capsys: pytest.CaptureFixture[st
     plan_file = tmp_path / "plan.json"
     code, out, _ = cli(capsys, "plan", str(EXAMPLES / "omron-m1-accel.yaml"), "--json", "--out", str(plan_file))
     data = json.loads(out)
-    jsonschema.validate(data, yamlsrc.schema("plan"))
+    jsonschema.validate(data, schema.schema("plan"))
     assert data == json.loads(plan_file.read_text())
     assert data["writes"] == [{"function": 16, "address": 4354, "count": 2, "registers": [0, 1000],
                                "parameters": ["F07"], "stage": 0}]
@@ -95,7 +95,7 @@ def test_apply_saved_plan_and_stale_plan(capsys: pytest.CaptureFixture[str], tmp
         code, out, _ = cli(capsys, "apply", plan_file, "--yes", "--json", "--state-dir", str(tmp_path / "s"))
         assert code == 0, out
         report = json.loads(out)
-        jsonschema.validate(report, yamlsrc.schema("report"))
+        jsonschema.validate(report, schema.schema("report"))
         plan = json.loads(Path(plan_file).read_text())
         sent = [(e.address, e.count) for e in sim.log[n:] if e.function == 16][:len(plan["writes"])]
         assert sent == [(w["address"], w["count"]) for w in plan["writes"]]

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from deployer.cli import main
 from deployer.execute.device import apply_device
 from deployer.execute.session import ApplyOptions
-from deployer.load import yamlsrc
+from deployer.load import schema
 from deployer.load.diagnostics import InputError
 from deployer.planning.model import Target
 from deployer.planning.planner import make_plan, plan_writes
@@ -269,7 +269,7 @@ def test_restart_notice_in_report_json(tmp_path: Path, drive: Profile) -> None:
     res = apply(Simulator(drive), recipe(tmp_path, "  accel: 3 s\n", "drive.yaml"), tmp_path)
     data = Report("r", [res]).to_json()
     import jsonschema
-    jsonschema.validate(data, yamlsrc.schema("report"))
+    jsonschema.validate(data, schema.schema("report"))
     assert data["devices"][0]["notices"] == ["accel takes effect after a power cycle"]
     assert data["devices"][0]["status"] == "ok"
 

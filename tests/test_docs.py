@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from deployer.cli import docgen, validate_file
-from deployer.load import yamlsrc
+from deployer.load import schema
 from deployer.profile import Limits
 from deployer.transport.urls import _OPTIONS, DEFAULT_PORTS, NUMERIC_OPTIONS, SERIAL_DEFAULTS, option_facts
 from tests.helpers import run_cli as cli
@@ -34,7 +34,7 @@ def test_every_schema_property_has_a_description(name: str) -> None:
 def test_undescribed_finds_a_missing_description(monkeypatch: pytest.MonkeyPatch) -> None:
     bare = {"description": "x", "type": "object", "properties": {"a": {"type": "integer"}},
             "$defs": {"d": {"type": "object", "additionalProperties": {"type": "string"}}}}
-    monkeypatch.setattr(yamlsrc, "schema", lambda name: bare)
+    monkeypatch.setattr(schema, "schema", lambda name: bare)
     assert docgen.undescribed("any") == ["#/properties/a", "#/$defs/d/additionalProperties", "#/$defs/d"]
 
 
@@ -67,7 +67,7 @@ def test_every_key_is_documented_with_its_facts() -> None:
 
 
 def test_schema_defaults_are_the_code_defaults() -> None:
-    props = yamlsrc.schema("profile")["properties"]["limits"]["properties"]
+    props = schema.schema("profile")["properties"]["limits"]["properties"]
     for name, spec in props.items():
         assert spec["default"] == getattr(Limits(), name), name
 
@@ -114,7 +114,7 @@ def test_every_example_in_the_docs_validates(page: Path, tmp_path: Path) -> None
     for path in files:  # after writing them all: a recipe may name a profile of the same page
         data = yaml.safe_load(path.read_text())
         if isinstance(data, dict) and data.get("schema") == "deployer.report/1":
-            jsonschema.validate(data, yamlsrc.schema("report"))
+            jsonschema.validate(data, schema.schema("report"))
         else:
             validate_file(str(path))
 
@@ -137,7 +137,7 @@ def test_url_page_covers_every_scheme_and_option() -> None:
 
 
 def test_report_example_matches_the_exit_code_rules() -> None:
-    ex = yamlsrc.schema("report")["examples"][0]
+    ex = schema.schema("report")["examples"][0]
     assert json.loads(json.dumps(ex))["summary"]["partial"] == 1
 
 
@@ -164,7 +164,7 @@ def test_profiles_new_writes_a_skeleton_that_validates(capsys: pytest.CaptureFix
 
 @pytest.mark.parametrize("name", docgen.SCHEMAS)
 def test_every_key_example_is_valid_for_its_key(name: str) -> None:
-    root = yamlsrc.schema(name)
+    root = schema.schema(name)
     checked = 0
     for at, node in docgen.schema_nodes(root):
         if "examples" in node and at != "#":

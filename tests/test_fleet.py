@@ -20,7 +20,7 @@ import pytest
 
 from deployer.fleet.inventory import FleetDevice, Inventory, not_ok, select
 from deployer.fleet.rollout import batch_sizes, failure_budget
-from deployer.load import yamlsrc
+from deployer.load import schema
 from deployer.load.diagnostics import UsageError
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import Faults, Simulator
@@ -117,7 +117,7 @@ def test_fifty_devices_three_faulty(capsys: pytest.CaptureFixture[str], tmp_path
                              "--state-dir", str(tmp_path / "s"))
         assert code == 4
         report = json.loads(out)
-        jsonschema.validate(report, yamlsrc.schema("report"))
+        jsonschema.validate(report, schema.schema("report"))
         assert report == json.loads(report_file.read_text())
         by = {d["name"]: d for d in report["devices"]}
         assert list(by) == names(50)
@@ -147,7 +147,7 @@ def test_failing_canary_stops_the_rollout_before_any_other_device_hears_a_reques
                            "--batch", "1,50%", "--parallel", "8", "--json", "--state-dir", str(tmp_path / "s"))
         assert code == 4
         report = json.loads(out)
-        jsonschema.validate(report, yamlsrc.schema("report"))
+        jsonschema.validate(report, schema.schema("report"))
         assert report["devices"][0]["status"] == "partial"
         assert sims[0].log and all(not s.log for s in sims[1:])  # not a single request to the others
         for d in report["devices"][1:]:
@@ -230,7 +230,7 @@ def test_report_file_survives_kill_9(tmp_path: Path) -> None:
         finally:
             proc.wait(timeout=30)
         data = json.loads(report_file.read_text())
-        jsonschema.validate(data, yamlsrc.schema("report"))
+        jsonschema.validate(data, schema.schema("report"))
         status = {d["name"]: d["status"] for d in data["devices"]}
         assert status["d00"] == "ok" and status["d01"] == "partial"
         unfinished = [d for d in data["devices"] if d["status"] == "skipped"]

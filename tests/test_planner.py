@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from deployer.load import yamlsrc
+from deployer.load import schema, yamlsrc
 from deployer.load.diagnostics import InputError, UsageError
 from deployer.planning.model import Plan, Target, WriteRequest
 from deployer.planning.planfile import plan_from_json, plan_to_json
@@ -452,7 +452,7 @@ def _plan() -> Plan:
 
 def test_plan_json_has_the_design_shape_and_validates() -> None:
     data = json.loads(json.dumps(plan_to_json(_plan())))
-    jsonschema.Draft202012Validator(yamlsrc.schema("plan")).validate(data)
+    jsonschema.Draft202012Validator(schema.schema("plan")).validate(data)
     assert set(data) == {"schema", "recipe", "device", "parameters", "writes", "reads", "summary", "recipe_name"}
     assert data["parameters"][0] == {"name": "a", "address": 0, "count": 2, "desired": "7", "desired_raw": [0, 7],
                                      "current_raw": [0, 0], "action": "write", "stage": 0}

@@ -9,7 +9,8 @@ import pytest
 
 from deployer.load.diagnostics import InputError
 from deployer.profile import builtin_profile, builtin_profile_ids, load_profile, wire_address
-from deployer.recipe.loader import load_recipe, recipe_text
+from deployer.recipe.loader import load_recipe
+from deployer.recipe.text import recipe_text
 
 EXAMPLES = Path(__file__).parent.parent / "recipes" / "examples"
 

@@ -1,9 +1,19 @@
-"""The layout move of issue #18: modules moved (and four split) with their code unchanged.
+"""The layout moves of issue #18: modules moved (and split) with their code unchanged.
 
-``python tools/moves.py apply`` performs the move on a tree that still has the old layout;
-``python tools/moves.py check OLD_REV`` proves it afterwards: every top-level definition of every
-old module is found, with an identical syntax tree, in exactly one new module, and nothing else
-changed but import statements (and the two ``__file__`` paths listed in ALLOWED).
+Two stages, each a mapping of old module -> new module(s):
+
+- stage 1 (commit f931841, before: 6c8c7ad): the flat modules into subpackages; executor,
+  planner and fleet split;
+- stage 2: load/yamlsrc.py split into yamlsrc (the YAML builder), schema (JSON Schema checks
+  with positions) and messages (clipping echoed values, closest names); recipe/loader.py split
+  into loader and text (recipe text that loads back to given registers).
+
+``python tools/moves.py apply --stage N`` performs a stage on a tree that has the layout before
+it; ``python tools/moves.py check --stage N OLD_REV`` proves it afterwards: every top-level
+definition of every old module is found, with an identical syntax tree, in exactly one new
+module, every other module (tests, benchmarks and the collection too in stage 2) is unchanged
+but for import statements, and a name reached through a split module (``yamlsrc.schema``) is
+now reached through the module that holds it (``schema.schema``). Stage 1 is the default.
 """
 
 from __future__ import annotations
@@ -18,7 +28,7 @@ from collections import defaultdict
 PKG = "deployer"
 
 # old module -> new module (moved whole) or {new module: [names]} (split; unnamed names stay in the first)
-MOVES: dict[str, str | dict[str, list[str]]] = {
+STAGE1: dict[str, str | dict[str, list[str]]] = {
     "yamlsrc": "load.yamlsrc",
     "diagnostics": "load.diagnostics",
     "codec": "profile.codec",
@@ -78,7 +88,32 @@ DOCS = {
     "testing": "Test doubles for users of deployer: the simulated Modbus device.",
 }
 
-ALLOWED = {("load.yamlsrc", "schema")}  # the schemas folder is now one level up
+ALLOWED1 = {("load.yamlsrc", "schema")}  # the schemas folder is now one level up
+
+STAGE2: dict[str, str | dict[str, list[str]]] = {
+    "load.yamlsrc": {
+        "load.yamlsrc": [],  # unnamed definitions stay here: the builder, Source, read_text, load
+        "load.schema": ["_is_number", "_is_integer", "schema", "validator", "_fast_validator", "is_valid",
+                        "validate", "_leaves", "_where", "_explain", "_clip_message", "_type_words", "_describe"],
+        "load.messages": ["MAX_ECHO", "clip", "clipped_repr", "_LONG_WORD", "clip_message", "closest"],
+    },
+    "recipe.loader": {
+        "recipe.loader": [],
+        "recipe.text": ["_range_text", "value_text", "_PLAIN_SAFE", "_RESOLVER", "_reads_back", "snapshot_value", "recipe_text",
+                        "_body_line", "_PLAIN_KEY", "_key"],
+    },
+}
+
+# patches the function where it now lives (a name in a string, which the rewrite cannot see)
+ALLOWED2 = {("tests/test_docs.py", "test_undescribed_finds_a_missing_description")}
+
+STAGES = {"1": (STAGE1, ALLOWED1), "2": (STAGE2, ALLOWED2)}
+MOVES, ALLOWED = STAGES["1"]
+
+
+def use(stage: str) -> None:
+    global MOVES, ALLOWED
+    MOVES, ALLOWED = STAGES[stage]
 
 
 class _NoImports(ast.NodeTransformer):
@@ -96,6 +131,7 @@ class _NoImports(ast.NodeTransformer):
                         self.bound += [a.asname or a.name for a in s.names]
                     else:
                         kept.append(self.visit(s))
+                self.bound = sorted(set(self.bound))
                 setattr(node, field, kept)
             elif isinstance(value, ast.AST):
                 self.visit(value)
@@ -131,7 +167,8 @@ def top_names(node: ast.stmt) -> list[str]:
     if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
         return [node.name]
     if isinstance(node, ast.Assign):
-        return [t.id for t in node.targets if isinstance(t, ast.Name)]
+        return [n.id for t in node.targets for n in ([t] if isinstance(t, ast.Name) else getattr(t, "elts", []))
+                if isinstance(n, ast.Name)]
     if isinstance(node, (ast.AnnAssign, ast.AugAssign)) and isinstance(node.target, ast.Name):
         return [node.target.id]
     return []
@@ -362,6 +399,9 @@ MOVES_DOC = {
     "fleet.inventory": "Inventories: devices, their selection (--limit) and the jobs a fleet run is made of.",
     "fleet.rollout": "The rollout over many devices: buses in parallel, batches, the failure budget.",
     "fleet.livereport": "The fleet report file, rewritten as devices finish (--limit @REPORT works after a crash).",
+    "load.schema": "JSON Schema checks of loaded files, each error at the position of its key or value.",
+    "load.messages": "Wording of input errors: values echoed cut to a readable length, the closest known name.",
+    "recipe.text": "Recipe text written from register values (snapshots, pull) that loads back to the same registers.",
 }
 
 
@@ -388,32 +428,149 @@ def path_of_new(mod: str) -> str:
     return os.path.join(PKG, *mod.split(".")) + ".py"
 
 
-def check(old_rev: str) -> int:
+def split_targets() -> dict[str, str]:
+    """Every module a split made or kept -> the old module it came from."""
+    return {m: old for old, spec in MOVES.items() if isinstance(spec, dict) for m in spec}
+
+
+def module_bindings(tree: ast.AST, current: str, is_pkg: bool, absolute: bool) -> dict[str, list[tuple[str, ast.ImportFrom]]]:
+    """Names bound to a split module or one of its parts (old or new) -> (that module, the import)."""
+    parts = split_targets()
+    known = set(parts) | set(parts.values())
+    out: dict[str, list[tuple[str, ast.ImportFrom]]] = defaultdict(list)
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.ImportFrom):
+            continue
+        if node.level:
+            if absolute:
+                continue
+            target = resolve(current, is_pkg, node.level, node.module)
+        elif node.module == PKG or (node.module or "").startswith(PKG + "."):
+            target = (node.module or "")[len(PKG) + 1:]
+        else:
+            continue
+        for alias in node.names:
+            sub = f"{target}.{alias.name}" if target else alias.name
+            if sub in known:
+                out[alias.asname or alias.name].append((sub, node))
+    return out
+
+
+def rewrite_attrs(text: str, current: str, is_pkg: bool, absolute: bool) -> str:
+    """``yamlsrc.schema`` -> ``schema.schema`` where a split moved the name, with the import added."""
     smap = split_map()
-    files = [f for f in git("ls-tree", "-r", "--name-only", old_rev, PKG).split() if f.endswith(".py")]
+    tree = ast.parse(text)
+    bound = module_bindings(tree, current, is_pkg, absolute)
+    taken = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)} | {
+        a.arg for a in ast.walk(tree) if isinstance(a, ast.arg)}
+    edits: list[tuple[int, int, int, str]] = []
+    wanted: dict[int, dict[str, str]] = defaultdict(dict)  # id(import) -> {new module leaf: alias}
+    imports: dict[int, ast.ImportFrom] = {}
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in bound):
+            continue
+        # the import in force here: the last one above this line (imports are at the top of a scope)
+        old, imp = max((b for b in bound[node.value.id] if b[1].lineno <= node.lineno),
+                       key=lambda b: b[1].lineno, default=bound[node.value.id][0])
+        spec = MOVES.get(old)
+        if not isinstance(spec, dict):
+            continue
+        mod = smap.get((old, node.attr), next(iter(spec)))
+        if mod == old:
+            continue
+        leaf = mod.rpartition(".")[2]
+        alias = leaf if leaf not in taken else f"{node.value.id}_{leaf}"
+        wanted[id(imp)][leaf] = alias
+        imports[id(imp)] = imp
+        v = node.value
+        edits.append((v.lineno, v.col_offset, v.end_col_offset or 0, alias))
+    lines = text.splitlines(keepends=True)
+    for key, imp in imports.items():
+        extra = ", ".join(leaf if a == leaf else f"{leaf} as {a}" for leaf, a in sorted(wanted[key].items()))
+        line = imp.end_lineno or imp.lineno
+        indent = " " * imp.col_offset
+        edits.append((line, 10**9, 0, f"\n{indent}from {'.' * imp.level}{imp.module or ''} import {extra}"))
+    for ln, c1, c2, new in sorted(edits, reverse=True):
+        row = lines[ln - 1]
+        if c1 == 10**9:
+            body = row.rstrip("\n")
+            lines[ln - 1] = body + new + row[len(body):]
+        else:
+            lines[ln - 1] = row[:c1] + new + row[c2:]
+    return "".join(lines)
+
+
+class _Canonical(ast.NodeTransformer):
+    """Names bound to a split module or its parts, spelt as the old module (``@load.yamlsrc``)."""
+
+    def __init__(self, bound: dict[str, list[tuple[str, ast.ImportFrom]]]) -> None:
+        parts = split_targets()
+        self.names = {b: "@" + parts.get(ms[0][0], ms[0][0]) for b, ms in bound.items()}
+
+    def visit_Attribute(self, node: ast.Attribute) -> ast.AST:
+        if isinstance(node.value, ast.Name) and node.value.id in self.names:
+            node.value = ast.Name(id=self.names[node.value.id], ctx=node.value.ctx)
+            return node
+        return self.generic_visit(node)
+
+    def visit_ImportFrom(self, node: ast.ImportFrom) -> ast.AST:
+        names = {self.names.get(a.asname or a.name, a.asname or a.name) for a in node.names}
+        return ast.ImportFrom(module="", names=[ast.alias(name=n) for n in sorted(names)], level=0)
+
+
+def canonical(text: str, current: str, is_pkg: bool, absolute: bool) -> ast.Module:
+    tree = ast.parse(text)
+    return _Canonical(module_bindings(tree, current, is_pkg, absolute)).visit(tree)  # type: ignore[no-any-return]
+
+
+def check(old_rev: str, outside: bool = False) -> int:
+    """Compare old_rev's modules with the working tree's; outside: tests, benchmarks, collection too."""
+    smap = split_map()
+    roots = [PKG] + (["tests", "benchmarks", "ansible_collections", "tools"] if outside else [])
+    files = [f for f in git("ls-tree", "-r", "--name-only", old_rev, *roots).split()
+             if f.endswith(".py") and f != "tools/moves.py"]
     problems = 0
     compared = 0
     new_cache: dict[str, dict[str, str]] = {}
 
+    def parsed(path: str, text: str) -> ast.Module:
+        if not path.startswith(PKG + "/"):
+            return canonical(text, "", False, True)
+        rel = path[len(PKG) + 1:-3].replace("/", ".")
+        is_pkg = rel.endswith("__init__")
+        mod = rel[: -len("__init__")].rstrip(".") if is_pkg else rel
+        return canonical(text, mod, is_pkg, False)
+
     def new_defs(mod: str) -> dict[str, str]:
         if mod not in new_cache:
             p = path_of(mod)
-            tree = ast.parse(open(p).read())
+            tree = parsed(p, open(p).read())
             new_cache[mod] = {n: fingerprint(s) for s in tree.body for n in top_names(s)}
         return new_cache[mod]
 
     for f in files:
+        tree = parsed(f, git("show", f"{old_rev}:{f}"))
+        if not f.startswith(PKG + "/"):
+            whole_old = [s for s in tree.body if not isinstance(s, ast.ImportFrom)]
+            whole_new = [s for s in parsed(f, open(f).read()).body if not isinstance(s, ast.ImportFrom)]
+            compared += 1
+            same = len(whole_old) == len(whole_new) and all(
+                fingerprint(a) == fingerprint(b) or any((f, n) in ALLOWED for n in top_names(a))
+                for a, b in zip(whole_old, whole_new, strict=True))
+            if not same:
+                problems += 1
+                print(f"DIFFERS: {f}")
+            continue
         rel = f[len(PKG) + 1:-3].replace("/", ".")
         is_pkg = rel.endswith("__init__")
         old = rel[: -len(".__init__")] if is_pkg else rel
         if old == "__init__":
             old = ""
-        tree = ast.parse(git("show", f"{old_rev}:{f}"))
         if not isinstance(MOVES.get(old), dict):
             # moved whole (or not moved): the whole module, imports aside, is the same
             newp = path_of(new_module(old)) if old else path_of("__init__")
             whole_old = [s for s in tree.body if not isinstance(s, ast.ImportFrom)]
-            whole_new = [s for s in ast.parse(open(newp).read()).body if not isinstance(s, ast.ImportFrom)]
+            whole_new = [s for s in parsed(newp, open(newp).read()).body if not isinstance(s, ast.ImportFrom)]
             same = [fingerprint(a) for a in whole_old] == [fingerprint(b) for b in whole_new]
             compared += 1
             if not same and not any(m == new_module(old) for m, _ in ALLOWED):
@@ -431,16 +588,46 @@ def check(old_rev: str) -> int:
                 if got != fingerprint(stmt) and (mod, n) not in ALLOWED and (mod, "*") not in ALLOWED:
                     problems += 1
                     print(f"DIFFERS: {old}.{n} -> {mod}.{n}" + (" (missing)" if got is None else ""))
-    print(f"{compared} top-level definitions compared, {problems} differ "
+    print(f"{compared} top-level definitions and modules compared, {problems} differ "
           f"(allowed to differ: {sorted(ALLOWED)})")
     return 1 if problems else 0
 
 
+def after_apply_stage2() -> None:
+    """Names reached through a split module by attribute (``yamlsrc.schema``) now go to their module."""
+    for root in (PKG, "tests", "benchmarks", "ansible_collections"):
+        for d, _, fs in os.walk(root):
+            for f in fs:
+                if not f.endswith(".py"):
+                    continue
+                fp = os.path.join(d, f)
+                text = open(fp).read()
+                if root == PKG:
+                    rel = os.path.relpath(fp, PKG)[:-3].replace(os.sep, ".")
+                    is_pkg = rel.endswith("__init__")
+                    mod = rel[: -len("__init__")].rstrip(".") if is_pkg else rel
+                    new = rewrite_attrs(text, mod, is_pkg, False)
+                else:
+                    new = rewrite_attrs(text, "", False, True)
+                if new != text:
+                    with open(fp, "w") as fh:
+                        fh.write(new)
+
+
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["apply"]:
+    args = sys.argv[1:]
+    stage = "1"
+    if "--stage" in args:
+        k = args.index("--stage")
+        stage = args[k + 1]
+        del args[k: k + 2]
+    use(stage)
+    if args[:1] == ["apply"]:
         apply()
-    elif sys.argv[1:2] == ["check"]:
-        sys.exit(check(sys.argv[2]))
+        if stage == "2":
+            after_apply_stage2()
+    elif args[:1] == ["check"] and len(args) == 2:
+        sys.exit(check(args[1], outside=stage != "1"))
     else:
         print(__doc__)
         sys.exit(2)

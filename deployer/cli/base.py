@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..load.diagnostics import EXIT_INVALID, InputError, UsageError
+from ..errors import EXIT_INVALID, DeployerError, InputError, UsageError
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -90,7 +90,7 @@ parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), defau
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
-    from ..transport.urls import BadURL, parse_url  # not transport: an offline plan does not import pymodbus
+    from ..transport.urls import parse_url  # not transport: an offline plan does not import pymodbus
 
     text = device or (recipe.device.url if recipe.device else None)
     u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
@@ -98,10 +98,7 @@ def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float
         if required:
             raise UsageError("no device: pass --device URL or set device.url in the recipe")
         return None, u
-    try:
-        return parse_url(text, timeout=timeout, retries=retries), u
-    except BadURL as e:
-        raise UsageError(str(e)) from None
+    return parse_url(text, timeout=timeout, retries=retries), u  # BadURL is a UsageError
 
 
 def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: int
@@ -165,21 +162,18 @@ def _main(argv: Sequence[str] | None) -> None:
     _ARGV[:] = list(argv) if argv is not None else sys.argv[1:]
     try:
         rv = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)
-    except click.exceptions.UsageError as e:  # DESIGN.md: usage errors exit 1, not click's 2
-        e.show()
-        sys.exit(EXIT_INVALID)
     except click.exceptions.Abort:
         click.echo("aborted", err=True)
         sys.exit(EXIT_INVALID)
-    except click.exceptions.ClickException as e:
+    except click.exceptions.ClickException as e:  # usage errors exit 1 (docs/design.md), not click's 2
         e.show()
         sys.exit(EXIT_INVALID)
-    except InputError as e:
-        report_input_error(e)
-        sys.exit(EXIT_INVALID)
-    except UsageError as e:
-        click.echo(f"error: {e}", err=True)
-        sys.exit(EXIT_INVALID)
+    except DeployerError as e:  # each class carries its exit code (deployer/errors.py)
+        if isinstance(e, InputError):
+            report_input_error(e)
+        else:
+            click.echo(f"error: {e}", err=True)
+        sys.exit(e.exit_code)
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)
         sys.exit(130)

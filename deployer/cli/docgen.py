@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from ..load import yamlsrc
+from ..load import schema as schemas
 
 SCHEMAS = ("profile", "recipe", "inventory", "plan", "report")
 _NO_DEFAULT = object()
@@ -238,7 +238,7 @@ def _walk_children(w: _Walk, node: Mapping[str, Any], path: str) -> None:
 
 def schema_keys(name: str) -> list[Key]:
     """Every key of one schema, in document order (parents before their children)."""
-    w = _Walk(name, yamlsrc.schema(name))
+    w = _Walk(name, schemas.schema(name))
     _walk(w, w.root, "", True)
     return w.keys
 
@@ -261,7 +261,7 @@ def schema_nodes(node: Any, at: str = "#") -> Iterator[tuple[str, dict[str, Any]
 
 def undescribed(name: str) -> list[str]:
     """JSON pointers of properties and $defs without a description (a test requires none)."""
-    root = yamlsrc.schema(name)
+    root = schemas.schema(name)
     missing: list[str] = []
     for at, node in schema_nodes(root):
         for key, sub in (node.get("properties") or {}).items():
@@ -381,7 +381,7 @@ def _example_block(name: str, value: Any) -> str:
 
 def render_page(name: str) -> str:
     """The reference page of one schema (Markdown)."""
-    root = yamlsrc.schema(name)
+    root = schemas.schema(name)
     keys = schema_keys(name)
     out = [_HEADER.format(name=name), f"# {TITLES[name]}", "", str(root.get("description", "")).strip(), "",
            f"Schema: `deployer/schemas/{name}.schema.json` (draft 2020-12). `deployer explain KEY` prints any "
@@ -429,7 +429,8 @@ the apply; parameters the recipe did not name are not in it (apply never wrote t
 def render_snapshot_page() -> str:
     """The snapshot page; its example is written by the code that writes snapshots (recipe_text)."""
     from ..profile import builtin_profile
-    from ..recipe.loader import DeviceSpec, SnapshotInfo, recipe_text
+    from ..recipe.loader import DeviceSpec, SnapshotInfo
+    from ..recipe.text import recipe_text
 
     prof = builtin_profile("example-inverter")
     before = {"F07": (0, 500), "F08": (0, 500), "stop_mode": (0,), "base_speed": (0x6590,)}

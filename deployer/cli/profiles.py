@@ -179,12 +179,9 @@ def _device_scale_factors(model: str, at: int, counts: dict[str, int], device: s
     from ..profile.codec import decode
     from ..profile.emit import check
     from ..profile.importers.sunspec import read_model, scale_factor_points
-    from ..transport.clients import BadURL, parse_url
+    from ..transport.clients import parse_url
 
-    try:
-        url = parse_url(device)
-    except BadURL as e:
-        raise UsageError(str(e)) from None
+    url = parse_url(device)  # BadURL is a UsageError
     names = scale_factor_points(model)
     if not names:
         return {}
@@ -234,7 +231,7 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
     """Write a commented profile skeleton to OUTPUT, ready to fill in from the device's manual."""
     import re
 
-    from ..load.yamlsrc import schema
+    from ..load.schema import schema
     from ..profile.skeleton import profile_skeleton
 
     pid = profile_id or os.path.splitext(os.path.basename(output))[0]

@@ -14,7 +14,7 @@ from collections import deque
 from collections.abc import Awaitable
 from dataclasses import dataclass
 
-from ..load.diagnostics import UsageError
+from ..errors import Declined, DeviceGone, IdentityMismatch, StalePlan, UsageError
 from ..planning.model import Plan, ReadRequest, Target
 from ..planning.planfile import plan_to_json
 from ..planning.planner import make_plan, plan_reads
@@ -26,7 +26,7 @@ from ..state.durable import Line, durable, queue
 from ..state.snapshot import snapshot_file
 from ..transport import clients as tp
 from .recovery import _recover, _remerge
-from .session import ApplyOptions, Declined, DeviceGone, Session, StalePlan
+from .session import ApplyOptions, Session
 from .steps import _send_actions, check_identity, check_preconditions
 from .verify import PENDING, _attempted, _values, _verify
 
@@ -157,9 +157,10 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     shared = _shared(recipe)
     # 1. before any write: identity and current values; a silent device here is "unreachable"
     try:
-        why = await check_identity(session, prof)
-        if why:
-            res.status, res.error = "failed", f"{why}; nothing was written"
+        try:
+            await check_identity(session, prof)
+        except IdentityMismatch as e:
+            res.status, res.error = "failed", f"{e}; nothing was written"
             return
         before = _values(shared.layout, await session.read_blocks(shared.reads, prof))
     except DeviceGone as e:
@@ -238,7 +239,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
 
 async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, plan: Plan, opts: ApplyOptions,
                                res: DeviceResult, results: dict[str, ParameterResult]) -> None:
-    written, gone = await _write_all(session, prof, plan, opts, results)
+    written, unanswered = await _write_all(session, prof, plan, opts, results)
 
     # read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
@@ -248,8 +249,8 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
             if results[n].error == PENDING:
                 results[n].error = f"read-back failed: {e}"
         return
-    _verify(results, prof, after, written)
-    if gone:
+    _verify(results, prof, after, written, unanswered or ())
+    if unanswered is not None:
         return
 
     # commit (e.g. store to EEPROM) only when everything is verified
@@ -263,8 +264,9 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
 
 
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,
-                     results: dict[str, ParameterResult]) -> tuple[set[str], bool]:
-    """Send the plan's writes. Returns the names sent, and whether the device went away."""
+                     results: dict[str, ParameterResult]) -> tuple[set[str], set[str] | None]:
+    """Send the plan's writes. Returns the names sent, and, when the device went away, the names of the
+    request it did not answer (None while it answers)."""
     desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
     written: set[str] = set()
     pending = deque(plan.writes)
@@ -305,5 +307,5 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
             for rest in pending:
                 for n in rest.parameters:
                     results[n].status = "skipped"
-            return written, True
-    return written, False
+            return written, set(req.parameters)
+    return written, None

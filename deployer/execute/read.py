@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from ..load.diagnostics import UsageError
+from ..errors import DeviceGone, IdentityMismatch, UsageError
 from ..planning.planner import plan_reads
 from ..profile import Profile
 from ..report import RequestRecord
 from ..transport import clients as tp
-from .session import DeviceGone, Session
+from .session import Session
 from .steps import check_identity
 from .verify import values_of
 
@@ -27,9 +27,10 @@ async def read_current(profile: Profile, names: Sequence[str], url: tp.DeviceURL
     session = Session(transport, unit, retries=url.retries, backoff=backoff,
                       records=records if records is not None else [])
     try:
-        why = await check_identity(session, profile)
-        if why:
-            raise tp.Unreachable(why)
+        try:
+            await check_identity(session, profile)
+        except IdentityMismatch as e:  # the device asked for is not there: nothing of it can be read
+            raise tp.Unreachable(str(e)) from None
         params = [profile.parameter(n) for n in names]
         reads = plan_reads(profile, [p.name for p in params if p.readable])
         return values_of(params, await session.read_blocks(reads, profile))

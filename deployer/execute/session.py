@@ -8,7 +8,9 @@ from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal
 
-from ..load.diagnostics import UsageError
+from ..errors import Declined as Declined  # importable from here as before
+from ..errors import DeviceGone as DeviceGone
+from ..errors import StalePlan as StalePlan
 from ..planning.model import Plan, ReadRequest, WriteRequest
 from ..planning.planner import gap_free_reads
 from ..profile import Profile
@@ -16,14 +18,6 @@ from ..report import DeviceResult, RequestRecord
 from ..transport import clients as tp
 
 Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
-
-
-class StalePlan(UsageError):
-    """apply PLAN.json: the device no longer holds what the plan was made against."""
-
-
-class Declined(UsageError):
-    """The user answered no at the confirmation prompt."""
 
 
 @dataclass(frozen=True)
@@ -39,10 +33,6 @@ class ApplyOptions:
     applied: str | None = None  # what is being applied (recipe or plan file), recorded in the snapshot
     lock_timeout: float = 0.0  # seconds to wait for a device another run holds (0: fail at once)
     lock_dir: str | None = None  # None: $DEPLOYER_LOCK_DIR or <tmp>/deployer-locks
-
-
-class DeviceGone(tp.TransportError):
-    """The device stopped answering and the retry budget is spent."""
 
 
 class Session:

@@ -5,20 +5,22 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Iterable
 
+from ..errors import IdentityMismatch
 from ..planning.model import WriteRequest
 from ..profile import Profile, WriteAction, codec
 from .session import Session
 
 
-async def check_identity(session: Session, profile: Profile) -> str | None:
-    """None if every identity register holds its expected value, else why not."""
+async def check_identity(session: Session, profile: Profile) -> None:
+    """Raises IdentityMismatch unless every identity register holds its expected value."""
     for chk in profile.identity:
         (value,) = await session.read(chk.address, 1)
         if value != chk.raw:
             what = f" ({chk.description})" if chk.description else ""
-            return (f"identity check failed: register 0x{chk.address:04X}{what} holds 0x{value:04X}, expected "
-                    f"0x{chk.raw:04X}: another kind of device answers here")
-    return None
+            raise IdentityMismatch(
+                f"identity check failed: register 0x{chk.address:04X}{what} holds 0x{value:04X}, expected "
+                f"0x{chk.raw:04X}: another kind of device answers here",
+                address=chk.address, expected=chk.raw, found=value)
 
 
 async def check_preconditions(session: Session, profile: Profile) -> str | None:

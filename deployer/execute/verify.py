@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Collection, Iterable, Mapping
 from typing import cast
 
 from ..profile import Parameter, Profile
@@ -41,8 +41,11 @@ def _attempted(results: dict[str, ParameterResult], names: Iterable[str], writte
 
 
 def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[str, tuple[int, ...]],
-            written: set[str]) -> None:
-    """Statuses from the read-back: what was sent must read back equal; the rest is reported as is."""
+            written: set[str], unanswered: Collection[str] = ()) -> None:
+    """Statuses from the read-back: what was sent must read back equal; the rest is reported as is.
+
+    ``unanswered``: parameters of a write the device did not answer (it may not have applied it).
+    """
     for n, r in results.items():
         p = prof.parameter(n)
         got = after.get(n)
@@ -58,7 +61,7 @@ def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[s
             r.status, r.error = ("ok" if n in written else "unchanged"), None
             continue
         reads_back = f"reads back {show_registers(p, got)} ({' '.join(f'{w:04X}h' for w in got)})"
-        if r.error and r.error.startswith("device stopped answering"):
+        if n in unanswered:
             r.error = f"{r.error}; {reads_back}"  # no answer and not applied: unverified, not "accepted"
         else:
             r.status, r.error = "mismatch", reads_back

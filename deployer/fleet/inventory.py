@@ -13,7 +13,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from ..load import yamlsrc
+from ..load import schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
 from ..profile import is_profile_path
 from ..recipe.loader import Entry, Recipe, expand, load_recipe, with_overrides
@@ -111,7 +111,7 @@ def load_inventory(path: str | os.PathLike[str]) -> Inventory:
     data, src = yamlsrc.load(p)
     if not isinstance(data, dict):
         raise InputError([src.error((), "an inventory must be a mapping (defaults: ..., devices: ...)")])
-    errors: list[Diagnostic] = yamlsrc.validate(data, "inventory", src)
+    errors: list[Diagnostic] = schema.validate(data, "inventory", src)
     if errors:
         raise InputError(errors)
     defaults: dict[str, Any] = data.get("defaults") or {}
@@ -203,7 +203,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: fl
 
     Everything is checked before any device is touched; all problems at once as an InputError.
     """
-    from ..transport.clients import BadURL, parse_url
+    from ..transport.clients import parse_url
     from .rollout import Job
 
     jobs: list[Job] = []
@@ -217,7 +217,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: fl
             jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit))
         except InputError as e:
             errors.extend(e.diagnostics)
-        except (BadURL, UsageError) as e:
+        except UsageError as e:  # BadURL too
             errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
     if unit is not None:  # --unit puts every selected device on one unit id
         errors += _same_devices(inv.path, [(d, unit) for d in inv.select(limit)], check_urls=False)

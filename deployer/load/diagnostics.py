@@ -5,15 +5,13 @@ Every loader collects all problems of a file before raising, so users fix them i
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from dataclasses import dataclass
 
-# Exit codes: a public interface (DESIGN.md, "Exit codes"); scripts rely on them.
-EXIT_OK = 0
-EXIT_INVALID = 1
-EXIT_CHANGES = 2
-EXIT_UNREACHABLE = 3
-EXIT_FAILED = 4
+# the errors and exit codes live in deployer.errors; loaders import them from here too
+from ..errors import EXIT_CHANGES, EXIT_FAILED, EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, InputError, UsageError
+
+__all__ = ["EXIT_CHANGES", "EXIT_FAILED", "EXIT_INVALID", "EXIT_OK", "EXIT_UNREACHABLE", "Diagnostic", "InputError",
+           "UsageError"]
 
 
 @dataclass(frozen=True, order=True)
@@ -27,15 +25,3 @@ class Diagnostic:
 
     def __str__(self) -> str:
         return f"{self.path}:{self.line}:{self.col}: error: {self.message}"
-
-
-class InputError(Exception):
-    """Invalid input (files, options): nothing may be sent to any device. Exit code 1."""
-
-    def __init__(self, diagnostics: Iterable[Diagnostic]) -> None:
-        self.diagnostics = sorted(set(diagnostics))
-        super().__init__("\n".join(str(d) for d in self.diagnostics))
-
-
-class UsageError(Exception):
-    """A bad option or combination of options (not tied to a file position). Exit code 1."""

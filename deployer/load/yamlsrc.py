@@ -19,24 +19,20 @@ aliases be counted as they are expanded.
 
 from __future__ import annotations
 
-import difflib
-import json
 import os
-import re
 import stat
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from decimal import Decimal, InvalidOperation
-from functools import cache
 from typing import TYPE_CHECKING, Any
 
 import yaml
 
 from .diagnostics import Diagnostic, InputError
+from .messages import clip, clip_message, clipped_repr
 
 if TYPE_CHECKING:
-    import jsonschema
+    pass
 
 # libyaml's parser when PyYAML has it; the pure-Python one gives the same events
 FastLoader: type[yaml.SafeLoader] | type[yaml.CSafeLoader] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
@@ -48,7 +44,6 @@ MAX_ALIAS_NODES = 100_000  # values that aliases may add in total ("billion laug
 MAX_ENTRIES = 65_536  # entries in one mapping or list: a device has 65,536 holding registers
 MAX_NODES = 1_000_000  # values in one file (keys not counted): 15 per parameter of the largest profile
 MAX_NUMBER_CHARS = 100  # a number written with more characters is refused (no 100,000-digit numbers)
-MAX_ECHO = 60  # characters of a value echoed in a message; longer ones are cut with an ellipsis
 
 Path_ = tuple[str | int, ...]
 
@@ -57,30 +52,6 @@ _STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP = (
     f"{_STD}{t}" for t in ("str", "int", "float", "bool", "null", "timestamp"))
 _MAP, _SEQ, _MERGE = f"{_STD}map", f"{_STD}seq", f"{_STD}merge"
 _SCALAR_TAGS = {_STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP}
-
-
-def clip(text: str, limit: int = MAX_ECHO) -> str:
-    """``text`` cut to about ``limit`` characters with an ellipsis (values echoed in errors)."""
-    if len(text) <= limit:
-        return text
-    return f"{text[: limit - 10]}…{text[-8:]} ({len(text)} characters)"
-
-
-def clipped_repr(value: object, limit: int = MAX_ECHO) -> str:
-    return clip(repr(value), limit)
-
-
-_LONG_WORD = re.compile(r"\S{121,}")  # longer than any path or name a message means to show whole
-
-
-def clip_message(message: str) -> str:
-    """A message with every overlong word (an echoed value) cut, and at most about 1,000 characters."""
-    if len(message) <= 120:
-        return message
-    message = _LONG_WORD.sub(lambda m: clip(m.group()), message)
-    if len(message) > 1000:
-        message = f"{message[:600]} … {message[-300:]}"
-    return message
 
 
 Pos = int  # a position packed in one int: line << 24 | col (a tuple of two ints takes 3x the memory)
@@ -607,161 +578,3 @@ def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[
     if stamp_before is not None and stamp_before == _stamp(p):
         _handed_over[p] = (stamp_before, value, src)
     return value, src
-
-# ---- JSON Schema with positions ---------------------------------------------------------
-
-
-def _is_number(_checker: Any, instance: Any) -> bool:
-    return isinstance(instance, int | float | Decimal) and not isinstance(instance, bool)
-
-
-def _is_integer(_checker: Any, instance: Any) -> bool:
-    if isinstance(instance, bool):
-        return False
-    if isinstance(instance, int):
-        return True
-    return isinstance(instance, Decimal) and instance == instance.to_integral_value()
-
-
-@cache
-def schema(name: str) -> dict[str, Any]:
-    """A bundled JSON Schema by name ('profile', 'recipe', 'inventory', 'plan', 'report').
-
-    Cached: callers must not modify it.
-    """
-    here = os.path.join(os.path.dirname(os.path.dirname(__file__)), "schemas", f"{name}.schema.json")
-    with open(here, encoding="utf-8") as f:
-        data: dict[str, Any] = json.load(f)
-    return data
-
-
-@cache
-def validator(name: str) -> jsonschema.protocols.Validator:
-    """The validator of a bundled schema, built once per process (building one costs milliseconds)."""
-    import jsonschema  # only commands that check files pay for importing it
-
-    checker = jsonschema.Draft202012Validator.TYPE_CHECKER.redefine_many(
-        {"number": _is_number, "integer": _is_integer})
-    cls = jsonschema.validators.extend(jsonschema.Draft202012Validator,  # type: ignore[no-untyped-call]
-                                       type_checker=checker)
-    v: jsonschema.protocols.Validator = cls(schema(name))
-    return v
-
-
-@cache
-def _fast_validator(name: str) -> Any:
-    """jsonschema-rs's validator of a bundled schema, or None when the package is missing."""
-    try:
-        import jsonschema_rs
-    except ImportError:  # pragma: no cover - a declared dependency; still usable without it
-        return None
-    return jsonschema_rs.validator_for(schema(name))
-
-
-def is_valid(value: Any, schema_name: str) -> bool | None:
-    """jsonschema-rs's verdict (about 100x faster than jsonschema); None when it cannot say."""
-    fast = _fast_validator(schema_name)
-    if fast is None:
-        return None
-    try:
-        return bool(fast.is_valid(value))
-    except Exception:  # values it cannot convert: let jsonschema decide
-        return None
-
-
-def validate(value: Any, schema_name: str, src: Source) -> list[Diagnostic]:
-    """All schema errors of ``value``, each at the position of the offending key or value.
-
-    A valid document (the common case) is confirmed by jsonschema-rs alone; jsonschema (and
-    its precise, positioned messages) runs only on documents that have errors.
-    """
-    if is_valid(value, schema_name):
-        return []
-    out: list[Diagnostic] = []
-    for err in validator(schema_name).iter_errors(value):
-        out.extend(_explain(err, src))
-    return out
-
-
-def _leaves(err: jsonschema.ValidationError) -> Iterator[jsonschema.ValidationError]:
-    """For oneOf/anyOf, the errors of the most plausible branch (deepest path)."""
-    if err.validator in ("oneOf", "anyOf") and err.context:
-        best = max(err.context, key=lambda e: (len(e.absolute_path), -len(list(e.context or []))))
-        depth = len(best.absolute_path)
-        if depth > len(err.absolute_path):
-            yield from _leaves(best)
-            return
-    yield err
-
-
-def _where(err: jsonschema.ValidationError) -> str:
-    parts = [str(p) if isinstance(p, str) else f"[{p}]" for p in err.absolute_path]
-    return ".".join(parts).replace(".[", "[")
-
-
-def _explain(err: jsonschema.ValidationError, src: Source) -> Iterable[Diagnostic]:
-    for e in _leaves(err):
-        at: Path_ = tuple(e.absolute_path)
-        where = _where(e)
-        prefix = f"{where}: " if where else ""
-        if e.validator == "additionalProperties" and isinstance(e.instance, Mapping):
-            sch: Any = e.schema
-            allowed = list((sch.get("properties") or {}).keys())
-            patterns = list((sch.get("patternProperties") or {}).keys())
-            for k in e.instance:
-                if k in allowed or any(re.search(p, k) for p in patterns):
-                    continue
-                hint = difflib.get_close_matches(k, allowed, n=1)
-                msg = f"unknown key '{clip(k)}'" + (f" in {where}" if where else "")
-                msg += f"; did you mean '{hint[0]}'?" if hint else (
-                    f" (expected one of: {', '.join(allowed)})" if allowed else "")
-                yield src.error((*at, k), msg, key=True)
-        elif e.validator == "required":
-            yield src.error(at, f"{prefix}{_clip_message(e)}")
-        elif e.validator == "type":
-            yield src.error(at, f"{prefix}expected {_type_words(e.validator_value)}, got {_describe(e.instance)}")
-        elif e.validator == "enum":
-            vv: Any = e.validator_value
-            options = ", ".join(str(v) for v in vv)
-            yield src.error(at, f"{prefix}{_describe(e.instance)} is not one of: {options}")
-        elif e.validator in ("oneOf", "anyOf"):
-            yield src.error(at, f"{prefix}{_describe(e.instance)} is not valid here")
-        elif e.validator == "propertyNames":
-            yield src.error(at, f"{prefix}{_clip_message(e)}", key=True)
-        else:
-            yield src.error(at, f"{prefix}{_clip_message(e)}")
-
-
-def _clip_message(e: jsonschema.ValidationError) -> str:
-    """jsonschema's message with the offending value cut (it repeats the value whole)."""
-    whole = repr(e.instance)
-    if len(whole) > MAX_ECHO and whole in e.message:
-        return e.message.replace(whole, clip(whole))
-    return clip(e.message, 300)
-
-
-def _type_words(t: Any) -> str:
-    names = {"object": "a mapping", "array": "a list", "string": "a string", "number": "a number",
-             "integer": "an integer", "boolean": "true or false", "null": "nothing"}
-    if isinstance(t, list):
-        return " or ".join(names.get(str(x), str(x)) for x in t)
-    return names.get(t, str(t))
-
-
-def _describe(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if v is None:
-        return "nothing (null)"
-    if isinstance(v, Mapping):
-        return "a mapping"
-    if isinstance(v, Sequence) and not isinstance(v, str):
-        return "a list"
-    if isinstance(v, str):
-        return clipped_repr(v)
-    return clip(str(v))
-
-
-def closest(name: str, choices: Iterable[str]) -> str | None:
-    hits = difflib.get_close_matches(name, list(choices), n=1, cutoff=0.6)
-    return hits[0] if hits else None

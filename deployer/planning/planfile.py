@@ -51,7 +51,7 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
     with the writes (``write``/``bridge`` written, ``unchanged`` not) — a hand-edited plan can
     not make ``apply`` write a register no parameter names.
     """
-    from ..load import yamlsrc
+    from ..load import schema, yamlsrc
 
     source = src
 
@@ -63,7 +63,7 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
 
     if not isinstance(data, dict):
         raise InputError([error((), "a plan must be a JSON object")])
-    errors = yamlsrc.validate(data, "plan", source or yamlsrc.Source(path))
+    errors = schema.validate(data, "plan", source or yamlsrc.Source(path))
     if errors:
         raise InputError(errors if source is not None else [Diagnostic(path, 0, 0, e.message) for e in errors])
     dev = data["device"]

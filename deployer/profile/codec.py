@@ -23,6 +23,8 @@ from decimal import ROUND_HALF_EVEN, Decimal
 from functools import cache
 from typing import Literal
 
+from ..errors import CodecError as CodecError  # importable from here as before
+
 TypeName = Literal["uint16", "int16", "uint32", "int32", "uint64", "int64", "float32", "float64"]
 WordOrder = Literal["big", "little"]
 Raw = int | float
@@ -69,10 +71,6 @@ def layout_name(word_order: str, byte_swap: bool, type_: str = "uint32") -> str:
     if word_order == "little":
         words.reverse()
     return "".join("".join(w) for w in words)
-
-
-class CodecError(ValueError):
-    """A value that cannot be represented; the message is meant for the user."""
 
 
 def register_count(type_: str) -> int:

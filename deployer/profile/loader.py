@@ -8,7 +8,7 @@ from dataclasses import replace
 from decimal import Decimal
 from typing import Any
 
-from ..load import yamlsrc
+from ..load import schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
 from . import codec, units
 from .model import CommitAction, IdentityCheck, Limits, Parameter, Precondition, Profile
@@ -109,7 +109,7 @@ def load_profile(path: str | os.PathLike[str], text: str | None = None) -> Profi
     data, src = yamlsrc.load(p, text)
     if not isinstance(data, dict):
         raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
-    errors = yamlsrc.validate(data, "profile", src)
+    errors = schema.validate(data, "profile", src)
     if errors:
         raise InputError(errors)
     return replace(_build_profile(data, src), digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
@@ -130,10 +130,14 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
 
     def address_of(value: object, at: yamlsrc.Path_, extra: int = 0) -> int | None:
         try:
-            wire = wire_address(parse_register(value), addressing) + extra
-        except ValueError as e:
-            errors.append(src.error(at, str(e) if "holding" in str(e) or "below" in str(e)
-                                    else f"not a register: {value!r}"))
+            number = parse_register(value)
+        except ValueError:
+            errors.append(src.error(at, f"not a register: {value!r}"))
+            return None
+        try:
+            wire = wire_address(number, addressing) + extra
+        except ValueError as e:  # the message says which references the addressing accepts
+            errors.append(src.error(at, str(e)))
             return None
         if wire > 0xFFFF:
             errors.append(src.error(at, f"wire address {wire} is beyond 65535"))

@@ -31,6 +31,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from ..errors import Locked as Locked  # importable from here as before
+
 ENV = "DEPLOYER_LOCK_DIR"
 
 
@@ -41,10 +43,6 @@ def lock_dir() -> str:
 def device_key(bus: str, unit: int) -> str:
     """The device's identity: its bus (serial path after symlinks, host:port) and unit id."""
     return f"{bus}#unit{unit}"
-
-
-class Locked(Exception):
-    """Another run holds the device's lock."""
 
 
 @dataclass
@@ -125,14 +123,15 @@ def _directory(d: str) -> None:
             os.chmod(d, 0o1777)  # every user's runs share it
             st = os.lstat(d)
     except OSError as e:
-        raise Locked(f"cannot use the lock directory {d}: {e.strerror} (set {ENV} to another folder)") from None
+        raise Locked(f"cannot use the lock directory {d}: {e.strerror} (set {ENV} to another folder)",
+                     busy=False) from None
     if not stat.S_ISDIR(st.st_mode):
         what = "a symbolic link" if stat.S_ISLNK(st.st_mode) else "not a folder"
         raise Locked(f"cannot use the lock directory {d}: it is {what} (a lock folder must be a real folder; "
-                     f"set {ENV} to another folder)")
+                     f"set {ENV} to another folder)", busy=False)
     if st.st_mode & 0o022 and not st.st_mode & stat.S_ISVTX:
         raise Locked(f"cannot use the lock directory {d}: others may write in it but it is not sticky, so they could "
-                     f"replace lock files (chmod 1777 {d}, or set {ENV} to another folder)")
+                     f"replace lock files (chmod 1777 {d}, or set {ENV} to another folder)", busy=False)
     _ready.add(d)
 
 
@@ -146,14 +145,15 @@ def _open(path: str) -> int:
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o666)
     except OSError as e:
         if e.errno == errno.ELOOP:
-            raise Locked(f"refusing the lock file {path}: it is a symbolic link (planted? remove it)") from None
-        raise Locked(f"cannot open the lock file {path}: {e.strerror}") from None
+            raise Locked(f"refusing the lock file {path}: it is a symbolic link (planted? remove it)",
+                         busy=False) from None
+        raise Locked(f"cannot open the lock file {path}: {e.strerror}", busy=False) from None
     st = os.fstat(fd)
     why = ("not a regular file" if not stat.S_ISREG(st.st_mode) else
            f"it has {st.st_nlink} names (a hard link to another file?)" if st.st_nlink != 1 else None)
     if why is not None:
         os.close(fd)
-        raise Locked(f"refusing the lock file {path}: {why}; remove it")
+        raise Locked(f"refusing the lock file {path}: {why}; remove it", busy=False)
     if st.st_uid == os.getuid() and stat.S_IMODE(st.st_mode) != 0o666:
         with contextlib.suppress(OSError):
             os.fchmod(fd, 0o666)  # other users' runs lock (and record in) it too, whatever our umask
@@ -182,7 +182,7 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
             raise Locked(f"locked by {_holder_text(record)}") from None
         except OSError as e:
             os.close(fd)
-            raise Locked(f"cannot lock {path}: {e.strerror}") from None
+            raise Locked(f"cannot lock {path}: {e.strerror}", busy=False) from None
         try:
             same = os.stat(path, follow_symlinks=False).st_ino == os.fstat(fd).st_ino
         except OSError:
@@ -214,8 +214,8 @@ async def acquire(key: str, *, timeout: float = 0.0, command: str = "", director
         try:
             return try_lock(key, command=command, directory=directory, shared=shared)
         except Locked as e:
-            if time.monotonic() >= deadline or str(e).startswith("cannot"):
-                if timeout > 0 and not str(e).startswith("cannot"):
+            if time.monotonic() >= deadline or not e.busy:
+                if timeout > 0 and e.busy:
                     raise Locked(f"{e}; still locked after waiting {timeout:g} s") from None
                 raise
         await asyncio.sleep(poll)
@@ -241,8 +241,10 @@ async def acquire_device(buses: str | Sequence[str], unit: int, *, timeout: floa
             try:
                 held.append(await acquire(key, timeout=left, command=command, directory=directory, shared=shared))
             except Locked as e:
-                if unit == 0 and str(e).startswith("the bus is in use"):
-                    raise Locked(_bus_users(key[:-len("#bus")], directory) or str(e)) from None
+                if unit == 0 and e.busy:
+                    who = _bus_users(key[:-len("#bus")], directory)
+                    if who is not None:
+                        raise Locked(who) from None
                 raise
         return held
     except BaseException:

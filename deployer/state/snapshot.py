@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 from ..load.diagnostics import Diagnostic, InputError
 from ..profile import profile_ref
-from ..recipe.loader import DeviceSpec, Recipe, SnapshotInfo, recipe_text
+from ..recipe.loader import DeviceSpec, Recipe, SnapshotInfo
+from ..recipe.text import recipe_text
 from ..report import read_report
 from .durable import NewFile, durable_now
 

@@ -1,4 +1,4 @@
-"""Device URLs and the errors of transports, without pymodbus.
+"""Device URLs (and the errors of transports, from deployer.errors), without pymodbus.
 
 Parsing a URL (plan, validate, inventories) must not cost importing pymodbus; transport.py
 re-exports everything here.
@@ -13,55 +13,15 @@ import os
 import socket
 import urllib.parse
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
-
-class TransportError(Exception):
-    """Base of everything a transport raises; the message is meant for the user."""
-
-
-class BadURL(TransportError):
-    """Malformed URL, unknown scheme or option (a usage error: exit 1)."""
-
-
-class Unreachable(TransportError):
-    """Could not connect (refused, no such serial device, TLS handshake failed)."""
-
-
-class NoResponse(TransportError):
-    """The device did not answer within the timeout (one attempt)."""
-
-
-class BadAnswer(NoResponse):
-    """Something answered, but not this request: wrong unit, function, byte count or echo, or garbled.
-
-    A NoResponse for retrying (nothing usable came back), with its own message: it is not silence.
-    """
-
-
-class ConnectionLost(TransportError):
-    """The connection dropped; reconnect() may bring it back."""
-
-
-class ExceptionResponse(TransportError):
-    """The device answered with a Modbus exception response."""
-
-    NAMES: ClassVar[dict[int, str]] = {
-        1: "illegal function",
-        2: "illegal data address",
-        3: "illegal data value",
-        4: "server device failure",
-        5: "acknowledge",
-        6: "server device busy",
-        8: "memory parity error",
-        10: "gateway path unavailable",
-        11: "gateway target device failed to respond",
-    }
-
-    def __init__(self, function: int, code: int) -> None:
-        self.function = function
-        self.code = code
-        super().__init__(f"exception {code:02d} ({self.NAMES.get(code, 'unknown')})")
+from ..errors import BadAnswer as BadAnswer
+from ..errors import BadURL as BadURL  # the errors of transports, importable from here as before
+from ..errors import ConnectionLost as ConnectionLost
+from ..errors import ExceptionResponse as ExceptionResponse
+from ..errors import NoResponse as NoResponse
+from ..errors import TransportError as TransportError
+from ..errors import Unreachable as Unreachable
 
 
 @dataclass(frozen=True)
