@@ -44,7 +44,7 @@ def validate_file(path: str) -> str:
 
 
 def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
-    from ..fleet.inventory import load_inventory
+    from ..fleet.inventory import load_inventory, url_problems
     from ..profile import load_profile, resolve_profile
     from ..recipe.loader import load_recipe
 
@@ -56,7 +56,7 @@ def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
         return f"recipe {rec.name}: {_n(len(rec.desired), 'parameter')} for profile {rec.profile.id}"
     if kind == "inventory":
         inv = load_inventory(path)
-        errors: list[Diagnostic] = []
+        errors: list[Diagnostic] = url_problems(inv)
         checked: dict[str, str | None] = {}  # each distinct profile is loaded once, however many devices use it
         for dev in inv.devices:
             if dev.profile is None:

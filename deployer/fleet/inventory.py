@@ -130,10 +130,15 @@ def load_inventory(path: str | os.PathLike[str]) -> Inventory:
             overrides=overrides,
             where=src.pos(("devices", name, "url")),
         ))
-    errors = _same_devices(p, [(d, d.unit) for d in devices], check_urls=True)
+    errors = _same_devices(p, [(d, d.unit) for d in devices], check_urls=False)  # bad URLs: said with the rest
     if errors:
         raise InputError(errors)
     return Inventory(p, tuple(devices))
+
+
+def url_problems(inv: Inventory) -> list[Diagnostic]:
+    """Every device URL that does not parse, at its position (``validate``; a run says so in fleet_jobs)."""
+    return _same_devices(inv.path, [(d, d.unit) for d in inv.devices], check_urls=True)
 
 
 def _same_devices(path: str, devices: Sequence[tuple[FleetDevice, int]], *, check_urls: bool) -> list[Diagnostic]:
