@@ -1,17 +1,24 @@
 """deployer: deploy parameter sets (recipes) to Modbus devices; plan, apply, verify, report.
 
-The public API (``deployer.api``) is importable from here: ``deployer.load_recipe``,
+The public API is ``deployer.api``, importable from here: ``deployer.load_recipe``,
 ``deployer.plan``, ``deployer.apply``, ``deployer.apply_fleet``, ``deployer.diff``,
-``deployer.pull`` and their ``*_async`` twins. It loads on first use, so ``import deployer``
-stays cheap (the command line's start-up time depends on it).
+``deployer.pull``, their ``*_async`` twins, the types they take and return, and the errors
+(``deployer.errors``). ``deployer.__all__`` is ``deployer.api.__all__``: one list. The API loads on
+first use, so ``import deployer`` stays cheap (the command line's start-up time depends on it).
 """
 
 from __future__ import annotations
 
 import logging as _logging
-from typing import Any
+import os as _os
+from typing import TYPE_CHECKING, Any
 
-__version__ = "0.1.0"
+if TYPE_CHECKING:
+    from .api import *  # noqa: F403  (what __getattr__ serves, for type checkers)
+
+    __version__: str
+
+_HERE = _os.path.dirname(__file__)
 
 # pymodbus logs every timeout and unknown unit through the root logger's last-resort handler;
 # deployer reports those itself, so the library stays quiet unless the user configures logging.
@@ -19,22 +26,24 @@ _log = _logging.getLogger("pymodbus")
 _log.addHandler(_logging.NullHandler())
 _log.propagate = False
 
-_API = frozenset({
-    "ApplyOptions", "DeviceResult", "Drift", "InputError", "Inventory", "Plan", "Profile", "Recipe", "Report",
-    "TransportError", "UsageError", "apply", "apply_async", "apply_fleet", "apply_fleet_async", "diff",
-    "diff_async", "diff_values", "device_url", "load_inventory", "load_profile", "load_recipe", "plan",
-    "plan_async", "pull", "pull_async", "pulled_recipe", "recipe_from", "read_fleet", "read_fleet_async",
-    "run_fleet", "run_fleet_async",
-})
-
 
 def __getattr__(name: str) -> Any:
-    if name in _API:
-        from . import api
+    if name == "__version__":  # pyproject.toml's, the one place (importlib.metadata costs start-up time)
+        from importlib.metadata import version
 
+        return version("modbus-deployer")
+    # not for dunders or a submodule not imported yet (``from deployer import errors`` asks here first)
+    if (name.startswith("__") and name != "__all__") or _os.path.exists(_os.path.join(_HERE, name)) \
+            or _os.path.exists(_os.path.join(_HERE, f"{name}.py")):
+        raise AttributeError(f"module 'deployer' has no attribute {name!r}")
+    from . import api
+
+    if name == "__all__" or name in api.__all__:
         return getattr(api, name)
     raise AttributeError(f"module 'deployer' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted([*globals(), *_API])
+    from . import api
+
+    return sorted([*globals(), *api.__all__])

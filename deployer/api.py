@@ -10,10 +10,19 @@ The command line and the Ansible modules are both written on top of this module:
     drift = deployer.diff(recipe, "tcp://10.0.0.11:502")         # [] when the device matches
     report = deployer.apply_fleet(recipe, "inventory.yaml", limit="line3", batch="1,10%,100%")
 
-Every ``x`` has an ``x_async`` twin for callers with their own event loop. Errors in input
-raise ``InputError`` (with file positions) or ``UsageError`` before anything is sent; an
+    inventory = deployer.inventory_from([{"name": "d1", "url": "tcp://10.0.0.11:502"}])
+    jobs = deployer.fleet_jobs(recipe, inventory)                # one checked Job per device
+    plans = deployer.plan_fleet(jobs)                            # check mode: name -> Plan or error
+
+Every ``x`` has an ``x_async`` twin for callers with their own event loop. Every error is a
+``DeployerError`` (``deployer.errors`` documents the tree and each one's exit code): invalid
+input raises ``InputError`` (with file positions) or ``UsageError`` before anything is sent; an
 unreachable device raises ``TransportError`` from ``plan``/``diff``/``pull``, and is a device
 status (``unreachable``) in an apply report.
+
+``__all__`` below is the public surface (``deployer`` serves the same list, loading this module on
+first use); ``tests/test_exported_members.py`` pins it. Anything else here, or in deployer's
+subpackages, may change without notice.
 """
 
 from __future__ import annotations
@@ -21,67 +30,118 @@ from __future__ import annotations
 import asyncio
 import os
 import resource
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from .errors import (
+    BadURL,
+    CodecError,
+    Declined,
+    DeployerError,
+    IdentityMismatch,
+    InputError,
+    Locked,
+    StalePlan,
+    TransportError,
+    UsageError,
+)
 from .execute.read import read_current
 from .execute.session import ApplyOptions
-from .fleet.inventory import Inventory, fleet_jobs, load_inventory
+from .fleet.inventory import FleetDevice, Inventory, load_inventory
+from .fleet.inventory import fleet_jobs as _fleet_jobs
+from .fleet.inventory import inventory_from as _inventory_from
 from .fleet.livereport import LiveReport, not_finished
 from .fleet.rollout import Job, ReadJob, apply_many, batch_sizes, failure_budget, read_many
-from .load.diagnostics import InputError, UsageError
 from .load.yamlsrc import Source
 from .planning.model import Plan, Target
+from .planning.planfile import load_plan, plan_to_json
 from .planning.planner import make_plan
-from .profile import Profile, resolve_profile
+from .profile import Profile, load_profile, resolve_profile
 from .recipe.loader import Entry, Recipe, load_recipe, with_overrides
 from .recipe.text import recipe_text
-from .report import DeviceResult, Report
-from .transport.clients import DeviceURL, TransportError, describe, parse_url
+from .report import DeviceResult, ParameterResult, Report
+from .transport.clients import DeviceURL, describe, parse_url
+
+# the names above that __all__ lists are this module's public surface, re-exported on purpose
+_REEXPORTED = (BadURL, CodecError, Declined, DeployerError, IdentityMismatch, InputError, Locked, StalePlan,
+               TransportError, UsageError, ApplyOptions, FleetDevice, Inventory, load_inventory, Job, ReadJob, Plan,
+               load_plan, plan_to_json, Profile, load_profile, Recipe, load_recipe, DeviceResult, ParameterResult,
+               Report, DeviceURL)
+
 
 __all__ = [
     "ApplyOptions",
+    "BadURL",
+    "CodecError",
+    "Declined",
+    "DeployerError",
     "DeviceResult",
+    "DeviceURL",
     "Drift",
+    "FleetDevice",
+    "IdentityMismatch",
     "InputError",
     "Inventory",
+    "Job",
+    "Locked",
+    "ParameterResult",
     "Plan",
     "Profile",
+    "ReadJob",
     "Recipe",
     "Report",
+    "StalePlan",
     "TransportError",
     "UsageError",
     "apply",
     "apply_async",
     "apply_fleet",
     "apply_fleet_async",
+    "describe_url",
     "device_url",
     "diff",
     "diff_async",
     "diff_values",
+    "fleet_jobs",
+    "inventory_from",
     "load_inventory",
+    "load_plan",
     "load_profile",
     "load_recipe",
     "plan",
     "plan_async",
+    "plan_fleet",
+    "plan_fleet_async",
+    "plan_to_json",
     "pull",
     "pull_async",
+    "pull_names",
     "pulled_recipe",
     "read_fleet",
     "read_fleet_async",
+    "read_jobs",
     "recipe_from",
+    "run_fleet",
+    "run_fleet_async",
 ]
 
 
-def load_profile(ref: str) -> Profile:
-    """A built-in profile id or a profile file."""
-    return resolve_profile(ref)
+def describe_url(url: DeviceURL) -> str:
+    """A device URL as text, without secrets (no key, certificate or CA paths): for reports and logs."""
+    return describe(url)
 
 
 def recipe_from(profile: str | Profile, parameters: Mapping[str, Any], *, name: str = "inline",
                 base: Recipe | None = None) -> Recipe:
-    """A recipe from values given in code (``{"F07": "10 s"}``), on its own or over ``base``'s values."""
+    """A recipe from values given in code (``{"F07": "10 s"}``), on its own or over ``base``'s values.
+
+    ``profile``: a Profile, a built-in id or a profile file (ignored when ``base`` is given).
+
+    Raises:
+        InputError: a value that is not valid for its parameter (all of them at once).
+        UsageError: an unknown built-in profile id.
+    """
     src = Source(f"<{name}>")
     entries = [Entry(k, v, src, ("parameters", k)) for k, v in parameters.items()]
     if base is None:
@@ -92,7 +152,11 @@ def recipe_from(profile: str | Profile, parameters: Mapping[str, Any], *, name: 
 
 
 def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: int | None = None) -> DeviceURL:
-    """Parse a device URL (``tcp://HOST:PORT``, ``rtu:///dev/ttyUSB0?baudrate=19200`` ...); UsageError if bad."""
+    """Parse a device URL (``tcp://HOST:PORT``, ``rtu:///dev/ttyUSB0?baudrate=19200`` ...); a DeviceURL as is.
+
+    Raises:
+        BadURL: a malformed URL, an unknown scheme or option (a UsageError).
+    """
     if isinstance(url, DeviceURL):
         return url
     return parse_url(url, timeout=timeout, retries=retries)  # BadURL is a UsageError
@@ -123,6 +187,13 @@ async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit
 
 def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
          write_all: bool = False, offline: bool = False) -> Plan:
+    """The requests ``apply`` would send: against what the device holds now (read, nothing written), or
+    ``offline`` the full write plan. ``device``/``unit`` default to the recipe's ``device``.
+
+    Raises:
+        UsageError: no device (none given and none in the recipe), a bad URL, unit 0 (broadcast).
+        TransportError: the device cannot be read (Unreachable also when its identity does not match).
+    """
     return asyncio.run(plan_async(recipe, device, unit, write_all=write_all, offline=offline))
 
 
@@ -136,6 +207,16 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
           options: ApplyOptions | None = None, name: str | None = None) -> Report:
+    """Apply the recipe to one device: plan against what it holds, write, read back, verify, report.
+
+    A device fault (unreachable, refused, not verified, locked by another run) is the device's
+    status in the report (``report.exit_code`` says it as the command line would), not an exception.
+
+    Raises:
+        UsageError: no device, a bad URL, a broadcast without ``options.allow_broadcast``.
+        StalePlan: ``options.expected`` (a saved plan) no longer matches the device.
+        Declined: ``options.confirm`` answered no.
+    """
     return asyncio.run(apply_async(recipe, device, unit, options=options, name=name))
 
 
@@ -168,11 +249,18 @@ def diff_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]]) -> list[
 
 
 async def diff_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None) -> list[Drift]:
+    """``diff`` for callers with their own event loop."""
     url, u = _target(recipe, device, unit)
     return diff_values(recipe, await read_current(recipe.profile, [d.name for d in recipe.desired], url, u))
 
 
 def diff(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None) -> list[Drift]:
+    """The recipe's parameters the device does not hold now (read only); ``[]`` when it matches.
+
+    Raises:
+        UsageError: no device, a bad URL, unit 0.
+        TransportError: the device cannot be read.
+    """
     return asyncio.run(diff_async(recipe, device, unit))
 
 
@@ -201,6 +289,13 @@ async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int 
 
 
 def pull(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict[str, tuple[int, ...]]:
+    """Every readable, writable parameter of a device: name -> registers (``pulled_recipe`` makes a recipe).
+
+    Raises:
+        UsageError: an unknown built-in profile, a bad URL, unit 0.
+        InputError: an invalid profile file.
+        TransportError: the device cannot be read.
+    """
     return asyncio.run(pull_async(profile, device, unit))
 
 
@@ -243,23 +338,36 @@ def check_writable(folder: str, what: str) -> None:
         raise UsageError(f"cannot write {what}: {e.strerror}") from None
 
 
-def fleet(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None, timeout: float | None = None,
-          retries: int | None = None, unit: int | None = None) -> list[Job]:
-    """One checked job per selected device (the recipe with the device's profile and overrides)."""
+def fleet_jobs(recipe: Recipe | None, inventory: str | Inventory, *, limit: str | None = None,
+               timeout: float | None = None, retries: int | None = None, unit: int | None = None) -> list[Job]:
+    """One checked job per selected device: ``recipe`` (None: each device's own from the inventory) with
+    the device's profile and overrides.
+
+    ``inventory``: a file or an Inventory (``inventory_from``); ``limit``: names, groups, globs, ``!x``,
+    ``@REPORT.json`` (as ``--limit``). ``timeout``, ``retries`` and ``unit`` override every device's.
+
+    Raises:
+        InputError: an invalid inventory, or devices that cannot have their job (profile, recipe, overrides,
+            URL), naming the devices, all at once.
+        UsageError: nothing selected, or a ``limit`` word that matches nothing.
+    """
     inv = inventory if isinstance(inventory, Inventory) else load_inventory(inventory)
-    jobs = fleet_jobs(inv, recipe, limit, timeout=timeout, retries=retries, unit=unit)
+    jobs = _fleet_jobs(inv, recipe, limit, timeout=timeout, retries=retries, unit=unit)
     if not jobs:
         raise UsageError(f"no device selected from {inv.path}")
     return jobs
 
 
-async def apply_fleet_async(recipe: Recipe, inventory: str | Inventory, *, limit: str | None = None,
+async def apply_fleet_async(recipe: Recipe | None, inventory: str | Inventory, *, limit: str | None = None,
                             parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
                             options: ApplyOptions | None = None, report_path: str | None = None,
                             on_start: Callable[[Job], None] | None = None,
                             on_done: Callable[[DeviceResult], None] | None = None) -> Report:
-    """Apply to the devices of an inventory (``limit`` selects): staged, with a failure budget, see ``run_fleet``."""
-    return await run_fleet_async(fleet(recipe, inventory, limit=limit), recipe_name=recipe.path or recipe.name,
+    """Apply to the devices of an inventory (``limit`` selects): staged, with a failure budget, see ``run_fleet``.
+
+    ``recipe`` None: each device gets the recipe the inventory gives it."""
+    return await run_fleet_async(fleet_jobs(recipe, inventory, limit=limit),
+                                 recipe_name=None if recipe is None else recipe.path or recipe.name,
                                  parallel=parallel, batch=batch, max_failures=max_failures, options=options,
                                  report_path=report_path, on_start=on_start, on_done=on_done)
 
@@ -279,7 +387,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
                                   report_path=report_path)
     live = None
     if report_path:
-        live = LiveReport(report_path, recipe_name, not_finished(jobs))
+        live = LiveReport(report_path, recipe_name, not_finished(jobs, sizes))
 
     def done(r: DeviceResult) -> None:
         if live is not None:
@@ -298,11 +406,26 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     return report
 
 
-def apply_fleet(recipe: Recipe, inventory: str | Inventory, **kw: Any) -> Report:
+def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) -> Report:
+    """Apply to the devices of an inventory; ``kw`` as for ``apply_fleet_async`` (``recipe`` None: each device's
+    own from the inventory).
+
+    Raises:
+        InputError: an invalid inventory, or a device's profile or overrides (all devices checked first).
+        UsageError: nothing selected, a bad ``limit``/``batch``/``max_failures``, a report file that cannot
+            be written, too few open files for ``parallel``.
+        StalePlan: a saved plan (``options.expected``) no longer matches its device.
+    """
     return asyncio.run(apply_fleet_async(recipe, inventory, **kw))
 
 
 def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
+    """Apply jobs (from ``fleet``, or made by hand) as one fleet run; ``kw`` as for ``run_fleet_async``.
+
+    Raises:
+        UsageError: a bad ``batch``/``max_failures``, a report file that cannot be written, too few open files.
+        StalePlan: a saved plan (``options.expected``) no longer matches its device.
+    """
     return asyncio.run(run_fleet_async(jobs, **kw))
 
 
@@ -316,10 +439,56 @@ async def read_fleet_async(jobs: Sequence[ReadJob], *, parallel: int = 8,
 
 def read_fleet(jobs: Sequence[ReadJob], *, parallel: int = 8) -> dict[str, dict[str, tuple[int, ...]] | TransportError
                                                                     | UsageError]:
+    """Current values of many devices, ``parallel`` at a time (one per bus): name -> registers by
+    parameter, or the error that stopped that device's read (never raised for one device).
+
+    Raises:
+        UsageError: too few open files for ``parallel``.
+    """
     return asyncio.run(read_fleet_async(jobs, parallel=parallel))
 
 
 def read_jobs(jobs: Sequence[Job]) -> list[ReadJob]:
     """Plan and diff read what each device's recipe names."""
     return [ReadJob(j.name, j.recipe.profile, tuple(d.name for d in j.recipe.desired), j.url, j.unit) for j in jobs]
+
+
+async def plan_fleet_async(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
+                           on_done: Callable[[str, str | None], None] | None = None,
+                           ) -> dict[str, Plan | TransportError | UsageError]:
+    """``plan_fleet`` for callers with their own event loop; ``on_done(name, error or None)`` per device read."""
+    values = await read_fleet_async(read_jobs(jobs), parallel=parallel, on_done=on_done)
+    out: dict[str, Plan | TransportError | UsageError] = {}
+    for j in jobs:
+        cur = values[j.name]
+        out[j.name] = cur if isinstance(cur, Exception) else make_plan(
+            j.recipe, Target(describe(j.url), j.unit, j.recipe.profile_ref or j.recipe.profile.id), cur,
+            write_all=write_all)
+    return out
+
+
+def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
+               ) -> dict[str, Plan | TransportError | UsageError]:
+    """Check mode for many devices: read each, plan against what it holds, write nothing.
+
+    Returns name -> its Plan (``plan.writes`` empty: nothing to change), or the error that stopped
+    its read (never raised for one device), in the order of ``jobs``.
+
+    Raises:
+        UsageError: too few open files for ``parallel``.
+    """
+    return asyncio.run(plan_fleet_async(jobs, parallel=parallel, write_all=write_all))
+
+
+def inventory_from(devices: Iterable[Mapping[str, Any]], *, name: str = "<devices>") -> Inventory:
+    """An inventory from a list of devices given in code (Ansible host vars, a database), checked as a file is.
+
+    Each device: ``name`` and ``url`` (required), ``unit`` (1), ``profile`` (a built-in id or a path),
+    ``groups``, ``timeout``, ``retries`` and ``parameters`` (values over the recipe's), as in an
+    inventory file. ``name`` is what messages call the list.
+
+    Raises:
+        InputError: a device that is not valid (all of them at once, positions in the list).
+    """
+    return _inventory_from(devices, name)
 

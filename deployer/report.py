@@ -49,6 +49,7 @@ class ParameterResult:
     after_raw: tuple[int, ...] | None = None
     status: ParamStatus = "skipped"
     error: str | None = None
+    register_type: str = "holding"
     # the profile's parameter, for engineering texts in the human table (not in the JSON contract); the
     # texts are made only when shown: a fleet's report is mostly JSON, and formatting every value cost more
     parameter: Parameter | None = field(default=None, repr=False, compare=False)
@@ -66,7 +67,8 @@ class ParameterResult:
                 "desired_raw": list(self.desired_raw),
                 "before_raw": None if self.before_raw is None else list(self.before_raw),
                 "after_raw": None if self.after_raw is None else list(self.after_raw),
-                "status": self.status, "error": self.error}
+                "status": self.status, "error": self.error,
+                **({"register_type": self.register_type} if self.register_type != "holding" else {})}
 
 
 @dataclass
@@ -83,14 +85,16 @@ class DeviceResult:
     seconds: float | None = None  # how long the device's session took (fleets: for the summary table)
     profile_ref: str | None = None  # the profile used: its file's absolute path, or the built-in id
     notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
+    recipe: str | None = None  # the recipe (or snapshot, plan) file this device was given
+    batch: int | None = None  # fleets: the batch the device ran in (or would have: skipped)
 
     @property
     def write_requests(self) -> int:
-        return sum(1 for r in self.requests if r.function in (6, 16))
+        return sum(1 for r in self.requests if r.function in (5, 6, 15, 16))
 
     @property
     def read_requests(self) -> int:
-        return sum(1 for r in self.requests if r.function == 3)
+        return sum(1 for r in self.requests if r.function in (1, 2, 3, 4))
 
     def settle(self) -> None:
         """Device status from its parameters (unless already sent/failed/unreachable/skipped)."""
@@ -119,6 +123,10 @@ class DeviceResult:
             out["profile_ref"] = self.profile_ref
         if self.notices:
             out["notices"] = list(self.notices)
+        if self.recipe is not None:
+            out["recipe"] = self.recipe
+        if self.batch is not None:
+            out["batch"] = self.batch
         return out
 
 

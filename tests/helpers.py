@@ -46,8 +46,9 @@ def count(log: list[LogEntry], function: int, **where: Any) -> int:
 
 
 @contextmanager
-def umodbus_server(store: dict[int, int]) -> Iterator[int]:
-    """A Modbus/TCP server from another library (umodbus), unit 1, holding registers in ``store``; yields its port."""
+def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None) -> Iterator[int]:
+    """A Modbus/TCP server from another library (umodbus), unit 1, holding registers in ``store`` (and coils in
+    ``coils``, served with functions 1, 5 and 15); yields its port."""
     pytest.importorskip("umodbus", reason="umodbus is a test extra (pip install -e '.[test]')")
     from umodbus import conf
     from umodbus.server.tcp import RequestHandler, get_server
@@ -63,6 +64,15 @@ def umodbus_server(store: dict[int, int]) -> Iterator[int]:
     @server.route(slave_ids=[1], function_codes=[6, 16], addresses=list(store))  # type: ignore[untyped-decorator]
     def write(slave_id: int, function_code: int, address: int, value: int) -> None:
         store[address] = value
+
+    if coils:
+        @server.route(slave_ids=[1], function_codes=[1], addresses=list(coils))  # type: ignore[untyped-decorator]
+        def read_coil(slave_id: int, function_code: int, address: int) -> int:
+            return coils[address]
+
+        @server.route(slave_ids=[1], function_codes=[5, 15], addresses=list(coils))  # type: ignore[untyped-decorator]
+        def write_coil(slave_id: int, function_code: int, address: int, value: int) -> None:
+            coils[address] = value
 
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from deployer.cli import validate_file
+from deployer.cli.files import validate_file
 from deployer.load.diagnostics import InputError
 
 BAD = Path(__file__).parent / "bad"

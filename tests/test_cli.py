@@ -287,8 +287,8 @@ def test_fleet_problems_are_reported_before_anything_is_sent(capsys: pytest.Capt
                    "  b: {url: 'tcp://127.0.0.1:1', parameters: {F07: 7000 s}}\n")
     code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", str(inv), "--yes")
     assert code == 1
-    assert f"{inv}:2:12: error: a: unknown option 'baud'" in err
-    assert f"{inv}:3:51: error: F07: 7000 s is out of range 0..6000 s" in err
+    assert f"{inv}:2:12: error: unknown option 'baud'" in err and "(device a)\n" in err
+    assert f"{inv}:3:51: error: F07: 7000 s is out of range 0..6000 s (device b)\n" in err
 
 
 def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pytest.CaptureFixture[str],
@@ -297,7 +297,7 @@ def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pyt
     code, out, _ = cli(capsys, "plan", r)
     assert code == 0 and "21 bytes on an RTU line, about 16 ms at 19200 baud" in out
     # with a serial URL the estimate uses its line settings and framing (ASCII counts characters)
-    from deployer.cli import _line_of
+    from deployer.cli.plan import _line_of
     from deployer.planning.model import Target
     from deployer.planning.planner import make_plan
     from deployer.planning.wire import line_cost

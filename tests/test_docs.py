@@ -10,7 +10,8 @@ import jsonschema
 import pytest
 import yaml
 
-from deployer.cli import docgen, validate_file
+from deployer.cli import docgen
+from deployer.cli.files import validate_file
 from deployer.load import schema
 from deployer.profile import Limits
 from deployer.transport.urls import _OPTIONS, DEFAULT_PORTS, NUMERIC_OPTIONS, SERIAL_DEFAULTS, option_facts

@@ -189,6 +189,45 @@ def test_max_failures_stops_starting_devices(capsys: pytest.CaptureFixture[str],
         assert all(d["status"] == "skipped" for d in devices[first:])
 
 
+def test_an_unreachable_device_spends_the_failure_budget_and_batches_are_recorded(
+        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    # the run: --batch 1,20%,100% --max-failures 1 over ten devices, one of them dead (d01, batch 2)
+    with fleet(10) as sims:
+        urls = {n: s.url for n, s in zip(names(10), sims, strict=True)}
+        urls["d01"] = f"tcp://127.0.0.1:{free_port()}"
+        report_file, state = tmp_path / "run.json", tmp_path / "s"
+        code, out, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
+                             "--batch", "1,20%,100%", "--max-failures", "1", "--parallel", "1", "--json",
+                             "--report", str(report_file), "--state-dir", str(state))
+        assert code == 4
+        report = json.loads(out)
+        jsonschema.validate(report, schema.schema("report"))
+        assert report == json.loads(report_file.read_text())
+        by = {d["name"]: d for d in report["devices"]}
+        # every device has its batch: 1 (the canary), 2 (20% of 10), 3 (the rest), skipped ones too
+        assert {n: d["batch"] for n, d in by.items()} == {"d00": 1, "d01": 2, "d02": 2, **{n: 3 for n in names(10)[3:]}}
+        assert by["d00"]["status"] == "ok" and by["d01"]["status"] == "unreachable"
+        # the dead device spent the budget: nothing after it started (d02 came after it on --parallel 1)
+        assert [n for n, d in by.items() if d["status"] == "skipped"] == names(10)[2:]
+        assert all("1 device did not end ok (--max-failures 1" in by[n]["error"] for n in names(10)[2:])
+        assert all(not s.log for s in sims[2:])
+        # the progress lines and the audit log say the batch
+        assert "d00: ok (batch 1, 2 writes)" in err and "d01: unreachable (batch 2, 0 writes)" in err
+        lines = [json.loads(x) for x in (state / "audit.jsonl").read_text().splitlines()]
+        started = [x for x in lines if x["event"] == "device-started"]
+        assert [(x["name"], x["batch"]) for x in started] == [("d00", 1)]
+        assert [(x["name"], x["batch"]) for x in lines if x["event"] == "device-finished"] == [("d00", 1)]
+        finished = next(x for x in lines if x["event"] == "run-finished")
+        assert {d["name"]: (d["batch"], d["status"]) for d in finished["devices"]} == {
+            n: (by[n]["batch"], by[n]["status"]) for n in names(10)}
+        # a skipped device is not a failure: with a budget of 2, the dead one alone does not stop the rollout
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
+                           "--batch", "1,20%,100%", "--max-failures", "2", "--parallel", "1", "--json",
+                           "--state-dir", str(state))
+        assert code == 4
+        assert [d["status"] for d in json.loads(out)["devices"]].count("ok") == 9
+
+
 def test_retry_from_the_report_touches_exactly_the_devices_that_failed(capsys: pytest.CaptureFixture[str],
                                                                        tmp_path: Path) -> None:
     with fleet(6, {2: Faults(fail_registers=frozenset({F08})), 4: Faults(busy_first=100)}) as sims:
@@ -434,7 +473,8 @@ def test_declining_one_device_of_a_fleet_skips_only_that_one(tmp_path: Path) -> 
 
     with fleet(3) as sims:
         rec = deployer.load_recipe(recipe(tmp_path))
-        jobs = deployer.api.fleet(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)}))
+        jobs = deployer.api.fleet_jobs(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims,
+                                                                                          strict=True)}))
 
         async def confirm(plan: object, res: deployer.DeviceResult) -> bool:
             return res.name != "d01"

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from deployer.cli import validate_file
+from deployer.cli.files import validate_file
 from deployer.load.diagnostics import InputError
 from deployer.profile import builtin_profile, builtin_profile_ids
 from deployer.testing.simulator import Faults, SimulatorThread
@@ -99,7 +99,7 @@ def test_unknown_profile_in_an_inventory_says_paths_are_relative_to_it(tmp_path:
     assert messages(inv) == [
         f"{inv}:2:46: error: unknown built-in profile 'drive-b' (built-in: {BUILTINS}"
         "); a profile file works too: its path relative to the inventory, ending in .yaml, "
-        "did you mean 'drive-b.yaml'?"]
+        "did you mean 'drive-b.yaml'? (device press-1)"]
 
 
 def test_no_answer_through_a_gateway_points_at_the_gateway_settings(capsys: pytest.CaptureFixture[str],

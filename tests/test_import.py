@@ -356,7 +356,7 @@ def test_sunspec_scale_factors_read_from_the_device(tmp_path: Path, capsys: pyte
 def test_nul_after_a_syntax_error_is_a_message(tmp_path: Path) -> None:
     """Found by fuzzing the SunSpec import: libyaml stops at the syntax error, the pure-Python re-parse
     (for its wording) refuses the whole text because of a NUL further on; that must stay a message."""
-    from deployer.cli import validate_file
+    from deployer.cli.files import validate_file
     from deployer.load.diagnostics import InputError
 
     bad = tmp_path / "r.yaml"

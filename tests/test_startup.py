@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from deployer.cli import validate_file
+from deployer.cli.files import validate_file
 from deployer.load import yamlsrc
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -32,6 +32,15 @@ def test_validate_and_offline_plan_do_not_import_pymodbus() -> None:
         mods = _imported(*args)
         assert not {m for m in mods if m.split(".")[0] in ("pymodbus", "serial")}, args
     assert not {m for m in _imported("validate", recipe) if m.startswith("rich")}
+
+
+def test_a_command_imports_only_its_own_module() -> None:
+    """LazyGroup: `validate` loads deployer.cli.files, not the other command modules."""
+    code = ("import sys\nfrom deployer.cli import main\ntry:\n"
+            "    main(['validate', 'recipes/examples/conveyor-line3.yaml'])\nexcept SystemExit:\n    pass\n"
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith('deployer.cli'))))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert proc.stdout.split()[-3:] == ["deployer.cli", "deployer.cli.base", "deployer.cli.files"], proc.stderr
 
 
 def test_validate_parses_each_file_once(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -1,15 +1,12 @@
 """Command line: thin over the library API. Each command returns its exit code.
 
-``base`` holds the click group, the entry point and the shared helpers; importing each command module
-registers its commands on the group.
+``base`` holds the click group, the entry point and the shared helpers; the group imports a
+command's module (``apply``, ``files``, ``plan``, ``profiles``, ``read``, ``simulate``) only when that
+command runs (``LazyGroup``).
 """
 
 from __future__ import annotations
 
-from . import apply, files, plan, profiles, read, simulate  # noqa: F401  (registers the commands)
-from .apply import print_report
 from .base import cli, main
-from .files import validate_file
-from .plan import _line_of, print_plan
 
-__all__ = ["_line_of", "cli", "main", "print_plan", "print_report", "validate_file"]
+__all__ = ["cli", "main"]

@@ -18,7 +18,6 @@ from .base import (
     _fleet,
     _n,
     _target,
-    cli,
     console,
     describe,
     device_options,
@@ -114,9 +113,16 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             chosen = {d.name for d in select(Inventory(from_report, tuple(FleetDevice(j.name, describe(j.url))
                                                                           for j in jobs)), limit)}
             jobs = [j for j in jobs if j.name in chosen]
-        label = from_report
+        label: str | None = from_report
+    elif source is None:  # each device's recipe from the inventory
+        if not inventory:
+            raise UsageError(f"pass {'SNAPSHOT' if command == 'rollback' else 'RECIPE'}, or --inventory FILE "
+                             "whose devices name their recipes")
+        if device:
+            raise UsageError("--device and --inventory exclude each other")
+        label = None
+        jobs = _fleet(None, inventory, limit, timeout, retries, unit)
     else:
-        assert source is not None
         label = source
         if _is_plan_file(source):
             if inventory or write_all:
@@ -175,7 +181,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
-                           run_id=run_id, applied=os.path.abspath(label), lock_timeout=lock_timeout)
+                           run_id=run_id, applied=os.path.abspath(label) if label else None, lock_timeout=lock_timeout)
     if fleet_run:
         import gc
 
@@ -188,7 +194,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             gc.freeze()
             gc.set_threshold(20_000, 20, 10)
         # a live display on a terminal (not while asking questions), else a line per device
-        progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes)
+        progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes, staged=bool(batch))
         with progress:
             report = asyncio.run(run_fleet_async(
                 jobs, recipe_name=label, parallel=parallel, batch=batch, max_failures=max_failures, options=options,
@@ -267,7 +273,8 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
                      help="staged rollout: batch sizes (count or % of the selected devices; the last repeats); "
                           "each batch finishes before the next, a batch with no ok device ends the rollout"),
         click.option("--max-failures", metavar="N|P%",
-                     help="after this many devices ended failed or partial, start no new device"),
+                     help="after this many devices did not end ok (failed, partial or unreachable count; skipped "
+                          "ones never), start no new device"),
         parallel_option,
         click.option("--on-error", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
                      help="after a rejected value: send the rest, or skip it"),
@@ -283,15 +290,17 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
     return device_options(f)
 
 
-@cli.command()
-@click.argument("source", metavar="RECIPE|PLAN.json", type=click.Path(dir_okay=False))
+@click.command()
+@click.argument("source", metavar="[RECIPE|PLAN.json]", required=False, type=click.Path(dir_okay=False))
 @apply_options
-def apply(source: str, **kw: Any) -> int:
-    """Write a recipe (or a saved plan) to a device, read it back, report what it holds."""
+def apply(source: str | None, **kw: Any) -> int:
+    """Write a recipe (or a saved plan) to a device, read it back, report what it holds.
+
+    With --inventory and no RECIPE, each device gets its recipe from the inventory."""
     return run_apply(source, **kw)
 
 
-@cli.command()
+@click.command()
 @click.argument("snapshot", required=False, type=click.Path(dir_okay=False, exists=True))
 @apply_options
 @click.option("--force", is_flag=True,
@@ -317,7 +326,7 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
     return run_apply(snapshot, command="rollback", **kw)
 
 
-@cli.command()
+@click.command()
 @click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
               help="where snapshots and the audit log are")
 @click.option("--json", "as_json", is_flag=True, help="print the unfinished runs as JSON")

@@ -22,7 +22,49 @@ if TYPE_CHECKING:
     from ..transport.clients import DeviceURL
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class LazyGroup(click.Group):
+    """A group whose commands are imported when one runs (click's documented pattern), not at start-up.
+
+    ``lazy``: command name -> ``"module:object"``. ``--help`` imports every command's module for its
+    summary line; those modules import their heavy dependencies inside the commands.
+    """
+
+    def __init__(self, *args: Any, lazy: Mapping[str, str] | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.lazy = dict(lazy or {})
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted([*super().list_commands(ctx), *self.lazy])
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in self.lazy:
+            return super().get_command(ctx, cmd_name)
+        import importlib
+
+        module, _, attr = self.lazy[cmd_name].partition(":")
+        command = getattr(importlib.import_module(module), attr)
+        if not isinstance(command, click.Command):  # pragma: no cover - a wrong entry in the table below
+            raise TypeError(f"{self.lazy[cmd_name]} is not a click command")
+        return command
+
+
+_COMMANDS = {
+    "apply": "deployer.cli.apply:apply",
+    "demo": "deployer.cli.simulate:demo",
+    "diff": "deployer.cli.read:diff",
+    "docs": "deployer.cli.files:docs_command",
+    "explain": "deployer.cli.files:explain",
+    "plan": "deployer.cli.plan:plan",
+    "profiles": "deployer.cli.profiles:profiles",
+    "pull": "deployer.cli.read:pull",
+    "rollback": "deployer.cli.apply:rollback",
+    "simulate": "deployer.cli.simulate:simulate",
+    "status": "deployer.cli.apply:status",
+    "validate": "deployer.cli.files:validate",
+}
+
+
+@click.group(cls=LazyGroup, lazy=_COMMANDS, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="modbus-deployer")
 def cli() -> None:
     """Deploy parameter sets (recipes) to Modbus devices: plan, apply, verify, report."""
@@ -134,11 +176,22 @@ def _unreachable(values: Mapping[str, object]) -> list[str]:
     return [n for n, v in values.items() if isinstance(v, Exception)]
 
 
-def _fleet(rec: Recipe, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
+def _fleet(rec: Recipe | None, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
            unit: int | None) -> list[Job]:
-    from ..api import fleet
+    from ..api import fleet_jobs
 
-    return fleet(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)
+    return fleet_jobs(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)
+
+
+def recipe_or_inventory(recipe: str | None, inventory: str | None, *, what: str = "RECIPE") -> Recipe | None:
+    """The command line's recipe, loaded; None when there is none and the inventory's devices name theirs."""
+    from ..recipe.loader import load_recipe
+
+    if recipe is not None:
+        return load_recipe(recipe)
+    if inventory is None:
+        raise UsageError(f"pass {what}, or --inventory FILE whose devices name their recipes")
+    return None
 
 
 _ARGV: list[str] = []  # the command line, for the audit log

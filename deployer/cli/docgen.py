@@ -379,6 +379,14 @@ def _example_block(name: str, value: Any) -> str:
     return "```yaml\n" + compact_yaml(value) + "```\n"
 
 
+def _names_files(value: Any) -> bool:
+    """Whether an example's ``recipe`` or ``profile`` names a file (``recipes/zone.yaml``) that is not part of it."""
+    if isinstance(value, dict):
+        return any((k in ("recipe", "profile") and isinstance(v, str) and v.endswith((".yaml", ".yml", ".json")))
+                   or _names_files(v) for k, v in value.items())
+    return isinstance(value, list) and any(_names_files(v) for v in value)
+
+
 def render_page(name: str) -> str:
     """The reference page of one schema (Markdown)."""
     root = schemas.schema(name)
@@ -387,7 +395,10 @@ def render_page(name: str) -> str:
            f"Schema: `deployer/schemas/{name}.schema.json` (draft 2020-12). `deployer explain KEY` prints any "
            "key's entry below on the command line.", ""]
     for i, ex in enumerate(root.get("examples", [])):
-        out += ["## Example" + (f" {i + 1}" if len(root["examples"]) > 1 else ""), "", _example_block(name, ex)]
+        out += ["## Example" + (f" {i + 1}" if len(root["examples"]) > 1 else ""), ""]
+        if name == "inventory" and _names_files(ex):  # names the reader's files: not checkable on its own
+            out += ["<!-- example: partial -->"]
+        out += [_example_block(name, ex)]
     out += ["## Keys", "", "| key | type | required | default |", "|---|---|---|---|"]
     for k in keys:
         default = f"`{_cell(inline(k.default))}`" if k.has_default else ""

@@ -7,8 +7,8 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..load.diagnostics import EXIT_INVALID, EXIT_OK, Diagnostic, InputError, UsageError
-from .base import _n, cli
+from ..load.diagnostics import EXIT_INVALID, EXIT_OK, InputError, UsageError
+from .base import _n
 
 if TYPE_CHECKING:
     from ..load.yamlsrc import Source
@@ -44,37 +44,25 @@ def validate_file(path: str) -> str:
 
 
 def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
-    from ..fleet.inventory import load_inventory, url_problems
-    from ..profile import load_profile, resolve_profile
+    from ..fleet.inventory import load_inventory
+    from ..profile import load_profile_file
     from ..recipe.loader import load_recipe
 
     if kind == "profile":
-        prof = load_profile(path)
+        prof = load_profile_file(path)
         return f"profile {prof.id}: {_n(len(prof.parameters), 'parameter')}"
     if kind == "recipe":
         rec = load_recipe(path)
         return f"recipe {rec.name}: {_n(len(rec.desired), 'parameter')} for profile {rec.profile.id}"
     if kind == "inventory":
+        from ..fleet.inventory import fleet_jobs
+
         inv = load_inventory(path)
-        errors: list[Diagnostic] = url_problems(inv)
-        checked: dict[str, str | None] = {}  # each distinct profile is loaded once, however many devices use it
-        for dev in inv.devices:
-            if dev.profile is None:
-                continue
-            if dev.profile not in checked:
-                checked[dev.profile] = None
-                try:
-                    resolve_profile(dev.profile, relative_to=path, kind="inventory")
-                except UsageError as e:
-                    checked[dev.profile] = str(e)
-                except InputError as e:
-                    errors.extend(e.diagnostics)
-            why = checked[dev.profile]
-            if why is not None:  # said at every device that names it
-                errors.append(src.error(("devices", dev.name, "profile"), why))
-        if errors:
-            raise InputError(errors)
-        return f"inventory: {_n(len(inv.devices), 'device')}"
+        # what plan and apply would check before sending anything: each device's profile, URL, and its
+        # recipe (from the inventory) with its overrides; devices without one get theirs on the command line
+        jobs = fleet_jobs(inv, None, None, require_recipe=False)
+        recipes = {j.recipe.path for j in jobs}
+        return f"inventory: {_n(len(inv.devices), 'device')}" + (f", {_n(len(recipes), 'recipe')}" if recipes else "")
     if kind == "plan":
         from ..planning.planfile import plan_from_json
 
@@ -86,7 +74,7 @@ def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
                                      "an inventory has 'devices'")])
 
 
-@cli.command()
+@click.command()
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
 def validate(files: tuple[str, ...]) -> int:
     """Check profiles, recipes and inventories (and saved plans); exit 1 if any is invalid."""
@@ -104,7 +92,7 @@ def validate(files: tuple[str, ...]) -> int:
     return EXIT_OK
 
 
-@cli.command("docs")
+@click.command("docs")
 @click.option("--out", "out_dir", default=os.path.join("docs", "reference"), show_default=True,
               type=click.Path(file_okay=False), help="where the reference pages go")
 @click.option("--check", is_flag=True, help="write nothing; exit 1 when a page differs from the schemas")
@@ -122,7 +110,7 @@ def docs_command(out_dir: str, check: bool) -> int:
     return EXIT_OK
 
 
-@cli.command()
+@click.command()
 @click.argument("key")
 def explain(key: str) -> int:
     """Explain a key of a profile, recipe, inventory, plan or report, or a device URL option

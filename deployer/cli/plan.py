@@ -14,7 +14,6 @@ from .base import (
     _n,
     _target,
     _unreachable,
-    cli,
     console,
     describe,
     device_options,
@@ -23,6 +22,7 @@ from .base import (
     parallel_option,
     read_device,
     read_fleet,
+    recipe_or_inventory,
 )
 from .tables import Cell, show
 
@@ -53,6 +53,7 @@ def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:
 def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console,
                url: DeviceURL | None = None) -> None:
     from ..planning.wire import line_cost, wire_stats
+    from ..profile.model import address_text
 
     req_of: dict[str, list[int]] = {}
     for i, w in enumerate(plan.writes, 1):
@@ -65,7 +66,7 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
     for pp in plan.parameters:
         if changes_only and pp.action == "unchanged":
             continue
-        addr = f"0x{pp.address:04X} ({pp.address})"
+        addr = address_text(pp.register_type, pp.address)
         reqs = ",".join(str(i) for i in req_of.get(pp.name, [])) or "-"
         if changes_only:
             p = profile.parameter(pp.name)
@@ -101,7 +102,8 @@ def print_frames(plan: Plan, out: Console) -> None:
     unit = plan.device.unit
     for i, w in enumerate(plan.writes, 1):
         names = ", ".join(w.parameters)
-        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {w.count} registers ({names})")
+        what = _n(w.count, "coil") if w.function in (5, 15) else f"{w.count} registers"
+        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {what} ({names})")
         framing: Framing
         for framing in ("rtu", "ascii", "tcp"):
             q = request_frame(w, unit, framing, transaction_id=i)
@@ -117,8 +119,8 @@ def _show(frame: bytes, framing: str) -> str:
     return frame.decode("ascii").strip() if framing == "ascii" else frame.hex(" ").upper()
 
 
-@cli.command()
-@click.argument("recipe", type=click.Path(dir_okay=False))
+@click.command()
+@click.argument("recipe", required=False, type=click.Path(dir_okay=False))
 @device_options
 @click.option("--json", "as_json", is_flag=True, help="print the plan as JSON")
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), help="write the plan (JSON) for 'apply PLAN.json'")
@@ -128,24 +130,27 @@ def _show(frame: bytes, framing: str) -> str:
 @fleet_option
 @limit_option
 @parallel_option
-def plan(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
+def plan(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
          inventory: str | None, limit: str | None, parallel: int) -> int:
-    """Show the requests that apply would send. Offline, or with --device against what the device holds."""
+    """Show the requests that apply would send. Offline, or with --device against what the device holds.
+
+    With --inventory and no RECIPE, each device's recipe from the inventory."""
     from ..planning.model import Target
     from ..planning.planfile import plan_to_json
     from ..planning.planner import make_plan
-    from ..recipe.loader import load_recipe
     from ..report import write_json
 
-    rec = load_recipe(recipe)
+    maybe = recipe_or_inventory(recipe, inventory)
     if inventory:
         if device or out_path or show_frames:
             raise UsageError("with --inventory, --device, --out and --show-frames do not apply (one plan per device)")
-        return plan_fleet(rec, _fleet(rec, inventory, limit, timeout, retries, unit), parallel=parallel,
+        return plan_fleet(maybe, _fleet(maybe, inventory, limit, timeout, retries, unit), parallel=parallel,
                           as_json=as_json, detailed_exitcode=detailed_exitcode, write_all=write_all)
     if limit:
         raise UsageError("--limit needs --inventory")
+    assert maybe is not None
+    rec = maybe
     url, u = _target(rec, device, unit, timeout, retries, required=False)
     current = None
     if device is not None:
@@ -173,7 +178,7 @@ def plan(recipe: str, device: str | None, unit: int | None, timeout: float | Non
     return EXIT_OK
 
 
-def plan_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool, detailed_exitcode: bool,
+def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_json: bool, detailed_exitcode: bool,
                write_all: bool) -> int:
     """A plan per device against what it holds; exit 3 if any device could not be read, else as plan."""
     from ..api import read_jobs
@@ -190,7 +195,7 @@ def plan_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool
                                                        or j.recipe.profile.id), cur, write_all=write_all)
     changing = [n for n, p in plans.items() if p.writes]
     if as_json:
-        click.echo(json.dumps({"recipe": rec.path, "devices": [
+        click.echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
             {"name": j.name, "plan": plan_to_json(plans[j.name])} if j.name in plans
             else {"name": j.name, "error": str(values[j.name])} for j in jobs]}, indent=2))
     else:

@@ -9,11 +9,11 @@ from typing import Any
 import click
 
 from ..load.diagnostics import EXIT_OK, EXIT_UNREACHABLE, UsageError
-from .base import _n, _output, cli, console, read_device
+from .base import _n, _output, console, read_device
 from .tables import Cell, show
 
 
-@cli.group()
+@click.group()
 def profiles() -> None:
     """The built-in device profiles, and importing new ones."""
 
@@ -200,6 +200,7 @@ def profiles_show(profile: str) -> int:
     """Show a profile's parameters in engineering units (a built-in id or a file)."""
     from ..profile import resolve_profile
     from ..profile.codec import format_decimal, layout_name
+    from ..profile.model import address_text
 
     prof = resolve_profile(profile)
     out = console()
@@ -207,7 +208,9 @@ def profiles_show(profile: str) -> int:
     lim = prof.limits
     layout = layout_name(prof.word_order, prof.byte_swap)
     out.print(f"addressing {prof.addressing}, byte order {layout}; up to {lim.write_registers} registers "
-              f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read")
+              f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read"
+              + (f"; {lim.write_coils} coils per write (FC15), {lim.read_coils} per read"
+                 if any(p.register_type == "coil" for p in prof.parameters) else ""))
     rows: list[list[Cell]] = []
     for p in prof.parameters:
         rng = "" if p.min is None and p.max is None else (
@@ -216,7 +219,7 @@ def profiles_show(profile: str) -> int:
             rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
         default = "" if p.default is None else p.default if isinstance(p.default, str) else (
             str(bool(p.default)).lower() if p.type == "bool" else format_decimal(p.default))
-        rows.append([p.name, f"0x{p.address:04X} ({p.address})", _type_text(p), p.unit or "",
+        rows.append([p.name, address_text(p.register_type, p.address), _type_text(p), p.unit or "",
                      "" if p.is_string or p.type == "bool" else format_decimal(p.scale), rng, p.access, default,
                      p.description])
     show(out, ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"],

@@ -10,6 +10,8 @@ import time
 from types import TracebackType
 from typing import TYPE_CHECKING
 
+from .base import _n
+
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType
     from rich.live import Live
@@ -25,8 +27,10 @@ STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "b
 class FleetProgress:
     """Feed it ``start(name)`` and ``done(name, status, detail)``; use it as a context manager."""
 
-    def __init__(self, total: int, err: Console, *, live: bool, verb: str = "writing", lines: bool = True) -> None:
+    def __init__(self, total: int, err: Console, *, live: bool, verb: str = "writing", lines: bool = True,
+                 staged: bool = False) -> None:
         self.total = total
+        self.staged = staged  # --batch: each device's line says its batch
         self.err = err
         self.verb = verb
         self.lines = lines
@@ -93,22 +97,26 @@ class FleetProgress:
             self.err.print(f"{name}: [{style}]{status}[/{style}]" + (f" {detail}" if detail else ""))
 
     def device_done(self, r: DeviceResult) -> None:
-        self.done(r.name, r.status, f"({r.write_requests} writes)" + (f" - {r.error}" if r.error else ""))
+        where = f"batch {r.batch}, " if self.staged and r.batch is not None else ""
+        self.done(r.name, r.status, f"({where}{_n(r.write_requests, 'write')})" + (f" - {r.error}" if r.error else ""))
 
 
 def fleet_summary(report: Report, out: Console) -> None:
-    """One row per device (status, parameters changed and failed, requests, seconds), then the totals."""
+    """One row per device (its batch in a staged run, status, parameters changed and failed, requests,
+    seconds), then the totals."""
     from .tables import show
 
+    staged = len({d.batch for d in report.devices}) > 1
     rows: list[list[Cell]] = []
     for d in report.devices:
         changed = sum(1 for p in d.parameters if p.status == "ok" and p.before_raw != p.after_raw)
         failed = sum(1 for p in d.parameters if p.status in ("failed", "mismatch", "unverified"))
         secs = "-" if d.seconds is None else f"{d.seconds:.2f}"
-        rows.append([d.name, (d.status, STYLE.get(d.status, "")), str(changed), str(failed), str(len(d.requests)),
-                     secs, d.error or ""])
-    show(out, ["device", "status", "changed", "failed", "requests", "seconds", ""], rows)
+        rows.append([d.name, *([str(d.batch or "-")] if staged else []), (d.status, STYLE.get(d.status, "")),
+                     str(changed), str(failed), str(len(d.requests)), secs, d.error or ""])
+    show(out, ["device", *(["batch"] if staged else []), "status", "changed", "failed", "requests", "seconds", ""],
+         rows)
     s = report.summary()
     parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "skipped") if s[k] or k == "ok"]
-    out.print(f"{s['devices']} devices: {', '.join(parts)}; {s['write_requests']} write and "
-              f"{s['read_requests']} read requests in {s['seconds']:.2f} s")
+    out.print(f"{_n(s['devices'], 'device')}: {', '.join(parts)}; {_n(s['write_requests'], 'write request')} and "
+              f"{_n(s['read_requests'], 'read request')} in {s['seconds']:.2f} s")

@@ -17,7 +17,6 @@ from .base import (
     _output,
     _target,
     _unreachable,
-    cli,
     console,
     describe,
     device_options,
@@ -26,6 +25,7 @@ from .base import (
     parallel_option,
     read_device,
     read_fleet,
+    recipe_or_inventory,
 )
 from .tables import Cell, show
 
@@ -36,27 +36,30 @@ if TYPE_CHECKING:
     from ..recipe.loader import Recipe
 
 
-@cli.command()
-@click.argument("recipe", type=click.Path(dir_okay=False))
+@click.command()
+@click.argument("recipe", required=False, type=click.Path(dir_okay=False))
 @device_options
 @click.option("--json", "as_json", is_flag=True, help="print the differences as JSON")
 @fleet_option
 @limit_option
 @parallel_option
-def diff(recipe: str, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
+def diff(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, inventory: str | None, limit: str | None, parallel: int) -> int:
-    """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches."""
-    from ..api import diff_values
-    from ..recipe.loader import load_recipe
+    """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches.
 
-    rec = load_recipe(recipe)
+    With --inventory and no RECIPE, each device against its recipe from the inventory."""
+    from ..api import diff_values
+
+    maybe = recipe_or_inventory(recipe, inventory)
     if inventory:
         if device:
             raise UsageError("--device and --inventory exclude each other")
-        return diff_fleet(rec, _fleet(rec, inventory, limit, timeout, retries, unit), parallel=parallel,
+        return diff_fleet(maybe, _fleet(maybe, inventory, limit, timeout, retries, unit), parallel=parallel,
                           as_json=as_json)
     if limit:
         raise UsageError("--limit needs --inventory")
+    assert maybe is not None
+    rec = maybe
     url, u = _target(rec, device, unit, timeout, retries, required=True)
     assert url is not None
     current = read_device(rec.profile, [d.name for d in rec.desired], url, u)
@@ -81,7 +84,7 @@ def drift_rows(rows: Sequence[Drift], device: str | None = None) -> list[list[Ce
              ("drift", "yellow") if r.device_raw is not None else "not readable"] for r in rows]
 
 
-def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool) -> int:
+def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_json: bool) -> int:
     """One table for the whole fleet; exit 2 naming every drifted device, 3 if any could not be read."""
     from ..api import diff_values, read_jobs
 
@@ -90,7 +93,7 @@ def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool
     drifted = [n for n, r in rows.items() if any(d.device_raw is not None for d in r)]
     down = _unreachable(values)
     if as_json:
-        click.echo(json.dumps({"recipe": rec.path, "devices": [
+        click.echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
             {"name": j.name, "url": describe(j.url), "unit": j.unit, "drift": [d.to_json() for d in rows[j.name]]}
             if j.name in rows else {"name": j.name, "url": describe(j.url), "unit": j.unit,
                                     "error": str(values[j.name])} for j in jobs],
@@ -106,7 +109,7 @@ def diff_fleet(rec: Recipe, jobs: Sequence[Job], *, parallel: int, as_json: bool
     return EXIT_CHANGES if drifted else EXIT_OK
 
 
-@cli.command()
+@click.command()
 @click.option("--profile", "profile_ref", metavar="ID|FILE",
               help="the device's profile (with --inventory: for devices whose entry names none)")
 @click.option("--device", metavar="URL")

@@ -7,7 +7,6 @@ import asyncio
 import click
 
 from ..load.diagnostics import EXIT_INVALID, EXIT_OK, UsageError
-from .base import cli
 
 
 def _register(text: str) -> int:
@@ -19,7 +18,7 @@ def _register(text: str) -> int:
         raise click.BadParameter(f"not a register address: {text!r} (e.g. 4354, 0x1102, 1102h)") from None
 
 
-@cli.command()
+@click.command()
 @click.argument("profile")
 @click.option("--listen", default="tcp://127.0.0.1:5020", show_default=True, metavar="URL",
               help="tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/X?baudrate=B, ascii:///dev/X")
@@ -88,7 +87,7 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
     return EXIT_OK
 
 
-@cli.command()
+@click.command()
 @click.option("--fast", is_flag=True, hidden=True, help="no pauses between steps (tests)")
 def demo(fast: bool) -> int:
     """The whole story against a built-in simulated device: validate, plan, apply, verify, drift, rollback."""

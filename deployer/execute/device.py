@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
+import os
 from collections import deque
 from collections.abc import Awaitable
 from dataclasses import dataclass
@@ -32,7 +33,8 @@ from .verify import PENDING, _attempted, _values, _verify
 
 
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
-    return {name: ParameterResult(name, a, n, text, regs, parameter=p) for name, a, n, text, regs, p
+    return {name: ParameterResult(name, a, n, text, regs, parameter=p, register_type=p.register_type)
+            for name, a, n, text, regs, p
             in _shared(recipe).results}
 
 
@@ -41,7 +43,7 @@ class _Shared:
     """What every device applying one recipe shares, worked out once (a fleet has hundreds of them)."""
 
     reads: tuple[ReadRequest, ...]  # the blocks covering the readable parameters (snapshot, read-back)
-    layout: tuple[tuple[str, int, int], ...]  # name, address, registers of each recipe parameter
+    layout: tuple[tuple[str, int, int], ...]  # name, key (Parameter.key), registers of each recipe parameter
     results: tuple[tuple[str, int, int, str, tuple[int, ...], Parameter], ...]  # a ParameterResult's fields
 
 
@@ -57,7 +59,7 @@ def _shared(recipe: Recipe) -> _Shared:
         params = [d.parameter for d in recipe.desired]
         hit = _SHARED[id(recipe)] = (recipe, _Shared(
             plan_reads(recipe.profile, [p.name for p in params if p.readable]),
-            tuple((p.name, p.address, p.count) for p in params),
+            tuple((p.name, p.key, p.count) for p in params),
             tuple((d.name, d.parameter.address, d.parameter.count, d.text, d.registers, d.parameter)
                   for d in recipe.desired)))
     return hit[1]
@@ -78,12 +80,15 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
 
 
 async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None,
-                        options: ApplyOptions | None) -> tuple[DeviceResult, Awaitable[object] | None]:
+                        options: ApplyOptions | None, batch: int | None = None,
+                        ) -> tuple[DeviceResult, Awaitable[object] | None]:
     """``apply_device``, handing back the wait for its ``device-finished`` line instead of waiting:
-    a fleet frees the device's slot (and lock) for the next device while that fsync happens."""
+    a fleet frees the device's slot (and lock) for the next device while that fsync happens.
+    ``batch``: a staged fleet's batch number, for the report and the journal."""
     opts = options or ApplyOptions()
     prof = recipe.profile
-    res = DeviceResult(name or recipe.name, tp.describe(url), unit, prof.id, profile_ref=profile_ref(prof))
+    res = DeviceResult(name or recipe.name, tp.describe(url), unit, prof.id, profile_ref=profile_ref(prof),
+                       recipe=recipe.path, batch=batch)
     results = _results(recipe)
     res.parameters = list(results.values())
     if unit == 0 and not opts.allow_broadcast:
@@ -210,11 +215,13 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
 
     # 3. the snapshot is on disk before the first write, and the journal says this device is being written:
     #    both made durable by the group-commit thread, sharing fsyncs with the other devices of a fleet
-    snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=opts.applied)
+    applied = opts.applied or (os.path.abspath(recipe.path) if recipe.path else None)  # a fleet: the device's own
+    snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=applied)
     if opts.run_id is not None:
         digest = hashlib.sha256(json.dumps(plan_to_json(plan), sort_keys=True).encode()).hexdigest()
         snap.journal = journal.path_of(opts.state_dir)
-        snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest)
+        snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest,
+                                           batch=res.batch)
     res.snapshot = await durable(snap)
 
     # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock

@@ -12,7 +12,7 @@ from ..errors import Declined as Declined  # importable from here as before
 from ..errors import DeviceGone as DeviceGone
 from ..errors import StalePlan as StalePlan
 from ..planning.model import Plan, ReadRequest, WriteRequest
-from ..planning.planner import gap_free_reads
+from ..planning.planner import gap_free_reads, read_key
 from ..profile import Profile
 from ..report import DeviceResult, RequestRecord
 from ..transport import clients as tp
@@ -60,7 +60,7 @@ class Session:
             record.attempts = attempt
             try:
                 result = await op()
-                record.result = "broadcast" if self.unit == 0 and record.function != 3 else "ok"
+                record.result = "broadcast" if self.unit == 0 and record.function not in (1, 2, 3, 4) else "ok"
                 record.exception_code = None
                 return result
             except tp.ExceptionResponse as e:
@@ -85,9 +85,11 @@ class Session:
                 continue
             await asyncio.sleep(self.backoff * 2 ** (attempt - 1))
 
-    async def read(self, address: int, count: int) -> list[int]:
-        rec = RequestRecord(3, address, count)
-        out = await self._call(rec, lambda: self.transport.read_holding_registers(address, count, self.unit))
+    async def read(self, address: int, count: int, function: int = 3) -> list[int]:
+        """Registers (FC03, FC04) or bits as 0/1 (FC01, FC02) from ``address``."""
+        rec = RequestRecord(function, address, count)
+        t, unit = self.transport, self.unit
+        out = await self._call(rec, lambda: t.read(function, address, count, unit))
         assert out is not None
         return out
 
@@ -96,11 +98,17 @@ class Session:
         t, unit = self.transport, self.unit
         if req.function == 6:
             await self._call(rec, lambda: _none(t.write_register(req.address, req.registers[0], unit)))
+        elif req.function == 5:
+            await self._call(rec, lambda: _none(t.write_coil(req.address, bool(req.registers[0]), unit)))
+        elif req.function == 15:
+            await self._call(rec, lambda: _none(t.write_coils(req.address, [bool(b) for b in req.registers], unit)))
         else:
             await self._call(rec, lambda: _none(t.write_registers(req.address, list(req.registers), unit)))
 
     async def read_blocks(self, reads: Iterable[ReadRequest], profile: Profile | None = None) -> dict[int, int]:
-        """Registers of every block. With ``profile``: when the device refuses a read across
+        """Registers of every block, by key (Parameter.key; a holding register's key is its address).
+
+        With ``profile``: when the device refuses a read across
         undeclared registers (exception 02), the rest of the reads, that one included, and every
         later read of this session go in gap-free blocks (the refused request stays in the
         report, followed by the fallback reads)."""
@@ -113,14 +121,15 @@ class Session:
                 profile = None  # planned once: read on as planned
             r = todo[i]
             try:
-                values = await self.read(r.address, r.count)
+                values = await self.read(r.address, r.count, r.function)
             except tp.ExceptionResponse as e:
                 if (profile is None or not profile.limits.max_read_gap or e.code != 2
                         or gap_free_reads(profile, [r]) == (r,)):
                     raise  # not about a gap
                 self.gap_reads = False
                 continue
-            regs.update(zip(range(r.address, r.address + r.count), values, strict=False))
+            key = read_key(r)
+            regs.update(zip(range(key, key + r.count), values, strict=False))
             i += 1
         return regs
 

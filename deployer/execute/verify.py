@@ -10,8 +10,8 @@ from ..report import ParameterResult, show_registers
 
 
 def values_of(params: Iterable[Parameter], regs: Mapping[int, int]) -> dict[str, tuple[int, ...]]:
-    """Parameter name -> registers, for every parameter whose registers were all read."""
-    return _values(((p.name, p.address, p.count) for p in params), regs)
+    """Parameter name -> registers, for every parameter whose registers were all read (``regs`` by key)."""
+    return _values(((p.name, p.key, p.count) for p in params), regs)
 
 
 def _values(layout: Iterable[tuple[str, int, int]], regs: Mapping[int, int]) -> dict[str, tuple[int, ...]]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import fnmatch
 import json
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -34,6 +34,9 @@ class FleetDevice:
     retries: int | None = None
     overrides: tuple[Entry, ...] = field(default=(), compare=False)  # per-device parameter values
     where: tuple[int, int] = (0, 0)  # line and column of the device's url in the inventory
+    recipe: str | None = None  # the recipe file this device gets, from the inventory
+    # where the device's recipe and profile were said (its own entry, a group or the defaults), and its name
+    at: Mapping[str, tuple[int, int]] = field(default_factory=dict, compare=False)
 
 
 @dataclass(frozen=True)
@@ -106,39 +109,85 @@ def not_ok(report_path: str) -> list[str]:
 # ---- jobs --------------------------------------------------------------------------------------
 
 
+# the settings a device takes from its own entry, its groups (in the order it lists them) and the defaults
+_LAYERED = ("recipe", "profile", "unit", "timeout", "retries")
+
+
 def load_inventory(path: str | os.PathLike[str]) -> Inventory:
+    """Load and check an inventory file (profile and recipe paths in it are relative to it).
+
+    Each device's settings: its own entry, else its groups (in the order it lists them, the later
+    winning), else ``defaults``; ``parameters`` merge per name in that order (defaults < groups <
+    device), over the recipe's own values. Raises InputError."""
     p = os.fspath(path)
     data, src = yamlsrc.load(p)
+    return _inventory(p, data, src, os.path.dirname(os.path.abspath(p)))
+
+
+def inventory_from(devices: Iterable[Mapping[str, Any]], name: str = "<devices>") -> Inventory:
+    """An inventory from devices given in code (each a mapping with ``name``, ``url`` and the keys of an
+    inventory file's device), checked as a file is; profile paths are relative to the working directory."""
+    src = yamlsrc.Source(name)
+    errors: list[Diagnostic] = []
+    table: dict[str, Any] = {}
+    for i, spec in enumerate(devices):
+        rest = {k: v for k, v in spec.items() if k != "name" and v is not None}
+        dev = spec.get("name")
+        if not isinstance(dev, str) or not dev:
+            errors.append(src.error((i,), f"device {i + 1}: a device needs a name"))
+        elif dev in table:
+            errors.append(src.error((i,), f"device {dev!r} is listed twice"))
+        else:
+            table[dev] = rest
+    if errors:
+        raise InputError(errors)
+    return _inventory(name, {"devices": table}, src, os.getcwd())
+
+
+def _inventory(p: str, data: Any, src: yamlsrc.Source, here: str) -> Inventory:
     if not isinstance(data, dict):
         raise InputError([src.error((), "an inventory must be a mapping (defaults: ..., devices: ...)")])
     errors: list[Diagnostic] = schema.validate(data, "inventory", src)
     if errors:
         raise InputError(errors)
     defaults: dict[str, Any] = data.get("defaults") or {}
+    groups: dict[str, Any] = data.get("groups") or {}
     devices = []
     for name, spec in data["devices"].items():
-        prof = spec.get("profile", defaults.get("profile"))
+        layers: list[tuple[yamlsrc.Path_, dict[str, Any]]] = [(("defaults",), defaults)]
+        layers += [(("groups", g), groups[g]) for g in spec.get("groups", ()) if g in groups]
+        layers.append((("devices", name), spec))
+        got: dict[str, Any] = {}
+        at: dict[str, tuple[int, int]] = {"device": src.pos(("devices", name), key=True)}
+        params: dict[str, Entry] = {}
+        for base, layer in layers:
+            for key in _LAYERED:
+                if key in layer:
+                    got[key] = layer[key]
+                    at[key] = src.pos((*base, key))
+            for k, v in (layer.get("parameters") or {}).items():
+                for e in expand(k, v, src, (*base, "parameters", k)):
+                    params.pop(e.name, None)  # a later layer decides the order too
+                    params[e.name] = e
+        prof = got.get("profile")
         if prof is not None and is_profile_path(prof):
-            prof = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(p)), prof))
-        overrides = tuple(e for k, v in (spec.get("parameters") or {}).items()
-                          for e in expand(k, v, src, ("devices", name, "parameters", k)))
+            prof = os.path.normpath(os.path.join(here, prof))
+        rec = got.get("recipe")
         devices.append(FleetDevice(
-            name=name, url=spec["url"], unit=int(spec.get("unit", defaults.get("unit", 1))), profile=prof,
+            name=name, url=spec["url"], unit=int(got.get("unit", 1)), profile=prof,
             groups=tuple(spec.get("groups", ())),
-            timeout=float(spec.get("timeout", defaults.get("timeout", 0)) or 0) or None,
-            retries=spec.get("retries", defaults.get("retries")),
-            overrides=overrides,
+            timeout=float(got.get("timeout", 0) or 0) or None,
+            retries=got.get("retries"),
+            overrides=tuple(params.values()),
             where=src.pos(("devices", name, "url")),
+            # relative to the inventory, spelled as the inventory's own path is (as a RECIPE argument would be)
+            recipe=None if rec is None else os.path.normpath(os.path.join(os.path.dirname(p), rec)),
+            at=at,
         ))
     errors = _same_devices(p, [(d, d.unit) for d in devices], check_urls=False)  # bad URLs: said with the rest
     if errors:
         raise InputError(errors)
     return Inventory(p, tuple(devices))
-
-
-def url_problems(inv: Inventory) -> list[Diagnostic]:
-    """Every device URL that does not parse, at its position (``validate``; a run says so in fleet_jobs)."""
-    return _same_devices(inv.path, [(d, d.unit) for d in inv.devices], check_urls=True)
 
 
 def _same_devices(path: str, devices: Sequence[tuple[FleetDevice, int]], *, check_urls: bool) -> list[Diagnostic]:
@@ -172,60 +221,141 @@ def _overrides_key(entries: Iterable[Entry]) -> str:
 
 
 class RecipeCache:
-    """Each distinct (recipe, profile, overrides) is parsed and checked once, however many devices share it."""
+    """Each distinct (recipe file, profile, overrides) is parsed and checked once, however many devices share it.
 
-    def __init__(self, recipe: Recipe) -> None:
+    ``recipe``: the command line's RECIPE, for every device; None: each device's own (the inventory's).
+    A failure is remembered too: its errors are said once, naming every device they concern.
+    """
+
+    def __init__(self, recipe: Recipe | None, inventory: str | None = None) -> None:
         self.recipe = recipe
-        self._by_profile: dict[str, Recipe] = {}
-        self._profiles: dict[str, Profile] = {}
-        self._by_key: dict[tuple[str, str], Recipe] = {}
+        self.inventory = inventory  # where the profile references come from (for the messages)
+        self._profiles: dict[str, Profile | Exception] = {}
+        self._bases: dict[tuple[str, str | None], Recipe | InputError] = {}
+        self._by_key: dict[tuple[str, str | None, str], Recipe | InputError] = {}
 
     def profile(self, ref: str) -> Profile:
         from ..profile import resolve_profile
 
         if ref not in self._profiles:
-            self._profiles[ref] = resolve_profile(ref)
-        return self._profiles[ref]
+            try:
+                self._profiles[ref] = (resolve_profile(ref) if self.inventory is None
+                                       else resolve_profile(ref, relative_to=self.inventory, kind="inventory"))
+            except (InputError, UsageError) as e:
+                self._profiles[ref] = e
+        got = self._profiles[ref]
+        if isinstance(got, Exception):
+            raise got
+        return got
 
-    def for_device(self, profile_ref: str | None, overrides: Sequence[Entry]) -> Recipe:
-        base = self.recipe
-        if profile_ref and profile_ref != self.recipe.profile_ref:
-            if profile_ref not in self._by_profile:
-                assert self.recipe.path is not None
-                self._by_profile[profile_ref] = load_recipe(self.recipe.path, profile=self.profile(profile_ref))
-            base = self._by_profile[profile_ref]
+    def base(self, path: str | None, profile_ref: str | None) -> Recipe:
+        """The recipe at ``path`` (None: the command line's) for a device of ``profile_ref`` (None: the recipe's)."""
+        given = self.recipe
+        if given is not None and (path is None or path == given.path) \
+                and (profile_ref is None or profile_ref == given.profile_ref):
+            return given
+        if path is None:
+            assert given is not None and given.path is not None  # a recipe built in code has no file to reload
+            path = given.path
+        key = (path, profile_ref)
+        if key not in self._bases:
+            try:
+                prof = None if profile_ref is None else self.profile(profile_ref)
+                self._bases[key] = load_recipe(path, profile=prof)
+            except InputError as e:
+                self._bases[key] = e
+        got = self._bases[key]
+        if isinstance(got, InputError):
+            raise got
+        return got
+
+    def for_device(self, profile_ref: str | None, overrides: Sequence[Entry], path: str | None = None) -> Recipe:
+        base = self.base(path, profile_ref)
         if not overrides:
             return base
-        key = (profile_ref or "", _overrides_key(overrides))
+        key = (base.path or "", profile_ref, _overrides_key(overrides))
         if key not in self._by_key:
-            self._by_key[key] = with_overrides(base, overrides)
-        return self._by_key[key]
+            try:
+                self._by_key[key] = with_overrides(base, overrides)
+            except InputError as e:
+                self._by_key[key] = e
+        got = self._by_key[key]
+        if isinstance(got, InputError):
+            raise got
+        return got
 
 
-def fleet_jobs(inv: Inventory, recipe: Recipe, limit: str | None, *, timeout: float | None = None,
-               retries: int | None = None, unit: int | None = None) -> list[Job]:
-    """One job per selected device: the recipe with the device's profile and overrides, its URL parsed.
+def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, timeout: float | None = None,
+               retries: int | None = None, unit: int | None = None, require_recipe: bool = True) -> list[Job]:
+    """One job per selected device: its recipe (``recipe``, else the one the inventory gives it) with the
+    device's profile and overrides, its URL parsed.
 
-    Everything is checked before any device is touched; all problems at once as an InputError.
+    Everything is checked before any device is touched; all problems at once as an InputError, each
+    said once and naming the devices it concerns. ``require_recipe`` False (validate): a device without
+    a recipe is checked for what it has (profile, URL) and gets no job.
     """
     from ..transport.clients import parse_url
     from .rollout import Job
 
     jobs: list[Job] = []
-    errors: list[Diagnostic] = []
-    cache = RecipeCache(recipe)
+    concerns: dict[Diagnostic, list[str]] = {}  # each problem, and the devices it stops
+    cache = RecipeCache(recipe, inv.path)
     for dev in inv.select(limit):
+        found: list[Diagnostic] = []
         try:
-            r = cache.for_device(dev.profile, dev.overrides)
-            url = parse_url(dev.url, timeout=timeout or dev.timeout,
-                            retries=retries if retries is not None else dev.retries)
-            jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit))
-        except InputError as e:
-            errors.extend(e.diagnostics)
-        except UsageError as e:  # BadURL too
-            errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
+            if dev.profile is not None:
+                cache.profile(dev.profile)
+        except UsageError as e:  # an unknown built-in id
+            found = [Diagnostic(inv.path, *dev.at.get("profile", dev.where), str(e))]
+        except InputError as e:  # the profile file's own errors, and where the inventory names it
+            where = dev.at.get("profile", dev.where)
+            if all(d.line == 0 and d.path == dev.profile for d in e.diagnostics):  # cannot be read at all
+                found = [Diagnostic(inv.path, *where, f"profile {dev.profile}: {d.message}") for d in e.diagnostics]
+            else:
+                found = [*e.diagnostics, Diagnostic(inv.path, *where, f"profile {dev.profile} is invalid")]
+        if not found:
+            try:
+                if recipe is None and dev.recipe is None and not require_recipe:
+                    parse_url(dev.url)
+                elif recipe is None and dev.recipe is None:
+                    found = [Diagnostic(inv.path, *dev.at.get("device", dev.where),
+                                        "no recipe: give the device one (recipe: in its entry, one of its groups "
+                                        "or defaults) or name one on the command line")]
+                else:
+                    r = cache.for_device(dev.profile, dev.overrides, None if recipe is not None else dev.recipe)
+                    if r.snapshot is not None:
+                        found = [Diagnostic(inv.path, *dev.at.get("recipe", dev.where),
+                                            f"{r.path} is one device's snapshot: it restores only the device it was "
+                                            "taken from (a fleet run: deployer rollback --report REPORT.json)")]
+                    else:
+                        url = parse_url(dev.url, timeout=timeout or dev.timeout,
+                                        retries=retries if retries is not None else dev.retries)
+                        jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit))
+            except InputError as e:
+                found = [_at_inventory(inv, dev, d) for d in e.diagnostics]
+            except UsageError as e:  # BadURL too
+                found = [Diagnostic(inv.path, *dev.where, str(e))]
+        for d in found:
+            concerns.setdefault(d, []).append(dev.name)
     if unit is not None:  # --unit puts every selected device on one unit id
-        errors += _same_devices(inv.path, [(d, unit) for d in inv.select(limit)], check_urls=False)
-    if errors:
-        raise InputError(errors)
+        for d in _same_devices(inv.path, [(dev, unit) for dev in inv.select(limit)], check_urls=False):
+            concerns.setdefault(d, [])
+    if concerns:
+        raise InputError(Diagnostic(d.path, d.line, d.col, f"{d.message} ({_devices(names)})" if names else d.message)
+                         for d, names in concerns.items())
     return jobs
+
+
+def _at_inventory(inv: Inventory, dev: FleetDevice, d: Diagnostic) -> Diagnostic:
+    """A recipe file the inventory names that cannot be read at all: said where the inventory names it."""
+    if d.line == 0 and dev.recipe is not None and d.path == dev.recipe:
+        return Diagnostic(inv.path, *dev.at.get("recipe", dev.where), f"recipe {dev.recipe}: {d.message}")
+    return d
+
+
+def _devices(names: Sequence[str], show: int = 8) -> str:
+    """``device a`` / ``devices a, b, c`` / ``devices a, ..., h and 12 more``."""
+    if len(names) == 1:
+        return f"device {names[0]}"
+    listed = ", ".join(names[:show])
+    return f"devices {listed}" + (f" and {len(names) - show} more" if len(names) > show else "")

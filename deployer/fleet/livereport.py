@@ -20,19 +20,21 @@ if TYPE_CHECKING:
 NOT_FINISHED = "not finished (interrupted run)"
 
 
-def not_finished(jobs: Sequence[Job]) -> list[DeviceResult]:
-    """Every job as ``skipped``, "not finished": the report file's first state. The devices of one
-    recipe share one (read-only) parameter list, so its JSON is made once (``LiveReport``)."""
+def not_finished(jobs: Sequence[Job], batches: Sequence[int] | None = None) -> list[DeviceResult]:
+    """Every job as ``skipped``, "not finished" (with its batch): the report file's first state. The
+    devices of one recipe share one (read-only) parameter list, so its JSON is made once (``LiveReport``)."""
     from ..transport.clients import describe
-    from .rollout import skipped_result
+    from .rollout import batch_numbers, skipped_result
 
     first: dict[int, DeviceResult] = {}
+    batch_of = batch_numbers(jobs, batches)
     out = []
     for j in jobs:
         proto = first.get(id(j.recipe))
         if proto is None:
             proto = first[id(j.recipe)] = skipped_result(j, NOT_FINISHED)
-        out.append(replace(proto, name=j.name, url=describe(j.url), unit=j.unit, requests=[], notices=[]))
+        out.append(replace(proto, name=j.name, url=describe(j.url), unit=j.unit, requests=[], notices=[],
+                           batch=batch_of.get(j.name)))
     return out
 
 

@@ -75,27 +75,51 @@ async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Await
     await asyncio.gather(*(run_bus(g) for g in buses.values()))
 
 
-def skipped_result(job: Job, reason: str) -> DeviceResult:
-    """A device a fleet run did not start: nothing was sent to it."""
+def skipped_result(job: Job, reason: str, batch: int | None = None) -> DeviceResult:
+    """A device a fleet run did not start: nothing was sent to it (``batch``: the one it would have run in)."""
     r = DeviceResult(job.name, tp.describe(job.url), job.unit, job.recipe.profile.id, status="skipped", error=reason,
-                     profile_ref=profile_ref(job.recipe.profile))
+                     profile_ref=profile_ref(job.recipe.profile), recipe=job.recipe.path, batch=batch)
     r.parameters = list(_results(job.recipe).values())
     return r
 
 
+# a device that ended in any other status spends the failure budget (unreachable ones too, as
+# Ansible's max_fail_percentage counts unreachable hosts); skipped ones were never tried
+SPENDS_NOTHING = ("ok", "sent", "skipped")
+
+
 @dataclass
 class Budget:
-    """``--max-failures``: how many devices may end failed or partial before no new device starts."""
+    """``--max-failures``: how many devices may end other than ok (failed, partial, unreachable ...; never
+    skipped) before no new device starts."""
 
     limit: int | None
     failures: int = 0
+
+    def count(self, r: DeviceResult) -> None:
+        if r.status not in SPENDS_NOTHING:
+            self.failures += 1
 
     def spent(self) -> str | None:
         """Why no new device may start, or None."""
         n = self.failures
         if self.limit is None or n < self.limit:
             return None
-        return f"not started: {n} device{'s' if n != 1 else ''} ended failed or partial (--max-failures {self.limit})"
+        return (f"not started: {n} device{'s' if n != 1 else ''} did not end ok (--max-failures {self.limit}: "
+                "failed, partial and unreachable devices count)")
+
+
+def batch_numbers(jobs: Sequence[Job], batches: Sequence[int] | None) -> dict[str, int]:
+    """Device name -> its batch (1 = the first) for these batch sizes; {} without batches."""
+    if batches is None:
+        return {}
+    out: dict[str, int] = {}
+    pos = 0
+    for number, size in enumerate(batches, 1):
+        for j in jobs[pos:pos + size]:
+            out[j.name] = number
+        pos += size
+    return out
 
 
 async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOptions | None = None,
@@ -107,41 +131,43 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
 
     ``batches`` (sizes, in job order) stage the rollout: each batch finishes before the next
     starts, and a batch in which no device ended ok ends the rollout (Ansible's ``serial``).
-    ``max_failures``: once that many devices ended failed or partial, no new device starts.
-    Devices never started are in the report as ``skipped`` with the reason.
+    ``max_failures``: once that many devices did not end ok (failed, partial, unreachable; never
+    skipped), no new device starts. Devices never started are in the report as ``skipped`` with
+    the reason. With ``batches``, every device's result carries its batch number.
     """
     started = time.monotonic()
     done: dict[str, DeviceResult] = {}
     budget = Budget(max_failures)
     stop: str | None = None
+    batch_of = batch_numbers(jobs, batches)
 
     async def one(j: Job) -> Awaitable[None] | None:
         nonlocal stop
         stop = stop or budget.spent()  # checked when the device's turn comes, not when it was queued
+        batch = batch_of.get(j.name)
         if stop is not None:
-            done[j.name] = skipped_result(j, stop)
+            done[j.name] = skipped_result(j, stop, batch)
             return None
         if on_start:
             on_start(j)
         t = time.monotonic()
         finishing: Awaitable[object] | None = None
         try:
-            r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=options)
+            r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=options, batch=batch)
         except Declined:
             if len(jobs) == 1:
                 raise
             # in a fleet, a "no" is about that device: the others were asked (or are being written) on their own
-            r = skipped_result(j, "not written: declined at the confirmation prompt")
+            r = skipped_result(j, "not written: declined at the confirmation prompt", batch)
         except StalePlan:
             raise
         except UsageError as e:
             r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),
-                             profile_ref=profile_ref(j.recipe.profile))
+                             profile_ref=profile_ref(j.recipe.profile), recipe=j.recipe.path, batch=batch)
             r.parameters = list(_results(j.recipe).values())
         r.seconds = time.monotonic() - t
         done[j.name] = r
-        if r.status in ("failed", "partial"):
-            budget.failures += 1
+        budget.count(r)
         return finished(r, finishing)
 
     async def finished(r: DeviceResult, finishing: Awaitable[object] | None) -> None:
@@ -228,5 +254,6 @@ def batch_sizes(spec: str | None, total: int) -> list[int]:
 
 
 def failure_budget(spec: str | None, total: int) -> int | None:
-    """``--max-failures N|P%``: after this many failed or partial devices no new device starts."""
+    """``--max-failures N|P%``: after this many devices did not end ok (failed, partial, unreachable; never
+    skipped) no new device starts."""
     return None if spec is None else _count(spec, total, "--max-failures")

@@ -7,6 +7,7 @@ from typing import Literal
 
 PLAN_SCHEMA = "deployer.plan/1"
 Action = Literal["write", "unchanged", "bridge"]
+COIL_WRITES = (5, 15)  # Write Single Coil, Write Multiple Coils
 
 
 @dataclass(frozen=True)
@@ -26,11 +27,13 @@ class PlannedParameter:
     current_raw: tuple[int, ...] | None  # None when the device was not read
     action: Action
     stage: int = 0
+    register_type: str = "holding"  # the Modbus table: holding, coil (values 0/1), discrete, input
 
 
 @dataclass(frozen=True)
 class WriteRequest:
-    function: int  # 16, or 6 for devices without FC16 (then exactly one register)
+    # 16, or 6 for devices without FC16 (then exactly one register); coils: 15, or 5 for one coil
+    function: int
     address: int
     registers: tuple[int, ...]
     parameters: tuple[str, ...]
@@ -45,7 +48,7 @@ class WriteRequest:
 class ReadRequest:
     address: int
     count: int
-    function: int = 3
+    function: int = 3  # 3 holding registers, 1 coils, 2 discrete inputs, 4 input registers
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..load.diagnostics import Diagnostic, InputError, UsageError
 from ..profile import codec
-from .model import Plan, PlannedParameter, ReadRequest, Target, WriteRequest
+from .model import COIL_WRITES, Plan, PlannedParameter, ReadRequest, Target, WriteRequest
 from .wire import wire_stats
 
 if TYPE_CHECKING:
@@ -32,7 +32,9 @@ def plan_to_json(plan: Plan) -> dict[str, Any]:
         "parameters": [{"name": p.name, "address": p.address, "count": p.count, "desired": p.desired,
                         "desired_raw": list(p.desired_raw),
                         "current_raw": None if p.current_raw is None else list(p.current_raw),
-                        "action": p.action, "stage": p.stage} for p in plan.parameters],
+                        "action": p.action, "stage": p.stage,
+                        **({"register_type": p.register_type} if p.register_type != "holding" else {})}
+                       for p in plan.parameters],
         "writes": [{"function": w.function, "address": w.address, "count": w.count, "registers": list(w.registers),
                     "parameters": list(w.parameters), "stage": w.stage} for w in plan.writes],
         "reads": [{"function": r.function, "address": r.address, "count": r.count} for r in plan.reads],
@@ -70,7 +72,8 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
     params = tuple(PlannedParameter(str(p["name"]), int(p["address"]), int(p["count"]), str(p["desired"]),
                                     tuple(int(x) for x in p["desired_raw"]),
                                     None if p.get("current_raw") is None else tuple(int(x) for x in p["current_raw"]),
-                                    p["action"], int(p.get("stage", 0))) for p in data["parameters"])
+                                    p["action"], int(p.get("stage", 0)), str(p.get("register_type", "holding")))
+                   for p in data["parameters"])
     writes = tuple(WriteRequest(int(w["function"]), int(w["address"]), tuple(int(x) for x in w["registers"]),
                                 tuple(str(n) for n in w["parameters"]), int(w.get("stage", 0)))
                    for w in data["writes"])
@@ -95,15 +98,19 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
             problems.append(error(("writes", k, "count"), f"count {wj['count']} but {w.count} registers"))
         if w.address + w.count > 0x10000:
             problems.append(error(("writes", k, "address"), "the request runs past register 65535"))
+        table = "coil" if w.function in COIL_WRITES else "holding"
         regs: dict[int, int] = {}
         for n in w.parameters:
             pp_ = by_name.get(n)
             if pp_ is None:
                 problems.append(error(("writes", k, "parameters"), f"names '{n}', which is not among the parameters"))
                 continue
+            if pp_.register_type != table:
+                problems.append(error(("writes", k, "function"), f"function {w.function} writes {table}s, but {n} "
+                                                                 f"is a {pp_.register_type}"))
             written.add(n)
             regs.update({pp_.address + i: v for i, v in enumerate(pp_.desired_raw)})
-        if w.function == 6:  # one word of one parameter
+        if w.function in (5, 6):  # one word of one parameter (one coil)
             ok = w.count == 1 and len(w.parameters) == 1 and regs.get(w.address) == w.registers[0]
         else:  # whole parameters, back to back from the request's address, nothing more
             ok = sorted(regs) == list(range(w.address, w.address + w.count)) and \
@@ -145,7 +152,8 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
     desired = []
     for i, pp in enumerate(p.parameters):
         param = prof.get(pp.name)
-        if param is None or param.address != pp.address or param.count != len(pp.desired_raw):
+        if param is None or param.address != pp.address or param.count != len(pp.desired_raw) or \
+                param.register_type != pp.register_type:
             errors.append(src.error(("parameters", i, "name"),
                                     f"{pp.name} does not match profile {prof.id} (address or size differ)"))
             continue

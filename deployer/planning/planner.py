@@ -11,6 +11,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 from ..load.diagnostics import UsageError
+from ..profile.model import READ_FUNCTION, SPACE, TYPE_OF_READ
 from .model import Action, Plan, PlannedParameter, ReadRequest, Target, WriteRequest
 
 if TYPE_CHECKING:
@@ -125,11 +126,12 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
     """
     limit = limits.write_registers
     fc6 = limits.write_function == 6
-    ordered = sorted(desired, key=lambda d: (d.parameter.stage, d.parameter.address))
+    # holding registers before coils within a stage (each table its own requests), ascending addresses
+    ordered = sorted(desired, key=lambda d: (d.parameter.stage, d.parameter.key))
     # attributes read once into flat lists: properties cost more than the planning itself at 1M
     params_ = [d.parameter for d in ordered]
     names = [p.name for p in params_]
-    addrs = [p.address for p in params_]
+    addrs = [p.key for p in params_]  # keys: a table's addresses never run on into another table's
     sizes = [p.count for p in params_]
     stages = [p.stage for p in params_]
     regs = [tuple(d.registers) for d in ordered]
@@ -142,8 +144,11 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
         bounds = [0, *(k for k in range(1, n) if not (params_[k].mask and params_[k - 1].mask
                                                        and addrs[k] == addrs[k - 1] and stages[k] == stages[k - 1])), n]
     nu = len(bounds) - 1
+    coils = any(p.register_type != "holding" for p in params_)
     for u in range(nu):
         k = bounds[u]
+        if not params_[k].writable:
+            raise UsageError(f"{names[k]} is a read-only {params_[k].register_type}: it cannot be written")
         if not fc6 and sizes[k] > limit:
             raise UsageError(f"{names[k]} needs {sizes[k]} registers in one request, but the device takes "
                              f"at most {limit} per request (limits in the profile)")
@@ -177,12 +182,21 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
     writes: list[WriteRequest] = []
     i = 0
     while i < nu:
-        j = i + 1  # a maximal run of units: same stage, contiguous registers
+        j = i + 1  # a maximal run of units: same stage, same table, contiguous registers
         while j < nu and stages[bounds[j]] == stages[bounds[i]] and \
-                addrs[bounds[j]] == addrs[bounds[j - 1]] + sizes[bounds[j - 1]]:
+                addrs[bounds[j]] == addrs[bounds[j - 1]] + sizes[bounds[j - 1]] and \
+                (not coils or addrs[bounds[j]] >> 16 == addrs[bounds[j - 1]] >> 16):
             j += 1
         stage = stages[bounds[i]]
-        if fc6:
+        if coils and addrs[bounds[i]] >> 16:  # coils (FC15, FC05 for a single coil): no fields, one bit each
+            for a, b in _plan_run(sizes[i:j], must[i:j], limits.write_coils):
+                for k in range(i + a, i + b):
+                    if not must_p[k]:
+                        actions[k] = "bridge"
+                bits = tuple(regs[k][0] for k in range(i + a, i + b))
+                writes.append(WriteRequest(5 if b - a == 1 else 15, addrs[i + a] & 0xFFFF, bits,
+                                           tuple(names[i + a:i + b]), stage))
+        elif fc6:
             # FC06 carries one register, so the "never split" rule cannot hold on such devices: a
             # 2/4-register value goes as one FC06 per word, in ascending address order (the word at
             # the lower address first, whatever the word order), the words of one parameter back to
@@ -190,8 +204,8 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
             for u in range(i, j):
                 if must[u]:
                     k = bounds[u]
-                    writes.extend(WriteRequest(6, addrs[k] + w, (word,), tuple(names[k:bounds[u + 1]]), stage)
-                                  for w, word in enumerate(regs[k]))
+                    writes.extend(WriteRequest(6, (addrs[k] & 0xFFFF) + w, (word,), tuple(names[k:bounds[u + 1]]),
+                                               stage) for w, word in enumerate(regs[k]))
                     for m in range(k, bounds[u + 1]):
                         if not must_p[m]:
                             actions[m] = "bridge"
@@ -203,12 +217,12 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
                     if not must_p[k]:
                         actions[k] = "bridge"
                 words = tuple(w for u in range(i + a, i + b) for w in regs[bounds[u]])
-                writes.append(WriteRequest(16, addrs[lo], words, tuple(names[lo:hi]), stage))
+                writes.append(WriteRequest(16, addrs[lo] & 0xFFFF, words, tuple(names[lo:hi]), stage))
         i = j
     planned = tuple(
-        PlannedParameter(names[k], addrs[k], sizes[k], ordered[k].text, regs[k],
+        PlannedParameter(names[k], addrs[k] & 0xFFFF, sizes[k], ordered[k].text, regs[k],
                          None if current is None or names[k] not in current else tuple(current[names[k]]),
-                         actions[k], stages[k])
+                         actions[k], stages[k], params_[k].register_type)
         for k in range(n))
     return planned, tuple(writes)
 
@@ -231,31 +245,36 @@ def plan_reads(profile: Profile, names: Iterable[str], *, gaps: bool = True) -> 
     of the needed parameters.
     """
     wanted = set(names)
-    limit = profile.limits.read_registers
     max_gap = profile.limits.max_read_gap if gaps else 0
     reads: list[ReadRequest] = []
-    # profiles built in code need not be sorted; loaded ones are (cheap to be sure)
-    params = sorted((p for p in profile.parameters if p.readable), key=lambda p: p.address)
+    # profiles built in code need not be sorted; loaded ones are (cheap to be sure). Keys order the
+    # four tables one after the other; a read never spans two (see joins).
+    params = sorted((p for p in profile.parameters if p.readable), key=lambda p: p.key)
     missing = wanted - {p.name for p in params}
     if missing:
         raise UsageError(f"not readable in profile {profile.id}: {', '.join(sorted(missing))}")
-    barriers: list[int] = []  # start addresses of write-only parameters: a read never spans them
+    barriers: list[int] = []  # start keys of write-only parameters: a read never spans them
     if max_gap:
-        barriers = sorted(p.address for p in profile.parameters if not p.readable)
+        barriers = sorted(p.key for p in profile.parameters if not p.readable)
 
     def joins(prev: Parameter, nxt: Parameter) -> bool:
+        if prev.register_type != nxt.register_type:
+            return False
         if nxt.address in (prev.end, prev.address):  # adjacent, or bit fields sharing one register
             return True
         if nxt.address - prev.end > max_gap:
             return False
-        k = bisect.bisect_left(barriers, prev.end)
-        return k == len(barriers) or barriers[k] >= nxt.address
+        k = bisect.bisect_left(barriers, prev.key + prev.count)
+        return k == len(barriers) or barriers[k] >= nxt.key
 
     i = 0
     while i < len(params):
         j = i + 1
         while j < len(params) and joins(params[j - 1], params[j]):
             j += 1
+        table = params[i].register_type
+        limit = profile.limits.read_limit(table)
+        function = READ_FUNCTION[table]
         start: int | None = None
         end = 0
         for p in params[i:j]:
@@ -267,22 +286,27 @@ def plan_reads(profile: Profile, names: Iterable[str], *, gaps: bool = True) -> 
                 end = p.end
                 continue
             if start is not None:
-                reads.append(ReadRequest(start, end - start))
+                reads.append(ReadRequest(start, end - start, function))
             start, end = p.address, p.end
         if start is not None:
-            reads.append(ReadRequest(start, end - start))
+            reads.append(ReadRequest(start, end - start, function))
         i = j
     return tuple(reads)
 
 
+def read_key(r: ReadRequest) -> int:
+    """A read's first register in the keys of a register map of all four tables (Parameter.key)."""
+    return SPACE[TYPE_OF_READ[r.function]] << 16 | r.address
+
+
 def gap_free_reads(profile: Profile, reads: Sequence[ReadRequest]) -> tuple[ReadRequest, ...]:
     """The blocks that replace ``reads`` on a device that refuses reads across gaps (DESIGN rule 5)."""
-    spans = sorted((r.address, r.address + r.count) for r in reads)
+    spans = sorted((read_key(r), read_key(r) + r.count) for r in reads)
     starts = [a for a, _ in spans]
     inside = []
     for p in profile.parameters:
-        k = bisect.bisect_right(starts, p.address) - 1
-        if p.readable and k >= 0 and p.end <= spans[k][1]:
+        k = bisect.bisect_right(starts, p.key) - 1
+        if p.readable and k >= 0 and p.key + p.count <= spans[k][1]:
             inside.append(p.name)
     return plan_reads(profile, inside, gaps=False)
 

@@ -13,13 +13,22 @@ CHAR_BITS = 11  # 8E1: start + 8 data + parity + stop
 
 
 def _rtu_request_bytes(function: int, count: int) -> int:
-    # unit(1) + PDU + CRC(2); PDU: FC16 fc addr qty bytecount data = 6 + 2n, FC06 and FC03 = 5
-    return 9 + 2 * count if function == 16 else 8
+    # unit(1) + PDU + CRC(2); PDU: FC16 fc addr qty bytecount data = 6 + 2n, FC15 6 + ceil(n / 8),
+    # FC06, FC05 and the reads = 5
+    if function == 16:
+        return 9 + 2 * count
+    if function == 15:
+        return 9 + (count + 7) // 8
+    return 8
 
 
 def _rtu_response_bytes(function: int, count: int) -> int:
-    # FC16 echoes address and quantity, FC06 echoes the request, FC03 carries bytecount + data
-    return 5 + 2 * count if function == 3 else 8
+    # FC16/FC15 echo address and quantity, FC06/FC05 echo the request, reads carry bytecount + data
+    if function in (3, 4):
+        return 5 + 2 * count
+    if function in (1, 2):
+        return 5 + (count + 7) // 8
+    return 8
 
 
 def line_cost(plan: Plan, *, framing: str = "rtu", baud: int = BAUD, char_bits: int = CHAR_BITS) -> tuple[int, float]:

@@ -12,7 +12,7 @@ from decimal import Decimal
 from typing import Any
 
 from ..load.diagnostics import Diagnostic, InputError
-from .loader import load_profile
+from .loader import load_profile_file
 from .model import Profile
 
 
@@ -75,7 +75,7 @@ def check(draft: Draft, out_path: str, comment: str = "") -> tuple[str, Profile]
     """The draft's text, loaded as a profile; its problems point at the source rows."""
     text, origins = draft.text(comment)
     try:
-        prof = load_profile(out_path, text)
+        prof = load_profile_file(out_path, text)
     except InputError as e:
         raise InputError(traced(e.diagnostics, origins, out_path)) from None
     return text, prof

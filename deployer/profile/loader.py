@@ -10,7 +10,7 @@ from typing import Any
 
 from ..load import schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
-from . import codec, units
+from . import codec, model, units
 from .model import CommitAction, IdentityCheck, Limits, Parameter, Precondition, Profile
 
 # ---- loading ------------------------------------------------------------------------------
@@ -40,7 +40,7 @@ def builtin_profile(id_: str) -> Profile:
     path = os.path.join(_BUILTIN_DIR, f"{id_}.yaml")
     if not os.path.isfile(path):
         raise UsageError(unknown_profile(id_))
-    prof = load_profile(path)
+    prof = load_profile_file(path)
     return replace(prof, source=None)
 
 
@@ -59,7 +59,7 @@ def resolve_profile(ref: str, relative_to: str | os.PathLike[str] | None = None,
         if not os.path.isfile(os.path.join(_BUILTIN_DIR, f"{ref}.yaml")):
             raise UsageError(unknown_profile(ref, relative_to, kind))
         return builtin_profile(ref)
-    return load_profile(os.path.normpath(os.path.join(_profile_base(relative_to), ref)))
+    return load_profile_file(os.path.normpath(os.path.join(_profile_base(relative_to), ref)))
 
 
 def parse_register(value: object) -> int:
@@ -74,7 +74,14 @@ def parse_register(value: object) -> int:
     return int(text)
 
 
-def wire_address(number: int, addressing: str) -> int:
+# modicon references: the leading digit names the table (0xxxx coils, 1xxxx discrete inputs,
+# 3xxxx input registers, 4xxxx holding registers)
+_MODICON_DIGIT = {"coil": 0, "discrete": 1, "input": 3, "holding": 4}
+_TABLE_WORDS = {"coil": "coil", "discrete": "discrete-input", "input": "input-register", "holding": "holding-register"}
+_PLURAL = {"coil": "coils", "discrete": "discrete inputs", "input": "input registers", "holding": "holding registers"}
+
+
+def wire_address(number: int, addressing: str, register_type: str = "holding") -> int:
     """Profile address -> 0-based protocol address. Raises ValueError with a user message."""
     if addressing == "address":
         return number
@@ -82,26 +89,56 @@ def wire_address(number: int, addressing: str) -> int:
         if number < 1:
             raise ValueError(f"register number {number} is below 1 (addressing: register-number)")
         return number - 1
-    # modicon: 4xxxx (5 digits) or 4xxxxx (6 digits) holding-register references
-    if 40001 <= number <= 49999:
-        return number - 40001
-    if 400001 <= number <= 465536:
-        return number - 400001
-    if 30001 <= number <= 39999 or 300001 <= number <= 365536:
+    # modicon: Dxxxx (5 digits) or Dxxxxx (6 digits), D the table's digit. A coil's 0xxxx/0xxxxx
+    # reference is, as a number, just 1..65536.
+    d = _MODICON_DIGIT[register_type]
+    if d == 0 and 1 <= number <= 65536:
+        return number - 1
+    if d and d * 10000 + 1 <= number <= d * 10000 + 9999:
+        return number - d * 10000 - 1
+    if d and d * 100000 + 1 <= number <= d * 100000 + 65536:
+        return number - d * 100000 - 1
+    other = _modicon_table(number)
+    if other == "input" and register_type == "holding":
         hint = "; 3xxxx references are input registers, which cannot be written"
-    elif number < 40001:
+    elif other is not None and other != "coil":
+        hint = f"; {_MODICON_DIGIT[other]}xxxx references are {_PLURAL[other]}: set register_type: {other}"
+    elif register_type == "holding" and number < 40001:
         hint = "; for 0-based addresses use addressing: address, for 1-based numbers addressing: register-number"
     else:
         hint = ""
-    raise ValueError(f"{number} is not a holding-register reference: addressing: modicon accepts 40001-49999 "
-                     f"(5 digits, addresses 0-9998) or 400001-465536 (6 digits, addresses 0-65535){hint}")
+    if d == 0:
+        accepts = "00001-65536 (addresses 0-65535)"
+    else:
+        lo5, lo6 = d * 10000 + 1, d * 100000 + 1
+        accepts = (f"{lo5:05d}-{lo5 + 9998:05d} (5 digits, addresses 0-9998) or {lo6:06d}-{lo6 + 65535:06d} "
+                   "(6 digits, addresses 0-65535)")
+    raise ValueError(f"{number} is not a {_TABLE_WORDS[register_type]} reference: addressing: modicon accepts "
+                     f"{accepts}{hint}")
+
+
+def _modicon_table(number: int) -> str | None:
+    """The table a modicon reference's leading digit names (None: no reference at all)."""
+    for table, d in _MODICON_DIGIT.items():
+        if d and (d * 10000 + 1 <= number <= d * 10000 + 9999 or d * 100000 + 1 <= number <= d * 100000 + 65536):
+            return table
+    return "coil" if 1 <= number <= 9999 else None
 
 
 def _hex(n: int) -> str:
     return f"0x{n:04X}"
 
 
-def load_profile(path: str | os.PathLike[str], text: str | None = None) -> Profile:
+def load_profile(ref: str | os.PathLike[str]) -> Profile:
+    """A profile by reference: a built-in id (``example-inverter``) or a profile file's path.
+
+    Raises InputError (an invalid file, every problem with its position) or UsageError (an
+    unknown built-in id). A reference is a file when it ends in .yaml/.yml/.json or has a slash.
+    """
+    return resolve_profile(os.fspath(ref))
+
+
+def load_profile_file(path: str | os.PathLike[str], text: str | None = None) -> Profile:
     """Load and check a profile file (or ``text`` shown as that file); all problems at once as an InputError."""
     p = os.fspath(path)
     if text is None:
@@ -128,14 +165,14 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
     if limits.write_registers < 1:
         errors.append(src.error(("limits",), "limits leave no room for a single register per write"))
 
-    def address_of(value: object, at: yamlsrc.Path_, extra: int = 0) -> int | None:
+    def address_of(value: object, at: yamlsrc.Path_, extra: int = 0, register_type: str = "holding") -> int | None:
         try:
             number = parse_register(value)
         except ValueError:
             errors.append(src.error(at, f"not a register: {value!r}"))
             return None
         try:
-            wire = wire_address(number, addressing) + extra
+            wire = wire_address(number, addressing, register_type) + extra
         except ValueError as e:  # the message says which references the addressing accepts
             errors.append(src.error(at, str(e)))
             return None
@@ -150,11 +187,28 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
 
     def make(name: str, spec: dict[str, Any], address: int, at: yamlsrc.Path_,
              eng_offset: object = 0) -> None:
-        type_ = spec["type"]
+        table = spec.get("register_type", "holding")
         local: list[Diagnostic] = []
+        if "type" not in spec and table not in model.BIT_TABLES:
+            local.append(src.error(at, f"{name}: 'type' is required for {_PLURAL[table]} (uint16, int32, "
+                                       "float32 ...); only coils and discrete inputs are bool without it"))
+        type_ = spec.get("type", codec.BOOL if table in model.BIT_TABLES else "uint16")
         order, swap = _layout(spec, default_layout, at, src, local)
+        access = spec.get("access", "read-only" if table in ("discrete", "input") else "read-write")
         mask = 0
-        if "bits" in spec or "mask" in spec:
+        if table in model.BIT_TABLES:
+            if type_ != codec.BOOL:
+                local.append(src.error((*at, "type"), f"a {table} is one bit: type bool (or no type), not {type_}"))
+            for key in ("bits", "mask", "scale", "offset", "unit", "count", "encoding", "padding",
+                        "byte_order", "swap", "word_order"):
+                if key in spec:
+                    local.append(src.error((*at, key), f"'{key}' does not apply to a {table} (one bit, 0 or 1)"))
+        if table in ("discrete", "input") and access != "read-only":
+            what = "a discrete input" if table == "discrete" else "an input register"
+            local.append(src.error((*at, "access"), f"{what} is read-only (it cannot be written)"))
+        if table in model.BIT_TABLES:
+            pass
+        elif "bits" in spec or "mask" in spec:
             try:
                 mask = codec.parse_bits(spec["bits"]) if "bits" in spec else int(spec["mask"])
                 codec.mask_shift(mask)
@@ -190,7 +244,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             unit=units.normalize(spec["unit"]) if "unit" in spec else None,
             min=_dec(spec.get("min")),
             max=_dec(spec.get("max")),
-            access=spec.get("access", "read-write"),
+            access=access,
             values=tuple((str(k), int(v)) for k, v in (spec.get("values") or {}).items()),
             stage=int(spec.get("stage", 0)),
             rounding=spec.get("rounding", rounding),
@@ -202,6 +256,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             encoding=spec.get("encoding", "ascii"),
             padding=spec.get("padding", "nul"),
             restart=bool(spec.get("restart", False)),
+            register_type=table,
         )
         if local:  # the rest of the checks assume a well-formed parameter
             errors.extend(local)
@@ -262,7 +317,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
 
     for name, spec in (data.get("parameters") or {}).items():
         at: yamlsrc.Path_ = ("parameters", name)
-        addr = address_of(spec["register"], (*at, "register"))
+        addr = address_of(spec["register"], (*at, "register"), register_type=spec.get("register_type", "holding"))
         if addr is not None:
             make(name, spec, addr, at, spec.get("offset", 0))
 
@@ -278,7 +333,12 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
 
     for tname, table in (data.get("tables") or {}).items():
         tat: yamlsrc.Path_ = ("tables", tname)
-        base = address_of(table["base"], (*tat, "base"))
+        table_types = {f.get("register_type", "holding") for f in table["fields"].values()}
+        if len(table_types) > 1:
+            errors.append(src.error((*tat, "fields"), f"table {tname}: its fields are in one Modbus table "
+                                                      f"(register_type), not {', '.join(sorted(table_types))}"))
+            continue
+        base = address_of(table["base"], (*tat, "base"), register_type=table_types.pop() if table_types else "holding")
         if base is None:
             continue
         count, stride = table["count"], table["stride"]
@@ -300,11 +360,14 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
 
     # overlapping registers: name both parameters and both lines. Bit fields of one register
     # share it when their bits do not overlap; a field never shares with a whole-register value.
-    params.sort(key=lambda q: (q.address, q.line, q.name))  # of two at one address, the later one is reported
+    # each Modbus table is its own address space: sort by key (table, address)
+    params.sort(key=lambda q: (q.key, q.line, q.name))  # of two at one address, the later one is reported
     prev: Parameter | None = None
     reported = 0
     fields_at: dict[int, list[Parameter]] = {}
     for q in params:
+        if prev is not None and prev.register_type != q.register_type:
+            prev = None  # another table: another address space
         if q.mask and prev is not None and prev.mask and prev.address == q.address:
             mates = fields_at[q.address]
             clash = next((f for f in mates if f.mask & q.mask), None)
@@ -335,8 +398,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             if reported < 20:  # a bad table can overlap thousands of times; the first ones say it
                 errors.append(Diagnostic(
                     src.path, q.line, q.col,
-                    f"{q.name} (registers {_hex(q.address)}-{_hex(q.end - 1)}) overlaps {prev.name} "
-                    f"(registers {_hex(prev.address)}-{_hex(prev.end - 1)}, line {prev.line})"))
+                    f"{q.name} ({_span(q)}) overlaps {prev.name} ({_span(prev)}, line {prev.line})"))
             reported += 1
         if prev is None or q.end > prev.end:
             prev = q
@@ -414,12 +476,21 @@ def _fmt(d: Decimal | None) -> str:
 
 
 def _spec_count(spec: dict[str, Any]) -> int:
-    """Registers a parameter spec occupies, before it is checked (strings: count, bit fields: 1)."""
-    if spec["type"] == codec.STRING:
+    """Registers a parameter spec occupies, before it is checked (strings: count, bit fields, coils: 1)."""
+    type_ = spec.get("type", codec.BOOL)
+    if type_ == codec.STRING:
         return int(spec.get("count", 1))
-    if spec["type"] == codec.BOOL or "bits" in spec or "mask" in spec:
+    if type_ == codec.BOOL or "bits" in spec or "mask" in spec or spec.get("register_type") in model.BIT_TABLES:
         return 1
-    return codec.register_count(spec["type"])
+    return codec.register_count(type_)
+
+
+def _span(p: Parameter) -> str:
+    """'registers 0x0010-0x0011', 'input registers 0x0010-0x0011', 'coil 0x0005'."""
+    if p.is_bit:
+        return f"{'coil' if p.register_type == 'coil' else 'discrete input'} {_hex(p.address)}"
+    what = "input registers" if p.register_type == "input" else "registers"
+    return f"{what} {_hex(p.address)}-{_hex(p.end - 1)}"
 
 
 def _bits(mask: int) -> str:

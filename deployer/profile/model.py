@@ -14,9 +14,20 @@ from . import codec
 
 Access = Literal["read-write", "read-only", "write-only"]
 Addressing = Literal["address", "register-number", "modicon"]
+RegisterType = Literal["holding", "coil", "discrete", "input"]
+
+# The four Modbus tables. Each has its own 0..65535 address space; inside deployer a register map
+# keys a table's address by ``space << 16 | address`` (holding registers: the address itself).
+REGISTER_TYPES: tuple[RegisterType, ...] = ("holding", "coil", "discrete", "input")
+SPACE: dict[str, int] = {t: i for i, t in enumerate(REGISTER_TYPES)}
+READ_FUNCTION: dict[str, int] = {"holding": 3, "coil": 1, "discrete": 2, "input": 4}
+TYPE_OF_READ: dict[int, RegisterType] = {3: "holding", 1: "coil", 2: "discrete", 4: "input"}
+BIT_TABLES = ("coil", "discrete")
 
 PROTOCOL_MAX_WRITE = 123  # FC16: 0x7B registers (Modbus Application Protocol v1.1b3, 6.12)
 PROTOCOL_MAX_READ = 125  # FC03: 0x7D registers (6.3)
+PROTOCOL_MAX_WRITE_COILS = 1968  # FC15: 0x7B0 coils (6.11)
+PROTOCOL_MAX_READ_COILS = 2000  # FC01/FC02: 0x7D0 coils or inputs (6.1, 6.2)
 ASCII_MAX_CHARS = 513  # ':' + 2 x (address + 253-byte PDU) + LRC + CR LF (Modbus over serial line 2.5.2.1)
 
 
@@ -29,6 +40,8 @@ class Limits:
     max_ascii_chars: int = ASCII_MAX_CHARS  # whole ASCII frame: ':' + hex pairs + LRC + CR LF
     # reads may span up to this many consecutive undeclared registers (0: never; DESIGN planning rule 5)
     max_read_gap: int = 0
+    max_write_coils: int = PROTOCOL_MAX_WRITE_COILS  # per FC15; 1: every coil goes as one FC05
+    max_read_coils: int = PROTOCOL_MAX_READ_COILS  # per FC01 (coils) and FC02 (discrete inputs)
 
     @property
     def write_registers(self) -> int:
@@ -45,6 +58,30 @@ class Limits:
         """Registers one FC03 request may ask for; the answer frame is 5 + 2n bytes (11 + 4n ASCII characters)."""
         return max(0, min(PROTOCOL_MAX_READ, self.max_read_registers, (self.max_frame_bytes - 5) // 2,
                           (self.max_ascii_chars - 11) // 4))
+
+    @property
+    def write_coils(self) -> int:
+        """Coils one FC15 request may carry: its RTU frame is 9 + ceil(n / 8) bytes (19 + 2 ceil(n / 8) ASCII)."""
+        return max(0, min(PROTOCOL_MAX_WRITE_COILS, self.max_write_coils, (self.max_frame_bytes - 9) * 8,
+                          (self.max_ascii_chars - 19) // 2 * 8))
+
+    @property
+    def read_coils(self) -> int:
+        """Coils (or discrete inputs) one FC01/FC02 may ask for: the answer is 5 + ceil(n / 8) bytes."""
+        return max(0, min(PROTOCOL_MAX_READ_COILS, self.max_read_coils, (self.max_frame_bytes - 5) * 8,
+                          (self.max_ascii_chars - 11) // 2 * 8))
+
+    def read_limit(self, register_type: str) -> int:
+        return self.read_coils if register_type in BIT_TABLES else self.read_registers
+
+    def write_limit(self, register_type: str) -> int:
+        return self.write_coils if register_type == "coil" else self.write_registers
+
+
+def address_text(register_type: str, address: int) -> str:
+    """How plans, reports and `profiles show` write an address: '0x1102 (4354)', 'coil 0x0013 (19)'."""
+    text = f"0x{address:04X} ({address})"
+    return text if register_type == "holding" else f"{register_type} {text}"
 
 
 @dataclass(frozen=True)
@@ -78,9 +115,29 @@ class Parameter:
     encoding: str = "ascii"  # strings
     padding: str = "nul"  # strings
     restart: bool = False  # takes effect after a power cycle (the report says so)
+    # the Modbus table: holding registers, coils (one bit each, 0/1), discrete inputs (bits, read-only),
+    # input registers (read-only). A coil or input's "registers" are one value, 0 or 1.
+    register_type: RegisterType = "holding"
+
+    @property
+    def key(self) -> int:
+        """Where the parameter starts in a register map of all four tables (see SPACE)."""
+        return SPACE[self.register_type] << 16 | self.address
+
+    @property
+    def is_bit(self) -> bool:
+        """A coil or a discrete input: one bit, 0 or 1."""
+        return self.register_type in BIT_TABLES
+
+    @property
+    def table_name(self) -> str:
+        """'coil 0x0013' style prefix for messages; empty for holding registers."""
+        return "" if self.register_type == "holding" else self.register_type
 
     @property
     def count(self) -> int:
+        if self.register_type in BIT_TABLES or self.type == codec.BOOL:
+            return 1
         if self.type == codec.STRING:
             return self.size
         if self.mask:
@@ -98,7 +155,7 @@ class Parameter:
 
     @property
     def writable(self) -> bool:
-        return self.access != "read-only"
+        return self.access != "read-only" and self.register_type in ("holding", "coil")
 
     @property
     def is_string(self) -> bool:
@@ -117,6 +174,8 @@ class Parameter:
 
     def type_range(self) -> tuple[int, int] | None:
         """Raw range the type (or the field's width) allows; None for floats and strings."""
+        if self.is_bit:
+            return 0, 1
         if self.mask:
             return codec.field_range(self.mask, self.type == "int16")
         if self.is_string:
@@ -160,6 +219,8 @@ class Parameter:
         """Engineering -> raw; CodecError when the type (or the field's width) cannot hold it."""
         raw = codec.to_raw(value, self.codec_type, self.scale, self.offset, rounding)
         rng = self.type_range()
+        if self.is_bit and raw not in (0, 1):
+            raise codec.CodecError(f"a {self.register_type} holds 0 or 1, not {raw}")
         if self.mask and rng and not rng[0] <= raw <= rng[1]:
             raise codec.CodecError(f"raw value {raw} does not fit in the field's "
                                    f"{codec.mask_shift(self.mask)[1]} bits ({rng[0]}..{rng[1]})")
@@ -167,6 +228,10 @@ class Parameter:
 
     def encode(self, raw: codec.Raw) -> tuple[int, ...]:
         """Raw -> registers; a field's register carries only its own bits (the planner merges)."""
+        if self.is_bit:
+            if raw not in (0, 1) or not isinstance(raw, int):
+                raise codec.CodecError(f"a {self.register_type} holds 0 or 1, not {raw!r}")
+            return (raw,)
         if self.mask:
             if not isinstance(raw, int):
                 raise codec.CodecError(f"a bit field needs an integer raw value, not {raw!r}")
@@ -175,6 +240,8 @@ class Parameter:
 
     def decode(self, registers: tuple[int, ...] | list[int]) -> codec.Raw:
         """Registers -> raw value; a field's value is its bits of the register."""
+        if self.is_bit:
+            return 1 if registers[0] else 0
         if self.mask:
             return codec.extract_field(int(registers[0]), self.mask, self.type == "int16")
         if self.is_string:
@@ -196,7 +263,7 @@ class Parameter:
         return tuple(a) == tuple(b)
 
     def to_engineering(self, registers: tuple[int, ...] | list[int]) -> Decimal:
-        if self.mask:
+        if self.mask or self.is_bit:
             return codec.from_raw(self.decode(registers), self.scale, self.offset)
         return codec.registers_to_engineering(
             registers, self.type, self.scale, self.offset, self.word_order, self.byte_swap

@@ -57,17 +57,23 @@ def run_started(state_dir: str, run: str, *, command: str, argv: Sequence[str], 
                        "devices": [{"name": n, "url": u, "unit": un} for n, u, un in devices]})
 
 
-def device_started(run: str, *, name: str, url: str, unit: int, plan_digest: str) -> dict[str, Any]:
-    """The ``device-started`` record, without its ``snapshot`` (``durable`` adds the file's final path)."""
+def device_started(run: str, *, name: str, url: str, unit: int, plan_digest: str,
+                   batch: int | None = None) -> dict[str, Any]:
+    """The ``device-started`` record, without its ``snapshot`` (``durable`` adds the file's final path).
+    ``batch``: a fleet run's batch number (not in the record of a single device's run)."""
     return {"event": "device-started", "run": run, "time": _now(), "name": name, "url": url, "unit": unit,
-            "snapshot": None, "plan_sha256": plan_digest}
+            **({"batch": batch} if batch is not None else {}), "snapshot": None, "plan_sha256": plan_digest}
 
 
 def device_finished(run: str, res: DeviceResult) -> dict[str, Any]:
     """The ``device-finished`` record (status after the read-back)."""
     return {"event": "device-finished", "run": run, "time": _now(), "name": res.name, "url": res.url,
-            "unit": res.unit, "status": res.status, "snapshot": res.snapshot,
+            "unit": res.unit, **_batch(res), "status": res.status, "snapshot": res.snapshot,
             "written": _written(res), "write_requests": res.write_requests}
+
+
+def _batch(res: DeviceResult) -> dict[str, int]:
+    return {} if res.batch is None else {"batch": res.batch}
 
 
 def _written(res: DeviceResult) -> list[str]:
@@ -80,7 +86,8 @@ def run_finished(state_dir: str, run: str | None, report: Report, *, command: st
         "event": "run-finished", "run": run,
         "time": _now(), "user": user_name(), "command": command, "argv": list(argv), "recipe": report.recipe,
         "exit_code": report.exit_code,
-        "devices": [{"name": d.name, "url": d.url, "unit": d.unit, "status": d.status, "snapshot": d.snapshot,
+        "devices": [{"name": d.name, "url": d.url, "unit": d.unit, **_batch(d), "status": d.status,
+                     "snapshot": d.snapshot,
                      "written": _written(d), "write_requests": d.write_requests} for d in report.devices],
     })
 

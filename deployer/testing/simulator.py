@@ -35,6 +35,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from ..profile import Parameter, Profile
+from ..profile.model import BIT_TABLES, REGISTER_TYPES, SPACE, RegisterType
 from ..recipe.loader import Recipe
 
 
@@ -89,16 +90,26 @@ def parse_listen(url: str) -> _Listen:
 
 
 def _frame_chars(function: int, count: int, request: bool) -> int:
-    """Characters of an RTU frame (unit + PDU + CRC) for a read or write of ``count`` registers."""
-    if function == 3:
+    """Characters of an RTU frame (unit + PDU + CRC) for a read or write of ``count`` registers (or coils)."""
+    if function in (3, 4):
         return 8 if request else 5 + 2 * count
+    if function in (1, 2):
+        return 8 if request else 5 + (count + 7) // 8
     if function == 16:
         return 9 + 2 * count if request else 8
+    if function == 15:
+        return 9 + (count + 7) // 8 if request else 8
     return 8
 
 
+# the table each function code reaches
+_FC_TABLE: dict[int, RegisterType] = {1: "coil", 5: "coil", 15: "coil", 2: "discrete", 4: "input",
+                                      3: "holding", 6: "holding", 16: "holding"}
+
+
 def initial_registers(profile: Profile) -> dict[int, int]:
-    """Power-on values: each parameter's default (engineering), else zero; fields OR'ed into their register."""
+    """Power-on values by key (Parameter.key; a holding register's key is its address): each parameter's
+    default (its factory setting, engineering), else zero; fields OR'ed into their register."""
     regs: dict[int, int] = {a: 0 for a in _action_registers(profile)}
     for p in profile.parameters:
         words: tuple[int, ...] = (0,) * p.count
@@ -107,10 +118,10 @@ def initial_registers(profile: Profile) -> dict[int, int]:
         elif isinstance(p.default, Decimal):
             words = p.encode(p.to_raw(p.default, "nearest"))
         if p.mask:
-            regs[p.address] = regs.get(p.address, 0) | words[0]
+            regs[p.key] = regs.get(p.key, 0) | words[0]
             continue
         for i, w in enumerate(words):
-            regs[p.address + i] = w
+            regs[p.key + i] = w
     return regs
 
 
@@ -123,21 +134,28 @@ def _action_registers(profile: Profile) -> set[int]:
 
 
 def init_from_recipe(recipe: Recipe) -> dict[int, int]:
-    """Wire address -> raw register for every value of a recipe (for ``--init``)."""
+    """Key (Parameter.key: the wire address for holding registers) -> raw value for every value of a recipe
+    (for ``--init``)."""
     regs: dict[int, int] = {}
     for d in recipe.desired:
+        k = d.parameter.key
         if d.parameter.mask:  # fields of one register: each sets its own bits
-            regs[d.parameter.address] = (regs.get(d.parameter.address, 0) & ~d.parameter.mask) | d.registers[0]
+            regs[k] = (regs.get(k, 0) & ~d.parameter.mask) | d.registers[0]
             continue
-        regs.update((d.parameter.address + i, w) for i, w in enumerate(d.registers))
+        regs.update((k + i, w) for i, w in enumerate(d.registers))
     return regs
 
 
 class _Units:
-    """pymodbus's SimCore answers 04 for an unknown unit; a bus stays silent, a gateway says 0x0B."""
+    """pymodbus's SimCore answers 04 for an unknown unit; a bus stays silent, a gateway says 0x0B.
 
-    def __init__(self, core: Any) -> None:
+    Also the gate of the bit tables: pymodbus keeps coils 16 to a register and cannot refuse one
+    undeclared or read-only coil, so ``sim.check_table`` does (and answers 01 for a table the profile
+    does not use at all)."""
+
+    def __init__(self, core: Any, sim: Simulator) -> None:
         self.core = core
+        self.sim = sim
 
     def device_ids(self) -> list[int]:
         return list(self.core.device_ids())
@@ -145,11 +163,17 @@ class _Units:
     async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1) -> Any:
         if device_id not in self.core.devices:
             raise NoSuchIdException(str(device_id))
+        refused = self.sim.check_table(func_code, address, count, write=False)
+        if refused is not None:
+            return refused
         return await self.core.async_getValues(device_id, func_code, address, count)
 
     async def async_setValues(self, device_id: int, func_code: int, address: int, values: Any) -> Any:
         if device_id not in self.core.devices:
             raise NoSuchIdException(str(device_id))
+        refused = self.sim.check_table(func_code, address, len(values), write=True)
+        if refused is not None:
+            return refused
         return await self.core.async_setValues(device_id, func_code, address, values)
 
 
@@ -179,12 +203,16 @@ class Simulator:
         self._writes = 0  # write requests, for busy_first
         # requests awaiting their answer; several TCP clients may reuse a transaction id, so FIFO per key
         self._pending: dict[tuple[int, int, int], deque[LogEntry]] = {}
-        self._owner: dict[int, list[Parameter]] = {}  # several bit fields may share a register
+        self._owner: dict[int, list[Parameter]] = {}  # by key; several bit fields may share a register
         for p in profile.parameters:
-            for a in range(p.address, p.end):
+            for a in range(p.key, p.key + p.count):
                 self._owner.setdefault(a, []).append(p)
+        self._used = {p.register_type for p in profile.parameters}
+        self._bit_count = 0  # the coils of the request being served (pymodbus passes registers to the action)
         self._action_regs = _action_registers(profile)
         self._extra = sorted(self._action_regs - self._owner.keys())
+        if self._extra:
+            self._used.add("holding")
         self._unlock_regs = {a.address + i: w for a in profile.unlock for i, w in enumerate(a.registers)}
         # the writes after which the device is busy for a while: (address, the words written) -> ms
         self._waits = {(a.address, a.registers): a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit)
@@ -193,7 +221,9 @@ class Simulator:
         start = initial_registers(profile)
         for a, v in (init or {}).items():
             if a not in self._owner and a not in self._extra:
-                raise ValueError(f"init: register {a} is not declared in profile {profile.id}")
+                table, address = REGISTER_TYPES[a >> 16], a & 0xFFFF
+                what = "register" if table == "holding" else f"{table} {'register' if table == 'input' else ''}"
+                raise ValueError(f"init: {what.strip()} {address} is not declared in profile {profile.id}")
             start[a] = v
         self._start_values = start
 
@@ -221,7 +251,7 @@ class Simulator:
                                               ignore_missing_devices=True,
                                               **common)
         self._core = self._server.context
-        self._server.context = _Units(self._core)
+        self._server.context = _Units(self._core, self)
         if self.log_path:
             self._log_file = open(self.log_path, "a", encoding="utf-8")  # noqa: SIM115 - open for the server's life
         await self._server.serve_forever(background=True)
@@ -253,60 +283,123 @@ class Simulator:
 
     # ---- registers from outside ------------------------------------------------------------
 
-    def _block(self, unit: int) -> tuple[int, list[int]]:
+    def _block(self, unit: int, table: str = "holding") -> tuple[int, list[int]]:
         runtime = self._core.devices[unit]
-        start, _count, registers, _flags = runtime.block["x"]
+        start, _count, registers, _flags = runtime.block[table[0]]  # c, d, h, i
         return start, registers
 
-    def registers(self, unit: int = 1) -> dict[int, int]:
-        start, regs = self._block(unit)
-        return {a: regs[a - start] for a in sorted({*self._owner, *self._extra})}
+    def _get(self, unit: int, key: int) -> int:
+        table, address = REGISTER_TYPES[key >> 16], key & 0xFFFF
+        start, regs = self._block(unit, table)
+        if table in BIT_TABLES:  # 16 coils to a register, bit 0 first; start counts registers
+            bit = address - start * 16
+            return regs[bit // 16] >> (bit % 16) & 1
+        return regs[address - start]
+
+    def _set(self, unit: int, key: int, value: int) -> None:
+        table, address = REGISTER_TYPES[key >> 16], key & 0xFFFF
+        start, regs = self._block(unit, table)
+        if table in BIT_TABLES:
+            bit = address - start * 16
+            regs[bit // 16] = regs[bit // 16] & ~(1 << bit % 16) | (1 if value else 0) << bit % 16
+        else:
+            regs[address - start] = value
+
+    def registers(self, unit: int = 1, table: RegisterType = "holding") -> dict[int, int]:
+        """One table's declared registers (coils: 0/1) by wire address."""
+        space = SPACE[table]
+        keys = sorted(k for k in {*self._owner, *self._extra} if k >> 16 == space)
+        return {k & 0xFFFF: self._get(unit, k) for k in keys}
 
     def read(self, name: str, unit: int = 1) -> tuple[int, ...]:
         p = self.profile.parameter(name)
-        start, regs = self._block(unit)
-        return tuple(regs[p.address - start: p.end - start])
+        return tuple(self._get(unit, k) for k in range(p.key, p.key + p.count))
 
     def write(self, name: str, registers: Sequence[int], unit: int = 1) -> None:
         p = self.profile.parameter(name)
         if len(registers) != p.count:
             raise ValueError(f"{name} has {p.count} registers")
-        start, regs = self._block(unit)
-        regs[p.address - start: p.end - start] = list(registers)
+        if p.is_bit and any(v not in (0, 1) for v in registers):
+            raise ValueError(f"{name} is a {p.register_type}: 0 or 1")
+        for k, v in zip(range(p.key, p.key + p.count), registers, strict=True):
+            self._set(unit, k, v)
 
     def dump_state(self, path: str) -> None:
         state = {str(u): {str(a): v for a, v in self.registers(u).items()} for u in self.units}
+        data: dict[str, Any] = {"profile": self.profile.id, "units": state}
+        others = [t for t in REGISTER_TYPES[1:] if t in self._used]
+        if others:  # coils, discrete inputs, input registers by table (addresses of each table)
+            data["tables"] = {str(u): {t: {str(a): v for a, v in self.registers(u, t).items()} for t in others}
+                              for u in self.units}
         tmp = f"{path}.tmp"
         with open(tmp, "w", encoding="utf-8") as f:
-            json.dump({"profile": self.profile.id, "units": state}, f, indent=1)
+            json.dump(data, f, indent=1)
         os.replace(tmp, path)
 
     # ---- the device ----------------------------------------------------------------------------
 
     def _device(self, unit: int) -> SimDevice:
-        blocks = []
+        tables: dict[str, list[SimData]] = {t: [] for t in REGISTER_TYPES}
         done: set[int] = set()
         for p in self.profile.parameters:
-            if p.address in done:  # bit fields sharing a register: one block
+            if p.key in done or p.is_bit:  # bit fields sharing a register: one block; coils below
                 continue
-            done.add(p.address)
-            writable = any(q.writable for q in self._owner[p.address])
-            blocks.append(SimData(address=p.address, values=[self._start_values[a] for a in range(p.address, p.end)],
-                                  datatype=DataType.REGISTERS, readonly=not writable))
-        blocks += [SimData(address=a, values=[self._start_values.get(a, 0)], datatype=DataType.REGISTERS)
-                   for a in self._extra]
-        if self.gap_reads:  # read-only zeros in every gap between declared registers
-            declared = sorted({*self._owner, *self._extra})
-            blocks += [SimData(address=a + 1, values=[0] * (b - a - 1), datatype=DataType.REGISTERS, readonly=True)
-                       for a, b in itertools.pairwise(declared) if b - a > 1]
-        blocks.sort(key=lambda b: b.address)
+            done.add(p.key)
+            writable = any(q.writable for q in self._owner[p.key])
+            tables[p.register_type].append(SimData(
+                address=p.address, values=[self._start_values[a] for a in range(p.key, p.key + p.count)],
+                datatype=DataType.REGISTERS, readonly=not writable))
+        tables["holding"] += [SimData(address=a, values=[self._start_values.get(a, 0)], datatype=DataType.REGISTERS)
+                              for a in self._extra]
+        for t in ("holding", "input"):
+            if self.gap_reads:  # read-only zeros in every gap between declared registers
+                declared = sorted({a & 0xFFFF for a in (*self._owner, *self._extra) if a >> 16 == SPACE[t]})
+                tables[t] += [SimData(address=a + 1, values=[0] * (b - a - 1), datatype=DataType.REGISTERS,
+                                      readonly=True) for a, b in itertools.pairwise(declared) if b - a > 1]
+            tables[t].sort(key=lambda b: b.address)
+            if not tables[t]:  # pymodbus wants every table; check_table answers 01 for an unused one
+                tables[t] = [SimData(address=0, values=[0], datatype=DataType.REGISTERS, readonly=True)]
+        for t in BIT_TABLES:  # one run of bits from the first declared one to the last; check_table
+            space = SPACE[t]   # refuses the undeclared ones in between
+            keys = sorted(k for k in self._owner if k >> 16 == space)
+            lo, hi = (keys[0], keys[-1]) if keys else (space << 16, space << 16)
+            tables[t] = [SimData(address=lo & 0xFFFF, values=[bool(self._start_values.get(k, 0))
+                                                              for k in range(lo, hi + 1)], datatype=DataType.BITS)]
 
         async def action(fc: int, start: int, address: int, count: int, registers: list[int],
                          values: list[int] | list[bool] | None) -> ExcCodes | None:
             words = None if values is None else [int(v) for v in values]
-            return await self._action(fc, start, address, count, registers, words)
+            return await self._action(fc, start, address, count, registers, words, unit)
 
-        return SimDevice(id=unit, simdata=blocks, action=action)
+        return SimDevice(id=unit, simdata=(tables["coil"], tables["discrete"], tables["holding"], tables["input"]),
+                         action=action)
+
+    def check_table(self, fc: int, address: int, count: int, *, write: bool) -> ExcCodes | None:
+        """The checks pymodbus cannot make on bits, and unused tables (see _Units); None: go on."""
+        table = _FC_TABLE.get(fc)
+        if table is None:
+            return None  # the action answers 01
+        if table not in self._used:
+            return ExcCodes.ILLEGAL_FUNCTION  # a drive without coils (or input registers) does not know the function
+        if table not in BIT_TABLES:
+            return None
+        self._bit_count = count
+        limits = self.profile.limits
+        if self.strict_limits and count > (limits.write_coils if write else limits.read_coils):
+            return ExcCodes.ILLEGAL_VALUE
+        space = SPACE[table]
+        # gap reads: undeclared bits between two declared ones read as 0 (the first and last must exist)
+        gaps = self.gap_reads and not write and (space << 16 | address) in self._owner and \
+            (space << 16 | (address + count - 1)) in self._owner
+        for a in range(address, address + count):
+            owners = self._owner.get(space << 16 | a)
+            if owners is None:
+                if not gaps:
+                    return ExcCodes.ILLEGAL_ADDRESS
+                continue
+            if (write and not owners[0].writable) or (not write and not owners[0].readable and fc != 5):
+                return ExcCodes.ILLEGAL_ADDRESS
+        return None
 
     def _params_in(self, address: int, count: int) -> list[Parameter]:
         seen: dict[str, Parameter] = {}
@@ -327,17 +420,38 @@ class Simulator:
         return None
 
     async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int],
-                      values: list[int] | None) -> ExcCodes | None:
-        if fc not in (3, 6, 16):  # a drive's parameter area: holding registers only (coils, inputs: 01)
+                      values: list[int] | None, unit: int = 1) -> ExcCodes | None:
+        if fc not in _FC_TABLE:  # e.g. FC22/23: not implemented by the device
             return ExcCodes.ILLEGAL_FUNCTION
         f = self.faults
+        if _FC_TABLE[fc] in BIT_TABLES:
+            count = self._bit_count  # pymodbus passes the registers the bits live in
         delay = f.latency_ms / 1000
-        if f.baud:
+        if f.baud and not (values is None and fc in (5, 6)):  # not pymodbus reading back a single write
             chars = _frame_chars(fc, count, True) + _frame_chars(fc, count, False)
             delay += (chars + 7) * 11 / f.baud  # 8E1 = 11 bits a character; 3.5 characters of silence per frame
         if delay:
             await asyncio.sleep(delay)
         limits = self.profile.limits
+        if fc == 4:
+            if self.strict_limits and count > limits.read_registers:
+                return ExcCodes.ILLEGAL_VALUE
+            return None
+        if fc in (1, 2) or (fc == 5 and values is None):
+            return None  # checked by check_table
+        if fc in (5, 15):
+            self._writes += 1
+            if self._writes <= f.busy_first or time.monotonic() < self._busy_until:
+                return ExcCodes.DEVICE_BUSY
+            if self._unlock_regs or self.profile.preconditions:
+                hstart, hregs = self._block(unit)
+                current = {a: hregs[a - hstart] for a in (*self._unlock_regs, *(
+                    c.address for c in self.profile.preconditions)) if 0 <= a - hstart < len(hregs)}
+                if not self.unlocked(current) or self.guarded(current):
+                    return ExcCodes.DEVICE_FAILURE
+            if any((SPACE["coil"] << 16 | a) in f.fail_registers for a in range(address, address + count)):
+                return ExcCodes.DEVICE_FAILURE
+            return None
         params = self._params_in(address, count)
         if values is None:  # a read (or pymodbus reading back an FC06 write)
             if fc == 3:
@@ -400,13 +514,19 @@ class Simulator:
                 self._write_log(entry)
             return pdu
         regs = list(getattr(pdu, "registers", None) or [])
+        if fc in (5, 15):  # coils as 0/1 (pdu.bits is padded to whole bytes for FC15)
+            regs = [1 if b else 0 for b in (pdu.bits or [])]
+            if fc == 15 and pdu.count:
+                regs = regs[:int(pdu.count)]
+            elif fc == 5:
+                regs = regs[:1]
         count = int(getattr(pdu, "count", 0) or len(regs) or 1)
         try:
             body = pdu.encode()
         except Exception:  # an unknown function: nothing to re-encode
             body = b""
         entry = LogEntry(time.time(), int(pdu.dev_id), fc, int(getattr(pdu, "address", 0) or 0), count,
-                         regs if fc in (6, 16) else None, bytes([pdu.dev_id, fc]).hex() + body.hex())
+                         regs if fc in (5, 6, 15, 16) else None, bytes([pdu.dev_id, fc]).hex() + body.hex())
         self.log.append(entry)
         self._requests += 1
         self._window += 1

@@ -79,6 +79,18 @@ class Transport(abc.ABC):
     async def write_register(self, address: int, value: int, unit: int) -> None:
         """FC06."""
 
+    @abc.abstractmethod
+    async def read(self, function: int, address: int, count: int, unit: int) -> list[int]:
+        """FC03 or FC04 (registers), FC01 or FC02 (bits, as 0/1). Raises like read_holding_registers."""
+
+    @abc.abstractmethod
+    async def write_coil(self, address: int, value: bool, unit: int) -> None:
+        """FC05."""
+
+    @abc.abstractmethod
+    async def write_coils(self, address: int, values: list[bool], unit: int) -> None:
+        """FC15."""
+
     async def __aenter__(self) -> Transport:
         await self.connect()
         return self
@@ -156,6 +168,7 @@ def bus_lock(url: DeviceURL) -> asyncio.Lock:
 # ---- answers: what comes back, matched to the one request in flight ----------------------------
 
 
+READS = (1, 2, 3, 4)  # function codes whose answer carries a byte count
 STRAY_QUIET = 0.1  # seconds of silence that end the settling after bytes nobody asked for
 
 
@@ -166,8 +179,8 @@ class _Expect:
     unit: int
     function: int
     address: int
-    count: int  # registers read (FC03) or written (FC16); 1 for FC06
-    value: int | None = None  # FC06: the value an answer echoes
+    count: int  # registers or bits read (FC01-04) or written (FC15, FC16); 1 for FC05, FC06
+    value: int | None = None  # FC05, FC06: the value an answer echoes
     tid: int = 0  # Modbus/TCP transaction id (MBAP framing only)
 
 
@@ -260,7 +273,7 @@ class _Receiver:
         if len(self.buf) < 3:
             return None
         fc = self.buf[1]
-        size = 5 if fc & 0x80 else 5 + self.buf[2] if fc in (3, 4) else 8 if fc in (5, 6, 15, 16) else 0
+        size = 5 if fc & 0x80 else 5 + self.buf[2] if fc in READS else 8 if fc in (5, 6, 15, 16) else 0
         if size == 0:
             self.buf.clear()
             return BadAnswer(f"an answer with function code {fc} to a function {want.function} request")
@@ -295,18 +308,21 @@ class _Receiver:
             return ExceptionResponse(want.function, pdu[1])
         if fc != want.function:
             return BadAnswer(f"an answer with function code {fc} to a function {want.function} request")
-        if want.function == 3:
-            size = 2 * want.count
+        if want.function in READS:
+            bits = want.function in (1, 2)
+            size = (want.count + 7) // 8 if bits else 2 * want.count
             if len(pdu) < 2 or pdu[1] != size or len(pdu) != 2 + size:
                 got = pdu[1] if len(pdu) > 1 else 0
-                return BadAnswer(f"an answer with {got} bytes of registers to a read of {want.count} "
-                                 f"register{'s' if want.count != 1 else ''} ({size} bytes)")
+                what = "bits" if bits else "registers"
+                one = ("coil" if want.function == 1 else "input") if bits else "register"
+                return BadAnswer(f"an answer with {got} bytes of {what} to a read of {want.count} "
+                                 f"{one}{'s' if want.count != 1 else ''} ({size} bytes)")
             return pdu
         echo_a = int.from_bytes(pdu[1:3], "big") if len(pdu) == 5 else -1
         echo_b = int.from_bytes(pdu[3:5], "big") if len(pdu) == 5 else -1
-        b = want.count if want.function == 16 else want.value
+        b = want.count if want.function in (15, 16) else want.value
         if echo_a != want.address or echo_b != b:
-            what = "count" if want.function == 16 else "value"
+            what = "count" if want.function in (15, 16) else "value"
             return BadAnswer(f"an answer echoing address {echo_a}, {what} {echo_b} to a write of address "
                              f"{want.address}, {what} {b}")
         return pdu
@@ -475,7 +491,7 @@ class PymodbusTransport(Transport):
         if self._client is None or not self._client.connected or self._rx is None:
             raise ConnectionLost(f"{describe(self.url)}: not connected")
         rx = self._rx
-        no_answer = want.unit == 0 and want.function != 3
+        no_answer = want.unit == 0 and want.function not in READS
         bus = _bus(self.url) if self._shared else None
         if bus is not None:
             await bus.lock.acquire()
@@ -551,6 +567,30 @@ class PymodbusTransport(Transport):
     async def write_register(self, address: int, value: int, unit: int) -> None:
         await self._run(_Expect(unit, 6, address, 1, value), lambda c: c.write_register(
             address, value, device_id=unit, no_response_expected=True))
+
+    async def read(self, function: int, address: int, count: int, unit: int) -> list[int]:
+        if function == 3:
+            return await self.read_holding_registers(address, count, unit)
+        if function == 4:
+            pdu = await self._run(_Expect(unit, 4, address, count), lambda c: c.read_input_registers(
+                address, count=count, device_id=unit, no_response_expected=True))
+            assert pdu is not None
+            return [int.from_bytes(pdu[i:i + 2], "big") for i in range(2, len(pdu), 2)]
+        if function in (1, 2):
+            call = "read_coils" if function == 1 else "read_discrete_inputs"
+            pdu = await self._run(_Expect(unit, function, address, count), lambda c: getattr(c, call)(
+                address, count=count, device_id=unit, no_response_expected=True))
+            assert pdu is not None
+            return [(pdu[2 + i // 8] >> (i % 8)) & 1 for i in range(count)]  # least significant bit first
+        raise ValueError(f"function {function} is not a read")
+
+    async def write_coil(self, address: int, value: bool, unit: int) -> None:
+        await self._run(_Expect(unit, 5, address, 1, 0xFF00 if value else 0), lambda c: c.write_coil(
+            address, value, device_id=unit, no_response_expected=True))
+
+    async def write_coils(self, address: int, values: list[bool], unit: int) -> None:
+        await self._run(_Expect(unit, 15, address, len(values)), lambda c: c.write_coils(
+            address, values, device_id=unit, no_response_expected=True))
 
 
 class TcpTransport(PymodbusTransport):

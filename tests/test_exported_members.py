@@ -1,0 +1,67 @@
+"""The public surface, pinned (as httpx's tests/test_exported_members.py): a change to it is a decision."""
+
+from __future__ import annotations
+
+import inspect
+import subprocess
+import sys
+
+import deployer
+from deployer import api
+
+PUBLIC = [
+    "ApplyOptions", "BadURL", "CodecError", "Declined", "DeployerError", "DeviceResult", "DeviceURL", "Drift",
+    "FleetDevice", "IdentityMismatch", "InputError", "Inventory", "Job", "Locked", "ParameterResult", "Plan",
+    "Profile", "ReadJob", "Recipe", "Report", "StalePlan", "TransportError", "UsageError",
+    "apply", "apply_async", "apply_fleet", "apply_fleet_async", "describe_url", "device_url", "diff", "diff_async",
+    "diff_values", "fleet_jobs", "inventory_from", "load_inventory", "load_plan", "load_profile", "load_recipe", "plan",
+    "plan_async", "plan_fleet", "plan_fleet_async", "plan_to_json", "pull", "pull_async", "pull_names",
+    "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "recipe_from", "run_fleet", "run_fleet_async",
+]
+
+
+def test_the_exported_names_are_pinned() -> None:
+    assert api.__all__ == PUBLIC  # sorted: classes, then functions
+    assert deployer.__all__ is api.__all__  # one list
+
+
+def test_every_exported_name_resolves_from_the_package() -> None:
+    for name in api.__all__:
+        assert getattr(deployer, name) is getattr(api, name), name
+    assert set(api.__all__) <= set(dir(deployer))
+
+
+def test_every_exported_function_and_class_is_documented() -> None:
+    for name in api.__all__:
+        obj = getattr(api, name)
+        assert inspect.getdoc(obj), name
+
+
+def test_sync_functions_that_raise_say_so() -> None:
+    """A sync entry point that can raise documents what (a Raises section)."""
+    for name in ("apply", "apply_fleet", "device_url", "diff", "inventory_from", "plan", "plan_fleet", "pull",
+                 "read_fleet", "recipe_from", "run_fleet"):
+        assert "Raises:" in (getattr(api, name).__doc__ or ""), name
+
+
+def test_exported_errors_are_the_error_tree() -> None:
+    from deployer import errors
+
+    for name in api.__all__:
+        obj = getattr(api, name)
+        if inspect.isclass(obj) and issubclass(obj, BaseException):
+            assert obj is getattr(errors, name) and issubclass(obj, errors.DeployerError)
+
+
+def test_load_profile_means_one_thing() -> None:
+    from deployer import profile
+
+    assert deployer.load_profile is profile.load_profile
+    assert deployer.load_profile("example-inverter").id == "example-inverter"
+
+
+def test_importing_the_package_does_not_load_the_api() -> None:
+    code = ("import sys, deployer\nfrom deployer import errors\n"
+            "print('deployer.api' in sys.modules, deployer.__version__ != '')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.split() == ["False", "True"]

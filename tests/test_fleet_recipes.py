@@ -1,0 +1,207 @@
+"""A mixed line from one inventory: two device types, each group its recipe and profile, per-device values.
+
+Everything runs against simulators on loopback: plan, apply, diff and rollback with no RECIPE argument,
+and the errors an inventory can have, each said once with the devices it concerns.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jsonschema
+import pytest
+
+from deployer.cli.files import validate_file
+from deployer.fleet.inventory import load_inventory
+from deployer.load import schema, yamlsrc
+from deployer.load.diagnostics import InputError
+from deployer.profile import builtin_profile, load_profile
+from deployer.testing.simulator import Simulator
+from tests.conftest import free_port
+from tests.helpers import Simulators
+from tests.test_cli import cli
+
+pytestmark = pytest.mark.timeout(180)
+
+# a temperature controller, from a file next to the inventory (the other type is the built-in inverter)
+PID_PROFILE = """\
+profile: pid-controller
+description: an illustrative PID temperature controller
+addressing: address
+parameters:
+  P: {register: 0x0010, type: uint16, unit: percent, scale: 0.1, min: 0, max: 100}
+  I: {register: 0x0011, type: uint16, unit: s, min: 0, max: 3600}
+  D: {register: 0x0012, type: uint16, unit: s, min: 0, max: 600}
+  setpoint: {register: 0x0020, type: int16, unit: degC, scale: 0.1, min: -50, max: 400}
+"""
+ZONE = "recipe: zone\nprofile: ../profiles/pid.yaml\nparameters:\n  P: 12 percent\n  I: 120 s\n  setpoint: 180 degC\n"
+DRIVE = "recipe: drive\nprofile: example-inverter\nparameters:\n  F07: 10 s\n  F08: 12 s\n  stop_mode: coast\n"
+
+
+def line(tmp: Path, urls: dict[str, str], extra_devices: str = "") -> str:
+    """Two zones (PID) and three drives; drive-3 is also 'slow' (a later group wins), zone-2 and drive-2
+    have their own values (a device wins over its groups)."""
+    (tmp / "profiles").mkdir(exist_ok=True)
+    (tmp / "profiles" / "pid.yaml").write_text(PID_PROFILE)
+    (tmp / "recipes").mkdir(exist_ok=True)
+    (tmp / "recipes" / "zone.yaml").write_text(ZONE)
+    (tmp / "recipes" / "drive.yaml").write_text(DRIVE)
+    inv = tmp / "line5.yaml"
+    inv.write_text(
+        "defaults: {timeout: 1.0, retries: 0}\n"
+        "groups:\n"
+        "  zones: {recipe: recipes/zone.yaml, profile: profiles/pid.yaml, parameters: {D: 30 s}}\n"
+        "  drives: {recipe: recipes/drive.yaml, profile: example-inverter, parameters: {F07: 15 s}}\n"
+        "  slow: {parameters: {F07: 20 s, F08: 25 s}}\n"
+        "devices:\n"
+        f"  zone-1: {{url: '{urls['zone-1']}', groups: [zones]}}\n"
+        f"  zone-2: {{url: '{urls['zone-2']}', groups: [zones], parameters: {{setpoint: 200 degC}}}}\n"
+        f"  drive-1: {{url: '{urls['drive-1']}', groups: [drives]}}\n"
+        f"  drive-2: {{url: '{urls['drive-2']}', groups: [drives], parameters: {{F08: 9 s}}}}\n"
+        f"  drive-3: {{url: '{urls['drive-3']}', groups: [drives, slow]}}\n" + extra_devices)
+    return str(inv)
+
+
+# what each device must hold afterwards: recipe < defaults < groups (in order) < device
+WANT = {
+    "zone-1": {"P": (120,), "I": (120,), "D": (30,), "setpoint": (1800,)},
+    "zone-2": {"P": (120,), "I": (120,), "D": (30,), "setpoint": (2000,)},
+    "drive-1": {"F07": (0, 1500), "F08": (0, 1200), "stop_mode": (1,)},
+    "drive-2": {"F07": (0, 1500), "F08": (0, 900), "stop_mode": (1,)},
+    "drive-3": {"F07": (0, 2000), "F08": (0, 2500), "stop_mode": (1,)},
+}
+NAMES = list(WANT)
+
+
+def holds(sim: Simulator, want: dict[str, tuple[int, ...]]) -> bool:
+    return all(sim.read(n) == v for n, v in want.items())
+
+
+def writes(sims: list[Simulator]) -> int:
+    return sum(1 for s in sims for e in s.log if e.function in (6, 16))
+
+
+@pytest.fixture
+def sims(tmp_path: Path) -> list[Simulator]:
+    pid = load_profile(str(_pid_file(tmp_path)))
+    inverter = builtin_profile("example-inverter")
+    return [Simulator(pid), Simulator(pid), Simulator(inverter), Simulator(inverter), Simulator(inverter)]
+
+
+def _pid_file(tmp: Path) -> Path:
+    (tmp / "profiles").mkdir(exist_ok=True)
+    p = tmp / "profiles" / "pid.yaml"
+    p.write_text(PID_PROFILE)
+    return p
+
+
+def test_settings_come_from_device_then_groups_in_order_then_defaults(tmp_path: Path) -> None:
+    urls = {n: f"tcp://127.0.0.1:{5000 + i}" for i, n in enumerate(NAMES)}
+    inv = load_inventory(line(tmp_path, urls, "  odd-1: {url: 'tcp://h', unit: 9, groups: [slow, drives], "
+                                              "recipe: recipes/drive.yaml, timeout: 3}\n"))
+    by = {d.name: d for d in inv.devices}
+    assert by["zone-1"].recipe == str(tmp_path / "recipes" / "zone.yaml")
+    assert by["zone-1"].profile == str(tmp_path / "profiles" / "pid.yaml")  # relative to the inventory
+    assert by["drive-1"].profile == "example-inverter" and by["drive-1"].timeout == 1.0 and by["drive-1"].retries == 0
+    values = {d.name: {e.name: e.value for e in d.overrides} for d in inv.devices}
+    assert values["zone-2"] == {"D": "30 s", "setpoint": "200 degC"}
+    assert values["drive-3"] == {"F07": "20 s", "F08": "25 s"}  # slow is listed after drives: it wins
+    assert values["odd-1"] == {"F07": "15 s", "F08": "25 s"}  # here drives comes last
+    assert by["odd-1"].unit == 9 and by["odd-1"].timeout == 3.0
+
+
+def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                                             sims: list[Simulator]) -> None:
+    state = str(tmp_path / "state")
+    with Simulators(sims):
+        inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)})
+        before = {n: {p: s.read(p) for p in WANT[n]} for n, s in zip(NAMES, sims, strict=True)}
+
+        code, out, err = cli(capsys, "plan", "--inventory", inv, "--detailed-exitcode")
+        assert code == 2, err
+        assert "5 of 5 devices would change" in out
+        assert "zone-2 " in out and "200 degC" in out and "25 s" in out
+        assert writes(sims) == 0
+
+        report = tmp_path / "run.json"
+        code, out, err = cli(capsys, "apply", "--inventory", inv, "--yes", "--json", "--report", str(report),
+                             "--state-dir", state)
+        assert code == 0, err
+        data = json.loads(out)
+        jsonschema.validate(data, schema.schema("report"))
+        assert data["recipe"] is None  # no one recipe: each device says its own
+        by = {d["name"]: d for d in data["devices"]}
+        assert by["zone-1"]["recipe"] == str(tmp_path / "recipes" / "zone.yaml")
+        assert by["drive-1"]["recipe"] == str(tmp_path / "recipes" / "drive.yaml")
+        assert by["zone-1"]["profile"] == "pid-controller" and by["drive-1"]["profile"] == "example-inverter"
+        for n, s in zip(NAMES, sims, strict=True):
+            assert by[n]["status"] == "ok" and holds(s, WANT[n]), n
+        # the snapshot records the device's own recipe as what was applied after it
+        snap = yamlsrc.load(by["zone-2"]["snapshot"])[0]
+        assert snap["snapshot"]["applied"] == str(tmp_path / "recipes" / "zone.yaml")
+
+        code, out, err = cli(capsys, "diff", "--inventory", inv)
+        assert code == 0, out + err
+        sims[3].write("F08", (0, 1000))  # drive-2 moved on the panel
+        code, out, err = cli(capsys, "diff", "--inventory", inv)
+        assert code == 2 and "drift on 1 of 5 devices: drive-2" in out and "10 s" in out
+
+        code, out, err = cli(capsys, "rollback", "--report", str(report), "--yes", "--state-dir", state)
+        assert code == 0, out + err
+        for n, s in zip(NAMES, sims, strict=True):
+            assert {p: s.read(p) for p in WANT[n]} == before[n], n
+
+
+def test_a_recipe_for_one_type_over_a_mixed_line_names_the_devices_once(capsys: pytest.CaptureFixture[str],
+                                                                          tmp_path: Path) -> None:
+    urls = {n: f"tcp://127.0.0.1:{free_port()}" for n in NAMES}
+    inv = line(tmp_path, urls)
+    zone = str(tmp_path / "recipes" / "zone.yaml")
+    code, _, err = cli(capsys, "plan", zone, "--inventory", inv)
+    assert code == 1
+    # the RECIPE goes to every device, with each device's profile: the drives do not know P
+    problem = [ln for ln in err.splitlines() if "unknown parameter 'P'" in ln]
+    assert problem == [f"{zone}:4:3: error: unknown parameter 'P' in profile example-inverter "
+                       "(devices drive-1, drive-2, drive-3)"]
+    assert "nothing was sent to any device" in err
+
+
+def test_a_device_without_a_recipe_stops_the_run_before_anything_is_sent(capsys: pytest.CaptureFixture[str],
+                                                                         tmp_path: Path,
+                                                                         sims: list[Simulator]) -> None:
+    with Simulators(sims):
+        inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)},
+                   "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:1', groups: [slow]}\n")
+        for command in ("plan", "diff", "apply"):
+            more = ["--yes", "--state-dir", str(tmp_path / "s")] if command == "apply" else []
+            code, _, err = cli(capsys, command, "--inventory", inv, *more)
+            assert code == 1, command
+            assert f"{inv}:12:3: error: no recipe: give the device one" in err and "(device spare-1)\n" in err
+            assert f"{inv}:13:3: error: no recipe" in err and "(device spare-2)\n" in err
+        assert sum(len(s.log) for s in sims) == 0  # not even read
+        # leaving them out, the rest goes
+        code, _, err = cli(capsys, "plan", "--inventory", inv, "--limit", "!spare-*")
+        assert code == 0, err
+        code, _, err = cli(capsys, "plan", "--device", "tcp://127.0.0.1:1")
+        assert code == 1 and "pass RECIPE, or --inventory FILE whose devices name their recipes" in err
+
+
+def test_inventory_errors_name_their_devices_and_validate_checks_the_recipes(tmp_path: Path) -> None:
+    urls = {n: "tcp://127.0.0.1:1502" for n in NAMES}
+    inv = line(tmp_path, urls)
+    assert validate_file(inv) == "inventory: 5 devices, 2 recipes"
+    text = Path(inv).read_text()
+    # a group's bad value concerns every device of the group; a missing recipe file is said where it is named
+    Path(inv).write_text(text.replace("parameters: {D: 30 s}", "parameters: {D: 9000 s}")
+                         .replace("recipes/drive.yaml", "recipes/drives.yaml"))
+    with pytest.raises(InputError) as e:
+        validate_file(inv)
+    msgs = [str(d) for d in e.value.diagnostics]
+    assert msgs == [f"{inv}:3:82: error: D: 9000 s is out of range 0..600 s (devices zone-1, zone-2)",
+                    f"{inv}:4:20: error: recipe {tmp_path}/recipes/drives.yaml: no such file "
+                    "(devices drive-1, drive-2, drive-3)"]
+    # the schema: groups take only a device's settings, not a url
+    Path(inv).write_text(text.replace("slow: {parameters", "slow: {url: 'tcp://x', parameters"))
+    with pytest.raises(InputError, match=r"line5.yaml:5:10: error: .*url"):
+        validate_file(inv)
