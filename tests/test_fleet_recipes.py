@@ -172,7 +172,7 @@ def test_a_device_without_a_recipe_stops_the_run_before_anything_is_sent(capsys:
                                                                          sims: list[Simulator]) -> None:
     with Simulators(sims):
         inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)},
-                   "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:1', groups: [slow]}\n")
+                   "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:2', groups: [slow]}\n")
         for command in ("plan", "diff", "apply"):
             more = ["--yes", "--state-dir", str(tmp_path / "s")] if command == "apply" else []
             code, _, err = cli(capsys, command, "--inventory", inv, *more)
@@ -188,7 +188,7 @@ def test_a_device_without_a_recipe_stops_the_run_before_anything_is_sent(capsys:
 
 
 def test_inventory_errors_name_their_devices_and_validate_checks_the_recipes(tmp_path: Path) -> None:
-    urls = {n: "tcp://127.0.0.1:1502" for n in NAMES}
+    urls = {n: f"tcp://127.0.0.1:{1502 + i}" for i, n in enumerate(NAMES)}  # one device, one entry
     inv = line(tmp_path, urls)
     assert validate_file(inv) == "inventory: 5 devices, 2 recipes"
     text = Path(inv).read_text()

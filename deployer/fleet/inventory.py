@@ -184,9 +184,6 @@ def _inventory(p: str, data: Any, src: yamlsrc.Source, here: str) -> Inventory:
             recipe=None if rec is None else os.path.normpath(os.path.join(os.path.dirname(p), rec)),
             at=at,
         ))
-    errors = _same_devices(p, [(d, d.unit) for d in devices], check_urls=False)  # bad URLs: said with the rest
-    if errors:
-        raise InputError(errors)
     return Inventory(p, tuple(devices))
 
 
@@ -337,9 +334,10 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
                 found = [Diagnostic(inv.path, *dev.where, str(e))]
         for d in found:
             concerns.setdefault(d, []).append(dev.name)
-    if unit is not None:  # --unit puts every selected device on one unit id
-        for d in _same_devices(inv.path, [(dev, unit) for dev in inv.select(limit)], check_urls=False):
-            concerns.setdefault(d, [])
+    # one device named twice (--unit may make it so), said with the rest
+    for d in _same_devices(inv.path, [(dev, unit if unit is not None else dev.unit) for dev in inv.select(limit)],
+                           check_urls=False):
+        concerns.setdefault(d, [])
     if concerns:
         raise InputError(Diagnostic(d.path, d.line, d.col, f"{d.message} ({_devices(names)})" if names else d.message)
                          for d, names in concerns.items())
