@@ -18,13 +18,15 @@ import time
 HERE = os.path.abspath(__file__)
 
 
-def measured(args: list[str], cwd: str | None = None) -> tuple[float, float, int, int, str]:
+def measured(args: list[str], cwd: str | None = None, max_bytes: int | None = None
+             ) -> tuple[float, float, int, int, str]:
     """Wall seconds, CPU seconds (user + system), peak RSS in KB, exit code and stderr of one command.
 
     The command's stdin and stdout are /dev/null; wall time is taken by the launcher around the command
-    alone (not the launcher's own start-up).
+    alone (not the launcher's own start-up). ``max_bytes``: the command's address space is limited to it
+    (a command that tries to take gigabytes fails instead of taking the machine).
     """
-    spec = json.dumps({"args": args, "cwd": cwd})
+    spec = json.dumps({"args": args, "cwd": cwd, "max_bytes": max_bytes})
     proc = subprocess.run([sys.executable, HERE, spec], capture_output=True, stdin=subprocess.DEVNULL)
     if proc.returncode != 0 or not proc.stdout.strip():
         raise RuntimeError(f"the launcher failed for {' '.join(args[:4])}: {proc.stderr.decode(errors='replace')}")
@@ -35,7 +37,15 @@ def measured(args: list[str], cwd: str | None = None) -> tuple[float, float, int
 def _main() -> None:
     spec = json.loads(sys.argv[1])
     t = time.perf_counter()
-    proc = subprocess.Popen(spec["args"], cwd=spec["cwd"], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+    limit = spec.get("max_bytes")
+
+    def limited() -> None:
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    proc = subprocess.Popen(spec["args"], cwd=spec["cwd"], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            preexec_fn=limited if limit else None)
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t
     print(json.dumps({"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "maxrss_kb": usage.ru_maxrss,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 from .load.diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
@@ -151,12 +151,8 @@ class Report:
                 "seconds": round(self.seconds, 3)}
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "schema": REPORT_SCHEMA,
-            "recipe": self.recipe,
-            "devices": [d.to_json() for d in self.devices],
-            "summary": self.summary(),
-        }
+        """The report document (schema ``deployer.report/1``) as plain values."""
+        return _document(self.recipe, [d.to_json() for d in self.devices], self.summary())
 
     @property
     def exit_code(self) -> int:
@@ -171,6 +167,48 @@ class Report:
         if any(d.status not in ("ok", "sent") for d in self.devices):
             return EXIT_FAILED
         return EXIT_OK
+
+
+# ---- the report document: every report JSON (API, --json, --report files, the live fleet file) ----
+
+
+def _document(recipe: str | None, devices: list[Any], summary: dict[str, Any]) -> dict[str, Any]:
+    return {"schema": REPORT_SCHEMA, "recipe": recipe, "devices": devices, "summary": summary}
+
+
+def device_json(d: DeviceResult, shared: dict[int, str] | None = None) -> bytes:
+    """``json.dumps(d.to_json())`` as ASCII bytes; ``shared``: the JSON of parameter lists several
+    devices share (the skeleton of a fleet report), made once per list and kept there."""
+    if shared is None:
+        return json.dumps(d.to_json()).encode()
+    params = shared.get(id(d.parameters))
+    if params is None:
+        params = shared[id(d.parameters)] = json.dumps([p.to_json() for p in d.parameters])
+    # no string value can hold this text unescaped, so the first match is the key itself
+    return json.dumps(replace(d, parameters=[]).to_json()).replace('"parameters": []', f'"parameters": {params}',
+                                                                   1).encode()
+
+
+def report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str, Any]) -> list[bytes]:
+    """The report document as pieces of JSON text, one device per line (each from ``device_json``).
+
+    The pieces are written with one gathering write (``write_atomic``), never joined into one big
+    string: a fleet's report file is rewritten as devices finish.
+    """
+    head, tail = json.dumps(_document(recipe, [], summary)).split('"devices": []', 1)
+    out = [f'{head}"devices": [\n'.encode()]
+    for i, d in enumerate(devices):
+        if i:
+            out.append(b",\n")
+        out.append(d)
+    out.append(f"\n]{tail}\n".encode())
+    return out
+
+
+def report_text(report: Report) -> str:
+    """A report as JSON text, one device per line (``--json`` and the ``--report`` file of a fleet)."""
+    return b"".join(report_parts(report.recipe, [device_json(d) for d in report.devices],
+                                 report.summary())).decode()
 
 
 def write_json(data: dict[str, Any], path: str) -> None:

@@ -85,6 +85,12 @@ def test_explain(capsys: pytest.CaptureFixture[str]) -> None:
                                  "50..4000000\n  Every scheme and option, with what they mean: docs/urls.md\n")
     code, out, _ = cli(capsys, "explain", "timeout")  # an inventory key and a URL option
     assert code == 0 and "inventory: defaults.timeout" in out and "url: timeout\n" in out
+    # a manual's word for what is called otherwise here points at our key
+    code, out, _ = cli(capsys, "explain", "resolution")
+    assert code == 0 and out.startswith("'resolution' is not a key here: a parameter's resolution (a manual's "
+                                        "'0.01 s units') is its scale.\n\nprofile: parameters.PARAM.scale\n")
+    code, out, _ = cli(capsys, "explain", "slave")
+    assert code == 0 and "\n\nrecipe: device.unit\n" in out and "profile:" not in out
 
 
 def _blocks(page: Path) -> list[tuple[str, str, str]]:

@@ -231,7 +231,7 @@ def test_an_unreachable_device_spends_the_failure_budget_and_batches_are_recorde
 def test_retry_from_the_report_touches_exactly_the_devices_that_failed(capsys: pytest.CaptureFixture[str],
                                                                        tmp_path: Path) -> None:
     with fleet(6, {2: Faults(fail_registers=frozenset({F08})), 4: Faults(busy_first=100)}) as sims:
-        urls = {n: s.url for n, s in zip(names(6), sims, strict=True)}
+        urls = {n: s.url for n, s in zip(names(6), sims[:6], strict=True)}
         inv = inventory(tmp_path, urls)
         report_file = str(tmp_path / "run1.json")
         code, _, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--report", report_file,
@@ -252,7 +252,7 @@ def test_report_file_survives_kill_9(tmp_path: Path) -> None:
     """Killed mid-run: the report names the finished devices as they ended, the rest 'not finished'."""
     with fleet(6, {i: Faults(latency_ms=60) for i in range(6)} | {1: Faults(fail_registers=frozenset({F08}))}) \
             as sims:
-        urls = {n: s.url for n, s in zip(names(6), sims, strict=True)}
+        urls = {n: s.url for n, s in zip(names(6), sims[:6], strict=True)}
         inv = inventory(tmp_path, urls)
         report_file = tmp_path / "report.json"
         proc = subprocess.Popen([sys.executable, "-m", "deployer", "apply", recipe(tmp_path), "--inventory", inv,
@@ -313,6 +313,10 @@ def test_fleet_diff_names_exactly_the_drifted_devices(capsys: pytest.CaptureFixt
         code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv)
         assert code == 2
         assert "drift on 2 of 8 devices: d02, d05" in out
+        assert out.splitlines()[:6] == ["6 devices: as the recipe says", "  d00, d01, d03, d04, d06, d07",
+                                        "1 device: F07 9.99 s (recipe 10 s)", "  d02",
+                                        "1 device: stop_mode ramp (recipe coast)", "  d05"]
+        code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv, "--per-device")
         rows = [line.split() for line in out.splitlines() if line.split()[:1] in (["d02"], ["d05"])]
         assert rows == [["d02", "F07", "10", "s", "9.99", "s", "drift"], ["d05", "stop_mode", "coast", "ramp", "drift"]]
         code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv, "--json")
@@ -320,6 +324,50 @@ def test_fleet_diff_names_exactly_the_drifted_devices(capsys: pytest.CaptureFixt
         assert code == 2 and data["drifted"] == ["d02", "d05"]
         assert [d["name"] for d in data["devices"][5]["drift"]] == ["stop_mode"]
         assert all(e.function == 3 for s in sims for e in s.log)  # diff only reads
+
+
+def test_fleet_plan_and_diff_group_identical_changes(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    with fleet(7) as sims:
+        urls = {n: s.url for n, s in zip(names(6), sims[:6], strict=True)}
+        urls["dead-1"] = f"tcp://127.0.0.1:{free_port()}"
+        urls["dead-2"] = f"tcp://127.0.0.1:{free_port()}"
+        inv = inventory(tmp_path, urls, extra=f"  d06: {{url: '{sims[6].url}', parameters: {{F08: 20 s}}}}\n")
+        for n, v in WANT.items():  # d05 already holds the recipe
+            sims[5].write(n, v)
+        sims[4].write("F08", (0, 1200))  # d04 needs only two of the three
+        code, out, err = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "!d06")
+        assert code == 3, err
+        assert out.splitlines() == [
+            "4 devices: F07 5 s -> 10 s, F08 5 s -> 12 s, stop_mode ramp -> coast", "  d00, d01, d02, d03",
+            "1 device: F07 5 s -> 10 s, stop_mode ramp -> coast", "  d04",
+            "1 device: as desired", "  d05",
+            "2 unreachable: dead-1, dead-2",
+            "5 of 8 devices would change (5 write requests); --per-device shows each device's plan"]
+        code, out, err = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "d0*", "--per-device")
+        assert code == 0 and out.count("current -> desired") == 6 and "d05" not in out.splitlines()[0]
+        assert "6 of 7 devices would change: d00, d01, d02, d03, d04, d06" in out
+        # a change list longer than a line goes into a table under its group
+        many = tmp_path / "many.yaml"
+        many.write_text(RECIPE + "  base_speed: 1600 rpm\n  torque_limit: 120 %\n")
+        code, out, err = cli(capsys, "plan", str(many), "--inventory", inv, "--limit", "d00,d01")
+        assert code == 0, err
+        assert out.splitlines()[0] == "2 devices: 5 changes" and out.splitlines()[-2] == "  d00, d01"
+        # the drift matrix: the drifted devices as columns, '=' where a device holds its recipe's value
+        assert cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--limit", "d0*", "--yes",
+                   "--state-dir", str(tmp_path / "s"))[0] == 0
+        sims[1].write("F07", (0, 999))
+        sims[3].write("F07", (0, 999))
+        sims[6].write("stop_mode", (0,))
+        code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv, "--limit", "d0*", "--matrix")
+        assert code == 2
+        assert [" ".join(ln.split()) for ln in out.splitlines()] == [
+            "parameter recipe d01 d03 d06", "F07 10 s 9.99 s 9.99 s =", "stop_mode coast = = ramp",
+            "drift on 3 of 7 devices: d01, d03, d06"]
+        code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv, "--limit", "d0*")
+        assert code == 2 and out.splitlines()[:4] == ["4 devices: as the recipe says", "  d00, d02, d04, d05",
+                                                     "2 devices: F07 9.99 s (recipe 10 s)", "  d01, d03"]
+        code, _, err = cli(capsys, "plan", recipe(tmp_path), "--per-device")
+        assert code == 1 and "--per-device needs --inventory" in err
 
 
 def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -332,7 +380,8 @@ def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path)
         sims[1].write("stop_mode", (1,))
         code, out, _ = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "a,b",
                            "--detailed-exitcode")
-        assert code == 2 and "2 of 3 devices would change: d00, d02" in out and "5 s -> 10 s" in out
+        assert code == 2 and "2 of 3 devices would change (2 write requests)" in out
+        assert "2 devices: F07 5 s -> 10 s, F08 5 s -> 12 s, stop_mode ramp -> coast\n  d00, d02\n" in out
         code, out, _ = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "d01",
                            "--detailed-exitcode", "--json")
         assert code == 0 and json.loads(out)["devices"][0]["plan"]["writes"] == []
@@ -541,9 +590,10 @@ def test_each_distinct_recipe_is_checked_once(tmp_path: Path, monkeypatch: pytes
 
 def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Path) -> None:
     from deployer.fleet.inventory import fleet_jobs, load_inventory
-    from deployer.fleet.livereport import NOT_FINISHED, LiveReport, _report_parts, not_finished
+    from deployer.fleet.livereport import NOT_FINISHED, LiveReport, not_finished
     from deployer.fleet.rollout import skipped_result
     from deployer.recipe.loader import load_recipe
+    from deployer.report import report_parts
 
     inv = tmp_path / "inventory.yaml"
     inv.write_text("devices:\n" + "".join(f"  {n}: {{url: 'tcp://127.0.0.1:{1000 + i}'}}\n"
@@ -557,7 +607,7 @@ def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Pat
     live = LiveReport(str(tmp_path / "r.json"), "r.yaml", skeleton)
     live.stop()
     text = (tmp_path / "r.json").read_text()
-    expected = b"".join(_report_parts("r.yaml", [json.dumps(d.to_json()).encode() for d in naive], {})).decode()
+    expected = b"".join(report_parts("r.yaml", [json.dumps(d.to_json()).encode() for d in naive], {})).decode()
     assert text.split('"summary"')[0] == expected.split('"summary"')[0]  # byte for byte, but the summary
     assert {d["name"]: d["error"] for d in json.loads(text)["devices"]} == {n: NOT_FINISHED for n in names(4)}
 
@@ -596,3 +646,18 @@ def test_a_caller_running_the_cli_in_process_keeps_its_garbage_collector(capsys:
                            "--state-dir", str(tmp_path / "s"))
     assert code == 0, err
     assert (gc.get_threshold(), gc.get_freeze_count()) == (threshold, frozen)  # tuned only in the command's process
+
+
+def test_one_report_document_in_both_forms() -> None:
+    """report_text (files, --json of fleets) and Report.to_json (the API) are one document."""
+    from deployer.report import DeviceResult, ParameterResult, Report, RequestRecord, report_text
+
+    a = DeviceResult("a", "tcp://127.0.0.1:1", 1, "example-inverter", status="ok", seconds=0.5,
+                     error='quote " and "devices": [] inside', notices=["n"])
+    a.parameters = [ParameterResult("F07", 0x100, 1, "10 s", (100,), (50,), (100,), "ok")]
+    a.requests = [RequestRecord(16, 0x100, 1)]
+    b = DeviceResult("b", "rtu:///dev/x", 0, "example-inverter", status="unreachable", error="gone")
+    report = Report('r "devices": [].yaml', [a, b], seconds=1.25)
+    text = report_text(report)
+    assert json.loads(text) == report.to_json()
+    assert len(text.splitlines()) == 4  # head, one line per device, tail

@@ -35,7 +35,7 @@ parameters:
   D: {register: 0x0012, type: uint16, unit: s, min: 0, max: 600}
   setpoint: {register: 0x0020, type: int16, unit: degC, scale: 0.1, min: -50, max: 400}
 """
-ZONE = "recipe: zone\nprofile: ../profiles/pid.yaml\nparameters:\n  P: 12 percent\n  I: 120 s\n  setpoint: 180 degC\n"
+ZONE = "recipe: zone\nprofile: ../profiles/pid.yaml\nparameters:\n  P: 12.0 %\n  I: 120 s\n  setpoint: 180 degC\n"
 DRIVE = "recipe: drive\nprofile: example-inverter\nparameters:\n  F07: 10 s\n  F08: 12 s\n  stop_mode: coast\n"
 
 
@@ -109,6 +109,16 @@ def test_settings_come_from_device_then_groups_in_order_then_defaults(tmp_path: 
     assert values["drive-3"] == {"F07": "20 s", "F08": "25 s"}  # slow is listed after drives: it wins
     assert values["odd-1"] == {"F07": "15 s", "F08": "25 s"}  # here drives comes last
     assert by["odd-1"].unit == 9 and by["odd-1"].timeout == 3.0
+    # parameters merge per name: defaults < groups (in the device's order) < the device
+    small = tmp_path / "small.yaml"
+    small.write_text("defaults: {parameters: {F07: 1 s, F08: 1 s, stop_mode: ramp}, unit: 2}\n"
+                     "groups: {a: {parameters: {F08: 2 s}, unit: 3}, b: {parameters: {F08: 3 s, stop_mode: coast}}}\n"
+                     "devices:\n  x: {url: 'tcp://h', groups: [b, a], parameters: {F07: 4 s}}\n"
+                     "  y: {url: 'tcp://h', groups: [a, b, line9]}\n  z: {url: 'tcp://h'}\n")
+    got = {d.name: ({e.name: e.value for e in d.overrides}, d.unit) for d in load_inventory(small).devices}
+    assert got == {"x": ({"F07": "4 s", "F08": "2 s", "stop_mode": "coast"}, 3),
+                   "y": ({"F07": "1 s", "F08": "3 s", "stop_mode": "coast"}, 3),
+                   "z": ({"F07": "1 s", "F08": "1 s", "stop_mode": "ramp"}, 2)}
 
 
 def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str], tmp_path: Path,
@@ -118,10 +128,14 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)})
         before = {n: {p: s.read(p) for p in WANT[n]} for n, s in zip(NAMES, sims, strict=True)}
 
-        code, out, err = cli(capsys, "plan", "--inventory", inv, "--detailed-exitcode")
+        code, out, err = cli(capsys, "plan", "--inventory", inv, "--detailed-exitcode", "--per-device")
         assert code == 2, err
         assert "5 of 5 devices would change" in out
         assert "zone-2 " in out and "200 degC" in out and "25 s" in out
+        code, out, err = cli(capsys, "plan", "--inventory", inv)  # the summary: one line per distinct change
+        assert code == 0 and out.splitlines()[:2] == [
+            "1 device: P 0 % -> 12 %, I 0 s -> 120 s, D 0 s -> 30 s, setpoint 0 degC -> 180 degC",
+            "  zone-1"]
         assert writes(sims) == 0
 
         report = tmp_path / "run.json"
@@ -144,7 +158,7 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         code, out, err = cli(capsys, "diff", "--inventory", inv)
         assert code == 0, out + err
         sims[3].write("F08", (0, 1000))  # drive-2 moved on the panel
-        code, out, err = cli(capsys, "diff", "--inventory", inv)
+        code, out, err = cli(capsys, "diff", "--inventory", inv, "--per-device")
         assert code == 2 and "drift on 1 of 5 devices: drive-2" in out and "10 s" in out
 
         code, out, err = cli(capsys, "rollback", "--report", str(report), "--yes", "--state-dir", state)
@@ -163,7 +177,8 @@ def test_a_recipe_for_one_type_over_a_mixed_line_names_the_devices_once(capsys: 
     # the RECIPE goes to every device, with each device's profile: the drives do not know P
     problem = [ln for ln in err.splitlines() if "unknown parameter 'P'" in ln]
     assert problem == [f"{zone}:4:3: error: unknown parameter 'P' in profile example-inverter "
-                       "(devices drive-1, drive-2, drive-3)"]
+                       "(devices drive-1, drive-2, drive-3; the inventory gives them recipes of their own: "
+                       "leave out RECIPE to use those)"]
     assert "nothing was sent to any device" in err
 
 
@@ -172,13 +187,14 @@ def test_a_device_without_a_recipe_stops_the_run_before_anything_is_sent(capsys:
                                                                          sims: list[Simulator]) -> None:
     with Simulators(sims):
         inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)},
-                   "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:2', groups: [slow]}\n")
+                   "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:2', groups: [zone]}\n")
         for command in ("plan", "diff", "apply"):
             more = ["--yes", "--state-dir", str(tmp_path / "s")] if command == "apply" else []
             code, _, err = cli(capsys, command, "--inventory", inv, *more)
             assert code == 1, command
             assert f"{inv}:12:3: error: no recipe: give the device one" in err and "(device spare-1)\n" in err
-            assert f"{inv}:13:3: error: no recipe" in err and "(device spare-2)\n" in err
+            assert f"{inv}:13:3: error: no recipe" in err
+            assert "its group 'zone' has no entry under groups: (did you mean 'zones'?) (device spare-2)\n" in err
         assert sum(len(s.log) for s in sims) == 0  # not even read
         # leaving them out, the rest goes
         code, _, err = cli(capsys, "plan", "--inventory", inv, "--limit", "!spare-*")
@@ -205,3 +221,43 @@ def test_inventory_errors_name_their_devices_and_validate_checks_the_recipes(tmp
     Path(inv).write_text(text.replace("slow: {parameters", "slow: {url: 'tcp://x', parameters"))
     with pytest.raises(InputError, match=r"line5.yaml:5:10: error: .*url"):
         validate_file(inv)
+
+
+def test_counts_read_as_english_and_percent_as_a_symbol(capsys: pytest.CaptureFixture[str],
+                                                        tmp_path: Path) -> None:
+    (tmp_path / "profiles").mkdir()
+    (tmp_path / "profiles" / "pid.yaml").write_text(PID_PROFILE)
+    one = tmp_path / "one.yaml"
+    one.write_text("recipe: one\nprofile: profiles/pid.yaml\nparameters:\n  P: 12.0 %\n")
+    code, out, _ = cli(capsys, "plan", str(one), "--show-frames")
+    assert code == 0 and " 12 % " in out and "request 1: FC16 at 0x0010, 1 register (P)" in out
+    sim = Simulator(load_profile(str(tmp_path / "profiles" / "pid.yaml")))
+    with Simulators([sim]):
+        state = str(tmp_path / "s")
+        inv = tmp_path / "inv.yaml"
+        inv.write_text(f"devices:\n  z1: {{url: '{sim.url}', recipe: one.yaml}}\n")
+        code, out, err = cli(capsys, "apply", "--inventory", str(inv), "--yes", "--state-dir", state)
+        assert code == 0 and "z1: ok (1 write)" in err and "1 device: 1 ok; 1 write request and " in out
+        code, out, _ = cli(capsys, "diff", str(one), "--device", sim.url)
+        assert code == 0 and out == "no drift: the device holds the recipe's value\n"
+        sim.write("P", (100,))
+        code, out, _ = cli(capsys, "diff", str(one), "--device", sim.url)
+        assert code == 2 and "1 of 1 parameter differs from the recipe" in out and "10 %" in out
+
+
+def test_the_ansible_module_takes_the_inventorys_recipes(tmp_path: Path) -> None:
+    from ansible_collections.deployer.modbus.plugins.module_utils import deployer_common as common
+
+    class Module:
+        def __init__(self, **params: object) -> None:
+            self.params = {"timeout": None, "retries": None, "unit": None, "limit": None, **params}
+
+    inv = line(tmp_path, {n: "tcp://127.0.0.1:1502" for n in NAMES})
+    task = Module(inventory=inv)
+    assert common.recipe_of(task) is None  # no recipe, profile or parameters: each device's own
+    jobs = common.jobs_of(task, None)
+    assert {j.name: j.recipe.name for j in jobs} == {"zone-1": "zone", "zone-2": "zone", "drive-1": "drive",
+                                                     "drive-2": "drive", "drive-3": "drive"}
+    with pytest.raises(InputError, match=r"unknown parameter 'F07' in profile pid-controller \(devices zone-1, "
+                                         "zone-2; the inventory gives them recipes of their own"):
+        common.jobs_of(task, common.recipe_of(Module(inventory=inv, recipe=str(tmp_path / "recipes" / "drive.yaml"))))

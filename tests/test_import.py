@@ -146,8 +146,11 @@ def test_sunspec_basic_settings_model_plans_to_its_addresses(tmp_path: Path,
     code, _, err = cli(capsys, "profiles", "import", "sunspec", "121", "--at", "40122", "--sf", "WMax_SF=1",
                        "--sf", "VRef_SF=-1", "--sf", "VMinMax_SF=-1", "--id", "inverter-settings", "-o", str(out))
     assert code == 0, err
-    assert "warning: VRefOfs: scale factor VRefOfs_SF unknown, imported unscaled" in err
+    assert "warning: VRefOfs: scale factor VRefOfs_SF unknown: imported raw, without its unit" in err
     prof = load_profile(out)
+    # a point whose scale factor is unknown carries no unit: '10 V' could not be converted rightly
+    assert prof.parameter("VRefOfs").unit is None and prof.parameter("VRefOfs").scale == 1
+    assert "raw: the value in V is raw x 10^VRefOfs_SF" in prof.parameter("VRefOfs").description
     # SunSpec model 121: ID, L, then WMax, VRef, VRefOfs, VMax, VMin, VAMax, VArMaxQ1-4, WGra, PFMinQ1-4,
     # VArAct, ClcTotVA, MaxRmpRte, ECPNomHz, ConnPh, then the scale factors; L = 30
     offsets = {"ID": 0, "L": 1, "WMax": 2, "VRef": 3, "VMax": 5, "VMin": 6, "VArAct": 17, "ConnPh": 21,
@@ -294,7 +297,7 @@ def test_import_usage_errors_are_messages(tmp_path: Path, capsys: pytest.Capture
     assert code == 1 and "none.csv:0:0: error: no such file" in err
     pytest.importorskip("openpyxl")
     code, _, err = cli(capsys, "profiles", "import", "xlsx", str(src), "--id", "x")
-    assert code == 1 and "cannot read the workbook" in err and "Traceback" not in err
+    assert code == 1 and f"{src}:1:1: error: not an Excel workbook" in err and "Traceback" not in err
     pytest.importorskip("sunspec2")
     code, _, err = cli(capsys, "profiles", "import", "sunspec", "121", "--at", "65530")
     assert code == 1 and "would end past register 65535" in err

@@ -67,7 +67,7 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
     s = report.summary()
     if len(report.devices) > 1 and not only_not_ok:
-        out.print(f"{s['devices']} devices: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
+        out.print(f"{_n(s['devices'], 'device')}: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
                   + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable "
                   f"in {s['seconds']:.2f} s")
 
@@ -206,7 +206,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     if as_json:
         if fleet_run:
-            from ..fleet.livereport import report_text
+            from ..report import report_text
 
             click.echo(report_text(report), nl=False)
         else:

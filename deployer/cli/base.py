@@ -70,11 +70,11 @@ def cli() -> None:
     """Deploy parameter sets (recipes) to Modbus devices: plan, apply, verify, report."""
 
 
-def report_input_error(err: InputError) -> None:
+def report_input_error(err: InputError, outcome: str = "nothing was sent to any device") -> None:
     for d in err.diagnostics:
         click.echo(str(d), err=True)
     n = len(err.diagnostics)
-    click.echo(f"{n} error{'s' if n != 1 else ''}; nothing was sent to any device", err=True)
+    click.echo(f"{n} error{'s' if n != 1 else ''}; {outcome}", err=True)
 
 
 def console(*, stderr: bool = False) -> Console:

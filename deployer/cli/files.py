@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from ..load.diagnostics import EXIT_INVALID, EXIT_OK, InputError, UsageError
+from ..load.messages import clip
 from .base import _n
 
 if TYPE_CHECKING:
@@ -105,9 +106,25 @@ def docs_command(out_dir: str, check: bool) -> int:
         for path in stale:
             click.echo(f"{path}: stale (run: deployer docs --out {out_dir})", err=True)
         return EXIT_INVALID if stale else EXIT_OK
-    changed = write_pages(out_dir)
+    try:
+        changed = write_pages(out_dir)
+    except OSError as e:
+        raise UsageError(f"cannot write the pages into {clip(out_dir, 300)}: {e.strerror or e}") from None
     click.echo(f"{len(changed)} page{'s' if len(changed) != 1 else ''} updated in {out_dir}", err=True)
     return EXIT_OK
+
+
+# words of manuals and other tools -> (our key, what it is called here)
+_TERMS = {
+    "resolution": ("scale", "a parameter's resolution (a manual's '0.01 s units') is its scale"),
+    "multiplier": ("scale", "a multiplier is a parameter's scale"),
+    "factor": ("scale", "a scaling factor is a parameter's scale"),
+    "gain": ("scale", "a register's gain (multiplier) is its scale"),
+    "slave": ("recipe:device.unit", "a slave address is the unit id, device.unit (or --unit)"),
+    "slave_id": ("recipe:device.unit", "a slave address is the unit id, device.unit (or --unit)"),
+    "endianness": ("byte_order", "the byte and word order of multi-register values is byte_order"),
+    "word_swap": ("byte_order", "a word swap is byte_order: CDAB (or swap: word)"),
+}
 
 
 @click.command()
@@ -123,10 +140,13 @@ def explain(key: str) -> int:
     kind, _, name = key.rpartition(":")
     if kind in ("", "url"):
         texts += [t for t in [url_option_text(name)] if t]
+    if not texts and name.strip().lower() in _TERMS:  # a manual's word for what a key is called here
+        ours = _TERMS[name.strip().lower()]
+        texts = [f"'{name}' is not a key here: {ours[1]}.", *(render_text(k) for k in find_keys(ours[0]))]
     if not texts:
         names = sorted({k.path for k in all_keys()} | {k.path.rsplit(".", 1)[-1] for k in all_keys()})
-        hint = difflib.get_close_matches(name, names, n=3)
-        raise UsageError(f"no key '{key}' in any schema" + (f"; did you mean {', '.join(hint)}?" if hint else
-                                                            "; try e.g. 'deployer explain scale'"))
+        hint = difflib.get_close_matches(name, names, n=3) if len(name) <= 100 else []
+        raise UsageError(f"no key '{clip(key)}' in any schema" + (f"; did you mean {', '.join(hint)}?" if hint else
+                                                                  "; try e.g. 'deployer explain scale'"))
     click.echo("\n\n".join(texts))
     return EXIT_OK

@@ -102,7 +102,7 @@ def print_frames(plan: Plan, out: Console) -> None:
     unit = plan.device.unit
     for i, w in enumerate(plan.writes, 1):
         names = ", ".join(w.parameters)
-        what = _n(w.count, "coil") if w.function in (5, 15) else f"{w.count} registers"
+        what = _n(w.count, "coil") if w.function in (5, 15) else _n(w.count, "register")
         out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {what} ({names})")
         framing: Framing
         for framing in ("rtu", "ascii", "tcp"):
@@ -130,9 +130,11 @@ def _show(frame: bytes, framing: str) -> str:
 @fleet_option
 @limit_option
 @parallel_option
+@click.option("--per-device", is_flag=True,
+              help="with --inventory: each device's own plan table (default: devices with identical changes together)")
 def plan(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
-         inventory: str | None, limit: str | None, parallel: int) -> int:
+         inventory: str | None, limit: str | None, parallel: int, per_device: bool) -> int:
     """Show the requests that apply would send. Offline, or with --device against what the device holds.
 
     With --inventory and no RECIPE, each device's recipe from the inventory."""
@@ -146,9 +148,10 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         if device or out_path or show_frames:
             raise UsageError("with --inventory, --device, --out and --show-frames do not apply (one plan per device)")
         return plan_fleet(maybe, _fleet(maybe, inventory, limit, timeout, retries, unit), parallel=parallel,
-                          as_json=as_json, detailed_exitcode=detailed_exitcode, write_all=write_all)
-    if limit:
-        raise UsageError("--limit needs --inventory")
+                          as_json=as_json, detailed_exitcode=detailed_exitcode, write_all=write_all,
+                          per_device=per_device)
+    if limit or per_device:
+        raise UsageError(f"{'--limit' if limit else '--per-device'} needs --inventory")
     assert maybe is not None
     rec = maybe
     url, u = _target(rec, device, unit, timeout, retries, required=False)
@@ -179,8 +182,9 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
 
 
 def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_json: bool, detailed_exitcode: bool,
-               write_all: bool) -> int:
-    """A plan per device against what it holds; exit 3 if any device could not be read, else as plan."""
+               write_all: bool, per_device: bool = False) -> int:
+    """A plan per device against what it holds, devices with identical changes together (``per_device``:
+    each device's table); exit 3 if any device could not be read, else as plan."""
     from ..api import read_jobs
     from ..planning.model import Target
     from ..planning.planfile import plan_to_json
@@ -198,16 +202,25 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
         click.echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
             {"name": j.name, "plan": plan_to_json(plans[j.name])} if j.name in plans
             else {"name": j.name, "error": str(values[j.name])} for j in jobs]}, indent=2))
-    else:
+    elif per_device:
         out = console()
         for j in jobs:
             if j.name in plans and plans[j.name].writes:
                 out.print(f"[bold]{j.name}[/bold] {describe(j.url)} unit {j.unit}:")
                 print_plan(plans[j.name], j.recipe.profile, changes_only=True, out=out)
         down = _unreachable(values)
-        out.print(f"{len(changing)} of {len(jobs)} devices would change" + (f": {', '.join(changing)}" if changing
-                                                                            else "")
+        out.print(f"{len(changing)} of {_n(len(jobs), 'device')} would change"
+                  + (f": {', '.join(changing)}" if changing else "")
                   + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
+    else:
+        from .summary import plan_changes, print_groups
+
+        out = console()
+        print_groups(out, {j.name: plan_changes(plans[j.name], j.recipe.profile) for j in jobs if j.name in plans},
+                     _unreachable(values), same="as desired")
+        writes = sum(len(p.writes) for p in plans.values())
+        out.print(f"{len(changing)} of {_n(len(jobs), 'device')} would change ({_n(writes, 'write request')}); "
+                  "--per-device shows each device's plan")
     if _unreachable(values):
         return EXIT_UNREACHABLE
     return EXIT_CHANGES if detailed_exitcode and changing else EXIT_OK

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import click
 
-from ..load.diagnostics import EXIT_OK, EXIT_UNREACHABLE, UsageError
-from .base import _n, _output, console, read_device
+from ..load.diagnostics import EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, InputError, UsageError
+from .base import _n, _output, console, report_input_error
 from .tables import Cell, show
 
 
@@ -59,6 +60,26 @@ def _pairs(items: Sequence[str], what: str) -> dict[str, str]:
     return out
 
 
+_decimal_option = click.option(
+    "--decimal-comma/--decimal-point", "decimal", default=None,
+    help="The decimal mark of every number cell. Default: '.', and ',' where it cannot be a thousands "
+         "separator (0,5 or 1.000,5); a cell such as 3,000 is then an error at its position.")
+
+
+def _mark(decimal: bool | None) -> str | None:
+    return None if decimal is None else "comma" if decimal else "point"
+
+
+@contextlib.contextmanager
+def _import_errors() -> Iterator[None]:
+    """An import's bad input: every problem at its position, and no device was ever involved."""
+    try:
+        yield
+    except InputError as e:
+        report_input_error(e, "no profile was written")
+        raise SystemExit(EXIT_INVALID) from None
+
+
 def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence[str] = ()) -> int:
     import re
 
@@ -69,7 +90,7 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
         raise UsageError(f"--id '{pid}': letters, digits, '.', '_' and '-', starting with a letter or digit")
 
     for w in warnings:
-        click.echo(f"warning: {w}", err=True)
+        click.echo(w if ": warning: " in w else f"warning: {w}", err=True)
     text, prof = check(draft, out or "<stdout>", f"Imported by 'deployer profiles import' from {source}.\n"
                                                 "Check it against the manual before the first deployment.")
     _output(text, out, f"{out}: profile {prof.id} with {_n(len(prof.parameters), 'parameter')}")
@@ -87,14 +108,17 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
 @click.option("--delimiter", help="Cell separator (default: sniffed from , ; or tab).")
 @click.option("--byte-order", help="Layout of rows without a byte_order cell: ABCD, CDAB, BADC, DCBA (or "
               "none, byte, word, word_byte).")
+@_decimal_option
 def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Sequence[str], addressing: str,
-                        delimiter: str | None, byte_order: str | None) -> int:
-    """A profile from a CSV register list (columns: name, address, type, unit, scale, min, max, access ...)."""
+                        delimiter: str | None, byte_order: str | None, decimal: bool | None) -> int:
+    """A profile from a CSV register list (columns: name, address, type, unit, scale, min, max, range, access ...)."""
     from ..profile.importers.spreadsheet import read_csv
 
-    draft = read_csv(file, profile_id=profile_id, columns=_pairs(columns, "--column"), addressing=addressing,
-                     delimiter=delimiter, byte_order=byte_order)
-    return _write_imported(draft, out, file)
+    with _import_errors():
+        draft, warnings = read_csv(file, profile_id=profile_id, columns=_pairs(columns, "--column"),
+                                   addressing=addressing, delimiter=delimiter, byte_order=byte_order,
+                                   decimal=_mark(decimal))
+        return _write_imported(draft, out, file, warnings)
 
 
 @profiles_import.command("xlsx")
@@ -108,14 +132,16 @@ def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Se
               show_default=True, help="How the address column counts.")
 @click.option("--byte-order", help="Layout of rows without a byte_order cell: ABCD, CDAB, BADC, DCBA (or "
               "none, byte, word, word_byte).")
+@_decimal_option
 def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str | None, columns: Sequence[str],
-                         addressing: str, byte_order: str | None) -> int:
+                         addressing: str, byte_order: str | None, decimal: bool | None) -> int:
     """A profile from an Excel register list (the same columns as csv; needs openpyxl)."""
     from ..profile.importers.spreadsheet import read_xlsx
 
-    draft = read_xlsx(file, profile_id=profile_id, sheet=sheet, columns=_pairs(columns, "--column"),
-                      addressing=addressing, byte_order=byte_order)
-    return _write_imported(draft, out, file)
+    with _import_errors():
+        draft, warnings = read_xlsx(file, profile_id=profile_id, sheet=sheet, columns=_pairs(columns, "--column"),
+                                    addressing=addressing, byte_order=byte_order, decimal=_mark(decimal))
+        return _write_imported(draft, out, file, warnings)
 
 
 @profiles.group("export")
@@ -129,69 +155,128 @@ def profiles_export() -> None:
 def profiles_export_csv(profile: str, out: str | None) -> int:
     """A profile as a CSV register list ('profiles import csv' reads it back; wire addresses, tables as rows)."""
     from ..profile import resolve_profile
-    from ..profile.importers.spreadsheet import profile_to_csv
+    from ..profile.importers.spreadsheet import not_exported, profile_to_csv
 
     prof = resolve_profile(profile)
+    for what in not_exported(prof):
+        click.echo(f"warning: {prof.source or prof.id}: {what}: not in a register list; importing the list "
+                   "will not bring it back", err=True)
     _output(profile_to_csv(prof), out, f"{out}: {_n(len(prof.parameters), 'register row')} of profile {prof.id}")
     return EXIT_OK
 
 
 @profiles_import.command("sunspec")
-@click.argument("model")
+@click.argument("model", required=False)
 @click.option("--at", "at", default="40002", show_default=True,
               help="Protocol address of the model's ID register (the first model after 'SunS' sits at 40002).")
 @click.option("--sf", "sfs", multiple=True, metavar="NAME=N", help="A scale factor the device reports, e.g. "
-              "--sf WMax_SF=0. Repeatable.")
+              "--sf WMax_SF=0 (-10 to 10). Repeatable.")
 @click.option("--count", "counts", multiple=True, metavar="GROUP=N", help="Repetitions of a group whose count the "
               "device reports, e.g. --count curve=4. Repeatable.")
-@click.option("--device", metavar="URL", help="Read the scale factors from this device (the model at --at); "
-              "--sf wins over what it says.")
+@click.option("--device", metavar="URL", help="Read the scale factors and group counts from this device (the "
+              "model at --at); without MODEL, read the device's whole model chain from 'SunS' (2 registers before "
+              "--at) into one profile. --sf and --count win over what it says.")
 @click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True, help="unit id of --device")
-@click.option("--id", "profile_id", help="Profile id (default: sunspec-MODEL-NAME).")
+@click.option("--id", "profile_id", help="Profile id (default: sunspec-MODEL-NAME, or sunspec-device).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
-def profiles_import_sunspec(model: str, at: str, sfs: Sequence[str], counts: Sequence[str], device: str | None,
-                            unit: int, profile_id: str | None, out: str | None) -> int:
-    """A profile from a SunSpec model (number, name or model JSON), using pysunspec2's definitions."""
+def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], counts: Sequence[str],
+                            device: str | None, unit: int, profile_id: str | None, out: str | None) -> int:
+    """A profile from a SunSpec model (number, name or model JSON) using pysunspec2's definitions, or from a
+    device's whole model chain (--device without MODEL)."""
     from ..profile import parse_register
-    from ..profile.importers.sunspec import read_model
+    from ..profile.importers import sunspec
 
-    try:
-        factors = {k: int(v) for k, v in _pairs(sfs, "--sf").items()}
-        repeats = {k: int(v) for k, v in _pairs(counts, "--count").items()}
-    except ValueError as e:
-        raise UsageError(f"--sf/--count: a count or scale factor is a whole number ({e})") from None
+    factors = {k: _whole(v, f"--sf {k}") for k, v in _pairs(sfs, "--sf").items()}
+    repeats = {k: _whole(v, f"--count {k}") for k, v in _pairs(counts, "--count").items()}
+    for k, n in factors.items():
+        if n not in sunspec.SF_RANGE:
+            raise UsageError(f"--sf {k}={n}: a SunSpec scale factor is -10 to 10")
+    for k, n in repeats.items():
+        if not 1 <= n <= 65535:
+            raise UsageError(f"--count {k}={n}: a group repeats 1 to 65535 times")
     try:
         address = parse_register(at)
     except ValueError:
-        raise UsageError(f"--at {at}: not a register address (40002, 0x9C42 or 9C42h)") from None
-    if device is not None:  # the device says its scale factors: read them with a first, unscaled profile
-        found = _device_scale_factors(model, address, repeats, device, unit)
-        if found is None:
-            return EXIT_UNREACHABLE
-        factors = {**found, **factors}
-    draft, warnings = read_model(model, at=address, scale_factors=factors, counts=repeats, profile_id=profile_id)
-    return _write_imported(draft, out, f"SunSpec model {model}", warnings)
+        address = -1
+    if not 2 <= address <= 0xFFFF:
+        raise UsageError(f"--at {_clip(at)}: not a register address (40002, 0x9C42 or 9C42h)")
+    if model is None and device is None:
+        raise UsageError("give a MODEL (121, settings or a model JSON file), or --device URL to read the device's "
+                         "models")
+    with _import_errors():
+        if device is not None:
+            got = _from_device(device, unit, address, model)
+            if got is None:
+                return EXIT_UNREACHABLE
+            if model is None:
+                chain = ", ".join(f"{m.model_id} at {m.at} (L={m.length})" for m in got[0])
+                click.echo(f"models on {device}: {chain or 'none'}", err=True)
+                draft, warnings = sunspec.chain_draft(got[0], scale_factors=factors, counts=repeats,
+                                                      profile_id=profile_id, source=device)
+                return _write_imported(draft, out, f"the SunSpec device {device}", warnings)
+            (dm,) = got[0]
+            found, points, warnings = sunspec.reported(model, dm)
+            click.echo(f"scale factors from {device}: " + ", ".join(f"{n}={v}" for n, v in found.items()), err=True)
+            draft, more = sunspec.read_model(model, at=address, scale_factors={**found, **factors}, counts=repeats,
+                                             point_values=points, length=dm.length, profile_id=profile_id)
+            return _write_imported(draft, out, f"SunSpec model {model}", [*warnings, *more])
+        draft, warnings = sunspec.read_model(model or "", at=address, scale_factors=factors, counts=repeats,
+                                             profile_id=profile_id)
+        return _write_imported(draft, out, f"SunSpec model {model}", warnings)
 
 
-def _device_scale_factors(model: str, at: int, counts: dict[str, int], device: str, unit: int
-                          ) -> dict[str, int] | None:
-    """The model's scale factors as the device reports them; None (after saying why) when it cannot be read."""
-    from ..profile.codec import decode
-    from ..profile.emit import check
-    from ..profile.importers.sunspec import read_model, scale_factor_points
-    from ..transport.clients import parse_url
+def _clip(text: str, limit: int = 60) -> str:
+    from ..load.messages import clip
 
-    url = parse_url(device)  # BadURL is a UsageError
-    names = scale_factor_points(model)
-    if not names:
-        return {}
-    _, first = check(read_model(model, at=at, counts=counts)[0], "<model>")
-    current = read_device(first, names, url, unit)  # checks the model ID at --at first (identity)
-    if current is None:
+    return clip(text, limit)
+
+
+def _whole(text: str, what: str) -> int:
+    import re
+
+    if not re.fullmatch(r"[-+]?[0-9]{1,18}", text.strip()):
+        raise UsageError(f"{_clip(what)}={_clip(text)}: a whole number")
+    return int(text)
+
+
+def _from_device(device: str, unit: int, at: int, model: str | None) -> tuple[list[Any]] | None:
+    """The device's model at ``at`` (MODEL given) or its whole chain; None (after saying why) when unreachable."""
+    import asyncio
+
+    from ..profile.importers import sunspec
+    from ..transport import clients as tp
+
+    url = tp.parse_url(device)  # BadURL is a UsageError
+
+    async def run() -> list[Any]:
+        transport = tp.open_transport(url)
+        await transport.connect()
+
+        async def read(address: int, count: int) -> list[int]:
+            out: list[int] = []
+            for a in range(address, address + count, 125):
+                n = min(125, address + count - a)
+                try:
+                    out += await transport.read_holding_registers(a, n, unit)
+                except tp.ExceptionResponse as e:
+                    hint = ": check --at (SunSpec devices put 'SunS' at 40000, 0 or 50000, the first model's ID 2 " \
+                           "registers after it)" if e.code == 2 else ""
+                    raise tp.TransportError(f"{tp.describe(url)} unit {unit}: reading {n} registers at {a} "
+                                            f"answered {e}{hint}") from None
+            return out
+
+        try:
+            if model is None:
+                return await sunspec.device_chain(read, at)
+            return [await sunspec.device_model(read, model, at)]
+        finally:
+            await transport.close()
+
+    try:
+        return (asyncio.run(run()),)
+    except tp.TransportError as e:
+        click.echo(f"error: {e}", err=True)
         return None
-    found = {n: int(decode(current[n], "int16")) for n in names if n in current}
-    click.echo(f"scale factors from {device}: " + ", ".join(f"{n}={v}" for n, v in found.items()), err=True)
-    return found
 
 
 @profiles.command("show")
@@ -207,7 +292,7 @@ def profiles_show(profile: str) -> int:
     out.print(f"[bold]{prof.id}[/bold]: {prof.description}")
     lim = prof.limits
     layout = layout_name(prof.word_order, prof.byte_swap)
-    out.print(f"addressing {prof.addressing}, byte order {layout}; up to {lim.write_registers} registers "
+    out.print(f"addressing {prof.addressing}, byte order {layout}; up to {_n(lim.write_registers, 'register')} "
               f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read"
               + (f"; {lim.write_coils} coils per write (FC15), {lim.read_coils} per read"
                  if any(p.register_type == "coil" for p in prof.parameters) else ""))
@@ -244,7 +329,10 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
     text = profile_skeleton(pid, output)
     if os.path.exists(output) and not force:
         raise UsageError(f"{output} exists; pass --force to overwrite it")
-    with open(output, "w", encoding="utf-8") as f:
-        f.write(text)
+    try:
+        with open(output, "w", encoding="utf-8") as f:
+            f.write(text)
+    except OSError as e:
+        raise UsageError(f"cannot write {_clip(output, 300)}: {e.strerror or e}") from None
     click.echo(f"wrote {output}: fill it in from the manual, then run: deployer validate {output}", err=True)
     return EXIT_OK

@@ -43,8 +43,13 @@ if TYPE_CHECKING:
 @fleet_option
 @limit_option
 @parallel_option
+@click.option("--per-device", is_flag=True,
+              help="with --inventory: one row per device and parameter (default: devices with identical drift "
+                   "together)")
+@click.option("--matrix", is_flag=True, help="with --inventory: a table of parameters x drifted devices")
 def diff(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-         as_json: bool, inventory: str | None, limit: str | None, parallel: int) -> int:
+         as_json: bool, inventory: str | None, limit: str | None, parallel: int, per_device: bool,
+         matrix: bool) -> int:
     """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches.
 
     With --inventory and no RECIPE, each device against its recipe from the inventory."""
@@ -54,10 +59,12 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     if inventory:
         if device:
             raise UsageError("--device and --inventory exclude each other")
+        if per_device and matrix:
+            raise UsageError("--per-device and --matrix exclude each other")
         return diff_fleet(maybe, _fleet(maybe, inventory, limit, timeout, retries, unit), parallel=parallel,
-                          as_json=as_json)
-    if limit:
-        raise UsageError("--limit needs --inventory")
+                          as_json=as_json, view="per-device" if per_device else "matrix" if matrix else "grouped")
+    if limit or per_device or matrix:
+        raise UsageError(f"{'--limit' if limit else '--per-device' if per_device else '--matrix'} needs --inventory")
     assert maybe is not None
     rec = maybe
     url, u = _target(rec, device, unit, timeout, retries, required=True)
@@ -72,9 +79,11 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
                                "drift": [r.to_json() for r in rows]}, indent=2))
     elif rows:
         show(console(), ["parameter", "recipe", "device value", ""], drift_rows(rows))
-        console().print(f"{len(drift)} of {len(rec.desired)} parameters differ from the recipe")
+        console().print(f"{len(drift)} of {_n(len(rec.desired), 'parameter')} "
+                        f"differ{'s' if len(drift) == 1 else ''} from the recipe")
     else:
-        console().print(f"no drift: the device holds all {len(rec.desired)} values of the recipe")
+        console().print("no drift: the device holds " + ("the recipe's value" if len(rec.desired) == 1 else
+                                                         f"all {len(rec.desired)} values of the recipe"))
     return EXIT_CHANGES if drift else EXIT_OK
 
 
@@ -84,8 +93,11 @@ def drift_rows(rows: Sequence[Drift], device: str | None = None) -> list[list[Ce
              ("drift", "yellow") if r.device_raw is not None else "not readable"] for r in rows]
 
 
-def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_json: bool) -> int:
-    """One table for the whole fleet; exit 2 naming every drifted device, 3 if any could not be read."""
+def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_json: bool,
+               view: str = "grouped") -> int:
+    """The fleet's drift: devices with identical drift together (``view`` ``per-device``: a row per device
+    and parameter; ``matrix``: parameters x drifted devices); exit 2 naming every drifted device, 3 if
+    any could not be read."""
     from ..api import diff_values, read_jobs
 
     values = read_fleet(read_jobs(jobs), parallel)
@@ -99,10 +111,20 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
                                     "error": str(values[j.name])} for j in jobs],
             "drifted": drifted, "unreachable": down}, indent=2))
     else:
+        from .summary import drift_changes, drift_matrix, print_groups
+
         out = console()
-        show(out, ["device", "parameter", "recipe", "device value", ""],
-             [row for j in jobs for row in drift_rows(rows.get(j.name, []), j.name)])
-        out.print(f"drift on {len(drifted)} of {len(jobs)} devices" + (f": {', '.join(drifted)}" if drifted else "")
+        if view == "per-device":
+            show(out, ["device", "parameter", "recipe", "device value", ""],
+                 [row for j in jobs for row in drift_rows(rows.get(j.name, []), j.name)])
+        elif view == "matrix":
+            headers, body = drift_matrix(rows, {j.name: {d.name: d.text for d in j.recipe.desired}
+                                                for j in jobs if j.name in rows})
+            show(out, headers, body)
+        else:
+            print_groups(out, {n: drift_changes(r) for n, r in rows.items()}, [], same="as the recipe says")
+        out.print(f"drift on {len(drifted)} of {_n(len(jobs), 'device')}" + (f": {', '.join(drifted)}" if drifted
+                                                                           else "")
                   + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
     if down:
         return EXIT_UNREACHABLE
@@ -197,7 +219,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
             f.write(text)
         written += 1
     down = _unreachable(values)
-    click.echo(f"{written} recipes written to {folder}" + (f"; {len(down)} unreachable: {', '.join(down)}"
+    click.echo(f"{_n(written, 'recipe')} written to {folder}" + (f"; {len(down)} unreachable: {', '.join(down)}"
                                                           if down else ""), err=True)
     return EXIT_UNREACHABLE if down else EXIT_OK
 

@@ -43,6 +43,7 @@ class FleetDevice:
 class Inventory:
     path: str
     devices: tuple[FleetDevice, ...]
+    groups: tuple[str, ...] = ()  # the groups that have settings (the top-level ``groups:``)
 
     def select(self, limit: str | None) -> tuple[FleetDevice, ...]:
         """The devices ``limit`` selects, in inventory order (see ``select``)."""
@@ -184,7 +185,7 @@ def _inventory(p: str, data: Any, src: yamlsrc.Source, here: str) -> Inventory:
             recipe=None if rec is None else os.path.normpath(os.path.join(os.path.dirname(p), rec)),
             at=at,
         ))
-    return Inventory(p, tuple(devices))
+    return Inventory(p, tuple(devices), tuple(groups))
 
 
 def _same_devices(path: str, devices: Sequence[tuple[FleetDevice, int]], *, check_urls: bool) -> list[Diagnostic]:
@@ -317,7 +318,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
                 elif recipe is None and dev.recipe is None:
                     found = [Diagnostic(inv.path, *dev.at.get("device", dev.where),
                                         "no recipe: give the device one (recipe: in its entry, one of its groups "
-                                        "or defaults) or name one on the command line")]
+                                        "or defaults) or name one on the command line" + _group_hint(inv, dev))]
                 else:
                     r = cache.for_device(dev.profile, dev.overrides, None if recipe is not None else dev.recipe)
                     if r.snapshot is not None:
@@ -339,9 +340,29 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
                            check_urls=False):
         concerns.setdefault(d, [])
     if concerns:
+<<<<<<< HEAD
         raise InputError(Diagnostic(d.path, d.line, d.col, f"{d.message} ({_devices(names)})" if names else d.message)
+=======
+        # the RECIPE argument replaces the recipes the inventory gives: say so where that is likely the mistake
+        own = {d.name for d in inv.devices if recipe is not None and d.recipe is not None and d.recipe != recipe.path}
+        raise InputError(Diagnostic(d.path, d.line, d.col, f"{d.message} ({_devices(names)}"
+                                    + ("; the inventory gives them recipes of their own: leave out RECIPE to use "
+                                       "those" if set(names) <= own else "") + ")")
+>>>>>>> main
                          for d, names in concerns.items())
     return jobs
+
+
+def _group_hint(inv: Inventory, dev: FleetDevice) -> str:
+    """A group the device lists that has no settings, but nearly the name of one that has (a typo)."""
+    import difflib
+
+    for g in dev.groups:
+        if g not in inv.groups:
+            near = difflib.get_close_matches(g, inv.groups, n=1)
+            if near:
+                return f"; its group '{g}' has no entry under groups: (did you mean '{near[0]}'?)"
+    return ""
 
 
 def _at_inventory(inv: Inventory, dev: FleetDevice, d: Diagnostic) -> Diagnostic:

@@ -1,14 +1,17 @@
-"""The fleet report file, rewritten as devices finish (--limit @REPORT works after a crash)."""
+"""The fleet report file, rewritten as devices finish (--limit @REPORT works after a crash).
+
+The document itself is written by ``deployer.report`` (``report_parts``), as every report is."""
 
 from __future__ import annotations
 
 import contextlib
-import json
 import threading
 import time
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
+
+from ..report import device_json, report_parts
 
 if TYPE_CHECKING:
     from ..report import DeviceResult, Report
@@ -38,36 +41,6 @@ def not_finished(jobs: Sequence[Job], batches: Sequence[int] | None = None) -> l
     return out
 
 
-def _device_json(d: DeviceResult, made: dict[int, str]) -> bytes:
-    """``json.dumps(d.to_json())``, with the JSON of a parameter list shared by several devices made once."""
-    params = made.get(id(d.parameters))
-    if params is None:
-        params = made[id(d.parameters)] = json.dumps([p.to_json() for p in d.parameters])
-    # no string value can hold this text unescaped, so the first match is the key itself
-    return json.dumps(replace(d, parameters=[]).to_json()).replace('"parameters": []', f'"parameters": {params}',
-                                                                   1).encode()
-
-
-def _report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str, Any]) -> list[bytes]:
-    # one device per line, each encoded by the C encoder (the pure-Python indenting one took a second
-    # for 200 devices x 100 parameters), kept as the devices' own bytes: the live report file is
-    # rewritten from these pieces with one gathering write, never joined into one big string
-    head = json.dumps({"schema": "deployer.report/1", "recipe": recipe})[:-1]
-    out = [f'{head}, "devices": [\n'.encode()]
-    for i, d in enumerate(devices):
-        if i:
-            out.append(b",\n")
-        out.append(d)
-    out.append(f'\n], "summary": {json.dumps(summary)}}}\n'.encode())
-    return out
-
-
-def report_text(report: Report) -> str:
-    """A fleet's report as JSON text, one device per line (``--json`` and the ``--report`` file)."""
-    return b"".join(_report_parts(report.recipe, [json.dumps(d.to_json()).encode() for d in report.devices],
-                                  report.summary())).decode()
-
-
 class LiveReport:
     """The ``--report`` file of a fleet run, true at every moment, even after a ``kill -9``.
 
@@ -86,7 +59,7 @@ class LiveReport:
         self.recipe = recipe
         self._order = [d.name for d in skeleton]
         made: dict[int, str] = {}  # the skeleton's devices share their parameter lists (not_finished)
-        self._parts = {d.name: _device_json(d, made) for d in skeleton}
+        self._parts = {d.name: device_json(d, made) for d in skeleton}
         self._finished: list[DeviceResult] = []
         self._cond = threading.Condition()
         self._dirty = False
@@ -97,7 +70,7 @@ class LiveReport:
         self._thread.start()
 
     def finished(self, result: DeviceResult) -> None:
-        part = json.dumps(result.to_json()).encode()  # ASCII (ensure_ascii)
+        part = device_json(result)
         with self._cond:
             self._parts[result.name] = part
             self._finished.append(result)
@@ -120,7 +93,7 @@ class LiveReport:
             done = {r.name for r in self._finished}
             for d in report.devices:
                 if d.name not in done:  # skipped by the rollout: never reported as finished
-                    self._parts[d.name] = json.dumps(d.to_json()).encode()
+                    self._parts[d.name] = device_json(d)
         write_atomic(self.path, self._document(report.summary()))
 
     def _document(self, summary: dict[str, Any] | None = None) -> list[bytes]:
@@ -133,7 +106,7 @@ class LiveReport:
             summary = Report(self.recipe, finished, time.monotonic() - self._started).summary()
             summary["devices"] = len(self._order)
             summary["skipped"] += len(self._order) - len(finished)
-        return _report_parts(self.recipe, parts, summary)
+        return report_parts(self.recipe, parts, summary)
 
     def _write(self, text: list[bytes]) -> None:
         from ..report import write_atomic

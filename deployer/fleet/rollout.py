@@ -192,7 +192,8 @@ def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceRes
     ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
     if not ran or any(r.status == "ok" for r in ran):
         return None
-    which = f"the canary {ran[0].name}" if len(batch) == 1 else f"all {len(ran)} devices"
+    which = (f"the canary {ran[0].name}" if len(batch) == 1 else f"its only device that ran, {ran[0].name}," if
+             len(ran) == 1 else f"all {len(ran)} devices that ran")
     return f"not started: batch {number} failed ({which} did not end ok)"
 
 

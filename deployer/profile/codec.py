@@ -103,6 +103,8 @@ def to_raw(
     """Engineering value -> raw value. Raises CodecError if not exactly representable."""
     if scale == 0:
         raise CodecError("scale must not be 0")
+    if value and value.adjusted() < -60:  # the arithmetic below would round it to 0 without a word
+        raise CodecError(f"{value:g} is too close to 0 to be meant (at most 60 decimal places)")
     try:
         exact = (value - offset) / scale
     except ArithmeticError:  # 1e999999999 overflows Decimal's context: far outside any type
@@ -218,7 +220,8 @@ def encode_string(text: str, count: int, encoding: str = "ascii", padding: str =
     except UnicodeEncodeError as e:
         raise CodecError(f"{text[e.start:e.end]!r} at character {e.start + 1} is not {encoding}") from None
     if len(data) > 2 * count:
-        raise CodecError(f"'{text}' is {len(data)} characters; {count} registers hold at most {2 * count}")
+        held = "1 register holds" if count == 1 else f"{count} registers hold"
+        raise CodecError(f"'{text}' is {len(data)} characters; {held} at most {2 * count}")
     data = data.ljust(2 * count, PADDING[padding])
     return tuple(int.from_bytes(data[i:i + 2], "little" if byte_swap else "big") for i in range(0, len(data), 2))
 
@@ -284,7 +287,8 @@ def insert_field(raw: int, mask: int, signed: bool = False, word: int = 0) -> in
     """``word`` with the field's bits replaced by ``raw``. CodecError if it does not fit."""
     lo, hi = field_range(mask, signed)
     if not lo <= raw <= hi:
-        raise CodecError(f"raw value {raw} does not fit in {mask_shift(mask)[1]} bits ({lo}..{hi})")
+        width = mask_shift(mask)[1]
+        raise CodecError(f"raw value {raw} does not fit in {width} bit{'s' if width != 1 else ''} ({lo}..{hi})")
     shift = mask_shift(mask)[0]
     return (word & ~mask & 0xFFFF) | ((raw << shift) & mask)
 

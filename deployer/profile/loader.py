@@ -144,6 +144,11 @@ def load_profile_file(path: str | os.PathLike[str], text: str | None = None) -> 
     if text is None:
         text = yamlsrc.read_text(p)
     data, src = yamlsrc.load(p, text)
+    return profile_from_data(p, text, data, src)
+
+
+def profile_from_data(path: str, text: str, data: Any, src: yamlsrc.Source) -> Profile:
+    """A profile from its text already read as data (the importers compare that data with what they wrote)."""
     if not isinstance(data, dict):
         raise InputError([src.error((), "a profile must be a mapping (profile: ..., parameters: ...)")])
     errors = schema.validate(data, "profile", src)
@@ -284,7 +289,8 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         rng = param.type_range()
         for label, raw in param.values:
             if rng and not rng[0] <= raw <= rng[1]:
-                what = f"{codec.mask_shift(mask)[1]} bits" if mask else type_
+                width = codec.mask_shift(mask)[1] if mask else 0
+                what = f"{width} bit{'s' if width != 1 else ''}" if mask else type_
                 local.append(src.error((*at, "values", label), f"value {raw} of '{label}' does not fit in {what}"))
         if "default" in spec and not local and param.is_string:
             try:

@@ -222,8 +222,9 @@ class Parameter:
         if self.is_bit and raw not in (0, 1):
             raise codec.CodecError(f"a {self.register_type} holds 0 or 1, not {raw}")
         if self.mask and rng and not rng[0] <= raw <= rng[1]:
+            width = codec.mask_shift(self.mask)[1]
             raise codec.CodecError(f"raw value {raw} does not fit in the field's "
-                                   f"{codec.mask_shift(self.mask)[1]} bits ({rng[0]}..{rng[1]})")
+                                   f"{width} bit{'s' if width != 1 else ''} ({rng[0]}..{rng[1]})")
         return raw
 
     def encode(self, raw: codec.Raw) -> tuple[int, ...]:

@@ -35,9 +35,14 @@ def registry() -> Any:
         return pint.UnitRegistry(**kwargs)
 
 
+_SYMBOLS = {"percent": "%", "permille": "‰"}  # shown as engineers write them: 12 %, not 12 percent
+
+
 def normalize(text: str) -> str:
-    """The unit as the user wrote it (kept for display), with '%' spelled out for pint."""
-    return text.strip()
+    """The unit for display: as the user wrote it, but percent and permille as their symbols
+    (pint reads either spelling: ``_pint_text``)."""
+    t = text.strip()
+    return _SYMBOLS.get(t, t)
 
 
 def _pint_text(text: str) -> str:

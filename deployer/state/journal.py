@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from .durable import append_lines
+from .lock import pid_alive
 
 if TYPE_CHECKING:
     from ..report import DeviceResult, Report
@@ -110,15 +111,7 @@ class Unfinished:
     @property
     def running(self) -> bool:
         """The process is still alive (a run in progress, not a crash)."""
-        if self.pid is None:
-            return False
-        try:
-            os.kill(self.pid, 0)
-        except ProcessLookupError:
-            return False
-        except PermissionError:
-            return True
-        return True
+        return self.pid is not None and pid_alive(self.pid)
 
 
 def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:

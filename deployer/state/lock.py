@@ -97,7 +97,8 @@ def _read_record(fd: int) -> dict[str, Any]:
         return {}
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this machine (someone else's counts: it is alive)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -197,7 +198,7 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
     host = socket.gethostname()
     if old.get("pid") and old.get("host") == host and old.get("pid") != os.getpid():
         pid = old["pid"]
-        if isinstance(pid, int) and not _alive(pid):
+        if isinstance(pid, int) and not pid_alive(pid):
             stale = f"took over a stale lock of {_holder_text(old)}: that process is gone (it did not finish)"
     record = {"pid": os.getpid(), "host": host, "since": time.time(), "key": key, "command": command}
     os.ftruncate(fd, 0)

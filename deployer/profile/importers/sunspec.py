@@ -8,23 +8,31 @@ package is an optional extra: ``pip install 'modbus-deployer[sunspec]'``).
 
 Scale factors (``sf``) name another point whose value the device reports at run time; a
 profile's scale is fixed, so give the values you know (``--sf WMax_SF=0``), else the point is
-imported unscaled and its description says which scale factor applies.
+imported raw: without a unit (a unit would convert engineering values with a wrong scale) and
+with a description that says which scale factor applies.
+
+Repeating groups are bounded before they are laid out: a count (from the model, ``--count`` or
+the device) that would run past register 65535 or declare more than 65,536 parameters is an
+error at the count, not a list of millions of fields.
 """
 
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
 
-from ...load import yamlsrc
+from ...load import messages, yamlsrc
 from ...load.diagnostics import Diagnostic, InputError, UsageError
 from .. import units
 from ..emit import Draft, Origin
 
 SUNSPEC_BASE = 40000  # protocol address of "SunS"; the first model's ID follows at 40002
+SF_RANGE = range(-10, 11)  # the SunSpec specification's scale factors (sunssf); 0x8000 means "not implemented"
+MAX_REGISTERS = 0x10000
 
 _TYPES: dict[str, tuple[str, int]] = {  # SunSpec type -> (our type, registers)
     "uint16": ("uint16", 1), "int16": ("int16", 1), "uint32": ("uint32", 2), "int32": ("int32", 2),
@@ -42,8 +50,8 @@ def models_dir() -> str:
     try:
         import sunspec2
     except ImportError:
-        raise UsageError("SunSpec import needs the pysunspec2 package: "
-                         "pip install 'modbus-deployer[sunspec]'") from None
+        raise UsageError("SunSpec import needs the pysunspec2 package: pip install 'modbus-deployer[sunspec]' "
+                         "(from a clone of the repository: pip install -e '.[sunspec]')") from None
     return os.path.join(os.path.dirname(sunspec2.__file__), "models", "json")
 
 
@@ -72,12 +80,23 @@ def scale_factor_points(model: str) -> list[str]:
 
 
 def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping[str, int] | None = None,
-               counts: Mapping[str, int] | None = None, profile_id: str | None = None) -> tuple[Draft, list[str]]:
+               counts: Mapping[str, int] | None = None, profile_id: str | None = None,
+               point_values: Mapping[str, int] | None = None, length: int | None = None,
+               prefix: str = "") -> tuple[Draft, list[str]]:
     """The model as a Draft profile with its ID point at protocol address ``at``, and warnings.
 
-    ``counts``: repetitions of groups whose count the device reports (group name -> N).
+    ``counts``: repetitions of groups whose count the device reports (group name -> N, from --count).
+    ``point_values``: count points as a device reports them (``N`` -> 4); ``length``: the model's L as
+    the device reports it (a group of count 0 fills the rest of the model). ``prefix``: put before every
+    name (a device's chain of models in one profile).
     """
     counts = dict(counts or {})
+    for g, n in counts.items():
+        if not 1 <= n < MAX_REGISTERS:
+            raise UsageError(f"--count {messages.clip(g)}={n}: a group repeats 1 to 65535 times")
+    for k, n in (scale_factors or {}).items():
+        if n not in SF_RANGE:
+            raise UsageError(f"--sf {messages.clip(k)}={n}: a SunSpec scale factor is -10 to 10")
     path = model_path(model)
     # JSON allows tabs where YAML (our loader, which keeps positions) does not: same columns with spaces
     data, src = yamlsrc.load(path, yamlsrc.read_text(path).expandtabs(1))
@@ -125,21 +144,26 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
             else:
                 desc = f"{desc} [{u}]"
         sf = point.get("sf")
-        if isinstance(sf, int):
+        if isinstance(sf, int) and not isinstance(sf, bool):
+            if sf not in SF_RANGE:
+                errors.append(src.error((*at_, "sf"), f"{point.get('name')}: scale factor {sf} is not -10 to 10"))
+                return None, size
             spec["scale"] = _pow10(sf)
         elif isinstance(sf, str):
             if sf in sfs:
                 spec["scale"] = _pow10(sfs[sf])
-            else:
-                desc = f"{desc} (raw: scaled by 10^{sf} on the device; import with --sf {sf}=N)"
-                warnings.append(f"{prefix}{point['name']}: scale factor {sf} unknown, imported unscaled")
+            else:  # a unit would convert '10 kW' with scale 1: raw numbers only, until the factor is known
+                unit_text = f" {spec.pop('unit')}" if "unit" in spec else ""
+                desc = f"{desc} (raw: the value in{unit_text} is raw x 10^{sf}; import with --sf {sf}=N or --device)"
+                warnings.append(f"{prefix}{point['name']}: scale factor {sf} unknown: imported raw, without its unit")
         symbols = point.get("symbols") or []
         if ptype in ("enum16", "enum32") and symbols:
             if not all(isinstance(sym.get("value"), int) for sym in symbols):
                 errors.append(src.error((*at_, "symbols"), f"{point['name']}: symbol values must be integers"))
                 return None, size
             spec["values"] = {str(sym["name"]): int(sym["value"]) for sym in symbols}
-        if isinstance(point.get("value"), int) and not isinstance(point["value"], bool):
+        if isinstance(point.get("value"), int) and not isinstance(point["value"], bool) and (
+                abs(point["value"]) < 1 << 64):
             spec["default"] = point["value"]
         if desc:
             spec = {"description": desc, **spec}
@@ -148,9 +172,9 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
     for i, point in enumerate(group["points"]):
         at_: yamlsrc.Path_ = ("group", "points", i)
         spec, size = spec_of(point, at_)
-        line, col = src.pos(at_)
+        line, col = src.pos((*at_, "name"))
         if spec is not None:
-            name = str(point["name"])
+            name = prefix + str(point["name"])
             if point.get("type") == "bitfield16" and point.get("symbols") and all(
                     isinstance(sym.get("value"), int) and 0 <= sym["value"] <= 15 for sym in point["symbols"]):
                 for s in point["symbols"]:  # one bool field per documented bit
@@ -159,22 +183,51 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
                     parameters.append((f"{name}.{s['name']}", {"register": at + offset, **field_spec},
                                        Origin(path, line, col)))
             else:
-                if point.get("type") == "sunssf" and name in sfs:
-                    spec["default"] = sfs[name]  # the value given: what a simulated device reports
+                if point.get("type") == "sunssf" and point["name"] in sfs:
+                    spec["default"] = sfs[point["name"]]  # the value given: what a simulated device reports
                 entry = {"register": at + offset, **spec}
                 parameters.append((name, entry, Origin(path, line, col)))
-                if name == "L":
+                if point["name"] == "L":
                     length_spec = entry  # its default is the model's length, known once the groups are laid out
         offset += size
-    def count_of(sub: dict[str, Any]) -> int | None:
-        """How often a group repeats: the model's fixed count, one, or --count; None when unknown."""
-        count = counts.get(str(sub.get("name")), 1 if sub.get("count") is None else sub.get("count"))
-        if not isinstance(count, int) or count < 1:
-            what = f"the point {sub.get('count')}" if isinstance(sub.get("count"), str) else "variable"
-            warnings.append(f"group {sub.get('name')}: its count is {what} (set by the device); not imported "
-                            f"(give it with --count {sub.get('name')}=N)")
+    values = dict(point_values or {})
+    count_points: dict[str, int] = {}
+
+    def count_of(sub: dict[str, Any], at_: yamlsrc.Path_, size: int | None = None) -> int | None:
+        """How often a group repeats: --count, the device's count point, the model's fixed count, one;
+        None when unknown (said in a warning). ``size``: registers of one repetition, for count 0."""
+        name = str(sub.get("name"))
+        declared = sub.get("count")
+        if name in counts:
+            if isinstance(declared, str):  # the count point says it too: what a simulated device reports
+                count_points[declared] = counts[name]
+            return counts[name]
+        if declared is None:
+            return 1
+        if isinstance(declared, str) and declared in values:
+            return values[declared]
+
+        if isinstance(declared, int) and not isinstance(declared, bool) and declared > 0:
+            if declared >= MAX_REGISTERS:
+                errors.append(src.error((*at_, "count"), f"group {name}: count {declared} repeats past register "
+                                                          "65535"))
+                return None
+            return declared
+        if isinstance(declared, int) and not isinstance(declared, bool) and declared < 0:
+            errors.append(src.error((*at_, "count"), f"group {name}: count {declared} is negative (a count is "
+                                                      "a number of repetitions, or 0: as many as the model's "
+                                                      "length holds)"))
             return None
-        return count
+        if declared == 0 and length is not None and size:
+            left = length + 2 - offset_now[0]
+            if left >= 0 and left % size == 0:
+                return left // size
+        what = f"the point {declared}" if isinstance(declared, str) else "0: as many as the model's length L holds"
+        warnings.append(f"group {prefix}{name}: its count is {what} (set by the device); not imported "
+                        f"(give it with --count {name}=N, or import with --device)")
+        return None
+
+    offset_now = [offset]
 
     def fields_of(sub: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any], int] | None:
         """A group's points as table fields (offset from the entry's start), and the entry's size. A group
@@ -191,35 +244,55 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
             if prefix:  # a third level: no model in pysunspec2 has one
                 warnings.append(f"group {inner.get('name')}: groups nested twice are not imported")
                 return None
-            n_inner = count_of(inner)
-            got = None if n_inner is None else fields_of(inner, (*at_, "groups", k), "-")
-            if n_inner is None or got is None:
+            inner_at = (*at_, "groups", k)
+            got = fields_of(inner, inner_at, "-")
+            if got is None:
                 return None
             inner_fields, inner_size = got
+            n_inner = count_of(inner, inner_at)
+            if n_inner is None:
+                return None
+            if n_inner * max(inner_size, 1) >= MAX_REGISTERS or n_inner * len(inner_fields) > yamlsrc.MAX_ENTRIES:
+                where = f"--count {inner.get('name')}={n_inner}" if inner.get("name") in counts else "count"
+                errors.append(src.error((*inner_at, "count"), f"group {inner.get('name')}: {where}: {n_inner} x "
+                                                               f"{inner_size} registers run past register 65535"))
+                return None
             for i in range(n_inner):
                 for name, spec in inner_fields.items():
                     out[f"{inner['name']}{i}_{name[1:]}"] = {**spec, "offset": size + i * inner_size + spec["offset"]}
             size += n_inner * inner_size
         return out, size
 
+    table_prefix = prefix.replace(".", "_")
     for j, sub in enumerate(group.get("groups") or []):
         at_ = ("group", "groups", j)
-        count = count_of(sub)
-        got = None if count is None else fields_of(sub, at_)
-        if count is None or got is None:
+        got = fields_of(sub, at_)
+        if got is None:
             break  # later groups' addresses depend on it
         fields, stride = got
-        line, col = src.pos(at_)
+        offset_now[0] = offset
+        count = count_of(sub, at_, stride)
+        if count is None:
+            break
+        line, col = src.pos((*at_, "name"))
+        if at + offset + stride * count > MAX_REGISTERS or count * len(fields) > yamlsrc.MAX_ENTRIES:
+            where = f"--count {sub.get('name')}={count}" if sub.get("name") in counts else "count"
+            errors.append(src.error((*at_, "count"), f"group {sub.get('name')}: {where}: {count} x {stride} "
+                                                      f"registers from register {at + offset} run past 65535"))
+            break
         if fields:
-            tables.append((str(sub["name"]), {"count": count, "base": at + offset, "stride": stride, "fields": fields},
-                           Origin(path, line, col)))
+            tables.append((table_prefix + str(sub["name"]), {"count": count, "base": at + offset, "stride": stride,
+                                                             "fields": fields}, Origin(path, line, col)))
         offset += stride * count
     if length_spec is not None:
         length_spec["default"] = offset - 2  # the registers after ID and L
-    if at + offset > 0x10000:
-        raise UsageError(f"--at {at}: model {model_id} is {offset} registers long and would end past register 65535")
+    for name, spec, _ in parameters:
+        if name[len(prefix):] in count_points and name.startswith(prefix):
+            spec["default"] = count_points[name[len(prefix):]]
     if errors:
         raise InputError(errors)
+    if at + offset > MAX_REGISTERS:
+        raise UsageError(f"--at {at}: model {model_id} is {offset} registers long and would end past register 65535")
     identity = [{"register": at, "raw": model_id, "description": f"SunSpec model ID {model_id}"}]
     if at == SUNSPEC_BASE + 2:  # the first model: the "SunS" marker right before it is part of the map
         marker = {"description": "SunSpec marker 'SunS'", "type": "string", "count": 2, "access": "read-only",
@@ -249,3 +322,142 @@ def _schema_problems(data: Any, src: yamlsrc.Source) -> list[Diagnostic]:
     errors = sorted(jsonschema.Draft7Validator(schema).iter_errors(data), key=lambda e: list(map(str, e.path)))
     return [src.error(tuple(e.absolute_path), f"{'.'.join(map(str, e.absolute_path)) or 'model'}: {e.message}")
             for e in errors[:20]]
+
+
+# ------------------------------------------------------------------------------- a device's models
+
+Read = Callable[[int, int], Awaitable[list[int]]]  # (protocol address, count) -> registers, from the device
+MARKER = (0x5375, 0x6E53)  # "SunS"
+END = 0xFFFF  # the model ID that ends the chain
+MAX_MODELS = 256
+
+
+@dataclass
+class DeviceModel:
+    """One model of a device's chain: its ID, where its ID register is, its length L and its registers."""
+
+    model_id: int
+    at: int
+    length: int
+    registers: list[int]
+
+
+async def device_chain(read: Read, at: int) -> list[DeviceModel]:
+    """The device's models from the 'SunS' marker at ``at - 2`` to the end marker 0xFFFF, each read whole."""
+    marker = await read(at - 2, 2)
+    if tuple(marker) != MARKER:
+        raise UsageError(f"no SunSpec marker 'SunS' at {at - 2} (the device has {marker[0]:04X}h {marker[1]:04X}h "
+                         "there): check --at (the first model's ID sits 2 registers after 'SunS', which devices "
+                         "put at 40000, 0 or 50000)")
+    models: list[DeviceModel] = []
+    while True:
+        if at + 2 > MAX_REGISTERS or len(models) >= MAX_MODELS:
+            raise UsageError(f"the device's model chain runs past register {at} without its end marker 0xFFFF")
+        (model_id,) = await read(at, 1)  # the end marker alone: devices need not have an L after it
+        if model_id == END:
+            return models
+        (length,) = await read(at + 1, 1)
+        if at + 2 + length > MAX_REGISTERS:
+            raise UsageError(f"model {model_id} at {at}: its length L={length} runs past register 65535")
+        models.append(DeviceModel(model_id, at, length, [model_id, length, *await read(at + 2, length)]))
+        at += 2 + length
+
+
+async def device_model(read: Read, model: str, at: int) -> DeviceModel:
+    """The model ``model`` at ``at`` as the device reports it (its ID checked first)."""
+    path = model_path(model)
+    data, _ = yamlsrc.load(path, yamlsrc.read_text(path).expandtabs(1))
+    want = data.get("id") if isinstance(data, dict) else None
+    model_id, length = await read(at, 2)
+    if isinstance(want, int) and model_id != want:
+        found = "the end marker 0xFFFF" if model_id == END else f"model {model_id}"
+        raise UsageError(f"the device has {found} at {at}, not model {want}: check --at")
+    if at + 2 + length > MAX_REGISTERS:
+        raise UsageError(f"model {model_id} at {at}: its length L={length} runs past register 65535")
+    return DeviceModel(model_id, at, length, [model_id, length, *await read(at + 2, length)])
+
+
+def reported(model: str | int, dm: DeviceModel, prefix: str = "") -> tuple[dict[str, int], dict[str, int], list[str]]:
+    """The scale factors and count points a device reports in its model (by point name), and warnings."""
+    path = model_path(str(model))
+    data, _ = yamlsrc.load(path, yamlsrc.read_text(path).expandtabs(1))
+    sfs: dict[str, int] = {}
+    points: dict[str, int] = {}
+    warnings: list[str] = []
+    offset = 0
+    for point in data["group"]["points"]:
+        size = int(point.get("size", 1))
+        if offset < len(dm.registers):
+            raw = dm.registers[offset]
+            name = str(point["name"])
+            if point.get("type") == "sunssf":
+                value = raw - 0x10000 if raw >= 0x8000 else raw
+                if value in SF_RANGE:
+                    sfs[name] = value
+                else:
+                    why = "not implemented (8000h)" if raw == 0x8000 else f"{value}, not -10 to 10"
+                    warnings.append(f"{prefix}{name} at {dm.at + offset}: the device reports {why}: the points it "
+                                    "scales are imported raw")
+            elif point.get("type") in ("count", "uint16"):
+                points[name] = raw
+        offset += size
+    return sfs, points, warnings
+
+
+def chain_draft(models: list[DeviceModel], *, scale_factors: Mapping[str, int] | None = None,
+                counts: Mapping[str, int] | None = None, profile_id: str | None = None,
+                source: str = "the device") -> tuple[Draft, list[str]]:
+    """One profile of a device's whole model chain: each model's points named MODEL.POINT (common.Mn,
+    inverter.W; a second model of one kind gets _2), its scale factors and counts as the device reports
+    them (``scale_factors``/``counts`` given by hand win), the markers and model IDs as its identity."""
+    parameters: list[tuple[str, dict[str, Any], Origin]] = []
+    tables: list[tuple[str, dict[str, Any], Origin]] = []
+    identity: list[dict[str, Any]] = []
+    warnings: list[str] = []
+    used: dict[str, int] = {}
+    ids: list[str] = []
+    for dm in models:
+        try:
+            path = model_path(str(dm.model_id))
+        except UsageError:
+            warnings.append(f"model {dm.model_id} at {dm.at} (L={dm.length}): pysunspec2 has no definition of it; "
+                            "its registers are not in the profile")
+            identity.append({"register": dm.at, "raw": dm.model_id, "description": f"SunSpec model ID {dm.model_id}"})
+            ids.append(str(dm.model_id))
+            continue
+        data, _ = yamlsrc.load(path, yamlsrc.read_text(path).expandtabs(1))
+        name = str(data["group"].get("name", f"model{dm.model_id}"))
+        used[name] = used.get(name, 0) + 1
+        prefix = f"{name}{'' if used[name] == 1 else '_' + str(used[name])}."
+        sfs, points, said = reported(dm.model_id, dm, prefix)
+        warnings.extend(said)
+        sfs.update(scale_factors or {})
+        draft, said = read_model(str(dm.model_id), at=dm.at, scale_factors=sfs, counts=counts, point_values=points,
+                                 length=dm.length, prefix=prefix)
+        warnings.extend(said)
+        laid_out = next((spec.get("default") for n, spec, _ in draft.parameters if n == f"{prefix}L"), None)
+        if laid_out is not None and laid_out != dm.length:
+            warnings.append(f"model {dm.model_id} at {dm.at}: the device says L={dm.length}, the definition lays "
+                            f"out {laid_out} registers")
+        parameters.extend(p for p in draft.parameters if p[0] != "SunS")
+        tables.extend(draft.tables)
+        identity.append(draft.header["identity"][-1])
+        ids.append(str(dm.model_id))
+    end = models[-1].at + 2 + models[-1].length if models else SUNSPEC_BASE + 2
+    first = models[0].at if models else SUNSPEC_BASE + 2
+    marker = {"register": first - 2, "description": "SunSpec marker 'SunS'", "type": "string", "count": 2,
+              "access": "read-only", "default": "SunS"}
+    here = Origin(source, 1, 1)
+    parameters.insert(0, ("SunS", marker, here))
+    parameters.append(("end.ID", {"register": end, "description": "end of the model chain", "type": "uint16",
+                                  "access": "read-only", "default": END}, here))
+    parameters.append(("end.L", {"register": end + 1, "description": "end of the model chain", "type": "uint16",
+                                 "access": "read-only", "default": 0}, here))
+    identity[:0] = [{"register": first - 2, "raw": MARKER[0], "description": "'Su' of the SunS marker"},
+                    {"register": first - 1, "raw": MARKER[1], "description": "'nS' of the SunS marker"}]
+    header = {"profile": profile_id or "sunspec-device",
+              "description": f"SunSpec device with models {', '.join(ids)} (its model chain from 'SunS' at "
+                             f"{first - 2}), imported from {source} and pysunspec2's model definitions",
+              "addressing": "address",
+              "identity": identity}
+    return Draft(header, parameters, tables), warnings

@@ -57,8 +57,11 @@ def input_error(module, e):
 
 
 def recipe_of(module):
-    """The task's recipe: a recipe file, inline parameters over a profile, or both (parameters win)."""
+    """The task's recipe: a recipe file, inline parameters over a profile, or both (parameters win);
+    None with a deployer inventory and none of these: each device's recipe from the inventory."""
     p = module.params
+    if p.get("inventory") and not (p.get("recipe") or p.get("profile") or p.get("parameters")):
+        return None
     if p.get("recipe"):
         rec = deployer.load_recipe(p["recipe"])
         if p.get("parameters"):

@@ -15,7 +15,10 @@ description:
     C(partial), C(failed), C(unreachable) or C(skipped), naming the devices and parameters.
   - Runs deployer's Python API; the target's Python (ansible_python_interpreter) needs deployer installed.
 options:
-  recipe: {description: A recipe file on the target., type: path}
+  recipe:
+    description: A recipe file on the target. With I(inventory) it may be left out (with I(profile) and
+      I(parameters)); then each device gets the recipe the inventory gives it.
+    type: path
   profile: {description: A built-in profile id or a profile file, when no recipe file is given., type: str}
   parameters: {description: Parameter values (engineering units, e.g. "10 s"); over the recipe's., type: dict}
   name: {description: The device's name in the report (one device)., type: str}
@@ -34,7 +37,10 @@ options:
     type: int
     default: 8
   batch: {description: 'Staged rollout within this task, e.g. "1,50%".', type: str}
-  max_failures: {description: After this many failed or partial devices start no new one (N or P%)., type: str}
+  max_failures:
+    description: After this many devices did not end ok (failed, partial and unreachable count, skipped ones
+      never) start no new one (N or P%).
+    type: str
   timeout: {description: Seconds per request attempt., type: float}
   retries: {description: Retries after a timeout or a busy answer., type: int}
   write_all: {description: Write every parameter even when the device already holds it., type: bool, default: false}
@@ -120,7 +126,8 @@ def apply(module, rec, jobs):
 
     p = module.params
     options = ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"])
-    report = asyncio.run(run_fleet_async(jobs, recipe_name=rec.path or rec.name, parallel=p["parallel"],
+    report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
+                                         parallel=p["parallel"],
                                          batch=p.get("batch"), max_failures=p.get("max_failures"), options=options,
                                          report_path=p.get("report")))
     devices, diffs, problems = [], [], []
