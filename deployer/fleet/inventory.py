@@ -340,16 +340,16 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
                            check_urls=False):
         concerns.setdefault(d, [])
     if concerns:
-<<<<<<< HEAD
-        raise InputError(Diagnostic(d.path, d.line, d.col, f"{d.message} ({_devices(names)})" if names else d.message)
-=======
         # the RECIPE argument replaces the recipes the inventory gives: say so where that is likely the mistake
         own = {d.name for d in inv.devices if recipe is not None and d.recipe is not None and d.recipe != recipe.path}
-        raise InputError(Diagnostic(d.path, d.line, d.col, f"{d.message} ({_devices(names)}"
-                                    + ("; the inventory gives them recipes of their own: leave out RECIPE to use "
-                                       "those" if set(names) <= own else "") + ")")
->>>>>>> main
-                         for d, names in concerns.items())
+
+        def said(d: Diagnostic, names: list[str]) -> str:
+            if not names:  # concerns the inventory itself (a device named twice)
+                return d.message
+            return f"{d.message} ({_devices(names)}" + (
+                "; the inventory gives them recipes of their own: leave out RECIPE to use those"
+                if set(names) <= own else "") + ")"
+        raise InputError(Diagnostic(d.path, d.line, d.col, said(d, names)) for d, names in concerns.items())
     return jobs
 
 
