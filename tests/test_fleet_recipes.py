@@ -252,7 +252,7 @@ def test_the_ansible_module_takes_the_inventorys_recipes(tmp_path: Path) -> None
         def __init__(self, **params: object) -> None:
             self.params = {"timeout": None, "retries": None, "unit": None, "limit": None, **params}
 
-    inv = line(tmp_path, {n: "tcp://127.0.0.1:1502" for n in NAMES})
+    inv = line(tmp_path, {n: f"tcp://127.0.0.1:{1502 + i}" for i, n in enumerate(NAMES)})
     task = Module(inventory=inv)
     assert common.recipe_of(task) is None  # no recipe, profile or parameters: each device's own
     jobs = common.jobs_of(task, None)
