@@ -30,9 +30,9 @@ from __future__ import annotations
 import asyncio
 import os
 import resource
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from .errors import (
     BadURL,
@@ -48,6 +48,7 @@ from .errors import (
 )
 from .execute.read import read_current
 from .execute.session import ApplyOptions
+from .execute.soak import check_soak_profiles, confirm_run
 from .fleet.inventory import FleetDevice, Inventory, load_inventory
 from .fleet.inventory import fleet_jobs as _fleet_jobs
 from .fleet.inventory import inventory_from as _inventory_from
@@ -58,7 +59,8 @@ from .planning.model import Plan, Target
 from .planning.planfile import load_plan, plan_to_json
 from .planning.planner import make_plan
 from .profile import Profile, load_profile, resolve_profile
-from .recipe.loader import Entry, Recipe, load_recipe, with_overrides
+from .recipe.loader import Entry, Recipe, with_overrides
+from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
 from .report import DeviceResult, ParameterResult, Report
 from .transport.clients import DeviceURL, describe, parse_url
@@ -66,7 +68,7 @@ from .transport.clients import DeviceURL, describe, parse_url
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
 _REEXPORTED = (BadURL, CodecError, Declined, DeployerError, IdentityMismatch, InputError, Locked, StalePlan,
                TransportError, UsageError, ApplyOptions, FleetDevice, Inventory, load_inventory, Job, ReadJob, Plan,
-               load_plan, plan_to_json, Profile, load_profile, Recipe, load_recipe, DeviceResult, ParameterResult,
+               load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult, ParameterResult,
                Report, DeviceURL)
 
 
@@ -98,6 +100,7 @@ __all__ = [
     "apply_async",
     "apply_fleet",
     "apply_fleet_async",
+    "confirm",
     "describe_url",
     "device_url",
     "diff",
@@ -124,7 +127,53 @@ __all__ = [
     "recipe_from",
     "run_fleet",
     "run_fleet_async",
+    "safe_options",
 ]
+
+
+_T = TypeVar("_T")
+
+
+def _kind(value: object) -> str:
+    text = repr(value)
+    return f"{type(value).__name__} {text if len(text) <= 40 else text[:39] + '...'}"
+
+
+def _need_recipe(recipe: object, call: str) -> None:
+    """Refuse, before anything is sent, what a caller passed where a loaded Recipe belongs."""
+    if not isinstance(recipe, Recipe):
+        hint = " (load it first: deployer.load_recipe(path))" if isinstance(recipe, (str, os.PathLike)) else ""
+        raise UsageError(f"{call} takes a Recipe{hint}, got {_kind(recipe)}")
+
+
+def _need_unit(unit: object) -> None:
+    if unit is None:
+        return
+    if isinstance(unit, bool) or not isinstance(unit, int):
+        raise UsageError(f"unit must be an int from 1 to 247 (0 is broadcast), got {_kind(unit)}")
+    if not 0 <= unit <= 247:
+        raise UsageError(f"unit must be from 1 to 247 (0 is broadcast), got {unit}")
+
+
+def _sync(call: str, coro: Callable[[], Coroutine[Any, Any, _T]]) -> _T:
+    """Run a coroutine for a sync API call; inside a running event loop, say to await the async twin."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return asyncio.run(coro())
+    raise UsageError(f"deployer.{call}() cannot run inside a running event loop; await deployer.{call}_async()")
+
+
+def load_recipe(path: str | os.PathLike[str], **kw: Any) -> Recipe:
+    """A recipe file, validated against its profile.
+
+    Raises:
+        InputError: every problem of the recipe (and its profile), with its position.
+        UsageError: ``path`` is not a path.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise UsageError(f"load_recipe takes a path (str or os.PathLike), got {_kind(path)}")
+    return _load_recipe(path, **kw)
 
 
 def describe_url(url: DeviceURL) -> str:
@@ -140,8 +189,14 @@ def recipe_from(profile: str | Profile, parameters: Mapping[str, Any], *, name: 
 
     Raises:
         InputError: a value that is not valid for its parameter (all of them at once).
-        UsageError: an unknown built-in profile id.
+        UsageError: an unknown built-in profile id; arguments of the wrong type.
     """
+    if not isinstance(parameters, Mapping):
+        raise UsageError(f"recipe_from takes the parameters as a mapping (name -> value), got {_kind(parameters)}")
+    if not isinstance(profile, (str, Profile)):
+        raise UsageError(f"recipe_from takes a profile id, a profile file or a Profile, got {_kind(profile)}")
+    if base is not None:
+        _need_recipe(base, "recipe_from(base=...)")
     src = Source(f"<{name}>")
     entries = [Entry(k, v, src, ("parameters", k)) for k, v in parameters.items()]
     if base is None:
@@ -159,10 +214,13 @@ def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: i
     """
     if isinstance(url, DeviceURL):
         return url
+    if not isinstance(url, str):
+        raise UsageError(f"device_url takes a URL such as tcp://10.0.0.11:502, got {_kind(url)}")
     return parse_url(url, timeout=timeout, retries=retries)  # BadURL is a UsageError
 
 
 def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) -> tuple[DeviceURL, int]:
+    _need_unit(unit)
     text = device if device is not None else (recipe.device.url if recipe.device else None)
     if text is None:
         raise UsageError("no device: pass a device URL or set device.url in the recipe")
@@ -176,6 +234,8 @@ def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) ->
 async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
                      write_all: bool = False, offline: bool = False) -> Plan:
     """The requests apply would send: against what the device holds now, or ``offline`` the full write plan."""
+    _need_recipe(recipe, "plan")
+    _need_unit(unit)
     if offline:
         u = unit if unit is not None else 1
         return make_plan(recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all)
@@ -194,19 +254,33 @@ def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
         UsageError: no device (none given and none in the recipe), a bad URL, unit 0 (broadcast).
         TransportError: the device cannot be read (Unreachable also when its identity does not match).
     """
-    return asyncio.run(plan_async(recipe, device, unit, write_all=write_all, offline=offline))
+    _need_recipe(recipe, "plan")
+    return _sync("plan", lambda: plan_async(recipe, device, unit, write_all=write_all, offline=offline))
 
 
 async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-                      options: ApplyOptions | None = None, name: str | None = None) -> Report:
-    """Apply to one device; the report says per parameter what it holds now (never raises for a device fault)."""
+                      options: ApplyOptions | None = None, name: str | None = None,
+                      soak: float | str | None = None, health_interval: float | str | None = None,
+                      confirm_within: float | str | None = None,
+                      on_confirm_wait: Callable[[str, float], None] | None = None) -> Report:
+    """Apply to one device; the report says per parameter what it holds now (never raises for a device fault).
+
+    A safe change: ``soak`` ("30s", or seconds) watches the profile's health checks after the write and
+    rolls the device back when one fails; ``confirm_within`` holds the profile's commit until ``confirm``
+    is called (from another thread, task or process with the same state directory), else rolls back.
+    ``on_confirm_wait(run, deadline)`` is told the run id to confirm once it waits.
+    """
+    _need_recipe(recipe, "apply")
     url, u = _target(recipe, device, unit)
-    return await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=options,
-                            recipe_name=recipe.path or recipe.name)
+    opts = safe_options(options, soak=soak, health_interval=health_interval, confirm_within=confirm_within)
+    if opts.soak is not None:
+        check_soak_profiles([recipe.profile])
+    return await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=opts,
+                            recipe_name=recipe.path or recipe.name, on_confirm_wait=on_confirm_wait)
 
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-          options: ApplyOptions | None = None, name: str | None = None) -> Report:
+          options: ApplyOptions | None = None, name: str | None = None, **safe: Any) -> Report:
     """Apply the recipe to one device: plan against what it holds, write, read back, verify, report.
 
     A device fault (unreachable, refused, not verified, locked by another run) is the device's
@@ -216,8 +290,50 @@ def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | Non
         UsageError: no device, a bad URL, a broadcast without ``options.allow_broadcast``.
         StalePlan: ``options.expected`` (a saved plan) no longer matches the device.
         Declined: ``options.confirm`` answered no.
+
+    ``safe``: ``soak``, ``health_interval``, ``confirm_within``, ``on_confirm_wait`` (see ``apply_async``).
     """
-    return asyncio.run(apply_async(recipe, device, unit, options=options, name=name))
+    _need_recipe(recipe, "apply")
+    return _sync("apply", lambda: apply_async(recipe, device, unit, options=options, name=name, **safe))
+
+
+def safe_options(options: ApplyOptions | None, *, soak: float | str | None = None,
+                 health_interval: float | str | None = None,
+                 confirm_within: float | str | None = None) -> ApplyOptions:
+    """``options`` with a soak and a confirmation window (durations as "30s" or seconds).
+
+    A confirmation needs a run id to be named by: one is made when ``options`` has none.
+
+    Raises:
+        UsageError: a duration that is not one (e.g. "soon").
+    """
+    from dataclasses import replace
+
+    from .load.durations import parse_duration
+    from .state.journal import new_run_id
+
+    opts = options or ApplyOptions()
+    changes: dict[str, Any] = {}
+    for key, value in (("soak", soak), ("health_interval", health_interval), ("confirm_within", confirm_within)):
+        if value is not None:
+            try:
+                changes[key] = parse_duration(value)
+            except ValueError as e:
+                raise UsageError(f"{key}: {e}") from None
+    opts = replace(opts, **changes)
+    if opts.confirm_within is not None and opts.run_id is None:
+        opts = replace(opts, run_id=new_run_id())
+    return opts
+
+
+def confirm(run: str | None = None, *, state_dir: str = ".deployer") -> str:
+    """Confirm a run that waits (``confirm_within``): its held-back commit is sent. Returns the run id.
+
+    Raises:
+        UsageError: no run (or several, and ``run`` is None) waits in ``state_dir``, or the waiting
+            process is gone, or its time ran out.
+    """
+    return confirm_run(state_dir, run).run
 
 
 @dataclass(frozen=True)
@@ -250,6 +366,7 @@ def diff_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]]) -> list[
 
 async def diff_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None) -> list[Drift]:
     """``diff`` for callers with their own event loop."""
+    _need_recipe(recipe, "diff")
     url, u = _target(recipe, device, unit)
     return diff_values(recipe, await read_current(recipe.profile, [d.name for d in recipe.desired], url, u))
 
@@ -261,7 +378,8 @@ def diff(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
         UsageError: no device, a bad URL, unit 0.
         TransportError: the device cannot be read.
     """
-    return asyncio.run(diff_async(recipe, device, unit))
+    _need_recipe(recipe, "diff")
+    return _sync("diff", lambda: diff_async(recipe, device, unit))
 
 
 def pulled_recipe(profile: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
@@ -284,6 +402,9 @@ def pull_names(profile: Profile) -> list[str]:
 
 async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict[str, tuple[int, ...]]:
     """Every readable, writable parameter of a device: name -> registers."""
+    _need_unit(unit)
+    if not isinstance(profile, (str, Profile)):
+        raise UsageError(f"pull takes a profile id, a profile file or a Profile, got {_kind(profile)}")
     prof = profile if isinstance(profile, Profile) else resolve_profile(profile)
     return await read_current(prof, pull_names(prof), device_url(device), unit)
 
@@ -296,7 +417,7 @@ def pull(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict
         InputError: an invalid profile file.
         TransportError: the device cannot be read.
     """
-    return asyncio.run(pull_async(profile, device, unit))
+    return _sync("pull", lambda: pull_async(profile, device, unit))
 
 
 # ---- fleets ----------------------------------------------------------------------------------
@@ -376,12 +497,14 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
                           batch: str | None = None, max_failures: str | None = None,
                           options: ApplyOptions | None = None, report_path: str | None = None,
                           on_start: Callable[[Job], None] | None = None,
-                          on_done: Callable[[DeviceResult], None] | None = None) -> Report:
+                          on_done: Callable[[DeviceResult], None] | None = None,
+                          **safe: Any) -> Report:
     """Apply jobs as one fleet run: ``batch`` ("1,10%,100%") stages it, ``max_failures`` ("2", "5%") caps it.
 
     ``report_path``: written before the first device starts (every device ``skipped``, "not
     finished") and rewritten as devices finish, so after a crash ``limit="@REPORT"`` retries
-    exactly what did not end ok.
+    exactly what did not end ok. ``safe``: ``rollback_on_failure``, ``between_batches`` and
+    ``on_confirm_wait`` of ``fleet.rollout.apply_many`` (the soak itself is in ``options``).
     """
     sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                                   report_path=report_path)
@@ -397,7 +520,8 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
 
     try:
         report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
-                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget)
+                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget,
+                                  on_changed=None if live is None else live.update, **safe)
     finally:
         if live is not None:
             live.stop()
@@ -416,7 +540,9 @@ def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) ->
             be written, too few open files for ``parallel``.
         StalePlan: a saved plan (``options.expected``) no longer matches its device.
     """
-    return asyncio.run(apply_fleet_async(recipe, inventory, **kw))
+    if recipe is not None:
+        _need_recipe(recipe, "apply_fleet")
+    return _sync("apply_fleet", lambda: apply_fleet_async(recipe, inventory, **kw))
 
 
 def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
@@ -426,7 +552,7 @@ def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
         UsageError: a bad ``batch``/``max_failures``, a report file that cannot be written, too few open files.
         StalePlan: a saved plan (``options.expected``) no longer matches its device.
     """
-    return asyncio.run(run_fleet_async(jobs, **kw))
+    return _sync("run_fleet", lambda: run_fleet_async(jobs, **kw))
 
 
 async def read_fleet_async(jobs: Sequence[ReadJob], *, parallel: int = 8,
@@ -445,7 +571,7 @@ def read_fleet(jobs: Sequence[ReadJob], *, parallel: int = 8) -> dict[str, dict[
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return asyncio.run(read_fleet_async(jobs, parallel=parallel))
+    return _sync("read_fleet", lambda: read_fleet_async(jobs, parallel=parallel))
 
 
 def read_jobs(jobs: Sequence[Job]) -> list[ReadJob]:
@@ -477,7 +603,7 @@ def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = Fals
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return asyncio.run(plan_fleet_async(jobs, parallel=parallel, write_all=write_all))
+    return _sync("plan_fleet", lambda: plan_fleet_async(jobs, parallel=parallel, write_all=write_all))
 
 
 def inventory_from(devices: Iterable[Mapping[str, Any]], *, name: str = "<devices>") -> Inventory:

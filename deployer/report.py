@@ -1,4 +1,4 @@
-"""Results of an apply, per device and per parameter, as the report JSON (DESIGN.md, "Report")."""
+"""Results of an apply, per device and per parameter, as the report JSON (docs/reference/report.md)."""
 
 from __future__ import annotations
 
@@ -14,9 +14,12 @@ if TYPE_CHECKING:
     from .profile import Parameter
 
 REPORT_SCHEMA = "deployer.report/1"
-ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped"]
-# sent: a broadcast that went out; skipped: a fleet never started it
-DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped"]
+# rolled-back: written and verified, then restored from the snapshot (a failed health check, no confirmation)
+ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped", "rolled-back"]
+# sent: a broadcast that went out; skipped: a fleet never started it; rolled-back: restored after the write
+DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back"]
+# the profile's commit steps: sent, held back (a soak or a confirmation waits), never sent, failed
+CommitState = Literal["sent", "held", "not sent", "failed"]
 
 
 @dataclass
@@ -87,6 +90,7 @@ class DeviceResult:
     notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
     recipe: str | None = None  # the recipe (or snapshot, plan) file this device was given
     batch: int | None = None  # fleets: the batch the device ran in (or would have: skipped)
+    commit: CommitState | None = None  # None: the profile has no commit steps, or nothing was written
 
     @property
     def write_requests(self) -> int:
@@ -98,7 +102,7 @@ class DeviceResult:
 
     def settle(self) -> None:
         """Device status from its parameters (unless already sent/failed/unreachable/skipped)."""
-        if self.status in ("unreachable", "failed", "skipped", "sent"):
+        if self.status in ("unreachable", "failed", "skipped", "sent", "rolled-back"):
             return
         bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
         if not bad:
@@ -127,6 +131,8 @@ class DeviceResult:
             out["recipe"] = self.recipe
         if self.batch is not None:
             out["batch"] = self.batch
+        if self.commit is not None:
+            out["commit"] = self.commit
         return out
 
 
@@ -144,7 +150,7 @@ class Report:
 
     def summary(self) -> dict[str, Any]:
         counts = {s: sum(1 for d in self.devices if d.status == s)
-                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped")}
+                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back")}
         return {"devices": len(self.devices), **counts,
                 "write_requests": sum(d.write_requests for d in self.devices),
                 "read_requests": sum(d.read_requests for d in self.devices),
@@ -156,7 +162,7 @@ class Report:
 
     @property
     def exit_code(self) -> int:
-        """DESIGN.md exit codes: 3 only when every device was unreachable (nothing written anywhere).
+        """The run's exit code (docs/design.md): 3 only when every device was unreachable (nothing written anywhere).
 
         A broadcast that went out (``sent``) counts as success: the user asked for an unverifiable write.
         """

@@ -104,10 +104,11 @@ def test_playbook_check_apply_idempotent_and_a_rejected_value(tmp_path: Path) ->
         assert code == 0, out
         assert recap(out, "site-a")["changed"] == 2 and recap(out, "site-b")["changed"] == 2
         assert all(s.read(n) == v for s in sims for n, v in WANT.items())
-        facts = results["site-b"][0]["ansible_facts"]["modbus_devices"]  # the last task: facts
-        assert facts["site-b-d0"] == {"F07": "10 s", "F08": "12 s", "stop_mode": "coast"}
-        pulled = tmp_path / "pulled" / "site-a" / "site-a-d1.yaml"  # the facts task also wrote recipe files
+        values = results["site-b"][0]["values"]  # the last task: pull (its values are the info task's facts)
+        assert values["site-b-d0"] == {"F07": "10 s", "F08": "12 s", "stop_mode": "coast"}
+        pulled = tmp_path / "pulled" / "site-a" / "site-a-d1.yaml"  # the pull task wrote recipe files
         assert "F07: 10 s" in pulled.read_text() and f"url\": \"{sims[1].url}" in pulled.read_text()
+        assert "ok: [site-a]" in out and "modbus_devices" not in out.split("Keep them as recipe files")[1]
 
         # a second run has nothing to do
         before = writes(sims)

@@ -1,4 +1,4 @@
-"""The command line as users and scripts see it: output, files, exit codes (DESIGN.md)."""
+"""The command line as users and scripts see it: output, files, exit codes (docs/design.md)."""
 
 from __future__ import annotations
 

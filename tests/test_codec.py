@@ -12,7 +12,7 @@ from deployer.profile import codec
 
 
 def test_omron_f07_ten_seconds_is_0000_03e8() -> None:
-    # ../shared/seeds/omron-m1-p668.txt: 10 s at 0.01 s -> 1000 -> 0000 03E8 hex
+    # the OMRON M1 manual, p. 668: 10 s at 0.01 s -> 1000 -> 0000 03E8 hex
     assert codec.engineering_to_registers(Decimal("10"), "uint32", Decimal("0.01")) == (0x0000, 0x03E8)
 
 
@@ -20,7 +20,7 @@ def test_omron_f07_ten_seconds_is_0000_03e8() -> None:
     ("value", "regs"), [(10000, (0x0000, 0x2710)), (20000, (0x0000, 0x4E20)), (500, (0x0000, 0x01F4))]
 )
 def test_oriental_operation_data_no3(value: int, regs: tuple[int, int]) -> None:
-    # ../shared/seeds/oriental-az-HM-60252J-p267.txt, 32-bit, upper word first
+    # the Oriental Motor AZ manual HM-60252J, p. 267: 32-bit, upper word first
     assert codec.engineering_to_registers(Decimal(value), "int32") == regs
 
 

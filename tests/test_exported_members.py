@@ -13,10 +13,12 @@ PUBLIC = [
     "ApplyOptions", "BadURL", "CodecError", "Declined", "DeployerError", "DeviceResult", "DeviceURL", "Drift",
     "FleetDevice", "IdentityMismatch", "InputError", "Inventory", "Job", "Locked", "ParameterResult", "Plan",
     "Profile", "ReadJob", "Recipe", "Report", "StalePlan", "TransportError", "UsageError",
-    "apply", "apply_async", "apply_fleet", "apply_fleet_async", "describe_url", "device_url", "diff", "diff_async",
+    "apply", "apply_async", "apply_fleet", "apply_fleet_async", "confirm", "describe_url", "device_url", "diff",
+    "diff_async",
     "diff_values", "fleet_jobs", "inventory_from", "load_inventory", "load_plan", "load_profile", "load_recipe", "plan",
     "plan_async", "plan_fleet", "plan_fleet_async", "plan_to_json", "pull", "pull_async", "pull_names",
     "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "recipe_from", "run_fleet", "run_fleet_async",
+    "safe_options",
 ]
 
 
@@ -39,7 +41,8 @@ def test_every_exported_function_and_class_is_documented() -> None:
 
 def test_sync_functions_that_raise_say_so() -> None:
     """A sync entry point that can raise documents what (a Raises section)."""
-    for name in ("apply", "apply_fleet", "device_url", "diff", "inventory_from", "plan", "plan_fleet", "pull",
+    for name in ("apply", "apply_fleet", "confirm", "device_url", "diff", "inventory_from", "plan", "plan_fleet",
+                 "pull",
                  "read_fleet", "recipe_from", "run_fleet"):
         assert "Raises:" in (getattr(api, name).__doc__ or ""), name
 

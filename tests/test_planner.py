@@ -1,4 +1,4 @@
-"""Planner: the rules of DESIGN.md, and minimality against brute force (hypothesis)."""
+"""Planner: the planning rules of docs/design.md, and minimality against brute force (hypothesis)."""
 
 from __future__ import annotations
 

@@ -127,6 +127,66 @@ def test_unknown_function_and_unknown_unit(dev: Profile) -> None:
     run(dev, body)
 
 
+def _mbap_frames(data: bytes) -> list[bytes]:
+    """Split Modbus/TCP answers: each is its MBAP header (7 bytes, length counts unit + PDU) and PDU."""
+    frames, i = [], 0
+    while i + 6 <= len(data):
+        n = int.from_bytes(data[i + 4:i + 6], "big")
+        frames.append(data[i:i + 6 + n])
+        i += 6 + n
+    return frames
+
+
+async def _exchange(sim: Simulator, requests: bytes, answers: int) -> list[bytes]:
+    """Send the requests in one write (one TCP segment here) and collect that many answers."""
+    host, port = sim.url.removeprefix("tcp://").rsplit(":", 1)
+    reader, writer = await asyncio.open_connection(host, int(port))
+    writer.write(requests)
+    got = b""
+    try:
+        while len(_mbap_frames(got)) < answers:
+            got += await asyncio.wait_for(reader.read(65536), 5)
+    finally:
+        writer.close()
+    return _mbap_frames(got)
+
+
+def test_pipelined_requests_are_each_answered_in_order(dev: Profile) -> None:
+    async def body(sim: Simulator, c: AsyncModbusTcpClient) -> None:
+        # 100 reads in one segment (a gateway or a pipelining client sends them so); pymodbus's own
+        # handler answered only the first of a segment, and none once the segment passed 260 bytes
+        reads = b"".join(tid.to_bytes(2, "big") + bytes.fromhex("0000 0006 01 03 0064")
+                         + (1 + tid % 4).to_bytes(2, "big") for tid in range(1, 101))
+        frames = await _exchange(sim, reads, 100)
+        assert [int.from_bytes(f[:2], "big") for f in frames] == list(range(1, 101))
+        regs = [1, 0, 2, 0]
+        for tid, f in zip(range(1, 101), frames, strict=True):
+            n = 1 + tid % 4
+            assert f[7:9] == bytes([3, 2 * n]) and f[9:] == b"".join(r.to_bytes(2, "big") for r in regs[:n])
+        # writes and reads interleaved in one segment take effect in order
+        mixed = (bytes.fromhex("0201 0000 0006 01 06 0064 0005") + bytes.fromhex("0202 0000 0006 01 03 0064 0001")
+                 + bytes.fromhex("0203 0000 0006 01 06 0064 0009") + bytes.fromhex("0204 0000 0006 01 03 0064 0001"))
+        frames = await _exchange(sim, mixed, 4)
+        assert [f[:2].hex() for f in frames] == ["0201", "0202", "0203", "0204"]
+        assert frames[1][9:] == bytes.fromhex("0005") and frames[3][9:] == bytes.fromhex("0009")
+        assert sim.read("a") == (9,)
+    run(dev, body)
+
+
+@pytest.mark.parametrize("request_pdu",
+                         ["08 0000 0000", "0B", "11", "14 07 06 0004 0001 0002", "18 0064", "2B 0E 01 00"],
+                         ids=["08-diagnostics", "0B-comm-event-counter", "11-report-server-id",
+                              "14-read-file-record", "18-read-fifo", "2B-device-identification"])
+def test_functions_a_drive_does_not_have_answer_01(dev: Profile, request_pdu: str) -> None:
+    async def body(sim: Simulator, c: AsyncModbusTcpClient) -> None:
+        pdu = bytes.fromhex(request_pdu)
+        frame = bytes.fromhex("0007 0000") + (len(pdu) + 1).to_bytes(2, "big") + b"\x01" + pdu
+        (answer,) = await _exchange(sim, frame, 1)
+        assert answer[:2] == bytes.fromhex("0007") and answer[7] & 0x80 and answer[8] == 1, answer.hex()
+        assert sim.log[-1].result == "exception 01"
+    run(dev, body)
+
+
 def test_broadcast_applies_to_every_unit_without_answer(dev: Profile) -> None:
     async def body(sim: Simulator, c: AsyncModbusTcpClient) -> None:
         await c.write_registers(100, [42], device_id=0, no_response_expected=True)

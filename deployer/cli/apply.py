@@ -36,10 +36,10 @@ if TYPE_CHECKING:
     from ..report import DeviceResult, Report
 
 
-_STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "skipped": 3, "ok": 4, "unchanged": 5}
+_STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "rolled-back": 3, "skipped": 4, "ok": 5, "unchanged": 6}
 _STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red",
                  "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red",
-                 "sent": "cyan"}
+                 "sent": "cyan", "rolled-back": "bold yellow"}
 
 
 def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> None:
@@ -62,14 +62,20 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
                       "read back or verified")
         for note in d.notices:
             out.print(f"note: {note}")
-        if d.snapshot:
+        if d.status == "rolled-back" and d.commit == "not sent":
+            out.print("commit: not sent (the profile's commit steps)")
+        elif d.commit in ("held", "not sent"):
+            out.print(f"commit: {d.commit} (the profile's commit steps): the values written are not stored to "
+                      "non-volatile memory; on devices that keep Modbus writes in RAM they revert at a power cycle")
+        if d.snapshot and d.status != "rolled-back":
             out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
     s = report.summary()
     if len(report.devices) > 1 and not only_not_ok:
         out.print(f"{_n(s['devices'], 'device')}: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
-                  + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable "
-                  f"in {s['seconds']:.2f} s")
+                  + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable"
+                  + (f", {s['rolled-back']} rolled back" if s["rolled-back"] else "")
+                  + f" in {s['seconds']:.2f} s")
 
 
 def _is_plan_file(path: str) -> bool:
@@ -87,7 +93,9 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               retries: int | None, yes: bool, report_path: str | None, as_json: bool, inventory: str | None,
               limit: str | None, parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
               lock_timeout: float = 0.0, force: bool = False, from_report: str | None = None,
-              batch: str | None = None, max_failures: str | None = None, command: str = "apply") -> int:
+              batch: str | None = None, max_failures: str | None = None, command: str = "apply",
+              soak: float | None = None, health_interval: float = 1.0, confirm_within: float | None = None,
+              rollback_on_failure: bool = False, pause: float | None = None, ask: bool = False) -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
     from ..api import fleet_options, run_fleet_async
     from ..execute.session import ApplyOptions
@@ -147,6 +155,14 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                 if (taken.bus, taken_unit) != (one.bus, u):
                     moved.append(f"{source} was taken from {describe(taken)} unit {taken_unit}, not "
                                  f"{describe(one)} unit {u}")
+    if soak is not None:
+        from ..execute.soak import check_soak_profiles
+
+        check_soak_profiles([j.recipe.profile for j in jobs])
+    if (pause is not None or ask) and not batch:
+        raise UsageError("--pause and --ask go between batches: give --batch too")
+    if ask and not sys.stdin.isatty():
+        raise UsageError("--ask asks before each batch: stdin is not a terminal (use --pause for an unattended run)")
     for j in jobs:
         if j.unit == 0 and not allow_broadcast:
             raise UsageError(f"{j.name}: unit 0 is broadcast (no device answers, nothing can be verified); "
@@ -181,7 +197,9 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
-                           run_id=run_id, applied=os.path.abspath(label) if label else None, lock_timeout=lock_timeout)
+                           run_id=run_id, applied=os.path.abspath(label) if label else None, lock_timeout=lock_timeout,
+                           soak=soak, health_interval=health_interval, confirm_within=confirm_within)
+    safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure)
     if fleet_run:
         import gc
 
@@ -194,13 +212,15 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             gc.freeze()
             gc.set_threshold(20_000, 20, 10)
         # a live display on a terminal (not while asking questions), else a line per device
-        progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes, staged=bool(batch))
+        progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes and not ask and confirm_within is None,
+                                 staged=bool(batch))
         with progress:
             report = asyncio.run(run_fleet_async(
                 jobs, recipe_name=label, parallel=parallel, batch=batch, max_failures=max_failures, options=options,
-                report_path=report_path, on_start=lambda j: progress.start(j.name), on_done=progress.device_done))
+                report_path=report_path, on_start=lambda j: progress.start(j.name), on_done=progress.device_done,
+                **safe))
     else:
-        report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=label))
+        report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=label, **safe))
         if report_path:
             write_json(report.to_json(), report_path)
     journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
@@ -221,15 +241,50 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     return report.exit_code
 
 
+def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool
+                ) -> dict[str, Any]:
+    """apply_many's keywords for a safe change: a pause and a question between batches, the confirmation wait."""
+    from ..load.durations import format_duration
+
+    async def between(number: int, so_far: Report) -> str | None:
+        s = so_far.summary()
+        done = ", ".join(f"{s[k]} {k}" for k in ("ok", "partial", "failed", "unreachable", "rolled-back") if s[k])
+        if pause:
+            err.print(f"batch {number - 1} done ({done}); batch {number} starts in {format_duration(pause)}")
+            await asyncio.sleep(pause)
+        if ask and not await asyncio.to_thread(click.confirm, f"batch {number - 1} done ({done}). "
+                                                              f"Continue with batch {number}?", default=False,
+                                               err=True):
+            return f"not started: stopped at the question before batch {number} (--ask)"
+        return None
+
+    def waiting(run: str, deadline: float) -> None:
+        import time
+
+        left = max(0.0, deadline - time.time())
+        left = round(left) if left >= 1 else round(left, 3)
+        err.print(f"[bold]waiting for confirmation[/bold] until {time.strftime('%H:%M:%S UTC', time.gmtime(deadline))} "
+                  f"({format_duration(left)} left): confirm from another shell with\n"
+                  f"    deployer confirm {run} --state-dir {state_dir}\n"
+                  "without it every device written is rolled back and the commit is never sent")
+
+    return {"rollback_on_failure": rollback_on_failure, "between_batches": between, "on_confirm_wait": waiting}
+
+
 def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retries: int | None) -> list[Job]:
     """One job per device of an earlier run that has a snapshot: its own snapshot, to its own device."""
     from ..fleet.rollout import Job
     from ..recipe.loader import load_recipe
     from ..state.snapshot import snapshots_of_report
 
-    found, without = snapshots_of_report(path)
+    restored: list[str] = []
+    found, without = snapshots_of_report(path, restored)
     if without:
         click.echo(f"nothing to roll back on {', '.join(without)}: nothing was written there", err=True)
+    if restored:
+        click.echo(f"nothing to roll back on {', '.join(restored)}: that run already rolled it back", err=True)
+    if not found and restored and not without:
+        raise UsageError(f"{path}: every device of that run was already rolled back: nothing to roll back")
     if not found:
         raise UsageError(f"{path}: no device of that run has a snapshot (nothing was written): nothing to roll back")
     jobs: list[Job] = []
@@ -273,8 +328,8 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
                      help="staged rollout: batch sizes (count or % of the selected devices; the last repeats); "
                           "each batch finishes before the next, a batch with no ok device ends the rollout"),
         click.option("--max-failures", metavar="N|P%",
-                     help="after this many devices did not end ok (failed, partial or unreachable count; skipped "
-                          "ones never), start no new device"),
+                     help="after this many devices did not end ok (failed, partial, unreachable or rolled back "
+                          "count; skipped ones never), start no new device"),
         parallel_option,
         click.option("--on-error", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
                      help="after a rejected value: send the rest, or skip it"),
@@ -290,9 +345,35 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
     return device_options(f)
 
 
+def safe_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    from .base import DURATION
+
+    opts = [
+        click.option("--soak", type=DURATION, metavar="DURATION",
+                     help="after the verified write, read the profile's health checks for this long (30s, 5m, 1h; "
+                          "a bare number is seconds); a failed check rolls that device back from its snapshot "
+                          "(status rolled-back, exit 4); the commit is sent only after the soak passed"),
+        click.option("--health-interval", type=DURATION, default="1s", show_default=True, metavar="DURATION",
+                     help="time between two rounds of health checks during --soak"),
+        click.option("--confirm-within", type=DURATION, metavar="DURATION",
+                     help="hold the profile's commit back until `deployer confirm` (another shell, same "
+                          "--state-dir); not confirmed in time: every device written is rolled back"),
+        click.option("--rollback-on-failure", is_flag=True,
+                     help="when the rollout stops (a failed batch or canary, --max-failures), roll back every "
+                          "device it wrote"),
+        click.option("--pause", type=DURATION, metavar="DURATION", help="wait this long between batches"),
+        click.option("--ask", is_flag=True,
+                     help="ask before each batch after the first (needs a terminal; --yes does not answer it)"),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
 @click.command()
 @click.argument("source", metavar="[RECIPE|PLAN.json]", required=False, type=click.Path(dir_okay=False))
 @apply_options
+@safe_options
 def apply(source: str | None, **kw: Any) -> int:
     """Write a recipe (or a saved plan) to a device, read it back, report what it holds.
 
@@ -332,14 +413,21 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
 @click.option("--json", "as_json", is_flag=True, help="print the unfinished runs as JSON")
 def status(state_dir: str, as_json: bool) -> int:
     """Runs that never finished (a crash, kill -9, a laptop asleep): which devices were being written."""
+    from ..execute.soak import awaiting, soaking
     from ..state.journal import unfinished
 
     runs, torn = unfinished(state_dir)
+    waits = {a.run: a for a in awaiting(state_dir)}
+    soaks = soaking(state_dir)
     if as_json:
         click.echo(json.dumps({"unfinished": [
             {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
              "argv": r.argv, "recipe": r.recipe, "devices": r.devices, "interrupted": r.interrupted,
-             "finished": r.finished} for r in runs]}, indent=2))
+             "finished": r.finished,
+             **({"awaiting_confirmation": {"deadline": waits[r.run].deadline, "report": waits[r.run].report,
+                                           "waiting": waits[r.run].alive}} if r.run in waits else {}),
+             **({"soaking": {"report": soaks[r.run]}} if r.run in soaks else {}),
+             } for r in runs]}, indent=2))
         return EXIT_OK
     out = console()
     if not runs:
@@ -348,6 +436,23 @@ def status(state_dir: str, as_json: bool) -> int:
         state = "still running" if r.running else "did not finish"
         out.print(f"[bold]{r.command}[/bold] {r.recipe or ''} by {r.user} at {r.time} (run {r.run}, PID {r.pid}): "
                   f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished")
+        a = waits.get(r.run)
+        if a is not None and a.alive:
+            out.print(f"  awaits confirmation until {a.deadline}: deployer confirm {r.run} --state-dir {state_dir}",
+                      soft_wrap=True)
+        elif a is not None:
+            out.print(f"  awaited confirmation (until {a.deadline}) when its process died: its devices hold values "
+                      "that were never committed (a power cycle also reverts them on devices whose commit stores "
+                      "to non-volatile memory)")
+            out.print(f"    restore them with: deployer rollback --report {a.report} --state-dir {state_dir} --yes",
+                      soft_wrap=True)
+        if r.run in soaks and not r.running:
+            out.print("  died while its change soaked: its devices hold values whose health was not proven and "
+                      "that were never committed (a power cycle also reverts them on devices whose commit stores "
+                      "to non-volatile memory)")
+            if soaks[r.run]:
+                out.print(f"    restore them with: deployer rollback --report {soaks[r.run]} --state-dir {state_dir} "
+                          "--yes", soft_wrap=True)
         for d in r.interrupted:
             out.print(f"  interrupted while writing: {d.get('name')} {d.get('url')} unit {d.get('unit')}; "
                       f"snapshot {d.get('snapshot')}")
@@ -360,4 +465,20 @@ def status(state_dir: str, as_json: bool) -> int:
                       f"{', '.join(str(d.get('name')) for d in never)}")
     if torn:
         out.print(f"({_n(torn, 'line')} of the log could not be read: cut off by the crash)")
+    return EXIT_OK
+
+
+@click.command()
+@click.argument("run", required=False)
+@click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
+              help="the state directory of the run that waits (apply --confirm-within)")
+def confirm(run: str | None, state_dir: str) -> int:
+    """Confirm a run that waits (apply --confirm-within): its held-back commit is sent.
+
+    RUN is needed only when several runs wait (deployer status lists them).
+    """
+    from ..execute.soak import confirm_run
+
+    target = confirm_run(state_dir, run)
+    click.echo(f"confirmed run {target.run}: it sends the commit now (deployer status shows the outcome)")
     return EXIT_OK

@@ -50,6 +50,7 @@ class LazyGroup(click.Group):
 
 _COMMANDS = {
     "apply": "deployer.cli.apply:apply",
+    "confirm": "deployer.cli.apply:confirm",
     "demo": "deployer.cli.simulate:demo",
     "diff": "deployer.cli.read:diff",
     "docs": "deployer.cli.files:docs_command",
@@ -113,6 +114,25 @@ _device_options = [
     click.option("--timeout", type=click.FloatRange(min=0, min_open=True), help="seconds per attempt"),
     click.option("--retries", type=click.IntRange(0, 20), help="retries after a timeout or busy answer"),
 ]
+
+
+class Duration(click.ParamType[float]):
+    """A duration option: ``250ms``, ``30s``, ``5m``, ``1h``; a bare number is seconds. The value is in seconds."""
+
+    name = "duration"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> float:
+        if isinstance(value, float):
+            return value
+        from ..load.durations import parse_duration
+
+        try:
+            return parse_duration(value)
+        except ValueError as e:
+            self.fail(str(e), param, ctx)
+
+
+DURATION = Duration()
 
 
 def device_options(f: Callable[..., Any]) -> Callable[..., Any]:

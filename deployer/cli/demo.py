@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import click
 
 from ..profile import builtin_profile
-from ..testing.simulator import Faults, SimulatorThread
+from ..testing.simulator import Faults, SimulatorThread, parse_fault_rule
 
 BASE = """\
 # Settings shared by every conveyor inverter; line recipes extend this file.
@@ -56,6 +56,15 @@ parameters:
 """
 
 
+FAST_RAMP = """\
+# A faster ramp that the drive cannot run with: it trips (fault code 7) once F07 is below 2 s.
+recipe: line3-fast-ramp
+extends: conveyor-line3.yaml
+parameters:
+  F07: 1.5 s
+"""
+
+
 def run_demo(*, fast: bool = False) -> int:
     from ..cli import cli
 
@@ -67,12 +76,13 @@ def run_demo(*, fast: bool = False) -> int:
     with SimulatorThread(profile, listen="tcp://127.0.0.1:0", faults=faults) as sim:
         url = sim.url
         files = {"conveyor-base.yaml": BASE, "conveyor-line3.yaml": LINE3.format(url=url),
-                 "line3-retune.yaml": RETUNE}
+                 "line3-retune.yaml": RETUNE, "line3-fast-ramp.yaml": FAST_RAMP}
         for name, text in files.items():
             with open(os.path.join(work, name), "w", encoding="utf-8") as f:
                 f.write(text)
         line3 = os.path.join(work, "conveyor-line3.yaml")
         retune = os.path.join(work, "line3-retune.yaml")
+        fast_ramp = os.path.join(work, "line3-fast-ramp.yaml")
 
         def step(title: str, explain: str) -> None:
             click.echo()
@@ -120,9 +130,17 @@ def run_demo(*, fast: bool = False) -> int:
             codes.append(run(["rollback", first_snapshot, "--yes", "--state-dir", state]))
             step("9. Verify", "Diff against the snapshot: no drift left.")
             codes.append(run(["diff", first_snapshot, "--device", url]))
+        faults.rules = (parse_fault_rule("F07 < 2 s: 0x2000=7", profile),)
+        step("10. A change the drive does not survive", "The write reads back right, but the drive trips on the "
+                                                        "new ramp. --soak watches the profile's health checks "
+                                                        "(fault code zero) after the write; the first failed check "
+                                                        "rolls the device back from its snapshot, and the commit "
+                                                        "(store to EEPROM) is never sent.")
+        codes.append(run(["apply", fast_ramp, "--yes", "--state-dir", state, "--device", url,
+                          "--soak", "1s" if fast else "3s", "--health-interval", "250ms"]))
         click.echo()
         click.echo(f"Audit log: {os.path.join(state, 'audit.jsonl')}")
-    expected = [0, 0, 0, 0, 0, 2, 4, 0, 0]
+    expected = [0, 0, 0, 0, 0, 2, 4, 0, 0, 4]
     if codes != expected:
         click.secho(f"demo: unexpected exit codes {codes} (expected {expected})", fg="red", err=True)
         return 1

@@ -144,6 +144,26 @@ def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str
         return _write_imported(draft, out, file, warnings)
 
 
+@profiles_import.command("wb-template")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--id", "profile_id", help="Profile id to write (default: the template's device_type).")
+@click.option("-o", "--out", help="Profile file to write (default: stdout).")
+@click.option("--no-channels", is_flag=True, help="Leave out the polled channels (read-only values); keep the "
+              "parameters (settings) only.")
+def profiles_import_wb_template(file: str, profile_id: str | None, out: str | None, no_channels: bool) -> int:
+    """A profile from a wb-mqtt-serial device template (JSON with // comments): parameters become settings,
+    channels read-only values."""
+    from ..profile.importers.wbtemplate import read_wb_template
+
+    imported = read_wb_template(file, profile_id=profile_id, channels=not no_channels)
+    warnings = imported.warnings
+    if imported.left_out:
+        n = imported.left_out
+        warnings = [*warnings, f"{file}: {n} {'entry' if n == 1 else 'entries'} of the template left out "
+                               "(see the warnings above)"]
+    return _write_imported(imported.draft, out, file, warnings)
+
+
 @profiles.group("export")
 def profiles_export() -> None:
     """Write a profile in another format."""

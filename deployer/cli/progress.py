@@ -20,7 +20,8 @@ if TYPE_CHECKING:
     from ..report import DeviceResult, Report
     from .tables import Cell
 
-STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red", "unverified": "yellow",
+STYLE = {"rolled-back": "bold yellow",
+         "ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red", "unverified": "yellow",
          "skipped": "yellow", "partial": "yellow", "unreachable": "bold red", "drift": "yellow", "sent": "cyan"}
 
 
@@ -117,6 +118,7 @@ def fleet_summary(report: Report, out: Console) -> None:
     show(out, ["device", *(["batch"] if staged else []), "status", "changed", "failed", "requests", "seconds", ""],
          rows)
     s = report.summary()
-    parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "skipped") if s[k] or k == "ok"]
+    parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "rolled-back", "skipped")
+             if s[k] or k == "ok"]
     out.print(f"{_n(s['devices'], 'device')}: {', '.join(parts)}; {_n(s['write_requests'], 'write request')} and "
               f"{_n(s['read_requests'], 'read request')} in {s['seconds']:.2f} s")

@@ -33,6 +33,9 @@ def _register(text: str) -> int:
 @click.option("--busy-first", type=click.IntRange(min=0), default=0, help="answer the first N writes with 06 (busy)")
 @click.option("--fail-register", "fail_registers", multiple=True, metavar="ADDR",
               help="writes reaching this wire address answer 04 (repeatable; 4354, 0x1102 or 1102h)")
+@click.option("--fault", "fault_rules", multiple=True, metavar="RULE",
+              help="after a write, set a register when a condition on a parameter holds, e.g. "
+                   "'F07 < 2 s: 48=7' (the drive trips on a short acceleration time; wire address=raw). Repeatable.")
 @click.option("--disconnect-after", type=click.IntRange(min=0), default=0, help="drop the connection every N requests")
 @click.option("--state", "state_path", type=click.Path(dir_okay=False), help="dump registers as JSON on exit/SIGUSR1")
 @click.option("--log", "log_path", type=click.Path(dir_okay=False), help="one JSON line per request")
@@ -42,11 +45,11 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
              set_registers: tuple[str, ...], latency_ms: float,
              baud: int | None, drop_every: int, busy_first: int, fail_registers: tuple[str, ...],
              disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool,
-             gap_reads: bool) -> int:
+             gap_reads: bool, fault_rules: tuple[str, ...] = ()) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
     from ..profile import resolve_profile
     from ..recipe.loader import load_recipe
-    from ..testing.simulator import Faults, Simulator, init_from_recipe, parse_listen, serve
+    from ..testing.simulator import Faults, Simulator, init_from_recipe, parse_fault_rule, parse_listen, serve
 
     prof = resolve_profile(profile)
     try:
@@ -65,9 +68,13 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
         if value > 0xFFFF:
             raise UsageError(f"--set {item}: a register holds 0..65535")
         init[address] = value
+    try:
+        rules = tuple(parse_fault_rule(r, prof) for r in fault_rules)
+    except ValueError as e:
+        raise UsageError(f"--fault {e}") from None
     faults = Faults(latency_ms=latency_ms, baud=baud, drop_every=drop_every, busy_first=busy_first,
                     fail_registers=frozenset(_register(r) for r in fail_registers),
-                    disconnect_after=disconnect_after)
+                    disconnect_after=disconnect_after, rules=rules)
     try:
         sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
                         state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads)

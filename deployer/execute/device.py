@@ -92,8 +92,8 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
     results = _results(recipe)
     res.parameters = list(results.values())
     if unit == 0 and not opts.allow_broadcast:
-        raise UsageError("unit 0 is broadcast (no device answers, nothing can be verified); "
-                         "pass --allow-broadcast to send it anyway")
+        raise UsageError("unit 0 is broadcast (no device answers, nothing can be verified); to send it anyway, "
+                         "allow broadcast (--allow-broadcast; ApplyOptions(allow_broadcast=True) in Python)")
     if unit == 0 and (prof.preconditions or any(d.parameter.mask for d in recipe.desired)):
         raise UsageError("a broadcast cannot read: bit fields (which keep the register's other bits) and "
                          f"preconditions of profile {prof.id} need a device that answers")
@@ -260,14 +260,23 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
     if unanswered is not None:
         return
 
-    # commit (e.g. store to EEPROM) only when everything is verified
-    if prof.commit and all(r.status in ("ok", "unchanged") for r in results.values()):
-        for action in prof.commit:
-            try:
-                await _send_actions(session, prof, [action])
-            except (DeviceGone, tp.ExceptionResponse) as e:
-                res.status, res.error = "partial", f"commit '{action.description or hex(action.address)}' failed: {e}"
-                return
+    # commit (e.g. store to EEPROM) only when everything is verified; a soak or a confirmation holds it back
+    if not prof.commit:
+        return
+    if not all(r.status in ("ok", "unchanged") for r in results.values()):
+        res.commit = "not sent"
+        return
+    if opts.holds_commit:
+        res.commit = "held"
+        return
+    for action in prof.commit:
+        try:
+            await _send_actions(session, prof, [action])
+        except (DeviceGone, tp.ExceptionResponse) as e:
+            res.status, res.error = "partial", f"commit '{action.description or hex(action.address)}' failed: {e}"
+            res.commit = "failed"
+            return
+    res.commit = "sent"
 
 
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,

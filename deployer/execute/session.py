@@ -33,6 +33,16 @@ class ApplyOptions:
     applied: str | None = None  # what is being applied (recipe or plan file), recorded in the snapshot
     lock_timeout: float = 0.0  # seconds to wait for a device another run holds (0: fail at once)
     lock_dir: str | None = None  # None: $DEPLOYER_LOCK_DIR or <tmp>/deployer-locks
+    # a safe change (execute.soak): watch the health checks this long after the write, every health_interval
+    soak: float | None = None  # seconds
+    health_interval: float = 1.0
+    confirm_within: float | None = None  # seconds to wait for `deployer confirm` before rolling back
+    hold_commit: bool = False  # do not send the profile's commit after the read-back (a rollback never commits)
+
+    @property
+    def holds_commit(self) -> bool:
+        """The commit waits: for the soak, the confirmation, or for ever (a rollback)."""
+        return self.hold_commit or self.soak is not None or self.confirm_within is not None
 
 
 class Session:

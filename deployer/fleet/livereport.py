@@ -77,6 +77,14 @@ class LiveReport:
             self._dirty = True
             self._cond.notify()
 
+    def update(self, result: DeviceResult) -> None:
+        """A finished device changed since (a soak rolled it back, its held commit was sent): write it anew."""
+        part = device_json(result)
+        with self._cond:
+            self._parts[result.name] = part
+            self._dirty = True
+            self._cond.notify()
+
     def stop(self) -> None:
         """Stop the writer thread (what is on disk stays: at worst one write behind)."""
         with self._cond:

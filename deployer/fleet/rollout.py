@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
+import os
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -12,6 +14,7 @@ from typing import TYPE_CHECKING, Protocol, TypeVar
 from ..execute.device import _apply_device, _results
 from ..execute.read import read_current
 from ..execute.session import ApplyOptions, Declined, StalePlan
+from ..execute.soak import Written, await_confirmation, needs_soak, pending_path, roll_back, send_commit, soak
 from ..load.diagnostics import UsageError
 from ..profile import Profile, profile_ref
 from ..recipe.loader import Recipe
@@ -106,7 +109,7 @@ class Budget:
         if self.limit is None or n < self.limit:
             return None
         return (f"not started: {n} device{'s' if n != 1 else ''} did not end ok (--max-failures {self.limit}: "
-                "failed, partial and unreachable devices count)")
+                "failed, partial, unreachable and rolled-back devices count)")
 
 
 def batch_numbers(jobs: Sequence[Job], batches: Sequence[int] | None) -> dict[str, int]:
@@ -126,14 +129,27 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                      recipe_name: str | None = None,
                      on_done: Callable[[DeviceResult], None] | None = None,
                      on_start: Callable[[Job], None] | None = None,
-                     batches: Sequence[int] | None = None, max_failures: int | None = None) -> Report:
+                     batches: Sequence[int] | None = None, max_failures: int | None = None,
+                     rollback_on_failure: bool = False,
+                     between_batches: Callable[[int, Report], Awaitable[str | None]] | None = None,
+                     on_confirm_wait: Callable[[str, float], None] | None = None,
+                     on_changed: Callable[[DeviceResult], None] | None = None) -> Report:
     """Apply to many devices: in parallel, except that devices on one bus go one at a time.
 
     ``batches`` (sizes, in job order) stage the rollout: each batch finishes before the next
     starts, and a batch in which no device ended ok ends the rollout (Ansible's ``serial``).
-    ``max_failures``: once that many devices did not end ok (failed, partial, unreachable; never
-    skipped), no new device starts. Devices never started are in the report as ``skipped`` with
+    ``max_failures``: once that many devices did not end ok (failed, partial, unreachable, rolled back;
+    never skipped), no new device starts. Devices never started are in the report as ``skipped`` with
     the reason. With ``batches``, every device's result carries its batch number.
+
+    A safe change (``options.soak``, ``options.confirm_within``; see ``execute.soak``): each batch is
+    written, then soaked together; a device failing its health checks is rolled back and counts against
+    ``max_failures``, and any such failure in the first (canary) batch ends the rollout. The profile's
+    commit is sent after the soak passed, or once the run is confirmed; not confirmed in time, every
+    written device is rolled back. ``rollback_on_failure``: when the rollout stops, every device written
+    is rolled back. ``between_batches(number, report so far)`` runs before batches 2, 3 ... (a pause, a
+    question) and may end the rollout by returning the reason. ``on_changed`` is told of a device whose
+    result changed after ``on_done`` (rolled back, committed).
     """
     started = time.monotonic()
     done: dict[str, DeviceResult] = {}
@@ -176,15 +192,100 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         if on_done:  # the device is done (report file, progress) once its journal line is on disk
             on_done(r)
 
+    opts = options or ApplyOptions()
+
+    def written(batch: Sequence[Job]) -> list[Written]:
+        return [Written(j.name, j.recipe, j.url, j.unit, done[j.name]) for j in batch if j.name in done]
+
+    def changed(devices: Sequence[Written]) -> None:
+        if on_changed is not None:
+            for w in devices:
+                if w.result.snapshot is not None:
+                    on_changed(w.result)
+
+    def so_far() -> Report:
+        return Report(recipe_name, [done[j.name] for j in jobs if j.name in done], time.monotonic() - started)
+
     sizes = list(batches) if batches else [len(jobs)]
     pos = 0
     for number, size in enumerate(sizes, 1):
         batch = jobs[pos:pos + size]
+        if number > 1 and stop is None and between_batches is not None:
+            stop = await between_batches(number, so_far())
         pos += size
         await on_buses(batch, parallel, one)
+        if opts.soak is not None:
+            unhealthy: list[str] = []
+            pending = _write_pending(opts, so_far())
+            passed = await soak(written(batch), opts, on_failed=unhealthy_into(unhealthy), report=pending)
+            budget.failures += len(unhealthy)
+            if opts.confirm_within is None:  # the soak passed: the change is kept
+                await asyncio.gather(*(send_commit(w, opts) for w in passed))
+            changed(written(batch))
+            if number == 1 and unhealthy and stop is None and pos < len(jobs):
+                stop = (f"not started: the canary batch 1 failed its health checks "
+                        f"({', '.join(unhealthy)} rolled back)")
         if stop is None and pos < len(jobs):
             stop = batch_failed(number, batch, done)
+        if stop is None and pos < len(jobs):
+            stop = budget.spent()
+    if stop is not None and rollback_on_failure:
+        reason = f"rolled back: the rollout stopped ({stop.removeprefix('not started: ')})"
+        await asyncio.gather(*(roll_back(w, reason, opts) for w in written(jobs)
+                               if w.result.snapshot is not None
+                               and w.result.status not in ("rolled-back", "skipped", "unreachable")))
+    if opts.confirm_within is not None:
+        await _confirm_or_roll_back(written(jobs), opts, recipe_name, on_confirm_wait)
+    for w in written(jobs):  # a commit never sent to a device that ended other than ok
+        if w.result.commit == "held" and w.result.status != "ok":
+            w.result.commit = "not sent"
+    if rollback_on_failure or opts.confirm_within is not None:
+        changed(written(jobs))
+    if opts.run_id is not None and (opts.soak is not None or opts.confirm_within is not None):
+        with contextlib.suppress(FileNotFoundError):  # the run ended: its report says the rest
+            os.remove(pending_path(opts.state_dir, opts.run_id))
     return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
+
+
+def unhealthy_into(names: list[str]) -> Callable[[Written], None]:
+    def note(w: Written) -> None:
+        names.append(w.name)
+    return note
+
+
+async def _confirm_or_roll_back(devices: Sequence[Written], opts: ApplyOptions, recipe_name: str | None,
+                                on_wait: Callable[[str, float], None] | None) -> None:
+    """``confirm_within``: wait for ``deployer confirm``; then send the held commits, else roll every device back.
+
+    While it waits, a report of the run lies in STATE/pending/ (``deployer status`` points a rollback at it
+    should this process die)."""
+    assert opts.confirm_within is not None and opts.run_id is not None
+    waiting = [w for w in devices if needs_soak(w.result)]
+    if not waiting:
+        return
+    _write_pending(opts, Report(recipe_name, [w.result for w in devices]))
+    run = opts.run_id
+    confirmed = await await_confirmation(run, opts.confirm_within, opts,
+                                         on_wait=None if on_wait is None else lambda t: on_wait(run, t))
+    if confirmed:
+        await asyncio.gather(*(send_commit(w, opts) for w in waiting))
+    else:
+        from ..load.durations import format_duration
+
+        why = f"not confirmed within {format_duration(opts.confirm_within)}"
+        await asyncio.gather(*(roll_back(w, why, opts) for w in waiting))
+
+
+def _write_pending(opts: ApplyOptions, report: Report) -> str | None:
+    """While devices hold uncommitted values (a soak, a confirmation wait), the run's report so far lies in
+    STATE/pending/RUN.json: ``deployer status`` points a rollback at it should this process die."""
+    from ..report import write_json
+
+    if opts.run_id is None:
+        return None
+    path = pending_path(opts.state_dir, opts.run_id)
+    write_json(report.to_json(), path)
+    return path
 
 
 def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:

@@ -18,9 +18,9 @@ if TYPE_CHECKING:
 
 
 def plan_to_json(plan: Plan) -> dict[str, Any]:
-    """The plan as DESIGN.md's "Plan JSON".
+    """The plan as saved-plan JSON (docs/reference/plan.md).
 
-    Extra keys beyond DESIGN.md (readers ignore them; plan_from_json does not need them):
+    Extra keys beyond the base format (readers ignore them; plan_from_json does not need them):
     ``parameters[].stage`` and ``writes[].stage`` (write order), and ``summary`` = wire_stats()
     plus the number of parameters per action.
     """

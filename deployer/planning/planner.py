@@ -189,13 +189,13 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
             j += 1
         stage = stages[bounds[i]]
         if coils and addrs[bounds[i]] >> 16:  # coils (FC15, FC05 for a single coil): no fields, one bit each
-            for a, b in _plan_run(sizes[i:j], must[i:j], limits.write_coils):
-                for k in range(i + a, i + b):
+            for a, b in _plan_run([1] * (j - i), must[i:j], limits.write_coils):
+                ks = [bounds[u] for u in range(i + a, i + b)]  # a coil is a unit of its own
+                for k in ks:
                     if not must_p[k]:
                         actions[k] = "bridge"
-                bits = tuple(regs[k][0] for k in range(i + a, i + b))
-                writes.append(WriteRequest(5 if b - a == 1 else 15, addrs[i + a] & 0xFFFF, bits,
-                                           tuple(names[i + a:i + b]), stage))
+                writes.append(WriteRequest(5 if len(ks) == 1 else 15, addrs[ks[0]] & 0xFFFF,
+                                           tuple(regs[k][0] for k in ks), tuple(names[k] for k in ks), stage))
         elif fc6:
             # FC06 carries one register, so the "never split" rule cannot hold on such devices: a
             # 2/4-register value goes as one FC06 per word, in ascending address order (the word at

@@ -11,7 +11,7 @@ from typing import Any
 from ..load import schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
 from . import codec, model, units
-from .model import CommitAction, IdentityCheck, Limits, Parameter, Precondition, Profile
+from .model import CommitAction, HealthCheck, IdentityCheck, Limits, Parameter, Precondition, Profile
 
 # ---- loading ------------------------------------------------------------------------------
 
@@ -445,6 +445,35 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
                                     f"{item['equals']} does not fit in the selected bits ({lo}..{hi})"))
         elif a is not None:
             preconditions.append(Precondition(a, mask, int(item["equals"]), item.get("description", "")))
+    health = []
+    for i, item in enumerate(data.get("health") or []):
+        at4: yamlsrc.Path_ = ("health", i)
+        a = address_of(item["register"], (*at4, "register"), register_type=item.get("register_type", "holding"))
+        try:
+            mask = codec.parse_bits(item["bits"]) if "bits" in item else int(item.get("mask", 0xFFFF))
+            lo, hi = codec.field_range(mask)
+        except ValueError as e:
+            errors.append(src.error((*at4, "bits" if "bits" in item else "mask"), str(e)))
+            continue
+        bad = not any(k in item for k in ("equals", "min", "max"))
+        if bad:
+            errors.append(src.error(at4, "a health check needs 'equals' (a value) or 'min'/'max' (a raw range)"))
+        for key in ("equals", "min", "max"):
+            if key in item and not lo <= int(item[key]) <= hi:
+                errors.append(src.error((*at4, key), f"{item[key]} does not fit in the selected bits ({lo}..{hi})"))
+                bad = True
+        if "equals" in item and ("min" in item or "max" in item):
+            bound = "min" if "min" in item else "max"
+            errors.append(src.error((*at4, bound), f"'equals' and '{bound}' exclude each other: a check is one "
+                                                   "value or a range"))
+            bad = True
+        elif "min" in item and "max" in item and int(item["min"]) > int(item["max"]):
+            errors.append(src.error((*at4, "min"), f"min {item['min']} is greater than max {item['max']}"))
+            bad = True
+        if a is not None and not bad:
+            health.append(HealthCheck(a, mask, _int_or_none(item.get("equals")), _int_or_none(item.get("min")),
+                                      _int_or_none(item.get("max")), item.get("register_type", "holding"),
+                                      item.get("description", "")))
     stage_waits = tuple((int(w["stage"]), int(w["wait"])) for w in data.get("stages") or [])
     seen_stages: dict[int, int] = {}
     for i, (stage, _) in enumerate(stage_waits):
@@ -470,7 +499,12 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         unlock=unlock,
         lock=lock,
         stage_waits=stage_waits,
+        health=tuple(health),
     )
+
+
+def _int_or_none(v: object) -> int | None:
+    return None if v is None else int(v)  # type: ignore[call-overload]
 
 
 def _dec(v: object) -> Decimal | None:

@@ -45,7 +45,7 @@ class Limits:
 
     @property
     def write_registers(self) -> int:
-        """Registers one write request may carry (DESIGN.md, planning rule 2)."""
+        """Registers one write request may carry (docs/design.md, planning rule 2)."""
         if self.write_function == 6:
             return 1
         # FC16 RTU frame: unit(1) fc(1) addr(2) qty(2) bytecount(1) data(2n) crc(2) = 9 + 2n;
@@ -319,6 +319,55 @@ class Precondition:
 
 
 @dataclass(frozen=True)
+class HealthCheck:
+    """A register (or some of its bits) watched after a verified write (``apply --soak``): another
+    value means the change hurt the device ("drive fault code is zero"), and it is rolled back."""
+
+    address: int
+    mask: int = 0xFFFF  # 0xFFFF for the whole register
+    equals: int | None = None  # the healthy value of the masked bits, shifted down ...
+    min: int | None = None  # ... or a healthy raw range
+    max: int | None = None
+    register_type: Literal["holding", "input"] = "holding"  # read with Function 03 or 04
+    description: str = ""
+
+    @property
+    def function(self) -> int:
+        return READ_FUNCTION[self.register_type]
+
+    @property
+    def key(self) -> int:
+        """Where the register is in a register map of all four tables (see SPACE)."""
+        return SPACE[self.register_type] << 16 | self.address
+
+    def value(self, word: int) -> int:
+        return codec.extract_field(word, self.mask)
+
+    def holds(self, word: int) -> bool:
+        v = self.value(word)
+        if self.equals is not None and v != self.equals:
+            return False
+        return (self.min is None or v >= self.min) and (self.max is None or v <= self.max)
+
+    def expected(self) -> str:
+        if self.equals is not None:
+            return f"expected {self.equals}"
+        if self.min is not None and self.max is not None:
+            return f"expected {self.min}..{self.max}"
+        return f"expected at least {self.min}" if self.min is not None else f"expected at most {self.max}"
+
+    def what(self) -> str:
+        shift, width = codec.mask_shift(self.mask)
+        bits = "" if self.mask == 0xFFFF else (f" bit {shift}" if width == 1 else f" bits {shift}..{shift + width - 1}")
+        kind = "input register" if self.register_type == "input" else "register"
+        return f"{kind} 0x{self.address:04X}{bits}" + (f" ({self.description})" if self.description else "")
+
+    def failure(self, word: int) -> str:
+        """'register 0x0030 (drive fault code is zero) is 7, expected 0'."""
+        return f"{self.what()} is {self.value(word)}, {self.expected()}"
+
+
+@dataclass(frozen=True)
 class CommitAction:
     """A write the profile declares: commit (after a verified apply), unlock (before), lock (after)."""
 
@@ -349,6 +398,7 @@ class Profile:
     unlock: tuple[WriteAction, ...] = ()
     lock: tuple[WriteAction, ...] = ()
     stage_waits: tuple[tuple[int, int], ...] = ()  # (stage, ms to wait after it)
+    health: tuple[HealthCheck, ...] = ()  # read while a written change soaks (apply --soak)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "_by_name", {p.name: p for p in self.parameters})

@@ -77,8 +77,11 @@ class ReportedSnapshot:
     snapshot: str  # absolute path
 
 
-def snapshots_of_report(path: str) -> tuple[list[ReportedSnapshot], list[str]]:
+def snapshots_of_report(path: str, restored: list[str] | None = None) -> tuple[list[ReportedSnapshot], list[str]]:
     """The devices of a report with a snapshot, and the names of those without one (nothing was written).
+
+    Devices the run already rolled back (``rolled-back``: restored from that snapshot and verified) are
+    neither: their names go into ``restored``.
 
     Relative snapshot paths (reports before snapshots were absolute) resolve against the report's folder
     first, then the working directory. Raises InputError for a file that is not a deployer report.
@@ -96,6 +99,10 @@ def snapshots_of_report(path: str) -> tuple[list[ReportedSnapshot], list[str]]:
         if not isinstance(dev, dict) or "name" not in dev:
             continue
         snap = dev.get("snapshot")
+        if dev.get("status") == "rolled-back":
+            if restored is not None:
+                restored.append(str(dev["name"]))
+            continue
         if not snap:
             without.append(str(dev["name"]))
             continue

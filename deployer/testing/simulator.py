@@ -16,22 +16,26 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
+import operator
 import os
+import re
 import signal
 import ssl
 import threading
 import time
 import urllib.parse
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from decimal import Decimal
 from typing import Any
 
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import NoSuchIdException
+from pymodbus.exceptions import ModbusIOException, NoSuchIdException
+from pymodbus.pdu import ExceptionResponse
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
+from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from ..profile import Parameter, Profile
@@ -49,6 +53,64 @@ class Faults:
     busy_first: int = 0  # answer the first N write requests with exception 06, writing nothing
     fail_registers: frozenset[int] = frozenset()  # a write reaching one of these answers exception 04
     disconnect_after: int = 0  # close the connection(s) after every N requests (TCP)
+    # after a write: when a rule's condition on parameter values holds, its register is set (a drive tripping)
+    rules: tuple[FaultRule, ...] = ()
+
+
+_OPS: dict[str, Callable[[Decimal, Decimal], bool]] = {
+    "<=": operator.le, ">=": operator.ge, "==": operator.eq, "!=": operator.ne, "<": operator.lt, ">": operator.gt}
+_RULE = re.compile(r"\s*([A-Za-z_][\w.\[\]]*)\s*(<=|>=|==|!=|<|>)\s*(.+?)\s*:\s*(\S+?)\s*=\s*(\S+)\s*")
+
+
+@dataclass(frozen=True)
+class FaultRule:
+    """``F07 < 2 s: 0x30=7``: after a write, when F07 holds less than 2 s, register 0x30 (a wire address) is
+    set to 7, as a drive trips on a setting it cannot run with. The value is in any unit convertible to the
+    parameter's, or one of its labels (``stop_mode == coast``)."""
+
+    text: str
+    parameter: str
+    op: str
+    value: Decimal  # engineering, in the parameter's unit (a label: its raw value)
+    register: int
+    raw: int
+    by_label: bool = False
+
+    def holds(self, p: Parameter, words: Sequence[int]) -> bool:
+        got = Decimal(int(p.decode(list(words)))) if self.by_label else p.to_engineering(list(words))
+        return _OPS[self.op](got, self.value)
+
+
+def parse_fault_rule(text: str, profile: Profile) -> FaultRule:
+    """A rule from its text; ValueError with the accepted form."""
+    from ..profile import parse_register
+    from ..profile import units as units_
+
+    m = _RULE.fullmatch(text)
+    if m is None:
+        raise ValueError(f"'{text}' is not a fault rule: PARAMETER OP VALUE: REGISTER=RAW, e.g. 'F07 < 2 s: 0x30=7' "
+                         "(OP one of < <= > >= == !=)")
+    name, op, value, reg, raw = m.groups()
+    p = profile.get(name)
+    if p is None or p.is_string or p.register_type != "holding":
+        raise ValueError(f"'{text}': {name} is not a numeric holding-register parameter of profile {profile.id}")
+    labels = dict(p.values)
+    try:
+        register, word = parse_register(reg), parse_register(raw)
+    except ValueError:
+        raise ValueError(f"'{text}': expected REGISTER=RAW with numbers, e.g. 0x30=7") from None
+    if value in labels:
+        return FaultRule(text, name, op, Decimal(labels[value]), register, word, by_label=True)
+    num, _, unit = value.partition(" ")
+    try:
+        amount = Decimal(num)
+    except ArithmeticError:
+        raise ValueError(f"'{text}': '{value}' is not a number with an optional unit, nor a label of {name}") from None
+    if unit.strip():
+        if p.unit is None:
+            raise ValueError(f"'{text}': {name} has no unit")
+        amount = units_.convert(amount, units_.normalize(unit.strip()), p.unit)
+    return FaultRule(text, name, op, amount, register, word)
 
 
 @dataclass
@@ -126,8 +188,10 @@ def initial_registers(profile: Profile) -> dict[int, int]:
 
 
 def _action_registers(profile: Profile) -> set[int]:
-    """Registers the profile's unlock/lock/commit writes and preconditions use (they exist on the device)."""
-    regs = {c.address for c in profile.preconditions}
+    """Registers the profile's unlock/lock/commit writes, preconditions and health checks use (they exist on
+    the device; a health register the profile does not declare as a parameter is writable from outside, so a
+    test or `mbpoll` can make the device fault)."""
+    regs = {c.address for c in profile.preconditions} | {c.key for c in profile.health}
     for act in (*profile.unlock, *profile.lock, *profile.commit):
         regs.update(range(act.address, act.address + len(act.registers)))
     return regs
@@ -177,6 +241,68 @@ class _Units:
         return await self.core.async_setValues(device_id, func_code, address, values)
 
 
+# What the simulated device answers (the tables its profile does not use answer 01 as well); every
+# other function code gets exception 01, as a drive's does (pymodbus's server would also answer
+# diagnostics, event counters, report server id, file records, FIFO queues, device identification).
+FUNCTIONS = frozenset({1, 2, 3, 4, 5, 6, 15, 16})
+
+
+class _InOrderHandler(ServerRequestHandler):
+    """One connection: every request of a segment answered, in order, one at a time.
+
+    pymodbus's handler decodes one frame per segment and keeps the rest until more bytes arrive,
+    so requests a client pipelines (as gateways and real clients do) went unanswered.
+    """
+
+    def __init__(self, owner: Any, functions: frozenset[int]) -> None:
+        super().__init__(owner, owner.trace_packet, owner.trace_pdu, owner.trace_connect)  # type: ignore[no-untyped-call]
+        self._functions = functions
+        # pymodbus drops a whole buffer longer than one frame; complete frames are taken out at once
+        # here, so only a partial frame stays, and a read of many pipelined requests is kept whole
+        self.max_buffer_size = 1 << 20
+        self._queue: asyncio.Queue[tuple[Any, Any]] = asyncio.Queue()
+        self._worker: asyncio.Task[None] | None = None
+
+    def callback_data(self, data: bytes, addr: tuple[Any, ...] | None = None) -> int:
+        used = 0
+        while used < len(data):
+            try:
+                n, pdu = self.framer.handleFrame(self.trace_packet(False, data[used:]), self.request_dev_id,
+                                                 self.request_transaction_id)
+            except ModbusIOException as exc:  # what pymodbus's handler answers to an undecodable frame
+                reply = ExceptionResponse(exc.fcode or 0, exception_code=ExcCodes.ILLEGAL_FUNCTION,
+                                          device_id=exc.dev_id, transaction=exc.transaction_id)
+                self.server_send(reply, addr)  # type: ignore[no-untyped-call]
+                return len(data)
+            if not n:
+                break
+            used += n
+            if pdu is not None:
+                pdu = self.trace_pdu(False, pdu)
+            if pdu is not None:
+                self._queue.put_nowait((pdu, addr))
+        if self._worker is None and not self._queue.empty():
+            self._worker = asyncio.get_running_loop().create_task(self._answer())
+        return used
+
+    async def _answer(self) -> None:
+        while True:
+            pdu, addr = await self._queue.get()
+            if pdu.function_code not in self._functions and pdu.dev_id in self.server.context.device_ids():
+                reply = ExceptionResponse(pdu.function_code, ExcCodes.ILLEGAL_FUNCTION)
+                reply.transaction_id, reply.dev_id = pdu.transaction_id, pdu.dev_id
+                if pdu.dev_id:
+                    self.server_send(reply, addr)  # type: ignore[no-untyped-call]
+                continue
+            self.last_pdu, self.last_addr = pdu, addr
+            await self.handle_request()  # type: ignore[no-untyped-call]
+
+    def callback_disconnected(self, exc: Exception | None) -> None:
+        if self._worker is not None:
+            self._worker.cancel()
+        super().callback_disconnected(exc)
+
+
 class Simulator:
     def __init__(self, profile: Profile, *, listen: str = "tcp://127.0.0.1:0", units: Sequence[int] = (1,),
                  init: Mapping[int, int] | None = None, faults: Faults | None = None,
@@ -211,8 +337,7 @@ class Simulator:
         self._bit_count = 0  # the coils of the request being served (pymodbus passes registers to the action)
         self._action_regs = _action_registers(profile)
         self._extra = sorted(self._action_regs - self._owner.keys())
-        if self._extra:
-            self._used.add("holding")
+        self._used.update(REGISTER_TYPES[a >> 16] for a in self._extra)
         self._unlock_regs = {a.address + i: w for a in profile.unlock for i, w in enumerate(a.registers)}
         # the writes after which the device is busy for a while: (address, the words written) -> ms
         self._waits = {(a.address, a.registers): a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit)
@@ -226,6 +351,11 @@ class Simulator:
                 raise ValueError(f"init: {what.strip()} {address} is not declared in profile {profile.id}")
             start[a] = v
         self._start_values = start
+        for rule in self.faults.rules:
+            if rule.register not in self._owner and rule.register not in self._extra:
+                raise ValueError(f"fault rule '{rule.text}': register {rule.register} is not declared in profile "
+                                 f"{profile.id} (a parameter, or a register of its health checks)")
+        self.functions = FUNCTIONS  # the function codes this device answers; others get exception 01
 
     # ---- lifecycle ---------------------------------------------------------------------------
 
@@ -252,6 +382,8 @@ class Simulator:
                                               **common)
         self._core = self._server.context
         self._server.context = _Units(self._core, self)
+        server = self._server
+        server.callback_new_connection = lambda: _InOrderHandler(server, self.functions)
         if self.log_path:
             self._log_file = open(self.log_path, "a", encoding="utf-8")  # noqa: SIM115 - open for the server's life
         await self._server.serve_forever(background=True)
@@ -324,6 +456,13 @@ class Simulator:
         for k, v in zip(range(p.key, p.key + p.count), registers, strict=True):
             self._set(unit, k, v)
 
+    def set_register(self, address: int, value: int, unit: int = 1, table: RegisterType = "holding") -> None:
+        """Set a declared register from outside (a fault code clears after a reset, a status word changes)."""
+        key = SPACE[table] << 16 | address
+        if key not in self._owner and key not in self._extra:
+            raise ValueError(f"{table} register {address} is not declared in profile {self.profile.id}")
+        self._set(unit, key, value)
+
     def dump_state(self, path: str) -> None:
         state = {str(u): {str(a): v for a, v in self.registers(u).items()} for u in self.units}
         data: dict[str, Any] = {"profile": self.profile.id, "units": state}
@@ -349,8 +488,9 @@ class Simulator:
             tables[p.register_type].append(SimData(
                 address=p.address, values=[self._start_values[a] for a in range(p.key, p.key + p.count)],
                 datatype=DataType.REGISTERS, readonly=not writable))
-        tables["holding"] += [SimData(address=a, values=[self._start_values.get(a, 0)], datatype=DataType.REGISTERS)
-                              for a in self._extra]
+        for a in self._extra:  # e.g. a health check's input register
+            tables[REGISTER_TYPES[a >> 16]].append(SimData(address=a & 0xFFFF, values=[self._start_values.get(a, 0)],
+                                                           datatype=DataType.REGISTERS))
         for t in ("holding", "input"):
             if self.gap_reads:  # read-only zeros in every gap between declared registers
                 declared = sorted({a & 0xFFFF for a in (*self._owner, *self._extra) if a >> 16 == SPACE[t]})
@@ -485,6 +625,11 @@ class Simulator:
         for a in range(address, address + count):  # registers of unlock/lock/commit writes only
             if not self._owner.get(a):
                 registers[a - start] = values[a - address]
+        for rule in f.rules:  # e.g. a drive that trips on a too-short acceleration time
+            p = self.profile.parameter(rule.parameter)
+            if rule.register - start in range(len(registers)) and rule.holds(p, registers[p.address - start:
+                                                                                           p.end - start]):
+                registers[rule.register - start] = rule.raw
         for (a, words), wait in self._waits.items():  # e.g. storing to EEPROM: busy for the declared time
             if address <= a and a + len(words) <= address + count and \
                     tuple(values[a - address:a - address + len(words)]) == words:

@@ -427,7 +427,7 @@ class PymodbusTransport(Transport):
         """A new, unconnected pymodbus async client."""
 
     def _common(self) -> dict[str, Any]:
-        # retries=0: a late answer to a first copy would hide a double write (PYMODBUS.md);
+        # retries=0: a late answer to a first copy would hide a double write (docs/design.md, transports)
         # reconnect_delay=0: pymodbus must not reconnect behind our back, the executor decides
         return {"timeout": self.url.timeout, "retries": 0, "trace_packet": self._trace,
                 "reconnect_delay": 0, "reconnect_delay_max": 0}

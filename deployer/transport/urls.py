@@ -157,7 +157,7 @@ def range_text(option: str) -> str:
 
 
 def parse_url(text: str, *, timeout: float | None = None, retries: int | None = None) -> DeviceURL:
-    """Parse a device URL (DESIGN.md, "Device URLs"). Raises BadURL with a precise message.
+    """Parse a device URL (docs/urls.md). Raises BadURL with a precise message.
 
     ``timeout`` / ``retries`` apply where the URL itself does not set them.
     """

@@ -29,16 +29,59 @@ DEVICE_SPEC = dict(
     parameters=dict(type="dict", default={}),
 )
 
+# The options of the deployer.modbus.target documentation fragment.
 TARGET_ARGS = dict(
     device=dict(type="str"),
     unit=dict(type="int"),
     devices=dict(type="list", elements="dict", options=DEVICE_SPEC),
     inventory=dict(type="path"),
     limit=dict(type="str"),
+    allow_broadcast=dict(type="bool", default=False),
     parallel=dict(type="int", default=8),
     timeout=dict(type="float"),
     retries=dict(type="int"),
 )
+
+TARGET_EXCLUSIVE = [("device", "devices", "inventory")]
+
+# The same bounds as the command line and device URLs: nothing out of range reaches a device.
+UNIT_RANGE = (0, 247)
+PARALLEL_RANGE = (1, 1024)
+TIMEOUT_RANGE = (0.0, 600.0)  # more than 0
+RETRIES_RANGE = (0, 20)
+
+
+def check_target_args(module):
+    """Refuse out-of-range and contradictory target options before anything is sent."""
+    p = module.params
+    problems = []
+    lo, hi = UNIT_RANGE
+    units = [("unit", p.get("unit"))] + [(f"devices[{i}].unit", d.get("unit"))
+                                          for i, d in enumerate(p.get("devices") or [])]
+    for what, unit in units:
+        if unit is None:
+            continue
+        if not lo <= unit <= hi:
+            problems.append(f"{what} must be from 1 to 247 (0 is broadcast), got {unit}")
+        elif unit == 0 and not p.get("allow_broadcast"):
+            problems.append(f"{what} is 0, which is broadcast: nobody answers it, so nothing can be verified; "
+                            "set allow_broadcast: true to send it anyway")
+    lo, hi = PARALLEL_RANGE
+    if not lo <= p["parallel"] <= hi:
+        problems.append(f"parallel must be from {lo} to {hi}, got {p['parallel']}")
+    if p.get("timeout") is not None and not TIMEOUT_RANGE[0] < p["timeout"] <= TIMEOUT_RANGE[1]:
+        problems.append(f"timeout must be more than 0 and at most {TIMEOUT_RANGE[1]:g} seconds, got {p['timeout']:g}")
+    lo, hi = RETRIES_RANGE
+    if p.get("retries") is not None and not lo <= p["retries"] <= hi:
+        problems.append(f"retries must be from {lo} to {hi}, got {p['retries']}")
+    if p.get("limit") and p.get("device"):
+        problems.append("limit selects from devices or an inventory; device names one device already")
+    names = [d["name"] for d in p.get("devices") or []]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        problems.append("devices lists " + ", ".join(repr(n) for n in twice) + " more than once")
+    if problems:
+        module.fail_json(msg="; ".join(problems) + "; nothing was sent", errors=problems)
 
 
 def require_deployer(module):
@@ -75,9 +118,6 @@ def recipe_of(module):
 def jobs_of(module, rec):
     """One job per device the task names: device/unit, a devices list (host vars), or a deployer inventory."""
     p = module.params
-    given = [k for k in ("device", "devices", "inventory") if p.get(k)]
-    if len(given) > 1:
-        raise UsageError(f"pass only one of device, devices and inventory (got {', '.join(given)})")
     if p.get("inventory"):
         jobs = fleet_jobs(load_inventory(p["inventory"]), rec, p.get("limit"), timeout=p.get("timeout"),
                           retries=p.get("retries"), unit=p.get("unit"))
@@ -87,16 +127,75 @@ def jobs_of(module, rec):
     if p.get("devices"):  # host vars: the same rules as a deployer inventory (own profile, overrides)
         src = Source("<devices>")
         inv = Inventory("<devices>", tuple(
-            FleetDevice(d["name"], d["url"], d.get("unit") or 1, d.get("profile"),
+            FleetDevice(d["name"], d["url"], d["unit"], d.get("profile"),
                         overrides=tuple(Entry(k, v, src, ("devices", d["name"], "parameters", k))
                                         for k, v in (d.get("parameters") or {}).items()))
             for d in p["devices"]))
         if rec.path is None and any(d.profile for d in inv.devices):
             raise UsageError("a device with its own profile needs a recipe file (recipe:), not only parameters")
-        return fleet_jobs(inv, rec, None, timeout=p.get("timeout"), retries=p.get("retries"))
+        jobs = fleet_jobs(inv, rec, p.get("limit"), timeout=p.get("timeout"), retries=p.get("retries"))
+        if not jobs:
+            raise UsageError(f"limit {p['limit']!r} selects none of the devices")
+        return jobs
     url = p.get("device") or (rec.device.url if rec.device else None)
     if not url:
         raise UsageError("no device: pass device (a URL), devices, inventory, or set device.url in the recipe")
-    unit = p.get("unit") or (rec.device.unit if rec.device and rec.device.unit is not None else 1)
+    unit = p["unit"] if p.get("unit") is not None else (
+        rec.device.unit if rec.device and rec.device.unit is not None else 1)
     return [Job(p.get("name") or rec.name, rec, device_url(url, timeout=p.get("timeout"), retries=p.get("retries")),
                 unit)]
+
+
+def refuse_one_device_twice(jobs):
+    """Two names for one device (same address and unit, any spelling) would write it twice in one run."""
+    from deployer.transport.clients import describe
+
+    seen = {}
+    for j in jobs:
+        key = (describe(j.url), j.unit)
+        if key in seen:
+            raise UsageError(f"{seen[key]!r} and {j.name!r} are one device ({key[0]}, unit {key[1]}); "
+                             "list it once")
+        seen[key] = j.name
+    return jobs
+
+
+READ_ARGS = dict(profile=dict(type="str"), recipe=dict(type="path"), name=dict(type="str"),
+                 parameters=dict(type="list", elements="str"))
+
+
+def read_devices(module):
+    """Read the devices a read-only task names: (read jobs, {name: values or the exception}). Writes nothing."""
+    from deployer.api import pull_names, read_fleet
+    from deployer.fleet.rollout import ReadJob
+
+    p = module.params
+    if p.get("recipe"):
+        base = deployer.load_recipe(p["recipe"])
+    elif p.get("profile"):
+        base = deployer.recipe_from(p["profile"], {}, name=p.get("name") or "pulled")
+    else:
+        raise UsageError("pass profile (or recipe)")
+    jobs = refuse_one_device_twice(jobs_of(module, base))
+    read = []
+    for j in jobs:
+        prof = j.recipe.profile
+        names = p.get("parameters") or ([d.name for d in j.recipe.desired] if p.get("recipe") else pull_names(prof))
+        unknown = [n for n in names if prof.get(n) is None]
+        if unknown:
+            raise UsageError(f"unknown parameter {', '.join(unknown)} in profile {prof.id}")
+        read.append(ReadJob(j.name, prof, tuple(names), j.url, j.unit))
+    return read, read_fleet(read, parallel=p["parallel"])
+
+
+def values_text(read, values):
+    """(facts: name -> parameter -> engineering text, raw: name -> parameter -> words, unreachable lines)."""
+    facts, raw, down = {}, {}, []
+    for j in read:
+        cur = values[j.name]
+        if isinstance(cur, Exception):
+            down.append(f"{j.name}: {cur}")
+            continue
+        facts[j.name] = {n: j.profile.parameter(n).format_registers(v) for n, v in cur.items()}
+        raw[j.name] = {n: list(v) for n, v in cur.items()}
+    return facts, raw, down

@@ -1,5 +1,6 @@
 #!/usr/bin/python
 # A task that deploys a recipe to Modbus devices with deployer (run on the site gateway).
+# Copyright: deployer maintainers. MIT License (see the project's LICENSE).
 
 from __future__ import annotations
 
@@ -10,44 +11,87 @@ description:
   - Plans the fewest Modbus write requests from what each device holds now, writes only the
     parameters that differ, reads everything back and reports per parameter.
   - In check mode it reads the devices and plans, and writes nothing.
-  - With C(--diff) it shows each changed parameter's value before and after, per device.
-  - C(changed) is true only when something was written. The task fails when any device ends
-    C(partial), C(failed), C(unreachable) or C(skipped), naming the devices and parameters.
-  - Runs deployer's Python API; the target's Python (ansible_python_interpreter) needs deployer installed.
+  - In diff mode it shows each changed parameter's value before and after, per device.
+  - C(changed) is true only when something was written. The task fails when any device does not end
+    C(ok), naming the devices and parameters.
+  - Runs deployer's Python API on the target, whose Python (C(ansible_python_interpreter)) needs
+    deployer installed. The run is journaled in O(state_dir) like a command-line run, so
+    C(deployer status) sees it.
+version_added: 0.1.0
+author:
+  - deployer maintainers (@deployer)
+extends_documentation_fragment:
+  - ansible.builtin.action_common_attributes
+  - deployer.modbus.target
+attributes:
+  check_mode:
+    support: full
+    details: Reads every device and plans; sends no write request.
+  diff_mode:
+    support: full
+  platform:
+    platforms: posix
 options:
   recipe:
-    description: A recipe file on the target. With I(inventory) it may be left out (with I(profile) and
-      I(parameters)); then each device gets the recipe the inventory gives it.
+    description:
+      - A recipe file on the target.
+      - With O(inventory) it may be left out (and O(profile) with O(parameters) too); then each device
+        gets the recipe the inventory gives it.
     type: path
-  profile: {description: A built-in profile id or a profile file, when no recipe file is given., type: str}
-  parameters: {description: Parameter values (engineering units, e.g. "10 s"); over the recipe's., type: dict}
-  name: {description: The device's name in the report (one device)., type: str}
-  device: {description: 'Device URL, e.g. tcp://10.0.0.11:502 or rtu:///dev/ttyUSB0?baudrate=19200.', type: str}
-  unit: {description: Modbus unit id (default the recipe's, else 1)., type: int}
-  devices:
-    description: Several devices (e.g. from host vars), each with name, url, unit, and optional profile and parameters.
-    type: list
-    elements: dict
-  inventory:
-    description: A deployer inventory file on the target (all its devices or those I(limit) selects).
-    type: path
-  limit: {description: Inventory selection (names, groups, globs; @REPORT.json)., type: str}
-  parallel:
-    description: Devices at once on this gateway (one bus is always one device at a time).
-    type: int
-    default: 8
-  batch: {description: 'Staged rollout within this task, e.g. "1,50%".', type: str}
-  max_failures:
-    description: After this many devices did not end ok (failed, partial and unreachable count, skipped ones
-      never) start no new one (N or P%).
+  profile:
+    description: A built-in profile id or a profile file, when no recipe file is given.
     type: str
-  timeout: {description: Seconds per request attempt., type: float}
-  retries: {description: Retries after a timeout or a busy answer., type: int}
-  write_all: {description: Write every parameter even when the device already holds it., type: bool, default: false}
-  on_error: {description: After a rejected value, send the rest (continue) or not (stop)., type: str, default: continue,
-             choices: [continue, stop]}
-  state_dir: {description: Where snapshots and the journal go on the target., type: path, default: .deployer}
-  report: {description: Also write the report JSON to this file on the target., type: path}
+  parameters:
+    description: Parameter values in engineering units (for example V(10 s)), over the recipe's.
+    type: dict
+  name:
+    description: The device's name in the report, for O(device).
+    type: str
+  batch:
+    description: A staged rollout within this task, for example V(1,50%) (a canary device, then half, then the rest).
+    type: str
+  max_failures:
+    description:
+      - After this many devices did not end ok (failed, partial and unreachable count, skipped ones
+        never), start no new one.
+      - A number V(N) or a percentage V(P%).
+    type: str
+  write_all:
+    description: Write every parameter even when the device already holds it.
+    type: bool
+    default: false
+  on_error:
+    description: After a rejected value, send the rest (V(continue)) or not (V(stop)).
+    type: str
+    default: continue
+    choices: [continue, stop]
+  state_dir:
+    description: Where snapshots, locks and the journal go on the target.
+    type: path
+    default: .deployer
+  report:
+    description: Also write the report JSON to this file on the target (a new path or a regular file).
+    type: path
+  soak:
+    description:
+      - After the verified write, read the profile's health checks for this long (for example V(30s),
+        V(5m); a bare number is seconds).
+      - A failed check rolls that device back from its snapshot (status C(rolled-back), the task fails);
+        the profile's commit is sent only after the soak passed.
+      - With O(batch), each batch soaks together and a health failure in the first batch ends the rollout.
+    type: str
+  health_interval:
+    description: Time between two rounds of health checks during the soak.
+    type: str
+    default: 1s
+  rollback_on_failure:
+    description: When the rollout stops (a failed batch, O(max_failures)), roll back every device it wrote.
+    type: bool
+    default: false
+notes:
+  - One bus is one device at a time whatever O(parallel) says; a device is locked for the run.
+seealso:
+  - module: deployer.modbus.info
 """
 
 EXAMPLES = r"""
@@ -56,16 +100,30 @@ EXAMPLES = r"""
     recipe: /srv/recipes/line3.yaml
     devices: "{{ modbus_devices }}"
     state_dir: /var/lib/deployer
+
+- name: New ramps, kept only if the drives stay healthy for 5 minutes (one canary first)
+  deployer.modbus.apply:
+    recipe: /srv/recipes/line3.yaml
+    inventory: /srv/inventory.yaml
+    batch: "1,100%"
+    soak: 5m
 """
 
 RETURN = r"""
-changed: {description: Whether any write request was sent., type: bool, returned: always}
-devices: {description: Per device its status and the parameters it changed or failed., type: list, returned: always}
-report: {description: The deployer report (schema deployer.report/1); not in check mode., type: dict, returned: success}
-plans:
-  description: 'Check mode: per device what would be written (deployer.plan/1).'
+devices:
+  description: Per device its status and the parameters it changed or failed.
   type: list
-  returned: check mode
+  elements: dict
+  returned: always
+report:
+  description: The deployer report (schema C(deployer.report/1)).
+  type: dict
+  returned: when not in check mode
+plans:
+  description: In check mode, per device what would be written (schema C(deployer.plan/1)).
+  type: list
+  elements: dict
+  returned: in check mode
 """
 
 import asyncio  # noqa: E402
@@ -74,9 +132,12 @@ from ansible.module_utils.basic import AnsibleModule  # noqa: E402
 
 from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common import (  # noqa: E402
     TARGET_ARGS,
+    TARGET_EXCLUSIVE,
+    check_target_args,
     input_error,
     jobs_of,
     recipe_of,
+    refuse_one_device_twice,
     require_deployer,
 )
 
@@ -121,15 +182,21 @@ def check(module, jobs):
 
 
 def apply(module, rec, jobs):
-    from deployer.api import run_fleet_async
+    from deployer.api import run_fleet_async, safe_options
     from deployer.execute.session import ApplyOptions
+    from deployer.execute.soak import check_soak_profiles
 
     p = module.params
-    options = ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"])
+    options = safe_options(ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"],
+                                        allow_broadcast=p["allow_broadcast"]),
+                           soak=p.get("soak"), health_interval=p["health_interval"])
+    if options.soak is not None:
+        check_soak_profiles([j.recipe.profile for j in jobs])
     report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
                                          parallel=p["parallel"],
                                          batch=p.get("batch"), max_failures=p.get("max_failures"), options=options,
-                                         report_path=p.get("report")))
+                                         report_path=p.get("report"),
+                                         rollback_on_failure=p["rollback_on_failure"]))
     devices, diffs, problems = [], [], []
     for d in report.devices:
         changed = [(q.name, q.before or "?", q.after or q.desired) for q in d.parameters
@@ -156,21 +223,51 @@ def main():
             recipe=dict(type="path"), profile=dict(type="str"), parameters=dict(type="dict"), name=dict(type="str"),
             batch=dict(type="str"), max_failures=dict(type="str"), write_all=dict(type="bool", default=False),
             on_error=dict(type="str", default="continue", choices=["continue", "stop"]),
-            state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), **TARGET_ARGS),
+            state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), soak=dict(type="str"),
+            health_interval=dict(type="str", default="1s"), rollback_on_failure=dict(type="bool", default=False),
+            **TARGET_ARGS),
+        mutually_exclusive=TARGET_EXCLUSIVE,
         supports_check_mode=True,
     )
     require_deployer(module)
+    check_target_args(module)
     from deployer.load.diagnostics import InputError, UsageError
 
+    _check_outputs(module)
     try:
         rec = recipe_of(module)
-        jobs = jobs_of(module, rec)
+        jobs = refuse_one_device_twice(jobs_of(module, rec))
         if module.check_mode:
             check(module, jobs)
         else:
             apply(module, rec, jobs)
     except (InputError, UsageError) as e:
         input_error(module, e)
+    except OSError as e:  # the state folder or the report file failed during the run
+        module.fail_json(msg=f"cannot write {e.filename or p_state(module)}: {e.strerror or e}; the report of "
+                             "the run is in the journal (deployer status)")
+
+
+def p_state(module):
+    return module.params["state_dir"]
+
+
+def _check_outputs(module):
+    """The state folder and the report file must be usable before anything is sent."""
+    import os
+
+    p = module.params
+    report = p.get("report")
+    if report and os.path.lexists(report) and not os.path.isfile(report):
+        module.fail_json(msg=f"report {report} exists and is not a regular file; nothing was sent")
+    if report and not os.path.isdir(os.path.dirname(os.path.abspath(report))):
+        module.fail_json(msg=f"report {report}: its folder does not exist; nothing was sent")
+    try:
+        os.makedirs(p["state_dir"], exist_ok=True)
+    except OSError as e:
+        module.fail_json(msg=f"state_dir {p['state_dir']}: {e.strerror or e}; nothing was sent")
+    if not os.path.isdir(p["state_dir"]) or not os.access(p["state_dir"], os.W_OK | os.X_OK):
+        module.fail_json(msg=f"state_dir {p['state_dir']} is not a writable folder; nothing was sent")
 
 
 if __name__ == "__main__":

@@ -1,118 +1,142 @@
 #!/usr/bin/python
-# Read Modbus devices' parameters as Ansible facts (and optionally as recipe files) with deployer.
+# Keep Modbus devices' parameters as recipe files on the target, with deployer.
+# Copyright: deployer maintainers. MIT License (see the project's LICENSE).
 
 from __future__ import annotations
 
 DOCUMENTATION = r"""
 module: pull
-short_description: Read devices' parameters (engineering units) as facts, optionally as recipe files
+short_description: Write what Modbus devices hold as recipe files, one per device
 description:
-  - Reads every readable, writable parameter of the profile (or only I(parameters)) from each device
-    and returns them as facts under C(modbus_devices) (device name -> parameter -> value text). Writes
-    nothing to any device; C(changed) is true only when a recipe file was written or changed.
-  - Also available as C(deployer.modbus.facts).
+  - Reads every readable, writable parameter of the profile (or only O(parameters), or only the
+    parameters O(recipe) names) from each device and writes one recipe per device, C(NAME.yaml) in
+    O(dest), that applies back as a no-op.
+  - Writes nothing to any device. C(changed) is true when a recipe file was written or changed; in
+    check mode no file is written and C(changed) says whether one would be.
+  - For the values as facts only, use M(deployer.modbus.info).
+version_added: 0.1.0
+author:
+  - deployer maintainers (@deployer)
+extends_documentation_fragment:
+  - ansible.builtin.action_common_attributes
+  - deployer.modbus.target
+attributes:
+  check_mode:
+    support: full
+  diff_mode:
+    support: none
+  platform:
+    platforms: posix
 options:
-  profile: {description: A built-in profile id or a profile file (or the recipe's profile)., type: str}
-  recipe: {description: Read only the parameters this recipe names (and use its profile)., type: path}
-  parameters: {description: Read only these parameter names., type: list, elements: str}
-  name: {description: The device's name in the facts (one device)., type: str}
-  device: {description: Device URL., type: str}
-  unit: {description: Modbus unit id., type: int}
-  devices: {description: Several devices, each with name, url, unit and optional profile., type: list, elements: dict}
-  inventory: {description: A deployer inventory file on the target., type: path}
-  limit: {description: Inventory selection., type: str}
-  parallel: {description: Devices read at once., type: int, default: 8}
-  timeout: {description: Seconds per request attempt., type: float}
-  retries: {description: Retries after a timeout or busy answer., type: int}
   dest:
-    description: A folder on the target; one recipe per device (NAME.yaml) that applies back as a no-op.
+    description: A folder on the target for the recipe files (created if missing).
     type: path
+    required: true
+  profile:
+    description: A built-in profile id or a profile file (without O(recipe)).
+    type: str
+  recipe:
+    description: Read only the parameters this recipe names, with its profile.
+    type: path
+  parameters:
+    description: Read only these parameter names.
+    type: list
+    elements: str
+  name:
+    description: The device's name (and file name), for O(device).
+    type: str
+seealso:
+  - module: deployer.modbus.info
 """
 
 EXAMPLES = r"""
-- name: What the drives hold now
-  deployer.modbus.facts:
+- name: Keep what the drives hold as recipes
+  deployer.modbus.pull:
     profile: example-inverter
     devices: "{{ modbus_devices }}"
-- debug: var=ansible_facts.modbus_devices
+    dest: /srv/recipes/as-found
 """
 
 RETURN = r"""
-ansible_facts:
-  description: 'modbus_devices: device name -> parameter -> value (e.g. "10 s").'
+files:
+  description: The recipe files written (or, in check mode, that would be written).
+  type: list
+  elements: str
+  returned: success
+values:
+  description: Device name -> parameter -> value text (for example V(10 s)).
   type: dict
   returned: success
-raw: {description: device name -> parameter -> register words., type: dict, returned: success}
 """
 
 import os  # noqa: E402
+import tempfile  # noqa: E402
 
 from ansible.module_utils.basic import AnsibleModule  # noqa: E402
 
 from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common import (  # noqa: E402
+    READ_ARGS,
     TARGET_ARGS,
+    TARGET_EXCLUSIVE,
+    check_target_args,
     input_error,
-    jobs_of,
+    read_devices,
     require_deployer,
+    values_text,
 )
 
 
 def main():
-    module = AnsibleModule(
-        argument_spec=dict(profile=dict(type="str"), recipe=dict(type="path"), name=dict(type="str"),
-                           parameters=dict(type="list", elements="str"), dest=dict(type="path"), **TARGET_ARGS),
-        supports_check_mode=True,
-    )
+    module = AnsibleModule(argument_spec=dict(dest=dict(type="path", required=True), **READ_ARGS, **TARGET_ARGS),
+                           mutually_exclusive=TARGET_EXCLUSIVE, supports_check_mode=True)
     require_deployer(module)
-    import deployer
-    from deployer.api import pull_names, pulled_recipe, read_fleet
-    from deployer.fleet.rollout import ReadJob
+    check_target_args(module)
+    from deployer.api import pulled_recipe
     from deployer.load.diagnostics import InputError, UsageError
     from deployer.transport.clients import describe
 
     p = module.params
+    if os.path.exists(p["dest"]) and not os.path.isdir(p["dest"]):
+        module.fail_json(msg=f"dest {p['dest']} is not a folder; nothing was read")
     try:
-        if p.get("recipe"):
-            base = deployer.load_recipe(p["recipe"])
-        elif p.get("profile"):
-            base = deployer.recipe_from(p["profile"], {}, name=p.get("name") or "pulled")
-        else:
-            raise UsageError("pass profile (or recipe)")
-        jobs = jobs_of(module, base)
-        read = []
-        for j in jobs:
-            prof = j.recipe.profile
-            names = p.get("parameters") or ([d.name for d in j.recipe.desired] if p.get("recipe") else
-                                            pull_names(prof))
-            read.append(ReadJob(j.name, prof, tuple(names), j.url, j.unit))
-        values = read_fleet(read, parallel=p["parallel"])
+        read, values = read_devices(module)
     except (InputError, UsageError) as e:
         input_error(module, e)
-    facts, raw, down, changed = {}, {}, [], False
+    facts, _, down = values_text(read, values)
+    files, changed = [], False
     for j in read:
         cur = values[j.name]
         if isinstance(cur, Exception):
-            down.append(f"{j.name}: {cur}")
             continue
-        facts[j.name] = {n: j.profile.parameter(n).format_registers(v) for n, v in cur.items()}
-        raw[j.name] = {n: list(v) for n, v in cur.items()}
-        if p.get("dest") and not module.check_mode:
-            os.makedirs(p["dest"], exist_ok=True)
-            path = os.path.join(p["dest"], f"{j.name}.yaml")
-            text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
-                                 relative_to=path)
-            old = None
-            if os.path.exists(path):
-                with open(path, encoding="utf-8") as f:
-                    old = f.read()
-            if old != text:
-                with open(path, "w", encoding="utf-8") as f:
-                    f.write(text)
-                changed = True
-    result = {"changed": changed, "ansible_facts": {"modbus_devices": facts}, "raw": raw}
+        path = os.path.join(p["dest"], f"{j.name}.yaml")
+        text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
+                             relative_to=path)
+        old = None
+        if os.path.isfile(path):
+            with open(path, encoding="utf-8") as f:
+                old = f.read()
+        if old == text:
+            continue
+        files.append(path)
+        changed = True
+        if not module.check_mode:
+            try:
+                os.makedirs(p["dest"], exist_ok=True)
+                module.atomic_move(_written(module, text), path)
+            except OSError as e:
+                module.fail_json(msg=f"cannot write {path}: {e.strerror or e}", values=facts, files=files)
+    result = {"changed": changed, "files": files, "values": facts}
     if down:
         module.fail_json(msg="unreachable: " + "; ".join(down), **result)
     module.exit_json(**result)
+
+
+def _written(module, text):
+    """The text in a temporary file of Ansible's, for atomic_move to put in place."""
+    fd, tmp = tempfile.mkstemp(dir=module.tmpdir)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(text)
+    return tmp
 
 
 if __name__ == "__main__":
