@@ -443,6 +443,9 @@ def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failure
     budget = failure_budget(max_failures, devices)
     ensure_files(parallel, devices)
     if report_path:
+        from .state.durable import check_output
+
+        check_output(report_path, what="the report")
         check_writable(os.path.dirname(os.path.abspath(report_path)), f"the report {report_path}")
     return sizes, budget
 

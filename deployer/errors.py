@@ -23,6 +23,7 @@ on message text; the message (``str(e)``) is written for the user and may change
     │   ├── ExceptionResponse      3  a Modbus exception response (``function``, ``code``)
     │   └── DeviceGone             3  no answer and the retry budget spent
     ├── Locked                     3  another run holds the device (``busy``), or no lock can be taken
+    ├── StateError                 1  the state directory cannot be written (disk full, read-only) before a run
     └── IdentityMismatch           4  the device is not the one the profile describes
 
 Exit codes (a public interface; scripts rely on them): 0 success; 1 invalid input or usage, nothing
@@ -65,6 +66,7 @@ __all__ = [
     "Locked",
     "NoResponse",
     "StalePlan",
+    "StateError",
     "TransportError",
     "Unreachable",
     "UsageError",
@@ -177,6 +179,16 @@ class Locked(DeployerError):
     def __init__(self, message: str, *, busy: bool = True) -> None:
         self.busy = busy
         super().__init__(message)
+
+
+class StateError(DeployerError):
+    """The state directory (journal, snapshots) cannot be written: a full disk, a read-only folder.
+
+    Raised before a run sends anything (exit 1: nothing was sent); once devices are written, the run
+    goes on and reports it per device instead (a device whose snapshot cannot be saved is not written).
+    """
+
+    exit_code = EXIT_INVALID
 
 
 class IdentityMismatch(DeployerError):

@@ -181,7 +181,7 @@ def test_an_inventory_naming_one_device_twice_is_refused(tmp_path: Path) -> None
         inv = tmp_path / "inv.yaml"
         inv.write_text(INVENTORY.format(port=port))
         code, out, err = run("validate", str(inv))
-        msg = (f"{inv}:3:19: error: devices press-1 and press-1b are one device (tcp://127.0.0.1:{port} and "
+        msg = (f"{inv}:3:19: error: devices 'press-1' and 'press-1b' are one device (tcp://127.0.0.1:{port} and "
                f"tcp://localhost:{port}, unit 1): name each device once")
         assert code == 1 and msg in out + err, out + err
         code, out, err = run("apply", recipe(tmp_path, "first", FIRST), "--inventory", str(inv), "--yes",
@@ -192,7 +192,7 @@ def test_an_inventory_naming_one_device_twice_is_refused(tmp_path: Path) -> None
         inv.write_text(INVENTORY.format(port=port).replace('  press-1b: {url: "tcp://localhost:' + port + '"}\n', ""))
         code, out, err = run("apply", recipe(tmp_path, "first", FIRST), "--inventory", str(inv), "--unit", "1",
                              "--yes", "--state-dir", str(tmp_path / "s"))
-        assert code == 1 and "devices press-1 and press-2 are one device" in out + err, out + err
+        assert code == 1 and "devices 'press-1' and 'press-2' are one device" in out + err, out + err
 
 
 @pytest.mark.parametrize(("text", "message"), [

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
+from ..errors import StateError
 from ..load.diagnostics import EXIT_OK, Diagnostic, InputError, UsageError
 from .base import (
     _ARGV,
@@ -190,6 +191,10 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             err.print(f"warning: {why}; restoring it there (--yes)")
 
     fleet_run = bool(inventory or from_report)
+    if report_path:  # before anything is sent: a link, a FIFO or a folder there is refused now
+        from ..state.durable import check_output
+
+        check_output(report_path, what="the report")
     if fleet_run:
         fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures, report_path=report_path)
     run_id = journal.new_run_id()
@@ -222,8 +227,11 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     else:
         report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=label, **safe))
         if report_path:
-            write_json(report.to_json(), report_path)
-    journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
+            write_json(report.to_json(), report_path, what="the report")
+    try:
+        journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
+    except StateError as e:  # the devices' outcome stands; only the journal misses its last line
+        err.print(f"warning: {e}")
     if as_json:
         if fleet_run:
             from ..report import report_text

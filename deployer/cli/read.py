@@ -149,6 +149,7 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
     from ..api import device_url, pull_names, pulled_recipe
     from ..profile import resolve_profile
+    from ..state.durable import check_output
 
     if inventory:
         if device or name:
@@ -164,12 +165,14 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
     prof = resolve_profile(profile_ref)
     url = device_url(device, timeout=timeout, retries=retries)
     u = unit if unit is not None else 1
+    if output:
+        check_output(output, what="the recipe")  # before reading the device: a FIFO, a link, a folder
     current = read_device(prof, pull_names(prof), url, u)
     if current is None:
         return EXIT_UNREACHABLE
     text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
                          comment=_pulled_from(describe(url), u), relative_to=output)
-    _output(text, output, f"{_n(len(current), 'parameter')} written to {output}")
+    _output(text, output, f"{_n(len(current), 'parameter')} written to {output}", replace=True)
     return EXIT_OK
 
 
@@ -183,6 +186,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
     from ..api import check_writable, device_url, load_inventory, pull_names, pulled_recipe
     from ..fleet.rollout import ReadJob
     from ..profile import resolve_profile
+    from ..state.durable import write_atomic
 
     inv = load_inventory(inventory)
     devices = inv.select(limit)
@@ -215,8 +219,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
         path = os.path.join(folder, f"{_safe(j.name)}.yaml")
         text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
                              comment=_pulled_from(describe(j.url), j.unit), relative_to=path)
-        with open(path, "w", encoding="utf-8") as f:
-            f.write(text)
+        write_atomic(path, text)
         written += 1
     down = _unreachable(values)
     click.echo(f"{_n(written, 'recipe')} written to {folder}" + (f"; {len(down)} unreachable: {', '.join(down)}"

@@ -23,7 +23,7 @@ from ..profile import Parameter, Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..report import DeviceResult, ParameterResult, show_registers
 from ..state import journal, lock
-from ..state.durable import Line, durable, queue
+from ..state.durable import Line, disk_error, durable, queue
 from ..state.snapshot import snapshot_file
 from ..transport import clients as tp
 from .recovery import _recover, _remerge
@@ -75,8 +75,17 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
     """
     res, finishing = await _apply_device(recipe, url, unit, name=name, options=options)
     if finishing is not None:
-        await finishing
+        await journal_line(res, finishing)
     return res
+
+
+async def journal_line(res: DeviceResult, finishing: Awaitable[object]) -> None:
+    """Wait for the device's device-finished line; a state directory that cannot take it is a notice: the
+    device's outcome stands (the report says it), only the journal misses the line."""
+    try:
+        await finishing
+    except OSError as e:
+        res.notices.append(f"the journal's device-finished line could not be written: {disk_error(e)}")
 
 
 async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None,
@@ -222,7 +231,12 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         snap.journal = journal.path_of(opts.state_dir)
         snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest,
                                            batch=res.batch)
-    res.snapshot = await durable(snap)
+    try:
+        res.snapshot = await durable(snap)
+    except OSError as e:  # no snapshot, no write: nothing could be undone
+        res.status, res.error = "failed", (f"cannot save the snapshot in {opts.state_dir}: {disk_error(e)}; "
+                                           "nothing was written")
+        return
 
     # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock
     if prof.unlock:

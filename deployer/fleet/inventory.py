@@ -208,7 +208,7 @@ def _same_devices(path: str, devices: Sequence[tuple[FleetDevice, int]], *, chec
         for k in keys:
             first = seen.setdefault((k, unit), dev)
             if first is not dev:
-                errors.append(Diagnostic(path, *dev.where, f"devices {first.name} and {dev.name} are one device "
+                errors.append(Diagnostic(path, *dev.where, f"devices '{first.name}' and '{dev.name}' are one device "
                                          f"({first.url} and {dev.url}, unit {unit}): name each device once"))
                 break
     return errors

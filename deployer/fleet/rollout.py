@@ -11,7 +11,7 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, TypeVar
 
-from ..execute.device import _apply_device, _results
+from ..execute.device import _apply_device, _results, journal_line
 from ..execute.read import read_current
 from ..execute.session import ApplyOptions, Declined, StalePlan
 from ..execute.soak import Written, await_confirmation, needs_soak, pending_path, roll_back, send_commit, soak
@@ -188,7 +188,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
 
     async def finished(r: DeviceResult, finishing: Awaitable[object] | None) -> None:
         if finishing is not None:  # outside the device's slot: the next device is already connecting
-            await finishing
+            await journal_line(r, finishing)
         if on_done:  # the device is done (report file, progress) once its journal line is on disk
             on_done(r)
 

@@ -17,7 +17,6 @@ import asyncio
 import itertools
 import json
 import operator
-import os
 import re
 import signal
 import ssl
@@ -464,16 +463,15 @@ class Simulator:
         self._set(unit, key, value)
 
     def dump_state(self, path: str) -> None:
+        from ..state.durable import write_atomic
+
         state = {str(u): {str(a): v for a, v in self.registers(u).items()} for u in self.units}
         data: dict[str, Any] = {"profile": self.profile.id, "units": state}
         others = [t for t in REGISTER_TYPES[1:] if t in self._used]
         if others:  # coils, discrete inputs, input registers by table (addresses of each table)
             data["tables"] = {str(u): {t: {str(a): v for a, v in self.registers(u, t).items()} for t in others}
                               for u in self.units}
-        tmp = f"{path}.tmp"
-        with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=1)
-        os.replace(tmp, path)
+        write_atomic(path, json.dumps(data, indent=1))
 
     # ---- the device ----------------------------------------------------------------------------
 

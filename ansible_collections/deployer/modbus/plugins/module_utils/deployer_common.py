@@ -152,11 +152,11 @@ def refuse_one_device_twice(jobs):
 
     seen = {}
     for j in jobs:
-        key = (describe(j.url), j.unit)
-        if key in seen:
-            raise UsageError(f"{seen[key]!r} and {j.name!r} are one device ({key[0]}, unit {key[1]}); "
-                             "list it once")
-        seen[key] = j.name
+        for key in ((k, j.unit) for k in j.url.lock_keys):  # resolved addresses: localhost is 127.0.0.1
+            if key in seen:
+                raise UsageError(f"{seen[key][0]!r} and {j.name!r} are one device ({seen[key][1]} and "
+                                 f"{describe(j.url)}, unit {j.unit}); list it once")
+            seen[key] = (j.name, describe(j.url))
     return jobs
 
 
