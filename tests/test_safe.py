@@ -509,3 +509,24 @@ def test_ask_on_a_terminal_stops_the_rollout_on_no(tmp_path: Path) -> None:
     d0, d1 = json.loads((tmp_path / "run.json").read_text())["devices"]
     assert d0["status"] == "ok" and d1["status"] == "skipped"
     assert "stopped at the question before batch 2 (--ask)" in d1["error"]
+
+
+def test_devices_behind_one_gateway_soak_together(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """Two units behind one address: written one after the other (one bus), then watched together over one
+    connection; only the unit whose new ramp trips it is rolled back."""
+    with Simulators([Simulator(PROFILE, units=(1, 2), faults=Faults(rules=(TRIP,)))]) as (sim,):
+        inv = tmp_path / "inventory.yaml"
+        inv.write_text(f"defaults: {{timeout: 2.0, retries: 1}}\ndevices:\n  d1: {{url: '{sim.url}', unit: 1}}\n"
+                       f"  d2: {{url: '{sim.url}', unit: 2, parameters: {{F07: 1.5 s}}}}\n")
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", str(inv), "--yes", "--json",
+                           "--soak", "1s", "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
+        log = list(sim.log)
+    assert code == 4
+    d1, d2 = json.loads(out)["devices"]
+    assert d1["status"] == "ok" and d2["status"] == "rolled-back"
+    health = [e.unit for e in (log[i] for i in reads_of(log, FAULT))]
+    written = writes_to(log, F07)[:2]  # the apply's writes (the rollback's come after the soak's reads)
+    assert sorted(log[i].unit for i in written) == [1, 2]
+    assert reads_of(log, FAULT)[0] > max(written)  # the soak starts once the whole batch is written
+    assert health[:2] in ([1, 2], [2, 1])  # then both are watched at once
+    assert [log[i].unit for i in writes_to(log, COMMIT)] == [1]

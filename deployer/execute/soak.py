@@ -90,34 +90,42 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
     passed: list[Written] = []
     failed: list[Written] = []
 
+    # one connection per bus, one request at a time on it: a gateway allows few connections, and the
+    # devices behind it share one line anyway
+    lines: dict[str, tuple[tp.Transport, asyncio.Lock, asyncio.Future[str | None]]] = {}
+
+    async def connect(transport: tp.Transport) -> str | None:
+        try:
+            await transport.connect()
+        except tp.Unreachable as e:
+            return f"the device could not be reached: {e}"
+        return None
+
     async def watch(w: Written) -> None:
-        transport = tp.open_transport(w.url)
+        if w.url.bus not in lines:
+            transport = tp.open_transport(w.url)
+            lines[w.url.bus] = (transport, asyncio.Lock(), asyncio.ensure_future(connect(transport)))
+        transport, one_at_a_time, connected = lines[w.url.bus]
         records: list[Any] = []
         session = Session(transport, w.unit, retries=w.url.retries, backoff=options.backoff, records=records)
         reads = 0
-        why: str | None = None
-        try:
+        why: str | None = await asyncio.shield(connected)
+        while why is None:
             try:
-                await transport.connect()
-            except tp.Unreachable as e:
-                why = f"the device could not be reached: {e}"
-            while why is None:
-                try:
+                async with one_at_a_time:
                     bad = await read_health(session, w.recipe.profile)
-                    reads += len(w.recipe.profile.health)
-                except (DeviceGone, tp.ExceptionResponse) as e:
-                    why = f"could not be read: {e}"
-                    break
-                if bad is not None:
-                    check, word = bad
-                    why = check.failure(word)
-                    break
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    break
-                await asyncio.sleep(min(options.health_interval, left))
-        finally:
-            await transport.close()
+                reads += len(w.recipe.profile.health)
+            except (DeviceGone, tp.ExceptionResponse) as e:
+                why = f"could not be read: {e}"
+                break
+            if bad is not None:
+                check, word = bad
+                why = check.failure(word)
+                break
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            await asyncio.sleep(min(options.health_interval, left))
         seen = time.monotonic() - start
         if why is None:
             w.result.notices.append(f"soak passed: {reads} health reads over {format_duration(options.soak or 0)}")
@@ -132,7 +140,11 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
             on_failed(w)
         await roll_back(w, why, options)
 
-    await asyncio.gather(*(watch(w) for w in todo))
+    try:
+        await asyncio.gather(*(watch(w) for w in todo))
+    finally:
+        for transport, _, _ in lines.values():
+            await transport.close()
     if run is not None:
         _journal(options, {"event": "soak-finished", "run": run, "time": journal._now(),
                            "passed": [w.name for w in passed], "rolled_back": [w.name for w in failed
