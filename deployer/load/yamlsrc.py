@@ -174,7 +174,8 @@ class _Builder:
                     tag = ev.tag
                     if tag is None or tag == "!":
                         tag = tags.get((text, ev.implicit)) or self._tag(ev)
-                    if tag != _MERGE and text not in out and len(out) < MAX_ENTRIES:
+                    if (tag != _MERGE and text not in out and len(out) < MAX_ENTRIES
+                            and (text[:1] != "0" or _leading_zero(text, tag, ev) is None)):
                         top.key_at = kat = (*top.at, text)
                         keys[kat] = pos
                         top.key = text
@@ -286,8 +287,13 @@ class _Builder:
         if not isinstance(ev, yaml.ScalarEvent):
             self.err(pos, "a mapping key must be a plain scalar")
             return False
-        if self._tag(ev) == _MERGE:
+        tag = self._tag(ev)
+        if tag == _MERGE:
             self.err(pos, "YAML merge keys ('<<') are not supported; use 'extends'")
+            return False
+        why = _leading_zero(str(ev.value), tag, ev)
+        if why is not None:
+            self.err(pos, why)
             return False
         key = str(ev.value)
         if ev.anchor is not None:
@@ -365,6 +371,11 @@ class _Builder:
             self.err(pos, f"tag {clipped_repr(tag)} is not allowed")
             return None
         text: str = ev.value
+        if text[:1] in ("0", "+", "-") and tag in (_INT, _STR):
+            why = _leading_zero(text, tag, ev)
+            if why is not None:
+                self.err(pos, why)
+                return None
         if tag in (_STR, _TIMESTAMP):
             return text
         if tag == _NULL:
@@ -390,6 +401,30 @@ class _Builder:
         except InvalidOperation:
             self.err(pos, f"not a number: {clipped_repr(text)}")
             return None
+
+
+def _leading_zero(text: str, tag: str, ev: Any) -> str | None:
+    """Why a plain integer with a leading zero is refused: YAML 1.1 (PyYAML, so us) reads 010 as octal 8,
+    YAML 1.2 and most other tools as 10, and 0o17 as text; nobody should have to know which."""
+    if ev.style:  # quoted or a block scalar: text, as written (plain is None, or "" from libyaml)
+        return None
+    t = text.replace("_", "").lstrip("+-")
+    if len(t) < 2 or t[0] != "0":
+        return None
+    sign = "-" if text.startswith("-") else ""
+    if tag == _INT and t[1].isdigit():  # YAML 1.1 octal
+        d, o = int(sign + t, 10), _int(text)
+        if d == o:  # 00, 07: the same either way, but say it plainly
+            return f"'{text}' has a leading zero; write {d}, or quote it if it is text"
+        return (f"'{text}' has a leading zero: YAML 1.1 reads it as octal ({o}), other tools as {d}; write {d} "
+                f"(or {sign}0x{abs(o):X} for {o}), or quote it if it is text")
+    if tag == _STR and t.isdigit():  # 08, 09: not octal, text in YAML 1.1, a number to a reader
+        return f"'{text}' has a leading zero; write {int(sign + t)}, or quote it if it is text"
+    if tag == _STR and t[1] in "oO" and len(t) > 2 and all(c in "01234567" for c in t[2:]):
+        o = int(sign + t[2:], 8)
+        return (f"'{text}' is octal {o} in YAML 1.2 but text in YAML 1.1; write {o} (or {sign}0x{abs(o):X}), "
+                "or quote it if it is text")
+    return None
 
 
 def _int(text: str) -> int:
