@@ -149,6 +149,7 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
     from ..api import device_url, pull_names, pulled_recipe
     from ..profile import resolve_profile
+    from ..recipe.text import value_text
     from ..state.durable import check_output
 
     if inventory:
@@ -172,7 +173,11 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
         return EXIT_UNREACHABLE
     text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
                          comment=_pulled_from(describe(url), u), relative_to=output)
-    _output(text, output, f"{_n(len(current), 'parameter')} written to {output}", replace=True)
+    # a value outside the profile's range is kept as a comment, not set: count only what the recipe sets
+    left = [n for n, regs in current.items() if value_text(prof.parameter(n), regs) is None]
+    said = f"{_n(len(current) - len(left), 'parameter')} written to {output}" + (
+        f"; {len(left)} outside the profile's range kept as comments: {', '.join(left)}" if left else "")
+    _output(text, output, said, replace=True)
     return EXIT_OK
 
 

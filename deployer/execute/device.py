@@ -260,7 +260,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
 
 async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, plan: Plan, opts: ApplyOptions,
                                res: DeviceResult, results: dict[str, ParameterResult]) -> None:
-    written, unanswered = await _write_all(session, prof, plan, opts, results)
+    written, unanswered = await _write_all(session, prof, plan, opts, results, res.notices)
 
     # read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
@@ -294,7 +294,8 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
 
 
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,
-                     results: dict[str, ParameterResult]) -> tuple[set[str], set[str] | None]:
+                     results: dict[str, ParameterResult],
+                     notices: list[str] | None = None) -> tuple[set[str], set[str] | None]:
     """Send the plan's writes. Returns the names sent, and, when the device went away, the names of the
     request it did not answer (None while it answers)."""
     desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
@@ -322,7 +323,9 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
             if wait and (not pending or pending[0].stage != req.stage):
                 await asyncio.sleep(wait / 1000)
         except tp.ExceptionResponse as e:
-            follow_up = await _recover(session, prof, req, e, desired, results, written)
+            follow_up, took = await _recover(session, prof, req, e, desired, results, written, notices)
+            if took:  # the device complained, but the values are there: go on as after a plain answer
+                continue
             if opts.on_error == "continue":
                 if follow_up is not None:
                     pending.appendleft(follow_up)

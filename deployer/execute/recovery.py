@@ -34,8 +34,11 @@ async def _remerge(session: Session, prof: Profile, req: WriteRequest, desired: 
 
 async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.ExceptionResponse,
                    desired: Mapping[str, tuple[int, ...]], results: dict[str, ParameterResult],
-                   written: set[str]) -> WriteRequest | None:
-    """After an exception: read the request's registers back to see which took.
+                   written: set[str], notices: list[str] | None = None) -> tuple[WriteRequest | None, bool]:
+    """After an exception: read the request's registers back to see which took. Returns the follow-up
+    request (the parameters after a rejected one), and whether everything took after all: a device may
+    answer an exception (04, server device failure) to a write it carried out; the read-back decides,
+    and ``notices`` gets a word of it.
 
     Devices write in address order and stop at the bad value, so the first parameter that
     does not hold its desired value is the rejected one; the ones after it were not written
@@ -49,7 +52,7 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
                                                            prof))
     except (DeviceGone, tp.ExceptionResponse) as e:  # cannot tell what took: say so, send nothing more of it
         _attempted(results, req.parameters, written, f"{error}; reading back failed: {e}")
-        return None
+        return None, False
     rejected: Parameter | None = None
     unknown: list[str] = []  # write-only parameters seen so far
     for p in params:
@@ -64,13 +67,17 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
         break
     _attempted(results, unknown, written, f"write-only, next to a rejected value ({error})")
     if rejected is None:  # everything took although the device complained: the read-back decides
-        return None
+        if notices is not None:
+            notices.append(f"the device answered {error} to the write of {', '.join(req.parameters)} at "
+                           f"0x{req.address:04X}, but reading back shows the values took: reported by the "
+                           "read-back (check the device's diagnostics)")
+        return None, True
     results[rejected.name].status, results[rejected.name].error = "failed", error
     for p in params:  # bit fields of the rejected register went with it
         if p.mask and p.address == rejected.address and p is not rejected:
             results[p.name].status, results[p.name].error = "failed", f"{error} (register of {rejected.name})"
     rest = [p for p in params if p.address > rejected.address]
     if not rest or req.function == 6:  # an FC06 request carries one register: nothing after it
-        return None
+        return None, False
     regs = tuple(w for p in rest for w in desired[p.name])
-    return replace(req, address=rest[0].address, registers=regs, parameters=tuple(p.name for p in rest))
+    return replace(req, address=rest[0].address, registers=regs, parameters=tuple(p.name for p in rest)), False

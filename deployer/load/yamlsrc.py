@@ -20,6 +20,7 @@ aliases be counted as they are expanded.
 from __future__ import annotations
 
 import os
+import re
 import stat
 import time
 from dataclasses import dataclass, field
@@ -52,6 +53,8 @@ _STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP = (
     f"{_STD}{t}" for t in ("str", "int", "float", "bool", "null", "timestamp"))
 _MAP, _SEQ, _MERGE = f"{_STD}map", f"{_STD}seq", f"{_STD}merge"
 _SCALAR_TAGS = {_STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP}
+_NUMBER_START = frozenset("0123456789+-.")
+_EXPONENT = re.compile(r"[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+")  # YAML 1.2 floats 1.1 misses
 
 
 Pos = int  # a position packed in one int: line << 24 | col (a tuple of two ints takes 3x the memory)
@@ -376,6 +379,8 @@ class _Builder:
             if why is not None:
                 self.err(pos, why)
                 return None
+        if tag == _STR and text[:1] in _NUMBER_START and not ev.style and _EXPONENT.fullmatch(text):
+            tag = _FLOAT  # 1e-30: text to YAML 1.1 (it wants 1.0e-30), a number to YAML 1.2 and to people
         if tag in (_STR, _TIMESTAMP):
             return text
         if tag == _NULL:

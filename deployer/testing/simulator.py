@@ -51,6 +51,7 @@ class Faults:
     drop_every: int = 0  # swallow every Nth request (no answer)
     busy_first: int = 0  # answer the first N write requests with exception 06, writing nothing
     fail_registers: frozenset[int] = frozenset()  # a write reaching one of these answers exception 04
+    complain_registers: frozenset[int] = frozenset()  # a write reaching one of these is carried out, then 04
     disconnect_after: int = 0  # close the connection(s) after every N requests (TCP)
     # after a write: when a rule's condition on parameter values holds, its register is set (a drive tripping)
     rules: tuple[FaultRule, ...] = ()
@@ -632,6 +633,8 @@ class Simulator:
             if address <= a and a + len(words) <= address + count and \
                     tuple(values[a - address:a - address + len(words)]) == words:
                 self._busy_until = time.monotonic() + wait / 1000
+        if any(a in f.complain_registers for a in range(address, address + count)):
+            return ExcCodes.DEVICE_FAILURE  # written all the same: a device that complains about what it did
         return None
 
     @staticmethod
