@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
@@ -219,6 +220,7 @@ def report_text(report: Report) -> str:
 
 def write_json(data: dict[str, Any], path: str, *, what: str = "") -> None:
     """Write atomically and durably: a report or plan is evidence, keep it whole (``write_atomic``'s rule)."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     write_atomic(path, json.dumps(data, indent=2) + "\n", what=what)
 
 

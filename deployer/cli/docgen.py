@@ -483,6 +483,7 @@ def write_pages(directory: str, *, force: bool = False) -> list[str]:
     """
     from ..state.durable import check_output, write_atomic
 
+    os.makedirs(directory, exist_ok=True)
     todo = []
     for fname, text in pages().items():
         path = os.path.join(directory, fname)

@@ -82,6 +82,7 @@ class _DiskCache:
         from ..state.durable import write_atomic
 
         with contextlib.suppress(OSError, DeployerError):  # a cache: no cache is fine
+            os.makedirs(os.path.dirname(self.path), exist_ok=True)
             write_atomic(self.path, json.dumps({"checks": self.checks, "factors": self.factors}))
 
 

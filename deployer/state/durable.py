@@ -254,7 +254,7 @@ def write_atomic(path: str, text: str | bytes | Sequence[bytes], *, replace: boo
     """The one way deployer writes an output file: whole or not at all, and durable.
 
     ``check_output``'s rule first (and again right before the rename); then a new temporary file in
-    the same folder (never following a link), the text written (pieces of bytes with gathering
+    the same folder (which must exist; never following a link), the text written (pieces of bytes with gathering
     writes: a big fleet report is never joined in memory), fsync'ed, renamed over ``path``, and the
     folder fsync'ed so the new name survives a crash. An existing file keeps its permissions.
     Raises OutputRefused for a path it will not write, UsageError when the disk refuses (full, read-only).
@@ -264,7 +264,6 @@ def write_atomic(path: str, text: str | bytes | Sequence[bytes], *, replace: boo
     directory = os.path.dirname(os.path.abspath(path))
     tmp = ""
     try:
-        os.makedirs(directory, exist_ok=True)
         while True:
             tmp = os.path.join(directory, f".{os.path.basename(path)[:80]}.{secrets.token_hex(4)}.tmp")
             try:
