@@ -82,6 +82,7 @@ __all__ = [
     "DeviceURL",
     "Drift",
     "FleetDevice",
+    "FromDefault",
     "IdentityMismatch",
     "InputError",
     "Inventory",
@@ -101,6 +102,7 @@ __all__ = [
     "apply_fleet",
     "apply_fleet_async",
     "confirm",
+    "defaults_diff",
     "describe_url",
     "device_url",
     "diff",
@@ -112,6 +114,7 @@ __all__ = [
     "load_plan",
     "load_profile",
     "load_recipe",
+    "non_default",
     "plan",
     "plan_async",
     "plan_fleet",
@@ -380,6 +383,49 @@ def diff(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None
     """
     _need_recipe(recipe, "diff")
     return _sync("diff", lambda: diff_async(recipe, device, unit))
+
+
+@dataclass(frozen=True)
+class FromDefault:
+    """One parameter whose device value is not its factory default (the profile's ``default``)."""
+
+    name: str
+    default: str
+    default_raw: tuple[int, ...]
+    device: str
+    device_raw: tuple[int, ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "default": self.default, "device": self.device,
+                "default_raw": list(self.default_raw), "device_raw": list(self.device_raw)}
+
+
+def defaults_diff(profile: Profile, current: Mapping[str, tuple[int, ...]]) -> tuple[list[FromDefault], list[str]]:
+    """The parameters read (``current``) that differ from their factory default, in profile order; and the
+    names read that have no default in the profile (they cannot be compared). A bit field compares its bits."""
+    differs, unknown = [], []
+    for p in profile.parameters:
+        regs = current.get(p.name)
+        if regs is None:
+            continue
+        want = p.default_registers()
+        if want is None:
+            unknown.append(p.name)
+        elif not p.same_value(regs, want):
+            differs.append(FromDefault(p.name, p.show_registers(want), want, p.show_registers(regs), tuple(regs)))
+    return differs, unknown
+
+
+def non_default(profile: Profile, values: Mapping[str, tuple[int, ...]]) -> dict[str, tuple[int, ...]]:
+    """``values`` without the parameters that hold their factory default (those with no default are kept:
+    nobody can say they are factory settings). ``pull --non-default`` writes this."""
+    out = {}
+    for n, v in values.items():
+        p = profile.parameter(n)
+        want = p.default_registers()
+        if want is None or not p.same_value(v, want):
+            out[n] = v
+    return out
 
 
 def pulled_recipe(profile: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,

@@ -89,6 +89,8 @@ class DeviceResult:
     seconds: float | None = None  # how long the device's session took (fleets: for the summary table)
     profile_ref: str | None = None  # the profile used: its file's absolute path, or the built-in id
     notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
+    identity: dict[str, str] | None = None  # Function 43 objects (vendor, product_code, revision ...), if it answers
+    learned: dict[str, int] = field(default_factory=dict)  # profile limits this run's refusals taught
     recipe: str | None = None  # the recipe (or snapshot, plan) file this device was given
     batch: int | None = None  # fleets: the batch the device ran in (or would have: skipped)
     commit: CommitState | None = None  # None: the profile has no commit steps, or nothing was written
@@ -128,6 +130,10 @@ class DeviceResult:
             out["profile_ref"] = self.profile_ref
         if self.notices:
             out["notices"] = list(self.notices)
+        if self.identity is not None:
+            out["identity"] = dict(self.identity)
+        if self.learned:
+            out["learned"] = dict(self.learned)
         if self.recipe is not None:
             out["recipe"] = self.recipe
         if self.batch is not None:

@@ -111,3 +111,64 @@ class Simulators:
             self._loop.call_soon_threadsafe(self._loop.stop)
             self._thread.join(timeout=30)
             self._loop.close()
+
+
+@contextmanager
+def quirky_umodbus(store: dict[int, int], *, maximum: dict[int, int] | None = None, max_write: int = 0,
+                   all_or_nothing: bool = False, fc06_only: bool = False,
+                   wire: list[tuple[int, int, int]] | None = None) -> Iterator[int]:
+    """A device from another library (umodbus, Modbus/TCP, unit 1) with a real device's quirks; yields its port.
+
+    ``maximum``: register -> the largest value it takes (more answers 03; umodbus writes an FC16's
+    registers one by one, so the ones before the bad value stay written, unless ``all_or_nothing``);
+    ``max_write``: FC16 requests carrying more registers answer 03; ``fc06_only``: FC16 answers 01. It
+    knows no Function 43 (umodbus answers 01). ``wire`` collects (function, address, count) of each request.
+    """
+    pytest.importorskip("umodbus", reason="umodbus is a test extra (pip install -e '.[test]')")
+    import struct
+
+    from umodbus import conf
+    from umodbus.exceptions import IllegalDataValueError
+    from umodbus.server.tcp import RequestHandler, get_server
+    from umodbus.utils import pack_exception_pdu
+
+    limits = maximum or {}
+    seen = wire if wire is not None else []
+
+    class Quirky(RequestHandler):  # type: ignore[misc]
+        def execute_route(self, meta_data: dict[str, int], request_pdu: bytes) -> bytes:
+            fc = request_pdu[0]
+            address, count = struct.unpack(">HH", request_pdu[1:5]) if len(request_pdu) >= 5 else (0, 0)
+            seen.append((fc, address, 1 if fc == 6 else count))
+            if fc == 16:
+                if fc06_only:
+                    return bytes(pack_exception_pdu(16, 1))
+                if max_write and count > max_write:
+                    return bytes(pack_exception_pdu(16, 3))
+                values = struct.unpack(f">{count}H", request_pdu[6:6 + 2 * count])
+                if all_or_nothing and any(v > limits.get(address + i, 0xFFFF) for i, v in enumerate(values)):
+                    return bytes(pack_exception_pdu(16, 3))
+            out: bytes = super().execute_route(meta_data, request_pdu)
+            return out
+
+    conf.SIGNED_VALUES = False
+    socketserver.TCPServer.allow_reuse_address = True
+    server = get_server(socketserver.TCPServer, ("127.0.0.1", 0), Quirky)
+
+    @server.route(slave_ids=[1], function_codes=[3], addresses=list(store))  # type: ignore[untyped-decorator]
+    def read(slave_id: int, function_code: int, address: int) -> int:
+        return store[address]
+
+    @server.route(slave_ids=[1], function_codes=[6, 16], addresses=list(store))  # type: ignore[untyped-decorator]
+    def write(slave_id: int, function_code: int, address: int, value: int) -> None:
+        if value > limits.get(address, 0xFFFF):
+            raise IllegalDataValueError()
+        store[address] = value
+
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield int(server.server_address[1])
+    finally:
+        server.shutdown()
+        server.server_close()

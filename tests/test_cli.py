@@ -331,8 +331,9 @@ def test_apply_saved_plan_names_its_snapshot_after_the_recipe(capsys: pytest.Cap
 def test_no_answer_after_busy_has_no_exception_code(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     from deployer.testing.simulator import Faults
 
-    # requests: identity read, snapshot read, write (busy: 06), the same write again (no answer: dropped)
-    faults = Faults(busy_first=1, drop_every=4)
+    # requests: identity read, snapshot read, Function 43 (01: none), write (busy: 06), the same write
+    # again (no answer: dropped)
+    faults = Faults(busy_first=1, drop_every=5)
     with SimulatorThread(builtin_profile("example-inverter"), faults=faults) as sim:
         code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--device", sim.url + "?timeout=0.2", "--yes",
                            "--retries", "1", "--state-dir", str(tmp_path / "s"), "--json")

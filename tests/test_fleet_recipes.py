@@ -7,6 +7,8 @@ and the errors an inventory can have, each said once with the devices it concern
 from __future__ import annotations
 
 import json
+import shutil
+import subprocess
 from pathlib import Path
 
 import jsonschema
@@ -23,6 +25,7 @@ from tests.helpers import Simulators
 from tests.test_cli import cli
 
 pytestmark = pytest.mark.timeout(180)
+MBPOLL = shutil.which("mbpoll")  # libmodbus's client: an implementation we did not write
 
 # a temperature controller, from a file next to the inventory (the other type is the built-in inverter)
 PID_PROFILE = """\
@@ -155,9 +158,16 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         snap = yamlsrc.load(by["zone-2"]["snapshot"])[0]
         assert snap["snapshot"]["applied"] == str(tmp_path / "recipes" / "zone.yaml")
 
+        if MBPOLL is not None:  # libmodbus reads what each device type got: its own registers, its own values
+            assert "[16]: \t120\n[17]: \t120\n[18]: \t30\n" in mbpoll(sims[1], 16, 3)
+            assert "[32]: \t2000\n" in mbpoll(sims[1], 32)
+            assert "[4354]: \t0\n[4355]: \t2000\n[4356]: \t0\n[4357]: \t2500\n" in mbpoll(sims[4], 4354, 4)
         code, out, err = cli(capsys, "diff", "--inventory", inv)
         assert code == 0, out + err
-        sims[3].write("F08", (0, 1000))  # drive-2 moved on the panel
+        if MBPOLL is not None:  # drive-2 moved on the panel: libmodbus writes F08 = 10 s (FC16)
+            mbpoll(sims[3], 4356, write=(0, 1000))
+        else:
+            sims[3].write("F08", (0, 1000))
         code, out, err = cli(capsys, "diff", "--inventory", inv, "--per-device")
         assert code == 2 and "drift on 1 of 5 devices: drive-2" in out and "10 s" in out
 
@@ -165,6 +175,17 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         assert code == 0, out + err
         for n, s in zip(NAMES, sims, strict=True):
             assert {p: s.read(p) for p in WANT[n]} == before[n], n
+
+
+def mbpoll(sim: Simulator, register: int, count: int = 1, write: tuple[int, ...] = ()) -> str:
+    """mbpoll on a simulator's holding registers (protocol addresses): read ``count`` of them, or write ``write``."""
+    assert MBPOLL is not None
+    port = sim.url.rsplit(":", 1)[1]
+    done = subprocess.run([MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-t", "4", "-0", "-1", "-r", str(register),
+                           *([] if write else ["-c", str(count)]), "127.0.0.1", *map(str, write)],
+                          capture_output=True, text=True, timeout=20)
+    assert done.returncode == 0, done.stderr
+    return done.stdout
 
 
 def test_a_recipe_for_one_type_over_a_mixed_line_names_the_devices_once(capsys: pytest.CaptureFixture[str],

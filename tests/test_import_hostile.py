@@ -262,3 +262,17 @@ def test_import_reports_name_no_device(tmp_path: Path, capsys: pytest.CaptureFix
     code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "m")
     assert code == 1 and err.endswith("1 error; no profile was written\n")
     assert not os.path.exists(tmp_path / "m.yaml")
+
+
+def test_a_header_cell_spanning_lines(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Found by fuzzing: a quoted header cell with a line break (its row's later cells have no column on the
+    first line) and a quote inside an unquoted cell (literal, as the csv module reads it)."""
+    src = tmp_path / "h.csv"
+    src.write_text('name,address,type,Setting "range,"Remark\nmore",Note\nspeed,1,U16,,,\n')
+    out = tmp_path / "h.yaml"
+    code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "h", "-o", str(out))
+    assert code == 0, err
+    assert f"{src}:1:19: warning: column 'Setting \"range' is not used" in err
+    assert f"{src}:1:34: warning: column 'Remark\\nmore' is not used" in err
+    assert f"{src}:1:1: warning: column 'Note' is not used" in err
+    assert load_profile(out).names() == ["speed"]

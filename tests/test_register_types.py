@@ -224,6 +224,7 @@ def test_apply_snapshot_and_exact_rollback(tmp_path: Path, plc: Profile, capsys:
         report = json.loads(out)["devices"][0]
         assert [(r["function"], r["address"], r["count"]) for r in report["requests"]] == [
             (3, 16, 1), (1, 19, 3), (1, 40, 1),  # current values
+            (43, 0, 1),  # Function 43 identity (the simulator answers 01: none)
             (16, 16, 1), (15, 19, 3), (5, 40, 1),  # writes
             (3, 16, 1), (1, 19, 3), (1, 40, 1)]  # read-back
         by_name = {p["name"]: p for p in report["parameters"]}

@@ -121,9 +121,9 @@ def test_soak_without_health_checks_is_refused_up_front(capsys: pytest.CaptureFi
 
 def test_a_healthy_soak_ends_ok_and_the_commit_follows_it(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with SimulatorThread(PROFILE) as sim:
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "300ms",
-                           "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
-        assert code == 0
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "300ms",
+                             "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
+        assert code == 0 and "watching the health of ramp for 300ms (every 100ms)" in err
         dev = json.loads(out)["devices"][0]
         assert dev["status"] == "ok" and dev["commit"] == "sent"
         log = list(sim.log)
@@ -530,3 +530,24 @@ def test_devices_behind_one_gateway_soak_together(capsys: pytest.CaptureFixture[
     assert reads_of(log, FAULT)[0] > max(written)  # the soak starts once the whole batch is written
     assert health[:2] in ([1, 2], [2, 1])  # then both are watched at once
     assert [log[i].unit for i in writes_to(log, COMMIT)] == [1]
+
+
+@pytest.mark.parametrize("held", [["--confirm-within", "1h"], ["--soak", "1h", "--health-interval", "100ms"]])
+def test_ctrl_c_while_a_change_is_held_rolls_it_back(tmp_path: Path, held: list[str]) -> None:
+    """Ctrl-C during the confirmation wait (or the soak) is a no: the devices are restored at once, no commit."""
+    state = str(tmp_path / "s")
+    with SimulatorThread(PROFILE) as sim:
+        before = sim.registers()
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", *held, "--state-dir", state)
+        try:
+            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), FAULT)) >= 1
+                     or proc.poll() is not None)
+            proc.send_signal(signal.SIGINT)
+            proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert sim.registers() == before and writes_to(list(sim.log), COMMIT) == []
+    assert awaiting(state) == [] and not os.listdir(os.path.join(state, "pending"))
+    events = [json.loads(x)["event"] for x in Path(state, "audit.jsonl").read_text().splitlines()]
+    assert "rolled-back" in events

@@ -204,7 +204,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            run_id=run_id, applied=os.path.abspath(label) if label else None, lock_timeout=lock_timeout,
                            soak=soak, health_interval=health_interval, confirm_within=confirm_within)
-    safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure)
+    safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
+                       interval=health_interval, staged=bool(batch))
     if fleet_run:
         import gc
 
@@ -249,8 +250,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     return report.exit_code
 
 
-def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool
-                ) -> dict[str, Any]:
+def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool,
+                soak: float | None = None, interval: float = 1.0, staged: bool = False) -> dict[str, Any]:
     """apply_many's keywords for a safe change: a pause and a question between batches, the confirmation wait."""
     from ..load.durations import format_duration
 
@@ -276,7 +277,14 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
                   f"    deployer confirm {run} --state-dir {state_dir}\n"
                   "without it every device written is rolled back and the commit is never sent")
 
-    return {"rollback_on_failure": rollback_on_failure, "between_batches": between, "on_confirm_wait": waiting}
+    def soaking(number: int, names: list[str]) -> None:
+        which = names[0] if len(names) == 1 else _n(len(names), "device")
+        err.print(f"{f'batch {number}: ' if number > 1 or staged else ''}watching the health of {which} for "
+                  f"{format_duration(soak or 0)} (every {format_duration(interval)}); a failed check rolls that device "
+                  "back", soft_wrap=True)
+
+    return {"rollback_on_failure": rollback_on_failure, "between_batches": between, "on_confirm_wait": waiting,
+            "on_soak": soaking}
 
 
 def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retries: int | None) -> list[Job]:

@@ -55,6 +55,7 @@ _COMMANDS = {
     "diff": "deployer.cli.read:diff",
     "docs": "deployer.cli.files:docs_command",
     "explain": "deployer.cli.files:explain",
+    "learned": "deployer.cli.field:learned",
     "plan": "deployer.cli.plan:plan",
     "profiles": "deployer.cli.profiles:profiles",
     "pull": "deployer.cli.read:pull",

@@ -54,6 +54,7 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
                url: DeviceURL | None = None) -> None:
     from ..planning.wire import line_cost, wire_stats
     from ..profile.model import address_text
+    from ..transport.urls import DeviceURL, pacing
 
     req_of: dict[str, list[int]] = {}
     for i, w in enumerate(plan.writes, 1):
@@ -86,13 +87,20 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
     unchanged = sum(1 for pp in plan.parameters if pp.action == "unchanged")
     framing, baud, bits, line = _line_of(url)
     chars, seconds = line_cost(plan, framing=framing, baud=baud, char_bits=bits)
+    lim = profile.limits
+    after, between = pacing(url or DeviceURL("tcp"), lim.pause_after_connect, lim.pause_between_requests)
+    paused = ""
+    if plan.writes and (after or between):  # each write follows another request (the snapshot read at least)
+        pauses = after + between * len(plan.writes)
+        seconds += pauses
+        paused = f" (pauses the device needs included: {pauses * 1000:.0f} ms)"
     units = (f"{_n(chars, 'character')} on an ASCII line" if framing == "ascii"
              else f"{_n(chars, 'byte')} on an RTU line")
     out.print(
         f"{_n(len(plan.writes), 'write request')} "
         f"({_n(int(st['registers']), 'register')}; one request per parameter would take {naive})"
         + (f", {unchanged} unchanged" if unchanged else "")
-        + f"; {units}, about {seconds * 1000:.0f} ms at {line}"
+        + f"; {units}, about {seconds * 1000:.0f} ms at {line}{paused}"
         + (" (broadcast: no answers)" if plan.device.unit == 0 else ""))
 
 
@@ -127,6 +135,8 @@ def _show(frame: bytes, framing: str) -> str:
 @click.option("--detailed-exitcode", is_flag=True, help="exit 2 when something would change, 0 when nothing would")
 @click.option("--show-frames", is_flag=True, help="print the exact bytes of each request (RTU, ASCII, TCP)")
 @click.option("--write-all", is_flag=True, help="plan every parameter, even those the device already holds")
+@click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
+              help="where apply keeps what devices taught (limits found by their refusals); plan uses it")
 @fleet_option
 @limit_option
 @parallel_option
@@ -134,7 +144,7 @@ def _show(frame: bytes, framing: str) -> str:
               help="with --inventory: each device's own plan table (default: devices with identical changes together)")
 def plan(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
-         inventory: str | None, limit: str | None, parallel: int, per_device: bool) -> int:
+         state_dir: str, inventory: str | None, limit: str | None, parallel: int, per_device: bool) -> int:
     """Show the requests that apply would send. Offline, or with --device against what the device holds.
 
     With --inventory and no RECIPE, each device's recipe from the inventory."""
@@ -149,7 +159,7 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
             raise UsageError("with --inventory, --device, --out and --show-frames do not apply (one plan per device)")
         return plan_fleet(maybe, _fleet(maybe, inventory, limit, timeout, retries, unit), parallel=parallel,
                           as_json=as_json, detailed_exitcode=detailed_exitcode, write_all=write_all,
-                          per_device=per_device)
+                          state_dir=state_dir, per_device=per_device)
     if limit or per_device:
         raise UsageError(f"{'--limit' if limit else '--per-device'} needs --inventory")
     assert maybe is not None
@@ -159,6 +169,13 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         from ..state.durable import check_output
 
         check_output(out_path, what="the plan")
+    taught = None
+    if url is not None:
+        from ..state import learned
+
+        rec, taught = learned.for_recipe(rec, state_dir, url.bus, u)
+        if taught is not None:
+            click.echo(f"note: {learned.note(taught)}", err=as_json)
     current = None
     if device is not None:
         assert url is not None
@@ -186,13 +203,25 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
 
 
 def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_json: bool, detailed_exitcode: bool,
-               write_all: bool, per_device: bool = False) -> int:
+               write_all: bool, per_device: bool = False, state_dir: str = ".deployer") -> int:
     """A plan per device against what it holds, devices with identical changes together (``per_device``:
     each device's table); exit 3 if any device could not be read, else as plan."""
+    from dataclasses import replace
+
     from ..api import read_jobs
     from ..planning.model import Target
     from ..planning.planfile import plan_to_json
     from ..planning.planner import make_plan
+    from ..state import learned
+
+    taught_jobs = []
+    for j in jobs:
+        r, taught = learned.for_recipe(j.recipe, state_dir, j.url.bus, j.unit)
+        if taught is not None:
+            click.echo(f"note: {j.name}: {learned.note(taught)}", err=as_json)
+            j = replace(j, recipe=r)
+        taught_jobs.append(j)
+    jobs = taught_jobs
 
     values = read_fleet(read_jobs(jobs), parallel)
     plans = {}

@@ -47,14 +47,24 @@ if TYPE_CHECKING:
               help="with --inventory: one row per device and parameter (default: devices with identical drift "
                    "together)")
 @click.option("--matrix", is_flag=True, help="with --inventory: a table of parameters x drifted devices")
+@click.option("--defaults", is_flag=True, help="compare the device with its factory settings (the profile's "
+              "defaults) instead of a recipe: every readable parameter that has a default")
+@click.option("--profile", "profile_ref", metavar="ID|FILE", help="with --defaults and no RECIPE: the device's profile")
 def diff(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, inventory: str | None, limit: str | None, parallel: int, per_device: bool,
-         matrix: bool) -> int:
+         matrix: bool, defaults: bool, profile_ref: str | None) -> int:
     """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches.
 
-    With --inventory and no RECIPE, each device against its recipe from the inventory."""
+    With --inventory and no RECIPE, each device against its recipe from the inventory. With --defaults,
+    the device against its factory settings: exit 2 when some parameter differs from its default."""
     from ..api import diff_values
 
+    if defaults:
+        if inventory or limit or per_device or matrix:
+            raise UsageError("--defaults compares one device: use it with RECIPE or --profile, and --device")
+        return diff_defaults(recipe, profile_ref, device, unit, timeout, retries, as_json)
+    if profile_ref:
+        raise UsageError("--profile goes with --defaults (a recipe names its own profile)")
     maybe = recipe_or_inventory(recipe, inventory)
     if inventory:
         if device:
@@ -85,6 +95,47 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         console().print("no drift: the device holds " + ("the recipe's value" if len(rec.desired) == 1 else
                                                          f"all {len(rec.desired)} values of the recipe"))
     return EXIT_CHANGES if drift else EXIT_OK
+
+
+def diff_defaults(recipe: str | None, profile_ref: str | None, device: str | None, unit: int | None,
+                  timeout: float | None, retries: int | None, as_json: bool) -> int:
+    """diff --defaults: what differs from the factory settings; exit 2 when something does."""
+    from ..api import defaults_diff, device_url
+    from ..profile import resolve_profile
+    from ..recipe.loader import load_recipe
+
+    if recipe and profile_ref:
+        raise UsageError("pass RECIPE or --profile, not both (a recipe names its profile)")
+    if recipe:
+        rec = load_recipe(recipe)
+        prof = rec.profile
+        url, u = _target(rec, device, unit, timeout, retries, required=True)
+    elif profile_ref and device:
+        prof = resolve_profile(profile_ref)
+        url, u = device_url(device, timeout=timeout, retries=retries), unit if unit is not None else 1
+    else:
+        raise UsageError("diff --defaults needs RECIPE, or --profile ID|FILE and --device URL")
+    assert url is not None
+    names = [p.name for p in prof.parameters if p.readable and p.default is not None]
+    current = read_device(prof, names, url, u)
+    if current is None:
+        return EXIT_UNREACHABLE
+    differs, _ = defaults_diff(prof, current)
+    no_default = [p.name for p in prof.parameters if p.readable and p.default is None]
+    if as_json:
+        click.echo(json.dumps({"profile": prof.id, "device": describe(url), "unit": u,
+                               "differs": [d.to_json() for d in differs], "compared": len(names),
+                               "no_default": no_default}, indent=2))
+    else:
+        out = console()
+        if differs:
+            show(out, ["parameter", "factory default", "device value"],
+                 [[d.name, d.default, (d.device, "yellow")] for d in differs])
+        out.print(f"{len(differs)} of {_n(len(names), 'parameter')} with a factory default differ from it"
+                  if differs else f"factory settings: all {_n(len(names), 'parameter')} with a default hold it")
+        if no_default:
+            out.print(f"not compared: {_n(len(no_default), 'parameter')} without a default in profile {prof.id}")
+    return EXIT_CHANGES if differs else EXIT_OK
 
 
 def drift_rows(rows: Sequence[Drift], device: str | None = None) -> list[list[Cell]]:
@@ -141,11 +192,14 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
 @click.option("-o", "--output", type=click.Path(), help="write the recipe here (default: stdout); "
               "with --inventory a folder: one NAME.yaml per device")
 @click.option("--name", help="the recipe's name (default: pulled-PROFILE)")
+@click.option("--non-default", is_flag=True, help="write only the values that differ from the factory settings "
+              "(the profile's defaults; parameters without a default are kept)")
 @fleet_option
 @limit_option
 @parallel_option
 def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-         output: str | None, name: str | None, inventory: str | None, limit: str | None, parallel: int) -> int:
+         output: str | None, name: str | None, non_default: bool, inventory: str | None, limit: str | None,
+         parallel: int) -> int:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
     from ..api import device_url, pull_names, pulled_recipe
     from ..profile import resolve_profile
@@ -158,7 +212,7 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
         if not output:
             raise UsageError("with --inventory, pass -o DIR: one recipe per device goes there")
         return pull_fleet(inventory, limit, profile_ref, output, timeout=timeout, retries=retries, unit=unit,
-                          parallel=parallel)
+                          parallel=parallel, non_default=non_default)
     if limit:
         raise UsageError("--limit needs --inventory")
     if not profile_ref or not device:
@@ -171,8 +225,11 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
     current = read_device(prof, pull_names(prof), url, u)
     if current is None:
         return EXIT_UNREACHABLE
+    comment = _pulled_from(describe(url), u)
+    if non_default:
+        current, comment = _non_default(prof, current, comment)
     text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
-                         comment=_pulled_from(describe(url), u), relative_to=output)
+                         comment=comment, relative_to=output)
     # a value outside the profile's range is kept as a comment, not set: count only what the recipe sets
     left = [n for n, regs in current.items() if value_text(prof.parameter(n), regs) is None]
     said = f"{_n(len(current) - len(left), 'parameter')} written to {output}" + (
@@ -185,8 +242,21 @@ def _pulled_from(url: str, unit: int) -> str:
     return f"Pulled from {url} unit {unit} at {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}"
 
 
+def _non_default(prof: Profile, current: dict[str, tuple[int, ...]], comment: str,
+                 ) -> tuple[dict[str, tuple[int, ...]], str]:
+    """pull --non-default: the values that are not factory settings, and a comment saying what was left out."""
+    from ..api import non_default
+
+    kept = non_default(prof, current)
+    unknown = sum(1 for n in kept if prof.parameter(n).default is None)
+    comment += (f"\nOnly the values that differ from the factory defaults of profile {prof.id}: "
+                f"{_n(len(current) - len(kept), 'parameter')} at the default left out"
+                + (f"; {_n(unknown, 'parameter')} without a default in the profile kept" if unknown else ""))
+    return kept, comment
+
+
 def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folder: str, *, timeout: float | None,
-               retries: int | None, unit: int | None, parallel: int) -> int:
+               retries: int | None, unit: int | None, parallel: int, non_default: bool = False) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
     from ..api import check_writable, device_url, load_inventory, pull_names, pulled_recipe
     from ..fleet.rollout import ReadJob
@@ -222,8 +292,11 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
         if isinstance(cur, Exception):
             continue
         path = os.path.join(folder, f"{_safe(j.name)}.yaml")
+        comment = _pulled_from(describe(j.url), j.unit)
+        if non_default:
+            cur, comment = _non_default(j.profile, dict(cur), comment)
         text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
-                             comment=_pulled_from(describe(j.url), j.unit), relative_to=path)
+                             comment=comment, relative_to=path)
         write_atomic(path, text)
         written += 1
     down = _unreachable(values)

@@ -41,15 +41,31 @@ def _register(text: str) -> int:
 @click.option("--log", "log_path", type=click.Path(dir_okay=False), help="one JSON line per request")
 @click.option("--loose-limits", is_flag=True, help="accept requests beyond the profile's limits")
 @click.option("--gap-reads", is_flag=True, help="answer reads of undeclared registers between declared ones (zeros)")
+@click.option("--max-write-registers", type=click.IntRange(1, 123), default=None, metavar="N",
+              help="quirk: FC16 writes of more than N registers answer 03 and write nothing, whatever the profile says")
+@click.option("--all-or-nothing", is_flag=True,
+              help="quirk: one bad value refuses the whole write (03) and nothing of it is written")
+@click.option("--fc06-only", is_flag=True, help="quirk: Function 16 answers 01 (illegal function); only FC06 writes")
+@click.option("--pause-after-connect", metavar="DURATION", default="0",
+              help="quirk: requests sooner after a connection opens are not answered (250ms, 1s)")
+@click.option("--pause-between-requests", metavar="DURATION", default="0",
+              help="quirk: requests sooner after the previous answer are not answered (250ms, 1s)")
+@click.option("--identity", "identity", multiple=True, metavar="OBJECT=TEXT",
+              help="Function 43 objects to answer (vendor, product_code, revision, ... or an id 0..255), e.g. "
+                   "--identity vendor=ACME; default: the profile's identity objects, else the device answers 01. "
+                   "Repeatable.")
 def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str | None,
              set_registers: tuple[str, ...], latency_ms: float,
              baud: int | None, drop_every: int, busy_first: int, fail_registers: tuple[str, ...],
              disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool,
-             gap_reads: bool, fault_rules: tuple[str, ...] = ()) -> int:
+             gap_reads: bool, max_write_registers: int | None, all_or_nothing: bool, fc06_only: bool,
+             pause_after_connect: str, pause_between_requests: str, identity: tuple[str, ...],
+             fault_rules: tuple[str, ...] = ()) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
-    from ..profile import resolve_profile
+    from ..load.durations import parse_duration
+    from ..profile import IDENTITY_OBJECTS, resolve_profile
     from ..recipe.loader import load_recipe
-    from ..testing.simulator import Faults, Simulator, init_from_recipe, parse_fault_rule, parse_listen, serve
+    from ..testing.simulator import Faults, Quirks, Simulator, init_from_recipe, parse_fault_rule, parse_listen, serve
 
     prof = resolve_profile(profile)
     try:
@@ -75,9 +91,28 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
     faults = Faults(latency_ms=latency_ms, baud=baud, drop_every=drop_every, busy_first=busy_first,
                     fail_registers=frozenset(_register(r) for r in fail_registers),
                     disconnect_after=disconnect_after, rules=rules)
+    pauses = []
+    for option, text in (("--pause-after-connect", pause_after_connect),
+                         ("--pause-between-requests", pause_between_requests)):
+        try:
+            pauses.append(parse_duration(text) * 1000)
+        except ValueError as e:
+            raise UsageError(f"{option}: {e}") from None
+    objects: dict[int, str] | None = None
+    for item in identity:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        oid = IDENTITY_OBJECTS.get(key, int(key) if key.isdigit() else -1)
+        if not sep or not 0 <= oid <= 255:
+            raise UsageError(f"--identity {item}: expected OBJECT=TEXT with OBJECT one of "
+                             f"{', '.join(IDENTITY_OBJECTS)} or an object id 0..255")
+        objects = {**(objects or {}), oid: text}
+    quirks = Quirks(max_write_registers=max_write_registers or 0, all_or_nothing=all_or_nothing,
+                    fc06_only=fc06_only, pause_after_connect_ms=pauses[0], request_gap_ms=pauses[1],
+                    identity=objects)
     try:
         sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
-                        state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads)
+                        state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads, quirks=quirks)
     except ValueError as e:  # a --set register the profile does not declare
         raise UsageError(str(e)) from None
 

@@ -13,7 +13,7 @@ import json
 import os
 from collections import deque
 from collections.abc import Awaitable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from ..errors import Declined, DeviceGone, IdentityMismatch, StalePlan, UsageError
 from ..planning.model import Plan, ReadRequest, Target
@@ -22,13 +22,13 @@ from ..planning.planner import make_plan, plan_reads
 from ..profile import Parameter, Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..report import DeviceResult, ParameterResult, show_registers
-from ..state import journal, lock
+from ..state import journal, learned, lock
 from ..state.durable import Line, disk_error, durable, queue
 from ..state.snapshot import snapshot_file
 from ..transport import clients as tp
-from .recovery import _recover, _remerge
+from .recovery import Learning, _recover, _remerge, chunks, single_writes
 from .session import ApplyOptions, Session
-from .steps import _send_actions, check_identity, check_preconditions
+from .steps import _send_actions, check_identity, check_identity_objects, check_preconditions
 from .verify import PENDING, _attempted, _values, _verify
 
 
@@ -116,6 +116,7 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
         res.notices.extend(h.stale for h in held if h.stale)
         target = Target(tp.describe(url), unit, profile_ref(prof))
         transport = tp.open_transport(url)
+        transport.set_pacing(*tp.pacing(url, prof.limits.pause_after_connect, prof.limits.pause_between_requests))
         try:
             await transport.connect()
         except tp.Unreachable as e:
@@ -126,7 +127,7 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
             if unit == 0:
                 await _broadcast(session, recipe, target, opts, res, results)
             else:
-                await _apply(session, recipe, target, opts, res, results)
+                await _apply(session, recipe, target, opts, res, results, lock.device_key(url.bus, unit))
         finally:
             await transport.close()
         if transport.late_answers:
@@ -166,9 +167,8 @@ async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: App
 
 
 async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,
-                 results: dict[str, ParameterResult]) -> None:
+                 results: dict[str, ParameterResult], key: str) -> None:
     prof = recipe.profile
-    shared = _shared(recipe)
     # 1. before any write: identity and current values; a silent device here is "unreachable"
     try:
         try:
@@ -176,7 +176,24 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         except IdentityMismatch as e:
             res.status, res.error = "failed", f"{e}; nothing was written"
             return
+        shared = _shared(recipe)
         before = _values(shared.layout, await session.read_blocks(shared.reads, prof))
+        # after a register answered: a device silent on Function 43 is not taken for an absent one
+        res.identity = await session.identify()
+        why = check_identity_objects(prof, res.identity)
+        if why:
+            res.status, res.error = "failed", f"{why}; nothing was written"
+            return
+        taught = learned.lookup(opts.state_dir, profile_ref(prof), key) if opts.expected is None else None
+        if taught is not None:
+            if taught.identity is not None and res.identity is not None and taught.identity != res.identity:
+                res.notices.append("the device's identity changed since it taught "
+                                   f"{taught.describe_limits()} ({_identity_text(taught.identity)}, now "
+                                   f"{_identity_text(res.identity)}): not used")
+            elif (taught_prof := learned.with_limits(prof, taught)) is not prof:
+                recipe = replace(recipe, profile=taught_prof)
+                prof = taught_prof
+                res.notices.append(learned.note(taught))
     except DeviceGone as e:
         res.status, res.error = "unreachable", f"{e}; nothing was written"
         return
@@ -247,6 +264,10 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
             return
     try:
         await _write_verify_commit(session, prof, recipe, plan, opts, res, results)
+        if res.learned:
+            learned.remember(opts.state_dir, learned.Entry(
+                profile_ref(prof), key, dict(res.learned), next((n for n in res.notices if "; set limits." in n), ""),
+                learned.now(), res.identity, res.url, res.unit))
     finally:
         if prof.unlock and prof.lock:
             try:
@@ -258,9 +279,18 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
                        if r.status == "ok" and prof.parameter(n).restart)
 
 
+def _identity_text(identity: dict[str, str]) -> str:
+    return ", ".join(f"{k} {v!r}" for k, v in identity.items()) or "none"
+
+
 async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, plan: Plan, opts: ApplyOptions,
                                res: DeviceResult, results: dict[str, ParameterResult]) -> None:
-    written, unanswered = await _write_all(session, prof, plan, opts, results, res.notices)
+    learning = Learning()
+    try:
+        written, unanswered = await _write_all(session, prof, plan, opts, results, learning, res.notices)
+    finally:
+        res.learned = learning.limits(results)
+        res.notices.extend(learning.notices(results, prof.id))
 
     # read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
@@ -294,10 +324,15 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
 
 
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,
-                     results: dict[str, ParameterResult],
+                     results: dict[str, ParameterResult], learning: Learning,
                      notices: list[str] | None = None) -> tuple[set[str], set[str] | None]:
     """Send the plan's writes. Returns the names sent, and, when the device went away, the names of the
-    request it did not answer (None while it answers)."""
+    request it did not answer (None while it answers).
+
+    A request the device refuses whole is split and sent again (recovery.py); once a refusal is
+    known to be for length alone, or Function 16 answered 01, the later requests go in the form the
+    device takes (``learning``).
+    """
     desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
     written: set[str] = set()
     pending = deque(plan.writes)
@@ -309,6 +344,15 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
                 if results[n].status != "failed":
                     results[n].status = "skipped"
             continue
+        if req.function == 16 and learning.fc06:
+            pending.extendleft(reversed(single_writes(prof, req)))
+            continue
+        cap = learning.update_cap(results, written) if req.function == 16 else 0
+        if cap and req.count > cap:
+            pieces = chunks(prof, req, cap)
+            if len(pieces) > 1:
+                pending.extendleft(reversed(pieces))
+                continue
         try:
             req = await _remerge(session, prof, req, desired, results)
         except (DeviceGone, tp.ExceptionResponse) as e:  # nothing of this request was sent
@@ -318,21 +362,30 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
             continue
         try:
             await session.write(req)
+            learning.took(req)
             _attempted(results, req.parameters, written)
             wait = prof.wait_after(req.stage)
             if wait and (not pending or pending[0].stage != req.stage):
                 await asyncio.sleep(wait / 1000)
         except tp.ExceptionResponse as e:
-            follow_up, took = await _recover(session, prof, req, e, desired, results, written, notices)
-            if took:  # the device complained, but the values are there: go on as after a plain answer
+            if e.code == 1 and req.function == 16 and not learning.fc06:  # no Function 16: nothing was written
+                learning.fc06 = True
+                pending.extendleft(reversed(single_writes(prof, req)))
+                continue
+            rec = await _recover(session, prof, req, e, desired, results, written, notices)
+            if rec.took_all:  # the device complained, but the values are there: go on as after a plain answer
+                continue
+            if rec.halves is not None:  # refused whole: the halves find the culprit (under --on-error stop too)
+                learning.refused.append((req.count, req.parameters))
+                pending.extendleft(reversed(rec.halves))
                 continue
             if opts.on_error == "continue":
-                if follow_up is not None:
-                    pending.appendleft(follow_up)
+                if rec.follow_up is not None:
+                    pending.appendleft(rec.follow_up)
             else:
                 stopped = True
-                if follow_up is not None:
-                    for n in follow_up.parameters:
+                if rec.follow_up is not None:
+                    for n in rec.follow_up.parameters:
                         results[n].status = "skipped"
         except DeviceGone as e:
             # the request may or may not have been applied: the read-back (if any) decides

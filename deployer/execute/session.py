@@ -13,7 +13,7 @@ from ..errors import DeviceGone as DeviceGone
 from ..errors import StalePlan as StalePlan
 from ..planning.model import Plan, ReadRequest, WriteRequest
 from ..planning.planner import gap_free_reads, read_key
-from ..profile import Profile
+from ..profile import Profile, object_name
 from ..report import DeviceResult, RequestRecord
 from ..transport import clients as tp
 
@@ -94,6 +94,27 @@ class Session:
                     await self.transport.reconnect()
                 continue
             await asyncio.sleep(self.backoff * 2 ** (attempt - 1))
+
+    async def identify(self) -> dict[str, str] | None:
+        """Device Identification (Function 43 / 14, basic objects: vendor, product code, revision) as
+        texts by object name, or None for a device without it. One attempt, never an error: devices
+        answer 01, or nothing, or drop the connection for a function they lack (it is opened again)."""
+        rec = RequestRecord(43, 0, 1)
+        self.records.append(rec)
+        try:
+            objects = await self.transport.read_device_identification(self.unit)
+        except tp.ExceptionResponse as e:
+            rec.result, rec.exception_code = "exception", e.code
+            return None
+        except tp.NoResponse:
+            rec.result = "no response"
+            return None
+        except tp.ConnectionLost:
+            rec.result = "connection lost"
+            with contextlib.suppress(tp.Unreachable):
+                await self.transport.reconnect()
+            return None
+        return {object_name(i): v.decode("latin-1").strip(" \x00") for i, v in sorted(objects.items())}
 
     async def read(self, address: int, count: int, function: int = 3) -> list[int]:
         """Registers (FC03, FC04) or bits as 0/1 (FC01, FC02) from ``address``."""

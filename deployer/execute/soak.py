@@ -138,18 +138,30 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
         failed.append(w)
         if on_failed is not None:
             on_failed(w)
-        await roll_back(w, why, options)
+        rollbacks.append(asyncio.ensure_future(roll_back(w, why, options)))
+        await asyncio.shield(rollbacks[-1])  # an interrupt must not cut a rollback short
 
+    rollbacks: list[asyncio.Future[None]] = []
+    interrupted = False
     try:
         await asyncio.gather(*(watch(w) for w in todo))
+    except asyncio.CancelledError:  # Ctrl-C: a change that has not proven itself is undone, not left behind
+        interrupted = True
+        for w in todo:
+            if w not in passed and w not in failed:
+                failed.append(w)
+                rollbacks.append(asyncio.ensure_future(roll_back(w, "interrupted during the soak", options)))
+        await asyncio.gather(*rollbacks, return_exceptions=True)
+        raise
     finally:
         for transport, _, _ in lines.values():
             await transport.close()
-    if run is not None:
-        _journal(options, {"event": "soak-finished", "run": run, "time": journal._now(),
-                           "passed": [w.name for w in passed], "rolled_back": [w.name for w in failed
-                                                                              if w.result.status == "rolled-back"],
-                           "failed": [w.name for w in failed if w.result.status != "rolled-back"]})
+        if run is not None:
+            _journal(options, {"event": "soak-finished", "run": run, "time": journal._now(),
+                               "passed": [w.name for w in passed],
+                               "rolled_back": [w.name for w in failed if w.result.status == "rolled-back"],
+                               "failed": [w.name for w in failed if w.result.status != "rolled-back"],
+                               **({"interrupted": True} if interrupted else {})})
     return [w for w in todo if w in passed]
 
 
@@ -286,7 +298,11 @@ async def await_confirmation(run: str, seconds: float, options: ApplyOptions, *,
         if left <= 0:
             _journal(options, {"event": "confirm-expired", "run": run, "time": journal._now()})
             return False
-        await asyncio.sleep(min(poll, left))
+        try:
+            await asyncio.sleep(min(poll, left))
+        except asyncio.CancelledError:
+            _journal(options, {"event": "confirm-interrupted", "run": run, "time": journal._now()})
+            raise
 
 
 def _confirmed_since(path: str, offset: int, run: str) -> tuple[int, bool]:
@@ -328,7 +344,8 @@ class Awaiting:
 
 
 def awaiting(state_dir: str) -> list[Awaiting]:
-    """Runs whose ``confirm-awaited`` line has no ``confirmed``, ``confirm-expired`` or ``run-finished`` after it."""
+    """Runs whose ``confirm-awaited`` line has no answer (``confirmed``, ``confirm-expired``,
+    ``confirm-interrupted``) or ``run-finished`` after it."""
     out: dict[str, Awaiting] = {}
     recipes: dict[str, str | None] = {}
     try:
@@ -350,7 +367,7 @@ def awaiting(state_dir: str) -> list[Awaiting]:
                 out[run] = Awaiting(run, rec.get("pid"), str(rec.get("deadline", "")),
                                     float(rec.get("deadline_epoch", 0)), str(rec.get("report", "")),
                                     recipes.get(run))
-            elif event in ("confirmed", "confirm-expired", "run-finished"):
+            elif event in ("confirmed", "confirm-expired", "confirm-interrupted", "run-finished"):
                 out.pop(run, None)
     return list(out.values())
 

@@ -7,7 +7,7 @@ from collections.abc import Iterable
 
 from ..errors import IdentityMismatch
 from ..planning.model import WriteRequest
-from ..profile import Profile, WriteAction, codec
+from ..profile import Profile, WriteAction, codec, object_name
 from .session import Session
 
 
@@ -21,6 +21,21 @@ async def check_identity(session: Session, profile: Profile) -> None:
                 f"identity check failed: register 0x{chk.address:04X}{what} holds 0x{value:04X}, expected "
                 f"0x{chk.raw:04X}: another kind of device answers here",
                 address=chk.address, expected=chk.raw, found=value)
+
+
+def check_identity_objects(profile: Profile, identity: dict[str, str] | None) -> str | None:
+    """None if the device's Function 43 objects hold what the profile's identity checks expect, else why not."""
+    for chk in profile.identity_objects:
+        name = object_name(chk.object_id)
+        what = f" ({chk.description})" if chk.description else ""
+        if identity is None:
+            return (f"identity check failed: the device does not answer Function 43 (device identification); "
+                    f"{name}{what} should be {chk.equals!r}")
+        if identity.get(name) != chk.equals:
+            have = repr(identity[name]) if name in identity else "missing"
+            return (f"identity check failed: {name}{what} is {have}, expected {chk.equals!r}: another kind of "
+                    f"device answers here")
+    return None
 
 
 async def check_preconditions(session: Session, profile: Profile) -> str | None:

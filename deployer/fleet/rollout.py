@@ -133,7 +133,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                      rollback_on_failure: bool = False,
                      between_batches: Callable[[int, Report], Awaitable[str | None]] | None = None,
                      on_confirm_wait: Callable[[str, float], None] | None = None,
-                     on_changed: Callable[[DeviceResult], None] | None = None) -> Report:
+                     on_changed: Callable[[DeviceResult], None] | None = None,
+                     on_soak: Callable[[int, list[str]], None] | None = None) -> Report:
     """Apply to many devices: in parallel, except that devices on one bus go one at a time.
 
     ``batches`` (sizes, in job order) stage the rollout: each batch finishes before the next
@@ -149,7 +150,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     written device is rolled back. ``rollback_on_failure``: when the rollout stops, every device written
     is rolled back. ``between_batches(number, report so far)`` runs before batches 2, 3 ... (a pause, a
     question) and may end the rollout by returning the reason. ``on_changed`` is told of a device whose
-    result changed after ``on_done`` (rolled back, committed).
+    result changed after ``on_done`` (rolled back, committed); ``on_soak(batch number, device names)`` when a
+    soak starts.
     """
     started = time.monotonic()
     done: dict[str, DeviceResult] = {}
@@ -206,44 +208,49 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     def so_far() -> Report:
         return Report(recipe_name, [done[j.name] for j in jobs if j.name in done], time.monotonic() - started)
 
-    sizes = list(batches) if batches else [len(jobs)]
-    pos = 0
-    for number, size in enumerate(sizes, 1):
-        batch = jobs[pos:pos + size]
-        if number > 1 and stop is None and between_batches is not None:
-            stop = await between_batches(number, so_far())
-        pos += size
-        await on_buses(batch, parallel, one)
-        if opts.soak is not None:
-            unhealthy: list[str] = []
-            pending = _write_pending(opts, so_far())
-            passed = await soak(written(batch), opts, on_failed=unhealthy_into(unhealthy), report=pending)
-            budget.failures += len(unhealthy)
-            if opts.confirm_within is None:  # the soak passed: the change is kept
-                await asyncio.gather(*(send_commit(w, opts) for w in passed))
-            changed(written(batch))
-            if number == 1 and unhealthy and stop is None and pos < len(jobs):
-                stop = (f"not started: the canary batch 1 failed its health checks "
-                        f"({', '.join(unhealthy)} rolled back)")
-        if stop is None and pos < len(jobs):
-            stop = batch_failed(number, batch, done)
-        if stop is None and pos < len(jobs):
-            stop = budget.spent()
-    if stop is not None and rollback_on_failure:
-        reason = f"rolled back: the rollout stopped ({stop.removeprefix('not started: ')})"
-        await asyncio.gather(*(roll_back(w, reason, opts) for w in written(jobs)
-                               if w.result.snapshot is not None
-                               and w.result.status not in ("rolled-back", "skipped", "unreachable")))
-    if opts.confirm_within is not None:
-        await _confirm_or_roll_back(written(jobs), opts, recipe_name, on_confirm_wait)
-    for w in written(jobs):  # a commit never sent to a device that ended other than ok
-        if w.result.commit == "held" and w.result.status != "ok":
-            w.result.commit = "not sent"
-    if rollback_on_failure or opts.confirm_within is not None:
-        changed(written(jobs))
-    if opts.run_id is not None and (opts.soak is not None or opts.confirm_within is not None):
-        with contextlib.suppress(FileNotFoundError):  # the run ended: its report says the rest
-            os.remove(pending_path(opts.state_dir, opts.run_id))
+    try:
+        sizes = list(batches) if batches else [len(jobs)]
+        pos = 0
+        for number, size in enumerate(sizes, 1):
+            batch = jobs[pos:pos + size]
+            if number > 1 and stop is None and between_batches is not None:
+                stop = await between_batches(number, so_far())
+            pos += size
+            await on_buses(batch, parallel, one)
+            if opts.soak is not None:
+                unhealthy: list[str] = []
+                pending = _write_pending(opts, so_far())
+                soaking = [w.name for w in written(batch) if needs_soak(w.result)]
+                if on_soak is not None and soaking:
+                    on_soak(number, soaking)
+                passed = await soak(written(batch), opts, on_failed=unhealthy_into(unhealthy), report=pending)
+                budget.failures += len(unhealthy)
+                if opts.confirm_within is None:  # the soak passed: the change is kept
+                    await asyncio.gather(*(send_commit(w, opts) for w in passed))
+                changed(written(batch))
+                if number == 1 and unhealthy and stop is None and pos < len(jobs):
+                    stop = (f"not started: the canary batch 1 failed its health checks "
+                            f"({', '.join(unhealthy)} rolled back)")
+            if stop is None and pos < len(jobs):
+                stop = batch_failed(number, batch, done)
+            if stop is None and pos < len(jobs):
+                stop = budget.spent()
+        if stop is not None and rollback_on_failure:
+            reason = f"rolled back: the rollout stopped ({stop.removeprefix('not started: ')})"
+            await asyncio.gather(*(roll_back(w, reason, opts) for w in written(jobs)
+                                   if w.result.snapshot is not None
+                                   and w.result.status not in ("rolled-back", "skipped", "unreachable")))
+        if opts.confirm_within is not None:
+            await _confirm_or_roll_back(written(jobs), opts, recipe_name, on_confirm_wait)
+        for w in written(jobs):  # a commit never sent to a device that ended other than ok
+            if w.result.commit == "held" and w.result.status != "ok":
+                w.result.commit = "not sent"
+        if rollback_on_failure or opts.confirm_within is not None:
+            changed(written(jobs))
+    finally:
+        if opts.run_id is not None and (opts.soak is not None or opts.confirm_within is not None):
+            with contextlib.suppress(FileNotFoundError):  # the run ended (or was interrupted and rolled back)
+                os.remove(pending_path(opts.state_dir, opts.run_id))
     return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
 
 
@@ -265,8 +272,14 @@ async def _confirm_or_roll_back(devices: Sequence[Written], opts: ApplyOptions, 
         return
     _write_pending(opts, Report(recipe_name, [w.result for w in devices]))
     run = opts.run_id
-    confirmed = await await_confirmation(run, opts.confirm_within, opts,
-                                         on_wait=None if on_wait is None else lambda t: on_wait(run, t))
+    try:
+        confirmed = await await_confirmation(run, opts.confirm_within, opts,
+                                             on_wait=None if on_wait is None else lambda t: on_wait(run, t))
+    except asyncio.CancelledError:  # Ctrl-C while waiting: the answer is no, at once
+        rolling = asyncio.ensure_future(asyncio.gather(*(roll_back(w, "interrupted while waiting for the "
+                                                                      "confirmation", opts) for w in waiting)))
+        await asyncio.shield(rolling)
+        raise
     if confirmed:
         await asyncio.gather(*(send_commit(w, opts) for w in waiting))
     else:

@@ -16,6 +16,7 @@ from .loader import (
     wire_address,
 )
 from .model import (
+    IDENTITY_OBJECTS,
     PROTOCOL_MAX_READ,
     PROTOCOL_MAX_WRITE,
     Access,
@@ -23,14 +24,17 @@ from .model import (
     CommitAction,
     HealthCheck,
     IdentityCheck,
+    IdentityObject,
     Limits,
     Parameter,
     Precondition,
     Profile,
     WriteAction,
+    object_name,
 )
 
 __all__ = [
+    "IDENTITY_OBJECTS",
     "PROTOCOL_MAX_READ",
     "PROTOCOL_MAX_WRITE",
     "Access",
@@ -38,6 +42,7 @@ __all__ = [
     "CommitAction",
     "HealthCheck",
     "IdentityCheck",
+    "IdentityObject",
     "Limits",
     "Parameter",
     "Precondition",
@@ -48,6 +53,7 @@ __all__ = [
     "is_profile_path",
     "load_profile",
     "load_profile_file",
+    "object_name",
     "parse_register",
     "profile_ref",
     "resolve_profile",

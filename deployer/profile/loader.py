@@ -10,8 +10,19 @@ from typing import Any
 
 from ..load import schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
+from ..load.durations import parse_duration
 from . import codec, model, units
-from .model import CommitAction, HealthCheck, IdentityCheck, Limits, Parameter, Precondition, Profile
+from .model import (
+    IDENTITY_OBJECTS,
+    CommitAction,
+    HealthCheck,
+    IdentityCheck,
+    IdentityObject,
+    Limits,
+    Parameter,
+    Precondition,
+    Profile,
+)
 
 # ---- loading ------------------------------------------------------------------------------
 
@@ -166,7 +177,15 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
     errors: list[Diagnostic] = []
     addressing = data.get("addressing", "address")
     rounding = data.get("rounding")
-    limits = Limits(**data.get("limits", {}))
+    limit_data = dict(data.get("limits", {}))
+    for key in ("pause_after_connect", "pause_between_requests"):
+        if key in limit_data:
+            try:
+                limit_data[key] = round(parse_duration(limit_data[key], bare="ms") * 1000)
+            except ValueError as e:
+                errors.append(src.error(("limits", key), str(e)))
+                limit_data[key] = 0
+    limits = Limits(**limit_data)
     if limits.write_registers < 1:
         errors.append(src.error(("limits",), "limits leave no room for a single register per write"))
 
@@ -410,7 +429,17 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             prev = q
 
     identity = []
+    identity_objects = []
     for i, item in enumerate(data.get("identity") or []):
+        if ("register" in item) == ("object" in item):
+            errors.append(src.error(("identity", i), "an identity check is either {register: R, raw: N} or "
+                                                     "{object: vendor|product_code|revision|..., equals: TEXT}"))
+            continue
+        if "object" in item:
+            obj = item["object"]
+            oid = IDENTITY_OBJECTS[obj] if isinstance(obj, str) else int(obj)
+            identity_objects.append(IdentityObject(oid, str(item["equals"]).strip(), item.get("description", "")))
+            continue
         a = address_of(item["register"], ("identity", i, "register"))
         if a is not None:
             identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", "")))
@@ -492,6 +521,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         byte_swap=default_layout[1],
         limits=limits,
         identity=tuple(identity),
+        identity_objects=tuple(identity_objects),
         parameters=tuple(params),
         commit=commits,
         source=os.path.abspath(src.path),

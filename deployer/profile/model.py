@@ -40,6 +40,8 @@ class Limits:
     max_ascii_chars: int = ASCII_MAX_CHARS  # whole ASCII frame: ':' + hex pairs + LRC + CR LF
     # reads may span up to this many consecutive undeclared registers (0: never; DESIGN planning rule 5)
     max_read_gap: int = 0
+    pause_after_connect: int = 0  # ms of silence the device needs after a connection opens
+    pause_between_requests: int = 0  # ms from one answer to the next request, at least
     max_write_coils: int = PROTOCOL_MAX_WRITE_COILS  # per FC15; 1: every coil goes as one FC05
     max_read_coils: int = PROTOCOL_MAX_READ_COILS  # per FC01 (coils) and FC02 (discrete inputs)
 
@@ -255,6 +257,14 @@ class Parameter:
     def text_of(self, registers: tuple[int, ...] | list[int]) -> str:
         return codec.decode_string(registers, self.encoding, self.byte_swap)
 
+    def default_registers(self) -> tuple[int, ...] | None:
+        """The factory default as registers (a field: its bits in place), or None when the profile gives none."""
+        if self.default is None:
+            return None
+        if isinstance(self.default, str):
+            return self.encode_text(self.default)
+        return self.encode(self.to_raw(self.default, "nearest"))
+
     def same_value(self, a: tuple[int, ...] | list[int] | None, b: tuple[int, ...] | list[int] | None) -> bool:
         """Do two register readings hold the same value of this parameter (a field compares its bits)?"""
         if a is None or b is None:
@@ -297,6 +307,28 @@ class IdentityCheck:
 
     address: int
     raw: int
+    description: str = ""
+
+
+# Function 43 / 14 objects by name (Modbus Application Protocol v1.1b3, 6.21)
+IDENTITY_OBJECTS = {"vendor": 0, "product_code": 1, "revision": 2, "vendor_url": 3, "product_name": 4,
+                    "model_name": 5, "application_name": 6}
+
+
+def object_name(object_id: int) -> str:
+    """'vendor', 'product_code' ... for the basic and regular objects, else '0x80'."""
+    for name, i in IDENTITY_OBJECTS.items():
+        if i == object_id:
+            return name
+    return f"0x{object_id:02X}"
+
+
+@dataclass(frozen=True)
+class IdentityObject:
+    """A Device Identification object (Function 43 / 14) that must hold a text, read before any write."""
+
+    object_id: int
+    equals: str
     description: str = ""
 
 
@@ -389,6 +421,7 @@ class Profile:
     byte_swap: bool = False  # ... and byte swap (codec.layout_name gives ABCD/CDAB/BADC/DCBA)
     limits: Limits = field(default_factory=Limits)
     identity: tuple[IdentityCheck, ...] = ()
+    identity_objects: tuple[IdentityObject, ...] = ()
     # sorted by address; table entries expanded to "table[i].field"
     parameters: tuple[Parameter, ...] = ()
     commit: tuple[CommitAction, ...] = ()

@@ -114,7 +114,7 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
     if device is not None and (device.url or device.unit is not None):
         dev = {k: v for k, v in (("url", device.url), ("unit", device.unit)) if v is not None}
         lines.append(f"device: {json.dumps(dev)}")
-    ordered = sorted(values.items(), key=lambda kv: kv[0].address)
+    ordered = sorted(values.items(), key=lambda kv: kv[0].key)  # holding registers, then coils
     if snapshot is not None:
         lines.append("snapshot:  # what rollback restores: these raw registers, as the device held them")
         for k, v in (("profile_sha256", snapshot.profile_sha256), ("taken", snapshot.taken),

@@ -6,6 +6,8 @@ value with exception 03 (the earlier registers stay written, as real drives do),
 beyond the device's limits or splitting a multi-register value answer 03, unit 0 writes
 everywhere and answers nothing. Faults (latency, line time, dropped answers, busy, failing
 registers, disconnects) make the failure paths of the executor testable on a real socket.
+Quirks model devices that do not follow the book, whatever the profile says: a shorter write
+limit, all-or-nothing writes, Function 06 only, pauses the device needs, Function 43 identity.
 
     async with Simulator(profile) as sim:      # tcp://127.0.0.1:<free port>
         ... sim.url ... sim.log ... sim.read("F07")
@@ -32,7 +34,8 @@ from typing import Any
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ModbusIOException, NoSuchIdException
-from pymodbus.pdu import ExceptionResponse
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
+from pymodbus.pdu.mei_message import ReadDeviceInformationRequest, ReadDeviceInformationResponse
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
@@ -114,6 +117,19 @@ def parse_fault_rule(text: str, profile: Profile) -> FaultRule:
 
 
 @dataclass
+class Quirks:
+    """How a device departs from the book, independent of the profile's limits (the profile may not know)."""
+
+    max_write_registers: int = 0  # FC16 carrying more registers answers 03 and writes nothing (0: no limit)
+    all_or_nothing: bool = False  # one bad value refuses the whole request (03), nothing of it is written
+    fc06_only: bool = False  # FC16 answers 01 (illegal function); FC06 takes a 32-bit value word by word
+    pause_after_connect_ms: float = 0  # requests sooner after a connection opened are not answered
+    request_gap_ms: float = 0  # requests sooner after the previous answer are not answered
+    # Function 43 / 14 objects (object id -> text); None: the profile's identity objects, else exception 01
+    identity: dict[int, str] | None = None
+
+
+@dataclass
 class LogEntry:
     time: float
     unit: int
@@ -122,7 +138,7 @@ class LogEntry:
     count: int
     values: list[int] | None
     request_hex: str
-    result: str = "ok"  # ok | exception NN | dropped | broadcast | no answer | disconnected
+    result: str = "ok"  # ok | exception NN | dropped | broadcast | no answer | disconnected | too soon
 
 
 @dataclass
@@ -174,11 +190,7 @@ def initial_registers(profile: Profile) -> dict[int, int]:
     default (its factory setting, engineering), else zero; fields OR'ed into their register."""
     regs: dict[int, int] = {a: 0 for a in _action_registers(profile)}
     for p in profile.parameters:
-        words: tuple[int, ...] = (0,) * p.count
-        if p.is_string:
-            words = p.encode_text(p.default if isinstance(p.default, str) else "")
-        elif isinstance(p.default, Decimal):
-            words = p.encode(p.to_raw(p.default, "nearest"))
+        words = p.default_registers() or (p.encode_text("") if p.is_string else (0,) * p.count)
         if p.mask:
             regs[p.key] = regs.get(p.key, 0) | words[0]
             continue
@@ -220,6 +232,7 @@ class _Units:
     def __init__(self, core: Any, sim: Simulator) -> None:
         self.core = core
         self.sim = sim
+        self.identity = sim.identity_objects()  # Function 43 objects of every unit (None: answers 01)
 
     def device_ids(self) -> list[int]:
         return list(self.core.device_ids())
@@ -239,6 +252,31 @@ class _Units:
         if refused is not None:
             return refused
         return await self.core.async_setValues(device_id, func_code, address, values)
+
+
+class _DeviceIdRequest(ReadDeviceInformationRequest):
+    """Function 43 / 14 answered from the simulator's own objects: pymodbus's server answers from one
+    identity per process, and simulated devices differ (or have none and answer 01)."""
+
+    async def datastore_update(self, context: Any, device_id: int) -> ModbusPDU:
+        objects = getattr(context, "identity", None)
+        if device_id not in getattr(context, "core", context).devices:
+            raise NoSuchIdException(str(device_id))
+        if not objects:
+            return ExceptionResponse(self.function_code, ExcCodes.ILLEGAL_FUNCTION)
+        if not 1 <= self.read_code <= 4:
+            return ExceptionResponse(self.function_code, ExcCodes.ILLEGAL_VALUE)
+        if self.read_code == 4:  # one specific object
+            if self.object_id not in objects:
+                return ExceptionResponse(self.function_code, ExcCodes.ILLEGAL_ADDRESS)
+            wanted = {self.object_id}
+        else:
+            lo, hi = {1: (0, 2), 2: (0, 0x7F), 3: (0, 0xFF)}[self.read_code]
+            start = self.object_id if self.object_id in objects and lo <= self.object_id <= hi else lo
+            wanted = {i for i in objects if start <= i <= hi}
+        return ReadDeviceInformationResponse(
+            read_code=self.read_code, information={i: objects[i].encode("latin-1") for i in sorted(wanted)},
+            dev_id=device_id, transaction_id=self.transaction_id)
 
 
 # What the simulated device answers (the tables its profile does not use answer 01 as well); every
@@ -307,13 +345,14 @@ class Simulator:
     def __init__(self, profile: Profile, *, listen: str = "tcp://127.0.0.1:0", units: Sequence[int] = (1,),
                  init: Mapping[int, int] | None = None, faults: Faults | None = None,
                  log_path: str | None = None, state_path: str | None = None, strict_limits: bool = True,
-                 gap_reads: bool = False) -> None:
+                 gap_reads: bool = False, quirks: Quirks | None = None) -> None:
         if not profile.parameters:
             raise ValueError(f"profile {profile.id} declares no registers to simulate")
         self.profile = profile
         self.listen = parse_listen(listen)
         self.units = tuple(units)
         self.faults = faults or Faults()
+        self.quirks = quirks or Quirks()
         self.log: list[LogEntry] = []
         self.log_path = log_path
         self.state_path = state_path
@@ -343,6 +382,8 @@ class Simulator:
         self._waits = {(a.address, a.registers): a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit)
                        if a.wait_ms}
         self._busy_until = 0.0  # a declared wait after an unlock/commit/lock write: busy (06) meanwhile
+        self._connected_at = 0.0  # monotonic time the last connection opened (a required pause after it)
+        self._answered_at = 0.0  # monotonic time of the last answer (a required gap before the next request)
         start = initial_registers(profile)
         for a, v in (init or {}).items():
             if a not in self._owner and a not in self._extra:
@@ -356,13 +397,16 @@ class Simulator:
                 raise ValueError(f"fault rule '{rule.text}': register {rule.register} is not declared in profile "
                                  f"{profile.id} (a parameter, or a register of its health checks)")
         self.functions = FUNCTIONS  # the function codes this device answers; others get exception 01
+        if self.identity_objects():  # Function 43 / 14 (device identification) when it has objects
+            self.functions = self.functions | {43}
 
     # ---- lifecycle ---------------------------------------------------------------------------
 
     async def start(self) -> None:
         devices = [self._device(unit) for unit in self.units]
         lst = self.listen
-        common: dict[str, Any] = {"broadcast_enable": True, "trace_pdu": self._trace_pdu}
+        common: dict[str, Any] = {"broadcast_enable": True, "trace_pdu": self._trace_pdu,
+                                  "trace_connect": self._trace_connect}
         if lst.scheme == "tcp":
             self._server = ModbusTcpServer(devices, framer=FramerType.SOCKET, address=(lst.host, lst.port), **common)
         elif lst.scheme == "tls":
@@ -382,6 +426,10 @@ class Simulator:
                                               **common)
         self._core = self._server.context
         self._server.context = _Units(self._core, self)
+        # this server's decoder (each connection's framer copies it) answers Function 43 / 14 itself
+        decoder = self._server.decoder
+        decoder.pdu_sub_table = {fc: dict(subs) for fc, subs in decoder.pdu_sub_table.items()}
+        decoder.pdu_sub_table[0x2B][0x0E] = (_DeviceIdRequest, ReadDeviceInformationResponse)
         server = self._server
         server.callback_new_connection = lambda: _InOrderHandler(server, self.functions)
         if self.log_path:
@@ -412,6 +460,13 @@ class Simulator:
 
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()
+
+    def identity_objects(self) -> dict[int, str] | None:
+        """Function 43 objects served: the quirk's, else those the profile's identity checks expect."""
+        if self.quirks.identity is not None:
+            return dict(self.quirks.identity) or None
+        objects = {c.object_id: c.equals for c in self.profile.identity_objects}
+        return objects or None
 
     # ---- registers from outside ------------------------------------------------------------
 
@@ -560,7 +615,8 @@ class Simulator:
 
     async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int],
                       values: list[int] | None, unit: int = 1) -> ExcCodes | None:
-        if fc not in _FC_TABLE:  # e.g. FC22/23: not implemented by the device
+        q = self.quirks
+        if fc not in _FC_TABLE or (fc == 16 and q.fc06_only):  # e.g. FC22/23: not implemented by the device
             return ExcCodes.ILLEGAL_FUNCTION
         f = self.faults
         if _FC_TABLE[fc] in BIT_TABLES:
@@ -610,9 +666,16 @@ class Simulator:
                 return ExcCodes.DEVICE_FAILURE  # parameters locked, or the drive is running
         if self.strict_limits and fc == 16 and count > limits.write_registers:
             return ExcCodes.ILLEGAL_VALUE
-        single_words = fc == 6 and limits.write_function == 6  # FC06 devices take a 32-bit value word by word
+        if fc == 16 and q.max_write_registers and count > q.max_write_registers:
+            return ExcCodes.ILLEGAL_VALUE  # the device's own buffer, whatever the profile says
+        # FC06 devices take a 32-bit value word by word
+        single_words = fc == 6 and (limits.write_function == 6 or q.fc06_only)
         if not single_words and any(p.address < address or p.end > address + count for p in params):
             return ExcCodes.ILLEGAL_VALUE  # the upper and lower word must come in one request
+        if q.all_or_nothing:  # every value is checked before any is stored (Yaskawa: one bad value discards all)
+            refused = self._refusal(params, address, count, values)
+            if refused is not None:
+                return refused
         for p in params:  # in address order, stopping at the first bad one: the partial write of real drives
             lo, hi = max(p.address, address), min(p.end, address + count)
             if any(a in f.fail_registers for a in range(lo, hi)):
@@ -637,6 +700,16 @@ class Simulator:
             return ExcCodes.DEVICE_FAILURE  # written all the same: a device that complains about what it did
         return None
 
+    def _refusal(self, params: list[Parameter], address: int, count: int, values: list[int]) -> ExcCodes | None:
+        """The answer the first bad value of a write gets, or None when every value is acceptable."""
+        for p in params:
+            lo, hi = max(p.address, address), min(p.end, address + count)
+            if any(a in self.faults.fail_registers for a in range(lo, hi)):
+                return ExcCodes.DEVICE_FAILURE
+            if hi - lo == p.count and not self._in_range(p, list(values[lo - address: hi - address])):
+                return ExcCodes.ILLEGAL_VALUE
+        return None
+
     @staticmethod
     def _in_range(p: Parameter, words: list[int]) -> bool:
         if p.is_string:
@@ -649,9 +722,20 @@ class Simulator:
 
     # ---- request log, dropped answers, disconnects --------------------------------------------
 
+    def _trace_connect(self, connected: bool) -> None:
+        if connected:
+            self._connected_at = time.monotonic()
+
+    def _too_soon(self) -> bool:
+        """A request inside the pause the device needs after a connect or after its last answer."""
+        q, now = self.quirks, time.monotonic()
+        return (now - self._connected_at < q.pause_after_connect_ms / 1000
+                or now - self._answered_at < q.request_gap_ms / 1000)
+
     def _trace_pdu(self, sending: bool, pdu: Any) -> Any:
         fc = int(pdu.function_code) & 0x7F
         if sending:
+            self._answered_at = time.monotonic()
             waiting = self._pending.get((pdu.dev_id, pdu.transaction_id, fc))
             entry = waiting.popleft() if waiting else None
             if entry is not None:
@@ -677,6 +761,10 @@ class Simulator:
         self._requests += 1
         self._window += 1
         f = self.faults
+        if self._too_soon():  # not ready: the request is ignored (gateways, dongles, slow meters)
+            entry.result = "too soon"
+            self._write_log(entry)
+            return None
         if f.drop_every and self._requests % f.drop_every == 0:
             entry.result = "dropped"
             self._write_log(entry)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import functools
 import os
 import ssl
 import time
@@ -29,6 +30,8 @@ from pymodbus import FramerType
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient, AsyncModbusTlsClient
 from pymodbus.exceptions import ConnectionException, ModbusException
 from pymodbus.framer import FramerRTU
+from pymodbus.pdu import DecodePDU
+from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
 
 # URLs and errors live apart from pymodbus (commands that only parse URLs stay light); re-exported here
 from .urls import DEFAULT_PORTS as DEFAULT_PORTS
@@ -44,6 +47,7 @@ from .urls import TransportError as TransportError
 from .urls import Unreachable as Unreachable
 from .urls import describe as describe
 from .urls import no_answer_hint as no_answer_hint
+from .urls import pacing as pacing
 from .urls import parse_url as parse_url
 from .urls import verify as _verify
 
@@ -90,6 +94,14 @@ class Transport(abc.ABC):
     @abc.abstractmethod
     async def write_coils(self, address: int, values: list[bool], unit: int) -> None:
         """FC15."""
+
+    @abc.abstractmethod
+    async def read_device_identification(self, unit: int, read_code: int = 1) -> dict[int, bytes]:
+        """FC43 / 14: object id -> bytes (basic objects with read code 1). Raises like the others."""
+
+    @abc.abstractmethod
+    def set_pacing(self, after_connect: float, between: float) -> None:
+        """Seconds of silence after connecting and at least between two requests on this device's bus."""
 
     async def __aenter__(self) -> Transport:
         await self.connect()
@@ -273,7 +285,8 @@ class _Receiver:
         if len(self.buf) < 3:
             return None
         fc = self.buf[1]
-        size = 5 if fc & 0x80 else 5 + self.buf[2] if fc in READS else 8 if fc in (5, 6, 15, 16) else 0
+        size = (5 if fc & 0x80 else 5 + self.buf[2] if fc in READS else 8 if fc in (5, 6, 15, 16) else
+                ReadDeviceInformationResponse.calculateRtuFrameSize(bytes(self.buf)) if fc == 43 else 0)
         if size == 0:
             self.buf.clear()
             return BadAnswer(f"an answer with function code {fc} to a function {want.function} request")
@@ -308,6 +321,10 @@ class _Receiver:
             return ExceptionResponse(want.function, pdu[1])
         if fc != want.function:
             return BadAnswer(f"an answer with function code {fc} to a function {want.function} request")
+        if want.function == 43:  # read device identification: pymodbus parses the objects
+            if len(pdu) < 7 or pdu[1] != 0x0E:
+                return BadAnswer("a malformed device identification answer")
+            return pdu
         if want.function in READS:
             bits = want.function in (1, 2)
             size = (want.count + 7) // 8 if bits else 2 * want.count
@@ -419,12 +436,27 @@ class PymodbusTransport(Transport):
         self._sent_bytes = 0  # length of the last frame sent: a broadcast's own line time
         self._rx: _Receiver | None = None  # reads the answers (see _Receiver)
         self.late_answers: list[float] = []  # seconds after the request, of answers taken late
+        self._after_connect, self._between = pacing(url)  # pauses some devices need (URL options, profile)
 
     # -- hooks for the subclasses
 
     @abc.abstractmethod
     def _make_client(self) -> Any:
         """A new, unconnected pymodbus async client."""
+
+    def set_pacing(self, after_connect: float, between: float) -> None:
+        self._after_connect, self._between = after_connect, between
+
+    def _paced(self) -> bool:
+        return self._shared or bool(self._after_connect or self._between)
+
+    def _connected(self) -> None:
+        """A connection opened: nothing is sent before the device's pause after connecting."""
+        if self._after_connect:
+            quiet = time.monotonic() + self._after_connect
+            self._quiet_until = max(self._quiet_until, quiet)
+            bus = _bus(self.url)
+            bus.quiet_until = max(bus.quiet_until, quiet)
 
     def _common(self) -> dict[str, Any]:
         # retries=0: a late answer to a first copy would hide a double write (docs/design.md, transports)
@@ -467,6 +499,7 @@ class PymodbusTransport(Transport):
             raise Unreachable(f"{where}: {await self._why_not()}")
         self._client = client
         self._rx = _receiver(client, self.url)
+        self._connected()
 
     async def reconnect(self) -> None:
         await self.close()
@@ -492,7 +525,8 @@ class PymodbusTransport(Transport):
             raise ConnectionLost(f"{describe(self.url)}: not connected")
         rx = self._rx
         no_answer = want.unit == 0 and want.function not in READS
-        bus = _bus(self.url) if self._shared else None
+        # a shared line, or a device that needs pauses: requests of every device on its bus take turns
+        bus = _bus(self.url) if self._paced() else None
         if bus is not None:
             await bus.lock.acquire()
         try:
@@ -528,8 +562,9 @@ class PymodbusTransport(Transport):
             except ModbusException as e:
                 raise NoResponse(str(e)) from None
             finally:
-                # the next frame may start only after the silent interval (serial buses)
-                quiet = time.monotonic() + self._gap
+                # the next frame may start only after the silent interval (serial buses) and the pause
+                # the device needs between requests
+                quiet = time.monotonic() + max(self._gap, self._between)
                 if no_answer:
                     # broadcast: nobody answers, so give the devices the turnaround delay to carry it out
                     # (serial line spec 2.4.1: 100-200 ms); pymodbus returned as soon as the frame was
@@ -591,6 +626,30 @@ class PymodbusTransport(Transport):
     async def write_coils(self, address: int, values: list[bool], unit: int) -> None:
         await self._run(_Expect(unit, 15, address, len(values)), lambda c: c.write_coils(
             address, values, device_id=unit, no_response_expected=True))
+
+    async def read_device_identification(self, unit: int, read_code: int = 1) -> dict[int, bytes]:
+        objects: dict[int, bytes] = {}
+        object_id = 0
+        for _ in range(8):  # 'more follows' pages; a device repeating itself must not loop for ever
+            pdu = await self._run(_Expect(unit, 43, read_code, object_id), functools.partial(
+                _read_identification, read_code=read_code, object_id=object_id, unit=unit))
+            r: Any = _DECODER.decode(pdu or b"")  # pymodbus parses the objects
+            if r is None:
+                raise BadAnswer("an identification answer pymodbus cannot read")
+            for oid, value in dict(r.information).items():
+                objects[int(oid)] = value[0] if isinstance(value, list) else bytes(value)
+            if not r.more_follows or r.next_object_id <= object_id:
+                break
+            object_id = r.next_object_id
+        return objects
+
+
+def _read_identification(client: Any, *, read_code: int, object_id: int, unit: int) -> Any:
+    return client.read_device_information(read_code=read_code, object_id=object_id, device_id=unit,
+                                          no_response_expected=True)
+
+
+_DECODER = DecodePDU(False)  # answers (is_server False)
 
 
 class TcpTransport(PymodbusTransport):

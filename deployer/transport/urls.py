@@ -22,6 +22,7 @@ from ..errors import ExceptionResponse as ExceptionResponse
 from ..errors import NoResponse as NoResponse
 from ..errors import TransportError as TransportError
 from ..errors import Unreachable as Unreachable
+from ..load.durations import parse_duration
 
 
 @dataclass(frozen=True)
@@ -121,7 +122,7 @@ def no_answer_hint(url: DeviceURL, unit: int) -> str:
 # ---- URLs ----------------------------------------------------------------------------------
 
 DEFAULT_PORTS = {"tcp": 502, "tls": 802}
-_COMMON = {"timeout", "retries"}
+_COMMON = {"timeout", "retries", "pause_after_connect", "pause_between_requests"}
 _OPTIONS: dict[str, set[str]] = {
     "tcp": _COMMON,
     "tls": _COMMON | {"cert", "key", "ca", "verify", "server_hostname"},  # server_hostname: name to verify
@@ -141,9 +142,13 @@ def option_facts(option: str) -> tuple[list[str], str | None, str | None]:
     schemes = [s for s, opts in _OPTIONS.items() if option in opts]
     line = SERIAL_DEFAULTS
     defaults = {"timeout": DEFAULT_TIMEOUT, "retries": DEFAULT_RETRIES, "baudrate": line.baudrate,
+                "pause_after_connect": "the profile's limits.pause_after_connect (0)",
+                "pause_between_requests": "the profile's limits.pause_between_requests (0)",
                 "bytesize": line.bytesize, "parity": line.parity, "stopbits": line.stopbits, "verify": "true",
                 "server_hostname": "the URL's host"}
-    allowed = {"parity": "N, E, O", "verify": "true, false (also 1, 0, yes, no)",
+    allowed = {"parity": "N, E, O", "pause_after_connect": "a duration: 250ms, 1s (a bare number is seconds)",
+               "pause_between_requests": "a duration: 250ms, 1s (a bare number is seconds)",
+               "verify": "true, false (also 1, 0, yes, no)",
                "cert": "a PEM file", "key": "a PEM file", "ca": "a PEM file"}
     default = defaults.get(option)
     return schemes, None if default is None else str(default), (
@@ -198,6 +203,12 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
             raise BadURL(f"option {key}={options[key]} is out of range ({range_text(key)})")
         return v
 
+    for key in ("pause_after_connect", "pause_between_requests"):
+        if key in options:
+            try:
+                parse_duration(options[key])
+            except ValueError as e:
+                raise BadURL(f"option {key}: {e}") from None
     to = number("timeout") if "timeout" in options else (timeout if timeout is not None else DEFAULT_TIMEOUT)
     rt = number("retries") if "retries" in options else (retries if retries is not None else DEFAULT_RETRIES)
     if scheme in ("rtu", "ascii"):
@@ -237,6 +248,17 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
         if ("cert" in options) != ("key" in options):
             raise BadURL("tls options cert and key go together (the client certificate and its key)")
     return DeviceURL(scheme, host=host, port=port, options=options, timeout=to, retries=rt)
+
+
+def pacing(url: DeviceURL, after_connect_ms: float = 0, between_ms: float = 0) -> tuple[float, float]:
+    """Seconds of (pause after connecting, least gap between requests): the URL's options, else the
+    profile's ``limits`` given here."""
+    o = url.options
+    after = (parse_duration(o["pause_after_connect"]) if "pause_after_connect" in o
+             else after_connect_ms / 1000)
+    between = (parse_duration(o["pause_between_requests"]) if "pause_between_requests" in o
+               else between_ms / 1000)
+    return after, between
 
 
 def describe(url: DeviceURL) -> str:

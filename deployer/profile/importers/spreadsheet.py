@@ -110,6 +110,11 @@ class Row:
     starts: list[int]  # each cell's column
     formulas: dict[int, str] | None = None  # cell index -> formula of a cell that has no saved value
 
+    def column(self, i: int) -> int:
+        """Where cell ``i`` starts (1 for a cell after a line break inside a quoted cell: its row's first line
+        is what the columns are counted on)."""
+        return self.starts[i] if i < len(self.starts) else 1
+
 
 class _Stop(Exception):
     """A bound was hit while reading: the diagnostics so far, and this one, are the answer."""
@@ -125,7 +130,7 @@ def _cell_starts(line: str, delimiter: str) -> list[int]:
     """1-based column where each cell of a physical CSV line starts (quotes respected)."""
     starts, quoted = [1], False
     for i, ch in enumerate(line):
-        if ch == '"':
+        if ch == '"' and (quoted or i + 1 == starts[-1]):  # as the csv module: a quote opens only a cell
             quoted = not quoted
         elif ch == delimiter and not quoted:
             starts.append(i + 2)
@@ -158,6 +163,9 @@ def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = 
                   addressing=addressing, byte_order=byte_order, decimal=decimal)
 
 
+_LINE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n)|[^\r\n]+\Z")
+
+
 @dataclass
 class _Record:
     line: int = 0  # physical lines read so far
@@ -167,7 +175,8 @@ class _Record:
 
 def _csv_rows(path: str, text: str, delimiter: str) -> Iterator[Row]:
     """The CSV's records, each checked against the bounds before the next is read."""
-    physical = io.StringIO(text, newline="")  # lines as the csv module counts them (\r too), read lazily
+    # lines as the csv module counts them (\r too), one at a time (io.StringIO would copy the text 4 bytes a character)
+    physical = (m.group() for m in _LINE.finditer(text))
     state = _Record()
 
     def lines() -> Iterator[str]:
@@ -476,10 +485,10 @@ def _draft(path: str, rows: Iterable[Row], *, profile_id: str, columns: Mapping[
         for i, h in enumerate(header_row.cells):
             if h.strip() and where.get(wanted.get(_key(h), "")) != i:
                 used = wanted.get(_key(h))
-                why = (f"a second '{used}' column (the first is column {header_row.starts[where[used]]})" if used
+                why = (f"a second '{used}' column (the first is column {header_row.column(where[used])})" if used
                        else f"not a column this importer knows; name it with --column OURS={_show(h.strip())} "
                             f"(ours: {', '.join(COLUMNS)})")
-                warnings.append(f"{path}:{header_row.line}:{header_row.starts[i]}: warning: column "
+                warnings.append(f"{path}:{header_row.line}:{header_row.column(i)}: warning: column "
                                 f"{_show(h.strip())} is not used: {why}")
         seen: dict[str, int] = {}
         for row in it:
@@ -504,13 +513,13 @@ def _draft(path: str, rows: Iterable[Row], *, profile_id: str, columns: Mapping[
 def _one_row(path: str, row: Row, where: dict[str, int], seen: dict[str, int],
              parameters: list[tuple[str, dict[str, Any], Origin]], errors: list[Diagnostic], decimal: str | None
              ) -> None:
-    cells, starts = row.cells, row.starts
+    cells = row.cells
     if not any(c.strip() for c in cells) or cells[0].lstrip().startswith("#"):
         return
 
     def col_of(col: str) -> int:
         i = where.get(col, 0)
-        return starts[i] if i < len(starts) else 1
+        return row.column(i)
 
     def err(col: str, message: str) -> None:
         errors.append(Diagnostic(path, row.line, col_of(col), messages.clip_message(message)))
