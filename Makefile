@@ -23,11 +23,11 @@ demo: $(VENV)/.installed
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections
-	$(BIN)/mypy deployer
+	$(BIN)/mypy deployer tests
 
 lint: $(VENV)/.installed-test
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections
-	$(BIN)/mypy deployer
+	$(BIN)/mypy deployer tests
 
 docs: $(VENV)/.installed
 	$(BIN)/deployer docs --out docs/reference

@@ -56,6 +56,9 @@ TARGETS = [
     # issue #10: 200 devices x 100 parameters answering after 20 ms, the command timed from outside
     ("fleet --parallel 32: speed-up over 1", "fleet/parallel_32/speedup", ">=", 20.0),
     ("fleet --parallel 128: speed-up over 1", "fleet/parallel_128/speedup", ">=", 40.0),
+    # issue #23: the run report page of 1,000 devices x 100 parameters
+    ("report page, 1,000 x 100: browser opens it (s)", "pages/1000/load_seconds", "<=", 2.0),
+    ("report page, 1,000 x 100: size / report JSON", "pages/1000/page_vs_json", "<=", 1.1),
 ]
 
 
@@ -90,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     for k, v in rows:
         print(f"{k:<{width}}  {v}")
     if results["targets"]:
-        print("\ntargets (issues #9 and #10)")
+        print("\ntargets (issues #9, #10 and #23)")
         tw = max(len(t["target"]) for t in results["targets"])
         for t in results["targets"]:
             print(f"  {t['target']:<{tw}}  {t['measured']!s:>8}  {'met' if t['met'] else 'MISSED'}")

@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import os
 import resource
+import time
 from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -62,7 +63,7 @@ from .profile import Profile, load_profile, resolve_profile
 from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
-from .report import DeviceResult, ParameterResult, Report
+from .report import DeviceResult, ParameterResult, Report, run_info
 from .transport.clients import DeviceURL, describe, parse_url
 
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
@@ -278,8 +279,11 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
     opts = safe_options(options, soak=soak, health_interval=health_interval, confirm_within=confirm_within)
     if opts.soak is not None:
         check_soak_profiles([recipe.profile])
-    return await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=opts,
-                            recipe_name=recipe.path or recipe.name, on_confirm_wait=on_confirm_wait)
+    started = time.time()
+    report = await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=opts,
+                              recipe_name=recipe.path or recipe.name, on_confirm_wait=on_confirm_wait)
+    report.run = run_info(opts.command or "Python API: apply", started)
+    return report
 
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
@@ -557,9 +561,10 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     """
     sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                                   report_path=report_path)
+    info = run_info((options or ApplyOptions()).command or "Python API: run_fleet", time.time())
     live = None
     if report_path:
-        live = LiveReport(report_path, recipe_name, not_finished(jobs, sizes))
+        live = LiveReport(report_path, recipe_name, not_finished(jobs, sizes), run=info)
 
     def done(r: DeviceResult) -> None:
         if live is not None:
@@ -574,6 +579,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     finally:
         if live is not None:
             live.stop()
+    report.run = info
     if live is not None:
         live.close(report)
     return report

@@ -14,7 +14,7 @@ from .state.durable import write_atomic as write_atomic  # the one atomic write;
 if TYPE_CHECKING:
     from .profile import Parameter
 
-REPORT_SCHEMA = "deployer.report/1"
+REPORT_SCHEMA = "deployer.report/2"
 # rolled-back: written and verified, then restored from the snapshot (a failed health check, no confirmation)
 ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped", "rolled-back"]
 # sent: a broadcast that went out; skipped: a fleet never started it; rolled-back: restored after the write
@@ -94,6 +94,7 @@ class DeviceResult:
     recipe: str | None = None  # the recipe (or snapshot, plan) file this device was given
     batch: int | None = None  # fleets: the batch the device ran in (or would have: skipped)
     commit: CommitState | None = None  # None: the profile has no commit steps, or nothing was written
+    profile_sha256: str | None = None  # the SHA-256 of the profile file's text (None: a built-in profile)
 
     @property
     def write_requests(self) -> int:
@@ -140,6 +141,8 @@ class DeviceResult:
             out["batch"] = self.batch
         if self.commit is not None:
             out["commit"] = self.commit
+        if self.profile_sha256 is not None:
+            out["profile_sha256"] = self.profile_sha256
         return out
 
 
@@ -148,6 +151,7 @@ class Report:
     recipe: str | None
     devices: list[DeviceResult]
     seconds: float = 0.0
+    run: dict[str, Any] | None = None  # who ran what, where and when (``run_info``); None: not known
 
     def __repr__(self) -> str:
         # short on purpose: asyncio.run's SIGINT bookkeeping (signal.getsignal on a partial holding the
@@ -164,8 +168,8 @@ class Report:
                 "seconds": round(self.seconds, 3)}
 
     def to_json(self) -> dict[str, Any]:
-        """The report document (schema ``deployer.report/1``) as plain values."""
-        return _document(self.recipe, [d.to_json() for d in self.devices], self.summary())
+        """The report document (schema ``deployer.report/2``) as plain values."""
+        return _document(self.recipe, [d.to_json() for d in self.devices], self.summary(), self.run)
 
     @property
     def exit_code(self) -> int:
@@ -185,8 +189,29 @@ class Report:
 # ---- the report document: every report JSON (API, --json, --report files, the live fleet file) ----
 
 
-def _document(recipe: str | None, devices: list[Any], summary: dict[str, Any]) -> dict[str, Any]:
-    return {"schema": REPORT_SCHEMA, "recipe": recipe, "devices": devices, "summary": summary}
+def _document(recipe: str | None, devices: list[Any], summary: dict[str, Any],
+              run: dict[str, Any] | None = None) -> dict[str, Any]:
+    doc = {"schema": REPORT_SCHEMA, "recipe": recipe, "devices": devices, "summary": summary}
+    if run is not None:
+        doc["run"] = run
+    return doc
+
+
+def run_info(command: str | None, started: float) -> dict[str, Any]:
+    """Who ran what, where and when, for the report (``started``: the run's start, seconds since the epoch)."""
+    import datetime
+    import getpass
+    import socket
+
+    from . import __version__
+
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):  # no name for this uid (a container): the number says who
+        user = str(os.getuid())
+    when = datetime.datetime.fromtimestamp(started, datetime.UTC).isoformat(timespec="seconds")
+    return {"command": command, "user": user, "host": socket.gethostname(), "started": when,
+            "version": __version__}
 
 
 def device_json(d: DeviceResult, shared: dict[int, str] | None = None) -> bytes:
@@ -202,13 +227,14 @@ def device_json(d: DeviceResult, shared: dict[int, str] | None = None) -> bytes:
                                                                    1).encode()
 
 
-def report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str, Any]) -> list[bytes]:
+def report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str, Any],
+                 run: dict[str, Any] | None = None) -> list[bytes]:
     """The report document as pieces of JSON text, one device per line (each from ``device_json``).
 
     The pieces are written with one gathering write (``write_atomic``), never joined into one big
     string: a fleet's report file is rewritten as devices finish.
     """
-    head, tail = json.dumps(_document(recipe, [], summary)).split('"devices": []', 1)
+    head, tail = json.dumps(_document(recipe, [], summary, run)).split('"devices": []', 1)
     out = [f'{head}"devices": [\n'.encode()]
     for i, d in enumerate(devices):
         if i:
@@ -221,7 +247,7 @@ def report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str
 def report_text(report: Report) -> str:
     """A report as JSON text, one device per line (``--json`` and the ``--report`` file of a fleet)."""
     return b"".join(report_parts(report.recipe, [device_json(d) for d in report.devices],
-                                 report.summary())).decode()
+                                 report.summary(), report.run)).decode()
 
 
 def write_json(data: dict[str, Any], path: str, *, what: str = "") -> None:
@@ -243,3 +269,64 @@ def read_report(path: str) -> dict[str, Any]:
             or not isinstance(data.get("devices"), list):
         raise InputError([Diagnostic(path, 1, 1, f"not a deployer report (no \"schema\": \"{REPORT_SCHEMA}\")")])
     return data
+
+
+def report_from_json(doc: dict[str, Any]) -> Report:
+    """An earlier run's report document (``read_report``) as a Report, for ``deployer report``.
+
+    Values are shown in engineering units where the device's profile still loads and is the one the
+    run used (its recorded SHA-256, where there is one); else as register words, with a notice.
+    Reports of older versions have fewer fields: what is missing stays empty.
+    """
+    from .errors import DeployerError
+    from .profile import Profile, resolve_profile
+
+    profiles: dict[str, Profile | str] = {}
+
+    def profile_of(ref: str, digest: str | None) -> Profile | str:
+        key = f"{ref}\0{digest}"
+        if key not in profiles:
+            try:
+                prof = resolve_profile(ref)
+            except (DeployerError, OSError) as e:
+                profiles[key] = f"values shown as registers: profile {ref} does not load ({e})"
+            else:
+                profiles[key] = prof if digest is None or prof.digest in (None, digest) else (
+                    f"values shown as registers: profile {ref} changed since the run")
+        return profiles[key]
+
+    devices = []
+    for d in doc.get("devices") or []:
+        if not isinstance(d, dict):
+            continue
+        ref = d.get("profile_ref") or d.get("profile") or ""
+        prof = profile_of(str(ref), d.get("profile_sha256")) if ref else None
+        notices = [str(n) for n in d.get("notices") or []]
+        if isinstance(prof, str):
+            notices.append(prof)
+        res = DeviceResult(str(d.get("name", "?")), str(d.get("url", "")), int(d.get("unit") or 0),
+                           str(d.get("profile", "")), status=d.get("status", "ok"), snapshot=d.get("snapshot"),
+                           error=d.get("error"), seconds=d.get("seconds"), profile_ref=d.get("profile_ref"),
+                           notices=notices, recipe=d.get("recipe"), batch=d.get("batch"), commit=d.get("commit"),
+                           profile_sha256=d.get("profile_sha256"))
+        res.requests = [RequestRecord(int(r.get("function", 0)), int(r.get("address", 0)), int(r.get("count", 0)),
+                                      r.get("result", "ok"), r.get("exception_code"), int(r.get("attempts", 1)))
+                        for r in d.get("requests") or [] if isinstance(r, dict)]
+        for p in d.get("parameters") or []:
+            if not isinstance(p, dict):
+                continue
+            param = prof.get(str(p.get("name"))) if isinstance(prof, Profile) else None
+
+            def raw(key: str, p: dict[str, Any] = p) -> tuple[int, ...] | None:
+                v = p.get(key)
+                return None if v is None else tuple(int(w) for w in v)
+
+            res.parameters.append(ParameterResult(
+                str(p.get("name", "?")), int(p.get("address", 0)), int(p.get("count", 0)), str(p.get("desired", "")),
+                raw("desired_raw") or (), raw("before_raw"), raw("after_raw"), p.get("status", "skipped"),
+                p.get("error"), str(p.get("register_type", "holding")), parameter=param))
+        devices.append(res)
+    summary = doc.get("summary")
+    seconds = float(summary.get("seconds") or 0.0) if isinstance(summary, dict) else 0.0
+    run = doc.get("run")
+    return Report(doc.get("recipe"), devices, seconds, run if isinstance(run, dict) else None)

@@ -42,7 +42,7 @@ sys.exit(subprocess.call([sys.executable, "-m", "pip", "install", *args]))
 
 
 def _pip_version_ansible_test_wants() -> str:
-    from ansible_test._internal.python_requirements import get_venv_packages  # type: ignore[import-not-found]
+    from ansible_test._internal.python_requirements import get_venv_packages  # type: ignore[import-untyped,import-not-found,unused-ignore]
 
     class _Py:
         version = f"{sys.version_info.major}.{sys.version_info.minor}"

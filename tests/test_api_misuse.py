@@ -20,15 +20,18 @@ def recipe() -> deployer.Recipe:
 
 
 @pytest.mark.parametrize(("call", "words"), [
-    (lambda url: deployer.load_recipe(123), "load_recipe takes a path (str or os.PathLike), got int 123"),
+    (lambda url: deployer.load_recipe(123),  # type: ignore[arg-type]
+     "load_recipe takes a path (str or os.PathLike), got int 123"),
     (lambda url: deployer.recipe_from("example-inverter", "F07=10 s"),  # type: ignore[arg-type]
      "takes the parameters as a mapping (name -> value), got str 'F07=10 s'"),
-    (lambda url: deployer.recipe_from(42, {}), "takes a profile id, a profile file or a Profile, got int 42"),
+    (lambda url: deployer.recipe_from(42, {}),  # type: ignore[arg-type]
+     "takes a profile id, a profile file or a Profile, got int 42"),
     (lambda url: deployer.apply("recipe.yaml", url),  # type: ignore[arg-type]
      "apply takes a Recipe (load it first: deployer.load_recipe(path)), got str 'recipe.yaml'"),
     (lambda url: deployer.plan({"F07": "10 s"}, url), "plan takes a Recipe, got dict"),  # type: ignore[arg-type]
     (lambda url: deployer.diff(None, url), "diff takes a Recipe, got NoneType None"),  # type: ignore[arg-type]
-    (lambda url: deployer.device_url(None), "device_url takes a URL such as tcp://10.0.0.11:502, got NoneType"),
+    (lambda url: deployer.device_url(None),  # type: ignore[arg-type]
+     "device_url takes a URL such as tcp://10.0.0.11:502, got NoneType"),
     (lambda url: deployer.apply(recipe(), url, unit=-1), "unit must be from 1 to 247 (0 is broadcast), got -1"),
     (lambda url: deployer.apply(recipe(), url, unit=300), "unit must be from 1 to 247 (0 is broadcast), got 300"),
     (lambda url: deployer.apply(recipe(), url, unit="1"), "unit must be an int from 1 to 247"),  # type: ignore[arg-type]

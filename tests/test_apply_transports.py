@@ -74,7 +74,7 @@ def test_ascii_apply_and_the_bytes_on_the_wire(socat_pair: tuple[str, str], tmp_
         async with Simulator(builtin_profile("omron-m1"), listen=f"ascii://{a}") as sim:
             t = tp.open_transport(f"ascii://{b}?timeout=1")
             sent: list[bytes] = []
-            t.on_frame = lambda direction, data: sent.append(data) if direction == "send" else None  # type: ignore[attr-defined]
+            t.on_frame = lambda direction, data: sent.append(data) if direction == "send" else None
             await t.connect()
             await t.write_registers(0x1102, [0, 1000], 1)
             await t.close()
@@ -99,7 +99,7 @@ def test_rtu_over_tcp_gateway(tmp_path: Path) -> None:
             assert sim.url.startswith("rtu+tcp://")
             frames: list[bytes] = []
             t = tp.open_transport(sim.url + "?timeout=1")
-            t.on_frame = lambda d, data: frames.append(data) if d == "send" else None  # type: ignore[attr-defined]
+            t.on_frame = lambda d, data: frames.append(data) if d == "send" else None
             await t.connect()
             await t.write_registers(6342, [0, 10000, 0, 20000, 0, 500], 4)
             await t.close()

@@ -240,7 +240,7 @@ def test_simulator_models_the_lock_and_the_busy_wait(tmp_path: Path, drive: Prof
 
     with SimulatorThread(drive) as sim:
         client = ModbusTcpClient("127.0.0.1", port=int(sim.url.rsplit(":", 1)[1]), retries=0)
-        assert client.connect()
+        assert client.connect()  # type: ignore[no-untyped-call]
         try:
             assert client.write_register(0x40, 5, device_id=1).exception_code == 4  # locked
             assert not client.write_register(0x20, 0x5AA5, device_id=1).isError()
@@ -251,7 +251,7 @@ def test_simulator_models_the_lock_and_the_busy_wait(tmp_path: Path, drive: Prof
             sim.write("running", (0x0008,))
             assert client.write_register(0x40, 6, device_id=1).exception_code == 4  # refused while running
         finally:
-            client.close()
+            client.close()  # type: ignore[no-untyped-call]
 
 
 def test_lock_is_sent_after_a_failed_write(tmp_path: Path, drive: Profile) -> None:

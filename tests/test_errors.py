@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _classes() -> dict[str, type[DeployerError]]:
     return {n: c for n, c in vars(errors).items()
-            if inspect.isclass(c) and issubclass(c, BaseException) and c.__module__ == errors.__name__}
+            if inspect.isclass(c) and issubclass(c, DeployerError) and c.__module__ == errors.__name__}
 
 
 def test_the_documented_tree_is_the_tree() -> None:

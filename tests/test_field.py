@@ -192,7 +192,8 @@ def _store() -> dict[int, int]:
 
 
 def test_umodbus_all_or_nothing_device(tmp_path: Path) -> None:
-    store, wire = _store(), []
+    store = _store()
+    wire: list[tuple[int, int, int]] = []  # (function, address, count) of each request
     with quirky_umodbus(store, maximum={100 + BAD: 100}, all_or_nothing=True, wire=wire) as port:
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path), tmp_path)
     assert _statuses(res) == {f"p{i}": "ok" for i in range(N)} | {f"p{BAD}": "failed"}
@@ -205,7 +206,8 @@ def test_umodbus_all_or_nothing_device(tmp_path: Path) -> None:
 
 
 def test_umodbus_in_order_device(tmp_path: Path) -> None:
-    store, wire = _store(), []
+    store = _store()
+    wire: list[tuple[int, int, int]] = []  # (function, address, count) of each request
     with quirky_umodbus(store, maximum={100 + BAD: 100}, wire=wire) as port:
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path), tmp_path)
     assert _statuses(res) == {f"p{i}": "ok" for i in range(N)} | {f"p{BAD}": "failed"}
@@ -213,7 +215,8 @@ def test_umodbus_in_order_device(tmp_path: Path) -> None:
 
 
 def test_umodbus_write_limit_is_learned(tmp_path: Path) -> None:
-    store, wire = _store(), []
+    store = _store()
+    wire: list[tuple[int, int, int]] = []  # (function, address, count) of each request
     with quirky_umodbus(store, max_write=4, wire=wire) as port:
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path, bad=False), tmp_path)
         assert res.status == "ok"
@@ -227,7 +230,8 @@ def test_umodbus_write_limit_is_learned(tmp_path: Path) -> None:
 
 
 def test_umodbus_fc06_only_device(tmp_path: Path) -> None:
-    store, wire = _store(), []
+    store = _store()
+    wire: list[tuple[int, int, int]] = []  # (function, address, count) of each request
     with quirky_umodbus(store, fc06_only=True, wire=wire) as port:
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path, bad=False), tmp_path)
     assert res.status == "ok" and res.learned == {"write_function": 6}

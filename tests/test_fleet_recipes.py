@@ -67,7 +67,7 @@ def line(tmp: Path, urls: dict[str, str], extra_devices: str = "") -> str:
 
 
 # what each device must hold afterwards: recipe < defaults < groups (in order) < device
-WANT = {
+WANT: dict[str, dict[str, tuple[int, ...]]] = {
     "zone-1": {"P": (120,), "I": (120,), "D": (30,), "setpoint": (1800,)},
     "zone-2": {"P": (120,), "I": (120,), "D": (30,), "setpoint": (2000,)},
     "drive-1": {"F07": (0, 1500), "F08": (0, 1200), "stop_mode": (1,)},

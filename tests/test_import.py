@@ -36,7 +36,8 @@ HEADER = ["Parameter", "Reg No", "Data Type", "Unit", "Resolution", "Min", "Max"
 
 def vendor_rows(n: int = 240, seed: int = 7) -> list[list[str]]:
     rnd = random.Random(seed)
-    rows, address = [], 0x1000
+    rows: list[list[str]] = []
+    address = 0x1000
     kinds = ["U16", "S16", "U32", "S32", "FLOAT", "STRING", "BITS", "ENUM"]
     while len(rows) < n:
         kind = rnd.choice(kinds)

@@ -115,11 +115,11 @@ def test_vendor_cells_as_they_are(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert f"{src}:1:61: warning: column 'Factory note' is not used" in err
     prof = load_profile(out)
     f2, f3, f4, f5, f6 = (prof.parameter(n) for n in ("F002", "F003", "F004", "F005", "F006"))
-    assert (f2.unit, f2.scale, f2.min, f2.max) == ("s", Decimal("0.01"), 0, 400)
-    assert (f3.unit, f3.scale, f3.min, f3.max) == ("s", Decimal("0.1"), 0, 400)
-    assert (f4.unit, f4.min, f4.max) == ("%", 0, 100)
-    assert (f5.unit, f5.scale, f5.min, f5.max) == ("s", Decimal("0.01"), 0, 6)
-    assert (f6.min, f6.max) == (-10, -5)
+    assert (f2.unit, f2.scale, f2.min, f2.max) == ("s", Decimal("0.01"), Decimal(0), Decimal(400))
+    assert (f3.unit, f3.scale, f3.min, f3.max) == ("s", Decimal("0.1"), Decimal(0), Decimal(400))
+    assert (f4.unit, f4.min, f4.max) == ("%", Decimal(0), Decimal(100))
+    assert (f5.unit, f5.scale, f5.min, f5.max) == ("s", Decimal("0.01"), Decimal(0), Decimal(6))
+    assert (f6.min, f6.max) == (Decimal(-10), Decimal(-5))
     # the sheet's 30 s go out as 3000 (0.01 s) - with the resolution dropped they would be 30
     (tmp_path / "r.yaml").write_text("recipe: r\nprofile: v.yaml\nparameters:\n  F002: 30 s\n  F005: 2500 ms\n")
     plan = make_plan(load_recipe(tmp_path / "r.yaml"), Target(None, 1, str(out)))
@@ -149,7 +149,7 @@ def test_decimal_marks(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "-o", str(out), "--force")[0] == 0
     prof = load_profile(out)
     assert (prof.parameter("a").min, prof.parameter("a").max) == (Decimal("0.5"), Decimal("1000.5"))
-    assert (prof.parameter("b").min, prof.parameter("b").max) == (Decimal("1234.5"), 1000000)
+    assert (prof.parameter("b").min, prof.parameter("b").max) == (Decimal("1234.5"), Decimal(1000000))
 
 
 def test_xlsx_formula_with_a_saved_value_is_read(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -169,7 +169,7 @@ def test_xlsx_formula_with_a_saved_value_is_read(tmp_path: Path, capsys: pytest.
 
 # -------------------------------------------------------------------------------------- the writer
 
-NAMES = st.text(st.characters(codec="utf-8", exclude_categories=("Cs",)), min_size=1, max_size=40)
+NAMES = st.text(st.characters(codec="utf-8", exclude_categories=["Cs"]), min_size=1, max_size=40)
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

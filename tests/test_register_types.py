@@ -401,6 +401,65 @@ def test_mbpoll_reads_what_apply_wrote(tmp_path: Path, plc: Profile) -> None:
         assert "[196]: \t1\n[197]: \t0\n" in poll("-t", "1", "-r", "196", "-c", "2")  # discrete inputs, FC02
         assert "[8]: \t215\n" in poll("-t", "3", "-r", "8")  # input register, FC04
         # mbpoll writes a coil (FC05); our diff sees it
+        assert MBPOLL is not None
         subprocess.run([MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", "-t", "0", "-r", "40",
                         "127.0.0.1", "1"], capture_output=True, text=True, timeout=20, check=True)
         assert sim.read("relay9") == (1,)
+
+
+def test_identity_in_an_input_register(tmp_path: Path) -> None:
+    prof = profile_from(tmp_path, "profile: d\nidentity:\n  - {register: 0, register_type: input, raw: 0x0310, "
+                                  "description: model code}\nparameters:\n"
+                                  "  model: {register: 0, register_type: input, type: uint16, default: 0x0310}\n"
+                                  "  relay: {register: 0, register_type: coil}\n", "d.yaml")
+    (tmp_path / "r.yaml").write_text("recipe: r\nprofile: d.yaml\nparameters: {relay: true}\n")
+    rec = load_recipe(str(tmp_path / "r.yaml"))
+    sim = Simulator(prof)
+
+    async def twice(s: Simulator) -> tuple[object, object]:
+        opts = ApplyOptions(state_dir=str(tmp_path / ".d"))
+        first = await apply_device(rec, tp.parse_url(s.url), 1, options=opts)
+        s.write("model", (0x0311,))
+        s.write("relay", (0,))
+        return first, await apply_device(rec, tp.parse_url(s.url), 1, options=opts)
+    first, second = run_with(sim, twice)
+    assert first.status == "ok" and [(r.function, r.address) for r in first.requests][:1] == [(4, 0)]
+    assert second.status == "failed"
+    assert second.error == ("identity check failed: input register 0x0000 (model code) holds 0x0311, expected 0x0310: "
+                            "another kind of device answers here; nothing was written")
+    assert sim.read("relay") == (0,)
+
+
+def test_simulate_set_reaches_every_table(tmp_path: Path, plc: Profile, capsys: pytest.CaptureFixture[str]) -> None:
+    import signal
+    import sys
+
+    from deployer.cli import main
+    from tests.conftest import free_port
+
+    port = free_port()
+    profile = str(tmp_path / "plc.yaml")
+    proc = subprocess.Popen([sys.executable, "-m", "deployer", "simulate", profile, "--listen",
+                             f"tcp://127.0.0.1:{port}", "--set", "coil:40=1", "--set", "input:8=300",
+                             "--set", "discrete:197=1", "--set", "0x10=9"], stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        assert "simulating plc" in proc.stderr.readline()
+
+        async def read() -> list[list[int]]:
+            t = tp.open_transport(f"tcp://127.0.0.1:{port}?timeout=5")
+            await t.connect()
+            try:
+                return [await t.read(1, 40, 1, 1), await t.read(4, 8, 1, 1), await t.read(2, 196, 2, 1),
+                        await t.read(3, 0x10, 1, 1)]
+            finally:
+                await t.close()
+        assert asyncio.run(read()) == [[1], [300], [1, 1], [9]]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    for bad, message in (("coil:41=1", "init: coil 41 is not declared in profile plc"),
+                         ("coil:40=2", "a bit holds 0 or 1"), ("relay:1=1", "'relay' is not a table")):
+        with pytest.raises(SystemExit) as exc:
+            main(["simulate", profile, "--set", bad])
+        assert exc.value.code == 1 and message in capsys.readouterr().err

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from decimal import Decimal
 from pathlib import Path
 
 import jsonschema
@@ -197,7 +198,7 @@ def test_a_fault_written_by_mbpoll_during_the_soak_rolls_back(tmp_path: Path) ->
 
 
 def test_the_simulator_trips_only_when_the_rule_holds(tmp_path: Path) -> None:
-    assert (TRIP.parameter, TRIP.op, TRIP.value, TRIP.register, TRIP.raw) == ("F07", "<", 2, 0x2000, 7)
+    assert (TRIP.parameter, TRIP.op, TRIP.value, TRIP.register, TRIP.raw) == ("F07", "<", Decimal(2), 0x2000, 7)
     coast = parse_fault_rule("stop_mode == coast: 0x2000=3", PROFILE)
     assert coast.by_label and coast.value == 1
     assert parse_fault_rule("F07 <= 1500 ms: 8192=1", PROFILE).value == 1.5
@@ -551,3 +552,17 @@ def test_ctrl_c_while_a_change_is_held_rolls_it_back(tmp_path: Path, held: list[
     assert awaiting(state) == [] and not os.listdir(os.path.join(state, "pending"))
     events = [json.loads(x)["event"] for x in Path(state, "audit.jsonl").read_text().splitlines()]
     assert "rolled-back" in events
+
+
+def test_confirm_during_the_soak_says_it_comes_after(tmp_path: Path) -> None:
+    state = str(tmp_path / "s")
+    with SimulatorThread(PROFILE) as sim:
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1h", "--health-interval",
+                        "100ms", "--confirm-within", "1h", "--state-dir", state)
+        try:
+            wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 1 or proc.poll() is not None)
+            with pytest.raises(UsageError, match="is still soaking: it asks for the confirmation once its soak"):
+                confirm_run(state)
+        finally:
+            proc.send_signal(signal.SIGINT)
+            proc.communicate(timeout=120)

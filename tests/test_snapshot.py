@@ -323,8 +323,8 @@ def test_out_of_range_values_roll_back_on_a_device_we_did_not_write(tmp_path: Pa
         assert res.snapshot is not None
         back = asyncio.run(apply_device(load_recipe(res.snapshot), url, 1, options=opts))
         assert back.status == "ok"
-        port = sim.url.rsplit(":", 1)[1]
-        out = subprocess.run([mbpoll, "-m", "tcp", "-p", port, "-a", "1", "-0", "-r", "10", "-c", "8", "-t", "4",
+        sim_port = sim.url.rsplit(":", 1)[1]
+        out = subprocess.run([mbpoll, "-m", "tcp", "-p", sim_port, "-a", "1", "-0", "-r", "10", "-c", "8", "-t", "4",
                               "-1", "127.0.0.1"], capture_output=True, text=True, timeout=20)
         assert out.returncode == 0, out.stderr
         for a, v in held.items():

@@ -96,17 +96,18 @@ def test_every_key_becomes_the_profile_parameter(tmp_path: Path, capsys: pytest.
     p = {q.name: q for q in prof.parameters}
     sp = p["setpoint"]
     assert (sp.address, sp.type, str(sp.scale), sp.unit, sp.min, sp.max, sp.default) == (
-        100, "int16", "0.1", "degC", -20, 50, Decimal("21.5"))
+        100, "int16", "0.1", "degC", Decimal(-20), Decimal(50), Decimal("21.5"))
     hy = p["hysteresis"]  # register = (value - offset) / scale: 2 -> raw 2
-    assert (hy.address, hy.scale, hy.offset, hy.to_raw(Decimal(2))) == (0x65, Decimal("0.5"), 1, 2)
+    assert (hy.address, hy.scale, hy.offset, hy.to_raw(Decimal(2))) == (0x65, Decimal("0.5"), Decimal(1), 2)
     assert p["mode"].address == 102 and p["mode"].values == (("off", 0), ("heat", 1), ("heat, then cool", 2))
     assert p["mode"].default == 1
     du = p["display_unit"]
-    assert (du.register_type, du.address, du.values, du.default) == ("coil", 5, (("°C", 0), ("°F", 1)), 0)
-    assert (p["buzzer"].register_type, p["buzzer"].default) == ("coil", 1)
+    assert (du.register_type, du.address, du.values, du.default) == ("coil", 5, (("°C", 0), ("°F", 1)), Decimal(0))
+    assert (p["buzzer"].register_type, p["buzzer"].default) == ("coil", Decimal(1))
     assert (p["led_on"].type, p["led_on"].mask, p["led_level"].mask) == ("bool", 0x0001, 0x0070)
     assert "needs firmware 2.1.0 or later" in p["led_level"].description
-    assert (p["brightness"].mask, p["brightness"].max, p["trim"].mask, p["trim"].type) == (0xFF, 200, 0xFF, "int16")
+    assert (p["brightness"].mask, p["brightness"].max, p["trim"].mask, p["trim"].type) == (
+        0xFF, Decimal(200), 0xFF, "int16")
     assert (p["total"].type, p["total"].word_order) == ("uint32", "little")
     assert [p[n].type for n in ("delta", "gain", "big", "offset64", "precise")] == [
         "int32", "float32", "uint64", "int64", "float64"]

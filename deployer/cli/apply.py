@@ -5,7 +5,9 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import shlex
 import sys
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -96,7 +98,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               lock_timeout: float = 0.0, force: bool = False, from_report: str | None = None,
               batch: str | None = None, max_failures: str | None = None, command: str = "apply",
               soak: float | None = None, health_interval: float = 1.0, confirm_within: float | None = None,
-              rollback_on_failure: bool = False, pause: float | None = None, ask: bool = False) -> int:
+              rollback_on_failure: bool = False, pause: float | None = None, ask: bool = False,
+              html_path: str | None = None) -> int:
     """apply / rollback: everything validated, then confirmed, then sent."""
     from ..api import fleet_options, run_fleet_async
     from ..execute.session import ApplyOptions
@@ -191,10 +194,13 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             err.print(f"warning: {why}; restoring it there (--yes)")
 
     fleet_run = bool(inventory or from_report)
-    if report_path:  # before anything is sent: a link, a FIFO or a folder there is refused now
+    if report_path or html_path:  # before anything is sent: a link, a FIFO or a folder there is refused now
         from ..state.durable import check_output
 
-        check_output(report_path, what="the report")
+        if report_path:
+            check_output(report_path, what="the report")
+        if html_path:
+            check_output(html_path, what="the page")
     if fleet_run:
         fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures, report_path=report_path)
     run_id = journal.new_run_id()
@@ -203,7 +209,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            run_id=run_id, applied=os.path.abspath(label) if label else None, lock_timeout=lock_timeout,
-                           soak=soak, health_interval=health_interval, confirm_within=confirm_within)
+                           soak=soak, health_interval=health_interval, confirm_within=confirm_within,
+                           command=shlex.join(["deployer", *_ARGV]) if _ARGV else f"deployer {command}")
     safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
                        interval=health_interval, staged=bool(batch))
     if fleet_run:
@@ -226,13 +233,23 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                 report_path=report_path, on_start=lambda j: progress.start(j.name), on_done=progress.device_done,
                 **safe))
     else:
+        started = time.time()
         report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=label, **safe))
+        from ..report import run_info
+
+        report.run = run_info(options.command, started)
         if report_path:
             write_json(report.to_json(), report_path, what="the report")
     try:
         journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
     except StateError as e:  # the devices' outcome stands; only the journal misses its last line
         err.print(f"warning: {e}")
+    if html_path:
+        from ..pages import run_page
+        from .base import write_page
+
+        write_page(run_page(report), html_path)
+        err.print(f"page: {html_path}")
     if as_json:
         if fleet_run:
             from ..report import report_text
@@ -338,6 +355,9 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--yes", "-y", is_flag=True, help="do not ask for confirmation"),
         click.option("--report", "report_path", type=click.Path(dir_okay=False), help="write the report JSON here"),
         click.option("--json", "as_json", is_flag=True, help="print the report JSON"),
+        click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
+                     help="also write the report as one self-contained HTML page (sortable, filterable; it "
+                          "prints as the commissioning record: as found / as left per device)"),
         fleet_option,
         limit_option,
         click.option("--batch", metavar="1,10%,100%",

@@ -59,6 +59,7 @@ _COMMANDS = {
     "plan": "deployer.cli.plan:plan",
     "profiles": "deployer.cli.profiles:profiles",
     "pull": "deployer.cli.read:pull",
+    "report": "deployer.cli.report:report",
     "rollback": "deployer.cli.apply:rollback",
     "simulate": "deployer.cli.simulate:simulate",
     "status": "deployer.cli.apply:status",
@@ -97,6 +98,13 @@ def describe(url: DeviceURL) -> str:
 
 def _n(count: int, noun: str) -> str:
     return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
+def write_page(text: str, path: str) -> None:
+    """An HTML page (``--html FILE``), written whole or not at all (``write_atomic``'s rule)."""
+    from ..state.durable import write_atomic
+
+    write_atomic(path, text)
 
 
 def _output(text: str, path: str | None, summary: str, *, replace: bool | None = None) -> None:

@@ -98,10 +98,18 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
              else f"{_n(chars, 'byte')} on an RTU line")
     out.print(
         f"{_n(len(plan.writes), 'write request')} "
-        f"({_n(int(st['registers']), 'register')}; one request per parameter would take {naive})"
+        f"({_what(plan, int(st['registers']))}; one request per parameter would take {naive})"
         + (f", {unchanged} unchanged" if unchanged else "")
         + f"; {units}, about {seconds * 1000:.0f} ms at {line}{paused}"
         + (" (broadcast: no answers)" if plan.device.unit == 0 else ""))
+
+
+def _what(plan: Plan, registers: int) -> str:
+    """'5 registers', or '1 register, 4 coils' when coils are written too."""
+    coils = sum(w.count for w in plan.writes if w.function in (5, 15))
+    if not coils:
+        return _n(registers, "register")
+    return f"{_n(registers - coils, 'register')}, {_n(coils, 'coil')}"
 
 
 def print_frames(plan: Plan, out: Console) -> None:

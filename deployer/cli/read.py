@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import click
@@ -47,12 +47,15 @@ if TYPE_CHECKING:
               help="with --inventory: one row per device and parameter (default: devices with identical drift "
                    "together)")
 @click.option("--matrix", is_flag=True, help="with --inventory: a table of parameters x drifted devices")
+@click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
+              help="with --inventory: also write the parameters x devices matrix as one self-contained HTML page "
+                   "(drifted cells marked, filterable)")
 @click.option("--defaults", is_flag=True, help="compare the device with its factory settings (the profile's "
               "defaults) instead of a recipe: every readable parameter that has a default")
 @click.option("--profile", "profile_ref", metavar="ID|FILE", help="with --defaults and no RECIPE: the device's profile")
 def diff(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, inventory: str | None, limit: str | None, parallel: int, per_device: bool,
-         matrix: bool, defaults: bool, profile_ref: str | None) -> int:
+         matrix: bool, html_path: str | None, defaults: bool, profile_ref: str | None) -> int:
     """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches.
 
     With --inventory and no RECIPE, each device against its recipe from the inventory. With --defaults,
@@ -60,7 +63,7 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     from ..api import diff_values
 
     if defaults:
-        if inventory or limit or per_device or matrix:
+        if inventory or limit or per_device or matrix or html_path:
             raise UsageError("--defaults compares one device: use it with RECIPE or --profile, and --device")
         return diff_defaults(recipe, profile_ref, device, unit, timeout, retries, as_json)
     if profile_ref:
@@ -72,9 +75,12 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         if per_device and matrix:
             raise UsageError("--per-device and --matrix exclude each other")
         return diff_fleet(maybe, _fleet(maybe, inventory, limit, timeout, retries, unit), parallel=parallel,
-                          as_json=as_json, view="per-device" if per_device else "matrix" if matrix else "grouped")
-    if limit or per_device or matrix:
-        raise UsageError(f"{'--limit' if limit else '--per-device' if per_device else '--matrix'} needs --inventory")
+                          as_json=as_json, view="per-device" if per_device else "matrix" if matrix else "grouped",
+                          html_path=html_path)
+    given = [o for o, v in (("--limit", limit), ("--per-device", per_device), ("--matrix", matrix),
+                            ("--html", html_path)) if v]
+    if given:
+        raise UsageError(f"{given[0]} needs --inventory")
     assert maybe is not None
     rec = maybe
     url, u = _target(rec, device, unit, timeout, retries, required=True)
@@ -145,7 +151,7 @@ def drift_rows(rows: Sequence[Drift], device: str | None = None) -> list[list[Ce
 
 
 def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_json: bool,
-               view: str = "grouped") -> int:
+               view: str = "grouped", html_path: str | None = None) -> int:
     """The fleet's drift: devices with identical drift together (``view`` ``per-device``: a row per device
     and parameter; ``matrix``: parameters x drifted devices); exit 2 naming every drifted device, 3 if
     any could not be read."""
@@ -155,6 +161,8 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     rows = {j.name: diff_values(j.recipe, v) for j in jobs if not isinstance(v := values[j.name], Exception)}
     drifted = [n for n, r in rows.items() if any(d.device_raw is not None for d in r)]
     down = _unreachable(values)
+    if html_path:
+        _drift_page(jobs, values, rows, html_path)
     if as_json:
         click.echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
             {"name": j.name, "url": describe(j.url), "unit": j.unit, "drift": [d.to_json() for d in rows[j.name]]}
@@ -192,14 +200,17 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
 @click.option("-o", "--output", type=click.Path(), help="write the recipe here (default: stdout); "
               "with --inventory a folder: one NAME.yaml per device")
 @click.option("--name", help="the recipe's name (default: pulled-PROFILE)")
+@click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
+              help="also write what each device holds as one self-contained HTML page: the as-found half of the "
+                   "commissioning record (prints a section per device with a signature line)")
 @click.option("--non-default", is_flag=True, help="write only the values that differ from the factory settings "
               "(the profile's defaults; parameters without a default are kept)")
 @fleet_option
 @limit_option
 @parallel_option
 def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-         output: str | None, name: str | None, non_default: bool, inventory: str | None, limit: str | None,
-         parallel: int) -> int:
+         output: str | None, name: str | None, html_path: str | None, non_default: bool, inventory: str | None,
+         limit: str | None, parallel: int) -> int:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
     from ..api import device_url, pull_names, pulled_recipe
     from ..profile import resolve_profile
@@ -212,7 +223,7 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
         if not output:
             raise UsageError("with --inventory, pass -o DIR: one recipe per device goes there")
         return pull_fleet(inventory, limit, profile_ref, output, timeout=timeout, retries=retries, unit=unit,
-                          parallel=parallel, non_default=non_default)
+                          parallel=parallel, html_path=html_path, non_default=non_default)
     if limit:
         raise UsageError("--limit needs --inventory")
     if not profile_ref or not device:
@@ -225,6 +236,8 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
     current = read_device(prof, pull_names(prof), url, u)
     if current is None:
         return EXIT_UNREACHABLE
+    if html_path:
+        _as_found_page([(name or f"pulled-{prof.id}", describe(url), u, prof, current)], html_path)
     comment = _pulled_from(describe(url), u)
     if non_default:
         current, comment = _non_default(prof, current, comment)
@@ -256,7 +269,8 @@ def _non_default(prof: Profile, current: dict[str, tuple[int, ...]], comment: st
 
 
 def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folder: str, *, timeout: float | None,
-               retries: int | None, unit: int | None, parallel: int, non_default: bool = False) -> int:
+               retries: int | None, unit: int | None, parallel: int, html_path: str | None = None,
+               non_default: bool = False) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
     from ..api import check_writable, device_url, load_inventory, pull_names, pulled_recipe
     from ..fleet.rollout import ReadJob
@@ -300,6 +314,8 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
         write_atomic(path, text)
         written += 1
     down = _unreachable(values)
+    if html_path:
+        _as_found_page([(j.name, describe(j.url), j.unit, j.profile, values[j.name]) for j in jobs], html_path)
     click.echo(f"{_n(written, 'recipe')} written to {folder}" + (f"; {len(down)} unreachable: {', '.join(down)}"
                                                           if down else ""), err=True)
     return EXIT_UNREACHABLE if down else EXIT_OK
@@ -307,3 +323,49 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
 
 def _safe(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], path: str) -> None:
+    """``pull --html``: per device its values (engineering text and registers), or why it could not be read."""
+    from ..pages import as_found_page
+    from ..report import run_info
+    from .base import _ARGV, write_page
+
+    entries = []
+    for name, url, unit, prof, cur in devices:
+        entry: dict[str, object] = {"name": name, "url": url, "unit": unit, "profile": prof.id, "sha": prof.digest}
+        if isinstance(cur, dict):
+            entry["values"] = [(n, prof.parameter(n).show_registers(tuple(v)), tuple(v)) for n, v in cur.items()]
+        else:
+            entry["error"] = str(cur)
+        entries.append(entry)
+    write_page(as_found_page(entries, run=run_info(" ".join(["deployer", *_ARGV]), time.time())), path)
+    click.echo(f"page: {path}", err=True)
+
+
+def _drift_page(jobs: Sequence[Job], values: Mapping[str, object], rows: Mapping[str, Sequence[Drift]],
+                path: str) -> None:
+    """``diff --inventory --html``: parameters x devices; each cell what the device holds, marked where it
+    is not the recipe's value."""
+    from ..pages import drift_page
+    from ..report import run_info
+    from .base import _ARGV, write_page
+
+    params: dict[str, None] = {}
+    for j in jobs:
+        params.update((d.name, None) for d in j.recipe.desired)
+    names = list(params)
+    cells: list[list[tuple[str] | tuple[str, str] | None]] = [[None] * len(jobs) for _ in names]
+    index = {n: i for i, n in enumerate(names)}
+    for col, j in enumerate(jobs):
+        cur = values[j.name]
+        if not isinstance(cur, dict):
+            continue
+        drifted = {r.name: r for r in rows.get(j.name, ()) if r.device_raw is not None}
+        for d in j.recipe.desired:
+            raw = cur.get(d.name)
+            held = "-" if raw is None else d.parameter.show_registers(tuple(raw))
+            cells[index[d.name]][col] = (held, d.text) if d.name in drifted else (held,)
+    labels = [j.name if isinstance(values[j.name], dict) else f"{j.name} (unreachable)" for j in jobs]
+    write_page(drift_page(labels, names, cells, run=run_info(" ".join(["deployer", *_ARGV]), time.time())), path)
+    click.echo(f"page: {path}", err=True)

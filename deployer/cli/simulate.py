@@ -24,9 +24,10 @@ def _register(text: str) -> int:
               help="tcp://HOST:PORT, rtu+tcp://HOST:PORT, rtu:///dev/X?baudrate=B, ascii:///dev/X")
 @click.option("--unit", "units", type=click.IntRange(1, 247), multiple=True, help="unit id(s) served (default 1)")
 @click.option("--init", "init_recipe", type=click.Path(dir_okay=False), help="start with a recipe's values")
-@click.option("--set", "set_registers", multiple=True, metavar="ADDR=RAW",
+@click.option("--set", "set_registers", multiple=True, metavar="[TABLE:]ADDR=RAW",
               help="start a register (protocol address) with a raw value, read-only ones too, e.g. a status word "
-                   "saying 'running': --set 0x10=8. Repeatable.")
+                   "saying 'running': --set 0x10=8; another table with a prefix: --set coil:19=1, discrete:196=1, "
+                   "input:8=215. Repeatable.")
 @click.option("--latency-ms", type=click.FloatRange(min=0), default=0, help="delay every answer")
 @click.option("--baud", type=click.IntRange(min=50), help="delay answers by their line time at this baud rate (8E1)")
 @click.option("--drop-every", type=click.IntRange(min=0), default=0, help="never answer every Nth request")
@@ -64,6 +65,7 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
     from ..load.durations import parse_duration
     from ..profile import IDENTITY_OBJECTS, resolve_profile
+    from ..profile.model import SPACE
     from ..recipe.loader import load_recipe
     from ..testing.simulator import Faults, Quirks, Simulator, init_from_recipe, parse_fault_rule, parse_listen, serve
 
@@ -77,13 +79,17 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
         addr, sep, raw = item.partition("=")
         if not sep:
             raise UsageError(f"--set {item}: expected ADDR=RAW, e.g. 0x10=8")
+        table, _, addr = addr.strip().rpartition(":") if ":" in addr else ("holding", "", addr)
+        if table not in SPACE:
+            raise UsageError(f"--set {item}: '{table}' is not a table (holding, coil, discrete, input)")
         try:
             address, value = _register(addr.strip()), _register(raw.strip())
         except click.BadParameter:
             raise UsageError(f"--set {item}: expected ADDR=RAW with numbers, e.g. 0x10=8") from None
-        if value > 0xFFFF:
-            raise UsageError(f"--set {item}: a register holds 0..65535")
-        init[address] = value
+        bit = table in ("coil", "discrete")
+        if value > (1 if bit else 0xFFFF):
+            raise UsageError(f"--set {item}: {'a bit holds 0 or 1' if bit else 'a register holds 0..65535'}")
+        init[SPACE[table] << 16 | address] = value
     try:
         rules = tuple(parse_fault_rule(r, prof) for r in fault_rules)
     except ValueError as e:

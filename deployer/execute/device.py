@@ -97,7 +97,7 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
     opts = options or ApplyOptions()
     prof = recipe.profile
     res = DeviceResult(name or recipe.name, tp.describe(url), unit, prof.id, profile_ref=profile_ref(prof),
-                       recipe=recipe.path, batch=batch)
+                       recipe=recipe.path, batch=batch, profile_sha256=prof.digest)
     results = _results(recipe)
     res.parameters = list(results.values())
     if unit == 0 and not opts.allow_broadcast:

@@ -37,6 +37,7 @@ class ApplyOptions:
     soak: float | None = None  # seconds
     health_interval: float = 1.0
     confirm_within: float | None = None  # seconds to wait for `deployer confirm` before rolling back
+    command: str | None = None  # what started the run (the command line, or the caller), for the report
     hold_commit: bool = False  # do not send the profile's commit after the read-back (a rollback never commits)
 
     @property

@@ -407,6 +407,11 @@ def confirm_run(state_dir: str, run: str | None = None) -> Awaiting:
                              + (f" (waiting: {', '.join(a.run for a in waiting)})" if waiting else ""))
         target = match[0]
     elif not waiting:
+        soaks = soaking(state_dir)
+        soaking_now = sorted(r.run for r in journal.unfinished(state_dir)[0] if r.run in soaks and r.running)
+        if soaking_now:
+            raise UsageError(f"run {', '.join(soaking_now)} is still soaking: it asks for the confirmation once its "
+                             "soak passed (deployer status shows it)")
         raise UsageError(f"no run waits for a confirmation in {where} (wrong --state-dir?)")
     elif len(waiting) > 1:
         raise UsageError("several runs wait for a confirmation: name one (deployer confirm RUN): "

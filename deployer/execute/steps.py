@@ -8,17 +8,19 @@ from collections.abc import Iterable
 from ..errors import IdentityMismatch
 from ..planning.model import WriteRequest
 from ..profile import Profile, WriteAction, codec, object_name
+from ..profile.model import READ_FUNCTION
 from .session import Session
 
 
 async def check_identity(session: Session, profile: Profile) -> None:
     """Raises IdentityMismatch unless every identity register holds its expected value."""
     for chk in profile.identity:
-        (value,) = await session.read(chk.address, 1)
+        (value,) = await session.read(chk.address, 1, READ_FUNCTION[chk.register_type])
         if value != chk.raw:
             what = f" ({chk.description})" if chk.description else ""
+            table = "input register" if chk.register_type == "input" else "register"
             raise IdentityMismatch(
-                f"identity check failed: register 0x{chk.address:04X}{what} holds 0x{value:04X}, expected "
+                f"identity check failed: {table} 0x{chk.address:04X}{what} holds 0x{value:04X}, expected "
                 f"0x{chk.raw:04X}: another kind of device answers here",
                 address=chk.address, expected=chk.raw, found=value)
 

@@ -54,9 +54,11 @@ class LiveReport:
     window would be retried by ``@FILE``, which writes nothing to a device that already matches).
     """
 
-    def __init__(self, path: str, recipe: str | None, skeleton: Sequence[DeviceResult]) -> None:
+    def __init__(self, path: str, recipe: str | None, skeleton: Sequence[DeviceResult], *,
+                 run: dict[str, Any] | None = None) -> None:
         self.path = path
         self.recipe = recipe
+        self.run = run  # who, what, where and when (report.run_info)
         self._order = [d.name for d in skeleton]
         made: dict[int, str] = {}  # the skeleton's devices share their parameter lists (not_finished)
         self._parts = {d.name: device_json(d, made) for d in skeleton}
@@ -114,7 +116,7 @@ class LiveReport:
             summary = Report(self.recipe, finished, time.monotonic() - self._started).summary()
             summary["devices"] = len(self._order)
             summary["skipped"] += len(self._order) - len(finished)
-        return report_parts(self.recipe, parts, summary)
+        return report_parts(self.recipe, parts, summary, self.run)
 
     def _write(self, text: list[bytes]) -> None:
         from ..report import write_atomic

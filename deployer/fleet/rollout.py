@@ -81,7 +81,8 @@ async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Await
 def skipped_result(job: Job, reason: str, batch: int | None = None) -> DeviceResult:
     """A device a fleet run did not start: nothing was sent to it (``batch``: the one it would have run in)."""
     r = DeviceResult(job.name, tp.describe(job.url), job.unit, job.recipe.profile.id, status="skipped", error=reason,
-                     profile_ref=profile_ref(job.recipe.profile), recipe=job.recipe.path, batch=batch)
+                     profile_ref=profile_ref(job.recipe.profile), recipe=job.recipe.path, batch=batch,
+                     profile_sha256=job.recipe.profile.digest)
     r.parameters = list(_results(job.recipe).values())
     return r
 
@@ -181,7 +182,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
             raise
         except UsageError as e:
             r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),
-                             profile_ref=profile_ref(j.recipe.profile), recipe=j.recipe.path, batch=batch)
+                             profile_ref=profile_ref(j.recipe.profile), recipe=j.recipe.path, batch=batch,
+                             profile_sha256=j.recipe.profile.digest)
             r.parameters = list(_results(j.recipe).values())
         r.seconds = time.monotonic() - t
         done[j.name] = r

@@ -440,9 +440,10 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             oid = IDENTITY_OBJECTS[obj] if isinstance(obj, str) else int(obj)
             identity_objects.append(IdentityObject(oid, str(item["equals"]).strip(), item.get("description", "")))
             continue
-        a = address_of(item["register"], ("identity", i, "register"))
+        table = item.get("register_type", "holding")
+        a = address_of(item["register"], ("identity", i, "register"), register_type=table)
         if a is not None:
-            identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", "")))
+            identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", ""), table))
     def actions(key: str) -> tuple[CommitAction, ...]:
         out = []
         for i, item in enumerate(data.get(key) or []):

@@ -308,6 +308,7 @@ class IdentityCheck:
     address: int
     raw: int
     description: str = ""
+    register_type: RegisterType = "holding"  # or "input": where many devices report model and firmware
 
 
 # Function 43 / 14 objects by name (Modbus Application Protocol v1.1b3, 6.21)

@@ -68,6 +68,10 @@ parameters:
 
 # commit:                  # written after an apply whose every value verified, e.g. store to EEPROM
 #   - {{register: 0x0900, raw: 1, description: store parameters to EEPROM}}
+
+# health:                  # read after the write while apply --soak watches; a failed check rolls back
+#   - {{register: 0x0030, equals: 0, description: drive fault code is zero}}
+#   - {{register: 0x0031, register_type: input, max: 850, description: DC bus below 850 V}}
 """
 
 

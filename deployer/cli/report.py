@@ -1,0 +1,47 @@
+"""``deployer report``: an earlier run's report, as the text the run printed at its end, or as a page."""
+
+from __future__ import annotations
+
+import click
+
+from ..load.diagnostics import EXIT_OK, UsageError
+from .base import cli
+
+
+@cli.command()
+@click.argument("report_file", metavar="RUN.json", type=click.Path(dir_okay=False))
+@click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
+              help="write the report as one self-contained HTML page (sortable, filterable; it prints as the "
+                   "commissioning record: as found / as left per device, a signature line)")
+def report(report_file: str, html_path: str | None) -> int:
+    """Show a run's report (apply --report, rollback --report, a fleet's live report file).
+
+    Values are shown in engineering units where the run's profiles still load unchanged, else as
+    register words. Reports of older versions show what they have. Exit 0; 1 if RUN.json is not a report.
+    """
+    from ..report import read_report, report_from_json
+    from .apply import print_report
+    from .base import console, write_page
+    from .progress import fleet_summary
+
+    try:
+        doc = read_report(report_file)
+    except OSError as e:
+        raise UsageError(f"cannot read {report_file}: {e.strerror or e}") from None
+    run = report_from_json(doc)
+    out = console()
+    info = run.run or {}
+    if info:
+        out.print(" ".join(f"{k}: {info[k]}" for k in ("command", "user", "host", "started", "version")
+                           if info.get(k)))
+    if len(run.devices) > 1:
+        print_report(run, out, only_not_ok=True)
+        fleet_summary(run, out)
+    else:
+        print_report(run, out)
+    if html_path:
+        from ..pages import run_page
+
+        write_page(run_page(run), html_path)
+        console(stderr=True).print(f"page: {html_path}")
+    return EXIT_OK
