@@ -53,3 +53,12 @@ def test_what_stays_allowed(tmp_path: Path, loader: type) -> None:
     data, _ = yamlsrc.load(str(f), loader=loader)
     assert data == {"a": 0, "b": 16, "c": "010", "d": "0o17", "e": yamlsrc.Decimal("0.5"), "f": 10, "g": 1000,
                     "h": "010 ms", "i": 0, "j": "010\n"}
+
+
+@pytest.mark.parametrize("loader", [yamlsrc.FastLoader, yaml.SafeLoader], ids=["libyaml", "pure-python"])
+def test_numbers_beyond_any_register_are_refused_not_a_crash(tmp_path: Path, loader: type) -> None:
+    """1e999999999 (a number since exponents without a point are numbers) must not overflow later arithmetic."""
+    f = tmp_path / "f.yaml"
+    f.write_text("a: 1e999999999\nb: 1.0e-999\nc: 1e300\n")
+    assert _errors(f, loader) == [f"{f}:1:4: error: 1e999999999 is too large (exponents -400..400)",
+                                  f"{f}:2:4: error: 1.0e-999 is too close to 0 (exponents -400..400)"]

@@ -53,6 +53,7 @@ _STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP = (
     f"{_STD}{t}" for t in ("str", "int", "float", "bool", "null", "timestamp"))
 _MAP, _SEQ, _MERGE = f"{_STD}map", f"{_STD}seq", f"{_STD}merge"
 _SCALAR_TAGS = {_STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP}
+MAX_EXPONENT = 400  # decimal exponents beyond any register value (a float64 ends near 1e308)
 _NUMBER_START = frozenset("0123456789+-.")
 _EXPONENT = re.compile(r"[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+")  # YAML 1.2 floats 1.1 misses
 
@@ -402,10 +403,16 @@ class _Builder:
             self.err(pos, f"{text} is not a finite number")
             return None
         try:
-            return Decimal(t)
+            d = Decimal(t)
         except InvalidOperation:
             self.err(pos, f"not a number: {clipped_repr(text)}")
             return None
+        if d and not -MAX_EXPONENT <= d.adjusted() <= MAX_EXPONENT:  # 1e999999999: no register holds it, and
+            # decimal arithmetic on it overflows
+            self.err(pos, f"{clip(text)} is too {'large' if d.adjusted() > 0 else 'close to 0'} "
+                          f"(exponents -{MAX_EXPONENT}..{MAX_EXPONENT})")
+            return None
+        return d
 
 
 def _leading_zero(text: str, tag: str, ev: Any) -> str | None:
