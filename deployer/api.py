@@ -559,6 +559,8 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     exactly what did not end ok. ``safe``: ``rollback_on_failure``, ``between_batches`` and
     ``on_confirm_wait`` of ``fleet.rollout.apply_many`` (the soak itself is in ``options``).
     """
+    if options is not None and options.soak is not None:
+        check_soak_profiles([j.recipe.profile for j in jobs])
     sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                                   report_path=report_path)
     info = run_info((options or ApplyOptions()).command or "Python API: run_fleet", time.time())
@@ -572,10 +574,18 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
         if on_done is not None:
             on_done(r)
 
+    on_changed: Callable[[DeviceResult], None] | None = safe.pop("on_changed", None)
+
+    def changed(r: DeviceResult) -> None:  # a finished device's result changed (a soak rolled it back)
+        if live is not None:
+            live.update(r)
+        if on_changed is not None:
+            on_changed(r)
+
     try:
         report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
                                   on_start=on_start, on_done=done, batches=sizes, max_failures=budget,
-                                  on_changed=None if live is None else live.update, **safe)
+                                  on_changed=changed, **safe)
     finally:
         if live is not None:
             live.stop()

@@ -204,3 +204,16 @@ def test_unusable_report_and_state_dir_are_clean_errors(tmp_path: Path) -> None:
         assert code == 1 and "state" in res["msg"] and "Traceback" not in res.get("module_stderr", ""), res
         assert not any(e.function in (6, 16) for e in sim.log)
         assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".") or "tmp" in p.name) == []
+
+
+def test_the_collection_uses_only_the_public_api() -> None:
+    """The modules import deployer.api (pinned by test_exported_members), nothing internal."""
+    import ast
+
+    for path in sorted((COLLECTION / "plugins").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("deployer"):
+                assert node.module == "deployer.api", f"{path.name}:{node.lineno} imports {node.module}"
+            elif isinstance(node, ast.Import):
+                for alias in node.names:
+                    assert alias.name in ("deployer",) or not alias.name.startswith("deployer"), path.name

@@ -237,3 +237,258 @@ def test_umodbus_fc06_only_device(tmp_path: Path) -> None:
     assert res.status == "ok" and res.learned == {"write_function": 6}
     assert [(fc, a) for fc, a, _ in wire if fc in (6, 16)] == [(16, 100)] + [(6, 100 + i) for i in range(N)]
     assert [store[100 + i] for i in range(N)] == [10 + i for i in range(N)]
+
+
+# ---- pauses the device needs ------------------------------------------------------------------------
+
+
+def _pacing_profile(tmp: Path, limits: str = "") -> tuple[Profile, str]:
+    text = _profile_text(strict=False)
+    if limits:
+        text = text.replace("parameters:", f"limits: {limits}\nparameters:")
+    (tmp / "dev.yaml").write_text(text)
+    body = "".join(f"  p{i}: {10 + i}\n" for i in range(3))
+    path = tmp / "r.yaml"
+    path.write_text(f"recipe: r\nprofile: dev.yaml\nparameters:\n{body}")
+    return profile_from(tmp, text, "dev.yaml"), str(path)
+
+
+def _too_soon(sim: Simulator) -> int:
+    return sum(1 for e in sim.log if e.result == "too soon")
+
+
+def test_device_needing_pauses_drops_requests_that_come_too_soon(tmp_path: Path) -> None:
+    prof, recipe = _pacing_profile(tmp_path)
+    sim = Simulator(prof, quirks=Quirks(pause_after_connect_ms=200, request_gap_ms=100))
+    res = _apply_sim(sim, recipe, tmp_path, url_suffix="?timeout=0.3&retries=3")
+    assert _too_soon(sim) > 0  # without pauses: requests lost, each costing a timeout and a retry
+    assert any(r.result == "no response" or r.attempts > 1 for r in res.requests)
+
+
+@pytest.mark.parametrize("where", ["url", "profile"])
+def test_pauses_from_the_url_or_the_profile_are_kept(tmp_path: Path, where: str) -> None:
+    limits = "{pause_after_connect: 300ms, pause_between_requests: 150}" if where == "profile" else ""
+    prof, recipe = _pacing_profile(tmp_path, limits)
+    pauses = "&pause_after_connect=0.3&pause_between_requests=150ms" if where == "url" else ""
+    suffix = "?timeout=2&retries=0" + pauses
+    sim = Simulator(prof, quirks=Quirks(pause_after_connect_ms=200, request_gap_ms=100))
+    res = _apply_sim(sim, recipe, tmp_path, url_suffix=suffix)
+    assert res.status == "ok", res.to_json()
+    assert _too_soon(sim) == 0 and all(r.attempts == 1 and r.result in ("ok", "exception") for r in res.requests)
+    assert [sim.read(f"p{i}")[0] for i in range(3)] == [10, 11, 12]
+
+
+def test_plan_time_estimate_includes_the_pauses(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _, recipe = _pacing_profile(tmp_path, "{pause_after_connect: 1s, pause_between_requests: 250ms}")
+    code, out, err = run_cli(capsys, "plan", recipe)
+    assert code == 0, err
+    # one write request: 1 s after connecting + 250 ms before it
+    assert "(pauses the device needs included: 1250 ms)" in out
+    # the device URL's options override the profile's (a recipe's device.url: still an offline plan)
+    text = Path(recipe).read_text().replace(
+        "parameters:", 'device: {url: "tcp://127.0.0.1:502?pause_after_connect=0&pause_between_requests=0.1"}\n'
+                       "parameters:")
+    Path(recipe).write_text(text)
+    code, out, err = run_cli(capsys, "plan", recipe)
+    assert code == 0, err
+    assert "(pauses the device needs included: 100 ms)" in out
+
+
+def test_bad_pause_is_an_error_at_its_position(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "dev.yaml").write_text(_profile_text(strict=False).replace(
+        "parameters:", "limits: {pause_between_requests: soon}\nparameters:"))
+    code, _, err = run_cli(capsys, "validate", str(tmp_path / "dev.yaml"))
+    assert code == 1
+    assert f"{tmp_path / 'dev.yaml'}:2:" in err and "pause_between_requests" in err
+    code, _, err = run_cli(capsys, "plan", _recipe(tmp_path), "--device", "tcp://127.0.0.1:502?pause_after_connect=x")
+    assert code == 1 and "pause_after_connect" in err and "is not a duration" in err
+
+
+# ---- identity (Function 43 / 14) ---------------------------------------------------------------------
+
+ACME = {0: "ACME", 1: "AC-7", 2: "2.1"}
+
+
+def test_simulator_answers_function_43_as_the_spec_frames_it(device_profile: Profile) -> None:
+    """Raw Modbus/TCP bytes, no client library: request 2B 0E 01 00 (read basic identification from
+    object 0); the answer lists each object as id, length, text (Modbus Application Protocol 6.21)."""
+    import socket
+
+    with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
+        host, port = sim.url.removeprefix("tcp://").split(":")
+        with socket.create_connection((host, int(port)), timeout=5) as s:
+            s.sendall(bytes.fromhex("0001 0000 0005 01 2B0E0100"))
+            answer = s.recv(260)
+    objects = b"".join(bytes([i, len(t)]) + t.encode() for i, t in ACME.items())
+    pdu = bytes.fromhex("2B 0E 01 83 00 00 03") + objects  # conformity 83h, no more follows, 3 objects
+    assert answer == bytes.fromhex("0001 0000") + (len(pdu) + 1).to_bytes(2, "big") + b"\x01" + pdu
+
+
+def test_identity_is_read_reported_snapshotted_and_journaled(tmp_path: Path, device_profile: Profile,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    recipe = _recipe(tmp_path, bad=False)
+    state = tmp_path / ".deployer"
+    with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
+        code, out, err = run_cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--json",
+                                 "--state-dir", str(state))
+    assert code == 0, err
+    dev = json.loads(out)["devices"][0]
+    assert dev["identity"] == {"vendor": "ACME", "product_code": "AC-7", "revision": "2.1"}
+    assert "identity:" in Path(dev["snapshot"]).read_text()
+    snap = load_recipe(dev["snapshot"])
+    assert snap.snapshot is not None and snap.snapshot.identity == dev["identity"]
+    finished = [json.loads(line) for line in (state / "audit.jsonl").read_text().splitlines()
+                if '"device-finished"' in line]
+    assert finished[-1]["identity"] == dev["identity"]
+
+
+def test_a_replaced_device_is_noted(tmp_path: Path, device_profile: Profile,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    state = str(tmp_path / ".deployer")
+    with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
+        code, _, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False), "--device", sim.url, "--yes",
+                               "--state-dir", state)
+        assert code == 0, err
+        sim.set_identity({0: "ACME", 1: "AC-9", 2: "3.0"})  # swapped for another model
+        code, out, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False, offset=40), "--device", sim.url,
+                                 "--yes", "--json", "--state-dir", state)
+    assert code == 0, err
+    (note,) = [n for n in json.loads(out)["devices"][0]["notices"] if "identity changed" in n]
+    assert "product_code 'AC-7'" in note and "product_code 'AC-9'" in note and "replaced" in note
+
+
+def test_identity_object_check(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    text = _profile_text(strict=False).replace(
+        "parameters:", "identity:\n  - {object: vendor, equals: ACME}\n  - {object: product_code, equals: AC-7}\n"
+                       "parameters:")
+    (tmp_path / "dev.yaml").write_text(text)
+    body = "".join(f"  p{i}: {10 + i}\n" for i in range(N))
+    (tmp_path / "r.yaml").write_text(f"recipe: r\nprofile: dev.yaml\nparameters:\n{body}")
+    prof = profile_from(tmp_path, text, "dev.yaml")
+    with SimulatorThread(prof) as sim:  # serves the profile's identity objects
+        code, out, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--json",
+                                 "--state-dir", str(tmp_path / "s"))
+        assert code == 0, err
+    with SimulatorThread(prof, quirks=Quirks(identity={0: "ACME", 1: "AC-9"})) as sim:
+        code, out, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--json",
+                                 "--state-dir", str(tmp_path / "s"))
+        dev = json.loads(out)["devices"][0]
+        assert code == 4 and dev["status"] == "failed"
+        assert dev["error"] == ("identity check failed: product_code is 'AC-9', expected 'AC-7': another kind of "
+                                "device answers here; nothing was written")
+        assert not [e for e in sim.log if e.function in (6, 16)]
+    store = _store()
+    with quirky_umodbus(store) as port:  # no Function 43 at all
+        code, out, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", f"tcp://127.0.0.1:{port}",
+                                 "--yes", "--json", "--state-dir", str(tmp_path / "s"))
+    dev = json.loads(out)["devices"][0]
+    assert code == 4 and dev["error"].startswith("identity check failed: the device does not answer Function 43")
+    assert set(store.values()) == {0}
+
+
+# ---- scan ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scheme", ["rtu+tcp", "tcp"])
+def test_scan_finds_the_units_that_answer_and_writes_an_inventory(
+        tmp_path: Path, device_profile: Profile, capsys: pytest.CaptureFixture[str], scheme: str) -> None:
+    out_file = tmp_path / "inventory.yaml"
+    with SimulatorThread(device_profile, listen=f"{scheme}://127.0.0.1:0", units=(1, 3, 7),
+                         quirks=Quirks(identity=ACME)) as sim:
+        code, out, err = run_cli(capsys, "scan", sim.url, "--unit", "1-5", "--unit", "7,8", "--timeout", "0.3",
+                                 "-o", str(out_file), "--json")
+        log = list(sim.log)
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["asked"] == 7
+    assert [(u["unit"], u["answer"], u["identity"]) for u in data["units"]] == [
+        (unit, "exception 02", {"vendor": "ACME", "product_code": "AC-7", "revision": "2.1"}) for unit in (1, 3, 7)]
+    # bounded: one request per silent unit (no retry), an FC03 and an FC43 per unit that answers
+    assert sorted((e.unit, e.function) for e in log) == sorted(
+        [(u, 3) for u in (1, 2, 3, 4, 5, 7, 8)] + [(u, 43) for u in (1, 3, 7)])
+    if scheme == "rtu+tcp":  # a serial line: silent units cost their timeout
+        assert [e.result for e in log if e.unit not in (1, 3, 7)] == ["no answer"] * 4
+    else:  # a TCP gateway answers 0Bh for units it cannot reach: no wait at all
+        assert {e.result for e in log if e.unit not in (1, 3, 7)} == {"exception 11"}
+    assert "asking 7 unit ids" in err and "at most 2.1 s" in err
+    text = out_file.read_text()
+    assert "unit-3:  # vendor ACME, product_code AC-7, revision 2.1" in text
+    code, _, err = run_cli(capsys, "validate", str(out_file))
+    assert code == 0, err
+
+
+def test_scan_of_a_silent_bus_exits_3_and_bad_units_are_usage_errors(
+        device_profile: Profile, capsys: pytest.CaptureFixture[str]) -> None:
+    with SimulatorThread(device_profile, listen="rtu+tcp://127.0.0.1:0", units=(9,)) as sim:
+        code, out, _ = run_cli(capsys, "scan", sim.url, "--unit", "1-2", "--timeout", "0.1")
+    assert code == 3 and "0 of 2 unit ids answered" in out
+    code, _, err = run_cli(capsys, "scan", "tcp://127.0.0.1:1", "--unit", "0-300")
+    assert code == 1 and "unit ids are 1..247" in err
+
+
+# ---- probe ---------------------------------------------------------------------------------------------
+
+DRIVE_TRUTH = """\
+profile: drive
+byte_order: CDAB
+parameters:
+  gain: {register: 10, type: float32, default: 2.5}
+  count: {register: 12, type: uint32, max: 100000, default: 70000}
+  speed: {register: 14, type: uint16, scale: 0.1, unit: Hz, max: 400, default: 50}
+  command: {register: 15, type: uint16, access: write-only}
+"""
+DRIVE_GUESS = """\
+profile: drive-guess
+parameters:
+  gain: {register: 10, type: float32}
+  count: {register: 12, type: uint32, max: 100000}
+  speed: {register: 14, type: uint16, scale: 0.01, unit: Hz, max: 400}
+  command: {register: 15, type: uint16}
+"""
+
+
+def test_probe_finds_word_order_scale_unreadable_register_and_identity(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    truth = profile_from(tmp_path, DRIVE_TRUTH, "truth.yaml")
+    guess = tmp_path / "guess.yaml"
+    guess.write_text(DRIVE_GUESS)
+    with SimulatorThread(truth, quirks=Quirks(identity=ACME)) as sim:
+        code, out, err = run_cli(capsys, "probe", str(guess), "--device", sim.url, "--expect", "gain=2.5",
+                                 "--expect", "count=70000", "--expect", "speed=50 Hz", "--json")
+        writes = [e for e in sim.log if e.function in (5, 6, 15, 16)]
+    assert code == 2, err
+    data = json.loads(out)
+    assert data["identity"] == {"vendor": "ACME", "product_code": "AC-7", "revision": "2.1"}
+    assert data["changes"] == [
+        "identity: - {object: product_code, equals: 'AC-7'} (recognises the device before any write)",
+        "command: access: write-only if it is a command register, else check its address (0x000F)",
+        "count: check its scale, type and byte_order, or widen min/max",
+        "gain: byte_order: CDAB",
+        "count: byte_order: CDAB",
+        "speed: scale: 0.1",
+        "byte_order: CDAB for the whole profile (top level) instead of per parameter"]
+    seen = {f["parameter"]: f["seen"] for f in data["findings"] if f["parameter"] == "gain"}
+    assert seen["gain"].startswith("gain: 2.5 is held as CDAB (the profile reads ABCD")
+    assert writes == []  # read-only
+
+    # the fixed profile fits: exit 0
+    fixed = tmp_path / "fixed.yaml"
+    fixed.write_text(DRIVE_TRUTH.replace("profile: drive", "profile: drive-fixed").replace(
+        "parameters:", "identity:\n  - {object: product_code, equals: AC-7}\nparameters:"))
+    with SimulatorThread(truth, quirks=Quirks(identity=ACME)) as sim:
+        code, out, err = run_cli(capsys, "probe", str(fixed), "--device", sim.url, "--expect", "gain=2.5")
+    assert code == 0, out + err
+    assert "gain reads 2.5 as expected (CDAB)" in out and "the profile fits" in out
+
+
+def test_probe_against_umodbus_finds_the_word_order(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    guess = tmp_path / "guess.yaml"
+    guess.write_text("profile: meter\nparameters:\n  energy: {register: 100, type: uint32}\n")
+    store = {100: 0x1170, 101: 0x0001}  # 70000 with the low word first
+    with quirky_umodbus(store) as port:
+        code, out, err = run_cli(capsys, "probe", str(guess), "--device", f"tcp://127.0.0.1:{port}",
+                                 "--expect", "energy=70000")
+    assert code == 2, err
+    assert "energy: 70000 is held as CDAB (the profile reads ABCD: 292552705)" in out
+    assert "  - energy: byte_order: CDAB" in out
+    assert "identity none (no Function 43)" in out

@@ -338,7 +338,7 @@ def test_fleet_plan_and_diff_group_identical_changes(capsys: pytest.CaptureFixtu
         code, out, err = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "!d06")
         assert code == 3, err
         assert out.splitlines() == [
-            "4 devices: F07 5 s -> 10 s, F08 5 s -> 12 s, stop_mode ramp -> coast", "  d00, d01, d02, d03",
+            "4 devices: F07 5 s -> 10 s, F08 5 s -> 12 s, stop_mode ramp -> coast", "  d00..d03",
             "1 device: F07 5 s -> 10 s, stop_mode ramp -> coast", "  d04",
             "1 device: as desired", "  d05",
             "2 unreachable: dead-1, dead-2",
@@ -661,3 +661,15 @@ def test_one_report_document_in_both_forms() -> None:
     text = report_text(report)
     assert json.loads(text) == report.to_json()
     assert len(text.splitlines()) == 4  # head, one line per device, tail
+
+
+def test_runs_of_numbered_names_are_shown_as_ranges() -> None:
+    from deployer.cli.summary import compact
+
+    assert compact(["d00", "d01", "d02", "d03"]) == ["d00..d03"]
+    assert compact(["d00", "d01", "d03"]) == ["d00", "d01", "d03"]  # two in a row stay names
+    assert compact(["a", "press-1", "press-2", "press-3", "press-5", "x9", "x10", "x11"]) == [
+        "a", "press-1..press-3", "press-5", "x9..x11"]
+    assert compact(["p08", "p09", "p10", "q1", "q2", "r3"]) == ["p08..p10", "q1", "q2", "r3"]
+    assert compact(["p8", "p09", "p10"]) == ["p8", "p09", "p10"]  # zero-padded and not: not one run
+    assert compact(["line3-a", "line4-a", "line5-a"]) == ["line3-a", "line4-a", "line5-a"]  # the number must end it

@@ -315,11 +315,12 @@ def test_a_canary_failing_health_is_rolled_back_and_the_rest_skipped(capsys: pyt
                                                                      tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults(rules=(TRIP,)) if i == 0 else None) for i in range(4)]) as sims:
         urls = {f"d{i}": s.url for i, s in enumerate(sims)}
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "1.5 s"), "--inventory", inventory(tmp_path, urls),
-                           "--yes", "--json", "--batch", "1,100%", "--soak", "1h", "--health-interval", "100ms",
-                           "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "1.5 s"), "--inventory", inventory(tmp_path, urls),
+                             "--yes", "--json", "--batch", "1,100%", "--soak", "1h", "--health-interval", "100ms",
+                             "--state-dir", str(tmp_path / "s"))
         logs = [list(s.log) for s in sims]
     assert code == 4
+    assert "d0: rolled-back - health check failed after" in err  # a progress line when the soak rolls it back
     report = json.loads(out)
     jsonschema.validate(report, schema.schema("report"))
     first, *rest = report["devices"]

@@ -212,7 +212,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                            soak=soak, health_interval=health_interval, confirm_within=confirm_within,
                            command=shlex.join(["deployer", *_ARGV]) if _ARGV else f"deployer {command}")
     safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
-                       interval=health_interval, staged=bool(batch))
+                       interval=health_interval, staged=bool(batch), fleet=fleet_run)
     if fleet_run:
         import gc
 
@@ -268,7 +268,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
 
 
 def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool,
-                soak: float | None = None, interval: float = 1.0, staged: bool = False) -> dict[str, Any]:
+                soak: float | None = None, interval: float = 1.0, staged: bool = False, fleet: bool = False
+                ) -> dict[str, Any]:
     """apply_many's keywords for a safe change: a pause and a question between batches, the confirmation wait."""
     from ..load.durations import format_duration
 
@@ -300,8 +301,18 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
                   f"{format_duration(soak or 0)} (every {format_duration(interval)}); a failed check rolls that device "
                   "back", soft_wrap=True)
 
+    told: set[str] = set()
+
+    def changed(r: DeviceResult) -> None:  # fleets: a progress line for a device its soak rolled back
+        if r.status != "ok" and r.name not in told:
+            from rich.markup import escape
+
+            told.add(r.name)
+            err.print(f"{escape(r.name)}: [bold yellow]{r.status}[/bold yellow]"
+                      + (f" - {escape(r.error)}" if r.error else ""), soft_wrap=True, highlight=False)
+
     return {"rollback_on_failure": rollback_on_failure, "between_batches": between, "on_confirm_wait": waiting,
-            "on_soak": soaking}
+            "on_soak": soaking, **({"on_changed": changed} if fleet else {})}
 
 
 def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retries: int | None) -> list[Job]:

@@ -51,7 +51,6 @@ def learned_forget(state_dir: str, profile: str | None, device: str | None, unit
 
     from ..profile import is_profile_path
     from ..state import learned as store
-    from ..state.lock import device_key
     from ..transport.urls import BadURL, parse_url
 
     if not (profile or device or everything):
@@ -62,7 +61,7 @@ def learned_forget(state_dir: str, profile: str | None, device: str | None, unit
     key = None
     if device:
         try:
-            key = device_key(parse_url(device).bus, unit)
+            key = store.device_id(parse_url(device), unit)
         except BadURL as e:
             raise UsageError(str(e)) from None
     gone = store.forget(state_dir, profile=ref, device=key)
@@ -72,3 +71,140 @@ def learned_forget(state_dir: str, profile: str | None, device: str | None, unit
     if not gone:
         out.print("nothing matched: nothing was forgotten")
     return EXIT_OK
+
+
+def _unit_ids(specs: tuple[str, ...]) -> list[int]:
+    """``--unit 1-247``, ``--unit 5 --unit 9``, ``--unit 1,3,10-12``: unit ids in the order given, each once."""
+    out: list[int] = []
+    for spec in specs or ("1-247",):
+        for part in spec.split(","):
+            lo, dash, hi = part.strip().partition("-")
+            try:
+                first, last = int(lo), int(hi if dash else lo)
+            except ValueError:
+                raise UsageError(f"--unit {spec}: expected a unit id or a range, e.g. 5 or 1-247") from None
+            if not 1 <= first <= last <= 247:
+                raise UsageError(f"--unit {spec}: unit ids are 1..247, a range low-high")
+            out += [u for u in range(first, last + 1) if u not in out]
+    return out
+
+
+@click.command()
+@click.argument("url")
+@click.option("--unit", "units", multiple=True, metavar="IDS",
+              help="unit ids to ask: 7, 1-32, 1,3,10-12 (repeatable; default 1-247)")
+@click.option("--timeout", type=click.FloatRange(min=0.001, max=60), default=0.2, show_default=True,
+              help="seconds to wait for each unit (a silent unit costs this once)")
+@click.option("--register", type=click.IntRange(0, 65535), default=0, show_default=True,
+              help="the holding register each unit is asked for (any answer, an exception too, counts)")
+@click.option("-o", "--output", "output", type=click.Path(dir_okay=False),
+              help="write an inventory fragment of the units that answered")
+@click.option("--json", "as_json", is_flag=True, help="print the result as JSON")
+def scan(url: str, units: tuple[str, ...], timeout: float, register: int, output: str | None, as_json: bool) -> int:
+    """Which unit ids answer on URL (a serial bus or a gateway), with their identity (Function 43).
+
+    Read-only. Each unit costs one FC03 request without retry (at most --timeout when silent), then a
+    Function 43 request for those that answered. Exit 0 when some unit answered, 3 when none did.
+    """
+    import asyncio
+
+    from ..errors import EXIT_UNREACHABLE, TransportError
+    from ..execute.scan import inventory_text
+    from ..execute.scan import scan as run_scan
+    from ..state.learned import now
+    from ..transport.urls import BadURL, parse_url
+
+    ids = _unit_ids(units)
+    try:
+        device_url = parse_url(url, timeout=timeout)
+    except BadURL as e:
+        raise UsageError(str(e)) from None
+    err = console(stderr=True)
+    err.print(f"asking {len(ids)} unit id{'s' if len(ids) != 1 else ''} on {url} "
+              f"(at most {len(ids) * device_url.timeout:.1f} s)")
+    try:
+        result = asyncio.run(run_scan(device_url, ids, register=register))
+    except TransportError as e:
+        click.echo(f"error: {e}", err=True)
+        return EXIT_UNREACHABLE
+    if output:
+        from ..report import write_atomic
+
+        write_atomic(output, inventory_text(result, url, now()))
+    if as_json:
+        click.echo(json.dumps({"url": result.url, "asked": result.asked, "seconds": round(result.seconds, 3),
+                               "units": [{"unit": u.unit, "answer": u.answer, "identity": u.identity}
+                                         for u in result.units]}, indent=2))
+    else:
+        out = console()
+        if result.units:
+            show(out, ["unit", "answer", "vendor", "product code", "revision"],
+                 [[str(u.unit), u.answer, *((u.identity or {}).get(k, "-") for k in ("vendor", "product_code",
+                                                                                     "revision"))]
+                  for u in result.units])
+        out.print(f"{len(result.units)} of {result.asked} unit ids answered on {result.url} "
+                  f"in {result.seconds:.1f} s" + (f"; inventory written to {output}" if output else ""))
+    return EXIT_OK if result.units else EXIT_UNREACHABLE
+
+
+@click.command()
+@click.argument("profile")
+@click.option("--device", "device", metavar="URL", required=True, help="the live device to check the profile against")
+@click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True, help="its unit id")
+@click.option("--expect", "expect", multiple=True, metavar="NAME=VALUE",
+              help="a value you know the device holds (e.g. read on its panel), in the parameter's unit: "
+                   "finds the byte/word layout or scale that gives it. Repeatable.")
+@click.option("--timeout", type=click.FloatRange(min=0.001, max=600), help="seconds per attempt")
+@click.option("--json", "as_json", is_flag=True, help="print the findings as JSON")
+def probe(profile: str, device: str, unit: int, expect: tuple[str, ...], timeout: float | None, as_json: bool) -> int:
+    """Check PROFILE against a live device, read-only, and suggest profile changes.
+
+    Reads the identity (registers and Function 43), every readable parameter (registers answering
+    02, values outside their declared range) and, for --expect NAME=VALUE, which byte/word layout or
+    scale gives that value. Exit 0 when the profile fits, 2 when changes are suggested, 3 when the
+    device does not answer. Nothing is written.
+    """
+    import asyncio
+
+    from ..errors import EXIT_CHANGES, EXIT_UNREACHABLE, TransportError
+    from ..execute.probe import probe as run_probe
+    from ..profile import resolve_profile
+    from ..transport.urls import BadURL, parse_url
+
+    prof = resolve_profile(profile)
+    wanted: dict[str, str] = {}
+    for item in expect:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise UsageError(f"--expect {item}: expected NAME=VALUE, e.g. --expect F07='10 s'")
+        if prof.get(name.strip()) is None:
+            raise UsageError(f"--expect {item}: profile {prof.id} has no parameter {name.strip()!r}")
+        wanted[name.strip()] = value
+    try:
+        url = parse_url(device, timeout=timeout)
+    except BadURL as e:
+        raise UsageError(str(e)) from None
+    try:
+        result = asyncio.run(run_probe(prof, url, unit, wanted))
+    except TransportError as e:
+        click.echo(f"error: {e}", err=True)
+        return EXIT_UNREACHABLE
+    changes = result.changes
+    if as_json:
+        click.echo(json.dumps({"profile": prof.id, "identity": result.identity, "values": result.values,
+                               "findings": [{"parameter": f.name, "seen": f.what, "change": f.change}
+                                            for f in result.findings], "changes": changes}, indent=2))
+    else:
+        out = console()
+        ident = ", ".join(f"{k} {v!r}" for k, v in (result.identity or {}).items())
+        out.print(f"profile {prof.id} against {device} unit {unit}: identity {ident or 'none (no Function 43)'}; "
+                  f"{len(result.values)} of {sum(1 for p in prof.parameters if p.readable)} readable parameters read")
+        for f in result.findings:
+            out.print(f"  {f.what}")
+        if changes:
+            out.print("suggested profile changes:")
+            for c in changes:
+                out.print(f"  - {c}")
+        else:
+            out.print("the profile fits what the device answers")
+    return EXIT_CHANGES if changes else EXIT_OK

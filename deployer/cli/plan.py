@@ -181,7 +181,7 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     if url is not None:
         from ..state import learned
 
-        rec, taught = learned.for_recipe(rec, state_dir, url.bus, u)
+        rec, taught = learned.for_recipe(rec, state_dir, url, u)
         if taught is not None:
             click.echo(f"note: {learned.note(taught)}", err=as_json)
     current = None
@@ -224,7 +224,7 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
 
     taught_jobs = []
     for j in jobs:
-        r, taught = learned.for_recipe(j.recipe, state_dir, j.url.bus, j.unit)
+        r, taught = learned.for_recipe(j.recipe, state_dir, j.url, j.unit)
         if taught is not None:
             click.echo(f"note: {j.name}: {learned.note(taught)}", err=as_json)
             j = replace(j, recipe=r)

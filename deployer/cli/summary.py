@@ -6,6 +6,7 @@ Ten identical tables for ten identical changes say less than one line naming the
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
@@ -62,9 +63,39 @@ def print_groups(out: Console, changes: Mapping[str, tuple[str, ...]], down: Seq
         else:
             out.print(head + _n(len(key), "change"), markup=False, highlight=False)
             show(out, ["", "change"], [["", k] for k in key])
-        out.print("  " + ", ".join(names), markup=False, highlight=False)
+        out.print("  " + ", ".join(compact(names)), markup=False, highlight=False)
     if down:
         out.print(f"{len(down)} unreachable: {', '.join(down)}", markup=False, highlight=False)
+
+
+_NUMBERED = re.compile(r"^(.*?)(\d+)$")
+
+
+def compact(names: Sequence[str]) -> list[str]:
+    """``press-001, press-002, ..., press-036`` as ``press-001..press-036``: a run of three or more
+    names, next to each other, with one prefix and consecutive numbers (zero-padded ones of one
+    width); other names as they are."""
+    out: list[str] = []
+    run: list[str] = []
+
+    def close() -> None:
+        out.extend([f"{run[0]}..{run[-1]}"] if len(run) >= 3 else run)
+        run.clear()
+
+    for name in names:
+        if run and _follows(run[-1], name):
+            run.append(name)
+            continue
+        close()
+        run.append(name)
+    close()
+    return out
+
+
+def _follows(before: str, name: str) -> bool:
+    a, b = _NUMBERED.match(before), _NUMBERED.match(name)
+    return (a is not None and b is not None and a[1] == b[1] and int(b[2]) == int(a[2]) + 1
+            and (len(a[2]) == len(b[2]) or not (a[2].startswith("0") or b[2].startswith("0"))))
 
 
 def drift_matrix(rows: Mapping[str, Sequence[Drift]], wanted: Mapping[str, Mapping[str, str]]

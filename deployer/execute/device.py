@@ -24,7 +24,7 @@ from ..recipe.loader import Recipe
 from ..report import DeviceResult, ParameterResult, show_registers
 from ..state import journal, learned, lock
 from ..state.durable import Line, disk_error, durable, queue
-from ..state.snapshot import snapshot_file
+from ..state.snapshot import last_identity, snapshot_file
 from ..transport import clients as tp
 from .recovery import Learning, _recover, _remerge, chunks, single_writes
 from .session import ApplyOptions, Session
@@ -127,7 +127,7 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
             if unit == 0:
                 await _broadcast(session, recipe, target, opts, res, results)
             else:
-                await _apply(session, recipe, target, opts, res, results, lock.device_key(url.bus, unit))
+                await _apply(session, recipe, target, opts, res, results, learned.device_id(url, unit))
         finally:
             await transport.close()
         if transport.late_answers:
@@ -184,6 +184,12 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         if why:
             res.status, res.error = "failed", f"{why}; nothing was written"
             return
+        if res.identity is not None:  # the same name answering with other objects: a replaced device
+            last = last_identity(opts.state_dir, res.name)
+            if last is not None and last[1] != res.identity:
+                res.notices.append(f"the device's identity changed since its last snapshot "
+                                   f"({os.path.basename(last[0])}: {_identity_text(last[1])}; now "
+                                   f"{_identity_text(res.identity)}): it may have been replaced")
         taught = learned.lookup(opts.state_dir, profile_ref(prof), key) if opts.expected is None else None
         if taught is not None:
             if taught.identity is not None and res.identity is not None and taught.identity != res.identity:
@@ -242,7 +248,8 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     # 3. the snapshot is on disk before the first write, and the journal says this device is being written:
     #    both made durable by the group-commit thread, sharing fsyncs with the other devices of a fleet
     applied = opts.applied or (os.path.abspath(recipe.path) if recipe.path else None)  # a fleet: the device's own
-    snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=applied)
+    snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=applied,
+                         identity=res.identity)
     if opts.run_id is not None:
         digest = hashlib.sha256(json.dumps(plan_to_json(plan), sort_keys=True).encode()).hexdigest()
         snap.journal = journal.path_of(opts.state_dir)

@@ -183,7 +183,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
             try:
                 limit_data[key] = round(parse_duration(limit_data[key], bare="ms") * 1000)
             except ValueError as e:
-                errors.append(src.error(("limits", key), str(e)))
+                errors.append(src.error(("limits", key), f"limits.{key}: {e}"))
                 limit_data[key] = 0
     limits = Limits(**limit_data)
     if limits.write_registers < 1:

@@ -50,6 +50,7 @@ class SnapshotInfo:
     taken: str | None = None
     applied: str | None = None  # the recipe applied after the snapshot was taken
     profile_changed: bool = False  # loaded with --force although the profile's digest differs
+    identity: Mapping[str, str] | None = None  # the device's Function 43 objects when it was read
 
 
 @dataclass(frozen=True)
@@ -199,7 +200,9 @@ def _snapshot_info(data: Mapping[str, Any], prof: Profile, src: yamlsrc.Source, 
             f"then, {str(prof.digest)[:12]}... now): its values were decoded with the old profile. Check the profile; "
             "--force restores the recorded raw registers"))])
     regs = {str(k): tuple(int(w) for w in v) for k, v in (data.get("registers") or {}).items()}
-    return SnapshotInfo(recorded, regs, data.get("taken"), data.get("applied"), changed)
+    ident = data.get("identity")
+    identity = {str(k): str(v) for k, v in ident.items()} if isinstance(ident, dict) else None
+    return SnapshotInfo(recorded, regs, data.get("taken"), data.get("applied"), changed, identity)
 
 
 def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source,

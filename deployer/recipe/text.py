@@ -121,6 +121,8 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
                      ("applied", snapshot.applied)):
             if v is not None:
                 lines.append(f"  {k}: {json.dumps(v)}")
+        if snapshot.identity is not None:  # Function 43 objects: a later run tells a replaced device
+            lines.append(f"  identity: {json.dumps(dict(snapshot.identity))}")
         lines.append("  registers:" if ordered else "  registers: {}")
         lines.extend(f"    {_key(param.name)}: [{', '.join(str(w) for w in regs)}]" for param, regs in ordered)
     body = [_body_line(param, tuple(regs), snapshot is not None) for param, regs in ordered]

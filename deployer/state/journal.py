@@ -76,7 +76,8 @@ def device_finished(run: str, res: DeviceResult) -> dict[str, Any]:
     """The ``device-finished`` record (status after the read-back)."""
     return {"event": "device-finished", "run": run, "time": _now(), "name": res.name, "url": res.url,
             "unit": res.unit, **_batch(res), "status": res.status, "snapshot": res.snapshot,
-            "written": _written(res), "write_requests": res.write_requests}
+            "written": _written(res), "write_requests": res.write_requests,
+            **({"identity": dict(res.identity)} if res.identity is not None else {})}
 
 
 def _batch(res: DeviceResult) -> dict[str, int]:

@@ -25,6 +25,7 @@ from typing import Any
 from ..profile import Limits, Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..report import write_atomic
+from ..transport.urls import DeviceURL
 
 FILE = "learned.json"
 SCHEMA = "deployer.learned/1"
@@ -147,13 +148,18 @@ def note(entry: Entry) -> str:
             f"({entry.seen.split(';')[0]}); 'deployer learned forget' drops it")
 
 
-def for_recipe(recipe: Recipe, state_dir: str, bus: str, unit: int) -> tuple[Recipe, Entry | None]:
+def device_id(url: DeviceURL, unit: int) -> str:
+    """The key a device's entries are kept under: the one its lock uses (bus and unit)."""
+    from .lock import device_key
+
+    return device_key(url.bus, unit)
+
+
+def for_recipe(recipe: Recipe, state_dir: str, url: DeviceURL, unit: int) -> tuple[Recipe, Entry | None]:
     """``recipe`` with what its device taught in force (and the entry used), else unchanged."""
     from dataclasses import replace
 
-    from .lock import device_key
-
-    entry = lookup(state_dir, profile_ref(recipe.profile), device_key(bus, unit))
+    entry = lookup(state_dir, profile_ref(recipe.profile), device_id(url, unit))
     if entry is None:
         return recipe, None
     prof = with_limits(recipe.profile, entry)

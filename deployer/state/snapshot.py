@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import re
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -29,7 +30,8 @@ def snapshot_dir(state_dir: str) -> str:
 
 
 def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
-                  url: str, unit: int, *, applied: str | None = None) -> NewFile:
+                  url: str, unit: int, *, applied: str | None = None,
+                  identity: Mapping[str, str] | None = None) -> NewFile:
     """The snapshot of what the device held, ready for ``durable``: a new file (never overwriting
     another run's snapshot from the same second), rendered for its first candidate path."""
     directory = snapshot_dir(state_dir)
@@ -38,7 +40,8 @@ def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
     stamp = time.strftime("%Y%m%dT%H%M%SZ", now)
     safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
     prof = recipe.profile
-    info = SnapshotInfo(prof.digest, dict(values), time.strftime("%Y-%m-%dT%H:%M:%SZ", now), applied)
+    info = SnapshotInfo(prof.digest, dict(values), time.strftime("%Y-%m-%dT%H:%M:%SZ", now), applied,
+                        identity=identity)
     ref = profile_ref(prof)
     by_param = {prof.parameter(k): v for k, v in values.items()}
 
@@ -53,6 +56,37 @@ def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
     first = os.path.join(directory, f"{safe}-{stamp}.yaml")
     later = (os.path.join(directory, f"{safe}-{stamp}-{n}.yaml") for n in itertools.count(2))
     return NewFile(later, text, (first, text(first)))
+
+
+def last_identity(state_dir: str, name: str) -> tuple[str, dict[str, str]] | None:
+    """The newest snapshot of device ``name`` that recorded a Function 43 identity: (its path, the objects).
+
+    Only the snapshot block's ``identity:`` line is read (a fleet asks this for every device), in the
+    newest files first; None when no snapshot recorded one.
+    """
+    import json
+
+    directory = snapshot_dir(state_dir)
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+    stamp = re.compile(re.escape(safe) + r"-\d{8}T\d{6}Z(-\d+)?\.yaml$")
+    try:
+        names = sorted((n for n in os.listdir(directory) if stamp.match(n)), reverse=True)
+    except OSError:
+        return None
+    for n in names[:20]:
+        path = os.path.join(directory, n)
+        try:
+            with open(path, encoding="utf-8") as f:
+                for line in f:
+                    if line.startswith("  identity: "):
+                        data = json.loads(line[len("  identity: "):])
+                        if isinstance(data, dict):
+                            return path, {str(k): str(v) for k, v in data.items()}
+                    if line.startswith("parameters:"):
+                        break
+        except (OSError, ValueError):
+            continue
+    return None
 
 
 def save_snapshot(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],

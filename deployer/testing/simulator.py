@@ -461,6 +461,12 @@ class Simulator:
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()
 
+    def set_identity(self, objects: Mapping[int, str]) -> None:
+        """Other Function 43 objects from now on (the device was swapped for another model)."""
+        self.quirks.identity = dict(objects)
+        if self._server is not None:
+            self._server.context.identity = self.identity_objects()
+
     def identity_objects(self) -> dict[int, str] | None:
         """Function 43 objects served: the quirk's, else those the profile's identity checks expect."""
         if self.quirks.identity is not None:

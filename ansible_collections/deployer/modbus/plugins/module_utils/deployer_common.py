@@ -1,6 +1,7 @@
 # Shared by the deployer.modbus modules: which devices a task means, and the recipe for each of them.
 # The modules run on the site gateway (often `connection: local`) with a Python that has deployer
-# installed (ansible_python_interpreter); they call deployer's Python API, never its command line.
+# installed (ansible_python_interpreter); they call deployer's public Python API (deployer.api) only,
+# never its command line or its internal modules.
 
 from __future__ import annotations
 
@@ -9,12 +10,18 @@ import traceback
 
 try:
     import deployer
-    from deployer.api import device_url, load_inventory
-    from deployer.fleet.inventory import FleetDevice, Inventory, fleet_jobs
-    from deployer.fleet.rollout import Job
-    from deployer.load.diagnostics import InputError, UsageError
-    from deployer.load.yamlsrc import Source
-    from deployer.recipe.loader import Entry
+    from deployer.api import (
+        InputError,
+        Job,
+        ReadJob,
+        UsageError,
+        describe_url,
+        device_url,
+        fleet_jobs,
+        inventory_from,
+        pull_names,
+        read_fleet,
+    )
     HAS_DEPLOYER = True
     IMPORT_ERROR = ""
 except ImportError:  # said clearly by the module, not as a traceback
@@ -119,24 +126,14 @@ def jobs_of(module, rec):
     """One job per device the task names: device/unit, a devices list (host vars), or a deployer inventory."""
     p = module.params
     if p.get("inventory"):
-        jobs = fleet_jobs(load_inventory(p["inventory"]), rec, p.get("limit"), timeout=p.get("timeout"),
+        return fleet_jobs(rec, p["inventory"], limit=p.get("limit"), timeout=p.get("timeout"),
                           retries=p.get("retries"), unit=p.get("unit"))
-        if not jobs:
-            raise UsageError(f"no device selected from {p['inventory']}")
-        return jobs
     if p.get("devices"):  # host vars: the same rules as a deployer inventory (own profile, overrides)
-        src = Source("<devices>")
-        inv = Inventory("<devices>", tuple(
-            FleetDevice(d["name"], d["url"], d["unit"], d.get("profile"),
-                        overrides=tuple(Entry(k, v, src, ("devices", d["name"], "parameters", k))
-                                        for k, v in (d.get("parameters") or {}).items()))
-            for d in p["devices"]))
-        if rec.path is None and any(d.profile for d in inv.devices):
+        if rec.path is None and any(d.get("profile") for d in p["devices"]):
             raise UsageError("a device with its own profile needs a recipe file (recipe:), not only parameters")
-        jobs = fleet_jobs(inv, rec, p.get("limit"), timeout=p.get("timeout"), retries=p.get("retries"))
-        if not jobs:
-            raise UsageError(f"limit {p['limit']!r} selects none of the devices")
-        return jobs
+        inv = inventory_from([{k: v for k, v in d.items() if v is not None} for d in p["devices"]],
+                             name="devices")
+        return fleet_jobs(rec, inv, limit=p.get("limit"), timeout=p.get("timeout"), retries=p.get("retries"))
     url = p.get("device") or (rec.device.url if rec.device else None)
     if not url:
         raise UsageError("no device: pass device (a URL), devices, inventory, or set device.url in the recipe")
@@ -148,15 +145,13 @@ def jobs_of(module, rec):
 
 def refuse_one_device_twice(jobs):
     """Two names for one device (same address and unit, any spelling) would write it twice in one run."""
-    from deployer.transport.clients import describe
-
     seen = {}
     for j in jobs:
         for key in ((k, j.unit) for k in j.url.lock_keys):  # resolved addresses: localhost is 127.0.0.1
             if key in seen:
                 raise UsageError(f"{seen[key][0]!r} and {j.name!r} are one device ({seen[key][1]} and "
-                                 f"{describe(j.url)}, unit {j.unit}); list it once")
-            seen[key] = (j.name, describe(j.url))
+                                 f"{describe_url(j.url)}, unit {j.unit}); list it once")
+            seen[key] = (j.name, describe_url(j.url))
     return jobs
 
 
@@ -166,9 +161,6 @@ READ_ARGS = dict(profile=dict(type="str"), recipe=dict(type="path"), name=dict(t
 
 def read_devices(module):
     """Read the devices a read-only task names: (read jobs, {name: values or the exception}). Writes nothing."""
-    from deployer.api import pull_names, read_fleet
-    from deployer.fleet.rollout import ReadJob
-
     p = module.params
     if p.get("recipe"):
         base = deployer.load_recipe(p["recipe"])

@@ -150,22 +150,16 @@ def _diff(name, rows):
 
 def check(module, jobs):
     """Check mode: read each device, plan against what it holds, write nothing."""
-    from deployer.api import read_fleet, read_jobs
-    from deployer.planning.model import Target
-    from deployer.planning.planfile import plan_to_json
-    from deployer.planning.planner import make_plan
-    from deployer.transport.clients import describe
+    from deployer.api import plan_fleet, plan_to_json
 
-    values = read_fleet(read_jobs(jobs), parallel=module.params["parallel"])
+    planned = plan_fleet(jobs, parallel=module.params["parallel"], write_all=module.params["write_all"])
     plans, diffs, devices, down = [], [], [], []
     for j in jobs:
-        cur = values[j.name]
-        if isinstance(cur, Exception):
-            down.append(f"{j.name}: {cur}")
-            devices.append({"name": j.name, "status": "unreachable", "error": str(cur)})
+        plan = planned[j.name]
+        if isinstance(plan, Exception):
+            down.append(f"{j.name}: {plan}")
+            devices.append({"name": j.name, "status": "unreachable", "error": str(plan)})
             continue
-        plan = make_plan(j.recipe, Target(describe(j.url), j.unit, j.recipe.profile_ref or j.recipe.profile.id), cur,
-                         write_all=module.params["write_all"])
         rows = [(pp.name, j.recipe.profile.parameter(pp.name).format_registers(pp.current_raw)
                  if pp.current_raw is not None else "?", pp.desired)
                 for pp in plan.parameters if pp.action == "write"]
@@ -182,16 +176,12 @@ def check(module, jobs):
 
 
 def apply(module, rec, jobs):
-    from deployer.api import run_fleet_async, safe_options
-    from deployer.execute.session import ApplyOptions
-    from deployer.execute.soak import check_soak_profiles
+    from deployer.api import ApplyOptions, run_fleet_async, safe_options
 
     p = module.params
     options = safe_options(ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"],
-                                        allow_broadcast=p["allow_broadcast"]),
+                                        allow_broadcast=p["allow_broadcast"], command="ansible deployer.modbus.apply"),
                            soak=p.get("soak"), health_interval=p["health_interval"])
-    if options.soak is not None:
-        check_soak_profiles([j.recipe.profile for j in jobs])
     report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
                                          parallel=p["parallel"],
                                          batch=p.get("batch"), max_failures=p.get("max_failures"), options=options,
@@ -231,7 +221,7 @@ def main():
     )
     require_deployer(module)
     check_target_args(module)
-    from deployer.load.diagnostics import InputError, UsageError
+    from deployer.api import InputError, UsageError
 
     _check_outputs(module)
     try:

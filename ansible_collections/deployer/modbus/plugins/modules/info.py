@@ -95,7 +95,7 @@ def main():
                            supports_check_mode=True)
     require_deployer(module)
     check_target_args(module)
-    from deployer.load.diagnostics import InputError, UsageError
+    from deployer.api import InputError, UsageError
 
     try:
         read, values = read_devices(module)

@@ -91,9 +91,7 @@ def main():
                            mutually_exclusive=TARGET_EXCLUSIVE, supports_check_mode=True)
     require_deployer(module)
     check_target_args(module)
-    from deployer.api import pulled_recipe
-    from deployer.load.diagnostics import InputError, UsageError
-    from deployer.transport.clients import describe
+    from deployer.api import InputError, UsageError, describe_url, pulled_recipe
 
     p = module.params
     if os.path.exists(p["dest"]) and not os.path.isdir(p["dest"]):
@@ -109,7 +107,7 @@ def main():
         if isinstance(cur, Exception):
             continue
         path = os.path.join(p["dest"], f"{j.name}.yaml")
-        text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
+        text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe_url(j.url), unit=j.unit,
                              relative_to=path)
         old = None
         if os.path.isfile(path):
