@@ -308,7 +308,10 @@ def report_from_json(doc: dict[str, Any]) -> Report:
                            str(d.get("profile", "")), status=d.get("status", "ok"), snapshot=d.get("snapshot"),
                            error=d.get("error"), seconds=d.get("seconds"), profile_ref=d.get("profile_ref"),
                            notices=notices, recipe=d.get("recipe"), batch=d.get("batch"), commit=d.get("commit"),
-                           profile_sha256=d.get("profile_sha256"))
+                           profile_sha256=d.get("profile_sha256"),
+                           identity={str(k): str(v) for k, v in d["identity"].items()}
+                           if isinstance(d.get("identity"), dict) else None,
+                           learned={str(k): int(v) for k, v in (d.get("learned") or {}).items()})
         res.requests = [RequestRecord(int(r.get("function", 0)), int(r.get("address", 0)), int(r.get("count", 0)),
                                       r.get("result", "ok"), r.get("exception_code"), int(r.get("attempts", 1)))
                         for r in d.get("requests") or [] if isinstance(r, dict)]

@@ -7,6 +7,7 @@ the small ones of the malformed-file corpus, tests/bad/import/ (``python -m test
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import sys
@@ -18,6 +19,7 @@ from pathlib import Path
 HEADER = "name,address,type,unit,scale,min,max\n"
 
 
+@functools.cache
 def _base_workbook() -> dict[str, bytes]:
     """The parts of a one-sheet workbook openpyxl writes (cell A1 = 'name'), by name."""
     import openpyxl

@@ -346,9 +346,10 @@ def test_a_replaced_device_is_noted(tmp_path: Path, device_profile: Profile,
                                     capsys: pytest.CaptureFixture[str]) -> None:
     state = str(tmp_path / ".deployer")
     with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
-        code, _, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False), "--device", sim.url, "--yes",
-                               "--state-dir", state)
+        code, out, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False), "--device", sim.url, "--yes",
+                                 "--state-dir", state)
         assert code == 0, err
+        assert "identity: vendor 'ACME', product_code 'AC-7', revision '2.1'" in out
         sim.set_identity({0: "ACME", 1: "AC-9", 2: "3.0"})  # swapped for another model
         code, out, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False, offset=40), "--device", sim.url,
                                  "--yes", "--json", "--state-dir", state)
@@ -492,3 +493,27 @@ def test_probe_against_umodbus_finds_the_word_order(tmp_path: Path, capsys: pyte
     assert "energy: 70000 is held as CDAB (the profile reads ABCD: 292552705)" in out
     assert "  - energy: byte_order: CDAB" in out
     assert "identity none (no Function 43)" in out
+
+
+def test_fleet_run_notes_the_replaced_device(tmp_path: Path, device_profile: Profile,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    from tests.helpers import Simulators
+
+    state = str(tmp_path / ".deployer")
+    recipe = _recipe(tmp_path, bad=False)
+    sims = [Simulator(device_profile, quirks=Quirks(identity=dict(ACME))) for _ in range(3)]
+    with Simulators(sims) as (a, b, c):
+        inv = tmp_path / "inventory.yaml"
+        inv.write_text("devices:\n" + "".join(f"  {n}: {{url: '{s.url}'}}\n" for n, s in zip("abc", (a, b, c),
+                                                                                          strict=True)))
+        code, _, err = run_cli(capsys, "apply", recipe, "--inventory", str(inv), "--yes", "--state-dir", state)
+        assert code == 0, err
+        b.set_identity({0: "OTHER", 1: "X-1", 2: "9"})  # someone swapped device b
+        code, out, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False, offset=50), "--inventory", str(inv),
+                                 "--yes", "--json", "--state-dir", state)
+    assert code == 0, err
+    notes = {d["name"]: [n for n in d.get("notices", []) if "identity changed" in n]
+             for d in json.loads(out)["devices"]}
+    assert notes["a"] == [] and notes["c"] == []
+    (note,) = notes["b"]
+    assert "vendor 'ACME'" in note and "vendor 'OTHER'" in note and "it may have been replaced" in note

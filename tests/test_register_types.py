@@ -22,6 +22,7 @@ from deployer.planning.model import ReadRequest, Target, WriteRequest
 from deployer.planning.planner import make_plan, plan_reads
 from deployer.profile import Profile, load_profile
 from deployer.recipe.loader import load_recipe
+from deployer.report import DeviceResult
 from deployer.testing.simulator import Simulator, SimulatorThread
 from deployer.transport import clients as tp
 from tests.helpers import count, profile_from, run_cli, run_with, umodbus_server
@@ -416,7 +417,7 @@ def test_identity_in_an_input_register(tmp_path: Path) -> None:
     rec = load_recipe(str(tmp_path / "r.yaml"))
     sim = Simulator(prof)
 
-    async def twice(s: Simulator) -> tuple[object, object]:
+    async def twice(s: Simulator) -> tuple[DeviceResult, DeviceResult]:
         opts = ApplyOptions(state_dir=str(tmp_path / ".d"))
         first = await apply_device(rec, tp.parse_url(s.url), 1, options=opts)
         s.write("model", (0x0311,))

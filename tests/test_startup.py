@@ -54,3 +54,25 @@ def test_validate_parses_each_file_once(monkeypatch: pytest.MonkeyPatch) -> None
     validate_file(str(ROOT / "recipes/examples/omron-m1-accel.yaml"))
     assert len(parsed) == len(set(parsed)), parsed  # the recipe once, its profile once
     assert not yamlsrc._handed_over
+
+
+def _cache_files(home: Path) -> list[str]:
+    return sorted(str(p.relative_to(home)) for p in home.rglob("*") if p.is_file())
+
+
+def test_only_the_command_line_writes_the_units_cache(tmp_path: Path) -> None:
+    """The library (and so the Ansible modules) reads the disk caches but leaves no files in the user's home."""
+    import os
+
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10000 ms\n  F08: 0.1 min\n")
+    lib_home, cli_home = tmp_path / "lib", tmp_path / "cli"
+    for home, code in ((lib_home, f"import deployer; deployer.load_recipe({str(recipe)!r})"),
+                       (cli_home, f"from deployer.cli import main; main(['validate', {str(recipe)!r}])")):
+        home.mkdir()
+        env = {**os.environ, "HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache")}
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT,
+                              env=env)
+        assert "Traceback" not in proc.stderr, proc.stderr
+    assert _cache_files(lib_home) == []
+    assert any(f.startswith(".cache/deployer/units-") for f in _cache_files(cli_home)), _cache_files(cli_home)

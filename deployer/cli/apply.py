@@ -63,6 +63,8 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
         if d.status == "sent":
             out.print("broadcast sent: every request went out; no device answers a broadcast, so nothing was "
                       "read back or verified")
+        if d.identity:
+            out.print("identity: " + ", ".join(f"{k} {v!r}" for k, v in d.identity.items()))
         for note in d.notices:
             out.print(f"note: {note}")
         if d.status == "rolled-back" and d.commit == "not sent":

@@ -260,6 +260,9 @@ def main(argv: Sequence[str] | None = None) -> None:
 
 
 def _main(argv: Sequence[str] | None) -> None:
+    from ..state.caches import allow_writes
+
+    allow_writes()  # the command line keeps pint's answers on disk; library callers do not write there
     _ARGV[:] = list(argv) if argv is not None else sys.argv[1:]
     try:
         rv = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)

@@ -6,6 +6,9 @@ multiplicative conversion becomes one Decimal factor (``ms`` -> ``s``: 0.001, ap
 keep going through pint. Those answers are also kept on disk (``~/.cache/deployer``, one file
 per installed pint): importing pint and building its registry costs about 0.1 s, a third of
 a small command, so a command whose units were all seen before does not import pint at all.
+
+Every process reads that cache; only the command line writes it (and lets pint keep its own
+parsed definitions in ``~/.cache/pint``): see ``deployer.state.caches``.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from decimal import Decimal
 from functools import cache, lru_cache
 from typing import Any
 
+from ..state.caches import writes_allowed
+
 _ALIASES = {"%": "percent", "‰": "permille"}
 
 
@@ -28,10 +33,12 @@ def registry() -> Any:
     import pint
 
     kwargs: dict[str, Any] = {"non_int_type": Decimal, "autoconvert_offset_to_baseunit": True}
-    try:  # pint keeps its parsed definitions on disk (~/.cache/pint): 0.02 s instead of 0.12 s a command
-        return pint.UnitRegistry(cache_folder=":auto:", **kwargs)
-    except Exception:  # no writable cache directory: build it from the definitions
-        return pint.UnitRegistry(**kwargs)
+    if writes_allowed():
+        try:  # pint keeps its parsed definitions on disk (~/.cache/pint): 0.02 s instead of 0.12 s a command
+            return pint.UnitRegistry(cache_folder=":auto:", **kwargs)
+        except Exception:  # no writable cache directory: build it from the definitions
+            pass
+    return pint.UnitRegistry(**kwargs)
 
 
 _SYMBOLS = {"percent": "%", "permille": "‰"}  # shown as engineers write them: 12 %, not 12 percent
@@ -76,7 +83,7 @@ class _DiskCache:
             pass  # no cache yet, or unreadable: pint answers, and the cache is written at exit
 
     def save(self) -> None:
-        if not self.dirty or self.path is None:
+        if not self.dirty or self.path is None or not writes_allowed():
             return
         from ..errors import DeployerError
         from ..state.durable import write_atomic

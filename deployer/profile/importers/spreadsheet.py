@@ -92,6 +92,7 @@ _RANGE = re.compile(rf"\s*(?P<lo>{_NUM})\s*(?P<lou>[^\d\s.,+\-~–—…][^\d]*?
                     r"(?:\bto\b|\bbis\b|\.\.\.?|…|~|–|—|-)"
                     rf"\s*(?P<hi>{_NUM})\s*(?P<hiu>[^\d\s.,+-][^\d]*?)?\s*", re.IGNORECASE)
 _FORMULA_CHARS = "=+-@\t\r"  # a cell starting with one of these is a formula to a spreadsheet program
+_FORMULA_STARTS = tuple(_FORMULA_CHARS)
 
 
 def _key(header: str) -> str:
@@ -524,18 +525,20 @@ def _one_row(path: str, row: Row, where: dict[str, int], seen: dict[str, int],
     def err(col: str, message: str) -> None:
         errors.append(Diagnostic(path, row.line, col_of(col), messages.clip_message(message)))
 
-    def cell(col: str) -> str:
-        i = where.get(col)
-        if i is None or i >= len(cells):
-            return ""
+    texts: dict[str, str] = {}  # our column -> its cell's text, each cell read once
+    for col, i in where.items():
+        if i >= len(cells):
+            continue
         if row.formulas and i in row.formulas:
             err(col, f"the formula {_show(row.formulas[i])} has no saved value (the file was written by a program "
                      "that does not calculate): open and save it in a spreadsheet program, or enter the value")
-            row.formulas.pop(i)
         text = cells[i].strip()
-        if text[:1] == "'" and text[1:2] in tuple(_FORMULA_CHARS):  # 'profiles export csv' escapes formulas
+        if text[:1] == "'" and text[1:2] in _FORMULA_STARTS:  # 'profiles export csv' escapes formulas
             text = text[1:]
-        return text
+        texts[col] = text
+
+    def cell(col: str) -> str:
+        return texts.get(col, "")
 
     raw_name = cell("name")
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", raw_name).strip("_")
@@ -732,6 +735,7 @@ def _quantities(spec: dict[str, Any], cell: Callable[[str], str], err: Callable[
 
 
 _NUMBER = re.compile(r"([-+]?)([0-9.,]*)((?:[eE][-+]?[0-9]+)?)")
+_PLAIN_INT = re.compile(r"-?[0-9]{1,18}")
 
 
 def number(text: str, decimal: str | None = None) -> int | float:
@@ -739,6 +743,8 @@ def number(text: str, decimal: str | None = None) -> int | float:
     1,000 and 1,234.5 (thousands separators); _Bad when it is none, or when ``3,000`` could be either
     (``decimal``: "comma" or "point" says which mark every cell uses)."""
     t = text.strip().replace("'", "")  # 1'000 (Swiss thousands)
+    if _PLAIN_INT.fullmatch(t):  # most cells: no marks to decide on
+        return int(t)
     if len(t) > MAX_NUMBER:
         raise _Bad(f"a number of {len(t):,} characters; at most {MAX_NUMBER}")
     if re.fullmatch(r"0[xX][0-9A-Fa-f]{1,16}|[0-9A-Fa-f]{1,16}[hH]", t):  # hex, as manuals write limits too
