@@ -180,6 +180,15 @@ def load_recipe(path: str | os.PathLike[str], **kw: Any) -> Recipe:
     return _load_recipe(path, **kw)
 
 
+def _taught(recipe: Recipe, state_dir: str | None, url: DeviceURL, unit: int) -> Recipe:
+    """``recipe`` with the limits its device taught an earlier apply, as apply will use them."""
+    if state_dir is None:
+        return recipe
+    from .state import learned
+
+    return learned.for_recipe(recipe, state_dir, url, unit)[0]
+
+
 def describe_url(url: DeviceURL) -> str:
     """A device URL as text, without secrets (no key, certificate or CA paths): for reports and logs."""
     return describe(url)
@@ -236,7 +245,7 @@ def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) ->
 
 
 async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-                     write_all: bool = False, offline: bool = False) -> Plan:
+                     write_all: bool = False, offline: bool = False, state_dir: str | None = ".deployer") -> Plan:
     """The requests apply would send: against what the device holds now, or ``offline`` the full write plan."""
     _need_recipe(recipe, "plan")
     _need_unit(unit)
@@ -244,22 +253,27 @@ async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit
         u = unit if unit is not None else 1
         return make_plan(recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all)
     url, u = _target(recipe, device, unit)
+    recipe = _taught(recipe, state_dir, url, u)
     current = await read_current(recipe.profile, [d.name for d in recipe.desired], url, u)
     return make_plan(recipe, Target(describe(url), u, recipe.profile_ref or recipe.profile.id), current,
                      write_all=write_all)
 
 
 def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-         write_all: bool = False, offline: bool = False) -> Plan:
+         write_all: bool = False, offline: bool = False, state_dir: str | None = ".deployer") -> Plan:
     """The requests ``apply`` would send: against what the device holds now (read, nothing written), or
     ``offline`` the full write plan. ``device``/``unit`` default to the recipe's ``device``.
+
+    The limits a device taught an earlier apply (``deployer learned list``, kept in ``state_dir``) are in
+    force, as they are when ``apply`` runs; ``state_dir=None`` plans with the profile's limits alone.
 
     Raises:
         UsageError: no device (none given and none in the recipe), a bad URL, unit 0 (broadcast).
         TransportError: the device cannot be read (Unreachable also when its identity does not match).
     """
     _need_recipe(recipe, "plan")
-    return _sync("plan", lambda: plan_async(recipe, device, unit, write_all=write_all, offline=offline))
+    return _sync("plan", lambda: plan_async(recipe, device, unit, write_all=write_all, offline=offline,
+                                            state_dir=state_dir))
 
 
 async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
@@ -646,8 +660,11 @@ def read_jobs(jobs: Sequence[Job]) -> list[ReadJob]:
 
 async def plan_fleet_async(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
                            on_done: Callable[[str, str | None], None] | None = None,
-                           ) -> dict[str, Plan | TransportError | UsageError]:
+                           state_dir: str | None = ".deployer") -> dict[str, Plan | TransportError | UsageError]:
     """``plan_fleet`` for callers with their own event loop; ``on_done(name, error or None)`` per device read."""
+    from dataclasses import replace
+
+    jobs = [replace(j, recipe=_taught(j.recipe, state_dir, j.url, j.unit)) for j in jobs]
     values = await read_fleet_async(read_jobs(jobs), parallel=parallel, on_done=on_done)
     out: dict[str, Plan | TransportError | UsageError] = {}
     for j in jobs:
@@ -659,8 +676,9 @@ async def plan_fleet_async(jobs: Sequence[Job], *, parallel: int = 8, write_all:
 
 
 def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
-               ) -> dict[str, Plan | TransportError | UsageError]:
-    """Check mode for many devices: read each, plan against what it holds, write nothing.
+               state_dir: str | None = ".deployer") -> dict[str, Plan | TransportError | UsageError]:
+    """Check mode for many devices: read each, plan against what it holds, write nothing; with the limits
+    each device taught an earlier apply in force (kept in ``state_dir``; None: the profiles' alone).
 
     Returns name -> its Plan (``plan.writes`` empty: nothing to change), or the error that stopped
     its read (never raised for one device), in the order of ``jobs``.
@@ -668,7 +686,8 @@ def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = Fals
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return _sync("plan_fleet", lambda: plan_fleet_async(jobs, parallel=parallel, write_all=write_all))
+    return _sync("plan_fleet", lambda: plan_fleet_async(jobs, parallel=parallel, write_all=write_all,
+                                                        state_dir=state_dir))
 
 
 def inventory_from(devices: Iterable[Mapping[str, Any]], *, name: str = "<devices>") -> Inventory:

@@ -170,6 +170,24 @@ def test_write_limit_is_learned_said_remembered_and_used(tmp_path: Path, device_
     assert learned.load(state) == []
 
 
+def test_api_check_mode_plans_with_what_the_device_taught(tmp_path: Path, device_profile: Profile) -> None:
+    """deployer.plan and plan_fleet (Ansible's check mode) plan as apply will send: with the learned limit."""
+    import deployer
+
+    state = str(tmp_path / ".deployer")
+    with SimulatorThread(device_profile, quirks=Quirks(max_write_registers=4)) as sim:
+        assert _apply(sim.url, _recipe(tmp_path, bad=False), tmp_path).learned == {"max_write_registers": 4}
+        rec = deployer.load_recipe(_recipe(tmp_path, bad=False, offset=20))
+        writes = len(_writes(sim))
+        taught = deployer.plan(rec, sim.url, state_dir=state)
+        assert [w.count for w in taught.writes] == [4, 4, 4, 2]
+        assert [w.count for w in deployer.plan(rec, sim.url, state_dir=None).writes] == [14]
+        job = deployer.Job("d", rec, deployer.device_url(sim.url), 1)
+        planned = deployer.plan_fleet([job], state_dir=state)["d"]
+        assert isinstance(planned, deployer.Plan) and [w.count for w in planned.writes] == [4, 4, 4, 2]
+        assert len(_writes(sim)) == writes  # planning reads only
+
+
 # ---- Function 06 only ------------------------------------------------------------------------------
 
 

@@ -118,3 +118,19 @@ def test_device_scale_factors_and_counts_of_one_model(tmp_path: Path, capsys: py
     assert prof.parameter("module[2].DCA").address == 40070 + 10 + 2 * 20 + 9
     dcv = prof.parameter("module[2].DCV")
     assert dcv.unit is None and dcv.scale == 1 and "raw" in dcv.description
+
+
+def test_device_chain_found_where_devices_put_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Without --at the importer looks for 'SunS' at 40000, 0 and 50000, as devices put it (this one: at 0);
+    with --at it reads there only."""
+    device = sunspec_device([("1", {}, {})], base=0)
+    out = tmp_path / "at0.yaml"
+    with SimulatorThread(device) as sim:
+        code, _, err = cli(capsys, "profiles", "import", "sunspec", "--device", sim.url, "-o", str(out))
+        assert code == 0, err
+        assert "1 at 2 (L=66)" in err
+        code, _, err = cli(capsys, "profiles", "import", "sunspec", "--device", sim.url, "--at", "40002")
+        assert code == 3 and "reading 2 registers at 40000 answered exception 02 (illegal data address): check --at" \
+            in err
+    prof = load_profile(out)
+    assert prof.parameter("SunS").address == 0 and prof.parameter("common.Mn").address == 4

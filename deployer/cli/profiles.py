@@ -191,15 +191,15 @@ def profiles_export_csv(profile: str, out: str | None) -> int:
 
 @profiles_import.command("sunspec")
 @click.argument("model", required=False)
-@click.option("--at", "at", default="40002", show_default=True,
-              help="Protocol address of the model's ID register (the first model after 'SunS' sits at 40002).")
+@click.option("--at", "at", help="Protocol address of the model's ID register (default 40002: the first model "
+              "after 'SunS'; with --device and no MODEL and no --at, 'SunS' is looked for at 40000, 0 and 50000).")
 @click.option("--sf", "sfs", multiple=True, metavar="NAME=N", help="A scale factor the device reports, e.g. "
               "--sf WMax_SF=0 (-10 to 10). Repeatable.")
 @click.option("--count", "counts", multiple=True, metavar="GROUP=N", help="Repetitions of a group whose count the "
               "device reports, e.g. --count curve=4. Repeatable.")
 @click.option("--device", metavar="URL", help="Read the scale factors and group counts from this device (the "
-              "model at --at); without MODEL, read the device's whole model chain from 'SunS' (2 registers before "
-              "--at) into one profile. --sf and --count win over what it says.")
+              "model at --at); without MODEL, read the device's whole model chain from 'SunS' (see --at) into one "
+              "profile. --sf and --count win over what it says.")
 @click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True, help="unit id of --device")
 @click.option("--id", "profile_id", help="Profile id (default: sunspec-MODEL-NAME, or sunspec-device).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
@@ -220,17 +220,17 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
         if not 1 <= n <= 65535:
             raise UsageError(f"--count {k}={n}: a group repeats 1 to 65535 times")
     try:
-        address = parse_register(at)
+        address = parse_register(at or "40002")
     except ValueError:
         address = -1
     if not 2 <= address <= 0xFFFF:
-        raise UsageError(f"--at {_clip(at)}: not a register address (40002, 0x9C42 or 9C42h)")
+        raise UsageError(f"--at {_clip(at or '')}: not a register address (40002, 0x9C42 or 9C42h)")
     if model is None and device is None:
         raise UsageError("give a MODEL (121, settings or a model JSON file), or --device URL to read the device's "
                          "models")
     with _import_errors():
         if device is not None:
-            got = _from_device(device, unit, address, model)
+            got = _from_device(device, unit, address, model, search=at is None)
             if got is None:
                 return EXIT_UNREACHABLE
             if model is None:
@@ -264,7 +264,8 @@ def _whole(text: str, what: str) -> int:
     return int(text)
 
 
-def _from_device(device: str, unit: int, at: int, model: str | None) -> tuple[list[Any]] | None:
+def _from_device(device: str, unit: int, at: int, model: str | None, *, search: bool = False
+                 ) -> tuple[list[Any]] | None:
     """The device's model at ``at`` (MODEL given) or its whole chain; None (after saying why) when unreachable."""
     import asyncio
 
@@ -284,22 +285,23 @@ def _from_device(device: str, unit: int, at: int, model: str | None) -> tuple[li
                 try:
                     out += await transport.read_holding_registers(a, n, unit)
                 except tp.ExceptionResponse as e:
-                    hint = ": check --at (SunSpec devices put 'SunS' at 40000, 0 or 50000, the first model's ID 2 " \
-                           "registers after it)" if e.code == 2 else ""
-                    raise tp.TransportError(f"{tp.describe(url)} unit {unit}: reading {n} registers at {a} "
-                                            f"answered {e}{hint}") from None
+                    said = f"{tp.describe(url)} unit {unit}: reading {n} registers at {a} answered {e}"
+                    if e.code == 2:
+                        raise sunspec.NotThere(f"{said}: check --at (SunSpec devices put 'SunS' at 40000, 0 or "
+                                               "50000, the first model's ID 2 registers after it)") from None
+                    raise tp.TransportError(said) from None
             return out
 
         try:
             if model is None:
-                return await sunspec.device_chain(read, at)
+                return await sunspec.device_chain(read, at, search=search)
             return [await sunspec.device_model(read, model, at)]
         finally:
             await transport.close()
 
     try:
         return (asyncio.run(run()),)
-    except tp.TransportError as e:
+    except (tp.TransportError, sunspec.NotThere) as e:
         click.echo(f"error: {e}", err=True)
         return None
 

@@ -342,12 +342,28 @@ class DeviceModel:
     registers: list[int]
 
 
-async def device_chain(read: Read, at: int) -> list[DeviceModel]:
-    """The device's models from the 'SunS' marker at ``at - 2`` to the end marker 0xFFFF, each read whole."""
-    marker = await read(at - 2, 2)
+class NotThere(Exception):
+    """The device answered exception 02 (illegal data address): it has no such registers. The message says so."""
+
+
+async def device_chain(read: Read, at: int, *, search: bool = False) -> list[DeviceModel]:
+    """The device's models from the 'SunS' marker at ``at - 2`` to the end marker 0xFFFF, each read whole.
+    ``search``: when 'SunS' is not at ``at - 2``, look for it at 0 and 50000 too (where devices put it)."""
+    candidates = [at, *(a for a in (2, 50002) if a != at)] if search else [at]
+    for i, first in enumerate(candidates):
+        try:
+            marker = await read(first - 2, 2)
+        except NotThere:
+            if i == len(candidates) - 1:
+                raise
+            continue
+        if tuple(marker) == MARKER or i == len(candidates) - 1:
+            at = first
+            break
     if tuple(marker) != MARKER:
-        raise UsageError(f"no SunSpec marker 'SunS' at {at - 2} (the device has {marker[0]:04X}h {marker[1]:04X}h "
-                         "there): check --at (the first model's ID sits 2 registers after 'SunS', which devices "
+        where = "40000, 0 or 50000" if search else str(at - 2)
+        raise UsageError(f"no SunSpec marker 'SunS' at {where} (the device has {marker[0]:04X}h {marker[1]:04X}h at "
+                         f"{at - 2}): check --at (the first model's ID sits 2 registers after 'SunS', which devices "
                          "put at 40000, 0 or 50000)")
     models: list[DeviceModel] = []
     while True:

@@ -152,7 +152,8 @@ def check(module, jobs):
     """Check mode: read each device, plan against what it holds, write nothing."""
     from deployer.api import plan_fleet, plan_to_json
 
-    planned = plan_fleet(jobs, parallel=module.params["parallel"], write_all=module.params["write_all"])
+    planned = plan_fleet(jobs, parallel=module.params["parallel"], write_all=module.params["write_all"],
+                         state_dir=module.params["state_dir"])
     plans, diffs, devices, down = [], [], [], []
     for j in jobs:
         plan = planned[j.name]
@@ -221,7 +222,7 @@ def main():
     )
     require_deployer(module)
     check_target_args(module)
-    from deployer.api import InputError, UsageError
+    from deployer.api import DeployerError, InputError, UsageError
 
     _check_outputs(module)
     try:
@@ -233,6 +234,8 @@ def main():
             apply(module, rec, jobs)
     except (InputError, UsageError) as e:
         input_error(module, e)
+    except DeployerError as e:  # a device or lock error before any device's run (each one's is in the report)
+        module.fail_json(msg=f"{type(e).__name__}: {e}")
     except OSError as e:  # the state folder or the report file failed during the run
         module.fail_json(msg=f"cannot write {e.filename or p_state(module)}: {e.strerror or e}; the report of "
                              "the run is in the journal (deployer status)")
