@@ -135,12 +135,14 @@ def test_write_limit_is_learned_said_remembered_and_used(tmp_path: Path, device_
         res = _apply(sim.url, recipe, tmp_path)
         assert res.status == "ok" and set(_statuses(res).values()) == {"ok"}
         assert [sim.read(f"p{i}")[0] for i in range(N)] == [10 + i for i in range(N)]
-        # once the 7-register refusal proved to be about length, the rest goes in pieces of 4
+        # once the 7-register refusal proved to be about length, the next piece tries the size between 4 and 7
+        # (5: refused, split), and then the device's limit is known: the rest goes in pieces of 4
         assert _writes(sim) == [(16, 100, 14, "exception 03"), (16, 100, 7, "exception 03"), (16, 100, 3, "ok"),
-                                (16, 103, 4, "ok"), (16, 107, 4, "ok"), (16, 111, 3, "ok")]
+                                (16, 103, 4, "ok"), (16, 107, 5, "exception 03"), (16, 107, 2, "ok"),
+                                (16, 109, 3, "ok"), (16, 112, 2, "ok")]
         profile_path = str(tmp_path / "dev.yaml")
         assert res.notices == [
-            "the device took 4-register writes and refused 7; set limits.max_write_registers: 4 in profile dev"]
+            "the device took 4-register writes and refused 5; set limits.max_write_registers: 4 in profile dev"]
         assert res.learned == {"max_write_registers": 4}
         (entry,) = learned.load(state)
         assert (entry.profile, entry.limits) == (profile_path, {"max_write_registers": 4})
@@ -235,15 +237,21 @@ def test_umodbus_in_order_device(tmp_path: Path) -> None:
 def test_umodbus_write_limit_is_learned(tmp_path: Path) -> None:
     store = _store()
     wire: list[tuple[int, int, int]] = []  # (function, address, count) of each request
-    with quirky_umodbus(store, max_write=4, wire=wire) as port:
+    with quirky_umodbus(store, max_write=5, wire=wire) as port:
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path, bad=False), tmp_path)
         assert res.status == "ok"
-        assert res.learned == {"max_write_registers": 4}
         assert [store[100 + i] for i in range(N)] == [10 + i for i in range(N)]
+        # 14 and 7 refused, 3 and 4 taken; the next piece tries 5 (between 4 and 7): taken; the last two
+        # registers need no longer piece, so 6 is never tried: the limit is known to lie in 5..6
+        assert [(a, n) for fc, a, n in wire if fc == 16] == [(100, 14), (100, 7), (100, 3), (103, 4), (107, 5),
+                                                              (112, 2)]
+        assert res.learned == {"max_write_registers": 5}
+        assert res.notices == ["the device took 5-register writes and refused 7; "
+                               "set limits.max_write_registers: 5 in profile dev"]
         wire.clear()
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path, bad=False, offset=30), tmp_path)
     assert res.status == "ok" and not res.learned
-    assert [(a, n) for fc, a, n in wire if fc == 16] == [(100, 4), (104, 4), (108, 4), (112, 2)]
+    assert [(a, n) for fc, a, n in wire if fc == 16] == [(100, 5), (105, 5), (110, 4)]
     assert [store[100 + i] for i in range(N)] == [30 + i for i in range(N)]
 
 
@@ -535,3 +543,46 @@ def test_fleet_run_notes_the_replaced_device(tmp_path: Path, device_profile: Pro
     assert notes["a"] == [] and notes["c"] == []
     (note,) = notes["b"]
     assert "vendor 'ACME'" in note and "vendor 'OTHER'" in note and "it may have been replaced" in note
+
+
+def test_pauses_are_kept_per_bus_across_the_devices_of_a_gateway(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two units behind one RTU gateway that drops requests coming within 100 ms of its last answer: with
+    the pause on both devices' URL, a fleet run of both loses no request (the bus keeps it between them)."""
+    from tests.helpers import Simulators
+
+    prof, recipe = _pacing_profile(tmp_path)
+    gateway = Simulator(prof, listen="rtu+tcp://127.0.0.1:0", units=(1, 2), quirks=Quirks(request_gap_ms=100))
+    with Simulators([gateway]) as (gw,):
+        inv = tmp_path / "inventory.yaml"
+        url = f"{gw.url}?pause_between_requests=150ms&timeout=2"
+        inv.write_text(f"defaults: {{retries: 0}}\ndevices:\n  a: {{url: '{url}', unit: 1}}\n"
+                       f"  b: {{url: '{url}', unit: 2}}\n")
+        code, out, err = run_cli(capsys, "apply", recipe, "--inventory", str(inv), "--yes", "--json",
+                                 "--state-dir", str(tmp_path / "s"), "--parallel", "2")
+        log = list(gw.log)
+    assert code == 0, err
+    assert [d["status"] for d in json.loads(out)["devices"]] == ["ok", "ok"]
+    assert {e.unit for e in log} == {1, 2} and _too_soon(gw) == 0
+
+
+def test_scan_of_a_serial_line(socat_pair: tuple[str, str], device_profile: Profile) -> None:
+    """A real serial line (socat pty pair): units 2 and 5 answer, the others stay silent; every unit is
+    asked once (unit, 03, register 0, 1 register, as the device decoded it off the line), no retry."""
+    import asyncio
+
+    from deployer.execute.scan import scan
+    from deployer.transport.urls import parse_url
+
+    a, b = socat_pair
+
+    async def main() -> tuple[list[int], list[bytes]]:
+        sim = Simulator(device_profile, listen=f"rtu://{a}", units=(2, 5), quirks=Quirks(identity=ACME))
+        async with sim:
+            result = await scan(parse_url(f"rtu://{b}?baudrate=19200&timeout=0.2"), range(1, 7))
+            return [u.unit for u in result.units], [bytes.fromhex(e.request_hex) for e in sim.log]
+    found, requests = asyncio.run(main())
+    assert found == [2, 5]
+    # the simulator hears every request on the line; units 2 and 5 are also asked for their identity
+    assert [r for r in requests if r[1] == 3] == [bytes([u, 3, 0, 0, 0, 1]) for u in range(1, 7)]
+    assert [r for r in requests if r[1] == 0x2B] == [bytes([u, 0x2B, 0x0E, 1, 0]) for u in (2, 5)]

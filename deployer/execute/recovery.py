@@ -120,9 +120,20 @@ class Learning:
                 and all(results[n].status != "failed" and (taken is None or n in taken) for n in names)]
 
     def update_cap(self, results: Mapping[str, ParameterResult], written: Iterable[str]) -> int:
-        """Once a refusal proved to be for length alone, later requests go in pieces the device takes."""
-        if not self.cap and self.refused and self.length_refusals(results, written):
-            self.cap = self.accepted
+        """Once a refusal proved to be for length alone, later requests go in pieces the device takes.
+
+        Between the longest request taken and the shortest refused for length, the next piece tries
+        the middle size: where the run has longer requests to send anyway, this finds the device's
+        limit at the cost of at most one refused request per halving; else the pieces stay at the
+        size known to be taken.
+        """
+        if not self.refused:
+            return 0
+        refused = self.length_refusals(results, written)
+        if not refused:
+            return self.cap
+        low, high = self.accepted, min(refused)
+        self.cap = low if high - low <= 1 else (low + high) // 2
         return self.cap
 
     def limits(self, results: Mapping[str, ParameterResult]) -> dict[str, int]:
