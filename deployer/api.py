@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import resource
-import time
 from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -43,6 +41,7 @@ from .errors import (
     IdentityMismatch,
     InputError,
     Locked,
+    RunInterrupted,
     StalePlan,
     TransportError,
     UsageError,
@@ -53,8 +52,7 @@ from .execute.soak import check_soak_profiles, confirm_run
 from .fleet.inventory import FleetDevice, Inventory, load_inventory
 from .fleet.inventory import fleet_jobs as _fleet_jobs
 from .fleet.inventory import inventory_from as _inventory_from
-from .fleet.livereport import LiveReport, not_finished
-from .fleet.rollout import Job, ReadJob, apply_many, batch_sizes, failure_budget, read_many
+from .fleet.rollout import Job, ReadJob, read_many
 from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planfile import load_plan, plan_to_json
@@ -63,13 +61,14 @@ from .profile import Profile, load_profile, resolve_profile
 from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
-from .report import DeviceResult, ParameterResult, Report, run_info
+from .report import DeviceResult, ParameterResult, Report
+from .run.runner import ensure_files, run_async
 from .transport.clients import DeviceURL, describe, parse_url
 
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
-_REEXPORTED = (BadURL, CodecError, Declined, DeployerError, IdentityMismatch, InputError, Locked, StalePlan,
-               TransportError, UsageError, ApplyOptions, FleetDevice, Inventory, load_inventory, Job, ReadJob, Plan,
-               load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult, ParameterResult,
+_REEXPORTED = (BadURL, CodecError, Declined, DeployerError, IdentityMismatch, InputError, Locked, RunInterrupted,
+               StalePlan, TransportError, UsageError, ApplyOptions, FleetDevice, Inventory, load_inventory, Job,
+               ReadJob, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult, ParameterResult,
                Report, DeviceURL)
 
 
@@ -95,6 +94,7 @@ __all__ = [
     "ReadJob",
     "Recipe",
     "Report",
+    "RunInterrupted",
     "StalePlan",
     "TransportError",
     "UsageError",
@@ -280,24 +280,24 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
                       options: ApplyOptions | None = None, name: str | None = None,
                       soak: float | str | None = None, health_interval: float | str | None = None,
                       confirm_within: float | str | None = None,
-                      on_confirm_wait: Callable[[str, float], None] | None = None) -> Report:
+                      on_confirm_wait: Callable[[str, float], None] | None = None,
+                      report_path: str | None = None) -> Report:
     """Apply to one device; the report says per parameter what it holds now (never raises for a device fault).
 
     A safe change: ``soak`` ("30s", or seconds) watches the profile's health checks after the write and
     rolls the device back when one fails; ``confirm_within`` holds the profile's commit until ``confirm``
     is called (from another thread, task or process with the same state directory), else rolls back.
-    ``on_confirm_wait(run, deadline)`` is told the run id to confirm once it waits.
+    ``on_confirm_wait(run, deadline)`` is told the run id to confirm once it waits. The run is journaled in
+    ``options.state_dir`` (``deployer status`` sees it); ``report_path``: the report file, written before
+    the first request and at the end. Raises RunInterrupted (with its ``report``) when cancelled mid-run.
     """
     _need_recipe(recipe, "apply")
     url, u = _target(recipe, device, unit)
     opts = safe_options(options, soak=soak, health_interval=health_interval, confirm_within=confirm_within)
     if opts.soak is not None:
         check_soak_profiles([recipe.profile])
-    started = time.time()
-    report = await apply_many([Job(name or recipe.name, recipe, url, u)], parallel=1, options=opts,
-                              recipe_name=recipe.path or recipe.name, on_confirm_wait=on_confirm_wait)
-    report.run = run_info(opts.command or "Python API: apply", started)
-    return report
+    return await run_async([Job(name or recipe.name, recipe, url, u)], label=recipe.path or recipe.name,
+                           parallel=1, options=opts, report_path=report_path, on_confirm_wait=on_confirm_wait)
 
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
@@ -311,8 +311,10 @@ def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | Non
         UsageError: no device, a bad URL, a broadcast without ``options.allow_broadcast``.
         StalePlan: ``options.expected`` (a saved plan) no longer matches the device.
         Declined: ``options.confirm`` answered no.
+        RunInterrupted: the run was interrupted (``.report`` says what every device holds).
 
-    ``safe``: ``soak``, ``health_interval``, ``confirm_within``, ``on_confirm_wait`` (see ``apply_async``).
+    ``safe``: ``soak``, ``health_interval``, ``confirm_within``, ``on_confirm_wait``, ``report_path`` (see
+    ``apply_async``).
     """
     _need_recipe(recipe, "apply")
     return _sync("apply", lambda: apply_async(recipe, device, unit, options=options, name=name, **safe))
@@ -487,45 +489,6 @@ def pull(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict
 # ---- fleets ----------------------------------------------------------------------------------
 
 
-def ensure_files(parallel: int, devices: int) -> None:
-    """One socket per device in flight: raise the soft open-file limit towards the hard one, or say why not."""
-    need = min(parallel, devices) + 64  # sockets, plus the report, snapshots, logs and the interpreter's own
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if soft == resource.RLIM_INFINITY or soft >= need:
-        return
-    if hard != resource.RLIM_INFINITY and hard < need:
-        raise UsageError(f"--parallel {parallel} needs about {need} open files, but this system allows {hard} "
-                         f"(ulimit -Hn); use --parallel {max(1, hard - 64)} or raise the limit")
-    resource.setrlimit(resource.RLIMIT_NOFILE, (need if hard == resource.RLIM_INFINITY else hard, hard))
-
-
-def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failures: str | None,
-                  report_path: str | None = None) -> tuple[list[int], int | None]:
-    """Check a fleet run's options before anything happens: batch sizes, failure budget, open files,
-    and that the report file can be written (it is written before the first device starts)."""
-    sizes = batch_sizes(batch, devices)
-    budget = failure_budget(max_failures, devices)
-    ensure_files(parallel, devices)
-    if report_path:
-        from .state.durable import check_output
-
-        check_output(report_path, what="the report")
-        check_writable(os.path.dirname(os.path.abspath(report_path)), f"the report {report_path}")
-    return sizes, budget
-
-
-def check_writable(folder: str, what: str) -> None:
-    """Create ``folder`` if needed and make sure a file can be written there, or say why not (UsageError)."""
-    probe = os.path.join(folder, f".deployer-probe-{os.getpid()}")
-    try:
-        os.makedirs(folder, exist_ok=True)
-        with open(probe, "w", encoding="utf-8"):
-            pass
-        os.remove(probe)
-    except OSError as e:
-        raise UsageError(f"cannot write {what}: {e.strerror}") from None
-
-
 def fleet_jobs(recipe: Recipe | None, inventory: str | Inventory, *, limit: str | None = None,
                timeout: float | None = None, retries: int | None = None, unit: int | None = None) -> list[Job]:
     """One checked job per selected device: ``recipe`` (None: each device's own from the inventory) with
@@ -565,48 +528,20 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
                           options: ApplyOptions | None = None, report_path: str | None = None,
                           on_start: Callable[[Job], None] | None = None,
                           on_done: Callable[[DeviceResult], None] | None = None,
-                          **safe: Any) -> Report:
-    """Apply jobs as one fleet run: ``batch`` ("1,10%,100%") stages it, ``max_failures`` ("2", "5%") caps it.
+                          via: str = "api", signals: bool = False, **safe: Any) -> Report:
+    """Apply jobs as one journaled fleet run (``run.runner.run_async``): ``batch`` ("1,10%,100%") stages it,
+    ``max_failures`` ("2", "5%") caps it.
 
     ``report_path``: written before the first device starts (every device ``skipped``, "not
     finished") and rewritten as devices finish, so after a crash ``limit="@REPORT"`` retries
-    exactly what did not end ok. ``safe``: ``rollback_on_failure``, ``between_batches`` and
-    ``on_confirm_wait`` of ``fleet.rollout.apply_many`` (the soak itself is in ``options``).
+    exactly what did not end ok, and ``rollback --from-report`` restores what it wrote. ``via``: who runs it
+    (for the journal); ``signals``: SIGINT and SIGTERM interrupt it (own process, main thread). ``safe``:
+    ``rollback_on_failure``, ``between_batches`` and ``on_confirm_wait`` of ``fleet.rollout.apply_many`` (the
+    soak itself is in ``options``).
     """
-    if options is not None and options.soak is not None:
-        check_soak_profiles([j.recipe.profile for j in jobs])
-    sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
-                                  report_path=report_path)
-    info = run_info((options or ApplyOptions()).command or "Python API: run_fleet", time.time())
-    live = None
-    if report_path:
-        live = LiveReport(report_path, recipe_name, not_finished(jobs, sizes), run=info)
-
-    def done(r: DeviceResult) -> None:
-        if live is not None:
-            live.finished(r)
-        if on_done is not None:
-            on_done(r)
-
-    on_changed: Callable[[DeviceResult], None] | None = safe.pop("on_changed", None)
-
-    def changed(r: DeviceResult) -> None:  # a finished device's result changed (a soak rolled it back)
-        if live is not None:
-            live.update(r)
-        if on_changed is not None:
-            on_changed(r)
-
-    try:
-        report = await apply_many(jobs, parallel=parallel, options=options, recipe_name=recipe_name,
-                                  on_start=on_start, on_done=done, batches=sizes, max_failures=budget,
-                                  on_changed=changed, **safe)
-    finally:
-        if live is not None:
-            live.stop()
-    report.run = info
-    if live is not None:
-        live.close(report)
-    return report
+    return await run_async(jobs, label=recipe_name, parallel=parallel, batch=batch, max_failures=max_failures,
+                           options=options, report_path=report_path, on_start=on_start, on_done=on_done, via=via,
+                           signals=signals, **safe)
 
 
 def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) -> Report:

@@ -24,7 +24,9 @@ on message text; the message (``str(e)``) is written for the user and may change
     │   └── DeviceGone             3  no answer and the retry budget spent
     ├── Locked                     3  another run holds the device (``busy``), or no lock can be taken
     ├── StateError                 1  the state directory cannot be written (disk full, read-only) before a run
-    └── IdentityMismatch           4  the device is not the one the profile describes
+    ├── IdentityMismatch           4  the device is not the one the profile describes
+    └── RunInterrupted             4  a run stopped early (Ctrl-C, SIGTERM, cancelled); ``report`` says
+                                      what every device holds as far as known
 
 Exit codes (a public interface; scripts rely on them): 0 success; 1 invalid input or usage, nothing
 sent; 2 ``plan``/``diff`` found changes; 3 unreachable, nothing written; 4 a write failed or did
@@ -40,6 +42,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 if TYPE_CHECKING:
     from .load.diagnostics import Diagnostic
+    from .report import Report
 
 EXIT_OK = 0
 EXIT_INVALID = 1
@@ -65,6 +68,7 @@ __all__ = [
     "InputError",
     "Locked",
     "NoResponse",
+    "RunInterrupted",
     "StalePlan",
     "StateError",
     "TransportError",
@@ -202,3 +206,14 @@ class IdentityMismatch(DeployerError):
         self.expected = expected
         self.found = found
         super().__init__(message)
+
+
+class RunInterrupted(DeployerError):
+    """A run stopped early: Ctrl-C or SIGTERM (``reason`` "SIGINT", "SIGTERM"), or its task was cancelled
+    ("cancelled"). ``report``: every device as far as known (in flight ``interrupted``, with its snapshot
+    when a write may have gone out; never started ``skipped``); the journal has its run-finished line."""
+
+    def __init__(self, report: Report, reason: str = "cancelled") -> None:
+        super().__init__(f"the run was interrupted ({reason})")
+        self.report = report
+        self.reason = reason

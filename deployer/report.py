@@ -17,8 +17,12 @@ if TYPE_CHECKING:
 REPORT_SCHEMA = "deployer.report/2"
 # rolled-back: written and verified, then restored from the snapshot (a failed health check, no confirmation)
 ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped", "rolled-back"]
-# sent: a broadcast that went out; skipped: a fleet never started it; rolled-back: restored after the write
-DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back"]
+# sent: a broadcast that went out; skipped: a fleet never started it (nothing sent); rolled-back: restored after
+# the write; interrupted: the run stopped (Ctrl-C, SIGTERM, a crash) while the device was in flight: with a
+# snapshot, writes may have gone out
+DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back", "interrupted"]
+DEVICE_STATUSES: tuple[DeviceStatus, ...] = ("ok", "sent", "partial", "failed", "unreachable", "skipped",
+                                             "rolled-back", "interrupted")
 # the profile's commit steps: sent, held back (a soak or a confirmation waits), never sent, failed
 CommitState = Literal["sent", "held", "not sent", "failed"]
 
@@ -28,7 +32,7 @@ class RequestRecord:
     function: int
     address: int
     count: int
-    result: str = "ok"  # ok | exception | no response | connection lost | broadcast
+    result: str = "ok"  # ok | exception | no response | connection lost | broadcast | interrupted
     exception_code: int | None = None
     attempts: int = 1
 
@@ -89,6 +93,7 @@ class DeviceResult:
     seconds: float | None = None  # how long the device's session took (fleets: for the summary table)
     profile_ref: str | None = None  # the profile used: its file's absolute path, or the built-in id
     notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
+    restored: str | None = None  # a rollback: the snapshot (absolute path) this device was restored from
     identity: dict[str, str] | None = None  # Function 43 objects (vendor, product_code, revision ...), if it answers
     learned: dict[str, int] = field(default_factory=dict)  # profile limits this run's refusals taught
     recipe: str | None = None  # the recipe (or snapshot, plan) file this device was given
@@ -105,8 +110,8 @@ class DeviceResult:
         return sum(1 for r in self.requests if r.function in (1, 2, 3, 4))
 
     def settle(self) -> None:
-        """Device status from its parameters (unless already sent/failed/unreachable/skipped)."""
-        if self.status in ("unreachable", "failed", "skipped", "sent", "rolled-back"):
+        """Device status from its parameters (unless already decided: sent, failed, unreachable, skipped ...)."""
+        if self.status in ("unreachable", "failed", "skipped", "sent", "rolled-back", "interrupted"):
             return
         bad = [p for p in self.parameters if p.status not in ("ok", "unchanged")]
         if not bad:
@@ -131,6 +136,8 @@ class DeviceResult:
             out["profile_ref"] = self.profile_ref
         if self.notices:
             out["notices"] = list(self.notices)
+        if self.restored is not None:
+            out["restored"] = self.restored
         if self.identity is not None:
             out["identity"] = dict(self.identity)
         if self.learned:
@@ -151,7 +158,11 @@ class Report:
     recipe: str | None
     devices: list[DeviceResult]
     seconds: float = 0.0
-    run: dict[str, Any] | None = None  # who ran what, where and when (``run_info``); None: not known
+    run: dict[str, Any] | None = None  # who ran what, where and when (``run_info``, with the run's "id" and
+    # "state_dir" in the journal, and "interrupted" when it stopped early); None: not known
+    run_id: str | None = None  # the run's id in the journal (None: a run without one)
+    state_dir: str | None = None  # absolute path of the folder with the journal and the snapshots
+    interrupted: str | None = None  # why the run stopped early ("SIGINT", "SIGTERM", "cancelled"), else None
 
     def __repr__(self) -> str:
         # short on purpose: asyncio.run's SIGINT bookkeeping (signal.getsignal on a partial holding the
@@ -160,8 +171,7 @@ class Report:
         return f"Report(recipe={self.recipe!r}, devices={len(self.devices)}, seconds={self.seconds:.3f})"
 
     def summary(self) -> dict[str, Any]:
-        counts = {s: sum(1 for d in self.devices if d.status == s)
-                  for s in ("ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back")}
+        counts: dict[str, int] = {s: sum(1 for d in self.devices if d.status == s) for s in DEVICE_STATUSES}
         return {"devices": len(self.devices), **counts,
                 "write_requests": sum(d.write_requests for d in self.devices),
                 "read_requests": sum(d.read_requests for d in self.devices),
@@ -169,7 +179,15 @@ class Report:
 
     def to_json(self) -> dict[str, Any]:
         """The report document (schema ``deployer.report/2``) as plain values."""
-        return _document(self.recipe, [d.to_json() for d in self.devices], self.summary(), self.run)
+        return _document(self.recipe, [d.to_json() for d in self.devices], self.summary(), self.run_doc())
+
+    def run_doc(self) -> dict[str, Any] | None:
+        """The report's ``run``: ``run_info`` with the journal's run id and state folder, and the interruption."""
+        doc = dict(self.run or {})
+        for key, value in (("id", self.run_id), ("state_dir", self.state_dir), ("interrupted", self.interrupted)):
+            if value is not None:
+                doc[key] = value
+        return doc or None
 
     @property
     def exit_code(self) -> int:
@@ -184,9 +202,6 @@ class Report:
         if any(d.status not in ("ok", "sent") for d in self.devices):
             return EXIT_FAILED
         return EXIT_OK
-
-
-# ---- the report document: every report JSON (API, --json, --report files, the live fleet file) ----
 
 
 def _document(recipe: str | None, devices: list[Any], summary: dict[str, Any],
@@ -247,7 +262,7 @@ def report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str
 def report_text(report: Report) -> str:
     """A report as JSON text, one device per line (``--json`` and the ``--report`` file of a fleet)."""
     return b"".join(report_parts(report.recipe, [device_json(d) for d in report.devices],
-                                 report.summary(), report.run)).decode()
+                                 report.summary(), report.run_doc())).decode()
 
 
 def write_json(data: dict[str, Any], path: str, *, what: str = "") -> None:

@@ -108,6 +108,14 @@ def test_playbook_check_apply_idempotent_and_a_rejected_value(tmp_path: Path) ->
         assert values["site-b-d0"] == {"F07": "10 s", "F08": "12 s", "stop_mode": "coast"}
         pulled = tmp_path / "pulled" / "site-a" / "site-a-d1.yaml"  # the pull task wrote recipe files
         assert "F07: 10 s" in pulled.read_text() and f"url\": \"{sims[1].url}" in pulled.read_text()
+        # each host's apply is one journaled run (deployer status would list it, had it not finished)
+        lines = [json.loads(x) for x in (tmp_path / "state" / "audit.jsonl").read_text().splitlines()]
+        started = [x for x in lines if x["event"] == "run-started"]
+        assert len(started) == 2 and all(x["via"] == "ansible" and x["command"] == "apply" for x in started)
+        assert sorted(d["name"] for x in started for d in x["devices"]) == [f"site-{s}-d{i}" for s in "ab"
+                                                                            for i in range(2)]
+        finished = {x["run"]: x for x in lines if x["event"] == "run-finished"}
+        assert all(finished[x["run"]]["exit_code"] == 0 for x in started)
         assert "ok: [site-a]" in out and "modbus_devices" not in out.split("Keep them as recipe files")[1]
 
         # a second run has nothing to do

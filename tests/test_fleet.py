@@ -261,7 +261,7 @@ def test_report_file_survives_kill_9(tmp_path: Path) -> None:
         try:
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline:  # until two devices have finished
-                if report_file.exists() and sum(d["status"] != "skipped" for d in
+                if report_file.exists() and sum(d["status"] not in ("skipped", "interrupted") for d in
                                                  json.loads(report_file.read_text())["devices"]) >= 2:
                     break
                 time.sleep(0.01)
@@ -274,6 +274,8 @@ def test_report_file_survives_kill_9(tmp_path: Path) -> None:
         assert status["d00"] == "ok" and status["d01"] == "partial"
         unfinished = [d for d in data["devices"] if d["status"] == "skipped"]
         assert unfinished and all(d["error"] == "not finished (interrupted run)" for d in unfinished)
+        # the device being written when the run died, if the file got to say so: interrupted, with its snapshot
+        assert all(d["snapshot"] for d in data["devices"] if d["status"] == "interrupted")
         assert not_ok(str(report_file)) == [n for n in names(6) if status[n] != "ok"]
         assert "d00" not in not_ok(str(report_file))
 

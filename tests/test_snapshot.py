@@ -194,16 +194,21 @@ def test_snapshot_restores_only_where_it_was_taken(capsys: pytest.CaptureFixture
     inv.write_text(f"devices:\n  x: {{url: '{other.url}'}}\n  y: {{url: '{first.url}'}}\n")
     code, _, err = cli(capsys, "rollback", snap, "--inventory", str(inv), "--limit", "x,y", "--yes",
                        "--state-dir", str(tmp_path / "s"))
-    assert code == 1 and "rollback --report REPORT.json" in err
-    # another device named explicitly: without a terminal it is not done without --yes
+    assert code == 1 and "rollback --from-report REPORT.json" in err
+    # another device named explicitly: without a terminal it is not done without its own consent
     code, _, err = cli(capsys, "rollback", snap, "--device", other.url,
                        "--state-dir", str(tmp_path / "s"))
-    assert code == 1 and "confirmation" in err
-    assert len(other.log) == other_log
-    # with --yes it goes there, saying so
+    assert code == 1 and "--to-other-device" in err
+    # --yes (do not ask) is not that consent
     code, _, err = cli(capsys, "rollback", snap, "--device", other.url, "--yes",
                        "--state-dir", str(tmp_path / "s"))
+    assert code == 1 and "was taken from" in err and "needs --to-other-device" in err and "nothing was sent" in err
+    assert len(other.log) == other_log
+    # with --to-other-device it goes there, saying so
+    code, _, err = cli(capsys, "rollback", snap, "--device", other.url, "--yes", "--to-other-device",
+                       "--state-dir", str(tmp_path / "s"))
     assert code == 0 and "was taken from" in err and "restoring it there" in err
+    assert any(e.function == 16 for e in other.log[other_log:])
 
 
 def test_rollback_to_another_device_asks_on_a_terminal(tmp_path: Path, layout: dict[str, Path],

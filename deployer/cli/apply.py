@@ -13,8 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..errors import StateError
-from ..load.diagnostics import EXIT_OK, Diagnostic, InputError, UsageError
+from ..load.diagnostics import EXIT_OK, UsageError
 from .base import (
     _ARGV,
     _OWN_PROCESS,
@@ -22,7 +21,6 @@ from .base import (
     _n,
     _target,
     console,
-    describe,
     device_options,
     fleet_option,
     limit_option,
@@ -42,7 +40,7 @@ if TYPE_CHECKING:
 _STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "rolled-back": 3, "skipped": 4, "ok": 5, "unchanged": 6}
 _STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red",
                  "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red",
-                 "sent": "cyan", "rolled-back": "bold yellow"}
+                 "sent": "cyan", "interrupted": "bold red", "rolled-back": "bold yellow"}
 
 
 def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> None:
@@ -80,7 +78,7 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
         out.print(f"{_n(s['devices'], 'device')}: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
                   + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable"
                   + (f", {s['rolled-back']} rolled back" if s["rolled-back"] else "")
-                  + f" in {s['seconds']:.2f} s")
+                  + (f", {s['interrupted']} interrupted" if s["interrupted"] else "") + f" in {s['seconds']:.2f} s")
 
 
 def _is_plan_file(path: str) -> bool:
@@ -97,37 +95,33 @@ def _is_plan_file(path: str) -> bool:
 def run_apply(source: str | None, *, device: str | None, unit: int | None, timeout: float | None,
               retries: int | None, yes: bool, report_path: str | None, as_json: bool, inventory: str | None,
               limit: str | None, parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
-              lock_timeout: float = 0.0, force: bool = False, from_report: str | None = None,
+              lock_timeout: float = 0.0, force: bool = False, from_reports: tuple[str, ...] = (),
               batch: str | None = None, max_failures: str | None = None, command: str = "apply",
-              soak: float | None = None, health_interval: float = 1.0, confirm_within: float | None = None,
-              rollback_on_failure: bool = False, pause: float | None = None, ask: bool = False,
-              html_path: str | None = None) -> int:
-    """apply / rollback: everything validated, then confirmed, then sent."""
-    from ..api import fleet_options, run_fleet_async
+              to_other_device: bool = False, soak: float | None = None, health_interval: float = 1.0,
+              confirm_within: float | None = None, rollback_on_failure: bool = False, pause: float | None = None,
+              ask: bool = False, html_path: str | None = None) -> int:
+    """apply / rollback: everything validated, then confirmed, then run by the library (``run.runner``)."""
+    from ..errors import RunInterrupted
     from ..execute.session import ApplyOptions
-    from ..fleet.rollout import Job, apply_many
+    from ..fleet.rollout import Job
     from ..planning.planfile import load_plan
     from ..recipe.loader import load_recipe
-    from ..report import write_json
-    from ..state import journal
+    from ..run.rollback import report_jobs, snapshot_job
+    from ..run.runner import run_async
 
     expected: Plan | None = None
     jobs: list[Job] = []
-    moved: list[str] = []  # rollback to another device than the snapshot's: asked about first
-    if not (inventory or from_report) and (batch or max_failures or limit):
+    moved: str | None = None  # rollback to another device than the snapshot's: consent first
+    if not (inventory or from_reports) and (batch or max_failures or limit):
         raise UsageError("--limit, --batch and --max-failures need --inventory")
-    if from_report is not None:  # rollback --report: every device of that run from its own snapshot
+    if from_reports:  # rollback --from-report: every device those runs wrote, each from its own snapshot
         if inventory or device or unit is not None:
-            raise UsageError("rollback --report restores each device from its own snapshot, to the device it was "
-                             "taken from: --inventory, --device and --unit do not apply")
-        jobs = _rollback_report_jobs(from_report, force=force, timeout=timeout, retries=retries)
-        if limit:  # names and patterns select among that run's devices (it has no groups)
-            from ..fleet.inventory import FleetDevice, Inventory, select
-
-            chosen = {d.name for d in select(Inventory(from_report, tuple(FleetDevice(j.name, describe(j.url))
-                                                                          for j in jobs)), limit)}
-            jobs = [j for j in jobs if j.name in chosen]
-        label: str | None = from_report
+            raise UsageError("rollback --from-report restores each device from its own snapshot, to the device it "
+                             "was taken from: --inventory, --device and --unit do not apply")
+        jobs, notices = report_jobs(from_reports, limit=limit, force=force, timeout=timeout, retries=retries)
+        for n in notices:
+            click.echo(n, err=True)
+        label: str | None = from_reports[0] if len(from_reports) == 1 else ", ".join(from_reports)
     elif source is None:  # each device's recipe from the inventory
         if not inventory:
             raise UsageError(f"pass {'SNAPSHOT' if command == 'rollback' else 'RECIPE'}, or --inventory FILE "
@@ -136,6 +130,13 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             raise UsageError("--device and --inventory exclude each other")
         label = None
         jobs = _fleet(None, inventory, limit, timeout, retries, unit)
+    elif command == "rollback":
+        if inventory:
+            raise UsageError(f"{source} is one device's snapshot: it restores only the device it was taken from. "
+                             "To roll back a fleet run, use: deployer rollback --from-report REPORT.json")
+        label = source
+        job, moved = snapshot_job(source, device=device, unit=unit, timeout=timeout, retries=retries, force=force)
+        jobs.append(job)
     else:
         label = source
         if _is_plan_file(source):
@@ -144,9 +145,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             rec, expected = load_plan(source)
         else:
             rec = load_recipe(source, force=force)
-        if rec.snapshot is not None and inventory:
-            raise UsageError(f"{source} is one device's snapshot: it restores only the device it was taken from. "
-                             "To roll back a fleet run, use: deployer rollback --report REPORT.json")
+        if rec.snapshot is not None:
+            raise UsageError(f"{source} is a snapshot: restore it with deployer rollback {source}")
         if inventory:
             if device:
                 raise UsageError("--device and --inventory exclude each other")
@@ -155,12 +155,6 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             one, u = _target(rec, device, unit, timeout, retries, required=True)
             assert one is not None
             jobs.append(Job(rec.name, rec, one, u))
-            if rec.snapshot is not None and rec.device is not None and rec.device.url is not None:
-                taken, taken_unit = _target(rec, None, None, timeout, retries, required=True)
-                assert taken is not None
-                if (taken.bus, taken_unit) != (one.bus, u):
-                    moved.append(f"{source} was taken from {describe(taken)} unit {taken_unit}, not "
-                                 f"{describe(one)} unit {u}")
     if soak is not None:
         from ..execute.soak import check_soak_profiles
 
@@ -169,20 +163,20 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         raise UsageError("--pause and --ask go between batches: give --batch too")
     if ask and not sys.stdin.isatty():
         raise UsageError("--ask asks before each batch: stdin is not a terminal (use --pause for an unattended run)")
-    for j in jobs:
-        if j.unit == 0 and not allow_broadcast:
-            raise UsageError(f"{j.name}: unit 0 is broadcast (no device answers, nothing can be verified); "
-                             "pass --allow-broadcast to send it anyway")
 
-    out = console()
     err = console(stderr=True)
     confirm = None
+    if moved is not None and not to_other_device:
+        if yes or not sys.stdin.isatty():
+            raise UsageError(f"{moved}: restoring a snapshot to another device needs --to-other-device "
+                             "(--yes alone is not enough); nothing was sent")
+        if not click.confirm(f"{moved}. Restore it to that other device?", default=False, err=True):
+            raise UsageError("nothing was written (declined)")
+    elif moved is not None:
+        err.print(f"warning: {moved}; restoring it there (--to-other-device)")
     if not yes:
         if not sys.stdin.isatty():
             raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
-        for why in moved:
-            if not click.confirm(f"{why}. Restore it to that other device?", default=False, err=True):
-                raise UsageError("nothing was written (declined)")
         ask_lock = asyncio.Lock()
         profiles = {j.name: j.recipe.profile for j in jobs}
 
@@ -191,67 +185,66 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                 err.print(f"[bold]{res.name}[/bold] {res.url} unit {res.unit}:")
                 print_plan(p, profiles[res.name], changes_only=True, out=err)
                 return await asyncio.to_thread(click.confirm, "Write these values?", default=False, err=True)
-    elif moved:
-        for why in moved:
-            err.print(f"warning: {why}; restoring it there (--yes)")
 
-    fleet_run = bool(inventory or from_report)
-    if report_path or html_path:  # before anything is sent: a link, a FIFO or a folder there is refused now
+    fleet_run = bool(inventory or from_reports)
+    if html_path:  # before anything is sent: a link, a FIFO or a folder there is refused now
         from ..state.durable import check_output
 
-        if report_path:
-            check_output(report_path, what="the report")
-        if html_path:
-            check_output(html_path, what="the page")
-    if fleet_run:
-        fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures, report_path=report_path)
-    run_id = journal.new_run_id()
-    journal.run_started(state_dir, run_id, command=command, argv=_ARGV, recipe=label,
-                        devices=[(j.name, describe(j.url), j.unit) for j in jobs])
+        check_output(html_path, what="the page")
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
-                           run_id=run_id, applied=os.path.abspath(label) if label else None, lock_timeout=lock_timeout,
-                           soak=soak, health_interval=health_interval, confirm_within=confirm_within,
+                           lock_timeout=lock_timeout, soak=soak, health_interval=health_interval,
+                           confirm_within=confirm_within,
                            command=shlex.join(["deployer", *_ARGV]) if _ARGV else f"deployer {command}")
     safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
                        interval=health_interval, staged=bool(batch), fleet=fleet_run)
-    if fleet_run:
-        import gc
-
-        from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
-
-        if _OWN_PROCESS:  # the command's own process only: the library and callers keep their collector
-            # what is loaded now (modules, profiles, recipes) lives as long as the command: later collections
-            # need not walk it, and a fleet allocates fast, so collect less often (the cyclic collector
-            # took 35-50 ms of a 0.7 s run of 200 devices, a 20 ms pause among them)
-            gc.freeze()
-            gc.set_threshold(20_000, 20, 10)
-        # a live display on a terminal (not while asking questions), else a line per device
-        progress = FleetProgress(len(jobs), err, live=err.is_terminal and yes and not ask and confirm_within is None,
-                                 staged=bool(batch))
-        with progress:
-            report = asyncio.run(run_fleet_async(
-                jobs, recipe_name=label, parallel=parallel, batch=batch, max_failures=max_failures, options=options,
-                report_path=report_path, on_start=lambda j: progress.start(j.name), on_done=progress.device_done,
-                **safe))
-    else:
-        started = time.time()
-        report = asyncio.run(apply_many(jobs, parallel=parallel, options=options, recipe_name=label, **safe))
-        from ..report import run_info
-
-        report.run = run_info(options.command, started)
-        if report_path:
-            write_json(report.to_json(), report_path, what="the report")
+    kw: dict[str, Any] = dict(command=command, label=label, argv=_ARGV, via="cli", options=options, parallel=parallel,
+                              batch=batch, max_failures=max_failures, report_path=report_path, signals=True,
+                              refuse_broadcast=True, **safe)
+    interrupted = None
     try:
-        journal.run_finished(state_dir, run_id, report, command=command, argv=_ARGV)
-    except StateError as e:  # the devices' outcome stands; only the journal misses its last line
-        err.print(f"warning: {e}")
+        if fleet_run:
+            report = _run_fleet(jobs, kw, err, live=err.is_terminal and yes and not ask and confirm_within is None,
+                                staged=bool(batch))
+        else:
+            report = asyncio.run(run_async(jobs, **kw))
+    except RunInterrupted as e:
+        report, interrupted = e.report, e
     if html_path:
         from ..pages import run_page
         from .base import write_page
 
         write_page(run_page(report), html_path)
         err.print(f"page: {html_path}")
+    _print_outcome(report, fleet_run=fleet_run, as_json=as_json, report_path=report_path)
+    if interrupted is not None:
+        _said_interrupted(report, report_path)
+    return report.exit_code
+
+
+
+def _run_fleet(jobs: list[Job], kw: dict[str, Any], err: Console, *, live: bool, staged: bool) -> Report:
+    """A fleet run with its progress display (a live one on a terminal, else a line per device)."""
+    import gc
+
+    from ..run.runner import run_async
+    from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
+
+    if _OWN_PROCESS:  # the command's own process only: the library and callers keep their collector
+        # what is loaded now (modules, profiles, recipes) lives as long as the command: later collections
+        # need not walk it, and a fleet allocates fast, so collect less often (the cyclic collector
+        # took 35-50 ms of a 0.7 s run of 200 devices, a 20 ms pause among them)
+        gc.freeze()
+        gc.set_threshold(20_000, 20, 10)
+    # a live display on a terminal (not while asking questions), else a line per device
+    progress = FleetProgress(len(jobs), err, live=live, staged=staged)
+    with progress:
+        return asyncio.run(run_async(jobs, on_start=lambda j: progress.start(j.name), on_done=progress.device_done,
+                                     **kw))
+
+
+def _print_outcome(report: Report, *, fleet_run: bool, as_json: bool, report_path: str | None) -> None:
+    out = console()
     if as_json:
         if fleet_run:
             from ..report import report_text
@@ -266,7 +259,21 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         fleet_summary(report, out)
     else:
         print_report(report, out)
-    return report.exit_code
+
+
+def _said_interrupted(report: Report, report_path: str | None) -> None:
+    """After Ctrl-C or SIGTERM: what may have been written, and how to undo it (plain lines, never wrapped)."""
+    written = [d for d in report.devices if d.status == "interrupted" and d.snapshot]
+    click.echo(f"interrupted ({report.interrupted}): " + (
+        f"{_n(len(written), 'device')} may hold some new values ({', '.join(d.name for d in written)})"
+        if written else "nothing was written") + f"; the journal {report.state_dir}/audit.jsonl has it as run "
+        f"{report.run_id}", err=True)
+    if len(written) == 1:
+        click.echo(f"undo with: deployer rollback {written[0].snapshot}", err=True)
+    elif written and report_path:
+        click.echo(f"undo with: deployer rollback --from-report {report_path}", err=True)
+    elif written:
+        click.echo("undo with: deployer rollback SNAPSHOT, for each snapshot above", err=True)
 
 
 def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool,
@@ -288,7 +295,6 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
         return None
 
     def waiting(run: str, deadline: float) -> None:
-        import time
 
         left = max(0.0, deadline - time.time())
         left = round(left) if left >= 1 else round(left, 3)
@@ -317,50 +323,6 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
             "on_soak": soaking, **({"on_changed": changed} if fleet else {})}
 
 
-def _rollback_report_jobs(path: str, *, force: bool, timeout: float | None, retries: int | None) -> list[Job]:
-    """One job per device of an earlier run that has a snapshot: its own snapshot, to its own device."""
-    from ..fleet.rollout import Job
-    from ..recipe.loader import load_recipe
-    from ..state.snapshot import snapshots_of_report
-
-    restored: list[str] = []
-    found, without = snapshots_of_report(path, restored)
-    if without:
-        click.echo(f"nothing to roll back on {', '.join(without)}: nothing was written there", err=True)
-    if restored:
-        click.echo(f"nothing to roll back on {', '.join(restored)}: that run already rolled it back", err=True)
-    if not found and restored and not without:
-        raise UsageError(f"{path}: every device of that run was already rolled back: nothing to roll back")
-    if not found:
-        raise UsageError(f"{path}: no device of that run has a snapshot (nothing was written): nothing to roll back")
-    jobs: list[Job] = []
-    errors: list[Diagnostic] = []
-    for rs in found:
-        try:
-            rec = load_recipe(rs.snapshot, force=force)
-        except InputError as e:
-            errors.extend(e.diagnostics)
-            continue
-        if rec.snapshot is None or rec.device is None or rec.device.url is None:
-            errors.append(Diagnostic(rs.snapshot, 1, 1, f"{rs.name}: not a snapshot with its device (made by an "
-                                                        "older deployer?): roll it back with rollback SNAPSHOT "
-                                                        "--device URL"))
-            continue
-        url, u = _target(rec, None, None, timeout, retries, required=True)
-        assert url is not None
-        jobs.append(Job(rs.name, rec, url, u))
-    if errors:
-        raise InputError(errors)
-    # one device in the run twice (older deployers allowed it): its snapshots are restored last written
-    # first, so the earliest one, what it held before the run, is the one that stays
-    slots: dict[tuple[tuple[str, ...], int], list[int]] = {}
-    for i, j in enumerate(jobs):
-        slots.setdefault((j.url.lock_keys, j.unit), []).append(i)
-    order = list(range(len(jobs)))
-    for same in slots.values():
-        for i, k in zip(same, reversed(same), strict=True):
-            order[i] = k
-    return [jobs[k] for k in order]
 
 
 def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -433,88 +395,130 @@ def apply(source: str | None, **kw: Any) -> int:
 @click.command()
 @click.argument("snapshot", required=False, type=click.Path(dir_okay=False, exists=True))
 @apply_options
+@click.option("--from-report", "from_reports", multiple=True, type=click.Path(dir_okay=False), metavar="RUN.json",
+              help="every device that run may have written, each from its own snapshot (repeatable)")
 @click.option("--force", is_flag=True,
               help="restore the recorded raw registers although the profile changed since the snapshot")
-@click.option("--save-report", type=click.Path(dir_okay=False), metavar="FILE",
-              help="with --report RUN.json: write this rollback's own report here")
+@click.option("--to-other-device", is_flag=True,
+              help="consent to restore a snapshot to another device or unit than the one it was taken from")
+@click.option("--save-report", type=click.Path(dir_okay=False), metavar="FILE", hidden=True,
+              help="the old form rollback --report RUN.json: write this rollback's own report here")
 def rollback(snapshot: str | None, **kw: Any) -> int:
     """Restore a snapshot that apply saved, to the device it was taken from.
 
     \b
-    rollback SNAPSHOT            that device, from that snapshot (--report FILE writes this run's report)
-    rollback --report RUN.json   every device of an earlier run, each from its own snapshot
-                                 (--save-report FILE writes this run's report)
+    rollback SNAPSHOT               that device, from that snapshot
+    rollback --from-report RUN.json every device an earlier run may have written, each from its own
+                                    snapshot (the run's journal names those its report could not)
+    --report FILE writes this rollback's own report, as on apply.
     """
     save = kw.pop("save_report")
-    if snapshot is None:
-        if not kw["report_path"]:
-            raise UsageError("rollback needs a SNAPSHOT, or --report REPORT.json to roll back every device of a run")
-        from_report, kw["report_path"] = kw["report_path"], save
-        return run_apply(None, from_report=from_report, command="rollback", **kw)
-    if save:
-        raise UsageError("--save-report goes with rollback --report RUN.json; with a SNAPSHOT use --report FILE")
-    return run_apply(snapshot, command="rollback", **kw)
+    from_reports: tuple[str, ...] = kw.pop("from_reports")
+    if snapshot is None and not from_reports and kw["report_path"] and os.path.isfile(kw["report_path"]):
+        # the old reading form: rollback --report RUN.json [--save-report FILE]
+        click.echo(f"warning: rollback --report {kw['report_path']} reads an earlier run's report: say "
+                   f"--from-report {kw['report_path']} (--report FILE writes this rollback's report, as on apply)",
+                   err=True)
+        from_reports, kw["report_path"] = (kw["report_path"],), save
+    elif save:
+        raise UsageError("--save-report belongs to the old form rollback --report RUN.json; use --report FILE")
+    if snapshot is None and not from_reports:
+        raise UsageError("rollback needs a SNAPSHOT, or --from-report RUN.json to roll back every device of a run")
+    if snapshot is not None and from_reports:
+        raise UsageError("rollback takes a SNAPSHOT or --from-report RUN.json, not both")
+    return run_apply(snapshot, from_reports=from_reports, command="rollback", **kw)
 
 
 @click.command()
 @click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
               help="where snapshots and the audit log are")
-@click.option("--json", "as_json", is_flag=True, help="print the unfinished runs as JSON")
-def status(state_dir: str, as_json: bool) -> int:
-    """Runs that never finished (a crash, kill -9, a laptop asleep): which devices were being written."""
-    from ..execute.soak import awaiting, soaking
-    from ..state.journal import unfinished
+@click.option("--json", "as_json", is_flag=True, help="print the runs that need a look as JSON")
+@click.option("--resolve", metavar="RUN", help="acknowledge a run listed here after a look (recorded in the audit log)")
+def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
+    """Runs that need a look: never finished (a crash, kill -9, a laptop asleep) or interrupted while writing.
 
-    runs, torn = unfinished(state_dir)
+    A run drops out once the devices it left half-written are rolled back, or with --resolve RUN.
+    """
+    from ..execute.soak import awaiting, soaking
+    from ..state import journal
+
+    if resolve is not None:
+        try:
+            r = journal.resolve(state_dir, resolve)
+        except KeyError:
+            raise UsageError(f"no run {resolve} needs a look in {journal.path_of(state_dir)} "
+                             "(deployer status lists them)") from None
+        click.echo(f"resolved run {r.run} ({r.command} {r.recipe or ''} by {r.user} at {r.time}); "
+                   f"recorded in {journal.path_of(state_dir)}")
+        return EXIT_OK
+    runs, torn = journal.unfinished(state_dir)
     waits = {a.run: a for a in awaiting(state_dir)}
     soaks = soaking(state_dir)
     if as_json:
         click.echo(json.dumps({"unfinished": [
             {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
-             "argv": r.argv, "recipe": r.recipe, "devices": r.devices, "interrupted": r.interrupted,
-             "finished": r.finished,
+             "via": r.via, "argv": r.argv, "recipe": r.recipe, "devices": r.devices, "interrupted": r.interrupted,
+             "finished": r.finished, "ended": r.ended,
              **({"awaiting_confirmation": {"deadline": waits[r.run].deadline, "report": waits[r.run].report,
                                            "waiting": waits[r.run].alive}} if r.run in waits else {}),
              **({"soaking": {"report": soaks[r.run]}} if r.run in soaks else {}),
              } for r in runs]}, indent=2))
         return EXIT_OK
-    out = console()
     if not runs:
-        out.print(f"no unfinished runs in {os.path.join(state_dir, 'audit.jsonl')}")
+        click.echo(f"no unfinished runs in {journal.path_of(state_dir)}")
     for r in runs:
-        state = "still running" if r.running else "did not finish"
-        out.print(f"[bold]{r.command}[/bold] {r.recipe or ''} by {r.user} at {r.time} (run {r.run}, PID {r.pid}): "
-                  f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished")
+        state = "still running" if r.running else (f"interrupted ({r.ended})" if r.ended else "did not finish")
+        via = {"api": " (through the Python API)", "ansible": " (through Ansible)"}.get(r.via, "")
+        click.echo(f"{r.command}{via} {r.recipe or ''} by {r.user} at {r.time} (run {r.run}, PID {r.pid}): "
+                   f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished")
         a = waits.get(r.run)
         if a is not None and a.alive:
-            out.print(f"  awaits confirmation until {a.deadline}: deployer confirm {r.run} --state-dir {state_dir}",
-                      soft_wrap=True)
+            click.echo(f"  awaits confirmation until {a.deadline}: deployer confirm {r.run} --state-dir {state_dir}")
         elif a is not None:
-            out.print(f"  awaited confirmation (until {a.deadline}) when its process died: its devices hold values "
-                      "that were never committed (a power cycle also reverts them on devices whose commit stores "
-                      "to non-volatile memory)")
-            out.print(f"    restore them with: deployer rollback --report {a.report} --state-dir {state_dir} --yes",
-                      soft_wrap=True)
+            click.echo(f"  awaited confirmation (until {a.deadline}) when its process died: its devices hold values "
+                       "that were never committed (a power cycle also reverts them on devices whose commit stores "
+                       "to non-volatile memory)")
+            click.echo(f"    restore them with: deployer rollback --from-report {a.report} --state-dir {state_dir} "
+                       "--yes")
         if r.run in soaks and not r.running:
-            out.print("  died while its change soaked: its devices hold values whose health was not proven and "
-                      "that were never committed (a power cycle also reverts them on devices whose commit stores "
-                      "to non-volatile memory)")
+            click.echo("  died while its change soaked: its devices hold values whose health was not proven and "
+                       "that were never committed (a power cycle also reverts them on devices whose commit stores "
+                       "to non-volatile memory)")
             if soaks[r.run]:
-                out.print(f"    restore them with: deployer rollback --report {soaks[r.run]} --state-dir {state_dir} "
-                          "--yes", soft_wrap=True)
+                click.echo(f"    restore them with: deployer rollback --from-report {soaks[r.run]} "
+                           f"--state-dir {state_dir} --yes")
         for d in r.interrupted:
-            out.print(f"  interrupted while writing: {d.get('name')} {d.get('url')} unit {d.get('unit')}; "
-                      f"snapshot {d.get('snapshot')}")
-            out.print(f"    check with: deployer diff RECIPE --device {d.get('url')} --unit {d.get('unit')}; "
-                      f"undo with: deployer rollback {d.get('snapshot')}")
+            where = f"{d.get('url')} unit {d.get('unit')}"
+            click.echo(f"  interrupted while writing: {d.get('name')} {where}; snapshot {d.get('snapshot')}")
+            if r.command == "rollback" and d.get("restoring"):  # its snapshot holds the values being undone
+                click.echo(f"    the rollback did not finish: re-run it with: deployer rollback {d['restoring']}"
+                           + ("" if d.get("restoring") == r.recipe else f" --device {d.get('url')}"))
+            else:
+                click.echo(f"    check with: {_diff_command(r, d)}; undo with: deployer rollback {d.get('snapshot')}")
         done = {(d.get("name"), d.get("url"), d.get("unit")) for d in (*r.finished, *r.interrupted)}
         never = [d for d in r.devices if (d.get("name"), d.get("url"), d.get("unit")) not in done]
-        if never and not r.running:
-            out.print(f"  not written (never started or nothing to write): "
-                      f"{', '.join(str(d.get('name')) for d in never)}")
+        if never and not r.running and not r.ended:
+            click.echo(f"  not written (never started or nothing to write): "
+                       f"{', '.join(str(d.get('name')) for d in never)}")
+        if not r.running:
+            click.echo(f"  after a look: deployer status --resolve {r.run}" + (
+                f" --state-dir {state_dir}" if state_dir != ".deployer" else ""))
     if torn:
-        out.print(f"({_n(torn, 'line')} of the log could not be read: cut off by the crash)")
+        click.echo(f"({_n(torn, 'line')} of the log could not be read: cut off by the crash)")
     return EXIT_OK
+
+
+def _diff_command(r: Any, d: dict[str, Any]) -> str:
+    """The diff that shows what a device holds against what the run applied: its recipe, and for a
+    fleet its inventory (per-device profiles and values), as the run's command line named them."""
+    recipe = r.recipe if r.recipe and os.path.isfile(r.recipe) and not r.recipe.endswith(".json") else None
+    argv = list(r.argv)
+    inventory = argv[argv.index("--inventory") + 1] if "--inventory" in argv[:-1] else None
+    if recipe and inventory:
+        return f"deployer diff {recipe} --inventory {inventory} --limit {d.get('name')}"
+    if recipe:
+        return f"deployer diff {recipe} --device {d.get('url')} --unit {d.get('unit')}"
+    return f"deployer pull --profile PROFILE --device {d.get('url')} --unit {d.get('unit')}"
 
 
 @click.command()

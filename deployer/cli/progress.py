@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from ..report import DeviceResult, Report
     from .tables import Cell
 
-STYLE = {"rolled-back": "bold yellow",
+STYLE = {"rolled-back": "bold yellow", "interrupted": "bold red",
          "ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red", "unverified": "yellow",
          "skipped": "yellow", "partial": "yellow", "unreachable": "bold red", "drift": "yellow", "sent": "cyan"}
 
@@ -118,7 +118,8 @@ def fleet_summary(report: Report, out: Console) -> None:
     show(out, ["device", *(["batch"] if staged else []), "status", "changed", "failed", "requests", "seconds", ""],
          rows)
     s = report.summary()
-    parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "rolled-back", "skipped")
+    parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "rolled-back", "interrupted",
+                                     "skipped")
              if s[k] or k == "ok"]
     out.print(f"{_n(s['devices'], 'device')}: {', '.join(parts)}; {_n(s['write_requests'], 'write request')} and "
               f"{_n(s['read_requests'], 'read request')} in {s['seconds']:.2f} s")

@@ -272,9 +272,10 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
                retries: int | None, unit: int | None, parallel: int, html_path: str | None = None,
                non_default: bool = False) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
-    from ..api import check_writable, device_url, load_inventory, pull_names, pulled_recipe
+    from ..api import device_url, load_inventory, pull_names, pulled_recipe
     from ..fleet.rollout import ReadJob
     from ..profile import resolve_profile
+    from ..run.runner import check_writable
     from ..state.durable import write_atomic
 
     inv = load_inventory(inventory)

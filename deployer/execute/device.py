@@ -98,6 +98,8 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
     prof = recipe.profile
     res = DeviceResult(name or recipe.name, tp.describe(url), unit, prof.id, profile_ref=profile_ref(prof),
                        recipe=recipe.path, batch=batch, profile_sha256=prof.digest)
+    if recipe.snapshot is not None and recipe.path is not None:
+        res.restored = os.path.abspath(recipe.path)
     results = _results(recipe)
     res.parameters = list(results.values())
     if unit == 0 and not opts.allow_broadcast:
@@ -106,6 +108,44 @@ async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: s
     if unit == 0 and (prof.preconditions or any(d.parameter.mask for d in recipe.desired)):
         raise UsageError("a broadcast cannot read: bit fields (which keep the register's other bits) and "
                          f"preconditions of profile {prof.id} need a device that answers")
+    try:
+        return await _locked(recipe, url, unit, opts, res, results)
+    except asyncio.CancelledError:
+        interrupted(res, results)
+        raise DeviceInterrupted(res) from None
+
+
+class DeviceInterrupted(asyncio.CancelledError):
+    """The device's apply was cancelled (the run interrupted): ``result`` says what it holds as far as known."""
+
+    def __init__(self, result: DeviceResult) -> None:
+        super().__init__(result.name)
+        self.result = result
+
+
+def interrupted(res: DeviceResult, results: dict[str, ParameterResult]) -> None:
+    """What an interrupted device's report says: every write that went out is unverified, the one that was
+    out when the run stopped may have been applied, the rest was not sent."""
+    out = [(r.address, r.address + r.count) for r in res.requests if r.result == "interrupted" and r.function != 3]
+    for p in results.values():
+        if any(a < p.address + p.count and p.address < b for a, b in out):
+            p.status, p.error = "unverified", "the run was interrupted while its write request was out: " \
+                                              "it may have been applied"
+        elif p.status == "unverified" and p.error == PENDING:
+            p.error = "written; not read back: the run was interrupted"
+        elif p.status == "skipped" and p.error is None:
+            p.error = "not written: the run was interrupted"
+    res.status = "interrupted"
+    if res.snapshot is None:
+        res.error = "the run was interrupted before the first write to this device; nothing was written"
+    else:
+        res.error = ("the run was interrupted while writing this device: some parameters may hold new values; "
+                     f"restore with: deployer rollback {res.snapshot}")
+
+
+async def _locked(recipe: Recipe, url: tp.DeviceURL, unit: int, opts: ApplyOptions, res: DeviceResult,
+                  results: dict[str, ParameterResult]) -> tuple[DeviceResult, Awaitable[object] | None]:
+    prof = recipe.profile
     try:
         held = await lock.acquire_device(url.lock_keys, unit, timeout=opts.lock_timeout, command=lock.command_line(),
                                          directory=opts.lock_dir)
@@ -254,13 +294,15 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         digest = hashlib.sha256(json.dumps(plan_to_json(plan), sort_keys=True).encode()).hexdigest()
         snap.journal = journal.path_of(opts.state_dir)
         snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest,
-                                           batch=res.batch)
+                                           batch=res.batch, restoring=res.restored)
     try:
         res.snapshot = await durable(snap)
     except OSError as e:  # no snapshot, no write: nothing could be undone
         res.status, res.error = "failed", (f"cannot save the snapshot in {opts.state_dir}: {disk_error(e)}; "
                                            "nothing was written")
         return
+    if opts.on_writing is not None:
+        opts.on_writing(res)
 
     # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock
     if prof.unlock:

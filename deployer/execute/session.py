@@ -33,6 +33,8 @@ class ApplyOptions:
     applied: str | None = None  # what is being applied (recipe or plan file), recorded in the snapshot
     lock_timeout: float = 0.0  # seconds to wait for a device another run holds (0: fail at once)
     lock_dir: str | None = None  # None: $DEPLOYER_LOCK_DIR or <tmp>/deployer-locks
+    # called when a device's snapshot and device-started line are on disk, right before its first write
+    on_writing: Callable[[DeviceResult], None] | None = None
     # a safe change (execute.soak): watch the health checks this long after the write, every health_interval
     soak: float | None = None  # seconds
     health_interval: float = 1.0
@@ -44,6 +46,15 @@ class ApplyOptions:
     def holds_commit(self) -> bool:
         """The commit waits: for the soak, the confirmation, or for ever (a rollback)."""
         return self.hold_commit or self.soak is not None or self.confirm_within is not None
+
+
+def raise_if_cancelled() -> None:
+    """Stop here when the task was cancelled (the run interrupted), even where the CancelledError itself got
+    lost: Python 3.11's ``asyncio.wait_for`` (in pymodbus) swallows a cancellation that arrives together
+    with the answer, and the device would go on writing after Ctrl-C."""
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError
 
 
 class Session:
@@ -67,6 +78,7 @@ class Session:
         self.records.append(record)
         attempt = 0
         while True:
+            raise_if_cancelled()
             attempt += 1
             record.attempts = attempt
             try:
@@ -86,6 +98,9 @@ class Session:
                         raise DeviceGone(f"{e} (after {tries})") from None
                     hint = tp.no_answer_hint(self.transport.url, self.unit)
                     raise DeviceGone(f"no answer after {tries}{hint}") from None
+            except asyncio.CancelledError:  # the run was interrupted while this request was out
+                record.result, record.exception_code = "interrupted", None
+                raise
             except tp.ConnectionLost as e:
                 record.result, record.exception_code = "connection lost", None
                 if attempt > self.retries:

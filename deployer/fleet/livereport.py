@@ -5,6 +5,7 @@ The document itself is written by ``deployer.report`` (``report_parts``), as eve
 from __future__ import annotations
 
 import contextlib
+import json
 import threading
 import time
 from collections.abc import Sequence
@@ -21,6 +22,7 @@ if TYPE_CHECKING:
 # ---- the report file of a running fleet ------------------------------------------------------
 
 NOT_FINISHED = "not finished (interrupted run)"
+WRITING = "interrupted while writing (the run did not finish): some parameters may hold new values"
 
 
 def not_finished(jobs: Sequence[Job], batches: Sequence[int] | None = None) -> list[DeviceResult]:
@@ -63,6 +65,7 @@ class LiveReport:
         made: dict[int, str] = {}  # the skeleton's devices share their parameter lists (not_finished)
         self._parts = {d.name: device_json(d, made) for d in skeleton}
         self._finished: list[DeviceResult] = []
+        self._writing: set[str] = set()  # started writing, not finished yet
         self._cond = threading.Condition()
         self._dirty = False
         self._closing = False
@@ -76,6 +79,23 @@ class LiveReport:
         with self._cond:
             self._parts[result.name] = part
             self._finished.append(result)
+            self._dirty = True
+            self._cond.notify()
+
+    def writing(self, result: DeviceResult) -> None:
+        """A device's snapshot is on disk and its writes start: until it finishes, the file says
+        ``interrupted`` with its snapshot, which is what it is if the run dies now. (The file may lag
+        the run: the journal's ``device-started`` line, on disk before the first write, is what
+        ``rollback --report`` trusts.)"""
+        doc = replace(result, status="interrupted", requests=[], notices=[],
+                      error=f"{WRITING}; restore it with: deployer rollback {result.snapshot}").to_json()
+        doc["parameters"] = [{**p, "status": "unverified" if p["status"] != "unchanged" else p["status"],
+                              "error": "the run did not finish: not read back" if p["status"] != "unchanged"
+                              else None} for p in doc["parameters"]]
+        part = json.dumps(doc).encode()  # ASCII (ensure_ascii), as device_json's
+        with self._cond:  # always before the same device's ``finished`` (one coroutine calls both)
+            self._writing.add(result.name)
+            self._parts[result.name] = part
             self._dirty = True
             self._cond.notify()
 
@@ -104,19 +124,21 @@ class LiveReport:
             for d in report.devices:
                 if d.name not in done:  # skipped by the rollout: never reported as finished
                     self._parts[d.name] = device_json(d)
-        write_atomic(self.path, self._document(report.summary()))
+        write_atomic(self.path, self._document(report.summary(), report))
 
-    def _document(self, summary: dict[str, Any] | None = None) -> list[bytes]:
+    def _document(self, summary: dict[str, Any] | None = None, report: Report | None = None) -> list[bytes]:
         from ..report import Report
 
         with self._cond:
             parts = [self._parts[n] for n in self._order]
             finished = list(self._finished)
-        if summary is None:  # finished devices count for real, the rest as skipped, like the file says
+            writing = len(self._writing - {r.name for r in finished})
+        if summary is None:  # finished devices count for real, the rest as the file says (skipped or writing)
             summary = Report(self.recipe, finished, time.monotonic() - self._started).summary()
             summary["devices"] = len(self._order)
-            summary["skipped"] += len(self._order) - len(finished)
-        return report_parts(self.recipe, parts, summary, self.run)
+            summary["interrupted"] += writing
+            summary["skipped"] += len(self._order) - len(finished) - writing
+        return report_parts(self.recipe, parts, summary, self.run if report is None else report.run_doc())
 
     def _write(self, text: list[bytes]) -> None:
         from ..report import write_atomic

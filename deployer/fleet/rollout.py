@@ -11,11 +11,11 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, TypeVar
 
-from ..execute.device import _apply_device, _results, journal_line
+from ..errors import RunInterrupted, UsageError
+from ..execute.device import DeviceInterrupted, _apply_device, _results, journal_line
 from ..execute.read import read_current
-from ..execute.session import ApplyOptions, Declined, StalePlan
+from ..execute.session import ApplyOptions, Declined, StalePlan, raise_if_cancelled
 from ..execute.soak import Written, await_confirmation, needs_soak, pending_path, roll_back, send_commit, soak
-from ..load.diagnostics import UsageError
 from ..profile import Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..report import DeviceResult, Report
@@ -75,7 +75,11 @@ async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Await
             if after is not None:
                 await after
 
-    await asyncio.gather(*(run_bus(g) for g in buses.values()))
+    # every bus ends before this does, also when the run is cancelled (Ctrl-C): gather would otherwise raise at
+    # the first cancelled bus while devices on others still say what they hold, or write on
+    for outcome in await asyncio.gather(*(run_bus(g) for g in buses.values()), return_exceptions=True):
+        if isinstance(outcome, BaseException):
+            raise outcome
 
 
 def skipped_result(job: Job, reason: str, batch: int | None = None) -> DeviceResult:
@@ -162,6 +166,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
 
     async def one(j: Job) -> Awaitable[None] | None:
         nonlocal stop
+        raise_if_cancelled()  # interrupted while this device waited for its turn: it never starts
         stop = stop or budget.spent()  # checked when the device's turn comes, not when it was queued
         batch = batch_of.get(j.name)
         if stop is not None:
@@ -173,6 +178,10 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         finishing: Awaitable[object] | None = None
         try:
             r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=options, batch=batch)
+        except DeviceInterrupted as e:
+            e.result.seconds = time.monotonic() - t
+            done[j.name] = e.result
+            raise
         except Declined:
             if len(jobs) == 1:
                 raise
@@ -249,6 +258,12 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                 w.result.commit = "not sent"
         if rollback_on_failure or opts.confirm_within is not None:
             changed(written(jobs))
+    except asyncio.CancelledError:
+        # every device in flight has said what it holds (gather waits for them); the rest never started
+        report = Report(recipe_name, [done.get(j.name) or skipped_result(j, "not started: the run was interrupted",
+                                                                         batch_of.get(j.name))
+                                      for j in jobs], time.monotonic() - started)
+        raise RunInterrupted(report) from None
     finally:
         if opts.run_id is not None and (opts.soak is not None or opts.confirm_within is not None):
             with contextlib.suppress(FileNotFoundError):  # the run ended (or was interrupted and rolled back)

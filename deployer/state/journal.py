@@ -58,26 +58,40 @@ def append(state_dir: str, record: dict[str, Any]) -> None:
 
 
 def run_started(state_dir: str, run: str, *, command: str, argv: Sequence[str], recipe: str | None,
-                devices: Iterable[tuple[str, str, int]]) -> None:
+                devices: Iterable[tuple[str, str, int]], via: str = "cli") -> None:
+    """``via``: who started the run (``cli``, ``api``, ``ansible``)."""
     append(state_dir, {"event": "run-started", "run": run, "time": _now(), "user": user_name(), "pid": os.getpid(),
-                       "command": command, "argv": list(argv), "recipe": recipe,
+                       "command": command, "via": via, "argv": list(argv), "recipe": recipe,
                        "devices": [{"name": n, "url": u, "unit": un} for n, u, un in devices]})
 
 
 def device_started(run: str, *, name: str, url: str, unit: int, plan_digest: str,
-                   batch: int | None = None) -> dict[str, Any]:
+                   batch: int | None = None, restoring: str | None = None) -> dict[str, Any]:
     """The ``device-started`` record, without its ``snapshot`` (``durable`` adds the file's final path).
-    ``batch``: a fleet run's batch number (not in the record of a single device's run)."""
-    return {"event": "device-started", "run": run, "time": _now(), "name": name, "url": url, "unit": unit,
-            **({"batch": batch} if batch is not None else {}), "snapshot": None, "plan_sha256": plan_digest}
+    ``batch``: a fleet run's batch number (not in the record of a single device's run); ``restoring``:
+    a rollback's snapshot that this device is being restored from."""
+    rec: dict[str, Any] = {"event": "device-started", "run": run, "time": _now(), "name": name, "url": url,
+                           "unit": unit, **({"batch": batch} if batch is not None else {}), "snapshot": None,
+                           "plan_sha256": plan_digest}
+    if restoring is not None:
+        rec["restoring"] = restoring
+    return rec
 
 
 def device_finished(run: str, res: DeviceResult) -> dict[str, Any]:
     """The ``device-finished`` record (status after the read-back)."""
-    return {"event": "device-finished", "run": run, "time": _now(), "name": res.name, "url": res.url,
-            "unit": res.unit, **_batch(res), "status": res.status, "snapshot": res.snapshot,
-            "written": _written(res), "write_requests": res.write_requests,
-            **({"identity": dict(res.identity)} if res.identity is not None else {})}
+    return {"event": "device-finished", "run": run, "time": _now(), **_device(res)}
+
+
+def _device(d: DeviceResult) -> dict[str, Any]:
+    out: dict[str, Any] = {"name": d.name, "url": d.url, "unit": d.unit, **_batch(d), "status": d.status,
+                           "snapshot": d.snapshot,
+                           "written": _written(d), "write_requests": d.write_requests}
+    if d.restored is not None:
+        out["restored"] = d.restored
+    if d.identity is not None:
+        out["identity"] = dict(d.identity)
+    return out
 
 
 def _batch(res: DeviceResult) -> dict[str, int]:
@@ -89,20 +103,35 @@ def _written(res: DeviceResult) -> list[str]:
 
 
 def run_finished(state_dir: str, run: str | None, report: Report, *, command: str, argv: Sequence[str] = ()) -> None:
-    """The run's outcome: who, when, what, and per device its status and snapshot."""
-    append(state_dir, {
+    """The run's outcome: who, when, what, and per device its status and snapshot (``interrupted``: the
+    signal that stopped it early)."""
+    append(state_dir, finished_record(run, report, command=command, argv=argv))
+
+
+def finished_record(run: str | None, report: Report, *, command: str, argv: Sequence[str] = ()) -> dict[str, Any]:
+    """The ``run-finished`` record (``run_finished`` appends it; the runner queues it behind its devices' lines)."""
+    rec: dict[str, Any] = {
         "event": "run-finished", "run": run,
         "time": _now(), "user": user_name(), "command": command, "argv": list(argv), "recipe": report.recipe,
         "exit_code": report.exit_code,
-        "devices": [{"name": d.name, "url": d.url, "unit": d.unit, **_batch(d), "status": d.status,
-                     "snapshot": d.snapshot,
-                     "written": _written(d), "write_requests": d.write_requests} for d in report.devices],
-    })
+        "devices": [_device(d) for d in report.devices],
+    }
+    if report.interrupted is not None:
+        rec["interrupted"] = report.interrupted
+    return rec
+
+
+def run_refused(state_dir: str, run: str, why: str, *, command: str, argv: Sequence[str] = (),
+                recipe: str | None = None) -> None:
+    """A run that ended before its first write (a stale saved plan, a "no" at the prompt): nothing to look at."""
+    append(state_dir, {"event": "run-finished", "run": run, "time": _now(), "user": user_name(), "command": command,
+                       "argv": list(argv), "recipe": recipe, "exit_code": 1, "refused": why, "devices": []})
 
 
 @dataclass
 class Unfinished:
-    """A run with a run-started line and no run-finished line."""
+    """A run that needs a look: no run-finished line (a crash, ``kill -9``), or one that says it was
+    interrupted while writing some devices; until those are rolled back or the run is resolved."""
 
     run: str
     time: str
@@ -114,15 +143,26 @@ class Unfinished:
     devices: list[dict[str, Any]]  # every device the run selected
     interrupted: list[dict[str, Any]] = field(default_factory=list)  # started writing, never finished
     finished: list[dict[str, Any]] = field(default_factory=list)
+    via: str = "cli"  # who started it: cli, api, ansible
+    ended: str | None = None  # it has a run-finished line: the interruption that ended it ("SIGINT" ...)
 
     @property
     def running(self) -> bool:
         """The process is still alive (a run in progress, not a crash)."""
-        return self.pid is not None and pid_alive(self.pid)
+        return self.ended is None and self.pid is not None and pid_alive(self.pid)
+
+
+def _key(rec: dict[str, Any]) -> tuple[Any, Any, Any]:
+    return rec.get("name"), rec.get("url"), rec.get("unit")
 
 
 def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:
-    """Runs that never finished, oldest first, and the number of lines that were not JSON (a torn last line)."""
+    """Runs that need a look, oldest first, and the number of lines that were not JSON (a torn line).
+
+    A run drops out when it finished without leaving a device interrupted, when every device it left
+    interrupted was restored afterwards from that device's snapshot (a rollback that ended ok), or when
+    someone resolved it (``run-resolved``).
+    """
     path = path_of(state_dir)
     runs: dict[str, Unfinished] = {}
     bad = 0
@@ -130,6 +170,15 @@ def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:
         f = open(path, encoding="utf-8")  # noqa: SIM115 - closed below
     except FileNotFoundError:
         return [], 0
+
+    def restored(snapshot: str) -> None:
+        for r, u in list(runs.items()):
+            left = [d for d in u.interrupted if d.get("snapshot") != snapshot]
+            if len(left) < len(u.interrupted):
+                u.interrupted = left
+                if not left and not u.running:
+                    del runs[r]
+
     with f:
         for line in f:
             try:
@@ -145,14 +194,56 @@ def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:
             if event == "run-started":
                 runs[run] = Unfinished(run, rec.get("time", ""), rec.get("user", ""), rec.get("pid"),
                                        rec.get("command", ""), rec.get("argv", []), rec.get("recipe"),
-                                       rec.get("devices", []))
+                                       rec.get("devices", []), via=str(rec.get("via", "cli")))
             elif event == "device-started" and run in runs:
                 runs[run].interrupted.append(rec)
             elif event == "device-finished" and run in runs:
                 u = runs[run]
-                u.interrupted = [d for d in u.interrupted if (d.get("name"), d.get("url"), d.get("unit")) !=
-                                 (rec.get("name"), rec.get("url"), rec.get("unit"))]
+                u.interrupted = [d for d in u.interrupted if _key(d) != _key(rec)]
                 u.finished.append(rec)
             elif event == "run-finished":
+                ended = runs.pop(run, None)
+                devices = [d for d in rec.get("devices") or [] if isinstance(d, dict)]
+                left = [d for d in devices if d.get("status") == "interrupted" and d.get("snapshot")]
+                if ended is not None and left:  # ended early while writing these: they need a look
+                    starts = {_key(d): d for d in ended.interrupted}
+                    ended.interrupted = [{**starts.get(_key(d), {}), **d} for d in left]
+                    ended.finished = [d for d in devices if d not in left]
+                    ended.ended = str(rec.get("interrupted") or "interrupted")
+                    runs[run] = ended
+                for d in devices:
+                    if d.get("status") == "ok" and d.get("restored"):
+                        restored(str(d["restored"]))
+            elif event == "run-resolved":
                 runs.pop(run, None)
     return list(runs.values()), bad
+
+
+def resolve(state_dir: str, run: str, *, note: str | None = None) -> Unfinished:
+    """Acknowledge a run ``status`` lists (after a look): a ``run-resolved`` line, by whom and when.
+    Raises KeyError when no such run is listed."""
+    listed = {u.run: u for u in unfinished(state_dir)[0]}
+    if run not in listed:
+        raise KeyError(run)
+    rec: dict[str, Any] = {"event": "run-resolved", "run": run, "time": _now(), "user": user_name(),
+                           "pid": os.getpid()}
+    if note:
+        rec["note"] = note
+    append(state_dir, rec)
+    return listed[run]
+
+
+def records(state_dir: str, run: str) -> list[dict[str, Any]]:
+    """Every readable line of one run, in order (OSError when the journal cannot be read)."""
+    out = []
+    with open(path_of(state_dir), encoding="utf-8", errors="replace") as f:
+        for line in f:
+            if f'"{run}"' not in line:
+                continue
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(rec, dict) and rec.get("run") == run:
+                out.append(rec)
+    return out

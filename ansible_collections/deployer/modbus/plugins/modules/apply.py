@@ -119,6 +119,10 @@ report:
   description: The deployer report (schema C(deployer.report/2)).
   type: dict
   returned: when not in check mode
+run:
+  description: The run's id in the journal (C(audit.jsonl) in I(state_dir); C(deployer status) lists it).
+  type: str
+  returned: when not in check mode
 plans:
   description: In check mode, per device what would be written (schema C(deployer.plan/1)).
   type: list
@@ -177,17 +181,21 @@ def check(module, jobs):
 
 
 def apply(module, rec, jobs):
-    from deployer.api import ApplyOptions, run_fleet_async, safe_options
+    from deployer.api import ApplyOptions, RunInterrupted, run_fleet_async, safe_options
 
     p = module.params
     options = safe_options(ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"],
                                         allow_broadcast=p["allow_broadcast"], command="ansible deployer.modbus.apply"),
                            soak=p.get("soak"), health_interval=p["health_interval"])
-    report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
-                                         parallel=p["parallel"],
-                                         batch=p.get("batch"), max_failures=p.get("max_failures"), options=options,
-                                         report_path=p.get("report"),
-                                         rollback_on_failure=p["rollback_on_failure"]))
+    interrupted = None
+    try:  # one journaled run (deployer status sees it); SIGINT/SIGTERM end it with its report
+        report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
+                                             parallel=p["parallel"], batch=p.get("batch"),
+                                             max_failures=p.get("max_failures"), options=options,
+                                             report_path=p.get("report"), via="ansible", signals=True,
+                                             rollback_on_failure=p["rollback_on_failure"]))
+    except RunInterrupted as e:
+        report, interrupted = e.report, e
     devices, diffs, problems = [], [], []
     for d in report.devices:
         changed = [(q.name, q.before or "?", q.after or q.desired) for q in d.parameters
@@ -202,7 +210,9 @@ def apply(module, rec, jobs):
             problems.append(f"{d.name} {d.status}" + (f": {what}" if what else "") + (f" - {d.error}" if d.error
                                                                                      else ""))
     result = {"changed": any(d.write_requests for d in report.devices), "devices": devices,
-              "report": report.to_json(), "diff": diffs}
+              "report": report.to_json(), "diff": diffs, "run": report.run_id}
+    if interrupted is not None:
+        problems.insert(0, f"{interrupted} (run {report.run_id} in {report.state_dir})")
     if problems:
         module.fail_json(msg="; ".join(problems), **result)
     module.exit_json(**result)

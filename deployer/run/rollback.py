@@ -1,0 +1,207 @@
+"""What a rollback restores: a snapshot to the device it was taken from, or every device an earlier run wrote.
+
+A run's report names each device's snapshot; a run that was killed (``kill -9``, a power cut) may
+not have said so in its report file before it died, but its journal did, before the first write:
+the report names the run and its state folder, and the journal's ``device-started`` lines name the
+snapshots of the devices it was writing. A device that may have been written and has no snapshot
+anywhere is refused by name, nothing sent.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from ..fleet.inventory import FleetDevice, Inventory, select
+from ..fleet.livereport import NOT_FINISHED
+from ..fleet.rollout import Job
+from ..load.diagnostics import Diagnostic, InputError, UsageError
+from ..recipe.loader import Recipe, load_recipe
+from ..report import read_report
+from ..state import journal
+from ..transport.urls import BadURL, DeviceURL, describe, parse_url
+
+
+def _url(text: str, timeout: float | None, retries: int | None) -> DeviceURL:
+    try:
+        return parse_url(text, timeout=timeout, retries=retries)
+    except BadURL as e:
+        raise UsageError(str(e)) from None
+
+
+def snapshot_job(path: str, *, device: str | None = None, unit: int | None = None, timeout: float | None = None,
+                 retries: int | None = None, force: bool = False) -> tuple[Job, str | None]:
+    """The job restoring one snapshot, and why it needs consent (``--to-other-device``) when ``device`` or
+    ``unit`` is not the device the snapshot was taken from (else None)."""
+    rec = load_recipe(path, force=force)
+    taken = rec.device.url if rec.device is not None else None
+    taken_unit = rec.device.unit if rec.device is not None and rec.device.unit is not None else 1
+    text = device or taken
+    if text is None:
+        raise UsageError("no device: pass --device URL or set device.url in the recipe")
+    url = _url(text, timeout, retries)
+    u = unit if unit is not None else taken_unit
+    moved = None
+    if rec.snapshot is not None and taken is not None:
+        was = _url(taken, timeout, retries)
+        if (was.bus, taken_unit) != (url.bus, u):
+            moved = f"{path} was taken from {describe(was)} unit {taken_unit}, not {describe(url)} unit {u}"
+    return Job(rec.name, rec, url, u), moved
+
+
+@dataclass(frozen=True)
+class RunSnapshot:
+    """One device of an earlier run that may have been written, and the snapshot that restores it."""
+
+    name: str
+    url: str
+    unit: int
+    snapshot: str | None  # absolute path; None: may have been written, and no snapshot is known
+    source: str  # "report" or "journal": who named the snapshot
+
+
+@dataclass
+class Restores:
+    """The devices of a report to restore, and what to tell the user about the others."""
+
+    found: list[RunSnapshot] = field(default_factory=list)
+    notices: list[str] = field(default_factory=list)
+    nothing: list[str] = field(default_factory=list)  # nothing was written there
+    undone: list[str] = field(default_factory=list)  # the run already rolled it back itself
+    problem: str | None = None  # why devices that may have been written have no known snapshot
+
+
+def _absolute(snap: str, report: str) -> str:
+    """Relative snapshot paths (reports before snapshots were absolute): the report's folder, then here."""
+    if os.path.isabs(snap):
+        return snap
+    beside = os.path.join(os.path.dirname(os.path.abspath(report)), snap)
+    return beside if os.path.exists(beside) else os.path.abspath(snap)
+
+
+def read_run(path: str) -> Restores:
+    """Every device of a report's run that may have been written, with its snapshot: the report's, else the
+    one the run's journal names (a run killed before its report said so). Raises InputError for a file that
+    is not a deployer report."""
+    try:
+        data = read_report(path)
+    except FileNotFoundError:
+        raise InputError([Diagnostic(path, 0, 0, "no such file")]) from None
+    except OSError as e:
+        raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e.strerror}")]) from None
+    info = data.get("run")
+    run, state = (info.get("id"), info.get("state_dir")) if isinstance(info, dict) else (None, None)
+    started: dict[str, dict[str, object]] = {}
+    journal_problem = None
+    if isinstance(run, str) and isinstance(state, str):
+        try:
+            started = {str(r.get("name")): r for r in journal.records(state, run) if r.get("event") == "device-started"
+                       and r.get("snapshot")}
+        except OSError as e:
+            journal_problem = f"its journal {journal.path_of(state)} cannot be read ({e.strerror})"
+    else:
+        journal_problem = "it names no run journal (made by an older deployer)"
+    out = Restores()
+    nothing, undone = out.nothing, out.undone
+    for dev in data["devices"]:
+        if not isinstance(dev, dict) or "name" not in dev:
+            continue
+        name = str(dev["name"])
+        if dev.get("status") == "rolled-back":  # that run restored it from this snapshot itself, verified
+            undone.append(name)
+            continue
+        url, unit = str(dev.get("url", "")), int(dev.get("unit", 1))
+        snap = dev.get("snapshot")
+        if snap:
+            out.found.append(RunSnapshot(name, url, unit, _absolute(str(snap), path), "report"))
+            continue
+        rec = started.get(name)
+        if rec is not None:
+            out.found.append(RunSnapshot(name, url, unit, str(rec["snapshot"]), "journal"))
+            out.notices.append(f"{name}: the report does not name its snapshot (the run ended before it could "
+                               f"say so); the journal does: {rec['snapshot']}")
+            continue
+        unknown = dev.get("status") == "interrupted" or (dev.get("status") == "skipped"
+                                                          and dev.get("error") == NOT_FINISHED)
+        if unknown and journal_problem is not None:
+            out.found.append(RunSnapshot(name, url, unit, None, "report"))
+        else:
+            nothing.append(name)
+    if nothing:
+        out.notices.append(f"nothing to roll back on {', '.join(nothing)}: nothing was written there")
+    if undone:
+        out.notices.append(f"nothing to roll back on {', '.join(undone)}: that run already rolled it back")
+    if journal_problem and any(f.snapshot is None for f in out.found):
+        out.problem = f"{path}: the run did not finish and {journal_problem}"
+    return out
+
+
+def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool = False,
+                timeout: float | None = None, retries: int | None = None) -> tuple[list[Job], list[str]]:
+    """One job per device an earlier run may have written: its own snapshot, to its own device; and the
+    notices for the user. ``limit`` selects among that run's devices by name or pattern.
+
+    Raises UsageError naming the devices that may have been written but have no known snapshot,
+    and when nothing at all was written."""
+    found: list[RunSnapshot] = []
+    notices: list[str] = []
+    nothing = undone = 0
+    problems: list[str] = []
+    for p in paths:
+        r = read_run(p)
+        found.extend(r.found)
+        notices.extend(r.notices)
+        nothing += len(r.nothing)
+        undone += len(r.undone)
+        if r.problem is not None:
+            problems.append(r.problem)
+    if limit:  # names and patterns select among that run's devices (it has no groups)
+        chosen = {d.name for d in select(Inventory(paths[0], tuple(FleetDevice(f.name, f.url) for f in found)),
+                                         limit)}
+        found = [f for f in found if f.name in chosen]
+    blind = [f.name for f in found if f.snapshot is None]
+    if blind:
+        raise UsageError(f"{', '.join(blind)} may have been written by the run of {', '.join(paths)}, and no "
+                         "snapshot of them is known (" + "; ".join(problems) + "): nothing was sent. Find their "
+                         "snapshots with deployer status, restore them with "
+                         "deployer rollback SNAPSHOT, and leave them out here with --limit '!NAME'")
+    if not found and undone and not nothing:
+        raise UsageError(f"{', '.join(paths)}: every device of that run was already rolled back ("
+                         + "; ".join(notices) + "): nothing to roll back")
+    if not found:
+        raise UsageError(f"{', '.join(paths)}: no device of that run has a snapshot (nothing was written): "
+                         "nothing to roll back")
+    jobs: list[Job] = []
+    errors: list[Diagnostic] = []
+    for f in found:
+        assert f.snapshot is not None
+        try:
+            rec = load_recipe(f.snapshot, force=force)
+        except InputError as e:
+            errors.extend(e.diagnostics)
+            continue
+        if not _has_device(rec):
+            errors.append(Diagnostic(f.snapshot, 1, 1, f"{f.name}: not a snapshot with its device (made by an "
+                                                       "older deployer?): roll it back with rollback SNAPSHOT "
+                                                       "--device URL"))
+            continue
+        assert rec.device is not None and rec.device.url is not None
+        u = rec.device.unit if rec.device.unit is not None else 1
+        jobs.append(Job(f.name, rec, _url(rec.device.url, timeout, retries), u))
+    if errors:
+        raise InputError(errors)
+    # one device in the run twice (older deployers allowed it): its snapshots are restored last written
+    # first, so the earliest one, what it held before the run, is the one that stays
+    slots: dict[tuple[tuple[str, ...], int], list[int]] = {}
+    for i, j in enumerate(jobs):
+        slots.setdefault((j.url.lock_keys, j.unit), []).append(i)
+    order = list(range(len(jobs)))
+    for same in slots.values():
+        for i, k in zip(same, reversed(same), strict=True):
+            order[i] = k
+    return [jobs[k] for k in order], notices
+
+
+def _has_device(rec: Recipe) -> bool:
+    return rec.snapshot is not None and rec.device is not None and rec.device.url is not None

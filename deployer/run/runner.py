@@ -1,0 +1,213 @@
+"""A run: apply (or roll back) jobs on one device or a fleet, journaled, with its report, whoever calls.
+
+The command line, the Python API and the Ansible modules all run through ``run_async``, so every
+run is in the audit log and visible to ``deployer status``:
+
+1. checks before anything is sent: a broadcast (unit 0) needs ``allow_broadcast``, fleet options
+   (batch sizes, the failure budget, open files), a report file that can be written;
+2. the journal's ``run-started`` line, then the report file's first state (every device ``skipped``,
+   "not finished", with the run id and the state folder: ``rollback --report`` finds the journal by them);
+3. the devices (``fleet.rollout.apply_many``); a device's file entry says ``interrupted`` with its
+   snapshot from its first write until it finishes;
+4. the journal's ``run-finished`` line and the final report file.
+
+Interrupted (Ctrl-C or SIGTERM when ``signals`` is set, or the task cancelled), the devices in flight
+end ``interrupted`` (with their snapshot when something may have been written), the others
+``skipped``; the run-finished line and the report file are still written, and ``RunInterrupted``
+carries the report. A run refused before anything was sent (a stale saved plan, a "no" at the
+prompt) gets a run-finished line saying so.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import resource
+import signal
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from typing import Any
+
+from ..errors import RunInterrupted
+from ..execute.session import ApplyOptions, Declined, StalePlan
+from ..execute.soak import check_soak_profiles
+from ..fleet.livereport import LiveReport, not_finished
+from ..fleet.rollout import Job, apply_many, batch_sizes, failure_budget
+from ..load.diagnostics import UsageError
+from ..report import DeviceResult, Report, run_info
+from ..state import journal
+from ..state.durable import Line, durable
+from ..transport.urls import describe
+
+__all__ = ["RunInterrupted", "check_broadcast", "check_writable", "ensure_files", "fleet_options", "run",
+           "run_async"]
+
+
+def check_broadcast(jobs: Sequence[Job], allow_broadcast: bool) -> None:
+    """Unit 0 writes every device of a bus and nobody answers: only with explicit consent."""
+    for j in jobs:
+        if j.unit == 0 and not allow_broadcast:
+            raise UsageError(f"{j.name}: unit 0 is broadcast (no device answers, nothing can be verified); "
+                             "pass --allow-broadcast to send it anyway")
+
+
+def ensure_files(parallel: int, devices: int) -> None:
+    """One socket per device in flight: raise the soft open-file limit towards the hard one, or say why not."""
+    need = min(parallel, devices) + 64  # sockets, plus the report, snapshots, logs and the interpreter's own
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= need:
+        return
+    if hard != resource.RLIM_INFINITY and hard < need:
+        raise UsageError(f"--parallel {parallel} needs about {need} open files, but this system allows {hard} "
+                         f"(ulimit -Hn); use --parallel {max(1, hard - 64)} or raise the limit")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (need if hard == resource.RLIM_INFINITY else hard, hard))
+
+
+def check_writable(folder: str, what: str) -> None:
+    """Create ``folder`` if needed and make sure a file can be written there, or say why not (UsageError)."""
+    probe = os.path.join(folder, f".deployer-probe-{os.getpid()}")
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with open(probe, "w", encoding="utf-8"):
+            pass
+        os.remove(probe)
+    except OSError as e:
+        raise UsageError(f"cannot write {what}: {e.strerror}") from None
+
+
+def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failures: str | None,
+                  report_path: str | None = None) -> tuple[list[int], int | None]:
+    """Check a run's options before anything happens: batch sizes, failure budget, open files,
+    and that the report file can be written (it is written before the first device starts)."""
+    sizes = batch_sizes(batch, devices)
+    budget = failure_budget(max_failures, devices)
+    ensure_files(parallel, devices)
+    if report_path:  # before anything is sent: a link, a FIFO or a folder there is refused now
+        from ..state.durable import check_output
+
+        check_output(report_path, what="the report")
+        check_writable(os.path.dirname(os.path.abspath(report_path)), f"the report {report_path}")
+    return sizes, budget
+
+
+async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str | None = None,
+                    argv: Sequence[str] = (), via: str = "api", options: ApplyOptions | None = None,
+                    parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
+                    report_path: str | None = None, signals: bool = False, refuse_broadcast: bool = False,
+                    on_start: Callable[[Job], None] | None = None,
+                    on_done: Callable[[DeviceResult], None] | None = None, **safe: Any) -> Report:
+    """Run ``jobs`` as one journaled run (see the module's docstring); the report of every device.
+
+    ``label``: what is applied (recipe, plan or snapshot file; the report's ``recipe``). ``command``,
+    ``argv`` and ``via`` ("cli", "api", "ansible") go into the journal. ``batch`` ("1,10%,100%")
+    stages the rollout, ``max_failures`` ("2", "5%") caps it. ``signals``: SIGINT and SIGTERM
+    interrupt the run (its own process's main thread only; the command line and Ansible set it).
+    ``refuse_broadcast``: a unit 0 without ``options.allow_broadcast`` is a UsageError before anything
+    happens (the command line), not a ``failed`` device in the report.
+    ``safe``: ``rollback_on_failure``, ``between_batches``, ``on_confirm_wait`` of ``fleet.rollout.apply_many``.
+
+    Raises UsageError (nothing sent) for bad options, StalePlan or Declined when the run was refused
+    before any write, RunInterrupted (with ``.report``) when it was interrupted.
+    """
+    opts = options or ApplyOptions()
+    if not jobs:
+        raise UsageError("no device to write")
+    if refuse_broadcast:
+        check_broadcast(jobs, opts.allow_broadcast)
+    if opts.soak is not None:  # a soak watches the profiles' health checks: each profile must have some
+        check_soak_profiles([j.recipe.profile for j in jobs])
+    sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
+                                  report_path=report_path)
+    started = time.time()
+    state_dir = os.path.abspath(opts.state_dir)
+    applied = opts.applied  # the journal and the snapshots name it so that it is found from anywhere
+    if applied is None and label is not None:
+        applied = os.path.abspath(label) if os.path.exists(label) else label
+    run_id = opts.run_id or journal.new_run_id()  # a confirmation window names its run before it starts
+    journal.run_started(state_dir, run_id, command=command, argv=argv, recipe=applied, via=via,
+                        devices=[(j.name, describe(j.url), j.unit) for j in jobs])
+    info = {**run_info(opts.command or f"Python API: {command}", started), "id": run_id, "state_dir": state_dir}
+    live = LiveReport(report_path, label, not_finished(jobs, sizes), run=info) if report_path else None
+    opts = replace(opts, run_id=run_id, applied=applied, state_dir=state_dir,
+                   on_writing=_both(opts.on_writing, live.writing if live is not None else None))
+
+    def done(r: DeviceResult) -> None:
+        if live is not None:
+            live.finished(r)
+        if on_done is not None:
+            on_done(r)
+
+    on_changed: Callable[[DeviceResult], None] | None = safe.pop("on_changed", None)
+
+    def changed(r: DeviceResult) -> None:  # a finished device's result changed (a soak rolled it back)
+        if live is not None:
+            live.update(r)
+        if on_changed is not None:
+            on_changed(r)
+
+    why: list[str] = []
+    installed = _on_signals(why) if signals else []
+    try:
+        report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
+                                  on_done=done, batches=sizes, max_failures=budget,
+                                  on_changed=changed, **safe)
+    except RunInterrupted as e:
+        report = e.report
+        report.interrupted = why[0] if why else "cancelled"
+    except (StalePlan, Declined) as e:  # nothing was written anywhere: the run ends here, and says why
+        if live is not None:
+            live.stop()
+        journal.run_refused(state_dir, run_id, str(e), command=command, argv=argv, recipe=label)
+        raise
+    finally:
+        loop = asyncio.get_running_loop()
+        for sig in installed:
+            loop.remove_signal_handler(sig)
+    report.run, report.run_id, report.state_dir = info, run_id, state_dir
+    if live is not None:
+        live.close(report)
+    # through the group commit: after every line it still holds (a device interrupted while its snapshot and
+    # device-started line were being made durable), so the run-finished line is the run's last
+    await durable(Line(journal.path_of(state_dir), journal.finished_record(run_id, report, command=command,
+                                                                           argv=argv)))
+    if report.interrupted is not None:
+        raise RunInterrupted(report, report.interrupted)
+    return report
+
+
+def run(jobs: Sequence[Job], **kw: object) -> Report:
+    """``run_async`` for callers without an event loop."""
+    return asyncio.run(run_async(jobs, **kw))  # type: ignore[arg-type]
+
+
+def _both(a: Callable[[DeviceResult], None] | None,
+          b: Callable[[DeviceResult], None] | None) -> Callable[[DeviceResult], None] | None:
+    if a is None or b is None:
+        return a or b
+
+    def call(r: DeviceResult) -> None:
+        a(r)
+        b(r)
+    return call
+
+
+def _on_signals(why: list[str]) -> list[signal.Signals]:
+    """SIGINT and SIGTERM cancel the running run (each one again: a second Ctrl-C also stops a device's
+    closing lock writes); only the main thread of a process can own its signals."""
+    if threading.current_thread() is not threading.main_thread():
+        return []
+    task = asyncio.current_task()
+    assert task is not None
+    loop = asyncio.get_running_loop()
+
+    def stop(sig: signal.Signals) -> None:
+        why.append(sig.name)
+        task.cancel()
+
+    out = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop, sig)
+        out.append(sig)
+    return out

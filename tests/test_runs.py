@@ -1,0 +1,262 @@
+"""The run as the library's object: journaled whoever starts it, and interrupted runs that end truthfully.
+
+Runs are real processes (``python -m deployer``, or a Python script using the API) against slow
+simulated devices on 127.0.0.1, killed with SIGKILL, SIGINT or SIGTERM while they write; afterwards
+every device's registers are read from the simulator and compared with what the report claims and
+with what it held before.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from deployer.profile import load_profile
+from deployer.testing.simulator import Faults, Simulator, SimulatorThread
+from tests.helpers import Simulators
+
+pytestmark = pytest.mark.timeout(300)
+
+N = 12  # parameters, each in its own write request (gaps between them), read in one request
+PROFILE = "profile: slow\nlimits: {max_read_gap: 9}\nparameters:\n" + "".join(
+    f"  p{i}: {{register: {10 * i}, type: uint16}}\n" for i in range(N))
+RECIPE = "recipe: new\nprofile: slow.yaml\nparameters:\n" + "".join(f"  p{i}: 7\n" for i in range(N))
+
+
+@pytest.fixture
+def files(tmp_path: Path) -> Path:
+    (tmp_path / "slow.yaml").write_text(PROFILE)
+    (tmp_path / "new.yaml").write_text(RECIPE)
+    return tmp_path
+
+
+def before(i: int) -> tuple[int, ...]:
+    """What device i holds before the run: its own values, so a restore to the wrong device shows."""
+    return tuple(100 * (i + 1) + k for k in range(N))
+
+
+def holds(sim: Simulator) -> tuple[int, ...]:
+    return tuple(sim.read(f"p{k}")[0] for k in range(N))
+
+
+def writes(sim: Simulator) -> int:
+    return sum(1 for e in sim.log if e.function in (6, 16) and e.result == "ok")
+
+
+def start(*args: str, cwd: Path) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "deployer", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=cwd,
+                            env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)})
+
+
+def deployer(*args: str, cwd: Path) -> tuple[int, str, str]:
+    p = subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=120,
+                       cwd=cwd, env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)})
+    return p.returncode, p.stdout, p.stderr
+
+
+def wait_for(cond: Callable[[], bool], what: str, timeout: float = 120) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(0.01)
+
+
+def audit(state: Path) -> list[dict[str, Any]]:
+    return [json.loads(line) for line in (state / "audit.jsonl").read_text().splitlines()]
+
+
+@pytest.fixture
+def fleet(files: Path) -> Iterator[list[Simulator]]:
+    """Ten devices answering after 100 ms each; an inventory of them."""
+    prof = load_profile(files / "slow.yaml")
+    sims = [Simulator(prof, faults=Faults(latency_ms=100), gap_reads=True) for _ in range(10)]
+    with Simulators(sims):
+        for i, s in enumerate(sims):
+            for k, v in enumerate(before(i)):
+                s.write(f"p{k}", (v,))
+        (files / "fleet.yaml").write_text("defaults: {timeout: 5}\ndevices:\n" + "".join(
+            f"  d{i}: {{url: '{s.url}'}}\n" for i, s in enumerate(sims)))
+        yield sims
+
+
+def half_way(sims: list[Simulator]) -> bool:
+    """The first devices are done writing and later ones are in the middle of it."""
+    done = [writes(s) for s in sims]
+    return any(n == N for n in done) and any(0 < n <= N - 5 for n in done)  # 5 writes (0.5 s) of margin
+
+
+def fleet_apply(files: Path) -> subprocess.Popen[str]:
+    return start("apply", "new.yaml", "--inventory", "fleet.yaml", "--parallel", "4", "--yes",
+                 "--report", "run.json", "--state-dir", "state", cwd=files)
+
+
+def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
+        files: Path, fleet: list[Simulator]) -> None:
+    proc = fleet_apply(files)
+    wait_for(lambda: half_way(fleet), "devices half-written")
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    half = [f"d{i}" for i, s in enumerate(fleet) if 0 < writes(s) < N]
+    by_run = [writes(s) for s in fleet]
+    assert half and any(holds(s) != before(i) for i, s in enumerate(fleet))
+    report = json.loads((files / "run.json").read_text())
+    assert report["run"]["id"] and report["run"]["state_dir"] == str(files / "state")
+    by_name = {d["name"]: d for d in report["devices"]}
+    for name in half:  # the file says not finished (or interrupted, if its writer got there): never ok
+        assert by_name[name]["status"] in ("skipped", "interrupted")
+    # --limit @REPORT retries the half-written devices too
+    assert set(half) <= {d["name"] for d in report["devices"] if d["status"] not in ("ok", "sent")}
+
+    code, out, err = deployer("rollback", "--from-report", "run.json", "--yes", "--state-dir", "state",
+                              "--report", "back.json", cwd=files)
+    assert code == 0, out + err
+    for i, s in enumerate(fleet):
+        assert holds(s) == before(i), f"d{i}"
+    back = json.loads((files / "back.json").read_text())
+    restored = {d["name"] for d in back["devices"]}
+    assert set(half) <= restored
+    # devices the run never wrote got no write from the rollback either (at most a snapshot taken right
+    # before the kill, whose restore finds nothing to change)
+    assert all(writes(s) == 0 for s, n in zip(fleet, by_run, strict=True) if n == 0)
+    assert "nothing was written there" in err  # the devices never started (d9 at least)
+
+
+def test_sigint_mid_fleet_ends_with_an_exact_report_and_rolls_back(files: Path, fleet: list[Simulator]) -> None:
+    proc = fleet_apply(files)
+    wait_for(lambda: half_way(fleet), "devices half-written")
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 4, out + err
+    report = json.loads((files / "run.json").read_text())
+    statuses = {d["name"]: d["status"] for d in report["devices"]}
+    assert "interrupted" in statuses.values() and report["run"]["interrupted"] == "SIGINT"
+    assert report["summary"]["interrupted"] == sum(1 for s in statuses.values() if s == "interrupted")
+    for i, (s, d) in enumerate(zip(fleet, report["devices"], strict=True)):
+        now = holds(s)
+        if d["status"] == "skipped":  # skipped keeps meaning: nothing was sent
+            assert not s.log and now == before(i) and d["error"] == "not started: the run was interrupted"
+            continue
+        assert d["status"] in ("ok", "interrupted")
+        if d["status"] == "interrupted" and writes(s):
+            assert d["snapshot"] and os.path.isfile(d["snapshot"])
+            assert "rollback" in d["error"]
+        for k, p in enumerate(d["parameters"]):  # the report says exactly what each register holds
+            if p["status"] == "ok":
+                assert now[k] == 7
+            elif p["status"] == "skipped":
+                assert now[k] == before(i)[k], (d["name"], p)
+            else:
+                assert p["status"] == "unverified" and p["error"], p
+    assert "interrupted (SIGINT)" in err
+    if sum(1 for d in report["devices"] if d["status"] == "interrupted" and d["snapshot"]) > 1:
+        assert "undo with: deployer rollback --from-report run.json" in err
+    lines = audit(files / "state")
+    assert lines[-1]["event"] == "run-finished" and lines[-1]["interrupted"] == "SIGINT"
+    assert lines[-1]["run"] == report["run"]["id"] and lines[-1]["exit_code"] == 4
+
+    code, out, err = deployer("rollback", "--from-report", "run.json", "--yes", "--state-dir", "state", cwd=files)
+    assert code == 0, out + err
+    for i, s in enumerate(fleet):
+        assert holds(s) == before(i), f"d{i}"
+
+
+def test_sigterm_mid_apply_of_one_device(files: Path) -> None:
+    prof = load_profile(files / "slow.yaml")
+    with SimulatorThread(prof, faults=Faults(latency_ms=150), gap_reads=True) as sim:
+        for k, v in enumerate(before(0)):
+            sim.write(f"p{k}", (v,))
+        proc = start("apply", "new.yaml", "--device", sim.url, "--yes", "--report", "one.json",
+                     "--state-dir", "state", cwd=files)
+        wait_for(lambda: 2 <= writes(sim) <= N - 6, "writes")
+        # the report file was written before the first request, like a fleet's
+        first = json.loads((files / "one.json").read_text())
+        assert first["devices"][0]["status"] in ("skipped", "interrupted") and first["run"]["id"]
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 4, out + err
+        dev = json.loads((files / "one.json").read_text())["devices"][0]
+        assert dev["status"] == "interrupted" and dev["snapshot"] and os.path.isfile(dev["snapshot"])
+        assert f"undo with: deployer rollback {dev['snapshot']}" in err and "interrupted (SIGTERM)" in err
+        assert any(r["result"] == "interrupted" for r in dev["requests"]) or writes(sim) == sum(
+            1 for r in dev["requests"] if r["function"] == 16)
+        now = holds(sim)
+        for k, p in enumerate(dev["parameters"]):
+            if p["status"] == "skipped":
+                assert now[k] == before(0)[k]
+        assert audit(files / "state")[-1]["interrupted"] == "SIGTERM"
+        code, out, err = deployer("status", "--state-dir", "state", cwd=files)
+        assert code == 0 and "interrupted (SIGTERM)" in out and f"undo with: deployer rollback {dev['snapshot']}" in out
+        assert f"deployer diff {files / 'new.yaml'} --device {sim.url} --unit 1" in out  # the run's own recipe
+        code, out, err = deployer("rollback", dev["snapshot"], "--yes", "--state-dir", "state", cwd=files)
+        assert code == 0, out + err
+        assert holds(sim) == before(0)
+        # restored from its snapshot: nothing left to look at
+        code, out, err = deployer("status", "--state-dir", "state", cwd=files)
+        assert "no unfinished runs" in out, out
+
+
+API_RUN = """
+import sys
+import deployer
+from deployer.api import ApplyOptions
+rec = deployer.load_recipe(sys.argv[1])
+report = deployer.apply(rec, sys.argv[2], options=ApplyOptions(state_dir=sys.argv[3]), name="press")
+print(report.run_id, report.exit_code)
+"""
+
+
+def test_an_api_apply_is_journaled_and_status_sees_it_killed(files: Path) -> None:
+    prof = load_profile(files / "slow.yaml")
+    with SimulatorThread(prof, faults=Faults(latency_ms=100), gap_reads=True) as sim:
+        script = files / "api_run.py"
+        script.write_text(API_RUN)
+        env = {**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)}
+        p = subprocess.run([sys.executable, str(script), "new.yaml", sim.url, "state"], capture_output=True,
+                           text=True, cwd=files, env=env, timeout=120)
+        assert p.returncode == 0, p.stderr
+        run, code = p.stdout.split()
+        assert code == "0"
+        lines = [r for r in audit(files / "state") if r["run"] == run]
+        assert [r["event"] for r in lines] == ["run-started", "device-started", "device-finished", "run-finished"]
+        assert lines[0]["via"] == "api" and lines[0]["devices"][0]["name"] == "press"
+
+        # killed mid-write: deployer status lists the API's run and the device it was writing
+        for k, v in enumerate(before(0)):
+            sim.write(f"p{k}", (v,))
+        sim.log.clear()
+        proc = subprocess.Popen([sys.executable, str(script), "new.yaml", sim.url, "state"], cwd=files, env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        wait_for(lambda: writes(sim) >= 2, "writes")
+        proc.kill()
+        proc.wait(timeout=30)
+        code, out, _ = deployer("status", "--state-dir", "state", "--json", cwd=files)
+        (unfinished,) = json.loads(out)["unfinished"]
+        assert unfinished["via"] == "api" and unfinished["interrupted"][0]["name"] == "press"
+        code, out, _ = deployer("status", "--state-dir", "state", cwd=files)
+        assert "apply (through the Python API)" in out and "interrupted while writing: press" in out
+
+
+def test_a_stale_plan_is_refused_and_journaled_as_such(files: Path) -> None:
+    prof = load_profile(files / "slow.yaml")
+    with SimulatorThread(prof, gap_reads=True) as sim:
+        code, out, err = deployer("plan", "new.yaml", "--device", sim.url, "--out", "plan.json", cwd=files)
+        assert code == 0, out + err
+        sim.write("p3", (55,))  # the device changes after the plan was made
+        code, out, err = deployer("apply", "plan.json", "--yes", "--state-dir", "state", cwd=files)
+        assert code == 1 and "make a new plan" in err
+        assert not any(e.function in (6, 16) for e in sim.log)
+        last = audit(files / "state")[-1]
+        assert last["event"] == "run-finished" and "make a new plan" in last["refused"]
+        code, out, err = deployer("status", "--state-dir", "state", "--json", cwd=files)
+        assert json.loads(out)["unfinished"] == []
