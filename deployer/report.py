@@ -94,6 +94,7 @@ class DeviceResult:
     profile_ref: str | None = None  # the profile used: its file's absolute path, or the built-in id
     notices: list[str] = field(default_factory=list)  # things the user should know that are not failures
     restored: str | None = None  # a rollback: the snapshot (absolute path) this device was restored from
+    snapshot_sha256: str | None = None  # the SHA-256 of the snapshot file as written (rollback checks it)
     identity: dict[str, str] | None = None  # Function 43 objects (vendor, product_code, revision ...), if it answers
     learned: dict[str, int] = field(default_factory=dict)  # profile limits this run's refusals taught
     recipe: str | None = None  # the recipe (or snapshot, plan) file this device was given
@@ -138,6 +139,8 @@ class DeviceResult:
             out["notices"] = list(self.notices)
         if self.restored is not None:
             out["restored"] = self.restored
+        if self.snapshot_sha256 is not None:
+            out["snapshot_sha256"] = self.snapshot_sha256
         if self.identity is not None:
             out["identity"] = dict(self.identity)
         if self.learned:

@@ -260,3 +260,44 @@ def test_a_stale_plan_is_refused_and_journaled_as_such(files: Path) -> None:
         assert last["event"] == "run-finished" and "make a new plan" in last["refused"]
         code, out, err = deployer("status", "--state-dir", "state", "--json", cwd=files)
         assert json.loads(out)["unfinished"] == []
+
+
+def test_an_edited_snapshot_is_refused_unless_accepted(files: Path) -> None:
+    """The snapshot's SHA-256 is in the journal's device-started line and the report; rollback checks it."""
+    prof = load_profile(files / "slow.yaml")
+    with SimulatorThread(prof, gap_reads=True) as sim:
+        for k, v in enumerate(before(0)):
+            sim.write(f"p{k}", (v,))
+        code, out, err = deployer("apply", "new.yaml", "--device", sim.url, "--yes", "--report", "run.json",
+                                  "--state-dir", "state", cwd=files)
+        assert code == 0, out + err
+        dev = json.loads((files / "run.json").read_text())["devices"][0]
+        snap = Path(dev["snapshot"])
+        import hashlib
+
+        digest = hashlib.sha256(snap.read_bytes()).hexdigest()
+        started = next(r for r in audit(files / "state") if r["event"] == "device-started")
+        assert dev["snapshot_sha256"] == started["snapshot_sha256"] == digest
+        # edited consistently (value and recorded registers alike): the recipe loader cannot tell
+        text = snap.read_text()
+        assert "  p0: 100\n" in text and "    p0: [100]\n" in text
+        snap.write_text(text.replace("  p0: 100\n", "  p0: 555\n").replace("    p0: [100]\n", "    p0: [555]\n"))
+        writes_before = writes(sim)
+        for args in (["rollback", str(snap)], ["rollback", "--from-report", "run.json"]):
+            code, out, err = deployer(*args, "--yes", "--state-dir", "state", cwd=files)
+            assert code == 1 and "was changed after it was written" in err and "--accept-edited-snapshot" in err
+        assert writes(sim) == writes_before  # nothing was sent
+        # --force (the profile changed) is not that consent
+        code, out, err = deployer("rollback", str(snap), "--yes", "--force", "--state-dir", "state", cwd=files)
+        assert code == 1 and writes(sim) == writes_before
+        code, out, err = deployer("rollback", str(snap), "--yes", "--accept-edited-snapshot", "--state-dir", "state",
+                                  cwd=files)
+        assert code == 0 and "restoring it as it is now" in err, out + err
+        assert holds(sim) == (555, *before(0)[1:])
+        # a copy no report or journal knows: restored, with a plain notice that it could not be checked
+        copy = files / "elsewhere" / "snapshots" / "copy.yaml"
+        copy.parent.mkdir(parents=True)
+        copy.write_text(text)
+        code, out, err = deployer("rollback", str(copy), "--yes", "--state-dir", "state", cwd=files)
+        assert code == 0 and "cannot be checked for edits" in err, out + err
+        assert holds(sim) == before(0)

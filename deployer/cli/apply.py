@@ -97,9 +97,9 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               limit: str | None, parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
               lock_timeout: float = 0.0, force: bool = False, from_reports: tuple[str, ...] = (),
               batch: str | None = None, max_failures: str | None = None, command: str = "apply",
-              to_other_device: bool = False, soak: float | None = None, health_interval: float = 1.0,
-              confirm_within: float | None = None, rollback_on_failure: bool = False, pause: float | None = None,
-              ask: bool = False, html_path: str | None = None) -> int:
+              to_other_device: bool = False, accept_edited_snapshot: bool = False, soak: float | None = None,
+              health_interval: float = 1.0, confirm_within: float | None = None, rollback_on_failure: bool = False,
+              pause: float | None = None, ask: bool = False, html_path: str | None = None) -> int:
     """apply / rollback: everything validated, then confirmed, then run by the library (``run.runner``)."""
     from ..errors import RunInterrupted
     from ..execute.session import ApplyOptions
@@ -118,7 +118,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         if inventory or device or unit is not None:
             raise UsageError("rollback --from-report restores each device from its own snapshot, to the device it "
                              "was taken from: --inventory, --device and --unit do not apply")
-        jobs, notices = report_jobs(from_reports, limit=limit, force=force, timeout=timeout, retries=retries)
+        jobs, notices = report_jobs(from_reports, limit=limit, force=force, timeout=timeout, retries=retries,
+                                    accept_edited=accept_edited_snapshot)
         for n in notices:
             click.echo(n, err=True)
         label: str | None = from_reports[0] if len(from_reports) == 1 else ", ".join(from_reports)
@@ -135,7 +136,10 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             raise UsageError(f"{source} is one device's snapshot: it restores only the device it was taken from. "
                              "To roll back a fleet run, use: deployer rollback --from-report REPORT.json")
         label = source
-        job, moved = snapshot_job(source, device=device, unit=unit, timeout=timeout, retries=retries, force=force)
+        job, moved, notices = snapshot_job(source, device=device, unit=unit, timeout=timeout, retries=retries,
+                                           force=force, accept_edited=accept_edited_snapshot)
+        for n in notices:
+            click.echo(n, err=True)
         jobs.append(job)
     else:
         label = source
@@ -401,6 +405,8 @@ def apply(source: str | None, **kw: Any) -> int:
               help="restore the recorded raw registers although the profile changed since the snapshot")
 @click.option("--to-other-device", is_flag=True,
               help="consent to restore a snapshot to another device or unit than the one it was taken from")
+@click.option("--accept-edited-snapshot", is_flag=True,
+              help="consent to restore a snapshot whose SHA-256 differs from the one its report or journal recorded")
 @click.option("--save-report", type=click.Path(dir_okay=False), metavar="FILE", hidden=True,
               help="the old form rollback --report RUN.json: write this rollback's own report here")
 def rollback(snapshot: str | None, **kw: Any) -> int:

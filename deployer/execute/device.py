@@ -301,6 +301,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         res.status, res.error = "failed", (f"cannot save the snapshot in {opts.state_dir}: {disk_error(e)}; "
                                            "nothing was written")
         return
+    res.snapshot_sha256 = snap.digest
     if opts.on_writing is not None:
         opts.on_writing(res)
 

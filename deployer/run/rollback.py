@@ -9,9 +9,11 @@ anywhere is refused by name, nothing sent.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from ..fleet.inventory import FleetDevice, Inventory, select
 from ..fleet.livereport import NOT_FINISHED
@@ -30,10 +32,42 @@ def _url(text: str, timeout: float | None, retries: int | None) -> DeviceURL:
         raise UsageError(str(e)) from None
 
 
+def check_digest(path: str, expected: str | None, where: str, *, accept_edited: bool) -> str | None:
+    """Is the snapshot file what was written? ``expected``: the SHA-256 a report or the journal recorded
+    (``where`` says which). Returns a notice when nothing recorded it; raises UsageError when it differs
+    (an edited snapshot restores values nobody read from the device), unless ``accept_edited``."""
+    try:
+        with open(path, "rb") as f:
+            actual = hashlib.sha256(f.read()).hexdigest()
+    except OSError:
+        return None  # loading it says what is wrong
+    if expected is None:
+        return (f"note: {path}: no report or journal records this snapshot's SHA-256, so it cannot be checked "
+                "for edits")
+    if actual == expected:
+        return None
+    if not accept_edited:
+        raise UsageError(f"{path} was changed after it was written (SHA-256 {actual[:12]}..., {where} recorded "
+                         f"{expected[:12]}...): it may no longer hold what the device held. Nothing was sent; "
+                         "--accept-edited-snapshot restores it as it is now")
+    return f"warning: {path} was changed after it was written; restoring it as it is now (--accept-edited-snapshot)"
+
+
+def _state_of(snapshot: str) -> str:
+    """The state folder a snapshot was written into (STATE/snapshots/NAME.yaml)."""
+    return os.path.dirname(os.path.dirname(os.path.abspath(snapshot)))
+
+
 def snapshot_job(path: str, *, device: str | None = None, unit: int | None = None, timeout: float | None = None,
-                 retries: int | None = None, force: bool = False) -> tuple[Job, str | None]:
-    """The job restoring one snapshot, and why it needs consent (``--to-other-device``) when ``device`` or
-    ``unit`` is not the device the snapshot was taken from (else None)."""
+                 retries: int | None = None, force: bool = False,
+                 accept_edited: bool = False) -> tuple[Job, str | None, list[str]]:
+    """The job restoring one snapshot; why it needs consent (``--to-other-device``) when ``device`` or
+    ``unit`` is not the device the snapshot was taken from (else None); notices for the user.
+
+    The snapshot's SHA-256 is checked against the journal of the state folder it lies in (``check_digest``)."""
+    state = _state_of(path)
+    note = check_digest(path, journal.snapshot_digest(state, os.path.abspath(path)),
+                        f"the journal {journal.path_of(state)}", accept_edited=accept_edited)
     rec = load_recipe(path, force=force)
     taken = rec.device.url if rec.device is not None else None
     taken_unit = rec.device.unit if rec.device is not None and rec.device.unit is not None else 1
@@ -47,7 +81,7 @@ def snapshot_job(path: str, *, device: str | None = None, unit: int | None = Non
         was = _url(taken, timeout, retries)
         if (was.bus, taken_unit) != (url.bus, u):
             moved = f"{path} was taken from {describe(was)} unit {taken_unit}, not {describe(url)} unit {u}"
-    return Job(rec.name, rec, url, u), moved
+    return Job(rec.name, rec, url, u), moved, [note] if note else []
 
 
 @dataclass(frozen=True)
@@ -59,6 +93,8 @@ class RunSnapshot:
     unit: int
     snapshot: str | None  # absolute path; None: may have been written, and no snapshot is known
     source: str  # "report" or "journal": who named the snapshot
+    sha256: str | None = None  # the snapshot file's SHA-256 as the report or the journal recorded it
+    where: str = ""  # which file recorded it
 
 
 @dataclass
@@ -92,7 +128,7 @@ def read_run(path: str) -> Restores:
         raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e.strerror}")]) from None
     info = data.get("run")
     run, state = (info.get("id"), info.get("state_dir")) if isinstance(info, dict) else (None, None)
-    started: dict[str, dict[str, object]] = {}
+    started: dict[str, dict[str, Any]] = {}
     journal_problem = None
     if isinstance(run, str) and isinstance(state, str):
         try:
@@ -113,12 +149,20 @@ def read_run(path: str) -> Restores:
             continue
         url, unit = str(dev.get("url", "")), int(dev.get("unit", 1))
         snap = dev.get("snapshot")
-        if snap:
-            out.found.append(RunSnapshot(name, url, unit, _absolute(str(snap), path), "report"))
-            continue
         rec = started.get(name)
+        if snap:
+            snap = _absolute(str(snap), path)
+            digest, where = dev.get("snapshot_sha256"), path
+            if digest is None and rec is not None and rec.get("snapshot") == snap:
+                digest, where = rec.get("snapshot_sha256"), journal.path_of(str(state))
+            if digest is None:
+                digest = journal.snapshot_digest(_state_of(snap), snap)
+                where = journal.path_of(_state_of(snap))
+            out.found.append(RunSnapshot(name, url, unit, snap, "report", digest, where))
+            continue
         if rec is not None:
-            out.found.append(RunSnapshot(name, url, unit, str(rec["snapshot"]), "journal"))
+            out.found.append(RunSnapshot(name, url, unit, str(rec["snapshot"]), "journal",
+                                         rec.get("snapshot_sha256"), journal.path_of(str(state))))
             out.notices.append(f"{name}: the report does not name its snapshot (the run ended before it could "
                                f"say so); the journal does: {rec['snapshot']}")
             continue
@@ -138,7 +182,8 @@ def read_run(path: str) -> Restores:
 
 
 def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool = False,
-                timeout: float | None = None, retries: int | None = None) -> tuple[list[Job], list[str]]:
+                timeout: float | None = None, retries: int | None = None,
+                accept_edited: bool = False) -> tuple[list[Job], list[str]]:
     """One job per device an earlier run may have written: its own snapshot, to its own device; and the
     notices for the user. ``limit`` selects among that run's devices by name or pattern.
 
@@ -176,6 +221,9 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
     errors: list[Diagnostic] = []
     for f in found:
         assert f.snapshot is not None
+        note = check_digest(f.snapshot, f.sha256, f.where, accept_edited=accept_edited)
+        if note:
+            notices.append(note)
         try:
             rec = load_recipe(f.snapshot, force=force)
         except InputError as e:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import hashlib
 import json
 import os
 import secrets
@@ -43,6 +44,7 @@ class NewFile:
     journal: str | None = None  # the journal file that gets ``line`` once the file is durable
     line: dict[str, Any] | None = None  # its "path" key is set to the file's final path
     path_key: str = "snapshot"
+    digest: str | None = None  # set once written: the SHA-256 of the file's bytes
 
 
 @dataclass
@@ -58,6 +60,7 @@ class _Pending:
     op: NewFile | Line
     done: Future[str | None] = field(default_factory=Future)
     path: str | None = None  # a NewFile's final path
+    digest: str | None = None  # the SHA-256 of a NewFile's bytes (the journal line names it: edits show)
     fd: int = -1
 
 
@@ -128,7 +131,8 @@ def commit(batch: list[_Pending]) -> None:
         if isinstance(op, Line):
             lines.setdefault(op.journal, []).append((p, op.record))
         elif op.journal is not None and op.line is not None:
-            lines.setdefault(op.journal, []).append((p, {**op.line, op.path_key: p.path}))
+            lines.setdefault(op.journal, []).append((p, {**op.line, op.path_key: p.path,
+                                                         f"{op.path_key}_sha256": p.digest}))
     for path, entries in lines.items():
         try:
             append_lines(path, [r for _, r in entries])
@@ -156,6 +160,7 @@ def _create(p: _Pending) -> None:
             text = op.text(path)
     try:
         data = text.encode()
+        p.digest = op.digest = hashlib.sha256(data).hexdigest()
         while data:
             data = data[os.write(fd, data):]
     except OSError:

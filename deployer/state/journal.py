@@ -247,3 +247,23 @@ def records(state_dir: str, run: str) -> list[dict[str, Any]]:
             if isinstance(rec, dict) and rec.get("run") == run:
                 out.append(rec)
     return out
+
+
+def snapshot_digest(state_dir: str, snapshot: str) -> str | None:
+    """The SHA-256 the journal's ``device-started`` line recorded for ``snapshot`` (an absolute path), if any."""
+    try:
+        f = open(path_of(state_dir), encoding="utf-8", errors="replace")  # noqa: SIM115 - closed below
+    except OSError:
+        return None
+    found = None
+    with f:
+        for line in f:
+            if snapshot not in line:
+                continue
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(rec, dict) and rec.get("event") == "device-started" and rec.get("snapshot") == snapshot:
+                found = rec.get("snapshot_sha256") or found
+    return found if isinstance(found, str) else None
