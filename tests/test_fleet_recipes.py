@@ -171,7 +171,11 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         code, out, err = cli(capsys, "diff", "--inventory", inv, "--per-device")
         assert code == 2 and "drift on 1 of 5 devices: drive-2" in out and "10 s" in out
 
+        # drive-2 no longer holds what the run wrote: refused by name, nothing sent, unless --even-if-changed
         code, out, err = cli(capsys, "rollback", "--report", str(report), "--yes", "--state-dir", state)
+        assert code == 1 and "drive-2 no longer holds what the run wrote (F08)" in err, out + err
+        code, out, err = cli(capsys, "rollback", "--report", str(report), "--yes", "--state-dir", state,
+                             "--even-if-changed")
         assert code == 0, out + err
         for n, s in zip(NAMES, sims, strict=True):
             assert {p: s.read(p) for p in WANT[n]} == before[n], n

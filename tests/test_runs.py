@@ -301,3 +301,38 @@ def test_an_edited_snapshot_is_refused_unless_accepted(files: Path) -> None:
         code, out, err = deployer("rollback", str(copy), "--yes", "--state-dir", "state", cwd=files)
         assert code == 0 and "cannot be checked for edits" in err, out + err
         assert holds(sim) == before(0)
+
+
+def test_a_rollout_and_its_retry_roll_back_in_one_command(files: Path) -> None:
+    prof = load_profile(files / "slow.yaml")
+    sims = [Simulator(prof, gap_reads=True, faults=Faults(fail_registers=frozenset({50}) if i == 1 else frozenset()))
+            for i in range(3)]
+    with Simulators(sims):
+        for i, s in enumerate(sims):
+            for k, v in enumerate(before(i)):
+                s.write(f"p{k}", (v,))
+        (files / "fleet.yaml").write_text("devices:\n" + "".join(f"  d{i}: {{url: '{s.url}'}}\n"
+                                                                 for i, s in enumerate(sims)))
+        run = ("apply", "new.yaml", "--inventory", "fleet.yaml", "--yes", "--state-dir", "state")
+        code, out, err = deployer(*run, "--report", "run1.json", cwd=files)
+        assert code == 4, out + err
+        assert holds(sims[1])[5] == before(1)[5] and holds(sims[1])[4] == 7  # d1 half-written by run 1
+        sims[1].faults.fail_registers = frozenset()
+        code, out, err = deployer(*run, "--limit", "@run1.json", "--report", "retry2.json", cwd=files)
+        assert code == 0, out + err
+        assert all(holds(s) == (7,) * N for s in sims)
+        # someone changed d0 since: refused, nothing sent, unless --even-if-changed
+        sims[0].write("p3", (42,))
+        back = ("rollback", "--from-report", "run1.json", "--from-report", "retry2.json", "--yes",
+                "--state-dir", "state")
+        code, out, err = deployer(*back, cwd=files)
+        assert code == 1 and "d0 no longer holds what the run wrote (p3)" in err and "--even-if-changed" in err
+        assert holds(sims[0])[3] == 42 and holds(sims[2]) == (7,) * N
+        code, out, err = deployer(*back, "--even-if-changed", "--report", "back.json", cwd=files)
+        assert code == 0, out + err
+        # each device from the snapshot of the earliest run that wrote it: d1 as it was before run 1
+        for i, s in enumerate(sims):
+            assert holds(s) == before(i), f"d{i}"
+        restored = {d["name"]: d["restored"] for d in json.loads((files / "back.json").read_text())["devices"]}
+        first = {d["name"]: d["snapshot"] for d in json.loads((files / "run1.json").read_text())["devices"]}
+        assert restored == first

@@ -97,7 +97,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               limit: str | None, parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
               lock_timeout: float = 0.0, force: bool = False, from_reports: tuple[str, ...] = (),
               batch: str | None = None, max_failures: str | None = None, command: str = "apply",
-              to_other_device: bool = False, accept_edited_snapshot: bool = False, soak: float | None = None,
+              to_other_device: bool = False, accept_edited_snapshot: bool = False, even_if_changed: bool = False,
+              soak: float | None = None,
               health_interval: float = 1.0, confirm_within: float | None = None, rollback_on_failure: bool = False,
               pause: float | None = None, ask: bool = False, html_path: str | None = None) -> int:
     """apply / rollback: everything validated, then confirmed, then run by the library (``run.runner``)."""
@@ -119,7 +120,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             raise UsageError("rollback --from-report restores each device from its own snapshot, to the device it "
                              "was taken from: --inventory, --device and --unit do not apply")
         jobs, notices = report_jobs(from_reports, limit=limit, force=force, timeout=timeout, retries=retries,
-                                    accept_edited=accept_edited_snapshot)
+                                    accept_edited=accept_edited_snapshot, even_if_changed=even_if_changed)
         for n in notices:
             click.echo(n, err=True)
         label: str | None = from_reports[0] if len(from_reports) == 1 else ", ".join(from_reports)
@@ -407,6 +408,8 @@ def apply(source: str | None, **kw: Any) -> int:
               help="consent to restore a snapshot to another device or unit than the one it was taken from")
 @click.option("--accept-edited-snapshot", is_flag=True,
               help="consent to restore a snapshot whose SHA-256 differs from the one its report or journal recorded")
+@click.option("--even-if-changed", is_flag=True,
+              help="with --from-report: restore devices that no longer hold what the run wrote")
 @click.option("--save-report", type=click.Path(dir_okay=False), metavar="FILE", hidden=True,
               help="the old form rollback --report RUN.json: write this rollback's own report here")
 def rollback(snapshot: str | None, **kw: Any) -> int:
@@ -415,7 +418,8 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
     \b
     rollback SNAPSHOT               that device, from that snapshot
     rollback --from-report RUN.json every device an earlier run may have written, each from its own
-                                    snapshot (the run's journal names those its report could not)
+                                    snapshot (the run's journal names those its report could not);
+                                    repeat it for a rollout and its retries (the earliest snapshot wins)
     --report FILE writes this rollback's own report, as on apply.
     """
     save = kw.pop("save_report")

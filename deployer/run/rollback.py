@@ -95,6 +95,7 @@ class RunSnapshot:
     source: str  # "report" or "journal": who named the snapshot
     sha256: str | None = None  # the snapshot file's SHA-256 as the report or the journal recorded it
     where: str = ""  # which file recorded it
+    wrote: tuple[tuple[str, tuple[int, ...]], ...] = ()  # what the run read back after writing: name, registers
 
 
 @dataclass
@@ -106,6 +107,7 @@ class Restores:
     nothing: list[str] = field(default_factory=list)  # nothing was written there
     undone: list[str] = field(default_factory=list)  # the run already rolled it back itself
     problem: str | None = None  # why devices that may have been written have no known snapshot
+    started: str = ""  # when the run started (ISO 8601), to order several runs
 
 
 def _absolute(snap: str, report: str) -> str:
@@ -138,7 +140,7 @@ def read_run(path: str) -> Restores:
             journal_problem = f"its journal {journal.path_of(state)} cannot be read ({e.strerror})"
     else:
         journal_problem = "it names no run journal (made by an older deployer)"
-    out = Restores()
+    out = Restores(started=str(info.get("started") or "") if isinstance(info, dict) else "")
     nothing, undone = out.nothing, out.undone
     for dev in data["devices"]:
         if not isinstance(dev, dict) or "name" not in dev:
@@ -158,7 +160,7 @@ def read_run(path: str) -> Restores:
             if digest is None:
                 digest = journal.snapshot_digest(_state_of(snap), snap)
                 where = journal.path_of(_state_of(snap))
-            out.found.append(RunSnapshot(name, url, unit, snap, "report", digest, where))
+            out.found.append(RunSnapshot(name, url, unit, snap, "report", digest, where, _wrote(dev)))
             continue
         if rec is not None:
             out.found.append(RunSnapshot(name, url, unit, str(rec["snapshot"]), "journal",
@@ -183,24 +185,34 @@ def read_run(path: str) -> Restores:
 
 def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool = False,
                 timeout: float | None = None, retries: int | None = None,
-                accept_edited: bool = False) -> tuple[list[Job], list[str]]:
-    """One job per device an earlier run may have written: its own snapshot, to its own device; and the
-    notices for the user. ``limit`` selects among that run's devices by name or pattern.
+                accept_edited: bool = False, even_if_changed: bool = False) -> tuple[list[Job], list[str]]:
+    """One job per device earlier runs (a rollout and its retries) may have written: the snapshot of the
+    earliest run that wrote it, to its own device; and the notices for the user. ``limit`` selects among
+    those devices by name or pattern. A device that no longer holds what the newest run that wrote it read
+    back is refused (read before anything is written), unless ``even_if_changed``.
 
     Raises UsageError naming the devices that may have been written but have no known snapshot,
     and when nothing at all was written."""
-    found: list[RunSnapshot] = []
     notices: list[str] = []
     nothing = undone = 0
     problems: list[str] = []
-    for p in paths:
-        r = read_run(p)
-        found.extend(r.found)
+    # a rollout and its retries: the earliest run that wrote a device has its snapshot of what it held before
+    # any of them; the newest one says what it should hold now. Runs are ordered by when they started.
+    runs = sorted(((read_run(p), i) for i, p in enumerate(paths)), key=lambda ri: (ri[0].started, ri[1]))
+    first: dict[tuple[str, int], RunSnapshot] = {}
+    last: dict[tuple[str, int], tuple[int, RunSnapshot]] = {}
+    for order, (r, _) in enumerate(runs):
         notices.extend(r.notices)
         nothing += len(r.nothing)
         undone += len(r.undone)
         if r.problem is not None:
             problems.append(r.problem)
+        for f in r.found:
+            first.setdefault((f.url, f.unit), f)
+            last[(f.url, f.unit)] = (order, f)
+    # runs undone newest first: the devices the newest run wrote go first
+    found = sorted(first.values(), key=lambda f: -last[(f.url, f.unit)][0])
+    newest = {f.name: last[(f.url, f.unit)][1] for f in found}
     if limit:  # names and patterns select among that run's devices (it has no groups)
         chosen = {d.name for d in select(Inventory(paths[0], tuple(FleetDevice(f.name, f.url) for f in found)),
                                          limit)}
@@ -239,6 +251,12 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
         jobs.append(Job(f.name, rec, _url(rec.device.url, timeout, retries), u))
     if errors:
         raise InputError(errors)
+    if not even_if_changed:
+        changed = _changed(jobs, {n: dict(f.wrote) for n, f in newest.items()})
+        if changed:
+            raise UsageError("; ".join(changed) + ": changed since the run wrote it (someone else wrote it since?); "
+                             "nothing was sent. --even-if-changed restores the snapshot anyway, or leave it out with "
+                             "--limit '!NAME'")
     # one device in the run twice (older deployers allowed it): its snapshots are restored last written
     # first, so the earliest one, what it held before the run, is the one that stays
     slots: dict[tuple[tuple[str, ...], int], list[int]] = {}
@@ -249,6 +267,35 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
         for i, k in zip(same, reversed(same), strict=True):
             order[i] = k
     return [jobs[k] for k in order], notices
+
+
+def _changed(jobs: Sequence[Job], wrote: dict[str, dict[str, tuple[int, ...]]]) -> list[str]:
+    """Devices that do not hold what their newest run read back after writing (unreachable ones are left to
+    the run, which says so)."""
+    import asyncio
+
+    from ..fleet.rollout import ReadJob, read_many
+
+    reads = [ReadJob(j.name, j.recipe.profile, tuple(n for n in wrote.get(j.name, {}) if j.recipe.profile.get(n)),
+                     j.url, j.unit) for j in jobs if wrote.get(j.name)]
+    now = asyncio.run(read_many(reads, parallel=8)) if reads else {}
+    out = []
+    for name, values in now.items():
+        if isinstance(values, Exception):
+            continue
+        diff = [p for p, regs in wrote[name].items() if p in values and values[p] != regs]
+        if diff:
+            out.append(f"{name} no longer holds what the run wrote ({', '.join(diff)})")
+    return out
+
+
+def _wrote(dev: dict[str, Any]) -> tuple[tuple[str, tuple[int, ...]], ...]:
+    """The values a run wrote and read back (``ok`` parameters): what the device should still hold."""
+    out = []
+    for p in dev.get("parameters") or []:
+        if isinstance(p, dict) and p.get("status") == "ok" and isinstance(p.get("after_raw"), list):
+            out.append((str(p["name"]), tuple(int(w) for w in p["after_raw"])))
+    return tuple(out)
 
 
 def _has_device(rec: Recipe) -> bool:
