@@ -259,14 +259,14 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
                              "--limit '!NAME'")
     # one device in the run twice (older deployers allowed it): its snapshots are restored last written
     # first, so the earliest one, what it held before the run, is the one that stays
-    slots: dict[tuple[tuple[str, ...], int], list[int]] = {}
+    twice: dict[tuple[tuple[str, ...], int], list[int]] = {}
     for i, j in enumerate(jobs):
-        slots.setdefault((j.url.lock_keys, j.unit), []).append(i)
-    order = list(range(len(jobs)))
-    for same in slots.values():
+        twice.setdefault((j.url.lock_keys, j.unit), []).append(i)
+    places = list(range(len(jobs)))
+    for same in twice.values():
         for i, k in zip(same, reversed(same), strict=True):
-            order[i] = k
-    return [jobs[k] for k in order], notices
+            places[i] = k
+    return [jobs[k] for k in places], notices
 
 
 def _changed(jobs: Sequence[Job], wrote: dict[str, dict[str, tuple[int, ...]]]) -> list[str]:
