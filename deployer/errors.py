@@ -18,10 +18,12 @@ on message text; the message (``str(e)``) is written for the user and may change
     ├── TransportError             3  the device could not be talked to
     │   ├── Unreachable            3  no connection (refused, no serial device, TLS handshake)
     │   ├── NoResponse             3  no answer within the timeout (one attempt)
+    │   │   └── BadAnswer          3  an answer, but not to this request (unit, function, count, echo, CRC)
     │   ├── ConnectionLost         3  the connection dropped
     │   ├── ExceptionResponse      3  a Modbus exception response (``function``, ``code``)
     │   └── DeviceGone             3  no answer and the retry budget spent
     ├── Locked                     3  another run holds the device (``busy``), or no lock can be taken
+    ├── StateError                 1  the state directory cannot be written (disk full, read-only) before a run
     ├── IdentityMismatch           4  the device is not the one the profile describes
     └── RunInterrupted             4  a run stopped early (Ctrl-C, SIGTERM, cancelled); ``report`` says
                                       what every device holds as far as known
@@ -54,6 +56,7 @@ __all__ = [
     "EXIT_INVALID",
     "EXIT_OK",
     "EXIT_UNREACHABLE",
+    "BadAnswer",
     "BadURL",
     "CodecError",
     "ConnectionLost",
@@ -67,6 +70,7 @@ __all__ = [
     "NoResponse",
     "RunInterrupted",
     "StalePlan",
+    "StateError",
     "TransportError",
     "Unreachable",
     "UsageError",
@@ -131,6 +135,13 @@ class NoResponse(TransportError):
     """The device did not answer within the timeout (one attempt)."""
 
 
+class BadAnswer(NoResponse):
+    """Something answered, but not this request: wrong unit, function, byte count or echo, or garbled.
+
+    A NoResponse for retrying (nothing usable came back), with its own message: it is not silence.
+    """
+
+
 class ConnectionLost(TransportError):
     """The connection dropped; reconnect() may bring it back."""
 
@@ -172,6 +183,16 @@ class Locked(DeployerError):
     def __init__(self, message: str, *, busy: bool = True) -> None:
         self.busy = busy
         super().__init__(message)
+
+
+class StateError(DeployerError):
+    """The state directory (journal, snapshots) cannot be written: a full disk, a read-only folder.
+
+    Raised before a run sends anything (exit 1: nothing was sent); once devices are written, the run
+    goes on and reports it per device instead (a device whose snapshot cannot be saved is not written).
+    """
+
+    exit_code = EXIT_INVALID
 
 
 class IdentityMismatch(DeployerError):

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 from .load.diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
+from .state.durable import write_atomic as write_atomic  # the one atomic write; reports used it from here
 
 if TYPE_CHECKING:
     from .profile import Parameter
@@ -267,45 +268,10 @@ def report_text(report: Report) -> str:
                                  report.summary(), report.run_doc())).decode()
 
 
-def write_json(data: dict[str, Any], path: str) -> None:
-    """Write atomically and durably: a report or plan is evidence, keep it whole."""
-    write_atomic(path, json.dumps(data, indent=2) + "\n")
-
-
-def write_atomic(path: str, text: str | Sequence[bytes]) -> None:
-    """Replace ``path`` with ``text`` (or these pieces of bytes, written with gathering writes: a big
-    fleet report is never joined in memory): a temporary file, fsync'ed, then renamed over it."""
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "wb") as f:
-        if isinstance(text, str):
-            f.write(text.encode())
-        else:
-            f.flush()
-            _writev(f.fileno(), list(text))
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def _writev(fd: int, pieces: list[bytes]) -> None:
-    """All of ``pieces``, in order, in as few writev calls as the system allows (short writes resumed)."""
-    batch = max(1, min(1024, os.sysconf("SC_IOV_MAX")))
-    i = 0
-    while i < len(pieces):
-        chunk = pieces[i:i + batch]
-        n = os.writev(fd, chunk)
-        total = sum(len(c) for c in chunk)
-        if n == total:
-            i += batch
-            continue
-        for k, c in enumerate(chunk):  # a short write: drop what was written, go on from there
-            if n < len(c):
-                pieces[i + k] = c[n:]
-                i += k
-                break
-            n -= len(c)
+def write_json(data: dict[str, Any], path: str, *, what: str = "") -> None:
+    """Write atomically and durably: a report or plan is evidence, keep it whole (``write_atomic``'s rule)."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    write_atomic(path, json.dumps(data, indent=2) + "\n", what=what)
 
 
 def read_report(path: str) -> dict[str, Any]:

@@ -37,7 +37,9 @@ ROOT = Path(__file__).resolve().parent.parent
 TOKENS = ["&a ", "*a", "[", "]", "{", "}", ": ", "- ", "!!python/object:os.system ", "!!binary ", "<<: ", "? ",
           "9" * 400, "1e999999999", "0x", "-", "\t", "\u2028", "\x00", "\ufeff", "'", '"', "#", "|", ">", "%YAML 1.2\n",
           "---\n", "...\n", "~", "null", "yes", "1:30", ".nan", " ms", " degC", " furlong", "{raw: 1}",
-          "[" * 300, "extends: /dev/zero\n", "extends: fuzz-0.yaml\n", "profile: ../nope.yaml\n", "é", "\\u0000"]
+          "[" * 300, "extends: /dev/zero\n", "extends: fuzz-0.yaml\n", "profile: ../nope.yaml\n", "é", "\\u0000",
+          "010", "0o17", "-08", "1e-30", "device: {url: 'tcp://[::1'}\n", "device: {url: 'tcp://u:p@h#f'}\n",
+          "device: {url: 'tls://h?ca=/dev/zero&ca=x'}\n", "tcp://", "rtu+tcp://", "?timeout=", "&retries="]
 
 
 CSV_TOKENS = [",", ";", "\t", '"', '""', "\n", "\r\n", "0x", "FFh", "-1", "3,000", "0,5", "1.000,5", "inf", "NaN",

@@ -212,7 +212,7 @@ def test_a_device_without_a_recipe_stops_the_run_before_anything_is_sent(capsys:
                                                                          sims: list[Simulator]) -> None:
     with Simulators(sims):
         inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)},
-                   "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:1', groups: [zone]}\n")
+                   "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:2', groups: [zone]}\n")
         for command in ("plan", "diff", "apply"):
             more = ["--yes", "--state-dir", str(tmp_path / "s")] if command == "apply" else []
             code, _, err = cli(capsys, command, "--inventory", inv, *more)
@@ -229,7 +229,7 @@ def test_a_device_without_a_recipe_stops_the_run_before_anything_is_sent(capsys:
 
 
 def test_inventory_errors_name_their_devices_and_validate_checks_the_recipes(tmp_path: Path) -> None:
-    urls = {n: "tcp://127.0.0.1:1502" for n in NAMES}
+    urls = {n: f"tcp://127.0.0.1:{1502 + i}" for i, n in enumerate(NAMES)}  # one device, one entry
     inv = line(tmp_path, urls)
     assert validate_file(inv) == "inventory: 5 devices, 2 recipes"
     text = Path(inv).read_text()
@@ -277,7 +277,7 @@ def test_the_ansible_module_takes_the_inventorys_recipes(tmp_path: Path) -> None
         def __init__(self, **params: object) -> None:
             self.params = {"timeout": None, "retries": None, "unit": None, "limit": None, **params}
 
-    inv = line(tmp_path, {n: "tcp://127.0.0.1:1502" for n in NAMES})
+    inv = line(tmp_path, {n: f"tcp://127.0.0.1:{1502 + i}" for i, n in enumerate(NAMES)})
     task = Module(inventory=inv)
     assert common.recipe_of(task) is None  # no recipe, profile or parameters: each device's own
     jobs = common.jobs_of(task, None)

@@ -278,7 +278,7 @@ def test_sunspec_repeating_groups_and_counts(tmp_path: Path, capsys: pytest.Capt
     code, _, err = cli(capsys, "profiles", "import", "sunspec", "126", "--at", "40200", "-o", str(out))
     assert code == 0 and "--count curve=N" in err  # the device says how many curves it has
     code, _, err = cli(capsys, "profiles", "import", "sunspec", "126", "--at", "40200", "--count", "curve=4",
-                       "-o", str(out))
+                       "-o", str(out), "--force")
     assert code == 0, err
     prof = load_profile(out)
     # model 126 (volt-var): 10 registers of header, then 4 curves of 54 registers each; L = 226

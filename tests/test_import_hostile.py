@@ -139,12 +139,14 @@ def test_decimal_marks(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "--decimal-point", "-o", str(out))
     assert code == 1 and "'0,5' is not a number (',' separates groups of three digits)" in err
     src = write_csv(tmp_path / "d.csv", [rows[0], rows[3]], ";")
-    assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "--decimal-point", "-o", str(out))[0] == 0
+    assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "--decimal-point", "-o", str(out),
+               "--force")[0] == 0
     assert load_profile(out).parameter("c").max == 3000
-    assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "--decimal-comma", "-o", str(out))[0] == 0
+    assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "--decimal-comma", "-o", str(out),
+               "--force")[0] == 0
     assert load_profile(out).parameter("c").max == 3
     src = write_csv(tmp_path / "d.csv", rows[:3], ";")
-    assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "-o", str(out))[0] == 0
+    assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "-o", str(out), "--force")[0] == 0
     prof = load_profile(out)
     assert (prof.parameter("a").min, prof.parameter("a").max) == (Decimal("0.5"), Decimal("1000.5"))
     assert (prof.parameter("b").min, prof.parameter("b").max) == (Decimal("1234.5"), Decimal(1000000))

@@ -192,6 +192,10 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                 return await asyncio.to_thread(click.confirm, "Write these values?", default=False, err=True)
 
     fleet_run = bool(inventory or from_reports)
+    if html_path:  # before anything is sent: a link, a FIFO or a folder there is refused now
+        from ..state.durable import check_output
+
+        check_output(html_path, what="the page")
     options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            lock_timeout=lock_timeout, soak=soak, health_interval=health_interval,

@@ -103,20 +103,37 @@ def _n(count: int, noun: str) -> str:
 
 
 def write_page(text: str, path: str) -> None:
-    """An HTML page (``--html FILE``), written whole or not at all."""
-    from ..report import write_atomic
+    """An HTML page (``--html FILE``), written whole or not at all (``write_atomic``'s rule)."""
+    from ..state.durable import write_atomic
 
     write_atomic(path, text)
 
 
-def _output(text: str, path: str | None, summary: str) -> None:
-    """``text`` into the file ``path`` (saying ``summary`` on stderr), or onto stdout."""
+def _output(text: str, path: str | None, summary: str, *, replace: bool | None = None) -> None:
+    """``text`` into the file ``path`` (saying ``summary`` on stderr), or onto stdout.
+
+    The file goes through ``write_atomic`` (regular files and new paths only). ``replace``: whether an
+    existing file may be replaced; None: only with the command's --force (``force_option``).
+    """
+    from ..state.durable import write_atomic
+
     if path:
-        with open(path, "w", encoding="utf-8") as f:
-            f.write(text)
+        if replace is None:
+            replace = bool(click.get_current_context().meta.get("deployer.force"))
+        write_atomic(path, text, replace=replace)
         click.echo(summary, err=True)
     else:
         click.echo(text, nl=False)
+
+
+def _set_force(ctx: click.Context, _param: click.Parameter, value: bool) -> bool:
+    ctx.meta["deployer.force"] = value
+    return value
+
+
+# -o FILE of a command that makes a file (import, export): replacing an existing file takes --force
+force_option = click.option("--force", is_flag=True, expose_value=False, callback=_set_force,
+                            help="overwrite an existing output file")
 
 
 _device_options = [

@@ -97,7 +97,8 @@ def validate(files: tuple[str, ...]) -> int:
 @click.option("--out", "out_dir", default=os.path.join("docs", "reference"), show_default=True,
               type=click.Path(file_okay=False), help="where the reference pages go")
 @click.option("--check", is_flag=True, help="write nothing; exit 1 when a page differs from the schemas")
-def docs_command(out_dir: str, check: bool) -> int:
+@click.option("--force", is_flag=True, help="overwrite files of the pages' names that are not generated pages")
+def docs_command(out_dir: str, check: bool, force: bool) -> int:
     """Generate the reference pages (one per file kind) from the JSON Schemas."""
     from .docgen import stale_pages, write_pages
 
@@ -107,7 +108,7 @@ def docs_command(out_dir: str, check: bool) -> int:
             click.echo(f"{path}: stale (run: deployer docs --out {out_dir})", err=True)
         return EXIT_INVALID if stale else EXIT_OK
     try:
-        changed = write_pages(out_dir)
+        changed = write_pages(out_dir, force=force)
     except OSError as e:
         raise UsageError(f"cannot write the pages into {clip(out_dir, 300)}: {e.strerror or e}") from None
     click.echo(f"{len(changed)} page{'s' if len(changed) != 1 else ''} updated in {out_dir}", err=True)

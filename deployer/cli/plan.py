@@ -173,6 +173,10 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     assert maybe is not None
     rec = maybe
     url, u = _target(rec, device, unit, timeout, retries, required=False)
+    if out_path:  # before reading the device
+        from ..state.durable import check_output
+
+        check_output(out_path, what="the plan")
     taught = None
     if url is not None:
         from ..state import learned
@@ -190,7 +194,7 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     p = make_plan(rec, target, current, write_all=write_all)
     data = plan_to_json(p)
     if out_path:
-        write_json(data, out_path)
+        write_json(data, out_path, what="the plan")
     if as_json:
         click.echo(json.dumps(data, indent=2))
     else:

@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from ..load.diagnostics import EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, InputError, UsageError
-from .base import _n, _output, console, report_input_error
+from .base import _n, _output, console, force_option, report_input_error
 from .tables import Cell, show
 
 
@@ -101,6 +101,7 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--id", "profile_id", required=True, help="Profile id to write (e.g. acme-drive).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
+@force_option
 @click.option("--column", "columns", multiple=True, metavar="OURS=HEADER",
               help="Which header holds a column, e.g. --column address='Reg No'. Repeatable.")
 @click.option("--addressing", type=click.Choice(["address", "register-number", "modicon"]), default="address",
@@ -126,6 +127,7 @@ def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Se
 @click.option("--id", "profile_id", required=True, help="Profile id to write (e.g. acme-drive).")
 @click.option("--sheet", help="Worksheet to read (default: the first).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
+@force_option
 @click.option("--column", "columns", multiple=True, metavar="OURS=HEADER",
               help="Which header holds a column, e.g. --column address='Reg No'. Repeatable.")
 @click.option("--addressing", type=click.Choice(["address", "register-number", "modicon"]), default="address",
@@ -148,6 +150,7 @@ def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--id", "profile_id", help="Profile id to write (default: the template's device_type).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
+@force_option
 @click.option("--no-channels", is_flag=True, help="Leave out the polled channels (read-only values); keep the "
               "parameters (settings) only.")
 def profiles_import_wb_template(file: str, profile_id: str | None, out: str | None, no_channels: bool) -> int:
@@ -172,6 +175,7 @@ def profiles_export() -> None:
 @profiles_export.command("csv")
 @click.argument("profile")
 @click.option("-o", "--out", help="CSV file to write (default: stdout).")
+@force_option
 def profiles_export_csv(profile: str, out: str | None) -> int:
     """A profile as a CSV register list ('profiles import csv' reads it back; wire addresses, tables as rows)."""
     from ..profile import resolve_profile
@@ -199,6 +203,7 @@ def profiles_export_csv(profile: str, out: str | None) -> int:
 @click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True, help="unit id of --device")
 @click.option("--id", "profile_id", help="Profile id (default: sunspec-MODEL-NAME, or sunspec-device).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
+@force_option
 def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], counts: Sequence[str],
                             device: str | None, unit: int, profile_id: str | None, out: str | None) -> int:
     """A profile from a SunSpec model (number, name or model JSON) using pysunspec2's definitions, or from a
@@ -343,18 +348,13 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
 
     from ..load.schema import schema
     from ..profile.skeleton import profile_skeleton
+    from ..state.durable import write_atomic
 
     pid = profile_id or os.path.splitext(os.path.basename(output))[0]
     pattern = schema("profile")["properties"]["profile"]["pattern"]
     if not re.match(pattern, pid):
         raise UsageError(f"'{pid}' is not a profile id (letters, digits, '.', '_', '-'); pass --id ID")
     text = profile_skeleton(pid, output)
-    if os.path.exists(output) and not force:
-        raise UsageError(f"{output} exists; pass --force to overwrite it")
-    try:
-        with open(output, "w", encoding="utf-8") as f:
-            f.write(text)
-    except OSError as e:
-        raise UsageError(f"cannot write {_clip(output, 300)}: {e.strerror or e}") from None
+    write_atomic(output, text, replace=force)
     click.echo(f"wrote {output}: fill it in from the manual, then run: deployer validate {output}", err=True)
     return EXIT_OK

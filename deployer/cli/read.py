@@ -214,6 +214,8 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
     from ..api import device_url, pull_names, pulled_recipe
     from ..profile import resolve_profile
+    from ..recipe.text import value_text
+    from ..state.durable import check_output
 
     if inventory:
         if device or name:
@@ -229,6 +231,8 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
     prof = resolve_profile(profile_ref)
     url = device_url(device, timeout=timeout, retries=retries)
     u = unit if unit is not None else 1
+    if output:
+        check_output(output, what="the recipe")  # before reading the device: a FIFO, a link, a folder
     current = read_device(prof, pull_names(prof), url, u)
     if current is None:
         return EXIT_UNREACHABLE
@@ -239,7 +243,11 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
         current, comment = _non_default(prof, current, comment)
     text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
                          comment=comment, relative_to=output)
-    _output(text, output, f"{_n(len(current), 'parameter')} written to {output}")
+    # a value outside the profile's range is kept as a comment, not set: count only what the recipe sets
+    left = [n for n, regs in current.items() if value_text(prof.parameter(n), regs) is None]
+    said = f"{_n(len(current) - len(left), 'parameter')} written to {output}" + (
+        f"; {len(left)} outside the profile's range kept as comments: {', '.join(left)}" if left else "")
+    _output(text, output, said, replace=True)
     return EXIT_OK
 
 
@@ -268,6 +276,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
     from ..fleet.rollout import ReadJob
     from ..profile import resolve_profile
     from ..run.runner import check_writable
+    from ..state.durable import write_atomic
 
     inv = load_inventory(inventory)
     devices = inv.select(limit)
@@ -303,8 +312,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
             cur, comment = _non_default(j.profile, dict(cur), comment)
         text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
                              comment=comment, relative_to=path)
-        with open(path, "w", encoding="utf-8") as f:
-            f.write(text)
+        write_atomic(path, text)
         written += 1
     down = _unreachable(values)
     if html_path:

@@ -23,7 +23,7 @@ from ..profile import Parameter, Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..report import DeviceResult, ParameterResult, show_registers
 from ..state import journal, learned, lock
-from ..state.durable import Line, durable, queue
+from ..state.durable import Line, disk_error, durable, queue
 from ..state.snapshot import last_identity, snapshot_file
 from ..transport import clients as tp
 from .recovery import Learning, _recover, _remerge, chunks, single_writes
@@ -75,8 +75,17 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
     """
     res, finishing = await _apply_device(recipe, url, unit, name=name, options=options)
     if finishing is not None:
-        await finishing
+        await journal_line(res, finishing)
     return res
+
+
+async def journal_line(res: DeviceResult, finishing: Awaitable[object]) -> None:
+    """Wait for the device's device-finished line; a state directory that cannot take it is a notice: the
+    device's outcome stands (the report says it), only the journal misses the line."""
+    try:
+        await finishing
+    except OSError as e:
+        res.notices.append(f"the journal's device-finished line could not be written: {disk_error(e)}")
 
 
 async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None,
@@ -138,7 +147,7 @@ async def _locked(recipe: Recipe, url: tp.DeviceURL, unit: int, opts: ApplyOptio
                   results: dict[str, ParameterResult]) -> tuple[DeviceResult, Awaitable[object] | None]:
     prof = recipe.profile
     try:
-        held = await lock.acquire_device(url.bus, unit, timeout=opts.lock_timeout, command=lock.command_line(),
+        held = await lock.acquire_device(url.lock_keys, unit, timeout=opts.lock_timeout, command=lock.command_line(),
                                          directory=opts.lock_dir)
     except lock.Locked as e:
         res.status, res.error = "unreachable", f"{e}; nothing was sent"
@@ -161,6 +170,8 @@ async def _locked(recipe: Recipe, url: tp.DeviceURL, unit: int, opts: ApplyOptio
                 await _apply(session, recipe, target, opts, res, results, learned.device_id(url, unit))
         finally:
             await transport.close()
+        if transport.late_answers:
+            res.notices.append(tp.late_notice(transport.late_answers, url))
         res.settle()
         if res.snapshot is not None and opts.run_id is not None:  # queued now, after the read-back
             return res, queue(Line(journal.path_of(opts.state_dir), journal.device_finished(opts.run_id, res)))
@@ -284,7 +295,12 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         snap.journal = journal.path_of(opts.state_dir)
         snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest,
                                            batch=res.batch, restoring=res.restored)
-    res.snapshot = await durable(snap)
+    try:
+        res.snapshot = await durable(snap)
+    except OSError as e:  # no snapshot, no write: nothing could be undone
+        res.status, res.error = "failed", (f"cannot save the snapshot in {opts.state_dir}: {disk_error(e)}; "
+                                           "nothing was written")
+        return
     res.snapshot_sha256 = snap.digest
     if opts.on_writing is not None:
         opts.on_writing(res)
@@ -321,7 +337,7 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
                                res: DeviceResult, results: dict[str, ParameterResult]) -> None:
     learning = Learning()
     try:
-        written, unanswered = await _write_all(session, prof, plan, opts, results, learning)
+        written, unanswered = await _write_all(session, prof, plan, opts, results, learning, res.notices)
     finally:
         res.learned = learning.limits(results)
         res.notices.extend(learning.notices(results, prof.id))
@@ -358,7 +374,8 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
 
 
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,
-                     results: dict[str, ParameterResult], learning: Learning) -> tuple[set[str], set[str] | None]:
+                     results: dict[str, ParameterResult], learning: Learning,
+                     notices: list[str] | None = None) -> tuple[set[str], set[str] | None]:
     """Send the plan's writes. Returns the names sent, and, when the device went away, the names of the
     request it did not answer (None while it answers).
 
@@ -405,7 +422,9 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
                 learning.fc06 = True
                 pending.extendleft(reversed(single_writes(prof, req)))
                 continue
-            rec = await _recover(session, prof, req, e, desired, results, written)
+            rec = await _recover(session, prof, req, e, desired, results, written, notices)
+            if rec.took_all:  # the device complained, but the values are there: go on as after a plain answer
+                continue
             if rec.halves is not None:  # refused whole: the halves find the culprit (under --on-error stop too)
                 learning.refused.append((req.count, req.parameters))
                 pending.extendleft(reversed(rec.halves))

@@ -159,12 +159,16 @@ class Learning:
 class Recovery:
     follow_up: WriteRequest | None = None  # what is still to be sent after the refused value
     halves: tuple[WriteRequest, WriteRequest] | None = None  # nothing took: send these instead, in order
+    took_all: bool = False  # the device complained, yet every value is there: go on as after a plain answer
 
 
 async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.ExceptionResponse,
                    desired: Mapping[str, tuple[int, ...]], results: dict[str, ParameterResult],
-                   written: set[str]) -> Recovery:
+                   written: set[str], notices: list[str] | None = None) -> Recovery:
     """After an exception: read the request's registers back to see which took.
+
+    A device may answer an exception (04, server device failure) to a write it carried out: the
+    read-back decides (``took_all``), and ``notices`` gets a word of it.
 
     A device that writes in address order stops at the bad value, so the first parameter that
     does not hold its desired value is the rejected one; the ones after it were not written
@@ -204,7 +208,11 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
     _attempted(results, took, written)
     _attempted(results, unknown, written, f"write-only, next to a rejected value ({error})")
     if rejected is None:  # everything took although the device complained: the read-back decides
-        return Recovery()
+        if notices is not None:
+            notices.append(f"the device answered {error} to the write of {', '.join(req.parameters)} at "
+                           f"0x{req.address:04X}, but reading back shows the values took: reported by the "
+                           "read-back (check the device's diagnostics)")
+        return Recovery(took_all=True)
     results[rejected.name].status, results[rejected.name].error = "failed", error
     for p in params:  # bit fields of the rejected register went with it
         if p.mask and p.address == rejected.address and p is not rejected:

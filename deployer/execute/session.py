@@ -90,11 +90,14 @@ class Session:
                 record.result, record.exception_code = "exception", e.code
                 if e.code != 6 or attempt > self.retries:
                     raise
-            except tp.NoResponse:
+            except tp.NoResponse as e:
                 record.result, record.exception_code = "no response", None
                 if attempt > self.retries:
+                    tries = f"{attempt} attempt{'s' if attempt > 1 else ''}"
+                    if isinstance(e, tp.BadAnswer):  # something answered, wrongly: say what, not "no answer"
+                        raise DeviceGone(f"{e} (after {tries})") from None
                     hint = tp.no_answer_hint(self.transport.url, self.unit)
-                    raise DeviceGone(f"no answer after {attempt} attempt{'s' if attempt > 1 else ''}{hint}") from None
+                    raise DeviceGone(f"no answer after {tries}{hint}") from None
             except asyncio.CancelledError:  # the run was interrupted while this request was out
                 record.result, record.exception_code = "interrupted", None
                 raise

@@ -188,6 +188,32 @@ def _inventory(p: str, data: Any, src: yamlsrc.Source, here: str) -> Inventory:
     return Inventory(p, tuple(devices), tuple(groups))
 
 
+def _same_devices(path: str, devices: Sequence[tuple[FleetDevice, int]], *, check_urls: bool) -> list[Diagnostic]:
+    """Devices named twice (one address and unit, however spelled), and with ``check_urls`` bad URLs.
+
+    Two entries for one device would write it twice in one run, and their snapshots would hold each
+    other's in-between values: one device, one entry.
+    """
+    from ..transport.urls import BadURL, parse_url
+
+    errors: list[Diagnostic] = []
+    seen: dict[tuple[str, int], FleetDevice] = {}
+    for dev, unit in devices:
+        try:
+            keys = parse_url(dev.url).lock_keys
+        except BadURL as e:
+            if check_urls:
+                errors.append(Diagnostic(path, *dev.where, f"{dev.name}: {e}"))
+            continue
+        for k in keys:
+            first = seen.setdefault((k, unit), dev)
+            if first is not dev:
+                errors.append(Diagnostic(path, *dev.where, f"devices '{first.name}' and '{dev.name}' are one device "
+                                         f"({first.url} and {dev.url}, unit {unit}): name each device once"))
+                break
+    return errors
+
+
 def _overrides_key(entries: Iterable[Entry]) -> str:
     return json.dumps([[e.name, e.value] for e in entries], default=str)
 
@@ -309,13 +335,21 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
                 found = [Diagnostic(inv.path, *dev.where, str(e))]
         for d in found:
             concerns.setdefault(d, []).append(dev.name)
+    # one device named twice (--unit may make it so), said with the rest
+    for d in _same_devices(inv.path, [(dev, unit if unit is not None else dev.unit) for dev in inv.select(limit)],
+                           check_urls=False):
+        concerns.setdefault(d, [])
     if concerns:
         # the RECIPE argument replaces the recipes the inventory gives: say so where that is likely the mistake
         own = {d.name for d in inv.devices if recipe is not None and d.recipe is not None and d.recipe != recipe.path}
-        raise InputError(Diagnostic(d.path, d.line, d.col, f"{d.message} ({_devices(names)}"
-                                    + ("; the inventory gives them recipes of their own: leave out RECIPE to use "
-                                       "those" if set(names) <= own else "") + ")")
-                         for d, names in concerns.items())
+
+        def said(d: Diagnostic, names: list[str]) -> str:
+            if not names:  # concerns the inventory itself (a device named twice)
+                return d.message
+            return f"{d.message} ({_devices(names)}" + (
+                "; the inventory gives them recipes of their own: leave out RECIPE to use those"
+                if set(names) <= own else "") + ")"
+        raise InputError(Diagnostic(d.path, d.line, d.col, said(d, names)) for d, names in concerns.items())
     return jobs
 
 

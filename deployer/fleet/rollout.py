@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, TypeVar
 
 from ..errors import RunInterrupted, UsageError
-from ..execute.device import DeviceInterrupted, _apply_device, _results
+from ..execute.device import DeviceInterrupted, _apply_device, _results, journal_line
 from ..execute.read import read_current
 from ..execute.session import ApplyOptions, Declined, StalePlan, raise_if_cancelled
 from ..execute.soak import Written, await_confirmation, needs_soak, pending_path, roll_back, send_commit, soak
@@ -201,7 +201,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
 
     async def finished(r: DeviceResult, finishing: Awaitable[object] | None) -> None:
         if finishing is not None:  # outside the device's slot: the next device is already connecting
-            await finishing
+            await journal_line(r, finishing)
         if on_done:  # the device is done (report file, progress) once its journal line is on disk
             on_done(r)
 

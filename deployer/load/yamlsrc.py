@@ -20,6 +20,7 @@ aliases be counted as they are expanded.
 from __future__ import annotations
 
 import os
+import re
 import stat
 import time
 from dataclasses import dataclass, field
@@ -52,6 +53,9 @@ _STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP = (
     f"{_STD}{t}" for t in ("str", "int", "float", "bool", "null", "timestamp"))
 _MAP, _SEQ, _MERGE = f"{_STD}map", f"{_STD}seq", f"{_STD}merge"
 _SCALAR_TAGS = {_STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP}
+MAX_EXPONENT = 400  # decimal exponents beyond any register value (a float64 ends near 1e308)
+_NUMBER_START = frozenset("0123456789+-.")
+_EXPONENT = re.compile(r"[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+")  # YAML 1.2 floats 1.1 misses
 
 
 Pos = int  # a position packed in one int: line << 24 | col (a tuple of two ints takes 3x the memory)
@@ -174,7 +178,8 @@ class _Builder:
                     tag = ev.tag
                     if tag is None or tag == "!":
                         tag = tags.get((text, ev.implicit)) or self._tag(ev)
-                    if tag != _MERGE and text not in out and len(out) < MAX_ENTRIES:
+                    if (tag != _MERGE and text not in out and len(out) < MAX_ENTRIES
+                            and (text[:1] != "0" or _leading_zero(text, tag, ev) is None)):
                         top.key_at = kat = (*top.at, text)
                         keys[kat] = pos
                         top.key = text
@@ -286,8 +291,13 @@ class _Builder:
         if not isinstance(ev, yaml.ScalarEvent):
             self.err(pos, "a mapping key must be a plain scalar")
             return False
-        if self._tag(ev) == _MERGE:
+        tag = self._tag(ev)
+        if tag == _MERGE:
             self.err(pos, "YAML merge keys ('<<') are not supported; use 'extends'")
+            return False
+        why = _leading_zero(str(ev.value), tag, ev)
+        if why is not None:
+            self.err(pos, why)
             return False
         key = str(ev.value)
         if ev.anchor is not None:
@@ -365,6 +375,13 @@ class _Builder:
             self.err(pos, f"tag {clipped_repr(tag)} is not allowed")
             return None
         text: str = ev.value
+        if text[:1] in ("0", "+", "-") and tag in (_INT, _STR):
+            why = _leading_zero(text, tag, ev)
+            if why is not None:
+                self.err(pos, why)
+                return None
+        if tag == _STR and text[:1] in _NUMBER_START and not ev.style and _EXPONENT.fullmatch(text):
+            tag = _FLOAT  # 1e-30: text to YAML 1.1 (it wants 1.0e-30), a number to YAML 1.2 and to people
         if tag in (_STR, _TIMESTAMP):
             return text
         if tag == _NULL:
@@ -386,10 +403,40 @@ class _Builder:
             self.err(pos, f"{text} is not a finite number")
             return None
         try:
-            return Decimal(t)
+            d = Decimal(t)
         except InvalidOperation:
             self.err(pos, f"not a number: {clipped_repr(text)}")
             return None
+        if d and not -MAX_EXPONENT <= d.adjusted() <= MAX_EXPONENT:  # 1e999999999: no register holds it, and
+            # decimal arithmetic on it overflows
+            self.err(pos, f"{clip(text)} is too {'large' if d.adjusted() > 0 else 'close to 0'} "
+                          f"(exponents -{MAX_EXPONENT}..{MAX_EXPONENT})")
+            return None
+        return d
+
+
+def _leading_zero(text: str, tag: str, ev: Any) -> str | None:
+    """Why a plain integer with a leading zero is refused: YAML 1.1 (PyYAML, so us) reads 010 as octal 8,
+    YAML 1.2 and most other tools as 10, and 0o17 as text; nobody should have to know which."""
+    if ev.style:  # quoted or a block scalar: text, as written (plain is None, or "" from libyaml)
+        return None
+    t = text.replace("_", "").lstrip("+-")
+    if len(t) < 2 or t[0] != "0":
+        return None
+    sign = "-" if text.startswith("-") else ""
+    if tag == _INT and t[1].isdigit():  # YAML 1.1 octal
+        d, o = int(sign + t, 10), _int(text)
+        if d == o:  # 00, 07: the same either way, but say it plainly
+            return f"'{text}' has a leading zero; write {d}, or quote it if it is text"
+        return (f"'{text}' has a leading zero: YAML 1.1 reads it as octal ({o}), other tools as {d}; write {d} "
+                f"(or {sign}0x{abs(o):X} for {o}), or quote it if it is text")
+    if tag == _STR and t.isdigit():  # 08, 09: not octal, text in YAML 1.1, a number to a reader
+        return f"'{text}' has a leading zero; write {int(sign + t)}, or quote it if it is text"
+    if tag == _STR and t[1] in "oO" and len(t) > 2 and all(c in "01234567" for c in t[2:]):
+        o = int(sign + t[2:], 8)
+        return (f"'{text}' is octal {o} in YAML 1.2 but text in YAML 1.1; write {o} (or {sign}0x{abs(o):X}), "
+                "or quote it if it is text")
+    return None
 
 
 def _int(text: str) -> int:

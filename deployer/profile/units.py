@@ -18,7 +18,6 @@ import contextlib
 import importlib.util
 import json
 import os
-import tempfile
 import zlib
 from decimal import Decimal
 from functools import cache, lru_cache
@@ -86,12 +85,12 @@ class _DiskCache:
     def save(self) -> None:
         if not self.dirty or self.path is None or not writes_allowed():
             return
-        with contextlib.suppress(OSError):
+        from ..errors import DeployerError
+        from ..state.durable import write_atomic
+
+        with contextlib.suppress(OSError, DeployerError):  # a cache: no cache is fine
             os.makedirs(os.path.dirname(self.path), exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=os.path.dirname(self.path), suffix=".tmp")
-            with os.fdopen(fd, "w", encoding="utf-8") as f:
-                json.dump({"checks": self.checks, "factors": self.factors}, f)
-            os.replace(tmp, self.path)
+            write_atomic(self.path, json.dumps({"checks": self.checks, "factors": self.factors}))
 
 
 @cache

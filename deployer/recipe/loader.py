@@ -104,6 +104,13 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
             prof_ref, prof_src = data["profile"], src
         dev = data.get("device") or {}
         device = DeviceSpec(dev.get("url", device.url), dev.get("unit", device.unit))
+        if isinstance(dev.get("url"), str):
+            from ..transport.urls import BadURL, parse_url
+
+            try:
+                parse_url(dev["url"])
+            except BadURL as bad:
+                errors.append(src.error(("device", "url"), str(bad)))
         rounding = data.get("rounding", rounding)
         for name, value in (data.get("parameters") or {}).items():
             for e in expand(name, value, src, ("parameters", name)):

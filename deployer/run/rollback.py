@@ -257,7 +257,16 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
             raise UsageError("; ".join(changed) + ": changed since the run wrote it (someone else wrote it since?); "
                              "nothing was sent. --even-if-changed restores the snapshot anyway, or leave it out with "
                              "--limit '!NAME'")
-    return jobs, notices
+    # one device in the run twice (older deployers allowed it): its snapshots are restored last written
+    # first, so the earliest one, what it held before the run, is the one that stays
+    twice: dict[tuple[tuple[str, ...], int], list[int]] = {}
+    for i, j in enumerate(jobs):
+        twice.setdefault((j.url.lock_keys, j.unit), []).append(i)
+    places = list(range(len(jobs)))
+    for same in twice.values():
+        for i, k in zip(same, reversed(same), strict=True):
+            places[i] = k
+    return [jobs[k] for k in places], notices
 
 
 def _changed(jobs: Sequence[Job], wrote: dict[str, dict[str, tuple[int, ...]]]) -> list[str]:

@@ -84,7 +84,10 @@ def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failure
     sizes = batch_sizes(batch, devices)
     budget = failure_budget(max_failures, devices)
     ensure_files(parallel, devices)
-    if report_path:
+    if report_path:  # before anything is sent: a link, a FIFO or a folder there is refused now
+        from ..state.durable import check_output
+
+        check_output(report_path, what="the report")
         check_writable(os.path.dirname(os.path.abspath(report_path)), f"the report {report_path}")
     return sizes, budget
 

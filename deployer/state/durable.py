@@ -14,14 +14,20 @@ device exactly as before; within one batch the files are durable before any line
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import errno
 import hashlib
 import json
 import os
+import secrets
+import stat
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
+
+from ..errors import UsageError
 
 
 @dataclass
@@ -159,6 +165,8 @@ def _create(p: _Pending) -> None:
             data = data[os.write(fd, data):]
     except OSError:
         os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # a partial snapshot must not look like one
         raise
     p.path, p.fd = path, fd
 
@@ -185,15 +193,136 @@ def _fsync_dir(folder: str) -> None:
 
 
 def append_lines(path: str, records: list[dict[str, Any]]) -> None:
-    """JSON lines appended with a single write and fsync'ed: concurrent runs never interleave inside a line."""
+    """JSON lines appended with a single write and fsync'ed: concurrent runs never interleave inside a line.
+
+    Every record starts on its own line: when the file does not end with a newline (a line cut by a
+    crash or a full disk), a newline goes first, so the torn line costs only itself.
+    """
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     data = "".join(json.dumps(r) + "\n" for r in records).encode()
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
     try:
+        size = os.fstat(fd).st_size
+        if size and os.pread(fd, 1, size - 1) != b"\n":
+            data = b"\n" + data
         os.write(fd, data)
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+# ---- output files: one rule, one atomic write ----------------------------------------------------
+
+
+class OutputRefused(UsageError):
+    """A path deployer will not write to: a link, FIFO, device, folder, or an existing file without --force."""
+
+
+def check_output(path: str, *, replace: bool = True, what: str = "") -> None:
+    """Whether ``path`` may be written, said before any work (and before anything is sent to a device).
+
+    deployer writes only new paths and regular files: a symbolic link, FIFO, device node, socket or
+    folder at the path is refused (nothing is opened there, so a FIFO never blocks). An existing
+    regular file is replaced only with ``replace`` (reports and plans: yes; exported profiles and
+    pages: only with --force). Raises OutputRefused (exit 1).
+    """
+    name = f"{what} {path}" if what else path
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        raise OutputRefused(f"cannot write {name}: {e.strerror}") from None
+    kind = _kind(st.st_mode)
+    if kind is not None:
+        raise OutputRefused(f"refusing to write {name}: it is {kind}; deployer writes only regular files "
+                            f"(choose another path)")
+    if not replace:
+        raise OutputRefused(f"{name} exists; pass --force to overwrite it")
+
+
+def _kind(mode: int) -> str | None:
+    """What a path is when it is not a regular file."""
+    if stat.S_ISREG(mode):
+        return None
+    return ("a symbolic link" if stat.S_ISLNK(mode) else "a folder" if stat.S_ISDIR(mode) else
+            "a FIFO" if stat.S_ISFIFO(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else
+            "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+
+
+def disk_error(e: OSError) -> str:
+    """An OSError of a state or output file, said plainly."""
+    return "the disk is full" if e.errno == errno.ENOSPC else e.strerror or str(e)
+
+
+def write_atomic(path: str, text: str | bytes | Sequence[bytes], *, replace: bool = True, what: str = "") -> None:
+    """The one way deployer writes an output file: whole or not at all, and durable.
+
+    ``check_output``'s rule first (and again right before the rename); then a new temporary file in
+    the same folder (which must exist; never following a link), the text written (pieces of bytes with gathering
+    writes: a big fleet report is never joined in memory), fsync'ed, renamed over ``path``, and the
+    folder fsync'ed so the new name survives a crash. An existing file keeps its permissions.
+    Raises OutputRefused for a path it will not write, UsageError when the disk refuses (full, read-only).
+    """
+    check_output(path, replace=replace, what=what)
+    name = f"{what} {path}" if what else path
+    directory = os.path.dirname(os.path.abspath(path))
+    tmp = ""
+    try:
+        while True:
+            tmp = os.path.join(directory, f".{os.path.basename(path)[:80]}.{secrets.token_hex(4)}.tmp")
+            try:
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
+                break
+            except FileExistsError:
+                continue
+        try:
+            with contextlib.suppress(FileNotFoundError):
+                os.fchmod(fd, stat.S_IMODE(os.stat(path, follow_symlinks=False).st_mode))
+            if isinstance(text, str):
+                _write_all(fd, text.encode())
+            elif isinstance(text, bytes):
+                _write_all(fd, text)
+            else:
+                _writev(fd, list(text))
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        check_output(path, replace=replace, what=what)  # nobody planted anything meanwhile
+        os.replace(tmp, path)
+        tmp = ""
+        _fsync_dir(directory)
+    except OSError as e:
+        raise UsageError(f"cannot write {name}: {disk_error(e)}") from None
+    finally:
+        if tmp:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def _writev(fd: int, pieces: list[bytes]) -> None:
+    """All of ``pieces``, in order, in as few writev calls as the system allows (short writes resumed)."""
+    batch = max(1, min(1024, os.sysconf("SC_IOV_MAX")))
+    i = 0
+    while i < len(pieces):
+        chunk = pieces[i:i + batch]
+        n = os.writev(fd, chunk)
+        total = sum(len(c) for c in chunk)
+        if n == total:
+            i += batch
+            continue
+        for k, c in enumerate(chunk):  # a short write: drop what was written, go on from there
+            if n < len(c):
+                pieces[i + k] = c[n:]
+                i += k
+                break
+            n -= len(c)
 
 
 _WRITER = GroupCommit()

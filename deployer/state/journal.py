@@ -18,7 +18,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from .durable import append_lines
+from ..errors import StateError
+from .durable import append_lines, disk_error
 from .lock import pid_alive
 
 if TYPE_CHECKING:
@@ -47,8 +48,13 @@ def path_of(state_dir: str) -> str:
 
 
 def append(state_dir: str, record: dict[str, Any]) -> None:
-    """One line, written with a single append and fsync'ed: concurrent runs never interleave inside a line."""
-    append_lines(path_of(state_dir), [record])
+    """One line, written with a single append and fsync'ed: concurrent runs never interleave inside a line.
+
+    Raises StateError when the state directory cannot take it (disk full, read-only)."""
+    try:
+        append_lines(path_of(state_dir), [record])
+    except OSError as e:
+        raise StateError(f"cannot write the journal {path_of(state_dir)}: {disk_error(e)}") from None
 
 
 def run_started(state_dir: str, run: str, *, command: str, argv: Sequence[str], recipe: str | None,

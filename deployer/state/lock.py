@@ -17,14 +17,17 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import fcntl
 import hashlib
 import json
 import os
 import socket
+import stat
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,11 +54,26 @@ class DeviceLock:
     shared: bool = False
 
     def release(self) -> None:
+        """Unlock, and remove the file when no one else holds it (its record is of no use any more).
+
+        The file goes while we hold it exclusively: a run that opened it meanwhile finds, once it has
+        the lock, that its file is no longer at the path, and opens the path again (``try_lock``).
+        """
         if self.fd < 0:
             return
-        if not self.shared:
-            with contextlib.suppress(OSError):
-                os.ftruncate(self.fd, 0)  # a clean release leaves no record to call stale
+        mine = not self.shared
+        if self.shared:
+            try:  # the last shared holder removes it; anyone else still holding keeps it
+                fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                mine = True
+            except OSError:
+                pass
+        if mine:
+            try:
+                os.unlink(self.path)  # another user's file in the sticky folder: EPERM, it stays
+            except OSError:
+                with contextlib.suppress(OSError):
+                    os.ftruncate(self.fd, 0)  # a clean release leaves no record to call stale
         with contextlib.suppress(OSError):
             fcntl.flock(self.fd, fcntl.LOCK_UN)
         os.close(self.fd)
@@ -90,21 +108,57 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
-_ready: set[str] = set()  # lock directories made and opened to every user by this process
+_ready: set[str] = set()  # lock directories made and checked by this process
 
 
 def _directory(d: str) -> None:
+    """Make the folder, or check one that is there: every user's runs share it, so it must be a real
+    folder (not a link), and if others may write in it, sticky (like /tmp: nobody removes or replaces
+    another user's lock files)."""
     if d in _ready:
         return
     try:
         os.makedirs(d, exist_ok=True)
-        # every user's runs share the directory (sticky, like /tmp)
-        if os.stat(d).st_uid == os.getuid():
-            os.chmod(d, 0o1777)
+        st = os.lstat(d)
+        if st.st_uid == os.getuid() and stat.S_ISDIR(st.st_mode):
+            os.chmod(d, 0o1777)  # every user's runs share it
+            st = os.lstat(d)
     except OSError as e:
         raise Locked(f"cannot use the lock directory {d}: {e.strerror} (set {ENV} to another folder)",
                      busy=False) from None
+    if not stat.S_ISDIR(st.st_mode):
+        what = "a symbolic link" if stat.S_ISLNK(st.st_mode) else "not a folder"
+        raise Locked(f"cannot use the lock directory {d}: it is {what} (a lock folder must be a real folder; "
+                     f"set {ENV} to another folder)", busy=False)
+    if st.st_mode & 0o022 and not st.st_mode & stat.S_ISVTX:
+        raise Locked(f"cannot use the lock directory {d}: others may write in it but it is not sticky, so they could "
+                     f"replace lock files (chmod 1777 {d}, or set {ENV} to another folder)", busy=False)
     _ready.add(d)
+
+
+def _open(path: str) -> int:
+    """The lock file, opened without following a link; refused unless it is a plain file of its own.
+
+    The folder is shared and the names predictable: a planted symlink or hard link to another file
+    (a root run would truncate it) or a FIFO (the open would block) is never written.
+    """
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o666)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise Locked(f"refusing the lock file {path}: it is a symbolic link (planted? remove it)",
+                         busy=False) from None
+        raise Locked(f"cannot open the lock file {path}: {e.strerror}", busy=False) from None
+    st = os.fstat(fd)
+    why = ("not a regular file" if not stat.S_ISREG(st.st_mode) else
+           f"it has {st.st_nlink} names (a hard link to another file?)" if st.st_nlink != 1 else None)
+    if why is not None:
+        os.close(fd)
+        raise Locked(f"refusing the lock file {path}: {why}; remove it", busy=False)
+    if st.st_uid == os.getuid() and stat.S_IMODE(st.st_mode) != 0o666:
+        with contextlib.suppress(OSError):
+            os.fchmod(fd, 0o666)  # other users' runs lock (and record in) it too, whatever our umask
+    return fd
 
 
 def try_lock(key: str, *, command: str = "", directory: str | None = None, shared: bool = False) -> DeviceLock:
@@ -117,21 +171,26 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
     _directory(d)
     name = hashlib.sha256(key.encode()).hexdigest()[:24] + ".lock"
     path = os.path.join(d, name)
-    try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
-    except OSError as e:
-        raise Locked(f"cannot open the lock file {path}: {e.strerror}", busy=False) from None
-    try:
-        fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
-    except BlockingIOError:
-        record = _read_record(fd)
-        os.close(fd)
-        if not record:  # held shared: runs writing devices of this bus, one by one
-            raise Locked("the bus is in use: another run is writing a device on it") from None
-        raise Locked(f"locked by {_holder_text(record)}") from None
-    except OSError as e:
-        os.close(fd)
-        raise Locked(f"cannot lock {path}: {e.strerror}", busy=False) from None
+    while True:
+        fd = _open(path)
+        try:
+            fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
+        except BlockingIOError:
+            record = _read_record(fd)
+            os.close(fd)
+            if not record:  # held shared: runs writing devices of this bus, one by one
+                raise Locked("the bus is in use: another run is writing a device on it") from None
+            raise Locked(f"locked by {_holder_text(record)}") from None
+        except OSError as e:
+            os.close(fd)
+            raise Locked(f"cannot lock {path}: {e.strerror}", busy=False) from None
+        try:
+            same = os.stat(path, follow_symlinks=False).st_ino == os.fstat(fd).st_ino
+        except OSError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # its holder removed it while we waited: lock the file now at the path
     if shared:
         return DeviceLock(key, path, fd, None, shared=True)
     old = _read_record(fd)
@@ -163,24 +222,66 @@ async def acquire(key: str, *, timeout: float = 0.0, command: str = "", director
         await asyncio.sleep(poll)
 
 
-async def acquire_device(bus: str, unit: int, *, timeout: float = 0.0, command: str = "",
+async def acquire_device(buses: str | Sequence[str], unit: int, *, timeout: float = 0.0, command: str = "",
                          directory: str | None = None) -> list[DeviceLock]:
-    """The locks a run writing ``unit`` on ``bus`` holds: the bus's, shared, then the unit's, exclusive.
+    """The locks a run writing ``unit`` on ``buses`` holds: each bus's, shared, then the unit's, exclusive.
 
+    ``buses``: the device's lock keys (DeviceURL.lock_keys: one per address its host resolves to).
     A broadcast (unit 0) writes every unit of the bus: it takes the bus's lock exclusively, so it waits
-    for (or is refused by) any run writing a unit there, and they for it. Always bus first, then unit:
-    two runs can never hold one each and wait for the other.
+    for (or is refused by) any run writing a unit there, and they for it. Always buses first, then units,
+    each in sorted order: two runs can never hold one each and wait for the other.
     """
+    keys = sorted({buses} if isinstance(buses, str) else set(buses))
     start = time.monotonic()
-    bus_lock = await acquire(f"{bus}#bus", timeout=timeout, command=command, directory=directory, shared=unit != 0)
-    if unit == 0:
-        return [bus_lock]
+    held: list[DeviceLock] = []
     try:
-        left = max(0.0, timeout - (time.monotonic() - start))
-        return [bus_lock, await acquire(device_key(bus, unit), timeout=left, command=command, directory=directory)]
+        wanted = [(f"{b}#bus", unit != 0) for b in keys]
+        wanted += [(device_key(b, unit), False) for b in keys] if unit else []
+        for key, shared in wanted:
+            left = max(0.0, timeout - (time.monotonic() - start))
+            try:
+                held.append(await acquire(key, timeout=left, command=command, directory=directory, shared=shared))
+            except Locked as e:
+                if unit == 0 and e.busy:
+                    who = _bus_users(key[:-len("#bus")], directory)
+                    if who is not None:
+                        raise Locked(who) from None
+                raise
+        return held
     except BaseException:
-        bus_lock.release()
+        for h in reversed(held):
+            h.release()
         raise
+
+
+def _bus_users(bus: str, directory: str | None) -> str | None:
+    """Who writes units of ``bus`` now (for a refused broadcast): the records of its held unit locks."""
+    d = directory or lock_dir()
+    who = []
+    try:
+        names = sorted(os.listdir(d))
+    except OSError:
+        return None
+    for name in names:
+        if not name.endswith(".lock"):
+            continue
+        try:
+            fd = os.open(os.path.join(d, name), os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+        except OSError:
+            continue
+        try:
+            record = _read_record(fd) if stat.S_ISREG(os.fstat(fd).st_mode) else {}
+            key = str(record.get("key", ""))
+            if not key.startswith(f"{bus}#unit"):
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)  # we got it: nobody holds it, an old record
+                continue
+            except OSError:
+                who.append(f"unit {key.rsplit('#unit', 1)[1]} by {_holder_text(record)}")
+        finally:
+            os.close(fd)
+    return f"the bus is in use: {'; '.join(who)} is being written" if who else None
 
 
 def command_line() -> str:

@@ -19,7 +19,6 @@ import asyncio
 import itertools
 import json
 import operator
-import os
 import re
 import signal
 import ssl
@@ -55,6 +54,7 @@ class Faults:
     drop_every: int = 0  # swallow every Nth request (no answer)
     busy_first: int = 0  # answer the first N write requests with exception 06, writing nothing
     fail_registers: frozenset[int] = frozenset()  # a write reaching one of these answers exception 04
+    complain_registers: frozenset[int] = frozenset()  # a write reaching one of these is carried out, then 04
     disconnect_after: int = 0  # close the connection(s) after every N requests (TCP)
     # after a write: when a rule's condition on parameter values holds, its register is set (a drive tripping)
     rules: tuple[FaultRule, ...] = ()
@@ -525,16 +525,15 @@ class Simulator:
         self._set(unit, key, value)
 
     def dump_state(self, path: str) -> None:
+        from ..state.durable import write_atomic
+
         state = {str(u): {str(a): v for a, v in self.registers(u).items()} for u in self.units}
         data: dict[str, Any] = {"profile": self.profile.id, "units": state}
         others = [t for t in REGISTER_TYPES[1:] if t in self._used]
         if others:  # coils, discrete inputs, input registers by table (addresses of each table)
             data["tables"] = {str(u): {t: {str(a): v for a, v in self.registers(u, t).items()} for t in others}
                               for u in self.units}
-        tmp = f"{path}.tmp"
-        with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=1)
-        os.replace(tmp, path)
+        write_atomic(path, json.dumps(data, indent=1))
 
     # ---- the device ----------------------------------------------------------------------------
 
@@ -703,6 +702,8 @@ class Simulator:
             if address <= a and a + len(words) <= address + count and \
                     tuple(values[a - address:a - address + len(words)]) == words:
                 self._busy_until = time.monotonic() + wait / 1000
+        if any(a in f.complain_registers for a in range(address, address + count)):
+            return ExcCodes.DEVICE_FAILURE  # written all the same: a device that complains about what it did
         return None
 
     def _refusal(self, params: list[Parameter], address: int, count: int, values: list[int]) -> ExcCodes | None:

@@ -21,17 +21,22 @@ import os
 import ssl
 import time
 import weakref
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import serial
 from pymodbus import FramerType
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient, AsyncModbusTlsClient
-from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
+from pymodbus.exceptions import ConnectionException, ModbusException
+from pymodbus.framer import FramerRTU
+from pymodbus.pdu import DecodePDU
+from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
 
 # URLs and errors live apart from pymodbus (commands that only parse URLs stay light); re-exported here
 from .urls import DEFAULT_PORTS as DEFAULT_PORTS
 from .urls import SERIAL_DEFAULTS as SERIAL_DEFAULTS
+from .urls import BadAnswer as BadAnswer
 from .urls import BadURL as BadURL
 from .urls import ConnectionLost as ConnectionLost
 from .urls import DeviceURL as DeviceURL
@@ -53,6 +58,7 @@ class Transport(abc.ABC):
     url: DeviceURL
     requests_sent: int  # requests put on the wire (every attempt counts)
     on_frame: Callable[[str, bytes], None] | None  # ("send" | "recv", raw bytes); recv may come in chunks
+    late_answers: list[float]  # seconds after their request of answers that came after the timeout
 
     @abc.abstractmethod
     async def connect(self) -> None:
@@ -171,6 +177,210 @@ def bus_lock(url: DeviceURL) -> asyncio.Lock:
     return _bus(url).lock
 
 
+# ---- answers: what comes back, matched to the one request in flight ----------------------------
+
+
+READS = (1, 2, 3, 4)  # function codes whose answer carries a byte count
+STRAY_QUIET = 0.1  # seconds of silence that end the settling after bytes nobody asked for
+
+
+@dataclass(frozen=True)
+class _Expect:
+    """The request in flight, as far as its answer must echo it."""
+
+    unit: int
+    function: int
+    address: int
+    count: int  # registers or bits read (FC01-04) or written (FC15, FC16); 1 for FC05, FC06
+    value: int | None = None  # FC05, FC06: the value an answer echoes
+    tid: int = 0  # Modbus/TCP transaction id (MBAP framing only)
+
+
+class _Receiver:
+    """Reads one connection's bytes itself, instead of pymodbus's transaction manager.
+
+    pymodbus 3.16 hands the next complete frame to whatever request waits, so on RTU and ASCII
+    (no transaction id) a late answer to a timed-out request became the answer to the next one,
+    and it drops frames from another unit without a word. Here every frame is matched to the
+    request in flight: unit, function, byte count, echoed address/count/value; Modbus/TCP also by
+    transaction id. After a request went unanswered, or bytes came that nobody asked for, the line
+    is dirty: the next request first waits until nothing has arrived for a whole timeout
+    (``settle``) and discards it all, except a late answer to that very request, which a retry of
+    the same request takes instead of sending it again.
+    """
+
+    def __init__(self, framing: str, trace: Callable[[bool, bytes], bytes]) -> None:
+        self.framing = framing  # "rtu" | "ascii" | "mbap"
+        self.trace = trace
+        self.buf = bytearray()
+        self.last_rx = 0.0  # monotonic time of the last byte received
+        self.expect: _Expect | None = None
+        self.future: asyncio.Future[bytes | TransportError] | None = None
+        self.dirty_since: float | None = None  # line must settle before the next request
+        self.long_settle = False  # a request went unanswered: settle for a whole timeout, else briefly
+        self.late_for: _Expect | None = None  # the request that went unanswered
+        self.late: bytes | TransportError | None = None  # its answer, when it came during the settling
+        self.late_after = 0.0  # seconds after its request that the late answer came
+        self.sent_at = 0.0
+
+    # -- called by pymodbus's protocol for every chunk received (replaces TransactionManager.callback_data)
+
+    def feed(self, data: bytes, addr: object = None) -> int:
+        chunk = bytes(data)
+        self.last_rx = time.monotonic()
+        self.trace(False, chunk)
+        self.buf += chunk
+        while self.buf:
+            target = self.expect or self.late_for
+            if target is None:
+                if self.framing != "mbap":
+                    self.dirty_since = self.dirty_since or self.last_rx  # nobody asked: drain before sending
+                self.buf.clear()
+                break
+            got = self._frame(target)
+            if got is None:
+                break  # wait for more bytes
+            if self.expect is not None:
+                self._answer(got)
+            elif isinstance(got, (bytes, ExceptionResponse)):
+                self.late, self.late_after = got, self.last_rx - self.sent_at  # the timed-out request's answer
+            # a frame that does not answer the timed-out request is discarded with the rest
+        return len(data)
+
+    def _answer(self, got: bytes | TransportError) -> None:
+        if self.future is not None and not self.future.done():
+            self.future.set_result(got)
+        self.expect = None
+        if isinstance(got, BadAnswer) and self.framing != "mbap":
+            self.dirty_since = self.last_rx  # what is left of a garbled frame may still be coming
+
+    def lost(self, exc: Exception | None) -> None:
+        if self.future is not None and not self.future.done():
+            self.future.set_result(ConnectionLost(f"the connection closed{f': {exc}' if exc else ''}"))
+
+    # -- framing: one frame from the start of buf, checked against the request; None: incomplete
+
+    def _frame(self, want: _Expect) -> bytes | TransportError | None:
+        if self.framing == "mbap":
+            return self._mbap(want)
+        if self.framing == "ascii":
+            start = self.buf.find(b":")
+            if start < 0:
+                self.buf.clear()
+                return None
+            del self.buf[:start]
+            end = self.buf.find(b"\r\n")
+            if end < 0:
+                return None
+            text = bytes(self.buf[1:end])
+            del self.buf[:end + 2]
+            try:
+                raw = bytes.fromhex(text.decode("ascii"))
+            except ValueError:
+                return BadAnswer("a garbled answer (not hexadecimal ASCII)")
+            if len(raw) < 3 or (-sum(raw[:-1])) & 0xFF != raw[-1]:
+                return BadAnswer("a garbled answer (LRC error)")
+            return self._check(want, raw[0], raw[1:-1])
+        # RTU: the frame's length follows from its function code
+        if len(self.buf) < 3:
+            return None
+        fc = self.buf[1]
+        size = (5 if fc & 0x80 else 5 + self.buf[2] if fc in READS else 8 if fc in (5, 6, 15, 16) else
+                ReadDeviceInformationResponse.calculateRtuFrameSize(bytes(self.buf)) if fc == 43 else 0)
+        if size == 0:
+            self.buf.clear()
+            return BadAnswer(f"an answer with function code {fc} to a function {want.function} request")
+        if len(self.buf) < size:
+            return None
+        frame = bytes(self.buf[:size])
+        del self.buf[:size]
+        if FramerRTU.compute_CRC(frame[:-2]) != int.from_bytes(frame[-2:], "big"):
+            return BadAnswer("a garbled answer (CRC error)")
+        return self._check(want, frame[0], frame[1:-2])
+
+    def _mbap(self, want: _Expect) -> bytes | TransportError | None:
+        while len(self.buf) >= 7:
+            size = 6 + int.from_bytes(self.buf[4:6], "big")
+            if len(self.buf) < size:
+                return None
+            frame = bytes(self.buf[:size])
+            del self.buf[:size]
+            if int.from_bytes(frame[0:2], "big") != want.tid:
+                continue  # a late answer to an earlier transaction: not this request's
+            if frame[2:4] != b"\0\0" or size < 8:
+                return BadAnswer("a malformed Modbus/TCP answer (protocol id or length)")
+            return self._check(want, frame[6], frame[7:])
+        return None
+
+    def _check(self, want: _Expect, unit: int, pdu: bytes) -> bytes | TransportError:
+        """The answer's PDU (function code first), or what is wrong with it."""
+        if unit != want.unit:
+            return BadAnswer(f"an answer from unit {unit} to a request for unit {want.unit}")
+        fc = pdu[0]
+        if fc == want.function | 0x80 and len(pdu) == 2:
+            return ExceptionResponse(want.function, pdu[1])
+        if fc != want.function:
+            return BadAnswer(f"an answer with function code {fc} to a function {want.function} request")
+        if want.function == 43:  # read device identification: pymodbus parses the objects
+            if len(pdu) < 7 or pdu[1] != 0x0E:
+                return BadAnswer("a malformed device identification answer")
+            return pdu
+        if want.function in READS:
+            bits = want.function in (1, 2)
+            size = (want.count + 7) // 8 if bits else 2 * want.count
+            if len(pdu) < 2 or pdu[1] != size or len(pdu) != 2 + size:
+                got = pdu[1] if len(pdu) > 1 else 0
+                what = "bits" if bits else "registers"
+                one = ("coil" if want.function == 1 else "input") if bits else "register"
+                return BadAnswer(f"an answer with {got} bytes of {what} to a read of {want.count} "
+                                 f"{one}{'s' if want.count != 1 else ''} ({size} bytes)")
+            return pdu
+        echo_a = int.from_bytes(pdu[1:3], "big") if len(pdu) == 5 else -1
+        echo_b = int.from_bytes(pdu[3:5], "big") if len(pdu) == 5 else -1
+        b = want.count if want.function in (15, 16) else want.value
+        if echo_a != want.address or echo_b != b:
+            what = "count" if want.function in (15, 16) else "value"
+            return BadAnswer(f"an answer echoing address {echo_a}, {what} {echo_b} to a write of address "
+                             f"{want.address}, {what} {b}")
+        return pdu
+
+    # -- the request's side
+
+    async def settle(self, timeout: float) -> None:
+        """Wait until the line has been silent since it went dirty, discarding what came: for a whole
+        timeout after an unanswered request (a slow device's answer may still come), else for
+        STRAY_QUIET (a device answering twice, noise: the line is busy now, not slow)."""
+        if self.dirty_since is None:
+            return
+        quiet = timeout if self.long_settle else min(timeout, STRAY_QUIET)
+        while (left := quiet - (time.monotonic() - max(self.last_rx, self.dirty_since))) > 0:
+            await asyncio.sleep(left)
+        self.dirty_since, self.long_settle = None, False
+        self.buf.clear()
+
+    def start(self, want: _Expect | None) -> None:
+        """A request goes out now; ``want`` None: nobody answers (broadcast)."""
+        self.buf.clear()
+        self.late_for = self.late = None
+        self.expect = want
+        self.sent_at = time.monotonic()
+        self.future = asyncio.get_running_loop().create_future() if want is not None else None
+
+    def take_late(self, want: _Expect) -> tuple[bytes | TransportError, float] | None:
+        """A late answer to ``want`` itself that came while the line settled (the retry need not be sent)."""
+        late, late_for = self.late, self.late_for
+        self.late = self.late_for = None
+        return (late, self.late_after) if late is not None and late_for == want else None
+
+    def unanswered(self) -> None:
+        """The request in flight timed out: its answer may still come."""
+        self.late_for, self.expect = self.expect, None
+        if self.framing == "mbap":
+            self.late_for = None  # a transaction id tells a late answer apart: nothing to wait for
+        else:
+            self.dirty_since, self.long_settle = time.monotonic(), True
+
+
 # ---- pymodbus-backed transports ----------------------------------------------------------------
 
 
@@ -188,6 +398,22 @@ def _silent_interval(url: DeviceURL) -> float:
     if url.line.baudrate > 19200:
         return 0.00175
     return 3.5 * _char_time(url)
+
+
+def _receiver(client: Any, url: DeviceURL) -> _Receiver:
+    """Take over reading a pymodbus client's answers (its transaction manager only sends, from now on)."""
+    ctx = client.ctx
+    rx = _Receiver("mbap" if url.scheme in ("tcp", "tls") else "ascii" if url.scheme == "ascii" else "rtu",
+                   ctx.trace_packet)
+    ctx.callback_data = rx.feed
+    gone = ctx.callback_disconnected
+
+    def disconnected(exc: Exception | None) -> None:
+        rx.lost(exc)
+        gone(exc)
+
+    ctx.callback_disconnected = disconnected
+    return rx
 
 
 class PymodbusTransport(Transport):
@@ -208,6 +434,8 @@ class PymodbusTransport(Transport):
         self._quiet_until = 0.0  # this connection's own quiet time (after a broadcast)
         self._answered = False  # any answer on this connection yet (tells a refused TLS session)
         self._sent_bytes = 0  # length of the last frame sent: a broadcast's own line time
+        self._rx: _Receiver | None = None  # reads the answers (see _Receiver)
+        self.late_answers: list[float] = []  # seconds after the request, of answers taken late
         self._after_connect, self._between = pacing(url)  # pauses some devices need (URL options, profile)
 
     # -- hooks for the subclasses
@@ -270,6 +498,7 @@ class PymodbusTransport(Transport):
             client.close()
             raise Unreachable(f"{where}: {await self._why_not()}")
         self._client = client
+        self._rx = _receiver(client, self.url)
         self._connected()
 
     async def reconnect(self) -> None:
@@ -286,13 +515,16 @@ class PymodbusTransport(Transport):
         if self._client is not None:
             await self._settle()
             self._client.close()
-            self._client = None
+            self._client = self._rx = None
 
     # -- requests
 
-    async def _run(self, function: int, call: Callable[[Any], Any], *, no_answer: bool = False) -> Any:
-        if self._client is None or not self._client.connected:
+    async def _run(self, want: _Expect, call: Callable[[Any], Awaitable[Any]]) -> bytes | None:
+        """Send one request and wait for its answer's PDU (function code first); unit 0: no answer."""
+        if self._client is None or not self._client.connected or self._rx is None:
             raise ConnectionLost(f"{describe(self.url)}: not connected")
+        rx = self._rx
+        no_answer = want.unit == 0 and want.function not in READS
         # a shared line, or a device that needs pauses: requests of every device on its bus take turns
         bus = _bus(self.url) if self._paced() else None
         if bus is not None:
@@ -300,18 +532,33 @@ class PymodbusTransport(Transport):
         try:
             if bus is not None:
                 self._claim(bus)
+            # an unanswered request or stray bytes: let the line fall silent for a whole timeout first
+            await rx.settle(self.url.timeout)
+            late = rx.take_late(want)
+            if late is not None:  # the timed-out copy of this very request was answered meanwhile
+                self.late_answers.append(late[1])
+                return self._result(want, late[0])
             wait = max(self._quiet_until, bus.quiet_until if bus is not None else 0.0) - time.monotonic()
             if wait > 0:
                 await asyncio.sleep(wait)
+            rx.start(None if no_answer else want)
             self.requests_sent += 1
             try:
-                result = await call(self._client)
+                await call(self._client)  # pymodbus builds the frame and writes it; the answer comes to rx
+                if rx.expect is not None and rx.framing == "mbap":
+                    rx.expect = replace(want, tid=self._client.ctx.next_tid)  # the id pymodbus just used
+                if no_answer:
+                    return None
+                assert rx.future is not None
+                try:
+                    got = await asyncio.wait_for(asyncio.shield(rx.future), self.url.timeout)
+                except TimeoutError:
+                    rx.unanswered()
+                    if self._client is None or not self._client.connected:
+                        raise self._lost("the connection closed") from None
+                    raise NoResponse(f"no answer within {self.url.timeout:g} s") from None
             except ConnectionException as e:
                 raise self._lost(str(e)) from None
-            except ModbusIOException:
-                if self._client is None or not self._client.connected:
-                    raise self._lost("the connection closed") from None
-                raise NoResponse(f"no answer within {self.url.timeout:g} s") from None
             except ModbusException as e:
                 raise NoResponse(str(e)) from None
             finally:
@@ -326,67 +573,69 @@ class PymodbusTransport(Transport):
                 self._quiet_until = quiet
                 if bus is not None:
                     bus.quiet_until = quiet
-            if no_answer:
-                return None
-            self._answered = True
-            if result.isError():
-                raise ExceptionResponse(function, int(getattr(result, "exception_code", 0)))
-            return result
+            if isinstance(got, ConnectionLost):
+                raise self._lost(str(got))
+            return self._result(want, got)
         finally:
             if bus is not None:
                 bus.lock.release()
+
+    def _result(self, want: _Expect, got: bytes | TransportError) -> bytes:
+        self._answered = True
+        if isinstance(got, TransportError):
+            raise got
+        return got
 
     def _claim(self, bus: _Bus) -> None:
         """Called under the bus lock before a request (the shared serial line routes its frames here)."""
 
     async def read_holding_registers(self, address: int, count: int, unit: int) -> list[int]:
-        r = await self._run(3, lambda c: c.read_holding_registers(address, count=count, device_id=unit))
-        regs = list(r.registers)
-        if len(regs) != count:
-            raise NoResponse(f"answer has {len(regs)} registers, asked for {count}")
-        return regs
+        pdu = await self._run(_Expect(unit, 3, address, count), lambda c: c.read_holding_registers(
+            address, count=count, device_id=unit, no_response_expected=True))
+        assert pdu is not None
+        return [int.from_bytes(pdu[i:i + 2], "big") for i in range(2, len(pdu), 2)]
 
     async def write_registers(self, address: int, values: list[int], unit: int) -> None:
-        await self._run(16, lambda c: c.write_registers(address, values, device_id=unit,
-                                                        no_response_expected=unit == 0), no_answer=unit == 0)
+        await self._run(_Expect(unit, 16, address, len(values)), lambda c: c.write_registers(
+            address, values, device_id=unit, no_response_expected=True))
 
     async def write_register(self, address: int, value: int, unit: int) -> None:
-        await self._run(6, lambda c: c.write_register(address, value, device_id=unit,
-                                                      no_response_expected=unit == 0), no_answer=unit == 0)
+        await self._run(_Expect(unit, 6, address, 1, value), lambda c: c.write_register(
+            address, value, device_id=unit, no_response_expected=True))
 
     async def read(self, function: int, address: int, count: int, unit: int) -> list[int]:
         if function == 3:
             return await self.read_holding_registers(address, count, unit)
         if function == 4:
-            r = await self._run(4, lambda c: c.read_input_registers(address, count=count, device_id=unit))
-            values = list(r.registers)
-        elif function in (1, 2):
+            pdu = await self._run(_Expect(unit, 4, address, count), lambda c: c.read_input_registers(
+                address, count=count, device_id=unit, no_response_expected=True))
+            assert pdu is not None
+            return [int.from_bytes(pdu[i:i + 2], "big") for i in range(2, len(pdu), 2)]
+        if function in (1, 2):
             call = "read_coils" if function == 1 else "read_discrete_inputs"
-            r = await self._run(function, lambda c: getattr(c, call)(address, count=count, device_id=unit))
-            bits = list(r.bits)  # padded to whole bytes: the answer carries ceil(count / 8) bytes
-            if len(bits) < count:
-                raise NoResponse(f"answer has {len(bits)} bits, asked for {count}")
-            return [1 if b else 0 for b in bits[:count]]
-        else:
-            raise ValueError(f"function {function} is not a read")
-        if len(values) != count:
-            raise NoResponse(f"answer has {len(values)} registers, asked for {count}")
-        return values
+            pdu = await self._run(_Expect(unit, function, address, count), lambda c: getattr(c, call)(
+                address, count=count, device_id=unit, no_response_expected=True))
+            assert pdu is not None
+            return [(pdu[2 + i // 8] >> (i % 8)) & 1 for i in range(count)]  # least significant bit first
+        raise ValueError(f"function {function} is not a read")
 
     async def write_coil(self, address: int, value: bool, unit: int) -> None:
-        await self._run(5, lambda c: c.write_coil(address, value, device_id=unit,
-                                                  no_response_expected=unit == 0), no_answer=unit == 0)
+        await self._run(_Expect(unit, 5, address, 1, 0xFF00 if value else 0), lambda c: c.write_coil(
+            address, value, device_id=unit, no_response_expected=True))
 
     async def write_coils(self, address: int, values: list[bool], unit: int) -> None:
-        await self._run(15, lambda c: c.write_coils(address, values, device_id=unit,
-                                                    no_response_expected=unit == 0), no_answer=unit == 0)
+        await self._run(_Expect(unit, 15, address, len(values)), lambda c: c.write_coils(
+            address, values, device_id=unit, no_response_expected=True))
 
     async def read_device_identification(self, unit: int, read_code: int = 1) -> dict[int, bytes]:
         objects: dict[int, bytes] = {}
         object_id = 0
         for _ in range(8):  # 'more follows' pages; a device repeating itself must not loop for ever
-            r = await self._run(43, functools.partial(_read_identification, read_code=read_code,
-                                                      object_id=object_id, unit=unit))
+            pdu = await self._run(_Expect(unit, 43, read_code, object_id), functools.partial(
+                _read_identification, read_code=read_code, object_id=object_id, unit=unit))
+            r: Any = _DECODER.decode(pdu or b"")  # pymodbus parses the objects
+            if r is None:
+                raise BadAnswer("an identification answer pymodbus cannot read")
             for oid, value in dict(r.information).items():
                 objects[int(oid)] = value[0] if isinstance(value, list) else bytes(value)
             if not r.more_follows or r.next_object_id <= object_id:
@@ -396,7 +645,11 @@ class PymodbusTransport(Transport):
 
 
 def _read_identification(client: Any, *, read_code: int, object_id: int, unit: int) -> Any:
-    return client.read_device_information(read_code=read_code, object_id=object_id, device_id=unit)
+    return client.read_device_information(read_code=read_code, object_id=object_id, device_id=unit,
+                                          no_response_expected=True)
+
+
+_DECODER = DecodePDU(False)  # answers (is_server False)
 
 
 class TcpTransport(PymodbusTransport):
@@ -492,6 +745,7 @@ class _SerialLine:
 
     def __init__(self, settings: tuple[str, ...]) -> None:
         self.client: Any = None
+        self.rx: _Receiver | None = None
         self.settings = settings
         self.users = 0
         self.active: PymodbusTransport | None = None  # who sent the last request: gets the frames
@@ -543,14 +797,14 @@ class SerialTransport(PymodbusTransport):
                     await super().connect()
                 finally:
                     self._opening = None
-                line.client = self._client
+                line.client, line.rx = self._client, self._rx
                 bus.line = line
             elif line.settings != self._settings():
                 have = "{} baudrate={} bytesize={} parity={} stopbits={}".format(*line.settings)
                 raise Unreachable(f"{where}: the port is already open here as {have}; devices on one line must "
                                   f"use the same framing and settings")
             line.users += 1
-            self._line, self._client = line, line.client
+            self._line, self._client, self._rx = line, line.client, line.rx
 
     def _probe(self) -> str | None:
         """Open and configure the port as pymodbus will, then close it: why it cannot be used, or None.
@@ -589,7 +843,7 @@ class SerialTransport(PymodbusTransport):
     async def close(self) -> None:
         if self._line is not None:
             await self._settle()
-        line, self._line, self._client = self._line, None, None
+        line, self._line, self._client, self._rx = self._line, None, None, None
         if line is None:
             return
         line.users -= 1
@@ -606,6 +860,14 @@ _CLASSES: dict[str, type[PymodbusTransport]] = {
     "tcp": TcpTransport, "tls": TlsTransport, "rtu+tcp": RtuOverTcpTransport,
     "rtu": SerialTransport, "ascii": SerialTransport,
 }
+
+
+def late_notice(late: list[float], url: DeviceURL) -> str:
+    """What to tell about answers that came after the timeout (taken by the retry, not sent twice)."""
+    n = len(late)
+    return (f"the device answered {n} request{'s' if n != 1 else ''} after the timeout (up to {max(late):.2f} s, "
+            f"timeout {url.timeout:g} s): each was taken as its retry's answer, not sent again; raise the URL's "
+            f"timeout= to spare the wait")
 
 
 def open_transport(url: DeviceURL | str) -> Transport:

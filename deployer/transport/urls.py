@@ -7,11 +7,15 @@ re-exports everything here.
 from __future__ import annotations
 
 import difflib
+import functools
+import ipaddress
 import os
+import socket
 import urllib.parse
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..errors import BadAnswer as BadAnswer
 from ..errors import BadURL as BadURL  # the errors of transports, importable from here as before
 from ..errors import ConnectionLost as ConnectionLost
 from ..errors import ExceptionResponse as ExceptionResponse
@@ -62,6 +66,19 @@ class DeviceURL:
         return f"{self.scheme}:{self.host}:{self.port}"
 
     @property
+    def lock_keys(self) -> tuple[str, ...]:
+        """What this URL reaches, however it is spelled: the bus keys with host names resolved.
+
+        tcp://localhost:P, tcp://127.0.0.1:P, tcp://127.1:P and tcp://2130706433:P are one device;
+        a name with several addresses (localhost: 127.0.0.1 and ::1) gives one key for each, so a run
+        by any of them excludes the others. Serial paths are already real paths (``bus``).
+        """
+        if self.scheme in ("rtu", "ascii") or self.host is None:
+            return (self.bus,)
+        kind = "gateway" if self.scheme == "rtu+tcp" else self.scheme
+        return tuple(f"{kind}:{a}:{self.port}" for a in _addresses(self.host))
+
+    @property
     def shared_bus(self) -> bool:
         return self.scheme in ("rtu", "ascii", "rtu+tcp")
 
@@ -72,6 +89,22 @@ class DeviceURL:
         d = SERIAL_DEFAULTS
         return LineSettings(int(o.get("baudrate", d.baudrate)), int(o.get("bytesize", d.bytesize)),
                             o.get("parity", d.parity), int(o.get("stopbits", d.stopbits)))
+
+
+@functools.lru_cache(maxsize=512)
+def _addresses(host: str) -> tuple[str, ...]:
+    """The host's addresses, canonical (IPv6 in brackets), sorted; the name itself when it does not resolve."""
+    try:
+        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError):
+        return (host.lower(),)  # the connection will fail and say so; the spelling is the best key left
+    out = set()
+    for info in infos:
+        ip = ipaddress.ip_address(str(info[4][0]).split("%")[0])
+        if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+            ip = ip.ipv4_mapped
+        out.add(f"[{ip.compressed}]" if ip.version == 6 else ip.compressed)
+    return tuple(sorted(out)) or (host.lower(),)
 
 
 def no_answer_hint(url: DeviceURL, unit: int) -> str:
@@ -136,14 +169,24 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
     raw = text.strip()
     if "://" not in raw:
         raise BadURL(f"'{text}' is not a device URL (expected e.g. tcp://HOST:502 or rtu:///dev/ttyUSB0)")
-    u = urllib.parse.urlsplit(raw)
+    try:
+        u = urllib.parse.urlsplit(raw)
+    except ValueError as e:  # "Invalid IPv6 URL": an unclosed [
+        raise BadURL(f"'{text}' is not a valid URL ({e}; an IPv6 host is written in brackets: "
+                     f"tcp://[::1]:502)") from None
     scheme = u.scheme.lower()
     if scheme not in _OPTIONS:
         hint = difflib.get_close_matches(scheme, list(_OPTIONS), n=1)
         raise BadURL(f"unknown scheme '{scheme}' in '{text}'" + (f"; did you mean '{hint[0]}'?" if hint else
                                                                   f" (known: {', '.join(_OPTIONS)})"))
+    if u.fragment or raw.endswith("#"):
+        raise BadURL(f"unexpected '#{u.fragment}' in '{text}' (a device URL has no fragment; options go after ?)")
+    if "@" in u.netloc:
+        raise BadURL(f"unexpected user name or password in '{text}' (Modbus has no login; TLS uses cert= and key=)")
     options: dict[str, str] = {}
     for key, values in urllib.parse.parse_qs(u.query, keep_blank_values=True).items():
+        if len(values) > 1:
+            raise BadURL(f"option '{key}' given {len(values)} times in '{text}': give it once")
         if key not in _OPTIONS[scheme]:
             hint = difflib.get_close_matches(key, sorted(_OPTIONS[scheme]), n=1)
             raise BadURL(f"unknown option '{key}' in {scheme} URL" + (f"; did you mean '{hint[0]}'?" if hint else
@@ -199,6 +242,8 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
             raise BadURL(f"option verify={options['verify']} must be true or false")
         for key in ("cert", "key", "ca"):
             if key in options and not os.path.isfile(options[key]):
+                if os.path.exists(options[key]):
+                    raise BadURL(f"tls option {key}: '{options[key]}' is not a regular file (expected a PEM file)")
                 raise BadURL(f"tls option {key}: no such file '{options[key]}'")
         if ("cert" in options) != ("key" in options):
             raise BadURL("tls options cert and key go together (the client certificate and its key)")

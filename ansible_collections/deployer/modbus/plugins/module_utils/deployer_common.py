@@ -147,11 +147,11 @@ def refuse_one_device_twice(jobs):
     """Two names for one device (same address and unit, any spelling) would write it twice in one run."""
     seen = {}
     for j in jobs:
-        key = (describe_url(j.url), j.unit)
-        if key in seen:
-            raise UsageError(f"{seen[key]!r} and {j.name!r} are one device ({key[0]}, unit {key[1]}); "
-                             "list it once")
-        seen[key] = j.name
+        for key in ((k, j.unit) for k in j.url.lock_keys):  # resolved addresses: localhost is 127.0.0.1
+            if key in seen:
+                raise UsageError(f"{seen[key][0]!r} and {j.name!r} are one device ({seen[key][1]} and "
+                                 f"{describe_url(j.url)}, unit {j.unit}); list it once")
+            seen[key] = (j.name, describe_url(j.url))
     return jobs
 
 
