@@ -245,6 +245,15 @@ def test_an_api_apply_is_journaled_and_status_sees_it_killed(files: Path) -> Non
         assert unfinished["via"] == "api" and unfinished["interrupted"][0]["name"] == "press"
         code, out, _ = deployer("status", "--state-dir", "state", cwd=files)
         assert "apply (through the Python API)" in out and "interrupted while writing: press" in out
+        # acknowledged after a look: recorded in the audit log, and no longer listed
+        code, out, err = deployer("status", "--state-dir", "state", "--resolve", unfinished["run"], cwd=files)
+        assert code == 0 and f"resolved run {unfinished['run']}" in out, out + err
+        resolved = audit(files / "state")[-1]
+        assert resolved["event"] == "run-resolved" and resolved["run"] == unfinished["run"] and resolved["user"]
+        code, out, _ = deployer("status", "--state-dir", "state", "--json", cwd=files)
+        assert json.loads(out)["unfinished"] == []
+        code, out, err = deployer("status", "--state-dir", "state", "--resolve", unfinished["run"], cwd=files)
+        assert code == 1 and "needs a look" in err
 
 
 def test_a_stale_plan_is_refused_and_journaled_as_such(files: Path) -> None:

@@ -344,8 +344,8 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
                      help="staged rollout: batch sizes (count or % of the selected devices; the last repeats); "
                           "each batch finishes before the next, a batch with no ok device ends the rollout"),
         click.option("--max-failures", metavar="N|P%",
-                     help="after this many devices did not end ok (failed, partial, unreachable or rolled back "
-                          "count; skipped ones never), start no new device"),
+                     help="after this many devices did not end ok (failed, partial, unreachable, interrupted or "
+                          "rolled back count; skipped ones never), start no new device"),
         parallel_option,
         click.option("--on-error", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
                      help="after a rejected value: send the rest, or skip it"),
