@@ -5,7 +5,7 @@ the profile's text), the device it was read from (URL and unit), and the raw reg
 the engineering values, so ``rollback`` restores the device bit for bit from any working
 directory, and refuses when the profile it would decode with is not the one used to read.
 Loading (the checks) lives with the recipe loader (``load_recipe`` knows the ``snapshot`` block);
-this module writes snapshots and finds them again for a fleet rollback.
+this module writes snapshots (``run.rollback`` finds them again from a run's report and journal).
 """
 
 from __future__ import annotations
@@ -15,13 +15,10 @@ import os
 import re
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
 
-from ..load.diagnostics import Diagnostic, InputError
 from ..profile import profile_ref
 from ..recipe.loader import DeviceSpec, Recipe, SnapshotInfo
 from ..recipe.text import recipe_text
-from ..report import read_report
 from .durable import NewFile, durable_now
 
 
@@ -99,50 +96,3 @@ def save_snapshot(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
     path = durable_now(snapshot_file(state_dir, name, recipe, values, url, unit, applied=applied))
     assert path is not None
     return path
-
-
-@dataclass(frozen=True)
-class ReportedSnapshot:
-    """One device of an earlier run's report that has a snapshot to restore."""
-
-    name: str
-    url: str
-    unit: int
-    snapshot: str  # absolute path
-
-
-def snapshots_of_report(path: str, restored: list[str] | None = None) -> tuple[list[ReportedSnapshot], list[str]]:
-    """The devices of a report with a snapshot, and the names of those without one (nothing was written).
-
-    Devices the run already rolled back (``rolled-back``: restored from that snapshot and verified) are
-    neither: their names go into ``restored``.
-
-    Relative snapshot paths (reports before snapshots were absolute) resolve against the report's folder
-    first, then the working directory. Raises InputError for a file that is not a deployer report.
-    """
-    try:
-        data = read_report(path)
-    except FileNotFoundError:
-        raise InputError([Diagnostic(path, 0, 0, "no such file")]) from None
-    except OSError as e:
-        raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e.strerror}")]) from None
-    found: list[ReportedSnapshot] = []
-    without: list[str] = []
-    base = os.path.dirname(os.path.abspath(path))
-    for dev in data.get("devices") or []:
-        if not isinstance(dev, dict) or "name" not in dev:
-            continue
-        snap = dev.get("snapshot")
-        if dev.get("status") == "rolled-back":
-            if restored is not None:
-                restored.append(str(dev["name"]))
-            continue
-        if not snap:
-            without.append(str(dev["name"]))
-            continue
-        snap = str(snap)
-        if not os.path.isabs(snap):
-            beside = os.path.join(base, snap)
-            snap = beside if os.path.exists(beside) else os.path.abspath(snap)
-        found.append(ReportedSnapshot(str(dev["name"]), str(dev.get("url", "")), int(dev.get("unit", 1)), snap))
-    return found, without
