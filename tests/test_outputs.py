@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from deployer.errors import UsageError
 from deployer.profile import builtin_profile
 from deployer.state import durable, journal
-from deployer.testing.simulator import SimulatorThread
+from deployer.testing.simulator import Simulator, SimulatorThread
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -36,7 +36,7 @@ def run(*args: str, cwd: Path | None = None) -> tuple[int, str]:
 
 
 @pytest.fixture(scope="module")
-def sim() -> Iterator[SimulatorThread]:
+def sim() -> Iterator[Simulator]:
     with SimulatorThread(builtin_profile("example-inverter")) as s:
         yield s
 
@@ -50,7 +50,7 @@ def _plant(kind: str, path: Path, victim: Path) -> None:
         path.mkdir()
 
 
-def _commands(tmp: Path, sim: SimulatorThread, out: str) -> dict[str, list[str]]:
+def _commands(tmp: Path, sim: Simulator, out: str) -> dict[str, list[str]]:
     recipe = tmp / "r.yaml"
     recipe.write_text(RECIPE)
     csv = tmp / "in.csv"
@@ -67,7 +67,7 @@ def _commands(tmp: Path, sim: SimulatorThread, out: str) -> dict[str, list[str]]
 
 
 @pytest.mark.parametrize("kind", ["symlink", "fifo", "folder", "device"])
-def test_every_output_refuses_what_is_not_a_regular_file(kind: str, tmp_path: Path, sim: SimulatorThread) -> None:
+def test_every_output_refuses_what_is_not_a_regular_file(kind: str, tmp_path: Path, sim: Simulator) -> None:
     victim = tmp_path / "precious.txt"
     victim.write_text("keep me\n")
     out = Path("/dev/null") if kind == "device" else tmp_path / "out"
@@ -92,7 +92,7 @@ def test_every_output_refuses_what_is_not_a_regular_file(kind: str, tmp_path: Pa
 
 
 def test_reports_plans_and_pulls_replace_a_file_imports_and_exports_need_force(tmp_path: Path,
-                                                                               sim: SimulatorThread) -> None:
+                                                                               sim: Simulator) -> None:
     out = tmp_path / "out"
     for name, args in _commands(tmp_path, sim, str(out)).items():
         out.write_text("old\n")
@@ -158,7 +158,7 @@ def _fill(d: Path, leave: int) -> None:
         f.write(b"x" * max(0, free - leave))
 
 
-def test_a_full_state_directory_is_said_plainly(full_disk: Path, tmp_path: Path, sim: SimulatorThread) -> None:
+def test_a_full_state_directory_is_said_plainly(full_disk: Path, tmp_path: Path, sim: Simulator) -> None:
     recipe = tmp_path / "r.yaml"
     recipe.write_text(RECIPE.replace("10 s", "11 s"))
     _fill(full_disk, 0)
@@ -209,6 +209,7 @@ def test_every_record_is_read_back_whatever_fragments_lie_between(items: list[ob
                 durable.append_lines(path, [it])
                 records.append(it)
             else:
+                assert isinstance(it, str)
                 with open(path, "a") as f:
                     f.write(it)
         lines = Path(path).read_text().splitlines() if os.path.exists(path) else []

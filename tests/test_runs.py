@@ -225,8 +225,8 @@ def test_an_api_apply_is_journaled_and_status_sees_it_killed(files: Path) -> Non
         p = subprocess.run([sys.executable, str(script), "new.yaml", sim.url, "state"], capture_output=True,
                            text=True, cwd=files, env=env, timeout=120)
         assert p.returncode == 0, p.stderr
-        run, code = p.stdout.split()
-        assert code == "0"
+        run, exit_code = p.stdout.split()
+        assert exit_code == "0"
         lines = [r for r in audit(files / "state") if r["run"] == run]
         assert [r["event"] for r in lines] == ["run-started", "device-started", "device-finished", "run-finished"]
         assert lines[0]["via"] == "api" and lines[0]["devices"][0]["name"] == "press"

@@ -7,6 +7,7 @@ pure-Python reader) are held to the same diagnostics, keys and values alike.
 
 from __future__ import annotations
 
+from decimal import Decimal
 from pathlib import Path
 
 import pytest
@@ -51,7 +52,7 @@ def test_what_stays_allowed(tmp_path: Path, loader: type) -> None:
     f = tmp_path / "f.yaml"
     f.write_text("a: 0\nb: 0x10\nc: '010'\nd: \"0o17\"\ne: 0.5\nf: 10\ng: 1_000\nh: 010 ms\ni: -0\nj: |\n  010\n")
     data, _ = yamlsrc.load(str(f), loader=loader)
-    assert data == {"a": 0, "b": 16, "c": "010", "d": "0o17", "e": yamlsrc.Decimal("0.5"), "f": 10, "g": 1000,
+    assert data == {"a": 0, "b": 16, "c": "010", "d": "0o17", "e": Decimal("0.5"), "f": 10, "g": 1000,
                     "h": "010 ms", "i": 0, "j": "010\n"}
 
 
