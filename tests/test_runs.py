@@ -362,9 +362,22 @@ def test_rollback_force_restores_only_where_the_snapshot_read(files: Path) -> No
         code, out, err = deployer("rollback", snap, "--yes", "--state-dir", "state", cwd=files)
         assert code == 1 and "changed since this snapshot was taken" in err
         writes_before = writes(sim)
+        # with another parameter now at 10, restoring p1 there would write over it: refused, nothing sent
+        (files / "slow.yaml").write_text(PROFILE.replace("p1: {register: 10,", "p1: {register: 12,")
+                                         + "  q: {register: 10, type: uint16}\n")
         code, out, err = deployer("rollback", snap, "--yes", "--force", "--state-dir", "state", cwd=files)
-        assert code == 1 and "p1 moved: the snapshot read it at 10 (0x000A), profile slow now puts it at 12" in err
+        assert code == 1 and "p1 moved: the snapshot read it at 10 (0x000A)" in err and "q at 10" in err, err
         assert writes(sim) == writes_before
+        # --force restores every recorded register where the snapshot read it: p1 back at 10, nothing at 12
+        (files / "slow.yaml").write_text(PROFILE.replace("p1: {register: 10,", "p1: {register: 12,"))
+        sim.write("p1", (7,))
+        code, out, err = deployer("rollback", snap, "--yes", "--force", "--json", "--state-dir", "state", cwd=files)
+        assert code == 0, out + err
+        assert holds(sim) == before(0)
+        assert not any(e.function in (6, 16) and e.address <= 12 < e.address + e.count for e in sim.log)
+        assert {p["name"]: p["address"] for p in json.loads(out)["devices"][0]["parameters"]}["p1"] == 10
+        for k, v in enumerate(before(0)):  # the device as the run found it, for the next case
+            sim.write(f"p{k}", (v,))
         # a profile changed elsewhere (every parameter where it was): --force restores the recorded registers
         (files / "slow.yaml").write_text(PROFILE + "# reviewed\n")
         code, out, err = deployer("rollback", snap, "--yes", "--force", "--state-dir", "state", cwd=files)

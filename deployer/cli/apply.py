@@ -403,7 +403,8 @@ def apply(source: str | None, **kw: Any) -> int:
 @click.option("--from-report", "from_reports", multiple=True, type=click.Path(dir_okay=False), metavar="RUN.json",
               help="every device that run may have written, each from its own snapshot (repeatable)")
 @click.option("--force", is_flag=True,
-              help="restore the recorded raw registers although the profile changed since the snapshot")
+              help="restore the recorded raw registers, each where the snapshot read it, although the profile "
+                   "changed since the snapshot")
 @click.option("--to-other-device", is_flag=True,
               help="consent to restore a snapshot to another device or unit than the one it was taken from")
 @click.option("--accept-edited-snapshot", is_flag=True,

@@ -143,6 +143,11 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
     desired: list[Desired] = []
     if snapshot is not None and snapshot.profile_changed:
         desired = _from_registers(prof, snapshot, top_src, errors)
+        # a parameter the profile moved is restored where the snapshot read it: the recipe's profile says
+        # so, and plan, read-back and verification all use that address
+        moved = {d.name: d.parameter for d in desired if d.parameter is not prof.get(d.name)}
+        if moved:
+            prof = replace(prof, parameters=tuple(moved.get(q.name, q) for q in prof.parameters))
     else:
         for entry in entries.values():
             d = _desired(prof, entry, rounding, errors, trusted=snapshot is not None)
@@ -210,7 +215,9 @@ def _snapshot_info(data: Mapping[str, Any], prof: Profile, src: yamlsrc.Source, 
 
 def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source,
                     errors: list[Diagnostic]) -> list[Desired]:
-    """--force with a changed profile: the recorded raw words, at parameters that still fit them."""
+    """--force with a changed profile: the recorded raw words, each where the snapshot read it (a
+    parameter the profile moved goes back to its recorded address, unless another parameter of the
+    profile now lies there)."""
     out = []
     for name, words in snap.registers.items():
         at: yamlsrc.Path_ = ("snapshot", "registers", name)
@@ -222,10 +229,17 @@ def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source,
         elif not param.writable:
             errors.append(src.error(at, f"{name} is read-only in profile {prof.id} now", key=True))
         elif snap.addresses is not None and name in snap.addresses and snap.addresses[name][0] != param.address:
-            errors.append(src.error(("snapshot", "addresses", name), (
-                f"{name} moved: the snapshot read it at {snap.addresses[name][0]} (0x{snap.addresses[name][0]:04X}), "
-                f"profile {prof.id} now puts it at {param.address} (0x{param.address:04X}); --force restores only "
-                "parameters that are where they were read (restore this one with a recipe)")))
+            old = snap.addresses[name][0]
+            there = sorted(q.name for q in prof.parameters if q.name != name and q.register_type == param.register_type
+                           and q.address < old + param.count and old < q.address + q.count)
+            if there:
+                errors.append(src.error(("snapshot", "addresses", name), (
+                    f"{name} moved: the snapshot read it at {old} (0x{old:04X}), profile {prof.id} now puts it at "
+                    f"{param.address} (0x{param.address:04X}) and {', '.join(there)} at {old}: restoring it there "
+                    "would write over that; restore it with a recipe")))
+                continue
+            param = replace(param, address=old)  # back where it was read: the device's layout then
+            out.append(Desired(param, param.show_registers(tuple(words)), words))
         else:
             out.append(Desired(param, param.show_registers(tuple(words)), words))
     return out
