@@ -190,6 +190,15 @@ def test_api_check_mode_plans_with_what_the_device_taught(tmp_path: Path, device
         assert len(_writes(sim)) == writes  # planning reads only
 
 
+def test_what_a_device_taught_is_kept_under_its_address_however_spelled() -> None:
+    from deployer.transport.urls import parse_url
+
+    keys = {learned.device_id(parse_url(f"tcp://{host}:1502"), 3)
+            for host in ("127.0.0.1", "localhost", "127.1", "2130706433")}
+    assert len(keys) == 1 and next(iter(keys)).endswith("#unit3")
+    assert learned.device_id(parse_url("tcp://127.0.0.2:1502"), 3) not in keys
+
+
 # ---- Function 06 only ------------------------------------------------------------------------------
 
 

@@ -149,10 +149,13 @@ def note(entry: Entry) -> str:
 
 
 def device_id(url: DeviceURL, unit: int) -> str:
-    """The key a device's entries are kept under: the one its lock uses (bus and unit)."""
+    """The key a device's entries are kept under: its resolved address (as its lock's), and unit.
+
+    tcp://localhost:P, tcp://127.0.0.1:P, tcp://127.1:P and tcp://2130706433:P are one device and share
+    what it taught; a name with several addresses is kept under the first of them (sorted)."""
     from .lock import device_key
 
-    return device_key(url.bus, unit)
+    return device_key(url.lock_keys[0], unit)
 
 
 def for_recipe(recipe: Recipe, state_dir: str, url: DeviceURL, unit: int) -> tuple[Recipe, Entry | None]:
