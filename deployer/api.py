@@ -48,7 +48,7 @@ from .errors import (
 )
 from .execute.read import read_current
 from .execute.session import ApplyOptions
-from .execute.soak import check_soak_profiles, confirm_run
+from .execute.soak import confirm_run
 from .fleet.inventory import FleetDevice, Inventory, load_inventory
 from .fleet.inventory import fleet_jobs as _fleet_jobs
 from .fleet.inventory import inventory_from as _inventory_from
@@ -294,8 +294,6 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
     _need_recipe(recipe, "apply")
     url, u = _target(recipe, device, unit)
     opts = safe_options(options, soak=soak, health_interval=health_interval, confirm_within=confirm_within)
-    if opts.soak is not None:
-        check_soak_profiles([recipe.profile])
     return await run_async([Job(name or recipe.name, recipe, url, u)], label=recipe.path or recipe.name,
                            parallel=1, options=opts, report_path=report_path, on_confirm_wait=on_confirm_wait)
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import shlex
 import sys
 import time
 from collections.abc import Callable
@@ -20,6 +19,7 @@ from .base import (
     _fleet,
     _n,
     _target,
+    command_line,
     console,
     device_options,
     fleet_option,
@@ -200,7 +200,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                            allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
                            lock_timeout=lock_timeout, soak=soak, health_interval=health_interval,
                            confirm_within=confirm_within,
-                           command=shlex.join(["deployer", *_ARGV]) if _ARGV else f"deployer {command}")
+                           command=command_line(command))
     safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
                        interval=health_interval, staged=bool(batch), fleet=fleet_run)
     kw: dict[str, Any] = dict(command=command, label=label, argv=_ARGV, via="cli", options=options, parallel=parallel,

@@ -246,6 +246,13 @@ _ARGV: list[str] = []  # the command line, for the audit log
 _OWN_PROCESS: list[bool] = []  # main() without argv: this process is the command, not a caller's
 
 
+def command_line(fallback: str = "") -> str:
+    """The command as the user typed it (quoted as a shell would need it), for reports and pages."""
+    import shlex
+
+    return shlex.join(["deployer", *_ARGV]) if _ARGV else f"deployer {fallback}".rstrip()
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: map every user error to its exit code, never a traceback."""
     if argv is None:

@@ -330,7 +330,7 @@ def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], pat
     """``pull --html``: per device its values (engineering text and registers), or why it could not be read."""
     from ..pages import as_found_page
     from ..report import run_info
-    from .base import _ARGV, write_page
+    from .base import command_line, write_page
 
     entries = []
     for name, url, unit, prof, cur in devices:
@@ -340,7 +340,7 @@ def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], pat
         else:
             entry["error"] = str(cur)
         entries.append(entry)
-    write_page(as_found_page(entries, run=run_info(" ".join(["deployer", *_ARGV]), time.time())), path)
+    write_page(as_found_page(entries, run=run_info(command_line(), time.time())), path)
     click.echo(f"page: {path}", err=True)
 
 
@@ -350,7 +350,7 @@ def _drift_page(jobs: Sequence[Job], values: Mapping[str, object], rows: Mapping
     is not the recipe's value."""
     from ..pages import drift_page
     from ..report import run_info
-    from .base import _ARGV, write_page
+    from .base import command_line, write_page
 
     params: dict[str, None] = {}
     for j in jobs:
@@ -368,5 +368,5 @@ def _drift_page(jobs: Sequence[Job], values: Mapping[str, object], rows: Mapping
             held = "-" if raw is None else d.parameter.show_registers(tuple(raw))
             cells[index[d.name]][col] = (held, d.text) if d.name in drifted else (held,)
     labels = [j.name if isinstance(values[j.name], dict) else f"{j.name} (unreachable)" for j in jobs]
-    write_page(drift_page(labels, names, cells, run=run_info(" ".join(["deployer", *_ARGV]), time.time())), path)
+    write_page(drift_page(labels, names, cells, run=run_info(command_line(), time.time())), path)
     click.echo(f"page: {path}", err=True)

@@ -348,27 +348,17 @@ def awaiting(state_dir: str) -> list[Awaiting]:
     ``confirm-interrupted``) or ``run-finished`` after it."""
     out: dict[str, Awaiting] = {}
     recipes: dict[str, str | None] = {}
-    try:
-        f = open(journal.path_of(state_dir), encoding="utf-8")  # noqa: SIM115 - closed below
-    except FileNotFoundError:
-        return []
-    with f:
-        for line in f:
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                continue
-            if not isinstance(rec, dict) or not rec.get("run"):
-                continue
-            run, event = str(rec["run"]), rec.get("event")
-            if event == "run-started":
-                recipes[run] = rec.get("recipe")
-            elif event == "confirm-awaited":
-                out[run] = Awaiting(run, rec.get("pid"), str(rec.get("deadline", "")),
-                                    float(rec.get("deadline_epoch", 0)), str(rec.get("report", "")),
-                                    recipes.get(run))
-            elif event in ("confirmed", "confirm-expired", "confirm-interrupted", "run-finished"):
-                out.pop(run, None)
+    for rec in journal.read(state_dir):
+        if rec is None or not rec.get("run"):
+            continue
+        run, event = str(rec["run"]), rec.get("event")
+        if event == "run-started":
+            recipes[run] = rec.get("recipe")
+        elif event == "confirm-awaited":
+            out[run] = Awaiting(run, rec.get("pid"), str(rec.get("deadline", "")),
+                                float(rec.get("deadline_epoch", 0)), str(rec.get("report", "")), recipes.get(run))
+        elif event in ("confirmed", "confirm-expired", "confirm-interrupted", "run-finished"):
+            out.pop(run, None)
     return list(out.values())
 
 
@@ -376,23 +366,14 @@ def soaking(state_dir: str) -> dict[str, str | None]:
     """Runs whose last ``soak-started`` line has no ``soak-finished`` or ``run-finished`` after it: run -> the
     report of the run so far (None from a run without one)."""
     out: dict[str, str | None] = {}
-    try:
-        f = open(journal.path_of(state_dir), encoding="utf-8")  # noqa: SIM115 - closed below
-    except FileNotFoundError:
-        return {}
-    with f:
-        for line in f:
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                continue
-            if not isinstance(rec, dict) or not rec.get("run"):
-                continue
-            run, event = str(rec["run"]), rec.get("event")
-            if event == "soak-started":
-                out[run] = rec.get("report")
-            elif event in ("soak-finished", "run-finished"):
-                out.pop(run, None)
+    for rec in journal.read(state_dir):
+        if rec is None or not rec.get("run"):
+            continue
+        run, event = str(rec["run"]), rec.get("event")
+        if event == "soak-started":
+            out[run] = rec.get("report")
+        elif event in ("soak-finished", "run-finished"):
+            out.pop(run, None)
     return out
 
 

@@ -9,7 +9,7 @@ import os
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol, TypeVar
+from typing import Protocol, TypeVar
 
 from ..errors import RunInterrupted, UsageError
 from ..execute.device import DeviceInterrupted, _apply_device, _results, journal_line
@@ -20,11 +20,6 @@ from ..profile import Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..report import DeviceResult, Report
 from ..transport import clients as tp
-
-if TYPE_CHECKING:
-    from ..profile import Profile
-    from ..report import DeviceResult, Report
-
 
 # ---- fleets ----------------------------------------------------------------------------------
 

@@ -51,6 +51,17 @@ def _controls(statuses: Sequence[str], batches: Sequence[int]) -> str:
             "<label><input type=checkbox id=bad> not ok</label><span id=shown class=muted></span></div>")
 
 
+def _devices(statuses: Sequence[str], batches: Sequence[int]) -> str:
+    """The device table (its rows drawn by the script) with its filters."""
+    return ("<section id=devices><h2 class=noprint>Devices</h2>" + _controls(statuses, batches)
+            + "<table id=device-table><thead><tr><th class=sort data-key=name>device</th>"
+            "<th class=sort data-key=status>status</th><th class='sort num' data-key=batch>batch</th>"
+            "<th class='sort num' data-key=changed>changed</th><th class='sort num' data-key=failed>failed</th>"
+            "<th class='sort num' data-key=requests>requests</th><th class='sort num' data-key=seconds>seconds</th>"
+            "<th class=sort data-key=profile>profile</th></tr></thead><tbody id=device-rows></tbody></table>"
+            "</section>")
+
+
 def run_page(report: Report, *, title: str | None = None) -> str:
     """A run's report as a page: the run, status counts, a device table that sorts and filters, and
     each device's parameters (as found / desired / as left / status), failures first. Printed, it is
@@ -85,14 +96,8 @@ def run_page(report: Report, *, title: str | None = None) -> str:
         ("devices", f"{summary['devices']}; {summary['write_requests']} write and {summary['read_requests']} read "
                     f"requests in {summary['seconds']:.2f} s"),
     ])
-    main = (f"<section class=counts>{counts}</section>"
-            f"<section id=devices><h2 class=noprint>Devices</h2>{_controls(statuses, batches)}"
-            "<table id=device-table><thead><tr><th class=sort data-key=name>device</th>"
-            "<th class=sort data-key=status>status</th><th class='sort num' data-key=batch>batch</th>"
-            "<th class='sort num' data-key=changed>changed</th><th class='sort num' data-key=failed>failed</th>"
-            "<th class='sort num' data-key=requests>requests</th><th class='sort num' data-key=seconds>seconds</th>"
-            "<th class=sort data-key=profile>profile</th></tr></thead><tbody id=device-rows></tbody></table>"
-            "</section><section><h2>Parameters, device by device</h2><div id=records></div></section>")
+    main = (f"<section class=counts>{counts}</section>{_devices(statuses, batches)}"
+            "<section><h2>Parameters, device by device</h2><div id=records></div></section>")
     name = title or "deployer run: " + (", ".join(os.path.basename(r) for r in recipes) or "report")
     return _page(name, header, main, {"kind": "run", "devices": devices})
 
@@ -115,13 +120,8 @@ def as_found_page(devices: Sequence[Mapping[str, Any]], *, command: str | None =
                     ("when", info.get("started")), ("where", info.get("host")),
                     ("deployer", info.get("version")), ("devices", len(data))])
     statuses = [s for s in ("unreachable", "ok") if any(d["status"] == s for d in data)]
-    main = ("<section id=devices><h2 class=noprint>Devices</h2>" + _controls(statuses, [])
-            + "<table id=device-table><thead><tr><th class=sort data-key=name>device</th>"
-            "<th class=sort data-key=status>status</th><th class='sort num' data-key=batch>batch</th>"
-            "<th class='sort num' data-key=changed>changed</th><th class='sort num' data-key=failed>failed</th>"
-            "<th class='sort num' data-key=requests>requests</th><th class='sort num' data-key=seconds>seconds</th>"
-            "<th class=sort data-key=profile>profile</th></tr></thead><tbody id=device-rows></tbody></table>"
-            "</section><section><h2>As found, device by device</h2><div id=records></div></section>")
+    main = (_devices(statuses, [])
+            + "<section><h2>As found, device by device</h2><div id=records></div></section>")
     return _page("deployer: as-found record", header, main, {"kind": "as-found", "devices": data})
 
 

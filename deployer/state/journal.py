@@ -14,7 +14,7 @@ import json
 import os
 import pwd
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -156,6 +156,33 @@ def _key(rec: dict[str, Any]) -> tuple[Any, Any, Any]:
     return rec.get("name"), rec.get("url"), rec.get("unit")
 
 
+def read(state_dir: str, *, containing: str | None = None, missing_ok: bool = True
+         ) -> Iterator[dict[str, Any] | None]:
+    """The journal's records in order, and None for each line that is not JSON (a torn line); JSON that
+    is not an object is passed over.
+
+    ``containing``: lines without this text are passed over unparsed (a cheap filter). No journal:
+    nothing, or FileNotFoundError unless ``missing_ok``; other OSErrors are the caller's.
+    """
+    try:
+        f = open(path_of(state_dir), encoding="utf-8", errors="replace")  # noqa: SIM115 - closed below
+    except FileNotFoundError:
+        if missing_ok:
+            return
+        raise
+    with f:
+        for line in f:
+            if containing is not None and containing not in line:
+                continue
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                yield None
+                continue
+            if isinstance(rec, dict):
+                yield rec
+
+
 def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:
     """Runs that need a look, oldest first, and the number of lines that were not JSON (a torn line).
 
@@ -163,13 +190,8 @@ def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:
     interrupted was restored afterwards from that device's snapshot (a rollback that ended ok), or when
     someone resolved it (``run-resolved``).
     """
-    path = path_of(state_dir)
     runs: dict[str, Unfinished] = {}
     bad = 0
-    try:
-        f = open(path, encoding="utf-8")  # noqa: SIM115 - closed below
-    except FileNotFoundError:
-        return [], 0
 
     def restored(snapshot: str) -> None:
         for r, u in list(runs.items()):
@@ -179,43 +201,38 @@ def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:
                 if not left and not u.running:
                     del runs[r]
 
-    with f:
-        for line in f:
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                bad += 1
-                continue
-            if not isinstance(rec, dict):
-                continue
-            run, event = rec.get("run"), rec.get("event")
-            if not run:
-                continue
-            if event == "run-started":
-                runs[run] = Unfinished(run, rec.get("time", ""), rec.get("user", ""), rec.get("pid"),
-                                       rec.get("command", ""), rec.get("argv", []), rec.get("recipe"),
-                                       rec.get("devices", []), via=str(rec.get("via", "cli")))
-            elif event == "device-started" and run in runs:
-                runs[run].interrupted.append(rec)
-            elif event == "device-finished" and run in runs:
-                u = runs[run]
-                u.interrupted = [d for d in u.interrupted if _key(d) != _key(rec)]
-                u.finished.append(rec)
-            elif event == "run-finished":
-                ended = runs.pop(run, None)
-                devices = [d for d in rec.get("devices") or [] if isinstance(d, dict)]
-                left = [d for d in devices if d.get("status") == "interrupted" and d.get("snapshot")]
-                if ended is not None and left:  # ended early while writing these: they need a look
-                    starts = {_key(d): d for d in ended.interrupted}
-                    ended.interrupted = [{**starts.get(_key(d), {}), **d} for d in left]
-                    ended.finished = [d for d in devices if d not in left]
-                    ended.ended = str(rec.get("interrupted") or "interrupted")
-                    runs[run] = ended
-                for d in devices:
-                    if d.get("status") == "ok" and d.get("restored"):
-                        restored(str(d["restored"]))
-            elif event == "run-resolved":
-                runs.pop(run, None)
+    for rec in read(state_dir):
+        if rec is None:
+            bad += 1
+            continue
+        run, event = rec.get("run"), rec.get("event")
+        if not run:
+            continue
+        if event == "run-started":
+            runs[run] = Unfinished(run, rec.get("time", ""), rec.get("user", ""), rec.get("pid"),
+                                   rec.get("command", ""), rec.get("argv", []), rec.get("recipe"),
+                                   rec.get("devices", []), via=str(rec.get("via", "cli")))
+        elif event == "device-started" and run in runs:
+            runs[run].interrupted.append(rec)
+        elif event == "device-finished" and run in runs:
+            u = runs[run]
+            u.interrupted = [d for d in u.interrupted if _key(d) != _key(rec)]
+            u.finished.append(rec)
+        elif event == "run-finished":
+            ended = runs.pop(run, None)
+            devices = [d for d in rec.get("devices") or [] if isinstance(d, dict)]
+            left = [d for d in devices if d.get("status") == "interrupted" and d.get("snapshot")]
+            if ended is not None and left:  # ended early while writing these: they need a look
+                starts = {_key(d): d for d in ended.interrupted}
+                ended.interrupted = [{**starts.get(_key(d), {}), **d} for d in left]
+                ended.finished = [d for d in devices if d not in left]
+                ended.ended = str(rec.get("interrupted") or "interrupted")
+                runs[run] = ended
+            for d in devices:
+                if d.get("status") == "ok" and d.get("restored"):
+                    restored(str(d["restored"]))
+        elif event == "run-resolved":
+            runs.pop(run, None)
     return list(runs.values()), bad
 
 
@@ -235,35 +252,15 @@ def resolve(state_dir: str, run: str, *, note: str | None = None) -> Unfinished:
 
 def records(state_dir: str, run: str) -> list[dict[str, Any]]:
     """Every readable line of one run, in order (OSError when the journal cannot be read)."""
-    out = []
-    with open(path_of(state_dir), encoding="utf-8", errors="replace") as f:
-        for line in f:
-            if f'"{run}"' not in line:
-                continue
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                continue
-            if isinstance(rec, dict) and rec.get("run") == run:
-                out.append(rec)
-    return out
+    return [rec for rec in read(state_dir, containing=f'"{run}"', missing_ok=False)
+            if rec is not None and rec.get("run") == run]
 
 
 def snapshot_digest(state_dir: str, snapshot: str) -> str | None:
     """The SHA-256 the journal's ``device-started`` line recorded for ``snapshot`` (an absolute path), if any."""
-    try:
-        f = open(path_of(state_dir), encoding="utf-8", errors="replace")  # noqa: SIM115 - closed below
-    except OSError:
-        return None
     found = None
-    with f:
-        for line in f:
-            if snapshot not in line:
-                continue
-            try:
-                rec = json.loads(line)
-            except ValueError:
-                continue
-            if isinstance(rec, dict) and rec.get("event") == "device-started" and rec.get("snapshot") == snapshot:
+    with contextlib.suppress(OSError):
+        for rec in read(state_dir, containing=snapshot):
+            if rec is not None and rec.get("event") == "device-started" and rec.get("snapshot") == snapshot:
                 found = rec.get("snapshot_sha256") or found
     return found if isinstance(found, str) else None
