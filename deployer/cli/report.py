@@ -31,9 +31,11 @@ def report(report_file: str, html_path: str | None) -> int:
     run = report_from_json(doc)
     out = console()
     info = run.run or {}
-    if info:
-        out.print(" ".join(f"{k}: {info[k]}" for k in ("command", "user", "host", "started", "version")
-                           if info.get(k)))
+    if info.get("command"):
+        out.print(f"command: {info['command']}", soft_wrap=True)
+    who = ", ".join(f"{k} {info[k]}" for k in ("user", "host", "started", "version") if info.get(k))
+    if who:
+        out.print(who, soft_wrap=True)
     if len(run.devices) > 1:
         print_report(run, out, only_not_ok=True)
         fleet_summary(run, out)
