@@ -32,7 +32,7 @@ class ApplyOptions:
     run_id: str | None = None  # journal lines in STATE/audit.jsonl carry it (None: no journal)
     applied: str | None = None  # what is being applied (recipe or plan file), recorded in the snapshot
     lock_timeout: float = 0.0  # seconds to wait for a device another run holds (0: fail at once)
-    lock_dir: str | None = None  # None: $DEPLOYER_LOCK_DIR or <tmp>/deployer-locks
+    lock_dir: str | None = None  # None: lock.lock_dir() ($DEPLOYER_LOCK_DIR or a fixed folder)
     # called when a device's snapshot and device-started line are on disk, right before its first write
     on_writing: Callable[[DeviceResult], None] | None = None
     # a safe change (execute.soak): watch the health checks this long after the write, every health_interval

@@ -6,7 +6,9 @@ rollback restores the wrong state. So apply, rollback and fleet runs take the de
 before their first read and hold it until the read-back is done.
 
 The lock is an ``flock`` on a file in a directory every run on this machine shares, whatever
-its working or state directory: ``$DEPLOYER_LOCK_DIR``, else ``<tmp>/deployer-locks``. The
+its working or state directory: ``$DEPLOYER_LOCK_DIR``, else a fixed folder per system (``lock_dir``):
+``/tmp/deployer-locks`` on POSIX, ``%ProgramData%\\deployer\\locks`` on Windows, never $TMPDIR, which
+differs between a login shell, a service and macOS users, so they would not see each other's locks. The
 kernel drops an ``flock`` when its process dies (even ``kill -9``), so a lock can never stay
 stuck; the file keeps who held it (PID, host, start, command) for the message a second run
 prints, and a record left by a process that is gone is reported as a stale lock taken over.
@@ -25,7 +27,6 @@ import os
 import socket
 import stat
 import sys
-import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -36,8 +37,15 @@ from ..errors import Locked as Locked  # importable from here as before
 ENV = "DEPLOYER_LOCK_DIR"
 
 
+def default_lock_dir() -> str:
+    """The folder every run on this machine shares when $DEPLOYER_LOCK_DIR is not set."""
+    if os.name == "nt":
+        return os.path.join(os.environ.get("PROGRAMDATA") or r"C:\ProgramData", "deployer", "locks")
+    return "/tmp/deployer-locks"
+
+
 def lock_dir() -> str:
-    return os.environ.get(ENV) or os.path.join(tempfile.gettempdir(), "deployer-locks")
+    return os.environ.get(ENV) or default_lock_dir()
 
 
 def device_key(bus: str, unit: int) -> str:
