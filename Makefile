@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 
-.PHONY: demo test lint bench fuzz docs clean
+.PHONY: demo test lint bench fuzz docs site clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,7 @@ test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections
 	$(BIN)/mypy deployer tests
+	$(BIN)/mkdocs build --strict --site-dir build/site   # the manual: a broken link between pages fails
 
 lint: $(VENV)/.installed-test
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections
@@ -31,6 +32,9 @@ lint: $(VENV)/.installed-test
 
 docs: $(VENV)/.installed
 	$(BIN)/deployer docs --out docs/reference
+
+site: $(VENV)/.installed-test
+	$(BIN)/mkdocs build --strict --site-dir build/site
 
 bench: $(VENV)/.installed
 	$(BIN)/python -m benchmarks.run

@@ -194,3 +194,19 @@ def test_links_between_pages_resolve(page: Path) -> None:
         assert dest.exists(), (page.name, target)
         if frag and dest.suffix == ".md" and "reference" in dest.parts:
             assert f'id="{frag}"' in dest.read_text(), (page.name, target)
+
+
+def test_every_page_is_in_the_site_navigation() -> None:
+    """mkdocs.yml's nav lists every page of docs/ (mkdocs build --strict refuses a page left out)."""
+    nav = yaml.safe_load((ROOT / "mkdocs.yml").read_text())["nav"]
+
+    def pages(entries: list[object]) -> set[str]:
+        found: set[str] = set()
+        for entry in entries:
+            for value in (entry.values() if isinstance(entry, dict) else [entry]):
+                found |= pages(value) if isinstance(value, list) else {str(value)}
+        return found
+
+    on_disk = {str(p.relative_to(DOCS)) for p in DOCS.rglob("*.md")}
+    assert sorted(on_disk - pages(nav)) == [], "add these pages to the nav in mkdocs.yml"
+    assert sorted(pages(nav) - on_disk) == []
