@@ -46,13 +46,13 @@ from .errors import (
     TransportError,
     UsageError,
 )
+from .execute.job import Job
 from .execute.read import read_current
 from .execute.session import ApplyOptions
-from .execute.soak import confirm_run
 from .fleet.inventory import FleetDevice, Inventory, load_inventory
 from .fleet.inventory import fleet_jobs as _fleet_jobs
 from .fleet.inventory import inventory_from as _inventory_from
-from .fleet.rollout import Job, ReadJob, read_many
+from .fleet.rollout import ReadJob, read_many
 from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planfile import load_plan, plan_to_json
@@ -64,6 +64,7 @@ from .recipe.text import recipe_text
 from .report import DeviceResult, ParameterResult, Report
 from .run.runner import ensure_files, run_async
 from .transport.clients import DeviceURL, describe, parse_url
+from .window.confirm import confirm_run
 
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
 _REEXPORTED = (BadURL, CodecError, Declined, DeployerError, IdentityMismatch, InputError, Locked, RunInterrupted,

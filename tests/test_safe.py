@@ -16,12 +16,12 @@ from pathlib import Path
 import jsonschema
 import pytest
 
-from deployer.execute.soak import awaiting, confirm_run
 from deployer.load import schema
 from deployer.load.diagnostics import UsageError
 from deployer.load.durations import format_duration, parse_duration
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import Faults, LogEntry, Simulator, SimulatorThread, parse_fault_rule
+from deployer.window.confirm import awaiting, confirm_run
 from tests.helpers import Simulators, profile_from
 from tests.test_cli import cli
 

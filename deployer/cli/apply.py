@@ -32,7 +32,7 @@ from .tables import show
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..fleet.rollout import Job
+    from ..execute.job import Job
     from ..planning.model import Plan
     from ..report import DeviceResult, Report
 
@@ -103,8 +103,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               pause: float | None = None, ask: bool = False, html_path: str | None = None) -> int:
     """apply / rollback: everything validated, then confirmed, then run by the library (``run.runner``)."""
     from ..errors import RunInterrupted
+    from ..execute.job import Job
     from ..execute.session import ApplyOptions
-    from ..fleet.rollout import Job
     from ..planning.planfile import load_plan
     from ..recipe.loader import load_recipe
     from ..run.rollback import report_jobs, snapshot_job
@@ -161,7 +161,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             assert one is not None
             jobs.append(Job(rec.name, rec, one, u))
     if soak is not None:
-        from ..execute.soak import check_soak_profiles
+        from ..window.soak import check_soak_profiles
 
         check_soak_profiles([j.recipe.profile for j in jobs])
     if (pause is not None or ask) and not batch:
@@ -450,8 +450,8 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
 
     A run drops out once the devices it left half-written are rolled back, or with --resolve RUN.
     """
-    from ..execute.soak import awaiting, soaking
     from ..state import journal
+    from ..window.confirm import awaiting, soaking
 
     if resolve is not None:
         try:
@@ -541,7 +541,7 @@ def confirm(run: str | None, state_dir: str) -> int:
 
     RUN is needed only when several runs wait (deployer status lists them).
     """
-    from ..execute.soak import confirm_run
+    from ..window.confirm import confirm_run
 
     target = confirm_run(state_dir, run)
     click.echo(f"confirmed run {target.run}: it sends the commit now (deployer status shows the outcome)")

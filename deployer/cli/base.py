@@ -16,7 +16,8 @@ if TYPE_CHECKING:
 
     from rich.console import Console
 
-    from ..fleet.rollout import Job, ReadJob
+    from ..execute.job import Job
+    from ..fleet.rollout import ReadJob
     from ..profile import Profile
     from ..recipe.loader import Recipe
     from ..transport.clients import DeviceURL

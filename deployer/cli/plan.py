@@ -29,7 +29,7 @@ from .tables import Cell, show
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..fleet.rollout import Job
+    from ..execute.job import Job
     from ..planning.model import Plan
     from ..profile import Profile
     from ..recipe.loader import Recipe

@@ -31,7 +31,8 @@ from .tables import Cell, show
 
 if TYPE_CHECKING:
     from ..api import Drift
-    from ..fleet.rollout import Job, ReadJob
+    from ..execute.job import Job
+    from ..fleet.rollout import ReadJob
     from ..profile import Profile
     from ..recipe.loader import Recipe
 

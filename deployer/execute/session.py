@@ -35,7 +35,7 @@ class ApplyOptions:
     lock_dir: str | None = None  # None: lock.lock_dir() ($DEPLOYER_LOCK_DIR or a fixed folder)
     # called when a device's snapshot and device-started line are on disk, right before its first write
     on_writing: Callable[[DeviceResult], None] | None = None
-    # a safe change (execute.soak): watch the health checks this long after the write, every health_interval
+    # a safe change (deployer.window): watch the health checks this long after the write, every health_interval
     soak: float | None = None  # seconds
     health_interval: float = 1.0
     confirm_within: float | None = None  # seconds to wait for `deployer confirm` before rolling back

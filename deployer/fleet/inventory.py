@@ -19,8 +19,8 @@ from ..profile import is_profile_path
 from ..recipe.loader import Entry, Recipe, expand, load_recipe, with_overrides
 
 if TYPE_CHECKING:
+    from ..execute.job import Job
     from ..profile import Profile
-    from .rollout import Job
 
 
 @dataclass(frozen=True)
@@ -292,8 +292,8 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
     said once and naming the devices it concerns. ``require_recipe`` False (validate): a device without
     a recipe is checked for what it has (profile, URL) and gets no job.
     """
+    from ..execute.job import Job
     from ..transport.clients import parse_url
-    from .rollout import Job
 
     jobs: list[Job] = []
     concerns: dict[Diagnostic, list[str]] = {}  # each problem, and the devices it stops

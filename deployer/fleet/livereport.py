@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Any
 from ..report import device_json, report_parts
 
 if TYPE_CHECKING:
+    from ..execute.job import Job
     from ..report import DeviceResult, Report
-    from .rollout import Job
 
 
 # ---- the report file of a running fleet ------------------------------------------------------

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
-import os
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -13,23 +11,16 @@ from typing import Protocol, TypeVar
 
 from ..errors import RunInterrupted, UsageError
 from ..execute.device import DeviceInterrupted, _apply_device, _results, journal_line
+from ..execute.job import Job
 from ..execute.read import read_current
 from ..execute.session import ApplyOptions, Declined, StalePlan, raise_if_cancelled
-from ..execute.soak import Written, await_confirmation, needs_soak, pending_path, roll_back, send_commit, soak
 from ..profile import Profile, profile_ref
-from ..recipe.loader import Recipe
 from ..report import DeviceResult, Report
 from ..transport import clients as tp
+from ..window.held import Written
+from ..window.rollout import Window
 
 # ---- fleets ----------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Job:
-    name: str
-    recipe: Recipe
-    url: tp.DeviceURL
-    unit: int
 
 
 @dataclass(frozen=True)
@@ -143,7 +134,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     never skipped), no new device starts. Devices never started are in the report as ``skipped`` with
     the reason. With ``batches``, every device's result carries its batch number.
 
-    A safe change (``options.soak``, ``options.confirm_within``; see ``execute.soak``): each batch is
+    A safe change (``options.soak``, ``options.confirm_within``; see ``deployer.window``): each batch is
     written, then soaked together; a device failing its health checks is rolled back and counts against
     ``max_failures``, and any such failure in the first (canary) batch ends the rollout. The profile's
     commit is sent after the soak passed, or once the run is confirmed; not confirmed in time, every
@@ -153,32 +144,79 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     result changed after ``on_done`` (rolled back, committed); ``on_soak(batch number, device names)`` when a
     soak starts.
     """
-    started = time.monotonic()
-    done: dict[str, DeviceResult] = {}
-    budget = Budget(max_failures)
-    stop: str | None = None
-    batch_of = batch_numbers(jobs, batches)
+    opts = options or ApplyOptions()
+    window = Window(opts, recipe_name, on_changed=on_changed, on_soak=on_soak, on_confirm_wait=on_confirm_wait)
+    rollout = _Rollout(jobs, opts, recipe_name, batch_numbers(jobs, batches), Budget(max_failures), window,
+                       on_done=on_done, on_start=on_start)
+    try:
+        await rollout.batches(list(batches) if batches else [len(jobs)], parallel, between_batches)
+        await window.end(rollout.written(jobs), rollout.stop, rollback_on_failure=rollback_on_failure)
+    except asyncio.CancelledError:
+        raise RunInterrupted(rollout.interrupted()) from None
+    finally:
+        window.close()
+    return rollout.report()
 
-    async def one(j: Job) -> Awaitable[None] | None:
-        nonlocal stop
+
+class _Rollout:
+    """One ``apply_many``: the devices' results so far, the failure budget, and why it stopped (if it did)."""
+
+    def __init__(self, jobs: Sequence[Job], opts: ApplyOptions, recipe_name: str | None, batch_of: dict[str, int],
+                 budget: Budget, window: Window, *, on_done: Callable[[DeviceResult], None] | None,
+                 on_start: Callable[[Job], None] | None) -> None:
+        self.jobs = jobs
+        self.opts = opts
+        self.recipe_name = recipe_name
+        self.batch_of = batch_of
+        self.budget = budget
+        self.window = window
+        self.on_done = on_done
+        self.on_start = on_start
+        self.done: dict[str, DeviceResult] = {}
+        self.stop: str | None = None
+        self.started = time.monotonic()
+
+    async def batches(self, sizes: Sequence[int], parallel: int,
+                      between: Callable[[int, Report], Awaitable[str | None]] | None) -> None:
+        jobs = self.jobs
+        pos = 0
+        for number, size in enumerate(sizes, 1):
+            batch = jobs[pos:pos + size]
+            if number > 1 and self.stop is None and between is not None:
+                self.stop = await between(number, self.report())
+            pos += size
+            await on_buses(batch, parallel, self.one)
+            unhealthy = await self.window.after_batch(number, self.written(batch), self.report())
+            self.budget.failures += len(unhealthy)
+            if pos < len(jobs):
+                self.stop = self.stop or self.why_stop(number, batch, unhealthy)
+
+    def why_stop(self, number: int, batch: Sequence[Job], unhealthy: Sequence[str]) -> str | None:
+        """Why the rollout ends after batch ``number``: a canary that failed its health checks, a batch without
+        an ok device, the failure budget spent; None to go on."""
+        if number == 1 and unhealthy:
+            return f"not started: the canary batch 1 failed its health checks ({', '.join(unhealthy)} rolled back)"
+        return batch_failed(number, batch, self.done) or self.budget.spent()
+
+    async def one(self, j: Job) -> Awaitable[None] | None:
         raise_if_cancelled()  # interrupted while this device waited for its turn: it never starts
-        stop = stop or budget.spent()  # checked when the device's turn comes, not when it was queued
-        batch = batch_of.get(j.name)
-        if stop is not None:
-            done[j.name] = skipped_result(j, stop, batch)
+        self.stop = self.stop or self.budget.spent()  # checked when the device's turn comes, not when it was queued
+        batch = self.batch_of.get(j.name)
+        if self.stop is not None:
+            self.done[j.name] = skipped_result(j, self.stop, batch)
             return None
-        if on_start:
-            on_start(j)
+        if self.on_start:
+            self.on_start(j)
         t = time.monotonic()
         finishing: Awaitable[object] | None = None
         try:
-            r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=options, batch=batch)
+            r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=self.opts, batch=batch)
         except DeviceInterrupted as e:
             e.result.seconds = time.monotonic() - t
-            done[j.name] = e.result
+            self.done[j.name] = e.result
             raise
         except Declined:
-            if len(jobs) == 1:
+            if len(self.jobs) == 1:
                 raise
             # in a fleet, a "no" is about that device: the others were asked (or are being written) on their own
             r = skipped_result(j, "not written: declined at the confirmation prompt", batch)
@@ -190,127 +228,30 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                              profile_sha256=j.recipe.profile.digest)
             r.parameters = list(_results(j.recipe).values())
         r.seconds = time.monotonic() - t
-        done[j.name] = r
-        budget.count(r)
-        return finished(r, finishing)
+        self.done[j.name] = r
+        self.budget.count(r)
+        return self.finished(r, finishing)
 
-    async def finished(r: DeviceResult, finishing: Awaitable[object] | None) -> None:
+    async def finished(self, r: DeviceResult, finishing: Awaitable[object] | None) -> None:
         if finishing is not None:  # outside the device's slot: the next device is already connecting
             await journal_line(r, finishing)
-        if on_done:  # the device is done (report file, progress) once its journal line is on disk
-            on_done(r)
+        if self.on_done:  # the device is done (report file, progress) once its journal line is on disk
+            self.on_done(r)
 
-    opts = options or ApplyOptions()
+    def written(self, batch: Sequence[Job]) -> list[Written]:
+        return [Written(j, self.done[j.name]) for j in batch if j.name in self.done]
 
-    def written(batch: Sequence[Job]) -> list[Written]:
-        return [Written(j.name, j.recipe, j.url, j.unit, done[j.name]) for j in batch if j.name in done]
+    def report(self) -> Report:
+        """Every device that ran so far, in job order."""
+        return Report(self.recipe_name, [self.done[j.name] for j in self.jobs if j.name in self.done],
+                      time.monotonic() - self.started)
 
-    def changed(devices: Sequence[Written]) -> None:
-        if on_changed is not None:
-            for w in devices:
-                if w.result.snapshot is not None:
-                    on_changed(w.result)
-
-    def so_far() -> Report:
-        return Report(recipe_name, [done[j.name] for j in jobs if j.name in done], time.monotonic() - started)
-
-    try:
-        sizes = list(batches) if batches else [len(jobs)]
-        pos = 0
-        for number, size in enumerate(sizes, 1):
-            batch = jobs[pos:pos + size]
-            if number > 1 and stop is None and between_batches is not None:
-                stop = await between_batches(number, so_far())
-            pos += size
-            await on_buses(batch, parallel, one)
-            if opts.soak is not None:
-                unhealthy: list[str] = []
-                pending = _write_pending(opts, so_far())
-                soaking = [w.name for w in written(batch) if needs_soak(w.result)]
-                if on_soak is not None and soaking:
-                    on_soak(number, soaking)
-                passed = await soak(written(batch), opts, on_failed=unhealthy_into(unhealthy), report=pending)
-                budget.failures += len(unhealthy)
-                if opts.confirm_within is None:  # the soak passed: the change is kept
-                    await asyncio.gather(*(send_commit(w, opts) for w in passed))
-                changed(written(batch))
-                if number == 1 and unhealthy and stop is None and pos < len(jobs):
-                    stop = (f"not started: the canary batch 1 failed its health checks "
-                            f"({', '.join(unhealthy)} rolled back)")
-            if stop is None and pos < len(jobs):
-                stop = batch_failed(number, batch, done)
-            if stop is None and pos < len(jobs):
-                stop = budget.spent()
-        if stop is not None and rollback_on_failure:
-            reason = f"rolled back: the rollout stopped ({stop.removeprefix('not started: ')})"
-            await asyncio.gather(*(roll_back(w, reason, opts) for w in written(jobs)
-                                   if w.result.snapshot is not None
-                                   and w.result.status not in ("rolled-back", "skipped", "unreachable")))
-        if opts.confirm_within is not None:
-            await _confirm_or_roll_back(written(jobs), opts, recipe_name, on_confirm_wait)
-        for w in written(jobs):  # a commit never sent to a device that ended other than ok
-            if w.result.commit == "held" and w.result.status != "ok":
-                w.result.commit = "not sent"
-        if rollback_on_failure or opts.confirm_within is not None:
-            changed(written(jobs))
-    except asyncio.CancelledError:
-        # every device in flight has said what it holds (gather waits for them); the rest never started
-        report = Report(recipe_name, [done.get(j.name) or skipped_result(j, "not started: the run was interrupted",
-                                                                         batch_of.get(j.name))
-                                      for j in jobs], time.monotonic() - started)
-        raise RunInterrupted(report) from None
-    finally:
-        if opts.run_id is not None and (opts.soak is not None or opts.confirm_within is not None):
-            with contextlib.suppress(FileNotFoundError):  # the run ended (or was interrupted and rolled back)
-                os.remove(pending_path(opts.state_dir, opts.run_id))
-    return Report(recipe_name, [done[j.name] for j in jobs], time.monotonic() - started)
-
-
-def unhealthy_into(names: list[str]) -> Callable[[Written], None]:
-    def note(w: Written) -> None:
-        names.append(w.name)
-    return note
-
-
-async def _confirm_or_roll_back(devices: Sequence[Written], opts: ApplyOptions, recipe_name: str | None,
-                                on_wait: Callable[[str, float], None] | None) -> None:
-    """``confirm_within``: wait for ``deployer confirm``; then send the held commits, else roll every device back.
-
-    While it waits, a report of the run lies in STATE/pending/ (``deployer status`` points a rollback at it
-    should this process die)."""
-    assert opts.confirm_within is not None and opts.run_id is not None
-    waiting = [w for w in devices if needs_soak(w.result)]
-    if not waiting:
-        return
-    _write_pending(opts, Report(recipe_name, [w.result for w in devices]))
-    run = opts.run_id
-    try:
-        confirmed = await await_confirmation(run, opts.confirm_within, opts,
-                                             on_wait=None if on_wait is None else lambda t: on_wait(run, t))
-    except asyncio.CancelledError:  # Ctrl-C while waiting: the answer is no, at once
-        rolling = asyncio.ensure_future(asyncio.gather(*(roll_back(w, "interrupted while waiting for the "
-                                                                      "confirmation", opts) for w in waiting)))
-        await asyncio.shield(rolling)
-        raise
-    if confirmed:
-        await asyncio.gather(*(send_commit(w, opts) for w in waiting))
-    else:
-        from ..load.durations import format_duration
-
-        why = f"not confirmed within {format_duration(opts.confirm_within)}"
-        await asyncio.gather(*(roll_back(w, why, opts) for w in waiting))
-
-
-def _write_pending(opts: ApplyOptions, report: Report) -> str | None:
-    """While devices hold uncommitted values (a soak, a confirmation wait), the run's report so far lies in
-    STATE/pending/RUN.json: ``deployer status`` points a rollback at it should this process die."""
-    from ..report import write_json
-
-    if opts.run_id is None:
-        return None
-    path = pending_path(opts.state_dir, opts.run_id)
-    write_json(report.to_json(), path)
-    return path
+    def interrupted(self) -> Report:
+        """Every device in flight has said what it holds (gather waits for them); the rest never started."""
+        return Report(self.recipe_name, [self.done.get(j.name) or skipped_result(j, "not started: the run was "
+                                                                                    "interrupted",
+                                                                                 self.batch_of.get(j.name))
+                                         for j in self.jobs], time.monotonic() - self.started)
 
 
 def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:

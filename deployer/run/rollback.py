@@ -15,9 +15,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..execute.job import Job
 from ..fleet.inventory import FleetDevice, Inventory, select
 from ..fleet.livereport import NOT_FINISHED
-from ..fleet.rollout import Job
 from ..load.diagnostics import Diagnostic, InputError, UsageError
 from ..recipe.loader import Recipe, load_recipe
 from ..report import read_report

@@ -31,15 +31,16 @@ from dataclasses import replace
 from typing import Any
 
 from ..errors import RunInterrupted
+from ..execute.job import Job
 from ..execute.session import ApplyOptions, Declined, StalePlan
-from ..execute.soak import check_soak_profiles
 from ..fleet.livereport import LiveReport, not_finished
-from ..fleet.rollout import Job, apply_many, batch_sizes, failure_budget
+from ..fleet.rollout import apply_many, batch_sizes, failure_budget
 from ..load.diagnostics import UsageError
 from ..report import DeviceResult, Report, run_info
 from ..state import journal
 from ..state.durable import Line, durable
 from ..transport.urls import describe
+from ..window.soak import check_soak_profiles
 
 __all__ = ["RunInterrupted", "check_broadcast", "check_writable", "ensure_files", "fleet_options", "run",
            "run_async"]

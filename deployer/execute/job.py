@@ -1,0 +1,16 @@
+"""One device of a run: what is written where (the rollout, the window and the runner share it)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..recipe.loader import Recipe
+from ..transport import clients as tp
+
+
+@dataclass(frozen=True)
+class Job:
+    name: str
+    recipe: Recipe
+    url: tp.DeviceURL
+    unit: int

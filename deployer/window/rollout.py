@@ -1,0 +1,122 @@
+"""The window of a rollout: after each batch its soak and commits, at the end the confirmation or the rollback."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+from collections.abc import Callable, Sequence
+
+from ..execute.session import ApplyOptions
+from ..load.durations import format_duration
+from ..report import DeviceResult, Report, write_json
+from .confirm import await_confirmation
+from .finish import roll_back, send_commit
+from .held import Written, needs_soak, pending_path
+from .soak import soak
+
+
+class Window:
+    """The safe-change part of one rollout (``options.soak``, ``options.confirm_within``, ``rollback_on_failure``).
+
+    ``on_changed`` is told of a device whose result changed after it was reported done (rolled back,
+    committed); ``on_soak(batch number, device names)`` when a soak starts; ``on_confirm_wait(run,
+    deadline)`` once the run waits for its confirmation.
+    """
+
+    def __init__(self, opts: ApplyOptions, recipe_name: str | None, *,
+                 on_changed: Callable[[DeviceResult], None] | None = None,
+                 on_soak: Callable[[int, list[str]], None] | None = None,
+                 on_confirm_wait: Callable[[str, float], None] | None = None) -> None:
+        self.opts = opts
+        self.recipe_name = recipe_name
+        self.on_changed = on_changed
+        self.on_soak = on_soak
+        self.on_confirm_wait = on_confirm_wait
+
+    @property
+    def held(self) -> bool:
+        """Whether changes wait at all (a soak or a confirmation)."""
+        return self.opts.soak is not None or self.opts.confirm_within is not None
+
+    def changed(self, devices: Sequence[Written]) -> None:
+        if self.on_changed is not None:
+            for w in devices:
+                if w.result.snapshot is not None:
+                    self.on_changed(w.result)
+
+    async def after_batch(self, number: int, batch: Sequence[Written], so_far: Report) -> list[str]:
+        """The batch's soak (its commits follow unless a confirmation waits); the devices whose health failed."""
+        opts = self.opts
+        if opts.soak is None:
+            return []
+        unhealthy: list[str] = []
+        pending = self.write_pending(so_far)
+        soaking = [w.name for w in batch if needs_soak(w.result)]
+        if self.on_soak is not None and soaking:
+            self.on_soak(number, soaking)
+        passed = await soak(batch, opts, on_failed=lambda w: unhealthy.append(w.name), report=pending)
+        if opts.confirm_within is None:  # the soak passed: the change is kept
+            await asyncio.gather(*(send_commit(w, opts) for w in passed))
+        self.changed(batch)
+        return unhealthy
+
+    async def end(self, devices: Sequence[Written], stop: str | None, *, rollback_on_failure: bool) -> None:
+        """The rollout is over: roll everything back when it stopped (``rollback_on_failure``), then wait for the
+        confirmation (its commits, or every device rolled back)."""
+        opts = self.opts
+        if stop is not None and rollback_on_failure:
+            reason = f"rolled back: the rollout stopped ({stop.removeprefix('not started: ')})"
+            await asyncio.gather(*(roll_back(w, reason, opts) for w in devices
+                                   if w.result.snapshot is not None
+                                   and w.result.status not in ("rolled-back", "skipped", "unreachable")))
+        if opts.confirm_within is not None:
+            await self.confirm_or_roll_back(devices)
+        for w in devices:  # a commit never sent to a device that ended other than ok
+            if w.result.commit == "held" and w.result.status != "ok":
+                w.result.commit = "not sent"
+        if rollback_on_failure or opts.confirm_within is not None:
+            self.changed(devices)
+
+    async def confirm_or_roll_back(self, devices: Sequence[Written]) -> None:
+        """``confirm_within``: wait for ``deployer confirm``; then send the held commits, else roll every device
+        back. While it waits, a report of the run lies in STATE/pending/ (``deployer status`` points a rollback
+        at it should this process die)."""
+        opts = self.opts
+        assert opts.confirm_within is not None and opts.run_id is not None
+        waiting = [w for w in devices if needs_soak(w.result)]
+        if not waiting:
+            return
+        self.write_pending(Report(self.recipe_name, [w.result for w in devices]))
+        run = opts.run_id
+        on_wait = self.on_confirm_wait
+        try:
+            confirmed = await await_confirmation(run, opts.confirm_within, opts,
+                                                 on_wait=None if on_wait is None else lambda t: on_wait(run, t))
+        except asyncio.CancelledError:  # Ctrl-C while waiting: the answer is no, at once
+            rolling = asyncio.ensure_future(asyncio.gather(*(roll_back(w, "interrupted while waiting for the "
+                                                                          "confirmation", opts) for w in waiting)))
+            await asyncio.shield(rolling)
+            raise
+        if confirmed:
+            await asyncio.gather(*(send_commit(w, opts) for w in waiting))
+        else:
+            why = f"not confirmed within {format_duration(opts.confirm_within)}"
+            await asyncio.gather(*(roll_back(w, why, opts) for w in waiting))
+
+    def write_pending(self, report: Report) -> str | None:
+        """While devices hold uncommitted values (a soak, a confirmation wait), the run's report so far lies in
+        STATE/pending/RUN.json: ``deployer status`` points a rollback at it should this process die."""
+        opts = self.opts
+        if opts.run_id is None:
+            return None
+        path = pending_path(opts.state_dir, opts.run_id)
+        write_json(report.to_json(), path)
+        return path
+
+    def close(self) -> None:
+        """The run ended (or was interrupted and rolled back): its pending report goes."""
+        opts = self.opts
+        if opts.run_id is not None and self.held:
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(pending_path(opts.state_dir, opts.run_id))

@@ -1,0 +1,144 @@
+"""Keeping only changes that proved themselves: the soak.
+
+After a verified write the profile's ``health`` checks are read every ``health_interval`` for
+``soak`` seconds; the first failed check rolls that device back from its snapshot at once (a
+verified rollback, without the profile's ``commit``), and the device ends ``rolled-back``. The
+``commit`` steps (a store to non-volatile memory) of the devices that passed are sent only
+afterwards (``finish.send_commit``), or only once the run is confirmed (``confirm``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from ..execute.session import ApplyOptions, DeviceGone, Session
+from ..load.diagnostics import UsageError
+from ..load.durations import format_duration
+from ..profile import HealthCheck, Profile
+from ..state import journal
+from ..transport import clients as tp
+from .finish import roll_back
+from .held import Written, needs_soak
+from .held import record as _journal
+
+
+def check_soak_profiles(profiles: Sequence[Profile]) -> None:
+    """``--soak`` watches the profile's health checks: a profile without any is refused up front."""
+    bare = sorted({p.id for p in profiles if not p.health})
+    if bare:
+        raise UsageError(f"--soak watches the profile's health checks, and profile {', '.join(bare)} declares none "
+                         "(health: in the profile, e.g. - {register: 48, equals: 0, description: drive fault code "
+                         "is zero}); use --confirm-within to hold the commit without checks")
+
+
+async def read_health(session: Session, prof: Profile) -> tuple[HealthCheck, int] | None:
+    """The first failed check and the word read, or None when the device is healthy."""
+    for c in prof.health:
+        (word,) = await session.read(c.address, 1, c.function)
+        if not c.holds(word):
+            return c, word
+    return None
+
+
+async def soak(devices: Sequence[Written], options: ApplyOptions, *,
+               on_failed: Callable[[Written], None] | None = None, report: str | None = None) -> list[Written]:
+    """Watch ``devices`` together for ``options.soak`` seconds; roll back each one whose health fails.
+
+    ``report``: a report of the run so far (its snapshots), named in the journal's ``soak-started`` line so
+    that ``deployer status`` can point a rollback at it should the process die during the soak.
+
+    Returns the devices that passed. Health reads are counted in each device's notices, not logged
+    request by request (a 5-minute soak at 1 s would add 300 reads per device to the report).
+    """
+    assert options.soak is not None
+    todo = [w for w in devices if needs_soak(w.result)]
+    if not todo:
+        return []
+    run = options.run_id
+    if run is not None:
+        _journal(options, {"event": "soak-started", "run": run, "time": journal._now(), "seconds": options.soak,
+                           "interval": options.health_interval, "devices": [w.name for w in todo],
+                           "report": report})
+    start = time.monotonic()
+    deadline = start + options.soak
+    passed: list[Written] = []
+    failed: list[Written] = []
+
+    # one connection per bus, one request at a time on it: a gateway allows few connections, and the
+    # devices behind it share one line anyway
+    lines: dict[str, tuple[tp.Transport, asyncio.Lock, asyncio.Future[str | None]]] = {}
+
+    async def connect(transport: tp.Transport) -> str | None:
+        try:
+            await transport.connect()
+        except tp.Unreachable as e:
+            return f"the device could not be reached: {e}"
+        return None
+
+    async def watch(w: Written) -> None:
+        if w.url.bus not in lines:
+            transport = tp.open_transport(w.url)
+            lines[w.url.bus] = (transport, asyncio.Lock(), asyncio.ensure_future(connect(transport)))
+        transport, one_at_a_time, connected = lines[w.url.bus]
+        records: list[Any] = []
+        session = Session(transport, w.unit, retries=w.url.retries, backoff=options.backoff, records=records)
+        reads = 0
+        why: str | None = await asyncio.shield(connected)
+        while why is None:
+            try:
+                async with one_at_a_time:
+                    bad = await read_health(session, w.recipe.profile)
+                reads += len(w.recipe.profile.health)
+            except (DeviceGone, tp.ExceptionResponse) as e:
+                why = f"could not be read: {e}"
+                break
+            if bad is not None:
+                check, word = bad
+                why = check.failure(word)
+                break
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            await asyncio.sleep(min(options.health_interval, left))
+        seen = time.monotonic() - start
+        if why is None:
+            w.result.notices.append(f"soak passed: {reads} health reads over {format_duration(options.soak or 0)}")
+            passed.append(w)
+            return
+        why = f"health check failed after {seen:.1f} s of the {format_duration(options.soak or 0)} soak: {why}"
+        if run is not None:
+            _journal(options, {"event": "health-failed", "run": run, "time": journal._now(), "name": w.name,
+                               "url": w.result.url, "unit": w.unit, "reason": why})
+        failed.append(w)
+        if on_failed is not None:
+            on_failed(w)
+        rollbacks.append(asyncio.ensure_future(roll_back(w, why, options)))
+        await asyncio.shield(rollbacks[-1])  # an interrupt must not cut a rollback short
+
+    rollbacks: list[asyncio.Future[None]] = []
+    interrupted = False
+    try:
+        await asyncio.gather(*(watch(w) for w in todo))
+    except asyncio.CancelledError:  # Ctrl-C: a change that has not proven itself is undone, not left behind
+        interrupted = True
+        for w in todo:
+            if w not in passed and w not in failed:
+                failed.append(w)
+                rollbacks.append(asyncio.ensure_future(roll_back(w, "interrupted during the soak", options)))
+        await asyncio.gather(*rollbacks, return_exceptions=True)
+        raise
+    finally:
+        for transport, _, _ in lines.values():
+            await transport.close()
+        if run is not None:
+            _journal(options, {"event": "soak-finished", "run": run, "time": journal._now(),
+                               "passed": [w.name for w in passed],
+                               "rolled_back": [w.name for w in failed if w.result.status == "rolled-back"],
+                               "failed": [w.name for w in failed if w.result.status != "rolled-back"],
+                               **({"interrupted": True} if interrupted else {})})
+    return [w for w in todo if w in passed]
+
+
