@@ -31,7 +31,7 @@ import asyncio
 import os
 from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from .errors import (
     BadURL,
@@ -46,13 +46,10 @@ from .errors import (
     TransportError,
     UsageError,
 )
-from .execute.job import Job
-from .execute.read import read_current
-from .execute.session import ApplyOptions
 from .fleet.inventory import FleetDevice, Inventory, load_inventory
 from .fleet.inventory import fleet_jobs as _fleet_jobs
 from .fleet.inventory import inventory_from as _inventory_from
-from .fleet.rollout import ReadJob, read_many
+from .limits import LIMITS, Bound
 from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planfile import load_plan, plan_to_json
@@ -62,20 +59,37 @@ from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
 from .report import DeviceResult, ParameterResult, Report
-from .run.runner import ensure_files, run_async
-from .transport.clients import DeviceURL, describe, parse_url
-from .window.confirm import confirm_run
+from .transport.urls import DeviceURL, describe, parse_url
+
+if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus, loaded when a run needs them
+    from .execute.job import Job
+    from .execute.session import ApplyOptions
+    from .fleet.rollout import ReadJob
 
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
-_REEXPORTED = (BadURL, CodecError, Declined, DeployerError, IdentityMismatch, InputError, Locked, RunInterrupted,
-               StalePlan, TransportError, UsageError, ApplyOptions, FleetDevice, Inventory, load_inventory, Job,
-               ReadJob, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult, ParameterResult,
-               Report, DeviceURL)
+_REEXPORTED = (LIMITS, Bound, BadURL, CodecError, Declined, DeployerError, IdentityMismatch, InputError, Locked,
+               RunInterrupted, StalePlan, TransportError, UsageError, FleetDevice, Inventory, load_inventory, Plan,
+               load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult, ParameterResult, Report, DeviceURL)
+
+# public names whose modules load on first use: offline work (validate, an offline plan, a command's
+# --help) does not pay for the transports (pymodbus)
+_LAZY = {"ApplyOptions": "deployer.execute.session", "Job": "deployer.execute.job",
+         "ReadJob": "deployer.fleet.rollout"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'deployer.api' has no attribute {name!r}")
 
 
 __all__ = [
+    "LIMITS",
     "ApplyOptions",
     "BadURL",
+    "Bound",
     "CodecError",
     "Declined",
     "DeployerError",
@@ -110,6 +124,7 @@ __all__ = [
     "diff",
     "diff_async",
     "diff_values",
+    "duration",
     "fleet_jobs",
     "inventory_from",
     "load_inventory",
@@ -158,6 +173,47 @@ def _need_unit(unit: object) -> None:
         raise UsageError(f"unit must be an int from 1 to 247 (0 is broadcast), got {_kind(unit)}")
     if not 0 <= unit <= 247:
         raise UsageError(f"unit must be from 1 to 247 (0 is broadcast), got {unit}")
+
+
+def _need_timing(timeout: object, retries: object) -> None:
+    if timeout is not None:
+        LIMITS.timeout.check(timeout, "timeout")
+    if retries is not None:
+        LIMITS.retries.check(retries, "retries")
+
+
+def _need_path(value: object, call: str, what: str) -> None:
+    if not isinstance(value, (str, os.PathLike)):
+        raise UsageError(f"{call} takes {what} as a path (str or os.PathLike), got {_kind(value)}")
+
+
+def _need_inventory(inventory: object, call: str) -> None:
+    if not isinstance(inventory, (str, os.PathLike, Inventory)):
+        raise UsageError(f"{call} takes an inventory file or an Inventory (deployer.inventory_from(devices)), "
+                         f"got {_kind(inventory)}")
+
+
+def _need_parallel(parallel: object) -> None:
+    LIMITS.parallel.check(parallel, "parallel")
+
+
+def _need_options(options: object, call: str) -> ApplyOptions:
+    """``options`` (None: the defaults) checked against the bounds, before anything is sent."""
+    from .execute.session import ApplyOptions
+
+    if options is None:
+        return ApplyOptions()
+    if not isinstance(options, ApplyOptions):
+        raise UsageError(f"{call} takes options=ApplyOptions(...), got {_kind(options)}")
+    if options.on_error not in ("continue", "stop"):
+        raise UsageError(f"on_error must be 'continue' or 'stop', got {_kind(options.on_error)}")
+    _need_path(options.state_dir, call, "options.state_dir")
+    for key in ("soak", "confirm_within", "health_interval", "lock_timeout"):
+        value = getattr(options, key)
+        if value is not None:
+            bound: Bound = getattr(LIMITS, key)
+            bound.check(value, key)
+    return options
 
 
 def _sync(call: str, coro: Callable[[], Coroutine[Any, Any, _T]]) -> _T:
@@ -211,6 +267,9 @@ def recipe_from(profile: str | Profile, parameters: Mapping[str, Any], *, name: 
         raise UsageError(f"recipe_from takes a profile id, a profile file or a Profile, got {_kind(profile)}")
     if base is not None:
         _need_recipe(base, "recipe_from(base=...)")
+    for key in parameters:
+        if not isinstance(key, str):
+            raise UsageError(f"recipe_from takes parameter names as str keys, got {_kind(key)}")
     src = Source(f"<{name}>")
     entries = [Entry(k, v, src, ("parameters", k)) for k, v in parameters.items()]
     if base is None:
@@ -223,9 +282,14 @@ def recipe_from(profile: str | Profile, parameters: Mapping[str, Any], *, name: 
 def device_url(url: str | DeviceURL, *, timeout: float | None = None, retries: int | None = None) -> DeviceURL:
     """Parse a device URL (``tcp://HOST:PORT``, ``rtu:///dev/ttyUSB0?baudrate=19200`` ...); a DeviceURL as is.
 
+    ``timeout`` (seconds per attempt) and ``retries`` apply where the URL does not set its own
+    (bounds: ``LIMITS.timeout``, ``LIMITS.retries``).
+
     Raises:
         BadURL: a malformed URL, an unknown scheme or option (a UsageError).
+        UsageError: a ``timeout`` or ``retries`` out of its bounds.
     """
+    _need_timing(timeout, retries)
     if isinstance(url, DeviceURL):
         return url
     if not isinstance(url, str):
@@ -255,6 +319,8 @@ async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit
         return make_plan(recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all)
     url, u = _target(recipe, device, unit)
     recipe = _taught(recipe, state_dir, url, u)
+    from .execute.read import read_current
+
     current = await read_current(recipe.profile, [d.name for d in recipe.desired], url, u)
     return make_plan(recipe, Target(describe(url), u, recipe.profile_ref or recipe.profile.id), current,
                      write_all=write_all)
@@ -294,7 +360,12 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
     """
     _need_recipe(recipe, "apply")
     url, u = _target(recipe, device, unit)
+    if report_path is not None:
+        _need_path(report_path, "apply", "report_path")
     opts = safe_options(options, soak=soak, health_interval=health_interval, confirm_within=confirm_within)
+    from .execute.job import Job
+    from .run.runner import run_async
+
     return await run_async([Job(name or recipe.name, recipe, url, u)], label=recipe.path or recipe.name,
                            parallel=1, options=opts, report_path=report_path, on_confirm_wait=on_confirm_wait)
 
@@ -327,25 +398,40 @@ def safe_options(options: ApplyOptions | None, *, soak: float | str | None = Non
     A confirmation needs a run id to be named by: one is made when ``options`` has none.
 
     Raises:
-        UsageError: a duration that is not one (e.g. "soon").
+        UsageError: a duration that is not one (e.g. "soon"), or out of its bounds (``LIMITS``).
     """
     from dataclasses import replace
 
-    from .load.durations import parse_duration
     from .state.journal import new_run_id
 
-    opts = options or ApplyOptions()
+    opts = _need_options(options, "safe_options")
     changes: dict[str, Any] = {}
     for key, value in (("soak", soak), ("health_interval", health_interval), ("confirm_within", confirm_within)):
         if value is not None:
-            try:
-                changes[key] = parse_duration(value)
-            except ValueError as e:
-                raise UsageError(f"{key}: {e}") from None
-    opts = replace(opts, **changes)
+            changes[key] = duration(value, key)
+    opts = _need_options(replace(opts, **changes), "safe_options")
     if opts.confirm_within is not None and opts.run_id is None:
         opts = replace(opts, run_id=new_run_id())
     return opts
+
+
+def duration(value: object, what: str) -> float:
+    """Seconds in a duration as people write it ("250ms", "30s", "5m", "1h"; a bare number is seconds),
+    checked against the bound of the argument ``what`` (a field of ``LIMITS``: "soak", "pause" ...).
+
+    Raises:
+        UsageError: not a duration, or out of its bound, naming ``what``.
+    """
+    from .load.durations import parse_duration
+
+    if isinstance(value, bool) or not isinstance(value, str | int | float):
+        raise UsageError(f"{what} takes a duration such as \"30s\" or a number of seconds, got {_kind(value)}")
+    try:
+        seconds = parse_duration(value)
+    except ValueError as e:
+        raise UsageError(f"{what}: {e}") from None
+    bound: Bound = getattr(LIMITS, what)
+    return bound.check(seconds, what)
 
 
 def confirm(run: str | None = None, *, state_dir: str = ".deployer") -> str:
@@ -353,9 +439,14 @@ def confirm(run: str | None = None, *, state_dir: str = ".deployer") -> str:
 
     Raises:
         UsageError: no run (or several, and ``run`` is None) waits in ``state_dir``, or the waiting
-            process is gone, or its time ran out.
+            process is gone, or its time ran out; ``run`` or ``state_dir`` of the wrong type.
     """
-    return confirm_run(state_dir, run).run
+    if run is not None and not isinstance(run, str):
+        raise UsageError(f"confirm takes the run id as a str, got {_kind(run)}")
+    _need_path(state_dir, "confirm", "state_dir")
+    from .window.confirm import confirm_run
+
+    return confirm_run(os.fspath(state_dir), run).run
 
 
 @dataclass(frozen=True)
@@ -390,6 +481,8 @@ async def diff_async(recipe: Recipe, device: str | DeviceURL | None = None, unit
     """``diff`` for callers with their own event loop."""
     _need_recipe(recipe, "diff")
     url, u = _target(recipe, device, unit)
+    from .execute.read import read_current
+
     return diff_values(recipe, await read_current(recipe.profile, [d.name for d in recipe.desired], url, u))
 
 
@@ -471,6 +564,8 @@ async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int 
     if not isinstance(profile, (str, Profile)):
         raise UsageError(f"pull takes a profile id, a profile file or a Profile, got {_kind(profile)}")
     prof = profile if isinstance(profile, Profile) else resolve_profile(profile)
+    from .execute.read import read_current
+
     return await read_current(prof, pull_names(prof), device_url(device), unit)
 
 
@@ -499,8 +594,14 @@ def fleet_jobs(recipe: Recipe | None, inventory: str | Inventory, *, limit: str 
     Raises:
         InputError: an invalid inventory, or devices that cannot have their job (profile, recipe, overrides,
             URL), naming the devices, all at once.
-        UsageError: nothing selected, or a ``limit`` word that matches nothing.
+        UsageError: nothing selected, or a ``limit`` word that matches nothing; arguments of the wrong type
+            or out of their bounds (``LIMITS``).
     """
+    if recipe is not None:
+        _need_recipe(recipe, "fleet_jobs")
+    _need_inventory(inventory, "fleet_jobs")
+    _need_timing(timeout, retries)
+    _need_unit(unit)
     inv = inventory if isinstance(inventory, Inventory) else load_inventory(inventory)
     jobs = _fleet_jobs(inv, recipe, limit, timeout=timeout, retries=retries, unit=unit)
     if not jobs:
@@ -538,6 +639,12 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     ``rollback_on_failure``, ``between_batches`` and ``on_confirm_wait`` of ``fleet.rollout.apply_many`` (the
     soak itself is in ``options``).
     """
+    _need_parallel(parallel)
+    options = _need_options(options, "run_fleet")
+    if report_path is not None:
+        _need_path(report_path, "run_fleet", "report_path")
+    from .run.runner import run_async
+
     return await run_async(jobs, label=recipe_name, parallel=parallel, batch=batch, max_failures=max_failures,
                            options=options, report_path=report_path, on_start=on_start, on_done=on_done, via=via,
                            signals=signals, **safe)
@@ -555,6 +662,7 @@ def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) ->
     """
     if recipe is not None:
         _need_recipe(recipe, "apply_fleet")
+    _need_inventory(inventory, "apply_fleet")
     return _sync("apply_fleet", lambda: apply_fleet_async(recipe, inventory, **kw))
 
 
@@ -572,6 +680,10 @@ async def read_fleet_async(jobs: Sequence[ReadJob], *, parallel: int = 8,
                            on_done: Callable[[str, str | None], None] | None = None,
                            ) -> dict[str, dict[str, tuple[int, ...]] | TransportError | UsageError]:
     """Current values of many devices: name -> registers by parameter, or the error that stopped the read."""
+    from .fleet.rollout import read_many
+    from .run.runner import ensure_files
+
+    _need_parallel(parallel)
     ensure_files(parallel, len(jobs))
     return await read_many(jobs, parallel=parallel, on_done=on_done)
 
@@ -589,6 +701,8 @@ def read_fleet(jobs: Sequence[ReadJob], *, parallel: int = 8) -> dict[str, dict[
 
 def read_jobs(jobs: Sequence[Job]) -> list[ReadJob]:
     """Plan and diff read what each device's recipe names."""
+    from .fleet.rollout import ReadJob
+
     return [ReadJob(j.name, j.recipe.profile, tuple(d.name for d in j.recipe.desired), j.url, j.unit) for j in jobs]
 
 
@@ -598,6 +712,7 @@ async def plan_fleet_async(jobs: Sequence[Job], *, parallel: int = 8, write_all:
     """``plan_fleet`` for callers with their own event loop; ``on_done(name, error or None)`` per device read."""
     from dataclasses import replace
 
+    _need_parallel(parallel)
     jobs = [replace(j, recipe=_taught(j.recipe, state_dir, j.url, j.unit)) for j in jobs]
     values = await read_fleet_async(read_jobs(jobs), parallel=parallel, on_done=on_done)
     out: dict[str, Plan | TransportError | UsageError] = {}

@@ -63,3 +63,95 @@ def test_a_sync_call_inside_a_running_loop_says_to_await_its_twin(tmp_path: Path
         assert [w.address for w in plan.writes] == [PROFILE.parameter("F07").address]
 
     asyncio.run(inside())
+
+
+# ---- one set of bounds (deployer.LIMITS) for the API, the command line and Ansible (#28 item 15) ----
+
+INVENTORY = [{"name": "d1", "url": "tcp://127.0.0.1:1"}]
+
+
+@pytest.mark.parametrize(("call", "words"), [
+    (lambda url: deployer.device_url(url, timeout=-1), "timeout must be more than 0 and at most 600 seconds, got -1"),
+    (lambda url: deployer.device_url(url, timeout=float("nan")), "timeout must be more than 0"),
+    (lambda url: deployer.device_url(url, timeout=0), "timeout must be more than 0 and at most 600 seconds, got 0"),
+    (lambda url: deployer.device_url(url, timeout=float("inf")), "got inf"),
+    (lambda url: deployer.device_url(url, retries=-1), "retries must be from 0 to 20, got -1"),
+    (lambda url: deployer.device_url(url, retries="3"),  # type: ignore[arg-type]
+     "retries must be a whole number from 0 to 20, got str '3'"),
+    (lambda url: deployer.device_url(url, retries=10**9), "retries must be from 0 to 20, got 1000000000"),
+    (lambda url: deployer.apply(recipe(), url, soak=-5), "soak must be more than 0 and at most a week, got -5"),
+    (lambda url: deployer.apply(recipe(), url, soak="0s"), "soak must be more than 0"),
+    (lambda url: deployer.apply(recipe(), url, health_interval=0, soak="1s"),
+     "health_interval must be from 0.1 to 3600 seconds, got 0"),
+    (lambda url: deployer.apply(recipe(), url, confirm_within=[1]),
+     "confirm_within takes a duration such as \"30s\" or a number of seconds, got list [1]"),
+    (lambda url: deployer.apply(recipe(), url, options=deployer.ApplyOptions(soak=-1.0)), "soak must be more than 0"),
+    (lambda url: deployer.apply(recipe(), url, options=deployer.ApplyOptions(lock_timeout=-1)),
+     "lock_timeout must be from 0 seconds to a week, got -1"),
+    (lambda url: deployer.apply(recipe(), url, options={"soak": 1}),  # type: ignore[arg-type]
+     "takes options=ApplyOptions(...), got dict"),
+    (lambda url: deployer.recipe_from("example-inverter", {1: 2}),  # type: ignore[dict-item]
+     "recipe_from takes parameter names as str keys, got int 1"),
+    (lambda url: deployer.confirm(state_dir=None),  # type: ignore[arg-type]
+     "confirm takes state_dir as a path (str or os.PathLike), got NoneType None"),
+    (lambda url: deployer.confirm(42),  # type: ignore[arg-type]
+     "confirm takes the run id as a str, got int 42"),
+    (lambda url: deployer.apply_fleet(recipe(), {"d1": url}),  # type: ignore[arg-type]
+     "apply_fleet takes an inventory file or an Inventory (deployer.inventory_from(devices)), got dict"),
+    (lambda url: deployer.apply_fleet(recipe(), deployer.inventory_from([{"name": "d1", "url": url}]), parallel=0),
+     "parallel must be from 1 to 1024, got 0"),
+    (lambda url: deployer.apply_fleet(recipe(), deployer.inventory_from([{"name": "d1", "url": url}]),
+                                      parallel=1025), "parallel must be from 1 to 1024, got 1025"),
+    (lambda url: deployer.fleet_jobs(recipe(), deployer.inventory_from([{"name": "d1", "url": url}]), timeout=700),
+     "timeout must be more than 0 and at most 600 seconds, got 700"),
+    (lambda url: deployer.read_fleet([], parallel=True), "parallel must be a whole number from 1 to 1024"),
+    (lambda url: deployer.plan_fleet([], parallel=2000), "parallel must be from 1 to 1024, got 2000"),
+])
+def test_out_of_bounds_arguments_are_usage_errors_that_name_them(call: object, words: str) -> None:
+    with Simulators([Simulator(PROFILE)]) as (sim,):
+        with pytest.raises(deployer.UsageError) as e:
+            call(sim.url)  # type: ignore[operator]
+        assert words in str(e.value)
+        assert sim.log == []
+
+
+def test_the_bounds_hold_at_their_edges() -> None:
+    assert deployer.device_url("tcp://h:502", timeout=600, retries=20).timeout == 600
+    assert deployer.device_url("tcp://h:502", timeout=0.001, retries=0).retries == 0
+    assert deployer.duration("100ms", "health_interval") == 0.1
+    assert deployer.LIMITS.parallel.check(1024, "parallel") == 1024
+    with pytest.raises(deployer.UsageError, match="pause must be from 0 seconds to a week"):
+        deployer.duration(-1, "pause")
+
+
+@pytest.mark.parametrize(("args", "words"), [
+    (["--parallel", "1025"], "1<=x<=1024"),
+    (["--parallel", "0"], "1<=x<=1024"),
+    (["--timeout", "0"], "0<x<=600"),
+    (["--timeout", "601"], "0<x<=600"),
+    (["--retries", "21"], "0<=x<=20"),
+    (["--soak", "0s", "--health-interval", "1s"], "'0s' must be more than 0"),
+    (["--soak", "1s", "--health-interval", "0"], "'0' must be from 0.1 to 3600 seconds, got 0"),
+    (["--confirm-within", "0"], "'0' must be more than 0"),
+])
+def test_the_command_line_refuses_what_the_api_refuses(capsys: pytest.CaptureFixture[str], tmp_path: Path,
+                                                       args: list[str], words: str) -> None:
+    from tests.helpers import run_cli
+
+    with Simulators([Simulator(PROFILE)]) as (sim,):
+        r = tmp_path / "r.yaml"
+        r.write_text(f"recipe: r\nprofile: example-inverter\ndevice: {{url: '{sim.url}'}}\nparameters:\n  F07: 10 s\n")
+        code, _, err = run_cli(capsys, "apply", str(r), "--yes", "--state-dir", str(tmp_path / "s"), *args)
+        assert code == 1 and words in err, err
+        assert sim.log == []
+
+
+def test_the_ansible_documentation_states_the_library_bounds() -> None:
+    """The collection's options say the ranges deployer.LIMITS checks (its module_utils checks through them)."""
+    root = Path(__file__).resolve().parent.parent / "ansible_collections/deployer/modbus/plugins"
+    fragment = (root / "doc_fragments/target.py").read_text()
+    for key in ("parallel", "retries"):
+        assert getattr(deployer.LIMITS, key).text() in fragment, key
+    assert deployer.LIMITS.timeout.text().removesuffix(" seconds") in fragment
+    common = (root / "module_utils/deployer_common.py").read_text()
+    assert "LIMITS" in common and "1024" not in common and "600" not in common

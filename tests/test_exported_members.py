@@ -10,14 +10,15 @@ import deployer
 from deployer import api
 
 PUBLIC = [
-    "ApplyOptions", "BadURL", "CodecError", "Declined", "DeployerError", "DeviceResult", "DeviceURL", "Drift",
-    "FleetDevice", "FromDefault", "IdentityMismatch", "InputError", "Inventory", "Job", "Locked", "ParameterResult",
-    "Plan", "Profile", "ReadJob", "Recipe", "Report", "RunInterrupted", "StalePlan", "TransportError", "UsageError",
-    "apply", "apply_async", "apply_fleet", "apply_fleet_async", "confirm", "defaults_diff", "describe_url",
-    "device_url", "diff", "diff_async", "diff_values", "fleet_jobs", "inventory_from", "load_inventory", "load_plan",
-    "load_profile", "load_recipe", "non_default", "plan", "plan_async", "plan_fleet", "plan_fleet_async",
-    "plan_to_json", "pull", "pull_async", "pull_names", "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs",
-    "recipe_from", "run_fleet", "run_fleet_async", "safe_options",
+    "LIMITS", "ApplyOptions", "BadURL", "Bound", "CodecError", "Declined", "DeployerError", "DeviceResult",
+    "DeviceURL", "Drift", "FleetDevice", "FromDefault", "IdentityMismatch", "InputError", "Inventory", "Job",
+    "Locked", "ParameterResult", "Plan", "Profile", "ReadJob", "Recipe", "Report", "RunInterrupted", "StalePlan",
+    "TransportError", "UsageError", "apply", "apply_async", "apply_fleet", "apply_fleet_async", "confirm",
+    "defaults_diff", "describe_url", "device_url", "diff", "diff_async", "diff_values", "duration", "fleet_jobs",
+    "inventory_from", "load_inventory", "load_plan", "load_profile", "load_recipe", "non_default", "plan",
+    "plan_async", "plan_fleet", "plan_fleet_async", "plan_to_json", "pull", "pull_async", "pull_names",
+    "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "recipe_from", "run_fleet", "run_fleet_async",
+    "safe_options",
 ]
 
 

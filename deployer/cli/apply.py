@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
+from ..limits import LIMITS
 from ..load.diagnostics import EXIT_OK, UsageError
 from .base import (
     _ARGV,
@@ -23,6 +24,7 @@ from .base import (
     console,
     device_options,
     fleet_option,
+    float_range,
     limit_option,
     parallel_option,
 )
@@ -353,7 +355,7 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--allow-broadcast", is_flag=True, help="allow unit 0 (broadcast; nothing can be verified)"),
         click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
                      help="where snapshots and the audit log go"),
-        click.option("--lock-timeout", type=click.FloatRange(min=0), default=0, show_default=True, metavar="S",
+        click.option("--lock-timeout", type=float_range(LIMITS.lock_timeout), default=0, show_default=True, metavar="S",
                      help="wait up to S seconds for a device another run on this machine is writing"),
     ]
     for opt in reversed(opts):
@@ -362,22 +364,23 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def safe_options(f: Callable[..., Any]) -> Callable[..., Any]:
-    from .base import DURATION
+    from .base import Duration
 
     opts = [
-        click.option("--soak", type=DURATION, metavar="DURATION",
+        click.option("--soak", type=Duration(LIMITS.soak), metavar="DURATION",
                      help="after the verified write, read the profile's health checks for this long (30s, 5m, 1h; "
                           "a bare number is seconds); a failed check rolls that device back from its snapshot "
                           "(status rolled-back, exit 4); the commit is sent only after the soak passed"),
-        click.option("--health-interval", type=DURATION, default="1s", show_default=True, metavar="DURATION",
+        click.option("--health-interval", type=Duration(LIMITS.health_interval), default="1s", show_default=True,
+                     metavar="DURATION",
                      help="time between two rounds of health checks during --soak"),
-        click.option("--confirm-within", type=DURATION, metavar="DURATION",
+        click.option("--confirm-within", type=Duration(LIMITS.confirm_within), metavar="DURATION",
                      help="hold the profile's commit back until `deployer confirm` (another shell, same "
                           "--state-dir); not confirmed in time: every device written is rolled back"),
         click.option("--rollback-on-failure", is_flag=True,
                      help="when the rollout stops (a failed batch or canary, --max-failures), roll back every "
                           "device it wrote"),
-        click.option("--pause", type=DURATION, metavar="DURATION", help="wait this long between batches"),
+        click.option("--pause", type=Duration(LIMITS.pause), metavar="DURATION", help="wait this long between batches"),
         click.option("--ask", is_flag=True,
                      help="ask before each batch after the first (needs a terminal; --yes does not answer it)"),
     ]

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from ..errors import EXIT_INVALID, DeployerError, InputError, UsageError
+from ..limits import LIMITS, Bound
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -137,18 +138,37 @@ force_option = click.option("--force", is_flag=True, expose_value=False, callbac
                             help="overwrite an existing output file")
 
 
+def int_range(bound: Bound) -> click.IntRange:
+    """A whole-number option within a bound of ``deployer.LIMITS`` (the API and Ansible check the same)."""
+    return click.IntRange(int(bound.low), int(bound.high))
+
+
+def float_range(bound: Bound) -> click.FloatRange:
+    def whole(x: float) -> float:  # "600", not "600.0", in --help
+        return int(x) if float(x).is_integer() else x
+
+    return click.FloatRange(min=whole(bound.low), max=whole(bound.high), min_open=bound.low_open)
+
+
+TIMEOUT = float_range(LIMITS.timeout)
+RETRIES = int_range(LIMITS.retries)
+
 _device_options = [
     click.option("--device", "device", metavar="URL", help="device URL (default: the recipe's device.url)"),
     click.option("--unit", type=click.IntRange(0, 247), help="unit id (default: the recipe's, else 1)"),
-    click.option("--timeout", type=click.FloatRange(min=0, min_open=True), help="seconds per attempt"),
-    click.option("--retries", type=click.IntRange(0, 20), help="retries after a timeout or busy answer"),
+    click.option("--timeout", type=TIMEOUT, help="seconds per attempt"),
+    click.option("--retries", type=RETRIES, help="retries after a timeout or busy answer"),
 ]
 
 
 class Duration(click.ParamType[float]):
-    """A duration option: ``250ms``, ``30s``, ``5m``, ``1h``; a bare number is seconds. The value is in seconds."""
+    """A duration option: ``250ms``, ``30s``, ``5m``, ``1h``; a bare number is seconds. The value is in seconds,
+    within ``bound`` (a field of ``deployer.LIMITS``)."""
 
     name = "duration"
+
+    def __init__(self, bound: Bound | None = None) -> None:
+        self.bound = bound
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> float:
         if isinstance(value, float):
@@ -156,12 +176,14 @@ class Duration(click.ParamType[float]):
         from ..load.durations import parse_duration
 
         try:
-            return parse_duration(value)
+            seconds = parse_duration(value)
         except ValueError as e:
             self.fail(str(e), param, ctx)
+        why = self.bound.problem(seconds, f"'{value}'") if self.bound is not None else None
+        if why is not None:
+            self.fail(why, param, ctx)
+        return seconds
 
-
-DURATION = Duration()
 
 
 def device_options(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -174,7 +196,7 @@ LIMIT_HELP = ("inventory devices: names, groups and glob patterns, comma-separat
               "@REPORT.json = the devices of that report that did not end ok")
 fleet_option = click.option("--inventory", type=click.Path(dir_okay=False), help="every device of an inventory")
 limit_option = click.option("--limit", metavar="SEL", help=LIMIT_HELP)
-parallel_option = click.option("--parallel", type=click.IntRange(1, 1000), default=8, show_default=True,
+parallel_option = click.option("--parallel", type=int_range(LIMITS.parallel), default=8, show_default=True,
                                help="devices at once (devices on one bus always go one at a time)")
 
 

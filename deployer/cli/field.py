@@ -7,7 +7,7 @@ import json
 import click
 
 from ..load.diagnostics import EXIT_OK, UsageError
-from .base import console
+from .base import TIMEOUT, console
 from .tables import show
 
 _STATE = click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
@@ -154,7 +154,7 @@ def scan(url: str, units: tuple[str, ...], timeout: float, register: int, output
 @click.option("--expect", "expect", multiple=True, metavar="NAME=VALUE",
               help="a value you know the device holds (e.g. read on its panel), in the parameter's unit: "
                    "finds the byte/word layout or scale that gives it. Repeatable.")
-@click.option("--timeout", type=click.FloatRange(min=0.001, max=600), help="seconds per attempt")
+@click.option("--timeout", type=TIMEOUT, help="seconds per attempt")
 @click.option("--json", "as_json", is_flag=True, help="print the findings as JSON")
 def probe(profile: str, device: str, unit: int, expect: tuple[str, ...], timeout: float | None, as_json: bool) -> int:
     """Check PROFILE against a live device, read-only, and suggest profile changes.

@@ -12,6 +12,8 @@ import click
 
 from ..load.diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError, UsageError
 from .base import (
+    RETRIES,
+    TIMEOUT,
     _fleet,
     _n,
     _output,
@@ -196,8 +198,8 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
               help="the device's profile (with --inventory: for devices whose entry names none)")
 @click.option("--device", metavar="URL")
 @click.option("--unit", type=click.IntRange(1, 247), help="unit id (default 1, or the inventory's)")
-@click.option("--timeout", type=click.FloatRange(min=0, min_open=True))
-@click.option("--retries", type=click.IntRange(0, 20))
+@click.option("--timeout", type=TIMEOUT)
+@click.option("--retries", type=RETRIES)
 @click.option("-o", "--output", type=click.Path(), help="write the recipe here (default: stdout); "
               "with --inventory a folder: one NAME.yaml per device")
 @click.option("--name", help="the recipe's name (default: pulled-PROFILE)")

@@ -10,9 +10,11 @@ from __future__ import annotations
 import math
 import re
 
+from ..limits import WEEK
+
 _UNITS = {"ms": 0.001, "s": 1.0, "sec": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
 _FORM = re.compile(r"\s*(\d+(?:\.\d*)?|\.\d+)\s*([a-z]*)\s*", re.IGNORECASE)
-MAX_SECONDS = 7 * 24 * 3600.0  # a week: longer is a typo (and overflows asyncio's timers on some systems)
+MAX_SECONDS = WEEK  # longer is a typo (and overflows asyncio's timers on some systems)
 
 
 def parse_duration(text: str | float | int, *, bare: str = "s") -> float:

@@ -22,6 +22,7 @@ from ..errors import ExceptionResponse as ExceptionResponse
 from ..errors import NoResponse as NoResponse
 from ..errors import TransportError as TransportError
 from ..errors import Unreachable as Unreachable
+from ..limits import LIMITS
 from ..load.durations import parse_duration
 
 
@@ -132,7 +133,8 @@ _OPTIONS: dict[str, set[str]] = {
 }
 # numeric options: (type, lowest, highest); docs/urls.md shows the same ranges (a test compares them)
 NUMERIC_OPTIONS: dict[str, tuple[type[int] | type[float], float, float]] = {
-    "timeout": (float, 0.001, 600), "retries": (int, 0, 20),
+    # a URL's timeout and retries within the bounds every caller has (deployer.LIMITS)
+    "timeout": (float, 0.001, LIMITS.timeout.high), "retries": (int, int(LIMITS.retries.low), int(LIMITS.retries.high)),
     "baudrate": (int, 50, 4_000_000), "bytesize": (int, 5, 8), "stopbits": (int, 1, 2),
 }
 

@@ -11,6 +11,7 @@ import traceback
 try:
     import deployer
     from deployer.api import (
+        LIMITS,
         InputError,
         Job,
         ReadJob,
@@ -51,11 +52,7 @@ TARGET_ARGS = dict(
 
 TARGET_EXCLUSIVE = [("device", "devices", "inventory")]
 
-# The same bounds as the command line and device URLs: nothing out of range reaches a device.
 UNIT_RANGE = (0, 247)
-PARALLEL_RANGE = (1, 1024)
-TIMEOUT_RANGE = (0.0, 600.0)  # more than 0
-RETRIES_RANGE = (0, 20)
 
 
 def check_target_args(module):
@@ -73,14 +70,12 @@ def check_target_args(module):
         elif unit == 0 and not p.get("allow_broadcast"):
             problems.append(f"{what} is 0, which is broadcast: nobody answers it, so nothing can be verified; "
                             "set allow_broadcast: true to send it anyway")
-    lo, hi = PARALLEL_RANGE
-    if not lo <= p["parallel"] <= hi:
-        problems.append(f"parallel must be from {lo} to {hi}, got {p['parallel']}")
-    if p.get("timeout") is not None and not TIMEOUT_RANGE[0] < p["timeout"] <= TIMEOUT_RANGE[1]:
-        problems.append(f"timeout must be more than 0 and at most {TIMEOUT_RANGE[1]:g} seconds, got {p['timeout']:g}")
-    lo, hi = RETRIES_RANGE
-    if p.get("retries") is not None and not lo <= p["retries"] <= hi:
-        problems.append(f"retries must be from {lo} to {hi}, got {p['retries']}")
+    # deployer's bounds (deployer.LIMITS), the same the command line and the Python API check
+    for key in ("parallel", "timeout", "retries"):
+        if p.get(key) is not None:
+            why = getattr(LIMITS, key).problem(p[key], key)
+            if why is not None:
+                problems.append(why)
     if p.get("limit") and p.get("device"):
         problems.append("limit selects from devices or an inventory; device names one device already")
     names = [d["name"] for d in p.get("devices") or []]
