@@ -46,16 +46,19 @@ def count(log: list[LogEntry], function: int, **where: Any) -> int:
 
 
 @contextmanager
-def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None) -> Iterator[int]:
+def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None, *,
+                   connections: int = 1) -> Iterator[int]:
     """A Modbus/TCP server from another library (umodbus), unit 1, holding registers in ``store`` (and coils in
-    ``coils``, served with functions 1, 5 and 15); yields its port."""
+    ``coils``, served with functions 1, 5 and 15); yields its port. ``connections`` > 1: each connection is
+    served by a thread of its own (a soak's rollback connects while the soak's connection is open)."""
     pytest.importorskip("umodbus", reason="umodbus is a test extra (pip install -e '.[test]')")
     from umodbus import conf
     from umodbus.server.tcp import RequestHandler, get_server
 
     conf.SIGNED_VALUES = False
     socketserver.TCPServer.allow_reuse_address = True
-    server = get_server(socketserver.TCPServer, ("127.0.0.1", 0), RequestHandler)
+    server = get_server(socketserver.ThreadingTCPServer if connections > 1 else socketserver.TCPServer,
+                        ("127.0.0.1", 0), RequestHandler)
 
     @server.route(slave_ids=[1], function_codes=[3], addresses=list(store))  # type: ignore[untyped-decorator]
     def read(slave_id: int, function_code: int, address: int) -> int:

@@ -5,10 +5,7 @@ from __future__ import annotations
 import difflib
 import re
 from collections.abc import Iterable
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    pass
 MAX_ECHO = 60  # characters of a value echoed in a message; longer ones are cut with an ellipsis
 
 
@@ -34,6 +31,15 @@ def clip_message(message: str) -> str:
     if len(message) > 1000:
         message = f"{message[:600]} … {message[-300:]}"
     return message
+
+
+def label_list(labels: Iterable[str]) -> str:
+    """Labels for a message, one after another: quoted when one of them holds a comma or a space at
+    an end (``'on, delayed', 'off'``), so the reader sees where each ends."""
+    items = list(labels)
+    if any("," in t or t != t.strip() or not t for t in items):
+        return ", ".join(repr(t) for t in items)
+    return ", ".join(items)
 
 
 def closest(name: str, choices: Iterable[str]) -> str | None:

@@ -76,6 +76,13 @@ class Source:
     path: str
     values: dict[Path_, Pos] = field(default_factory=dict)
     keys: dict[Path_, Pos] = field(default_factory=dict)
+    # YAML 1.1 booleans written as words (yes, no, on, off ...) by position: the text as written, so a
+    # recipe can take 'yes' as the label it meant
+    words: dict[Pos, str] = field(default_factory=dict)
+
+    def word(self, at: Path_) -> str | None:
+        """The text of a boolean at ``at`` when it was written as a word other than true/false."""
+        return self.words.get(pack(*self.pos(at)))
 
     def pos(self, at: Path_, *, key: bool = False) -> tuple[int, int]:
         """(line, col) of the value (or key) at ``at``; falls back to the nearest parent."""
@@ -387,6 +394,8 @@ class _Builder:
         if tag == _NULL:
             return None
         if tag == _BOOL:
+            if text.lower() not in ("true", "false"):
+                self.src.words[pos] = text
             return text.lower() in ("true", "yes", "on", "y")
         if len(text) > MAX_NUMBER_CHARS:
             self.err(pos, f"number too long ({len(text)} characters; at most {MAX_NUMBER_CHARS}): {clip(text)}")

@@ -8,10 +8,10 @@ from dataclasses import replace
 from decimal import Decimal
 from typing import Any
 
-from ..load import schema, yamlsrc
+from ..load import messages, schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
 from ..load.durations import parse_duration
-from . import codec, model, units
+from . import codec, model, units, values
 from .model import (
     IDENTITY_OBJECTS,
     CommitAction,
@@ -173,353 +173,58 @@ def profile_ref(profile: Profile) -> str:
     return profile.source or profile.id
 
 
-def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
-    errors: list[Diagnostic] = []
-    addressing = data.get("addressing", "address")
-    rounding = data.get("rounding")
-    limit_data = dict(data.get("limits", {}))
-    for key in ("pause_after_connect", "pause_between_requests"):
-        if key in limit_data:
-            try:
-                limit_data[key] = round(parse_duration(limit_data[key], bare="ms") * 1000)
-            except ValueError as e:
-                errors.append(src.error(("limits", key), f"limits.{key}: {e}"))
-                limit_data[key] = 0
-    limits = Limits(**limit_data)
-    if limits.write_registers < 1:
-        errors.append(src.error(("limits",), "limits leave no room for a single register per write"))
+class _Checks:
+    """What the validators of one profile share: where the file is, how it counts registers, the errors."""
 
-    def address_of(value: object, at: yamlsrc.Path_, extra: int = 0, register_type: str = "holding") -> int | None:
+    def __init__(self, data: dict[str, Any], src: yamlsrc.Source) -> None:
+        self.data = data
+        self.src = src
+        self.errors: list[Diagnostic] = []
+        self.addressing: str = data.get("addressing", "address")
+        self.rounding = data.get("rounding")
+        self.layout = _layout(data, ("big", False), (), src, self.errors)
+
+    def error(self, at: yamlsrc.Path_, message: str) -> None:
+        self.errors.append(self.src.error(at, message))
+
+    def address_of(self, value: object, at: yamlsrc.Path_, extra: int = 0,
+                   register_type: str = "holding") -> int | None:
+        """A register reference as the profile's addressing counts it -> its wire address (None: an error)."""
         try:
             number = parse_register(value)
         except ValueError:
-            errors.append(src.error(at, f"not a register: {value!r}"))
+            self.error(at, f"not a register: {value!r}")
             return None
         try:
-            wire = wire_address(number, addressing, register_type) + extra
+            wire = wire_address(number, self.addressing, register_type) + extra
         except ValueError as e:  # the message says which references the addressing accepts
-            errors.append(src.error(at, str(e)))
+            self.error(at, str(e))
             return None
         if wire > 0xFFFF:
-            errors.append(src.error(at, f"wire address {wire} is beyond 65535"))
+            self.error(at, f"wire address {wire} is beyond 65535")
             return None
         return wire
 
-    params: list[Parameter] = []
 
-    default_layout = _layout(data, ("big", False), (), src, errors)
-
-    def make(name: str, spec: dict[str, Any], address: int, at: yamlsrc.Path_,
-             eng_offset: object = 0) -> None:
-        table = spec.get("register_type", "holding")
-        local: list[Diagnostic] = []
-        if "type" not in spec and table not in model.BIT_TABLES:
-            local.append(src.error(at, f"{name}: 'type' is required for {_PLURAL[table]} (uint16, int32, "
-                                       "float32 ...); only coils and discrete inputs are bool without it"))
-        type_ = spec.get("type", codec.BOOL if table in model.BIT_TABLES else "uint16")
-        order, swap = _layout(spec, default_layout, at, src, local)
-        access = spec.get("access", "read-only" if table in ("discrete", "input") else "read-write")
-        mask = 0
-        if table in model.BIT_TABLES:
-            if type_ != codec.BOOL:
-                local.append(src.error((*at, "type"), f"a {table} is one bit: type bool (or no type), not {type_}"))
-            for key in ("bits", "mask", "scale", "offset", "unit", "count", "encoding", "padding",
-                        "byte_order", "swap", "word_order"):
-                if key in spec:
-                    local.append(src.error((*at, key), f"'{key}' does not apply to a {table} (one bit, 0 or 1)"))
-        if table in ("discrete", "input") and access != "read-only":
-            what = "a discrete input" if table == "discrete" else "an input register"
-            local.append(src.error((*at, "access"), f"{what} is read-only (it cannot be written)"))
-        if table in model.BIT_TABLES:
-            pass
-        elif "bits" in spec or "mask" in spec:
-            try:
-                mask = codec.parse_bits(spec["bits"]) if "bits" in spec else int(spec["mask"])
-                codec.mask_shift(mask)
-            except ValueError as e:
-                local.append(src.error((*at, "bits" if "bits" in spec else "mask"), str(e)))
-                mask = 0xFFFF
-            if type_ not in ("uint16", "int16", codec.BOOL):
-                local.append(src.error((*at, "type"), f"a bit field is uint16, int16 or bool, not {type_}"))
-            elif type_ == codec.BOOL and mask and mask & (mask - 1):
-                local.append(src.error((*at, "type"), "a bool field is one bit"))
-            if spec.get("access") == "write-only":  # its register is written whole: the other bits come from a read
-                local.append(src.error((*at, "access"), "a bit field must be readable: apply reads its register "
-                                                        "to keep the other bits"))
-        elif type_ == codec.BOOL:
-            local.append(src.error((*at, "type"), "type bool is a one-bit field: give 'bits: N'"))
-        if type_ == codec.STRING:
-            if "count" not in spec:
-                local.append(src.error(at, f"{name}: a string needs 'count' (its registers)"))
-            for key in ("scale", "unit", "min", "max", "values"):
-                if key in spec:
-                    local.append(src.error((*at, key), f"'{key}' does not apply to a string"))
-        elif "count" in spec or "encoding" in spec or "padding" in spec:
-            key = next(k for k in ("count", "encoding", "padding") if k in spec)
-            local.append(src.error((*at, key), f"'{key}' applies to strings only (type: string)"))
-        param = Parameter(
-            name=name,
-            address=address,
-            type=type_,
-            word_order=order,
-            byte_swap=swap,
-            scale=Decimal(spec.get("scale", 1)),
-            offset=Decimal(eng_offset),  # type: ignore[arg-type]
-            unit=units.normalize(spec["unit"]) if "unit" in spec else None,
-            min=_dec(spec.get("min")),
-            max=_dec(spec.get("max")),
-            access=access,
-            values=tuple((str(k), int(v)) for k, v in (spec.get("values") or {}).items()),
-            stage=int(spec.get("stage", 0)),
-            rounding=spec.get("rounding", rounding),
-            description=spec.get("description", ""),
-            line=src.pos(at, key=True)[0],
-            col=src.pos(at, key=True)[1],
-            mask=mask,
-            size=int(spec.get("count", 1)),
-            encoding=spec.get("encoding", "ascii"),
-            padding=spec.get("padding", "nul"),
-            restart=bool(spec.get("restart", False)),
-            register_type=table,
-        )
-        if local:  # the rest of the checks assume a well-formed parameter
-            errors.extend(local)
-            params.append(param)
-            return
-        if param.scale == 0:
-            local.append(src.error((*at, "scale"), "scale must not be 0"))
-        if address + param.count > 0x10000:
-            local.append(src.error(at, f"{name}: registers {address}..{address + param.count - 1} run past 65535"))
-        if "unit" in spec:
-            problem = units.check(spec["unit"])
-            if problem:
-                local.append(src.error((*at, "unit"), problem))
-        if param.min is not None and param.max is not None and param.min > param.max:
-            local.append(src.error((*at, "min"), f"min {param.min} is greater than max {param.max}"))
-        if not local:
-            for key in ("min", "max"):
-                bound = getattr(param, key)
-                if bound is None:
-                    continue
-                try:
-                    param.to_raw(bound, rounding="nearest")
-                except codec.CodecError as e:
-                    local.append(src.error((*at, key), f"{key} {_fmt(bound)} is not representable: {e}"))
-        rng = param.type_range()
-        for label, raw in param.values:
-            if rng and not rng[0] <= raw <= rng[1]:
-                width = codec.mask_shift(mask)[1] if mask else 0
-                what = f"{width} bit{'s' if width != 1 else ''}" if mask else type_
-                local.append(src.error((*at, "values", label), f"value {raw} of '{label}' does not fit in {what}"))
-        if "default" in spec and not local and param.is_string:
-            try:
-                param.encode_text(str(spec["default"]))
-                param = replace(param, default=str(spec["default"]))
-            except codec.CodecError as e:
-                local.append(src.error((*at, "default"), f"default: {e}"))
-        elif "default" in spec and not local:
-            d = spec["default"]
-            try:
-                if isinstance(d, bool):
-                    default_eng = Decimal(int(d))
-                elif isinstance(d, str):
-                    labels = dict(param.values)
-                    if d not in labels:
-                        raise codec.CodecError(f"'{d}' is not one of the labels {', '.join(labels) or '(none)'}")
-                    default_eng = codec.from_raw(labels[d], param.scale, param.offset)
-                else:
-                    default_eng = Decimal(d)
-                    param.to_raw(default_eng)
-                if (param.min is not None and default_eng < param.min) or (
-                    param.max is not None and default_eng > param.max
-                ):
-                    raise codec.CodecError(f"{_fmt(default_eng)} is outside {_fmt(param.min)}..{_fmt(param.max)}")
-                param = replace(param, default=default_eng)
-            except codec.CodecError as e:
-                local.append(src.error((*at, "default"), f"default: {e}"))
-        errors.extend(local)
-        params.append(param)
-
-    for name, spec in (data.get("parameters") or {}).items():
-        at: yamlsrc.Path_ = ("parameters", name)
-        addr = address_of(spec["register"], (*at, "register"), register_type=spec.get("register_type", "holding"))
-        if addr is not None:
-            make(name, spec, addr, at, spec.get("offset", 0))
-
-    # hostile input: tables multiply (count x fields); refuse before building millions of parameters
-    declared = len(data.get("parameters") or {})
-    for tname, table in (data.get("tables") or {}).items():
-        declared += int(table["count"]) * len(table["fields"])
-        if declared > yamlsrc.MAX_ENTRIES:
-            errors.append(src.error(("tables", tname, "count"),
-                                    f"table {tname}: the profile would declare at least {declared} parameters; at "
-                                    f"most {yamlsrc.MAX_ENTRIES} (a device has {yamlsrc.MAX_ENTRIES} registers)"))
-            raise InputError(errors)
-
-    for tname, table in (data.get("tables") or {}).items():
-        tat: yamlsrc.Path_ = ("tables", tname)
-        table_types = {f.get("register_type", "holding") for f in table["fields"].values()}
-        if len(table_types) > 1:
-            errors.append(src.error((*tat, "fields"), f"table {tname}: its fields are in one Modbus table "
-                                                      f"(register_type), not {', '.join(sorted(table_types))}"))
-            continue
-        base = address_of(table["base"], (*tat, "base"), register_type=table_types.pop() if table_types else "holding")
-        if base is None:
-            continue
-        count, stride = table["count"], table["stride"]
-        last_end = base + (count - 1) * stride + max(
-            f["offset"] + _spec_count(f) for f in table["fields"].values()
-        )
-        if last_end > 0x10000:
-            errors.append(src.error(tat, f"table {tname}: entry {count - 1} ends at register {last_end - 1}, "
-                                         "beyond 65535"))
-            continue
-        for fname, fspec in table["fields"].items():
-            if fspec["offset"] + _spec_count(fspec) > stride:
-                errors.append(src.error((*tat, "fields", fname, "offset"),
-                                        f"field {fname} runs past the table's stride {stride}"))
-        for i in range(count):
-            for fname, fspec in table["fields"].items():
-                make(f"{tname}[{i}].{fname}", fspec, base + i * stride + fspec["offset"],
-                     (*tat, "fields", fname))
-
-    # overlapping registers: name both parameters and both lines. Bit fields of one register
-    # share it when their bits do not overlap; a field never shares with a whole-register value.
-    # each Modbus table is its own address space: sort by key (table, address)
-    params.sort(key=lambda q: (q.key, q.line, q.name))  # of two at one address, the later one is reported
-    prev: Parameter | None = None
-    reported = 0
-    fields_at: dict[int, list[Parameter]] = {}
-    for q in params:
-        if prev is not None and prev.register_type != q.register_type:
-            prev = None  # another table: another address space
-        if q.mask and prev is not None and prev.mask and prev.address == q.address:
-            mates = fields_at[q.address]
-            clash = next((f for f in mates if f.mask & q.mask), None)
-            if clash is not None:
-                errors.append(Diagnostic(src.path, q.line, q.col,
-                                         f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) overlaps "
-                                         f"{clash.name} (bits {_bits(clash.mask)}, line {clash.line})"))
-            other = next((f for f in mates if f.stage != q.stage), None)
-            if other is not None:
-                errors.append(Diagnostic(src.path, q.line, q.col,
-                                         f"{q.name} is in stage {q.stage} but {other.name} (line {other.line}) of the "
-                                         f"same register {_hex(q.address)} is in stage {other.stage}: a register is "
-                                         "written as one unit"))
-            mates.append(q)
-            continue
-        if q.mask:
-            fields_at[q.address] = [q]
-        if prev is not None and q.address < prev.end and (q.mask or prev.mask) and reported < 20:
-            if q.mask:
-                what = (f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) shares its register with "
-                        f"{prev.name} (line {prev.line}), which is not a bit field")
-            else:
-                what = (f"{q.name} (registers {_hex(q.address)}-{_hex(q.end - 1)}) overlaps the bit field {prev.name} "
-                        f"(bits {_bits(prev.mask)} of register {_hex(prev.address)}, line {prev.line})")
-            errors.append(Diagnostic(src.path, q.line, q.col, f"{what}: only bit fields share a register"))
-            reported += 1
-        elif prev is not None and q.address < prev.end:
-            if reported < 20:  # a bad table can overlap thousands of times; the first ones say it
-                errors.append(Diagnostic(
-                    src.path, q.line, q.col,
-                    f"{q.name} ({_span(q)}) overlaps {prev.name} ({_span(prev)}, line {prev.line})"))
-            reported += 1
-        if prev is None or q.end > prev.end:
-            prev = q
-
-    identity = []
-    identity_objects = []
-    for i, item in enumerate(data.get("identity") or []):
-        if ("register" in item) == ("object" in item):
-            errors.append(src.error(("identity", i), "an identity check is either {register: R, raw: N} or "
-                                                     "{object: vendor|product_code|revision|..., equals: TEXT}"))
-            continue
-        if "object" in item:
-            obj = item["object"]
-            oid = IDENTITY_OBJECTS[obj] if isinstance(obj, str) else int(obj)
-            identity_objects.append(IdentityObject(oid, str(item["equals"]).strip(), item.get("description", "")))
-            continue
-        table = item.get("register_type", "holding")
-        a = address_of(item["register"], ("identity", i, "register"), register_type=table)
-        if a is not None:
-            identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", ""), table))
-    def actions(key: str) -> tuple[CommitAction, ...]:
-        out = []
-        for i, item in enumerate(data.get(key) or []):
-            at2: yamlsrc.Path_ = (key, i)
-            a = address_of(item["register"], (*at2, "register"))
-            raw = item["raw"]
-            try:
-                regs = tuple(int(r) for r in raw) if isinstance(raw, list) else codec.encode(
-                    int(raw), item.get("type", "uint16"), default_layout[0], default_layout[1])
-            except codec.CodecError as e:
-                errors.append(src.error((*at2, "raw"), str(e)))
-                continue
-            if a is not None:
-                out.append(CommitAction(a, regs, item.get("description", ""), int(item.get("wait", 0))))
-        return tuple(out)
-
-    preconditions = []
-    for i, item in enumerate(data.get("preconditions") or []):
-        at3: yamlsrc.Path_ = ("preconditions", i)
-        a = address_of(item["register"], (*at3, "register"))
-        try:
-            mask = codec.parse_bits(item["bits"]) if "bits" in item else int(item.get("mask", 0xFFFF))
-            lo, hi = codec.field_range(mask)
-        except ValueError as e:
-            errors.append(src.error((*at3, "bits" if "bits" in item else "mask"), str(e)))
-            continue
-        if not lo <= int(item["equals"]) <= hi:
-            errors.append(src.error((*at3, "equals"),
-                                    f"{item['equals']} does not fit in the selected bits ({lo}..{hi})"))
-        elif a is not None:
-            preconditions.append(Precondition(a, mask, int(item["equals"]), item.get("description", "")))
-    health = []
-    for i, item in enumerate(data.get("health") or []):
-        at4: yamlsrc.Path_ = ("health", i)
-        a = address_of(item["register"], (*at4, "register"), register_type=item.get("register_type", "holding"))
-        try:
-            mask = codec.parse_bits(item["bits"]) if "bits" in item else int(item.get("mask", 0xFFFF))
-            lo, hi = codec.field_range(mask)
-        except ValueError as e:
-            errors.append(src.error((*at4, "bits" if "bits" in item else "mask"), str(e)))
-            continue
-        bad = not any(k in item for k in ("equals", "min", "max"))
-        if bad:
-            errors.append(src.error(at4, "a health check needs 'equals' (a value) or 'min'/'max' (a raw range)"))
-        for key in ("equals", "min", "max"):
-            if key in item and not lo <= int(item[key]) <= hi:
-                errors.append(src.error((*at4, key), f"{item[key]} does not fit in the selected bits ({lo}..{hi})"))
-                bad = True
-        if "equals" in item and ("min" in item or "max" in item):
-            bound = "min" if "min" in item else "max"
-            errors.append(src.error((*at4, bound), f"'equals' and '{bound}' exclude each other: a check is one "
-                                                   "value or a range"))
-            bad = True
-        elif "min" in item and "max" in item and int(item["min"]) > int(item["max"]):
-            errors.append(src.error((*at4, "min"), f"min {item['min']} is greater than max {item['max']}"))
-            bad = True
-        if a is not None and not bad:
-            health.append(HealthCheck(a, mask, _int_or_none(item.get("equals")), _int_or_none(item.get("min")),
-                                      _int_or_none(item.get("max")), item.get("register_type", "holding"),
-                                      item.get("description", "")))
-    stage_waits = tuple((int(w["stage"]), int(w["wait"])) for w in data.get("stages") or [])
-    seen_stages: dict[int, int] = {}
-    for i, (stage, _) in enumerate(stage_waits):
-        if stage in seen_stages:
-            errors.append(src.error(("stages", i, "stage"),
-                                    f"stage {stage} is already set (stages item {seen_stages[stage]})"))
-        seen_stages.setdefault(stage, i)
-    commits, unlock, lock = actions("commit"), actions("unlock"), actions("lock")
-    if errors:
-        raise InputError(errors)
+def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
+    c = _Checks(data, src)
+    limits = _limits(c)
+    params = _parameters(c)
+    _tables(c, params)
+    _overlaps(c, params)
+    identity, identity_objects = _identity(c)
+    preconditions = _preconditions(c)
+    health = _health(c, params)
+    stage_waits = _stages(c)
+    commits, unlock, lock = _actions(c, "commit"), _actions(c, "unlock"), _actions(c, "lock")
+    if c.errors:
+        raise InputError(c.errors)
     return Profile(
         id=str(data["profile"]),
         description=str(data.get("description", "")),
-        addressing=addressing,
-        word_order=default_layout[0],
-        byte_swap=default_layout[1],
+        addressing=c.addressing,  # type: ignore[arg-type]
+        word_order=c.layout[0],
+        byte_swap=c.layout[1],
         limits=limits,
         identity=tuple(identity),
         identity_objects=tuple(identity_objects),
@@ -532,6 +237,488 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         stage_waits=stage_waits,
         health=tuple(health),
     )
+
+
+def _limits(c: _Checks) -> Limits:
+    limit_data = dict(c.data.get("limits", {}))
+    for key in ("pause_after_connect", "pause_between_requests"):
+        if key in limit_data:
+            try:
+                limit_data[key] = round(parse_duration(limit_data[key], bare="ms") * 1000)
+            except ValueError as e:
+                c.error(("limits", key), f"limits.{key}: {e}")
+                limit_data[key] = 0
+    limits = Limits(**limit_data)
+    if limits.write_registers < 1:
+        c.error(("limits",), "limits leave no room for a single register per write")
+    return limits
+
+
+# ---- parameters ---------------------------------------------------------------------------------
+
+_NOT_FOR_BITS = ("bits", "mask", "scale", "offset", "unit", "count", "encoding", "padding", "byte_order", "swap",
+                 "word_order")
+
+
+def _parameters(c: _Checks) -> list[Parameter]:
+    params: list[Parameter] = []
+    for name, spec in (c.data.get("parameters") or {}).items():
+        at: yamlsrc.Path_ = ("parameters", name)
+        addr = c.address_of(spec["register"], (*at, "register"), register_type=spec.get("register_type", "holding"))
+        if addr is not None:
+            params.append(_parameter(c, name, spec, addr, at, spec.get("offset", 0)))
+    return params
+
+
+def _parameter(c: _Checks, name: str, spec: dict[str, Any], address: int, at: yamlsrc.Path_,
+               eng_offset: object = 0) -> Parameter:
+    """One parameter (a table entry's field too); its problems go to ``c.errors``."""
+    table = spec.get("register_type", "holding")
+    src = c.src
+    local: list[Diagnostic] = []
+    if "type" not in spec and table not in model.BIT_TABLES:
+        local.append(src.error(at, f"{name}: 'type' is required for {_PLURAL[table]} (uint16, int32, "
+                                   "float32 ...); only coils and discrete inputs are bool without it"))
+    type_ = spec.get("type", codec.BOOL if table in model.BIT_TABLES else "uint16")
+    order, swap = _layout(spec, c.layout, at, src, local)
+    access = spec.get("access", "read-only" if table in ("discrete", "input") else "read-write")
+    local += _shape_problems(src, spec, at, table, type_, access)
+    mask = _mask(src, spec, at, table, local)
+    param = Parameter(
+        name=name,
+        address=address,
+        type=type_,
+        word_order=order,
+        byte_swap=swap,
+        scale=Decimal(spec.get("scale", 1)),
+        offset=Decimal(eng_offset),  # type: ignore[arg-type]
+        unit=units.normalize(spec["unit"]) if "unit" in spec else None,
+        min=_dec(spec.get("min")),
+        max=_dec(spec.get("max")),
+        access=access,
+        values=tuple((str(k), int(v)) for k, v in (spec.get("values") or {}).items()),
+        stage=int(spec.get("stage", 0)),
+        rounding=spec.get("rounding", c.rounding),
+        description=spec.get("description", ""),
+        line=src.pos(at, key=True)[0],
+        col=src.pos(at, key=True)[1],
+        mask=mask,
+        size=int(spec.get("count", 1)),
+        encoding=spec.get("encoding", "ascii"),
+        padding=spec.get("padding", "nul"),
+        restart=bool(spec.get("restart", False)),
+        register_type=table,
+    )
+    if local:  # the rest of the checks assume a well-formed parameter
+        c.errors.extend(local)
+        return param
+    local = _range_problems(src, param, spec, at)
+    if "default" in spec and not local:
+        param = _with_default(src, param, spec["default"], at, local)
+    c.errors.extend(local)
+    return param
+
+
+def _shape_problems(src: yamlsrc.Source, spec: dict[str, Any], at: yamlsrc.Path_, table: str, type_: str,
+                    access: str) -> list[Diagnostic]:
+    """Keys that do not fit the parameter's table or type (a coil's scale, a string's unit ...)."""
+    out: list[Diagnostic] = []
+    if table in model.BIT_TABLES:
+        if type_ != codec.BOOL:
+            out.append(src.error((*at, "type"), f"a {table} is one bit: type bool (or no type), not {type_}"))
+        out += [src.error((*at, key), f"'{key}' does not apply to a {table} (one bit, 0 or 1)")
+                for key in _NOT_FOR_BITS if key in spec]
+    if table in ("discrete", "input") and access != "read-only":
+        what = "a discrete input" if table == "discrete" else "an input register"
+        out.append(src.error((*at, "access"), f"{what} is read-only (it cannot be written)"))
+    if table not in model.BIT_TABLES and ("bits" in spec or "mask" in spec):
+        if type_ not in ("uint16", "int16", codec.BOOL):
+            out.append(src.error((*at, "type"), f"a bit field is uint16, int16 or bool, not {type_}"))
+        if spec.get("access") == "write-only":  # its register is written whole: the other bits come from a read
+            out.append(src.error((*at, "access"), "a bit field must be readable: apply reads its register "
+                                                  "to keep the other bits"))
+    elif table not in model.BIT_TABLES and type_ == codec.BOOL:
+        out.append(src.error((*at, "type"), "type bool is a one-bit field: give 'bits: N'"))
+    if type_ == codec.STRING:
+        if "count" not in spec:
+            out.append(src.error(at, f"{at[-1]}: a string needs 'count' (its registers)"))
+        out += [src.error((*at, key), f"'{key}' does not apply to a string")
+                for key in ("scale", "unit", "min", "max", "values") if key in spec]
+    elif "count" in spec or "encoding" in spec or "padding" in spec:
+        key = next(k for k in ("count", "encoding", "padding") if k in spec)
+        out.append(src.error((*at, key), f"'{key}' applies to strings only (type: string)"))
+    return out
+
+
+def _mask(src: yamlsrc.Source, spec: dict[str, Any], at: yamlsrc.Path_, table: str,
+          local: list[Diagnostic]) -> int:
+    """A bit field's mask (0: the whole value)."""
+    if table in model.BIT_TABLES or not ("bits" in spec or "mask" in spec):
+        return 0
+    key = "bits" if "bits" in spec else "mask"
+    try:
+        mask = codec.parse_bits(spec["bits"]) if key == "bits" else int(spec["mask"])
+        codec.mask_shift(mask)
+    except ValueError as e:
+        local.append(src.error((*at, key), str(e)))
+        return 0xFFFF
+    if spec.get("type") == codec.BOOL and mask & (mask - 1):
+        local.append(src.error((*at, "type"), "a bool field is one bit"))
+    return mask
+
+
+def _range_problems(src: yamlsrc.Source, param: Parameter, spec: dict[str, Any],
+                    at: yamlsrc.Path_) -> list[Diagnostic]:
+    """Scale, span, unit, min/max and the labels' raw values of a well-formed parameter."""
+    out: list[Diagnostic] = []
+    if param.scale == 0:
+        out.append(src.error((*at, "scale"), "scale must not be 0"))
+    if param.address + param.count > 0x10000:
+        out.append(src.error(at, f"{param.name}: registers {param.address}..{param.address + param.count - 1} "
+                                 "run past 65535"))
+    problem = units.check(spec["unit"]) if "unit" in spec else None
+    if problem:
+        out.append(src.error((*at, "unit"), problem))
+    if param.min is not None and param.max is not None and param.min > param.max:
+        out.append(src.error((*at, "min"), f"min {param.min} is greater than max {param.max}"))
+    if not out:
+        for key in ("min", "max"):
+            bound = getattr(param, key)
+            try:
+                if bound is not None:
+                    param.to_raw(bound, rounding="nearest")
+            except codec.CodecError as e:
+                out.append(src.error((*at, key), f"{key} {_fmt(bound)} is not representable: {e}"))
+    rng = param.type_range()
+    for label, raw in param.values:
+        if rng and not rng[0] <= raw <= rng[1]:
+            width = codec.mask_shift(param.mask)[1] if param.mask else 0
+            what = f"{width} bit{'s' if width != 1 else ''}" if param.mask else param.type
+            out.append(src.error((*at, "values", label), f"value {raw} of '{label}' does not fit in {what}"))
+    return out
+
+
+def _with_default(src: yamlsrc.Source, param: Parameter, d: object, at: yamlsrc.Path_,
+                  local: list[Diagnostic]) -> Parameter:
+    """``param`` with its factory default, checked like a recipe value."""
+    try:
+        if param.is_string:
+            param.encode_text(str(d))
+            return replace(param, default=str(d))
+        if isinstance(d, bool):
+            default_eng = Decimal(int(d))
+        elif isinstance(d, str):
+            labels = dict(param.values)
+            if d not in labels:
+                raise codec.CodecError(f"'{d}' is not one of the labels "
+                                       f"{messages.label_list(labels) or '(none)'}")
+            default_eng = codec.from_raw(labels[d], param.scale, param.offset)
+        else:
+            default_eng = Decimal(d)  # type: ignore[arg-type]
+            param.to_raw(default_eng)
+        if (param.min is not None and default_eng < param.min) or (
+            param.max is not None and default_eng > param.max
+        ):
+            raise codec.CodecError(f"{_fmt(default_eng)} is outside {_fmt(param.min)}..{_fmt(param.max)}")
+        return replace(param, default=default_eng)
+    except codec.CodecError as e:
+        local.append(src.error((*at, "default"), f"default: {e}"))
+        return param
+
+
+def _tables(c: _Checks, params: list[Parameter]) -> None:
+    """Table entries expanded into ``params`` (``name[i].field``)."""
+    tables = c.data.get("tables") or {}
+    # hostile input: tables multiply (count x fields); refuse before building millions of parameters
+    declared = len(c.data.get("parameters") or {})
+    for tname, table in tables.items():
+        declared += int(table["count"]) * len(table["fields"])
+        if declared > yamlsrc.MAX_ENTRIES:
+            c.error(("tables", tname, "count"),
+                    f"table {tname}: the profile would declare at least {declared} parameters; at "
+                    f"most {yamlsrc.MAX_ENTRIES} (a device has {yamlsrc.MAX_ENTRIES} registers)")
+            raise InputError(c.errors)
+    for tname, table in tables.items():
+        tat: yamlsrc.Path_ = ("tables", tname)
+        table_types = {f.get("register_type", "holding") for f in table["fields"].values()}
+        if len(table_types) > 1:
+            c.error((*tat, "fields"), f"table {tname}: its fields are in one Modbus table "
+                                      f"(register_type), not {', '.join(sorted(table_types))}")
+            continue
+        base = c.address_of(table["base"], (*tat, "base"),
+                            register_type=table_types.pop() if table_types else "holding")
+        if base is None:
+            continue
+        count, stride = table["count"], table["stride"]
+        last_end = base + (count - 1) * stride + max(f["offset"] + _spec_count(f) for f in table["fields"].values())
+        if last_end > 0x10000:
+            c.error(tat, f"table {tname}: entry {count - 1} ends at register {last_end - 1}, beyond 65535")
+            continue
+        for fname, fspec in table["fields"].items():
+            if fspec["offset"] + _spec_count(fspec) > stride:
+                c.error((*tat, "fields", fname, "offset"), f"field {fname} runs past the table's stride {stride}")
+        for i in range(count):
+            for fname, fspec in table["fields"].items():
+                params.append(_parameter(c, f"{tname}[{i}].{fname}", fspec, base + i * stride + fspec["offset"],
+                                         (*tat, "fields", fname)))
+
+
+def _overlaps(c: _Checks, params: list[Parameter]) -> None:
+    """Overlapping registers: name both parameters and both lines. Bit fields of one register share it when
+    their bits do not overlap; a field never shares with a whole-register value. Each Modbus table is its
+    own address space: ``params`` ends sorted by key (table, address)."""
+    params.sort(key=lambda q: (q.key, q.line, q.name))  # of two at one address, the later one is reported
+    prev: Parameter | None = None
+    reported = 0
+    fields_at: dict[int, list[Parameter]] = {}
+    for q in params:
+        if prev is not None and prev.register_type != q.register_type:
+            prev = None  # another table: another address space
+        if q.mask and prev is not None and prev.mask and prev.address == q.address:
+            _field_mates(c, q, fields_at[q.address])
+            continue
+        if q.mask:
+            fields_at[q.address] = [q]
+        if prev is not None and q.address < prev.end:
+            if reported < 20:  # a bad table can overlap thousands of times; the first ones say it
+                c.errors.append(Diagnostic(c.src.path, q.line, q.col, _overlap_text(q, prev)))
+            reported += 1
+        if prev is None or q.end > prev.end:
+            prev = q
+
+
+def _field_mates(c: _Checks, q: Parameter, mates: list[Parameter]) -> None:
+    """A bit field beside other fields of its register: bits apart, and one stage."""
+    clash = next((f for f in mates if f.mask & q.mask), None)
+    if clash is not None:
+        c.errors.append(Diagnostic(c.src.path, q.line, q.col,
+                                   f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) overlaps "
+                                   f"{clash.name} (bits {_bits(clash.mask)}, line {clash.line})"))
+    other = next((f for f in mates if f.stage != q.stage), None)
+    if other is not None:
+        c.errors.append(Diagnostic(c.src.path, q.line, q.col,
+                                   f"{q.name} is in stage {q.stage} but {other.name} (line {other.line}) of the "
+                                   f"same register {_hex(q.address)} is in stage {other.stage}: a register is "
+                                   "written as one unit"))
+    mates.append(q)
+
+
+def _overlap_text(q: Parameter, prev: Parameter) -> str:
+    if q.mask:
+        return (f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) shares its register with "
+                f"{prev.name} (line {prev.line}), which is not a bit field: only bit fields share a register")
+    if prev.mask:
+        return (f"{q.name} (registers {_hex(q.address)}-{_hex(q.end - 1)}) overlaps the bit field {prev.name} "
+                f"(bits {_bits(prev.mask)} of register {_hex(prev.address)}, line {prev.line}): only bit fields "
+                "share a register")
+    return f"{q.name} ({_span(q)}) overlaps {prev.name} ({_span(prev)}, line {prev.line})"
+
+
+# ---- identity, preconditions, actions, stages ------------------------------------------------------------
+
+
+def _identity(c: _Checks) -> tuple[list[IdentityCheck], list[IdentityObject]]:
+    identity: list[IdentityCheck] = []
+    identity_objects: list[IdentityObject] = []
+    for i, item in enumerate(c.data.get("identity") or []):
+        if ("register" in item) == ("object" in item):
+            c.error(("identity", i), "an identity check is either {register: R, raw: N} or "
+                                     "{object: vendor|product_code|revision|..., equals: TEXT}")
+            continue
+        if "object" in item:
+            obj = item["object"]
+            oid = IDENTITY_OBJECTS[obj] if isinstance(obj, str) else int(obj)
+            identity_objects.append(IdentityObject(oid, str(item["equals"]).strip(), item.get("description", "")))
+            continue
+        table = item.get("register_type", "holding")
+        a = c.address_of(item["register"], ("identity", i, "register"), register_type=table)
+        if a is not None:
+            identity.append(IdentityCheck(a, int(item["raw"]), item.get("description", ""), table))
+    return identity, identity_objects
+
+
+def _actions(c: _Checks, key: str) -> tuple[CommitAction, ...]:
+    out = []
+    for i, item in enumerate(c.data.get(key) or []):
+        at: yamlsrc.Path_ = (key, i)
+        a = c.address_of(item["register"], (*at, "register"))
+        raw = item["raw"]
+        secret = ""
+        if isinstance(raw, dict):  # {env: NAME} or {file: PATH}: a password kept out of the profile
+            secret, raw = _secret(c, raw, (*at, "raw"))
+            if raw is None:
+                continue
+        try:
+            regs = tuple(int(r) for r in raw) if isinstance(raw, list) else codec.encode(
+                int(raw), item.get("type", "uint16"), c.layout[0], c.layout[1])
+        except (codec.CodecError, ValueError) as e:
+            # a secret's value is never echoed: say where it came from
+            c.error((*at, "raw"), f"the value from {secret} does not fit {item.get('type', 'uint16')}"
+                    if secret else str(e))
+            continue
+        if a is not None:
+            out.append(CommitAction(a, regs, item.get("description", ""), int(item.get("wait", 0)), secret))
+    return tuple(out)
+
+
+def _secret(c: _Checks, raw: dict[str, Any], at: yamlsrc.Path_) -> tuple[str, int | list[int] | None]:
+    """(where it came from, the value: an integer, or registers written as '1 2 3') of ``{env: ...}``/``{file: ...}``.
+
+    Read when the profile loads, so that a missing secret stops everything before the first byte."""
+    if "env" in raw:
+        name = str(raw["env"])
+        where = f"environment variable {name}"
+        text = os.environ.get(name)
+        if text is None:
+            c.error(at, f"{where} is not set (it holds this value; set it before running)")
+            return where, None
+    else:
+        path = os.path.join(os.path.dirname(os.path.abspath(c.src.path)), os.path.expanduser(str(raw["file"])))
+        where = f"file {raw['file']}"
+        try:
+            with open(path, encoding="utf-8") as f:
+                text = f.read(4096)
+        except OSError as e:
+            c.error(at, f"cannot read {where}: {e.strerror or e}")
+            return where, None
+    words = text.split()
+    try:
+        value: int | list[int] = parse_register(words[0]) if len(words) == 1 else [parse_register(w) for w in words]
+    except (ValueError, IndexError):
+        c.error(at, f"{where} does not hold an integer (or registers separated by spaces)")
+        return where, None
+    return where, value
+
+
+def _preconditions(c: _Checks) -> list[Precondition]:
+    preconditions = []
+    for i, item in enumerate(c.data.get("preconditions") or []):
+        at: yamlsrc.Path_ = ("preconditions", i)
+        a = c.address_of(item["register"], (*at, "register"))
+        try:
+            mask = codec.parse_bits(item["bits"]) if "bits" in item else int(item.get("mask", 0xFFFF))
+            lo, hi = codec.field_range(mask)
+        except ValueError as e:
+            c.error((*at, "bits" if "bits" in item else "mask"), str(e))
+            continue
+        if not lo <= int(item["equals"]) <= hi:
+            c.error((*at, "equals"), f"{item['equals']} does not fit in the selected bits ({lo}..{hi})")
+        elif a is not None:
+            preconditions.append(Precondition(a, mask, int(item["equals"]), item.get("description", "")))
+    return preconditions
+
+
+def _stages(c: _Checks) -> tuple[tuple[int, int], ...]:
+    stage_waits = tuple((int(w["stage"]), int(w["wait"])) for w in c.data.get("stages") or [])
+    seen_stages: dict[int, int] = {}
+    for i, (stage, _) in enumerate(stage_waits):
+        if stage in seen_stages:
+            c.error(("stages", i, "stage"), f"stage {stage} is already set (stages item {seen_stages[stage]})")
+        seen_stages.setdefault(stage, i)
+    return stage_waits
+
+
+# ---- health checks ------------------------------------------------------------------------------------
+
+
+def _health(c: _Checks, params: list[Parameter]) -> list[HealthCheck]:
+    by_name = {p.name: p for p in params}
+    health = []
+    for i, item in enumerate(c.data.get("health") or []):
+        at: yamlsrc.Path_ = ("health", i)
+        if ("register" in item) == ("parameter" in item):
+            c.error(at, "a health check names either a 'parameter' (values in its units or labels) or a "
+                        "'register' (raw values)")
+            continue
+        if not any(k in item for k in ("equals", "min", "max")):
+            c.error(at, "a health check needs 'equals' (a value) or 'min'/'max' (a range)")
+            continue
+        if "equals" in item and ("min" in item or "max" in item):
+            bound = "min" if "min" in item else "max"
+            c.error((*at, bound), f"'equals' and '{bound}' exclude each other: a check is one value or a range")
+            continue
+        check = _parameter_health(c, item, at, by_name) if "parameter" in item else _raw_health(c, item, at)
+        if check is not None:
+            health.append(check)
+    return health
+
+
+def _raw_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_) -> HealthCheck | None:
+    """``{register: R, bits: ..., equals/min/max: raw}``: raw values of a holding or input register."""
+    table = item.get("register_type", "holding")
+    a = c.address_of(item["register"], (*at, "register"), register_type=table)
+    if table in model.BIT_TABLES:
+        c.error((*at, "register_type"), f"a {table} is watched by name: declare it as a parameter and write "
+                                        "{parameter: NAME, equals: ...}")
+        return None
+    try:
+        mask = codec.parse_bits(item["bits"]) if "bits" in item else int(item.get("mask", 0xFFFF))
+        lo, hi = codec.field_range(mask)
+    except ValueError as e:
+        c.error((*at, "bits" if "bits" in item else "mask"), str(e))
+        return None
+    bad = False
+    for key in ("equals", "min", "max"):
+        v = item.get(key)
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, int):
+            c.error((*at, key), f"{key}: a raw value is an integer, not {messages.clipped_repr(v)} (values in "
+                                "units or labels: name the parameter, {parameter: NAME, ...})")
+            bad = True
+        elif not lo <= v <= hi:
+            c.error((*at, key), f"{v} does not fit in the selected bits ({lo}..{hi})")
+            bad = True
+    if not bad and "min" in item and "max" in item and int(item["min"]) > int(item["max"]):
+        c.error((*at, "min"), f"min {item['min']} is greater than max {item['max']}")
+        bad = True
+    if a is None or bad:
+        return None
+    return HealthCheck(a, mask, _int_or_none(item.get("equals")), _int_or_none(item.get("min")),
+                       _int_or_none(item.get("max")), table, item.get("description", ""))
+
+
+def _parameter_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_,
+                      by_name: dict[str, Parameter]) -> HealthCheck | None:
+    """``{parameter: NAME, min: 450 V, max: 800 V}`` or ``{parameter: NAME, equals: none}``: the parameter's own
+    type, scale, unit and labels, in any of the four tables."""
+    name = str(item["parameter"])
+    p = by_name.get(name)
+    for key in ("register", "register_type", "bits", "mask"):
+        if key in item:
+            c.error((*at, key), f"'{key}' comes from the parameter {name}: leave it out")
+            return None
+    if p is None:
+        hint = messages.closest(name, by_name)
+        c.error((*at, "parameter"), f"unknown parameter '{name}'" + (f"; did you mean '{hint}'?" if hint else ""))
+        return None
+    if p.is_string or not p.readable:
+        c.error((*at, "parameter"), f"{name} is {'a string' if p.is_string else 'write-only'}: a health check "
+                                    "reads a number")
+        return None
+    got: dict[str, Decimal] = {}
+    eq: codec.Raw | None = None
+    for key in ("equals", "min", "max"):
+        if key not in item:
+            continue
+        given = item[key]
+        if p.type == codec.BOOL and isinstance(given, bool):  # a coil's on/off, true/false
+            given = int(given)
+        try:
+            v = values.engineering(p, given, c.src.word((*at, key)) if isinstance(given, bool) else None)
+            if key == "equals":  # the raw value read must be this one
+                eq = v[1] if isinstance(v, tuple) else p.to_raw(v, "exact")
+            else:  # a label as a bound: its engineering value
+                got[key] = codec.from_raw(v[1], p.scale, p.offset) if isinstance(v, tuple) else v
+        except (ValueError, codec.CodecError) as e:
+            c.error((*at, key), f"{name}: {e}")
+            return None
+    low, high = got.get("min"), got.get("max")
+    if low is not None and high is not None and low > high:
+        c.error((*at, "min"), f"min {_fmt(low)} is greater than max {_fmt(high)}")
+        return None
+    return HealthCheck(p.address, 0xFFFF, eq, None, None, p.register_type, item.get("description", ""),
+                       parameter=p, low=low, high=high)
 
 
 def _int_or_none(v: object) -> int | None:

@@ -6,6 +6,7 @@ Plain frozen data shared by every module; loading and importing live next to it.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from decimal import Decimal
 from typing import Literal
@@ -353,20 +354,33 @@ class Precondition:
 
 @dataclass(frozen=True)
 class HealthCheck:
-    """A register (or some of its bits) watched after a verified write (``apply --soak``): another
-    value means the change hurt the device ("drive fault code is zero"), and it is rolled back."""
+    """A value watched after a verified write (``apply --soak``, ``--confirm-within``): another value means
+    the change hurt the device ("drive fault code is zero"), and it is rolled back.
+
+    Either raw bits of a holding or input register (``mask``, ``equals``/``min``/``max`` raw), or a
+    declared ``parameter`` in any table (``equals`` its raw value, e.g. a label's; ``low``/``high``
+    engineering bounds in its unit).
+    """
 
     address: int
     mask: int = 0xFFFF  # 0xFFFF for the whole register
-    equals: int | None = None  # the healthy value of the masked bits, shifted down ...
+    equals: codec.Raw | None = None  # the healthy value of the masked bits, shifted down (a parameter's raw) ...
     min: int | None = None  # ... or a healthy raw range
     max: int | None = None
-    register_type: Literal["holding", "input"] = "holding"  # read with Function 03 or 04
+    register_type: RegisterType = "holding"  # read with Function 03, 04 (or 01, 02 for a parameter's bit)
     description: str = ""
+    parameter: Parameter | None = None
+    low: Decimal | None = None  # a parameter's healthy range, engineering units
+    high: Decimal | None = None
 
     @property
     def function(self) -> int:
         return READ_FUNCTION[self.register_type]
+
+    @property
+    def count(self) -> int:
+        """Registers (or bits) read for the check."""
+        return self.parameter.count if self.parameter is not None else 1
 
     @property
     def key(self) -> int:
@@ -376,28 +390,63 @@ class HealthCheck:
     def value(self, word: int) -> int:
         return codec.extract_field(word, self.mask)
 
-    def holds(self, word: int) -> bool:
-        v = self.value(word)
-        if self.equals is not None and v != self.equals:
+    def holds(self, words: int | Sequence[int]) -> bool:
+        regs = (words,) if isinstance(words, int) else tuple(words)
+        p = self.parameter
+        if p is None:
+            v: codec.Raw | Decimal = self.value(regs[0])
+            lo, hi, eq = self.min, self.max, self.equals
+        else:
+            try:
+                if self.equals is not None:
+                    return p.decode(regs) == self.equals
+                v = p.to_engineering(regs)
+            except (codec.CodecError, ArithmeticError, ValueError):  # NaN, infinity: not a healthy value
+                return False
+            lo, hi, eq = self.low, self.high, None  # type: ignore[assignment]
+        if eq is not None and v != eq:
             return False
-        return (self.min is None or v >= self.min) and (self.max is None or v <= self.max)
+        return (lo is None or v >= lo) and (hi is None or v <= hi)
 
     def expected(self) -> str:
+        p = self.parameter
+        if p is not None:
+            return self._expected_value(p)
         if self.equals is not None:
             return f"expected {self.equals}"
         if self.min is not None and self.max is not None:
             return f"expected {self.min}..{self.max}"
         return f"expected at least {self.min}" if self.min is not None else f"expected at most {self.max}"
 
+    def _expected_value(self, p: Parameter) -> str:
+        unit = f" {p.unit}" if p.unit else ""
+        if self.equals is not None:
+            label = p.label_for(self.equals)
+            if label is not None:
+                return f"expected {label}"
+            if p.type == codec.BOOL:
+                return f"expected {'true' if self.equals else 'false'}"
+            return f"expected {codec.format_decimal(codec.from_raw(self.equals, p.scale, p.offset))}{unit}"
+        lo = None if self.low is None else codec.format_decimal(self.low)
+        hi = None if self.high is None else codec.format_decimal(self.high)
+        if lo is not None and hi is not None:
+            return f"expected {lo}..{hi}{unit}"
+        return f"expected at least {lo}{unit}" if lo is not None else f"expected at most {hi}{unit}"
+
     def what(self) -> str:
+        if self.parameter is not None:
+            return self.parameter.name + (f" ({self.description})" if self.description else "")
         shift, width = codec.mask_shift(self.mask)
         bits = "" if self.mask == 0xFFFF else (f" bit {shift}" if width == 1 else f" bits {shift}..{shift + width - 1}")
         kind = "input register" if self.register_type == "input" else "register"
         return f"{kind} 0x{self.address:04X}{bits}" + (f" ({self.description})" if self.description else "")
 
-    def failure(self, word: int) -> str:
-        """'register 0x0030 (drive fault code is zero) is 7, expected 0'."""
-        return f"{self.what()} is {self.value(word)}, {self.expected()}"
+    def failure(self, words: int | Sequence[int]) -> str:
+        """'register 0x0030 (drive fault code is zero) is 7, expected 0'; 'dc_bus_voltage is 850 V, expected
+        450..800 V'."""
+        regs = (words,) if isinstance(words, int) else tuple(words)
+        shown = self.parameter.show_registers(regs) if self.parameter is not None else str(self.value(regs[0]))
+        return f"{self.what()} is {shown}, {self.expected()}"
 
 
 @dataclass(frozen=True)
@@ -408,6 +457,12 @@ class CommitAction:
     registers: tuple[int, ...]
     description: str = ""
     wait_ms: int = 0  # the device needs this long before it accepts the next request
+    secret: str = ""  # where a secret value came from ('environment variable DRIVE_PASSWORD'): never shown
+
+    def __repr__(self) -> str:
+        regs = f"<secret from {self.secret}>" if self.secret else repr(self.registers)
+        return (f"CommitAction(address={self.address}, registers={regs}, description={self.description!r}, "
+                f"wait_ms={self.wait_ms})")
 
 
 WriteAction = CommitAction

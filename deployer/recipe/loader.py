@@ -6,17 +6,16 @@ entries and ``{raw: N}``, and checks ranges and resolution, all before any devic
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from decimal import Decimal, InvalidOperation
+from decimal import Decimal
 from typing import Any, Literal
 
 from ..load import messages, schema, yamlsrc
 from ..load.diagnostics import Diagnostic, InputError, UsageError
-from ..profile import Parameter, Profile, codec, is_profile_path, resolve_profile, units
+from ..profile import Parameter, Profile, codec, is_profile_path, resolve_profile, values
 from .text import _range_text, snapshot_value
 
 RECIPE_SCHEMA = "recipe"
@@ -343,7 +342,6 @@ def expand(name: str, value: Any, src: yamlsrc.Source, at: yamlsrc.Path_) -> Ite
 
 
 _INDEXED = re.compile(r"^([A-Za-z_][\w-]*)\[(\d+)\]\.(.+)$")
-_NUMBER = re.compile(r"^\s*([-+]?(?:\d[\d_]*(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*$")
 
 
 def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnostic], *,
@@ -393,7 +391,7 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
         rounding = value.get("rounding", rounding)
         value = value["value"]
     try:
-        eng = _engineering(param, value)
+        eng = values.engineering(param, value, e.src.word(e.at) if isinstance(value, bool) else None)
     except ValueError as err:
         fail(str(err))
         return None
@@ -437,33 +435,6 @@ def _from_raw(param: Parameter, raw_v: Any, e: Entry, fail: Any, *, trusted: boo
         fail(str(err))
         return None
     return Desired(param, param.format_registers(regs), regs)
-
-
-def _engineering(param: Parameter, value: Any) -> Decimal | tuple[str, int]:
-    """A written value -> engineering Decimal in the parameter's unit, or (label, raw)."""
-    if isinstance(value, bool) or value is None:
-        raise ValueError(f"expected a number, a value with a unit or a label, got {json.dumps(value)}")
-    if isinstance(value, int | Decimal):
-        return Decimal(value)
-    text = str(value)
-    labels = dict(param.values)
-    if text in labels:
-        return text, labels[text]
-    m = _NUMBER.match(text)
-    if not m:
-        choices = f" or one of: {', '.join(labels)}" if labels else ""
-        raise ValueError(f"'{text}' is not a number with a unit{choices}")
-    try:
-        number = Decimal(m.group(1).replace("_", ""))
-    except InvalidOperation:
-        raise ValueError(f"'{text}' is not a number") from None
-    unit = m.group(2)
-    if not unit:
-        return number
-    target = param.unit or "dimensionless"
-    if param.unit is not None and units.normalize(unit) == param.unit:
-        return number
-    return units.convert(number, unit, target)
 
 
 def _with_unit(d: Decimal, param: Parameter) -> str:

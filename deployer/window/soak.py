@@ -34,12 +34,12 @@ def check_soak_profiles(profiles: Sequence[Profile]) -> None:
                          "is zero}); use --confirm-within to hold the commit without checks")
 
 
-async def read_health(session: Session, prof: Profile) -> tuple[HealthCheck, int] | None:
-    """The first failed check and the word read, or None when the device is healthy."""
+async def read_health(session: Session, prof: Profile) -> tuple[HealthCheck, list[int]] | None:
+    """The first failed check and the words read, or None when the device is healthy."""
     for c in prof.health:
-        (word,) = await session.read(c.address, 1, c.function)
-        if not c.holds(word):
-            return c, word
+        words = await session.read(c.address, c.count, c.function)
+        if not c.holds(words):
+            return c, words
     return None
 
 
