@@ -33,7 +33,9 @@ from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from .agent.client import Agent
 from .errors import (
+    AgentError,
     BadURL,
     CodecError,
     Declined,
@@ -67,9 +69,10 @@ if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus,
     from .fleet.rollout import ReadJob
 
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
-_REEXPORTED = (LIMITS, Bound, BadURL, CodecError, Declined, DeployerError, IdentityMismatch, InputError, Locked,
-               RunInterrupted, StalePlan, TransportError, UsageError, FleetDevice, Inventory, load_inventory, Plan,
-               load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult, ParameterResult, Report, DeviceURL)
+_REEXPORTED = (Agent, AgentError, LIMITS, Bound, BadURL, CodecError, Declined, DeployerError, IdentityMismatch,
+               InputError, Locked, RunInterrupted, StalePlan, TransportError, UsageError, FleetDevice, Inventory,
+               load_inventory, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult,
+               ParameterResult, Report, DeviceURL)
 
 # public names whose modules load on first use: offline work (validate, an offline plan, a command's
 # --help) does not pay for the transports (pymodbus)
@@ -87,6 +90,8 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "LIMITS",
+    "Agent",
+    "AgentError",
     "ApplyOptions",
     "BadURL",
     "Bound",

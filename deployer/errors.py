@@ -37,7 +37,7 @@ This module imports nothing of deployer at run time, so every module can import 
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING, ClassVar
 
 if TYPE_CHECKING:
@@ -56,6 +56,7 @@ __all__ = [
     "EXIT_INVALID",
     "EXIT_OK",
     "EXIT_UNREACHABLE",
+    "AgentError",
     "BadAnswer",
     "BadURL",
     "CodecError",
@@ -217,3 +218,18 @@ class RunInterrupted(DeployerError):
         super().__init__(f"the run was interrupted ({reason})")
         self.report = report
         self.reason = reason
+
+
+class AgentError(DeployerError):
+    """The site agent (``deployer agent``) refused a request, or could not be reached.
+
+    ``kind``: the agent's word for it (usage, input, not-found, conflict, locked, refused, internal;
+    unreachable when no answer came); ``exit_code``: what the same command exits with without the agent;
+    ``diagnostics``: ``FILE:LINE:COL: error: ...`` lines of invalid files.
+    """
+
+    def __init__(self, message: str, *, kind: str, exit_code: int, diagnostics: Sequence[str] = ()) -> None:
+        super().__init__(message)
+        self.kind = kind
+        self.diagnostics = list(diagnostics)
+        object.__setattr__(self, "exit_code", exit_code)  # the agent says it per answer

@@ -51,6 +51,7 @@ class LazyGroup(click.Group):
 
 
 _COMMANDS = {
+    "agent": "deployer.cli.agent:agent",
     "apply": "deployer.cli.apply:apply",
     "confirm": "deployer.cli.apply:confirm",
     "demo": "deployer.cli.simulate:demo",

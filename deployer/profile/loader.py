@@ -236,6 +236,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         lock=lock,
         stage_waits=stage_waits,
         health=tuple(health),
+        endurance=int(data["endurance"]) if "endurance" in data else None,
     )
 
 
@@ -307,6 +308,9 @@ def _parameter(c: _Checks, name: str, spec: dict[str, Any], address: int, at: ya
         encoding=spec.get("encoding", "ascii"),
         padding=spec.get("padding", "nul"),
         restart=bool(spec.get("restart", False)),
+        per_unit=bool(spec.get("per_unit", False)),
+        tolerance=Decimal(str(spec.get("tolerance", 0))),
+        endurance=int(spec["endurance"]) if "endurance" in spec else None,
         register_type=table,
     )
     if local:  # the rest of the checks assume a well-formed parameter

@@ -118,6 +118,11 @@ class Parameter:
     encoding: str = "ascii"  # strings
     padding: str = "nul"  # strings
     restart: bool = False  # takes effect after a power cycle (the report says so)
+    # the site agent (docs/agent.md): belongs to the unit (never restored to a replacement); drift only beyond
+    # ``tolerance`` (engineering units); writes its non-volatile memory survives (None: the profile's endurance)
+    per_unit: bool = False
+    tolerance: Decimal = Decimal(0)
+    endurance: int | None = None
     # the Modbus table: holding registers, coils (one bit each, 0/1), discrete inputs (bits, read-only),
     # input registers (read-only). A coil or input's "registers" are one value, 0 or 1.
     register_type: RegisterType = "holding"
@@ -488,6 +493,7 @@ class Profile:
     lock: tuple[WriteAction, ...] = ()
     stage_waits: tuple[tuple[int, int], ...] = ()  # (stage, ms to wait after it)
     health: tuple[HealthCheck, ...] = ()  # read while a written change soaks (apply --soak)
+    endurance: int | None = None  # commits (and writes of a parameter without its own) the memory survives
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "_by_name", {p.name: p for p in self.parameters})

@@ -36,6 +36,38 @@ from ..errors import Locked as Locked  # importable from here as before
 
 ENV = "DEPLOYER_LOCK_DIR"
 
+# a site agent (``deployer agent``) holds its devices' locks for as long as it runs: its address goes into
+# each record it writes (so another run is told where to go instead), and the keys it holds are not taken
+# again by its own runs (a second flock of the same file by this process would refuse itself)
+_agent: dict[str, str] = {}
+_owned: dict[str, DeviceLock] = {}
+
+
+def set_agent(address: str | None) -> None:
+    """This process is the agent at ``address`` (None: it is not): lock records it writes carry the address."""
+    if address is None:
+        _agent.clear()
+    else:
+        _agent["address"] = address
+
+
+def hold(locks: Sequence[DeviceLock]) -> None:
+    """Keep ``locks`` for this process's lifetime: its runs use them instead of taking them again."""
+    for h in locks:
+        _owned[h.key] = h
+
+
+def let_go(keys: Sequence[str]) -> None:
+    """Release held locks (the agent stops owning a device)."""
+    for k in keys:
+        h = _owned.pop(k, None)
+        if h is not None:
+            h.release()
+
+
+def held(key: str) -> bool:
+    return key in _owned
+
 
 def default_lock_dir() -> str:
     """The folder every run on this machine shares when $DEPLOYER_LOCK_DIR is not set."""
@@ -188,6 +220,10 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
             os.close(fd)
             if not record:  # held shared: runs writing devices of this bus, one by one
                 raise Locked("the bus is in use: another run is writing a device on it") from None
+            if record.get("agent"):  # waiting does not help: the agent holds it until it stops
+                a = record["agent"]
+                raise Locked(f"owned by the deployer agent at {a} (PID {record.get('pid', '?')}): run it through the "
+                             f"agent (deployer apply --agent {a} ...), or stop the agent", busy=False) from None
             raise Locked(f"locked by {_holder_text(record)}") from None
         except OSError as e:
             os.close(fd)
@@ -209,6 +245,8 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
         if isinstance(pid, int) and not pid_alive(pid):
             stale = f"took over a stale lock of {_holder_text(old)}: that process is gone (it did not finish)"
     record = {"pid": os.getpid(), "host": host, "since": time.time(), "key": key, "command": command}
+    if _agent:
+        record["agent"] = _agent["address"]
     os.ftruncate(fd, 0)
     os.lseek(fd, 0, os.SEEK_SET)
     os.write(fd, json.dumps(record).encode())
@@ -218,6 +256,8 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
 async def acquire(key: str, *, timeout: float = 0.0, command: str = "", directory: str | None = None,
                   poll: float = 0.1, shared: bool = False) -> DeviceLock:
     """One lock; waits up to ``timeout`` seconds (0: fail at once). Raises Locked."""
+    if key in _owned:  # this process (the agent) holds it already: nothing to take, nothing to release
+        return DeviceLock(key, _owned[key].path, -1, shared=shared)
     deadline = time.monotonic() + timeout
     while True:
         try:

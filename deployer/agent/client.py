@@ -1,0 +1,160 @@
+"""The agent's HTTP API from the client side, on the standard library (``urllib``): the command line's
+``--agent URL``, the Python API (``deployer.Agent``) and the Ansible modules share it.
+
+Every refusal comes back as ``AgentError`` with the exit code the same command has without the agent.
+"""
+
+from __future__ import annotations
+
+import json
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any
+
+from ..errors import EXIT_UNREACHABLE, AgentError
+
+ENV = "DEPLOYER_AGENT"
+
+
+class Agent:
+    """A client of one site agent: ``Agent("http://127.0.0.1:8470")``; ``token`` for an agent that asks for one.
+
+    Methods map the HTTP API one to one (docs/agent.md); ``apply`` starts a run and follows it to its end.
+    """
+
+    def __init__(self, url: str, *, token: str | None = None, timeout: float = 30.0) -> None:
+        u = urllib.parse.urlsplit(url)
+        if u.scheme not in ("http", "https") or not u.netloc:
+            raise AgentError(f"agent URL {url!r}: expected http://HOST:PORT", kind="usage", exit_code=1)
+        self.url = url.rstrip("/")
+        self.token = token
+        self.timeout = timeout
+
+    # ---- transport -------------------------------------------------------------------------------
+
+    def _open(self, method: str, path: str, body: Mapping[str, Any] | None = None,
+              query: Mapping[str, Any] | None = None, timeout: float | None = None) -> Any:
+        q = {k: v for k, v in (query or {}).items() if v is not None}
+        target = self.url + path + ("?" + urllib.parse.urlencode(q) if q else "")
+        data = None if body is None else json.dumps(dict(body)).encode()
+        req = urllib.request.Request(target, data=data, method=method)
+        req.add_header("Accept", "application/json")
+        if data is not None:
+            req.add_header("Content-Type", "application/json")
+        if self.token:
+            req.add_header("Authorization", f"Bearer {self.token}")
+        try:
+            return urllib.request.urlopen(req, timeout=self.timeout if timeout is None else timeout)
+        except urllib.error.HTTPError as e:
+            raise _refusal(e) from None
+        except (urllib.error.URLError, OSError) as e:
+            why = getattr(e, "reason", e)
+            raise AgentError(f"cannot reach the agent at {self.url}: {why}", kind="unreachable",
+                             exit_code=EXIT_UNREACHABLE) from None
+
+    def request(self, method: str, path: str, body: Mapping[str, Any] | None = None, **query: Any) -> Any:
+        with self._open(method, path, body, query) as resp:
+            raw = resp.read()
+        return json.loads(raw) if raw else None
+
+    def get(self, path: str, **query: Any) -> Any:
+        return self.request("GET", path, **query)
+
+    def post(self, path: str, body: Mapping[str, Any] | None = None) -> Any:
+        return self.request("POST", path, body if body is not None else {})
+
+    # ---- the API ---------------------------------------------------------------------------------
+
+    def info(self) -> dict[str, Any]:
+        return dict(self.get("/v1/agent"))
+
+    def devices(self) -> list[dict[str, Any]]:
+        return list(self.get("/v1/devices")["devices"])
+
+    def device(self, name: str) -> dict[str, Any]:
+        return dict(self.get("/v1/devices/" + urllib.parse.quote(name, safe="")))
+
+    def pending(self) -> dict[str, Any]:
+        return dict(self.get("/v1/pending"))
+
+    def reload(self) -> dict[str, Any]:
+        return dict(self.post("/v1/reload"))
+
+    def check(self, limit: str | None = None) -> list[dict[str, Any]]:
+        return list(self.post("/v1/check", {"limit": limit} if limit else {})["devices"])
+
+    def runs(self) -> list[dict[str, Any]]:
+        return list(self.get("/v1/runs")["runs"])
+
+    def run(self, run_id: str) -> dict[str, Any]:
+        return dict(self.get("/v1/runs/" + urllib.parse.quote(run_id, safe="")))
+
+    def start_run(self, **options: Any) -> dict[str, Any]:
+        """``POST /v1/runs``: options as in the API (command, limit, batch, soak, confirm_within ...)."""
+        return dict(self.post("/v1/runs", {k: v for k, v in options.items() if v is not None}))
+
+    def stream(self, run_id: str, start: int = 0) -> Iterator[dict[str, Any]]:
+        """The run's events as they happen, from event ``start``, until ``run-finished``."""
+        path = f"/v1/runs/{urllib.parse.quote(run_id, safe='')}/stream"
+        with self._open("GET", path, query={"from": start}, timeout=60) as resp:
+            for line in resp:
+                if line.strip():
+                    yield json.loads(line)
+
+    def follow(self, run_id: str, on_event: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
+        """Follow a run to its end (reconnecting where the stream broke); its ``run-finished`` event."""
+        seen = 0
+        while True:
+            try:
+                for ev in self.stream(run_id, seen):
+                    seen = ev["n"] + 1
+                    if on_event is not None:
+                        on_event(ev)
+                    if ev["event"] == "run-finished":
+                        return ev
+            except (TimeoutError, ConnectionError, urllib.error.URLError) as e:
+                if isinstance(e, urllib.error.URLError) and not isinstance(e.reason, (TimeoutError, ConnectionError)):
+                    raise AgentError(f"lost the agent at {self.url}: {e.reason}", kind="unreachable",
+                                     exit_code=EXIT_UNREACHABLE) from None
+
+    def apply(self, *, on_event: Callable[[dict[str, Any]], None] | None = None, **options: Any) -> dict[str, Any]:
+        """Start a run and follow it to its end: the ``run-finished`` event (``report``, ``exit_code``)."""
+        run = self.start_run(**options)
+        return self.follow(run["id"], on_event)
+
+    def confirm(self, run: str | None = None) -> dict[str, Any]:
+        if run is None:
+            return dict(self.post("/v1/confirm"))
+        return dict(self.post(f"/v1/runs/{urllib.parse.quote(run, safe='')}/confirm"))
+
+    def rollback(self, run: str) -> dict[str, Any]:
+        return dict(self.post(f"/v1/runs/{urllib.parse.quote(run, safe='')}/rollback"))
+
+    def windows(self) -> list[dict[str, Any]]:
+        return list(self.get("/v1/windows")["windows"])
+
+    def events(self, *, after: int = 0, limit: int | None = None, device: str | None = None,
+               kind: str | None = None) -> list[dict[str, Any]]:
+        return list(self.get("/v1/events", after=after, limit=limit, device=device, kind=kind)["events"])
+
+    def ledger(self) -> dict[str, Any]:
+        return dict(self.get("/v1/ledger"))
+
+    def status(self) -> dict[str, Any]:
+        return dict(self.get("/v1/status"))
+
+    def metrics(self) -> str:
+        with self._open("GET", "/metrics") as resp:
+            return str(resp.read().decode())
+
+
+def _refusal(e: urllib.error.HTTPError) -> AgentError:
+    try:
+        body = json.loads(e.read() or b"{}")
+        err = body["error"]
+        return AgentError(str(err["message"]), kind=str(err.get("kind", "internal")),
+                          exit_code=int(err.get("exit_code", 4)), diagnostics=err.get("diagnostics") or ())
+    except (ValueError, KeyError, TypeError):
+        return AgentError(f"the agent answered HTTP {e.code} {e.reason}", kind="internal", exit_code=4)

@@ -1,0 +1,273 @@
+"""The agent's HTTP API (version 1, docs/agent.md, ``openapi.json``) on aiohttp.
+
+``ROUTES`` is the whole API: method, path, handler. A handler gets the agent and the request and returns
+what is answered as JSON (or a response of its own: the stream, /metrics). Errors are one JSON shape,
+never a traceback (the ``errors`` middleware). The outward side (tokens, TLS, the page) adds middlewares
+and routes here without touching the agent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import sys
+import traceback
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from aiohttp import web
+
+from ..errors import DeployerError, InputError
+from .core import Agent, ApiError, RunState
+from .metrics import CONTENT_TYPE, exposition, registry
+
+Handler = Callable[[Agent, web.Request], Awaitable[Any]]
+MAX_BODY = 1 << 20  # requests are small JSON documents
+AGENT: web.AppKey[Agent] = web.AppKey("agent", Agent)
+
+
+def _device(agent: Agent, request: web.Request) -> Any:
+    dev = agent.devices.get(request.match_info["name"])
+    if dev is None:
+        raise ApiError("not-found", f"no device {request.match_info['name']!r} in this agent's inventory", status=404)
+    return dev
+
+
+def _run(agent: Agent, request: web.Request) -> RunState:
+    run = agent.runs.get(request.match_info["id"])
+    if run is None:
+        raise ApiError("not-found", f"no run {request.match_info['id']!r} in this agent", status=404)
+    return run
+
+
+async def _body(request: web.Request) -> dict[str, Any]:
+    if not request.can_read_body:
+        return {}
+    try:
+        data = await request.json()
+    except (ValueError, UnicodeDecodeError):
+        raise ApiError("usage", "the request body is not JSON", status=400) from None
+    if not isinstance(data, dict):
+        raise ApiError("usage", "the request body must be a JSON object", status=400)
+    return data
+
+
+def _int(request: web.Request, key: str, default: int, low: int, high: int) -> int:
+    text = request.query.get(key)
+    if text is None:
+        return default
+    try:
+        v = int(text)
+    except ValueError:
+        raise ApiError("usage", f"{key}: not a whole number: {text!r}", status=400) from None
+    if not low <= v <= high:
+        raise ApiError("usage", f"{key}: {v} is not within {low}..{high}", status=400)
+    return v
+
+
+# ---- handlers -----------------------------------------------------------------------------------
+
+
+async def get_agent(agent: Agent, request: web.Request) -> Any:
+    return agent.agent_json()
+
+
+async def list_devices(agent: Agent, request: web.Request) -> Any:
+    return {"devices": [agent.device_json(d) for d in agent.devices.values()]}
+
+
+async def get_device(agent: Agent, request: web.Request) -> Any:
+    return agent.device_json(_device(agent, request), full=True)
+
+
+async def get_desired(agent: Agent, request: web.Request) -> Any:
+    out = {}
+    for d in agent.devices.values():
+        full = agent.device_json(d, full=True)
+        out[d.name] = {"recipe": full["adopted_recipe"], "values": full["adopted"]}
+    return {"files_sha256": agent.files.sha256 if agent.files else None, "devices": out}
+
+
+async def get_pending(agent: Agent, request: web.Request) -> Any:
+    return agent.pending_json()
+
+
+async def reload(agent: Agent, request: web.Request) -> Any:
+    return agent.reload()
+
+
+async def check_now(agent: Agent, request: web.Request) -> Any:
+    body = await _body(request)
+    names = None
+    if body.get("limit"):
+        from ..errors import UsageError
+
+        assert agent.files is not None
+        try:
+            names = [d.name for d in agent.files.inventory.select(str(body["limit"]))]
+        except UsageError as e:
+            raise ApiError("usage", str(e), status=400) from None
+    await agent.check(names)
+    return {"devices": [agent.device_json(d) for d in agent.devices.values() if names is None or d.name in names]}
+
+
+async def list_runs(agent: Agent, request: web.Request) -> Any:
+    return {"runs": [r.to_json(report=False) for r in sorted(agent.runs.values(), key=lambda r: -r.started)]}
+
+
+async def start_run(agent: Agent, request: web.Request) -> Any:
+    body = await _body(request)
+    command = body.get("command", "apply")
+    if command == "apply":
+        run = agent.start_apply(body)
+    elif command == "restore":
+        run = agent.start_restore(body)
+    else:
+        raise ApiError("usage", f"command: {command!r} is not apply or restore", status=400)
+    return web.json_response(run.to_json(), status=202)
+
+
+async def get_run(agent: Agent, request: web.Request) -> Any:
+    return _run(agent, request).to_json()
+
+
+async def stream_run(agent: Agent, request: web.Request) -> web.StreamResponse:
+    run = _run(agent, request)
+    n = _int(request, "from", 0, 0, 1 << 30)
+    resp = web.StreamResponse(headers={"Content-Type": "application/x-ndjson", "Cache-Control": "no-store"})
+    await resp.prepare(request)
+    while True:
+        while n < len(run.events):
+            await resp.write((json.dumps(run.events[n]) + "\n").encode())
+            n += 1
+        if run.events and run.events[-1]["event"] == "run-finished":
+            break
+        waiter = run.changed
+        if n < len(run.events):
+            continue
+        try:
+            await asyncio.wait_for(waiter.wait(), 15)
+        except TimeoutError:
+            await resp.write(b"\n")  # a keep-alive line: a client sees a dead connection, proxies keep it open
+    await resp.write_eof()
+    return resp
+
+
+async def confirm_run(agent: Agent, request: web.Request) -> Any:
+    return agent.confirm(_run(agent, request).id).to_json(report=False)
+
+
+async def rollback_run(agent: Agent, request: web.Request) -> Any:
+    run = agent.start_rollback(_run(agent, request).id)
+    return web.json_response(run.to_json(), status=202)
+
+
+async def confirm(agent: Agent, request: web.Request) -> Any:
+    body = await _body(request)
+    run = body.get("run")
+    return agent.confirm(None if run is None else str(run)).to_json(report=False)
+
+
+async def list_windows(agent: Agent, request: web.Request) -> Any:
+    return {"windows": agent.windows_json()}
+
+
+async def list_events(agent: Agent, request: web.Request) -> Any:
+    assert agent.store is not None
+    return {"events": agent.store.events(after=_int(request, "after", 0, 0, 1 << 62),
+                                         limit=_int(request, "limit", 1000, 1, 10000),
+                                         device=request.query.get("device"), kind=request.query.get("kind"))}
+
+
+async def get_ledger(agent: Agent, request: web.Request) -> Any:
+    return agent.ledger_json()
+
+
+async def get_status(agent: Agent, request: web.Request) -> Any:
+    return agent.status_json()
+
+
+async def get_openapi(agent: Agent, request: web.Request) -> Any:
+    return web.FileResponse(os.path.join(os.path.dirname(__file__), "openapi.json"),
+                            headers={"Content-Type": "application/json"})
+
+
+async def get_metrics(agent: Agent, request: web.Request) -> Any:
+    return web.Response(body=exposition(request.app[METRICS]), headers={"Content-Type": CONTENT_TYPE})
+
+
+ROUTES: tuple[tuple[str, str, Handler], ...] = (
+    ("GET", "/v1/agent", get_agent),
+    ("GET", "/v1/devices", list_devices),
+    ("GET", "/v1/devices/{name}", get_device),
+    ("GET", "/v1/desired", get_desired),
+    ("GET", "/v1/pending", get_pending),
+    ("POST", "/v1/reload", reload),
+    ("POST", "/v1/check", check_now),
+    ("GET", "/v1/runs", list_runs),
+    ("POST", "/v1/runs", start_run),
+    ("GET", "/v1/runs/{id}", get_run),
+    ("GET", "/v1/runs/{id}/stream", stream_run),
+    ("POST", "/v1/runs/{id}/confirm", confirm_run),
+    ("POST", "/v1/runs/{id}/rollback", rollback_run),
+    ("POST", "/v1/confirm", confirm),
+    ("GET", "/v1/windows", list_windows),
+    ("GET", "/v1/events", list_events),
+    ("GET", "/v1/ledger", get_ledger),
+    ("GET", "/v1/status", get_status),
+    ("GET", "/v1/openapi.json", get_openapi),
+    ("GET", "/metrics", get_metrics),
+)
+
+METRICS: web.AppKey[Any] = web.AppKey("metrics", object)
+
+
+def error_body(kind: str, message: str, exit_code: int, diagnostics: list[str] | None = None) -> dict[str, Any]:
+    err: dict[str, Any] = {"kind": kind, "message": message, "exit_code": exit_code}
+    if diagnostics:
+        err["diagnostics"] = diagnostics
+    return {"error": err}
+
+
+@web.middleware
+async def errors(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+                 ) -> web.StreamResponse:
+    """Every refusal and failure as the one JSON error shape; never a traceback to the client."""
+    try:
+        return await handler(request)
+    except ApiError as e:
+        return web.json_response(error_body(e.kind, str(e), e.exit_code, e.diagnostics), status=e.status)
+    except InputError as e:
+        return web.json_response(error_body("input", "invalid input; nothing was sent", e.exit_code,
+                                            [str(d) for d in e.diagnostics]), status=400)
+    except DeployerError as e:
+        return web.json_response(error_body("usage" if e.exit_code == 1 else "conflict", str(e), e.exit_code),
+                                 status=400 if e.exit_code == 1 else 409)
+    except web.HTTPException as e:  # aiohttp's own: 404 for an unknown path, 405, 413 too large ...
+        kind = "not-found" if e.status == 404 else "usage"
+        return web.json_response(error_body(kind, e.reason or str(e), 1), status=e.status)
+    except asyncio.CancelledError:
+        raise
+    except Exception as e:  # a bug: said in the agent's log with its traceback, to the client as JSON
+        traceback.print_exc(file=sys.stderr)
+        return web.json_response(error_body("internal", f"internal error: {type(e).__name__}: {e}", 4), status=500)
+
+
+def app(agent: Agent) -> web.Application:
+    application = web.Application(middlewares=[errors], client_max_size=MAX_BODY)
+    application[AGENT] = agent
+    application[METRICS] = registry(agent)
+    for method, path, handler in ROUTES:
+        application.router.add_route(method, path, _bind(agent, handler))
+    return application
+
+
+def _bind(agent: Agent, handler: Handler) -> Callable[[web.Request], Awaitable[web.StreamResponse]]:
+    async def call(request: web.Request) -> web.StreamResponse:
+        out = await handler(agent, request)
+        if isinstance(out, web.StreamResponse):
+            return out
+        return web.json_response(out)
+    call.__name__ = handler.__name__
+    return call

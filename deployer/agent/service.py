@@ -1,0 +1,84 @@
+"""Running the agent as a process: the HTTP server, the signals, the ``listening on`` line (``deployer agent``)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import signal
+import socket
+import sys
+from collections.abc import Callable
+
+from aiohttp import web
+
+from ..errors import UsageError
+from .core import Agent, Settings
+from .server import app
+
+
+def parse_listen(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:PORT`` for IPv6); without a token only a loopback address is allowed."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or int(port) > 65535:
+        raise UsageError(f"--listen {text}: expected HOST:PORT, e.g. 127.0.0.1:8470")
+    host = host.strip("[]") or "127.0.0.1"
+    try:
+        addresses = {ipaddress.ip_address(host)}
+    except ValueError:
+        try:
+            addresses = {ipaddress.ip_address(a[4][0]) for a in socket.getaddrinfo(host, None)}
+        except OSError as e:
+            raise UsageError(f"--listen {text}: cannot resolve {host}: {e}") from None
+    if not all(a.is_loopback for a in addresses):
+        raise UsageError(f"--listen {text}: without a token the agent listens on loopback only (127.0.0.1, ::1): "
+                         "anyone who reaches it can write the devices")
+    return host, int(port)
+
+
+async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
+                on_ready: Callable[[str], None] | None = None, signals: bool = True) -> int:
+    """Run the agent until SIGTERM/SIGINT (or the task is cancelled); 0 when it ended cleanly."""
+    host, port = parse_listen(listen)
+    agent = Agent(settings)
+    agent.open()  # the files are checked, the state folder is ours: nothing sent yet
+    runner = web.AppRunner(app(agent), access_log=None, handle_signals=False)
+    await runner.setup()
+    site = web.TCPSite(runner, host, port, reuse_address=True)
+    try:
+        await site.start()
+    except OSError as e:
+        await runner.cleanup()
+        await agent.stop()
+        raise UsageError(f"--listen {listen}: {e.strerror}") from None
+    sock = runner.addresses[0] if runner.addresses else (host, port)  # port 0: the one the system chose
+    shown = f"[{sock[0]}]" if ":" in str(sock[0]) else str(sock[0])
+    url = f"http://{shown}:{sock[1]}"
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    installed = []
+    if signals:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, stop.set)
+            installed.append(sig)
+        loop.add_signal_handler(signal.SIGHUP, lambda: _reload(agent))
+        installed.append(signal.SIGHUP)
+    try:
+        await agent.start(url)
+        print(f"listening on {url}", file=sys.stderr, flush=True)
+        if on_ready is not None:
+            on_ready(url)
+        await stop.wait()
+    finally:
+        for sig in installed:
+            loop.remove_signal_handler(sig)
+        await agent.stop()
+        await runner.cleanup()
+    return 0
+
+
+def _reload(agent: Agent) -> None:
+    from .core import ApiError
+
+    with contextlib.suppress(ApiError):  # an invalid edit is an event; nothing changes
+        agent.reload()

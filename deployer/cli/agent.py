@@ -1,0 +1,46 @@
+"""``deployer agent``: the site agent (docs/agent.md)."""
+
+from __future__ import annotations
+
+import click
+
+from .base import DURATION
+
+
+@click.command()
+@click.argument("inventory", type=click.Path(dir_okay=False))
+@click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
+              help="journal, snapshots and the agent's database (agent/agent.sqlite3)")
+@click.option("--listen", default="127.0.0.1:8470", show_default=True, metavar="HOST:PORT",
+              help="where the HTTP API listens (loopback only: there is no token yet); port 0 picks a free one")
+@click.option("--check-every", type=DURATION, default="5m", show_default=True, metavar="DURATION",
+              help="read every device and compare it with the adopted desired state this often")
+@click.option("--on-drift", type=click.Choice(["report", "restore"]), default="report", show_default=True,
+              help="restore: write the adopted values back (a run with every guarantee), --max-restores an hour")
+@click.option("--on-replace", type=click.Choice(["report", "restore"]), default="report", show_default=True,
+              help="restore: write a replaced device's as-left values back (not per_unit parameters; same model)")
+@click.option("--bus-share", type=click.FloatRange(0.01, 1.0), default=0.2, show_default=True, metavar="FRACTION",
+              help="at most this share of a bus's time goes to watching")
+@click.option("--max-restores", type=click.IntRange(0, 1000), default=3, show_default=True, metavar="N",
+              help="restores per device and hour; a device that keeps drifting back is reported, not fought")
+@click.option("--endurance-warn", type=click.FloatRange(0.0, 1.0), default=0.8, show_default=True,
+              metavar="FRACTION", help="warn when a register has taken this share of its profile's endurance")
+def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_drift: str, on_replace: str,
+          bus_share: float, max_restores: int, endurance_warn: float) -> int:
+    """Run the site agent: own INVENTORY's devices, watch them, serve the HTTP API (until SIGTERM).
+
+    It takes each device's lock (set DEPLOYER_LOCK_DIR for it and the command line alike), so a plain
+    apply to its devices is refused; run through it with --agent URL. It prints 'listening on URL' on
+    stderr when ready. SIGHUP reads the files again (shown as pending; never written by itself).
+    """
+    import asyncio
+
+    from ..agent.core import Settings
+    from ..agent.service import serve
+
+    if check_every <= 0:
+        raise click.BadParameter("must be more than 0", param_hint="--check-every")
+    settings = Settings(inventory, state_dir=state_dir, check_every=check_every, on_drift=on_drift,
+                        on_replace=on_replace, bus_share=bus_share, max_restores=max_restores,
+                        endurance_warn=endurance_warn)
+    return asyncio.run(serve(settings, listen))

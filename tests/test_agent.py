@@ -1,0 +1,162 @@
+"""The site agent as a real process against the simulator: ownership, the watch, drift, metrics, SIGTERM."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from deployer.agent.client import Agent
+from deployer.errors import AgentError
+from deployer.profile import load_profile
+from deployer.testing.simulator import Simulator, SimulatorThread
+from tests.agent_helpers import PROFILE, AgentProcess, event, until, write_site
+
+pytestmark = pytest.mark.timeout(90)
+
+
+@pytest.fixture
+def sim(tmp_path: Path) -> Iterator[Simulator]:
+    (tmp_path / "drive.yaml").write_text(PROFILE)
+    with SimulatorThread(load_profile(str(tmp_path / "drive.yaml"))) as s:
+        yield s
+
+
+def external_write(sim: Simulator, address: int, value: int) -> None:
+    """Another master writes a register (mbpoll where installed: a Modbus client we did not write)."""
+    port = sim.url.rsplit(":", 1)[1]
+    if shutil.which("mbpoll") is None:  # pragma: no cover - installed where the suite runs
+        pytest.skip("mbpoll is not installed")
+    subprocess.run(["mbpoll", "-m", "tcp", "-a", "1", "-t", "4", "-r", str(address), "-0", "-p", port,
+                    "127.0.0.1", str(value)], check=True, capture_output=True, timeout=20)
+
+
+def test_drift_made_externally_is_found_and_restored(tmp_path: Path, sim: Simulator) -> None:
+    inv = write_site(tmp_path, {"d1": sim.url})
+    agent = AgentProcess(inv, tmp_path / "state", "--on-drift", "restore")
+    try:
+        c = agent.client
+        # starting with --on-drift restore is consent to bring the device to the files' state
+        until(lambda: event(c, "restored", "d1"), why="the first restore")
+        assert sim.read("accel") == (20,) and sim.read("address") == (7,)
+        until(lambda: c.device("d1")["status"] == "ok", why="d1 ok")
+        before = len(c.events(kind="restored"))
+        external_write(sim, 11, 77)  # decel 7.7 s, on the panel
+        until(lambda: len(c.events(kind="restored")) > before, why="drift restored")
+        drift = [e for e in c.events(kind="drift") if "decel is 7.7 s" in e["message"]]
+        assert drift, c.events()
+        assert sim.read("decel") == (30,)
+        # within the tolerance (10 rpm) a different speed is no drift
+        n = len(c.events(kind="drift"))
+        external_write(sim, 12, 3005)
+        c.check()
+        c.check()
+        assert len(c.events(kind="drift")) == n and sim.read("speed") == (3005,)
+        assert agent.terminate() == 0
+    finally:
+        agent.kill()
+
+
+def test_drift_only_reported_and_metrics_parse(tmp_path: Path, sim: Simulator) -> None:
+    sim.write("accel", [20])
+    sim.write("decel", [30])
+    sim.write("speed", [3000])
+    sim.write("address", [7])
+    inv = write_site(tmp_path, {"d1": sim.url})
+    agent = AgentProcess(inv, tmp_path / "state")  # --on-drift report (the default)
+    try:
+        c = agent.client
+        until(lambda: c.device("d1")["status"] == "ok", why="d1 checked")
+        external_write(sim, 10, 55)
+        ev = until(lambda: event(c, "drift", "d1"), why="drift reported")
+        assert "accel is 5.5 s (adopted 2 s)" in ev["message"]
+        c.check()
+        assert sim.read("accel") == (55,)  # reported, not written
+        assert event(c, "restored") is None
+        text = c.metrics()
+        fams = {f.name: f for f in text_string_to_metric_families(text)}
+        for name in ("deployer_device_status", "deployer_device_drifted", "deployer_drift_events",
+                     "deployer_drift_restores", "deployer_device_replaced", "deployer_register_writes",
+                     "deployer_last_check_timestamp_seconds", "deployer_pending_windows"):
+            assert name in fams, name
+
+        def value(fam: str, **labels: str) -> float:
+            for s in fams[fam].samples:
+                if all(s.labels.get(k) == v for k, v in labels.items()):
+                    return float(s.value)
+            raise KeyError((fam, labels))
+
+        assert value("deployer_device_drifted", device="d1") == 1
+        assert value("deployer_device_status", device="d1", status="drifted") == 1
+        assert value("deployer_device_status", device="d1", status="ok") == 0
+        assert value("deployer_drift_events", device="d1") == 1
+        assert value("deployer_register_writes", device="d1") == 0
+        assert value("deployer_pending_windows", kind="confirm") == 0
+        assert value("deployer_last_check_timestamp_seconds", device="d1") > 1.7e9
+        # the device's log: the agent only read it
+        assert all(e.function in (3, 43) for e in sim.log if e.values is None or e.function != 6 or e.address != 10)
+        assert agent.terminate() == 0
+        assert "agent stopped" in agent.log()
+    finally:
+        agent.kill()
+
+
+def test_a_plain_apply_to_an_owned_device_is_refused_nothing_sent(tmp_path: Path, sim: Simulator) -> None:
+    inv = write_site(tmp_path, {"d1": sim.url})
+    agent = AgentProcess(inv, tmp_path / "state")
+    try:
+        until(lambda: agent.client.device("d1")["last_check"], why="a check")
+        seen = len(sim.log)
+        cli = subprocess.run([sys.executable, "-m", "deployer", "apply", str(tmp_path / "r.yaml"), "--device", sim.url,
+                              "--yes", "--lock-timeout", "30", "--state-dir", str(tmp_path / "cli")],
+                             capture_output=True, text=True, timeout=60)
+        assert cli.returncode == 3, cli.stderr
+        said = cli.stdout + cli.stderr
+        assert f"owned by the deployer agent at {agent.url}" in said and "--agent" in said, said
+        assert "0 write and 0 read requests" in said
+        ours = [e for e in sim.log[seen:] if e.function in (6, 16)]
+        assert ours == []  # the agent only reads (report mode), and the CLI sent nothing
+        assert agent.terminate() == 0
+    finally:
+        agent.kill()
+    # the agent gone, its locks went with it: the same apply goes through
+    ok = subprocess.run([sys.executable, "-m", "deployer", "apply", str(tmp_path / "r.yaml"), "--device", sim.url,
+                         "--yes", "--state-dir", str(tmp_path / "cli")], capture_output=True, text=True, timeout=60)
+    assert ok.returncode == 0, ok.stderr
+
+
+def test_api_errors_are_json_and_a_second_agent_is_refused(tmp_path: Path, sim: Simulator) -> None:
+    inv = write_site(tmp_path, {"d1": sim.url})
+    agent = AgentProcess(inv, tmp_path / "state")
+    try:
+        c = agent.client
+        with pytest.raises(AgentError) as e:
+            c.get("/v1/devices/nope")
+        assert e.value.kind == "not-found"
+        with pytest.raises(AgentError) as e:
+            c.get("/v1/nothing-here")
+        assert e.value.kind == "not-found"
+        with pytest.raises(AgentError) as e:
+            c.start_run(command="explode")
+        assert e.value.kind == "usage" and e.value.exit_code == 1
+        info = c.info()
+        assert info["api"] == 1 and info["auth"] == "none" and info["url"] == agent.url
+        second = subprocess.run([sys.executable, "-m", "deployer", "agent", str(inv), "--state-dir",
+                                 str(tmp_path / "state"), "--listen", "127.0.0.1:0"],
+                                capture_output=True, text=True, timeout=60)
+        assert second.returncode == 1 and "another agent runs on the state folder" in second.stderr
+        wide = subprocess.run([sys.executable, "-m", "deployer", "agent", str(inv), "--state-dir",
+                               str(tmp_path / "other"), "--listen", "0.0.0.0:0"],
+                              capture_output=True, text=True, timeout=60)
+        assert wide.returncode == 1 and "loopback only" in wide.stderr
+        assert agent.terminate() == 0
+    finally:
+        agent.kill()
+    with pytest.raises(AgentError) as e:
+        Agent(agent.url, timeout=2).devices()
+    assert e.value.kind == "unreachable" and e.value.exit_code == 3
