@@ -10,7 +10,8 @@ import deployer
 from deployer import api
 
 PUBLIC = [
-    "LIMITS", "Agent", "AgentError", "ApplyOptions", "BadURL", "Bound", "CodecError", "Declined", "DeployerError", "DeviceResult",
+    "LIMITS", "Agent", "AgentError", "ApplyOptions", "BadURL", "Bound", "CodecError", "Declined", "DeployerError",
+    "DeviceResult",
     "DeviceURL", "Drift", "FleetDevice", "FromDefault", "IdentityMismatch", "InputError", "Inventory", "Job",
     "Locked", "ParameterResult", "Plan", "Profile", "ReadJob", "Recipe", "Report", "RunInterrupted", "StalePlan",
     "TransportError", "UsageError", "apply", "apply_async", "apply_fleet", "apply_fleet_async", "confirm",

@@ -18,10 +18,10 @@ from decimal import Decimal
 from typing import Any
 
 from ..errors import DeployerError, InputError, RunInterrupted, StateError, UsageError
+from ..execute.job import Job
 from ..execute.session import ApplyOptions, DeviceGone, Session
 from ..execute.steps import check_identity
 from ..execute.verify import values_of as _values_of
-from ..fleet.rollout import Job
 from ..load.durations import format_duration, parse_duration
 from ..planning.model import Target
 from ..planning.planfile import plan_to_json
@@ -550,7 +550,7 @@ class Agent:
         except UsageError as e:
             raise ApiError("usage", str(e), status=400) from None
         if opts.soak is not None:
-            from ..execute.soak import check_soak_profiles
+            from ..window.soak import check_soak_profiles
 
             try:
                 check_soak_profiles([j.recipe.profile for j in jobs])
@@ -602,14 +602,14 @@ class Agent:
 
         def soaking(number: int, names: list[str]) -> None:
             deadline = time.time() + (opts.soak or 0)
-            from ..execute.soak import pending_path
+            from ..window.held import pending_path
 
             self.store.open_window(run.id, "soak", names, deadline, pending_path(self.state_dir, run.id))  # type: ignore[union-attr]
             run.window = {"kind": "soak", "devices": names, "deadline": _iso(deadline), "deadline_epoch": deadline}
             run.emit("soak-started", batch=number, devices=names, deadline=_iso(deadline))
 
         def waiting(run_id: str, deadline: float) -> None:
-            from ..execute.soak import pending_path
+            from ..window.held import pending_path
 
             names = [n for n, r in run.results.items() if r.status == "ok" and r.snapshot is not None]
             assert self.store is not None
@@ -742,7 +742,7 @@ class Agent:
 
     def confirm(self, run_id: str | None) -> RunState:
         """Confirm a run waiting in its confirm window (the one waiting when ``run_id`` is None)."""
-        from ..execute.soak import confirm_run
+        from ..window.confirm import confirm_run
 
         waiting = [r for r in self.runs.values() if r.state == "waiting"]
         if run_id is None:
@@ -816,8 +816,9 @@ class Agent:
 
     async def _resume_window(self, w: dict[str, Any]) -> None:
         """A confirm window that outlived its agent and has time left: wait for the confirmation, then commit."""
-        from ..execute.soak import Written, send_commit
         from ..report import read_report
+        from ..window.finish import send_commit
+        from ..window.held import Written
 
         run_id = w["run"]
         run = RunState(run_id, "apply (resumed window)", list(w["devices"]), {"resumed": True})
@@ -859,7 +860,8 @@ class Agent:
             dev = self.devices[d["name"]]
             res = DeviceResult(dev.name, str(d.get("url")), int(d.get("unit", 1)), str(d.get("profile")),
                                commit="held")
-            await send_commit(Written(dev.name, dev.adopted or dev.job.recipe, dev.job.url, dev.job.unit, res), opts)
+            job = Job(dev.name, dev.adopted or dev.job.recipe, dev.job.url, dev.job.unit)
+            await send_commit(Written(job, res), opts)
             self._ledger(res, dev.job.recipe.profile, res.requests)
             run.results[dev.name] = res
         with contextlib.suppress(KeyError, OSError):

@@ -13,8 +13,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from ..execute.job import Job
 from ..fleet.inventory import Inventory, fleet_jobs, load_inventory
-from ..fleet.rollout import Job
 from ..profile import Parameter, Profile
 from ..recipe.loader import DeviceSpec, Recipe, load_recipe
 from ..recipe.text import recipe_text

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from .base import DURATION
+from .base import Duration
 
 
 @click.command()
@@ -13,7 +13,7 @@ from .base import DURATION
               help="journal, snapshots and the agent's database (agent/agent.sqlite3)")
 @click.option("--listen", default="127.0.0.1:8470", show_default=True, metavar="HOST:PORT",
               help="where the HTTP API listens (loopback only: there is no token yet); port 0 picks a free one")
-@click.option("--check-every", type=DURATION, default="5m", show_default=True, metavar="DURATION",
+@click.option("--check-every", type=Duration(), default="5m", show_default=True, metavar="DURATION",
               help="read every device and compare it with the adopted desired state this often")
 @click.option("--on-drift", type=click.Choice(["report", "restore"]), default="report", show_default=True,
               help="restore: write the adopted values back (a run with every guarantee), --max-restores an hour")
