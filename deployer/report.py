@@ -218,15 +218,12 @@ def _document(recipe: str | None, devices: list[Any], summary: dict[str, Any],
 def run_info(command: str | None, started: float) -> dict[str, Any]:
     """Who ran what, where and when, for the report (``started``: the run's start, seconds since the epoch)."""
     import datetime
-    import getpass
     import socket
 
     from . import __version__
+    from .portable import user_name
 
-    try:
-        user = getpass.getuser()
-    except (KeyError, OSError):  # no name for this uid (a container): the number says who
-        user = str(os.getuid())
+    user = user_name()  # a uid without a name (a container): the number says who
     when = datetime.datetime.fromtimestamp(started, datetime.UTC).isoformat(timespec="seconds")
     return {"command": command, "user": user, "host": socket.gethostname(), "started": when,
             "version": __version__}

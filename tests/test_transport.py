@@ -142,7 +142,7 @@ def test_timeout_and_retries_from_url_or_arguments() -> None:
     ("ascii:///dev/x?bytesize=9", "option bytesize=9 is out of range (5..8)"),
     ("rtu:///dev/x?stopbits=3", "option stopbits=3 is out of range (1..2)"),
     ("rtu+tcp://gw", "rtu+tcp URL needs a port: rtu+tcp://HOST:PORT (the gateway's TCP port)"),
-    ("rtu://", "rtu URL needs a serial device path: rtu:///dev/ttyUSB0"),
+    ("rtu://", "rtu URL needs a serial device path: rtu:///dev/ttyUSB0 or rtu://COM3"),
     ("tcp://:502", "tcp URL needs a host: tcp://HOST:PORT"),
     ("tcp://h:99999", "bad port in 'tcp://h:99999'"),
     ("tcp://h:0", "bad port in 'tcp://h:0' (1..65535)"),

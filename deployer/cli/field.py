@@ -90,7 +90,9 @@ def _unit_ids(specs: tuple[str, ...]) -> list[int]:
 
 
 @click.command()
-@click.argument("url")
+@click.argument("url", required=False)
+@click.option("--list-ports", is_flag=True,
+              help="list this system's serial ports (COM3, /dev/ttyUSB0) with their adapters instead of scanning")
 @click.option("--unit", "units", multiple=True, metavar="IDS",
               help="unit ids to ask: 7, 1-32, 1,3,10-12 (repeatable; default 1-247)")
 @click.option("--timeout", type=click.FloatRange(min=0.001, max=60), default=0.2, show_default=True,
@@ -100,12 +102,21 @@ def _unit_ids(specs: tuple[str, ...]) -> list[int]:
 @click.option("-o", "--output", "output", type=click.Path(dir_okay=False),
               help="write an inventory fragment of the units that answered")
 @click.option("--json", "as_json", is_flag=True, help="print the result as JSON")
-def scan(url: str, units: tuple[str, ...], timeout: float, register: int, output: str | None, as_json: bool) -> int:
+def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: float, register: int,
+         output: str | None, as_json: bool) -> int:
     """Which unit ids answer on URL (a serial bus or a gateway), with their identity (Function 43).
 
     Read-only. Each unit costs one FC03 request without retry (at most --timeout when silent), then a
     Function 43 request for those that answered. Exit 0 when some unit answered, 3 when none did.
+    With --list-ports (no URL): the serial ports this system has (exit 0, or 3 when it has none).
     """
+    if list_ports:
+        if url is not None:
+            raise UsageError("--list-ports lists this system's serial ports: give it without a URL")
+        return _list_ports(as_json)
+    if url is None:
+        raise UsageError("scan needs a URL (rtu://COM3, rtu:///dev/ttyUSB0, rtu+tcp://GATEWAY:PORT), "
+                         "or --list-ports")
     import asyncio
 
     from ..errors import EXIT_UNREACHABLE, TransportError
@@ -145,6 +156,22 @@ def scan(url: str, units: tuple[str, ...], timeout: float, register: int, output
         out.print(f"{len(result.units)} of {result.asked} unit ids answered on {result.url} "
                   f"in {result.seconds:.1f} s" + (f"; inventory written to {output}" if output else ""))
     return EXIT_OK if result.units else EXIT_UNREACHABLE
+
+
+def _list_ports(as_json: bool) -> int:
+    from ..errors import EXIT_UNREACHABLE
+    from ..transport.ports import serial_ports
+
+    ports = serial_ports()
+    if as_json:
+        click.echo(json.dumps([p.to_json() for p in ports], indent=2))
+    elif ports:
+        show(console(), ["port", "URL", "description", "hardware id"],
+             [[p.device, p.url, p.description, p.hwid] for p in ports])
+    else:
+        click.echo("no serial ports found (a USB adapter that is plugged in but not listed needs its driver)",
+                   err=True)
+    return EXIT_OK if ports else EXIT_UNREACHABLE
 
 
 @click.command()

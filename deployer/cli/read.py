@@ -326,7 +326,9 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
 
 
 def _safe(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+    from ..portable import file_name
+
+    return file_name(name)  # the same name on every system: no CON.yaml, no 300-character name
 
 
 def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], path: str) -> None:

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from ..portable import O_BINARY, O_CLOEXEC, O_NONBLOCK
 from .diagnostics import Diagnostic, InputError
 from .messages import clip, clip_message, clipped_repr
 
@@ -476,12 +477,15 @@ def read_text(path: str) -> str:
     ``/dev/zero``, FIFOs and devices never block or fill memory.
     """
     try:
-        # O_NONBLOCK: opening a FIFO must not wait for a writer
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+        # O_NONBLOCK: opening a FIFO must not wait for a writer; O_BINARY: Windows reads the bytes as they are
+        fd = os.open(path, os.O_RDONLY | O_NONBLOCK | O_CLOEXEC | O_BINARY)
     except FileNotFoundError:
         raise InputError([Diagnostic(path, 0, 0, "no such file")]) from None
     except IsADirectoryError:
         raise InputError([Diagnostic(path, 0, 0, "is a directory, not a file")]) from None
+    except PermissionError as e:  # Windows opens no folder as a file: "Permission denied"
+        why = "is a directory, not a file" if os.path.isdir(path) else f"cannot read: {e.strerror}"
+        raise InputError([Diagnostic(path, 0, 0, why)]) from None
     except OSError as e:
         raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e.strerror}")]) from None
     try:

@@ -22,9 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import os
-import resource
 import signal
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -36,6 +34,7 @@ from ..execute.session import ApplyOptions, Declined, StalePlan
 from ..fleet.livereport import LiveReport, not_finished
 from ..fleet.rollout import apply_many, batch_sizes, failure_budget
 from ..load.diagnostics import UsageError
+from ..portable import interrupt_signals, on_signals, raise_open_files
 from ..report import DeviceResult, Report, run_info
 from ..state import journal
 from ..state.durable import Line, durable
@@ -57,13 +56,10 @@ def check_broadcast(jobs: Sequence[Job], allow_broadcast: bool) -> None:
 def ensure_files(parallel: int, devices: int) -> None:
     """One socket per device in flight: raise the soft open-file limit towards the hard one, or say why not."""
     need = min(parallel, devices) + 64  # sockets, plus the report, snapshots, logs and the interpreter's own
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if soft == resource.RLIM_INFINITY or soft >= need:
-        return
-    if hard != resource.RLIM_INFINITY and hard < need:
+    hard = raise_open_files(need)  # POSIX only: Windows has no such limit on sockets
+    if hard is not None:
         raise UsageError(f"--parallel {parallel} needs about {need} open files, but this system allows {hard} "
                          f"(ulimit -Hn); use --parallel {max(1, hard - 64)} or raise the limit")
-    resource.setrlimit(resource.RLIMIT_NOFILE, (need if hard == resource.RLIM_INFINITY else hard, hard))
 
 
 def check_writable(folder: str, what: str) -> None:
@@ -149,7 +145,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
             on_changed(r)
 
     why: list[str] = []
-    installed = _on_signals(why) if signals else []
+    restore = _on_signals(why) if signals else (lambda: None)
     try:
         report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
                                   on_done=done, batches=sizes, max_failures=budget,
@@ -163,9 +159,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         journal.run_refused(state_dir, run_id, str(e), command=command, argv=argv, recipe=label)
         raise
     finally:
-        loop = asyncio.get_running_loop()
-        for sig in installed:
-            loop.remove_signal_handler(sig)
+        restore()
     report.run, report.run_id, report.state_dir = info, run_id, state_dir
     if live is not None:
         live.close(report)
@@ -194,21 +188,16 @@ def _both(a: Callable[[DeviceResult], None] | None,
     return call
 
 
-def _on_signals(why: list[str]) -> list[signal.Signals]:
-    """SIGINT and SIGTERM cancel the running run (each one again: a second Ctrl-C also stops a device's
-    closing lock writes); only the main thread of a process can own its signals."""
-    if threading.current_thread() is not threading.main_thread():
-        return []
+def _on_signals(why: list[str]) -> Callable[[], None]:
+    """SIGINT (Ctrl-C) and SIGTERM (Ctrl-Break on Windows) cancel the running run (each one again: a second
+    Ctrl-C also stops a device's closing lock writes); only the main thread of a process can own its
+    signals. Returns the undo. ``portable.on_signals``: the event loop's handlers where it has them,
+    ``signal.signal`` on Windows."""
     task = asyncio.current_task()
     assert task is not None
-    loop = asyncio.get_running_loop()
 
     def stop(sig: signal.Signals) -> None:
         why.append(sig.name)
         task.cancel()
 
-    out = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop, sig)
-        out.append(sig)
-    return out
+    return on_signals(asyncio.get_running_loop(), interrupt_signals(), stop)

@@ -27,7 +27,9 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
+from .. import portable
 from ..errors import UsageError
+from ..portable import O_BINARY, O_CLOEXEC, O_NOFOLLOW
 
 
 @dataclass
@@ -153,7 +155,7 @@ def _create(p: _Pending) -> None:
     path, text = op.first
     while True:
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | O_BINARY | O_CLOEXEC, 0o644)
             break
         except FileExistsError:
             path = next(op.paths)
@@ -185,30 +187,43 @@ def _close(p: _Pending) -> None:
 
 
 def _fsync_dir(folder: str) -> None:
-    fd = os.open(folder, os.O_RDONLY)
+    """The folder's entries made durable (POSIX; Windows cannot: ``portable.fsync_dir``); an OSError says
+    it was the folder's fsync that failed, not the file's write."""
     try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+        portable.fsync_dir(folder)
+    except OSError as e:
+        raise OSError(e.errno, f"the fsync of its folder {folder} failed: {e.strerror}") from None
 
 
 def append_lines(path: str, records: list[dict[str, Any]]) -> None:
     """JSON lines appended with a single write and fsync'ed: concurrent runs never interleave inside a line.
 
     Every record starts on its own line: when the file does not end with a newline (a line cut by a
-    crash or a full disk), a newline goes first, so the torn line costs only itself.
+    crash or a full disk), a newline goes first, so the torn line costs only itself. Windows appends
+    are a seek and a write, not one step: there the file's lock (``state.oslock``) is held around them.
     """
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     data = "".join(json.dumps(r) + "\n" for r in records).encode()
-    fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
+    fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT | O_BINARY | O_CLOEXEC, 0o644)
     try:
+        if portable.WINDOWS:
+            from . import oslock
+
+            oslock.backend().lock(fd)  # released by the close
         size = os.fstat(fd).st_size
-        if size and os.pread(fd, 1, size - 1) != b"\n":
+        if size and _byte_at(fd, size - 1) != b"\n":
             data = b"\n" + data
         os.write(fd, data)
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def _byte_at(fd: int, offset: int) -> bytes:
+    if hasattr(os, "pread"):
+        return os.pread(fd, 1, offset)
+    os.lseek(fd, offset, os.SEEK_SET)  # Windows: no pread; an O_APPEND write goes to the end anyway
+    return os.read(fd, 1)
 
 
 # ---- output files: one rule, one atomic write ----------------------------------------------------
@@ -252,7 +267,9 @@ def _kind(mode: int) -> str | None:
 
 def disk_error(e: OSError) -> str:
     """An OSError of a state or output file, said plainly."""
-    return "the disk is full" if e.errno == errno.ENOSPC else e.strerror or str(e)
+    if e.errno == errno.ENOSPC:
+        return "the disk is full"
+    return portable.path_error(e) or e.strerror or str(e)
 
 
 def write_atomic(path: str, text: str | bytes | Sequence[bytes], *, replace: bool = True, what: str = "") -> None:
@@ -261,7 +278,8 @@ def write_atomic(path: str, text: str | bytes | Sequence[bytes], *, replace: boo
     ``check_output``'s rule first (and again right before the rename); then a new temporary file in
     the same folder (which must exist; never following a link), the text written (pieces of bytes with gathering
     writes: a big fleet report is never joined in memory), fsync'ed, renamed over ``path``, and the
-    folder fsync'ed so the new name survives a crash. An existing file keeps its permissions.
+    folder fsync'ed so the new name survives a crash (POSIX; Windows cannot fsync a folder: there the
+    rename is as durable as NTFS's own journal makes it). An existing file keeps its permissions.
     Raises OutputRefused for a path it will not write, UsageError when the disk refuses (full, read-only).
     """
     check_output(path, replace=replace, what=what)
@@ -272,13 +290,13 @@ def write_atomic(path: str, text: str | bytes | Sequence[bytes], *, replace: boo
         while True:
             tmp = os.path.join(directory, f".{os.path.basename(path)[:80]}.{secrets.token_hex(4)}.tmp")
             try:
-                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | O_NOFOLLOW | O_CLOEXEC | O_BINARY, 0o666)
                 break
             except FileExistsError:
                 continue
         try:
             with contextlib.suppress(FileNotFoundError):
-                os.fchmod(fd, stat.S_IMODE(os.stat(path, follow_symlinks=False).st_mode))
+                portable.fchmod(fd, stat.S_IMODE(os.stat(path, follow_symlinks=False).st_mode))
             if isinstance(text, str):
                 _write_all(fd, text.encode())
             elif isinstance(text, bytes):
@@ -289,7 +307,7 @@ def write_atomic(path: str, text: str | bytes | Sequence[bytes], *, replace: boo
         finally:
             os.close(fd)
         check_output(path, replace=replace, what=what)  # nobody planted anything meanwhile
-        os.replace(tmp, path)
+        portable.replace(tmp, path)  # Windows: retried while a reader holds ``path`` open
         tmp = ""
         _fsync_dir(directory)
     except OSError as e:
@@ -307,7 +325,12 @@ def _write_all(fd: int, data: bytes) -> None:
 
 
 def _writev(fd: int, pieces: list[bytes]) -> None:
-    """All of ``pieces``, in order, in as few writev calls as the system allows (short writes resumed)."""
+    """All of ``pieces``, in order, in as few writev calls as the system allows (short writes resumed);
+    one write each where there is no writev (Windows)."""
+    if not hasattr(os, "writev"):
+        for piece in pieces:
+            _write_all(fd, piece)
+        return
     batch = max(1, min(1024, os.sysconf("SC_IOV_MAX")))
     i = 0
     while i < len(pieces):

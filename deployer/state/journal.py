@@ -12,12 +12,12 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import pwd
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from .. import portable
 from ..errors import StateError
 from .durable import append_lines, disk_error
 from .lock import pid_alive
@@ -30,9 +30,7 @@ AUDIT = "audit.jsonl"
 
 def user_name() -> str:
     """The login name (not the uid): who ran it is what an audit trail is for."""
-    with contextlib.suppress(KeyError, OSError):
-        return pwd.getpwuid(os.getuid()).pw_name
-    return os.environ.get("USER") or os.environ.get("LOGNAME") or str(os.getuid())
+    return portable.user_name()
 
 
 def new_run_id() -> str:

@@ -7,14 +7,13 @@ identity where it has one. ``plan`` and ``apply`` of that profile on that device
 visible note; a device that answers with another identity has been replaced, and what its
 predecessor taught is not used. ``deployer learned list|forget`` shows and removes entries.
 
-The file is small JSON, rewritten whole (temporary file, fsync, rename) under an ``flock`` of a
+The file is small JSON, rewritten whole (temporary file, fsync, rename) under an OS file lock (``state.oslock``) of a
 companion lock file, so two runs finishing at once each keep their entry.
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import os
 import time
@@ -22,10 +21,12 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..portable import O_BINARY, O_CLOEXEC
 from ..profile import Limits, Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..report import write_atomic
 from ..transport.urls import DeviceURL
+from . import oslock
 
 FILE = "learned.json"
 SCHEMA = "deployer.learned/1"
@@ -81,9 +82,9 @@ def load(state_dir: str) -> list[Entry]:
 @contextlib.contextmanager
 def _locked(state_dir: str) -> Iterator[None]:
     os.makedirs(os.path.abspath(state_dir), exist_ok=True)
-    fd = os.open(path_of(state_dir) + ".lock", os.O_RDWR | os.O_CREAT, 0o666)
+    fd = os.open(path_of(state_dir) + ".lock", os.O_RDWR | os.O_CREAT | O_BINARY | O_CLOEXEC, 0o666)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        oslock.lock_exclusive(fd)
         yield
     finally:
         os.close(fd)

@@ -5,13 +5,14 @@ original values, one run's values are overwritten a moment after it verified the
 rollback restores the wrong state. So apply, rollback and fleet runs take the device's lock
 before their first read and hold it until the read-back is done.
 
-The lock is an ``flock`` on a file in a directory every run on this machine shares, whatever
-its working or state directory: ``$DEPLOYER_LOCK_DIR``, else a fixed folder per system (``lock_dir``):
-``/tmp/deployer-locks`` on POSIX, ``%ProgramData%\\deployer\\locks`` on Windows, never $TMPDIR, which
-differs between a login shell, a service and macOS users, so they would not see each other's locks. The
-kernel drops an ``flock`` when its process dies (even ``kill -9``), so a lock can never stay
-stuck; the file keeps who held it (PID, host, start, command) for the message a second run
-prints, and a record left by a process that is gone is reported as a stale lock taken over.
+The lock is an OS file lock (``state.oslock``: ``flock`` on POSIX, ``LockFileEx`` on Windows) on a
+file in a directory every run on this machine shares, whatever its working or state directory:
+``$DEPLOYER_LOCK_DIR``, else a fixed folder per system (``lock_dir``): ``/tmp/deployer-locks`` on
+POSIX, ``%ProgramData%\\deployer\\locks`` on Windows, never $TMPDIR, which differs between a login
+shell, a service and macOS users, so they would not see each other's locks. The system drops such
+a lock when its process dies (even ``kill -9``), so a lock can never stay stuck; the file keeps who
+held it (PID, host, start, command) for the message a second run prints, and a record left by a
+process that is gone is reported as a stale lock taken over.
 Across machines the orchestrator must serialize (see README, Ansible).
 """
 
@@ -20,7 +21,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
-import fcntl
 import hashlib
 import json
 import os
@@ -32,7 +32,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from .. import portable
 from ..errors import Locked as Locked  # importable from here as before
+from ..portable import pid_alive as pid_alive  # importable from here as before
+from . import oslock
 
 ENV = "DEPLOYER_LOCK_DIR"
 
@@ -101,23 +104,35 @@ class DeviceLock:
         """
         if self.fd < 0:
             return
+        backend = oslock.backend()
         mine = not self.shared
-        if self.shared:
-            try:  # the last shared holder removes it; anyone else still holding keeps it
-                fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                mine = True
+        if self.shared:  # the last shared holder removes it; anyone else still holding keeps it
+            with contextlib.suppress(OSError):
+                backend.unlock(self.fd)  # Windows turns no shared lock into an exclusive one: unlock first
+            try:
+                mine = backend.try_lock(self.fd)
             except OSError:
-                pass
-        if mine:
+                mine = False
+        removed = False
+        if mine and not portable.WINDOWS:
             try:
                 os.unlink(self.path)  # another user's file in the sticky folder: EPERM, it stays
+                removed = True
             except OSError:
-                with contextlib.suppress(OSError):
-                    os.ftruncate(self.fd, 0)  # a clean release leaves no record to call stale
+                pass
+        if mine and not removed:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self.fd, 0)  # a clean release leaves no record to call stale
         with contextlib.suppress(OSError):
-            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            backend.unlock(self.fd)
         os.close(self.fd)
         self.fd = -1
+        if mine and portable.WINDOWS:
+            # Windows removes no file that is open, so this fails while anyone else has it open (waiting
+            # for it or holding it): only a file nobody uses goes. (On POSIX, removing after the close
+            # could remove a file another run has just locked.)
+            with contextlib.suppress(OSError):
+                os.unlink(self.path)
 
 
 def _holder_text(record: dict[str, Any]) -> str:
@@ -137,40 +152,30 @@ def _read_record(fd: int) -> dict[str, Any]:
         return {}
 
 
-def pid_alive(pid: int) -> bool:
-    """Whether process ``pid`` exists on this machine (someone else's counts: it is alive)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True  # someone else's process, alive
-    return True
-
-
 _ready: set[str] = set()  # lock directories made and checked by this process
 
 
 def _directory(d: str) -> None:
     """Make the folder, or check one that is there: every user's runs share it, so it must be a real
     folder (not a link), and if others may write in it, sticky (like /tmp: nobody removes or replaces
-    another user's lock files)."""
+    another user's lock files). Windows has no sticky bit and no modes to check: there the folder's
+    ACL decides (docs/windows.md)."""
     if d in _ready:
         return
     try:
         os.makedirs(d, exist_ok=True)
         st = os.lstat(d)
-        if st.st_uid == os.getuid() and stat.S_ISDIR(st.st_mode):
+        if portable.owner_is_me(st) and stat.S_ISDIR(st.st_mode):
             os.chmod(d, 0o1777)  # every user's runs share it
             st = os.lstat(d)
     except OSError as e:
         raise Locked(f"cannot use the lock directory {d}: {e.strerror} (set {ENV} to another folder)",
                      busy=False) from None
-    if not stat.S_ISDIR(st.st_mode):
-        what = "a symbolic link" if stat.S_ISLNK(st.st_mode) else "not a folder"
+    if not stat.S_ISDIR(st.st_mode) or portable.is_link(st):
+        what = "a symbolic link" if portable.is_link(st) else "not a folder"
         raise Locked(f"cannot use the lock directory {d}: it is {what} (a lock folder must be a real folder; "
                      f"set {ENV} to another folder)", busy=False)
-    if st.st_mode & 0o022 and not st.st_mode & stat.S_ISVTX:
+    if portable.has_modes() and st.st_mode & 0o022 and not st.st_mode & stat.S_ISVTX:
         raise Locked(f"cannot use the lock directory {d}: others may write in it but it is not sticky, so they could "
                      f"replace lock files (chmod 1777 {d}, or set {ENV} to another folder)", busy=False)
     _ready.add(d)
@@ -180,24 +185,28 @@ def _open(path: str) -> int:
     """The lock file, opened without following a link; refused unless it is a plain file of its own.
 
     The folder is shared and the names predictable: a planted symlink or hard link to another file
-    (a root run would truncate it) or a FIFO (the open would block) is never written.
+    (a root run would truncate it) or a FIFO (the open would block) is never written. Windows has no
+    O_NOFOLLOW: ``portable.open_nofollow`` checks the path before and after opening instead.
     """
     try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o666)
+        fd = portable.open_nofollow(path, os.O_RDWR | os.O_CREAT | portable.O_NONBLOCK | portable.O_CLOEXEC
+                                    | portable.O_BINARY, 0o666)
     except OSError as e:
         if e.errno == errno.ELOOP:
             raise Locked(f"refusing the lock file {path}: it is a symbolic link (planted? remove it)",
                          busy=False) from None
-        raise Locked(f"cannot open the lock file {path}: {e.strerror}", busy=False) from None
+        hint = (" (on Windows every account whose runs share the lock folder needs the right to modify files "
+                "there: see docs/windows.md)" if portable.WINDOWS and isinstance(e, PermissionError) else "")
+        raise Locked(f"cannot open the lock file {path}: {e.strerror}{hint}", busy=False) from None
     st = os.fstat(fd)
     why = ("not a regular file" if not stat.S_ISREG(st.st_mode) else
            f"it has {st.st_nlink} names (a hard link to another file?)" if st.st_nlink != 1 else None)
     if why is not None:
         os.close(fd)
         raise Locked(f"refusing the lock file {path}: {why}; remove it", busy=False)
-    if st.st_uid == os.getuid() and stat.S_IMODE(st.st_mode) != 0o666:
+    if portable.owner_is_me(st) and stat.S_IMODE(st.st_mode) != 0o666:
         with contextlib.suppress(OSError):
-            os.fchmod(fd, 0o666)  # other users' runs lock (and record in) it too, whatever our umask
+            portable.fchmod(fd, 0o666)  # other users' runs lock (and record in) it too, whatever our umask
     return fd
 
 
@@ -214,8 +223,11 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
     while True:
         fd = _open(path)
         try:
-            fcntl.flock(fd, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
-        except BlockingIOError:
+            got = oslock.backend().try_lock(fd, shared=shared)
+        except OSError as e:
+            os.close(fd)
+            raise Locked(f"cannot lock {path}: {e.strerror}", busy=False) from None
+        if not got:
             record = _read_record(fd)
             os.close(fd)
             if not record:  # held shared: runs writing devices of this bus, one by one
@@ -225,9 +237,6 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
                 raise Locked(f"owned by the deployer agent at {a} (PID {record.get('pid', '?')}): run it through the "
                              f"agent (deployer apply --agent {a} ...), or stop the agent", busy=False) from None
             raise Locked(f"locked by {_holder_text(record)}") from None
-        except OSError as e:
-            os.close(fd)
-            raise Locked(f"cannot lock {path}: {e.strerror}", busy=False) from None
         try:
             same = os.stat(path, follow_symlinks=False).st_ino == os.fstat(fd).st_ino
         except OSError:
@@ -314,7 +323,7 @@ def _bus_users(bus: str, directory: str | None) -> str | None:
         if not name.endswith(".lock"):
             continue
         try:
-            fd = os.open(os.path.join(d, name), os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+            fd = portable.open_nofollow(os.path.join(d, name), os.O_RDONLY | portable.O_NONBLOCK | portable.O_BINARY)
         except OSError:
             continue
         try:
@@ -323,9 +332,10 @@ def _bus_users(bus: str, directory: str | None) -> str | None:
             if not key.startswith(f"{bus}#unit"):
                 continue
             try:
-                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)  # we got it: nobody holds it, an old record
-                continue
+                free = oslock.backend().try_lock(fd, shared=True)  # we got it: nobody holds it, an old record
             except OSError:
+                free = False
+            if not free:
                 who.append(f"unit {key.rsplit('#unit', 1)[1]} by {_holder_text(record)}")
         finally:
             os.close(fd)

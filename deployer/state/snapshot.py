@@ -16,6 +16,7 @@ import re
 import time
 from collections.abc import Mapping
 
+from ..portable import file_name
 from ..profile import profile_ref
 from ..recipe.loader import DeviceSpec, Recipe, SnapshotInfo
 from ..recipe.text import recipe_text
@@ -35,7 +36,7 @@ def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
     os.makedirs(directory, exist_ok=True)
     now = time.gmtime()
     stamp = time.strftime("%Y%m%dT%H%M%SZ", now)
-    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+    safe = file_name(name)  # valid on every system: no CON or AUX, no 300-character name
     prof = recipe.profile
     info = SnapshotInfo(prof.digest, dict(values), time.strftime("%Y-%m-%dT%H:%M:%SZ", now), applied,
                         identity=identity)
@@ -64,7 +65,7 @@ def last_identity(state_dir: str, name: str) -> tuple[str, dict[str, str]] | Non
     import json
 
     directory = snapshot_dir(state_dir)
-    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+    safe = file_name(name)
     stamp = re.compile(re.escape(safe) + r"-\d{8}T\d{6}Z(-\d+)?\.yaml$")
     try:
         names = sorted((n for n in os.listdir(directory) if stamp.match(n)), reverse=True)

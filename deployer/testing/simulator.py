@@ -827,17 +827,20 @@ class SimulatorThread:
 
 async def serve(sim: Simulator, *, on_ready: Any = None) -> None:
     """Run until SIGINT/SIGTERM; SIGUSR1 dumps the state file."""
+    from ..portable import interrupt_signals, on_signals
+
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    if sim.state_path and hasattr(signal, "SIGUSR1"):
+    undo = [on_signals(loop, interrupt_signals(), lambda _sig: stop.set())]
+    if sim.state_path and hasattr(signal, "SIGUSR1"):  # POSIX only; Windows dumps on exit alone
         path = sim.state_path
-        loop.add_signal_handler(signal.SIGUSR1, lambda: sim.dump_state(path))
+        undo.append(on_signals(loop, (signal.SIGUSR1,), lambda _sig: sim.dump_state(path)))
     await sim.start()
     if on_ready:
         on_ready(sim)
     try:
         await stop.wait()
     finally:
+        for u in undo:
+            u()
         await sim.stop()

@@ -50,6 +50,7 @@ from .urls import no_answer_hint as no_answer_hint
 from .urls import pacing as pacing
 from .urls import parse_url as parse_url
 from .urls import verify as _verify
+from .urls import windows_port
 
 
 class Transport(abc.ABC):
@@ -772,13 +773,17 @@ class SerialTransport(PymodbusTransport):
         # one client serves every transport on the port: the line routes frames to the active one
         common["trace_packet"] = self._opening.trace if self._opening is not None else self._trace
         return AsyncModbusSerialClient(
-            self.url.path or "", framer=FramerType.RTU if self.url.scheme == "rtu" else FramerType.ASCII,
+            self.url.serial_device, framer=FramerType.RTU if self.url.scheme == "rtu" else FramerType.ASCII,
             baudrate=line.baudrate, bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits, **common)
 
     async def connect(self) -> None:
         path = self.url.path or ""
         where = describe(self.url)
-        if not path.startswith(("socket://", "rfc2217://", "loop://")) and not os.path.exists(path):
+        if windows_port(path) is not None:
+            if os.name != "nt":
+                raise Unreachable(f"{where}: no such serial device '{path}' (COM ports are Windows' names; "
+                                  f"deployer scan --list-ports shows this system's serial ports)")
+        elif not path.startswith(("socket://", "rfc2217://", "loop://")) and not os.path.exists(path):
             raise Unreachable(f"{where}: no such serial device '{path}'")
         if self._line is not None:
             return
@@ -817,7 +822,7 @@ class SerialTransport(PymodbusTransport):
         port: Any = None
         try:
             line = self.url.line
-            port = serial.serial_for_url(self.url.path, exclusive=True, baudrate=line.baudrate,
+            port = serial.serial_for_url(self.url.serial_device, exclusive=True, baudrate=line.baudrate,
                                          bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits,
                                          timeout=self.url.timeout)
             port.timeout = 0  # what pymodbus sets next: it reconfigures the port

@@ -10,6 +10,7 @@ import difflib
 import functools
 import ipaddress
 import os
+import re
 import socket
 import urllib.parse
 from dataclasses import dataclass, field
@@ -59,12 +60,22 @@ class DeviceURL:
     def bus(self) -> str:
         """Key of the half-duplex bus this device sits on; devices on one bus never talk at once."""
         if self.scheme in ("rtu", "ascii"):
-            # a symlink (/dev/serial/by-id/..., a socat link) is the same wire as its target
+            # a symlink (/dev/serial/by-id/..., a socat link) is the same wire as its target; a Windows
+            # port is its name (COM3, com3 and \\.\COM3 are one port), never a file in the working folder
             path = self.path or ""
+            if windows_port(path):
+                return f"serial:{windows_port(path)}"
             return f"serial:{path if '://' in path else os.path.realpath(path)}"
         if self.scheme == "rtu+tcp":
             return f"gateway:{self.host}:{self.port}"
         return f"{self.scheme}:{self.host}:{self.port}"
+
+    @property
+    def serial_device(self) -> str:
+        r"""What to open for rtu/ascii: the path, or a Windows port in the device namespace (\\.\COM10:
+        COM10 and above cannot be opened by their bare name, and \\.\COM3 works as well as COM3)."""
+        port = windows_port(self.path or "")
+        return f"\\\\.\\{port}" if port else self.path or ""
 
     @property
     def lock_keys(self) -> tuple[str, ...]:
@@ -90,6 +101,21 @@ class DeviceURL:
         d = SERIAL_DEFAULTS
         return LineSettings(int(o.get("baudrate", d.baudrate)), int(o.get("bytesize", d.bytesize)),
                             o.get("parity", d.parity), int(o.get("stopbits", d.stopbits)))
+
+
+# COM1..COM256 as Windows names them, bare or in the device namespace (\\.\COM10); any other
+# \\.\NAME is a Windows device too (com0com's CNCA0)
+_COM = re.compile(r"(?:\\\\\.\\)?(COM[1-9][0-9]{0,2})", re.IGNORECASE)
+_DEVICE_NAMESPACE = re.compile(r"\\\\\.\\([A-Za-z0-9_]+)")
+
+
+def windows_port(path: str) -> str | None:
+    """The Windows port name a serial URL's path names (COM3, COM10, CNCA0), or None for a file path."""
+    m = _COM.fullmatch(path)
+    if m:
+        return m.group(1).upper()
+    m = _DEVICE_NAMESPACE.fullmatch(path)
+    return m.group(1).upper() if m else None
 
 
 @functools.lru_cache(maxsize=512)
@@ -216,7 +242,10 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
     if scheme in ("rtu", "ascii"):
         path = urllib.parse.unquote(u.netloc + u.path)
         if not path:
-            raise BadURL(f"{scheme} URL needs a serial device path: {scheme}:///dev/ttyUSB0")
+            raise BadURL(f"{scheme} URL needs a serial device path: {scheme}:///dev/ttyUSB0 or {scheme}://COM3")
+        win = windows_port(path)
+        if win is not None:  # COMn is kept as its name (``serial_device`` opens \\.\COMn), others as \\.\NAME
+            path = win if _COM.fullmatch(win) else "\\\\.\\" + win
         for key in ("baudrate", "bytesize", "stopbits"):
             if key in options:
                 number(key)

@@ -74,15 +74,9 @@ class Awaiting:
 
     @property
     def alive(self) -> bool:
-        if self.pid is None:
-            return False
-        try:
-            os.kill(self.pid, 0)
-        except ProcessLookupError:
-            return False
-        except PermissionError:
-            return True
-        return True
+        from ..portable import pid_alive  # never os.kill(pid, 0): on Windows it ends the process
+
+        return self.pid is not None and pid_alive(self.pid)
 
 
 def awaiting(state_dir: str) -> list[Awaiting]:

@@ -1,0 +1,263 @@
+"""What differs between POSIX (Linux, macOS) and Windows, chosen at run time, never at import.
+
+deployer imports nothing POSIX-only (``fcntl``, ``pwd``, ``resource``, ``termios``) at module level:
+each such piece is a function here (or ``state.oslock`` for file locks) that asks what the running
+system has. docs/windows.md says what each gives on each system and how it is tested.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import functools
+import os
+import signal
+import stat
+import sys
+import threading
+import time
+from collections.abc import Callable
+
+WINDOWS = sys.platform == "win32"
+
+# Flags that only some systems have: 0 where absent, so ``os.open(path, A | O_NOFOLLOW)`` runs everywhere.
+# O_BINARY: without it Windows' os.write turns "\n" into "\r\n" (a snapshot's digest would not match).
+O_BINARY: int = getattr(os, "O_BINARY", 0)
+# Windows: descriptors are never inherited by children anyway (PEP 446), so no O_CLOEXEC is lost.
+O_CLOEXEC: int = getattr(os, "O_CLOEXEC", 0)
+# Windows has no FIFOs at a file path (named pipes live under \\.\pipe\), so no open can block there.
+O_NONBLOCK: int = getattr(os, "O_NONBLOCK", 0)
+O_NOFOLLOW: int = getattr(os, "O_NOFOLLOW", 0)
+
+
+def user_name() -> str:
+    """The login name (not the uid): who ran it is what an audit trail is for.
+
+    ``getpass.getuser()`` reads LOGNAME, USER, LNAME, USERNAME (Windows sets USERNAME), then the
+    password database where there is one; a container's uid without a name gives the number.
+    """
+    import getpass
+
+    try:
+        name = getpass.getuser()
+    except (KeyError, OSError, ImportError):  # OSError from 3.13, KeyError/ImportError before
+        name = ""
+    if name:
+        return name
+    getuid = getattr(os, "getuid", None)
+    return str(getuid()) if getuid is not None else "unknown"
+
+
+def owner_is_me(st: os.stat_result) -> bool:
+    """Whether this process's user owns the file (False where the system has no uids: Windows)."""
+    getuid = getattr(os, "getuid", None)
+    return getuid is not None and st.st_uid == getuid()
+
+
+def has_modes() -> bool:
+    """Whether files have owners and Unix permission bits here (POSIX; Windows has ACLs instead)."""
+    return hasattr(os, "getuid")
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this machine (someone else's counts: it is alive).
+
+    Never ``os.kill(pid, 0)`` on Windows: there it terminates the process instead of probing it.
+    """
+    if pid <= 0:
+        return False
+    if WINDOWS:
+        return _windows_pid_alive(pid)
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # someone else's process, alive
+    except OSError:
+        return False
+    return True
+
+
+def _windows_pid_alive(pid: int) -> bool:
+    """OpenProcess + GetExitCodeProcess: a process handle for a gone PID either fails or says it exited."""
+    if sys.platform == "win32":  # the branch mypy checks only for Windows
+        import ctypes
+        from ctypes import wintypes
+
+        kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)
+        kernel32.OpenProcess.restype = wintypes.HANDLE
+        kernel32.OpenProcess.argtypes = [wintypes.DWORD, wintypes.BOOL, wintypes.DWORD]
+        kernel32.GetExitCodeProcess.argtypes = [wintypes.HANDLE, ctypes.POINTER(wintypes.DWORD)]
+        kernel32.CloseHandle.argtypes = [wintypes.HANDLE]
+        process_query_limited_information, still_active, error_access_denied = 0x1000, 259, 5
+        handle = kernel32.OpenProcess(process_query_limited_information, False, pid)
+        if not handle:
+            return ctypes.get_last_error() == error_access_denied  # exists, but not ours to ask
+        try:
+            code = wintypes.DWORD()
+            if not kernel32.GetExitCodeProcess(handle, ctypes.byref(code)):
+                return True
+            return code.value == still_active
+        finally:
+            kernel32.CloseHandle(handle)
+    return False
+
+
+def fchmod(fd: int, mode: int) -> None:
+    """``os.fchmod`` where it exists (POSIX; Windows only from Python 3.13, where it sets read-only alone)."""
+    f = getattr(os, "fchmod", None)
+    if f is not None and not WINDOWS:
+        f(fd, mode)
+
+
+def open_nofollow(path: str, flags: int, mode: int = 0o666) -> int:
+    """``os.open`` that never goes through a symbolic link at ``path`` (OSError ELOOP if one is there).
+
+    POSIX: O_NOFOLLOW, which the kernel checks. Where there is no O_NOFOLLOW (Windows): the path is
+    refused when ``lstat`` shows a link or reparse point (a junction), and after opening, the file
+    opened must be the one at the path (same device and file id), so a link planted in between is
+    found too; an O_EXCL open never follows a link in the first place.
+    """
+    if O_NOFOLLOW:
+        return os.open(path, flags | O_NOFOLLOW, mode)
+    with contextlib.suppress(FileNotFoundError):
+        if is_link(os.lstat(path)):
+            raise OSError(errno.ELOOP, "it is a symbolic link", path)
+    fd = os.open(path, flags, mode)
+    try:
+        st, opened = os.lstat(path), os.fstat(fd)
+        if is_link(st) or (st.st_dev, st.st_ino) != (opened.st_dev, opened.st_ino):
+            raise OSError(errno.ELOOP, "it is a symbolic link", path)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def is_link(st: os.stat_result) -> bool:
+    reparse = getattr(stat, "FILE_ATTRIBUTE_REPARSE_POINT", 0)
+    return stat.S_ISLNK(st.st_mode) or bool(reparse and getattr(st, "st_file_attributes", 0) & reparse)
+
+
+def fsync_dir(folder: str) -> bool:
+    """Make a folder's entries durable (new and renamed names survive a crash); False where the system
+    cannot (Windows opens no folder as a file: NTFS journals its metadata itself, so a rename there is
+    as durable as the volume's journal, not promised by an fsync). OSError when the fsync fails."""
+    if WINDOWS:
+        return False
+    fd = os.open(folder, os.O_RDONLY | O_CLOEXEC)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return True
+
+
+def replace(src: str, dst: str, *, attempts: int = 20, pause: float = 0.05) -> None:
+    """``os.replace``; on Windows, retried for about a second while another process holds ``dst``
+    open without sharing deletes (an editor, a virus scanner, the indexer): PermissionError after."""
+    for i in range(attempts):
+        try:
+            os.replace(src, dst)
+            return
+        except PermissionError:
+            if not WINDOWS or i == attempts - 1:
+                raise
+            time.sleep(pause)
+
+
+# Windows opens a device, not a file, for these names, whatever the extension ("con.yaml" is the console)
+RESERVED_NAMES = frozenset({"CON", "PRN", "AUX", "NUL", "CONIN$", "CONOUT$", *(f"{p}{n}" for p in ("COM", "LPT")
+                                                                            for n in [*"123456789", "¹", "²", "³"])})
+NAME_LIMIT = 100  # characters of a file name made from a device or recipe name (Windows paths: 260 in all)
+
+
+def file_name(name: str, limit: int = NAME_LIMIT) -> str:
+    """``name`` as a file name valid on every system, the same everywhere (a snapshot made on Linux
+    has the name it would have on Windows): letters, digits, ``-``, ``_`` and ``.`` (others become
+    ``_``); no trailing dot or space (Windows drops them); a Windows device name as the part before
+    the first dot (``CON``, ``aux.x``, ``COM1``) gets a ``_`` in front; at most ``limit`` characters
+    (a longer name keeps its start and gets a hash of the whole, so two long names stay apart)."""
+    import hashlib
+
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name).rstrip(". ") or "_"
+    if safe.split(".")[0].upper() in RESERVED_NAMES:
+        safe = "_" + safe
+    if len(safe) > limit:
+        safe = safe[:limit - 9].rstrip(". ") + "-" + hashlib.sha256(name.encode()).hexdigest()[:8]
+    return safe
+
+
+def path_error(e: OSError) -> str | None:
+    """What a path's OSError means when it is about the path itself (too long), else None."""
+    if e.errno == errno.ENAMETOOLONG or getattr(e, "winerror", None) == 206:  # ERROR_FILENAME_EXCED_RANGE
+        where = f" ({len(str(e.filename))} characters)" if e.filename else ""
+        return (f"the path is too long{where}" + ("; Windows allows 259 characters unless long paths are "
+                                                   "enabled (LongPathsEnabled), or use a shorter --state folder"
+                                                   if WINDOWS else ""))
+    return None
+
+
+def raise_open_files(need: int) -> int | None:
+    """Raise the soft open-file limit towards ``need`` (POSIX ``resource``); the hard limit when it is
+    below ``need``, else None.
+
+    Windows has no such limit for sockets (the C runtime's 8192 descriptors are for files), so nothing
+    to do there.
+    """
+    try:
+        import resource
+    except ImportError:
+        return None
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= need:
+        return None
+    if hard != resource.RLIM_INFINITY and hard < need:
+        return int(hard)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (need if hard == resource.RLIM_INFINITY else hard, hard))
+    return None
+
+
+def on_signals(loop: object, signals: tuple[signal.Signals, ...],
+               handler: Callable[[signal.Signals], None]) -> Callable[[], None]:
+    """Call ``handler(sig)`` in the event loop's thread when one of ``signals`` arrives; returns the undo.
+
+    ``loop.add_signal_handler`` where the loop has it (POSIX); else (Windows' event loops raise
+    NotImplementedError) ``signal.signal`` with a handler that hands over to the loop: on Windows
+    Ctrl-C is SIGINT, and the proactor loop wakes for it. Main thread only (as signals are): elsewhere
+    nothing is installed. Signals the system lacks are skipped.
+    """
+    import asyncio
+
+    assert isinstance(loop, asyncio.AbstractEventLoop)
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    undo: list[Callable[[], object]] = []
+    for sig in signals:
+        try:
+            loop.add_signal_handler(sig, handler, sig)
+            undo.append(functools.partial(loop.remove_signal_handler, sig))
+            continue
+        except (NotImplementedError, AttributeError):
+            pass
+
+        def on(signum: int, _frame: object, s: signal.Signals = sig) -> None:
+            loop.call_soon_threadsafe(handler, s)
+
+        try:
+            old = signal.signal(sig, on)
+        except (ValueError, OSError):
+            continue
+        undo.append(functools.partial(signal.signal, sig, old))
+
+    def restore() -> None:
+        for u in reversed(undo):
+            with contextlib.suppress(Exception):
+                u()
+    return restore
+
+
+def interrupt_signals() -> tuple[signal.Signals, ...]:
+    """SIGINT (Ctrl-C), and SIGTERM and SIGBREAK (Windows' Ctrl-Break) where they exist."""
+    return tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGBREAK") if hasattr(signal, n))
