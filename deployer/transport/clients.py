@@ -25,7 +25,6 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
-import serial
 from pymodbus import FramerType
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient, AsyncModbusTlsClient
 from pymodbus.exceptions import ConnectionException, ModbusException
@@ -821,6 +820,8 @@ class SerialTransport(PymodbusTransport):
         o = self.url.options
         port: Any = None
         try:
+            import serial  # here, not at import: on Linux pyserial needs termios, which TCP never does
+
             line = self.url.line
             port = serial.serial_for_url(self.url.serial_device, exclusive=True, baudrate=line.baudrate,
                                          bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits,

@@ -1,0 +1,30 @@
+"""Python runs this at start-up in the POSIX-less test's processes (tests/test_posixless.py, PYTHONPATH):
+from here on this Linux Python lacks what Windows' Python lacks, and deployer must run without it.
+
+- the POSIX-only modules cannot be imported (``fcntl``, ``pwd``, ``grp``, ``resource``, ``termios``);
+- ``os`` has no uids, no ``fchmod``, no O_NOFOLLOW/O_CLOEXEC/O_NONBLOCK, no ``pread``/``writev``/``sysconf``;
+- the event loop's ``add_signal_handler`` raises NotImplementedError, as Windows' loops do.
+
+What it cannot make Windows-like: POSIX file semantics (a file in use can be removed), the path syntax,
+and the lock primitive under the ``range`` backend (F_OFD_SETLK here, LockFileEx there).
+"""
+
+import asyncio.unix_events
+import os
+import sys
+
+for _name in ("fcntl", "pwd", "grp", "resource", "termios"):
+    sys.modules[_name] = None  # type: ignore[assignment]  # import raises ModuleNotFoundError
+
+for _name in ("getuid", "geteuid", "getgid", "getegid", "fchmod", "O_NOFOLLOW", "O_CLOEXEC", "O_NONBLOCK",
+              "pread", "writev", "sysconf"):
+    if hasattr(os, _name):
+        delattr(os, _name)
+
+
+def _no_signal_handlers(*args: object, **kwargs: object) -> None:
+    raise NotImplementedError  # what asyncio's Windows event loops raise
+
+
+asyncio.unix_events._UnixSelectorEventLoop.add_signal_handler = _no_signal_handlers  # type: ignore[method-assign]
+asyncio.unix_events._UnixSelectorEventLoop.remove_signal_handler = _no_signal_handlers  # type: ignore[method-assign,assignment]
