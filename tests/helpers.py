@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import socketserver
 import threading
+import time
 from collections.abc import Awaitable, Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -18,7 +19,7 @@ from deployer.testing.simulator import LogEntry, Simulator
 T = TypeVar("T")
 
 
-def run_cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
     """Run the command line in-process: (exit code, stdout, stderr)."""
     from deployer.cli import main
 
@@ -26,6 +27,16 @@ def run_cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, s
         main(list(args))
     out, err = capsys.readouterr()
     return int(exc.value.code or 0), out, err
+
+
+
+def wait_for(cond: Callable[[], bool], what: str = "the condition", timeout: float = 120) -> None:
+    """Poll until ``cond()`` holds. The timeout is an upper bound for a loaded machine, not a timing assertion."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(0.02)
 
 
 def profile_from(tmp: Path, text: str, name: str = "dev.yaml") -> Profile:
@@ -43,47 +54,6 @@ def run_with(sim: Simulator, body: Callable[[Simulator], Awaitable[T]]) -> T:
 
 def count(log: list[LogEntry], function: int, **where: Any) -> int:
     return sum(1 for e in log if e.function == function and all(getattr(e, k) == v for k, v in where.items()))
-
-
-@contextmanager
-def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None, *,
-                   connections: int = 1) -> Iterator[int]:
-    """A Modbus/TCP server from another library (umodbus), unit 1, holding registers in ``store`` (and coils in
-    ``coils``, served with functions 1, 5 and 15); yields its port. ``connections`` > 1: each connection is
-    served by a thread of its own (a soak's rollback connects while the soak's connection is open)."""
-    pytest.importorskip("umodbus", reason="umodbus is a test extra (pip install -e '.[test]')")
-    from umodbus import conf
-    from umodbus.server.tcp import RequestHandler, get_server
-
-    conf.SIGNED_VALUES = False
-    socketserver.TCPServer.allow_reuse_address = True
-    server = get_server(socketserver.ThreadingTCPServer if connections > 1 else socketserver.TCPServer,
-                        ("127.0.0.1", 0), RequestHandler)
-
-    @server.route(slave_ids=[1], function_codes=[3], addresses=list(store))  # type: ignore[untyped-decorator]
-    def read(slave_id: int, function_code: int, address: int) -> int:
-        return store[address]
-
-    @server.route(slave_ids=[1], function_codes=[6, 16], addresses=list(store))  # type: ignore[untyped-decorator]
-    def write(slave_id: int, function_code: int, address: int, value: int) -> None:
-        store[address] = value
-
-    if coils:
-        @server.route(slave_ids=[1], function_codes=[1], addresses=list(coils))  # type: ignore[untyped-decorator]
-        def read_coil(slave_id: int, function_code: int, address: int) -> int:
-            return coils[address]
-
-        @server.route(slave_ids=[1], function_codes=[5, 15], addresses=list(coils))  # type: ignore[untyped-decorator]
-        def write_coil(slave_id: int, function_code: int, address: int, value: int) -> None:
-            coils[address] = value
-
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield int(server.server_address[1])
-    finally:
-        server.shutdown()
-        server.server_close()
 
 
 class Simulators:
@@ -117,15 +87,19 @@ class Simulators:
 
 
 @contextmanager
-def quirky_umodbus(store: dict[int, int], *, maximum: dict[int, int] | None = None, max_write: int = 0,
-                   all_or_nothing: bool = False, fc06_only: bool = False,
-                   wire: list[tuple[int, int, int]] | None = None) -> Iterator[int]:
-    """A device from another library (umodbus, Modbus/TCP, unit 1) with a real device's quirks; yields its port.
+def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None, *,
+                   maximum: dict[int, int] | None = None, max_write: int = 0, all_or_nothing: bool = False,
+                   fc06_only: bool = False, wire: list[tuple[int, int, int]] | None = None,
+                   connections: int = 1) -> Iterator[int]:
+    """A device from another library (umodbus, Modbus/TCP on 127.0.0.1, unit 1); yields its port.
 
-    ``maximum``: register -> the largest value it takes (more answers 03; umodbus writes an FC16's
-    registers one by one, so the ones before the bad value stay written, unless ``all_or_nothing``);
-    ``max_write``: FC16 requests carrying more registers answer 03; ``fc06_only``: FC16 answers 01. It
-    knows no Function 43 (umodbus answers 01). ``wire`` collects (function, address, count) of each request.
+    Holding registers are ``store`` (functions 3, 6 and 16), coils ``coils`` (1, 5 and 15). It knows no
+    Function 43 (umodbus answers 01). A real device's quirks, all off by default: ``maximum``: register ->
+    the largest value it takes (more answers 03; umodbus writes an FC16's registers one by one, so the ones
+    before the bad value stay written, unless ``all_or_nothing``); ``max_write``: FC16 requests carrying more
+    registers answer 03; ``fc06_only``: FC16 answers 01. ``wire`` collects (function, address, count) of
+    each request. ``connections`` > 1: each connection is served by a thread of its own (a soak's rollback
+    connects while the soak's connection is open).
     """
     pytest.importorskip("umodbus", reason="umodbus is a test extra (pip install -e '.[test]')")
     import struct
@@ -142,7 +116,7 @@ def quirky_umodbus(store: dict[int, int], *, maximum: dict[int, int] | None = No
         def execute_route(self, meta_data: dict[str, int], request_pdu: bytes) -> bytes:
             fc = request_pdu[0]
             address, count = struct.unpack(">HH", request_pdu[1:5]) if len(request_pdu) >= 5 else (0, 0)
-            seen.append((fc, address, 1 if fc == 6 else count))
+            seen.append((fc, address, 1 if fc in (5, 6) else count))
             if fc == 16:
                 if fc06_only:
                     return bytes(pack_exception_pdu(16, 1))
@@ -156,7 +130,8 @@ def quirky_umodbus(store: dict[int, int], *, maximum: dict[int, int] | None = No
 
     conf.SIGNED_VALUES = False
     socketserver.TCPServer.allow_reuse_address = True
-    server = get_server(socketserver.TCPServer, ("127.0.0.1", 0), Quirky)
+    server = get_server(socketserver.ThreadingTCPServer if connections > 1 else socketserver.TCPServer,
+                        ("127.0.0.1", 0), Quirky)
 
     @server.route(slave_ids=[1], function_codes=[3], addresses=list(store))  # type: ignore[untyped-decorator]
     def read(slave_id: int, function_code: int, address: int) -> int:
@@ -167,6 +142,15 @@ def quirky_umodbus(store: dict[int, int], *, maximum: dict[int, int] | None = No
         if value > limits.get(address, 0xFFFF):
             raise IllegalDataValueError()
         store[address] = value
+
+    if coils:
+        @server.route(slave_ids=[1], function_codes=[1], addresses=list(coils))  # type: ignore[untyped-decorator]
+        def read_coil(slave_id: int, function_code: int, address: int) -> int:
+            return coils[address]
+
+        @server.route(slave_ids=[1], function_codes=[5, 15], addresses=list(coils))  # type: ignore[untyped-decorator]
+        def write_coil(slave_id: int, function_code: int, address: int, value: int) -> None:
+            coils[address] = value
 
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()

@@ -136,12 +136,12 @@ def test_the_bounds_hold_at_their_edges() -> None:
 ])
 def test_the_command_line_refuses_what_the_api_refuses(capsys: pytest.CaptureFixture[str], tmp_path: Path,
                                                        args: list[str], words: str) -> None:
-    from tests.helpers import run_cli
+    from tests.helpers import cli
 
     with Simulators([Simulator(PROFILE)]) as (sim,):
         r = tmp_path / "r.yaml"
         r.write_text(f"recipe: r\nprofile: example-inverter\ndevice: {{url: '{sim.url}'}}\nparameters:\n  F07: 10 s\n")
-        code, _, err = run_cli(capsys, "apply", str(r), "--yes", "--state-dir", str(tmp_path / "s"), *args)
+        code, _, err = cli(capsys, "apply", str(r), "--yes", "--state-dir", str(tmp_path / "s"), *args)
         assert code == 1 and words in err, err
         assert sim.log == []
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import struct
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -16,8 +15,7 @@ from deployer.recipe.loader import load_recipe
 from deployer.testing.simulator import Simulator, SimulatorThread
 from deployer.transport import clients as tp
 from tests.conftest import free_port
-from tests.helpers import profile_from
-from tests.helpers import umodbus_server as start_umodbus
+from tests.helpers import profile_from, umodbus_server
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -110,19 +108,13 @@ def test_rtu_over_tcp_gateway(tmp_path: Path) -> None:
     asyncio.run(main())
 
 
-@pytest.fixture
-def umodbus_server() -> Iterator[tuple[int, dict[int, int]]]:
+def test_apply_to_a_umodbus_server(tmp_path: Path) -> None:
     store: dict[int, int] = {0x1102: 0, 0x1103: 500}
-    with start_umodbus(store) as port:
-        yield port, store
-
-
-def test_apply_to_a_umodbus_server(umodbus_server: tuple[int, dict[int, int]], tmp_path: Path) -> None:
-    port, store = umodbus_server
     (tmp_path / "r.yaml").write_text("recipe: r\nprofile: omron-m1\nparameters: {F07: 10 s}\n")
     rec = load_recipe(str(tmp_path / "r.yaml"))
-    res = asyncio.run(apply_device(rec, tp.parse_url(f"tcp://127.0.0.1:{port}?timeout=2"), 1,
-                                   options=ApplyOptions(state_dir=str(tmp_path / ".d"))))
+    with umodbus_server(store) as port:
+        res = asyncio.run(apply_device(rec, tp.parse_url(f"tcp://127.0.0.1:{port}?timeout=2"), 1,
+                                       options=ApplyOptions(state_dir=str(tmp_path / ".d"))))
     assert res.status == "ok", res
     assert (store[0x1102], store[0x1103]) == (0, 1000)
     f07 = res.parameters[0]

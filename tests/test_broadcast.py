@@ -11,7 +11,7 @@ import pytest
 from deployer.load import schema
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import SimulatorThread
-from tests.helpers import run_cli as cli
+from tests.helpers import cli
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -11,21 +11,14 @@ from pathlib import Path
 import jsonschema
 import pytest
 
-from deployer.cli import main
 from deployer.load import schema
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import SimulatorThread
 from tests.conftest import free_port
+from tests.helpers import cli
 
 pytestmark = pytest.mark.timeout(60)
 EXAMPLES = Path(__file__).parent.parent / "recipes" / "examples"
-
-
-def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as exc:
-        main(list(args))
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 @pytest.fixture

@@ -13,8 +13,7 @@ from deployer.load.diagnostics import InputError
 from deployer.profile import load_profile
 from deployer.recipe.loader import load_recipe
 from deployer.testing.simulator import SimulatorThread
-from tests.helpers import umodbus_server
-from tests.test_cli import cli
+from tests.helpers import cli, umodbus_server
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -10,7 +10,7 @@ import pytest
 from deployer.api import defaults_diff, non_default
 from deployer.profile import Profile
 from deployer.testing.simulator import SimulatorThread
-from tests.helpers import profile_from, run_cli
+from tests.helpers import cli, profile_from
 
 PROFILE = """\
 profile: th
@@ -35,7 +35,7 @@ def th(tmp_path: Path) -> Profile:
 def test_a_factory_fresh_device_holds_every_default(tmp_path: Path, th: Profile,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
     with SimulatorThread(th) as sim:  # the simulator starts at the defaults: a device out of the box
-        code, out, err = run_cli(capsys, "diff", "--defaults", "--profile", str(tmp_path / "th.yaml"),
+        code, out, err = cli(capsys, "diff", "--defaults", "--profile", str(tmp_path / "th.yaml"),
                                  "--device", sim.url)
     assert code == 0, err
     assert "factory settings: all 8 parameters with a default hold it" in out
@@ -48,7 +48,7 @@ def test_diff_defaults_names_what_was_changed(tmp_path: Path, th: Profile, capsy
         sim.write("led", (0x0030,))  # led off (bit 0), level 3 kept (bits 4..6)
         sim.write("unit_f", (1,))
         sim.write("trim", (5,))  # no default: never "differs"
-        code, out, err = run_cli(capsys, "diff", "--defaults", "--profile", str(tmp_path / "th.yaml"),
+        code, out, err = cli(capsys, "diff", "--defaults", "--profile", str(tmp_path / "th.yaml"),
                                  "--device", sim.url, "--json")
         assert code == 2, err
         data = json.loads(out)
@@ -61,7 +61,7 @@ def test_diff_defaults_names_what_was_changed(tmp_path: Path, th: Profile, capsy
         # the same through a recipe (its profile and device), as a table
         (tmp_path / "r.yaml").write_text(f"recipe: r\nprofile: th.yaml\ndevice: {{url: '{sim.url}'}}\n"
                                          "parameters: {mode: cool}\n")
-        code, out, _ = run_cli(capsys, "diff", str(tmp_path / "r.yaml"), "--defaults")
+        code, out, _ = cli(capsys, "diff", str(tmp_path / "r.yaml"), "--defaults")
         assert code == 2
         assert out.splitlines()[-2:] == ["3 of 8 parameters with a factory default differ from it",
                                          "not compared: 1 parameter without a default in profile th"]
@@ -74,7 +74,7 @@ def test_pull_non_default_is_the_difference_from_the_factory(tmp_path: Path, th:
         sim.write("mode", (2,))
         sim.write("level", (0x0051,))  # led on, level 5
         sim.write("buzzer", (0,))
-        code, _, err = run_cli(capsys, "pull", "--profile", str(tmp_path / "th.yaml"), "--device", sim.url,
+        code, _, err = cli(capsys, "pull", "--profile", str(tmp_path / "th.yaml"), "--device", sim.url,
                                "--non-default", "-o", str(tmp_path / "pulled.yaml"))
         assert code == 0, err
         text = (tmp_path / "pulled.yaml").read_text()
@@ -84,7 +84,7 @@ def test_pull_non_default_is_the_difference_from_the_factory(tmp_path: Path, th:
         changed = {n: sim.read(n) for n in th.names()}
     # a factory-fresh device plus the pulled recipe is the device it was pulled from
     with SimulatorThread(th) as fresh:
-        code, _, err = run_cli(capsys, "apply", str(tmp_path / "pulled.yaml"), "--device", fresh.url, "--yes",
+        code, _, err = cli(capsys, "apply", str(tmp_path / "pulled.yaml"), "--device", fresh.url, "--yes",
                                "--state-dir", str(tmp_path / ".d"))
         assert code == 0, err
         assert {n: fresh.read(n) for n in th.names()} == changed
@@ -101,7 +101,7 @@ def test_defaults_in_code(th: Profile) -> None:
 
 
 def test_defaults_usage(tmp_path: Path, th: Profile, capsys: pytest.CaptureFixture[str]) -> None:
-    code, _, err = run_cli(capsys, "diff", "--defaults", "--profile", str(tmp_path / "th.yaml"))
+    code, _, err = cli(capsys, "diff", "--defaults", "--profile", str(tmp_path / "th.yaml"))
     assert code == 1 and "diff --defaults needs RECIPE, or --profile ID|FILE and --device URL" in err
-    code, _, err = run_cli(capsys, "diff", "--profile", str(tmp_path / "th.yaml"), "--device", "tcp://127.0.0.1:1")
+    code, _, err = cli(capsys, "diff", "--profile", str(tmp_path / "th.yaml"), "--device", "tcp://127.0.0.1:1")
     assert code == 1 and "--profile goes with --defaults" in err

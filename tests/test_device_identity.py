@@ -24,7 +24,8 @@ from deployer.profile import builtin_profile
 from deployer.state import lock
 from deployer.testing.simulator import Faults, SimulatorThread
 from deployer.transport import urls
-from tests.test_lock_journal import FIRST, SECOND, recipe, run, start, wait_for
+from tests.helpers import wait_for
+from tests.test_lock_journal import FIRST, SECOND, recipe, run, start
 
 pytestmark = pytest.mark.timeout(180)
 

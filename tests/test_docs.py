@@ -15,7 +15,7 @@ from deployer.cli.files import validate_file
 from deployer.load import schema
 from deployer.profile import Limits
 from deployer.transport.urls import _OPTIONS, DEFAULT_PORTS, NUMERIC_OPTIONS, SERIAL_DEFAULTS, option_facts
-from tests.helpers import run_cli as cli
+from tests.helpers import cli
 
 ROOT = Path(__file__).parent.parent
 DOCS = ROOT / "docs"

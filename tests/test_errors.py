@@ -13,7 +13,7 @@ import pytest
 from deployer import errors
 from deployer.errors import DeployerError
 from deployer.state import lock
-from tests.helpers import run_cli
+from tests.helpers import cli
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -119,6 +119,6 @@ def test_a_held_lock_is_busy(tmp_path: Path) -> None:
 
 
 def test_a_bad_url_exits_1_as_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
-    code, _out, err = run_cli(capsys, "plan", str(ROOT / "recipes/examples/conveyor-line3.yaml"), "--device", "tcpx://h:1")
+    code, _out, err = cli(capsys, "plan", str(ROOT / "recipes/examples/conveyor-line3.yaml"), "--device", "tcpx://h:1")
     assert code == errors.EXIT_INVALID
     assert err.startswith("error: ") and "Traceback" not in err

@@ -20,7 +20,7 @@ from deployer.report import DeviceResult
 from deployer.state import learned
 from deployer.testing.simulator import Quirks, Simulator, SimulatorThread
 from deployer.transport.clients import parse_url
-from tests.helpers import profile_from, quirky_umodbus, run_cli, run_with
+from tests.helpers import cli, profile_from, run_with, umodbus_server
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -150,13 +150,13 @@ def test_write_limit_is_learned_said_remembered_and_used(tmp_path: Path, device_
 
         # the next plan uses it, with a note, and the next apply sends no refused request
         recipe2 = _recipe(tmp_path, bad=False, offset=20)
-        code, out, err = run_cli(capsys, "plan", recipe2, "--device", sim.url, "--state-dir", state)
+        code, out, err = cli(capsys, "plan", recipe2, "--device", sim.url, "--state-dir", state)
         assert code == 0, err
         assert "note: using what this device taught on" in out
         assert "limits.max_write_registers: 4" in out
         assert "4 write requests (14 registers" in out
         sim.log.clear()
-        code, out, err = run_cli(capsys, "apply", recipe2, "--device", sim.url, "--yes", "--json",
+        code, out, err = cli(capsys, "apply", recipe2, "--device", sim.url, "--yes", "--json",
                                  "--state-dir", state)
         assert code == 0, err
         dev = json.loads(out)["devices"][0]
@@ -165,9 +165,9 @@ def test_write_limit_is_learned_said_remembered_and_used(tmp_path: Path, device_
         assert any(n.startswith("using what this device taught") for n in dev["notices"])
         assert [sim.read(f"p{i}")[0] for i in range(N)] == [20 + i for i in range(N)]
 
-    code, out, _ = run_cli(capsys, "learned", "list", "--state-dir", state)
+    code, out, _ = cli(capsys, "learned", "list", "--state-dir", state)
     assert code == 0 and "limits.max_write_registers: 4" in out and "dev.yaml" in out
-    code, out, _ = run_cli(capsys, "learned", "forget", "--profile", profile_path, "--state-dir", state)
+    code, out, _ = cli(capsys, "learned", "forget", "--profile", profile_path, "--state-dir", state)
     assert code == 0 and "forgot limits.max_write_registers: 4" in out
     assert learned.load(state) == []
 
@@ -223,7 +223,7 @@ def _store() -> dict[int, int]:
 def test_umodbus_all_or_nothing_device(tmp_path: Path) -> None:
     store = _store()
     wire: list[tuple[int, int, int]] = []  # (function, address, count) of each request
-    with quirky_umodbus(store, maximum={100 + BAD: 100}, all_or_nothing=True, wire=wire) as port:
+    with umodbus_server(store, maximum={100 + BAD: 100}, all_or_nothing=True, wire=wire) as port:
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path), tmp_path)
     assert _statuses(res) == {f"p{i}": "ok" for i in range(N)} | {f"p{BAD}": "failed"}
     assert res.parameters[BAD].error == "exception 03 (illegal data value)"
@@ -237,7 +237,7 @@ def test_umodbus_all_or_nothing_device(tmp_path: Path) -> None:
 def test_umodbus_in_order_device(tmp_path: Path) -> None:
     store = _store()
     wire: list[tuple[int, int, int]] = []  # (function, address, count) of each request
-    with quirky_umodbus(store, maximum={100 + BAD: 100}, wire=wire) as port:
+    with umodbus_server(store, maximum={100 + BAD: 100}, wire=wire) as port:
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path), tmp_path)
     assert _statuses(res) == {f"p{i}": "ok" for i in range(N)} | {f"p{BAD}": "failed"}
     assert [(a, n) for fc, a, n in wire if fc == 16] == [(100, 14), (106, 8)]
@@ -246,7 +246,7 @@ def test_umodbus_in_order_device(tmp_path: Path) -> None:
 def test_umodbus_write_limit_is_learned(tmp_path: Path) -> None:
     store = _store()
     wire: list[tuple[int, int, int]] = []  # (function, address, count) of each request
-    with quirky_umodbus(store, max_write=5, wire=wire) as port:
+    with umodbus_server(store, max_write=5, wire=wire) as port:
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path, bad=False), tmp_path)
         assert res.status == "ok"
         assert [store[100 + i] for i in range(N)] == [10 + i for i in range(N)]
@@ -267,7 +267,7 @@ def test_umodbus_write_limit_is_learned(tmp_path: Path) -> None:
 def test_umodbus_fc06_only_device(tmp_path: Path) -> None:
     store = _store()
     wire: list[tuple[int, int, int]] = []  # (function, address, count) of each request
-    with quirky_umodbus(store, fc06_only=True, wire=wire) as port:
+    with umodbus_server(store, fc06_only=True, wire=wire) as port:
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path, bad=False), tmp_path)
     assert res.status == "ok" and res.learned == {"write_function": 6}
     assert [(fc, a) for fc, a, _ in wire if fc in (6, 16)] == [(16, 100)] + [(6, 100 + i) for i in range(N)]
@@ -315,7 +315,7 @@ def test_pauses_from_the_url_or_the_profile_are_kept(tmp_path: Path, where: str)
 
 def test_plan_time_estimate_includes_the_pauses(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     _, recipe = _pacing_profile(tmp_path, "{pause_after_connect: 1s, pause_between_requests: 250ms}")
-    code, out, err = run_cli(capsys, "plan", recipe)
+    code, out, err = cli(capsys, "plan", recipe)
     assert code == 0, err
     # one write request: 1 s after connecting + 250 ms before it
     assert "(pauses the device needs included: 1250 ms)" in out
@@ -324,7 +324,7 @@ def test_plan_time_estimate_includes_the_pauses(tmp_path: Path, capsys: pytest.C
         "parameters:", 'device: {url: "tcp://127.0.0.1:502?pause_after_connect=0&pause_between_requests=0.1"}\n'
                        "parameters:")
     Path(recipe).write_text(text)
-    code, out, err = run_cli(capsys, "plan", recipe)
+    code, out, err = cli(capsys, "plan", recipe)
     assert code == 0, err
     assert "(pauses the device needs included: 100 ms)" in out
 
@@ -332,10 +332,10 @@ def test_plan_time_estimate_includes_the_pauses(tmp_path: Path, capsys: pytest.C
 def test_bad_pause_is_an_error_at_its_position(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "dev.yaml").write_text(_profile_text(strict=False).replace(
         "parameters:", "limits: {pause_between_requests: soon}\nparameters:"))
-    code, _, err = run_cli(capsys, "validate", str(tmp_path / "dev.yaml"))
+    code, _, err = cli(capsys, "validate", str(tmp_path / "dev.yaml"))
     assert code == 1
     assert f"{tmp_path / 'dev.yaml'}:2:" in err and "pause_between_requests" in err
-    code, _, err = run_cli(capsys, "plan", _recipe(tmp_path), "--device", "tcp://127.0.0.1:502?pause_after_connect=x")
+    code, _, err = cli(capsys, "plan", _recipe(tmp_path), "--device", "tcp://127.0.0.1:502?pause_after_connect=x")
     assert code == 1 and "pause_after_connect" in err and "is not a duration" in err
 
 
@@ -364,7 +364,7 @@ def test_identity_is_read_reported_snapshotted_and_journaled(tmp_path: Path, dev
     recipe = _recipe(tmp_path, bad=False)
     state = tmp_path / ".deployer"
     with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
-        code, out, err = run_cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--json",
+        code, out, err = cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--json",
                                  "--state-dir", str(state))
     assert code == 0, err
     dev = json.loads(out)["devices"][0]
@@ -381,12 +381,12 @@ def test_a_replaced_device_is_noted(tmp_path: Path, device_profile: Profile,
                                     capsys: pytest.CaptureFixture[str]) -> None:
     state = str(tmp_path / ".deployer")
     with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
-        code, out, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False), "--device", sim.url, "--yes",
+        code, out, err = cli(capsys, "apply", _recipe(tmp_path, bad=False), "--device", sim.url, "--yes",
                                  "--state-dir", state)
         assert code == 0, err
         assert "identity: vendor 'ACME', product_code 'AC-7', revision '2.1'" in out
         sim.set_identity({0: "ACME", 1: "AC-9", 2: "3.0"})  # swapped for another model
-        code, out, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False, offset=40), "--device", sim.url,
+        code, out, err = cli(capsys, "apply", _recipe(tmp_path, bad=False, offset=40), "--device", sim.url,
                                  "--yes", "--json", "--state-dir", state)
     assert code == 0, err
     (note,) = [n for n in json.loads(out)["devices"][0]["notices"] if "identity changed" in n]
@@ -402,11 +402,11 @@ def test_identity_object_check(tmp_path: Path, capsys: pytest.CaptureFixture[str
     (tmp_path / "r.yaml").write_text(f"recipe: r\nprofile: dev.yaml\nparameters:\n{body}")
     prof = profile_from(tmp_path, text, "dev.yaml")
     with SimulatorThread(prof) as sim:  # serves the profile's identity objects
-        code, out, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--json",
+        code, out, err = cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--json",
                                  "--state-dir", str(tmp_path / "s"))
         assert code == 0, err
     with SimulatorThread(prof, quirks=Quirks(identity={0: "ACME", 1: "AC-9"})) as sim:
-        code, out, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--json",
+        code, out, err = cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--json",
                                  "--state-dir", str(tmp_path / "s"))
         dev = json.loads(out)["devices"][0]
         assert code == 4 and dev["status"] == "failed"
@@ -414,8 +414,8 @@ def test_identity_object_check(tmp_path: Path, capsys: pytest.CaptureFixture[str
                                 "device answers here; nothing was written")
         assert not [e for e in sim.log if e.function in (6, 16)]
     store = _store()
-    with quirky_umodbus(store) as port:  # no Function 43 at all
-        code, out, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", f"tcp://127.0.0.1:{port}",
+    with umodbus_server(store) as port:  # no Function 43 at all
+        code, out, err = cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", f"tcp://127.0.0.1:{port}",
                                  "--yes", "--json", "--state-dir", str(tmp_path / "s"))
     dev = json.loads(out)["devices"][0]
     assert code == 4 and dev["error"].startswith("identity check failed: the device does not answer Function 43")
@@ -431,7 +431,7 @@ def test_scan_finds_the_units_that_answer_and_writes_an_inventory(
     out_file = tmp_path / "inventory.yaml"
     with SimulatorThread(device_profile, listen=f"{scheme}://127.0.0.1:0", units=(1, 3, 7),
                          quirks=Quirks(identity=ACME)) as sim:
-        code, out, err = run_cli(capsys, "scan", sim.url, "--unit", "1-5", "--unit", "7,8", "--timeout", "0.3",
+        code, out, err = cli(capsys, "scan", sim.url, "--unit", "1-5", "--unit", "7,8", "--timeout", "0.3",
                                  "-o", str(out_file), "--json")
         log = list(sim.log)
     assert code == 0, err
@@ -449,16 +449,16 @@ def test_scan_finds_the_units_that_answer_and_writes_an_inventory(
     assert "asking 7 unit ids" in err and "at most 2.1 s" in err
     text = out_file.read_text()
     assert "unit-3:  # vendor ACME, product_code AC-7, revision 2.1" in text
-    code, _, err = run_cli(capsys, "validate", str(out_file))
+    code, _, err = cli(capsys, "validate", str(out_file))
     assert code == 0, err
 
 
 def test_scan_of_a_silent_bus_exits_3_and_bad_units_are_usage_errors(
         device_profile: Profile, capsys: pytest.CaptureFixture[str]) -> None:
     with SimulatorThread(device_profile, listen="rtu+tcp://127.0.0.1:0", units=(9,)) as sim:
-        code, out, _ = run_cli(capsys, "scan", sim.url, "--unit", "1-2", "--timeout", "0.1")
+        code, out, _ = cli(capsys, "scan", sim.url, "--unit", "1-2", "--timeout", "0.1")
     assert code == 3 and "0 of 2 unit ids answered" in out
-    code, _, err = run_cli(capsys, "scan", "tcp://127.0.0.1:1", "--unit", "0-300")
+    code, _, err = cli(capsys, "scan", "tcp://127.0.0.1:1", "--unit", "0-300")
     assert code == 1 and "unit ids are 1..247" in err
 
 
@@ -489,7 +489,7 @@ def test_probe_finds_word_order_scale_unreadable_register_and_identity(
     guess = tmp_path / "guess.yaml"
     guess.write_text(DRIVE_GUESS)
     with SimulatorThread(truth, quirks=Quirks(identity=ACME)) as sim:
-        code, out, err = run_cli(capsys, "probe", str(guess), "--device", sim.url, "--expect", "gain=2.5",
+        code, out, err = cli(capsys, "probe", str(guess), "--device", sim.url, "--expect", "gain=2.5",
                                  "--expect", "count=70000", "--expect", "speed=50 Hz", "--json")
         writes = [e for e in sim.log if e.function in (5, 6, 15, 16)]
     assert code == 2, err
@@ -512,7 +512,7 @@ def test_probe_finds_word_order_scale_unreadable_register_and_identity(
     fixed.write_text(DRIVE_TRUTH.replace("profile: drive", "profile: drive-fixed").replace(
         "parameters:", "identity:\n  - {object: product_code, equals: AC-7}\nparameters:"))
     with SimulatorThread(truth, quirks=Quirks(identity=ACME)) as sim:
-        code, out, err = run_cli(capsys, "probe", str(fixed), "--device", sim.url, "--expect", "gain=2.5")
+        code, out, err = cli(capsys, "probe", str(fixed), "--device", sim.url, "--expect", "gain=2.5")
     assert code == 0, out + err
     assert "gain reads 2.5 as expected (CDAB)" in out and "the profile fits" in out
 
@@ -521,8 +521,8 @@ def test_probe_against_umodbus_finds_the_word_order(tmp_path: Path, capsys: pyte
     guess = tmp_path / "guess.yaml"
     guess.write_text("profile: meter\nparameters:\n  energy: {register: 100, type: uint32}\n")
     store = {100: 0x1170, 101: 0x0001}  # 70000 with the low word first
-    with quirky_umodbus(store) as port:
-        code, out, err = run_cli(capsys, "probe", str(guess), "--device", f"tcp://127.0.0.1:{port}",
+    with umodbus_server(store) as port:
+        code, out, err = cli(capsys, "probe", str(guess), "--device", f"tcp://127.0.0.1:{port}",
                                  "--expect", "energy=70000")
     assert code == 2, err
     assert "energy: 70000 is held as CDAB (the profile reads ABCD: 292552705)" in out
@@ -541,10 +541,10 @@ def test_fleet_run_notes_the_replaced_device(tmp_path: Path, device_profile: Pro
         inv = tmp_path / "inventory.yaml"
         inv.write_text("devices:\n" + "".join(f"  {n}: {{url: '{s.url}'}}\n" for n, s in zip("abc", (a, b, c),
                                                                                           strict=True)))
-        code, _, err = run_cli(capsys, "apply", recipe, "--inventory", str(inv), "--yes", "--state-dir", state)
+        code, _, err = cli(capsys, "apply", recipe, "--inventory", str(inv), "--yes", "--state-dir", state)
         assert code == 0, err
         b.set_identity({0: "OTHER", 1: "X-1", 2: "9"})  # someone swapped device b
-        code, out, err = run_cli(capsys, "apply", _recipe(tmp_path, bad=False, offset=50), "--inventory", str(inv),
+        code, out, err = cli(capsys, "apply", _recipe(tmp_path, bad=False, offset=50), "--inventory", str(inv),
                                  "--yes", "--json", "--state-dir", state)
     assert code == 0, err
     notes = {d["name"]: [n for n in d.get("notices", []) if "identity changed" in n]
@@ -567,7 +567,7 @@ def test_pauses_are_kept_per_bus_across_the_devices_of_a_gateway(
         url = f"{gw.url}?pause_between_requests=150ms&timeout=2"
         inv.write_text(f"defaults: {{retries: 0}}\ndevices:\n  a: {{url: '{url}', unit: 1}}\n"
                        f"  b: {{url: '{url}', unit: 2}}\n")
-        code, out, err = run_cli(capsys, "apply", recipe, "--inventory", str(inv), "--yes", "--json",
+        code, out, err = cli(capsys, "apply", recipe, "--inventory", str(inv), "--yes", "--json",
                                  "--state-dir", str(tmp_path / "s"), "--parallel", "2")
         log = list(gw.log)
     assert code == 0, err

@@ -25,8 +25,7 @@ from deployer.load.diagnostics import UsageError
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import Faults, Simulator
 from tests.conftest import free_port
-from tests.helpers import Simulators
-from tests.test_cli import cli
+from tests.helpers import Simulators, cli
 
 pytestmark = pytest.mark.timeout(120)
 PROFILE = builtin_profile("example-inverter")

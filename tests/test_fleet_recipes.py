@@ -21,8 +21,7 @@ from deployer.load.diagnostics import InputError
 from deployer.profile import builtin_profile, load_profile
 from deployer.testing.simulator import Simulator
 from tests.conftest import free_port
-from tests.helpers import Simulators
-from tests.test_cli import cli
+from tests.helpers import Simulators, cli
 
 pytestmark = pytest.mark.timeout(180)
 MBPOLL = shutil.which("mbpoll")  # libmodbus's client: an implementation we did not write

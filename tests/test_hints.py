@@ -12,7 +12,7 @@ from deployer.load.diagnostics import InputError
 from deployer.profile import builtin_profile, builtin_profile_ids
 from deployer.testing.simulator import Faults, SimulatorThread
 from tests.conftest import free_port
-from tests.helpers import run_cli as cli
+from tests.helpers import cli
 
 pytestmark = pytest.mark.timeout(60)
 BUILTINS = ", ".join(builtin_profile_ids())  # example-inverter, omron-m1, ... as the message lists them

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 
-from deployer.cli import main
 from deployer.execute.device import apply_device
 from deployer.execute.session import ApplyOptions
 from deployer.planning.model import Target
@@ -18,15 +17,9 @@ from deployer.profile import load_profile
 from deployer.recipe.loader import load_recipe
 from deployer.testing.simulator import SimulatorThread
 from deployer.transport.clients import parse_url
+from tests.helpers import cli
 
 pytestmark = pytest.mark.timeout(60)
-
-
-def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as exc:
-        main(list(args))
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 # a vendor's sheet: its own headers ("Reg No" needs --column), types, R/W, "0=..;1=.." enumerations

@@ -15,7 +15,6 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from benchmarks.child import measured
-from deployer.cli import main
 from deployer.load.diagnostics import InputError
 from deployer.planning.model import Target
 from deployer.planning.planner import make_plan
@@ -23,17 +22,11 @@ from deployer.profile import load_profile
 from deployer.profile.emit import Draft, Origin, check
 from deployer.recipe.loader import load_recipe
 from tests import hostile_imports
+from tests.helpers import cli
 
 pytestmark = pytest.mark.timeout(300)
 ROOT = Path(__file__).resolve().parent.parent
 CORPUS = ROOT / "tests" / "bad" / "import"
-
-
-def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as exc:
-        main(list(args))
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 def _expected() -> list[tuple[str, str, str]]:

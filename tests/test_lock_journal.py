@@ -18,6 +18,7 @@ import pytest
 from deployer.profile import builtin_profile
 from deployer.state import lock
 from deployer.testing.simulator import Faults, SimulatorThread
+from tests.helpers import wait_for
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -39,14 +40,6 @@ def start(*args: str) -> subprocess.Popen[str]:
 def run(*args: str) -> tuple[int, str, str]:
     p = subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=60)
     return p.returncode, p.stdout, p.stderr
-
-
-def wait_for(cond: object, timeout: float = 20) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():  # type: ignore[operator]
-        if time.monotonic() > deadline:
-            pytest.fail("timed out waiting")
-        time.sleep(0.02)
 
 
 def held_locks() -> list[dict[str, object]]:

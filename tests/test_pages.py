@@ -18,8 +18,7 @@ import pytest
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import Faults, Simulator
 from tests.conftest import free_port
-from tests.helpers import Simulators
-from tests.test_cli import cli
+from tests.helpers import Simulators, cli
 
 PROFILE = builtin_profile("example-inverter")
 F08 = PROFILE.parameter("F08").address

@@ -25,7 +25,7 @@ from deployer.recipe.loader import load_recipe
 from deployer.report import DeviceResult
 from deployer.testing.simulator import Simulator, SimulatorThread
 from deployer.transport import clients as tp
-from tests.helpers import count, profile_from, run_cli, run_with, umodbus_server
+from tests.helpers import cli, count, profile_from, run_with, umodbus_server
 
 PROFILE = """\
 profile: plc
@@ -206,7 +206,7 @@ def test_reads_of_read_only_tables(plc: Profile) -> None:
 
 def test_recipe_cannot_set_read_only_tables(tmp_path: Path, plc: Profile, capsys: pytest.CaptureFixture[str]) -> None:
     path = recipe(tmp_path, "  alarm: false\n  temp: 20 degC\n")
-    code, _, err = run_cli(capsys, "validate", path)
+    code, _, err = cli(capsys, "validate", path)
     assert code == 1
     assert f"{path}:4:3: error: alarm is read-only in profile plc" in err
     assert f"{path}:5:3: error: temp is read-only in profile plc" in err
@@ -220,7 +220,7 @@ def test_apply_snapshot_and_exact_rollback(tmp_path: Path, plc: Profile, capsys:
     with SimulatorThread(plc) as sim:
         sim.write("relay9", (0,))
         state = str(tmp_path / ".d")
-        code, out, err = run_cli(capsys, "apply", path, "--device", sim.url, "--yes", "--json", "--state-dir", state)
+        code, out, err = cli(capsys, "apply", path, "--device", sim.url, "--yes", "--json", "--state-dir", state)
         assert code == 0, err
         report = json.loads(out)["devices"][0]
         assert [(r["function"], r["address"], r["count"]) for r in report["requests"]] == [
@@ -242,17 +242,17 @@ def test_apply_snapshot_and_exact_rollback(tmp_path: Path, plc: Profile, capsys:
         text = snap.read_text()
         assert "    relay1: [1]\n    relay2: [0]\n    unit_f: [0]\n    relay9: [0]\n" in text
         assert "  relay1: true\n  relay2: false\n  unit_f: celsius\n  relay9: false\n" in text
-        code, out, err = run_cli(capsys, "rollback", str(snap), "--yes", "--state-dir", state)
+        code, out, err = cli(capsys, "rollback", str(snap), "--yes", "--state-dir", state)
         assert code == 0, err
         assert [sim.read(n) for n in ("speed", "relay1", "relay2", "unit_f", "relay9")] == [
             (5,), (1,), (0,), (0,), (0,)]
         # drift on a coil, then pull: read-only tables are not pulled (a recipe cannot set them)
         sim.write("relay2", (1,))
-        code, out, _ = run_cli(capsys, "diff", path, "--device", sim.url, "--json")
+        code, out, _ = cli(capsys, "diff", path, "--device", sim.url, "--json")
         assert code == 2
         assert {d["name"] for d in json.loads(out)["drift"] if d["device_raw"] is not None} == {
             "speed", "relay1", "unit_f", "relay9"}
-        code, out, _ = run_cli(capsys, "pull", "--profile", str(tmp_path / "plc.yaml"), "--device", sim.url)
+        code, out, _ = cli(capsys, "pull", "--profile", str(tmp_path / "plc.yaml"), "--device", sim.url)
         assert code == 0
         assert out.endswith("parameters:\n  speed: 5\n  relay1: true\n  relay2: true\n  unit_f: celsius\n"
                             "  relay9: false\n")
@@ -262,21 +262,21 @@ def test_saved_plan_with_coils_runs_unchanged(tmp_path: Path, plc: Profile, caps
     path = recipe(tmp_path, "  relay1: false\n  relay2: true\n")
     with SimulatorThread(plc) as sim:
         plan_file = str(tmp_path / "plan.json")
-        code, _, err = run_cli(capsys, "plan", path, "--device", sim.url, "--out", plan_file)
+        code, _, err = cli(capsys, "plan", path, "--device", sim.url, "--out", plan_file)
         assert code == 0, err
         data = json.loads(Path(plan_file).read_text())
         assert data["writes"] == [{"function": 15, "address": 19, "count": 2, "registers": [0, 1],
                                    "parameters": ["relay1", "relay2"], "stage": 0}]
         assert data["reads"] == [{"function": 1, "address": 19, "count": 2}]
         assert data["parameters"][0]["register_type"] == "coil"
-        code, _, err = run_cli(capsys, "apply", plan_file, "--device", sim.url, "--yes",
+        code, _, err = cli(capsys, "apply", plan_file, "--device", sim.url, "--yes",
                                "--state-dir", str(tmp_path / ".d"))
         assert code == 0, err
         assert (sim.read("relay1"), sim.read("relay2")) == ((0,), (1,))
         # a hand-edited plan cannot write a coil with a register function
         data["writes"][0]["function"] = 16
         Path(plan_file).write_text(json.dumps(data))
-        code, _, err = run_cli(capsys, "validate", plan_file)
+        code, _, err = cli(capsys, "validate", plan_file)
         assert code == 1 and "function 16 writes holdings, but relay1 is a coil" in err
 
 

@@ -13,8 +13,7 @@ import os
 import signal
 import subprocess
 import sys
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +21,7 @@ import pytest
 
 from deployer.profile import load_profile
 from deployer.testing.simulator import Faults, Simulator, SimulatorThread
-from tests.helpers import Simulators
+from tests.helpers import Simulators, wait_for
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -62,14 +61,6 @@ def deployer(*args: str, cwd: Path) -> tuple[int, str, str]:
     p = subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=120,
                        cwd=cwd, env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)})
     return p.returncode, p.stdout, p.stderr
-
-
-def wait_for(cond: Callable[[], bool], what: str, timeout: float = 120) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.01)
 
 
 def audit(state: Path) -> list[dict[str, Any]]:

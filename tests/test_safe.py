@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from decimal import Decimal
 from pathlib import Path
 
@@ -22,8 +21,7 @@ from deployer.load.durations import format_duration, parse_duration
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import Faults, LogEntry, Simulator, SimulatorThread, parse_fault_rule
 from deployer.window.confirm import awaiting, confirm_run
-from tests.helpers import Simulators, profile_from
-from tests.test_cli import cli
+from tests.helpers import Simulators, cli, profile_from, wait_for
 
 pytestmark = pytest.mark.timeout(180)
 PROFILE = builtin_profile("example-inverter")
@@ -55,14 +53,6 @@ def writes_to(log: list[LogEntry], address: int) -> list[int]:
 
 def reads_of(log: list[LogEntry], address: int) -> list[int]:
     return [i for i, e in enumerate(log) if e.function in (3, 4) and e.address <= address < e.address + e.count]
-
-
-def wait_for(what: Callable[[], bool], timeout: float = 60.0) -> None:
-    """Poll for a condition (an upper bound for a loaded machine, not a timing assertion)."""
-    end = time.monotonic() + timeout
-    while not what():
-        assert time.monotonic() < end, "condition not reached"
-        time.sleep(0.05)
 
 
 def deployer(*args: str) -> subprocess.Popen[str]:

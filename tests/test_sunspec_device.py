@@ -9,23 +9,16 @@ from typing import Any
 
 import pytest
 
-from deployer.cli import main
 from deployer.planning.model import Target
 from deployer.planning.planner import make_plan
 from deployer.profile import Profile, load_profile
 from deployer.profile.emit import Draft, Origin, check
 from deployer.recipe.loader import load_recipe
 from deployer.testing.simulator import SimulatorThread
+from tests.helpers import cli
 
 pytestmark = pytest.mark.timeout(120)
 sunspec2 = pytest.importorskip("sunspec2", reason="pysunspec2 is the optional 'sunspec' extra")
-
-
-def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as exc:
-        main(list(args))
-    out, err = capsys.readouterr()
-    return int(exc.value.code or 0), out, err
 
 
 def sunspec_device(models: list[tuple[str, dict[str, int], dict[str, int]]], base: int = 40000) -> Profile:

@@ -12,7 +12,7 @@ from deployer.planning.model import Target
 from deployer.planning.planner import make_plan
 from deployer.profile import load_profile
 from deployer.recipe.loader import load_recipe
-from tests.helpers import run_cli
+from tests.helpers import cli
 
 # A thermostat as a template author would describe it: every key the importer reads, comments included.
 TEMPLATE = """\
@@ -83,7 +83,7 @@ def write(tmp: Path, text: str = TEMPLATE, name: str = "th1.json") -> str:
 def imported(tmp: Path, capsys: pytest.CaptureFixture[str], *extra: str) -> tuple[str, str]:
     src = write(tmp)
     out = str(tmp / "th1.yaml")
-    code, _, err = run_cli(capsys, "profiles", "import", "wb-template", src, "-o", out, *extra)
+    code, _, err = cli(capsys, "profiles", "import", "wb-template", src, "-o", out, *extra)
     assert code == 0, err
     return out, err
 
@@ -166,7 +166,7 @@ def test_round_trip_template_profile_recipe_plan(tmp_path: Path, capsys: pytest.
         "recipe: th\nprofile: th1.yaml\nparameters:\n  setpoint: 22.5 degC\n  hysteresis: 3\n  mode: heat, then cool\n"
         "  display_unit: °F\n  buzzer: false\n  led_on: true\n  led_level: 5\n  brightness: 200\n  trim: -3\n"
         "  total: 305419896\n  gain: 1.5\n  password: 4321\n")
-    code, _, err = run_cli(capsys, "validate", out, str(tmp_path / "r.yaml"))
+    code, _, err = cli(capsys, "validate", out, str(tmp_path / "r.yaml"))
     assert code == 0, err
     plan = make_plan(load_recipe(str(tmp_path / "r.yaml")), Target(None, 1, out))
     assert [(w.function, w.address, w.registers) for w in plan.writes] == [
@@ -175,7 +175,7 @@ def test_round_trip_template_profile_recipe_plan(tmp_path: Path, capsys: pytest.
         (16, 110, (0x3FC0, 0x0000)),  # float 1.5
         (16, 140, (4321,)),
         (15, 5, (1, 0))]  # display_unit °F, buzzer off: one FC15
-    code, out_text, err = run_cli(capsys, "plan", str(tmp_path / "r.yaml"), "--json")
+    code, out_text, err = cli(capsys, "plan", str(tmp_path / "r.yaml"), "--json")
     assert code == 0, err
     assert json.loads(out_text)["writes"][3] == {"function": 15, "address": 5, "count": 2, "registers": [1, 0],
                                                  "parameters": ["display_unit", "buzzer"], "stage": 0}
@@ -187,7 +187,7 @@ def test_object_form_and_no_channels(tmp_path: Path, capsys: pytest.CaptureFixtu
                        "dir": {"title": "Direction", "address": "2:0:1", "enum": [0, 1],
                                "enum_titles": ["forward", "reverse"]}},
         "channels": [{"name": "Speed now", "reg_type": "input", "address": 7}]}}""", "obj.json")
-    code, out, err = run_cli(capsys, "profiles", "import", "wb-template", src, "--no-channels", "--id", "my-obj")
+    code, out, err = cli(capsys, "profiles", "import", "wb-template", src, "--no-channels", "--id", "my-obj")
     assert code == 0, err
     assert out.splitlines()[2:] == [
         "profile: \"my-obj\"",
@@ -209,7 +209,7 @@ def test_object_form_and_no_channels(tmp_path: Path, capsys: pytest.CaptureFixtu
 ])
 def test_bad_templates(tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, message: str) -> None:
     src = write(tmp_path, text, "bad.json")
-    code, _, err = run_cli(capsys, "profiles", "import", "wb-template", src)
+    code, _, err = cli(capsys, "profiles", "import", "wb-template", src)
     assert code == 1 and f"{src}:{message}" in err, err
     assert "Traceback" not in err
 
@@ -218,17 +218,17 @@ def test_profile_problems_point_into_the_template(tmp_path: Path, capsys: pytest
     src = write(tmp_path, '{"device_type": "x", "device": {"parameters": [\n'
                           '  {"id": "a", "address": 1, "format": "u16"},\n'
                           '  {"id": "b", "address": 1, "format": "u32"}]}}', "ov.json")
-    code, out, err = run_cli(capsys, "profiles", "import", "wb-template", src)
+    code, out, err = cli(capsys, "profiles", "import", "wb-template", src)
     assert code == 0, err  # an overlap is handled (the second left out), not refused
     assert f"{src}:3:3: b overlaps a (line 2) in register 1: left out" in err
     assert "  a: {register: 0x0001" in out and "  b:" not in out
 
 
 def test_hostile_input_is_bounded(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code, _, err = run_cli(capsys, "profiles", "import", "wb-template", "/dev/zero")
+    code, _, err = cli(capsys, "profiles", "import", "wb-template", "/dev/zero")
     assert code == 1 and "not a regular file" in err
     many = ",".join(f'{{"name": "c{i}", "reg_type": "input", "address": {i % 60000}}}' for i in range(20001))
     src = write(tmp_path, f'{{"device_type": "x", "device": {{"channels": [{many}]}}}}', "many.json")
-    code, _, err = run_cli(capsys, "profiles", "import", "wb-template", src)
+    code, _, err = cli(capsys, "profiles", "import", "wb-template", src)
     assert code == 1 and "20001 parameters and channels; at most 20000" in err
 
