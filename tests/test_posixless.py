@@ -102,7 +102,7 @@ def test_the_harness_takes_away_what_windows_lacks() -> None:
             handlers = "work"
         except NotImplementedError:
             handlers = "NotImplementedError"
-        import deployer.api, deployer.cli
+        import deployer.api, deployer.cli, deployer.agent.service, deployer.transport.clients
         from deployer.state import oslock
         from deployer.portable import user_name
         print(json.dumps({"gone": gone, "attrs": attrs, "handlers": handlers, "backend": oslock.backend().name,

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import fcntl
 import os
 import time
 from collections import deque
@@ -149,10 +148,15 @@ class Agent:
         """Read the files (InputError: the agent does not start) and open the state folder; nothing is sent."""
         self.files = ds.load_files(self.settings.inventory)
         os.makedirs(self.folder, exist_ok=True)
-        fd = os.open(os.path.join(self.folder, "agent.lock"), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        from ..portable import O_BINARY, O_CLOEXEC
+        from ..state import oslock  # flock, or LockFileEx on Windows
+
+        fd = os.open(os.path.join(self.folder, "agent.lock"), os.O_RDWR | os.O_CREAT | O_CLOEXEC | O_BINARY, 0o644)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            got = oslock.backend().try_lock(fd)
         except OSError:
+            got = False
+        if not got:
             os.close(fd)
             raise StateError(f"another agent runs on the state folder {self.state_dir} "
                              f"({os.path.join(self.folder, 'agent.lock')} is locked)") from None

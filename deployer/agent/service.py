@@ -54,15 +54,15 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
     sock = runner.addresses[0] if runner.addresses else (host, port)  # port 0: the one the system chose
     shown = f"[{sock[0]}]" if ":" in str(sock[0]) else str(sock[0])
     url = f"http://{shown}:{sock[1]}"
+    from ..portable import interrupt_signals, on_signals
+
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
-    installed = []
-    if signals:
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, stop.set)
-            installed.append(sig)
-        loop.add_signal_handler(signal.SIGHUP, lambda: _reload(agent))
-        installed.append(signal.SIGHUP)
+    undo = []
+    if signals:  # the event loop's handlers, or signal.signal on Windows (no SIGHUP there: restart to reload)
+        undo.append(on_signals(loop, interrupt_signals(), lambda _sig: stop.set()))
+        if hasattr(signal, "SIGHUP"):
+            undo.append(on_signals(loop, (signal.SIGHUP,), lambda _sig: _reload(agent)))
     try:
         await agent.start(url)
         print(f"listening on {url}", file=sys.stderr, flush=True)
@@ -70,8 +70,8 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
             on_ready(url)
         await stop.wait()
     finally:
-        for sig in installed:
-            loop.remove_signal_handler(sig)
+        for u in undo:
+            u()
         await agent.stop()
         await runner.cleanup()
     return 0
