@@ -17,7 +17,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import pytest
@@ -26,6 +25,7 @@ from deployer.profile import builtin_profile
 from deployer.state import lock
 from deployer.testing.simulator import SimulatorThread
 from deployer.transport import urls
+from tests.helpers import wait_for
 
 pytestmark = [pytest.mark.timeout(180),
               pytest.mark.skipif(not sys.platform.startswith("linux"),
@@ -59,14 +59,6 @@ def start(cwd: Path, *args: str) -> subprocess.Popen[str]:
 def python(code: str, *args: str, posixless: bool = True, cwd: Path | None = None) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code), *args], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env(posixless), cwd=cwd)
-
-
-def wait_for(cond: object, what: str, timeout: float = 30) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():  # type: ignore[operator]
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.02)
 
 
 def recipe(tmp: Path, name: str, body: str) -> str:
