@@ -128,7 +128,7 @@ def run(quick: bool = False) -> dict[str, Any]:
                 "cpu_ms_per_device": round(m["cpu"] * 1000 / devices, 1),
                 "cpu_ms_per_device_after_startup": round((m["cpu"] - startup[1]) * 1000 / devices, 1),
                 "peak_rss_mb": round(m["rss"], 1), "requests_per_device": round(m["requests"] / devices, 1)}
-            if p > 8:  # what the devices alone allow at this --parallel (see README: the targets' floor)
+            if p > 8:  # a bare client's time at this --parallel: what the devices alone allow (the floor)
                 results[f"parallel_{p}"]["bare_client_seconds"] = round(_bare_client(urls[:devices], p), 2)
         if scale:
             n, p = scale

@@ -13,7 +13,7 @@ shell, a service and macOS users, so they would not see each other's locks. The 
 a lock when its process dies (even ``kill -9``), so a lock can never stay stuck; the file keeps who
 held it (PID, host, start, command) for the message a second run prints, and a record left by a
 process that is gone is reported as a stale lock taken over.
-Across machines the orchestrator must serialize (see README, Ansible).
+Across machines the orchestrator must serialize (docs/ansible.md).
 """
 
 from __future__ import annotations
