@@ -23,10 +23,12 @@ from .base import (
     command_line,
     console,
     device_options,
+    echo,
     fleet_option,
     float_range,
     limit_option,
     parallel_option,
+    safe,
 )
 from .plan import print_plan
 from .tables import show
@@ -47,12 +49,13 @@ _STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "misma
 
 def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> None:
     """Per device, every parameter; ``only_not_ok`` (fleets): only the devices that need a look, by parameter."""
+    from .text import styled
+
     for d in report.devices:
         if only_not_ok and d.status in ("ok", "skipped"):
             continue
-        style = _STATUS_STYLE.get(d.status, "")
-        out.print(f"[bold]{d.name}[/bold] {d.url} unit {d.unit} ({d.profile}): [{style}]{d.status}[/{style}]"
-                  + (f" - {d.error}" if d.error else ""))
+        out.print(styled((d.name, "bold"), f" {d.url} unit {d.unit} ({d.profile}): ",
+                         (d.status, _STATUS_STYLE.get(d.status, "")), f" - {d.error}" if d.error else ""))
         rows = sorted(d.parameters, key=lambda p: (_STATUS_ORDER.get(p.status, 9), p.address))
         if only_not_ok:
             rows = [p for p in rows if p.status not in ("ok", "unchanged")]
@@ -64,16 +67,16 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
             out.print("broadcast sent: every request went out; no device answers a broadcast, so nothing was "
                       "read back or verified")
         if d.identity:
-            out.print("identity: " + ", ".join(f"{k} {v!r}" for k, v in d.identity.items()))
+            out.print("identity: " + ", ".join(f"{safe(k)} {safe(repr(v))}" for k, v in d.identity.items()))
         for note in d.notices:
-            out.print(f"note: {note}")
+            out.print(f"note: {safe(note)}")
         if d.status == "rolled-back" and d.commit == "not sent":
             out.print("commit: not sent (the profile's commit steps)")
         elif d.commit in ("held", "not sent"):
-            out.print(f"commit: {d.commit} (the profile's commit steps): the values written are not stored to "
+            out.print(f"commit: {safe(d.commit)} (the profile's commit steps): the values written are not stored to "
                       "non-volatile memory; on devices that keep Modbus writes in RAM they revert at a power cycle")
         if d.snapshot and d.status != "rolled-back":
-            out.print(f"snapshot: {d.snapshot}  (undo with: deployer rollback {d.snapshot})")
+            out.print(f"snapshot: {safe(d.snapshot)}  (undo with: deployer rollback {safe(d.snapshot)})")
         out.print(f"{d.write_requests} write and {d.read_requests} read requests")
     s = report.summary()
     if len(report.devices) > 1 and not only_not_ok:
@@ -124,7 +127,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         jobs, notices = report_jobs(from_reports, limit=limit, force=force, timeout=timeout, retries=retries,
                                     accept_edited=accept_edited_snapshot, even_if_changed=even_if_changed)
         for n in notices:
-            click.echo(n, err=True)
+            echo(safe(n), err=True)
         label: str | None = from_reports[0] if len(from_reports) == 1 else ", ".join(from_reports)
     elif source is None:  # each device's recipe from the inventory
         if not inventory:
@@ -142,7 +145,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         job, moved, notices = snapshot_job(source, device=device, unit=unit, timeout=timeout, retries=retries,
                                            force=force, accept_edited=accept_edited_snapshot)
         for n in notices:
-            click.echo(n, err=True)
+            echo(safe(n), err=True)
         jobs.append(job)
     else:
         label = source
@@ -177,10 +180,10 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         if yes or not sys.stdin.isatty():
             raise UsageError(f"{moved}: restoring a snapshot to another device needs --to-other-device "
                              "(--yes alone is not enough); nothing was sent")
-        if not click.confirm(f"{moved}. Restore it to that other device?", default=False, err=True):
+        if not click.confirm(f"{safe(moved)}. Restore it to that other device?", default=False, err=True):
             raise UsageError("nothing was written (declined)")
     elif moved is not None:
-        err.print(f"warning: {moved}; restoring it there (--to-other-device)")
+        err.print(f"warning: {safe(moved)}; restoring it there (--to-other-device)")
     if not yes:
         if not sys.stdin.isatty():
             raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
@@ -189,7 +192,9 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
 
         async def confirm(p: Plan, res: DeviceResult) -> bool:
             async with ask_lock:  # one question at a time, even for fleets
-                err.print(f"[bold]{res.name}[/bold] {res.url} unit {res.unit}:")
+                from .text import styled
+
+                err.print(styled((res.name, "bold"), f" {res.url} unit {res.unit}:"))
                 print_plan(p, profiles[res.name], changes_only=True, out=err)
                 return await asyncio.to_thread(click.confirm, "Write these values?", default=False, err=True)
 
@@ -203,11 +208,11 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                            lock_timeout=lock_timeout, soak=soak, health_interval=health_interval,
                            confirm_within=confirm_within,
                            command=command_line(command))
-    safe = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
+    hooks = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
                        interval=health_interval, staged=bool(batch), fleet=fleet_run)
     kw: dict[str, Any] = dict(command=command, label=label, argv=_ARGV, via="cli", options=options, parallel=parallel,
                               batch=batch, max_failures=max_failures, report_path=report_path, signals=True,
-                              refuse_broadcast=True, **safe)
+                              refuse_broadcast=True, **hooks)
     interrupted = None
     try:
         if fleet_run:
@@ -222,7 +227,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
         from .base import write_page
 
         write_page(run_page(report), html_path)
-        err.print(f"page: {html_path}")
+        err.print(f"page: {safe(html_path)}")
     _print_outcome(report, fleet_run=fleet_run, as_json=as_json, report_path=report_path)
     if interrupted is not None:
         _said_interrupted(report, report_path)
@@ -256,9 +261,9 @@ def _print_outcome(report: Report, *, fleet_run: bool, as_json: bool, report_pat
         if fleet_run:
             from ..report import report_text
 
-            click.echo(report_text(report), nl=False)
+            echo(report_text(report), nl=False)
         else:
-            click.echo(json.dumps(report.to_json(), indent=2))
+            echo(json.dumps(report.to_json(), indent=2))
     elif fleet_run:
         from .progress import fleet_summary
 
@@ -271,16 +276,16 @@ def _print_outcome(report: Report, *, fleet_run: bool, as_json: bool, report_pat
 def _said_interrupted(report: Report, report_path: str | None) -> None:
     """After Ctrl-C or SIGTERM: what may have been written, and how to undo it (plain lines, never wrapped)."""
     written = [d for d in report.devices if d.status == "interrupted" and d.snapshot]
-    click.echo(f"interrupted ({report.interrupted}): " + (
-        f"{_n(len(written), 'device')} may hold some new values ({', '.join(d.name for d in written)})"
-        if written else "nothing was written") + f"; the journal {report.state_dir}/audit.jsonl has it as run "
-        f"{report.run_id}", err=True)
+    echo(f"interrupted ({report.interrupted}): " + (
+        f"{_n(len(written), 'device')} may hold some new values ({', '.join(safe(d.name) for d in written)})"
+        if written else "nothing was written") + f"; the journal {safe(report.state_dir)}/audit.jsonl has it as "
+        f"run {report.run_id}", err=True)
     if len(written) == 1:
-        click.echo(f"undo with: deployer rollback {written[0].snapshot}", err=True)
+        echo(f"undo with: deployer rollback {safe(written[0].snapshot)}", err=True)
     elif written and report_path:
-        click.echo(f"undo with: deployer rollback --from-report {report_path}", err=True)
+        echo(f"undo with: deployer rollback --from-report {safe(report_path)}", err=True)
     elif written:
-        click.echo("undo with: deployer rollback SNAPSHOT, for each snapshot above", err=True)
+        echo("undo with: deployer rollback SNAPSHOT, for each snapshot above", err=True)
 
 
 def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool,
@@ -305,13 +310,16 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
 
         left = max(0.0, deadline - time.time())
         left = round(left) if left >= 1 else round(left, 3)
-        err.print(f"[bold]waiting for confirmation[/bold] until {time.strftime('%H:%M:%S UTC', time.gmtime(deadline))} "
-                  f"({format_duration(left)} left): confirm from another shell with\n"
-                  f"    deployer confirm {run} --state-dir {state_dir}\n"
+        from .text import styled
+
+        err.print(styled(("waiting for confirmation", "bold"),
+                         f" until {time.strftime('%H:%M:%S UTC', time.gmtime(deadline))} ({format_duration(left)} "
+                         "left): confirm from another shell with"))
+        err.print(f"    deployer confirm {run} --state-dir {safe(state_dir)}\n"
                   "without it every device written is rolled back and the commit is never sent")
 
     def soaking(number: int, names: list[str]) -> None:
-        which = names[0] if len(names) == 1 else _n(len(names), "device")
+        which = safe(names[0]) if len(names) == 1 else _n(len(names), "device")
         err.print(f"{f'batch {number}: ' if number > 1 or staged else ''}watching the health of {which} for "
                   f"{format_duration(soak or 0)} (every {format_duration(interval)}); a failed check rolls that device "
                   "back", soft_wrap=True)
@@ -320,11 +328,11 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
 
     def changed(r: DeviceResult) -> None:  # fleets: a progress line for a device its soak rolled back
         if r.status != "ok" and r.name not in told:
-            from rich.markup import escape
+            from .text import styled
 
             told.add(r.name)
-            err.print(f"{escape(r.name)}: [bold yellow]{r.status}[/bold yellow]"
-                      + (f" - {escape(r.error)}" if r.error else ""), soft_wrap=True, highlight=False)
+            err.print(styled(r.name, ": ", (r.status, "bold yellow"), f" - {r.error}" if r.error else ""),
+                      soft_wrap=True)
 
     return {"rollback_on_failure": rollback_on_failure, "between_batches": between, "on_confirm_wait": waiting,
             "on_soak": soaking, **({"on_changed": changed} if fleet else {})}
@@ -430,9 +438,9 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
     from_reports: tuple[str, ...] = kw.pop("from_reports")
     if snapshot is None and not from_reports and kw["report_path"] and os.path.isfile(kw["report_path"]):
         # the old reading form: rollback --report RUN.json [--save-report FILE]
-        click.echo(f"warning: rollback --report {kw['report_path']} reads an earlier run's report: say "
-                   f"--from-report {kw['report_path']} (--report FILE writes this rollback's report, as on apply)",
-                   err=True)
+        echo(f"warning: rollback --report {safe(kw['report_path'])} reads an earlier run's report: say "
+             f"--from-report {safe(kw['report_path'])} (--report FILE writes this rollback's report, as on apply)",
+             err=True)
         from_reports, kw["report_path"] = (kw["report_path"],), save
     elif save:
         raise UsageError("--save-report belongs to the old form rollback --report RUN.json; use --report FILE")
@@ -460,16 +468,16 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
         try:
             r = journal.resolve(state_dir, resolve)
         except KeyError:
-            raise UsageError(f"no run {resolve} needs a look in {journal.path_of(state_dir)} "
+            raise UsageError(f"no run {safe(resolve)} needs a look in {journal.path_of(state_dir)} "
                              "(deployer status lists them)") from None
-        click.echo(f"resolved run {r.run} ({r.command} {r.recipe or ''} by {r.user} at {r.time}); "
-                   f"recorded in {journal.path_of(state_dir)}")
+        echo(f"resolved run {safe(r.run)} ({_what_ran(r)} by {safe(r.user)} at {safe(r.time)}); "
+             f"recorded in {safe(journal.path_of(state_dir))}")
         return EXIT_OK
     runs, torn = journal.unfinished(state_dir)
     waits = {a.run: a for a in awaiting(state_dir)}
     soaks = soaking(state_dir)
     if as_json:
-        click.echo(json.dumps({"unfinished": [
+        echo(json.dumps({"unfinished": [
             {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
              "via": r.via, "argv": r.argv, "recipe": r.recipe, "devices": r.devices, "interrupted": r.interrupted,
              "finished": r.finished, "ended": r.ended,
@@ -479,60 +487,79 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
              } for r in runs]}, indent=2))
         return EXIT_OK
     if not runs:
-        click.echo(f"no unfinished runs in {journal.path_of(state_dir)}")
+        echo(f"no unfinished runs in {safe(journal.path_of(state_dir))}")
     for r in runs:
-        state = "still running" if r.running else (f"interrupted ({r.ended})" if r.ended else "did not finish")
-        via = {"api": " (through the Python API)", "ansible": " (through Ansible)"}.get(r.via, "")
-        click.echo(f"{r.command}{via} {r.recipe or ''} by {r.user} at {r.time} (run {r.run}, PID {r.pid}): "
-                   f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished")
+        state = "still running" if r.running else (f"interrupted ({safe(r.ended)})" if r.ended else "did not finish")
+        echo(f"{_what_ran(r)} by {safe(r.user)} at {safe(r.time)} (run {safe(r.run)}, PID {safe(r.pid)}): "
+             f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished")
+        dirs = "" if state_dir == ".deployer" else f" --state-dir {safe(state_dir)}"
         a = waits.get(r.run)
         if a is not None and a.alive:
-            click.echo(f"  awaits confirmation until {a.deadline}: deployer confirm {r.run} --state-dir {state_dir}")
+            echo(f"  awaits confirmation until {safe(a.deadline)}: deployer confirm {safe(r.run)} --state-dir "
+                 f"{safe(state_dir)}")
         elif a is not None:
-            click.echo(f"  awaited confirmation (until {a.deadline}) when its process died: its devices hold values "
+            echo(f"  awaited confirmation (until {safe(a.deadline)}) when its process died: its devices hold values "
                        "that were never committed (a power cycle also reverts them on devices whose commit stores "
                        "to non-volatile memory)")
-            click.echo(f"    restore them with: deployer rollback --from-report {a.report} --state-dir {state_dir} "
-                       "--yes")
+            echo(f"    restore them with: deployer rollback --from-report {safe(a.report)} --state-dir "
+                 f"{safe(state_dir)} --yes")
         if r.run in soaks and not r.running:
-            click.echo("  died while its change soaked: its devices hold values whose health was not proven and "
+            echo("  died while its change soaked: its devices hold values whose health was not proven and "
                        "that were never committed (a power cycle also reverts them on devices whose commit stores "
                        "to non-volatile memory)")
             if soaks[r.run]:
-                click.echo(f"    restore them with: deployer rollback --from-report {soaks[r.run]} "
-                           f"--state-dir {state_dir} --yes")
+                echo(f"    restore them with: deployer rollback --from-report {safe(soaks[r.run])} "
+                     f"--state-dir {safe(state_dir)} --yes")
         for d in r.interrupted:
-            where = f"{d.get('url')} unit {d.get('unit')}"
-            click.echo(f"  interrupted while writing: {d.get('name')} {where}; snapshot {d.get('snapshot')}")
+            where = f"{safe(d.get('url'))} unit {safe(d.get('unit'))}"
+            echo(f"  interrupted while writing: {safe(d.get('name'))} {where}; snapshot {safe(d.get('snapshot'))}")
             if r.command == "rollback" and d.get("restoring"):  # its snapshot holds the values being undone
-                click.echo(f"    the rollback did not finish: re-run it with: deployer rollback {d['restoring']}"
-                           + ("" if d.get("restoring") == r.recipe else f" --device {d.get('url')}"))
+                echo(f"    the rollback did not finish: re-run it with: deployer rollback {safe(d['restoring'])}"
+                     + ("" if d.get("restoring") == r.recipe else f" --device {safe(d.get('url'))}") + dirs)
             else:
-                click.echo(f"    check with: {_diff_command(r, d)}; undo with: deployer rollback {d.get('snapshot')}")
+                check = _diff_command(r, d)
+                undo = f"undo with: deployer rollback {safe(d.get('snapshot'))}{dirs}"
+                echo(f"    check with: {check}; {undo}" if check else f"    {undo}")
         done = {(d.get("name"), d.get("url"), d.get("unit")) for d in (*r.finished, *r.interrupted)}
         never = [d for d in r.devices if (d.get("name"), d.get("url"), d.get("unit")) not in done]
         if never and not r.running and not r.ended:
-            click.echo(f"  not written (never started or nothing to write): "
-                       f"{', '.join(str(d.get('name')) for d in never)}")
+            echo(f"  not written (never started or nothing to write): "
+                 f"{', '.join(safe(d.get('name')) for d in never)}")
         if not r.running:
-            click.echo(f"  after a look: deployer status --resolve {r.run}" + (
-                f" --state-dir {state_dir}" if state_dir != ".deployer" else ""))
+            echo(f"  after a look: deployer status --resolve {safe(r.run)}{dirs}")
     if torn:
-        click.echo(f"({_n(torn, 'line')} of the log could not be read: cut off by the crash)")
+        echo(f"({_n(torn, 'line')} of the log could not be read: cut off by the crash)")
     return EXIT_OK
 
 
-def _diff_command(r: Any, d: dict[str, Any]) -> str:
+def _inventory_of(r: Any) -> str | None:
+    argv = [str(a) for a in r.argv]
+    return argv[argv.index("--inventory") + 1] if "--inventory" in argv[:-1] else None
+
+
+def _what_ran(r: Any) -> str:
+    """``apply line.yaml``, ``apply --inventory site.yaml`` (each device's recipe from its groups), or the
+    command alone, with who started it when that was not the command line."""
+    via = {"api": " (through the Python API)", "ansible": " (through Ansible)"}.get(r.via, "")
+    inventory = _inventory_of(r)
+    what = " ".join(safe(w) for w in (r.recipe, None if inventory is None else f"--inventory {inventory}") if w)
+    return f"{safe(r.command)}{via}" + (f" {what}" if what else "")
+
+
+def _diff_command(r: Any, d: dict[str, Any]) -> str | None:
     """The diff that shows what a device holds against what the run applied: its recipe, and for a
-    fleet its inventory (per-device profiles and values), as the run's command line named them."""
+    fleet its inventory (per-device profiles and values), as the run's command line named them; else
+    against the snapshot taken before the write (what changed since). None: nothing to compare with."""
     recipe = r.recipe if r.recipe and os.path.isfile(r.recipe) and not r.recipe.endswith(".json") else None
-    argv = list(r.argv)
-    inventory = argv[argv.index("--inventory") + 1] if "--inventory" in argv[:-1] else None
-    if recipe and inventory:
-        return f"deployer diff {recipe} --inventory {inventory} --limit {d.get('name')}"
+    inventory = _inventory_of(r)
+    name, url, unit = safe(d.get("name")), safe(d.get("url")), safe(d.get("unit"))
+    if inventory:  # without a recipe, each device's own from the inventory
+        return f"deployer diff {safe(recipe) + ' ' if recipe else ''}--inventory {safe(inventory)} --limit {name}"
     if recipe:
-        return f"deployer diff {recipe} --device {d.get('url')} --unit {d.get('unit')}"
-    return f"deployer pull --profile PROFILE --device {d.get('url')} --unit {d.get('unit')}"
+        return f"deployer diff {safe(recipe)} --device {url} --unit {unit}"
+    if d.get("snapshot"):
+        return f"deployer diff {safe(d.get('snapshot'))} --device {url} --unit {unit} (what changed since the snapshot)"
+    return None
 
 
 @click.command()
@@ -547,5 +574,5 @@ def confirm(run: str | None, state_dir: str) -> int:
     from ..window.confirm import confirm_run
 
     target = confirm_run(state_dir, run)
-    click.echo(f"confirmed run {target.run}: it sends the commit now (deployer status shows the outcome)")
+    echo(f"confirmed run {safe(target.run)}: it sends the commit now (deployer status shows the outcome)")
     return EXIT_OK

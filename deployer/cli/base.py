@@ -11,6 +11,7 @@ import click
 
 from ..errors import EXIT_INVALID, DeployerError, InputError, UsageError
 from ..limits import LIMITS, Bound
+from ..load.messages import printable
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -78,20 +79,33 @@ def cli() -> None:
     """Deploy parameter sets (recipes) to Modbus devices: plan, apply, verify, report."""
 
 
+def safe(value: object) -> str:
+    """User text (a name, label, value, file name) for a line on the terminal: control characters,
+    escape sequences, new lines and bidi overrides shown escaped (``load.messages.printable``)."""
+    return printable(str(value))
+
+
+def echo(message: str = "", *, err: bool = False, nl: bool = True) -> None:
+    """``click.echo`` for lines the program made: whatever they quote cannot act on the terminal
+    (their own line breaks stay; ``safe`` the user text in them so a name cannot start a line)."""
+    click.echo(printable(message, newlines=True), err=err, nl=nl)
+
+
 def report_input_error(err: InputError, outcome: str = "nothing was sent to any device") -> None:
     for d in err.diagnostics:
-        click.echo(str(d), err=True)
+        echo(safe(d), err=True)
     n = len(err.diagnostics)
-    click.echo(f"{n} error{'s' if n != 1 else ''}; {outcome}", err=True)
+    echo(f"{n} error{'s' if n != 1 else ''}; {outcome}", err=True)
 
 
 def console(*, stderr: bool = False) -> Console:
-    """stdout (or stderr) console; wide when not a terminal so piped lines are not squeezed."""
-    from rich.console import Console  # only commands that print pay for importing rich
+    """stdout (or stderr) console; wide when not a terminal so piped lines are not squeezed. It never
+    reads markup and escapes control characters (``text.SafeConsole``): style with ``text.styled``."""
+    from .text import SafeConsole  # only commands that print pay for importing rich
 
     if stderr:
-        return Console(stderr=True, highlight=False)
-    return Console(width=None if sys.stdout.isatty() else 200, highlight=False)
+        return SafeConsole(stderr=True)
+    return SafeConsole(width=None if sys.stdout.isatty() else 200)
 
 
 def describe(url: DeviceURL) -> str:
@@ -124,8 +138,10 @@ def _output(text: str, path: str | None, summary: str, *, replace: bool | None =
         if replace is None:
             replace = bool(click.get_current_context().meta.get("deployer.force"))
         write_atomic(path, text, replace=replace)
-        click.echo(summary, err=True)
-    else:
+        echo(summary, err=True)
+    elif sys.stdout.isatty():  # a file's text shown: nothing in it acts on the terminal
+        echo(text, nl=False)
+    else:  # piped into a file or a program: the file's text exactly
         click.echo(text, nl=False)
 
 
@@ -224,7 +240,7 @@ def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: in
     try:
         return asyncio.run(read_current(profile, names, url, unit))
     except TransportError as e:
-        click.echo(f"error: {e}", err=True)
+        echo(f"error: {safe(e)}", err=True)
         return None
 
 
@@ -240,7 +256,7 @@ def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tu
             jobs, parallel=parallel, on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")))
     for name, v in values.items():
         if isinstance(v, Exception):
-            click.echo(f"{name}: unreachable - {v}", err=True)
+            echo(f"{safe(name)}: unreachable - {safe(v)}", err=True)
     return dict(values)
 
 
@@ -298,18 +314,22 @@ def _main(argv: Sequence[str] | None) -> None:
     try:
         rv = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)
     except click.exceptions.Abort:
-        click.echo("aborted", err=True)
+        echo("aborted", err=True)
         sys.exit(EXIT_INVALID)
     except click.exceptions.ClickException as e:  # usage errors exit 1 (docs/design.md), not click's 2
-        e.show()
+        import io
+
+        shown = io.StringIO()  # click quotes the file names and values given: escaped like every message
+        e.show(file=shown)
+        echo(shown.getvalue(), err=True, nl=False)
         sys.exit(EXIT_INVALID)
     except DeployerError as e:  # each class carries its exit code (deployer/errors.py)
         if isinstance(e, InputError):
             report_input_error(e)
         else:
-            click.echo(f"error: {e}", err=True)
+            echo(f"error: {safe(e)}", err=True)
         sys.exit(e.exit_code)
     except KeyboardInterrupt:
-        click.echo("interrupted", err=True)
+        echo("interrupted", err=True)
         sys.exit(130)
     sys.exit(rv if isinstance(rv, int) else 0)

@@ -7,7 +7,7 @@ import json
 import click
 
 from ..load.diagnostics import EXIT_OK, UsageError
-from .base import TIMEOUT, console
+from .base import TIMEOUT, console, echo, safe
 from .tables import show
 
 _STATE = click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
@@ -28,11 +28,11 @@ def learned_list(state_dir: str, as_json: bool) -> int:
 
     entries = store.load(state_dir)
     if as_json:
-        click.echo(json.dumps([e.to_json() for e in entries], indent=2))
+        echo(json.dumps([e.to_json() for e in entries], indent=2))
         return EXIT_OK
     out = console()
     if not entries:
-        out.print(f"nothing learned in {store.path_of(state_dir)}")
+        out.print(f"nothing learned in {safe(store.path_of(state_dir))}")
         return EXIT_OK
     show(out, ["profile", "device", "limits", "seen", "when"],
          [[e.profile, e.device, e.describe_limits(), e.seen, e.when] for e in entries])
@@ -67,7 +67,7 @@ def learned_forget(state_dir: str, profile: str | None, device: str | None, unit
     gone = store.forget(state_dir, profile=ref, device=key)
     out = console()
     for entry in gone:
-        out.print(f"forgot {entry.describe_limits()} of {entry.device} ({entry.profile})")
+        out.print(f"forgot {entry.describe_limits()} of {safe(entry.device)} ({safe(entry.profile)})")
     if not gone:
         out.print("nothing matched: nothing was forgotten")
     return EXIT_OK
@@ -131,19 +131,19 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
     except BadURL as e:
         raise UsageError(str(e)) from None
     err = console(stderr=True)
-    err.print(f"asking {len(ids)} unit id{'s' if len(ids) != 1 else ''} on {url} "
+    err.print(f"asking {len(ids)} unit id{'s' if len(ids) != 1 else ''} on {safe(url)} "
               f"(at most {len(ids) * device_url.timeout:.1f} s)")
     try:
         result = asyncio.run(run_scan(device_url, ids, register=register))
     except TransportError as e:
-        click.echo(f"error: {e}", err=True)
+        echo(f"error: {safe(e)}", err=True)
         return EXIT_UNREACHABLE
     if output:
         from ..report import write_atomic
 
         write_atomic(output, inventory_text(result, url, now()))
     if as_json:
-        click.echo(json.dumps({"url": result.url, "asked": result.asked, "seconds": round(result.seconds, 3),
+        echo(json.dumps({"url": result.url, "asked": result.asked, "seconds": round(result.seconds, 3),
                                "units": [{"unit": u.unit, "answer": u.answer, "identity": u.identity}
                                          for u in result.units]}, indent=2))
     else:
@@ -153,8 +153,8 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
                  [[str(u.unit), u.answer, *((u.identity or {}).get(k, "-") for k in ("vendor", "product_code",
                                                                                      "revision"))]
                   for u in result.units])
-        out.print(f"{len(result.units)} of {result.asked} unit ids answered on {result.url} "
-                  f"in {result.seconds:.1f} s" + (f"; inventory written to {output}" if output else ""))
+        out.print(f"{len(result.units)} of {result.asked} unit ids answered on {safe(result.url)} "
+                  f"in {result.seconds:.1f} s" + (f"; inventory written to {safe(output)}" if output else ""))
     return EXIT_OK if result.units else EXIT_UNREACHABLE
 
 
@@ -214,24 +214,25 @@ def probe(profile: str, device: str, unit: int, expect: tuple[str, ...], timeout
     try:
         result = asyncio.run(run_probe(prof, url, unit, wanted))
     except TransportError as e:
-        click.echo(f"error: {e}", err=True)
+        echo(f"error: {safe(e)}", err=True)
         return EXIT_UNREACHABLE
     changes = result.changes
     if as_json:
-        click.echo(json.dumps({"profile": prof.id, "identity": result.identity, "values": result.values,
+        echo(json.dumps({"profile": prof.id, "identity": result.identity, "values": result.values,
                                "findings": [{"parameter": f.name, "seen": f.what, "change": f.change}
                                             for f in result.findings], "changes": changes}, indent=2))
     else:
         out = console()
-        ident = ", ".join(f"{k} {v!r}" for k, v in (result.identity or {}).items())
-        out.print(f"profile {prof.id} against {device} unit {unit}: identity {ident or 'none (no Function 43)'}; "
+        ident = ", ".join(f"{safe(k)} {safe(repr(v))}" for k, v in (result.identity or {}).items())
+        out.print(f"profile {safe(prof.id)} against {safe(device)} unit {unit}: identity "
+                  f"{ident or 'none (no Function 43)'}; "
                   f"{len(result.values)} of {sum(1 for p in prof.parameters if p.readable)} readable parameters read")
         for f in result.findings:
-            out.print(f"  {f.what}")
+            out.print(f"  {safe(f.what)}")
         if changes:
             out.print("suggested profile changes:")
             for c in changes:
-                out.print(f"  - {c}")
+                out.print(f"  - {safe(c)}")
         else:
             out.print("the profile fits what the device answers")
     return EXIT_CHANGES if changes else EXIT_OK

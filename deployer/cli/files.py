@@ -9,7 +9,7 @@ import click
 
 from ..load.diagnostics import EXIT_INVALID, EXIT_OK, InputError, UsageError
 from ..load.messages import clip
-from .base import _n
+from .base import _n, echo, safe
 
 if TYPE_CHECKING:
     from ..load.yamlsrc import Source
@@ -82,13 +82,13 @@ def validate(files: tuple[str, ...]) -> int:
     bad = 0
     for f in files:
         try:
-            click.echo(f"{f}: ok ({validate_file(f)})")
+            echo(f"{safe(f)}: ok ({safe(validate_file(f))})")
         except InputError as e:
             bad += 1
             for d in e.diagnostics:
-                click.echo(str(d), err=True)
+                echo(safe(d), err=True)
     if bad:
-        click.echo(f"{bad} of {len(files)} file{'s' if len(files) != 1 else ''} invalid", err=True)
+        echo(f"{bad} of {len(files)} file{'s' if len(files) != 1 else ''} invalid", err=True)
         return EXIT_INVALID
     return EXIT_OK
 
@@ -105,13 +105,13 @@ def docs_command(out_dir: str, check: bool, force: bool) -> int:
     if check:
         stale = stale_pages(out_dir)
         for path in stale:
-            click.echo(f"{path}: stale (run: deployer docs --out {out_dir})", err=True)
+            echo(f"{safe(path)}: stale (run: deployer docs --out {safe(out_dir)})", err=True)
         return EXIT_INVALID if stale else EXIT_OK
     try:
         changed = write_pages(out_dir, force=force)
     except OSError as e:
         raise UsageError(f"cannot write the pages into {clip(out_dir, 300)}: {e.strerror or e}") from None
-    click.echo(f"{len(changed)} page{'s' if len(changed) != 1 else ''} updated in {out_dir}", err=True)
+    echo(f"{len(changed)} page{'s' if len(changed) != 1 else ''} updated in {safe(out_dir)}", err=True)
     return EXIT_OK
 
 
@@ -149,5 +149,5 @@ def explain(key: str) -> int:
         hint = difflib.get_close_matches(name, names, n=3) if len(name) <= 100 else []
         raise UsageError(f"no key '{clip(key)}' in any schema" + (f"; did you mean {', '.join(hint)}?" if hint else
                                                                   "; try e.g. 'deployer explain scale'"))
-    click.echo("\n\n".join(texts))
+    echo("\n\n".join(texts))
     return EXIT_OK

@@ -17,12 +17,14 @@ from .base import (
     console,
     describe,
     device_options,
+    echo,
     fleet_option,
     limit_option,
     parallel_option,
     read_device,
     read_fleet,
     recipe_or_inventory,
+    safe,
 )
 from .tables import Cell, show
 
@@ -119,7 +121,7 @@ def print_frames(plan: Plan, out: Console) -> None:
     for i, w in enumerate(plan.writes, 1):
         names = ", ".join(w.parameters)
         what = _n(w.count, "coil") if w.function in (5, 15) else _n(w.count, "register")
-        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {what} ({names})")
+        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {what} ({safe(names)})")
         framing: Framing
         for framing in ("rtu", "ascii", "tcp"):
             q = request_frame(w, unit, framing, transaction_id=i)
@@ -183,7 +185,7 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
 
         rec, taught = learned.for_recipe(rec, state_dir, url, u)
         if taught is not None:
-            click.echo(f"note: {learned.note(taught)}", err=as_json)
+            echo(f"note: {safe(learned.note(taught))}", err=as_json)
     current = None
     if device is not None:
         assert url is not None
@@ -196,15 +198,15 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     if out_path:
         write_json(data, out_path, what="the plan")
     if as_json:
-        click.echo(json.dumps(data, indent=2))
+        echo(json.dumps(data, indent=2))
     else:
         out = console()
-        out.print(f"profile: {rec.profile.id} ({rec.profile.source or 'built-in'})")
+        out.print(f"profile: {safe(rec.profile.id)} ({safe(rec.profile.source or 'built-in')})")
         print_plan(p, rec.profile, changes_only=current is not None, out=out, url=url)
         if show_frames:
             print_frames(p, out)
         if out_path:
-            out.print(f"plan written to {out_path}; run it unchanged with: deployer apply {out_path}")
+            out.print(f"plan written to {safe(out_path)}; run it unchanged with: deployer apply {safe(out_path)}")
     if detailed_exitcode and p.writes:
         return EXIT_CHANGES
     return EXIT_OK
@@ -226,7 +228,7 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     for j in jobs:
         r, taught = learned.for_recipe(j.recipe, state_dir, j.url, j.unit)
         if taught is not None:
-            click.echo(f"note: {j.name}: {learned.note(taught)}", err=as_json)
+            echo(f"note: {safe(j.name)}: {safe(learned.note(taught))}", err=as_json)
             j = replace(j, recipe=r)
         taught_jobs.append(j)
     jobs = taught_jobs
@@ -240,19 +242,21 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
                                                        or j.recipe.profile.id), cur, write_all=write_all)
     changing = [n for n, p in plans.items() if p.writes]
     if as_json:
-        click.echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
+        echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
             {"name": j.name, "plan": plan_to_json(plans[j.name])} if j.name in plans
             else {"name": j.name, "error": str(values[j.name])} for j in jobs]}, indent=2))
     elif per_device:
         out = console()
         for j in jobs:
             if j.name in plans and plans[j.name].writes:
-                out.print(f"[bold]{j.name}[/bold] {describe(j.url)} unit {j.unit}:")
+                from .text import styled
+
+                out.print(styled((j.name, "bold"), f" {describe(j.url)} unit {j.unit}:"))
                 print_plan(plans[j.name], j.recipe.profile, changes_only=True, out=out)
         down = _unreachable(values)
         out.print(f"{len(changing)} of {_n(len(jobs), 'device')} would change"
-                  + (f": {', '.join(changing)}" if changing else "")
-                  + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
+                  + (f": {', '.join(safe(n) for n in changing)}" if changing else "")
+                  + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else ""))
     else:
         from .summary import plan_changes, print_groups
 

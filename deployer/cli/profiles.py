@@ -10,7 +10,7 @@ from typing import Any
 import click
 
 from ..load.diagnostics import EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, InputError, UsageError
-from .base import _n, _output, console, force_option, report_input_error
+from .base import _n, _output, console, echo, force_option, report_input_error, safe
 from .tables import Cell, show
 
 
@@ -90,7 +90,7 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
         raise UsageError(f"--id '{pid}': letters, digits, '.', '_' and '-', starting with a letter or digit")
 
     for w in warnings:
-        click.echo(w if ": warning: " in w else f"warning: {w}", err=True)
+        echo(safe(w) if ": warning: " in w else f"warning: {safe(w)}", err=True)
     text, prof = check(draft, out or "<stdout>", f"Imported by 'deployer profiles import' from {source}.\n"
                                                 "Check it against the manual before the first deployment.")
     _output(text, out, f"{out}: profile {prof.id} with {_n(len(prof.parameters), 'parameter')}")
@@ -183,7 +183,7 @@ def profiles_export_csv(profile: str, out: str | None) -> int:
 
     prof = resolve_profile(profile)
     for what in not_exported(prof):
-        click.echo(f"warning: {prof.source or prof.id}: {what}: not in a register list; importing the list "
+        echo(f"warning: {safe(prof.source or prof.id)}: {safe(what)}: not in a register list; importing the list "
                    "will not bring it back", err=True)
     _output(profile_to_csv(prof), out, f"{out}: {_n(len(prof.parameters), 'register row')} of profile {prof.id}")
     return EXIT_OK
@@ -235,13 +235,14 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
                 return EXIT_UNREACHABLE
             if model is None:
                 chain = ", ".join(f"{m.model_id} at {m.at} (L={m.length})" for m in got[0])
-                click.echo(f"models on {device}: {chain or 'none'}", err=True)
+                echo(f"models on {safe(device)}: {safe(chain or 'none')}", err=True)
                 draft, warnings = sunspec.chain_draft(got[0], scale_factors=factors, counts=repeats,
                                                       profile_id=profile_id, source=device)
                 return _write_imported(draft, out, f"the SunSpec device {device}", warnings)
             (dm,) = got[0]
             found, points, warnings = sunspec.reported(model, dm)
-            click.echo(f"scale factors from {device}: " + ", ".join(f"{n}={v}" for n, v in found.items()), err=True)
+            echo(f"scale factors from {safe(device)}: " + ", ".join(f"{safe(n)}={v}" for n, v in found.items()),
+                 err=True)
             draft, more = sunspec.read_model(model, at=address, scale_factors={**found, **factors}, counts=repeats,
                                              point_values=points, length=dm.length, profile_id=profile_id)
             return _write_imported(draft, out, f"SunSpec model {model}", [*warnings, *more])
@@ -302,7 +303,7 @@ def _from_device(device: str, unit: int, at: int, model: str | None, *, search: 
     try:
         return (asyncio.run(run()),)
     except (tp.TransportError, sunspec.NotThere) as e:
-        click.echo(f"error: {e}", err=True)
+        echo(f"error: {safe(e)}", err=True)
         return None
 
 
@@ -316,7 +317,9 @@ def profiles_show(profile: str) -> int:
 
     prof = resolve_profile(profile)
     out = console()
-    out.print(f"[bold]{prof.id}[/bold]: {prof.description}")
+    from .text import styled
+
+    out.print(styled((prof.id, "bold"), f": {prof.description}"))
     lim = prof.limits
     layout = layout_name(prof.word_order, prof.byte_swap)
     out.print(f"addressing {prof.addressing}, byte order {layout}; up to {_n(lim.write_registers, 'register')} "
@@ -356,5 +359,5 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
         raise UsageError(f"'{pid}' is not a profile id (letters, digits, '.', '_', '-'); pass --id ID")
     text = profile_skeleton(pid, output)
     write_atomic(output, text, replace=force)
-    click.echo(f"wrote {output}: fill it in from the manual, then run: deployer validate {output}", err=True)
+    echo(f"wrote {safe(output)}: fill it in from the manual, then run: deployer validate {safe(output)}", err=True)
     return EXIT_OK

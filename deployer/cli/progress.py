@@ -10,7 +10,7 @@ import time
 from types import TracebackType
 from typing import TYPE_CHECKING
 
-from .base import _n
+from .base import _n, safe
 
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType
@@ -79,7 +79,7 @@ class FleetProgress:
         assert self._bar is not None
         self._bar.update(self._task, description=self._description())
         now = sorted(self.in_flight, key=self.in_flight.__getitem__)
-        shown = ", ".join(now[:8]) + (f" and {len(now) - 8} more" if len(now) > 8 else "")
+        shown = ", ".join(safe(n) for n in now[:8]) + (f" and {len(now) - 8} more" if len(now) > 8 else "")
         return Group(self._bar, Text(f"{self.verb}: {shown}" if now else "", style="dim", overflow="ellipsis",
                                      no_wrap=True))
 
@@ -92,10 +92,11 @@ class FleetProgress:
         if self._bar is not None:
             self._bar.advance(self._task)
         elif self.lines and self._plain is not None:
-            self._plain.write(f"{name}: {status}" + (f" {detail}" if detail else "") + "\n")
+            self._plain.write(f"{safe(name)}: {status}" + (f" {safe(detail)}" if detail else "") + "\n")
         elif self.lines:
-            style = STYLE.get(status, "")
-            self.err.print(f"{name}: [{style}]{status}[/{style}]" + (f" {detail}" if detail else ""))
+            from .text import styled
+
+            self.err.print(styled(name, ": ", (status, STYLE.get(status, "")), f" {detail}" if detail else ""))
 
     def device_done(self, r: DeviceResult) -> None:
         where = f"batch {r.batch}, " if self.staged and r.batch is not None else ""
@@ -114,7 +115,7 @@ def fleet_summary(report: Report, out: Console) -> None:
         failed = sum(1 for p in d.parameters if p.status in ("failed", "mismatch", "unverified"))
         secs = "-" if d.seconds is None else f"{d.seconds:.2f}"
         rows.append([d.name, *([str(d.batch or "-")] if staged else []), (d.status, STYLE.get(d.status, "")),
-                     str(changed), str(failed), str(len(d.requests)), secs, d.error or ""])
+                     str(changed), str(failed), str(len(d.requests)), secs, d.error or ""])  # escaped by show
     show(out, ["device", *(["batch"] if staged else []), "status", "changed", "failed", "requests", "seconds", ""],
          rows)
     s = report.summary()

@@ -22,12 +22,14 @@ from .base import (
     console,
     describe,
     device_options,
+    echo,
     fleet_option,
     limit_option,
     parallel_option,
     read_device,
     read_fleet,
     recipe_or_inventory,
+    safe,
 )
 from .tables import Cell, show
 
@@ -94,7 +96,7 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     rows = diff_values(rec, current)
     drift = [r for r in rows if r.device_raw is not None]
     if as_json:
-        click.echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u,
+        echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u,
                                "drift": [r.to_json() for r in rows]}, indent=2))
     elif rows:
         show(console(), ["parameter", "recipe", "device value", ""], drift_rows(rows))
@@ -132,7 +134,7 @@ def diff_defaults(recipe: str | None, profile_ref: str | None, device: str | Non
     differs, _ = defaults_diff(prof, current)
     no_default = [p.name for p in prof.parameters if p.readable and p.default is None]
     if as_json:
-        click.echo(json.dumps({"profile": prof.id, "device": describe(url), "unit": u,
+        echo(json.dumps({"profile": prof.id, "device": describe(url), "unit": u,
                                "differs": [d.to_json() for d in differs], "compared": len(names),
                                "no_default": no_default}, indent=2))
     else:
@@ -143,7 +145,8 @@ def diff_defaults(recipe: str | None, profile_ref: str | None, device: str | Non
         out.print(f"{len(differs)} of {_n(len(names), 'parameter')} with a factory default differ from it"
                   if differs else f"factory settings: all {_n(len(names), 'parameter')} with a default hold it")
         if no_default:
-            out.print(f"not compared: {_n(len(no_default), 'parameter')} without a default in profile {prof.id}")
+            out.print(f"not compared: {_n(len(no_default), 'parameter')} without a default in profile "
+                      f"{safe(prof.id)}")
     return EXIT_CHANGES if differs else EXIT_OK
 
 
@@ -167,7 +170,7 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     if html_path:
         _drift_page(jobs, values, rows, html_path)
     if as_json:
-        click.echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
+        echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
             {"name": j.name, "url": describe(j.url), "unit": j.unit, "drift": [d.to_json() for d in rows[j.name]]}
             if j.name in rows else {"name": j.name, "url": describe(j.url), "unit": j.unit,
                                     "error": str(values[j.name])} for j in jobs],
@@ -185,9 +188,9 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
             show(out, headers, body)
         else:
             print_groups(out, {n: drift_changes(r) for n, r in rows.items()}, [], same="as the recipe says")
-        out.print(f"drift on {len(drifted)} of {_n(len(jobs), 'device')}" + (f": {', '.join(drifted)}" if drifted
-                                                                           else "")
-                  + (f"; {len(down)} unreachable: {', '.join(down)}" if down else ""))
+        out.print(f"drift on {len(drifted)} of {_n(len(jobs), 'device')}"
+                  + (f": {', '.join(safe(n) for n in drifted)}" if drifted else "")
+                  + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else ""))
     if down:
         return EXIT_UNREACHABLE
     return EXIT_CHANGES if drifted else EXIT_OK
@@ -320,8 +323,8 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
     down = _unreachable(values)
     if html_path:
         _as_found_page([(j.name, describe(j.url), j.unit, j.profile, values[j.name]) for j in jobs], html_path)
-    click.echo(f"{_n(written, 'recipe')} written to {folder}" + (f"; {len(down)} unreachable: {', '.join(down)}"
-                                                          if down else ""), err=True)
+    echo(f"{_n(written, 'recipe')} written to {safe(folder)}"
+         + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else ""), err=True)
     return EXIT_UNREACHABLE if down else EXIT_OK
 
 
@@ -346,7 +349,7 @@ def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], pat
             entry["error"] = str(cur)
         entries.append(entry)
     write_page(as_found_page(entries, run=run_info(command_line(), time.time())), path)
-    click.echo(f"page: {path}", err=True)
+    echo(f"page: {safe(path)}", err=True)
 
 
 def _drift_page(jobs: Sequence[Job], values: Mapping[str, object], rows: Mapping[str, Sequence[Drift]],
@@ -374,4 +377,4 @@ def _drift_page(jobs: Sequence[Job], values: Mapping[str, object], rows: Mapping
             cells[index[d.name]][col] = (held, d.text) if d.name in drifted else (held,)
     labels = [j.name if isinstance(values[j.name], dict) else f"{j.name} (unreachable)" for j in jobs]
     write_page(drift_page(labels, names, cells, run=run_info(command_line(), time.time())), path)
-    click.echo(f"page: {path}", err=True)
+    echo(f"page: {safe(path)}", err=True)

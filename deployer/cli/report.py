@@ -21,7 +21,7 @@ def report(report_file: str, html_path: str | None) -> int:
     """
     from ..report import read_report, report_from_json
     from .apply import print_report
-    from .base import console, write_page
+    from .base import console, safe, write_page
     from .progress import fleet_summary
 
     try:
@@ -32,8 +32,8 @@ def report(report_file: str, html_path: str | None) -> int:
     out = console()
     info = run.run or {}
     if info.get("command"):
-        out.print(f"command: {info['command']}", soft_wrap=True)
-    who = ", ".join(f"{k} {info[k]}" for k in ("user", "host", "started", "version") if info.get(k))
+        out.print(f"command: {safe(info['command'])}", soft_wrap=True)
+    who = ", ".join(f"{k} {safe(info[k])}" for k in ("user", "host", "started", "version") if info.get(k))
     if who:
         out.print(who, soft_wrap=True)
     if len(run.devices) > 1:
@@ -45,5 +45,5 @@ def report(report_file: str, html_path: str | None) -> int:
         from ..pages import run_page
 
         write_page(run_page(run), html_path)
-        console(stderr=True).print(f"page: {html_path}")
+        console(stderr=True).print(f"page: {safe(html_path)}")
     return EXIT_OK

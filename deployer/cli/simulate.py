@@ -7,6 +7,7 @@ import asyncio
 import click
 
 from ..load.diagnostics import EXIT_INVALID, EXIT_OK, UsageError
+from .base import echo, safe
 
 
 def _register(text: str) -> int:
@@ -124,13 +125,13 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
 
     def ready(s: Simulator) -> None:
         which = ", ".join(str(u) for u in s.units)
-        click.echo(f"simulating {prof.id} unit{'s' if len(s.units) > 1 else ''} {which} on {s.url} (Ctrl-C to stop)",
-                   err=True)
+        echo(f"simulating {safe(prof.id)} unit{'s' if len(s.units) > 1 else ''} {which} on {safe(s.url)} "
+             "(Ctrl-C to stop)", err=True)
 
     try:
         asyncio.run(serve(sim, on_ready=ready))
     except (OSError, RuntimeError) as e:
-        click.echo(f"error: cannot listen on {listen}: {e}", err=True)
+        echo(f"error: cannot listen on {safe(listen)}: {safe(e)}", err=True)
         return EXIT_INVALID
     return EXIT_OK
 

@@ -10,7 +10,7 @@ import re
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
-from .base import _n
+from .base import _n, safe
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -57,15 +57,15 @@ def print_groups(out: Console, changes: Mapping[str, tuple[str, ...]], down: Seq
     for key, names in grouped(changes):
         head = f"{_n(len(names), 'device')}: "
         if not key:
-            out.print(head + same, markup=False, highlight=False)
+            out.print(head + same)
         elif len(key) <= INLINE:
-            out.print(head + ", ".join(key), markup=False, highlight=False)
+            out.print(head + ", ".join(safe(k) for k in key))
         else:
-            out.print(head + _n(len(key), "change"), markup=False, highlight=False)
+            out.print(head + _n(len(key), "change"))
             show(out, ["", "change"], [["", k] for k in key])
-        out.print("  " + ", ".join(compact(names)), markup=False, highlight=False)
+        out.print("  " + ", ".join(safe(n) for n in compact(names)))
     if down:
-        out.print(f"{len(down)} unreachable: {', '.join(down)}", markup=False, highlight=False)
+        out.print(f"{len(down)} unreachable: {', '.join(safe(n) for n in down)}")
 
 
 _NUMBERED = re.compile(r"^(.*?)(\d+)$")

@@ -11,6 +11,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
+from ..load.messages import printable
+
 if TYPE_CHECKING:
     from rich.console import Console
 
@@ -20,8 +22,9 @@ Cell = str | tuple[str, str]  # text, or (text, rich style) for a coloured cell
 
 
 def plain(headers: Sequence[str], rows: Sequence[Sequence[Cell]]) -> str:
-    """The table as aligned text, one line per row (header first), trailing spaces removed."""
-    texts = [list(headers), *([c if isinstance(c, str) else c[0] for c in row] for row in rows)]
+    """The table as aligned text, one line per row (header first), trailing spaces removed; what the
+    cells hold is escaped (``printable``): a cell is one line, whatever a name or value holds."""
+    texts = [list(headers), *([printable(c if isinstance(c, str) else c[0]) for c in row] for row in rows)]
     widths = [max(map(len, column)) for column in zip(*texts, strict=True)]
     line = " " + "  ".join(f"{{:<{w}}}" for w in widths)  # one format string: the padding happens in C
     return "".join(line.format(*r).rstrip() + "\n" for r in texts)
@@ -37,7 +40,8 @@ def show(out: Console, headers: Sequence[str], rows: Sequence[Sequence[Cell]]) -
 
         table = Table(*headers, box=None)
         for row in rows:  # Text, not markup: a parameter named 'preset[0].speed' stays as it is
-            table.add_row(*(Text(c) if isinstance(c, str) else Text(c[0], style=c[1]) for c in row))
+            table.add_row(*(Text(printable(c)) if isinstance(c, str) else Text(printable(c[0]), style=c[1])
+                            for c in row))
         out.print(table)
         return
     out.file.write(plain(headers, rows))

@@ -45,3 +45,35 @@ def label_list(labels: Iterable[str]) -> str:
 def closest(name: str, choices: Iterable[str]) -> str | None:
     hits = difflib.get_close_matches(name, list(choices), n=1, cutoff=0.6)
     return hits[0] if hits else None
+
+
+# Characters a terminal acts on instead of showing, or that reorder or hide what follows: controls
+# (C0, DEL, C1: escape sequences, carriage return, backspace, new lines), format characters (bidi
+# overrides and isolates such as U+202E, zero-width ones), line and paragraph separators, and lone
+# surrogates (file names that are not UTF-8). Unicode categories Cc, Cf, Zl, Zp and Cs, as of
+# Unicode 15 (tests/test_hostile_output.py checks the class against the running Python's tables).
+_UNSAFE = re.compile("[\x00-\x1f\x7f-\x9f\xad\u0600-\u0605\u061c\u06dd\u070f\u0890-\u0891\u08e2\u180e"
+                     "\u200b-\u200f\u2028-\u202e\u2060-\u2064\u2066-\u206f\ud800-\udfff\ufeff\ufff9-\ufffb"
+                     "\U000110bd\U000110cd\U00013430-\U0001343f\U0001bca0-\U0001bca3\U0001d173-\U0001d17a"
+                     "\U000e0001\U000e0020-\U000e007f]")
+_UNSAFE_BUT_NEWLINE = re.compile(_UNSAFE.pattern.replace("\x00-\x1f", "\x00-\x09\x0b-\x1f"))
+_NAMED = {"\n": "\\n", "\t": "\\t", "\r": "\\r", "\x1b": "\\e"}
+
+
+def _escaped(m: re.Match[str]) -> str:
+    c = m.group()
+    if c in _NAMED:
+        return _NAMED[c]
+    n = ord(c)
+    return f"\\x{n:02x}" if n < 0x100 else f"\\u{n:04x}" if n < 0x10000 else f"\\U{n:08x}"
+
+
+def printable(text: str, *, newlines: bool = False) -> str:
+    """``text`` safe to show on a terminal: every character a terminal would act on (an escape
+    sequence, a carriage return, a bidi override) as a visible escape (``\\e``, ``\\r``, ``\\u202e``).
+
+    The one escaping function for text that reaches a terminal (names, labels, values, file names,
+    messages that quote them). ``newlines``: keep line breaks (a text of several lines the program
+    made itself); else a new line in a name is shown as ``\\n`` too, so no name can start a line.
+    """
+    return (_UNSAFE_BUT_NEWLINE if newlines else _UNSAFE).sub(_escaped, text)

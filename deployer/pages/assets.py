@@ -63,6 +63,22 @@ JS = r"""
       return {"&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;"}[c];
     });
   }
+  // user text inline: bidi controls balanced (an unmatched closer dropped, what is left open closed at its
+  // end) and the whole in <bdi>, so a U+202E in a name cannot reorder what the page says after it
+  function txt(s) {
+    s = String(s == null ? "" : s);
+    var open = [], out = "";
+    for (var i = 0; i < s.length; i++) {
+      var c = s.charCodeAt(i);
+      if (c >= 0x202A && c <= 0x202E && c !== 0x202C) { open.push(0x202C); }
+      else if (c >= 0x2066 && c <= 0x2068) { open.push(0x2069); }
+      else if (c === 0x202C) { if (open[open.length - 1] !== c) { continue; } open.pop(); }
+      else if (c === 0x2069) { var j = open.lastIndexOf(c); if (j < 0) { continue; } open.length = j; }
+      out += s[i];
+    }
+    return "<bdi>" + esc(out + open.reverse().map(function (x) { return String.fromCharCode(x); }).join("")) +
+           "</bdi>";
+  }
   function st(s) { return '<span class="st st-' + esc(s) + '">' + esc(s) + "</span>"; }
   function $(id) { return document.getElementById(id); }
 
@@ -77,22 +93,22 @@ JS = r"""
                     : "<tr><th>parameter</th><th>as found</th><th>desired</th><th>as left</th><th>status</th>" +
                       "<th></th></tr>";
     var rows = d.params.map(function (p) {
-      if (asFound) { return "<tr><td>" + esc(p[0]) + "</td><td>" + esc(p[1]) + "</td><td class=muted>" +
-                            esc(p[2]) + "</td></tr>"; }
-      return "<tr><td>" + esc(p[0]) + "</td><td>" + esc(p[1]) + "</td><td>" + esc(p[2]) + "</td><td>" +
-             esc(p[3]) + "</td><td>" + st(p[4]) + "</td><td>" + esc(p[5]) + "</td></tr>";
+      if (asFound) { return "<tr><td>" + txt(p[0]) + "</td><td>" + txt(p[1]) + "</td><td class=muted>" +
+                            txt(p[2]) + "</td></tr>"; }
+      return "<tr><td>" + txt(p[0]) + "</td><td>" + txt(p[1]) + "</td><td>" + txt(p[2]) + "</td><td>" +
+             txt(p[3]) + "</td><td>" + st(p[4]) + "</td><td>" + txt(p[5]) + "</td></tr>";
     });
     return "<table class=params><thead>" + h + "</thead><tbody>" + rows.join("") + "</tbody></table>";
   }
 
   function body(d) {
     var parts = [];
-    if (d.error) { parts.push('<p class="error">' + esc(d.error) + "</p>"); }
+    if (d.error) { parts.push('<p class="error">' + txt(d.error) + "</p>"); }
     if (d.params.length) { parts.push(paramTable(d)); }
-    (d.notices || []).forEach(function (n) { parts.push('<p class="notice">note: ' + esc(n) + "</p>"); });
-    if (d.commit) { parts.push('<p class="notice">commit: ' + esc(d.commit) + "</p>"); }
-    if (d.snapshot) { parts.push('<p class="notice">snapshot: ' + esc(d.snapshot) + "</p>"); }
-    if (d.sha) { parts.push('<p class="notice">profile sha256: ' + esc(d.sha) + "</p>"); }
+    (d.notices || []).forEach(function (n) { parts.push('<p class="notice">note: ' + txt(n) + "</p>"); });
+    if (d.commit) { parts.push('<p class="notice">commit: ' + txt(d.commit) + "</p>"); }
+    if (d.snapshot) { parts.push('<p class="notice">snapshot: ' + txt(d.snapshot) + "</p>"); }
+    if (d.sha) { parts.push('<p class="notice">profile sha256: ' + txt(d.sha) + "</p>"); }
     parts.push(signature());
     return parts.join("");
   }
@@ -112,19 +128,19 @@ JS = r"""
     });
     var tbody = $("device-rows");
     tbody.innerHTML = order.map(function (d) {
-      return '<tr class="dev" data-i="' + d.i + '"><td>' + esc(d.name) + "</td><td>" + st(d.status) +
+      return '<tr class="dev" data-i="' + d.i + '"><td>' + txt(d.name) + "</td><td>" + st(d.status) +
              '</td><td class="num">' + esc(d.batch == null ? "" : d.batch) + '</td><td class="num">' +
              d.changed + '</td><td class="num">' + d.failed + '</td><td class="num">' + d.requests +
              '</td><td class="num">' + esc(d.seconds == null ? "" : d.seconds.toFixed(2)) + "</td><td>" +
-             esc(d.profile) + "</td></tr>";
+             txt(d.profile) + "</td></tr>";
     }).join("");
     var sections = $("records");
     sections.innerHTML = order.map(function (d) {
       // devices that need a look are open; a run of a few devices shows them all
       var open = (RANK[d.status] != null && RANK[d.status] < 6) || devs.length <= 3 ? " open" : "";
       return '<details class="device" id="dev-' + d.i + '" data-i="' + d.i + '"' + open + "><summary>" +
-             "<b>" + esc(d.name) + "</b> " + st(d.status) + '<span class="where">' + esc(d.url) + " unit " +
-             esc(d.unit) + " &middot; " + esc(d.profile) + (d.batch == null ? "" : " &middot; batch " +
+             "<b>" + txt(d.name) + "</b> " + st(d.status) + '<span class="where">' + txt(d.url) + " unit " +
+             esc(d.unit) + " &middot; " + txt(d.profile) + (d.batch == null ? "" : " &middot; batch " +
              esc(d.batch)) + "</span></summary></details>";
     }).join("");
     Array.prototype.forEach.call(sections.children, function (sec) {
@@ -213,19 +229,19 @@ JS = r"""
   function driftPage() {
     var devs = DATA.devices, params = DATA.parameters, cells = DATA.cells;
     var head = "<tr><th>parameter</th>" + devs.map(function (d, j) {
-      return '<th data-j="' + j + '">' + esc(d) + "</th>"; }).join("") + "</tr>";
+      return '<th data-j="' + j + '">' + txt(d) + "</th>"; }).join("") + "</tr>";
     var rows = params.map(function (p, i) {
       var drifted = 0;
       var tds = cells[i].map(function (c, j) {
         if (c == null) { return '<td class="missing" data-j="' + j + '">-</td>'; }
         if (c.length > 1) {
           drifted++;
-          return '<td class="drift" data-j="' + j + '" title="desired ' + esc(c[1]) + '">' + esc(c[0]) +
-                 " &rarr; " + esc(c[1]) + "</td>";
+          return '<td class="drift" data-j="' + j + '" title="desired ' + esc(c[1]) + '">' + txt(c[0]) +
+                 " &rarr; " + txt(c[1]) + "</td>";
         }
-        return '<td class="same" data-j="' + j + '">' + esc(c[0]) + "</td>";
+        return '<td class="same" data-j="' + j + '">' + txt(c[0]) + "</td>";
       }).join("");
-      return '<tr data-i="' + i + '" data-drifted="' + drifted + '"><td>' + esc(p) + "</td>" + tds + "</tr>";
+      return '<tr data-i="' + i + '" data-drifted="' + drifted + '"><td>' + txt(p) + "</td>" + tds + "</tr>";
     }).join("");
     $("matrix").innerHTML = "<thead>" + head + "</thead><tbody>" + rows + "</tbody>";
     var q = $("q"), only = $("only-drift"), dq = $("dq");

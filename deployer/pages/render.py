@@ -9,6 +9,7 @@ import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from ..load.messages import printable
 from ..report import Report
 from .assets import CSS, JS
 
@@ -17,20 +18,52 @@ _BAD = ("failed", "mismatch", "unverified")
 
 
 def _json_for_script(data: Any) -> str:
-    # inside <script> only "</" can end the element early; "<\/" reads back as the same JSON string
-    return json.dumps(data, separators=(",", ":"), ensure_ascii=False).replace("</", "<\\/")
+    # every "<" as \u003c: inside <script>, "</script" ends the element early, and "<!--" then "<script"
+    # makes the HTML parser swallow the page's own script up to a later "</script>". JSON has "<" only
+    # inside strings, where \u003c reads back as the same text.
+    return json.dumps(data, separators=(",", ":"), ensure_ascii=False).replace("<", "\\u003c")
+
+
+# bidi embeddings and overrides (closed by U+202C), isolates (closed by U+2069)
+_OPENS = {**{chr(c): "\u202c" for c in (0x202A, 0x202B, 0x202D, 0x202E)},
+          **{chr(c): "\u2069" for c in (0x2066, 0x2067, 0x2068)}}
+
+
+def _isolated(value: object) -> str:
+    """User text as HTML inside ``<bdi>``, its bidi controls balanced (an unmatched closer dropped, what
+    is left open closed at its end): a U+202E in a name cannot reorder the page's text after it (as
+    the script's txt())."""
+    opened: list[str] = []
+    out = []
+    for c in str(value):
+        if c in _OPENS:
+            opened.append(_OPENS[c])
+        elif c == "\u202c":
+            if not opened or opened[-1] != c:
+                continue
+            opened.pop()
+        elif c == "\u2069":
+            if c not in opened:
+                continue
+            del opened[len(opened) - 1 - opened[::-1].index(c):]
+        out.append(c)
+    return f"<bdi>{html.escape(''.join(out) + ''.join(reversed(opened)))}</bdi>"
 
 
 def _meta(rows: Sequence[tuple[str, Any]]) -> str:
-    return "<dl class=meta>" + "".join(f"<dt>{html.escape(k)}</dt><dd>{html.escape(str(v))}</dd>"
-                                       for k, v in rows if v not in (None, "")) + "</dl>"
+    """The page's header: label, value; a value is user text (a list: items, each isolated)."""
+    return "<dl class=meta>" + "".join(
+        f"<dt>{html.escape(k)}</dt><dd>"
+        + (", ".join(_isolated(x) for x in v) if isinstance(v, list) else _isolated(v)) + "</dd>"
+        for k, v in rows if v not in (None, "", [])) + "</dl>"
 
 
 def _page(title: str, header: str, main: str, data: Mapping[str, Any]) -> str:
+    # the title bar shows no markup: control and bidi characters there are escaped as on a terminal
     return ("<!DOCTYPE html>\n<html lang=en><head><meta charset=utf-8>"
             "<meta name=viewport content='width=device-width, initial-scale=1'>"
-            f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body>"
-            f"<header><h1>{html.escape(title)}</h1>{header}</header><main>{main}</main>"
+            f"<title>{html.escape(printable(title))}</title><style>{CSS}</style></head><body>"
+            f"<header><h1>{_isolated(title)}</h1>{header}</header><main>{main}</main>"
             f"<script type=application/json id=data>{_json_for_script(data)}</script>"
             f"<script>{JS}</script></body></html>\n")
 
@@ -89,9 +122,9 @@ def run_page(report: Report, *, title: str | None = None) -> str:
     recipes = sorted({d.recipe for d in report.devices if d.recipe} | ({report.recipe} if report.recipe else set()))
     batches = sorted({d.batch for d in report.devices if d.batch is not None})
     header = _meta([
-        ("command", run.get("command")), ("recipe", ", ".join(recipes)), ("who", run.get("user")),
+        ("command", run.get("command")), ("recipe", recipes), ("who", run.get("user")),
         ("when", run.get("started")), ("where", run.get("host")), ("deployer", run.get("version")),
-        ("run", run.get("id")), ("profiles", ", ".join(profiles)),
+        ("run", run.get("id")), ("profiles", profiles),
         ("batches", len(batches) if batches else None),
         ("devices", f"{summary['devices']}; {summary['write_requests']} write and {summary['read_requests']} read "
                     f"requests in {summary['seconds']:.2f} s"),
