@@ -1,16 +1,262 @@
-"""Portability: what runs the same on POSIX, Windows and macOS (docs/windows.md)."""
+"""Portability: what runs the same on POSIX, Windows and macOS (docs/windows.md).
+
+The lock tests run the system's own backend everywhere (``flock`` on Linux and macOS, ``range`` through
+LockFileEx on Windows: there only in the public CI), and on Linux also the ``range`` backend in
+processes without POSIX (tests/posixless/sitecustomize.py).
+"""
 
 from __future__ import annotations
 
+import errno
+import json
+import os
+import re
+import stat
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
 import pytest
 
-from deployer.state import lock
+from deployer import portable
+from deployer.errors import UsageError
+from deployer.state import durable, lock
+from deployer.transport import urls
+from tests.helpers import cli
+
+HARNESS = Path(__file__).parent / "posixless"
+ROOT = Path(__file__).parent.parent
+LINUX = sys.platform.startswith("linux")
+
+
+def env(posixless: bool = True) -> dict[str, str]:
+    """The environment of a child process; ``posixless``: one that lacks what Windows lacks (Linux only)."""
+    e = dict(os.environ)
+    path = [str(ROOT)] + ([e["PYTHONPATH"]] if e.get("PYTHONPATH") else [])
+    e["PYTHONPATH"] = os.pathsep.join(([str(HARNESS)] if posixless else []) + path)
+    return e
+
+
+def python(code: str, *args: str, posixless: bool = True, cwd: Path | None = None) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code), *args], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env(posixless), cwd=cwd)
 
 
 def test_the_lock_folder_does_not_follow_tmpdir(monkeypatch: pytest.MonkeyPatch) -> None:
     # a service, a login shell and each macOS user see other TMPDIRs: they must still share locks
     monkeypatch.delenv(lock.ENV, raising=False)
-    monkeypatch.setenv("TMPDIR", "/somewhere/else")
-    assert lock.lock_dir() == lock.default_lock_dir() == "/tmp/deployer-locks"
-    monkeypatch.setenv(lock.ENV, "/srv/locks")
-    assert lock.lock_dir() == "/srv/locks"
+    monkeypatch.setenv("TMPDIR", os.path.join(os.sep, "somewhere", "else"))
+    expected = (os.path.join(os.environ.get("PROGRAMDATA", r"C:\ProgramData"), "deployer", "locks")
+                if sys.platform == "win32" else "/tmp/deployer-locks")
+    assert lock.lock_dir() == lock.default_lock_dir() == expected
+    monkeypatch.setenv(lock.ENV, os.path.join(os.sep, "srv", "locks"))
+    assert lock.lock_dir() == os.path.join(os.sep, "srv", "locks")
+
+
+# ---- the portable lock: two processes, two spellings of one device, a killed holder ------------------
+
+HOLDER = """
+    import asyncio, json, sys
+    from deployer.state import lock, oslock
+    from deployer.transport.urls import parse_url
+    url, unit, hold = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "hold"
+    try:
+        held = asyncio.run(lock.acquire_device(parse_url(url).lock_keys, unit, command="test"))
+    except lock.Locked as e:
+        print(json.dumps({"locked": str(e), "backend": oslock.backend().name}), flush=True)
+        sys.exit(3)
+    print(json.dumps({"held": True, "backend": oslock.backend().name,
+                      "stale": [h.stale for h in held if h.stale]}), flush=True)
+    if hold:
+        sys.stdin.read()  # until the test closes stdin, or kills this process
+    for h in held:
+        h.release()
+"""
+
+
+def holder(url: str, unit: int, *, hold: bool, posixless: bool) -> tuple[subprocess.Popen[str], dict[str, object]]:
+    p = python(HOLDER, url, str(unit), "hold" if hold else "once", posixless=posixless)
+    assert p.stdout is not None
+    line = p.stdout.readline()
+    assert line, p.communicate()[1]
+    return p, json.loads(line)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("where", ["native", "posixless"])
+def test_portable_lock_two_processes_two_spellings_a_killed_holder(where: str) -> None:
+    posixless = where == "posixless"
+    if posixless and not LINUX:
+        pytest.skip("the POSIX-less harness hides Linux's POSIX modules; Windows runs the native case itself")
+    backend = "range" if posixless or sys.platform == "win32" else "flock"
+    procs = []
+    try:
+        a, said = holder("tcp://127.0.0.1:1502", 1, hold=True, posixless=posixless)
+        procs.append(a)
+        assert said == {"held": True, "backend": backend, "stale": []}
+        b, said = holder("tcp://localhost:1502", 1, hold=False, posixless=posixless)  # another spelling
+        procs.append(b)
+        assert b.wait(timeout=30) == 3 and said["backend"] == backend
+        assert f"locked by PID {a.pid}" in str(said["locked"])
+        c, said = holder("tcp://127.1:1502", 2, hold=False, posixless=posixless)  # another unit of the bus
+        procs.append(c)
+        assert c.wait(timeout=30) == 0 and said["held"] is True
+        d, said = holder("tcp://2130706433:1502", 0, hold=False, posixless=posixless)  # a broadcast: the whole bus
+        procs.append(d)
+        assert d.wait(timeout=30) == 3 and "the bus is in use" in str(said["locked"])
+        a.kill()  # SIGKILL (TerminateProcess on Windows): no release, no clean-up; the system drops its locks
+        a.wait(timeout=30)
+        e, said = holder("tcp://localhost:1502", 1, hold=False, posixless=posixless)
+        procs.append(e)
+        assert e.wait(timeout=30) == 0 and said["held"] is True
+        stale = said["stale"]
+        assert isinstance(stale, list) and any(f"stale lock of PID {a.pid}" in str(s) for s in stale), said
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+            p.communicate()
+
+
+# ---- COM ports -------------------------------------------------------------------------------------
+
+
+def test_com_ports_in_device_urls() -> None:
+    for text, shown, key, opened in [
+        ("rtu://COM3?baudrate=19200&parity=E", "rtu://COM3?baudrate=19200&parity=E", "serial:COM3", r"\\.\COM3"),
+        ("rtu://com10", "rtu://COM10", "serial:COM10", r"\\.\COM10"),
+        (r"rtu://\\.\COM10?baudrate=9600", "rtu://COM10?baudrate=9600", "serial:COM10", r"\\.\COM10"),
+        ("ascii://COM4", "ascii://COM4", "serial:COM4", r"\\.\COM4"),
+        (r"rtu://\\.\CNCA0", r"rtu://\\.\CNCA0", "serial:CNCA0", r"\\.\CNCA0"),
+    ]:
+        u = urls.parse_url(text)
+        assert (urls.describe(u), u.lock_keys, u.serial_device) == (shown, (key,), opened), text
+    # one port, however it is spelled: one lock
+    assert len({urls.parse_url(t).lock_keys for t in ("rtu://COM10", "rtu://com10", r"rtu://\\.\COM10")}) == 1
+    assert urls.parse_url("rtu:///dev/ttyUSB0").serial_device == "/dev/ttyUSB0"
+    assert urls.windows_port("COM3x") is None and urls.windows_port("COM0") is None
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="on Windows COM3 may exist")
+def test_a_com_port_elsewhere_is_said_plainly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rec = tmp_path / "r.yaml"
+    rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
+    code, out, err = cli(capsys, "apply", str(rec), "--device", "rtu://COM3", "--yes",
+                         "--state-dir", str(tmp_path / "s"))
+    assert code == 3 and "no such serial device 'COM3' (COM ports are Windows' names" in out + err, out + err
+    assert "Traceback" not in out + err
+
+
+def test_scan_lists_serial_ports(capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = cli(capsys, "scan", "--list-ports", "--json")
+    assert code in (0, 3), err
+    ports = json.loads(out)
+    from serial.tools import list_ports
+
+    assert [p["device"] for p in ports] == sorted((str(p.device) for p in list_ports.comports()),
+                                                  key=lambda d: [int(t) if t.isdigit() else t
+                                                                 for t in re.split(r"(\d+)", d)])
+    assert all(p["url"].startswith("rtu://") for p in ports)
+    code, out, err = cli(capsys, "scan", "tcp://127.0.0.1:1", "--list-ports")
+    assert code == 1 and "without a URL" in err
+    code, out, err = cli(capsys, "scan")
+    assert code == 1 and "--list-ports" in err
+
+
+# ---- file names and paths --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("name", "safe"), [
+    ("line3/drive 7", "line3_drive_7"),
+    ("CON", "_CON"), ("aux", "_aux"), ("nul.old", "_nul.old"), ("COM1", "_COM1"), ("lpt9.x", "_lpt9.x"),
+    ("COM10", "COM10"), ("CONSOLE", "CONSOLE"), ("con-1", "con-1"),
+    ("drive.", "drive"), ("..", "_"), ("", "_"),
+])
+def test_file_names_from_device_and_recipe_names(name: str, safe: str) -> None:
+    assert portable.file_name(name) == safe
+
+
+def test_long_names_stay_apart_and_within_the_limit() -> None:
+    a, b = portable.file_name("x" * 300 + "a"), portable.file_name("x" * 300 + "b")
+    assert a != b and len(a) == len(b) == portable.NAME_LIMIT
+
+
+def test_a_reserved_device_name_gets_a_snapshot_and_a_pulled_recipe(tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    from deployer.profile import builtin_profile
+    from deployer.state.snapshot import last_identity, snapshot_file
+    from deployer.testing.simulator import SimulatorThread
+
+    inv = tmp_path / "inv.yaml"
+    with SimulatorThread(builtin_profile("example-inverter")) as sim:
+        inv.write_text(f"devices:\n  CON:\n    url: {sim.url}\n    profile: example-inverter\n")
+        code, out, err = cli(capsys, "pull", "--inventory", str(inv), "-o", str(tmp_path / "pulled"))
+        assert code == 0, out + err
+    assert [p.name for p in (tmp_path / "pulled").iterdir()] == ["_CON.yaml"]
+    from deployer.recipe.loader import load_recipe
+
+    rec = load_recipe(str(tmp_path / "pulled" / "_CON.yaml"))
+    new = snapshot_file(str(tmp_path / "state"), "CON", rec, {}, "tcp://127.0.0.1:1", 1)
+    assert os.path.basename(new.first[0]).startswith("_CON-")
+    assert last_identity(str(tmp_path / "state"), "CON") is None  # found by the same name (none recorded)
+
+
+def test_a_path_too_long_is_said_plainly() -> None:
+    e = OSError(errno.ENAMETOOLONG, "File name too long", "x" * 300)
+    assert durable.disk_error(e).startswith("the path is too long (300 characters")
+    win = OSError(errno.EINVAL, "The filename or extension is too long", "C:\\" + "y" * 300)
+    win.winerror = 206  # type: ignore[attr-defined]  # what Windows sets beyond 260 characters
+    assert "too long" in durable.disk_error(win)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="Windows cannot fsync a folder (docs/windows.md)")
+def test_a_failed_folder_fsync_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    real = os.fsync
+
+    def fsync(fd: int) -> None:  # the folder's fsync fails (a network file system refusing it), files work
+        if stat.S_ISDIR(os.fstat(fd).st_mode):
+            raise OSError(errno.EACCES, "Permission denied")
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    with pytest.raises(UsageError) as e:
+        durable.write_atomic(str(tmp_path / "r.json"), "{}")
+    assert f"the fsync of its folder {tmp_path} failed: Permission denied" in str(e.value)
+
+
+def test_signals_without_loop_handlers_reach_the_loop() -> None:
+    # what Windows does: the loop has no add_signal_handler, so signal.signal hands the signal over
+    import asyncio
+    import signal
+
+    async def main() -> list[str]:
+        loop = asyncio.get_running_loop()
+        got: list[str] = []
+        done = asyncio.Event()
+
+        def on(sig: signal.Signals) -> None:
+            got.append(sig.name)
+            done.set()
+
+        def refuse(*a: object) -> None:
+            raise NotImplementedError
+
+        loop.add_signal_handler = refuse  # type: ignore[method-assign,assignment]
+        before = signal.getsignal(signal.SIGINT)
+        undo = portable.on_signals(loop, (signal.SIGINT,), on)
+        assert signal.getsignal(signal.SIGINT) is not before
+        signal.raise_signal(signal.SIGINT)
+        await asyncio.wait_for(done.wait(), 10)
+        undo()
+        assert signal.getsignal(signal.SIGINT) is before
+        return got
+
+    assert asyncio.run(main()) == ["SIGINT"]
+
+
+def test_liveness_never_signals() -> None:
+    assert portable.pid_alive(os.getpid())
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    assert not portable.pid_alive(p.pid) and not portable.pid_alive(0) and not portable.pid_alive(-1)

@@ -16,7 +16,6 @@ import os
 import signal
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import pytest
@@ -24,25 +23,16 @@ import pytest
 from deployer.profile import builtin_profile
 from deployer.state import lock
 from deployer.testing.simulator import SimulatorThread
-from deployer.transport import urls
 from tests.helpers import wait_for
+from tests.test_portable import env, python
 
 pytestmark = [pytest.mark.timeout(180),
               pytest.mark.skipif(not sys.platform.startswith("linux"),
                                  reason="the POSIX-less harness hides Linux's POSIX modules (Windows runs the "
                                         "suite itself in CI)")]
 
-HARNESS = Path(__file__).parent / "posixless"
-ROOT = Path(__file__).parent.parent
 FIRST = "  F07: 10 s\n  F08: 8 s\n  stop_mode: coast\n  base_speed: 1750 rpm\n  preset[0]: {speed: 300, time: 2 s}\n"
 SECOND = "  F07: 20 s\n  F08: 9 s\n  stop_mode: ramp\n  base_speed: 1600 rpm\n  preset[0]: {speed: 900, time: 3 s}\n"
-
-
-def env(posixless: bool = True) -> dict[str, str]:
-    e = dict(os.environ)
-    path = [str(ROOT)] + ([e["PYTHONPATH"]] if e.get("PYTHONPATH") else [])
-    e["PYTHONPATH"] = os.pathsep.join(([str(HARNESS)] if posixless else []) + path)
-    return e
 
 
 def deployer(cwd: Path, *args: str) -> tuple[int, str, str]:
@@ -54,11 +44,6 @@ def deployer(cwd: Path, *args: str) -> tuple[int, str, str]:
 def start(cwd: Path, *args: str) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, "-m", "deployer", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, cwd=cwd, env=env())
-
-
-def python(code: str, *args: str, posixless: bool = True, cwd: Path | None = None) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code), *args], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env(posixless), cwd=cwd)
 
 
 def recipe(tmp: Path, name: str, body: str) -> str:
@@ -181,70 +166,3 @@ def test_one_writer_per_device_and_ctrl_c_without_posix(tmp_path: Path) -> None:
         code, out, err = deployer(tmp_path, "rollback", "--from-report", "c.json", "--yes", "--state-dir", "sc")
         assert code == 0, out + err
         assert sim.read("base_speed") == (1750,)  # what the interrupted run found
-
-
-# ---- the portable lock, each backend: flock (POSIX) and range (Windows' backend) ----------------------
-
-HOLDER = """
-    import asyncio, json, sys
-    from deployer.state import lock, oslock
-    from deployer.transport.urls import parse_url
-    url, unit, hold = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "hold"
-    try:
-        held = asyncio.run(lock.acquire_device(parse_url(url).lock_keys, unit, command="test"))
-    except lock.Locked as e:
-        print(json.dumps({"locked": str(e), "backend": oslock.backend().name}), flush=True)
-        sys.exit(3)
-    print(json.dumps({"held": True, "backend": oslock.backend().name,
-                      "stale": [h.stale for h in held if h.stale]}), flush=True)
-    if hold:
-        sys.stdin.read()  # until the test closes stdin, or kills this process
-    for h in held:
-        h.release()
-"""
-
-
-def holder(url: str, unit: int, *, hold: bool, posixless: bool) -> tuple[subprocess.Popen[str], dict[str, object]]:
-    p = python(HOLDER, url, str(unit), "hold" if hold else "once", posixless=posixless)
-    assert p.stdout is not None
-    line = p.stdout.readline()
-    assert line, p.communicate()[1]
-    return p, json.loads(line)
-
-
-@pytest.mark.parametrize("backend", ["flock", "range"])
-def test_portable_lock_two_processes_two_spellings_a_killed_holder(backend: str) -> None:
-    posixless = backend == "range"
-    a, said = holder("tcp://127.0.0.1:1502", 1, hold=True, posixless=posixless)
-    assert said == {"held": True, "backend": backend, "stale": []}
-    b, said = holder("tcp://localhost:1502", 1, hold=False, posixless=posixless)  # another spelling
-    assert b.wait(timeout=30) == 3 and said["backend"] == backend
-    assert f"locked by PID {a.pid}" in str(said["locked"])
-    c, said = holder("tcp://127.1:1502", 2, hold=False, posixless=posixless)  # another unit of the bus
-    assert c.wait(timeout=30) == 0 and said["held"] is True
-    d, said = holder("tcp://2130706433:1502", 0, hold=False, posixless=posixless)  # a broadcast: the whole bus
-    assert d.wait(timeout=30) == 3 and "the bus is in use" in str(said["locked"])
-    a.kill()  # SIGKILL: no release, no clean-up; the system drops its locks
-    a.wait(timeout=30)
-    e, said = holder("tcp://localhost:1502", 1, hold=False, posixless=posixless)
-    assert e.wait(timeout=30) == 0 and said["held"] is True
-    assert any(f"stale lock of PID {a.pid}" in str(s) for s in said["stale"]), said  # type: ignore[attr-defined]
-    for p in (a, b, c, d, e):
-        for f in (p.stdin, p.stdout, p.stderr):
-            if f is not None:
-                f.close()
-
-
-def test_com_ports_in_device_urls() -> None:
-    for text, shown, key, opened in [
-        ("rtu://COM3?baudrate=19200&parity=E", "rtu://COM3?baudrate=19200&parity=E", "serial:COM3", r"\\.\COM3"),
-        ("rtu://com10", "rtu://COM10", "serial:COM10", r"\\.\COM10"),
-        (r"rtu://\\.\COM10?baudrate=9600", "rtu://COM10?baudrate=9600", "serial:COM10", r"\\.\COM10"),
-        ("ascii://COM4", "ascii://COM4", "serial:COM4", r"\\.\COM4"),
-        (r"rtu://\\.\CNCA0", r"rtu://\\.\CNCA0", "serial:CNCA0", r"\\.\CNCA0"),
-    ]:
-        u = urls.parse_url(text)
-        assert (urls.describe(u), u.lock_keys, u.serial_device) == (shown, (key,), opened), text
-    # one port, however it is spelled: one lock
-    assert len({urls.parse_url(t).lock_keys for t in ("rtu://COM10", "rtu://com10", r"rtu://\\.\COM10")}) == 1
-    assert urls.parse_url("rtu:///dev/ttyUSB0").serial_device == "/dev/ttyUSB0"
