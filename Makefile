@@ -1,34 +1,65 @@
 # Both targets do all set-up on a fresh machine that has only python3.
+# They install the versions in constraints.txt (the ones the suite passed with), so a fresh machine
+# gets today's result next month too; `make test-latest` tries the newest releases instead.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
+LATEST := .venv-latest
+# PIP_CONSTRAINT (unlike -c) reaches pip's isolated build environment too: setuptools is pinned as well
+PINNED := PIP_CONSTRAINT=$(CURDIR)/constraints.txt
 
-.PHONY: demo test lint bench fuzz docs site clean
+.PHONY: demo test check lint bench fuzz docs site clean test-latest constraints
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
+	$(PINNED) $(BIN)/python -m pip install -q --upgrade pip
 
-$(VENV)/.installed: pyproject.toml | $(BIN)/python
-	$(BIN)/pip install -q -e .
+$(VENV)/.installed: pyproject.toml constraints.txt | $(BIN)/python
+	$(PINNED) $(BIN)/pip install -q -e .
 	touch $@
 
-$(VENV)/.installed-test: pyproject.toml | $(BIN)/python
-	$(BIN)/pip install -q -e '.[test]'
+$(VENV)/.installed-test: pyproject.toml constraints.txt | $(BIN)/python
+	$(PINNED) $(BIN)/pip install -q -e '.[test]'
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
 	$(BIN)/deployer demo
 
 test: $(VENV)/.installed-test
-	$(BIN)/python -m pytest -q
-	$(BIN)/ruff check deployer tests benchmarks ansible_collections
-	$(BIN)/mypy deployer tests
-	$(BIN)/mkdocs build --strict --site-dir build/site   # the manual: a broken link between pages fails
+	$(MAKE) --no-print-directory check BIN=$(BIN)
+
+# the manual: a broken link between pages fails mkdocs --strict.
+# every step runs even when one fails (the suite's failures do not hide ruff's and mypy's); fails if any did
+check:
+	@rc=0; \
+	$(BIN)/python -m pytest -q || rc=1; \
+	$(BIN)/ruff check deployer tests benchmarks ansible_collections tools || rc=1; \
+	$(BIN)/mypy deployer tests tools || rc=1; \
+	$(BIN)/mkdocs build --strict --site-dir build/site || rc=1; \
+	exit $$rc
+
+# The suite against the newest release of every dependency, in a venv of its own; prints what differs
+# from constraints.txt first. Upkeep (what Dependabot would do): `make test-latest && make constraints`.
+$(LATEST)/.installed: pyproject.toml
+	rm -rf $(LATEST)
+	$(PYTHON) -m venv $(LATEST)
+	$(LATEST)/bin/python -m pip install -q --upgrade pip setuptools wheel
+	$(LATEST)/bin/pip install -q --upgrade -e '.[test]'
+	touch $@
+
+test-latest:
+	rm -f $(LATEST)/.installed
+	$(MAKE) --no-print-directory $(LATEST)/.installed
+	$(LATEST)/bin/pip freeze --all --exclude-editable | $(LATEST)/bin/python tools/versions.py constraints.txt
+	$(MAKE) --no-print-directory check BIN=$(LATEST)/bin
+
+# write the versions of the last `make test-latest` into constraints.txt (commit it once `make test` passes)
+constraints: $(LATEST)/.installed
+	$(LATEST)/bin/pip freeze --all --exclude-editable | $(LATEST)/bin/python tools/versions.py --write constraints.txt
 
 lint: $(VENV)/.installed-test
-	$(BIN)/ruff check deployer tests benchmarks ansible_collections
-	$(BIN)/mypy deployer tests
+	$(BIN)/ruff check deployer tests benchmarks ansible_collections tools
+	$(BIN)/mypy deployer tests tools
 
 docs: $(VENV)/.installed
 	$(BIN)/deployer docs --out docs/reference
@@ -43,4 +74,4 @@ fuzz: $(VENV)/.installed-test
 	$(BIN)/python -m tests.fuzz --files 200000 --seconds 900
 
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build *.egg-info
+	rm -rf $(VENV) $(LATEST) .pytest_cache .mypy_cache .ruff_cache build *.egg-info

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import time
 from collections.abc import Iterator
@@ -37,12 +38,38 @@ def socat_pair(tmp_path: Path) -> Iterator[tuple[str, str]]:
             proc.kill()
 
 
-def free_port() -> int:
-    import socket
+_HELD: list[socket.socket] = []
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+
+def simulate_process(*args: str) -> tuple[subprocess.Popen[str], str, int]:
+    """``deployer simulate ARGS --listen tcp://127.0.0.1:0`` in a process of its own: (process, the URL
+    and the port it reported). The server picks its port, so no two tests can be handed the same one."""
+    import re
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "deployer", "simulate", *args, "--listen", "tcp://127.0.0.1:0"],
+                            stderr=subprocess.PIPE, text=True)
+    assert proc.stderr is not None
+    line = proc.stderr.readline()
+    found = re.search(r" on (tcp://127\.0\.0\.1:(\d+)) ", line)
+    if found is None:
+        proc.kill()
+        raise AssertionError(f"the simulator did not report its port: {line!r}")
+    return proc, found.group(1), int(found.group(2))
+
+
+def dead_port() -> int:
+    """A 127.0.0.1 TCP port where nothing listens, and nothing will while the tests run.
+
+    The port stays bound (never listening) until the test process ends, so connections to it are
+    refused and no other test or server can be handed it: a port guessed from a closed socket could
+    be handed out twice (two "dead" devices on one port are one device) or taken by a server.
+    A test that needs a server lets the server bind port 0 and reads back the port it got.
+    """
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    _HELD.append(s)
+    return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="module")

@@ -181,12 +181,9 @@ def test_device_stops_answering_mid_plan(tmp_path: Path) -> None:
 
 
 def test_unreachable_device_exit_3(tmp_path: Path) -> None:
-    import socket
+    from tests.conftest import dead_port
 
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()  # nothing listens there now
+    port = dead_port()
     rec = load_recipe(line3(tmp_path))
     import asyncio
 

@@ -14,20 +14,19 @@ from deployer.profile import builtin_profile
 from deployer.recipe.loader import load_recipe
 from deployer.testing.simulator import Simulator, SimulatorThread
 from deployer.transport import clients as tp
-from tests.conftest import free_port
 from tests.helpers import profile_from, umodbus_server
 
 pytestmark = pytest.mark.timeout(60)
 
 
 def test_tls_apply_with_client_certificate(pki: dict[str, str], tmp_path: Path) -> None:
-    port = free_port()
-    listen = f"tls://127.0.0.1:{port}?cert={pki['server_crt']}&key={pki['server_key']}&ca={pki['ca']}"
+    listen = f"tls://127.0.0.1:0?cert={pki['server_crt']}&key={pki['server_key']}&ca={pki['ca']}"
     (tmp_path / "r.yaml").write_text("recipe: r\nprofile: omron-m1\nparameters: {F07: 10 s}\n")
     rec = load_recipe(str(tmp_path / "r.yaml"))
 
     async def main() -> None:
         async with Simulator(builtin_profile("omron-m1"), listen=listen) as sim:
+            port = sim.url.rsplit(":", 1)[1]  # the port the system gave
             url = tp.parse_url(f"tls://127.0.0.1:{port}?cert={pki['client_crt']}&key={pki['client_key']}"
                                f"&ca={pki['ca']}&timeout=2")
             res = await apply_device(rec, url, 1, options=ApplyOptions(state_dir=str(tmp_path / ".d")))

@@ -46,6 +46,19 @@ def test_bad_file(name: str, where: str, fragment: str) -> None:
     assert any(p == os.path.normpath(file) and ln == line and c == col and fragment in m for p, ln, c, m in got), got
 
 
+def test_deeper_than_libyaml_allows(tmp_path: Path) -> None:
+    """2,000 nested lists in a mapping (libyaml stops at 1,000 with its own message): our limit, at the
+    list that is the 65th level."""
+    from deployer.load import yamlsrc
+
+    f = tmp_path / "deep.yaml"
+    f.write_text("a: " + "[" * 2000 + "]" * 2000 + "\n")
+    with pytest.raises(InputError) as err:
+        yamlsrc.load(f)
+    (d,) = err.value.diagnostics
+    assert (d.line, d.col, d.message) == (1, 3 + yamlsrc.MAX_DEPTH, f"nested deeper than {yamlsrc.MAX_DEPTH} levels")
+
+
 def test_huge_file(tmp_path: Path) -> None:
     """A file beyond the size limit (32 MiB) is refused up front with a position, not parsed."""
     from deployer.load.yamlsrc import MAX_FILE_BYTES

@@ -14,7 +14,7 @@ import pytest
 from deployer.load import schema
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import SimulatorThread
-from tests.conftest import free_port
+from tests.conftest import dead_port
 from tests.helpers import cli
 
 pytestmark = pytest.mark.timeout(60)
@@ -137,7 +137,7 @@ def test_broadcast_refused(capsys: pytest.CaptureFixture[str], tmp_path: Path) -
 
 
 def test_unreachable_exit_3(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    port = free_port()
+    port = dead_port()
     code, out, err = cli(capsys, "apply", recipe(tmp_path), "--device", f"tcp://127.0.0.1:{port}?timeout=0.3",
                          "--yes", "--state-dir", str(tmp_path / "s"))
     assert code == 3 and "unreachable" in out and "connection refused" in out
@@ -204,10 +204,23 @@ def test_rollback_command(capsys: pytest.CaptureFixture[str], tmp_path: Path, in
 
 
 def test_demo_runs(capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The demo leaves nothing in the temporary folder (its files, state and device locks go in a folder
+    of its own, removed at the end) unless --keep names a folder for them."""
     monkeypatch.chdir(tmp_path)
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(tmp))
+    monkeypatch.delenv("DEPLOYER_LOCK_DIR", raising=False)
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", None)  # TMPDIR is read again
     code, out, _ = cli(capsys, "demo", "--fast")
     assert code == 0, out
     assert "demo finished" in out and "exception 04" in out and "no drift" in out
+    assert list(tmp.iterdir()) == [] and "DEPLOYER_LOCK_DIR" not in os.environ
+    code, out, _ = cli(capsys, "demo", "--fast", "--keep", str(tmp_path / "kept"))
+    assert code == 0, out
+    assert (tmp_path / "kept" / ".deployer" / "audit.jsonl").is_file() and list(tmp.iterdir()) == []
 
 
 def _run_on_a_terminal(args: list[str], answer: bytes, timeout: float = 30,

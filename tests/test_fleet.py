@@ -24,7 +24,7 @@ from deployer.load import schema
 from deployer.load.diagnostics import UsageError
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import Faults, Simulator
-from tests.conftest import free_port
+from tests.conftest import dead_port
 from tests.helpers import Simulators, cli
 
 pytestmark = pytest.mark.timeout(120)
@@ -109,7 +109,7 @@ def test_fifty_devices_three_faulty(capsys: pytest.CaptureFixture[str], tmp_path
     # d07: dead (nothing listens), d23: rejects F08 (partial), d41: slow (but within the timeout)
     with fleet(50, {23: Faults(fail_registers=frozenset({F08})), 41: Faults(latency_ms=150)}) as sims:
         urls = {n: s.url for n, s in zip(names(50), sims, strict=True)}
-        urls["d07"] = f"tcp://127.0.0.1:{free_port()}"
+        urls["d07"] = f"tcp://127.0.0.1:{dead_port()}"
         report_file = tmp_path / "report.json"
         code, out, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
                              "--parallel", "16", "--json", "--report", str(report_file),
@@ -193,7 +193,7 @@ def test_an_unreachable_device_spends_the_failure_budget_and_batches_are_recorde
     # the run: --batch 1,20%,100% --max-failures 1 over ten devices, one of them dead (d01, batch 2)
     with fleet(10) as sims:
         urls = {n: s.url for n, s in zip(names(10), sims, strict=True)}
-        urls["d01"] = f"tcp://127.0.0.1:{free_port()}"
+        urls["d01"] = f"tcp://127.0.0.1:{dead_port()}"
         report_file, state = tmp_path / "run.json", tmp_path / "s"
         code, out, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
                              "--batch", "1,20%,100%", "--max-failures", "1", "--parallel", "1", "--json",
@@ -330,8 +330,8 @@ def test_fleet_diff_names_exactly_the_drifted_devices(capsys: pytest.CaptureFixt
 def test_fleet_plan_and_diff_group_identical_changes(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with fleet(7) as sims:
         urls = {n: s.url for n, s in zip(names(6), sims[:6], strict=True)}
-        urls["dead-1"] = f"tcp://127.0.0.1:{free_port()}"
-        urls["dead-2"] = f"tcp://127.0.0.1:{free_port()}"
+        urls["dead-1"] = f"tcp://127.0.0.1:{dead_port()}"
+        urls["dead-2"] = f"tcp://127.0.0.1:{dead_port()}"
         inv = inventory(tmp_path, urls, extra=f"  d06: {{url: '{sims[6].url}', parameters: {{F08: 20 s}}}}\n")
         for n, v in WANT.items():  # d05 already holds the recipe
             sims[5].write(n, v)
@@ -374,7 +374,7 @@ def test_fleet_plan_and_diff_group_identical_changes(capsys: pytest.CaptureFixtu
 def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with fleet(3) as sims:
         urls = {n: s.url for n, s in zip(names(3), sims, strict=True)}
-        urls["dead"] = f"tcp://127.0.0.1:{free_port()}"
+        urls["dead"] = f"tcp://127.0.0.1:{dead_port()}"
         inv = inventory(tmp_path, urls, groups={"d00": "a", "d01": "a", "d02": "b", "dead": "c"})
         sims[1].write("F07", (0, 1000))
         sims[1].write("F08", (0, 1200))
@@ -426,7 +426,7 @@ def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path
 def test_open_file_limit_is_raised_or_the_run_refused_up_front(tmp_path: Path) -> None:
     import resource
 
-    urls = {n: f"tcp://127.0.0.1:{free_port()}?timeout=0.2&retries=0" for n in names(3)}
+    urls = {n: f"tcp://127.0.0.1:{dead_port()}?timeout=0.2&retries=0" for n in names(3)}
     inv = inventory(tmp_path, urls)
 
     def run(soft: int, hard: int) -> subprocess.CompletedProcess[str]:
@@ -444,7 +444,7 @@ def test_open_file_limit_is_raised_or_the_run_refused_up_front(tmp_path: Path) -
 
 def test_without_a_terminal_one_plain_unwrapped_line_per_device(tmp_path: Path) -> None:
     long = [f"line3-press-{i}-in-the-north-hall-next-to-the-big-door" for i in range(3)]
-    urls = {n: f"tcp://127.0.0.1:{free_port()}?timeout=0.2&retries=0" for n in long}
+    urls = {n: f"tcp://127.0.0.1:{dead_port()}?timeout=0.2&retries=0" for n in long}
     done = subprocess.run([sys.executable, "-m", "deployer", "apply", recipe(tmp_path), "--inventory",
                            inventory(tmp_path, urls), "--yes", "--state-dir", str(tmp_path / "s")],
                           capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)

@@ -20,7 +20,7 @@ from deployer.load import schema, yamlsrc
 from deployer.load.diagnostics import InputError
 from deployer.profile import builtin_profile, load_profile
 from deployer.testing.simulator import Simulator
-from tests.conftest import free_port
+from tests.conftest import dead_port
 from tests.helpers import Simulators, cli
 
 pytestmark = pytest.mark.timeout(180)
@@ -193,7 +193,7 @@ def mbpoll(sim: Simulator, register: int, count: int = 1, write: tuple[int, ...]
 
 def test_a_recipe_for_one_type_over_a_mixed_line_names_the_devices_once(capsys: pytest.CaptureFixture[str],
                                                                           tmp_path: Path) -> None:
-    urls = {n: f"tcp://127.0.0.1:{free_port()}" for n in NAMES}
+    urls = {n: f"tcp://127.0.0.1:{dead_port()}" for n in NAMES}
     inv = line(tmp_path, urls)
     zone = str(tmp_path / "recipes" / "zone.yaml")
     code, _, err = cli(capsys, "plan", zone, "--inventory", inv)

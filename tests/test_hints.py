@@ -11,7 +11,6 @@ from deployer.cli.files import validate_file
 from deployer.load.diagnostics import InputError
 from deployer.profile import builtin_profile, builtin_profile_ids
 from deployer.testing.simulator import Faults, SimulatorThread
-from tests.conftest import free_port
 from tests.helpers import cli
 
 pytestmark = pytest.mark.timeout(60)
@@ -106,8 +105,9 @@ def test_no_answer_through_a_gateway_points_at_the_gateway_settings(capsys: pyte
                                                                     tmp_path: Path) -> None:
     recipe = tmp_path / "r.yaml"
     recipe.write_text("recipe: r\nprofile: example-inverter\nparameters: {F07: 10 s}\n")
-    url = f"rtu+tcp://127.0.0.1:{free_port()}"
-    with SimulatorThread(builtin_profile("example-inverter"), listen=url, faults=Faults(drop_every=1)):
+    with SimulatorThread(builtin_profile("example-inverter"), listen="rtu+tcp://127.0.0.1:0",
+                         faults=Faults(drop_every=1)) as sim:
+        url = sim.url  # the port the system gave
         code, _, err = cli(capsys, "diff", str(recipe), "--device", f"{url}?timeout=0.1&retries=0", "--unit", "3")
     assert code == 3 and err.endswith(
         "unit 3: no answer after 1 attempt through the gateway, unit 3: check the unit id and that the gateway's "

@@ -17,7 +17,7 @@ import pytest
 
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import Faults, Simulator
-from tests.conftest import free_port
+from tests.conftest import dead_port
 from tests.helpers import Simulators, cli
 
 PROFILE = builtin_profile("example-inverter")
@@ -104,7 +104,7 @@ def test_a_fleet_run_as_a_page_failures_first_counts_filters(capsys: pytest.Capt
                                                               tmp_path: Path) -> None:
     faults = [Faults(), Faults(), Faults(fail_registers=frozenset({F08})), Faults()]
     with Simulators([Simulator(PROFILE, faults=f) for f in faults]) as sims:
-        rec, inv = fleet_files(tmp_path, sims, free_port())
+        rec, inv = fleet_files(tmp_path, sims, dead_port())
         page, report = tmp_path / "run.html", tmp_path / "run.json"
         code = cli(capsys, "apply", str(rec), "--inventory", str(inv), "--yes", "--batch", "1,100%",
                    "--state-dir", str(tmp_path / "st"), "--report", str(report), "--html", str(page))[0]
@@ -148,7 +148,7 @@ def test_a_fleet_run_as_a_page_failures_first_counts_filters(capsys: pytest.Capt
 
 def test_the_page_prints_as_the_commissioning_record(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE) for _ in range(2)]) as sims:
-        rec, inv = fleet_files(tmp_path, sims, free_port())
+        rec, inv = fleet_files(tmp_path, sims, dead_port())
         inv.write_text("\n".join(inv.read_text().splitlines()[:-1]) + "\n")  # both devices answer
         page = tmp_path / "run.html"
         assert cli(capsys, "apply", str(rec), "--inventory", str(inv), "--yes", "--state-dir",
@@ -164,7 +164,7 @@ def test_the_page_prints_as_the_commissioning_record(capsys: pytest.CaptureFixtu
 
 def test_pull_writes_the_as_found_record(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE) for _ in range(2)]) as sims:
-        _, inv = fleet_files(tmp_path, sims, free_port())
+        _, inv = fleet_files(tmp_path, sims, dead_port())
         page = tmp_path / "found.html"
         code = cli(capsys, "pull", "--inventory", str(inv), "--profile", "example-inverter", "-o",
                    str(tmp_path / "pulled"), "--html", str(page))[0]
@@ -178,7 +178,7 @@ def test_pull_writes_the_as_found_record(capsys: pytest.CaptureFixture[str], tmp
 
 def test_drift_matrix_page(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE) for _ in range(3)]) as sims:
-        rec, inv = fleet_files(tmp_path, sims, free_port())
+        rec, inv = fleet_files(tmp_path, sims, dead_port())
         inv.write_text("\n".join(inv.read_text().splitlines()[:-1]) + "\n")
         assert cli(capsys, "apply", str(rec), "--inventory", str(inv), "--yes", "--state-dir",
                    str(tmp_path / "st"))[0] == 0

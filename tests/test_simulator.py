@@ -8,7 +8,6 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -21,7 +20,7 @@ from pymodbus.pdu import ModbusPDU
 
 from deployer.profile import Profile, builtin_profile
 from deployer.testing.simulator import Faults, Simulator, SimulatorThread
-from tests.conftest import free_port
+from tests.conftest import simulate_process
 from tests.helpers import profile_from
 
 pytestmark = pytest.mark.timeout(90)
@@ -300,14 +299,10 @@ def test_rtu_over_pty(dev: Profile, socat_pair: tuple[str, str]) -> None:
 
 
 def test_cli_simulate_serves_and_dumps_state(tmp_path: Path) -> None:
-    port = free_port()
     state = tmp_path / "state.json"
-    proc = subprocess.Popen([sys.executable, "-m", "deployer", "simulate", "omron-m1", "--listen",
-                             f"tcp://127.0.0.1:{port}", "--state", str(state)], stderr=subprocess.PIPE, text=True)
+    proc, url, port = simulate_process("omron-m1", "--state", str(state))
     try:
-        assert proc.stderr is not None
-        line = proc.stderr.readline()
-        assert f"simulating omron-m1 unit 1 on tcp://127.0.0.1:{port}" in line
+        assert port != 0 and url == f"tcp://127.0.0.1:{port}"  # the port the system gave, reported
 
         async def query() -> None:
             c = AsyncModbusTcpClient("127.0.0.1", port=port, retries=0, timeout=2)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
-import socket
 import ssl
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -23,6 +22,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from deployer.transport import clients as tp
+from tests.conftest import dead_port
 from tests.helpers import umodbus_server as start_umodbus
 
 pytestmark = pytest.mark.timeout(30)
@@ -81,12 +81,6 @@ async def serve(kind: str, *, units: tuple[int, ...] = (1,), path: str = "", ssl
 def pty_pair(socat_pair: tuple[str, str]) -> tuple[str, str]:
     """Two linked pseudo-terminals (conftest's socat pair): (server end, client end)."""
     return socat_pair
-
-
-def closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def sent(t: tp.Transport) -> list[bytes]:
@@ -217,7 +211,7 @@ def test_exception_response_carries_function_and_code() -> None:
 
 def test_refused_connection_is_unreachable_fast() -> None:
     async def main() -> None:
-        port = closed_port()
+        port = dead_port()
         t = tp.open_transport(f"tcp://127.0.0.1:{port}?timeout=2")
         start = time.monotonic()
         with pytest.raises(tp.Unreachable) as err:
@@ -327,7 +321,7 @@ def test_tls_without_client_certificate_is_refused_by_the_device(pki: dict[str, 
 
 def test_tls_refused_is_not_reported_as_a_handshake_failure(pki: dict[str, str]) -> None:
     async def main() -> None:
-        port = closed_port()
+        port = dead_port()
         with pytest.raises(tp.Unreachable) as err:
             await tp.open_transport(f"tls://127.0.0.1:{port}?ca={pki['ca']}").connect()
         assert str(err.value) == f"tls://127.0.0.1:{port}: connection refused"

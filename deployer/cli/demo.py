@@ -65,12 +65,36 @@ parameters:
 """
 
 
-def run_demo(*, fast: bool = False) -> int:
+def run_demo(*, fast: bool = False, keep: str | None = None) -> int:
+    """Run the story in a folder of its own: ``keep`` (created if need be, left in place), else a
+    temporary folder removed at the end. The demo's device lives only as long as the demo, so its
+    locks go in that folder too, not in the machine's lock folder: nothing is left in /tmp."""
+    from ..state.lock import ENV as LOCK_DIR_ENV
+
+    if keep is not None:
+        os.makedirs(keep, exist_ok=True)
+        return _story(os.path.abspath(keep), fast=fast, kept=True, lock_env=LOCK_DIR_ENV)
+    with tempfile.TemporaryDirectory(prefix="deployer-demo-") as work:
+        return _story(work, fast=fast, kept=False, lock_env=LOCK_DIR_ENV)
+
+
+def _story(work: str, *, fast: bool, kept: bool, lock_env: str) -> int:
+    before = os.environ.get(lock_env)
+    os.environ[lock_env] = os.path.join(work, "locks")
+    try:
+        return _steps(work, fast=fast, kept=kept)
+    finally:
+        if before is None:
+            os.environ.pop(lock_env, None)
+        else:
+            os.environ[lock_env] = before
+
+
+def _steps(work: str, *, fast: bool, kept: bool) -> int:
     from ..cli import cli
 
     profile = builtin_profile("example-inverter")
     bad = profile.parameter("speed_offset").address
-    work = tempfile.mkdtemp(prefix="deployer-demo-")
     state = os.path.join(work, ".deployer")
     faults = Faults()
     with SimulatorThread(profile, listen="tcp://127.0.0.1:0", faults=faults) as sim:
@@ -99,7 +123,9 @@ def run_demo(*, fast: bool = False) -> int:
             return code
 
         click.secho("deployer demo", bold=True)
-        click.echo(f"A simulated example-inverter listens on {url} (unit 1). Files are in {work}.")
+        where = f"Files are in {work}." if kept else "Files are in a temporary folder, removed at the end " \
+                                                    "(deployer demo --keep DIR keeps them)."
+        click.echo(f"A simulated example-inverter listens on {url} (unit 1). {where}")
         step("1. Validate", "Recipes and profiles are checked before anything is sent: schema, units, ranges, "
                             "resolution. This recipe extends a shared base:")
         click.echo(LINE3.format(url=url))
@@ -138,8 +164,9 @@ def run_demo(*, fast: bool = False) -> int:
                                                         "(store to EEPROM) is never sent.")
         codes.append(run(["apply", fast_ramp, "--yes", "--state-dir", state, "--device", url,
                           "--soak", "1s" if fast else "3s", "--health-interval", "250ms"]))
-        click.echo()
-        click.echo(f"Audit log: {os.path.join(state, 'audit.jsonl')}")
+        if kept:
+            click.echo()
+            click.echo(f"Audit log: {os.path.join(state, 'audit.jsonl')}")
     expected = [0, 0, 0, 0, 0, 2, 4, 0, 0, 4]
     if codes != expected:
         click.secho(f"demo: unexpected exit codes {codes} (expected {expected})", fg="red", err=True)

@@ -138,8 +138,11 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
 
 @click.command()
 @click.option("--fast", is_flag=True, hidden=True, help="no pauses between steps (tests)")
-def demo(fast: bool) -> int:
+@click.option("--keep", "keep", metavar="DIR", default=None,
+              help="write the demo's files (recipes, state folder, audit log) into DIR and keep them; "
+                   "by default they go in a temporary folder removed at the end")
+def demo(fast: bool, keep: str | None) -> int:
     """The whole story against a built-in simulated device: validate, plan, apply, verify, drift, rollback."""
     from .demo import run_demo
 
-    return run_demo(fast=fast)
+    return run_demo(fast=fast, keep=keep)

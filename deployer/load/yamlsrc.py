@@ -524,17 +524,18 @@ def read_text(path: str) -> str:
         ) from None
 
 
-_REPARSE_BYTES = 256 * 1024
+# A libyaml error within this many bytes of the start is found again by the pure-Python parser (about
+# 1 MB/s), whose diagnostics are then the answer: both parsers give one, whatever libyaml's version.
+_REPARSE_BYTES = 4 * 1024 * 1024
 
 
 def _python_error(text: str, err: yaml.MarkedYAMLError) -> yaml.MarkedYAMLError:
-    """The pure-Python parser's wording of a syntax error libyaml found (same position).
+    """The pure-Python parser's wording of a syntax error libyaml found past ``_REPARSE_BYTES``.
 
-    libyaml words some errors differently ("did not find expected key"); the messages stay the
-    same whichever parser PyYAML has. Only for errors early in the file: it parses up to there.
+    Only the message is taken, and only when both stop at the same place; else libyaml's stands.
     """
     mark = err.problem_mark or err.context_mark
-    if mark is None or mark.index > _REPARSE_BYTES:
+    if mark is None:
         return err
     depth = 0
     deadline = time.monotonic() + 0.25
@@ -621,6 +622,12 @@ def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[
                                          "expected a single document in the file, found another one")])
     except yaml.MarkedYAMLError as e:
         if loader is not yaml.SafeLoader:
+            # libyaml reads ahead and has limits of its own that change between releases (0.2.6 stops
+            # at 1000 nested levels before we see the 65th): ask the pure-Python parser, whose
+            # events the builder checks one by one, so our limits and positions apply first
+            mark = e.problem_mark or e.context_mark
+            if mark is None or mark.index <= _REPARSE_BYTES:
+                return load(p, text, loader=yaml.SafeLoader, hand_over=hand_over)
             e = _python_error(text, e)
         mark = e.problem_mark or e.context_mark
         line, col = (mark.line + 1, mark.column + 1) if mark else (1, 1)
