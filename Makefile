@@ -12,7 +12,7 @@ PINNED := PIP_CONSTRAINT=$(CURDIR)/constraints.txt
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
-	$(PINNED) $(BIN)/python -m pip install -q --upgrade pip
+	$(PINNED) $(BIN)/python -m pip install -q --upgrade pip setuptools wheel
 
 $(VENV)/.installed: pyproject.toml constraints.txt | $(BIN)/python
 	$(PINNED) $(BIN)/pip install -q -e .
