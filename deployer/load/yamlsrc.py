@@ -627,7 +627,14 @@ def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[
             # events the builder checks one by one, so our limits and positions apply first
             mark = e.problem_mark or e.context_mark
             if mark is None or mark.index <= _REPARSE_BYTES:
-                return load(p, text, loader=yaml.SafeLoader, hand_over=hand_over)
+                try:
+                    return load(p, text, loader=yaml.SafeLoader, hand_over=hand_over)
+                except InputError as again:
+                    first = again.diagnostics[0]
+                    # the pure-Python reader refuses a bad character anywhere before it parses: when
+                    # that lies past libyaml's error, libyaml's came first in the file and stands
+                    if mark is None or (first.line, first.col) <= (mark.line + 1, mark.column + 1):
+                        raise
             e = _python_error(text, e)
         mark = e.problem_mark or e.context_mark
         line, col = (mark.line + 1, mark.column + 1) if mark else (1, 1)
