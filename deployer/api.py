@@ -202,6 +202,15 @@ def _need_parallel(parallel: object) -> None:
     LIMITS.parallel.check(parallel, "parallel")
 
 
+BATCH_BY = ("profile", "group")  # what one batch of a staged rollout takes a share of
+
+
+def _need_batch_by(batch_by: object, call: str) -> str:
+    if batch_by not in BATCH_BY:
+        raise UsageError(f"{call}: batch_by is 'profile' or 'group', not {batch_by!r}")
+    return str(batch_by)
+
+
 def _need_options(options: object, call: str) -> ApplyOptions:
     """``options`` (None: the defaults) checked against the bounds, before anything is sent."""
     from .execute.session import ApplyOptions
@@ -618,14 +627,15 @@ async def apply_fleet_async(recipe: Recipe | None, inventory: str | Inventory, *
                             parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
                             options: ApplyOptions | None = None, report_path: str | None = None,
                             on_start: Callable[[Job], None] | None = None,
-                            on_done: Callable[[DeviceResult], None] | None = None) -> Report:
+                            on_done: Callable[[DeviceResult], None] | None = None,
+                            batch_by: str = "profile") -> Report:
     """Apply to the devices of an inventory (``limit`` selects): staged, with a failure budget, see ``run_fleet``.
 
     ``recipe`` None: each device gets the recipe the inventory gives it."""
     return await run_fleet_async(fleet_jobs(recipe, inventory, limit=limit),
                                  recipe_name=None if recipe is None else recipe.path or recipe.name,
                                  parallel=parallel, batch=batch, max_failures=max_failures, options=options,
-                                 report_path=report_path, on_start=on_start, on_done=on_done)
+                                 report_path=report_path, on_start=on_start, on_done=on_done, batch_by=batch_by)
 
 
 async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None, parallel: int = 8,
@@ -633,9 +643,11 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
                           options: ApplyOptions | None = None, report_path: str | None = None,
                           on_start: Callable[[Job], None] | None = None,
                           on_done: Callable[[DeviceResult], None] | None = None,
-                          via: str = "api", signals: bool = False, **safe: Any) -> Report:
+                          via: str = "api", signals: bool = False, batch_by: str = "profile", **safe: Any) -> Report:
     """Apply jobs as one journaled fleet run (``run.runner.run_async``): ``batch`` ("1,10%,100%") stages it,
-    ``max_failures`` ("2", "5%") caps it.
+    ``max_failures`` ("2", "5%") caps it. Each batch takes its count or share of every profile of the line (one
+    device of each profile first), or of every group with ``batch_by="group"`` (a device counts in the first
+    group it lists); any device of the first batch that does not end ok ends the rollout.
 
     ``report_path``: written before the first device starts (every device ``skipped``, "not
     finished") and rewritten as devices finish, so after a crash ``limit="@REPORT"`` retries
@@ -645,6 +657,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
     soak itself is in ``options``).
     """
     _need_parallel(parallel)
+    batch_by = _need_batch_by(batch_by, "run_fleet")
     options = _need_options(options, "run_fleet")
     if report_path is not None:
         _need_path(report_path, "run_fleet", "report_path")
@@ -652,7 +665,7 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
 
     return await run_async(jobs, label=recipe_name, parallel=parallel, batch=batch, max_failures=max_failures,
                            options=options, report_path=report_path, on_start=on_start, on_done=on_done, via=via,
-                           signals=signals, **safe)
+                           signals=signals, batch_by=batch_by, **safe)
 
 
 def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) -> Report:

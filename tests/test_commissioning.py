@@ -10,10 +10,10 @@ from typing import Any
 import pytest
 
 from deployer.load.diagnostics import InputError
-from deployer.profile import load_profile
+from deployer.profile import builtin_profile, load_profile
 from deployer.recipe.loader import load_recipe
-from deployer.testing.simulator import SimulatorThread
-from tests.helpers import cli, umodbus_server
+from deployer.testing.simulator import Faults, Simulator, SimulatorThread
+from tests.helpers import Simulators, cli, umodbus_server
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -219,3 +219,66 @@ health:
         code, dev = _apply(capsys, tmp_path, f"tcp://127.0.0.1:{port}")
         assert store[1] == 3, (dev["status"], dev["error"])  # rolled back
     assert code == 4 and "power is 2.75 kW, expected at most 2.5 kW" in dev["error"]
+
+
+# ---- rollouts over mixed lines -------------------------------------------------------------------------
+
+RELAY = "profile: relay\nparameters:\n  safety_timer_s: {register: 0x30, type: uint16, unit: s, max: 3600}\n"
+
+
+def _mixed_line(tmp: Path, urls: dict[str, str]) -> str:
+    """Drives first in the file (3), then relays (8): the relays' canary must not wait for the drives."""
+    (tmp / "relay.yaml").write_text(RELAY)
+    (tmp / "relay-r.yaml").write_text("recipe: relay\nprofile: relay.yaml\nparameters:\n  safety_timer_s: 900 s\n")
+    (tmp / "drive-r.yaml").write_text("recipe: drive\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
+    inv = tmp / "line.yaml"
+    inv.write_text("defaults: {timeout: 1.0, retries: 0}\ngroups:\n"
+                   "  drives: {recipe: drive-r.yaml, profile: example-inverter}\n"
+                   "  relays: {recipe: relay-r.yaml, profile: relay.yaml}\n  east: {}\n  west: {}\ndevices:\n"
+                   + "".join(f"  {n}: {{url: '{u}', groups: [{'drives' if n.startswith('drive') else 'relays'}, "
+                             f"{'east' if int(n[-1]) % 2 else 'west'}]}}\n" for n, u in urls.items()))
+    return str(inv)
+
+
+def test_each_batch_covers_every_profile_and_batch_by_group_uses_the_first_group(
+        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    relay = load_profile_text(tmp_path, RELAY)
+    names = [f"drive{i}" for i in range(3)] + [f"relay{i}" for i in range(8)]
+    sims = [Simulator(builtin_profile("example-inverter")) for _ in range(3)] + [Simulator(relay) for _ in range(8)]
+    with Simulators(sims) as running:
+        inv = _mixed_line(tmp_path, {n: s.url for n, s in zip(names, running, strict=True)})
+        code, out, err = cli(capsys, "apply", "--inventory", inv, "--yes", "--json", "--batch", "1,25%,100%",
+                             "--parallel", "1", "--state-dir", str(tmp_path / "s"))
+        assert code == 0, err
+        batch = {d["name"]: d["batch"] for d in json.loads(out)["devices"]}
+        # batch 1: one of each profile; batch 2: 25% of each, rounded (3 -> 1, 8 -> 2); batch 3: the rest
+        assert batch == {"drive0": 1, "relay0": 1, "drive1": 2, "relay1": 2, "relay2": 2, "drive2": 3,
+                         **{f"relay{i}": 3 for i in range(3, 8)}}
+        starts = {n: min(e.time for e in s.log if e.function in (6, 16)) for n, s in zip(names, running, strict=True)}
+        assert max(starts[n] for n, b in batch.items() if b == 1) < min(starts[n] for n, b in batch.items() if b == 2)
+        code, out, _ = cli(capsys, "apply", "--inventory", inv, "--yes", "--json", "--batch", "1,100%",
+                           "--batch-by", "group", "--write-all", "--state-dir", str(tmp_path / "s"))
+        assert code == 0
+        by_group = {d["name"]: d["batch"] for d in json.loads(out)["devices"]}
+        assert [n for n, b in by_group.items() if b == 1] == ["drive0", "relay0"]  # drives, relays: first groups
+
+
+def test_any_failed_canary_device_ends_the_rollout(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    relay = load_profile_text(tmp_path, RELAY)
+    names = ["drive0", "drive1", "relay0", "relay1"]
+    broken = Faults(fail_registers=frozenset({0x30}))
+    sims = [Simulator(builtin_profile("example-inverter")) for _ in range(2)] + [Simulator(relay, faults=broken),
+                                                                                 Simulator(relay)]
+    with Simulators(sims) as running:
+        inv = _mixed_line(tmp_path, {n: s.url for n, s in zip(names, running, strict=True)})
+        code, out, _ = cli(capsys, "apply", "--inventory", inv, "--yes", "--json", "--batch", "1,100%",
+                           "--state-dir", str(tmp_path / "s"))
+    by = {d["name"]: d for d in json.loads(out)["devices"]}
+    assert code == 4 and by["drive0"]["status"] == "ok" and by["relay0"]["status"] in ("failed", "partial")
+    for n in ("drive1", "relay1"):  # the drive canary was fine: one failed canary of another profile still stops it
+        assert by[n]["status"] == "skipped" and "the canary batch 1 did not end ok (relay0 " in by[n]["error"]
+
+
+def load_profile_text(tmp: Path, text: str, name: str = "relay.yaml") -> Any:
+    (tmp / name).write_text(text)
+    return load_profile(str(tmp / name))

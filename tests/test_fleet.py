@@ -151,7 +151,7 @@ def test_failing_canary_stops_the_rollout_before_any_other_device_hears_a_reques
         assert sims[0].log and all(not s.log for s in sims[1:])  # not a single request to the others
         for d in report["devices"][1:]:
             assert d["status"] == "skipped" and d["requests"] == []
-            assert "batch 1 failed (the canary d00 did not end ok)" in d["error"]
+            assert "the canary batch 1 did not end ok (d00 partial)" in d["error"]
             assert all(p["status"] == "skipped" for p in d["parameters"])
         assert report["summary"]["skipped"] == 9
 

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
+from ..api import BATCH_BY
 from ..limits import LIMITS
 from ..load.diagnostics import EXIT_OK, UsageError
 from .base import (
@@ -101,7 +102,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               retries: int | None, yes: bool, report_path: str | None, as_json: bool, inventory: str | None,
               limit: str | None, parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
               lock_timeout: float = 0.0, force: bool = False, from_reports: tuple[str, ...] = (),
-              batch: str | None = None, max_failures: str | None = None, command: str = "apply",
+              batch: str | None = None, max_failures: str | None = None, batch_by: str = "profile",
+              command: str = "apply",
               to_other_device: bool = False, accept_edited_snapshot: bool = False, even_if_changed: bool = False,
               soak: float | None = None,
               health_interval: float = 1.0, confirm_within: float | None = None, rollback_on_failure: bool = False,
@@ -211,7 +213,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     hooks = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
                        interval=health_interval, staged=bool(batch), fleet=fleet_run)
     kw: dict[str, Any] = dict(command=command, label=label, argv=_ARGV, via="cli", options=options, parallel=parallel,
-                              batch=batch, max_failures=max_failures, report_path=report_path, signals=True,
+                              batch=batch, max_failures=max_failures, batch_by=batch_by, report_path=report_path,
+                              signals=True,
                               refuse_broadcast=True, **hooks)
     interrupted = None
     try:
@@ -351,8 +354,13 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         fleet_option,
         limit_option,
         click.option("--batch", metavar="1,10%,100%",
-                     help="staged rollout: batch sizes (count or % of the selected devices; the last repeats); "
-                          "each batch finishes before the next, a batch with no ok device ends the rollout"),
+                     help="staged rollout: each batch takes this count or % of every profile of the selection "
+                          "(1,25%,100%: one device of each profile first; % rounded, never 0; the last repeats); "
+                          "each batch finishes before the next; any canary (batch 1) device not ending ok, or a "
+                          "later batch with no ok device, ends the rollout"),
+        click.option("--batch-by", type=click.Choice(BATCH_BY), default="profile", show_default=True,
+                     help="what each --batch share is taken of: every profile, or every group (a device counts "
+                          "in the first group it lists)"),
         click.option("--max-failures", metavar="N|P%",
                      help="after this many devices did not end ok (failed, partial, unreachable, interrupted or "
                           "rolled back count; skipped ones never), start no new device"),

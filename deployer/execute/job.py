@@ -14,3 +14,4 @@ class Job:
     recipe: Recipe
     url: tp.DeviceURL
     unit: int
+    group: str | None = None  # the first group an inventory lists for the device (--batch-by group)

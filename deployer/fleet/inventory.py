@@ -328,7 +328,8 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
                     else:
                         url = parse_url(dev.url, timeout=timeout or dev.timeout,
                                         retries=retries if retries is not None else dev.retries)
-                        jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit))
+                        jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit,
+                                        dev.groups[0] if dev.groups else None))
             except InputError as e:
                 found = [_at_inventory(inv, dev, d) for d in e.diagnostics]
             except UsageError as e:  # BadURL too

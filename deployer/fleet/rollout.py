@@ -128,8 +128,9 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                      on_soak: Callable[[int, list[str]], None] | None = None) -> Report:
     """Apply to many devices: in parallel, except that devices on one bus go one at a time.
 
-    ``batches`` (sizes, in job order) stage the rollout: each batch finishes before the next
-    starts, and a batch in which no device ended ok ends the rollout (Ansible's ``serial``).
+    ``batches`` (sizes, in job order; ``batch_plan`` orders a mixed line) stage the rollout: each batch
+    finishes before the next starts; any device of the first (canary) batch that did not end ok, or a later
+    batch in which no device ended ok, ends the rollout.
     ``max_failures``: once that many devices did not end ok (failed, partial, unreachable, rolled back;
     never skipped), no new device starts. Devices never started are in the report as ``skipped`` with
     the reason. With ``batches``, every device's result carries its batch number.
@@ -196,6 +197,8 @@ class _Rollout:
         an ok device, the failure budget spent; None to go on."""
         if number == 1 and unhealthy:
             return f"not started: the canary batch 1 failed its health checks ({', '.join(unhealthy)} rolled back)"
+        if number == 1:
+            return canary_failed(batch, self.done) or self.budget.spent()
         return batch_failed(number, batch, self.done) or self.budget.spent()
 
     async def one(self, j: Job) -> Awaitable[None] | None:
@@ -252,6 +255,15 @@ class _Rollout:
                                                                                     "interrupted",
                                                                                  self.batch_of.get(j.name))
                                          for j in self.jobs], time.monotonic() - self.started)
+
+
+def canary_failed(batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:
+    """The canary rule: any device of batch 1 that ran and did not end ok ends the rollout."""
+    bad = [done[j.name] for j in batch if j.name in done and done[j.name].status not in SPENDS_NOTHING]
+    if not bad:
+        return None
+    said = ", ".join(f"{r.name} {r.status}" for r in bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
+    return f"not started: the canary batch 1 did not end ok ({said})"
 
 
 def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:
@@ -319,6 +331,57 @@ def batch_sizes(spec: str | None, total: int) -> list[int]:
         left -= n
         i += 1
     return out
+
+
+BATCH_BY = ("profile", "group")
+
+
+def _per_kind(word: str, total: int) -> int:
+    """``N`` devices, or ``P%`` of ``total`` rounded to the nearest (never to zero), of one kind."""
+    w = word.strip()
+    if w.endswith("%"):
+        return max(1, math.floor(total * float(w[:-1]) / 100 + 0.5))
+    return int(w)
+
+
+def kind_of(job: Job, by: str) -> str:
+    """What ``--batch-by`` groups a device by: its profile, or the first group the inventory lists for it."""
+    if by == "group":
+        return job.group or ""
+    return profile_ref(job.recipe.profile)
+
+
+def batch_plan(jobs: Sequence[Job], spec: str | None, by: str = "profile") -> tuple[list[Job], list[int]]:
+    """``--batch 1,25%,100%`` over a mixed line: each batch takes that many devices (or that share) of every
+    kind (profile, or group with ``by="group"``), so the canary batch has one device of each profile.
+
+    Returns the jobs in batch order (in their own order inside a batch) and the batch sizes; the last word
+    repeats until every device had its turn.
+    """
+    if not spec:
+        return list(jobs), ([len(jobs)] if jobs else [])
+    batch_sizes(spec, len(jobs))  # the words are checked once, with their messages
+    words = spec.split(",")
+    kinds: dict[str, list[Job]] = {}
+    for j in jobs:
+        kinds.setdefault(kind_of(j, by), []).append(j)
+    totals = {k: len(v) for k, v in kinds.items()}
+    taken = dict.fromkeys(kinds, 0)
+    order: list[Job] = []
+    sizes: list[int] = []
+    position = {j.name: n for n, j in enumerate(jobs)}
+    i = 0
+    while len(order) < len(jobs):
+        word = words[min(i, len(words) - 1)]
+        batch = []
+        for k, group in kinds.items():
+            n = min(_per_kind(word, totals[k]), totals[k] - taken[k])
+            batch += group[taken[k]:taken[k] + n]
+            taken[k] += n
+        order += sorted(batch, key=lambda j: position[j.name])
+        sizes.append(len(batch))
+        i += 1
+    return order, sizes
 
 
 def failure_budget(spec: str | None, total: int) -> int | None:

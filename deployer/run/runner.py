@@ -32,7 +32,7 @@ from ..errors import RunInterrupted
 from ..execute.job import Job
 from ..execute.session import ApplyOptions, Declined, StalePlan
 from ..fleet.livereport import LiveReport, not_finished
-from ..fleet.rollout import apply_many, batch_sizes, failure_budget
+from ..fleet.rollout import apply_many, batch_plan, batch_sizes, failure_budget
 from ..load.diagnostics import UsageError
 from ..portable import interrupt_signals, on_signals, raise_open_files
 from ..report import DeviceResult, Report, run_info
@@ -92,6 +92,7 @@ def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failure
 async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str | None = None,
                     argv: Sequence[str] = (), via: str = "api", options: ApplyOptions | None = None,
                     parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
+                    batch_by: str = "profile",
                     report_path: str | None = None, signals: bool = False, refuse_broadcast: bool = False,
                     on_start: Callable[[Job], None] | None = None,
                     on_done: Callable[[DeviceResult], None] | None = None, **safe: Any) -> Report:
@@ -99,7 +100,8 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
 
     ``label``: what is applied (recipe, plan or snapshot file; the report's ``recipe``). ``command``,
     ``argv`` and ``via`` ("cli", "api", "ansible") go into the journal. ``batch`` ("1,10%,100%")
-    stages the rollout, ``max_failures`` ("2", "5%") caps it. ``signals``: SIGINT and SIGTERM
+    stages the rollout, per profile (or per first group: ``batch_by="group"``); ``max_failures`` ("2", "5%")
+    caps it. ``signals``: SIGINT and SIGTERM
     interrupt the run (its own process's main thread only; the command line and Ansible set it).
     ``refuse_broadcast``: a unit 0 without ``options.allow_broadcast`` is a UsageError before anything
     happens (the command line), not a ``failed`` device in the report.
@@ -115,8 +117,9 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         check_broadcast(jobs, opts.allow_broadcast)
     if opts.soak is not None:  # a soak watches the profiles' health checks: each profile must have some
         check_soak_profiles([j.recipe.profile for j in jobs])
-    sizes, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
-                                  report_path=report_path)
+    _, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
+                              report_path=report_path)
+    jobs, sizes = batch_plan(jobs, batch, batch_by)  # each batch covers every profile (or group) of the line
     started = time.time()
     state_dir = os.path.abspath(opts.state_dir)
     applied = opts.applied  # the journal and the snapshots name it so that it is found from anywhere
