@@ -19,7 +19,7 @@ from deployer.load.messages import printable
 from deployer.profile import load_profile
 from deployer.state import journal
 from deployer.testing.simulator import SimulatorThread
-from tests.helpers import run_cli
+from tests.helpers import cli as run_cli
 
 ESC = "\x1b"
 FAKE = f"{ESC}[2K{ESC}[1Afake: ok"  # erase the line, go up one: a name that prints a line of its own
