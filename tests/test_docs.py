@@ -254,3 +254,22 @@ def test_every_command_and_option_in_the_docs_exists() -> None:
 def test_example_files_named_in_the_docs_exist() -> None:
     named = {m for p in PAGES for m in re.findall(r"\brecipes/examples/[\w.-]+\.yaml", p.read_text())}
     assert named and sorted(n for n in named if not (ROOT / n).exists()) == []
+
+
+def test_the_layout_table_names_every_module() -> None:
+    """docs/contributing.md's layout table: a row per folder naming each of its modules, a row per top module."""
+    rows = dict(re.findall(r"^\| `(deployer/[^`]+)` \| (.*) \|$", (DOCS / "contributing.md").read_text(), re.M))
+    package = ROOT / "deployer"
+    missing = []
+    for path in sorted(package.rglob("*.py")):
+        rel = path.relative_to(ROOT)
+        if path.name in ("__init__.py", "__main__.py"):
+            continue
+        if path.parent == package:
+            if str(rel) not in rows:
+                missing.append(str(rel))
+            continue
+        folder = f"{rel.parts[0]}/{rel.parts[1]}/"
+        if f"`{path.stem}`" not in rows.get(folder, ""):
+            missing.append(str(rel))
+    assert missing == [], "name these in the layout table of docs/contributing.md"
