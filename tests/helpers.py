@@ -29,6 +29,9 @@ def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
     return int(exc.value.code or 0), out, err
 
 
+run_cli = cli  # its name in tests written before there was one cli(); new tests say cli
+
+
 
 def wait_for(cond: Callable[[], bool], what: str = "the condition", timeout: float = 120) -> None:
     """Poll until ``cond()`` holds. The timeout is an upper bound for a loaded machine, not a timing assertion."""
