@@ -702,7 +702,7 @@ class Agent:
         return self.start_run(jobs, command="restore", options={"reason": "requested", "client": req.get("client")},
                               opts=ApplyOptions(), label="the adopted state")
 
-    def start_rollback(self, run_id: str) -> RunState:
+    async def start_rollback(self, run_id: str) -> RunState:
         """``POST /v1/runs/{id}/rollback``: restore what a finished run wrote, from its snapshots."""
         from ..run.rollback import report_jobs
 
@@ -713,8 +713,8 @@ class Agent:
             raise ApiError("conflict", f"run {run_id} has not ended (it is {run.state}); wait for it, or let its "
                            "window run out", status=409)
         path = os.path.join(self.folder, "reports", f"{run_id}.json")
-        try:
-            jobs, notices = report_jobs([path])
+        try:  # it reads the devices (do they still hold what the run wrote?) with a loop of its own
+            jobs, notices = await asyncio.to_thread(report_jobs, [path])
         except DeployerError as e:
             raise ApiError("usage", f"run {run_id}: {e}", status=400) from None
         jobs = [j for j in jobs if j.name in self.devices]
@@ -761,10 +761,14 @@ class Agent:
         if run.state != "waiting":
             raise ApiError("conflict", f"run {run_id} does not wait for a confirmation (it is {run.state})",
                            status=409)
-        try:
-            confirm_run(self.state_dir, run_id)
-        except UsageError as e:
-            raise ApiError("conflict", str(e), status=409) from None
+        if not run.options.get("resumed"):  # a live run waits for the journal's confirmed line
+            try:
+                confirm_run(self.state_dir, run_id)
+            except UsageError as e:
+                raise ApiError("conflict", str(e), status=409) from None
+        else:
+            journal.append(self.state_dir, {"event": "confirmed", "run": run_id, "time": journal._now(),
+                                            "user": journal.user_name(), "pid": os.getpid(), "via": "agent"})
         assert self.store is not None
         self.store.close_window(run_id, "confirm", "confirmed")
         if run.window is not None:
@@ -796,7 +800,7 @@ class Agent:
         self.event("window-expired", f"run {w['run']}: {why}; rolling back {', '.join(w['devices'])}",
                    detail={"run": w["run"], "devices": w["devices"]})
         try:
-            jobs, _ = report_jobs([w["report"]], force=True, even_if_changed=True)
+            jobs, _ = await asyncio.to_thread(report_jobs, [w["report"]], force=True, even_if_changed=True)
         except DeployerError as e:
             self.event("restore-failed", f"run {w['run']}: cannot roll back its window: {e}",
                        detail={"run": w["run"]})

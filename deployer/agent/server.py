@@ -159,7 +159,7 @@ async def confirm_run(agent: Agent, request: web.Request) -> Any:
 
 
 async def rollback_run(agent: Agent, request: web.Request) -> Any:
-    run = agent.start_rollback(_run(agent, request).id)
+    run = await agent.start_rollback(_run(agent, request).id)
     return web.json_response(run.to_json(), status=202)
 
 

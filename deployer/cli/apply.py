@@ -15,6 +15,7 @@ import click
 from ..api import BATCH_BY
 from ..limits import LIMITS
 from ..load.diagnostics import EXIT_OK, UsageError
+from .agentclient import agent_option
 from .base import (
     _ARGV,
     _OWN_PROCESS,
@@ -409,10 +410,17 @@ def safe_options(f: Callable[..., Any]) -> Callable[..., Any]:
 @click.argument("source", metavar="[RECIPE|PLAN.json]", required=False, type=click.Path(dir_okay=False))
 @apply_options
 @safe_options
+@agent_option
 def apply(source: str | None, **kw: Any) -> int:
     """Write a recipe (or a saved plan) to a device, read it back, report what it holds.
 
-    With --inventory and no RECIPE, each device gets its recipe from the inventory."""
+    With --inventory and no RECIPE, each device gets its recipe from the inventory. With --agent URL the
+    site agent rolls out its files (RECIPE, if given, must be the one they name) and holds the windows."""
+    url = kw.pop("agent_url")
+    if url:
+        from . import agentclient
+
+        return agentclient.apply(url, source, kw)
     return run_apply(source, **kw)
 
 
@@ -432,6 +440,7 @@ def apply(source: str | None, **kw: Any) -> int:
               help="with --from-report: restore devices that no longer hold what the run wrote")
 @click.option("--save-report", type=click.Path(dir_okay=False), metavar="FILE", hidden=True,
               help="the old form rollback --report RUN.json: write this rollback's own report here")
+@agent_option
 def rollback(snapshot: str | None, **kw: Any) -> int:
     """Restore a snapshot that apply saved, to the device it was taken from.
 
@@ -444,6 +453,11 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
     """
     save = kw.pop("save_report")
     from_reports: tuple[str, ...] = kw.pop("from_reports")
+    url = kw.pop("agent_url")
+    if url:  # rollback --agent URL --from-report RUN: the agent restores what its run wrote
+        from . import agentclient
+
+        return agentclient.rollback(url, from_reports, kw)
     if snapshot is None and not from_reports and kw["report_path"] and os.path.isfile(kw["report_path"]):
         # the old reading form: rollback --report RUN.json [--save-report FILE]
         echo(f"warning: rollback --report {safe(kw['report_path'])} reads an earlier run's report: say "
@@ -464,7 +478,8 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
               help="where snapshots and the audit log are")
 @click.option("--json", "as_json", is_flag=True, help="print the runs that need a look as JSON")
 @click.option("--resolve", metavar="RUN", help="acknowledge a run listed here after a look (recorded in the audit log)")
-def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
+@agent_option
+def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | None) -> int:
     """Runs that need a look: never finished (a crash, kill -9, a laptop asleep) or interrupted while writing.
 
     A run drops out once the devices it left half-written are rolled back, or with --resolve RUN.
@@ -472,6 +487,10 @@ def status(state_dir: str, as_json: bool, resolve: str | None) -> int:
     from ..state import journal
     from ..window.confirm import awaiting, soaking
 
+    if agent_url:
+        from . import agentclient
+
+        return agentclient.status(agent_url, as_json=as_json)
     if resolve is not None:
         try:
             r = journal.resolve(state_dir, resolve)
@@ -574,11 +593,16 @@ def _diff_command(r: Any, d: dict[str, Any]) -> str | None:
 @click.argument("run", required=False)
 @click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
               help="the state directory of the run that waits (apply --confirm-within)")
-def confirm(run: str | None, state_dir: str) -> int:
+@agent_option
+def confirm(run: str | None, state_dir: str, agent_url: str | None) -> int:
     """Confirm a run that waits (apply --confirm-within): its held-back commit is sent.
 
     RUN is needed only when several runs wait (deployer status lists them).
     """
+    if agent_url:
+        from . import agentclient
+
+        return agentclient.confirm(agent_url, run)
     from ..window.confirm import confirm_run
 
     target = confirm_run(state_dir, run)

@@ -328,6 +328,8 @@ def _main(argv: Sequence[str] | None) -> None:
             report_input_error(e)
         else:
             echo(f"error: {safe(e)}", err=True)
+            for line in getattr(e, "diagnostics", None) or ():  # an agent's answer about its files
+                echo(safe(line), err=True)
         sys.exit(e.exit_code)
     except KeyboardInterrupt:
         echo("interrupted", err=True)

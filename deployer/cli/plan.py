@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import click
 
 from ..load.diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, UsageError
+from .agentclient import agent_option
 from .base import (
     _fleet,
     _n,
@@ -152,12 +153,22 @@ def _show(frame: bytes, framing: str) -> str:
 @parallel_option
 @click.option("--per-device", is_flag=True,
               help="with --inventory: each device's own plan table (default: devices with identical changes together)")
+@agent_option
 def plan(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
-         state_dir: str, inventory: str | None, limit: str | None, parallel: int, per_device: bool) -> int:
+         state_dir: str, inventory: str | None, limit: str | None, parallel: int, per_device: bool,
+         agent_url: str | None) -> int:
     """Show the requests that apply would send. Offline, or with --device against what the device holds.
 
-    With --inventory and no RECIPE, each device's recipe from the inventory."""
+    With --inventory and no RECIPE, each device's recipe from the inventory. With --agent URL: the changes
+    of the agent's files that it has not adopted, per device."""
+    if agent_url:
+        from . import agentclient
+
+        if recipe or device or inventory or out_path or show_frames:
+            raise UsageError("with --agent, plan shows the agent's pending changes: no RECIPE, --device, "
+                             "--inventory, --out or --show-frames")
+        return agentclient.plan(agent_url, as_json=as_json, detailed_exitcode=detailed_exitcode)
     from ..planning.model import Target
     from ..planning.planfile import plan_to_json
     from ..planning.planner import make_plan

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import click
 
 from ..load.diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError, UsageError
+from .agentclient import agent_option
 from .base import (
     RETRIES,
     TIMEOUT,
@@ -58,13 +59,22 @@ if TYPE_CHECKING:
 @click.option("--defaults", is_flag=True, help="compare the device with its factory settings (the profile's "
               "defaults) instead of a recipe: every readable parameter that has a default")
 @click.option("--profile", "profile_ref", metavar="ID|FILE", help="with --defaults and no RECIPE: the device's profile")
+@agent_option
 def diff(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, inventory: str | None, limit: str | None, parallel: int, per_device: bool,
-         matrix: bool, html_path: str | None, defaults: bool, profile_ref: str | None) -> int:
+         matrix: bool, html_path: str | None, defaults: bool, profile_ref: str | None, agent_url: str | None) -> int:
     """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches.
 
     With --inventory and no RECIPE, each device against its recipe from the inventory. With --defaults,
-    the device against its factory settings: exit 2 when some parameter differs from its default."""
+    the device against its factory settings: exit 2 when some parameter differs from its default. With
+    --agent URL: the agent checks its devices now against its adopted state."""
+    if agent_url:
+        from . import agentclient
+
+        if recipe or device or inventory or defaults:
+            raise UsageError("with --agent, diff compares the agent's devices with its adopted state: no RECIPE, "
+                             "--device, --inventory or --defaults")
+        return agentclient.diff(agent_url, limit=limit, as_json=as_json)
     from ..api import diff_values
 
     if defaults:

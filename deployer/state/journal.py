@@ -33,8 +33,17 @@ def user_name() -> str:
     return portable.user_name()
 
 
+_issued: dict[str, int] = {}  # run ids this process gave out in its current second
+
+
 def new_run_id() -> str:
-    return f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{os.getpid()}"
+    """Time and PID; a second run started by one process within the same second (the agent, an API user)
+    gets ``-2``, ``-3`` ... so ids never repeat."""
+    base = f"{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-{os.getpid()}"
+    n = _issued.get(base, 0) + 1
+    _issued.clear()  # only the current second matters
+    _issued[base] = n
+    return base if n == 1 else f"{base}-{n}"
 
 
 def _now() -> str:
