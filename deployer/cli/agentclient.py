@@ -13,6 +13,7 @@ from typing import Any
 import click
 
 from ..errors import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, UsageError
+from .base import echo
 
 agent_option = click.option(
     "--agent", "agent_url", metavar="URL", envvar="DEPLOYER_AGENT",
@@ -40,23 +41,24 @@ def _refuse_local(kw: Mapping[str, Any], what: str) -> None:
 def _say(ev: Mapping[str, Any], url: str) -> None:
     kind = ev.get("event")
     if kind == "device-started":
-        click.echo(f"{ev['name']}: writing", err=True)
+        echo(f"{ev['name']}: writing", err=True)
     elif kind in ("device-finished", "device-changed"):
         d = ev["device"]
         what = f" - {d['error']}" if d.get("error") else ""
-        click.echo(f"{d['name']}: {d['status']}{what}", err=True)
+        echo(f"{d['name']}: {d['status']}{what}", err=True)
     elif kind == "soak-started":
-        click.echo(f"soaking {', '.join(ev['devices'])} until {ev['deadline']}", err=True)
+        echo(f"soaking {', '.join(ev['devices'])} until {ev['deadline']}", err=True)
     elif kind == "window-waiting":
-        click.echo(f"waiting for the confirmation until {ev['deadline']} (the agent holds the window: this command "
+        echo(f"waiting for the confirmation until {ev['deadline']} (the agent holds the window: this command "
                    f"may end): deployer confirm --agent {url} {ev['run']}", err=True)
     elif kind == "window-confirmed":
-        click.echo("confirmed: the commit goes out", err=True)
+        echo("confirmed: the commit goes out", err=True)
     elif kind == "window-expired":
-        click.echo("not confirmed in time: rolled back", err=True)
+        echo("not confirmed in time: rolled back", err=True)
 
 
-def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "apply") -> int:
+def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "apply",
+          force_endurance: bool = False) -> int:
     """``deployer apply --agent URL [RECIPE]``: the agent rolls out its files (RECIPE must be the one they name)."""
     import os
 
@@ -71,17 +73,18 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
             raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
         _print_pending(pending)
         if not click.confirm("apply these changes through the agent?", default=False):
-            click.echo("nothing was sent", err=True)
+            echo("nothing was sent", err=True)
             return EXIT_OK
     who = f"{os.environ.get('USER', '?')}@{os.uname().nodename}"
     body = {"command": "apply", "limit": kw.get("limit"), "batch": kw.get("batch"),
             "max_failures": kw.get("max_failures"), "parallel": kw.get("parallel"),
             "soak": _secs(kw.get("soak")), "health_interval": _secs(kw.get("health_interval")),
             "confirm_within": _secs(kw.get("confirm_within")), "rollback_on_failure": kw.get("rollback_on_failure"),
-            "write_all": kw.get("write_all"), "recipe": os.path.abspath(source) if source else None,
+            "write_all": kw.get("write_all"), "force_endurance": force_endurance or None,
+            "recipe": os.path.abspath(source) if source else None,
             "client": f"{' '.join(sys.argv[1:])[:150]} ({who})"}
     run = c.start_run(**body)
-    click.echo(f"run {run['id']} started in the agent at {url}", err=True)
+    echo(f"run {run['id']} started in the agent at {url}", err=True)
     end = c.follow(run["id"], lambda ev: _say(ev, url))
     return _finish(end, kw)
 
@@ -91,7 +94,7 @@ def _finish(end: Mapping[str, Any], kw: Mapping[str, Any]) -> int:
     from .apply import _print_outcome
 
     if end.get("error"):
-        click.echo(f"error: {end['error']}", err=True)
+        echo(f"error: {end['error']}", err=True)
     doc = end.get("report")
     if doc is not None:
         if kw.get("report_path"):
@@ -108,24 +111,24 @@ def _secs(v: Any) -> str | None:
 def _print_pending(pending: Mapping[str, Any]) -> None:
     devices = pending.get("devices") or []
     if not devices:
-        click.echo("the files hold no change that is not adopted (a run writes only what devices lack)")
+        echo("the files hold no change that is not adopted (a run writes only what devices lack)")
     for d in devices:
-        click.echo(f"{d['name']}:")
+        echo(f"{d['name']}:")
         for ch in d["changes"]:
-            click.echo(f"  {ch['name']}: {ch['adopted'] or '-'} -> {ch['files'] if ch['files'] is not None else '-'}")
+            echo(f"  {ch['name']}: {ch['adopted'] or '-'} -> {ch['files'] if ch['files'] is not None else '-'}")
         plan = d.get("plan")
         if plan is not None:
             n = len(plan.get("writes") or [])
-            click.echo(f"  {n} write request{'s' if n != 1 else ''} against what it held at its last check")
+            echo(f"  {n} write request{'s' if n != 1 else ''} against what it held at its last check")
     for p in pending.get("problems") or []:
-        click.echo(p, err=True)
+        echo(p, err=True)
 
 
 def plan(url: str, *, as_json: bool, detailed_exitcode: bool) -> int:
     """``deployer plan --agent URL``: the files' changes the agent has not adopted, as plans per device."""
     pending = _client(url).reload()
     if as_json:
-        click.echo(json.dumps(pending, indent=2))
+        echo(json.dumps(pending, indent=2))
     else:
         _print_pending(pending)
     return EXIT_CHANGES if detailed_exitcode and pending.get("devices") else EXIT_OK
@@ -135,17 +138,17 @@ def diff(url: str, *, limit: str | None, as_json: bool) -> int:
     """``deployer diff --agent URL``: check now; the devices that do not hold the adopted state (exit 2)."""
     devices = _client(url).check(limit)
     if as_json:
-        click.echo(json.dumps({"devices": devices}, indent=2))
+        echo(json.dumps({"devices": devices}, indent=2))
     drifted = [d for d in devices if d["drift"]]
     unreachable = [d for d in devices if d["status"] == "unreachable"]
     if not as_json:
         for d in drifted:
             for p in d["drift"]:
-                click.echo(f"{d['name']}: {p['name']}: adopted {p['adopted']}, device {p['device']}")
+                echo(f"{d['name']}: {p['name']}: adopted {p['adopted']}, device {p['device']}")
         for d in unreachable:
-            click.echo(f"{d['name']}: unreachable - {d['unreachable']}", err=True)
+            echo(f"{d['name']}: unreachable - {d['unreachable']}", err=True)
         if not drifted:
-            click.echo("no drift: every device reachable holds the adopted state")
+            echo("no drift: every device reachable holds the adopted state")
     if devices and len(unreachable) == len(devices):
         return EXIT_UNREACHABLE
     return EXIT_CHANGES if drifted else EXIT_OK
@@ -154,27 +157,27 @@ def diff(url: str, *, limit: str | None, as_json: bool) -> int:
 def status(url: str, *, as_json: bool) -> int:
     s = _client(url).status()
     if as_json:
-        click.echo(json.dumps(s, indent=2))
+        echo(json.dumps(s, indent=2))
         return EXIT_OK
     a = s["agent"]
-    click.echo(f"agent {a['url']} (PID {a['pid']}), {a['inventory']}, state {a['state_dir']}")
+    echo(f"agent {a['url']} (PID {a['pid']}), {a['inventory']}, state {a['state_dir']}")
     for d in s["devices"]:
         extra = d.get("unreachable") or d.get("replaced") or d.get("not_owned") or ""
         pend = f", {d['pending']} pending" if d.get("pending") else ""
-        click.echo(f"  {d['name']}: {d['status']}{pend}{' - ' + extra if extra else ''}")
+        echo(f"  {d['name']}: {d['status']}{pend}{' - ' + extra if extra else ''}")
     for w in s["windows"]:
-        click.echo(f"  window: run {w['run']} ({w['kind']}) {', '.join(w['devices'])} until {w['deadline']}: "
+        echo(f"  window: run {w['run']} ({w['kind']}) {', '.join(w['devices'])} until {w['deadline']}: "
                    f"deployer confirm --agent {a['url']} {w['run']}")
     for r in s["runs"]:
-        click.echo(f"  run {r['id']} ({r['command']}): {r['state']}")
+        echo(f"  run {r['id']} ({r['command']}): {r['state']}")
     if not (s["devices"] or s["windows"] or s["runs"]):
-        click.echo("  every device holds the adopted state; nothing waits")
+        echo("  every device holds the adopted state; nothing waits")
     return EXIT_OK
 
 
 def confirm(url: str, run: str | None) -> int:
     r = _client(url).confirm(run)
-    click.echo(f"confirmed run {r['id']}: the agent sends the commit now (deployer status --agent {url})")
+    echo(f"confirmed run {r['id']}: the agent sends the commit now (deployer status --agent {url})")
     return EXIT_OK
 
 
@@ -188,5 +191,5 @@ def rollback(url: str, runs: tuple[str, ...], kw: dict[str, Any]) -> int:
     run = os.path.basename(runs[0]).removesuffix(".json")
     c = _client(url)
     started = c.rollback(run)
-    click.echo(f"run {started['id']} rolls back run {run} in the agent at {url}", err=True)
+    echo(f"run {started['id']} rolls back run {run} in the agent at {url}", err=True)
     return _finish(c.follow(started["id"], lambda ev: _say(ev, url)), kw)

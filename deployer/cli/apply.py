@@ -411,16 +411,21 @@ def safe_options(f: Callable[..., Any]) -> Callable[..., Any]:
 @apply_options
 @safe_options
 @agent_option
+@click.option("--force-endurance", is_flag=True,
+              help="with --agent: write although a register is past the endurance its profile states")
 def apply(source: str | None, **kw: Any) -> int:
     """Write a recipe (or a saved plan) to a device, read it back, report what it holds.
 
     With --inventory and no RECIPE, each device gets its recipe from the inventory. With --agent URL the
     site agent rolls out its files (RECIPE, if given, must be the one they name) and holds the windows."""
     url = kw.pop("agent_url")
+    force_endurance = kw.pop("force_endurance")
     if url:
         from . import agentclient
 
-        return agentclient.apply(url, source, kw)
+        return agentclient.apply(url, source, kw, force_endurance=force_endurance)
+    if force_endurance:
+        raise UsageError("--force-endurance goes with --agent (the agent keeps the write ledger)")
     return run_apply(source, **kw)
 
 
