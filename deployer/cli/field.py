@@ -67,6 +67,9 @@ def learned_forget(state_dir: str, profile: str | None, device: str | None, unit
     gone = store.forget(state_dir, profile=ref, device=key)
     out = console()
     for entry in gone:
+        if not entry.limits:  # forget --all of a file deployer did not write
+            out.print(f"cleared {safe(entry.device)}: it was not a learned file deployer wrote")
+            continue
         out.print(f"forgot {entry.describe_limits()} of {safe(entry.device)} ({safe(entry.profile)})")
     if not gone:
         out.print("nothing matched: nothing was forgotten")

@@ -15,7 +15,7 @@ from collections import deque
 from collections.abc import Awaitable
 from dataclasses import dataclass, replace
 
-from ..errors import Declined, DeviceGone, IdentityMismatch, StalePlan, UsageError
+from ..errors import Declined, DeviceGone, IdentityMismatch, InputError, StalePlan, UsageError
 from ..planning.model import Plan, ReadRequest, Target
 from ..planning.planfile import plan_to_json
 from ..planning.planner import make_plan, plan_reads
@@ -230,7 +230,11 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
                 res.notices.append(f"the device's identity changed since its last snapshot "
                                    f"({os.path.basename(last[0])}: {_identity_text(last[1])}; now "
                                    f"{_identity_text(res.identity)}): it may have been replaced")
-        taught = learned.lookup(opts.state_dir, profile_ref(prof), key) if opts.expected is None else None
+        try:  # the run checked the file before it started: damaged since, it is not used (and said)
+            taught = learned.lookup(opts.state_dir, profile_ref(prof), key) if opts.expected is None else None
+        except InputError as e:
+            taught = None
+            res.notices.append(f"what devices taught is not used: {e}")
         if taught is not None:
             if taught.identity is not None and res.identity is not None and taught.identity != res.identity:
                 res.notices.append("the device's identity changed since it taught "
@@ -315,9 +319,13 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     try:
         await _write_verify_commit(session, prof, recipe, plan, opts, res, results)
         if res.learned:
-            learned.remember(opts.state_dir, learned.Entry(
-                profile_ref(prof), key, dict(res.learned), next((n for n in res.notices if "; set limits." in n), ""),
-                learned.now(), res.identity, res.url, res.unit))
+            try:
+                learned.remember(opts.state_dir, learned.Entry(
+                    profile_ref(prof), key, dict(res.learned),
+                    next((n for n in res.notices if "; set limits." in n), ""), learned.now(), res.identity,
+                    res.url, res.unit))
+            except InputError as e:  # damaged since the run started: said, not overwritten
+                res.notices.append(f"what the device taught is not remembered: {e}")
     finally:
         if prof.unlock and prof.lock:
             try:

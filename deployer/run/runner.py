@@ -125,6 +125,10 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     applied = opts.applied  # the journal and the snapshots name it so that it is found from anywhere
     if applied is None and label is not None:
         applied = os.path.abspath(label) if os.path.exists(label) else label
+    if opts.expected is None:  # what devices taught changes what is sent: a damaged file is refused now
+        from ..state import learned
+
+        learned.load(state_dir)
     run_id = opts.run_id or journal.new_run_id()  # a confirmation window names its run before it starts
     journal.run_started(state_dir, run_id, command=command, argv=argv, recipe=applied, via=via,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])

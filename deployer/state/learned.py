@@ -18,11 +18,15 @@ import json
 import os
 import time
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, NoReturn
 
+from ..errors import InputError
+from ..load.diagnostics import Diagnostic
+from ..load.messages import clipped_repr
 from ..portable import O_BINARY, O_CLOEXEC
 from ..profile import Limits, Profile, profile_ref
+from ..profile.model import PROTOCOL_MAX_WRITE
 from ..recipe.loader import Recipe
 from ..report import write_atomic
 from ..transport.urls import DeviceURL
@@ -68,15 +72,127 @@ def path_of(state_dir: str) -> str:
     return os.path.join(os.path.abspath(state_dir), FILE)
 
 
+def _shown(v: Any) -> str:
+    """A value as the file says it (``1E+400``, ``null``, ``true``, ``'x'``)."""
+    if isinstance(v, bool) or v is None:
+        return json.dumps(v)
+    if isinstance(v, dict | list):
+        return "a mapping" if isinstance(v, dict) else "a list"
+    return clipped_repr(v) if isinstance(v, str) else str(v)
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a number deployer writes")
+
+
+_ENTRY_KEYS = {"profile": str, "device": str, "url": str, "unit": int, "limits": dict, "seen": str, "when": str,
+               "identity": dict}
+
+
+def _problems(data: Any) -> list[tuple[tuple[str | int, ...], str]]:
+    """Where ``data`` is not a learned file as deployer writes it: (path, message) each."""
+    if not isinstance(data, dict):
+        return [((), "expected a mapping with \"schema\" and \"devices\"")]
+    out: list[tuple[tuple[str | int, ...], str]] = []
+    if data.get("schema") != SCHEMA:
+        out.append((("schema",), f"expected \"schema\": \"{SCHEMA}\""))
+    out.extend(((k,), f"unknown key {k!r}") for k in data if k not in ("schema", "devices"))
+    devices = data.get("devices")
+    if not isinstance(devices, list):
+        return [*out, (("devices",), "expected a list of entries")]
+    for i, d in enumerate(devices):
+        if not isinstance(d, dict):
+            out.append((("devices", i), "expected a mapping (an entry)"))
+            continue
+        for k, v in d.items():
+            want = _ENTRY_KEYS.get(k)
+            if want is None:
+                out.append((("devices", i, k), f"unknown key {k!r}"))
+            elif not (isinstance(v, want) and not isinstance(v, bool)) and not (k == "identity" and v is None):
+                out.append((("devices", i, k), f"{k}: expected {want.__name__}, got {_shown(v)}"))
+        for k in ("profile", "device", "limits"):
+            if k not in d:
+                out.append((("devices", i), f"missing {k!r}"))
+        unit = d.get("unit", 0)
+        if isinstance(unit, int) and not isinstance(unit, bool) and not 0 <= unit <= 247:
+            out.append((("devices", i, "unit"), f"unit: {unit} is not a unit id (0-247)"))
+        limits = d.get("limits")
+        for k, v in limits.items() if isinstance(limits, dict) else ():
+            at = ("devices", i, "limits", k)
+            if k not in LIMIT_KEYS:
+                out.append((at, f"unknown limit {k!r} (deployer learns {', '.join(LIMIT_KEYS)})"))
+            elif not isinstance(v, int) or isinstance(v, bool):
+                out.append((at, f"limits.{k}: expected a whole number, got {_shown(v)}"))
+            elif k == "max_write_registers" and not 1 <= v <= PROTOCOL_MAX_WRITE:
+                out.append((at, f"limits.{k}: {v} is not 1 to {PROTOCOL_MAX_WRITE}"))
+            elif k == "write_function" and v not in (6, 16):
+                out.append((at, f"limits.{k}: {v} is not 6 or 16"))
+        ident = d.get("identity")
+        if isinstance(ident, dict):
+            out.extend((("devices", i, "identity", k), f"identity: expected text, got {_shown(v)}")
+                       for k, v in ident.items() if not isinstance(v, str))
+    return out
+
+
 def load(state_dir: str) -> list[Entry]:
-    """Every remembered entry; a missing file is none, an unreadable one is ignored (it is a cache of
-    what devices said, never the only record: the reports and the audit log keep it too)."""
+    """Every remembered entry; a missing file is none.
+
+    A file that is not what deployer wrote (not JSON, a number out of range, ``1e400``, ``-Infinity``,
+    a limit as text, ``null`` or ``true``) is refused: InputError at its position, naming the command
+    that clears it. What devices taught changes what apply sends; a guess at a damaged file would not.
+    """
+    path = path_of(state_dir)
     try:
-        with open(path_of(state_dir), encoding="utf-8") as f:
-            data = json.load(f)
-        return [Entry.from_json(d) for d in data.get("devices", [])]
-    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        with open(path, "rb") as f:
+            raw = f.read()
+    except FileNotFoundError:
         return []
+    except OSError as e:
+        raise InputError([Diagnostic(path, 0, 0, f"cannot read it: {e.strerror or e}; {_clear(state_dir)}")]) from None
+    try:
+        data = json.loads(raw, parse_constant=_no_constant)
+    except (ValueError, RecursionError):  # not JSON (or not UTF-8): the YAML reader below says where
+        data = None
+    else:
+        problems = _problems(data)
+        if not problems:
+            return [Entry.from_json(d) for d in data["devices"]]
+    _refuse(path, raw, data, state_dir)
+
+
+def _clear(state_dir: str) -> str:
+    there = "" if os.path.abspath(state_dir) == os.path.abspath(".deployer") else f" --state-dir {state_dir}"
+    return (f"not a learned file deployer wrote: fix it, or clear it with: deployer learned forget --all{there} "
+            "(devices teach their limits again on the next apply)")
+
+
+def _refuse(path: str, raw: bytes, data: Any, state_dir: str) -> NoReturn:
+    """InputError for a damaged learned file, each problem at its position (the JSON read again, slowly,
+    by the positioned reader: only ever for a file that is wrong)."""
+    from ..load import yamlsrc
+
+    hint = _clear(state_dir)
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = raw[:e.start].count(b"\n") + 1
+        raise InputError([Diagnostic(path, line, e.start - (raw.rfind(b"\n", 0, e.start) + 1) + 1,
+                                     f"not UTF-8 text; {hint}")]) from None
+    try:
+        json.loads(text, parse_constant=_no_constant)
+    except json.JSONDecodeError as e:  # not JSON: where the JSON reader stopped
+        raise InputError([Diagnostic(path, e.lineno, e.colno, f"invalid JSON: {e.msg}; {hint}")]) from None
+    except (ValueError, RecursionError):  # NaN, Infinity (no position from the JSON reader)
+        pass
+    try:
+        positioned, src = yamlsrc.load(path, text)
+    except InputError as e:
+        raise InputError([replace(d, message=f"{d.message}; {hint}") for d in e.diagnostics]) from None
+    # the positioned reader reads 1e400 and 1.5 as decimals, NaN and -Infinity as text: each is flagged there
+    found = [src.error(at, f"{message}; {hint}") for at, message in _problems(positioned)]
+    if not found:  # pragma: no cover - both readers disagree on what is wrong
+        found = [Diagnostic(path, 1, 1, f"{m}; {hint}") for _, m in _problems(data) or [((), "unreadable")]]
+    raise InputError(found)
 
 
 @contextlib.contextmanager
@@ -109,9 +225,18 @@ def remember(state_dir: str, entry: Entry) -> None:
 
 
 def forget(state_dir: str, *, profile: str | None = None, device: str | None = None) -> list[Entry]:
-    """Remove the entries matching every filter given (none: all); returns what was removed."""
+    """Remove the entries matching every filter given (none: all); returns what was removed.
+
+    Forgetting everything clears a learned file deployer did not write too (what ``load`` refuses)."""
     with _locked(state_dir):
-        entries = load(state_dir)
+        if profile is None and device is None:
+            try:
+                entries = load(state_dir)
+            except InputError:  # damaged: cleared whole
+                os.unlink(path_of(state_dir))
+                return [Entry("(a damaged learned file)", path_of(state_dir), {}, "", "")]
+        else:
+            entries = load(state_dir)
         gone = [e for e in entries
                 if (profile is None or e.profile == profile) and (device is None or e.device == device)]
         if gone:
