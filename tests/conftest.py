@@ -7,6 +7,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -90,3 +91,53 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
 def _own_lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
     """Device locks in a folder of this test session: parallel test runs on one machine stay apart."""
     monkeypatch.setenv("DEPLOYER_LOCK_DIR", str(tmp_path_factory.getbasetemp() / "locks"))
+
+
+# ---- systems: tests whose subject is POSIX itself skip elsewhere, with the reason (docs/windows.md) ----
+
+_WINDOWS_MODULES = {  # whole modules: Ansible has no Windows control node
+    "test_ansible.py": "Ansible has no Windows control node (run playbooks from Linux or WSL)",
+    "test_ansible_collection.py": "Ansible has no Windows control node (run playbooks from Linux or WSL)",
+}
+# what a test's own source uses that Windows lacks; tests/test_posixless.py runs the same code paths
+# without these on Linux, and tests/test_portable.py runs the lock on Windows itself
+_WINDOWS_LACKS = (
+    ("SIGKILL", "sends SIGKILL (Windows: no signals to another process)"),
+    ("SIGTERM", "sends SIGTERM (Windows: no signals to another process)"),
+    ("SIGINT", "sends SIGINT (Windows: no signals to another process)"),
+    ("SIGUSR1", "uses SIGUSR1 (POSIX only)"),
+    ("send_signal", "signals another process (Windows: none but TerminateProcess)"),
+    ("mkfifo", "makes a FIFO (POSIX only)"),
+    ("symlink", "makes symbolic links (Windows: administrators or developer mode only)"),
+    ("hardlink", "makes hard links at lock and output paths (a POSIX attack)"),
+    ("os.link", "makes hard links at lock and output paths (a POSIX attack)"),
+    ("chmod", "checks Unix permission modes (Windows: ACLs)"),
+    ("getuid", "checks Unix user ids"),
+    ("socat_pair", "uses socat's pseudo-terminals (POSIX)"),
+    ("/dev/", "uses POSIX device files"),
+    ("resource.", "uses POSIX resource limits"),
+)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "portable: runs on Windows too, whatever its source names (checked by hand)")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if sys.platform != "win32":
+        return
+    import inspect
+
+    for item in items:
+        if item.get_closest_marker("portable") is not None:
+            continue
+        reason = _WINDOWS_MODULES.get(item.path.name)
+        fn = getattr(item, "function", None)
+        if reason is None and fn is not None:
+            try:
+                source = inspect.getsource(fn)
+            except (OSError, TypeError):
+                source = ""
+            reason = next((why for what, why in _WINDOWS_LACKS if what in source), None)
+        if reason is not None:
+            item.add_marker(pytest.mark.skip(reason=f"not on Windows: {reason}"))

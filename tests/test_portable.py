@@ -60,9 +60,9 @@ HOLDER = """
     import asyncio, json, sys
     from deployer.state import lock, oslock
     from deployer.transport.urls import parse_url
-    url, unit, hold = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "hold"
+    url, unit, hold, wait = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "hold", float(sys.argv[4])
     try:
-        held = asyncio.run(lock.acquire_device(parse_url(url).lock_keys, unit, command="test"))
+        held = asyncio.run(lock.acquire_device(parse_url(url).lock_keys, unit, command="test", timeout=wait))
     except lock.Locked as e:
         print(json.dumps({"locked": str(e), "backend": oslock.backend().name}), flush=True)
         sys.exit(3)
@@ -75,14 +75,16 @@ HOLDER = """
 """
 
 
-def holder(url: str, unit: int, *, hold: bool, posixless: bool) -> tuple[subprocess.Popen[str], dict[str, object]]:
-    p = python(HOLDER, url, str(unit), "hold" if hold else "once", posixless=posixless)
+def holder(url: str, unit: int, *, hold: bool, posixless: bool,
+           wait: float = 0) -> tuple[subprocess.Popen[str], dict[str, object]]:
+    p = python(HOLDER, url, str(unit), "hold" if hold else "once", str(wait), posixless=posixless)
     assert p.stdout is not None
     line = p.stdout.readline()
     assert line, p.communicate()[1]
     return p, json.loads(line)
 
 
+@pytest.mark.portable  # the Windows case that matters: LockFileEx, TerminateProcess
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("where", ["native", "posixless"])
 def test_portable_lock_two_processes_two_spellings_a_killed_holder(where: str) -> None:
@@ -107,7 +109,9 @@ def test_portable_lock_two_processes_two_spellings_a_killed_holder(where: str) -
         assert d.wait(timeout=30) == 3 and "the bus is in use" in str(said["locked"])
         a.kill()  # SIGKILL (TerminateProcess on Windows): no release, no clean-up; the system drops its locks
         a.wait(timeout=30)
-        e, said = holder("tcp://localhost:1502", 1, hold=False, posixless=posixless)
+        # Windows drops a dead process's locks "after a while" (LockFileEx's documentation): a run that
+        # waits (--lock-timeout) gets it; POSIX drops them before the process is reaped
+        e, said = holder("tcp://localhost:1502", 1, hold=False, posixless=posixless, wait=30)
         procs.append(e)
         assert e.wait(timeout=30) == 0 and said["held"] is True
         stale = said["stale"]
@@ -122,6 +126,7 @@ def test_portable_lock_two_processes_two_spellings_a_killed_holder(where: str) -
 # ---- COM ports -------------------------------------------------------------------------------------
 
 
+@pytest.mark.portable
 def test_com_ports_in_device_urls() -> None:
     for text, shown, key, opened in [
         ("rtu://COM3?baudrate=19200&parity=E", "rtu://COM3?baudrate=19200&parity=E", "serial:COM3", r"\\.\COM3"),
@@ -225,6 +230,7 @@ def test_a_failed_folder_fsync_says_so(tmp_path: Path, monkeypatch: pytest.Monke
     assert f"the fsync of its folder {tmp_path} failed: Permission denied" in str(e.value)
 
 
+@pytest.mark.portable  # Windows' own case: signal.signal is all its event loops have
 def test_signals_without_loop_handlers_reach_the_loop() -> None:
     # what Windows does: the loop has no add_signal_handler, so signal.signal hands the signal over
     import asyncio
@@ -260,3 +266,42 @@ def test_liveness_never_signals() -> None:
     p = subprocess.Popen([sys.executable, "-c", "pass"])
     p.wait()
     assert not portable.pid_alive(p.pid) and not portable.pid_alive(0) and not portable.pid_alive(-1)
+
+
+# ---- the serial transport on every system ------------------------------------------------------------
+
+
+@pytest.mark.portable
+def test_the_serial_transport_through_a_port_over_tcp(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # pyserial's socket:// is a serial port whose wire is a TCP connection: pymodbus's serial transport runs
+    # over it as over a COM port, and on Windows polls it (force_poll) as it polls a COM port. Where CI has
+    # no virtual COM-port pair (Windows), this is the serial path's run there.
+    from deployer.profile import builtin_profile
+    from deployer.testing.simulator import SimulatorThread
+
+    rec = tmp_path / "r.yaml"
+    rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n  base_speed: 1750 rpm\n")
+    with SimulatorThread(builtin_profile("example-inverter"), listen="rtu+tcp://127.0.0.1:0") as sim:
+        port = sim.url.rsplit(":", 1)[1]
+        device = f"rtu://socket://127.0.0.1:{port}?baudrate=19200&parity=E"
+        code, out, err = cli(capsys, "apply", str(rec), "--device", device, "--yes",
+                             "--state-dir", str(tmp_path / "s"), "--report", str(tmp_path / "r.json"))
+        assert code == 0, out + err
+        assert sim.read("base_speed") == (1750,) and sim.read("F07") == (0, 1000)
+        writes = [e for e in sim.log if e.function in (6, 16)]
+        assert writes and all(e.unit == 1 for e in sim.log)
+        code, out, err = cli(capsys, "rollback", "--from-report", str(tmp_path / "r.json"), "--yes",
+                             "--state-dir", str(tmp_path / "s"))
+        assert code == 0, out + err
+        assert sim.read("base_speed") == (1500,)
+
+
+@pytest.mark.skipif(sys.platform != "win32", reason="COM ports are Windows' (elsewhere: the test above this one)")
+def test_a_com_port_that_is_not_there_on_windows(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # pyserial's Windows backend opens \\.\COM250: the device namespace, as COM10 and above need
+    rec = tmp_path / "r.yaml"
+    rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
+    code, out, err = cli(capsys, "apply", str(rec), "--device", "rtu://COM250?baudrate=19200&parity=E", "--yes",
+                         "--state-dir", str(tmp_path / "s"))
+    assert code == 3 and "rtu://COM250?baudrate=19200&parity=E: cannot open the serial port" in out + err, out + err
+    assert "COM250" in out + err and "Traceback" not in out + err
