@@ -160,3 +160,39 @@ def test_api_errors_are_json_and_a_second_agent_is_refused(tmp_path: Path, sim: 
     with pytest.raises(AgentError) as e:
         Agent(agent.url, timeout=2).devices()
     assert e.value.kind == "unreachable" and e.value.exit_code == 3
+
+
+def test_the_openapi_document_and_the_route_table_agree() -> None:
+    import json
+    import os
+
+    from deployer.agent import server
+
+    with open(os.path.join(os.path.dirname(server.__file__), "openapi.json"), encoding="utf-8") as f:
+        doc = json.load(f)
+    documented = {(m.upper(), p) for p, ops in doc["paths"].items() for m in ops}
+    served = {(m, p) for m, p, _ in server.ROUTES}
+    assert documented == served
+    assert doc["info"]["version"] == "1" and all(p.startswith("/v1/") or p == "/metrics" for _, p in served)
+
+
+def test_store_schema_version_and_a_newer_database_refused(tmp_path: Path) -> None:
+    import sqlite3
+
+    from deployer.agent.store import SCHEMA_VERSION, Store
+    from deployer.errors import StateError
+
+    s = Store(str(tmp_path / "a.sqlite3"))
+    assert s.version() == SCHEMA_VERSION
+    assert s.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    s.event("drift", "d1: x", device="d1")
+    s.close()
+    again = Store(str(tmp_path / "a.sqlite3"))  # opening again migrates nothing and keeps the rows
+    assert [e["kind"] for e in again.events()] == ["drift"]
+    again.close()
+    db = sqlite3.connect(tmp_path / "a.sqlite3")
+    db.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+    db.commit()
+    db.close()
+    with pytest.raises(StateError, match="newer than this deployer knows"):
+        Store(str(tmp_path / "a.sqlite3"))

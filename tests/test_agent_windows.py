@@ -209,3 +209,26 @@ def test_cli_through_the_agent_plan_diff_status_rollback_and_ledger(tmp_path: Pa
         assert agent.terminate() == 0
     finally:
         agent.kill()
+
+
+def test_sigterm_during_a_window_rolls_back_and_ends_cleanly(tmp_path: Path,
+                                                           sims: tuple[Simulator, Simulator]) -> None:
+    a, _ = sims
+    inv = write_site(tmp_path, {"d1": a.url})
+    agent = AgentProcess(inv, tmp_path / "state")
+    try:
+        c = agent.client
+        run = c.start_run(confirm_within="10m")["id"]
+        until(lambda: c.run(run)["state"] == "waiting", why="waiting")
+        assert a.read("accel") == (20,)
+        assert agent.terminate() == 0
+        assert a.read("accel") == (50,) and commits(a) == 0  # safely ended: rolled back, never committed
+        assert "interrupted while waiting for the confirmation" in agent.log() or "rolled" in agent.log()
+    finally:
+        agent.kill()
+    again = AgentProcess(inv, tmp_path / "state")
+    try:
+        assert again.client.windows() == []
+        assert again.terminate() == 0
+    finally:
+        again.kill()

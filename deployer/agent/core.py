@@ -396,10 +396,11 @@ class Agent:
         dev.last_values, dev.last_check = values, time.time()
         regs = {f"0x{c.address:04X}": c.raw for c in prof.identity}
         replaced = self._replaced(dev, known, objects, was_unreachable, values)
+        if replaced is not None and not await self._on_replaced(dev, known, objects, replaced):
+            return  # another model: its identity is not recorded, so every check refuses it again, quietly
         if known is None or known[0] != objects or (ask43 and known[2] is None):
             self.store.set_identity(dev.name, objects, regs, answered43 if ask43 else known[2] if known else None)
         if replaced is not None:
-            await self._on_replaced(dev, known, objects, replaced)
             return
         dev.replaced = None
         drift = drifted(prof, dev.adopted_values, values)
@@ -429,7 +430,9 @@ class Agent:
                 return "its identity changed: " + ", ".join(f"{k} {before.get(k)!r} -> {now.get(k)!r}" for k in changed)
         if was_unreachable and dev.adopted is not None:
             prof = dev.adopted.profile
-            compared = [(n, prof.parameter(n).default_registers()) for n in dev.adopted_values]
+            # a unit's own settings (its address ...) are set on a replacement before it answers at all
+            compared = [(n, prof.parameter(n).default_registers()) for n in dev.adopted_values
+                        if not prof.parameter(n).per_unit]
             compared = [(n, d) for n, d in compared if d is not None and n in values]
             differs = [n for n, d in compared if not prof.parameter(n).same_value(dev.adopted_values[n], d)]
             at_default = [n for n, d in compared if prof.parameter(n).same_value(values[n], d)]
@@ -437,20 +440,26 @@ class Agent:
                 return f"it answers again holding its factory defaults ({', '.join(differs)} not as adopted)"
         return None
 
-    async def _on_replaced(self, dev: Device, known: Any, objects: dict[str, str] | None, why: str) -> None:
-        assert self.store is not None
-        dev.status, dev.replaced = "replaced", why
-        dev.replaced_total += 1
+    async def _on_replaced(self, dev: Device, known: Any, objects: dict[str, str] | None, why: str) -> bool:
+        """A replaced unit: restored (``--on-replace restore``) or reported. False: another model, refused."""
         if known is not None and known[0] is not None and objects is not None:
             model = [k for k in ("vendor", "product_code") if known[0].get(k) != objects.get(k)]
             if model:
-                self.event("replace-refused", f"{dev.name}: replaced by another model ({why}); nothing written",
-                           device=dev.name, detail={"before": known[0], "now": objects})
-                return
+                said = f"replaced by another model ({why}); nothing written"
+                if dev.replaced != said:
+                    dev.replaced, dev.status = said, "replaced"
+                    dev.replaced_total += 1
+                    self.event("replace-refused", f"{dev.name}: {said}", device=dev.name,
+                               detail={"before": known[0], "now": objects})
+                dev.status = "replaced"
+                return False
+        dev.status, dev.replaced = "replaced", why
+        dev.replaced_total += 1
         self.event("replaced", f"{dev.name}: replaced: {why}", device=dev.name,
                    detail={"before": None if known is None else known[0], "now": objects})
         if self.settings.on_replace == "restore":
             self._restore(dev, "replaced")
+        return True
 
     # ---- restores -------------------------------------------------------------------------------------
 
@@ -666,7 +675,7 @@ class Agent:
                                           f"run {run.id}")
                     if run.command == "restore":
                         dev.drift_restores += 1
-                        dev.drift, dev.status = [], "ok"
+                        dev.drift, dev.status, dev.replaced = [], "ok", None
                         self.event("restored", f"{r.name}: restored ({run.options.get('reason')}) by run {run.id}",
                                    device=r.name, detail={"run": run.id})
                 elif run.command == "restore":
