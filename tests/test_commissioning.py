@@ -282,3 +282,19 @@ def test_any_failed_canary_device_ends_the_rollout(capsys: pytest.CaptureFixture
 def load_profile_text(tmp: Path, text: str, name: str = "relay.yaml") -> Any:
     (tmp / name).write_text(text)
     return load_profile(str(tmp / name))
+
+
+def test_pull_over_an_inventory_uses_each_devices_recipe_profile(capsys: pytest.CaptureFixture[str],
+                                                                 tmp_path: Path) -> None:
+    relay = load_profile_text(tmp_path, RELAY)
+    with Simulators([Simulator(builtin_profile("example-inverter")), Simulator(relay)]) as (drive, rel):
+        (tmp_path / "relay-r.yaml").write_text("recipe: relay\nprofile: relay.yaml\nparameters:\n  "
+                                               "safety_timer_s: 900 s\n")
+        (tmp_path / "drive-r.yaml").write_text("recipe: drive\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
+        inv = tmp_path / "line.yaml"  # recipes only: no profile anywhere in the inventory
+        inv.write_text(f"devices:\n  drive0: {{url: '{drive.url}', recipe: drive-r.yaml}}\n"
+                       f"  relay0: {{url: '{rel.url}', recipe: relay-r.yaml}}\n")
+        code, _, err = cli(capsys, "pull", "--inventory", str(inv), "-o", str(tmp_path / "pulled"))
+    assert code == 0, err
+    assert "safety_timer_s: 0 s" in (tmp_path / "pulled" / "relay0.yaml").read_text()
+    assert "F07:" in (tmp_path / "pulled" / "drive0.yaml").read_text()

@@ -170,11 +170,19 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         code, out, err = cli(capsys, "diff", "--inventory", inv, "--per-device")
         assert code == 2 and "drift on 1 of 5 devices: drive-2" in out and "10 s" in out
 
-        # drive-2 no longer holds what the run wrote: refused by name, nothing sent, unless --even-if-changed
-        code, out, err = cli(capsys, "rollback", "--report", str(report), "--yes", "--state-dir", state)
+        # drive-2 no longer holds what the run wrote: --all-or-nothing refuses them all, nothing sent
+        code, out, err = cli(capsys, "rollback", "--from-report", str(report), "--yes", "--state-dir", state,
+                             "--all-or-nothing")
         assert code == 1 and "drive-2 no longer holds what the run wrote (F08)" in err, out + err
-        code, out, err = cli(capsys, "rollback", "--report", str(report), "--yes", "--state-dir", state,
-                             "--even-if-changed")
+        assert all({p: s.read(p) for p in WANT[n]} != before[n] for n, s in zip(NAMES, sims, strict=True))
+        # by default the other four are restored and drive-2 is refused by name (exit 4)
+        code, out, err = cli(capsys, "rollback", "--from-report", str(report), "--yes", "--state-dir", state)
+        assert code == 4 and "refused: drive-2 no longer holds what the run wrote (F08)" in err, out + err
+        assert "refused 1 changed device: drive-2" in err
+        for n, s in zip(NAMES, sims, strict=True):
+            assert ({p: s.read(p) for p in WANT[n]} == before[n]) == (n != "drive-2"), n
+        code, out, err = cli(capsys, "rollback", "--from-report", str(report), "--yes", "--state-dir", state,
+                             "--limit", "drive-2", "--even-if-changed")
         assert code == 0, out + err
         for n, s in zip(NAMES, sims, strict=True):
             assert {p: s.read(p) for p in WANT[n]} == before[n], n

@@ -321,11 +321,11 @@ def test_a_rollout_and_its_retry_roll_back_in_one_command(files: Path) -> None:
         code, out, err = deployer(*run, "--limit", "@run1.json", "--report", "retry2.json", cwd=files)
         assert code == 0, out + err
         assert all(holds(s) == (7,) * N for s in sims)
-        # someone changed d0 since: refused, nothing sent, unless --even-if-changed
+        # someone changed d0 since: with --all-or-nothing refused, nothing sent, unless --even-if-changed
         sims[0].write("p3", (42,))
         back = ("rollback", "--from-report", "run1.json", "--from-report", "retry2.json", "--yes",
                 "--state-dir", "state")
-        code, out, err = deployer(*back, cwd=files)
+        code, out, err = deployer(*back, "--all-or-nothing", cwd=files)
         assert code == 1 and "d0 no longer holds what the run wrote (p3)" in err and "--even-if-changed" in err
         assert holds(sims[0])[3] == 42 and holds(sims[2]) == (7,) * N
         code, out, err = deployer(*back, "--even-if-changed", "--report", "back.json", cwd=files)

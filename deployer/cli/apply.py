@@ -14,7 +14,7 @@ import click
 
 from ..api import BATCH_BY
 from ..limits import LIMITS
-from ..load.diagnostics import EXIT_OK, UsageError
+from ..load.diagnostics import EXIT_FAILED, EXIT_OK, UsageError
 from .agentclient import agent_option
 from .base import (
     _ARGV,
@@ -106,6 +106,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
               batch: str | None = None, max_failures: str | None = None, batch_by: str = "profile",
               command: str = "apply",
               to_other_device: bool = False, accept_edited_snapshot: bool = False, even_if_changed: bool = False,
+              all_or_nothing: bool = False,
               soak: float | None = None,
               health_interval: float = 1.0, confirm_within: float | None = None, rollback_on_failure: bool = False,
               pause: float | None = None, ask: bool = False, html_path: str | None = None) -> int:
@@ -121,6 +122,7 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     expected: Plan | None = None
     jobs: list[Job] = []
     moved: str | None = None  # rollback to another device than the snapshot's: consent first
+    refused: list[str] = []  # rollback --from-report: devices changed since the run, left alone
     if not (inventory or from_reports) and (batch or max_failures or limit):
         raise UsageError("--limit, --batch and --max-failures need --inventory")
     if from_reports:  # rollback --from-report: every device those runs wrote, each from its own snapshot
@@ -128,9 +130,15 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
             raise UsageError("rollback --from-report restores each device from its own snapshot, to the device it "
                              "was taken from: --inventory, --device and --unit do not apply")
         jobs, notices = report_jobs(from_reports, limit=limit, force=force, timeout=timeout, retries=retries,
-                                    accept_edited=accept_edited_snapshot, even_if_changed=even_if_changed)
+                                    accept_edited=accept_edited_snapshot, even_if_changed=even_if_changed,
+                                    refused=None if all_or_nothing else refused)
         for n in notices:
             echo(safe(n), err=True)
+        for n in refused:
+            echo(f"refused: {safe(n)}", err=True)
+        if not jobs:
+            echo("nothing restored: every device was refused", err=True)
+            return EXIT_FAILED
         label: str | None = from_reports[0] if len(from_reports) == 1 else ", ".join(from_reports)
     elif source is None:  # each device's recipe from the inventory
         if not inventory:
@@ -235,6 +243,10 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
     _print_outcome(report, fleet_run=fleet_run, as_json=as_json, report_path=report_path)
     if interrupted is not None:
         _said_interrupted(report, report_path)
+    if refused:
+        err.print(f"refused {len(refused)} changed device{'s' if len(refused) != 1 else ''}: "
+                  + ", ".join(safe(r.split(' ', 1)[0]) for r in refused))
+        return max(report.exit_code, EXIT_FAILED)
     return report.exit_code
 
 
@@ -442,7 +454,10 @@ def apply(source: str | None, **kw: Any) -> int:
 @click.option("--accept-edited-snapshot", is_flag=True,
               help="consent to restore a snapshot whose SHA-256 differs from the one its report or journal recorded")
 @click.option("--even-if-changed", is_flag=True,
-              help="with --from-report: restore devices that no longer hold what the run wrote")
+              help="with --from-report: restore devices that no longer hold what the run wrote (else each such "
+                   "device is refused by name, the others restored, and the exit code is 4)")
+@click.option("--all-or-nothing", is_flag=True,
+              help="with --from-report: one changed device refuses them all, nothing sent (the old behaviour)")
 @click.option("--save-report", type=click.Path(dir_okay=False), metavar="FILE", hidden=True,
               help="the old form rollback --report RUN.json: write this rollback's own report here")
 @agent_option

@@ -208,7 +208,8 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
 
 @click.command()
 @click.option("--profile", "profile_ref", metavar="ID|FILE",
-              help="the device's profile (with --inventory: for devices whose entry names none)")
+              help="the device's profile (with --inventory: for devices whose entry names neither a profile nor "
+                   "a recipe; otherwise each device's recipe's profile)")
 @click.option("--device", metavar="URL")
 @click.option("--unit", type=click.IntRange(1, 247), help="unit id (default 1, or the inventory's)")
 @click.option("--timeout", type=TIMEOUT)
@@ -289,6 +290,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
                non_default: bool = False) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
     from ..api import device_url, load_inventory, pull_names, pulled_recipe
+    from ..fleet.inventory import RecipeCache
     from ..fleet.rollout import ReadJob
     from ..profile import resolve_profile
     from ..run.runner import check_writable
@@ -296,21 +298,27 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
 
     inv = load_inventory(inventory)
     devices = inv.select(limit)
-    profiles: dict[str, Profile] = {}
+    cache = RecipeCache(None, inv.path)  # profile paths are relative to the inventory, as for plan and apply
     jobs: list[ReadJob] = []
     errors: list[Diagnostic] = []
     for dev in devices:
-        ref = dev.profile or profile_ref
         try:
-            if ref is None:
-                raise UsageError("no profile: set profile in the inventory or pass --profile")
-            if ref not in profiles:
-                profiles[ref] = resolve_profile(ref)
-            prof = profiles[ref]
+            # the device's profile: its own (or its groups'), else its recipe's, as plan, apply and diff use
+            if dev.profile is not None:
+                prof = cache.profile(dev.profile)
+            elif dev.recipe is not None:
+                prof = cache.base(dev.recipe, None).profile
+            elif profile_ref is not None:
+                prof = resolve_profile(profile_ref)
+            else:
+                raise UsageError("no profile: set profile (or a recipe) in the inventory, or pass --profile")
             url = device_url(dev.url, timeout=timeout or dev.timeout,
                              retries=retries if retries is not None else dev.retries)
         except UsageError as e:
             errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
+            continue
+        except InputError as e:
+            errors.extend(e.diagnostics)
             continue
         jobs.append(ReadJob(dev.name, prof, tuple(pull_names(prof)), url, unit if unit is not None else dev.unit))
     if errors:

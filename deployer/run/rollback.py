@@ -185,11 +185,14 @@ def read_run(path: str) -> Restores:
 
 def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool = False,
                 timeout: float | None = None, retries: int | None = None,
-                accept_edited: bool = False, even_if_changed: bool = False) -> tuple[list[Job], list[str]]:
+                accept_edited: bool = False, even_if_changed: bool = False,
+                refused: list[str] | None = None) -> tuple[list[Job], list[str]]:
     """One job per device earlier runs (a rollout and its retries) may have written: the snapshot of the
     earliest run that wrote it, to its own device; and the notices for the user. ``limit`` selects among
     those devices by name or pattern. A device that no longer holds what the newest run that wrote it read
-    back is refused (read before anything is written), unless ``even_if_changed``.
+    back is refused (read before anything is written), unless ``even_if_changed``: with ``refused`` (a list)
+    each such device is left out and named there, the others restored; without it one changed device refuses
+    them all (``--all-or-nothing``).
 
     Raises UsageError naming the devices that may have been written but have no known snapshot,
     and when nothing at all was written."""
@@ -253,10 +256,13 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
         raise InputError(errors)
     if not even_if_changed:
         changed = _changed(jobs, {n: dict(f.wrote) for n, f in newest.items()})
-        if changed:
-            raise UsageError("; ".join(changed) + ": changed since the run wrote it (someone else wrote it since?); "
-                             "nothing was sent. --even-if-changed restores the snapshot anyway, or leave it out with "
-                             "--limit '!NAME'")
+        if changed and refused is not None:
+            refused.extend(f"{why}: not restored (--even-if-changed restores it anyway)" for why in changed.values())
+            jobs = [j for j in jobs if j.name not in changed]
+        elif changed:
+            raise UsageError("; ".join(changed.values()) + ": changed since the run wrote it (someone else wrote it "
+                             "since?); nothing was sent. --even-if-changed restores the snapshot anyway, or leave it "
+                             "out with --limit '!NAME'")
     # one device in the run twice (older deployers allowed it): its snapshots are restored last written
     # first, so the earliest one, what it held before the run, is the one that stays
     twice: dict[tuple[tuple[str, ...], int], list[int]] = {}
@@ -269,7 +275,7 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
     return [jobs[k] for k in places], notices
 
 
-def _changed(jobs: Sequence[Job], wrote: dict[str, dict[str, tuple[int, ...]]]) -> list[str]:
+def _changed(jobs: Sequence[Job], wrote: dict[str, dict[str, tuple[int, ...]]]) -> dict[str, str]:
     """Devices that do not hold what their newest run read back after writing (unreachable ones are left to
     the run, which says so)."""
     import asyncio
@@ -279,13 +285,13 @@ def _changed(jobs: Sequence[Job], wrote: dict[str, dict[str, tuple[int, ...]]]) 
     reads = [ReadJob(j.name, j.recipe.profile, tuple(n for n in wrote.get(j.name, {}) if j.recipe.profile.get(n)),
                      j.url, j.unit) for j in jobs if wrote.get(j.name)]
     now = asyncio.run(read_many(reads, parallel=8)) if reads else {}
-    out = []
+    out = {}
     for name, values in now.items():
         if isinstance(values, Exception):
             continue
         diff = [p for p, regs in wrote[name].items() if p in values and values[p] != regs]
         if diff:
-            out.append(f"{name} no longer holds what the run wrote ({', '.join(diff)})")
+            out[name] = f"{name} no longer holds what the run wrote ({', '.join(diff)})"
     return out
 
 
