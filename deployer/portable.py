@@ -206,6 +206,8 @@ def raise_open_files(need: int) -> int | None:
     Windows has no such limit for sockets (the C runtime's 8192 descriptors are for files), so nothing
     to do there.
     """
+    if sys.platform == "win32":
+        return None
     try:
         import resource
     except ImportError:

@@ -75,7 +75,11 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
         if not click.confirm("apply these changes through the agent?", default=False):
             echo("nothing was sent", err=True)
             return EXIT_OK
-    who = f"{os.environ.get('USER', '?')}@{os.uname().nodename}"
+    import socket
+
+    from ..portable import user_name
+
+    who = f"{user_name()}@{socket.gethostname()}"  # os.uname and $USER are POSIX's
     body = {"command": "apply", "limit": kw.get("limit"), "batch": kw.get("batch"),
             "max_failures": kw.get("max_failures"), "parallel": kw.get("parallel"),
             "soak": _secs(kw.get("soak")), "health_interval": _secs(kw.get("health_interval")),

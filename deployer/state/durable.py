@@ -21,6 +21,7 @@ import json
 import os
 import secrets
 import stat
+import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
@@ -220,7 +221,7 @@ def append_lines(path: str, records: list[dict[str, Any]]) -> None:
 
 
 def _byte_at(fd: int, offset: int) -> bytes:
-    if hasattr(os, "pread"):
+    if sys.platform != "win32" and hasattr(os, "pread"):
         return os.pread(fd, 1, offset)
     os.lseek(fd, offset, os.SEEK_SET)  # Windows: no pread; an O_APPEND write goes to the end anyway
     return os.read(fd, 1)
@@ -327,7 +328,7 @@ def _write_all(fd: int, data: bytes) -> None:
 def _writev(fd: int, pieces: list[bytes]) -> None:
     """All of ``pieces``, in order, in as few writev calls as the system allows (short writes resumed);
     one write each where there is no writev (Windows)."""
-    if not hasattr(os, "writev"):
+    if sys.platform == "win32" or not hasattr(os, "writev"):
         for piece in pieces:
             _write_all(fd, piece)
         return
