@@ -29,12 +29,14 @@ test: $(VENV)/.installed-test
 	$(MAKE) --no-print-directory check BIN=$(BIN)
 
 # the manual: a broken link between pages fails mkdocs --strict.
+# `mypy --platform win32`: the code only Windows runs (LockFileEx, OpenProcess) type-checks here too.
 # every step runs even when one fails (the suite's failures do not hide ruff's and mypy's); fails if any did
 check:
 	@rc=0; \
 	$(BIN)/python -m pytest -q || rc=1; \
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections tools || rc=1; \
 	$(BIN)/mypy deployer tests tools || rc=1; \
+	$(BIN)/mypy --platform win32 deployer || rc=1; \
 	$(BIN)/mkdocs build --strict --site-dir build/site || rc=1; \
 	exit $$rc
 
@@ -60,6 +62,7 @@ constraints: $(LATEST)/.installed
 lint: $(VENV)/.installed-test
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections tools
 	$(BIN)/mypy deployer tests tools
+	$(BIN)/mypy --platform win32 deployer   # Windows' branches (ctypes, msvcrt) type-check here too
 
 docs: $(VENV)/.installed
 	$(BIN)/deployer docs --out docs/reference

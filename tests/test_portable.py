@@ -305,3 +305,13 @@ def test_a_com_port_that_is_not_there_on_windows(tmp_path: Path, capsys: pytest.
                          "--state-dir", str(tmp_path / "s"))
     assert code == 3 and "rtu://COM250?baudrate=19200&parity=E: cannot open the serial port" in out + err, out + err
     assert "COM250" in out + err and "Traceback" not in out + err
+
+
+@pytest.mark.portable
+def test_output_in_a_code_page_without_the_character(tmp_path: Path) -> None:
+    # Windows writes to pipes and files in cp1252: a name it cannot encode is a '?', not a traceback
+    rec = tmp_path / "r.yaml"
+    rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  Ω: 1\n", encoding="utf-8")
+    p = subprocess.run([sys.executable, "-m", "deployer", "validate", str(rec)], capture_output=True,
+                       env={**env(posixless=False), "PYTHONIOENCODING": "cp1252", "PYTHONUTF8": "0"}, timeout=60)
+    assert p.returncode == 1 and b"unknown parameter '?'" in p.stderr and b"Traceback" not in p.stderr, p.stderr

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import sys
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
@@ -297,6 +298,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: map every user error to its exit code, never a traceback."""
     if argv is None:
         _OWN_PROCESS[:] = [True]
+        _encodable_output()
     try:
         _main(argv)
     finally:
@@ -304,6 +306,17 @@ def main(argv: Sequence[str] | None = None) -> None:
             import gc  # interpreter's last collection need not walk them (40 ms after a 200-device fleet)
 
             gc.freeze()
+
+
+def _encodable_output() -> None:
+    """Windows writes to a pipe or file in its ANSI code page (cp1252), which has no place for a profile's
+    "Ω" or a name in another script: such a character becomes "?" there rather than a traceback (a console
+    and PYTHONUTF8=1 get UTF-8)."""
+    for stream in (sys.stdout, sys.stderr):
+        encoding = (getattr(stream, "encoding", None) or "").lower().replace("-", "")
+        if encoding not in ("utf8", "utf_8") and hasattr(stream, "reconfigure"):
+            with contextlib.suppress(ValueError, OSError):
+                stream.reconfigure(errors="replace")
 
 
 def _main(argv: Sequence[str] | None) -> None:
