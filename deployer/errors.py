@@ -25,6 +25,8 @@ on message text; the message (``str(e)``) is written for the user and may change
     ├── Locked                     3  another run holds the device (``busy``), or no lock can be taken
     ├── StateError                 1  the state directory cannot be written (disk full, read-only) before a run
     ├── IdentityMismatch           4  the device is not the one the profile describes
+    ├── NotCommitted               4  ``deployer confirm``: the confirmed run did not send its commit to every
+    │                                 device (a parameter changed in the window, a step failed, time ran out)
     └── RunInterrupted             4  a run stopped early (Ctrl-C, SIGTERM, cancelled); ``report`` says
                                       what every device holds as far as known
 
@@ -69,6 +71,7 @@ __all__ = [
     "InputError",
     "Locked",
     "NoResponse",
+    "NotCommitted",
     "RunInterrupted",
     "StalePlan",
     "StateError",
@@ -207,6 +210,12 @@ class IdentityMismatch(DeployerError):
         self.expected = expected
         self.found = found
         super().__init__(message)
+
+
+class NotCommitted(DeployerError):
+    """A confirmed run did not send its commit to every device: a parameter changed during its window (not
+    committed; the rest rolled back), a commit step failed, or its time ran out first. The message names
+    each device and why."""
 
 
 class RunInterrupted(DeployerError):

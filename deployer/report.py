@@ -101,6 +101,7 @@ class DeviceResult:
     batch: int | None = None  # fleets: the batch the device ran in (or would have: skipped)
     commit: CommitState | None = None  # None: the profile has no commit steps, or nothing was written
     profile_sha256: str | None = None  # the SHA-256 of the profile file's text (None: a built-in profile)
+    unrecorded: list[str] = field(default_factory=list)  # what the journal or report could not record (disk full)
 
     @property
     def write_requests(self) -> int:
@@ -153,6 +154,8 @@ class DeviceResult:
             out["commit"] = self.commit
         if self.profile_sha256 is not None:
             out["profile_sha256"] = self.profile_sha256
+        if self.unrecorded:
+            out["unrecorded"] = list(self.unrecorded)
         return out
 
 
@@ -202,8 +205,8 @@ class Report:
             return EXIT_OK
         if all(d.status == "unreachable" for d in self.devices):
             return EXIT_UNREACHABLE
-        if any(d.status not in ("ok", "sent") for d in self.devices):
-            return EXIT_FAILED
+        if any(d.status not in ("ok", "sent") or d.unrecorded for d in self.devices):
+            return EXIT_FAILED  # a device that did not end ok, or an outcome the journal could not record
         return EXIT_OK
 
 

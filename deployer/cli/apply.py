@@ -504,7 +504,7 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
 
     A run drops out once the devices it left half-written are rolled back, or with --resolve RUN.
     """
-    from ..state import journal
+    from ..state import holder, journal, lock
     from ..window.confirm import awaiting, soaking
 
     if agent_url:
@@ -523,18 +523,24 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
     runs, torn = journal.unfinished(state_dir)
     waits = {a.run: a for a in awaiting(state_dir)}
     soaks = soaking(state_dir)
+    folder = lock.lock_dir()
+    locks = holder.held(folder)  # every run's on this machine, whatever its state folder
     if as_json:
-        echo(json.dumps({"unfinished": [
+        echo(json.dumps({"locks": locks, "unfinished": [
             {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
              "via": r.via, "argv": r.argv, "recipe": r.recipe, "devices": r.devices, "interrupted": r.interrupted,
              "finished": r.finished, "ended": r.ended,
-             **({"awaiting_confirmation": {"deadline": waits[r.run].deadline, "report": waits[r.run].report,
+             **({"awaiting_confirmation": {"deadline": waits[r.run].until(), "report": waits[r.run].report,
                                            "waiting": waits[r.run].alive}} if r.run in waits else {}),
              **({"soaking": {"report": soaks[r.run]}} if r.run in soaks else {}),
              } for r in runs]}, indent=2))
         return EXIT_OK
     if not runs:
         echo(f"no unfinished runs in {safe(journal.path_of(state_dir))}")
+    if locks:
+        echo(f"devices held on this machine now ({safe(folder)}):")
+        for rec in locks:
+            echo(f"  {safe(rec.get('key', '?'))}: {safe(holder.describe(rec))}")
     for r in runs:
         state = "still running" if r.running else (f"interrupted ({safe(r.ended)})" if r.ended else "did not finish")
         echo(f"{_what_ran(r)} by {safe(r.user)} at {safe(r.time)} (run {safe(r.run)}, PID {safe(r.pid)}): "
@@ -542,8 +548,8 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
         dirs = "" if state_dir == ".deployer" else f" --state-dir {safe(state_dir)}"
         a = waits.get(r.run)
         if a is not None and a.alive:
-            echo(f"  awaits confirmation until {safe(a.deadline)}: deployer confirm {safe(r.run)} --state-dir "
-                 f"{safe(state_dir)}")
+            echo(f"  awaits confirmation until {a.until()} ({max(0.0, a.left()):.0f} s left): "
+                 f"deployer confirm {safe(r.run)} --state-dir {safe(state_dir)}")
         elif a is not None:
             echo(f"  awaited confirmation (until {safe(a.deadline)}) when its process died: its devices hold values "
                        "that were never committed (a power cycle also reverts them on devices whose commit stores "
@@ -617,14 +623,19 @@ def _diff_command(r: Any, d: dict[str, Any]) -> str | None:
 def confirm(run: str | None, state_dir: str, agent_url: str | None) -> int:
     """Confirm a run that waits (apply --confirm-within): its held-back commit is sent.
 
-    RUN is needed only when several runs wait (deployer status lists them).
+    The run reads its parameters again first: one changed during the window is not committed (the rest is
+    rolled back). This waits for the outcome: exit 0 once the commit went out, 4 when it did not (each
+    device named, and why). RUN is needed only when several runs wait (deployer status lists them).
     """
     if agent_url:
         from . import agentclient
 
         return agentclient.confirm(agent_url, run)
-    from ..window.confirm import confirm_run
+    from ..window.confirm import confirm_run, outcome
 
     target = confirm_run(state_dir, run)
-    echo(f"confirmed run {safe(target.run)}: it sends the commit now (deployer status shows the outcome)")
+    echo(f"confirmed run {safe(target.run)}: it reads its parameters again and sends the commit", err=True)
+    done = outcome(state_dir, target)  # NotCommitted (exit 4) names each device the commit did not reach
+    sent = done.get("committed")
+    echo(f"run {safe(target.run)}: the commit was sent" + (f" to {', '.join(safe(n) for n in sent)}" if sent else ""))
     return EXIT_OK

@@ -28,7 +28,7 @@ from ..state.snapshot import last_identity, snapshot_file
 from ..transport import clients as tp
 from .recovery import Learning, _recover, _remerge, chunks, single_writes
 from .session import ApplyOptions, Session
-from .steps import _send_actions, check_identity, check_identity_objects, check_preconditions
+from .steps import _send_actions, check_identity, check_identity_objects, check_preconditions, commit_steps
 from .verify import PENDING, _attempted, _values, _verify
 
 
@@ -147,8 +147,9 @@ async def _locked(recipe: Recipe, url: tp.DeviceURL, unit: int, opts: ApplyOptio
                   results: dict[str, ParameterResult]) -> tuple[DeviceResult, Awaitable[object] | None]:
     prof = recipe.profile
     try:
-        held = await lock.acquire_device(url.lock_keys, unit, timeout=opts.lock_timeout, command=lock.command_line(),
-                                         directory=opts.lock_dir)
+        held = [] if opts.lock_held else await lock.acquire_device(
+            url.lock_keys, unit, timeout=opts.lock_timeout, command=lock.command_line(), directory=opts.lock_dir,
+            run=opts.run_id)
     except lock.Locked as e:
         res.status, res.error = "unreachable", f"{e}; nothing was sent"
         return res, None
@@ -173,6 +174,8 @@ async def _locked(recipe: Recipe, url: tp.DeviceURL, unit: int, opts: ApplyOptio
         if transport.late_answers:
             res.notices.append(tp.late_notice(transport.late_answers, url))
         res.settle()
+        if opts.keep_lock is not None and held and opts.keep_lock(res, held):
+            held = []  # its window holds them now, until the commit or the rollback
         if res.snapshot is not None and opts.run_id is not None:  # queued now, after the read-back
             return res, queue(Line(journal.path_of(opts.state_dir), journal.device_finished(opts.run_id, res)))
         return res, None
@@ -277,6 +280,11 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
             results[pp.name].desired_raw = pp.desired_raw
     if not plan.writes:
         _verify(results, prof, before, written=set())
+        # a retry of a device whose commit failed: the values were verified (and soaked, confirmed) by that run,
+        # and nothing is left to write: its commit is owed, sent now
+        if opts.commit_owed and prof.commit and not opts.hold_commit and all(
+                r.status in ("ok", "unchanged") for r in results.values()):
+            await _commit(session, prof, res, around=True)
         return
     # guards (e.g. "drive stopped") only matter when something is to be written
     try:
@@ -331,7 +339,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
             try:
                 await _send_actions(session, prof, prof.lock)
             except (DeviceGone, tp.ExceptionResponse) as e:
-                res.status = "partial"
+                res.status = "failed"  # its parameters say what they hold; the device is not left as it should be
                 res.error = f"{res.error + '; ' if res.error else ''}lock failed: {e}; the device may be left unlocked"
     res.notices.extend(f"{n} takes effect after a power cycle" for n, r in results.items()
                        if r.status == "ok" and prof.parameter(n).restart)
@@ -371,14 +379,19 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
     if opts.holds_commit:
         res.commit = "held"
         return
-    for action in prof.commit:
-        try:
-            await _send_actions(session, prof, [action])
-        except (DeviceGone, tp.ExceptionResponse) as e:
-            res.status, res.error = "partial", f"commit '{action.description or hex(action.address)}' failed: {e}"
-            res.commit = "failed"
-            return
-    res.commit = "sent"
+    await _commit(session, prof, res, around=False)
+
+
+async def _commit(session: Session, prof: Profile, res: DeviceResult, *, around: bool) -> None:
+    """The profile's commit steps now (``around``: with its unlock and lock steps; else the apply's writes are
+    between them): a step that fails makes the device ``failed``, its parameters stay ``ok`` (verified, in RAM)."""
+    failed = await commit_steps(session, prof, around=around)
+    if failed is None:
+        res.commit = "sent"
+        return
+    why, commit_failed = failed
+    res.status, res.commit = "failed", "failed" if commit_failed else "sent"
+    res.error = f"{res.error}; {why}" if res.error else why
 
 
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,

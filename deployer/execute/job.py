@@ -15,3 +15,4 @@ class Job:
     url: tp.DeviceURL
     unit: int
     group: str | None = None  # the first group an inventory lists for the device (--batch-by group)
+    commit_owed: bool = False  # ``--limit @REPORT``: its commit failed there; sent even with nothing to write

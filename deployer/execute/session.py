@@ -15,6 +15,7 @@ from ..planning.model import Plan, ReadRequest, WriteRequest
 from ..planning.planner import gap_free_reads, read_key
 from ..profile import Profile, object_name
 from ..report import DeviceResult, RequestRecord
+from ..state.lock import DeviceLock
 from ..transport import clients as tp
 
 Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
@@ -41,6 +42,11 @@ class ApplyOptions:
     confirm_within: float | None = None  # seconds to wait for `deployer confirm` before rolling back
     command: str | None = None  # what started the run (the command line, or the caller), for the report
     hold_commit: bool = False  # do not send the profile's commit after the read-back (a rollback never commits)
+    # the safe-change window (deployer.window) keeps a written device's lock until its commit or rollback:
+    # asked after the read-back, True when it took the locks over (they are not released here then)
+    keep_lock: Callable[[DeviceResult, list[DeviceLock]], bool] | None = None
+    commit_owed: bool = False  # a retry of a device whose commit failed: sent even when nothing is left to write
+    lock_held: bool = False  # the caller holds the device's lock already (a window's own rollback): not taken again
 
     @property
     def holds_commit(self) -> bool:

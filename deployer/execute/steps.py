@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Iterable
 
-from ..errors import IdentityMismatch
+from ..errors import DeviceGone, ExceptionResponse, IdentityMismatch
 from ..planning.model import WriteRequest
 from ..profile import Profile, WriteAction, codec, object_name
 from ..profile.model import READ_FUNCTION
@@ -50,11 +50,50 @@ async def check_preconditions(session: Session, profile: Profile) -> str | None:
 
 
 async def _send_actions(session: Session, prof: Profile, actions: Iterable[WriteAction]) -> None:
-    """The profile's own writes (unlock, commit, lock), each followed by its wait."""
+    """The profile's own writes (unlock, commit, lock), each followed by its wait.
+
+    In the form the device takes: Function 06 where the profile (or what the device taught) says so, and
+    where Function 16 answers 01 (illegal function: nothing was written) one 06 per register."""
     for action in actions:
-        reqs = ([WriteRequest(6, action.address + i, (w,), ()) for i, w in enumerate(action.registers)]
-                if prof.limits.write_function == 6 else [WriteRequest(16, action.address, action.registers, ())])
-        for r in reqs:
-            await session.write(r)
+        if prof.limits.write_function == 6:
+            await _singles(session, action)
+        else:
+            try:
+                await session.write(WriteRequest(16, action.address, action.registers, ()))
+            except ExceptionResponse as e:
+                if e.code != 1:
+                    raise
+                await _singles(session, action)
         if action.wait_ms:
             await asyncio.sleep(action.wait_ms / 1000)
+
+
+async def _singles(session: Session, action: WriteAction) -> None:
+    for i, w in enumerate(action.registers):
+        await session.write(WriteRequest(6, action.address + i, (w,), ()))
+
+
+async def commit_steps(session: Session, prof: Profile, *, around: bool = True) -> tuple[str, bool] | None:
+    """Unlock, commit, lock (``around`` False: the commit alone, within an apply's unlock and lock); None when
+    all went out, else why not and whether the commit itself is what failed (False: it was sent, but the lock
+    step after it failed). A device whose step failed is ``failed``: its parameters stay verified."""
+    if prof.unlock and around:
+        try:
+            await _send_actions(session, prof, prof.unlock)
+        except (DeviceGone, ExceptionResponse) as e:
+            return f"commit not sent: unlock failed: {e}; the values are verified, in RAM, not stored", True
+    failed: tuple[str, bool] | None = None
+    for action in prof.commit:
+        try:
+            await _send_actions(session, prof, [action])
+        except (DeviceGone, ExceptionResponse) as e:
+            failed = (f"commit '{action.description or hex(action.address)}' failed: {e}; the values are verified, "
+                      "in RAM, not stored", True)
+            break
+    if prof.unlock and prof.lock and around:
+        try:
+            await _send_actions(session, prof, prof.lock)
+        except (DeviceGone, ExceptionResponse) as e:
+            lock_failed = f"lock failed: {e}; the device may be left unlocked"
+            failed = (f"{failed[0]}; {lock_failed}", True) if failed else (lock_failed, False)
+    return failed

@@ -107,6 +107,25 @@ def not_ok(report_path: str) -> list[str]:
             if isinstance(d, dict) and d.get("status") not in ("ok", "sent")]
 
 
+def commits_owed(limit: str | None) -> set[str]:
+    """The devices of ``--limit @REPORT`` reports whose commit failed (or was never sent) while their write was
+    verified: a retry sends their commit even when nothing is left to write."""
+    from ..report import read_report
+
+    out: set[str] = set()
+    for word in (limit or "").split(","):
+        word = word.strip()
+        if not word.startswith("@"):
+            continue
+        try:
+            data = read_report(word[1:])
+        except OSError:
+            continue  # select() says why it cannot be read
+        out |= {str(d.get("name")) for d in data["devices"] if isinstance(d, dict)
+                and d.get("status") not in ("ok", "sent") and d.get("commit") in ("failed", "not sent", "held")}
+    return out
+
+
 # ---- jobs --------------------------------------------------------------------------------------
 
 
@@ -298,6 +317,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
     jobs: list[Job] = []
     concerns: dict[Diagnostic, list[str]] = {}  # each problem, and the devices it stops
     cache = RecipeCache(recipe, inv.path)
+    owed = commits_owed(limit)
     for dev in inv.select(limit):
         found: list[Diagnostic] = []
         try:
@@ -329,7 +349,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
                         url = parse_url(dev.url, timeout=timeout or dev.timeout,
                                         retries=retries if retries is not None else dev.retries)
                         jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit,
-                                        dev.groups[0] if dev.groups else None))
+                                        dev.groups[0] if dev.groups else None, commit_owed=dev.name in owed))
             except InputError as e:
                 found = [_at_inventory(inv, dev, d) for d in e.diagnostics]
             except UsageError as e:  # BadURL too

@@ -6,7 +6,7 @@ import asyncio
 import math
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol, TypeVar
 
 from ..errors import RunInterrupted, UsageError
@@ -147,6 +147,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     """
     opts = options or ApplyOptions()
     window = Window(opts, recipe_name, on_changed=on_changed, on_soak=on_soak, on_confirm_wait=on_confirm_wait)
+    if window.held:  # a device keeps its lock from its first write until its window ends
+        opts = replace(opts, keep_lock=window.keep)
     rollout = _Rollout(jobs, opts, recipe_name, batch_numbers(jobs, batches), Budget(max_failures), window,
                        on_done=on_done, on_start=on_start)
     try:
@@ -189,13 +191,14 @@ class _Rollout:
             await on_buses(batch, parallel, self.one)
             unhealthy = await self.window.after_batch(number, self.written(batch), self.report())
             self.budget.failures += len(unhealthy)
-            if pos < len(jobs):
-                self.stop = self.stop or self.why_stop(number, batch, unhealthy)
+            # the same rule after every batch, the last one too: --rollback-on-failure undoes a rollout whose
+            # last batch failed as it undoes one that stopped in the middle
+            self.stop = self.stop or self.why_stop(number, batch, unhealthy)
 
     def why_stop(self, number: int, batch: Sequence[Job], unhealthy: Sequence[str]) -> str | None:
         """Why the rollout ends after batch ``number``: a canary that failed its health checks, a batch without
         an ok device, the failure budget spent; None to go on."""
-        if number == 1 and unhealthy:
+        if number == 1 and unhealthy and len(batch) < len(self.jobs):
             return f"not started: the canary batch 1 failed its health checks ({', '.join(unhealthy)} rolled back)"
         if number == 1:
             return canary_failed(batch, self.done) or self.budget.spent()
@@ -213,7 +216,8 @@ class _Rollout:
         t = time.monotonic()
         finishing: Awaitable[object] | None = None
         try:
-            r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=self.opts, batch=batch)
+            opts = replace(self.opts, commit_owed=True) if j.commit_owed else self.opts
+            r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=opts, batch=batch)
         except DeviceInterrupted as e:
             e.result.seconds = time.monotonic() - t
             self.done[j.name] = e.result
@@ -242,7 +246,7 @@ class _Rollout:
             self.on_done(r)
 
     def written(self, batch: Sequence[Job]) -> list[Written]:
-        return [Written(j, self.done[j.name]) for j in batch if j.name in self.done]
+        return [self.window.device(j, self.done[j.name]) for j in batch if j.name in self.done]
 
     def report(self) -> Report:
         """Every device that ran so far, in job order."""

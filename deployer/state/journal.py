@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 from .. import portable
 from ..errors import StateError
 from .durable import append_lines, disk_error
+from .holder import boot_id
 from .lock import pid_alive
 
 if TYPE_CHECKING:
@@ -48,6 +49,15 @@ def new_run_id() -> str:
 
 def _now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def deadline(seconds: float) -> dict[str, Any]:
+    """A window's deadline ``seconds`` from now, for its journal line: on the wall clock (for people, and after a
+    reboot) and on the monotonic clock (what the waiting process goes by: a clock step changes nothing), with
+    this boot's id (a monotonic time means nothing in another boot)."""
+    now = time.time()
+    return {"deadline": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(now + seconds)),
+            "deadline_epoch": now + seconds, "deadline_monotonic": time.monotonic() + seconds, "boot_id": boot_id()}
 
 
 def path_of(state_dir: str) -> str:

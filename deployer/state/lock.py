@@ -24,7 +24,6 @@ import errno
 import hashlib
 import json
 import os
-import socket
 import stat
 import sys
 import time
@@ -34,8 +33,7 @@ from typing import Any
 
 from .. import portable
 from ..errors import Locked as Locked  # importable from here as before
-from ..portable import pid_alive as pid_alive  # importable from here as before
-from . import oslock
+from . import holder, oslock
 
 ENV = "DEPLOYER_LOCK_DIR"
 
@@ -95,6 +93,16 @@ class DeviceLock:
     fd: int
     stale: str | None = None  # a warning when a dead process's record was taken over
     shared: bool = False
+    record: dict[str, Any] | None = None  # what the file says about us (exclusive holders only)
+
+    def in_window(self, window: str, deadline: float | None) -> None:
+        """Say in the lock file that a safe-change window keeps this lock (``soak``/``confirm``) until ``deadline``
+        (time.time()): a run refused meanwhile names the window and when it ends."""
+        if self.fd < 0 or self.record is None:
+            return
+        self.record = holder.in_window(self.record, window, deadline)
+        with contextlib.suppress(OSError):  # the record is for messages; the lock itself holds regardless
+            _write_record(self.fd, self.record)
 
     def release(self) -> None:
         """Unlock, and remove the file when no one else holds it (its record is of no use any more).
@@ -135,21 +143,27 @@ class DeviceLock:
                 os.unlink(self.path)
 
 
-def _holder_text(record: dict[str, Any]) -> str:
-    since = record.get("since")
-    when = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(since)) if isinstance(since, int | float) else "?"
-    what = f" ({record['command']})" if record.get("command") else ""
-    return f"PID {record.get('pid', '?')} on {record.get('host', '?')} since {when}{what}"
+_holder_text = holder.describe
 
 
 def _read_record(fd: int) -> dict[str, Any]:
     try:
         os.lseek(fd, 0, os.SEEK_SET)
-        data = os.read(fd, 4096)
-        rec = json.loads(data) if data.strip() else {}
-        return rec if isinstance(rec, dict) else {}
-    except (OSError, ValueError):
+        return holder.parse(os.read(fd, 65536))
+    except OSError:
         return {}
+
+
+def _write_record(fd: int, record: dict[str, Any]) -> None:
+    os.ftruncate(fd, 0)
+    os.lseek(fd, 0, os.SEEK_SET)
+    os.write(fd, json.dumps(record).encode())
+
+
+def pid_alive(pid: int, start: float | None = None) -> bool:
+    """Whether process ``pid`` exists on this machine (someone else's counts: it is alive) and, with ``start``,
+    is the process that started then (``holder.process_start``), not a later one given the same PID."""
+    return holder.process_alive(pid, start)
 
 
 _ready: set[str] = set()  # lock directories made and checked by this process
@@ -210,7 +224,8 @@ def _open(path: str) -> int:
     return fd
 
 
-def try_lock(key: str, *, command: str = "", directory: str | None = None, shared: bool = False) -> DeviceLock:
+def try_lock(key: str, *, command: str = "", directory: str | None = None, shared: bool = False,
+             run: str | None = None) -> DeviceLock:
     """Take the lock now or raise Locked naming the holder.
 
     ``shared``: many holders at once (the bus lock of runs writing single units); an exclusive holder
@@ -248,29 +263,24 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
         return DeviceLock(key, path, fd, None, shared=True)
     old = _read_record(fd)
     stale = None
-    host = socket.gethostname()
-    if old.get("pid") and old.get("host") == host and old.get("pid") != os.getpid():
-        pid = old["pid"]
-        if isinstance(pid, int) and not pid_alive(pid):
+    record = holder.new(key, command=command, run=run, agent=_agent.get("address"))
+    if old.get("pid") and old.get("host") == record["host"] and old.get("pid") != os.getpid():
+        pid, start = old["pid"], old.get("pid_start")
+        if isinstance(pid, int) and not pid_alive(pid, start if isinstance(start, int | float) else None):
             stale = f"took over a stale lock of {_holder_text(old)}: that process is gone (it did not finish)"
-    record = {"pid": os.getpid(), "host": host, "since": time.time(), "key": key, "command": command}
-    if _agent:
-        record["agent"] = _agent["address"]
-    os.ftruncate(fd, 0)
-    os.lseek(fd, 0, os.SEEK_SET)
-    os.write(fd, json.dumps(record).encode())
-    return DeviceLock(key, path, fd, stale)
+    _write_record(fd, record)
+    return DeviceLock(key, path, fd, stale, record=record)
 
 
 async def acquire(key: str, *, timeout: float = 0.0, command: str = "", directory: str | None = None,
-                  poll: float = 0.1, shared: bool = False) -> DeviceLock:
+                  poll: float = 0.1, shared: bool = False, run: str | None = None) -> DeviceLock:
     """One lock; waits up to ``timeout`` seconds (0: fail at once). Raises Locked."""
     if key in _owned:  # this process (the agent) holds it already: nothing to take, nothing to release
         return DeviceLock(key, _owned[key].path, -1, shared=shared)
     deadline = time.monotonic() + timeout
     while True:
         try:
-            return try_lock(key, command=command, directory=directory, shared=shared)
+            return try_lock(key, command=command, directory=directory, shared=shared, run=run)
         except Locked as e:
             if time.monotonic() >= deadline or not e.busy:
                 if timeout > 0 and e.busy:
@@ -280,7 +290,7 @@ async def acquire(key: str, *, timeout: float = 0.0, command: str = "", director
 
 
 async def acquire_device(buses: str | Sequence[str], unit: int, *, timeout: float = 0.0, command: str = "",
-                         directory: str | None = None) -> list[DeviceLock]:
+                         directory: str | None = None, run: str | None = None) -> list[DeviceLock]:
     """The locks a run writing ``unit`` on ``buses`` holds: each bus's, shared, then the unit's, exclusive.
 
     ``buses``: the device's lock keys (DeviceURL.lock_keys: one per address its host resolves to).
@@ -297,7 +307,8 @@ async def acquire_device(buses: str | Sequence[str], unit: int, *, timeout: floa
         for key, shared in wanted:
             left = max(0.0, timeout - (time.monotonic() - start))
             try:
-                held.append(await acquire(key, timeout=left, command=command, directory=directory, shared=shared))
+                held.append(await acquire(key, timeout=left, command=command, directory=directory, shared=shared,
+                                          run=run))
             except Locked as e:
                 if unit == 0 and e.busy:
                     who = _bus_users(key[:-len("#bus")], directory)

@@ -7,51 +7,67 @@ import contextlib
 import json
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
+from ..errors import NotCommitted, StateError
 from ..execute.session import ApplyOptions
 from ..load.diagnostics import UsageError
-from ..state import journal
+from ..report import DeviceResult
+from ..state import holder, journal
 from .held import pending_path
 from .held import record as _journal
 
 
 async def await_confirmation(run: str, seconds: float, options: ApplyOptions, *,
-                             on_wait: Callable[[float], None] | None = None,
-                             poll: float = 0.2) -> bool:
+                             on_wait: Callable[[float], None] | None = None, poll: float = 0.2,
+                             results: Sequence[DeviceResult] = ()) -> bool:
     """Wait until ``deployer confirm`` wrote a ``confirmed`` line for ``run`` (True) or ``seconds`` ran out.
 
-    ``on_wait`` gets the deadline (time.time()) once the ``confirm-awaited`` line is on disk.
+    The wait runs on the monotonic clock (a step of the wall clock changes nothing); the journal's
+    ``confirm-awaited`` line has the deadline on both. ``on_wait`` gets the deadline (time.time()) once that
+    line is on disk; ``results``: the devices waiting (they say what the journal could not record).
     """
     path = journal.path_of(options.state_dir)
-    deadline = time.time() + seconds
+    until = journal.deadline(seconds)
+    deadline = until["deadline_monotonic"]
     _journal(options, {"event": "confirm-awaited", "run": run, "time": journal._now(), "pid": os.getpid(),
-                       "deadline": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(deadline)),
-                       "deadline_epoch": deadline, "report": pending_path(options.state_dir, run)})
-    offset = os.path.getsize(path)
+                       "pid_start": holder.process_start(os.getpid()), **until,
+                       "report": pending_path(options.state_dir, run)}, *results)
+    offset = _size(path)
     if on_wait is not None:
-        on_wait(deadline)
+        on_wait(until["deadline_epoch"])
     while True:
         offset, got = _confirmed_since(path, offset, run)
         if got:
             return True
-        left = deadline - time.time()
+        left = deadline - time.monotonic()
         if left <= 0:
-            _journal(options, {"event": "confirm-expired", "run": run, "time": journal._now()})
+            _journal(options, {"event": "confirm-expired", "run": run, "time": journal._now()}, *results)
             return False
         try:
             await asyncio.sleep(min(poll, left))
         except asyncio.CancelledError:
-            _journal(options, {"event": "confirm-interrupted", "run": run, "time": journal._now()})
+            _journal(options, {"event": "confirm-interrupted", "run": run, "time": journal._now()}, *results)
             raise
+
+
+def _size(path: str) -> int:
+    try:
+        return os.path.getsize(path)
+    except OSError:  # the journal could not be written (a full disk): a confirmation appends it
+        return 0
 
 
 def _confirmed_since(path: str, offset: int, run: str) -> tuple[int, bool]:
     """Read the journal's new complete lines from ``offset``: is one of them ``confirmed`` for ``run``?"""
-    with open(path, "rb") as f:
-        f.seek(offset)
-        data = f.read()
+    try:
+        with open(path, "rb") as f:
+            f.seek(offset)
+            data = f.read()
+    except OSError:
+        return offset, False
     end = data.rfind(b"\n") + 1  # a line being appended right now is read next time, whole
     for line in data[:end].splitlines():
         with contextlib.suppress(ValueError):
@@ -71,12 +87,29 @@ class Awaiting:
     deadline_epoch: float
     report: str
     recipe: str | None = None
+    pid_start: float | None = None  # the waiting process's start (holder.process_start): a reused PID is not it
+    deadline_monotonic: float | None = None  # what the waiting process goes by (this boot only)
+    boot_id: str | None = None
 
     @property
     def alive(self) -> bool:
-        from ..portable import pid_alive  # never os.kill(pid, 0): on Windows it ends the process
+        """The waiting process is still there (the same process: its PID and its start time)."""
+        return self.pid is not None and holder.process_alive(self.pid, self.pid_start)
 
-        return self.pid is not None and pid_alive(self.pid)
+    def left(self) -> float:
+        """Seconds until the waiting run gives up, as that run counts them (its monotonic clock, when this is the
+        boot it was written in; else the wall clock)."""
+        if self.deadline_monotonic is not None and self.boot_id is not None and self.boot_id == holder.boot_id():
+            return self.deadline_monotonic - time.monotonic()
+        return self.deadline_epoch - time.time()
+
+    def until(self) -> str:
+        """The deadline as this machine's wall clock reads now (a step since the run started is taken out)."""
+        return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(time.time() + self.left()))
+
+
+def _number(value: object) -> float | None:
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
 
 
 def awaiting(state_dir: str) -> list[Awaiting]:
@@ -91,8 +124,12 @@ def awaiting(state_dir: str) -> list[Awaiting]:
         if event == "run-started":
             recipes[run] = rec.get("recipe")
         elif event == "confirm-awaited":
-            out[run] = Awaiting(run, rec.get("pid"), str(rec.get("deadline", "")),
-                                float(rec.get("deadline_epoch", 0)), str(rec.get("report", "")), recipes.get(run))
+            pid = rec.get("pid")
+            out[run] = Awaiting(run, pid if isinstance(pid, int) else None, str(rec.get("deadline", "")),
+                                _number(rec.get("deadline_epoch")) or 0.0, str(rec.get("report", "")),
+                                recipes.get(run), _number(rec.get("pid_start")),
+                                _number(rec.get("deadline_monotonic")),
+                                str(rec["boot_id"]) if rec.get("boot_id") else None)
         elif event in ("confirmed", "confirm-expired", "confirm-interrupted", "run-finished"):
             out.pop(run, None)
     return list(out.values())
@@ -132,17 +169,49 @@ def confirm_run(state_dir: str, run: str | None = None) -> Awaiting:
         raise UsageError(f"no run waits for a confirmation in {where} (wrong --state-dir?)")
     elif len(waiting) > 1:
         raise UsageError("several runs wait for a confirmation: name one (deployer confirm RUN): "
-                         + ", ".join(f"{a.run} ({a.recipe or '?'}, until {a.deadline})" for a in waiting))
+                         + ", ".join(f"{a.run} ({a.recipe or '?'}, until {a.until()})" for a in waiting))
     else:
         target = waiting[0]
     if not target.alive:
         raise UsageError(f"run {target.run} waited for a confirmation, but its process (PID {target.pid}) is gone: "
                          "nothing can send its commit. Its devices hold uncommitted values; restore them with: "
-                         f"deployer rollback --report {target.report} --state-dir {state_dir}")
-    if time.time() > target.deadline_epoch:
-        raise UsageError(f"run {target.run}: the confirmation time ran out at {target.deadline}; "
+                         f"deployer rollback --from-report {target.report} --state-dir {state_dir} --yes")
+    if target.left() <= 0:
+        raise UsageError(f"run {target.run}: the confirmation time ran out at {target.until()}; "
                          "it is rolling back (see deployer status)")
-    _journal(ApplyOptions(state_dir=state_dir), {"event": "confirmed", "run": target.run, "time": journal._now(),
-                                                  "user": journal.user_name(), "pid": os.getpid()})
+    options = ApplyOptions(state_dir=state_dir)
+    if not _journal(options, {"event": "confirmed", "run": target.run, "time": journal._now(),
+                              "user": journal.user_name(), "pid": os.getpid()}):
+        raise StateError(f"cannot write the journal {where}: the confirmation was not recorded, so run {target.run} "
+                         f"does not see it (disk full?); it rolls back at {target.until()} unless confirmed")
     return target
 
+
+def outcome(state_dir: str, target: Awaiting, *, poll: float = 0.1) -> dict[str, Any]:
+    """Wait for what the confirmed run did: its ``confirm-outcome`` line (committed, not committed with why).
+
+    Raises NotCommitted when the commit was not sent to every device (a parameter changed during the window,
+    a step failed, the time ran out first) or the run's process ended without saying."""
+    while True:
+        for rec in journal.read(state_dir, containing=target.run):
+            if rec is not None and rec.get("run") == target.run and rec.get("event") in ("confirm-outcome",
+                                                                                         "run-finished"):
+                return _said(target, rec)
+        if not target.alive:
+            raise NotCommitted(f"run {target.run} ended without saying whether it sent its commit "
+                               "(see deployer status)")
+        time.sleep(poll)
+
+
+def _said(target: Awaiting, rec: dict[str, Any]) -> dict[str, Any]:
+    if rec.get("event") == "run-finished":  # an older run, or one that could not write its outcome line
+        bad = [d for d in rec.get("devices") or [] if isinstance(d, dict) and d.get("status") not in ("ok", "sent")]
+        if bad:
+            raise NotCommitted(f"run {target.run}: the commit was not sent to "
+                               + ", ".join(f"{d.get('name')} ({d.get('status')})" for d in bad))
+        return rec
+    failed = rec.get("not_committed") or {}
+    if isinstance(failed, dict) and failed:
+        raise NotCommitted(f"run {target.run}: the commit was not sent to "
+                           + "; ".join(f"{name}: {why}" for name, why in failed.items()))
+    return rec

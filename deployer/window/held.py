@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from ..execute.job import Job
@@ -11,7 +13,8 @@ from ..execute.session import ApplyOptions
 from ..recipe.loader import Recipe
 from ..report import DeviceResult
 from ..state import journal
-from ..state.durable import append_lines
+from ..state.durable import append_lines, disk_error
+from ..state.lock import DeviceLock
 from ..transport import clients as tp
 
 
@@ -21,6 +24,7 @@ class Written:
 
     job: Job
     result: DeviceResult
+    locks: list[DeviceLock] = field(default_factory=list)  # the device's, kept from the write to the window's end
 
     @property
     def name(self) -> str:
@@ -49,5 +53,59 @@ def pending_path(state_dir: str, run: str) -> str:
     return os.path.join(os.path.abspath(state_dir), "pending", f"{run}.json")
 
 
-def record(options: ApplyOptions, line: dict[str, Any]) -> None:
-    append_lines(journal.path_of(options.state_dir), [line])
+RESERVE = 256 * 1024  # bytes kept free for a window's journal lines: hundreds of lines, even on a full disk
+
+
+def reserve_path(state_dir: str, run: str) -> str:
+    return os.path.join(os.path.abspath(state_dir), f".reserve-{run}")
+
+
+def reserve(options: ApplyOptions) -> None:
+    """Set disk space aside in the state folder for the window's journal lines (a rollback must be recorded even
+    when the disk fills up meanwhile); ``record`` gives it back when the disk is full. Best effort: a folder
+    that cannot take it now is what ``record`` will report."""
+    if options.run_id is None:
+        return
+    path = reserve_path(options.state_dir, options.run_id)
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+        try:
+            if hasattr(os, "posix_fallocate"):
+                os.posix_fallocate(fd, 0, RESERVE)
+            else:  # written out: the blocks are taken either way
+                os.write(fd, bytes(RESERVE))
+        finally:
+            os.close(fd)
+
+
+def unreserve(options: ApplyOptions) -> bool:
+    """Give the reserved space back; whether there was any."""
+    if options.run_id is None:
+        return False
+    try:
+        os.remove(reserve_path(options.state_dir, options.run_id))
+    except OSError:
+        return False
+    return True
+
+
+def record(options: ApplyOptions, line: dict[str, Any], *results: DeviceResult) -> bool:
+    """Append a window's journal line. A full disk gets the reserved space (``reserve``) and one more try;
+    a line that still cannot be written never stops the window (a rollback goes on): each of ``results``
+    says what could not be recorded (the run exits 4). Whether it was written."""
+    path = journal.path_of(options.state_dir)
+    try:
+        append_lines(path, [line])
+        return True
+    except OSError as e:
+        err = e
+    if err.errno == errno.ENOSPC and unreserve(options):
+        try:
+            append_lines(path, [line])
+            return True
+        except OSError as e:
+            err = e
+    what = f"the journal {path} could not record the {line.get('event')} line: {disk_error(err)}"
+    for r in results:
+        r.unrecorded.append(what)
+    return False

@@ -7,12 +7,15 @@ import contextlib
 import os
 from collections.abc import Callable, Sequence
 
+from ..execute.job import Job
 from ..execute.session import ApplyOptions
 from ..load.durations import format_duration
 from ..report import DeviceResult, Report, write_json
+from ..state import journal
+from ..state.lock import DeviceLock
 from .confirm import await_confirmation
 from .finish import roll_back, send_commit
-from .held import Written, needs_soak, pending_path
+from .held import Written, needs_soak, pending_path, record, reserve, unreserve
 from .soak import soak
 
 
@@ -33,6 +36,21 @@ class Window:
         self.on_changed = on_changed
         self.on_soak = on_soak
         self.on_confirm_wait = on_confirm_wait
+        self.locks: dict[str, list[DeviceLock]] = {}  # device name -> the locks its window keeps
+        if self.held:
+            reserve(opts)
+
+    def keep(self, res: DeviceResult, held: list[DeviceLock]) -> bool:
+        """``ApplyOptions.keep_lock``: a device written and verified keeps its lock until its window ends (its
+        commit, or its rollback), so no other run writes it in between."""
+        if not needs_soak(res):
+            return False
+        self.locks[res.name] = held
+        return True
+
+    def device(self, job: Job, result: DeviceResult) -> Written:
+        """The device of ``job`` in its window (with the locks it keeps, if any)."""
+        return Written(job, result, self.locks.setdefault(job.name, []))
 
     @property
     def held(self) -> bool:
@@ -89,10 +107,17 @@ class Window:
             return
         self.write_pending(Report(self.recipe_name, [w.result for w in devices]))
         run = opts.run_id
-        on_wait = self.on_confirm_wait
+
+        def on_wait(deadline: float) -> None:
+            for w in waiting:  # a run refused meanwhile names this window and its deadline
+                for h in w.locks:
+                    h.in_window("confirm", deadline)
+            if self.on_confirm_wait is not None:
+                self.on_confirm_wait(run, deadline)
+
         try:
-            confirmed = await await_confirmation(run, opts.confirm_within, opts,
-                                                 on_wait=None if on_wait is None else lambda t: on_wait(run, t))
+            confirmed = await await_confirmation(run, opts.confirm_within, opts, on_wait=on_wait,
+                                                 results=[w.result for w in waiting])
         except asyncio.CancelledError:  # Ctrl-C while waiting: the answer is no, at once
             rolling = asyncio.ensure_future(asyncio.gather(*(roll_back(w, "interrupted while waiting for the "
                                                                           "confirmation", opts) for w in waiting)))
@@ -103,6 +128,13 @@ class Window:
         else:
             why = f"not confirmed within {format_duration(opts.confirm_within)}"
             await asyncio.gather(*(roll_back(w, why, opts) for w in waiting))
+        # what `deployer confirm` waits for, to say whether the commit went out
+        record(opts, {"event": "confirm-outcome", "run": run, "time": journal._now(), "confirmed": confirmed,
+                      "committed": [w.name for w in waiting if w.result.commit == "sent"],
+                      "not_committed": {w.name: w.result.error or w.result.status for w in waiting
+                                        if w.result.status != "ok"
+                                        or (w.recipe.profile.commit and w.result.commit != "sent")}},
+               *(w.result for w in waiting))
 
     def write_pending(self, report: Report) -> str | None:
         """While devices hold uncommitted values (a soak, a confirmation wait), the run's report so far lies in
@@ -115,8 +147,14 @@ class Window:
         return path
 
     def close(self) -> None:
-        """The run ended (or was interrupted and rolled back): its pending report goes."""
+        """The run ended (or was interrupted and rolled back): every lock a window still keeps goes (a device
+        whose profile has no commit step), and so do its pending report and its reserved disk space."""
+        for held in self.locks.values():
+            for h in reversed(held):
+                h.release()
+            held.clear()
         opts = self.opts
         if opts.run_id is not None and self.held:
             with contextlib.suppress(FileNotFoundError):
                 os.remove(pending_path(opts.state_dir, opts.run_id))
+            unreserve(opts)

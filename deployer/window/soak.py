@@ -58,12 +58,15 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
     if not todo:
         return []
     run = options.run_id
+    start = time.monotonic()
+    deadline = start + options.soak
+    for w in todo:  # a run refused meanwhile says whose soak holds the device, and until when
+        for h in w.locks:
+            h.in_window("soak", time.time() + options.soak)
     if run is not None:
         _journal(options, {"event": "soak-started", "run": run, "time": journal._now(), "seconds": options.soak,
                            "interval": options.health_interval, "devices": [w.name for w in todo],
-                           "report": report})
-    start = time.monotonic()
-    deadline = start + options.soak
+                           "report": report, **journal.deadline(options.soak)}, *(w.result for w in todo))
     passed: list[Written] = []
     failed: list[Written] = []
 
@@ -111,7 +114,7 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
         why = f"health check failed after {seen:.1f} s of the {format_duration(options.soak or 0)} soak: {why}"
         if run is not None:
             _journal(options, {"event": "health-failed", "run": run, "time": journal._now(), "name": w.name,
-                               "url": w.result.url, "unit": w.unit, "reason": why})
+                               "url": w.result.url, "unit": w.unit, "reason": why}, w.result)
         failed.append(w)
         if on_failed is not None:
             on_failed(w)
@@ -138,7 +141,7 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
                                "passed": [w.name for w in passed],
                                "rolled_back": [w.name for w in failed if w.result.status == "rolled-back"],
                                "failed": [w.name for w in failed if w.result.status != "rolled-back"],
-                               **({"interrupted": True} if interrupted else {})})
+                               **({"interrupted": True} if interrupted else {})}, *(w.result for w in todo))
     return [w for w in todo if w in passed]
 
 

@@ -1,0 +1,281 @@
+"""The safe-change window is one transaction (issue 28): its lock is held from the first write to the commit or
+rollback, the commit is sent only over values re-read, a failed commit step fails the device, and
+--rollback-on-failure treats every batch alike. Real processes against the simulator and against devices of
+another library (umodbus), with changes made by another client (mbpoll)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from deployer.state import holder
+from deployer.testing.simulator import Faults, Simulator, SimulatorThread
+from deployer.window.confirm import awaiting
+from tests.helpers import Simulators, cli, profile_from, umodbus_server, wait_for
+from tests.test_safe import COMMIT, F07, MBPOLL, PROFILE, deployer, inventory, reads_of, recipe, writes_to
+
+pytestmark = pytest.mark.timeout(180)
+F08 = PROFILE.parameter("F08").address
+
+
+def journal(state: str | Path) -> list[dict[str, Any]]:
+    return [json.loads(x) for x in Path(state, "audit.jsonl").read_text().splitlines()]
+
+
+def mbpoll_write(port: int | str, address: int, *values: int) -> None:
+    """Write holding registers with libmodbus's client (another tool changing the device by hand)."""
+    assert MBPOLL is not None
+    poke = subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-a", "1", "-0", "-1", "-r", str(address), "-t",
+                           "4", "127.0.0.1", *map(str, values)], capture_output=True, text=True, timeout=30)
+    assert poke.returncode == 0, poke.stdout + poke.stderr
+
+
+def run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=120)
+
+
+needs_mbpoll = pytest.mark.skipif(MBPOLL is None, reason="mbpoll (libmodbus) is not installed")
+
+
+# ---- 1. the window holds the device's lock ------------------------------------------------------------
+
+
+def test_a_second_run_is_refused_during_the_window_by_any_spelling_and_status_lists_the_lock(
+        tmp_path: Path) -> None:
+    """A waits for its confirmation; B (another state folder, the device spelled localhost) is refused with A's
+    run id, window, deadline and command, sends nothing; `status` of B's folder lists A's lock; confirmed, A
+    commits once."""
+    state_a, state_b = str(tmp_path / "a"), str(tmp_path / "b")
+    with SimulatorThread(PROFILE) as sim:
+        port = sim.url.rsplit(":", 1)[1]
+        a = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--confirm-within", "1h",
+                     "--state-dir", state_a)
+        try:
+            wait_for(lambda: bool(awaiting(state_a)) or a.poll() is not None)
+            (waiting,) = awaiting(state_a)
+            seen = len(sim.log)
+            b = run("apply", recipe(tmp_path, "4 s", f"tcp://localhost:{port}", "r2.yaml"), "--yes", "--json",
+                    "--state-dir", state_b)
+            assert len(sim.log) == seen  # B sent nothing at all
+            assert b.returncode == 3, b.stderr
+            dev = json.loads(b.stdout)["devices"][0]
+            assert dev["status"] == "unreachable" and dev["requests"] == [] and dev["snapshot"] is None
+            assert f"run {waiting.run}, in its confirmation window until {waiting.until()}" in dev["error"]
+            assert "--confirm-within 1h" in dev["error"] and dev["error"].endswith("nothing was sent")
+            # the machine's lock folder, whatever the state folder
+            code = run("status", "--state-dir", state_b, "--json")
+            locks = json.loads(code.stdout)["locks"]
+            mine = [rec for rec in locks if rec["run"] == waiting.run]
+            assert {rec["window"] for rec in mine} == {"confirm"} and all(r["pid"] == a.pid for r in mine)
+            assert any(rec["key"].endswith("#unit1") for rec in mine)
+            assert mine[0]["format"] == "deployer.lock/1" and "agent" in mine[0]
+            text = run("status", "--state-dir", state_b).stdout
+            assert f"run {waiting.run}, in its confirmation window until" in text
+            confirmed = run("confirm", "--state-dir", state_a)
+            assert confirmed.returncode == 0, confirmed.stderr
+            assert f"run {waiting.run}: the commit was sent to ramp" in confirmed.stdout
+            out, err = a.communicate(timeout=120)
+        finally:
+            if a.poll() is None:
+                a.kill()
+        log = list(sim.log)
+    assert a.returncode == 0, err
+    assert json.loads(out)["devices"][0]["commit"] == "sent" and len(writes_to(log, COMMIT)) == 1
+    assert sim.read("F07") == (0, 300)  # A's value: B never wrote
+    assert holder.held(os.environ["DEPLOYER_LOCK_DIR"]) == [] or all(
+        r["run"] != waiting.run for r in holder.held(os.environ["DEPLOYER_LOCK_DIR"]))
+
+
+def test_a_second_run_with_lock_timeout_waits_for_the_window_to_end(tmp_path: Path) -> None:
+    """B waits (--lock-timeout) while A soaks; it writes only after A's soak passed and A's commit went out."""
+    with SimulatorThread(PROFILE) as sim:
+        a = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1500ms", "--health-interval",
+                     "100ms", "--state-dir", str(tmp_path / "a"))
+        try:
+            wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 1 or a.poll() is not None)
+            b = run("apply", recipe(tmp_path, "4 s", sim.url, "r2.yaml"), "--yes", "--json", "--lock-timeout", "60",
+                    "--state-dir", str(tmp_path / "b"))
+            a.communicate(timeout=120)
+        finally:
+            if a.poll() is None:
+                a.kill()
+        log = list(sim.log)
+    assert a.returncode == 0 and b.returncode == 0, b.stderr
+    a_commit, b_commit = writes_to(log, COMMIT)
+    b_write = writes_to(log, F07)[1]
+    assert a_commit < b_write < b_commit  # B's first write after A's window ended
+    assert sim.read("F07") == (0, 400)
+
+
+# ---- 2. the commit re-reads ------------------------------------------------------------------------------
+
+
+@needs_mbpoll
+@pytest.mark.parametrize("window", ["confirm", "soak"])
+def test_a_parameter_changed_by_hand_during_the_window_is_never_committed(tmp_path: Path, window: str) -> None:
+    """mbpoll changes F07 while the change waits: no commit; F08 (still the run's) is rolled back, F07 left as
+    found; the device ends failed naming F07 (found and written); `deployer confirm` exits 4 saying so."""
+    state = str(tmp_path / "s")
+    held = ["--confirm-within", "1h"] if window == "confirm" else ["--soak", "1500ms", "--health-interval", "100ms"]
+    with SimulatorThread(PROFILE) as sim:
+        before = sim.registers()
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", *held, "--state-dir", state,
+                        "--report", str(tmp_path / "run.json"))
+        try:
+            if window == "confirm":
+                wait_for(lambda: bool(awaiting(state)) or proc.poll() is not None)
+            else:
+                wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 1
+                         or proc.poll() is not None)
+            mbpoll_write(sim.url.rsplit(":", 1)[1], F07, 0, 999)
+            if window == "confirm":
+                confirmed = run("confirm", "--state-dir", state)
+                assert confirmed.returncode == 4, confirmed.stdout + confirmed.stderr
+                assert "the commit was not sent to ramp" in confirmed.stderr
+                assert "F07 holds 9.99 s, the run wrote 3 s" in confirmed.stderr
+            out, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        log = list(sim.log)
+        after = sim.registers()
+    assert proc.returncode == 4, err
+    report = json.loads(out)
+    dev = report["devices"][0]
+    assert dev["status"] == "failed" and dev["commit"] == "not sent"
+    assert "commit not sent: F07 holds 9.99 s, the run wrote 3 s" in dev["error"]
+    params = {p["name"]: p for p in dev["parameters"]}
+    assert params["F07"]["status"] == "failed" and params["F07"]["after_raw"] == [0, 999]
+    assert params["F08"]["status"] == "rolled-back" and params["F08"]["after_raw"] == params["F08"]["before_raw"]
+    assert json.loads((tmp_path / "run.json").read_text())["devices"][0] == dev
+    # the device: F07 as mbpoll left it, everything else as before, never committed
+    assert after[F07 + 1] == 999 and writes_to(log, COMMIT) == []
+    assert {a: v for a, v in after.items() if a not in (F07, F07 + 1)} == {
+        a: v for a, v in before.items() if a not in (F07, F07 + 1)}
+    lines = journal(state)
+    (commit,) = [r for r in lines if r["event"] == "commit"]
+    assert commit["result"] == "not sent" and "F07 holds 9.99 s" in commit["error"]
+    assert any(r["event"] == "rolled-back" and r["status"] == "failed" for r in lines)
+    status = run("status", "--state-dir", state)
+    assert "no unfinished runs" in status.stdout
+
+
+@needs_mbpoll
+def test_an_independent_device_changed_by_an_independent_client_is_not_committed(tmp_path: Path) -> None:
+    """umodbus as the device, mbpoll as the other hand: x changed during the soak stays as found, y is restored,
+    the commit register is never written."""
+    prof = profile_from(tmp_path, """profile: w
+health:
+  - {register: 0x20, equals: 0, description: fault code is zero}
+commit:
+  - {register: 0x30, raw: 1, description: store}
+parameters:
+  x: {register: 0x10, type: uint16}
+  y: {register: 0x11, type: uint16}
+""", "w.yaml")
+    assert prof.commit
+    store = {0x10: 0, 0x11: 0, 0x20: 0, 0x30: 0}
+    wire: list[tuple[int, int, int]] = []
+    with umodbus_server(store, wire=wire, connections=4) as port:
+        r = tmp_path / "r.yaml"
+        r.write_text(f"recipe: r\nprofile: w.yaml\ndevice: {{url: 'tcp://127.0.0.1:{port}'}}\n"
+                     "parameters:\n  x: 5\n  y: 6\n")
+        proc = deployer("apply", str(r), "--yes", "--json", "--soak", "1500ms", "--health-interval", "100ms",
+                        "--state-dir", str(tmp_path / "s"))
+        try:
+            wait_for(lambda: any(w[:2] == (3, 0x20) for w in list(wire)) or proc.poll() is not None)
+            mbpoll_write(port, 0x10, 77)
+            out, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 4, err
+    dev = json.loads(out)["devices"][0]
+    assert dev["status"] == "failed" and dev["commit"] == "not sent" and "x holds 77, the run wrote 5" in dev["error"]
+    assert {p["name"]: p["status"] for p in dev["parameters"]} == {"x": "failed", "y": "rolled-back"}
+    assert store == {0x10: 77, 0x11: 0, 0x20: 0, 0x30: 0}
+    assert not any(fc in (6, 16) and a <= 0x30 < a + n for fc, a, n in wire)
+
+
+# ---- 3. a failed commit step fails the device ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("held", [[], ["--soak", "200ms", "--health-interval", "100ms"]])
+def test_a_refused_commit_fails_the_device_and_a_retry_sends_it_with_nothing_to_write(
+        capsys: pytest.CaptureFixture[str], tmp_path: Path, held: list[str]) -> None:
+    with Simulators([Simulator(PROFILE, faults=Faults(fail_registers=frozenset({COMMIT})))]) as (sim,):
+        inv, report = inventory(tmp_path, {"d0": sim.url}), str(tmp_path / "run.json")
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", inv, "--yes", "--json", *held,
+                           "--report", report, "--state-dir", str(tmp_path / "s"))
+        assert code == 4
+        dev = json.loads(out)["devices"][0]
+        assert dev["status"] == "failed" and dev["commit"] == "failed"
+        assert "commit 'store parameters to EEPROM' failed: exception 04" in dev["error"]
+        assert {p["status"] for p in dev["parameters"]} == {"ok"}  # verified, in RAM
+        assert len(writes_to(list(sim.log), COMMIT)) == 1
+        sim.faults.fail_registers = frozenset()  # the device takes its commit again
+        seen = len(sim.log)
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", inv, "--yes", "--json",
+                             "--limit", f"@{report}", *held, "--state-dir", str(tmp_path / "s"))
+        retry = list(sim.log)[seen:]
+    assert code == 0, err
+    dev = json.loads(out)["devices"][0]
+    assert dev["status"] == "ok" and dev["commit"] == "sent"
+    assert {p["status"] for p in dev["parameters"]} == {"unchanged"}
+    assert [e.address for e in retry if e.function in (6, 16)] == [COMMIT]  # the commit, nothing else
+
+
+def test_commit_steps_go_as_function_06_to_a_device_that_refuses_16(capsys: pytest.CaptureFixture[str],
+                                                                    tmp_path: Path) -> None:
+    """umodbus answering 01 to Function 16 (and 02 for a commit register it lacks, in the second run)."""
+    prof = profile_from(tmp_path, """profile: w
+commit:
+  - {register: 0x30, raw: 1, description: store}
+parameters:
+  x: {register: 0x10, type: uint16}
+""", "w.yaml")
+    assert prof.commit
+    wire: list[tuple[int, int, int]] = []
+    store = {0x10: 0, 0x30: 0}
+    with umodbus_server(store, fc06_only=True, wire=wire) as port:
+        r = tmp_path / "r.yaml"
+        r.write_text(f"recipe: r\nprofile: w.yaml\ndevice: {{url: 'tcp://127.0.0.1:{port}'}}\nparameters:\n  x: 5\n")
+        code, out, err = cli(capsys, "apply", str(r), "--yes", "--json", "--state-dir", str(tmp_path / "s"))
+    assert code == 0, err
+    assert json.loads(out)["devices"][0]["commit"] == "sent" and store == {0x10: 5, 0x30: 1}
+    assert (6, 0x30, 1) in wire
+    store = {0x10: 0}  # no commit register: umodbus answers 02 (illegal data address)
+    with umodbus_server(store) as port:
+        r.write_text(f"recipe: r\nprofile: w.yaml\ndevice: {{url: 'tcp://127.0.0.1:{port}'}}\nparameters:\n  x: 5\n")
+        code, out, _ = cli(capsys, "apply", str(r), "--yes", "--json", "--state-dir", str(tmp_path / "s"))
+        dev = json.loads(out)["devices"][0]
+    assert code == 4 and dev["status"] == "failed" and dev["commit"] == "failed" and store == {0x10: 5}
+    assert "commit 'store' failed: exception 02" in dev["error"]
+    assert "ok - commit" not in out
+
+
+# ---- 7. --rollback-on-failure: every batch alike --------------------------------------------------------
+
+
+def test_rollback_on_failure_with_the_failure_in_the_last_batch_rolls_back(capsys: pytest.CaptureFixture[str],
+                                                                          tmp_path: Path) -> None:
+    with Simulators([Simulator(PROFILE), Simulator(PROFILE, faults=Faults(fail_registers=frozenset({F07})))]
+                    ) as sims:
+        before = [s.registers() for s in sims]
+        urls = {f"d{i}": s.url for i, s in enumerate(sims)}
+        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", inventory(tmp_path, urls),
+                           "--yes", "--json", "--batch", "1", "--rollback-on-failure",
+                           "--state-dir", str(tmp_path / "s"))
+        after = [s.registers() for s in sims]
+    assert code == 4
+    d0, d1 = json.loads(out)["devices"]
+    assert d0["status"] == "rolled-back" and "the rollout stopped (batch 2 failed" in d0["error"]
+    assert d1["status"] in ("failed", "partial", "rolled-back")
+    assert {a: v for a, v in after[0].items() if a != COMMIT} == {a: v for a, v in before[0].items() if a != COMMIT}
+    assert after[1][F07 + 1] == before[1][F07 + 1] and after[1][F08 + 1] == before[1][F08 + 1]
