@@ -41,7 +41,28 @@ def run(quick: bool = False) -> dict[str, Any]:
                            "peak_mb": round(kb / 1024, 1), "exit": code,
                            "as_expected": code == w.code and w.expect in err and "Traceback" not in err,
                            "message": (err.strip().splitlines() or [""])[0][-160:]}
+        for n in (2_000, 8_000) if quick else (8_000, 20_000):  # issue #28: was quadratic in the renaming
+            out[f"wb-template, {n} channels of one name"] = one_name(Path(work), n)
     return out
+
+
+def one_name(work: Path, n: int) -> dict[str, Any]:
+    """``profiles import wb-template`` of ``n`` channels all named ``Temp`` (each renamed Temp_2, Temp_3 ...).
+
+    Before issue #28 the renaming tried every taken suffix again for each entry (quadratic): 8,000 took
+    5.1 s of CPU and 20,000 took 29.4 s; now each name remembers its next suffix: 1.0 s and 2.4 s
+    (benchmarks/RESULTS.md)."""
+    import json
+
+    f = work / f"one-name-{n}.json"
+    f.write_text(json.dumps({"device_type": "x", "device": {"channels": [
+        {"name": "Temp", "reg_type": "input", "address": i} for i in range(n)]}}))
+    wall, cpu, kb, code, err = measured([sys.executable, "-m", "deployer", "profiles", "import", "wb-template",
+                                         str(f), "-o", str(work / f"one-name-{n}.yaml"), "--force"],
+                                        cwd=str(ROOT), max_bytes=2 << 30)
+    return {"input_mb": round(f.stat().st_size / 1e6, 3), "seconds": round(wall, 2), "cpu_seconds": round(cpu, 2),
+            "peak_mb": round(kb / 1024, 1), "exit": code, "as_expected": code == 0 and "Traceback" not in err,
+            "renamed": err.count("is taken: imported as")}
 
 
 if __name__ == "__main__":

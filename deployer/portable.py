@@ -178,14 +178,18 @@ def file_name(name: str, limit: int = NAME_LIMIT) -> str:
     has the name it would have on Windows): letters, digits, ``-``, ``_`` and ``.`` (others become
     ``_``); no trailing dot or space (Windows drops them); a Windows device name as the part before
     the first dot (``CON``, ``aux.x``, ``COM1``) gets a ``_`` in front; at most ``limit`` characters
-    (a longer name keeps its start and gets a hash of the whole, so two long names stay apart)."""
+    and as many bytes in UTF-8 (a longer name keeps its start and gets a hash of the whole, so two long
+    names stay apart)."""
     import hashlib
 
     safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name).rstrip(". ") or "_"
     if safe.split(".")[0].upper() in RESERVED_NAMES:
         safe = "_" + safe
-    if len(safe) > limit:
-        safe = safe[:limit - 9].rstrip(". ") + "-" + hashlib.sha256(name.encode()).hexdigest()[:8]
+    if len(safe) > limit or len(safe.encode()) > limit:  # bytes too: Linux allows 255 bytes, a CJK letter is 3
+        cut = safe[:limit - 9]
+        while len(cut.encode()) > limit - 9:
+            cut = cut[:-1]
+        safe = cut.rstrip(". ") + "-" + hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:8]
     return safe
 
 

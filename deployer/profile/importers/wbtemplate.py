@@ -483,6 +483,7 @@ def _resolve_shared(entries: list[_Entry], warnings: list[str]) -> tuple[list[_E
     kept: list[_Entry] = []
     occupied: dict[tuple[str, int], list[_Entry]] = {}  # (table, register) -> the kept entries there
     names: set[str] = set()
+    suffix: dict[str, int] = {}  # a taken name -> the next number to try (20,000 channels of one name: linear)
     dropped = 0
     for e in entries:
         regs = [(e.table, r) for r in range(e.address, e.address + e.count)]
@@ -500,10 +501,11 @@ def _resolve_shared(entries: list[_Entry], warnings: list[str]) -> tuple[list[_E
                 dropped += 1
             continue
         name = e.name
-        k = 2
+        k = suffix.get(e.name, 2)
         while name in names:  # a channel named like a parameter (another register)
             name = f"{e.name}_{k}"
             k += 1
+        suffix[e.name] = k
         if name != e.name:
             warnings.append(f"{where}: the name {e.name} is taken: imported as {name}")
             e.notes.insert(0, e.name)
