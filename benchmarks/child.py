@@ -20,18 +20,26 @@ HERE = os.path.abspath(__file__)
 
 def measured(args: list[str], cwd: str | None = None, max_bytes: int | None = None
              ) -> tuple[float, float, int, int, str]:
-    """Wall seconds, CPU seconds (user + system), peak RSS in KB, exit code and stderr of one command.
+    """See ``measured_all``; without the bytes written."""
+    out, err = measured_all(args, cwd, max_bytes)
+    return out["wall"], out["cpu"], out["maxrss_kb"], out["code"], err
+
+
+def measured_all(args: list[str], cwd: str | None = None, max_bytes: int | None = None,
+                 env: dict[str, str] | None = None) -> tuple[dict[str, float], str]:
+    """One command's ``wall`` seconds, ``cpu`` seconds (user + system), peak RSS (``maxrss_kb``), exit
+    ``code`` and ``written_bytes`` (block output: what reached the disk's queue, not the page cache), and
+    its stderr.
 
     The command's stdin and stdout are /dev/null; wall time is taken by the launcher around the command
     alone (not the launcher's own start-up). ``max_bytes``: the command's address space is limited to it
     (a command that tries to take gigabytes fails instead of taking the machine).
     """
     spec = json.dumps({"args": args, "cwd": cwd, "max_bytes": max_bytes})
-    proc = subprocess.run([sys.executable, HERE, spec], capture_output=True, stdin=subprocess.DEVNULL)
+    proc = subprocess.run([sys.executable, HERE, spec], capture_output=True, stdin=subprocess.DEVNULL, env=env)
     if proc.returncode != 0 or not proc.stdout.strip():
         raise RuntimeError(f"the launcher failed for {' '.join(args[:4])}: {proc.stderr.decode(errors='replace')}")
-    out = json.loads(proc.stdout.decode().strip().splitlines()[-1])
-    return out["wall"], out["cpu"], out["maxrss_kb"], out["code"], proc.stderr.decode(errors="replace")
+    return json.loads(proc.stdout.decode().strip().splitlines()[-1]), proc.stderr.decode(errors="replace")
 
 
 def _main() -> None:
@@ -49,7 +57,8 @@ def _main() -> None:
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t
     print(json.dumps({"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "maxrss_kb": usage.ru_maxrss,
-                      "code": os.waitstatus_to_exitcode(status)}))
+                      "code": os.waitstatus_to_exitcode(status),
+                      "written_bytes": usage.ru_oublock * 512}))  # Linux: the command's block output
 
 
 if __name__ == "__main__":

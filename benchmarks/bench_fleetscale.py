@@ -1,0 +1,170 @@
+"""Fleets at scale (issue #30): 1,000 / 4,000 / 10,000 devices x 100 parameters, and deployer side by side
+with a bare pymodbus client.
+
+The devices are the light farm (benchmarks/light_devices.py) in two processes of their own, so the
+device side costs less CPU than deployer does. Every deployer run is the real command line,
+``deployer apply RECIPE --inventory INV --yes --parallel P --report FILE``, started as a child and
+measured from outside (benchmarks/child.py): wall time, CPU time, peak RSS, bytes written to disk;
+the report's ``summary.seconds`` is its fleet phase (without start-up, loading and the final table).
+Every run writes new values (the recipe alternates), so each device really is written and verified.
+
+Side by side: the bare client (benchmarks/bare_fleet.py, its own process) sends each device the
+requests deployer sent one device of the run before it, with the same ``--parallel``, on the same
+devices; deployer and the bare client alternate, ``repeats`` times, and the best of each is
+compared (the machine is shared: a ratio from one run side by side is what is worth anything).
+
+    python -m benchmarks.bench_fleetscale [--quick] [--sizes 1000,4000] [--repeats 2] [--no-side-by-side]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from contextlib import contextmanager
+from collections.abc import Iterator
+from typing import Any
+
+from benchmarks.bench_apply import as_installed
+from benchmarks.bench_fleet import _profile, _recipe
+from benchmarks.child import measured_all
+
+PARAMETERS = 100
+SIZES = (1000, 4000, 10000)
+SIDE_BY_SIDE = ((20, 1000, (32, 128, 256)), (0, 2000, (32, 128, 256)))  # latency ms, devices, --parallel
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@contextmanager
+def farm(devices: int, latency_ms: float, processes: int = 2) -> Iterator[list[str]]:
+    proc = subprocess.Popen([sys.executable, "-m", "benchmarks.light_devices", str(devices), str(latency_ms),
+                             "--processes", str(processes)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            text=True, cwd=ROOT)
+    try:
+        assert proc.stdout is not None
+        yield json.loads(proc.stdout.readline())
+    finally:
+        assert proc.stdin is not None
+        proc.stdin.close()
+        try:
+            proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+class Bench:
+    def __init__(self, work: str) -> None:
+        self.work = work
+        self.variant = 0
+        self.deployer = os.path.join(os.path.dirname(sys.executable), "deployer")
+        with open(os.path.join(work, "profile.yaml"), "w") as f:
+            f.write(_profile(PARAMETERS))
+        self.requests: list[list[int]] = []  # what deployer sent one device, for the bare client
+
+    def inventory(self, urls: list[str]) -> str:
+        path = os.path.join(self.work, f"inventory-{len(urls)}-{abs(hash(urls[0]))}.yaml")
+        if not os.path.exists(path):
+            with open(path, "w") as f:
+                f.write("defaults: {timeout: 5.0, retries: 1}\ndevices:\n")
+                f.writelines(f"  dev{i:05d}: {{url: '{u}'}}\n" for i, u in enumerate(urls))
+        return path
+
+    def apply(self, urls: list[str], parallel: int, report: bool = True) -> dict[str, Any]:
+        self.variant += 1
+        recipe = os.path.join(self.work, f"recipe{self.variant % 2}.yaml")
+        with open(recipe, "w") as f:
+            f.write(_recipe(PARAMETERS, self.variant % 2 + 1))
+        path = os.path.join(self.work, f"report-{self.variant}.json")
+        cmd = [self.deployer, "apply", recipe, "--inventory", self.inventory(urls), "--yes", "--parallel",
+               str(parallel), "--state-dir", os.path.join(self.work, "state")]
+        m, err = measured_all(cmd + (["--report", path] if report else []), self.work)
+        if not report:
+            assert m["code"] == 0, err[-2000:]
+            return {"wall": m["wall"], "cpu": m["cpu"], "rss_mb": m["maxrss_kb"] / 1024,
+                    "written": m["written_bytes"]}
+        with open(path) as f:
+            doc = json.load(f)
+        summary = doc["summary"]
+        assert m["code"] == 0 and summary["ok"] == len(urls), (m, summary, err[-2000:])
+        self.requests = [[r["function"], r["address"], r["count"]] for r in doc["devices"][0]["requests"]]
+        size = os.path.getsize(path)
+        del doc
+        os.remove(path)
+        return {"wall": m["wall"], "cpu": m["cpu"], "rss_mb": m["maxrss_kb"] / 1024, "written": m["written_bytes"],
+                "fleet": summary["seconds"], "report_bytes": size,
+                "requests": summary["write_requests"] + summary["read_requests"]}
+
+    def bare(self, urls: list[str], parallel: int) -> dict[str, Any]:
+        spec = os.path.join(self.work, "bare.json")
+        out = os.path.join(self.work, "bare-out.json")
+        with open(spec, "w") as f:
+            json.dump({"urls": urls, "parallel": parallel, "requests": self.requests, "out": out}, f)
+        m, err = measured_all([sys.executable, "-m", "benchmarks.bare_fleet", spec], ROOT)
+        assert m["code"] == 0, err[-2000:]
+        with open(out) as f:
+            seconds = json.load(f)["seconds"]
+        return {"wall": m["wall"], "cpu": m["cpu"], "fleet": seconds}
+
+
+def _row(m: dict[str, Any], n: int) -> dict[str, Any]:
+    row = {"wall_seconds": round(m["wall"], 2), "cpu_ms_per_device": round(m["cpu"] * 1000 / n, 2),
+           "peak_rss_mb": round(m["rss_mb"], 1), "written_mb": round(m["written"] / 1e6, 1)}
+    if "fleet" in m:
+        row.update({"fleet_seconds": round(m["fleet"], 2), "report_mb": round(m["report_bytes"] / 1e6, 1),
+                    "report_bytes_per_device": round(m["report_bytes"] / n),
+                    "requests_per_device": round(m["requests"] / n, 1)})
+    return row
+
+
+def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int | None = None,
+        side_by_side: bool = True) -> dict[str, Any]:
+    sizes = sizes or ((10,) if quick else SIZES)
+    repeats = repeats or (1 if quick else 2)
+    pairs = ((20, 10, (4,)), (0, 10, (4,))) if quick else SIDE_BY_SIDE
+    as_installed()
+    out: dict[str, Any] = {"parameters": PARAMETERS}
+    with tempfile.TemporaryDirectory(prefix="bench-fleetscale-") as work:
+        b = Bench(work)
+        start = measured_all([b.deployer, "--version"], work)[0]
+        out["version_seconds"] = round(start["wall"], 3)
+        if side_by_side:
+            for latency, n, parallels in pairs:
+                with farm(n, latency) as urls:
+                    b.apply(urls[:10], 4)  # warm: the first run of a fresh state folder; not measured
+                    for p in parallels:
+                        ours, bare = [], []
+                        for _ in range(repeats):
+                            ours.append(b.apply(urls, p))
+                            bare.append(b.bare(urls, p))
+                        best = min(ours, key=lambda m: m["fleet"])
+                        fastest = min(bare, key=lambda m: m["fleet"])
+                        out[f"side_{latency}ms_{n}_parallel_{p}"] = {
+                            "deployer_fleet_seconds": [round(m["fleet"], 3) for m in ours],
+                            "bare_seconds": [round(m["fleet"], 3) for m in bare],
+                            "ratio": round(best["fleet"] / fastest["fleet"], 2),
+                            "ratios_per_pair": [round(a["fleet"] / c["fleet"], 2) for a, c in zip(ours, bare)],
+                            "deployer_cpu_ms_per_device": round(best["cpu"] * 1000 / n, 2),
+                            "bare_cpu_ms_per_device": round(fastest["cpu"] * 1000 / n, 2)}
+        with farm(max(sizes), 20) as urls:
+            b.apply(urls[:10], 4)
+            for n in sizes:
+                runs = [b.apply(urls[:n], 256) for _ in range(repeats)]
+                best = min(runs, key=lambda m: m["wall"])
+                out[f"scale_{n}"] = {**_row(best, n), "walls": [round(m["wall"], 2) for m in runs]}
+            n = max(sizes)
+            out[f"scale_{n}_no_report"] = _row(b.apply(urls[:n], 256, report=False), n)
+    return out
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--sizes", default=None)
+    ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--no-side-by-side", action="store_true")
+    a = ap.parse_args()
+    print(json.dumps(run(a.quick, tuple(int(x) for x in a.sizes.split(",")) if a.sizes else None, a.repeats,
+                         not a.no_side_by_side), indent=2))
