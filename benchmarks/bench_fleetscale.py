@@ -24,8 +24,8 @@ import os
 import subprocess
 import sys
 import tempfile
-from contextlib import contextmanager
 from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from benchmarks.bench_apply import as_installed
@@ -145,7 +145,8 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                             "deployer_fleet_seconds": [round(m["fleet"], 3) for m in ours],
                             "bare_seconds": [round(m["fleet"], 3) for m in bare],
                             "ratio": round(best["fleet"] / fastest["fleet"], 2),
-                            "ratios_per_pair": [round(a["fleet"] / c["fleet"], 2) for a, c in zip(ours, bare)],
+                            "ratios_per_pair": [round(a["fleet"] / c["fleet"], 2)
+                                                for a, c in zip(ours, bare, strict=True)],
                             "deployer_cpu_ms_per_device": round(best["cpu"] * 1000 / n, 2),
                             "bare_cpu_ms_per_device": round(fastest["cpu"] * 1000 / n, 2)}
         with farm(max(sizes), 20) as urls:

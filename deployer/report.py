@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -14,7 +14,9 @@ from .state.durable import write_atomic as write_atomic  # the one atomic write;
 if TYPE_CHECKING:
     from .profile import Parameter
 
-REPORT_SCHEMA = "deployer.report/2"
+REPORT_SCHEMA = "deployer.report/3"
+# the first line of a fleet's report file while the run goes on (``fleet.livereport``): then one device per line
+STREAM_SCHEMA = "deployer.report-stream/3"
 # rolled-back: written and verified, then restored from the snapshot (a failed health check, no confirmation)
 ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "skipped", "rolled-back"]
 # sent: a broadcast that went out; skipped: a fleet never started it (nothing sent); rolled-back: restored after
@@ -79,6 +81,22 @@ class ParameterResult:
                 **({"register_type": self.register_type} if self.register_type != "holding" else {})}
 
 
+@dataclass(frozen=True, slots=True)
+class Tally:
+    """What a finished device's report said, in numbers: kept instead of its requests and parameters once
+    its JSON is in the report file (a fleet of 10,000 devices held 34 KB of result objects per device)."""
+
+    write_requests: int
+    read_requests: int
+    requests: int
+    changed: int  # parameters written whose value changed
+    failed: int  # parameters failed, mismatched or unverified
+    written: tuple[str, ...]  # the journal's "written": parameters sent (ok, failed, mismatch, unverified)
+
+
+_WRITTEN: dict[tuple[str, ...], tuple[str, ...]] = {}  # devices that wrote the same parameters share one tuple
+
+
 @dataclass
 class DeviceResult:
     name: str
@@ -102,14 +120,53 @@ class DeviceResult:
     commit: CommitState | None = None  # None: the profile has no commit steps, or nothing was written
     profile_sha256: str | None = None  # the SHA-256 of the profile file's text (None: a built-in profile)
     unrecorded: list[str] = field(default_factory=list)  # what the journal or report could not record (disk full)
+    tally: Tally | None = None  # set once the requests and parameters were dropped (``small``)
 
     @property
     def write_requests(self) -> int:
+        if self.tally is not None:
+            return self.tally.write_requests
         return sum(1 for r in self.requests if r.function in (5, 6, 15, 16))
 
     @property
     def read_requests(self) -> int:
+        if self.tally is not None:
+            return self.tally.read_requests
         return sum(1 for r in self.requests if r.function in (1, 2, 3, 4))
+
+    @property
+    def request_count(self) -> int:
+        return self.tally.requests if self.tally is not None else len(self.requests)
+
+    @property
+    def changed_count(self) -> int:
+        """Parameters written whose value changed."""
+        if self.tally is not None:
+            return self.tally.changed
+        return sum(1 for p in self.parameters if p.status == "ok" and p.before_raw != p.after_raw)
+
+    @property
+    def failed_count(self) -> int:
+        if self.tally is not None:
+            return self.tally.failed
+        return sum(1 for p in self.parameters if p.status in ("failed", "mismatch", "unverified"))
+
+    @property
+    def written(self) -> tuple[str, ...]:
+        """The parameters sent to the device (ok, failed, mismatch, unverified): the journal's ``written``."""
+        if self.tally is not None:
+            return self.tally.written
+        return tuple(p.name for p in self.parameters if p.status in ("ok", "failed", "mismatch", "unverified"))
+
+    def small(self) -> DeviceResult:
+        """This result without its requests and parameters, their numbers kept (``tally``): what a fleet
+        keeps of a device once its JSON is in the report file. Its ``to_json`` is no longer the report's."""
+        names = self.written
+        if len(_WRITTEN) > 1024:  # a long-lived caller's many recipes: keep the table small
+            _WRITTEN.clear()
+        tally = Tally(self.write_requests, self.read_requests, self.request_count, self.changed_count,
+                      self.failed_count, _WRITTEN.setdefault(names, names))
+        return replace(self, requests=[], parameters=[], tally=tally)
 
     def settle(self) -> None:
         """Device status from its parameters (unless already decided: sent, failed, unreachable, skipped ...)."""
@@ -184,7 +241,7 @@ class Report:
                 "seconds": round(self.seconds, 3)}
 
     def to_json(self) -> dict[str, Any]:
-        """The report document (schema ``deployer.report/2``) as plain values."""
+        """The report document (schema ``deployer.report/3``) as plain values."""
         return _document(self.recipe, [d.to_json() for d in self.devices], self.summary(), self.run_doc())
 
     def run_doc(self) -> dict[str, Any] | None:
@@ -275,10 +332,18 @@ def write_json(data: dict[str, Any], path: str, *, what: str = "") -> None:
 
 
 def read_report(path: str) -> dict[str, Any]:
-    """An earlier run's report file, checked to be a deployer report (InputError); OSError is the caller's."""
+    """An earlier run's report file, checked to be a deployer report (InputError); OSError is the caller's.
+
+    The file of a fleet run that is still going, or was killed, is a stream (``fleet.livereport``): it is
+    read as the document it stands for (``stream_document``)."""
     with open(path, encoding="utf-8") as f:
         try:
-            data = json.load(f)
+            first = f.readline()
+            if first.startswith('{"schema": "deployer.report-stream/'):
+                data = stream_document(path, first, f)
+            else:
+                f.seek(0)
+                data = json.load(f)
         except json.JSONDecodeError as e:
             raise InputError([Diagnostic(path, e.lineno, e.colno, f"not a report (invalid JSON: {e.msg})")]) from None
         except UnicodeDecodeError:
@@ -287,6 +352,35 @@ def read_report(path: str) -> dict[str, Any]:
             or not isinstance(data.get("devices"), list):
         raise InputError([Diagnostic(path, 1, 1, f"not a deployer report (no \"schema\": \"{REPORT_SCHEMA}\")")])
     return data
+
+
+def stream_document(path: str, first: str, lines: Iterable[str]) -> dict[str, Any]:
+    """The report document a stream stands for (its first line read: ``first``): each device's last line,
+    in the order the devices first appear; the summary counted from them (``seconds``: 0, not known).
+    A last line cut short (the run was killed while appending it) is left out: the device's line before
+    it stands. Raises json.JSONDecodeError for anything else that is not JSON."""
+    head = json.loads(first)
+    if not isinstance(head, dict) or head.get("schema") != STREAM_SCHEMA:
+        raise InputError([Diagnostic(path, 1, 1, f"not a deployer report (a stream of another version: "
+                                                 f"{str(head.get('schema') if isinstance(head, dict) else head)!r})")])
+    devices: dict[str, Any] = {}
+    for number, line in enumerate(lines, 2):
+        if not line.endswith("\n"):  # cut short by a crash: only the last line can be
+            break
+        try:
+            dev = json.loads(line)
+        except json.JSONDecodeError as e:
+            raise InputError([Diagnostic(path, number, e.colno, f"not a report (invalid JSON: {e.msg})")]) from None
+        if isinstance(dev, dict) and isinstance(dev.get("name"), str):
+            devices[dev["name"]] = dev  # a later line replaces an earlier one; the first fixed the order
+    listed = list(devices.values())
+    counts: dict[str, int] = {s: sum(1 for d in listed if d.get("status") == s) for s in DEVICE_STATUSES}
+    functions = [r.get("function") for d in listed for r in d.get("requests") or [] if isinstance(r, dict)]
+    summary: dict[str, Any] = {"devices": len(listed), **counts,
+                               "write_requests": sum(1 for f in functions if f in (5, 6, 15, 16)),
+                               "read_requests": sum(1 for f in functions if f in (1, 2, 3, 4)), "seconds": 0.0}
+    return _document(head.get("recipe"), listed, summary, head.get("run") if isinstance(head.get("run"), dict)
+                     else None)
 
 
 def report_from_json(doc: dict[str, Any]) -> Report:

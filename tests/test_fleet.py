@@ -23,6 +23,7 @@ from deployer.fleet.rollout import batch_sizes, failure_budget
 from deployer.load import schema
 from deployer.load.diagnostics import UsageError
 from deployer.profile import builtin_profile
+from deployer.report import read_report
 from deployer.testing.simulator import Faults, Simulator
 from tests.conftest import dead_port
 from tests.helpers import Simulators, cli
@@ -261,13 +262,14 @@ def test_report_file_survives_kill_9(tmp_path: Path) -> None:
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline:  # until two devices have finished
                 if report_file.exists() and sum(d["status"] not in ("skipped", "interrupted") for d in
-                                                 json.loads(report_file.read_text())["devices"]) >= 2:
+                                                 read_report(str(report_file))["devices"]) >= 2:
                     break
                 time.sleep(0.01)
             os.kill(proc.pid, signal.SIGKILL)
         finally:
             proc.wait(timeout=30)
-        data = json.loads(report_file.read_text())
+        assert report_file.read_text().startswith('{"schema": "deployer.report-stream/3"')  # the run's stream
+        data = read_report(str(report_file))
         jsonschema.validate(data, schema.schema("report"))
         status = {d["name"]: d["status"] for d in data["devices"]}
         assert status["d00"] == "ok" and status["d01"] == "partial"
@@ -415,7 +417,7 @@ def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path
 
         def started(job: object) -> None:
             if not seen:
-                seen.append({d["name"]: d.get("error") for d in json.loads(report_file.read_text())["devices"]})
+                seen.append({d["name"]: d.get("error") for d in read_report(str(report_file))["devices"]})
 
         report = deployer.apply_fleet(rec, inventory(tmp_path, urls), report_path=str(report_file), on_start=started,
                                       options=ApplyOptions(state_dir=str(tmp_path / "s")))
@@ -591,10 +593,10 @@ def test_each_distinct_recipe_is_checked_once(tmp_path: Path, monkeypatch: pytes
 
 def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Path) -> None:
     from deployer.fleet.inventory import fleet_jobs, load_inventory
-    from deployer.fleet.livereport import NOT_FINISHED, LiveReport, not_finished
+    from deployer.fleet.livereport import NOT_FINISHED, LiveReport
     from deployer.fleet.rollout import skipped_result
     from deployer.recipe.loader import load_recipe
-    from deployer.report import report_parts
+    from deployer.report import read_report
 
     inv = tmp_path / "inventory.yaml"
     inv.write_text("devices:\n" + "".join(f"  {n}: {{url: 'tcp://127.0.0.1:{1000 + i}'}}\n"
@@ -602,15 +604,21 @@ def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Pat
                    + f"  {names(4)[3]}: {{url: 'tcp://127.0.0.1:1003', parameters: {{F07: 12 s}}}}\n")  # own values
     jobs = fleet_jobs(load_inventory(str(inv)), load_recipe(recipe(tmp_path)), None)
     assert jobs[3].recipe is not jobs[0].recipe
-    skeleton = not_finished(jobs)
-    naive = [skipped_result(j, NOT_FINISHED) for j in jobs]
-    assert [d.to_json() for d in skeleton] == [d.to_json() for d in naive]
-    live = LiveReport(str(tmp_path / "r.json"), "r.yaml", skeleton)
+    live = LiveReport(str(tmp_path / "r.json"), "r.yaml", jobs, [2, 2], run={"id": "run-1"})
     live.stop()
-    text = (tmp_path / "r.json").read_text()
-    expected = b"".join(report_parts("r.yaml", [json.dumps(d.to_json()).encode() for d in naive], {})).decode()
-    assert text.split('"summary"')[0] == expected.split('"summary"')[0]  # byte for byte, but the summary
-    assert {d["name"]: d["error"] for d in json.loads(text)["devices"]} == {n: NOT_FINISHED for n in names(4)}
+    lines = (tmp_path / "r.json").read_text().splitlines()
+    assert json.loads(lines[0]) == {"schema": "deployer.report-stream/3", "recipe": "r.yaml", "run": {"id": "run-1"}}
+    # one small line per device: the skipped device without its parameters (the journal has what recovery needs)
+    small = [skipped_result(j, NOT_FINISHED, b, parameters=False).to_json() for j, b in zip(jobs, (1, 1, 2, 2),
+                                                                                          strict=True)]
+    assert [json.loads(x) for x in lines[1:]] == small
+    assert all(len(x) < 300 + len(str(tmp_path)) * 2 for x in lines[1:])  # name, url, paths: no parameters
+    doc = read_report(str(tmp_path / "r.json"))  # read as the document it stands for
+    jsonschema.validate(doc, schema.schema("report"))
+    assert doc["devices"] == small and doc["run"] == {"id": "run-1"}
+    assert doc["summary"] | {"seconds": 0} == {"devices": 4, "ok": 0, "sent": 0, "partial": 0, "failed": 0,
+                                                "unreachable": 0, "skipped": 4, "rolled-back": 0, "interrupted": 0,
+                                                "write_requests": 0, "read_requests": 0, "seconds": 0}
 
 
 def test_a_device_is_reported_done_once_its_journal_line_is_on_disk(tmp_path: Path) -> None:
@@ -674,3 +682,26 @@ def test_runs_of_numbered_names_are_shown_as_ranges() -> None:
     assert compact(["p08", "p09", "p10", "q1", "q2", "r3"]) == ["p08..p10", "q1", "q2", "r3"]
     assert compact(["p8", "p09", "p10"]) == ["p8", "p09", "p10"]  # zero-padded and not: not one run
     assert compact(["line3-a", "line4-a", "line5-a"]) == ["line3-a", "line4-a", "line5-a"]  # the number must end it
+
+
+def test_the_streamed_report_is_the_document_the_report_writer_makes(tmp_path: Path) -> None:
+    """The file assembled from the stream equals ``report_text`` of the run's report (the document every
+    report is written as), for a run with devices ok, partial, unreachable and never started; and a run
+    retried with ``--limit @REPORT`` takes exactly the devices that did not end ok."""
+    import deployer
+    from deployer.execute.session import ApplyOptions
+    from deployer.report import report_text
+
+    with fleet(5, {1: Faults(fail_registers=frozenset({F08})), 3: Faults(fail_registers=frozenset({F08}))}) as sims:
+        urls = {n: s.url for n, s in zip(names(5), sims, strict=True)}
+        urls["d02"] = f"tcp://127.0.0.1:{free_port()}"  # nobody listens: unreachable
+        inv = inventory(tmp_path, urls)
+        report_file = tmp_path / "r.json"
+        report = deployer.apply_fleet(deployer.load_recipe(recipe(tmp_path)), inv, report_path=str(report_file),
+                                      parallel=1, max_failures="3", options=ApplyOptions(state_dir=str(tmp_path / "s")))
+        written = json.loads(report_file.read_text())
+        assert written == json.loads(report_text(report))
+        jsonschema.validate(written, schema.schema("report"))
+        assert [d["status"] for d in written["devices"]] == ["ok", "partial", "unreachable", "partial", "skipped"]
+        assert len(written["devices"][4]["parameters"]) == 3  # never started: the recipe's parameters, skipped
+        assert not_ok(str(report_file)) == ["d01", "d02", "d03", "d04"]

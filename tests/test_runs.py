@@ -20,6 +20,7 @@ from typing import Any
 import pytest
 
 from deployer.profile import load_profile
+from deployer.report import read_report
 from deployer.testing.simulator import Faults, Simulator, SimulatorThread
 from tests.helpers import Simulators, wait_for
 
@@ -101,7 +102,8 @@ def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
     half = [f"d{i}" for i, s in enumerate(fleet) if 0 < writes(s) < N]
     by_run = [writes(s) for s in fleet]
     assert half and any(holds(s) != before(i) for i, s in enumerate(fleet))
-    report = json.loads((files / "run.json").read_text())
+    assert (files / "run.json").read_text().startswith('{"schema": "deployer.report-stream/3"')  # killed: a stream
+    report = read_report(str(files / "run.json"))
     assert report["run"]["id"] and report["run"]["state_dir"] == str(files / "state")
     by_name = {d["name"]: d for d in report["devices"]}
     for name in half:  # the file says not finished (or interrupted, if its writer got there): never ok
@@ -171,7 +173,7 @@ def test_sigterm_mid_apply_of_one_device(files: Path) -> None:
                      "--state-dir", "state", cwd=files)
         wait_for(lambda: 2 <= writes(sim) <= N - 6, "writes")
         # the report file was written before the first request, like a fleet's
-        first = json.loads((files / "one.json").read_text())
+        first = read_report(str(files / "one.json"))
         assert first["devices"][0]["status"] in ("skipped", "interrupted") and first["run"]["id"]
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=60)

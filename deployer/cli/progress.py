@@ -111,11 +111,10 @@ def fleet_summary(report: Report, out: Console) -> None:
     staged = len({d.batch for d in report.devices}) > 1
     rows: list[list[Cell]] = []
     for d in report.devices:
-        changed = sum(1 for p in d.parameters if p.status == "ok" and p.before_raw != p.after_raw)
-        failed = sum(1 for p in d.parameters if p.status in ("failed", "mismatch", "unverified"))
         secs = "-" if d.seconds is None else f"{d.seconds:.2f}"
         rows.append([d.name, *([str(d.batch or "-")] if staged else []), (d.status, STYLE.get(d.status, "")),
-                     str(changed), str(failed), str(len(d.requests)), secs, d.error or ""])  # escaped by show
+                     str(d.changed_count), str(d.failed_count), str(d.request_count), secs,
+                     d.error or ""])  # escaped by show
     show(out, ["device", *(["batch"] if staged else []), "status", "changed", "failed", "requests", "seconds", ""],
          rows)
     s = report.summary()

@@ -1,162 +1,192 @@
-"""The fleet report file, rewritten as devices finish (--limit @REPORT works after a crash).
+"""The fleet report file while the run goes on: one line per device appended as it finishes.
 
-The document itself is written by ``deployer.report`` (``report_parts``), as every report is."""
+During a run the ``--report`` file is a stream (docs/reference/report.md, "The report file while
+a fleet runs"): a first line ``{"schema": "deployer.report-stream/3", "recipe": ..., "run": ...}``,
+then one small line per selected device (``skipped``, "not finished"), then each device's report
+JSON appended as a line of its own when it finishes; a later line for a device replaces an earlier
+one (a device that starts writing gets an ``interrupted`` line naming its snapshot; a soak, a
+confirmation or ``--rollback-on-failure`` change a finished device later). A writer thread appends
+and fsyncs what is pending, so the file is durable a moment after each device, however big the
+fleet (the old file was the whole document rewritten 30-45 times). ``report.read_report`` reads a
+stream as the document it stands for, so ``deployer report``, ``rollback --from-report`` and
+``--limit @FILE`` work on the file of a run that was killed.
+
+At the end the final document is assembled from the stream (each device's last line, in the run's
+order, copied in pieces: never every device in memory) into a temporary file that replaces the
+stream (``write_atomic``).
+"""
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
 import threading
-import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from ..report import device_json, report_parts
+from ..report import STREAM_SCHEMA, device_json, report_parts
 
 if TYPE_CHECKING:
     from ..execute.job import Job
     from ..report import DeviceResult, Report
 
 
-# ---- the report file of a running fleet ------------------------------------------------------
-
 NOT_FINISHED = "not finished (interrupted run)"
 WRITING = "interrupted while writing (the run did not finish): some parameters may hold new values"
 
 
-def not_finished(jobs: Sequence[Job], batches: Sequence[int] | None = None) -> list[DeviceResult]:
-    """Every job as ``skipped``, "not finished" (with its batch): the report file's first state. The
-    devices of one recipe share one (read-only) parameter list, so its JSON is made once (``LiveReport``)."""
-    from ..transport.clients import describe
-    from .rollout import batch_numbers, skipped_result
+def placeholder(job: Job, batch: int | None) -> bytes:
+    """A device not finished yet: its line of the stream's first state (no parameters: the journal's
+    ``device-started`` line says what recovery needs)."""
+    from .rollout import skipped_result
 
-    first: dict[int, DeviceResult] = {}
-    batch_of = batch_numbers(jobs, batches)
-    out = []
-    for j in jobs:
-        proto = first.get(id(j.recipe))
-        if proto is None:
-            proto = first[id(j.recipe)] = skipped_result(j, NOT_FINISHED)
-        out.append(replace(proto, name=j.name, url=describe(j.url), unit=j.unit, requests=[], notices=[],
-                           batch=batch_of.get(j.name)))
-    return out
+    return device_json(skipped_result(job, NOT_FINISHED, batch, parameters=False))
 
 
 class LiveReport:
-    """The ``--report`` file of a fleet run, true at every moment, even after a ``kill -9``.
+    """The ``--report`` file of a fleet run, readable at every moment, even after a ``kill -9``.
 
-    Before the first device starts, every selected device is in it as ``skipped`` with the error
-    "not finished (interrupted run)"; as devices finish the file is rewritten atomically
-    (``report.write_atomic``: temporary file, fsync, rename) so ``--limit @FILE`` retries exactly
-    the devices that did not end ok. Each device's JSON is built once; a writer thread rewrites
-    the file while the run goes on, taking in every device that finished meanwhile, so a big
-    fleet does not wait for its own report: for a small report that is a write per device, for a
-    huge one the file lags the run by at most a few write times (devices that ended ok in that
-    window would be retried by ``@FILE``, which writes nothing to a device that already matches).
+    ``finished``, ``writing`` and ``update`` encode the device's line at once (the caller may drop
+    its details afterwards) and hand it to the writer thread; ``close`` assembles the final document.
     """
 
-    def __init__(self, path: str, recipe: str | None, skeleton: Sequence[DeviceResult], *,
+    def __init__(self, path: str, recipe: str | None, jobs: Sequence[Job], batches: Sequence[int] | None = None, *,
                  run: dict[str, Any] | None = None) -> None:
+        from .rollout import batch_numbers
+
         self.path = path
         self.recipe = recipe
         self.run = run  # who, what, where and when (report.run_info)
-        self._order = [d.name for d in skeleton]
-        made: dict[int, str] = {}  # the skeleton's devices share their parameter lists (not_finished)
-        self._parts = {d.name: device_json(d, made) for d in skeleton}
-        self._finished: list[DeviceResult] = []
-        self._writing: set[str] = set()  # started writing, not finished yet
+        self._order = [j.name for j in jobs]
+        self._at: dict[str, tuple[int, int]] = {}  # device -> offset and length of its last line
+        self._final: set[str] = set()  # devices whose line is their result (finished, updated)
+        self._pending: list[tuple[str, bytes]] = []
         self._cond = threading.Condition()
-        self._dirty = False
         self._closing = False
-        self._started = time.monotonic()
-        self._write(self._document())  # on disk before the first device starts
+        self._error: OSError | None = None
+        self._size = 0
+        head = json.dumps({"schema": STREAM_SCHEMA, "recipe": recipe, "run": run}).encode() + b"\n"
+        batch_of = batch_numbers(jobs, batches)
+        first: list[tuple[str, bytes]] = [(j.name, placeholder(j, batch_of.get(j.name))) for j in jobs]
+        self._fd = self._create(head, first)  # on disk before the first device starts
         self._thread = threading.Thread(target=self._loop, name="deployer-report", daemon=True)
         self._thread.start()
 
-    def finished(self, result: DeviceResult) -> None:
-        part = device_json(result)
+    def _create(self, head: bytes, lines: list[tuple[str, bytes]]) -> int:
+        """The stream's first state, written whole to a temporary file and renamed over ``path``
+        (``write_atomic``); then kept open for appending."""
+        from ..state.durable import write_atomic
+
+        pieces = [head]
+        offset = len(head)
+        for name, line in lines:
+            self._at[name] = (offset, len(line))
+            pieces.append(line + b"\n")
+            offset += len(line) + 1
+        write_atomic(self.path, pieces)
+        self._size = offset
+        return os.open(self.path, os.O_WRONLY | os.O_APPEND | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0))
+
+    def _add(self, name: str, line: bytes, final: bool) -> None:
         with self._cond:
-            self._parts[result.name] = part
-            self._finished.append(result)
-            self._dirty = True
+            self._pending.append((name, line))
+            if final:
+                self._final.add(name)
             self._cond.notify()
+
+    def finished(self, result: DeviceResult) -> None:
+        self._add(result.name, device_json(result), True)
 
     def writing(self, result: DeviceResult) -> None:
-        """A device's snapshot is on disk and its writes start: until it finishes, the file says
+        """A device's snapshot is on disk and its writes start: until it finishes, its line says
         ``interrupted`` with its snapshot, which is what it is if the run dies now. (The file may lag
         the run: the journal's ``device-started`` line, on disk before the first write, is what
-        ``rollback --report`` trusts.)"""
-        doc = replace(result, status="interrupted", requests=[], notices=[],
-                      error=f"{WRITING}; restore it with: deployer rollback {result.snapshot}").to_json()
-        doc["parameters"] = [{**p, "status": "unverified" if p["status"] != "unchanged" else p["status"],
-                              "error": "the run did not finish: not read back" if p["status"] != "unchanged"
-                              else None} for p in doc["parameters"]]
-        part = json.dumps(doc).encode()  # ASCII (ensure_ascii), as device_json's
-        with self._cond:  # always before the same device's ``finished`` (one coroutine calls both)
-            self._writing.add(result.name)
-            self._parts[result.name] = part
-            self._dirty = True
-            self._cond.notify()
+        ``rollback --from-report`` trusts.)"""
+        self._add(result.name, device_json(replace(result, status="interrupted", requests=[], parameters=[], notices=[],
+                                                   error=f"{WRITING}; restore it with: deployer rollback "
+                                                         f"{result.snapshot}")), False)
 
     def update(self, result: DeviceResult) -> None:
-        """A finished device changed since (a soak rolled it back, its held commit was sent): write it anew."""
-        part = device_json(result)
+        """A finished device changed since (a soak rolled it back, its held commit was sent): its line anew."""
+        self._add(result.name, device_json(result), True)
+
+    def _flush(self) -> None:
+        """Append what is pending and fsync (the writer thread, and ``stop``)."""
         with self._cond:
-            self._parts[result.name] = part
-            self._dirty = True
-            self._cond.notify()
-
-    def stop(self) -> None:
-        """Stop the writer thread (what is on disk stays: at worst one write behind)."""
+            batch, self._pending = self._pending, []
+        if not batch or self._error is not None:
+            return
+        pieces = []
+        offset = self._size
+        at = {}
+        for name, line in batch:
+            at[name] = (offset, len(line))
+            pieces.append(line + b"\n")
+            offset += len(line) + 1
+        try:
+            data = b"".join(pieces)
+            view = memoryview(data)
+            while view:
+                view = view[os.write(self._fd, view):]
+            os.fsync(self._fd)
+        except OSError as e:  # the run goes on (the journal has what recovery needs); close() says so
+            self._error = e
+            return
         with self._cond:
-            self._closing = True
-            self._cond.notify()
-        self._thread.join()
-
-    def close(self, report: Report) -> None:
-        """Write the final report: the devices' JSON as built when they finished, the final summary."""
-        from ..report import write_atomic
-
-        self.stop()
-        with self._cond:
-            done = {r.name for r in self._finished}
-            for d in report.devices:
-                if d.name not in done:  # skipped by the rollout: never reported as finished
-                    self._parts[d.name] = device_json(d)
-        write_atomic(self.path, self._document(report.summary(), report))
-
-    def _document(self, summary: dict[str, Any] | None = None, report: Report | None = None) -> list[bytes]:
-        from ..report import Report
-
-        with self._cond:
-            parts = [self._parts[n] for n in self._order]
-            finished = list(self._finished)
-            writing = len(self._writing - {r.name for r in finished})
-        if summary is None:  # finished devices count for real, the rest as the file says (skipped or writing)
-            summary = Report(self.recipe, finished, time.monotonic() - self._started).summary()
-            summary["devices"] = len(self._order)
-            summary["interrupted"] += writing
-            summary["skipped"] += len(self._order) - len(finished) - writing
-        return report_parts(self.recipe, parts, summary, self.run if report is None else report.run_doc())
-
-    def _write(self, text: list[bytes]) -> None:
-        from ..report import write_atomic
-
-        write_atomic(self.path, text)
+            self._at.update(at)
+            self._size = offset
 
     def _loop(self) -> None:
         while True:
             with self._cond:
-                while not self._dirty and not self._closing:
+                while not self._pending and not self._closing:
                     self._cond.wait()
-                if not self._dirty:  # closing, and the file already says everything
+                if not self._pending:
                     return
-                self._dirty = False
-            t = time.monotonic()
-            with contextlib.suppress(OSError):  # keep the fleet running; close() raises if the disk stays bad
-                self._write(self._document())
-            # pace: a write that took d seconds is followed by at least 4d of run, so a huge report
-            # (36 MB for 1,000 devices x 100 parameters) costs the run at most a fifth of its time
+            self._flush()
+            # a moment for more devices to finish: one write and fsync takes many devices' lines
             with self._cond:
-                self._cond.wait_for(lambda: self._closing, timeout=4 * (time.monotonic() - t))
+                self._cond.wait_for(lambda: self._closing, timeout=0.05)
+
+    def stop(self) -> None:
+        """Stop the writer thread after writing what is pending (the stream stays as it is)."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        self._thread.join()
+        self._flush()
+        with contextlib.suppress(OSError):
+            os.close(self._fd)
+        self._fd = -1
+
+    def close(self, report: Report) -> None:
+        """Write the final report: each device's last line (devices the rollout never started as the
+        report has them), the final summary; assembled from the stream, which it then replaces."""
+        from ..state.durable import write_atomic
+
+        with self._cond:
+            for d in report.devices:
+                if d.name not in self._final:  # skipped by the rollout: never reported as finished
+                    self._pending.append((d.name, device_json(d)))
+                    self._final.add(d.name)
+        self.stop()
+        if self._error is not None:
+            from ..errors import UsageError
+            from ..state.durable import disk_error
+
+            raise UsageError(f"cannot write the report {self.path}: {disk_error(self._error)}")
+        head, *_, tail = report_parts(self.recipe, [], report.summary(), report.run_doc())
+        write_atomic(self.path, self._assembled(head, tail), what="the report")
+
+    def _assembled(self, head: bytes, tail: bytes) -> Iterator[bytes]:
+        """The final document in pieces: read back from the stream in runs of about a megabyte."""
+        yield head
+        with open(self.path, "rb") as f:
+            for i, name in enumerate(self._order):
+                offset, length = self._at[name]
+                f.seek(offset)
+                line = f.read(length)
+                yield b",\n" + line if i else line
+        yield tail

@@ -68,12 +68,14 @@ async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Await
             raise outcome
 
 
-def skipped_result(job: Job, reason: str, batch: int | None = None) -> DeviceResult:
-    """A device a fleet run did not start: nothing was sent to it (``batch``: the one it would have run in)."""
+def skipped_result(job: Job, reason: str, batch: int | None = None, *, parameters: bool = True) -> DeviceResult:
+    """A device a fleet run did not start: nothing was sent to it (``batch``: the one it would have run in;
+    ``parameters``: False leaves out the recipe's parameters, for the report file's "not finished" lines)."""
     r = DeviceResult(job.name, tp.describe(job.url), job.unit, job.recipe.profile.id, status="skipped", error=reason,
                      profile_ref=profile_ref(job.recipe.profile), recipe=job.recipe.path, batch=batch,
                      profile_sha256=job.recipe.profile.digest)
-    r.parameters = list(_results(job.recipe).values())
+    if parameters:
+        r.parameters = list(_results(job.recipe).values())
     return r
 
 

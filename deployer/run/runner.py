@@ -5,11 +5,12 @@ run is in the audit log and visible to ``deployer status``:
 
 1. checks before anything is sent: a broadcast (unit 0) needs ``allow_broadcast``, fleet options
    (batch sizes, the failure budget, open files), a report file that can be written;
-2. the journal's ``run-started`` line, then the report file's first state (every device ``skipped``,
-   "not finished", with the run id and the state folder: ``rollback --report`` finds the journal by them);
-3. the devices (``fleet.rollout.apply_many``); a device's file entry says ``interrupted`` with its
-   snapshot from its first write until it finishes;
-4. the journal's ``run-finished`` line and the final report file.
+2. the journal's ``run-started`` line, then the report file's first state (a stream: every device
+   ``skipped``, "not finished", with the run id and the state folder: ``rollback --report`` finds the
+   journal by them);
+3. the devices (``fleet.rollout.apply_many``); a device's line says ``interrupted`` with its
+   snapshot from its first write until its result is appended;
+4. the final report file (assembled from the stream) and the journal's ``run-finished`` line.
 
 Interrupted (Ctrl-C or SIGTERM when ``signals`` is set, or the task cancelled), the devices in flight
 end ``interrupted`` (with their snapshot when something may have been written), the others
@@ -31,7 +32,7 @@ from typing import Any
 from ..errors import RunInterrupted
 from ..execute.job import Job
 from ..execute.session import ApplyOptions, Declined, StalePlan
-from ..fleet.livereport import LiveReport, not_finished
+from ..fleet.livereport import LiveReport
 from ..fleet.rollout import apply_many, batch_plan, batch_sizes, failure_budget
 from ..load.diagnostics import UsageError
 from ..portable import interrupt_signals, on_signals, raise_open_files
@@ -133,7 +134,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     journal.run_started(state_dir, run_id, command=command, argv=argv, recipe=applied, via=via,
                         devices=[(j.name, describe(j.url), j.unit) for j in jobs])
     info = {**run_info(opts.command or f"Python API: {command}", started), "id": run_id, "state_dir": state_dir}
-    live = LiveReport(report_path, label, not_finished(jobs, sizes), run=info) if report_path else None
+    live = LiveReport(report_path, label, jobs, sizes, run=info) if report_path else None
     opts = replace(opts, run_id=run_id, applied=applied, state_dir=state_dir,
                    on_writing=_both(opts.on_writing, live.writing if live is not None else None))
 

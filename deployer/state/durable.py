@@ -23,7 +23,7 @@ import secrets
 import stat
 import sys
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -273,14 +273,15 @@ def disk_error(e: OSError) -> str:
     return portable.path_error(e) or e.strerror or str(e)
 
 
-def write_atomic(path: str, text: str | bytes | Sequence[bytes], *, replace: bool = True, what: str = "") -> None:
+def write_atomic(path: str, text: str | bytes | Iterable[bytes], *, replace: bool = True, what: str = "") -> None:
     """The one way deployer writes an output file: whole or not at all, and durable.
 
     ``check_output``'s rule first (and again right before the rename); then a new temporary file in
-    the same folder (which must exist; never following a link), the text written (pieces of bytes with gathering
-    writes: a big fleet report is never joined in memory), fsync'ed, renamed over ``path``, and the
-    folder fsync'ed so the new name survives a crash (POSIX; Windows cannot fsync a folder: there the
-    rename is as durable as NTFS's own journal makes it). An existing file keeps its permissions.
+    the same folder (which must exist; never following a link), the text written (pieces of bytes, taken as
+    they come and written with gathering writes: a big fleet report is never joined in memory), fsync'ed,
+    renamed over ``path``, and the folder fsync'ed so the new name survives a crash (POSIX; Windows cannot
+    fsync a folder: there the rename is as durable as NTFS's own journal makes it). An existing file keeps
+    its permissions.
     Raises OutputRefused for a path it will not write, UsageError when the disk refuses (full, read-only).
     """
     check_output(path, replace=replace, what=what)
@@ -303,7 +304,7 @@ def write_atomic(path: str, text: str | bytes | Sequence[bytes], *, replace: boo
             elif isinstance(text, bytes):
                 _write_all(fd, text)
             else:
-                _writev(fd, list(text))
+                _write_pieces(fd, text)
             os.fsync(fd)
         finally:
             os.close(fd)
@@ -323,6 +324,20 @@ def _write_all(fd: int, data: bytes) -> None:
     view = memoryview(data)
     while view:
         view = view[os.write(fd, view):]
+
+
+def _write_pieces(fd: int, pieces: Iterable[bytes]) -> None:
+    """Pieces as they come (an iterator may produce them as it goes), gathered into writes of about 1 MB."""
+    batch: list[bytes] = []
+    size = 0
+    for piece in pieces:
+        batch.append(piece)
+        size += len(piece)
+        if size >= 1 << 20:
+            _writev(fd, batch)
+            batch, size = [], 0
+    if batch:
+        _writev(fd, batch)
 
 
 def _writev(fd: int, pieces: list[bytes]) -> None:

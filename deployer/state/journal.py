@@ -116,7 +116,7 @@ def _batch(res: DeviceResult) -> dict[str, int]:
 
 
 def _written(res: DeviceResult) -> list[str]:
-    return [p.name for p in res.parameters if p.status in ("ok", "failed", "mismatch", "unverified")]
+    return list(res.written)
 
 
 def run_finished(state_dir: str, run: str | None, report: Report, *, command: str, argv: Sequence[str] = ()) -> None:

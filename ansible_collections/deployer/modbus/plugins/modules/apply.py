@@ -116,7 +116,7 @@ devices:
   elements: dict
   returned: always
 report:
-  description: The deployer report (schema C(deployer.report/2)).
+  description: The deployer report (schema C(deployer.report/3)).
   type: dict
   returned: when not in check mode
 run:
