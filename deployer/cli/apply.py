@@ -225,6 +225,8 @@ def run_apply(source: str | None, *, device: str | None, unit: int | None, timeo
                               batch=batch, max_failures=max_failures, batch_by=batch_by, report_path=report_path,
                               signals=True,
                               refuse_broadcast=True, **hooks)
+    # a fleet's table shows only the devices that need a look: the others' details are in the report file
+    kw["keep_results"] = bool(as_json or html_path or not fleet_run)
     interrupted = None
     try:
         if fleet_run:

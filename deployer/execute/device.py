@@ -65,6 +65,47 @@ def _shared(recipe: Recipe) -> _Shared:
     return hit[1]
 
 
+def plan_digest(plan: Plan) -> str:
+    """The journal's ``plan_sha256``: SHA-256 of the plan's saved-plan JSON with sorted keys."""
+    return hashlib.sha256(json.dumps(plan_to_json(plan), sort_keys=True).encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class _Planned:
+    """A device's plan, from the plans devices of one recipe holding the same values share."""
+
+    plan: Plan
+    rest: bytes  # the plan's sorted-key JSON after its "device" (which sorts first), shared
+
+    def digest(self) -> str:
+        """``plan_digest(self.plan)``, without serialising the plan again: only its device is this device's."""
+        d = self.plan.device
+        head = json.dumps({"profile": d.profile, "unit": d.unit, "url": d.url}).encode()
+        return hashlib.sha256(b'{"device": ' + head + b", " + self.rest).hexdigest()
+
+
+_PLANS: dict[tuple[int, bool, bool, tuple[tuple[int, ...] | None, ...]], tuple[Recipe, _Planned]] = {}
+
+
+def _planned(recipe: Recipe, target: Target, before: dict[str, tuple[int, ...]], write_all: bool,
+             shared: _Shared) -> _Planned:
+    """``make_plan`` for this device, planned once for all the devices of ``recipe`` that hold the same values
+    (the plan depends on the recipe, its profile with any learned limits, and what the device holds; the
+    device itself is only named in it, and whether it answers: unit 0 does not)."""
+    current = tuple(before.get(name) for name, _, _ in shared.layout)
+    answers = target.unit != 0  # the plan's wire summary counts the answers (none to a broadcast)
+    key = (id(recipe), write_all, answers, current)
+    hit = _PLANS.get(key)
+    if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
+        while len(_PLANS) >= _SHARED_KEPT:
+            del _PLANS[next(iter(_PLANS))]
+        plan = make_plan(recipe, Target("", int(answers), ""), before, write_all=write_all, reads=shared.reads)
+        doc = plan_to_json(plan)
+        del doc["device"]
+        hit = _PLANS[key] = (recipe, _Planned(plan, json.dumps(doc, sort_keys=True)[1:].encode()))
+    return replace(hit[1], plan=replace(hit[1].plan, device=target))
+
+
 async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None = None,
                        options: ApplyOptions | None = None) -> DeviceResult:
     """Apply ``recipe`` to one device and say exactly what it holds afterwards.
@@ -271,7 +312,8 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
                 + "); make a new plan")
         plan = opts.expected
     else:
-        plan = make_plan(recipe, target, before, write_all=opts.write_all, reads=shared.reads)
+        planned = _planned(recipe, target, before, opts.write_all, shared)
+        plan = planned.plan
     for pp in plan.parameters:
         if pp.action == "unchanged":
             results[pp.name].status = "unchanged"
@@ -303,7 +345,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=applied,
                          identity=res.identity)
     if opts.run_id is not None:
-        digest = hashlib.sha256(json.dumps(plan_to_json(plan), sort_keys=True).encode()).hexdigest()
+        digest = planned.digest() if opts.expected is None else plan_digest(plan)
         snap.journal = journal.path_of(opts.state_dir)
         snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest,
                                            batch=res.batch, restoring=res.restored)

@@ -127,7 +127,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                      between_batches: Callable[[int, Report], Awaitable[str | None]] | None = None,
                      on_confirm_wait: Callable[[str, float], None] | None = None,
                      on_changed: Callable[[DeviceResult], None] | None = None,
-                     on_soak: Callable[[int, list[str]], None] | None = None) -> Report:
+                     on_soak: Callable[[int, list[str]], None] | None = None,
+                     keep_results: bool = True) -> Report:
     """Apply to many devices: in parallel, except that devices on one bus go one at a time.
 
     ``batches`` (sizes, in job order; ``batch_plan`` orders a mixed line) stage the rollout: each batch
@@ -145,7 +146,9 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     is rolled back. ``between_batches(number, report so far)`` runs before batches 2, 3 ... (a pause, a
     question) and may end the rollout by returning the reason. ``on_changed`` is told of a device whose
     result changed after ``on_done`` (rolled back, committed); ``on_soak(batch number, device names)`` when a
-    soak starts.
+    soak starts. ``keep_results`` False: a device that ended ok is kept as its ``DeviceResult.small()`` once
+    ``on_done`` had it (which wrote its report line), unless a soak, a confirmation or ``rollback_on_failure``
+    may still change it: 10,000 devices x 100 parameters held 34 KB of result objects per device.
     """
     opts = options or ApplyOptions()
     window = Window(opts, recipe_name, on_changed=on_changed, on_soak=on_soak, on_confirm_wait=on_confirm_wait)
@@ -153,6 +156,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         opts = replace(opts, keep_lock=window.keep)
     rollout = _Rollout(jobs, opts, recipe_name, batch_numbers(jobs, batches), Budget(max_failures), window,
                        on_done=on_done, on_start=on_start)
+    rollout.small_ok = (not keep_results and opts.soak is None and opts.confirm_within is None
+                        and not rollback_on_failure)
     try:
         await rollout.batches(list(batches) if batches else [len(jobs)], parallel, between_batches)
         await window.end(rollout.written(jobs), rollout.stop, rollback_on_failure=rollback_on_failure)
@@ -178,6 +183,7 @@ class _Rollout:
         self.on_done = on_done
         self.on_start = on_start
         self.done: dict[str, DeviceResult] = {}
+        self.small_ok = False  # keep a device that ended ok as its small result once on_done had it
         self.stop: str | None = None
         self.started = time.monotonic()
 
@@ -246,6 +252,8 @@ class _Rollout:
             await journal_line(r, finishing)
         if self.on_done:  # the device is done (report file, progress) once its journal line is on disk
             self.on_done(r)
+        if self.small_ok and r.status == "ok":
+            self.done[r.name] = r.small()
 
     def written(self, batch: Sequence[Job]) -> list[Written]:
         return [self.window.device(j, self.done[j.name]) for j in batch if j.name in self.done]

@@ -96,7 +96,8 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
                     batch_by: str = "profile",
                     report_path: str | None = None, signals: bool = False, refuse_broadcast: bool = False,
                     on_start: Callable[[Job], None] | None = None,
-                    on_done: Callable[[DeviceResult], None] | None = None, **safe: Any) -> Report:
+                    on_done: Callable[[DeviceResult], None] | None = None, keep_results: bool = True,
+                    **safe: Any) -> Report:
     """Run ``jobs`` as one journaled run (see the module's docstring); the report of every device.
 
     ``label``: what is applied (recipe, plan or snapshot file; the report's ``recipe``). ``command``,
@@ -107,6 +108,8 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     ``refuse_broadcast``: a unit 0 without ``options.allow_broadcast`` is a UsageError before anything
     happens (the command line), not a ``failed`` device in the report.
     ``safe``: ``rollback_on_failure``, ``between_batches``, ``on_confirm_wait`` of ``fleet.rollout.apply_many``.
+    ``keep_results`` False: devices that ended ok come back as ``DeviceResult.small()`` (counts, no
+    requests or parameters: the report file has them), as ``apply_many`` says.
 
     Raises UsageError (nothing sent) for bad options, StalePlan or Declined when the run was refused
     before any write, RunInterrupted (with ``.report``) when it was interrupted.
@@ -157,7 +160,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     try:
         report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
                                   on_done=done, batches=sizes, max_failures=budget,
-                                  on_changed=changed, **safe)
+                                  on_changed=changed, keep_results=keep_results, **safe)
     except RunInterrupted as e:
         report = e.report
         report.interrupted = why[0] if why else "cancelled"
