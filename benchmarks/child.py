@@ -22,7 +22,7 @@ def measured(args: list[str], cwd: str | None = None, max_bytes: int | None = No
              ) -> tuple[float, float, int, int, str]:
     """See ``measured_all``; without the bytes written."""
     out, err = measured_all(args, cwd, max_bytes)
-    return out["wall"], out["cpu"], out["maxrss_kb"], out["code"], err
+    return out["wall"], out["cpu"], int(out["maxrss_kb"]), int(out["code"]), err
 
 
 def measured_all(args: list[str], cwd: str | None = None, max_bytes: int | None = None,

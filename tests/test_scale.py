@@ -17,7 +17,7 @@ from deployer.planning.planfile import plan_to_json
 from deployer.planning.planner import make_plan
 from deployer.profile import builtin_profile
 from deployer.report import DeviceResult, ParameterResult, RequestRecord
-from tests.test_cli import cli
+from tests.helpers import cli
 from tests.test_fleet import fleet, inventory, names, recipe
 
 pytestmark = pytest.mark.timeout(120)
