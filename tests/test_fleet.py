@@ -694,7 +694,7 @@ def test_the_streamed_report_is_the_document_the_report_writer_makes(tmp_path: P
 
     with fleet(5, {1: Faults(fail_registers=frozenset({F08})), 3: Faults(fail_registers=frozenset({F08}))}) as sims:
         urls = {n: s.url for n, s in zip(names(5), sims, strict=True)}
-        urls["d02"] = f"tcp://127.0.0.1:{free_port()}"  # nobody listens: unreachable
+        urls["d02"] = f"tcp://127.0.0.1:{dead_port()}"  # nobody listens: unreachable
         inv = inventory(tmp_path, urls)
         report_file = tmp_path / "r.json"
         report = deployer.apply_fleet(deployer.load_recipe(recipe(tmp_path)), inv, report_path=str(report_file),
