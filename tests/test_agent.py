@@ -196,3 +196,38 @@ def test_store_schema_version_and_a_newer_database_refused(tmp_path: Path) -> No
     db.close()
     with pytest.raises(StateError, match="newer than this deployer knows"):
         Store(str(tmp_path / "a.sqlite3"))
+
+
+def test_per_group_settings_in_the_inventory(tmp_path: Path) -> None:
+    (tmp_path / "drive.yaml").write_text(PROFILE)
+    prof = load_profile(str(tmp_path / "drive.yaml"))
+    with SimulatorThread(prof) as a, SimulatorThread(prof) as b:
+        write_site(tmp_path, {})
+        inv = tmp_path / "inv.yaml"
+        inv.write_text(f"""\
+defaults:
+  recipe: r.yaml
+groups:
+  panel:
+    agent: {{on_drift: restore, check_every: 200ms}}
+devices:
+  d1: {{url: "{a.url}", groups: [panel]}}
+  d2: {{url: "{b.url}", agent: {{check_every: 250ms}}}}
+""")
+        agent = AgentProcess(inv, tmp_path / "state", check_every="1h")
+        try:
+            c = agent.client
+            until(lambda: event(c, "restored", "d1"), why="d1 restored (its group restores)")
+            until(lambda: event(c, "drift", "d2"), why="d2's drift")
+            d2 = c.device("d2")
+            assert d2["on_drift"] == "report" and d2["check_every"] == 0.25
+            c.check()
+            assert b.read("accel") == (50,) and a.read("accel") == (20,)
+            assert agent.terminate() == 0
+        finally:
+            agent.kill()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(inv.read_text().replace("check_every: 200ms", "check_every: soon"))
+    out = subprocess.run([sys.executable, "-m", "deployer", "agent", str(bad), "--state-dir", str(tmp_path / "s2"),
+                          "--listen", "127.0.0.1:0"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1 and "bad.yaml:5:" in out.stderr and "check_every" in out.stderr, out.stderr

@@ -82,6 +82,10 @@ class Device:
     restores: deque[float] = field(default_factory=deque)
     replaced: str | None = None
     pending: list[dict[str, Any]] = field(default_factory=list)
+    # the inventory's agent settings for it (defaults < groups < its own), over the command line's
+    check_every: float = 300.0
+    on_drift: str = "report"
+    on_replace: str = "report"
     # counters for /metrics (loaded from the database at start, so they survive restarts)
     drift_events: int = 0
     drift_restores: int = 0
@@ -168,11 +172,20 @@ class Agent:
         """Own the devices (locks with our address), adopt what is new, resume or expire windows, watch."""
         assert self.files is not None and self.store is not None
         self.url = url
+        from ..portable import raise_open_files
+
+        # it holds two lock files per device address for as long as it runs, plus a socket per bus being read
+        need = sum(2 * len(j.url.lock_keys) for j in self.files.jobs.values()) + self.settings.parallel + 128
+        hard = raise_open_files(need)
+        if hard is not None:
+            raise StateError(f"the agent needs about {need} open files for {len(self.files.jobs)} devices, but this "
+                             f"system allows {hard} (ulimit -Hn; LimitNOFILE= in its systemd unit)")
         lock.set_agent(url)
         adopted = self.store.adopted()
         counts = self._counts()
         for name, job in self.files.jobs.items():
             dev = self.devices[name] = Device(name, job)
+            self._configure(dev)
             dev.drift_events, dev.drift_restores, dev.replaced_total = (counts.get((name, k), 0) for k in
                                                                        ("drift", "restored", "replaced"))
             dev.writes = sum(w + c for w, c in self.store.ledger(name).get(name, {}).values())
@@ -220,6 +233,17 @@ class Agent:
         if self._folder_lock is not None:
             os.close(self._folder_lock)
             self._folder_lock = None
+
+    def _configure(self, dev: Device) -> None:
+        """The device's watch settings: the inventory's ``agent:`` for it, else the command line's."""
+        s = self.settings
+        own: Mapping[str, Any] = {}
+        if self.files is not None:
+            found = [d for d in self.files.inventory.devices if d.name == dev.name]
+            own = found[0].agent if found else {}
+        dev.check_every = float(own.get("check_every", s.check_every))
+        dev.on_drift = str(own.get("on_drift", s.on_drift))
+        dev.on_replace = str(own.get("on_replace", s.on_replace))
 
     def _counts(self) -> dict[tuple[str, str], int]:
         assert self.store is not None
@@ -298,6 +322,7 @@ class Agent:
             dev = self.devices.get(name)
             if dev is not None:
                 dev.job = replace(job)
+                self._configure(dev)
         self._pending()
         if old is None or old.sha256 != files.sha256:
             added = sorted(set(files.jobs) - set(self.devices))
@@ -330,17 +355,22 @@ class Agent:
         while True:
             started = time.monotonic()
             try:
-                await self.check()
+                await self.check(due_only=True)
             except Exception as e:  # the watch must go on; say what broke it this round
                 self.event("internal", f"the check failed: {type(e).__name__}: {e}")
-            left = self.settings.check_every - (time.monotonic() - started)
+            # a round as often as the most frequent device asks; each device is read when its own time is due
+            every = min([d.check_every for d in self.devices.values()] or [self.settings.check_every])
+            left = every - (time.monotonic() - started)
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(self._wake.wait(), max(0.0, left))
             self._wake.clear()
 
-    async def check(self, names: Sequence[str] | None = None) -> None:
-        """Read every owned device (devices of one bus one after the other, within the bus share)."""
-        todo = [d for d in self.devices.values() if names is None or d.name in names]
+    async def check(self, names: Sequence[str] | None = None, *, due_only: bool = False) -> None:
+        """Read every owned device (devices of one bus one after the other, within the bus share);
+        ``due_only``: those whose own interval has passed since their last check."""
+        now = time.time()
+        todo = [d for d in self.devices.values() if (names is None or d.name in names)
+                and not (due_only and d.last_check is not None and now - d.last_check < d.check_every * 0.95)]
         for d in todo:
             if not d.owned:
                 self._take(d)
@@ -416,7 +446,7 @@ class Agent:
             dev.drift_events += 1
             self.event("drift", f"{dev.name}: {', '.join(_said(d) for d in drift)}", device=dev.name,
                        detail={"parameters": drift})
-        if self.settings.on_drift == "restore":
+        if dev.on_drift == "restore":
             self._restore(dev, "drift")
 
     def _replaced(self, dev: Device, known: tuple[dict[str, str] | None, dict[str, int], bool | None] | None,
@@ -457,7 +487,7 @@ class Agent:
         dev.replaced_total += 1
         self.event("replaced", f"{dev.name}: replaced: {why}", device=dev.name,
                    detail={"before": None if known is None else known[0], "now": objects})
-        if self.settings.on_replace == "restore":
+        if dev.on_replace == "restore":
             self._restore(dev, "replaced")
         return True
 
@@ -967,7 +997,8 @@ class Agent:
             "last_check": None if dev.last_check is None else _iso(dev.last_check),
             "unreachable": dev.unreachable_why, "replaced": dev.replaced, "not_owned": dev.not_owned_why,
             "pending": len(dev.pending), "run": dev.run, "restores_last_hour": len(dev.restores),
-            "writes": dev.writes,
+            "writes": dev.writes, "check_every": dev.check_every, "on_drift": dev.on_drift,
+            "on_replace": dev.on_replace,
         }
         if full and self.store is not None:
             ident = self.store.identity(dev.name)

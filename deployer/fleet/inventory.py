@@ -37,6 +37,8 @@ class FleetDevice:
     recipe: str | None = None  # the recipe file this device gets, from the inventory
     # where the device's recipe and profile were said (its own entry, a group or the defaults), and its name
     at: Mapping[str, tuple[int, int]] = field(default_factory=dict, compare=False)
+    # the site agent's settings for it (check_every in seconds, on_drift, on_replace), merged over its layers
+    agent: Mapping[str, Any] = field(default_factory=dict, compare=False)
 
 
 @dataclass(frozen=True)
@@ -180,7 +182,20 @@ def _inventory(p: str, data: Any, src: yamlsrc.Source, here: str) -> Inventory:
         got: dict[str, Any] = {}
         at: dict[str, tuple[int, int]] = {"device": src.pos(("devices", name), key=True)}
         params: dict[str, Entry] = {}
+        agent: dict[str, Any] = {}
         for base, layer in layers:
+            for key, value in (layer.get("agent") or {}).items():
+                if key == "check_every":
+                    from ..load.durations import parse_duration
+
+                    try:
+                        value = parse_duration(value)
+                        if value <= 0:
+                            raise ValueError("must be more than 0")
+                    except ValueError as why:
+                        errors.append(src.error((*base, "agent", key), f"check_every: {why}"))
+                        continue
+                agent[key] = value
             for key in _LAYERED:
                 if key in layer:
                     got[key] = layer[key]
@@ -203,7 +218,10 @@ def _inventory(p: str, data: Any, src: yamlsrc.Source, here: str) -> Inventory:
             # relative to the inventory, spelled as the inventory's own path is (as a RECIPE argument would be)
             recipe=None if rec is None else os.path.normpath(os.path.join(os.path.dirname(p), rec)),
             at=at,
+            agent=agent,
         ))
+    if errors:
+        raise InputError(errors)
     return Inventory(p, tuple(devices), tuple(groups))
 
 
