@@ -104,6 +104,51 @@ def _windows_pid_alive(pid: int) -> bool:
     return False
 
 
+def process_start(pid: int) -> float | None:
+    """When process ``pid`` started, in a unit of this system's own (Linux: seconds after boot; Windows:
+    seconds since the epoch), for telling a process from a later one given its PID; None where the
+    system does not say (macOS) or the process is gone."""
+    if WINDOWS:
+        return _windows_process_start(pid)
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            data = f.read()
+    except OSError:
+        return None
+    sysconf = getattr(os, "sysconf", None)
+    try:  # the command name may hold spaces and parentheses: the fields follow the last ')'
+        ticks = int(data[data.rindex(b")") + 2:].split()[19])
+        hz = int(sysconf("SC_CLK_TCK")) if sysconf is not None else 100  # USER_HZ: 100 on every Linux ABI
+    except (ValueError, IndexError, OSError):
+        return None
+    return ticks / hz
+
+
+def _windows_process_start(pid: int) -> float | None:
+    """GetProcessTimes' creation time (100 ns ticks since 1601), in seconds since the epoch."""
+    if sys.platform == "win32":  # the branch mypy checks only for Windows
+        import ctypes
+        from ctypes import wintypes
+
+        kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)
+        kernel32.OpenProcess.restype = wintypes.HANDLE
+        kernel32.OpenProcess.argtypes = [wintypes.DWORD, wintypes.BOOL, wintypes.DWORD]
+        kernel32.GetProcessTimes.argtypes = [wintypes.HANDLE] + [ctypes.POINTER(wintypes.FILETIME)] * 4
+        kernel32.CloseHandle.argtypes = [wintypes.HANDLE]
+        handle = kernel32.OpenProcess(0x1000, False, pid)  # PROCESS_QUERY_LIMITED_INFORMATION
+        if not handle:
+            return None
+        try:
+            times = [wintypes.FILETIME() for _ in range(4)]
+            if not kernel32.GetProcessTimes(handle, *(ctypes.byref(t) for t in times)):
+                return None
+            ticks = (times[0].dwHighDateTime << 32) | times[0].dwLowDateTime
+            return ticks / 1e7 - 11644473600.0
+        finally:
+            kernel32.CloseHandle(handle)
+    return None
+
+
 def fchmod(fd: int, mode: int) -> None:
     """``os.fchmod`` where it exists (POSIX; Windows only from Python 3.13, where it sets read-only alone)."""
     f = getattr(os, "fchmod", None)

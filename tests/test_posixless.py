@@ -5,8 +5,8 @@ and ``termios`` cannot be imported, ``os`` has no uids, ``fchmod``, O_NOFOLLOW/O
 ``pread``, ``writev`` or ``sysconf``, and the event loop's ``add_signal_handler`` raises
 NotImplementedError. Devices are simulators on 127.0.0.1 (TCP: pyserial itself needs ``termios`` on
 Linux). Locks there use the ``range`` backend, Windows' backend (``state.oslock``), with Linux's
-open-file-description locks under it where Windows has LockFileEx; the same tests run on Windows
-itself, with LockFileEx, only in the public CI (.github/workflows/ci.yml; docs/windows.md).
+open-file-description locks under it where Windows has LockFileEx. On Windows itself the suite, with
+the lock test of tests/test_portable.py on LockFileEx, runs only in the public CI (docs/windows.md).
 """
 
 from __future__ import annotations
@@ -119,6 +119,16 @@ def test_command_line_and_api_over_tcp_without_posix(tmp_path: Path) -> None:
         assert sim.read("base_speed") == before
         code, out, err = deployer(tmp_path, "status")
         assert code == 0, out + err
+        # a safe-change window: the lock held through a soak, then a confirmation from another process
+        code, out, err = deployer(tmp_path, "apply", first, "--device", url, "--yes", "--soak", "1s",
+                                  "--health-interval", "200ms")
+        assert code == 0 and sim.read("base_speed") == (1750,), out + err
+        w = start(tmp_path, "apply", second, "--device", url, "--yes", "--confirm-within", "60s")
+        wait_for(lambda: "confirm-awaited" in (tmp_path / ".deployer" / "audit.jsonl").read_text(), "the wait")
+        code, out, err = deployer(tmp_path, "confirm")
+        assert code == 0, out + err
+        assert w.wait(timeout=60) == 0, w.communicate()
+        assert sim.read("base_speed") == (1600,)
 
         api = python("""
             import json, sys
@@ -128,11 +138,11 @@ def test_command_line_and_api_over_tcp_without_posix(tmp_path: Path) -> None:
             rep = api.apply(r, sys.argv[1], options=api.ApplyOptions(state_dir="api-state"))
             print(json.dumps({"writes": len(plan.writes), "exit": rep.exit_code, "drift": len(api.diff(r, sys.argv[1])),
                               "status": rep.devices[0].status}))
-        """, url, second, cwd=tmp_path)
+        """, url, first, cwd=tmp_path)
         out, err = api.communicate(timeout=90)
         assert api.returncode == 0, err
         assert json.loads(out) == {"writes": json.loads(out)["writes"], "exit": 0, "drift": 0, "status": "ok"}
-        assert json.loads(out)["writes"] > 0 and sim.read("base_speed") == (1600,)
+        assert json.loads(out)["writes"] > 0 and sim.read("base_speed") == (1750,)
         journal = (tmp_path / "api-state" / "audit.jsonl").read_text()
         assert '"via": "api"' in journal and journal.endswith("\n")
 

@@ -21,19 +21,9 @@ FORMAT = "deployer.lock/1"
 
 
 def process_start(pid: int) -> float | None:
-    """When process ``pid`` started, in seconds since the machine booted (None where the system does not say).
-
-    A PID is reused once its process is gone; the pair (PID, start time) names one process."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            data = f.read()
-    except OSError:
-        return None
-    try:  # the command name may hold spaces and parentheses: the fields follow the last ')'
-        ticks = int(data[data.rindex(b")") + 2:].split()[19])
-    except (ValueError, IndexError):
-        return None
-    return ticks / os.sysconf("SC_CLK_TCK")
+    """When process ``pid`` started (``portable.process_start``: Linux and Windows; None where the system
+    does not say). A PID is reused once its process is gone; the pair (PID, start time) names one process."""
+    return portable.process_start(pid)
 
 
 def process_alive(pid: int, start: float | None = None) -> bool:

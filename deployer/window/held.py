@@ -10,6 +10,7 @@ from typing import Any
 
 from ..execute.job import Job
 from ..execute.session import ApplyOptions
+from ..portable import O_BINARY, O_CLOEXEC, O_NOFOLLOW
 from ..recipe.loader import Recipe
 from ..report import DeviceResult
 from ..state import journal
@@ -68,7 +69,7 @@ def reserve(options: ApplyOptions) -> None:
         return
     path = reserve_path(options.state_dir, options.run_id)
     with contextlib.suppress(OSError):
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | O_NOFOLLOW | O_CLOEXEC | O_BINARY, 0o600)
         try:
             if hasattr(os, "posix_fallocate"):
                 os.posix_fallocate(fd, 0, RESERVE)
