@@ -28,6 +28,7 @@ subpackages, may change without notice.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -61,6 +62,7 @@ from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
 from .report import DeviceResult, ParameterResult, Report
+from .run.request import PreparedRun, RunRequest
 from .transport.urls import DeviceURL, describe, parse_url
 
 if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus, loaded when a run needs them
@@ -72,7 +74,7 @@ if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus,
 _REEXPORTED = (Agent, AgentError, LIMITS, Bound, BadURL, CodecError, Declined, DeployerError, IdentityMismatch,
                InputError, Locked, RunInterrupted, StalePlan, TransportError, UsageError, FleetDevice, Inventory,
                load_inventory, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult,
-               ParameterResult, Report, DeviceURL)
+               ParameterResult, Report, DeviceURL, PreparedRun, RunRequest)
 
 # public names whose modules load on first use: offline work (validate, an offline plan, a command's
 # --help) does not pay for the transports (pymodbus)
@@ -110,11 +112,13 @@ __all__ = [
     "Locked",
     "ParameterResult",
     "Plan",
+    "PreparedRun",
     "Profile",
     "ReadJob",
     "Recipe",
     "Report",
     "RunInterrupted",
+    "RunRequest",
     "StalePlan",
     "TransportError",
     "UsageError",
@@ -142,6 +146,7 @@ __all__ = [
     "plan_fleet",
     "plan_fleet_async",
     "plan_to_json",
+    "prepare_run",
     "pull",
     "pull_async",
     "pull_names",
@@ -152,7 +157,10 @@ __all__ = [
     "recipe_from",
     "run_fleet",
     "run_fleet_async",
+    "run_prepared",
+    "run_prepared_async",
     "safe_options",
+    "writing_caches",
 ]
 
 
@@ -572,26 +580,33 @@ def pull_names(profile: Profile) -> list[str]:
     return [p.name for p in profile.parameters if p.readable and p.writable]
 
 
-async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict[str, tuple[int, ...]]:
-    """Every readable, writable parameter of a device: name -> registers."""
+async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int = 1, *,
+                     names: Sequence[str] | None = None) -> dict[str, tuple[int, ...]]:
+    """``pull`` for callers with their own event loop."""
     _need_unit(unit)
     if not isinstance(profile, (str, Profile)):
         raise UsageError(f"pull takes a profile id, a profile file or a Profile, got {_kind(profile)}")
     prof = profile if isinstance(profile, Profile) else resolve_profile(profile)
+    if names is not None:
+        unknown = [n for n in names if not isinstance(n, str) or prof.get(n) is None]
+        if unknown:
+            raise UsageError(f"pull: profile {prof.id} has no parameter {', '.join(map(repr, unknown))}")
     from .execute.read import read_current
 
-    return await read_current(prof, pull_names(prof), device_url(device), unit)
+    return await read_current(prof, pull_names(prof) if names is None else list(names), device_url(device), unit)
 
 
-def pull(profile: str | Profile, device: str | DeviceURL, unit: int = 1) -> dict[str, tuple[int, ...]]:
-    """Every readable, writable parameter of a device: name -> registers (``pulled_recipe`` makes a recipe).
+def pull(profile: str | Profile, device: str | DeviceURL, unit: int = 1, *,
+         names: Sequence[str] | None = None) -> dict[str, tuple[int, ...]]:
+    """Every readable, writable parameter of a device (or only ``names``): name -> registers
+    (``pulled_recipe`` makes a recipe).
 
     Raises:
-        UsageError: an unknown built-in profile, a bad URL, unit 0.
+        UsageError: an unknown built-in profile, a bad URL, unit 0, a name the profile does not have.
         InputError: an invalid profile file.
         TransportError: the device cannot be read.
     """
-    return _sync("pull", lambda: pull_async(profile, device, unit))
+    return _sync("pull", lambda: pull_async(profile, device, unit, names=names))
 
 
 # ---- fleets ----------------------------------------------------------------------------------
@@ -769,3 +784,54 @@ def inventory_from(devices: Iterable[Mapping[str, Any]], *, name: str = "<device
     """
     return _inventory_from(devices, name)
 
+
+
+# ---- a run as a client describes it (the command line, Ansible, the site agent) -------------------------
+
+
+def prepare_run(request: RunRequest) -> PreparedRun:
+    """Check an apply or rollback request and build its jobs, nothing sent: the command line's ``apply`` and
+    ``rollback`` are this, a confirmation, and ``run_prepared``.
+
+    Raises:
+        UsageError: a bad combination of options (``--limit`` without an inventory ...), a number out of its
+            bounds (``LIMITS``), no device, a snapshot given as a recipe, a soak without health checks.
+        InputError: an invalid recipe, plan, inventory or snapshot.
+    """
+    from .run.request import prepare
+
+    if not isinstance(request, RunRequest):
+        raise UsageError(f"prepare_run takes a RunRequest, got {_kind(request)}")
+    return prepare(request)
+
+
+async def run_prepared_async(prepared: PreparedRun, **kw: Any) -> Report:
+    """``run_prepared`` for callers with their own event loop."""
+    from .run.request import execute
+
+    if not isinstance(prepared, PreparedRun):
+        raise UsageError(f"run_prepared takes a PreparedRun (deployer.prepare_run(request)), got {_kind(prepared)}")
+    return await execute(prepared, **kw)
+
+
+def run_prepared(prepared: PreparedRun, **kw: Any) -> Report:
+    """Run a prepared request as one journaled run and return its report.
+
+    ``kw``: ``confirm(plan, device)`` (an async question before each device's write), ``command_line`` and
+    ``argv`` (what started it), ``via``, ``signals`` (SIGINT/SIGTERM interrupt it), ``on_start``, ``on_done``,
+    and the rollout's ``between_batches``, ``on_confirm_wait``, ``on_soak``, ``on_changed``.
+
+    Raises:
+        UsageError: options the run itself refuses (too few open files, a report file that cannot be written).
+        StalePlan: a saved plan no longer matches its device. Declined: ``confirm`` answered no.
+        RunInterrupted: the run was interrupted (``.report`` says what every device holds).
+    """
+    return _sync("run_prepared", lambda: run_prepared_async(prepared, **kw))
+
+
+def writing_caches() -> contextlib.AbstractContextManager[None]:
+    """A block within which deployer keeps its disk caches (pint's parsed units in ``~/.cache``) up to date,
+    as the command line does for each command; outside one, deployer only reads them and leaves no files."""
+    from .state.caches import writing
+
+    return writing()

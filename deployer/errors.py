@@ -34,17 +34,16 @@ Exit codes (a public interface; scripts rely on them): 0 success; 1 invalid inpu
 sent; 2 ``plan``/``diff`` found changes; 3 unreachable, nothing written; 4 a write failed or did
 not verify.
 
-This module imports nothing of deployer at run time, so every module can import it.
+``Diagnostic`` is one problem in one file (``FILE:LINE:COL: error: message``), what an InputError carries.
+
+This module imports nothing of deployer, so every module can import it (and no circle goes through it).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from typing import TYPE_CHECKING, ClassVar
-
-if TYPE_CHECKING:
-    from .load.diagnostics import Diagnostic
-    from .report import Report
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 EXIT_OK = 0
 EXIT_INVALID = 1
@@ -66,6 +65,7 @@ __all__ = [
     "Declined",
     "DeployerError",
     "DeviceGone",
+    "Diagnostic",
     "ExceptionResponse",
     "IdentityMismatch",
     "InputError",
@@ -79,6 +79,19 @@ __all__ = [
     "Unreachable",
     "UsageError",
 ]
+
+
+@dataclass(frozen=True, order=True)
+class Diagnostic:
+    """One problem in one file. ``line`` and ``col`` are 1-based (0 when unknown)."""
+
+    path: str
+    line: int
+    col: int
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.path}:{self.line}:{self.col}: error: {self.message}"
 
 
 class DeployerError(Exception):
@@ -223,7 +236,8 @@ class RunInterrupted(DeployerError):
     ("cancelled"). ``report``: every device as far as known (in flight ``interrupted``, with its snapshot
     when a write may have gone out; never started ``skipped``); the journal has its run-finished line."""
 
-    def __init__(self, report: Report, reason: str = "cancelled") -> None:
+    # typed Any, not deployer.report.Report: this module imports nothing of deployer (no circle through it)
+    def __init__(self, report: Any, reason: str = "cancelled") -> None:
         super().__init__(f"the run was interrupted ({reason})")
         self.report = report
         self.reason = reason

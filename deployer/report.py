@@ -8,8 +8,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
-from .load.diagnostics import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
-from .state.durable import write_atomic as write_atomic  # the one atomic write; reports used it from here
+from .errors import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
+from .state.durable import write_atomic
 
 if TYPE_CHECKING:
     from .profile import Parameter

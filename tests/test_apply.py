@@ -9,11 +9,11 @@ from pathlib import Path
 import jsonschema
 import pytest
 
+from deployer.errors import UsageError
 from deployer.execute.device import apply_device
 from deployer.execute.read import read_current
 from deployer.execute.session import ApplyOptions
 from deployer.load import schema
-from deployer.load.diagnostics import UsageError
 from deployer.planning.model import Target
 from deployer.planning.planner import make_plan
 from deployer.profile import builtin_profile

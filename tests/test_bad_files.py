@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from deployer.cli.files import validate_file
-from deployer.load.diagnostics import InputError
+from deployer.errors import InputError
 
 BAD = Path(__file__).parent / "bad"
 

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from deployer.load.diagnostics import InputError
+from deployer.errors import InputError
 from deployer.profile import builtin_profile, load_profile
 from deployer.recipe.loader import load_recipe
 from deployer.testing.simulator import Faults, Simulator, SimulatorThread

@@ -13,10 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from deployer.cli import main
+from deployer.errors import InputError
 from deployer.execute.device import apply_device
 from deployer.execute.session import ApplyOptions
 from deployer.load import schema
-from deployer.load.diagnostics import InputError
 from deployer.planning.model import Target
 from deployer.planning.planner import make_plan, plan_writes
 from deployer.profile import Limits, Parameter, Profile

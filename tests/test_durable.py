@@ -104,7 +104,7 @@ def test_many_devices_at_once_each_get_their_own_durable_file_and_line(tmp_path:
 
 
 def test_write_atomic_from_pieces_more_than_one_writev_takes(tmp_path: Path) -> None:
-    from deployer.report import write_atomic
+    from deployer.state.durable import write_atomic
 
     pieces = [f"{i}:{'x' * (i % 7)}\n".encode() for i in range(5000)] + [b"", b"end\n"]  # beyond IOV_MAX
     write_atomic(str(tmp_path / "r.json"), pieces)

@@ -54,11 +54,9 @@ def test_every_error_is_a_deployer_error_with_an_exit_code(name: str) -> None:
 
 def test_old_import_paths_name_the_same_classes() -> None:
     from deployer.execute import session
-    from deployer.load import diagnostics
     from deployer.profile import codec
     from deployer.transport import clients, urls
 
-    assert diagnostics.InputError is errors.InputError and diagnostics.UsageError is errors.UsageError
     assert urls.BadURL is clients.BadURL is errors.BadURL and issubclass(errors.BadURL, errors.UsageError)
     assert clients.TransportError is errors.TransportError and clients.ExceptionResponse is errors.ExceptionResponse
     assert session.StalePlan is errors.StalePlan and session.DeviceGone is errors.DeviceGone

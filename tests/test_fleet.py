@@ -18,10 +18,10 @@ from pathlib import Path
 import jsonschema
 import pytest
 
+from deployer.errors import UsageError
 from deployer.fleet.inventory import FleetDevice, Inventory, not_ok, select
 from deployer.fleet.rollout import batch_sizes, failure_budget
 from deployer.load import schema
-from deployer.load.diagnostics import UsageError
 from deployer.profile import builtin_profile
 from deployer.report import read_report
 from deployer.testing.simulator import Faults, Simulator

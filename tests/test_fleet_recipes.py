@@ -15,9 +15,9 @@ import jsonschema
 import pytest
 
 from deployer.cli.files import validate_file
+from deployer.errors import InputError
 from deployer.fleet.inventory import load_inventory
 from deployer.load import schema, yamlsrc
-from deployer.load.diagnostics import InputError
 from deployer.profile import builtin_profile, load_profile
 from deployer.testing.simulator import Simulator
 from tests.conftest import dead_port

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from deployer.load.diagnostics import UsageError
+from deployer.errors import UsageError
 from deployer.planning.frames import Framing, request_frame, response_frame
 from deployer.planning.model import ReadRequest, Target, WriteRequest
 from deployer.planning.planner import make_plan

@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 
 from benchmarks import drive
+from deployer.errors import InputError
 from deployer.execute.device import apply_device
 from deployer.execute.read import read_current
 from deployer.execute.session import ApplyOptions
-from deployer.load.diagnostics import InputError
 from deployer.planning.model import Target
 from deployer.planning.planner import make_plan, plan_reads
 from deployer.recipe.loader import load_recipe

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from deployer.cli.files import validate_file
-from deployer.load.diagnostics import InputError
+from deployer.errors import InputError
 from deployer.profile import builtin_profile, builtin_profile_ids
 from deployer.testing.simulator import Faults, SimulatorThread
 from tests.helpers import cli

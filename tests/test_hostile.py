@@ -15,8 +15,8 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from deployer.errors import InputError
 from deployer.load import yamlsrc
-from deployer.load.diagnostics import InputError
 from deployer.profile import units
 from deployer.recipe import text as recipe_text_module
 

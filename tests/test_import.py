@@ -354,7 +354,7 @@ def test_nul_after_a_syntax_error_is_a_message(tmp_path: Path) -> None:
     """Found by fuzzing the SunSpec import: libyaml stops at the syntax error, the pure-Python re-parse
     (for its wording) refuses the whole text because of a NUL further on; that must stay a message."""
     from deployer.cli.files import validate_file
-    from deployer.load.diagnostics import InputError
+    from deployer.errors import InputError
 
     bad = tmp_path / "r.yaml"
     head = "recipe: r\nprofile: omron-m1\nparameters:\n  F07: 10 s\n F08: 8 s\n"  # line 5: a bad indent

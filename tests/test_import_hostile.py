@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from benchmarks.child import measured
-from deployer.load.diagnostics import InputError
+from deployer.errors import InputError
 from deployer.planning.model import Target
 from deployer.planning.planner import make_plan
 from deployer.profile import load_profile

@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from deployer.errors import InputError, UsageError
 from deployer.load import schema, yamlsrc
-from deployer.load.diagnostics import InputError, UsageError
 from deployer.planning.model import Plan, Target, WriteRequest
 from deployer.planning.planfile import plan_from_json, plan_to_json
 from deployer.planning.planner import make_plan, plan_reads, plan_writes

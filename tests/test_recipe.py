@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from deployer.load.diagnostics import InputError
+from deployer.errors import InputError
 from deployer.profile import builtin_profile, builtin_profile_ids, load_profile, wire_address
 from deployer.recipe.loader import load_recipe
 from deployer.recipe.text import recipe_text

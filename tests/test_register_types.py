@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
+from deployer.errors import InputError
 from deployer.execute.device import apply_device
 from deployer.execute.session import ApplyOptions
-from deployer.load.diagnostics import InputError
 from deployer.planning.frames import request_frame, response_frame
 from deployer.planning.model import ReadRequest, Target, WriteRequest
 from deployer.planning.planner import make_plan, plan_reads
@@ -89,7 +89,7 @@ def test_write_frames_are_the_specification_examples() -> None:
 
 
 def test_frames_refuse_what_no_device_takes() -> None:
-    from deployer.load.diagnostics import UsageError
+    from deployer.errors import UsageError
 
     with pytest.raises(UsageError, match="1..1968 coils"):
         request_frame(WriteRequest(15, 0, (1,) * 1969, ("c",)), 1, "rtu")

@@ -15,8 +15,8 @@ from pathlib import Path
 import jsonschema
 import pytest
 
+from deployer.errors import UsageError
 from deployer.load import schema
-from deployer.load.diagnostics import UsageError
 from deployer.load.durations import format_duration, parse_duration
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import Faults, LogEntry, Simulator, SimulatorThread, parse_fault_rule

@@ -345,7 +345,7 @@ def test_edited_snapshot_is_refused(tmp_path: Path, devices: list[Simulator], la
     assert res.snapshot is not None
     snap = Path(res.snapshot)
     snap.write_text(snap.read_text().replace("  accel: 3000 s", "  accel: 12 s"))
-    from deployer.load.diagnostics import InputError
+    from deployer.errors import InputError
 
     with pytest.raises(InputError, match="does not match the registers the snapshot recorded"):
         load_recipe(snap)

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from deployer.errors import InputError
 from deployer.load import yamlsrc
-from deployer.load.diagnostics import InputError
 
 
 def _errors(path: Path, loader: type) -> list[str]:

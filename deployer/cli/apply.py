@@ -7,21 +7,18 @@ import json
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
 import click
 
 from ..api import BATCH_BY
+from ..errors import EXIT_FAILED, EXIT_OK, UsageError
 from ..limits import LIMITS
-from ..load.diagnostics import EXIT_FAILED, EXIT_OK, UsageError
 from .agentclient import agent_option
 from .base import (
-    _ARGV,
-    _OWN_PROCESS,
-    _fleet,
     _n,
-    _target,
+    cli_context,
     command_line,
     console,
     device_options,
@@ -38,9 +35,7 @@ from .tables import show
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..execute.job import Job
-    from ..planning.model import Plan
-    from ..report import DeviceResult, Report
+    from ..api import DeviceResult, Plan, PreparedRun, Report
 
 
 _STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "rolled-back": 3, "skipped": 4, "ok": 5, "unchanged": 6}
@@ -88,189 +83,113 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
                   + (f", {s['interrupted']} interrupted" if s["interrupted"] else "") + f" in {s['seconds']:.2f} s")
 
 
-def _is_plan_file(path: str) -> bool:
-    if path.endswith(".json"):
-        return True
-    try:
-        with open(path, "rb") as f:
-            head = f.read(4096)
-    except OSError:
-        return False
-    return head.lstrip().startswith(b"{") and b"deployer.plan/" in head
+def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: bool = False, **options: Any) -> int:
+    """apply / rollback: the request checked and its jobs built by the library (``deployer.prepare_run``), the
+    user's consent asked here, then run by the library (``deployer.run_prepared``) with a progress display."""
+    from ..api import RunRequest, prepare_run
 
-
-def run_apply(source: str | None, *, device: str | None, unit: int | None, timeout: float | None,
-              retries: int | None, yes: bool, report_path: str | None, as_json: bool, inventory: str | None,
-              limit: str | None, parallel: int, on_error: str, write_all: bool, allow_broadcast: bool, state_dir: str,
-              lock_timeout: float = 0.0, force: bool = False, from_reports: tuple[str, ...] = (),
-              batch: str | None = None, max_failures: str | None = None, batch_by: str = "profile",
-              command: str = "apply",
-              to_other_device: bool = False, accept_edited_snapshot: bool = False, even_if_changed: bool = False,
-              all_or_nothing: bool = False,
-              soak: float | None = None,
-              health_interval: float = 1.0, confirm_within: float | None = None, rollback_on_failure: bool = False,
-              pause: float | None = None, ask: bool = False, html_path: str | None = None) -> int:
-    """apply / rollback: everything validated, then confirmed, then run by the library (``run.runner``)."""
-    from ..errors import RunInterrupted
-    from ..execute.job import Job
-    from ..execute.session import ApplyOptions
-    from ..planning.planfile import load_plan
-    from ..recipe.loader import load_recipe
-    from ..run.rollback import report_jobs, snapshot_job
-    from ..run.runner import run_async
-
-    expected: Plan | None = None
-    jobs: list[Job] = []
-    moved: str | None = None  # rollback to another device than the snapshot's: consent first
-    refused: list[str] = []  # rollback --from-report: devices changed since the run, left alone
-    if not (inventory or from_reports) and (batch or max_failures or limit):
-        raise UsageError("--limit, --batch and --max-failures need --inventory")
-    if from_reports:  # rollback --from-report: every device those runs wrote, each from its own snapshot
-        if inventory or device or unit is not None:
-            raise UsageError("rollback --from-report restores each device from its own snapshot, to the device it "
-                             "was taken from: --inventory, --device and --unit do not apply")
-        jobs, notices = report_jobs(from_reports, limit=limit, force=force, timeout=timeout, retries=retries,
-                                    accept_edited=accept_edited_snapshot, even_if_changed=even_if_changed,
-                                    refused=None if all_or_nothing else refused)
-        for n in notices:
-            echo(safe(n), err=True)
-        for n in refused:
-            echo(f"refused: {safe(n)}", err=True)
-        if not jobs:
-            echo("nothing restored: every device was refused", err=True)
-            return EXIT_FAILED
-        label: str | None = from_reports[0] if len(from_reports) == 1 else ", ".join(from_reports)
-    elif source is None:  # each device's recipe from the inventory
-        if not inventory:
-            raise UsageError(f"pass {'SNAPSHOT' if command == 'rollback' else 'RECIPE'}, or --inventory FILE "
-                             "whose devices name their recipes")
-        if device:
-            raise UsageError("--device and --inventory exclude each other")
-        label = None
-        jobs = _fleet(None, inventory, limit, timeout, retries, unit)
-    elif command == "rollback":
-        if inventory:
-            raise UsageError(f"{source} is one device's snapshot: it restores only the device it was taken from. "
-                             "To roll back a fleet run, use: deployer rollback --from-report REPORT.json")
-        label = source
-        job, moved, notices = snapshot_job(source, device=device, unit=unit, timeout=timeout, retries=retries,
-                                           force=force, accept_edited=accept_edited_snapshot)
-        for n in notices:
-            echo(safe(n), err=True)
-        jobs.append(job)
-    else:
-        label = source
-        if _is_plan_file(source):
-            if inventory or write_all:
-                raise UsageError("a saved plan runs unchanged: --inventory and --write-all do not apply to it")
-            rec, expected = load_plan(source)
-        else:
-            rec = load_recipe(source, force=force)
-        if rec.snapshot is not None:
-            raise UsageError(f"{source} is a snapshot: restore it with deployer rollback {source}")
-        if inventory:
-            if device:
-                raise UsageError("--device and --inventory exclude each other")
-            jobs = _fleet(rec, inventory, limit, timeout, retries, unit)
-        else:
-            one, u = _target(rec, device, unit, timeout, retries, required=True)
-            assert one is not None
-            jobs.append(Job(rec.name, rec, one, u))
-    if soak is not None:
-        from ..window.soak import check_soak_profiles
-
-        check_soak_profiles([j.recipe.profile for j in jobs])
-    if (pause is not None or ask) and not batch:
-        raise UsageError("--pause and --ask go between batches: give --batch too")
-    if ask and not sys.stdin.isatty():
+    prepared = prepare_run(RunRequest(source, **options))
+    for n in prepared.notices:
+        echo(safe(n), err=True)
+    for n in prepared.refused:
+        echo(f"refused: {safe(n)}", err=True)
+    if not prepared.jobs:
+        echo("nothing restored: every device was refused", err=True)
+        return EXIT_FAILED
+    request = prepared.request
+    if request.ask and not sys.stdin.isatty():
         raise UsageError("--ask asks before each batch: stdin is not a terminal (use --pause for an unattended run)")
-
     err = console(stderr=True)
-    confirm = None
-    if moved is not None and not to_other_device:
-        if yes or not sys.stdin.isatty():
-            raise UsageError(f"{moved}: restoring a snapshot to another device needs --to-other-device "
-                             "(--yes alone is not enough); nothing was sent")
-        if not click.confirm(f"{safe(moved)}. Restore it to that other device?", default=False, err=True):
-            raise UsageError("nothing was written (declined)")
-    elif moved is not None:
-        err.print(f"warning: {safe(moved)}; restoring it there (--to-other-device)")
-    if not yes:
-        if not sys.stdin.isatty():
-            raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
-        ask_lock = asyncio.Lock()
-        profiles = {j.name: j.recipe.profile for j in jobs}
-
-        async def confirm(p: Plan, res: DeviceResult) -> bool:
-            async with ask_lock:  # one question at a time, even for fleets
-                from .text import styled
-
-                err.print(styled((res.name, "bold"), f" {res.url} unit {res.unit}:"))
-                print_plan(p, profiles[res.name], changes_only=True, out=err)
-                return await asyncio.to_thread(click.confirm, "Write these values?", default=False, err=True)
-
-    fleet_run = bool(inventory or from_reports)
-    if html_path:  # before anything is sent: a link, a FIFO or a folder there is refused now
-        from ..state.durable import check_output
-
-        check_output(html_path, what="the page")
-    options = ApplyOptions(on_error=on_error, write_all=write_all,  # type: ignore[arg-type]
-                           allow_broadcast=allow_broadcast, state_dir=state_dir, expected=expected, confirm=confirm,
-                           lock_timeout=lock_timeout, soak=soak, health_interval=health_interval,
-                           confirm_within=confirm_within,
-                           command=command_line(command))
-    hooks = _safe_hooks(err, state_dir, pause=pause, ask=ask, rollback_on_failure=rollback_on_failure, soak=soak,
-                       interval=health_interval, staged=bool(batch), fleet=fleet_run)
-    kw: dict[str, Any] = dict(command=command, label=label, argv=_ARGV, via="cli", options=options, parallel=parallel,
-                              batch=batch, max_failures=max_failures, batch_by=batch_by, report_path=report_path,
-                              signals=True,
-                              refuse_broadcast=True, **hooks)
-    # a fleet's table shows only the devices that need a look: the others' details are in the report file
-    kw["keep_results"] = bool(as_json or html_path or not fleet_run)
-    interrupted = None
-    try:
-        if fleet_run:
-            report = _run_fleet(jobs, kw, err, live=err.is_terminal and yes and not ask and confirm_within is None,
-                                staged=bool(batch))
-        else:
-            report = asyncio.run(run_async(jobs, **kw))
-    except RunInterrupted as e:
-        report, interrupted = e.report, e
-    if html_path:
+    _consent_to_move(prepared.moved, err, yes=yes, to_other_device=to_other_device)
+    report, interrupted = _run(prepared, err, confirm=None if yes else _confirm_each(prepared, err),
+                               as_json=as_json)
+    if request.html_path:
         from ..pages import run_page
         from .base import write_page
 
-        write_page(run_page(report), html_path)
-        err.print(f"page: {safe(html_path)}")
-    _print_outcome(report, fleet_run=fleet_run, as_json=as_json, report_path=report_path)
-    if interrupted is not None:
-        _said_interrupted(report, report_path)
-    if refused:
-        err.print(f"refused {len(refused)} changed device{'s' if len(refused) != 1 else ''}: "
-                  + ", ".join(safe(r.split(' ', 1)[0]) for r in refused))
+        write_page(run_page(report), request.html_path)
+        err.print(f"page: {safe(request.html_path)}")
+    _print_outcome(report, fleet_run=request.fleet, as_json=as_json, report_path=request.report_path)
+    if interrupted:
+        _said_interrupted(report, request.report_path)
+    if prepared.refused:
+        err.print(f"refused {len(prepared.refused)} changed device{'s' if len(prepared.refused) != 1 else ''}: "
+                  + ", ".join(safe(r.split(' ', 1)[0]) for r in prepared.refused))
         return max(report.exit_code, EXIT_FAILED)
     return report.exit_code
 
 
+def _consent_to_move(moved: str | None, err: Console, *, yes: bool, to_other_device: bool) -> None:
+    """A snapshot restored to another device than its own: --to-other-device, or a yes at the terminal."""
+    if moved is None:
+        return
+    if to_other_device:
+        err.print(f"warning: {safe(moved)}; restoring it there (--to-other-device)")
+        return
+    if yes or not sys.stdin.isatty():
+        raise UsageError(f"{moved}: restoring a snapshot to another device needs --to-other-device "
+                         "(--yes alone is not enough); nothing was sent")
+    if not click.confirm(f"{safe(moved)}. Restore it to that other device?", default=False, err=True):
+        raise UsageError("nothing was written (declined)")
 
-def _run_fleet(jobs: list[Job], kw: dict[str, Any], err: Console, *, live: bool, staged: bool) -> Report:
+
+def _confirm_each(prepared: PreparedRun, err: Console) -> Callable[[Plan, DeviceResult], Awaitable[bool]]:
+    """The question before each device's write (one at a time, even for fleets); needs a terminal."""
+    if not sys.stdin.isatty():
+        raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
+    ask_lock = asyncio.Lock()
+    profiles = {j.name: j.recipe.profile for j in prepared.jobs}
+
+    async def confirm(p: Plan, res: DeviceResult) -> bool:
+        async with ask_lock:
+            from .text import styled
+
+            err.print(styled((res.name, "bold"), f" {res.url} unit {res.unit}:"))
+            print_plan(p, profiles[res.name], changes_only=True, out=err)
+            return await asyncio.to_thread(click.confirm, "Write these values?", default=False, err=True)
+    return confirm
+
+
+def _run(prepared: PreparedRun, err: Console, *, confirm: Callable[[Plan, DeviceResult], Awaitable[bool]] | None,
+         as_json: bool) -> tuple[Report, bool]:
+    """The run (through the library), with its display; (its report, whether it was interrupted)."""
+    from ..api import RunInterrupted, run_prepared_async
+
+    r = prepared.request
+    hooks = _safe_hooks(err, r.state_dir, pause=r.pause, ask=r.ask, soak=r.soak, interval=r.health_interval,
+                        staged=bool(r.batch), fleet=r.fleet)
+    ctx = cli_context()
+    kw: dict[str, Any] = dict(confirm=confirm, command_line=command_line(r.command), argv=ctx.argv, via="cli",
+                              signals=True, **hooks)
+    # a fleet's table shows only the devices that need a look: the others' details are in the report file
+    kw["keep_results"] = bool(as_json or r.html_path or not r.fleet)
+    try:
+        if r.fleet:
+            return _run_fleet(prepared, kw, err, live=err.is_terminal and confirm is None and not r.ask
+                              and r.confirm_within is None, staged=bool(r.batch)), False
+        return asyncio.run(run_prepared_async(prepared, **kw)), False
+    except RunInterrupted as e:
+        return e.report, True
+
+
+def _run_fleet(prepared: PreparedRun, kw: dict[str, Any], err: Console, *, live: bool, staged: bool) -> Report:
     """A fleet run with its progress display (a live one on a terminal, else a line per device)."""
     import gc
 
-    from ..run.runner import run_async
+    from ..api import run_prepared_async
     from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
 
-    if _OWN_PROCESS:  # the command's own process only: the library and callers keep their collector
+    if cli_context().own_process:  # the command's own process only: the library and callers keep their collector
         # what is loaded now (modules, profiles, recipes) lives as long as the command: later collections
         # need not walk it, and a fleet allocates fast, so collect less often (the cyclic collector
         # took 35-50 ms of a 0.7 s run of 200 devices, a 20 ms pause among them)
         gc.freeze()
         gc.set_threshold(20_000, 20, 10)
     # a live display on a terminal (not while asking questions), else a line per device
-    progress = FleetProgress(len(jobs), err, live=live, staged=staged)
+    progress = FleetProgress(len(prepared.jobs), err, live=live, staged=staged)
     with progress:
-        return asyncio.run(run_async(jobs, on_start=lambda j: progress.start(j.name), on_done=progress.device_done,
-                                     **kw))
+        return asyncio.run(run_prepared_async(prepared, on_start=lambda j: progress.start(j.name),
+                                              on_done=progress.device_done, **kw))
 
 
 def _print_outcome(report: Report, *, fleet_run: bool, as_json: bool, report_path: str | None) -> None:
@@ -306,7 +225,7 @@ def _said_interrupted(report: Report, report_path: str | None) -> None:
         echo("undo with: deployer rollback SNAPSHOT, for each snapshot above", err=True)
 
 
-def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool, rollback_on_failure: bool,
+def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
                 soak: float | None = None, interval: float = 1.0, staged: bool = False, fleet: bool = False
                 ) -> dict[str, Any]:
     """apply_many's keywords for a safe change: a pause and a question between batches, the confirmation wait."""
@@ -352,7 +271,7 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
             err.print(styled(r.name, ": ", (r.status, "bold yellow"), f" - {r.error}" if r.error else ""),
                       soft_wrap=True)
 
-    return {"rollback_on_failure": rollback_on_failure, "between_batches": between, "on_confirm_wait": waiting,
+    return {"between_batches": between, "on_confirm_wait": waiting,
             "on_soak": soaking, **({"on_changed": changed} if fleet else {})}
 
 

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import sys
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import click
@@ -19,11 +20,7 @@ if TYPE_CHECKING:
 
     from rich.console import Console
 
-    from ..execute.job import Job
-    from ..fleet.rollout import ReadJob
-    from ..profile import Profile
-    from ..recipe.loader import Recipe
-    from ..transport.clients import DeviceURL
+    from ..api import DeviceURL, Job, Profile, ReadJob, Recipe
 
 
 class LazyGroup(click.Group):
@@ -50,6 +47,13 @@ class LazyGroup(click.Group):
         if not isinstance(command, click.Command):  # pragma: no cover - a wrong entry in the table below
             raise TypeError(f"{self.lazy[cmd_name]} is not a click command")
         return command
+
+    def invoke(self, ctx: click.Context) -> Any:
+        from ..api import writing_caches  # a command runs (not the group's --help or --version)
+
+        # the command line keeps pint's answers on disk; library callers do not write there
+        with writing_caches():
+            return super().invoke(ctx)
 
 
 _COMMANDS = {
@@ -111,7 +115,7 @@ def console(*, stderr: bool = False) -> Console:
 
 def describe(url: DeviceURL) -> str:
     """The URL as users write it."""
-    from ..transport.urls import describe as describe_url
+    from ..api import describe_url
 
     return describe_url(url)
 
@@ -221,7 +225,7 @@ parallel_option = click.option("--parallel", type=int_range(LIMITS.parallel), de
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
-    from ..transport.urls import parse_url  # not transport: an offline plan does not import pymodbus
+    from ..api import device_url  # not the transports: an offline plan does not import pymodbus
 
     text = device or (recipe.device.url if recipe.device else None)
     u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
@@ -229,17 +233,16 @@ def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float
         if required:
             raise UsageError("no device: pass --device URL or set device.url in the recipe")
         return None, u
-    return parse_url(text, timeout=timeout, retries=retries), u  # BadURL is a UsageError
+    return device_url(text, timeout=timeout, retries=retries), u  # BadURL is a UsageError
 
 
 def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: int
                 ) -> dict[str, tuple[int, ...]] | None:
     """Current values for plan --device, diff and pull; None (after saying why) when unreachable."""
-    from ..execute.read import read_current
-    from ..transport.clients import TransportError
+    from ..api import TransportError, pull_async
 
     try:
-        return asyncio.run(read_current(profile, names, url, unit))
+        return asyncio.run(pull_async(profile, url, unit, names=names))
     except TransportError as e:
         echo(f"error: {safe(e)}", err=True)
         return None
@@ -274,7 +277,7 @@ def _fleet(rec: Recipe | None, inventory: str, limit: str | None, timeout: float
 
 def recipe_or_inventory(recipe: str | None, inventory: str | None, *, what: str = "RECIPE") -> Recipe | None:
     """The command line's recipe, loaded; None when there is none and the inventory's devices name theirs."""
-    from ..recipe.loader import load_recipe
+    from ..api import load_recipe
 
     if recipe is not None:
         return load_recipe(recipe)
@@ -283,26 +286,43 @@ def recipe_or_inventory(recipe: str | None, inventory: str | None, *, what: str 
     return None
 
 
-_ARGV: list[str] = []  # the command line, for the audit log
-_OWN_PROCESS: list[bool] = []  # main() without argv: this process is the command, not a caller's
+@dataclass(frozen=True)
+class CliContext:
+    """What the command line knows about its own process, handed to every command (``click``'s ``obj``).
+
+    ``argv``: the command as typed (for the journal, reports and pages); ``own_process``: ``main()`` runs as
+    the process itself (the ``deployer`` script), not called by a test or a program, so it may tune the
+    process (the garbage collector) for a command that ends with it.
+    """
+
+    argv: tuple[str, ...] = ()
+    own_process: bool = False
+
+
+def cli_context() -> CliContext:
+    """The running command's context (the defaults outside ``main``)."""
+    ctx = click.get_current_context(silent=True)
+    found = ctx.find_object(CliContext) if ctx is not None else None
+    return found if found is not None else CliContext()
 
 
 def command_line(fallback: str = "") -> str:
     """The command as the user typed it (quoted as a shell would need it), for reports and pages."""
     import shlex
 
-    return shlex.join(["deployer", *_ARGV]) if _ARGV else f"deployer {fallback}".rstrip()
+    argv = cli_context().argv
+    return shlex.join(["deployer", *argv]) if argv else f"deployer {fallback}".rstrip()
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point: map every user error to its exit code, never a traceback."""
-    if argv is None:
-        _OWN_PROCESS[:] = [True]
+    context = CliContext(tuple(argv) if argv is not None else tuple(sys.argv[1:]), own_process=argv is None)
+    if context.own_process:
         _encodable_output()
     try:
-        _main(argv)
+        _main(argv, context)
     finally:
-        if argv is None:  # the process itself (not a test calling in): its objects end with it, so the
+        if context.own_process:  # the process itself (not a test calling in): its objects end with it, so the
             import gc  # interpreter's last collection need not walk them (40 ms after a 200-device fleet)
 
             gc.freeze()
@@ -319,13 +339,9 @@ def _encodable_output() -> None:
                 stream.reconfigure(errors="replace")
 
 
-def _main(argv: Sequence[str] | None) -> None:
-    from ..state.caches import allow_writes
-
-    allow_writes()  # the command line keeps pint's answers on disk; library callers do not write there
-    _ARGV[:] = list(argv) if argv is not None else sys.argv[1:]
+def _main(argv: Sequence[str] | None, context: CliContext) -> None:
     try:
-        rv = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False)
+        rv = cli.main(args=list(argv) if argv is not None else None, standalone_mode=False, obj=context)
     except click.exceptions.Abort:
         echo("aborted", err=True)
         sys.exit(EXIT_INVALID)

@@ -6,7 +6,7 @@ import json
 
 import click
 
-from ..load.diagnostics import EXIT_OK, UsageError
+from ..errors import EXIT_OK, UsageError
 from .base import TIMEOUT, console, echo, safe
 from .tables import show
 
@@ -142,7 +142,7 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
         echo(f"error: {safe(e)}", err=True)
         return EXIT_UNREACHABLE
     if output:
-        from ..report import write_atomic
+        from ..state.durable import write_atomic
 
         write_atomic(output, inventory_text(result, url, now()))
     if as_json:

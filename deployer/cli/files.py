@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..load.diagnostics import EXIT_INVALID, EXIT_OK, InputError, UsageError
+from ..errors import EXIT_INVALID, EXIT_OK, InputError, UsageError
 from ..load.messages import clip
 from .base import _n, echo, safe
 

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from ..load.diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, UsageError
+from ..errors import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, UsageError
 from .agentclient import agent_option
 from .base import (
     _fleet,
@@ -32,11 +32,7 @@ from .tables import Cell, show
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..execute.job import Job
-    from ..planning.model import Plan
-    from ..profile import Profile
-    from ..recipe.loader import Recipe
-    from ..transport.clients import DeviceURL
+    from ..api import DeviceURL, Job, Plan, Profile, Recipe
 
 
 def _hexwords(regs: Sequence[int] | None) -> str:

@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from ..load.diagnostics import EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, InputError, UsageError
+from ..errors import EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, InputError, UsageError
 from .base import _n, _output, console, echo, force_option, report_input_error, safe
 from .tables import Cell, show
 

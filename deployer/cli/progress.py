@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from rich.live import Live
     from rich.progress import Progress
 
-    from ..report import DeviceResult, Report
+    from ..api import DeviceResult, Report
     from .tables import Cell
 
 STYLE = {"rolled-back": "bold yellow", "interrupted": "bold red",

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from ..load.diagnostics import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError, UsageError
+from ..errors import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError, UsageError
 from .agentclient import agent_option
 from .base import (
     RETRIES,
@@ -35,11 +35,7 @@ from .base import (
 from .tables import Cell, show
 
 if TYPE_CHECKING:
-    from ..api import Drift
-    from ..execute.job import Job
-    from ..fleet.rollout import ReadJob
-    from ..profile import Profile
-    from ..recipe.loader import Recipe
+    from ..api import Drift, Job, Profile, ReadJob, Recipe
 
 
 @click.command()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from ..load.diagnostics import EXIT_OK, UsageError
+from ..errors import EXIT_OK, UsageError
 from .base import cli
 
 

@@ -6,7 +6,7 @@ import asyncio
 
 import click
 
-from ..load.diagnostics import EXIT_INVALID, EXIT_OK, UsageError
+from ..errors import EXIT_INVALID, EXIT_OK, UsageError
 from .base import echo, safe
 
 

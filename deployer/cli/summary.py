@@ -15,9 +15,7 @@ from .base import _n, safe
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..api import Drift
-    from ..planning.model import Plan
-    from ..profile import Profile
+    from ..api import Drift, Plan, Profile
 
 INLINE = 4  # up to this many changes on the group's own line; more go into a table under it
 

@@ -13,8 +13,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from ..errors import Diagnostic, InputError, UsageError
 from ..load import schema, yamlsrc
-from ..load.diagnostics import Diagnostic, InputError, UsageError
 from ..profile import is_profile_path
 from ..recipe.loader import Entry, Recipe, expand, load_recipe, with_overrides
 

@@ -11,7 +11,7 @@ from decimal import Decimal
 from functools import cache
 from typing import TYPE_CHECKING, Any
 
-from .diagnostics import Diagnostic
+from ..errors import Diagnostic
 from .messages import MAX_ECHO, clip, clipped_repr
 from .yamlsrc import Path_, Source
 

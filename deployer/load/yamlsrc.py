@@ -29,8 +29,8 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from ..errors import Diagnostic, InputError
 from ..portable import O_BINARY, O_CLOEXEC, O_NONBLOCK
-from .diagnostics import Diagnostic, InputError
 from .messages import clip, clip_message, clipped_repr
 
 if TYPE_CHECKING:

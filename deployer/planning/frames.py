@@ -31,7 +31,7 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterResponse,
 )
 
-from ..load.diagnostics import UsageError
+from ..errors import UsageError
 from .model import ReadRequest, WriteRequest
 
 Framing = Literal["rtu", "ascii", "tcp"]

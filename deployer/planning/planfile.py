@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from ..load.diagnostics import Diagnostic, InputError, UsageError
+from ..errors import Diagnostic, InputError, UsageError
 from ..profile import codec
 from .model import COIL_WRITES, Plan, PlannedParameter, ReadRequest, Target, WriteRequest
 from .wire import wire_stats

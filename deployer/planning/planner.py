@@ -10,7 +10,7 @@ import bisect
 from collections.abc import Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
-from ..load.diagnostics import UsageError
+from ..errors import UsageError
 from ..profile.model import READ_FUNCTION, SPACE, TYPE_OF_READ
 from .model import Action, Plan, PlannedParameter, ReadRequest, Target, WriteRequest
 

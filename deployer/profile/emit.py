@@ -18,8 +18,8 @@ from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
 
+from ..errors import Diagnostic, InputError
 from ..load import messages, yamlsrc
-from ..load.diagnostics import Diagnostic, InputError
 from .loader import profile_from_data
 from .model import Profile
 

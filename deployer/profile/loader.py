@@ -8,8 +8,8 @@ from dataclasses import replace
 from decimal import Decimal
 from typing import Any
 
+from ..errors import Diagnostic, InputError, UsageError
 from ..load import messages, schema, yamlsrc
-from ..load.diagnostics import Diagnostic, InputError, UsageError
 from ..load.durations import parse_duration
 from . import codec, model, units, values
 from .model import (

@@ -66,6 +66,7 @@ class _DiskCache:
         self.checks: dict[str, str | None] = {}
         self.factors: dict[str, str | None] = {}  # "from\x00to" -> factor text, or a message
         self.dirty = False
+        self.writable = False  # answers were added inside caches.writing(): save them at exit
         self.path: str | None = None
         try:
             spec = importlib.util.find_spec("pint")
@@ -83,7 +84,7 @@ class _DiskCache:
             pass  # no cache yet, or unreadable: pint answers, and the cache is written at exit
 
     def save(self) -> None:
-        if not self.dirty or self.path is None or not writes_allowed():
+        if not self.dirty or self.path is None or not self.writable:
             return
         from ..errors import DeployerError
         from ..state.durable import write_atomic
@@ -114,6 +115,7 @@ def check(text: str) -> str | None:
     if len(text) <= 40 and len(disk.checks) < _MAX_KEPT:  # garbage from hostile files is not worth keeping
         disk.checks[text] = answer
         disk.dirty = True
+        disk.writable = disk.writable or writes_allowed()
     return answer
 
 
@@ -135,6 +137,7 @@ def _conversion(from_unit: str, to_unit: str) -> Decimal | str | None:
     if len(key) <= 80 and len(disk.factors) < _MAX_KEPT:
         disk.factors[key] = None if answer is None else (f"={answer}" if isinstance(answer, Decimal) else answer)
         disk.dirty = True
+        disk.writable = disk.writable or writes_allowed()
     return answer
 
 

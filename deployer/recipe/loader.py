@@ -13,8 +13,8 @@ from dataclasses import dataclass, field, replace
 from decimal import Decimal
 from typing import Any, Literal
 
+from ..errors import Diagnostic, InputError, UsageError
 from ..load import messages, schema, yamlsrc
-from ..load.diagnostics import Diagnostic, InputError, UsageError
 from ..profile import Parameter, Profile, codec, is_profile_path, resolve_profile, values
 from .text import _range_text, snapshot_value
 

@@ -15,10 +15,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..errors import Diagnostic, InputError, UsageError
 from ..execute.job import Job
 from ..fleet.inventory import FleetDevice, Inventory, select
 from ..fleet.livereport import NOT_FINISHED
-from ..load.diagnostics import Diagnostic, InputError, UsageError
 from ..recipe.loader import Recipe, load_recipe
 from ..report import read_report
 from ..state import journal

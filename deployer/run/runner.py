@@ -29,12 +29,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
 
-from ..errors import RunInterrupted
+from ..errors import RunInterrupted, UsageError
 from ..execute.job import Job
 from ..execute.session import ApplyOptions, Declined, StalePlan
 from ..fleet.livereport import LiveReport
 from ..fleet.rollout import apply_many, batch_plan, batch_sizes, failure_budget
-from ..load.diagnostics import UsageError
 from ..portable import interrupt_signals, on_signals, raise_open_files
 from ..report import DeviceResult, Report, run_info
 from ..state import journal

@@ -21,14 +21,13 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, NoReturn
 
-from ..errors import InputError
-from ..load.diagnostics import Diagnostic
+from ..errors import Diagnostic, InputError
 from ..load.messages import clipped_repr
 from ..portable import O_BINARY, O_CLOEXEC
 from ..profile import Limits, Profile, profile_ref
 from ..profile.model import PROTOCOL_MAX_WRITE
 from ..recipe.loader import Recipe
-from ..report import write_atomic
+from ..state.durable import write_atomic
 from ..transport.urls import DeviceURL
 from . import oslock
 

@@ -11,9 +11,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from ..errors import NotCommitted, StateError
+from ..errors import NotCommitted, StateError, UsageError
 from ..execute.session import ApplyOptions
-from ..load.diagnostics import UsageError
 from ..report import DeviceResult
 from ..state import holder, journal
 from .held import pending_path

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from ..errors import InputError, UsageError
 from ..execute.device import _apply_device
 from ..execute.session import ApplyOptions, DeviceGone, Session
 from ..execute.steps import commit_steps
 from ..execute.verify import values_of
-from ..load.diagnostics import InputError, UsageError
 from ..planning.planner import plan_reads
 from ..profile import Profile, profile_ref
 from ..recipe.loader import load_recipe

@@ -14,8 +14,8 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from ..errors import UsageError
 from ..execute.session import ApplyOptions, DeviceGone, Session
-from ..load.diagnostics import UsageError
 from ..load.durations import format_duration
 from ..profile import HealthCheck, Profile
 from ..state import journal

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from typing import Any
 
+from ...errors import Diagnostic, InputError, UsageError
 from ...load import messages, yamlsrc
-from ...load.diagnostics import Diagnostic, InputError, UsageError
 from .. import codec, units
 from ..emit import MAX_DIGITS, Draft, Origin
 

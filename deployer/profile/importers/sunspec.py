@@ -25,8 +25,8 @@ from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
 
+from ...errors import Diagnostic, InputError, UsageError
 from ...load import messages, yamlsrc
-from ...load.diagnostics import Diagnostic, InputError, UsageError
 from .. import units
 from ..emit import Draft, Origin
 

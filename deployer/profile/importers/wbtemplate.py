@@ -21,8 +21,8 @@ from dataclasses import dataclass, field, replace
 from decimal import Decimal
 from typing import Any
 
+from ...errors import InputError
 from ...load import yamlsrc
-from ...load.diagnostics import InputError
 from .. import codec, units
 from ..emit import Draft, Origin
 
