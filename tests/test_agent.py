@@ -231,3 +231,37 @@ devices:
     out = subprocess.run([sys.executable, "-m", "deployer", "agent", str(bad), "--state-dir", str(tmp_path / "s2"),
                           "--listen", "127.0.0.1:0"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 1 and "bad.yaml:5:" in out.stderr and "check_every" in out.stderr, out.stderr
+
+
+def test_sighup_reads_the_files_again_and_a_device_that_keeps_drifting_is_not_fought(tmp_path: Path,
+                                                                                      sim: Simulator) -> None:
+    import signal
+
+    inv = write_site(tmp_path, {"d1": sim.url})
+    agent = AgentProcess(inv, tmp_path / "state", "--on-drift", "restore", "--max-restores", "2")
+    try:
+        c = agent.client
+        until(lambda: event(c, "restored", "d1"), why="the first restore")  # the files' state at start: 1 of 2
+        external_write(sim, 10, 66)
+        until(lambda: len(c.events(kind="restored")) == 2, why="the second restore")
+        external_write(sim, 10, 66)
+        until(lambda: event(c, "restore-limit", "d1"), why="the limit")
+        c.check()
+        assert sim.read("accel") == (66,) and len(c.events(kind="restored")) == 2
+        # an edit: SIGHUP reads it, shows it pending, writes nothing
+        recipe = tmp_path / "r.yaml"
+        recipe.write_text(recipe.read_text().replace("decel: 3 s", "decel: 4 s"))
+        agent.proc.send_signal(signal.SIGHUP)
+        until(lambda: event(c, "reload"), why="reloaded")
+        pending = c.pending()["devices"]
+        assert pending[0]["changes"] == [{"name": "decel", "adopted": "3 s", "files": "4 s"}]
+        assert pending[0]["plan"] is not None
+        assert sim.read("decel") == (30,)
+        recipe.write_text("recipe: [broken")
+        agent.proc.send_signal(signal.SIGHUP)
+        ev = until(lambda: event(c, "reload-failed"), why="refused")
+        assert any("r.yaml" in d for d in ev["detail"]["diagnostics"])
+        assert c.pending()["devices"][0]["changes"][0]["files"] == "4 s"  # the last valid files still stand
+        assert agent.terminate() == 0
+    finally:
+        agent.kill()

@@ -75,6 +75,7 @@ class Device:
     status: str = "unknown"
     drift: list[dict[str, Any]] = field(default_factory=list)
     last_values: dict[str, tuple[int, ...]] | None = None
+    asleft: dict[str, tuple[int, ...]] | None = None  # as stored in the database
     last_check: float | None = None
     unreachable_since: float | None = None
     unreachable_why: str | None = None
@@ -438,7 +439,10 @@ class Agent:
             if dev.drift:
                 self.event("drift-cleared", f"{dev.name}: holds the adopted state again", device=dev.name)
             dev.drift, dev.status = [], "ok"
-            self.store.set_asleft(dev.name, {n: values[n] for n in dev.adopted_values if n in values}, "check")
+            left = {n: values[n] for n in dev.adopted_values if n in values}
+            if left != dev.asleft:  # a commit (an fsync) only when they changed, not at every check
+                self.store.set_asleft(dev.name, left, "check")
+                dev.asleft = left
             return
         first = not dev.drift
         dev.drift, dev.status = drift, "drifted"
@@ -701,7 +705,8 @@ class Agent:
                     if adopt:
                         self._adopt(dev, by_name[r.name], ds.values_of(by_name[r.name].recipe), run=run.id,
                                     why=f"run {run.id}")
-                    self.store.set_asleft(r.name, {n: v for n, v in after.items() if n in dev.adopted_values},
+                    dev.asleft = {n: v for n, v in after.items() if n in dev.adopted_values}
+                    self.store.set_asleft(r.name, dev.asleft,
                                           f"run {run.id}")
                     if run.command == "restore":
                         dev.drift_restores += 1
