@@ -218,6 +218,13 @@ RESERVED_NAMES = frozenset({"CON", "PRN", "AUX", "NUL", "CONIN$", "CONOUT$", *(f
 NAME_LIMIT = 100  # characters of a file name made from a device or recipe name (Windows paths: 260 in all)
 
 
+def reserved_name(path: str) -> str | None:
+    """The Windows device name a path's last part is (``CON`` for ``out\\con.json``), or None."""
+    last = path.rstrip("/\\").replace("\\", "/").rsplit("/", 1)[-1]  # either separator: Windows takes both
+    stem = last.split(".")[0].rstrip(" ").upper()
+    return stem if stem in RESERVED_NAMES else None
+
+
 def file_name(name: str, limit: int = NAME_LIMIT) -> str:
     """``name`` as a file name valid on every system, the same everywhere (a snapshot made on Linux
     has the name it would have on Windows): letters, digits, ``-``, ``_`` and ``.`` (others become

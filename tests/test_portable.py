@@ -315,3 +315,15 @@ def test_output_in_a_code_page_without_the_character(tmp_path: Path) -> None:
     p = subprocess.run([sys.executable, "-m", "deployer", "validate", str(rec)], capture_output=True,
                        env={**env(posixless=False), "PYTHONIOENCODING": "cp1252", "PYTHONUTF8": "0"}, timeout=60)
     assert p.returncode == 1 and b"unknown parameter '?'" in p.stderr and b"Traceback" not in p.stderr, p.stderr
+
+
+def test_reserved_names_in_output_paths(tmp_path: Path) -> None:
+    assert [portable.reserved_name(p) for p in ("CON", "out/con.json", "x\\Aux.txt", "COM1.yaml", "CONSOLE.json",
+                                                 "com10.json", "report.json")] == [
+        "CON", "CON", "AUX", "COM1", None, None, None]
+    if sys.platform == "win32":  # the same name is an ordinary file elsewhere
+        with pytest.raises(durable.OutputRefused, match="Windows reserves the name CON"):
+            durable.check_output(str(tmp_path / "con.json"))
+    else:
+        durable.write_atomic(str(tmp_path / "con.json"), "{}")
+        assert (tmp_path / "con.json").read_text() == "{}"

@@ -37,7 +37,7 @@ from ..fleet.rollout import apply_many, batch_plan, batch_sizes, failure_budget
 from ..portable import interrupt_signals, on_signals, raise_open_files
 from ..report import DeviceResult, Report, run_info
 from ..state import journal
-from ..state.durable import Line, durable
+from ..state.durable import Line, disk_error, durable
 from ..transport.urls import describe
 from ..window.soak import check_soak_profiles
 
@@ -71,7 +71,7 @@ def check_writable(folder: str, what: str) -> None:
             pass
         os.remove(probe)
     except OSError as e:
-        raise UsageError(f"cannot write {what}: {e.strerror}") from None
+        raise UsageError(f"cannot write {what}: {disk_error(e)}") from None
 
 
 def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failures: str | None,

@@ -243,6 +243,10 @@ def check_output(path: str, *, replace: bool = True, what: str = "") -> None:
     pages: only with --force). Raises OutputRefused (exit 1).
     """
     name = f"{what} {path}" if what else path
+    device = portable.reserved_name(path) if portable.WINDOWS else None
+    if device is not None:
+        raise OutputRefused(f"refusing to write {name}: Windows reserves the name {device} for a device, whatever "
+                            f"its extension (choose another name)")
     try:
         st = os.lstat(path)
     except FileNotFoundError:
