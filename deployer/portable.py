@@ -172,12 +172,18 @@ def open_nofollow(path: str, flags: int, mode: int = 0o666) -> int:
     fd = os.open(path, flags, mode)
     try:
         st, opened = os.lstat(path), os.fstat(fd)
-        if is_link(st) or (st.st_dev, st.st_ino) != (opened.st_dev, opened.st_ino):
+        if is_link(st) or not same_file(st, opened):
             raise OSError(errno.ELOOP, "it is a symbolic link", path)
     except BaseException:
         os.close(fd)
         raise
     return fd
+
+
+def same_file(a: os.stat_result, b: os.stat_result) -> bool:
+    """Whether two stat results are of one file: same device and file id (where a system leaves either
+    at 0, what is known must agree: a file id Windows did not fill in never makes two files of one)."""
+    return all(x == y for x, y in ((a.st_dev, b.st_dev), (a.st_ino, b.st_ino)) if x and y)
 
 
 def is_link(st: os.stat_result) -> bool:

@@ -176,3 +176,10 @@ def test_one_writer_per_device_and_ctrl_c_without_posix(tmp_path: Path) -> None:
         code, out, err = deployer(tmp_path, "rollback", "--from-report", "c.json", "--yes", "--state-dir", "sc")
         assert code == 0, out + err
         assert sim.read("base_speed") == (1750,)  # what the interrupted run found
+
+
+def test_the_demo_without_posix(tmp_path: Path) -> None:
+    # the first command a new Windows user types
+    code, out, err = deployer(tmp_path, "demo")
+    assert code == 0 and "demo finished: every step behaved as described." in out + err, out + err
+    assert "Traceback" not in out + err

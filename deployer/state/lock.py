@@ -253,7 +253,7 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
                              f"agent (deployer apply --agent {a} ...), or stop the agent", busy=False) from None
             raise Locked(f"locked by {_holder_text(record)}") from None
         try:
-            same = os.stat(path, follow_symlinks=False).st_ino == os.fstat(fd).st_ino
+            same = portable.same_file(os.stat(path, follow_symlinks=False), os.fstat(fd))
         except OSError:
             same = False
         if same:
