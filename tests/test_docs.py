@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import tomllib
 from pathlib import Path
 
 import jsonschema
@@ -273,3 +274,17 @@ def test_the_layout_table_names_every_module() -> None:
         if f"`{path.stem}`" not in rows.get(folder, ""):
             missing.append(str(rel))
     assert missing == [], "name these in the layout table of docs/contributing.md"
+
+
+def test_every_dependency_says_why_it_is_there() -> None:
+    """docs/dependencies.md has a row for every package pyproject.toml installs (the developer guide asks it)."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    wanted = [*project["dependencies"], *(d for extra in project["optional-dependencies"].values() for d in extra)]
+
+    def norm(name: str) -> str:
+        return re.sub(r"[-_.]+", "-", name).lower()
+
+    named = {norm(n) for row in re.findall(r"^\| ([^|]+) \|", (DOCS / "dependencies.md").read_text(), re.M)
+             for n in re.findall(r"[A-Za-z][\w.-]*", row.split("(")[0])}
+    missing = sorted({norm(re.split(r"[\[<>=!~; ]", d)[0]) for d in wanted} - named)
+    assert missing == [], "say why in docs/dependencies.md"
