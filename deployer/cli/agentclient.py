@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from ..errors import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, UsageError
+from ..errors import EXIT_CHANGES, EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, UsageError
 from .base import echo
 
 agent_option = click.option(
@@ -180,8 +180,15 @@ def status(url: str, *, as_json: bool) -> int:
 
 
 def confirm(url: str, run: str | None) -> int:
-    r = _client(url).confirm(run)
-    echo(f"confirmed run {r['id']}: the agent sends the commit now (deployer status --agent {url})")
+    """Confirm through the agent, then wait for the outcome as ``deployer confirm`` does: exit 4 when a
+    commit was not sent."""
+    c = _client(url)
+    r = c.confirm(run)
+    echo(f"confirmed run {r['id']}: the agent sends the commit now")
+    end = c.follow(r["id"], lambda ev: _say(ev, url))
+    if end.get("exit_code"):
+        echo(f"run {r['id']} ended with exit code {end['exit_code']}: see deployer status --agent {url}", err=True)
+        return EXIT_FAILED
     return EXIT_OK
 
 
