@@ -265,3 +265,32 @@ def test_sighup_reads_the_files_again_and_a_device_that_keeps_drifting_is_not_fo
         assert agent.terminate() == 0
     finally:
         agent.kill()
+
+
+def test_a_device_from_another_library_watched_and_restored(tmp_path: Path) -> None:
+    """umodbus serves the device (no Function 43): drift restored, the ledger equal to what it received."""
+    from tests.helpers import umodbus_server
+
+    store = {0: 0x0A21, 10: 50, 11: 50, 12: 1500, 20: 1, 30: 0}
+    wire: list[tuple[int, int, int]] = []
+    with umodbus_server(store, wire=wire) as port:
+        inv = write_site(tmp_path, {"d1": f"tcp://127.0.0.1:{port}"})
+        agent = AgentProcess(inv, tmp_path / "state", "--on-drift", "restore")
+        try:
+            c = agent.client
+            until(lambda: event(c, "restored", "d1"), why="restored at start")
+            assert (store[10], store[11], store[12], store[20]) == (20, 30, 3000, 7)
+            store[11] = 99  # changed on the device's own panel
+            until(lambda: len(c.events(kind="restored")) == 2, why="restored again")
+            assert store[11] == 30
+            received: dict[int, int] = {}
+            for fc, address, count in wire:
+                if fc in (6, 16):
+                    for a in range(address, address + count):
+                        received[a] = received.get(a, 0) + 1
+            led = {r["address"]: r["writes"] + r["commits"] for r in c.ledger()["devices"][0]["registers"]}
+            assert led == received
+            assert c.device("d1")["identity"]["function_43"] is False
+            assert agent.terminate() == 0
+        finally:
+            agent.kill()
