@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import struct
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -298,3 +300,38 @@ def test_pull_over_an_inventory_uses_each_devices_recipe_profile(capsys: pytest.
     assert code == 0, err
     assert "safety_timer_s: 0 s" in (tmp_path / "pulled" / "relay0.yaml").read_text()
     assert "F07:" in (tmp_path / "pulled" / "drive0.yaml").read_text()
+
+
+def test_health_is_watched_while_the_confirmation_waits(tmp_path: Path) -> None:
+    """--confirm-within reads the health checks until the answer: a device that fails meanwhile is rolled back
+    at once, long before the confirmation time runs out, and its commit is never sent."""
+    from deployer.window.confirm import awaiting
+    from tests.helpers import wait_for
+
+    prof = builtin_profile("example-inverter")
+    fault, commit, f07 = prof.health[0].address, prof.commit[0].address, prof.parameter("F07").address
+    state = str(tmp_path / "s")
+    with SimulatorThread(prof) as sim:
+        before = sim.registers()
+        r = tmp_path / "r.yaml"
+        r.write_text(f"recipe: r\nprofile: example-inverter\ndevice: {{url: '{sim.url}'}}\nparameters:\n  F07: 3 s\n")
+        proc = subprocess.Popen([sys.executable, "-m", "deployer", "apply", str(r), "--yes", "--json",
+                                 "--confirm-within", "1h", "--health-interval", "100ms", "--state-dir", state],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            wait_for(lambda: bool(awaiting(state)) or proc.poll() is not None)
+            wait_for(lambda: sum(1 for e in sim.log if e.function == 3 and e.address == fault) >= 2)
+            sim.set_register(fault, 7)
+            out, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        log = list(sim.log)
+        after = sim.registers()
+    assert proc.returncode == 4, err
+    dev = json.loads(out)["devices"][0]
+    assert dev["status"] == "rolled-back" and dev["commit"] == "not sent"
+    assert "of the confirmation wait: register 0x2000 (drive fault code is zero) is 7, expected 0" in dev["error"]
+    assert {a: v for a, v in after.items() if a != fault} == {a: v for a, v in before.items() if a != fault}
+    assert not any(e.function in (6, 16) and e.address <= commit < e.address + e.count for e in log)
+    assert any(e.function in (6, 16) and e.address <= f07 + 1 < e.address + e.count for e in log)

@@ -104,7 +104,7 @@ def test_hostile_names_through_the_real_commands(tmp_path: Path, capsys: pytest.
                           "pid": 1, "command": "apply", "via": "cli", "argv": ["--inventory", f"i{ESC}.yaml"],
                           "recipe": None, "devices": [{"name": f"d\n{FAKE}", "url": "tcp://h:1", "unit": 1}]})
     code, out, _ = run("status", "--state-dir", "st")
-    assert code == 0 and "apply --inventory i\\e.yaml by u\\e[1A at t" in out, out
+    assert code == 2 and "apply --inventory i\\e.yaml by u\\e[1A at t" in out, out
     code, _, err = run("report", f"missing{ESC}[2K.json")
     assert code == 1 and "missing\\e[2K.json" in err
     assert_harmless(*outputs)

@@ -189,7 +189,7 @@ def test_sigterm_mid_apply_of_one_device(files: Path) -> None:
                 assert now[k] == before(0)[k]
         assert audit(files / "state")[-1]["interrupted"] == "SIGTERM"
         code, out, err = deployer("status", "--state-dir", "state", cwd=files)
-        assert code == 0 and "interrupted (SIGTERM)" in out and f"undo with: deployer rollback {dev['snapshot']}" in out
+        assert code == 2 and "interrupted (SIGTERM)" in out and f"undo with: deployer rollback {dev['snapshot']}" in out
         assert f"deployer diff {files / 'new.yaml'} --device {sim.url} --unit 1" in out  # the run's own recipe
         code, out, err = deployer("rollback", dev["snapshot"], "--yes", "--state-dir", "state", cwd=files)
         assert code == 0, out + err

@@ -282,7 +282,7 @@ def test_a_killed_waiter_is_shown_by_status_and_its_restore_command_works(capsys
             proc.communicate(timeout=60)
         assert sim.registers()[F07 + 1] == 300  # the new value is in the device, uncommitted
         code, out, _ = cli(capsys, "status", "--state-dir", state)
-        assert code == 0 and "awaited confirmation" in out and "never committed" in out
+        assert code == 2 and "awaited confirmation" in out and "never committed" in out
         restore = next(line.split("restore them with: ", 1)[1] for line in out.splitlines() if "restore them" in line)
         with pytest.raises(UsageError, match="process .* is gone"):
             confirm_run(state)
@@ -446,7 +446,7 @@ def test_a_run_killed_during_its_soak_is_shown_by_status_with_its_restore_comman
             proc.communicate(timeout=60)
         assert writes_to(list(sim.log), COMMIT) == []
         code, out, _ = cli(capsys, "status", "--state-dir", state)
-        assert code == 0 and "died while its change soaked" in out
+        assert code == 2 and "died while its change soaked" in out
         restore = next(line.split("restore them with: ", 1)[1] for line in out.splitlines() if "restore them" in line)
         code, _, err = cli(capsys, *restore.split()[1:])
         assert code == 0, err

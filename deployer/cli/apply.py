@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from ..api import BATCH_BY
-from ..errors import EXIT_FAILED, EXIT_OK, UsageError
+from ..errors import EXIT_CHANGES, EXIT_FAILED, EXIT_OK, UsageError
 from ..limits import LIMITS
 from .agentclient import agent_option
 from .base import (
@@ -421,9 +421,11 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
 @click.option("--resolve", metavar="RUN", help="acknowledge a run listed here after a look (recorded in the audit log)")
 @agent_option
 def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | None) -> int:
-    """Runs that need a look: never finished (a crash, kill -9, a laptop asleep) or interrupted while writing.
+    """Runs that need a look: never finished (a crash, kill -9, a laptop asleep), interrupted while writing,
+    or waiting for a confirmation.
 
     A run drops out once the devices it left half-written are rolled back, or with --resolve RUN.
+    Exit code 2 while any run needs a look, 0 when none does.
     """
     from ..state import holder, journal, lock
     from ..window.confirm import awaiting, soaking
@@ -455,7 +457,7 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
                                            "waiting": waits[r.run].alive}} if r.run in waits else {}),
              **({"soaking": {"report": soaks[r.run]}} if r.run in soaks else {}),
              } for r in runs]}, indent=2))
-        return EXIT_OK
+        return EXIT_CHANGES if runs else EXIT_OK
     if not runs:
         echo(f"no unfinished runs in {safe(journal.path_of(state_dir))}")
     if locks:
@@ -503,7 +505,7 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
             echo(f"  after a look: deployer status --resolve {safe(r.run)}{dirs}")
     if torn:
         echo(f"({_n(torn, 'line')} of the log could not be read: cut off by the crash)")
-    return EXIT_OK
+    return EXIT_CHANGES if runs else EXIT_OK  # 2: something needs a look (scripts and monitoring can tell)
 
 
 def _inventory_of(r: Any) -> str | None:

@@ -21,12 +21,13 @@ from .held import record as _journal
 
 async def await_confirmation(run: str, seconds: float, options: ApplyOptions, *,
                              on_wait: Callable[[float], None] | None = None, poll: float = 0.2,
-                             results: Sequence[DeviceResult] = ()) -> bool:
+                             results: Sequence[DeviceResult] = (), gone: asyncio.Event | None = None) -> bool:
     """Wait until ``deployer confirm`` wrote a ``confirmed`` line for ``run`` (True) or ``seconds`` ran out.
 
     The wait runs on the monotonic clock (a step of the wall clock changes nothing); the journal's
     ``confirm-awaited`` line has the deadline on both. ``on_wait`` gets the deadline (time.time()) once that
-    line is on disk; ``results``: the devices waiting (they say what the journal could not record).
+    line is on disk; ``results``: the devices waiting (they say what the journal could not record). ``gone``: the
+    wait ends (False) once it is set (every device waiting was rolled back: nothing is left to confirm).
     """
     path = journal.path_of(options.state_dir)
     until = journal.deadline(seconds)
@@ -44,6 +45,11 @@ async def await_confirmation(run: str, seconds: float, options: ApplyOptions, *,
         left = deadline - time.monotonic()
         if left <= 0:
             _journal(options, {"event": "confirm-expired", "run": run, "time": journal._now()}, *results)
+            return False
+        if gone is not None and gone.is_set():
+            _journal(options, {"event": "confirm-interrupted", "run": run, "time": journal._now(),
+                               "reason": "every device waiting failed its health checks and was rolled back"},
+                     *results)
             return False
         try:
             await asyncio.sleep(min(poll, left))

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import os
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 from ..execute.job import Job
 from ..execute.session import ApplyOptions
@@ -105,7 +106,7 @@ class Window:
         waiting = [w for w in devices if needs_soak(w.result)]
         if not waiting:
             return
-        self.write_pending(Report(self.recipe_name, [w.result for w in devices]))
+        pending = self.write_pending(Report(self.recipe_name, [w.result for w in devices]))
         run = opts.run_id
 
         def on_wait(deadline: float) -> None:
@@ -115,19 +116,33 @@ class Window:
             if self.on_confirm_wait is not None:
                 self.on_confirm_wait(run, deadline)
 
+        # the health checks go on being read until the answer: a device that fails meanwhile is rolled back at once
+        stop, gone = asyncio.Event(), asyncio.Event()
+        watched = [w for w in waiting if w.recipe.profile.health]
+        watcher = asyncio.ensure_future(soak(watched, replace(opts, soak=opts.confirm_within), report=pending,
+                                             until=stop, during="the confirmation wait")) if watched else None
+        if watcher is not None and len(watched) == len(waiting):  # all of them rolled back: nothing to confirm
+            watcher.add_done_callback(lambda _: gone.set() if not any(w.result.status == "ok" for w in waiting)
+                                      else None)
         try:
             confirmed = await await_confirmation(run, opts.confirm_within, opts, on_wait=on_wait,
-                                                 results=[w.result for w in waiting])
+                                                 results=[w.result for w in waiting], gone=gone)
         except asyncio.CancelledError:  # Ctrl-C while waiting: the answer is no, at once
-            rolling = asyncio.ensure_future(asyncio.gather(*(roll_back(w, "interrupted while waiting for the "
-                                                                          "confirmation", opts) for w in waiting)))
+            stop.set()
+            rolling = asyncio.ensure_future(self._stop_watching(watcher, waiting, "interrupted while waiting for "
+                                                                                  "the confirmation"))
             await asyncio.shield(rolling)
             raise
+        stop.set()
+        if watcher is not None:
+            await watcher
+            self.changed([w for w in watched if w.result.status != "ok"])
+        holding = [w for w in waiting if w.result.status == "ok"]  # the unhealthy ones are rolled back already
         if confirmed:
-            await asyncio.gather(*(send_commit(w, opts) for w in waiting))
+            await asyncio.gather(*(send_commit(w, opts) for w in holding))
         else:
             why = f"not confirmed within {format_duration(opts.confirm_within)}"
-            await asyncio.gather(*(roll_back(w, why, opts) for w in waiting))
+            await asyncio.gather(*(roll_back(w, why, opts) for w in holding))
         # what `deployer confirm` waits for, to say whether the commit went out
         record(opts, {"event": "confirm-outcome", "run": run, "time": journal._now(), "confirmed": confirmed,
                       "committed": [w.name for w in waiting if w.result.commit == "sent"],
@@ -135,6 +150,14 @@ class Window:
                                         if w.result.status != "ok"
                                         or (w.recipe.profile.commit and w.result.commit != "sent")}},
                *(w.result for w in waiting))
+
+    async def _stop_watching(self, watcher: asyncio.Future[list[Written]] | None, waiting: Sequence[Written],
+                             why: str) -> None:
+        """Interrupted while waiting: the health watch ends, then every device still holding the change is
+        rolled back."""
+        if watcher is not None:
+            await watcher
+        await asyncio.gather(*(roll_back(w, why, self.opts) for w in waiting if w.result.status == "ok"))
 
     def write_pending(self, report: Report) -> str | None:
         """While devices hold uncommitted values (a soak, a confirmation wait), the run's report so far lies in

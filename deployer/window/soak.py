@@ -10,6 +10,7 @@ afterwards (``finish.send_commit``), or only once the run is confirmed (``confir
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -44,8 +45,13 @@ async def read_health(session: Session, prof: Profile) -> tuple[HealthCheck, lis
 
 
 async def soak(devices: Sequence[Written], options: ApplyOptions, *,
-               on_failed: Callable[[Written], None] | None = None, report: str | None = None) -> list[Written]:
+               on_failed: Callable[[Written], None] | None = None, report: str | None = None,
+               until: asyncio.Event | None = None, during: str | None = None) -> list[Written]:
     """Watch ``devices`` together for ``options.soak`` seconds; roll back each one whose health fails.
+
+    ``until``: the watch also ends (the devices still healthy pass) once this is set: ``confirm`` watches
+    the health while it waits for the confirmation; ``during`` names that wait in messages ("the
+    confirmation wait"; default "the 5m soak").
 
     ``report``: a report of the run so far (its snapshots), named in the journal's ``soak-started`` line so
     that ``deployer status`` can point a rollback at it should the process die during the soak.
@@ -103,15 +109,17 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
                 why = check.failure(word)
                 break
             left = deadline - time.monotonic()
-            if left <= 0:
+            if left <= 0 or (until is not None and until.is_set()):
                 break
-            await asyncio.sleep(min(options.health_interval, left))
+            await _pause(min(options.health_interval, left), until)
         seen = time.monotonic() - start
         if why is None:
-            w.result.notices.append(f"soak passed: {reads} health reads over {format_duration(options.soak or 0)}")
+            w.result.notices.append(f"{during or 'soak'} passed: {reads} health reads over "
+                                    f"{format_duration(seen if during else options.soak or 0)}")
             passed.append(w)
             return
-        why = f"health check failed after {seen:.1f} s of the {format_duration(options.soak or 0)} soak: {why}"
+        window = during or f"the {format_duration(options.soak or 0)} soak"
+        why = f"health check failed after {seen:.1f} s of {window}: {why}"
         if run is not None:
             _journal(options, {"event": "health-failed", "run": run, "time": journal._now(), "name": w.name,
                                "url": w.result.url, "unit": w.unit, "reason": why}, w.result)
@@ -145,3 +153,10 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
     return [w for w in todo if w in passed]
 
 
+async def _pause(seconds: float, until: asyncio.Event | None) -> None:
+    """Sleep, or less when ``until`` is set meanwhile."""
+    if until is None:
+        await asyncio.sleep(seconds)
+        return
+    with contextlib.suppress(asyncio.TimeoutError):
+        await asyncio.wait_for(until.wait(), seconds)
