@@ -565,7 +565,7 @@ def non_default(profile: Profile, values: Mapping[str, tuple[int, ...]]) -> dict
 def pulled_recipe(profile: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
                   comment: str = "", relative_to: str | None = None) -> str:
     """Recipe text that sets every given parameter to the values read (applies back as a no-op)."""
-    from .recipe.loader import DeviceSpec
+    from .recipe.model import DeviceSpec
 
     ref = profile.id
     if profile.source:

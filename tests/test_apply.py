@@ -280,7 +280,7 @@ def test_commit_runs_only_after_full_verification(tmp_path: Path) -> None:
 
 
 def test_read_current_and_pull_round_trip(tmp_path: Path) -> None:
-    from deployer.recipe.loader import DeviceSpec
+    from deployer.recipe.model import DeviceSpec
     from deployer.recipe.text import recipe_text
 
     prof = builtin_profile("example-inverter")

@@ -1,8 +1,9 @@
 """No import circles among deployer's modules, and the library does not import the command line.
 
-Module-level imports only (an import inside a function runs when it is called, after every module
-has loaded; ``if TYPE_CHECKING:`` blocks never run). Importing ``a.b.c`` also runs ``a`` and ``a.b``,
-unless they are packages of the importing module itself (already being imported).
+Every import counts: at module level, inside functions and under ``if TYPE_CHECKING:``. An import inside
+a function only hides a circle (the two modules still need each other), and a type-only one is a
+dependency all the same. Importing ``a.b.c`` also runs ``a`` and ``a.b``, unless they are packages of
+the importing module itself (already being imported).
 """
 
 from __future__ import annotations
@@ -24,14 +25,9 @@ def _modules() -> dict[str, Path]:
     return out
 
 
-def _top_level_imports(tree: ast.Module) -> list[ast.Import | ast.ImportFrom]:
-    out: list[ast.Import | ast.ImportFrom] = []
-    for node in tree.body:
-        if isinstance(node, ast.Import | ast.ImportFrom):
-            out.append(node)
-        elif (isinstance(node, ast.If) and "TYPE_CHECKING" not in ast.unparse(node.test)) or isinstance(node, ast.Try):
-            out += [n for n in ast.walk(node) if isinstance(n, ast.Import | ast.ImportFrom)]
-    return out
+def _all_imports(tree: ast.Module) -> list[ast.Import | ast.ImportFrom]:
+    """Every import statement of a module: module level, in functions and classes, under TYPE_CHECKING."""
+    return [n for n in ast.walk(tree) if isinstance(n, ast.Import | ast.ImportFrom)]
 
 
 def _with_parents(name: str, modules: dict[str, Path]) -> set[str]:
@@ -45,7 +41,7 @@ def import_graph() -> dict[str, set[str]]:
     for mod, path in modules.items():
         is_pkg = path.name == "__init__.py"
         deps: set[str] = set()
-        for node in _top_level_imports(ast.parse(path.read_text())):
+        for node in _all_imports(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):
                 for a in node.names:
                     deps |= _with_parents(a.name, modules)

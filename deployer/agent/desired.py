@@ -16,7 +16,8 @@ from typing import Any
 from ..execute.job import Job
 from ..fleet.inventory import Inventory, fleet_jobs, load_inventory
 from ..profile import Parameter, Profile
-from ..recipe.loader import DeviceSpec, Recipe, load_recipe
+from ..recipe.loader import Recipe, load_recipe
+from ..recipe.model import DeviceSpec
 from ..recipe.text import recipe_text
 from ..state.durable import write_atomic
 from ..transport.urls import describe

@@ -15,11 +15,6 @@ import click
 from ..errors import EXIT_CHANGES, EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, UsageError
 from .base import echo
 
-agent_option = click.option(
-    "--agent", "agent_url", metavar="URL", envvar="DEPLOYER_AGENT",
-    help="run through the site agent at URL (deployer agent; env DEPLOYER_AGENT): it owns the devices, executes, "
-         "and holds the windows")
-
 # options of apply that mean something only where the command line itself talks to the devices
 _LOCAL_ONLY = ("device", "unit", "timeout", "retries", "allow_broadcast", "html_path", "pause", "ask", "inventory")
 
@@ -95,7 +90,7 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
 
 def _finish(end: Mapping[str, Any], kw: Mapping[str, Any]) -> int:
     from ..report import report_from_json, write_json
-    from .apply import _print_outcome
+    from .outcome import print_outcome
 
     if end.get("error"):
         echo(f"error: {end['error']}", err=True)
@@ -103,7 +98,7 @@ def _finish(end: Mapping[str, Any], kw: Mapping[str, Any]) -> int:
     if doc is not None:
         if kw.get("report_path"):
             write_json(doc, str(kw["report_path"]))
-        _print_outcome(report_from_json(doc), fleet_run=True, as_json=bool(kw.get("as_json")),
+        print_outcome(report_from_json(doc), fleet_run=True, as_json=bool(kw.get("as_json")),
                        report_path=kw.get("report_path"))
     return int(end.get("exit_code") or 0)
 

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
     from rich.console import Console
 
-    from ..api import DeviceURL, Job, Profile, ReadJob, Recipe
+    from ..api import DeviceURL, Job, Profile, Recipe
 
 
 class LazyGroup(click.Group):
@@ -220,6 +220,12 @@ fleet_option = click.option("--inventory", type=click.Path(dir_okay=False), help
 limit_option = click.option("--limit", metavar="SEL", help=LIMIT_HELP)
 parallel_option = click.option("--parallel", type=int_range(LIMITS.parallel), default=8, show_default=True,
                                help="devices at once (devices on one bus always go one at a time)")
+# the commands that can run through the site agent (deployer.cli.agentclient talks to it)
+agent_option = click.option(
+    "--agent", "agent_url", metavar="URL", envvar="DEPLOYER_AGENT",
+    help="run through the site agent at URL (deployer agent; env DEPLOYER_AGENT): it owns the devices, executes, "
+         "and holds the windows")
+
 
 
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
@@ -246,22 +252,6 @@ def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: in
     except TransportError as e:
         echo(f"error: {safe(e)}", err=True)
         return None
-
-
-def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tuple[int, ...]] | Exception]:
-    """Current values of every device (a live display on a terminal); errors are said on stderr."""
-    from ..api import read_fleet_async
-    from .progress import FleetProgress
-
-    err = console(stderr=True)
-    progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
-    with progress:
-        values = asyncio.run(read_fleet_async(
-            jobs, parallel=parallel, on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")))
-    for name, v in values.items():
-        if isinstance(v, Exception):
-            echo(f"{safe(name)}: unreachable - {safe(v)}", err=True)
-    return dict(values)
 
 
 def _unreachable(values: Mapping[str, object]) -> list[str]:

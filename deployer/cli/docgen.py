@@ -440,7 +440,7 @@ the apply; parameters the recipe did not name are not in it (apply never wrote t
 def render_snapshot_page() -> str:
     """The snapshot page; its example is written by the code that writes snapshots (recipe_text)."""
     from ..profile import builtin_profile
-    from ..recipe.loader import DeviceSpec, SnapshotInfo
+    from ..recipe.model import DeviceSpec, SnapshotInfo
     from ..recipe.text import recipe_text
 
     prof = builtin_profile("example-inverter")

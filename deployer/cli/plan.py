@@ -9,12 +9,12 @@ from typing import TYPE_CHECKING
 import click
 
 from ..errors import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, UsageError
-from .agentclient import agent_option
 from .base import (
     _fleet,
     _n,
     _target,
     _unreachable,
+    agent_option,
     console,
     describe,
     device_options,
@@ -23,7 +23,6 @@ from .base import (
     limit_option,
     parallel_option,
     read_device,
-    read_fleet,
     recipe_or_inventory,
     safe,
 )
@@ -239,6 +238,8 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
             j = replace(j, recipe=r)
         taught_jobs.append(j)
     jobs = taught_jobs
+
+    from .progress import read_fleet  # rich: only fleets pay for importing it
 
     values = read_fleet(read_jobs(jobs), parallel)
     plans = {}

@@ -6,18 +6,20 @@ being worked on now). Without one: a line per device as it finishes, for logs an
 
 from __future__ import annotations
 
+import asyncio
 import time
+from collections.abc import Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING
 
-from .base import _n, safe
+from .base import _n, console, echo, safe
 
 if TYPE_CHECKING:
     from rich.console import Console, RenderableType
     from rich.live import Live
     from rich.progress import Progress
 
-    from ..api import DeviceResult, Report
+    from ..api import DeviceResult, ReadJob, Report
     from .tables import Cell
 
 STYLE = {"rolled-back": "bold yellow", "interrupted": "bold red",
@@ -123,3 +125,18 @@ def fleet_summary(report: Report, out: Console) -> None:
              if s[k] or k == "ok"]
     out.print(f"{_n(s['devices'], 'device')}: {', '.join(parts)}; {_n(s['write_requests'], 'write request')} and "
               f"{_n(s['read_requests'], 'read request')} in {s['seconds']:.2f} s")
+
+
+def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tuple[int, ...]] | Exception]:
+    """Current values of every device (a live display on a terminal); errors are said on stderr."""
+    from ..api import read_fleet_async
+
+    err = console(stderr=True)
+    progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
+    with progress:
+        values = asyncio.run(read_fleet_async(
+            jobs, parallel=parallel, on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")))
+    for name, v in values.items():
+        if isinstance(v, Exception):
+            echo(f"{safe(name)}: unreachable - {safe(v)}", err=True)
+    return dict(values)

@@ -11,7 +11,6 @@ from typing import TYPE_CHECKING
 import click
 
 from ..errors import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError, UsageError
-from .agentclient import agent_option
 from .base import (
     RETRIES,
     TIMEOUT,
@@ -20,6 +19,7 @@ from .base import (
     _output,
     _target,
     _unreachable,
+    agent_option,
     console,
     describe,
     device_options,
@@ -28,7 +28,6 @@ from .base import (
     limit_option,
     parallel_option,
     read_device,
-    read_fleet,
     recipe_or_inventory,
     safe,
 )
@@ -168,6 +167,7 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     and parameter; ``matrix``: parameters x drifted devices); exit 2 naming every drifted device, 3 if
     any could not be read."""
     from ..api import diff_values, read_jobs
+    from .progress import read_fleet  # rich: only fleets pay for importing it
 
     values = read_fleet(read_jobs(jobs), parallel)
     rows = {j.name: diff_values(j.recipe, v) for j in jobs if not isinstance(v := values[j.name], Exception)}
@@ -320,6 +320,8 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
     if errors:
         raise InputError(errors)
     check_writable(folder, f"recipes into {folder}")
+    from .progress import read_fleet  # rich: only fleets pay for importing it
+
     values = read_fleet(jobs, parallel)
     written = 0
     for j in jobs:

@@ -20,8 +20,8 @@ def report(report_file: str, html_path: str | None) -> int:
     register words. Reports of older versions show what they have. Exit 0; 1 if RUN.json is not a report.
     """
     from ..report import read_report, report_from_json
-    from .apply import print_report
     from .base import console, safe, write_page
+    from .outcome import print_report
     from .progress import fleet_summary
 
     try:

@@ -140,7 +140,8 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
 
     from ..load import yamlsrc
     from ..profile import resolve_profile
-    from ..recipe.loader import Desired, DeviceSpec, Recipe
+    from ..recipe.loader import Desired, Recipe
+    from ..recipe.model import DeviceSpec
 
     data, src = yamlsrc.load(path)
     p = plan_from_json(data, path, src=src)

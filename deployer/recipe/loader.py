@@ -16,15 +16,10 @@ from typing import Any, Literal
 from ..errors import Diagnostic, InputError, UsageError
 from ..load import messages, schema, yamlsrc
 from ..profile import Parameter, Profile, codec, is_profile_path, resolve_profile, values
+from .model import DeviceSpec, SnapshotInfo
 from .text import _range_text, snapshot_value
 
 RECIPE_SCHEMA = "recipe"
-
-
-@dataclass(frozen=True)
-class DeviceSpec:
-    url: str | None = None
-    unit: int | None = None
 
 
 @dataclass(frozen=True)
@@ -38,19 +33,6 @@ class Desired:
     @property
     def name(self) -> str:
         return self.parameter.name
-
-
-@dataclass(frozen=True)
-class SnapshotInfo:
-    """What makes a recipe a snapshot: where it came from and the raw registers it restores."""
-
-    profile_sha256: str | None  # digest of the profile the values were decoded with
-    registers: Mapping[str, tuple[int, ...]]  # parameter -> raw words as the device held them
-    taken: str | None = None
-    applied: str | None = None  # the recipe applied after the snapshot was taken
-    profile_changed: bool = False  # loaded with --force although the profile's digest differs
-    identity: Mapping[str, str] | None = None  # the device's Function 43 objects when it was read
-    addresses: Mapping[str, tuple[int, int]] | None = None  # parameter -> (address, registers) as read
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from ..load import yamlsrc
 from ..profile import Parameter, codec
 
 if TYPE_CHECKING:
-    from .loader import DeviceSpec, SnapshotInfo
+    from .model import DeviceSpec, SnapshotInfo
 
 _PLAIN_KEY = re.compile(r"^[A-Za-z_][\w.\[\]-]*$")
 

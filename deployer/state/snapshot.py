@@ -18,7 +18,8 @@ from collections.abc import Mapping
 
 from ..portable import file_name
 from ..profile import profile_ref
-from ..recipe.loader import DeviceSpec, Recipe, SnapshotInfo
+from ..recipe.loader import Recipe
+from ..recipe.model import DeviceSpec, SnapshotInfo
 from ..recipe.text import recipe_text
 from .durable import NewFile, durable_now
 
