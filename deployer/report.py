@@ -9,6 +9,7 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 from .errors import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
+from .load.messages import clipped_repr
 from .state.durable import write_atomic
 
 if TYPE_CHECKING:
@@ -343,14 +344,15 @@ def read_report(path: str) -> dict[str, Any]:
                 data = stream_document(path, first, f)
             else:
                 f.seek(0)
-                data = json.load(f)
+                data = json.load(f, parse_constant=_no_constant, parse_float=_finite)
         except json.JSONDecodeError as e:
             raise InputError([Diagnostic(path, e.lineno, e.colno, f"not a report (invalid JSON: {e.msg})")]) from None
         except UnicodeDecodeError:
             raise InputError([Diagnostic(path, 1, 1, "not a report (not UTF-8 text)")]) from None
-    if not isinstance(data, dict) or not str(data.get("schema", "")).startswith("deployer.report/") \
-            or not isinstance(data.get("devices"), list):
-        raise InputError([Diagnostic(path, 1, 1, f"not a deployer report (no \"schema\": \"{REPORT_SCHEMA}\")")])
+        except (ValueError, RecursionError):  # NaN, Infinity, 1e400, nesting too deep: check_report says where
+            data = None
+    check_report(path, data, stream=first.startswith('{"schema": "deployer.report-stream/'))
+    assert isinstance(data, dict)  # check_report refused anything else
     return data
 
 
@@ -445,3 +447,74 @@ def report_from_json(doc: dict[str, Any]) -> Report:
     seconds = float(summary.get("seconds") or 0.0) if isinstance(summary, dict) else 0.0
     run = doc.get("run")
     return Report(doc.get("recipe"), devices, seconds, run if isinstance(run, dict) else None)
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a number a report holds")
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if value in (float("inf"), float("-inf")):
+        raise ValueError(f"{text} is out of range")
+    return value
+
+
+def check_report(path: str, data: Any, *, stream: bool = False) -> None:
+    """Raise InputError unless ``data`` (the file ``path``, read) is a report of a version this deployer
+    reads that is valid against the report schema: a hand-edited report is refused at the position of
+    what is wrong, never shown half or with a traceback.
+
+    Every version so far only added fields, so the current schema (its ``schema`` key aside) checks the
+    older ones too; what a report of an older version lacks stays empty. A report a crash left
+    unfinished (a fleet's stream, the devices not finished yet) is a valid report of its version.
+    ``data`` None: the JSON reader refused a number (NaN, Infinity, 1e400); the positioned reader finds it.
+    """
+    from .load import schema
+
+    if data is not None:
+        if not isinstance(data, dict) or not isinstance(data.get("schema"), str) \
+                or not data["schema"].startswith("deployer.report/"):
+            raise InputError([Diagnostic(path, 1, 1, f"not a deployer report (no \"schema\": \"{REPORT_SCHEMA}\")")])
+        version = data["schema"].removeprefix("deployer.report/")
+        current = int(REPORT_SCHEMA.rsplit("/", 1)[1])
+        if not version.isdigit() or not 1 <= int(version) <= current:
+            raise InputError([Diagnostic(path, 1, 1, f"a report of version {clipped_repr(data['schema'])}: this "
+                                                     f"deployer reads versions 1 to {current} (deployer.report/"
+                                                     f"{current}); a newer deployer wrote it, or not deployer")])
+        if schema.is_valid({**data, "schema": REPORT_SCHEMA}, "report") is True:
+            return
+    raise InputError(_report_problems(path, data, stream=stream))
+
+
+def _report_problems(path: str, data: Any, *, stream: bool) -> list[Diagnostic]:
+    """What is wrong with a report, each at its position where the file can be read again with positions
+    (the slow reader runs only for a report that is wrong)."""
+    from decimal import Decimal
+
+    from .load import schema, yamlsrc
+
+    value, src = data, yamlsrc.Source(path)  # a stream's lines are no one document: positions 1:1
+    if not stream:
+        try:
+            value, src = yamlsrc.load(path)
+        except InputError as e:  # too large for the positioned reader, or its own complaint
+            if data is None:
+                return list(e.diagnostics)
+    if not isinstance(value, dict):
+        return [Diagnostic(path, 1, 1, f"not a deployer report (no \"schema\": \"{REPORT_SCHEMA}\")")]
+    found = schema.validate({**value, "schema": REPORT_SCHEMA}, "report", src)
+
+    def numbers(v: Any, at: tuple[str | int, ...]) -> None:  # what JSON cannot hold as a float: 1e400
+        if isinstance(v, Decimal) and not abs(v) < Decimal("1e300"):
+            found.append(src.error(at, f"{v} is out of range"))
+        elif isinstance(v, dict):
+            for k, x in v.items():
+                numbers(x, (*at, k))
+        elif isinstance(v, list):
+            for i, x in enumerate(v):
+                numbers(x, (*at, i))
+
+    numbers(value, ())
+    return found or [Diagnostic(path, 1, 1, "not a report deployer wrote (NaN, Infinity or a number out of range)")]
+

@@ -48,7 +48,9 @@ def test_retrying_a_report_leaves_sent_broadcasts_alone(tmp_path: Path) -> None:
     from deployer.fleet.inventory import not_ok
 
     report = tmp_path / "run.json"
-    report.write_text(json.dumps({"schema": "deployer.report/1", "devices": [
-        {"name": "a", "status": "ok"}, {"name": "all", "status": "sent"}, {"name": "b", "status": "partial"},
-        {"name": "c", "status": "skipped"}]}))
+    report.write_text(json.dumps({"schema": "deployer.report/1", "recipe": None, "devices": [
+        {"name": n, "url": "tcp://h", "unit": 1, "profile": "p", "status": s, "snapshot": None, "requests": [],
+         "parameters": []} for n, s in (("a", "ok"), ("all", "sent"), ("b", "partial"), ("c", "skipped"))],
+        "summary": {"devices": 4, "ok": 1, "partial": 1, "failed": 0, "unreachable": 0, "write_requests": 0,
+                    "read_requests": 0, "seconds": 0}}))
     assert not_ok(str(report)) == ["b", "c"]

@@ -80,13 +80,19 @@ def test_limit_takes_names_groups_globs_exclusions_and_reports(tmp_path: Path) -
     with pytest.raises(UsageError, match="'pres-1' matches no device"):
         select(inv, "pres-1")
     report = tmp_path / "report.json"
-    report.write_text(json.dumps({"schema": "deployer.report/1", "devices": [
-        {"name": "press-1", "status": "ok"}, {"name": "press-2", "status": "skipped"},
-        {"name": "saw-1", "status": "partial"}]}))
+
+    def report_of(*devices: tuple[str, str]) -> str:  # a report of version 1, as small as one is valid
+        return json.dumps({"schema": "deployer.report/1", "recipe": None, "devices": [
+            {"name": n, "url": "tcp://h", "unit": 1, "profile": "p", "status": s, "snapshot": None, "requests": [],
+             "parameters": []} for n, s in devices], "summary": {
+            "devices": len(devices), "ok": 0, "partial": 0, "failed": 0, "unreachable": 0, "write_requests": 0,
+            "read_requests": 0, "seconds": 0}})
+
+    report.write_text(report_of(("press-1", "ok"), ("press-2", "skipped"), ("saw-1", "partial")))
     assert not_ok(str(report)) == ["press-2", "saw-1"]
     assert [d.name for d in select(inv, f"@{report}")] == ["press-2", "saw-1"]
     assert [d.name for d in select(inv, f"@{report},!saw*")] == ["press-2"]
-    report.write_text(json.dumps({"schema": "deployer.report/1", "devices": [{"name": "saw-1", "status": "ok"}]}))
+    report.write_text(report_of(("saw-1", "ok")))
     with pytest.raises(UsageError, match="nothing to retry"):
         select(inv, f"@{report}")
 

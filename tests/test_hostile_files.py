@@ -6,10 +6,15 @@ Each is refused at its position with exit 1 and never a traceback, before anythi
 
 from __future__ import annotations
 
+import copy
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import SimulatorThread
@@ -118,3 +123,123 @@ def test_status_of_a_fleet_whose_recipes_come_from_groups(tmp_path: Path, capsys
         code, out, err = run_cli(capsys, *shlex.split(command)[1:])
         assert code == 2 and "drive-1" in out, err  # the device still holds its old values: drift
         assert "undo with: deployer rollback st/snapshots/s.yaml --state-dir st" in check
+
+
+# ---- deployer report on a hand-edited report (#28 item 12) --------------------------------------
+
+
+@pytest.fixture(scope="module")
+def good_report(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """A real report: a recipe applied to a simulator (one value refused, so every field is there)."""
+    from deployer.cli import main
+
+    tmp = tmp_path_factory.mktemp("report")
+    (tmp / "r.yaml").write_text(RECIPE + "  stop_mode: coast\n")
+    with SimulatorThread(INVERTER) as sim, pytest.raises(SystemExit):
+        main(["apply", str(tmp / "r.yaml"), "--device", sim.url, "--yes", "--report", str(tmp / "run.json"),
+              "--state-dir", str(tmp / "st")])
+    doc: dict[str, Any] = json.loads((tmp / "run.json").read_text())
+    return doc
+
+
+EDITS: list[tuple[str, Callable[[dict[str, Any]], None], str]] = [
+    ("batch an object", lambda d: d["devices"][0].update(batch={"n": 1}), "devices[0].batch: expected an integer"),
+    ("after_raw text", lambda d: d["devices"][0]["parameters"][0].update(after_raw="zz"),
+     "devices[0].parameters[0].after_raw: 'zz' is not valid here"),
+    ("requests a number", lambda d: d["devices"][0].update(requests=5), "devices[0].requests: expected a list"),
+    ("seconds text", lambda d: d["devices"][0].update(seconds="fast"), "devices[0].seconds: expected a number"),
+    ("unit text", lambda d: d["devices"][0].update(unit="1"), "devices[0].unit: expected an integer, got '1'"),
+    ("summary seconds text", lambda d: d["summary"].update(seconds="x"), "summary.seconds: expected a number"),
+    ("a register out of range", lambda d: d["devices"][0]["parameters"][0].update(before_raw=[70000, 1]),
+     "devices[0].parameters[0].before_raw[0]: 70000 is greater than the maximum of 65535"),
+    ("a status unknown", lambda d: d["devices"][0].update(status="great"), "devices[0].status: 'great' is not one of"),
+    ("devices an object", lambda d: d.update(devices={}), "devices: expected a list"),
+    ("a device a list", lambda d: d["devices"].append([]), "devices[1]: expected a mapping"),
+    ("learned text", lambda d: d["devices"][0].update(learned={"max_write_registers": "4"}),
+     "devices[0].learned.max_write_registers: expected an integer"),
+    ("identity a number", lambda d: d["devices"][0].update(identity={"vendor": 5}),
+     "devices[0].identity.vendor: expected a string"),
+    ("a newer version", lambda d: d.update(schema="deployer.report/99"), "this deployer reads versions 1 to"),
+    ("not a report", lambda d: d.update(schema="other/1"), "not a deployer report"),
+]
+
+
+@pytest.mark.parametrize(("edit", "message"), [(e[1], e[2]) for e in EDITS], ids=[e[0] for e in EDITS])
+def test_deployer_report_on_a_hand_edited_report(good_report: dict[str, Any], edit: Callable[[dict[str, Any]], None],
+                                                 message: str, tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    doc = copy.deepcopy(good_report)
+    edit(doc)
+    f = tmp_path / "edited.json"
+    f.write_text(json.dumps(doc, indent=2))
+    for args in (["report", str(f)], ["report", str(f), "--html", str(tmp_path / "p.html")],
+                 ["rollback", "--from-report", str(f), "--yes"]):
+        code, _out, err = run_cli(capsys, *args)
+        assert code == 1 and "Traceback" not in err, (args, err)
+        first = err.splitlines()[0]
+        assert first.startswith(f"{f}:") and ": error: " in first and message in first, first
+        line, col = first[len(str(f)) + 1:].split(":")[:2]
+        assert int(line) >= 1 and int(col) >= 1
+    assert not (tmp_path / "p.html").exists()
+
+
+@pytest.mark.parametrize("token", ["NaN", "Infinity", "-Infinity", "1e400"])
+def test_numbers_json_cannot_hold_are_refused_where_they_are(good_report: dict[str, Any], token: str,
+                                                             tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    text = json.dumps(good_report, indent=2).replace('"seconds": ', f'"seconds": {token}, "x": ', 1)
+    f = tmp_path / "edited.json"
+    f.write_text(text)
+    line = next(i for i, t in enumerate(text.splitlines(), 1) if token in t)
+    code, _, err = run_cli(capsys, "report", str(f))
+    assert code == 1 and err.startswith(f"{f}:{line}:"), err
+
+
+def test_older_versions_and_unfinished_reports_stay_readable(good_report: dict[str, Any], tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    for version in (1, 2):
+        old = copy.deepcopy(good_report)
+        old["schema"] = f"deployer.report/{version}"
+        old.pop("run", None)
+        for d in old["devices"]:
+            for key in ("profile_sha256", "commit", "learned", "identity", "recipe", "seconds", "profile_ref"):
+                d.pop(key, None)
+        f = tmp_path / f"v{version}.json"
+        f.write_text(json.dumps(old))
+        code, out, err = run_cli(capsys, "report", str(f))
+        assert code == 0 and "F07" in out, err
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_any_edit_of_a_report_is_shown_or_refused_never_a_traceback(good_report: dict[str, Any], tmp_path: Path,
+                                                                    capsys: pytest.CaptureFixture[str],
+                                                                    data: st.DataObject) -> None:
+    """Edits anywhere in a real report: a value replaced by any JSON value, or a key removed."""
+    doc = copy.deepcopy(good_report)
+    node: Any = doc
+    while True:  # walk down to some mapping or list
+        keys = list(node) if isinstance(node, dict) else list(range(len(node)))
+        if not keys:
+            break
+        key = data.draw(st.sampled_from(keys))
+        child = node[key]
+        if isinstance(child, dict | list) and child and data.draw(st.booleans()):
+            node = child
+            continue
+        json_values = st.recursive(st.none() | st.booleans() | st.integers(-2**70, 2**70) | st.floats(allow_nan=False,
+                                   allow_infinity=False) | st.text(max_size=8),
+                                   lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=4),
+                                                                                              inner, max_size=3),
+                                   max_leaves=6)
+        if isinstance(node, dict) and data.draw(st.booleans()):
+            del node[key]
+        else:
+            node[key] = data.draw(json_values)
+        break
+    f = tmp_path / "fuzzed.json"
+    f.write_text(json.dumps(doc))
+    code, _, err = run_cli(capsys, "report", str(f), "--html", str(tmp_path / "p.html"))
+    assert code in (0, 1) and "Traceback" not in err
+    if code == 1:
+        assert err.startswith(f"{f}:") and ": error: " in err
