@@ -80,6 +80,7 @@ class Device:
     unreachable_since: float | None = None
     unreachable_why: str | None = None
     run: str | None = None  # the agent's run that has it now
+    checking: bool = False  # being read now (the watch and a client's check never read it twice at once)
     restores: deque[float] = field(default_factory=deque)
     replaced: str | None = None
     pending: list[dict[str, Any]] = field(default_factory=list)
@@ -377,7 +378,7 @@ class Agent:
                 self._take(d)
         buses: dict[str, list[Device]] = {}
         for d in todo:
-            if d.owned and d.run is None:
+            if d.owned and d.run is None and not d.checking:
                 buses.setdefault(d.job.url.bus, []).append(d)
         gate = asyncio.Semaphore(self.settings.parallel)
         t0 = time.monotonic()
@@ -396,9 +397,16 @@ class Agent:
         self.check_seconds = time.monotonic() - t0
 
     async def _check_one(self, dev: Device) -> None:
-        assert self.store is not None
-        if dev.adopted is None or dev.run is not None:
+        if dev.adopted is None or dev.run is not None or dev.checking:
             return
+        dev.checking = True
+        try:
+            await self._check_device(dev)
+        finally:
+            dev.checking = False
+
+    async def _check_device(self, dev: Device) -> None:
+        assert self.store is not None and dev.adopted is not None
         prof = dev.adopted.profile
         names = [n for n in dev.adopted_values if prof.parameter(n).readable]
         known = self.store.identity(dev.name)
@@ -500,6 +508,8 @@ class Agent:
     def _restore(self, dev: Device, why: str) -> None:
         """Write the adopted state (drift) or the as-left values without per-unit parameters (replaced) back."""
         assert self.store is not None and dev.adopted is not None
+        if dev.run is not None:  # a run has it already (a restore started by a check a moment ago)
+            return
         now = time.time()
         while dev.restores and dev.restores[0] < now - 3600:
             dev.restores.popleft()
@@ -904,18 +914,24 @@ class Agent:
             run.finished = time.time()
             run.emit("run-finished", run=run_id, state="rolled-back", exit_code=4, report=None, error=None)
             return
-        doc = read_report(w["report"])
+        from ..report import report_from_json
+
+        held = report_from_json(read_report(w["report"]))  # what the run wrote and read back, per parameter
         opts = ApplyOptions(state_dir=self.state_dir, run_id=run_id)
-        for d in doc["devices"]:
-            if d.get("name") not in self.devices or d.get("commit") != "held":
+        for res in held.devices:
+            if res.name not in self.devices or res.commit != "held":
                 continue
-            dev = self.devices[d["name"]]
-            res = DeviceResult(dev.name, str(d.get("url")), int(d.get("unit", 1)), str(d.get("profile")),
-                               commit="held")
-            job = Job(dev.name, dev.adopted or dev.job.recipe, dev.job.url, dev.job.unit)
-            await send_commit(Written(job, res), opts)
-            self._ledger(res, dev.job.recipe.profile, res.requests)
+            dev = self.devices[res.name]
+            sent = len(res.requests)
+            # the commit reads the run's parameters again first: one changed meanwhile is never committed
+            await send_commit(Written(Job(dev.name, dev.job.recipe, dev.job.url, dev.job.unit), res), opts)
+            self._ledger(res, dev.job.recipe.profile, res.requests[sent:])
             run.results[dev.name] = res
+            if _committed(res):  # the run's end, which its agent did not live to see: adopted now
+                values = {p.name: tuple(p.desired_raw) for p in res.parameters if p.status in ("ok", "unchanged")}
+                self._adopt(dev, dev.job, {**dev.adopted_values, **values}, run=run_id,
+                            why=f"run {run_id}, confirmed after the agent's restart")
+        self._pending()
         with contextlib.suppress(KeyError, OSError):
             journal.resolve(self.state_dir, run_id, note="agent: confirmed after the agent's restart, commit sent")
         with contextlib.suppress(OSError):
@@ -1109,6 +1125,10 @@ def drifted(profile: Profile, adopted: Mapping[str, tuple[int, ...]], values: Ma
                     "device": None if have is None else p.show_registers(have),
                     "adopted_raw": list(want), "device_raw": None if have is None else list(have)})
     return out
+
+
+def _committed(res: DeviceResult) -> bool:
+    return res.commit == "sent"
 
 
 def _said(d: Mapping[str, Any]) -> str:
