@@ -288,3 +288,10 @@ def test_every_dependency_says_why_it_is_there() -> None:
              for n in re.findall(r"[A-Za-z][\w.-]*", row.split("(")[0])}
     missing = sorted({norm(re.split(r"[\[<>=!~; ]", d)[0]) for d in wanted} - named)
     assert missing == [], "say why in docs/dependencies.md"
+
+
+def test_the_readme_stays_a_front_page() -> None:
+    """The detail goes into the manual; the README keeps a line and a link (and no tracker numbers)."""
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 250, "move the detail into a page of docs/ and link it"
+    assert re.findall(r"(?<![\w&/])#\d+\b", text) == []
