@@ -27,8 +27,10 @@ on message text; the message (``str(e)``) is written for the user and may change
     ├── IdentityMismatch           4  the device is not the one the profile describes
     ├── NotCommitted               4  ``deployer confirm``: the confirmed run did not send its commit to every
     │                                 device (a parameter changed in the window, a step failed, time ran out)
-    └── RunInterrupted             4  a run stopped early (Ctrl-C, SIGTERM, cancelled); ``report`` says
-                                      what every device holds as far as known
+    ├── RunInterrupted             4  a run stopped early (Ctrl-C, SIGTERM, cancelled); ``report`` says
+    │                                 what every device holds as far as known
+    └── AgentError                 4  the site agent refused a request or was not reached; each carries
+                                      the exit code the same command has without the agent
 
 Exit codes (a public interface; scripts rely on them): 0 success; 1 invalid input or usage, nothing
 sent; 2 ``plan``/``diff`` found changes; 3 unreachable, nothing written; 4 a write failed or did
