@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from collections.abc import Iterable, Sequence
@@ -290,17 +291,50 @@ def run_info(command: str | None, started: float) -> dict[str, Any]:
             "version": __version__}
 
 
-def device_json(d: DeviceResult, shared: dict[int, str] | None = None) -> bytes:
-    """``json.dumps(d.to_json())`` as ASCII bytes; ``shared``: the JSON of parameter lists several
-    devices share (the skeleton of a fleet report), made once per list and kept there."""
-    if shared is None:
+def device_json(d: DeviceResult) -> bytes:
+    """``json.dumps(d.to_json())`` as ASCII bytes, its parameters from texts made once per value.
+
+    A fleet writes 100 parameters per device, and most of each (name, address, desired value, and the
+    registers before and after, which devices configured alike share) repeats from device to device:
+    encoding them anew took most of the report's CPU."""
+    if not d.parameters:
         return json.dumps(d.to_json()).encode()
-    params = shared.get(id(d.parameters))
-    if params is None:
-        params = shared[id(d.parameters)] = json.dumps([p.to_json() for p in d.parameters])
+    params = "[" + ", ".join([_parameter_json(p) for p in d.parameters]) + "]"
     # no string value can hold this text unescaped, so the first match is the key itself
     return json.dumps(replace(d, parameters=[]).to_json()).replace('"parameters": []', f'"parameters": {params}',
                                                                    1).encode()
+
+
+def _parameter_json(p: ParameterResult) -> str:
+    """``json.dumps(p.to_json())``."""
+    error = "null" if p.error is None else _text(p.error)
+    kind = "" if p.register_type == "holding" else f', "register_type": {_text(p.register_type)}'
+    return (f"{_parameter_head(p.name, p.address, p.count, p.desired, _words(p.desired_raw))}"
+            f'"before_raw": {_words(p.before_raw)}, "after_raw": {_words(p.after_raw)}, '
+            f'"status": {_text(p.status)}, "error": {error}{kind}}}')
+
+
+@functools.lru_cache(maxsize=1 << 14)
+def _parameter_head(name: str, address: int, count: int, desired: str, desired_raw: str) -> str:
+    return (f'{{"name": {_text(name)}, "address": {address}, "count": {count}, "desired": {_text(desired)}, '
+            f'"desired_raw": {desired_raw}, ')
+
+
+def _words(regs: Sequence[int] | None) -> str:
+    """A register list as JSON (``null`` for None)."""
+    if regs is None:
+        return "null"
+    return _tuple_json(regs if type(regs) is tuple else tuple(regs))
+
+
+@functools.lru_cache(maxsize=1 << 16)
+def _tuple_json(regs: tuple[int, ...]) -> str:
+    return json.dumps(list(regs))
+
+
+@functools.lru_cache(maxsize=1 << 12)
+def _text(s: str) -> str:
+    return json.dumps(s)
 
 
 def report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str, Any],

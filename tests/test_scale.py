@@ -106,3 +106,20 @@ def test_apply_many_keeps_ok_devices_small_when_asked(tmp_path: Path) -> None:
     assert [(d.status, len(d.parameters), d.tally is not None) for d in report.devices] == [
         ("ok", 0, True), ("partial", 3, False), ("ok", 0, True)]  # a device that needs a look keeps its detail
     assert report.summary()["write_requests"] == sum(d.write_requests for d in report.devices) > 0
+
+
+def test_a_devices_report_line_is_its_json_whatever_its_texts() -> None:
+    from deployer.report import device_json
+
+    d = DeviceResult("dé\"v", "tcp://127.0.0.1:1", 1, "p", status="partial", error='"parameters": [] \u2028 x',
+                     notices=["ünïcode", "\x00"])
+    d.parameters = [
+        ParameterResult("F07", 0x100, 2, "10 s", (0, 1000), (0, 500), (0, 1000), "ok"),
+        ParameterResult("n\"ame\\", 0, 1, "tëxt \"q\"", [7], None, [7], "mismatch", "reads back \"8\"\n"),  # type: ignore[arg-type]
+        ParameterResult("c", 5, 1, "on", (1,), (0,), None, "unverified", "x", register_type="coil"),
+        ParameterResult("s", 6, 1, "5", (), (), (), "skipped", None, register_type="input"),
+    ]
+    d.requests = [RequestRecord(3, 0, 5, "exception", 2, 2)]
+    for _ in range(2):  # the second time from the caches
+        assert device_json(d) == json.dumps(d.to_json()).encode()
+    assert device_json(d.small()) == json.dumps(d.small().to_json()).encode()

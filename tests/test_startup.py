@@ -26,6 +26,12 @@ def test_help_imports_neither_pint_rich_nor_pymodbus() -> None:
     assert not {m for m in mods if m.split(".")[0] in ("pint", "rich", "pymodbus", "jsonschema")}
 
 
+def test_version_imports_no_asyncio() -> None:
+    """`deployer --version` loads no event loop machinery (issue #30)."""
+    mods = _imported("--version")
+    assert not {m for m in mods if m.split(".")[0] in ("asyncio", "ssl", "pymodbus", "rich")}
+
+
 def test_validate_and_offline_plan_do_not_import_pymodbus() -> None:
     recipe = "recipes/examples/conveyor-line3.yaml"  # it names a device URL: parsed, not connected
     for args in (("validate", recipe), ("plan", recipe, "--json")):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import sys
 from collections.abc import Callable, Sequence
@@ -245,6 +244,8 @@ def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float
 def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: int
                 ) -> dict[str, tuple[int, ...]] | None:
     """Current values for plan --device, diff and pull; None (after saying why) when unreachable."""
+    import asyncio  # not at import: --version and --help need no event loop
+
     from ..api import TransportError, pull_async
 
     try:

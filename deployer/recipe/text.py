@@ -123,14 +123,36 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
                 lines.append(f"  {k}: {json.dumps(v)}")
         if snapshot.identity is not None:  # Function 43 objects: a later run tells a replaced device
             lines.append(f"  identity: {json.dumps(dict(snapshot.identity))}")
+    return "\n".join(lines) + "\n" + _values_text(ordered, snapshot is not None)
+
+
+# the values part of written recipes, by (parameter, registers) of each value: the devices of a fleet
+# mostly hold the same values, and rendering 100 parameters' lines was most of a snapshot's CPU. The entry
+# keeps its parameters, so the ids in its key stay theirs.
+_VALUES: dict[tuple[bool, tuple[tuple[int, tuple[int, ...]], ...]], tuple[tuple[Parameter, ...], str]] = {}
+_VALUES_KEPT = 64
+
+
+def _values_text(ordered: Sequence[tuple[Parameter, Sequence[int]]], snapshot: bool) -> str:
+    """From ``registers:`` (a snapshot) or ``parameters:`` on: the lines that say the values."""
+    key = (snapshot, tuple([(id(param), tuple(regs)) for param, regs in ordered]))
+    hit = _VALUES.get(key)
+    if hit is not None:
+        return hit[1]
+    lines = []
+    if snapshot:
         lines.append("  registers:" if ordered else "  registers: {}")
         lines.extend(f"    {_key(param.name)}: [{', '.join(str(w) for w in regs)}]" for param, regs in ordered)
         # where they were: rollback --force (the profile changed) restores a parameter only where it was
         lines.append("  addresses:" if ordered else "  addresses: {}")
         lines.extend(f"    {_key(param.name)}: [{param.address}, {param.count}]" for param, _ in ordered)
-    body = [_body_line(param, tuple(regs), snapshot is not None) for param, regs in ordered]
+    body = [_body_line(param, tuple(regs), snapshot) for param, regs in ordered]
     lines.append("parameters:" if any(not b.lstrip().startswith("#") for b in body) else "parameters: {}")
-    return "\n".join(lines + body) + "\n"
+    text = "\n".join(lines + body) + "\n"
+    while len(_VALUES) >= _VALUES_KEPT:
+        del _VALUES[next(iter(_VALUES))]  # the oldest
+    _VALUES[key] = (tuple(param for param, _ in ordered), text)
+    return text
 
 
 @functools.lru_cache(maxsize=1 << 16)
