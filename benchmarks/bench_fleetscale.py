@@ -14,6 +14,10 @@ devices; deployer and the bare client alternate, ``repeats`` times, and the best
 compared (the machine is shared: a ratio from one run side by side is what is worth anything).
 
     python -m benchmarks.bench_fleetscale [--quick] [--sizes 1000,4000] [--repeats 2] [--no-side-by-side]
+                                          [--before OLD-CHECKOUT]
+
+``--before``: the scale runs alternate with the deployer package of another checkout (e.g. ``git worktree
+add /tmp/old 679ca76``), on the same devices, for a before/after measured in one run.
 """
 
 from __future__ import annotations
@@ -72,7 +76,9 @@ class Bench:
                 f.writelines(f"  dev{i:05d}: {{url: '{u}'}}\n" for i, u in enumerate(urls))
         return path
 
-    def apply(self, urls: list[str], parallel: int, report: bool = True) -> dict[str, Any]:
+    def apply(self, urls: list[str], parallel: int, report: bool = True, src: str | None = None) -> dict[str, Any]:
+        """One ``deployer apply`` of ``urls``; ``src``: run the deployer package found in that folder (an older
+        checkout, measured side by side) instead of this one."""
         self.variant += 1
         recipe = os.path.join(self.work, f"recipe{self.variant % 2}.yaml")
         with open(recipe, "w") as f:
@@ -80,7 +86,8 @@ class Bench:
         path = os.path.join(self.work, f"report-{self.variant}.json")
         cmd = [self.deployer, "apply", recipe, "--inventory", self.inventory(urls), "--yes", "--parallel",
                str(parallel), "--state-dir", os.path.join(self.work, "state")]
-        m, err = measured_all(cmd + (["--report", path] if report else []), self.work)
+        env = None if src is None else {**os.environ, "PYTHONPATH": src}
+        m, err = measured_all(cmd + (["--report", path] if report else []), self.work, env=env)
         if not report:
             assert m["code"] == 0, err[-2000:]
             return {"wall": m["wall"], "cpu": m["cpu"], "rss_mb": m["maxrss_kb"] / 1024,
@@ -120,7 +127,7 @@ def _row(m: dict[str, Any], n: int) -> dict[str, Any]:
 
 
 def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int | None = None,
-        side_by_side: bool = True) -> dict[str, Any]:
+        side_by_side: bool = True, before: str | None = None) -> dict[str, Any]:
     sizes = sizes or ((10,) if quick else SIZES)
     repeats = repeats or (1 if quick else 2)
     pairs = ((20, 10, (4,)), (0, 10, (4,))) if quick else SIDE_BY_SIDE
@@ -152,9 +159,18 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
         with farm(max(sizes), 20) as urls:
             b.apply(urls[:10], 4)
             for n in sizes:
-                runs = [b.apply(urls[:n], 256) for _ in range(repeats)]
+                runs, old = [], []
+                for _ in range(repeats):
+                    runs.append(b.apply(urls[:n], 256))
+                    if before:  # the older checkout, alternating with this one on the same devices
+                        old.append(b.apply(urls[:n], 256, src=before))
                 best = min(runs, key=lambda m: m["wall"])
-                out[f"scale_{n}"] = {**_row(best, n), "walls": [round(m["wall"], 2) for m in runs]}
+                out[f"scale_{n}"] = {**_row(best, n), "walls": [round(m["wall"], 2) for m in runs],
+                                     "cpu_ms_per_device_each": [round(m["cpu"] * 1000 / n, 2) for m in runs]}
+                if old:
+                    first = min(old, key=lambda m: m["wall"])
+                    out[f"scale_{n}_before"] = {**_row(first, n), "walls": [round(m["wall"], 2) for m in old],
+                                                "cpu_ms_per_device_each": [round(m["cpu"] * 1000 / n, 2) for m in old]}
             n = max(sizes)
             out[f"scale_{n}_no_report"] = _row(b.apply(urls[:n], 256, report=False), n)
     return out
@@ -166,6 +182,7 @@ if __name__ == "__main__":
     ap.add_argument("--sizes", default=None)
     ap.add_argument("--repeats", type=int, default=None)
     ap.add_argument("--no-side-by-side", action="store_true")
+    ap.add_argument("--before", metavar="DIR", help="also run the deployer package of this checkout (side by side)")
     a = ap.parse_args()
     print(json.dumps(run(a.quick, tuple(int(x) for x in a.sizes.split(",")) if a.sizes else None, a.repeats,
-                         not a.no_side_by_side), indent=2))
+                         not a.no_side_by_side, a.before), indent=2))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Protocol, TypeVar
@@ -48,22 +49,38 @@ async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Await
 
     ``work`` may hand back what its job still waits for without needing its slot (a journal fsync):
     that is awaited after the slot is free, before the bus's next job.
+
+    ``parallel`` workers take the buses in order (a bus whose device finished goes first again, its next
+    device waiting for that device's wait): 10,000 devices are not 10,000 coroutines queued at a semaphore.
     """
     buses: dict[str, list[_J]] = {}
     for j in jobs:
         buses.setdefault(j.url.bus, []).append(j)
-    gate = asyncio.Semaphore(max(1, parallel))
+    todo: deque[tuple[list[_J], int, asyncio.Future[None] | None]] = deque((g, 0, None) for g in buses.values())
+    waits: set[asyncio.Future[None]] = set()
 
-    async def run_bus(group: list[_J]) -> None:
-        for j in group:  # half-duplex bus: the next device starts when the last one is done
-            async with gate:
-                after = await work(j)
-            if after is not None:
-                await after
+    async def worker() -> None:
+        while todo:
+            group, i, before = todo.popleft()
+            if before is not None:  # half-duplex bus: the next device starts when the last one is done
+                await before
+            after = await work(group[i])  # an error (a cancelled run) ends this worker: its bus stops
+            wait = None if after is None else asyncio.ensure_future(after)
+            if wait is not None:
+                waits.add(wait)
+                wait.add_done_callback(waits.discard)
+            if i + 1 < len(group):
+                todo.appendleft((group, i + 1, wait))
 
-    # every bus ends before this does, also when the run is cancelled (Ctrl-C): gather would otherwise raise at
-    # the first cancelled bus while devices on others still say what they hold, or write on
-    for outcome in await asyncio.gather(*(run_bus(g) for g in buses.values()), return_exceptions=True):
+    try:
+        # every worker ends before this does, also when the run is cancelled (Ctrl-C): gather would otherwise
+        # raise at the first cancelled one while devices on others still say what they hold, or write on
+        outcomes = await asyncio.gather(*(worker() for _ in range(min(max(1, parallel), len(buses)))),
+                                        return_exceptions=True)
+    finally:
+        if waits:  # the devices done but for their journal line: said done before this returns
+            await asyncio.gather(*waits, return_exceptions=True)
+    for outcome in outcomes:
         if isinstance(outcome, BaseException):
             raise outcome
 
