@@ -295,3 +295,10 @@ def test_the_readme_stays_a_front_page() -> None:
     text = (ROOT / "README.md").read_text()
     assert len(text.splitlines()) <= 250, "move the detail into a page of docs/ and link it"
     assert re.findall(r"(?<![\w&/])#\d+\b", text) == []
+
+
+def test_the_api_page_names_every_public_name() -> None:
+    import deployer
+
+    text = (DOCS / "api.md").read_text()
+    assert sorted(n for n in deployer.__all__ if f"`{n}`" not in text) == [], "say what it is for in docs/api.md"
