@@ -302,3 +302,6 @@ def test_the_api_page_names_every_public_name() -> None:
 
     text = (DOCS / "api.md").read_text()
     assert sorted(n for n in deployer.__all__ if f"`{n}`" not in text) == [], "say what it is for in docs/api.md"
+    code = "".join(re.findall(r"```python\n(.*?)```", text, re.S))
+    compile(code, "api.md", "exec")
+    assert sorted({n for n in re.findall(r"\bdeployer\.(\w+)", code)} - set(deployer.__all__)) == []
