@@ -279,3 +279,34 @@ def test_rollback_on_failure_with_the_failure_in_the_last_batch_rolls_back(capsy
     assert d1["status"] in ("failed", "partial", "rolled-back")
     assert {a: v for a, v in after[0].items() if a != COMMIT} == {a: v for a, v in before[0].items() if a != COMMIT}
     assert after[1][F07 + 1] == before[1][F07 + 1] and after[1][F08 + 1] == before[1][F08 + 1]
+
+
+# ---- 6. restoring a run that died in its window -----------------------------------------------------------
+
+
+@pytest.mark.parametrize("held", [["--confirm-within", "1h"], ["--soak", "1h", "--health-interval", "100ms"]])
+def test_the_restore_status_recommends_sends_no_commit_and_drops_the_run(capsys: pytest.CaptureFixture[str],
+                                                                         tmp_path: Path, held: list[str]) -> None:
+    import signal
+
+    state = str(tmp_path / "s")
+    with SimulatorThread(PROFILE) as sim:
+        before = sim.registers()
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", *held, "--state-dir", state)
+        try:
+            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 1
+                     or proc.poll() is not None)
+        finally:
+            proc.send_signal(signal.SIGKILL)
+            proc.communicate(timeout=60)
+        code, out, _ = cli(capsys, "status", "--state-dir", state)
+        restore = next(line.split("restore them with: ", 1)[1] for line in out.splitlines() if "restore them" in line)
+        assert "rollback --from-report" in restore and "pending" in restore
+        if held[0] == "--confirm-within":  # confirm names the same command, in today's words
+            code, _, err = cli(capsys, "confirm", "--state-dir", state)
+            assert code == 1 and "deployer rollback --from-report" in err and "--report " not in err
+        code, _, err = cli(capsys, *restore.split()[1:])
+        assert code == 0, err
+        assert sim.registers() == before and writes_to(list(sim.log), COMMIT) == []  # restored; nothing stored
+        code, out, _ = cli(capsys, "status", "--state-dir", state)
+    assert code == 0 and "no unfinished runs" in out, out

@@ -15,4 +15,5 @@ class Job:
     url: tp.DeviceURL
     unit: int
     group: str | None = None  # the first group an inventory lists for the device (--batch-by group)
+    hold_commit: bool = False  # a rollback of a run that never sent its commit there: it sends none either
     commit_owed: bool = False  # ``--limit @REPORT``: its commit failed there; sent even with nothing to write

@@ -362,7 +362,7 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
                     if r.snapshot is not None:
                         found = [Diagnostic(inv.path, *dev.at.get("recipe", dev.where),
                                             f"{r.path} is one device's snapshot: it restores only the device it was "
-                                            "taken from (a fleet run: deployer rollback --report REPORT.json)")]
+                                            "taken from (a fleet run: deployer rollback --from-report REPORT.json)")]
                     else:
                         url = parse_url(dev.url, timeout=timeout or dev.timeout,
                                         retries=retries if retries is not None else dev.retries)

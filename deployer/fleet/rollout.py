@@ -241,7 +241,9 @@ class _Rollout:
         t = time.monotonic()
         finishing: Awaitable[object] | None = None
         try:
-            opts = replace(self.opts, commit_owed=True) if j.commit_owed else self.opts
+            opts = self.opts
+            if j.commit_owed or j.hold_commit:
+                opts = replace(opts, commit_owed=j.commit_owed, hold_commit=opts.hold_commit or j.hold_commit)
             r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=opts, batch=batch)
         except DeviceInterrupted as e:
             e.result.seconds = time.monotonic() - t

@@ -96,6 +96,7 @@ class RunSnapshot:
     sha256: str | None = None  # the snapshot file's SHA-256 as the report or the journal recorded it
     where: str = ""  # which file recorded it
     wrote: tuple[tuple[str, tuple[int, ...]], ...] = ()  # what the run read back after writing: name, registers
+    held: bool = False  # the run never sent its commit there (a soak or confirmation window): nor does the rollback
 
 
 @dataclass
@@ -160,7 +161,8 @@ def read_run(path: str) -> Restores:
             if digest is None:
                 digest = journal.snapshot_digest(_state_of(snap), snap)
                 where = journal.path_of(_state_of(snap))
-            out.found.append(RunSnapshot(name, url, unit, snap, "report", digest, where, _wrote(dev)))
+            out.found.append(RunSnapshot(name, url, unit, snap, "report", digest, where, _wrote(dev),
+                                         dev.get("commit") in ("held", "not sent")))
             continue
         if rec is not None:
             out.found.append(RunSnapshot(name, url, unit, str(rec["snapshot"]), "journal",
@@ -251,7 +253,7 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
             continue
         assert rec.device is not None and rec.device.url is not None
         u = rec.device.unit if rec.device.unit is not None else 1
-        jobs.append(Job(f.name, rec, _url(rec.device.url, timeout, retries), u))
+        jobs.append(Job(f.name, rec, _url(rec.device.url, timeout, retries), u, hold_commit=f.held))
     if errors:
         raise InputError(errors)
     if not even_if_changed:

@@ -6,7 +6,7 @@ run is in the audit log and visible to ``deployer status``:
 1. checks before anything is sent: a broadcast (unit 0) needs ``allow_broadcast``, fleet options
    (batch sizes, the failure budget, open files), a report file that can be written;
 2. the journal's ``run-started`` line, then the report file's first state (a stream: every device
-   ``skipped``, "not finished", with the run id and the state folder: ``rollback --report`` finds the
+   ``skipped``, "not finished", with the run id and the state folder: ``rollback --from-report`` finds the
    journal by them);
 3. the devices (``fleet.rollout.apply_many``); a device's line says ``interrupted`` with its
    snapshot from its first write until its result is appended;

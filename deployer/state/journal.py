@@ -210,13 +210,19 @@ def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:
     runs: dict[str, Unfinished] = {}
     bad = 0
 
+    undone: set[str] = set()  # snapshots restored by a later rollback that ended ok
+
     def restored(snapshot: str) -> None:
+        undone.add(snapshot)
         for r, u in list(runs.items()):
             left = [d for d in u.interrupted if d.get("snapshot") != snapshot]
-            if len(left) < len(u.interrupted):
-                u.interrupted = left
-                if not left and not u.running:
-                    del runs[r]
+            wrote = {d.get("snapshot") for d in u.finished if d.get("snapshot") and d.get("status") != "rolled-back"}
+            if len(left) == len(u.interrupted) and snapshot not in wrote:
+                continue
+            u.interrupted = left
+            # a run that died in its window (its devices finished, their commit held): gone once each is restored
+            if not left and not u.running and wrote <= undone:
+                del runs[r]
 
     for rec in read(state_dir):
         if rec is None:
