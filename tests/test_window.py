@@ -310,3 +310,49 @@ def test_the_restore_status_recommends_sends_no_commit_and_drops_the_run(capsys:
         assert sim.registers() == before and writes_to(list(sim.log), COMMIT) == []  # restored; nothing stored
         code, out, _ = cli(capsys, "status", "--state-dir", state)
     assert code == 0 and "no unfinished runs" in out, out
+
+
+# ---- 5. an interrupted window: one story -------------------------------------------------------------
+
+
+def _page_devices(page: Path) -> list[dict[str, Any]]:
+    """The devices embedded in a page's data block (what the page renders its table from)."""
+    import re
+
+    (data,) = re.findall(r"<script type=application/json id=data>(.*?)</script>", page.read_text(), re.S)
+    devices: list[dict[str, Any]] = json.loads(data)["devices"]
+    return devices
+
+
+@pytest.mark.parametrize(("sig", "held"), [("SIGINT", ["--soak", "1h", "--health-interval", "100ms"]),
+                                           ("SIGTERM", ["--confirm-within", "1h"])])
+def test_an_interrupted_window_tells_one_story_everywhere(tmp_path: Path, sig: str, held: list[str]) -> None:
+    import signal
+
+    state, report, page = str(tmp_path / "s"), tmp_path / "r.json", tmp_path / "r.html"
+    with SimulatorThread(PROFILE) as sim:
+        before = sim.registers()
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", *held, "--report", str(report),
+                        "--html", str(page), "--state-dir", state)
+        try:
+            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 1
+                     or proc.poll() is not None)
+            proc.send_signal(getattr(signal, sig))
+            out, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert sim.registers() == before and writes_to(list(sim.log), COMMIT) == []
+    assert proc.returncode == 4, err
+    (dev,) = json.loads(report.read_text())["devices"]
+    assert dev["status"] == "rolled-back" and dev["commit"] == "not sent"
+    assert {p["status"] for p in dev["parameters"]} == {"rolled-back"}
+    assert out.splitlines()[0].startswith(f"ramp {sim.url} unit 1 (example-inverter): rolled-back - ")
+    assert "commit: not sent" in out and "commit: held" not in out
+    assert f"interrupted ({sig}): ramp rolled back to what it held before (verified);" in err
+    assert "nothing was written" not in err and "may hold" not in err
+    (shown,) = _page_devices(page)
+    assert (shown["status"], shown["commit"], shown["error"]) == (dev["status"], dev["commit"], dev["error"])
+    assert [p[4] for p in shown["params"]] == [p["status"] for p in dev["parameters"]]
+    finished = [r for r in journal(state) if r["event"] == "run-finished"]
+    assert [d["status"] for d in finished[0]["devices"]] == ["rolled-back"]

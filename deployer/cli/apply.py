@@ -147,13 +147,30 @@ def _run_fleet(prepared: PreparedRun, kw: dict[str, Any], err: Console, *, live:
                                               on_done=progress.device_done, **kw))
 
 
+def interrupted_outcome(report: Report) -> str:
+    """What an interrupted run left, device by device as its report says (the report file, the page and
+    stdout say the same): may hold new values, rolled back, kept, failed; or nothing written."""
+    def names(ds: list[DeviceResult]) -> str:
+        return ", ".join(safe(d.name) for d in ds)
+
+    wrote = [d for d in report.devices if d.snapshot]
+    groups = [([d for d in wrote if d.status == "interrupted"], "may hold some new values", ""),
+              ([d for d in wrote if d.status == "rolled-back"], "rolled back to what it held before (verified)",
+               "rolled back to what they held before (verified)"),
+              ([d for d in wrote if d.status == "ok"], "keeps the new values (verified)",
+               "keep the new values (verified)"),
+              ([d for d in wrote if d.status not in ("interrupted", "rolled-back", "ok")],
+               "did not end as it should (see its status and error)", "did not end as they should (see the report)")]
+    said = [f"{_n(len(ds), 'device')} {many or one} ({names(ds)})" if len(ds) > 1 else f"{names(ds)} {one}"
+            for ds, one, many in groups if ds]
+    return "; ".join(said) if said else "nothing was written"
+
+
 def _said_interrupted(report: Report, report_path: str | None) -> None:
     """After Ctrl-C or SIGTERM: what may have been written, and how to undo it (plain lines, never wrapped)."""
     written = [d for d in report.devices if d.status == "interrupted" and d.snapshot]
-    echo(f"interrupted ({report.interrupted}): " + (
-        f"{_n(len(written), 'device')} may hold some new values ({', '.join(safe(d.name) for d in written)})"
-        if written else "nothing was written") + f"; the journal {safe(report.state_dir)}/audit.jsonl has it as "
-        f"run {report.run_id}", err=True)
+    echo(f"interrupted ({report.interrupted}): {interrupted_outcome(report)}; the journal "
+         f"{safe(report.state_dir)}/audit.jsonl has it as run {report.run_id}", err=True)
     if len(written) == 1:
         echo(f"undo with: deployer rollback {safe(written[0].snapshot)}", err=True)
     elif written and report_path:

@@ -179,6 +179,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         await rollout.batches(list(batches) if batches else [len(jobs)], parallel, between_batches)
         await window.end(rollout.written(jobs), rollout.stop, rollback_on_failure=rollback_on_failure)
     except asyncio.CancelledError:
+        window.interrupted(rollout.written(jobs))
         raise RunInterrupted(rollout.interrupted()) from None
     finally:
         window.close()

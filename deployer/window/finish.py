@@ -118,7 +118,7 @@ async def _roll_back(w: Written, why: str, options: ApplyOptions) -> None:
     # a device whose commit was sent gets the restored values committed too (else its memory keeps the change)
     back_opts = replace(options, hold_commit=res.commit != "sent", confirm=None, run_id=None, expected=None,
                         write_all=False, applied=res.snapshot, soak=None, confirm_within=None, keep_lock=None,
-                        lock_held=True)
+                        lock_held=True, on_writing=None)  # the device's own result says what its rollback did
     back = None
     if snap.desired:
         try:

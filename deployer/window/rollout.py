@@ -20,6 +20,13 @@ from .held import Written, needs_soak, pending_path, record, reserve, unreserve
 from .soak import soak
 
 
+def settle_commits(devices: Sequence[Written]) -> None:
+    """A commit held for a device that did not end ok is never sent."""
+    for w in devices:
+        if w.result.commit == "held" and w.result.status != "ok":
+            w.result.commit = "not sent"
+
+
 class Window:
     """The safe-change part of one rollout (``options.soak``, ``options.confirm_within``, ``rollback_on_failure``).
 
@@ -91,10 +98,14 @@ class Window:
                                    and w.result.status not in ("rolled-back", "skipped", "unreachable")))
         if opts.confirm_within is not None:
             await self.confirm_or_roll_back(devices)
-        for w in devices:  # a commit never sent to a device that ended other than ok
-            if w.result.commit == "held" and w.result.status != "ok":
-                w.result.commit = "not sent"
+        settle_commits(devices)
         if rollback_on_failure or opts.confirm_within is not None:
+            self.changed(devices)
+
+    def interrupted(self, devices: Sequence[Written]) -> None:
+        """The run was interrupted: the devices its window rolled back say so (the report file too)."""
+        settle_commits(devices)
+        if self.held:
             self.changed(devices)
 
     async def confirm_or_roll_back(self, devices: Sequence[Written]) -> None:
