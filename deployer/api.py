@@ -576,8 +576,8 @@ def pulled_recipe(profile: Profile, values: Mapping[str, tuple[int, ...]], *, na
 
 
 def pull_names(profile: Profile) -> list[str]:
-    """What pull reads: every parameter that can be read and written back."""
-    return [p.name for p in profile.parameters if p.readable and p.writable]
+    """What pull reads: every parameter that can be read and written back (a momentary command is no setting)."""
+    return [p.name for p in profile.parameters if p.readable and p.writable and not p.action]
 
 
 async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int = 1, *,

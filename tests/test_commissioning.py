@@ -14,7 +14,7 @@ import pytest
 from deployer.errors import InputError
 from deployer.profile import builtin_profile, load_profile
 from deployer.recipe.loader import load_recipe
-from deployer.testing.simulator import Faults, Simulator, SimulatorThread
+from deployer.testing.simulator import Faults, Quirks, Simulator, SimulatorThread
 from tests.helpers import Simulators, cli, umodbus_server
 
 pytestmark = pytest.mark.timeout(120)
@@ -335,3 +335,93 @@ def test_health_is_watched_while_the_confirmation_waits(tmp_path: Path) -> None:
     assert {a: v for a, v in after.items() if a != fault} == {a: v for a, v in before.items() if a != fault}
     assert not any(e.function in (6, 16) and e.address <= commit < e.address + e.count for e in log)
     assert any(e.function in (6, 16) and e.address <= f07 + 1 < e.address + e.count for e in log)
+
+
+# ---- wb-mqtt-serial templates that deploy; firmware-aware profiles -----------------------------------
+
+# our own template in wb-mqtt-serial's format: a refrigeration controller's set point as a channel, a relay
+# coil, a defrost pushbutton, a firmware-gated parameter
+FRIDGE = """{
+  "device_type": "acme_fridge", "title": "Acme fridge controller",
+  "device": {
+    "name": "Acme fridge", "id": "acme-fridge",
+    "parameters": [
+      {"id": "differential", "title": "Differential", "address": 12, "format": "s16", "scale": 0.1,
+       "min": 0.1, "max": 20, "fw": "2.0"}
+    ],
+    "channels": [
+      {"name": "Temperature Set Point", "reg_type": "holding", "address": 10, "format": "s16", "scale": 0.1,
+       "units": "deg C", "type": "value"},
+      {"name": "Probe", "reg_type": "input", "address": 0, "format": "s16", "scale": 0.1, "units": "deg C"},
+      {"name": "Compressor Relay", "reg_type": "coil", "address": 3, "type": "switch"},
+      {"name": "Defrost Command", "reg_type": "coil", "address": 4, "type": "pushbutton"}
+    ]
+  }
+}
+"""
+
+
+def _fridge(tmp: Path, capsys: pytest.CaptureFixture[str]) -> Any:
+    (tmp / "fridge.json").write_text(FRIDGE)
+    code, _, err = cli(capsys, "profiles", "import", "wb-template", str(tmp / "fridge.json"), "-o",
+                       str(tmp / "fridge.yaml"))
+    assert code == 0, err
+    return load_profile(str(tmp / "fridge.yaml"))
+
+
+def test_a_wb_template_set_point_is_planned_and_applied(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    prof = _fridge(tmp_path, capsys)
+    with SimulatorThread(prof, quirks=Quirks(identity={0: "Acme", 1: "FR-1", 2: "2.3"})) as sim:
+        r = tmp_path / "r.yaml"
+        r.write_text(f"recipe: r\nprofile: fridge.yaml\ndevice: {{url: '{sim.url}'}}\nparameters:\n"
+                     "  Temperature_Set_Point: -18.5 degC\n  Compressor_Relay: on\n  differential: 2\n")
+        code, out, err = cli(capsys, "plan", str(r), "--json")
+        assert code == 0, err
+        assert [(w["function"], w["address"], w["registers"]) for w in json.loads(out)["writes"]] == [
+            (16, 10, [(-185) & 0xFFFF]), (16, 12, [20]), (5, 3, [1])]
+        code, out, err = cli(capsys, "apply", str(r), "--yes", "--json", "--state-dir", str(tmp_path / "s"))
+        assert code == 0, out
+        assert sim.read("Temperature_Set_Point") == ((-185) & 0xFFFF,) and sim.read("Compressor_Relay") == (1,)
+        # the pushbutton is an action: pull leaves it out, a recipe naming it is told so
+        code, out, err = cli(capsys, "pull", "--profile", str(tmp_path / "fridge.yaml"), "--device", sim.url)
+        assert code == 0 and "Compressor_Relay" in out and "Defrost_Command" not in out
+    r.write_text("recipe: r\nprofile: fridge.yaml\nparameters:\n  Defrost_Command: on\n")
+    assert _messages(r) == ["4:3: Defrost_Command is an action in profile acme_fridge (a momentary command such as "
+                            "a defrost or reset), not a setting: a recipe does not set it"]
+
+
+def test_a_firmware_gate_refuses_a_wrong_revision_before_any_write(capsys: pytest.CaptureFixture[str],
+                                                                   tmp_path: Path) -> None:
+    prof = _fridge(tmp_path, capsys)
+    with SimulatorThread(prof, quirks=Quirks(identity={0: "Acme", 1: "FR-1", 2: "1.9.4"})) as sim:
+        r = tmp_path / "r.yaml"
+        r.write_text(f"recipe: r\nprofile: fridge.yaml\ndevice: {{url: '{sim.url}'}}\nparameters:\n"
+                     "  Temperature_Set_Point: -18 degC\n  differential: 2\n")
+        code, out, _ = cli(capsys, "apply", str(r), "--yes", "--json", "--state-dir", str(tmp_path / "s"))
+        log = list(sim.log)
+    dev = json.loads(out)["devices"][0]
+    assert code == 4 and dev["status"] == "failed"
+    assert dev["error"] == ("firmware '1.9.4' (Function 43 revision): differential needs 2.0; nothing was written")
+    assert not any(e.function in (5, 6, 15, 16) for e in log)
+    # the whole profile can be gated too, and from a register that holds the revision as text
+    (tmp_path / "p.yaml").write_text("profile: gated\nfirmware: {register: 0x40, count: 2, format: text, "
+                                     "applies: '>=3, <4'}\nparameters:\n  x: {register: 1, type: uint16}\n"
+                                     "  fw: {register: 0x40, type: string, count: 2, access: read-only}\n")
+    gated = load_profile(str(tmp_path / "p.yaml"))
+    with SimulatorThread(gated, init={0x40: 0x322E, 0x41: 0x3900}) as sim:  # "2.9"
+        (tmp_path / "g.yaml").write_text(f"recipe: g\nprofile: p.yaml\ndevice: {{url: '{sim.url}'}}\n"
+                                         "parameters:\n  x: 5\n")
+        code, out, _ = cli(capsys, "apply", str(tmp_path / "g.yaml"), "--yes", "--json", "--state-dir",
+                           str(tmp_path / "s"))
+        assert sim.read("x") == (0,)
+    assert code == 4 and json.loads(out)["devices"][0]["error"] == (
+        "firmware '2.9' (register 0x0040) is not one profile gated applies to (>=3, <4); nothing was written")
+
+
+def test_a_jinja_template_says_how_to_render_it(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    src = tmp_path / "mr6.json.jinja"
+    src.write_text('{\n  "device_type": "mr6",\n  "device": {\n    {% for i in range(6) %}"x": {{ i }}{% endfor %}\n'
+                   "  }\n}\n")
+    code, _, err = cli(capsys, "profiles", "import", "wb-template", str(src))
+    assert code == 1 and f"{src}:4:5: error: a Jinja template (.json.jinja)" in err
+    assert f"> {tmp_path / 'mr6.json'}, then import {tmp_path / 'mr6.json'}" in err and "Traceback" not in err

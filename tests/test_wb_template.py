@@ -66,7 +66,12 @@ TEMPLATE = """\
             {"name": "Relay 1", "reg_type": "coil", "address": 10, "type": "switch"},
             {"name": "Door", "reg_type": "discrete", "address": 3, "type": "switch"},
             {"name": "Set point now", "reg_type": "holding", "address": 100, "format": "s16", "scale": 0.1},
-            {"name": "Serial", "reg_type": "input", "address": 20, "format": "u32", "error_value": "0xFFFFFFFF"}
+            {"name": "Serial", "reg_type": "input", "address": 20, "format": "u32", "error_value": "0xFFFFFFFF"},
+            {"name": "Temperature Set Point", "reg_type": "holding", "address": 200, "format": "s16", "scale": 0.1,
+             "units": "deg C", "type": "value"},
+            {"name": "Defrost Command", "reg_type": "coil", "address": 11, "type": "pushbutton"},
+            {"name": "Model", "reg_type": "holding", "address": 30, "readonly": true},
+            {"name": "Relay 1", "reg_type": "coil", "address": 10, "type": "switch"}
         ],
         "translations": {"en": {"Acme TH-1": "Acme TH-1 thermostat"}}
     }
@@ -124,7 +129,12 @@ def test_every_key_becomes_the_profile_parameter(tmp_path: Path, capsys: pytest.
     # channels: read-only values of their tables; one reading a parameter's register is that parameter
     assert (p["Temperature"].register_type, p["Temperature"].access, p["Temperature"].unit) == (
         "input", "read-only", "degC")
-    assert (p["Relay_1"].register_type, p["Relay_1"].access) == ("coil", "read-only")
+    assert (p["Relay_1"].register_type, p["Relay_1"].access) == ("coil", "read-write")  # writable unless readonly
+    tsp = p["Temperature_Set_Point"]  # a set point channel (s16, scale 0.1, not readonly): deployable
+    assert (tsp.access, tsp.type, tsp.scale, tsp.unit) == ("read-write", "int16", Decimal("0.1"), "degC")
+    assert (p["Defrost_Command"].action, p["Defrost_Command"].register_type) == (True, "coil")
+    assert p["Model"].access == "read-only" and not p["Temperature"].writable
+    assert p["led_level"].firmware == "2.1.0" and prof.firmware is not None  # fw carried over
     assert p["Door"].register_type == "discrete"
     assert "Set_point_now" not in p and "also named Set_point_now" in p["setpoint"].description
     assert "error_value 0xFFFFFFFF" in p["Serial"].description
@@ -144,8 +154,6 @@ def test_warnings_name_the_key_and_its_position(tmp_path: Path, capsys: pytest.C
         raise AssertionError(needle)
 
     for where, message in [
-        (at('"led_level"', "fw"), "parameter 'led_level': fw '2.1.0' cannot be said in a profile: kept in the "
-                                  "description"),
         (at('"cool_setpoint"', "condition"), "parameter 'cool_setpoint': condition 'mode==2' cannot be said in a "
                                              "profile: kept in the description"),
         (at('"relay_limit"', "write_address"), "parameter 'relay_limit': read at 130 but written at write_address "
@@ -157,6 +165,10 @@ def test_warnings_name_the_key_and_its_position(tmp_path: Path, capsys: pytest.C
     ]:
         assert f"warning: {where}: {message}" in err, (where, message, err)
     assert "cool_sp_alias shares its register 124 with cool_setpoint (line 35): imported once" in err
+    assert "fw '2.1.0'" not in err  # a profile says it now (firmware: on the parameter)
+    # a channel showing a parameter's value, or one channel listed twice, is no ambiguity: no warning
+    assert "Set_point_now shares" not in err and "Relay_1 shares" not in err
+    assert err.count("shares its register") + err.count("share the register") == 1
     assert "2 entries of the template left out" in err
 
 

@@ -132,12 +132,12 @@ def diff_defaults(recipe: str | None, profile_ref: str | None, device: str | Non
     else:
         raise UsageError("diff --defaults needs RECIPE, or --profile ID|FILE and --device URL")
     assert url is not None
-    names = [p.name for p in prof.parameters if p.readable and p.default is not None]
+    names = [p.name for p in prof.parameters if p.readable and p.default is not None and not p.action]
     current = read_device(prof, names, url, u)
     if current is None:
         return EXIT_UNREACHABLE
     differs, _ = defaults_diff(prof, current)
-    no_default = [p.name for p in prof.parameters if p.readable and p.default is None]
+    no_default = [p.name for p in prof.parameters if p.readable and p.default is None and not p.action]
     if as_json:
         echo(json.dumps({"profile": prof.id, "device": describe(url), "unit": u,
                                "differs": [d.to_json() for d in differs], "compared": len(names),

@@ -28,7 +28,14 @@ from ..state.snapshot import last_identity, snapshot_file
 from ..transport import clients as tp
 from .recovery import Learning, _recover, _remerge, chunks, single_writes
 from .session import ApplyOptions, Session
-from .steps import _send_actions, check_identity, check_identity_objects, check_preconditions, commit_steps
+from .steps import (
+    _send_actions,
+    check_firmware,
+    check_identity,
+    check_identity_objects,
+    check_preconditions,
+    commit_steps,
+)
 from .verify import PENDING, _attempted, _values, _verify
 
 
@@ -265,6 +272,8 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         # after a register answered: a device silent on Function 43 is not taken for an absent one
         res.identity = await session.identify()
         why = check_identity_objects(prof, res.identity)
+        if why is None:  # the revision found against the profile's and each named parameter's
+            why = await check_firmware(session, prof, res.identity, [d.name for d in recipe.desired])
         if why:
             res.status, res.error = "failed", f"{why}; nothing was written"
             return

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 
 from ..errors import DeviceGone, ExceptionResponse, IdentityMismatch
 from ..planning.model import WriteRequest
 from ..profile import Profile, WriteAction, codec, object_name
+from ..profile.firmware import matches
 from ..profile.model import READ_FUNCTION
 from .session import Session
 
@@ -37,6 +38,35 @@ def check_identity_objects(profile: Profile, identity: dict[str, str] | None) ->
             have = repr(identity[name]) if name in identity else "missing"
             return (f"identity check failed: {name}{what} is {have}, expected {chk.equals!r}: another kind of "
                     f"device answers here")
+    return None
+
+
+async def check_firmware(session: Session, profile: Profile, identity: dict[str, str] | None,
+                         names: Sequence[str]) -> str | None:
+    """None if the device's firmware revision is one the profile and the parameters ``names`` apply to, else
+    why not (the revision found and the one wanted). Read before anything is written."""
+    src = profile.firmware
+    gated = [profile.parameter(n) for n in names if profile.parameter(n).firmware is not None]
+    if src is None or (src.applies is None and not gated):
+        return None
+    if src.address is None:
+        name = object_name(src.object_id or 0)
+        revision = None if identity is None else identity.get(name)
+        if revision is None:
+            why = ("the device does not answer Function 43 (device identification)" if identity is None
+                   else f"its Function 43 answer has no {name}")
+            return (f"firmware revision unknown: {why}; profile {profile.id} needs it (set firmware.register where "
+                    "the device reports it)")
+    else:
+        revision = src.revision_of(await session.read(src.address, src.count, READ_FUNCTION[src.register_type]))
+    if src.applies is not None and not matches(src.applies, revision):
+        return (f"firmware {revision!r} ({src.describe()}) is not one profile {profile.id} applies to "
+                f"({src.applies})")
+    wrong = [p for p in gated if p.firmware is not None and not matches(p.firmware, revision)]
+    if wrong:
+        said = ", ".join(f"{p.name} needs {p.firmware}" for p in wrong[:5]) + (
+            f" and {len(wrong) - 5} more" if len(wrong) > 5 else "")
+        return f"firmware {revision!r} ({src.describe()}): {said}"
     return None
 
 

@@ -11,7 +11,7 @@ from typing import Any
 from ..errors import Diagnostic, InputError, UsageError
 from ..load import messages, schema, yamlsrc
 from ..load.durations import parse_duration
-from . import codec, model, units, values
+from . import codec, firmware, model, units, values
 from .model import (
     IDENTITY_OBJECTS,
     CommitAction,
@@ -217,6 +217,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
     health = _health(c, params)
     stage_waits = _stages(c)
     commits, unlock, lock = _actions(c, "commit"), _actions(c, "unlock"), _actions(c, "lock")
+    fw = _firmware(c, params)
     if c.errors:
         raise InputError(c.errors)
     return Profile(
@@ -237,6 +238,7 @@ def _build_profile(data: dict[str, Any], src: yamlsrc.Source) -> Profile:
         stage_waits=stage_waits,
         health=tuple(health),
         endurance=int(data["endurance"]) if "endurance" in data else None,
+        firmware=fw,
     )
 
 
@@ -312,6 +314,8 @@ def _parameter(c: _Checks, name: str, spec: dict[str, Any], address: int, at: ya
         tolerance=Decimal(str(spec.get("tolerance", 0))),
         endurance=int(spec["endurance"]) if "endurance" in spec else None,
         register_type=table,
+        firmware=None if spec.get("firmware") is None else str(spec["firmware"]),
+        action=bool(spec.get("action", False)),
     )
     if local:  # the rest of the checks assume a well-formed parameter
         c.errors.extend(local)
@@ -383,6 +387,11 @@ def _range_problems(src: yamlsrc.Source, param: Parameter, spec: dict[str, Any],
     problem = units.check(spec["unit"]) if "unit" in spec else None
     if problem:
         out.append(src.error((*at, "unit"), problem))
+    why = None if param.firmware is None else firmware.check_range(param.firmware)
+    if why:
+        out.append(src.error((*at, "firmware"), f"firmware: {why}"))
+    if param.action and not param.writable:
+        out.append(src.error((*at, "action"), "an action is a command sent to the device: it must be writable"))
     if param.min is not None and param.max is not None and param.min > param.max:
         out.append(src.error((*at, "min"), f"min {param.min} is greater than max {param.max}"))
     if not out:
@@ -620,6 +629,34 @@ def _stages(c: _Checks) -> tuple[tuple[int, int], ...]:
             c.error(("stages", i, "stage"), f"stage {stage} is already set (stages item {seen_stages[stage]})")
         seen_stages.setdefault(stage, i)
     return stage_waits
+
+
+def _firmware(c: _Checks, params: list[Parameter]) -> firmware.FirmwareSource | None:
+    """``firmware:`` where the device says its revision; required once a parameter names revisions."""
+    spec = c.data.get("firmware")
+    gated = next((p for p in params if p.firmware is not None), None)
+    if spec is None:
+        # a parameter gated by firmware: the revision comes from Function 43 unless the profile says otherwise
+        return firmware.FirmwareSource() if gated is not None else None
+    at: yamlsrc.Path_ = ("firmware",)
+    applies = None if spec.get("applies") is None else str(spec["applies"])
+    why = None if applies is None else firmware.check_range(applies)
+    if why:
+        c.error((*at, "applies"), f"firmware.applies: {why}")
+    if "register" in spec and "object" in spec:
+        c.error((*at, "register"), "firmware: the revision comes from an 'object' (Function 43) or a 'register', "
+                                   "not both")
+        return None
+    if "register" in spec:
+        table = spec.get("register_type", "holding")
+        a = c.address_of(spec["register"], (*at, "register"), register_type=table)
+        if a is None:
+            return None
+        return firmware.FirmwareSource(None, a, int(spec.get("count", 1)), table, spec.get("format") == "text",
+                                       applies)
+    obj = spec.get("object", "revision")
+    oid = IDENTITY_OBJECTS[obj] if isinstance(obj, str) else int(obj)
+    return firmware.FirmwareSource(oid, applies=applies)
 
 
 # ---- health checks ------------------------------------------------------------------------------------

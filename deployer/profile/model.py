@@ -12,6 +12,7 @@ from decimal import Decimal
 from typing import Literal
 
 from . import codec
+from .firmware import FirmwareSource
 
 Access = Literal["read-write", "read-only", "write-only"]
 Addressing = Literal["address", "register-number", "modicon"]
@@ -126,6 +127,8 @@ class Parameter:
     # the Modbus table: holding registers, coils (one bit each, 0/1), discrete inputs (bits, read-only),
     # input registers (read-only). A coil or input's "registers" are one value, 0 or 1.
     register_type: RegisterType = "holding"
+    firmware: str | None = None  # the firmware revisions it exists in ('>=2.1'; firmware.matches)
+    action: bool = False  # a momentary command (a defrost button): never pulled, never set by a recipe
 
     @property
     def key(self) -> int:
@@ -493,6 +496,7 @@ class Profile:
     lock: tuple[WriteAction, ...] = ()
     stage_waits: tuple[tuple[int, int], ...] = ()  # (stage, ms to wait after it)
     health: tuple[HealthCheck, ...] = ()  # read while a written change soaks (apply --soak)
+    firmware: FirmwareSource | None = None  # where the device says its revision, and what the profile wants
     endurance: int | None = None  # commits (and writes of a parameter without its own) the memory survives
 
     def __post_init__(self) -> None:

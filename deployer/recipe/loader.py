@@ -348,6 +348,10 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
     if not param.writable:
         fail(f"{e.name} is read-only in profile {prof.id}", key=True)
         return None
+    if param.action:
+        fail(f"{e.name} is an action in profile {prof.id} (a momentary command such as a defrost or reset), not a "
+             "setting: a recipe does not set it", key=True)
+        return None
     value = e.value
     rounding: Literal["exact", "nearest"] = (
         "nearest" if "nearest" in (param.rounding, recipe_rounding) else "exact")

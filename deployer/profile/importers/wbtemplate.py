@@ -8,9 +8,13 @@ address (a number, a decimal or hex string, or ``reg:shift:width`` for some bits
 scale + offset; ``min``/``max``/``default``/``enum`` are engineering values; a parameter with
 ``readonly: true`` is a setting of the web configurator only, with no register.
 
-What a profile cannot say (``condition``, ``fw``, a separate ``write_address`` ...) is kept in the
+Channels are imported as wb-mqtt-serial treats them: writable unless ``readonly``, input registers and
+discrete inputs read-only; a ``pushbutton`` channel (a defrost command) becomes an ``action``, which
+pull leaves out and a recipe cannot set. ``fw`` becomes the parameter's ``firmware`` range.
+What a profile cannot say (``condition``, a separate ``write_address`` ...) is kept in the
 description with a warning that names the key and its position; registers two entries share are
-imported once (the first entry; the other names are kept in its description), never refused.
+imported once (the first entry; the other names are kept in its description), never refused, with
+one warning per register where the names may mean different things.
 """
 
 from __future__ import annotations
@@ -21,9 +25,9 @@ from dataclasses import dataclass, field, replace
 from decimal import Decimal
 from typing import Any
 
-from ...errors import InputError
+from ...errors import Diagnostic, InputError
 from ...load import yamlsrc
-from .. import codec, units
+from .. import codec, firmware, units
 from ..emit import Draft, Origin
 
 _FORMATS: dict[str, str] = {"u16": "uint16", "s16": "int16", "u32": "uint32", "s32": "int32", "u64": "uint64",
@@ -98,6 +102,7 @@ class _Entry:
     mask: int
     count: int
     notes: list[str] = field(default_factory=list)  # what goes into the description
+    channel: bool = False
 
 
 @dataclass
@@ -110,6 +115,7 @@ class WbImport:
 def read_wb_template(path: str, *, profile_id: str | None = None, channels: bool = True) -> WbImport:
     """A profile draft from a wb-mqtt-serial template file, and the warnings about what it could not say."""
     text = strip_comments(yamlsrc.read_text(path))
+    _refuse_jinja(path, text)
     try:
         data, src = yamlsrc.load(path, text)
     except InputError as bad:  # the YAML parser reads the JSON: say JSON
@@ -196,6 +202,26 @@ def read_wb_template(path: str, *, profile_id: str | None = None, channels: bool
     return WbImport(Draft(header, params, []), warnings, left_out)
 
 
+_JINJA = re.compile(r"\{%|\{\{")
+
+
+def _refuse_jinja(path: str, text: str) -> None:
+    """A ``.json.jinja`` template is a program that writes the JSON (wb-mqtt-serial renders it with the
+    device's settings first): say how to get the JSON instead of a JSON error at its first ``{%``."""
+    m = _JINJA.search(text)
+    if m is None and not path.endswith(".jinja"):
+        return
+    pos = m.start() if m is not None else 0
+    line = text.count("\n", 0, pos) + 1
+    col = pos - (text.rfind("\n", 0, pos) + 1) + 1
+    out = path.removesuffix(".jinja") if path.endswith(".json.jinja") else f"{path}.json"
+    raise InputError([Diagnostic(path, line, col, (
+        "a Jinja template (.json.jinja): wb-mqtt-serial renders it into JSON before use. Render it first, with "
+        "the values your device needs (or its defaults): python3 -c 'import jinja2, sys; "
+        "print(jinja2.Template(open(sys.argv[1]).read()).render())' "
+        f"{path} > {out}, then import {out}"))])
+
+
 def _plain(v: Any) -> Any:
     """Decimals as the emitter writes numbers: int when whole, else float (its shortest text is the decimal's)."""
     if isinstance(v, Decimal):
@@ -229,235 +255,329 @@ def _number(v: Any) -> Decimal | None:
     return None
 
 
+@dataclass
+class _Item:
+    """One template entry while it is read: what every step below needs, and what they found."""
+
+    item: Mapping[str, Any]
+    at: yamlsrc.Path_
+    label: str  # "parameter 'setpoint'", for warnings
+    warn: Any
+    translate: Any
+    channel: bool
+    table: str = "holding"
+    reg_type: str = "holding"
+    spec: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    address: int = 0
+    addr_key: str = "address"
+    mask: int = 0
+    count: int = 1
+    fmt: str = "u16"
+    scale: Decimal = Decimal(1)
+    offset: Decimal = Decimal(0)
+    labels: dict[str, int] = field(default_factory=dict)
+
+    def say(self, key: str | None, message: str) -> None:
+        self.warn(self.at if key is None else (*self.at, key), f"{self.label}: {message}")
+
+    @property
+    def is_bit(self) -> bool:
+        return self.table in ("coil", "discrete") or bool(self.mask and codec.mask_shift(self.mask)[1] == 1)
+
+
 def _entry(item: Mapping[str, Any], at: yamlsrc.Path_, src: yamlsrc.Source, path: str, warn: Any,
            translate: Any, *, channel: bool) -> _Entry | None:
+    """One parameter or channel as a profile parameter, or None (left out, with a warning)."""
     kind = "channel" if channel else "parameter"
     raw_name = str(item.get("id") if not channel or item.get("id") else item.get("name") or "")
-    label = f"{kind} '{raw_name}'"
+    e = _Item(item, at, f"{kind} '{raw_name}'", warn, translate, channel)
     line, col = src.pos(at)
-    origin = Origin(path, line, col)
+    if not _kept(e, raw_name, kind):
+        return None
+    name = _name(e, raw_name, kind)
+    e.reg_type = str(item.get("reg_type", "holding"))
+    table = _REG_TYPES.get(e.reg_type)
+    if table is None:
+        e.say("reg_type", f"reg_type '{e.reg_type}' is not a Modbus table: left out")
+        return None
+    e.table = table
+    access = _address_and_access(e)
+    if access is None or not _shape(e) or not _scale_offset(e):
+        return None
+    _unit(e)
+    _enum(e)
+    _bounds(e)
+    _default(e)
+    _extras(e)
+    if e.channel and item.get("type") == "pushbutton" and access == "read-write":
+        e.spec["action"] = True  # a momentary command: wb-mqtt-serial writes it when the button is pressed
+        e.notes.append("an action (pushbutton): never pulled, never set by a recipe")
+    if access != "read-write":
+        e.spec["access"] = access
+    if e.table != "holding":
+        e.spec["register_type"] = e.table
+    spec = {"register": e.address, **e.spec}
+    return _Entry(name, spec, Origin(path, line, col), e.table, e.address, e.mask, e.count, e.notes, channel)
+
+
+def _kept(e: _Item, raw_name: str, kind: str) -> bool:
+    """Whether the entry can be imported at all (a name, a register, not a nested device's)."""
+    item = e.item
     if not raw_name:
-        warn(at, f"a {kind} without {'name' if channel else 'id'}: left out")
-        return None
-    if channel and "device_type" in item:
-        warn(at, f"{label}: a channel of a nested device ({item['device_type']}): left out")
-        return None
-    if not channel and item.get("readonly") is True:
-        warn((*at, "readonly"), f"{label}: readonly: true marks a setting of the web configurator only, with no "
-                                "register in the device: left out")
-        return None
-    address_text = item.get("address", item.get("write_address"))
-    if address_text is None:
-        warn(at, f"{label}: no address: left out")
-        return None
-    notes: list[str] = []
-    title = translate(str(item.get("title") or item.get("name") or ""))
+        e.warn(e.at, f"a {kind} without {'name' if e.channel else 'id'}: left out")
+        return False
+    if e.channel and "device_type" in item:
+        e.say(None, f"a channel of a nested device ({item['device_type']}): left out")
+        return False
+    if not e.channel and item.get("readonly") is True:
+        e.say("readonly", "readonly: true marks a setting of the web configurator only, with no register in the "
+                          "device: left out")
+        return False
+    if item.get("address", item.get("write_address")) is None:
+        e.say(None, "no address: left out")
+        return False
+    return True
+
+
+def _name(e: _Item, raw_name: str, kind: str) -> str:
+    """A profile name for the entry; its title (and the template's id where the name differs) as notes."""
+    item = e.item
+    title = e.translate(str(item.get("title") or item.get("name") or ""))
     if title and title != raw_name:
-        notes.append(title)
+        e.notes.append(title)
     if item.get("description"):
-        notes.append(translate(str(item["description"])))
+        e.notes.append(e.translate(str(item["description"])))
     name = _NAME.sub("_", raw_name).strip("_") or kind
     if not re.match(r"^[A-Za-z_]", name):
-        name = f"{'c' if channel else 'p'}_{name}"
+        name = f"{'c' if e.channel else 'p'}_{name}"
     if name != raw_name and not title:
-        notes.insert(0, raw_name)
+        e.notes.insert(0, raw_name)
+    return name
 
-    reg_type = str(item.get("reg_type", "holding"))
-    table = _REG_TYPES.get(reg_type)
-    if table is None:
-        warn((*at, "reg_type"), f"{label}: reg_type '{reg_type}' is not a Modbus table: left out")
+
+def _parse_address(e: _Item, key: str) -> tuple[int, int, int] | None:
+    m = _ADDRESS.match(str(e.item[key]))
+    if not m:
+        e.say(key, f"{key} {e.item[key]!r} is not a register address: left out")
         return None
-    spec: dict[str, Any] = {}
+    reg = int(m[1], 16) if m[1].lower().startswith("0x") else int(m[1])
+    shift, width = (int(m[2]), int(m[3])) if m[2] is not None else (0, 0)
+    if reg > 0xFFFF:
+        e.say(key, f"{key} {reg} is beyond 65535: left out")
+        return None
+    return reg, shift, width
 
-    def parse_address(key: str) -> tuple[int, int, int] | None:
-        m = _ADDRESS.match(str(item[key]))
-        if not m:
-            warn((*at, key), f"{label}: {key} {item[key]!r} is not a register address: left out")
-            return None
-        reg = int(m[1], 16) if m[1].lower().startswith("0x") else int(m[1])
-        shift, width = (int(m[2]), int(m[3])) if m[2] is not None else (0, 0)
-        if reg > 0xFFFF:
-            warn((*at, key), f"{label}: {key} {reg} is beyond 65535: left out")
-            return None
-        return reg, shift, width
 
-    addr_key = "address" if "address" in item else "write_address"
-    parsed = parse_address(addr_key)
+def _address_and_access(e: _Item) -> str | None:
+    """The register (and bits), and whether it is read, written or both, as wb-mqtt-serial treats it: a
+    channel is writable unless ``readonly``, input registers and discrete inputs never are."""
+    item = e.item
+    e.addr_key = "address" if "address" in item else "write_address"
+    parsed = _parse_address(e, e.addr_key)
     if parsed is None:
         return None
-    address, shift, width = parsed
-    access = "read-only" if channel or table in ("discrete", "input") else "read-write"
-    if "address" in item and "write_address" in item and not channel:
-        wparsed = parse_address("write_address")
+    e.address, shift, width = parsed
+    read_only = e.table in ("discrete", "input") or (e.channel and item.get("readonly") is True)
+    access = "read-only" if read_only else "read-write"
+    if "address" in item and "write_address" in item:
+        wparsed = _parse_address(e, "write_address")
         if wparsed is None:
             return None
-        if wparsed[0] != address:
+        if wparsed[0] != e.address and access == "read-write":
             # read at one register, written at another: a profile has one address per parameter
-            warn((*at, "write_address"), f"{label}: read at {address} but written at write_address {wparsed[0]}: "
-                                         "imported read-only at address (a profile has one register per "
-                                         "parameter); the write address is in its description")
-            notes.append(f"written at register {wparsed[0]} (write_address)")
+            e.say("write_address", f"read at {e.address} but written at write_address {wparsed[0]}: imported "
+                                   "read-only at address (a profile has one register per parameter); the write "
+                                   "address is in its description")
+            e.notes.append(f"written at register {wparsed[0]} (write_address)")
             access = "read-only"
-    elif addr_key == "write_address":
+    elif e.addr_key == "write_address":
         access = "write-only"
         if width:
-            warn((*at, "write_address"), f"{label}: a write-only bit field cannot keep its register's other bits: "
-                                         "left out")
+            e.say("write_address", "a write-only bit field cannot keep its register's other bits: left out")
             return None
-    elif channel and "write_address" in item:
-        notes.append(f"written at register {item['write_address']} (write_address)")
+    if width:
+        e.mask = -1 if e.table in ("coil", "discrete") else ((1 << width) - 1) << shift
+        if shift + width > 16 and e.table not in ("coil", "discrete"):
+            e.say(e.addr_key, f"bits {shift}..{shift + width - 1} run past one register: left out")
+            return None
+    return access
 
-    fmt = str(item.get("format", "u16"))
-    count = 1
-    mask = 0
-    if table in ("coil", "discrete"):
+
+def _shape(e: _Item) -> bool:
+    """Type, bits, size and byte layout from ``format``, ``word_order``, ``byte_order``."""
+    item, spec = e.item, e.spec
+    e.fmt = fmt = str(item.get("format", "u16"))
+    if e.table in ("coil", "discrete"):
         if "format" in item and fmt not in ("u16", "u8", "s16"):
-            warn((*at, "format"), f"{label}: format {fmt} on a {table} (one bit): ignored")
-        if width:
-            warn((*at, addr_key), f"{label}: a {table} has no bits to select: address taken as {address}")
-    else:
-        type_ = _FORMATS.get(fmt)
-        if type_ is None:
-            warn((*at, "format"), f"{label}: format {fmt} has no profile type (uint16 ... float64, string8): left out")
-            return None
-        if width:
-            if shift + width > 16:
-                warn((*at, addr_key), f"{label}: bits {shift}..{shift + width - 1} run past one register: left out")
-                return None
-            mask = ((1 << width) - 1) << shift
-            type_ = "bool" if width == 1 else ("int16" if fmt.startswith("s") else "uint16")
-            spec["mask"] = mask
-        elif fmt in ("u8", "s8"):
-            mask = 0x00FF  # the low byte of the register
-            spec["mask"] = mask
-        spec["type"] = type_
-        if type_ == "string":
-            size = item.get("string_data_size")
-            if not isinstance(size, int) or not 1 <= size <= 123:
-                warn((*at, "format"), f"{label}: string8 needs string_data_size (registers): left out")
-                return None
-            spec["count"] = size
-            count = size
-        elif not mask:
-            count = codec.register_count(type_)
-        if item.get("word_order") == "little_endian" and count > 1 and type_ != "string":
-            spec["word_order"] = "little"
-        if item.get("byte_order") == "little_endian":
-            if mask:
-                warn((*at, "byte_order"), f"{label}: byte_order little_endian on a bit field: ignored")
-            else:
-                spec.pop("word_order", None)
-                spec["byte_order"] = "DCBA" if item.get("word_order") == "little_endian" and count > 1 else "BADC"
-        if fmt == "string8" and item.get("byte_order") == "little_endian":
-            spec.pop("byte_order", None)
-            spec["swap"] = "byte"
-        if reg_type == "holding_single" and not channel:
-            spec["_single"] = True
+            e.say("format", f"format {fmt} on a {e.table} (one bit): ignored")
+        if e.mask:
+            e.say(e.addr_key, f"a {e.table} has no bits to select: address taken as {e.address}")
+            e.mask = 0
+        return True
+    type_ = _FORMATS.get(fmt)
+    if type_ is None:
+        e.say("format", f"format {fmt} has no profile type (uint16 ... float64, string8): left out")
+        return False
+    if e.mask:
+        type_ = "bool" if codec.mask_shift(e.mask)[1] == 1 else ("int16" if fmt.startswith("s") else "uint16")
+        spec["mask"] = e.mask
+    elif fmt in ("u8", "s8"):
+        e.mask = spec["mask"] = 0x00FF  # the low byte of the register
+    spec["type"] = type_
+    if type_ == "string":
+        size = item.get("string_data_size")
+        if not isinstance(size, int) or not 1 <= size <= 123:
+            e.say("format", "string8 needs string_data_size (registers): left out")
+            return False
+        spec["count"] = e.count = size
+    elif not e.mask:
+        e.count = codec.register_count(type_)
+    _byte_layout(e, type_)
+    if e.reg_type == "holding_single" and not e.channel:
+        spec["_single"] = True
+    return True
 
-    # scale and offset: register = (value - offset) / scale, as ours: engineering = raw x scale + offset
-    is_bit = table in ("coil", "discrete") or (mask and codec.mask_shift(mask)[1] == 1)
+
+def _byte_layout(e: _Item, type_: str) -> None:
+    item, spec = e.item, e.spec
+    if item.get("word_order") == "little_endian" and e.count > 1 and type_ != "string":
+        spec["word_order"] = "little"
+    if item.get("byte_order") == "little_endian":
+        if e.mask:
+            e.say("byte_order", "byte_order little_endian on a bit field: ignored")
+        else:
+            spec.pop("word_order", None)
+            spec["byte_order"] = "DCBA" if item.get("word_order") == "little_endian" and e.count > 1 else "BADC"
+    if e.fmt == "string8" and item.get("byte_order") == "little_endian":
+        spec.pop("byte_order", None)
+        spec["swap"] = "byte"
+
+
+def _scale_offset(e: _Item) -> bool:
+    """register = (value - offset) / scale, as ours: engineering = raw x scale + offset."""
+    item, spec = e.item, e.spec
     scale, offset = _number(item.get("scale", 1)), _number(item.get("offset", 0))
     for key, v, neutral in (("scale", scale, 1), ("offset", offset, 0)):
         if key in item and v is None:
-            warn((*at, key), f"{label}: {key} {item[key]!r} is not a number: ignored")
+            e.say(key, f"{key} {item[key]!r} is not a number: ignored")
         elif v is not None and v != neutral:
-            if table in ("coil", "discrete") or spec.get("type") in ("bool", "string"):
-                warn((*at, key), f"{label}: {key} {v} on a one-bit value or text: ignored")
+            if e.table in ("coil", "discrete") or spec.get("type") in ("bool", "string"):
+                e.say(key, f"{key} {v} on a one-bit value or text: ignored")
             elif key == "scale" and v == 0:
-                warn((*at, key), f"{label}: scale 0: left out")
-                return None
+                e.say(key, "scale 0: left out")
+                return False
             else:
                 spec[key] = v
-    scale = scale if scale and "scale" in spec else Decimal(1)
-    offset = offset if offset is not None and "offset" in spec else Decimal(0)
+    e.scale = scale if scale and "scale" in spec else Decimal(1)
+    e.offset = offset if offset is not None and "offset" in spec else Decimal(0)
+    return True
 
+
+def _unit(e: _Item) -> None:
+    item = e.item
     unit_text = item.get("units", item.get("unit"))
     if unit_text is None and isinstance(item.get("type"), str) and item["type"] in _TYPE_UNITS:
         unit_text = _TYPE_UNITS[item["type"]]
-    if unit_text and not is_bit and spec.get("type") != "string":
-        u = _UNITS.get(str(unit_text).strip(), str(unit_text).strip())
-        problem = units.check(u)
-        if problem:
-            key = "units" if "units" in item else ("unit" if "unit" in item else "type")
-            warn((*at, key), f"{label}: unit '{unit_text}' is not one pint knows: kept in the description")
-            notes.append(f"unit: {unit_text}")
-        else:
-            spec["unit"] = u
+    if not unit_text or e.is_bit or e.spec.get("type") == "string":
+        return
+    u = _UNITS.get(str(unit_text).strip(), str(unit_text).strip())
+    if units.check(u):
+        key = "units" if "units" in item else ("unit" if "unit" in item else "type")
+        e.say(key, f"unit '{unit_text}' is not one pint knows: kept in the description")
+        e.notes.append(f"unit: {unit_text}")
+    else:
+        e.spec["unit"] = u
 
-    # enumerations: labels as written (English where the template translates them)
-    enum, titles = item.get("enum"), item.get("enum_titles")
-    labels: dict[str, int] = {}
-    if isinstance(enum, list) and enum:
-        if not isinstance(titles, list) or len(titles) != len(enum):
-            notes.append("allowed values: " + ", ".join(str(v) for v in enum))
-            if titles is not None:
-                warn((*at, "enum_titles"), f"{label}: {len(titles) if isinstance(titles, list) else 0} enum_titles "
-                                           f"for {len(enum)} enum values: kept in the description as numbers")
-        else:
-            for v, t in zip(enum, titles, strict=True):
-                n = _number(v)
-                if n is None:
-                    warn((*at, "enum"), f"{label}: enum value {v!r} is not a number: left out of the labels")
-                    continue
-                raw = (n - offset) / scale
-                if raw != raw.to_integral_value():
-                    warn((*at, "enum"), f"{label}: enum value {v} is not a whole raw value: left out of the labels")
-                    continue
-                text = translate(str(t)).strip() or str(v)
-                while text in labels:  # two values with one title: keep both, tell them apart
-                    text = f"{text} ({v})"
-                labels[text] = int(raw)
-            if labels:
-                spec["values"] = labels
+
+def _enum(e: _Item) -> None:
+    """Enumerations: labels as written (English where the template translates them)."""
+    enum, titles = e.item.get("enum"), e.item.get("enum_titles")
+    if not isinstance(enum, list) or not enum:
+        return
+    if not isinstance(titles, list) or len(titles) != len(enum):
+        e.notes.append("allowed values: " + ", ".join(str(v) for v in enum))
+        if titles is not None:
+            e.say("enum_titles", f"{len(titles) if isinstance(titles, list) else 0} enum_titles for {len(enum)} "
+                                 "enum values: kept in the description as numbers")
+        return
+    labels = e.labels
+    for v, t in zip(enum, titles, strict=True):
+        n = _number(v)
+        if n is None:
+            e.say("enum", f"enum value {v!r} is not a number: left out of the labels")
+            continue
+        raw = (n - e.offset) / e.scale
+        if raw != raw.to_integral_value():
+            e.say("enum", f"enum value {v} is not a whole raw value: left out of the labels")
+            continue
+        text = e.translate(str(t)).strip() or str(v)
+        while text in labels:  # two values with one title: keep both, tell them apart
+            text = f"{text} ({v})"
+        labels[text] = int(raw)
+    if labels:
+        e.spec["values"] = labels
+
+
+def _bounds(e: _Item) -> None:
     for key in ("min", "max"):
-        if key in item and not labels and not is_bit:
-            v = _number(item[key])
-            if v is None:
-                warn((*at, key), f"{label}: {key} {item[key]!r} is not a number: ignored")
-            elif not _fits(v, spec, scale, offset):
-                warn((*at, key), f"{label}: {key} {v} does not fit in {spec.get('type', 'the register')} "
-                                 f"({fmt}): kept in the description")
-                notes.append(f"{key} {v}")
-            else:
-                spec[key] = v
-    if "default" in item:
-        d = _number(item["default"])
-        if d is None:
-            warn((*at, "default"), f"{label}: default {item['default']!r} is not a number: ignored")
-        elif labels:
-            raw = (d - offset) / scale
-            match = next((t for t, r in labels.items() if r == raw), None)
-            if match is None:
-                warn((*at, "default"), f"{label}: default {d} is none of the enum values: kept in the description")
-                notes.append(f"default {d}")
-            else:
-                spec["default"] = match
-        elif is_bit:
-            spec["default"] = bool(d)
-        elif ("min" in spec and d < spec["min"]) or ("max" in spec and d > spec["max"]) or \
-                not _fits(d, spec, scale, offset):
-            warn((*at, "default"), f"{label}: default {d} is outside min..max or the type: kept in the description")
-            notes.append(f"default {d}")
+        if key not in e.item or e.labels or e.is_bit:
+            continue
+        v = _number(e.item[key])
+        if v is None:
+            e.say(key, f"{key} {e.item[key]!r} is not a number: ignored")
+        elif not _fits(v, e.spec, e.scale, e.offset):
+            e.say(key, f"{key} {v} does not fit in {e.spec.get('type', 'the register')} ({e.fmt}): kept in the "
+                       "description")
+            e.notes.append(f"{key} {v}")
         else:
-            spec["default"] = d
-    for key, what in (("fw", "needs firmware {} or later"), ("condition", "applies when {}")):
-        if key in item:
-            notes.append(what.format(item[key]))
-            warn((*at, key), f"{label}: {key} '{item[key]}' cannot be said in a profile: kept in the description")
+            e.spec[key] = v
+
+
+def _default(e: _Item) -> None:
+    if "default" not in e.item:
+        return
+    spec = e.spec
+    d = _number(e.item["default"])
+    if d is None:
+        e.say("default", f"default {e.item['default']!r} is not a number: ignored")
+    elif e.labels:
+        raw = (d - e.offset) / e.scale
+        match = next((t for t, r in e.labels.items() if r == raw), None)
+        if match is None:
+            e.say("default", f"default {d} is none of the enum values: kept in the description")
+            e.notes.append(f"default {d}")
+        else:
+            spec["default"] = match
+    elif e.is_bit:
+        spec["default"] = bool(d)
+    elif ("min" in spec and d < spec["min"]) or ("max" in spec and d > spec["max"]) or \
+            not _fits(d, spec, e.scale, e.offset):
+        e.say("default", f"default {d} is outside min..max or the type: kept in the description")
+        e.notes.append(f"default {d}")
+    else:
+        spec["default"] = d
+
+
+def _extras(e: _Item) -> None:
+    """``fw`` (the firmware it needs, carried over), ``condition`` and keys a profile has no word for."""
+    item = e.item
+    if "fw" in item:
+        fw = str(item["fw"]).strip()
+        if firmware.check_range(fw) is None:
+            e.spec["firmware"] = fw  # wb-mqtt-serial: this revision or later, as a bare revision says
+        else:
+            e.say("fw", f"fw '{fw}' is not a revision: kept in the description")
+        e.notes.append(f"needs firmware {fw} or later")
+    if "condition" in item:
+        e.notes.append(f"applies when {item['condition']}")
+        e.say("condition", f"condition '{item['condition']}' cannot be said in a profile: kept in the description")
     for key in ("error_value", "on_value", "off_value", "unsupported_value"):
         if key in item:
-            notes.append(f"{key} {item[key]}")
-    unknown = sorted(k for k in item if k not in _UI_KEYS)
-    for key in unknown:
-        warn((*at, key), f"{label}: key '{key}' is not understood: kept in the description")
-        notes.append(f"{key}: {item[key]}")
-
-    if access != "read-write":
-        spec["access"] = access
-    if table != "holding":
-        spec["register_type"] = table
-    spec = {"register": address, **spec}
-    return _Entry(name, spec, origin, table, address, mask, count, notes)
+            e.notes.append(f"{key} {item[key]}")
+    for key in sorted(k for k in item if k not in _UI_KEYS):
+        e.say(key, f"key '{key}' is not understood: kept in the description")
+        e.notes.append(f"{key}: {item[key]}")
 
 
 def _fits(value: Decimal, spec: Mapping[str, Any], scale: Decimal, offset: Decimal) -> bool:
@@ -485,6 +605,7 @@ def _resolve_shared(entries: list[_Entry], warnings: list[str]) -> tuple[list[_E
     names: set[str] = set()
     suffix: dict[str, int] = {}  # a taken name -> the next number to try (20,000 channels of one name: linear)
     dropped = 0
+    aliases: dict[int, tuple[_Entry, str, list[str]]] = {}  # keeper -> where its first alias is, their names
     for e in entries:
         regs = [(e.table, r) for r in range(e.address, e.address + e.count)]
         clash = next((k for r in regs for k in occupied.get(r, ()) if _overlap(k, e)), None)
@@ -493,9 +614,11 @@ def _resolve_shared(entries: list[_Entry], warnings: list[str]) -> tuple[list[_E
             at = f"line {clash.origin.line}"
             if (clash.address, clash.mask, clash.count) == (e.address, e.mask, e.count):
                 when = [n for n in e.notes if n.startswith(("applies when", "needs firmware"))]
-                clash.notes.append(f"also named {e.name} in the template" + (f" ({'; '.join(when)})" if when else ""))
-                warnings.append(f"{where}: {e.name} shares its register {e.address} with {clash.name} ({at}): "
-                                f"imported once, as {clash.name}; {e.name} is named in its description")
+                if e.name != clash.name:
+                    clash.notes.append(f"also named {e.name} in the template"
+                                       + (f" ({'; '.join(when)})" if when else ""))
+                if _ambiguous(clash, e):  # said once per register below, with every other name it has
+                    aliases.setdefault(id(clash), (clash, where, []))[2].append(e.name)
             else:
                 warnings.append(f"{where}: {e.name} overlaps {clash.name} ({at}) in register {e.address}: left out")
                 dropped += 1
@@ -514,7 +637,25 @@ def _resolve_shared(entries: list[_Entry], warnings: list[str]) -> tuple[list[_E
         for r in regs:
             occupied.setdefault(r, []).append(e)
         kept.append(e)
+    for clash, where, names_ in aliases.values():
+        one = len(names_) == 1
+        warnings.append(f"{where}: {', '.join(names_)} {'shares its' if one else 'share the'} register "
+                        f"{clash.address} with {clash.name} (line {clash.origin.line}): imported once, as "
+                        f"{clash.name}; {names_[0] if one else 'they'} {'is' if one else 'are'} named in its "
+                        "description")
     return kept, dropped
+
+
+def _ambiguous(keeper: _Entry, alias: _Entry) -> bool:
+    """Whether two entries at one place may mean different things: not a channel showing a parameter's value
+    (or a channel of the same name), only differently shaped or named settings."""
+    if alias.channel and (not keeper.channel or alias.name == keeper.name):
+        return any(alias.spec.get(k) != keeper.spec.get(k) for k in _SHAPE)
+    return alias.name != keeper.name or alias.spec != keeper.spec
+
+
+# what makes two entries at one register read one value the same way
+_SHAPE = ("type", "mask", "count", "scale", "offset", "word_order", "byte_order", "swap", "register_type")
 
 
 def _overlap(a: _Entry, b: _Entry) -> bool:
