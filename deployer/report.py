@@ -14,7 +14,7 @@ from .load.messages import clipped_repr
 from .state.durable import write_atomic
 
 if TYPE_CHECKING:
-    from .profile import Parameter
+    from .profile import Parameter, Profile
 
 REPORT_SCHEMA = "deployer.report/3"
 # the first line of a fleet's report file while the run goes on (``fleet.livereport``): then one device per line
@@ -244,7 +244,8 @@ class Report:
 
     def to_json(self) -> dict[str, Any]:
         """The report document (schema ``deployer.report/3``) as plain values."""
-        return _document(self.recipe, [d.to_json() for d in self.devices], self.summary(), self.run_doc())
+        return _document(self.recipe, [d.to_json() for d in self.devices], self.summary(), self.run_doc(),
+                         profiles_json(self.devices))
 
     def run_doc(self) -> dict[str, Any] | None:
         """The report's ``run``: ``run_info`` with the journal's run id and state folder, and the interruption."""
@@ -270,11 +271,75 @@ class Report:
 
 
 def _document(recipe: str | None, devices: list[Any], summary: dict[str, Any],
-              run: dict[str, Any] | None = None) -> dict[str, Any]:
+              run: dict[str, Any] | None = None, profiles: dict[str, Any] | None = None) -> dict[str, Any]:
     doc = {"schema": REPORT_SCHEMA, "recipe": recipe, "devices": devices, "summary": summary}
     if run is not None:
         doc["run"] = run
+    if profiles:
+        doc["profiles"] = profiles
     return doc
+
+
+# ---- what a report says of its profiles ---------------------------------------------------------
+# A report is data: its readers never open a file it names (a report naming /etc/shadow as its
+# profile put that file's lines on the screen). What ``deployer report`` and the pages need of a
+# profile to show values in engineering units is stored in the report itself, once per distinct
+# profile: for each parameter the run wrote, how its registers read.
+
+_VIEW_DEFAULTS: dict[str, Any] = {"word_order": "big", "scale": "1", "offset": "0", "unit": None, "values": {},
+                                  "byte_swap": False, "mask": 0, "size": 0, "encoding": "ascii", "padding": "nul",
+                                  "register_type": "holding"}
+
+
+def parameter_view(p: Parameter) -> dict[str, Any]:
+    """How a parameter's registers read (``Parameter.show_registers``), as JSON: what differs from the defaults."""
+    full = {"address": p.address, "type": p.type, "word_order": p.word_order, "scale": str(p.scale),
+            "offset": str(p.offset), "unit": p.unit, "values": dict(p.values), "byte_swap": p.byte_swap,
+            "mask": p.mask, "size": p.size, "encoding": p.encoding, "padding": p.padding,
+            "register_type": p.register_type}
+    return {k: v for k, v in full.items() if k not in _VIEW_DEFAULTS or v != _VIEW_DEFAULTS[k]}
+
+
+def profiles_json(devices: Iterable[DeviceResult]) -> dict[str, Any]:
+    """The report's ``profiles``: profile (as devices name it in ``profile_ref``) -> its id, SHA-256 and a
+    view of each parameter the devices hold results of; each parameter made once per profile."""
+    out: dict[str, Any] = {}
+    seen: set[int] = set()
+    for d in devices:
+        if d.profile_ref is None or not d.parameters or id(d.parameters) in seen:
+            continue
+        seen.add(id(d.parameters))
+        entry = out.setdefault(d.profile_ref, {"id": d.profile, "sha256": d.profile_sha256, "parameters": {}})
+        views = entry["parameters"]
+        for r in d.parameters:
+            if r.parameter is not None and r.name not in views:
+                views[r.name] = parameter_view(r.parameter)
+    return out
+
+
+def parameter_from_view(name: str, view: Any) -> Parameter | None:
+    """The parameter a report's view describes (``parameter_view``), checked; None when it is not one."""
+    from decimal import Decimal, InvalidOperation
+
+    from .profile import Parameter, codec
+
+    if not isinstance(view, dict):
+        return None
+    v = {**_VIEW_DEFAULTS, **view}
+    try:
+        p = Parameter(name, int(v["address"]), str(v["type"]), word_order=str(v["word_order"]),
+                      scale=Decimal(str(v["scale"])), offset=Decimal(str(v["offset"])),
+                      unit=None if v["unit"] is None else str(v["unit"]),
+                      values=tuple((str(k), int(x)) for k, x in dict(v["values"]).items()),
+                      byte_swap=v["byte_swap"] is True, mask=int(v["mask"]), size=int(v["size"]),
+                      encoding=str(v["encoding"]), padding=str(v["padding"]), register_type=v["register_type"])
+    except (KeyError, TypeError, ValueError, InvalidOperation):
+        return None
+    if p.type not in (*codec.TYPE_NAMES, codec.STRING, codec.BOOL) or p.word_order not in ("big", "little") \
+            or p.register_type not in ("holding", "input", "coil", "discrete") or not 0 <= p.mask <= 0xFFFF \
+            or not 0 <= p.size <= 123 or not p.scale.is_finite() or not p.offset.is_finite():
+        return None
+    return p
 
 
 def run_info(command: str | None, started: float) -> dict[str, Any]:
@@ -338,13 +403,13 @@ def _text(s: str) -> str:
 
 
 def report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str, Any],
-                 run: dict[str, Any] | None = None) -> list[bytes]:
+                 run: dict[str, Any] | None = None, profiles: dict[str, Any] | None = None) -> list[bytes]:
     """The report document as pieces of JSON text, one device per line (each from ``device_json``).
 
     The pieces are written with one gathering write (``write_atomic``), never joined into one big
     string: a fleet's report file is rewritten as devices finish.
     """
-    head, tail = json.dumps(_document(recipe, [], summary, run)).split('"devices": []', 1)
+    head, tail = json.dumps(_document(recipe, [], summary, run, profiles)).split('"devices": []', 1)
     out = [f'{head}"devices": [\n'.encode()]
     for i, d in enumerate(devices):
         if i:
@@ -357,7 +422,7 @@ def report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str
 def report_text(report: Report) -> str:
     """A report as JSON text, one device per line (``--json`` and the ``--report`` file of a fleet)."""
     return b"".join(report_parts(report.recipe, [device_json(d) for d in report.devices],
-                                 report.summary(), report.run_doc())).decode()
+                                 report.summary(), report.run_doc(), profiles_json(report.devices))).decode()
 
 
 def write_json(data: dict[str, Any], path: str, *, what: str = "") -> None:
@@ -416,42 +481,54 @@ def stream_document(path: str, first: str, lines: Iterable[str]) -> dict[str, An
                                "write_requests": sum(1 for f in functions if f in (5, 6, 15, 16)),
                                "read_requests": sum(1 for f in functions if f in (1, 2, 3, 4)), "seconds": 0.0}
     return _document(head.get("recipe"), listed, summary, head.get("run") if isinstance(head.get("run"), dict)
-                     else None)
+                     else None, head.get("profiles") if isinstance(head.get("profiles"), dict) else None)
 
 
-def report_from_json(doc: dict[str, Any]) -> Report:
+def report_from_json(doc: dict[str, Any], profiles: Sequence[Profile] = ()) -> Report:
     """An earlier run's report document (``read_report``) as a Report, for ``deployer report``.
 
-    Values are shown in engineering units where the device's profile still loads and is the one the
-    run used (its recorded SHA-256, where there is one); else as register words, with a notice.
-    Reports of older versions have fewer fields: what is missing stays empty.
+    Values are shown in engineering units from what the report says of its profiles (``profiles``,
+    written by the run), or from ``profiles`` the user names (matched by id); a built-in profile by
+    its id. A file the report names is never opened: a report is data. Else values are shown as
+    register words, with a notice. Reports of older versions have fewer fields: what is missing stays empty.
     """
-    from .errors import DeployerError
-    from .profile import Profile, resolve_profile
+    from .profile import builtin_profile, builtin_profile_ids
 
-    profiles: dict[str, Profile | str] = {}
+    found = doc.get("profiles")
+    stored: dict[str, Any] = found if isinstance(found, dict) else {}
+    given = {p.id: p for p in profiles}
+    views: dict[tuple[str, str, str | None], tuple[dict[str, Parameter] | None, str | None]] = {}
 
-    def profile_of(ref: str, digest: str | None) -> Profile | str:
-        key = f"{ref}\0{digest}"
-        if key not in profiles:
-            try:
-                prof = resolve_profile(ref)
-            except (DeployerError, OSError) as e:
-                profiles[key] = f"values shown as registers: profile {ref} does not load ({e})"
+    def profile_of(ref: str, name: str, digest: str | None) -> tuple[dict[str, Parameter] | None, str | None]:
+        """The parameters to show a device's values with, and a notice about them."""
+        key = (ref, name, digest)
+        if key not in views:
+            entry = stored.get(ref)
+            if name in given:  # named on the command line: the user's word over the report's
+                prof = given[name]
+                views[key] = ({p.name: p for p in prof.parameters},
+                              None if digest is None or prof.digest in (None, digest) else
+                              f"values shown with profile {prof.source or prof.id} as given; the run used another "
+                              f"version of it (SHA-256 {digest[:12]})")
+            elif isinstance(entry, dict) and isinstance(entry.get("parameters"), dict):
+                views[key] = ({n: q for n, v in entry["parameters"].items()
+                               if isinstance(n, str) and (q := parameter_from_view(n, v)) is not None}, None)
+            elif ref in builtin_profile_ids() and digest is None:  # part of deployer, not a file the report names
+                views[key] = ({p.name: p for p in builtin_profile(ref).parameters}, None)
             else:
-                profiles[key] = prof if digest is None or prof.digest in (None, digest) else (
-                    f"values shown as registers: profile {ref} changed since the run")
-        return profiles[key]
+                views[key] = (None, f"values shown as registers: the report does not describe profile {name or ref} "
+                                    "(a report of an older version); name it with: deployer report --profile FILE")
+        return views[key]
 
     devices = []
     for d in doc.get("devices") or []:
         if not isinstance(d, dict):
             continue
-        ref = d.get("profile_ref") or d.get("profile") or ""
-        prof = profile_of(str(ref), d.get("profile_sha256")) if ref else None
+        ref = str(d.get("profile_ref") or d.get("profile") or "")
+        prof, notice = profile_of(ref, str(d.get("profile", "")), d.get("profile_sha256")) if ref else (None, None)
         notices = [str(n) for n in d.get("notices") or []]
-        if isinstance(prof, str):
-            notices.append(prof)
+        if notice is not None:
+            notices.append(notice)
         res = DeviceResult(str(d.get("name", "?")), str(d.get("url", "")), int(d.get("unit") or 0),
                            str(d.get("profile", "")), status=d.get("status", "ok"), snapshot=d.get("snapshot"),
                            error=d.get("error"), seconds=d.get("seconds"), profile_ref=d.get("profile_ref"),
@@ -466,7 +543,7 @@ def report_from_json(doc: dict[str, Any]) -> Report:
         for p in d.get("parameters") or []:
             if not isinstance(p, dict):
                 continue
-            param = prof.get(str(p.get("name"))) if isinstance(prof, Profile) else None
+            param = prof.get(str(p.get("name"))) if prof is not None else None
 
             def raw(key: str, p: dict[str, Any] = p) -> tuple[int, ...] | None:
                 v = p.get(key)

@@ -114,8 +114,8 @@ def test_status_of_a_fleet_whose_recipes_come_from_groups(tmp_path: Path, capsys
                             recipe=None, via="cli", devices=[("drive-1", sim.url, 1)])
         journal.append("st", {**journal.device_started("run-1", name="drive-1", url=sim.url, unit=1,
                                                        plan_digest="0" * 64), "snapshot": "st/snapshots/s.yaml"})
-        code, out, _ = run_cli(capsys, "status", "--state-dir", "st")
-        assert code == 0
+        code, out, err = run_cli(capsys, "status", "--state-dir", "st")
+        assert code == 2, out + err  # a run needs a look
         assert "apply --inventory site.yaml by " in out and "apply  by" not in out and "PROFILE" not in out
         check = next(line for line in out.splitlines() if "check with: " in line)
         command = check.split("check with: ")[1].split(";")[0]
@@ -243,3 +243,98 @@ def test_any_edit_of_a_report_is_shown_or_refused_never_a_traceback(good_report:
     assert code in (0, 1) and "Traceback" not in err
     if code == 1:
         assert err.startswith(f"{f}:") and ": error: " in err
+
+
+# ---- a report is data: nothing it names is opened (#28 item 11) ----------------------------------
+
+OPENED: list[str] = []
+_WATCHING: list[bool] = []
+
+
+def _watch_opens() -> None:
+    """Every file this process opens from now on, in OPENED (an audit hook: it cannot be removed, so it
+    records only while the list is not cleared away)."""
+    import sys
+
+    if not _WATCHING:
+        _WATCHING.append(True)
+        sys.addaudithook(lambda event, args: OPENED.append(str(args[0])) if event == "open" and args and
+                         isinstance(args[0], str | bytes) else None)
+
+
+def test_a_report_naming_a_secret_file_never_opens_it(good_report: dict[str, Any], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    secret = tmp_path / "shadow"
+    secret.write_text("root:$6$SECRET-SALT$hash:19000:0:99999:7:::\n")
+    snapshots = tmp_path / "st" / "snapshots"
+    snapshots.mkdir(parents=True)
+    disguised = snapshots / "line-20260101T000000Z.yaml"  # named like a snapshot, a link to the secret
+    disguised.symlink_to(secret)
+    doc = copy.deepcopy(good_report)
+    doc.pop("profiles", None)
+    doc["devices"][0].update(profile_ref=str(secret), profile="shadow", snapshot=str(secret), status="partial")
+    evil = tmp_path / "evil.json"
+    evil.write_text(json.dumps(doc))
+    doc["devices"][0]["snapshot"] = str(disguised)
+    (tmp_path / "evil2.json").write_text(json.dumps(doc))
+    _watch_opens()
+    OPENED.clear()
+    code, out, err = run_cli(capsys, "report", str(evil), "--html", str(tmp_path / "p.html"))
+    assert code == 0 and "values shown as registers" in out and "SECRET" not in out + err
+    assert "SECRET" not in (tmp_path / "p.html").read_text()
+    for report in (evil, tmp_path / "evil2.json"):
+        code, out, err = run_cli(capsys, "rollback", "--from-report", str(report), "--yes", "--state-dir",
+                                 str(tmp_path / "st"))
+        assert code == 1 and ("not a snapshot file deployer writes" in err or "not a regular file" in err), err
+        assert "SECRET" not in out + err
+    assert not [p for p in OPENED if p in (str(secret), str(disguised))], OPENED
+
+
+def test_a_report_shows_units_without_its_profile_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    profile = tmp_path / "dev.yaml"
+    profile.write_text("profile: dev\nparameters:\n  speed: {register: 1, type: uint16, scale: 0.1, unit: Hz}\n"
+                       "  mode: {register: 2, type: uint16, values: {stop: 0, run: 1}}\n")
+    (tmp_path / "r.yaml").write_text("recipe: r\nprofile: dev.yaml\nparameters: {speed: 50 Hz, mode: run}\n")
+    from deployer.profile import load_profile
+
+    with SimulatorThread(load_profile(str(profile))) as sim:
+        code, _, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes",
+                               "--report", str(tmp_path / "run.json"), "--state-dir", str(tmp_path / "st"))
+    assert code == 0, err
+    doc = json.loads((tmp_path / "run.json").read_text())
+    assert doc["profiles"][str(profile)]["parameters"]["speed"] == {"address": 1, "type": "uint16", "scale": "0.1",
+                                                                    "unit": "Hz", "size": 1}
+    profile.write_text("profile: dev\nparameters: {}\n")  # changed since the run: the report keeps its own
+    code, out, _ = run_cli(capsys, "report", str(tmp_path / "run.json"))
+    assert code == 0 and " 50 Hz " in out and " run " in out and "values shown as registers" not in out
+    del doc["profiles"]  # a report of before: the user names the profile
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    code, out, _ = run_cli(capsys, "report", str(tmp_path / "old.json"))
+    assert code == 0 and "values shown as registers" in out and " 500 " in out
+    profile.write_text("profile: dev\nparameters:\n  speed: {register: 1, type: uint16, scale: 0.1, unit: Hz}\n")
+    code, out, _ = run_cli(capsys, "report", str(tmp_path / "old.json"), "--profile", str(profile))
+    assert code == 0 and " 50 Hz " in out and "the run used another version" in out
+
+
+def test_a_fleet_report_describes_each_profile_once(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from deployer.testing.simulator import Simulator
+    from tests.helpers import Simulators
+
+    (tmp_path / "r.yaml").write_text(RECIPE)
+    with Simulators([Simulator(INVERTER) for _ in range(3)]) as sims:
+        (tmp_path / "inv.yaml").write_text("devices:\n" + "".join(f"  d{i}: {{url: '{s.url}'}}\n"
+                                                                   for i, s in enumerate(sims)))
+        code, _, err = run_cli(capsys, "apply", str(tmp_path / "r.yaml"), "--inventory", str(tmp_path / "inv.yaml"),
+                               "--yes", "--report", str(tmp_path / "run.json"), "--state-dir", str(tmp_path / "st"))
+    assert code == 0, err
+    text = (tmp_path / "run.json").read_text()
+    doc = json.loads(text)
+    assert list(doc["profiles"]) == ["example-inverter"] and text.count('"F07": {') == 1
+    assert set(doc["profiles"]["example-inverter"]["parameters"]) == {"F07", "F08"}
+    del doc["devices"][0]["profile_ref"]  # the built-in by its id, or the report's view: units either way
+    (tmp_path / "run.json").write_text(json.dumps(doc))
+    from deployer.report import read_report, report_from_json
+
+    shown = report_from_json(read_report(str(tmp_path / "run.json")))
+    assert [p.after for d in shown.devices for p in d.parameters] == ["10 s", "12 s"] * 3
+    assert not any(d.notices for d in shown.devices)

@@ -20,6 +20,11 @@ _STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "misma
                  "sent": "cyan", "interrupted": "bold red", "rolled-back": "bold yellow"}
 
 
+def _words(raw: tuple[int, ...] | None) -> str:
+    """Register words where no profile says what they mean (``-``: not read)."""
+    return "-" if raw is None else " ".join(str(w) for w in raw)
+
+
 def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> None:
     """Per device, every parameter; ``only_not_ok`` (fleets): only the devices that need a look, by parameter."""
     from .text import styled
@@ -34,7 +39,8 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
             rows = [p for p in rows if p.status not in ("ok", "unchanged")]
         if d.status != "unreachable" and rows:
             show(out, ["parameter", "before", "desired", "after", "status", ""],
-                 [[p.name, p.before or "-", p.desired, p.after or "-", (p.status, _STATUS_STYLE.get(p.status, "")),
+                 [[p.name, p.before or _words(p.before_raw), p.desired, p.after or _words(p.after_raw),
+                   (p.status, _STATUS_STYLE.get(p.status, "")),
                    p.error or ""] for p in rows])
         if d.status == "sent":
             out.print("broadcast sent: every request went out; no device answers a broadcast, so nothing was "

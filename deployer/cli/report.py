@@ -13,11 +13,15 @@ from .base import cli
 @click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
               help="write the report as one self-contained HTML page (sortable, filterable; it prints as the "
                    "commissioning record: as found / as left per device, a signature line)")
-def report(report_file: str, html_path: str | None) -> int:
+@click.option("--profile", "profile_refs", multiple=True, metavar="ID|FILE",
+              help="show the values of this profile's devices with it (a report of an older version does not "
+                   "describe its profiles); repeatable")
+def report(report_file: str, html_path: str | None, profile_refs: tuple[str, ...]) -> int:
     """Show a run's report (apply --report, rollback --report, a fleet's live report file).
 
-    Values are shown in engineering units where the run's profiles still load unchanged, else as
-    register words. Reports of older versions show what they have. Exit 0; 1 if RUN.json is not a report.
+    Values are shown in engineering units as the report describes its profiles (or with a --profile
+    given here), else as register words; a file the report names is never opened. Reports of older
+    versions show what they have. Exit 0; 1 if RUN.json is not a report (or not valid: FILE:LINE:COL).
     """
     from ..report import read_report, report_from_json
     from .base import console, safe, write_page
@@ -28,7 +32,9 @@ def report(report_file: str, html_path: str | None) -> int:
         doc = read_report(report_file)
     except OSError as e:
         raise UsageError(f"cannot read {report_file}: {e.strerror or e}") from None
-    run = report_from_json(doc)
+    from ..profile import resolve_profile
+
+    run = report_from_json(doc, [resolve_profile(p) for p in profile_refs])
     out = console()
     info = run.run or {}
     if info.get("command"):

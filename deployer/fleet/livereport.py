@@ -26,7 +26,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
-from ..report import STREAM_SCHEMA, device_json, report_parts
+from ..report import STREAM_SCHEMA, device_json, parameter_view, report_parts
 
 if TYPE_CHECKING:
     from ..execute.job import Job
@@ -35,6 +35,25 @@ if TYPE_CHECKING:
 
 NOT_FINISHED = "not finished (interrupted run)"
 WRITING = "interrupted while writing (the run did not finish): some parameters may hold new values"
+
+
+def profiles_of(jobs: Sequence[Job]) -> dict[str, Any]:
+    """The report's ``profiles`` (``report.profiles_json``) from the jobs: each recipe's parameters, once
+    per profile (a report is read without opening the files it names)."""
+    from ..profile import profile_ref
+
+    out: dict[str, Any] = {}
+    seen: set[int] = set()
+    for j in jobs:
+        if id(j.recipe) in seen:
+            continue
+        seen.add(id(j.recipe))
+        prof = j.recipe.profile
+        entry = out.setdefault(profile_ref(prof), {"id": prof.id, "sha256": prof.digest, "parameters": {}})
+        for d in j.recipe.desired:
+            if d.parameter.name not in entry["parameters"]:
+                entry["parameters"][d.parameter.name] = parameter_view(d.parameter)
+    return out
 
 
 def placeholder(job: Job, batch: int | None) -> bytes:
@@ -67,7 +86,9 @@ class LiveReport:
         self._closing = False
         self._error: OSError | None = None
         self._size = 0
-        head = json.dumps({"schema": STREAM_SCHEMA, "recipe": recipe, "run": run}).encode() + b"\n"
+        self.profiles = profiles_of(jobs)
+        head = json.dumps({"schema": STREAM_SCHEMA, "recipe": recipe, "run": run,
+                           "profiles": self.profiles}).encode() + b"\n"
         batch_of = batch_numbers(jobs, batches)
         first: list[tuple[str, bytes]] = [(j.name, placeholder(j, batch_of.get(j.name))) for j in jobs]
         self._fd = self._create(head, first)  # on disk before the first device starts
@@ -177,7 +198,7 @@ class LiveReport:
             from ..state.durable import disk_error
 
             raise UsageError(f"cannot write the report {self.path}: {disk_error(self._error)}")
-        head, *_, tail = report_parts(self.recipe, [], report.summary(), report.run_doc())
+        head, *_, tail = report_parts(self.recipe, [], report.summary(), report.run_doc(), self.profiles)
         write_atomic(self.path, self._assembled(head, tail), what="the report")
 
     def _assembled(self, head: bytes, tail: bytes) -> Iterator[bytes]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -51,6 +52,26 @@ def check_digest(path: str, expected: str | None, where: str, *, accept_edited: 
                          f"{expected[:12]}...): it may no longer hold what the device held. Nothing was sent; "
                          "--accept-edited-snapshot restores it as it is now")
     return f"warning: {path} was changed after it was written; restoring it as it is now (--accept-edited-snapshot)"
+
+
+_SNAPSHOT_NAME = re.compile(r"^.+-\d{8}T\d{6}Z(-\d+)?\.yaml$")
+
+
+def _not_a_snapshot_file(path: str) -> str | None:
+    """Why a path a report (or its journal) names is not opened as a snapshot, or None: only a regular file
+    named as deployer names snapshots (STATE/snapshots/NAME-YYYYMMDDTHHMMSSZ.yaml) is; a link is not."""
+    import stat
+
+    if os.path.basename(os.path.dirname(path)) != "snapshots" or not _SNAPSHOT_NAME.match(os.path.basename(path)):
+        return ("not a snapshot file deployer writes (STATE/snapshots/NAME-YYYYMMDDTHHMMSSZ.yaml): not opened; "
+                "restore a snapshot you chose with: deployer rollback SNAPSHOT")
+    try:
+        st = os.lstat(path)
+    except OSError as e:
+        return f"cannot read it: {e.strerror}"
+    if not stat.S_ISREG(st.st_mode):
+        return "not a regular file (a link, a folder or a device): not opened"
+    return None
 
 
 def _state_of(snapshot: str) -> str:
@@ -238,13 +259,23 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
     errors: list[Diagnostic] = []
     for f in found:
         assert f.snapshot is not None
+        refused_file = _not_a_snapshot_file(f.snapshot)
+        if refused_file is not None:
+            errors.append(Diagnostic(f.snapshot, 0, 0, f"{f.name}: {refused_file}; named by {f.where}"))
+            continue
         note = check_digest(f.snapshot, f.sha256, f.where, accept_edited=accept_edited)
         if note:
             notices.append(note)
         try:
             rec = load_recipe(f.snapshot, force=force)
-        except InputError as e:
-            errors.extend(e.diagnostics)
+        except InputError as e:  # what is wrong, where, but never the file's text: a report chose the file
+            errors.extend(Diagnostic(d.path, d.line, d.col, f"{f.name}: not a snapshot deployer wrote (what it "
+                                     f"holds is not shown here; check it with: deployer validate {d.path})")
+                          for d in e.diagnostics[:1])
+            continue
+        if rec.snapshot is None:
+            errors.append(Diagnostic(f.snapshot, 1, 1, f"{f.name}: not a snapshot (a recipe without its snapshot "
+                                                       "block); named by " + f.where))
             continue
         if not _has_device(rec):
             errors.append(Diagnostic(f.snapshot, 1, 1, f"{f.name}: not a snapshot with its device (made by an "
