@@ -138,3 +138,14 @@ def test_the_page_keeps_its_script_and_table_whole(tmp_path: Path, capsys: pytes
     # the name's U+202E is isolated: inside a <bdi>, closed before the page's own text goes on
     names = [b for b in doc.all("bdi") if str(b["text"]).startswith("[/red]")]
     assert names and all(str(b["text"]).endswith("\u202e\u202c") for b in names)
+
+
+def test_every_line_the_command_line_prints_goes_through_the_escaping() -> None:
+    """Commands print through base.echo, base.console() (text.SafeConsole) or tables.show: no command
+    writes with click.echo, print or a console of its own (their text would reach the terminal raw)."""
+    root = Path(__file__).resolve().parent.parent / "deployer" / "cli"
+    allowed = {"base.py": 2, "text.py": 2, "demo.py": 99}  # base: echo, a file's text to a pipe; text: SafeConsole
+    for f in sorted(root.glob("*.py")):
+        text = f.read_text()
+        raw = len(re.findall(r"\bclick\.s?echo\(|(?<![\w.])print\(|\bConsole\(|markup=True", text))
+        assert raw <= allowed.get(f.name, 0), f"{f.name}: {raw} raw writes"

@@ -167,13 +167,12 @@ def _list_ports(as_json: bool) -> int:
 
     ports = serial_ports()
     if as_json:
-        click.echo(json.dumps([p.to_json() for p in ports], indent=2))
+        echo(json.dumps([p.to_json() for p in ports], indent=2))
     elif ports:
         show(console(), ["port", "URL", "description", "hardware id"],
              [[p.device, p.url, p.description, p.hwid] for p in ports])
     else:
-        click.echo("no serial ports found (a USB adapter that is plugged in but not listed needs its driver)",
-                   err=True)
+        echo("no serial ports found (a USB adapter that is plugged in but not listed needs its driver)", err=True)
     return EXIT_OK if ports else EXIT_UNREACHABLE
 
 
