@@ -14,6 +14,8 @@ import unicodedata
 from pathlib import Path
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from deployer.load.messages import printable
 from deployer.profile import load_profile
@@ -149,3 +151,32 @@ def test_every_line_the_command_line_prints_goes_through_the_escaping() -> None:
         text = f.read_text()
         raw = len(re.findall(r"\bclick\.s?echo\(|(?<![\w.])print\(|\bConsole\(|markup=True", text))
         assert raw <= allowed.get(f.name, 0), f"{f.name}: {raw} raw writes"
+
+
+@given(st.text())
+def test_printable_leaves_nothing_a_terminal_acts_on(text: str) -> None:
+    shown = printable(text)
+    assert all(unicodedata.category(c) not in ("Cc", "Cf", "Zl", "Zp", "Cs") for c in shown)
+    assert "\n" not in shown and (printable(text, newlines=True).count("\n") == text.count("\n"))
+
+
+def test_a_hostile_name_applied_to_a_device_of_another_library(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same hostile recipe against umodbus (not our simulator): the device holds the label's value,
+    the output shows every name escaped."""
+    from tests.helpers import umodbus_server
+
+    monkeypatch.chdir(tmp_path)
+    Path("prof.yaml").write_text(PROFILE)
+    Path("r.yaml").write_text(recipe_text(LABEL, f"<!--<script>\n{FAKE}"))
+    store = {a: 0 for a in (1, *range(10, 42))}
+    with umodbus_server(store) as port:
+        code, out, err = run_cli(capsys, "apply", "r.yaml", "--device", f"tcp://127.0.0.1:{port}", "--yes",
+                                 "--state-dir", "st", "--report", "run.json")
+    assert code == 0, err
+    assert store[1] == 2 and store[10] == 0x3C21  # the label's raw value; '<!' the string's first register
+    assert "[/red]\\e[2K\\e[1Afake: ok\\u202e " in out
+    assert_harmless(out, err)
+    code, out, err = run_cli(capsys, "report", "run.json")
+    assert code == 0 and "[bold]\\e[2K\\e[1Afake: ok" in out
+    assert_harmless(out, err)
