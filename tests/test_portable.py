@@ -327,3 +327,30 @@ def test_reserved_names_in_output_paths(tmp_path: Path) -> None:
     else:
         durable.write_atomic(str(tmp_path / "con.json"), "{}")
         assert (tmp_path / "con.json").read_text() == "{}"
+
+
+def test_replace_retries_while_windows_has_the_file_open(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # Windows refuses to replace a file another program holds open; POSIX never does, so the refusal is
+    # played here by os.replace itself (the retry is our logic, the refusal Windows')
+    real, refusals = os.replace, [2]
+
+    def replace(src: str, dst: str) -> None:
+        if refusals[0]:
+            refusals[0] -= 1
+            raise PermissionError(13, "Permission denied")
+        real(src, dst)
+
+    monkeypatch.setattr(os, "replace", replace)
+    monkeypatch.setattr(portable, "WINDOWS", True)
+    (tmp_path / "a").write_text("new")
+    portable.replace(str(tmp_path / "a"), str(tmp_path / "b"), pause=0.001)
+    assert (tmp_path / "b").read_text() == "new" and refusals == [0]
+    refusals[0] = 100
+    (tmp_path / "c").write_text("newer")
+    with pytest.raises(PermissionError):
+        portable.replace(str(tmp_path / "c"), str(tmp_path / "b"), pause=0.001)
+    assert refusals[0] == 80 and (tmp_path / "b").read_text() == "new"  # 20 tries, then the error
+    monkeypatch.setattr(portable, "WINDOWS", False)
+    with pytest.raises(PermissionError):  # POSIX: a refusal is final at once
+        portable.replace(str(tmp_path / "c"), str(tmp_path / "b"))
+    assert refusals[0] == 79
