@@ -79,12 +79,20 @@ def test_the_harness_takes_away_what_windows_lacks() -> None:
             handlers = "work"
         except NotImplementedError:
             handlers = "NotImplementedError"
-        import deployer.api, deployer.cli, deployer.agent.service, deployer.transport.clients
+        import importlib, pkgutil, deployer
+        modules = [m.name for m in pkgutil.walk_packages(deployer.__path__, "deployer.")
+                   if not m.name.endswith("__main__")]
+        refused = []
+        for name in modules:  # every module of the package, not only those the command line loads
+            try:
+                importlib.import_module(name)
+            except Exception as e:
+                refused.append(f"{name}: {e!r}")
         from deployer.state import oslock
         from deployer.portable import user_name
         print(json.dumps({"gone": gone, "attrs": attrs, "handlers": handlers, "backend": oslock.backend().name,
-                          "user": user_name(), "loaded": [m for m in ("fcntl", "pwd", "resource", "termios")
-                                                          if sys.modules.get(m)]}))
+                          "user": user_name(), "modules": len(modules), "refused": refused,
+                          "loaded": [m for m in ("fcntl", "pwd", "resource", "termios") if sys.modules.get(m)]}))
     """)
     out, err = probe.communicate(timeout=60)
     assert probe.returncode == 0, err
@@ -93,6 +101,7 @@ def test_the_harness_takes_away_what_windows_lacks() -> None:
     assert seen["attrs"] == ["getuid", "fchmod", "O_NOFOLLOW", "O_CLOEXEC", "O_NONBLOCK", "pread", "writev"]
     assert seen["handlers"] == "NotImplementedError" and seen["backend"] == "range" and seen["loaded"] == []
     assert seen["user"]  # getpass's environment variables (Windows: USERNAME), else "unknown"
+    assert seen["refused"] == [] and seen["modules"] > 90
 
 
 def test_command_line_and_api_over_tcp_without_posix(tmp_path: Path) -> None:
