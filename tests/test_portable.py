@@ -354,3 +354,38 @@ def test_replace_retries_while_windows_has_the_file_open(tmp_path: Path, monkeyp
     with pytest.raises(PermissionError):  # POSIX: a refusal is final at once
         portable.replace(str(tmp_path / "c"), str(tmp_path / "b"))
     assert refusals[0] == 79
+
+
+@pytest.mark.portable
+def test_pymodbus_polling_as_on_windows_keeps_the_gaps(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    # On Windows pymodbus polls a serial port (force_poll) instead of waiting on it; here it is made to poll
+    # the socket:// port the same way, and a device that ignores requests sooner than 40 ms after its last
+    # answer (the simulator's quirk) must see none: the gaps deployer keeps start when a reply is seen.
+    from pymodbus.transport import serialtransport
+
+    from deployer.profile import builtin_profile
+    from deployer.testing.simulator import Quirks, SimulatorThread
+
+    polls = []
+    real = serialtransport.SerialTransport.polling_task
+
+    async def polling_task(self: serialtransport.SerialTransport) -> None:
+        polls.append(self)
+        await real(self)  # type: ignore[no-untyped-call]
+
+    monkeypatch.setattr(serialtransport.SerialTransport, "force_poll", True)
+    monkeypatch.setattr(serialtransport.SerialTransport, "polling_task", polling_task)
+    rec = tmp_path / "r.yaml"
+    rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n  F08: 8 s\n"
+                   "  base_speed: 1750 rpm\n")
+    with SimulatorThread(builtin_profile("example-inverter"), listen="rtu+tcp://127.0.0.1:0",
+                         quirks=Quirks(request_gap_ms=40)) as sim:
+        port = sim.url.rsplit(":", 1)[1]
+        code, out, err = cli(capsys, "apply", str(rec), "--device",
+                             f"rtu://socket://127.0.0.1:{port}?pause_between_requests=60ms", "--yes",
+                             "--state-dir", str(tmp_path / "s"))
+        assert code == 0, out + err
+        assert polls and sim.read("base_speed") == (1750,)
+        assert [e for e in sim.log if e.result == "too soon"] == []
+        assert sum(1 for e in sim.log if e.function in (6, 16)) >= 2

@@ -74,7 +74,8 @@ class _DiskCache:
             if origin is None:
                 return
             st = os.stat(origin)
-            base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+            base = (os.environ.get("XDG_CACHE_HOME") or (os.name == "nt" and os.environ.get("LOCALAPPDATA"))
+                    or os.path.join(os.path.expanduser("~"), ".cache"))  # Windows: %LOCALAPPDATA%\deployer
             key = f"{zlib.crc32(origin.encode()):08x}-{st.st_mtime_ns}"
             self.path = os.path.join(base, "deployer", f"units-{key}.json")
             with open(self.path, encoding="utf-8") as f:
