@@ -149,8 +149,9 @@ def test_a_com_port_elsewhere_is_said_plainly(tmp_path: Path, capsys: pytest.Cap
     rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
     code, out, err = cli(capsys, "apply", str(rec), "--device", "rtu://COM3", "--yes",
                          "--state-dir", str(tmp_path / "s"))
-    assert code == 3 and "no such serial device 'COM3' (COM ports are Windows' names" in out + err, out + err
-    assert "Traceback" not in out + err
+    said = " ".join((out + err).split())  # the console wraps long lines
+    assert code == 3 and "no such serial device 'COM3' (COM ports are Windows' names" in said, said
+    assert "Traceback" not in said
 
 
 def test_scan_lists_serial_ports(capsys: pytest.CaptureFixture[str]) -> None:
@@ -303,18 +304,20 @@ def test_a_com_port_that_is_not_there_on_windows(tmp_path: Path, capsys: pytest.
     rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
     code, out, err = cli(capsys, "apply", str(rec), "--device", "rtu://COM250?baudrate=19200&parity=E", "--yes",
                          "--state-dir", str(tmp_path / "s"))
-    assert code == 3 and "rtu://COM250?baudrate=19200&parity=E: cannot open the serial port" in out + err, out + err
-    assert "COM250" in out + err and "Traceback" not in out + err
+    said = " ".join((out + err).split())  # the console wraps long lines
+    assert code == 3 and "rtu://COM250?baudrate=19200&parity=E: cannot open the serial port" in said, said
+    assert "Traceback" not in said
 
 
 @pytest.mark.portable
 def test_output_in_a_code_page_without_the_character(tmp_path: Path) -> None:
     # Windows writes to pipes and files in cp1252: a name it cannot encode is a '?', not a traceback
     rec = tmp_path / "r.yaml"
-    rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  Ω: 1\n", encoding="utf-8")
+    rec.write_text("recipe: Ωmega\nprofile: example-inverter\nparameters:\n  F07: 10 s\n", encoding="utf-8")
     p = subprocess.run([sys.executable, "-m", "deployer", "validate", str(rec)], capture_output=True,
                        env={**env(posixless=False), "PYTHONIOENCODING": "cp1252", "PYTHONUTF8": "0"}, timeout=60)
-    assert p.returncode == 1 and b"unknown parameter '?'" in p.stderr and b"Traceback" not in p.stderr, p.stderr
+    # stdout: Python's default there is to fail on such a character (stderr would escape it)
+    assert p.returncode == 0 and b"ok (recipe ?mega" in p.stdout and b"Traceback" not in p.stderr, p.stderr
 
 
 def test_reserved_names_in_output_paths(tmp_path: Path) -> None:
