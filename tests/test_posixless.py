@@ -192,3 +192,29 @@ def test_the_demo_without_posix(tmp_path: Path) -> None:
     code, out, err = deployer(tmp_path, "demo")
     assert code == 0 and "demo finished: every step behaved as described." in out + err, out + err
     assert "Traceback" not in out + err
+
+
+def test_the_agent_without_posix(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the site agent on a Windows-like Python: its folder lock (range backend), its device locks, a restore,
+    # a plain apply refused, and SIGTERM through signal.signal (no loop handlers, no SIGHUP)
+    from deployer.profile import load_profile
+    from tests.agent_helpers import PROFILE, AgentProcess, event, until, write_site
+
+    monkeypatch.setenv("PYTHONPATH", env()["PYTHONPATH"])  # AgentProcess passes the environment on
+    (tmp_path / "drive.yaml").write_text(PROFILE)
+    with SimulatorThread(load_profile(str(tmp_path / "drive.yaml"))) as sim:
+        inv = write_site(tmp_path, {"d1": sim.url})
+        agent = AgentProcess(inv, tmp_path / "state", "--on-drift", "restore")
+        try:
+            until(lambda: event(agent.client, "restored", "d1"), why="the first restore")
+            assert sim.read("accel") == (20,) and sim.read("speed") == (3000,)
+            # its folder lock is Windows' backend: a lock on byte 1 GiB of agent.lock, an OFD lock here
+            ino = next((tmp_path / "state").rglob("agent.lock")).stat().st_ino
+            held = [ln.split() for ln in Path("/proc/locks").read_text().splitlines()]
+            assert any(f[1] == "OFDLCK" and f[5].endswith(f":{ino}") and f[6] == str(1 << 30) for f in held), held
+            code, out, err = deployer(tmp_path, "apply", "r.yaml", "--device", sim.url, "--yes",
+                                      "--state-dir", "other")
+            assert code == 3 and "owned by the deployer agent" in " ".join((out + err).split()), out + err
+            assert agent.terminate() == 0, agent.log()
+        finally:
+            agent.kill()

@@ -2,7 +2,8 @@
 from here on this Linux Python lacks what Windows' Python lacks, and deployer must run without it.
 
 - the POSIX-only modules cannot be imported (``fcntl``, ``pwd``, ``grp``, ``resource``, ``termios``);
-- ``os`` has no uids, no ``fchmod``, no O_NOFOLLOW/O_CLOEXEC/O_NONBLOCK, no ``pread``/``writev``/``sysconf``;
+- ``os`` has no uids, no ``fchmod``, no O_NOFOLLOW/O_CLOEXEC/O_NONBLOCK, no ``pread``/``writev``/``sysconf``,
+  no ``fork`` or ``uname``; ``signal`` has no SIGHUP, SIGUSR1, SIGKILL, SIGALRM and their kind;
 - the event loop's ``add_signal_handler`` raises NotImplementedError, as Windows' loops do.
 
 What it cannot make Windows-like: POSIX file semantics (a file in use can be removed), the path syntax,
@@ -11,15 +12,21 @@ and the lock primitive under the ``range`` backend (F_OFD_SETLK here, LockFileEx
 
 import asyncio.unix_events
 import os
+import signal
 import sys
 
 for _name in ("fcntl", "pwd", "grp", "resource", "termios"):
     sys.modules[_name] = None  # type: ignore[assignment]  # import raises ModuleNotFoundError
 
 for _name in ("getuid", "geteuid", "getgid", "getegid", "fchmod", "O_NOFOLLOW", "O_CLOEXEC", "O_NONBLOCK",
-              "pread", "writev", "sysconf"):
+              "pread", "writev", "sysconf", "fork", "uname", "getpgid", "setsid", "killpg"):
     if hasattr(os, _name):
         delattr(os, _name)
+
+for _name in ("SIGHUP", "SIGUSR1", "SIGUSR2", "SIGKILL", "SIGALRM", "SIGQUIT", "alarm", "setitimer",
+              "pthread_kill", "pthread_sigmask"):  # Windows' signal module has none of these
+    if hasattr(signal, _name):
+        delattr(signal, _name)
 
 
 def _no_signal_handlers(*args: object, **kwargs: object) -> None:
