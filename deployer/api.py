@@ -210,6 +210,20 @@ def _need_parallel(parallel: object) -> None:
     LIMITS.parallel.check(parallel, "parallel")
 
 
+def record_meta(inventory: str | None = None, given: Sequence[str] = ()) -> list[tuple[str, str]]:
+    """What the commissioning record says at the top of every page: the inventory's ``meta:`` (site, project,
+    customer, line ...), then each ``KEY=VALUE`` of ``given`` (the command line's ``--meta``), which wins."""
+    out: dict[str, str] = {}
+    if inventory is not None:
+        out.update(load_inventory(inventory).meta)
+    for item in given:
+        key, sep, value = str(item).partition("=")
+        if not sep or not key.strip():
+            raise UsageError(f"--meta {item!r}: expected KEY=VALUE (e.g. site='Plant 3')")
+        out[key.strip()] = value.strip()
+    return list(out.items())
+
+
 BATCH_BY = ("profile", "group")  # what one batch of a staged rollout takes a share of
 
 

@@ -123,6 +123,7 @@ class DeviceResult:
     profile_sha256: str | None = None  # the SHA-256 of the profile file's text (None: a built-in profile)
     unrecorded: list[str] = field(default_factory=list)  # what the journal or report could not record (disk full)
     tally: Tally | None = None  # set once the requests and parameters were dropped (``small``)
+    seen: str | None = None  # when (UTC) the values in the parameters' after_raw were read from the device
 
     @property
     def write_requests(self) -> int:
@@ -203,6 +204,8 @@ class DeviceResult:
             out["snapshot_sha256"] = self.snapshot_sha256
         if self.identity is not None:
             out["identity"] = dict(self.identity)
+        if self.seen is not None:
+            out["seen"] = self.seen
         if self.learned:
             out["learned"] = dict(self.learned)
         if self.recipe is not None:
@@ -536,7 +539,8 @@ def report_from_json(doc: dict[str, Any], profiles: Sequence[Profile] = ()) -> R
                            profile_sha256=d.get("profile_sha256"),
                            identity={str(k): str(v) for k, v in d["identity"].items()}
                            if isinstance(d.get("identity"), dict) else None,
-                           learned={str(k): int(v) for k, v in (d.get("learned") or {}).items()})
+                           learned={str(k): int(v) for k, v in (d.get("learned") or {}).items()},
+                           seen=None if d.get("seen") is None else str(d["seen"]))
         res.requests = [RequestRecord(int(r.get("function", 0)), int(r.get("address", 0)), int(r.get("count", 0)),
                                       r.get("result", "ok"), r.get("exception_code"), int(r.get("attempts", 1)))
                         for r in d.get("requests") or [] if isinstance(r, dict)]

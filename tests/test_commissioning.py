@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import struct
 import subprocess
 import sys
@@ -14,8 +15,9 @@ import pytest
 from deployer.errors import InputError
 from deployer.profile import builtin_profile, load_profile
 from deployer.recipe.loader import load_recipe
-from deployer.testing.simulator import Faults, Quirks, Simulator, SimulatorThread
+from deployer.testing.simulator import Faults, Quirks, Simulator, SimulatorThread, parse_fault_rule
 from tests.helpers import Simulators, cli, umodbus_server
+from tests.test_pages import Elements, dom
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -425,3 +427,98 @@ def test_a_jinja_template_says_how_to_render_it(capsys: pytest.CaptureFixture[st
     code, _, err = cli(capsys, "profiles", "import", "wb-template", str(src))
     assert code == 1 and f"{src}:4:5: error: a Jinja template (.json.jinja)" in err
     assert f"> {tmp_path / 'mr6.json'}, then import {tmp_path / 'mr6.json'}" in err and "Traceback" not in err
+
+
+# ---- the commissioning record, printed -------------------------------------------------------------------
+
+
+def _pdf_text(page: Path, tmp: Path) -> str:
+    from tests.test_pages import browser
+
+    pdf = tmp / (page.stem + ".pdf")
+    proc = browser(f"--print-to-pdf={pdf}", "--no-pdf-header-footer", page.as_uri(), tmp=tmp)
+    assert proc.returncode == 0 and pdf.read_bytes().startswith(b"%PDF"), proc.stderr
+    return subprocess.run(["pdftotext", "-layout", str(pdf), "-"], capture_output=True, text=True,
+                          check=True).stdout
+
+
+@pytest.mark.skipif(shutil.which("pdftotext") is None, reason="pdftotext (poppler-utils) is not installed")
+def test_the_printed_record_has_the_outcome_one_sign_off_page_numbers_identity_and_unknown_states(
+        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    from tests.test_pages import CHROMIUM
+
+    if CHROMIUM is None:
+        pytest.skip("no Chromium")
+    prof = builtin_profile("example-inverter")
+    trip = parse_fault_rule("F07 < 2 s: 0x2000=7", prof)
+    ident = Quirks(identity={0: "ACME", 1: "AC-7", 2: "2.1"})
+    sims = [Simulator(prof, quirks=ident), Simulator(prof, quirks=ident, faults=Faults(rules=(trip,))),
+            Simulator(prof, quirks=ident)]
+    with Simulators(sims) as running:
+        (tmp_path / "ok.yaml").write_text("recipe: ramp\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
+        (tmp_path / "trip.yaml").write_text("recipe: trip\nprofile: example-inverter\nparameters:\n  F07: 1.5 s\n")
+        inv = tmp_path / "line.yaml"
+        inv.write_text("meta: {site: Plant 3, project: P-2291 retrofit, customer: ACME Foods}\n"
+                       "defaults: {timeout: 1.0, retries: 0, recipe: ok.yaml}\ndevices:\n"
+                       + "".join(f"  drive-{i}: {{url: '{s.url}'{', recipe: trip.yaml' if i == 1 else ''}}}\n"
+                                 for i, s in enumerate(running)))
+        page, report = tmp_path / "run.html", tmp_path / "run.json"
+        code, _, err = cli(capsys, "apply", "--inventory", str(inv), "--yes", "--soak", "300ms",
+                           "--health-interval", "100ms", "--state-dir", str(tmp_path / "st"), "--report",
+                           str(report), "--html", str(page), "--meta", "line=line 3")
+        assert code == 4, err
+    run_id = json.loads(report.read_text())["run"]["id"]
+    words = _pdf_text(page, tmp_path)
+    first = words.split("\f")[0]
+    assert "Outcome" in first and "Sign-off" in first and "Commissioned by" in first and "Checked by" in first
+    assert "2 devices passed the soak" in first and "1 device failed a health check" in first
+    assert words.count("Commissioned by") == 1 and "Signature" not in words.replace("signature", "")
+    pages = words.count("\f")
+    assert f"page 1 of {pages}" in words and f"page {pages} of {pages}" in words
+    for n in range(pages):  # every page: the site's line at the top, the run id at the bottom
+        text = words.split("\f")[n]
+        assert "site: Plant 3" in text and "customer: ACME Foods" in text and "line: line 3" in text, n
+        assert f"run {run_id}" in text, n
+    assert "vendor ACME, product code AC-7, revision 2.1" in words
+    assert "--health-interval 100ms" in words and "--state-dir" in words  # wrapped at spaces, not inside a word
+
+    # a device whose final state nobody knows: unreachable during its rollback
+    doc = json.loads(report.read_text())
+    dev = next(d for d in doc["devices"] if d["name"] == "drive-2")
+    dev["status"], dev["seen"] = "failed", "2026-11-25T05:00:00Z"
+    dev["error"] = ("health check failed after 0.2 s of the 300ms soak: drive fault; the rollback did not verify "
+                    "(unreachable: no answer)")
+    for p in dev["parameters"]:
+        p["status"] = "unverified"
+    report.write_text(json.dumps(doc))
+    code, _, _ = cli(capsys, "report", str(report), "--html", str(tmp_path / "again.html"))
+    words = " ".join(_pdf_text(tmp_path / "again.html", tmp_path).split())
+    assert code == 0 and "unknown (last seen 10 s at 2026-11-25T05:00:00Z)" in words
+    assert "1 device in a state nobody knows" in words
+
+    # compact: the device list, and parameters only of the devices that changed or did not end ok
+    code, _, _ = cli(capsys, "report", str(report), "--html", str(tmp_path / "compact.html"), "--compact")
+    assert code == 0
+    compact = Elements(dom(tmp_path / "compact.html", tmp_path))
+    sections = [str(d["text"]).split()[0] for d in compact.all("details", "device")]
+    assert sorted(sections) == ["drive-0", "drive-1", "drive-2"]  # all changed (or did not end ok) here
+    assert len([r for r in compact.all("tr", "dev")]) == 3
+
+
+@pytest.mark.skipif(shutil.which("pdftotext") is None, reason="pdftotext (poppler-utils) is not installed")
+def test_the_as_found_record_drops_the_run_columns(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    from tests.test_pages import CHROMIUM
+
+    if CHROMIUM is None:
+        pytest.skip("no Chromium")
+    with Simulators([Simulator(builtin_profile("example-inverter"))]) as (sim,):
+        inv = tmp_path / "line.yaml"
+        inv.write_text(f"meta: {{site: Plant 3}}\ndevices:\n  drive-0: {{url: '{sim.url}'}}\n")
+        page = tmp_path / "found.html"
+        code, _, err = cli(capsys, "pull", "--inventory", str(inv), "--profile", "example-inverter", "-o",
+                           str(tmp_path / "pulled"), "--html", str(page))
+        assert code == 0, err
+    heads = [str(h["text"]) for h in Elements(dom(page, tmp_path)).all("th")]
+    assert "batch" not in heads and "seconds" not in heads and "requests" not in heads and "device" in heads
+    words = _pdf_text(page, tmp_path)
+    assert "site: Plant 3" in words and "page 1 of" in words and words.count("Commissioned by") == 1

@@ -41,9 +41,12 @@ if TYPE_CHECKING:
 def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: bool = False, **options: Any) -> int:
     """apply / rollback: the request checked and its jobs built by the library (``deployer.prepare_run``), the
     user's consent asked here, then run by the library (``deployer.run_prepared``) with a progress display."""
-    from ..api import RunRequest, prepare_run
+    from ..api import RunRequest, prepare_run, record_meta
 
+    meta_given: tuple[str, ...] = options.pop("meta", ())
+    compact: bool = options.pop("compact", False)
     prepared = prepare_run(RunRequest(source, **options))
+    meta = record_meta(prepared.request.inventory, meta_given) if prepared.request.html_path else []
     for n in prepared.notices:
         echo(safe(n), err=True)
     for n in prepared.refused:
@@ -62,7 +65,7 @@ def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: 
         from ..pages import run_page
         from .base import write_page
 
-        write_page(run_page(report), request.html_path)
+        write_page(run_page(report, meta=meta, compact=compact), request.html_path)
         err.print(f"page: {safe(request.html_path)}")
     print_outcome(report, fleet_run=request.fleet, as_json=as_json, report_path=request.report_path)
     if interrupted:
@@ -236,6 +239,12 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--yes", "-y", is_flag=True, help="do not ask for confirmation"),
         click.option("--report", "report_path", type=click.Path(dir_okay=False), help="write the report JSON here"),
         click.option("--json", "as_json", is_flag=True, help="print the report JSON"),
+        click.option("--meta", multiple=True, metavar="KEY=VALUE",
+                     help="with --html: a line of the record's page header (site=..., project=..., customer=..., "
+                          "line=...; repeatable; wins over the inventory's meta:)"),
+        click.option("--compact", is_flag=True,
+                     help="with --html: a record for large lines: one table row per device, parameters only for "
+                          "devices that changed or did not end ok"),
         click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
                      help="also write the report as one self-contained HTML page (sortable, filterable; it "
                           "prints as the commissioning record: as found / as left per device)"),

@@ -338,7 +338,10 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
         written += 1
     down = _unreachable(values)
     if html_path:
-        _as_found_page([(j.name, describe(j.url), j.unit, j.profile, values[j.name]) for j in jobs], html_path)
+        from ..api import record_meta
+
+        _as_found_page([(j.name, describe(j.url), j.unit, j.profile, values[j.name]) for j in jobs], html_path,
+                       record_meta(inventory))
     echo(f"{_n(written, 'recipe')} written to {safe(folder)}"
          + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else ""), err=True)
     return EXIT_UNREACHABLE if down else EXIT_OK
@@ -350,7 +353,8 @@ def _safe(name: str) -> str:
     return file_name(name)  # the same name on every system: no CON.yaml, no 300-character name
 
 
-def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], path: str) -> None:
+def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], path: str,
+                   meta: Sequence[tuple[str, str]] = ()) -> None:
     """``pull --html``: per device its values (engineering text and registers), or why it could not be read."""
     from ..pages import as_found_page
     from ..report import run_info
@@ -364,7 +368,7 @@ def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], pat
         else:
             entry["error"] = str(cur)
         entries.append(entry)
-    write_page(as_found_page(entries, run=run_info(command_line(), time.time())), path)
+    write_page(as_found_page(entries, run=run_info(command_line(), time.time()), meta=meta), path)
     echo(f"page: {safe(path)}", err=True)
 
 

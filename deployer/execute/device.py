@@ -11,6 +11,7 @@ import asyncio
 import hashlib
 import json
 import os
+import time
 from collections import deque
 from collections.abc import Awaitable
 from dataclasses import dataclass, replace
@@ -377,6 +378,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
             return
     try:
         await _write_verify_commit(session, prof, recipe, plan, opts, res, results)
+        res.seen = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())  # the read-back: what "as left" shows
         if res.learned:
             try:
                 learned.remember(opts.state_dir, learned.Entry(

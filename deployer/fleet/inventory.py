@@ -46,6 +46,7 @@ class Inventory:
     path: str
     devices: tuple[FleetDevice, ...]
     groups: tuple[str, ...] = ()  # the groups that have settings (the top-level ``groups:``)
+    meta: tuple[tuple[str, str], ...] = ()  # site, project, customer, line ...: the commissioning record's header
 
     def select(self, limit: str | None) -> tuple[FleetDevice, ...]:
         """The devices ``limit`` selects, in inventory order (see ``select``)."""
@@ -222,7 +223,8 @@ def _inventory(p: str, data: Any, src: yamlsrc.Source, here: str) -> Inventory:
         ))
     if errors:
         raise InputError(errors)
-    return Inventory(p, tuple(devices), tuple(groups))
+    meta = tuple((str(k), str(v)) for k, v in (data.get("meta") or {}).items())
+    return Inventory(p, tuple(devices), tuple(groups), meta)
 
 
 def _same_devices(path: str, devices: Sequence[tuple[FleetDevice, int]], *, check_urls: bool) -> list[Diagnostic]:

@@ -7,7 +7,7 @@ body { font: 14px/1.45 system-ui, -apple-system, "Segoe UI", Roboto, sans-serif;
        padding: 1rem 1.5rem; color: #1f2328; }
 h1 { font-size: 1.5rem; margin: .2rem 0 .6rem; } h2 { font-size: 1.15rem; margin: 1.4rem 0 .5rem; }
 dl.meta { display: grid; grid-template-columns: max-content 1fr; gap: .15rem 1rem; margin: 0 0 1rem; }
-dl.meta dt { color: var(--muted); } dl.meta dd { margin: 0; word-break: break-all; }
+dl.meta dt { color: var(--muted); } dl.meta dd { margin: 0; overflow-wrap: break-word; }
 .counts { display: flex; flex-wrap: wrap; gap: .5rem; margin: .5rem 0 1rem; }
 .count { border: 1px solid var(--line); border-radius: 6px; padding: .35rem .7rem; background: var(--bg);
          cursor: pointer;
@@ -31,20 +31,25 @@ details.device { border: 1px solid var(--line); border-radius: 6px; margin: .5re
 details.device > summary { cursor: pointer; padding: .2rem 0; }
 details.device > summary .where { color: var(--muted); margin-left: .6rem; }
 .notice { color: var(--muted); margin: .2rem 0; } .error { color: var(--bad); margin: .2rem 0; }
-.sign { display: none; }
+.outcome-grid { display: grid; grid-template-columns: minmax(12rem, max-content) 1fr; gap: 0 2rem; }
+.outcome table.statuses { width: auto; }
+.sign { display: grid; grid-template-columns: repeat(3, 1fr); gap: 2rem; margin: 2.2rem 0 .6rem; }
+.sign div { border-top: 1px solid #000; padding-top: .2rem; font-size: 9pt; }
+.identity { margin: .2rem 0; } .word { white-space: nowrap; }
 .muted { color: var(--muted); }
 td.drift { background: #fff1e5; font-weight: 600; } td.same { color: var(--muted); }
 td.missing { color: var(--muted); font-style: italic; }
 .hidden { display: none !important; }
 @media print {
   body { max-width: none; padding: 0; font-size: 10pt; }
-  .controls, .counts button, #devices, .noprint { display: none !important; }
+  .controls, .counts, #devices, .noprint { display: none !important; }
+  #devices.compact { display: block !important; } #devices.compact .controls { display: none !important; }
+  .outcome { break-after: page; page-break-after: always; }
+  dl.meta dd { overflow-wrap: break-word; word-break: normal; }
   details.device { border: none; border-top: 1px solid #000; border-radius: 0; padding: .4rem 0;
                    break-inside: avoid-page; page-break-inside: avoid; }
   details.device > summary { list-style: none; font-weight: 700; }
   details.device > summary::-webkit-details-marker { display: none; }
-  .sign { display: grid; grid-template-columns: repeat(3, 1fr); gap: 2rem; margin: 1.2rem 0 .6rem; }
-  .sign div { border-top: 1px solid #000; padding-top: .2rem; font-size: 9pt; }
   th { position: static; }
   .hidden { display: none !important; }
 }
@@ -82,9 +87,6 @@ JS = r"""
   function st(s) { return '<span class="st st-' + esc(s) + '">' + esc(s) + "</span>"; }
   function $(id) { return document.getElementById(id); }
 
-  function signature() {
-    return '<div class="sign"><div>Name</div><div>Date</div><div>Signature</div></div>';
-  }
 
   // ---- a run report, and the as-found record --------------------------------------------------
   function paramTable(d) {
@@ -103,13 +105,13 @@ JS = r"""
 
   function body(d) {
     var parts = [];
+    if (d.identity) { parts.push('<p class="identity">identity: ' + txt(d.identity) + "</p>"); }
     if (d.error) { parts.push('<p class="error">' + txt(d.error) + "</p>"); }
     if (d.params.length) { parts.push(paramTable(d)); }
     (d.notices || []).forEach(function (n) { parts.push('<p class="notice">note: ' + txt(n) + "</p>"); });
     if (d.commit) { parts.push('<p class="notice">commit: ' + txt(d.commit) + "</p>"); }
     if (d.snapshot) { parts.push('<p class="notice">snapshot: ' + txt(d.snapshot) + "</p>"); }
     if (d.sha) { parts.push('<p class="notice">profile sha256: ' + txt(d.sha) + "</p>"); }
-    parts.push(signature());
     return parts.join("");
   }
 
@@ -126,16 +128,18 @@ JS = r"""
       return (RANK[a.status] == null ? 9 : RANK[a.status]) - (RANK[b.status] == null ? 9 : RANK[b.status]) ||
              a.i - b.i;
     });
-    var tbody = $("device-rows");
+    var tbody = $("device-rows"), asFound = DATA.kind === "as-found";
     tbody.innerHTML = order.map(function (d) {
-      return '<tr class="dev" data-i="' + d.i + '"><td>' + txt(d.name) + "</td><td>" + st(d.status) +
-             '</td><td class="num">' + esc(d.batch == null ? "" : d.batch) + '</td><td class="num">' +
+      var run = asFound ? "" : '<td class="num">' + esc(d.batch == null ? "" : d.batch) + '</td><td class="num">' +
              d.changed + '</td><td class="num">' + d.failed + '</td><td class="num">' + d.requests +
-             '</td><td class="num">' + esc(d.seconds == null ? "" : d.seconds.toFixed(2)) + "</td><td>" +
-             txt(d.profile) + "</td></tr>";
+             '</td><td class="num">' + esc(d.seconds == null ? "" : d.seconds.toFixed(2)) + "</td>";
+      return '<tr class="dev" data-i="' + d.i + '"><td>' + txt(d.name) + "</td><td>" + st(d.status) + "</td>" +
+             run + "<td>" + txt(d.profile) + "</td></tr>";
     }).join("");
+    // a compact record: parameters only for the devices that changed or did not end ok
+    var listed = DATA.compact ? order.filter(function (d) { return d.changed > 0 || d.status !== "ok"; }) : order;
     var sections = $("records");
-    sections.innerHTML = order.map(function (d) {
+    sections.innerHTML = listed.map(function (d) {
       // devices that need a look are open; a run of a few devices shows them all
       var open = (RANK[d.status] != null && RANK[d.status] < 6) || devs.length <= 3 ? " open" : "";
       return '<details class="device" id="dev-' + d.i + '" data-i="' + d.i + '"' + open + "><summary>" +
@@ -151,7 +155,7 @@ JS = r"""
       var tr = e.target.closest("tr.dev");
       if (!tr) { return; }
       var sec = $("dev-" + tr.dataset.i);
-      sec.open = true; fill(sec); sec.scrollIntoView();
+      if (sec) { sec.open = true; fill(sec); sec.scrollIntoView(); }
     });
     sortable($("device-table"), tbody, function (tr, key) {
       var d = devs[+tr.dataset.i];
@@ -191,7 +195,8 @@ JS = r"""
         if (keep) { shown++; }
         var row = document.querySelector('tr.dev[data-i="' + d.i + '"]');
         if (row) { row.classList.toggle("hidden", !keep); }
-        $("dev-" + d.i).classList.toggle("hidden", !keep);
+        var sec = $("dev-" + d.i);
+        if (sec) { sec.classList.toggle("hidden", !keep); }
       });
       $("shown").textContent = shown + " of " + DATA.devices.length + " devices shown";
       document.querySelectorAll(".count").forEach(function (b) {

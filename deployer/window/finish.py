@@ -164,6 +164,8 @@ def _merge(w: Written, back: DeviceResult) -> None:
             p.status, p.error = "rolled-back", f"restored to {b.desired}"
         elif b.status not in ("unchanged", "skipped"):
             p.status, p.error = b.status, f"rollback: {b.error or b.status}"
+        elif back.status != "ok" and p.status == "ok":  # never read again: what it holds now is not known
+            p.status, p.error = "unverified", f"state unknown: the rollback did not reach it ({back.status})"
 
 
 def _journal_rollback(options: ApplyOptions, w: Written, why: str) -> None:
