@@ -27,11 +27,12 @@ from .base import Duration
               metavar="FRACTION", help="warn when a register has taken this share of its profile's endurance")
 def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_drift: str, on_replace: str,
           bus_share: float, max_restores: int, endurance_warn: float) -> int:
-    """Run the site agent: own INVENTORY's devices, watch them, serve the HTTP API (until SIGTERM).
+    """Run the site agent: own INVENTORY's devices, watch them, serve the HTTP API (until SIGTERM or Ctrl-C).
 
     It takes each device's lock (set DEPLOYER_LOCK_DIR for it and the command line alike), so a plain
     apply to its devices is refused; run through it with --agent URL. It prints 'listening on URL' on
-    stderr when ready. SIGHUP reads the files again (shown as pending; never written by itself).
+    stderr when ready. SIGHUP reads the files again (shown as pending; never written by itself; Windows
+    has no SIGHUP: restart the agent there).
     """
     import asyncio
 
