@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import shutil
 import subprocess
 import sys
@@ -294,3 +295,30 @@ def test_a_device_from_another_library_watched_and_restored(tmp_path: Path) -> N
             assert agent.terminate() == 0
         finally:
             agent.kill()
+
+
+def test_watching_keeps_to_its_share_of_a_bus(tmp_path: Path) -> None:
+    """Three units behind one address (one bus: a gateway's line), each answer 40 ms late: after reading a device
+    the watch leaves the bus alone for at least four times as long (--bus-share 0.2), across rounds and a
+    client's check at the same time too."""
+    from deployer.testing.simulator import Faults
+
+    (tmp_path / "drive.yaml").write_text(PROFILE)
+    prof = load_profile(str(tmp_path / "drive.yaml"))
+    with SimulatorThread(prof, listen="tcp://127.0.0.1:0", units=(1, 2, 3), faults=Faults(latency_ms=40)) as sim:
+        port = sim.url.rsplit(":", 1)[1]
+        write_site(tmp_path, {})
+        inv = tmp_path / "inv.yaml"
+        inv.write_text("defaults: {recipe: r.yaml}\ndevices:\n" + "".join(
+            f"  d{u}: {{url: \"tcp://127.0.0.1:{port}\", unit: {u}}}\n" for u in (1, 2, 3)))
+        agent = AgentProcess(inv, tmp_path / "state", "--bus-share", "0.2", check_every="100ms")
+        try:
+            until(lambda: all(d["last_check"] for d in agent.client.devices()), why="all read")
+            agent.client.check()
+            assert agent.terminate() == 0
+        finally:
+            agent.kill()
+    reads = [e for e in sim.log if e.function == 3]
+    # consecutive reads of different units: the second starts at least 4 x 40 ms after the first answered
+    gaps = [(b.time - a.time) for a, b in itertools.pairwise(reads) if a.unit != b.unit]
+    assert gaps and min(gaps) >= 4 * 0.040 * 0.9, gaps

@@ -6,17 +6,34 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from deployer.profile import load_profile
+from deployer.profile import Profile, load_profile
 from deployer.testing.simulator import Quirks, SimulatorThread
 from tests.agent_helpers import PROFILE, AgentProcess, event, until, write_site
 
 pytestmark = pytest.mark.timeout(120)
 
 ACME = {0: "ACME", 1: "D100", 2: "1.0"}
+
+
+def on_port(prof: Profile, port: str, **kw: Any) -> SimulatorThread:
+    """A simulator on the port another one left. The agent keeps connecting there while nothing listens, and
+    Linux may pick that very port as the connection's own (a socket connected to itself): it holds the port
+    until the agent's read times out, so binding is tried again for a while."""
+    for _ in range(100):
+        t = SimulatorThread(prof, listen=f"tcp://127.0.0.1:{port}", **kw)
+        try:
+            t.__enter__()
+            return t
+        except RuntimeError:
+            t._loop.call_soon_threadsafe(t._loop.stop)
+            time.sleep(0.2)
+    raise AssertionError(f"port {port} stayed taken")
 
 
 def configured(sim: object) -> None:
@@ -40,9 +57,8 @@ def test_replaced_device_restored_per_unit_untouched_other_model_refused(tmp_pat
         first.__exit__(None, None, None)  # the drive is swapped: gone for a while ...
         until(lambda: event(c, "unreachable", "d1"), why="unreachable")
         # ... and a new unit of the same model answers: another revision, factory values, its own address set
-        second = SimulatorThread(prof, listen=f"tcp://127.0.0.1:{port}", init={20: 9},
-                                 quirks=Quirks(identity={**ACME, 2: "1.1"}))
-        new = second.__enter__()
+        second = on_port(prof, port, init={20: 9}, quirks=Quirks(identity={**ACME, 2: "1.1"}))
+        new = second.sim
         try:
             until(lambda: event(c, "restored", "d1"), why="restored")
             ev = event(c, "replaced", "d1")
@@ -54,9 +70,8 @@ def test_replaced_device_restored_per_unit_untouched_other_model_refused(tmp_pat
             second.__exit__(None, None, None)
         until(lambda: c.device("d1")["status"] == "unreachable", why="gone again")
         # a different model at the address: refused, nothing written
-        third = SimulatorThread(prof, listen=f"tcp://127.0.0.1:{port}",
-                                quirks=Quirks(identity={0: "ACME", 1: "D200", 2: "3.0"}))
-        other = third.__enter__()
+        third = on_port(prof, port, quirks=Quirks(identity={0: "ACME", 1: "D200", 2: "3.0"}))
+        other = third.sim
         try:
             ev2 = until(lambda: event(c, "replace-refused", "d1"), why="refused")
             assert "another model" in ev2["message"] and "product_code 'D100' -> 'D200'" in ev2["message"]
@@ -134,11 +149,15 @@ def test_back_at_factory_values_after_being_unreachable_is_a_replacement(tmp_pat
         assert c.device("d1")["identity"]["function_43"] is False
         first.__exit__(None, None, None)
         until(lambda: event(c, "unreachable", "d1"), why="unreachable")
-        with SimulatorThread(prof, listen=f"tcp://127.0.0.1:{port}", init={20: 9}) as new:
+        second = on_port(prof, port, init={20: 9})
+        try:
+            new = second.sim
             until(lambda: event(c, "restored", "d1"), why="restored")
             ev = event(c, "replaced", "d1")
             assert ev is not None and "factory defaults" in ev["message"]
             assert new.read("accel") == (20,) and new.read("address") == (9,)
+        finally:
+            second.__exit__(None, None, None)
         assert agent.terminate() == 0
     finally:
         agent.kill()

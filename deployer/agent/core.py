@@ -143,6 +143,8 @@ class Agent:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._watch: asyncio.Task[None] | None = None
         self._wake = asyncio.Event()
+        self._buses: dict[str, asyncio.Lock] = {}  # the watch reads one device of a bus at a time ...
+        self._bus_free: dict[str, float] = {}  # ... and not before this monotonic time (the bus share)
         self._folder_lock: int | None = None
         self.checks = 0
         self.check_seconds = 0.0
@@ -383,16 +385,21 @@ class Agent:
         gate = asyncio.Semaphore(self.settings.parallel)
         t0 = time.monotonic()
 
-        async def bus(devs: list[Device]) -> None:
+        async def bus(key: str, devs: list[Device]) -> None:
+            one_at_a_time = self._buses.setdefault(key, asyncio.Lock())
             async with gate:
-                for i, d in enumerate(devs):
-                    began = time.monotonic()
-                    await self._check_one(d)
-                    spent = time.monotonic() - began
-                    if i + 1 < len(devs):  # leave the bus to others: watching takes at most its share
-                        await asyncio.sleep(spent * (1 / self.settings.bus_share - 1))
+                for d in devs:
+                    async with one_at_a_time:  # the watch and a client's check share the bus's pace
+                        wait = self._bus_free.get(key, 0.0) - time.monotonic()
+                        if wait > 0:
+                            await asyncio.sleep(wait)
+                        began = time.monotonic()
+                        await self._check_one(d)
+                        spent = time.monotonic() - began
+                        # leave the bus to others: watching takes at most its share of the bus's time
+                        self._bus_free[key] = time.monotonic() + spent * (1 / self.settings.bus_share - 1)
 
-        await asyncio.gather(*(bus(g) for g in buses.values()))
+        await asyncio.gather(*(bus(k, g) for k, g in buses.items()))
         self.checks += 1
         self.check_seconds = time.monotonic() - t0
 
