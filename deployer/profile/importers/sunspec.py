@@ -100,9 +100,6 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
     path = model_path(model)
     # JSON allows tabs where YAML (our loader, which keeps positions) does not: same columns with spaces
     data, src = yamlsrc.load(path, yamlsrc.read_text(path).expandtabs(1))
-    sfs = dict(scale_factors or {})
-    warnings: list[str] = []
-    errors: list[Diagnostic] = []
     problems = _schema_problems(data, src)
     if problems:
         raise InputError(problems)
@@ -110,32 +107,79 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
     if "points" not in group:
         raise InputError([src.error(("group",), "not a SunSpec model definition (expected group.points)")])
     model_id = int(data.get("id", 0) or next((p.get("value", 0) for p in group["points"] if p["name"] == "ID"), 0))
-    parameters: list[tuple[str, dict[str, Any], Origin]] = []
-    tables: list[tuple[str, dict[str, Any], Origin]] = []
-    offset = 0
-    length_spec: dict[str, Any] | None = None
+    r = _ModelReader(path, src, at, prefix, dict(scale_factors or {}), counts, dict(point_values or {}), length)
+    r.top_points(group)
+    r.groups(group)
+    if r.length_spec is not None:
+        r.length_spec["default"] = r.offset - 2  # the registers after ID and L
+    for name, spec, _ in r.parameters:
+        if name[len(prefix):] in r.count_points and name.startswith(prefix):
+            spec["default"] = r.count_points[name[len(prefix):]]
+    if r.errors:
+        raise InputError(r.errors)
+    if at + r.offset > MAX_REGISTERS:
+        raise UsageError(f"--at {at}: model {model_id} is {r.offset} registers long and would end past register "
+                         "65535")
+    return Draft(_header(r, group, model_id, profile_id), r.parameters, r.tables), r.warnings
 
-    def spec_of(point: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any] | None, int]:
+
+def _header(r: _ModelReader, group: Mapping[str, Any], model_id: int, profile_id: str | None) -> dict[str, Any]:
+    """The profile's own keys; the first model (right after "SunS") also gets the marker as identity."""
+    at = r.at
+    identity = [{"register": at, "raw": model_id, "description": f"SunSpec model ID {model_id}"}]
+    if at == SUNSPEC_BASE + 2:  # the first model: the "SunS" marker right before it is part of the map
+        marker = {"description": "SunSpec marker 'SunS'", "type": "string", "count": 2, "access": "read-only",
+                  "default": "SunS"}
+        r.parameters.insert(0, ("SunS", {"register": SUNSPEC_BASE, **marker}, Origin(r.path, 1, 1)))
+        identity[:0] = [{"register": SUNSPEC_BASE, "raw": 0x5375, "description": "'Su' of the SunS marker"},
+                        {"register": SUNSPEC_BASE + 1, "raw": 0x6E53, "description": "'nS' of the SunS marker"}]
+    return {"profile": profile_id or f"sunspec-{model_id}-{group.get('name', 'model')}",
+            "description": f"SunSpec model {model_id} ({group.get('label', group.get('name'))}) at address {at}, "
+                           "imported from pysunspec2's model definitions",
+            "addressing": "address",
+            "identity": identity}
+
+
+class _ModelReader:
+    """One model laid out from ``at``: its points, then its groups (tables); the errors and warnings found."""
+
+    def __init__(self, path: str, src: yamlsrc.Source, at: int, prefix: str, sfs: dict[str, int],
+                 counts: dict[str, int], values: dict[str, int], length: int | None) -> None:
+        self.path, self.src, self.at, self.prefix = path, src, at, prefix
+        self.sfs, self.counts, self.values, self.length = sfs, counts, values, length
+        self.errors: list[Diagnostic] = []
+        self.warnings: list[str] = []
+        self.parameters: list[tuple[str, dict[str, Any], Origin]] = []
+        self.tables: list[tuple[str, dict[str, Any], Origin]] = []
+        self.count_points: dict[str, int] = {}
+        self.length_spec: dict[str, Any] | None = None
+        self.offset = 0  # registers from the ID point laid out so far
+
+    def error(self, at: yamlsrc.Path_, message: str) -> None:
+        self.errors.append(self.src.error(at, message))
+
+    # ---- one point ----------------------------------------------------------------------------
+
+    def spec_of(self, point: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any] | None,
+                                                                                            int]:
+        """A point as a parameter spec (None: an error said), and its registers."""
         ptype = str(point.get("type"))
         size = int(point.get("size", 1))
         if ptype not in _TYPES:
-            errors.append(src.error((*at_, "type"), f"{point.get('name')}: SunSpec type '{ptype}' is not supported"))
+            self.error((*at_, "type"), f"{point.get('name')}: SunSpec type '{ptype}' is not supported")
             return None, size
         our, count = _TYPES[ptype]
         if count and count != size:
-            errors.append(src.error((*at_, "size"), f"{point.get('name')}: {ptype} is {count} registers, not {size}"))
+            self.error((*at_, "size"), f"{point.get('name')}: {ptype} is {count} registers, not {size}")
             return None, size
-        spec: dict[str, Any] = {}
-        desc = " - ".join(str(point[k]) for k in ("label", "desc") if point.get(k))
-        spec["type"] = our
+        spec: dict[str, Any] = {"type": our}
         if our == "string":
             spec["count"] = size
             if ptype == "ipv6addr":
                 spec["encoding"] = "latin-1"  # 16 raw bytes: every byte is a latin-1 character
         access = "read-write" if point.get("access") == "RW" else "read-only"
-        if ptype in ("pad", "sunssf", "acc16", "acc32", "acc64"):
-            access = "read-only"
-        spec["access"] = access
+        spec["access"] = "read-only" if ptype in ("pad", "sunssf", "acc16", "acc32", "acc64") else access
+        desc = " - ".join(str(point[k]) for k in ("label", "desc") if point.get(k))
         u = point.get("units")
         if u:
             unit = _UNITS.get(str(u), str(u))
@@ -143,25 +187,10 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
                 spec["unit"] = unit
             else:
                 desc = f"{desc} [{u}]"
-        sf = point.get("sf")
-        if isinstance(sf, int) and not isinstance(sf, bool):
-            if sf not in SF_RANGE:
-                errors.append(src.error((*at_, "sf"), f"{point.get('name')}: scale factor {sf} is not -10 to 10"))
-                return None, size
-            spec["scale"] = _pow10(sf)
-        elif isinstance(sf, str):
-            if sf in sfs:
-                spec["scale"] = _pow10(sfs[sf])
-            else:  # a unit would convert '10 kW' with scale 1: raw numbers only, until the factor is known
-                unit_text = f" {spec.pop('unit')}" if "unit" in spec else ""
-                desc = f"{desc} (raw: the value in{unit_text} is raw x 10^{sf}; import with --sf {sf}=N or --device)"
-                warnings.append(f"{prefix}{point['name']}: scale factor {sf} unknown: imported raw, without its unit")
-        symbols = point.get("symbols") or []
-        if ptype in ("enum16", "enum32") and symbols:
-            if not all(isinstance(sym.get("value"), int) for sym in symbols):
-                errors.append(src.error((*at_, "symbols"), f"{point['name']}: symbol values must be integers"))
-                return None, size
-            spec["values"] = {str(sym["name"]): int(sym["value"]) for sym in symbols}
+        said = self._scale(point, at_, prefix, spec, desc)
+        if said is None or not self._symbols(point, at_, ptype, spec):
+            return None, size
+        desc = said
         if isinstance(point.get("value"), int) and not isinstance(point["value"], bool) and (
                 abs(point["value"]) < 1 << 64):
             spec["default"] = point["value"]
@@ -169,143 +198,163 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
             spec = {"description": desc, **spec}
         return spec, size
 
-    for i, point in enumerate(group["points"]):
-        at_: yamlsrc.Path_ = ("group", "points", i)
-        spec, size = spec_of(point, at_)
-        line, col = src.pos((*at_, "name"))
-        if spec is not None:
-            name = prefix + str(point["name"])
-            if point.get("type") == "bitfield16" and point.get("symbols") and all(
-                    isinstance(sym.get("value"), int) and 0 <= sym["value"] <= 15 for sym in point["symbols"]):
-                for s in point["symbols"]:  # one bool field per documented bit
-                    field_spec = {"description": f"{spec.get('description', name)}: {s['name']}",
-                                  "type": "bool", "bits": int(s["value"]), "access": spec["access"]}
-                    parameters.append((f"{name}.{s['name']}", {"register": at + offset, **field_spec},
-                                       Origin(path, line, col)))
-            else:
-                if point.get("type") == "sunssf" and point["name"] in sfs:
-                    spec["default"] = sfs[point["name"]]  # the value given: what a simulated device reports
-                entry = {"register": at + offset, **spec}
-                parameters.append((name, entry, Origin(path, line, col)))
-                if point["name"] == "L":
-                    length_spec = entry  # its default is the model's length, known once the groups are laid out
-        offset += size
-    values = dict(point_values or {})
-    count_points: dict[str, int] = {}
+    def _scale(self, point: dict[str, Any], at_: yamlsrc.Path_, prefix: str, spec: dict[str, Any],
+               desc: str) -> str | None:
+        """The point's scale factor: fixed, given (--sf), or unknown (imported raw, said); the description, or
+        None after an error."""
+        sf = point.get("sf")
+        if isinstance(sf, int) and not isinstance(sf, bool):
+            if sf not in SF_RANGE:
+                self.error((*at_, "sf"), f"{point.get('name')}: scale factor {sf} is not -10 to 10")
+                return None
+            spec["scale"] = _pow10(sf)
+        elif isinstance(sf, str):
+            if sf in self.sfs:
+                spec["scale"] = _pow10(self.sfs[sf])
+            else:  # a unit would convert '10 kW' with scale 1: raw numbers only, until the factor is known
+                unit_text = f" {spec.pop('unit')}" if "unit" in spec else ""
+                desc = f"{desc} (raw: the value in{unit_text} is raw x 10^{sf}; import with --sf {sf}=N or --device)"
+                self.warnings.append(f"{prefix}{point['name']}: scale factor {sf} unknown: imported raw, without its "
+                                     "unit")
+        return desc
 
-    def count_of(sub: dict[str, Any], at_: yamlsrc.Path_, size: int | None = None) -> int | None:
+    def _symbols(self, point: dict[str, Any], at_: yamlsrc.Path_, ptype: str, spec: dict[str, Any]) -> bool:
+        symbols = point.get("symbols") or []
+        if ptype in ("enum16", "enum32") and symbols:
+            if not all(isinstance(sym.get("value"), int) for sym in symbols):
+                self.error((*at_, "symbols"), f"{point['name']}: symbol values must be integers")
+                return False
+            spec["values"] = {str(sym["name"]): int(sym["value"]) for sym in symbols}
+        return True
+
+    # ---- the model's own points ---------------------------------------------------------------------
+
+    def top_points(self, group: Mapping[str, Any]) -> None:
+        for i, point in enumerate(group["points"]):
+            at_: yamlsrc.Path_ = ("group", "points", i)
+            spec, size = self.spec_of(point, at_)
+            line, col = self.src.pos((*at_, "name"))
+            if spec is not None:
+                self._point(point, spec, Origin(self.path, line, col))
+            self.offset += size
+
+    def _point(self, point: dict[str, Any], spec: dict[str, Any], origin: Origin) -> None:
+        name = self.prefix + str(point["name"])
+        register = self.at + self.offset
+        if point.get("type") == "bitfield16" and point.get("symbols") and all(
+                isinstance(sym.get("value"), int) and 0 <= sym["value"] <= 15 for sym in point["symbols"]):
+            for s in point["symbols"]:  # one bool field per documented bit
+                field_spec = {"description": f"{spec.get('description', name)}: {s['name']}",
+                              "type": "bool", "bits": int(s["value"]), "access": spec["access"]}
+                self.parameters.append((f"{name}.{s['name']}", {"register": register, **field_spec}, origin))
+            return
+        if point.get("type") == "sunssf" and point["name"] in self.sfs:
+            spec["default"] = self.sfs[point["name"]]  # the value given: what a simulated device reports
+        entry = {"register": register, **spec}
+        self.parameters.append((name, entry, origin))
+        if point["name"] == "L":
+            self.length_spec = entry  # its default is the model's length, known once the groups are laid out
+
+    # ---- repeating groups ---------------------------------------------------------------------------
+
+    def count_of(self, sub: dict[str, Any], at_: yamlsrc.Path_, size: int | None = None) -> int | None:
         """How often a group repeats: --count, the device's count point, the model's fixed count, one;
         None when unknown (said in a warning). ``size``: registers of one repetition, for count 0."""
         name = str(sub.get("name"))
         declared = sub.get("count")
-        if name in counts:
+        if name in self.counts:
             if isinstance(declared, str):  # the count point says it too: what a simulated device reports
-                count_points[declared] = counts[name]
-            return counts[name]
+                self.count_points[declared] = self.counts[name]
+            return self.counts[name]
         if declared is None:
             return 1
-        if isinstance(declared, str) and declared in values:
-            return values[declared]
-
-        if isinstance(declared, int) and not isinstance(declared, bool) and declared > 0:
-            if declared >= MAX_REGISTERS:
-                errors.append(src.error((*at_, "count"), f"group {name}: count {declared} repeats past register "
-                                                          "65535"))
-                return None
-            return declared
-        if isinstance(declared, int) and not isinstance(declared, bool) and declared < 0:
-            errors.append(src.error((*at_, "count"), f"group {name}: count {declared} is negative (a count is "
-                                                      "a number of repetitions, or 0: as many as the model's "
-                                                      "length holds)"))
+        if isinstance(declared, str) and declared in self.values:
+            return self.values[declared]
+        is_int = isinstance(declared, int) and not isinstance(declared, bool)
+        if is_int and declared >= MAX_REGISTERS:
+            self.error((*at_, "count"), f"group {name}: count {declared} repeats past register 65535")
             return None
-        if declared == 0 and length is not None and size:
-            left = length + 2 - offset_now[0]
+        if is_int and declared > 0:
+            return int(declared)
+        if is_int and declared < 0:
+            self.error((*at_, "count"), f"group {name}: count {declared} is negative (a count is a number of "
+                                        "repetitions, or 0: as many as the model's length holds)")
+            return None
+        if declared == 0 and self.length is not None and size:
+            left = self.length + 2 - self.offset
             if left >= 0 and left % size == 0:
                 return left // size
         what = f"the point {declared}" if isinstance(declared, str) else "0: as many as the model's length L holds"
-        warnings.append(f"group {prefix}{name}: its count is {what} (set by the device); not imported "
-                        f"(give it with --count {name}=N, or import with --device)")
+        self.warnings.append(f"group {self.prefix}{name}: its count is {what} (set by the device); not imported "
+                             f"(give it with --count {name}=N, or import with --device)")
         return None
 
-    offset_now = [offset]
-
-    def fields_of(sub: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any], int] | None:
+    def fields_of(self, sub: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any],
+                                                                                             int] | None:
         """A group's points as table fields (offset from the entry's start), and the entry's size. A group
         nested in it (a curve's points) becomes fields Pt0_V, Pt0_Var, Pt1_V ... after the group's own."""
         out: dict[str, Any] = {}
         size = 0
         for k, point in enumerate(sub.get("points", [])):
-            spec, n = spec_of(point, (*at_, "points", k), f"{sub.get('name')}.")
+            spec, n = self.spec_of(point, (*at_, "points", k), f"{sub.get('name')}.")
             if spec is not None and point.get("type") != "pad":
                 spec.pop("default", None)
                 out[f"{prefix}{point['name']}"] = {"offset": size, **spec}
             size += n
         for k, inner in enumerate(sub.get("groups") or []):
             if prefix:  # a third level: no model in pysunspec2 has one
-                warnings.append(f"group {inner.get('name')}: groups nested twice are not imported")
+                self.warnings.append(f"group {inner.get('name')}: groups nested twice are not imported")
                 return None
-            inner_at = (*at_, "groups", k)
-            got = fields_of(inner, inner_at, "-")
+            got = self._inner(inner, (*at_, "groups", k), size)
             if got is None:
                 return None
-            inner_fields, inner_size = got
-            n_inner = count_of(inner, inner_at)
-            if n_inner is None:
-                return None
-            if n_inner * max(inner_size, 1) >= MAX_REGISTERS or n_inner * len(inner_fields) > yamlsrc.MAX_ENTRIES:
-                where = f"--count {inner.get('name')}={n_inner}" if inner.get("name") in counts else "count"
-                errors.append(src.error((*inner_at, "count"), f"group {inner.get('name')}: {where}: {n_inner} x "
-                                                               f"{inner_size} registers run past register 65535"))
-                return None
-            for i in range(n_inner):
-                for name, spec in inner_fields.items():
-                    out[f"{inner['name']}{i}_{name[1:]}"] = {**spec, "offset": size + i * inner_size + spec["offset"]}
-            size += n_inner * inner_size
+            out.update(got[0])
+            size += got[1]
         return out, size
 
-    table_prefix = prefix.replace(".", "_")
-    for j, sub in enumerate(group.get("groups") or []):
-        at_ = ("group", "groups", j)
-        got = fields_of(sub, at_)
+    def _inner(self, inner: dict[str, Any], inner_at: yamlsrc.Path_, start: int) -> tuple[dict[str, Any],
+                                                                                            int] | None:
+        """A nested group's repetitions as fields from ``start``, and their registers."""
+        got = self.fields_of(inner, inner_at, "-")
         if got is None:
-            break  # later groups' addresses depend on it
-        fields, stride = got
-        offset_now[0] = offset
-        count = count_of(sub, at_, stride)
-        if count is None:
-            break
-        line, col = src.pos((*at_, "name"))
-        if at + offset + stride * count > MAX_REGISTERS or count * len(fields) > yamlsrc.MAX_ENTRIES:
-            where = f"--count {sub.get('name')}={count}" if sub.get("name") in counts else "count"
-            errors.append(src.error((*at_, "count"), f"group {sub.get('name')}: {where}: {count} x {stride} "
-                                                      f"registers from register {at + offset} run past 65535"))
-            break
-        if fields:
-            tables.append((table_prefix + str(sub["name"]), {"count": count, "base": at + offset, "stride": stride,
-                                                             "fields": fields}, Origin(path, line, col)))
-        offset += stride * count
-    if length_spec is not None:
-        length_spec["default"] = offset - 2  # the registers after ID and L
-    for name, spec, _ in parameters:
-        if name[len(prefix):] in count_points and name.startswith(prefix):
-            spec["default"] = count_points[name[len(prefix):]]
-    if errors:
-        raise InputError(errors)
-    if at + offset > MAX_REGISTERS:
-        raise UsageError(f"--at {at}: model {model_id} is {offset} registers long and would end past register 65535")
-    identity = [{"register": at, "raw": model_id, "description": f"SunSpec model ID {model_id}"}]
-    if at == SUNSPEC_BASE + 2:  # the first model: the "SunS" marker right before it is part of the map
-        marker = {"description": "SunSpec marker 'SunS'", "type": "string", "count": 2, "access": "read-only",
-                  "default": "SunS"}
-        parameters.insert(0, ("SunS", {"register": SUNSPEC_BASE, **marker}, Origin(path, 1, 1)))
-        identity[:0] = [{"register": SUNSPEC_BASE, "raw": 0x5375, "description": "'Su' of the SunS marker"},
-                        {"register": SUNSPEC_BASE + 1, "raw": 0x6E53, "description": "'nS' of the SunS marker"}]
-    header = {"profile": profile_id or f"sunspec-{model_id}-{group.get('name', 'model')}",
-              "description": f"SunSpec model {model_id} ({group.get('label', group.get('name'))}) at address {at}, "
-                             "imported from pysunspec2's model definitions",
-              "addressing": "address",
-              "identity": identity}
-    return Draft(header, parameters, tables), warnings
+            return None
+        inner_fields, inner_size = got
+        n_inner = self.count_of(inner, inner_at)
+        if n_inner is None:
+            return None
+        if n_inner * max(inner_size, 1) >= MAX_REGISTERS or n_inner * len(inner_fields) > yamlsrc.MAX_ENTRIES:
+            where = f"--count {inner.get('name')}={n_inner}" if inner.get("name") in self.counts else "count"
+            self.error((*inner_at, "count"), f"group {inner.get('name')}: {where}: {n_inner} x {inner_size} "
+                                             "registers run past register 65535")
+            return None
+        out = {f"{inner['name']}{i}_{name[1:]}": {**spec, "offset": start + i * inner_size + spec["offset"]}
+               for i in range(n_inner) for name, spec in inner_fields.items()}
+        return out, n_inner * inner_size
+
+    def groups(self, group: Mapping[str, Any]) -> None:
+        """The model's repeating groups as tables, one after the other (a group that cannot be laid out ends
+        it: later groups' addresses depend on it)."""
+        table_prefix = self.prefix.replace(".", "_")
+        for j, sub in enumerate(group.get("groups") or []):
+            at_: yamlsrc.Path_ = ("group", "groups", j)
+            got = self.fields_of(sub, at_)
+            if got is None:
+                break
+            fields, stride = got
+            count = self.count_of(sub, at_, stride)
+            if count is None:
+                break
+            line, col = self.src.pos((*at_, "name"))
+            if self.at + self.offset + stride * count > MAX_REGISTERS or count * len(fields) > yamlsrc.MAX_ENTRIES:
+                where = f"--count {sub.get('name')}={count}" if sub.get("name") in self.counts else "count"
+                self.error((*at_, "count"), f"group {sub.get('name')}: {where}: {count} x {stride} registers from "
+                                            f"register {self.at + self.offset} run past 65535")
+                break
+            if fields:
+                self.tables.append((table_prefix + str(sub["name"]), {
+                    "count": count, "base": self.at + self.offset, "stride": stride, "fields": fields},
+                    Origin(self.path, line, col)))
+            self.offset += stride * count
 
 
 def _pow10(sf: int) -> float | int:
