@@ -218,3 +218,24 @@ def test_the_agent_without_posix(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
             assert agent.terminate() == 0, agent.log()
         finally:
             agent.kill()
+
+
+def test_ctrl_c_during_a_soak_rolls_back_without_posix(tmp_path: Path) -> None:
+    # Ctrl-C while a change soaks is a no: restored at once, through signal.signal as on Windows
+    second = recipe(tmp_path, "second", SECOND)
+    with SimulatorThread(builtin_profile("example-inverter")) as sim:
+        before = sim.registers()
+        c = start(tmp_path, "apply", second, "--device", sim.url, "--yes", "--soak", "1h", "--health-interval",
+                  "100ms", "--state-dir", "s")
+        try:
+            audit = tmp_path / "s" / "audit.jsonl"
+            wait_for(lambda: audit.exists() and "soak-started" in audit.read_text(), "the soak")
+            c.send_signal(signal.SIGINT)
+            out, err = c.communicate(timeout=60)
+        finally:
+            if c.poll() is None:
+                c.kill()
+        assert c.returncode == 4, out + err
+        assert sim.registers() == before
+    events = [json.loads(x)["event"] for x in (tmp_path / "s" / "audit.jsonl").read_text().splitlines()]
+    assert "rolled-back" in events and events[-1] == "run-finished"
