@@ -198,11 +198,17 @@ def test_cli_through_the_agent_plan_diff_status_rollback_and_ledger(tmp_path: Pa
         ap2 = run("apply", "--yes")
         assert ap2.returncode == 0 and a.read("accel") == (40,)
         runs = [r for r in c.runs() if r["command"] == "apply"]
+        c.check()
         st = run("status")
-        assert st.returncode == 0 and agent.url in st.stdout
+        assert st.returncode == 0 and agent.url in st.stdout, st.stdout
         rb = run("rollback", "--from-report", runs[0]["id"])
         assert rb.returncode == 0, rb.stderr
         assert a.read("accel") == (20,)
+        # the state rolled back to is the adopted one now (a drift restore never undoes a rollback); the files
+        # still say 4 s: pending again, and status says something needs a look
+        assert run("diff").returncode == 0
+        assert c.pending()["devices"][0]["changes"] == [{"name": "accel", "adopted": "2 s", "files": "4 s"}]
+        assert run("status").returncode == 2
         # the ledger against the device's own request log: every write request, per register
         led = {r["address"]: r["writes"] + r["commits"] for r in c.ledger()["devices"][0]["registers"]}
         assert led == writes_in_log(a.log), (led, writes_in_log(a.log))

@@ -722,6 +722,11 @@ class Agent:
                     if adopt:
                         self._adopt(dev, by_name[r.name], ds.values_of(by_name[r.name].recipe), run=run.id,
                                     why=f"run {run.id}")
+                    elif run.command == "rollback":  # what was restored is the state to keep, not what was undone
+                        back = {n: v for n, v in ds.values_of(by_name[r.name].recipe).items()
+                                if n in dev.adopted_values}
+                        self._adopt(dev, dev.job, {**dev.adopted_values, **back}, run=run.id,
+                                    why=f"rollback run {run.id}")
                     dev.asleft = {n: v for n, v in after.items() if n in dev.adopted_values}
                     self.store.set_asleft(r.name, dev.asleft,
                                           f"run {run.id}")

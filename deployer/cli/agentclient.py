@@ -155,9 +155,11 @@ def diff(url: str, *, limit: str | None, as_json: bool) -> int:
 
 def status(url: str, *, as_json: bool) -> int:
     s = _client(url).status()
+    # 2 while something needs a look (a device not ok, a window open, a run in flight), as deployer status
+    look = EXIT_CHANGES if s["devices"] or s["windows"] or s["runs"] else EXIT_OK
     if as_json:
         echo(json.dumps(s, indent=2))
-        return EXIT_OK
+        return look
     a = s["agent"]
     echo(f"agent {a['url']} (PID {a['pid']}), {a['inventory']}, state {a['state_dir']}")
     for d in s["devices"]:
@@ -171,7 +173,7 @@ def status(url: str, *, as_json: bool) -> int:
         echo(f"  run {r['id']} ({r['command']}): {r['state']}")
     if not (s["devices"] or s["windows"] or s["runs"]):
         echo("  every device holds the adopted state; nothing waits")
-    return EXIT_OK
+    return look
 
 
 def confirm(url: str, run: str | None) -> int:
