@@ -136,6 +136,9 @@ def _copy(value: Any) -> Any:
     return value
 
 
+_MORE = object()  # _Builder._event: the document goes on
+
+
 class _Builder:
     """Plain values with positions from a stream of YAML events; iterative, with limits."""
 
@@ -211,72 +214,85 @@ class _Builder:
                 if not stack:
                     return frame.value
                 continue
-            mark = ev.start_mark
-            pos = (mark.line + 1) << 24 | (mark.column + 1)
-            # where this event's value goes
-            parent = stack[-1] if stack else None
-            at: Path_ = ()
-            skip = False
-            if parent is not None:
-                if parent.is_map and parent.key is None and not parent.skip_value:
-                    # this event is a key
-                    if not self._key(parent, ev, pos) and not isinstance(ev, yaml.ScalarEvent | yaml.AliasEvent):
-                        self._skip()
-                    continue
-                if parent.is_map:
-                    skip = parent.skip_value
-                    at = parent.key_at if parent.key is not None else parent.at
-                else:
-                    lst: list[Any] = parent.value  # type: ignore[assignment]
-                    if len(lst) >= MAX_ENTRIES:
-                        self.err(pos, f"more than {MAX_ENTRIES} entries in one list")
-                        raise _Stop
-                    at = (*parent.at, len(lst))
-            if skip:
+            done = self._event(ev, stack)
+            if done is not _MORE:
+                return done
+
+    def _event(self, ev: Any, stack: list[_Frame]) -> Any:
+        """A key, value or item off the fast path: the document's value when it is complete, else ``_MORE``."""
+        mark = ev.start_mark
+        pos = (mark.line + 1) << 24 | (mark.column + 1)
+        # where this event's value goes
+        parent = stack[-1] if stack else None
+        at: Path_ = ()
+        if parent is not None:
+            if parent.is_map and parent.key is None and not parent.skip_value:
+                # this event is a key
+                if not self._key(parent, ev, pos) and not isinstance(ev, yaml.ScalarEvent | yaml.AliasEvent):
+                    self._skip()
+                return _MORE
+            if parent.is_map and parent.skip_value:
                 if not isinstance(ev, yaml.ScalarEvent | yaml.AliasEvent):
                     self._skip()
-                assert parent is not None
                 parent.skip_value = False
-                continue
-            self.nodes += 1
-            if self.nodes > MAX_NODES:
-                self._too_many(pos)
-            if isinstance(ev, yaml.AliasEvent):
-                value = self._alias(ev, at, pos)
-            elif isinstance(ev, yaml.ScalarEvent):
-                self.put(False, at, pos)
-                if ev.anchor is not None:
-                    self.open_anchors.append((ev.anchor, len(self.log), self.nodes - 1))
-                    self.log.append((False, at, pos))
-                value = self._scalar(ev, pos)
-                if ev.anchor is not None:
-                    self._end_anchor(value, at)
-            elif isinstance(ev, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
-                if len(stack) >= MAX_DEPTH:
-                    self.err(pos, f"nested deeper than {MAX_DEPTH} levels")
-                    raise _Stop
-                self.put(False, at, pos)
-                if ev.anchor is not None:
-                    self.open_anchors.append((ev.anchor, len(self.log), self.nodes - 1))
-                    self.log.append((False, at, pos))
-                is_map = isinstance(ev, yaml.MappingStartEvent)
-                tag = ev.tag
-                if tag is not None and tag != "!" and tag != (_MAP if is_map else _SEQ):
-                    self.err(pos, f"tag {clipped_repr(tag)} is not allowed")
-                    self._skip()
-                    value = None
-                    if ev.anchor is not None:
-                        self._end_anchor(value, at)
-                else:  # filled in place as its events arrive
-                    frame = _Frame({} if is_map else [], at, ev.anchor is not None)
-                    self._attach(parent, frame.value)
-                    stack.append(frame)
-                    continue
-            else:  # pragma: no cover - the parser yields nothing else inside a document
-                raise _Stop
-            if parent is None:
-                return value
-            self._attach(parent, value)
+                return _MORE
+            at = self._place(parent, pos)
+        self.nodes += 1
+        if self.nodes > MAX_NODES:
+            self._too_many(pos)
+        if isinstance(ev, yaml.AliasEvent):
+            value = self._alias(ev, at, pos)
+        elif isinstance(ev, yaml.ScalarEvent):
+            self.put(False, at, pos)
+            if ev.anchor is not None:
+                self.open_anchors.append((ev.anchor, len(self.log), self.nodes - 1))
+                self.log.append((False, at, pos))
+            value = self._scalar(ev, pos)
+            if ev.anchor is not None:
+                self._end_anchor(value, at)
+        elif isinstance(ev, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+            value = self._start(ev, at, pos, parent, stack)
+            if value is _MORE:
+                return _MORE
+        else:  # pragma: no cover - the parser yields nothing else inside a document
+            raise _Stop
+        if parent is None:
+            return value
+        self._attach(parent, value)
+        return _MORE
+
+    def _place(self, parent: _Frame, pos: Pos) -> Path_:
+        """Where a value inside ``parent`` goes: its key's path, or the next item of a list."""
+        if parent.is_map:
+            return parent.key_at if parent.key is not None else parent.at
+        lst: list[Any] = parent.value  # type: ignore[assignment]
+        if len(lst) >= MAX_ENTRIES:
+            self.err(pos, f"more than {MAX_ENTRIES} entries in one list")
+            raise _Stop
+        return (*parent.at, len(lst))
+
+    def _start(self, ev: Any, at: Path_, pos: Pos, parent: _Frame | None, stack: list[_Frame]) -> Any:
+        """A mapping or list begins: a frame filled in place as its events arrive (``_MORE``), or None
+        after a refused tag (its events skipped)."""
+        if len(stack) >= MAX_DEPTH:
+            self.err(pos, f"nested deeper than {MAX_DEPTH} levels")
+            raise _Stop
+        self.put(False, at, pos)
+        if ev.anchor is not None:
+            self.open_anchors.append((ev.anchor, len(self.log), self.nodes - 1))
+            self.log.append((False, at, pos))
+        is_map = isinstance(ev, yaml.MappingStartEvent)
+        tag = ev.tag
+        if tag is not None and tag != "!" and tag != (_MAP if is_map else _SEQ):
+            self.err(pos, f"tag {clipped_repr(tag)} is not allowed")
+            self._skip()
+            if ev.anchor is not None:
+                self._end_anchor(None, at)
+            return None
+        frame = _Frame({} if is_map else [], at, ev.anchor is not None)
+        self._attach(parent, frame.value)
+        stack.append(frame)
+        return _MORE
 
     def _too_many(self, pos: Pos) -> None:
         self.err(pos, f"more than {MAX_NODES} values in one file")

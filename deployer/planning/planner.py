@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import bisect
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from ..errors import UsageError
@@ -116,6 +117,143 @@ def merge_fields(fields: Sequence[Parameter], bits: Sequence[int], current: int 
     return ((current or 0) & ~mask & 0xFFFF) | word
 
 
+@dataclass
+class _Units:
+    """The parameters to write, in write order, as flat lists (attributes read once: at 1M parameters the
+    properties cost more than the planning itself). Bit fields of one register form one unit (one merged
+    word, written or left together): unit u is parameters bounds[u]:bounds[u + 1]."""
+
+    ordered: list[Desired]
+    params: list[Parameter]
+    names: list[str]
+    addrs: list[int]  # keys: a table's addresses never run on into another table's
+    sizes: list[int]
+    stages: list[int]
+    regs: list[tuple[int, ...]]
+    bounds: Sequence[int]
+    fields: bool
+    coils: bool
+
+    @classmethod
+    def of(cls, desired: Sequence[Desired]) -> _Units:
+        # holding registers before coils within a stage (each table its own requests), ascending addresses
+        ordered = sorted(desired, key=lambda d: (d.parameter.stage, d.parameter.key))
+        params = [d.parameter for d in ordered]
+        addrs = [p.key for p in params]
+        stages = [p.stage for p in params]
+        n = len(ordered)
+        fields = any(p.mask for p in params)
+        bounds: Sequence[int] = range(n + 1)
+        if fields:
+            bounds = [0, *(k for k in range(1, n) if not (params[k].mask and params[k - 1].mask
+                                                           and addrs[k] == addrs[k - 1]
+                                                           and stages[k] == stages[k - 1])), n]
+        return cls(ordered, params, [p.name for p in params], addrs, [p.count for p in params], stages,
+                   [tuple(d.registers) for d in ordered], bounds, fields,
+                   any(p.register_type != "holding" for p in params))
+
+    def check(self, limit: int, fc6: bool) -> None:
+        """Refuse what no plan can carry: read-only, too big for one request, wrong size, overlapping."""
+        names, sizes, addrs, stages, regs, bounds = self.names, self.sizes, self.addrs, self.stages, self.regs, \
+            self.bounds
+        for u in range(len(bounds) - 1):
+            k = bounds[u]
+            if not self.params[k].writable:
+                raise UsageError(f"{names[k]} is a read-only {self.params[k].register_type}: it cannot be written")
+            if not fc6 and sizes[k] > limit:
+                raise UsageError(f"{names[k]} needs {sizes[k]} registers in one request, but the device takes "
+                                 f"at most {limit} per request (limits in the profile)")
+            for m in range(k, bounds[u + 1]):
+                if len(regs[m]) != sizes[m]:
+                    raise UsageError(f"{names[m]}: {len(regs[m])} register values for a {sizes[m]}-register "
+                                     "parameter")
+            # two values for one register would make the plan's outcome depend on request order
+            h = k - 1
+            if u and stages[h] == stages[k] and addrs[k] < addrs[h] + sizes[h]:
+                raise UsageError(f"{names[k]} overlaps {names[h]} (registers {addrs[k]} and "
+                                 f"{addrs[h]}..{addrs[h] + sizes[h] - 1}): each register may be planned once")
+
+    def must_write(self, current: Mapping[str, tuple[int, ...]] | None, write_all: bool) -> list[bool]:
+        """Per parameter: whether the device does not hold it already (unknown counts as not)."""
+        n, names, regs = len(self.names), self.names, self.regs
+        if write_all or current is None:
+            return [True] * n
+        if self.fields:
+            return [not self.params[k].same_value(current.get(names[k]), regs[k]) for k in range(n)]
+        return [current.get(names[k]) != regs[k] for k in range(n)]
+
+    def merge_fields(self, current: Mapping[str, tuple[int, ...]] | None) -> None:
+        """Each bit-field unit's one word: the fields' new bits over what the device holds."""
+        names, regs, bounds = self.names, self.regs, self.bounds
+        for u in range(len(bounds) - 1):
+            lo, hi = bounds[u], bounds[u + 1]
+            if self.params[lo].mask:
+                known = None if current is None else next((current[names[k]][0] for k in range(lo, hi)
+                                                            if names[k] in current), None)
+                merged = (merge_fields(self.params[lo:hi], [regs[k][0] for k in range(lo, hi)], known),)
+                for k in range(lo, hi):
+                    regs[k] = merged
+
+    def run_end(self, i: int) -> int:
+        """The end of the maximal run of units from ``i``: same stage, same table, contiguous registers."""
+        stages, addrs, sizes, bounds, coils = self.stages, self.addrs, self.sizes, self.bounds, self.coils
+        nu = len(bounds) - 1
+        j = i + 1
+        while j < nu and stages[bounds[j]] == stages[bounds[i]] and \
+                addrs[bounds[j]] == addrs[bounds[j - 1]] + sizes[bounds[j - 1]] and \
+                (not coils or addrs[bounds[j]] >> 16 == addrs[bounds[j - 1]] >> 16):
+            j += 1
+        return j
+
+
+def _coil_run(t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], actions: list[Action],
+              limits: Limits) -> list[WriteRequest]:
+    """Coils (FC15, FC05 for a single coil): no fields, one bit each; a coil is a unit of its own."""
+    out: list[WriteRequest] = []
+    for a, b in _plan_run([1] * (j - i), must[i:j], limits.write_coils):
+        ks = [t.bounds[u] for u in range(i + a, i + b)]
+        for k in ks:
+            if not must_p[k]:
+                actions[k] = "bridge"
+        out.append(WriteRequest(5 if len(ks) == 1 else 15, t.addrs[ks[0]] & 0xFFFF,
+                                tuple(t.regs[k][0] for k in ks), tuple(t.names[k] for k in ks), t.stages[ks[0]]))
+    return out
+
+
+def _fc6_run(t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], actions: list[Action]
+             ) -> list[WriteRequest]:
+    """FC06 carries one register, so the "never split" rule cannot hold on such devices: a 2/4-register
+    value goes as one FC06 per word, in ascending address order (the word at the lower address first,
+    whatever the word order), the words of one parameter back to back with nothing in between. No
+    bridges: one request per register saves nothing."""
+    out: list[WriteRequest] = []
+    for u in range(i, j):
+        if must[u]:
+            k = t.bounds[u]
+            out.extend(WriteRequest(6, (t.addrs[k] & 0xFFFF) + w, (word,), tuple(t.names[k:t.bounds[u + 1]]),
+                                    t.stages[k]) for w, word in enumerate(t.regs[k]))
+            for m in range(k, t.bounds[u + 1]):
+                if not must_p[m]:
+                    actions[m] = "bridge"
+    return out
+
+
+def _fc16_run(t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], actions: list[Action],
+              limit: int) -> list[WriteRequest]:
+    """Holding registers: the fewest FC16 requests over the run (``_plan_run``), bridging what is right."""
+    out: list[WriteRequest] = []
+    bounds = t.bounds
+    sizes_u = t.sizes[i:j] if not t.fields else [t.sizes[bounds[u]] for u in range(i, j)]
+    for a, b in _plan_run(sizes_u, must[i:j], limit):
+        lo, hi = bounds[i + a], bounds[i + b]
+        for k in range(lo, hi):
+            if not must_p[k]:
+                actions[k] = "bridge"
+        words = tuple(w for u in range(i + a, i + b) for w in t.regs[bounds[u]])
+        out.append(WriteRequest(16, t.addrs[lo] & 0xFFFF, words, tuple(t.names[lo:hi]), t.stages[lo]))
+    return out
+
+
 def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str, tuple[int, ...]] | None = None,
                 *, write_all: bool = False) -> tuple[tuple[PlannedParameter, ...], tuple[WriteRequest, ...]]:
     """The fewest write requests carrying ``desired`` (see the proof above).
@@ -126,104 +264,31 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
     """
     limit = limits.write_registers
     fc6 = limits.write_function == 6
-    # holding registers before coils within a stage (each table its own requests), ascending addresses
-    ordered = sorted(desired, key=lambda d: (d.parameter.stage, d.parameter.key))
-    # attributes read once into flat lists: properties cost more than the planning itself at 1M
-    params_ = [d.parameter for d in ordered]
-    names = [p.name for p in params_]
-    addrs = [p.key for p in params_]  # keys: a table's addresses never run on into another table's
-    sizes = [p.count for p in params_]
-    stages = [p.stage for p in params_]
-    regs = [tuple(d.registers) for d in ordered]
-    n = len(ordered)
-    # Bit fields of one register form one unit: one merged word, written or left together. Units are
-    # slices of ``ordered``: unit u is params bounds[u]:bounds[u + 1] (one parameter each without fields).
-    fields = any(p.mask for p in params_)
-    bounds: Sequence[int] = range(n + 1)
-    if fields:
-        bounds = [0, *(k for k in range(1, n) if not (params_[k].mask and params_[k - 1].mask
-                                                       and addrs[k] == addrs[k - 1] and stages[k] == stages[k - 1])), n]
-    nu = len(bounds) - 1
-    coils = any(p.register_type != "holding" for p in params_)
-    for u in range(nu):
-        k = bounds[u]
-        if not params_[k].writable:
-            raise UsageError(f"{names[k]} is a read-only {params_[k].register_type}: it cannot be written")
-        if not fc6 and sizes[k] > limit:
-            raise UsageError(f"{names[k]} needs {sizes[k]} registers in one request, but the device takes "
-                             f"at most {limit} per request (limits in the profile)")
-        for m in range(k, bounds[u + 1]):
-            if len(regs[m]) != sizes[m]:
-                raise UsageError(f"{names[m]}: {len(regs[m])} register values for a {sizes[m]}-register parameter")
-        # two values for one register would make the plan's outcome depend on request order
-        h = k - 1
-        if u and stages[h] == stages[k] and addrs[k] < addrs[h] + sizes[h]:
-            raise UsageError(f"{names[k]} overlaps {names[h]} (registers {addrs[k]} and "
-                             f"{addrs[h]}..{addrs[h] + sizes[h] - 1}): each register may be planned once")
-
-    if write_all or current is None:
-        must_p = [True] * n
-    elif fields:
-        must_p = [not params_[k].same_value(current.get(names[k]), regs[k]) for k in range(n)]
-    else:
-        must_p = [current.get(names[k]) != regs[k] for k in range(n)]
+    t = _Units.of(desired)
+    t.check(limit, fc6)
+    must_p = t.must_write(current, write_all)
     must = must_p
-    if fields:
-        for u in range(nu):
-            lo, hi = bounds[u], bounds[u + 1]
-            if params_[lo].mask:
-                known = None if current is None else next((current[names[k]][0] for k in range(lo, hi)
-                                                            if names[k] in current), None)
-                merged = (merge_fields(params_[lo:hi], [regs[k][0] for k in range(lo, hi)], known),)
-                for k in range(lo, hi):
-                    regs[k] = merged
-        must = [any(must_p[bounds[u]:bounds[u + 1]]) for u in range(nu)]
+    nu = len(t.bounds) - 1
+    if t.fields:
+        t.merge_fields(current)
+        must = [any(must_p[t.bounds[u]:t.bounds[u + 1]]) for u in range(nu)]
     actions: list[Action] = ["write" if m else "unchanged" for m in must_p]
     writes: list[WriteRequest] = []
     i = 0
     while i < nu:
-        j = i + 1  # a maximal run of units: same stage, same table, contiguous registers
-        while j < nu and stages[bounds[j]] == stages[bounds[i]] and \
-                addrs[bounds[j]] == addrs[bounds[j - 1]] + sizes[bounds[j - 1]] and \
-                (not coils or addrs[bounds[j]] >> 16 == addrs[bounds[j - 1]] >> 16):
-            j += 1
-        stage = stages[bounds[i]]
-        if coils and addrs[bounds[i]] >> 16:  # coils (FC15, FC05 for a single coil): no fields, one bit each
-            for a, b in _plan_run([1] * (j - i), must[i:j], limits.write_coils):
-                ks = [bounds[u] for u in range(i + a, i + b)]  # a coil is a unit of its own
-                for k in ks:
-                    if not must_p[k]:
-                        actions[k] = "bridge"
-                writes.append(WriteRequest(5 if len(ks) == 1 else 15, addrs[ks[0]] & 0xFFFF,
-                                           tuple(regs[k][0] for k in ks), tuple(names[k] for k in ks), stage))
+        j = t.run_end(i)
+        if t.coils and t.addrs[t.bounds[i]] >> 16:
+            writes += _coil_run(t, i, j, must, must_p, actions, limits)
         elif fc6:
-            # FC06 carries one register, so the "never split" rule cannot hold on such devices: a
-            # 2/4-register value goes as one FC06 per word, in ascending address order (the word at
-            # the lower address first, whatever the word order), the words of one parameter back to
-            # back with nothing in between. No bridges: one request per register saves nothing.
-            for u in range(i, j):
-                if must[u]:
-                    k = bounds[u]
-                    writes.extend(WriteRequest(6, (addrs[k] & 0xFFFF) + w, (word,), tuple(names[k:bounds[u + 1]]),
-                                               stage) for w, word in enumerate(regs[k]))
-                    for m in range(k, bounds[u + 1]):
-                        if not must_p[m]:
-                            actions[m] = "bridge"
+            writes += _fc6_run(t, i, j, must, must_p, actions)
         else:
-            sizes_u = sizes[i:j] if not fields else [sizes[bounds[u]] for u in range(i, j)]
-            for a, b in _plan_run(sizes_u, must[i:j], limit):
-                lo, hi = bounds[i + a], bounds[i + b]
-                for k in range(lo, hi):
-                    if not must_p[k]:
-                        actions[k] = "bridge"
-                words = tuple(w for u in range(i + a, i + b) for w in regs[bounds[u]])
-                writes.append(WriteRequest(16, addrs[lo] & 0xFFFF, words, tuple(names[lo:hi]), stage))
+            writes += _fc16_run(t, i, j, must, must_p, actions, limit)
         i = j
     planned = tuple(
-        PlannedParameter(names[k], addrs[k] & 0xFFFF, sizes[k], ordered[k].text, regs[k],
-                         None if current is None or names[k] not in current else tuple(current[names[k]]),
-                         actions[k], stages[k], params_[k].register_type)
-        for k in range(n))
+        PlannedParameter(t.names[k], t.addrs[k] & 0xFFFF, t.sizes[k], t.ordered[k].text, t.regs[k],
+                         None if current is None or t.names[k] not in current else tuple(current[t.names[k]]),
+                         actions[k], t.stages[k], t.params[k].register_type)
+        for k in range(len(t.names)))
     return planned, tuple(writes)
 
 

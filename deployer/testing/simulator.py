@@ -621,55 +621,74 @@ class Simulator:
 
     async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int],
                       values: list[int] | None, unit: int = 1) -> ExcCodes | None:
-        q = self.quirks
-        if fc not in _FC_TABLE or (fc == 16 and q.fc06_only):  # e.g. FC22/23: not implemented by the device
+        """The device's answer to one request (None: a normal answer), stores a write's values as it goes."""
+        if fc not in _FC_TABLE or (fc == 16 and self.quirks.fc06_only):  # e.g. FC22/23: not implemented
             return ExcCodes.ILLEGAL_FUNCTION
-        f = self.faults
         if _FC_TABLE[fc] in BIT_TABLES:
             count = self._bit_count  # pymodbus passes the registers the bits live in
+        await self._line_time(fc, count, values)
+        if fc == 4:
+            return ExcCodes.ILLEGAL_VALUE if self.strict_limits and count > self.profile.limits.read_registers \
+                else None
+        if fc in (1, 2) or (fc == 5 and values is None):
+            return None  # checked by check_table
+        if fc in (5, 15):
+            return self._coil_write(address, count, unit)
+        params = self._params_in(address, count)
+        if values is None:  # a read (or pymodbus reading back an FC06 write)
+            return self._register_read(fc, count, params)
+        return self._register_write(fc, start, address, count, registers, values, params)
+
+    async def _line_time(self, fc: int, count: int, values: list[int] | None) -> None:
+        """The answer's delay: the latency, and at a baud rate the time both frames take on the line."""
+        f = self.faults
         delay = f.latency_ms / 1000
         if f.baud and not (values is None and fc in (5, 6)):  # not pymodbus reading back a single write
             chars = _frame_chars(fc, count, True) + _frame_chars(fc, count, False)
             delay += (chars + 7) * 11 / f.baud  # 8E1 = 11 bits a character; 3.5 characters of silence per frame
         if delay:
             await asyncio.sleep(delay)
-        limits = self.profile.limits
-        if fc == 4:
-            if self.strict_limits and count > limits.read_registers:
-                return ExcCodes.ILLEGAL_VALUE
-            return None
-        if fc in (1, 2) or (fc == 5 and values is None):
-            return None  # checked by check_table
-        if fc in (5, 15):
-            self._writes += 1
-            if self._writes <= f.busy_first or time.monotonic() < self._busy_until:
-                return ExcCodes.DEVICE_BUSY
-            if self._unlock_regs or self.profile.preconditions:
-                hstart, hregs = self._block(unit)
-                current = {a: hregs[a - hstart] for a in (*self._unlock_regs, *(
-                    c.address for c in self.profile.preconditions)) if 0 <= a - hstart < len(hregs)}
-                if not self.unlocked(current) or self.guarded(current):
-                    return ExcCodes.DEVICE_FAILURE
-            if any((SPACE["coil"] << 16 | a) in f.fail_registers for a in range(address, address + count)):
-                return ExcCodes.DEVICE_FAILURE
-            return None
-        params = self._params_in(address, count)
-        if values is None:  # a read (or pymodbus reading back an FC06 write)
-            if fc == 3:
-                if self.strict_limits and count > limits.read_registers:
-                    return ExcCodes.ILLEGAL_VALUE
-                if any(not p.readable for p in params):
-                    return ExcCodes.ILLEGAL_ADDRESS
-            return None
+
+    def _busy(self) -> bool:
+        """Counts a write; busy for the first ``busy_first`` writes and while a declared wait runs."""
         self._writes += 1
-        if self._writes <= f.busy_first or time.monotonic() < self._busy_until:
+        return self._writes <= self.faults.busy_first or time.monotonic() < self._busy_until
+
+    def _refused_now(self, registers: Sequence[int], start: int) -> bool:
+        """Parameters locked (unlock values not in place) or a precondition failing (the drive running)."""
+        current = {a: registers[a - start] for a in (*self._unlock_regs, *(
+            c.address for c in self.profile.preconditions)) if 0 <= a - start < len(registers)}
+        return not self.unlocked(current) or bool(self.guarded(current))
+
+    def _coil_write(self, address: int, count: int, unit: int) -> ExcCodes | None:
+        if self._busy():
+            return ExcCodes.DEVICE_BUSY
+        if self._unlock_regs or self.profile.preconditions:
+            hstart, hregs = self._block(unit)
+            if self._refused_now(hregs, hstart):
+                return ExcCodes.DEVICE_FAILURE
+        if any((SPACE["coil"] << 16 | a) in self.faults.fail_registers for a in range(address, address + count)):
+            return ExcCodes.DEVICE_FAILURE
+        return None
+
+    def _register_read(self, fc: int, count: int, params: list[Parameter]) -> ExcCodes | None:
+        if fc == 3:
+            if self.strict_limits and count > self.profile.limits.read_registers:
+                return ExcCodes.ILLEGAL_VALUE
+            if any(not p.readable for p in params):
+                return ExcCodes.ILLEGAL_ADDRESS
+        return None
+
+    def _write_refused(self, fc: int, start: int, address: int, count: int, registers: list[int],
+                       values: list[int], params: list[Parameter]) -> ExcCodes | None:
+        """What refuses a register write as a whole, before any value is stored."""
+        q, limits = self.quirks, self.profile.limits
+        if self._busy():
             return ExcCodes.DEVICE_BUSY
         touches_parameters = any(a not in self._action_regs for a in range(address, address + count))
-        if touches_parameters and (self._unlock_regs or self.profile.preconditions):
-            current = {a: registers[a - start] for a in (*self._unlock_regs, *(
-                c.address for c in self.profile.preconditions)) if 0 <= a - start < len(registers)}
-            if not self.unlocked(current) or self.guarded(current):
-                return ExcCodes.DEVICE_FAILURE  # parameters locked, or the drive is running
+        if touches_parameters and (self._unlock_regs or self.profile.preconditions) \
+                and self._refused_now(registers, start):
+            return ExcCodes.DEVICE_FAILURE  # parameters locked, or the drive is running
         if self.strict_limits and fc == 16 and count > limits.write_registers:
             return ExcCodes.ILLEGAL_VALUE
         if fc == 16 and q.max_write_registers and count > q.max_write_registers:
@@ -679,9 +698,15 @@ class Simulator:
         if not single_words and any(p.address < address or p.end > address + count for p in params):
             return ExcCodes.ILLEGAL_VALUE  # the upper and lower word must come in one request
         if q.all_or_nothing:  # every value is checked before any is stored (Yaskawa: one bad value discards all)
-            refused = self._refusal(params, address, count, values)
-            if refused is not None:
-                return refused
+            return self._refusal(params, address, count, values)
+        return None
+
+    def _register_write(self, fc: int, start: int, address: int, count: int, registers: list[int],
+                        values: list[int], params: list[Parameter]) -> ExcCodes | None:
+        refused = self._write_refused(fc, start, address, count, registers, values, params)
+        if refused is not None:
+            return refused
+        f = self.faults
         for p in params:  # in address order, stopping at the first bad one: the partial write of real drives
             lo, hi = max(p.address, address), min(p.end, address + count)
             if any(a in f.fail_registers for a in range(lo, hi)):
@@ -693,18 +718,23 @@ class Simulator:
         for a in range(address, address + count):  # registers of unlock/lock/commit writes only
             if not self._owner.get(a):
                 registers[a - start] = values[a - address]
-        for rule in f.rules:  # e.g. a drive that trips on a too-short acceleration time
+        self._after_write(start, address, count, registers, values)
+        if any(a in f.complain_registers for a in range(address, address + count)):
+            return ExcCodes.DEVICE_FAILURE  # written all the same: a device that complains about what it did
+        return None
+
+    def _after_write(self, start: int, address: int, count: int, registers: list[int], values: list[int]) -> None:
+        """What a write sets off: fault rules (a drive that trips on a too-short acceleration time), and the
+        busy time of a declared wait (storing to EEPROM)."""
+        for rule in self.faults.rules:
             p = self.profile.parameter(rule.parameter)
             if rule.register - start in range(len(registers)) and rule.holds(p, registers[p.address - start:
                                                                                            p.end - start]):
                 registers[rule.register - start] = rule.raw
-        for (a, words), wait in self._waits.items():  # e.g. storing to EEPROM: busy for the declared time
+        for (a, words), wait in self._waits.items():
             if address <= a and a + len(words) <= address + count and \
                     tuple(values[a - address:a - address + len(words)]) == words:
                 self._busy_until = time.monotonic() + wait / 1000
-        if any(a in f.complain_registers for a in range(address, address + count)):
-            return ExcCodes.DEVICE_FAILURE  # written all the same: a device that complains about what it did
-        return None
 
     def _refusal(self, params: list[Parameter], address: int, count: int, values: list[int]) -> ExcCodes | None:
         """The answer the first bad value of a write gets, or None when every value is acceptable."""

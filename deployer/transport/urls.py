@@ -13,6 +13,7 @@ import os
 import re
 import socket
 import urllib.parse
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -194,6 +195,28 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
 
     ``timeout`` / ``retries`` apply where the URL itself does not set them.
     """
+    u, scheme = _split(text)
+    options = _options(text, u.query, scheme)
+    for key in ("pause_after_connect", "pause_between_requests"):
+        if key in options:
+            try:
+                parse_duration(options[key])
+            except ValueError as e:
+                raise BadURL(f"option {key}: {e}") from None
+    to = _number(options, "timeout") if "timeout" in options else (timeout if timeout is not None
+                                                                    else DEFAULT_TIMEOUT)
+    rt = _number(options, "retries") if "retries" in options else (retries if retries is not None
+                                                                    else DEFAULT_RETRIES)
+    if scheme in ("rtu", "ascii"):
+        return DeviceURL(scheme, path=_serial_path(u, scheme, options), options=options, timeout=to, retries=rt)
+    host, port = _host_port(text, u, scheme)
+    if scheme == "tls":
+        _check_tls(options)
+    return DeviceURL(scheme, host=host, port=port, options=options, timeout=to, retries=rt)
+
+
+def _split(text: str) -> tuple[urllib.parse.SplitResult, str]:
+    """The URL's parts and its (known) scheme; no fragment, no user name."""
     raw = text.strip()
     if "://" not in raw:
         raise BadURL(f"'{text}' is not a device URL (expected e.g. tcp://HOST:502 or rtu:///dev/ttyUSB0)")
@@ -211,8 +234,13 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
         raise BadURL(f"unexpected '#{u.fragment}' in '{text}' (a device URL has no fragment; options go after ?)")
     if "@" in u.netloc:
         raise BadURL(f"unexpected user name or password in '{text}' (Modbus has no login; TLS uses cert= and key=)")
+    return u, scheme
+
+
+def _options(text: str, query: str, scheme: str) -> dict[str, str]:
+    """The query's options: each known to the scheme, each given once."""
     options: dict[str, str] = {}
-    for key, values in urllib.parse.parse_qs(u.query, keep_blank_values=True).items():
+    for key, values in urllib.parse.parse_qs(query, keep_blank_values=True).items():
         if len(values) > 1:
             raise BadURL(f"option '{key}' given {len(values)} times in '{text}': give it once")
         if key not in _OPTIONS[scheme]:
@@ -220,40 +248,39 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
             raise BadURL(f"unknown option '{key}' in {scheme} URL" + (f"; did you mean '{hint[0]}'?" if hint else
                          f" (known: {', '.join(sorted(_OPTIONS[scheme]))})"))
         options[key] = values[-1]
+    return options
 
-    def number(key: str) -> Any:
-        kind, lo, hi = NUMERIC_OPTIONS[key]
-        try:
-            v = kind(options[key])
-        except ValueError:
-            raise BadURL(f"option {key}={options[key]!r} is not a{'n integer' if kind is int else ' number'}") from None
-        if not lo <= v <= hi:
-            raise BadURL(f"option {key}={options[key]} is out of range ({range_text(key)})")
-        return v
 
-    for key in ("pause_after_connect", "pause_between_requests"):
+def _number(options: Mapping[str, str], key: str) -> Any:
+    kind, lo, hi = NUMERIC_OPTIONS[key]
+    try:
+        v = kind(options[key])
+    except ValueError:
+        raise BadURL(f"option {key}={options[key]!r} is not a{'n integer' if kind is int else ' number'}") from None
+    if not lo <= v <= hi:
+        raise BadURL(f"option {key}={options[key]} is out of range ({range_text(key)})")
+    return v
+
+
+def _serial_path(u: urllib.parse.SplitResult, scheme: str, options: dict[str, str]) -> str:
+    """rtu:// and ascii://: the serial device (Windows ports as Windows opens them), the line options checked."""
+    path = urllib.parse.unquote(u.netloc + u.path)
+    if not path:
+        raise BadURL(f"{scheme} URL needs a serial device path: {scheme}:///dev/ttyUSB0 or {scheme}://COM3")
+    win = windows_port(path)
+    if win is not None:  # COMn is kept as its name (``serial_device`` opens \\.\COMn), others as \\.\NAME
+        path = win if _COM.fullmatch(win) else "\\\\.\\" + win
+    for key in ("baudrate", "bytesize", "stopbits"):
         if key in options:
-            try:
-                parse_duration(options[key])
-            except ValueError as e:
-                raise BadURL(f"option {key}: {e}") from None
-    to = number("timeout") if "timeout" in options else (timeout if timeout is not None else DEFAULT_TIMEOUT)
-    rt = number("retries") if "retries" in options else (retries if retries is not None else DEFAULT_RETRIES)
-    if scheme in ("rtu", "ascii"):
-        path = urllib.parse.unquote(u.netloc + u.path)
-        if not path:
-            raise BadURL(f"{scheme} URL needs a serial device path: {scheme}:///dev/ttyUSB0 or {scheme}://COM3")
-        win = windows_port(path)
-        if win is not None:  # COMn is kept as its name (``serial_device`` opens \\.\COMn), others as \\.\NAME
-            path = win if _COM.fullmatch(win) else "\\\\.\\" + win
-        for key in ("baudrate", "bytesize", "stopbits"):
-            if key in options:
-                number(key)
-        if "parity" in options:
-            options["parity"] = options["parity"].upper()
-            if options["parity"] not in ("N", "E", "O"):
-                raise BadURL(f"option parity={options['parity']} must be N, E or O")
-        return DeviceURL(scheme, path=path, options=options, timeout=to, retries=rt)
+            _number(options, key)
+    if "parity" in options:
+        options["parity"] = options["parity"].upper()
+        if options["parity"] not in ("N", "E", "O"):
+            raise BadURL(f"option parity={options['parity']} must be N, E or O")
+    return path
+
+
+def _host_port(text: str, u: urllib.parse.SplitResult, scheme: str) -> tuple[str, int]:
     try:
         host, port = u.hostname, u.port
     except ValueError:
@@ -268,17 +295,19 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
         if scheme == "rtu+tcp":
             raise BadURL("rtu+tcp URL needs a port: rtu+tcp://HOST:PORT (the gateway's TCP port)")
         port = DEFAULT_PORTS[scheme]
-    if scheme == "tls":
-        if "verify" in options and options["verify"].lower() not in ("true", "false", "1", "0", "yes", "no"):
-            raise BadURL(f"option verify={options['verify']} must be true or false")
-        for key in ("cert", "key", "ca"):
-            if key in options and not os.path.isfile(options[key]):
-                if os.path.exists(options[key]):
-                    raise BadURL(f"tls option {key}: '{options[key]}' is not a regular file (expected a PEM file)")
-                raise BadURL(f"tls option {key}: no such file '{options[key]}'")
-        if ("cert" in options) != ("key" in options):
-            raise BadURL("tls options cert and key go together (the client certificate and its key)")
-    return DeviceURL(scheme, host=host, port=port, options=options, timeout=to, retries=rt)
+    return host, port
+
+
+def _check_tls(options: Mapping[str, str]) -> None:
+    if "verify" in options and options["verify"].lower() not in ("true", "false", "1", "0", "yes", "no"):
+        raise BadURL(f"option verify={options['verify']} must be true or false")
+    for key in ("cert", "key", "ca"):
+        if key in options and not os.path.isfile(options[key]):
+            if os.path.exists(options[key]):
+                raise BadURL(f"tls option {key}: '{options[key]}' is not a regular file (expected a PEM file)")
+            raise BadURL(f"tls option {key}: no such file '{options[key]}'")
+    if ("cert" in options) != ("key" in options):
+        raise BadURL("tls options cert and key go together (the client certificate and its key)")
 
 
 def pacing(url: DeviceURL, after_connect_ms: float = 0, between_ms: float = 0) -> tuple[float, float]:
