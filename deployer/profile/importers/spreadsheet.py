@@ -560,8 +560,11 @@ class _Bad(ValueError):
     """A cell that is not what its column needs; the message says why."""
 
 
-def _row_spec(name: str, raw_name: str, cell: Callable[[str], str], err: Callable[[str, str], None],
-              decimal: str | None) -> dict[str, Any] | None:
+Cell = Callable[[str], str]
+Err = Callable[[str, str], None]
+
+
+def _row_spec(name: str, raw_name: str, cell: Cell, err: Err, decimal: str | None) -> dict[str, Any] | None:
     """One register row as a profile parameter spec; None (with the problems reported) when it cannot be."""
     spec: dict[str, Any] = {}
     desc = cell("description")
@@ -569,6 +572,25 @@ def _row_spec(name: str, raw_name: str, cell: Callable[[str], str], err: Callabl
         desc = f"{raw_name}: {desc}" if desc else raw_name
     if desc:
         spec["description"] = desc
+    type_ = _address_and_type(spec, name, cell, err)
+    if type_ is None or not _layout(spec, name, type_, cell, err):
+        return None
+    numeric = type_ not in ("string", "bool")
+    unit = cell("unit")
+    if unit and numeric:
+        if units.check(unit) is None:
+            spec["unit"] = unit
+        else:  # kept for people, not for conversions
+            spec["description"] = f"{spec.get('description', name)} [{unit}]"
+    if numeric:
+        _quantities(spec, cell, err, decimal)
+    _access_and_values(spec, type_, cell, err)
+    _order_and_default(spec, type_, cell, err, decimal)
+    return spec
+
+
+def _address_and_type(spec: dict[str, Any], name: str, cell: Cell, err: Err) -> str | None:
+    """The row's register, type and bits; None (said why) when the row cannot be a parameter."""
     address = cell("address")
     if not _ADDRESS.fullmatch(address):
         err("address", f"not a register address: {_show(address)} (a number, 0x1A2B or 1A2Bh)")
@@ -593,14 +615,19 @@ def _row_spec(name: str, raw_name: str, cell: Callable[[str], str], err: Callabl
             spec["bits"] = bits
         else:
             err("bits", f"bits {_show(bits)}: a bit number (3) or a range (3..5)")
+    return type_
+
+
+def _layout(spec: dict[str, Any], name: str, type_: str, cell: Cell, err: Err) -> bool:
+    """A string's register count and the byte order; False (said why) when the row cannot be a parameter."""
     if type_ == "string":
         n = cell("count")
         if not n:
             err("count", f"{name}: a string needs its register count in the 'count' column")
-            return None
+            return False
         if not _DIGITS.fullmatch(n) or not 1 <= int(n) <= 123:
             err("count", f"{name}: count {_show(n)} is not a string's register count (1 to 123)")
-            return None
+            return False
         spec["count"] = int(n)
     if cell("byte_order"):
         order = cell("byte_order")
@@ -610,15 +637,11 @@ def _row_spec(name: str, raw_name: str, cell: Callable[[str], str], err: Callabl
             spec["swap"] = order.lower()
         else:
             err("byte_order", f"unknown byte order {_show(order)} (ABCD, CDAB, BADC, DCBA or none/byte/word/word_byte)")
-    numeric = type_ not in ("string", "bool")
-    unit = cell("unit")
-    if unit and numeric:
-        if units.check(unit) is None:
-            spec["unit"] = unit
-        else:  # kept for people, not for conversions
-            spec["description"] = f"{spec.get('description', name)} [{unit}]"
-    if numeric:
-        _quantities(spec, cell, err, decimal)
+    return True
+
+
+def _access_and_values(spec: dict[str, Any], type_: str, cell: Cell, err: Err) -> None:
+    """Access, enumeration labels, a string's encoding and padding."""
     access = cell("access")
     if access:
         a = ACCESS.get(access.lower().replace(" ", ""))
@@ -640,6 +663,10 @@ def _row_spec(name: str, raw_name: str, cell: Callable[[str], str], err: Callabl
             err(col, f"{col} {_show(v)} is not one of {', '.join(choices)}")
         elif v:
             spec[col] = v
+
+
+def _order_and_default(spec: dict[str, Any], type_: str, cell: Cell, err: Err, decimal: str | None) -> None:
+    """The write stage, whether a restart is needed, and the factory default (a text, a label or a number)."""
     if cell("stage"):
         if _DIGITS.fullmatch(cell("stage")):
             spec["stage"] = int(cell("stage"))
@@ -656,7 +683,6 @@ def _row_spec(name: str, raw_name: str, cell: Callable[[str], str], err: Callabl
                 spec["default"] = number(default, decimal)
             except _Bad as e:
                 err("default", f"default: {e}")
-    return spec
 
 
 def _quantities(spec: dict[str, Any], cell: Callable[[str], str], err: Callable[[str, str], None],
