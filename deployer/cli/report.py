@@ -37,9 +37,9 @@ def report(report_file: str, html_path: str | None, meta: tuple[str, ...], compa
         doc = read_report(report_file)
     except OSError as e:
         raise UsageError(f"cannot read {report_file}: {e.strerror or e}") from None
-    from ..profile import resolve_profile
+    from ..api import load_profile
 
-    run = report_from_json(doc, [resolve_profile(p) for p in profile_refs])
+    run = report_from_json(doc, [load_profile(p) for p in profile_refs])
     out = console()
     info = run.run or {}
     if info.get("command"):

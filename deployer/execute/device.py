@@ -260,70 +260,17 @@ async def _broadcast(session: Session, recipe: Recipe, target: Target, opts: App
 
 async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOptions, res: DeviceResult,
                  results: dict[str, ParameterResult], key: str) -> None:
-    prof = recipe.profile
     # 1. before any write: identity and current values; a silent device here is "unreachable"
-    try:
-        try:
-            await check_identity(session, prof)
-        except IdentityMismatch as e:
-            res.status, res.error = "failed", f"{e}; nothing was written"
-            return
-        shared = _shared(recipe)
-        before = _values(shared.layout, await session.read_blocks(shared.reads, prof))
-        # after a register answered: a device silent on Function 43 is not taken for an absent one
-        res.identity = await session.identify()
-        why = check_identity_objects(prof, res.identity)
-        if why is None:  # the revision found against the profile's and each named parameter's
-            why = await check_firmware(session, prof, res.identity, [d.name for d in recipe.desired])
-        if why:
-            res.status, res.error = "failed", f"{why}; nothing was written"
-            return
-        if res.identity is not None:  # the same name answering with other objects: a replaced device
-            last = last_identity(opts.state_dir, res.name)
-            if last is not None and last[1] != res.identity:
-                res.notices.append(f"the device's identity changed since its last snapshot "
-                                   f"({os.path.basename(last[0])}: {_identity_text(last[1])}; now "
-                                   f"{_identity_text(res.identity)}): it may have been replaced")
-        try:  # the run checked the file before it started: damaged since, it is not used (and said)
-            taught = learned.lookup(opts.state_dir, profile_ref(prof), key) if opts.expected is None else None
-        except InputError as e:
-            taught = None
-            res.notices.append(f"what devices taught is not used: {e}")
-        if taught is not None:
-            if taught.identity is not None and res.identity is not None and taught.identity != res.identity:
-                res.notices.append("the device's identity changed since it taught "
-                                   f"{taught.describe_limits()} ({_identity_text(taught.identity)}, now "
-                                   f"{_identity_text(res.identity)}): not used")
-            elif (taught_prof := learned.with_limits(prof, taught)) is not prof:
-                recipe = replace(recipe, profile=taught_prof)
-                prof = taught_prof
-                res.notices.append(learned.note(taught))
-    except DeviceGone as e:
-        res.status, res.error = "unreachable", f"{e}; nothing was written"
+    found = await _read_before(session, recipe, opts, res, key)
+    if found is None:
         return
-    except tp.ExceptionResponse as e:
-        res.status, res.error = "failed", f"reading the current values answered {e}; nothing was written"
-        return
-    if not session.gap_reads:  # the refused read is in res.requests; say why the reads that follow differ
-        res.notices.append("the device refused a read across undeclared registers (exception 02): "
-                           "it is read in gap-free blocks (the profile's limits.max_read_gap is not for it)")
+    recipe, shared, before = found
+    prof = recipe.profile
     for n, regs in before.items():
         results[n].before_raw = regs
 
     # 2. the plan: a saved one must still match the device, else a fresh diff-aware plan
-    if opts.expected is not None:
-        changed = [pp.name for pp in opts.expected.parameters
-                   if pp.current_raw is not None and not prof.parameter(pp.name).same_value(before.get(pp.name),
-                                                                                            pp.current_raw)]
-        if changed:
-            raise StalePlan(
-                "the device changed since the plan was made (" + ", ".join(
-                    f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed)
-                + "); make a new plan")
-        plan = opts.expected
-    else:
-        planned = _planned(recipe, target, before, opts.write_all, shared)
-        plan = planned.plan
+    plan, planned = _the_plan(recipe, target, opts, before, shared)
     for pp in plan.parameters:
         if pp.action == "unchanged":
             results[pp.name].status = "unchanged"
@@ -349,13 +296,110 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     if opts.confirm is not None and not await opts.confirm(plan, res):
         raise Declined("nothing was written (declined)")
 
-    # 3. the snapshot is on disk before the first write, and the journal says this device is being written:
-    #    both made durable by the group-commit thread, sharing fsyncs with the other devices of a fleet
+    # 3. the snapshot is on disk before the first write, and the journal says this device is being written
+    if not await _save_snapshot(recipe, opts, res, before, plan, planned):
+        return
+    if opts.on_writing is not None:
+        opts.on_writing(res)
+
+    # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock
+    await _write_phase(session, recipe, plan, opts, res, results, key)
+
+
+async def _read_before(session: Session, recipe: Recipe, opts: ApplyOptions, res: DeviceResult, key: str
+                       ) -> tuple[Recipe, _Shared, dict[str, tuple[int, ...]]] | None:
+    """Identity, firmware and current values, and the limits the device taught (the recipe over them);
+    None when nothing may be written (the device's status says why)."""
+    prof = recipe.profile
+    try:
+        try:
+            await check_identity(session, prof)
+        except IdentityMismatch as e:
+            res.status, res.error = "failed", f"{e}; nothing was written"
+            return None
+        shared = _shared(recipe)
+        before = _values(shared.layout, await session.read_blocks(shared.reads, prof))
+        # after a register answered: a device silent on Function 43 is not taken for an absent one
+        res.identity = await session.identify()
+        why = check_identity_objects(prof, res.identity)
+        if why is None:  # the revision found against the profile's and each named parameter's
+            why = await check_firmware(session, prof, res.identity, [d.name for d in recipe.desired])
+        if why:
+            res.status, res.error = "failed", f"{why}; nothing was written"
+            return None
+        _identity_notice(opts, res)
+        recipe = _taught_limits(recipe, opts, res, key)
+    except DeviceGone as e:
+        res.status, res.error = "unreachable", f"{e}; nothing was written"
+        return None
+    except tp.ExceptionResponse as e:
+        res.status, res.error = "failed", f"reading the current values answered {e}; nothing was written"
+        return None
+    if not session.gap_reads:  # the refused read is in res.requests; say why the reads that follow differ
+        res.notices.append("the device refused a read across undeclared registers (exception 02): "
+                           "it is read in gap-free blocks (the profile's limits.max_read_gap is not for it)")
+    return recipe, shared, before
+
+
+def _identity_notice(opts: ApplyOptions, res: DeviceResult) -> None:
+    """The same name answering with other Function 43 objects than at its last snapshot: a replaced device."""
+    if res.identity is not None:
+        last = last_identity(opts.state_dir, res.name)
+        if last is not None and last[1] != res.identity:
+            res.notices.append(f"the device's identity changed since its last snapshot "
+                               f"({os.path.basename(last[0])}: {_identity_text(last[1])}; now "
+                               f"{_identity_text(res.identity)}): it may have been replaced")
+
+
+def _taught_limits(recipe: Recipe, opts: ApplyOptions, res: DeviceResult, key: str) -> Recipe:
+    """``recipe`` over the limits this device taught an earlier run (not for a saved plan, nor when its
+    identity changed since)."""
+    prof = recipe.profile
+    try:  # the run checked the file before it started: damaged since, it is not used (and said)
+        taught = learned.lookup(opts.state_dir, profile_ref(prof), key) if opts.expected is None else None
+    except InputError as e:
+        taught = None
+        res.notices.append(f"what devices taught is not used: {e}")
+    if taught is None:
+        return recipe
+    if taught.identity is not None and res.identity is not None and taught.identity != res.identity:
+        res.notices.append("the device's identity changed since it taught "
+                           f"{taught.describe_limits()} ({_identity_text(taught.identity)}, now "
+                           f"{_identity_text(res.identity)}): not used")
+    elif (taught_prof := learned.with_limits(prof, taught)) is not prof:
+        res.notices.append(learned.note(taught))
+        return replace(recipe, profile=taught_prof)
+    return recipe
+
+
+def _the_plan(recipe: Recipe, target: Target, opts: ApplyOptions, before: dict[str, tuple[int, ...]],
+              shared: _Shared) -> tuple[Plan, _Planned | None]:
+    """The saved plan (refused when the device changed since it was made), else a fresh diff-aware one;
+    and the planner's result it came from (None for a saved plan)."""
+    prof = recipe.profile
+    if opts.expected is not None:
+        changed = [pp.name for pp in opts.expected.parameters
+                   if pp.current_raw is not None and not prof.parameter(pp.name).same_value(before.get(pp.name),
+                                                                                            pp.current_raw)]
+        if changed:
+            raise StalePlan(
+                "the device changed since the plan was made (" + ", ".join(
+                    f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed)
+                + "); make a new plan")
+        return opts.expected, None
+    planned = _planned(recipe, target, before, opts.write_all, shared)
+    return planned.plan, planned
+
+
+async def _save_snapshot(recipe: Recipe, opts: ApplyOptions, res: DeviceResult, before: dict[str, tuple[int, ...]],
+                         plan: Plan, planned: _Planned | None) -> bool:
+    """The snapshot on disk and the journal's device-started line, both made durable by the group-commit
+    thread (sharing fsyncs with the other devices of a fleet); False (and nothing written) when it cannot be."""
     applied = opts.applied or (os.path.abspath(recipe.path) if recipe.path else None)  # a fleet: the device's own
     snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=applied,
                          identity=res.identity)
     if opts.run_id is not None:
-        digest = planned.digest() if opts.expected is None else plan_digest(plan)
+        digest = planned.digest() if planned is not None else plan_digest(plan)
         snap.journal = journal.path_of(opts.state_dir)
         snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest,
                                            batch=res.batch, restoring=res.restored)
@@ -364,12 +408,16 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     except OSError as e:  # no snapshot, no write: nothing could be undone
         res.status, res.error = "failed", (f"cannot save the snapshot in {opts.state_dir}: {disk_error(e)}; "
                                            "nothing was written")
-        return
+        return False
     res.snapshot_sha256 = snap.digest
-    if opts.on_writing is not None:
-        opts.on_writing(res)
+    return True
 
-    # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock
+
+async def _write_phase(session: Session, recipe: Recipe, plan: Plan, opts: ApplyOptions, res: DeviceResult,
+                       results: dict[str, ParameterResult], key: str) -> None:
+    """Unlock, the writes in plan order (recovering from partial failures), read-back, commit, lock; what the
+    device taught is remembered."""
+    prof = recipe.profile
     if prof.unlock:
         try:
             await _send_actions(session, prof, prof.unlock)
