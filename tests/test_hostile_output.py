@@ -180,3 +180,42 @@ def test_a_hostile_name_applied_to_a_device_of_another_library(tmp_path: Path, c
     code, out, err = run_cli(capsys, "report", "run.json")
     assert code == 0 and "[bold]\\e[2K\\e[1Afake: ok" in out
     assert_harmless(out, err)
+
+
+def test_on_a_real_terminal_only_colours_go_out(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """``deployer report`` of the hostile run with its output on a pseudo-terminal (rich draws its colours
+    there): the only escape sequences that reach the terminal are colour changes (SGR, ``ESC [ ... m``),
+    never the names' cursor movements or line erasures."""
+    import os
+    import pty
+    import subprocess
+
+    monkeypatch.chdir(tmp_path)
+    Path("prof.yaml").write_text(PROFILE)
+    Path("r.yaml").write_text(recipe_text(LABEL, f"<!--<script>\n{FAKE}"))
+    with SimulatorThread(load_profile("prof.yaml")) as sim:
+        code, _, err = run_cli(capsys, "apply", "r.yaml", "--device", sim.url, "--yes", "--state-dir", "st",
+                               "--report", "run.json")
+    assert code == 0, err
+    leader, follower = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "deployer", "report", "run.json"], stdout=follower,
+                            stderr=follower, stdin=subprocess.DEVNULL, env={**os.environ, "COLUMNS": "200",
+                                                                            "TERM": "xterm-256color"})
+    os.close(follower)
+    chunks = []
+    while True:
+        try:
+            data = os.read(leader, 65536)
+        except OSError:  # EIO: the command ended and closed its side
+            break
+        if not data:
+            break
+        chunks.append(data)
+    os.close(leader)
+    assert proc.wait(timeout=60) == 0
+    text = b"".join(chunks).decode()
+    sequences = re.findall(r"\x1b\[[0-9;?]*[A-Za-z]", text)
+    assert sequences and all(s.endswith("m") for s in sequences), sequences  # rich coloured it: a terminal
+    plain = re.sub(r"\x1b\[[0-9;]*m", "", text)
+    assert "\\e[2K\\e[1Afake: ok" in plain and "\x1b" not in plain
