@@ -25,6 +25,8 @@ identity:
 endurance: 1000
 commit:
   - {register: 30, raw: 1, description: store to EEPROM}
+health:
+  - {register: 40, equals: 0, description: fault code is zero}
 parameters:
   model: {register: 0, type: uint16, access: read-only, default: 0x0A21}
   accel: {register: 10, type: uint16, unit: s, scale: 0.1, min: 0, max: 100, default: 5}
@@ -32,6 +34,7 @@ parameters:
   speed: {register: 12, type: uint16, unit: rpm, min: 0, max: 6000, default: 1500, tolerance: 10}
   address: {register: 20, type: uint16, min: 1, max: 247, default: 1, per_unit: true}
   store: {register: 30, type: uint16, access: write-only}
+  fault: {register: 40, type: uint16, access: read-only, default: 0}
 """
 
 RECIPE = """\

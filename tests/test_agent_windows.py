@@ -238,3 +238,29 @@ def test_sigterm_during_a_window_rolls_back_and_ends_cleanly(tmp_path: Path,
         assert again.terminate() == 0
     finally:
         again.kill()
+
+
+def test_a_soak_through_the_agent_passes_or_rolls_back(tmp_path: Path, sims: tuple[Simulator, Simulator]) -> None:
+    a, b = sims
+    inv = write_site(tmp_path, {"d1": a.url, "d2": b.url})
+    agent = AgentProcess(inv, tmp_path / "state")
+    try:
+        c = agent.client
+        end = c.apply(limit="d1", soak="1s", health_interval="200ms")
+        assert end["exit_code"] == 0 and commits(a) == 1 and a.read("accel") == (20,)
+        # d2 trips during its soak: rolled back, never committed
+        seen: list[str] = []
+
+        def trip(ev: dict[str, object]) -> None:
+            seen.append(str(ev["event"]))
+            if ev["event"] == "soak-started":
+                b.set_register(40, 7)
+
+        end = c.apply(limit="d2", soak="2s", health_interval="200ms", on_event=trip)
+        assert "soak-started" in seen and end["exit_code"] == 4
+        assert end["report"]["devices"][0]["status"] == "rolled-back"
+        assert b.read("accel") == (50,) and commits(b) == 0
+        assert c.windows() == []
+        assert agent.terminate() == 0
+    finally:
+        agent.kill()
