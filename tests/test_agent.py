@@ -322,3 +322,25 @@ def test_watching_keeps_to_its_share_of_a_bus(tmp_path: Path) -> None:
     # consecutive reads of different units: the second starts at least 4 x 40 ms after the first answered
     gaps = [(b.time - a.time) for a, b in itertools.pairwise(reads) if a.unit != b.unit]
     assert gaps and min(gaps) >= 4 * 0.040 * 0.9, gaps
+
+
+def test_runs_of_an_earlier_agent_are_listed_from_its_database(tmp_path: Path, sim: Simulator) -> None:
+    inv = write_site(tmp_path, {"d1": sim.url})
+    agent = AgentProcess(inv, tmp_path / "state")
+    try:
+        end = agent.client.apply()
+        assert end["exit_code"] == 0
+        assert agent.terminate() == 0
+    finally:
+        agent.kill()
+    again = AgentProcess(inv, tmp_path / "state")
+    try:
+        runs = again.client.runs()
+        assert [r["id"] for r in runs] == [end["run"]] and runs[0]["exit_code"] == 0
+        assert runs[0]["report_path"].endswith(f"{end['run']}.json")
+        with pytest.raises(AgentError) as e:
+            again.client.run(end["run"])
+        assert e.value.kind == "not-found" and "GET /v1/runs" in str(e.value)
+        assert again.terminate() == 0
+    finally:
+        again.kill()

@@ -37,7 +37,8 @@ def _device(agent: Agent, request: web.Request) -> Any:
 def _run(agent: Agent, request: web.Request) -> RunState:
     run = agent.runs.get(request.match_info["id"])
     if run is None:
-        raise ApiError("not-found", f"no run {request.match_info['id']!r} in this agent", status=404)
+        raise ApiError("not-found", f"no run {request.match_info['id']!r} in this agent since its start "
+                       "(GET /v1/runs lists earlier ones from its database)", status=404)
     return run
 
 
@@ -113,7 +114,11 @@ async def check_now(agent: Agent, request: web.Request) -> Any:
 
 
 async def list_runs(agent: Agent, request: web.Request) -> Any:
-    return {"runs": [r.to_json(report=False) for r in sorted(agent.runs.values(), key=lambda r: -r.started)]}
+    """This agent's runs since its start, then earlier ones from its database (their report files named)."""
+    assert agent.store is not None
+    live = [r.to_json(report=False) for r in sorted(agent.runs.values(), key=lambda r: -r.started)]
+    seen = {r["id"] for r in live}
+    return {"runs": live + [r for r in agent.store.runs(_int(request, "limit", 100, 1, 10000)) if r["id"] not in seen]}
 
 
 async def start_run(agent: Agent, request: web.Request) -> Any:
