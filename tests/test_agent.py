@@ -147,6 +147,13 @@ def test_api_errors_are_json_and_a_second_agent_is_refused(tmp_path: Path, sim: 
         assert e.value.kind == "usage" and e.value.exit_code == 1
         info = c.info()
         assert info["api"] == 1 and info["auth"] == "none" and info["url"] == agent.url
+        with pytest.raises(AgentError) as e:  # the files changed since the client looked: nothing sent
+            c.start_run(files_sha256="0" * 64)
+        assert e.value.kind == "conflict" and "changed since you looked" in str(e.value)
+        asked = subprocess.run([sys.executable, "-m", "deployer", "apply", "--agent", agent.url],
+                               capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+        assert asked.returncode == 1 and "pass --yes" in asked.stderr
+        assert c.runs() == []
         second = subprocess.run([sys.executable, "-m", "deployer", "agent", str(inv), "--state-dir",
                                  str(tmp_path / "state"), "--listen", "127.0.0.1:0"],
                                 capture_output=True, text=True, timeout=60)

@@ -548,8 +548,8 @@ class Agent:
 
     def start_apply(self, req: Mapping[str, Any]) -> RunState:
         """``POST /v1/runs`` with command apply: roll out the files for the selected devices (every check
-        before anything is sent; refusals are ApiError)."""
-        files = self.files
+        before anything is sent; refusals are ApiError). The files are read again first: what is rolled out
+        is what they say now, checked (``files_sha256``: refused if they changed since the client looked)."""
         with contextlib.suppress(ApiError):
             self.reload()
         if self.files_problem:

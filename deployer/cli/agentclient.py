@@ -62,10 +62,12 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
         raise UsageError("a saved plan is not applied through the agent: it rolls out the validated files "
                          "(deployer plan --agent shows what would change)")
     c = _client(url)
+    seen: str | None = None  # the files shown: the agent refuses the run if they changed since
     if not kw.get("yes"):
-        pending = c.pending()
         if not sys.stdin.isatty():
             raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
+        pending = c.reload()
+        seen = pending.get("files_sha256")
         _print_pending(pending)
         if not click.confirm("apply these changes through the agent?", default=False):
             echo("nothing was sent", err=True)
@@ -81,7 +83,7 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
             "confirm_within": _secs(kw.get("confirm_within")), "rollback_on_failure": kw.get("rollback_on_failure"),
             "write_all": kw.get("write_all"), "force_endurance": force_endurance or None,
             "recipe": os.path.abspath(source) if source else None,
-            "client": f"{' '.join(sys.argv[1:])[:150]} ({who})"}
+            "client": f"{' '.join(sys.argv[1:])[:150]} ({who})", "files_sha256": seen}
     run = c.start_run(**body)
     echo(f"run {run['id']} started in the agent at {url}", err=True)
     end = c.follow(run["id"], lambda ev: _say(ev, url))
