@@ -25,8 +25,6 @@ on message text; the message (``str(e)``) is written for the user and may change
     ├── Locked                     3  another run holds the device (``busy``), or no lock can be taken
     ├── StateError                 1  the state directory cannot be written (disk full, read-only) before a run
     ├── IdentityMismatch           4  the device is not the one the profile describes
-    ├── AgentError                 4  the site agent refused a request, or cannot be reached; its ``exit_code`` is the
-    │                                 agent's per answer (what the same command exits with), ``kind`` says why
     ├── NotCommitted               4  ``deployer confirm``: the confirmed run did not send its commit to every
     │                                 device (a parameter changed in the window, a step failed, time ran out)
     ├── RunInterrupted             4  a run stopped early (Ctrl-C, SIGTERM, cancelled); ``report`` says
