@@ -231,6 +231,8 @@ class Report:
     run_id: str | None = None  # the run's id in the journal (None: a run without one)
     state_dir: str | None = None  # absolute path of the folder with the journal and the snapshots
     interrupted: str | None = None  # why the run stopped early ("SIGINT", "SIGTERM", "cancelled"), else None
+    unrecorded: list[str] = field(default_factory=list)  # what the run could not record (the report file, the
+    # journal's run-finished line: a full disk); the devices' outcome stands, the run exits 4
 
     def __repr__(self) -> str:
         # short on purpose: asyncio.run's SIGINT bookkeeping (signal.getsignal on a partial holding the
@@ -256,6 +258,8 @@ class Report:
         for key, value in (("id", self.run_id), ("state_dir", self.state_dir), ("interrupted", self.interrupted)):
             if value is not None:
                 doc[key] = value
+        if self.unrecorded:
+            doc["unrecorded"] = list(self.unrecorded)
         return doc or None
 
     @property
@@ -266,8 +270,10 @@ class Report:
         """
         if not self.devices:
             return EXIT_OK
-        if all(d.status == "unreachable" for d in self.devices):
+        if all(d.status == "unreachable" for d in self.devices) and not self.unrecorded:
             return EXIT_UNREACHABLE
+        if self.unrecorded:
+            return EXIT_FAILED  # something reached a device that the report or the journal could not record
         if any(d.status not in ("ok", "sent") or d.unrecorded for d in self.devices):
             return EXIT_FAILED  # a device that did not end ok, or an outcome the journal could not record
         return EXIT_OK

@@ -59,10 +59,11 @@ def test_a_second_run_is_refused_during_the_window_by_any_spelling_and_status_li
         try:
             wait_for(lambda: bool(awaiting(state_a)) or a.poll() is not None)
             (waiting,) = awaiting(state_a)
-            seen = len(sim.log)
+            seen = [e for e in sim.log if e.function != 3 or e.address != PROFILE.health[0].address]
             b = run("apply", recipe(tmp_path, "4 s", f"tcp://localhost:{port}", "r2.yaml"), "--yes", "--json",
                     "--state-dir", state_b)
-            assert len(sim.log) == seen  # B sent nothing at all
+            # B sent nothing at all (A watches the health register while it waits)
+            assert [e for e in sim.log if e.function != 3 or e.address != PROFILE.health[0].address] == seen
             assert b.returncode == 3, b.stderr
             dev = json.loads(b.stdout)["devices"][0]
             assert dev["status"] == "unreachable" and dev["requests"] == [] and dev["snapshot"] is None
@@ -356,3 +357,127 @@ def test_an_interrupted_window_tells_one_story_everywhere(tmp_path: Path, sig: s
     assert [p[4] for p in shown["params"]] == [p["status"] for p in dev["parameters"]]
     finished = [r for r in journal(state) if r["event"] == "run-finished"]
     assert [d["status"] for d in finished[0]["devices"]] == ["rolled-back"]
+
+
+# ---- 8, 9. a full disk: act on the device first, then write --------------------------------------------------
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Any:
+    """A real filesystem of 1 MiB (tmpfs), mounted for the test; skipped where mounting is not permitted."""
+    import shutil as sh
+
+    where = tmp_path / "disk"
+    where.mkdir()
+    if sh.which("mount") is None:
+        pytest.skip("no mount command")
+    got = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)], capture_output=True,
+                         text=True)
+    if got.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here (needs root or CAP_SYS_ADMIN): {got.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], capture_output=True)
+
+
+def fill(disk: Path) -> None:
+    """Take every free block of ``disk``."""
+    fd = os.open(disk / "filler", os.O_WRONLY | os.O_CREAT | os.O_APPEND)
+    try:
+        while True:
+            os.write(fd, bytes(4096))
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def test_a_soak_on_a_full_disk_still_rolls_back_and_records_it(tmp_path: Path, small_disk: Path) -> None:
+    """The disk fills during the soak, then the drive faults: the rollback happens and is journaled (the run's
+    reserved space), the device ends as it was, exit 4."""
+    from tests.test_safe import FAULT
+
+    state = small_disk / "s"
+    with SimulatorThread(PROFILE) as sim:
+        before = sim.registers()
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "1h",
+                        "--health-interval", "100ms", "--state-dir", str(state))
+        try:
+            wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 1 or proc.poll() is not None)
+            fill(small_disk)
+            sim.set_register(FAULT, 7)  # the drive trips
+            out, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        after = sim.registers()
+        log = list(sim.log)
+    assert proc.returncode == 4, err
+    assert "Traceback" not in err
+    dev = json.loads(out)["devices"][0]
+    assert dev["status"] == "rolled-back" and dev["commit"] == "not sent", (dev["error"], dev.get("unrecorded"))
+    assert {a: v for a, v in after.items() if a != FAULT} == {a: v for a, v in before.items() if a != FAULT}
+    assert writes_to(log, COMMIT) == []
+    events = [r["event"] for r in journal(state)]
+    assert "health-failed" in events and "rolled-back" in events and events[-1] == "run-finished"
+
+
+def test_a_state_folder_that_refuses_every_write_never_stops_a_rollback(tmp_path: Path, small_disk: Path) -> None:
+    """The state folder turns read-only during the confirmation wait: `deployer confirm` cannot record the
+    confirmation (said, exit 1, no traceback); the run's window expires, the device is rolled back all the same,
+    and the run says each line it could not record (exit 4)."""
+    state = small_disk / "s"
+    report = tmp_path / "r.json"  # the report on another disk: it can say what the journal could not
+    with SimulatorThread(PROFILE) as sim:
+        before = sim.registers()
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--confirm-within", "3s",
+                        "--state-dir", str(state), "--report", str(report))
+        try:
+            wait_for(lambda: bool(awaiting(str(state))) or proc.poll() is not None)
+            remount = subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], capture_output=True, text=True)
+            if remount.returncode != 0:
+                pytest.skip(f"cannot remount read-only: {remount.stderr.strip()}")
+            confirmed = run("confirm", "--state-dir", str(state))
+            _, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        after = sim.registers()
+        log = list(sim.log)
+    assert confirmed.returncode == 1 and "the confirmation was not recorded" in confirmed.stderr
+    assert "Traceback" not in confirmed.stderr
+    assert proc.returncode == 4, err[-3000:]
+    assert after == before and writes_to(log, COMMIT) == []  # rolled back, never committed
+    dev = json.loads(report.read_text())["devices"][0]
+    assert dev["status"] == "rolled-back" and "not confirmed within 3s" in dev["error"]
+    assert any("could not record the confirm-expired line" in u for u in dev["unrecorded"])
+    assert any("could not record the rolled-back line" in u for u in dev["unrecorded"])
+    assert "not recorded: ramp: the journal" in err
+
+
+def test_a_disk_full_after_the_write_says_what_reached_the_device(tmp_path: Path, small_disk: Path) -> None:
+    """The disk fills while the device is written: the device holds the new values (committed), and the run says
+    so on stdout, names the report and page it could not write, exits 4; the snapshot stays named."""
+    state, report = small_disk / "s", small_disk / "r.json"
+    with SimulatorThread(PROFILE, faults=Faults(latency_ms=300)) as sim:
+        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--state-dir", str(state),
+                        "--report", str(report), "--html", str(small_disk / "r.html"))
+        try:
+            wait_for(lambda: ((state / "audit.jsonl").exists() and "device-started" in (state / "audit.jsonl")
+                     .read_text()) or proc.poll() is not None)
+            fill(small_disk)
+            out, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        log = list(sim.log)
+        f07 = sim.read("F07")
+    assert proc.returncode == 4, err
+    assert "Traceback" not in err
+    assert f07 == (0, 300) and len(writes_to(log, COMMIT)) == 1  # it reached the device, and was stored
+    assert out.splitlines()[0].endswith(": ok") and "snapshot: " in out
+    assert f"not recorded: cannot write the report {report}: the disk is full" in err
+    assert "not recorded: cannot write" in err and "r.html" in err
+    # the report's stream kept the device's snapshot from before its first write
+    assert any(json.loads(line).get("snapshot") for line in report.read_text().splitlines()[1:])

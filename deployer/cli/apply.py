@@ -65,11 +65,16 @@ def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: 
         from ..pages import run_page
         from .base import write_page
 
-        write_page(run_page(report, meta=meta, compact=compact), request.html_path)
-        err.print(f"page: {safe(request.html_path)}")
+        try:
+            write_page(run_page(report, meta=meta, compact=compact), request.html_path)
+            err.print(f"page: {safe(request.html_path)}")
+        except UsageError as e:  # a full disk: what the devices hold is still said, below
+            report.unrecorded.append(str(e))
     print_outcome(report, fleet_run=request.fleet, as_json=as_json, report_path=request.report_path)
     if interrupted:
         _said_interrupted(report, request.report_path)
+    for what in [*report.unrecorded, *(f"{d.name}: {u}" for d in report.devices for u in d.unrecorded)]:
+        echo(f"not recorded: {safe(what)}", err=True)
     if prepared.refused:
         err.print(f"refused {len(prepared.refused)} changed device{'s' if len(prepared.refused) != 1 else ''}: "
                   + ", ".join(safe(r.split(' ', 1)[0]) for r in prepared.refused))
@@ -425,8 +430,8 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
         echo(f"no unfinished runs in {safe(journal.path_of(state_dir))}")
     if locks:
         echo(f"devices held on this machine now ({safe(folder)}):")
-        for rec in locks:
-            echo(f"  {safe(rec.get('key', '?'))}: {safe(holder.describe(rec))}")
+        for line in holder.summary(locks):
+            echo(f"  {safe(line)}")
     for r in runs:
         state = "still running" if r.running else (f"interrupted ({safe(r.ended)})" if r.ended else "did not finish")
         echo(f"{_what_ran(r)} by {safe(r.user)} at {safe(r.time)} (run {safe(r.run)}, PID {safe(r.pid)}): "

@@ -129,12 +129,12 @@ async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: st
 
 
 async def journal_line(res: DeviceResult, finishing: Awaitable[object]) -> None:
-    """Wait for the device's device-finished line; a state directory that cannot take it is a notice: the
-    device's outcome stands (the report says it), only the journal misses the line."""
+    """Wait for the device's device-finished line; a state directory that cannot take it is said (``unrecorded``,
+    the run exits 4): the device's outcome stands (the report says it), only the journal misses the line."""
     try:
         await finishing
     except OSError as e:
-        res.notices.append(f"the journal's device-finished line could not be written: {disk_error(e)}")
+        res.unrecorded.append(f"the journal's device-finished line could not be written: {disk_error(e)}")
 
 
 async def _apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None,
@@ -405,11 +405,15 @@ async def _save_snapshot(recipe: Recipe, opts: ApplyOptions, res: DeviceResult, 
                                            batch=res.batch, restoring=res.restored)
     try:
         res.snapshot = await durable(snap)
-    except OSError as e:  # no snapshot, no write: nothing could be undone
-        res.status, res.error = "failed", (f"cannot save the snapshot in {opts.state_dir}: {disk_error(e)}; "
-                                           "nothing was written")
-        return False
-    res.snapshot_sha256 = snap.digest
+        res.snapshot_sha256 = snap.digest
+    except OSError as e:
+        if not opts.restoring:  # no snapshot, no write: nothing could be undone
+            res.status, res.error = "failed", (f"cannot save the snapshot in {opts.state_dir}: {disk_error(e)}; "
+                                               "nothing was written")
+            return False
+        # a window's rollback restores values the run verified: a full disk must not stop it
+        res.unrecorded.append(f"the snapshot of what it held before the rollback could not be saved in "
+                              f"{opts.state_dir}: {disk_error(e)}")
     return True
 
 
@@ -435,6 +439,8 @@ async def _write_phase(session: Session, recipe: Recipe, plan: Plan, opts: Apply
                     res.url, res.unit))
             except InputError as e:  # damaged since the run started: said, not overwritten
                 res.notices.append(f"what the device taught is not remembered: {e}")
+            except UsageError as e:  # a full disk: the device's outcome stands, only the lesson is lost
+                res.unrecorded.append(f"what the device taught is not remembered: {e}")
     finally:
         if prof.unlock and prof.lock:
             try:

@@ -46,6 +46,7 @@ class ApplyOptions:
     # asked after the read-back, True when it took the locks over (they are not released here then)
     keep_lock: Callable[[DeviceResult, list[DeviceLock]], bool] | None = None
     commit_owed: bool = False  # a retry of a device whose commit failed: sent even when nothing is left to write
+    restoring: bool = False  # a window's own rollback: it goes on without a snapshot of its own (a full disk)
     lock_held: bool = False  # the caller holds the device's lock already (a window's own rollback): not taken again
 
     @property

@@ -171,15 +171,30 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     finally:
         restore()
     report.run, report.run_id, report.state_dir = info, run_id, state_dir
-    if live is not None:
-        live.close(report)
-    # through the group commit: after every line it still holds (a device interrupted while its snapshot and
-    # device-started line were being made durable), so the run-finished line is the run's last
-    await durable(Line(journal.path_of(state_dir), journal.finished_record(run_id, report, command=command,
-                                                                           argv=argv)))
+    await _record_end(report, live, command=command, argv=argv)
     if report.interrupted is not None:
         raise RunInterrupted(report, report.interrupted)
     return report
+
+
+async def _record_end(report: Report, live: LiveReport | None, *, command: str, argv: Sequence[str]) -> None:
+    """The final report file, then the journal's run-finished line. What reached the devices is never lost to a
+    full disk: a file or line that cannot be written is said in the report (``unrecorded``, exit 4), which the
+    caller still has and shows."""
+    assert report.state_dir is not None
+    if live is not None:
+        try:
+            live.close(report)
+        except UsageError as e:
+            report.unrecorded.append(f"{e}; what the devices hold is in this output")
+    # through the group commit: after every line it still holds (a device interrupted while its snapshot and
+    # device-started line were being made durable), so the run-finished line is the run's last
+    path = journal.path_of(report.state_dir)
+    try:
+        await durable(Line(path, journal.finished_record(report.run_id, report, command=command, argv=argv)))
+    except OSError as e:
+        report.unrecorded.append(f"the journal {path} could not record the run's end (run-finished): "
+                                 f"{disk_error(e)}; deployer status lists it as unfinished")
 
 
 def run(jobs: Sequence[Job], **kw: object) -> Report:

@@ -120,3 +120,18 @@ def held(directory: str) -> list[dict[str, Any]]:
                 and process_alive(pid, start if isinstance(start, int | float) else None)):
             out.append(rec)
     return out
+
+
+def summary(records: list[dict[str, Any]], shown: int = 3) -> list[str]:
+    """One line per holder (a process, its run and window): who, and the devices it holds (the first ``shown``
+    of them by key, then how many more): a fleet run holding thousands of devices is one line."""
+    holders: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    for rec in records:
+        who = (rec.get("pid"), rec.get("host"), rec.get("run"), rec.get("window"), rec.get("deadline"))
+        holders.setdefault(who, []).append(rec)
+    out = []
+    for recs in holders.values():
+        keys = sorted(str(r.get("key", "?")) for r in recs)
+        more = f" and {len(keys) - shown} more" if len(keys) > shown else ""
+        out.append(f"{', '.join(keys[:shown])}{more}: {describe(recs[0])}")
+    return out

@@ -184,7 +184,7 @@ def confirm_run(state_dir: str, run: str | None = None) -> Awaiting:
     if target.left() <= 0:
         raise UsageError(f"run {target.run}: the confirmation time ran out at {target.until()}; "
                          "it is rolling back (see deployer status)")
-    options = ApplyOptions(state_dir=state_dir)
+    options = ApplyOptions(state_dir=state_dir, run_id=target.run)  # on a full disk, the run's reserve takes it
     if not _journal(options, {"event": "confirmed", "run": target.run, "time": journal._now(),
                               "user": journal.user_name(), "pid": os.getpid()}):
         raise StateError(f"cannot write the journal {where}: the confirmation was not recorded, so run {target.run} "

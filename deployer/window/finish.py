@@ -118,7 +118,7 @@ async def _roll_back(w: Written, why: str, options: ApplyOptions) -> None:
     # a device whose commit was sent gets the restored values committed too (else its memory keeps the change)
     back_opts = replace(options, hold_commit=res.commit != "sent", confirm=None, run_id=None, expected=None,
                         write_all=False, applied=res.snapshot, soak=None, confirm_within=None, keep_lock=None,
-                        lock_held=True, on_writing=None)  # the device's own result says what its rollback did
+                        lock_held=True, on_writing=None, restoring=True)  # its result says what the rollback did
     back = None
     if snap.desired:
         try:
@@ -153,6 +153,7 @@ def _merge(w: Written, back: DeviceResult) -> None:
     """The rollback's requests and parameter outcomes into the device's result."""
     res = w.result
     res.requests.extend(back.requests)
+    res.unrecorded.extend(back.unrecorded)
     by_name = {p.name: p for p in back.parameters}
     for p in res.parameters:
         b = by_name.get(p.name)

@@ -8,6 +8,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 
+from ..errors import UsageError
 from ..execute.job import Job
 from ..execute.session import ApplyOptions
 from ..load.durations import format_duration
@@ -177,7 +178,13 @@ class Window:
         if opts.run_id is None:
             return None
         path = pending_path(opts.state_dir, opts.run_id)
-        write_json(report.to_json(), path)
+        try:
+            write_json(report.to_json(), path)
+        except (UsageError, OSError) as e:  # a full disk never stops a window: its journal lines name the snapshots
+            for d in report.devices:
+                if d.snapshot is not None:
+                    d.unrecorded.append(f"the pending report {path} could not be written: {e}")
+            return None
         return path
 
     def close(self) -> None:
@@ -189,6 +196,6 @@ class Window:
             held.clear()
         opts = self.opts
         if opts.run_id is not None and self.held:
-            with contextlib.suppress(FileNotFoundError):
+            with contextlib.suppress(OSError):  # gone already, or a folder that refuses it (status names the run)
                 os.remove(pending_path(opts.state_dir, opts.run_id))
             unreserve(opts)

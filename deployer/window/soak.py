@@ -66,8 +66,8 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
     run = options.run_id
     start = time.monotonic()
     deadline = start + options.soak
-    for w in todo:  # a run refused meanwhile says whose soak holds the device, and until when
-        for h in w.locks:
+    for w in todo if until is None else ():  # a run refused meanwhile says whose soak holds it, until when
+        for h in w.locks:  # (a confirmation wait that watches the health says so itself)
             h.in_window("soak", time.time() + options.soak)
     if run is not None:
         _journal(options, {"event": "soak-started", "run": run, "time": journal._now(), "seconds": options.soak,
