@@ -277,17 +277,23 @@ def test_a_report_naming_a_secret_file_never_opens_it(good_report: dict[str, Any
     evil.write_text(json.dumps(doc))
     doc["devices"][0]["snapshot"] = str(disguised)
     (tmp_path / "evil2.json").write_text(json.dumps(doc))
+    journal_dir = tmp_path / "elsewhere"  # a journal named by the report: a link to the secret
+    journal_dir.mkdir()
+    (journal_dir / "audit.jsonl").symlink_to(secret)
+    doc["devices"][0].update(snapshot=None, status="interrupted")
+    doc["run"] = {"id": "run-1", "state_dir": str(journal_dir)}
+    (tmp_path / "evil3.json").write_text(json.dumps(doc))
     _watch_opens()
     OPENED.clear()
     code, out, err = run_cli(capsys, "report", str(evil), "--html", str(tmp_path / "p.html"))
     assert code == 0 and "values shown as registers" in out and "SECRET" not in out + err
     assert "SECRET" not in (tmp_path / "p.html").read_text()
-    for report in (evil, tmp_path / "evil2.json"):
+    for report in (evil, tmp_path / "evil2.json", tmp_path / "evil3.json"):
         code, out, err = run_cli(capsys, "rollback", "--from-report", str(report), "--yes", "--state-dir",
                                  str(tmp_path / "st"))
         assert code == 1 and ("not a snapshot file deployer writes" in err or "not a regular file" in err), err
         assert "SECRET" not in out + err
-    assert not [p for p in OPENED if p in (str(secret), str(disguised))], OPENED
+    assert not [p for p in OPENED if p in (str(secret), str(disguised), str(journal_dir / "audit.jsonl"))], OPENED
 
 
 def test_a_report_shows_units_without_its_profile_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -155,11 +155,20 @@ def read_run(path: str) -> Restores:
     started: dict[str, dict[str, Any]] = {}
     journal_problem = None
     if isinstance(run, str) and isinstance(state, str):
-        try:
-            started = {str(r.get("name")): r for r in journal.records(state, run) if r.get("event") == "device-started"
-                       and r.get("snapshot")}
-        except OSError as e:
-            journal_problem = f"its journal {journal.path_of(state)} cannot be read ({e.strerror})"
+        import stat
+
+        try:  # the journal the report names: a regular file only (a link could point anywhere)
+            st = os.lstat(journal.path_of(state))
+        except OSError:
+            st = None  # none there: journal.records says so below
+        if st is not None and not stat.S_ISREG(st.st_mode):
+            journal_problem = f"its journal {journal.path_of(state)} is not a regular file (not opened)"
+        else:
+            try:
+                started = {str(r.get("name")): r for r in journal.records(state, run)
+                           if r.get("event") == "device-started" and r.get("snapshot")}
+            except OSError as e:
+                journal_problem = f"its journal {journal.path_of(state)} cannot be read ({e.strerror})"
     else:
         journal_problem = "it names no run journal (made by an older deployer)"
     out = Restores(started=str(info.get("started") or "") if isinstance(info, dict) else "")
