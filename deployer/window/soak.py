@@ -66,10 +66,13 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
     run = options.run_id
     start = time.monotonic()
     deadline = start + options.soak
+    # a health watch inside the confirmation window (``until``) is part of that window: the journal says
+    # "confirm", not "soak" (status would say the run died during a soak)
+    journaled = run if until is None else None
     for w in todo if until is None else ():  # a run refused meanwhile says whose soak holds it, until when
         for h in w.locks:  # (a confirmation wait that watches the health says so itself)
             h.in_window("soak", time.time() + options.soak)
-    if run is not None:
+    if journaled is not None:
         _journal(options, {"event": "soak-started", "run": run, "time": journal._now(), "seconds": options.soak,
                            "interval": options.health_interval, "devices": [w.name for w in todo],
                            "report": report, **journal.deadline(options.soak)}, *(w.result for w in todo))
@@ -144,7 +147,7 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
     finally:
         for transport, _, _ in lines.values():
             await transport.close()
-        if run is not None:
+        if journaled is not None:
             _journal(options, {"event": "soak-finished", "run": run, "time": journal._now(),
                                "passed": [w.name for w in passed],
                                "rolled_back": [w.name for w in failed if w.result.status == "rolled-back"],
