@@ -32,8 +32,8 @@ def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_dr
     It takes each device's lock (set DEPLOYER_LOCK_DIR for it and the command line alike), so a plain
     apply to its devices is refused; run through it with --agent URL. --check-every, --on-drift and
     --on-replace are defaults: an inventory's agent: settings (defaults, a group, a device) win. It
-    prints 'listening on URL' on stderr when ready. SIGHUP reads the files again (shown as pending; never written by itself; Windows
-    has no SIGHUP: restart the agent there).
+    prints 'listening on URL' on stderr when ready. SIGHUP reads the files again (shown as pending; never
+    written by itself; Windows has no SIGHUP: restart the agent there).
     """
     import asyncio
 
