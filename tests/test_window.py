@@ -481,3 +481,58 @@ def test_a_disk_full_after_the_write_says_what_reached_the_device(tmp_path: Path
     assert "not recorded: cannot write" in err and "r.html" in err
     # the report's stream kept the device's snapshot from before its first write
     assert any(json.loads(line).get("snapshot") for line in report.read_text().splitlines()[1:])
+
+
+# ---- 4. deadlines on the monotonic clock, the waiting process by PID and start time ---------------------------
+
+
+def test_a_wall_clock_step_back_does_not_delay_the_rollback(tmp_path: Path) -> None:
+    """The waiting run's wall clock steps back 60 s while it waits 2 s for its confirmation: it rolls back when
+    its 2 s are over (the monotonic clock), not 60 s later; the journal has the deadline on both clocks."""
+    import time
+
+    state, step = str(tmp_path / "s"), tmp_path / "step"
+    shifted = ("import os, sys, time\n_t = time.time\n"
+               f"time.time = lambda: _t() - (60 if os.path.exists({str(step)!r}) else 0)\n"
+               "from deployer.cli import main\nmain(sys.argv[1:])\n")
+    with SimulatorThread(PROFILE) as sim:
+        before = sim.registers()
+        proc = subprocess.Popen([sys.executable, "-c", shifted, "apply", recipe(tmp_path, "3 s", sim.url), "--yes",
+                                 "--json", "--confirm-within", "2s", "--state-dir", state],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            wait_for(lambda: bool(awaiting(state)) or proc.poll() is not None)
+            (waiting,) = awaiting(state)
+            step.touch()  # from now on the run's wall clock reads 60 s earlier
+            t = time.monotonic()
+            out, err = proc.communicate(timeout=40)  # 60 s later would be a failure here
+            took = time.monotonic() - t
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert sim.registers() == before
+    assert proc.returncode == 4, err
+    assert took < 40 and json.loads(out)["devices"][0]["status"] == "rolled-back"
+    (line,) = [r for r in journal(state) if r["event"] == "confirm-awaited"]
+    assert {"deadline", "deadline_epoch", "deadline_monotonic", "boot_id", "pid_start"} <= set(line)
+    assert waiting.deadline_monotonic == line["deadline_monotonic"]
+
+
+def test_a_reused_pid_is_not_taken_for_the_waiting_run(tmp_path: Path) -> None:
+    """A confirm-awaited line whose PID is alive now but belongs to a process started at another time (the PID
+    was reused): `confirm` says the waiting process is gone and names the restore command."""
+    state = tmp_path / "s"
+    state.mkdir()
+    now = holder.process_start(os.getpid())
+    assert now is not None or sys.platform != "linux"
+    if now is None:
+        pytest.skip("this system does not say when a process started")
+    line = {"event": "confirm-awaited", "run": "R1", "time": "2026-01-01T00:00:00Z", "pid": os.getpid(),
+            "pid_start": now - 100.0, "deadline": "2099-01-01T00:00:00Z", "deadline_epoch": 4070908800.0,
+            "report": str(state / "pending" / "R1.json")}
+    (state / "audit.jsonl").write_text(json.dumps(line) + "\n")
+    (waiting,) = awaiting(str(state))
+    assert not waiting.alive
+    got = run("confirm", "--state-dir", str(state))
+    assert got.returncode == 1 and "its process" in got.stderr and "is gone" in got.stderr
+    assert "deployer rollback --from-report" in got.stderr
