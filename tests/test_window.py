@@ -536,3 +536,22 @@ def test_a_reused_pid_is_not_taken_for_the_waiting_run(tmp_path: Path) -> None:
     got = run("confirm", "--state-dir", str(state))
     assert got.returncode == 1 and "its process" in got.stderr and "is gone" in got.stderr
     assert "deployer rollback --from-report" in got.stderr
+
+
+def test_the_documented_lock_record_is_the_one_written(tmp_path: Path) -> None:
+    """docs/locks.md: its example and its table name exactly the fields a lock file holds."""
+    import re
+
+    from deployer.state import lock
+
+    text = (Path(__file__).resolve().parent.parent / "docs" / "locks.md").read_text()
+    (example,) = re.findall(r"```json\n(.*?)```", text, re.S)
+    table = set(re.findall(r"^\| `(\w+)` \|", text, re.M))
+    held = lock.try_lock("tcp:127.0.0.1:9#unit1", command="test", directory=str(tmp_path), run="R1")
+    try:
+        written = json.loads(Path(held.path).read_text())
+    finally:
+        held.release()
+    assert set(json.loads(example)) == set(written) == table
+    assert written["format"] == json.loads(example)["format"] == holder.FORMAT
+    assert written["run"] == "R1" and written["pid"] == os.getpid()
