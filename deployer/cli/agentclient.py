@@ -16,7 +16,8 @@ from ..errors import EXIT_CHANGES, EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Usage
 from .base import echo
 
 # options of apply that mean something only where the command line itself talks to the devices
-_LOCAL_ONLY = ("device", "unit", "timeout", "retries", "allow_broadcast", "html_path", "pause", "ask", "inventory")
+_LOCAL_ONLY = ("device", "unit", "timeout", "retries", "allow_broadcast", "html_path", "pause", "ask", "inventory",
+               "meta", "compact")  # meta, compact: the page's, with --html
 
 
 def _client(url: str) -> Any:

@@ -48,8 +48,17 @@ options:
     description: The device's name in the report, for O(device).
     type: str
   batch:
-    description: A staged rollout within this task, for example V(1,50%) (a canary device, then half, then the rest).
+    description:
+      - A staged rollout within this task, for example V(1,50%) (a canary device of each profile, then half of
+        each profile, then the rest).
+      - Each batch takes its count or share of every profile (or group, O(batch_by)); any canary device that
+        does not end ok ends the rollout.
     type: str
+  batch_by:
+    description: What each O(batch) share is taken of, every profile or every group (a device's first group).
+    type: str
+    choices: [profile, group]
+    default: profile
   max_failures:
     description:
       - After this many devices did not end ok (failed, partial and unreachable count, skipped ones
@@ -190,7 +199,7 @@ def apply(module, rec, jobs):
     interrupted = None
     try:  # one journaled run (deployer status sees it); SIGINT/SIGTERM end it with its report
         report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
-                                             parallel=p["parallel"], batch=p.get("batch"),
+                                             parallel=p["parallel"], batch=p.get("batch"), batch_by=p["batch_by"],
                                              max_failures=p.get("max_failures"), options=options,
                                              report_path=p.get("report"), via="ansible", signals=True,
                                              rollback_on_failure=p["rollback_on_failure"]))
@@ -222,7 +231,8 @@ def main():
     module = AnsibleModule(
         argument_spec=dict(
             recipe=dict(type="path"), profile=dict(type="str"), parameters=dict(type="dict"), name=dict(type="str"),
-            batch=dict(type="str"), max_failures=dict(type="str"), write_all=dict(type="bool", default=False),
+            batch=dict(type="str"), batch_by=dict(type="str", default="profile", choices=["profile", "group"]),
+            max_failures=dict(type="str"), write_all=dict(type="bool", default=False),
             on_error=dict(type="str", default="continue", choices=["continue", "stop"]),
             state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), soak=dict(type="str"),
             health_interval=dict(type="str", default="1s"), rollback_on_failure=dict(type="bool", default=False),
