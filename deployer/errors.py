@@ -135,9 +135,17 @@ class Declined(UsageError):
 
 
 class CodecError(DeployerError, ValueError):
-    """A value that cannot be represented in its type; the message is meant for the user."""
+    """A value that cannot be represented in its type; the message is meant for the user.
+
+    ``kind``: what is wrong, for callers that decide on it ("resolution": not a multiple of the
+    parameter's resolution; "" otherwise).
+    """
 
     exit_code = EXIT_INVALID
+
+    def __init__(self, message: str, *, kind: str = "") -> None:
+        self.kind = kind
+        super().__init__(message)
 
 
 class TransportError(DeployerError):

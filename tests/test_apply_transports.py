@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from deployer.errors import Unreachable
 from deployer.execute.device import apply_device
 from deployer.execute.session import ApplyOptions
 from deployer.profile import builtin_profile
@@ -34,7 +35,7 @@ def test_tls_apply_with_client_certificate(pki: dict[str, str], tmp_path: Path) 
             assert sim.read("F07") == (0, 1000)
             wrong = tp.parse_url(f"tls://127.0.0.1:{port}?cert={pki['client_crt']}&key={pki['client_key']}"
                                  f"&ca={pki['other_ca']}&timeout=2")
-            with pytest.raises(tp.Unreachable, match="TLS"):
+            with pytest.raises(Unreachable, match="TLS"):
                 await tp.open_transport(wrong).connect()
     asyncio.run(main())
 

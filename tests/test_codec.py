@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from deployer.errors import CodecError
 from deployer.profile import codec
 
 
@@ -25,7 +26,7 @@ def test_oriental_operation_data_no3(value: int, regs: tuple[int, int]) -> None:
 
 
 def test_not_a_multiple_of_resolution() -> None:
-    with pytest.raises(codec.CodecError, match="not a multiple of the resolution 0.01"):
+    with pytest.raises(CodecError, match="not a multiple of the resolution 0.01"):
         codec.to_raw(Decimal("10.005"), "uint32", Decimal("0.01"))
     assert codec.to_raw(Decimal("10.005"), "uint32", Decimal("0.01"), rounding="nearest") == 1000
 
@@ -43,9 +44,9 @@ def test_float32_reads_back_as_written() -> None:
 
 
 def test_out_of_type_range() -> None:
-    with pytest.raises(codec.CodecError, match="does not fit in uint16"):
+    with pytest.raises(CodecError, match="does not fit in uint16"):
         codec.encode(65536, "uint16")
-    with pytest.raises(codec.CodecError, match="does not fit in int16"):
+    with pytest.raises(CodecError, match="does not fit in int16"):
         codec.to_raw(Decimal("-32769"), "int16")
 
 
@@ -170,11 +171,11 @@ def test_string_golden_bytes() -> None:
 
 
 def test_string_errors() -> None:
-    with pytest.raises(codec.CodecError, match="5 characters; 2 registers hold at most 4"):
+    with pytest.raises(CodecError, match="5 characters; 2 registers hold at most 4"):
         codec.encode_string("ABCDE", 2)
-    with pytest.raises(codec.CodecError, match="'ü' at character 2 is not ascii"):
+    with pytest.raises(CodecError, match="'ü' at character 2 is not ascii"):
         codec.encode_string("Mü", 2)
-    with pytest.raises(codec.CodecError, match="not ascii text"):
+    with pytest.raises(CodecError, match="not ascii text"):
         codec.decode_string((0x41FC,))
 
 
@@ -200,7 +201,7 @@ def test_bits_and_masks() -> None:
     assert codec.insert_field(5, 0x0038, word=0xFFFF) == 0xFFEF
     assert codec.extract_field(0xFFEF, 0x0038) == 5
     assert codec.extract_field(0x0030, 0x0038, signed=True) == -2
-    with pytest.raises(codec.CodecError, match="does not fit in 3 bits"):
+    with pytest.raises(CodecError, match="does not fit in 3 bits"):
         codec.insert_field(8, 0x0038)
 
 

@@ -20,6 +20,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from deployer.errors import BadURL, Locked
 from deployer.profile import builtin_profile
 from deployer.state import lock
 from deployer.testing.simulator import Faults, SimulatorThread
@@ -116,14 +117,14 @@ def test_lock_folder_rules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> N
     link = tmp_path / "link"
     link.symlink_to(d)
     monkeypatch.setenv(lock.ENV, str(link))
-    with pytest.raises(lock.Locked, match="it is a symbolic link"):
+    with pytest.raises(Locked, match="it is a symbolic link"):
         lock.try_lock("k")
     other = tmp_path / "open"
     other.mkdir()
     os.chmod(other, 0o777)
     os.chown(other, 1, 1) if os.getuid() == 0 else pytest.skip("chown needs root")
     monkeypatch.setenv(lock.ENV, str(other))
-    with pytest.raises(lock.Locked, match="not sticky"):
+    with pytest.raises(Locked, match="not sticky"):
         lock.try_lock("k")
 
 
@@ -146,7 +147,7 @@ def test_a_waiter_on_a_removed_file_locks_the_new_one() -> None:
         import fcntl
 
         fcntl.flock(old, fcntl.LOCK_EX | fcntl.LOCK_NB)  # the old inode is free: locking it means nothing
-        with pytest.raises(lock.Locked):
+        with pytest.raises(Locked):
             lock.try_lock("dev")
     finally:
         os.close(old)
@@ -207,7 +208,7 @@ def test_an_inventory_naming_one_device_twice_is_refused(tmp_path: Path) -> None
     ("tls://h?ca=/dev/zero", "tls option ca: '/dev/zero' is not a regular file (expected a PEM file)"),
 ])
 def test_bad_urls_said_plainly(text: str, message: str, tmp_path: Path) -> None:
-    with pytest.raises(urls.BadURL) as e:
+    with pytest.raises(BadURL) as e:
         urls.parse_url(text)
     assert str(e.value) == message
     r = tmp_path / "r.yaml"
@@ -224,7 +225,7 @@ def test_any_url_text_parses_or_is_a_bad_url(text: str) -> None:
     accepts has a host or a path and a lock key."""
     try:
         u = urls.parse_url(text)
-    except urls.BadURL:
+    except BadURL:
         return
     assert (u.host or u.path) and u.lock_keys
     assert "@" not in (u.host or "") and "#" not in urllib.parse.urlsplit(text.strip()).geturl().split("?")[0][-1:]

@@ -11,7 +11,9 @@ from pathlib import Path
 import pytest
 
 from deployer import errors
-from deployer.errors import DeployerError
+from deployer.errors import (
+    DeployerError,
+)
 from deployer.state import lock
 from tests.helpers import cli
 
@@ -52,16 +54,41 @@ def test_every_error_is_a_deployer_error_with_an_exit_code(name: str) -> None:
     assert cls.exit_code in (errors.EXIT_INVALID, errors.EXIT_UNREACHABLE, errors.EXIT_FAILED)
 
 
-def test_old_import_paths_name_the_same_classes() -> None:
-    from deployer.execute import session
-    from deployer.profile import codec
-    from deployer.transport import clients, urls
+def test_errors_are_importable_from_deployer_errors_only() -> None:
+    """No module hands the errors on (the old paths through transport, session, codec, lock and
+    load.diagnostics are gone): an error has one import path, deployer.errors (deployer.api re-exports
+    its public ones on purpose)."""
+    import importlib
 
-    assert urls.BadURL is clients.BadURL is errors.BadURL and issubclass(errors.BadURL, errors.UsageError)
-    assert clients.TransportError is errors.TransportError and clients.ExceptionResponse is errors.ExceptionResponse
-    assert session.StalePlan is errors.StalePlan and session.DeviceGone is errors.DeviceGone
-    assert codec.CodecError is errors.CodecError and issubclass(errors.CodecError, ValueError)
-    assert lock.Locked is errors.Locked
+    for mod in ("deployer.transport.clients", "deployer.transport.urls", "deployer.execute.session",
+                "deployer.profile.codec", "deployer.state.lock"):
+        m = importlib.import_module(mod)
+        handed_on = [n for n in errors.__all__ if n[0].isupper() and n in vars(m) and n not in m.__dict__.get(
+            "__all__", ()) and n not in _used_names(m)]
+        assert handed_on == [], (mod, handed_on)
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module("deployer.load.diagnostics")
+
+
+def _used_names(module: object) -> set[str]:
+    """Names a module's own code uses (an import it needs is not a re-export)."""
+    source = Path(module.__file__).read_text()  # type: ignore[attr-defined]
+    tree = ast.parse(source)
+    return {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)} | {
+        n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
+
+
+def test_a_codec_error_says_its_kind() -> None:
+    from decimal import Decimal
+
+    from deployer.profile import codec
+
+    with pytest.raises(errors.CodecError) as e:
+        codec.to_raw(Decimal("1.005"), "uint16", Decimal("0.01"))
+    assert e.value.kind == "resolution"
+    with pytest.raises(errors.CodecError) as e:
+        codec.to_raw(Decimal("70000"), "uint16")
+    assert e.value.kind == ""
 
 
 def _text_decisions(tree: ast.AST) -> list[int]:

@@ -116,7 +116,8 @@ def test_read_current_falls_back_too(tmp_path: Path) -> None:
 def test_simulator_gap_reads_answer_zeros_and_refuse_writes(tmp_path: Path) -> None:
     prof = profile_from(tmp_path, "profile: dev\nparameters:\n  a: {register: 0, type: uint16, default: 7}\n"
                                   "  b: {register: 2, type: uint16, default: 9}\n")
-    from deployer.transport.clients import ExceptionResponse, open_transport
+    from deployer.errors import ExceptionResponse
+    from deployer.transport.clients import open_transport
 
     async def body(s: Simulator) -> tuple[list[int], int]:
         t = open_transport(s.url)

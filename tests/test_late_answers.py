@@ -25,6 +25,7 @@ import pytest
 import serial
 import yaml
 
+from deployer.errors import BadAnswer
 from deployer.testing.simulator import Faults, Simulator
 from deployer.transport import clients as tp
 from tests.helpers import count, profile_from
@@ -231,7 +232,7 @@ def _bad(answer: Answer, request: Callable[[tp.Transport], Any], kind: str = "rt
         t = tp.open_transport(url.replace("retries=2", "retries=0"))
         await t.connect()
         try:
-            with pytest.raises(tp.BadAnswer) as e:
+            with pytest.raises(BadAnswer) as e:
                 await request(t)
             return str(e.value)
         finally:

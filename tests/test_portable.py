@@ -58,12 +58,13 @@ def test_the_lock_folder_does_not_follow_tmpdir(monkeypatch: pytest.MonkeyPatch)
 
 HOLDER = """
     import asyncio, json, sys
+    from deployer.errors import Locked
     from deployer.state import lock, oslock
     from deployer.transport.urls import parse_url
     url, unit, hold, wait = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "hold", float(sys.argv[4])
     try:
         held = asyncio.run(lock.acquire_device(parse_url(url).lock_keys, unit, command="test", timeout=wait))
-    except lock.Locked as e:
+    except Locked as e:
         print(json.dumps({"locked": str(e), "backend": oslock.backend().name}), flush=True)
         sys.exit(3)
     print(json.dumps({"held": True, "backend": oslock.backend().name,

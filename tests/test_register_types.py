@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from deployer.errors import InputError
+from deployer.errors import ExceptionResponse, InputError
 from deployer.execute.device import apply_device
 from deployer.execute.session import ApplyOptions
 from deployer.planning.frames import request_frame, response_frame
@@ -293,7 +293,7 @@ def test_simulator_refuses_like_a_device(plc: Profile, tmp_path: Path) -> None:
                      lambda: t.read(2, 196, 2, 1)):
             try:
                 out.append(str(await call()))
-            except tp.ExceptionResponse as e:
+            except ExceptionResponse as e:
                 out.append(f"exception {e.code:02d}")
         await t.close()
         return out
@@ -306,7 +306,7 @@ def test_simulator_refuses_like_a_device(plc: Profile, tmp_path: Path) -> None:
         await t.connect()
         codes = []
         for fc in (1, 2, 4):
-            with pytest.raises(tp.ExceptionResponse) as exc:
+            with pytest.raises(ExceptionResponse) as exc:
                 await t.read(fc, 0, 1, 1)
             codes.append(exc.value.code)
         await t.close()
@@ -324,7 +324,7 @@ def test_simulator_counts_coil_limits(tmp_path: Path) -> None:
         await t.connect()
         codes = []
         for call in (lambda: t.write_coils(0, [True] * 9, 1), lambda: t.read(1, 0, 11, 1)):
-            with pytest.raises(tp.ExceptionResponse) as exc:
+            with pytest.raises(ExceptionResponse) as exc:
                 await call()
             codes.append(exc.value.code)
         await t.close()

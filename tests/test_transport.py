@@ -21,6 +21,7 @@ from pymodbus.pdu.register_message import WriteMultipleRegistersRequest
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer, ModbusTlsServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from deployer.errors import BadURL, ConnectionLost, ExceptionResponse, NoResponse, Unreachable
 from deployer.transport import clients as tp
 from tests.conftest import dead_port
 from tests.helpers import umodbus_server as start_umodbus
@@ -145,7 +146,7 @@ def test_timeout_and_retries_from_url_or_arguments() -> None:
     ("tls://h?cert=/nonexistent.crt&key=/x", "tls option cert: no such file '/nonexistent.crt'"),
 ])
 def test_bad_urls(text: str, message: str) -> None:
-    with pytest.raises(tp.BadURL) as err:
+    with pytest.raises(BadURL) as err:
         tp.parse_url(text)
     assert str(err.value) == message
 
@@ -198,11 +199,11 @@ def test_tcp_round_trip_and_counters() -> None:
 def test_exception_response_carries_function_and_code() -> None:
     async def main() -> None:
         async with serve("tcp") as port, tp.open_transport(f"tcp://127.0.0.1:{port}") as t:
-            with pytest.raises(tp.ExceptionResponse) as err:
+            with pytest.raises(ExceptionResponse) as err:
                 await t.read_holding_registers(REGS + 50, 1, 1)
             assert (err.value.function, err.value.code) == (3, 2)
             assert str(err.value) == "exception 02 (illegal data address)"
-            with pytest.raises(tp.ExceptionResponse) as err:
+            with pytest.raises(ExceptionResponse) as err:
                 await t.write_registers(0, [5, 2000], 1)
             assert (err.value.function, err.value.code) == (16, 3)
             assert await t.read_holding_registers(0, 2, 1) == [0, 0]  # the connection is still usable
@@ -214,11 +215,11 @@ def test_refused_connection_is_unreachable_fast() -> None:
         port = dead_port()
         t = tp.open_transport(f"tcp://127.0.0.1:{port}?timeout=2")
         start = time.monotonic()
-        with pytest.raises(tp.Unreachable) as err:
+        with pytest.raises(Unreachable) as err:
             await t.connect()
         assert time.monotonic() - start < 1.0  # refused: no waiting for the timeout
         assert str(err.value) == f"tcp://127.0.0.1:{port}: connection refused"
-        with pytest.raises(tp.ConnectionLost):
+        with pytest.raises(ConnectionLost):
             await t.read_holding_registers(0, 1, 1)
     asyncio.run(main())
 
@@ -235,7 +236,7 @@ def test_swallowed_request_is_no_response_after_the_timeout() -> None:
             assert await t.read_holding_registers(0, 1, 1) == [0]
             swallow["on"] = True
             start = time.monotonic()
-            with pytest.raises(tp.NoResponse, match=r"no answer within 0.3 s"):
+            with pytest.raises(NoResponse, match=r"no answer within 0.3 s"):
                 await t.write_registers(0, [1], 1)
             elapsed = time.monotonic() - start
             assert 0.25 <= elapsed < 1.5  # one attempt: pymodbus's own retries are off
@@ -250,9 +251,9 @@ def test_server_gone_is_connection_lost_then_unreachable() -> None:
             await t.connect()
             assert await t.read_holding_registers(0, 1, 1) == [0]
         await asyncio.sleep(0.05)  # let the close reach the client
-        with pytest.raises((tp.ConnectionLost, tp.NoResponse)):
+        with pytest.raises((ConnectionLost, NoResponse)):
             await t.read_holding_registers(0, 1, 1)
-        with pytest.raises(tp.Unreachable, match="connection refused"):
+        with pytest.raises(Unreachable, match="connection refused"):
             await t.reconnect()
     asyncio.run(main())
 
@@ -293,10 +294,10 @@ def test_tls_mutual_authentication(pki: dict[str, str]) -> None:
             t = tp.open_transport(f"tls://127.0.0.1:{port}?{mine}&ca={pki['ca']}&server_hostname=localhost")
             async with t:
                 assert await t.read_holding_registers(5, 2, 1) == [0, 1000]
-            with pytest.raises(tp.Unreachable, match="TLS handshake failed.*match"):
+            with pytest.raises(Unreachable, match="TLS handshake failed.*match"):
                 await tp.open_transport(f"tls://127.0.0.1:{port}?{mine}&ca={pki['ca']}"
                                         f"&server_hostname=plc.example").connect()
-            with pytest.raises(tp.Unreachable) as err:
+            with pytest.raises(Unreachable) as err:
                 await tp.open_transport(f"tls://127.0.0.1:{port}?{mine}&ca={pki['other_ca']}&timeout=2").connect()
             assert str(err.value).startswith(f"tls://127.0.0.1:{port}: TLS handshake failed: ")
             assert "CERTIFICATE_VERIFY_FAILED" in str(err.value)
@@ -313,7 +314,7 @@ def test_tls_without_client_certificate_is_refused_by_the_device(pki: dict[str, 
         async with serve("tls", sslctx=server_context(pki)) as port:
             t = tp.open_transport(f"tls://127.0.0.1:{port}?ca={pki['ca']}&timeout=0.5")
             await t.connect()
-            with pytest.raises(tp.ConnectionLost, match="before any answer .*client certificate"):
+            with pytest.raises(ConnectionLost, match="before any answer .*client certificate"):
                 await t.read_holding_registers(0, 1, 1)
             await t.close()
     asyncio.run(main())
@@ -322,7 +323,7 @@ def test_tls_without_client_certificate_is_refused_by_the_device(pki: dict[str, 
 def test_tls_refused_is_not_reported_as_a_handshake_failure(pki: dict[str, str]) -> None:
     async def main() -> None:
         port = dead_port()
-        with pytest.raises(tp.Unreachable) as err:
+        with pytest.raises(Unreachable) as err:
             await tp.open_transport(f"tls://127.0.0.1:{port}?ca={pki['ca']}").connect()
         assert str(err.value) == f"tls://127.0.0.1:{port}: connection refused"
     asyncio.run(main())
@@ -345,7 +346,7 @@ def test_rtu_over_tcp_gateway() -> None:
                 await t.write_registers(16, [0, 1000, 500], 4)
                 assert await t.read_holding_registers(16, 3, 4) == [0, 1000, 500]
             async with tp.open_transport(f"rtu+tcp://127.0.0.1:{port}?timeout=0.2") as quick:
-                with pytest.raises(tp.NoResponse):  # unit 5 is not behind the gateway: silence, like RS-485
+                with pytest.raises(NoResponse):  # unit 5 is not behind the gateway: silence, like RS-485
                     await quick.read_holding_registers(16, 1, 5)
             assert frames[0] == rtu_frame(16, [0, 1000, 500], 4)
             assert frames[0] == bytes.fromhex("04 10 0010 0003 06 0000 03E8 01F4") + frames[0][-2:]
@@ -357,7 +358,7 @@ def test_rtu_over_tcp_gateway() -> None:
 
 def test_missing_serial_device_is_unreachable(tmp_path: Path) -> None:
     async def main() -> None:
-        with pytest.raises(tp.Unreachable) as err:
+        with pytest.raises(Unreachable) as err:
             await tp.open_transport(f"rtu://{tmp_path}/ttyNOPE").connect()
         assert str(err.value) == f"rtu://{tmp_path}/ttyNOPE: no such serial device '{tmp_path}/ttyNOPE'"
     asyncio.run(main())
@@ -368,7 +369,7 @@ def test_port_held_by_another_process_is_unreachable_with_the_reason(pty_pair: t
 
     async def main() -> None:
         async with serve("rtu", path=a):  # the server holds end A exclusively
-            with pytest.raises(tp.Unreachable, match="cannot open the serial port: .*exclusively lock"):
+            with pytest.raises(Unreachable, match="cannot open the serial port: .*exclusively lock"):
                 await tp.open_transport(f"rtu://{a}").connect()
     asyncio.run(main())
 
@@ -381,7 +382,7 @@ def test_line_settings_a_pty_rejects_are_reported_and_leave_the_port_free(pty_pa
         try:
             async with tp.open_transport(f"ascii://{b}?bytesize=7&parity=E"):
                 pass  # a kernel that accepts it: nothing to report
-        except tp.Unreachable as e:
+        except Unreachable as e:
             assert str(e) == (f"ascii://{b}?bytesize=7&parity=E: the port rejects these line settings "
                               f"(bytesize=7 parity=E): Invalid argument")
         async with tp.open_transport(f"ascii://{b}") as t:  # 8N1 opens at once: nothing kept the port locked
@@ -399,10 +400,10 @@ def test_rtu_round_trip_on_a_pty(pty_pair: tuple[str, str]) -> None:
             async with t:
                 await t.write_registers(30, [11, 22, 33], 3)
                 assert await t.read_holding_registers(30, 3, 3) == [11, 22, 33]
-                with pytest.raises(tp.ExceptionResponse) as err:
+                with pytest.raises(ExceptionResponse) as err:
                     await t.write_registers(30, [1, 5000], 3)
                 assert err.value.code == 3
-                with pytest.raises(tp.NoResponse):  # nobody at unit 9: a serial line stays silent
+                with pytest.raises(NoResponse):  # nobody at unit 9: a serial line stays silent
                     await t.read_holding_registers(30, 1, 9)
             assert frames[0] == rtu_frame(30, [11, 22, 33], 3)
     asyncio.run(main())
@@ -501,9 +502,9 @@ def test_one_port_different_settings_is_refused(pty_pair: tuple[str, str]) -> No
 
     async def main() -> None:
         async with tp.open_transport(f"rtu://{b}?baudrate=9600"):
-            with pytest.raises(tp.Unreachable, match="already open here as rtu baudrate=9600"):
+            with pytest.raises(Unreachable, match="already open here as rtu baudrate=9600"):
                 await tp.open_transport(f"rtu://{b}?baudrate=19200").connect()
-            with pytest.raises(tp.Unreachable, match="already open"):
+            with pytest.raises(Unreachable, match="already open"):
                 await tp.open_transport(f"ascii://{b}?baudrate=9600").connect()
         # closed by its last user: the port opens again with other settings
         async with tp.open_transport(f"rtu://{b}?baudrate=19200"):
@@ -564,7 +565,7 @@ def test_umodbus_interop(umodbus_server: tuple[int, dict[int, int]]) -> None:
             await t.write_registers(100, [0, 1000], 1)
             await t.write_register(102, 65535, 1)
             assert await t.read_holding_registers(100, 3, 1) == [0, 1000, 65535]
-            with pytest.raises(tp.ExceptionResponse) as err:
+            with pytest.raises(ExceptionResponse) as err:
                 await t.read_holding_registers(200, 1, 1)  # no route: umodbus answers 02
             assert err.value.code == 2
     asyncio.run(main())

@@ -16,9 +16,20 @@ from dataclasses import dataclass, field, replace
 from decimal import Decimal
 from typing import Any
 
-from ..errors import DeployerError, InputError, RunInterrupted, StateError, UsageError
+from ..errors import (
+    DeployerError,
+    DeviceGone,
+    ExceptionResponse,
+    InputError,
+    Locked,
+    RunInterrupted,
+    StateError,
+    TransportError,
+    Unreachable,
+    UsageError,
+)
 from ..execute.job import Job
-from ..execute.session import ApplyOptions, DeviceGone, Session
+from ..execute.session import ApplyOptions, Session
 from ..execute.steps import check_identity
 from ..execute.verify import values_of as _values_of
 from ..load.durations import format_duration, parse_duration
@@ -281,7 +292,7 @@ class Agent:
         url = dev.job.url
         try:
             dev.locks = _take_now(url, dev.job.unit)
-        except lock.Locked as e:
+        except Locked as e:
             if dev.not_owned_why != str(e):
                 self.event("not-owned", f"{dev.name}: not owned yet: {e}", device=dev.name)
             dev.not_owned_why, dev.status = str(e), "not-owned"
@@ -428,7 +439,7 @@ class Agent:
                 self.event("replace-refused", f"{dev.name}: another kind of device answers: {e}; nothing written",
                            device=dev.name)
             return
-        except (tp.TransportError, DeviceGone) as e:
+        except (TransportError, DeviceGone) as e:
             dev.last_check = time.time()
             if dev.unreachable_since is None:
                 dev.unreachable_since = time.time()
@@ -1094,8 +1105,8 @@ async def _read(profile: Profile, names: Sequence[str], url: tp.DeviceURL, unit:
         params = [profile.parameter(n) for n in names]
         values = _values_of(params, await session.read_blocks(plan_reads(profile, list(names)), profile))
         return values, objects, objects is not None
-    except tp.ExceptionResponse as e:
-        raise tp.Unreachable(f"{describe(url)} unit {unit}: reading answered {e}") from None
+    except ExceptionResponse as e:
+        raise Unreachable(f"{describe(url)} unit {unit}: reading answered {e}") from None
     finally:
         await transport.close()
 

@@ -49,9 +49,10 @@ def learned_forget(state_dir: str, profile: str | None, device: str | None, unit
     """Forget what devices taught: the next plan and apply use the profile's own limits again."""
     import os
 
+    from ..errors import BadURL
     from ..profile import is_profile_path
     from ..state import learned as store
-    from ..transport.urls import BadURL, parse_url
+    from ..transport.urls import parse_url
 
     if not (profile or device or everything):
         raise UsageError("say what to forget: --profile PROFILE, --device URL [--unit N], or --all")
@@ -122,11 +123,11 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
                          "or --list-ports")
     import asyncio
 
-    from ..errors import EXIT_UNREACHABLE, TransportError
+    from ..errors import EXIT_UNREACHABLE, BadURL, TransportError
     from ..execute.scan import inventory_text
     from ..execute.scan import scan as run_scan
     from ..state.learned import now
-    from ..transport.urls import BadURL, parse_url
+    from ..transport.urls import parse_url
 
     ids = _unit_ids(units)
     try:
@@ -195,10 +196,10 @@ def probe(profile: str, device: str, unit: int, expect: tuple[str, ...], timeout
     """
     import asyncio
 
-    from ..errors import EXIT_CHANGES, EXIT_UNREACHABLE, TransportError
+    from ..errors import EXIT_CHANGES, EXIT_UNREACHABLE, BadURL, TransportError
     from ..execute.probe import probe as run_probe
     from ..profile import resolve_profile
-    from ..transport.urls import BadURL, parse_url
+    from ..transport.urls import parse_url
 
     prof = resolve_profile(profile)
     wanted: dict[str, str] = {}

@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from ..errors import EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, InputError, UsageError
+from ..errors import EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, ExceptionResponse, InputError, TransportError, UsageError
 from .base import _n, _output, console, echo, force_option, report_input_error, safe
 from .tables import Cell, show
 
@@ -285,12 +285,12 @@ def _from_device(device: str, unit: int, at: int, model: str | None, *, search: 
                 n = min(125, address + count - a)
                 try:
                     out += await transport.read_holding_registers(a, n, unit)
-                except tp.ExceptionResponse as e:
+                except ExceptionResponse as e:
                     said = f"{tp.describe(url)} unit {unit}: reading {n} registers at {a} answered {e}"
                     if e.code == 2:
                         raise sunspec.NotThere(f"{said}: check --at (SunSpec devices put 'SunS' at 40000, 0 or "
                                                "50000, the first model's ID 2 registers after it)") from None
-                    raise tp.TransportError(said) from None
+                    raise TransportError(said) from None
             return out
 
         try:
@@ -302,7 +302,7 @@ def _from_device(device: str, unit: int, at: int, model: str | None, *, search: 
 
     try:
         return (asyncio.run(run()),)
-    except (tp.TransportError, sunspec.NotThere) as e:
+    except (TransportError, sunspec.NotThere) as e:
         echo(f"error: {safe(e)}", err=True)
         return None
 

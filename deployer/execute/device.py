@@ -16,7 +16,17 @@ from collections import deque
 from collections.abc import Awaitable
 from dataclasses import dataclass, replace
 
-from ..errors import Declined, DeviceGone, IdentityMismatch, InputError, StalePlan, UsageError
+from ..errors import (
+    Declined,
+    DeviceGone,
+    ExceptionResponse,
+    IdentityMismatch,
+    InputError,
+    Locked,
+    StalePlan,
+    Unreachable,
+    UsageError,
+)
 from ..planning.model import Plan, ReadRequest, Target
 from ..planning.planfile import plan_to_json
 from ..planning.planner import make_plan, plan_reads
@@ -199,7 +209,7 @@ async def _locked(recipe: Recipe, url: tp.DeviceURL, unit: int, opts: ApplyOptio
         held = [] if opts.lock_held else await lock.acquire_device(
             url.lock_keys, unit, timeout=opts.lock_timeout, command=lock.command_line(), directory=opts.lock_dir,
             run=opts.run_id)
-    except lock.Locked as e:
+    except Locked as e:
         res.status, res.error = "unreachable", f"{e}; nothing was sent"
         return res, None
     try:
@@ -209,7 +219,7 @@ async def _locked(recipe: Recipe, url: tp.DeviceURL, unit: int, opts: ApplyOptio
         transport.set_pacing(*tp.pacing(url, prof.limits.pause_after_connect, prof.limits.pause_between_requests))
         try:
             await transport.connect()
-        except tp.Unreachable as e:
+        except Unreachable as e:
             res.status, res.error = "unreachable", str(e)
             return res, None
         session = Session(transport, unit, retries=url.retries, backoff=opts.backoff, records=res.requests)
@@ -288,7 +298,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
     # guards (e.g. "drive stopped") only matter when something is to be written
     try:
         why = await check_preconditions(session, prof)
-    except (DeviceGone, tp.ExceptionResponse) as e:
+    except (DeviceGone, ExceptionResponse) as e:
         why = f"reading the preconditions failed: {e}"
     if why:
         res.status, res.error = "failed", f"{why}; nothing was written"
@@ -332,7 +342,7 @@ async def _read_before(session: Session, recipe: Recipe, opts: ApplyOptions, res
     except DeviceGone as e:
         res.status, res.error = "unreachable", f"{e}; nothing was written"
         return None
-    except tp.ExceptionResponse as e:
+    except ExceptionResponse as e:
         res.status, res.error = "failed", f"reading the current values answered {e}; nothing was written"
         return None
     if not session.gap_reads:  # the refused read is in res.requests; say why the reads that follow differ
@@ -425,7 +435,7 @@ async def _write_phase(session: Session, recipe: Recipe, plan: Plan, opts: Apply
     if prof.unlock:
         try:
             await _send_actions(session, prof, prof.unlock)
-        except (DeviceGone, tp.ExceptionResponse) as e:
+        except (DeviceGone, ExceptionResponse) as e:
             res.status, res.error = "failed", f"unlock failed: {e}; no parameter was written"
             return
     try:
@@ -445,7 +455,7 @@ async def _write_phase(session: Session, recipe: Recipe, plan: Plan, opts: Apply
         if prof.unlock and prof.lock:
             try:
                 await _send_actions(session, prof, prof.lock)
-            except (DeviceGone, tp.ExceptionResponse) as e:
+            except (DeviceGone, ExceptionResponse) as e:
                 res.status = "failed"  # its parameters say what they hold; the device is not left as it should be
                 res.error = f"{res.error + '; ' if res.error else ''}lock failed: {e}; the device may be left unlocked"
     res.notices.extend(f"{n} takes effect after a power cycle" for n, r in results.items()
@@ -468,7 +478,7 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
     # read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
         after = _values(_shared(recipe).layout, await session.read_blocks(plan.reads, prof))
-    except (DeviceGone, tp.ExceptionResponse) as e:
+    except (DeviceGone, ExceptionResponse) as e:
         for n in written:
             if results[n].error == PENDING:
                 results[n].error = f"read-back failed: {e}"
@@ -533,7 +543,7 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
                 continue
         try:
             req = await _remerge(session, prof, req, desired, results)
-        except (DeviceGone, tp.ExceptionResponse) as e:  # nothing of this request was sent
+        except (DeviceGone, ExceptionResponse) as e:  # nothing of this request was sent
             for n in req.parameters:
                 results[n].status, results[n].error = "failed", f"reading the register to keep its other bits: {e}"
             stopped = opts.on_error == "stop"
@@ -545,7 +555,7 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
             wait = prof.wait_after(req.stage)
             if wait and (not pending or pending[0].stage != req.stage):
                 await asyncio.sleep(wait / 1000)
-        except tp.ExceptionResponse as e:
+        except ExceptionResponse as e:
             if e.code == 1 and req.function == 16 and not learning.fc06:  # no Function 16: nothing was written
                 learning.fc06 = True
                 pending.extendleft(reversed(single_writes(prof, req)))

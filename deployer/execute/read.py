@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from ..errors import DeviceGone, IdentityMismatch, UsageError
+from ..errors import DeviceGone, ExceptionResponse, IdentityMismatch, Unreachable, UsageError
 from ..planning.planner import plan_reads
 from ..profile import Profile
 from ..report import RequestRecord
@@ -19,7 +19,7 @@ from .verify import values_of
 async def read_current(profile: Profile, names: Sequence[str], url: tp.DeviceURL, unit: int,
                        records: list[RequestRecord] | None = None, *, backoff: float = 0.05,
                        ) -> dict[str, tuple[int, ...]]:
-    """Current registers of the named readable parameters. Raises tp.Unreachable / UsageError."""
+    """Current registers of the named readable parameters. Raises Unreachable / UsageError."""
     if unit == 0:
         raise UsageError("unit 0 is broadcast: nothing can be read from it")
     transport = tp.open_transport(url)
@@ -30,13 +30,13 @@ async def read_current(profile: Profile, names: Sequence[str], url: tp.DeviceURL
         try:
             await check_identity(session, profile)
         except IdentityMismatch as e:  # the device asked for is not there: nothing of it can be read
-            raise tp.Unreachable(str(e)) from None
+            raise Unreachable(str(e)) from None
         params = [profile.parameter(n) for n in names]
         reads = plan_reads(profile, [p.name for p in params if p.readable])
         return values_of(params, await session.read_blocks(reads, profile))
     except DeviceGone as e:
-        raise tp.Unreachable(f"{tp.describe(url)} unit {unit}: {e}") from None
-    except tp.ExceptionResponse as e:
-        raise tp.Unreachable(f"{tp.describe(url)} unit {unit}: reading answered {e}") from None
+        raise Unreachable(f"{tp.describe(url)} unit {unit}: {e}") from None
+    except ExceptionResponse as e:
+        raise Unreachable(f"{tp.describe(url)} unit {unit}: reading answered {e}") from None
     finally:
         await transport.close()

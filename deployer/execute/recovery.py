@@ -15,12 +15,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 
+from ..errors import DeviceGone, ExceptionResponse
 from ..planning.model import WriteRequest
 from ..planning.planner import merge_fields, plan_reads
 from ..profile import Parameter, Profile
 from ..report import ParameterResult
-from ..transport import clients as tp
-from .session import DeviceGone, Session
+from .session import Session
 from .verify import _attempted, values_of
 
 
@@ -162,7 +162,7 @@ class Recovery:
     took_all: bool = False  # the device complained, yet every value is there: go on as after a plain answer
 
 
-async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.ExceptionResponse,
+async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: ExceptionResponse,
                    desired: Mapping[str, tuple[int, ...]], results: dict[str, ParameterResult],
                    written: set[str], notices: list[str] | None = None) -> Recovery:
     """After an exception: read the request's registers back to see which took.
@@ -178,11 +178,11 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: tp.E
     it is split in halves instead, and nothing is blamed yet.
     """
     params = sorted({prof.parameter(n) for n in req.parameters}, key=lambda p: p.address)
-    error = f"exception {exc.code:02d} ({tp.ExceptionResponse.NAMES.get(exc.code, 'unknown')})"
+    error = f"exception {exc.code:02d} ({ExceptionResponse.NAMES.get(exc.code, 'unknown')})"
     try:
         now = values_of(params, await session.read_blocks(plan_reads(prof, [p.name for p in params if p.readable]),
                                                            prof))
-    except (DeviceGone, tp.ExceptionResponse) as e:  # cannot tell what took: say so, send nothing more of it
+    except (DeviceGone, ExceptionResponse) as e:  # cannot tell what took: say so, send nothing more of it
         _attempted(results, req.parameters, written, f"{error}; reading back failed: {e}")
         return Recovery()
     rejected: Parameter | None = None

@@ -8,9 +8,14 @@ from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal
 
-from ..errors import Declined as Declined  # importable from here as before
-from ..errors import DeviceGone as DeviceGone
-from ..errors import StalePlan as StalePlan
+from ..errors import (
+    BadAnswer,
+    ConnectionLost,
+    DeviceGone,
+    ExceptionResponse,
+    NoResponse,
+    Unreachable,
+)
 from ..planning.model import Plan, ReadRequest, WriteRequest
 from ..planning.planner import gap_free_reads, read_key
 from ..profile import Profile, object_name
@@ -93,27 +98,27 @@ class Session:
                 record.result = "broadcast" if self.unit == 0 and record.function not in (1, 2, 3, 4) else "ok"
                 record.exception_code = None
                 return result
-            except tp.ExceptionResponse as e:
+            except ExceptionResponse as e:
                 record.result, record.exception_code = "exception", e.code
                 if e.code != 6 or attempt > self.retries:
                     raise
-            except tp.NoResponse as e:
+            except NoResponse as e:
                 record.result, record.exception_code = "no response", None
                 if attempt > self.retries:
                     tries = f"{attempt} attempt{'s' if attempt > 1 else ''}"
-                    if isinstance(e, tp.BadAnswer):  # something answered, wrongly: say what, not "no answer"
+                    if isinstance(e, BadAnswer):  # something answered, wrongly: say what, not "no answer"
                         raise DeviceGone(f"{e} (after {tries})") from None
                     hint = tp.no_answer_hint(self.transport.url, self.unit)
                     raise DeviceGone(f"no answer after {tries}{hint}") from None
             except asyncio.CancelledError:  # the run was interrupted while this request was out
                 record.result, record.exception_code = "interrupted", None
                 raise
-            except tp.ConnectionLost as e:
+            except ConnectionLost as e:
                 record.result, record.exception_code = "connection lost", None
                 if attempt > self.retries:
                     raise DeviceGone(f"connection lost ({e})") from None
                 await asyncio.sleep(self.backoff * 2 ** (attempt - 1))
-                with contextlib.suppress(tp.Unreachable):  # counts as an attempt; the next try reports
+                with contextlib.suppress(Unreachable):  # counts as an attempt; the next try reports
                     await self.transport.reconnect()
                 continue
             await asyncio.sleep(self.backoff * 2 ** (attempt - 1))
@@ -126,15 +131,15 @@ class Session:
         self.records.append(rec)
         try:
             objects = await self.transport.read_device_identification(self.unit)
-        except tp.ExceptionResponse as e:
+        except ExceptionResponse as e:
             rec.result, rec.exception_code = "exception", e.code
             return None
-        except tp.NoResponse:
+        except NoResponse:
             rec.result = "no response"
             return None
-        except tp.ConnectionLost:
+        except ConnectionLost:
             rec.result = "connection lost"
-            with contextlib.suppress(tp.Unreachable):
+            with contextlib.suppress(Unreachable):
                 await self.transport.reconnect()
             return None
         return {object_name(i): v.decode("latin-1").strip(" \x00") for i, v in sorted(objects.items())}
@@ -176,7 +181,7 @@ class Session:
             r = todo[i]
             try:
                 values = await self.read(r.address, r.count, r.function)
-            except tp.ExceptionResponse as e:
+            except ExceptionResponse as e:
                 if (profile is None or not profile.limits.max_read_gap or e.code != 2
                         or gap_free_reads(profile, [r]) == (r,)):
                     raise  # not about a gap

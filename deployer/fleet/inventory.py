@@ -233,7 +233,8 @@ def _same_devices(path: str, devices: Sequence[tuple[FleetDevice, int]], *, chec
     Two entries for one device would write it twice in one run, and their snapshots would hold each
     other's in-between values: one device, one entry.
     """
-    from ..transport.urls import BadURL, parse_url
+    from ..errors import BadURL
+    from ..transport.urls import parse_url
 
     errors: list[Diagnostic] = []
     seen: dict[tuple[str, int], FleetDevice] = {}

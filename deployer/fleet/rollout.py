@@ -10,11 +10,11 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Protocol, TypeVar
 
-from ..errors import RunInterrupted, UsageError
+from ..errors import Declined, RunInterrupted, StalePlan, TransportError, UsageError
 from ..execute.device import DeviceInterrupted, _apply_device, _results, journal_line
 from ..execute.job import Job
 from ..execute.read import read_current
-from ..execute.session import ApplyOptions, Declined, StalePlan, raise_if_cancelled
+from ..execute.session import ApplyOptions, raise_if_cancelled
 from ..profile import Profile, profile_ref
 from ..report import DeviceResult, Report
 from ..transport import clients as tp
@@ -312,14 +312,14 @@ def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceRes
 
 async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,
                     on_done: Callable[[str, str | None], None] | None = None,
-                    ) -> dict[str, dict[str, tuple[int, ...]] | tp.TransportError | UsageError]:
+                    ) -> dict[str, dict[str, tuple[int, ...]] | TransportError | UsageError]:
     """Current values of many devices (fleet plan, diff, pull): per device its registers or why not."""
-    out: dict[str, dict[str, tuple[int, ...]] | tp.TransportError | UsageError] = {}
+    out: dict[str, dict[str, tuple[int, ...]] | TransportError | UsageError] = {}
 
     async def one(j: ReadJob) -> None:
         try:
             out[j.name] = await read_current(j.profile, j.names, j.url, j.unit)
-        except (tp.TransportError, UsageError) as e:
+        except (TransportError, UsageError) as e:
             out[j.name] = e
         if on_done:
             res = out[j.name]

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from ..errors import Diagnostic, InputError, UsageError
-from ..profile import codec
+from ..errors import CodecError, Diagnostic, InputError, UsageError
 from .model import COIL_WRITES, Plan, PlannedParameter, ReadRequest, Target, WriteRequest
 from .wire import wire_stats
 
@@ -161,7 +160,7 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
         if param.is_string:
             try:
                 param.text_of(pp.desired_raw)
-            except codec.CodecError as e:
+            except CodecError as e:
                 errors.append(src.error(("parameters", i, "desired_raw"), f"{pp.name}: {e}"))
                 continue
         raw = None if param.is_string else param.decode(pp.desired_raw)

@@ -23,7 +23,7 @@ from decimal import ROUND_HALF_EVEN, Decimal
 from functools import cache
 from typing import Literal
 
-from ..errors import CodecError as CodecError  # importable from here as before
+from ..errors import CodecError
 
 TypeName = Literal["uint16", "int16", "uint32", "int32", "uint64", "int64", "float32", "float64"]
 WordOrder = Literal["big", "little"]
@@ -125,7 +125,8 @@ def to_raw(
         raise CodecError(
             f"{_plain(value)} is not a multiple of the resolution {_plain(scale)}"
             + (f" (offset {_plain(offset)})" if offset else "")
-            + "; set 'rounding: nearest' to round"
+            + "; set 'rounding: nearest' to round",
+            kind="resolution",
         )
     raw = int(integral)
     if not lo <= raw <= hi:

@@ -8,7 +8,7 @@ from dataclasses import replace
 from decimal import Decimal
 from typing import Any
 
-from ..errors import Diagnostic, InputError, UsageError
+from ..errors import CodecError, Diagnostic, InputError, UsageError
 from ..load import messages, schema, yamlsrc
 from ..load.durations import parse_duration
 from . import codec, firmware, model, units, values
@@ -400,7 +400,7 @@ def _range_problems(src: yamlsrc.Source, param: Parameter, spec: dict[str, Any],
             try:
                 if bound is not None:
                     param.to_raw(bound, rounding="nearest")
-            except codec.CodecError as e:
+            except CodecError as e:
                 out.append(src.error((*at, key), f"{key} {_fmt(bound)} is not representable: {e}"))
     rng = param.type_range()
     for label, raw in param.values:
@@ -423,7 +423,7 @@ def _with_default(src: yamlsrc.Source, param: Parameter, d: object, at: yamlsrc.
         elif isinstance(d, str):
             labels = dict(param.values)
             if d not in labels:
-                raise codec.CodecError(f"'{d}' is not one of the labels "
+                raise CodecError(f"'{d}' is not one of the labels "
                                        f"{messages.label_list(labels) or '(none)'}")
             default_eng = codec.from_raw(labels[d], param.scale, param.offset)
         else:
@@ -432,9 +432,9 @@ def _with_default(src: yamlsrc.Source, param: Parameter, d: object, at: yamlsrc.
         if (param.min is not None and default_eng < param.min) or (
             param.max is not None and default_eng > param.max
         ):
-            raise codec.CodecError(f"{_fmt(default_eng)} is outside {_fmt(param.min)}..{_fmt(param.max)}")
+            raise CodecError(f"{_fmt(default_eng)} is outside {_fmt(param.min)}..{_fmt(param.max)}")
         return replace(param, default=default_eng)
-    except codec.CodecError as e:
+    except CodecError as e:
         local.append(src.error((*at, "default"), f"default: {e}"))
         return param
 
@@ -564,7 +564,7 @@ def _actions(c: _Checks, key: str) -> tuple[CommitAction, ...]:
         try:
             regs = tuple(int(r) for r in raw) if isinstance(raw, list) else codec.encode(
                 int(raw), item.get("type", "uint16"), c.layout[0], c.layout[1])
-        except (codec.CodecError, ValueError) as e:
+        except (CodecError, ValueError) as e:
             # a secret's value is never echoed: say where it came from
             c.error((*at, "raw"), f"the value from {secret} does not fit {item.get('type', 'uint16')}"
                     if secret else str(e))
@@ -751,7 +751,7 @@ def _parameter_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_,
                 eq = v[1] if isinstance(v, tuple) else p.to_raw(v, "exact")
             else:  # a label as a bound: its engineering value
                 got[key] = codec.from_raw(v[1], p.scale, p.offset) if isinstance(v, tuple) else v
-        except (ValueError, codec.CodecError) as e:
+        except (ValueError, CodecError) as e:
             c.error((*at, key), f"{name}: {e}")
             return None
     low, high = got.get("min"), got.get("max")

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from decimal import Decimal
 from typing import Literal
 
+from ..errors import CodecError
 from . import codec
 from .firmware import FirmwareSource
 
@@ -231,10 +232,10 @@ class Parameter:
         raw = codec.to_raw(value, self.codec_type, self.scale, self.offset, rounding)
         rng = self.type_range()
         if self.is_bit and raw not in (0, 1):
-            raise codec.CodecError(f"a {self.register_type} holds 0 or 1, not {raw}")
+            raise CodecError(f"a {self.register_type} holds 0 or 1, not {raw}")
         if self.mask and rng and not rng[0] <= raw <= rng[1]:
             width = codec.mask_shift(self.mask)[1]
-            raise codec.CodecError(f"raw value {raw} does not fit in the field's "
+            raise CodecError(f"raw value {raw} does not fit in the field's "
                                    f"{width} bit{'s' if width != 1 else ''} ({rng[0]}..{rng[1]})")
         return raw
 
@@ -242,11 +243,11 @@ class Parameter:
         """Raw -> registers; a field's register carries only its own bits (the planner merges)."""
         if self.is_bit:
             if raw not in (0, 1) or not isinstance(raw, int):
-                raise codec.CodecError(f"a {self.register_type} holds 0 or 1, not {raw!r}")
+                raise CodecError(f"a {self.register_type} holds 0 or 1, not {raw!r}")
             return (raw,)
         if self.mask:
             if not isinstance(raw, int):
-                raise codec.CodecError(f"a bit field needs an integer raw value, not {raw!r}")
+                raise CodecError(f"a bit field needs an integer raw value, not {raw!r}")
             return (codec.insert_field(raw, self.mask, self.type == "int16"),)
         return codec.encode(raw, self.type, self.word_order, self.byte_swap)
 
@@ -257,7 +258,7 @@ class Parameter:
         if self.mask:
             return codec.extract_field(int(registers[0]), self.mask, self.type == "int16")
         if self.is_string:
-            raise codec.CodecError(f"{self.name} is a string: use text_of")
+            raise CodecError(f"{self.name} is a string: use text_of")
         return codec.decode(registers, self.type, self.word_order, self.byte_swap)
 
     def encode_text(self, text: str) -> tuple[int, ...]:
@@ -409,7 +410,7 @@ class HealthCheck:
                 if self.equals is not None:
                     return p.decode(regs) == self.equals
                 v = p.to_engineering(regs)
-            except (codec.CodecError, ArithmeticError, ValueError):  # NaN, infinity: not a healthy value
+            except (CodecError, ArithmeticError, ValueError):  # NaN, infinity: not a healthy value
                 return False
             lo, hi, eq = self.low, self.high, None  # type: ignore[assignment]
         if eq is not None and v != eq:

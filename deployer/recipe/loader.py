@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 from decimal import Decimal
 from typing import Any, Literal
 
-from ..errors import Diagnostic, InputError, UsageError
+from ..errors import CodecError, Diagnostic, InputError, UsageError
 from ..load import messages, schema, yamlsrc
 from ..profile import Parameter, Profile, codec, is_profile_path, resolve_profile, values
 from .model import DeviceSpec, SnapshotInfo
@@ -86,7 +86,8 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
         dev = data.get("device") or {}
         device = DeviceSpec(dev.get("url", device.url), dev.get("unit", device.unit))
         if isinstance(dev.get("url"), str):
-            from ..transport.urls import BadURL, parse_url
+            from ..errors import BadURL
+            from ..transport.urls import parse_url
 
             try:
                 parse_url(dev["url"])
@@ -361,7 +362,7 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
             return None
         try:
             regs = param.encode_text(str(value))
-        except codec.CodecError as err:
+        except CodecError as err:
             fail(str(err))
             return None
         return Desired(param, str(value), regs)
@@ -385,9 +386,9 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
         return Desired(param, eng[0], param.encode(eng[1]))
     try:
         raw = param.to_raw(eng, rounding)
-    except codec.CodecError as err:
+    except CodecError as err:
         msg = str(err)
-        if "resolution" in msg and param.unit:
+        if err.kind == "resolution" and param.unit:  # the resolution and the value said with the unit
             msg = msg.replace(f"resolution {codec.format_decimal(param.scale)}",
                               f"resolution {codec.format_decimal(param.scale)} {param.unit}")
             msg = msg.replace(codec.format_decimal(eng), f"{codec.format_decimal(eng)} {param.unit}", 1)
@@ -417,7 +418,7 @@ def _from_raw(param: Parameter, raw_v: Any, e: Entry, fail: Any, *, trusted: boo
         return None
     try:
         regs = param.encode(raw)
-    except codec.CodecError as err:
+    except CodecError as err:
         fail(str(err))
         return None
     return Desired(param, param.format_registers(regs), regs)

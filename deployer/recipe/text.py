@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import yaml
 
+from ..errors import CodecError
 from ..load import yamlsrc
 from ..profile import Parameter, codec
 
@@ -37,7 +38,7 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
         try:
             text = param.text_of(tuple(registers))
             return text if param.encode_text(text) == tuple(registers) else None
-        except codec.CodecError:
+        except CodecError:
             return None
     raw = param.decode(tuple(registers))
     label = param.label_for(raw)

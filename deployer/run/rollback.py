@@ -16,14 +16,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..errors import Diagnostic, InputError, UsageError
+from ..errors import BadURL, Diagnostic, InputError, UsageError
 from ..execute.job import Job
 from ..fleet.inventory import FleetDevice, Inventory, select
 from ..fleet.livereport import NOT_FINISHED
 from ..recipe.loader import Recipe, load_recipe
 from ..report import read_report
 from ..state import journal
-from ..transport.urls import BadURL, DeviceURL, describe, parse_url
+from ..transport.urls import DeviceURL, describe, parse_url
 
 
 def _url(text: str, timeout: float | None, retries: int | None) -> DeviceURL:

@@ -29,9 +29,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
 
-from ..errors import RunInterrupted, UsageError
+from ..errors import Declined, RunInterrupted, StalePlan, UsageError
 from ..execute.job import Job
-from ..execute.session import ApplyOptions, Declined, StalePlan
+from ..execute.session import ApplyOptions
 from ..fleet.livereport import LiveReport
 from ..fleet.rollout import apply_many, batch_plan, batch_sizes, failure_budget
 from ..portable import interrupt_signals, on_signals, raise_open_files
@@ -41,7 +41,7 @@ from ..state.durable import Line, disk_error, durable
 from ..transport.urls import describe
 from ..window.soak import check_soak_profiles
 
-__all__ = ["RunInterrupted", "check_broadcast", "check_writable", "ensure_files", "fleet_options", "run",
+__all__ = ["check_broadcast", "check_writable", "ensure_files", "fleet_options", "run",
            "run_async"]
 
 

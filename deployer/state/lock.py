@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .. import portable
-from ..errors import Locked as Locked  # importable from here as before
+from ..errors import Locked
 from . import holder, oslock
 
 ENV = "DEPLOYER_LOCK_DIR"

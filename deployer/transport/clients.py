@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import errno
 import functools
 import os
 import ssl
@@ -32,18 +33,13 @@ from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU
 from pymodbus.pdu.mei_message import ReadDeviceInformationResponse
 
+from ..errors import BadAnswer, ConnectionLost, ExceptionResponse, NoResponse, TransportError, Unreachable
+
 # URLs and errors live apart from pymodbus (commands that only parse URLs stay light); re-exported here
 from .urls import DEFAULT_PORTS as DEFAULT_PORTS
 from .urls import SERIAL_DEFAULTS as SERIAL_DEFAULTS
-from .urls import BadAnswer as BadAnswer
-from .urls import BadURL as BadURL
-from .urls import ConnectionLost as ConnectionLost
 from .urls import DeviceURL as DeviceURL
-from .urls import ExceptionResponse as ExceptionResponse
 from .urls import LineSettings as LineSettings
-from .urls import NoResponse as NoResponse
-from .urls import TransportError as TransportError
-from .urls import Unreachable as Unreachable
 from .urls import describe as describe
 from .urls import no_answer_hint as no_answer_hint
 from .urls import pacing as pacing
@@ -829,11 +825,12 @@ class SerialTransport(PymodbusTransport):
             port.timeout = 0  # what pymodbus sets next: it reconfigures the port
             port.write_timeout = 0
         except Exception as e:  # pyserial raises SerialException, termios.error, ValueError
-            text = str(e.args[1]) if isinstance(e.args, tuple) and len(e.args) == 2 and e.args[0] == 22 else str(e)
-            if text == "Invalid argument":
+            # termios.error and OSError carry (errno, text): EINVAL is the line settings the port refuses
+            code = e.args[0] if len(e.args) == 2 and isinstance(e.args[0], int) else getattr(e, "errno", None)
+            if code == errno.EINVAL:
                 settings = " ".join(f"{k}={o[k]}" for k in ("baudrate", "bytesize", "parity", "stopbits") if k in o)
-                return f"the port rejects these line settings ({settings or 'defaults'}): Invalid argument"
-            return f"cannot open the serial port: {text}"
+                return f"the port rejects these line settings ({settings or 'defaults'}): {os.strerror(code)}"
+            return f"cannot open the serial port: {e}"
         finally:
             if port is not None:
                 port.close()

@@ -17,13 +17,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..errors import BadAnswer as BadAnswer
-from ..errors import BadURL as BadURL  # the errors of transports, importable from here as before
-from ..errors import ConnectionLost as ConnectionLost
-from ..errors import ExceptionResponse as ExceptionResponse
-from ..errors import NoResponse as NoResponse
-from ..errors import TransportError as TransportError
-from ..errors import Unreachable as Unreachable
+from ..errors import BadURL
 from ..limits import LIMITS
 from ..load.durations import parse_duration
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..errors import InputError, UsageError
+from ..errors import DeviceGone, ExceptionResponse, InputError, Locked, Unreachable, UsageError
 from ..execute.device import _apply_device
-from ..execute.session import ApplyOptions, DeviceGone, Session
+from ..execute.session import ApplyOptions, Session
 from ..execute.steps import commit_steps
 from ..execute.verify import values_of
 from ..planning.planner import plan_reads
@@ -42,7 +42,7 @@ async def _locks(w: Written, options: ApplyOptions) -> str | None:
         w.locks.extend(await lock.acquire_device(w.url.lock_keys, w.unit, timeout=options.lock_timeout,
                                                  command=lock.command_line(), directory=options.lock_dir,
                                                  run=options.run_id))
-    except lock.Locked as e:
+    except Locked as e:
         return str(e)
     return None
 
@@ -79,7 +79,7 @@ async def _read_again(w: Written, options: ApplyOptions, records: list[RequestRe
         await transport.connect()
         return await recheck(Session(transport, w.unit, retries=w.url.retries, backoff=options.backoff,
                                      records=records), w)
-    except (tp.Unreachable, DeviceGone, tp.ExceptionResponse) as e:
+    except (Unreachable, DeviceGone, ExceptionResponse) as e:
         return str(e)
     finally:
         await transport.close()
@@ -229,7 +229,7 @@ async def _commit(w: Written, options: ApplyOptions) -> str | None:
             res.commit = "not sent"
             return changed_text(w, changed)
         why = await commit_steps(session, prof)
-    except (tp.Unreachable, DeviceGone, tp.ExceptionResponse) as e:
+    except (Unreachable, DeviceGone, ExceptionResponse) as e:
         res.status, res.error, res.commit = "failed", f"commit not sent: re-reading the parameters failed: {e}", \
             "not sent"
         return None

@@ -15,8 +15,8 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from ..errors import UsageError
-from ..execute.session import ApplyOptions, DeviceGone, Session
+from ..errors import DeviceGone, ExceptionResponse, Unreachable, UsageError
+from ..execute.session import ApplyOptions, Session
 from ..load.durations import format_duration
 from ..profile import HealthCheck, Profile
 from ..state import journal
@@ -86,7 +86,7 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
     async def connect(transport: tp.Transport) -> str | None:
         try:
             await transport.connect()
-        except tp.Unreachable as e:
+        except Unreachable as e:
             return f"the device could not be reached: {e}"
         return None
 
@@ -104,7 +104,7 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
                 async with one_at_a_time:
                     bad = await read_health(session, w.recipe.profile)
                 reads += len(w.recipe.profile.health)
-            except (DeviceGone, tp.ExceptionResponse) as e:
+            except (DeviceGone, ExceptionResponse) as e:
                 why = f"could not be read: {e}"
                 break
             if bad is not None:
