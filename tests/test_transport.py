@@ -570,3 +570,36 @@ def test_umodbus_interop(umodbus_server: tuple[int, dict[int, int]]) -> None:
             assert err.value.code == 2
     asyncio.run(main())
     assert store == {100: 0, 101: 1000, 102: 65535}
+
+
+def test_a_socket_connected_to_itself_is_no_device() -> None:
+    """On loopback a connect to a port nothing listens on can meet itself (TCP simultaneous open, when the
+    kernel picks that port as the local one): the transport must take it as refused, not read its own
+    requests back as answers. Made here on purpose by binding the client to the port it connects to."""
+    import socket
+
+    from pymodbus.client import AsyncModbusTcpClient
+
+    from deployer.profile import builtin_profile
+    from deployer.testing.simulator import Simulator
+    from deployer.transport.clients import _connected_to_itself
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = int(s.getsockname()[1])
+    s.close()
+
+    async def main() -> tuple[bool, bool]:
+        c = AsyncModbusTcpClient("127.0.0.1", port=port, source_address=("127.0.0.1", port), timeout=1, retries=0)
+        assert await c.connect()
+        looped = _connected_to_itself(c)
+        c.close()
+        async with Simulator(builtin_profile("omron-m1")) as sim:
+            host, real_port = sim.url.removeprefix("tcp://").rsplit(":", 1)
+            d = AsyncModbusTcpClient(host, port=int(real_port), timeout=1, retries=0)
+            assert await d.connect()
+            real = _connected_to_itself(d)
+            d.close()
+        return looped, real
+
+    assert asyncio.run(main()) == (True, False)

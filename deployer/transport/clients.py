@@ -493,6 +493,11 @@ class PymodbusTransport(Transport):
         if not ok or not client.connected:
             client.close()
             raise Unreachable(f"{where}: {await self._why_not()}")
+        if _connected_to_itself(client):
+            # on loopback, a connect to a port nothing listens on can meet itself (TCP simultaneous open)
+            # when the kernel hands out that very port as the local one: no device, refused as such
+            client.close()
+            raise Unreachable(f"{where}: connection refused")
         self._client = client
         self._rx = _receiver(client, self.url)
         self._connected()
@@ -646,6 +651,14 @@ def _read_identification(client: Any, *, read_code: int, object_id: int, unit: i
 
 
 _DECODER = DecodePDU(False)  # answers (is_server False)
+
+
+def _connected_to_itself(client: Any) -> bool:
+    transport = getattr(getattr(client, "ctx", None), "transport", None)
+    if transport is None or not hasattr(transport, "get_extra_info"):
+        return False
+    local, peer = transport.get_extra_info("sockname"), transport.get_extra_info("peername")
+    return isinstance(local, tuple) and local == peer
 
 
 class TcpTransport(PymodbusTransport):
