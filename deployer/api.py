@@ -154,6 +154,7 @@ __all__ = [
     "read_fleet",
     "read_fleet_async",
     "read_jobs",
+    "read_report",
     "recipe_from",
     "run_fleet",
     "run_fleet_async",
@@ -849,3 +850,23 @@ def writing_caches() -> contextlib.AbstractContextManager[None]:
     from .state.caches import writing
 
     return writing()
+
+
+def read_report(path: str | os.PathLike[str], profiles: Sequence[str | Profile] = ()) -> Report:
+    """An earlier run's report file (``--report``, a fleet's live report, one a crash left unfinished) as a
+    Report. A report is data: no file it names is opened. Values read in engineering units as the report
+    describes its profiles, or with ``profiles`` given here (ids, files or Profiles), else as register words.
+
+    Raises:
+        InputError: not a deployer report, or not a valid one (with its position).
+        UsageError: the file cannot be read; an unknown profile.
+    """
+    from .report import read_report as _read_report
+    from .report import report_from_json
+
+    _need_path(path, "read_report", "the report file")
+    try:
+        doc = _read_report(os.fspath(path))
+    except OSError as e:
+        raise UsageError(f"cannot read {os.fspath(path)}: {e.strerror or e}") from None
+    return report_from_json(doc, [p if isinstance(p, Profile) else load_profile(p) for p in profiles])

@@ -183,7 +183,6 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
         "deployer.recipe.loader", "deployer.recipe.text", "deployer.report", "deployer.run.runner",
         "deployer.state.durable",
     },
-    "deployer.cli.report": {"deployer.report"},
     "deployer.cli.simulate": {"deployer.profile", "deployer.profile.model", "deployer.recipe.loader"},
 }
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from ..errors import EXIT_OK, UsageError
+from ..errors import EXIT_OK
 from .base import cli
 
 
@@ -28,18 +28,12 @@ def report(report_file: str, html_path: str | None, meta: tuple[str, ...], compa
     given here), else as register words; a file the report names is never opened. Reports of older
     versions show what they have. Exit 0; 1 if RUN.json is not a report (or not valid: FILE:LINE:COL).
     """
-    from ..report import read_report, report_from_json
+    from ..api import read_report
     from .base import console, safe, write_page
     from .outcome import print_report
     from .progress import fleet_summary
 
-    try:
-        doc = read_report(report_file)
-    except OSError as e:
-        raise UsageError(f"cannot read {report_file}: {e.strerror or e}") from None
-    from ..api import load_profile
-
-    run = report_from_json(doc, [load_profile(p) for p in profile_refs])
+    run = read_report(report_file, profile_refs)
     out = console()
     info = run.run or {}
     if info.get("command"):
