@@ -67,6 +67,8 @@ from .transport.urls import DeviceURL, describe, parse_url
 
 if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus, loaded when a run needs them
     from .execute.job import Job
+    from .execute.probe import ProbeResult
+    from .execute.scan import ScanResult
     from .execute.session import ApplyOptions
     from .fleet.rollout import ReadJob
 
@@ -147,6 +149,7 @@ __all__ = [
     "plan_fleet_async",
     "plan_to_json",
     "prepare_run",
+    "probe",
     "pull",
     "pull_async",
     "pull_names",
@@ -161,6 +164,7 @@ __all__ = [
     "run_prepared",
     "run_prepared_async",
     "safe_options",
+    "scan",
     "writing_caches",
 ]
 
@@ -870,3 +874,41 @@ def read_report(path: str | os.PathLike[str], profiles: Sequence[str | Profile] 
     except OSError as e:
         raise UsageError(f"cannot read {os.fspath(path)}: {e.strerror or e}") from None
     return report_from_json(doc, [p if isinstance(p, Profile) else load_profile(p) for p in profiles])
+
+
+def probe(profile: str | Profile, device: str | DeviceURL, unit: int = 1, *,
+          expect: Mapping[str, str] | None = None) -> ProbeResult:
+    """Check a profile against a live device, read-only (``deployer probe``): its identity, every readable
+    parameter, and for ``expect`` (name -> a value known to be held, in the parameter's unit) the byte/word
+    layout or scale that gives it. Returns a result with ``identity``, ``values``, ``findings`` and
+    ``changes`` (suggested profile changes; empty when the profile fits).
+
+    Raises:
+        UsageError: a bad URL, unit or profile, an ``expect`` name the profile does not have.
+        TransportError: the device cannot be read.
+    """
+    from .execute.probe import probe as _probe
+
+    _need_unit(unit)
+    prof = profile if isinstance(profile, Profile) else load_profile(profile)
+    wanted = dict(expect or {})
+    for name in wanted:
+        if prof.get(name) is None:
+            raise UsageError(f"probe: profile {prof.id} has no parameter {name!r}")
+    url = device_url(device)
+    return _sync("probe", lambda: _probe(prof, url, unit, wanted))
+
+
+def scan(device: str | DeviceURL, units: Iterable[int], *, register: int = 0) -> ScanResult:
+    """Ask each unit id of ``units`` on a bus (the URL's timeout per unit, no retries), read-only
+    (``deployer scan``): a result with ``units`` (each ``unit``, ``answer``, ``identity``), ``asked``,
+    ``seconds`` and ``url``; ``.inventory_text(url, when)`` is an inventory fragment of the units found.
+
+    Raises:
+        UsageError: a bad URL. TransportError: the bus cannot be opened.
+    """
+    from .execute.scan import scan as _scan
+
+    url = device_url(device)
+    ids = list(units)
+    return _sync("scan", lambda: _scan(url, ids, register=register))

@@ -18,9 +18,9 @@ PUBLIC = [
     "apply_fleet", "apply_fleet_async", "confirm", "defaults_diff", "describe_url", "device_url", "diff",
     "diff_async", "diff_values", "duration", "fleet_jobs", "inventory_from", "load_inventory", "load_plan",
     "load_profile", "load_recipe", "non_default", "plan", "plan_async", "plan_fleet", "plan_fleet_async",
-    "plan_to_json", "prepare_run", "pull", "pull_async", "pull_names", "pulled_recipe", "read_fleet",
+    "plan_to_json", "prepare_run", "probe", "pull", "pull_async", "pull_names", "pulled_recipe", "read_fleet",
     "read_fleet_async", "read_jobs", "read_report", "recipe_from", "run_fleet", "run_fleet_async", "run_prepared",
-    "run_prepared_async", "safe_options", "writing_caches",
+    "run_prepared_async", "safe_options", "scan", "writing_caches",
 ]
 
 

@@ -159,8 +159,7 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
         "deployer.transport.urls",
     },
     "deployer.cli.field": {
-        "deployer.execute.probe", "deployer.execute.scan", "deployer.profile", "deployer.state.durable",
-        "deployer.state.learned", "deployer.transport.ports", "deployer.transport.urls",
+        "deployer.profile", "deployer.state.durable", "deployer.state.learned", "deployer.transport.ports",
     },
     "deployer.cli.files": {
         "deployer.fleet.inventory", "deployer.load.yamlsrc", "deployer.planning.planfile", "deployer.profile",

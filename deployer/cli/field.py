@@ -49,10 +49,10 @@ def learned_forget(state_dir: str, profile: str | None, device: str | None, unit
     """Forget what devices taught: the next plan and apply use the profile's own limits again."""
     import os
 
+    from ..api import device_url as parse_url
     from ..errors import BadURL
     from ..profile import is_profile_path
     from ..state import learned as store
-    from ..transport.urls import parse_url
 
     if not (profile or device or everything):
         raise UsageError("say what to forget: --profile PROFILE, --device URL [--unit N], or --all")
@@ -121,13 +121,9 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
     if url is None:
         raise UsageError("scan needs a URL (rtu://COM3, rtu:///dev/ttyUSB0, rtu+tcp://GATEWAY:PORT), "
                          "or --list-ports")
-    import asyncio
-
+    from ..api import device_url as parse_url
+    from ..api import scan as run_scan
     from ..errors import EXIT_UNREACHABLE, BadURL, TransportError
-    from ..execute.scan import inventory_text
-    from ..execute.scan import scan as run_scan
-    from ..state.learned import now
-    from ..transport.urls import parse_url
 
     ids = _unit_ids(units)
     try:
@@ -138,14 +134,14 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
     err.print(f"asking {len(ids)} unit id{'s' if len(ids) != 1 else ''} on {safe(url)} "
               f"(at most {len(ids) * device_url.timeout:.1f} s)")
     try:
-        result = asyncio.run(run_scan(device_url, ids, register=register))
+        result = run_scan(device_url, ids, register=register)
     except TransportError as e:
         echo(f"error: {safe(e)}", err=True)
         return EXIT_UNREACHABLE
     if output:
         from ..state.durable import write_atomic
 
-        write_atomic(output, inventory_text(result, url, now()))
+        write_atomic(output, result.inventory_text(url))
     if as_json:
         echo(json.dumps({"url": result.url, "asked": result.asked, "seconds": round(result.seconds, 3),
                                "units": [{"unit": u.unit, "answer": u.answer, "identity": u.identity}
@@ -194,14 +190,12 @@ def probe(profile: str, device: str, unit: int, expect: tuple[str, ...], timeout
     scale gives that value. Exit 0 when the profile fits, 2 when changes are suggested, 3 when the
     device does not answer. Nothing is written.
     """
-    import asyncio
-
+    from ..api import device_url as parse_url
+    from ..api import load_profile
+    from ..api import probe as run_probe
     from ..errors import EXIT_CHANGES, EXIT_UNREACHABLE, BadURL, TransportError
-    from ..execute.probe import probe as run_probe
-    from ..profile import resolve_profile
-    from ..transport.urls import parse_url
 
-    prof = resolve_profile(profile)
+    prof = load_profile(profile)
     wanted: dict[str, str] = {}
     for item in expect:
         name, sep, value = item.partition("=")
@@ -215,7 +209,7 @@ def probe(profile: str, device: str, unit: int, expect: tuple[str, ...], timeout
     except BadURL as e:
         raise UsageError(str(e)) from None
     try:
-        result = asyncio.run(run_probe(prof, url, unit, wanted))
+        result = run_probe(prof, url, unit, expect=wanted)
     except TransportError as e:
         echo(f"error: {safe(e)}", err=True)
         return EXIT_UNREACHABLE

@@ -35,6 +35,10 @@ class ScanResult:
     asked: int
     seconds: float
 
+    def inventory_text(self, url_text: str, when: str | None = None) -> str:
+        """An inventory fragment listing the units that answered (``when``: the scan's time, UTC, by default now)."""
+        return inventory_text(self, url_text, when or time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+
 
 async def scan(url: tp.DeviceURL, units: Iterable[int], *, register: int = 0,
                on_unit: Callable[[int, UnitFound | None], None] | None = None) -> ScanResult:
