@@ -87,7 +87,7 @@ class AgentProcess:
                 if self.proc.poll() is not None:
                     break
                 continue
-            m = re.match(r"listening on (http://\S+)", line)
+            m = re.match(r"listening on (https?://\S+)", line)
             if m:
                 return m.group(1)
         self.kill()

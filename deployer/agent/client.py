@@ -7,6 +7,7 @@ Every refusal comes back as ``AgentError`` with the exit code the same command h
 from __future__ import annotations
 
 import json
+import ssl
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -19,18 +20,26 @@ ENV = "DEPLOYER_AGENT"
 
 
 class Agent:
-    """A client of one site agent: ``Agent("http://127.0.0.1:8470")``; ``token`` for an agent that asks for one.
+    """A client of one site agent: ``Agent("http://127.0.0.1:8470")``; ``token`` for an agent that asks for one,
+    ``ca`` (a PEM file) for an ``https://`` agent whose certificate the system's CAs do not vouch for.
 
     Methods map the HTTP API one to one (docs/agent.md); ``apply`` starts a run and follows it to its end.
     """
 
-    def __init__(self, url: str, *, token: str | None = None, timeout: float = 30.0) -> None:
+    def __init__(self, url: str, *, token: str | None = None, ca: str | None = None, timeout: float = 30.0) -> None:
         u = urllib.parse.urlsplit(url)
         if u.scheme not in ("http", "https") or not u.netloc:
             raise AgentError(f"agent URL {url!r}: expected http://HOST:PORT", kind="usage", exit_code=1)
         self.url = url.rstrip("/")
         self.token = token
         self.timeout = timeout
+        self._ssl: ssl.SSLContext | None = None
+        if ca is not None:  # the agent's own CA (a gateway's certificate is rarely one the system trusts)
+            try:
+                self._ssl = ssl.create_default_context(cafile=ca)
+            except (OSError, ssl.SSLError) as e:
+                raise AgentError(f"agent CA file {ca}: cannot load it: {getattr(e, 'strerror', None) or e}",
+                                 kind="usage", exit_code=1) from None
 
     # ---- transport -------------------------------------------------------------------------------
 
@@ -46,7 +55,7 @@ class Agent:
         if self.token:
             req.add_header("Authorization", f"Bearer {self.token}")
         try:
-            return urllib.request.urlopen(req, timeout=self.timeout if timeout is None else timeout)
+            return urllib.request.urlopen(req, timeout=self.timeout if timeout is None else timeout, context=self._ssl)
         except urllib.error.HTTPError as e:
             raise _refusal(e) from None
         except (urllib.error.URLError, OSError) as e:

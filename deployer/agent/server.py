@@ -71,7 +71,7 @@ def _int(request: web.Request, key: str, default: int, low: int, high: int) -> i
 
 
 async def get_agent(agent: Agent, request: web.Request) -> Any:
-    return agent.agent_json()
+    return {**agent.agent_json(), "auth": "token" if request.app[TOKEN] else "none"}
 
 
 async def list_devices(agent: Agent, request: web.Request) -> Any:
@@ -226,6 +226,7 @@ ROUTES: tuple[tuple[str, str, Handler], ...] = (
 )
 
 METRICS: web.AppKey[Any] = web.AppKey("metrics", object)
+TOKEN: web.AppKey[bool] = web.AppKey("token", bool)
 
 
 def error_body(kind: str, message: str, exit_code: int, diagnostics: list[str] | None = None) -> dict[str, Any]:
@@ -259,9 +260,14 @@ async def errors(request: web.Request, handler: Callable[[web.Request], Awaitabl
         return web.json_response(error_body("internal", f"internal error: {type(e).__name__}: {e}", 4), status=500)
 
 
-def app(agent: Agent) -> web.Application:
-    application = web.Application(middlewares=[errors], client_max_size=MAX_BODY)
+def app(agent: Agent, *, token: str | None = None) -> web.Application:
+    """The agent's web application; with ``token`` every request but the page's shell needs it (security.py)."""
+    from .security import auth_middleware
+
+    middlewares = [errors] + ([auth_middleware(token)] if token else [])
+    application = web.Application(middlewares=middlewares, client_max_size=MAX_BODY)
     application[AGENT] = agent
+    application[TOKEN] = bool(token)
     application[METRICS] = registry(agent)
     for method, path, handler in ROUTES:
         application.router.add_route(method, path, _bind(agent, handler))

@@ -4,47 +4,41 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ipaddress
 import signal
-import socket
+import ssl
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from aiohttp import web
 
 from ..errors import UsageError
 from .core import Agent, Settings
+from .notify import Notifier
+from .security import check_listen
 from .server import app
+from .wire import Runner
 
 
 def parse_listen(text: str) -> tuple[str, int]:
-    """``HOST:PORT`` (``[::1]:PORT`` for IPv6); without a token only a loopback address is allowed."""
+    """``HOST:PORT`` (``[::1]:PORT`` for IPv6); where it may be is ``security.check_listen``'s."""
     host, sep, port = text.rpartition(":")
     if not sep or not port.isdigit() or int(port) > 65535:
         raise UsageError(f"--listen {text}: expected HOST:PORT, e.g. 127.0.0.1:8470")
-    host = host.strip("[]") or "127.0.0.1"
-    try:
-        addresses = {ipaddress.ip_address(host)}
-    except ValueError:
-        try:
-            addresses = {ipaddress.ip_address(a[4][0]) for a in socket.getaddrinfo(host, None)}
-        except OSError as e:
-            raise UsageError(f"--listen {text}: cannot resolve {host}: {e}") from None
-    if not all(a.is_loopback for a in addresses):
-        raise UsageError(f"--listen {text}: without a token the agent listens on loopback only (127.0.0.1, ::1): "
-                         "anyone who reaches it can write the devices")
-    return host, int(port)
+    return host.strip("[]") or "127.0.0.1", int(port)
 
 
 async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
-                on_ready: Callable[[str], None] | None = None, signals: bool = True) -> int:
+                on_ready: Callable[[str], None] | None = None, signals: bool = True,
+                token: str | None = None, tls: ssl.SSLContext | None = None, notify: Sequence[str] = ()) -> int:
     """Run the agent until SIGTERM/SIGINT (or the task is cancelled); 0 when it ended cleanly."""
     host, port = parse_listen(listen)
+    check_listen(host, token=token is not None, tls=tls is not None, listen=listen)
     agent = Agent(settings)
     agent.open()  # the files are checked, the state folder is ours: nothing sent yet
-    runner = web.AppRunner(app(agent), access_log=None, handle_signals=False)
+    notifier = Notifier(agent, notify) if notify else None
+    runner = Runner(app(agent, token=token), access_log=None, handle_signals=False)
     await runner.setup()
-    site = web.TCPSite(runner, host, port, reuse_address=True)
+    site = web.TCPSite(runner, host, port, reuse_address=True, ssl_context=tls)
     try:
         await site.start()
     except OSError as e:
@@ -53,7 +47,7 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
         raise UsageError(f"--listen {listen}: {e.strerror}") from None
     sock = runner.addresses[0] if runner.addresses else (host, port)  # port 0: the one the system chose
     shown = f"[{sock[0]}]" if ":" in str(sock[0]) else str(sock[0])
-    url = f"http://{shown}:{sock[1]}"
+    url = f"{'https' if tls is not None else 'http'}://{shown}:{sock[1]}"
     from ..portable import interrupt_signals, on_signals
 
     stop = asyncio.Event()
@@ -64,6 +58,8 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
         if hasattr(signal, "SIGHUP"):
             undo.append(on_signals(loop, (signal.SIGHUP,), lambda _sig: _reload(agent)))
     try:
+        if notifier is not None:
+            notifier.start(url)  # before the agent's start: its first events are sent too
         await agent.start(url)
         print(f"listening on {url}", file=sys.stderr, flush=True)
         if on_ready is not None:
@@ -74,6 +70,8 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
             u()
         await agent.stop()
         await runner.cleanup()
+        if notifier is not None:
+            await notifier.stop()
     return 0
 
 

@@ -12,7 +12,15 @@ from .base import Duration
 @click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
               help="journal, snapshots and the agent's database (agent/agent.sqlite3)")
 @click.option("--listen", default="127.0.0.1:8470", show_default=True, metavar="HOST:PORT",
-              help="where the HTTP API listens (loopback only: there is no token yet); port 0 picks a free one")
+              help="where the HTTP API listens (beyond loopback only with --token-file and TLS); port 0: any free one")
+@click.option("--token-file", type=click.Path(dir_okay=False), metavar="FILE",
+              help="every request needs this token (Authorization: Bearer; first line of FILE). Without it "
+                   "every local user of the gateway can drive the agent")
+@click.option("--tls-cert", type=click.Path(dir_okay=False), metavar="FILE",
+              help="serve HTTPS with this certificate (PEM)")
+@click.option("--tls-key", type=click.Path(dir_okay=False), metavar="FILE", help="the certificate's private key (PEM)")
+@click.option("--notify", multiple=True, metavar="URL",
+              help="POST every event as JSON to URL (repeatable); retried with back-off, never holding up devices")
 @click.option("--check-every", type=Duration(), default="5m", show_default=True, metavar="DURATION",
               help="read every device and compare it with the adopted desired state this often")
 @click.option("--on-drift", type=click.Choice(["report", "restore"]), default="report", show_default=True,
@@ -26,7 +34,8 @@ from .base import Duration
 @click.option("--endurance-warn", type=click.FloatRange(0.0, 1.0), default=0.8, show_default=True,
               metavar="FRACTION", help="warn when a register has taken this share of its profile's endurance")
 def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_drift: str, on_replace: str,
-          bus_share: float, max_restores: int, endurance_warn: float) -> int:
+          bus_share: float, max_restores: int, endurance_warn: float, token_file: str | None,
+          tls_cert: str | None, tls_key: str | None, notify: tuple[str, ...]) -> int:
     """Run the site agent: own INVENTORY's devices, watch them, serve the HTTP API (until SIGTERM or Ctrl-C).
 
     It takes each device's lock (set DEPLOYER_LOCK_DIR for it and the command line alike), so a plain
@@ -38,6 +47,8 @@ def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_dr
     import asyncio
 
     from ..agent.core import Settings
+    from ..agent.notify import check_url
+    from ..agent.security import read_token, server_ssl
     from ..agent.service import serve
 
     if check_every <= 0:
@@ -45,4 +56,8 @@ def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_dr
     settings = Settings(inventory, state_dir=state_dir, check_every=check_every, on_drift=on_drift,
                         on_replace=on_replace, bus_share=bus_share, max_restores=max_restores,
                         endurance_warn=endurance_warn)
-    return asyncio.run(serve(settings, listen))
+    token = read_token(token_file) if token_file else None
+    tls = server_ssl(tls_cert, tls_key)
+    for url in notify:
+        check_url(url)
+    return asyncio.run(serve(settings, listen, token=token, tls=tls, notify=notify))

@@ -21,9 +21,17 @@ _LOCAL_ONLY = ("device", "unit", "timeout", "retries", "allow_broadcast", "html_
 
 
 def _client(url: str) -> Any:
-    from ..agent.client import Agent
+    """The agent's client, with the token (--agent-token-file, else DEPLOYER_AGENT_TOKEN) and CA (--agent-ca)."""
+    import os
 
-    return Agent(url)
+    from ..agent.client import Agent
+    from ..agent.security import read_token
+
+    meta = click.get_current_context(silent=True)
+    given = meta.meta if meta is not None else {}
+    path = given.get("deployer.agent.agent_token_file")
+    token = read_token(path, "--agent-token-file") if path else (os.environ.get("DEPLOYER_AGENT_TOKEN") or None)
+    return Agent(url, token=token, ca=given.get("deployer.agent.agent_ca"))
 
 
 def _refuse_local(kw: Mapping[str, Any], what: str) -> None:

@@ -220,10 +220,29 @@ limit_option = click.option("--limit", metavar="SEL", help=LIMIT_HELP)
 parallel_option = click.option("--parallel", type=int_range(LIMITS.parallel), default=8, show_default=True,
                                help="devices at once (devices on one bus always go one at a time)")
 # the commands that can run through the site agent (deployer.cli.agentclient talks to it)
-agent_option = click.option(
+_agent_url_option = click.option(
     "--agent", "agent_url", metavar="URL", envvar="DEPLOYER_AGENT",
     help="run through the site agent at URL (deployer agent; env DEPLOYER_AGENT): it owns the devices, executes, "
          "and holds the windows")
+
+
+def _remember(ctx: click.Context, param: click.Parameter, value: str | None) -> None:
+    """The agent's token file and CA go to deployer.cli.agentclient through the context, not every signature."""
+    if value is not None and param.name:
+        ctx.meta["deployer.agent." + param.name] = value
+
+
+_agent_token_option = click.option(
+    "--agent-token-file", metavar="FILE", type=click.Path(dir_okay=False), expose_value=False, callback=_remember,
+    help="the agent's token (its first line); or env DEPLOYER_AGENT_TOKEN")
+_agent_ca_option = click.option(
+    "--agent-ca", metavar="FILE", type=click.Path(dir_okay=False), expose_value=False, callback=_remember,
+    envvar="DEPLOYER_AGENT_CA", help="CA certificate (PEM) an https:// agent's certificate is checked against")
+
+
+def agent_option(f: Callable[..., Any]) -> Callable[..., Any]:
+    """``--agent URL`` with ``--agent-token-file`` and ``--agent-ca``."""
+    return _agent_url_option(_agent_token_option(_agent_ca_option(f)))
 
 
 

@@ -1,0 +1,97 @@
+"""Who may drive the agent: the bearer token, TLS, and where it may listen (docs/operations.md).
+
+Without a token the agent listens on loopback only and answers every request from there (every local user
+of the gateway can drive it). With ``--token-file`` every request needs ``Authorization: Bearer TOKEN``
+(compared in constant time). Beyond loopback only with a token and TLS: a token sent in clear text over a
+plant network is a token given away.
+"""
+
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import socket
+import ssl
+from collections.abc import Awaitable, Callable
+
+from aiohttp import web
+
+from ..errors import UsageError
+
+# the page's shell (HTML, no data: its script fetches /v1 with the token the user gives it) needs none
+OPEN_PATHS = frozenset({"/"})
+
+
+def read_token(path: str, what: str = "--token-file") -> str:
+    """The token: the file's first line, without whitespace; at least 16 characters."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            text = f.readline().strip()
+    except (OSError, UnicodeDecodeError) as e:
+        raise UsageError(f"{what} {path}: cannot read it: {getattr(e, 'strerror', None) or e}") from None
+    if len(text) < 16:
+        raise UsageError(f"{what} {path}: the token must be at least 16 characters on the first line "
+                         "(e.g. python3 -c 'import secrets; print(secrets.token_urlsafe(32))')")
+    if any(c.isspace() or not c.isprintable() for c in text):
+        raise UsageError(f"{what} {path}: the token must not contain spaces or control characters")
+    return text
+
+
+def server_ssl(cert: str | None, key: str | None) -> ssl.SSLContext | None:
+    """The TLS context of ``--tls-cert``/``--tls-key`` (both or neither); TLS 1.2 at least."""
+    if cert is None and key is None:
+        return None
+    if cert is None or key is None:
+        raise UsageError("--tls-cert and --tls-key go together")
+    ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        ctx.load_cert_chain(cert, key)
+    except (OSError, ssl.SSLError) as e:
+        raise UsageError(f"--tls-cert {cert} --tls-key {key}: cannot load them: "
+                         f"{getattr(e, 'strerror', None) or e}") from None
+    return ctx
+
+
+def is_loopback(host: str) -> bool:
+    """Whether every address ``host`` names is a loopback address (a name is resolved)."""
+    try:
+        addresses = {ipaddress.ip_address(host)}
+    except ValueError:
+        try:
+            addresses = {ipaddress.ip_address(str(a[4][0]).split("%")[0]) for a in socket.getaddrinfo(host, None)}
+        except OSError as e:
+            raise UsageError(f"--listen {host}: cannot resolve it: {e}") from None
+    return bool(addresses) and all(a.is_loopback for a in addresses)
+
+
+def check_listen(host: str, *, token: bool, tls: bool, listen: str) -> None:
+    """Beyond loopback only with a token and TLS; refused before anything starts."""
+    if is_loopback(host):
+        return
+    if not token:
+        raise UsageError(f"--listen {listen}: without a token the agent listens on loopback only (127.0.0.1, ::1): "
+                         "anyone who reaches it could write the devices; give --token-file and --tls-cert/--tls-key")
+    if not tls:
+        raise UsageError(f"--listen {listen}: beyond loopback the agent needs TLS as well as the token "
+                         "(--tls-cert FILE --tls-key FILE): a token sent in clear text is given away")
+
+
+def auth_middleware(token: str) -> Callable[..., Awaitable[web.StreamResponse]]:
+    """Every request but the page's shell needs ``Authorization: Bearer TOKEN`` (constant-time compare)."""
+    expected = token.encode()
+
+    @web.middleware
+    async def auth(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+                   ) -> web.StreamResponse:
+        if request.method == "GET" and request.path in OPEN_PATHS:
+            return await handler(request)
+        scheme, _, given = request.headers.get("Authorization", "").partition(" ")
+        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), expected):
+            body = {"error": {"kind": "unauthorized", "exit_code": 1,
+                              "message": "this agent needs its token: Authorization: Bearer TOKEN "
+                              "(deployer: --agent-token-file FILE or DEPLOYER_AGENT_TOKEN)"}}
+            return web.json_response(body, status=401, headers={"WWW-Authenticate": 'Bearer realm="deployer"'})
+        return await handler(request)
+
+    return auth
