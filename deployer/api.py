@@ -57,7 +57,7 @@ from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planfile import load_plan, plan_to_json
 from .planning.planner import make_plan
-from .profile import Profile, load_profile, resolve_profile
+from .profile import Profile, is_profile_path, load_profile, resolve_profile
 from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
@@ -71,6 +71,7 @@ if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus,
     from .execute.scan import ScanResult
     from .execute.session import ApplyOptions
     from .fleet.rollout import ReadJob
+    from .state.learned import Entry as LearnedEntry
 
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
 _REEXPORTED = (Agent, AgentError, LIMITS, Bound, BadURL, CodecError, Declined, DeployerError, IdentityMismatch,
@@ -137,7 +138,9 @@ __all__ = [
     "diff_values",
     "duration",
     "fleet_jobs",
+    "forget_learned",
     "inventory_from",
+    "learned_limits",
     "load_inventory",
     "load_plan",
     "load_profile",
@@ -165,6 +168,7 @@ __all__ = [
     "run_prepared_async",
     "safe_options",
     "scan",
+    "taught_recipe",
     "writing_caches",
 ]
 
@@ -912,3 +916,54 @@ def scan(device: str | DeviceURL, units: Iterable[int], *, register: int = 0) ->
     url = device_url(device)
     ids = list(units)
     return _sync("scan", lambda: _scan(url, ids, register=register))
+
+
+# ---- what devices taught (STATE/learned.json) ------------------------------------------------------
+
+
+def learned_limits(state_dir: str = ".deployer") -> tuple[str, list[LearnedEntry]]:
+    """What devices taught by their refusals (``deployer learned list``): the file's path, and its entries
+    (each ``profile``, ``device``, ``limits``, ``seen``, ``when``, ``describe_limits()``, ``to_json()``).
+
+    Raises:
+        InputError: a learned file deployer did not write (with its position and how to clear it).
+    """
+    from .state import learned
+
+    _need_path(state_dir, "learned_limits", "state_dir")
+    return learned.path_of(os.fspath(state_dir)), learned.load(os.fspath(state_dir))
+
+
+def forget_learned(state_dir: str = ".deployer", *, profile: str | None = None, device: str | DeviceURL | None = None,
+                   unit: int = 1) -> list[LearnedEntry]:
+    """Forget what devices taught (``deployer learned forget``): of ``profile`` (a built-in id or a file), of
+    ``device`` (a URL, with ``unit``), or everything when neither is given. Returns the entries forgotten.
+
+    Raises:
+        UsageError: a bad URL or unit.
+    """
+    from .state import learned
+
+    _need_path(state_dir, "forget_learned", "state_dir")
+    _need_unit(unit)
+    ref = None
+    if profile is not None:
+        ref = os.path.abspath(profile) if is_profile_path(profile) else profile  # as profile_ref names it
+    key = None if device is None else learned.device_id(device_url(device), unit)
+    return learned.forget(os.fspath(state_dir), profile=ref, device=key)
+
+
+def taught_recipe(recipe: Recipe, device: str | DeviceURL, unit: int = 1, *, state_dir: str = ".deployer"
+                  ) -> tuple[Recipe, str | None]:
+    """``recipe`` with the limits ``device`` taught an earlier apply in force, as ``plan`` and ``apply`` use
+    them, and the note that says so (None: nothing taught, the recipe unchanged).
+
+    Raises:
+        UsageError: a bad URL or unit. InputError: a learned file deployer did not write.
+    """
+    from .state import learned
+
+    _need_recipe(recipe, "taught_recipe")
+    _need_unit(unit)
+    out, entry = learned.for_recipe(recipe, os.fspath(state_dir), device_url(device), unit)
+    return out, None if entry is None else learned.note(entry)

@@ -149,8 +149,7 @@ CLI_MAY_IMPORT = {
 NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
     "deployer.cli.agentclient": {"deployer.portable", "deployer.report"},
     "deployer.cli.apply": {
-        "deployer.state.holder", "deployer.state.journal", "deployer.state.lock",
-        "deployer.window.confirm",
+        "deployer.state.holder", "deployer.state.journal", "deployer.state.lock", "deployer.window.confirm",
     },
     "deployer.cli.base": {"deployer.state.durable"},
     "deployer.cli.demo": {"deployer.profile", "deployer.state.lock"},
@@ -158,19 +157,17 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
         "deployer.profile", "deployer.recipe.model", "deployer.recipe.text", "deployer.state.durable",
         "deployer.transport.urls",
     },
-    "deployer.cli.field": {
-        "deployer.profile", "deployer.state.durable", "deployer.state.learned", "deployer.transport.ports",
-    },
+    "deployer.cli.field": {"deployer.state.durable", "deployer.transport.ports"},
     "deployer.cli.files": {
         "deployer.fleet.inventory", "deployer.load.yamlsrc", "deployer.planning.planfile", "deployer.profile",
         "deployer.recipe.loader",
     },
+    "deployer.cli.outcome": {"deployer.report"},
     "deployer.cli.plan": {
         "deployer.planning.frames", "deployer.planning.model", "deployer.planning.planfile",
         "deployer.planning.planner", "deployer.planning.wire", "deployer.profile.model", "deployer.report",
-        "deployer.state.durable", "deployer.state.learned", "deployer.transport.urls",
+        "deployer.state.durable", "deployer.transport.urls",
     },
-    "deployer.cli.outcome": {"deployer.report"},
     "deployer.cli.profiles": {
         "deployer.profile", "deployer.profile.codec", "deployer.profile.emit",
         "deployer.profile.importers.spreadsheet", "deployer.profile.importers.sunspec",

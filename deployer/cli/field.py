@@ -24,15 +24,15 @@ def learned() -> None:
 @click.option("--json", "as_json", is_flag=True, help="print the entries as JSON")
 def learned_list(state_dir: str, as_json: bool) -> int:
     """What each device taught: profile, device, limits, what was seen, when."""
-    from ..state import learned as store
+    from ..api import learned_limits
 
-    entries = store.load(state_dir)
+    path, entries = learned_limits(state_dir)
     if as_json:
         echo(json.dumps([e.to_json() for e in entries], indent=2))
         return EXIT_OK
     out = console()
     if not entries:
-        out.print(f"nothing learned in {safe(store.path_of(state_dir))}")
+        out.print(f"nothing learned in {safe(path)}")
         return EXIT_OK
     show(out, ["profile", "device", "limits", "seen", "when"],
          [[e.profile, e.device, e.describe_limits(), e.seen, e.when] for e in entries])
@@ -47,25 +47,15 @@ def learned_list(state_dir: str, as_json: bool) -> int:
 @click.option("--all", "everything", is_flag=True, help="forget everything learned")
 def learned_forget(state_dir: str, profile: str | None, device: str | None, unit: int, everything: bool) -> int:
     """Forget what devices taught: the next plan and apply use the profile's own limits again."""
-    import os
-
-    from ..api import device_url as parse_url
+    from ..api import forget_learned
     from ..errors import BadURL
-    from ..profile import is_profile_path
-    from ..state import learned as store
 
     if not (profile or device or everything):
         raise UsageError("say what to forget: --profile PROFILE, --device URL [--unit N], or --all")
-    ref = None
-    if profile:
-        ref = os.path.abspath(profile) if is_profile_path(profile) else profile  # as profile_ref names it
-    key = None
-    if device:
-        try:
-            key = store.device_id(parse_url(device), unit)
-        except BadURL as e:
-            raise UsageError(str(e)) from None
-    gone = store.forget(state_dir, profile=ref, device=key)
+    try:
+        gone = forget_learned(state_dir, profile=profile or None, device=device or None, unit=unit)
+    except BadURL as e:
+        raise UsageError(str(e)) from None
     out = console()
     for entry in gone:
         if not entry.limits:  # forget --all of a file deployer did not write

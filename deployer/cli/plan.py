@@ -185,13 +185,12 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         from ..state.durable import check_output
 
         check_output(out_path, what="the plan")
-    taught = None
     if url is not None:
-        from ..state import learned
+        from ..api import taught_recipe
 
-        rec, taught = learned.for_recipe(rec, state_dir, url, u)
-        if taught is not None:
-            echo(f"note: {safe(learned.note(taught))}", err=as_json)
+        rec, note = taught_recipe(rec, url, u, state_dir=state_dir)
+        if note is not None:
+            echo(f"note: {safe(note)}", err=as_json)
     current = None
     if device is not None:
         assert url is not None
@@ -224,17 +223,16 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     each device's table); exit 3 if any device could not be read, else as plan."""
     from dataclasses import replace
 
-    from ..api import read_jobs
+    from ..api import read_jobs, taught_recipe
     from ..planning.model import Target
     from ..planning.planfile import plan_to_json
     from ..planning.planner import make_plan
-    from ..state import learned
 
     taught_jobs = []
     for j in jobs:
-        r, taught = learned.for_recipe(j.recipe, state_dir, j.url, j.unit)
-        if taught is not None:
-            echo(f"note: {safe(j.name)}: {safe(learned.note(taught))}", err=as_json)
+        r, note = taught_recipe(j.recipe, j.url, j.unit, state_dir=state_dir)
+        if note is not None:
+            echo(f"note: {safe(j.name)}: {safe(note)}", err=as_json)
             j = replace(j, recipe=r)
         taught_jobs.append(j)
     jobs = taught_jobs
