@@ -129,6 +129,7 @@ __all__ = [
     "apply_async",
     "apply_fleet",
     "apply_fleet_async",
+    "check_output",
     "confirm",
     "defaults_diff",
     "describe_url",
@@ -169,6 +170,7 @@ __all__ = [
     "safe_options",
     "scan",
     "taught_recipe",
+    "write_output",
     "writing_caches",
 ]
 
@@ -967,3 +969,31 @@ def taught_recipe(recipe: Recipe, device: str | DeviceURL, unit: int = 1, *, sta
     _need_unit(unit)
     out, entry = learned.for_recipe(recipe, os.fspath(state_dir), device_url(device), unit)
     return out, None if entry is None else learned.note(entry)
+
+
+# ---- the files deployer writes ---------------------------------------------------------------------
+
+
+def check_output(path: str | os.PathLike[str], *, replace: bool = True, what: str = "") -> None:
+    """Whether deployer may write an output file at ``path``, said before any work: only new paths and
+    regular files (a link, FIFO, device node, socket or folder is refused, never opened); an existing file
+    only with ``replace``. ``what`` names the file in the message ("the report").
+
+    Raises:
+        UsageError: the path is refused (``OutputRefused``).
+    """
+    from .state.durable import check_output as _check
+
+    _check(os.fspath(path), replace=replace, what=what)
+
+
+def write_output(path: str | os.PathLike[str], text: str | bytes, *, replace: bool = True, what: str = "") -> None:
+    """Write an output file (a report, plan, page, recipe or profile) as deployer writes its own: whole or
+    not at all, and durable (``check_output``'s rule, a temporary file, fsync, rename, the folder fsync'ed).
+
+    Raises:
+        UsageError: the path is refused, or the disk refuses (full, read-only).
+    """
+    from .state.durable import write_atomic
+
+    write_atomic(os.fspath(path), text, replace=replace, what=what)

@@ -14,13 +14,13 @@ PUBLIC = [
     "DeviceResult", "DeviceURL", "Drift", "FleetDevice", "FromDefault", "IdentityMismatch", "InputError",
     "Inventory", "Job", "Locked", "ParameterResult", "Plan", "PreparedRun", "Profile", "ReadJob", "Recipe",
     "Report", "RunInterrupted", "RunRequest", "StalePlan", "TransportError", "UsageError", "apply", "apply_async",
-    "apply_fleet", "apply_fleet_async", "confirm", "defaults_diff", "describe_url", "device_url", "diff",
-    "diff_async", "diff_values", "duration", "fleet_jobs", "forget_learned", "inventory_from", "learned_limits",
-    "load_inventory", "load_plan", "load_profile", "load_recipe", "non_default", "plan", "plan_async",
-    "plan_fleet", "plan_fleet_async", "plan_to_json", "prepare_run", "probe", "pull", "pull_async", "pull_names",
-    "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "read_report", "recipe_from", "run_fleet",
-    "run_fleet_async", "run_prepared", "run_prepared_async", "safe_options", "scan", "taught_recipe",
-    "writing_caches",
+    "apply_fleet", "apply_fleet_async", "check_output", "confirm", "defaults_diff", "describe_url", "device_url",
+    "diff", "diff_async", "diff_values", "duration", "fleet_jobs", "forget_learned", "inventory_from",
+    "learned_limits", "load_inventory", "load_plan", "load_profile", "load_recipe", "non_default", "plan",
+    "plan_async", "plan_fleet", "plan_fleet_async", "plan_to_json", "prepare_run", "probe", "pull", "pull_async",
+    "pull_names", "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "read_report", "recipe_from",
+    "run_fleet", "run_fleet_async", "run_prepared", "run_prepared_async", "safe_options", "scan", "taught_recipe",
+    "write_output", "writing_caches",
 ]
 
 

@@ -151,13 +151,11 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
     "deployer.cli.apply": {
         "deployer.state.holder", "deployer.state.journal", "deployer.state.lock", "deployer.window.confirm",
     },
-    "deployer.cli.base": {"deployer.state.durable"},
     "deployer.cli.demo": {"deployer.profile", "deployer.state.lock"},
     "deployer.cli.docgen": {
-        "deployer.profile", "deployer.recipe.model", "deployer.recipe.text", "deployer.state.durable",
-        "deployer.transport.urls",
+        "deployer.profile", "deployer.recipe.model", "deployer.recipe.text", "deployer.transport.urls",
     },
-    "deployer.cli.field": {"deployer.state.durable", "deployer.transport.ports"},
+    "deployer.cli.field": {"deployer.transport.ports"},
     "deployer.cli.files": {
         "deployer.fleet.inventory", "deployer.load.yamlsrc", "deployer.planning.planfile", "deployer.profile",
         "deployer.recipe.loader",
@@ -166,18 +164,17 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
     "deployer.cli.plan": {
         "deployer.planning.frames", "deployer.planning.model", "deployer.planning.planfile",
         "deployer.planning.planner", "deployer.planning.wire", "deployer.profile.model", "deployer.report",
-        "deployer.state.durable", "deployer.transport.urls",
+        "deployer.transport.urls",
     },
     "deployer.cli.profiles": {
         "deployer.profile", "deployer.profile.codec", "deployer.profile.emit",
         "deployer.profile.importers.spreadsheet", "deployer.profile.importers.sunspec",
         "deployer.profile.importers.wbtemplate", "deployer.profile.model", "deployer.profile.skeleton",
-        "deployer.state.durable", "deployer.transport.clients",
+        "deployer.transport.clients",
     },
     "deployer.cli.read": {
         "deployer.fleet.inventory", "deployer.fleet.rollout", "deployer.portable", "deployer.profile",
         "deployer.recipe.loader", "deployer.recipe.text", "deployer.report", "deployer.run.runner",
-        "deployer.state.durable",
     },
     "deployer.cli.simulate": {"deployer.profile", "deployer.profile.model", "deployer.recipe.loader"},
 }

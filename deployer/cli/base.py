@@ -125,7 +125,7 @@ def _n(count: int, noun: str) -> str:
 
 def write_page(text: str, path: str) -> None:
     """An HTML page (``--html FILE``), written whole or not at all (``write_atomic``'s rule)."""
-    from ..state.durable import write_atomic
+    from ..api import write_output as write_atomic
 
     write_atomic(path, text)
 
@@ -136,7 +136,7 @@ def _output(text: str, path: str | None, summary: str, *, replace: bool | None =
     The file goes through ``write_atomic`` (regular files and new paths only). ``replace``: whether an
     existing file may be replaced; None: only with the command's --force (``force_option``).
     """
-    from ..state.durable import write_atomic
+    from ..api import write_output as write_atomic
 
     if path:
         if replace is None:

@@ -481,7 +481,8 @@ def write_pages(directory: str, *, force: bool = False) -> list[str]:
     A page there already is rewritten when it is one of ours (it begins with GENERATED); any other
     file of that name only with ``force`` (OutputRefused otherwise, before anything is written).
     """
-    from ..state.durable import check_output, write_atomic
+    from ..api import check_output
+    from ..api import write_output as write_atomic
 
     os.makedirs(directory, exist_ok=True)
     todo = []

@@ -129,7 +129,7 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
         echo(f"error: {safe(e)}", err=True)
         return EXIT_UNREACHABLE
     if output:
-        from ..state.durable import write_atomic
+        from ..api import write_output as write_atomic
 
         write_atomic(output, result.inventory_text(url))
     if as_json:

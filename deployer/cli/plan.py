@@ -182,7 +182,7 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     rec = maybe
     url, u = _target(rec, device, unit, timeout, retries, required=False)
     if out_path:  # before reading the device
-        from ..state.durable import check_output
+        from ..api import check_output
 
         check_output(out_path, what="the plan")
     if url is not None:

@@ -349,9 +349,9 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
     """Write a commented profile skeleton to OUTPUT, ready to fill in from the device's manual."""
     import re
 
+    from ..api import write_output as write_atomic
     from ..load.schema import schema
     from ..profile.skeleton import profile_skeleton
-    from ..state.durable import write_atomic
 
     pid = profile_id or os.path.splitext(os.path.basename(output))[0]
     pattern = schema("profile")["properties"]["profile"]["pattern"]

@@ -225,10 +225,9 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
          output: str | None, name: str | None, html_path: str | None, non_default: bool, inventory: str | None,
          limit: str | None, parallel: int) -> int:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
-    from ..api import device_url, pull_names, pulled_recipe
+    from ..api import check_output, device_url, pull_names, pulled_recipe
     from ..profile import resolve_profile
     from ..recipe.text import value_text
-    from ..state.durable import check_output
 
     if inventory:
         if device or name:
@@ -286,11 +285,11 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
                non_default: bool = False) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
     from ..api import device_url, load_inventory, pull_names, pulled_recipe
+    from ..api import write_output as write_atomic
     from ..fleet.inventory import RecipeCache
     from ..fleet.rollout import ReadJob
     from ..profile import resolve_profile
     from ..run.runner import check_writable
-    from ..state.durable import write_atomic
 
     inv = load_inventory(inventory)
     devices = inv.select(limit)
