@@ -28,6 +28,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -116,6 +117,50 @@ class Bench:
         return {"wall": m["wall"], "cpu": m["cpu"], "fleet": seconds}
 
 
+def request_cost(url: str, n: int = 2000, rounds: int = 3) -> dict[str, Any]:
+    """CPU per request in this process: deployer's transport and session (``Session.read``, as a fleet's
+    device sends it) against a bare pymodbus client, FC03 of 60 registers, one device of the light farm
+    answering at once; alternating rounds, the best of each."""
+    import asyncio
+
+    from pymodbus.client import AsyncModbusTcpClient
+
+    from deployer.execute.session import Session
+    from deployer.transport.clients import open_transport, parse_url
+
+    host, port = url.split("//", 1)[1].rsplit(":", 1)
+
+    async def ours() -> float:
+        t = open_transport(parse_url(url))
+        await t.connect()
+        session = Session(t, 1, retries=1, backoff=0.05, records=[])
+        c = time.process_time()
+        for _ in range(n):
+            session.records.clear()
+            await session.read(0, 60)
+        c = time.process_time() - c
+        await t.close()
+        return c
+
+    async def bare() -> float:
+        client = AsyncModbusTcpClient(host, port=int(port), retries=0, timeout=3)
+        await client.connect()
+        c = time.process_time()
+        for _ in range(n):
+            r = await client.read_holding_registers(0, count=60, device_id=1)
+            assert not r.isError()
+        c = time.process_time() - c
+        client.close()
+        return c
+
+    a, b = [], []
+    for _ in range(rounds):
+        a.append(asyncio.run(ours()))
+        b.append(asyncio.run(bare()))
+    return {"deployer_us_per_request": round(min(a) / n * 1e6, 1), "bare_us_per_request": round(min(b) / n * 1e6, 1),
+            "ratio": round(min(a) / min(b), 2)}
+
+
 def _row(m: dict[str, Any], n: int) -> dict[str, Any]:
     row = {"wall_seconds": round(m["wall"], 2), "cpu_ms_per_device": round(m["cpu"] * 1000 / n, 2),
            "peak_rss_mb": round(m["rss_mb"], 1), "written_mb": round(m["written"] / 1e6, 1)}
@@ -137,6 +182,8 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
         b = Bench(work)
         start = measured_all([b.deployer, "--version"], work)[0]
         out["version_seconds"] = round(start["wall"], 3)
+        with farm(1, 0, processes=1) as one:
+            out["request_cpu"] = request_cost(one[0], 200 if quick else 2000)
         if side_by_side:
             for latency, n, parallels in pairs:
                 with farm(n, latency) as urls:
