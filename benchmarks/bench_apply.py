@@ -164,7 +164,7 @@ def _contenders(work: str, latency: float, rounds: int) -> dict[str, Any]:
 
 async def _phases(work: str, port: int, salt: int) -> dict[str, float]:
     """The apply pipeline step by step with the library's calls, timed (wall) per phase, plus process CPU."""
-    from deployer.cli.apply import print_report
+    from deployer.cli.outcome import print_report
     from deployer.execute.session import Session
     from deployer.execute.verify import values_of
     from deployer.load import yamlsrc

@@ -44,7 +44,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @contextmanager
-def farm(devices: int, latency_ms: float, processes: int = 2) -> Iterator[list[str]]:
+def farm(devices: int, latency_ms: float, processes: int = 2, cost: dict[str, Any] | None = None
+         ) -> Iterator[list[str]]:
+    """The light farm's device URLs while it serves; ``cost`` gets its CPU per request when it ends."""
     proc = subprocess.Popen([sys.executable, "-m", "benchmarks.light_devices", str(devices), str(latency_ms),
                              "--processes", str(processes)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                             text=True, cwd=ROOT)
@@ -52,12 +54,17 @@ def farm(devices: int, latency_ms: float, processes: int = 2) -> Iterator[list[s
         assert proc.stdout is not None
         yield json.loads(proc.stdout.readline())
     finally:
-        assert proc.stdin is not None
+        assert proc.stdin is not None and proc.stdout is not None
         proc.stdin.close()
         try:
+            served = json.loads(proc.stdout.readline() or "{}")
             proc.wait(timeout=120)
         except subprocess.TimeoutExpired:
             proc.kill()
+        else:
+            if cost is not None and served.get("requests"):
+                cost.update({"requests": served["requests"],
+                             "us_per_request": round(served["cpu"] / served["requests"] * 1e6, 1)})
 
 
 class Bench:
@@ -186,7 +193,7 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
             out["request_cpu"] = request_cost(one[0], 200 if quick else 2000)
         if side_by_side:
             for latency, n, parallels in pairs:
-                with farm(n, latency) as urls:
+                with farm(n, latency, cost=out.setdefault(f"farm_{latency}ms", {})) as urls:
                     b.apply(urls[:10], 4)  # warm: the first run of a fresh state folder; not measured
                     for p in parallels:
                         ours, bare = [], []
@@ -203,7 +210,7 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                                                 for a, c in zip(ours, bare, strict=True)],
                             "deployer_cpu_ms_per_device": round(best["cpu"] * 1000 / n, 2),
                             "bare_cpu_ms_per_device": round(fastest["cpu"] * 1000 / n, 2)}
-        with farm(max(sizes), 20) as urls:
+        with farm(max(sizes), 20, cost=out.setdefault("farm_scale", {})) as urls:
             b.apply(urls[:10], 4)
             for n in sizes:
                 runs, old = [], []

@@ -5,7 +5,7 @@
 Starts K worker processes (default 2) that serve N devices between them, each device on its own
 127.0.0.1 port with R holding registers (default 1024, all 0), answering every request after
 LATENCY_MS (0: at once). Prints one JSON line with the devices' URLs once every device listens,
-then serves until stdin closes.
+then serves until stdin closes, and prints {"requests": ..., "cpu": ...}: what answering cost it.
 
 Why not the project's simulator (``deployer.testing.simulator``): it is pymodbus's server with
 the simulator's checks, about 0.27 ms of CPU per request, so on a 2-core machine a farm of them
@@ -26,11 +26,15 @@ import os
 import struct
 import subprocess
 import sys
+import time
 from typing import Any
 
 _MBAP = struct.Struct(">HHHB")  # transaction id, protocol id (0), length (unit + PDU), unit
 _READ = struct.Struct(">BHH")  # function, address, count
 _ONE = struct.Struct(">BHH")  # function 06: address, value
+
+
+SERVED = [0]  # requests answered by this process (reported when it ends)
 
 
 class Device:
@@ -45,6 +49,7 @@ class Device:
 
     def answer(self, pdu: bytes) -> bytes:
         """The response PDU for a request PDU (an exception response for what it does not do)."""
+        SERVED[0] += 1
         fc = pdu[0]
         if fc in (3, 4):
             if len(pdu) != 5:
@@ -129,9 +134,11 @@ async def serve(count: int, latency_ms: float, registers: int, ready: Any) -> No
         servers.append(server)
         urls.append(f"tcp://127.0.0.1:{server.sockets[0].getsockname()[1]}")
     ready(urls)
+    started = time.process_time()  # what serving costs, not starting up and listening
     await loop.run_in_executor(None, sys.stdin.read)
     for s in servers:
         s.close()
+    print(json.dumps({"requests": SERVED[0], "cpu": time.process_time() - started}), flush=True)
 
 
 def _raise_nofile(need: int) -> None:
@@ -175,8 +182,14 @@ def main(argv: list[str] | None = None) -> None:
     for w in workers:
         assert w.stdin is not None
         w.stdin.close()
+    served = {"requests": 0, "cpu": 0.0}
     for w in workers:
+        assert w.stdout is not None
+        last = json.loads(w.stdout.readline() or "{}")
+        served["requests"] += last.get("requests", 0)
+        served["cpu"] += last.get("cpu", 0.0)
         w.wait()
+    print(json.dumps(served), flush=True)  # the farm's own cost: CPU seconds for the requests it answered
 
 
 if __name__ == "__main__":
