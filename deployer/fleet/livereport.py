@@ -84,6 +84,7 @@ class LiveReport:
         self._pending: list[tuple[str, bytes]] = []
         self._cond = threading.Condition()
         self._closing = False
+        self._idle = False  # the writer thread waits for lines (notify it), else it pauses or writes
         self._error: OSError | None = None
         self._size = 0
         self.profiles = profiles_of(jobs)
@@ -115,7 +116,8 @@ class LiveReport:
             self._pending.append((name, line))
             if final:
                 self._final.add(name)
-            self._cond.notify()
+            if self._idle:  # the writer waits for work (not its pause between writes): wake it
+                self._cond.notify()
 
     def finished(self, result: DeviceResult) -> None:
         self._add(result.name, device_json(result), True)
@@ -163,11 +165,14 @@ class LiveReport:
         while True:
             with self._cond:
                 while not self._pending and not self._closing:
+                    self._idle = True
                     self._cond.wait()
+                self._idle = False
                 if not self._pending:
                     return
             self._flush()
-            # a moment for more devices to finish: one write and fsync takes many devices' lines
+            # a moment for more devices to finish: one write and fsync takes many devices' lines (only
+            # stop() wakes it early: a device's line does not)
             with self._cond:
                 self._cond.wait_for(lambda: self._closing, timeout=0.05)
 
