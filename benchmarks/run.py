@@ -56,6 +56,14 @@ TARGETS = [
     # issue #10: 200 devices x 100 parameters answering after 20 ms, the command timed from outside
     ("fleet --parallel 32: speed-up over 1", "fleet/parallel_32/speedup", ">=", 20.0),
     ("fleet --parallel 128: speed-up over 1", "fleet/parallel_128/speedup", ">=", 40.0),
+    # issue #30: fleets at scale, the light device farm, --parallel 256, with --report
+    ("fleet, 10,000 devices: wall (s)", "fleetscale/scale_10000/wall_seconds", "<=", 20.0),
+    ("fleet, 10,000 devices: peak RSS (MB)", "fleetscale/scale_10000/peak_rss_mb", "<=", 300.0),
+    ("fleet phase / bare client, 20 ms, --parallel 32", "fleetscale/side_20ms_1000_parallel_32/ratio", "<=", 1.3),
+    ("fleet phase / bare client, 20 ms, --parallel 128", "fleetscale/side_20ms_1000_parallel_128/ratio", "<=", 1.3),
+    ("fleet phase / bare client, 20 ms, --parallel 256", "fleetscale/side_20ms_1000_parallel_256/ratio", "<=", 1.3),
+    ("fleet phase / bare client, at once, --parallel 256", "fleetscale/side_0ms_2000_parallel_256/ratio", "<=", 3.0),
+    ("request CPU: ours / bare pymodbus", "fleetscale/request_cpu/ratio", "<=", 1.05),
     # issue #23: the run report page of 1,000 devices x 100 parameters
     ("report page, 1,000 x 100: browser opens it (s)", "pages/1000/load_seconds", "<=", 2.0),
     ("report page, 1,000 x 100: size / report JSON", "pages/1000/page_vs_json", "<=", 1.1),
@@ -93,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     for k, v in rows:
         print(f"{k:<{width}}  {v}")
     if results["targets"]:
-        print("\ntargets (issues #9, #10 and #23)")
+        print("\ntargets (issues #9, #10, #23 and #30)")
         tw = max(len(t["target"]) for t in results["targets"])
         for t in results["targets"]:
             print(f"  {t['target']:<{tw}}  {t['measured']!s:>8}  {'met' if t['met'] else 'MISSED'}")
