@@ -123,3 +123,39 @@ def test_a_devices_report_line_is_its_json_whatever_its_texts() -> None:
     for _ in range(2):  # the second time from the caches
         assert device_json(d) == json.dumps(d.to_json()).encode()
     assert device_json(d.small()) == json.dumps(d.small().to_json()).encode()
+
+
+def test_a_stream_the_disk_refused_for_a_while_ends_whole(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Appends that fail (a full disk) leave no line cut short and are written again once the disk takes them."""
+    import errno
+    import os
+
+    from deployer.fleet import livereport
+    from deployer.fleet.inventory import fleet_jobs, load_inventory
+    from deployer.report import Report, read_report
+
+    inv = inventory(tmp_path, {n: f"tcp://127.0.0.1:{1000 + i}" for i, n in enumerate(names(3))})
+    jobs = fleet_jobs(load_inventory(inv), deployer.load_recipe(recipe(tmp_path)), None)
+    path = str(tmp_path / "r.json")
+    live = livereport.LiveReport(path, "r.yaml", jobs, run={"id": "x"})
+    real_write, fails = os.write, [2]
+
+    def full(fd: int, data: bytes | memoryview) -> int:
+        if fd == live._fd and fails[0] > 0:
+            fails[0] -= 1
+            real_write(fd, bytes(data[:7]))  # part of it went out before the disk was full
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(livereport.os, "write", full)
+    results = []
+    for j in jobs:
+        r = DeviceResult(j.name, "u", 1, "example-inverter", status="ok")
+        r.parameters = [ParameterResult("F07", 0x100, 2, "10 s", (0, 1000), (0, 500), (0, 1000), "ok")]
+        results.append(r)
+        live.finished(r)
+    live.stop()  # what is pending is written: the disk takes it the third time
+    doc = read_report(path)
+    assert [d["status"] for d in doc["devices"]] == ["ok"] * 3 and fails == [0]
+    live.close(Report("r.yaml", results))  # (stop twice is fine)
+    assert json.loads(Path(path).read_text())["devices"] == [r.to_json() for r in results]

@@ -139,7 +139,7 @@ class LiveReport:
         """Append what is pending and fsync (the writer thread, and ``stop``)."""
         with self._cond:
             batch, self._pending = self._pending, []
-        if not batch or self._error is not None:
+        if not batch or self._fd < 0:
             return
         pieces = []
         offset = self._size
@@ -154,10 +154,15 @@ class LiveReport:
             while view:
                 view = view[os.write(self._fd, view):]
             os.fsync(self._fd)
-        except OSError as e:  # the run goes on (the journal has what recovery needs); close() says so
-            self._error = e
+        except OSError as e:  # the run goes on (the journal has what recovery needs); the lines are kept
+            self._error = e   # for the next write, and close() says so if the disk never takes them
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._fd, self._size)  # no line cut short in the middle of the stream
+            with self._cond:
+                self._pending[:0] = batch
             return
         with self._cond:
+            self._error = None
             self._at.update(at)
             self._size = offset
 
@@ -197,8 +202,11 @@ class LiveReport:
                 if d.name not in self._final:  # skipped by the rollout: never reported as finished
                     self._pending.append((d.name, device_json(d)))
                     self._final.add(d.name)
+        if self._fd < 0 and self._pending:  # stopped before (a caller's own stop): append these too
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | getattr(os, "O_CLOEXEC", 0)
+                               | getattr(os, "O_BINARY", 0))
         self.stop()
-        if self._error is not None:
+        if self._error is not None:  # lines the disk did not take: the stream is not the run's report
             from ..errors import UsageError
             from ..state.durable import disk_error
 
