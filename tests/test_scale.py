@@ -147,7 +147,7 @@ def test_a_stream_the_disk_refused_for_a_while_ends_whole(tmp_path: Path, monkey
             raise OSError(errno.ENOSPC, "No space left on device")
         return real_write(fd, data)
 
-    monkeypatch.setattr(livereport.os, "write", full)
+    monkeypatch.setattr(os, "write", full)  # the stream writes with os.write
     results = []
     for j in jobs:
         r = DeviceResult(j.name, "u", 1, "example-inverter", status="ok")
