@@ -254,7 +254,7 @@ def test_retry_from_the_report_touches_exactly_the_devices_that_failed(capsys: p
         assert all(holds_recipe(s) for s in sims)
 
 
-def test_report_file_survives_kill_9(tmp_path: Path) -> None:
+def test_report_file_survives_kill_9(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """Killed mid-run: the report names the finished devices as they ended, the rest 'not finished'."""
     with fleet(6, {i: Faults(latency_ms=60) for i in range(6)} | {1: Faults(fail_registers=frozenset({F08}))}) \
             as sims:
@@ -285,6 +285,10 @@ def test_report_file_survives_kill_9(tmp_path: Path) -> None:
         assert all(d["snapshot"] for d in data["devices"] if d["status"] == "interrupted")
         assert not_ok(str(report_file)) == [n for n in names(6) if status[n] != "ok"]
         assert "d00" not in not_ok(str(report_file))
+        # deployer report reads the stream as the run's report: the devices that need a look, the totals
+        code, out, err = cli(capsys, "report", str(report_file))
+        assert code == 0, err
+        assert "d01" in out and "partial" in out and f"{len(unfinished)} skipped" in out
 
 
 def test_devices_on_one_gateway_are_never_served_at_once(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
