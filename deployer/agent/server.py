@@ -271,6 +271,9 @@ def app(agent: Agent, *, token: str | None = None) -> web.Application:
     application[METRICS] = registry(agent)
     for method, path, handler in ROUTES:
         application.router.add_route(method, path, _bind(agent, handler))
+    from .page import page  # the live page: HTML for people, not part of the versioned API
+
+    application.router.add_get("/", page)
     return application
 
 
