@@ -11,6 +11,7 @@ and the lock primitive under the ``range`` backend (F_OFD_SETLK here, LockFileEx
 """
 
 import asyncio.unix_events
+import contextlib
 import os
 import signal
 import sys
@@ -18,10 +19,8 @@ import sys
 # Third-party code picks its platform module by sys.platform, which stays "linux" here: platformdirs
 # (pint imports it when no units cache is there yet, as on a fresh machine) takes its Unix module and
 # uids from os; on Windows it takes its Windows module and never asks. Loaded before the uids go.
-try:
+with contextlib.suppress(ImportError):
     import platformdirs  # noqa: F401
-except ImportError:
-    pass
 
 for _name in ("fcntl", "pwd", "grp", "resource", "termios"):
     sys.modules[_name] = None  # type: ignore[assignment]  # import raises ModuleNotFoundError
