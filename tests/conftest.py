@@ -98,6 +98,7 @@ def _own_lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.
 _WINDOWS_MODULES = {  # whole modules: Ansible has no Windows control node
     "test_ansible.py": "Ansible has no Windows control node (run playbooks from Linux or WSL)",
     "test_ansible_collection.py": "Ansible has no Windows control node (run playbooks from Linux or WSL)",
+    "test_ansible_agent.py": "Ansible has no Windows control node (run playbooks from Linux or WSL)",
 }
 # what a test's own source uses that Windows lacks; tests/test_posixless.py runs the same code paths
 # without these on Linux, and tests/test_portable.py runs the lock on Windows itself

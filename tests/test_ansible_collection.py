@@ -81,7 +81,9 @@ def test_ansible_doc_shows_every_option_whole() -> None:
     out = " ".join(_doc("deployer.modbus.apply").split())
     # a comma in a description no longer cuts it (flow style did: "limit  Inventory selection (names")
     assert "names, groups, globs, `!NAME' to exclude, or `@REPORT.json'" in out
-    for sub in ("name", "url", "unit", "profile", "parameters"):
+    for sub in ("name", "url", "unit", "profile", "parameters"):  # devices' (agent's come first: a before d)
+        assert f" {sub} " in out.split("suboptions:")[2]
+    for sub in ("url", "token", "token_file", "ca", "timeout"):
         assert f" {sub} " in out.split("suboptions:")[1]
     assert "check_mode" in out and "diff_mode" in out and "AUTHOR" in out
 
@@ -91,6 +93,7 @@ def test_ansible_doc_shows_every_option_whole() -> None:
         assert d["author"] and d["attributes"]["check_mode"]["support"] == "full", m
         assert set(d["options"]) >= {"device", "devices", "inventory", "limit", "unit", "timeout", "retries"}, m
         assert d["options"]["devices"]["suboptions"]["url"]["required"] is True
+    assert docs["apply"]["options"]["agent"]["suboptions"]["url"]["required"] is True
     assert docs["info"]["attributes"]["facts"]["support"] == "full"
     assert "dest" not in docs["info"]["options"] and docs["pull"]["options"]["dest"]["required"] is True
     # the old facts name now means the read-only module

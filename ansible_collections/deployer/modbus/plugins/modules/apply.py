@@ -17,6 +17,11 @@ description:
   - Runs deployer's Python API on the target, whose Python (C(ansible_python_interpreter)) needs
     deployer installed. The run is journaled in O(state_dir) like a command-line run, so
     C(deployer status) sees it.
+  - With O(agent) the run happens in a site agent (C(deployer agent)) over its HTTP API, through
+    deployer's Python client. The agent's inventory and recipes are the desired state, O(limit)
+    selects its devices, and the agent executes with every guarantee of a command-line run. In
+    check mode the agent reads its files again and checks the selected devices; nothing is written
+    or adopted. Roll sites out one at a time with C(serial=1) and C(max_fail_percentage=0) on the play.
 version_added: 0.1.0
 author:
   - deployer maintainers (@deployer)
@@ -97,6 +102,31 @@ options:
     description: When the rollout stops (a failed batch, O(max_failures)), roll back every device it wrote.
     type: bool
     default: false
+  agent:
+    description:
+      - Run through the site agent at O(agent.url) instead of talking Modbus from this module.
+      - Not with O(device), O(devices), O(inventory), O(profile), O(parameters), O(name), O(unit),
+        O(timeout), O(retries) or O(report) (the agent's inventory says where its devices are). O(recipe), if
+        given, must be the recipe the agent's inventory names for the selected devices.
+    type: dict
+    suboptions:
+      url:
+        description: The agent's address, for example V(https://gw-line3:8470).
+        type: str
+        required: true
+      token:
+        description: The agent's token (C(deployer agent --token-file)); keep it in Ansible Vault.
+        type: str
+      token_file:
+        description: A file on the target whose first line is the token (when O(agent.token) is not given).
+        type: path
+      ca:
+        description: A CA certificate (PEM) on the target that the agent's TLS certificate is checked against.
+        type: path
+      timeout:
+        description: Seconds to wait for each answer of the agent.
+        type: float
+        default: 30.0
 notes:
   - One bus is one device at a time whatever O(parallel) says; a device is locked for the run.
 seealso:
@@ -109,6 +139,15 @@ EXAMPLES = r"""
     recipe: /srv/recipes/line3.yaml
     devices: "{{ modbus_devices }}"
     state_dir: /var/lib/deployer
+
+- name: Through the site's agent (its inventory and recipes are the desired state), one canary first
+  deployer.modbus.apply:
+    agent:
+      url: https://gw-line3:8470
+      token: "{{ vault_line3_agent_token }}"
+      ca: /etc/deployer/site-ca.crt
+    limit: line3
+    batch: "1,100%"
 
 - name: New ramps, kept only if the drives stay healthy for 5 minutes (one canary first)
   deployer.modbus.apply:
@@ -143,6 +182,14 @@ import asyncio  # noqa: E402
 
 from ansible.module_utils.basic import AnsibleModule  # noqa: E402
 
+from ansible_collections.deployer.modbus.plugins.module_utils.deployer_agent import (  # noqa: E402
+    AGENT_SPEC,
+    agent_apply,
+    agent_check,
+    agent_exclusive,
+    agent_failed,
+    client_of,
+)
 from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common import (  # noqa: E402
     TARGET_ARGS,
     TARGET_EXCLUSIVE,
@@ -236,14 +283,24 @@ def main():
             on_error=dict(type="str", default="continue", choices=["continue", "stop"]),
             state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), soak=dict(type="str"),
             health_interval=dict(type="str", default="1s"), rollback_on_failure=dict(type="bool", default=False),
-            **TARGET_ARGS),
-        mutually_exclusive=TARGET_EXCLUSIVE,
+            agent=dict(type="dict", options=AGENT_SPEC), **TARGET_ARGS),
+        mutually_exclusive=TARGET_EXCLUSIVE + agent_exclusive(),
         supports_check_mode=True,
     )
     require_deployer(module)
     check_target_args(module)
-    from deployer.api import DeployerError, InputError, UsageError
+    from deployer.api import AgentError, DeployerError, InputError, UsageError
 
+    if module.params.get("agent"):  # the agent executes; nothing here talks Modbus or writes a state folder
+        try:
+            client = client_of(module)
+            if module.check_mode:
+                agent_check(module, client)
+            else:
+                agent_apply(module, client)
+        except AgentError as e:
+            agent_failed(module, e)
+        return
     _check_outputs(module)
     try:
         rec = recipe_of(module)
