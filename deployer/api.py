@@ -52,7 +52,7 @@ from .errors import (
 from .fleet.inventory import FleetDevice, Inventory, load_inventory
 from .fleet.inventory import fleet_jobs as _fleet_jobs
 from .fleet.inventory import inventory_from as _inventory_from
-from .limits import LIMITS, Bound
+from .limits import BATCH_BY, LIMITS, Bound
 from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planfile import load_plan, plan_to_json
@@ -233,9 +233,6 @@ def record_meta(inventory: str | None = None, given: Sequence[str] = ()) -> list
             raise UsageError(f"--meta {item!r}: expected KEY=VALUE (e.g. site='Plant 3')")
         out[key.strip()] = value.strip()
     return list(out.items())
-
-
-BATCH_BY = ("profile", "group")  # what one batch of a staged rollout takes a share of
 
 
 def _need_batch_by(batch_by: object, call: str) -> str:

@@ -14,9 +14,10 @@ from dataclasses import dataclass
 
 from .errors import UsageError
 
-__all__ = ["LIMITS", "WEEK", "Bound", "Limits"]
+__all__ = ["BATCH_BY", "LIMITS", "WEEK", "Bound", "Limits"]
 
 WEEK = 7 * 24 * 3600.0  # the longest duration the tool takes: longer is a typo (asyncio's timers overflow)
+BATCH_BY = ("profile", "group")  # what one batch of a staged rollout takes a share of (--batch-by, batch_by)
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ def _imported(*args: str) -> set[str]:
 def test_help_imports_neither_pint_rich_nor_pymodbus() -> None:
     mods = _imported("--help")
     assert not {m for m in mods if m.split(".")[0] in ("pint", "rich", "pymodbus", "jsonschema")}
+    assert "deployer.api" not in mods  # the commands import the API when they run, not for --help
 
 
 def test_version_imports_no_asyncio() -> None:

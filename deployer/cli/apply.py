@@ -12,9 +12,8 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..api import BATCH_BY
 from ..errors import EXIT_CHANGES, EXIT_FAILED, EXIT_OK, UsageError
-from ..limits import LIMITS
+from ..limits import BATCH_BY, LIMITS
 from .base import (
     _n,
     agent_option,

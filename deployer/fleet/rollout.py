@@ -367,9 +367,6 @@ def batch_sizes(spec: str | None, total: int) -> list[int]:
     return out
 
 
-BATCH_BY = ("profile", "group")
-
-
 def _per_kind(word: str, total: int) -> int:
     """``N`` devices, or ``P%`` of ``total`` rounded to the nearest (never to zero), of one kind."""
     w = word.strip()
