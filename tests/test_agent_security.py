@@ -195,3 +195,35 @@ def test_the_operations_page_shows_the_unit_as_shipped() -> None:
     for option in ("--token-file", "--tls-cert", "--tls-key", "--state-dir", "--listen", "--notify"):
         assert option in unit
     assert "DEPLOYER_LOCK_DIR" in unit and "ExecReload=/bin/kill -HUP $MAINPID" in unit
+
+
+def test_the_served_openapi_document_states_the_security_and_the_errors(tmp_path: Path, sim: Simulator) -> None:
+    """The document the agent serves is the one in the package, versioned, with the bearer scheme on every
+    operation, a 401 answer on every operation, and every error kind the server can answer."""
+    import re
+
+    doc_path = Path(server.__file__).with_name("openapi.json")
+    doc = json.loads(doc_path.read_text())
+    assert doc["openapi"].startswith("3.") and doc["info"]["version"] == "1"
+    assert doc["components"]["securitySchemes"]["bearer"] == {**doc["components"]["securitySchemes"]["bearer"],
+                                                              "type": "http", "scheme": "bearer"}
+    assert doc["security"] == [{"bearer": []}, {}]  # a token when the agent has one; none on loopback without
+    kinds = set(doc["components"]["schemas"]["Error"]["properties"]["error"]["properties"]["kind"]["enum"])
+    sources = "".join(p.read_text() for p in Path(server.__file__).parent.glob("*.py"))
+    raised = {k for pattern in (r'ApiError\("([a-z-]+)"', r'error_body\("([a-z-]+)"', r'"error": \{"kind": "([a-z-]+)"')
+              for k in re.findall(pattern, sources)}
+    assert raised and raised <= kinds, raised - kinds
+    for path, ops in doc["paths"].items():
+        for method, op in ops.items():
+            assert op["responses"]["401"] == {"$ref": "#/components/responses/Unauthorized"}, (method, path)
+            assert op.get("operationId"), (method, path)
+    inv = write_site(tmp_path, {"d1": sim.url})
+    agent = AgentProcess(inv, tmp_path / "state", "--token-file", str(token_file(tmp_path)))
+    try:
+        c = Agent(agent.url, token=TOKEN)
+        assert c.get("/v1/openapi.json") == doc and c.info()["api"] == int(doc["info"]["version"])
+        status, _, _ = raw(agent.url + "/v1/openapi.json")
+        assert status == 401
+        assert agent.terminate() == 0
+    finally:
+        agent.kill()

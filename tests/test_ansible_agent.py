@@ -88,6 +88,8 @@ def test_a_playbook_rolls_out_through_two_agents(tmp_path: Path, pki: dict[str, 
             code, out = playbook(tmp_path, inventory)
             assert code == 0, out
             assert (recap(out, "site-a") or {})["changed"] == 1 and (recap(out, "site-b") or {})["changed"] == 1
+            assert (recap(out, "site-a") or {})["ok"] == 3 and (recap(out, "site-b") or {})["ok"] == 3
+            assert out.count('"speed": "3000 rpm"') == 2 and '"site-b-d1": {' in out  # info's facts, per site
             for sim in sims.values():
                 assert sim.read("accel") == (20,) and sim.read("speed") == (3000,) and sim.read("address") == (7,)
             for site, a in agents.items():

@@ -16,11 +16,11 @@ AGENT_SPEC = dict(
 
 # what means something only where the module itself talks to the devices: the agent's inventory says it
 NOT_WITH_AGENT = ("device", "devices", "inventory", "profile", "parameters", "name", "unit", "timeout",
-                  "retries", "report")
+                  "retries")
 
 
-def agent_exclusive():
-    return [("agent", other) for other in NOT_WITH_AGENT]
+def agent_exclusive(more=()):
+    return [("agent", other) for other in NOT_WITH_AGENT + tuple(more)]
 
 
 def client_of(module):
@@ -117,4 +117,23 @@ def agent_apply(module, client):
                                 + (f": {end['error']}" if end.get("error") else "")]
         module.fail_json(msg=f"run {end.get('run')} in the agent {p['agent']['url']}: " + "; ".join(problems),
                          **result)
+    module.exit_json(**result)
+
+
+def agent_info(module, client):
+    """The agent reads the selected devices now (a check: reads only); the facts are the values they hold
+    of their adopted parameters (device name -> parameter -> value text)."""
+    checked = client.check(module.params.get("limit"))
+    facts, down = {}, []
+    for d in checked:
+        full = client.device(d["name"])
+        if full.get("last_values") is None:
+            down.append(f"{d['name']}: {d.get('unreachable') or d.get('not_owned') or d.get('status')}")
+            continue
+        facts[d["name"]] = dict(full["last_values"])
+    result = {"changed": False, "ansible_facts": {"modbus_parameters": facts},
+              "devices": [{k: d.get(k) for k in ("name", "status", "drifted", "drift", "pending", "last_check")}
+                          for d in checked]}
+    if down:
+        module.fail_json(msg="unreachable: " + "; ".join(down), **result)
     module.exit_json(**result)

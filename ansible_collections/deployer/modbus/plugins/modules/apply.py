@@ -284,7 +284,7 @@ def main():
             state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), soak=dict(type="str"),
             health_interval=dict(type="str", default="1s"), rollback_on_failure=dict(type="bool", default=False),
             agent=dict(type="dict", options=AGENT_SPEC), **TARGET_ARGS),
-        mutually_exclusive=TARGET_EXCLUSIVE + agent_exclusive(),
+        mutually_exclusive=TARGET_EXCLUSIVE + agent_exclusive(("report",)),
         supports_check_mode=True,
     )
     require_deployer(module)

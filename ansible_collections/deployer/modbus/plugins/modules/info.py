@@ -15,6 +15,8 @@ description:
   - Writes nothing to any device or file; C(changed) is always false. To keep the values as recipe
     files, use M(deployer.modbus.pull).
   - Also available as C(deployer.modbus.facts).
+  - With O(agent) the site agent (C(deployer agent)) reads its devices now (O(limit) selects them) and the
+    facts are what they hold of their adopted parameters; the agent's inventory says where they are.
 version_added: 0.1.0
 author:
   - deployer maintainers (@deployer)
@@ -45,6 +47,30 @@ options:
   name:
     description: The device's name in the facts, for O(device).
     type: str
+  agent:
+    description:
+      - Ask the site agent at O(agent.url) instead of reading the devices from this module.
+      - Not with O(device), O(devices), O(inventory), O(profile), O(recipe), O(parameters), O(name), O(unit),
+        O(timeout) or O(retries).
+    type: dict
+    suboptions:
+      url:
+        description: The agent's address, for example V(https://gw-line3:8470).
+        type: str
+        required: true
+      token:
+        description: The agent's token (C(deployer agent --token-file)); keep it in Ansible Vault.
+        type: str
+      token_file:
+        description: A file on the target whose first line is the token (when O(agent.token) is not given).
+        type: path
+      ca:
+        description: A CA certificate (PEM) on the target that the agent's TLS certificate is checked against.
+        type: path
+      timeout:
+        description: Seconds to wait for each answer of the agent.
+        type: float
+        default: 30.0
 seealso:
   - module: deployer.modbus.pull
 """
@@ -73,11 +99,23 @@ ansible_facts:
 raw:
   description: Device name -> parameter -> register words.
   type: dict
-  returned: success
+  returned: without O(agent)
+devices:
+  description: With O(agent), per device its status, drift, pending changes and last check as the agent says.
+  type: list
+  elements: dict
+  returned: with O(agent)
 """
 
 from ansible.module_utils.basic import AnsibleModule  # noqa: E402
 
+from ansible_collections.deployer.modbus.plugins.module_utils.deployer_agent import (  # noqa: E402
+    AGENT_SPEC,
+    agent_exclusive,
+    agent_failed,
+    agent_info,
+    client_of,
+)
 from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common import (  # noqa: E402
     READ_ARGS,
     TARGET_ARGS,
@@ -91,11 +129,19 @@ from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common im
 
 
 def main():
-    module = AnsibleModule(argument_spec=dict(**READ_ARGS, **TARGET_ARGS), mutually_exclusive=TARGET_EXCLUSIVE,
+    module = AnsibleModule(argument_spec=dict(**READ_ARGS, **TARGET_ARGS, agent=dict(type="dict", options=AGENT_SPEC)),
+                           mutually_exclusive=TARGET_EXCLUSIVE + agent_exclusive(("recipe",)),
                            supports_check_mode=True)
     require_deployer(module)
     check_target_args(module)
-    from deployer.api import InputError, UsageError
+    from deployer.api import AgentError, InputError, UsageError
+
+    if module.params.get("agent"):
+        try:
+            agent_info(module, client_of(module))
+        except AgentError as e:
+            agent_failed(module, e)
+        return
 
     try:
         read, values = read_devices(module)
