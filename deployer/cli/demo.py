@@ -14,7 +14,6 @@ from collections.abc import Sequence
 
 import click
 
-from ..profile import builtin_profile
 from ..testing.simulator import Faults, SimulatorThread, parse_fault_rule
 
 BASE = """\
@@ -91,9 +90,10 @@ def _story(work: str, *, fast: bool, kept: bool, lock_env: str) -> int:
 
 
 def _steps(work: str, *, fast: bool, kept: bool) -> int:
+    from ..api import load_profile
     from ..cli import cli
 
-    profile = builtin_profile("example-inverter")
+    profile = load_profile("example-inverter")
     bad = profile.parameter("speed_offset").address
     state = os.path.join(work, ".deployer")
     faults = Faults()

@@ -64,13 +64,13 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
              pause_after_connect: str, pause_between_requests: str, identity: tuple[str, ...],
              fault_rules: tuple[str, ...] = ()) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
+    from ..api import load_profile, load_recipe
     from ..load.durations import parse_duration
-    from ..profile import IDENTITY_OBJECTS, resolve_profile
+    from ..profile import IDENTITY_OBJECTS
     from ..profile.model import SPACE
-    from ..recipe.loader import load_recipe
     from ..testing.simulator import Faults, Quirks, Simulator, init_from_recipe, parse_fault_rule, parse_listen, serve
 
-    prof = resolve_profile(profile)
+    prof = load_profile(profile)
     try:
         parse_listen(listen)
     except ValueError as e:
