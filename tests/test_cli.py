@@ -221,6 +221,10 @@ def test_demo_runs(capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypat
     code, out, _ = cli(capsys, "demo", "--fast", "--keep", str(tmp_path / "kept"))
     assert code == 0, out
     assert (tmp_path / "kept" / ".deployer" / "audit.jsonl").is_file() and list(tmp.iterdir()) == []
+    from deployer.cli.demo import LOCK_DIR_ENV
+    from deployer.state.lock import ENV
+
+    assert LOCK_DIR_ENV == ENV  # the demo's locks go where the locks look (the command line names it itself)
 
 
 def _run_on_a_terminal(args: list[str], answer: bytes, timeout: float = 30,

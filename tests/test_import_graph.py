@@ -151,7 +151,6 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
     "deployer.cli.apply": {
         "deployer.state.holder", "deployer.state.journal", "deployer.state.lock", "deployer.window.confirm",
     },
-    "deployer.cli.demo": {"deployer.state.lock"},
     "deployer.cli.docgen": {
         "deployer.profile", "deployer.recipe.model", "deployer.recipe.text", "deployer.transport.urls",
     },
@@ -176,7 +175,6 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
         "deployer.fleet.inventory", "deployer.fleet.rollout", "deployer.portable", "deployer.profile",
         "deployer.recipe.loader", "deployer.recipe.text", "deployer.report", "deployer.run.runner",
     },
-    "deployer.cli.simulate": {"deployer.profile", "deployer.profile.model"},
 }
 
 

@@ -64,12 +64,15 @@ parameters:
 """
 
 
+# the lock folder's variable, a documented interface (docs/locks.md) as the agent's systemd unit sets it; a test
+# checks it is the one the locks read
+LOCK_DIR_ENV = "DEPLOYER_LOCK_DIR"
+
+
 def run_demo(*, fast: bool = False, keep: str | None = None) -> int:
     """Run the story in a folder of its own: ``keep`` (created if need be, left in place), else a
     temporary folder removed at the end. The demo's device lives only as long as the demo, so its
     locks go in that folder too, not in the machine's lock folder: nothing is left in /tmp."""
-    from ..state.lock import ENV as LOCK_DIR_ENV
-
     if keep is not None:
         os.makedirs(keep, exist_ok=True)
         return _story(os.path.abspath(keep), fast=fast, kept=True, lock_env=LOCK_DIR_ENV)

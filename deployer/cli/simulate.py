@@ -11,10 +11,10 @@ from .base import echo, safe
 
 
 def _register(text: str) -> int:
-    from ..profile import parse_register
+    from ..testing.simulator import parse_address
 
     try:
-        return parse_register(text)
+        return parse_address(text)
     except ValueError:
         raise click.BadParameter(f"not a register address: {text!r} (e.g. 4354, 0x1102, 1102h)") from None
 
@@ -66,9 +66,17 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
     from ..api import load_profile, load_recipe
     from ..load.durations import parse_duration
-    from ..profile import IDENTITY_OBJECTS
-    from ..profile.model import SPACE
-    from ..testing.simulator import Faults, Quirks, Simulator, init_from_recipe, parse_fault_rule, parse_listen, serve
+    from ..testing.simulator import (
+        Faults,
+        Quirks,
+        Simulator,
+        init_from_recipe,
+        parse_fault_rule,
+        parse_identity,
+        parse_listen,
+        parse_set,
+        serve,
+    )
 
     prof = load_profile(profile)
     try:
@@ -77,20 +85,11 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
         raise UsageError(str(e)) from None
     init = init_from_recipe(load_recipe(init_recipe)) if init_recipe else {}
     for item in set_registers:
-        addr, sep, raw = item.partition("=")
-        if not sep:
-            raise UsageError(f"--set {item}: expected ADDR=RAW, e.g. 0x10=8")
-        table, _, addr = addr.strip().rpartition(":") if ":" in addr else ("holding", "", addr)
-        if table not in SPACE:
-            raise UsageError(f"--set {item}: '{table}' is not a table (holding, coil, discrete, input)")
         try:
-            address, value = _register(addr.strip()), _register(raw.strip())
-        except click.BadParameter:
-            raise UsageError(f"--set {item}: expected ADDR=RAW with numbers, e.g. 0x10=8") from None
-        bit = table in ("coil", "discrete")
-        if value > (1 if bit else 0xFFFF):
-            raise UsageError(f"--set {item}: {'a bit holds 0 or 1' if bit else 'a register holds 0..65535'}")
-        init[SPACE[table] << 16 | address] = value
+            key, value = parse_set(item)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+        init[key] = value
     try:
         rules = tuple(parse_fault_rule(r, prof) for r in fault_rules)
     except ValueError as e:
@@ -105,15 +104,10 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
             pauses.append(parse_duration(text) * 1000)
         except ValueError as e:
             raise UsageError(f"{option}: {e}") from None
-    objects: dict[int, str] | None = None
-    for item in identity:
-        key, sep, text = item.partition("=")
-        key = key.strip()
-        oid = IDENTITY_OBJECTS.get(key, int(key) if key.isdigit() else -1)
-        if not sep or not 0 <= oid <= 255:
-            raise UsageError(f"--identity {item}: expected OBJECT=TEXT with OBJECT one of "
-                             f"{', '.join(IDENTITY_OBJECTS)} or an object id 0..255")
-        objects = {**(objects or {}), oid: text}
+    try:
+        objects = parse_identity(identity)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
     quirks = Quirks(max_write_registers=max_write_registers or 0, all_or_nothing=all_or_nothing,
                     fc06_only=fc06_only, pause_after_connect_ms=pauses[0], request_gap_ms=pauses[1],
                     identity=objects)

@@ -84,6 +84,50 @@ class FaultRule:
         return _OPS[self.op](got, self.value)
 
 
+def parse_address(text: str) -> int:
+    """A register address or raw value as ``deployer simulate`` takes them (4354, 0x1102, 1102h); ValueError if
+    it is not one."""
+    from ..profile import parse_register
+
+    return parse_register(text)
+
+
+def parse_set(item: str) -> tuple[int, int]:
+    """``--set [TABLE:]ADDR=RAW`` as (the simulator's key for that table and address, the raw value), for
+    ``init``; ValueError saying what is wrong, in the option's words."""
+    addr, sep, raw = item.partition("=")
+    if not sep:
+        raise ValueError(f"--set {item}: expected ADDR=RAW, e.g. 0x10=8")
+    table, _, addr = addr.strip().rpartition(":") if ":" in addr else ("holding", "", addr)
+    if table not in SPACE:
+        raise ValueError(f"--set {item}: '{table}' is not a table (holding, coil, discrete, input)")
+    try:
+        address, value = parse_address(addr.strip()), parse_address(raw.strip())
+    except ValueError:
+        raise ValueError(f"--set {item}: expected ADDR=RAW with numbers, e.g. 0x10=8") from None
+    bit = table in ("coil", "discrete")
+    if value > (1 if bit else 0xFFFF):
+        raise ValueError(f"--set {item}: {'a bit holds 0 or 1' if bit else 'a register holds 0..65535'}")
+    return SPACE[table] << 16 | address, value
+
+
+def parse_identity(items: Sequence[str]) -> dict[int, str] | None:
+    """``--identity OBJECT=TEXT`` (a name of the profile format's identity objects or an object id 0..255) as the
+    objects a simulated device answers with (None: none given); ValueError in the option's words."""
+    from ..profile import IDENTITY_OBJECTS
+
+    objects: dict[int, str] | None = None
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        oid = IDENTITY_OBJECTS.get(key, int(key) if key.isdigit() else -1)
+        if not sep or not 0 <= oid <= 255:
+            raise ValueError(f"--identity {item}: expected OBJECT=TEXT with OBJECT one of "
+                             f"{', '.join(IDENTITY_OBJECTS)} or an object id 0..255")
+        objects = {**(objects or {}), oid: text}
+    return objects
+
+
 def parse_fault_rule(text: str, profile: Profile) -> FaultRule:
     """A rule from its text; ValueError with the accepted form."""
     from ..profile import parse_register
