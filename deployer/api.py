@@ -61,7 +61,7 @@ from .profile import Profile, is_profile_path, load_profile, resolve_profile
 from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
-from .report import DeviceResult, ParameterResult, Report
+from .report import DeviceResult, ParameterResult, Report, report_text
 from .run.request import PreparedRun, RunRequest
 from .transport.urls import DeviceURL, describe, parse_url
 
@@ -72,12 +72,13 @@ if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus,
     from .execute.session import ApplyOptions
     from .fleet.rollout import ReadJob
     from .state.learned import Entry as LearnedEntry
+    from .transport.ports import SerialPort
 
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
 _REEXPORTED = (Agent, AgentError, LIMITS, Bound, BadURL, CodecError, Declined, DeployerError, IdentityMismatch,
                InputError, Locked, RunInterrupted, StalePlan, TransportError, UsageError, FleetDevice, Inventory,
                load_inventory, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult,
-               ParameterResult, Report, DeviceURL, PreparedRun, RunRequest)
+               ParameterResult, Report, report_text, DeviceURL, PreparedRun, RunRequest)
 
 # public names whose modules load on first use: offline work (validate, an offline plan, a command's
 # --help) does not pay for the transports (pymodbus)
@@ -163,12 +164,14 @@ __all__ = [
     "read_jobs",
     "read_report",
     "recipe_from",
+    "report_text",
     "run_fleet",
     "run_fleet_async",
     "run_prepared",
     "run_prepared_async",
     "safe_options",
     "scan",
+    "serial_ports",
     "taught_recipe",
     "write_output",
     "writing_caches",
@@ -918,6 +921,15 @@ def scan(device: str | DeviceURL, units: Iterable[int], *, register: int = 0) ->
 
 
 # ---- what devices taught (STATE/learned.json) ------------------------------------------------------
+
+
+def serial_ports() -> list[SerialPort]:
+    """This system's serial ports as pyserial finds them, sorted by name (COM2 before COM10): each with its
+    ``device`` (COM3, /dev/ttyUSB0), the ``url`` that names it (``rtu://COM3``), the adapter's ``description``
+    and ``hwid`` (USB VID:PID and serial number), and ``to_json()``. Nothing is opened."""
+    from .transport.ports import serial_ports as _serial_ports
+
+    return _serial_ports()
 
 
 def learned_limits(state_dir: str = ".deployer") -> tuple[str, list[LearnedEntry]]:

@@ -19,8 +19,8 @@ PUBLIC = [
     "learned_limits", "load_inventory", "load_plan", "load_profile", "load_recipe", "non_default", "plan",
     "plan_async", "plan_fleet", "plan_fleet_async", "plan_to_json", "prepare_run", "probe", "pull", "pull_async",
     "pull_names", "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "read_report", "recipe_from",
-    "run_fleet", "run_fleet_async", "run_prepared", "run_prepared_async", "safe_options", "scan", "taught_recipe",
-    "write_output", "writing_caches",
+    "report_text", "run_fleet", "run_fleet_async", "run_prepared", "run_prepared_async", "safe_options", "scan",
+    "serial_ports", "taught_recipe", "write_output", "writing_caches",
 ]
 
 

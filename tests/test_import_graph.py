@@ -154,12 +154,10 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
     "deployer.cli.docgen": {
         "deployer.profile", "deployer.recipe.model", "deployer.recipe.text", "deployer.transport.urls",
     },
-    "deployer.cli.field": {"deployer.transport.ports"},
     "deployer.cli.files": {
         "deployer.fleet.inventory", "deployer.load.yamlsrc", "deployer.planning.planfile", "deployer.profile",
         "deployer.recipe.loader",
     },
-    "deployer.cli.outcome": {"deployer.report"},
     "deployer.cli.plan": {
         "deployer.planning.frames", "deployer.planning.model", "deployer.planning.planfile",
         "deployer.planning.planner", "deployer.planning.wire", "deployer.profile.model", "deployer.report",

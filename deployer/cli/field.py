@@ -149,8 +149,8 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
 
 
 def _list_ports(as_json: bool) -> int:
+    from ..api import serial_ports
     from ..errors import EXIT_UNREACHABLE
-    from ..transport.ports import serial_ports
 
     ports = serial_ports()
     if as_json:
