@@ -173,6 +173,7 @@ __all__ = [
     "scan",
     "serial_ports",
     "taught_recipe",
+    "validate_file",
     "write_output",
     "writing_caches",
 ]
@@ -981,6 +982,72 @@ def taught_recipe(recipe: Recipe, device: str | DeviceURL, unit: int = 1, *, sta
 
 
 # ---- the files deployer writes ---------------------------------------------------------------------
+
+
+def _file_kind(data: object) -> str | None:
+    if not isinstance(data, dict):
+        return None
+    if data.get("schema") == "deployer.plan/1":
+        return "plan"
+    if "recipe" in data:
+        return "recipe"
+    if "devices" in data:
+        return "inventory"
+    params = data.get("parameters")
+    declares = isinstance(params, dict) and any(isinstance(v, dict) and "register" in v for v in params.values())
+    if "profile" in data and (declares or data.keys() & {"tables", "addressing", "limits", "identity", "commit"}):
+        return "profile"
+    if "profile" in data or "extends" in data:
+        return "recipe"  # a recipe without its 'recipe' key: let the schema say so
+    return None
+
+
+def _count(count: int, noun: str) -> str:
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
+def validate_file(path: str | os.PathLike[str]) -> str:
+    """Check one file of any kind (a profile, recipe, inventory or saved plan, told by its keys) as
+    ``deployer validate`` does, nothing sent; returns a one-line summary ("recipe line3: 4 parameters for
+    profile example-inverter"). An inventory is checked as ``plan`` and ``apply`` would check it: each
+    device's profile, URL, and its recipe with its overrides.
+
+    Raises:
+        InputError: the file is not valid, or not a deployer file (with positions).
+        UsageError: ``path`` is not a path.
+    """
+    from .load import yamlsrc
+    from .planning.planfile import plan_from_json
+    from .profile import load_profile_file
+
+    _need_path(path, "validate_file", "the file")
+    where = os.fspath(path)
+    data, src = yamlsrc.load(where, hand_over=True)  # the loader below takes it over: parsed once
+    try:
+        kind = _file_kind(data)
+        if kind == "profile":
+            prof = load_profile_file(where)
+            return f"profile {prof.id}: {_count(len(prof.parameters), 'parameter')}"
+        if kind == "recipe":
+            rec = _load_recipe(where)
+            return f"recipe {rec.name}: {_count(len(rec.desired), 'parameter')} for profile {rec.profile.id}"
+        if kind == "inventory":
+            inv = load_inventory(where)
+            # what plan and apply would check before sending anything: each device's profile, URL, and its
+            # recipe (from the inventory) with its overrides; devices without one get theirs on the command line
+            jobs = _fleet_jobs(inv, None, None, require_recipe=False)
+            recipes = {j.recipe.path for j in jobs}
+            return (f"inventory: {_count(len(inv.devices), 'device')}"
+                    + (f", {_count(len(recipes), 'recipe')}" if recipes else ""))
+        if kind == "plan":
+            saved = plan_from_json(data, where, src=src)
+            return f"plan: {_count(len(saved.writes), 'write request')} for profile {saved.device.profile}"
+        what = ("cannot tell what this file is" if isinstance(data, dict) else
+                f"expected a mapping, got {'a list' if isinstance(data, list) else 'a single value'}")
+        raise InputError([src.error((), f"{what}: a profile has 'profile' and 'parameters', a recipe has "
+                                         "'recipe', an inventory has 'devices'")])
+    finally:
+        yamlsrc.forget(where)
 
 
 def check_output(path: str | os.PathLike[str], *, replace: bool = True, what: str = "") -> None:

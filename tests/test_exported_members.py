@@ -20,7 +20,7 @@ PUBLIC = [
     "plan_async", "plan_fleet", "plan_fleet_async", "plan_to_json", "prepare_run", "probe", "pull", "pull_async",
     "pull_names", "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "read_report", "recipe_from",
     "report_text", "run_fleet", "run_fleet_async", "run_prepared", "run_prepared_async", "safe_options", "scan",
-    "serial_ports", "taught_recipe", "write_output", "writing_caches",
+    "serial_ports", "taught_recipe", "validate_file", "write_output", "writing_caches",
 ]
 
 
@@ -45,7 +45,8 @@ def test_sync_functions_that_raise_say_so() -> None:
     """A sync entry point that can raise documents what (a Raises section)."""
     for name in ("apply", "apply_fleet", "confirm", "device_url", "diff", "inventory_from", "plan", "plan_fleet",
                  "pull",
-                 "read_fleet", "read_report", "recipe_from", "run_fleet", "prepare_run", "run_prepared"):
+                 "read_fleet", "read_report", "recipe_from", "run_fleet", "prepare_run", "run_prepared",
+                 "validate_file"):
         assert "Raises:" in (getattr(api, name).__doc__ or ""), name
 
 

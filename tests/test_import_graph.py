@@ -154,10 +154,6 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
     "deployer.cli.docgen": {
         "deployer.profile", "deployer.recipe.model", "deployer.recipe.text", "deployer.transport.urls",
     },
-    "deployer.cli.files": {
-        "deployer.fleet.inventory", "deployer.load.yamlsrc", "deployer.planning.planfile", "deployer.profile",
-        "deployer.recipe.loader",
-    },
     "deployer.cli.plan": {
         "deployer.planning.frames", "deployer.planning.model", "deployer.planning.planfile",
         "deployer.planning.planner", "deployer.planning.wire", "deployer.profile.model", "deployer.report",

@@ -3,76 +3,19 @@
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING, Any
 
 import click
 
 from ..errors import EXIT_INVALID, EXIT_OK, InputError, UsageError
 from ..load.messages import clip
-from .base import _n, echo, safe
-
-if TYPE_CHECKING:
-    from ..load.yamlsrc import Source
-
-
-def _kind(data: object) -> str | None:
-    if not isinstance(data, dict):
-        return None
-    if data.get("schema") == "deployer.plan/1":
-        return "plan"
-    if "recipe" in data:
-        return "recipe"
-    if "devices" in data:
-        return "inventory"
-    params = data.get("parameters")
-    declares = isinstance(params, dict) and any(isinstance(v, dict) and "register" in v for v in params.values())
-    if "profile" in data and (declares or data.keys() & {"tables", "addressing", "limits", "identity", "commit"}):
-        return "profile"
-    if "profile" in data or "extends" in data:
-        return "recipe"  # a recipe without its 'recipe' key: let the schema say so
-    return None
+from .base import echo, safe
 
 
 def validate_file(path: str) -> str:
-    """Check one file of any kind; returns a one-line summary or raises InputError."""
-    from ..load import yamlsrc
+    """Check one file of any kind; returns a one-line summary or raises InputError (``deployer.validate_file``)."""
+    from ..api import validate_file as check
 
-    data, src = yamlsrc.load(path, hand_over=True)  # the loader below takes it over: parsed once
-    try:
-        return _validate_kind(path, _kind(data), data, src)
-    finally:
-        yamlsrc.forget(path)
-
-
-def _validate_kind(path: str, kind: str | None, data: Any, src: Source) -> str:
-    from ..fleet.inventory import load_inventory
-    from ..profile import load_profile_file
-    from ..recipe.loader import load_recipe
-
-    if kind == "profile":
-        prof = load_profile_file(path)
-        return f"profile {prof.id}: {_n(len(prof.parameters), 'parameter')}"
-    if kind == "recipe":
-        rec = load_recipe(path)
-        return f"recipe {rec.name}: {_n(len(rec.desired), 'parameter')} for profile {rec.profile.id}"
-    if kind == "inventory":
-        from ..fleet.inventory import fleet_jobs
-
-        inv = load_inventory(path)
-        # what plan and apply would check before sending anything: each device's profile, URL, and its
-        # recipe (from the inventory) with its overrides; devices without one get theirs on the command line
-        jobs = fleet_jobs(inv, None, None, require_recipe=False)
-        recipes = {j.recipe.path for j in jobs}
-        return f"inventory: {_n(len(inv.devices), 'device')}" + (f", {_n(len(recipes), 'recipe')}" if recipes else "")
-    if kind == "plan":
-        from ..planning.planfile import plan_from_json
-
-        plan = plan_from_json(data, path, src=src)
-        return f"plan: {_n(len(plan.writes), 'write request')} for profile {plan.device.profile}"
-    what = ("cannot tell what this file is" if isinstance(data, dict) else
-            f"expected a mapping, got {'a list' if isinstance(data, list) else 'a single value'}")
-    raise InputError([src.error((), f"{what}: a profile has 'profile' and 'parameters', a recipe has 'recipe', "
-                                     "an inventory has 'devices'")])
+    return check(path)
 
 
 @click.command()
