@@ -169,6 +169,8 @@ class Quirks:
     fc06_only: bool = False  # FC16 answers 01 (illegal function); FC06 takes a 32-bit value word by word
     pause_after_connect_ms: float = 0  # requests sooner after a connection opened are not answered
     request_gap_ms: float = 0  # requests sooner after the previous answer are not answered
+    # TCP connections served at once (0: any); one more is closed as it opens, as a gateway refuses it
+    max_connections: int = 0
     # Function 43 / 14 objects (object id -> text); None: the profile's identity objects, else exception 01
     identity: dict[int, str] | None = None
 
@@ -336,16 +338,40 @@ class _InOrderHandler(ServerRequestHandler):
     so requests a client pipelines (as gateways and real clients do) went unanswered.
     """
 
-    def __init__(self, owner: Any, functions: frozenset[int]) -> None:
+    def __init__(self, owner: Any, functions: frozenset[int], sim: Simulator) -> None:
         super().__init__(owner, owner.trace_packet, owner.trace_pdu, owner.trace_connect)  # type: ignore[no-untyped-call]
         self._functions = functions
+        self._sim = sim
+        self._waiting: bytes | None = None  # what a connection over Quirks.max_connections sent before its admission
         # pymodbus drops a whole buffer longer than one frame; complete frames are taken out at once
         # here, so only a partial frame stays, and a read of many pipelined requests is kept whole
         self.max_buffer_size = 1 << 20
         self._queue: asyncio.Queue[tuple[Any, Any]] = asyncio.Queue()
         self._worker: asyncio.Task[None] | None = None
 
+    def callback_connected(self) -> None:
+        super().callback_connected()
+        if self._over_limit():  # a connection closed just before may not be counted out yet: a moment's grace
+            self._waiting = b""
+            asyncio.get_running_loop().call_later(0.1, self._admit)
+
+    def _over_limit(self) -> bool:
+        limit = self._sim.quirks.max_connections
+        older = list(self.server.active_connections)  # in the order they opened: the oldest are served
+        return bool(limit) and self.unique_id in older and older.index(self.unique_id) >= limit
+
+    def _admit(self) -> None:
+        held, self._waiting = self._waiting, None
+        if self._over_limit():
+            self._sim.refused_connections += 1
+            self.close()
+        elif held:
+            self.callback_data(held)
+
     def callback_data(self, data: bytes, addr: tuple[Any, ...] | None = None) -> int:
+        if self._waiting is not None:  # not admitted yet: kept until it is
+            self._waiting += data
+            return len(data)
         used = 0
         while used < len(data):
             try:
@@ -410,6 +436,7 @@ class Simulator:
         self._requests = 0  # since start, for drop_every / disconnect_after
         self._window = 0
         self._writes = 0  # write requests, for busy_first
+        self.refused_connections = 0  # connections closed as they opened (Quirks.max_connections)
         # requests awaiting their answer; several TCP clients may reuse a transaction id, so FIFO per key
         self._pending: dict[tuple[int, int, int], deque[LogEntry]] = {}
         self._owner: dict[int, list[Parameter]] = {}  # by key; several bit fields may share a register
@@ -475,7 +502,7 @@ class Simulator:
         decoder.pdu_sub_table = {fc: dict(subs) for fc, subs in decoder.pdu_sub_table.items()}
         decoder.pdu_sub_table[0x2B][0x0E] = (_DeviceIdRequest, ReadDeviceInformationResponse)
         server = self._server
-        server.callback_new_connection = lambda: _InOrderHandler(server, self.functions)
+        server.callback_new_connection = lambda: _InOrderHandler(server, self.functions, self)
         if self.log_path:
             self._log_file = open(self.log_path, "a", encoding="utf-8")  # noqa: SIM115 - open for the server's life
         await self._server.serve_forever(background=True)

@@ -8,6 +8,8 @@ changed ones are left as found, and the device ends ``failed`` naming each of th
 
 from __future__ import annotations
 
+import asyncio
+from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import replace
 
 from ..errors import DeviceGone, ExceptionResponse, InputError, Locked, Unreachable, UsageError
@@ -24,6 +26,20 @@ from ..transport import clients as tp
 from .held import Written, record
 
 Changed = list[tuple[ParameterResult, tuple[int, ...]]]  # a parameter the run wrote, and what it holds now
+
+
+async def per_line(devices: Iterable[Written], step: Callable[[Written], Awaitable[None]]) -> None:
+    """``step`` for each device: the devices on one bus (a gateway, a serial line) one after another, each bus in
+    parallel. Each step opens a connection of its own, and a gateway may serve only one at a time."""
+    buses: dict[str, list[Written]] = {}
+    for w in devices:
+        buses.setdefault(w.url.bus, []).append(w)
+
+    async def along(line: list[Written]) -> None:
+        for w in line:
+            await step(w)
+
+    await asyncio.gather(*(along(line) for line in buses.values()))
 
 
 def release(w: Written) -> None:

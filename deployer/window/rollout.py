@@ -16,7 +16,7 @@ from ..report import DeviceResult, Report, write_json
 from ..state import journal
 from ..state.lock import DeviceLock
 from .confirm import await_confirmation
-from .finish import roll_back, send_commit
+from .finish import per_line, roll_back, send_commit
 from .held import Written, needs_soak, pending_path, record, reserve, unreserve
 from .soak import soak
 
@@ -84,7 +84,7 @@ class Window:
             self.on_soak(number, soaking)
         passed = await soak(batch, opts, on_failed=lambda w: unhealthy.append(w.name), report=pending)
         if opts.confirm_within is None:  # the soak passed: the change is kept
-            await asyncio.gather(*(send_commit(w, opts) for w in passed))
+            await per_line(passed, lambda w: send_commit(w, opts))
         self.changed(batch)
         return unhealthy
 
@@ -94,9 +94,9 @@ class Window:
         opts = self.opts
         if stop is not None and rollback_on_failure:
             reason = f"rolled back: the rollout stopped ({stop.removeprefix('not started: ')})"
-            await asyncio.gather(*(roll_back(w, reason, opts) for w in devices
-                                   if w.result.snapshot is not None
-                                   and w.result.status not in ("rolled-back", "skipped", "unreachable")))
+            await per_line([w for w in devices if w.result.snapshot is not None
+                            and w.result.status not in ("rolled-back", "skipped", "unreachable")],
+                           lambda w: roll_back(w, reason, opts))
         if opts.confirm_within is not None:
             await self.confirm_or_roll_back(devices)
         settle_commits(devices)
@@ -151,10 +151,10 @@ class Window:
             self.changed([w for w in watched if w.result.status != "ok"])
         holding = [w for w in waiting if w.result.status == "ok"]  # the unhealthy ones are rolled back already
         if confirmed:
-            await asyncio.gather(*(send_commit(w, opts) for w in holding))
+            await per_line(holding, lambda w: send_commit(w, opts))
         else:
             why = f"not confirmed within {format_duration(opts.confirm_within)}"
-            await asyncio.gather(*(roll_back(w, why, opts) for w in holding))
+            await per_line(holding, lambda w: roll_back(w, why, opts))
         # what `deployer confirm` waits for, to say whether the commit went out
         record(opts, {"event": "confirm-outcome", "run": run, "time": journal._now(), "confirmed": confirmed,
                       "committed": [w.name for w in waiting if w.result.commit == "sent"],
@@ -169,7 +169,7 @@ class Window:
         rolled back."""
         if watcher is not None:
             await watcher
-        await asyncio.gather(*(roll_back(w, why, self.opts) for w in waiting if w.result.status == "ok"))
+        await per_line([w for w in waiting if w.result.status == "ok"], lambda w: roll_back(w, why, self.opts))
 
     def write_pending(self, report: Report) -> str | None:
         """While devices hold uncommitted values (a soak, a confirmation wait), the run's report so far lies in

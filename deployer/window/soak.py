@@ -129,8 +129,28 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
         failed.append(w)
         if on_failed is not None:
             on_failed(w)
-        rollbacks.append(asyncio.ensure_future(roll_back(w, why, options)))
+        rollbacks.append(asyncio.ensure_future(off_line(w, why)))
         await asyncio.shield(rollbacks[-1])  # an interrupt must not cut a rollback short
+
+    rolling: dict[str, asyncio.Lock] = {}
+
+    async def off_line(w: Written, why: str) -> None:
+        """Roll ``w`` back with the watch's connection to its bus closed meanwhile: the rollback connects on its
+        own, and a gateway or device may serve one connection only (it would never answer a second one). The
+        watch of the other devices on that bus waits, and connects again after."""
+        async with rolling.setdefault(w.url.bus, asyncio.Lock()):  # rollbacks on one bus: one after another
+            line = lines.get(w.url.bus)
+            if line is None:
+                await roll_back(w, why, options)
+                return
+            transport, one_at_a_time, _ = line
+            async with one_at_a_time:
+                await transport.close()
+                try:
+                    await roll_back(w, why, options)
+                finally:
+                    if any(v.url.bus == w.url.bus and v not in passed and v not in failed for v in todo):
+                        await connect(transport)  # unreachable now: the next health read says so
 
     rollbacks: list[asyncio.Future[None]] = []
     interrupted = False
@@ -141,7 +161,7 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
         for w in todo:
             if w not in passed and w not in failed:
                 failed.append(w)
-                rollbacks.append(asyncio.ensure_future(roll_back(w, "interrupted during the soak", options)))
+                rollbacks.append(asyncio.ensure_future(off_line(w, "interrupted during the soak")))
         await asyncio.gather(*rollbacks, return_exceptions=True)
         raise
     finally:
