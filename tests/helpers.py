@@ -101,8 +101,8 @@ def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None, *
     the largest value it takes (more answers 03; umodbus writes an FC16's registers one by one, so the ones
     before the bad value stay written, unless ``all_or_nothing``); ``max_write``: FC16 requests carrying more
     registers answer 03; ``fc06_only``: FC16 answers 01. ``wire`` collects (function, address, count) of
-    each request. ``connections`` > 1: each connection is served by a thread of its own (a soak's rollback
-    connects while the soak's connection is open).
+    each request. ``connections`` > 1: each connection is served by a thread of its own (another client, such as
+    mbpoll, connects while the run's connection is open); 1: a second connection waits until the first closes.
     """
     pytest.importorskip("umodbus", reason="umodbus is a test extra (pip install -e '.[test]')")
     import struct

@@ -183,7 +183,7 @@ parameters:
     assert prof.commit
     store = {0x10: 0, 0x11: 0, 0x20: 0, 0x30: 0}
     wire: list[tuple[int, int, int]] = []
-    with umodbus_server(store, wire=wire, connections=4) as port:
+    with umodbus_server(store, wire=wire, connections=2) as port:  # the run and mbpoll
         r = tmp_path / "r.yaml"
         r.write_text(f"recipe: r\nprofile: w.yaml\ndevice: {{url: 'tcp://127.0.0.1:{port}'}}\n"
                      "parameters:\n  x: 5\n  y: 6\n")
