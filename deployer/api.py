@@ -57,11 +57,12 @@ from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planfile import load_plan, plan_to_json
 from .planning.planner import make_plan
+from .portable import user_name
 from .profile import Profile, is_profile_path, load_profile, resolve_profile
 from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
-from .report import DeviceResult, ParameterResult, Report, report_text
+from .report import DeviceResult, ParameterResult, Report, report_from_json, report_text
 from .run.request import PreparedRun, RunRequest
 from .transport.urls import DeviceURL, describe, parse_url
 
@@ -78,7 +79,7 @@ if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus,
 _REEXPORTED = (Agent, AgentError, LIMITS, Bound, BadURL, CodecError, Declined, DeployerError, IdentityMismatch,
                InputError, Locked, RunInterrupted, StalePlan, TransportError, UsageError, FleetDevice, Inventory,
                load_inventory, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult,
-               ParameterResult, Report, report_text, DeviceURL, PreparedRun, RunRequest)
+               ParameterResult, Report, report_from_json, report_text, user_name, DeviceURL, PreparedRun, RunRequest)
 
 # public names whose modules load on first use: offline work (validate, an offline plan, a command's
 # --help) does not pay for the transports (pymodbus)
@@ -164,6 +165,7 @@ __all__ = [
     "read_jobs",
     "read_report",
     "recipe_from",
+    "report_from_json",
     "report_text",
     "run_fleet",
     "run_fleet_async",
@@ -173,6 +175,7 @@ __all__ = [
     "scan",
     "serial_ports",
     "taught_recipe",
+    "user_name",
     "validate_file",
     "write_output",
     "writing_caches",

@@ -174,9 +174,13 @@ def test_cli_through_the_agent_plan_diff_status_rollback_and_ledger(tmp_path: Pa
         until(lambda: c.device("d1")["last_check"], why="a check")
         d = run("diff")
         assert d.returncode == 2 and "d1: accel: adopted 2 s, device 5 s" in d.stdout, d.stdout + d.stderr
-        ap = run("apply", "--yes", "--json")
+        ap = run("apply", "--yes", "--json", "--report", str(tmp_path / "out" / "run.json"))
         assert ap.returncode == 0, ap.stderr
         assert '"status": "ok"' in ap.stdout
+        import deployer  # the agent's report, written where --report says (its folder made)
+
+        assert [(d.name, d.status) for d in deployer.read_report(tmp_path / "out" / "run.json").devices] == [
+            ("d1", "ok")]
         assert run("diff").returncode == 0
         # an edit of the files is pending, shown as a plan, never written by itself
         (tmp_path / "r.yaml").write_text((tmp_path / "r.yaml").read_text().replace("accel: 2 s", "accel: 4 s"))

@@ -19,8 +19,9 @@ PUBLIC = [
     "learned_limits", "load_inventory", "load_plan", "load_profile", "load_recipe", "non_default", "plan",
     "plan_async", "plan_fleet", "plan_fleet_async", "plan_to_json", "prepare_run", "probe", "pull", "pull_async",
     "pull_names", "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "read_report", "recipe_from",
-    "report_text", "run_fleet", "run_fleet_async", "run_prepared", "run_prepared_async", "safe_options", "scan",
-    "serial_ports", "taught_recipe", "validate_file", "write_output", "writing_caches",
+    "report_from_json", "report_text", "run_fleet", "run_fleet_async", "run_prepared", "run_prepared_async",
+    "safe_options", "scan", "serial_ports", "taught_recipe", "user_name", "validate_file", "write_output",
+    "writing_caches",
 ]
 
 

@@ -83,7 +83,7 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
             return EXIT_OK
     import socket
 
-    from ..portable import user_name
+    from ..api import user_name
 
     who = f"{user_name()}@{socket.gethostname()}"  # os.uname and $USER are POSIX's
     body = {"command": "apply", "limit": kw.get("limit"), "batch": kw.get("batch"),
@@ -100,7 +100,9 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
 
 
 def _finish(end: Mapping[str, Any], kw: Mapping[str, Any]) -> int:
-    from ..report import report_from_json, write_json
+    import os
+
+    from ..api import report_from_json, write_output
     from .outcome import print_outcome
 
     if end.get("error"):
@@ -108,7 +110,9 @@ def _finish(end: Mapping[str, Any], kw: Mapping[str, Any]) -> int:
     doc = end.get("report")
     if doc is not None:
         if kw.get("report_path"):
-            write_json(doc, str(kw["report_path"]))
+            path = str(kw["report_path"])
+            os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+            write_output(path, json.dumps(doc, indent=2) + "\n")
         print_outcome(report_from_json(doc), fleet_run=True, as_json=bool(kw.get("as_json")),
                        report_path=kw.get("report_path"))
     return int(end.get("exit_code") or 0)
