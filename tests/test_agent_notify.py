@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 from aiohttp import web
+from prometheus_client.parser import text_string_to_metric_families
 
 from deployer.agent.notify import PAYLOAD_VERSION
 from deployer.profile import load_profile
@@ -121,6 +122,11 @@ def test_each_event_kind_is_posted_retried_and_never_holds_up_the_devices(tmp_pa
         ids = [b["id"] for b in rec.got]
         assert ids == sorted(ids) and len(set(ids)) == len(ids)  # in order, each once
         assert ids == [e["id"] for e in c.events(limit=10000) if e["id"] in set(ids)]
+        metrics = {(f.name, tuple(sm.labels.values())): sm.value
+                   for f in text_string_to_metric_families(c.metrics()) for sm in f.samples}
+        assert 10 <= metrics[("deployer_notify_sent", (rec.url,))] <= len(rec.got)
+        assert metrics[("deployer_notify_failing", (dead,))] == 1.0
+        assert metrics[("deployer_notify_waiting", (dead,))] >= len(rec.got)  # the dead one: all of them wait
         assert agent.terminate() == 0
         assert "stopped" in rec.kinds()  # sent while the agent ends
     finally:

@@ -82,6 +82,9 @@ def test_the_token_is_needed_on_every_route_and_accepted(tmp_path: Path, sim: Si
         c = Agent(url, token=TOKEN)
         assert c.info()["auth"] == "token" and c.runs() == []
         assert len(c.events()) == before and "deployer_device_drifted" in c.metrics()
+        refused = [line for line in c.metrics().splitlines() if line.startswith("deployer_http_unauthorized_requests")]
+        assert refused and float(refused[0].split()[-1]) >= len(server.ROUTES) + 6
+        assert agent.log().count("refused a request without the right token from 127.0.0.1") == 1  # once a minute
         with pytest.raises(AgentError) as e:
             Agent(url).devices()
         assert e.value.kind == "unauthorized" and e.value.exit_code == 1

@@ -13,12 +13,13 @@ import contextlib
 import sys
 import threading
 from collections import deque
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import urlsplit
 
 import aiohttp
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
 from ..errors import UsageError
 from .core import Agent
@@ -35,6 +36,16 @@ def check_url(url: str) -> str:
     if u.scheme not in ("http", "https") or not u.hostname:
         raise UsageError(f"--notify {url}: expected an http:// or https:// URL")
     return url
+
+
+def _shown(url: str) -> str:
+    """The URL without a password in it (a receiver's basic-auth user:password is nobody's business)."""
+    u = urlsplit(url)
+    if u.password is None:
+        return url
+    host = u.hostname or ""
+    netloc = f"{u.username}:***@{host}" + (f":{u.port}" if u.port else "")
+    return u._replace(netloc=netloc).geturl()
 
 
 def payload(agent_url: str, ev: Mapping[str, Any]) -> dict[str, Any]:
@@ -91,7 +102,7 @@ class Notifier:
         for r in self.receivers:
             if len(r.queue) == r.queue.maxlen:
                 r.dropped += 1
-                print(f"agent: notify {r.url}: {QUEUE} events waiting, the oldest dropped "
+                print(f"agent: notify {_shown(r.url)}: {QUEUE} events waiting, the oldest dropped "
                       f"({r.dropped} so far; GET /v1/events has them all)", file=sys.stderr, flush=True)
             r.queue.append(body)
             r.wake.set()
@@ -111,14 +122,14 @@ class Notifier:
                 if why is None:
                     r.sent += 1
                     if r.failing:
-                        print(f"agent: notify {r.url}: delivered again", file=sys.stderr, flush=True)
+                        print(f"agent: notify {_shown(r.url)}: delivered again", file=sys.stderr, flush=True)
                     r.failing, backoff = False, self.first_backoff
                 else:  # the receiver says this event is wrong: retrying would not change its mind
-                    print(f"agent: notify {r.url}: event {body['id']} {why}; not sent again",
+                    print(f"agent: notify {_shown(r.url)}: event {body['id']} {why}; not sent again",
                           file=sys.stderr, flush=True)
                 continue
             if not r.failing:
-                print(f"agent: notify {r.url}: {why}; retrying with back-off (up to {self.max_backoff:g} s)",
+                print(f"agent: notify {_shown(r.url)}: {why}; retrying with back-off (up to {self.max_backoff:g} s)",
                       file=sys.stderr, flush=True)
             r.failing = True
             await asyncio.sleep(backoff)
@@ -148,12 +159,27 @@ class Notifier:
             await self._session.close()
         for r in self.receivers:
             if r.queue:
-                print(f"agent: notify {r.url}: {len(r.queue)} events not delivered (GET /v1/events has them)",
+                print(f"agent: notify {_shown(r.url)}: {len(r.queue)} events not delivered (GET /v1/events has them)",
                       file=sys.stderr, flush=True)
 
     async def _drained(self) -> None:
         while any(r.queue for r in self.receivers):
             await asyncio.sleep(0.05)
+
+    def collect(self) -> Iterator[Metric]:
+        """For ``/metrics``: per receiver, events waiting, delivered, dropped, and whether it fails now."""
+        waiting = GaugeMetricFamily("deployer_notify_waiting", "events queued for the receiver", labels=["url"])
+        sent = CounterMetricFamily("deployer_notify_sent", "events the receiver took", labels=["url"])
+        dropped = CounterMetricFamily("deployer_notify_dropped", "events dropped from a full queue", labels=["url"])
+        failing = GaugeMetricFamily("deployer_notify_failing", "1 while deliveries to the receiver fail",
+                                    labels=["url"])
+        for r in self.receivers:
+            label = [_shown(r.url)]
+            waiting.add_metric(label, len(r.queue))
+            sent.add_metric(label, r.sent)
+            dropped.add_metric(label, r.dropped)
+            failing.add_metric(label, 1.0 if r.failing else 0.0)
+        yield from (waiting, sent, dropped, failing)
 
     def status(self) -> list[dict[str, Any]]:
         return [{"url": r.url, "waiting": len(r.queue), "sent": r.sent, "dropped": r.dropped, "failing": r.failing}

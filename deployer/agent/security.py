@@ -10,13 +10,18 @@ from __future__ import annotations
 
 import hmac
 import ipaddress
+import os
 import socket
 import ssl
-from collections.abc import Awaitable, Callable
+import sys
+import time
+from collections.abc import Awaitable, Callable, Iterator
 
 from aiohttp import web
+from prometheus_client.core import CounterMetricFamily, Metric
 
 from ..errors import UsageError
+from ..load.messages import printable
 
 # the page's shell (HTML, no data: its script fetches /v1 with the token the user gives it) needs none
 OPEN_PATHS = frozenset({"/"})
@@ -34,6 +39,14 @@ def read_token(path: str, what: str = "--token-file") -> str:
                          "(e.g. python3 -c 'import secrets; print(secrets.token_urlsafe(32))')")
     if any(c.isspace() or not c.isprintable() for c in text):
         raise UsageError(f"{what} {path}: the token must not contain spaces or control characters")
+    if os.name == "posix" and what == "--token-file":
+        try:
+            mode = os.stat(path).st_mode
+        except OSError:
+            mode = 0
+        if mode & 0o077:  # said, not refused: systemd's LoadCredential= copies are 0400 anyway
+            print(f"warning: {what} {path} can be read by other users of this machine (chmod 600 it)",
+                  file=sys.stderr, flush=True)
     return text
 
 
@@ -77,9 +90,35 @@ def check_listen(host: str, *, token: bool, tls: bool, listen: str) -> None:
                          "(--tls-cert FILE --tls-key FILE): a token sent in clear text is given away")
 
 
-def auth_middleware(token: str) -> Callable[..., Awaitable[web.StreamResponse]]:
+class Refusals:
+    """Requests refused for want of the token: counted (``/metrics``) and said on stderr, once a minute per
+    address at most (a scanner must not fill the gateway's log)."""
+
+    def __init__(self) -> None:
+        self.total = 0
+        self._said: dict[str, float] = {}
+
+    def refused(self, request: web.Request) -> None:
+        self.total += 1
+        who = request.remote or "?"
+        now = time.monotonic()
+        if now - self._said.get(who, -1e9) >= 60:
+            if len(self._said) > 1000:  # many addresses: forget the old ones rather than grow
+                self._said.clear()
+            self._said[who] = now
+            print(f"agent: refused a request without the right token from {who} ({request.method} "
+                  f"{printable(request.path[:200])}; said once a minute per address)", file=sys.stderr, flush=True)
+
+    def collect(self) -> Iterator[Metric]:
+        c = CounterMetricFamily("deployer_http_unauthorized_requests", "requests refused for want of the token")
+        c.add_metric([], self.total)
+        yield c
+
+
+def auth_middleware(token: str, refusals: Refusals | None = None) -> Callable[..., Awaitable[web.StreamResponse]]:
     """Every request but the page's shell needs ``Authorization: Bearer TOKEN`` (constant-time compare)."""
     expected = token.encode()
+    refusals = refusals if refusals is not None else Refusals()
 
     @web.middleware
     async def auth(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
@@ -88,6 +127,7 @@ def auth_middleware(token: str) -> Callable[..., Awaitable[web.StreamResponse]]:
             return await handler(request)
         scheme, _, given = request.headers.get("Authorization", "").partition(" ")
         if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), expected):
+            refusals.refused(request)
             body = {"error": {"kind": "unauthorized", "exit_code": 1,
                               "message": "this agent needs its token: Authorization: Bearer TOKEN "
                               "(deployer: --agent-token-file FILE or DEPLOYER_AGENT_TOKEN)"}}

@@ -262,13 +262,16 @@ async def errors(request: web.Request, handler: Callable[[web.Request], Awaitabl
 
 def app(agent: Agent, *, token: str | None = None) -> web.Application:
     """The agent's web application; with ``token`` every request but the page's shell needs it (security.py)."""
-    from .security import auth_middleware
+    from .security import Refusals, auth_middleware
 
-    middlewares = [errors] + ([auth_middleware(token)] if token else [])
+    refusals = Refusals()
+    middlewares = [errors] + ([auth_middleware(token, refusals)] if token else [])
     application = web.Application(middlewares=middlewares, client_max_size=MAX_BODY)
     application[AGENT] = agent
     application[TOKEN] = bool(token)
     application[METRICS] = registry(agent)
+    if token:
+        application[METRICS].register(refusals)
     for method, path, handler in ROUTES:
         application.router.add_route(method, path, _bind(agent, handler))
     from .page import page  # the live page: HTML for people, not part of the versioned API

@@ -15,7 +15,7 @@ from ..errors import UsageError
 from .core import Agent, Settings
 from .notify import Notifier
 from .security import check_listen
-from .server import app
+from .server import METRICS, app
 from .wire import Runner
 
 
@@ -36,7 +36,10 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
     agent = Agent(settings)
     agent.open()  # the files are checked, the state folder is ours: nothing sent yet
     notifier = Notifier(agent, notify) if notify else None
-    runner = Runner(app(agent, token=token), access_log=None, handle_signals=False)
+    application = app(agent, token=token)
+    if notifier is not None:
+        application[METRICS].register(notifier)  # its queues and failures on /metrics
+    runner = Runner(application, access_log=None, handle_signals=False)
     await runner.setup()
     site = web.TCPSite(runner, host, port, reuse_address=True, ssl_context=tls)
     try:
