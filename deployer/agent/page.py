@@ -21,6 +21,7 @@ td.drift-none { color: var(--muted); }
 .st-owned, .st-ok { color: var(--ok); }
 .st-drifted, .st-replaced, .st-not-owned, .st-restore-failed, .st-unknown { color: var(--warn); }
 .st-running { color: #0969da; }
+td.name, td.time { white-space: nowrap; }
 form.token { margin: 1rem 0; display: flex; gap: .5rem; } form.token input { font: inherit; min-width: 24rem; }
 """
 
@@ -83,12 +84,12 @@ JS = r"""
         var st = d.drifted ? "drifted" : d.status;
         return el("tr", {"class": "dev", "data-device": d.name, "data-status": d.status,
                          "data-drifted": String(d.drifted)}, [
-          el("td", {}, [name(d.name)]),
+          el("td", {"class": "name"}, [name(d.name)]),
           el("td", {"class": "st st-" + st, "title": why}, [d.status + (why ? " - " + why : "")]),
           cell(drift.length ? drift.join("; ") : "none", drift.length ? "drift" : "drift-none"),
           cell(d.pending ? d.pending + " pending" : "none", "num"),
           cell(w ? w.kind + " until " + w.deadline : ""),
-          cell(d.last_check || "never"),
+          cell(d.last_check || "never", "time"),
           cell(d.writes, "num"),
           el("td", {}, [name(d.url + " unit " + d.unit)])]);
       }), "no devices in the inventory");
@@ -113,7 +114,8 @@ JS = r"""
       problems.appendChild(el("p", {"class": "error"}, [typeof p === "string" ? p : JSON.stringify(p)]));
     });
     table("events", ["time", "device", "kind", "message"], events.slice().reverse().map(function (e) {
-      return el("tr", {"data-kind": e.kind}, [cell(e.time), el("td", {}, [e.device === null ? "" : name(e.device)]),
+      return el("tr", {"data-kind": e.kind}, [cell(e.time, "time"),
+        el("td", {"class": "name"}, [e.device === null ? "" : name(e.device)]),
         cell(e.kind, "st st-" + e.kind), el("td", {}, [name(e.message)])]);
     }), "no events");
   }
