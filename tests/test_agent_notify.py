@@ -1,11 +1,12 @@
 """``deployer agent --notify URL``: a local HTTP receiver gets a JSON POST for each event kind (drift, restored,
-replaced, run finished, window waiting and expired, endurance warning); a receiver that fails is retried and one
-that hangs does not hold up device work. A real agent process, simulators, a real aiohttp receiver."""
+replaced, run finished, window waiting and expired, endurance warning); a receiver that is down (connection
+refused) or fails (503) is retried until it takes the event, and one that hangs does not hold up device work. A real agent process, simulators, a real aiohttp receiver."""
 
 from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -40,15 +41,33 @@ class Receiver:
 
     def _run(self) -> None:
         asyncio.set_event_loop(self._loop)
-        app = web.Application()
-        app.router.add_post("/hook", self._handle)
-        self._runner = web.AppRunner(app, access_log=None)
-        self._loop.run_until_complete(self._runner.setup())
-        site = web.TCPSite(self._runner, "127.0.0.1", 0)
-        self._loop.run_until_complete(site.start())
+        self._loop.run_until_complete(self._listen(0))
         self.url = f"http://127.0.0.1:{self._runner.addresses[0][1]}/hook"
         self._ready.set()
         self._loop.run_forever()
+
+    async def _listen(self, port: int) -> None:
+        app = web.Application()
+        app.router.add_post("/hook", self._handle)
+        self._runner = web.AppRunner(app, access_log=None)
+        await self._runner.setup()
+        await web.TCPSite(self._runner, "127.0.0.1", port).start()
+
+    def down(self) -> None:
+        """Stop listening: connections are refused (the port stays this receiver's to take again)."""
+        asyncio.run_coroutine_threadsafe(self._runner.cleanup(), self._loop).result(10)
+
+    def up(self) -> None:
+        """Listen again on the same port. The agent keeps connecting there meanwhile, and Linux may make such a
+        connection its own source port (connected to itself) for a moment: binding is tried again for a while."""
+        port = int(self.url.rsplit(":", 1)[1].split("/")[0])
+        for _ in range(100):
+            try:
+                asyncio.run_coroutine_threadsafe(self._listen(port), self._loop).result(10)
+                return
+            except OSError:
+                time.sleep(0.1)
+        raise AssertionError(f"port {port} stayed taken")
 
     async def _handle(self, request: web.Request) -> web.Response:
         body = await request.json()
@@ -102,6 +121,17 @@ def test_each_event_kind_is_posted_retried_and_never_holds_up_the_devices(tmp_pa
         rec.release.set()
         until(lambda: any(b["kind"] == "run-finished" and b["detail"]["run"] == end["run"] for b in rec.got),
               why="the run's end posted after the receiver came back")
+
+        # a receiver that is down (connection refused): the run is not held up; retried until it is up again
+        rec.down()
+        end = c.apply(write_all=True)
+        assert end["exit_code"] == 0
+        until(lambda: any(line.startswith(f"agent: notify {rec.url}: ") and "retrying with back-off" in line
+                          for line in agent.stderr), why="the agent says it retries")
+        rec.up()
+        until(lambda: any(b["kind"] == "run-finished" and b["detail"]["run"] == end["run"] for b in rec.got),
+              why="the run's end posted once the receiver was up again")
+        assert f"notify {rec.url}: delivered again" in agent.log()
 
         # a receiver that fails (HTTP 503): the same event is sent again, with back-off, until it is taken
         rec.fail = 2
