@@ -1,6 +1,7 @@
 """``deployer agent --notify URL``: a local HTTP receiver gets a JSON POST for each event kind (drift, restored,
 replaced, run finished, window waiting and expired, endurance warning); a receiver that is down (connection
-refused) or fails (503) is retried until it takes the event, and one that hangs does not hold up device work. A real agent process, simulators, a real aiohttp receiver."""
+refused) or fails (503) is retried until it takes the event, and one that hangs does not hold up device work.
+A real agent process, simulators, a real aiohttp receiver."""
 
 from __future__ import annotations
 
