@@ -57,12 +57,12 @@ from .load.yamlsrc import Source
 from .planning.model import Plan, Target
 from .planning.planfile import load_plan, plan_to_json
 from .planning.planner import make_plan
-from .portable import user_name
+from .portable import file_name, user_name
 from .profile import Profile, is_profile_path, load_profile, resolve_profile
 from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
-from .report import DeviceResult, ParameterResult, Report, report_from_json, report_text
+from .report import DeviceResult, ParameterResult, Report, report_from_json, report_text, run_info
 from .run.request import PreparedRun, RunRequest
 from .transport.urls import DeviceURL, describe, parse_url
 
@@ -79,7 +79,8 @@ if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus,
 _REEXPORTED = (Agent, AgentError, LIMITS, Bound, BadURL, CodecError, Declined, DeployerError, IdentityMismatch,
                InputError, Locked, RunInterrupted, StalePlan, TransportError, UsageError, FleetDevice, Inventory,
                load_inventory, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult,
-               ParameterResult, Report, report_from_json, report_text, user_name, DeviceURL, PreparedRun, RunRequest)
+               ParameterResult, Report, report_from_json, report_text, run_info, user_name, file_name,
+               DeviceURL, PreparedRun, RunRequest)
 
 # public names whose modules load on first use: offline work (validate, an offline plan, a command's
 # --help) does not pay for the transports (pymodbus)
@@ -131,6 +132,7 @@ __all__ = [
     "apply_async",
     "apply_fleet",
     "apply_fleet_async",
+    "check_folder",
     "check_output",
     "confirm",
     "defaults_diff",
@@ -140,6 +142,7 @@ __all__ = [
     "diff_async",
     "diff_values",
     "duration",
+    "file_name",
     "fleet_jobs",
     "forget_learned",
     "inventory_from",
@@ -149,6 +152,7 @@ __all__ = [
     "load_profile",
     "load_recipe",
     "non_default",
+    "out_of_range",
     "plan",
     "plan_async",
     "plan_fleet",
@@ -158,6 +162,7 @@ __all__ = [
     "probe",
     "pull",
     "pull_async",
+    "pull_jobs",
     "pull_names",
     "pulled_recipe",
     "read_fleet",
@@ -169,6 +174,7 @@ __all__ = [
     "report_text",
     "run_fleet",
     "run_fleet_async",
+    "run_info",
     "run_prepared",
     "run_prepared_async",
     "safe_options",
@@ -768,6 +774,57 @@ def read_jobs(jobs: Sequence[Job]) -> list[ReadJob]:
     return [ReadJob(j.name, j.recipe.profile, tuple(d.name for d in j.recipe.desired), j.url, j.unit) for j in jobs]
 
 
+def pull_jobs(inventory: str | Inventory, *, limit: str | None = None, profile: str | Profile | None = None,
+              timeout: float | None = None, retries: int | None = None, unit: int | None = None) -> list[ReadJob]:
+    """What ``pull --inventory`` reads: one ``ReadJob`` per selected device, of every parameter ``pull_names``
+    gives for the device's profile: its own (or its groups'), else its recipe's, as plan, apply and diff use it,
+    else ``profile``. ``timeout``, ``retries`` and ``unit`` stand for the inventory's where given. Read them
+    with ``read_fleet``; nothing is sent here.
+
+    Raises:
+        InputError: every device without a profile, with an unknown one or a bad URL (its position in the
+            inventory), and every problem of the files it names.
+    """
+    from .errors import Diagnostic
+    from .fleet.inventory import RecipeCache
+    from .fleet.rollout import ReadJob
+
+    inv = inventory if isinstance(inventory, Inventory) else load_inventory(inventory)
+    cache = RecipeCache(None, inv.path)  # profile paths are relative to the inventory, as for plan and apply
+    jobs: list[ReadJob] = []
+    errors: list[Diagnostic] = []
+    for dev in inv.select(limit):
+        try:
+            if dev.profile is not None:
+                prof = cache.profile(dev.profile)
+            elif dev.recipe is not None:
+                prof = cache.base(dev.recipe, None).profile
+            elif profile is not None:
+                prof = profile if isinstance(profile, Profile) else resolve_profile(profile)
+            else:
+                raise UsageError("no profile: set profile (or a recipe) in the inventory, or pass --profile")
+            url = device_url(dev.url, timeout=timeout or dev.timeout,
+                             retries=retries if retries is not None else dev.retries)
+        except UsageError as e:
+            errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
+            continue
+        except InputError as e:
+            errors.extend(e.diagnostics)
+            continue
+        jobs.append(ReadJob(dev.name, prof, tuple(pull_names(prof)), url, unit if unit is not None else dev.unit))
+    if errors:
+        raise InputError(errors)
+    return jobs
+
+
+def out_of_range(profile: Profile, values: Mapping[str, Sequence[int]]) -> list[str]:
+    """The names among ``values`` whose registers lie outside the profile's range: ``pulled_recipe`` keeps
+    those as comments, since a recipe could not set them."""
+    from .recipe.text import value_text
+
+    return [n for n, regs in values.items() if value_text(profile.parameter(n), regs) is None]
+
+
 async def plan_fleet_async(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
                            on_done: Callable[[str, str | None], None] | None = None,
                            state_dir: str | None = ".deployer") -> dict[str, Plan | TransportError | UsageError]:
@@ -1051,6 +1108,18 @@ def validate_file(path: str | os.PathLike[str]) -> str:
                                          "'recipe', an inventory has 'devices'")])
     finally:
         yamlsrc.forget(where)
+
+
+def check_folder(folder: str | os.PathLike[str], *, what: str) -> None:
+    """Create ``folder`` if need be and make sure a file can be written there (``what``: what goes there, for
+    the message), before any device is read.
+
+    Raises:
+        UsageError: it cannot be created or written, and why.
+    """
+    from .run.runner import check_writable
+
+    check_writable(os.fspath(folder), what)
 
 
 def check_output(path: str | os.PathLike[str], *, replace: bool = True, what: str = "") -> None:

@@ -164,10 +164,6 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
         "deployer.profile.importers.wbtemplate", "deployer.profile.model", "deployer.profile.skeleton",
         "deployer.transport.clients",
     },
-    "deployer.cli.read": {
-        "deployer.fleet.inventory", "deployer.fleet.rollout", "deployer.portable", "deployer.profile",
-        "deployer.recipe.loader", "deployer.recipe.text", "deployer.report", "deployer.run.runner",
-    },
 }
 
 

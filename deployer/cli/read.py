@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import click
 
-from ..errors import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError, UsageError
+from ..errors import EXIT_CHANGES, EXIT_OK, EXIT_UNREACHABLE, UsageError
 from .base import (
     RETRIES,
     TIMEOUT,
@@ -34,7 +34,7 @@ from .base import (
 from .tables import Cell, show
 
 if TYPE_CHECKING:
-    from ..api import Drift, Job, Profile, ReadJob, Recipe
+    from ..api import Drift, Job, Profile, Recipe
 
 
 @click.command()
@@ -116,9 +116,8 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
 def diff_defaults(recipe: str | None, profile_ref: str | None, device: str | None, unit: int | None,
                   timeout: float | None, retries: int | None, as_json: bool) -> int:
     """diff --defaults: what differs from the factory settings; exit 2 when something does."""
-    from ..api import defaults_diff, device_url
-    from ..profile import resolve_profile
-    from ..recipe.loader import load_recipe
+    from ..api import defaults_diff, device_url, load_recipe
+    from ..api import load_profile as resolve_profile
 
     if recipe and profile_ref:
         raise UsageError("pass RECIPE or --profile, not both (a recipe names its profile)")
@@ -225,9 +224,8 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
          output: str | None, name: str | None, html_path: str | None, non_default: bool, inventory: str | None,
          limit: str | None, parallel: int) -> int:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
-    from ..api import check_output, device_url, pull_names, pulled_recipe
-    from ..profile import resolve_profile
-    from ..recipe.text import value_text
+    from ..api import check_output, device_url, out_of_range, pull_names, pulled_recipe
+    from ..api import load_profile as resolve_profile
 
     if inventory:
         if device or name:
@@ -256,7 +254,7 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
     text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
                          comment=comment, relative_to=output)
     # a value outside the profile's range is kept as a comment, not set: count only what the recipe sets
-    left = [n for n, regs in current.items() if value_text(prof.parameter(n), regs) is None]
+    left = out_of_range(prof, current)
     said = f"{_n(len(current) - len(left), 'parameter')} written to {output}" + (
         f"; {len(left)} outside the profile's range kept as comments: {', '.join(left)}" if left else "")
     _output(text, output, said, replace=True)
@@ -284,41 +282,11 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
                retries: int | None, unit: int | None, parallel: int, html_path: str | None = None,
                non_default: bool = False) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
-    from ..api import device_url, load_inventory, pull_names, pulled_recipe
+    from ..api import check_folder, pull_jobs, pulled_recipe
     from ..api import write_output as write_atomic
-    from ..fleet.inventory import RecipeCache
-    from ..fleet.rollout import ReadJob
-    from ..profile import resolve_profile
-    from ..run.runner import check_writable
 
-    inv = load_inventory(inventory)
-    devices = inv.select(limit)
-    cache = RecipeCache(None, inv.path)  # profile paths are relative to the inventory, as for plan and apply
-    jobs: list[ReadJob] = []
-    errors: list[Diagnostic] = []
-    for dev in devices:
-        try:
-            # the device's profile: its own (or its groups'), else its recipe's, as plan, apply and diff use
-            if dev.profile is not None:
-                prof = cache.profile(dev.profile)
-            elif dev.recipe is not None:
-                prof = cache.base(dev.recipe, None).profile
-            elif profile_ref is not None:
-                prof = resolve_profile(profile_ref)
-            else:
-                raise UsageError("no profile: set profile (or a recipe) in the inventory, or pass --profile")
-            url = device_url(dev.url, timeout=timeout or dev.timeout,
-                             retries=retries if retries is not None else dev.retries)
-        except UsageError as e:
-            errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
-            continue
-        except InputError as e:
-            errors.extend(e.diagnostics)
-            continue
-        jobs.append(ReadJob(dev.name, prof, tuple(pull_names(prof)), url, unit if unit is not None else dev.unit))
-    if errors:
-        raise InputError(errors)
-    check_writable(folder, f"recipes into {folder}")
+    jobs = pull_jobs(inventory, limit=limit, profile=profile_ref, timeout=timeout, retries=retries, unit=unit)
+    check_folder(folder, what=f"recipes into {folder}")
     from .progress import read_fleet  # rich: only fleets pay for importing it
 
     values = read_fleet(jobs, parallel)
@@ -347,7 +315,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
 
 
 def _safe(name: str) -> str:
-    from ..portable import file_name
+    from ..api import file_name
 
     return file_name(name)  # the same name on every system: no CON.yaml, no 300-character name
 
@@ -355,8 +323,8 @@ def _safe(name: str) -> str:
 def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], path: str,
                    meta: Sequence[tuple[str, str]] = ()) -> None:
     """``pull --html``: per device its values (engineering text and registers), or why it could not be read."""
+    from ..api import run_info
     from ..pages import as_found_page
-    from ..report import run_info
     from .base import command_line, write_page
 
     entries = []
@@ -375,8 +343,8 @@ def _drift_page(jobs: Sequence[Job], values: Mapping[str, object], rows: Mapping
                 path: str) -> None:
     """``diff --inventory --html``: parameters x devices; each cell what the device holds, marked where it
     is not the recipe's value."""
+    from ..api import run_info
     from ..pages import drift_page
-    from ..report import run_info
     from .base import command_line, write_page
 
     params: dict[str, None] = {}
