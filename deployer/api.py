@@ -59,6 +59,7 @@ from .planning.planfile import load_plan, plan_to_json
 from .planning.planner import make_plan
 from .portable import file_name, user_name
 from .profile import Profile, is_profile_path, load_profile, resolve_profile
+from .profile.model import address_text
 from .recipe.loader import Entry, Recipe, with_overrides
 from .recipe.loader import load_recipe as _load_recipe
 from .recipe.text import recipe_text
@@ -80,7 +81,7 @@ _REEXPORTED = (Agent, AgentError, LIMITS, Bound, BadURL, CodecError, Declined, D
                InputError, Locked, RunInterrupted, StalePlan, TransportError, UsageError, FleetDevice, Inventory,
                load_inventory, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult,
                ParameterResult, Report, report_from_json, report_text, run_info, user_name, file_name,
-               DeviceURL, PreparedRun, RunRequest)
+               DeviceURL, PreparedRun, RunRequest, address_text)
 
 # public names whose modules load on first use: offline work (validate, an offline plan, a command's
 # --help) does not pay for the transports (pymodbus)
@@ -128,6 +129,7 @@ __all__ = [
     "StalePlan",
     "TransportError",
     "UsageError",
+    "address_text",
     "apply",
     "apply_async",
     "apply_fleet",
@@ -155,9 +157,12 @@ __all__ = [
     "out_of_range",
     "plan",
     "plan_async",
+    "plan_cost",
     "plan_fleet",
     "plan_fleet_async",
+    "plan_frames",
     "plan_to_json",
+    "plan_values",
     "prepare_run",
     "probe",
     "pull",
@@ -425,6 +430,61 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
 
     return await run_async([Job(name or recipe.name, recipe, url, u)], label=recipe.path or recipe.name,
                            parallel=1, options=opts, report_path=report_path, on_confirm_wait=on_confirm_wait)
+
+
+def plan_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]] | None, device: DeviceURL | None = None,
+                unit: int = 1, *, write_all: bool = False) -> Plan:
+    """The plan of ``recipe`` against values already read (``current``: {name: registers}, as ``pull`` and
+    ``read_fleet`` give them), or with ``current`` None the full write plan, offline. ``device`` and ``unit``:
+    what the plan names as its target (``device`` None: none). Nothing is read or sent; the limits taught
+    by devices are the caller's (``taught_recipe``)."""
+    target = Target(describe(device) if device is not None else None, unit, recipe.profile_ref or recipe.profile.id)
+    return make_plan(recipe, target, current, write_all=write_all)
+
+
+def plan_cost(plan: Plan, profile: Profile, device: DeviceURL | None = None) -> dict[str, Any]:
+    """What a plan's write requests and their answers cost on the device's line (its URL's serial settings,
+    else Modbus's default: RTU at 19200 baud 8E1): ``registers`` written (coils included) and ``coils``,
+    ``framing`` (``rtu`` or ``ascii``), ``line`` ("19200 baud 8E1"), ``characters`` (bytes on RTU, characters
+    on ASCII), ``seconds`` (about, pauses included) and ``pauses`` (seconds of the pauses the device needs
+    between requests and after connecting: the URL's options, else the profile's ``limits``)."""
+    from .planning.wire import line_cost, wire_stats
+    from .transport.urls import pacing
+
+    if device is not None and device.scheme in ("rtu", "ascii"):
+        ln = device.line
+        framing, baud = device.scheme, ln.baudrate
+        bits = 1 + ln.bytesize + (ln.parity != "N") + ln.stopbits
+        line = f"{ln.baudrate} baud {ln.bytesize}{ln.parity}{ln.stopbits}"
+    else:
+        framing, baud, bits, line = "rtu", 19200, 11, "19200 baud"
+    chars, seconds = line_cost(plan, framing=framing, baud=baud, char_bits=bits)
+    lim = profile.limits
+    after, between = pacing(device or DeviceURL("tcp"), lim.pause_after_connect, lim.pause_between_requests)
+    # each write follows another request (the snapshot read at least)
+    pauses = after + between * len(plan.writes) if plan.writes and (after or between) else 0.0
+    return {"registers": int(wire_stats(plan)["registers"]),
+            "coils": sum(w.count for w in plan.writes if w.function in (5, 15)), "framing": framing,
+            "line": line, "characters": chars, "seconds": seconds + pauses, "pauses": pauses}
+
+
+def plan_frames(plan: Plan, framing: str) -> list[tuple[bytes, bytes | None]]:
+    """Each write request of a plan as the exact bytes on the wire, ``framing`` ``rtu``, ``ascii`` or ``tcp``
+    (transaction ids 1, 2, ... on TCP): (the query, the device's normal answer; None for a broadcast).
+
+    Raises:
+        UsageError: an unknown framing.
+    """
+    from typing import cast
+
+    from .planning.frames import Framing, request_frame, response_frame
+
+    if framing not in ("rtu", "ascii", "tcp"):
+        raise UsageError(f"plan_frames: framing is rtu, ascii or tcp, not {framing!r}")
+    how, unit = cast(Framing, framing), plan.device.unit
+    return [(request_frame(w, unit, how, transaction_id=i),
+             None if unit == 0 else response_frame(w, unit, how, transaction_id=i))
+            for i, w in enumerate(plan.writes, 1)]
 
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,

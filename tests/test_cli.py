@@ -307,19 +307,18 @@ def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pyt
     code, out, _ = cli(capsys, "plan", r)
     assert code == 0 and "21 bytes on an RTU line, about 16 ms at 19200 baud" in out
     # with a serial URL the estimate uses its line settings and framing (ASCII counts characters)
-    from deployer.cli.plan import _line_of
-    from deployer.planning.model import Target
-    from deployer.planning.planner import make_plan
-    from deployer.planning.wire import line_cost
-    from deployer.recipe.loader import load_recipe
-    from deployer.transport.clients import parse_url
+    import deployer
 
-    plan = make_plan(load_recipe(r), Target(None, 1, "omron-m1"))
-    framing, baud, bits, text = _line_of(parse_url("ascii:///dev/ttyS0?baudrate=9600&bytesize=7&parity=E"))
-    assert (framing, baud, bits, text) == ("ascii", 9600, 10, "9600 baud 7E1")
-    chars, seconds = line_cost(plan, framing=framing, baud=baud, char_bits=bits)
+    rec = deployer.load_recipe(r)
+    plan = deployer.plan_values(rec, None)
+    cost = deployer.plan_cost(plan, rec.profile,
+                              deployer.device_url("ascii:///dev/ttyS0?baudrate=9600&bytesize=7&parity=E"))
+    assert (cost["framing"], cost["line"]) == ("ascii", "9600 baud 7E1")
+    chars, seconds = cost["characters"], cost["seconds"]
     assert chars == len(":01101102000204000003E8EB\r\n") + len(":011011020002DA\r\n")  # the manual's frames
-    assert abs(seconds - chars * 10 / 9600) < 1e-9
+    assert abs(seconds - chars * 10 / 9600) < 1e-9  # 7E1: 10 bits a character
+    assert deployer.plan_cost(plan, rec.profile)["line"] == "19200 baud"
+    assert [q for q, _ in deployer.plan_frames(plan, "ascii")] == [b":01101102000204000003E8EB\r\n"]
     code, out, _ = cli(capsys, "plan", r, "--unit", "0", "--show-frames")
     assert code == 0 and "response none (broadcast)" in out and "E5 34" not in out
     assert "13 bytes on an RTU line" in out  # the request only

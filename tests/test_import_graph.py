@@ -153,11 +153,6 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
     "deployer.cli.docgen": {
         "deployer.profile", "deployer.recipe.model", "deployer.recipe.text", "deployer.transport.urls",
     },
-    "deployer.cli.plan": {
-        "deployer.planning.frames", "deployer.planning.model", "deployer.planning.planfile",
-        "deployer.planning.planner", "deployer.planning.wire", "deployer.profile.model", "deployer.report",
-        "deployer.transport.urls",
-    },
     "deployer.cli.profiles": {
         "deployer.profile", "deployer.profile.codec", "deployer.profile.emit",
         "deployer.profile.importers.spreadsheet", "deployer.profile.importers.sunspec",

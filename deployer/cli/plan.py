@@ -38,21 +38,9 @@ def _hexwords(regs: Sequence[int] | None) -> str:
     return "-" if regs is None else " ".join([format(w, "04X") for w in regs])
 
 
-def _line_of(url: DeviceURL | None) -> tuple[str, int, int, str]:
-    """(framing, baud, bits per character, text) of the line the plan goes over: the URL's serial settings,
-    else the Modbus default 19200 baud 8E1 on RTU."""
-    if url is not None and url.scheme in ("rtu", "ascii"):
-        ln = url.line
-        bits = 1 + ln.bytesize + (ln.parity != "N") + ln.stopbits
-        return url.scheme, ln.baudrate, bits, f"{ln.baudrate} baud {ln.bytesize}{ln.parity}{ln.stopbits}"
-    return "rtu", 19200, 11, "19200 baud"
-
-
 def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console,
                url: DeviceURL | None = None) -> None:
-    from ..planning.wire import line_cost, wire_stats
-    from ..profile.model import address_text
-    from ..transport.urls import DeviceURL, pacing
+    from ..api import address_text, plan_cost
 
     req_of: dict[str, list[int]] = {}
     for i, w in enumerate(plan.writes, 1):
@@ -80,52 +68,42 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
                       "it and keeps its other bits as the device holds them")
     elif changes_only:
         out.print("No changes: the device already holds every value of the recipe.")
-    st = wire_stats(plan)
+    cost = plan_cost(plan, profile, url)
     naive = sum(1 for pp in plan.parameters if pp.action != "unchanged")
     unchanged = sum(1 for pp in plan.parameters if pp.action == "unchanged")
-    framing, baud, bits, line = _line_of(url)
-    chars, seconds = line_cost(plan, framing=framing, baud=baud, char_bits=bits)
-    lim = profile.limits
-    after, between = pacing(url or DeviceURL("tcp"), lim.pause_after_connect, lim.pause_between_requests)
-    paused = ""
-    if plan.writes and (after or between):  # each write follows another request (the snapshot read at least)
-        pauses = after + between * len(plan.writes)
-        seconds += pauses
-        paused = f" (pauses the device needs included: {pauses * 1000:.0f} ms)"
+    framing, chars, seconds, line = cost["framing"], cost["characters"], cost["seconds"], cost["line"]
+    paused = f" (pauses the device needs included: {cost['pauses'] * 1000:.0f} ms)" if cost["pauses"] else ""
     units = (f"{_n(chars, 'character')} on an ASCII line" if framing == "ascii"
              else f"{_n(chars, 'byte')} on an RTU line")
     out.print(
         f"{_n(len(plan.writes), 'write request')} "
-        f"({_what(plan, int(st['registers']))}; one request per parameter would take {naive})"
+        f"({_what(cost['registers'], cost['coils'])}; one request per parameter would take {naive})"
         + (f", {unchanged} unchanged" if unchanged else "")
         + f"; {units}, about {seconds * 1000:.0f} ms at {line}{paused}"
         + (" (broadcast: no answers)" if plan.device.unit == 0 else ""))
 
 
-def _what(plan: Plan, registers: int) -> str:
+def _what(registers: int, coils: int) -> str:
     """'5 registers', or '1 register, 4 coils' when coils are written too."""
-    coils = sum(w.count for w in plan.writes if w.function in (5, 15))
     if not coils:
         return _n(registers, "register")
     return f"{_n(registers - coils, 'register')}, {_n(coils, 'coil')}"
 
 
 def print_frames(plan: Plan, out: Console) -> None:
-    from ..planning.frames import Framing, request_frame, response_frame
+    from ..api import plan_frames
 
-    unit = plan.device.unit
+    frames = {framing: plan_frames(plan, framing) for framing in ("rtu", "ascii", "tcp")}
     for i, w in enumerate(plan.writes, 1):
         names = ", ".join(w.parameters)
         what = _n(w.count, "coil") if w.function in (5, 15) else _n(w.count, "register")
         out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {what} ({safe(names)})")
-        framing: Framing
-        for framing in ("rtu", "ascii", "tcp"):
-            q = request_frame(w, unit, framing, transaction_id=i)
+        for framing, sent in frames.items():
+            q, a = sent[i - 1]
             out.print(f"  {framing:5} query    {_show(q, framing)}")
-            if unit == 0:  # broadcast: no device answers
+            if a is None:  # broadcast: no device answers
                 out.print(f"  {'':5} response none (broadcast)")
                 continue
-            a = response_frame(w, unit, framing, transaction_id=i)
             out.print(f"  {'':5} response {_show(a, framing)}")
 
 
@@ -164,10 +142,9 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
             raise UsageError("with --agent, plan shows the agent's pending changes: no RECIPE, --device, "
                              "--inventory, --out or --show-frames")
         return agentclient.plan(agent_url, as_json=as_json, detailed_exitcode=detailed_exitcode)
-    from ..planning.model import Target
-    from ..planning.planfile import plan_to_json
-    from ..planning.planner import make_plan
-    from ..report import write_json
+    import os
+
+    from ..api import plan_to_json, plan_values, write_output
 
     maybe = recipe_or_inventory(recipe, inventory)
     if inventory:
@@ -197,11 +174,11 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         current = read_device(rec.profile, [d.name for d in rec.desired], url, u)
         if current is None:
             return EXIT_UNREACHABLE
-    target = Target(describe(url) if url else None, u, rec.profile_ref or rec.profile.id)
-    p = make_plan(rec, target, current, write_all=write_all)
+    p = plan_values(rec, current, url, u, write_all=write_all)
     data = plan_to_json(p)
     if out_path:
-        write_json(data, out_path, what="the plan")
+        os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
+        write_output(out_path, json.dumps(data, indent=2) + "\n", what="the plan")
     if as_json:
         echo(json.dumps(data, indent=2))
     else:
@@ -223,10 +200,7 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     each device's table); exit 3 if any device could not be read, else as plan."""
     from dataclasses import replace
 
-    from ..api import read_jobs, taught_recipe
-    from ..planning.model import Target
-    from ..planning.planfile import plan_to_json
-    from ..planning.planner import make_plan
+    from ..api import plan_to_json, plan_values, read_jobs, taught_recipe
 
     taught_jobs = []
     for j in jobs:
@@ -244,8 +218,7 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     for j in jobs:
         cur = values[j.name]
         if not isinstance(cur, Exception):
-            plans[j.name] = make_plan(j.recipe, Target(describe(j.url), j.unit, j.recipe.profile_ref
-                                                       or j.recipe.profile.id), cur, write_all=write_all)
+            plans[j.name] = plan_values(j.recipe, cur, j.url, j.unit, write_all=write_all)
     changing = [n for n, p in plans.items() if p.writes]
     if as_json:
         echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
