@@ -73,8 +73,10 @@ if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus,
     from .execute.scan import ScanResult
     from .execute.session import ApplyOptions
     from .fleet.rollout import ReadJob
+    from .state.journal import Unfinished
     from .state.learned import Entry as LearnedEntry
     from .transport.ports import SerialPort
+    from .window.confirm import Awaiting
 
 # the names above that __all__ lists are this module's public surface, re-exported on purpose
 _REEXPORTED = (Agent, AgentError, LIMITS, Bound, BadURL, CodecError, Declined, DeployerError, IdentityMismatch,
@@ -126,6 +128,7 @@ __all__ = [
     "Report",
     "RunInterrupted",
     "RunRequest",
+    "RunStatus",
     "StalePlan",
     "TransportError",
     "UsageError",
@@ -137,6 +140,7 @@ __all__ = [
     "check_folder",
     "check_output",
     "confirm",
+    "confirm_outcome",
     "defaults_diff",
     "describe_url",
     "device_url",
@@ -177,11 +181,13 @@ __all__ = [
     "recipe_from",
     "report_from_json",
     "report_text",
+    "resolve_run",
     "run_fleet",
     "run_fleet_async",
     "run_info",
     "run_prepared",
     "run_prepared_async",
+    "run_status",
     "safe_options",
     "scan",
     "serial_ports",
@@ -564,6 +570,83 @@ def confirm(run: str | None = None, *, state_dir: str = ".deployer") -> str:
     from .window.confirm import confirm_run
 
     return confirm_run(os.fspath(state_dir), run).run
+
+
+def confirm_outcome(run: str | None = None, *, state_dir: str = ".deployer",
+                    on_confirmed: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Confirm a run that waits, as ``confirm`` does, and wait for what it did: its outcome record
+    (``committed``: the devices its commit reached). ``on_confirmed(run)`` is called once the confirmation is
+    given, before the wait (the run reads its parameters again first).
+
+    Raises:
+        UsageError: as ``confirm``.
+        NotCommitted: the commit did not reach every device (each named, and why), or the run's process ended
+            without saying.
+    """
+    if run is not None and not isinstance(run, str):
+        raise UsageError(f"confirm_outcome takes the run id as a str, got {_kind(run)}")
+    _need_path(state_dir, "confirm_outcome", "state_dir")
+    from .window.confirm import confirm_run, outcome
+
+    target = confirm_run(os.fspath(state_dir), run)
+    if on_confirmed is not None:
+        on_confirmed(target.run)
+    return outcome(os.fspath(state_dir), target)
+
+
+@dataclass(frozen=True)
+class RunStatus:
+    """What ``deployer status`` shows of a state folder (``run_status``), read only: the ``runs`` that need a
+    look (never finished, interrupted while writing, or waiting for a confirmation; oldest first, each with
+    who ran what and its devices), ``unreadable`` lines of the audit log (cut off by a crash), the runs
+    ``awaiting`` a confirmation (run id -> when and whether its process still waits) and those that died
+    ``soaking`` (run id -> its report file), the device ``locks`` held on this machine now (in ``lock_folder``,
+    every run's whatever its state folder; ``held`` says them one line per holder), and the ``journal`` read."""
+
+    journal: str
+    runs: list[Unfinished]
+    unreadable: int
+    awaiting: dict[str, Awaiting]
+    soaking: dict[str, str | None]
+    lock_folder: str
+    locks: list[dict[str, Any]]
+    held: list[str]
+
+
+def run_status(state_dir: str = ".deployer") -> RunStatus:
+    """The runs of ``state_dir`` that need a look, and the devices held on this machine now (``RunStatus``).
+
+    Raises:
+        UsageError: ``state_dir`` is not a path.
+    """
+    _need_path(state_dir, "run_status", "state_dir")
+    from .state import holder, journal, lock
+    from .window.confirm import awaiting, soaking
+
+    folder = os.fspath(state_dir)
+    runs, torn = journal.unfinished(folder)
+    locks_in = lock.lock_dir()
+    locks = holder.held(locks_in)
+    return RunStatus(journal.path_of(folder), runs, torn, {a.run: a for a in awaiting(folder)}, soaking(folder),
+                     locks_in, locks, holder.summary(locks) if locks else [])
+
+
+def resolve_run(run: str, *, state_dir: str = ".deployer") -> Unfinished:
+    """Acknowledge a run ``run_status`` lists, after a look: recorded in the audit log (by whom, when); it is
+    listed no more. Returns the run as it was listed.
+
+    Raises:
+        UsageError: no such run needs a look in ``state_dir``.
+    """
+    _need_path(state_dir, "resolve_run", "state_dir")
+    from .load.messages import printable
+    from .state import journal
+
+    try:
+        return journal.resolve(os.fspath(state_dir), run)
+    except KeyError:
+        raise UsageError(f"no run {printable(str(run))} needs a look in {journal.path_of(os.fspath(state_dir))} "
+                         "(deployer status lists them)") from None
 
 
 @dataclass(frozen=True)

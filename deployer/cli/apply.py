@@ -394,27 +394,19 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
     A run drops out once the devices it left half-written are rolled back, or with --resolve RUN.
     Exit code 2 while any run needs a look, 0 when none does.
     """
-    from ..state import holder, journal, lock
-    from ..window.confirm import awaiting, soaking
-
     if agent_url:
         from . import agentclient
 
         return agentclient.status(agent_url, as_json=as_json)
+    from ..api import resolve_run, run_status
+
     if resolve is not None:
-        try:
-            r = journal.resolve(state_dir, resolve)
-        except KeyError:
-            raise UsageError(f"no run {safe(resolve)} needs a look in {journal.path_of(state_dir)} "
-                             "(deployer status lists them)") from None
+        r = resolve_run(resolve, state_dir=state_dir)
         echo(f"resolved run {safe(r.run)} ({_what_ran(r)} by {safe(r.user)} at {safe(r.time)}); "
-             f"recorded in {safe(journal.path_of(state_dir))}")
+             f"recorded in {safe(run_status(state_dir).journal)}")
         return EXIT_OK
-    runs, torn = journal.unfinished(state_dir)
-    waits = {a.run: a for a in awaiting(state_dir)}
-    soaks = soaking(state_dir)
-    folder = lock.lock_dir()
-    locks = holder.held(folder)  # every run's on this machine, whatever its state folder
+    st = run_status(state_dir)
+    runs, torn, waits, soaks, folder, locks = st.runs, st.unreadable, st.awaiting, st.soaking, st.lock_folder, st.locks
     if as_json:
         echo(json.dumps({"locks": locks, "unfinished": [
             {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
@@ -426,10 +418,10 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
              } for r in runs]}, indent=2))
         return EXIT_CHANGES if runs else EXIT_OK
     if not runs:
-        echo(f"no unfinished runs in {safe(journal.path_of(state_dir))}")
+        echo(f"no unfinished runs in {safe(st.journal)}")
     if locks:
         echo(f"devices held on this machine now ({safe(folder)}):")
-        for line in holder.summary(locks):
+        for line in st.held:
             echo(f"  {safe(line)}")
     for r in runs:
         state = "still running" if r.running else (f"interrupted ({safe(r.ended)})" if r.ended else "did not finish")
@@ -521,11 +513,16 @@ def confirm(run: str | None, state_dir: str, agent_url: str | None) -> int:
         from . import agentclient
 
         return agentclient.confirm(agent_url, run)
-    from ..window.confirm import confirm_run, outcome
+    from ..api import confirm_outcome
 
-    target = confirm_run(state_dir, run)
-    echo(f"confirmed run {safe(target.run)}: it reads its parameters again and sends the commit", err=True)
-    done = outcome(state_dir, target)  # NotCommitted (exit 4) names each device the commit did not reach
+    confirmed: list[str] = []
+
+    def said(run_id: str) -> None:
+        confirmed.append(run_id)
+        echo(f"confirmed run {safe(run_id)}: it reads its parameters again and sends the commit", err=True)
+
+    # NotCommitted (exit 4) names each device the commit did not reach
+    done = confirm_outcome(run, state_dir=state_dir, on_confirmed=said)
     sent = done.get("committed")
-    echo(f"run {safe(target.run)}: the commit was sent" + (f" to {', '.join(safe(n) for n in sent)}" if sent else ""))
+    echo(f"run {safe(confirmed[0])}: the commit was sent" + (f" to {', '.join(safe(n) for n in sent)}" if sent else ""))
     return EXIT_OK
