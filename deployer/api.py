@@ -191,7 +191,9 @@ __all__ = [
     "safe_options",
     "scan",
     "serial_ports",
+    "snapshot_text",
     "taught_recipe",
+    "url_option",
     "user_name",
     "validate_file",
     "write_output",
@@ -1251,6 +1253,37 @@ def validate_file(path: str | os.PathLike[str]) -> str:
                                          "'recipe', an inventory has 'devices'")])
     finally:
         yamlsrc.forget(where)
+
+
+def snapshot_text(profile: str | Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str,
+                  unit: int = 1, applied: str, path: str, taken: float | None = None) -> str:
+    """A snapshot's text as ``apply`` writes it before its first write (a recipe that ``rollback`` restores
+    bit for bit): what device ``name`` at ``url`` unit ``unit`` held (``values``: {parameter: registers}) at
+    ``taken`` (seconds since the epoch; None: now) before ``applied`` (a recipe's path or name), saved as
+    ``path`` (its comment says how to restore it).
+
+    Raises:
+        UsageError: an unknown profile or parameter.
+    """
+    import time
+
+    from .state.snapshot import snapshot_text as _snapshot_text
+
+    prof = profile if isinstance(profile, Profile) else load_profile(profile)
+    unknown = [n for n in values if prof.get(n) is None]
+    if unknown:
+        raise UsageError(f"snapshot_text: profile {prof.id} has no parameter {', '.join(map(repr, unknown))}")
+    when = time.gmtime(time.time() if taken is None else taken)
+    return _snapshot_text(prof, values, name=name, url=url, unit=unit, taken=when, applied=applied, label=applied,
+                          path=path)
+
+
+def url_option(name: str) -> tuple[list[str], str | None, str | None]:
+    """A device URL option (``baudrate``, ``timeout``): the schemes that take it (none: no such option), its
+    default and what it allows, as ``deployer explain`` shows them (docs/urls.md says what each means)."""
+    from .transport.urls import option_facts
+
+    return option_facts(name)
 
 
 def check_folder(folder: str | os.PathLike[str], *, what: str) -> None:

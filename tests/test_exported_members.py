@@ -21,8 +21,8 @@ PUBLIC = [
     "plan_frames", "plan_to_json", "plan_values", "prepare_run", "probe", "pull", "pull_async", "pull_jobs",
     "pull_names", "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "read_report", "recipe_from",
     "report_from_json", "report_text", "resolve_run", "run_fleet", "run_fleet_async", "run_info", "run_prepared",
-    "run_prepared_async", "run_status", "safe_options", "scan", "serial_ports", "taught_recipe", "user_name",
-    "validate_file", "write_output", "writing_caches",
+    "run_prepared_async", "run_status", "safe_options", "scan", "serial_ports", "snapshot_text", "taught_recipe",
+    "url_option", "user_name", "validate_file", "write_output", "writing_caches",
 ]
 
 
@@ -49,7 +49,8 @@ def test_sync_functions_that_raise_say_so() -> None:
                  "pull",
                  "read_fleet", "read_report", "recipe_from", "run_fleet", "prepare_run", "run_prepared",
                  "validate_file", "pull_jobs", "check_folder",
-                 "plan_frames", "confirm_outcome", "run_status", "resolve_run"):
+                 "plan_frames", "confirm_outcome", "run_status", "resolve_run",
+                 "snapshot_text"):
         assert "Raises:" in (getattr(api, name).__doc__ or ""), name
 
 

@@ -17,7 +17,7 @@ import time
 from collections.abc import Mapping
 
 from ..portable import file_name
-from ..profile import profile_ref
+from ..profile import Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..recipe.model import DeviceSpec, SnapshotInfo
 from ..recipe.text import recipe_text
@@ -38,23 +38,31 @@ def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
     now = time.gmtime()
     stamp = time.strftime("%Y%m%dT%H%M%SZ", now)
     safe = file_name(name)  # valid on every system: no CON or AUX, no 300-character name
-    prof = recipe.profile
-    info = SnapshotInfo(prof.digest, dict(values), time.strftime("%Y-%m-%dT%H:%M:%SZ", now), applied,
-                        identity=identity)
-    ref = profile_ref(prof)
-    by_param = {prof.parameter(k): v for k, v in values.items()}
 
     def text(path: str) -> str:
-        return recipe_text(
-            ref, by_param, name=f"snapshot-{safe}-{stamp}", device=DeviceSpec(url, unit),
-            comment=f"Snapshot: what {url} unit {unit} held before applying '{applied or recipe.name}'.\n"
-                    f"Restore with: deployer rollback {path}",
-            snapshot=info,
-        )
+        return snapshot_text(recipe.profile, values, name=name, url=url, unit=unit, taken=now, applied=applied,
+                             label=recipe.name, path=path, identity=identity)
 
     first = os.path.join(directory, f"{safe}-{stamp}.yaml")
     later = (os.path.join(directory, f"{safe}-{stamp}-{n}.yaml") for n in itertools.count(2))
     return NewFile(later, text, (first, text(first)))
+
+
+def snapshot_text(prof: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
+                  taken: time.struct_time, applied: str | None, label: str, path: str,
+                  identity: Mapping[str, str] | None = None) -> str:
+    """A snapshot's text: what device ``name`` (``url`` unit ``unit``) held at ``taken`` (UTC) before
+    ``applied`` (a recipe's path; None: the recipe ``label`` given in code) was applied, to be saved as ``path``."""
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", taken)
+    info = SnapshotInfo(prof.digest, dict(values), time.strftime("%Y-%m-%dT%H:%M:%SZ", taken), applied,
+                        identity=identity)
+    return recipe_text(
+        profile_ref(prof), {prof.parameter(k): v for k, v in values.items()},
+        name=f"snapshot-{file_name(name)}-{stamp}", device=DeviceSpec(url, unit),
+        comment=f"Snapshot: what {url} unit {unit} held before applying '{applied or label}'.\n"
+                f"Restore with: deployer rollback {path}",
+        snapshot=info,
+    )
 
 
 def last_identity(state_dir: str, name: str) -> tuple[str, dict[str, str]] | None:
