@@ -137,6 +137,7 @@ __all__ = [
     "apply_async",
     "apply_fleet",
     "apply_fleet_async",
+    "builtin_profiles",
     "check_folder",
     "check_output",
     "confirm",
@@ -169,6 +170,8 @@ __all__ = [
     "plan_values",
     "prepare_run",
     "probe",
+    "profile_csv",
+    "profile_skeleton",
     "pull",
     "pull_async",
     "pull_jobs",
@@ -1284,6 +1287,36 @@ def url_option(name: str) -> tuple[list[str], str | None, str | None]:
     from .transport.urls import option_facts
 
     return option_facts(name)
+
+
+def builtin_profiles() -> list[Profile]:
+    """Every built-in profile (``deployer profiles list``), by id."""
+    from .profile import builtin_profile, builtin_profile_ids
+
+    return [builtin_profile(pid) for pid in builtin_profile_ids()]
+
+
+def profile_csv(profile: str | Profile) -> tuple[str, list[str]]:
+    """A profile as a CSV register list (``profiles export csv``; ``profiles import csv`` reads it back: wire
+    addresses, tables as rows), and what a register list cannot say about it (each lost on a round trip).
+
+    Raises:
+        UsageError: an unknown profile.
+        InputError: a profile file that is not valid.
+    """
+    from .profile.importers.spreadsheet import not_exported, profile_to_csv
+
+    prof = profile if isinstance(profile, Profile) else load_profile(profile)
+    return profile_to_csv(prof), not_exported(prof)
+
+
+def profile_skeleton(profile_id: str, path: str = "FILE") -> str:
+    """A commented profile skeleton for ``profile_id`` (``profiles new``), to fill in from the device's manual;
+    ``path``: where it will be, for the command its comments suggest. Checking the id is the caller's (the
+    profile schema's ``profile`` pattern)."""
+    from .profile.skeleton import profile_skeleton as _skeleton
+
+    return _skeleton(profile_id, path)
 
 
 def check_folder(folder: str | os.PathLike[str], *, what: str) -> None:

@@ -150,8 +150,7 @@ NOT_YET_THROUGH_THE_API: dict[str, set[str]] = {
     "deployer.cli.profiles": {
         "deployer.profile", "deployer.profile.codec", "deployer.profile.emit",
         "deployer.profile.importers.spreadsheet", "deployer.profile.importers.sunspec",
-        "deployer.profile.importers.wbtemplate", "deployer.profile.model", "deployer.profile.skeleton",
-        "deployer.transport.clients",
+        "deployer.profile.importers.wbtemplate", "deployer.transport.clients",
     },
 }
 

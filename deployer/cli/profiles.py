@@ -22,13 +22,12 @@ def profiles() -> None:
 @profiles.command("list")
 def profiles_list() -> int:
     """List the built-in profiles."""
-    from ..profile import builtin_profile, builtin_profile_ids
+    from ..api import builtin_profiles
 
     rows: list[list[Cell]] = []
-    for pid in builtin_profile_ids():
-        prof = builtin_profile(pid)
+    for prof in builtin_profiles():
         first = prof.description.split(". ")[0].rstrip(".")
-        rows.append([pid, str(len(prof.parameters)), first])
+        rows.append([prof.id, str(len(prof.parameters)), first])
     show(console(), ["profile", "parameters", "description"], rows)
     return EXIT_OK
 
@@ -178,14 +177,14 @@ def profiles_export() -> None:
 @force_option
 def profiles_export_csv(profile: str, out: str | None) -> int:
     """A profile as a CSV register list ('profiles import csv' reads it back; wire addresses, tables as rows)."""
-    from ..profile import resolve_profile
-    from ..profile.importers.spreadsheet import not_exported, profile_to_csv
+    from ..api import load_profile, profile_csv
 
-    prof = resolve_profile(profile)
-    for what in not_exported(prof):
+    prof = load_profile(profile)
+    text, lost = profile_csv(prof)
+    for what in lost:
         echo(f"warning: {safe(prof.source or prof.id)}: {safe(what)}: not in a register list; importing the list "
                    "will not bring it back", err=True)
-    _output(profile_to_csv(prof), out, f"{out}: {_n(len(prof.parameters), 'register row')} of profile {prof.id}")
+    _output(text, out, f"{out}: {_n(len(prof.parameters), 'register row')} of profile {prof.id}")
     return EXIT_OK
 
 
@@ -311,11 +310,10 @@ def _from_device(device: str, unit: int, at: int, model: str | None, *, search: 
 @click.argument("profile")
 def profiles_show(profile: str) -> int:
     """Show a profile's parameters in engineering units (a built-in id or a file)."""
-    from ..profile import resolve_profile
+    from ..api import address_text, load_profile
     from ..profile.codec import format_decimal, layout_name
-    from ..profile.model import address_text
 
-    prof = resolve_profile(profile)
+    prof = load_profile(profile)
     out = console()
     from .text import styled
 
@@ -349,9 +347,9 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
     """Write a commented profile skeleton to OUTPUT, ready to fill in from the device's manual."""
     import re
 
+    from ..api import profile_skeleton
     from ..api import write_output as write_atomic
     from ..load.schema import schema
-    from ..profile.skeleton import profile_skeleton
 
     pid = profile_id or os.path.splitext(os.path.basename(output))[0]
     pattern = schema("profile")["properties"]["profile"]["pattern"]
