@@ -141,6 +141,11 @@ def test_beyond_loopback_only_with_a_token_and_tls(tmp_path: Path, sim: Simulato
         with pytest.raises(AgentError) as e:  # TLS without the token
             Agent(url, ca=pki["ca"]).devices()
         assert e.value.kind == "unauthorized"
+        cli = [sys.executable, "-m", "deployer", "status", "--agent", url, "--agent-token-file", tok]
+        trusted = subprocess.run([*cli, "--agent-ca", pki["ca"]], capture_output=True, text=True, timeout=60)
+        assert trusted.returncode in (0, 2) and "d1" in trusted.stdout, trusted.stderr
+        untrusted = subprocess.run([*cli, "--agent-ca", pki["other_ca"]], capture_output=True, text=True, timeout=60)
+        assert untrusted.returncode == 3 and "CERTIFICATE_VERIFY_FAILED" in untrusted.stderr, untrusted.stderr
         conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)  # plain HTTP to the TLS port: no answer
         with pytest.raises((http.client.HTTPException, OSError)):
             conn.request("GET", "/v1/agent", headers={"Authorization": f"Bearer {TOKEN}"})
