@@ -73,6 +73,7 @@ if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus,
     from .execute.scan import ScanResult
     from .execute.session import ApplyOptions
     from .fleet.rollout import ReadJob
+    from .profile.emit import Draft
     from .state.journal import Unfinished
     from .state.learned import Entry as LearnedEntry
     from .transport.ports import SerialPort
@@ -152,6 +153,10 @@ __all__ = [
     "file_name",
     "fleet_jobs",
     "forget_learned",
+    "import_csv",
+    "import_wb_template",
+    "import_xlsx",
+    "imported_profile",
     "inventory_from",
     "learned_limits",
     "load_inventory",
@@ -1317,6 +1322,71 @@ def profile_skeleton(profile_id: str, path: str = "FILE") -> str:
     from .profile.skeleton import profile_skeleton as _skeleton
 
     return _skeleton(profile_id, path)
+
+
+def import_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = None, addressing: str = "address",
+               delimiter: str | None = None, byte_order: str | None = None, decimal: str | None = None
+               ) -> tuple[Draft, list[str]]:
+    """A vendor's CSV register list (``profiles import csv``) as a draft profile, and warnings; make the profile
+    with ``imported_profile``. ``columns``: our column -> its header; ``addressing``: ``address``,
+    ``register-number`` or ``modicon``; ``decimal``: ``comma`` or ``point`` (None: told cell by cell).
+
+    Raises:
+        InputError: every bad cell at once, at its position.
+        UsageError: the file cannot be read.
+    """
+    from .profile.importers.spreadsheet import read_csv
+
+    return read_csv(path, profile_id=profile_id, columns=columns, addressing=addressing, delimiter=delimiter,
+                    byte_order=byte_order, decimal=decimal)
+
+
+def import_xlsx(path: str, *, profile_id: str, sheet: str | None = None, columns: Mapping[str, str] | None = None,
+                addressing: str = "address", byte_order: str | None = None, decimal: str | None = None
+                ) -> tuple[Draft, list[str]]:
+    """A register list in an Excel workbook (``profiles import xlsx``; needs openpyxl), as ``import_csv`` reads
+    a CSV file; ``sheet``: the worksheet (None: the first).
+
+    Raises:
+        InputError: every bad cell at once, at FILE[SHEET]:ROW:COLUMN.
+        UsageError: the file cannot be read, or openpyxl is not installed.
+    """
+    from .profile.importers.spreadsheet import read_xlsx
+
+    return read_xlsx(path, profile_id=profile_id, sheet=sheet, columns=columns, addressing=addressing,
+                     byte_order=byte_order, decimal=decimal)
+
+
+def import_wb_template(path: str, *, profile_id: str | None = None, channels: bool = True
+                       ) -> tuple[Draft, list[str]]:
+    """A wb-mqtt-serial device template (``profiles import wb-template``) as a draft profile, and warnings (the
+    last one counting the entries left out, when some were): its parameters become settings, its channels
+    read-only values (``channels`` False: left out). ``profile_id`` None: the template's device_type.
+
+    Raises:
+        InputError: not such a template, or invalid (at its position).
+    """
+    from .profile.importers.wbtemplate import read_wb_template
+
+    imported = read_wb_template(path, profile_id=profile_id, channels=channels)
+    warnings = imported.warnings
+    if imported.left_out:
+        n = imported.left_out
+        warnings = [*warnings, f"{path}: {n} {'entry' if n == 1 else 'entries'} of the template left out "
+                               "(see the warnings above)"]
+    return imported.draft, warnings
+
+
+def imported_profile(draft: Draft, path: str, comment: str = "") -> tuple[str, Profile]:
+    """The profile an importer's draft makes: its text (``comment`` on top) and the Profile it loads as, checked
+    to read back as imported; ``path``: where it will be written (the positions of its problems).
+
+    Raises:
+        InputError: the draft's problems, pointing at the source's rows.
+    """
+    from .profile.emit import check
+
+    return check(draft, path, comment)
 
 
 def check_folder(folder: str | os.PathLike[str], *, what: str) -> None:

@@ -82,7 +82,7 @@ def _import_errors() -> Iterator[None]:
 def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence[str] = ()) -> int:
     import re
 
-    from ..profile.emit import check
+    from ..api import imported_profile
 
     pid = str(draft.header["profile"])
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", pid):  # the profile schema's pattern
@@ -90,7 +90,7 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
 
     for w in warnings:
         echo(safe(w) if ": warning: " in w else f"warning: {safe(w)}", err=True)
-    text, prof = check(draft, out or "<stdout>", f"Imported by 'deployer profiles import' from {source}.\n"
+    text, prof = imported_profile(draft, out or "<stdout>", f"Imported by 'deployer profiles import' from {source}.\n"
                                                 "Check it against the manual before the first deployment.")
     _output(text, out, f"{out}: profile {prof.id} with {_n(len(prof.parameters), 'parameter')}")
     return EXIT_OK
@@ -112,10 +112,10 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
 def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Sequence[str], addressing: str,
                         delimiter: str | None, byte_order: str | None, decimal: bool | None) -> int:
     """A profile from a CSV register list (columns: name, address, type, unit, scale, min, max, range, access ...)."""
-    from ..profile.importers.spreadsheet import read_csv
+    from ..api import import_csv
 
     with _import_errors():
-        draft, warnings = read_csv(file, profile_id=profile_id, columns=_pairs(columns, "--column"),
+        draft, warnings = import_csv(file, profile_id=profile_id, columns=_pairs(columns, "--column"),
                                    addressing=addressing, delimiter=delimiter, byte_order=byte_order,
                                    decimal=_mark(decimal))
         return _write_imported(draft, out, file, warnings)
@@ -137,10 +137,10 @@ def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Se
 def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str | None, columns: Sequence[str],
                          addressing: str, byte_order: str | None, decimal: bool | None) -> int:
     """A profile from an Excel register list (the same columns as csv; needs openpyxl)."""
-    from ..profile.importers.spreadsheet import read_xlsx
+    from ..api import import_xlsx
 
     with _import_errors():
-        draft, warnings = read_xlsx(file, profile_id=profile_id, sheet=sheet, columns=_pairs(columns, "--column"),
+        draft, warnings = import_xlsx(file, profile_id=profile_id, sheet=sheet, columns=_pairs(columns, "--column"),
                                     addressing=addressing, byte_order=byte_order, decimal=_mark(decimal))
         return _write_imported(draft, out, file, warnings)
 
@@ -155,15 +155,10 @@ def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str
 def profiles_import_wb_template(file: str, profile_id: str | None, out: str | None, no_channels: bool) -> int:
     """A profile from a wb-mqtt-serial device template (JSON with // comments): parameters become settings,
     channels read-only values."""
-    from ..profile.importers.wbtemplate import read_wb_template
+    from ..api import import_wb_template
 
-    imported = read_wb_template(file, profile_id=profile_id, channels=not no_channels)
-    warnings = imported.warnings
-    if imported.left_out:
-        n = imported.left_out
-        warnings = [*warnings, f"{file}: {n} {'entry' if n == 1 else 'entries'} of the template left out "
-                               "(see the warnings above)"]
-    return _write_imported(imported.draft, out, file, warnings)
+    draft, warnings = import_wb_template(file, profile_id=profile_id, channels=not no_channels)
+    return _write_imported(draft, out, file, warnings)
 
 
 @profiles.group("export")
