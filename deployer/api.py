@@ -177,6 +177,7 @@ __all__ = [
     "probe",
     "profile_csv",
     "profile_skeleton",
+    "profile_table",
     "pull",
     "pull_async",
     "pull_jobs",
@@ -187,6 +188,7 @@ __all__ = [
     "read_jobs",
     "read_report",
     "recipe_from",
+    "register_address",
     "report_from_json",
     "report_text",
     "resolve_run",
@@ -1387,6 +1389,49 @@ def imported_profile(draft: Draft, path: str, comment: str = "") -> tuple[str, P
     from .profile.emit import check
 
     return check(draft, path, comment)
+
+
+def profile_table(profile: str | Profile) -> tuple[str, list[list[str]]]:
+    """A profile as ``profiles show`` lists it: the name of its byte order (ABCD, CDAB ...) and one row of text
+    per parameter: name, address (as plans write it), type ('uint32 CDAB', 'bool bit 3', 'uint16 bits 3..5',
+    'string[8] ascii'), unit, resolution, range (or its labels), access, default and description.
+
+    Raises:
+        UsageError: an unknown profile.
+        InputError: a profile file that is not valid.
+    """
+    from .profile.codec import format_decimal, layout_name, mask_shift
+
+    prof = profile if isinstance(profile, Profile) else load_profile(profile)
+
+    def type_text(p: Any) -> str:  # the layout only when not the default
+        if p.is_string:
+            return f"string[{p.count}] {p.encoding}" + (" BA" if p.byte_swap else "")
+        if p.mask:
+            shift, width = mask_shift(p.mask)
+            return f"{p.type} bit {shift}" if width == 1 else f"{p.type} bits {shift}..{shift + width - 1}"
+        return str(p.type) if p.layout in ("AB", "ABCD", "ABCDEFGH") else f"{p.type} {p.layout}"
+
+    rows: list[list[str]] = []
+    for p in prof.parameters:
+        rng = "" if p.min is None and p.max is None else (
+            f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
+        if p.values:
+            rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
+        default = "" if p.default is None else p.default if isinstance(p.default, str) else (
+            str(bool(p.default)).lower() if p.type == "bool" else format_decimal(p.default))
+        rows.append([p.name, address_text(p.register_type, p.address), type_text(p), p.unit or "",
+                     "" if p.is_string or p.type == "bool" else format_decimal(p.scale), rng, p.access, default,
+                     p.description])
+    return layout_name(prof.word_order, prof.byte_swap), rows
+
+
+def register_address(text: str) -> int:
+    """A register address as profiles write it: 4354, 0x1102 or 1102h (a protocol address); ValueError if it is
+    not one."""
+    from .profile import parse_register
+
+    return parse_register(text)
 
 
 def check_folder(folder: str | os.PathLike[str], *, what: str) -> None:

@@ -32,18 +32,6 @@ def profiles_list() -> int:
     return EXIT_OK
 
 
-def _type_text(p: Any) -> str:
-    """'uint32 CDAB', 'bool bit 3', 'uint16 bits 3..5', 'string[8] ascii' (the layout only when not the default)."""
-    from ..profile.codec import mask_shift
-
-    if p.is_string:
-        return f"string[{p.count}] {p.encoding}" + (" BA" if p.byte_swap else "")
-    if p.mask:
-        shift, width = mask_shift(p.mask)
-        return f"{p.type} bit {shift}" if width == 1 else f"{p.type} bits {shift}..{shift + width - 1}"
-    return p.type if p.layout in ("AB", "ABCD", "ABCDEFGH") else f"{p.type} {p.layout}"
-
-
 @profiles.group("import")
 def profiles_import() -> None:
     """Write a profile from a vendor's register list (CSV) or a SunSpec model."""
@@ -202,7 +190,7 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
                             device: str | None, unit: int, profile_id: str | None, out: str | None) -> int:
     """A profile from a SunSpec model (number, name or model JSON) using pysunspec2's definitions, or from a
     device's whole model chain (--device without MODEL)."""
-    from ..profile import parse_register
+    from ..api import register_address as parse_register
     from ..profile.importers import sunspec
 
     factors = {k: _whole(v, f"--sf {k}") for k, v in _pairs(sfs, "--sf").items()}
@@ -305,8 +293,7 @@ def _from_device(device: str, unit: int, at: int, model: str | None, *, search: 
 @click.argument("profile")
 def profiles_show(profile: str) -> int:
     """Show a profile's parameters in engineering units (a built-in id or a file)."""
-    from ..api import address_text, load_profile
-    from ..profile.codec import format_decimal, layout_name
+    from ..api import load_profile, profile_table
 
     prof = load_profile(profile)
     out = console()
@@ -314,22 +301,12 @@ def profiles_show(profile: str) -> int:
 
     out.print(styled((prof.id, "bold"), f": {prof.description}"))
     lim = prof.limits
-    layout = layout_name(prof.word_order, prof.byte_swap)
+    layout, table = profile_table(prof)
     out.print(f"addressing {prof.addressing}, byte order {layout}; up to {_n(lim.write_registers, 'register')} "
               f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read"
               + (f"; {lim.write_coils} coils per write (FC15), {lim.read_coils} per read"
                  if any(p.register_type == "coil" for p in prof.parameters) else ""))
-    rows: list[list[Cell]] = []
-    for p in prof.parameters:
-        rng = "" if p.min is None and p.max is None else (
-            f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
-        if p.values:
-            rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
-        default = "" if p.default is None else p.default if isinstance(p.default, str) else (
-            str(bool(p.default)).lower() if p.type == "bool" else format_decimal(p.default))
-        rows.append([p.name, address_text(p.register_type, p.address), _type_text(p), p.unit or "",
-                     "" if p.is_string or p.type == "bool" else format_decimal(p.scale), rng, p.access, default,
-                     p.description])
+    rows: list[list[Cell]] = [list(row) for row in table]
     show(out, ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"],
          rows)
     return EXIT_OK
