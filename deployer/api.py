@@ -74,6 +74,7 @@ if TYPE_CHECKING:  # served by __getattr__ below: their modules import pymodbus,
     from .execute.session import ApplyOptions
     from .fleet.rollout import ReadJob
     from .profile.emit import Draft
+    from .profile.importers.sunspec import DeviceModel as SunSpecModel
     from .state.journal import Unfinished
     from .state.learned import Entry as LearnedEntry
     from .transport.ports import SerialPort
@@ -154,6 +155,8 @@ __all__ = [
     "fleet_jobs",
     "forget_learned",
     "import_csv",
+    "import_sunspec",
+    "import_sunspec_chain",
     "import_wb_template",
     "import_xlsx",
     "imported_profile",
@@ -202,6 +205,8 @@ __all__ = [
     "scan",
     "serial_ports",
     "snapshot_text",
+    "sunspec_models",
+    "sunspec_reported",
     "taught_recipe",
     "url_option",
     "user_name",
@@ -1432,6 +1437,96 @@ def register_address(text: str) -> int:
     from .profile import parse_register
 
     return parse_register(text)
+
+
+def import_sunspec(model: str, *, at: int = 40002, scale_factors: Mapping[str, int] | None = None,
+                   counts: Mapping[str, int] | None = None, profile_id: str | None = None,
+                   point_values: Mapping[str, int] | None = None, length: int | None = None
+                   ) -> tuple[Draft, list[str]]:
+    """A SunSpec model (its number, name or a model JSON file; pysunspec2's definitions) as a draft profile with
+    its ID register at protocol address ``at``, and warnings (``profiles import sunspec``). ``scale_factors``
+    and ``counts``: what the device reports (by point and group name); ``point_values`` and ``length``: its
+    count points and L as ``sunspec_reported`` and ``sunspec_models`` read them.
+
+    Raises:
+        UsageError: an unknown model, or pysunspec2 is not installed.
+        InputError: a model file that is not valid.
+    """
+    from .profile.importers.sunspec import read_model
+
+    return read_model(model, at=at, scale_factors=scale_factors, counts=counts, profile_id=profile_id,
+                      point_values=point_values, length=length)
+
+
+def sunspec_models(device: str | DeviceURL, unit: int = 1, *, at: int = 40002, model: str | None = None,
+                   search: bool = False) -> list[SunSpecModel]:
+    """Read a SunSpec device's models, read-only: ``model`` at ``at`` (its ID checked), or with ``model`` None
+    the whole chain from the 'SunS' marker two registers before ``at`` to the end marker (``search``: also
+    where devices put it, 0 and 50000). Each with its ID, address, length L and registers.
+
+    Raises:
+        TransportError: the device cannot be read, or has no such registers (the message says where to look).
+        UsageError: a bad URL, or what was read is not SunSpec.
+    """
+    from .errors import ExceptionResponse
+    from .profile.importers import sunspec
+    from .transport.clients import open_transport
+
+    _need_unit(unit)
+    url = device_url(device)
+
+    async def run() -> list[SunSpecModel]:
+        transport = open_transport(url)
+        await transport.connect()
+
+        async def read(address: int, count: int) -> list[int]:
+            out: list[int] = []
+            for a in range(address, address + count, 125):
+                n = min(125, address + count - a)
+                try:
+                    out += await transport.read_holding_registers(a, n, unit)
+                except ExceptionResponse as e:
+                    said = f"{describe(url)} unit {unit}: reading {n} registers at {a} answered {e}"
+                    if e.code == 2:
+                        raise sunspec.NotThere(f"{said}: check --at (SunSpec devices put 'SunS' at 40000, 0 or "
+                                               "50000, the first model's ID 2 registers after it)") from None
+                    raise TransportError(said) from None
+            return out
+
+        try:
+            if model is None:
+                return await sunspec.device_chain(read, at, search=search)
+            return [await sunspec.device_model(read, model, at)]
+        finally:
+            await transport.close()
+
+    try:
+        return asyncio.run(run())
+    except sunspec.NotThere as e:  # no such registers: the device is there, the model is not where asked
+        raise TransportError(str(e)) from None
+
+
+def sunspec_reported(model: str, found: SunSpecModel) -> tuple[dict[str, int], dict[str, int], list[str]]:
+    """The scale factors and count points a device reports in its model ``found`` (``sunspec_models``), by point
+    name, and warnings (a scale factor not implemented or out of range: the points it scales import raw)."""
+    from .profile.importers.sunspec import reported
+
+    return reported(model, found)
+
+
+def import_sunspec_chain(models: list[SunSpecModel], *, scale_factors: Mapping[str, int] | None = None,
+                         counts: Mapping[str, int] | None = None, profile_id: str | None = None,
+                         source: str = "the device") -> tuple[Draft, list[str]]:
+    """One draft profile of a device's whole model chain (``sunspec_models`` without a model): each model's
+    points named MODEL.POINT (common.Mn, inverter.W), its scale factors and counts as the device reports them
+    (``scale_factors`` and ``counts`` given here win), the markers and model IDs as its identity.
+
+    Raises:
+        UsageError: a model pysunspec2 does not know, or pysunspec2 is not installed.
+    """
+    from .profile.importers.sunspec import chain_draft
+
+    return chain_draft(models, scale_factors=scale_factors, counts=counts, profile_id=profile_id, source=source)
 
 
 def check_folder(folder: str | os.PathLike[str], *, what: str) -> None:

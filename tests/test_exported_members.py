@@ -16,14 +16,15 @@ PUBLIC = [
     "RunInterrupted", "RunRequest", "RunStatus", "StalePlan", "TransportError", "UsageError", "address_text", "apply",
     "apply_async", "apply_fleet", "apply_fleet_async", "builtin_profiles", "check_folder", "check_output", "confirm",
     "confirm_outcome", "defaults_diff", "describe_url", "device_url", "diff", "diff_async", "diff_values", "duration",
-    "file_name", "fleet_jobs", "forget_learned", "import_csv", "import_wb_template", "import_xlsx", "imported_profile",
-    "inventory_from", "learned_limits", "load_inventory", "load_plan", "load_profile", "load_recipe", "non_default",
-    "out_of_range", "plan", "plan_async", "plan_cost", "plan_fleet", "plan_fleet_async", "plan_frames", "plan_to_json",
-    "plan_values", "prepare_run", "probe", "profile_csv", "profile_skeleton", "profile_table", "pull", "pull_async",
-    "pull_jobs", "pull_names", "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "read_report",
-    "recipe_from", "register_address", "report_from_json", "report_text", "resolve_run", "run_fleet", "run_fleet_async",
-    "run_info", "run_prepared", "run_prepared_async", "run_status", "safe_options", "scan", "serial_ports",
-    "snapshot_text", "taught_recipe", "url_option", "user_name", "validate_file", "write_output", "writing_caches",
+    "file_name", "fleet_jobs", "forget_learned", "import_csv", "import_sunspec", "import_sunspec_chain",
+    "import_wb_template", "import_xlsx", "imported_profile", "inventory_from", "learned_limits", "load_inventory",
+    "load_plan", "load_profile", "load_recipe", "non_default", "out_of_range", "plan", "plan_async", "plan_cost",
+    "plan_fleet", "plan_fleet_async", "plan_frames", "plan_to_json", "plan_values", "prepare_run", "probe",
+    "profile_csv", "profile_skeleton", "profile_table", "pull", "pull_async", "pull_jobs", "pull_names",
+    "pulled_recipe", "read_fleet", "read_fleet_async", "read_jobs", "read_report", "recipe_from", "register_address",
+    "report_from_json", "report_text", "resolve_run", "run_fleet", "run_fleet_async", "run_info", "run_prepared",
+    "run_prepared_async", "run_status", "safe_options", "scan", "serial_ports", "snapshot_text", "sunspec_models",
+    "sunspec_reported", "taught_recipe", "url_option", "user_name", "validate_file", "write_output", "writing_caches",
 ]
 
 

@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from ..errors import EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, ExceptionResponse, InputError, TransportError, UsageError
+from ..errors import EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, InputError, TransportError, UsageError
 from .base import _n, _output, console, echo, force_option, report_input_error, safe
 from .tables import Cell, show
 
@@ -190,13 +190,13 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
                             device: str | None, unit: int, profile_id: str | None, out: str | None) -> int:
     """A profile from a SunSpec model (number, name or model JSON) using pysunspec2's definitions, or from a
     device's whole model chain (--device without MODEL)."""
+    from ..api import import_sunspec, import_sunspec_chain, sunspec_reported
     from ..api import register_address as parse_register
-    from ..profile.importers import sunspec
 
     factors = {k: _whole(v, f"--sf {k}") for k, v in _pairs(sfs, "--sf").items()}
     repeats = {k: _whole(v, f"--count {k}") for k, v in _pairs(counts, "--count").items()}
     for k, n in factors.items():
-        if n not in sunspec.SF_RANGE:
+        if not -10 <= n <= 10:  # the SunSpec specification's scale factors (sunssf)
             raise UsageError(f"--sf {k}={n}: a SunSpec scale factor is -10 to 10")
     for k, n in repeats.items():
         if not 1 <= n <= 65535:
@@ -218,17 +218,17 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
             if model is None:
                 chain = ", ".join(f"{m.model_id} at {m.at} (L={m.length})" for m in got[0])
                 echo(f"models on {safe(device)}: {safe(chain or 'none')}", err=True)
-                draft, warnings = sunspec.chain_draft(got[0], scale_factors=factors, counts=repeats,
+                draft, warnings = import_sunspec_chain(got[0], scale_factors=factors, counts=repeats,
                                                       profile_id=profile_id, source=device)
                 return _write_imported(draft, out, f"the SunSpec device {device}", warnings)
             (dm,) = got[0]
-            found, points, warnings = sunspec.reported(model, dm)
+            found, points, warnings = sunspec_reported(model, dm)
             echo(f"scale factors from {safe(device)}: " + ", ".join(f"{safe(n)}={v}" for n, v in found.items()),
                  err=True)
-            draft, more = sunspec.read_model(model, at=address, scale_factors={**found, **factors}, counts=repeats,
+            draft, more = import_sunspec(model, at=address, scale_factors={**found, **factors}, counts=repeats,
                                              point_values=points, length=dm.length, profile_id=profile_id)
             return _write_imported(draft, out, f"SunSpec model {model}", [*warnings, *more])
-        draft, warnings = sunspec.read_model(model or "", at=address, scale_factors=factors, counts=repeats,
+        draft, warnings = import_sunspec(model or "", at=address, scale_factors=factors, counts=repeats,
                                              profile_id=profile_id)
         return _write_imported(draft, out, f"SunSpec model {model}", warnings)
 
@@ -250,41 +250,11 @@ def _whole(text: str, what: str) -> int:
 def _from_device(device: str, unit: int, at: int, model: str | None, *, search: bool = False
                  ) -> tuple[list[Any]] | None:
     """The device's model at ``at`` (MODEL given) or its whole chain; None (after saying why) when unreachable."""
-    import asyncio
-
-    from ..profile.importers import sunspec
-    from ..transport import clients as tp
-
-    url = tp.parse_url(device)  # BadURL is a UsageError
-
-    async def run() -> list[Any]:
-        transport = tp.open_transport(url)
-        await transport.connect()
-
-        async def read(address: int, count: int) -> list[int]:
-            out: list[int] = []
-            for a in range(address, address + count, 125):
-                n = min(125, address + count - a)
-                try:
-                    out += await transport.read_holding_registers(a, n, unit)
-                except ExceptionResponse as e:
-                    said = f"{tp.describe(url)} unit {unit}: reading {n} registers at {a} answered {e}"
-                    if e.code == 2:
-                        raise sunspec.NotThere(f"{said}: check --at (SunSpec devices put 'SunS' at 40000, 0 or "
-                                               "50000, the first model's ID 2 registers after it)") from None
-                    raise TransportError(said) from None
-            return out
-
-        try:
-            if model is None:
-                return await sunspec.device_chain(read, at, search=search)
-            return [await sunspec.device_model(read, model, at)]
-        finally:
-            await transport.close()
+    from ..api import sunspec_models
 
     try:
-        return (asyncio.run(run()),)
-    except (TransportError, sunspec.NotThere) as e:
+        return (sunspec_models(device, unit, at=at, model=model, search=search),)
+    except TransportError as e:
         echo(f"error: {safe(e)}", err=True)
         return None
 
