@@ -49,7 +49,7 @@ def agent_failed(module, e, **result):
 
 def _diff(name, rows):
     return {"before_header": name, "after_header": name,
-            "before": "".join(f"{n}: {b}\n" for n, b, _ in rows), "after": "".join(f"{n}: {a}\n" for n, _, a in rows)}
+            "before": "".join(f"{n}: {b}\n" for n, b, a in rows), "after": "".join(f"{n}: {a}\n" for n, b, a in rows)}
 
 
 def agent_check(module, client):
@@ -101,7 +101,7 @@ def agent_apply(module, client):
         bad = [q for q in params if q.get("status") in ("failed", "mismatch", "unverified")]
         wrote = any(r.get("function") in (5, 6, 15, 16, 23) for r in d.get("requests") or [])
         changed = changed or wrote or bool(moved)
-        devices.append({"name": d["name"], "status": d["status"], "changed": [n for n, _, _ in moved],
+        devices.append({"name": d["name"], "status": d["status"], "changed": [row[0] for row in moved],
                         "failed": {q["name"]: q.get("error") for q in bad}, "error": d.get("error")})
         if moved:
             diffs.append(_diff(d["name"], moved))

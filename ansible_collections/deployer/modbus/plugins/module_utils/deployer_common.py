@@ -60,8 +60,8 @@ def check_target_args(module):
     p = module.params
     problems = []
     lo, hi = UNIT_RANGE
-    units = [("unit", p.get("unit"))] + [(f"devices[{i}].unit", d.get("unit"))
-                                          for i, d in enumerate(p.get("devices") or [])]
+    units = [("unit", p.get("unit"))]
+    units += [(f"devices[{i}].unit", d.get("unit")) for i, d in enumerate(p.get("devices") or [])]
     for what, unit in units:
         if unit is None:
             continue

@@ -205,7 +205,7 @@ from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common im
 def _diff(name, rows):
     """Ansible's before/after text for one device: one line per parameter that changes."""
     return {"before_header": name, "after_header": name,
-            "before": "".join(f"{n}: {b}\n" for n, b, _ in rows), "after": "".join(f"{n}: {a}\n" for n, _, a in rows)}
+            "before": "".join(f"{n}: {b}\n" for n, b, a in rows), "after": "".join(f"{n}: {a}\n" for n, b, a in rows)}
 
 
 def check(module, jobs):
@@ -226,7 +226,7 @@ def check(module, jobs):
                 for pp in plan.parameters if pp.action == "write"]
         plans.append({"name": j.name, "plan": plan_to_json(plan)})
         devices.append({"name": j.name, "status": "would change" if plan.writes else "ok",
-                        "changes": [n for n, _, _ in rows]})
+                        "changes": [row[0] for row in rows]})
         if rows:
             diffs.append(_diff(j.name, rows))
     result = {"changed": any(p["plan"]["writes"] for p in plans), "plans": plans, "devices": devices,
@@ -257,14 +257,14 @@ def apply(module, rec, jobs):
         changed = [(q.name, q.before or "?", q.after or q.desired) for q in d.parameters
                    if q.status == "ok" and q.before_raw != q.after_raw]
         bad = [q for q in d.parameters if q.status in ("failed", "mismatch", "unverified")]
-        devices.append({"name": d.name, "status": d.status, "changed": [n for n, _, _ in changed],
+        devices.append({"name": d.name, "status": d.status, "changed": [row[0] for row in changed],
                         "failed": {q.name: q.error for q in bad}, "error": d.error})
         if changed:
             diffs.append(_diff(d.name, changed))
         if d.status != "ok":
             what = ", ".join(f"{q.name} {q.status}" + (f" ({q.error})" if q.error else "") for q in bad)
-            problems.append(f"{d.name} {d.status}" + (f": {what}" if what else "") + (f" - {d.error}" if d.error
-                                                                                     else ""))
+            problems.append(f"{d.name} {d.status}" + (f": {what}" if what else "")
+                            + (f" - {d.error}" if d.error else ""))
     result = {"changed": any(d.write_requests for d in report.devices), "devices": devices,
               "report": report.to_json(), "diff": diffs, "run": report.run_id}
     if interrupted is not None:

@@ -100,7 +100,7 @@ def main():
         read, values = read_devices(module)
     except (InputError, UsageError) as e:
         input_error(module, e)
-    facts, _, down = values_text(read, values)
+    facts, down = values_text(read, values)[::2]  # not the raw words
     files, changed = [], False
     for j in read:
         cur = values[j.name]
