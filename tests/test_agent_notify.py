@@ -170,3 +170,39 @@ def test_each_event_kind_is_posted_retried_and_never_holds_up_the_devices(tmp_pa
 
 def end_id(rec: Receiver, run: str) -> int:
     return max(int(b["id"]) for b in rec.got if b["kind"] == "run-finished" and b["detail"]["run"] == run)
+
+
+def test_a_receiver_behind_basic_auth_gets_it_and_the_password_is_shown_nowhere() -> None:
+    """``--notify https://user:password@host/...``: sent as HTTP basic auth; /metrics and the log hide it."""
+    import base64
+    import types
+
+    from deployer.agent.notify import Notifier
+
+    seen: list[tuple[str, dict[str, Any]]] = []
+
+    async def main() -> None:
+        async def handle(request: web.Request) -> web.Response:
+            seen.append((request.headers.get("Authorization", ""), await request.json()))
+            return web.json_response({})
+
+        app = web.Application()
+        app.router.add_post("/hook", handle)
+        runner = web.AppRunner(app, access_log=None)
+        await runner.setup()
+        await web.TCPSite(runner, "127.0.0.1", 0).start()
+        url = f"http://ops:s3cret@127.0.0.1:{runner.addresses[0][1]}/hook"
+        fake = types.SimpleNamespace(on_event=[])  # the hook list is all the notifier touches of the agent
+        n = Notifier(fake, [url])  # type: ignore[arg-type]
+        n.start("http://127.0.0.1:8470")
+        for hook in fake.on_event:
+            hook({"id": 1, "time": "t", "device": "d1", "kind": "drift", "message": "m", "detail": {}})
+        await n.stop(grace=5)
+        labels = [s.labels["url"] for f in n.collect() for s in f.samples]
+        await runner.cleanup()
+        assert labels and all("s3cret" not in x and "ops:***@" in x for x in labels)
+
+    asyncio.run(main())
+    assert seen == [("Basic " + base64.b64encode(b"ops:s3cret").decode(),
+                     {"version": 1, "agent": "http://127.0.0.1:8470", "id": 1, "time": "t", "device": "d1",
+                      "kind": "drift", "message": "m", "detail": {}})]
