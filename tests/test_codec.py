@@ -222,3 +222,27 @@ def test_field_round_trip_keeps_other_bits(lo: int, width: int, word: int, data:
 ])
 def test_layout_names_from_tools(name: str, layout: str) -> None:
     assert codec.LAYOUTS[name] == codec.LAYOUTS[layout]
+
+
+def test_pint_that_cannot_load_is_never_kept_as_an_unknown_unit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A unit check while pint cannot be imported (a broken install, a platform module missing) raises;
+    it is not answered, nor saved in the units cache, as "unknown unit" (that poisoned every later run)."""
+    import sys
+
+    from deployer.profile import units
+
+    fresh = units._DiskCache.__new__(units._DiskCache)
+    fresh.checks, fresh.factors, fresh.dirty, fresh.writable, fresh.path = {}, {}, False, False, None
+    monkeypatch.setattr(units, "_disk", lambda: fresh)
+    units.check.cache_clear()
+    units.registry.cache_clear()
+    monkeypatch.setitem(sys.modules, "pint", None)
+    try:
+        with pytest.raises(ImportError):
+            units.check("Hz")
+        assert fresh.checks == {} and not fresh.dirty
+    finally:
+        monkeypatch.undo()
+        units.check.cache_clear()
+        units.registry.cache_clear()
+    assert units.check("Hz") is None and units.check("zorks per Hz") is not None

@@ -108,8 +108,9 @@ def check(text: str) -> str | None:
     disk = _disk()
     if text in disk.checks:
         return disk.checks[text]
+    ureg = registry()  # outside the try: pint that cannot load is no answer about the unit (never kept)
     try:
-        registry().parse_units(_pint_text(text))
+        ureg.parse_units(_pint_text(text))
         answer = None
     except Exception:  # pint raises a zoo of parser errors for garbage input
         answer = f"unknown unit '{_clip(text)}'"
