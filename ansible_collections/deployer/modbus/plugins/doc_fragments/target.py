@@ -71,3 +71,32 @@ options:
     description: Retries after a timeout or a busy answer, from 0 to 20; the default is the URL's, else 2.
     type: int
 """
+
+    # deployer.modbus.target.agent: the modules that can go through a site agent instead of Modbus
+    AGENT = r"""
+options:
+  agent:
+    description:
+      - Go through the site agent (C(deployer agent)) at O(agent.url) instead of talking Modbus from this module.
+      - The agent's inventory says where its devices are, so not with O(device), O(devices), O(inventory),
+        O(profile), O(parameters), O(name), O(unit), O(timeout) or O(retries); O(limit) selects its devices.
+    type: dict
+    suboptions:
+      url:
+        description: The agent's address, for example V(https://gw-line3:8470).
+        type: str
+        required: true
+      token:
+        description: The agent's token (C(deployer agent --token-file)); keep it in Ansible Vault.
+        type: str
+      token_file:
+        description: A file on the target whose first line is the token (when O(agent.token) is not given).
+        type: path
+      ca:
+        description: A CA certificate (PEM) on the target that the agent's TLS certificate is checked against.
+        type: path
+      timeout:
+        description: Seconds to wait for each answer of the agent.
+        type: float
+        default: 30.0
+"""

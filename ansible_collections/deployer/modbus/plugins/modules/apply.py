@@ -28,6 +28,7 @@ author:
 extends_documentation_fragment:
   - ansible.builtin.action_common_attributes
   - deployer.modbus.target
+  - deployer.modbus.target.agent
 attributes:
   check_mode:
     support: full
@@ -102,32 +103,9 @@ options:
     description: When the rollout stops (a failed batch, O(max_failures)), roll back every device it wrote.
     type: bool
     default: false
-  agent:
-    description:
-      - Run through the site agent at O(agent.url) instead of talking Modbus from this module.
-      - Not with O(device), O(devices), O(inventory), O(profile), O(parameters), O(name), O(unit),
-        O(timeout), O(retries) or O(report) (the agent's inventory says where its devices are). O(recipe), if
-        given, must be the recipe the agent's inventory names for the selected devices.
-    type: dict
-    suboptions:
-      url:
-        description: The agent's address, for example V(https://gw-line3:8470).
-        type: str
-        required: true
-      token:
-        description: The agent's token (C(deployer agent --token-file)); keep it in Ansible Vault.
-        type: str
-      token_file:
-        description: A file on the target whose first line is the token (when O(agent.token) is not given).
-        type: path
-      ca:
-        description: A CA certificate (PEM) on the target that the agent's TLS certificate is checked against.
-        type: path
-      timeout:
-        description: Seconds to wait for each answer of the agent.
-        type: float
-        default: 30.0
 notes:
+  - With O(agent), O(report) is not taken and O(recipe), if given, must be the recipe the agent's inventory
+    names for the selected devices (the agent holds one desired state; edit its files instead).
   - One bus is one device at a time whatever O(parallel) says; a device is locked for the run.
 seealso:
   - module: deployer.modbus.info

@@ -24,6 +24,7 @@ extends_documentation_fragment:
   - ansible.builtin.action_common_attributes
   - ansible.builtin.action_common_attributes.facts
   - deployer.modbus.target
+  - deployer.modbus.target.agent
 attributes:
   check_mode:
     support: full
@@ -47,30 +48,8 @@ options:
   name:
     description: The device's name in the facts, for O(device).
     type: str
-  agent:
-    description:
-      - Ask the site agent at O(agent.url) instead of reading the devices from this module.
-      - Not with O(device), O(devices), O(inventory), O(profile), O(recipe), O(parameters), O(name), O(unit),
-        O(timeout) or O(retries).
-    type: dict
-    suboptions:
-      url:
-        description: The agent's address, for example V(https://gw-line3:8470).
-        type: str
-        required: true
-      token:
-        description: The agent's token (C(deployer agent --token-file)); keep it in Ansible Vault.
-        type: str
-      token_file:
-        description: A file on the target whose first line is the token (when O(agent.token) is not given).
-        type: path
-      ca:
-        description: A CA certificate (PEM) on the target that the agent's TLS certificate is checked against.
-        type: path
-      timeout:
-        description: Seconds to wait for each answer of the agent.
-        type: float
-        default: 30.0
+notes:
+  - With O(agent), O(recipe) is not taken; the facts are the adopted parameters of the agent.
 seealso:
   - module: deployer.modbus.pull
 """
