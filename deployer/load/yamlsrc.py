@@ -541,12 +541,14 @@ def read_text(path: str) -> str:
 
 
 # A libyaml error within this many bytes of the start is found again by the pure-Python parser (about
-# 1 MB/s), whose diagnostics are then the answer: both parsers give one, whatever libyaml's version.
-_REPARSE_BYTES = 4 * 1024 * 1024
+# 1 MB/s: a second at most, on an error), whose diagnostics are then the answer: both parsers give one,
+# whatever libyaml's version. Recipes and profiles are far smaller; past it libyaml's position stands.
+_REPARSE_BYTES = 1024 * 1024
 
 
 def _python_error(text: str, err: yaml.MarkedYAMLError) -> yaml.MarkedYAMLError:
-    """The pure-Python parser's wording of a syntax error libyaml found past ``_REPARSE_BYTES``.
+    """The pure-Python parser's wording of a syntax error libyaml found where the whole file is not parsed
+    again (past ``_REPARSE_BYTES``, or before a character the pure-Python reader refuses up front).
 
     Only the message is taken, and only when both stop at the same place; else libyaml's stands.
     """
@@ -638,8 +640,8 @@ def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[
                                          "expected a single document in the file, found another one")])
     except yaml.MarkedYAMLError as e:
         if loader is not yaml.SafeLoader:
-            # libyaml reads ahead and has limits of its own that change between releases (0.2.6 stops
-            # at 1000 nested levels before we see the 65th): ask the pure-Python parser, whose
+            # libyaml reads ahead and has limits of its own that change between releases (the one in
+            # PyYAML 6.0.4 stops at 1,000 nested levels before we see the 65th): ask the pure-Python parser, whose
             # events the builder checks one by one, so our limits and positions apply first
             mark = e.problem_mark or e.context_mark
             if mark is None or mark.index <= _REPARSE_BYTES:
