@@ -114,6 +114,54 @@ def test_a_second_run_with_lock_timeout_waits_for_the_window_to_end(tmp_path: Pa
     assert sim.read("F07") == (0, 400)
 
 
+def test_a_device_of_another_library_in_a_window_gets_nothing_from_a_second_run(tmp_path: Path) -> None:
+    """Item 1 against umodbus (its own request log, not our simulator's): while A waits for its confirmation, B
+    (the device spelled localhost, another state folder) is refused and the device receives no request of
+    B's; confirmed, A's commit reaches the device once."""
+    profile_from(tmp_path, """profile: w
+health:
+  - {register: 0x20, equals: 0, description: fault code is zero}
+commit:
+  - {register: 0x30, raw: 1, description: store}
+parameters:
+  x: {register: 0x10, type: uint16}
+""", "w.yaml")
+    store = {0x10: 0, 0x20: 0, 0x30: 0}
+    wire: list[tuple[int, int, int]] = []
+    with umodbus_server(store, wire=wire, connections=2) as port:
+        def recipe_for(name: str, host: str, x: int) -> str:
+            r = tmp_path / f"{name}.yaml"
+            r.write_text(f"recipe: {name}\nprofile: w.yaml\ndevice: {{url: 'tcp://{host}:{port}'}}\n"
+                         f"parameters:\n  x: {x}\n")
+            return str(r)
+
+        state_a = str(tmp_path / "a")
+        a = deployer("apply", recipe_for("a", "127.0.0.1", 5), "--yes", "--json", "--confirm-within", "1h",
+                     "--state-dir", state_a)
+        try:
+            wait_for(lambda: bool(awaiting(state_a)) or a.poll() is not None)
+            (waiting,) = awaiting(state_a)
+            def others() -> list[tuple[int, int, int]]:
+                return [w for w in list(wire) if w[:2] != (3, 0x20)]  # A reads its health register while it waits
+            seen = others()
+            b = run("apply", recipe_for("b", "localhost", 6), "--yes", "--json", "--state-dir", str(tmp_path / "b"))
+            assert others() == seen  # not one request of B's reached the device
+            assert b.returncode == 3, b.stderr
+            dev = json.loads(b.stdout)["devices"][0]
+            assert f"run {waiting.run}, in its confirmation window" in dev["error"]
+            assert dev["error"].endswith("nothing was sent")
+            confirmed = run("confirm", "--state-dir", state_a)
+            assert confirmed.returncode == 0, confirmed.stderr
+            out, err = a.communicate(timeout=120)
+        finally:
+            if a.poll() is None:
+                a.kill()
+    assert a.returncode == 0, err
+    assert json.loads(out)["devices"][0]["commit"] == "sent"
+    assert store[0x10] == 5 and store[0x30] == 1  # A's value, and its commit, on the device
+    assert sum(1 for fc, addr, n in wire if fc in (6, 16) and addr <= 0x30 < addr + n) == 1
+
+
 # ---- 2. the commit re-reads ------------------------------------------------------------------------------
 
 
