@@ -32,8 +32,8 @@ from tests.helpers import count, profile_from
 
 crc = pytest.importorskip("umodbus.client.serial.redundancy_check", reason="umodbus is a test extra")
 
-TIMEOUT = 1.0
-LATE = 1.5  # after the timeout, well before the line has been silent for another whole timeout
+TIMEOUT = 0.6
+LATE = 0.9  # after the timeout, well before the line has been silent for another whole timeout
 
 
 def _request_size(buf: bytes) -> int:
