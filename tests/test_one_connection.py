@@ -13,6 +13,7 @@ import pytest
 from deployer.testing.simulator import Faults, Quirks, SimulatorThread
 from tests.helpers import cli, profile_from, umodbus_server, wait_for
 from tests.test_safe import COMMIT, F07, FAULT, PROFILE, TRIP, deployer, recipe, writes_to
+from tests.test_window import WATCHED
 
 pytestmark = pytest.mark.timeout(120)
 ONE = Quirks(max_connections=1)
@@ -101,14 +102,7 @@ def test_a_confirmation_window_rolls_back_over_one_connection(capsys: pytest.Cap
 
 def test_a_single_threaded_umodbus_device_is_rolled_back_when_its_health_fails(tmp_path: Path) -> None:
     """umodbus serves one connection at a time: a second one waits in its backlog until the first closes."""
-    prof = profile_from(tmp_path, """profile: w
-health:
-  - {register: 0x20, equals: 0, description: fault code is zero}
-commit:
-  - {register: 0x30, raw: 1, description: store}
-parameters:
-  x: {register: 0x10, type: uint16}
-""", "w.yaml")
+    prof = profile_from(tmp_path, WATCHED, "w.yaml")
     assert prof.commit
     store = {0x10: 1, 0x20: 0, 0x30: 0}
     wire: list[tuple[int, int, int]] = []

@@ -40,6 +40,17 @@ def run(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=120)
 
 
+# a device of another library's (umodbus) with a health register, a commit register and one parameter
+WATCHED = """profile: w
+health:
+  - {register: 0x20, equals: 0, description: fault code is zero}
+commit:
+  - {register: 0x30, raw: 1, description: store}
+parameters:
+  x: {register: 0x10, type: uint16}
+"""
+
+
 needs_mbpoll = pytest.mark.skipif(MBPOLL is None, reason="mbpoll (libmodbus) is not installed")
 
 
@@ -118,14 +129,7 @@ def test_a_device_of_another_library_in_a_window_gets_nothing_from_a_second_run(
     """Item 1 against umodbus (its own request log, not our simulator's): while A waits for its confirmation, B
     (the device spelled localhost, another state folder) is refused and the device receives no request of
     B's; confirmed, A's commit reaches the device once."""
-    profile_from(tmp_path, """profile: w
-health:
-  - {register: 0x20, equals: 0, description: fault code is zero}
-commit:
-  - {register: 0x30, raw: 1, description: store}
-parameters:
-  x: {register: 0x10, type: uint16}
-""", "w.yaml")
+    profile_from(tmp_path, WATCHED, "w.yaml")
     store = {0x10: 0, 0x20: 0, 0x30: 0}
     wire: list[tuple[int, int, int]] = []
     with umodbus_server(store, wire=wire, connections=2) as port:
@@ -219,15 +223,7 @@ def test_a_parameter_changed_by_hand_during_the_window_is_never_committed(tmp_pa
 def test_an_independent_device_changed_by_an_independent_client_is_not_committed(tmp_path: Path) -> None:
     """umodbus as the device, mbpoll as the other hand: x changed during the soak stays as found, y is restored,
     the commit register is never written."""
-    prof = profile_from(tmp_path, """profile: w
-health:
-  - {register: 0x20, equals: 0, description: fault code is zero}
-commit:
-  - {register: 0x30, raw: 1, description: store}
-parameters:
-  x: {register: 0x10, type: uint16}
-  y: {register: 0x11, type: uint16}
-""", "w.yaml")
+    prof = profile_from(tmp_path, WATCHED + "  y: {register: 0x11, type: uint16}\n", "w.yaml")
     assert prof.commit
     store = {0x10: 0, 0x11: 0, 0x20: 0, 0x30: 0}
     wire: list[tuple[int, int, int]] = []
