@@ -106,6 +106,23 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path: Path) -> None:
         assert any(f"stale lock of PID {dead}" in n for n in dev["notices"]), dev
 
 
+def test_a_shorter_record_replaces_a_longer_one_whole(tmp_path: Path) -> None:
+    # the record is written over the old one and the file cut to its length (never truncated to zero first:
+    # ext4 then writes the file out when it is closed): nothing of a longer old record may trail it
+    key = "127.0.0.1:1502#unit1"
+    held = lock.try_lock(key, command="x" * 3000, directory=str(tmp_path))
+    long_text = Path(held.path).read_text()
+    os.close(held.fd)  # gone without releasing: its long record stays, as a crashed run's does
+    again = lock.try_lock(key, command="short", directory=str(tmp_path))
+    try:
+        record = json.loads(Path(again.path).read_text())
+        assert record["command"] == "short" and record["pid"] == os.getpid()
+        assert os.path.getsize(again.path) < len(long_text)
+    finally:
+        again.release()
+    assert not os.path.exists(again.path)
+
+
 def test_kill_9_mid_write_is_found_in_the_journal_and_retried(tmp_path: Path) -> None:
     state = tmp_path / "s"
     r = recipe(tmp_path, "first", FIRST)

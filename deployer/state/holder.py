@@ -46,11 +46,23 @@ def boot_id() -> str | None:
         return None
 
 
+_ME: dict[int, tuple[float | None, str | None, str]] = {}  # this process (by PID: a fork is another one)
+
+
+def _me(pid: int) -> tuple[float | None, str | None, str]:
+    """This process's start time, the boot and the host name: read once (a fleet takes two locks a device)."""
+    me = _ME.get(pid)
+    if me is None:
+        me = _ME[pid] = (process_start(pid), boot_id(), socket.gethostname())
+    return me
+
+
 def new(key: str, *, command: str, run: str | None = None, agent: str | None = None) -> dict[str, Any]:
     """The record of the process taking a lock now."""
     pid = os.getpid()
-    return {"format": FORMAT, "key": key, "pid": pid, "pid_start": process_start(pid), "boot_id": boot_id(),
-            "host": socket.gethostname(), "since": time.time(), "command": command, "run": run, "window": None,
+    start, boot, host = _me(pid)
+    return {"format": FORMAT, "key": key, "pid": pid, "pid_start": start, "boot_id": boot,
+            "host": host, "since": time.time(), "command": command, "run": run, "window": None,
             "deadline": None, "agent": agent}
 
 

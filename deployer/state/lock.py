@@ -155,9 +155,12 @@ def _read_record(fd: int) -> dict[str, Any]:
 
 
 def _write_record(fd: int, record: dict[str, Any]) -> None:
-    os.ftruncate(fd, 0)
+    data = json.dumps(record).encode()
     os.lseek(fd, 0, os.SEEK_SET)
-    os.write(fd, json.dumps(record).encode())
+    os.write(fd, data)
+    # then cut what a longer record left: never truncated to zero first, which makes ext4 write the file
+    # out when it is closed (its auto_da_alloc rule for files replaced by truncation): 0.3 ms a device
+    os.ftruncate(fd, len(data))
 
 
 def pid_alive(pid: int, start: float | None = None) -> bool:
