@@ -50,7 +50,7 @@ def test_a_batch_fsyncs_each_file_its_folder_once_then_the_journal_once(tmp_path
     for p in batch:
         _close(p)
     assert synced == ["file", "file", "file", "dir", "journal"]  # the lines only after the files they name
-    assert [p.done.result() for p in batch] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)] + [None]
+    assert [p.outcome() for p in batch] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)] + [None]
     lines = _lines(journal)
     assert [x["name"] for x in lines] == ["dev0", "dev1", "dev2", "dev9"]  # submission order
     assert [x.get("snapshot") for x in lines[:3]] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)]
@@ -74,9 +74,9 @@ def test_a_failure_is_that_operations_own_and_its_line_is_not_written(tmp_path: 
     bad = _Pending(_file(tmp_path / "missing", "bad", journal, {"name": "bad"}))
     commit([good, bad])
     _close(good)
-    assert good.done.result() == str(tmp_path / "good.yaml")
+    assert good.outcome() == str(tmp_path / "good.yaml")
     with pytest.raises(FileNotFoundError):
-        bad.done.result()
+        bad.outcome()
     assert [x["name"] for x in _lines(journal)] == ["good"]  # no line names a snapshot that is not there
 
 

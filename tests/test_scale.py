@@ -147,7 +147,15 @@ def test_a_stream_the_disk_refused_for_a_while_ends_whole(tmp_path: Path, monkey
             raise OSError(errno.ENOSPC, "No space left on device")
         return real_write(fd, data)
 
-    monkeypatch.setattr(os, "write", full)  # the stream writes with os.write
+    real_writev = os.writev
+
+    def full_v(fd: int, pieces: list[bytes]) -> int:
+        if fd == live._fd and fails[0] > 0:
+            return full(fd, b"".join(pieces))
+        return real_writev(fd, pieces)
+
+    monkeypatch.setattr(os, "write", full)
+    monkeypatch.setattr(os, "writev", full_v)  # the stream writes its lines with os.writev
     results = []
     for j in jobs:
         r = DeviceResult(j.name, "u", 1, "example-inverter", status="ok")

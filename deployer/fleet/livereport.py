@@ -27,6 +27,7 @@ from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from ..report import STREAM_SCHEMA, device_json, parameter_view, report_parts
+from ..state.durable import writev_all
 
 if TYPE_CHECKING:
     from ..execute.job import Job
@@ -144,15 +145,12 @@ class LiveReport:
         pieces = []
         offset = self._size
         at = {}
-        for name, line in batch:
+        for name, line in batch:  # the lines as they are, no copy (this thread holds the GIL while it copies)
             at[name] = (offset, len(line))
-            pieces.append(line + b"\n")
+            pieces += (line, b"\n")
             offset += len(line) + 1
         try:
-            data = b"".join(pieces)
-            view = memoryview(data)
-            while view:
-                view = view[os.write(self._fd, view):]
+            writev_all(self._fd, pieces)
             os.fsync(self._fd)
         except OSError as e:  # the run goes on (the journal has what recovery needs); the lines are kept
             self._error = e   # for the next write, and close() says so if the disk never takes them

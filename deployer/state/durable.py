@@ -24,8 +24,7 @@ import stat
 import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from .. import portable
@@ -58,37 +57,61 @@ class Line:
     record: dict[str, Any]
 
 
-@dataclass
+@dataclass(eq=False)
 class _Pending:
     op: NewFile | Line
-    done: Future[str | None] = field(default_factory=Future)
     path: str | None = None  # a NewFile's final path
     digest: str | None = None  # the SHA-256 of a NewFile's bytes (the journal line names it: edits show)
     fd: int = -1
+    data: bytes | None = None  # its journal line as written, encoded by the caller (see ``submit``)
+    error: BaseException | None = None
+    finished: bool = False
+    # who waits: a future of an event loop (resolved there, a whole batch per wake-up), else a thread
+    waiter: asyncio.Future[str | None] | None = None
+    event: threading.Event | None = None
+
+    def outcome(self) -> str | None:
+        """Once committed: the NewFile's final path (None for a Line), or the error that was its own."""
+        if self.error is not None:
+            raise self.error
+        return self.path
 
 
 class GroupCommit:
-    """One writer thread, started on first use; ``submit`` returns a future per operation."""
+    """One writer thread, started on first use; ``submit`` queues an operation and returns it.
+
+    The thread only makes system calls on bytes the callers prepared (the files created and written,
+    the journal lines encoded) and wakes each event loop once per batch: any Python work it does holds
+    the GIL, and a busy event loop coming back from a system call of its own waited for it (in a fleet
+    of 10,000 devices a create of a lock file took 190 us where 40 us were the file system's)."""
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
         self._queue: list[_Pending] = []
         self._thread: threading.Thread | None = None
 
-    def submit(self, op: NewFile | Line) -> _Pending:
-        """Queue ``op``; a NewFile is created and written here, by the caller (OSError: nothing queued),
-        so the writer thread only has to fsync it: each call it makes waits for the GIL, which a busy
-        event loop holds, and that wait, not the disk, was most of a device's time here."""
-        p = _Pending(op)
+    def submit(self, p: _Pending) -> _Pending:
+        """Queue ``p``; a NewFile is created and written here, and every journal line encoded, by the caller
+        (OSError, TypeError: nothing queued)."""
+        op = p.op
         if isinstance(op, NewFile):
             _create(p)
+            if op.journal is not None and op.line is not None:
+                try:
+                    p.data = _line({**op.line, op.path_key: p.path, f"{op.path_key}_sha256": p.digest})
+                except BaseException:
+                    _close(p)
+                    raise
+        else:
+            p.data = _line(op.record)
         with self._cond:
             self._queue.append(p)
             if self._thread is None or not self._thread.is_alive():
-                # a daemon: it only ever waits for work when idle, and every caller waits for its own future
+                # a daemon: it only ever waits for work when idle, and every caller waits for its own operation
                 self._thread = threading.Thread(target=self._loop, name="deployer-group-commit", daemon=True)
                 self._thread.start()
-            self._cond.notify()
+            if len(self._queue) == 1:  # more in the queue: the thread was woken already
+                self._cond.notify()
         return p
 
     def _loop(self) -> None:
@@ -99,14 +122,45 @@ class GroupCommit:
                 batch, self._queue = self._queue, []
             try:
                 commit(batch)
-            except Exception as e:  # a bug (say, a record JSON cannot say) must not leave its callers waiting
+            except Exception as e:  # a bug must not leave its callers waiting
                 for p in batch:
-                    if not p.done.done():
-                        p.done.set_exception(e)
+                    if not p.finished:
+                        p.error, p.finished = e, True
+                    _close(p)
+            _wake(batch)
+
+
+def _wake(batch: list[_Pending]) -> None:
+    """Tell the batch's waiters: each event loop once (one wake-up of its loop), each thread by its event."""
+    loops: dict[asyncio.AbstractEventLoop, list[_Pending]] = {}
+    for p in batch:
+        if p.waiter is not None:
+            loops.setdefault(p.waiter.get_loop(), []).append(p)
+        elif p.event is not None:
+            p.event.set()
+    for loop, ps in loops.items():
+        with contextlib.suppress(RuntimeError):  # its loop is closed: nobody waits any more
+            loop.call_soon_threadsafe(_resolve, ps)
+
+
+def _resolve(ps: list[_Pending]) -> None:
+    """In the waiters' event loop: each one's result (a waiter cancelled meanwhile is done already)."""
+    for p in ps:
+        w = p.waiter
+        if w is not None and not w.done():
+            if p.error is not None:
+                w.set_exception(p.error)
+            else:
+                w.set_result(p.path)
+
+
+def _line(record: dict[str, Any]) -> bytes:
+    return (json.dumps(record) + "\n").encode()
 
 
 def commit(batch: list[_Pending]) -> None:
-    """Make a batch durable: its files (each fsync'ed), their folders (once each), then the journal lines."""
+    """Make a batch durable: its files (each fsync'ed), their folders (once each), then the journal lines.
+    Each operation ends ``finished`` with its ``error`` (None: durable); every file is closed."""
     failed: dict[int, BaseException] = {}
     files = [p for p in batch if isinstance(p.op, NewFile)]
     for p in files:
@@ -117,6 +171,7 @@ def commit(batch: list[_Pending]) -> None:
                 os.fsync(p.fd)
             except OSError as e:
                 failed[id(p)] = e
+            _close(p)
     folders: dict[str, list[_Pending]] = {}
     for p in files:
         if id(p) not in failed and p.path is not None:
@@ -126,27 +181,27 @@ def commit(batch: list[_Pending]) -> None:
             _fsync_dir(folder)  # the directory entries, or a crash can lose the files
         except OSError as e:
             failed.update((id(p), e) for p in ps)
-    lines: dict[str, list[tuple[_Pending, dict[str, Any]]]] = {}
+    lines: dict[str, list[_Pending]] = {}
     for p in batch:
         op = p.op
         if id(p) in failed:
             continue
-        if isinstance(op, Line):
-            lines.setdefault(op.journal, []).append((p, op.record))
-        elif op.journal is not None and op.line is not None:
-            lines.setdefault(op.journal, []).append((p, {**op.line, op.path_key: p.path,
-                                                         f"{op.path_key}_sha256": p.digest}))
-    for path, entries in lines.items():
+        if p.data is None:  # not through ``submit`` (its file created here): encoded now
+            try:
+                p.data = (_line(op.record) if isinstance(op, Line) else None if op.journal is None or op.line is None
+                          else _line({**op.line, op.path_key: p.path, f"{op.path_key}_sha256": p.digest}))
+            except (TypeError, ValueError) as e:
+                failed[id(p)] = e
+                continue
+        if p.data is not None:
+            lines.setdefault(op.journal if isinstance(op, Line) else op.journal or "", []).append(p)
+    for path, ps in lines.items():
         try:
-            append_lines(path, [r for _, r in entries])
+            append_bytes(path, [p.data for p in ps if p.data is not None])
         except OSError as e:
-            failed.update((id(p), e) for p, _ in entries)
+            failed.update((id(p), e) for p in ps)
     for p in batch:
-        err = failed.get(id(p))
-        if err is not None:
-            p.done.set_exception(err)
-        else:
-            p.done.set_result(p.path)
+        p.error, p.finished = failed.get(id(p)), True
 
 
 def _create(p: _Pending) -> None:
@@ -203,8 +258,13 @@ def append_lines(path: str, records: list[dict[str, Any]]) -> None:
     crash or a full disk), a newline goes first, so the torn line costs only itself. Windows appends
     are a seek and a write, not one step: there the file's lock (``state.oslock``) is held around them.
     """
+    append_bytes(path, [_line(r) for r in records])
+
+
+def append_bytes(path: str, lines: list[bytes]) -> None:
+    """``append_lines`` of lines encoded already (each ending with a newline)."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    data = "".join(json.dumps(r) + "\n" for r in records).encode()
+    data = b"".join(lines)
     fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT | O_BINARY | O_CLOEXEC, 0o644)
     try:
         if portable.WINDOWS:
@@ -338,13 +398,13 @@ def _write_pieces(fd: int, pieces: Iterable[bytes]) -> None:
         batch.append(piece)
         size += len(piece)
         if size >= 1 << 20:
-            _writev(fd, batch)
+            writev_all(fd, batch)
             batch, size = [], 0
     if batch:
-        _writev(fd, batch)
+        writev_all(fd, batch)
 
 
-def _writev(fd: int, pieces: list[bytes]) -> None:
+def writev_all(fd: int, pieces: list[bytes]) -> None:
     """All of ``pieces``, in order, in as few writev calls as the system allows (short writes resumed);
     one write each where there is no writev (Windows)."""
     if sys.platform == "win32" or not hasattr(os, "writev"):
@@ -373,25 +433,22 @@ _WRITER = GroupCommit()
 
 async def durable(op: NewFile | Line) -> str | None:
     """Wait until ``op`` is on disk (with whatever else was pending); a NewFile's final path."""
-    p = _WRITER.submit(op)
-    try:
-        return await asyncio.wrap_future(p.done)
-    finally:
-        if p.done.done():
-            _close(p)
-        else:  # cancelled while the writer may be using the fd: it closes when it is done with it
-            p.done.add_done_callback(lambda _: _close(p))
+    return await queue(op)
 
 
 def durable_now(op: NewFile | Line) -> str | None:
     """The same, from synchronous code (no event loop)."""
-    p = _WRITER.submit(op)
-    try:
-        return p.done.result()
-    finally:
-        _close(p)
+    p = _Pending(op, event=threading.Event())
+    _WRITER.submit(p)
+    assert p.event is not None
+    p.event.wait()
+    return p.outcome()
 
 
-def queue(op: Line) -> asyncio.Future[str | None]:
-    """Queue a line now and hand back its wait, to be awaited later (a fleet device frees its slot first)."""
-    return asyncio.wrap_future(_WRITER.submit(op).done)
+def queue(op: NewFile | Line) -> asyncio.Future[str | None]:
+    """Queue ``op`` now and hand back its wait, to be awaited later (a fleet device frees its slot first).
+    Cancelling the wait does not stop the operation: the writer finishes it (and closes its file)."""
+    p = _Pending(op, waiter=asyncio.get_running_loop().create_future())
+    _WRITER.submit(p)
+    assert p.waiter is not None
+    return p.waiter
