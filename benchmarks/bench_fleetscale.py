@@ -108,7 +108,7 @@ class Bench:
         size = os.path.getsize(path)
         del doc
         os.remove(path)
-        return {"wall": m["wall"], "cpu": m["cpu"], "rss_mb": m["maxrss_kb"] / 1024, "written": m["written_bytes"],
+        return {"wall": m["wall"], "cpu": m["cpu"], "sys": m.get("sys", 0.0), "rss_mb": m["maxrss_kb"] / 1024, "written": m["written_bytes"],
                 "fleet": summary["seconds"], "report_bytes": size,
                 "requests": summary["write_requests"] + summary["read_requests"]}
 

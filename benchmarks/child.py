@@ -56,7 +56,7 @@ def _main() -> None:
                             preexec_fn=limited if limit else None)
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t
-    print(json.dumps({"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "maxrss_kb": usage.ru_maxrss,
+    print(json.dumps({"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "sys": usage.ru_stime, "maxrss_kb": usage.ru_maxrss,
                       "code": os.waitstatus_to_exitcode(status),
                       "written_bytes": usage.ru_oublock * 512}))  # Linux: the command's block output
 

@@ -142,7 +142,7 @@ class LiveReport:
             batch, self._pending = self._pending, []
         if not batch or self._fd < 0:
             return
-        pieces = []
+        pieces: list[bytes] = []
         offset = self._size
         at = {}
         for name, line in batch:  # the lines as they are, no copy (this thread holds the GIL while it copies)
