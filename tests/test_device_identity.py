@@ -60,8 +60,9 @@ def test_two_runs_by_two_spellings_exclude_each_other(tmp_path: Path) -> None:
         assert code == 3 and f"locked by PID {a.pid}" in out + err, out + err
         assert sim.read("base_speed") == (1750,)  # only the first run wrote
         keys = urls.parse_url(sim.url).lock_keys
-    for k in keys:  # released locks leave no files
-        assert not _lock_path(f"{k}#bus").exists() and not _lock_path(lock.device_key(k, 1)).exists()
+    for k in keys:  # released locks leave no record (their files stay for the next run: no inode churn)
+        for path in (_lock_path(f"{k}#bus"), _lock_path(lock.device_key(k, 1))):
+            assert not path.exists() or path.read_bytes() == b""
 
 
 def _records() -> list[dict[str, object]]:
@@ -112,7 +113,7 @@ def test_lock_folder_rules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> N
     assert stat.S_IMODE(d.stat().st_mode) == 0o1777  # sticky, every user's runs share it
     assert stat.S_IMODE(Path(held.path).stat().st_mode) == 0o666  # whatever the umask: others lock it too
     held.release()
-    assert list(d.iterdir()) == []
+    assert [(f.name, f.read_bytes()) for f in d.iterdir()] == [(Path(held.path).name, b"")]  # kept, no record
     lock._ready.clear()
     link = tmp_path / "link"
     link.symlink_to(d)
@@ -128,20 +129,25 @@ def test_lock_folder_rules(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> N
         lock.try_lock("k")
 
 
-def test_a_shared_bus_lock_file_goes_with_its_last_holder() -> None:
+def test_a_shared_bus_lock_is_held_until_its_last_holder_lets_go() -> None:
     a = lock.try_lock("bus", shared=True)
     b = lock.try_lock("bus", shared=True)
     a.release()
-    assert os.path.exists(b.path)
+    with pytest.raises(Locked, match="the bus is in use"):  # b still holds it: a broadcast must wait
+        lock.try_lock("bus")
     b.release()
-    assert not os.path.exists(b.path)
+    alone = lock.try_lock("bus")
+    alone.release()
+    assert os.path.getsize(alone.path) == 0  # no record left behind: nothing to call stale
 
 
 def test_a_waiter_on_a_removed_file_locks_the_new_one() -> None:
-    """The holder removes the file on release; a run that opened the old file must not think it holds the lock."""
+    """An older deployer removes the file on release; a run that opened the old file must not think it holds
+    the lock (both versions may run side by side on one machine)."""
     first = lock.try_lock("dev")
     old = os.open(first.path, os.O_RDWR)
     first.release()
+    os.unlink(first.path)  # as an older deployer's release did
     second = lock.try_lock("dev")  # creates a new file at the path
     try:
         import fcntl
@@ -244,4 +250,4 @@ def test_release_by_another_process_is_safe(tmp_path: Path) -> None:
     code = ("from deployer.state import lock; h = lock.try_lock('x'); import sys; sys.stdout.write(h.path); "
             "sys.stdout.flush(); h.release()")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert p.returncode == 0 and not os.path.exists(p.stdout)
+    assert p.returncode == 0 and os.path.getsize(p.stdout) == 0  # released in that process: no record left

@@ -105,42 +105,23 @@ class DeviceLock:
             _write_record(self.fd, self.record)
 
     def release(self) -> None:
-        """Unlock, and remove the file when no one else holds it (its record is of no use any more).
+        """Unlock; an exclusive holder first empties the file (a clean release leaves no record to call stale).
 
-        The file goes while we hold it exclusively: a run that opened it meanwhile finds, once it has
-        the lock, that its file is no longer at the path, and opens the path again (``try_lock``).
+        The file stays for the next run of this device: a fleet that created and removed two files per
+        device spent most of its system time in the file system's inode allocation, which skips every inode
+        freed in the last minutes (ext4's ``recently_deleted``: quadratic in the devices of a run). An older
+        deployer removes it on release; ``try_lock`` opens the path again when its file went meanwhile.
         """
         if self.fd < 0:
             return
         backend = oslock.backend()
-        mine = not self.shared
-        if self.shared:  # the last shared holder removes it; anyone else still holding keeps it
+        if not self.shared:
             with contextlib.suppress(OSError):
-                backend.unlock(self.fd)  # Windows turns no shared lock into an exclusive one: unlock first
-            try:
-                mine = backend.try_lock(self.fd)
-            except OSError:
-                mine = False
-        removed = False
-        if mine and not portable.WINDOWS:
-            try:
-                os.unlink(self.path)  # another user's file in the sticky folder: EPERM, it stays
-                removed = True
-            except OSError:
-                pass
-        if mine and not removed:
-            with contextlib.suppress(OSError):
-                os.ftruncate(self.fd, 0)  # a clean release leaves no record to call stale
+                os.ftruncate(self.fd, 0)
         with contextlib.suppress(OSError):
             backend.unlock(self.fd)
         os.close(self.fd)
         self.fd = -1
-        if mine and portable.WINDOWS:
-            # Windows removes no file that is open, so this fails while anyone else has it open (waiting
-            # for it or holding it): only a file nobody uses goes. (On POSIX, removing after the close
-            # could remove a file another run has just locked.)
-            with contextlib.suppress(OSError):
-                os.unlink(self.path)
 
 
 _holder_text = holder.describe

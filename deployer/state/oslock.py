@@ -9,9 +9,8 @@ Two backends, one chosen at run time (``backend()``), never imported where they 
     ``LockFileEx`` on Windows, open-file-description locks (``F_OFD_SETLK``, called through ctypes)
     on Linux. Both belong to the open file, not the process, and are dropped when it is closed and
     when the process dies, however it dies; the byte is past the record because Windows' locks are
-    mandatory (nobody could read a locked record to say who holds it). A held file is never removed
-    (Windows refuses to remove an open file): ``state.lock`` removes it after closing, where that
-    is safe only because Windows refuses while anyone else has it open.
+    mandatory (nobody could read a locked record to say who holds it). ``state.lock`` never removes
+    a lock file (Windows refuses to remove an open one anyway): a released one is emptied and stays.
 
 Never a lock file whose mere existence is the lock: a holder killed mid-run would leave it behind.
 """
@@ -32,7 +31,6 @@ _BUSY = (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK)
 
 class Backend:
     name = ""
-    remove_while_held = True  # whether a held lock file may be unlinked (POSIX yes, Windows no)
 
     def try_lock(self, fd: int, *, shared: bool = False) -> bool:
         """Take the lock without waiting: False when another open file holds it (OSError: cannot lock)."""
@@ -74,7 +72,6 @@ class Range(Backend):
     """One byte at OFFSET, through ``_primitive`` (LockFileEx or F_OFD_SETLK)."""
 
     name = "range"
-    remove_while_held = False
 
     def __init__(self) -> None:
         self._lock = _windows_range() if sys.platform == "win32" else _ofd_range()
