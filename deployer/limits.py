@@ -66,7 +66,8 @@ class Limits:
     ``parallel``: devices at once; ``timeout``: seconds per request attempt; ``retries``: retries after a
     timeout or busy answer; ``soak`` and ``confirm_within``: the safe-change windows; ``health_interval``:
     the time between two rounds of health checks (at least 100 ms: a soak reads the device, it must not
-    flood it); ``pause``: between batches; ``lock_timeout``: the wait for a device another run holds.
+    flood it); ``pause``: between batches; ``lock_timeout``: the wait for a device another run holds;
+    ``workers``: worker processes running a fleet's devices (0: none, all in the run's own process).
     """
 
     parallel: Bound = Bound(1, 1024, integer=True)
@@ -77,6 +78,7 @@ class Limits:
     health_interval: Bound = Bound(0.1, 3600, unit="seconds")
     pause: Bound = Bound(0, WEEK, unit="seconds")
     lock_timeout: Bound = Bound(0, WEEK, unit="seconds")
+    workers: Bound = Bound(0, 64, integer=True)
 
 
 LIMITS = Limits()

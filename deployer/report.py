@@ -124,6 +124,8 @@ class DeviceResult:
     unrecorded: list[str] = field(default_factory=list)  # what the journal or report could not record (disk full)
     tally: Tally | None = None  # set once the requests and parameters were dropped (``small``)
     seen: str | None = None  # when (UTC) the values in the parameters' after_raw were read from the device
+    # its report line as ``device_json`` made it where the device ran (a fleet's worker process): not remade here
+    report_line: bytes | None = field(default=None, repr=False, compare=False)
 
     @property
     def write_requests(self) -> int:
@@ -371,6 +373,8 @@ def device_json(d: DeviceResult) -> bytes:
     A fleet writes 100 parameters per device, and most of each (name, address, desired value, and the
     registers before and after, which devices configured alike share) repeats from device to device:
     encoding them anew took most of the report's CPU."""
+    if d.report_line is not None:
+        return d.report_line
     if not d.parameters:
         return json.dumps(d.to_json()).encode()
     params = "[" + ", ".join([_parameter_json(p) for p in d.parameters]) + "]"

@@ -88,14 +88,16 @@ def half_way(sims: list[Simulator]) -> bool:
     return any(n == N for n in done) and any(0 < n <= N - 5 for n in done)  # 5 writes (0.5 s) of margin
 
 
-def fleet_apply(files: Path) -> subprocess.Popen[str]:
+def fleet_apply(files: Path, workers: int = 0) -> subprocess.Popen[str]:
     return start("apply", "new.yaml", "--inventory", "fleet.yaml", "--parallel", "4", "--yes",
-                 "--report", "run.json", "--state-dir", "state", cwd=files)
+                 "--report", "run.json", "--state-dir", "state", "--workers", str(workers), cwd=files)
 
 
+# in this process, and in two worker processes (fleet.workers): the same outcome, the same report
+@pytest.mark.parametrize("workers", [0, 2])
 def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
-        files: Path, fleet: list[Simulator]) -> None:
-    proc = fleet_apply(files)
+        files: Path, fleet: list[Simulator], workers: int) -> None:
+    proc = fleet_apply(files, workers)
     wait_for(lambda: half_way(fleet), "devices half-written")
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=30)
@@ -125,8 +127,10 @@ def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
     assert "nothing was written there" in err  # the devices never started (d9 at least)
 
 
-def test_sigint_mid_fleet_ends_with_an_exact_report_and_rolls_back(files: Path, fleet: list[Simulator]) -> None:
-    proc = fleet_apply(files)
+@pytest.mark.parametrize("workers", [0, 2])
+def test_sigint_mid_fleet_ends_with_an_exact_report_and_rolls_back(files: Path, fleet: list[Simulator],
+                                                                   workers: int) -> None:
+    proc = fleet_apply(files, workers)
     wait_for(lambda: half_way(fleet), "devices half-written")
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)

@@ -24,6 +24,7 @@ from .base import (
     echo,
     fleet_option,
     float_range,
+    int_range,
     limit_option,
     parallel_option,
     safe,
@@ -274,6 +275,10 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
                      help="where snapshots and the audit log go"),
         click.option("--lock-timeout", type=float_range(LIMITS.lock_timeout), default=0, show_default=True, metavar="S",
                      help="wait up to S seconds for a device another run on this machine is writing"),
+        click.option("--workers", type=int_range(LIMITS.workers), default=None, metavar="N",
+                     help="worker processes running a fleet's devices (0: all in this process; default: one per "
+                          "CPU for 500 devices or more, unless --soak, --confirm-within, --rollback-on-failure or "
+                          "a question per device keeps them in this process)"),
     ]
     for opt in reversed(opts):
         f = opt(f)

@@ -20,6 +20,7 @@ from ..report import DeviceResult, Report
 from ..transport import clients as tp
 from ..window.held import Written
 from ..window.rollout import Window
+from .workers import Call, Pool, WorkerGone, ineligible
 
 # ---- fleets ----------------------------------------------------------------------------------
 
@@ -145,7 +146,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                      on_confirm_wait: Callable[[str, float], None] | None = None,
                      on_changed: Callable[[DeviceResult], None] | None = None,
                      on_soak: Callable[[int, list[str]], None] | None = None,
-                     keep_results: bool = True) -> Report:
+                     keep_results: bool = True, workers: int = 0, report_lines: bool = True) -> Report:
     """Apply to many devices: in parallel, except that devices on one bus go one at a time.
 
     ``batches`` (sizes, in job order; ``batch_plan`` orders a mixed line) stage the rollout: each batch
@@ -166,6 +167,9 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     soak starts. ``keep_results`` False: a device that ended ok is kept as its ``DeviceResult.small()`` once
     ``on_done`` had it (which wrote its report line), unless a soak, a confirmation or ``rollback_on_failure``
     may still change it: 10,000 devices x 100 parameters held 34 KB of result objects per device.
+    ``workers``: run the devices in that many worker processes (``fleet.workers``; a plain run only: UsageError
+    otherwise), this process keeping the rollout; ``report_lines``: whether ``on_done`` writes each device's
+    report line (``report.device_json``), which the workers then encode.
     """
     opts = options or ApplyOptions()
     window = Window(opts, recipe_name, on_changed=on_changed, on_soak=on_soak, on_confirm_wait=on_confirm_wait)
@@ -175,6 +179,13 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                        on_done=on_done, on_start=on_start)
     rollout.small_ok = (not keep_results and opts.soak is None and opts.confirm_within is None
                         and not rollback_on_failure)
+    if workers:
+        why = ineligible(opts, rollback_on_failure=rollback_on_failure)
+        if why is not None:
+            window.close()
+            raise UsageError(f"worker processes cannot run this fleet: {why} (run it with --workers 0)")
+        rollout.pool = await Pool.start(workers, jobs, opts, lines=report_lines and on_done is not None,
+                                        small_ok=rollout.small_ok, files=min(parallel, len(jobs)) + 64)
     try:
         await rollout.batches(list(batches) if batches else [len(jobs)], parallel, between_batches)
         await window.end(rollout.written(jobs), rollout.stop, rollback_on_failure=rollback_on_failure)
@@ -183,6 +194,8 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         raise RunInterrupted(rollout.interrupted()) from None
     finally:
         window.close()
+        if rollout.pool is not None:
+            await rollout.pool.close()
     return rollout.report()
 
 
@@ -204,6 +217,7 @@ class _Rollout:
         self.small_ok = False  # keep a device that ended ok as its small result once on_done had it
         self.stop: str | None = None
         self.started = time.monotonic()
+        self.pool: Pool | None = None  # worker processes running the devices (None: this process does)
 
     async def batches(self, sizes: Sequence[int], parallel: int,
                       between: Callable[[int, Report], Awaitable[str | None]] | None) -> None:
@@ -239,6 +253,8 @@ class _Rollout:
             return None
         if self.on_start:
             self.on_start(j)
+        if self.pool is not None:
+            return await self.remote(self.pool, j, batch)
         t = time.monotonic()
         finishing: Awaitable[object] | None = None
         try:
@@ -274,6 +290,65 @@ class _Rollout:
             self.on_done(r)
         if self.small_ok and r.status == "ok":
             self.done[r.name] = r.small()
+
+    async def remote(self, pool: Pool, j: Job, batch: int | None) -> Awaitable[None] | None:
+        """``one`` for a device a worker process runs: the same outcome, said by the worker."""
+        call = pool.run(j, batch)
+        try:
+            kind, *said = await asyncio.shield(call.done)
+        except asyncio.CancelledError:  # the run was interrupted: the device says what it holds, as in one()
+            pool.cancel(call)
+            try:
+                kind, *said = await call.done
+            except WorkerGone as e:
+                kind, said = "gone", [str(e)]
+            if kind == "interrupted":
+                self.done[j.name] = said[0]
+                raise DeviceInterrupted(said[0]) from None
+            if kind == "gone":
+                self.done[j.name] = self.lost(j, batch, call, said[0])
+                raise
+        except WorkerGone as e:
+            kind, said = "gone", [str(e)]
+        if kind == "interrupted":  # the worker stopped it without being asked: its process is going away
+            kind, said = "gone", ["its worker process is ending"]
+        if kind == "gone":
+            r = self.lost(j, batch, call, said[0])
+            self.stop = self.stop or "not started: a worker process ended unexpectedly"
+        elif kind == "failed":  # the UsageError of one(), or an error in deployer: the device failed, said so
+            r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=said[0],
+                             profile_ref=profile_ref(j.recipe.profile), recipe=j.recipe.path, batch=batch,
+                             profile_sha256=j.recipe.profile.digest)
+            r.parameters = list(_results(j.recipe).values())
+            r.seconds = time.monotonic() - call.started
+        else:
+            self.budget.failures += said[0] not in SPENDS_NOTHING
+            return self.recorded(j, call)
+        self.done[j.name] = r
+        self.budget.count(r)
+        return self.finished(r, None)
+
+    async def recorded(self, j: Job, call: Call) -> None:
+        """A worker's device once its journal line is on disk: its result and report line, reported done."""
+        try:
+            r, line = await call.recorded
+        except WorkerGone as e:
+            r, line = self.lost(j, self.batch_of.get(j.name), call, str(e)), None
+        r.report_line = line
+        self.done[j.name] = r
+        if self.on_done:
+            self.on_done(r)
+
+    def lost(self, j: Job, batch: int | None, call: Call, why: str) -> DeviceResult:
+        """A device whose worker process went away while it ran: what is known (its snapshot, if its writes had
+        started), said as an interrupted device."""
+        r = call.writing or skipped_result(j, "", batch, parameters=False)
+        r = replace(r, status="interrupted", seconds=time.monotonic() - call.started,
+                    error=(f"{why}; some parameters may hold new values: restore with: deployer rollback {r.snapshot}"
+                           if r.snapshot else f"{why} before its first write; nothing was written"))
+        if not r.parameters:
+            r.parameters = list(_results(j.recipe).values())
+        return r
 
     def written(self, batch: Sequence[Job]) -> list[Written]:
         return [self.window.device(j, self.done[j.name]) for j in batch if j.name in self.done]

@@ -36,7 +36,8 @@ class RunRequest:
     ``inventory`` and ``limit`` (a fleet); ``timeout``/``retries`` override every device's. ``batch`` (a
     share of every profile, or of every group: ``batch_by``), ``max_failures``, ``pause`` and ``ask``
     stage a fleet run; ``soak``, ``health_interval`` and ``confirm_within`` make it a safe change.
-    Numbers are in seconds, within ``deployer.LIMITS``.
+    ``workers``: worker processes running the devices of a plain fleet run (0: none; None: one per CPU
+    for a fleet of 500 devices or more, ``fleet.workers``). Numbers are in seconds, within ``deployer.LIMITS``.
     """
 
     source: str | None = None
@@ -69,6 +70,7 @@ class RunRequest:
     ask: bool = False
     report_path: str | None = None
     html_path: str | None = None
+    workers: int | None = 0
 
     @property
     def fleet(self) -> bool:
@@ -115,6 +117,8 @@ def _check_numbers(r: RunRequest) -> None:
             getattr(LIMITS, key).check(getattr(r, key), key)
     LIMITS.health_interval.check(r.health_interval, "health_interval")
     LIMITS.lock_timeout.check(r.lock_timeout, "lock_timeout")
+    if r.workers is not None:
+        LIMITS.workers.check(r.workers, "workers")
 
 
 def _check_combinations(r: RunRequest) -> None:
@@ -227,4 +231,5 @@ async def execute(prepared: PreparedRun, *, confirm: Confirm | None = None, comm
                            options=options, parallel=r.parallel, batch=r.batch, max_failures=r.max_failures,
                            batch_by=r.batch_by,
                            report_path=r.report_path, signals=signals, refuse_broadcast=True,
-                           rollback_on_failure=r.rollback_on_failure, on_start=on_start, on_done=on_done, **hooks)
+                           rollback_on_failure=r.rollback_on_failure, on_start=on_start, on_done=on_done,
+                           workers=r.workers, **hooks)

@@ -34,6 +34,7 @@ from ..execute.job import Job
 from ..execute.session import ApplyOptions
 from ..fleet.livereport import LiveReport
 from ..fleet.rollout import apply_many, batch_plan, batch_sizes, failure_budget
+from ..fleet.workers import auto_count, ineligible
 from ..portable import interrupt_signals, on_signals, raise_open_files
 from ..report import DeviceResult, Report, run_info
 from ..state import journal
@@ -42,7 +43,7 @@ from ..transport.urls import describe
 from ..window.soak import check_soak_profiles
 
 __all__ = ["check_broadcast", "check_writable", "ensure_files", "fleet_options", "run",
-           "run_async"]
+           "run_async", "worker_count"]
 
 
 def check_broadcast(jobs: Sequence[Job], allow_broadcast: bool) -> None:
@@ -60,6 +61,19 @@ def ensure_files(parallel: int, devices: int) -> None:
     if hard is not None:
         raise UsageError(f"--parallel {parallel} needs about {need} open files, but this system allows {hard} "
                          f"(ulimit -Hn); use --parallel {max(1, hard - 64)} or raise the limit")
+
+
+def worker_count(workers: int | None, devices: int, parallel: int, opts: ApplyOptions, *,
+                 rollback_on_failure: bool) -> int:
+    """The worker processes a run takes (``fleet.workers``): ``workers`` itself (never more than devices at once),
+    or for None one per CPU when the fleet is big enough; 0 where the devices must stay in this process. A count
+    given for such a run is a UsageError before anything happens."""
+    why = ineligible(opts, rollback_on_failure=rollback_on_failure)
+    if workers is None:
+        return 0 if why is not None else auto_count(devices, parallel)
+    if workers and why is not None:
+        raise UsageError(f"--workers {workers}: {why}, so its devices run in this process (use --workers 0)")
+    return min(workers, parallel, devices)
 
 
 def check_writable(folder: str, what: str) -> None:
@@ -96,7 +110,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
                     report_path: str | None = None, signals: bool = False, refuse_broadcast: bool = False,
                     on_start: Callable[[Job], None] | None = None,
                     on_done: Callable[[DeviceResult], None] | None = None, keep_results: bool = True,
-                    **safe: Any) -> Report:
+                    workers: int | None = 0, **safe: Any) -> Report:
     """Run ``jobs`` as one journaled run (see the module's docstring); the report of every device.
 
     ``label``: what is applied (recipe, plan or snapshot file; the report's ``recipe``). ``command``,
@@ -108,7 +122,9 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     happens (the command line), not a ``failed`` device in the report.
     ``safe``: ``rollback_on_failure``, ``between_batches``, ``on_confirm_wait`` of ``fleet.rollout.apply_many``.
     ``keep_results`` False: devices that ended ok come back as ``DeviceResult.small()`` (counts, no
-    requests or parameters: the report file has them), as ``apply_many`` says.
+    requests or parameters: the report file has them), as ``apply_many`` says. ``workers``: worker processes
+    running the devices (``fleet.workers``; 0: none; None: one per CPU for a big plain fleet); a run that must
+    keep its devices in this process (a soak, a question per device) refuses a count given.
 
     Raises UsageError (nothing sent) for bad options, StalePlan or Declined when the run was refused
     before any write, RunInterrupted (with ``.report``) when it was interrupted.
@@ -122,6 +138,8 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         check_soak_profiles([j.recipe.profile for j in jobs])
     _, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
                               report_path=report_path)
+    workers = worker_count(workers, len(jobs), parallel, opts,
+                           rollback_on_failure=bool(safe.get("rollback_on_failure")))
     jobs, sizes = batch_plan(jobs, batch, batch_by)  # each batch covers every profile (or group) of the line
     started = time.time()
     state_dir = os.path.abspath(opts.state_dir)
@@ -159,7 +177,8 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     try:
         report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
                                   on_done=done, batches=sizes, max_failures=budget,
-                                  on_changed=changed, keep_results=keep_results, **safe)
+                                  on_changed=changed, keep_results=keep_results, workers=workers,
+                                  report_lines=live is not None, **safe)
     except RunInterrupted as e:
         report = e.report
         report.interrupted = why[0] if why else "cancelled"

@@ -1,0 +1,192 @@
+"""Worker processes for big fleets (``deployer.fleet.workers``): the same outcome as one process, and no device
+left behind when a process of the run dies.
+
+Real processes (``python -m deployer apply --workers 2``) against simulated devices on 127.0.0.1; the
+interrupted-run tests of test_runs.py also run with workers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from deployer.errors import UsageError
+from deployer.execute.session import ApplyOptions
+from deployer.fleet.workers import MIN_DEVICES, auto_count
+from deployer.report import read_report
+from deployer.run.runner import worker_count
+from deployer.testing.simulator import Simulator
+from tests.helpers import wait_for
+from tests.test_runs import (
+    N,
+    audit,
+    before,
+    deployer,
+    files,  # noqa: F401 (a fixture)
+    fleet,  # noqa: F401 (a fixture)
+    fleet_apply,
+    half_way,
+    holds,
+    writes,
+)
+
+pytestmark = pytest.mark.timeout(300)
+_WORKER = "from deployer.fleet.workers import main; main()"
+
+
+def _children(pid: int) -> list[int]:
+    """The worker processes of run ``pid`` (Linux's /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                cmd = f.read().decode(errors="replace")
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        if _WORKER in cmd and ppid == pid:
+            out.append(int(entry))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _same(doc: dict[str, Any]) -> list[dict[str, Any]]:
+    """A report's devices without what differs between two runs of the same change (times, snapshot files)."""
+    out = []
+    for d in doc["devices"]:
+        d = {k: v for k, v in d.items() if k not in ("seconds", "snapshot", "snapshot_sha256", "seen")}
+        out.append(d)
+    return out
+
+
+needs_proc = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the workers in Linux's /proc")
+
+
+def test_two_workers_report_what_one_process_reports(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
+    reports = []
+    for workers in (0, 2):
+        for i, s in enumerate(fleet):  # the same starting point for both runs
+            for k, v in enumerate(before(i)):
+                s.write(f"p{k}", (v,))
+        code, out, err = deployer("apply", "new.yaml", "--inventory", "fleet.yaml", "--parallel", "4", "--yes",
+                                  "--report", f"run{workers}.json", "--state-dir", f"state{workers}",
+                                  "--workers", str(workers), cwd=files)
+        assert code == 0, out + err
+        assert all(holds(s) == (7,) * N for s in fleet)
+        reports.append(json.loads((files / f"run{workers}.json").read_text()))
+        for d in reports[-1]["devices"]:
+            assert os.path.isfile(d["snapshot"]) and d["status"] == "ok"
+    one, two = reports
+    assert _same(one) == _same(two)
+    assert {k: v for k, v in one["summary"].items() if k != "seconds"} == \
+        {k: v for k, v in two["summary"].items() if k != "seconds"}
+    assert one["profiles"] == two["profiles"]
+    for workers in (0, 2):  # the journal: each device started (its snapshot named) and finished, then the run
+        lines = audit(files / f"state{workers}")
+        started = {x["name"]: x for x in lines if x["event"] == "device-started"}
+        finished = {x["name"]: x for x in lines if x["event"] == "device-finished"}
+        assert set(started) == set(finished) == {f"d{i}" for i in range(len(fleet))}
+        assert all(started[n]["snapshot"] == finished[n]["snapshot"] for n in started)
+        assert lines[-1]["event"] == "run-finished" and lines[-1]["exit_code"] == 0
+        assert [d["written"] for d in lines[-1]["devices"]] == [[f"p{k}" for k in range(N)]] * len(fleet)
+
+
+@needs_proc
+def test_a_killed_run_takes_its_workers_with_it(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
+    proc = fleet_apply(files, 2)
+    wait_for(lambda: half_way(fleet), "devices half-written")
+    workers = _children(proc.pid)
+    assert len(workers) == 2
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    wait_for(lambda: not any(_alive(w) for w in workers), "the workers to end", timeout=30)
+    sent = [writes(s) for s in fleet]
+    time.sleep(0.5)  # nothing goes on behind the killed run's back
+    assert [writes(s) for s in fleet] == sent
+    code, out, err = deployer("rollback", "--from-report", "run.json", "--yes", "--state-dir", "state", cwd=files)
+    assert code == 0, out + err
+    for i, s in enumerate(fleet):
+        assert holds(s) == before(i), f"d{i}"
+
+
+@needs_proc
+def test_a_worker_that_dies_ends_the_run_truthfully(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
+    proc = fleet_apply(files, 2)
+    wait_for(lambda: half_way(fleet), "devices half-written")
+    victim = _children(proc.pid)[0]
+    os.kill(victim, signal.SIGKILL)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 4, out + err
+    report = json.loads((files / "run.json").read_text())
+    statuses = {d["name"]: d for d in report["devices"]}
+    lost = [d for d in statuses.values() if "worker process" in (d.get("error") or "")]
+    assert lost and all(d["status"] in ("interrupted", "skipped") for d in lost)
+    for i, s in enumerate(fleet):  # what the report says of each device is what it holds
+        d = statuses[f"d{i}"]
+        if d["status"] == "ok":
+            assert holds(s) == (7,) * N
+        elif d["status"] == "skipped":
+            assert holds(s) == before(i) and not writes(s)
+        elif writes(s):
+            assert d["status"] == "interrupted" and d["snapshot"] and "deployer rollback" in d["error"]
+    assert audit(files / "state")[-1]["event"] == "run-finished"
+    code, out, err = deployer("rollback", "--from-report", "run.json", "--yes", "--state-dir", "state", cwd=files)
+    assert code == 0, out + err
+    for i, s in enumerate(fleet):
+        assert holds(s) == before(i), f"d{i}"
+
+
+def test_a_safe_change_keeps_its_devices_in_one_process(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
+    code, _, err = deployer("apply", "new.yaml", "--inventory", "fleet.yaml", "--parallel", "4", "--yes",
+                              "--workers", "2", "--rollback-on-failure", "--state-dir", "state", cwd=files)
+    assert code == 1 and "--workers 2: --rollback-on-failure rolls devices back from this process" in err, err
+    assert all(not s.log for s in fleet)  # refused before anything was sent
+    assert not (files / "state" / "audit.jsonl").exists()
+
+
+def test_how_many_workers_a_run_takes() -> None:
+    plain = ApplyOptions()
+    cpus = os.cpu_count() or 1
+    assert worker_count(0, 10_000, 256, plain, rollback_on_failure=False) == 0
+    assert worker_count(3, 10_000, 256, plain, rollback_on_failure=False) == 3
+    assert worker_count(3, 2, 256, plain, rollback_on_failure=False) == 2  # never more than devices at once
+    assert worker_count(3, 10_000, 1, plain, rollback_on_failure=False) == 1
+    assert worker_count(None, MIN_DEVICES - 1, 256, plain, rollback_on_failure=False) == 0  # too few to gain
+    assert worker_count(None, 10_000, 256, plain, rollback_on_failure=False) == auto_count(10_000, 256) == (
+        0 if cpus < 2 else min(cpus, 32))
+    assert auto_count(10_000, 8) == (0 if cpus < 2 else 1)  # eight devices at once per worker at least
+    for opts, rb in ((ApplyOptions(soak=5.0), False), (ApplyOptions(confirm_within=60.0), False), (plain, True)):
+        assert worker_count(None, 10_000, 256, opts, rollback_on_failure=rb) == 0  # auto: stays in one process
+        with pytest.raises(UsageError, match="in this process"):
+            worker_count(2, 10_000, 256, opts, rollback_on_failure=rb)
+
+
+def test_a_report_of_a_killed_worker_run_reads_back(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
+    """The stream a worker run leaves when killed is what the readers take (--limit @REPORT works from it)."""
+    proc = fleet_apply(files, 2)
+    wait_for(lambda: half_way(fleet), "devices half-written")
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    report = read_report(str(files / "run.json"))
+    assert report["run"]["id"] and len(report["devices"]) == len(fleet)
+    code, out, err = deployer("apply", "new.yaml", "--inventory", "fleet.yaml", "--limit", "@run.json", "--yes",
+                              "--workers", "2", "--parallel", "4", "--state-dir", "state", cwd=files)
+    assert code == 0, out + err
+    assert all(holds(s) == (7,) * N for s in fleet)
