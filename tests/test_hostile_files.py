@@ -344,3 +344,26 @@ def test_a_fleet_report_describes_each_profile_once(tmp_path: Path, capsys: pyte
     shown = report_from_json(read_report(str(tmp_path / "run.json")))
     assert [p.after for d in shown.devices for p in d.parameters] == ["10 s", "12 s"] * 3
     assert not any(d.notices for d in shown.devices)
+
+
+def test_the_learned_file_is_read_once_for_a_fleet_and_again_when_it_changes(tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    from deployer.state import learned
+
+    state = str(tmp_path)
+    assert learned.lookup(state, "p", "a#unit1") is None  # no file: nothing taught
+    for i in range(3):
+        learned.remember(state, learned.Entry("p", f"d{i}#unit1", {"max_write_registers": 10 + i}, "", "now"))
+    reads: list[str] = []
+    real = learned.load
+
+    def load(s: str) -> list[learned.Entry]:
+        reads.append(s)
+        return real(s)
+
+    monkeypatch.setattr(learned, "load", load)
+    got = [learned.lookup(state, "p", f"d{i}#unit1") for i in range(3)] * 100  # a fleet asks per device
+    assert [e.limits["max_write_registers"] for e in got[:3] if e] == [10, 11, 12] and len(reads) == 1
+    learned.remember(state, learned.Entry("p", "d1#unit1", {"write_function": 6}, "", "later"))
+    again = learned.lookup(state, "p", "d1#unit1")
+    assert again is not None and again.limits == {"max_write_registers": 11, "write_function": 6}

@@ -243,8 +243,29 @@ def forget(state_dir: str, *, profile: str | None = None, device: str | None = N
         return gone
 
 
+_READ: dict[str, tuple[tuple[int, int, int], dict[tuple[str, str], Entry]]] = {}  # path -> its file as last read
+
+
 def lookup(state_dir: str, profile: str, device: str) -> Entry | None:
-    return next((e for e in load(state_dir) if (e.profile, e.device) == (profile, device)), None)
+    """What ``device`` taught of ``profile`` (None: nothing). The file is read again only when it changed (a new
+    file, as every save makes one, or another size or time): a fleet asks this for every device, and parsing a
+    file of thousands of entries per device was quadratic."""
+    path = path_of(state_dir)
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    except OSError:
+        st = None  # ``load`` says why it cannot be read
+    seen = _READ.get(path)
+    if st is None or seen is None or seen[0] != (st.st_ino, st.st_size, st.st_mtime_ns):
+        by_key: dict[tuple[str, str], Entry] = {}
+        for e in load(state_dir):
+            by_key.setdefault((e.profile, e.device), e)
+        if st is None:
+            return by_key.get((profile, device))
+        seen = _READ[path] = ((st.st_ino, st.st_size, st.st_mtime_ns), by_key)
+    return seen[1].get((profile, device))
 
 
 def now() -> str:
