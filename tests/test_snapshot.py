@@ -349,3 +349,32 @@ def test_edited_snapshot_is_refused(tmp_path: Path, devices: list[Simulator], la
 
     with pytest.raises(InputError, match="does not match the registers the snapshot recorded"):
         load_recipe(snap)
+
+
+def test_last_identity_lists_the_snapshot_folder_once_for_a_fleet(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    from deployer.state import snapshot
+
+    folder = tmp_path / "snapshots"
+    folder.mkdir()
+    for i in range(50):  # devices d0..d49, two snapshots each; d7's newer one recorded an identity
+        (folder / f"d{i}-20261101T000000Z.yaml").write_text("snapshot:\n  identity: {\"vendor\": \"OLD\"}\n")
+        (folder / f"d{i}-20261102T000000Z.yaml").write_text("snapshot:\n  taken: x\nparameters: {}\n")
+    (folder / "d7-20261103T000000Z-2.yaml").write_text("snapshot:\n  identity: {\"vendor\": \"ACME\"}\n")
+    listed: list[str] = []
+    real = os.listdir
+
+    def listdir(p: str) -> list[str]:
+        listed.append(str(p))
+        return real(p)
+
+    monkeypatch.setattr(os, "listdir", listdir)
+    monkeypatch.setattr(snapshot, "_FILES", {})
+    found = {i: snapshot.last_identity(str(tmp_path), f"d{i}") for i in range(60)}
+    assert listed == [str(folder)]  # once, not once per device
+    assert found[7] == (str(folder / "d7-20261103T000000Z-2.yaml"), {"vendor": "ACME"})
+    assert found[3] == (str(folder / "d3-20261101T000000Z.yaml"), {"vendor": "OLD"}) and found[55] is None
+    newer = folder / "d3-20261104T000000Z.yaml"  # this process writes a newer snapshot of d3
+    newer.write_text("snapshot:\n  identity: {\"vendor\": \"NEW\"}\n")
+    snapshot.written(str(newer))
+    assert snapshot.last_identity(str(tmp_path), "d3") == (str(newer), {"vendor": "NEW"}) and len(listed) == 1

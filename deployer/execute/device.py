@@ -36,6 +36,7 @@ from ..report import DeviceResult, ParameterResult, show_registers
 from ..state import journal, learned, lock
 from ..state.durable import Line, disk_error, durable, queue
 from ..state.snapshot import last_identity, snapshot_file
+from ..state.snapshot import written as snapshot_written
 from ..transport import clients as tp
 from .recovery import Learning, _recover, _remerge, chunks, single_writes
 from .session import ApplyOptions, Session
@@ -416,6 +417,8 @@ async def _save_snapshot(recipe: Recipe, opts: ApplyOptions, res: DeviceResult, 
     try:
         res.snapshot = await durable(snap)
         res.snapshot_sha256 = snap.digest
+        if res.snapshot is not None:
+            snapshot_written(res.snapshot)
     except OSError as e:
         if not opts.restoring:  # no snapshot, no write: nothing could be undone
             res.status, res.error = "failed", (f"cannot save the snapshot in {opts.state_dir}: {disk_error(e)}; "

@@ -65,21 +65,50 @@ def snapshot_text(prof: Profile, values: Mapping[str, tuple[int, ...]], *, name:
     )
 
 
+_STAMPED = re.compile(r"^(.+)-\d{8}T\d{6}Z(?:-\d+)?\.yaml$")
+# snapshot folder -> device (its file-name form) -> its snapshots' file names: the folder is listed once per
+# process, and the snapshots this process writes are added (``written``); a fleet asked for every device, and
+# listing a folder of every device's snapshots once per device was quadratic in the fleet
+_FILES: dict[str, dict[str, list[str]]] = {}
+
+
+def _snapshots_of(directory: str, safe: str) -> list[str] | None:
+    files = _FILES.get(directory)
+    if files is None:
+        try:
+            listed = os.listdir(directory)
+        except OSError:
+            return None
+        files = _FILES[directory] = {}
+        for n in listed:
+            m = _STAMPED.match(n)
+            if m is not None:
+                files.setdefault(m.group(1), []).append(n)
+    return files.get(safe, [])
+
+
+def written(path: str) -> None:
+    """A snapshot this process wrote (``last_identity`` finds it without listing the folder again)."""
+    files = _FILES.get(os.path.dirname(path))
+    m = _STAMPED.match(os.path.basename(path))
+    if files is not None and m is not None:
+        files.setdefault(m.group(1), []).append(os.path.basename(path))
+
+
 def last_identity(state_dir: str, name: str) -> tuple[str, dict[str, str]] | None:
     """The newest snapshot of device ``name`` that recorded a Function 43 identity: (its path, the objects).
 
-    Only the snapshot block's ``identity:`` line is read (a fleet asks this for every device), in the
-    newest files first; None when no snapshot recorded one.
+    Only the snapshot block's ``identity:`` line is read, in the newest files first; None when no snapshot
+    recorded one. The folder is listed once per process (see ``_FILES``).
     """
     import json
 
     directory = snapshot_dir(state_dir)
     safe = file_name(name)
-    stamp = re.compile(re.escape(safe) + r"-\d{8}T\d{6}Z(-\d+)?\.yaml$")
-    try:
-        names = sorted((n for n in os.listdir(directory) if stamp.match(n)), reverse=True)
-    except OSError:
+    found = _snapshots_of(directory, safe)
+    if not found:
         return None
+    names = sorted(found, reverse=True)
     for n in names[:20]:
         path = os.path.join(directory, n)
         try:
