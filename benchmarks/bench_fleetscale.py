@@ -8,10 +8,16 @@ measured from outside (benchmarks/child.py): wall time, CPU time, peak RSS, byte
 the report's ``summary.seconds`` is its fleet phase (without start-up, loading and the final table).
 Every run writes new values (the recipe alternates), so each device really is written and verified.
 
+Each size runs twice: as the command line runs it by default (one worker process per CPU from 500
+devices on, ``deployer.fleet.workers``) and with ``--workers 0`` (every device in the command's
+process). CPU time and peak memory are the command's and its workers' together (the launcher's
+``wait4`` counts the workers it waited for; the resident memory of the process tree is summed).
+
 Side by side: the bare client (benchmarks/bare_fleet.py, its own process) sends each device the
 requests deployer sent one device of the run before it, with the same ``--parallel``, on the same
-devices; deployer and the bare client alternate, ``repeats`` times, and the best of each is
-compared (the machine is shared: a ratio from one run side by side is what is worth anything).
+devices; deployer (default and one process) and the bare client alternate, ``repeats`` times, and the
+best of each is compared (the machine is shared: a ratio from one run side by side is what is worth
+anything). ``cpu_ratio`` is deployer's CPU over the bare client's for the same devices.
 
     python -m benchmarks.bench_fleetscale [--quick] [--sizes 1000,4000] [--repeats 2] [--no-side-by-side]
                                           [--before OLD-CHECKOUT]
@@ -84,9 +90,11 @@ class Bench:
                 f.writelines(f"  dev{i:05d}: {{url: '{u}'}}\n" for i, u in enumerate(urls))
         return path
 
-    def apply(self, urls: list[str], parallel: int, report: bool = True, src: str | None = None) -> dict[str, Any]:
+    def apply(self, urls: list[str], parallel: int, report: bool = True, src: str | None = None,
+              workers: int | None = None) -> dict[str, Any]:
         """One ``deployer apply`` of ``urls``; ``src``: run the deployer package found in that folder (an older
-        checkout, measured side by side) instead of this one."""
+        checkout, measured side by side) instead of this one; ``workers``: its ``--workers`` (None: the command
+        line's default, one worker per CPU from 500 devices on)."""
         self.variant += 1
         recipe = os.path.join(self.work, f"recipe{self.variant % 2}.yaml")
         with open(recipe, "w") as f:
@@ -94,12 +102,16 @@ class Bench:
         path = os.path.join(self.work, f"report-{self.variant}.json")
         cmd = [self.deployer, "apply", recipe, "--inventory", self.inventory(urls), "--yes", "--parallel",
                str(parallel), "--state-dir", os.path.join(self.work, "state")]
+        if workers is not None:
+            cmd += ["--workers", str(workers)]
         env = None if src is None else {**os.environ, "PYTHONPATH": src}
+        os.sync()  # the last run's dirty pages written out now, not during this one
         m, err = measured_all(cmd + (["--report", path] if report else []), self.work, env=env)
+        common = {"wall": m["wall"], "cpu": m["cpu"], "sys": m.get("sys", 0.0),
+                  "rss_mb": m.get("tree_rss_kb", m["maxrss_kb"]) / 1024, "written": m["written_bytes"]}
         if not report:
             assert m["code"] == 0, err[-2000:]
-            return {"wall": m["wall"], "cpu": m["cpu"], "rss_mb": m["maxrss_kb"] / 1024,
-                    "written": m["written_bytes"]}
+            return common
         with open(path) as f:
             doc = json.load(f)
         summary = doc["summary"]
@@ -108,8 +120,7 @@ class Bench:
         size = os.path.getsize(path)
         del doc
         os.remove(path)
-        return {"wall": m["wall"], "cpu": m["cpu"], "sys": m.get("sys", 0.0), "rss_mb": m["maxrss_kb"] / 1024, "written": m["written_bytes"],
-                "fleet": summary["seconds"], "report_bytes": size,
+        return {**common, "fleet": summary["seconds"], "report_bytes": size,
                 "requests": summary["write_requests"] + summary["read_requests"]}
 
     def bare(self, urls: list[str], parallel: int) -> dict[str, Any]:
@@ -169,7 +180,9 @@ def request_cost(url: str, n: int = 2000, rounds: int = 3) -> dict[str, Any]:
 
 
 def _row(m: dict[str, Any], n: int) -> dict[str, Any]:
+    """One run's figures; CPU and peak memory are the command's and its worker processes' together."""
     row = {"wall_seconds": round(m["wall"], 2), "cpu_ms_per_device": round(m["cpu"] * 1000 / n, 2),
+           "system_cpu_ms_per_device": round(m["sys"] * 1000 / n, 2),
            "peak_rss_mb": round(m["rss_mb"], 1), "written_mb": round(m["written"] / 1e6, 1)}
     if "fleet" in m:
         row.update({"fleet_seconds": round(m["fleet"], 2), "report_mb": round(m["report_bytes"] / 1e6, 1),
@@ -196,37 +209,52 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                 with farm(n, latency, cost=out.setdefault(f"farm_{latency}ms", {})) as urls:
                     b.apply(urls[:10], 4)  # warm: the first run of a fresh state folder; not measured
                     for p in parallels:
-                        ours, bare = [], []
-                        for _ in range(repeats):
+                        ours, one, bare = [], [], []
+                        for _ in range(repeats):  # alternating: the machine's load falls on all three alike
                             ours.append(b.apply(urls, p))
+                            one.append(b.apply(urls, p, workers=0))
                             bare.append(b.bare(urls, p))
                         best = min(ours, key=lambda m: m["fleet"])
+                        alone = min(one, key=lambda m: m["fleet"])
                         fastest = min(bare, key=lambda m: m["fleet"])
                         out[f"side_{latency}ms_{n}_parallel_{p}"] = {
                             "deployer_fleet_seconds": [round(m["fleet"], 3) for m in ours],
+                            "one_process_fleet_seconds": [round(m["fleet"], 3) for m in one],
                             "bare_seconds": [round(m["fleet"], 3) for m in bare],
                             "ratio": round(best["fleet"] / fastest["fleet"], 2),
                             "ratios_per_pair": [round(a["fleet"] / c["fleet"], 2)
                                                 for a, c in zip(ours, bare, strict=True)],
+                            "one_process_ratio": round(alone["fleet"] / fastest["fleet"], 2),
                             "deployer_cpu_ms_per_device": round(best["cpu"] * 1000 / n, 2),
-                            "bare_cpu_ms_per_device": round(fastest["cpu"] * 1000 / n, 2)}
+                            "one_process_cpu_ms_per_device": round(alone["cpu"] * 1000 / n, 2),
+                            "bare_cpu_ms_per_device": round(fastest["cpu"] * 1000 / n, 2),
+                            "cpu_ratio": round(min(m["cpu"] for m in ours) / min(m["cpu"] for m in bare), 2)}
         with farm(max(sizes), 20, cost=out.setdefault("farm_scale", {})) as urls:
             b.apply(urls[:10], 4)
             for n in sizes:
-                runs, old = [], []
+                runs, one, old = [], [], []
                 for _ in range(repeats):
                     runs.append(b.apply(urls[:n], 256))
+                    one.append(b.apply(urls[:n], 256, workers=0))
                     if before:  # the older checkout, alternating with this one on the same devices
                         old.append(b.apply(urls[:n], 256, src=before))
                 best = min(runs, key=lambda m: m["wall"])
                 out[f"scale_{n}"] = {**_row(best, n), "walls": [round(m["wall"], 2) for m in runs],
-                                     "cpu_ms_per_device_each": [round(m["cpu"] * 1000 / n, 2) for m in runs]}
+                                     "cpu_ms_per_device_each": [round(m["cpu"] * 1000 / n, 2) for m in runs],
+                                     "start_and_end_seconds": round(best["wall"] - best["fleet"], 2)}
+                alone = min(one, key=lambda m: m["wall"])
+                out[f"scale_{n}_one_process"] = {**_row(alone, n), "walls": [round(m["wall"], 2) for m in one]}
                 if old:
                     first = min(old, key=lambda m: m["wall"])
                     out[f"scale_{n}_before"] = {**_row(first, n), "walls": [round(m["wall"], 2) for m in old],
                                                 "cpu_ms_per_device_each": [round(m["cpu"] * 1000 / n, 2) for m in old]}
             n = max(sizes)
             out[f"scale_{n}_no_report"] = _row(b.apply(urls[:n], 256, report=False), n)
+        if len(sizes) > 1:  # what each further device adds to the peak (the run's fixed memory taken out)
+            lo, hi = min(sizes), max(sizes)
+            for key in ("", "_one_process"):
+                grow = out[f"scale_{hi}{key}"]["peak_rss_mb"] - out[f"scale_{lo}{key}"]["peak_rss_mb"]
+                out[f"kb_per_device{key}"] = round(grow * 1024 / (hi - lo), 2)
     return out
 
 

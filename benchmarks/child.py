@@ -13,6 +13,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 
 HERE = os.path.abspath(__file__)
@@ -54,11 +55,43 @@ def _main() -> None:
 
     proc = subprocess.Popen(spec["args"], cwd=spec["cwd"], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                             preexec_fn=limited if limit else None)
+    tree = [0]  # the largest sum of the resident memory of the command and its own processes (its workers)
+    done = threading.Event()
+    threading.Thread(target=_watch_tree, args=(proc.pid, tree, done), daemon=True).start()
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t
-    print(json.dumps({"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "sys": usage.ru_stime, "maxrss_kb": usage.ru_maxrss,
+    done.set()
+    # ru_* of wait4 count the command and the processes it waited for (its workers): CPU is theirs together;
+    # ru_maxrss is the largest of them, so the sum of the tree is sampled (tree_rss_kb, Linux)
+    print(json.dumps({"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "sys": usage.ru_stime,
+                      "maxrss_kb": usage.ru_maxrss, "tree_rss_kb": max(tree[0], usage.ru_maxrss),
                       "code": os.waitstatus_to_exitcode(status),
                       "written_bytes": usage.ru_oublock * 512}))  # Linux: the command's block output
+
+
+def _watch_tree(pid: int, peak: list[int], done: threading.Event) -> None:
+    """Every 20 ms: the resident memory of ``pid`` and its child processes, summed; the largest sum in peak[0]."""
+    while not done.wait(0.02):
+        kids: dict[int, list[int]] = {}
+        rss: dict[int, int] = {}
+        try:
+            entries = [e for e in os.listdir("/proc") if e.isdigit()]
+        except OSError:
+            return  # not Linux: ru_maxrss only
+        for e in entries:
+            try:
+                with open(f"/proc/{e}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            kids.setdefault(int(fields[1]), []).append(int(e))
+            rss[int(e)] = int(fields[21]) * (os.sysconf("SC_PAGE_SIZE") // 1024)
+        total, todo = 0, [pid]
+        while todo:
+            p = todo.pop()
+            total += rss.get(p, 0)
+            todo.extend(kids.get(p, []))
+        peak[0] = max(peak[0], total)
 
 
 if __name__ == "__main__":
