@@ -12,6 +12,7 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,10 +21,11 @@ import pytest
 from deployer.errors import UsageError
 from deployer.execute.session import ApplyOptions
 from deployer.fleet.workers import MIN_DEVICES, auto_count
+from deployer.profile import load_profile
 from deployer.report import read_report
 from deployer.run.runner import worker_count
 from deployer.testing.simulator import Simulator
-from tests.helpers import wait_for
+from tests.helpers import Simulators, wait_for
 from tests.test_runs import (
     N,
     audit,
@@ -79,17 +81,28 @@ def _same(doc: dict[str, Any]) -> list[dict[str, Any]]:
 needs_proc = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the workers in Linux's /proc")
 
 
-def test_two_workers_report_what_one_process_reports(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
+@pytest.fixture
+def quick(files: Path) -> Iterator[list[Simulator]]:  # noqa: F811
+    """Ten devices answering at once (``fleet``'s answer after 100 ms: for killing runs half-way)."""
+    prof = load_profile(files / "slow.yaml")
+    sims = [Simulator(prof, gap_reads=True) for _ in range(10)]
+    with Simulators(sims):
+        (files / "fleet.yaml").write_text("defaults: {timeout: 5}\ndevices:\n" + "".join(
+            f"  d{i}: {{url: '{s.url}'}}\n" for i, s in enumerate(sims)))
+        yield sims
+
+
+def test_two_workers_report_what_one_process_reports(files: Path, quick: list[Simulator]) -> None:  # noqa: F811
     reports = []
     for workers in (0, 2):
-        for i, s in enumerate(fleet):  # the same starting point for both runs
+        for i, s in enumerate(quick):  # the same starting point for both runs
             for k, v in enumerate(before(i)):
                 s.write(f"p{k}", (v,))
         code, out, err = deployer("apply", "new.yaml", "--inventory", "fleet.yaml", "--parallel", "4", "--yes",
                                   "--report", f"run{workers}.json", "--state-dir", f"state{workers}",
                                   "--workers", str(workers), cwd=files)
         assert code == 0, out + err
-        assert all(holds(s) == (7,) * N for s in fleet)
+        assert all(holds(s) == (7,) * N for s in quick)
         reports.append(json.loads((files / f"run{workers}.json").read_text()))
         for d in reports[-1]["devices"]:
             assert os.path.isfile(d["snapshot"]) and d["status"] == "ok"
@@ -102,10 +115,10 @@ def test_two_workers_report_what_one_process_reports(files: Path, fleet: list[Si
         lines = audit(files / f"state{workers}")
         started = {x["name"]: x for x in lines if x["event"] == "device-started"}
         finished = {x["name"]: x for x in lines if x["event"] == "device-finished"}
-        assert set(started) == set(finished) == {f"d{i}" for i in range(len(fleet))}
+        assert set(started) == set(finished) == {f"d{i}" for i in range(len(quick))}
         assert all(started[n]["snapshot"] == finished[n]["snapshot"] for n in started)
         assert lines[-1]["event"] == "run-finished" and lines[-1]["exit_code"] == 0
-        assert [d["written"] for d in lines[-1]["devices"]] == [[f"p{k}" for k in range(N)]] * len(fleet)
+        assert [d["written"] for d in lines[-1]["devices"]] == [[f"p{k}" for k in range(N)]] * len(quick)
 
 
 @needs_proc
