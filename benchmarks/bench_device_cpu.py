@@ -1,0 +1,346 @@
+"""The pure-Python CPU one fleet device costs between its requests (issue #30), in-process, no devices.
+
+A fleet device of the benchmark recipe (benchmarks/bench_fleet.py: 100 parameters, every 4th 32-bit)
+holds the values of one recipe variant and is given the other: its results, its values read, the plan
+(shared by the devices holding the same values), the snapshot's text, the journal's lines, the writes'
+bookkeeping, the read-back's verification, the report line and the small result a fleet keeps.
+
+Two measurements, CPU time (``time.process_time``) per device, the best of several rounds:
+
+- ``stages``: each stage of ``execute/device.py``'s apply on its own, run for every device of a round
+  before the next stage starts (so no clock is read per device), fed with the register maps the reads
+  would have answered. The stages call the same functions the apply calls.
+- ``end_to_end``: ``_apply_device`` itself, then the report line and ``small()``, over a fake transport
+  that answers at once from a register map (no sockets), with the file system left out (the lock is
+  taken as held; the snapshot file and the journal lines are encoded, hashed and dropped: what
+  ``state/durable.py`` does in the caller's thread, without its system calls). What it measures beyond the
+  stages is the session (request records, retries' bookkeeping) and the coroutines.
+
+    python -m benchmarks.bench_device_cpu [--devices 500] [--rounds 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import gc
+import hashlib
+import json
+import os
+import tempfile
+import time
+from collections.abc import Callable, Coroutine, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+from benchmarks.bench_fleet import _profile, _recipe
+from deployer.errors import ExceptionResponse
+from deployer.execute import device as dev
+from deployer.execute.recovery import Learning
+from deployer.execute.session import ApplyOptions
+from deployer.execute.steps import check_firmware, check_identity_objects
+from deployer.execute.verify import _values, _verify
+from deployer.planning.model import Target, WriteRequest
+from deployer.profile import profile_ref
+from deployer.recipe.loader import Recipe, load_recipe
+from deployer.report import DeviceResult, ParameterResult, RequestRecord, device_json
+from deployer.state import durable, journal
+from deployer.state.snapshot import snapshot_file
+from deployer.transport import clients as tp
+
+PARAMETERS = 100
+RUN = "20250101T000000Z-1"
+
+
+def _sync(coro: Coroutine[Any, Any, Any]) -> Any:
+    """A coroutine that never waits (the fake session answers at once), run to its end."""
+    try:
+        coro.send(None)
+    except StopIteration as e:
+        return e.value
+    raise AssertionError("the coroutine waited")
+
+
+def _line(record: dict[str, Any]) -> bytes:
+    """A journal line as ``state/durable.py`` encodes it (in the caller's thread)."""
+    return (json.dumps(record) + "\n").encode()
+
+
+def _registers(recipe: Recipe) -> dict[int, int]:
+    """What a device holding ``recipe``'s values answers its reads: register key -> word."""
+    regs = {}
+    for d in recipe.desired:
+        for i, w in enumerate(d.registers):
+            regs[d.parameter.key + i] = w
+    return regs
+
+
+class _FakeSession:
+    """``Session`` for the stages: writes go nowhere, reads answer from a register map."""
+
+    def __init__(self, regs: dict[int, int]) -> None:
+        self.regs = regs
+
+    async def write(self, req: WriteRequest) -> None:
+        return None
+
+    async def read_blocks(self, reads: Any, profile: Any = None) -> dict[int, int]:
+        return self.regs
+
+
+@dataclass
+class _Device:
+    """One device's state between the stages."""
+
+    name: str
+    url: str
+    res: DeviceResult
+    results: dict[str, ParameterResult] = field(default_factory=dict)
+    before: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    plan: Any = None
+    planned: Any = None
+    snap: Any = None
+    written: set[str] = field(default_factory=set)
+    line: bytes = b""
+
+
+class _Bench:
+    def __init__(self, work: str) -> None:
+        with open(os.path.join(work, "profile.yaml"), "w") as f:
+            f.write(_profile(PARAMETERS))
+        for variant in (1, 2):
+            with open(os.path.join(work, f"recipe{variant}.yaml"), "w") as f:
+                f.write(_recipe(PARAMETERS, variant))
+        self.old = load_recipe(os.path.join(work, "recipe1.yaml"))
+        self.recipe = load_recipe(os.path.join(work, "recipe2.yaml"))
+        self.state = os.path.join(work, "state")
+        self.opts = ApplyOptions(state_dir=self.state, run_id=RUN, applied=self.recipe.path, lock_held=True)
+        self.regs_before = _registers(self.old)
+        self.regs_after = _registers(self.recipe)
+
+    # ---- the stages, in the order an apply runs them ------------------------------------------------
+
+    def results(self, d: _Device) -> None:
+        """The device's result and its 100 parameter results (``_apply_device``)."""
+        prof = self.recipe.profile
+        d.res = DeviceResult(d.name, d.url, 1, prof.id, profile_ref=profile_ref(prof), recipe=self.recipe.path,
+                             batch=None, profile_sha256=prof.digest)
+        d.results = dev._results(self.recipe)
+        d.res.parameters = list(d.results.values())
+
+    def values_before(self, d: _Device) -> None:
+        """The reads' registers as values by name, into the results (``_read_before``, ``_apply``)."""
+        d.before = _values(dev._shared(self.recipe).layout, self.regs_before)
+        for n, regs in d.before.items():
+            d.results[n].before_raw = regs
+
+    def firmware(self, d: _Device) -> None:
+        """The identity objects and the firmware gate of the recipe's parameters (``_read_before``)."""
+        prof = self.recipe.profile
+        assert check_identity_objects(prof, None) is None
+        assert _sync(check_firmware(None, prof, None, [x.name for x in self.recipe.desired])) is None  # type: ignore[arg-type]
+
+    def plan(self, d: _Device) -> None:
+        """The plan of the devices holding these values, for this device (``_the_plan``, ``_apply``)."""
+        prof = self.recipe.profile
+        target = Target(d.url, 1, profile_ref(prof))
+        d.plan, d.planned = dev._the_plan(self.recipe, target, self.opts, d.before, dev._shared(self.recipe))
+        for pp in d.plan.parameters:
+            if pp.action == "unchanged":
+                d.results[pp.name].status = "unchanged"
+        for pp in d.plan.parameters:
+            if prof.parameter(pp.name).mask:
+                d.results[pp.name].desired_raw = pp.desired_raw
+
+    def snapshot(self, d: _Device) -> None:
+        """The snapshot file's text (``_save_snapshot``)."""
+        d.snap = snapshot_file(self.state, d.name, self.recipe, d.before, d.url, 1, applied=self.opts.applied,
+                               identity=None)
+
+    def journal_started(self, d: _Device) -> None:
+        """The plan's digest and the ``device-started`` line, encoded (``_save_snapshot``)."""
+        digest = d.planned.digest()
+        line = journal.device_started(RUN, name=d.name, url=d.url, unit=1, plan_digest=digest, batch=None,
+                                      restoring=None)
+        path = d.snap.first[0]
+        d.line = _line({**line, "snapshot": path, "snapshot_sha256": "0" * 64})
+        d.res.snapshot = path
+
+    def writes(self, d: _Device) -> None:
+        """The writes' bookkeeping, the requests answering at once (``_write_verify_commit``)."""
+        learning = Learning()
+        prof = self.recipe.profile
+        d.written, unanswered = _sync(dev._write_all(_FakeSession(self.regs_after), prof, d.plan, self.opts,  # type: ignore[arg-type]
+                                                     d.results, learning, d.res.notices))
+        assert unanswered is None
+        d.res.learned = learning.limits(d.results)
+        d.res.notices.extend(learning.notices(d.results, prof.id))
+
+    def verify(self, d: _Device) -> None:
+        """The read-back's registers as values, compared (``_write_verify_commit``)."""
+        after = _values(dev._shared(self.recipe).layout, self.regs_after)
+        _verify(d.results, self.recipe.profile, after, d.written, ())
+
+    def notices(self, d: _Device) -> None:
+        """The read-back's time, the power-cycle notices (``_write_phase``) and the device's status."""
+        prof = self.recipe.profile
+        d.res.seen = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        d.res.notices.extend(f"{n} takes effect after a power cycle" for n, r in d.results.items()
+                             if r.status == "ok" and prof.parameter(n).restart)
+        d.res.settle()
+        assert d.res.status == "ok", d.res.status
+
+    def journal_finished(self, d: _Device) -> None:
+        """The ``device-finished`` line, encoded (``_locked``)."""
+        d.line = _line(journal.device_finished(RUN, d.res))
+
+    def report_line(self, d: _Device) -> None:
+        """The device's line of the report file (``fleet/livereport.py``)."""
+        d.line = device_json(d.res)
+
+    def small(self, d: _Device) -> None:
+        """What a fleet keeps of a device that ended ok (``fleet/rollout.py``)."""
+        d.res = d.res.small()
+
+    STAGES = ("results", "values_before", "firmware", "plan", "snapshot", "journal_started", "writes", "verify",
+              "notices", "journal_finished", "report_line", "small")
+
+    def stages(self, devices: int) -> dict[str, float]:
+        """Seconds of CPU per device of each stage, this round."""
+        ds = [_Device(f"dev{i:05d}", f"tcp://127.0.0.1:{20000 + i}", DeviceResult("", "", 1, ""))
+              for i in range(devices)]
+        for d in ds:  # what the session would have recorded: reads, Function 43, writes, read-back
+            d.res.requests = _requests()
+        out = {}
+        for stage in self.STAGES:
+            run: Callable[[_Device], None] = getattr(self, stage)
+            t = time.process_time()
+            for d in ds:
+                run(d)
+            out[stage] = (time.process_time() - t) / devices
+        return out
+
+    # ---- the whole of it ------------------------------------------------------------------------------
+
+    def end_to_end(self, devices: int) -> float:
+        """Seconds of CPU per device of ``_apply_device``, its report line and ``small()``."""
+        urls = [tp.parse_url(f"tcp://127.0.0.1:{20000 + i}") for i in range(devices)]
+
+        async def main() -> float:
+            t = time.process_time()
+            for i, url in enumerate(urls):
+                res, finishing = await dev._apply_device(self.recipe, url, 1, name=f"dev{i:05d}", options=self.opts)
+                assert finishing is not None
+                await finishing
+                assert res.status == "ok", (res.status, res.error)
+                device_json(res)
+                res.small()
+            return (time.process_time() - t) / devices
+
+        with _fakes(self.regs_before):
+            return asyncio.run(main())
+
+
+def _requests() -> list[RequestRecord]:
+    return [RequestRecord(3, 0, 60), RequestRecord(3, 65, 65), RequestRecord(43, 0, 1, "exception", 1),
+            RequestRecord(16, 0, 60), RequestRecord(16, 65, 65), RequestRecord(3, 0, 60), RequestRecord(3, 65, 65)]
+
+
+class _FakeTransport:
+    """Answers at once from a register map that starts as ``regs`` (the old recipe's values) on every connect."""
+
+    def __init__(self, url: Any, regs: dict[int, int]) -> None:
+        self.url = url
+        self.late_answers: list[float] = []
+        self.start = regs
+        self.regs: dict[int, int] = {}
+
+    def set_pacing(self, after_connect: float, between: float) -> None:
+        pass
+
+    async def connect(self) -> None:
+        self.regs = dict(self.start)
+
+    async def close(self) -> None:
+        pass
+
+    async def read(self, function: int, address: int, count: int, unit: int) -> list[int]:
+        return [self.regs.get(a, 0) for a in range(address, address + count)]
+
+    async def write_registers(self, address: int, values: list[int], unit: int) -> None:
+        self.regs.update(zip(range(address, address + len(values)), values, strict=True))
+
+    async def read_device_identification(self, unit: int, read_code: int = 1) -> dict[int, bytes]:
+        raise ExceptionResponse(43, 1)  # as the light farm: no identification objects
+
+
+@contextmanager
+def _fakes(regs: dict[int, int]) -> Iterator[None]:
+    """The transport and the durable writes replaced, in this process, while the benchmark runs."""
+
+    async def written(op: durable.NewFile | durable.Line) -> str | None:
+        assert isinstance(op, durable.NewFile)
+        path, text = op.first
+        op.digest = hashlib.sha256(text.encode()).hexdigest()
+        if op.line is not None:
+            _line({**op.line, op.path_key: path, f"{op.path_key}_sha256": op.digest})
+        return path
+
+    def queued(op: durable.NewFile | durable.Line) -> asyncio.Future[str | None]:
+        assert isinstance(op, durable.Line)
+        _line(op.record)
+        done: asyncio.Future[str | None] = asyncio.get_running_loop().create_future()
+        done.set_result(None)
+        return done
+
+    fakes: list[tuple[object, str, object]] = [(tp, "open_transport", lambda url: _FakeTransport(url, regs)),
+                                               (dev, "durable", written), (dev, "queue", queued)]
+    saved = [(module, name, getattr(module, name)) for module, name, _ in fakes]
+    for module, name, fake in fakes:
+        setattr(module, name, fake)
+    try:
+        yield
+    finally:
+        for module, name, real in saved:
+            setattr(module, name, real)
+
+
+def run(quick: bool = False, devices: int = 500, rounds: int = 5) -> dict[str, Any]:
+    if quick:
+        devices, rounds = 50, 2
+    with tempfile.TemporaryDirectory(prefix="bench-device-cpu-") as work:
+        bench = _Bench(work)
+        best: dict[str, float] = {}
+        whole = float("inf")
+        gc.collect()
+        for _ in range(rounds):  # best of several: the machine is shared
+            for stage, seconds in bench.stages(devices).items():
+                best[stage] = min(best.get(stage, float("inf")), seconds)
+            whole = min(whole, bench.end_to_end(devices))
+    us = {stage: round(s * 1e6, 1) for stage, s in best.items()}
+    return {"devices": devices, "parameters": PARAMETERS, "rounds": rounds,
+            "stages_us_per_device": us, "stages_total_us": round(sum(best.values()) * 1e6, 1),
+            "end_to_end_us_per_device": round(whole * 1e6, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--devices", type=int, default=500)
+    ap.add_argument("--rounds", type=int, default=5)
+    args = ap.parse_args(argv)
+    res = run(args.quick, args.devices, args.rounds)
+    print(json.dumps(res, indent=2))
+    print(f"\nCPU per device, {res['parameters']} parameters, best of {res['rounds']} rounds of {res['devices']} "
+          "devices")
+    for stage, us in res["stages_us_per_device"].items():
+        print(f"  {stage:<18}{us:>9.1f} us")
+    print(f"  {'stages, total':<18}{res['stages_total_us']:>9.1f} us")
+    print(f"  {'end to end':<18}{res['end_to_end_us_per_device']:>9.1f} us  (_apply_device over a fake transport, "
+          "report line, small())")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
