@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import copy
 import functools
 import json
+import operator
 import os
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
 from .errors import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
@@ -50,7 +52,7 @@ def show_registers(p: Parameter, regs: Sequence[int] | None) -> str | None:
     return None if regs is None else p.show_registers(tuple(regs))
 
 
-@dataclass
+@dataclass(slots=True)  # slots: a fleet makes 100 per device
 class ParameterResult:
     name: str
     address: int
@@ -97,6 +99,8 @@ class Tally:
 
 
 _WRITTEN: dict[tuple[str, ...], tuple[str, ...]] = {}  # devices that wrote the same parameters share one tuple
+_SENT = ("ok", "failed", "mismatch", "unverified")  # a parameter's statuses once it was sent (``written``)
+_FAILED = ("failed", "mismatch", "unverified")
 
 
 @dataclass
@@ -154,24 +158,38 @@ class DeviceResult:
     def failed_count(self) -> int:
         if self.tally is not None:
             return self.tally.failed
-        return sum(1 for p in self.parameters if p.status in ("failed", "mismatch", "unverified"))
+        return sum(1 for p in self.parameters if p.status in _FAILED)
 
     @property
     def written(self) -> tuple[str, ...]:
         """The parameters sent to the device (ok, failed, mismatch, unverified): the journal's ``written``."""
         if self.tally is not None:
             return self.tally.written
-        return tuple(p.name for p in self.parameters if p.status in ("ok", "failed", "mismatch", "unverified"))
+        return tuple([p.name for p in self.parameters if p.status in _SENT])
 
     def small(self) -> DeviceResult:
         """This result without its requests and parameters, their numbers kept (``tally``): what a fleet
         keeps of a device once its JSON is in the report file. Its ``to_json`` is no longer the report's."""
-        names = self.written
+        if self.tally is not None:
+            return copy.copy(self)
+        names = []  # ``written``, ``changed_count`` and ``failed_count`` in one pass (a fleet does this per device)
+        changed = failed = 0
+        for p in self.parameters:
+            status = p.status
+            if status in _SENT:
+                names.append(p.name)
+                if status == "ok":
+                    changed += p.before_raw != p.after_raw
+                else:
+                    failed += 1
+        written = tuple(names)
         if len(_WRITTEN) > 1024:  # a long-lived caller's many recipes: keep the table small
             _WRITTEN.clear()
-        tally = Tally(self.write_requests, self.read_requests, self.request_count, self.changed_count,
-                      self.failed_count, _WRITTEN.setdefault(names, names))
-        return replace(self, requests=[], parameters=[], tally=tally)
+        tally = Tally(self.write_requests, self.read_requests, len(self.requests), changed, failed,
+                      _WRITTEN.setdefault(written, written))
+        out = copy.copy(self)  # ``replace`` without its __init__ of 24 fields: the same fields, the same values
+        out.requests, out.parameters, out.tally = [], [], tally
+        return out
 
     def settle(self) -> None:
         """Device status from its parameters (unless already decided: sent, failed, unreachable, skipped ...)."""
@@ -186,11 +204,13 @@ class DeviceResult:
             self.status = "partial"
 
     def to_json(self) -> dict[str, Any]:
+        return self._json([r.to_json() for r in self.requests], [p.to_json() for p in self.parameters])
+
+    def _json(self, requests: list[Any], parameters: list[Any]) -> dict[str, Any]:
+        """``to_json`` with these requests and parameters (``device_json`` puts its own texts in their place)."""
         out: dict[str, Any] = {
             "name": self.name, "url": self.url, "unit": self.unit, "profile": self.profile,
-            "status": self.status, "snapshot": self.snapshot,
-            "requests": [r.to_json() for r in self.requests],
-            "parameters": [p.to_json() for p in self.parameters],
+            "status": self.status, "snapshot": self.snapshot, "requests": requests, "parameters": parameters,
         }
         if self.error is not None:
             out["error"] = self.error
@@ -368,46 +388,74 @@ def run_info(command: str | None, started: float) -> dict[str, Any]:
 
 
 def device_json(d: DeviceResult) -> bytes:
-    """``json.dumps(d.to_json())`` as ASCII bytes, its parameters from texts made once per value.
+    """``json.dumps(d.to_json())`` as ASCII bytes, its requests and parameters from texts made once each.
 
-    A fleet writes 100 parameters per device, and most of each (name, address, desired value, and the
-    registers before and after, which devices configured alike share) repeats from device to device:
-    encoding them anew took most of the report's CPU."""
+    A fleet writes 100 parameters per device, and each of their entries (name, address, desired value,
+    the registers before and after, status) mostly repeats from device to device: encoding them anew took
+    most of the report's CPU. An entry's text is kept by everything it says (``_ROWS``), so a changed field
+    is a new entry, never a stale one."""
     if d.report_line is not None:
         return d.report_line
-    if not d.parameters:
+    if not d.parameters and not d.requests:
         return json.dumps(d.to_json()).encode()
-    params = "[" + ", ".join([_parameter_json(p) for p in d.parameters]) + "]"
-    # no string value can hold this text unescaped, so the first match is the key itself
-    return json.dumps(replace(d, parameters=[]).to_json()).replace('"parameters": []', f'"parameters": {params}',
-                                                                   1).encode()
+    requests = "[" + ", ".join([_request_json(r) for r in d.requests]) + "]"
+    params = "[" + ", ".join(_parameters_json(d.parameters)) + "]"
+    # no string value can hold these texts unescaped, so the first match of each is the key itself
+    return json.dumps(d._json([], [])).replace('"requests": []', f'"requests": {requests}', 1).replace(
+        '"parameters": []', f'"parameters": {params}', 1).encode()
+
+
+_ROWS: dict[tuple[Any, ...], str] = {}
+_ROWS_KEPT = 1 << 16  # entries remembered (devices holding values of their own would grow it without end)
+
+
+def _parameters_json(params: Iterable[ParameterResult]) -> list[str]:
+    """``json.dumps(p.to_json())`` of each parameter, from ``_ROWS`` where the same entry was made before."""
+    rows = _ROWS
+    out = []
+    for p in params:  # the key: all the entry says (a tuple built here is faster than an attrgetter's)
+        key = (p.name, p.address, p.count, p.desired, p.desired_raw, p.before_raw, p.after_raw, p.status, p.error,
+               p.register_type)
+        try:
+            text = rows.get(key)
+        except TypeError:  # registers given as lists (made in code): not kept
+            out.append(_parameter_json(p))
+            continue
+        if text is None:
+            if len(rows) >= _ROWS_KEPT:
+                rows.clear()
+            text = rows[key] = _parameter_json(p)
+        out.append(text)
+    return out
 
 
 def _parameter_json(p: ParameterResult) -> str:
     """``json.dumps(p.to_json())``."""
     error = "null" if p.error is None else _text(p.error)
     kind = "" if p.register_type == "holding" else f', "register_type": {_text(p.register_type)}'
-    return (f"{_parameter_head(p.name, p.address, p.count, p.desired, _words(p.desired_raw))}"
-            f'"before_raw": {_words(p.before_raw)}, "after_raw": {_words(p.after_raw)}, '
-            f'"status": {_text(p.status)}, "error": {error}{kind}}}')
+    return (f'{{"name": {_text(p.name)}, "address": {p.address}, "count": {p.count}, "desired": {_text(p.desired)}, '
+            f'"desired_raw": {_words(p.desired_raw)}, "before_raw": {_words(p.before_raw)}, '
+            f'"after_raw": {_words(p.after_raw)}, "status": {_text(p.status)}, "error": {error}{kind}}}')
 
 
-@functools.lru_cache(maxsize=1 << 14)
-def _parameter_head(name: str, address: int, count: int, desired: str, desired_raw: str) -> str:
-    return (f'{{"name": {_text(name)}, "address": {address}, "count": {count}, "desired": {_text(desired)}, '
-            f'"desired_raw": {desired_raw}, ')
+_REQUEST = operator.attrgetter("function", "address", "count", "result", "exception_code", "attempts")
+_REQUESTS: dict[tuple[Any, ...], str] = {}
+
+
+def _request_json(r: RequestRecord) -> str:
+    """``json.dumps(r.to_json())``, kept by all it says (a fleet's devices send the same requests)."""
+    key = _REQUEST(r)
+    text = _REQUESTS.get(key)
+    if text is None:
+        if len(_REQUESTS) >= _ROWS_KEPT:
+            _REQUESTS.clear()
+        text = _REQUESTS[key] = json.dumps(r.to_json())
+    return text
 
 
 def _words(regs: Sequence[int] | None) -> str:
     """A register list as JSON (``null`` for None)."""
-    if regs is None:
-        return "null"
-    return _tuple_json(regs if type(regs) is tuple else tuple(regs))
-
-
-@functools.lru_cache(maxsize=1 << 16)
-def _tuple_json(regs: tuple[int, ...]) -> str:
-    return json.dumps(list(regs))
+    return "null" if regs is None else json.dumps(list(regs))
 
 
 @functools.lru_cache(maxsize=1 << 12)
