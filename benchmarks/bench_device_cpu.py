@@ -139,28 +139,26 @@ class _Bench:
         """The identity objects and the firmware gate of the recipe's parameters (``_read_before``)."""
         prof = self.recipe.profile
         assert check_identity_objects(prof, None) is None
-        assert _sync(check_firmware(None, prof, None, [x.name for x in self.recipe.desired])) is None  # type: ignore[arg-type]
+        assert _sync(check_firmware(None, prof, None, dev._shared(self.recipe).names)) is None  # type: ignore[arg-type]
 
     def plan(self, d: _Device) -> None:
         """The plan of the devices holding these values, for this device (``_the_plan``, ``_apply``)."""
         prof = self.recipe.profile
         target = Target(d.url, 1, profile_ref(prof))
         d.plan, d.planned = dev._the_plan(self.recipe, target, self.opts, d.before, dev._shared(self.recipe))
-        for pp in d.plan.parameters:
-            if pp.action == "unchanged":
-                d.results[pp.name].status = "unchanged"
-        for pp in d.plan.parameters:
-            if prof.parameter(pp.name).mask:
-                d.results[pp.name].desired_raw = pp.desired_raw
+        for n in d.planned.facts.unchanged:
+            d.results[n].status = "unchanged"
+        for n, raw in d.planned.facts.fields:
+            d.results[n].desired_raw = raw
 
     def snapshot(self, d: _Device) -> None:
         """The snapshot file's text (``_save_snapshot``)."""
         d.snap = snapshot_file(self.state, d.name, self.recipe, d.before, d.url, 1, applied=self.opts.applied,
-                               identity=None)
+                               identity=None, values_text=d.planned.snapshot_values(self.recipe.profile, d.before))
 
     def journal_started(self, d: _Device) -> None:
         """The plan's digest and the ``device-started`` line, encoded (``_save_snapshot``)."""
-        digest = d.planned.digest()
+        digest = d.planned.digest(d.plan.device)
         line = journal.device_started(RUN, name=d.name, url=d.url, unit=1, plan_digest=digest, batch=None,
                                       restoring=None)
         path = d.snap.first[0]
@@ -172,7 +170,7 @@ class _Bench:
         learning = Learning()
         prof = self.recipe.profile
         d.written, unanswered = _sync(dev._write_all(_FakeSession(self.regs_after), prof, d.plan, self.opts,  # type: ignore[arg-type]
-                                                     d.results, learning, d.res.notices))
+                                                     d.results, learning, d.res.notices, dict(d.planned.facts.desired)))
         assert unanswered is None
         d.res.learned = learning.limits(d.results)
         d.res.notices.extend(learning.notices(d.results, prof.id))
@@ -184,10 +182,9 @@ class _Bench:
 
     def notices(self, d: _Device) -> None:
         """The read-back's time, the power-cycle notices (``_write_phase``) and the device's status."""
-        prof = self.recipe.profile
         d.res.seen = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-        d.res.notices.extend(f"{n} takes effect after a power cycle" for n, r in d.results.items()
-                             if r.status == "ok" and prof.parameter(n).restart)
+        d.res.notices.extend([f"{n} takes effect after a power cycle" for n in dev._shared(self.recipe).restart
+                              if d.results[n].status == "ok"])
         d.res.settle()
         assert d.res.status == "ok", d.res.status
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 import deployer
-from deployer.execute.device import _planned, _shared, plan_digest
+from deployer.execute.device import _facts, _planned, _shared, plan_digest
 from deployer.planning.model import Target
 from deployer.planning.planfile import plan_to_json
 from deployer.planning.planner import make_plan
@@ -30,18 +30,20 @@ def test_a_shared_plan_is_the_devices_own_plan_and_digest(tmp_path: Path) -> Non
     held = {"F07": (0, 500), "F08": (0, 1200), "stop_mode": (0,)}
     for url, unit in (("tcp://10.0.0.1:502", 1), ("rtu:///dev/ttyUSB0?baud=9600", 7)):
         target = Target(url, unit, "example-inverter")
-        planned = _planned(rec, target, held, False, shared)
+        plan, planned = _planned(rec, target, held, False, shared)
         own = make_plan(rec, target, held, reads=shared.reads)
-        assert planned.plan == own
-        assert planned.digest() == plan_digest(own) == hashlib.sha256(
+        assert plan == own
+        assert planned.digest(target) == plan_digest(own) == hashlib.sha256(
             json.dumps(plan_to_json(own), sort_keys=True).encode()).hexdigest()
-    a = _planned(rec, Target("tcp://a:1", 1, "x"), held, False, shared)
-    b = _planned(rec, Target("tcp://b:1", 1, "x"), held, False, shared)
-    assert a.plan.writes is b.plan.writes  # planned once
-    other = _planned(rec, Target("tcp://a:1", 1, "x"), {**held, "F08": (0, 1)}, False, shared)
-    assert other.plan.parameters != a.plan.parameters and other.digest() == plan_digest(other.plan)
-    assert other.plan == make_plan(rec, Target("tcp://a:1", 1, "x"), {**held, "F08": (0, 1)}, reads=shared.reads)
-    assert _planned(rec, Target("tcp://a:1", 1, "x"), held, True, shared).plan == make_plan(
+        assert planned.facts == _facts(own, rec.profile)
+    a, shared_a = _planned(rec, Target("tcp://a:1", 1, "x"), held, False, shared)
+    b, shared_b = _planned(rec, Target("tcp://b:1", 1, "x"), held, False, shared)
+    assert a.writes is b.writes and shared_a is shared_b  # planned once
+    other, _ = _planned(rec, Target("tcp://a:1", 1, "x"), {**held, "F08": (0, 1)}, False, shared)
+    assert other.parameters != a.parameters and _planned(rec, other.device, {**held, "F08": (0, 1)}, False, shared)[
+        1].digest(other.device) == plan_digest(other)
+    assert other == make_plan(rec, Target("tcp://a:1", 1, "x"), {**held, "F08": (0, 1)}, reads=shared.reads)
+    assert _planned(rec, Target("tcp://a:1", 1, "x"), held, True, shared)[0] == make_plan(
         rec, Target("tcp://a:1", 1, "x"), held, write_all=True, reads=shared.reads)
 
 
@@ -83,9 +85,9 @@ def test_a_broadcasts_plan_is_not_shared_with_a_device_that_answers(tmp_path: Pa
     held = {"F07": (0, 500), "F08": (0, 1200), "stop_mode": (0,)}
     for unit in (1, 0, 1):
         target = Target("tcp://10.0.0.1:502", unit, "example-inverter")
-        planned = _planned(rec, target, held, False, shared)
-        assert planned.plan == make_plan(rec, target, held, reads=shared.reads)
-        assert planned.digest() == plan_digest(planned.plan)
+        plan, planned = _planned(rec, target, held, False, shared)
+        assert plan == make_plan(rec, target, held, reads=shared.reads)
+        assert planned.digest(target) == plan_digest(plan)
 
 
 def test_apply_many_keeps_ok_devices_small_when_asked(tmp_path: Path) -> None:

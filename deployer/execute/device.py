@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import itertools
 import json
 import os
 import time
 from collections import deque
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Mapping
 from dataclasses import dataclass, replace
+from typing import Any
 
 from ..errors import (
     Declined,
@@ -30,12 +32,12 @@ from ..errors import (
 from ..planning.model import Plan, ReadRequest, Target
 from ..planning.planfile import plan_to_json
 from ..planning.planner import make_plan, plan_reads
-from ..profile import Parameter, Profile, profile_ref
+from ..profile import Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..report import DeviceResult, ParameterResult, show_registers
 from ..state import journal, learned, lock
 from ..state.durable import Line, disk_error, durable, queue
-from ..state.snapshot import last_identity, snapshot_file
+from ..state.snapshot import last_identity, snapshot_file, snapshot_values
 from ..state.snapshot import written as snapshot_written
 from ..transport import clients as tp
 from .recovery import Learning, _recover, _remerge, chunks, single_writes
@@ -52,9 +54,9 @@ from .verify import PENDING, _attempted, _values, _verify
 
 
 def _results(recipe: Recipe) -> dict[str, ParameterResult]:
-    return {name: ParameterResult(name, a, n, text, regs, parameter=p, register_type=p.register_type)
-            for name, a, n, text, regs, p
-            in _shared(recipe).results}
+    """A result per recipe parameter, in recipe order, each ``skipped`` until something happens to it."""
+    shared = _shared(recipe)
+    return dict(zip(shared.names, itertools.starmap(ParameterResult, shared.results), strict=True))
 
 
 @dataclass(frozen=True)
@@ -63,7 +65,9 @@ class _Shared:
 
     reads: tuple[ReadRequest, ...]  # the blocks covering the readable parameters (snapshot, read-back)
     layout: tuple[tuple[str, int, int], ...]  # name, key (Parameter.key), registers of each recipe parameter
-    results: tuple[tuple[str, int, int, str, tuple[int, ...], Parameter], ...]  # a ParameterResult's fields
+    names: tuple[str, ...]  # the recipe's parameters, in its order (the layout's, the results')
+    results: tuple[tuple[Any, ...], ...]  # each ParameterResult's arguments, in its fields' order
+    restart: tuple[str, ...]  # the parameters that take effect after a power cycle, in recipe order
 
 
 _SHARED: dict[int, tuple[Recipe, _Shared]] = {}
@@ -79,8 +83,10 @@ def _shared(recipe: Recipe) -> _Shared:
         hit = _SHARED[id(recipe)] = (recipe, _Shared(
             plan_reads(recipe.profile, [p.name for p in params if p.readable]),
             tuple((p.name, p.key, p.count) for p in params),
-            tuple((d.name, d.parameter.address, d.parameter.count, d.text, d.registers, d.parameter)
-                  for d in recipe.desired)))
+            tuple(p.name for p in params),
+            tuple((d.name, d.parameter.address, d.parameter.count, d.text, d.registers, None, None, "skipped", None,
+                   d.parameter.register_type, d.parameter) for d in recipe.desired),
+            tuple(p.name for p in params if recipe.profile.parameter(p.name).restart)))
     return hit[1]
 
 
@@ -90,28 +96,52 @@ def plan_digest(plan: Plan) -> str:
 
 
 @dataclass(frozen=True)
+class _Facts:
+    """What a plan says of its parameters that an apply marks on their results and writes from."""
+
+    unchanged: tuple[str, ...]  # not written: the device holds the value
+    fields: tuple[tuple[str, tuple[int, ...]], ...]  # bit fields and the whole word planned for their register
+    desired: dict[str, tuple[int, ...]]  # every parameter's registers as planned (copied before a write changes it)
+
+
+def _facts(plan: Plan, prof: Profile) -> _Facts:
+    return _Facts(tuple(pp.name for pp in plan.parameters if pp.action == "unchanged"),
+                  tuple((pp.name, pp.desired_raw) for pp in plan.parameters if prof.parameter(pp.name).mask),
+                  {pp.name: tuple(pp.desired_raw) for pp in plan.parameters})
+
+
+@dataclass
 class _Planned:
-    """A device's plan, from the plans devices of one recipe holding the same values share."""
+    """A plan the devices of one recipe holding the same values share, and what each of them needs of it."""
 
-    plan: Plan
-    rest: bytes  # the plan's sorted-key JSON after its "device" (which sorts first), shared
+    plan: Plan  # planned for no device in particular (Target("", answers, ""))
+    rest: bytes  # the plan's sorted-key JSON after its "device" (which sorts first)
+    facts: _Facts
+    snapshot: str | None = None  # the values part of their snapshots' text, once the first one was made
 
-    def digest(self) -> str:
-        """``plan_digest(self.plan)``, without serialising the plan again: only its device is this device's."""
-        d = self.plan.device
-        head = json.dumps({"profile": d.profile, "unit": d.unit, "url": d.url}).encode()
-        return hashlib.sha256(b'{"device": ' + head + b", " + self.rest).hexdigest()
+    def digest(self, device: Target) -> str:
+        """``plan_digest`` of the plan for ``device``, without serialising it again: only its device differs."""
+        head = json.dumps({"profile": device.profile, "unit": device.unit, "url": device.url}).encode()
+        h = hashlib.sha256(b'{"device": ' + head + b", ")
+        h.update(self.rest)
+        return h.hexdigest()
+
+    def snapshot_values(self, prof: Profile, before: Mapping[str, tuple[int, ...]]) -> str:
+        """``snapshot_values(prof, before)``: the devices sharing this plan hold the same values (they are its key)."""
+        if self.snapshot is None:
+            self.snapshot = snapshot_values(prof, before)
+        return self.snapshot
 
 
 _PLANS: dict[tuple[int, bool, bool, tuple[tuple[int, ...] | None, ...]], tuple[Recipe, _Planned]] = {}
 
 
 def _planned(recipe: Recipe, target: Target, before: dict[str, tuple[int, ...]], write_all: bool,
-             shared: _Shared) -> _Planned:
+             shared: _Shared) -> tuple[Plan, _Planned]:
     """``make_plan`` for this device, planned once for all the devices of ``recipe`` that hold the same values
     (the plan depends on the recipe, its profile with any learned limits, and what the device holds; the
-    device itself is only named in it, and whether it answers: unit 0 does not)."""
-    current = tuple(before.get(name) for name, _, _ in shared.layout)
+    device itself is only named in it, and whether it answers: unit 0 does not); and the shared entry."""
+    current = tuple(map(before.get, shared.names))
     answers = target.unit != 0  # the plan's wire summary counts the answers (none to a broadcast)
     key = (id(recipe), write_all, answers, current)
     hit = _PLANS.get(key)
@@ -121,8 +151,9 @@ def _planned(recipe: Recipe, target: Target, before: dict[str, tuple[int, ...]],
         plan = make_plan(recipe, Target("", int(answers), ""), before, write_all=write_all, reads=shared.reads)
         doc = plan_to_json(plan)
         del doc["device"]
-        hit = _PLANS[key] = (recipe, _Planned(plan, json.dumps(doc, sort_keys=True)[1:].encode()))
-    return replace(hit[1], plan=replace(hit[1].plan, device=target))
+        hit = _PLANS[key] = (recipe, _Planned(plan, json.dumps(doc, sort_keys=True)[1:].encode(),
+                                              _facts(plan, recipe.profile)))
+    return replace(hit[1].plan, device=target), hit[1]
 
 
 async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None = None,
@@ -282,12 +313,11 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
 
     # 2. the plan: a saved one must still match the device, else a fresh diff-aware plan
     plan, planned = _the_plan(recipe, target, opts, before, shared)
-    for pp in plan.parameters:
-        if pp.action == "unchanged":
-            results[pp.name].status = "unchanged"
-    for pp in plan.parameters:  # a field's register goes whole: report the word planned
-        if prof.parameter(pp.name).mask:
-            results[pp.name].desired_raw = pp.desired_raw
+    facts = planned.facts if planned is not None else _facts(plan, prof)
+    for n in facts.unchanged:
+        results[n].status = "unchanged"
+    for n, raw in facts.fields:  # a field's register goes whole: report the word planned
+        results[n].desired_raw = raw
     if not plan.writes:
         _verify(results, prof, before, written=set())
         # a retry of a device whose commit failed: the values were verified (and soaked, confirmed) by that run,
@@ -314,7 +344,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         opts.on_writing(res)
 
     # 4. unlock, writes in plan order (recovering from partial failures), read-back, commit, lock
-    await _write_phase(session, recipe, plan, opts, res, results, key)
+    await _write_phase(session, recipe, plan, opts, res, results, key, dict(facts.desired))
 
 
 async def _read_before(session: Session, recipe: Recipe, opts: ApplyOptions, res: DeviceResult, key: str
@@ -334,7 +364,7 @@ async def _read_before(session: Session, recipe: Recipe, opts: ApplyOptions, res
         res.identity = await session.identify()
         why = check_identity_objects(prof, res.identity)
         if why is None:  # the revision found against the profile's and each named parameter's
-            why = await check_firmware(session, prof, res.identity, [d.name for d in recipe.desired])
+            why = await check_firmware(session, prof, res.identity, shared.names)
         if why:
             res.status, res.error = "failed", f"{why}; nothing was written"
             return None
@@ -398,8 +428,7 @@ def _the_plan(recipe: Recipe, target: Target, opts: ApplyOptions, before: dict[s
                     f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed)
                 + "); make a new plan")
         return opts.expected, None
-    planned = _planned(recipe, target, before, opts.write_all, shared)
-    return planned.plan, planned
+    return _planned(recipe, target, before, opts.write_all, shared)
 
 
 async def _save_snapshot(recipe: Recipe, opts: ApplyOptions, res: DeviceResult, before: dict[str, tuple[int, ...]],
@@ -408,9 +437,10 @@ async def _save_snapshot(recipe: Recipe, opts: ApplyOptions, res: DeviceResult, 
     thread (sharing fsyncs with the other devices of a fleet); False (and nothing written) when it cannot be."""
     applied = opts.applied or (os.path.abspath(recipe.path) if recipe.path else None)  # a fleet: the device's own
     snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=applied,
-                         identity=res.identity)
+                         identity=res.identity,
+                         values_text=None if planned is None else planned.snapshot_values(recipe.profile, before))
     if opts.run_id is not None:
-        digest = planned.digest() if planned is not None else plan_digest(plan)
+        digest = planned.digest(plan.device) if planned is not None else plan_digest(plan)
         snap.journal = journal.path_of(opts.state_dir)
         snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit, plan_digest=digest,
                                            batch=res.batch, restoring=res.restored)
@@ -431,9 +461,9 @@ async def _save_snapshot(recipe: Recipe, opts: ApplyOptions, res: DeviceResult, 
 
 
 async def _write_phase(session: Session, recipe: Recipe, plan: Plan, opts: ApplyOptions, res: DeviceResult,
-                       results: dict[str, ParameterResult], key: str) -> None:
+                       results: dict[str, ParameterResult], key: str, desired: dict[str, tuple[int, ...]]) -> None:
     """Unlock, the writes in plan order (recovering from partial failures), read-back, commit, lock; what the
-    device taught is remembered."""
+    device taught is remembered. ``desired``: each planned parameter's registers (bit fields: merged anew)."""
     prof = recipe.profile
     if prof.unlock:
         try:
@@ -442,7 +472,7 @@ async def _write_phase(session: Session, recipe: Recipe, plan: Plan, opts: Apply
             res.status, res.error = "failed", f"unlock failed: {e}; no parameter was written"
             return
     try:
-        await _write_verify_commit(session, prof, recipe, plan, opts, res, results)
+        await _write_verify_commit(session, prof, recipe, plan, opts, res, results, desired)
         res.seen = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())  # the read-back: what "as left" shows
         if res.learned:
             try:
@@ -461,8 +491,8 @@ async def _write_phase(session: Session, recipe: Recipe, plan: Plan, opts: Apply
             except (DeviceGone, ExceptionResponse) as e:
                 res.status = "failed"  # its parameters say what they hold; the device is not left as it should be
                 res.error = f"{res.error + '; ' if res.error else ''}lock failed: {e}; the device may be left unlocked"
-    res.notices.extend(f"{n} takes effect after a power cycle" for n, r in results.items()
-                       if r.status == "ok" and prof.parameter(n).restart)
+    res.notices.extend([f"{n} takes effect after a power cycle" for n in _shared(recipe).restart
+                        if results[n].status == "ok"])
 
 
 def _identity_text(identity: dict[str, str]) -> str:
@@ -470,10 +500,11 @@ def _identity_text(identity: dict[str, str]) -> str:
 
 
 async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, plan: Plan, opts: ApplyOptions,
-                               res: DeviceResult, results: dict[str, ParameterResult]) -> None:
+                               res: DeviceResult, results: dict[str, ParameterResult],
+                               desired: dict[str, tuple[int, ...]]) -> None:
     learning = Learning()
     try:
-        written, unanswered = await _write_all(session, prof, plan, opts, results, learning, res.notices)
+        written, unanswered = await _write_all(session, prof, plan, opts, results, learning, res.notices, desired)
     finally:
         res.learned = learning.limits(results)
         res.notices.extend(learning.notices(results, prof.id))
@@ -516,7 +547,8 @@ async def _commit(session: Session, prof: Profile, res: DeviceResult, *, around:
 
 async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOptions,
                      results: dict[str, ParameterResult], learning: Learning,
-                     notices: list[str] | None = None) -> tuple[set[str], set[str] | None]:
+                     notices: list[str] | None = None,
+                     desired: dict[str, tuple[int, ...]] | None = None) -> tuple[set[str], set[str] | None]:
     """Send the plan's writes. Returns the names sent, and, when the device went away, the names of the
     request it did not answer (None while it answers).
 
@@ -524,7 +556,8 @@ async def _write_all(session: Session, prof: Profile, plan: Plan, opts: ApplyOpt
     known to be for length alone, or Function 16 answered 01, the later requests go in the form the
     device takes (``learning``).
     """
-    desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
+    if desired is None:
+        desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
     written: set[str] = set()
     pending = deque(plan.writes)
     stopped = False

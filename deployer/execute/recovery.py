@@ -28,7 +28,10 @@ async def _remerge(session: Session, prof: Profile, req: WriteRequest, desired: 
                    results: dict[str, ParameterResult]) -> WriteRequest:
     """Bit fields: read their registers right before the write and merge the new bits into what the
     device holds now (another field may have changed since the snapshot: keep it, never guess)."""
-    fields = [p for p in (prof.parameter(n) for n in req.parameters) if p.mask and p.readable]
+    readable = prof.readable_fields()
+    if not readable:  # most profiles: no bit field, nothing to look up per parameter
+        return req
+    fields = [prof.parameter(n) for n in req.parameters if n in readable]
     if not fields:
         return req
     fresh = await session.read_blocks(plan_reads(prof, [f.name for f in fields]))

@@ -46,8 +46,10 @@ async def check_firmware(session: Session, profile: Profile, identity: dict[str,
     """None if the device's firmware revision is one the profile and the parameters ``names`` apply to, else
     why not (the revision found and the one wanted). Read before anything is written."""
     src = profile.firmware
-    gated = [profile.parameter(n) for n in names if profile.parameter(n).firmware is not None]
-    if src is None or (src.applies is None and not gated):
+    if src is None:  # no revision to go by (parameters are gated by the profile's firmware source only)
+        return None
+    gated = [p for p in map(profile.parameter, names) if p.firmware is not None]
+    if src.applies is None and not gated:
         return None
     if src.address is None:
         name = object_name(src.object_id or 0)

@@ -131,6 +131,11 @@ class Parameter:
     firmware: str | None = None  # the firmware revisions it exists in ('>=2.1'; firmware.matches)
     action: bool = False  # a momentary command (a defrost button): never pulled, never set by a recipe
 
+    def __hash__(self) -> int:
+        # a few fields, not all 28 (equal parameters still hash alike): snapshots and recipe texts key their
+        # caches by parameter
+        return hash((self.name, self.address, self.type, self.register_type))
+
     @property
     def key(self) -> int:
         """Where the parameter starts in a register map of all four tables (see SPACE)."""
@@ -502,6 +507,12 @@ class Profile:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "_by_name", {p.name: p for p in self.parameters})
+        object.__setattr__(self, "_fields", frozenset(p.name for p in self.parameters if p.mask and p.readable))
+
+    def readable_fields(self) -> frozenset[str]:
+        """The names of the bit fields that can be read: an apply merges each one's register anew before a write."""
+        fields: frozenset[str] = self._fields  # type: ignore[attr-defined]
+        return fields
 
     def parameter(self, name: str) -> Parameter:
         by_name: dict[str, Parameter] = self._by_name  # type: ignore[attr-defined]

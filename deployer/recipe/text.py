@@ -109,13 +109,19 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
     Values outside the profile's range are kept as comments (a recipe cannot set them), except in
     a snapshot (``snapshot`` given), which records them as ``{raw: N}`` plus every raw register.
     """
+    return recipe_head(profile_ref, name=name, device=device, comment=comment, snapshot=snapshot) + values_text(
+        list(values.items()), snapshot is not None)
+
+
+def recipe_head(profile_ref: str, *, name: str, device: DeviceSpec | None = None, comment: str = "",
+                snapshot: SnapshotInfo | None = None) -> str:
+    """``recipe_text`` up to its values: the comment, the recipe's name, profile and device, the snapshot's facts."""
     lines = [f"# {c}" for c in comment.splitlines()] if comment else []
     lines.append(f"recipe: {json.dumps(name)}")
     lines.append(f"profile: {json.dumps(profile_ref)}")
     if device is not None and (device.url or device.unit is not None):
         dev = {k: v for k, v in (("url", device.url), ("unit", device.unit)) if v is not None}
         lines.append(f"device: {json.dumps(dev)}")
-    ordered = sorted(values.items(), key=lambda kv: kv[0].key)  # holding registers, then coils
     if snapshot is not None:
         lines.append("snapshot:  # what rollback restores: these raw registers, as the device held them")
         for k, v in (("profile_sha256", snapshot.profile_sha256), ("taken", snapshot.taken),
@@ -124,7 +130,13 @@ def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, 
                 lines.append(f"  {k}: {json.dumps(v)}")
         if snapshot.identity is not None:  # Function 43 objects: a later run tells a replaced device
             lines.append(f"  identity: {json.dumps(dict(snapshot.identity))}")
-    return "\n".join(lines) + "\n" + _values_text(ordered, snapshot is not None)
+    return "\n".join(lines) + "\n"
+
+
+def values_text(values: Sequence[tuple[Parameter, Sequence[int]]], snapshot: bool) -> str:
+    """``recipe_text`` from its values on (a snapshot's from ``registers:``): the values in register order
+    (holding registers, then coils; ``values`` in their order where parameters share a register)."""
+    return _values_text(sorted(values, key=lambda kv: kv[0].key), snapshot)
 
 
 # the values part of written recipes, by (parameter, registers) of each value: the devices of a fleet

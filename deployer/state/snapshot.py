@@ -20,7 +20,8 @@ from ..portable import file_name
 from ..profile import Profile, profile_ref
 from ..recipe.loader import Recipe
 from ..recipe.model import DeviceSpec, SnapshotInfo
-from ..recipe.text import recipe_text
+from ..recipe.text import recipe_head
+from ..recipe.text import values_text as recipe_values_text
 from .durable import NewFile, durable_now
 
 
@@ -30,9 +31,10 @@ def snapshot_dir(state_dir: str) -> str:
 
 def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
                   url: str, unit: int, *, applied: str | None = None,
-                  identity: Mapping[str, str] | None = None) -> NewFile:
+                  identity: Mapping[str, str] | None = None, values_text: str | None = None) -> NewFile:
     """The snapshot of what the device held, ready for ``durable``: a new file (never overwriting
-    another run's snapshot from the same second), rendered for its first candidate path."""
+    another run's snapshot from the same second), rendered for its first candidate path.
+    ``values_text``: ``snapshot_values(recipe.profile, values)``, when the caller has it already."""
     directory = snapshot_dir(state_dir)
     os.makedirs(directory, exist_ok=True)
     now = time.gmtime()
@@ -41,7 +43,7 @@ def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
 
     def text(path: str) -> str:
         return snapshot_text(recipe.profile, values, name=name, url=url, unit=unit, taken=now, applied=applied,
-                             label=recipe.name, path=path, identity=identity)
+                             label=recipe.name, path=path, identity=identity, values_text=values_text)
 
     first = os.path.join(directory, f"{safe}-{stamp}.yaml")
     later = (os.path.join(directory, f"{safe}-{stamp}-{n}.yaml") for n in itertools.count(2))
@@ -50,19 +52,23 @@ def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
 
 def snapshot_text(prof: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
                   taken: time.struct_time, applied: str | None, label: str, path: str,
-                  identity: Mapping[str, str] | None = None) -> str:
+                  identity: Mapping[str, str] | None = None, values_text: str | None = None) -> str:
     """A snapshot's text: what device ``name`` (``url`` unit ``unit``) held at ``taken`` (UTC) before
-    ``applied`` (a recipe's path; None: the recipe ``label`` given in code) was applied, to be saved as ``path``."""
+    ``applied`` (a recipe's path; None: the recipe ``label`` given in code) was applied, to be saved as ``path``.
+    ``values_text``: ``snapshot_values(prof, values)``, when the caller has it already (the devices of a fleet
+    holding the same values share it)."""
     stamp = time.strftime("%Y%m%dT%H%M%SZ", taken)
-    info = SnapshotInfo(prof.digest, dict(values), time.strftime("%Y-%m-%dT%H:%M:%SZ", taken), applied,
-                        identity=identity)
-    return recipe_text(
-        profile_ref(prof), {prof.parameter(k): v for k, v in values.items()},
-        name=f"snapshot-{file_name(name)}-{stamp}", device=DeviceSpec(url, unit),
-        comment=f"Snapshot: what {url} unit {unit} held before applying '{applied or label}'.\n"
-                f"Restore with: deployer rollback {path}",
-        snapshot=info,
-    )
+    info = SnapshotInfo(prof.digest, values, time.strftime("%Y-%m-%dT%H:%M:%SZ", taken), applied, identity=identity)
+    head = recipe_head(profile_ref(prof), name=f"snapshot-{file_name(name)}-{stamp}", device=DeviceSpec(url, unit),
+                       comment=f"Snapshot: what {url} unit {unit} held before applying '{applied or label}'.\n"
+                               f"Restore with: deployer rollback {path}",
+                       snapshot=info)
+    return head + (snapshot_values(prof, values) if values_text is None else values_text)
+
+
+def snapshot_values(prof: Profile, values: Mapping[str, tuple[int, ...]]) -> str:
+    """A snapshot's text from its ``registers:`` on: the raw registers, their addresses and the values."""
+    return recipe_values_text([(prof.parameter(k), v) for k, v in values.items()], snapshot=True)
 
 
 _STAMPED = re.compile(r"^(.+)-\d{8}T\d{6}Z(?:-\d+)?\.yaml$")
