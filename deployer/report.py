@@ -170,25 +170,21 @@ class DeviceResult:
     def small(self) -> DeviceResult:
         """This result without its requests and parameters, their numbers kept (``tally``): what a fleet
         keeps of a device once its JSON is in the report file. Its ``to_json`` is no longer the report's."""
+        out = copy.copy(self)  # ``replace`` without its __init__ of 24 fields: the same fields, the same values
+        out.requests, out.parameters = [], []
         if self.tally is not None:
-            return copy.copy(self)
-        names = []  # ``written``, ``changed_count`` and ``failed_count`` in one pass (a fleet does this per device)
-        changed = failed = 0
-        for p in self.parameters:
-            status = p.status
-            if status in _SENT:
-                names.append(p.name)
-                if status == "ok":
-                    changed += p.before_raw != p.after_raw
-                else:
-                    failed += 1
-        written = tuple(names)
+            return out
+        # ``written``, ``changed_count`` and ``failed_count`` at once (a fleet does this for every device)
+        params = self.parameters
+        written = tuple([p.name for p in params if p.status in _SENT])
+        ok = [p for p in params if p.status == "ok"]
+        changed = sum([p.before_raw != p.after_raw for p in ok])
+        failed = len(written) - len(ok)  # sent, not ok: failed, mismatch or unverified
         if len(_WRITTEN) > 1024:  # a long-lived caller's many recipes: keep the table small
             _WRITTEN.clear()
         tally = Tally(self.write_requests, self.read_requests, len(self.requests), changed, failed,
                       _WRITTEN.setdefault(written, written))
-        out = copy.copy(self)  # ``replace`` without its __init__ of 24 fields: the same fields, the same values
-        out.requests, out.parameters, out.tally = [], [], tally
+        out.tally = tally
         return out
 
     def settle(self) -> None:
@@ -409,24 +405,22 @@ _ROWS: dict[tuple[Any, ...], str] = {}
 _ROWS_KEPT = 1 << 16  # entries remembered (devices holding values of their own would grow it without end)
 
 
-def _parameters_json(params: Iterable[ParameterResult]) -> list[str]:
+def _parameters_json(params: Sequence[ParameterResult]) -> list[str]:
     """``json.dumps(p.to_json())`` of each parameter, from ``_ROWS`` where the same entry was made before."""
-    rows = _ROWS
-    out = []
-    for p in params:  # the key: all the entry says (a tuple built here is faster than an attrgetter's)
-        key = (p.name, p.address, p.count, p.desired, p.desired_raw, p.before_raw, p.after_raw, p.status, p.error,
-               p.register_type)
-        try:
-            text = rows.get(key)
-        except TypeError:  # registers given as lists (made in code): not kept
-            out.append(_parameter_json(p))
-            continue
-        if text is None:
-            if len(rows) >= _ROWS_KEPT:
-                rows.clear()
-            text = rows[key] = _parameter_json(p)
-        out.append(text)
-    return out
+    # the key: all an entry says (comprehensions and map: a fleet does this for every parameter of every device)
+    keys = [(p.name, p.address, p.count, p.desired, p.desired_raw, p.before_raw, p.after_raw, p.status, p.error,
+             p.register_type) for p in params]
+    try:
+        texts = list(map(_ROWS.get, keys))
+    except TypeError:  # registers given as lists (made in code): nothing kept
+        return [_parameter_json(p) for p in params]
+    if None in texts:
+        if len(_ROWS) + len(keys) > _ROWS_KEPT:
+            _ROWS.clear()
+        for i, text in enumerate(texts):
+            if text is None:
+                texts[i] = _ROWS[keys[i]] = _parameter_json(params[i])
+    return texts  # type: ignore[return-value]  # no None left
 
 
 def _parameter_json(p: ParameterResult) -> str:

@@ -43,7 +43,7 @@ def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
 
     def text(path: str) -> str:
         return snapshot_text(recipe.profile, values, name=name, url=url, unit=unit, taken=now, applied=applied,
-                             label=recipe.name, path=path, identity=identity, values_text=values_text)
+                             label=recipe.name, path=path, identity=identity, values_text=values_text, safe=safe)
 
     first = os.path.join(directory, f"{safe}-{stamp}.yaml")
     later = (os.path.join(directory, f"{safe}-{stamp}-{n}.yaml") for n in itertools.count(2))
@@ -52,14 +52,16 @@ def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
 
 def snapshot_text(prof: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
                   taken: time.struct_time, applied: str | None, label: str, path: str,
-                  identity: Mapping[str, str] | None = None, values_text: str | None = None) -> str:
+                  identity: Mapping[str, str] | None = None, values_text: str | None = None,
+                  safe: str | None = None) -> str:
     """A snapshot's text: what device ``name`` (``url`` unit ``unit``) held at ``taken`` (UTC) before
     ``applied`` (a recipe's path; None: the recipe ``label`` given in code) was applied, to be saved as ``path``.
     ``values_text``: ``snapshot_values(prof, values)``, when the caller has it already (the devices of a fleet
-    holding the same values share it)."""
+    holding the same values share it); ``safe``: ``file_name(name)``, when the caller has it."""
     stamp = time.strftime("%Y%m%dT%H%M%SZ", taken)
     info = SnapshotInfo(prof.digest, values, time.strftime("%Y-%m-%dT%H:%M:%SZ", taken), applied, identity=identity)
-    head = recipe_head(profile_ref(prof), name=f"snapshot-{file_name(name)}-{stamp}", device=DeviceSpec(url, unit),
+    safe = file_name(name) if safe is None else safe
+    head = recipe_head(profile_ref(prof), name=f"snapshot-{safe}-{stamp}", device=DeviceSpec(url, unit),
                        comment=f"Snapshot: what {url} unit {unit} held before applying '{applied or label}'.\n"
                                f"Restore with: deployer rollback {path}",
                        snapshot=info)
