@@ -169,3 +169,172 @@ def test_a_stream_the_disk_refused_for_a_while_ends_whole(tmp_path: Path, monkey
     assert [d["status"] for d in doc["devices"]] == ["ok"] * 3 and fails == [0]
     live.close(Report("r.yaml", results))  # (stop twice is fine)
     assert json.loads(Path(path).read_text())["devices"] == [r.to_json() for r in results]
+
+
+# ---- the fast paths of a fleet's device, each against the slow path it stands for ----------------------------
+
+
+def _varied() -> DeviceResult:
+    """A device's result with one parameter of every kind and outcome."""
+    d = DeviceResult("dev \"1\"", "tcp://127.0.0.1:1", 1, "example-drive", status="partial", error="x; y",
+                     notices=["motor_poles takes effect after a power cycle"], profile_ref="example-drive",
+                     recipe="/r.yaml", batch=2, seen="2024-01-01T00:00:00Z", identity={"vendor": "ACME"})
+    d.parameters = [
+        ParameterResult("u16", 0x100, 1, "10 s", (1000,), (500,), (1000,), "ok"),
+        ParameterResult("u32", 0x101, 2, "100000 count", (1, 34464), (0, 0), (1, 34464), "ok"),
+        ParameterResult("f32", 0x103, 2, "2500.5 rpm", (0x4000, 0x451C), (0, 0x453B), (0, 0x453B), "mismatch",
+                        "reads back 3000 rpm (0000h 453Bh)"),
+        ParameterResult("field", 0x200, 1, "ccw", (0x0002,), (0x0030,), (0x0032,), "ok"),
+        ParameterResult("name", 0x201, 8, 'X "1" #', (0x5820, 0x2231, 0x2220, 0x2320, 0x2020, 0x2020, 0x2020,
+                                                       0x2020), (0x4158,) * 8, (0x4158,) * 8, "failed",
+                        "exception 04 (server device failure)"),
+        ParameterResult("relay", 19, 1, "true", (1,), (0,), (1,), "ok", register_type="coil"),
+        ParameterResult("temp", 8, 1, "21.5 degC", (215,), (215,), (215,), "unchanged", register_type="input"),
+        ParameterResult("password", 0x20, 1, "4", (4,), None, None, "unverified", "write-only: cannot be read back"),
+        ParameterResult("later", 0x21, 1, "1", (1,), (0,), None, "skipped"),
+        ParameterResult("same", 0x23, 1, "3", (3,), (3,), (3,), "ok"),  # written, the value it held already
+    ]
+    d.requests = [RequestRecord(3, 0x100, 60), RequestRecord(16, 0x201, 8, "exception", 4),
+                  RequestRecord(43, 0, 1, "no response", None, 2), RequestRecord(15, 19, 1)]
+    return d
+
+
+def test_a_report_line_follows_every_field_of_its_parameters_and_requests(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The line's entries are kept by all they say: a field changed after an entry was kept makes a new entry."""
+    import dataclasses
+
+    from deployer import report
+    from deployer.report import device_json
+
+    d = _varied()
+    for _ in range(2):  # the second time from the kept entries
+        assert device_json(d) == json.dumps(d.to_json()).encode()
+    changed: dict[type, object] = {int: 7, str: "changed", tuple: (9, 9)}
+    for i in range(len(d.parameters)):
+        for f in dataclasses.fields(ParameterResult):
+            if f.name == "parameter":
+                continue
+            e = _varied()
+            old = getattr(e.parameters[i], f.name)
+            new = "mismatch" if f.name == "status" else "coil" if f.name == "register_type" else \
+                changed.get(type(old), "an error")
+            setattr(e.parameters[i], f.name, new)
+            assert device_json(e) == json.dumps(e.to_json()).encode(), (i, f.name)
+    for f in dataclasses.fields(RequestRecord):
+        e = _varied()
+        setattr(e.requests[1], f.name, "no response" if f.name == "result" else 5)
+        assert device_json(e) == json.dumps(e.to_json()).encode(), f.name
+    e = _varied()  # registers as lists, as code may give them: not kept, the same line
+    e.parameters.append(ParameterResult("listed", 0x22, 1, "7", [7], [6], [7], "ok"))  # type: ignore[arg-type]
+    assert device_json(e) == json.dumps(e.to_json()).encode()
+    monkeypatch.setattr(report, "_ROWS_KEPT", 4)  # the table starts again when full
+    e = _varied()
+    e.parameters[0].after_raw = (4242,)
+    assert device_json(e) == json.dumps(e.to_json()).encode() and len(report._ROWS) <= 4 + len(e.parameters)
+    assert device_json(d.small()) == json.dumps(d.small().to_json()).encode()
+
+
+def test_a_small_result_counts_every_outcome_as_the_full_one() -> None:
+    d = _varied()
+    small = d.small()
+    for attr in ("write_requests", "read_requests", "request_count", "changed_count", "failed_count", "written"):
+        assert getattr(small, attr) == getattr(d, attr), attr
+    assert small.written == ("u16", "u32", "f32", "field", "name", "relay", "password", "same")
+    assert (small.changed_count, small.failed_count) == (4, 3)
+    again = small.small()
+    assert again.tally == small.tally and again.parameters == [] and again.requests == []
+    assert {f: getattr(small, f) for f in ("name", "status", "notices", "identity", "batch", "seen")} == {
+        f: getattr(d, f) for f in ("name", "status", "notices", "identity", "batch", "seen")}
+
+
+def test_a_recipes_results_are_made_as_their_fields_say(tmp_path: Path) -> None:
+    """The shared positional arguments follow ParameterResult's fields (a field moved would shift them)."""
+    from deployer.execute.device import _results
+
+    (tmp_path / "d.yaml").write_text("recipe: d\nprofile: example-drive\nparameters:\n  control_mode: speed\n"
+                                     "  encoder_resolution: 262144 count\n  direction: ccw\n  brake_mode: dynamic\n"
+                                     "  axis_name: X1\n  speed_limit: 2500.5 rpm\n")
+    rec = deployer.load_recipe(str(tmp_path / "d.yaml"))
+    got = _results(rec)
+    assert list(got) == [d.name for d in rec.desired]
+    for d in rec.desired:
+        r = got[d.name]
+        assert r == ParameterResult(name=d.name, address=d.parameter.address, count=d.parameter.count,
+                                    desired=d.text, desired_raw=d.registers, register_type=d.parameter.register_type)
+        assert r.parameter is d.parameter and r.status == "skipped"
+        assert r.before_raw is None and r.after_raw is None and r.error is None
+    assert _results(rec)[rec.desired[0].name] is not got[rec.desired[0].name]  # each device its own
+
+
+def test_verify_compares_the_registers_then_the_fields_bits() -> None:
+    from deployer.execute.verify import PENDING, _verify
+
+    prof = builtin_profile("example-drive")
+    brake = prof.parameter("brake_mode")  # bits 4..5 of its register
+
+    def outcome(desired: object, got: tuple[int, ...], name: str = "brake_mode") -> tuple[str, str | None]:
+        p = prof.parameter(name)
+        r = ParameterResult(name, p.address, 1, "x", desired, status="unverified", error=PENDING)  # type: ignore[arg-type]
+        _verify({name: r}, prof, {name: got}, {name})
+        return r.status, r.error
+
+    assert brake.mask == 0x30
+    assert outcome((0x0020,), (0x0020,)) == ("ok", None)
+    assert outcome((0x0020,), (0x0121,)) == ("ok", None)  # other bits of the register are not the field's
+    assert outcome((0x0020,), (0x0010,))[0] == "mismatch"
+    assert outcome([8], (8,), "motor_poles") == ("ok", None)  # registers as a list
+    assert outcome((8,), (9,), "motor_poles") == ("mismatch", "reads back 9 (0009h)")
+
+
+def test_devices_holding_other_values_get_their_own_plan_and_snapshot(tmp_path: Path) -> None:
+    from deployer.state.snapshot import snapshot_values
+
+    rec = deployer.load_recipe(recipe(tmp_path))
+    shared = _shared(rec)
+    held = {"F07": (0, 500), "F08": (0, 1200), "stop_mode": (0,)}
+    other = {**held, "F07": (0, 700)}
+    _, a = _planned(rec, Target("tcp://a:1", 1, "x"), held, False, shared)
+    assert a.snapshot_values(rec.profile, held) == snapshot_values(rec.profile, held)
+    _, b = _planned(rec, Target("tcp://b:1", 1, "x"), other, False, shared)
+    assert b is not a and b.snapshot_values(rec.profile, other) == snapshot_values(rec.profile, other) != \
+        a.snapshot_values(rec.profile, held)
+    assert _planned(rec, Target("tcp://c:1", 1, "x"), dict(held), False, shared)[1] is a
+
+
+def test_a_fleets_snapshots_are_what_each_device_held(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Devices holding the same values share their snapshot's values text: each file is still its device's own,
+    as ``snapshot_text`` makes it from the values the report says the device held before."""
+    import time
+
+    from deployer.state.snapshot import snapshot_text
+    from deployer.testing.simulator import Simulator
+    from tests.helpers import Simulators
+
+    prof = builtin_profile("example-drive")
+    (tmp_path / "d.yaml").write_text("recipe: d\nprofile: example-drive\nparameters:\n  control_mode: speed\n"
+                                     "  encoder_resolution: 262144 count\n  enable_on_power_up: true\n"
+                                     "  direction: ccw\n  brake_mode: dynamic\n  jog_steps: 3.5 mm\n"
+                                     "  axis_name: X1\n  speed_limit: 2500.5 rpm\n")
+
+    def holding(name: str, words: list[int]) -> dict[int, int]:
+        return {prof.parameter(name).key + i: w for i, w in enumerate(words)}
+
+    sims = [Simulator(prof), Simulator(prof, init=holding("axis_name", [0x5932] + [0x2020] * 7)),  # "Y2"
+            Simulator(prof), Simulator(prof, init=holding("speed_limit", [0, 0x4500]))]  # 2048 rpm, CDAB
+    with Simulators(sims):
+        inv = inventory(tmp_path, {n: s.url for n, s in zip(names(4), sims, strict=True)})
+        code, _, err = cli(capsys, "apply", str(tmp_path / "d.yaml"), "--inventory", inv, "--yes", "--report",
+                           str(tmp_path / "r.json"), "--state-dir", str(tmp_path / "s"))
+    assert code == 0, err
+    texts = []
+    for dev in json.loads((tmp_path / "r.json").read_text())["devices"]:
+        held = {p["name"]: tuple(p["before_raw"]) for p in dev["parameters"]}
+        path = dev["snapshot"]
+        text = Path(path).read_text()
+        taken = re.search(r'^  taken: "(.*)"$', text, re.M)
+        assert taken is not None
+        assert text == snapshot_text(prof, held, name=dev["name"], url=dev["url"], unit=1,
+                                     taken=time.strptime(taken[1], "%Y-%m-%dT%H:%M:%SZ"),
+                                     applied=str(tmp_path / "d.yaml"), label="d", path=path)
+        texts.append(text.split("  registers:", 1)[1])
+    assert texts[0] == texts[2] and len({texts[0], texts[1], texts[3]}) == 3
