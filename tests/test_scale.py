@@ -338,3 +338,31 @@ def test_a_fleets_snapshots_are_what_each_device_held(tmp_path: Path, capsys: py
                                      applied=str(tmp_path / "d.yaml"), label="d", path=path)
         texts.append(text.split("  registers:", 1)[1])
     assert texts[0] == texts[2] and len({texts[0], texts[1], texts[3]}) == 3
+
+
+def test_devices_that_taught_the_same_limits_share_one_recipe_and_its_plans(tmp_path: Path) -> None:
+    from deployer.execute.device import _taught_limits
+    from deployer.execute.session import ApplyOptions
+    from deployer.profile import profile_ref
+    from deployer.state import learned
+
+    rec = deployer.load_recipe(recipe(tmp_path))
+    state = str(tmp_path / "s")
+    for device, limits in (("a#unit1", {"max_write_registers": 2}), ("b#unit1", {"max_write_registers": 2}),
+                           ("c#unit1", {"write_function": 6}), ("d#unit1", {"max_write_registers": 123})):
+        learned.remember(state, learned.Entry(profile_ref(rec.profile), device, limits, "refused", "2024-01-01"))
+    opts = ApplyOptions(state_dir=state)
+
+    def taught(device: str) -> tuple[deployer.Recipe, list[str]]:
+        res = DeviceResult(device, "tcp://x:1", 1, rec.profile.id)
+        return _taught_limits(rec, opts, res, device), res.notices
+
+    (a, said), (b, _), (c, _) = taught("a#unit1"), taught("b#unit1"), taught("c#unit1")
+    assert a is b is not rec and c is not a and said[0].startswith("using what this device taught")
+    assert a.profile.limits.max_write_registers == 2 and c.profile.limits.write_function == 6
+    assert taught("d#unit1") == (rec, []) and taught("e#unit1") == (rec, [])  # nothing tighter, nothing taught
+    held = {"F07": (0, 500), "F08": (0, 1), "stop_mode": (0,)}
+    plan, shared = _planned(a, Target("tcp://a:1", 1, "x"), held, False, _shared(a))
+    assert plan == make_plan(a, Target("tcp://a:1", 1, "x"), held, reads=_shared(a).reads)
+    assert all(w.count <= 2 for w in plan.writes)
+    assert _planned(b, Target("tcp://b:1", 1, "x"), held, False, _shared(b))[1] is shared

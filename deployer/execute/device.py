@@ -407,10 +407,27 @@ def _taught_limits(recipe: Recipe, opts: ApplyOptions, res: DeviceResult, key: s
         res.notices.append("the device's identity changed since it taught "
                            f"{taught.describe_limits()} ({_identity_text(taught.identity)}, now "
                            f"{_identity_text(res.identity)}): not used")
-    elif (taught_prof := learned.with_limits(prof, taught)) is not prof:
+    elif (over := _over_limits(recipe, taught)) is not recipe:
         res.notices.append(learned.note(taught))
-        return replace(recipe, profile=taught_prof)
+        return over
     return recipe
+
+
+_TAUGHT: dict[tuple[int, tuple[tuple[str, int], ...]], tuple[Recipe, Recipe]] = {}
+
+
+def _over_limits(recipe: Recipe, taught: learned.Entry) -> Recipe:
+    """``recipe`` with its profile over the limits a device taught (``learned.with_limits``); ``recipe`` itself
+    when they change nothing. One recipe for all the devices that taught the same limits: their plans are
+    shared as other devices' are (``_shared``, ``_planned`` know a recipe by its identity)."""
+    key = (id(recipe), tuple(sorted(taught.limits.items())))
+    hit = _TAUGHT.get(key)
+    if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
+        while len(_TAUGHT) >= _SHARED_KEPT:
+            del _TAUGHT[next(iter(_TAUGHT))]
+        prof = learned.with_limits(recipe.profile, taught)  # from the limits alone
+        hit = _TAUGHT[key] = (recipe, recipe if prof is recipe.profile else replace(recipe, profile=prof))
+    return hit[1]
 
 
 def _the_plan(recipe: Recipe, target: Target, opts: ApplyOptions, before: dict[str, tuple[int, ...]],
