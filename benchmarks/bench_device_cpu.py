@@ -40,7 +40,7 @@ from deployer.execute import device as dev
 from deployer.execute.recovery import Learning
 from deployer.execute.session import ApplyOptions
 from deployer.execute.steps import check_firmware, check_identity_objects
-from deployer.execute.verify import _values, _verify
+from deployer.execute.verify import _verify
 from deployer.planning.model import Target, WriteRequest
 from deployer.profile import profile_ref
 from deployer.recipe.loader import Recipe, load_recipe
@@ -131,7 +131,7 @@ class _Bench:
 
     def values_before(self, d: _Device) -> None:
         """The reads' registers as values by name, into the results (``_read_before``, ``_apply``)."""
-        d.before = _values(dev._shared(self.recipe).layout, self.regs_before)
+        d.before = dev._shared(self.recipe).values(self.regs_before)
         for n, regs in d.before.items():
             d.results[n].before_raw = regs
 
@@ -177,7 +177,7 @@ class _Bench:
 
     def verify(self, d: _Device) -> None:
         """The read-back's registers as values, compared (``_write_verify_commit``)."""
-        after = _values(dev._shared(self.recipe).layout, self.regs_after)
+        after = dev._shared(self.recipe).values(self.regs_after)
         _verify(d.results, self.recipe.profile, after, d.written, ())
 
     def notices(self, d: _Device) -> None:

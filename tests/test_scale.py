@@ -366,3 +366,23 @@ def test_devices_that_taught_the_same_limits_share_one_recipe_and_its_plans(tmp_
     assert plan == make_plan(a, Target("tcp://a:1", 1, "x"), held, reads=_shared(a).reads)
     assert all(w.count <= 2 for w in plan.writes)
     assert _planned(b, Target("tcp://b:1", 1, "x"), held, False, _shared(b))[1] is shared
+
+
+def test_devices_reading_the_same_registers_share_their_values(tmp_path: Path) -> None:
+    from deployer.execute.verify import _values
+
+    rec = deployer.load_recipe(recipe(tmp_path))  # F07 and F08 (32-bit), stop_mode
+    shared = _shared(rec)
+    regs = {k: 7 * k % 65536 for _, a, n in shared.layout for k in range(a, a + n)}
+    first = shared.values(regs)
+    assert list(first.items()) == list(_values(shared.layout, regs).items())
+    first["F07"] = (1, 2)  # the caller's own dict
+    again = shared.values(dict(regs))
+    assert again == _values(shared.layout, regs) and again["F08"] is shared.values(regs)["F08"]  # made once
+    other = {**regs, shared.layout[0][1]: 9}
+    assert shared.values(other) == _values(shared.layout, other) != again
+    partial = {k: v for k, v in regs.items() if k != shared.layout[1][1]}  # a register not read: F08 has no value
+    assert shared.values(partial) == _values(shared.layout, partial) and "F08" not in shared.values(partial)
+    (tmp_path / "one.yaml").write_text("recipe: one\nprofile: example-inverter\nparameters:\n  stop_mode: coast\n")
+    one = _shared(deployer.load_recipe(str(tmp_path / "one.yaml")))  # one register: no tuple of words
+    assert one.values(regs) == _values(one.layout, regs) == {"stop_mode": (regs[one.layout[0][1]],)}

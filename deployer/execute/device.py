@@ -11,11 +11,12 @@ import asyncio
 import hashlib
 import itertools
 import json
+import operator
 import os
 import time
 from collections import deque
-from collections.abc import Awaitable, Mapping
-from dataclasses import dataclass, replace
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from ..errors import (
@@ -68,6 +69,24 @@ class _Shared:
     names: tuple[str, ...]  # the recipe's parameters, in its order (the layout's, the results')
     results: tuple[tuple[Any, ...], ...]  # each ParameterResult's arguments, in its fields' order
     restart: tuple[str, ...]  # the parameters that take effect after a power cycle, in recipe order
+    words: Callable[[Mapping[int, int]], tuple[int, ...]] | None  # every register of the layout (None: < 2)
+    seen: dict[tuple[int, ...], dict[str, tuple[int, ...]]] = field(default_factory=dict, compare=False)
+
+    def values(self, regs: Mapping[int, int]) -> dict[str, tuple[int, ...]]:
+        """``_values(self.layout, regs)``, made once for all the devices whose registers read the same: their
+        values are then the same objects too (the plan's key, the report's entries compare them at once)."""
+        if self.words is None:
+            return _values(self.layout, regs)
+        try:
+            words = self.words(regs)
+        except KeyError:  # registers not read (write-only parameters; a read that failed): the long way
+            return _values(self.layout, regs)
+        hit = self.seen.get(words)
+        if hit is None:
+            if len(self.seen) >= _SHARED_KEPT:
+                self.seen.clear()
+            hit = self.seen[words] = _values(self.layout, regs)
+        return dict(hit)  # the caller's own
 
 
 _SHARED: dict[int, tuple[Recipe, _Shared]] = {}
@@ -80,13 +99,15 @@ def _shared(recipe: Recipe) -> _Shared:
         while len(_SHARED) >= _SHARED_KEPT:
             del _SHARED[next(iter(_SHARED))]  # the oldest
         params = [d.parameter for d in recipe.desired]
+        keys = [p.key + i for p in params for i in range(p.count)]
         hit = _SHARED[id(recipe)] = (recipe, _Shared(
             plan_reads(recipe.profile, [p.name for p in params if p.readable]),
             tuple((p.name, p.key, p.count) for p in params),
             tuple(p.name for p in params),
             tuple((d.name, d.parameter.address, d.parameter.count, d.text, d.registers, None, None, "skipped", None,
                    d.parameter.register_type, d.parameter) for d in recipe.desired),
-            tuple(p.name for p in params if recipe.profile.parameter(p.name).restart)))
+            tuple(p.name for p in params if recipe.profile.parameter(p.name).restart),
+            operator.itemgetter(*keys) if len(keys) > 1 else None))  # one key: itemgetter gives no tuple
     return hit[1]
 
 
@@ -359,7 +380,7 @@ async def _read_before(session: Session, recipe: Recipe, opts: ApplyOptions, res
             res.status, res.error = "failed", f"{e}; nothing was written"
             return None
         shared = _shared(recipe)
-        before = _values(shared.layout, await session.read_blocks(shared.reads, prof))
+        before = shared.values(await session.read_blocks(shared.reads, prof))
         # after a register answered: a device silent on Function 43 is not taken for an absent one
         res.identity = await session.identify()
         why = check_identity_objects(prof, res.identity)
@@ -528,7 +549,7 @@ async def _write_verify_commit(session: Session, prof: Profile, recipe: Recipe, 
 
     # read back everything the plan reads, compare raw values (after a silence too: it may be back)
     try:
-        after = _values(_shared(recipe).layout, await session.read_blocks(plan.reads, prof))
+        after = _shared(recipe).values(await session.read_blocks(plan.reads, prof))
     except (DeviceGone, ExceptionResponse) as e:
         for n in written:
             if results[n].error == PENDING:

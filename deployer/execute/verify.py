@@ -36,11 +36,11 @@ def _values(layout: Iterable[tuple[str, int, int]], regs: Mapping[int, int]) -> 
 PENDING = "not read back yet"
 
 
-def _attempted(results: dict[str, ParameterResult], names: Iterable[str], written: set[str],
+def _attempted(results: dict[str, ParameterResult], names: Collection[str], written: set[str],
                error: str = PENDING) -> None:
     """Mark parameters as sent: unverified until the read-back says ok or mismatch."""
+    written.update(names)
     for n in names:
-        written.add(n)
         r = results[n]
         r.status, r.error = "unverified", error
 
