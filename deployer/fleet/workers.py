@@ -40,7 +40,7 @@ if TYPE_CHECKING:
     from ..execute.session import ApplyOptions
     from ..report import DeviceResult
 
-MIN_DEVICES = 500  # below this, starting workers (about 0.3 s each) costs more than it saves
+MIN_DEVICES = 2000  # below this, starting workers (about 0.5 s) costs more than they save (benchmarks/RESULTS.md)
 MIN_PER_WORKER = 8  # devices in flight per worker at least: fewer, and one process keeps up
 MAX_WORKERS = 64
 _FRAME = struct.Struct(">I")
@@ -327,7 +327,21 @@ def main() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if hasattr(signal, "SIGBREAK"):
         signal.signal(signal.SIGBREAK, signal.SIG_IGN)
-    asyncio.run(_serve(port, token))
+    with asyncio.Runner(loop_factory=_loop_factory()) as runner:
+        runner.run(_serve(port, token))
+
+
+def _loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
+    """uvloop's event loop where it is installed (not on Windows): a worker's loop carries its devices' sockets and
+    its link to the rollout, and took 12-18% less CPU per device on it (benchmarks/RESULTS.md); else asyncio's."""
+    if sys.platform == "win32":
+        return None
+    try:
+        import uvloop
+    except ImportError:
+        return None
+    factory: Callable[[], asyncio.AbstractEventLoop] = uvloop.new_event_loop
+    return factory
 
 
 async def _serve(port: int, token: bytes) -> None:
