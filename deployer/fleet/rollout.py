@@ -338,6 +338,7 @@ class _Rollout:
         self.done[j.name] = r
         if self.on_done:
             self.on_done(r)
+        r.report_line = None  # the report file has it: 17 KB a device, not kept for the rest of the run
 
     def lost(self, j: Job, batch: int | None, call: Call, why: str) -> DeviceResult:
         """A device whose worker process went away while it ran: what is known (its snapshot, if its writes had
