@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import socketserver
+import subprocess
 import threading
 import time
 from collections.abc import Awaitable, Callable, Iterator
@@ -31,6 +32,17 @@ def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
 
 run_cli = cli  # its name in tests written before there was one cli(); new tests say cli
 
+
+
+@contextmanager
+def reaped(proc: subprocess.Popen[str]) -> Iterator[subprocess.Popen[str]]:
+    """A process of a test, killed if it still runs when the test ends (a failed test leaves none behind)."""
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
 
 
 def wait_for(cond: Callable[[], bool], what: str = "the condition", timeout: float = 120) -> None:

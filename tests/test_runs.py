@@ -22,7 +22,7 @@ import pytest
 from deployer.profile import load_profile
 from deployer.report import read_report
 from deployer.testing.simulator import Faults, Simulator, SimulatorThread
-from tests.helpers import Simulators, wait_for
+from tests.helpers import Simulators, reaped, wait_for
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -97,10 +97,10 @@ def fleet_apply(files: Path, workers: int = 0) -> subprocess.Popen[str]:
 @pytest.mark.parametrize("workers", [0, 2])
 def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
         files: Path, fleet: list[Simulator], workers: int) -> None:
-    proc = fleet_apply(files, workers)
-    wait_for(lambda: half_way(fleet), "devices half-written")
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
+    with reaped(fleet_apply(files, workers)) as proc:
+        wait_for(lambda: half_way(fleet), "devices half-written")
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
     half = [f"d{i}" for i, s in enumerate(fleet) if 0 < writes(s) < N]
     by_run = [writes(s) for s in fleet]
     assert half and any(holds(s) != before(i) for i, s in enumerate(fleet))
@@ -130,10 +130,10 @@ def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
 @pytest.mark.parametrize("workers", [0, 2])
 def test_sigint_mid_fleet_ends_with_an_exact_report_and_rolls_back(files: Path, fleet: list[Simulator],
                                                                    workers: int) -> None:
-    proc = fleet_apply(files, workers)
-    wait_for(lambda: half_way(fleet), "devices half-written")
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=120)
+    with reaped(fleet_apply(files, workers)) as proc:
+        wait_for(lambda: half_way(fleet), "devices half-written")
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
     assert proc.returncode == 4, out + err
     report = json.loads((files / "run.json").read_text())
     statuses = {d["name"]: d["status"] for d in report["devices"]}

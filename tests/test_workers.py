@@ -25,7 +25,7 @@ from deployer.profile import load_profile
 from deployer.report import read_report
 from deployer.run.runner import worker_count
 from deployer.testing.simulator import Simulator
-from tests.helpers import Simulators, wait_for
+from tests.helpers import Simulators, reaped, wait_for
 from tests.test_runs import (
     N,
     audit,
@@ -123,12 +123,12 @@ def test_two_workers_report_what_one_process_reports(files: Path, quick: list[Si
 
 @needs_proc
 def test_a_killed_run_takes_its_workers_with_it(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
-    proc = fleet_apply(files, 2)
-    wait_for(lambda: half_way(fleet), "devices half-written")
-    workers = _children(proc.pid)
-    assert len(workers) == 2
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
+    with reaped(fleet_apply(files, 2)) as proc:
+        wait_for(lambda: half_way(fleet), "devices half-written")
+        workers = _children(proc.pid)
+        assert len(workers) == 2
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
     wait_for(lambda: not any(_alive(w) for w in workers), "the workers to end", timeout=30)
     sent = [writes(s) for s in fleet]
     time.sleep(0.5)  # nothing goes on behind the killed run's back
@@ -141,11 +141,11 @@ def test_a_killed_run_takes_its_workers_with_it(files: Path, fleet: list[Simulat
 
 @needs_proc
 def test_a_worker_that_dies_ends_the_run_truthfully(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
-    proc = fleet_apply(files, 2)
-    wait_for(lambda: half_way(fleet), "devices half-written")
-    victim = _children(proc.pid)[0]
-    os.kill(victim, signal.SIGKILL)
-    out, err = proc.communicate(timeout=120)
+    with reaped(fleet_apply(files, 2)) as proc:
+        wait_for(lambda: half_way(fleet), "devices half-written")
+        victim = _children(proc.pid)[0]
+        os.kill(victim, signal.SIGKILL)
+        out, err = proc.communicate(timeout=120)
     assert proc.returncode == 4, out + err
     report = json.loads((files / "run.json").read_text())
     statuses = {d["name"]: d for d in report["devices"]}
@@ -193,13 +193,26 @@ def test_how_many_workers_a_run_takes() -> None:
 
 def test_a_report_of_a_killed_worker_run_reads_back(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
     """The stream a worker run leaves when killed is what the readers take (--limit @REPORT works from it)."""
-    proc = fleet_apply(files, 2)
-    wait_for(lambda: half_way(fleet), "devices half-written")
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
+    with reaped(fleet_apply(files, 2)) as proc:
+        wait_for(lambda: half_way(fleet), "devices half-written")
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
     report = read_report(str(files / "run.json"))
     assert report["run"]["id"] and len(report["devices"]) == len(fleet)
     code, out, err = deployer("apply", "new.yaml", "--inventory", "fleet.yaml", "--limit", "@run.json", "--yes",
                               "--workers", "2", "--parallel", "4", "--state-dir", "state", cwd=files)
     assert code == 0, out + err
     assert all(holds(s) == (7,) * N for s in fleet)
+
+
+def test_what_the_rollout_keeps_of_a_workers_device_is_small(files: Path, quick: list[Simulator]) -> None:  # noqa: F811
+    """The command's process keeps a count per finished device, not its parameters nor its 17 KB report line."""
+    import deployer
+
+    request = deployer.RunRequest(str(files / "new.yaml"), inventory=str(files / "fleet.yaml"), parallel=4,
+                                  workers=2, state_dir=str(files / "state"), report_path=str(files / "r.json"))
+    report = deployer.run_prepared(deployer.prepare_run(request), keep_results=False)
+    assert [d.status for d in report.devices] == ["ok"] * len(quick)
+    assert all(d.report_line is None and not d.parameters and not d.requests and d.tally for d in report.devices)
+    doc = json.loads((files / "r.json").read_text())
+    assert all(len(d["parameters"]) == N for d in doc["devices"])  # the file has them all
