@@ -216,3 +216,19 @@ def test_what_the_rollout_keeps_of_a_workers_device_is_small(files: Path, quick:
     assert all(d.report_line is None and not d.parameters and not d.requests and d.tally for d in report.devices)
     doc = json.loads((files / "r.json").read_text())
     assert all(len(d["parameters"]) == N for d in doc["devices"])  # the file has them all
+
+
+@pytest.mark.parametrize("boot", [
+    "import sys; sys.exit(3)",  # never connects
+    "import socket, sys, time; p = int(sys.argv[1]); t = bytes.fromhex(sys.stdin.readline().strip()); "
+    "s = socket.create_connection(('127.0.0.1', p)); s.sendall(t); time.sleep(0.2); sys.exit(4)",  # dies unready
+])
+def test_workers_that_cannot_start_are_said_before_anything_is_sent(boot: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    import asyncio
+
+    from deployer.fleet import workers
+
+    monkeypatch.setattr(workers, "_BOOT", boot)
+    with pytest.raises(UsageError, match=r"cannot start 2 worker processes: a worker process (exited at its start|"
+                                         r"ended before it was ready).*nothing was sent.*--workers 0"):
+        asyncio.run(workers.Pool.start(2, [], ApplyOptions(), lines=True, small_ok=True, files=100, timeout=30))

@@ -21,7 +21,6 @@ cancels its devices: each ends as an interrupted run's device does (its journal 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import hmac
 import os
 import pickle
@@ -31,7 +30,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from ..errors import UsageError
 
@@ -70,21 +69,83 @@ def ineligible(opts: ApplyOptions, *, rollback_on_failure: bool) -> str | None:
     return None
 
 
-# ---- framing ------------------------------------------------------------------------------------
+# ---- the link between the rollout and a worker ---------------------------------------------------
 
 
-async def _read(reader: asyncio.StreamReader) -> Any:
-    """The next message (None at the end of the connection)."""
-    try:
-        head = await reader.readexactly(_FRAME.size)
-        return pickle.loads(await reader.readexactly(_FRAME.unpack(head)[0]))
-    except (asyncio.IncompleteReadError, ConnectionError):
-        return None
+class _Link(asyncio.Protocol):
+    """One end of a connection between the rollout's process and a worker: messages are pickled tuples, each
+    framed by its length. Each message received is handed to ``on_message`` as soon as its frame is whole
+    (no coroutine woken per message); those sent within one turn of the event loop go out in one write.
 
+    ``tokens`` (the rollout's end): the secrets of the workers it started; nothing a connection sends is
+    unpickled before it has said one of them, and ``on_token(i, link)`` tells which worker it is."""
 
-def _frame(message: object) -> bytes:
-    data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-    return _FRAME.pack(len(data)) + data
+    def __init__(self, on_message: Callable[[Any], None] | None = None, on_lost: Callable[[], None] | None = None,
+                 *, tokens: dict[bytes, int] | None = None,
+                 on_token: Callable[[int, _Link], None] | None = None) -> None:
+        self.on_message = on_message
+        self.on_lost = on_lost
+        self.tokens = tokens
+        self.on_token = on_token
+        self.transport: asyncio.Transport | None = None
+        self._in = bytearray()
+        self._out: list[bytes] = []
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = cast(asyncio.Transport, transport)  # uvloop's transports do not subclass asyncio's
+
+    def data_received(self, data: bytes) -> None:
+        buf = self._in
+        buf += data
+        pos = 0
+        if self.tokens is not None:  # not yet said who it is
+            if len(buf) < 32:
+                return
+            i = next((i for token, i in self.tokens.items() if hmac.compare_digest(bytes(buf[:32]), token)), None)
+            if i is None or self.on_token is None:
+                self.close()
+                return
+            self.tokens = None
+            pos = 32
+            self.on_token(i, self)
+        while len(buf) - pos >= _FRAME.size:
+            (size,) = _FRAME.unpack_from(buf, pos)
+            end = pos + _FRAME.size + size
+            if len(buf) < end:
+                break
+            message = pickle.loads(buf[pos + _FRAME.size:end])
+            pos = end
+            if self.on_message is not None:
+                self.on_message(message)
+        del buf[:pos]
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.transport = None
+        if self.on_lost is not None:
+            self.on_lost()
+
+    def send(self, message: object) -> None:
+        if self.transport is None or self.transport.is_closing():
+            return
+        data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+        self._out += (_FRAME.pack(len(data)), data)
+        if len(self._out) == 2:
+            asyncio.get_running_loop().call_soon(self._flush)
+
+    def send_raw(self, data: bytes) -> None:
+        assert self.transport is not None
+        self.transport.write(data)
+
+    def _flush(self) -> None:
+        out, self._out = self._out, []
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.write(b"".join(out))
+
+    def close(self) -> None:
+        if self.transport is not None:
+            if self._out:
+                self._flush()
+            self.transport.close()
 
 
 # ---- results across processes ---------------------------------------------------------------------
@@ -136,16 +197,15 @@ class Call:
 class _Worker:
     def __init__(self, process: asyncio.subprocess.Process) -> None:
         self.process = process
-        self.reader: asyncio.StreamReader | None = None
-        self.writer: asyncio.StreamWriter | None = None
+        self.link: _Link | None = None
+        self.connected: asyncio.Future[_Link] = asyncio.get_running_loop().create_future()
+        self.ready: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self.calls: dict[int, Call] = {}
-        self.listening: asyncio.Task[None] | None = None
         self.gone: WorkerGone | None = None  # set once its connection ended: it takes no more devices
 
     def send(self, message: object) -> None:
-        assert self.writer is not None
-        if not self.writer.is_closing():
-            self.writer.write(_frame(message))
+        assert self.link is not None
+        self.link.send(message)
 
 
 class Pool:
@@ -170,36 +230,33 @@ class Pool:
         try:
             await asyncio.wait_for(pool._start(count, opts, lines=lines, small_ok=small_ok, files=files), timeout)
         except BaseException as e:
-            await pool.close()
+            await pool.close(kill=True)
+            why = f"they were not ready within {timeout:g} s" if isinstance(e, TimeoutError) else str(e)
             if isinstance(e, (OSError, TimeoutError, WorkerGone, pickle.PicklingError)):
-                raise UsageError(f"cannot start {count} worker processes: {e or type(e).__name__}; run the fleet in "
-                                 "one process with --workers 0") from None
+                raise UsageError(f"cannot start {count} worker processes: {why}; nothing was sent to any device "
+                                 "(run the fleet in one process with --workers 0)") from None
             raise
         return pool
 
     async def _start(self, count: int, opts: ApplyOptions, *, lines: bool, small_ok: bool, files: int) -> None:
         # a secret per worker: it says which process a connection is (they connect in any order)
-        secrets_of = {secrets.token_bytes(32): i for i in range(count)}
-        connected: list[asyncio.Future[tuple[asyncio.StreamReader, asyncio.StreamWriter]]] = [
-            asyncio.get_running_loop().create_future() for _ in range(count)]
+        tokens = {secrets.token_bytes(32): i for i in range(count)}
 
-        async def accept(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-            try:  # the secret first, as raw bytes: nothing from a connection is unpickled before it
-                said = await asyncio.wait_for(reader.readexactly(32), 10)
-            except (asyncio.IncompleteReadError, ConnectionError, TimeoutError):
-                writer.close()
+        def connected(i: int, link: _Link) -> None:
+            w = self.workers[i]
+            if w.connected.done():
+                link.close()
                 return
-            i = next((i for token, i in secrets_of.items() if hmac.compare_digest(said, token)), None)
-            if i is None or connected[i].done():
-                writer.close()
-                return
-            connected[i].set_result((reader, writer))
+            link.on_message, link.on_lost = (lambda m: self._received(w, m)), (lambda: self._lost(w))
+            w.link = link
+            w.connected.set_result(link)
 
-        self._server = await asyncio.start_server(accept, "127.0.0.1", 0)
+        loop = asyncio.get_running_loop()
+        self._server = await loop.create_server(lambda: _Link(tokens=tokens, on_token=connected), "127.0.0.1", 0)
         port = self._server.sockets[0].getsockname()[1]
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(
             [_package_root(), *filter(None, [os.environ.get("PYTHONPATH")])])}
-        for token in secrets_of:
+        for token in tokens:
             proc = await asyncio.create_subprocess_exec(sys.executable, "-c", _BOOT, str(port),
                                                         stdin=asyncio.subprocess.PIPE, env=env)
             assert proc.stdin is not None
@@ -207,57 +264,59 @@ class Pool:
             await proc.stdin.drain()
             proc.stdin.close()
             self.workers.append(_Worker(proc))
-        setup = _frame(("setup", list(self.jobs), _portable(opts), sys.argv, lines, small_ok,
-                        opts.on_writing is not None, files))
-        for w, got in zip(self.workers, connected, strict=True):
+        setup = ("setup", list(self.jobs), _portable(opts), sys.argv, lines, small_ok, opts.on_writing is not None,
+                 files)
+        for w in self.workers:
             exited: asyncio.Future[Any] = asyncio.ensure_future(w.process.wait())
-            await asyncio.wait([exited, got], return_when=asyncio.FIRST_COMPLETED)
-            if not got.done():
+            await asyncio.wait([exited, w.connected], return_when=asyncio.FIRST_COMPLETED)
+            if not w.connected.done():
                 raise WorkerGone(f"a worker process exited at its start (exit code {exited.result()})")
             exited.cancel()
-            w.reader, w.writer = got.result()
-            w.writer.write(setup)
+            w.send(setup)
         for w in self.workers:  # each says it is ready once it has loaded the jobs
-            assert w.reader is not None
-            if await _read(w.reader) != ("ready",):
-                raise WorkerGone("a worker process did not start")
-            w.listening = asyncio.ensure_future(self._listen(w))
+            await w.ready
         self._server.close()
         self._server = None
 
-    async def _listen(self, w: _Worker) -> None:
-        """Messages from a worker, to the calls they are about; when it goes, its calls fail with WorkerGone."""
-        assert w.reader is not None
-        while True:
-            message = await _read(w.reader)
-            if message is None:
-                break
-            kind, index, *rest = message
-            call = w.calls.get(index)
-            if call is None:
-                continue
-            if kind == "writing":
-                call.writing = _dressed(rest[0], self.jobs[index])
-                if self.on_writing is not None:
-                    self.on_writing(call.writing)
-            elif kind in ("done", "interrupted", "failed"):
-                if kind == "interrupted":
-                    rest[0] = _dressed(rest[0], self.jobs[index])
-                    del w.calls[index]
-                elif kind == "failed":
-                    del w.calls[index]
-                if not call.done.done():
-                    call.done.set_result((kind, *rest))
-            elif kind == "recorded":
+    def _received(self, w: _Worker, message: Any) -> None:
+        """A message from a worker, to the call it is about."""
+        kind, index, *rest = message
+        if kind == "ready":
+            if not w.ready.done():
+                w.ready.set_result(None)
+            return
+        call = w.calls.get(index)
+        if call is None:
+            return
+        if kind == "writing":
+            call.writing = _dressed(rest[0], self.jobs[index])
+            if self.on_writing is not None:
+                self.on_writing(call.writing)
+        elif kind in ("done", "interrupted", "failed"):
+            if kind == "interrupted":
+                rest[0] = _dressed(rest[0], self.jobs[index])
                 del w.calls[index]
-                if not call.recorded.done():
-                    call.recorded.set_result((_dressed(rest[0], self.jobs[index]), rest[1]))
-        code = await w.process.wait()
-        gone = w.gone = WorkerGone(f"the worker process running it ended unexpectedly (exit code {code})")
+            elif kind == "failed":
+                del w.calls[index]
+            if not call.done.done():
+                call.done.set_result((kind, *rest))
+        elif kind == "recorded":
+            del w.calls[index]
+            if not call.recorded.done():
+                call.recorded.set_result((_dressed(rest[0], self.jobs[index]), rest[1]))
+
+    def _lost(self, w: _Worker) -> None:
+        """A worker's connection ended: its devices in flight fail with WorkerGone, it takes no new one."""
+        code = f" (exit code {w.process.returncode})" if w.process.returncode is not None else ""
+        w.gone = WorkerGone(f"the worker process running it ended unexpectedly{code}" if w.ready.done() else
+                            f"a worker process ended before it was ready{code}")
+        if not w.ready.done():
+            w.ready.set_exception(w.gone)
+            w.ready.add_done_callback(_retrieved)
         for call in w.calls.values():
             for fut in (call.done, call.recorded):
                 if not fut.done():
-                    fut.set_exception(gone)
+                    fut.set_exception(w.gone)
                     fut.add_done_callback(_retrieved)  # a call may never wait for its "recorded"
         w.calls.clear()
 
@@ -280,22 +339,23 @@ class Pool:
         """Interrupt a device (the run was interrupted): its worker answers ``interrupted`` (or ``done``)."""
         call.worker.send(("cancel", call.index))
 
-    async def close(self) -> None:
-        """The workers told to end (their connection closed) and waited for."""
+    async def close(self, *, kill: bool = False) -> None:
+        """The workers told to end (their connection closed) and waited for; ``kill``: ended at once (they never
+        started: nothing of theirs is in flight)."""
         if self._server is not None:
             self._server.close()
         for w in self.workers:
-            if w.writer is not None:
-                w.writer.close()
+            if w.link is not None:
+                w.link.on_lost = None
+                w.link.close()
+            if kill and w.process.returncode is None:
+                w.process.kill()
         for w in self.workers:
             try:
                 await asyncio.wait_for(w.process.wait(), 30)
             except TimeoutError:
                 w.process.kill()
                 await w.process.wait()
-            if w.listening is not None:
-                with contextlib.suppress(BaseException):
-                    await w.listening
 
 
 def _retrieved(fut: asyncio.Future[Any]) -> None:
@@ -351,21 +411,33 @@ async def _serve(port: int, token: bytes) -> None:
     from ..portable import raise_open_files
     from ..report import device_json
 
-    reader, writer = await asyncio.open_connection("127.0.0.1", port)
-    writer.write(token)
-    setup = await _read(reader)
-    if setup is None:
+    loop = asyncio.get_running_loop()
+    setup: asyncio.Future[Any] = loop.create_future()
+    ended = asyncio.Event()
+    tasks: dict[int, asyncio.Task[None]] = {}
+    link = _Link()
+
+    def first(message: Any) -> None:
+        if not setup.done():
+            setup.set_result(message)
+
+    def lost() -> None:  # the rollout's process went away (or ended the run): every device stops
+        if not setup.done():
+            setup.set_result(None)
+        ended.set()
+
+    link.on_message, link.on_lost = first, lost
+    await loop.create_connection(lambda: link, "127.0.0.1", port)
+    link.send_raw(token)
+    given = await setup
+    if given is None:
         return
-    _, jobs, opts, argv, lines, small_ok, writing, files = setup
+    _, jobs, opts, argv, lines, small_ok, writing, files = given
     sys.argv = argv  # what lock records and messages name as the command: the run's, not this worker's
     raise_open_files(files)  # the rollout's process checked that the system allows them
     gc.freeze()  # what was loaded lives as long as the run (as the command line does for itself)
     gc.set_threshold(20_000, 20, 10)
-    tasks: dict[int, asyncio.Task[None]] = {}
-
-    def send(message: object) -> None:
-        if not writer.is_closing():
-            writer.write(_frame(message))
+    send = link.send
 
     index_of = {j.name: i for i, j in enumerate(jobs)}
     if writing:
@@ -407,21 +479,19 @@ async def _serve(port: int, token: bytes) -> None:
         line = device_json(res) if lines else None
         send(("recorded", index, _bare(res.small() if small_ok and res.status == "ok" else res), line))
 
-    send(("ready",))
-    while True:
-        message = await _read(reader)
-        if message is None:  # the rollout's process went away (or ended the run): every device stops
-            break
+    def received(message: Any) -> None:
         if message[0] == "start":
             tasks[message[1]] = asyncio.ensure_future(device(message[1], message[2]))
         elif message[0] == "cancel":
             running = tasks.get(message[1])
             if running is not None:
                 running.cancel()
+
+    link.on_message = received
+    send(("ready", None))
+    await ended.wait()
     for task in list(tasks.values()):
         task.cancel()
     if tasks:
         await asyncio.gather(*tasks.values(), return_exceptions=True)
-    writer.close()
-    with contextlib.suppress(ConnectionError):
-        await writer.wait_closed()
+    link.close()
