@@ -107,20 +107,21 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path: Path) -> None:
 
 
 def test_a_shorter_record_replaces_a_longer_one_whole(tmp_path: Path) -> None:
-    # the record is written over the old one and the file cut to its length (never truncated to zero first:
-    # ext4 then writes the file out when it is closed): nothing of a longer old record may trail it
+    # the record is written over the old one, padded with spaces (the file is never truncated: that waits for
+    # the file system's journal): nothing of a longer old record may trail it
     key = "127.0.0.1:1502#unit1"
     held = lock.try_lock(key, command="x" * 3000, directory=str(tmp_path))
     long_text = Path(held.path).read_text()
     os.close(held.fd)  # gone without releasing: its long record stays, as a crashed run's does
     again = lock.try_lock(key, command="short", directory=str(tmp_path))
     try:
-        record = json.loads(Path(again.path).read_text())
+        text = Path(again.path).read_text()
+        record = json.loads(text)
         assert record["command"] == "short" and record["pid"] == os.getpid()
-        assert os.path.getsize(again.path) < len(long_text)
+        assert text.rstrip(" ") == json.dumps(record) and len(text) == len(long_text)  # spaces after it, no more
     finally:
         again.release()
-    assert os.path.getsize(again.path) == 0  # released: emptied, kept for the device's next run
+    assert Path(again.path).read_text().strip() == ""  # released: blank, kept for the device's next run
 
 
 def test_kill_9_mid_write_is_found_in_the_journal_and_retried(tmp_path: Path) -> None:
