@@ -214,6 +214,11 @@ class Pool:
     def __init__(self, jobs: Sequence[Job], on_writing: Callable[[DeviceResult], None] | None) -> None:
         self.jobs = jobs
         self.index = {j.name: i for i, j in enumerate(jobs)}
+        # the recipes the workers are given once; each device is sent with its own start (its job's fields and the
+        # number of its recipe): a worker holds only the devices it runs (10,000 jobs held twice cost 6 KB a device)
+        self.recipes: dict[int, int] = {}
+        for j in jobs:
+            self.recipes.setdefault(id(j.recipe), len(self.recipes))
         self.on_writing = on_writing
         self.workers: list[_Worker] = []
         self._server: asyncio.AbstractServer | None = None
@@ -221,7 +226,7 @@ class Pool:
     @classmethod
     async def start(cls, count: int, jobs: Sequence[Job], opts: ApplyOptions, *, lines: bool, small_ok: bool,
                     files: int, timeout: float = 60.0) -> Pool:
-        """``count`` workers, each given the jobs and the run's options; ready when this returns.
+        """``count`` workers, each given the jobs' recipes and the run's options; ready when this returns.
 
         ``lines``: the workers encode each device's report line; ``small_ok``: a device that ended ok comes
         back as its small result; ``files``: the open files each may need. Raises UsageError (nothing sent to
@@ -264,8 +269,8 @@ class Pool:
             await proc.stdin.drain()
             proc.stdin.close()
             self.workers.append(_Worker(proc))
-        setup = ("setup", list(self.jobs), _portable(opts), sys.argv, lines, small_ok, opts.on_writing is not None,
-                 files)
+        recipes = list({id(j.recipe): j.recipe for j in self.jobs}.values())  # in the numbering of self.recipes
+        setup = ("setup", recipes, _portable(opts), sys.argv, lines, small_ok, opts.on_writing is not None, files)
         for w in self.workers:
             exited: asyncio.Future[Any] = asyncio.ensure_future(w.process.wait())
             await asyncio.wait([exited, w.connected], return_when=asyncio.FIRST_COMPLETED)
@@ -273,7 +278,7 @@ class Pool:
                 raise WorkerGone(f"a worker process exited at its start (exit code {exited.result()})")
             exited.cancel()
             w.send(setup)
-        for w in self.workers:  # each says it is ready once it has loaded the jobs
+        for w in self.workers:  # each says it is ready once it has loaded the recipes
             await w.ready
         self._server.close()
         self._server = None
@@ -332,7 +337,8 @@ class Pool:
             call.recorded.add_done_callback(_retrieved)
             return call
         w.calls[call.index] = call
-        w.send(("start", call.index, batch))
+        w.send(("start", call.index, batch, job.name, job.url, job.unit, self.recipes[id(job.recipe)], job.group,
+                job.hold_commit, job.commit_owed))
         return call
 
     def cancel(self, call: Call) -> None:
@@ -408,6 +414,7 @@ async def _serve(port: int, token: bytes) -> None:
     import gc
 
     from ..execute.device import DeviceInterrupted, _apply_device, journal_line
+    from ..execute.job import Job
     from ..portable import raise_open_files
     from ..report import device_json
 
@@ -432,28 +439,29 @@ async def _serve(port: int, token: bytes) -> None:
     given = await setup
     if given is None:
         return
-    _, jobs, opts, argv, lines, small_ok, writing, files = given
+    _, recipes, opts, argv, lines, small_ok, writing, files = given
     sys.argv = argv  # what lock records and messages name as the command: the run's, not this worker's
     raise_open_files(files)  # the rollout's process checked that the system allows them
     gc.freeze()  # what was loaded lives as long as the run (as the command line does for itself)
     gc.set_threshold(20_000, 20, 10)
     send = link.send
 
-    index_of = {j.name: i for i, j in enumerate(jobs)}
+    index_of: dict[str, int] = {}  # the devices in flight here, by name
     if writing:
         def on_writing(r: DeviceResult) -> None:  # what the report file says of it now: its snapshot
             send(("writing", index_of[r.name], replace(r, requests=[], parameters=[], notices=[])))
 
         opts = replace(opts, on_writing=on_writing)
 
-    async def device(index: int, batch: int | None) -> None:
+    async def device(index: int, batch: int | None, job: Job) -> None:
+        index_of[job.name] = index
         try:
-            await run(index, batch)
+            await run(index, batch, job)
         finally:
             tasks.pop(index, None)
+            index_of.pop(job.name, None)
 
-    async def run(index: int, batch: int | None) -> None:
-        job = jobs[index]
+    async def run(index: int, batch: int | None, job: Job) -> None:
         o = opts
         if job.commit_owed or job.hold_commit:
             o = replace(o, commit_owed=job.commit_owed, hold_commit=o.hold_commit or job.hold_commit)
@@ -481,7 +489,9 @@ async def _serve(port: int, token: bytes) -> None:
 
     def received(message: Any) -> None:
         if message[0] == "start":
-            tasks[message[1]] = asyncio.ensure_future(device(message[1], message[2]))
+            _, index, batch, name, url, unit, recipe, group, hold_commit, commit_owed = message
+            job = Job(name, recipes[recipe], url, unit, group, hold_commit=hold_commit, commit_owed=commit_owed)
+            tasks[index] = asyncio.ensure_future(device(index, batch, job))
         elif message[0] == "cancel":
             running = tasks.get(message[1])
             if running is not None:
