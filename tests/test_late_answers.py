@@ -324,3 +324,26 @@ def test_simulator_over_rtu_tcp_slower_than_the_timeout(tmp_path: Path) -> None:
     values, late = asyncio.run(main())
     assert values == [[1], [2]] and len(late) == 2
     assert count(sim.log, 3, address=100) == 1 and count(sim.log, 3, address=200) == 1
+
+
+def test_an_answer_in_the_same_turn_as_its_timeout_is_kept_for_the_retry() -> None:
+    """The timer gave up on the request (its future holds TimeoutError) and the answer came in the same
+    turn of the event loop, before the request's task resumed: the answer is not lost, the retry of that
+    very request takes it instead of sending again."""
+    from pymodbus.framer import FramerRTU
+
+    async def run() -> None:
+        rx = tp._Receiver("rtu", lambda _out, chunk: chunk)
+        want = tp._Expect(unit=1, function=3, address=100, count=1)
+        rx.start(want)
+        assert rx.future is not None
+        tp._too_late(rx.future)  # the timeout fires first...
+        pdu = bytes([1, 3, 2, 0x12, 0x34])
+        rx.feed(pdu + FramerRTU.compute_CRC(pdu).to_bytes(2, "big"))  # ...then the answer, same turn
+        with pytest.raises(TimeoutError):
+            await tp._answer(rx.future, 1.0)
+        rx.unanswered()
+        late = rx.take_late(want)
+        assert late is not None and late[0] == bytes([3, 2, 0x12, 0x34])
+
+    asyncio.run(run())
