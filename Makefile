@@ -31,9 +31,11 @@ test: $(VENV)/.installed-test
 # the manual: a broken link between pages fails mkdocs --strict.
 # `mypy --platform win32`: the code only Windows runs (LockFileEx, OpenProcess) type-checks here too.
 # every step runs even when one fails (the suite's failures do not hide ruff's and mypy's); fails if any did
+# the tests run in a process per core, at most 4 (pytest-xdist; TEST_WORKERS=0: all in one process)
+TEST_WORKERS ?= auto
 check:
 	@rc=0; \
-	$(BIN)/python -m pytest -q || rc=1; \
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --maxprocesses 4 || rc=1; \
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections tools || rc=1; \
 	$(BIN)/mypy deployer tests tools || rc=1; \
 	$(BIN)/mypy --platform win32 deployer || rc=1; \
