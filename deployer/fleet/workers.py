@@ -39,7 +39,7 @@ if TYPE_CHECKING:
     from ..execute.session import ApplyOptions
     from ..report import DeviceResult
 
-MIN_DEVICES = 2000  # below this, starting workers (about 0.5 s) costs more than they save (benchmarks/RESULTS.md)
+MIN_DEVICES = 1000  # below this, starting workers (about 0.5 s) costs what they save (benchmarks/RESULTS.md)
 MIN_PER_WORKER = 8  # devices in flight per worker at least: fewer, and one process keeps up
 MAX_WORKERS = 64
 _FRAME = struct.Struct(">I")
