@@ -62,6 +62,9 @@ TARGETS = [
     ("fleet phase / bare client, 20 ms, --parallel 32", "fleetscale/side_20ms_1000_parallel_32/ratio", "<=", 1.3),
     ("fleet phase / bare client, 20 ms, --parallel 128", "fleetscale/side_20ms_1000_parallel_128/ratio", "<=", 1.3),
     ("fleet phase / bare client, 20 ms, --parallel 256", "fleetscale/side_20ms_1000_parallel_256/ratio", "<=", 1.3),
+    ("fleet, memory per further device (KB)", "fleetscale/kb_per_device", "<=", 10.0),
+    ("fleet phase / bare client, at once, --parallel 32", "fleetscale/side_0ms_2000_parallel_32/ratio", "<=", 3.0),
+    ("fleet phase / bare client, at once, --parallel 128", "fleetscale/side_0ms_2000_parallel_128/ratio", "<=", 3.0),
     ("fleet phase / bare client, at once, --parallel 256", "fleetscale/side_0ms_2000_parallel_256/ratio", "<=", 3.0),
     ("request CPU: ours / bare pymodbus", "fleetscale/request_cpu/ratio", "<=", 1.05),
     # issue #23: the run report page of 1,000 devices x 100 parameters
