@@ -94,7 +94,9 @@ class Bench:
               workers: int | None = None) -> dict[str, Any]:
         """One ``deployer apply`` of ``urls``; ``src``: run the deployer package found in that folder (an older
         checkout, measured side by side) instead of this one; ``workers``: its ``--workers`` (None: the command
-        line's default, one worker per CPU from 500 devices on)."""
+        line's default, one worker per CPU from 1,000 devices on). Its device locks go to the benchmark's own
+        folder: the machine's lock folder keeps a file per device ever written, which would carry one run's
+        devices into the next benchmark's figures."""
         self.variant += 1
         recipe = os.path.join(self.work, f"recipe{self.variant % 2}.yaml")
         with open(recipe, "w") as f:
@@ -104,7 +106,9 @@ class Bench:
                str(parallel), "--state-dir", os.path.join(self.work, "state")]
         if workers is not None:
             cmd += ["--workers", str(workers)]
-        env = None if src is None else {**os.environ, "PYTHONPATH": src}
+        env = {**os.environ, "DEPLOYER_LOCK_DIR": os.path.join(self.work, "locks")}
+        if src is not None:
+            env["PYTHONPATH"] = src
         _settle()
         m, err = measured_all(cmd + (["--report", path] if report else []), self.work, env=env)
         common = {"wall": m["wall"], "cpu": m["cpu"], "sys": m.get("sys", 0.0),
