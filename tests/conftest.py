@@ -87,10 +87,14 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
             "client_key": client_key, "other_ca": other_ca}
 
 
-@pytest.fixture(autouse=True)
-def _own_lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Device locks in a folder of this test session: parallel test runs on one machine stay apart."""
-    monkeypatch.setenv("DEPLOYER_LOCK_DIR", str(tmp_path_factory.getbasetemp() / "locks"))
+@pytest.fixture(autouse=True, scope="session")
+def _own_lock_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Device locks in a folder of this test session: parallel test runs on one machine stay apart. For the
+    whole session, so that a module's fixtures (set up before any test's) run with it too; a test that
+    changes it (monkeypatch) has it back afterwards."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("DEPLOYER_LOCK_DIR", str(tmp_path_factory.getbasetemp() / "locks"))
+        yield
 
 
 # ---- systems: tests whose subject is POSIX itself skip elsewhere, with the reason (docs/windows.md) ----
