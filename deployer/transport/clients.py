@@ -206,6 +206,8 @@ async def _answer(future: asyncio.Future[Any], timeout: float) -> Any:
             return await future
         finally:
             timer.cancel()
+            if future.done() and not future.cancelled():
+                future.exception()  # interrupted just as it timed out: its TimeoutError is seen, never logged
     return future.result()
 
 
