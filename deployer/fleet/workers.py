@@ -37,6 +37,7 @@ from ..errors import UsageError
 if TYPE_CHECKING:
     from ..execute.job import Job
     from ..execute.session import ApplyOptions
+    from ..recipe.loader import Recipe
     from ..report import DeviceResult
 
 MIN_DEVICES = 1000  # below this, starting workers (about 0.5 s) costs what they save (benchmarks/RESULTS.md)
@@ -108,6 +109,8 @@ class _Link(asyncio.Protocol):
             self.tokens = None
             pos = 32
             self.on_token(i, self)
+            if self.transport is None or self.transport.is_closing():  # refused (a second connection of one worker)
+                return
         while len(buf) - pos >= _FRAME.size:
             (size,) = _FRAME.unpack_from(buf, pos)
             end = pos + _FRAME.size + size
@@ -216,9 +219,12 @@ class Pool:
         self.index = {j.name: i for i, j in enumerate(jobs)}
         # the recipes the workers are given once; each device is sent with its own start (its job's fields and the
         # number of its recipe): a worker holds only the devices it runs (10,000 jobs held twice cost 6 KB a device)
-        self.recipes: dict[int, int] = {}
+        self.recipes: dict[int, int] = {}  # a recipe's number: its place in setup_recipes
+        self.setup_recipes: list[Recipe] = []
         for j in jobs:
-            self.recipes.setdefault(id(j.recipe), len(self.recipes))
+            if id(j.recipe) not in self.recipes:
+                self.recipes[id(j.recipe)] = len(self.setup_recipes)
+                self.setup_recipes.append(j.recipe)
         self.on_writing = on_writing
         self.workers: list[_Worker] = []
         self._server: asyncio.AbstractServer | None = None
@@ -269,8 +275,8 @@ class Pool:
             await proc.stdin.drain()
             proc.stdin.close()
             self.workers.append(_Worker(proc))
-        recipes = list({id(j.recipe): j.recipe for j in self.jobs}.values())  # in the numbering of self.recipes
-        setup = ("setup", recipes, _portable(opts), sys.argv, lines, small_ok, opts.on_writing is not None, files)
+        setup = ("setup", self.setup_recipes, _portable(opts), sys.argv, lines, small_ok, opts.on_writing is not None,
+                 files)
         for w in self.workers:
             exited: asyncio.Future[Any] = asyncio.ensure_future(w.process.wait())
             await asyncio.wait([exited, w.connected], return_when=asyncio.FIRST_COMPLETED)
