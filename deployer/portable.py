@@ -297,6 +297,39 @@ def path_error(e: OSError) -> str | None:
     return None
 
 
+def can_fork() -> bool:
+    """Whether this system forks processes safely for deployer's workers: Linux (Windows has no fork, and
+    macOS's system libraries are not safe to use in a forked child)."""
+    return sys.platform.startswith("linux") and hasattr(os, "fork")
+
+
+def fork() -> int:
+    """``os.fork`` where ``can_fork()``; OSError elsewhere."""
+    if sys.platform == "win32" or not hasattr(os, "fork"):
+        raise OSError(errno.ENOSYS, "this system cannot fork a process")
+    return os.fork()
+
+
+def child_exit_code(pid: int) -> int | None:
+    """The exit code of this process's forked child ``pid`` once it ended (it is reaped then), None while it runs
+    (-1 once reaped before: nobody else waits for a forked child)."""
+    if sys.platform == "win32":
+        raise OSError(errno.ENOSYS, "no forked children on Windows")
+    try:
+        got, status = os.waitpid(pid, os.WNOHANG)
+    except ChildProcessError:
+        return -1
+    return os.waitstatus_to_exitcode(status) if got else None
+
+
+def kill_child(pid: int) -> None:
+    """End this process's forked child ``pid`` at once (SIGKILL; ``child_exit_code`` reaps it)."""
+    if sys.platform == "win32":
+        raise OSError(errno.ENOSYS, "no forked children on Windows")
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGKILL)
+
+
 def raise_open_files(need: int) -> int | None:
     """Raise the soft open-file limit towards ``need`` (POSIX ``resource``); the hard limit when it is
     below ``need``, else None.

@@ -160,3 +160,23 @@ def test_many_new_files_take_one_flush_of_their_file_system(tmp_path: Path, monk
     again = [_Pending(_file(tmp_path, f"more{i}", journal, {"name": f"more{i}"})) for i in range(durable.SYNCFS_FILES)]
     commit(again)
     assert all(p.outcome() for p in again) and synced == ["file"] * len(again) + ["dir", "file"]
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="a forked worker (fleet.workers) needs os.fork")
+def test_a_forked_process_writes_through_a_writer_of_its_own(tmp_path: Path) -> None:
+    """A forked worker has none of its parent's threads: the parent's writer (its thread, its lock, its queue)
+    is not used there, and a line written in the child is on disk when its wait ends."""
+    durable.durable_now(Line(str(tmp_path / "parent.jsonl"), {"who": "parent"}))  # the parent's writer thread runs
+    parent = durable._WRITER
+    pid = os.fork()
+    if pid == 0:  # the child: exit code 0 only if all of this holds
+        ok = False
+        try:
+            ok = durable._WRITER is not parent and not durable._WRITER._queue
+            durable.durable_now(Line(str(tmp_path / "child.jsonl"), {"who": "child"}))
+            ok = ok and json.loads((tmp_path / "child.jsonl").read_text()) == {"who": "child"}
+        finally:
+            os._exit(0 if ok else 1)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
+    assert durable._WRITER is parent

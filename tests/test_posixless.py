@@ -128,6 +128,12 @@ def test_command_line_and_api_over_tcp_without_posix(tmp_path: Path) -> None:
         assert sim.read("base_speed") == before
         code, out, err = deployer(tmp_path, "status")
         assert code == 0, out + err
+        # a worker process without os.fork: this Python started again, as on Windows
+        (tmp_path / "inv.yaml").write_text(f"devices:\n  one: {{url: '{url}'}}\n")
+        code, out, err = deployer(tmp_path, "apply", second, "--inventory", "inv.yaml", "--workers", "1", "--yes",
+                                  "--report", "w.json")
+        assert code == 0 and sim.read("base_speed") == (1600,), out + err
+        assert json.loads((tmp_path / "w.json").read_text())["devices"][0]["status"] == "ok"
         # a safe-change window: the lock held through a soak, then a confirmation from another process
         code, out, err = deployer(tmp_path, "apply", first, "--device", url, "--yes", "--soak", "1s",
                                   "--health-interval", "200ms")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import sys
 import time
@@ -20,7 +21,7 @@ import pytest
 
 from deployer.errors import UsageError
 from deployer.execute.session import ApplyOptions
-from deployer.fleet.workers import MIN_DEVICES, auto_count
+from deployer.fleet.workers import MIN_DEVICES, START_ENV, auto_count, forkable
 from deployer.profile import load_profile
 from deployer.report import read_report
 from deployer.run.runner import worker_count
@@ -43,9 +44,12 @@ pytestmark = pytest.mark.timeout(300)
 _WORKER = "from deployer.fleet.workers import main; main()"
 
 
-def _children(pid: int) -> list[int]:
-    """The worker processes of run ``pid`` (Linux's /proc)."""
+def _children(pid: int, how: str) -> list[int]:
+    """The worker processes of run ``pid`` (Linux's /proc), started as ``how`` says: "fork" (the command's own
+    command line) or "spawn" (this Python started again)."""
     out = []
+    with open(f"/proc/{pid}/cmdline", "rb") as f:
+        parent = f.read().decode(errors="replace")
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
             continue
@@ -56,7 +60,7 @@ def _children(pid: int) -> list[int]:
                 ppid = int(f.read().rsplit(")", 1)[1].split()[1])
         except (OSError, ValueError, IndexError):
             continue
-        if _WORKER in cmd and ppid == pid:
+        if ppid == pid and (cmd == parent if how == "fork" else _WORKER in cmd):
             out.append(int(entry))
     return out
 
@@ -121,11 +125,16 @@ def test_two_workers_report_what_one_process_reports(files: Path, quick: list[Si
         assert [d["written"] for d in lines[-1]["devices"]] == [[f"p{k}" for k in range(N)]] * len(quick)
 
 
+# on Linux the command forks its workers; DEPLOYER_WORKER_START=spawn (and other systems) start Python again
 @needs_proc
-def test_a_killed_run_takes_its_workers_with_it(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
+@pytest.mark.parametrize("how", ["fork", "spawn"])
+def test_a_killed_run_takes_its_workers_with_it(files: Path, fleet: list[Simulator], how: str,  # noqa: F811
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    if how == "spawn":
+        monkeypatch.setenv(START_ENV, "spawn")
     with reaped(fleet_apply(files, 2)) as proc:
         wait_for(lambda: half_way(fleet), "devices half-written")
-        workers = _children(proc.pid)
+        workers = _children(proc.pid, how)
         assert len(workers) == 2
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
@@ -143,7 +152,7 @@ def test_a_killed_run_takes_its_workers_with_it(files: Path, fleet: list[Simulat
 def test_a_worker_that_dies_ends_the_run_truthfully(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
     with reaped(fleet_apply(files, 2)) as proc:
         wait_for(lambda: half_way(fleet), "devices half-written")
-        victim = _children(proc.pid)[0]
+        victim = _children(proc.pid, "fork")[0]
         os.kill(victim, signal.SIGKILL)
         out, err = proc.communicate(timeout=120)
     assert proc.returncode == 4, out + err
@@ -229,6 +238,92 @@ def test_workers_that_cannot_start_are_said_before_anything_is_sent(boot: str, m
     from deployer.fleet import workers
 
     monkeypatch.setattr(workers, "_BOOT", boot)
+
+    async def start() -> None:
+        pool = await workers.Pool.launch(2, [], fork=False)
+        await pool.setup(ApplyOptions(), lines=True, small_ok=True, files=100, timeout=30)
+
     with pytest.raises(UsageError, match=r"cannot start 2 worker processes: a worker process (exited at its start|"
                                          r"ended before it was ready).*nothing was sent.*--workers 0"):
-        asyncio.run(workers.Pool.start(2, [], ApplyOptions(), lines=True, small_ok=True, files=100, timeout=30))
+        asyncio.run(start())
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="forked workers need os.fork")
+def test_forked_workers_that_die_unready_are_said_before_anything_is_sent(monkeypatch: pytest.MonkeyPatch) -> None:
+    import asyncio
+
+    from deployer.fleet import workers
+
+    monkeypatch.setattr(workers, "_forked_main", lambda sock, inherited: os._exit(3))
+
+    async def start() -> tuple[list[int | None], str]:
+        pool = await workers.Pool.launch(2, [], fork=True)
+        try:
+            await pool.setup(ApplyOptions(), lines=True, small_ok=True, files=100, timeout=30)
+        except UsageError as e:
+            return [w.process.returncode for w in pool.workers], str(e)
+        return [], "ready"
+
+    codes, said = asyncio.run(start())
+    assert codes == [3, 3]  # reaped
+    assert re.search(r"cannot start 2 worker processes: a worker process ended before it was ready.*"
+                     r"nothing was sent.*--workers 0", said), said
+
+
+def test_when_workers_are_forked(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Forked on Linux while this process has no other thread; else (and when told) Python is started again."""
+    import threading
+
+    monkeypatch.delenv(START_ENV, raising=False)
+    alone = threading.active_count() == 1  # pytest-xdist's workers have threads of their own
+    assert forkable() == (sys.platform.startswith("linux") and alone)
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait)
+    other.start()
+    try:
+        assert not forkable()
+    finally:
+        stop.set()
+        other.join()
+    monkeypatch.setenv(START_ENV, "spawn")
+    assert not forkable()
+
+
+@needs_proc
+def test_a_fleet_on_a_terminal_forks_its_workers_before_its_live_display(
+        files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
+    """The live display's refresh thread starts with the first device, after the workers were forked (a process
+    with threads would start Python again for them)."""
+    import pty
+    import subprocess
+    import threading
+
+    master, slave = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "deployer", "apply", "new.yaml", "--inventory", "fleet.yaml",
+                             "--parallel", "4", "--yes", "--workers", "2", "--state-dir", "state"],
+                            stdin=slave, stdout=slave, stderr=slave, cwd=files, close_fds=True, text=True,
+                            env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)})
+    os.close(slave)
+    shown = bytearray()
+
+    def drain() -> None:  # the terminal is read all along: a full one would stop the run
+        while True:
+            try:
+                chunk = os.read(master, 4096)
+            except OSError:
+                return
+            if not chunk:
+                return
+            shown.extend(chunk)
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    with reaped(proc):
+        wait_for(lambda: half_way(fleet), "devices half-written")
+        assert len(_children(proc.pid, "fork")) == 2
+        assert proc.wait(timeout=120) == 0
+    reader.join(timeout=10)
+    os.close(master)
+    text = shown.decode(errors="replace")
+    assert "in flight" in text and "10 devices: 10 ok" in text, text[-2000:]
+    assert all(holds(s) == (7,) * N for s in fleet)

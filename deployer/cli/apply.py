@@ -149,7 +149,7 @@ def _run_fleet(prepared: PreparedRun, kw: dict[str, Any], err: Console, *, live:
         gc.freeze()
         gc.set_threshold(20_000, 20, 10)
     # a live display on a terminal (not while asking questions), else a line per device
-    progress = FleetProgress(len(prepared.jobs), err, live=live, staged=staged)
+    progress = FleetProgress(len(prepared.jobs), err, live=live, staged=staged, later=True)  # workers first
     with progress:
         return asyncio.run(run_prepared_async(prepared, on_start=lambda j: progress.start(j.name),
                                               on_done=progress.device_done, **kw))

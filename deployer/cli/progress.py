@@ -31,7 +31,7 @@ class FleetProgress:
     """Feed it ``start(name)`` and ``done(name, status, detail)``; use it as a context manager."""
 
     def __init__(self, total: int, err: Console, *, live: bool, verb: str = "writing", lines: bool = True,
-                 staged: bool = False) -> None:
+                 staged: bool = False, later: bool = False) -> None:
         self.total = total
         self.staged = staged  # --batch: each device's line says its batch
         self.err = err
@@ -40,6 +40,8 @@ class FleetProgress:
         self.in_flight: dict[str, float] = {}
         self.counts: dict[str, int] = {}
         self._live: Live | None = None
+        self._shown = False  # the live display started (``_show``)
+        self._later = later
         self._bar: Progress | None = None
         # logs and CI (no terminal): plain lines, unwrapped and without markup (a per-device rich render
         # was a visible share of a big fleet's CPU)
@@ -61,14 +63,21 @@ class FleetProgress:
             self._live = Live(self, console=err, refresh_per_second=8, transient=False)
 
     def __enter__(self) -> FleetProgress:
-        if self._live is not None:
-            self._live.__enter__()
+        if not self._later:
+            self._show()
         return self
 
     def __exit__(self, t: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None) -> None:
-        if self._live is not None:
+        if self._live is not None and self._shown:
             self.in_flight.clear()
             self._live.__exit__(t, e, tb)
+
+    def _show(self) -> None:
+        """Start the live display (``later``: with the first device, not before: its refresh thread must not exist
+        while a run forks its worker processes, ``fleet.workers``, which it does before any device starts)."""
+        if self._live is not None and not self._shown:
+            self._shown = True
+            self._live.__enter__()
 
     def _description(self) -> str:
         bad = sum(n for s, n in self.counts.items() if s not in ("ok", "skipped"))
@@ -86,9 +95,11 @@ class FleetProgress:
                                      no_wrap=True))
 
     def start(self, name: str) -> None:
+        self._show()
         self.in_flight[name] = time.monotonic()
 
     def done(self, name: str, status: str, detail: str = "") -> None:
+        self._show()
         self.in_flight.pop(name, None)
         self.counts[status] = self.counts.get(status, 0) + 1
         if self._bar is not None:

@@ -146,7 +146,7 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                      on_confirm_wait: Callable[[str, float], None] | None = None,
                      on_changed: Callable[[DeviceResult], None] | None = None,
                      on_soak: Callable[[int, list[str]], None] | None = None,
-                     keep_results: bool = True, workers: int = 0, report_lines: bool = True) -> Report:
+                     keep_results: bool = True, pool: Pool | None = None, report_lines: bool = True) -> Report:
     """Apply to many devices: in parallel, except that devices on one bus go one at a time.
 
     ``batches`` (sizes, in job order; ``batch_plan`` orders a mixed line) stage the rollout: each batch
@@ -167,9 +167,9 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     soak starts. ``keep_results`` False: a device that ended ok is kept as its ``DeviceResult.small()`` once
     ``on_done`` had it (which wrote its report line), unless a soak, a confirmation or ``rollback_on_failure``
     may still change it: 10,000 devices x 100 parameters held 34 KB of result objects per device.
-    ``workers``: run the devices in that many worker processes (``fleet.workers``; a plain run only: UsageError
-    otherwise), this process keeping the rollout; ``report_lines``: whether ``on_done`` writes each device's
-    report line (``report.device_json``), which the workers then encode.
+    ``pool``: worker processes launched for this run (``fleet.workers.Pool.launch``; a plain run only: UsageError
+    otherwise) run the devices, this process keeping the rollout; the caller closes it. ``report_lines``: whether
+    ``on_done`` writes each device's report line (``report.device_json``), which the workers then encode.
     """
     opts = options or ApplyOptions()
     window = Window(opts, recipe_name, on_changed=on_changed, on_soak=on_soak, on_confirm_wait=on_confirm_wait)
@@ -179,13 +179,19 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
                        on_done=on_done, on_start=on_start)
     rollout.small_ok = (not keep_results and opts.soak is None and opts.confirm_within is None
                         and not rollback_on_failure)
-    if workers:
+    if pool is not None:
         why = ineligible(opts, rollback_on_failure=rollback_on_failure)
         if why is not None:
             window.close()
             raise UsageError(f"worker processes cannot run this fleet: {why} (run it with --workers 0)")
-        rollout.pool = await Pool.start(workers, jobs, opts, lines=report_lines and on_done is not None,
-                                        small_ok=rollout.small_ok, files=min(parallel, len(jobs)) + 64)
+        rollout.started -= pool.seconds  # launching the workers is part of the phase, though it came first
+        try:
+            await pool.setup(opts, lines=report_lines and on_done is not None, small_ok=rollout.small_ok,
+                             files=min(parallel, len(jobs)) + 64)
+        except BaseException:
+            window.close()
+            raise
+        rollout.pool = pool
     try:
         await rollout.batches(list(batches) if batches else [len(jobs)], parallel, between_batches)
         await window.end(rollout.written(jobs), rollout.stop, rollback_on_failure=rollback_on_failure)
@@ -194,8 +200,6 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
         raise RunInterrupted(rollout.interrupted()) from None
     finally:
         window.close()
-        if rollout.pool is not None:
-            await rollout.pool.close()
     return rollout.report()
 
 

@@ -11,27 +11,42 @@ Only plain runs use workers (``eligible``): a safe-change window (soak, confirma
 failure) keeps devices' locks and acts on them after they finished, and a question per device needs
 this process's terminal, so those runs stay in one process.
 
-The workers are this Python started again (``python -c``); they connect to a listening socket of this
-process on 127.0.0.1 and say a secret given to them on their stdin before anything else is read
-(a local user who finds the port cannot feed this process data). Messages are pickled tuples, each
-framed by its length. A worker whose parent goes away (killed, crashed) sees its connection close and
-cancels its devices: each ends as an interrupted run's device does (its journal lines say where it was).
+How a worker starts (``Pool.launch``). On Linux, while this process has no other thread, it is forked:
+it has every module and the run's recipes already, and talks over a socket pair made before the fork. Started
+so, two workers were ready in a few milliseconds where starting Python again took 0.2-0.3 s, all inside the
+fleet's phase, and two imports' CPU on a two-core machine (benchmarks/RESULTS.md). Elsewhere (Windows, macOS,
+whose system libraries are not safe to fork; a process with threads, such as a program that embeds deployer;
+``DEPLOYER_WORKER_START=spawn``) it is this Python started again (``python -c``): it connects to a listening
+socket of this process on 127.0.0.1 and says a secret given to it on its stdin before anything else is read
+(a local user who finds the port cannot feed this process data). The run launches its workers before its
+journal line and report file (``run.runner``): the report's thread must not exist when they are forked, and
+spawned ones import their modules meanwhile.
+
+Messages are pickled tuples, each framed by its length. A worker whose parent goes away (killed, crashed) sees
+its connection close and cancels its devices: each ends as an interrupted run's device does (its journal lines
+say where it was).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hmac
 import os
 import pickle
 import secrets
+import signal
+import socket
 import struct
 import sys
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, cast
+from functools import partial
+from typing import TYPE_CHECKING, Any, NoReturn, Protocol, cast
 
+from .. import portable
 from ..errors import UsageError
 
 if TYPE_CHECKING:
@@ -45,6 +60,7 @@ MIN_PER_WORKER = 8  # devices in flight per worker at least: fewer, and one proc
 MAX_WORKERS = 64
 _FRAME = struct.Struct(">I")
 _BOOT = "from deployer.fleet.workers import main; main()"
+START_ENV = "DEPLOYER_WORKER_START"  # "spawn": start Python again even where forking is possible
 
 
 def auto_count(devices: int, parallel: int) -> int:
@@ -197,8 +213,47 @@ class Call:
     writing: DeviceResult | None = None  # what the device said when its writes started (its snapshot)
 
 
+class NotStarted(UsageError):
+    """The workers could not start (or died before they were ready): nothing was sent to any device."""
+
+
+class _Process(Protocol):
+    """What the pool needs of a worker process: asyncio's for a spawned one, ``_Forked`` for a forked one."""
+
+    @property
+    def returncode(self) -> int | None: ...
+
+    async def wait(self) -> int: ...
+
+    def kill(self) -> None: ...
+
+
+class _Forked:
+    """A worker forked from this process (``Pool._fork``); reaped here, not by asyncio's child watcher."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self._code: int | None = None
+
+    @property
+    def returncode(self) -> int | None:
+        if self._code is None:
+            self._code = portable.child_exit_code(self.pid)
+        return self._code
+
+    async def wait(self) -> int:
+        # polled: a worker ends within milliseconds of its link closing, and this runs once per worker and run
+        while (code := self.returncode) is None:
+            await asyncio.sleep(0.005)
+        return code
+
+    def kill(self) -> None:
+        if self.returncode is None:
+            portable.kill_child(self.pid)
+
+
 class _Worker:
-    def __init__(self, process: asyncio.subprocess.Process) -> None:
+    def __init__(self, process: _Process) -> None:
         self.process = process
         self.link: _Link | None = None
         self.connected: asyncio.Future[_Link] = asyncio.get_running_loop().create_future()
@@ -211,10 +266,18 @@ class _Worker:
         self.link.send(message)
 
 
-class Pool:
-    """Worker processes running a rollout's devices (``start``), each device when the rollout says (``run``)."""
+def forkable() -> bool:
+    """Whether workers are forked (see the module's docstring): Linux, no other thread in this process, and not
+    turned off with ``DEPLOYER_WORKER_START=spawn``."""
+    return (portable.can_fork() and os.environ.get(START_ENV, "").lower() != "spawn"
+            and threading.active_count() == 1)
 
-    def __init__(self, jobs: Sequence[Job], on_writing: Callable[[DeviceResult], None] | None) -> None:
+
+class Pool:
+    """Worker processes running a rollout's devices: ``launch`` them, then ``setup`` the run in them; each device
+    when the rollout says (``run``)."""
+
+    def __init__(self, jobs: Sequence[Job]) -> None:
         self.jobs = jobs
         self.index = {j.name: i for i, j in enumerate(jobs)}
         # the recipes the workers are given once; each device is sent with its own start (its job's fields and the
@@ -225,33 +288,82 @@ class Pool:
             if id(j.recipe) not in self.recipes:
                 self.recipes[id(j.recipe)] = len(self.setup_recipes)
                 self.setup_recipes.append(j.recipe)
-        self.on_writing = on_writing
+        self.on_writing: Callable[[DeviceResult], None] | None = None
         self.workers: list[_Worker] = []
+        self.forked = False
+        self.set_up = False  # every worker had its setup and said it is ready
+        self.seconds = 0.0  # what launching took (the fleet's phase counts it: it runs before the journal's line)
         self._server: asyncio.AbstractServer | None = None
+        self._tokens: dict[bytes, int] = {}
 
     @classmethod
-    async def start(cls, count: int, jobs: Sequence[Job], opts: ApplyOptions, *, lines: bool, small_ok: bool,
-                    files: int, timeout: float = 60.0) -> Pool:
-        """``count`` workers, each given the jobs' recipes and the run's options; ready when this returns.
-
-        ``lines``: the workers encode each device's report line; ``small_ok``: a device that ended ok comes
-        back as its small result; ``files``: the open files each may need. Raises UsageError (nothing sent to
-        any device) when they cannot start."""
-        pool = cls(jobs, opts.on_writing)
+    async def launch(cls, count: int, jobs: Sequence[Job], *, fork: bool | None = None) -> Pool:
+        """``count`` workers started, forked where ``forkable()`` (``fork``: decide here), else spawned; ``setup``
+        makes them ready. Raises NotStarted (nothing sent to any device) when they cannot be started."""
+        t = time.monotonic()
+        pool = cls(jobs)
+        pool.forked = forkable() if fork is None else fork
         try:
-            await asyncio.wait_for(pool._start(count, opts, lines=lines, small_ok=small_ok, files=files), timeout)
-        except BaseException as e:
+            if pool.forked:
+                await pool._fork(count)
+            else:
+                await pool._spawn(count)
+        except OSError as e:
             await pool.close(kill=True)
-            why = f"they were not ready within {timeout:g} s" if isinstance(e, TimeoutError) else str(e)
-            if isinstance(e, (OSError, TimeoutError, WorkerGone, pickle.PicklingError)):
-                raise UsageError(f"cannot start {count} worker processes: {why}; nothing was sent to any device "
-                                 "(run the fleet in one process with --workers 0)") from None
-            raise
+            raise NotStarted(f"cannot start {count} worker processes: {e}; nothing was sent to any device "
+                             "(run the fleet in one process with --workers 0)") from None
+        pool.seconds = time.monotonic() - t
         return pool
 
-    async def _start(self, count: int, opts: ApplyOptions, *, lines: bool, small_ok: bool, files: int) -> None:
-        # a secret per worker: it says which process a connection is (they connect in any order)
-        tokens = {secrets.token_bytes(32): i for i in range(count)}
+    async def setup(self, opts: ApplyOptions, *, lines: bool, small_ok: bool, files: int,
+                    timeout: float = 60.0) -> None:
+        """Give every worker the recipes and the run's options, and wait until each is ready. ``lines``: the
+        workers encode each device's report line; ``small_ok``: a device that ended ok comes back as its small
+        result; ``files``: the open files each may need. Raises NotStarted (the workers ended; nothing sent to
+        any device) when they cannot start."""
+        self.on_writing = opts.on_writing
+        setup = ("setup", self.setup_recipes, _portable(opts), sys.argv, lines, small_ok, opts.on_writing is not None,
+                 files)
+        try:
+            await asyncio.wait_for(self._setup(setup), timeout)
+        except BaseException as e:
+            await self.close(kill=True)
+            why = f"they were not ready within {timeout:g} s" if isinstance(e, TimeoutError) else str(e)
+            if isinstance(e, (OSError, TimeoutError, WorkerGone, pickle.PicklingError)):
+                raise NotStarted(f"cannot start {len(self.workers)} worker processes: {why}; nothing was sent to "
+                                 "any device (run the fleet in one process with --workers 0)") from None
+            raise
+
+    async def _fork(self, count: int) -> None:
+        """Fork the workers, each with its end of a socket pair (no secret: nobody else has the pair)."""
+        pairs = [socket.socketpair() for _ in range(count)]
+        for stream in (sys.stdout, sys.stderr):  # a worker's traceback must not repeat what this process had buffered
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                stream.flush()
+        handed = 0  # our ends given to a transport, which closes them
+        try:
+            try:
+                for _, theirs in pairs:
+                    pid = portable.fork()
+                    if pid == 0:
+                        _forked_main(theirs, [s for pair in pairs for s in pair if s is not theirs])
+                    self.workers.append(_Worker(_Forked(pid)))
+            finally:
+                for _, theirs in pairs:
+                    theirs.close()
+            loop = asyncio.get_running_loop()
+            for (ours, _), w in zip(pairs, self.workers, strict=True):
+                _, link = await loop.connect_accepted_socket(partial(self._link, w), ours)
+                handed += 1
+                w.link = link
+                w.connected.set_result(link)
+        finally:
+            for ours, _ in pairs[handed:]:
+                ours.close()
+
+    async def _spawn(self, count: int) -> None:
+        """Start Python again ``count`` times; each connects to this process and says its secret."""
+        self._tokens = {secrets.token_bytes(32): i for i in range(count)}  # which process a connection is
 
         def connected(i: int, link: _Link) -> None:
             w = self.workers[i]
@@ -263,20 +375,24 @@ class Pool:
             w.connected.set_result(link)
 
         loop = asyncio.get_running_loop()
-        self._server = await loop.create_server(lambda: _Link(tokens=tokens, on_token=connected), "127.0.0.1", 0)
+        self._server = await loop.create_server(lambda: _Link(tokens=self._tokens, on_token=connected),
+                                                "127.0.0.1", 0)
         port = self._server.sockets[0].getsockname()[1]
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(
             [_package_root(), *filter(None, [os.environ.get("PYTHONPATH")])])}
-        for token in tokens:
+        for token in self._tokens:
             proc = await asyncio.create_subprocess_exec(sys.executable, "-c", _BOOT, str(port),
                                                         stdin=asyncio.subprocess.PIPE, env=env)
+            self.workers.append(_Worker(proc))
             assert proc.stdin is not None
             proc.stdin.write(token.hex().encode() + b"\n")
             await proc.stdin.drain()
             proc.stdin.close()
-            self.workers.append(_Worker(proc))
-        setup = ("setup", self.setup_recipes, _portable(opts), sys.argv, lines, small_ok, opts.on_writing is not None,
-                 files)
+
+    def _link(self, w: _Worker) -> _Link:
+        return _Link(on_message=lambda m: self._received(w, m), on_lost=lambda: self._lost(w))
+
+    async def _setup(self, setup: tuple[Any, ...]) -> None:
         for w in self.workers:
             exited: asyncio.Future[Any] = asyncio.ensure_future(w.process.wait())
             await asyncio.wait([exited, w.connected], return_when=asyncio.FIRST_COMPLETED)
@@ -286,8 +402,10 @@ class Pool:
             w.send(setup)
         for w in self.workers:  # each says it is ready once it has loaded the recipes
             await w.ready
-        self._server.close()
-        self._server = None
+        self.set_up = True
+        if self._server is not None:
+            self._server.close()
+            self._server = None
 
     def _received(self, w: _Worker, message: Any) -> None:
         """A message from a worker, to the call it is about."""
@@ -352,8 +470,9 @@ class Pool:
         call.worker.send(("cancel", call.index))
 
     async def close(self, *, kill: bool = False) -> None:
-        """The workers told to end (their connection closed) and waited for; ``kill``: ended at once (they never
-        started: nothing of theirs is in flight)."""
+        """The workers told to end (their connection closed) and waited for; ``kill``: ended at once (as are
+        workers never set up: nothing of theirs is in flight). Closing again does nothing more."""
+        kill = kill or not self.set_up
         if self._server is not None:
             self._server.close()
         for w in self.workers:
@@ -389,18 +508,58 @@ def _portable(opts: ApplyOptions) -> ApplyOptions:
 
 
 def main() -> None:
-    """A worker: ``python -c "from deployer.fleet.workers import main; main()" PORT``, the secret on stdin."""
-    import signal
-
+    """A spawned worker: ``python -c "from deployer.fleet.workers import main; main()" PORT``, the secret on stdin."""
     port = int(sys.argv[1])
     token = bytes.fromhex(sys.stdin.readline().strip())
-    # Ctrl-C reaches every process of the terminal: this process's devices are interrupted when the rollout
-    # says so (it relays the interruption), never behind its back
+    _ignore_interrupts()
+
+    async def connect(link: _Link) -> None:
+        await asyncio.get_running_loop().create_connection(lambda: link, "127.0.0.1", port)
+        link.send_raw(token)
+
+    with asyncio.Runner(loop_factory=_loop_factory()) as runner:
+        runner.run(_serve(connect))
+
+
+def _forked_main(sock: socket.socket, inherited: Sequence[socket.socket]) -> NoReturn:
+    """A forked worker (``Pool._fork``): serves on its end of the socket pair, then ends this process. It never
+    returns into the rollout's code it was forked from, and leaves no handler of it to run (``os._exit``)."""
+    try:
+        import gc
+
+        gc.freeze()  # the rollout's objects are never collected here: a finalizer would close a descriptor of ours
+        for s in inherited:  # the other workers' pairs: a copy of their ends here would keep their links open
+            s.close()
+        signal.set_wakeup_fd(-1)  # the rollout's event loop's, not ours
+        asyncio._set_running_loop(None)  # Python 3.12+ does this itself at a fork
+        _ignore_interrupts()
+        if hasattr(signal, "SIGTERM"):
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        null = os.open(os.devnull, os.O_RDONLY)  # a question of the command's is never read here
+        os.dup2(null, 0)
+        os.close(null)
+
+        async def connect(link: _Link) -> None:
+            await asyncio.get_running_loop().connect_accepted_socket(lambda: link, sock)
+
+        with asyncio.Runner(loop_factory=_loop_factory()) as runner:
+            runner.run(_serve(connect))
+    except BaseException:
+        try:
+            import traceback
+
+            traceback.print_exc()
+        finally:
+            os._exit(1)
+    os._exit(0)
+
+
+def _ignore_interrupts() -> None:
+    """Ctrl-C reaches every process of the terminal: a worker's devices are interrupted when the rollout says
+    so (it relays the interruption), never behind its back."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if hasattr(signal, "SIGBREAK"):
         signal.signal(signal.SIGBREAK, signal.SIG_IGN)
-    with asyncio.Runner(loop_factory=_loop_factory()) as runner:
-        runner.run(_serve(port, token))
 
 
 def _loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
@@ -416,7 +575,7 @@ def _loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
     return factory
 
 
-async def _serve(port: int, token: bytes) -> None:
+async def _serve(connect: Callable[[_Link], Awaitable[None]]) -> None:
     import gc
 
     from ..execute.device import DeviceInterrupted, _apply_device, journal_line
@@ -440,8 +599,7 @@ async def _serve(port: int, token: bytes) -> None:
         ended.set()
 
     link.on_message, link.on_lost = first, lost
-    await loop.create_connection(lambda: link, "127.0.0.1", port)
-    link.send_raw(token)
+    await connect(link)
     given = await setup
     if given is None:
         return

@@ -4,7 +4,8 @@ The command line, the Python API and the Ansible modules all run through ``run_a
 run is in the audit log and visible to ``deployer status``:
 
 1. checks before anything is sent: a broadcast (unit 0) needs ``allow_broadcast``, fleet options
-   (batch sizes, the failure budget, open files), a report file that can be written;
+   (batch sizes, the failure budget, open files), a report file that can be written; then the worker
+   processes of a big fleet are launched (``fleet.workers``), before any thread of this run exists;
 2. the journal's ``run-started`` line, then the report file's first state (a stream: every device
    ``skipped``, "not finished", with the run id and the state folder: ``rollback --from-report`` finds the
    journal by them);
@@ -34,7 +35,7 @@ from ..execute.job import Job
 from ..execute.session import ApplyOptions
 from ..fleet.livereport import LiveReport
 from ..fleet.rollout import apply_many, batch_plan, batch_sizes, failure_budget
-from ..fleet.workers import auto_count, ineligible
+from ..fleet.workers import NotStarted, Pool, auto_count, ineligible
 from ..portable import interrupt_signals, on_signals, raise_open_files
 from ..report import DeviceResult, Report, run_info
 from ..state import journal
@@ -141,6 +142,23 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     workers = worker_count(workers, len(jobs), parallel, opts,
                            rollback_on_failure=bool(safe.get("rollback_on_failure")))
     jobs, sizes = batch_plan(jobs, batch, batch_by)  # each batch covers every profile (or group) of the line
+    # before the journal's line and the report file: this process has no other thread yet (the report's comes
+    # with it), so the workers may be forked; spawned ones import meanwhile. Nothing is sent until their setup.
+    pool = await Pool.launch(workers, jobs) if workers else None
+    try:
+        return await _run(jobs, sizes, budget, pool, command=command, label=label, argv=argv, via=via, opts=opts,
+                          parallel=parallel, report_path=report_path, signals=signals, on_start=on_start,
+                          on_done=on_done, keep_results=keep_results, safe=safe)
+    finally:
+        if pool is not None:
+            await pool.close()
+
+
+async def _run(jobs: Sequence[Job], sizes: list[int], budget: int | None, pool: Pool | None, *, command: str,
+               label: str | None, argv: Sequence[str], via: str, opts: ApplyOptions, parallel: int,
+               report_path: str | None, signals: bool, on_start: Callable[[Job], None] | None,
+               on_done: Callable[[DeviceResult], None] | None, keep_results: bool, safe: dict[str, Any]) -> Report:
+    """``run_async`` once its options are checked (and its workers launched): journal, report file, devices."""
     started = time.time()
     state_dir = os.path.abspath(opts.state_dir)
     applied = opts.applied  # the journal and the snapshots name it so that it is found from anywhere
@@ -177,18 +195,20 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     try:
         report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
                                   on_done=done, batches=sizes, max_failures=budget,
-                                  on_changed=changed, keep_results=keep_results, workers=workers,
+                                  on_changed=changed, keep_results=keep_results, pool=pool,
                                   report_lines=live is not None, **safe)
     except RunInterrupted as e:
         report = e.report
         report.interrupted = why[0] if why else "cancelled"
-    except (StalePlan, Declined) as e:  # nothing was written anywhere: the run ends here, and says why
+    except (StalePlan, Declined, NotStarted) as e:  # nothing was written anywhere: the run ends here, and says why
         if live is not None:
             live.stop()
         journal.run_refused(state_dir, run_id, str(e), command=command, argv=argv, recipe=label)
         raise
     finally:
         restore()
+        if pool is not None:  # every device's lines are in; the run-finished line comes after the workers ended
+            await pool.close()
     report.run, report.run_id, report.state_dir = info, run_id, state_dir
     await _record_end(report, live, command=command, argv=argv)
     if report.interrupted is not None:

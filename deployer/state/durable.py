@@ -457,6 +457,17 @@ def writev_all(fd: int, pieces: list[bytes]) -> None:
 _WRITER = GroupCommit()
 
 
+def _writer_after_fork() -> None:
+    """A forked worker (``fleet.workers``) has no writer thread, and what its parent had queued is its parent's:
+    a writer of its own."""
+    global _WRITER
+    _WRITER = GroupCommit()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_writer_after_fork)
+
+
 async def durable(op: NewFile | Line) -> str | None:
     """Wait until ``op`` is on disk (with whatever else was pending); a NewFile's final path."""
     return await queue(op)
