@@ -8,10 +8,11 @@ measured from outside (benchmarks/child.py): wall time, CPU time, peak RSS, byte
 the report's ``summary.seconds`` is its fleet phase (without start-up, loading and the final table).
 Every run writes new values (the recipe alternates), so each device really is written and verified.
 
-Each size runs twice: as the command line runs it by default (one worker process per CPU from 500
-devices on, ``deployer.fleet.workers``) and with ``--workers 0`` (every device in the command's
-process). CPU time and peak memory are the command's and its workers' together (the launcher's
-``wait4`` counts the workers it waited for; the resident memory of the process tree is summed).
+Each size runs twice: as the command line runs it by default (one worker process per CPU, forked on Linux,
+``deployer.fleet.workers``) and with ``--workers 0`` (every device in the command's process). CPU time and
+peak memory are the command's and its workers' together (the launcher's ``wait4`` counts the workers it
+waited for; the resident memory of the process tree is summed, which counts the pages a forked worker still
+shares with the command once in each).
 
 Side by side: the bare client (benchmarks/bare_fleet.py, its own process) sends each device the
 requests deployer sent one device of the run before it, with the same ``--parallel``, on the same
@@ -94,9 +95,9 @@ class Bench:
               workers: int | None = None) -> dict[str, Any]:
         """One ``deployer apply`` of ``urls``; ``src``: run the deployer package found in that folder (an older
         checkout, measured side by side) instead of this one; ``workers``: its ``--workers`` (None: the command
-        line's default, one worker per CPU from 1,000 devices on). Its device locks go to the benchmark's own
-        folder: the machine's lock folder keeps a file per device ever written, which would carry one run's
-        devices into the next benchmark's figures."""
+        line's default: forked workers, one per CPU, from 100 devices on Linux). Its device locks go to the
+        benchmark's own folder: the machine's lock folder keeps a file per device ever written, which would
+        carry one run's devices into the next benchmark's figures."""
         self.variant += 1
         recipe = os.path.join(self.work, f"recipe{self.variant % 2}.yaml")
         with open(recipe, "w") as f:

@@ -21,7 +21,7 @@ import pytest
 
 from deployer.errors import UsageError
 from deployer.execute.session import ApplyOptions
-from deployer.fleet.workers import MIN_DEVICES, START_ENV, auto_count, forkable
+from deployer.fleet.workers import MIN_DEVICES, MIN_DEVICES_FORKED, START_ENV, auto_count, forkable
 from deployer.profile import load_profile
 from deployer.report import read_report
 from deployer.run.runner import worker_count
@@ -183,9 +183,10 @@ def test_a_safe_change_keeps_its_devices_in_one_process(files: Path, fleet: list
     assert not (files / "state" / "audit.jsonl").exists()
 
 
-def test_how_many_workers_a_run_takes() -> None:
+def test_how_many_workers_a_run_takes(monkeypatch: pytest.MonkeyPatch) -> None:
     plain = ApplyOptions()
     cpus = os.cpu_count() or 1
+    monkeypatch.setenv(START_ENV, "spawn")  # workers started as new processes: worth it from 1,000 devices
     assert worker_count(0, 10_000, 256, plain, rollback_on_failure=False) == 0
     assert worker_count(3, 10_000, 256, plain, rollback_on_failure=False) == 3
     assert worker_count(3, 2, 256, plain, rollback_on_failure=False) == 2  # never more than devices at once
@@ -194,6 +195,11 @@ def test_how_many_workers_a_run_takes() -> None:
     assert worker_count(None, 10_000, 256, plain, rollback_on_failure=False) == auto_count(10_000, 256) == (
         0 if cpus < 2 else min(cpus, 32))
     assert auto_count(10_000, 8) == (0 if cpus < 2 else 1)  # eight devices at once per worker at least
+    # forked ones start at once: from 100 devices
+    assert auto_count(MIN_DEVICES_FORKED - 1, 256, forked=True) == 0
+    assert auto_count(MIN_DEVICES_FORKED, 256, forked=True) == auto_count(MIN_DEVICES, 256, forked=False) == (
+        0 if cpus < 2 else min(cpus, 32))
+    assert MIN_DEVICES_FORKED < MIN_DEVICES - 1 and auto_count(MIN_DEVICES - 1, 256, forked=False) == 0
     for opts, rb in ((ApplyOptions(soak=5.0), False), (ApplyOptions(confirm_within=60.0), False), (plain, True)):
         assert worker_count(None, 10_000, 256, opts, rollback_on_failure=rb) == 0  # auto: stays in one process
         with pytest.raises(UsageError, match="in this process"):

@@ -277,8 +277,9 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
                      help="wait up to S seconds for a device another run on this machine is writing"),
         click.option("--workers", type=int_range(LIMITS.workers), default=None, metavar="N",
                      help="worker processes running a fleet's devices (0: all in this process; default: one per "
-                          "CPU for 1,000 devices or more, unless --soak, --confirm-within, --rollback-on-failure or "
-                          "a question per device keeps them in this process)"),
+                          "CPU for 100 devices or more on Linux, where they are forked, 1,000 elsewhere, unless "
+                          "--soak, --confirm-within, --rollback-on-failure or a question per device keeps them in "
+                          "this process)"),
     ]
     for opt in reversed(opts):
         f = opt(f)

@@ -55,7 +55,10 @@ if TYPE_CHECKING:
     from ..recipe.loader import Recipe
     from ..report import DeviceResult
 
-MIN_DEVICES = 1000  # below this, starting workers (about 0.5 s) costs what they save (benchmarks/RESULTS.md)
+# below these, workers cost what they save (benchmarks/RESULTS.md): spawned ones take 0.2-0.3 s to start;
+# forked ones start at once, and two made 100 devices answering after 20 ms 20% faster at --parallel 256
+MIN_DEVICES = 1000
+MIN_DEVICES_FORKED = 100
 MIN_PER_WORKER = 8  # devices in flight per worker at least: fewer, and one process keeps up
 MAX_WORKERS = 64
 _FRAME = struct.Struct(">I")
@@ -63,10 +66,13 @@ _BOOT = "from deployer.fleet.workers import main; main()"
 START_ENV = "DEPLOYER_WORKER_START"  # "spawn": start Python again even where forking is possible
 
 
-def auto_count(devices: int, parallel: int) -> int:
-    """How many workers ``workers=None`` (auto) takes: one per CPU for a fleet big enough to gain, else 0."""
+def auto_count(devices: int, parallel: int, *, forked: bool | None = None) -> int:
+    """How many workers ``workers=None`` (auto) takes: one per CPU for a fleet big enough to gain, else 0;
+    ``forked``: whether they would be forked (None: ``forkable()`` now)."""
     cpus = os.cpu_count() or 1
-    if cpus < 2 or devices < MIN_DEVICES:
+    if forked is None:
+        forked = forkable()
+    if cpus < 2 or devices < (MIN_DEVICES_FORKED if forked else MIN_DEVICES):
         return 0
     return max(0, min(cpus, parallel // MIN_PER_WORKER, MAX_WORKERS))
 

@@ -37,7 +37,8 @@ class RunRequest:
     share of every profile, or of every group: ``batch_by``), ``max_failures``, ``pause`` and ``ask``
     stage a fleet run; ``soak``, ``health_interval`` and ``confirm_within`` make it a safe change.
     ``workers``: worker processes running the devices of a plain fleet run (0: none; None: one per CPU
-    for a fleet of 1,000 devices or more, ``fleet.workers``). Numbers are in seconds, within ``deployer.LIMITS``.
+    for a fleet of 100 devices or more where they are forked, Linux, else 1,000, ``fleet.workers``). Numbers
+    are in seconds, within ``deployer.LIMITS``.
     """
 
     source: str | None = None
