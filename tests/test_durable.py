@@ -7,6 +7,7 @@ import itertools
 import json
 import os
 import stat
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -162,7 +163,7 @@ def test_many_new_files_take_one_flush_of_their_file_system(tmp_path: Path, monk
     assert all(p.outcome() for p in again) and synced == ["file"] * len(again) + ["dir", "file"]
 
 
-@pytest.mark.skipif(not hasattr(os, "fork"), reason="a forked worker (fleet.workers) needs os.fork")
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers (fleet.workers) are forked on Linux only")
 def test_a_forked_process_writes_through_a_writer_of_its_own(tmp_path: Path) -> None:
     """A forked worker has none of its parent's threads: the parent's writer (its thread, its lock, its queue)
     is not used there, and a line written in the child is on disk when its wait ends."""
