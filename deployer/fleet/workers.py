@@ -550,6 +550,8 @@ def _forked_main(sock: socket.socket, inherited: Sequence[socket.socket]) -> NoR
 
         with asyncio.Runner(loop_factory=_loop_factory()) as runner:
             runner.run(_serve(connect))
+    except KeyboardInterrupt:  # Ctrl-C before it ignored it: the rollout's process had it too, and says so
+        os._exit(1)
     except BaseException:
         try:
             import traceback
