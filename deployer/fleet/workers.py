@@ -223,6 +223,11 @@ class NotStarted(UsageError):
     """The workers could not start (or died before they were ready): nothing was sent to any device."""
 
 
+def _not_started(count: int, why: str) -> NotStarted:
+    return NotStarted(f"cannot start {count} worker processes: {why}; nothing was sent to any device (run the fleet "
+                      "in one process with --workers 0)")
+
+
 class _Process(Protocol):
     """What the pool needs of a worker process: asyncio's for a spawned one, ``_Forked`` for a forked one."""
 
@@ -296,11 +301,9 @@ class Pool:
                 self.setup_recipes.append(j.recipe)
         self.on_writing: Callable[[DeviceResult], None] | None = None
         self.workers: list[_Worker] = []
-        self.forked = False
         self.set_up = False  # every worker had its setup and said it is ready
         self.seconds = 0.0  # what launching took (the fleet's phase counts it: it runs before the journal's line)
         self._server: asyncio.AbstractServer | None = None
-        self._tokens: dict[bytes, int] = {}
 
     @classmethod
     async def launch(cls, count: int, jobs: Sequence[Job], *, fork: bool | None = None) -> Pool:
@@ -308,16 +311,12 @@ class Pool:
         makes them ready. Raises NotStarted (nothing sent to any device) when they cannot be started."""
         t = time.monotonic()
         pool = cls(jobs)
-        pool.forked = forkable() if fork is None else fork
+        forked = forkable() if fork is None else fork
         try:
-            if pool.forked:
-                await pool._fork(count)
-            else:
-                await pool._spawn(count)
+            await (pool._fork(count) if forked else pool._spawn(count))
         except OSError as e:
             await pool.close(kill=True)
-            raise NotStarted(f"cannot start {count} worker processes: {e}; nothing was sent to any device "
-                             "(run the fleet in one process with --workers 0)") from None
+            raise _not_started(count, str(e)) from None
         pool.seconds = time.monotonic() - t
         return pool
 
@@ -336,8 +335,7 @@ class Pool:
             await self.close(kill=True)
             why = f"they were not ready within {timeout:g} s" if isinstance(e, TimeoutError) else str(e)
             if isinstance(e, (OSError, TimeoutError, WorkerGone, pickle.PicklingError)):
-                raise NotStarted(f"cannot start {len(self.workers)} worker processes: {why}; nothing was sent to "
-                                 "any device (run the fleet in one process with --workers 0)") from None
+                raise _not_started(len(self.workers), why) from None
             raise
 
     async def _fork(self, count: int) -> None:
@@ -369,7 +367,7 @@ class Pool:
 
     async def _spawn(self, count: int) -> None:
         """Start Python again ``count`` times; each connects to this process and says its secret."""
-        self._tokens = {secrets.token_bytes(32): i for i in range(count)}  # which process a connection is
+        tokens = {secrets.token_bytes(32): i for i in range(count)}  # which process a connection is
 
         def connected(i: int, link: _Link) -> None:
             w = self.workers[i]
@@ -381,12 +379,12 @@ class Pool:
             w.connected.set_result(link)
 
         loop = asyncio.get_running_loop()
-        self._server = await loop.create_server(lambda: _Link(tokens=self._tokens, on_token=connected),
+        self._server = await loop.create_server(lambda: _Link(tokens=tokens, on_token=connected),
                                                 "127.0.0.1", 0)
         port = self._server.sockets[0].getsockname()[1]
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(
             [_package_root(), *filter(None, [os.environ.get("PYTHONPATH")])])}
-        for token in self._tokens:
+        for token in tokens:
             proc = await asyncio.create_subprocess_exec(sys.executable, "-c", _BOOT, str(port),
                                                         stdin=asyncio.subprocess.PIPE, env=env)
             self.workers.append(_Worker(proc))
@@ -539,8 +537,7 @@ def _forked_main(sock: socket.socket, inherited: Sequence[socket.socket]) -> NoR
         signal.set_wakeup_fd(-1)  # the rollout's event loop's, not ours
         asyncio._set_running_loop(None)  # Python 3.12+ does this itself at a fork
         _ignore_interrupts()
-        if hasattr(signal, "SIGTERM"):
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
         null = os.open(os.devnull, os.O_RDONLY)  # a question of the command's is never read here
         os.dup2(null, 0)
         os.close(null)

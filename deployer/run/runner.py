@@ -146,74 +146,64 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
     # with it), so the workers may be forked; spawned ones import meanwhile. Nothing is sent until their setup.
     pool = await Pool.launch(workers, jobs) if workers else None
     try:
-        return await _run(jobs, sizes, budget, pool, command=command, label=label, argv=argv, via=via, opts=opts,
-                          parallel=parallel, report_path=report_path, signals=signals, on_start=on_start,
-                          on_done=on_done, keep_results=keep_results, safe=safe)
-    finally:
+        started = time.time()
+        state_dir = os.path.abspath(opts.state_dir)
+        applied = opts.applied  # the journal and the snapshots name it so that it is found from anywhere
+        if applied is None and label is not None:
+            applied = os.path.abspath(label) if os.path.exists(label) else label
+        if opts.expected is None:  # what devices taught changes what is sent: a damaged file is refused now
+            from ..state import learned
+
+            learned.load(state_dir)
+        run_id = opts.run_id or journal.new_run_id()  # a confirmation window names its run before it starts
+        journal.run_started(state_dir, run_id, command=command, argv=argv, recipe=applied, via=via,
+                            devices=[(j.name, describe(j.url), j.unit) for j in jobs])
+        info = {**run_info(opts.command or f"Python API: {command}", started), "id": run_id, "state_dir": state_dir}
+        live = LiveReport(report_path, label, jobs, sizes, run=info) if report_path else None
+        opts = replace(opts, run_id=run_id, applied=applied, state_dir=state_dir,
+                       on_writing=_both(opts.on_writing, live.writing if live is not None else None))
+
+        def done(r: DeviceResult) -> None:
+            if live is not None:
+                live.finished(r)
+            if on_done is not None:
+                on_done(r)
+
+        on_changed: Callable[[DeviceResult], None] | None = safe.pop("on_changed", None)
+
+        def changed(r: DeviceResult) -> None:  # a finished device's result changed (a soak rolled it back)
+            if live is not None:
+                live.update(r)
+            if on_changed is not None:
+                on_changed(r)
+
+        why: list[str] = []
+        restore = _on_signals(why) if signals else (lambda: None)
+        try:
+            report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
+                                      on_done=done, batches=sizes, max_failures=budget,
+                                      on_changed=changed, keep_results=keep_results, pool=pool,
+                                      report_lines=live is not None, **safe)
+        except RunInterrupted as e:
+            report = e.report
+            report.interrupted = why[0] if why else "cancelled"
+        except (StalePlan, Declined, NotStarted) as e:  # nothing was written anywhere: the run ends, and says why
+            if live is not None:
+                live.stop()
+            journal.run_refused(state_dir, run_id, str(e), command=command, argv=argv, recipe=label)
+            raise
+        finally:
+            restore()
+            if pool is not None:  # every device's lines are in; the run-finished line comes after the workers ended
+                await pool.close()
+        report.run, report.run_id, report.state_dir = info, run_id, state_dir
+        await _record_end(report, live, command=command, argv=argv)
+        if report.interrupted is not None:
+            raise RunInterrupted(report, report.interrupted)
+        return report
+    finally:  # also when the journal's line or the report file could not be started (closing again does nothing)
         if pool is not None:
             await pool.close()
-
-
-async def _run(jobs: Sequence[Job], sizes: list[int], budget: int | None, pool: Pool | None, *, command: str,
-               label: str | None, argv: Sequence[str], via: str, opts: ApplyOptions, parallel: int,
-               report_path: str | None, signals: bool, on_start: Callable[[Job], None] | None,
-               on_done: Callable[[DeviceResult], None] | None, keep_results: bool, safe: dict[str, Any]) -> Report:
-    """``run_async`` once its options are checked (and its workers launched): journal, report file, devices."""
-    started = time.time()
-    state_dir = os.path.abspath(opts.state_dir)
-    applied = opts.applied  # the journal and the snapshots name it so that it is found from anywhere
-    if applied is None and label is not None:
-        applied = os.path.abspath(label) if os.path.exists(label) else label
-    if opts.expected is None:  # what devices taught changes what is sent: a damaged file is refused now
-        from ..state import learned
-
-        learned.load(state_dir)
-    run_id = opts.run_id or journal.new_run_id()  # a confirmation window names its run before it starts
-    journal.run_started(state_dir, run_id, command=command, argv=argv, recipe=applied, via=via,
-                        devices=[(j.name, describe(j.url), j.unit) for j in jobs])
-    info = {**run_info(opts.command or f"Python API: {command}", started), "id": run_id, "state_dir": state_dir}
-    live = LiveReport(report_path, label, jobs, sizes, run=info) if report_path else None
-    opts = replace(opts, run_id=run_id, applied=applied, state_dir=state_dir,
-                   on_writing=_both(opts.on_writing, live.writing if live is not None else None))
-
-    def done(r: DeviceResult) -> None:
-        if live is not None:
-            live.finished(r)
-        if on_done is not None:
-            on_done(r)
-
-    on_changed: Callable[[DeviceResult], None] | None = safe.pop("on_changed", None)
-
-    def changed(r: DeviceResult) -> None:  # a finished device's result changed (a soak rolled it back)
-        if live is not None:
-            live.update(r)
-        if on_changed is not None:
-            on_changed(r)
-
-    why: list[str] = []
-    restore = _on_signals(why) if signals else (lambda: None)
-    try:
-        report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
-                                  on_done=done, batches=sizes, max_failures=budget,
-                                  on_changed=changed, keep_results=keep_results, pool=pool,
-                                  report_lines=live is not None, **safe)
-    except RunInterrupted as e:
-        report = e.report
-        report.interrupted = why[0] if why else "cancelled"
-    except (StalePlan, Declined, NotStarted) as e:  # nothing was written anywhere: the run ends here, and says why
-        if live is not None:
-            live.stop()
-        journal.run_refused(state_dir, run_id, str(e), command=command, argv=argv, recipe=label)
-        raise
-    finally:
-        restore()
-        if pool is not None:  # every device's lines are in; the run-finished line comes after the workers ended
-            await pool.close()
-    report.run, report.run_id, report.state_dir = info, run_id, state_dir
-    await _record_end(report, live, command=command, argv=argv)
-    if report.interrupted is not None:
-        raise RunInterrupted(report, report.interrupted)
-    return report
 
 
 async def _record_end(report: Report, live: LiveReport | None, *, command: str, argv: Sequence[str]) -> None:
