@@ -22,7 +22,7 @@ import pytest
 from deployer.profile import load_profile
 from deployer.report import read_report
 from deployer.testing.simulator import Faults, Simulator, SimulatorThread
-from tests.helpers import Simulators, reaped, wait_for
+from tests.helpers import Simulators, process_alive, process_children, reaped, wait_for
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -99,8 +99,12 @@ def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
         files: Path, fleet: list[Simulator], workers: int) -> None:
     with reaped(fleet_apply(files, workers)) as proc:
         wait_for(lambda: half_way(fleet), "devices half-written")
+        children = process_children(proc.pid)  # its workers (Linux)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
+    # what the run wrote is counted once its workers ended too: they stop their devices as soon as they see
+    # the command gone, which takes them a few milliseconds more
+    wait_for(lambda: not any(process_alive(c) for c in children), "the run's workers to end", timeout=30)
     half = [f"d{i}" for i, s in enumerate(fleet) if 0 < writes(s) < N]
     by_run = [writes(s) for s in fleet]
     assert half and any(holds(s) != before(i) for i, s in enumerate(fleet))

@@ -26,7 +26,7 @@ from deployer.profile import load_profile
 from deployer.report import read_report
 from deployer.run.runner import worker_count
 from deployer.testing.simulator import Simulator
-from tests.helpers import Simulators, reaped, wait_for
+from tests.helpers import Simulators, process_alive, process_children, reaped, wait_for
 from tests.test_runs import (
     N,
     audit,
@@ -47,30 +47,15 @@ _WORKER = "from deployer.fleet.workers import main; main()"
 def _children(pid: int, how: str) -> list[int]:
     """The worker processes of run ``pid`` (Linux's /proc), started as ``how`` says: "fork" (the command's own
     command line) or "spawn" (this Python started again)."""
-    out = []
-    with open(f"/proc/{pid}/cmdline", "rb") as f:
-        parent = f.read().decode(errors="replace")
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
+    def cmdline(p: int) -> str:
         try:
-            with open(f"/proc/{entry}/cmdline", "rb") as f:
-                cmd = f.read().decode(errors="replace")
-            with open(f"/proc/{entry}/stat") as f:
-                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-        except (OSError, ValueError, IndexError):
-            continue
-        if ppid == pid and (cmd == parent if how == "fork" else _WORKER in cmd):
-            out.append(int(entry))
-    return out
+            with open(f"/proc/{p}/cmdline", "rb") as f:
+                return f.read().decode(errors="replace")
+        except OSError:
+            return ""
 
-
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
+    parent = cmdline(pid)
+    return [c for c in process_children(pid) if (cmdline(c) == parent if how == "fork" else _WORKER in cmdline(c))]
 
 
 def _same(doc: dict[str, Any]) -> list[dict[str, Any]]:
@@ -138,7 +123,7 @@ def test_a_killed_run_takes_its_workers_with_it(files: Path, fleet: list[Simulat
         assert len(workers) == 2
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
-    wait_for(lambda: not any(_alive(w) for w in workers), "the workers to end", timeout=30)
+    wait_for(lambda: not any(process_alive(w) for w in workers), "the workers to end", timeout=30)
     sent = [writes(s) for s in fleet]
     time.sleep(0.5)  # nothing goes on behind the killed run's back
     assert [writes(s) for s in fleet] == sent
