@@ -17,7 +17,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
 
 WINDOWS = sys.platform == "win32"
 
@@ -190,41 +189,6 @@ def same_file(a: os.stat_result, b: os.stat_result) -> bool:
 def is_link(st: os.stat_result) -> bool:
     reparse = getattr(stat, "FILE_ATTRIBUTE_REPARSE_POINT", 0)
     return stat.S_ISLNK(st.st_mode) or bool(reparse and getattr(st, "st_file_attributes", 0) & reparse)
-
-
-_SYNCFS: list[Any] = []  # libc's syncfs once looked up ([None]: this system has none we trust)
-
-
-def syncfs(fd: int) -> bool:
-    """Make everything written to the file system holding ``fd`` durable, in one flush (Linux's ``syncfs``):
-    for many new files at once, one call instead of an fsync each (one disk cache flush instead of one per file).
-    False where the system has none, or cannot report a failed write through it (Linux before 5.8): the caller
-    fsyncs each file then. OSError when the flush failed."""
-    if not _SYNCFS:
-        _SYNCFS.append(_find_syncfs())
-    call = _SYNCFS[0]
-    if call is None:
-        return False
-    if call(fd) != 0:
-        import ctypes
-
-        err = ctypes.get_errno()
-        raise OSError(err, os.strerror(err))
-    return True
-
-
-def _find_syncfs() -> Any:
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        major, minor = (int(x) for x in os.uname().release.split(".")[:2])
-        if (major, minor) < (5, 8):  # earlier kernels' syncfs does not return the errors of the writes it made
-            return None
-        import ctypes
-
-        return ctypes.CDLL(None, use_errno=True).syncfs
-    except (ValueError, OSError, AttributeError):
-        return None
 
 
 def fsync_dir(folder: str) -> bool:

@@ -66,7 +66,6 @@ class _Pending:
     data: bytes | None = None  # its journal line as written, encoded by the caller (see ``submit``)
     error: BaseException | None = None
     finished: bool = False
-    flushed: bool = False  # made durable by one flush of its file system with the rest of its batch
     # who waits: a future of an event loop (resolved there, a whole batch per wake-up), else a thread
     waiter: asyncio.Future[str | None] | None = None
     event: threading.Event | None = None
@@ -159,24 +158,23 @@ def _line(record: dict[str, Any]) -> bytes:
     return (json.dumps(record) + "\n").encode()
 
 
-SYNCFS_FILES = 4  # new files in a batch from which one file-system flush (portable.syncfs) replaces their fsyncs
-
-
 def commit(batch: list[_Pending]) -> None:
     """Make a batch durable: its files (each fsync'ed), their folders (once each), then the journal lines.
-    Each operation ends ``finished`` with its ``error`` (None: durable); every file is closed."""
+    Each operation ends ``finished`` with its ``error`` (None: durable); every file is closed.
+
+    Each file is fsync'ed, never the whole file system (``syncfs``): that flushed whatever else was written
+    there too (the lock records, the report stream, any other program's data), which in a fleet cost more
+    than the fsyncs it saved (benchmarks/RESULTS.md), and on a shared disk it waits for others' writes."""
     failed: dict[int, BaseException] = {}
     files = [p for p in batch if isinstance(p.op, NewFile)]
     for p in files:
         if p.fd < 0:
             _create_or_fail(p, failed)
-    if not _flushed_together([p for p in files if p.fd >= 0]):
-        for p in files:
-            if p.fd >= 0:
-                try:
-                    os.fsync(p.fd)
-                except OSError as e:
-                    failed[id(p)] = e
+        if p.fd >= 0:
+            try:
+                os.fsync(p.fd)
+            except OSError as e:
+                failed[id(p)] = e
     for p in files:
         _close(p)
     folders: dict[str, list[_Pending]] = {}
@@ -184,8 +182,6 @@ def commit(batch: list[_Pending]) -> None:
         if id(p) not in failed and p.path is not None:
             folders.setdefault(os.path.dirname(p.path), []).append(p)
     for folder, ps in folders.items():
-        if ps[0].flushed:
-            continue  # the file system's flush took the folder's new entries too
         try:
             _fsync_dir(folder)  # the directory entries, or a crash can lose the files
         except OSError as e:
@@ -211,23 +207,6 @@ def commit(batch: list[_Pending]) -> None:
             failed.update((id(p), e) for p in ps)
     for p in batch:
         p.error, p.finished = failed.get(id(p)), True
-
-
-def _flushed_together(files: list[_Pending]) -> bool:
-    """Many new files of one file system: one flush of it (``portable.syncfs``: their data, their folders'
-    entries, everything else written there) instead of an fsync each, which cost a disk cache flush each (a
-    batch of 64 snapshots: 18 ms and 6.5 ms of CPU, against 2.3 ms and 0.24 ms). False when not done: the
-    caller fsyncs each, as for a few files, another system, or a flush that failed (each then says its own)."""
-    if len(files) < SYNCFS_FILES:
-        return False
-    try:
-        if len({os.fstat(p.fd).st_dev for p in files}) != 1 or not portable.syncfs(files[0].fd):
-            return False
-    except OSError:
-        return False
-    for p in files:
-        p.flushed = True
-    return True
 
 
 def _create(p: _Pending) -> None:
