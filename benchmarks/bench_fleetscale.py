@@ -12,7 +12,8 @@ Each size runs twice: as the command line runs it by default (one worker process
 ``deployer.fleet.workers``) and with ``--workers 0`` (every device in the command's process). CPU time and
 peak memory are the command's and its workers' together (the launcher's ``wait4`` counts the workers it
 waited for; the resident memory of the process tree is summed, which counts the pages a forked worker still
-shares with the command once in each).
+shares with the command once in each: ``peak_rss_mb``; ``peak_pss_mb`` sums the proportional set size,
+which counts a shared page once in all: the memory the run really takes).
 
 Side by side: the bare client (benchmarks/bare_fleet.py, its own process) sends each device the
 requests deployer sent one device of the run before it, with the same ``--parallel``, on the same
@@ -113,7 +114,8 @@ class Bench:
         _settle()
         m, err = measured_all(cmd + (["--report", path] if report else []), self.work, env=env)
         common = {"wall": m["wall"], "cpu": m["cpu"], "sys": m.get("sys", 0.0),
-                  "rss_mb": m.get("tree_rss_kb", m["maxrss_kb"]) / 1024, "written": m["written_bytes"]}
+                  "rss_mb": m.get("tree_rss_kb", m["maxrss_kb"]) / 1024, "pss_mb": m.get("tree_pss_kb", 0) / 1024,
+                  "written": m["written_bytes"]}
         if not report:
             assert m["code"] == 0, err[-2000:]
             return common
@@ -212,7 +214,8 @@ def _row(m: dict[str, Any], n: int) -> dict[str, Any]:
     """One run's figures; CPU and peak memory are the command's and its worker processes' together."""
     row = {"wall_seconds": round(m["wall"], 2), "cpu_ms_per_device": round(m["cpu"] * 1000 / n, 2),
            "system_cpu_ms_per_device": round(m["sys"] * 1000 / n, 2),
-           "peak_rss_mb": round(m["rss_mb"], 1), "written_mb": round(m["written"] / 1e6, 1)}
+           "peak_rss_mb": round(m["rss_mb"], 1), "peak_pss_mb": round(m["pss_mb"], 1),
+           "written_mb": round(m["written"] / 1e6, 1)}
     if "fleet" in m:
         row.update({"fleet_seconds": round(m["fleet"], 2), "report_mb": round(m["report_bytes"] / 1e6, 1),
                     "report_bytes_per_device": round(m["report_bytes"] / n),
@@ -285,6 +288,8 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
             for key in ("", "_one_process"):
                 grow = out[f"scale_{hi}{key}"]["peak_rss_mb"] - out[f"scale_{lo}{key}"]["peak_rss_mb"]
                 out[f"kb_per_device{key}"] = round(grow * 1024 / (hi - lo), 2)
+                grow = out[f"scale_{hi}{key}"]["peak_pss_mb"] - out[f"scale_{lo}{key}"]["peak_pss_mb"]
+                out[f"kb_per_device_pss{key}"] = round(grow * 1024 / (hi - lo), 2)
     return out
 
 

@@ -55,7 +55,7 @@ def _main() -> None:
 
     proc = subprocess.Popen(spec["args"], cwd=spec["cwd"], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                             preexec_fn=limited if limit else None)
-    tree = [0]  # the largest sum of the resident memory of the command and its own processes (its workers)
+    tree = [0, 0]  # the largest sums of the resident memory (RSS, PSS) of the command and its own processes
     done = threading.Event()
     threading.Thread(target=_watch_tree, args=(proc.pid, tree, done), daemon=True).start()
     _, status, usage = os.wait4(proc.pid, 0)
@@ -65,12 +65,17 @@ def _main() -> None:
     # ru_maxrss is the largest of them, so the sum of the tree is sampled (tree_rss_kb, Linux)
     print(json.dumps({"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "sys": usage.ru_stime,
                       "maxrss_kb": usage.ru_maxrss, "tree_rss_kb": max(tree[0], usage.ru_maxrss),
+                      "tree_pss_kb": tree[1],
                       "code": os.waitstatus_to_exitcode(status),
                       "written_bytes": usage.ru_oublock * 512}))  # Linux: the command's block output
 
 
 def _watch_tree(pid: int, peak: list[int], done: threading.Event) -> None:
-    """Every 20 ms: the resident memory of ``pid`` and its child processes, summed; the largest sum in peak[0]."""
+    """Every 20 ms: the resident memory of ``pid`` and its child processes, summed; the largest sum in peak[0].
+
+    peak[1]: the same for the proportional set size (``Pss`` of /proc/PID/smaps_rollup), which counts a page
+    shared by N processes (a forked worker's pages still its parent's) as 1/N in each: the memory the tree
+    really takes, where the RSS sum counts shared pages once per process."""
     while not done.wait(0.02):
         kids: dict[int, list[int]] = {}
         rss: dict[int, int] = {}
@@ -86,12 +91,25 @@ def _watch_tree(pid: int, peak: list[int], done: threading.Event) -> None:
                 continue
             kids.setdefault(int(fields[1]), []).append(int(e))
             rss[int(e)] = int(fields[21]) * (os.sysconf("SC_PAGE_SIZE") // 1024)
-        total, todo = 0, [pid]
+        total, pss, todo = 0, 0, [pid]
         while todo:
             p = todo.pop()
             total += rss.get(p, 0)
+            pss += _pss_kb(p)
             todo.extend(kids.get(p, []))
         peak[0] = max(peak[0], total)
+        peak[1] = max(peak[1], pss)
+
+
+def _pss_kb(pid: int) -> int:
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            for line in f:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
 
 
 if __name__ == "__main__":
