@@ -163,8 +163,8 @@ def commit(batch: list[_Pending]) -> None:
     Each operation ends ``finished`` with its ``error`` (None: durable); every file is closed.
 
     Each file is fsync'ed, never the whole file system (``syncfs``): that flushed whatever else was written
-    there too (the lock records, the report stream, any other program's data), which in a fleet cost more
-    than the fsyncs it saved (benchmarks/RESULTS.md), and on a shared disk it waits for others' writes."""
+    there too (the lock records, the report stream, any other program's data), so a snapshot waited for others'
+    writes, and a fleet wrote a fifth more to the disk for no time saved (benchmarks/RESULTS.md, run F)."""
     failed: dict[int, BaseException] = {}
     files = [p for p in batch if isinstance(p.op, NewFile)]
     for p in files:
