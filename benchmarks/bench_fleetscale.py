@@ -17,7 +17,8 @@ which counts a shared page once in all: the memory the run really takes).
 
 Side by side: the bare client (benchmarks/bare_fleet.py, its own process) sends each device the
 requests deployer sent one device of the run before it, with the same ``--parallel``, on the same
-devices; deployer (default and one process) and the bare client alternate, ``repeats`` times, and the
+devices; deployer (default and one process) and the bare client alternate, ``repeats`` times, each in
+turn the first of a round (a run measured right after another one's moved by up to a fifth), and the
 best of each is compared (the machine is shared: a ratio from one run side by side is what is worth
 anything). ``cpu_ratio`` is deployer's CPU over the bare client's for the same devices.
 
@@ -234,18 +235,21 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
         b = Bench(work)
         start = measured_all([b.deployer, "--version"], work)[0]
         out["version_seconds"] = round(start["wall"], 3)
-        with farm(1, 0, processes=1) as one:
-            out["request_cpu"] = request_cost(one[0], 200 if quick else 2000)
+        with farm(1, 0, processes=1) as single:
+            out["request_cpu"] = request_cost(single[0], 200 if quick else 2000)
         if side_by_side:
             for latency, n, parallels in pairs:
                 with farm(n, latency, cost=out.setdefault(f"farm_{latency}ms", {})) as urls:
                     b.apply(urls[:10], 4)  # warm: the first run of a fresh state folder; not measured
                     for p in parallels:
-                        ours, one, bare = [], [], []
-                        for _ in range(repeats):  # alternating: the machine's load falls on all three alike
-                            ours.append(b.apply(urls, p))
-                            one.append(b.apply(urls, p, workers=0))
-                            bare.append(b.bare(urls, p))
+                        got: dict[str, list[dict[str, Any]]] = {"ours": [], "one": [], "bare": []}
+                        kinds = list(got)
+                        for i in range(repeats):  # alternating: the machine's load falls on all three alike
+                            for k in range(3):  # each in turn first (the order of runs moves their figures)
+                                kind = kinds[(i + k) % 3]
+                                got[kind].append(b.bare(urls, p) if kind == "bare" else
+                                                 b.apply(urls, p, workers=0 if kind == "one" else None))
+                        ours, one, bare = got["ours"], got["one"], got["bare"]
                         best = min(ours, key=lambda m: m["fleet"])
                         alone = min(one, key=lambda m: m["fleet"])
                         fastest = min(bare, key=lambda m: m["fleet"])
@@ -264,12 +268,16 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
         with farm(max(sizes), 20, cost=out.setdefault("farm_scale", {})) as urls:
             b.apply(urls[:10], 4)
             for n in sizes:
-                runs, one, old = [], [], []
-                for _ in range(repeats):
-                    runs.append(b.apply(urls[:n], 256))
-                    one.append(b.apply(urls[:n], 256, workers=0))
-                    if before:  # the older checkout, alternating with this one on the same devices
-                        old.append(b.apply(urls[:n], 256, src=before))
+                scaled: dict[str, list[dict[str, Any]]] = {"runs": [], "one": []}
+                if before:  # the older checkout, alternating with this one on the same devices
+                    scaled["old"] = []
+                kinds = list(scaled)
+                for i in range(repeats):
+                    for k in range(len(kinds)):  # each in turn first
+                        kind = kinds[(i + k) % len(kinds)]
+                        scaled[kind].append(b.apply(urls[:n], 256, workers=0 if kind == "one" else None,
+                                                    src=before if kind == "old" else None))
+                runs, one, old = scaled["runs"], scaled["one"], scaled.get("old", [])
                 best = min(runs, key=lambda m: m["wall"])
                 out[f"scale_{n}"] = {**_row(best, n), "walls": [round(m["wall"], 2) for m in runs],
                                      "cpu_ms_per_device_each": [round(m["cpu"] * 1000 / n, 2) for m in runs],
