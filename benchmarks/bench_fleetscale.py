@@ -211,6 +211,14 @@ def request_cost(url: str, n: int = 2000, rounds: int = 3) -> dict[str, Any]:
             "ratio": round(min(a) / min(b), 2)}
 
 
+def _turns(kinds: list[str], repeats: int) -> Iterator[str]:
+    """``repeats`` rounds of every kind, each kind in turn the first of its round: a run measured right after
+    another one's moved by up to a fifth, so no kind always comes first or last."""
+    for i in range(repeats):
+        for k in range(len(kinds)):
+            yield kinds[(i + k) % len(kinds)]
+
+
 def _row(m: dict[str, Any], n: int) -> dict[str, Any]:
     """One run's figures; CPU and peak memory are the command's and its worker processes' together."""
     row = {"wall_seconds": round(m["wall"], 2), "cpu_ms_per_device": round(m["cpu"] * 1000 / n, 2),
@@ -243,12 +251,9 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                     b.apply(urls[:10], 4)  # warm: the first run of a fresh state folder; not measured
                     for p in parallels:
                         got: dict[str, list[dict[str, Any]]] = {"ours": [], "one": [], "bare": []}
-                        kinds = list(got)
-                        for i in range(repeats):  # alternating: the machine's load falls on all three alike
-                            for k in range(3):  # each in turn first (the order of runs moves their figures)
-                                kind = kinds[(i + k) % 3]
-                                got[kind].append(b.bare(urls, p) if kind == "bare" else
-                                                 b.apply(urls, p, workers=0 if kind == "one" else None))
+                        for kind in _turns(list(got), repeats):  # the machine's load falls on all three alike
+                            got[kind].append(b.bare(urls, p) if kind == "bare" else
+                                             b.apply(urls, p, workers=0 if kind == "one" else None))
                         ours, one, bare = got["ours"], got["one"], got["bare"]
                         best = min(ours, key=lambda m: m["fleet"])
                         alone = min(one, key=lambda m: m["fleet"])
@@ -271,12 +276,9 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                 scaled: dict[str, list[dict[str, Any]]] = {"runs": [], "one": []}
                 if before:  # the older checkout, alternating with this one on the same devices
                     scaled["old"] = []
-                kinds = list(scaled)
-                for i in range(repeats):
-                    for k in range(len(kinds)):  # each in turn first
-                        kind = kinds[(i + k) % len(kinds)]
-                        scaled[kind].append(b.apply(urls[:n], 256, workers=0 if kind == "one" else None,
-                                                    src=before if kind == "old" else None))
+                for kind in _turns(list(scaled), repeats):
+                    scaled[kind].append(b.apply(urls[:n], 256, workers=0 if kind == "one" else None,
+                                                src=before if kind == "old" else None))
                 runs, one, old = scaled["runs"], scaled["one"], scaled.get("old", [])
                 best = min(runs, key=lambda m: m["wall"])
                 out[f"scale_{n}"] = {**_row(best, n), "walls": [round(m["wall"], 2) for m in runs],
