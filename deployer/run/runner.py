@@ -163,20 +163,9 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         opts = replace(opts, run_id=run_id, applied=applied, state_dir=state_dir,
                        on_writing=_both(opts.on_writing, live.writing if live is not None else None))
 
-        def done(r: DeviceResult) -> None:
-            if live is not None:
-                live.finished(r)
-            if on_done is not None:
-                on_done(r)
-
-        on_changed: Callable[[DeviceResult], None] | None = safe.pop("on_changed", None)
-
-        def changed(r: DeviceResult) -> None:  # a finished device's result changed (a soak rolled it back)
-            if live is not None:
-                live.update(r)
-            if on_changed is not None:
-                on_changed(r)
-
+        done = _both(live.finished if live is not None else None, on_done)
+        # a finished device's result changed (a soak rolled it back): its line anew, then the caller's
+        changed = _both(live.update if live is not None else None, safe.pop("on_changed", None))
         why: list[str] = []
         restore = _on_signals(why) if signals else (lambda: None)
         try:
