@@ -32,8 +32,9 @@ test: $(VENV)/.installed-test
 # `mypy --platform win32`: the code only Windows runs (LockFileEx, OpenProcess) type-checks here too.
 # every step runs even when one fails (the suite's failures do not hide ruff's and mypy's); fails if any did
 # the tests run in one process more than the machine has cores, at most 4 (pytest-xdist; TEST_WORKERS=0: all
-# in one process): with a process per core, the cores sat idle 40% of the time (tests wait on devices' timeouts and
-# on child processes), which the extra process fills. On two cores: 170-188 s with three, 200-228 s with two
+# in one process): with a process per core, the cores sat idle 40% of the time (tests wait on devices' timeouts
+# and on child processes), which the extra process fills. On two cores: 170-209 s with three (five runs),
+# 200-228 s with two (four runs)
 TEST_WORKERS ?= $(shell $(PYTHON) -c "import os; print(min(4, (os.cpu_count() or 1) + 1))")
 check:
 	@rc=0; \
