@@ -20,7 +20,9 @@ requests deployer sent one device of the run before it, with the same ``--parall
 devices; deployer (default and one process) and the bare client alternate, ``repeats`` times, each in
 turn the first of a round (a run measured right after another one's moved by up to a fifth), and the
 best of each is compared (the machine is shared: a ratio from one run side by side is what is worth
-anything). ``cpu_ratio`` is deployer's CPU over the bare client's for the same devices.
+anything). ``cpu_ratio`` is deployer's CPU over the bare client's for the same devices. The system CPU of
+every run is listed too: this machine runs at two speeds, one with about twice the other's system CPU per
+device (benchmarks/RESULTS.md), and a run's ratio says mostly which speed it had.
 
     python -m benchmarks.bench_fleetscale [--quick] [--sizes 1000,4000] [--repeats 2] [--no-side-by-side]
                                           [--before OLD-CHECKOUT]
@@ -141,7 +143,7 @@ class Bench:
         assert m["code"] == 0, err[-2000:]
         with open(out) as f:
             seconds = json.load(f)["seconds"]
-        return {"wall": m["wall"], "cpu": m["cpu"], "fleet": seconds}
+        return {"wall": m["wall"], "cpu": m["cpu"], "sys": m.get("sys", 0.0), "fleet": seconds}
 
 
 def _time_wait() -> int:
@@ -269,7 +271,11 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                             "deployer_cpu_ms_per_device": round(best["cpu"] * 1000 / n, 2),
                             "one_process_cpu_ms_per_device": round(alone["cpu"] * 1000 / n, 2),
                             "bare_cpu_ms_per_device": round(fastest["cpu"] * 1000 / n, 2),
-                            "cpu_ratio": round(min(m["cpu"] for m in ours) / min(m["cpu"] for m in bare), 2)}
+                            "cpu_ratio": round(min(m["cpu"] for m in ours) / min(m["cpu"] for m in bare), 2),
+                            # each run's, in the order of its fleet seconds: the machine runs at two speeds (one
+                            # about twice the other's system CPU; benchmarks/RESULTS.md), and a ratio says which
+                            "deployer_system_cpu_ms_per_device": [round(m["sys"] * 1000 / n, 2) for m in ours],
+                            "bare_system_cpu_ms_per_device": [round(m["sys"] * 1000 / n, 2) for m in bare]}
         with farm(max(sizes), 20, cost=out.setdefault("farm_scale", {})) as urls:
             b.apply(urls[:10], 4)
             for n in sizes:
