@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from deployer.state import durable
+from deployer.state import durable, wal
 from deployer.state.durable import Line, NewFile, _close, _Pending, commit
 
 
@@ -30,31 +30,52 @@ def _lines(path: Path) -> list[dict[str, Any]]:
     return [json.loads(x) for x in path.read_text().splitlines()]
 
 
-def test_a_batch_fsyncs_each_file_its_folder_once_then_the_journal_once(tmp_path: Path,
-                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_are_fsynced_at_the_settle(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The files' text goes to the folder's write-ahead log (one write, one fsync), then the journal lines (one
+    write, one fsync): no fsync per file before the first write. Settling fsyncs each file, then the folder,
+    and removes the log."""
     journal = tmp_path / "audit.jsonl"
     synced: list[str] = []
     real = os.fsync
 
     def fsync(fd: int) -> None:
-        mode = os.fstat(fd).st_mode
-        synced.append("dir" if stat.S_ISDIR(mode) else "journal" if os.fstat(fd).st_ino == _ino(journal)
+        st = os.fstat(fd)
+        synced.append("dir" if stat.S_ISDIR(st.st_mode) else "journal" if st.st_ino == _ino(journal)
+                      else "log" if Path(tmp_path / ".wal").is_dir() and st.st_ino in _inos(tmp_path / ".wal")
                       else "file")
         real(fd)
 
     journal.touch()
     monkeypatch.setattr(os, "fsync", fsync)
+    log = wal.Log()
     batch = [_Pending(_file(tmp_path, f"dev{i}", journal, {"event": "device-started", "name": f"dev{i}"}))
              for i in range(3)]
     batch.append(_Pending(Line(str(journal), {"event": "device-finished", "name": "dev9"})))
-    commit(batch)
-    for p in batch:
-        _close(p)
-    assert synced == ["file", "file", "file", "dir", "journal"]  # the lines only after the files they name
+    commit(batch, log)
+    # the log's folder and its name made durable once, when the log is created; then one fsync each
+    assert synced == ["dir", "dir", "log", "journal"]  # the lines only after the files they name are logged
     assert [p.outcome() for p in batch] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)] + [None]
     lines = _lines(journal)
     assert [x["name"] for x in lines] == ["dev0", "dev1", "dev2", "dev9"]  # submission order
     assert [x.get("snapshot") for x in lines[:3]] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)]
+    (segment,) = (tmp_path / ".wal").iterdir()
+    logged = [json.loads(x) for x in segment.read_text().splitlines()[1:]]
+    assert [(x["path"], x["text"]) for x in logged] == [(str(tmp_path / f"dev{i}.yaml"), f"# I am {tmp_path}/dev{i}.yaml\n")
+                                                        for i in range(3)]
+    assert [x["sha256"] for x in logged] == [x["snapshot_sha256"] for x in lines[:3]]
+
+    synced.clear()
+    commit([_Pending(_file(tmp_path, "dev3", journal, {"name": "dev3"}))], log)
+    assert synced == ["log", "journal"]  # the log exists: one fsync for the file, one for its line
+    synced.clear()
+    log.settle()
+    assert synced == ["file"] * 4 + ["dir"]
+    assert not (tmp_path / ".wal").exists()  # settled: no log, and no empty folder beside the snapshots
+
+
+def _inos(folder: Path) -> set[int]:
+    return {p.stat().st_ino for p in folder.iterdir()}
 
 
 def _ino(path: Path) -> int:
@@ -123,25 +144,55 @@ def test_an_unexpected_error_reaches_the_caller_and_the_writer_goes_on(tmp_path:
     assert _lines(journal) == [{"name": "next"}]
 
 
-def test_a_failed_fsync_is_that_files_own(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Each file is fsync'ed on its own (never one flush of the whole file system, which took every other
-    file written there with it): a file whose fsync fails fails alone, and its journal line is not written."""
+def test_a_failed_log_fsync_fails_its_batch_and_the_next_batch_gets_a_new_log(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The log is the files' durability: when its fsync fails, none of the batch's files is durable (their
+    devices are not written) and no journal line names them; the log is not appended to again."""
     journal = tmp_path / "audit.jsonl"
+    log = wal.Log()
+    commit([_Pending(_file(tmp_path, "first", journal, {"name": "first"}))], log)
     real = os.fsync
-    failing = str(tmp_path / "more0.yaml")
+    (old,) = (tmp_path / ".wal").iterdir()
 
     def fsync(fd: int) -> None:
-        if os.path.exists(failing) and os.fstat(fd).st_ino == _ino(Path(failing)):
+        if os.fstat(fd).st_ino == _ino(old):
             raise OSError(5, "Input/output error")
         real(fd)
 
     monkeypatch.setattr(os, "fsync", fsync)
-    batch = [_Pending(_file(tmp_path, f"more{i}", journal, {"name": f"more{i}"})) for i in range(3)]
-    commit(batch)
-    with pytest.raises(OSError, match="Input/output"):
-        batch[0].outcome()
-    assert [p.outcome() for p in batch[1:]] == [str(tmp_path / f"more{i}.yaml") for i in (1, 2)]
-    assert [x["name"] for x in _lines(journal)] == ["more1", "more2"]
+    batch = [_Pending(_file(tmp_path, f"more{i}", journal, {"name": f"more{i}"})) for i in range(2)]
+    commit(batch, log)
+    for p in batch:
+        with pytest.raises(OSError, match="Input/output"):
+            p.outcome()
+    assert [x["name"] for x in _lines(journal)] == ["first"]
+    later = _Pending(_file(tmp_path, "later", journal, {"name": "later"}))
+    commit([later], log)
+    assert later.outcome() == str(tmp_path / "later.yaml")
+    assert len(list((tmp_path / ".wal").iterdir())) == 2  # a new log; the broken one waits for the settle
+    monkeypatch.setattr(os, "fsync", real)
+    log.settle()
+    assert not (tmp_path / ".wal").exists()
+
+
+def test_a_file_that_cannot_be_fsynced_at_the_settle_leaves_its_log_for_recovery(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    log = wal.Log()
+    commit([_Pending(_file(tmp_path, f"dev{i}", None, None)) for i in range(2)], log)
+    real = os.fsync
+    failing = _ino(tmp_path / "dev1.yaml")
+
+    def fsync(fd: int) -> None:
+        if os.fstat(fd).st_ino == failing:
+            raise OSError(5, "Input/output error")
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    log.settle()
+    (segment,) = (tmp_path / ".wal").iterdir()  # nothing lost: the log stays, unlocked, for ``wal.recover``
+    monkeypatch.setattr(os, "fsync", real)
+    assert wal.recover(str(tmp_path)) == []  # the files were intact: fsync'ed now, nothing rewritten
+    assert not (tmp_path / ".wal").exists()
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers (fleet.workers) are forked on Linux only")

@@ -117,9 +117,24 @@ def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
     # --limit @REPORT retries the half-written devices too
     assert set(half) <= {d["name"] for d in report["devices"] if d["status"] not in ("ok", "sent")}
 
+    # killed before its end, the run never fsync'ed its snapshot files themselves: their write-ahead log holds
+    # them (state.wal), and a power loss now could cost any of them. Lose them all (one cut to nothing).
+    # (Workers see the command gone and settle their own log first: nothing of theirs is left to lose.)
+    logs = sorted((files / "state" / "snapshots" / ".wal").glob("*.jsonl"))
+    logged = [json.loads(x)["path"] for f in logs for x in f.read_text().splitlines()[1:]]
+    if workers == 0:
+        assert logged
+    for k, path in enumerate(logged):
+        Path(path).write_bytes(b"") if k == 0 else Path(path).unlink()
+
     code, out, err = deployer("rollback", "--from-report", "run.json", "--yes", "--state-dir", "state",
                               "--report", "back.json", cwd=files)
     assert code == 0, out + err
+    if logged:
+        assert f"restored {len(logged)} snapshot(s)" in err
+        (event,) = [r for r in audit(files / "state") if r["event"] == "snapshots-restored"]
+        assert event["snapshots"] == logged
+    assert not (files / "state" / "snapshots" / ".wal").exists()
     for i, s in enumerate(fleet):
         assert holds(s) == before(i), f"d{i}"
     back = json.loads((files / "back.json").read_text())

@@ -587,6 +587,7 @@ async def _serve(connect: Callable[[_Link], Awaitable[None]]) -> None:
     from ..execute.job import Job
     from ..portable import raise_open_files
     from ..report import device_json
+    from ..state import durable
 
     loop = asyncio.get_running_loop()
     setup: asyncio.Future[Any] = loop.create_future()
@@ -673,4 +674,7 @@ async def _serve(connect: Callable[[_Link], Awaitable[None]]) -> None:
         task.cancel()
     if tasks:
         await asyncio.gather(*tasks.values(), return_exceptions=True)
+    # the snapshots written here fsync'ed and their write-ahead log removed: the process ends by os._exit, and
+    # the rollout's run-finished line comes after its workers ended
+    await durable.settled()
     link.close()

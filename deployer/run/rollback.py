@@ -23,6 +23,8 @@ from ..fleet.livereport import NOT_FINISHED
 from ..recipe.loader import Recipe, load_recipe
 from ..report import read_report
 from ..state import journal
+from ..state.durable import disk_error
+from ..state.snapshot import recover
 from ..transport.urls import DeviceURL, describe, parse_url
 
 
@@ -79,6 +81,21 @@ def _state_of(snapshot: str) -> str:
     return os.path.dirname(os.path.dirname(os.path.abspath(snapshot)))
 
 
+def recovered(state: str) -> list[str]:
+    """The snapshots of ``state`` that a process which died before fsync'ing them left in the write-ahead log,
+    restored before any is read (``snapshot.recover``); a notice naming them, if any. UsageError when one cannot
+    be restored (nothing was sent)."""
+    try:
+        restored = recover(state)
+    except OSError as e:
+        raise UsageError(f"cannot restore the snapshots in {state} from their write-ahead log: "
+                         f"{disk_error(e)}; nothing was sent") from None
+    if not restored:
+        return []
+    return [f"note: restored {len(restored)} snapshot(s) in {state} from the write-ahead log a process left when "
+            f"it ended before fsync'ing them: {', '.join(restored)}"]
+
+
 def snapshot_job(path: str, *, device: str | None = None, unit: int | None = None, timeout: float | None = None,
                  retries: int | None = None, force: bool = False,
                  accept_edited: bool = False) -> tuple[Job, str | None, list[str]]:
@@ -87,6 +104,7 @@ def snapshot_job(path: str, *, device: str | None = None, unit: int | None = Non
 
     The snapshot's SHA-256 is checked against the journal of the state folder it lies in (``check_digest``)."""
     state = _state_of(path)
+    notices = recovered(state)
     note = check_digest(path, journal.snapshot_digest(state, os.path.abspath(path)),
                         f"the journal {journal.path_of(state)}", accept_edited=accept_edited)
     rec = load_recipe(path, force=force)
@@ -102,7 +120,7 @@ def snapshot_job(path: str, *, device: str | None = None, unit: int | None = Non
         was = _url(taken, timeout, retries)
         if (was.bus, taken_unit) != (url.bus, u):
             moved = f"{path} was taken from {describe(was)} unit {taken_unit}, not {describe(url)} unit {u}"
-    return Job(rec.name, rec, url, u), moved, [note] if note else []
+    return Job(rec.name, rec, url, u), moved, notices + ([note] if note else [])
 
 
 @dataclass(frozen=True)
@@ -266,6 +284,8 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
                          "nothing to roll back")
     jobs: list[Job] = []
     errors: list[Diagnostic] = []
+    for state in dict.fromkeys(_state_of(f.snapshot) for f in found if f.snapshot is not None):
+        notices.extend(recovered(state))
     for f in found:
         assert f.snapshot is not None
         refused_file = _not_a_snapshot_file(f.snapshot)

@@ -23,6 +23,7 @@ prompt) gets a run-finished line saying so.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import signal
 import time
@@ -38,8 +39,8 @@ from ..fleet.rollout import apply_many, batch_plan, batch_sizes, failure_budget
 from ..fleet.workers import NotStarted, Pool, auto_count, ineligible
 from ..portable import interrupt_signals, on_signals, raise_open_files
 from ..report import DeviceResult, Report, run_info
-from ..state import journal
-from ..state.durable import Line, disk_error, durable
+from ..state import journal, snapshot
+from ..state.durable import Line, disk_error, durable, settled
 from ..transport.urls import describe
 from ..window.soak import check_soak_profiles
 
@@ -151,6 +152,11 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         applied = opts.applied  # the journal and the snapshots name it so that it is found from anywhere
         if applied is None and label is not None:
             applied = os.path.abspath(label) if os.path.exists(label) else label
+        try:  # a process that died before fsync'ing its snapshots left them in their log: restored first
+            snapshot.recover(state_dir)
+        except OSError as e:
+            raise UsageError(f"cannot restore the snapshots in {state_dir} from their write-ahead log: "
+                             f"{disk_error(e)}; nothing was sent") from None
         if opts.expected is None:  # what devices taught changes what is sent: a damaged file is refused now
             from ..state import learned
 
@@ -205,8 +211,12 @@ async def _record_end(report: Report, live: LiveReport | None, *, command: str, 
             live.close(report)
         except UsageError as e:
             report.unrecorded.append(f"{e}; what the devices hold is in this output")
-    # through the group commit: after every line it still holds (a device interrupted while its snapshot and
-    # device-started line were being made durable), so the run-finished line is the run's last
+    # the run's snapshot files fsync'ed themselves, their write-ahead log removed (state.wal); then, through the
+    # group commit: after every line it still holds (a device interrupted while its snapshot and device-started
+    # line were being made durable), so the run-finished line is the run's last
+    await settled()
+    with contextlib.suppress(OSError):  # a worker that died left its log: restored now (else by the next run)
+        snapshot.recover(report.state_dir)
     path = journal.path_of(report.state_dir)
     try:
         await durable(Line(path, journal.finished_record(report.run_id, report, command=command, argv=argv)))

@@ -4,16 +4,18 @@ A fleet of 128 devices in flight used to send three jobs per device to asyncio's
 pool (the snapshot with its file and folder fsync, then the journal's "device-started" and
 "device-finished" lines, each fsync'ed on its own): devices queued behind each other's fsyncs
 for 50-100 ms each. Here one thread takes everything pending at once and makes it durable with
-as few fsyncs as the guarantees allow: each new file fsync'ed, each folder that got new files
-fsync'ed once, then the lines for each journal file appended with one write and one fsync. A
-caller's future completes only after the fsync covering its own data, so "the snapshot is on
-disk before the first write" and "device-started is on disk before the first write" hold per
-device exactly as before; within one batch the files are durable before any line naming them.
+as few fsyncs as the guarantees allow: the new files' text appended to the write-ahead log of
+their folder (``state.wal``) with one write and one fsync, then the lines for each journal file
+appended with one write and one fsync. A caller's future completes only after the fsync covering
+its own data, so "the snapshot is on disk before the first write" and "device-started is on disk
+before the first write" hold per device; within one batch the files are durable before any line
+naming them. The files themselves are fsync'ed when the log is settled (``settled``: a run's end).
 """
 
 from __future__ import annotations
 
 import asyncio
+import atexit
 import contextlib
 import errno
 import hashlib
@@ -30,6 +32,7 @@ from typing import Any
 from .. import portable
 from ..errors import UsageError
 from ..portable import O_BINARY, O_CLOEXEC, O_NOFOLLOW
+from . import wal
 
 
 @dataclass
@@ -50,6 +53,11 @@ class NewFile:
 
 
 @dataclass
+class Settle:
+    """Settle the write-ahead log: every new file logged so far fsync'ed, then the log removed."""
+
+
+@dataclass
 class Line:
     """One JSON line for a journal file (appended, fsync'ed)."""
 
@@ -59,11 +67,12 @@ class Line:
 
 @dataclass(eq=False)
 class _Pending:
-    op: NewFile | Line
+    op: NewFile | Line | Settle
     path: str | None = None  # a NewFile's final path
     digest: str | None = None  # the SHA-256 of a NewFile's bytes (the journal line names it: edits show)
     fd: int = -1
     data: bytes | None = None  # its journal line as written, encoded by the caller (see ``submit``)
+    record: bytes | None = None  # a NewFile's write-ahead log record (``wal.record``), encoded with the file
     error: BaseException | None = None
     finished: bool = False
     # who waits: a future of an event loop (resolved there, a whole batch per wake-up), else a thread
@@ -89,6 +98,7 @@ class GroupCommit:
         self._cond = threading.Condition()
         self._queue: list[_Pending] = []
         self._thread: threading.Thread | None = None
+        self._log = wal.Log()  # the writer thread's own
 
     def submit(self, p: _Pending) -> _Pending:
         """Queue ``p``; a NewFile is created and written here, and every journal line encoded, by the caller
@@ -102,7 +112,7 @@ class GroupCommit:
                 except BaseException:
                     _close(p)
                     raise
-        else:
+        elif isinstance(op, Line):
             p.data = _line(op.record)
         with self._cond:
             self._queue.append(p)
@@ -114,14 +124,24 @@ class GroupCommit:
                 self._cond.notify()
         return p
 
+    def logged(self) -> bool:
+        """Whether the writer holds a write-ahead log not settled yet."""
+        return self._log.pending()
+
     def _loop(self) -> None:
         while True:
             with self._cond:
                 while not self._queue:
-                    self._cond.wait()
+                    if self._log.pending():  # settled once nothing came for a while (a process that lives on)
+                        if not self._cond.wait(wal.IDLE) and not self._queue:
+                            break
+                    else:
+                        self._cond.wait()
                 batch, self._queue = self._queue, []
             try:
-                commit(batch)
+                commit(batch, self._log)
+                if not batch or any(isinstance(p.op, Settle) for p in batch):
+                    self._log.settle()
             except Exception as e:  # a bug must not leave its callers waiting
                 for p in batch:
                     if not p.finished:
@@ -158,38 +178,36 @@ def _line(record: dict[str, Any]) -> bytes:
     return (json.dumps(record) + "\n").encode()
 
 
-def commit(batch: list[_Pending]) -> None:
-    """Make a batch durable: its files (each fsync'ed), their folders (once each), then the journal lines.
-    Each operation ends ``finished`` with its ``error`` (None: durable); every file is closed.
+def commit(batch: list[_Pending], log: wal.Log | None = None) -> None:
+    """Make a batch durable: its files' text in their folders' write-ahead log (one write and one fsync for
+    each folder), then the journal lines. Each operation ends ``finished`` with its ``error`` (None: durable);
+    every file is closed. ``log``: the writer's (None: one of its own, settled before returning).
 
-    Each file is fsync'ed, never the whole file system (``syncfs``): that flushed whatever else was written
-    there too (the lock records, the report stream, any other program's data), so a snapshot waited for others'
-    writes, and a fleet wrote a fifth more to the disk for no time saved (benchmarks/RESULTS.md, run F)."""
+    The files are not fsync'ed one by one here, and the whole file system never is (``syncfs``: that flushed
+    whatever else was written there too, the lock records, the report stream, any other program's data, so a
+    snapshot waited for others' writes; benchmarks/RESULTS.md, run F): their log is one sequential file."""
     failed: dict[int, BaseException] = {}
+    own = log is None
+    log = wal.Log() if log is None else log
     files = [p for p in batch if isinstance(p.op, NewFile)]
     for p in files:
         if p.fd < 0:
             _create_or_fail(p, failed)
-        if p.fd >= 0:
-            try:
-                os.fsync(p.fd)
-            except OSError as e:
-                failed[id(p)] = e
     for p in files:
         _close(p)
     folders: dict[str, list[_Pending]] = {}
     for p in files:
-        if id(p) not in failed and p.path is not None:
+        if id(p) not in failed and p.path is not None and p.record is not None:
             folders.setdefault(os.path.dirname(p.path), []).append(p)
     for folder, ps in folders.items():
         try:
-            _fsync_dir(folder)  # the directory entries, or a crash can lose the files
+            log.append(folder, [p.record for p in ps if p.record is not None], [p.path for p in ps if p.path])
         except OSError as e:
             failed.update((id(p), e) for p in ps)
     lines: dict[str, list[_Pending]] = {}
     for p in batch:
         op = p.op
-        if id(p) in failed:
+        if id(p) in failed or isinstance(op, Settle):
             continue
         if p.data is None:  # not through ``submit`` (its file created here): encoded now
             try:
@@ -207,10 +225,13 @@ def commit(batch: list[_Pending]) -> None:
             failed.update((id(p), e) for p in ps)
     for p in batch:
         p.error, p.finished = failed.get(id(p)), True
+    if own:
+        log.settle()
 
 
 def _create(p: _Pending) -> None:
-    """Create a NewFile (never over an existing one) and write its text; the fd stays open for the fsync."""
+    """Create a NewFile (never over an existing one), write its text and encode its log record; the fd stays
+    open until the batch is committed."""
     op = p.op
     assert isinstance(op, NewFile)
     path, text = op.first
@@ -224,6 +245,7 @@ def _create(p: _Pending) -> None:
     try:
         data = text.encode()
         p.digest = op.digest = hashlib.sha256(data).hexdigest()
+        p.record = wal.record(path, p.digest, text)
         while data:
             data = data[os.write(fd, data):]
     except OSError:
@@ -447,12 +469,29 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_writer_after_fork)
 
 
+def _at_exit() -> None:
+    """What the writer logged and did not settle (no run's end settled it: ``apply_device`` called on its own)
+    is settled before the process ends, so no log is left for the next process to recover."""
+    if _WRITER.logged():
+        durable_now(Settle())
+
+
+atexit.register(_at_exit)
+
+
 async def durable(op: NewFile | Line) -> str | None:
     """Wait until ``op`` is on disk (with whatever else was pending); a NewFile's final path."""
     return await queue(op)
 
 
-def durable_now(op: NewFile | Line) -> str | None:
+async def settled() -> None:
+    """Wait until every new file written so far is fsync'ed itself and its write-ahead log is removed (a run's
+    end: its snapshot files then need no log). A file or folder that cannot be fsync'ed leaves its log on disk,
+    for ``wal.recover``: nothing is lost, so nothing is raised."""
+    await queue(Settle())
+
+
+def durable_now(op: NewFile | Line | Settle) -> str | None:
     """The same, from synchronous code (no event loop)."""
     p = _Pending(op, event=threading.Event())
     _WRITER.submit(p)
@@ -461,7 +500,7 @@ def durable_now(op: NewFile | Line) -> str | None:
     return p.outcome()
 
 
-def queue(op: NewFile | Line) -> asyncio.Future[str | None]:
+def queue(op: NewFile | Line | Settle) -> asyncio.Future[str | None]:
     """Queue ``op`` now and hand back its wait, to be awaited later (a fleet device frees its slot first).
     Cancelling the wait does not stop the operation: the writer finishes it (and closes its file)."""
     p = _Pending(op, waiter=asyncio.get_running_loop().create_future())

@@ -22,11 +22,27 @@ from ..recipe.loader import Recipe
 from ..recipe.model import DeviceSpec, SnapshotInfo
 from ..recipe.text import recipe_head
 from ..recipe.text import values_text as recipe_values_text
-from .durable import NewFile, durable_now
+from . import journal, wal
+from .durable import NewFile, append_lines, durable_now
 
 
 def snapshot_dir(state_dir: str) -> str:
     return os.path.join(os.path.abspath(state_dir), "snapshots")
+
+
+def recover(state_dir: str) -> list[str]:
+    """Settle what a process that died left in the snapshots' write-ahead log (``state.wal``): the snapshot
+    files restored from it (missing, or cut by the crash), each named in a ``snapshots-restored`` journal line.
+    Run before snapshots are read (a run's start, rollback); cheap when nothing was left (one folder listing).
+    Raises OSError when a snapshot cannot be restored (the log stays for the next try)."""
+    folder = snapshot_dir(state_dir)
+    restored = wal.recover(folder)
+    if restored:
+        append_lines(journal.path_of(os.path.abspath(state_dir)), [{
+            "event": "snapshots-restored", "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "snapshots": restored, "why": "a process ended before its snapshots were fsync'ed; restored from "
+                                          f"the write-ahead log in {os.path.join(folder, wal.FOLDER)}"}])
+    return restored
 
 
 def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
@@ -136,7 +152,8 @@ def last_identity(state_dir: str, name: str) -> tuple[str, dict[str, str]] | Non
 
 def save_snapshot(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
                   url: str, unit: int, *, applied: str | None = None) -> str:
-    """Write the values the device held as a snapshot, fsync'ed (file and directory) before any write.
+    """Write the values the device held as a snapshot, durable (its text in the write-ahead log, ``state.wal``)
+    before any write; the file itself is fsync'ed when the log is settled (at the latest when the process ends).
 
     Returns the snapshot's absolute path. ``values``: parameter name -> registers as read.
     (``apply`` uses ``snapshot_file`` with ``durable``, which shares the fsyncs with other devices.)

@@ -1,0 +1,290 @@
+"""The write-ahead log of new snapshot files: their text made durable with one fsync per batch.
+
+Each new snapshot used to be fsync'ed on its own before its device's first write, then its folder: in a
+fleet at ``--parallel 256`` that was most of the kernel's work per device and most of a device's wait
+before its first write (benchmarks/RESULTS.md, run I). Now the group commit (``state.durable``) appends
+each new file's path, SHA-256 and text to this process's log segment for the file's folder
+(``FOLDER/.wal/SEGMENT.jsonl``) and fsyncs that one file per batch; the snapshot files themselves are
+written but not fsync'ed then. The segment is *settled* when its run ends (``durable.settled``), when the
+writer has had nothing to do for ``IDLE`` seconds, and at exit: every file it names fsync'ed (a few at a
+time, so the file system commits them together), the folder fsync'ed, the segment removed.
+
+A segment is locked (``state.oslock``) while the process that writes it lives. A segment nobody holds was
+left by a process that died before settling it: ``recover`` (run before snapshots are read: at a run's
+start, by rollback) restores every file it names that is missing or differs from its record (a crash cut
+it), fsyncs the files and their folder, then removes the segment. A record the crash cut was never
+acknowledged (its fsync did not return), so no device was written after it: it is skipped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import hashlib
+import json
+import os
+import re
+import secrets
+import stat
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+from .. import portable
+from ..portable import O_BINARY, O_CLOEXEC, O_NOFOLLOW
+from . import oslock
+
+FOLDER = ".wal"  # inside the folder of the files it logs (a snapshot folder: STATE/snapshots/.wal)
+IDLE = 2.0  # seconds without a batch after which the writer settles what it logged
+MAX_BYTES = 64 << 20  # a segment this big is settled at once (a long fleet: the log stays bounded)
+FSYNCS_AT_ONCE = 8  # a settle's fsyncs in flight together: the file system commits them as one
+_HEADER = "deployer write-ahead log of new files"
+_NAME = re.compile(r"^[^./\\][^/\\]*\.yaml$")  # what a record may restore: a snapshot's file name, nothing else
+
+
+def record(path: str, digest: str, text: str) -> bytes:
+    """A segment's line for a new file: where it is, the SHA-256 of its bytes, its text."""
+    return (json.dumps({"path": path, "sha256": digest, "text": text}) + "\n").encode()
+
+
+class Segment:
+    """This process's log for one folder: created (and its own folder entry made durable) on first use,
+    locked while it is open, appended to with one write and one fsync per batch."""
+
+    def __init__(self, folder: str) -> None:
+        self.folder = folder
+        self.files: list[str] = []  # every file a record names, in order
+        self.size = 0
+        self.broken = False  # an append failed part way: later batches go to a new segment
+        wal = os.path.join(folder, FOLDER)
+        for attempt in range(10):
+            if not os.path.isdir(wal):
+                os.makedirs(wal, exist_ok=True)
+                portable.fsync_dir(folder)
+            stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+            self.path = os.path.join(wal, f"{stamp}-{os.getpid()}-{secrets.token_hex(4)}.jsonl")
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL | O_BINARY | O_CLOEXEC | O_NOFOLLOW, 0o644)
+                break
+            except FileExistsError:
+                continue
+            except FileNotFoundError:  # another process's settle removed the empty folder meanwhile
+                if attempt == 9:
+                    raise
+        else:
+            raise OSError(errno.EEXIST, f"no new log name in {wal}")
+        try:
+            if not oslock.backend().try_lock(fd):
+                raise OSError(errno.EAGAIN, f"cannot lock the new log {self.path}")
+            _write_all(fd, (json.dumps({"log": _HEADER, "version": 1, "pid": os.getpid()}) + "\n").encode())
+            portable.fsync_dir(wal)  # the segment's name; its lines are covered by the append's fsync
+        except BaseException:
+            os.close(fd)
+            with contextlib.suppress(OSError):
+                os.unlink(self.path)
+            raise
+        self.fd = fd
+
+    def append(self, records: list[bytes], files: list[str]) -> None:
+        """The records on disk (one write, one fsync); OSError leaves the segment ``broken``."""
+        data = b"".join(records)
+        try:
+            _write_all(self.fd, data)
+            os.fsync(self.fd)
+        except OSError:
+            self.broken = True
+            raise
+        self.size += len(data)
+        self.files.extend(files)
+
+    def settle(self) -> bool:
+        """Fsync every file the segment names, then their folder; remove the segment once they are durable.
+        False (the segment left for ``recover``, closed) when a file or the folder could not be fsync'ed."""
+        ok = True
+        try:
+            ok = _fsync_files(self.files)
+            if ok:
+                portable.fsync_dir(self.folder)
+        except OSError:
+            ok = False
+        _remove(self.path, self.fd, remove=ok)
+        self.fd = -1
+        if ok:  # nothing pending: the snapshot folder holds only snapshots again (another process's log stays)
+            with contextlib.suppress(OSError):
+                os.rmdir(os.path.dirname(self.path))
+        return ok
+
+
+class Log:
+    """A process's segments, one per folder (the group commit's writer thread is their only user)."""
+
+    def __init__(self) -> None:
+        self.segments: dict[str, Segment] = {}
+        self.done: list[Segment] = []  # broken or full: no more appends, settled with the rest
+
+    def append(self, folder: str, records: list[bytes], files: list[str]) -> None:
+        seg = self.segments.get(folder)
+        if seg is not None and (seg.broken or seg.size >= MAX_BYTES):
+            del self.segments[folder]
+            if seg.broken:
+                self.done.append(seg)
+            else:
+                seg.settle()  # rare (a segment of about 12,000 snapshots); its files are old by now
+            seg = None
+        if seg is None:
+            seg = self.segments[folder] = Segment(folder)
+        seg.append(records, files)
+
+    def pending(self) -> bool:
+        return bool(self.segments or self.done)
+
+    def settle(self) -> None:
+        """Every segment settled (or, when that fails, left for ``recover``)."""
+        segs, self.segments, self.done = [*self.done, *self.segments.values()], {}, []
+        for seg in segs:
+            seg.settle()
+
+
+def _fsync_files(files: list[str]) -> bool:
+    """Each file fsync'ed, ``FSYNCS_AT_ONCE`` in flight; one at a time where no thread may start any more
+    (the exit handler: the interpreter is shutting down)."""
+    if len(files) > 1:
+        try:
+            with ThreadPoolExecutor(min(FSYNCS_AT_ONCE, len(files)), thread_name_prefix="deployer-settle") as pool:
+                return all(pool.map(_fsync_file, files))
+        except RuntimeError:
+            pass
+    return all(_fsync_file(f) for f in files)
+
+
+def _fsync_file(path: str) -> bool:
+    """A file made durable (opened for writing: Windows' FlushFileBuffers needs it); one that is gone
+    (its owner removed it) needs nothing."""
+    try:
+        fd = os.open(path, os.O_WRONLY | O_BINARY | O_CLOEXEC | O_NOFOLLOW)
+    except FileNotFoundError:
+        return True
+    except OSError:
+        return False
+    try:
+        os.fsync(fd)
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
+def _remove(path: str, fd: int, *, remove: bool) -> None:
+    """Close a segment (its lock goes with it), removing it first where the system allows removing an
+    open file (POSIX: so nobody can take it for a dead process's in between), after it elsewhere."""
+    if remove and not portable.WINDOWS:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+    os.close(fd)
+    if remove and portable.WINDOWS:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+
+
+def recover(folder: str) -> list[str]:
+    """Settle every segment in ``folder``'s log that no living process holds: the files restored from it
+    (missing, or cut by a crash). Segments it cannot take or read are left for the next call (OSError only
+    when a file cannot be restored: the segment stays)."""
+    wal = os.path.join(folder, FOLDER)
+    try:
+        names = sorted(n for n in os.listdir(wal) if n.endswith(".jsonl"))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    restored: list[str] = []
+    for name in names:
+        path = os.path.join(wal, name)
+        try:
+            fd = os.open(path, os.O_RDWR | O_BINARY | O_CLOEXEC | O_NOFOLLOW)
+        except OSError:
+            continue  # settled meanwhile by its owner or by another recover
+        try:
+            if not oslock.backend().try_lock(fd):
+                os.close(fd)
+                continue  # its process is alive
+            files = _replay(folder, _read_all(fd), restored)
+        except BaseException:
+            os.close(fd)
+            raise
+        for f in files:
+            if not _fsync_file(f):
+                os.close(fd)
+                raise OSError(errno.EIO, f"cannot make {f} durable")
+        portable.fsync_dir(folder)
+        _remove(path, fd, remove=True)
+    with contextlib.suppress(OSError):
+        os.rmdir(wal)  # empty now, unless a living process logs there
+    return restored
+
+
+def _replay(folder: str, data: bytes, restored: list[str]) -> list[str]:
+    """Each whole, intact record of a segment's text: its file made what the record says. The files named."""
+    files: list[str] = []
+    for line in data.split(b"\n"):
+        try:
+            rec = json.loads(line)
+            path, digest, text = rec["path"], rec["sha256"], rec["text"]
+        except (ValueError, KeyError, TypeError):
+            continue  # the header, or a line the crash cut (never acknowledged)
+        if not (isinstance(path, str) and isinstance(text, str) and _NAME.match(os.path.basename(path))):
+            continue
+        # the file of this folder the record names (however the folder was reached), never one elsewhere
+        path = os.path.join(folder, os.path.basename(path))
+        body = text.encode()
+        if hashlib.sha256(body).hexdigest() != digest:
+            continue
+        done = _restore(path, body, digest)
+        if done is None:
+            continue  # a link or folder planted where the snapshot was: never written through
+        if done:
+            restored.append(path)
+        files.append(path)
+    return files
+
+
+def _restore(path: str, body: bytes, digest: str) -> bool | None:
+    """The file holds ``body`` afterwards (durably once fsync'ed); True when it had to be written, None when
+    something other than a regular file is there."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        st = None
+    if st is not None:
+        if not stat.S_ISREG(st.st_mode):
+            return None
+        try:
+            with open(path, "rb") as f:
+                if hashlib.sha256(f.read()).hexdigest() == digest:
+                    return False
+        except OSError:
+            pass
+    tmp = f"{path}.{secrets.token_hex(4)}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | O_BINARY | O_CLOEXEC | O_NOFOLLOW, 0o644)
+    try:
+        _write_all(fd, body)
+        os.fsync(fd)
+    except BaseException:
+        os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    os.close(fd)
+    portable.replace(tmp, path)
+    return True
+
+
+def _read_all(fd: int) -> bytes:
+    chunks = []
+    while chunk := os.read(fd, 1 << 20):
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
