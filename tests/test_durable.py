@@ -74,6 +74,21 @@ def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_ar
     assert not (tmp_path / ".wal").exists()  # settled: no log, and no empty folder beside the snapshots
 
 
+def test_a_full_log_is_settled_beside_the_next_batches(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A long fleet's log does not grow without bound: a full segment is settled (its files fsync'ed, then it is
+    removed) while the next batches go to a new one."""
+    monkeypatch.setattr(wal, "MAX_BYTES", 1)
+    log = wal.Log()
+    batches = [[_Pending(_file(tmp_path, f"dev{b}-{i}")) for i in range(3)] for b in range(4)]
+    for batch in batches:
+        commit(batch, log)
+    assert len(log.settling) == 3 and len(log.segments) == 1
+    log.settle()
+    assert not log.pending() and not (tmp_path / ".wal").exists()
+    assert [p.outcome() for b in batches for p in b] == [str(tmp_path / f"dev{b}-{i}.yaml")
+                                                          for b in range(4) for i in range(3)]
+
+
 def _inos(folder: Path) -> set[int]:
     return {p.stat().st_ino for p in folder.iterdir()}
 

@@ -138,10 +138,10 @@ def _steps(work: str, *, fast: bool, kept: bool) -> int:
         step("3. Plan against the device", "With --device the plan reads what the device holds and shows only "
                                           "what changes (current -> desired).")
         codes.append(run(["plan", line3, "--device", url]))
-        step("4. Apply", "A snapshot of the current values is saved (and fsync'ed) before the first write; "
+        step("4. Apply", "A snapshot of the current values is saved (and made durable) before the first write; "
                          "then the writes, a read-back of every parameter and the report.")
         codes.append(run(["apply", line3, "--yes", "--state-dir", state]))
-        snapshots = sorted(os.listdir(os.path.join(state, "snapshots")))
+        snapshots = sorted(n for n in os.listdir(os.path.join(state, "snapshots")) if n.endswith(".yaml"))
         first_snapshot = os.path.join(state, "snapshots", snapshots[0]) if snapshots else None
         step("5. Apply again", "Diff-aware: the device already holds every value, so nothing is written.")
         codes.append(run(["apply", line3, "--yes", "--state-dir", state]))

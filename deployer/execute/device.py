@@ -1,6 +1,6 @@
 """The executor: the only code that talks to devices.
 
-connect -> identity check -> read current values -> snapshot (fsync) -> diff-aware plan ->
+connect -> identity check -> read current values -> snapshot (durable) -> diff-aware plan ->
 write requests in order (retries with backoff, partial-failure recovery) -> read back ->
 commit actions -> DeviceResult. Everything it sends is recorded for the report.
 """

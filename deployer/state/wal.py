@@ -26,6 +26,7 @@ import os
 import re
 import secrets
 import stat
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -119,7 +120,8 @@ class Log:
 
     def __init__(self) -> None:
         self.segments: dict[str, Segment] = {}
-        self.done: list[Segment] = []  # broken or full: no more appends, settled with the rest
+        self.done: list[Segment] = []  # broken: no more appends, settled with the rest
+        self.settling: list[threading.Thread] = []  # full segments settled beside the fleet
 
     def append(self, folder: str, records: list[bytes], files: list[str]) -> None:
         seg = self.segments.get(folder)
@@ -127,21 +129,29 @@ class Log:
             del self.segments[folder]
             if seg.broken:
                 self.done.append(seg)
-            else:
-                seg.settle()  # rare (a segment of about 12,000 snapshots); its files are old by now
+            else:  # a long fleet (about 12,000 snapshots a segment): the next batch does not wait for it
+                t = threading.Thread(target=seg.settle, name="deployer-settle", daemon=True)
+                try:
+                    t.start()
+                    self.settling.append(t)
+                except RuntimeError:  # the interpreter is shutting down: no new thread
+                    seg.settle()
             seg = None
         if seg is None:
             seg = self.segments[folder] = Segment(folder)
         seg.append(records, files)
 
     def pending(self) -> bool:
-        return bool(self.segments or self.done)
+        return bool(self.segments or self.done or self.settling)
 
     def settle(self) -> None:
         """Every segment settled (or, when that fails, left for ``recover``)."""
         segs, self.segments, self.done = [*self.done, *self.segments.values()], {}, []
         for seg in segs:
             seg.settle()
+        threads, self.settling = self.settling, []
+        for t in threads:
+            t.join()
 
 
 def _fsync_files(files: list[str]) -> bool:
