@@ -412,7 +412,9 @@ def render_page(name: str) -> str:
 SNAPSHOT_INTRO = """\
 Before its first write to a device, `apply` saves what the device held as a **snapshot** under
 `STATE/snapshots/NAME-YYYYMMDDTHHMMSSZ.yaml` (`STATE` is `--state-dir`, default `.deployer`),
-fsynced, file and directory. Its absolute path is in the report (`snapshot`) and the journal.
+durable before that write: its text in a write-ahead log, the file fsync'ed when the run ends, and restored
+from the log after a crash ([applying](../applying.md#snapshots-are-durable-before-the-first-write)).
+Its absolute path is in the report (`snapshot`) and the journal.
 
 A snapshot **is a recipe** ([recipe reference](recipe.md)), checked by the same schema, so
 `validate`, `plan`, `diff` and `apply` take it like any recipe; `deployer rollback SNAPSHOT`
