@@ -21,8 +21,10 @@ devices; deployer (default and one process) and the bare client alternate, ``rep
 turn the first of a round (a run measured right after another one's moved by up to a fifth), and the
 best of each is compared (the machine is shared: a ratio from one run side by side is what is worth
 anything). ``cpu_ratio`` is deployer's CPU over the bare client's for the same devices. The system CPU of
-every run is listed too: this machine runs at two speeds, one with about twice the other's system CPU per
-device (benchmarks/RESULTS.md), and a run's ratio says mostly which speed it had.
+every run is listed too: the kernel's work on deployer's files (locks, snapshots and their log, journal,
+report) is where a regression of the files shows first. Every run must write every device: a run that found
+the values in place (another ``Bench`` wrote the same recipe just before) would measure no snapshot, no
+journal and no write, and fails the benchmark (RESULTS.md, run I: such runs were once taken for a fast machine).
 
     python -m benchmarks.bench_fleetscale [--quick] [--sizes 1000,4000] [--repeats 2] [--no-side-by-side]
                                           [--before OLD-CHECKOUT]
@@ -126,6 +128,8 @@ class Bench:
             doc = json.load(f)
         summary = doc["summary"]
         assert m["code"] == 0 and summary["ok"] == len(urls), (m, summary, err[-2000:])
+        # each device written: a run that found its values in place took no snapshot and sent no write
+        assert summary["write_requests"] >= len(urls), ("a run that wrote nothing", summary)
         self.requests = [[r["function"], r["address"], r["count"]] for r in doc["devices"][0]["requests"]]
         size = os.path.getsize(path)
         del doc
@@ -272,8 +276,7 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                             "one_process_cpu_ms_per_device": round(alone["cpu"] * 1000 / n, 2),
                             "bare_cpu_ms_per_device": round(fastest["cpu"] * 1000 / n, 2),
                             "cpu_ratio": round(min(m["cpu"] for m in ours) / min(m["cpu"] for m in bare), 2),
-                            # each run's, in the order of its fleet seconds: the machine runs at two speeds (one
-                            # about twice the other's system CPU; benchmarks/RESULTS.md), and a ratio says which
+                            # each run's, in the order of its fleet seconds: the kernel's work on the files
                             "deployer_system_cpu_ms_per_device": [round(m["sys"] * 1000 / n, 2) for m in ours],
                             "bare_system_cpu_ms_per_device": [round(m["sys"] * 1000 / n, 2) for m in bare]}
         with farm(max(sizes), 20, cost=out.setdefault("farm_scale", {})) as urls:
