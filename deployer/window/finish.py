@@ -9,6 +9,7 @@ changed ones are left as found, and the device ends ``failed`` naming each of th
 from __future__ import annotations
 
 import asyncio
+import os
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import replace
 
@@ -21,7 +22,7 @@ from ..planning.planner import plan_reads
 from ..profile import Profile, profile_ref
 from ..recipe.loader import load_recipe
 from ..report import DeviceResult, ParameterResult, RequestRecord, show_registers
-from ..state import journal, learned, lock
+from ..state import journal, learned, lock, snapshot
 from ..transport import clients as tp
 from .held import Written, record
 
@@ -118,6 +119,9 @@ async def _roll_back(w: Written, why: str, options: ApplyOptions) -> None:
     res = w.result
     assert res.snapshot is not None
     try:
+        # a process that died before fsync'ing it (an agent killed in the window, then a power loss) left its text
+        # in the write-ahead log: restored first
+        snapshot.recover(os.path.dirname(os.path.dirname(res.snapshot)))
         snap = load_recipe(res.snapshot)
     except (InputError, OSError) as e:
         res.status, res.error = "failed", f"{why}; the snapshot could not be loaded to roll back: {e}"
