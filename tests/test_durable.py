@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from deployer.state import durable, wal
-from deployer.state.durable import Line, NewFile, _close, _Pending, commit
+from deployer.state.durable import Line, NewFile, _Pending, commit
 
 
 def _file(folder: Path, stem: str, journal: Path | None = None, line: dict[str, Any] | None = None) -> NewFile:
@@ -61,8 +61,8 @@ def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_ar
     assert [x.get("snapshot") for x in lines[:3]] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)]
     (segment,) = (tmp_path / ".wal").iterdir()
     logged = [json.loads(x) for x in segment.read_text().splitlines()[1:]]
-    assert [(x["path"], x["text"]) for x in logged] == [(str(tmp_path / f"dev{i}.yaml"), f"# I am {tmp_path}/dev{i}.yaml\n")
-                                                        for i in range(3)]
+    assert [(x["path"], x["text"]) for x in logged] == [
+        (str(tmp_path / f"dev{i}.yaml"), f"# I am {tmp_path}/dev{i}.yaml\n") for i in range(3)]
     assert [x["sha256"] for x in logged] == [x["snapshot_sha256"] for x in lines[:3]]
 
     synced.clear()
@@ -110,7 +110,6 @@ def test_a_failure_is_that_operations_own_and_its_line_is_not_written(tmp_path: 
     good = _Pending(_file(tmp_path, "good", journal, {"name": "good"}))
     bad = _Pending(_file(tmp_path / "missing", "bad", journal, {"name": "bad"}))
     commit([good, bad])
-    _close(good)
     assert good.outcome() == str(tmp_path / "good.yaml")
     with pytest.raises(FileNotFoundError):
         bad.outcome()
@@ -204,7 +203,7 @@ def test_a_file_that_cannot_be_fsynced_at_the_settle_leaves_its_log_for_recovery
 
     monkeypatch.setattr(os, "fsync", fsync)
     log.settle()
-    (segment,) = (tmp_path / ".wal").iterdir()  # nothing lost: the log stays, unlocked, for ``wal.recover``
+    assert len(list((tmp_path / ".wal").iterdir())) == 1  # nothing lost: the log stays, unlocked, for recover
     monkeypatch.setattr(os, "fsync", real)
     assert wal.recover(str(tmp_path)) == []  # the files were intact: fsync'ed now, nothing rewritten
     assert not (tmp_path / ".wal").exists()

@@ -70,7 +70,6 @@ class _Pending:
     op: NewFile | Line | Settle
     path: str | None = None  # a NewFile's final path
     digest: str | None = None  # the SHA-256 of a NewFile's bytes (the journal line names it: edits show)
-    fd: int = -1
     data: bytes | None = None  # its journal line as written, encoded by the caller (see ``submit``)
     record: bytes | None = None  # a NewFile's write-ahead log record (``wal.record``), encoded with the file
     error: BaseException | None = None
@@ -107,11 +106,7 @@ class GroupCommit:
         if isinstance(op, NewFile):
             _create(p)
             if op.journal is not None and op.line is not None:
-                try:
-                    p.data = _line({**op.line, op.path_key: p.path, f"{op.path_key}_sha256": p.digest})
-                except BaseException:
-                    _close(p)
-                    raise
+                p.data = _line({**op.line, op.path_key: p.path, f"{op.path_key}_sha256": p.digest})
         elif isinstance(op, Line):
             p.data = _line(op.record)
         with self._cond:
@@ -146,7 +141,6 @@ class GroupCommit:
                 for p in batch:
                     if not p.finished:
                         p.error, p.finished = e, True
-                    _close(p)
             _wake(batch)
 
 
@@ -181,7 +175,7 @@ def _line(record: dict[str, Any]) -> bytes:
 def commit(batch: list[_Pending], log: wal.Log | None = None) -> None:
     """Make a batch durable: its files' text in their folders' write-ahead log (one write and one fsync for
     each folder), then the journal lines. Each operation ends ``finished`` with its ``error`` (None: durable);
-    every file is closed. ``log``: the writer's (None: one of its own, settled before returning).
+    ``log``: the writer's (None: one of its own, settled before returning).
 
     The files are not fsync'ed one by one here, and the whole file system never is (``syncfs``: that flushed
     whatever else was written there too, the lock records, the report stream, any other program's data, so a
@@ -191,10 +185,8 @@ def commit(batch: list[_Pending], log: wal.Log | None = None) -> None:
     log = wal.Log() if log is None else log
     files = [p for p in batch if isinstance(p.op, NewFile)]
     for p in files:
-        if p.fd < 0:
+        if p.path is None:
             _create_or_fail(p, failed)
-    for p in files:
-        _close(p)
     folders: dict[str, list[_Pending]] = {}
     for p in files:
         if id(p) not in failed and p.path is not None and p.record is not None:
@@ -230,8 +222,8 @@ def commit(batch: list[_Pending], log: wal.Log | None = None) -> None:
 
 
 def _create(p: _Pending) -> None:
-    """Create a NewFile (never over an existing one), write its text and encode its log record; the fd stays
-    open until the batch is committed."""
+    """Create a NewFile (never over an existing one), write its text, close it, and encode its log record (the
+    file is fsync'ed when the log is settled)."""
     op = p.op
     assert isinstance(op, NewFile)
     path, text = op.first
@@ -253,7 +245,8 @@ def _create(p: _Pending) -> None:
         with contextlib.suppress(OSError):
             os.unlink(path)  # a partial snapshot must not look like one
         raise
-    p.path, p.fd = path, fd
+    os.close(fd)
+    p.path = path
 
 
 def _create_or_fail(p: _Pending, failed: dict[int, BaseException]) -> None:
@@ -261,12 +254,6 @@ def _create_or_fail(p: _Pending, failed: dict[int, BaseException]) -> None:
         _create(p)
     except OSError as e:
         failed[id(p)] = e
-
-
-def _close(p: _Pending) -> None:
-    if p.fd >= 0:
-        os.close(p.fd)
-        p.fd = -1
 
 
 def _fsync_dir(folder: str) -> None:
@@ -502,7 +489,7 @@ def durable_now(op: NewFile | Line | Settle) -> str | None:
 
 def queue(op: NewFile | Line | Settle) -> asyncio.Future[str | None]:
     """Queue ``op`` now and hand back its wait, to be awaited later (a fleet device frees its slot first).
-    Cancelling the wait does not stop the operation: the writer finishes it (and closes its file)."""
+    Cancelling the wait does not stop the operation: the writer finishes it."""
     p = _Pending(op, waiter=asyncio.get_running_loop().create_future())
     _WRITER.submit(p)
     assert p.waiter is not None
