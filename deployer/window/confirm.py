@@ -14,7 +14,7 @@ from typing import Any
 from ..errors import NotCommitted, StateError, UsageError
 from ..execute.session import ApplyOptions
 from ..report import DeviceResult
-from ..state import holder, journal
+from ..state import durable, holder, journal
 from .held import pending_path
 from .held import record as _journal
 
@@ -29,6 +29,9 @@ async def await_confirmation(run: str, seconds: float, options: ApplyOptions, *,
     line is on disk; ``results``: the devices waiting (they say what the journal could not record). ``gone``: the
     wait ends (False) once it is set (every device waiting was rolled back: nothing is left to confirm).
     """
+    # a wait may last minutes: the run's snapshot files fsync'ed and their write-ahead log closed first (nothing
+    # of the run stays open for writing in the state folder while nobody writes there)
+    await durable.settled()
     path = journal.path_of(options.state_dir)
     until = journal.deadline(seconds)
     deadline = until["deadline_monotonic"]

@@ -19,7 +19,7 @@ from ..errors import DeviceGone, ExceptionResponse, Unreachable, UsageError
 from ..execute.session import ApplyOptions, Session
 from ..load.durations import format_duration
 from ..profile import HealthCheck, Profile
-from ..state import journal
+from ..state import durable, journal
 from ..transport import clients as tp
 from .finish import roll_back
 from .held import Written, needs_soak
@@ -64,6 +64,7 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
     if not todo:
         return []
     run = options.run_id
+    await durable.settled()  # as before a confirmation wait: the snapshots fsync'ed, their log closed
     start = time.monotonic()
     deadline = start + options.soak
     # a health watch inside the confirmation window (``until``) is part of that window: the journal says
