@@ -358,3 +358,34 @@ def on_signals(loop: object, signals: tuple[signal.Signals, ...],
 def interrupt_signals() -> tuple[signal.Signals, ...]:
     """SIGINT (Ctrl-C), and SIGTERM and SIGBREAK (Windows' Ctrl-Break) where they exist."""
     return tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGBREAK") if hasattr(signal, n))
+
+
+def write_all(fd: int, data: bytes) -> None:
+    """All of ``data`` (short writes resumed)."""
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def writev_all(fd: int, pieces: list[bytes]) -> None:
+    """All of ``pieces``, in order, in as few writev calls as the system allows (short writes resumed);
+    one write each where there is no writev (Windows)."""
+    if sys.platform == "win32" or not hasattr(os, "writev"):
+        for piece in pieces:
+            write_all(fd, piece)
+        return
+    batch = max(1, min(1024, os.sysconf("SC_IOV_MAX")))
+    i = 0
+    while i < len(pieces):
+        chunk = pieces[i:i + batch]
+        n = os.writev(fd, chunk)
+        total = sum(len(c) for c in chunk)
+        if n == total:
+            i += batch
+            continue
+        for k, c in enumerate(chunk):  # a short write: drop what was written, go on from there
+            if n < len(c):
+                pieces[i + k] = c[n:]
+                i += k
+                break
+            n -= len(c)

@@ -60,10 +60,10 @@ def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_ar
     assert [x["name"] for x in lines] == ["dev0", "dev1", "dev2", "dev9"]  # submission order
     assert [x.get("snapshot") for x in lines[:3]] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)]
     (segment,) = (tmp_path / ".wal").iterdir()
-    logged = [json.loads(x) for x in segment.read_text().splitlines()[1:]]
-    assert [(x["path"], x["text"]) for x in logged] == [
-        (str(tmp_path / f"dev{i}.yaml"), f"# I am {tmp_path}/dev{i}.yaml\n") for i in range(3)]
-    assert [x["sha256"] for x in logged] == [x["snapshot_sha256"] for x in lines[:3]]
+    logged = list(wal.records(segment.read_bytes()))
+    assert [(path, body) for path, _, body in logged] == [
+        (str(tmp_path / f"dev{i}.yaml"), f"# I am {tmp_path}/dev{i}.yaml\n".encode()) for i in range(3)]
+    assert [digest for _, digest, _ in logged] == [x["snapshot_sha256"] for x in lines[:3]]
 
     synced.clear()
     commit([_Pending(_file(tmp_path, "dev3", journal, {"name": "dev3"}))], log)

@@ -21,6 +21,7 @@ import pytest
 
 from deployer.profile import load_profile
 from deployer.report import read_report
+from deployer.state import wal
 from deployer.testing.simulator import Faults, Simulator, SimulatorThread
 from tests.helpers import Simulators, process_alive, process_children, reaped, wait_for
 
@@ -121,7 +122,7 @@ def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
     # them (state.wal), and a power loss now could cost any of them. Lose them all (one cut to nothing).
     # (Workers see the command gone and settle their own log first: nothing of theirs is left to lose.)
     logs = sorted((files / "state" / "snapshots" / ".wal").glob("*.jsonl"))
-    logged = [json.loads(x)["path"] for f in logs for x in f.read_text().splitlines()[1:]]
+    logged = [path for f in logs for path, _, _ in wal.records(f.read_bytes())]
     if workers == 0:
         assert logged
     for k, path in enumerate(logged):

@@ -89,21 +89,23 @@ def test_only_whole_records_restore_and_only_snapshot_files_of_the_logs_own_fold
     (log,) = (folder / wal.FOLDER).iterdir()
 
     def rec(path: str, text: str) -> bytes:
-        return wal.record(path, hashlib.sha256(text.encode()).hexdigest(), text)
+        body = text.encode()
+        return b"".join(wal.record(path, hashlib.sha256(body).hexdigest(), body))
 
     outside = tmp_path / "elsewhere.yaml"
     with open(log, "ab") as f:
         f.write(rec(str(outside), "recipe: planted\n"))  # another folder: at most restored into this one
         f.write(rec(str(folder / "notes.txt"), "not a snapshot\n"))  # never written: not a snapshot's name
         f.write(rec(str(folder / "c-20261127T120000Z.yaml"), "recipe: c\n").replace(b"recipe: c", b"recipe: X"))
-        f.write(rec(str(folder / "d-20261127T120000Z.yaml"), "recipe: d\n")[:40])  # cut by the crash
+        f.write(rec(str(folder / "d-20261127T120000Z.yaml"), "recipe: d\n")[:-3])  # cut by the crash
+        f.write(rec(str(folder / "e-20261127T120000Z.yaml"), "recipe: e\n"))  # after a cut: never acknowledged
     Path(paths[0]).unlink()
     os.symlink(tmp_path / "target", paths[0])  # a link planted where a snapshot was lost: not written through
 
     assert wal.recover(str(folder)) == [str(folder / "elsewhere.yaml")]
     assert not (tmp_path / "target").exists() and os.path.islink(paths[0])
     assert not outside.exists() and not (folder / "notes.txt").exists()
-    assert not (folder / "c-20261127T120000Z.yaml").exists() and not (folder / "d-20261127T120000Z.yaml").exists()
+    assert not any((folder / f"{x}-20261127T120000Z.yaml").exists() for x in "cde")
     assert Path(paths[1]).read_text() == "recipe: b\n"
 
 

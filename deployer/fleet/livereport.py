@@ -26,8 +26,8 @@ from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
+from ..portable import writev_all
 from ..report import STREAM_SCHEMA, device_json, parameter_view, report_parts
-from ..state.durable import writev_all
 
 if TYPE_CHECKING:
     from ..execute.job import Job

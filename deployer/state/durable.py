@@ -31,7 +31,7 @@ from typing import Any
 
 from .. import portable
 from ..errors import UsageError
-from ..portable import O_BINARY, O_CLOEXEC, O_NOFOLLOW
+from ..portable import O_BINARY, O_CLOEXEC, O_NOFOLLOW, write_all, writev_all
 from . import wal
 
 
@@ -71,7 +71,8 @@ class _Pending:
     path: str | None = None  # a NewFile's final path
     digest: str | None = None  # the SHA-256 of a NewFile's bytes (the journal line names it: edits show)
     data: bytes | None = None  # its journal line as written, encoded by the caller (see ``submit``)
-    record: bytes | None = None  # a NewFile's write-ahead log record (``wal.record``), encoded with the file
+    record: list[bytes] | None = None  # a NewFile's write-ahead log record (``wal.record``: pieces, its bytes
+    # among them), made with the file
     error: BaseException | None = None
     finished: bool = False
     # who waits: a future of an event loop (resolved there, a whole batch per wake-up), else a thread
@@ -193,7 +194,8 @@ def commit(batch: list[_Pending], log: wal.Log | None = None) -> None:
             folders.setdefault(os.path.dirname(p.path), []).append(p)
     for folder, ps in folders.items():
         try:
-            log.append(folder, [p.record for p in ps if p.record is not None], [p.path for p in ps if p.path])
+            pieces = [b for p in ps if p.record is not None for b in p.record]
+            log.append(folder, pieces, [p.path for p in ps if p.path])
         except OSError as e:
             failed.update((id(p), e) for p in ps)
     lines: dict[str, list[_Pending]] = {}
@@ -237,9 +239,8 @@ def _create(p: _Pending) -> None:
     try:
         data = text.encode()
         p.digest = op.digest = hashlib.sha256(data).hexdigest()
-        p.record = wal.record(path, p.digest, text)
-        while data:
-            data = data[os.write(fd, data):]
+        write_all(fd, data)
+        p.record = wal.record(path, p.digest, data)
     except OSError:
         os.close(fd)
         with contextlib.suppress(OSError):
@@ -378,9 +379,9 @@ def write_atomic(path: str, text: str | bytes | Iterable[bytes], *, replace: boo
             with contextlib.suppress(FileNotFoundError):
                 portable.fchmod(fd, stat.S_IMODE(os.stat(path, follow_symlinks=False).st_mode))
             if isinstance(text, str):
-                _write_all(fd, text.encode())
+                write_all(fd, text.encode())
             elif isinstance(text, bytes):
-                _write_all(fd, text)
+                write_all(fd, text)
             else:
                 _write_pieces(fd, text)
             os.fsync(fd)
@@ -398,12 +399,6 @@ def write_atomic(path: str, text: str | bytes | Iterable[bytes], *, replace: boo
                 os.unlink(tmp)
 
 
-def _write_all(fd: int, data: bytes) -> None:
-    view = memoryview(data)
-    while view:
-        view = view[os.write(fd, view):]
-
-
 def _write_pieces(fd: int, pieces: Iterable[bytes]) -> None:
     """Pieces as they come (an iterator may produce them as it goes), gathered into writes of about 1 MB."""
     batch: list[bytes] = []
@@ -416,30 +411,6 @@ def _write_pieces(fd: int, pieces: Iterable[bytes]) -> None:
             batch, size = [], 0
     if batch:
         writev_all(fd, batch)
-
-
-def writev_all(fd: int, pieces: list[bytes]) -> None:
-    """All of ``pieces``, in order, in as few writev calls as the system allows (short writes resumed);
-    one write each where there is no writev (Windows)."""
-    if sys.platform == "win32" or not hasattr(os, "writev"):
-        for piece in pieces:
-            _write_all(fd, piece)
-        return
-    batch = max(1, min(1024, os.sysconf("SC_IOV_MAX")))
-    i = 0
-    while i < len(pieces):
-        chunk = pieces[i:i + batch]
-        n = os.writev(fd, chunk)
-        total = sum(len(c) for c in chunk)
-        if n == total:
-            i += batch
-            continue
-        for k, c in enumerate(chunk):  # a short write: drop what was written, go on from there
-            if n < len(c):
-                pieces[i + k] = c[n:]
-                i += k
-                break
-            n -= len(c)
 
 
 _WRITER = GroupCommit()

@@ -9,6 +9,10 @@ written but not fsync'ed then. The segment is *settled* when its run ends (``dur
 writer has had nothing to do for ``IDLE`` seconds, and at exit: every file it names fsync'ed (a few at a
 time, so the file system commits them together), the folder fsync'ed, the segment removed.
 
+A segment is a header line, then one record per file: a JSON line with its path, SHA-256 and size, then the
+file's bytes as written, then a newline. The bytes are not escaped into the JSON: the log costs one small
+header per file beyond the file itself, and is written from the very buffers the file was written from.
+
 A segment is locked (``state.oslock``) while the process that writes it lives. A segment nobody holds was
 left by a process that died before settling it: ``recover`` (run before snapshots are read: at a run's
 start, by rollback) restores every file it names that is missing or differs from its record (a crash cut
@@ -28,10 +32,11 @@ import secrets
 import stat
 import threading
 import time
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 from .. import portable
-from ..portable import O_BINARY, O_CLOEXEC, O_NOFOLLOW
+from ..portable import O_BINARY, O_CLOEXEC, O_NOFOLLOW, write_all, writev_all
 from . import oslock
 
 FOLDER = ".wal"  # inside the folder of the files it logs (a snapshot folder: STATE/snapshots/.wal)
@@ -42,9 +47,32 @@ _HEADER = "deployer write-ahead log of new files"
 _NAME = re.compile(r"^[^./\\][^/\\]*\.yaml$")  # what a record may restore: a snapshot's file name, nothing else
 
 
-def record(path: str, digest: str, text: str) -> bytes:
-    """A segment's line for a new file: where it is, the SHA-256 of its bytes, its text."""
-    return (json.dumps({"path": path, "sha256": digest, "text": text}) + "\n").encode()
+def record(path: str, digest: str, body: bytes) -> list[bytes]:
+    """A segment's record of a new file, as pieces to write in order: where it is, the SHA-256 and size of its
+    bytes (a JSON line), the bytes, a newline."""
+    return [(json.dumps({"path": path, "sha256": digest, "size": len(body)}) + "\n").encode(), body, b"\n"]
+
+
+def records(data: bytes) -> Iterator[tuple[str, str, bytes]]:
+    """The whole records of a segment's text: (path, SHA-256 as recorded, bytes). The first record that is not
+    whole (a crash cut it: it was never acknowledged, and nothing was appended after it) ends them."""
+    pos = data.find(b"\n") + 1  # after the header line
+    while 0 < pos < len(data):
+        end = data.find(b"\n", pos)
+        if end < 0:
+            return
+        try:
+            head = json.loads(data[pos:end])
+            path, digest, size = head["path"], head["sha256"], head["size"]
+        except (ValueError, KeyError, TypeError):
+            return
+        if not (isinstance(path, str) and isinstance(digest, str) and isinstance(size, int) and size >= 0):
+            return
+        body = data[end + 1:end + 1 + size]
+        if len(body) != size or data[end + 1 + size:end + 2 + size] != b"\n":
+            return
+        yield path, digest, body
+        pos = end + 2 + size
 
 
 class Segment:
@@ -76,7 +104,7 @@ class Segment:
         try:
             if not oslock.backend().try_lock(fd):
                 raise OSError(errno.EAGAIN, f"cannot lock the new log {self.path}")
-            _write_all(fd, (json.dumps({"log": _HEADER, "version": 1, "pid": os.getpid()}) + "\n").encode())
+            write_all(fd, (json.dumps({"log": _HEADER, "version": 1, "pid": os.getpid()}) + "\n").encode())
             portable.fsync_dir(wal)  # the segment's name; its lines are covered by the append's fsync
         except BaseException:
             os.close(fd)
@@ -85,16 +113,16 @@ class Segment:
             raise
         self.fd = fd
 
-    def append(self, records: list[bytes], files: list[str]) -> None:
-        """The records on disk (one write, one fsync); OSError leaves the segment ``broken``."""
-        data = b"".join(records)
+    def append(self, pieces: list[bytes], files: list[str]) -> None:
+        """The records (``record``'s pieces, in order) on disk, in as few writes as the system allows and one
+        fsync; OSError leaves the segment ``broken``."""
         try:
-            _write_all(self.fd, data)
+            writev_all(self.fd, pieces)
             os.fsync(self.fd)
         except OSError:
             self.broken = True
             raise
-        self.size += len(data)
+        self.size += sum(len(p) for p in pieces)
         self.files.extend(files)
 
     def settle(self) -> bool:
@@ -123,7 +151,7 @@ class Log:
         self.done: list[Segment] = []  # broken: no more appends, settled with the rest
         self.settling: list[threading.Thread] = []  # full segments settled beside the fleet
 
-    def append(self, folder: str, records: list[bytes], files: list[str]) -> None:
+    def append(self, folder: str, pieces: list[bytes], files: list[str]) -> None:
         seg = self.segments.get(folder)
         if seg is not None and (seg.broken or seg.size >= MAX_BYTES):
             del self.segments[folder]
@@ -139,7 +167,7 @@ class Log:
             seg = None
         if seg is None:
             seg = self.segments[folder] = Segment(folder)
-        seg.append(records, files)
+        seg.append(pieces, files)
 
     def pending(self) -> bool:
         return bool(self.segments or self.done or self.settling)
@@ -234,19 +262,11 @@ def recover(folder: str) -> list[str]:
 def _replay(folder: str, data: bytes, restored: list[str]) -> list[str]:
     """Each whole, intact record of a segment's text: its file made what the record says. The files named."""
     files: list[str] = []
-    for line in data.split(b"\n"):
-        try:
-            rec = json.loads(line)
-            path, digest, text = rec["path"], rec["sha256"], rec["text"]
-        except (ValueError, KeyError, TypeError):
-            continue  # the header, or a line the crash cut (never acknowledged)
-        if not (isinstance(path, str) and isinstance(text, str) and _NAME.match(os.path.basename(path))):
+    for path, digest, body in records(data):
+        if not _NAME.match(os.path.basename(path)) or hashlib.sha256(body).hexdigest() != digest:
             continue
         # the file of this folder the record names (however the folder was reached), never one elsewhere
         path = os.path.join(folder, os.path.basename(path))
-        body = text.encode()
-        if hashlib.sha256(body).hexdigest() != digest:
-            continue
         done = _restore(path, body, digest)
         if done is None:
             continue  # a link or folder planted where the snapshot was: never written through
@@ -275,7 +295,7 @@ def _restore(path: str, body: bytes, digest: str) -> bool | None:
     tmp = f"{path}.{secrets.token_hex(4)}.tmp"
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | O_BINARY | O_CLOEXEC | O_NOFOLLOW, 0o644)
     try:
-        _write_all(fd, body)
+        write_all(fd, body)
         os.fsync(fd)
     except BaseException:
         os.close(fd)
@@ -292,9 +312,3 @@ def _read_all(fd: int) -> bytes:
     while chunk := os.read(fd, 1 << 20):
         chunks.append(chunk)
     return b"".join(chunks)
-
-
-def _write_all(fd: int, data: bytes) -> None:
-    view = memoryview(data)
-    while view:
-        view = view[os.write(fd, view):]
