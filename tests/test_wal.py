@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from deployer.state import durable, snapshot, wal
+from deployer.state import durable, oslock, snapshot, wal
 from deployer.state.durable import NewFile
 from tests.helpers import wait_for
 
@@ -130,3 +130,29 @@ def test_a_process_that_ends_settles_its_log_and_one_that_lives_on_settles_it_wh
     wait_for(lambda: not (tmp_path / wal.FOLDER).exists(), "the idle writer to settle its log",
              timeout=wal.IDLE + 10)
     assert Path(path).read_text() == "recipe: dev\n"
+
+
+def test_a_new_segment_taken_and_removed_by_a_recover_before_its_lock_is_made_again(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Between a segment's create and its lock, another process's recover can take it for a dead process's (it
+    has no records yet) and remove it: the writer's lock would then hold a file nobody finds after a crash. The
+    writer sees its path gone and makes another one."""
+    real = oslock.backend()
+    taken: list[str] = []
+
+    class Recovering:
+        def try_lock(self, fd: int, *, shared: bool = False) -> bool:
+            if not taken:  # the recover got there first: removed, then let go
+                (new,) = (tmp_path / wal.FOLDER).iterdir()
+                taken.append(str(new))
+                new.unlink()
+            return bool(real.try_lock(fd, shared=shared))
+
+    monkeypatch.setattr(oslock, "backend", lambda: Recovering())
+    seg = wal.Segment(str(tmp_path))
+    assert taken and seg.path != taken[0] and os.path.exists(seg.path)
+    body = b"recipe: dev\n"
+    seg.append(wal.record(str(tmp_path / "dev-20261127T120000Z.yaml"), hashlib.sha256(body).hexdigest(), body), [])
+    assert [p for p, _, _ in wal.records(Path(seg.path).read_bytes())] == [str(tmp_path / "dev-20261127T120000Z.yaml")]
+    seg.settle()
+    assert not (tmp_path / wal.FOLDER).exists()

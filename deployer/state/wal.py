@@ -92,17 +92,18 @@ class Segment:
             self.path = os.path.join(wal, f"{stamp}-{os.getpid()}-{secrets.token_hex(4)}.jsonl")
             try:
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL | O_BINARY | O_CLOEXEC | O_NOFOLLOW, 0o644)
-                break
             except FileExistsError:
                 continue
             except FileNotFoundError:  # another process's settle removed the empty folder meanwhile
                 if attempt == 9:
                     raise
+                continue
+            if self._mine(fd):
+                break
+            os.close(fd)  # another process's recover took it first, as a dead one's: it removes it
         else:
-            raise OSError(errno.EEXIST, f"no new log name in {wal}")
+            raise OSError(errno.EEXIST, f"no new log in {wal}")
         try:
-            if not oslock.backend().try_lock(fd):
-                raise OSError(errno.EAGAIN, f"cannot lock the new log {self.path}")
             write_all(fd, (json.dumps({"log": _HEADER, "version": 1, "pid": os.getpid()}) + "\n").encode())
             portable.fsync_dir(wal)  # the segment's name; its lines are covered by the append's fsync
         except BaseException:
@@ -111,6 +112,17 @@ class Segment:
                 os.unlink(self.path)
             raise
         self.fd = fd
+
+    def _mine(self, fd: int) -> bool:
+        """Locked, and still at its path: between the create and the lock, a recover in another process can take
+        a new segment for a dead process's (it has no records), remove it and let it go; a lock taken after that
+        holds a file nobody would find after a crash."""
+        try:
+            if not oslock.backend().try_lock(fd):
+                return False
+            return portable.same_file(os.stat(self.path, follow_symlinks=False), os.fstat(fd))
+        except OSError:
+            return False
 
     def append(self, pieces: list[bytes], files: list[str]) -> None:
         """The records (``record``'s pieces, in order) on disk, in as few writes as the system allows and one
