@@ -23,8 +23,7 @@ from ..fleet.livereport import NOT_FINISHED
 from ..recipe.loader import Recipe, load_recipe
 from ..report import read_report
 from ..state import journal
-from ..state.durable import disk_error
-from ..state.snapshot import recover
+from ..state.snapshot import recovered, state_of
 from ..transport.urls import DeviceURL, describe, parse_url
 
 
@@ -76,26 +75,6 @@ def _not_a_snapshot_file(path: str) -> str | None:
     return None
 
 
-def _state_of(snapshot: str) -> str:
-    """The state folder a snapshot was written into (STATE/snapshots/NAME.yaml)."""
-    return os.path.dirname(os.path.dirname(os.path.abspath(snapshot)))
-
-
-def recovered(state: str) -> list[str]:
-    """The snapshots of ``state`` that a process which died before fsync'ing them left in the write-ahead log,
-    restored before any is read (``snapshot.recover``); a notice naming them, if any. UsageError when one cannot
-    be restored (nothing was sent)."""
-    try:
-        restored = recover(state)
-    except OSError as e:
-        raise UsageError(f"cannot restore the snapshots in {state} from their write-ahead log: "
-                         f"{disk_error(e)}; nothing was sent") from None
-    if not restored:
-        return []
-    return [f"note: restored {len(restored)} snapshot(s) in {state} from the write-ahead log a process left when "
-            f"it ended before fsync'ing them: {', '.join(restored)}"]
-
-
 def snapshot_job(path: str, *, device: str | None = None, unit: int | None = None, timeout: float | None = None,
                  retries: int | None = None, force: bool = False,
                  accept_edited: bool = False) -> tuple[Job, str | None, list[str]]:
@@ -103,7 +82,7 @@ def snapshot_job(path: str, *, device: str | None = None, unit: int | None = Non
     ``unit`` is not the device the snapshot was taken from (else None); notices for the user.
 
     The snapshot's SHA-256 is checked against the journal of the state folder it lies in (``check_digest``)."""
-    state = _state_of(path)
+    state = state_of(path)
     notices = recovered(state)
     note = check_digest(path, journal.snapshot_digest(state, os.path.abspath(path)),
                         f"the journal {journal.path_of(state)}", accept_edited=accept_edited)
@@ -207,8 +186,8 @@ def read_run(path: str) -> Restores:
             if digest is None and rec is not None and rec.get("snapshot") == snap:
                 digest, where = rec.get("snapshot_sha256"), journal.path_of(str(state))
             if digest is None:
-                digest = journal.snapshot_digest(_state_of(snap), snap)
-                where = journal.path_of(_state_of(snap))
+                digest = journal.snapshot_digest(state_of(snap), snap)
+                where = journal.path_of(state_of(snap))
             out.found.append(RunSnapshot(name, url, unit, snap, "report", digest, where, _wrote(dev),
                                          dev.get("commit") in ("held", "not sent")))
             continue
@@ -284,7 +263,7 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
                          "nothing to roll back")
     jobs: list[Job] = []
     errors: list[Diagnostic] = []
-    for state in dict.fromkeys(_state_of(f.snapshot) for f in found if f.snapshot is not None):
+    for state in dict.fromkeys(state_of(f.snapshot) for f in found if f.snapshot is not None):
         notices.extend(recovered(state))
     for f in found:
         assert f.snapshot is not None

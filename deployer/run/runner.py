@@ -152,11 +152,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         applied = opts.applied  # the journal and the snapshots name it so that it is found from anywhere
         if applied is None and label is not None:
             applied = os.path.abspath(label) if os.path.exists(label) else label
-        try:  # a process that died before fsync'ing its snapshots left them in their log: restored first
-            snapshot.recover(state_dir)
-        except OSError as e:
-            raise UsageError(f"cannot restore the snapshots in {state_dir} from their write-ahead log: "
-                             f"{disk_error(e)}; nothing was sent") from None
+        snapshot.recovered(state_dir)  # a process that died before fsync'ing its snapshots left them in their log
         if opts.expected is None:  # what devices taught changes what is sent: a damaged file is refused now
             from ..state import learned
 

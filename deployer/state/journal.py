@@ -95,6 +95,12 @@ def device_started(run: str, *, name: str, url: str, unit: int, plan_digest: str
     return rec
 
 
+def snapshots_restored(restored: Sequence[str], log: str) -> dict[str, Any]:
+    """The line saying which snapshots were restored from the write-ahead log folder ``log`` (``state.wal``)."""
+    return {"event": "snapshots-restored", "time": _now(), "snapshots": list(restored),
+            "why": f"a process ended before its snapshots were fsync'ed; restored from the write-ahead log in {log}"}
+
+
 def device_finished(run: str, res: DeviceResult) -> dict[str, Any]:
     """The ``device-finished`` record (status after the read-back)."""
     return {"event": "device-finished", "run": run, "time": _now(), **_device(res)}

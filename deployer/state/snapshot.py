@@ -16,6 +16,7 @@ import re
 import time
 from collections.abc import Mapping
 
+from ..errors import UsageError
 from ..portable import file_name
 from ..profile import Profile, profile_ref
 from ..recipe.loader import Recipe
@@ -23,11 +24,16 @@ from ..recipe.model import DeviceSpec, SnapshotInfo
 from ..recipe.text import recipe_head
 from ..recipe.text import values_text as recipe_values_text
 from . import journal, wal
-from .durable import NewFile, append_lines, durable_now
+from .durable import NewFile, append_lines, disk_error, durable_now
 
 
 def snapshot_dir(state_dir: str) -> str:
     return os.path.join(os.path.abspath(state_dir), "snapshots")
+
+
+def state_of(snapshot: str) -> str:
+    """The state folder a snapshot was written into (STATE/snapshots/NAME.yaml)."""
+    return os.path.dirname(os.path.dirname(os.path.abspath(snapshot)))
 
 
 def recover(state_dir: str) -> list[str]:
@@ -38,11 +44,23 @@ def recover(state_dir: str) -> list[str]:
     folder = snapshot_dir(state_dir)
     restored = wal.recover(folder)
     if restored:
-        append_lines(journal.path_of(os.path.abspath(state_dir)), [{
-            "event": "snapshots-restored", "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            "snapshots": restored, "why": "a process ended before its snapshots were fsync'ed; restored from "
-                                          f"the write-ahead log in {os.path.join(folder, wal.FOLDER)}"}])
+        append_lines(journal.path_of(os.path.abspath(state_dir)),
+                     [journal.snapshots_restored(restored, os.path.join(folder, wal.FOLDER))])
     return restored
+
+
+def recovered(state_dir: str) -> list[str]:
+    """``recover`` before anything is sent: a notice naming what it restored, if anything; UsageError (nothing
+    was sent) when a snapshot cannot be restored."""
+    try:
+        restored = recover(state_dir)
+    except OSError as e:
+        raise UsageError(f"cannot restore the snapshots in {state_dir} from their write-ahead log: "
+                         f"{disk_error(e)}; nothing was sent") from None
+    if not restored:
+        return []
+    return [f"note: restored {len(restored)} snapshot(s) in {state_dir} from the write-ahead log a process left "
+            f"when it ended before fsync'ing them: {', '.join(restored)}"]
 
 
 def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],

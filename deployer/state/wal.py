@@ -273,10 +273,9 @@ def recover(folder: str) -> list[str]:
         except BaseException:
             os.close(fd)
             raise
-        for f in files:
-            if not _fsync_file(f):
-                os.close(fd)
-                raise OSError(errno.EIO, f"cannot make {f} durable")
+        if not _fsync_files(files):
+            os.close(fd)
+            raise OSError(errno.EIO, f"cannot make the snapshots of {path} durable")
         portable.fsync_dir(folder)
         _remove(path, fd, remove=True)
     with contextlib.suppress(OSError):

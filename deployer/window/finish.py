@@ -9,7 +9,6 @@ changed ones are left as found, and the device ends ``failed`` naming each of th
 from __future__ import annotations
 
 import asyncio
-import os
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import replace
 
@@ -121,7 +120,7 @@ async def _roll_back(w: Written, why: str, options: ApplyOptions) -> None:
     try:
         # a process that died before fsync'ing it (an agent killed in the window, then a power loss) left its text
         # in the write-ahead log: restored first
-        snapshot.recover(os.path.dirname(os.path.dirname(res.snapshot)))
+        snapshot.recover(snapshot.state_of(res.snapshot))
         snap = load_recipe(res.snapshot)
     except (InputError, OSError) as e:
         res.status, res.error = "failed", f"{why}; the snapshot could not be loaded to roll back: {e}"
