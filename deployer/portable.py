@@ -367,6 +367,27 @@ def write_all(fd: int, data: bytes) -> None:
         view = view[os.write(fd, view):]
 
 
+def pread(fd: int, size: int, offset: int) -> bytes:
+    """Up to ``size`` bytes at ``offset`` in one call where the system has one (Windows has no pread: a seek,
+    then a read)."""
+    if not WINDOWS:
+        return os.pread(fd, size, offset)
+    os.lseek(fd, offset, os.SEEK_SET)
+    return os.read(fd, size)
+
+
+def pwrite_all(fd: int, data: bytes, offset: int) -> None:
+    """All of ``data`` at ``offset`` (not for a file opened to append), in one call where the system allows."""
+    if WINDOWS:
+        os.lseek(fd, offset, os.SEEK_SET)
+        write_all(fd, data)
+        return
+    view = memoryview(data)
+    while view:
+        n = os.pwrite(fd, view, offset)
+        view, offset = view[n:], offset + n
+
+
 def writev_all(fd: int, pieces: list[bytes]) -> None:
     """All of ``pieces``, in order, in as few writev calls as the system allows (short writes resumed);
     one write each where there is no writev (Windows)."""

@@ -114,14 +114,15 @@ class DeviceLock:
         deployer removes it on release; ``try_lock`` opens the path again when its file went meanwhile.
         The record is overwritten with spaces, never truncated: a change of the file's size waits for the file
         system's journal, which a busy fleet commits every few milliseconds (15% of a worker's time went there).
+        Positioned reads and writes: a fleet takes two locks per device, and every system call of a worker is a
+        moment its other threads may take the GIL from it (benchmarks/RESULTS.md, run L).
         """
         if self.fd < 0:
             return
         backend = oslock.backend()
         if not self.shared and self.size:
             with contextlib.suppress(OSError):
-                os.lseek(self.fd, 0, os.SEEK_SET)
-                os.write(self.fd, b" " * self.size)
+                portable.pwrite_all(self.fd, b" " * self.size, 0)
         with contextlib.suppress(OSError):
             backend.unlock(self.fd)
         os.close(self.fd)
@@ -138,8 +139,7 @@ def _read_record(fd: int) -> dict[str, Any]:
 def _read(fd: int) -> tuple[dict[str, Any], int]:
     """The file's record ({} when blank or none) and its length in bytes."""
     try:
-        os.lseek(fd, 0, os.SEEK_SET)
-        data = os.read(fd, 65536)
+        data = portable.pread(fd, 65536, 0)
     except OSError:
         return {}, 0
     return holder.parse(data), len(data)
@@ -152,8 +152,7 @@ def _write_record(fd: int, record: dict[str, Any], size: int) -> int:
     The file's size never shrinks: a truncation waits for the file system's journal (and one to zero makes
     ext4 write the file out at its close: 0.3 ms a device)."""
     data = json.dumps(record).encode()
-    os.lseek(fd, 0, os.SEEK_SET)
-    os.write(fd, data + b" " * (size - len(data)) if size > len(data) else data)
+    portable.pwrite_all(fd, data + b" " * (size - len(data)) if size > len(data) else data, 0)
     return max(size, len(data))
 
 
@@ -192,8 +191,9 @@ def _directory(d: str) -> None:
     _ready.add(d)
 
 
-def _open(path: str) -> int:
-    """The lock file, opened without following a link; refused unless it is a plain file of its own.
+def _open(path: str) -> tuple[int, os.stat_result]:
+    """The lock file, opened without following a link, and its status; refused unless it is a plain file of its
+    own.
 
     The folder is shared and the names predictable: a planted symlink or hard link to another file
     (a root run would truncate it) or a FIFO (the open would block) is never written. Windows has no
@@ -218,7 +218,7 @@ def _open(path: str) -> int:
     if portable.owner_is_me(st) and stat.S_IMODE(st.st_mode) != 0o666:
         with contextlib.suppress(OSError):
             portable.fchmod(fd, 0o666)  # other users' runs lock (and record in) it too, whatever our umask
-    return fd
+    return fd, st
 
 
 def try_lock(key: str, *, command: str = "", directory: str | None = None, shared: bool = False,
@@ -233,7 +233,7 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
     name = hashlib.sha256(key.encode()).hexdigest()[:24] + ".lock"
     path = os.path.join(d, name)
     while True:
-        fd = _open(path)
+        fd, opened = _open(path)
         try:
             got = oslock.backend().try_lock(fd, shared=shared)
         except OSError as e:
@@ -250,7 +250,7 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
                              f"agent (deployer apply --agent {a} ...), or stop the agent", busy=False) from None
             raise Locked(f"locked by {_holder_text(record)}") from None
         try:
-            same = portable.same_file(os.stat(path, follow_symlinks=False), os.fstat(fd))
+            same = portable.same_file(os.stat(path, follow_symlinks=False), opened)  # the file's identity never changes
         except OSError:
             same = False
         if same:
