@@ -108,12 +108,22 @@ def test_a_taken_name_moves_on_and_the_text_names_the_final_path(tmp_path: Path)
 def test_a_failure_is_that_operations_own_and_its_line_is_not_written(tmp_path: Path) -> None:
     journal = tmp_path / "audit.jsonl"
     good = _Pending(_file(tmp_path, "good", journal, {"name": "good"}))
-    bad = _Pending(_file(tmp_path / "missing", "bad", journal, {"name": "bad"}))
+    (tmp_path / "a-file").write_text("not a folder")
+    bad = _Pending(_file(tmp_path / "a-file", "bad", journal, {"name": "bad"}))
     commit([good, bad])
     assert good.outcome() == str(tmp_path / "good.yaml")
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(NotADirectoryError):
         bad.outcome()
     assert [x["name"] for x in _lines(journal)] == ["good"]  # no line names a snapshot that is not there
+
+
+def test_a_missing_folder_is_made_by_the_files_create(tmp_path: Path) -> None:
+    """The first snapshot of a state folder makes its folder (a fleet does not ask for it once per device)."""
+    journal = tmp_path / "audit.jsonl"
+    new = _Pending(_file(tmp_path / "state" / "snapshots", "first", journal, {"name": "first"}))
+    commit([new])
+    assert new.outcome() == str(tmp_path / "state" / "snapshots" / "first.yaml")
+    assert (tmp_path / "state" / "snapshots" / "first.yaml").read_text() == f"# I am {new.path}\n"
 
 
 def test_many_devices_at_once_each_get_their_own_durable_file_and_line(tmp_path: Path) -> None:

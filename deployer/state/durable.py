@@ -23,7 +23,6 @@ import json
 import os
 import secrets
 import stat
-import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -224,8 +223,9 @@ def commit(batch: list[_Pending], log: wal.Log | None = None) -> None:
 
 
 def _create(p: _Pending) -> None:
-    """Create a NewFile (never over an existing one), write its text, close it, and encode its log record (the
-    file is fsync'ed when the log is settled)."""
+    """Create a NewFile (never over an existing one; its folder too where it is missing: asked of the system only
+    then, since a fleet creates one per device), write its text, close it, and encode its log record (the file is
+    fsync'ed when the log is settled)."""
     op = p.op
     assert isinstance(op, NewFile)
     path, text = op.first
@@ -233,6 +233,10 @@ def _create(p: _Pending) -> None:
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | O_BINARY | O_CLOEXEC, 0o644)
             break
+        except FileNotFoundError:  # its folder (the first snapshot of a state folder): made, then again
+            if os.path.isdir(os.path.dirname(path)):
+                raise
+            os.makedirs(os.path.dirname(path), exist_ok=True)
         except FileExistsError:
             path = next(op.paths)
             text = op.text(path)
@@ -296,10 +300,7 @@ def append_bytes(path: str, lines: list[bytes]) -> None:
 
 
 def _byte_at(fd: int, offset: int) -> bytes:
-    if sys.platform != "win32" and hasattr(os, "pread"):
-        return os.pread(fd, 1, offset)
-    os.lseek(fd, offset, os.SEEK_SET)  # Windows: no pread; an O_APPEND write goes to the end anyway
-    return os.read(fd, 1)
+    return portable.pread(fd, 1, offset)  # Windows: a seek; an O_APPEND write goes to the end anyway
 
 
 # ---- output files: one rule, one atomic write ----------------------------------------------------

@@ -69,9 +69,7 @@ def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
     """The snapshot of what the device held, ready for ``durable``: a new file (never overwriting
     another run's snapshot from the same second), rendered for its first candidate path.
     ``values_text``: ``snapshot_values(recipe.profile, values)``, when the caller has it already."""
-    directory = snapshot_dir(state_dir)
-    if not os.path.isdir(directory):  # one stat: makedirs' mkdir of a folder that exists fails, 2.5x the time
-        os.makedirs(directory, exist_ok=True)
+    directory = snapshot_dir(state_dir)  # made by the file's create where it is missing (``durable``)
     now = time.gmtime()
     stamp = time.strftime("%Y%m%dT%H%M%SZ", now)
     safe = file_name(name)  # valid on every system: no CON or AUX, no 300-character name
