@@ -149,6 +149,49 @@ def test_many_devices_at_once_each_get_their_own_durable_file_and_line(tmp_path:
         assert Path(snap).read_text() == f"# I am {snap}\n"
 
 
+def test_after_a_crowded_batch_the_writer_gathers_the_next_one_and_a_lone_operation_never_waits(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two operations committed together (a fleet): the next batch waits ``GATHER`` for the others, so operations
+    queued meanwhile share its fsyncs; a writer whose batches hold one operation each (one device) never waits."""
+    import threading
+    import time
+
+    monkeypatch.setattr(durable, "GATHER", 0.3)
+    batches: list[int] = []
+    real = durable.commit
+
+    def counted(batch: list[_Pending], log: wal.Log | None = None) -> None:
+        batches.append(len(batch))
+        real(batch, log)
+
+    monkeypatch.setattr(durable, "commit", counted)
+    journal = str(tmp_path / "audit.jsonl")
+
+    def line(i: int) -> _Pending:
+        return _Pending(Line(journal, {"n": i}), event=threading.Event())
+
+    lone = durable.GroupCommit()
+    t = time.monotonic()
+    for i in range(3):
+        p = lone.submit(line(i))
+        assert p.event is not None and p.event.wait(10) and p.outcome() is None
+    assert time.monotonic() - t < 0.3 and batches == [1, 1, 1]  # never gathered: each alone, at once
+
+    batches.clear()
+    fleet = durable.GroupCommit()
+    with fleet._cond:  # both queued before the writer takes any: one batch of two
+        first = [fleet.submit(line(i)) for i in (10, 11)]
+    assert all(p.event is not None and p.event.wait(10) for p in first)
+    t = time.monotonic()
+    late = [fleet.submit(line(20))]
+    time.sleep(0.05)  # within the gathering: joins the batch of the one before
+    late.append(fleet.submit(line(21)))
+    assert all(p.event is not None and p.event.wait(10) for p in late)
+    assert time.monotonic() - t >= 0.3
+    assert batches == [2, 2]
+    assert [json.loads(x)["n"] for x in Path(journal).read_text().splitlines()] == [0, 1, 2, 10, 11, 20, 21]
+
+
 def test_write_atomic_from_pieces_more_than_one_writev_takes(tmp_path: Path) -> None:
     from deployer.state.durable import write_atomic
 

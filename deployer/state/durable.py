@@ -6,7 +6,8 @@ pool (the snapshot with its file and folder fsync, then the journal's "device-st
 for 50-100 ms each. Here one thread takes everything pending at once and makes it durable with
 as few fsyncs as the guarantees allow: the new files' text appended to the write-ahead log of
 their folder (``state.wal``) with one write and one fsync, then the lines for each journal file
-appended with one write and one fsync. A caller's future completes only after the fsync covering
+appended with one write and one fsync. Once batches have company (a fleet), the writer waits
+``GATHER`` for more before each one, so they grow. A caller's future completes only after the fsync covering
 its own data, so "the snapshot is on disk before the first write" and "device-started is on disk
 before the first write" hold per device; within one batch the files are durable before any line
 naming them. The files themselves are fsync'ed when the log is settled (``settled``: a run's end).
@@ -24,6 +25,7 @@ import os
 import secrets
 import stat
 import threading
+import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -32,6 +34,13 @@ from .. import portable
 from ..errors import UsageError
 from ..portable import O_BINARY, O_CLOEXEC, O_NOFOLLOW, write_all, writev_all
 from . import wal
+
+# once a batch had company (a fleet: many devices waiting), the writer waits this long for more before it commits:
+# every batch costs two fsyncs (the log, the journal) and the system calls around them, each a moment a worker's
+# event loop may wait for the GIL. At --parallel 256 a worker's batches grew from 3-6 operations to 7-10, half the
+# fsyncs (benchmarks/RESULTS.md, run L); a device waits up to this much longer for its snapshot, against Modbus
+# round trips of tens of milliseconds. A lone operation (one device) never waits.
+GATHER = 0.002
 
 
 @dataclass
@@ -124,6 +133,7 @@ class GroupCommit:
         return self._log.pending()
 
     def _loop(self) -> None:
+        crowded = False  # the last batch held more than one operation
         while True:
             with self._cond:
                 while not self._queue:
@@ -132,7 +142,13 @@ class GroupCommit:
                             break
                     else:
                         self._cond.wait()
-                batch, self._queue = self._queue, []
+                if not crowded:
+                    batch, self._queue = self._queue, []
+            if crowded:
+                time.sleep(GATHER)  # the others' operations join this batch (the waiters wait a little longer)
+                with self._cond:
+                    batch, self._queue = self._queue, []
+            crowded = len(batch) > 1
             try:
                 commit(batch, self._log)
                 if not batch or any(isinstance(p.op, Settle) for p in batch):
