@@ -370,7 +370,7 @@ def write_all(fd: int, data: bytes) -> None:
 def pread(fd: int, size: int, offset: int) -> bytes:
     """Up to ``size`` bytes at ``offset`` in one call where the system has one (Windows has no pread: a seek,
     then a read)."""
-    if not WINDOWS:
+    if sys.platform != "win32" and hasattr(os, "pread"):
         return os.pread(fd, size, offset)
     os.lseek(fd, offset, os.SEEK_SET)
     return os.read(fd, size)
@@ -378,14 +378,14 @@ def pread(fd: int, size: int, offset: int) -> bytes:
 
 def pwrite_all(fd: int, data: bytes, offset: int) -> None:
     """All of ``data`` at ``offset`` (not for a file opened to append), in one call where the system allows."""
-    if WINDOWS:
-        os.lseek(fd, offset, os.SEEK_SET)
-        write_all(fd, data)
+    if sys.platform != "win32" and hasattr(os, "pwrite"):
+        view = memoryview(data)
+        while view:
+            n = os.pwrite(fd, view, offset)
+            view, offset = view[n:], offset + n
         return
-    view = memoryview(data)
-    while view:
-        n = os.pwrite(fd, view, offset)
-        view, offset = view[n:], offset + n
+    os.lseek(fd, offset, os.SEEK_SET)
+    write_all(fd, data)
 
 
 def writev_all(fd: int, pieces: list[bytes]) -> None:
