@@ -97,6 +97,14 @@ def _own_lock_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
         yield
 
 
+@pytest.fixture(autouse=True)
+def _test_lock_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """And a folder of each test's own: a test that kills a run leaves its lock records behind (as it should: the
+    next run names the stale lock), and a later test's simulator given the same port would take that device's
+    lock and be told of it."""
+    monkeypatch.setenv("DEPLOYER_LOCK_DIR", str(tmp_path_factory.mktemp("locks")))
+
+
 # ---- systems: tests whose subject is POSIX itself skip elsewhere, with the reason (docs/windows.md) ----
 
 _WINDOWS_MODULES = {  # whole modules: Ansible has no Windows control node
