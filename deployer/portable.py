@@ -186,6 +186,15 @@ def same_file(a: os.stat_result, b: os.stat_result) -> bool:
     return all(x == y for x, y in ((a.st_dev, b.st_dev), (a.st_ino, b.st_ino)) if x and y)
 
 
+def still_at(path: str, st: os.stat_result) -> bool:
+    """Whether the file ``st`` describes is the one at ``path`` now (a link there is not followed); False when
+    nothing is there: a lock taken on a file someone removed or replaced meanwhile holds nothing."""
+    try:
+        return same_file(os.stat(path, follow_symlinks=False), st)
+    except OSError:
+        return False
+
+
 def is_link(st: os.stat_result) -> bool:
     reparse = getattr(stat, "FILE_ATTRIBUTE_REPARSE_POINT", 0)
     return stat.S_ISLNK(st.st_mode) or bool(reparse and getattr(st, "st_file_attributes", 0) & reparse)

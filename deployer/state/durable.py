@@ -142,12 +142,10 @@ class GroupCommit:
                             break
                     else:
                         self._cond.wait()
-                if not crowded:
-                    batch, self._queue = self._queue, []
             if crowded:
                 time.sleep(GATHER)  # the others' operations join this batch (the waiters wait a little longer)
-                with self._cond:
-                    batch, self._queue = self._queue, []
+            with self._cond:
+                batch, self._queue = self._queue, []
             crowded = len(batch) > 1
             try:
                 commit(batch, self._log)

@@ -249,11 +249,7 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
                 raise Locked(f"owned by the deployer agent at {a} (PID {record.get('pid', '?')}): run it through the "
                              f"agent (deployer apply --agent {a} ...), or stop the agent", busy=False) from None
             raise Locked(f"locked by {_holder_text(record)}") from None
-        try:
-            same = portable.same_file(os.stat(path, follow_symlinks=False), opened)  # the file's identity never changes
-        except OSError:
-            same = False
-        if same:
+        if portable.still_at(path, opened):  # the open's status: a file's identity never changes
             break
         os.close(fd)  # its holder removed it while we waited: lock the file now at the path
     if shared:

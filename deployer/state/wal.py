@@ -118,9 +118,7 @@ class Segment:
         a new segment for a dead process's (it has no records), remove it and let it go; a lock taken after that
         holds a file nobody would find after a crash."""
         try:
-            if not oslock.backend().try_lock(fd):
-                return False
-            return portable.same_file(os.stat(self.path, follow_symlinks=False), os.fstat(fd))
+            return oslock.backend().try_lock(fd) and portable.still_at(self.path, os.fstat(fd))
         except OSError:
             return False
 
