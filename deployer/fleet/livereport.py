@@ -19,11 +19,11 @@ stream (``write_atomic``).
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 import os
 import threading
 from collections.abc import Iterator, Sequence
-from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from ..portable import writev_all
@@ -128,9 +128,10 @@ class LiveReport:
         ``interrupted`` with its snapshot, which is what it is if the run dies now. (The file may lag
         the run: the journal's ``device-started`` line, on disk before the first write, is what
         ``rollback --from-report`` trusts.)"""
-        self._add(result.name, device_json(replace(result, status="interrupted", requests=[], parameters=[], notices=[],
-                                                   error=f"{WRITING}; restore it with: deployer rollback "
-                                                         f"{result.snapshot}")), False)
+        r = copy.copy(result)  # ``replace`` without the __init__ of its 24 fields
+        r.status, r.requests, r.parameters, r.notices = "interrupted", [], [], []
+        r.error = f"{WRITING}; restore it with: deployer rollback {result.snapshot}"
+        self._add(result.name, device_json(r), False)
 
     def update(self, result: DeviceResult) -> None:
         """A finished device changed since (a soak rolled it back, its held commit was sent): its line anew."""

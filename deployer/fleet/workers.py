@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import hmac
 import os
 import pickle
@@ -191,10 +192,13 @@ def _dressed(r: DeviceResult, job: Job) -> DeviceResult:
     prof = job.recipe.profile
     for p in r.parameters:
         p.parameter = prof.get(p.name)
-    if r.tally is not None:
+    t = r.tally
+    if t is not None:
         if len(_WRITTEN) > 1024:
             _WRITTEN.clear()
-        r.tally = replace(r.tally, written=_WRITTEN.setdefault(r.tally.written, r.tally.written))
+        # its fields given, not ``replace``d: a fleet does this for every device
+        r.tally = type(t)(t.write_requests, t.read_requests, t.requests, t.changed, t.failed,
+                        _WRITTEN.setdefault(t.written, t.written))
     return r
 
 
@@ -619,7 +623,9 @@ async def _serve(connect: Callable[[_Link], Awaitable[None]]) -> None:
     index_of: dict[str, int] = {}  # the devices in flight here, by name
     if writing:
         def on_writing(r: DeviceResult) -> None:  # what the report file says of it now: its snapshot
-            send(("writing", index_of[r.name], replace(r, requests=[], parameters=[], notices=[])))
+            w = copy.copy(r)  # ``replace`` without the __init__ of its 24 fields
+            w.requests, w.parameters, w.notices = [], [], []
+            send(("writing", index_of[r.name], w))
 
         opts = replace(opts, on_writing=on_writing)
 

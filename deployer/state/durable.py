@@ -296,9 +296,13 @@ def append_lines(path: str, records: list[dict[str, Any]]) -> None:
 
 def append_bytes(path: str, lines: list[bytes]) -> None:
     """``append_lines`` of lines encoded already (each ending with a newline)."""
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     data = b"".join(lines)
-    fd = os.open(path, os.O_RDWR | os.O_APPEND | os.O_CREAT | O_BINARY | O_CLOEXEC, 0o644)
+    flags = os.O_RDWR | os.O_APPEND | os.O_CREAT | O_BINARY | O_CLOEXEC
+    try:
+        fd = os.open(path, flags, 0o644)
+    except FileNotFoundError:  # its folder is asked of the system only then (a fleet's writer appends every batch)
+        os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+        fd = os.open(path, flags, 0o644)
     try:
         if portable.WINDOWS:
             from . import oslock
