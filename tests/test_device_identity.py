@@ -161,6 +161,36 @@ def test_a_waiter_on_a_removed_file_locks_the_new_one() -> None:
         second.release()
 
 
+def test_a_file_removed_between_the_open_and_the_lock_is_not_taken_for_the_lock(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The race itself: the holder (an older deployer) removes the file after this run opened it and before
+    this run's lock; the lock taken must be the one of the file now at the path, never of the removed one."""
+    from deployer.state import oslock
+
+    first = lock.try_lock("dev")
+    path = first.path
+    first.release()
+    backend = oslock.backend()
+    real = backend.try_lock
+    calls: list[int] = []
+
+    def racing(fd: int, *, shared: bool = False) -> bool:
+        if not calls:  # the first open's file goes before it is locked (the next open makes a new one)
+            os.unlink(path)
+        calls.append(fd)
+        return real(fd, shared=shared)
+
+    monkeypatch.setattr(backend, "try_lock", racing)
+    held = lock.try_lock("dev")
+    try:
+        assert len(calls) == 2  # the removed file's lock was let go, and the path opened again
+        here, mine = os.stat(path), os.fstat(held.fd)
+        assert (mine.st_dev, mine.st_ino, mine.st_nlink) == (here.st_dev, here.st_ino, 1)
+        assert json.loads(Path(path).read_text())["pid"] == os.getpid()  # the record went into the new file
+    finally:
+        held.release()
+
+
 def test_a_refused_broadcast_names_who_writes_the_bus(tmp_path: Path) -> None:
     with SimulatorThread(builtin_profile("example-inverter")) as sim:
         keys = urls.parse_url(sim.url).lock_keys

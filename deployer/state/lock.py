@@ -191,17 +191,16 @@ def _directory(d: str) -> None:
     _ready.add(d)
 
 
-def _open(path: str) -> tuple[int, os.stat_result]:
-    """The lock file, opened without following a link, and its status; refused unless it is a plain file of its
-    own.
+def _open(path: str) -> int:
+    """The lock file, opened without following a link (``_checked`` says whether it may be used).
 
-    The folder is shared and the names predictable: a planted symlink or hard link to another file
-    (a root run would truncate it) or a FIFO (the open would block) is never written. Windows has no
-    O_NOFOLLOW: ``portable.open_nofollow`` checks the path before and after opening instead.
+    The folder is shared and the names predictable: a planted symlink is never opened, and a FIFO never
+    blocks the open. Windows has no O_NOFOLLOW: ``portable.open_nofollow`` checks the path before and after
+    opening instead.
     """
     try:
-        fd = portable.open_nofollow(path, os.O_RDWR | os.O_CREAT | portable.O_NONBLOCK | portable.O_CLOEXEC
-                                    | portable.O_BINARY, 0o666)
+        return portable.open_nofollow(path, os.O_RDWR | os.O_CREAT | portable.O_NONBLOCK | portable.O_CLOEXEC
+                                      | portable.O_BINARY, 0o666)
     except OSError as e:
         if e.errno == errno.ELOOP:
             raise Locked(f"refusing the lock file {path}: it is a symbolic link (planted? remove it)",
@@ -209,7 +208,21 @@ def _open(path: str) -> tuple[int, os.stat_result]:
         hint = (" (on Windows every account whose runs share the lock folder needs the right to modify files "
                 "there: see docs/windows.md)" if portable.WINDOWS and isinstance(e, PermissionError) else "")
         raise Locked(f"cannot open the lock file {path}: {e.strerror}{hint}", busy=False) from None
+
+
+def _checked(fd: int, path: str) -> bool:
+    """Whether the locked file is the one at the path (False: removed since it was opened, so its lock holds
+    nothing; the caller opens the path again); refused (closed, Locked) unless it is a plain file of its own.
+
+    Asked of the file itself once it is locked: one ``fstat`` tells both. A file removed or replaced has no name
+    left (``st_nlink`` 0: its holder removed it at its release, as an older deployer does); a planted hard link to
+    another file (a root run would write over it) has two, and a FIFO or device is not a regular file: neither is
+    ever read or written. (A fleet takes two locks per device: the path's own ``stat`` was one system call more
+    per lock, and every system call beside a worker's event loop lets its other thread take the GIL.)
+    """
     st = os.fstat(fd)
+    if st.st_nlink == 0 and stat.S_ISREG(st.st_mode):
+        return False
     why = ("not a regular file" if not stat.S_ISREG(st.st_mode) else
            f"it has {st.st_nlink} names (a hard link to another file?)" if st.st_nlink != 1 else None)
     if why is not None:
@@ -218,7 +231,7 @@ def _open(path: str) -> tuple[int, os.stat_result]:
     if portable.owner_is_me(st) and stat.S_IMODE(st.st_mode) != 0o666:
         with contextlib.suppress(OSError):
             portable.fchmod(fd, 0o666)  # other users' runs lock (and record in) it too, whatever our umask
-    return fd, st
+    return True
 
 
 def try_lock(key: str, *, command: str = "", directory: str | None = None, shared: bool = False,
@@ -233,12 +246,15 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
     name = hashlib.sha256(key.encode()).hexdigest()[:24] + ".lock"
     path = os.path.join(d, name)
     while True:
-        fd, opened = _open(path)
+        fd = _open(path)
         try:
             got = oslock.backend().try_lock(fd, shared=shared)
         except OSError as e:
             os.close(fd)
             raise Locked(f"cannot lock {path}: {e.strerror}", busy=False) from None
+        if not _checked(fd, path):
+            os.close(fd)  # its holder removed it (meanwhile, or while holding it): the file now at the path
+            continue
         if not got:
             record = _read_record(fd)
             os.close(fd)
@@ -249,9 +265,7 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
                 raise Locked(f"owned by the deployer agent at {a} (PID {record.get('pid', '?')}): run it through the "
                              f"agent (deployer apply --agent {a} ...), or stop the agent", busy=False) from None
             raise Locked(f"locked by {_holder_text(record)}") from None
-        if portable.still_at(path, opened):  # the open's status: a file's identity never changes
-            break
-        os.close(fd)  # its holder removed it while we waited: lock the file now at the path
+        break
     if shared:
         return DeviceLock(key, path, fd, None, shared=True)
     old, size = _read(fd)
