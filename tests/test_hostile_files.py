@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import json
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -367,3 +368,27 @@ def test_the_learned_file_is_read_once_for_a_fleet_and_again_when_it_changes(tmp
     learned.remember(state, learned.Entry("p", "d1#unit1", {"write_function": 6}, "", "later"))
     again = learned.lookup(state, "p", "d1#unit1")
     assert again is not None and again.limits == {"max_write_registers": 11, "write_function": 6}
+
+
+def test_another_processs_learned_limits_are_seen_within_a_second(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """The file's status is asked at most every ``RECHECK`` seconds (a fleet asks per device); a change another
+    process made (not this one's ``remember``, which is seen at once) is seen after that."""
+    import shutil
+
+    from deployer.state import learned
+
+    state, other = tmp_path / "state", tmp_path / "other"
+    learned.remember(str(state), learned.Entry("p", "d#unit1", {"max_write_registers": 10}, "", "now"))
+    learned.remember(str(other), learned.Entry("p", "d#unit1", {"max_write_registers": 4}, "", "later"))
+    clock = [1000.0]
+    monkeypatch.setattr(learned.time, "monotonic", lambda: clock[0])
+    first = learned.lookup(str(state), "p", "d#unit1")
+    assert first is not None and first.limits == {"max_write_registers": 10}
+    shutil.copy(learned.path_of(str(other)), learned.path_of(str(state)) + ".new")  # as its save does: a new file
+    os.replace(learned.path_of(str(state)) + ".new", learned.path_of(str(state)))
+    clock[0] += learned.RECHECK / 2
+    assert learned.lookup(str(state), "p", "d#unit1") == first  # not asked of the system yet
+    clock[0] += learned.RECHECK
+    now = learned.lookup(str(state), "p", "d#unit1")
+    assert now is not None and now.limits == {"max_write_registers": 4}

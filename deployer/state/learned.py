@@ -208,6 +208,7 @@ def _locked(state_dir: str) -> Iterator[None]:
 def _save(state_dir: str, entries: list[Entry]) -> None:
     write_atomic(path_of(state_dir), json.dumps({"schema": SCHEMA, "devices": [e.to_json() for e in entries]},
                                                 indent=2) + "\n")
+    _READ.pop(path_of(state_dir), None)  # this process's own change: seen by its next lookup
 
 
 def remember(state_dir: str, entry: Entry) -> None:
@@ -243,28 +244,39 @@ def forget(state_dir: str, *, profile: str | None = None, device: str | None = N
         return gone
 
 
-_READ: dict[str, tuple[tuple[int, int, int], dict[tuple[str, str], Entry]]] = {}  # path -> its file as last read
+# path -> its file as last read (its identity; None: no file), and when its status was last asked of the system
+_READ: dict[str, tuple[tuple[int, int, int] | None, dict[tuple[str, str], Entry], float]] = {}
+# another process's changes are seen within this many seconds (this process's own at once: ``_save``): a fleet asks
+# for every device, and each system call beside a worker's event loop is a moment its other thread takes the GIL
+RECHECK = 1.0
 
 
 def lookup(state_dir: str, profile: str, device: str) -> Entry | None:
     """What ``device`` taught of ``profile`` (None: nothing). The file is read again only when it changed (a new
-    file, as every save makes one, or another size or time): a fleet asks this for every device, and parsing a
-    file of thousands of entries per device was quadratic."""
+    file, as every save makes one, or another size or time), and its status asked at most every ``RECHECK``
+    seconds: a fleet asks this for every device, and parsing a file of thousands of entries per device was
+    quadratic."""
     path = path_of(state_dir)
+    now = time.monotonic()
+    seen = _READ.get(path)
+    if seen is not None and now - seen[2] < RECHECK:
+        return seen[1].get((profile, device))
     try:
         st = os.stat(path)
     except FileNotFoundError:
+        _READ[path] = (None, {}, now)
         return None
     except OSError:
         st = None  # ``load`` says why it cannot be read
-    seen = _READ.get(path)
-    if st is None or seen is None or seen[0] != (st.st_ino, st.st_size, st.st_mtime_ns):
+    ident = None if st is None else (st.st_ino, st.st_size, st.st_mtime_ns)
+    if ident is None or seen is None or seen[0] != ident:
         by_key: dict[tuple[str, str], Entry] = {}
         for e in load(state_dir):
             by_key.setdefault((e.profile, e.device), e)
-        if st is None:
+        if ident is None:
             return by_key.get((profile, device))
-        seen = _READ[path] = ((st.st_ino, st.st_size, st.st_mtime_ns), by_key)
+        seen = (ident, by_key, now)
+    _READ[path] = (seen[0], seen[1], now)
     return seen[1].get((profile, device))
 
 
