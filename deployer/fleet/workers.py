@@ -197,8 +197,8 @@ def _dressed(r: DeviceResult, job: Job) -> DeviceResult:
         if len(_WRITTEN) > 1024:
             _WRITTEN.clear()
         # its fields given, not ``replace``d: a fleet does this for every device
-        r.tally = type(t)(t.write_requests, t.read_requests, t.requests, t.changed, t.failed,
-                        _WRITTEN.setdefault(t.written, t.written))
+        r.tally = type(t)(write_requests=t.write_requests, read_requests=t.read_requests, requests=t.requests,
+                          changed=t.changed, failed=t.failed, written=_WRITTEN.setdefault(t.written, t.written))
     return r
 
 
