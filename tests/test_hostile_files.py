@@ -375,6 +375,7 @@ def test_another_processs_learned_limits_are_seen_within_a_second(tmp_path: Path
     """The file's status is asked at most every ``RECHECK`` seconds (a fleet asks per device); a change another
     process made (not this one's ``remember``, which is seen at once) is seen after that."""
     import shutil
+    import time
 
     from deployer.state import learned
 
@@ -382,7 +383,7 @@ def test_another_processs_learned_limits_are_seen_within_a_second(tmp_path: Path
     learned.remember(str(state), learned.Entry("p", "d#unit1", {"max_write_registers": 10}, "", "now"))
     learned.remember(str(other), learned.Entry("p", "d#unit1", {"max_write_registers": 4}, "", "later"))
     clock = [1000.0]
-    monkeypatch.setattr(learned.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(time, "monotonic", lambda: clock[0])  # the clock ``learned`` reads
     first = learned.lookup(str(state), "p", "d#unit1")
     assert first is not None and first.limits == {"max_write_registers": 10}
     shutil.copy(learned.path_of(str(other)), learned.path_of(str(state)) + ".new")  # as its save does: a new file
