@@ -99,6 +99,13 @@ def count(log: list[LogEntry], function: int, **where: Any) -> int:
     return sum(1 for e in log if e.function == function and all(getattr(e, k) == v for k, v in where.items()))
 
 
+async def _cancel_the_rest() -> None:
+    rest = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+    for t in rest:
+        t.cancel()
+    await asyncio.gather(*rest, return_exceptions=True)
+
+
 class Simulators:
     """Many simulators served by one event loop in one background thread (fleet tests).
 
@@ -123,6 +130,9 @@ class Simulators:
     def __exit__(self, *exc: object) -> None:
         try:
             self._each("stop")
+            # what the servers' connections still had running (an answer a fault delays): ended before the loop
+            # closes, else each is reported at exit as a task destroyed while pending
+            asyncio.run_coroutine_threadsafe(_cancel_the_rest(), self._loop).result(timeout=30)
         finally:
             self._loop.call_soon_threadsafe(self._loop.stop)
             self._thread.join(timeout=30)
