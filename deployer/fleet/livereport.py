@@ -19,7 +19,6 @@ stream (``write_atomic``).
 from __future__ import annotations
 
 import contextlib
-import copy
 import json
 import os
 import threading
@@ -128,8 +127,8 @@ class LiveReport:
         ``interrupted`` with its snapshot, which is what it is if the run dies now. (The file may lag
         the run: the journal's ``device-started`` line, on disk before the first write, is what
         ``rollback --from-report`` trusts.)"""
-        r = copy.copy(result)  # ``replace`` without the __init__ of its 24 fields
-        r.status, r.requests, r.parameters, r.notices = "interrupted", [], [], []
+        r = result.head()
+        r.status = "interrupted"
         r.error = f"{WRITING}; restore it with: deployer rollback {result.snapshot}"
         self._add(result.name, device_json(r), False)
 

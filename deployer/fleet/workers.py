@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import copy
 import hmac
 import os
 import pickle
@@ -623,9 +622,7 @@ async def _serve(connect: Callable[[_Link], Awaitable[None]]) -> None:
     index_of: dict[str, int] = {}  # the devices in flight here, by name
     if writing:
         def on_writing(r: DeviceResult) -> None:  # what the report file says of it now: its snapshot
-            w = copy.copy(r)  # ``replace`` without the __init__ of its 24 fields
-            w.requests, w.parameters, w.notices = [], [], []
-            send(("writing", index_of[r.name], w))
+            send(("writing", index_of[r.name], r.head()))
 
         opts = replace(opts, on_writing=on_writing)
 

@@ -237,20 +237,15 @@ def commit(batch: list[_Pending], log: wal.Log | None = None) -> None:
 
 
 def _create(p: _Pending) -> None:
-    """Create a NewFile (never over an existing one; its folder too where it is missing: asked of the system only
-    then, since a fleet creates one per device), write its text, close it, and encode its log record (the file is
-    fsync'ed when the log is settled)."""
+    """Create a NewFile (never over an existing one; its folder too where it is missing), write its text, close it,
+    and encode its log record (the file is fsync'ed when the log is settled)."""
     op = p.op
     assert isinstance(op, NewFile)
     path, text = op.first
     while True:
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | O_BINARY | O_CLOEXEC, 0o644)
+            fd = _open_in_folder(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | O_BINARY | O_CLOEXEC)
             break
-        except FileNotFoundError:  # its folder (the first snapshot of a state folder): made, then again
-            if os.path.isdir(os.path.dirname(path)):
-                raise
-            os.makedirs(os.path.dirname(path), exist_ok=True)
         except FileExistsError:
             path = next(op.paths)
             text = op.text(path)
@@ -266,6 +261,19 @@ def _create(p: _Pending) -> None:
         raise
     os.close(fd)
     p.path = path
+
+
+def _open_in_folder(path: str, flags: int) -> int:
+    """``os.open`` of a file to create, its folder made where it is missing: asked of the system only then, since a
+    fleet creates a snapshot per device and its writer appends to the journal every batch."""
+    try:
+        return os.open(path, flags, 0o644)
+    except FileNotFoundError:
+        folder = os.path.dirname(path) or "."
+        if os.path.isdir(folder):
+            raise
+        os.makedirs(folder, exist_ok=True)
+        return os.open(path, flags, 0o644)
 
 
 def _create_or_fail(p: _Pending, failed: dict[int, BaseException]) -> None:
@@ -297,12 +305,7 @@ def append_lines(path: str, records: list[dict[str, Any]]) -> None:
 def append_bytes(path: str, lines: list[bytes]) -> None:
     """``append_lines`` of lines encoded already (each ending with a newline)."""
     data = b"".join(lines)
-    flags = os.O_RDWR | os.O_APPEND | os.O_CREAT | O_BINARY | O_CLOEXEC
-    try:
-        fd = os.open(path, flags, 0o644)
-    except FileNotFoundError:  # its folder is asked of the system only then (a fleet's writer appends every batch)
-        os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-        fd = os.open(path, flags, 0o644)
+    fd = _open_in_folder(path, os.O_RDWR | os.O_APPEND | os.O_CREAT | O_BINARY | O_CLOEXEC)
     try:
         if portable.WINDOWS:
             from . import oslock
