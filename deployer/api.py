@@ -54,9 +54,9 @@ from .fleet.inventory import fleet_jobs as _fleet_jobs
 from .fleet.inventory import inventory_from as _inventory_from
 from .limits import BATCH_BY, LIMITS, Bound
 from .load.yamlsrc import Source
-from .planning.model import Plan, Target
+from .planning.model import Cost, Plan, Step, Target
 from .planning.planfile import load_plan, plan_to_json
-from .planning.planner import make_plan
+from .planning.steps import make_plan
 from .portable import file_name, user_name
 from .profile import Profile, is_profile_path, load_profile, resolve_profile
 from .profile.model import address_text
@@ -85,7 +85,7 @@ _REEXPORTED = (Agent, AgentError, LIMITS, Bound, BadURL, CodecError, Declined, D
                InputError, Locked, RunInterrupted, StalePlan, TransportError, UsageError, FleetDevice, Inventory,
                load_inventory, Plan, load_plan, plan_to_json, Profile, load_profile, Recipe, DeviceResult,
                ParameterResult, Report, report_from_json, report_text, run_info, user_name, file_name,
-               DeviceURL, PreparedRun, RunRequest, address_text)
+               DeviceURL, PreparedRun, RunRequest, address_text, Step)
 
 # public names whose modules load on first use: offline work (validate, an offline plan, a command's
 # --help) does not pay for the transports (pymodbus)
@@ -132,6 +132,7 @@ __all__ = [
     "RunRequest",
     "RunStatus",
     "StalePlan",
+    "Step",
     "TransportError",
     "UsageError",
     "address_text",
@@ -395,7 +396,8 @@ def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) ->
 
 
 async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-                     write_all: bool = False, offline: bool = False, state_dir: str | None = ".deployer") -> Plan:
+                     write_all: bool = False, offline: bool = False, state_dir: str | None = ".deployer",
+                     notices: list[str] | None = None) -> Plan:
     """The requests apply would send: against what the device holds now, or ``offline`` the full write plan."""
     _need_recipe(recipe, "plan")
     _need_unit(unit)
@@ -403,12 +405,9 @@ async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit
         u = unit if unit is not None else 1
         return make_plan(recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all)
     url, u = _target(recipe, device, unit)
-    recipe = _taught(recipe, state_dir, url, u)
-    from .execute.read import read_current
+    from .execute.read import plan_device
 
-    current = await read_current(recipe.profile, [d.name for d in recipe.desired], url, u)
-    return make_plan(recipe, Target(describe(url), u, recipe.profile_ref or recipe.profile.id), current,
-                     write_all=write_all)
+    return await plan_device(recipe, url, u, write_all=write_all, state_dir=state_dir, notices=notices)
 
 
 def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
@@ -461,53 +460,38 @@ def plan_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]] | None, d
     ``read_fleet`` give them), or with ``current`` None the full write plan, offline. ``device`` and ``unit``:
     what the plan names as its target (``device`` None: none). Nothing is read or sent; the limits taught
     by devices are the caller's (``taught_recipe``)."""
+    from .planning.steps import pacing_for
+
     target = Target(describe(device) if device is not None else None, unit, recipe.profile_ref or recipe.profile.id)
-    return make_plan(recipe, target, current, write_all=write_all)
+    return make_plan(recipe, target, current, write_all=write_all, pacing=pacing_for(device, recipe.profile))
 
 
-def plan_cost(plan: Plan, profile: Profile, device: DeviceURL | None = None) -> dict[str, Any]:
-    """What a plan's write requests and their answers cost on the device's line (its URL's serial settings,
-    else Modbus's default: RTU at 19200 baud 8E1): ``registers`` written (coils included) and ``coils``,
-    ``framing`` (``rtu`` or ``ascii``), ``line`` ("19200 baud 8E1"), ``characters`` (bytes on RTU, characters
-    on ASCII), ``seconds`` (about, pauses included) and ``pauses`` (seconds of the pauses the device needs
-    between requests and after connecting: the URL's options, else the profile's ``limits``)."""
-    from .planning.wire import line_cost, wire_stats
-    from .transport.urls import pacing
+def plan_cost(plan: Plan, profile: Profile, device: DeviceURL | None = None) -> Cost:
+    """What executing a plan costs the device (``deployer.planning.model.Cost``): requests, bytes and time on its
+    line (its URL's serial settings; Modbus/TCP frames on tcp:// and tls://; else RTU at 19200 baud 8E1), the
+    waits, and the writes that wear its non-volatile memory."""
+    from .planning.wire import plan_cost as cost
 
-    if device is not None and device.scheme in ("rtu", "ascii"):
-        ln = device.line
-        framing, baud = device.scheme, ln.baudrate
-        bits = 1 + ln.bytesize + (ln.parity != "N") + ln.stopbits
-        line = f"{ln.baudrate} baud {ln.bytesize}{ln.parity}{ln.stopbits}"
-    else:
-        framing, baud, bits, line = "rtu", 19200, 11, "19200 baud"
-    chars, seconds = line_cost(plan, framing=framing, baud=baud, char_bits=bits)
-    lim = profile.limits
-    after, between = pacing(device or DeviceURL("tcp"), lim.pause_after_connect, lim.pause_between_requests)
-    # each write follows another request (the snapshot read at least)
-    pauses = after + between * len(plan.writes) if plan.writes and (after or between) else 0.0
-    return {"registers": int(wire_stats(plan)["registers"]),
-            "coils": sum(w.count for w in plan.writes if w.function in (5, 15)), "framing": framing,
-            "line": line, "characters": chars, "seconds": seconds + pauses, "pauses": pauses}
+    return cost(plan, profile, device)
 
 
 def plan_frames(plan: Plan, framing: str) -> list[tuple[bytes, bytes | None]]:
-    """Each write request of a plan as the exact bytes on the wire, ``framing`` ``rtu``, ``ascii`` or ``tcp``
-    (transaction ids 1, 2, ... on TCP): (the query, the device's normal answer; None for a broadcast).
+    """Each step of a plan as the exact bytes on the wire, ``framing`` ``rtu``, ``ascii`` or ``tcp`` (transaction
+    ids 1, 2, ... on TCP): (the query, the device's normal answer; None for a broadcast, and for the answer to a
+    Function 43 request, whose texts are the device's). A secret's words are sent as zeros here: show them only
+    through ``deployer.planning.frames.shown``, which masks them.
 
     Raises:
         UsageError: an unknown framing.
     """
     from typing import cast
 
-    from .planning.frames import Framing, request_frame, response_frame
+    from .planning.frames import Framing, step_frames
 
     if framing not in ("rtu", "ascii", "tcp"):
         raise UsageError(f"plan_frames: framing is rtu, ascii or tcp, not {framing!r}")
-    how, unit = cast(Framing, framing), plan.device.unit
-    return [(request_frame(w, unit, how, transaction_id=i),
-             None if unit == 0 else response_frame(w, unit, how, transaction_id=i))
-            for i, w in enumerate(plan.writes, 1)]
+    how = cast(Framing, framing)
+    return [step_frames(s, plan.device.unit, how, i) for i, s in enumerate(plan.steps, 1)]
 
 
 def apply(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
@@ -989,18 +973,10 @@ async def plan_fleet_async(jobs: Sequence[Job], *, parallel: int = 8, write_all:
                            on_done: Callable[[str, str | None], None] | None = None,
                            state_dir: str | None = ".deployer") -> dict[str, Plan | TransportError | UsageError]:
     """``plan_fleet`` for callers with their own event loop; ``on_done(name, error or None)`` per device read."""
-    from dataclasses import replace
+    from .fleet.rollout import plan_many
 
     _need_parallel(parallel)
-    jobs = [replace(j, recipe=_taught(j.recipe, state_dir, j.url, j.unit)) for j in jobs]
-    values = await read_fleet_async(read_jobs(jobs), parallel=parallel, on_done=on_done)
-    out: dict[str, Plan | TransportError | UsageError] = {}
-    for j in jobs:
-        cur = values[j.name]
-        out[j.name] = cur if isinstance(cur, Exception) else make_plan(
-            j.recipe, Target(describe(j.url), j.unit, j.recipe.profile_ref or j.recipe.profile.id), cur,
-            write_all=write_all)
-    return out
+    return await plan_many(jobs, parallel=parallel, write_all=write_all, state_dir=state_dir, on_done=on_done)
 
 
 def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
@@ -1207,7 +1183,7 @@ def taught_recipe(recipe: Recipe, device: str | DeviceURL, unit: int = 1, *, sta
 def _file_kind(data: object) -> str | None:
     if not isinstance(data, dict):
         return None
-    if data.get("schema") == "deployer.plan/1":
+    if str(data.get("schema", "")).startswith("deployer.plan/"):
         return "plan"
     if "recipe" in data:
         return "recipe"
@@ -1469,14 +1445,14 @@ def sunspec_models(device: str | DeviceURL, unit: int = 1, *, at: int = 40002, m
         UsageError: a bad URL, or what was read is not SunSpec.
     """
     from .errors import ExceptionResponse
+    from .execute.connect import opened
     from .profile.importers import sunspec
-    from .transport.clients import open_transport
 
     _need_unit(unit)
     url = device_url(device)
 
     async def run() -> list[SunSpecModel]:
-        transport = open_transport(url)
+        transport = opened(url, None)
         await transport.connect()
 
         async def read(address: int, count: int) -> list[int]:

@@ -41,10 +41,17 @@ class RequestRecord:
     result: str = "ok"  # ok | exception | no response | connection lost | broadcast | interrupted
     exception_code: int | None = None
     attempts: int = 1
+    step: int | None = None  # the plan step (1-based) it executes, or that the deviation stands in for
+    deviation: str | None = None  # what only the device decided: "split", "function-06", "recovery-read" ...
 
     def to_json(self) -> dict[str, Any]:
-        return {"function": self.function, "address": self.address, "count": self.count, "result": self.result,
-                "exception_code": self.exception_code, "attempts": self.attempts}
+        out: dict[str, Any] = {"function": self.function, "address": self.address, "count": self.count,
+                               "result": self.result, "exception_code": self.exception_code, "attempts": self.attempts}
+        if self.step is not None:
+            out["step"] = self.step
+        if self.deviation is not None:
+            out["deviation"] = self.deviation
+        return out
 
 
 def show_registers(p: Parameter, regs: Sequence[int] | None) -> str | None:
@@ -439,7 +446,8 @@ def _parameter_json(p: ParameterResult) -> str:
             f'"after_raw": {_words(p.after_raw)}, "status": {_text(p.status)}, "error": {error}{kind}}}')
 
 
-_REQUEST = operator.attrgetter("function", "address", "count", "result", "exception_code", "attempts")
+_REQUEST = operator.attrgetter("function", "address", "count", "result", "exception_code", "attempts", "step",
+                               "deviation")
 _REQUESTS: dict[tuple[Any, ...], str] = {}
 
 

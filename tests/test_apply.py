@@ -15,7 +15,7 @@ from deployer.execute.read import read_current
 from deployer.execute.session import ApplyOptions
 from deployer.load import schema
 from deployer.planning.model import Target
-from deployer.planning.planner import make_plan
+from deployer.planning.steps import make_plan
 from deployer.profile import builtin_profile
 from deployer.recipe.loader import load_recipe
 from deployer.report import DeviceResult, Report

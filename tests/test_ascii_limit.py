@@ -11,7 +11,7 @@ import pytest
 from deployer.cli import main
 from deployer.planning.frames import request_frame, response_frame
 from deployer.planning.model import Target
-from deployer.planning.planner import make_plan
+from deployer.planning.steps import make_plan
 from deployer.profile import Limits
 from deployer.recipe.loader import load_recipe
 from deployer.testing.simulator import SimulatorThread

@@ -14,6 +14,7 @@ import pytest
 from deployer.load import schema
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import SimulatorThread
+from tests import contract
 from tests.conftest import dead_port
 from tests.helpers import cli
 
@@ -51,7 +52,7 @@ def test_plan_offline_table_json_out_and_frames(capsys: pytest.CaptureFixture[st
     code, out, _ = cli(capsys, "plan", str(EXAMPLES / "omron-m1-accel.yaml"), "--show-frames")
     assert code == 0
     assert "0x1102 (4354)" in out and "0000 03E8" in out and "10 s" in out
-    assert "1 write request" in out
+    assert "1 write request" in out and "4 requests in all (3 reads, 1 writes)" in out
     assert "01 10 11 02 00 02 04 00 00 03 E8 B2 98" in out and "01 10 11 02 00 02 E5 34" in out
     assert ":01101102000204000003E8EB" in out
     plan_file = tmp_path / "plan.json"
@@ -59,8 +60,10 @@ def test_plan_offline_table_json_out_and_frames(capsys: pytest.CaptureFixture[st
     data = json.loads(out)
     jsonschema.validate(data, schema.schema("plan"))
     assert data == json.loads(plan_file.read_text())
-    assert data["writes"] == [{"function": 16, "address": 4354, "count": 2, "registers": [0, 1000],
-                               "parameters": ["F07"], "stage": 0}]
+    assert [s for s in data["steps"] if s["kind"] == "write"] == [
+        {"kind": "write", "function": 16, "address": 4354, "count": 2, "values": [0, 1000], "parameters": ["F07"],
+         "stage": 0}]
+    assert [s["kind"] for s in data["steps"]] == ["snapshot", "device-id", "write", "verify"]
     assert data["parameters"][0]["current_raw"] is None and data["parameters"][0]["action"] == "write"
 
 
@@ -71,7 +74,7 @@ def test_plan_against_the_device_and_detailed_exitcode(capsys: pytest.CaptureFix
         code, out, _ = cli(capsys, "plan", path, "--device", sim.url, "--detailed-exitcode")
         assert code == 2
         assert "5 s -> 10 s" in out and "ramp -> coast" in out
-        assert len(sim.log) > 0 and all(e.function == 3 for e in sim.log)  # plan only reads
+        assert len(sim.log) > 0 and all(e.function in (3, 43) for e in sim.log)  # plan only reads
         code, _, _ = cli(capsys, "apply", path, "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"))
         assert code == 0
         code, out, _ = cli(capsys, "plan", path, "--device", sim.url, "--detailed-exitcode")
@@ -90,8 +93,7 @@ def test_apply_saved_plan_and_stale_plan(capsys: pytest.CaptureFixture[str], tmp
         report = json.loads(out)
         jsonschema.validate(report, schema.schema("report"))
         plan = json.loads(Path(plan_file).read_text())
-        sent = [(e.address, e.count) for e in sim.log[n:] if e.function == 16][:len(plan["writes"])]
-        assert sent == [(w["address"], w["count"]) for w in plan["writes"]]
+        contract.check(plan, report["devices"][0], sim.log[n:])  # the device received exactly the saved plan
         # the device changed since: the same plan is refused, nothing written
         sim.write("F07", (0, 123))
         n = len(sim.log)
@@ -305,7 +307,8 @@ def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pyt
                                                                     tmp_path: Path) -> None:
     r = str(EXAMPLES / "omron-m1-accel.yaml")
     code, out, _ = cli(capsys, "plan", r)
-    assert code == 0 and "21 bytes on an RTU line, about 16 ms at 19200 baud" in out
+    # the snapshot read (8 + 9 bytes), Function 43 (7 + 16: its texts not counted), the write (13 + 8), the read-back
+    assert code == 0 and "78 bytes on an RTU line, about 61 ms at 19200 baud 8E1" in out
     # with a serial URL the estimate uses its line settings and framing (ASCII counts characters)
     import deployer
 
@@ -313,15 +316,18 @@ def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pyt
     plan = deployer.plan_values(rec, None)
     cost = deployer.plan_cost(plan, rec.profile,
                               deployer.device_url("ascii:///dev/ttyS0?baudrate=9600&bytesize=7&parity=E"))
-    assert (cost["framing"], cost["line"]) == ("ascii", "9600 baud 7E1")
-    chars, seconds = cost["characters"], cost["seconds"]
-    assert chars == len(":01101102000204000003E8EB\r\n") + len(":011011020002DA\r\n")  # the manual's frames
-    assert abs(seconds - chars * 10 / 9600) < 1e-9  # 7E1: 10 bits a character
-    assert deployer.plan_cost(plan, rec.profile)["line"] == "19200 baud"
-    assert [q for q, _ in deployer.plan_frames(plan, "ascii")] == [b":01101102000204000003E8EB\r\n"]
+    assert (cost.framing, cost.line) == ("ascii", "9600 baud 7E1")
+    frames = [q + (a or b"") for q, a in deployer.plan_frames(plan, "ascii")]
+    write = frames[2]
+    assert write == b":01101102000204000003E8EB\r\n:011011020002DA\r\n"  # the manual's frames
+    # every frame counted, and the Function 43 answer without its texts: 13 bytes of PDU (2B 0E 01, conformity,
+    # more follows, next object, 3 objects; each object's id and length) as ':', hex pairs, LRC, CR LF
+    assert cost.bytes == sum(len(f) for f in frames) + 1 + 2 * (1 + 13) + 2 + 2
+    assert abs(cost.seconds - cost.bytes * 10 / 9600) < 1e-6  # 7E1: 10 bits a character (rounded to the us)
+    assert deployer.plan_cost(plan, rec.profile).line == "19200 baud 8E1"
     code, out, _ = cli(capsys, "plan", r, "--unit", "0", "--show-frames")
     assert code == 0 and "response none (broadcast)" in out and "E5 34" not in out
-    assert "13 bytes on an RTU line" in out  # the request only
+    assert "13 bytes on an RTU line" in out  # the request only: a broadcast is its writes alone
 
 
 def test_apply_saved_plan_names_its_snapshot_after_the_recipe(capsys: pytest.CaptureFixture[str], tmp_path: Path,
@@ -349,6 +355,6 @@ def test_no_answer_after_busy_has_no_exception_code(capsys: pytest.CaptureFixtur
     assert code == 4
     requests = json.loads(out)["devices"][0]["requests"]
     assert {"function": 16, "address": 4354, "count": 2, "result": "no response", "exception_code": None,
-            "attempts": 2} in requests
+            "attempts": 2, "step": 4} in requests
     for req in requests:
         assert (req["result"] == "exception") == (req["exception_code"] is not None), req

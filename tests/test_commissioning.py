@@ -379,7 +379,8 @@ def test_a_wb_template_set_point_is_planned_and_applied(capsys: pytest.CaptureFi
                      "  Temperature_Set_Point: -18.5 degC\n  Compressor_Relay: on\n  differential: 2\n")
         code, out, err = cli(capsys, "plan", str(r), "--json")
         assert code == 0, err
-        assert [(w["function"], w["address"], w["registers"]) for w in json.loads(out)["writes"]] == [
+        assert [(w["function"], w["address"], w["values"]) for w in json.loads(out)["steps"] if w["kind"] == "write"
+                ] == [
             (16, 10, [(-185) & 0xFFFF]), (16, 12, [20]), (5, 3, [1])]
         code, out, err = cli(capsys, "apply", str(r), "--yes", "--json", "--state-dir", str(tmp_path / "s"))
         assert code == 0, out

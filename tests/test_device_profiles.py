@@ -18,7 +18,8 @@ from deployer.execute.device import apply_device
 from deployer.execute.session import ApplyOptions
 from deployer.load import schema
 from deployer.planning.model import Target
-from deployer.planning.planner import make_plan, plan_writes
+from deployer.planning.planner import plan_writes
+from deployer.planning.steps import make_plan
 from deployer.profile import Limits, Parameter, Profile
 from deployer.recipe.loader import Desired, load_recipe
 from deployer.report import DeviceResult, Report
@@ -414,7 +415,8 @@ def test_rejected_field_register_and_a_saved_plan(tmp_path: Path, fields: Profil
         path = recipe(tmp_path, "  mode: torque\n  name: AB\n")
         with pytest.raises(SystemExit):
             main(["plan", path, "--device", s.url, "--out", str(plan)])
-        assert json.loads(plan.read_text())["writes"][0]["registers"] == [0x0009, 0x4142, 0x2020, 0x2020, 0x2020]
+        assert [s["values"] for s in json.loads(plan.read_text())["steps"] if s["kind"] == "write"] == [
+            [0x0009, 0x4142, 0x2020, 0x2020, 0x2020]]
         s.write("enable", (0x3001,))  # jog_step changes after the plan was made
         with pytest.raises(SystemExit) as exc:
             main(["apply", str(plan), "--yes", "--state-dir", str(tmp_path / ".d")])

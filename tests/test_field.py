@@ -317,8 +317,9 @@ def test_plan_time_estimate_includes_the_pauses(tmp_path: Path, capsys: pytest.C
     _, recipe = _pacing_profile(tmp_path, "{pause_after_connect: 1s, pause_between_requests: 250ms}")
     code, out, err = cli(capsys, "plan", recipe)
     assert code == 0, err
-    # one write request: 1 s after connecting + 250 ms before it
-    assert "(pauses the device needs included: 1250 ms)" in out
+    # 1 s after connecting, then 250 ms before each of the other 3 requests (snapshot, Function 43, write,
+    # read-back)
+    assert "(1750 ms of it waits and pauses the device needs)" in out
     # the device URL's options override the profile's (a recipe's device.url: still an offline plan)
     text = Path(recipe).read_text().replace(
         "parameters:", 'device: {url: "tcp://127.0.0.1:502?pause_after_connect=0&pause_between_requests=0.1"}\n'
@@ -326,7 +327,7 @@ def test_plan_time_estimate_includes_the_pauses(tmp_path: Path, capsys: pytest.C
     Path(recipe).write_text(text)
     code, out, err = cli(capsys, "plan", recipe)
     assert code == 0, err
-    assert "(pauses the device needs included: 100 ms)" in out
+    assert "116 bytes in Modbus/TCP frames, 300 ms of waits" in out  # 3 pauses of 100 ms between 4 requests
 
 
 def test_bad_pause_is_an_error_at_its_position(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

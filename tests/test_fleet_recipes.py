@@ -262,7 +262,7 @@ def test_counts_read_as_english_and_percent_as_a_symbol(capsys: pytest.CaptureFi
     one = tmp_path / "one.yaml"
     one.write_text("recipe: one\nprofile: profiles/pid.yaml\nparameters:\n  P: 12.0 %\n")
     code, out, _ = cli(capsys, "plan", str(one), "--show-frames")
-    assert code == 0 and " 12 % " in out and "request 1: FC16 at 0x0010, 1 register (P)" in out
+    assert code == 0 and " 12 % " in out and "(write): FC16 at 0x0010, 1 register (P)" in out
     sim = Simulator(load_profile(str(tmp_path / "profiles" / "pid.yaml")))
     with Simulators([sim]):
         state = str(tmp_path / "s")

@@ -11,7 +11,7 @@ import pytest
 from deployer.errors import UsageError
 from deployer.planning.frames import Framing, request_frame, response_frame
 from deployer.planning.model import ReadRequest, Target, WriteRequest
-from deployer.planning.planner import make_plan
+from deployer.planning.steps import make_plan
 from deployer.profile import builtin_profile, codec
 from deployer.recipe.loader import Desired, Recipe, load_recipe
 from deployer.testing.simulator import SimulatorThread

@@ -12,7 +12,8 @@ from deployer.execute.device import apply_device
 from deployer.execute.read import read_current
 from deployer.execute.session import ApplyOptions
 from deployer.planning.model import Target
-from deployer.planning.planner import make_plan, plan_reads
+from deployer.planning.planner import plan_reads
+from deployer.planning.steps import make_plan
 from deployer.recipe.loader import load_recipe
 from deployer.report import DeviceResult
 from deployer.testing.simulator import Simulator

@@ -12,7 +12,7 @@ import pytest
 from deployer.execute.device import apply_device
 from deployer.execute.session import ApplyOptions
 from deployer.planning.model import Target
-from deployer.planning.planner import make_plan
+from deployer.planning.steps import make_plan
 from deployer.profile import load_profile
 from deployer.recipe.loader import load_recipe
 from deployer.testing.simulator import SimulatorThread

@@ -137,6 +137,7 @@ CLI_MAY_IMPORT = {
     "deployer.load.durations": "durations as the options read and show them (30s, 5m), light enough for start-up",
     "deployer.load.messages": "clipping long user text for a terminal line",
     "deployer.pages": "rendering reports and drift as HTML pages (--html)",
+    "deployer.planning.frames": "the exact bytes `plan --show-frames` prints of each step, a secret's words masked",
     "deployer.testing.simulator": "`deployer simulate` and `deployer demo` serve the simulator",
     "deployer.load.schema": "`deployer docs` and `profiles skeleton` show the JSON schemas",
     "deployer.agent": "`deployer agent` runs the site agent's server (its client is behind deployer.api)",

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from benchmarks.child import measured
 from deployer.errors import InputError
 from deployer.planning.model import Target
-from deployer.planning.planner import make_plan
+from deployer.planning.steps import make_plan
 from deployer.profile import load_profile
 from deployer.profile.emit import Draft, Origin, check
 from deployer.recipe.loader import load_recipe

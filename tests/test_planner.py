@@ -5,6 +5,8 @@ from __future__ import annotations
 import itertools
 import json
 from collections.abc import Sequence
+from dataclasses import replace
+from typing import Any
 
 import jsonschema
 import pytest
@@ -13,10 +15,11 @@ from hypothesis import strategies as st
 
 from deployer.errors import InputError, UsageError
 from deployer.load import schema, yamlsrc
-from deployer.planning.model import Plan, Target, WriteRequest
+from deployer.planning.model import Pacing, Plan, Step, Target
 from deployer.planning.planfile import plan_from_json, plan_to_json
-from deployer.planning.planner import make_plan, plan_reads, plan_writes
-from deployer.planning.wire import wire_stats
+from deployer.planning.planner import plan_reads, plan_writes
+from deployer.planning.steps import make_plan
+from deployer.planning.wire import plan_cost
 from deployer.profile import Limits, Parameter, Profile
 from deployer.profile.codec import register_count
 from deployer.recipe.loader import Desired, Recipe
@@ -259,17 +262,19 @@ def test_saved_plan_that_does_not_carry_its_values_is_refused() -> None:
     ds = [desired(param("a", 0))]
     prof = Profile(id="t", parameters=(ds[0].parameter,))
     data = plan_to_json(make_plan(Recipe("r", None, prof, tuple(ds)), Target(None, 1, "t")))
-    data["writes"][0]["registers"] = [8]
+    next(s for s in data["steps"] if s["kind"] == "write")["values"] = [8]
     with pytest.raises(InputError, match="does not carry exactly"):
         plan_from_json(data)
 
 
-def test_wire_stats() -> None:
+def test_plan_cost_counts_every_step() -> None:
     ds = [desired(param("a", 0, 2))]
     prof = Profile(id="t", parameters=(ds[0].parameter,))
     plan: Plan = make_plan(Recipe("r", None, prof, tuple(ds)), Target(None, 1, "t"))
-    st_ = wire_stats(plan)
-    assert st_["rtu_bytes"] == 13 + 8 and st_["requests"] == 1
+    # snapshot FC03 (8 + 9 bytes), device identification (7 + 16), the FC16 (13 + 8), the read-back (8 + 9)
+    c = plan_cost(plan, prof)
+    assert [s.kind for s in plan.steps] == ["snapshot", "device-id", "write", "verify"]
+    assert (c.requests, c.reads, c.writes, c.bytes) == (4, 3, 1, 17 + 23 + 21 + 17)
     assert register_count("uint32") == 2
 
 
@@ -453,24 +458,40 @@ def _plan() -> Plan:
 def test_plan_json_has_the_design_shape_and_validates() -> None:
     data = json.loads(json.dumps(plan_to_json(_plan())))
     jsonschema.Draft202012Validator(schema.schema("plan")).validate(data)
-    assert set(data) == {"schema", "recipe", "device", "parameters", "writes", "reads", "summary", "recipe_name"}
+    assert set(data) == {"schema", "recipe", "device", "profile_sha256", "pacing", "parameters", "steps",
+                         "recipe_name"}
     assert data["parameters"][0] == {"name": "a", "address": 0, "count": 2, "desired": "7", "desired_raw": [0, 7],
                                      "current_raw": [0, 0], "action": "write", "stage": 0}
-    assert data["writes"] == [{"function": 16, "address": 0, "count": 4, "registers": [0, 7, 7, 7],
-                               "parameters": ["a", "b", "c"], "stage": 0}]
-    assert data["reads"] == [{"function": 3, "address": 0, "count": 4}]
-    assert data["summary"]["bridge"] == 1 and data["summary"]["requests"] == 1
+    assert data["steps"] == [
+        {"kind": "snapshot", "function": 3, "address": 0, "count": 4, "parameters": ["a", "b", "c"]},
+        {"kind": "device-id", "function": 43, "address": 0, "count": 1, "note": "vendor, product code, revision"},
+        {"kind": "write", "function": 16, "address": 0, "count": 4, "values": [0, 7, 7, 7],
+         "parameters": ["a", "b", "c"], "stage": 0},
+        {"kind": "verify", "function": 3, "address": 0, "count": 4, "parameters": ["a", "b", "c"]}]
+    assert [p["action"] for p in data["parameters"]] == ["write", "bridge", "write"]
+
+
+def _write(d: dict[str, Any]) -> dict[str, Any]:
+    return next(s for s in d["steps"] if s["kind"] == "write")
 
 
 @pytest.mark.parametrize("edit, message", [
-    (lambda d: d["writes"][0]["registers"].__setitem__(0, 65536), "65536 is greater than the maximum"),
-    (lambda d: d.pop("reads"), "'reads' is a required property"),
-    (lambda d: d["writes"][0].__setitem__("count", 3), "count 3 but 4 registers"),
+    (lambda d: _write(d)["values"].__setitem__(0, 65536), "65536 is greater than the maximum"),
+    (lambda d: d.pop("steps"), "'steps' is a required property"),
+    (lambda d: _write(d).__setitem__("count", 3), "count 3 but 4 values"),
     (lambda d: d["parameters"][1].__setitem__("action", "unchanged"), "b is 'unchanged' but is in a write"),
-    (lambda d: d["writes"][0].__setitem__("parameters", ["a", "b"]), "does not carry exactly"),
-    (lambda d: d["writes"][0].__setitem__("parameters", ["a", "b", "zz"]), "names 'zz'"),
+    (lambda d: _write(d).__setitem__("parameters", ["a", "b"]), "does not carry exactly"),
+    (lambda d: _write(d).__setitem__("parameters", ["a", "b", "zz"]), "names 'zz'"),
     (lambda d: d["parameters"][0].__setitem__("desired_raw", [7]), "1 registers for count 2"),
-    (lambda d: d["writes"][0].__setitem__("function", 6), "does not carry exactly"),
+    (lambda d: _write(d).__setitem__("function", 6), "does not carry exactly"),
+    (lambda d: _write(d).__setitem__("function", 3), "function 3 does not fit a write step"),
+    (lambda d: d["steps"][0].__setitem__("values", [1, 2, 3, 4]), "a snapshot step reads: it carries no values"),
+    (lambda d: d["steps"].insert(0, dict(_write(d))), "a snapshot step after a later kind of step"),
+    (lambda d: d["steps"].append({"kind": "unlock", "function": 16, "address": 9, "count": 1, "values": [1],
+                                  "parameters": ["a"]}), "an unlock step after a later kind of step"),
+    (lambda d: d["steps"][0].__setitem__("expect", {"equals": 1}), "only identity and precondition steps"),
+    (lambda d: d.__setitem__("schema", "deployer.plan/1"), "make it again with: deployer plan r.yaml --device "
+                                                           "tcp://h:502 --out p.json"),
 ])
 def test_inconsistent_plans_are_refused_at_file_0_0(edit, message) -> None:  # type: ignore[no-untyped-def]
     data = json.loads(json.dumps(plan_to_json(_plan())))
@@ -483,7 +504,7 @@ def test_inconsistent_plans_are_refused_at_file_0_0(edit, message) -> None:  # t
 
 def test_plan_errors_carry_positions_with_a_source(tmp_path) -> None:  # type: ignore[no-untyped-def]
     data = plan_to_json(_plan())
-    data["writes"][0]["registers"][1] = 8
+    _write(data)["values"][1] = 8
     f = tmp_path / "p.json"
     f.write_text(json.dumps(data, indent=1))
     loaded, src = yamlsrc.load(str(f))
@@ -491,7 +512,7 @@ def test_plan_errors_carry_positions_with_a_source(tmp_path) -> None:  # type: i
         plan_from_json(loaded, str(f), src=src)
     (d,) = e.value.diagnostics
     lines = f.read_text().splitlines()
-    assert d.line > 1 and '"registers"' in lines[d.line - 1]
+    assert d.line > 1 and '"values"' in lines[d.line - 1]
     assert plan_from_json(yamlsrc.load(str(tmp_path / "ok.json"), json.dumps(plan_to_json(_plan())))[0]) == _plan()
 
 
@@ -503,15 +524,18 @@ def test_not_a_plan() -> None:
 # ---- wire statistics --------------------------------------------------------------------------------
 
 
-def test_wire_stats_numbers() -> None:
-    plan = _plan()  # one FC16 of 4 registers, one FC03 of 4
+def test_plan_cost_numbers() -> None:
+    plan = _plan()  # snapshot FC03 of 4, device identification, one FC16 of 4, the read-back FC03 of 4
     char = 11 / 19200
-    s = wire_stats(plan)
-    assert (s["requests"], s["registers"], s["rtu_bytes"]) == (1, 4, 17 + 8)
-    assert s["seconds_19200"] == pytest.approx((25 + 2 * 3.5) * char, abs=1e-6)
-    assert (s["read_requests"], s["read_rtu_bytes"]) == (1, 8 + 13)
-    broadcast = wire_stats(Plan(plan.recipe, Target(None, 0, "t"), plan.parameters, plan.writes, plan.reads))
-    assert broadcast["rtu_bytes"] == 17  # unit 0: nobody answers
-    assert broadcast["seconds_19200"] == pytest.approx((17 + 3.5) * char, abs=1e-6)
-    fc6 = wire_stats(Plan(None, Target(None, 1, "t"), (), (WriteRequest(6, 0, (1,), ("a",)),), ()))
-    assert fc6["rtu_bytes"] == 16
+    c = plan_cost(plan)
+    rtu = (8 + 13) + (7 + 16) + (17 + 8) + (8 + 13)
+    assert (c.requests, c.reads, c.writes, c.bytes, c.framing, c.line) == (4, 3, 1, rtu, "rtu", "19200 baud 8E1")
+    assert c.seconds == pytest.approx((rtu + 8 * 3.5) * char, abs=1e-6) and c.waits == 0
+    broadcast = plan_cost(replace(plan, device=Target(None, 0, "t"), steps=tuple(
+        s for s in plan.steps if s.kind == "write")))
+    assert broadcast.bytes == 17  # unit 0: nobody answers, nothing is read
+    assert broadcast.seconds == pytest.approx((17 + 3.5) * char, abs=1e-6)
+    fc6 = replace(plan, steps=(Step("write", 6, 0, 1, (1,), ("a",)),))
+    assert plan_cost(fc6).bytes == 16
+    paced = replace(plan, pacing=Pacing(0.5, 0.1))
+    assert plan_cost(paced).waits == pytest.approx(0.5 + 3 * 0.1)  # after connecting, then between 4 requests

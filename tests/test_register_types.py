@@ -19,7 +19,8 @@ from deployer.execute.device import apply_device
 from deployer.execute.session import ApplyOptions
 from deployer.planning.frames import request_frame, response_frame
 from deployer.planning.model import ReadRequest, Target, WriteRequest
-from deployer.planning.planner import make_plan, plan_reads
+from deployer.planning.planner import plan_reads
+from deployer.planning.steps import make_plan
 from deployer.profile import Profile, load_profile
 from deployer.recipe.loader import load_recipe
 from deployer.report import DeviceResult
@@ -265,16 +266,18 @@ def test_saved_plan_with_coils_runs_unchanged(tmp_path: Path, plc: Profile, caps
         code, _, err = cli(capsys, "plan", path, "--device", sim.url, "--out", plan_file)
         assert code == 0, err
         data = json.loads(Path(plan_file).read_text())
-        assert data["writes"] == [{"function": 15, "address": 19, "count": 2, "registers": [0, 1],
-                                   "parameters": ["relay1", "relay2"], "stage": 0}]
-        assert data["reads"] == [{"function": 1, "address": 19, "count": 2}]
+        write = next(s for s in data["steps"] if s["kind"] == "write")
+        assert write == {"kind": "write", "function": 15, "address": 19, "count": 2, "values": [0, 1],
+                         "parameters": ["relay1", "relay2"], "stage": 0}
+        assert [(s["function"], s["address"], s["count"]) for s in data["steps"] if s["kind"] == "snapshot"] == [
+            (1, 19, 2)]
         assert data["parameters"][0]["register_type"] == "coil"
         code, _, err = cli(capsys, "apply", plan_file, "--device", sim.url, "--yes",
                                "--state-dir", str(tmp_path / ".d"))
         assert code == 0, err
         assert (sim.read("relay1"), sim.read("relay2")) == ((0,), (1,))
         # a hand-edited plan cannot write a coil with a register function
-        data["writes"][0]["function"] = 16
+        write["function"] = 16
         Path(plan_file).write_text(json.dumps(data))
         code, _, err = cli(capsys, "validate", plan_file)
         assert code == 1 and "function 16 writes holdings, but relay1 is a coil" in err

@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 
 import deployer
-from deployer.execute.device import _facts, _planned, _shared, plan_digest
-from deployer.planning.model import Target
+from deployer.execute.device import Planners, Shared, parameter_results, plan_digest
+from deployer.planning.model import Pacing, Target
 from deployer.planning.planfile import plan_to_json
-from deployer.planning.planner import make_plan
+from deployer.planning.steps import Planner, make_plan
 from deployer.profile import builtin_profile
 from deployer.report import DeviceResult, ParameterResult, RequestRecord
 from tests.helpers import cli
@@ -26,25 +26,24 @@ PROFILE = builtin_profile("example-inverter")
 
 def test_a_shared_plan_is_the_devices_own_plan_and_digest(tmp_path: Path) -> None:
     rec = deployer.load_recipe(recipe(tmp_path))
-    shared = _shared(rec)
+    shared = Shared(Planner(rec))
     held = {"F07": (0, 500), "F08": (0, 1200), "stop_mode": (0,)}
     for url, unit in (("tcp://10.0.0.1:502", 1), ("rtu:///dev/ttyUSB0?baud=9600", 7)):
         target = Target(url, unit, "example-inverter")
-        plan, planned = _planned(rec, target, held, False, shared)
-        own = make_plan(rec, target, held, reads=shared.reads)
+        plan, entry = shared.plan(target, held, False)
+        own = make_plan(rec, target, held)
         assert plan == own
-        assert planned.digest(target) == plan_digest(own) == hashlib.sha256(
-            json.dumps(plan_to_json(own), sort_keys=True).encode()).hexdigest()
-        assert planned.facts == _facts(own, rec.profile)
-    a, shared_a = _planned(rec, Target("tcp://a:1", 1, "x"), held, False, shared)
-    b, shared_b = _planned(rec, Target("tcp://b:1", 1, "x"), held, False, shared)
-    assert a.writes is b.writes and shared_a is shared_b  # planned once
-    other, _ = _planned(rec, Target("tcp://a:1", 1, "x"), {**held, "F08": (0, 1)}, False, shared)
-    assert other.parameters != a.parameters and _planned(rec, other.device, {**held, "F08": (0, 1)}, False, shared)[
+        assert entry.digest(target) == plan_digest(own) == hashlib.sha256(json.dumps(
+            plan_to_json(own), sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode()).hexdigest()
+    a, entry_a = shared.plan(Target("tcp://a:1", 1, "x"), held, False)
+    b, entry_b = shared.plan(Target("tcp://b:1", 1, "x"), held, False)
+    assert a.steps is b.steps and entry_a is entry_b  # planned once
+    other, _ = shared.plan(Target("tcp://a:1", 1, "x"), {**held, "F08": (0, 1)}, False)
+    assert other.parameters != a.parameters and shared.plan(other.device, {**held, "F08": (0, 1)}, False)[
         1].digest(other.device) == plan_digest(other)
-    assert other == make_plan(rec, Target("tcp://a:1", 1, "x"), {**held, "F08": (0, 1)}, reads=shared.reads)
-    assert _planned(rec, Target("tcp://a:1", 1, "x"), held, True, shared)[0] == make_plan(
-        rec, Target("tcp://a:1", 1, "x"), held, write_all=True, reads=shared.reads)
+    assert other == make_plan(rec, Target("tcp://a:1", 1, "x"), {**held, "F08": (0, 1)})
+    assert Shared(Planner(rec, write_all=True)).plan(Target("tcp://a:1", 1, "x"), held, False)[0] == make_plan(
+        rec, Target("tcp://a:1", 1, "x"), held, write_all=True)
 
 
 def test_a_small_result_keeps_what_the_summary_and_the_journal_need() -> None:
@@ -81,13 +80,14 @@ def test_a_fleet_keeps_ok_devices_small_and_its_report_and_journal_whole(capsys:
 
 def test_a_broadcasts_plan_is_not_shared_with_a_device_that_answers(tmp_path: Path) -> None:
     rec = deployer.load_recipe(recipe(tmp_path))
-    shared = _shared(rec)
+    shared = Shared(Planner(rec))
     held = {"F07": (0, 500), "F08": (0, 1200), "stop_mode": (0,)}
     for unit in (1, 0, 1):
         target = Target("tcp://10.0.0.1:502", unit, "example-inverter")
-        plan, planned = _planned(rec, target, held, False, shared)
-        assert plan == make_plan(rec, target, held, reads=shared.reads)
-        assert planned.digest(target) == plan_digest(plan)
+        plan, entry = shared.plan(target, held, False)
+        assert plan == make_plan(rec, target, held)
+        assert entry.digest(target) == plan_digest(plan)
+        assert all(s.kind == "write" for s in plan.steps) == (unit == 0)  # nobody answers a broadcast's reads
 
 
 def test_apply_many_keeps_ok_devices_small_when_asked(tmp_path: Path) -> None:
@@ -249,13 +249,11 @@ def test_a_small_result_counts_every_outcome_as_the_full_one() -> None:
 
 def test_a_recipes_results_are_made_as_their_fields_say(tmp_path: Path) -> None:
     """The shared positional arguments follow ParameterResult's fields (a field moved would shift them)."""
-    from deployer.execute.device import _results
-
     (tmp_path / "d.yaml").write_text("recipe: d\nprofile: example-drive\nparameters:\n  control_mode: speed\n"
                                      "  encoder_resolution: 262144 count\n  direction: ccw\n  brake_mode: dynamic\n"
                                      "  axis_name: X1\n  speed_limit: 2500.5 rpm\n")
     rec = deployer.load_recipe(str(tmp_path / "d.yaml"))
-    got = _results(rec)
+    got = parameter_results(rec)
     assert list(got) == [d.name for d in rec.desired]
     for d in rec.desired:
         r = got[d.name]
@@ -263,7 +261,7 @@ def test_a_recipes_results_are_made_as_their_fields_say(tmp_path: Path) -> None:
                                     desired=d.text, desired_raw=d.registers, register_type=d.parameter.register_type)
         assert r.parameter is d.parameter and r.status == "skipped"
         assert r.before_raw is None and r.after_raw is None and r.error is None
-    assert _results(rec)[rec.desired[0].name] is not got[rec.desired[0].name]  # each device its own
+    assert parameter_results(rec)[rec.desired[0].name] is not got[rec.desired[0].name]  # each device its own
 
 
 def test_verify_compares_the_registers_then_the_fields_bits() -> None:
@@ -290,15 +288,15 @@ def test_devices_holding_other_values_get_their_own_plan_and_snapshot(tmp_path: 
     from deployer.state.snapshot import snapshot_values
 
     rec = deployer.load_recipe(recipe(tmp_path))
-    shared = _shared(rec)
+    shared = Shared(Planner(rec))
     held = {"F07": (0, 500), "F08": (0, 1200), "stop_mode": (0,)}
     other = {**held, "F07": (0, 700)}
-    _, a = _planned(rec, Target("tcp://a:1", 1, "x"), held, False, shared)
+    _, a = shared.plan(Target("tcp://a:1", 1, "x"), held, False)
     assert a.snapshot_values(rec.profile, held) == snapshot_values(rec.profile, held)
-    _, b = _planned(rec, Target("tcp://b:1", 1, "x"), other, False, shared)
+    _, b = shared.plan(Target("tcp://b:1", 1, "x"), other, False)
     assert b is not a and b.snapshot_values(rec.profile, other) == snapshot_values(rec.profile, other) != \
         a.snapshot_values(rec.profile, held)
-    assert _planned(rec, Target("tcp://c:1", 1, "x"), dict(held), False, shared)[1] is a
+    assert shared.plan(Target("tcp://c:1", 1, "x"), dict(held), False)[1] is a
 
 
 def test_a_fleets_snapshots_are_what_each_device_held(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -341,8 +339,6 @@ def test_a_fleets_snapshots_are_what_each_device_held(tmp_path: Path, capsys: py
 
 
 def test_devices_that_taught_the_same_limits_share_one_recipe_and_its_plans(tmp_path: Path) -> None:
-    from deployer.execute.device import _taught_limits
-    from deployer.execute.session import ApplyOptions
     from deployer.profile import profile_ref
     from deployer.state import learned
 
@@ -351,38 +347,21 @@ def test_devices_that_taught_the_same_limits_share_one_recipe_and_its_plans(tmp_
     for device, limits in (("a#unit1", {"max_write_registers": 2}), ("b#unit1", {"max_write_registers": 2}),
                            ("c#unit1", {"write_function": 6}), ("d#unit1", {"max_write_registers": 123})):
         learned.remember(state, learned.Entry(profile_ref(rec.profile), device, limits, "refused", "2024-01-01"))
-    opts = ApplyOptions(state_dir=state)
+    planners = Planners()
 
-    def taught(device: str) -> tuple[deployer.Recipe, list[str]]:
-        res = DeviceResult(device, "tcp://x:1", 1, rec.profile.id)
-        return _taught_limits(rec, opts, res, device), res.notices
+    def taught(device: str) -> deployer.Recipe:
+        entry = learned.lookup(state, profile_ref(rec.profile), device)
+        return rec if entry is None else planners.over_limits(rec, entry)
 
-    (a, said), (b, _), (c, _) = taught("a#unit1"), taught("b#unit1"), taught("c#unit1")
-    assert a is b is not rec and c is not a and said[0].startswith("using what this device taught")
+    a, b, c = taught("a#unit1"), taught("b#unit1"), taught("c#unit1")
+    assert a is b is not rec and c is not a
     assert a.profile.limits.max_write_registers == 2 and c.profile.limits.write_function == 6
-    assert taught("d#unit1") == (rec, []) and taught("e#unit1") == (rec, [])  # nothing tighter, nothing taught
+    assert taught("d#unit1") is rec and taught("e#unit1") is rec  # nothing tighter, nothing taught
     held = {"F07": (0, 500), "F08": (0, 1), "stop_mode": (0,)}
-    plan, shared = _planned(a, Target("tcp://a:1", 1, "x"), held, False, _shared(a))
-    assert plan == make_plan(a, Target("tcp://a:1", 1, "x"), held, reads=_shared(a).reads)
+    none = Pacing()
+    plan, entry = planners.shared(a, write_all=False, commit=True, pacing=none).plan(Target("tcp://a:1", 1, "x"),
+                                                                                      held, False)
+    assert plan == make_plan(a, Target("tcp://a:1", 1, "x"), held)
     assert all(w.count <= 2 for w in plan.writes)
-    assert _planned(b, Target("tcp://b:1", 1, "x"), held, False, _shared(b))[1] is shared
-
-
-def test_devices_reading_the_same_registers_share_their_values(tmp_path: Path) -> None:
-    from deployer.execute.verify import _values
-
-    rec = deployer.load_recipe(recipe(tmp_path))  # F07 and F08 (32-bit), stop_mode
-    shared = _shared(rec)
-    regs = {k: 7 * k % 65536 for _, a, n in shared.layout for k in range(a, a + n)}
-    first = shared.values(regs)
-    assert list(first.items()) == list(_values(shared.layout, regs).items())
-    first["F07"] = (1, 2)  # the caller's own dict
-    again = shared.values(dict(regs))
-    assert again == _values(shared.layout, regs) and again["F08"] is shared.values(regs)["F08"]  # made once
-    other = {**regs, shared.layout[0][1]: 9}
-    assert shared.values(other) == _values(shared.layout, other) != again
-    partial = {k: v for k, v in regs.items() if k != shared.layout[1][1]}  # a register not read: F08 has no value
-    assert shared.values(partial) == _values(shared.layout, partial) and "F08" not in shared.values(partial)
-    (tmp_path / "one.yaml").write_text("recipe: one\nprofile: example-inverter\nparameters:\n  stop_mode: coast\n")
-    one = _shared(deployer.load_recipe(str(tmp_path / "one.yaml")))  # one register: no tuple of words
-    assert one.values(regs) == _values(one.layout, regs) == {"stop_mode": (regs[one.layout[0][1]],)}
+    assert planners.shared(b, write_all=False, commit=True, pacing=none).plan(Target("tcp://b:1", 1, "x"), held,
+                                                                              False)[1] is entry

@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from deployer.planning.model import Target
-from deployer.planning.planner import make_plan
+from deployer.planning.steps import make_plan
 from deployer.profile import Profile, load_profile
 from deployer.profile.emit import Draft, Origin, check
 from deployer.recipe.loader import load_recipe

@@ -35,4 +35,5 @@ def test_plan_of_5000_parameters_prints_every_row(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.splitlines()
     assert sum(1 for ln in lines if ln.startswith(" P0")) == 5000
-    assert " P00001     0x0002 (2)     0004       0.4 Hz    1" in lines
+    # its write is the first step after the 125 snapshot reads and the Function 43 request
+    assert " P00001     0x0002 (2)     0004       0.4 Hz    127" in lines

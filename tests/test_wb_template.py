@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from deployer.planning.model import Target
-from deployer.planning.planner import make_plan
+from deployer.planning.steps import make_plan
 from deployer.profile import load_profile
 from deployer.recipe.loader import load_recipe
 from tests.helpers import cli
@@ -189,8 +189,9 @@ def test_round_trip_template_profile_recipe_plan(tmp_path: Path, capsys: pytest.
         (15, 5, (1, 0))]  # display_unit °F, buzzer off: one FC15
     code, out_text, err = cli(capsys, "plan", str(tmp_path / "r.yaml"), "--json")
     assert code == 0, err
-    assert json.loads(out_text)["writes"][3] == {"function": 15, "address": 5, "count": 2, "registers": [1, 0],
-                                                 "parameters": ["display_unit", "buzzer"], "stage": 0}
+    writes = [s for s in json.loads(out_text)["steps"] if s["kind"] == "write"]
+    assert writes[3] == {"kind": "write", "function": 15, "address": 5, "count": 2, "values": [1, 0],
+                         "parameters": ["display_unit", "buzzer"], "stage": 0}
 
 
 def test_object_form_and_no_channels(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -28,14 +28,16 @@ from ..errors import (
     Unreachable,
     UsageError,
 )
+from ..execute.connect import connected
+from ..execute.executor import check_identity
 from ..execute.job import Job
 from ..execute.session import ApplyOptions, Session
-from ..execute.steps import check_identity
 from ..execute.verify import values_of as _values_of
 from ..load.durations import format_duration, parse_duration
 from ..planning.model import Target
 from ..planning.planfile import plan_to_json
-from ..planning.planner import make_plan, plan_reads
+from ..planning.planner import plan_reads
+from ..planning.steps import make_plan, pacing_for
 from ..profile import Profile
 from ..recipe.loader import Recipe
 from ..report import DeviceResult, Report
@@ -359,7 +361,7 @@ class Agent:
             if job is not None and dev.last_values is not None:
                 plan = plan_to_json(make_plan(job.recipe, Target(describe(job.url), job.unit,
                                                                  job.recipe.profile_ref or job.recipe.profile.id),
-                                              dev.last_values))
+                                              dev.last_values, pacing=pacing_for(job.url, job.recipe.profile)))
             out.append({"name": dev.name, "changes": dev.pending, "plan": plan})
         return {"files_sha256": self.files.sha256 if self.files else None, "devices": out,
                 "problems": self.files_problem}
@@ -1090,10 +1092,12 @@ class _OtherModel(Exception):
 async def _read(profile: Profile, names: Sequence[str], url: tp.DeviceURL, unit: int, ask43: bool
                 ) -> tuple[dict[str, tuple[int, ...]], dict[str, str] | None, bool]:
     """One check's read: Function 43 objects (when the device answers it), the identity registers, the values."""
-    transport = tp.open_transport(url)
-    transport.set_pacing(*tp.pacing(url, profile.limits.pause_after_connect, profile.limits.pause_between_requests))
-    await transport.connect()
-    session = Session(transport, unit, retries=url.retries, backoff=0.05, records=[])
+    async with connected(url, unit, profile) as session:
+        return await _read_in(session, profile, names, url, unit, ask43)
+
+
+async def _read_in(session: Session, profile: Profile, names: Sequence[str], url: tp.DeviceURL, unit: int,
+                   ask43: bool) -> tuple[dict[str, tuple[int, ...]], dict[str, str] | None, bool]:
     try:
         objects = await session.identify() if ask43 else None
         from ..errors import IdentityMismatch
@@ -1107,8 +1111,6 @@ async def _read(profile: Profile, names: Sequence[str], url: tp.DeviceURL, unit:
         return values, objects, objects is not None
     except ExceptionResponse as e:
         raise Unreachable(f"{describe(url)} unit {unit}: reading answered {e}") from None
-    finally:
-        await transport.close()
 
 
 def _take_now(url: tp.DeviceURL, unit: int) -> list[lock.DeviceLock]:

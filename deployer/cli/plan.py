@@ -22,7 +22,6 @@ from .base import (
     fleet_option,
     limit_option,
     parallel_option,
-    read_device,
     recipe_or_inventory,
     safe,
 )
@@ -31,7 +30,7 @@ from .tables import Cell, show
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..api import DeviceURL, Job, Plan, Profile, Recipe
+    from ..api import DeviceURL, Job, Plan, Profile, Recipe, Step
 
 
 def _hexwords(regs: Sequence[int] | None) -> str:
@@ -39,48 +38,63 @@ def _hexwords(regs: Sequence[int] | None) -> str:
 
 
 def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console,
-               url: DeviceURL | None = None) -> None:
+               url: DeviceURL | None = None, steps: bool = True) -> None:
+    """The plan's parameters (``changes_only``: those it writes, current -> desired) and, with ``steps``, every
+    step apply takes on the device in order, and what that costs."""
     from ..api import address_text, plan_cost
 
-    req_of: dict[str, list[int]] = {}
-    for i, w in enumerate(plan.writes, 1):
-        for n in w.parameters:
-            req_of.setdefault(n, []).append(i)
-    headers = ["parameter", "address", "raw", "value", "request"]
+    step_of: dict[str, list[int]] = {}
+    for i, s in enumerate(plan.steps, 1):
+        if s.kind == "write":
+            for n in s.parameters:
+                step_of.setdefault(n, []).append(i)
+    headers = ["parameter", "address", "raw", "value", "step"]
     if changes_only:
-        headers = ["parameter", "address", "current -> desired", "raw", "action", "request"]
+        headers = ["parameter", "address", "current -> desired", "raw", "action", "step"]
     rows: list[list[Cell]] = []
     for pp in plan.parameters:
         if changes_only and pp.action == "unchanged":
             continue
         addr = address_text(pp.register_type, pp.address)
-        reqs = ",".join(str(i) for i in req_of.get(pp.name, [])) or "-"
+        at = ",".join(str(i) for i in step_of.get(pp.name, [])) or "-"
         if changes_only:
             p = profile.parameter(pp.name)
             cur = p.format_registers(pp.current_raw) if pp.current_raw is not None else "?"
-            rows.append([pp.name, addr, f"{cur} -> {pp.desired}", _hexwords(pp.desired_raw), pp.action, reqs])
+            rows.append([pp.name, addr, f"{cur} -> {pp.desired}", _hexwords(pp.desired_raw), pp.action, at])
         else:
-            rows.append([pp.name, addr, _hexwords(pp.desired_raw), pp.desired, reqs])
+            rows.append([pp.name, addr, _hexwords(pp.desired_raw), pp.desired, at])
     if rows:
         show(out, headers, rows)
         if not changes_only and any(profile.parameter(pp.name).mask for pp in plan.parameters):
             out.print("bit fields: raw shows their own bits; apply reads each such register right before writing "
-                      "it and keeps its other bits as the device holds them")
+                      "it (a read-modify-write step) and keeps its other bits as the device holds them")
     elif changes_only:
         out.print("No changes: the device already holds every value of the recipe.")
+    if steps:
+        print_steps(plan, out)
     cost = plan_cost(plan, profile, url)
+    writes = [s for s in plan.steps if s.kind == "write"]
     naive = sum(1 for pp in plan.parameters if pp.action != "unchanged")
     unchanged = sum(1 for pp in plan.parameters if pp.action == "unchanged")
-    framing, chars, seconds, line = cost["framing"], cost["characters"], cost["seconds"], cost["line"]
-    paused = f" (pauses the device needs included: {cost['pauses'] * 1000:.0f} ms)" if cost["pauses"] else ""
-    units = (f"{_n(chars, 'character')} on an ASCII line" if framing == "ascii"
-             else f"{_n(chars, 'byte')} on an RTU line")
+    coils = sum(s.count for s in writes if s.function in (5, 15))
+    registers = sum(s.count for s in writes)
+    units = (f"{_n(cost.bytes, 'character')} on an ASCII line" if cost.framing == "ascii"
+             else f"{_n(cost.bytes, 'byte')} in Modbus/TCP frames" if cost.framing == "tcp"
+             else f"{_n(cost.bytes, 'byte')} on an RTU line")
+    when = (f"about {cost.seconds * 1000:.0f} ms at {cost.line}" if cost.framing != "tcp"
+            else f"{cost.waits * 1000:.0f} ms of waits")
+    waits = f" ({cost.waits * 1000:.0f} ms of it waits and pauses the device needs)" \
+        if cost.waits and cost.framing != "tcp" else ""
     out.print(
-        f"{_n(len(plan.writes), 'write request')} "
-        f"({_what(cost['registers'], cost['coils'])}; one request per parameter would take {naive})"
+        f"{_n(len(writes), 'write request')} "
+        f"({_what(registers, coils)}; one request per parameter would take {naive})"
         + (f", {unchanged} unchanged" if unchanged else "")
-        + f"; {units}, about {seconds * 1000:.0f} ms at {line}{paused}"
-        + (" (broadcast: no answers)" if plan.device.unit == 0 else ""))
+        + f"; {_n(cost.requests, 'request')} in all ({cost.reads} reads, {cost.writes} writes): "
+        + f"{units}, {when}{waits}"
+        + (" (broadcast: no answers)" if plan.device.unit == 0 else ""), soft_wrap=True)
+    if cost.non_volatile_writes:
+        out.print(f"non-volatile memory: {_n(cost.non_volatile_writes, 'write')} "
+                  f"(storing {_n(len(cost.stores), 'parameter')})", soft_wrap=True)
 
 
 def _what(registers: int, coils: int) -> str:
@@ -90,25 +104,59 @@ def _what(registers: int, coils: int) -> str:
     return f"{_n(registers - coils, 'register')}, {_n(coils, 'coil')}"
 
 
+def step_text(step: Step) -> str:
+    """One step in words: 'FC16 at 0x00FF, 2 registers (control_mode, motor_poles); then wait 100 ms'."""
+    if step.function == 43:
+        what = f"FC43 device identification ({step.note})" if step.note else "FC43 device identification"
+    else:
+        noun = "coil" if step.function in (1, 5, 15) else "input" if step.function == 2 else "register"
+        what = f"FC{step.function:02d} at 0x{step.address:04X}, {_n(step.count, noun)}"
+        if step.writes and step.kind != "write":
+            what += ": " + ("(secret)" if step.values is None else _hexwords(step.values))
+        if step.expect is not None:
+            mask = step.expect.mask
+            what += (f": must hold 0x{step.expect.equals:04X}" if mask == 0xFFFF
+                     else f": bits 0x{mask:04X} must be {step.expect.equals}")
+        if step.parameters:
+            what += f" ({safe(', '.join(step.parameters))})"
+        elif step.note:
+            what += f" ({safe(step.note)})"
+    if step.kind == "commit":
+        what += "; only when every parameter verified"
+    if step.kind == "lock":
+        what += "; whenever the unlock went out"
+    if step.wait:
+        what += f"; then wait {step.wait * 1000:.0f} ms"
+    return what
+
+
+def print_steps(plan: Plan, out: Console) -> None:
+    if not plan.steps:
+        return
+    out.print("steps, in the order apply sends them:")
+    width = len(str(len(plan.steps)))
+    for i, step in enumerate(plan.steps, 1):
+        out.print(f"  {i:>{width}}  {step.kind:<17}  {step_text(step)}", markup=False, highlight=False,
+                  soft_wrap=True)
+
+
 def print_frames(plan: Plan, out: Console) -> None:
-    from ..api import plan_frames
+    from ..planning.frames import shown, step_frames
 
-    frames = {framing: plan_frames(plan, framing) for framing in ("rtu", "ascii", "tcp")}
-    for i, w in enumerate(plan.writes, 1):
-        names = ", ".join(w.parameters)
-        what = _n(w.count, "coil") if w.function in (5, 15) else _n(w.count, "register")
-        out.print(f"request {i}: FC{w.function:02d} at 0x{w.address:04X}, {what} ({safe(names)})")
-        for framing, sent in frames.items():
-            q, a = sent[i - 1]
-            out.print(f"  {framing:5} query    {_show(q, framing)}")
-            if a is None:  # broadcast: no device answers
-                out.print(f"  {'':5} response none (broadcast)")
+    unit = plan.device.unit
+    for i, step in enumerate(plan.steps, 1):
+        out.print(f"step {i} ({step.kind}): {step_text(step)}", markup=False, highlight=False, soft_wrap=True)
+        for framing in ("rtu", "ascii", "tcp"):
+            q, a = step_frames(step, unit, framing, i)
+            out.print(f"  {framing:5} query    {shown(step, q, unit, framing, i)}", markup=False, highlight=False,
+                      soft_wrap=True)
+            if a is None or not step.writes:
+                why = ("none (broadcast)" if unit == 0 else "the device's identification objects" if a is None
+                       else f"{len(a)} {'characters' if framing == 'ascii' else 'bytes'}, carrying the values read")
+                out.print(f"  {'':5} response {why}", markup=False, highlight=False, soft_wrap=True)
                 continue
-            out.print(f"  {'':5} response {_show(a, framing)}")
-
-
-def _show(frame: bytes, framing: str) -> str:
-    return frame.decode("ascii").strip() if framing == "ascii" else frame.hex(" ").upper()
+            out.print(f"  {'':5} response {shown(step, a, unit, framing, i, answer=True)}", markup=False,
+                      highlight=False)
 
 
 @click.command()
@@ -162,19 +210,28 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         from ..api import check_output
 
         check_output(out_path, what="the plan")
-    if url is not None:
-        from ..api import taught_recipe
+    if device is not None:  # the plan's checks run on the device (reads only), the plan made against them
+        import asyncio
 
-        rec, note = taught_recipe(rec, url, u, state_dir=state_dir)
-        if note is not None:
-            echo(f"note: {safe(note)}", err=as_json)
-    current = None
-    if device is not None:
+        from ..api import TransportError, plan_async
+
         assert url is not None
-        current = read_device(rec.profile, [d.name for d in rec.desired], url, u)
-        if current is None:
+        notes: list[str] = []
+        try:
+            p = asyncio.run(plan_async(rec, url, u, write_all=write_all, state_dir=state_dir, notices=notes))
+        except TransportError as e:
+            echo(f"error: {safe(e)}", err=True)
             return EXIT_UNREACHABLE
-    p = plan_values(rec, current, url, u, write_all=write_all)
+        for note in notes:
+            echo(f"note: {safe(note)}", err=as_json)
+    else:
+        if url is not None:
+            from ..api import taught_recipe
+
+            rec, taught = taught_recipe(rec, url, u, state_dir=state_dir)
+            if taught is not None:
+                echo(f"note: {safe(taught)}", err=as_json)
+        p = plan_values(rec, None, url, u, write_all=write_all)
     data = plan_to_json(p)
     if out_path:
         os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
@@ -184,7 +241,7 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     else:
         out = console()
         out.print(f"profile: {safe(rec.profile.id)} ({safe(rec.profile.source or 'built-in')})")
-        print_plan(p, rec.profile, changes_only=current is not None, out=out, url=url)
+        print_plan(p, rec.profile, changes_only=device is not None, out=out, url=url)
         if show_frames:
             print_frames(p, out)
         if out_path:
@@ -198,27 +255,11 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
                write_all: bool, per_device: bool = False, state_dir: str = ".deployer") -> int:
     """A plan per device against what it holds, devices with identical changes together (``per_device``:
     each device's table); exit 3 if any device could not be read, else as plan."""
-    from dataclasses import replace
+    from ..api import plan_to_json
+    from .progress import plan_fleet as planned_fleet  # rich: only fleets pay for importing it
 
-    from ..api import plan_to_json, plan_values, read_jobs, taught_recipe
-
-    taught_jobs = []
-    for j in jobs:
-        r, note = taught_recipe(j.recipe, j.url, j.unit, state_dir=state_dir)
-        if note is not None:
-            echo(f"note: {safe(j.name)}: {safe(note)}", err=as_json)
-            j = replace(j, recipe=r)
-        taught_jobs.append(j)
-    jobs = taught_jobs
-
-    from .progress import read_fleet  # rich: only fleets pay for importing it
-
-    values = read_fleet(read_jobs(jobs), parallel)
-    plans = {}
-    for j in jobs:
-        cur = values[j.name]
-        if not isinstance(cur, Exception):
-            plans[j.name] = plan_values(j.recipe, cur, j.url, j.unit, write_all=write_all)
+    values = planned_fleet(jobs, parallel, write_all=write_all, state_dir=state_dir)
+    plans = {n: p for n, p in values.items() if not isinstance(p, Exception)}
     changing = [n for n, p in plans.items() if p.writes]
     if as_json:
         echo(json.dumps({"recipe": rec.path if rec else None, "devices": [

@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from rich.live import Live
     from rich.progress import Progress
 
-    from ..api import DeviceResult, ReadJob, Report
+    from ..api import DeviceResult, Job, Plan, ReadJob, Report
     from .tables import Cell
 
 STYLE = {"rolled-back": "bold yellow", "interrupted": "bold red",
@@ -151,3 +151,19 @@ def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tu
         if isinstance(v, Exception):
             echo(f"{safe(name)}: unreachable - {safe(v)}", err=True)
     return dict(values)
+
+
+def plan_fleet(jobs: Sequence[Job], parallel: int, *, write_all: bool, state_dir: str) -> dict[str, Plan | Exception]:
+    """Every device's plan against what it holds (a live display on a terminal); errors are said on stderr."""
+    from ..api import plan_fleet_async
+
+    err = console(stderr=True)
+    progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
+    with progress:
+        plans = asyncio.run(plan_fleet_async(
+            jobs, parallel=parallel, write_all=write_all, state_dir=state_dir,
+            on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")))
+    for name, v in plans.items():
+        if isinstance(v, Exception):
+            echo(f"{safe(name)}: unreachable - {safe(v)}", err=True)
+    return dict(plans)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..planning.model import Plan
 from ..recipe.loader import Recipe
 from ..transport import clients as tp
 
@@ -17,3 +18,4 @@ class Job:
     group: str | None = None  # the first group an inventory lists for the device (--batch-by group)
     hold_commit: bool = False  # a rollback of a run that never sent its commit there: it sends none either
     commit_owed: bool = False  # ``--limit @REPORT``: its commit failed there; sent even with nothing to write
+    plan: Plan | None = None  # ``apply PLAN.json``: the saved plan, executed unchanged

@@ -20,6 +20,7 @@ from ..planning.planner import plan_reads, read_key
 from ..profile import Parameter, Profile, codec, object_name, units
 from ..report import RequestRecord
 from ..transport import clients as tp
+from .connect import connected
 from .session import Session
 from .verify import values_of
 
@@ -74,16 +75,9 @@ async def probe(profile: Profile, url: tp.DeviceURL, unit: int, expect: Mapping[
     """Raises Unreachable, DeviceGone (the device stopped answering)."""
     wanted = {name: parse_expected(profile.parameter(name), text) for name, text in expect.items()}
     result = ProbeResult()
-    transport = tp.open_transport(url)
-    lim = profile.limits
-    transport.set_pacing(*tp.pacing(url, lim.pause_after_connect, lim.pause_between_requests))
-    await transport.connect()
-    session = Session(transport, unit, retries=url.retries, backoff=0.05, records=result.requests)
-    try:
+    async with connected(url, unit, profile, records=result.requests) as session:
         await _identity(session, profile, result)
         regs = await _read_all(session, profile, result)
-    finally:
-        await transport.close()
     readable = [p for p in profile.parameters if p.readable]
     held = values_of(readable, regs)
     for p in readable:

@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 from ..errors import ConnectionLost, ExceptionResponse, NoResponse, Unreachable
 from ..profile import object_name
 from ..transport import clients as tp
+from .connect import opened
 
 GATEWAY_SILENT = (10, 11)  # gateway path unavailable, gateway target device failed to respond
 
@@ -44,7 +45,7 @@ async def scan(url: tp.DeviceURL, units: Iterable[int], *, register: int = 0,
                on_unit: Callable[[int, UnitFound | None], None] | None = None) -> ScanResult:
     """Ask each unit of ``units`` on ``url`` (its ``timeout`` per unit, no retries). Raises Unreachable."""
     url = replace(url, retries=0)
-    transport = tp.open_transport(url)
+    transport = opened(url, None)  # one connection for every unit: the bus's pacing (the URL's) for all
     start = time.monotonic()
     found: list[UnitFound] = []
     asked = 0

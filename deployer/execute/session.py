@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -33,7 +33,6 @@ class ApplyOptions:
     allow_broadcast: bool = False
     state_dir: str = ".deployer"
     backoff: float = 0.05  # first retry delay in seconds; doubles per attempt
-    expected: Plan | None = None  # apply PLAN.json: run exactly this plan
     confirm: Confirm | None = None
     run_id: str | None = None  # journal lines in STATE/audit.jsonl carry it (None: no journal)
     applied: str | None = None  # what is being applied (recipe or plan file), recorded in the snapshot
@@ -85,9 +84,25 @@ class Session:
         self.backoff = backoff
         self.records = records
         self.gap_reads = True  # False once the device refused a read across undeclared registers
+        # what the executor is doing, stamped on every request it logs: the plan's step, and a deviation from it
+        self.step: int | None = None
+        self.deviation: str | None = None
+
+    def _log(self, record: RequestRecord) -> None:
+        record.step, record.deviation = self.step, self.deviation
+        self.records.append(record)
+
+    @contextlib.contextmanager
+    def deviating(self, kind: str) -> Iterator[None]:
+        """Requests sent inside are a deviation of ``kind`` from the current step (what only the device decided)."""
+        was, self.deviation = self.deviation, kind
+        try:
+            yield
+        finally:
+            self.deviation = was
 
     async def _call(self, record: RequestRecord, op: Callable[[], Awaitable[list[int] | None]]) -> list[int] | None:
-        self.records.append(record)
+        self._log(record)
         attempt = 0
         while True:
             raise_if_cancelled()
@@ -128,7 +143,7 @@ class Session:
         texts by object name, or None for a device without it. One attempt, never an error: devices
         answer 01, or nothing, or drop the connection for a function they lack (it is opened again)."""
         rec = RequestRecord(43, 0, 1)
-        self.records.append(rec)
+        self._log(rec)
         try:
             objects = await self.transport.read_device_identification(self.unit)
         except ExceptionResponse as e:
@@ -164,23 +179,37 @@ class Session:
         else:
             await self._call(rec, lambda: _none(t.write_registers(req.address, list(req.registers), unit)))
 
-    async def read_blocks(self, reads: Iterable[ReadRequest], profile: Profile | None = None) -> dict[int, int]:
+    async def read_blocks(self, reads: Iterable[ReadRequest], profile: Profile | None = None, *,
+                          steps: Sequence[int] | None = None) -> dict[int, int]:
         """Registers of every block, by key (Parameter.key; a holding register's key is its address).
 
-        With ``profile``: when the device refuses a read across
-        undeclared registers (exception 02), the rest of the reads, that one included, and every
-        later read of this session go in gap-free blocks (the refused request stays in the
-        report, followed by the fallback reads)."""
+        With ``profile``: when the device refuses a read across undeclared registers (exception 02), the rest of
+        the reads, that one included, and every later read of this session go in gap-free blocks (the refused
+        request stays in the report, followed by the fallback reads: a ``gap-free`` deviation). ``steps``: the
+        plan step each block executes, stamped on its request (the gap-free blocks: on the first step they
+        stand in for)."""
         todo = list(reads)
+        numbers = list(steps) if steps is not None else None
         regs: dict[int, int] = {}
+        gap_free = False  # the blocks from here on replace the planned ones (a deviation)
         i = 0
         while i < len(todo):
             if profile is not None and profile.limits.max_read_gap and not self.gap_reads:
-                todo[i:] = gap_free_reads(profile, todo[i:])
+                replaced = todo[i:]
+                todo[i:] = gap_free_reads(profile, replaced)
                 profile = None  # planned once: read on as planned
+                gap_free = todo[i:] != replaced
+                if numbers is not None:  # every block from here on stands in for the first step not read
+                    numbers[i:] = [numbers[i]] * (len(todo) - i)
             r = todo[i]
+            if numbers is not None:
+                self.step = numbers[i]
             try:
-                values = await self.read(r.address, r.count, r.function)
+                if gap_free:
+                    with self.deviating("gap-free"):
+                        values = await self.read(r.address, r.count, r.function)
+                else:
+                    values = await self.read(r.address, r.count, r.function)
             except ExceptionResponse as e:
                 if (profile is None or not profile.limits.max_read_gap or e.code != 2
                         or gap_free_reads(profile, [r]) == (r,)):

@@ -11,10 +11,11 @@ from dataclasses import dataclass, replace
 from typing import Protocol, TypeVar
 
 from ..errors import Declined, RunInterrupted, StalePlan, TransportError, UsageError
-from ..execute.device import DeviceInterrupted, _apply_device, _results, journal_line
+from ..execute.device import DeviceInterrupted, Planners, apply_job, journal_line, parameter_results
 from ..execute.job import Job
-from ..execute.read import read_current
+from ..execute.read import plan_device, read_current
 from ..execute.session import ApplyOptions, raise_if_cancelled
+from ..planning.model import Plan
 from ..profile import Profile, profile_ref
 from ..report import DeviceResult, Report
 from ..transport import clients as tp
@@ -93,7 +94,7 @@ def skipped_result(job: Job, reason: str, batch: int | None = None, *, parameter
                      profile_ref=profile_ref(job.recipe.profile), recipe=job.recipe.path, batch=batch,
                      profile_sha256=job.recipe.profile.digest)
     if parameters:
-        r.parameters = list(_results(job.recipe).values())
+        r.parameters = list(parameter_results(job.recipe).values())
     return r
 
 
@@ -222,6 +223,7 @@ class _Rollout:
         self.stop: str | None = None
         self.started = time.monotonic()
         self.pool: Pool | None = None  # worker processes running the devices (None: this process does)
+        self.planners = Planners()  # the devices of one recipe share its planner and their plans
 
     async def batches(self, sizes: Sequence[int], parallel: int,
                       between: Callable[[int, Report], Awaitable[str | None]] | None) -> None:
@@ -262,10 +264,7 @@ class _Rollout:
         t = time.monotonic()
         finishing: Awaitable[object] | None = None
         try:
-            opts = self.opts
-            if j.commit_owed or j.hold_commit:
-                opts = replace(opts, commit_owed=j.commit_owed, hold_commit=opts.hold_commit or j.hold_commit)
-            r, finishing = await _apply_device(j.recipe, j.url, j.unit, name=j.name, options=opts, batch=batch)
+            r, finishing = await apply_job(j, self.opts, batch=batch, planners=self.planners)
         except DeviceInterrupted as e:
             e.result.seconds = time.monotonic() - t
             self.done[j.name] = e.result
@@ -281,7 +280,7 @@ class _Rollout:
             r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),
                              profile_ref=profile_ref(j.recipe.profile), recipe=j.recipe.path, batch=batch,
                              profile_sha256=j.recipe.profile.digest)
-            r.parameters = list(_results(j.recipe).values())
+            r.parameters = list(parameter_results(j.recipe).values())
         r.seconds = time.monotonic() - t
         self.done[j.name] = r
         self.budget.count(r)
@@ -323,7 +322,7 @@ class _Rollout:
             r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=said[0],
                              profile_ref=profile_ref(j.recipe.profile), recipe=j.recipe.path, batch=batch,
                              profile_sha256=j.recipe.profile.digest)
-            r.parameters = list(_results(j.recipe).values())
+            r.parameters = list(parameter_results(j.recipe).values())
             r.seconds = time.monotonic() - call.started
         else:
             self.budget.failures += said[0] not in SPENDS_NOTHING
@@ -352,7 +351,7 @@ class _Rollout:
                     error=(f"{why}; some parameters may hold new values: restore with: deployer rollback {r.snapshot}"
                            if r.snapshot else f"{why} before its first write; nothing was written"))
         if not r.parameters:
-            r.parameters = list(_results(j.recipe).values())
+            r.parameters = list(parameter_results(j.recipe).values())
         return r
 
     def written(self, batch: Sequence[Job]) -> list[Written]:
@@ -409,6 +408,29 @@ async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,
     return {j.name: out[j.name] for j in jobs}
 
 
+
+
+async def plan_many(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
+                    state_dir: str | None = ".deployer", on_done: Callable[[str, str | None], None] | None = None,
+                    ) -> dict[str, Plan | TransportError | UsageError]:
+    """Each device's plan against what it holds now (fleet plan, check mode): its checks run, nothing written;
+    per device its plan or why not. The devices of one recipe share its planner."""
+
+    out: dict[str, Plan | TransportError | UsageError] = {}
+    planners = Planners()
+
+    async def one(j: Job) -> None:
+        try:
+            out[j.name] = await plan_device(j.recipe, j.url, j.unit, write_all=write_all, state_dir=state_dir,
+                                            planners=planners)
+        except (TransportError, UsageError) as e:
+            out[j.name] = e
+        if on_done:
+            res = out[j.name]
+            on_done(j.name, str(res) if isinstance(res, Exception) else None)
+
+    await on_buses(jobs, parallel, one)
+    return {j.name: out[j.name] for j in jobs}
 
 
 # ---- staged rollouts ---------------------------------------------------------------------------

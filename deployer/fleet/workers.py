@@ -85,8 +85,6 @@ def ineligible(opts: ApplyOptions, *, rollback_on_failure: bool) -> str | None:
         return "--rollback-on-failure rolls devices back from this process"
     if opts.confirm is not None:
         return "a question before each device's write needs this process's terminal"
-    if opts.expected is not None:
-        return "a saved plan is for one device"
     if opts.lock_held or opts.keep_lock is not None:
         return "this process holds the devices' locks"
     return None
@@ -586,7 +584,7 @@ def _loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
 async def _serve(connect: Callable[[_Link], Awaitable[None]]) -> None:
     import gc
 
-    from ..execute.device import DeviceInterrupted, _apply_device, journal_line
+    from ..execute.device import DeviceInterrupted, Planners, apply_job, journal_line
     from ..execute.job import Job
     from ..portable import raise_open_files
     from ..report import device_json
@@ -634,13 +632,12 @@ async def _serve(connect: Callable[[_Link], Awaitable[None]]) -> None:
             tasks.pop(index, None)
             index_of.pop(job.name, None)
 
+    planners = Planners()  # the devices of one recipe share its planner and their plans
+
     async def run(index: int, batch: int | None, job: Job) -> None:
-        o = opts
-        if job.commit_owed or job.hold_commit:
-            o = replace(o, commit_owed=job.commit_owed, hold_commit=o.hold_commit or job.hold_commit)
         t = time.monotonic()
         try:
-            res, finishing = await _apply_device(job.recipe, job.url, job.unit, name=job.name, options=o, batch=batch)
+            res, finishing = await apply_job(job, opts, batch=batch, planners=planners)
         except DeviceInterrupted as e:
             e.result.seconds = time.monotonic() - t
             send(("interrupted", index, _bare(e.result)))

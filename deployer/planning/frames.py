@@ -1,6 +1,7 @@
 """Exact bytes of each request and its normal answer, rendered by pymodbus's own framers.
 
-Used by ``plan --show-frames`` and the golden tests against the manuals' example frames.
+Used by ``plan --show-frames`` (every step of a plan: ``step_frames``, ``shown``) and the golden tests against
+the manuals' example frames.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from pymodbus.pdu.bit_message import (
     WriteSingleCoilRequest,
     WriteSingleCoilResponse,
 )
+from pymodbus.pdu.mei_message import ReadDeviceInformationRequest
 from pymodbus.pdu.register_message import (
     ReadHoldingRegistersRequest,
     ReadHoldingRegistersResponse,
@@ -32,7 +34,7 @@ from pymodbus.pdu.register_message import (
 )
 
 from ..errors import UsageError
-from .model import ReadRequest, WriteRequest
+from .model import DEVICE_ID, ReadRequest, Step, WriteRequest
 
 Framing = Literal["rtu", "ascii", "tcp"]
 _FRAMERS = {"rtu": FramerRTU, "ascii": FramerAscii, "tcp": FramerSocket}
@@ -122,3 +124,50 @@ def response_frame(req: WriteRequest | ReadRequest, unit: int, framing: Framing,
     else:
         pdu = WriteMultipleRegistersResponse(address=req.address, count=req.count, dev_id=unit, transaction_id=tid)
     return _frame(pdu, framing)
+
+
+# ---- plan steps -----------------------------------------------------------------------------------
+
+
+def _as_request(step: Step, values: tuple[int, ...] | None = None) -> WriteRequest | ReadRequest:
+    if step.writes:
+        words = values if values is not None else (step.values if step.values is not None else (0,) * step.count)
+        return step.write(words)
+    return step.read()
+
+
+def step_frames(step: Step, unit: int, framing: Framing, transaction_id: int = 1) -> tuple[bytes, bytes | None]:
+    """A plan step as (the query, the device's normal answer) on the wire; the answer is None for a broadcast
+    and for Function 43 (its texts are the device's). A secret step's words go as zeros: ``shown`` masks them."""
+    tid = transaction_id if framing == "tcp" else 0
+    if step.function == DEVICE_ID:
+        if not 0 <= unit <= 255:
+            raise UsageError(f"unit {unit} is outside 0..255")
+        pdu = ReadDeviceInformationRequest(read_code=1, object_id=step.address, dev_id=unit, transaction_id=tid)
+        return _frame(pdu, framing), None
+    req = _as_request(step)
+    query = request_frame(req, unit, framing, transaction_id)
+    return query, None if unit == 0 else response_frame(req, unit, framing, transaction_id=transaction_id)
+
+
+def shown(step: Step, frame: bytes, unit: int, framing: Framing, transaction_id: int = 1, *, answer: bool = False
+          ) -> str:
+    """A frame as text (hex bytes; ASCII as its characters) with a secret step's words and the checksum that
+    depends on them masked (``**``): the bytes that change when the words do."""
+    text = frame.decode("ascii").strip() if framing == "ascii" else frame.hex(" ").upper()
+    if not step.secret or (answer and step.function == 16):
+        return text
+    variants = []
+    for word in (0x0000, 0xFFFF, 0x5A5A):
+        req = _as_request(step, (word,) * step.count)
+        f = response_frame(req, unit, framing, transaction_id=transaction_id) if answer \
+            else request_frame(req, unit, framing, transaction_id)
+        variants.append(f.decode("ascii").strip() if framing == "ascii" else f.hex(" ").upper())
+    if framing == "ascii":
+        return "".join("*" if len({v[i] for v in variants}) > 1 or i >= len(text) - 2 else c
+                       for i, c in enumerate(text))
+    parts = [v.split(" ") for v in variants]
+    own = text.split(" ")
+    check = 2 if framing == "rtu" else 0  # the CRC depends on the words whatever their value
+    return " ".join("**" if len({p[i] for p in parts}) > 1 or i >= len(own) - check else b
+                    for i, b in enumerate(own))

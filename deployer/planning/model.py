@@ -1,13 +1,33 @@
-"""The plan: a plain, serializable value (targets, planned parameters, write and read requests)."""
+"""The plan: a plain, serializable value saying every step apply takes on a device, in order.
+
+A plan is complete: the identity checks, the reads of the current values (the snapshot), the
+preconditions, the unlock, each write (with the read before a bit-field write), the read-back, the
+commit and the lock, with the waits the profile asks for. ``apply`` executes exactly these steps;
+what only the device can decide (a refused request split, a retry) is reported as a named
+deviation from the step it replaces (``deployer/execute``), never as a step of its own.
+"""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Literal
 
-PLAN_SCHEMA = "deployer.plan/1"
+PLAN_SCHEMA = "deployer.plan/2"
+OLD_SCHEMAS = ("deployer.plan/1",)  # refused with the command that makes the plan again
 Action = Literal["write", "unchanged", "bridge"]
 COIL_WRITES = (5, 15)  # Write Single Coil, Write Multiple Coils
+WRITE_FUNCTIONS = (5, 6, 15, 16)
+READ_FUNCTIONS = (1, 2, 3, 4)
+DEVICE_ID = 43  # Read Device Identification (MEI type 14): basic objects
+
+# The kinds of step, in the order they can come. The first four check the device and read what it holds,
+# before anything is planned against it (``CHECKS``); the rest change it.
+StepKind = Literal["identity", "snapshot", "device-id", "firmware", "precondition", "unlock", "read-modify-write",
+                   "write", "verify", "commit", "lock"]
+STEP_KINDS: tuple[StepKind, ...] = ("identity", "snapshot", "device-id", "firmware", "precondition", "unlock",
+                                    "read-modify-write", "write", "verify", "commit", "lock")
+CHECKS: frozenset[str] = frozenset(("identity", "snapshot", "device-id", "firmware"))
 
 
 @dataclass(frozen=True)
@@ -15,6 +35,18 @@ class Target:
     url: str | None
     unit: int
     profile: str  # built-in id, or the profile file's path
+
+
+@dataclass(frozen=True)
+class Pacing:
+    """Seconds of silence the device needs: after a connection opens, and from an answer to the next request
+    (the URL's ``pause_after_connect``/``pause_between_requests``, else the profile's)."""
+
+    after_connect: float = 0.0
+    between_requests: float = 0.0
+
+
+NO_PAUSES = Pacing()
 
 
 @dataclass(frozen=True)
@@ -52,11 +84,120 @@ class ReadRequest:
 
 
 @dataclass(frozen=True)
+class Expect:
+    """What a checking read must find: ``(word & mask) >> shift == equals`` (shift: the mask's lowest bit)."""
+
+    equals: int
+    mask: int = 0xFFFF
+
+    def holds(self, word: int) -> bool:
+        return (word & self.mask) >> _shift(self.mask) == self.equals
+
+    def found(self, word: int) -> int:
+        return (word & self.mask) >> _shift(self.mask)
+
+
+def _shift(mask: int) -> int:
+    return (mask & -mask).bit_length() - 1 if mask else 0
+
+
+@dataclass(frozen=True)
+class Step:
+    """One request of a plan (and the wait after it).
+
+    ``values``: the words (coils: 0/1) a write sends; None for a secret (an unlock password from the
+    environment), which the executor takes from the profile and no output shows. ``parameters``: the recipe
+    parameters it writes, reads back or reads before a bit-field write. ``expect``: what an identity or
+    precondition read must find. ``wait``: seconds the device needs after it (a stage's settling, a commit's
+    store, an unlock's window). ``note``: the profile's description ("drive stopped", "store to EEPROM").
+    """
+
+    kind: StepKind
+    function: int
+    address: int
+    count: int
+    values: tuple[int, ...] | None = ()
+    parameters: tuple[str, ...] = ()
+    stage: int = 0
+    wait: float = 0.0
+    expect: Expect | None = None
+    note: str = ""
+
+    @property
+    def writes(self) -> bool:
+        return self.function in WRITE_FUNCTIONS
+
+    @property
+    def secret(self) -> bool:
+        return self.values is None
+
+    def read(self) -> ReadRequest:
+        return ReadRequest(self.address, self.count, self.function)
+
+    def write(self, values: tuple[int, ...] | None = None) -> WriteRequest:
+        """The step as a write request (``values``: a secret's words, from the profile)."""
+        words = self.values if values is None else values
+        assert words is not None, "a secret step's words come from the profile"
+        return WriteRequest(self.function, self.address, words, self.parameters, self.stage)
+
+
+@dataclass(frozen=True)
+class Cost:
+    """What executing a plan costs one device, all its steps counted (every step sent once, no retries).
+
+    ``bytes``: requests and answers in the URL's framing (RTU at Modbus's default 19200 8E1 without one);
+    ``seconds``: their time on the line at its baud rate (serial framings; 0 for Modbus/TCP, whose time is
+    the network's) plus ``waits``, the pauses and waits the steps and the pacing ask for.
+    ``non_volatile_writes``: the writes the device stores in memory that wears (a commit's, or every write on
+    a profile that states an ``endurance`` and has no commit); ``stores``: the parameters they make lasting.
+    """
+
+    requests: int
+    reads: int
+    writes: int
+    bytes: int
+    framing: str
+    line: str  # "19200 baud 8E1", "Modbus/TCP"
+    seconds: float
+    waits: float
+    non_volatile_writes: int
+    stores: tuple[str, ...]
+
+
+@dataclass(frozen=True)
 class Plan:
+    """Every step apply takes on one device, in order; and what it does with each recipe parameter."""
+
     recipe: str | None
     device: Target
     parameters: tuple[PlannedParameter, ...]
-    writes: tuple[WriteRequest, ...]
-    reads: tuple[ReadRequest, ...]
+    steps: tuple[Step, ...]
     schema: str = PLAN_SCHEMA
     recipe_name: str | None = None  # the recipe's own name: snapshots of 'apply PLAN.json' are named after it
+    pacing: Pacing = NO_PAUSES
+    profile_sha256: str | None = None  # the profile file's digest (None: built-in); a saved plan runs with it only
+
+    @functools.cached_property
+    def writes(self) -> tuple[WriteRequest, ...]:
+        """The recipe's write requests (``write`` steps), in order."""
+        return tuple(s.write() for s in self.steps if s.kind == "write")
+
+    @functools.cached_property
+    def reads(self) -> tuple[ReadRequest, ...]:
+        """The blocks read before writing (the snapshot) and after (the read-back): the same ones."""
+        return tuple(s.read() for s in self.steps if s.kind == "snapshot")
+
+    @functools.cached_property
+    def checks(self) -> int:
+        """How many steps lead the plan that only check the device and read what it holds (``CHECKS``)."""
+        n = 0
+        for s in self.steps:
+            if s.kind not in CHECKS:
+                break
+            n += 1
+        return n
+
+    @property
+    def changes(self) -> bool:
+        """Whether executing the plan writes anything."""
+        return any(s.writes for s in self.steps)

@@ -1,56 +1,100 @@
-"""Saved plans (`plan --out`): JSON to Plan and back, checked against the plan schema."""
+"""Saved plans (`plan --out`): JSON to Plan and back, checked against the plan schema and the profile."""
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
 from ..errors import CodecError, Diagnostic, InputError, UsageError
-from .model import COIL_WRITES, Plan, PlannedParameter, ReadRequest, Target, WriteRequest
-from .wire import wire_stats
+from .model import (
+    COIL_WRITES,
+    OLD_SCHEMAS,
+    STEP_KINDS,
+    Cost,
+    Expect,
+    Pacing,
+    Plan,
+    PlannedParameter,
+    Step,
+    Target,
+)
 
 if TYPE_CHECKING:
     from ..load.yamlsrc import Source
+    from ..profile import Profile
     from ..recipe.loader import Recipe
 
 
 # ---- JSON ------------------------------------------------------------------------------------
 
 
-def plan_to_json(plan: Plan) -> dict[str, Any]:
-    """The plan as saved-plan JSON (docs/reference/plan.md).
+def step_to_json(s: Step) -> dict[str, Any]:
+    out: dict[str, Any] = {"kind": s.kind, "function": s.function, "address": s.address, "count": s.count}
+    if s.writes:
+        out["values"] = None if s.values is None else list(s.values)
+    if s.parameters:
+        out["parameters"] = list(s.parameters)
+    if s.kind == "write":
+        out["stage"] = s.stage
+    if s.wait:
+        out["wait"] = s.wait
+    if s.expect is not None:
+        out["expect"] = {"equals": s.expect.equals, **({"mask": s.expect.mask} if s.expect.mask != 0xFFFF else {})}
+    if s.note:
+        out["note"] = s.note
+    return out
 
-    Extra keys beyond the base format (readers ignore them; plan_from_json does not need them):
-    ``parameters[].stage`` and ``writes[].stage`` (write order), and ``summary`` = wire_stats()
-    plus the number of parameters per action.
-    """
-    actions = {a: sum(1 for p in plan.parameters if p.action == a) for a in ("write", "bridge", "unchanged")}
-    return {
+
+def cost_to_json(c: Cost) -> dict[str, Any]:
+    return {"requests": c.requests, "reads": c.reads, "writes": c.writes, "bytes": c.bytes, "framing": c.framing,
+            "line": c.line, "seconds": c.seconds, "waits": c.waits, "non_volatile_writes": c.non_volatile_writes,
+            "stores": list(c.stores)}
+
+
+def plan_to_json(plan: Plan, cost: Cost | None = None) -> dict[str, Any]:
+    """The plan as saved-plan JSON (docs/reference/plan.md); ``cost``: its informational ``cost`` member."""
+    doc: dict[str, Any] = {
         "schema": plan.schema,
         "recipe": plan.recipe,
+        **({"recipe_name": plan.recipe_name} if plan.recipe_name is not None else {}),
         "device": {"url": plan.device.url, "unit": plan.device.unit, "profile": plan.device.profile},
+        "profile_sha256": plan.profile_sha256,
+        "pacing": {"after_connect": plan.pacing.after_connect, "between_requests": plan.pacing.between_requests},
         "parameters": [{"name": p.name, "address": p.address, "count": p.count, "desired": p.desired,
                         "desired_raw": list(p.desired_raw),
                         "current_raw": None if p.current_raw is None else list(p.current_raw),
                         "action": p.action, "stage": p.stage,
                         **({"register_type": p.register_type} if p.register_type != "holding" else {})}
                        for p in plan.parameters],
-        "writes": [{"function": w.function, "address": w.address, "count": w.count, "registers": list(w.registers),
-                    "parameters": list(w.parameters), "stage": w.stage} for w in plan.writes],
-        "reads": [{"function": r.function, "address": r.address, "count": r.count} for r in plan.reads],
-        "summary": {**wire_stats(plan), **actions},
-        **({"recipe_name": plan.recipe_name} if plan.recipe_name is not None else {}),
+        "steps": [step_to_json(s) for s in plan.steps],
     }
+    if cost is not None:
+        doc["cost"] = cost_to_json(cost)
+    return doc
+
+
+def _step(d: dict[str, Any]) -> Step:
+    values = d.get("values", ())
+    e = d.get("expect")
+    return Step(d["kind"], int(d["function"]), int(d["address"]), int(d["count"]),
+                None if values is None else tuple(int(x) for x in values),
+                tuple(str(n) for n in d.get("parameters", ())), int(d.get("stage", 0)), float(d.get("wait", 0)),
+                None if e is None else Expect(int(e["equals"]), int(e.get("mask", 0xFFFF))), str(d.get("note", "")))
+
+
+# the place of each kind in a plan: reads before a bit-field write share the writes' place
+_RANK = {k: i for i, k in enumerate(STEP_KINDS)}
+_RANK["read-modify-write"] = _RANK["write"]
 
 
 def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None) -> Plan:
     """A plan back from JSON: the schema first, then consistency, all problems at once (InputError).
 
-    ``src`` (a yamlsrc.Source from yamlsrc.load) gives every problem its FILE:LINE:COL; without
-    it problems print as FILE:0:0 with the JSON path in the message. Consistency: each write's
-    ``count`` matches its registers, carries exactly the desired values of the parameters it names
-    (whole parameters, contiguous, in order; FC06 one word of one parameter), and the actions agree
-    with the writes (``write``/``bridge`` written, ``unchanged`` not) — a hand-edited plan can
-    not make ``apply`` write a register no parameter names.
+    ``src`` (a yamlsrc.Source from yamlsrc.load) gives every problem its FILE:LINE:COL; without it problems
+    print as FILE:0:0 with the JSON path in the message. Consistency: each write step carries exactly the
+    desired values of the parameters it names (whole parameters, contiguous, in order; FC06 one word of one
+    parameter), the actions agree with the writes (``write``/``bridge`` written, ``unchanged`` not), reads carry
+    no values, and the kinds keep their order: a hand-edited plan cannot make ``apply`` write a register no
+    parameter names, nor write before the identity check.
     """
     from ..load import schema, yamlsrc
 
@@ -64,6 +108,13 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
 
     if not isinstance(data, dict):
         raise InputError([error((), "a plan must be a JSON object")])
+    if data.get("schema") in OLD_SCHEMAS:
+        again = f"deployer plan {data.get('recipe') or 'RECIPE'}"
+        url = data.get("device", {}).get("url") if isinstance(data.get("device"), dict) else None
+        again += f" --device {url}" if isinstance(url, str) else ""
+        raise InputError([error(("schema",), f"this plan was made by an older deployer ({data['schema']}), whose "
+                                             "plans did not list every step apply takes; make it again with: "
+                                             f"{again} --out {path}")])
     errors = schema.validate(data, "plan", source or yamlsrc.Source(path))
     if errors:
         raise InputError(errors if source is not None else [Diagnostic(path, 0, 0, e.message) for e in errors])
@@ -73,16 +124,26 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
                                     None if p.get("current_raw") is None else tuple(int(x) for x in p["current_raw"]),
                                     p["action"], int(p.get("stage", 0)), str(p.get("register_type", "holding")))
                    for p in data["parameters"])
-    writes = tuple(WriteRequest(int(w["function"]), int(w["address"]), tuple(int(x) for x in w["registers"]),
-                                tuple(str(n) for n in w["parameters"]), int(w.get("stage", 0)))
-                   for w in data["writes"])
-    reads = tuple(ReadRequest(int(r["address"]), int(r["count"]), int(r.get("function", 3))) for r in data["reads"])
+    steps = tuple(_step(d) for d in data["steps"])
+    problems = _check_parameters(params, error)
+    problems += _check_steps(steps, [("values" in d) for d in data["steps"]], params, error)
+    if problems:
+        raise InputError(problems)
+    name = data.get("recipe_name")
+    pacing = data.get("pacing") or {}
+    return Plan(data.get("recipe"), Target(dev.get("url"), int(dev["unit"]), str(dev["profile"])), params, steps,
+                recipe_name=None if name is None else str(name),
+                pacing=Pacing(float(pacing.get("after_connect", 0)), float(pacing.get("between_requests", 0))),
+                profile_sha256=data.get("profile_sha256"))
+
+
+def _check_parameters(params: tuple[PlannedParameter, ...], error: Any) -> list[Diagnostic]:
     problems: list[Diagnostic] = []
-    by_name: dict[str, PlannedParameter] = {}
+    seen: set[str] = set()
     for k, pp in enumerate(params):
-        if pp.name in by_name:
+        if pp.name in seen:
             problems.append(error(("parameters", k, "name"), f"{pp.name} is listed twice"))
-        by_name[pp.name] = pp
+        seen.add(pp.name)
         if len(pp.desired_raw) != pp.count:
             problems.append(error(("parameters", k, "desired_raw"),
                                   f"{pp.name}: {len(pp.desired_raw)} registers for count {pp.count}"))
@@ -91,50 +152,113 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
                                   f"{pp.name}: {len(pp.current_raw)} registers for count {pp.count}"))
         if pp.address + pp.count > 0x10000:
             problems.append(error(("parameters", k, "address"), f"{pp.name} runs past register 65535"))
+    return problems
+
+
+def _check_steps(steps: tuple[Step, ...], valued: list[bool], params: tuple[PlannedParameter, ...], error: Any
+                 ) -> list[Diagnostic]:
+    """Every write carries exactly what its parameters desire, reads write nothing, the kinds keep their order."""
+    by_name = {pp.name: pp for pp in params}
+    problems: list[Diagnostic] = []
     written: set[str] = set()
-    for k, (w, wj) in enumerate(zip(writes, data["writes"], strict=True)):
-        if int(wj["count"]) != w.count:
-            problems.append(error(("writes", k, "count"), f"count {wj['count']} but {w.count} registers"))
-        if w.address + w.count > 0x10000:
-            problems.append(error(("writes", k, "address"), "the request runs past register 65535"))
-        table = "coil" if w.function in COIL_WRITES else "holding"
-        regs: dict[int, int] = {}
-        for n in w.parameters:
-            pp_ = by_name.get(n)
-            if pp_ is None:
-                problems.append(error(("writes", k, "parameters"), f"names '{n}', which is not among the parameters"))
-                continue
-            if pp_.register_type != table:
-                problems.append(error(("writes", k, "function"), f"function {w.function} writes {table}s, but {n} "
-                                                                 f"is a {pp_.register_type}"))
-            written.add(n)
-            regs.update({pp_.address + i: v for i, v in enumerate(pp_.desired_raw)})
-        if w.function in (5, 6):  # one word of one parameter (one coil)
-            ok = w.count == 1 and len(w.parameters) == 1 and regs.get(w.address) == w.registers[0]
-        else:  # whole parameters, back to back from the request's address, nothing more
-            ok = sorted(regs) == list(range(w.address, w.address + w.count)) and \
-                [regs[a] for a in sorted(regs)] == list(w.registers)
-        if not ok and all(n in by_name for n in w.parameters):
-            problems.append(error(("writes", k, "registers"),
-                                  f"the request at {w.address} does not carry exactly the desired values of "
-                                  f"{', '.join(w.parameters)}"))
+    rank = -1
+    for k, s in enumerate(steps):
+        at = ("steps", k)
+        if _RANK[s.kind] < rank:
+            problems.append(error((*at, "kind"), f"{_a(s.kind)} step after a later kind of step: steps keep the "
+                                                 f"order {', '.join(STEP_KINDS)}"))
+        rank = max(rank, _RANK[s.kind])
+        if s.address + s.count > 0x10000:
+            problems.append(error((*at, "address"), "the request runs past register 65535"))
+        writes = s.kind in ("unlock", "write", "commit", "lock")
+        if writes != s.writes:
+            problems.append(error((*at, "function"), f"function {s.function} does not fit {_a(s.kind)} step"))
+            continue
+        if (s.kind == "device-id") != (s.function == 43):
+            problems.append(error((*at, "function"), f"function {s.function} does not fit {_a(s.kind)} step"))
+        if not writes and valued[k]:
+            problems.append(error((*at, "values"), f"{_a(s.kind)} step reads: it carries no values"))
+        if (s.expect is not None) != (s.kind in ("identity", "precondition")):
+            problems.append(error((*at, "expect"), "only identity and precondition steps (all of them) expect a value"))
+        if s.writes and s.values is not None and len(s.values) != s.count:
+            problems.append(error((*at, "values"), f"count {s.count} but {len(s.values)} values"))
+            continue
+        if s.kind == "write":
+            problems += _check_write(s, by_name, written, at, error)
+        elif s.kind in ("unlock", "commit", "lock") and s.parameters:
+            problems.append(error((*at, "parameters"), f"{_a(s.kind)} step writes the profile's action, no parameter"))
     for k, pp in enumerate(params):
         if (pp.name in written) != (pp.action != "unchanged"):
             problems.append(error(("parameters", k, "action"),
                                   f"{pp.name} is '{pp.action}' but is {'' if pp.name in written else 'not '}"
-                                  "in a write request"))
-    for k, r in enumerate(reads):
-        if r.address + r.count > 0x10000:
-            problems.append(error(("reads", k, "address"), "the read runs past register 65535"))
-    if problems:
-        raise InputError(problems)
-    name = data.get("recipe_name")
-    return Plan(data.get("recipe"), Target(dev.get("url"), int(dev["unit"]), str(dev["profile"])),
-                params, writes, reads, recipe_name=None if name is None else str(name))
+                                  "in a write step"))
+    return problems
+
+
+def _a(kind: str) -> str:
+    return f"an {kind}" if kind[0] in "aeiou" else f"a {kind}"
+
+
+def _check_write(s: Step, by_name: dict[str, PlannedParameter], written: set[str], at: tuple[Any, ...],
+                 error: Any) -> list[Diagnostic]:
+    problems: list[Diagnostic] = []
+    if s.values is None:
+        return [error((*at, "values"), "a write step's values are the recipe's: never secret")]
+    if not s.parameters:
+        return [error((*at, "parameters"), "a write step names the parameters it carries")]
+    table = "coil" if s.function in COIL_WRITES else "holding"
+    regs: dict[int, int] = {}
+    for n in s.parameters:
+        pp = by_name.get(n)
+        if pp is None:
+            problems.append(error((*at, "parameters"), f"names '{n}', which is not among the parameters"))
+            continue
+        if pp.register_type != table:
+            problems.append(error((*at, "function"), f"function {s.function} writes {table}s, but {n} is a "
+                                                     f"{pp.register_type}"))
+        written.add(n)
+        regs.update({pp.address + i: v for i, v in enumerate(pp.desired_raw)})
+    if s.function in (5, 6):  # one word of one parameter (one coil)
+        ok = s.count == 1 and len(s.parameters) == 1 and regs.get(s.address) == s.values[0]
+    else:  # whole parameters, back to back from the request's address, nothing more
+        ok = sorted(regs) == list(range(s.address, s.address + s.count)) and \
+            [regs[a] for a in sorted(regs)] == list(s.values)
+    if not ok and all(n in by_name for n in s.parameters):
+        problems.append(error((*at, "values"), f"the request at {s.address} does not carry exactly the desired "
+                                               f"values of {', '.join(s.parameters)}"))
+    return problems
+
+
+def check_actions(plan: Plan, prof: Profile) -> list[str]:
+    """The plan's unlock, commit and lock steps that are not the profile's own actions (words and places)."""
+    from .steps import secret_words
+
+    wrong = []
+    for i, s in enumerate(plan.steps, 1):
+        if s.kind not in ("unlock", "commit", "lock"):
+            continue
+        try:
+            words = secret_words(prof, s)
+        except KeyError:
+            wrong.append(f"step {i} ({s.kind} at 0x{s.address:04X}) is no {s.kind} action of profile {prof.id}")
+            continue
+        if s.values is not None and s.values != words:
+            wrong.append(f"step {i} ({s.kind} at 0x{s.address:04X}) writes other words than profile {prof.id}'s "
+                         f"{s.kind}")
+        elif s.values is None and not _secret_at(prof, s):
+            wrong.append(f"step {i} ({s.kind} at 0x{s.address:04X}) hides words the profile does not keep secret")
+    return wrong
+
+
+def _secret_at(prof: Profile, s: Step) -> bool:
+    actions = {"unlock": prof.unlock, "commit": prof.commit, "lock": prof.lock}[s.kind]
+    return any(a.secret and a.address <= s.address < a.address + len(a.registers) for a in actions)
 
 
 def load_plan(path: str) -> tuple[Recipe, Plan]:
-    """A saved plan file -> (the recipe it carries, the plan), checked against its profile first."""
+    """A saved plan file -> (the recipe it carries, the plan), checked against its profile first: its parameters
+    must be the profile's (writable, in range), its action steps the profile's actions, and the profile's text
+    the one the plan was made with."""
     import os
 
     from ..load import yamlsrc
@@ -149,6 +273,10 @@ def load_plan(path: str) -> tuple[Recipe, Plan]:
     except UsageError as e:
         raise InputError([src.error(("device", "profile"), str(e))]) from None
     errors = []
+    if p.profile_sha256 != prof.digest:
+        errors.append(src.error(("profile_sha256",), f"profile {prof.id} changed since the plan was made "
+                                                     f"({prof.source or 'built-in'}): make the plan again"))
+    errors += [src.error(("steps",), why) for why in check_actions(p, prof)]
     desired = []
     for i, pp in enumerate(p.parameters):
         param = prof.get(pp.name)

@@ -1,7 +1,7 @@
-"""The plan: a plain, serializable value saying exactly which requests apply will send.
+"""Write and read planning: which requests carry the values, which blocks read them.
 
-``profile + recipe (+ current values) -> Plan``. Pure: no I/O. ``plan --out`` writes it as
-JSON (schemas/plan.schema.json) and ``apply PLAN.json`` executes it unchanged.
+The fewest write requests for a recipe's values, and the fewest read blocks for its parameters; the
+steps around them (checks, unlock, commit ...) are ``steps.py``'s. Pure: no I/O.
 """
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ from typing import TYPE_CHECKING
 
 from ..errors import UsageError
 from ..profile.model import READ_FUNCTION, SPACE, TYPE_OF_READ
-from .model import Action, Plan, PlannedParameter, ReadRequest, Target, WriteRequest
+from .model import Action, PlannedParameter, ReadRequest, WriteRequest
 
 if TYPE_CHECKING:
     from ..profile import Limits, Parameter, Profile
-    from ..recipe.loader import Desired, Recipe
+    from ..recipe.loader import Desired
 
 
 # ---- write planning ------------------------------------------------------------------------
@@ -375,15 +375,3 @@ def gap_free_reads(profile: Profile, reads: Sequence[ReadRequest]) -> tuple[Read
             inside.append(p.name)
     return plan_reads(profile, inside, gaps=False)
 
-
-def make_plan(recipe: Recipe, target: Target, current: Mapping[str, tuple[int, ...]] | None = None,
-              *, write_all: bool = False, reads: tuple[ReadRequest, ...] | None = None) -> Plan:
-    """The whole plan; reads cover every readable recipe parameter (snapshot before, read-back after).
-
-    ``reads``: those blocks, when the caller already planned them for this recipe (a fleet plans them once).
-    """
-    prof = recipe.profile
-    params, writes = plan_writes(recipe.desired, prof.limits, current, write_all=write_all)
-    if reads is None:
-        reads = plan_reads(prof, [d.name for d in recipe.desired if d.parameter.readable])
-    return Plan(recipe.path, target, params, writes, reads, recipe_name=recipe.name)

@@ -1,81 +1,90 @@
-"""What a plan costs on the wire: RTU bytes and seconds at a line speed."""
+"""What a plan costs one device: requests, bytes and time on the line, waits, and writes that wear memory."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
-from .model import Plan
+from .model import DEVICE_ID, Cost, Plan, Step
 
-# ---- cost on the wire --------------------------------------------------------------------------
+if TYPE_CHECKING:
+    from ..profile import Profile
+    from ..transport.urls import DeviceURL
 
 BAUD = 19200
 CHAR_BITS = 11  # 8E1: start + 8 data + parity + stop
+# a Function 43 answer's fixed part (MEI type, read code, conformity, more, next id, number of objects) and the
+# three basic objects' id and length bytes: their texts are the device's, unknown until it answers
+_DEVICE_ID_ANSWER = 7 + 3 * 2
 
 
-def _rtu_request_bytes(function: int, count: int) -> int:
-    # unit(1) + PDU + CRC(2); PDU: FC16 fc addr qty bytecount data = 6 + 2n, FC15 6 + ceil(n / 8),
-    # FC06, FC05 and the reads = 5
+def _pdu_sizes(function: int, count: int) -> tuple[int, int]:
+    """(request, answer) PDU bytes of one request of ``function`` over ``count`` registers or bits."""
     if function == 16:
-        return 9 + 2 * count
+        return 6 + 2 * count, 5
     if function == 15:
-        return 9 + (count + 7) // 8
-    return 8
-
-
-def _rtu_response_bytes(function: int, count: int) -> int:
-    # FC16/FC15 echo address and quantity, FC06/FC05 echo the request, reads carry bytecount + data
+        return 6 + (count + 7) // 8, 5
     if function in (3, 4):
-        return 5 + 2 * count
+        return 5, 2 + 2 * count
     if function in (1, 2):
-        return 5 + (count + 7) // 8
-    return 8
+        return 5, 2 + (count + 7) // 8
+    if function == DEVICE_ID:
+        return 4, _DEVICE_ID_ANSWER
+    return 5, 5  # 05 and 06 echo the request
 
 
-def line_cost(plan: Plan, *, framing: str = "rtu", baud: int = BAUD, char_bits: int = CHAR_BITS) -> tuple[int, float]:
-    """Characters on a serial line and seconds for the plan's write requests and their answers.
+def _frame(pdu: int, framing: str) -> int:
+    """Bytes (characters on ASCII) of a frame carrying ``pdu`` bytes: unit + PDU + CRC on RTU; ':', the unit
+    and PDU as hex pairs, the LRC (two characters) and CR LF on ASCII; the 7-byte MBAP header and the PDU on
+    Modbus/TCP."""
+    if framing == "ascii":
+        return 1 + 2 * (1 + pdu) + 2 + 2
+    if framing == "tcp":
+        return 7 + pdu
+    return 1 + pdu + 2
 
-    RTU: binary frames plus the 3.5-character silence that ends each; ASCII: every byte but the CRC
-    becomes two hex characters, plus ':', the LRC (two characters) and CR LF (2n + 1 characters for an
-    n-byte RTU frame), and no silence. ``char_bits``: start + data + parity + stop bits.
-    """
+
+def line_of(device: DeviceURL | None) -> tuple[str, int, int, str]:
+    """(framing, baud, bits a character, the line's text) for a device URL: its serial settings; RTU frames at
+    Modbus's default 19200 8E1 for a gateway (rtu+tcp) or no device; Modbus/TCP frames (no line) on TCP."""
+    if device is not None and device.scheme in ("rtu", "ascii"):
+        ln = device.line
+        bits = 1 + ln.bytesize + (ln.parity != "N") + ln.stopbits
+        return device.scheme, ln.baudrate, bits, f"{ln.baudrate} baud {ln.bytesize}{ln.parity}{ln.stopbits}"
+    if device is not None and device.scheme in ("tcp", "tls"):
+        return "tcp", 0, 0, "Modbus/TCP"
+    return "rtu", BAUD, CHAR_BITS, f"{BAUD} baud 8E1"
+
+
+def step_bytes(step: Step, framing: str, answers: bool = True) -> int:
+    request, answer = _pdu_sizes(step.function, step.count)
+    return _frame(request, framing) + (_frame(answer, framing) if answers else 0)
+
+
+def plan_cost(plan: Plan, profile: Profile | None = None, device: DeviceURL | None = None) -> Cost:
+    """The plan's cost on ``device``'s line (see ``Cost``), every step sent once, in the order planned."""
+    framing, baud, bits, line = line_of(device)
     answers = plan.device.unit != 0
-    chars = 0.0
-    frames = 0
-    for w in plan.writes:
-        sizes = [_rtu_request_bytes(w.function, w.count)]
-        if answers:
-            sizes.append(_rtu_response_bytes(w.function, w.count))
-        for n in sizes:
-            frames += 1
-            chars += 2 * n + 1 if framing == "ascii" else n
-    silence = 0.0 if framing == "ascii" else 3.5 * frames
-    return int(chars), (chars + silence) * char_bits / baud
-
-
-def wire_stats(plan: Plan) -> dict[str, float | int]:
-    """Bytes and line time of the plan's write requests and their answers on an RTU line.
-
-    ``rtu_bytes`` counts requests plus the answers the device gives (none for unit 0, broadcast);
-    ``seconds_19200`` is that at 19200 baud, 8E1 (11 bits a character), plus the 3.5-character
-    silent interval that ends every frame. ``read_*`` is the same for the plan's FC03 blocks
-    (one pass: snapshot or read-back).
-    """
-    char = CHAR_BITS / BAUD
-    answers = plan.device.unit != 0
-
-    def cost(reqs: Iterable[tuple[int, int]]) -> tuple[int, int]:
-        total = frames = 0
-        for function, count in reqs:
-            total += _rtu_request_bytes(function, count)
-            frames += 1
-            if answers:
-                total += _rtu_response_bytes(function, count)
-                frames += 1
-        return total, frames
-
-    w_bytes, w_frames = cost((w.function, w.count) for w in plan.writes)
-    r_bytes, r_frames = cost((r.function, r.count) for r in plan.reads)
-    return {"requests": len(plan.writes), "registers": sum(w.count for w in plan.writes), "rtu_bytes": w_bytes,
-            "seconds_19200": round((w_bytes + 3.5 * w_frames) * char, 6),
-            "read_requests": len(plan.reads), "read_registers": sum(r.count for r in plan.reads),
-            "read_rtu_bytes": r_bytes, "read_seconds_19200": round((r_bytes + 3.5 * r_frames) * char, 6)}
+    total = frames = 0
+    for s in plan.steps:
+        total += step_bytes(s, framing, answers)
+        frames += 2 if answers else 1
+    seconds = 0.0
+    if baud:  # the 3.5-character silence ends every RTU frame; ASCII frames end with CR LF
+        silence = 3.5 * frames if framing == "rtu" else 0.0
+        seconds = (total + silence) * bits / baud
+    n = len(plan.steps)
+    p = plan.pacing
+    waits = sum(s.wait for s in plan.steps) + ((p.after_connect + p.between_requests * (n - 1)) if n else 0.0)
+    writes = [s for s in plan.steps if s.writes]
+    commits = [s for s in writes if s.kind == "commit"]
+    stored = [s for s in writes if s.kind == "write"]
+    if commits:  # a commit stores what is in RAM: every parameter the plan writes
+        nv, stores = len(commits), tuple(n for s in stored for n in s.parameters)
+    elif profile is not None:  # no commit: writes go where they go; a stated endurance says that memory wears
+        lasting = {q.name for q in profile.parameters if q.endurance or profile.endurance}
+        worn = [s for s in stored if lasting.intersection(s.parameters)]
+        nv, stores = len(worn), tuple(n for s in worn for n in s.parameters if n in lasting)
+    else:
+        nv, stores = 0, ()
+    return Cost(requests=n, reads=n - len(writes), writes=len(writes), bytes=total, framing=framing, line=line,
+                seconds=round(seconds + waits, 6), waits=round(waits, 6), non_volatile_writes=nv, stores=stores)

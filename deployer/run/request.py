@@ -20,7 +20,6 @@ from ..limits import LIMITS
 if TYPE_CHECKING:
     from ..execute.job import Job
     from ..execute.session import Confirm
-    from ..planning.model import Plan
     from ..recipe.loader import Recipe
     from ..report import DeviceResult, Report
 
@@ -83,17 +82,15 @@ class RunRequest:
 class PreparedRun:
     """A checked request and its jobs, nothing sent yet.
 
-    ``label``: what is applied (the report's ``recipe``); ``expected``: a saved plan's, which the run must
-    find unchanged; ``moved``: set when a snapshot is to be restored to another device than the one it
-    was taken from (the client must have the user's consent first); ``notices``: what the preparation has
-    to say (an old snapshot without a digest ...); ``refused``: devices a rollback leaves alone, each with why
-    (``jobs`` may then be empty).
+    ``label``: what is applied (the report's ``recipe``); ``moved``: set when a snapshot is to be restored to
+    another device than the one it was taken from (the client must have the user's consent first); ``notices``:
+    what the preparation has to say (an old snapshot without a digest ...); ``refused``: devices a rollback
+    leaves alone, each with why (``jobs`` may then be empty).
     """
 
     request: RunRequest
     jobs: list[Job]
     label: str | None
-    expected: Plan | None = None
     moved: str | None = None
     notices: list[str] = field(default_factory=list)
     refused: list[str] = field(default_factory=list)
@@ -169,13 +166,13 @@ def _recipe_jobs(r: RunRequest) -> PreparedRun:
     if rec.snapshot is not None:
         raise UsageError(f"{r.source} is a snapshot: restore it with deployer rollback {r.source}")
     if r.inventory:
-        return PreparedRun(r, _fleet_jobs(rec, r), r.source, expected)
+        return PreparedRun(r, _fleet_jobs(rec, r), r.source)
     text = r.device or (rec.device.url if rec.device else None)
     if text is None:
         raise UsageError("no device: pass --device URL or set device.url in the recipe")
     unit = r.unit if r.unit is not None else (rec.device.unit if rec.device and rec.device.unit is not None else 1)
     url = parse_url(text, timeout=r.timeout, retries=r.retries)  # BadURL is a UsageError
-    return PreparedRun(r, [Job(rec.name, rec, url, unit)], r.source, expected)
+    return PreparedRun(r, [Job(rec.name, rec, url, unit, plan=expected)], r.source)
 
 
 def prepare(r: RunRequest) -> PreparedRun:
@@ -225,7 +222,7 @@ async def execute(prepared: PreparedRun, *, confirm: Confirm | None = None, comm
 
     r = prepared.request
     options = ApplyOptions(on_error=r.on_error, write_all=r.write_all, allow_broadcast=r.allow_broadcast,
-                           state_dir=os.fspath(r.state_dir), expected=prepared.expected, confirm=confirm,
+                           state_dir=os.fspath(r.state_dir), confirm=confirm,
                            lock_timeout=r.lock_timeout, soak=r.soak, health_interval=r.health_interval,
                            confirm_within=r.confirm_within, command=command_line)
     return await run_async(prepared.jobs, command=r.command, label=prepared.label, argv=argv, via=via,

@@ -153,7 +153,7 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         if applied is None and label is not None:
             applied = os.path.abspath(label) if os.path.exists(label) else label
         snapshot.recovered(state_dir)  # a process that died before fsync'ing its snapshots left them in their log
-        if opts.expected is None:  # what devices taught changes what is sent: a damaged file is refused now
+        if not any(j.plan for j in jobs):  # what devices taught changes what is sent: a damaged file is refused now
             from ..state import learned
 
             learned.load(state_dir)

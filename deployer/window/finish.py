@@ -13,16 +13,19 @@ from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import replace
 
 from ..errors import DeviceGone, ExceptionResponse, InputError, Locked, Unreachable, UsageError
-from ..execute.device import _apply_device
+from ..execute.connect import connected
+from ..execute.device import apply_job
+from ..execute.executor import Execution
+from ..execute.job import Job
 from ..execute.session import ApplyOptions, Session
-from ..execute.steps import commit_steps
 from ..execute.verify import values_of
+from ..planning.model import Target
 from ..planning.planner import plan_reads
+from ..planning.steps import Planner, pacing_for
 from ..profile import Profile, profile_ref
-from ..recipe.loader import load_recipe
+from ..recipe.loader import Desired, load_recipe
 from ..report import DeviceResult, ParameterResult, RequestRecord, show_registers
 from ..state import journal, learned, lock, snapshot
-from ..transport import clients as tp
 from .held import Written, record
 
 Changed = list[tuple[ParameterResult, tuple[int, ...]]]  # a parameter the run wrote, and what it holds now
@@ -90,15 +93,11 @@ def changed_text(w: Written, changed: Changed) -> str:
 
 async def _read_again(w: Written, options: ApplyOptions, records: list[RequestRecord]) -> Changed | str:
     """``recheck`` on a connection of its own; why it could not be read instead."""
-    transport = tp.open_transport(w.url)
     try:
-        await transport.connect()
-        return await recheck(Session(transport, w.unit, retries=w.url.retries, backoff=options.backoff,
-                                     records=records), w)
+        async with connected(w.url, w.unit, w.recipe.profile, records=records, backoff=options.backoff) as session:
+            return await recheck(session, w)
     except (Unreachable, DeviceGone, ExceptionResponse) as e:
         return str(e)
-    finally:
-        await transport.close()
 
 
 async def roll_back(w: Written, why: str, options: ApplyOptions) -> None:
@@ -135,13 +134,13 @@ async def _roll_back(w: Written, why: str, options: ApplyOptions) -> None:
     left = {p.name for p, _ in changed}
     snap = replace(snap, desired=tuple(d for d in snap.desired if d.name not in left))
     # a device whose commit was sent gets the restored values committed too (else its memory keeps the change)
-    back_opts = replace(options, hold_commit=res.commit != "sent", confirm=None, run_id=None, expected=None,
+    back_opts = replace(options, hold_commit=res.commit != "sent", confirm=None, run_id=None,
                         write_all=False, applied=res.snapshot, soak=None, confirm_within=None, keep_lock=None,
                         lock_held=True, on_writing=None, restoring=True)  # its result says what the rollback did
     back = None
     if snap.desired:
         try:
-            back, finishing = await _apply_device(snap, w.url, w.unit, name=w.name, options=back_opts)
+            back, finishing = await apply_job(Job(w.name, snap, w.url, w.unit), back_opts)
         except UsageError as e:
             res.status, res.error = "failed", f"{why}; rolling back failed: {e}"
             return
@@ -231,32 +230,41 @@ def _journal_commit(options: ApplyOptions, w: Written, changed: str | None) -> N
 
 
 async def _commit(w: Written, options: ApplyOptions) -> str | None:
-    """Send the commit; the changed parameters' text instead when the device no longer holds what the run wrote
-    (nothing sent then: the caller rolls back the rest)."""
+    """Send the commit: a plan of its own (the checks over the run's parameters, then unlock, commit, lock),
+    made against what the run read back; the changed parameters' text instead when the device no longer holds
+    what the run wrote (nothing sent then: the caller rolls back the rest)."""
     res = w.result
     prof = _taught(options, w)
     busy = await _locks(w, options)
     if busy is not None:
         res.status, res.error, res.commit = "failed", f"commit not sent: {busy}", "not sent"
         return None
-    transport = tp.open_transport(w.url)
-    session = Session(transport, w.unit, retries=w.url.retries, backoff=options.backoff, records=res.requests)
+    ours = [p for p in res.parameters if p.status == "ok" and p.after_raw is not None]
+    rec = replace(w.recipe, profile=prof, desired=tuple(
+        Desired(prof.parameter(p.name), p.desired, tuple(p.after_raw)) for p in ours if p.after_raw is not None))
+    plan = Planner(rec, device_id=False, pacing=pacing_for(w.url, prof)).plan(
+        Target(res.url, w.unit, profile_ref(prof)), {p.name: tuple(p.after_raw) for p in ours if p.after_raw},
+        commit_owed=True)
+    results = {p.name: ParameterResult(p.name, p.address, p.count, p.desired, tuple(p.after_raw or ()),
+                                       status="ok", parameter=prof.parameter(p.name)) for p in ours}
+    layout = tuple((d.parameter.name, d.parameter.key, d.parameter.count) for d in rec.desired)
     try:
-        await transport.connect()
-        changed = await recheck(session, w)
-        if changed:
-            res.commit = "not sent"
-            return changed_text(w, changed)
-        why = await commit_steps(session, prof)
+        async with connected(w.url, w.unit, prof, records=res.requests, backoff=options.backoff) as session:
+            ex = Execution(session, rec, res, results, replace(options, hold_commit=False, soak=None,
+                                                               confirm_within=None), layout)
+            if not await ex.checks(plan.steps[:plan.checks]):
+                why = res.error or "the device could not be read"
+                res.status, res.error, res.commit = "failed", f"commit not sent: re-reading the parameters failed: " \
+                    f"{why.removesuffix('; nothing was written')}", "not sent"
+                return None
+            changed = [(p, ex.before[p.name]) for p in ours if p.name in ex.before and p.after_raw is not None
+                       and not prof.parameter(p.name).same_value(ex.before[p.name], p.after_raw)]
+            if changed:
+                res.commit = "not sent"
+                return changed_text(w, changed)
+            await ex.changes(plan)
     except (Unreachable, DeviceGone, ExceptionResponse) as e:
         res.status, res.error, res.commit = "failed", f"commit not sent: re-reading the parameters failed: {e}", \
             "not sent"
         return None
-    finally:
-        await transport.close()
-    if why is None:
-        res.commit = "sent"
-    else:
-        res.status, res.commit = "failed", "failed" if why[1] else "sent"
-        res.error = why[0]
     return None

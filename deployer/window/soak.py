@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from ..errors import DeviceGone, ExceptionResponse, Unreachable, UsageError
+from ..execute.connect import opened
 from ..execute.session import ApplyOptions, Session
 from ..load.durations import format_duration
 from ..profile import HealthCheck, Profile
@@ -93,7 +94,7 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
 
     async def watch(w: Written) -> None:
         if w.url.bus not in lines:
-            transport = tp.open_transport(w.url)
+            transport = opened(w.url, w.recipe.profile)  # paced as the profile says, as every command is
             lines[w.url.bus] = (transport, asyncio.Lock(), asyncio.ensure_future(connect(transport)))
         transport, one_at_a_time, connected = lines[w.url.bus]
         records: list[Any] = []

@@ -150,7 +150,7 @@ run:
   type: str
   returned: when not in check mode
 plans:
-  description: In check mode, per device what would be written (schema C(deployer.plan/1)).
+  description: In check mode, per device every step an apply would take (schema C(deployer.plan/2)).
   type: list
   elements: dict
   returned: in check mode
@@ -207,8 +207,8 @@ def check(module, jobs):
                         "changes": [row[0] for row in rows]})
         if rows:
             diffs.append(_diff(j.name, rows))
-    result = {"changed": any(p["plan"]["writes"] for p in plans), "plans": plans, "devices": devices,
-              "diff": diffs}
+    result = {"changed": any(s["kind"] == "write" for p in plans for s in p["plan"]["steps"]), "plans": plans,
+              "devices": devices, "diff": diffs}
     if down:
         module.fail_json(msg="unreachable: " + "; ".join(down), **result)
     module.exit_json(**result)

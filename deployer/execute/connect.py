@@ -1,0 +1,45 @@
+"""The one way to a device, for every command: the transport its URL names, paced as the URL and the profile
+say, on its bus's rules (one request at a time per serial line or gateway, one open port), as a ``Session``.
+
+apply, plan --device, diff, pull, rollback, the soak's health reads, a window's commit and rollback, probe,
+scan and the agent all open devices here, so a gateway that needs its pauses gets them from every command.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import AsyncIterator
+
+from ..planning.steps import pacing_for
+from ..profile import Profile
+from ..report import RequestRecord
+from ..transport import clients as tp
+from .session import Session
+
+
+@contextlib.asynccontextmanager
+async def connected(url: tp.DeviceURL, unit: int, profile: Profile | None, *,
+                    records: list[RequestRecord] | None = None, backoff: float = 0.05,
+                    notices: list[str] | None = None) -> AsyncIterator[Session]:
+    """A session with the device at ``url``/``unit``, closed on the way out. Raises Unreachable when no connection
+    can be made. ``records``: every request is logged there; ``notices``: told of answers that came late."""
+    transport = tp.open_transport(url)
+    p = pacing_for(url, profile)
+    transport.set_pacing(p.after_connect, p.between_requests)
+    await transport.connect()
+    try:
+        yield Session(transport, unit, retries=url.retries, backoff=backoff,
+                      records=records if records is not None else [])
+    finally:
+        await transport.close()
+        if transport.late_answers and notices is not None:
+            notices.append(tp.late_notice(transport.late_answers, url))
+
+
+def opened(url: tp.DeviceURL, profile: Profile | None) -> tp.Transport:
+    """A transport for ``url`` paced for ``profile``, not connected yet: for the callers that keep one connection
+    per bus for several devices and connect it themselves (the soak's health reads, scan)."""
+    transport = tp.open_transport(url)
+    p = pacing_for(url, profile)
+    transport.set_pacing(p.after_connect, p.between_requests)
+    return transport
