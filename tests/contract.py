@@ -43,21 +43,23 @@ def check(plan: Mapping[str, Any], device: Mapping[str, Any], log: Sequence[Logg
     assert sent == got, f"the report's requests are not what the device received:\n{sent}\n{got}"
     logged = iter(log)
     done: list[int] = []
+    covered: set[int] = set()  # the steps a request executed, or deviations stood in for
     for r in records:
         entries = [next(logged) for _ in range(r["attempts"])]
         n = r.get("step")
         assert n is not None and 1 <= n <= len(steps), f"a request of no step: {r}"
+        covered.add(n)
         if r.get("deviation") is not None:
             assert r["deviation"] in DEVIATIONS, r
             continue
         s = steps[n - 1]
         assert (r["function"], r["address"], r["count"]) == (s["function"], s["address"], s["count"]), (r, s)
-        if s.get("values") is not None:
+        if s.get("values") is not None:  # a device whose log has no values (umodbus's here) is checked without
             for e in entries:
-                assert e.values == s["values"], (n, e.values, s["values"])
+                assert e.values is None or e.values == s["values"], (n, e.values, s["values"])
         done.append(n)
     assert done == sorted(done) and len(done) == len(set(done)), f"steps out of order or twice: {done}"
     if complete:
         held = device.get("commit") == "held"
-        owed = [n for n, s in enumerate(steps, 1) if not (held and s["kind"] == "commit")]
-        assert done == owed, f"steps not sent: {sorted(set(owed) - set(done))}"
+        owed = {n for n, s in enumerate(steps, 1) if not (held and s["kind"] == "commit")}
+        assert covered == owed, f"steps not sent: {sorted(owed - covered)}"

@@ -169,7 +169,7 @@ def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None, *
         def execute_route(self, meta_data: dict[str, int], request_pdu: bytes) -> bytes:
             fc = request_pdu[0]
             address, count = struct.unpack(">HH", request_pdu[1:5]) if len(request_pdu) >= 5 else (0, 0)
-            seen.append((fc, address, 1 if fc in (5, 6) else count))
+            seen.append((fc, 0, 1) if fc == 43 else (fc, address, 1 if fc in (5, 6) else count))
             if fc == 16:
                 if fc06_only:
                     return bytes(pack_exception_pdu(16, 1))

@@ -12,12 +12,14 @@ from deployer.execute.device import apply_device
 from deployer.execute.read import read_current
 from deployer.execute.session import ApplyOptions
 from deployer.planning.model import Target
+from deployer.planning.planfile import plan_to_json
 from deployer.planning.planner import plan_reads
 from deployer.planning.steps import make_plan
 from deployer.recipe.loader import load_recipe
 from deployer.report import DeviceResult
 from deployer.testing.simulator import Simulator
 from deployer.transport.clients import parse_url
+from tests import contract
 from tests.helpers import profile_from, run_with
 
 pytestmark = pytest.mark.timeout(60)
@@ -98,6 +100,12 @@ def test_fallback_on_a_device_that_refuses_gap_reads(tmp_path: Path) -> None:
     assert len(reads) == 1 + 13 + 13
     assert any("refused a read across undeclared registers" in n for n in res.notices)
     assert all(p.status in ("ok", "unchanged") for p in res.parameters)
+    # the refused block and the gap-free ones that stand in for the rest of the snapshot's and the read-back's
+    # blocks are named deviations of the plan (tests/contract.py): the plan made against what it held before
+    plan = plan_to_json(make_plan(rec, Target(res.url, 1, "x"), {p.name: tuple(p.before_raw or ()) for p in
+                                                                  res.parameters}))
+    contract.check(plan, res.to_json(), sim.log)
+    assert {r.deviation for r in res.requests} == {None, "gap-free"}
     # the device never saw a write to an undeclared register
     declared = {a for p in rec.profile.parameters for a in range(p.address, p.end)}
     assert all(set(range(e.address, e.address + e.count)) <= declared for e in sim.log if e.function == 16)

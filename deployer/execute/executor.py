@@ -247,6 +247,7 @@ class Execution:
         except ExceptionResponse as e:
             if e.code != 1 or req.function != 16:
                 raise
+            self.learning.fc06 = True  # no Function 16 here: the recipe's writes go as Function 06 from now on
             with self.session.deviating("function-06"):
                 for w in single_writes_of(req):
                     await self.session.write(w)

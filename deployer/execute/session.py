@@ -199,8 +199,10 @@ class Session:
                 todo[i:] = gap_free_reads(profile, replaced)
                 profile = None  # planned once: read on as planned
                 gap_free = todo[i:] != replaced
-                if numbers is not None:  # every block from here on stands in for the first step not read
-                    numbers[i:] = [numbers[i]] * (len(todo) - i)
+                if numbers is not None:  # each new block stands in for the planned one holding its first register
+                    planned = list(zip(replaced, numbers[i:], strict=True))
+                    numbers[i:] = [next((n for p, n in planned if read_key(p) <= read_key(r) < read_key(p) + p.count),
+                                        planned[0][1]) for r in todo[i:]]
             r = todo[i]
             if numbers is not None:
                 self.step = numbers[i]

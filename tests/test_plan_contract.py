@@ -1,0 +1,159 @@
+"""The plan is the contract: what a device receives during an apply is the plan's steps plus the deviations the
+report names, in order, for every built-in profile, for devices that do not follow the book, and for a device
+we did not write (umodbus). ``tests/contract.py`` says what is checked."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from deployer.profile import builtin_profile
+from deployer.testing.simulator import Faults, Quirks, SimulatorThread, parse_fault_rule
+from tests import contract
+from tests.helpers import cli, umodbus_server
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "recipes" / "examples"
+RECIPES = {"example-drive": "example-drive-axis1.yaml", "example-inverter": "conveyor-line3.yaml",
+           "omron-m1": "omron-m1-accel.yaml", "oriental-az": "oriental-az-op3.yaml"}
+UNITS = {"oriental-az": (4,)}  # the unit its example recipe names
+
+
+def _refused_register(plan: dict[str, Any]) -> int:
+    """A register in the middle of the plan's largest write: refusing it makes the device refuse or cut that write."""
+    write = max((s for s in plan["steps"] if s["kind"] == "write"), key=lambda s: s["count"])
+    return int(write["address"]) + int(write["count"]) - 1
+
+
+def _trip(profile: str) -> Faults | None:
+    """A fault rule: the inverter trips (0x2000 = 7) once its acceleration time is over 2 s (others: none)."""
+    if profile != "example-inverter":
+        return None
+    return Faults(rules=(parse_fault_rule("F07 > 2 s: 0x2000=7", builtin_profile(profile)),))
+
+
+# each: (quirks, faults) given the profile and its saved plan; the report must name what they make apply do
+QUIRKS: dict[str, Any] = {
+    "by the book": lambda prof, plan: (None, None),
+    "max-write-registers 2": lambda prof, plan: (Quirks(max_write_registers=2), None),
+    "all-or-nothing, a value refused": lambda prof, plan: (
+        Quirks(all_or_nothing=True), Faults(fail_registers=frozenset({_refused_register(plan)}))),
+    "a value refused, the rest written": lambda prof, plan: (
+        None, Faults(fail_registers=frozenset({_refused_register(plan)}))),
+    "fc06-only": lambda prof, plan: (Quirks(fc06_only=True), None),
+    "busy-first 2": lambda prof, plan: (None, Faults(busy_first=2)),
+    "latency 20 ms": lambda prof, plan: (None, Faults(latency_ms=20)),
+    "a fault rule": lambda prof, plan: (None, _trip(prof)),
+}  # a device refusing reads across gaps: tests/test_gap_reads.py
+
+
+@pytest.mark.parametrize("quirk", list(QUIRKS))
+@pytest.mark.parametrize("profile", list(RECIPES))
+def test_the_device_receives_the_plan_and_the_named_deviations(profile: str, quirk: str, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    prof = builtin_profile(profile)
+    recipe = str(EXAMPLES / RECIPES[profile])
+    code, out, err = cli(capsys, "plan", recipe, "--json")
+    assert code == 0, err
+    quirks, faults = QUIRKS[quirk](profile, json.loads(out))
+    state = str(tmp_path / "s")
+    with SimulatorThread(prof, quirks=quirks, faults=faults, units=UNITS.get(profile, (1,))) as sim:
+        plan_file = str(tmp_path / "plan.json")
+        code, _, err = cli(capsys, "plan", recipe, "--device", sim.url, "--out", plan_file, "--state-dir", state)
+        assert code == 0, err
+        plan = json.loads(Path(plan_file).read_text())
+        n = len(sim.log)
+        code, out, err = cli(capsys, "apply", plan_file, "--device", sim.url, "--yes", "--json",
+                             "--state-dir", state)
+        device = json.loads(out)["devices"][0]
+        contract.check(plan, device, sim.log[n:], complete=device["status"] == "ok")
+        if quirk == "by the book" or quirk == "latency 20 ms":
+            assert code == 0 and not any(r.get("deviation") for r in device["requests"]), device
+        deviations = {r.get("deviation") for r in device["requests"]} - {None}
+        retried = any(r["attempts"] > 1 for r in device["requests"])
+        longest = max(s["count"] for s in plan["steps"] if s["kind"] == "write")
+        expect = {"max-write-registers 2": {"split", "recovery-read"} if longest > 2 else set(),
+                  "fc06-only": {"function-06"},
+                  "all-or-nothing, a value refused": {"recovery-read"},
+                  "a value refused, the rest written": {"recovery-read"}}.get(quirk, set())
+        assert expect <= deviations, (deviations, device["requests"])
+        if quirk == "busy-first 2":
+            assert retried and not deviations
+
+
+@pytest.mark.parametrize("profile", list(RECIPES))
+def test_apply_of_a_recipe_sends_the_plan_made_against_the_same_values(profile: str, tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """``apply RECIPE`` plans inside, against what its checks read: the plan ``plan --device`` shows."""
+    recipe = str(EXAMPLES / RECIPES[profile])
+    state = str(tmp_path / "s")
+    with SimulatorThread(builtin_profile(profile), units=UNITS.get(profile, (1,))) as sim:
+        code, out, err = cli(capsys, "plan", recipe, "--device", sim.url, "--json", "--state-dir", state)
+        assert code == 0, err
+        plan = json.loads(out)
+        n = len(sim.log)
+        code, out, err = cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--json", "--state-dir", state)
+        assert code == 0, err
+        contract.check(plan, json.loads(out)["devices"][0], sim.log[n:])
+
+
+def test_the_example_drive_plan_lists_every_request_and_the_apply_sends_them(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    recipe = str(EXAMPLES / "example-drive-axis1.yaml")
+    with SimulatorThread(builtin_profile("example-drive")) as sim:
+        code, out, err = cli(capsys, "plan", recipe, "--device", sim.url, "--show-frames")
+        assert code == 0, err
+        kinds = [line.split()[1] for line in out.splitlines() if line[:6].strip().isdigit()]
+        assert kinds == ["identity", "snapshot", "snapshot", "device-id", "precondition", "unlock", "write",
+                         "read-modify-write", "write", "verify", "verify", "commit", "lock"]
+        assert "step 6 (unlock): FC16 at 0x001F, 1 register: 5AA5 (parameter password)" in out
+        assert "step 12 (commit): FC16 at 0x0020, 1 register: 0001 (store parameters to EEPROM)" in out
+        assert "rtu   query    01 10 00 20 00 01 02 00 01" in out  # the commit's frame, as sent
+        assert "non-volatile memory: 1 write (storing 9 parameters)" in out
+        code, out, err = cli(capsys, "plan", recipe, "--device", sim.url, "--json")
+        plan = json.loads(out)
+        n = len(sim.log)
+        code, out, err = cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--json", "--state-dir",
+                             str(tmp_path / "s"))
+        assert code == 0, err
+        contract.check(plan, json.loads(out)["devices"][0], sim.log[n:])
+        assert [(e.function, e.address) for e in sim.log[n:]] == [
+            (3, 0), (3, 255), (3, 511), (43, 0), (3, 16), (16, 31), (16, 255), (3, 511), (16, 511), (3, 255),
+            (3, 511), (16, 32), (16, 31)]
+
+
+@dataclass
+class _Wire:
+    function: int
+    address: int
+    count: int
+    values: list[int] | None = None
+
+
+@pytest.mark.parametrize("quirk", ["by the book", "max-write 2", "fc06-only"])
+def test_a_device_we_did_not_write_receives_the_plan(quirk: str, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """umodbus (its own server, its own framing): the requests it saw are the plan's and the named deviations."""
+    prof = builtin_profile("example-inverter")
+    store = {a: 0 for p in prof.parameters if p.register_type == "holding" for a in range(p.address, p.end)}
+    store.update({c.address: c.raw for c in prof.identity})
+    wire: list[tuple[int, int, int]] = []
+    recipe = str(EXAMPLES / RECIPES["example-inverter"])
+    with umodbus_server(store, wire=wire, max_write=2 if quirk == "max-write 2" else 0,
+                        fc06_only=quirk == "fc06-only") as port:
+        url = f"tcp://127.0.0.1:{port}"
+        state = str(tmp_path / "s")
+        plan_file = str(tmp_path / "plan.json")
+        code, _, err = cli(capsys, "plan", recipe, "--device", url, "--out", plan_file, "--state-dir", state)
+        assert code == 0, err
+        n = len(wire)
+        code, out, err = cli(capsys, "apply", plan_file, "--device", url, "--yes", "--json", "--state-dir", state)
+    device = json.loads(out)["devices"][0]
+    assert code == 0 and device["status"] == "ok", device
+    contract.check(json.loads(Path(plan_file).read_text()), device, [_Wire(*w) for w in wire[n:]])
+    deviations = {r.get("deviation") for r in device["requests"]} - {None}
+    assert deviations == {"by the book": set(), "max-write 2": {"split", "recovery-read"},
+                          "fc06-only": {"function-06"}}[quirk]
