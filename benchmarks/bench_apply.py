@@ -114,7 +114,7 @@ def _requests(lines: list[str]) -> dict[str, int]:
 def _plan_file(work: str, recipe_path: str) -> str:
     """The registers a hand-written script would hard-code: per parameter and per contiguous block."""
     from deployer.planning.model import Target
-    from deployer.planning.planner import make_plan
+    from deployer.planning.steps import make_plan
     from deployer.recipe.loader import load_recipe
 
     rec = load_recipe(recipe_path)
@@ -169,7 +169,7 @@ async def _phases(work: str, port: int, salt: int) -> dict[str, float]:
     from deployer.execute.verify import values_of
     from deployer.load import yamlsrc
     from deployer.planning.model import Target
-    from deployer.planning.planner import make_plan
+    from deployer.planning.steps import make_plan
     from deployer.recipe.loader import load_recipe
     from deployer.report import DeviceResult, Report
     from deployer.state.snapshot import save_snapshot

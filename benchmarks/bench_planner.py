@@ -83,6 +83,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         # about 1.0 means linear; noise and cache effects move it by a few tenths
         out[f"{name}_linearity"] = round(per[-1] / per[0], 2)
     out["linearity_largest_vs_smallest_time_per_parameter"] = out["write_all_linearity"]
+    out["against_yaml"] = against_yaml()
     return out
 
 
@@ -97,3 +98,43 @@ if __name__ == "__main__":
                   f"{r['microseconds_per_parameter']:>9}{r['requests']:>9}{r['naive_requests']:>8}"
                   f"{r['registers_written']:>10}{r['bridged']:>8}")
         print(f"{mode} linearity (time per parameter, largest / smallest): {res[f'{mode}_linearity']}")
+
+
+def against_yaml(n: int = 5000) -> dict[str, Any]:
+    """A whole device plan (every step: checks, writes, read-back) of the benchmark drive's ``n`` parameters,
+    offline and against values held (a third changed), beside PyYAML's pure-Python loader reading the same
+    profile and recipe files: the target is at most a quarter of that time (issue #46)."""
+    import tempfile
+
+    import yaml
+
+    from benchmarks import drive
+    from deployer.planning.model import Target
+    from deployer.planning.steps import make_plan
+    from deployer.recipe.loader import load_recipe
+
+    with tempfile.TemporaryDirectory() as work:
+        files = drive.write(work, n, wide_every=4)
+        texts = []
+        for k in ("profile", "recipe"):
+            with open(files[k], encoding="utf-8") as f:
+                texts.append(f.read())
+        rec = load_recipe(files["recipe"])
+
+    def best(f: Callable[[], object], times: int = 5) -> float:
+        dt = float("inf")
+        for _ in range(times):
+            gc.collect()
+            t = time.perf_counter()
+            f()
+            dt = min(dt, time.perf_counter() - t)
+        return dt
+
+    parse = best(lambda: [yaml.load(t, Loader=yaml.SafeLoader) for t in texts], 3)
+    held = {d.name: (d.registers if i % 3 else tuple(0 for _ in d.registers)) for i, d in enumerate(rec.desired)}
+    target = Target("tcp://127.0.0.1:502", 1, "drive")
+    offline = best(lambda: make_plan(rec, target, None))
+    diff = best(lambda: make_plan(rec, target, held))
+    return {"parameters": n, "yaml_pure_python_seconds": round(parse, 4), "plan_offline_seconds": round(offline, 4),
+            "plan_diff_aware_seconds": round(diff, 4), "offline_vs_yaml": round(offline / parse, 3),
+            "diff_aware_vs_yaml": round(diff / parse, 3)}

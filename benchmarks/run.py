@@ -46,6 +46,10 @@ def _get(results: dict[str, Any], path: str) -> Any:
 TARGETS = [
     ("validate, 5,000 parameters (s)", "scale/5000/validate_seconds", "<=", 0.5),
     ("plan, 5,000 parameters (s)", "scale/5000/plan_seconds", "<=", 0.5),
+    # issue #46: a whole device plan (every step) within a quarter of PyYAML's pure-Python read of the files
+    ("plan of 5,000 parameters / pure-Python YAML read, offline", "planner/against_yaml/offline_vs_yaml", "<=", 0.25),
+    ("plan of 5,000 parameters / pure-Python YAML read, diff-aware", "planner/against_yaml/diff_aware_vs_yaml", "<=",
+     0.25),
     ("validate, 50,000 parameters (s)", "scale/50000/validate_seconds", "<=", 5.0),
     ("plan, 50,000 parameters (s)", "scale/50000/plan_seconds", "<=", 5.0),
     ("apply @5 ms: naive script / deployer", "apply/5ms/deployer_vs_naive", ">=", 10.0),

@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import itertools
 import json
+import operator
 import os
 import time
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -36,7 +38,7 @@ from .connect import connected
 from .executor import Execution
 from .job import Job
 from .session import ApplyOptions, Session
-from .verify import PENDING
+from .verify import PENDING, _values
 
 
 def plan_digest(plan: Plan) -> str:
@@ -80,23 +82,49 @@ class Shared:
         self.recipe = recipe
         params = [d.parameter for d in recipe.desired]
         self.layout = tuple((p.name, p.key, p.count) for p in params)
+        self.names = tuple(p.name for p in params)
         self.restart = tuple(p.name for p in params if p.restart)
         self._plans: dict[tuple[Any, ...], _Entry] = {}
+        # each ParameterResult's arguments, in its fields' order (a fleet makes 100 per device)
+        self._results = tuple((d.name, d.parameter.address, d.parameter.count, d.text, d.registers, None, None,
+                               "skipped", None, d.parameter.register_type, d.parameter) for d in recipe.desired)
+        keys = [p.key + i for p in params for i in range(p.count)]
+        self._words = operator.itemgetter(*keys) if len(keys) > 1 else None  # one key: itemgetter gives no tuple
+        self._seen: dict[tuple[int, ...], dict[str, tuple[int, ...]]] = {}
 
     def results(self) -> dict[str, ParameterResult]:
-        return parameter_results(self.recipe)
+        """A result per recipe parameter, in recipe order, each ``skipped`` until something happens to it."""
+        return dict(zip(self.names, itertools.starmap(ParameterResult, self._results), strict=True))
+
+    def values(self, regs: Mapping[int, int]) -> dict[str, tuple[int, ...]]:
+        """The recipe's parameters' registers from the words read (``verify._values``), made once for all the
+        devices whose registers read the same: their values are then the same objects too (the plan's key
+        compares them at once)."""
+        if self._words is None:
+            return _values(self.layout, regs)
+        try:
+            words = self._words(regs)
+        except KeyError:  # registers not read (write-only parameters; a read that failed): the long way
+            return _values(self.layout, regs)
+        hit = self._seen.get(words)
+        if hit is None:
+            if len(self._seen) >= 64:
+                self._seen.clear()
+            hit = self._seen[words] = _values(self.layout, regs)
+        return dict(hit)  # the caller's own
 
     def plan(self, target: Target, before: dict[str, tuple[int, ...]] | None, commit_owed: bool) -> tuple[Plan, _Entry]:
-        plan = self.planner.plan(target, before, commit_owed=commit_owed)
-        key = (target.unit != 0, commit_owed, None if before is None else tuple(map(before.get, self.planner.names)))
+        """The device's plan (``Planner.plan``) and the entry the devices holding the same values share."""
+        key = (target.unit != 0, commit_owed, None if before is None else tuple(map(before.get, self.names)))
         hit = self._plans.get(key)
-        if hit is None or hit.plan.steps is not plan.steps:
+        if hit is None:
             if len(self._plans) >= 64:
                 self._plans.clear()
+            plan = self.planner.plan(Target("", target.unit, ""), before, commit_owed=commit_owed)
             doc = plan_to_json(plan)
             del doc["device"]
             hit = self._plans[key] = _Entry(plan, canonical(doc)[1:])
-        return plan, hit
+        return replace(hit.plan, device=target), hit
 
 
 def parameter_results(recipe: Recipe) -> dict[str, ParameterResult]:
@@ -322,7 +350,7 @@ class _Device:
     async def _apply(self, session: Session) -> None:
         job, opts, res, results = self.job, self.opts, self.res, self.results
         prof = self.recipe.profile
-        ex = Execution(session, self.recipe, res, results, opts, self.shared.layout)
+        ex = Execution(session, self.recipe, res, results, opts, self.shared.values)
         target = Target(res.url, job.unit, profile_ref(prof))
         saved = job.plan
         # 1. the checks: identity, what the device holds (the snapshot), its identification and firmware

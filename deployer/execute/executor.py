@@ -30,7 +30,7 @@ from ..recipe.loader import Recipe
 from ..report import DeviceResult, ParameterResult
 from .recovery import Learning, _recover, _remerge, chunks, single_writes
 from .session import ApplyOptions, Session
-from .verify import PENDING, _attempted, _values, _verify
+from .verify import PENDING, _attempted, _verify
 
 # what stops a device's changes: the device's result says why; its parameters say what it holds
 BeforeWrite = Callable[[], Awaitable[bool]]
@@ -44,14 +44,14 @@ class Execution:
     """One device's plan being executed: the session, the results it fills in, and what the checks read."""
 
     def __init__(self, session: Session, recipe: Recipe, res: DeviceResult, results: dict[str, ParameterResult],
-                 options: ApplyOptions, layout: Sequence[tuple[str, int, int]]) -> None:
+                 options: ApplyOptions, values: Callable[[Mapping[int, int]], dict[str, tuple[int, ...]]]) -> None:
         self.session = session
         self.recipe = recipe
         self.prof: Profile = recipe.profile
         self.res = res
         self.results = results
         self.opts = options
-        self.layout = layout  # each recipe parameter's name, key and registers: values from the words read
+        self.values = values  # the recipe's parameters' registers from the words read (``Shared.values``)
         self.before: dict[str, tuple[int, ...]] = {}
         self.learning = Learning()
         self.written: set[str] = set()
@@ -94,7 +94,7 @@ class Execution:
         except ExceptionResponse as e:
             res.status, res.error = "failed", f"reading the current values answered {e}; nothing was written"
             return False
-        self.before = _values(self.layout, regs)
+        self.before = self.values(regs)
         asked = any(s.kind == "device-id" for s in steps)
         why = self._objects(asked) or self._firmware(asked)
         if why:
@@ -390,7 +390,7 @@ class Execution:
                     results[nm].error = f"read-back failed: {e}"
             self.unanswered = self.unanswered or set()  # nothing verified: no commit
             return
-        _verify(results, self.prof, _values(self.layout, regs), self.written, self.unanswered or ())
+        _verify(results, self.prof, self.values(regs), self.written, self.unanswered or ())
 
     async def _commit(self, step: Step, writes: bool) -> bool:
         """A commit step, sent only when every parameter verified and no window holds it; False stops the rest

@@ -39,7 +39,7 @@ async def plan_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, write_all
     dev = _Device(job, opts, res, planners or Planners())
     async with connected(url, unit, recipe.profile, records=records if records is not None else res.requests,
                          notices=res.notices) as session:
-        ex = Execution(session, recipe, res, dev.results, opts, dev.shared.layout)
+        ex = Execution(session, recipe, res, dev.results, opts, dev.shared.values)
         if not await ex.checks(dev.shared.planner.checks):
             why = (res.error or "").removesuffix("; nothing was written")
             raise Unreachable(f"{tp.describe(url)} unit {unit}: {why}")

@@ -23,13 +23,14 @@ broadcast (unit 0) has only its write steps: nobody answers a read.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
 from ..profile.model import READ_FUNCTION
 from .model import DEVICE_ID, NO_PAUSES, Expect, Pacing, Plan, ReadRequest, Step, StepKind, Target, WriteRequest
-from .planner import plan_reads, plan_writes
+from .planner import plan_reads, plan_writes, read_key
 
 if TYPE_CHECKING:
     from ..profile import Profile, WriteAction
@@ -80,15 +81,17 @@ def secret_words(prof: Profile, step: Step) -> tuple[int, ...]:
 
 
 def _covered(reads: Sequence[ReadRequest], prof: Profile, names: Sequence[str]) -> list[tuple[str, ...]]:
-    """For each read block, the named parameters it holds."""
+    """For each read block, the named parameters it holds (a block is found by its first register: bisect)."""
+    keys = sorted((read_key(r), i) for i, r in enumerate(reads))
+    starts = [k for k, _ in keys]
     out: list[list[str]] = [[] for _ in reads]
     for n in names:
         p = prof.parameter(n)
-        fn = READ_FUNCTION[p.register_type]
-        for i, r in enumerate(reads):
-            if r.function == fn and r.address <= p.address and p.end <= r.address + r.count:
+        j = bisect.bisect_right(starts, p.key) - 1
+        if j >= 0:
+            k, i = keys[j]
+            if p.key + p.count <= k + reads[i].count:
                 out[i].append(n)
-                break
     return [tuple(x) for x in out]
 
 

@@ -247,11 +247,11 @@ async def _commit(w: Written, options: ApplyOptions) -> str | None:
         commit_owed=True)
     results = {p.name: ParameterResult(p.name, p.address, p.count, p.desired, tuple(p.after_raw or ()),
                                        status="ok", parameter=prof.parameter(p.name)) for p in ours}
-    layout = tuple((d.parameter.name, d.parameter.key, d.parameter.count) for d in rec.desired)
     try:
         async with connected(w.url, w.unit, prof, records=res.requests, backoff=options.backoff) as session:
             ex = Execution(session, rec, res, results, replace(options, hold_commit=False, soak=None,
-                                                               confirm_within=None), layout)
+                                                               confirm_within=None),
+                           lambda regs: values_of([d.parameter for d in rec.desired], regs))
             if not await ex.checks(plan.steps[:plan.checks]):
                 why = res.error or "the device could not be read"
                 res.status, res.error, res.commit = "failed", f"commit not sent: re-reading the parameters failed: " \
