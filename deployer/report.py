@@ -138,21 +138,28 @@ class DeviceResult:
     # its report line as ``device_json`` made it where the device ran (a fleet's worker process): not remade here
     report_line: bytes | None = field(default=None, repr=False, compare=False)
 
+    # the counts are of what the device received: every attempt of a request is a request
     @property
     def write_requests(self) -> int:
         if self.tally is not None:
             return self.tally.write_requests
-        return sum(1 for r in self.requests if r.function in (5, 6, 15, 16))
+        return sum(r.attempts for r in self.requests if r.function in (5, 6, 15, 16))
 
     @property
     def read_requests(self) -> int:
         if self.tally is not None:
             return self.tally.read_requests
-        return sum(1 for r in self.requests if r.function in (1, 2, 3, 4))
+        return sum(r.attempts for r in self.requests if r.function in (1, 2, 3, 4))
 
     @property
     def request_count(self) -> int:
-        return self.tally.requests if self.tally is not None else len(self.requests)
+        """Every request the device received: reads, writes, Function 43, each attempt."""
+        return self.tally.requests if self.tally is not None else sum(r.attempts for r in self.requests)
+
+    @property
+    def repeated(self) -> int:
+        """Requests sent again (after no answer, or a busy one): counted in the totals above."""
+        return sum(r.attempts - 1 for r in self.requests)
 
     @property
     def changed_count(self) -> int:
@@ -196,7 +203,7 @@ class DeviceResult:
         failed = len(written) - len(ok)  # sent, not ok: failed, mismatch or unverified
         if len(_WRITTEN) > 1024:  # a long-lived caller's many recipes: keep the table small
             _WRITTEN.clear()
-        tally = Tally(self.write_requests, self.read_requests, len(self.requests), changed, failed,
+        tally = Tally(self.write_requests, self.read_requests, self.request_count, changed, failed,
                       _WRITTEN.setdefault(written, written))
         out.tally = tally
         return out
@@ -277,6 +284,7 @@ class Report:
         return {"devices": len(self.devices), **counts,
                 "write_requests": sum(d.write_requests for d in self.devices),
                 "read_requests": sum(d.read_requests for d in self.devices),
+                "requests": sum(d.request_count for d in self.devices),
                 "seconds": round(self.seconds, 3)}
 
     def to_json(self) -> dict[str, Any]:

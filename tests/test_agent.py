@@ -119,7 +119,7 @@ def test_a_plain_apply_to_an_owned_device_is_refused_nothing_sent(tmp_path: Path
         assert cli.returncode == 3, cli.stderr
         said = cli.stdout + cli.stderr
         assert f"owned by the deployer agent at {agent.url}" in said and "--agent" in said, said
-        assert "0 write and 0 read requests" in said
+        assert "0 requests: 0 reads, 0 writes" in said
         ours = [e for e in sim.log[seen:] if e.function in (6, 16)]
         assert ours == []  # the agent only reads (report mode), and the CLI sent nothing
         assert agent.terminate() == 0

@@ -157,3 +157,18 @@ def test_a_device_we_did_not_write_receives_the_plan(quirk: str, tmp_path: Path,
     deviations = {r.get("deviation") for r in device["requests"]} - {None}
     assert deviations == {"by the book": set(), "max-write 2": {"split", "recovery-read"},
                           "fc06-only": {"function-06"}}[quirk]
+
+
+def test_the_counts_printed_are_the_devices_request_log(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """"N requests: ..." counts what the device received: Function 43, and a request sent again (busy) twice."""
+    recipe = str(EXAMPLES / "example-drive-axis1.yaml")
+    with SimulatorThread(builtin_profile("example-drive"), faults=Faults(busy_first=1)) as sim:
+        code, out, err = cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--state-dir",
+                             str(tmp_path / "s"))
+        assert code == 0, err
+        log = list(sim.log)
+    reads = sum(1 for e in log if e.function in (1, 2, 3, 4))
+    writes = sum(1 for e in log if e.function in (5, 6, 15, 16))
+    assert f"{len(log)} requests: {reads} reads, {writes} writes, 1 device identification (1 of them sent again " \
+           "after no answer or a busy answer)" in out
+    assert (len(log), reads, writes) == (14, 7, 5 + 1)  # the busy write answered 06 once, then took

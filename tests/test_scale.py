@@ -73,7 +73,9 @@ def test_a_fleet_keeps_ok_devices_small_and_its_report_and_journal_whole(capsys:
     finished = next(x for x in lines if x["event"] == "run-finished")
     assert [d["written"] for d in finished["devices"]] == [["F07", "F08", "stop_mode"]] * 3
     s = doc["summary"]  # the table and the totals, from the small results, say what the file says
-    assert f"3 devices: 3 ok; {s['write_requests']} write requests and {s['read_requests']} read requests" in out
+    ids = s["requests"] - s["write_requests"] - s["read_requests"]
+    assert f"3 devices: 3 ok; {s['requests']} requests ({s['read_requests']} reads, {s['write_requests']} writes, " \
+           f"{ids} device identification)" in out and ids == 3
     for d in doc["devices"]:
         assert re.search(rf"{d['name']}\s+ok\s+3\s+0\s+{len(d['requests'])}\s", out), out
 

@@ -599,3 +599,26 @@ def test_the_documented_lock_record_is_the_one_written(tmp_path: Path) -> None:
     assert set(json.loads(example)) == set(written) == table
     assert written["format"] == json.loads(example)["format"] == holder.FORMAT
     assert written["run"] == "R1" and written["pid"] == os.getpid()
+
+
+def test_confirming_a_profile_without_a_commit_step_says_the_values_were_kept(tmp_path: Path) -> None:
+    """`deployer confirm` says what happened: no commit step to send, so the values stay as written (it used to
+    say "the commit was sent")."""
+    plain = profile_from(tmp_path, "profile: plain\nparameters:\n  x: {register: 0x10, type: uint16}\n", "plain.yaml")
+    (tmp_path / "r.yaml").write_text("recipe: r\nprofile: plain.yaml\nparameters:\n  x: 7\n")
+    state = str(tmp_path / "s")
+    with SimulatorThread(plain) as sim:
+        a = subprocess.Popen([sys.executable, "-m", "deployer", "apply", str(tmp_path / "r.yaml"), "--device",
+                              sim.url, "--yes", "--confirm-within", "1h", "--state-dir", state],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            wait_for(lambda: bool(awaiting(state)) or a.poll() is not None)
+            confirmed = run("confirm", "--state-dir", state)
+            assert confirmed.returncode == 0, confirmed.stderr
+            assert "kept as written on r (its profile has no commit step: nothing to store)" in confirmed.stdout
+            assert "the commit was sent" not in confirmed.stdout
+            a.communicate(timeout=120)
+        finally:
+            if a.poll() is None:
+                a.kill()
+        assert sim.read("x") == (7,) and a.returncode == 0

@@ -529,6 +529,12 @@ def confirm(run: str | None, state_dir: str, agent_url: str | None) -> int:
 
     # NotCommitted (exit 4) names each device the commit did not reach
     done = confirm_outcome(run, state_dir=state_dir, on_confirmed=said)
-    sent = done.get("committed")
-    echo(f"run {safe(confirmed[0])}: the commit was sent" + (f" to {', '.join(safe(n) for n in sent)}" if sent else ""))
+    sent, kept = done.get("committed") or [], done.get("kept") or []
+    said_ = []
+    if sent:
+        said_.append(f"the commit was sent to {', '.join(safe(n) for n in sent)}")
+    if kept:
+        said_.append(f"kept as written on {', '.join(safe(n) for n in kept)} (its profile has no commit step: "
+                     "nothing to store)")
+    echo(f"run {safe(confirmed[0])}: " + ("; ".join(said_) or "confirmed"))
     return EXIT_OK

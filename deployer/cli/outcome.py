@@ -11,7 +11,7 @@ from .tables import show
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..api import Report
+    from ..api import DeviceResult, Report
 
 
 _STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "rolled-back": 3, "skipped": 4, "ok": 5, "unchanged": 6}
@@ -56,13 +56,24 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
                       "non-volatile memory; on devices that keep Modbus writes in RAM they revert at a power cycle")
         if d.snapshot and d.status != "rolled-back":
             out.print(f"snapshot: {safe(d.snapshot)}  (undo with: deployer rollback {safe(d.snapshot)})")
-        out.print(f"{d.write_requests} write and {d.read_requests} read requests")
+        out.print(requests_text(d), soft_wrap=True)
     s = report.summary()
     if len(report.devices) > 1 and not only_not_ok:
         out.print(f"{_n(s['devices'], 'device')}: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
                   + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable"
                   + (f", {s['rolled-back']} rolled back" if s["rolled-back"] else "")
                   + (f", {s['interrupted']} interrupted" if s["interrupted"] else "") + f" in {s['seconds']:.2f} s")
+
+
+def requests_text(d: DeviceResult) -> str:
+    """'13 requests: 8 reads, 4 writes, 1 device identification': what the device received, each attempt counted."""
+    ids = d.request_count - d.write_requests - d.read_requests
+    parts = [_n(d.read_requests, "read"), _n(d.write_requests, "write")]
+    if ids:
+        parts.append(f"{ids} device identification")
+    again = d.repeated
+    return (f"{_n(d.request_count, 'request')}: {', '.join(parts)}"
+            + (f" ({again} of them sent again after no answer or a busy answer)" if again else ""))
 
 
 def print_outcome(report: Report, *, fleet_run: bool, as_json: bool, report_path: str | None) -> None:

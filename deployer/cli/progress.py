@@ -134,8 +134,10 @@ def fleet_summary(report: Report, out: Console) -> None:
     parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "rolled-back", "interrupted",
                                      "skipped")
              if s[k] or k == "ok"]
-    out.print(f"{_n(s['devices'], 'device')}: {', '.join(parts)}; {_n(s['write_requests'], 'write request')} and "
-              f"{_n(s['read_requests'], 'read request')} in {s['seconds']:.2f} s")
+    ids = s["requests"] - s["write_requests"] - s["read_requests"]
+    out.print(f"{_n(s['devices'], 'device')}: {', '.join(parts)}; {_n(s['requests'], 'request')} ("
+              f"{_n(s['read_requests'], 'read')}, {_n(s['write_requests'], 'write')}"
+              + (f", {ids} device identification" if ids else "") + f") in {s['seconds']:.2f} s", soft_wrap=True)
 
 
 def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tuple[int, ...]] | Exception]:

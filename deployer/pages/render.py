@@ -226,8 +226,8 @@ def run_page(report: Report, *, title: str | None = None, meta: Sequence[tuple[s
         ("when", run.get("started")), ("where", run.get("host")), ("deployer", run.get("version")),
         ("run", run.get("id")), ("profiles", profiles),
         ("batches", len(batches) if batches else None),
-        ("devices", f"{summary['devices']}; {summary['write_requests']} write and {summary['read_requests']} read "
-                    f"requests in {summary['seconds']:.2f} s"),
+        ("devices", f"{summary['devices']}; {summary.get('requests', '?')} requests ({summary['read_requests']} reads, "
+                    f"{summary['write_requests']} writes) in {summary['seconds']:.2f} s"),
     ])
     main = (f"{_outcome(report, devices)}<section class=counts>{counts}</section>"
             f"{_devices(statuses, batches, compact=compact)}"

@@ -158,6 +158,9 @@ class Window:
         # what `deployer confirm` waits for, to say whether the commit went out
         record(opts, {"event": "confirm-outcome", "run": run, "time": journal._now(), "confirmed": confirmed,
                       "committed": [w.name for w in waiting if w.result.commit == "sent"],
+                      # confirmed, with no commit step to send: the values stay as written (in RAM where the
+                      # device keeps Modbus writes there)
+                      "kept": [w.name for w in waiting if not w.recipe.profile.commit and w.result.status == "ok"],
                       "not_committed": {w.name: w.result.error or w.result.status for w in waiting
                                         if w.result.status != "ok"
                                         or (w.recipe.profile.commit and w.result.commit != "sent")}},
