@@ -463,7 +463,10 @@ def plan_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]] | None, d
     from .planning.steps import pacing_for
 
     target = Target(describe(device) if device is not None else None, unit, recipe.profile_ref or recipe.profile.id)
-    return make_plan(recipe, target, current, write_all=write_all, pacing=pacing_for(device, recipe.profile))
+    from .transport.urls import identification
+
+    return make_plan(recipe, target, current, write_all=write_all, pacing=pacing_for(device, recipe.profile),
+                     device_id=None if device is None else identification(device))
 
 
 def plan_cost(plan: Plan, profile: Profile, device: DeviceURL | None = None) -> Cost:

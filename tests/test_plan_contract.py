@@ -172,3 +172,58 @@ def test_the_counts_printed_are_the_devices_request_log(tmp_path: Path, capsys: 
     assert f"{len(log)} requests: {reads} reads, {writes} writes, 1 device identification (1 of them sent again " \
            "after no answer or a busy answer)" in out
     assert (len(log), reads, writes) == (14, 7, 5 + 1)  # the busy write answered 06 once, then took
+
+
+# ---- Function 43: asked, not asked, learned -----------------------------------------------------------
+
+
+def _ids(log: Any) -> int:
+    return sum(1 for e in log if e.function == 43)
+
+
+def test_a_profile_or_url_can_say_the_device_has_no_identification(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    text = (Path(__file__).resolve().parent.parent / "deployer" / "profiles" / "omron-m1.yaml").read_text()
+    (tmp_path / "m1.yaml").write_text(text.replace("\nparameters:", "\nlimits: {device_identification: false}"
+                                                                    "\nparameters:", 1))
+    (tmp_path / "r.yaml").write_text((EXAMPLES / "omron-m1-accel.yaml").read_text().replace(
+        "profile: omron-m1", "profile: m1.yaml"))
+    recipe = str(tmp_path / "r.yaml")
+    with SimulatorThread(builtin_profile("omron-m1")) as sim:
+        code, out, err = cli(capsys, "plan", recipe, "--json")
+        assert code == 0 and "device-id" not in [s["kind"] for s in json.loads(out)["steps"]]
+        code, out, err = cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"))
+        assert code == 0 and _ids(sim.log) == 0, err
+        # the URL overrides the profile, both ways
+        code, out, err = cli(capsys, "plan", recipe, "--device", sim.url + "?device_identification=true", "--json")
+        assert code == 0 and "device-id" in [s["kind"] for s in json.loads(out)["steps"]]
+        n = len(sim.log)
+        code, out, err = cli(capsys, "plan", str(EXAMPLES / "omron-m1-accel.yaml"), "--device",
+                             sim.url + "?device_identification=0", "--json")
+        assert code == 0 and "device-id" not in [s["kind"] for s in json.loads(out)["steps"]] and _ids(sim.log[n:]) == 0
+    code, _, err = cli(capsys, "plan", recipe, "--device", "tcp://127.0.0.1:1?device_identification=maybe")
+    assert code == 1 and "option device_identification: 'maybe' is none of true, false" in err
+
+
+def test_a_device_silent_on_function_43_costs_one_timeout_once(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    recipe = str(EXAMPLES / "omron-m1-accel.yaml")
+    state = str(tmp_path / "s")
+    with SimulatorThread(builtin_profile("omron-m1"), quirks=Quirks(silent_functions=frozenset({43}))) as sim:
+        url = sim.url + "?timeout=0.3&retries=0"
+        code, out, err = cli(capsys, "apply", recipe, "--device", url, "--yes", "--json", "--state-dir", state)
+        assert code == 0, err
+        dev = json.loads(out)["devices"][0]
+        assert dev["learned"] == {"device_identification": 0} and _ids(sim.log) == 1
+        assert any("did not answer Function 43 (device identification) within 0.3 s" in n for n in dev["notices"])
+        code, out, err = cli(capsys, "learned", "list", "--state-dir", state)
+        assert code == 0 and "device_identification: 0" in out, out
+        # the next plan and apply: no Function 43 step, no request, no timeout
+        code, out, err = cli(capsys, "plan", recipe, "--device", url, "--json", "--state-dir", state)
+        assert code == 0 and "device-id" not in [s["kind"] for s in json.loads(out)["steps"]]
+        n = len(sim.log)
+        (tmp_path / "r2.yaml").write_text(Path(recipe).read_text().replace("10 s", "12 s"))
+        code, out, err = cli(capsys, "apply", str(tmp_path / "r2.yaml"), "--device", url, "--yes", "--json",
+                             "--state-dir", state)
+        assert code == 0 and _ids(sim.log[n:]) == 0, err
+        assert any("using what this device taught" in x for x in json.loads(out)["devices"][0]["notices"])

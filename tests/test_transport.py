@@ -127,8 +127,8 @@ def test_timeout_and_retries_from_url_or_arguments() -> None:
     ("tpc://10.0.0.1", "unknown scheme 'tpc' in 'tpc://10.0.0.1'; did you mean 'tcp'?"),
     ("foo://h", "unknown scheme 'foo' in 'foo://h' (known: tcp, tls, rtu, ascii, rtu+tcp)"),
     ("rtu:///dev/x?baud=9600", "unknown option 'baud' in rtu URL; did you mean 'baudrate'?"),
-    ("tcp://h?baudrate=9600", "unknown option 'baudrate' in tcp URL (known: pause_after_connect, "
-                              "pause_between_requests, retries, timeout)"),
+    ("tcp://h?baudrate=9600", "unknown option 'baudrate' in tcp URL (known: device_identification, "
+                              "pause_after_connect, pause_between_requests, retries, timeout)"),
     ("rtu:///dev/x?parity=X", "option parity=X must be N, E or O"),
     ("rtu:///dev/x?baudrate=fast", "option baudrate='fast' is not an integer"),
     ("rtu:///dev/x?timeout=abc", "option timeout='abc' is not a number"),

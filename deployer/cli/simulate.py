@@ -55,6 +55,9 @@ def _register(text: str) -> int:
 @click.option("--max-connections", type=click.IntRange(min=0), default=0, metavar="N",
               help="quirk: serve N TCP connections at once, close any more as they open (a gateway's limit); "
                    "0: any")
+@click.option("--silent-function", "silent", type=click.IntRange(1, 127), multiple=True, metavar="FC",
+              help="quirk: requests of this function code are never answered (a device that lacks Function 43 and "
+                   "stays silent: --silent-function 43). Repeatable.")
 @click.option("--identity", "identity", multiple=True, metavar="OBJECT=TEXT",
               help="Function 43 objects to answer (vendor, product_code, revision, ... or an id 0..255), e.g. "
                    "--identity vendor=ACME; default: the profile's identity objects, else the device answers 01. "
@@ -65,7 +68,7 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
              disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool,
              gap_reads: bool, max_write_registers: int | None, all_or_nothing: bool, fc06_only: bool,
              pause_after_connect: str, pause_between_requests: str, identity: tuple[str, ...],
-             fault_rules: tuple[str, ...] = (), max_connections: int = 0) -> int:
+             fault_rules: tuple[str, ...] = (), max_connections: int = 0, silent: tuple[int, ...] = ()) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
     from ..api import load_profile, load_recipe
     from ..load.durations import parse_duration
@@ -113,7 +116,7 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
         raise UsageError(str(e)) from None
     quirks = Quirks(max_write_registers=max_write_registers or 0, all_or_nothing=all_or_nothing,
                     fc06_only=fc06_only, pause_after_connect_ms=pauses[0], request_gap_ms=pauses[1],
-                    max_connections=max_connections, identity=objects)
+                    max_connections=max_connections, identity=objects, silent_functions=frozenset(silent))
     try:
         sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
                         state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads, quirks=quirks)

@@ -34,6 +34,7 @@ from ..state.durable import Line, disk_error, durable, queue
 from ..state.snapshot import last_identity, snapshot_file, snapshot_values
 from ..state.snapshot import written as snapshot_written
 from ..transport import clients as tp
+from ..transport.urls import identification
 from .connect import connected
 from .executor import Execution
 from .job import Job
@@ -153,11 +154,15 @@ class Planners:
             hit = self._taught[key] = (recipe, recipe if prof is recipe.profile else replace(recipe, profile=prof))
         return hit[1]
 
-    def shared(self, recipe: Recipe, *, write_all: bool, commit: bool, pacing: Pacing) -> Shared:
-        key = (id(recipe), write_all, commit, pacing)
+    def shared(self, recipe: Recipe, *, write_all: bool, commit: bool, pacing: Pacing,
+               device_id: bool | None = None) -> Shared:
+        """``device_id``: whether the device is asked Function 43 (None: as the recipe's profile says)."""
+        ask = recipe.profile.limits.device_identification if device_id is None else device_id
+        key = (id(recipe), write_all, commit, pacing, ask)
         hit = self._by.get(key)
         if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
-            hit = self._by[key] = (recipe, Shared(Planner(recipe, write_all=write_all, commit=commit, pacing=pacing)))
+            hit = self._by[key] = (recipe, Shared(Planner(recipe, write_all=write_all, commit=commit, pacing=pacing,
+                                                          device_id=ask)))
         return hit[1]
 
 
@@ -254,13 +259,20 @@ class _Device:
         self.opts = opts
         self.res = res
         self.planners = planners
-        self.recipe = job.recipe
-        self.results: dict[str, ParameterResult] = {}
+        self.recipe = job.recipe  # over the limits the device taught, once they are in force
+        self.taught: learned.Entry | None = None  # what the device taught an earlier run, in force
         self.entry: _Entry | None = None  # the shared plan this device runs (None: a saved plan)
-        self.shared = planners.shared(job.recipe, write_all=opts.write_all, commit=not opts.hold_commit,
-                                      pacing=pacing_for(job.url, job.recipe.profile))
+        self.pacing = pacing_for(job.url, job.recipe.profile)
+        self.shared = self._shared(job.recipe)
         self.results = self.shared.results()
         res.parameters = list(self.results.values())
+
+    def _shared(self, recipe: Recipe) -> Shared:
+        """The run's planner for ``recipe``, asking Function 43 unless the URL or the (taught) profile says not."""
+        ask = identification(self.job.url)
+        return self.planners.shared(recipe, write_all=self.opts.write_all, commit=not self.opts.hold_commit,
+                                    pacing=self.pacing,
+                                    device_id=recipe.profile.limits.device_identification if ask is None else ask)
 
     async def locked(self) -> tuple[DeviceResult, Awaitable[object] | None]:
         job, opts, res = self.job, self.opts, self.res
@@ -273,6 +285,8 @@ class _Device:
             return res, None
         try:
             res.notices.extend(h.stale for h in held if h.stale)
+            if job.plan is None and job.unit != 0:
+                self.over_taught()
             entered = False
             try:
                 async with connected(job.url, job.unit, self.recipe.profile, records=res.requests,
@@ -297,29 +311,36 @@ class _Device:
             for h in reversed(held):
                 h.release()
 
-    def _taught(self, ex: Execution) -> None:
-        """Plan over the limits this device taught an earlier run (``learned``), unless its identity changed since."""
-        opts, res, prof = self.opts, self.res, self.recipe.profile
+    def over_taught(self) -> None:
+        """Plan over the limits this device taught an earlier run (``learned``): its checks too (a device that
+        never answered Function 43 is not asked it again)."""
+        res = self.res
         try:  # the run checked the file before it started: damaged since, it is not used (and said)
-            taught = learned.lookup(opts.state_dir, profile_ref(prof), learned.device_id(self.job.url, self.job.unit))
+            taught = learned.lookup(self.opts.state_dir, profile_ref(self.job.recipe.profile),
+                                    learned.device_id(self.job.url, self.job.unit))
         except InputError as e:
             res.notices.append(f"what devices taught is not used: {e}")
             return
+        if taught is None:
+            return
+        over = self.planners.over_limits(self.job.recipe, taught)
+        if over is not self.job.recipe:
+            self.taught, self.recipe, self.shared = taught, over, self._shared(over)
+
+    def keep_taught(self, ex: Execution) -> None:
+        """After the checks: what the device taught stays in force unless its identity changed since (another
+        device answers there now); either is said."""
+        taught, res = self.taught, self.res
         if taught is None:
             return
         if taught.identity is not None and res.identity is not None and taught.identity != res.identity:
             res.notices.append("the device's identity changed since it taught "
                                f"{taught.describe_limits()} ({_identity_text(taught.identity)}, now "
                                f"{_identity_text(res.identity)}): not used")
-            return
-        over = self.planners.over_limits(self.recipe, taught)
-        if over is self.recipe:
+            self.taught, self.recipe, self.shared = None, self.job.recipe, self._shared(self.job.recipe)
+            ex.recipe, ex.prof = self.recipe, self.recipe.profile
             return
         res.notices.append(learned.note(taught))
-        self.recipe = ex.recipe = over
-        ex.prof = over.profile
-        self.shared = self.planners.shared(self.recipe, write_all=opts.write_all, commit=not opts.hold_commit,
-                                           pacing=self.shared.planner.pacing)
 
     async def _broadcast(self, session: Session) -> None:
         """Unit 0: nobody answers, so nothing is read; every parameter is sent and unverified.
@@ -360,12 +381,14 @@ class _Device:
         for n, regs in before.items():
             results[n].before_raw = regs
         self._identity_notice()
+        if ex.silent_identification:
+            self._silent(ex)
         # 2. the plan: the saved one must still match the device (the stale-plan rule), else made now against it
         if saved is not None:
             _stale(saved, prof, before)
             plan = saved
         else:
-            self._taught(ex)
+            self.keep_taught(ex)
             prof = self.recipe.profile
             plan, self.entry = self.shared.plan(target, before, opts.commit_owed)
         for pp in plan.parameters:
@@ -388,7 +411,7 @@ class _Device:
         await ex.changes(plan, before_write)
         if any(s.kind == "write" for s in plan.steps) and res.snapshot is not None:
             res.seen = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())  # the read-back: what "as left" shows
-            self._remember()
+        self._remember()
         res.notices.extend([f"{n} takes effect after a power cycle" for n in self.shared.restart
                             if results[n].status == "ok"])
 
@@ -401,6 +424,15 @@ class _Device:
                 res.notices.append(f"the device's identity changed since its last snapshot "
                                    f"({os.path.basename(last[0])}: {_identity_text(last[1])}; now "
                                    f"{_identity_text(res.identity)}): it may have been replaced")
+
+    def _silent(self, ex: Execution) -> None:
+        """The device answered its reads but not Function 43: learned, so that it costs one timeout once."""
+        prof = self.job.recipe.profile
+        self.res.learned["device_identification"] = 0
+        self.res.notices.append(
+            f"the device did not answer Function 43 (device identification) within {self.job.url.timeout:g} s: it is "
+            f"not asked again ('deployer learned forget' asks again); set limits.device_identification: false in "
+            f"profile {prof.id} if its devices have none")
 
     def _remember(self) -> None:
         res, opts = self.res, self.opts

@@ -61,6 +61,7 @@ class Execution:
         self.verified = False  # the read-back is done (or could not be)
         self.unlocked = False  # an unlock step went out: the lock steps go too
         self.merge_failed: str | None = None  # why the read before the coming bit-field write failed
+        self.silent_identification = False  # the device-id step got no answer (the reads did)
 
     # ---- the checks ------------------------------------------------------------------------------------
 
@@ -84,6 +85,7 @@ class Execution:
                                                                    self.prof, steps=snapshot))
                 elif step.kind == "device-id":
                     res.identity = await self.session.identify()
+                    self.silent_identification = self.session.records[-1].result == "no response"
                 else:  # firmware
                     words = await self.session.read(step.address, step.count, step.function)
                     assert self.prof.firmware is not None
@@ -378,7 +380,7 @@ class Execution:
             return
         self.verified = True
         res, results = self.res, self.results
-        res.learned = self.learning.limits(results)
+        res.learned.update(self.learning.limits(results))
         res.notices.extend(self.learning.notices(results, self.prof.id))
         verify = [n for n, s in enumerate(plan.steps, 1) if s.kind == "verify"]
         try:  # after a silence too: it may be back

@@ -37,14 +37,15 @@ async def plan_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, write_all
     opts = ApplyOptions(write_all=write_all, state_dir=state_dir or ".deployer")
     res = new_result(job)
     dev = _Device(job, opts, res, planners or Planners())
+    if state_dir is not None:
+        dev.over_taught()
     async with connected(url, unit, recipe.profile, records=records if records is not None else res.requests,
                          notices=res.notices) as session:
         ex = Execution(session, recipe, res, dev.results, opts, dev.shared.values)
         if not await ex.checks(dev.shared.planner.checks):
             why = (res.error or "").removesuffix("; nothing was written")
             raise Unreachable(f"{tp.describe(url)} unit {unit}: {why}")
-        if state_dir is not None:
-            dev._taught(ex)
+        dev.keep_taught(ex)
         plan, _ = dev.shared.plan(Target(tp.describe(url), unit, profile_ref(dev.recipe.profile)), ex.before,
                                   False)
     if notices is not None:

@@ -98,12 +98,12 @@ def _covered(reads: Sequence[ReadRequest], prof: Profile, names: Sequence[str]) 
 class Planner:
     """One recipe's plans: the checks every device gets, worked out once, and each device's plan.
 
-    ``device_id``: ask Function 43 (off where the profile, the URL or what the device taught says it has
-    none); ``commit``: plan the profile's commit (a rollback never commits); ``write_all``: every
-    parameter, held or not.
+    ``device_id``: ask Function 43 (None: as the profile's ``limits.device_identification`` says; the URL and what
+    the device taught decide it for an apply); ``commit``: plan the profile's commit (a rollback never commits);
+    ``write_all``: every parameter, held or not.
     """
 
-    def __init__(self, recipe: Recipe, *, write_all: bool = False, device_id: bool = True, commit: bool = True,
+    def __init__(self, recipe: Recipe, *, write_all: bool = False, device_id: bool | None = None, commit: bool = True,
                  pacing: Pacing = NO_PAUSES) -> None:
         prof = recipe.profile
         self.recipe = recipe
@@ -117,7 +117,7 @@ class Planner:
                        note=c.description) for c in prof.identity]
         checks += [Step("snapshot", r.function, r.address, r.count, (), ps) for r, ps in zip(self.reads, covered,
                                                                                            strict=True)]
-        if device_id:
+        if prof.limits.device_identification if device_id is None else device_id:
             checks.append(Step("device-id", DEVICE_ID, 0, 1, note="vendor, product code, revision"))
         src = prof.firmware
         gated = any(d.parameter.firmware is not None for d in recipe.desired)
@@ -185,7 +185,7 @@ class Planner:
 
 
 def make_plan(recipe: Recipe, target: Target, current: Mapping[str, tuple[int, ...]] | None = None, *,
-              write_all: bool = False, device_id: bool = True, commit: bool = True,
+              write_all: bool = False, device_id: bool | None = None, commit: bool = True,
               pacing: Pacing = NO_PAUSES) -> Plan:
     """One device's whole plan (``Planner`` for a single device)."""
     return Planner(recipe, write_all=write_all, device_id=device_id, commit=commit, pacing=pacing).plan(

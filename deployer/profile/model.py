@@ -47,6 +47,7 @@ class Limits:
     pause_between_requests: int = 0  # ms from one answer to the next request, at least
     max_write_coils: int = PROTOCOL_MAX_WRITE_COILS  # per FC15; 1: every coil goes as one FC05
     max_read_coils: int = PROTOCOL_MAX_READ_COILS  # per FC01 (coils) and FC02 (discrete inputs)
+    device_identification: bool = True  # asked Function 43 (False: the device has none; no request, no timeout)
 
     @property
     def write_registers(self) -> int:

@@ -33,7 +33,7 @@ from . import oslock
 
 FILE = "learned.json"
 SCHEMA = "deployer.learned/1"
-LIMIT_KEYS = ("max_write_registers", "write_function")
+LIMIT_KEYS = ("max_write_registers", "write_function", "device_identification")
 
 
 @dataclass(frozen=True)
@@ -126,6 +126,8 @@ def _problems(data: Any) -> list[tuple[tuple[str | int, ...], str]]:
                 out.append((at, f"limits.{k}: {v} is not 1 to {PROTOCOL_MAX_WRITE}"))
             elif k == "write_function" and v not in (6, 16):
                 out.append((at, f"limits.{k}: {v} is not 6 or 16"))
+            elif k == "device_identification" and v != 0:
+                out.append((at, f"limits.{k}: {v} is not 0 (the device does not answer Function 43)"))
         ident = d.get("identity")
         if isinstance(ident, dict):
             out.extend((("devices", i, "identity", k), f"identity: expected text, got {_shown(v)}")
@@ -294,6 +296,8 @@ def with_limits(profile: Profile, entry: Entry) -> Profile:
         changes["max_write_registers"] = entry.limits["max_write_registers"]
     if entry.limits.get("write_function") == 6 and lim.write_function != 6:
         changes["write_function"] = 6
+    if entry.limits.get("device_identification") == 0 and lim.device_identification:
+        changes["device_identification"] = False
     if not changes:
         return profile
     new_limits: Limits = replace(lim, **changes)

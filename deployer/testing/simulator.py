@@ -173,6 +173,8 @@ class Quirks:
     max_connections: int = 0
     # Function 43 / 14 objects (object id -> text); None: the profile's identity objects, else exception 01
     identity: dict[int, str] | None = None
+    # function codes never answered (an RS-485 device that lacks one and stays silent, as many do for 43)
+    silent_functions: frozenset[int] = frozenset()
 
 
 @dataclass
@@ -874,6 +876,10 @@ class Simulator:
             return None
         if f.drop_every and self._requests % f.drop_every == 0:
             entry.result = "dropped"
+            self._write_log(entry)
+            return None
+        if fc in self.quirks.silent_functions:
+            entry.result = "no answer"
             self._write_log(entry)
             return None
         if f.disconnect_after and self._window > f.disconnect_after:

@@ -144,7 +144,7 @@ def no_answer_hint(url: DeviceURL, unit: int) -> str:
 # ---- URLs ----------------------------------------------------------------------------------
 
 DEFAULT_PORTS = {"tcp": 502, "tls": 802}
-_COMMON = {"timeout", "retries", "pause_after_connect", "pause_between_requests"}
+_COMMON = {"timeout", "retries", "pause_after_connect", "pause_between_requests", "device_identification"}
 _OPTIONS: dict[str, set[str]] = {
     "tcp": _COMMON,
     "tls": _COMMON | {"cert", "key", "ca", "verify", "server_hostname"},  # server_hostname: name to verify
@@ -168,10 +168,12 @@ def option_facts(option: str) -> tuple[list[str], str | None, str | None]:
                 "pause_after_connect": "the profile's limits.pause_after_connect (0)",
                 "pause_between_requests": "the profile's limits.pause_between_requests (0)",
                 "bytesize": line.bytesize, "parity": line.parity, "stopbits": line.stopbits, "verify": "true",
-                "server_hostname": "the URL's host"}
+                "server_hostname": "the URL's host",
+                "device_identification": "the profile's limits.device_identification (true)"}
     allowed = {"parity": "N, E, O", "pause_after_connect": "a duration: 250ms, 1s (a bare number is seconds)",
                "pause_between_requests": "a duration: 250ms, 1s (a bare number is seconds)",
                "verify": "true, false (also 1, 0, yes, no)",
+               "device_identification": "true, false (also 1, 0, yes, no)",
                "cert": "a PEM file", "key": "a PEM file", "ca": "a PEM file"}
     default = defaults.get(option)
     return schemes, None if default is None else str(default), (
@@ -197,6 +199,9 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
                 parse_duration(options[key])
             except ValueError as e:
                 raise BadURL(f"option {key}: {e}") from None
+    if "device_identification" in options and options["device_identification"].lower() not in _TRUTH:
+        raise BadURL(f"option device_identification: {options['device_identification']!r} is none of "
+                     "true, false, 1, 0, yes, no")
     to = _number(options, "timeout") if "timeout" in options else (timeout if timeout is not None
                                                                     else DEFAULT_TIMEOUT)
     rt = _number(options, "retries") if "retries" in options else (retries if retries is not None
@@ -324,6 +329,15 @@ def describe(url: DeviceURL) -> str:
     host = f"[{url.host}]" if url.host and ":" in url.host else url.host
     q = "?verify=false" if url.scheme == "tls" and not verify(url) else ""
     return f"{url.scheme}://{host}:{url.port}{q}"
+
+
+_TRUTH = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
+
+
+def identification(url: DeviceURL) -> bool | None:
+    """The URL's ``device_identification`` option: whether the device is asked Function 43 (None: not said)."""
+    text = url.options.get("device_identification")
+    return None if text is None else _TRUTH[text.lower()]
 
 
 def verify(url: DeviceURL) -> bool:
