@@ -52,7 +52,7 @@ def test_plan_offline_table_json_out_and_frames(capsys: pytest.CaptureFixture[st
     code, out, _ = cli(capsys, "plan", str(EXAMPLES / "omron-m1-accel.yaml"), "--show-frames")
     assert code == 0
     assert "0x1102 (4354)" in out and "0000 03E8" in out and "10 s" in out
-    assert "1 write request" in out and "4 requests in all (3 reads, 1 writes)" in out
+    assert "1 write request" in out and "4 requests in all (3 reads, 1 write)" in out
     assert "01 10 11 02 00 02 04 00 00 03 E8 B2 98" in out and "01 10 11 02 00 02 E5 34" in out
     assert ":01101102000204000003E8EB" in out
     plan_file = tmp_path / "plan.json"

@@ -89,7 +89,7 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
         f"{_n(len(writes), 'write request')} "
         f"({_what(registers, coils)}; one request per parameter would take {naive})"
         + (f", {unchanged} unchanged" if unchanged else "")
-        + f"; {_n(cost.requests, 'request')} in all ({cost.reads} reads, {cost.writes} writes): "
+        + f"; {_n(cost.requests, 'request')} in all ({_n(cost.reads, 'read')}, {_n(cost.writes, 'write')}): "
         + f"{units}, {when}{waits}"
         + (" (broadcast: no answers)" if plan.device.unit == 0 else ""), soft_wrap=True)
     if cost.non_volatile_writes:
