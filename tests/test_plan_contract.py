@@ -172,6 +172,18 @@ def test_the_counts_printed_are_the_devices_request_log(tmp_path: Path, capsys: 
     assert f"{len(log)} requests: {reads} reads, {writes} writes, 1 device identification (1 of them sent again " \
            "after no answer or a busy answer)" in out
     assert (len(log), reads, writes) == (14, 7, 5 + 1)  # the busy write answered 06 once, then took
+    assert "deviations" not in out  # a retry is an attempt more of its step, not a deviation
+
+
+def test_the_apply_says_which_requests_the_device_decided(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    recipe = str(EXAMPLES / "example-drive-axis1.yaml")
+    with SimulatorThread(builtin_profile("example-drive"), quirks=Quirks(fc06_only=True)) as sim:
+        code, out, err = cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--state-dir",
+                             str(tmp_path / "s"))
+    assert code == 0, err
+    # the unlock's FC16 answered 01: it and every later write go as Function 06, each word a request
+    assert ("requests the device decided (deviations from the plan): step 6: 1 function-06; step 7: 2 function-06; "
+            "step 9: 1 read-modify-write, 14 function-06; step 12: 1 function-06; step 13: 1 function-06") in out
 
 
 # ---- Function 43: asked, not asked, learned -----------------------------------------------------------

@@ -49,6 +49,9 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
             out.print("identity: " + ", ".join(f"{safe(k)} {safe(repr(v))}" for k, v in d.identity.items()))
         for note in d.notices:
             out.print(f"note: {safe(note)}")
+        deviated = deviations_text(d)
+        if deviated:
+            out.print(f"requests the device decided (deviations from the plan): {deviated}", soft_wrap=True)
         if d.status == "rolled-back" and d.commit == "not sent":
             out.print("commit: not sent (the profile's commit steps)")
         elif d.commit in ("held", "not sent"):
@@ -63,6 +66,20 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
                   + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable"
                   + (f", {s['rolled-back']} rolled back" if s["rolled-back"] else "")
                   + (f", {s['interrupted']} interrupted" if s["interrupted"] else "") + f" in {s['seconds']:.2f} s")
+
+
+def deviations_text(d: DeviceResult) -> str:
+    """'step 7: 2 function-06; step 9: 2 split, 1 recovery-read': the requests of the report that are not their
+    plan step as planned, by the step they stand in for and by kind."""
+    by_step: dict[int, dict[str, int]] = {}
+    for r in d.requests:
+        if r.deviation is not None and r.step is not None:
+            kinds = by_step.setdefault(r.step, {})
+            kinds[r.deviation] = kinds.get(r.deviation, 0) + r.attempts
+    parts = []
+    for step, kinds in sorted(by_step.items()):
+        parts.append(f"step {step}: " + ", ".join(f"{n} {k}" for k, n in kinds.items()))
+    return "; ".join(parts)
 
 
 def requests_text(d: DeviceResult) -> str:

@@ -232,7 +232,9 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
             if taught is not None:
                 echo(f"note: {safe(taught)}", err=as_json)
         p = plan_values(rec, None, url, u, write_all=write_all)
-    data = plan_to_json(p)
+    from ..api import plan_cost
+
+    data = plan_to_json(p, plan_cost(p, rec.profile, url))  # the saved plan says what it costs, as printed
     if out_path:
         os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
         write_output(out_path, json.dumps(data, indent=2) + "\n", what="the plan")
@@ -255,7 +257,7 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
                write_all: bool, per_device: bool = False, state_dir: str = ".deployer") -> int:
     """A plan per device against what it holds, devices with identical changes together (``per_device``:
     each device's table); exit 3 if any device could not be read, else as plan."""
-    from ..api import plan_to_json
+    from ..api import plan_cost, plan_to_json
     from .progress import plan_fleet as planned_fleet  # rich: only fleets pay for importing it
 
     values = planned_fleet(jobs, parallel, write_all=write_all, state_dir=state_dir)
@@ -263,7 +265,8 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     changing = [n for n, p in plans.items() if p.writes]
     if as_json:
         echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
-            {"name": j.name, "plan": plan_to_json(plans[j.name])} if j.name in plans
+            {"name": j.name, "plan": plan_to_json(plans[j.name], plan_cost(plans[j.name], j.recipe.profile, j.url))}
+            if j.name in plans
             else {"name": j.name, "error": str(values[j.name])} for j in jobs]}, indent=2))
     elif per_device:
         out = console()
