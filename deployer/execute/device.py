@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from ..errors import Declined, InputError, Locked, StalePlan, Unreachable, UsageError
-from ..planning.model import Pacing, Plan, Target
+from ..planning.model import WRITE_FUNCTIONS, Pacing, Plan, Target
 from ..planning.planfile import plan_to_json
 from ..planning.steps import Planner, pacing_for
 from ..profile import Profile, profile_ref
@@ -234,7 +234,8 @@ class DeviceInterrupted(asyncio.CancelledError):
 def interrupted(res: DeviceResult, results: dict[str, ParameterResult]) -> None:
     """What an interrupted device's report says: every write that went out is unverified, the one that was
     out when the run stopped may have been applied, the rest was not sent."""
-    out = [(r.address, r.address + r.count) for r in res.requests if r.result == "interrupted" and r.function != 3]
+    out = [(r.address, r.address + r.count) for r in res.requests
+           if r.result == "interrupted" and r.function in WRITE_FUNCTIONS]
     for p in results.values():
         if any(a < p.address + p.count and p.address < b for a, b in out):
             p.status, p.error = "unverified", "the run was interrupted while its write request was out: " \
