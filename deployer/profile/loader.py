@@ -259,8 +259,8 @@ def _limits(c: _Checks) -> Limits:
 
 # ---- parameters ---------------------------------------------------------------------------------
 
-_NOT_FOR_BITS = ("bits", "mask", "scale", "offset", "unit", "count", "encoding", "padding", "byte_order", "swap",
-                 "word_order")
+_NOT_FOR_BITS = ("bits", "mask", "scale", "offset", "unit", "cycles_as_angles", "count", "encoding", "padding",
+                 "byte_order", "swap", "word_order")
 
 
 def _parameters(c: _Checks) -> list[Parameter]:
@@ -296,6 +296,7 @@ def _parameter(c: _Checks, name: str, spec: dict[str, Any], address: int, at: ya
         scale=Decimal(spec.get("scale", 1)),
         offset=Decimal(eng_offset),  # type: ignore[arg-type]
         unit=units.normalize(spec["unit"]) if "unit" in spec else None,
+        cycles_as_angles=bool(spec.get("cycles_as_angles", False)),
         min=_dec(spec.get("min")),
         max=_dec(spec.get("max")),
         access=access,
@@ -387,6 +388,10 @@ def _range_problems(src: yamlsrc.Source, param: Parameter, spec: dict[str, Any],
     problem = units.check(spec["unit"]) if "unit" in spec else None
     if problem:
         out.append(src.error((*at, "unit"), problem))
+    elif param.cycles_as_angles and (param.unit is None or not units.turns_apply(param.unit)):
+        out.append(src.error((*at, "cycles_as_angles"), "'cycles_as_angles' is for a parameter whose unit is an "
+                                                        "angle (rad, deg, rad/s) or a cycle (rev, rpm, Hz)"
+                                                        + ("" if param.unit else "; this one has no unit")))
     why = None if param.firmware is None else firmware.check_range(param.firmware)
     if why:
         out.append(src.error((*at, "firmware"), f"firmware: {why}"))

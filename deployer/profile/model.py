@@ -104,6 +104,7 @@ class Parameter:
     scale: Decimal = Decimal(1)
     offset: Decimal = Decimal(0)
     unit: str | None = None  # pint unit text; None = dimensionless
+    cycles_as_angles: bool = False  # values in rev/rpm/Hz and in rad/deg/rad/s convert (one cycle = 2 pi rad)
     min: Decimal | None = None  # engineering units, inclusive
     max: Decimal | None = None
     access: Access = "read-write"

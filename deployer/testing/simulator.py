@@ -156,7 +156,7 @@ def parse_fault_rule(text: str, profile: Profile) -> FaultRule:
     if unit.strip():
         if p.unit is None:
             raise ValueError(f"'{text}': {name} has no unit")
-        amount = units_.convert(amount, units_.normalize(unit.strip()), p.unit)
+        amount = units_.convert(amount, units_.normalize(unit.strip()), p.unit, cycles_as_angles=p.cycles_as_angles)
     return FaultRule(text, name, op, amount, register, word)
 
 
