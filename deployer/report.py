@@ -128,6 +128,9 @@ class DeviceResult:
     unrecorded: list[str] = field(default_factory=list)  # what the journal or report could not record (disk full)
     tally: Tally | None = None  # set once the requests and parameters were dropped (``small``)
     seen: str | None = None  # when (UTC) the values in the parameters' after_raw were read from the device
+    # the profile's health checks (indices) failing before a safe change that was written anyway
+    # (ApplyOptions.allow_unhealthy): its window does not hold them against the change; the notices say it
+    unhealthy_before: tuple[int, ...] = field(default=(), repr=False, compare=False)
     # its report line as ``device_json`` made it where the device ran (a fleet's worker process): not remade here
     report_line: bytes | None = field(default=None, repr=False, compare=False)
 

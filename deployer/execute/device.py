@@ -41,6 +41,7 @@ from ..state.durable import Line, disk_error, durable, queue
 from ..state.snapshot import last_identity, snapshot_file, snapshot_values
 from ..state.snapshot import written as snapshot_written
 from ..transport import clients as tp
+from ..window.before import unhealthy_before
 from .recovery import Learning, _recover, _remerge, chunks, single_writes
 from .session import ApplyOptions, Session
 from .steps import (
@@ -352,6 +353,7 @@ async def _apply(session: Session, recipe: Recipe, target: Target, opts: ApplyOp
         why = await check_preconditions(session, prof)
     except (DeviceGone, ExceptionResponse) as e:
         why = f"reading the preconditions failed: {e}"
+    why = why or await unhealthy_before(session, prof, opts, res)  # a safe change: the health checks first
     if why:
         res.status, res.error = "failed", f"{why}; nothing was written"
         return

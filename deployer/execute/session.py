@@ -45,6 +45,8 @@ class ApplyOptions:
     soak: float | None = None  # seconds
     health_interval: float = 1.0
     confirm_within: float | None = None  # seconds to wait for `deployer confirm` before rolling back
+    # a soak or confirmation writes a device whose health checks fail already (deployer.window.before)
+    allow_unhealthy: bool = False
     command: str | None = None  # what started the run (the command line, or the caller), for the report
     hold_commit: bool = False  # do not send the profile's commit after the read-back (a rollback never commits)
     # the safe-change window (deployer.window) keeps a written device's lock until its commit or rollback:
