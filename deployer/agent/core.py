@@ -1131,7 +1131,8 @@ async def _read(profile: Profile, names: Sequence[str], url: tp.DeviceURL, unit:
 
 
 def _take_now(url: tp.DeviceURL, unit: int) -> list[lock.DeviceLock]:
-    """The device's locks without waiting (the agent's start and each check try again)."""
+    """The device's locks without waiting (the agent's start and each check try again), and its marks where
+    every process looks whatever its lock folder (``lock.agent_marks``)."""
     keys = sorted(set(url.lock_keys))
     held: list[lock.DeviceLock] = []
     try:
@@ -1139,6 +1140,7 @@ def _take_now(url: tp.DeviceURL, unit: int) -> list[lock.DeviceLock]:
             held.append(lock.try_lock(f"{b}#bus", command="deployer agent", shared=True))
         for b in keys:
             held.append(lock.try_lock(lock.device_key(b, unit), command="deployer agent"))
+        held += lock.agent_marks(keys, unit)
     except BaseException:
         for h in reversed(held):
             h.release()

@@ -43,8 +43,9 @@ def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_dr
           tls_cert: str | None, tls_key: str | None, notify: tuple[str, ...]) -> int:
     """Run the site agent: own INVENTORY's devices, watch them, serve the HTTP API (until SIGTERM or Ctrl-C).
 
-    It takes each device's lock (set DEPLOYER_LOCK_DIR for it and the command line alike), so a plain
-    apply to its devices is refused; run through it with --agent URL. --check-every, --on-drift and
+    It takes each device's lock and marks the device where every process on the machine looks, whatever
+    DEPLOYER_LOCK_DIR each was given, so a plain apply to its devices is refused; run through it with
+    --agent URL. --check-every, --on-drift and
     --on-replace are defaults: an inventory's agent: settings (defaults, a group, a device) win. It
     prints 'listening on URL' on stderr when ready. SIGHUP reads the files again (shown as pending; never
     written by itself; Windows has no SIGHUP: restart the agent there).
