@@ -987,7 +987,7 @@ class Agent:
         assert self.store is not None
         from ..profile.model import SPACE
 
-        commit_regs = {a.address for a in profile.commit}
+        commit_keys = {a.key for a in profile.commit}
         writes: dict[int, int] = {}
         commits: dict[int, int] = {}
         for q in requests:
@@ -995,7 +995,7 @@ class Agent:
                 continue
             space = SPACE["coil"] << 16 if q.function in (5, 15) else 0
             for a in range(q.address, q.address + q.count):
-                target = commits if q.function in (6, 16) and a in commit_regs else writes
+                target = commits if space | a in commit_keys else writes
                 target[space | a] = target.get(space | a, 0) + q.attempts
         if not writes and not commits:
             return
@@ -1015,7 +1015,7 @@ class Agent:
                     out[k] = (e, p.name)
         if profile.endurance:
             for a in profile.commit:
-                out[a.address] = (profile.endurance, "commit")
+                out[a.key] = (profile.endurance, "commit")
         return out
 
     def _endurance_warnings(self, dev: Device, profile: Profile, keys: set[int]) -> None:
@@ -1037,7 +1037,7 @@ class Agent:
             budgets = self._budgets(j.recipe.profile)
             counts = self.store.ledger(j.name).get(j.name, {})
             keys = {k for d in j.recipe.desired for k in range(d.parameter.key, d.parameter.key + d.parameter.count)}
-            keys |= {a.address for a in j.recipe.profile.commit}
+            keys |= {a.key for a in j.recipe.profile.commit}
             for k in sorted(keys & set(budgets)):
                 used = sum(counts.get(k, (0, 0)))
                 if used >= budgets[k][0]:

@@ -85,9 +85,12 @@ async def _send_actions(session: Session, prof: Profile, actions: Iterable[Write
     """The profile's own writes (unlock, commit, lock), each followed by its wait.
 
     In the form the device takes: Function 06 where the profile (or what the device taught) says so, and
-    where Function 16 answers 01 (illegal function: nothing was written) one 06 per register."""
+    where Function 16 answers 01 (illegal function: nothing was written) one 06 per register; a coil with
+    Function 05."""
     for action in actions:
-        if prof.limits.write_function == 6:
+        if action.is_coil:
+            await session.write(WriteRequest(5, action.address, action.registers, ()))
+        elif prof.limits.write_function == 6:
             await _singles(session, action)
         else:
             try:

@@ -453,7 +453,8 @@ class HealthCheck:
             return self.parameter.name + (f" ({self.description})" if self.description else "")
         shift, width = codec.mask_shift(self.mask)
         bits = "" if self.mask == 0xFFFF else (f" bit {shift}" if width == 1 else f" bits {shift}..{shift + width - 1}")
-        kind = "input register" if self.register_type == "input" else "register"
+        kind = {"input": "input register", "coil": "coil", "discrete": "discrete input"}.get(self.register_type,
+                                                                                           "register")
         return f"{kind} 0x{self.address:04X}{bits}" + (f" ({self.description})" if self.description else "")
 
     def failure(self, words: int | Sequence[int]) -> str:
@@ -466,18 +467,32 @@ class HealthCheck:
 
 @dataclass(frozen=True)
 class CommitAction:
-    """A write the profile declares: commit (after a verified apply), unlock (before), lock (after)."""
+    """A write the profile declares: commit (after a verified apply), unlock (before), lock (after).
+
+    Holding registers (Function 16, or 06), or one coil (Function 05: ``registers`` is its 0 or 1), as a
+    Danfoss FC 102 stores its parameters to EEPROM with coil 65."""
 
     address: int
     registers: tuple[int, ...]
     description: str = ""
     wait_ms: int = 0  # the device needs this long before it accepts the next request
     secret: str = ""  # where a secret value came from ('environment variable DRIVE_PASSWORD'): never shown
+    register_type: Literal["holding", "coil"] = "holding"
+
+    @property
+    def key(self) -> int:
+        """Where it writes in a register map of all four tables (see SPACE)."""
+        return SPACE[self.register_type] << 16 | self.address
+
+    @property
+    def is_coil(self) -> bool:
+        return self.register_type == "coil"
 
     def __repr__(self) -> str:
         regs = f"<secret from {self.secret}>" if self.secret else repr(self.registers)
+        table = "" if self.register_type == "holding" else f", register_type={self.register_type!r}"
         return (f"CommitAction(address={self.address}, registers={regs}, description={self.description!r}, "
-                f"wait_ms={self.wait_ms})")
+                f"wait_ms={self.wait_ms}{table})")
 
 
 WriteAction = CommitAction
