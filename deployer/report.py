@@ -325,7 +325,7 @@ def _document(recipe: str | None, devices: list[Any], summary: dict[str, Any],
 
 _VIEW_DEFAULTS: dict[str, Any] = {"word_order": "big", "scale": "1", "offset": "0", "unit": None, "values": {},
                                   "byte_swap": False, "mask": 0, "size": 0, "encoding": "ascii", "padding": "nul",
-                                  "register_type": "holding"}
+                                  "register_type": "holding", "manual_number": "", "manual_text": ""}
 
 
 def parameter_view(p: Parameter) -> dict[str, Any]:
@@ -333,7 +333,7 @@ def parameter_view(p: Parameter) -> dict[str, Any]:
     full = {"address": p.address, "type": p.type, "word_order": p.word_order, "scale": str(p.scale),
             "offset": str(p.offset), "unit": p.unit, "values": dict(p.values), "byte_swap": p.byte_swap,
             "mask": p.mask, "size": p.size, "encoding": p.encoding, "padding": p.padding,
-            "register_type": p.register_type}
+            "register_type": p.register_type, "manual_number": p.manual_number, "manual_text": p.manual_text}
     return {k: v for k, v in full.items() if k not in _VIEW_DEFAULTS or v != _VIEW_DEFAULTS[k]}
 
 
@@ -369,7 +369,8 @@ def parameter_from_view(name: str, view: Any) -> Parameter | None:
                       unit=None if v["unit"] is None else str(v["unit"]),
                       values=tuple((str(k), int(x)) for k, x in dict(v["values"]).items()),
                       byte_swap=v["byte_swap"] is True, mask=int(v["mask"]), size=int(v["size"]),
-                      encoding=str(v["encoding"]), padding=str(v["padding"]), register_type=v["register_type"])
+                      encoding=str(v["encoding"]), padding=str(v["padding"]), register_type=v["register_type"],
+                      manual_number=str(v["manual_number"]), manual_text=str(v["manual_text"]))
     except (KeyError, TypeError, ValueError, InvalidOperation):
         return None
     if p.type not in (*codec.TYPE_NAMES, codec.STRING, codec.BOOL) or p.word_order not in ("big", "little") \

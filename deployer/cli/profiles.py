@@ -277,8 +277,12 @@ def profiles_show(profile: str) -> int:
               + (f"; {lim.write_coils} coils per write (FC15), {lim.read_coils} per read"
                  if any(p.register_type == "coil" for p in prof.parameters) else ""))
     rows: list[list[Cell]] = [list(row) for row in table]
-    show(out, ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"],
-         rows)
+    heads = ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"]
+    if any(p.manual for p in prof.parameters):  # beside the key: the parameter as the manual names it
+        heads.insert(1, "manual")
+        for row, p in zip(rows, prof.parameters, strict=True):
+            row.insert(1, p.manual)
+    show(out, heads, rows)
     return EXIT_OK
 
 @profiles.command("new")

@@ -317,6 +317,7 @@ def _parameter(c: _Checks, name: str, spec: dict[str, Any], address: int, at: ya
         register_type=table,
         firmware=None if spec.get("firmware") is None else str(spec["firmware"]),
         action=bool(spec.get("action", False)),
+        **_manual(spec),
     )
     if local:  # the rest of the checks assume a well-formed parameter
         c.errors.extend(local)
@@ -326,6 +327,15 @@ def _parameter(c: _Checks, name: str, spec: dict[str, Any], address: int, at: ya
         param = _with_default(src, param, spec["default"], at, local)
     c.errors.extend(local)
     return param
+
+
+def _manual(spec: dict[str, Any]) -> dict[str, str]:
+    """``manual: {number: "3-41", text: Ramp 1 Ramp Up Time}``: the Parameter's manual_number and manual_text.
+    A number written bare is kept as written (``22.10``: the YAML reader makes decimals from their text)."""
+    m = spec.get("manual")
+    if not isinstance(m, dict):
+        return {}
+    return {"manual_number": str(m.get("number", "")).strip(), "manual_text": str(m.get("text", "")).strip()}
 
 
 def _shape_problems(src: yamlsrc.Source, spec: dict[str, Any], at: yamlsrc.Path_, table: str, type_: str,

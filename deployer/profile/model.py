@@ -131,6 +131,14 @@ class Parameter:
     register_type: RegisterType = "holding"
     firmware: str | None = None  # the firmware revisions it exists in ('>=2.1'; firmware.matches)
     action: bool = False  # a momentary command (a defrost button): never pulled, never set by a recipe
+    # as the manufacturer's manual names it: "3-41" and "Ramp 1 Ramp Up Time" (shown beside the key)
+    manual_number: str = ""
+    manual_text: str = ""
+
+    @property
+    def manual(self) -> str:
+        """The manual's number and text, as one label ("3-41 Ramp 1 Ramp Up Time"); "" when the profile gives none."""
+        return f"{self.manual_number} {self.manual_text}".strip()
 
     def __hash__(self) -> int:
         # a few fields, not all 28 (equal parameters still hash alike): snapshots and recipe texts key their
