@@ -142,7 +142,10 @@ def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str
               "parameters (settings) only.")
 def profiles_import_wb_template(file: str, profile_id: str | None, out: str | None, no_channels: bool) -> int:
     """A profile from a wb-mqtt-serial device template (JSON with // comments): parameters become settings,
-    channels read-only values."""
+    channels read-only values.
+
+    wb-mqtt-serial's templates are under the MIT-WB licence, which allows their use on Wiren Board
+    controllers only: check that it allows yours before importing one (docs/importers.md)."""
     from ..api import import_wb_template
 
     draft, warnings = import_wb_template(file, profile_id=profile_id, channels=not no_channels)
