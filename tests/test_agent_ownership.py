@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -36,12 +37,20 @@ def deployer(*args: str, lock_dir: Path | None) -> subprocess.CompletedProcess[s
                           env=env)
 
 
-def test_an_apply_with_another_lock_folder_is_refused_nothing_sent(tmp_path: Path, sim: Simulator) -> None:
-    """The agent runs with the test's DEPLOYER_LOCK_DIR; the shell's apply is given another one."""
-    inv = write_site(tmp_path, {"d1": sim.url})
-    agent = AgentProcess(inv, tmp_path / "state")
+@contextmanager
+def owned(tmp: Path, sim: Simulator) -> Iterator[AgentProcess]:
+    """An agent (in the test's DEPLOYER_LOCK_DIR) owning d1, checked once; killed at the end."""
+    agent = AgentProcess(write_site(tmp, {"d1": sim.url}), tmp / "state")
     try:
         until(lambda: agent.client.device("d1")["last_check"], why="a check")
+        yield agent
+    finally:
+        agent.kill()
+
+
+def test_an_apply_with_another_lock_folder_is_refused_nothing_sent(tmp_path: Path, sim: Simulator) -> None:
+    """The agent runs with the test's DEPLOYER_LOCK_DIR; the shell's apply is given another one."""
+    with owned(tmp_path, sim) as agent:
         seen = len(sim.log)
         cli = deployer("apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--state-dir",
                        str(tmp_path / "cli"), lock_dir=tmp_path / "another-lock-folder")
@@ -53,26 +62,19 @@ def test_an_apply_with_another_lock_folder_is_refused_nothing_sent(tmp_path: Pat
         assert [e for e in sim.log[seen:] if e.function in WRITES] == []
         assert (tmp_path / "another-lock-folder").is_dir()  # the apply took its own lock there: not enough
         assert agent.terminate() == 0
-    finally:
-        agent.kill()
     ok = deployer("apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--state-dir",
                   str(tmp_path / "cli"), lock_dir=tmp_path / "another-lock-folder")
     assert ok.returncode == 0, ok.stderr  # the agent gone, its marks went with it
 
 
 def test_a_broadcast_with_another_lock_folder_is_refused(tmp_path: Path, sim: Simulator) -> None:
-    inv = write_site(tmp_path, {"d1": sim.url})
-    agent = AgentProcess(inv, tmp_path / "state")
-    try:
-        until(lambda: agent.client.device("d1")["last_check"], why="a check")
+    with owned(tmp_path, sim) as agent:
         seen = len(sim.log)
         cli = deployer("apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--unit", "0", "--allow-broadcast",
                        "--yes", "--state-dir", str(tmp_path / "cli"), lock_dir=tmp_path / "another")
         said = " ".join((cli.stdout + cli.stderr).split())
         assert cli.returncode == 3 and "the site agent at " + agent.url in said, said
         assert [e for e in sim.log[seen:] if e.function in WRITES] == []
-    finally:
-        agent.kill()
 
 
 def test_a_device_being_written_under_another_lock_folder_is_not_taken_by_an_agent(tmp_path: Path,

@@ -11,6 +11,7 @@ import pytest
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import Faults, LogEntry, Simulator, parse_fault_rule
 from tests.helpers import Simulators, cli
+from tests.test_safe import inventory, recipe
 
 pytestmark = pytest.mark.timeout(180)
 PROFILE = builtin_profile("example-inverter")
@@ -22,19 +23,6 @@ ALREADY = ("health check already failing before the change: register 0x2000 (dri
            "expected 0")
 
 
-def recipe(tmp: Path, f07: str = "3 s") -> str:
-    p = tmp / "r.yaml"
-    p.write_text(f"recipe: ramp\nprofile: example-inverter\nparameters:\n  F07: {f07}\n  F08: 3 s\n")
-    return str(p)
-
-
-def inventory(tmp: Path, urls: dict[str, str]) -> str:
-    p = tmp / "inventory.yaml"
-    p.write_text("defaults: {timeout: 2.0, retries: 1}\ndevices:\n"
-                 + "".join(f"  {n}: {{url: '{u}'}}\n" for n, u in urls.items()))
-    return str(p)
-
-
 def writes(log: list[LogEntry]) -> list[LogEntry]:
     return [e for e in log if e.function in WRITES]
 
@@ -44,7 +32,7 @@ def test_a_device_already_in_alarm_is_not_written(capsys: pytest.CaptureFixture[
                                                   window: list[str]) -> None:
     with Simulators([Simulator(PROFILE, init={FAULT: 7})]) as (sim,):
         before = sim.registers()
-        code, out, err = cli(capsys, "apply", recipe(tmp_path), "--device", sim.url, "--yes", "--json",
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--device", sim.url, "--yes", "--json",
                              *window, "--state-dir", str(tmp_path / "s"))
         log = list(sim.log)
         assert sim.registers() == before
@@ -61,7 +49,7 @@ def test_a_device_already_in_alarm_is_not_written(capsys: pytest.CaptureFixture[
 def test_allow_unhealthy_writes_and_the_window_does_not_blame_the_change(capsys: pytest.CaptureFixture[str],
                                                                          tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE, init={FAULT: 7})]) as (sim,):
-        code, out, err = cli(capsys, "apply", recipe(tmp_path), "--device", sim.url, "--yes", "--json",
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--device", sim.url, "--yes", "--json",
                              "--soak", "300ms", "--health-interval", "100ms", "--allow-unhealthy",
                              "--state-dir", str(tmp_path / "s"))
         log = list(sim.log)
@@ -106,7 +94,7 @@ def test_the_canary_already_in_alarm_stops_the_rollout_with_nothing_written(caps
                                                                              tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE, init={FAULT: 7} if i == 0 else None) for i in range(3)]) as sims:
         urls = {f"d{i}": s.url for i, s in enumerate(sims)}
-        code, out, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls),
+        code, out, err = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", inventory(tmp_path, urls),
                              "--yes", "--json", "--batch", "1,100%", "--soak", "1h", "--health-interval", "100ms",
                              "--state-dir", str(tmp_path / "s"))
         logs = [list(s.log) for s in sims]
@@ -119,7 +107,7 @@ def test_the_canary_already_in_alarm_stops_the_rollout_with_nothing_written(caps
 
 
 def test_allow_unhealthy_needs_a_window(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    code, _, err = cli(capsys, "apply", recipe(tmp_path), "--device", "tcp://127.0.0.1:1", "--yes",
+    code, _, err = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--device", "tcp://127.0.0.1:1", "--yes",
                        "--allow-unhealthy", "--state-dir", str(tmp_path / "s"))
     assert code == 1 and "--allow-unhealthy goes with --soak or --confirm-within" in err
 
@@ -127,7 +115,7 @@ def test_allow_unhealthy_needs_a_window(capsys: pytest.CaptureFixture[str], tmp_
 def test_a_plain_apply_writes_a_device_in_alarm(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """Without a window nothing judges the change by its health: the checks are not read at all."""
     with Simulators([Simulator(PROFILE, init={FAULT: 7})]) as (sim,):
-        code, _, err = cli(capsys, "apply", recipe(tmp_path), "--device", sim.url, "--yes",
+        code, _, err = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--device", sim.url, "--yes",
                            "--state-dir", str(tmp_path / "s"))
         log = list(sim.log)
     assert code == 0, err

@@ -33,7 +33,7 @@ import os
 import stat
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -116,22 +116,13 @@ def run_marks(buses: Sequence[str], unit: int, directory: str | None = None) -> 
     wanted = [(f"{b}#bus", False) for b in keys] if unit == 0 else [(device_key(b, unit), True) for b in keys]
     if any(k in _owned for k, _ in wanted):
         return []
-    held: list[DeviceLock] = []
-    try:
-        for key, shared in wanted:
-            try:
-                h = try_lock(key, command=command_line(), directory=d, shared=shared)
-            except Locked as e:
-                if unit == 0 and e.busy:  # units of the bus are owned (or written) by others
-                    raise Locked(_bus_users(key[:-len("#bus")], d) or str(e), busy=False) from None
-                raise
-            h.mark = True
-            held.append(h)
-        return held
-    except BaseException:
-        for h in reversed(held):
-            h.release()
-        raise
+
+    def why(key: str, e: Locked) -> Locked:
+        if unit == 0 and e.busy:  # units of the bus are owned (or written) by others: say by whom
+            return Locked(_bus_users(key[:-len("#bus")], d) or str(e), busy=False)
+        return e
+
+    return _marks(wanted, command_line(), why)
 
 
 def agent_marks(buses: Sequence[str], unit: int) -> list[DeviceLock]:
@@ -142,13 +133,21 @@ def agent_marks(buses: Sequence[str], unit: int) -> list[DeviceLock]:
     if _same_folder(lock_dir(), d):
         return []
     keys = sorted(set(buses))
+    return _marks([(f"{b}#bus", True) for b in keys] + [(device_key(b, unit), False) for b in keys],
+                  "deployer agent",
+                  lambda _key, e: Locked(f"a run on this machine is writing it (its mark in {d}): {e}", busy=e.busy))
+
+
+def _marks(wanted: Sequence[tuple[str, bool]], command: str, why: Callable[[str, Locked], Locked]
+           ) -> list[DeviceLock]:
+    """Each mark of ``wanted`` ((key, shared) in ``owner_dir``), or none: ``why(key, refusal)`` is raised."""
     held: list[DeviceLock] = []
     try:
-        for key, shared in [(f"{b}#bus", True) for b in keys] + [(device_key(b, unit), False) for b in keys]:
+        for key, shared in wanted:
             try:
-                h = try_lock(key, command="deployer agent", directory=d, shared=shared)
+                h = try_lock(key, command=command, directory=owner_dir(), shared=shared)
             except Locked as e:
-                raise Locked(f"a run on this machine is writing it (its mark in {d}): {e}", busy=e.busy) from None
+                raise why(key, e) from None
             h.mark = True
             held.append(h)
         return held
