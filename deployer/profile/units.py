@@ -59,8 +59,16 @@ _ANGLE_OF_A_TURN = "2 * pi * radian"
 _GUARD = Context(prec=60)
 
 
+def precise() -> Any:
+    """The Decimal context every use of ``registry()`` runs in: pint keeps each unit's factor once it computed it,
+    so a conversion made outside it (at 28 digits) would leave 3000 rpm at 50.00000000000000000000000001 Hz for
+    every later one."""
+    return localcontext(_GUARD)
+
+
 @cache
 def registry() -> Any:
+    """pint's registry with the field's definitions over its own; use it inside ``precise()``."""
     import pathlib
 
     import pint
@@ -98,6 +106,8 @@ def _pint_text(text: str) -> str:
 
 
 _MAX_KEPT = 2000  # entries of each kind on disk
+# in the cache file's key: a new one leaves answers kept before behind (2: factors with guard digits only)
+_CACHE_FORMAT = "2"
 
 
 class _DiskCache:
@@ -118,7 +128,7 @@ class _DiskCache:
             base = (os.environ.get("XDG_CACHE_HOME") or (os.name == "nt" and os.environ.get("LOCALAPPDATA"))
                     or os.path.join(os.path.expanduser("~"), ".cache"))  # Windows: %LOCALAPPDATA%\deployer
             # the field's definitions in the key too: answers given under other definitions are not these
-            ours = zlib.crc32("\n".join((*FIELD_DEFINITIONS, _ANGLE_OF_A_TURN, str(_GUARD.prec),
+            ours = zlib.crc32("\n".join((*FIELD_DEFINITIONS, _ANGLE_OF_A_TURN, str(_GUARD.prec), _CACHE_FORMAT,
                                           json.dumps(_ALIASES), _POWERS.pattern)).encode())
             key = f"{zlib.crc32(origin.encode()):08x}-{st.st_mtime_ns}-{ours:08x}"
             self.path = os.path.join(base, "deployer", f"units-{key}.json")
@@ -154,7 +164,7 @@ def check(text: str) -> str | None:
         return disk.checks[text]
     ureg = registry()  # outside the try: pint that cannot load is no answer about the unit (never kept)
     try:
-        with localcontext(_GUARD):
+        with precise():
             ureg.parse_units(_pint_text(text))
         answer = None
     except Exception:  # pint raises a zoo of parser errors for garbage input
@@ -183,7 +193,7 @@ def _conversion(from_unit: str, to_unit: str, turns: bool = False) -> Decimal | 
         if known is None or known.startswith("="):
             return None if known is None else Decimal(known[1:])
         return known
-    with localcontext(_GUARD):
+    with precise():
         answer = _pint_conversion(from_unit, to_unit, turns)
     if len(key) <= 86 and len(disk.factors) < _MAX_KEPT:
         disk.factors[key] = None if answer is None else (f"={answer}" if isinstance(answer, Decimal) else answer)
@@ -283,14 +293,14 @@ def _offset_convert(magnitude: Decimal, from_unit: str, to_unit: str) -> Decimal
     """A conversion with an offset (degF -> degC), by pint's own arithmetic, once per distinct value.
 
     Computed with guard digits, so an exact answer (68 degF = 20 degC) comes out exact."""
-    with localcontext(_GUARD):
+    with precise():
         q = registry().Quantity(magnitude, _pint_text(from_unit))
         return Decimal(q.to(_pint_text(to_unit)).magnitude)
 
 
 def _dim(unit: str) -> str:
     try:
-        with localcontext(_GUARD):
+        with precise():
             d = registry().parse_units(_pint_text(unit)).dimensionality
         return str(d) if str(d) != "dimensionless" else "dimensionless"
     except Exception:
