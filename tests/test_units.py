@@ -182,3 +182,29 @@ def test_answers_kept_on_disk_are_keyed_by_the_field_definitions(monkeypatch: py
     ours = units._DiskCache().path
     monkeypatch.setattr(units, "FIELD_DEFINITIONS", units.FIELD_DEFINITIONS[1:])
     assert ours is not None and units._DiskCache().path not in (None, ours)
+
+
+def test_exact_whatever_ran_before_and_whatever_is_cached(tmp_path: Path) -> None:
+    """pint computes a definition's numbers (degF's 5/9, a degree's pi/180) as it reads them and keeps them, in
+    memory and in its cache folder. Another program's pint (or a first use at 28 digits) must not leave deployer
+    at 19.99999999999999999999999998 degC: in fresh processes, twice (the second from the caches on disk)."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import decimal, pint\n"
+            "pint.UnitRegistry(non_int_type=decimal.Decimal, cache_folder=':auto:')('degF').to('degC')\n"
+            "from decimal import Decimal\n"
+            "from deployer.profile import units\n"
+            "from deployer.state.caches import writing\n"
+            "with writing():\n"
+            "    units.check('degF')\n"
+            "    print(units.convert(Decimal(68), 'degF', 'degC'), units.convert(Decimal(20), 'degC', 'degF'),\n"
+            "          units.convert(Decimal(90), 'deg', 'rev', cycles_as_angles=True),\n"
+            "          units.convert(Decimal(3000), 'rpm', 'Hz'))\n")
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache"), "HOME": str(tmp_path)}
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.split() == ["20", "68", "0.25", "50"]
+    assert (tmp_path / "cache" / "deployer" / "pint-60").is_dir()  # deployer's own, beside pint's

@@ -8,7 +8,7 @@ per installed pint): importing pint and building its registry costs about 0.1 s,
 a small command, so a command whose units were all seen before does not import pint at all.
 
 Every process reads that cache; only the command line writes it (and lets pint keep its own
-parsed definitions in ``~/.cache/pint``): see ``deployer.state.caches``.
+parsed definitions in ``~/.cache/deployer/pint-60``): see ``deployer.state.caches``.
 
 Units mean what they mean in the field, not always what pint says (``FIELD_DEFINITIONS``, docs/recipes.md):
 a revolution is one cycle (60 rpm = 1 Hz = 1 rps; pint makes it 2 pi radians), an angle is a dimension of
@@ -60,10 +60,17 @@ _GUARD = Context(prec=60)
 
 
 def precise() -> Any:
-    """The Decimal context every use of ``registry()`` runs in: pint keeps each unit's factor once it computed it,
-    so a conversion made outside it (at 28 digits) would leave 3000 rpm at 50.00000000000000000000000001 Hz for
-    every later one."""
+    """The Decimal context every use of ``registry()`` runs in. pint computes a definition's numbers (degF's
+    5/9, a degree's pi/180) as it reads them and each unit's factor on first use, and keeps both: read or used
+    at 28 digits, 68 degF would stay 19.99999999999999999999999998 degC for every later conversion."""
     return localcontext(_GUARD)
+
+
+def _cache_base() -> str:
+    """Where deployer keeps its caches: ~/.cache/deployer (XDG_CACHE_HOME; %LOCALAPPDATA% on Windows)."""
+    base = (os.environ.get("XDG_CACHE_HOME") or (os.name == "nt" and os.environ.get("LOCALAPPDATA"))
+            or os.path.join(os.path.expanduser("~"), ".cache"))
+    return os.path.join(base, "deployer")
 
 
 @cache
@@ -75,18 +82,20 @@ def registry() -> Any:
 
     kwargs: dict[str, Any] = {"non_int_type": Decimal, "autoconvert_offset_to_baseunit": True,
                               "on_redefinition": "ignore", "filename": None}
-    ureg: Any = None
-    if writes_allowed():
-        # pint keeps its parsed definitions on disk (~/.cache/pint): 0.02 s instead of 0.12 s a command;
-        # without a writable cache directory it builds them from the definitions
-        with contextlib.suppress(Exception):
-            ureg = pint.UnitRegistry(cache_folder=":auto:", **kwargs)
-    if ureg is None:
-        ureg = pint.UnitRegistry(**kwargs)
-    # pint's definitions, then the field's over them; no unit is resolved before both are in (pint resolves
-    # each on first use), so nothing keeps pint's meaning
-    ureg.load_definitions(pathlib.Path(pint.__file__).parent / "default_en.txt")
-    ureg.load_definitions(list(FIELD_DEFINITIONS))
+    with precise():  # the definitions' numbers too: computed as they are read
+        ureg: Any = None
+        if writes_allowed():
+            # pint keeps its parsed definitions on disk: 0.02 s instead of 0.12 s a command. A folder of our own,
+            # not pint's ~/.cache/pint, where other programs keep definitions read at 28 digits; without a
+            # writable cache directory it builds them from the definitions
+            with contextlib.suppress(Exception):
+                ureg = pint.UnitRegistry(cache_folder=os.path.join(_cache_base(), f"pint-{_GUARD.prec}"), **kwargs)
+        if ureg is None:
+            ureg = pint.UnitRegistry(**kwargs)
+        # pint's definitions, then the field's over them; no unit is resolved before both are in (pint resolves
+        # each on first use), so nothing keeps pint's meaning
+        ureg.load_definitions(pathlib.Path(pint.__file__).parent / "default_en.txt")
+        ureg.load_definitions(list(FIELD_DEFINITIONS))
     return ureg
 
 
@@ -106,8 +115,9 @@ def _pint_text(text: str) -> str:
 
 
 _MAX_KEPT = 2000  # entries of each kind on disk
-# in the cache file's key: a new one leaves answers kept before behind (2: factors with guard digits only)
-_CACHE_FORMAT = "2"
+# in the cache file's key: a new one leaves answers kept before behind (3: the factors, and the definitions
+# pint reads, with guard digits only)
+_CACHE_FORMAT = "3"
 
 
 class _DiskCache:
@@ -125,13 +135,12 @@ class _DiskCache:
             if origin is None:
                 return
             st = os.stat(origin)
-            base = (os.environ.get("XDG_CACHE_HOME") or (os.name == "nt" and os.environ.get("LOCALAPPDATA"))
-                    or os.path.join(os.path.expanduser("~"), ".cache"))  # Windows: %LOCALAPPDATA%\deployer
+            base = _cache_base()
             # the field's definitions in the key too: answers given under other definitions are not these
             ours = zlib.crc32("\n".join((*FIELD_DEFINITIONS, _ANGLE_OF_A_TURN, str(_GUARD.prec), _CACHE_FORMAT,
                                           json.dumps(_ALIASES), _POWERS.pattern)).encode())
             key = f"{zlib.crc32(origin.encode()):08x}-{st.st_mtime_ns}-{ours:08x}"
-            self.path = os.path.join(base, "deployer", f"units-{key}.json")
+            self.path = os.path.join(base, f"units-{key}.json")
             with open(self.path, encoding="utf-8") as f:
                 data = json.load(f)
             self.checks, self.factors = dict(data["checks"]), dict(data["factors"])
