@@ -397,17 +397,19 @@ def _target(recipe: Recipe, device: str | DeviceURL | None, unit: int | None) ->
 
 async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
                      write_all: bool = False, offline: bool = False, state_dir: str | None = ".deployer",
-                     notices: list[str] | None = None) -> Plan:
+                     notices: list[str] | None = None, window: bool = False) -> Plan:
     """The requests apply would send: against what the device holds now, or ``offline`` the full write plan."""
     _need_recipe(recipe, "plan")
     _need_unit(unit)
     if offline:
         u = unit if unit is not None else 1
-        return make_plan(recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all)
+        return make_plan(recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all,
+                         window=window)
     url, u = _target(recipe, device, unit)
     from .execute.read import plan_device
 
-    return await plan_device(recipe, url, u, write_all=write_all, state_dir=state_dir, notices=notices)
+    return await plan_device(recipe, url, u, write_all=write_all, state_dir=state_dir, notices=notices,
+                             window=window)
 
 
 def plan(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
@@ -455,7 +457,7 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
 
 
 def plan_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]] | None, device: DeviceURL | None = None,
-                unit: int = 1, *, write_all: bool = False) -> Plan:
+                unit: int = 1, *, write_all: bool = False, window: bool = False) -> Plan:
     """The plan of ``recipe`` against values already read (``current``: {name: registers}, as ``pull`` and
     ``read_fleet`` give them), or with ``current`` None the full write plan, offline. ``device`` and ``unit``:
     what the plan names as its target (``device`` None: none). Nothing is read or sent; the limits taught
@@ -466,7 +468,7 @@ def plan_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]] | None, d
     from .transport.urls import identification
 
     return make_plan(recipe, target, current, write_all=write_all, pacing=pacing_for(device, recipe.profile),
-                     device_id=None if device is None else identification(device))
+                     device_id=None if device is None else identification(device), window=window)
 
 
 def plan_cost(plan: Plan, profile: Profile, device: DeviceURL | None = None) -> Cost:
@@ -974,12 +976,14 @@ def out_of_range(profile: Profile, values: Mapping[str, Sequence[int]]) -> list[
 
 async def plan_fleet_async(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
                            on_done: Callable[[str, str | None], None] | None = None,
-                           state_dir: str | None = ".deployer") -> dict[str, Plan | TransportError | UsageError]:
+                           state_dir: str | None = ".deployer", window: bool = False,
+                           ) -> dict[str, Plan | TransportError | UsageError]:
     """``plan_fleet`` for callers with their own event loop; ``on_done(name, error or None)`` per device read."""
     from .fleet.rollout import plan_many
 
     _need_parallel(parallel)
-    return await plan_many(jobs, parallel=parallel, write_all=write_all, state_dir=state_dir, on_done=on_done)
+    return await plan_many(jobs, parallel=parallel, write_all=write_all, state_dir=state_dir, on_done=on_done,
+                           window=window)
 
 
 def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,

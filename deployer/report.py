@@ -43,6 +43,7 @@ class RequestRecord:
     attempts: int = 1
     step: int | None = None  # the plan step (1-based) it executes, or that the deviation stands in for
     deviation: str | None = None  # what only the device decided: "split", "function-06", "recovery-read" ...
+    window: bool = False  # sent at a safe change's end (its commit's own plan, or the rollback), after the apply's
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"function": self.function, "address": self.address, "count": self.count,
@@ -51,6 +52,8 @@ class RequestRecord:
             out["step"] = self.step
         if self.deviation is not None:
             out["deviation"] = self.deviation
+        if self.window:
+            out["window"] = True
         return out
 
 
@@ -135,6 +138,9 @@ class DeviceResult:
     unrecorded: list[str] = field(default_factory=list)  # what the journal or report could not record (disk full)
     tally: Tally | None = None  # set once the requests and parameters were dropped (``small``)
     seen: str | None = None  # when (UTC) the values in the parameters' after_raw were read from the device
+    # the profile's health checks (indices) failing before a safe change that was written anyway
+    # (ApplyOptions.allow_unhealthy): its window does not hold them against the change; the notices say it
+    unhealthy_before: tuple[int, ...] = field(default=(), repr=False, compare=False)
     # its report line as ``device_json`` made it where the device ran (a fleet's worker process): not remade here
     report_line: bytes | None = field(default=None, repr=False, compare=False)
 
@@ -337,7 +343,7 @@ def _document(recipe: str | None, devices: list[Any], summary: dict[str, Any],
 
 _VIEW_DEFAULTS: dict[str, Any] = {"word_order": "big", "scale": "1", "offset": "0", "unit": None, "values": {},
                                   "byte_swap": False, "mask": 0, "size": 0, "encoding": "ascii", "padding": "nul",
-                                  "register_type": "holding"}
+                                  "register_type": "holding", "manual_number": "", "manual_text": ""}
 
 
 def parameter_view(p: Parameter) -> dict[str, Any]:
@@ -345,7 +351,7 @@ def parameter_view(p: Parameter) -> dict[str, Any]:
     full = {"address": p.address, "type": p.type, "word_order": p.word_order, "scale": str(p.scale),
             "offset": str(p.offset), "unit": p.unit, "values": dict(p.values), "byte_swap": p.byte_swap,
             "mask": p.mask, "size": p.size, "encoding": p.encoding, "padding": p.padding,
-            "register_type": p.register_type}
+            "register_type": p.register_type, "manual_number": p.manual_number, "manual_text": p.manual_text}
     return {k: v for k, v in full.items() if k not in _VIEW_DEFAULTS or v != _VIEW_DEFAULTS[k]}
 
 
@@ -381,7 +387,8 @@ def parameter_from_view(name: str, view: Any) -> Parameter | None:
                       unit=None if v["unit"] is None else str(v["unit"]),
                       values=tuple((str(k), int(x)) for k, x in dict(v["values"]).items()),
                       byte_swap=v["byte_swap"] is True, mask=int(v["mask"]), size=int(v["size"]),
-                      encoding=str(v["encoding"]), padding=str(v["padding"]), register_type=v["register_type"])
+                      encoding=str(v["encoding"]), padding=str(v["padding"]), register_type=v["register_type"],
+                      manual_number=str(v["manual_number"]), manual_text=str(v["manual_text"]))
     except (KeyError, TypeError, ValueError, InvalidOperation):
         return None
     if p.type not in (*codec.TYPE_NAMES, codec.STRING, codec.BOOL) or p.word_order not in ("big", "little") \
@@ -455,7 +462,7 @@ def _parameter_json(p: ParameterResult) -> str:
 
 
 _REQUEST = operator.attrgetter("function", "address", "count", "result", "exception_code", "attempts", "step",
-                               "deviation")
+                               "deviation", "window")
 _REQUESTS: dict[tuple[Any, ...], str] = {}
 
 

@@ -60,9 +60,12 @@ def write_site(tmp: Path, urls: dict[str, str], recipe: str = RECIPE, profile: s
 class AgentProcess:
     """``deployer agent INVENTORY --listen 127.0.0.1:0 ...`` as a child process; ``url`` once it listens."""
 
-    def __init__(self, inventory: Path, state: Path, *args: str, check_every: str = "0.2s") -> None:
+    def __init__(self, inventory: Path, state: Path, *args: str, check_every: str = "0.2s",
+                 first_restore_soak: str = "0") -> None:
+        # the first restores' canary: its health read once after the write (the default watches it for 10 s)
         cmd = [sys.executable, "-m", "deployer", "agent", str(inventory), "--state-dir", str(state),
-               "--listen", "127.0.0.1:0", "--check-every", check_every, *args]
+               "--listen", "127.0.0.1:0", "--check-every", check_every, "--first-restore-soak", first_restore_soak,
+               *args]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      env=os.environ.copy())
         self.lines: queue.Queue[str] = queue.Queue()

@@ -217,3 +217,21 @@ def test_the_collection_uses_only_the_public_api() -> None:
             elif isinstance(node, ast.Import):
                 for alias in node.names:
                     assert alias.name in ("deployer",) or not alias.name.startswith("deployer"), path.name
+
+
+def test_a_device_already_in_alarm_is_not_written_by_a_soak_unless_allowed(tmp_path: Path) -> None:
+    fault = PROFILE.health[0].address
+    base = {"profile": "example-inverter", "parameters": {"F07": "10 s"}, "state_dir": str(tmp_path / "st"),
+            "soak": "200ms", "health_interval": "100ms"}
+    with Simulators([Simulator(PROFILE, init={fault: 7})]) as (sim,):
+        code, res = run_module(tmp_path, "apply", {**base, "device": sim.url})
+        assert code == 1 and res["devices"][0]["status"] == "failed"
+        assert "health check already failing before the change" in res["devices"][0]["error"]
+        assert not [e for e in sim.log if e.function in (6, 16)]
+        code, res = run_module(tmp_path, "apply", {**base, "device": sim.url, "allow_unhealthy": True})
+        assert code == 0, res
+        assert sim.read("F07") == (0, 1000)
+        sim.log.clear()
+        code, res = run_module(tmp_path, "apply", {**{k: v for k, v in base.items() if k != "soak"},
+                                                   "device": sim.url, "allow_unhealthy": True})
+        assert code == 1 and "allow_unhealthy goes with soak" in res["msg"] and sim.log == []

@@ -195,8 +195,11 @@ def test_a_soak_against_the_simulator_passes_then_a_cold_probe_below_zero_rolls_
     with SimulatorThread(prof, init=_init(tmp_path / "p.yaml", probe_temp=-310)) as sim:
         code, dev = _apply(capsys, tmp_path, sim.url)
         assert sim.read("ramp") == (0,)
-    assert code == 4 and dev["status"] == "rolled-back"
-    assert "probe_temp is -31 degC, expected -30..8 degC" in dev["error"]
+        assert not [e for e in sim.log if e.function in (5, 6, 15, 16)]
+    # the probe was below its range before the change: the device is not written, and the change not blamed
+    assert code == 4 and dev["status"] == "failed" and dev["snapshot"] is None
+    assert dev["error"].startswith("health check already failing before the change: probe_temp is -31 degC, "
+                                   "expected -30..8 degC")
     with SimulatorThread(prof, init=_init(tmp_path / "p.yaml", alarm=1)) as sim:
         code, dev = _apply(capsys, tmp_path, sim.url)
     assert code == 4 and "alarm is true, expected false" in dev["error"]
@@ -221,8 +224,9 @@ health:
         store[12], store[13] = struct.unpack(">HH", struct.pack(">f", 2.75))
         store[1] = 3
         code, dev = _apply(capsys, tmp_path, f"tcp://127.0.0.1:{port}")
-        assert store[1] == 3, (dev["status"], dev["error"])  # rolled back
-    assert code == 4 and "power is 2.75 kW, expected at most 2.5 kW" in dev["error"]
+        assert store[1] == 3, (dev["status"], dev["error"])  # not written: over the limit before the change
+    assert code == 4 and dev["status"] == "failed"
+    assert "already failing before the change: power is 2.75 kW, expected at most 2.5 kW" in dev["error"]
 
 
 # ---- rollouts over mixed lines -------------------------------------------------------------------------

@@ -239,3 +239,29 @@ def test_a_device_silent_on_function_43_costs_one_timeout_once(tmp_path: Path,
                              "--state-dir", state)
         assert code == 0 and _ids(sim.log[n:]) == 0, err
         assert any("using what this device taught" in x for x in json.loads(out)["devices"][0]["notices"])
+
+
+def test_a_safe_changes_plan_reads_the_health_checks_first(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`plan --safe-change` is the plan `apply --soak` executes: the health reads after the preconditions; a saved
+    plan without them is refused for a safe change, with the command that makes the right one."""
+    recipe = str(EXAMPLES / RECIPES["example-inverter"])  # its profile watches the fault code at 0x2000
+    with SimulatorThread(builtin_profile("example-inverter")) as sim:
+        plain, safe = str(tmp_path / "plain.json"), str(tmp_path / "safe.json")
+        assert cli(capsys, "plan", recipe, "--device", sim.url, "--out", plain)[0] == 0
+        assert cli(capsys, "plan", recipe, "--device", sim.url, "--out", safe, "--safe-change")[0] == 0
+        kinds = [s["kind"] for s in json.loads(Path(safe).read_text())["steps"]]
+        assert "health" not in [s["kind"] for s in json.loads(Path(plain).read_text())["steps"]]
+        assert kinds.index("health") == kinds.index("write") - 1  # no precondition, no unlock in this profile
+        n = len(sim.log)
+        code, _, err = cli(capsys, "apply", plain, "--yes", "--soak", "1s", "--state-dir", str(tmp_path / "s"))
+        assert code == 1 and "is not the plan of a safe change: it reads no health checks before writing" in err
+        assert f"--safe-change --out {plain}" in err and len(sim.log) == n  # nothing sent
+        code, out, err = cli(capsys, "apply", safe, "--yes", "--json", "--soak", "0.3s", "--health-interval",
+                             "0.1s", "--state-dir", str(tmp_path / "s"))
+        assert code == 0, err
+        device = json.loads(out)["devices"][0]
+        # the device received the plan; then the soak's reads (not the plan's), then the held commit: a plan of its
+        # own at the window's end, its requests marked so
+        applied = sum(r["attempts"] for r in device["requests"] if not r.get("window"))
+        contract.check(json.loads(Path(safe).read_text()), device, sim.log[n:n + applied])
+        assert [(r["function"], r["address"]) for r in device["requests"] if r.get("window")][-1] == (16, 2303)

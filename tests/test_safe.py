@@ -121,7 +121,8 @@ def test_a_healthy_soak_ends_ok_and_the_commit_follows_it(capsys: pytest.Capture
     (write,) = writes_to(log, F07)
     (commit,) = writes_to(log, COMMIT)
     health = reads_of(log, FAULT)
-    assert len(health) >= 2 and write < health[0] and health[-1] < commit  # soaked after the write, then committed
+    before, *soaked = health  # read once before the change (a device already in alarm is not written) ...
+    assert before < write and len(soaked) >= 2 and write < soaked[0] and soaked[-1] < commit  # ... soaked, committed
     events = [json.loads(x)["event"] for x in (tmp_path / "s" / "audit.jsonl").read_text().splitlines()]
     assert events.index("soak-started") < events.index("soak-finished") < events.index("commit")
 
@@ -440,7 +441,8 @@ def test_a_run_killed_during_its_soak_is_shown_by_status_with_its_restore_comman
         proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1h", "--health-interval",
                         "100ms", "--state-dir", state)
         try:
-            wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 1 or proc.poll() is not None)
+            # the soak's first read is the second one (the first is before the write)
+            wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 2 or proc.poll() is not None)
         finally:
             proc.send_signal(signal.SIGKILL)
             proc.communicate(timeout=60)
@@ -516,10 +518,13 @@ def test_devices_behind_one_gateway_soak_together(capsys: pytest.CaptureFixture[
     assert code == 4
     d1, d2 = json.loads(out)["devices"]
     assert d1["status"] == "ok" and d2["status"] == "rolled-back"
-    health = [e.unit for e in (log[i] for i in reads_of(log, FAULT))]
     written = writes_to(log, F07)[:2]  # the apply's writes (the rollback's come after the soak's reads)
     assert sorted(log[i].unit for i in written) == [1, 2]
-    assert reads_of(log, FAULT)[0] > max(written)  # the soak starts once the whole batch is written
+    for i in written:  # each unit's health read once before its write (a device in alarm is not written) ...
+        assert any(j < i and log[j].unit == log[i].unit for j in reads_of(log, FAULT))
+    first = log[min(written)].unit  # ... and the soak once both are written (not the first one's meanwhile)
+    assert not [j for j in reads_of(log, FAULT) if min(written) < j < max(written) and log[j].unit == first]
+    health = [log[j].unit for j in reads_of(log, FAULT) if j > max(written)]
     assert health[:2] in ([1, 2], [2, 1])  # then both are watched at once
     assert [log[i].unit for i in writes_to(log, COMMIT)] == [1]
 
@@ -532,7 +537,8 @@ def test_ctrl_c_while_a_change_is_held_rolls_it_back(tmp_path: Path, held: list[
         before = sim.registers()
         proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", *held, "--state-dir", state)
         try:
-            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), FAULT)) >= 1
+            # the soak's first read: the second one (the first is before the write)
+            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), FAULT)) >= 2
                      or proc.poll() is not None)
             proc.send_signal(signal.SIGINT)
             proc.communicate(timeout=120)
@@ -551,7 +557,8 @@ def test_confirm_during_the_soak_says_it_comes_after(tmp_path: Path) -> None:
         proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1h", "--health-interval",
                         "100ms", "--confirm-within", "1h", "--state-dir", state)
         try:
-            wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 1 or proc.poll() is not None)
+            # the soak's first read is the second one (the first is before the write)
+            wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 2 or proc.poll() is not None)
             with pytest.raises(UsageError, match="is still soaking: it asks for the confirmation once its soak"):
                 confirm_run(state)
         finally:

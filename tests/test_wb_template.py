@@ -245,3 +245,34 @@ def test_hostile_input_is_bounded(tmp_path: Path, capsys: pytest.CaptureFixture[
     code, _, err = cli(capsys, "profiles", "import", "wb-template", src)
     assert code == 1 and "20001 parameters and channels; at most 20000" in err
 
+
+
+def test_the_repository_ships_no_wb_mqtt_serial_template() -> None:
+    """Their MIT-WB licence allows use on Wiren Board controllers only (docs/importers.md): deployer ships none,
+    nor a profile made from one; the tests write their own."""
+    import os
+    import subprocess
+
+    root = Path(__file__).resolve().parent.parent
+    try:
+        listed = subprocess.run(["git", "ls-files"], cwd=root, capture_output=True, text=True, timeout=60, check=True)
+        files = [root / f for f in listed.stdout.splitlines()]
+    except (OSError, subprocess.SubprocessError):  # a source tree without git: every file but the environments'
+        files = [Path(d) / f for d, dirs, names in os.walk(root)
+                 if not any(part.startswith(".") or part in ("build", "node_modules") for part in Path(d).parts[
+                     len(root.parts):]) for f in names]
+    assert len(files) > 100
+    found = []
+    for f in files:
+        if not f.is_file():
+            continue
+        text = f.read_text(encoding="utf-8", errors="replace")
+        rel = f.relative_to(root).as_posix()
+        if f.name.endswith((".json", ".jinja", ".json5")) and '"device_type"' in text:
+            found.append(f"{rel}: a device template")
+        if "Contactless Devices" in text and rel not in ("docs/importers.md", "tests/test_wb_template.py"):
+            found.append(f"{rel}: Wiren Board's licence text")  # a copied template or profile brings its notice
+        if f.suffix == ".yaml" and "wb-mqtt-serial template" in text:
+            found.append(f"{rel}: a profile made from a template")
+    assert found == []
+    assert "MIT-WB" in (root / "docs" / "importers.md").read_text(encoding="utf-8")

@@ -110,7 +110,8 @@ def test_a_second_run_with_lock_timeout_waits_for_the_window_to_end(tmp_path: Pa
         a = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1500ms", "--health-interval",
                      "100ms", "--state-dir", str(tmp_path / "a"))
         try:
-            wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 1 or a.poll() is not None)
+            # the soak's first read: the second one (the first is the safe change's, before the write)
+            wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2 or a.poll() is not None)
             b = run("apply", recipe(tmp_path, "4 s", sim.url, "r2.yaml"), "--yes", "--json", "--lock-timeout", "60",
                     "--state-dir", str(tmp_path / "b"))
             a.communicate(timeout=120)
@@ -184,7 +185,7 @@ def test_a_parameter_changed_by_hand_during_the_window_is_never_committed(tmp_pa
             if window == "confirm":
                 wait_for(lambda: bool(awaiting(state)) or proc.poll() is not None)
             else:
-                wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 1
+                wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2  # the soak's first
                          or proc.poll() is not None)
             mbpoll_write(sim.url.rsplit(":", 1)[1], F07, 0, 999)
             if window == "confirm":
@@ -339,7 +340,8 @@ def test_the_restore_status_recommends_sends_no_commit_and_drops_the_run(capsys:
         before = sim.registers()
         proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", *held, "--state-dir", state)
         try:
-            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 1
+            # the window's first health read: the second (the first is before the write)
+            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2
                      or proc.poll() is not None)
         finally:
             proc.send_signal(signal.SIGKILL)
@@ -380,7 +382,8 @@ def test_an_interrupted_window_tells_one_story_everywhere(tmp_path: Path, sig: s
         proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", *held, "--report", str(report),
                         "--html", str(page), "--state-dir", state)
         try:
-            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 1
+            # the window's first health read: the second (the first is before the write)
+            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2
                      or proc.poll() is not None)
             proc.send_signal(getattr(signal, sig))
             out, err = proc.communicate(timeout=120)
@@ -448,7 +451,8 @@ def test_a_soak_on_a_full_disk_still_rolls_back_and_records_it(tmp_path: Path, s
         proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "1h",
                         "--health-interval", "100ms", "--state-dir", str(state))
         try:
-            wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 1 or proc.poll() is not None)
+            # the soak's first read: the second one (the first is the safe change's, before the write)
+            wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2 or proc.poll() is not None)
             fill(small_disk)
             sim.set_register(FAULT, 7)  # the drive trips
             out, err = proc.communicate(timeout=120)

@@ -45,6 +45,7 @@ from ..state import journal, lock
 from ..transport import clients as tp
 from ..transport.urls import describe
 from . import desired as ds
+from .firstrestores import FirstRestores
 from .store import Store, boot_id
 
 API_VERSION = 1
@@ -71,6 +72,7 @@ class Settings:
     on_replace: str = "report"
     bus_share: float = 0.2  # at most this share of a bus's time goes to watching
     max_restores: int = 3  # per device and hour; a device that keeps drifting back is reported, not fought
+    first_restore_soak: float = 10.0  # the first restores after a start: the canary batch's soak (firstrestores)
     endurance_warn: float = 0.8
     keep_events: float = 90 * 86400.0
     parallel: int = 64  # buses read at once by the watch
@@ -162,6 +164,7 @@ class Agent:
         self.checks = 0
         self.check_seconds = 0.0
         self.on_event: list[Callable[[dict[str, Any]], None]] = []  # the outward side's notifications hook here
+        self.first = FirstRestores(settings.first_restore_soak)  # the first restores after the start, staged
 
     # ---- start and stop -------------------------------------------------------------------------
 
@@ -375,6 +378,8 @@ class Agent:
                 await self.check(due_only=True)
             except Exception as e:  # the watch must go on; say what broke it this round
                 self.event("internal", f"the check failed: {type(e).__name__}: {e}")
+            if self.first.collecting:  # the first round is over: the restores it asked for, staged
+                self.first.start(self)
             # a round as often as the most frequent device asks; each device is read when its own time is due
             every = min([d.check_every for d in self.devices.values()] or [self.settings.check_every])
             left = every - (time.monotonic() - started)
@@ -530,6 +535,8 @@ class Agent:
         assert self.store is not None and dev.adopted is not None
         if dev.run is not None:  # a run has it already (a restore started by a check a moment ago)
             return
+        if self.first.stopped is not None:  # the first restores failed: reported, not written, until a restart
+            return
         now = time.time()
         while dev.restores and dev.restores[0] < now - 3600:
             dev.restores.popleft()
@@ -551,9 +558,11 @@ class Agent:
             ds.write_adopted(self.state_dir, replace(dev.job, recipe=dev.adopted), values,
                              why="as left, for a replaced unit (per-unit parameters left out)", path=path)
             recipe = ds.load_adopted(path)
+        job = Job(dev.name, recipe, dev.job.url, dev.job.unit)
+        if self.first.keep(job, why):  # the first round's restores start together, staged, after that round
+            return
         try:
-            self.start_run([Job(dev.name, recipe, dev.job.url, dev.job.unit)], command="restore",
-                           options={"reason": why}, opts=ApplyOptions(), label=recipe.path)
+            self.start_run([job], command="restore", options={"reason": why}, opts=ApplyOptions(), label=recipe.path)
         except ApiError as e:
             self.event("restore-failed", f"{dev.name}: {e}", device=dev.name)
 
@@ -597,11 +606,17 @@ class Agent:
                     changes[key] = parse_duration(str(req[key]))
                 except ValueError as e:
                     raise ApiError("usage", f"{key}: {e}", status=400) from None
+        if req.get("allow_unhealthy"):
+            if "soak" not in changes and "confirm_within" not in changes:
+                raise ApiError("usage", "allow_unhealthy goes with soak or confirm_within (only a safe change reads "
+                               "the health checks before it writes)", status=400)
+            changes["allow_unhealthy"] = True
         opts = replace(opts, **changes)
         jobs = [files.jobs[n] for n in chosen]
         self._check_endurance(jobs, force=bool(req.get("force_endurance")))
         options = {k: req[k] for k in ("limit", "batch", "max_failures", "parallel", "soak", "health_interval",
-                                       "confirm_within", "rollback_on_failure", "write_all", "client", "recipe")
+                                       "confirm_within", "allow_unhealthy", "rollback_on_failure", "write_all",
+                                       "client", "recipe")
                    if req.get(k) is not None}
         return self.start_run(jobs, command="apply", options=options, opts=opts, label=self.settings.inventory,
                               batch=req.get("batch"), max_failures=req.get("max_failures"),
@@ -610,7 +625,9 @@ class Agent:
 
     def start_run(self, jobs: Sequence[Job], *, command: str, options: dict[str, Any], opts: ApplyOptions,
                   label: str | None, batch: str | None = None, max_failures: str | None = None, parallel: int = 8,
-                  rollback_on_failure: bool = False, adopt: bool = False) -> RunState:
+                  rollback_on_failure: bool = False, adopt: bool = False, health_unchecked: bool = False) -> RunState:
+        """Start a run of ``jobs`` (ApiError: refused, nothing sent). ``health_unchecked``: a soak may include
+        profiles without health checks (the agent's staged first restores); a client's soak may not."""
         busy = [j.name for j in jobs if self.devices[j.name].run is not None]
         if busy:
             raise ApiError("conflict", f"{', '.join(busy)}: in run {self.devices[busy[0]].run} now; wait for it",
@@ -626,7 +643,7 @@ class Agent:
             fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures)
         except UsageError as e:
             raise ApiError("usage", str(e), status=400) from None
-        if opts.soak is not None:
+        if opts.soak is not None and not health_unchecked:
             from ..window.soak import check_soak_profiles
 
             try:
@@ -757,6 +774,7 @@ class Agent:
         else:
             run.exit_code = 130 if state == "interrupted" else (error.exit_code if error else 1)
         run.state, run.finished = state, time.time()
+        self.first.finished(self, run.id, report, state)
         self.store.run_ended(run.id, state, run.exit_code, report_path if report is not None else None)
         self.event("run-finished", f"run {run.id} ({run.command}) {state}, exit code {run.exit_code}",
                    detail={"run": run.id, "exit_code": run.exit_code})
@@ -971,7 +989,7 @@ class Agent:
         assert self.store is not None
         from ..profile.model import SPACE
 
-        commit_regs = {a.address for a in profile.commit}
+        commit_keys = {a.key for a in profile.commit}
         writes: dict[int, int] = {}
         commits: dict[int, int] = {}
         for q in requests:
@@ -979,7 +997,7 @@ class Agent:
                 continue
             space = SPACE["coil"] << 16 if q.function in (5, 15) else 0
             for a in range(q.address, q.address + q.count):
-                target = commits if q.function in (6, 16) and a in commit_regs else writes
+                target = commits if space | a in commit_keys else writes
                 target[space | a] = target.get(space | a, 0) + q.attempts
         if not writes and not commits:
             return
@@ -999,7 +1017,7 @@ class Agent:
                     out[k] = (e, p.name)
         if profile.endurance:
             for a in profile.commit:
-                out[a.address] = (profile.endurance, "commit")
+                out[a.key] = (profile.endurance, "commit")
         return out
 
     def _endurance_warnings(self, dev: Device, profile: Profile, keys: set[int]) -> None:
@@ -1021,7 +1039,7 @@ class Agent:
             budgets = self._budgets(j.recipe.profile)
             counts = self.store.ledger(j.name).get(j.name, {})
             keys = {k for d in j.recipe.desired for k in range(d.parameter.key, d.parameter.key + d.parameter.count)}
-            keys |= {a.address for a in j.recipe.profile.commit}
+            keys |= {a.key for a in j.recipe.profile.commit}
             for k in sorted(keys & set(budgets)):
                 used = sum(counts.get(k, (0, 0)))
                 if used >= budgets[k][0]:
@@ -1081,7 +1099,8 @@ class Agent:
                 "auth": "none", "files_sha256": self.files.sha256 if self.files else None,
                 "options": {"check_every": s.check_every, "on_drift": s.on_drift, "on_replace": s.on_replace,
                             "bus_share": s.bus_share, "max_restores": s.max_restores,
-                            "endurance_warn": s.endurance_warn},
+                            "endurance_warn": s.endurance_warn, "first_restore_soak": s.first_restore_soak},
+                "restores_stopped": self.first.stopped,
                 "checks": self.checks, "last_check_seconds": self.check_seconds}
 
 
@@ -1114,7 +1133,8 @@ async def _read_in(session: Session, profile: Profile, names: Sequence[str], url
 
 
 def _take_now(url: tp.DeviceURL, unit: int) -> list[lock.DeviceLock]:
-    """The device's locks without waiting (the agent's start and each check try again)."""
+    """The device's locks without waiting (the agent's start and each check try again), and its marks where
+    every process looks whatever its lock folder (``lock.agent_marks``)."""
     keys = sorted(set(url.lock_keys))
     held: list[lock.DeviceLock] = []
     try:
@@ -1122,6 +1142,7 @@ def _take_now(url: tp.DeviceURL, unit: int) -> list[lock.DeviceLock]:
             held.append(lock.try_lock(f"{b}#bus", command="deployer agent", shared=True))
         for b in keys:
             held.append(lock.try_lock(lock.device_key(b, unit), command="deployer agent"))
+        held += lock.agent_marks(keys, unit)
     except BaseException:
         for h in reversed(held):
             h.release()

@@ -31,15 +31,21 @@ from .base import Duration
               help="at most this share of a bus's time goes to watching")
 @click.option("--max-restores", type=click.IntRange(0, 1000), default=3, show_default=True, metavar="N",
               help="restores per device and hour; a device that keeps drifting back is reported, not fought")
+@click.option("--first-restore-soak", type=Duration(), default="10s", show_default=True, metavar="DURATION",
+              help="the first restores after the start (--on-drift/--on-replace restore) go staged: one device of each "
+                   "profile first, its health checks watched this long (0: read once after the write), then the "
+                   "rest; the first device not ending ok stops them (a restores-stopped event) until a restart")
 @click.option("--endurance-warn", type=click.FloatRange(0.0, 1.0), default=0.8, show_default=True,
               metavar="FRACTION", help="warn when a register has taken this share of its profile's endurance")
 def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_drift: str, on_replace: str,
-          bus_share: float, max_restores: int, endurance_warn: float, token_file: str | None,
+          bus_share: float, max_restores: int, first_restore_soak: float, endurance_warn: float,
+          token_file: str | None,
           tls_cert: str | None, tls_key: str | None, notify: tuple[str, ...]) -> int:
     """Run the site agent: own INVENTORY's devices, watch them, serve the HTTP API (until SIGTERM or Ctrl-C).
 
-    It takes each device's lock (set DEPLOYER_LOCK_DIR for it and the command line alike), so a plain
-    apply to its devices is refused; run through it with --agent URL. --check-every, --on-drift and
+    It takes each device's lock and marks the device where every process on the machine looks, whatever
+    DEPLOYER_LOCK_DIR each was given, so a plain apply to its devices is refused; run through it with
+    --agent URL. --check-every, --on-drift and
     --on-replace are defaults: an inventory's agent: settings (defaults, a group, a device) win. It
     prints 'listening on URL' on stderr when ready. SIGHUP reads the files again (shown as pending; never
     written by itself; Windows has no SIGHUP: restart the agent there).
@@ -55,7 +61,7 @@ def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_dr
         raise click.BadParameter("must be more than 0", param_hint="--check-every")
     settings = Settings(inventory, state_dir=state_dir, check_every=check_every, on_drift=on_drift,
                         on_replace=on_replace, bus_share=bus_share, max_restores=max_restores,
-                        endurance_warn=endurance_warn)
+                        first_restore_soak=first_restore_soak, endurance_warn=endurance_warn)
     token = read_token(token_file) if token_file else None
     tls = server_ssl(tls_cert, tls_key)
     for url in notify:

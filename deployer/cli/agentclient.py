@@ -89,7 +89,8 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
     body = {"command": "apply", "limit": kw.get("limit"), "batch": kw.get("batch"),
             "max_failures": kw.get("max_failures"), "parallel": kw.get("parallel"),
             "soak": _secs(kw.get("soak")), "health_interval": _secs(kw.get("health_interval")),
-            "confirm_within": _secs(kw.get("confirm_within")), "rollback_on_failure": kw.get("rollback_on_failure"),
+            "confirm_within": _secs(kw.get("confirm_within")), "allow_unhealthy": kw.get("allow_unhealthy") or None,
+            "rollback_on_failure": kw.get("rollback_on_failure"),
             "write_all": kw.get("write_all"), "force_endurance": force_endurance or None,
             "recipe": os.path.abspath(source) if source else None,
             "client": f"{' '.join(sys.argv[1:])[:150]} ({who})", "files_sha256": seen}

@@ -300,6 +300,10 @@ def safe_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--confirm-within", type=Duration(LIMITS.confirm_within), metavar="DURATION",
                      help="hold the profile's commit back until `deployer confirm` (another shell, same "
                           "--state-dir); not confirmed in time: every device written is rolled back"),
+        click.option("--allow-unhealthy", is_flag=True,
+                     help="with --soak or --confirm-within: write a device although one of its health checks fails "
+                          "already (else it is not written: failed, 'health check already failing before the "
+                          "change'); its window then does not hold that check against the change"),
         click.option("--rollback-on-failure", is_flag=True,
                      help="when the rollout stops (a failed batch or canary, --max-failures), roll back every "
                           "device it wrote"),

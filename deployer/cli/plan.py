@@ -167,6 +167,9 @@ def print_frames(plan: Plan, out: Console) -> None:
 @click.option("--detailed-exitcode", is_flag=True, help="exit 2 when something would change, 0 when nothing would")
 @click.option("--show-frames", is_flag=True, help="print the exact bytes of each request (RTU, ASCII, TCP)")
 @click.option("--write-all", is_flag=True, help="plan every parameter, even those the device already holds")
+@click.option("--safe-change", is_flag=True,
+              help="the plan of a safe change (apply --soak or --confirm-within): it reads the profile's health checks "
+                   "before writing, and a device already failing one is not written")
 @click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
               help="where apply keeps what devices taught (limits found by their refusals); plan uses it")
 @fleet_option
@@ -177,7 +180,7 @@ def print_frames(plan: Plan, out: Console) -> None:
 @agent_option
 def plan(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
-         state_dir: str, inventory: str | None, limit: str | None, parallel: int, per_device: bool,
+         safe_change: bool, state_dir: str, inventory: str | None, limit: str | None, parallel: int, per_device: bool,
          agent_url: str | None) -> int:
     """Show the requests that apply would send. Offline, or with --device against what the device holds.
 
@@ -200,7 +203,7 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
             raise UsageError("with --inventory, --device, --out and --show-frames do not apply (one plan per device)")
         return plan_fleet(maybe, _fleet(maybe, inventory, limit, timeout, retries, unit), parallel=parallel,
                           as_json=as_json, detailed_exitcode=detailed_exitcode, write_all=write_all,
-                          state_dir=state_dir, per_device=per_device)
+                          state_dir=state_dir, per_device=per_device, window=safe_change)
     if limit or per_device:
         raise UsageError(f"{'--limit' if limit else '--per-device'} needs --inventory")
     assert maybe is not None
@@ -218,7 +221,8 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         assert url is not None
         notes: list[str] = []
         try:
-            p = asyncio.run(plan_async(rec, url, u, write_all=write_all, state_dir=state_dir, notices=notes))
+            p = asyncio.run(plan_async(rec, url, u, write_all=write_all, state_dir=state_dir, notices=notes,
+                                       window=safe_change))
         except TransportError as e:
             echo(f"error: {safe(e)}", err=True)
             return EXIT_UNREACHABLE
@@ -231,7 +235,7 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
             rec, taught = taught_recipe(rec, url, u, state_dir=state_dir)
             if taught is not None:
                 echo(f"note: {safe(taught)}", err=as_json)
-        p = plan_values(rec, None, url, u, write_all=write_all)
+        p = plan_values(rec, None, url, u, write_all=write_all, window=safe_change)
     from ..api import plan_cost
 
     data = plan_to_json(p, plan_cost(p, rec.profile, url))  # the saved plan says what it costs, as printed
@@ -254,13 +258,13 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
 
 
 def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_json: bool, detailed_exitcode: bool,
-               write_all: bool, per_device: bool = False, state_dir: str = ".deployer") -> int:
+               write_all: bool, per_device: bool = False, state_dir: str = ".deployer", window: bool = False) -> int:
     """A plan per device against what it holds, devices with identical changes together (``per_device``:
     each device's table); exit 3 if any device could not be read, else as plan."""
     from ..api import plan_cost, plan_to_json
     from .progress import plan_fleet as planned_fleet  # rich: only fleets pay for importing it
 
-    values = planned_fleet(jobs, parallel, write_all=write_all, state_dir=state_dir)
+    values = planned_fleet(jobs, parallel, write_all=write_all, state_dir=state_dir, window=window)
     plans = {n: p for n, p in values.items() if not isinstance(p, Exception)}
     changing = [n for n, p in plans.items() if p.writes]
     if as_json:

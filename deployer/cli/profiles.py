@@ -142,7 +142,10 @@ def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str
               "parameters (settings) only.")
 def profiles_import_wb_template(file: str, profile_id: str | None, out: str | None, no_channels: bool) -> int:
     """A profile from a wb-mqtt-serial device template (JSON with // comments): parameters become settings,
-    channels read-only values."""
+    channels read-only values.
+
+    wb-mqtt-serial's templates are under the MIT-WB licence, which allows their use on Wiren Board
+    controllers only: check that it allows yours before importing one (docs/importers.md)."""
     from ..api import import_wb_template
 
     draft, warnings = import_wb_template(file, profile_id=profile_id, channels=not no_channels)
@@ -277,8 +280,12 @@ def profiles_show(profile: str) -> int:
               + (f"; {lim.write_coils} coils per write (FC15), {lim.read_coils} per read"
                  if any(p.register_type == "coil" for p in prof.parameters) else ""))
     rows: list[list[Cell]] = [list(row) for row in table]
-    show(out, ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"],
-         rows)
+    heads = ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"]
+    if any(p.manual for p in prof.parameters):  # beside the key: the parameter as the manual names it
+        heads.insert(1, "manual")
+        for row, p in zip(rows, prof.parameters, strict=True):
+            row.insert(1, p.manual)
+    show(out, heads, rows)
     return EXIT_OK
 
 @profiles.command("new")

@@ -155,7 +155,8 @@ def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tu
     return dict(values)
 
 
-def plan_fleet(jobs: Sequence[Job], parallel: int, *, write_all: bool, state_dir: str) -> dict[str, Plan | Exception]:
+def plan_fleet(jobs: Sequence[Job], parallel: int, *, write_all: bool, state_dir: str,
+               window: bool = False) -> dict[str, Plan | Exception]:
     """Every device's plan against what it holds (a live display on a terminal); errors are said on stderr."""
     from ..api import plan_fleet_async
 
@@ -163,7 +164,7 @@ def plan_fleet(jobs: Sequence[Job], parallel: int, *, write_all: bool, state_dir
     progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
     with progress:
         plans = asyncio.run(plan_fleet_async(
-            jobs, parallel=parallel, write_all=write_all, state_dir=state_dir,
+            jobs, parallel=parallel, write_all=write_all, state_dir=state_dir, window=window,
             on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")))
     for name, v in plans.items():
         if isinstance(v, Exception):

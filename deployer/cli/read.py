@@ -331,7 +331,8 @@ def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], pat
     for name, url, unit, prof, cur in devices:
         entry: dict[str, object] = {"name": name, "url": url, "unit": unit, "profile": prof.id, "sha": prof.digest}
         if isinstance(cur, dict):
-            entry["values"] = [(n, prof.parameter(n).show_registers(tuple(v)), tuple(v)) for n, v in cur.items()]
+            entry["values"] = [(n, prof.parameter(n).show_registers(tuple(v)), tuple(v), prof.parameter(n).manual)
+                               for n, v in cur.items()]
         else:
             entry["error"] = str(cur)
         entries.append(entry)

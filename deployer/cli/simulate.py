@@ -58,6 +58,9 @@ def _register(text: str) -> int:
 @click.option("--silent-function", "silent", type=click.IntRange(1, 127), multiple=True, metavar="FC",
               help="quirk: requests of this function code are never answered (a device that lacks Function 43 and "
                    "stays silent: --silent-function 43). Repeatable.")
+@click.option("--nonvolatile", is_flag=True,
+              help="keep RAM and non-volatile memory apart: writes reach RAM, the profile's commit stores them, and "
+                   "a power cycle (SIGUSR2) brings back what was stored")
 @click.option("--identity", "identity", multiple=True, metavar="OBJECT=TEXT",
               help="Function 43 objects to answer (vendor, product_code, revision, ... or an id 0..255), e.g. "
                    "--identity vendor=ACME; default: the profile's identity objects, else the device answers 01. "
@@ -68,7 +71,8 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
              disconnect_after: int, state_path: str | None, log_path: str | None, loose_limits: bool,
              gap_reads: bool, max_write_registers: int | None, all_or_nothing: bool, fc06_only: bool,
              pause_after_connect: str, pause_between_requests: str, identity: tuple[str, ...],
-             fault_rules: tuple[str, ...] = (), max_connections: int = 0, silent: tuple[int, ...] = ()) -> int:
+             fault_rules: tuple[str, ...] = (), max_connections: int = 0, silent: tuple[int, ...] = (),
+             nonvolatile: bool = False) -> int:
     """Serve a simulated device for PROFILE (a built-in id or a file) until Ctrl-C."""
     from ..api import load_profile, load_recipe
     from ..load.durations import parse_duration
@@ -119,14 +123,15 @@ def simulate(profile: str, listen: str, units: tuple[int, ...], init_recipe: str
                     max_connections=max_connections, identity=objects, silent_functions=frozenset(silent))
     try:
         sim = Simulator(prof, listen=listen, units=units or (1,), init=init, faults=faults, log_path=log_path,
-                        state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads, quirks=quirks)
+                        state_path=state_path, strict_limits=not loose_limits, gap_reads=gap_reads, quirks=quirks,
+                        nonvolatile=nonvolatile)
     except ValueError as e:  # a --set register the profile does not declare
         raise UsageError(str(e)) from None
 
     def ready(s: Simulator) -> None:
         which = ", ".join(str(u) for u in s.units)
         echo(f"simulating {safe(prof.id)} unit{'s' if len(s.units) > 1 else ''} {which} on {safe(s.url)} "
-             "(Ctrl-C to stop)", err=True)
+             "(Ctrl-C to stop" + ("; SIGUSR2: a power cycle" if s.nonvolatile else "") + ")", err=True)
 
     try:
         asyncio.run(serve(sim, on_ready=ready))

@@ -155,14 +155,15 @@ class Planners:
         return hit[1]
 
     def shared(self, recipe: Recipe, *, write_all: bool, commit: bool, pacing: Pacing,
-               device_id: bool | None = None) -> Shared:
-        """``device_id``: whether the device is asked Function 43 (None: as the recipe's profile says)."""
+               device_id: bool | None = None, window: bool = False) -> Shared:
+        """``device_id``: whether the device is asked Function 43 (None: as the recipe's profile says); ``window``:
+        a safe change's plans (the health checks read before the change)."""
         ask = recipe.profile.limits.device_identification if device_id is None else device_id
-        key = (id(recipe), write_all, commit, pacing, ask)
+        key = (id(recipe), write_all, commit, pacing, ask, window)
         hit = self._by.get(key)
         if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
             hit = self._by[key] = (recipe, Shared(Planner(recipe, write_all=write_all, commit=commit, pacing=pacing,
-                                                          device_id=ask)))
+                                                          device_id=ask, window=window)))
         return hit[1]
 
 
@@ -255,8 +256,10 @@ def interrupted(res: DeviceResult, results: dict[str, ParameterResult]) -> None:
 class _Device:
     """One device's apply in progress."""
 
-    def __init__(self, job: Job, opts: ApplyOptions, res: DeviceResult, planners: Planners) -> None:
+    def __init__(self, job: Job, opts: ApplyOptions, res: DeviceResult, planners: Planners, *,
+                 window: bool | None = None) -> None:
         self.job = job
+        self.window = opts.window if window is None else window  # a safe change's plan (plan --soak: no run)
         self.opts = opts
         self.res = res
         self.planners = planners
@@ -272,7 +275,7 @@ class _Device:
         """The run's planner for ``recipe``, asking Function 43 unless the URL or the (taught) profile says not."""
         ask = identification(self.job.url)
         return self.planners.shared(recipe, write_all=self.opts.write_all, commit=not self.opts.hold_commit,
-                                    pacing=self.pacing,
+                                    pacing=self.pacing, window=self.window,
                                     device_id=recipe.profile.limits.device_identification if ask is None else ask)
 
     async def locked(self) -> tuple[DeviceResult, Awaitable[object] | None]:

@@ -176,6 +176,7 @@ class Execution:
         desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
         merged: dict[int, int] = {}  # a bit field's register as read right before its write
         ready = before_write is None or not writes
+        unhealthy: list[tuple[int, str]] = []  # the health checks failing before the change: index, why
         try:
             for n in range(plan.checks + 1, len(steps) + 1):
                 step = steps[n - 1]
@@ -184,6 +185,13 @@ class Execution:
                     if not await self._precondition(step):
                         return
                     continue
+                if step.kind == "health":
+                    if not await self._health(step, unhealthy):
+                        return
+                    continue
+                if unhealthy and not self._judge(unhealthy):
+                    return
+                unhealthy = []
                 if not ready:
                     if before_write is not None and not await before_write():
                         return
@@ -225,6 +233,44 @@ class Execution:
                                            f"{step.expect.equals}; nothing was written")
         return False
 
+    async def _health(self, step: Step, unhealthy: list[tuple[int, str]]) -> bool:
+        """A health check read before the change; its failure noted in ``unhealthy``. False (nothing written) when
+        a safe change cannot read it."""
+        try:
+            words = await self.session.read(step.address, step.count, step.function)
+        except (DeviceGone, ExceptionResponse) as e:
+            if not self.opts.window:
+                self.res.notices.append(f"a health check could not be read before the change: {e}")
+                return True
+            self.res.status, self.res.error = "failed", (f"the health checks could not be read before the change: "
+                                                         f"{e}; nothing was written")
+            return False
+        for i, c in enumerate(self.prof.health):
+            if (c.function, c.address, c.count) == (step.function, step.address, step.count) and not c.holds(words):
+                unhealthy.append((i, c.failure(words)))
+        return True
+
+    def _judge(self, unhealthy: list[tuple[int, str]]) -> bool:
+        """A device already failing a health check: a safe change does not write it (it would be rolled back and
+        the change blamed for the old alarm), unless the operator allows it; then the checks failing before are
+        not held against the change during its window (``DeviceResult.unhealthy_before``). An apply that is no
+        safe change of a safe change's plan says so and writes."""
+        said = "; ".join(why for _, why in unhealthy)
+        res = self.res
+        if self.opts.window and not self.opts.allow_unhealthy:
+            res.status, res.error = "failed", (
+                f"health check already failing before the change: {said} (the change is not to blame for it; to "
+                "write it anyway: --allow-unhealthy); nothing was written")
+            return False
+        if self.opts.window:
+            res.unhealthy_before = tuple(i for i, _ in unhealthy)
+            res.notices.append(f"health check already failing before the change, written anyway (--allow-unhealthy): "
+                               f"{said}; its window does not hold that check against the change")
+        else:
+            res.notices.append(f"health check failing before the change: {said} (written all the same: only a "
+                               "safe change, --soak or --confirm-within, is judged by the health checks)")
+        return True
+
     async def _unlock(self, step: Step, writes: bool) -> bool:
         try:
             await self._action(step)
@@ -247,7 +293,7 @@ class Execution:
         try:
             await self.session.write(req)
         except ExceptionResponse as e:
-            if e.code != 1 or req.function != 16:
+            if e.code != 1 or req.function != 16:  # a coil (05) or a single register (06) has no other form
                 raise
             self.learning.fc06 = True  # no Function 16 here: the recipe's writes go as Function 06 from now on
             with self.session.deviating("function-06"):

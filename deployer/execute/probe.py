@@ -65,7 +65,7 @@ def parse_expected(p: Parameter, text: str) -> Decimal:
         if p.unit is None:
             raise UsageError(f"--expect {p.name}={text}: {p.name} has no unit")
         try:
-            value = units.convert(value, unit, p.unit)
+            value = units.convert(value, unit, p.unit, cycles_as_angles=p.cycles_as_angles)
         except Exception as e:  # pint's errors for unknown or incompatible units
             raise UsageError(f"--expect {p.name}={text}: {e}") from None
     return value

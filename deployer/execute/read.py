@@ -22,12 +22,14 @@ from .verify import values_of
 
 async def plan_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, write_all: bool = False,
                       state_dir: str | None = ".deployer", planners: Planners | None = None,
-                      records: list[RequestRecord] | None = None, notices: list[str] | None = None) -> Plan:
+                      records: list[RequestRecord] | None = None, notices: list[str] | None = None,
+                      window: bool = False) -> Plan:
     """The plan ``apply`` would execute on the device now: the plan's checks run on it (identity, the current
     values, its identification and firmware: reads only), and the plan made against what they read, over the
     limits the device taught an earlier apply (``state_dir``; None: the profile's alone).
 
-    ``notices``: told what the user should know (the limits a device taught are used, answers came late).
+    ``notices``: told what the user should know (the limits a device taught are used, answers came late);
+    ``window``: the plan of a safe change (``--soak``, ``--confirm-within``: the health checks read first).
     Raises Unreachable (also when the checks refuse the device: another model, another firmware), UsageError."""
     if unit == 0:
         raise UsageError("unit 0 is broadcast: nothing can be read from it")
@@ -36,7 +38,7 @@ async def plan_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, write_all
     job = Job(recipe.name, recipe, url, unit)
     opts = ApplyOptions(write_all=write_all, state_dir=state_dir or ".deployer")
     res = new_result(job)
-    dev = _Device(job, opts, res, planners or Planners())
+    dev = _Device(job, opts, res, planners or Planners(), window=window)
     if state_dir is not None:
         dev.over_taught()
     async with connected(url, unit, recipe.profile, records=records if records is not None else res.requests,

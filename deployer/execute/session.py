@@ -44,6 +44,8 @@ class ApplyOptions:
     soak: float | None = None  # seconds
     health_interval: float = 1.0
     confirm_within: float | None = None  # seconds to wait for `deployer confirm` before rolling back
+    # a soak or confirmation writes a device whose health checks fail already (deployer.window.before)
+    allow_unhealthy: bool = False
     command: str | None = None  # what started the run (the command line, or the caller), for the report
     hold_commit: bool = False  # do not send the profile's commit after the read-back (a rollback never commits)
     # the safe-change window (deployer.window) keeps a written device's lock until its commit or rollback:
@@ -52,6 +54,11 @@ class ApplyOptions:
     commit_owed: bool = False  # a retry of a device whose commit failed: sent even when nothing is left to write
     restoring: bool = False  # a window's own rollback: it goes on without a snapshot of its own (a full disk)
     lock_held: bool = False  # the caller holds the device's lock already (a window's own rollback): not taken again
+
+    @property
+    def window(self) -> bool:
+        """A safe change: judged by the profile's health checks (before the change too)."""
+        return self.soak is not None or self.confirm_within is not None
 
     @property
     def holds_commit(self) -> bool:

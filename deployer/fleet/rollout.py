@@ -412,7 +412,7 @@ async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,
 
 async def plan_many(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
                     state_dir: str | None = ".deployer", on_done: Callable[[str, str | None], None] | None = None,
-                    ) -> dict[str, Plan | TransportError | UsageError]:
+                    window: bool = False) -> dict[str, Plan | TransportError | UsageError]:
     """Each device's plan against what it holds now (fleet plan, check mode): its checks run, nothing written;
     per device its plan or why not. The devices of one recipe share its planner."""
 
@@ -422,7 +422,7 @@ async def plan_many(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool =
     async def one(j: Job) -> None:
         try:
             out[j.name] = await plan_device(j.recipe, j.url, j.unit, write_all=write_all, state_dir=state_dir,
-                                            planners=planners)
+                                            planners=planners, window=window)
         except (TransportError, UsageError) as e:
             out[j.name] = e
         if on_done:

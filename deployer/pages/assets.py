@@ -36,7 +36,7 @@ details.device > summary .where { color: var(--muted); margin-left: .6rem; }
 .sign { display: grid; grid-template-columns: repeat(3, 1fr); gap: 2rem; margin: 2.2rem 0 .6rem; }
 .sign div { border-top: 1px solid #000; padding-top: .2rem; font-size: 9pt; }
 .identity { margin: .2rem 0; } .word { white-space: nowrap; }
-.muted { color: var(--muted); }
+.muted { color: var(--muted); } .manual { color: var(--muted); font-size: .9em; }
 td.drift { background: #fff1e5; font-weight: 600; } td.same { color: var(--muted); }
 td.missing { color: var(--muted); font-style: italic; }
 .hidden { display: none !important; }
@@ -94,10 +94,14 @@ JS = r"""
     var h = asFound ? "<tr><th>parameter</th><th>as found</th><th>registers</th></tr>"
                     : "<tr><th>parameter</th><th>as found</th><th>desired</th><th>as left</th><th>status</th>" +
                       "<th></th></tr>";
+    // the key, and beside it the parameter as the manual names it ("3-41 Ramp 1 Ramp Up Time")
+    function key(p, manual) {
+      return "<td>" + txt(p[0]) + (manual ? ' <span class=manual>' + txt(manual) + "</span>" : "") + "</td>";
+    }
     var rows = d.params.map(function (p) {
-      if (asFound) { return "<tr><td>" + txt(p[0]) + "</td><td>" + txt(p[1]) + "</td><td class=muted>" +
+      if (asFound) { return "<tr>" + key(p, p[3]) + "<td>" + txt(p[1]) + "</td><td class=muted>" +
                             txt(p[2]) + "</td></tr>"; }
-      return "<tr><td>" + txt(p[0]) + "</td><td>" + txt(p[1]) + "</td><td>" + txt(p[2]) + "</td><td>" +
+      return "<tr>" + key(p, p[6]) + "<td>" + txt(p[1]) + "</td><td>" + txt(p[2]) + "</td><td>" +
              txt(p[3]) + "</td><td>" + st(p[4]) + "</td><td>" + txt(p[5]) + "</td></tr>";
     });
     return "<table class=params><thead>" + h + "</thead><tbody>" + rows.join("") + "</tbody></table>";

@@ -200,7 +200,8 @@ def run_page(report: Report, *, title: str | None = None, meta: Sequence[tuple[s
         unknown = d.status in _UNKNOWN_DEVICE or (d.snapshot is not None and d.error is not None
                                                   and "did not verify" in d.error)
         params = [[p.name, _text(p.before, p.before_raw), p.desired, _as_left(d, p, unknown),
-                   "unknown" if unknown or p.status == "unverified" else p.status, p.error or ""]
+                   "unknown" if unknown or p.status == "unverified" else p.status, p.error or "",
+                   p.parameter.manual if p.parameter is not None else ""]  # "3-41 Ramp 1 Ramp Up Time"
                   for p in d.parameters]
         devices.append({"identity": _identity(d.identity), "unknown": unknown or any(
                             p.status == "unverified" for p in d.parameters),
@@ -241,11 +242,13 @@ def as_found_page(devices: Sequence[Mapping[str, Any]], *, command: str | None =
                   run: Mapping[str, Any] | None = None, meta: Sequence[tuple[str, str]] = ()) -> str:
     """The as-found half of a commissioning record (``pull --html``): per device, what it held.
 
-    ``devices``: ``{name, url, unit, profile, values: [(parameter, text, registers)], error}`` each.
+    ``devices``: ``{name, url, unit, profile, values: [(parameter, text, registers[, manual])], error}`` each;
+    ``manual``: the parameter as its manual names it ("3-41 Ramp 1 Ramp Up Time"), shown beside the key.
     """
     data = []
     for d in devices:
-        params = [[n, t, " ".join(str(w) for w in regs)] for n, t, regs in d.get("values", ())]
+        params = [[v[0], v[1], " ".join(str(w) for w in v[2]), v[3] if len(v) > 3 else ""]
+                  for v in d.get("values", ())]
         data.append({"name": d["name"], "url": d["url"], "unit": d["unit"], "profile": d["profile"],
                      "status": "unreachable" if d.get("error") else "ok", "batch": None, "seconds": None,
                      "requests": 0, "error": d.get("error"), "notices": [], "snapshot": None, "commit": None,

@@ -23,10 +23,10 @@ DEVICE_ID = 43  # Read Device Identification (MEI type 14): basic objects
 
 # The kinds of step, in the order they can come. The first four check the device and read what it holds,
 # before anything is planned against it (``CHECKS``); the rest change it.
-StepKind = Literal["identity", "snapshot", "device-id", "firmware", "precondition", "unlock", "read-modify-write",
-                   "write", "verify", "commit", "lock"]
-STEP_KINDS: tuple[StepKind, ...] = ("identity", "snapshot", "device-id", "firmware", "precondition", "unlock",
-                                    "read-modify-write", "write", "verify", "commit", "lock")
+StepKind = Literal["identity", "snapshot", "device-id", "firmware", "precondition", "health", "unlock",
+                   "read-modify-write", "write", "verify", "commit", "lock"]
+STEP_KINDS: tuple[StepKind, ...] = ("identity", "snapshot", "device-id", "firmware", "precondition", "health",
+                                    "unlock", "read-modify-write", "write", "verify", "commit", "lock")
 CHECKS: frozenset[str] = frozenset(("identity", "snapshot", "device-id", "firmware"))
 
 

@@ -178,7 +178,8 @@ def _check_steps(steps: tuple[Step, ...], valued: list[bool], params: tuple[Plan
             problems.append(error((*at, "function"), f"function {s.function} does not fit {_a(s.kind)} step"))
         if not writes and valued[k]:
             problems.append(error((*at, "values"), f"{_a(s.kind)} step reads: it carries no values"))
-        if (s.expect is not None) != (s.kind in ("identity", "precondition")):
+        if (s.expect is not None and s.kind not in ("identity", "precondition")) or \
+                (s.expect is None and s.kind in ("identity", "precondition")):
             problems.append(error((*at, "expect"), "only identity and precondition steps (all of them) expect a value"))
         if s.writes and s.values is not None and len(s.values) != s.count:
             problems.append(error((*at, "values"), f"count {s.count} but {len(s.values)} values"))
@@ -252,7 +253,8 @@ def check_actions(plan: Plan, prof: Profile) -> list[str]:
 
 def _secret_at(prof: Profile, s: Step) -> bool:
     actions = {"unlock": prof.unlock, "commit": prof.commit, "lock": prof.lock}[s.kind]
-    return any(a.secret and a.address <= s.address < a.address + len(a.registers) for a in actions)
+    return any(a.secret and a.is_coil == (s.function == 5) and a.address <= s.address < a.address + len(a.registers)
+               for a in actions)
 
 
 def load_plan(path: str) -> tuple[Recipe, Plan]:

@@ -11,6 +11,8 @@ The order (docs/design.md#the-plan-is-the-contract):
     firmware       the revision's registers, where a profile says so
     --- the plan is made here, against what the checks read ---
     precondition   each precondition's register, with its condition ("drive stopped")
+    health         each health check's register(s), in the plan of a safe change (--soak, --confirm-within):
+                   a device already failing one is not written
     unlock         the profile's unlock writes
     read-modify-write, write   per request; a bit field's register is read right before its write
     verify         the same blocks as the snapshot, read back
@@ -56,12 +58,15 @@ def pacing_for(url: DeviceURL | None, profile: Profile | None) -> Pacing:
 
 def action_steps(kind: StepKind, prof: Profile, actions: Iterable[WriteAction]) -> list[Step]:
     """The profile's own writes (unlock, commit, lock) as steps, in the form the device takes: Function 16, or
-    one Function 06 per register where the profile (or what the device taught) says 06. A secret's words are
-    not in the plan (``values`` None): the executor takes them from the profile."""
+    one Function 06 per register where the profile (or what the device taught) says 06; a coil with Function 05
+    (a Danfoss FC 102 stores to EEPROM with coil 65). A secret's words are not in the plan (``values`` None):
+    the executor takes them from the profile."""
     out: list[Step] = []
     for a in actions:
         values = None if a.secret else a.registers
-        if prof.limits.write_function == 6:
+        if a.is_coil:
+            out.append(Step(kind, 5, a.address, 1, values, (), wait=a.wait_ms / 1000, note=a.description))
+        elif prof.limits.write_function == 6:
             n = len(a.registers)
             out.extend(Step(kind, 6, a.address + i, 1, None if values is None else (values[i],), (),
                             wait=a.wait_ms / 1000 if i == n - 1 else 0.0, note=a.description) for i in range(n))
@@ -75,6 +80,8 @@ def secret_words(prof: Profile, step: Step) -> tuple[int, ...]:
     """A secret step's words, from the profile's action it was planned from (the same kind, address, count)."""
     actions = {"unlock": prof.unlock, "commit": prof.commit, "lock": prof.lock}.get(step.kind, ())
     for a in actions:
+        if a.is_coil != (step.function == 5):  # a coil and a register at one address are two places
+            continue
         if a.address <= step.address and step.address + step.count <= a.address + len(a.registers):
             return a.registers[step.address - a.address:step.address - a.address + step.count]
     raise KeyError(f"no {step.kind} action of profile {prof.id} at 0x{step.address:04X}")
@@ -100,11 +107,12 @@ class Planner:
 
     ``device_id``: ask Function 43 (None: as the profile's ``limits.device_identification`` says; the URL and what
     the device taught decide it for an apply); ``commit``: plan the profile's commit (a rollback never commits);
-    ``write_all``: every parameter, held or not.
+    ``write_all``: every parameter, held or not; ``window``: a safe change's plan (``--soak``, ``--confirm-within``),
+    which reads the profile's health checks before the change.
     """
 
     def __init__(self, recipe: Recipe, *, write_all: bool = False, device_id: bool | None = None, commit: bool = True,
-                 pacing: Pacing = NO_PAUSES) -> None:
+                 pacing: Pacing = NO_PAUSES, window: bool = False) -> None:
         prof = recipe.profile
         self.recipe = recipe
         self.write_all = write_all
@@ -129,6 +137,8 @@ class Planner:
                             for r, ps in zip(self.reads, covered, strict=True))
         self.preconditions = tuple(Step("precondition", 3, c.address, 1, expect=Expect(c.equals, c.mask),
                                         note=c.description) for c in prof.preconditions)
+        self.health = tuple(Step("health", c.function, c.address, c.count, note=c.what())
+                            for c in prof.health) if window else ()
         self.unlock = tuple(action_steps("unlock", prof, prof.unlock))
         self.commits = tuple(action_steps("commit", prof, prof.commit)) if commit else ()
         self.lock = tuple(action_steps("lock", prof, prof.lock)) if prof.unlock else ()
@@ -171,7 +181,7 @@ class Planner:
                 return [*self.unlock, *self.commits, *self.lock]
             return []
         fields = prof.readable_fields()
-        out: list[Step] = [*self.preconditions, *self.unlock]
+        out: list[Step] = [*self.preconditions, *self.health, *self.unlock]
         for i, w in enumerate(writes):
             merged = [n for n in w.parameters if n in fields] if fields else []
             if merged:  # the register's other bits as the device holds them right before the write
@@ -186,8 +196,8 @@ class Planner:
 
 def make_plan(recipe: Recipe, target: Target, current: Mapping[str, tuple[int, ...]] | None = None, *,
               write_all: bool = False, device_id: bool | None = None, commit: bool = True,
-              pacing: Pacing = NO_PAUSES) -> Plan:
+              pacing: Pacing = NO_PAUSES, window: bool = False) -> Plan:
     """One device's whole plan (``Planner`` for a single device)."""
-    return Planner(recipe, write_all=write_all, device_id=device_id, commit=commit, pacing=pacing).plan(
-        target, current)
+    return Planner(recipe, write_all=write_all, device_id=device_id, commit=commit, pacing=pacing,
+                   window=window).plan(target, current)
 

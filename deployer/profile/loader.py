@@ -259,8 +259,8 @@ def _limits(c: _Checks) -> Limits:
 
 # ---- parameters ---------------------------------------------------------------------------------
 
-_NOT_FOR_BITS = ("bits", "mask", "scale", "offset", "unit", "count", "encoding", "padding", "byte_order", "swap",
-                 "word_order")
+_NOT_FOR_BITS = ("bits", "mask", "scale", "offset", "unit", "cycles_as_angles", "count", "encoding", "padding",
+                 "byte_order", "swap", "word_order")
 
 
 def _parameters(c: _Checks) -> list[Parameter]:
@@ -296,6 +296,7 @@ def _parameter(c: _Checks, name: str, spec: dict[str, Any], address: int, at: ya
         scale=Decimal(spec.get("scale", 1)),
         offset=Decimal(eng_offset),  # type: ignore[arg-type]
         unit=units.normalize(spec["unit"]) if "unit" in spec else None,
+        cycles_as_angles=bool(spec.get("cycles_as_angles", False)),
         min=_dec(spec.get("min")),
         max=_dec(spec.get("max")),
         access=access,
@@ -316,6 +317,7 @@ def _parameter(c: _Checks, name: str, spec: dict[str, Any], address: int, at: ya
         register_type=table,
         firmware=None if spec.get("firmware") is None else str(spec["firmware"]),
         action=bool(spec.get("action", False)),
+        **_manual(spec),
     )
     if local:  # the rest of the checks assume a well-formed parameter
         c.errors.extend(local)
@@ -325,6 +327,15 @@ def _parameter(c: _Checks, name: str, spec: dict[str, Any], address: int, at: ya
         param = _with_default(src, param, spec["default"], at, local)
     c.errors.extend(local)
     return param
+
+
+def _manual(spec: dict[str, Any]) -> dict[str, str]:
+    """``manual: {number: "3-41", text: Ramp 1 Ramp Up Time}``: the Parameter's manual_number and manual_text.
+    A number written bare is kept as written (``22.10``: the YAML reader makes decimals from their text)."""
+    m = spec.get("manual")
+    if not isinstance(m, dict):
+        return {}
+    return {"manual_number": str(m.get("number", "")).strip(), "manual_text": str(m.get("text", "")).strip()}
 
 
 def _shape_problems(src: yamlsrc.Source, spec: dict[str, Any], at: yamlsrc.Path_, table: str, type_: str,
@@ -387,6 +398,10 @@ def _range_problems(src: yamlsrc.Source, param: Parameter, spec: dict[str, Any],
     problem = units.check(spec["unit"]) if "unit" in spec else None
     if problem:
         out.append(src.error((*at, "unit"), problem))
+    elif param.cycles_as_angles and (param.unit is None or not units.turns_apply(param.unit)):
+        out.append(src.error((*at, "cycles_as_angles"), "'cycles_as_angles' is for a parameter whose unit is an "
+                                                        "angle (rad, deg, rad/s) or a cycle (rev, rpm, Hz)"
+                                                        + ("" if param.unit else "; this one has no unit")))
     why = None if param.firmware is None else firmware.check_range(param.firmware)
     if why:
         out.append(src.error((*at, "firmware"), f"firmware: {why}"))
@@ -554,13 +569,24 @@ def _actions(c: _Checks, key: str) -> tuple[CommitAction, ...]:
     out = []
     for i, item in enumerate(c.data.get(key) or []):
         at: yamlsrc.Path_ = (key, i)
-        a = c.address_of(item["register"], (*at, "register"))
+        table = item.get("register_type", "holding")
+        a = c.address_of(item["register"], (*at, "register"), register_type=table)
         raw = item["raw"]
         secret = ""
         if isinstance(raw, dict):  # {env: NAME} or {file: PATH}: a password kept out of the profile
             secret, raw = _secret(c, raw, (*at, "raw"))
             if raw is None:
                 continue
+        if table == "coil":
+            coil = _coil_value(c, item, raw, secret, at)
+            if coil is not None and a is not None:
+                out.append(CommitAction(a, (coil,), item.get("description", ""), int(item.get("wait", 0)), secret,
+                                        "coil"))
+            continue
+        if isinstance(raw, bool):
+            c.error((*at, "raw"), "true/false is a coil's value: a register's raw value is an integer "
+                                  "(register_type: coil for a coil)")
+            continue
         try:
             regs = tuple(int(r) for r in raw) if isinstance(raw, list) else codec.encode(
                 int(raw), item.get("type", "uint16"), c.layout[0], c.layout[1])
@@ -572,6 +598,18 @@ def _actions(c: _Checks, key: str) -> tuple[CommitAction, ...]:
         if a is not None:
             out.append(CommitAction(a, regs, item.get("description", ""), int(item.get("wait", 0)), secret))
     return tuple(out)
+
+
+def _coil_value(c: _Checks, item: dict[str, Any], raw: object, secret: str, at: yamlsrc.Path_) -> int | None:
+    """A coil action's value, 0 or 1 (``raw: 1``, ``raw: true``); None after an error."""
+    if "type" in item:
+        c.error((*at, "type"), "a coil is one bit: 'type' does not apply (raw: 1 or 0, true or false)")
+        return None
+    if isinstance(raw, bool) or raw in (0, 1):
+        return 1 if raw else 0
+    c.error((*at, "raw"), f"a coil is written 1 or 0 (true or false), not "
+                          f"{'the value from ' + secret if secret else messages.clipped_repr(raw)}")
+    return None
 
 
 def _secret(c: _Checks, raw: dict[str, Any], at: yamlsrc.Path_) -> tuple[str, int | list[int] | None]:
@@ -685,13 +723,12 @@ def _health(c: _Checks, params: list[Parameter]) -> list[HealthCheck]:
 
 
 def _raw_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_) -> HealthCheck | None:
-    """``{register: R, bits: ..., equals/min/max: raw}``: raw values of a holding or input register."""
+    """``{register: R, bits: ..., equals/min/max: raw}``: raw values of a holding or input register, or a coil's
+    or discrete input's bit (``equals: 0``, ``equals: false``)."""
     table = item.get("register_type", "holding")
     a = c.address_of(item["register"], (*at, "register"), register_type=table)
     if table in model.BIT_TABLES:
-        c.error((*at, "register_type"), f"a {table} is watched by name: declare it as a parameter and write "
-                                        "{parameter: NAME, equals: ...}")
-        return None
+        return _bit_health(c, item, at, a, table)
     try:
         mask = codec.parse_bits(item["bits"]) if "bits" in item else int(item.get("mask", 0xFFFF))
         lo, hi = codec.field_range(mask)
@@ -717,6 +754,21 @@ def _raw_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_) -> HealthCh
         return None
     return HealthCheck(a, mask, _int_or_none(item.get("equals")), _int_or_none(item.get("min")),
                        _int_or_none(item.get("max")), table, item.get("description", ""))
+
+
+def _bit_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_, a: int | None, table: str) -> HealthCheck | None:
+    """``{register: 65, register_type: coil, equals: 0}``: one bit, healthy when it holds ``equals``."""
+    for key in ("bits", "mask", "min", "max"):
+        if key in item:
+            c.error((*at, key), f"a {table} is one bit: '{key}' does not apply (equals: 0 or 1, true or false)")
+            return None
+    v = item.get("equals")
+    if not (isinstance(v, bool) or v in (0, 1)):
+        c.error((*at, "equals"), f"a {table} holds 0 or 1 (false or true), not {messages.clipped_repr(v)}")
+        return None
+    if a is None:
+        return None
+    return HealthCheck(a, 0xFFFF, int(v), None, None, table, item.get("description", ""))  # type: ignore[arg-type]
 
 
 def _parameter_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_,

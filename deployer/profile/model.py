@@ -105,6 +105,7 @@ class Parameter:
     scale: Decimal = Decimal(1)
     offset: Decimal = Decimal(0)
     unit: str | None = None  # pint unit text; None = dimensionless
+    cycles_as_angles: bool = False  # values in rev/rpm/Hz and in rad/deg/rad/s convert (one cycle = 2 pi rad)
     min: Decimal | None = None  # engineering units, inclusive
     max: Decimal | None = None
     access: Access = "read-write"
@@ -131,6 +132,14 @@ class Parameter:
     register_type: RegisterType = "holding"
     firmware: str | None = None  # the firmware revisions it exists in ('>=2.1'; firmware.matches)
     action: bool = False  # a momentary command (a defrost button): never pulled, never set by a recipe
+    # as the manufacturer's manual names it: "3-41" and "Ramp 1 Ramp Up Time" (shown beside the key)
+    manual_number: str = ""
+    manual_text: str = ""
+
+    @property
+    def manual(self) -> str:
+        """The manual's number and text, as one label ("3-41 Ramp 1 Ramp Up Time"); "" when the profile gives none."""
+        return f"{self.manual_number} {self.manual_text}".strip()
 
     def __hash__(self) -> int:
         # a few fields, not all 28 (equal parameters still hash alike): snapshots and recipe texts key their
@@ -453,7 +462,8 @@ class HealthCheck:
             return self.parameter.name + (f" ({self.description})" if self.description else "")
         shift, width = codec.mask_shift(self.mask)
         bits = "" if self.mask == 0xFFFF else (f" bit {shift}" if width == 1 else f" bits {shift}..{shift + width - 1}")
-        kind = "input register" if self.register_type == "input" else "register"
+        kind = {"input": "input register", "coil": "coil", "discrete": "discrete input"}.get(self.register_type,
+                                                                                           "register")
         return f"{kind} 0x{self.address:04X}{bits}" + (f" ({self.description})" if self.description else "")
 
     def failure(self, words: int | Sequence[int]) -> str:
@@ -466,18 +476,32 @@ class HealthCheck:
 
 @dataclass(frozen=True)
 class CommitAction:
-    """A write the profile declares: commit (after a verified apply), unlock (before), lock (after)."""
+    """A write the profile declares: commit (after a verified apply), unlock (before), lock (after).
+
+    Holding registers (Function 16, or 06), or one coil (Function 05: ``registers`` is its 0 or 1), as a
+    Danfoss FC 102 stores its parameters to EEPROM with coil 65."""
 
     address: int
     registers: tuple[int, ...]
     description: str = ""
     wait_ms: int = 0  # the device needs this long before it accepts the next request
     secret: str = ""  # where a secret value came from ('environment variable DRIVE_PASSWORD'): never shown
+    register_type: Literal["holding", "coil"] = "holding"
+
+    @property
+    def key(self) -> int:
+        """Where it writes in a register map of all four tables (see SPACE)."""
+        return SPACE[self.register_type] << 16 | self.address
+
+    @property
+    def is_coil(self) -> bool:
+        return self.register_type == "coil"
 
     def __repr__(self) -> str:
         regs = f"<secret from {self.secret}>" if self.secret else repr(self.registers)
+        table = "" if self.register_type == "holding" else f", register_type={self.register_type!r}"
         return (f"CommitAction(address={self.address}, registers={regs}, description={self.description!r}, "
-                f"wait_ms={self.wait_ms})")
+                f"wait_ms={self.wait_ms}{table})")
 
 
 WriteAction = CommitAction

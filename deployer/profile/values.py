@@ -71,7 +71,7 @@ def engineering(param: Parameter, value: Any, written: str | None = None) -> Dec
     target = param.unit or "dimensionless"
     if param.unit is not None and units.normalize(unit) == param.unit:
         return number
-    return units.convert(number, unit, target)
+    return units.convert(number, unit, target, cycles_as_angles=param.cycles_as_angles)
 
 
 def _not_a_value(value: object, written: str | None, labels: Mapping[str, int]) -> str:

@@ -34,7 +34,8 @@ class RunRequest:
     ``all_or_nothing``: one changed device refuses them all). ``device``/``unit`` (one device), or
     ``inventory`` and ``limit`` (a fleet); ``timeout``/``retries`` override every device's. ``batch`` (a
     share of every profile, or of every group: ``batch_by``), ``max_failures``, ``pause`` and ``ask``
-    stage a fleet run; ``soak``, ``health_interval`` and ``confirm_within`` make it a safe change.
+    stage a fleet run; ``soak``, ``health_interval`` and ``confirm_within`` make it a safe change, which does
+    not write a device already failing a health check unless ``allow_unhealthy``.
     ``workers``: worker processes running the devices of a plain fleet run (0: none; None: one per CPU
     for a fleet of 100 devices or more where they are forked, Linux, else 1,000, ``fleet.workers``). Numbers
     are in seconds, within ``deployer.LIMITS``.
@@ -65,6 +66,7 @@ class RunRequest:
     soak: float | None = None
     health_interval: float = 1.0
     confirm_within: float | None = None
+    allow_unhealthy: bool = False  # a soak or confirmation writes a device whose health checks fail already
     rollback_on_failure: bool = False
     pause: float | None = None
     ask: bool = False
@@ -122,6 +124,9 @@ def _check_numbers(r: RunRequest) -> None:
 def _check_combinations(r: RunRequest) -> None:
     if not r.fleet and (r.batch or r.max_failures or r.limit):
         raise UsageError("--limit, --batch and --max-failures need --inventory")
+    if r.allow_unhealthy and r.soak is None and r.confirm_within is None:
+        raise UsageError("--allow-unhealthy goes with --soak or --confirm-within (only a safe change reads the "
+                         "health checks before it writes)")
     if (r.pause is not None or r.ask) and not r.batch:
         raise UsageError("--pause and --ask go between batches: give --batch too")
     if r.from_reports and (r.inventory or r.device or r.unit is not None):
@@ -161,6 +166,12 @@ def _recipe_jobs(r: RunRequest) -> PreparedRun:
         if r.inventory or r.write_all:
             raise UsageError("a saved plan runs unchanged: --inventory and --write-all do not apply to it")
         rec, expected = load_plan(r.source)
+        if (r.soak is not None or r.confirm_within is not None) and rec.profile.health and \
+                not any(s.kind == "health" for s in expected.steps):
+            raise UsageError(f"{r.source} is not the plan of a safe change: it reads no health checks before writing "
+                             "(a device already in alarm would be written, then rolled back and the change blamed); "
+                             f"make it with: deployer plan {expected.recipe or 'RECIPE'} --device URL --safe-change "
+                             f"--out {r.source}")
     else:
         rec = load_recipe(r.source, force=r.force)
     if rec.snapshot is not None:
@@ -224,7 +235,8 @@ async def execute(prepared: PreparedRun, *, confirm: Confirm | None = None, comm
     options = ApplyOptions(on_error=r.on_error, write_all=r.write_all, allow_broadcast=r.allow_broadcast,
                            state_dir=os.fspath(r.state_dir), confirm=confirm,
                            lock_timeout=r.lock_timeout, soak=r.soak, health_interval=r.health_interval,
-                           confirm_within=r.confirm_within, command=command_line)
+                           confirm_within=r.confirm_within, allow_unhealthy=r.allow_unhealthy,
+                           command=command_line)
     return await run_async(prepared.jobs, command=r.command, label=prepared.label, argv=argv, via=via,
                            options=options, parallel=r.parallel, batch=r.batch, max_failures=r.max_failures,
                            batch_by=r.batch_by,

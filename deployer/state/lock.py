@@ -14,6 +14,12 @@ a lock when its process dies (even ``kill -9``), so a lock can never stay stuck;
 held it (PID, host, start, command) for the message a second run prints, and a record left by a
 process that is gone is reported as a stale lock taken over.
 Across machines the orchestrator must serialize (docs/ansible.md).
+
+A site agent's ownership does not depend on the lock folder (``owner_dir``, docs/locks.md): processes given
+different folders never see each other's locks, so the agent also marks each device it owns in a folder no
+setting moves (an exclusive mark per unit, its address in the record), and every run holds a shared mark on
+each unit it writes beside its lock. The agent's mark refuses the run; the run's mark keeps an agent from
+taking the device while it is being written.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ import os
 import stat
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,6 +48,7 @@ ENV = "DEPLOYER_LOCK_DIR"
 # again by its own runs (a second flock of the same file by this process would refuse itself)
 _agent: dict[str, str] = {}
 _owned: dict[str, DeviceLock] = {}
+_owned_marks: dict[str, DeviceLock] = {}  # the agent's marks in owner_dir, by key (the same keys as _owned)
 
 
 def set_agent(address: str | None) -> None:
@@ -55,15 +62,16 @@ def set_agent(address: str | None) -> None:
 def hold(locks: Sequence[DeviceLock]) -> None:
     """Keep ``locks`` for this process's lifetime: its runs use them instead of taking them again."""
     for h in locks:
-        _owned[h.key] = h
+        (_owned_marks if h.mark else _owned)[h.key] = h
 
 
 def let_go(keys: Sequence[str]) -> None:
-    """Release held locks (the agent stops owning a device)."""
+    """Release held locks and marks (the agent stops owning a device)."""
     for k in keys:
-        h = _owned.pop(k, None)
-        if h is not None:
-            h.release()
+        for table in (_owned, _owned_marks):
+            h = table.pop(k, None)
+            if h is not None:
+                h.release()
 
 
 def held(key: str) -> bool:
@@ -81,6 +89,74 @@ def lock_dir() -> str:
     return os.environ.get(ENV) or default_lock_dir()
 
 
+def owner_dir() -> str:
+    """Where agents mark the devices they own and runs the units they write, whatever each one's lock folder:
+    a fixed folder no setting moves. Linux: /dev/shm, which a systemd service shares with every other process
+    (its private /tmp and read-only file system do not reach /dev), else /tmp; Windows: %ProgramData%."""
+    if os.name == "nt":
+        return os.path.join(os.environ.get("PROGRAMDATA") or r"C:\ProgramData", "deployer", "owners")
+    if sys.platform.startswith("linux") and os.access("/dev/shm", os.W_OK | os.X_OK):
+        return "/dev/shm/deployer-owners"
+    return "/tmp/deployer-owners"
+
+
+def _same_folder(a: str, b: str) -> bool:
+    return os.path.normcase(os.path.abspath(a)) == os.path.normcase(os.path.abspath(b))
+
+
+def run_marks(buses: Sequence[str], unit: int, directory: str | None = None) -> list[DeviceLock]:
+    """The marks a run holds beside its locks (in ``directory``): a shared one on each unit it writes, an exclusive
+    one on each bus for a broadcast. Raises Locked (nothing sent) when a site agent owns the device, whatever
+    lock folder it was given. None needed where the lock folder is the owners' folder (the locks are the marks),
+    nor for a device this process (the agent) owns."""
+    d = owner_dir()
+    if _same_folder(directory or lock_dir(), d):
+        return []
+    keys = sorted(set(buses))
+    wanted = [(f"{b}#bus", False) for b in keys] if unit == 0 else [(device_key(b, unit), True) for b in keys]
+    if any(k in _owned for k, _ in wanted):
+        return []
+
+    def why(key: str, e: Locked) -> Locked:
+        if unit == 0 and e.busy:  # units of the bus are owned (or written) by others: say by whom
+            return Locked(_bus_users(key[:-len("#bus")], d) or str(e), busy=False)
+        return e
+
+    return _marks(wanted, command_line(), why)
+
+
+def agent_marks(buses: Sequence[str], unit: int) -> list[DeviceLock]:
+    """The site agent's marks of a device it owns: each bus shared, each unit exclusive with its record (the
+    agent's address), in ``owner_dir``; none when its lock folder is that folder. Raises Locked when a run holds
+    the unit now (the agent tries again at its next check)."""
+    d = owner_dir()
+    if _same_folder(lock_dir(), d):
+        return []
+    keys = sorted(set(buses))
+    return _marks([(f"{b}#bus", True) for b in keys] + [(device_key(b, unit), False) for b in keys],
+                  "deployer agent",
+                  lambda _key, e: Locked(f"a run on this machine is writing it (its mark in {d}): {e}", busy=e.busy))
+
+
+def _marks(wanted: Sequence[tuple[str, bool]], command: str, why: Callable[[str, Locked], Locked]
+           ) -> list[DeviceLock]:
+    """Each mark of ``wanted`` ((key, shared) in ``owner_dir``), or none: ``why(key, refusal)`` is raised."""
+    held: list[DeviceLock] = []
+    try:
+        for key, shared in wanted:
+            try:
+                h = try_lock(key, command=command, directory=owner_dir(), shared=shared)
+            except Locked as e:
+                raise why(key, e) from None
+            h.mark = True
+            held.append(h)
+        return held
+    except BaseException:
+        for h in reversed(held):
+            h.release()
+        raise
+
+
 def device_key(bus: str, unit: int) -> str:
     """The device's identity: its bus (serial path after symlinks, host:port) and unit id."""
     return f"{bus}#unit{unit}"
@@ -95,6 +171,7 @@ class DeviceLock:
     shared: bool = False
     record: dict[str, Any] | None = None  # what the file says about us (exclusive holders only)
     size: int = 0  # the file's length: what a new record or the release writes over
+    mark: bool = False  # in owner_dir: a run's or an agent's mark of the device, beside its lock
 
     def in_window(self, window: str, deadline: float | None) -> None:
         """Say in the lock file that a safe-change window keeps this lock (``soak``/``confirm``) until ``deadline``
@@ -123,13 +200,40 @@ class DeviceLock:
         if not self.shared and self.size:
             with contextlib.suppress(OSError):
                 portable.pwrite_all(self.fd, b" " * self.size, 0)
+        if self.mark and not self.shared:
+            _remove(self.path)  # under its exclusive lock: whoever opened it finds it nameless (_checked)
         with contextlib.suppress(OSError):
             backend.unlock(self.fd)
         os.close(self.fd)
         self.fd = -1
+        if self.mark and self.shared:
+            _remove_unheld(self.path)
 
 
 _holder_text = holder.describe
+
+
+def _remove(path: str) -> None:
+    # a mark's file goes with its last holder: the owners' folder (in RAM on Linux) keeps no file per device ever
+    # written, which the lock folder does for speed on disk (a file system's inode allocation, DeviceLock.release).
+    # Windows removes no file another process has open: the file then stays, which is harmless.
+    with contextlib.suppress(OSError):
+        os.remove(path)
+
+
+def _remove_unheld(path: str) -> None:
+    """Remove a mark's file if nobody holds it now (taken exclusively for the moment of the removal)."""
+    try:
+        fd = portable.open_nofollow(path, os.O_RDWR | portable.O_NONBLOCK | portable.O_CLOEXEC | portable.O_BINARY)
+    except OSError:
+        return
+    try:
+        if oslock.backend().try_lock(fd) and stat.S_ISREG(os.fstat(fd).st_mode) and os.fstat(fd).st_nlink == 1:
+            _remove(path)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def _read_record(fd: int) -> dict[str, Any]:
@@ -322,6 +426,8 @@ async def acquire_device(buses: str | Sequence[str], unit: int, *, timeout: floa
                     if who is not None:
                         raise Locked(who) from None
                 raise
+        # wherever its lock folder is: refused when a site agent owns the device (marks, docs/locks.md)
+        held += run_marks(keys, unit, directory)
         return held
     except BaseException:
         for h in reversed(held):

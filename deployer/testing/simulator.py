@@ -8,6 +8,9 @@ everywhere and answers nothing. Faults (latency, line time, dropped answers, bus
 registers, disconnects) make the failure paths of the executor testable on a real socket.
 Quirks model devices that do not follow the book, whatever the profile says: a shorter write
 limit, all-or-nothing writes, Function 06 only, pauses the device needs, Function 43 identity.
+With ``nonvolatile`` it keeps RAM and non-volatile memory apart, as drives do: writes reach RAM, only the
+profile's commit stores them, and a power cycle (``power_cycle``; SIGUSR2 under ``deployer simulate``)
+brings back what was stored.
 
     async with Simulator(profile) as sim:      # tcp://127.0.0.1:<free port>
         ... sim.url ... sim.log ... sim.read("F07")
@@ -22,6 +25,7 @@ import operator
 import re
 import signal
 import ssl
+import sys
 import threading
 import time
 import urllib.parse
@@ -156,7 +160,7 @@ def parse_fault_rule(text: str, profile: Profile) -> FaultRule:
     if unit.strip():
         if p.unit is None:
             raise ValueError(f"'{text}': {name} has no unit")
-        amount = units_.convert(amount, units_.normalize(unit.strip()), p.unit)
+        amount = units_.convert(amount, units_.normalize(unit.strip()), p.unit, cycles_as_angles=p.cycles_as_angles)
     return FaultRule(text, name, op, amount, register, word)
 
 
@@ -253,7 +257,7 @@ def _action_registers(profile: Profile) -> set[int]:
     test or `mbpoll` can make the device fault)."""
     regs = {c.address for c in profile.preconditions} | {c.key for c in profile.health}
     for act in (*profile.unlock, *profile.lock, *profile.commit):
-        regs.update(range(act.address, act.address + len(act.registers)))
+        regs.update(range(act.key, act.key + len(act.registers)))
     return regs
 
 
@@ -417,7 +421,7 @@ class Simulator:
     def __init__(self, profile: Profile, *, listen: str = "tcp://127.0.0.1:0", units: Sequence[int] = (1,),
                  init: Mapping[int, int] | None = None, faults: Faults | None = None,
                  log_path: str | None = None, state_path: str | None = None, strict_limits: bool = True,
-                 gap_reads: bool = False, quirks: Quirks | None = None) -> None:
+                 gap_reads: bool = False, quirks: Quirks | None = None, nonvolatile: bool = False) -> None:
         if not profile.parameters:
             raise ValueError(f"profile {profile.id} declares no registers to simulate")
         self.profile = profile
@@ -450,10 +454,16 @@ class Simulator:
         self._action_regs = _action_registers(profile)
         self._extra = sorted(self._action_regs - self._owner.keys())
         self._used.update(REGISTER_TYPES[a >> 16] for a in self._extra)
-        self._unlock_regs = {a.address + i: w for a in profile.unlock for i, w in enumerate(a.registers)}
-        # the writes after which the device is busy for a while: (address, the words written) -> ms
-        self._waits = {(a.address, a.registers): a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit)
+        self._unlock_regs = {a.key + i: w for a in profile.unlock for i, w in enumerate(a.registers)}
+        # the writes after which the device is busy for a while: (key, the words written) -> ms
+        self._waits = {(a.key, a.registers): a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit)
                        if a.wait_ms}
+        # RAM and non-volatile memory (``nonvolatile``): what a power cycle brings back, per unit, by key; the
+        # writes that store RAM there are the profile's commit actions (key, the words written)
+        self.nonvolatile = nonvolatile
+        self._stored: dict[int, dict[int, int]] = {}
+        self._commits = {(a.key, a.registers) for a in profile.commit}
+        self.power_cycles = 0
         self._busy_until = 0.0  # a declared wait after an unlock/commit/lock write: busy (06) meanwhile
         self._connected_at = 0.0  # monotonic time the last connection opened (a required pause after it)
         self._answered_at = 0.0  # monotonic time of the last answer (a required gap before the next request)
@@ -477,6 +487,9 @@ class Simulator:
 
     async def start(self) -> None:
         devices = [self._device(unit) for unit in self.units]
+        if self.nonvolatile:  # what it powered up with is what its memory holds
+            self._stored = {u: {k: self._start_values.get(k, 0) for k in (*self._owner, *self._extra)}
+                            for u in self.units}
         lst = self.listen
         common: dict[str, Any] = {"broadcast_enable": True, "trace_pdu": self._trace_pdu,
                                   "trace_connect": self._trace_connect}
@@ -571,6 +584,32 @@ class Simulator:
         else:
             regs[address - start] = value
 
+    def power_cycle(self) -> None:
+        """Power off and on (``nonvolatile``): every register holds again what non-volatile memory holds, the
+        values of the last commit (or of the start); what was written since, without a commit, is gone."""
+        if not self.nonvolatile:
+            raise ValueError("a power cycle changes nothing without the RAM and non-volatile memory model "
+                             "(Simulator(..., nonvolatile=True); deployer simulate --nonvolatile)")
+        for u, image in self._stored.items():
+            for k, v in image.items():
+                self._set(u, k, v)
+        self._busy_until = 0.0
+        self.power_cycles += 1
+
+    def stored(self, unit: int = 1, table: RegisterType = "holding") -> dict[int, int]:
+        """What non-volatile memory holds for one table (``nonvolatile``), by wire address."""
+        space = SPACE[table]
+        return {k & 0xFFFF: v for k, v in sorted(self._stored.get(unit, {}).items()) if k >> 16 == space}
+
+    def _store(self, unit: int) -> None:
+        """The profile's commit: the parameters' values in RAM go to non-volatile memory."""
+        image = self._stored.get(unit)
+        if image is None:
+            return
+        for k, owners in self._owner.items():
+            if any(p.writable for p in owners):
+                image[k] = self._get(unit, k)
+
     def registers(self, unit: int = 1, table: RegisterType = "holding") -> dict[int, int]:
         """One table's declared registers (coils: 0/1) by wire address."""
         space = SPACE[table]
@@ -634,7 +673,7 @@ class Simulator:
                 tables[t] = [SimData(address=0, values=[0], datatype=DataType.REGISTERS, readonly=True)]
         for t in BIT_TABLES:  # one run of bits from the first declared one to the last; check_table
             space = SPACE[t]   # refuses the undeclared ones in between
-            keys = sorted(k for k in self._owner if k >> 16 == space)
+            keys = sorted(k for k in (*self._owner, *self._extra) if k >> 16 == space)  # a coil commit step too
             lo, hi = (keys[0], keys[-1]) if keys else (space << 16, space << 16)
             tables[t] = [SimData(address=lo & 0xFFFF, values=[bool(self._start_values.get(k, 0))
                                                               for k in range(lo, hi + 1)], datatype=DataType.BITS)]
@@ -667,6 +706,8 @@ class Simulator:
         for a in range(address, address + count):
             owners = self._owner.get(space << 16 | a)
             if owners is None:
+                if (space << 16 | a) in self._action_regs:  # a coil of an unlock/commit/lock step, a health bit
+                    continue
                 if not gaps:
                     return ExcCodes.ILLEGAL_ADDRESS
                 continue
@@ -706,11 +747,11 @@ class Simulator:
         if fc in (1, 2) or (fc == 5 and values is None):
             return None  # checked by check_table
         if fc in (5, 15):
-            return self._coil_write(address, count, unit)
+            return self._coil_write(address, count, unit, values or [])
         params = self._params_in(address, count)
         if values is None:  # a read (or pymodbus reading back an FC06 write)
             return self._register_read(fc, count, params)
-        return self._register_write(fc, start, address, count, registers, values, params)
+        return self._register_write(fc, start, address, count, registers, values, params, unit)
 
     async def _line_time(self, fc: int, count: int, values: list[int] | None) -> None:
         """The answer's delay: the latency, and at a baud rate the time both frames take on the line."""
@@ -727,21 +768,33 @@ class Simulator:
         self._writes += 1
         return self._writes <= self.faults.busy_first or time.monotonic() < self._busy_until
 
-    def _refused_now(self, registers: Sequence[int], start: int) -> bool:
-        """Parameters locked (unlock values not in place) or a precondition failing (the drive running)."""
+    def _refused_now(self, registers: Sequence[int], start: int, unit: int) -> bool:
+        """Parameters locked (unlock values not in place) or a precondition failing (the drive running).
+        ``registers`` from ``start``: the holding registers as the request being served sees them."""
         current = {a: registers[a - start] for a in (*self._unlock_regs, *(
             c.address for c in self.profile.preconditions)) if 0 <= a - start < len(registers)}
+        current.update((k, self._get(unit, k)) for k in self._unlock_regs if k >> 16)  # a coil unlock step
         return not self.unlocked(current) or bool(self.guarded(current))
 
-    def _coil_write(self, address: int, count: int, unit: int) -> ExcCodes | None:
+    def _coil_write(self, address: int, count: int, unit: int, values: Sequence[int]) -> ExcCodes | None:
         if self._busy():
             return ExcCodes.DEVICE_BUSY
-        if self._unlock_regs or self.profile.preconditions:
+        keys = [SPACE["coil"] << 16 | a for a in range(address, address + count)]
+        touches_parameters = any(k not in self._action_regs for k in keys)  # an unlock coil is taken when locked
+        if touches_parameters and (self._unlock_regs or self.profile.preconditions):
             hstart, hregs = self._block(unit)
-            if self._refused_now(hregs, hstart):
+            if self._refused_now(hregs, hstart, unit):
                 return ExcCodes.DEVICE_FAILURE
-        if any((SPACE["coil"] << 16 | a) in self.faults.fail_registers for a in range(address, address + count)):
+        if any(k in self.faults.fail_registers for k in keys):
             return ExcCodes.DEVICE_FAILURE
+        written = dict(zip(keys, values, strict=False))
+        for (k, words), wait in self._waits.items():
+            if written.get(k) == words[0] and k >> 16:
+                self._busy_until = time.monotonic() + wait / 1000
+        if any(written.get(k) == words[0] for k, words in self._commits if k >> 16):
+            self._store(unit)  # e.g. coil 65: store to EEPROM
+            image = self._stored.get(unit, {})  # coils written in this very request (pymodbus stores them after)
+            image.update((k, v) for k, v in written.items() if k in image and k in self._owner)
         return None
 
     def _register_read(self, fc: int, count: int, params: list[Parameter]) -> ExcCodes | None:
@@ -753,14 +806,14 @@ class Simulator:
         return None
 
     def _write_refused(self, fc: int, start: int, address: int, count: int, registers: list[int],
-                       values: list[int], params: list[Parameter]) -> ExcCodes | None:
+                       values: list[int], params: list[Parameter], unit: int) -> ExcCodes | None:
         """What refuses a register write as a whole, before any value is stored."""
         q, limits = self.quirks, self.profile.limits
         if self._busy():
             return ExcCodes.DEVICE_BUSY
         touches_parameters = any(a not in self._action_regs for a in range(address, address + count))
         if touches_parameters and (self._unlock_regs or self.profile.preconditions) \
-                and self._refused_now(registers, start):
+                and self._refused_now(registers, start, unit):
             return ExcCodes.DEVICE_FAILURE  # parameters locked, or the drive is running
         if self.strict_limits and fc == 16 and count > limits.write_registers:
             return ExcCodes.ILLEGAL_VALUE
@@ -775,8 +828,8 @@ class Simulator:
         return None
 
     def _register_write(self, fc: int, start: int, address: int, count: int, registers: list[int],
-                        values: list[int], params: list[Parameter]) -> ExcCodes | None:
-        refused = self._write_refused(fc, start, address, count, registers, values, params)
+                        values: list[int], params: list[Parameter], unit: int) -> ExcCodes | None:
+        refused = self._write_refused(fc, start, address, count, registers, values, params, unit)
         if refused is not None:
             return refused
         f = self.faults
@@ -791,23 +844,29 @@ class Simulator:
         for a in range(address, address + count):  # registers of unlock/lock/commit writes only
             if not self._owner.get(a):
                 registers[a - start] = values[a - address]
-        self._after_write(start, address, count, registers, values)
+        self._after_write(start, address, count, registers, values, unit)
         if any(a in f.complain_registers for a in range(address, address + count)):
             return ExcCodes.DEVICE_FAILURE  # written all the same: a device that complains about what it did
         return None
 
-    def _after_write(self, start: int, address: int, count: int, registers: list[int], values: list[int]) -> None:
-        """What a write sets off: fault rules (a drive that trips on a too-short acceleration time), and the
-        busy time of a declared wait (storing to EEPROM)."""
+    def _after_write(self, start: int, address: int, count: int, registers: list[int], values: list[int],
+                     unit: int) -> None:
+        """What a write sets off: fault rules (a drive that trips on a too-short acceleration time), the busy
+        time of a declared wait (storing to EEPROM), and with ``nonvolatile`` the profile's commit storing RAM."""
         for rule in self.faults.rules:
             p = self.profile.parameter(rule.parameter)
             if rule.register - start in range(len(registers)) and rule.holds(p, registers[p.address - start:
                                                                                            p.end - start]):
                 registers[rule.register - start] = rule.raw
+        def written(a: int, words: tuple[int, ...]) -> bool:
+            return address <= a and a + len(words) <= address + count and \
+                tuple(values[a - address:a - address + len(words)]) == words
+
         for (a, words), wait in self._waits.items():
-            if address <= a and a + len(words) <= address + count and \
-                    tuple(values[a - address:a - address + len(words)]) == words:
+            if written(a, words):  # a coil's key is beyond any register's address: never matches here
                 self._busy_until = time.monotonic() + wait / 1000
+        if any(written(a, words) for a, words in self._commits):
+            self._store(unit)  # ``registers`` is the block itself: this request's values are in it already
 
     def _refusal(self, params: list[Parameter], address: int, count: int, values: list[int]) -> ExcCodes | None:
         """The answer the first bad value of a write gets, or None when every value is acceptable."""
@@ -933,7 +992,7 @@ class SimulatorThread:
 
 
 async def serve(sim: Simulator, *, on_ready: Any = None) -> None:
-    """Run until SIGINT/SIGTERM; SIGUSR1 dumps the state file."""
+    """Run until SIGINT/SIGTERM; SIGUSR1 dumps the state file; SIGUSR2 power-cycles a ``nonvolatile`` device."""
     from ..portable import interrupt_signals, on_signals
 
     loop = asyncio.get_running_loop()
@@ -942,6 +1001,13 @@ async def serve(sim: Simulator, *, on_ready: Any = None) -> None:
     if sim.state_path and hasattr(signal, "SIGUSR1"):  # POSIX only; Windows dumps on exit alone
         path = sim.state_path
         undo.append(on_signals(loop, (signal.SIGUSR1,), lambda _sig: sim.dump_state(path)))
+    if sim.nonvolatile and hasattr(signal, "SIGUSR2"):  # POSIX only; in Python: Simulator.power_cycle()
+        def power_cycle(_sig: object) -> None:
+            sim.power_cycle()
+            print(f"power cycle {sim.power_cycles}: RAM holds what non-volatile memory holds", file=sys.stderr,
+                  flush=True)
+
+        undo.append(on_signals(loop, (signal.SIGUSR2,), power_cycle))
     await sim.start()
     if on_ready:
         on_ready(sim)

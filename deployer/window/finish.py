@@ -128,7 +128,9 @@ async def _roll_back(w: Written, why: str, options: ApplyOptions) -> None:
     if busy is not None:
         res.status, res.error = "failed", f"{why}; not rolled back: {busy}"
         return
+    start = len(res.requests)
     changed = await _read_again(w, options, res.requests)
+    _at_the_end(res, start)
     if isinstance(changed, str):
         changed = []  # the rollback reads the device itself, and says what it finds
     left = {p.name for p, _ in changed}
@@ -163,6 +165,13 @@ async def _roll_back(w: Written, why: str, options: ApplyOptions) -> None:
         res.notices.append(f"what the device held before the rollback: {back.snapshot}")
 
 
+def _at_the_end(res: DeviceResult, start: int) -> None:
+    """The requests from ``start`` on were sent at the window's end: its commit's own plan, or the rollback (their
+    ``step`` numbers are that plan's, not the apply's)."""
+    for r in res.requests[start:]:
+        r.window = True
+
+
 def _back_status(back: DeviceResult) -> str:
     return "verified" if back.status == "ok" else f"{back.status}: {back.error or 'see the parameters'}"
 
@@ -171,6 +180,7 @@ def _merge(w: Written, back: DeviceResult) -> None:
     """The rollback's requests and parameter outcomes into the device's result."""
     res = w.result
     res.requests.extend(back.requests)
+    _at_the_end(res, len(res.requests) - len(back.requests))
     res.unrecorded.extend(back.unrecorded)
     by_name = {p.name: p for p in back.parameters}
     for p in res.parameters:
@@ -210,9 +220,11 @@ async def send_commit(w: Written, options: ApplyOptions) -> None:
         release(w)
         return
     changed = None
+    start = len(res.requests)
     try:
         changed = await _commit(w, options)
     finally:
+        _at_the_end(res, start)
         _journal_commit(options, w, changed)
         if changed is None:
             release(w)

@@ -22,6 +22,7 @@ from ..load.durations import format_duration
 from ..profile import HealthCheck, Profile
 from ..state import durable, journal
 from ..transport import clients as tp
+from .before import failing_checks
 from .finish import roll_back
 from .held import Written, needs_soak
 from .held import record as _journal
@@ -36,13 +37,12 @@ def check_soak_profiles(profiles: Sequence[Profile]) -> None:
                          "is zero}); use --confirm-within to hold the commit without checks")
 
 
-async def read_health(session: Session, prof: Profile) -> tuple[HealthCheck, list[int]] | None:
-    """The first failed check and the words read, or None when the device is healthy."""
-    for c in prof.health:
-        words = await session.read(c.address, c.count, c.function)
-        if not c.holds(words):
-            return c, words
-    return None
+async def read_health(session: Session, prof: Profile,
+                      skip: Sequence[int] = ()) -> tuple[HealthCheck, list[int]] | None:
+    """The first failed check and the words read, or None when the device is healthy. ``skip``: the indices of
+    checks not read (those failing before a change written anyway: ``DeviceResult.unhealthy_before``)."""
+    failing = await failing_checks(session, prof, skip, first=True)
+    return (failing[0][1], failing[0][2]) if failing else None
 
 
 async def soak(devices: Sequence[Written], options: ApplyOptions, *,
@@ -104,8 +104,8 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
         while why is None:
             try:
                 async with one_at_a_time:
-                    bad = await read_health(session, w.recipe.profile)
-                reads += len(w.recipe.profile.health)
+                    bad = await read_health(session, w.recipe.profile, w.result.unhealthy_before)
+                reads += len(w.recipe.profile.health) - len(w.result.unhealthy_before)
             except (DeviceGone, ExceptionResponse) as e:
                 why = f"could not be read: {e}"
                 break

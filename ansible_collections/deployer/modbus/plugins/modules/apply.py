@@ -99,6 +99,13 @@ options:
     description: Time between two rounds of health checks during the soak.
     type: str
     default: 1s
+  allow_unhealthy:
+    description:
+      - With O(soak), the health checks are read before the first write too, and a device already failing one
+        is not written (status C(failed), "health check already failing before the change").
+      - V(true) writes it anyway; its soak then does not hold the checks that were failing before against the change.
+    type: bool
+    default: false
   rollback_on_failure:
     description: When the rollout stops (a failed batch, O(max_failures)), roll back every device it wrote.
     type: bool
@@ -219,7 +226,8 @@ def apply(module, rec, jobs):
 
     p = module.params
     options = safe_options(ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"],
-                                        allow_broadcast=p["allow_broadcast"], command="ansible deployer.modbus.apply"),
+                                        allow_broadcast=p["allow_broadcast"], allow_unhealthy=p["allow_unhealthy"],
+                                        command="ansible deployer.modbus.apply"),
                            soak=p.get("soak"), health_interval=p["health_interval"])
     interrupted = None
     try:  # one journaled run (deployer status sees it); SIGINT/SIGTERM end it with its report
@@ -260,7 +268,8 @@ def main():
             max_failures=dict(type="str"), write_all=dict(type="bool", default=False),
             on_error=dict(type="str", default="continue", choices=["continue", "stop"]),
             state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), soak=dict(type="str"),
-            health_interval=dict(type="str", default="1s"), rollback_on_failure=dict(type="bool", default=False),
+            health_interval=dict(type="str", default="1s"), allow_unhealthy=dict(type="bool", default=False),
+            rollback_on_failure=dict(type="bool", default=False),
             agent=dict(type="dict", options=AGENT_SPEC), **TARGET_ARGS),
         mutually_exclusive=TARGET_EXCLUSIVE + agent_exclusive(("report",)),
         supports_check_mode=True,
@@ -268,6 +277,10 @@ def main():
     require_deployer(module)
     check_target_args(module)
     from deployer.api import AgentError, DeployerError, InputError, UsageError
+
+    if module.params["allow_unhealthy"] and not module.params.get("soak"):
+        module.fail_json(msg="allow_unhealthy goes with soak (only a soak reads the health checks before it "
+                             "writes); nothing was sent")
 
     if module.params.get("agent"):  # the agent executes; nothing here talks Modbus or writes a state folder
         try:
