@@ -123,12 +123,18 @@ def blocking(name: str, twin: str, *, hints: Mapping[str, str] | None = None
             why = call_problem(name, sig, args, kwargs, hints)
             if why is not None:
                 raise UsageError(why)
-            try:
-                asyncio.get_running_loop()
-            except RuntimeError:
-                return asyncio.run(f(*args, **kwargs))
-            raise UsageError(f"{name}() cannot run inside a running event loop; await {twin}()")
+            return in_own_loop(lambda: f(*args, **kwargs), name, twin)
 
         return call
 
     return wrap
+
+
+def in_own_loop(coro: Callable[[], Coroutine[Any, Any, T]], name: str, twin: str | None = None) -> T:
+    """The result of the coroutine ``coro()`` makes, run in an event loop of its own; inside a running event loop
+    (which it would block) a UsageError that says so, and to await ``twin`` instead."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return asyncio.run(coro())
+    raise UsageError(f"{name}() cannot run inside a running event loop" + (f"; await {twin}()" if twin else ""))

@@ -139,6 +139,9 @@ def test_apply_a_recipe_to_an_inventory_and_roll_it_back(tmp_path: Path) -> None
         with pytest.raises(deployer.UsageError, match="restoring a snapshot to another device needs "
                                                       "to_other_device=True; nothing was sent"):
             deployer.rollback(snapshot, sims[1].url, state_dir=tmp_path)
+        deployer.apply(recipe(), sims[0].url, state_dir=tmp_path)
+        one = deployer.rollback(snapshot, state_dir=tmp_path)  # the snapshot of the first run: back to before it
+        assert [d.status for d in one.devices] == ["ok"] and sims[0].read("F07") == before[0]
 
 
 def test_diff_and_pull_one_device_and_an_inventory(tmp_path: Path) -> None:

@@ -11,9 +11,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any, TypeVar
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
+from ..calls import in_own_loop
 from ..errors import InputError, TransportError, UsageError
 from ..fleet.inventory import Inventory, load_inventory
 from ..fleet.inventory import fleet_jobs as _fleet_jobs
@@ -85,18 +86,6 @@ def __getattr__(name: str) -> Any:
 
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'deployer.api.commands' has no attribute {name!r}")
-
-
-_T = TypeVar("_T")
-
-
-def _sync(call: str, coro: Callable[[], Coroutine[Any, Any, _T]]) -> _T:
-    """Run a coroutine for a blocking call; inside a running event loop, say so."""
-    try:
-        asyncio.get_running_loop()
-    except RuntimeError:
-        return asyncio.run(coro())
-    raise UsageError(f"{call}() cannot run inside a running event loop")
 
 
 def describe_url(url: DeviceURL) -> str:
@@ -297,7 +286,7 @@ def probe(profile: str | Profile, device: str | DeviceURL, unit: int = 1, *,
         if prof.get(name) is None:
             raise UsageError(f"probe: profile {prof.id} has no parameter {name!r}")
     url = device_url(device)
-    return _sync("probe", lambda: _probe(prof, url, unit, wanted))
+    return in_own_loop(lambda: _probe(prof, url, unit, wanted), "probe")
 
 
 def scan(device: str | DeviceURL, units: Iterable[int], *, register: int = 0) -> ScanResult:
@@ -312,7 +301,7 @@ def scan(device: str | DeviceURL, units: Iterable[int], *, register: int = 0) ->
 
     url = device_url(device)
     ids = list(units)
-    return _sync("scan", lambda: _scan(url, ids, register=register))
+    return in_own_loop(lambda: _scan(url, ids, register=register), "scan")
 
 
 def serial_ports() -> list[SerialPort]:

@@ -7,12 +7,12 @@ them); the rest are served from where they live now. This module goes in the rel
 
 from __future__ import annotations
 
-import asyncio
 import importlib
 import warnings
-from collections.abc import Callable, Coroutine, Iterable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any, TypeVar
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
+from ..calls import in_own_loop
 from ..errors import TransportError, UsageError
 from ..fleet.inventory import Inventory
 from ..limits import LIMITS, Bound
@@ -145,17 +145,6 @@ def removed(name: str, *, stacklevel: int = 3) -> Any:
                   stacklevel=stacklevel)
     module, _, attr = where.partition(":")
     return getattr(importlib.import_module(module), attr)
-
-
-_T = TypeVar("_T")
-
-
-def _sync(call: str, coro: Callable[[], Coroutine[Any, Any, _T]]) -> _T:
-    try:
-        asyncio.get_running_loop()
-    except RuntimeError:
-        return asyncio.run(coro())
-    raise UsageError(f"deployer.{call}() cannot run inside a running event loop; await deployer.{call}_async()")
 
 
 def _need_options(options: object, call: str) -> ApplyOptions:
@@ -296,7 +285,8 @@ def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) ->
     if recipe is not None:
         need_recipe(recipe, "apply_fleet")
     need_inventory(inventory, "apply_fleet")
-    return _sync("apply_fleet", lambda: apply_fleet_async(recipe, inventory, **kw))
+    return in_own_loop(lambda: apply_fleet_async(recipe, inventory, **kw), "deployer.apply_fleet",
+                       "deployer.apply_fleet_async")
 
 
 def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
@@ -306,7 +296,7 @@ def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
         UsageError: a bad ``batch``/``max_failures``, a report file that cannot be written, too few open files.
         StalePlan: a saved plan (``options.expected``) no longer matches its device.
     """
-    return _sync("run_fleet", lambda: run_fleet_async(jobs, **kw))
+    return in_own_loop(lambda: run_fleet_async(jobs, **kw), "deployer.run_fleet", "deployer.run_fleet_async")
 
 
 def read_fleet(jobs: Sequence[ReadJob], *, parallel: int = 8) -> dict[str, dict[str, tuple[int, ...]] | TransportError
@@ -317,7 +307,8 @@ def read_fleet(jobs: Sequence[ReadJob], *, parallel: int = 8) -> dict[str, dict[
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return _sync("read_fleet", lambda: read_fleet_async(jobs, parallel=parallel))
+    return in_own_loop(lambda: read_fleet_async(jobs, parallel=parallel), "deployer.read_fleet",
+                       "deployer.read_fleet_async")
 
 
 def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
@@ -331,8 +322,8 @@ def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = Fals
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return _sync("plan_fleet", lambda: plan_fleet_async(jobs, parallel=parallel, write_all=write_all,
-                                                        state_dir=state_dir))
+    return in_own_loop(lambda: plan_fleet_async(jobs, parallel=parallel, write_all=write_all, state_dir=state_dir),
+                       "deployer.plan_fleet", "deployer.plan_fleet_async")
 
 
 def inventory_from(devices: Iterable[Mapping[str, Any]], *, name: str = "<devices>") -> Inventory:
@@ -362,7 +353,8 @@ def run_prepared(prepared: PreparedRun, **kw: Any) -> Report:
         StalePlan: a saved plan no longer matches its device. Declined: ``confirm`` answered no.
         RunInterrupted: the run was interrupted (``.report`` says what every device holds).
     """
-    return _sync("run_prepared", lambda: run_prepared_async(prepared, **kw))
+    return in_own_loop(lambda: run_prepared_async(prepared, **kw), "deployer.run_prepared",
+                       "deployer.run_prepared_async")
 
 
 def plan_frames(plan: Plan, framing: str) -> list[tuple[bytes, bytes | None]]:

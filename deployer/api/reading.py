@@ -105,8 +105,9 @@ async def diff(recipe: Recipe | None, device: str | None = None, unit: int | Non
 def pull_reads(what: str | Profile | Recipe | None, inv: Inventory, *, limit: str | None, names: Sequence[str] | None,
                timeout: float | None, retries: int | None, unit: int | None) -> list[ReadJob]:
     """One read per selected device: of the recipe's parameters (``what`` a Recipe: each device's profile and
-    recipe as the inventory gives them, a device named twice refused as for apply), else of every setting of the device's profile (its own, else its recipe's from the
-    inventory, else ``what``: a Profile or a profile's id or file); only ``names`` when given."""
+    recipe as the inventory gives them, a device named twice refused as for apply), else of every setting of the
+    device's profile (its own, else its recipe's from the inventory, else ``what``: a Profile or a profile's id
+    or file); only ``names`` when given."""
     from ..fleet.inventory import RecipeCache
     from ..fleet.rollout import ReadJob
 

@@ -346,15 +346,14 @@ def _rollback_source(source: object) -> dict[str, Any]:
 
 
 def _is_report(path: str) -> bool:
-    """A report (JSON) rather than a snapshot (a recipe in YAML): by its name, else its first bytes."""
+    """A report (JSON) rather than a snapshot (a recipe deployer wrote as YAML): by its name, else its first byte."""
     if path.endswith(".json"):
         return True
     try:
         with open(path, "rb") as f:
-            head = f.read(4096)
+            return f.read(256).lstrip()[:1] == b"{"
     except OSError:
         return False
-    return head.lstrip().startswith(b"{") and b"deployer.report/" in head
 
 
 @checked("deployer.aio.rollback")
