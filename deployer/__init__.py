@@ -1,10 +1,10 @@
 """deployer: deploy parameter sets (recipes) to Modbus devices; plan, apply, verify, report.
 
-The public API is ``deployer.api``, importable from here: ``deployer.load_recipe``,
-``deployer.plan``, ``deployer.apply``, ``deployer.apply_fleet``, ``deployer.diff``,
-``deployer.pull``, their ``*_async`` twins, the types they take and return, and the errors
-(``deployer.errors``). ``deployer.__all__`` is ``deployer.api.__all__``: one list. The API loads on
-first use, so ``import deployer`` stays cheap (the command line's start-up time depends on it).
+The public API is ``deployer.api``, importable from here: ``deployer.load_recipe``, ``deployer.plan``,
+``deployer.apply``, ``deployer.diff``, ``deployer.pull``, ``deployer.rollback``, ``deployer.confirm``,
+``deployer.status``, the types they take and return, and the errors (the whole tree in ``deployer.errors``);
+``deployer.aio`` has the operations as coroutines. ``deployer.__all__`` is ``deployer.api.__all__``: one list.
+The API loads on first use, so ``import deployer`` stays cheap (the command line's start-up time depends on it).
 """
 
 from __future__ import annotations
@@ -32,6 +32,10 @@ def __getattr__(name: str) -> Any:
         from importlib.metadata import version
 
         return version("modbus-deployer")
+    if name == "aio":  # the public coroutines: ``import deployer`` then ``await deployer.aio.plan(...)``
+        import importlib
+
+        return importlib.import_module("deployer.aio")
     # not for dunders or a submodule not imported yet (``from deployer import errors`` asks here first)
     if (name.startswith("__") and name != "__all__") or _os.path.exists(_os.path.join(_HERE, name)) \
             or _os.path.exists(_os.path.join(_HERE, f"{name}.py")):
@@ -40,6 +44,10 @@ def __getattr__(name: str) -> Any:
 
     if name == "__all__" or name in api.__all__:
         return getattr(api, name)
+    from .api.deprecated import REMOVED, removed
+
+    if name in REMOVED:  # a name earlier releases exported: one more release, with a warning
+        return removed(name)
     raise AttributeError(f"module 'deployer' has no attribute {name!r}")
 
 

@@ -143,7 +143,7 @@ def test_api_errors_are_json_and_a_second_agent_is_refused(tmp_path: Path, sim: 
             c.get("/v1/nothing-here")
         assert e.value.kind == "not-found"
         with pytest.raises(AgentError) as e:
-            c.start_run(command="explode")
+            c.start_run(command="explode")  # type: ignore[arg-type]
         assert e.value.kind == "usage" and e.value.exit_code == 1
         info = c.info()
         assert info["api"] == 1 and info["auth"] == "none" and info["url"] == agent.url

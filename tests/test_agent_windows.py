@@ -179,7 +179,7 @@ def test_cli_through_the_agent_plan_diff_status_rollback_and_ledger(tmp_path: Pa
         assert '"status": "ok"' in ap.stdout
         import deployer  # the agent's report, written where --report says (its folder made)
 
-        assert [(d.name, d.status) for d in deployer.read_report(tmp_path / "out" / "run.json").devices] == [
+        assert [(d.name, d.status) for d in deployer.load_report(tmp_path / "out" / "run.json").devices] == [
             ("d1", "ok")]
         assert run("diff").returncode == 0
         # an edit of the files is pending, shown as a plan, never written by itself

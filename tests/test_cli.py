@@ -311,20 +311,22 @@ def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pyt
     assert code == 0 and "78 bytes on an RTU line, about 61 ms at 19200 baud 8E1" in out
     # with a serial URL the estimate uses its line settings and framing (ASCII counts characters)
     import deployer
+    from deployer.planning.frames import step_frames
+    from deployer.planning.wire import plan_cost
+    from deployer.transport.urls import parse_url
 
     rec = deployer.load_recipe(r)
-    plan = deployer.plan_values(rec, None)
-    cost = deployer.plan_cost(plan, rec.profile,
-                              deployer.device_url("ascii:///dev/ttyS0?baudrate=9600&bytesize=7&parity=E"))
+    plan = deployer.plan(rec, offline=True, state_dir=None)
+    cost = plan_cost(plan, rec.profile, parse_url("ascii:///dev/ttyS0?baudrate=9600&bytesize=7&parity=E"))
     assert (cost.framing, cost.line) == ("ascii", "9600 baud 7E1")
-    frames = [q + (a or b"") for q, a in deployer.plan_frames(plan, "ascii")]
+    frames = [q + (a or b"") for q, a in (step_frames(s, 1, "ascii", i) for i, s in enumerate(plan.steps, 1))]
     write = frames[2]
     assert write == b":01101102000204000003E8EB\r\n:011011020002DA\r\n"  # the manual's frames
     # every frame counted, and the Function 43 answer without its texts: 13 bytes of PDU (2B 0E 01, conformity,
     # more follows, next object, 3 objects; each object's id and length) as ':', hex pairs, LRC, CR LF
     assert cost.bytes == sum(len(f) for f in frames) + 1 + 2 * (1 + 13) + 2 + 2
     assert abs(cost.seconds - cost.bytes * 10 / 9600) < 1e-6  # 7E1: 10 bits a character (rounded to the us)
-    assert deployer.plan_cost(plan, rec.profile).line == "19200 baud 8E1"
+    assert plan_cost(plan, rec.profile).line == "19200 baud 8E1"
     code, out, _ = cli(capsys, "plan", r, "--unit", "0", "--show-frames")
     assert code == 0 and "response none (broadcast)" in out and "E5 34" not in out
     assert "13 bytes on an RTU line" in out  # the request only: a broadcast is its writes alone

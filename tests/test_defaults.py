@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from deployer.api import defaults_diff, non_default
+from deployer.api.values import defaults_diff, non_default
 from deployer.profile import Profile
 from deployer.testing.simulator import SimulatorThread
 from tests.helpers import cli, profile_from

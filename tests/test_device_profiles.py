@@ -343,7 +343,7 @@ def test_rollback_restores_a_fields_bits_and_keeps_the_rest(tmp_path: Path, fiel
 
 
 def test_diff_compares_a_fields_own_bits(tmp_path: Path, fields: Profile, capsys: pytest.CaptureFixture[str]) -> None:
-    from deployer.api import diff_values
+    from deployer.api.values import diff_values
 
     rec = load_recipe(recipe(tmp_path, "  direction: reverse\n  mode: torque\n"))
     assert diff_values(rec, {"direction": (0xF00B,), "mode": (0xF00B,)}) == []  # other bits differ: no drift

@@ -304,4 +304,33 @@ def test_the_api_page_names_every_public_name() -> None:
     assert sorted(n for n in deployer.__all__ if f"`{n}`" not in text) == [], "say what it is for in docs/api.md"
     code = "".join(re.findall(r"```python\n(.*?)```", text, re.S))
     compile(code, "api.md", "exec")
-    assert sorted({n for n in re.findall(r"\bdeployer\.(\w+)", code)} - set(deployer.__all__)) == []
+    assert sorted({n for n in re.findall(r"\bdeployer\.(\w+)", code)} - {*deployer.__all__, "aio"}) == []
+
+
+def test_the_api_page_examples_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Every python block of docs/api.md runs as written, in order, against simulators at the addresses it
+    names (the example recipes beside it, as in a checkout)."""
+    import shutil
+
+    from deployer.profile import builtin_profile
+    from deployer.testing.simulator import Simulator
+    from tests.helpers import Simulators
+
+    text = (DOCS / "api.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    addresses = sorted(set(re.findall(r"tcp://10\.0\.0\.\d+:502", text)))
+    assert len(blocks) >= 5 and len(addresses) == 2
+    shutil.copytree(ROOT / "recipes" / "examples", tmp_path / "recipes" / "examples")
+    monkeypatch.chdir(tmp_path)
+    with Simulators([Simulator(builtin_profile("example-inverter")) for _ in addresses]) as sims:
+        for i, block in enumerate(blocks, 1):
+            for address, sim in zip(addresses, sims, strict=True):
+                block = block.replace(address, sim.url)
+            exec(compile(block, f"docs/api.md, block {i}", "exec"), {"__name__": f"api_md_{i}"})
+        import deployer
+
+        line3 = deployer.load_recipe(tmp_path / "recipes" / "examples" / "conveyor-line3.yaml")
+        assert deployer.diff(line3, sims[0].url) == [] and deployer.diff(line3, sims[1].url) != []  # rolled back
+    out = capsys.readouterr().out
+    assert "identity" in out and "{'F07': '10 s', 'stop_mode': 'coast'}" in out

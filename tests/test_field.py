@@ -184,8 +184,7 @@ def test_api_check_mode_plans_with_what_the_device_taught(tmp_path: Path, device
         taught = deployer.plan(rec, sim.url, state_dir=state)
         assert [w.count for w in taught.writes] == [4, 4, 4, 2]
         assert [w.count for w in deployer.plan(rec, sim.url, state_dir=None).writes] == [14]
-        job = deployer.Job("d", rec, deployer.device_url(sim.url), 1)
-        planned = deployer.plan_fleet([job], state_dir=state)["d"]
+        planned = deployer.plan(rec, inventory=[{"name": "d", "url": sim.url}], state_dir=state)["d"]
         assert isinstance(planned, deployer.Plan) and [w.count for w in planned.writes] == [4, 4, 4, 2]
         assert len(_writes(sim)) == writes  # planning reads only
 

@@ -418,7 +418,6 @@ def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path)
 
 def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path: Path) -> None:
     import deployer
-    from deployer.execute.session import ApplyOptions
 
     seen: list[dict[str, str]] = []
     with fleet(3) as sims:
@@ -426,12 +425,12 @@ def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path
         rec = deployer.load_recipe(recipe(tmp_path))
         report_file = tmp_path / "r.json"
 
-        def started(job: object) -> None:
+        def started(name: str) -> None:
             if not seen:
                 seen.append({d["name"]: d.get("error") for d in read_report(str(report_file))["devices"]})
 
-        report = deployer.apply_fleet(rec, inventory(tmp_path, urls), report_path=str(report_file), on_start=started,
-                                      options=ApplyOptions(state_dir=str(tmp_path / "s")))
+        report = deployer.apply(rec, inventory=inventory(tmp_path, urls), report_path=report_file, on_start=started,
+                                state_dir=tmp_path / "s")
         assert seen == [{n: "not finished (interrupted run)" for n in names(3)}]
         assert report.exit_code == 0 and json.loads(report_file.read_text())["summary"]["ok"] == 3
 
@@ -480,9 +479,7 @@ def test_python_api_one_device_and_a_cheap_import(tmp_path: Path) -> None:
         assert [w.parameters for w in plan.writes] == [("F07", "F08", "stop_mode")]
         assert all(e.function in (3, 43) for e in sim.log)  # plan and diff only read
         assert [d.name for d in deployer.diff(rec, sim.url)] == ["F07", "F08", "stop_mode"]
-        from deployer.execute.session import ApplyOptions
-
-        report = deployer.apply(rec, sim.url, options=ApplyOptions(state_dir=str(tmp_path / "s")))
+        report = deployer.apply(rec, sim.url, state_dir=tmp_path / "s")
         assert report.exit_code == 0 and holds_recipe(sim)
         assert deployer.diff(rec, sim.url) == []
         assert deployer.pull("example-inverter", sim.url)["F07"] == (0, 1000)
@@ -536,8 +533,8 @@ def test_declining_one_device_of_a_fleet_skips_only_that_one(tmp_path: Path) -> 
 
     with fleet(3) as sims:
         rec = deployer.load_recipe(recipe(tmp_path))
-        jobs = deployer.api.fleet_jobs(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims,
-                                                                                          strict=True)}))
+        jobs = deployer.api.commands.fleet_jobs(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims,
+                                                                                                   strict=True)}))
 
         async def confirm(plan: object, res: deployer.DeviceResult) -> bool:
             return res.name != "d01"
@@ -702,7 +699,6 @@ def test_the_streamed_report_is_the_document_the_report_writer_makes(tmp_path: P
     report is written as), for a run with devices ok, partial, unreachable and never started; and a run
     retried with ``--limit @REPORT`` takes exactly the devices that did not end ok."""
     import deployer
-    from deployer.execute.session import ApplyOptions
     from deployer.report import report_text
 
     with fleet(5, {1: Faults(fail_registers=frozenset({F08})), 3: Faults(fail_registers=frozenset({F08}))}) as sims:
@@ -710,8 +706,8 @@ def test_the_streamed_report_is_the_document_the_report_writer_makes(tmp_path: P
         urls["d02"] = f"tcp://127.0.0.1:{dead_port()}"  # nobody listens: unreachable
         inv = inventory(tmp_path, urls)
         report_file = tmp_path / "r.json"
-        report = deployer.apply_fleet(deployer.load_recipe(recipe(tmp_path)), inv, report_path=str(report_file),
-                                      parallel=1, max_failures="3", options=ApplyOptions(state_dir=str(tmp_path / "s")))
+        report = deployer.apply(deployer.load_recipe(recipe(tmp_path)), inventory=inv, report_path=report_file,
+                                parallel=1, max_failures="3", state_dir=tmp_path / "s")
         written = json.loads(report_file.read_text())
         assert written == json.loads(report_text(report))
         jsonschema.validate(written, schema.schema("report"))

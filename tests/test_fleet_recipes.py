@@ -279,6 +279,7 @@ def test_counts_read_as_english_and_percent_as_a_symbol(capsys: pytest.CaptureFi
 
 
 def test_the_ansible_module_takes_the_inventorys_recipes(tmp_path: Path) -> None:
+    import deployer
     from ansible_collections.deployer.modbus.plugins.module_utils import deployer_common as common
 
     class Module:
@@ -288,9 +289,10 @@ def test_the_ansible_module_takes_the_inventorys_recipes(tmp_path: Path) -> None
     inv = line(tmp_path, {n: f"tcp://127.0.0.1:{1502 + i}" for i, n in enumerate(NAMES)})
     task = Module(inventory=inv)
     assert common.recipe_of(task) is None  # no recipe, profile or parameters: each device's own
-    jobs = common.jobs_of(task, None)
-    assert {j.name: j.recipe.name for j in jobs} == {"zone-1": "zone", "zone-2": "zone", "drive-1": "drive",
-                                                     "drive-2": "drive", "drive-3": "drive"}
+    fleet = deployer.plan(None, offline=True, state_dir=None, **common.targets_of(task, None))
+    assert {n: fleet[n].recipe_name for n in fleet} == {"zone-1": "zone", "zone-2": "zone", "drive-1": "drive",
+                                                        "drive-2": "drive", "drive-3": "drive"}
     with pytest.raises(InputError, match=r"unknown parameter 'F07' in profile pid-controller \(devices zone-1, "
                                          "zone-2; the inventory gives them recipes of their own"):
-        common.jobs_of(task, common.recipe_of(Module(inventory=inv, recipe=str(tmp_path / "recipes" / "drive.yaml"))))
+        drive = common.recipe_of(Module(inventory=inv, recipe=str(tmp_path / "recipes" / "drive.yaml")))
+        deployer.plan(drive, offline=True, state_dir=None, **common.targets_of(task, drive))

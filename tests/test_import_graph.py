@@ -143,6 +143,8 @@ CLI_MAY_IMPORT = {
     "deployer.agent": "`deployer agent` runs the site agent's server (its client is behind deployer.api)",
     "deployer.cli": "its own modules",
 }
+# deployer.api.commands is the command line's door into the rest: what it needs beyond the public API, in one
+# visible module (deployer.api covers it, as a module of that package)
 
 # Not yet through the API (each a move still to make, never a new entry): command module -> what it
 # imports from the library's inside today. The test fails when one of these goes or a new one appears,
@@ -206,3 +208,103 @@ def test_the_complexity_ceiling_is_checked() -> None:
     assert excepted == [], excepted
     noqa = [str(p.relative_to(ROOT)) for p in PKG.rglob("*.py") if "noqa: C901" in p.read_text()]
     assert noqa == [], noqa
+
+
+# ---- the Ansible collection and the site agent use the public API only ---------------------------------------
+
+
+def public_names() -> dict[str, set[str]]:
+    """The public modules and the names each promises: deployer (= deployer.api), deployer.aio, deployer.errors."""
+    import deployer.aio
+    from deployer import api, errors
+
+    return {"deployer": set(api.__all__), "deployer.api": set(api.__all__), "deployer.aio": set(deployer.aio.__all__),
+            "deployer.errors": set(errors.__all__)}
+
+
+def private_uses(path: Path, mod: str | None = None, own: str | None = None) -> list[str]:
+    """What a file takes of deployer beyond its public names, anywhere in it (``mod``: its module name, for its
+    relative imports; ``own``: a package of its own it may import freely): ``from X import n`` with X not a public
+    module or n not among X's names, ``import X`` of any other module, and ``deployer.n`` / ``deployer.aio.n``
+    for names not public."""
+    public = public_names()
+    out: list[str] = []
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            target = node.module or ""
+            if node.level:
+                assert mod is not None, f"{path}: a relative import outside the package"
+                base = mod.split(".")[: len(mod.split(".")) - node.level]
+                target = ".".join(base + ([node.module] if node.module else []))
+            if not target.startswith("deployer") or (own and (target == own or target.startswith(own + "."))):
+                continue
+            if target not in public:
+                out.append(f"{path.name}:{node.lineno}: imports {target}")
+                continue
+            out += [f"{path.name}:{node.lineno}: {target}.{a.name} is not public" for a in node.names
+                    if a.name not in public[target] and f"{target}.{a.name}" not in public]
+        elif isinstance(node, ast.Import):
+            out += [f"{path.name}:{node.lineno}: imports {a.name}" for a in node.names
+                    if a.name.startswith("deployer") and a.name not in public]
+        elif isinstance(node, ast.Attribute):
+            chain = ast.unparse(node.value)
+            if chain in public and chain != "deployer.errors" and node.attr not in public[chain] \
+                    and f"{chain}.{node.attr}" not in public:
+                out.append(f"{path.name}:{node.lineno}: {chain}.{node.attr} is not public")
+    return out
+
+
+def test_the_ansible_collection_uses_only_public_names() -> None:
+    """The modules are clients of the public API (its __all__, deployer.aio's, the error tree) and nothing else."""
+    found = [u for p in sorted((ROOT / "ansible_collections").rglob("*.py")) for u in private_uses(p)]
+    assert found == []
+
+
+# Not yet on the public API (item 6 of issue 46 moves the agent onto it, piece by piece; each line a move still to
+# make, never a new one): the site agent's server side reaches these modules of the library's inside today. The
+# test fails when one goes or a new one appears, so the list only shrinks. Its client (agent/client.py) is itself
+# the public API's ``Agent``.
+AGENT_NOT_YET_ON_THE_API = {
+    "core.py": {"deployer.execute.connect", "deployer.execute.executor", "deployer.execute.job",
+                "deployer.execute.session", "deployer.execute.verify", "deployer.load.durations",
+                "deployer.planning.model", "deployer.planning.planfile", "deployer.planning.planner",
+                "deployer.planning.steps", "deployer.portable", "deployer.profile", "deployer.profile.model",
+                "deployer.recipe.loader", "deployer.report", "deployer.run.rollback", "deployer.run.runner",
+                "deployer.state", "deployer.transport", "deployer.transport.urls", "deployer.window.confirm",
+                "deployer.window.finish", "deployer.window.held", "deployer.window.soak"},
+    "desired.py": {"deployer.execute.job", "deployer.fleet.inventory", "deployer.profile", "deployer.recipe.loader",
+                   "deployer.recipe.model", "deployer.recipe.text", "deployer.state.durable",
+                   "deployer.transport.urls"},
+    "firstrestores.py": {"deployer.execute.job", "deployer.execute.session", "deployer.report"},
+    "page.py": {"deployer.pages.assets"},
+    "security.py": {"deployer.load.messages"},
+    "service.py": {"deployer.portable"},
+}
+
+
+def agent_private_uses() -> dict[str, set[str]]:
+    out: dict[str, set[str]] = {}
+    for p in sorted((PKG / "agent").glob("*.py")):
+        if p.name == "client.py":
+            continue
+        mod = "deployer.agent" + ("" if p.name == "__init__.py" else f".{p.stem}")
+        uses = {u.split(": imports ", 1)[1] if ": imports " in u else u.split(": ", 1)[1]
+                for u in private_uses(p, mod if p.name != "__init__.py" else mod + ".x", own="deployer.agent")}
+        if uses:
+            out[p.name] = uses
+    return out
+
+
+def test_the_site_agent_uses_only_public_names_or_says_what_not_yet() -> None:
+    assert agent_private_uses() == AGENT_NOT_YET_ON_THE_API
+
+
+def test_the_public_names_check_sees_what_is_not_public(tmp_path: Path) -> None:
+    code = ("import deployer\nfrom deployer.api import plan, fleet_jobs\nfrom deployer.errors import AgentError\n"
+            "from deployer.execute.job import Job\nimport deployer.fleet\n"
+            "def f():\n    deployer.apply(None)\n    deployer.plan_fleet([])\n")
+    (tmp_path / "m.py").write_text(code)
+    assert private_uses(tmp_path / "m.py") == [
+        "m.py:2: deployer.api.fleet_jobs is not public", "m.py:4: imports deployer.execute.job",
+        "m.py:5: imports deployer.fleet", "m.py:8: deployer.plan_fleet is not public"]

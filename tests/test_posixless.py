@@ -150,7 +150,7 @@ def test_command_line_and_api_over_tcp_without_posix(tmp_path: Path) -> None:
             from deployer import api
             r = api.load_recipe(sys.argv[2])
             plan = api.plan(r, sys.argv[1])
-            rep = api.apply(r, sys.argv[1], options=api.ApplyOptions(state_dir="api-state"))
+            rep = api.apply(r, sys.argv[1], state_dir="api-state")
             print(json.dumps({"writes": len(plan.writes), "exit": rep.exit_code, "drift": len(api.diff(r, sys.argv[1])),
                               "status": rep.devices[0].status}))
         """, url, first, cwd=tmp_path)

@@ -226,9 +226,8 @@ def test_sigterm_mid_apply_of_one_device(files: Path) -> None:
 API_RUN = """
 import sys
 import deployer
-from deployer.api import ApplyOptions
 rec = deployer.load_recipe(sys.argv[1])
-report = deployer.apply(rec, sys.argv[2], options=ApplyOptions(state_dir=sys.argv[3]), name="press")
+report = deployer.apply(rec, sys.argv[2], state_dir=sys.argv[3], name="press")
 print(report.run_id, report.exit_code)
 """
 

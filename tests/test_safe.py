@@ -400,15 +400,14 @@ def test_the_api_soaks_and_confirms(tmp_path: Path) -> None:
     import asyncio
 
     import deployer
-    from deployer.execute.session import ApplyOptions
+    import deployer.aio
     from tests.helpers import run_with
 
     state = str(tmp_path / "s")
 
     async def body(sim: Simulator) -> tuple[deployer.Report, deployer.Report, list[str]]:
         rec = deployer.load_recipe(recipe(tmp_path, "3 s", sim.url))
-        soaked = await deployer.apply_async(rec, options=ApplyOptions(state_dir=state), soak="200ms",
-                                            health_interval="100ms")
+        soaked = await deployer.aio.apply(rec, state_dir=state, soak="200ms", health_interval="100ms")
         rec = deployer.load_recipe(recipe(tmp_path, "4 s", sim.url, "r2.yaml"))
         waiting = asyncio.Event()
         runs: list[str] = []
@@ -417,8 +416,8 @@ def test_the_api_soaks_and_confirms(tmp_path: Path) -> None:
             runs.append(run)
             waiting.set()
 
-        task = asyncio.create_task(deployer.apply_async(rec, options=ApplyOptions(state_dir=state),
-                                                        confirm_within="1h", on_confirm_wait=on_wait))
+        task = asyncio.create_task(deployer.aio.apply(rec, state_dir=state, confirm_within="1h",
+                                                      on_confirm_wait=on_wait))
         await waiting.wait()
         assert writes_to(list(sim.log), COMMIT) == [writes_to(list(sim.log), COMMIT)[0]]  # only the first run's
         assert deployer.confirm(state_dir=state) == runs[0]

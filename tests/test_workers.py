@@ -7,6 +7,7 @@ interrupted-run tests of test_runs.py also run with workers.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import re
@@ -207,11 +208,11 @@ def test_a_report_of_a_killed_worker_run_reads_back(files: Path, fleet: list[Sim
 
 def test_what_the_rollout_keeps_of_a_workers_device_is_small(files: Path, quick: list[Simulator]) -> None:  # noqa: F811
     """The command's process keeps a count per finished device, not its parameters nor its 17 KB report line."""
-    import deployer
+    from deployer.run.request import RunRequest, execute, prepare
 
-    request = deployer.RunRequest(str(files / "new.yaml"), inventory=str(files / "fleet.yaml"), parallel=4,
-                                  workers=2, state_dir=str(files / "state"), report_path=str(files / "r.json"))
-    report = deployer.run_prepared(deployer.prepare_run(request), keep_results=False)
+    request = RunRequest(str(files / "new.yaml"), inventory=str(files / "fleet.yaml"), parallel=4,
+                         workers=2, state_dir=str(files / "state"), report_path=str(files / "r.json"))
+    report = asyncio.run(execute(prepare(request), keep_results=False))
     assert [d.status for d in report.devices] == ["ok"] * len(quick)
     assert all(d.report_line is None and not d.parameters and not d.requests and d.tally for d in report.devices)
     doc = json.loads((files / "r.json").read_text())

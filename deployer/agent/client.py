@@ -12,8 +12,9 @@ import urllib.error
 import urllib.parse
 import urllib.request
 from collections.abc import Callable, Iterator, Mapping
-from typing import Any
+from typing import Any, Literal
 
+from ..calls import checked
 from ..errors import EXIT_UNREACHABLE, AgentError
 
 ENV = "DEPLOYER_AGENT"
@@ -26,6 +27,7 @@ class Agent:
     Methods map the HTTP API one to one (docs/agent.md); ``apply`` starts a run and follows it to its end.
     """
 
+    @checked("Agent")
     def __init__(self, url: str, *, token: str | None = None, ca: str | None = None, timeout: float = 30.0) -> None:
         u = urllib.parse.urlsplit(url)
         if u.scheme not in ("http", "https") or not u.netloc:
@@ -63,47 +65,74 @@ class Agent:
             raise AgentError(f"cannot reach the agent at {self.url}: {why}", kind="unreachable",
                              exit_code=EXIT_UNREACHABLE) from None
 
-    def request(self, method: str, path: str, body: Mapping[str, Any] | None = None, **query: Any) -> Any:
+    @checked()
+    def request(self, method: str, path: str, body: Mapping[str, Any] | None = None,
+                query: Mapping[str, Any] | None = None) -> Any:
+        """Any call of the HTTP API: its JSON answer (None for an empty one); ``query``: the URL's parameters."""
         with self._open(method, path, body, query) as resp:
             raw = resp.read()
         return json.loads(raw) if raw else None
 
-    def get(self, path: str, **query: Any) -> Any:
-        return self.request("GET", path, **query)
+    @checked()
+    def get(self, path: str, query: Mapping[str, Any] | None = None) -> Any:
+        return self.request("GET", path, query=query)
 
+    @checked()
     def post(self, path: str, body: Mapping[str, Any] | None = None) -> Any:
         return self.request("POST", path, body if body is not None else {})
 
     # ---- the API ---------------------------------------------------------------------------------
 
+    @checked()
     def info(self) -> dict[str, Any]:
         return dict(self.get("/v1/agent"))
 
+    @checked()
     def devices(self) -> list[dict[str, Any]]:
         return list(self.get("/v1/devices")["devices"])
 
+    @checked()
     def device(self, name: str) -> dict[str, Any]:
         return dict(self.get("/v1/devices/" + urllib.parse.quote(name, safe="")))
 
+    @checked()
     def pending(self) -> dict[str, Any]:
         return dict(self.get("/v1/pending"))
 
+    @checked()
     def reload(self) -> dict[str, Any]:
         return dict(self.post("/v1/reload"))
 
+    @checked()
     def check(self, limit: str | None = None) -> list[dict[str, Any]]:
         return list(self.post("/v1/check", {"limit": limit} if limit else {})["devices"])
 
+    @checked()
     def runs(self) -> list[dict[str, Any]]:
         return list(self.get("/v1/runs")["runs"])
 
+    @checked()
     def run(self, run_id: str) -> dict[str, Any]:
         return dict(self.get("/v1/runs/" + urllib.parse.quote(run_id, safe="")))
 
-    def start_run(self, **options: Any) -> dict[str, Any]:
-        """``POST /v1/runs``: options as in the API (command, limit, batch, soak, confirm_within ...)."""
+    @checked()
+    def start_run(self, *, command: Literal["apply", "restore"] = "apply", limit: str | None = None,
+                  recipe: str | None = None, files_sha256: str | None = None, batch: str | None = None,
+                  max_failures: str | None = None, parallel: int | None = None, soak: str | None = None,
+                  health_interval: str | None = None, confirm_within: str | None = None,
+                  rollback_on_failure: bool | None = None, write_all: bool | None = None,
+                  force_endurance: bool | None = None, client: str | None = None,
+                  allow_unhealthy: bool | None = None) -> dict[str, Any]:
+        """``POST /v1/runs``: its options as the HTTP API takes them (docs/agent.md; None: the agent's default)."""
+        options = {"command": command, "limit": limit, "recipe": recipe, "files_sha256": files_sha256,
+                   "batch": batch, "max_failures": max_failures, "parallel": parallel, "soak": soak,
+                   "health_interval": health_interval, "confirm_within": confirm_within,
+                   "allow_unhealthy": allow_unhealthy,
+                   "rollback_on_failure": rollback_on_failure, "write_all": write_all,
+                   "force_endurance": force_endurance, "client": client}
         return dict(self.post("/v1/runs", {k: v for k, v in options.items() if v is not None}))
 
+    @checked()
     def stream(self, run_id: str, start: int = 0) -> Iterator[dict[str, Any]]:
         """The run's events as they happen, from event ``start``, until ``run-finished``."""
         path = f"/v1/runs/{urllib.parse.quote(run_id, safe='')}/stream"
@@ -112,6 +141,7 @@ class Agent:
                 if line.strip():
                     yield json.loads(line)
 
+    @checked()
     def follow(self, run_id: str, on_event: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
         """Follow a run to its end (reconnecting where the stream broke); its ``run-finished`` event."""
         seen = 0
@@ -128,32 +158,52 @@ class Agent:
                     raise AgentError(f"lost the agent at {self.url}: {e.reason}", kind="unreachable",
                                      exit_code=EXIT_UNREACHABLE) from None
 
-    def apply(self, *, on_event: Callable[[dict[str, Any]], None] | None = None, **options: Any) -> dict[str, Any]:
-        """Start a run and follow it to its end: the ``run-finished`` event (``report``, ``exit_code``)."""
-        run = self.start_run(**options)
+    @checked()
+    def apply(self, *, on_event: Callable[[dict[str, Any]], None] | None = None,
+              command: Literal["apply", "restore"] = "apply", limit: str | None = None, recipe: str | None = None,
+              files_sha256: str | None = None, batch: str | None = None, max_failures: str | None = None,
+              parallel: int | None = None, soak: str | None = None, health_interval: str | None = None,
+              confirm_within: str | None = None, rollback_on_failure: bool | None = None,
+              write_all: bool | None = None, force_endurance: bool | None = None,
+              client: str | None = None, allow_unhealthy: bool | None = None) -> dict[str, Any]:
+        """Start a run (its options as ``start_run``'s) and follow it to its end: the ``run-finished`` event
+        (``report``, ``exit_code``); ``on_event`` is told each event as it comes."""
+        run = self.start_run(command=command, limit=limit, recipe=recipe, files_sha256=files_sha256, batch=batch,
+                             max_failures=max_failures, parallel=parallel, soak=soak,
+                             health_interval=health_interval, confirm_within=confirm_within,
+                             rollback_on_failure=rollback_on_failure, write_all=write_all,
+                             allow_unhealthy=allow_unhealthy,
+                             force_endurance=force_endurance, client=client)
         return self.follow(run["id"], on_event)
 
+    @checked()
     def confirm(self, run: str | None = None) -> dict[str, Any]:
         if run is None:
             return dict(self.post("/v1/confirm"))
         return dict(self.post(f"/v1/runs/{urllib.parse.quote(run, safe='')}/confirm"))
 
+    @checked()
     def rollback(self, run: str) -> dict[str, Any]:
         return dict(self.post(f"/v1/runs/{urllib.parse.quote(run, safe='')}/rollback"))
 
+    @checked()
     def windows(self) -> list[dict[str, Any]]:
         return list(self.get("/v1/windows")["windows"])
 
+    @checked()
     def events(self, *, after: int = 0, limit: int | None = None, device: str | None = None,
                kind: str | None = None) -> list[dict[str, Any]]:
-        return list(self.get("/v1/events", after=after, limit=limit, device=device, kind=kind)["events"])
+        return list(self.get("/v1/events", {"after": after, "limit": limit, "device": device, "kind": kind})["events"])
 
+    @checked()
     def ledger(self) -> dict[str, Any]:
         return dict(self.get("/v1/ledger"))
 
+    @checked()
     def status(self) -> dict[str, Any]:
         return dict(self.get("/v1/status"))
 
+    @checked()
     def metrics(self) -> str:
         with self._open("GET", "/metrics") as resp:
             return str(resp.read().decode())

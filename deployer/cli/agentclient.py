@@ -83,7 +83,7 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
             return EXIT_OK
     import socket
 
-    from ..api import user_name
+    from ..api.commands import user_name
 
     who = f"{user_name()}@{socket.gethostname()}"  # os.uname and $USER are POSIX's
     body = {"command": "apply", "limit": kw.get("limit"), "batch": kw.get("batch"),
@@ -103,7 +103,7 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
 def _finish(end: Mapping[str, Any], kw: Mapping[str, Any]) -> int:
     import os
 
-    from ..api import report_from_json, write_output
+    from ..api.commands import report_from_json, write_output
     from .outcome import print_outcome
 
     if end.get("error"):

@@ -35,13 +35,15 @@ from .plan import print_plan
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..api import DeviceResult, Plan, PreparedRun, Report
+    from ..api import DeviceResult, Plan, Report
+    from ..api.commands import PreparedRun
 
 
 def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: bool = False, **options: Any) -> int:
     """apply / rollback: the request checked and its jobs built by the library (``deployer.prepare_run``), the
     user's consent asked here, then run by the library (``deployer.run_prepared``) with a progress display."""
-    from ..api import RunRequest, prepare_run, record_meta
+    from ..api.commands import RunRequest, prepare_run
+    from .base import record_meta
 
     meta_given: tuple[str, ...] = options.pop("meta", ())
     compact: bool = options.pop("compact", False)
@@ -116,7 +118,8 @@ def _confirm_each(prepared: PreparedRun, err: Console) -> Callable[[Plan, Device
 def _run(prepared: PreparedRun, err: Console, *, confirm: Callable[[Plan, DeviceResult], Awaitable[bool]] | None,
          as_json: bool) -> tuple[Report, bool]:
     """The run (through the library), with its display; (its report, whether it was interrupted)."""
-    from ..api import RunInterrupted, run_prepared_async
+    from ..api import RunInterrupted
+    from ..api.commands import run_prepared_async
 
     r = prepared.request
     hooks = _safe_hooks(err, r.state_dir, pause=r.pause, ask=r.ask, soak=r.soak, interval=r.health_interval,
@@ -139,7 +142,7 @@ def _run_fleet(prepared: PreparedRun, kw: dict[str, Any], err: Console, *, live:
     """A fleet run with its progress display (a live one on a terminal, else a line per device)."""
     import gc
 
-    from ..api import run_prepared_async
+    from ..api.commands import run_prepared_async
     from .progress import FleetProgress  # rich's live display: only fleets pay for importing it
 
     if cli_context().own_process:  # the command's own process only: the library and callers keep their collector
@@ -408,7 +411,7 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
         from . import agentclient
 
         return agentclient.status(agent_url, as_json=as_json)
-    from ..api import resolve_run, run_status
+    from ..api.commands import resolve_run, run_status
 
     if resolve is not None:
         r = resolve_run(resolve, state_dir=state_dir)
@@ -523,7 +526,7 @@ def confirm(run: str | None, state_dir: str, agent_url: str | None) -> int:
         from . import agentclient
 
         return agentclient.confirm(agent_url, run)
-    from ..api import confirm_outcome
+    from ..api.commands import confirm_outcome
 
     confirmed: list[str] = []
 

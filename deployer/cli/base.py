@@ -19,7 +19,8 @@ if TYPE_CHECKING:
 
     from rich.console import Console
 
-    from ..api import DeviceURL, Job, Profile, Recipe
+    from ..api import Profile, Recipe
+    from ..api.commands import DeviceURL, Job
 
 
 class LazyGroup(click.Group):
@@ -48,7 +49,7 @@ class LazyGroup(click.Group):
         return command
 
     def invoke(self, ctx: click.Context) -> Any:
-        from ..api import writing_caches  # a command runs (not the group's --help or --version)
+        from ..api.commands import writing_caches  # a command runs (not the group's --help or --version
 
         # the command line keeps pint's answers on disk; library callers do not write there
         with writing_caches():
@@ -114,7 +115,7 @@ def console(*, stderr: bool = False) -> Console:
 
 def describe(url: DeviceURL) -> str:
     """The URL as users write it."""
-    from ..api import describe_url
+    from ..api.commands import describe_url
 
     return describe_url(url)
 
@@ -125,7 +126,7 @@ def _n(count: int, noun: str) -> str:
 
 def write_page(text: str, path: str) -> None:
     """An HTML page (``--html FILE``), written whole or not at all (``write_atomic``'s rule)."""
-    from ..api import write_output as write_atomic
+    from ..api.commands import write_output as write_atomic
 
     write_atomic(path, text)
 
@@ -136,7 +137,7 @@ def _output(text: str, path: str | None, summary: str, *, replace: bool | None =
     The file goes through ``write_atomic`` (regular files and new paths only). ``replace``: whether an
     existing file may be replaced; None: only with the command's --force (``force_option``).
     """
-    from ..api import write_output as write_atomic
+    from ..api.commands import write_output as write_atomic
 
     if path:
         if replace is None:
@@ -249,7 +250,7 @@ def agent_option(f: Callable[..., Any]) -> Callable[..., Any]:
 def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
             retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
-    from ..api import device_url  # not the transports: an offline plan does not import pymodbus
+    from ..api.commands import device_url  # not the transports: an offline plan does not import pymodbus
 
     text = device or (recipe.device.url if recipe.device else None)
     u = unit if unit is not None else (recipe.device.unit if recipe.device and recipe.device.unit is not None else 1)
@@ -265,7 +266,8 @@ def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: in
     """Current values for plan --device, diff and pull; None (after saying why) when unreachable."""
     import asyncio  # not at import: --version and --help need no event loop
 
-    from ..api import TransportError, pull_async
+    from ..api import TransportError
+    from ..api.commands import pull_async
 
     try:
         return asyncio.run(pull_async(profile, url, unit, names=names))
@@ -280,7 +282,7 @@ def _unreachable(values: Mapping[str, object]) -> list[str]:
 
 def _fleet(rec: Recipe | None, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
            unit: int | None) -> list[Job]:
-    from ..api import fleet_jobs
+    from ..api.commands import fleet_jobs
 
     return fleet_jobs(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)
 
@@ -294,6 +296,22 @@ def recipe_or_inventory(recipe: str | None, inventory: str | None, *, what: str 
     if inventory is None:
         raise UsageError(f"pass {what}, or --inventory FILE whose devices name their recipes")
     return None
+
+
+def record_meta(inventory: str | None = None, given: Sequence[str] = ()) -> list[tuple[str, str]]:
+    """What the commissioning record says at the top of every page: the inventory's ``meta:`` (site, project,
+    customer, line ...), then each ``KEY=VALUE`` of ``given`` (the command line's ``--meta``), which wins."""
+    out: dict[str, str] = {}
+    if inventory is not None:
+        from ..api import load_inventory
+
+        out.update(load_inventory(inventory).meta)
+    for item in given:
+        key, sep, value = str(item).partition("=")
+        if not sep or not key.strip():
+            raise UsageError(f"--meta {item!r}: expected KEY=VALUE (e.g. site='Plant 3')")
+        out[key.strip()] = value.strip()
+    return list(out.items())
 
 
 @dataclass(frozen=True)

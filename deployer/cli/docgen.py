@@ -444,7 +444,7 @@ def render_snapshot_page() -> str:
     import calendar
     import time
 
-    from ..api import snapshot_text
+    from ..api.commands import snapshot_text
 
     before = {"F07": (0, 500), "F08": (0, 500), "stop_mode": (0,), "base_speed": (0x6590,)}
     stamp, applied = "20261122T101500Z", "/plant/recipes/conveyor-line3.yaml"
@@ -481,8 +481,8 @@ def write_pages(directory: str, *, force: bool = False) -> list[str]:
     A page there already is rewritten when it is one of ours (it begins with GENERATED); any other
     file of that name only with ``force`` (OutputRefused otherwise, before anything is written).
     """
-    from ..api import check_output
-    from ..api import write_output as write_atomic
+    from ..api.commands import check_output
+    from ..api.commands import write_output as write_atomic
 
     os.makedirs(directory, exist_ok=True)
     todo = []
@@ -506,7 +506,7 @@ def stale_pages(directory: str) -> list[str]:
 
 def url_option_text(name: str) -> str | None:
     """A device URL option for the terminal (`deployer explain baudrate`); None if no scheme takes it."""
-    from ..api import url_option
+    from ..api.commands import url_option
 
     schemes, default, allowed = url_option(name)
     if not schemes:

@@ -24,7 +24,7 @@ def learned() -> None:
 @click.option("--json", "as_json", is_flag=True, help="print the entries as JSON")
 def learned_list(state_dir: str, as_json: bool) -> int:
     """What each device taught: profile, device, limits, what was seen, when."""
-    from ..api import learned_limits
+    from ..api.commands import learned_limits
 
     path, entries = learned_limits(state_dir)
     if as_json:
@@ -47,7 +47,7 @@ def learned_list(state_dir: str, as_json: bool) -> int:
 @click.option("--all", "everything", is_flag=True, help="forget everything learned")
 def learned_forget(state_dir: str, profile: str | None, device: str | None, unit: int, everything: bool) -> int:
     """Forget what devices taught: the next plan and apply use the profile's own limits again."""
-    from ..api import forget_learned
+    from ..api.commands import forget_learned
     from ..errors import BadURL
 
     if not (profile or device or everything):
@@ -111,8 +111,8 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
     if url is None:
         raise UsageError("scan needs a URL (rtu://COM3, rtu:///dev/ttyUSB0, rtu+tcp://GATEWAY:PORT), "
                          "or --list-ports")
-    from ..api import device_url as parse_url
-    from ..api import scan as run_scan
+    from ..api.commands import device_url as parse_url
+    from ..api.commands import scan as run_scan
     from ..errors import EXIT_UNREACHABLE, BadURL, TransportError
 
     ids = _unit_ids(units)
@@ -129,7 +129,7 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
         echo(f"error: {safe(e)}", err=True)
         return EXIT_UNREACHABLE
     if output:
-        from ..api import write_output as write_atomic
+        from ..api.commands import write_output as write_atomic
 
         write_atomic(output, result.inventory_text(url))
     if as_json:
@@ -149,7 +149,7 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
 
 
 def _list_ports(as_json: bool) -> int:
-    from ..api import serial_ports
+    from ..api.commands import serial_ports
     from ..errors import EXIT_UNREACHABLE
 
     ports = serial_ports()
@@ -180,9 +180,9 @@ def probe(profile: str, device: str, unit: int, expect: tuple[str, ...], timeout
     scale gives that value. Exit 0 when the profile fits, 2 when changes are suggested, 3 when the
     device does not answer. Nothing is written.
     """
-    from ..api import device_url as parse_url
     from ..api import load_profile
-    from ..api import probe as run_probe
+    from ..api.commands import device_url as parse_url
+    from ..api.commands import probe as run_probe
     from ..errors import EXIT_CHANGES, EXIT_UNREACHABLE, BadURL, TransportError
 
     prof = load_profile(profile)

@@ -13,7 +13,7 @@ from .base import echo, safe
 
 def validate_file(path: str) -> str:
     """Check one file of any kind; returns a one-line summary or raises InputError (``deployer.validate_file``)."""
-    from ..api import validate_file as check
+    from ..api.commands import validate_file as check
 
     return check(path)
 

@@ -98,7 +98,7 @@ def print_outcome(report: Report, *, fleet_run: bool, as_json: bool, report_path
     out = console()
     if as_json:
         if fleet_run:
-            from ..api import report_text
+            from ..api.commands import report_text
 
             echo(report_text(report), nl=False)
         else:

@@ -30,7 +30,8 @@ from .tables import Cell, show
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from ..api import DeviceURL, Job, Plan, Profile, Recipe, Step
+    from ..api import Plan, Profile, Recipe, Step
+    from ..api.commands import DeviceURL, Job
 
 
 def _hexwords(regs: Sequence[int] | None) -> str:
@@ -41,7 +42,7 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
                url: DeviceURL | None = None, steps: bool = True) -> None:
     """The plan's parameters (``changes_only``: those it writes, current -> desired) and, with ``steps``, every
     step apply takes on the device in order, and what that costs."""
-    from ..api import address_text, plan_cost
+    from ..api.commands import address_text, plan_cost
 
     step_of: dict[str, list[int]] = {}
     for i, s in enumerate(plan.steps, 1):
@@ -195,7 +196,7 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         return agentclient.plan(agent_url, as_json=as_json, detailed_exitcode=detailed_exitcode)
     import os
 
-    from ..api import plan_to_json, plan_values, write_output
+    from ..api.commands import plan_to_json, plan_values, write_output
 
     maybe = recipe_or_inventory(recipe, inventory)
     if inventory:
@@ -210,13 +211,14 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     rec = maybe
     url, u = _target(rec, device, unit, timeout, retries, required=False)
     if out_path:  # before reading the device
-        from ..api import check_output
+        from ..api.commands import check_output
 
         check_output(out_path, what="the plan")
     if device is not None:  # the plan's checks run on the device (reads only), the plan made against them
         import asyncio
 
-        from ..api import TransportError, plan_async
+        from ..api import TransportError
+        from ..api.commands import plan_async
 
         assert url is not None
         notes: list[str] = []
@@ -230,13 +232,13 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
             echo(f"note: {safe(note)}", err=as_json)
     else:
         if url is not None:
-            from ..api import taught_recipe
+            from ..api.commands import taught_recipe
 
             rec, taught = taught_recipe(rec, url, u, state_dir=state_dir)
             if taught is not None:
                 echo(f"note: {safe(taught)}", err=as_json)
         p = plan_values(rec, None, url, u, write_all=write_all, window=safe_change)
-    from ..api import plan_cost
+    from ..api.commands import plan_cost
 
     data = plan_to_json(p, plan_cost(p, rec.profile, url))  # the saved plan says what it costs, as printed
     if out_path:
@@ -261,7 +263,7 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
                write_all: bool, per_device: bool = False, state_dir: str = ".deployer", window: bool = False) -> int:
     """A plan per device against what it holds, devices with identical changes together (``per_device``:
     each device's table); exit 3 if any device could not be read, else as plan."""
-    from ..api import plan_cost, plan_to_json
+    from ..api.commands import plan_cost, plan_to_json
     from .progress import plan_fleet as planned_fleet  # rich: only fleets pay for importing it
 
     values = planned_fleet(jobs, parallel, write_all=write_all, state_dir=state_dir, window=window)

@@ -5,13 +5,16 @@ from __future__ import annotations
 import contextlib
 import os
 from collections.abc import Iterator, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from ..errors import EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, InputError, TransportError, UsageError
 from .base import _n, _output, console, echo, force_option, report_input_error, safe
 from .tables import Cell, show
+
+if TYPE_CHECKING:
+    from ..api import Profile
 
 
 @click.group()
@@ -22,7 +25,7 @@ def profiles() -> None:
 @profiles.command("list")
 def profiles_list() -> int:
     """List the built-in profiles."""
-    from ..api import builtin_profiles
+    from ..api.commands import builtin_profiles
 
     rows: list[list[Cell]] = []
     for prof in builtin_profiles():
@@ -70,7 +73,7 @@ def _import_errors() -> Iterator[None]:
 def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence[str] = ()) -> int:
     import re
 
-    from ..api import imported_profile
+    from ..api.commands import imported_profile
 
     pid = str(draft.header["profile"])
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", pid):  # the profile schema's pattern
@@ -100,7 +103,7 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
 def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Sequence[str], addressing: str,
                         delimiter: str | None, byte_order: str | None, decimal: bool | None) -> int:
     """A profile from a CSV register list (columns: name, address, type, unit, scale, min, max, range, access ...)."""
-    from ..api import import_csv
+    from ..api.commands import import_csv
 
     with _import_errors():
         draft, warnings = import_csv(file, profile_id=profile_id, columns=_pairs(columns, "--column"),
@@ -125,7 +128,7 @@ def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Se
 def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str | None, columns: Sequence[str],
                          addressing: str, byte_order: str | None, decimal: bool | None) -> int:
     """A profile from an Excel register list (the same columns as csv; needs openpyxl)."""
-    from ..api import import_xlsx
+    from ..api.commands import import_xlsx
 
     with _import_errors():
         draft, warnings = import_xlsx(file, profile_id=profile_id, sheet=sheet, columns=_pairs(columns, "--column"),
@@ -146,7 +149,7 @@ def profiles_import_wb_template(file: str, profile_id: str | None, out: str | No
 
     wb-mqtt-serial's templates are under the MIT-WB licence, which allows their use on Wiren Board
     controllers only: check that it allows yours before importing one (docs/importers.md)."""
-    from ..api import import_wb_template
+    from ..api.commands import import_wb_template
 
     draft, warnings = import_wb_template(file, profile_id=profile_id, channels=not no_channels)
     return _write_imported(draft, out, file, warnings)
@@ -163,7 +166,8 @@ def profiles_export() -> None:
 @force_option
 def profiles_export_csv(profile: str, out: str | None) -> int:
     """A profile as a CSV register list ('profiles import csv' reads it back; wire addresses, tables as rows)."""
-    from ..api import load_profile, profile_csv
+    from ..api import load_profile
+    from ..api.commands import profile_csv
 
     prof = load_profile(profile)
     text, lost = profile_csv(prof)
@@ -193,8 +197,8 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
                             device: str | None, unit: int, profile_id: str | None, out: str | None) -> int:
     """A profile from a SunSpec model (number, name or model JSON) using pysunspec2's definitions, or from a
     device's whole model chain (--device without MODEL)."""
-    from ..api import import_sunspec, import_sunspec_chain, sunspec_reported
-    from ..api import register_address as parse_register
+    from ..api.commands import import_sunspec, import_sunspec_chain, sunspec_reported
+    from ..api.commands import register_address as parse_register
 
     factors = {k: _whole(v, f"--sf {k}") for k, v in _pairs(sfs, "--sf").items()}
     repeats = {k: _whole(v, f"--count {k}") for k, v in _pairs(counts, "--count").items()}
@@ -253,7 +257,7 @@ def _whole(text: str, what: str) -> int:
 def _from_device(device: str, unit: int, at: int, model: str | None, *, search: bool = False
                  ) -> tuple[list[Any]] | None:
     """The device's model at ``at`` (MODEL given) or its whole chain; None (after saying why) when unreachable."""
-    from ..api import sunspec_models
+    from ..api.commands import sunspec_models
 
     try:
         return (sunspec_models(device, unit, at=at, model=model, search=search),)
@@ -266,7 +270,7 @@ def _from_device(device: str, unit: int, at: int, model: str | None, *, search: 
 @click.argument("profile")
 def profiles_show(profile: str) -> int:
     """Show a profile's parameters in engineering units (a built-in id or a file)."""
-    from ..api import load_profile, profile_table
+    from ..api import load_profile
 
     prof = load_profile(profile)
     out = console()
@@ -296,8 +300,8 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
     """Write a commented profile skeleton to OUTPUT, ready to fill in from the device's manual."""
     import re
 
-    from ..api import profile_skeleton
-    from ..api import write_output as write_atomic
+    from ..api.commands import profile_skeleton
+    from ..api.commands import write_output as write_atomic
     from ..load.schema import schema
 
     pid = profile_id or os.path.splitext(os.path.basename(output))[0]
@@ -308,3 +312,39 @@ def profiles_new(output: str, profile_id: str | None, force: bool) -> int:
     write_atomic(output, text, replace=force)
     echo(f"wrote {safe(output)}: fill it in from the manual, then run: deployer validate {safe(output)}", err=True)
     return EXIT_OK
+
+
+def profile_table(profile: str | Profile) -> tuple[str, list[list[str]]]:
+    """A profile as ``profiles show`` lists it: the name of its byte order (ABCD, CDAB ...) and one row of text
+    per parameter: name, address (as plans write it), type ('uint32 CDAB', 'bool bit 3', 'uint16 bits 3..5',
+    'string[8] ascii'), unit, resolution, range (or its labels), access, default and description.
+
+    Raises:
+        UsageError: an unknown profile.
+        InputError: a profile file that is not valid.
+    """
+    from ..api import Profile, load_profile
+    from ..api.commands import address_text, format_decimal, layout_name, mask_shift
+
+    prof = profile if isinstance(profile, Profile) else load_profile(profile)
+
+    def type_text(p: Any) -> str:  # the layout only when not the default
+        if p.is_string:
+            return f"string[{p.count}] {p.encoding}" + (" BA" if p.byte_swap else "")
+        if p.mask:
+            shift, width = mask_shift(p.mask)
+            return f"{p.type} bit {shift}" if width == 1 else f"{p.type} bits {shift}..{shift + width - 1}"
+        return str(p.type) if p.layout in ("AB", "ABCD", "ABCDEFGH") else f"{p.type} {p.layout}"
+
+    rows: list[list[str]] = []
+    for p in prof.parameters:
+        rng = "" if p.min is None and p.max is None else (
+            f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
+        if p.values:
+            rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
+        default = "" if p.default is None else p.default if isinstance(p.default, str) else (
+            str(bool(p.default)).lower() if p.type == "bool" else format_decimal(p.default))
+        rows.append([p.name, address_text(p.register_type, p.address), type_text(p), p.unit or "",
+                     "" if p.is_string or p.type == "bool" else format_decimal(p.scale), rng, p.access, default,
+                     p.description])
+    return layout_name(prof.word_order, prof.byte_swap), rows

@@ -19,7 +19,8 @@ if TYPE_CHECKING:
     from rich.live import Live
     from rich.progress import Progress
 
-    from ..api import DeviceResult, Job, Plan, ReadJob, Report
+    from ..api import DeviceResult, Plan, Report
+    from ..api.commands import Job, ReadJob
     from .tables import Cell
 
 STYLE = {"rolled-back": "bold yellow", "interrupted": "bold red",
@@ -142,7 +143,7 @@ def fleet_summary(report: Report, out: Console) -> None:
 
 def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tuple[int, ...]] | Exception]:
     """Current values of every device (a live display on a terminal); errors are said on stderr."""
-    from ..api import read_fleet_async
+    from ..api.commands import read_fleet_async
 
     err = console(stderr=True)
     progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
@@ -158,7 +159,7 @@ def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tu
 def plan_fleet(jobs: Sequence[Job], parallel: int, *, write_all: bool, state_dir: str,
                window: bool = False) -> dict[str, Plan | Exception]:
     """Every device's plan against what it holds (a live display on a terminal); errors are said on stderr."""
-    from ..api import plan_fleet_async
+    from ..api.commands import plan_fleet_async
 
     err = console(stderr=True)
     progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)

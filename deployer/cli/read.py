@@ -34,7 +34,8 @@ from .base import (
 from .tables import Cell, show
 
 if TYPE_CHECKING:
-    from ..api import Drift, Job, Profile, Recipe
+    from ..api import Drift, Profile, Recipe
+    from ..api.commands import Job
 
 
 @click.command()
@@ -70,7 +71,7 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
             raise UsageError("with --agent, diff compares the agent's devices with its adopted state: no RECIPE, "
                              "--device, --inventory or --defaults")
         return agentclient.diff(agent_url, limit=limit, as_json=as_json)
-    from ..api import diff_values
+    from ..api.commands import diff_values
 
     if defaults:
         if inventory or limit or per_device or matrix or html_path:
@@ -116,8 +117,9 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
 def diff_defaults(recipe: str | None, profile_ref: str | None, device: str | None, unit: int | None,
                   timeout: float | None, retries: int | None, as_json: bool) -> int:
     """diff --defaults: what differs from the factory settings; exit 2 when something does."""
-    from ..api import defaults_diff, device_url, load_recipe
     from ..api import load_profile as resolve_profile
+    from ..api import load_recipe
+    from ..api.commands import defaults_diff, device_url
 
     if recipe and profile_ref:
         raise UsageError("pass RECIPE or --profile, not both (a recipe names its profile)")
@@ -165,7 +167,7 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     """The fleet's drift: devices with identical drift together (``view`` ``per-device``: a row per device
     and parameter; ``matrix``: parameters x drifted devices); exit 2 naming every drifted device, 3 if
     any could not be read."""
-    from ..api import diff_values, read_jobs
+    from ..api.commands import diff_values, read_jobs
     from .progress import read_fleet  # rich: only fleets pay for importing it
 
     values = read_fleet(read_jobs(jobs), parallel)
@@ -224,8 +226,8 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
          output: str | None, name: str | None, html_path: str | None, non_default: bool, inventory: str | None,
          limit: str | None, parallel: int) -> int:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
-    from ..api import check_output, device_url, out_of_range, pull_names, pulled_recipe
     from ..api import load_profile as resolve_profile
+    from ..api.commands import check_output, device_url, out_of_range, pull_names, pulled_recipe
 
     if inventory:
         if device or name:
@@ -268,7 +270,7 @@ def _pulled_from(url: str, unit: int) -> str:
 def _non_default(prof: Profile, current: dict[str, tuple[int, ...]], comment: str,
                  ) -> tuple[dict[str, tuple[int, ...]], str]:
     """pull --non-default: the values that are not factory settings, and a comment saying what was left out."""
-    from ..api import non_default
+    from ..api.commands import non_default
 
     kept = non_default(prof, current)
     unknown = sum(1 for n in kept if prof.parameter(n).default is None)
@@ -282,8 +284,8 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
                retries: int | None, unit: int | None, parallel: int, html_path: str | None = None,
                non_default: bool = False) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
-    from ..api import check_folder, pull_jobs, pulled_recipe
-    from ..api import write_output as write_atomic
+    from ..api.commands import check_folder, pull_jobs, pulled_recipe
+    from ..api.commands import write_output as write_atomic
 
     jobs = pull_jobs(inventory, limit=limit, profile=profile_ref, timeout=timeout, retries=retries, unit=unit)
     check_folder(folder, what=f"recipes into {folder}")
@@ -305,7 +307,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
         written += 1
     down = _unreachable(values)
     if html_path:
-        from ..api import record_meta
+        from .base import record_meta
 
         _as_found_page([(j.name, describe(j.url), j.unit, j.profile, values[j.name]) for j in jobs], html_path,
                        record_meta(inventory))
@@ -315,7 +317,7 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
 
 
 def _safe(name: str) -> str:
-    from ..api import file_name
+    from ..api.commands import file_name
 
     return file_name(name)  # the same name on every system: no CON.yaml, no 300-character name
 
@@ -323,7 +325,7 @@ def _safe(name: str) -> str:
 def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], path: str,
                    meta: Sequence[tuple[str, str]] = ()) -> None:
     """``pull --html``: per device its values (engineering text and registers), or why it could not be read."""
-    from ..api import run_info
+    from ..api.commands import run_info
     from ..pages import as_found_page
     from .base import command_line, write_page
 
@@ -344,7 +346,7 @@ def _drift_page(jobs: Sequence[Job], values: Mapping[str, object], rows: Mapping
                 path: str) -> None:
     """``diff --inventory --html``: parameters x devices; each cell what the device holds, marked where it
     is not the recipe's value."""
-    from ..api import run_info
+    from ..api.commands import run_info
     from ..pages import drift_page
     from .base import command_line, write_page
 

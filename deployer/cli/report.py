@@ -28,7 +28,7 @@ def report(report_file: str, html_path: str | None, meta: tuple[str, ...], compa
     given here), else as register words; a file the report names is never opened. Reports of older
     versions show what they have. Exit 0; 1 if RUN.json is not a report (or not valid: FILE:LINE:COL).
     """
-    from ..api import read_report
+    from ..api import load_report as read_report
     from .base import console, safe, write_page
     from .outcome import print_report
     from .progress import fleet_summary
@@ -47,8 +47,8 @@ def report(report_file: str, html_path: str | None, meta: tuple[str, ...], compa
     else:
         print_report(run, out)
     if html_path:
-        from ..api import record_meta
         from ..pages import run_page
+        from .base import record_meta
 
         write_page(run_page(run, meta=record_meta(None, meta), compact=compact), html_path)
         console(stderr=True).print(f"page: {safe(html_path)}")

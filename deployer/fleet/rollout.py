@@ -269,13 +269,13 @@ class _Rollout:
             e.result.seconds = time.monotonic() - t
             self.done[j.name] = e.result
             raise
-        except Declined:
+        except (Declined, StalePlan) as e:
             if len(self.jobs) == 1:
                 raise
-            # in a fleet, a "no" is about that device: the others were asked (or are being written) on their own
-            r = skipped_result(j, "not written: declined at the confirmation prompt", batch)
-        except StalePlan:
-            raise
+            # in a fleet, a "no" or a stale plan (deployer.apply of a FleetPlan) is that device's: the others were
+            # asked, or are checked against their own plans, on their own; nothing was written to this one
+            why = "declined at the confirmation prompt" if isinstance(e, Declined) else str(e)
+            r = skipped_result(j, f"not written: {why}", batch)
         except UsageError as e:
             r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),
                              profile_ref=profile_ref(j.recipe.profile), recipe=j.recipe.path, batch=batch,

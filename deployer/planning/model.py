@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 PLAN_SCHEMA = "deployer.plan/2"
 OLD_SCHEMAS = ("deployer.plan/1",)  # refused with the command that makes the plan again
@@ -201,3 +201,56 @@ class Plan:
     def changes(self) -> bool:
         """Whether executing the plan writes anything."""
         return any(s.writes for s in self.steps)
+
+    def to_json(self) -> dict[str, Any]:
+        """The plan as a saved plan's JSON (docs/reference/plan.md), as ``plan --out`` writes it and ``load_plan``
+        reads it back."""
+        return plan_to_json(self)
+
+
+# ---- as JSON (a saved plan: docs/reference/plan.md; planfile reads it back) ---------------------------
+
+
+def step_to_json(s: Step) -> dict[str, Any]:
+    out: dict[str, Any] = {"kind": s.kind, "function": s.function, "address": s.address, "count": s.count}
+    if s.writes:
+        out["values"] = None if s.values is None else list(s.values)
+    if s.parameters:
+        out["parameters"] = list(s.parameters)
+    if s.kind == "write":
+        out["stage"] = s.stage
+    if s.wait:
+        out["wait"] = s.wait
+    if s.expect is not None:
+        out["expect"] = {"equals": s.expect.equals, **({"mask": s.expect.mask} if s.expect.mask != 0xFFFF else {})}
+    if s.note:
+        out["note"] = s.note
+    return out
+
+
+def cost_to_json(c: Cost) -> dict[str, Any]:
+    return {"requests": c.requests, "reads": c.reads, "writes": c.writes, "bytes": c.bytes, "framing": c.framing,
+            "line": c.line, "seconds": c.seconds, "waits": c.waits, "non_volatile_writes": c.non_volatile_writes,
+            "stores": list(c.stores)}
+
+
+def plan_to_json(plan: Plan, cost: Cost | None = None) -> dict[str, Any]:
+    """The plan as saved-plan JSON (docs/reference/plan.md); ``cost``: its informational ``cost`` member."""
+    doc: dict[str, Any] = {
+        "schema": plan.schema,
+        "recipe": plan.recipe,
+        **({"recipe_name": plan.recipe_name} if plan.recipe_name is not None else {}),
+        "device": {"url": plan.device.url, "unit": plan.device.unit, "profile": plan.device.profile},
+        "profile_sha256": plan.profile_sha256,
+        "pacing": {"after_connect": plan.pacing.after_connect, "between_requests": plan.pacing.between_requests},
+        "parameters": [{"name": p.name, "address": p.address, "count": p.count, "desired": p.desired,
+                        "desired_raw": list(p.desired_raw),
+                        "current_raw": None if p.current_raw is None else list(p.current_raw),
+                        "action": p.action, "stage": p.stage,
+                        **({"register_type": p.register_type} if p.register_type != "holding" else {})}
+                       for p in plan.parameters],
+        "steps": [step_to_json(s) for s in plan.steps],
+    }
+    if cost is not None:
+        doc["cost"] = cost_to_json(cost)
+    return doc

@@ -9,7 +9,6 @@ from .model import (
     COIL_WRITES,
     OLD_SCHEMAS,
     STEP_KINDS,
-    Cost,
     Expect,
     Pacing,
     Plan,
@@ -17,59 +16,17 @@ from .model import (
     Step,
     Target,
 )
+from .model import plan_to_json as plan_to_json  # where saved plans are read and written: its other half
 
 if TYPE_CHECKING:
-    from ..load.yamlsrc import Source
+    from collections.abc import Callable
+
+    from ..load.yamlsrc import Path_, Source
     from ..profile import Profile
     from ..recipe.loader import Recipe
 
 
 # ---- JSON ------------------------------------------------------------------------------------
-
-
-def step_to_json(s: Step) -> dict[str, Any]:
-    out: dict[str, Any] = {"kind": s.kind, "function": s.function, "address": s.address, "count": s.count}
-    if s.writes:
-        out["values"] = None if s.values is None else list(s.values)
-    if s.parameters:
-        out["parameters"] = list(s.parameters)
-    if s.kind == "write":
-        out["stage"] = s.stage
-    if s.wait:
-        out["wait"] = s.wait
-    if s.expect is not None:
-        out["expect"] = {"equals": s.expect.equals, **({"mask": s.expect.mask} if s.expect.mask != 0xFFFF else {})}
-    if s.note:
-        out["note"] = s.note
-    return out
-
-
-def cost_to_json(c: Cost) -> dict[str, Any]:
-    return {"requests": c.requests, "reads": c.reads, "writes": c.writes, "bytes": c.bytes, "framing": c.framing,
-            "line": c.line, "seconds": c.seconds, "waits": c.waits, "non_volatile_writes": c.non_volatile_writes,
-            "stores": list(c.stores)}
-
-
-def plan_to_json(plan: Plan, cost: Cost | None = None) -> dict[str, Any]:
-    """The plan as saved-plan JSON (docs/reference/plan.md); ``cost``: its informational ``cost`` member."""
-    doc: dict[str, Any] = {
-        "schema": plan.schema,
-        "recipe": plan.recipe,
-        **({"recipe_name": plan.recipe_name} if plan.recipe_name is not None else {}),
-        "device": {"url": plan.device.url, "unit": plan.device.unit, "profile": plan.device.profile},
-        "profile_sha256": plan.profile_sha256,
-        "pacing": {"after_connect": plan.pacing.after_connect, "between_requests": plan.pacing.between_requests},
-        "parameters": [{"name": p.name, "address": p.address, "count": p.count, "desired": p.desired,
-                        "desired_raw": list(p.desired_raw),
-                        "current_raw": None if p.current_raw is None else list(p.current_raw),
-                        "action": p.action, "stage": p.stage,
-                        **({"register_type": p.register_type} if p.register_type != "holding" else {})}
-                       for p in plan.parameters],
-        "steps": [step_to_json(s) for s in plan.steps],
-    }
-    if cost is not None:
-        doc["cost"] = cost_to_json(cost)
-    return doc
 
 
 def _step(d: dict[str, Any]) -> Step:
@@ -258,52 +215,65 @@ def _secret_at(prof: Profile, s: Step) -> bool:
 
 
 def load_plan(path: str) -> tuple[Recipe, Plan]:
-    """A saved plan file -> (the recipe it carries, the plan), checked against its profile first: its parameters
-    must be the profile's (writable, in range), its action steps the profile's actions, and the profile's text
-    the one the plan was made with."""
+    """A saved plan file -> (the recipe it carries, the plan), checked against its profile first (``plan_recipe``),
+    every problem at its position in the file."""
+    from ..load import yamlsrc
+
+    data, src = yamlsrc.load(path)
+    p = plan_from_json(data, path, src=src)
+    return plan_recipe(p, path, src.error), p
+
+
+def plan_recipe(p: Plan, path: str = "<plan>", error: Callable[[Path_, str], Diagnostic] | None = None) -> Recipe:
+    """The recipe a plan carries, for executing it: its parameters must be the profile's (writable, in range),
+    its action steps the profile's actions, and the profile's text the one the plan was made with. ``path`` and
+    ``error``: where problems are said (a saved plan's positions; without ``error``, FILE:0:0 and the JSON path).
+
+    Raises InputError with every problem."""
     import os
 
-    from ..load import yamlsrc
     from ..profile import resolve_profile
     from ..recipe.loader import Desired, Recipe
     from ..recipe.model import DeviceSpec
 
-    data, src = yamlsrc.load(path)
-    p = plan_from_json(data, path, src=src)
+    def at(where: Path_, message: str) -> Diagnostic:
+        if error is not None:
+            return error(where, message)
+        return Diagnostic(path, 0, 0, f"{'.'.join(str(x) for x in where)}: {message}")
+
     try:
         prof = resolve_profile(p.device.profile)
     except UsageError as e:
-        raise InputError([src.error(("device", "profile"), str(e))]) from None
+        raise InputError([at(("device", "profile"), str(e))]) from None
     errors = []
     if p.profile_sha256 != prof.digest:
-        errors.append(src.error(("profile_sha256",), f"profile {prof.id} changed since the plan was made "
-                                                     f"({prof.source or 'built-in'}): make the plan again"))
-    errors += [src.error(("steps",), why) for why in check_actions(p, prof)]
+        errors.append(at(("profile_sha256",), f"profile {prof.id} changed since the plan was made "
+                                              f"({prof.source or 'built-in'}): make the plan again"))
+    errors += [at(("steps",), why) for why in check_actions(p, prof)]
     desired = []
     for i, pp in enumerate(p.parameters):
         param = prof.get(pp.name)
         if param is None or param.address != pp.address or param.count != len(pp.desired_raw) or \
                 param.register_type != pp.register_type:
-            errors.append(src.error(("parameters", i, "name"),
-                                    f"{pp.name} does not match profile {prof.id} (address or size differ)"))
+            errors.append(at(("parameters", i, "name"),
+                             f"{pp.name} does not match profile {prof.id} (address or size differ)"))
             continue
         if param.is_string:
             try:
                 param.text_of(pp.desired_raw)
             except CodecError as e:
-                errors.append(src.error(("parameters", i, "desired_raw"), f"{pp.name}: {e}"))
+                errors.append(at(("parameters", i, "desired_raw"), f"{pp.name}: {e}"))
                 continue
         raw = None if param.is_string else param.decode(pp.desired_raw)
         bounds = param.raw_bounds()
         if not param.writable or (raw is not None and bounds is not None and not bounds[0] <= raw <= bounds[1]):
-            errors.append(src.error(("parameters", i, "desired_raw"),
-                                    f"{pp.name}: raw {raw} is not writable within the profile's range"))
+            errors.append(at(("parameters", i, "desired_raw"),
+                             f"{pp.name}: raw {raw} is not writable within the profile's range"))
             continue
         desired.append(Desired(param, pp.desired, pp.desired_raw))
     if errors:
         raise InputError(errors)
     # named after the recipe it was made from (snapshots, reports), not after the plan file
     name = p.recipe_name or os.path.splitext(os.path.basename(p.recipe or path))[0]
-    rec = Recipe(name=name, path=p.recipe, profile=prof, desired=tuple(desired),
-                 device=DeviceSpec(p.device.url, p.device.unit), profile_ref=p.device.profile)
-    return rec, p
+    return Recipe(name=name, path=p.recipe, profile=prof, desired=tuple(desired),
+                  device=DeviceSpec(p.device.url, p.device.unit), profile_ref=p.device.profile)

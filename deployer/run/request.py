@@ -166,12 +166,6 @@ def _recipe_jobs(r: RunRequest) -> PreparedRun:
         if r.inventory or r.write_all:
             raise UsageError("a saved plan runs unchanged: --inventory and --write-all do not apply to it")
         rec, expected = load_plan(r.source)
-        if (r.soak is not None or r.confirm_within is not None) and rec.profile.health and \
-                not any(s.kind == "health" for s in expected.steps):
-            raise UsageError(f"{r.source} is not the plan of a safe change: it reads no health checks before writing "
-                             "(a device already in alarm would be written, then rolled back and the change blamed); "
-                             f"make it with: deployer plan {expected.recipe or 'RECIPE'} --device URL --safe-change "
-                             f"--out {r.source}")
     else:
         rec = load_recipe(r.source, force=r.force)
     if rec.snapshot is not None:
@@ -218,6 +212,20 @@ def prepare(r: RunRequest) -> PreparedRun:
     return prepared
 
 
+def safe_plans(jobs: Sequence[Job], r: RunRequest, label: str | None) -> None:
+    """A safe change executes only plans made for one: they read the health checks before writing (else a device
+    already in alarm would be written, then rolled back and the change blamed). UsageError, nothing sent."""
+    if r.soak is None and r.confirm_within is None:
+        return
+    for j in jobs:
+        if j.plan is not None and j.recipe.profile.health and not any(s.kind == "health" for s in j.plan.steps):
+            made = j.plan.recipe or "RECIPE"
+            raise UsageError(f"{label or 'the plan'} is not the plan of a safe change: it reads no health checks "
+                             "before writing (a device already in alarm would be written, then rolled back and the "
+                             f"change blamed); make it with: deployer plan {made} --device URL --safe-change "
+                             f"--out PLAN.json (Python: plan(..., safe_change=True))")
+
+
 async def execute(prepared: PreparedRun, *, confirm: Confirm | None = None, command_line: str | None = None,
                   argv: Sequence[str] = (), via: str = "api", signals: bool = False,
                   on_start: Callable[[Job], None] | None = None,
@@ -232,6 +240,7 @@ async def execute(prepared: PreparedRun, *, confirm: Confirm | None = None, comm
     from ..run.runner import run_async
 
     r = prepared.request
+    safe_plans(prepared.jobs, r, prepared.label)
     options = ApplyOptions(on_error=r.on_error, write_all=r.write_all, allow_broadcast=r.allow_broadcast,
                            state_dir=os.fspath(r.state_dir), confirm=confirm,
                            lock_timeout=r.lock_timeout, soak=r.soak, health_interval=r.health_interval,

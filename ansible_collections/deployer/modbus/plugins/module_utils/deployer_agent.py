@@ -1,5 +1,5 @@
 # The deployer.modbus modules' agent: option: the task runs through a site agent (deployer agent) over its
-# HTTP API, with deployer's own client (deployer.Agent from deployer.api), instead of talking Modbus itself.
+# HTTP API, with deployer's own client (deployer.Agent, public), instead of talking Modbus itself.
 # The agent owns its devices and holds the desired state (its inventory and recipes); the task says which
 # devices (limit) and how (batch, soak ...), the agent executes, and Ansible's serial: rolls sites out.
 

@@ -1,7 +1,7 @@
 # Shared by the deployer.modbus modules: which devices a task means, and the recipe for each of them.
 # The modules run on the site gateway (often `connection: local`) with a Python that has deployer
-# installed (ansible_python_interpreter); they call deployer's public Python API (deployer.api) only,
-# never its command line or its internal modules.
+# installed (ansible_python_interpreter); they call deployer's public Python API only (the names of
+# deployer.__all__, and the error tree of deployer.errors), never its command line or its internal modules.
 
 from __future__ import annotations
 
@@ -10,19 +10,7 @@ import traceback
 
 try:
     import deployer
-    from deployer.api import (
-        LIMITS,
-        InputError,
-        Job,
-        ReadJob,
-        UsageError,
-        describe_url,
-        device_url,
-        fleet_jobs,
-        inventory_from,
-        pull_names,
-        read_fleet,
-    )
+    from deployer.api import LIMITS, InputError, UsageError
     HAS_DEPLOYER = True
     IMPORT_ERROR = ""
 except ImportError:  # said clearly by the module, not as a traceback
@@ -117,37 +105,25 @@ def recipe_of(module):
     return deployer.recipe_from(p["profile"], p.get("parameters") or {}, name=p.get("name") or "ansible")
 
 
-def jobs_of(module, rec):
-    """One job per device the task names: device/unit, a devices list (host vars), or a deployer inventory."""
+def targets_of(module, rec):
+    """The devices the task names, as deployer.plan, apply and pull take them: an inventory (a deployer
+    inventory file; a devices list, host vars, checked as one; or the one device) and what selects from it."""
     p = module.params
+    common = {"limit": p.get("limit"), "timeout": p.get("timeout"), "retries": p.get("retries")}
     if p.get("inventory"):
-        return fleet_jobs(rec, p["inventory"], limit=p.get("limit"), timeout=p.get("timeout"),
-                          retries=p.get("retries"), unit=p.get("unit"))
+        return {"inventory": p["inventory"], "unit": p.get("unit"), **common}
     if p.get("devices"):  # host vars: the same rules as a deployer inventory (own profile, overrides)
-        if rec.path is None and any(d.get("profile") for d in p["devices"]):
+        if rec is not None and rec.path is None and any(d.get("profile") for d in p["devices"]):
             raise UsageError("a device with its own profile needs a recipe file (recipe:), not only parameters")
-        inv = inventory_from([{k: v for k, v in d.items() if v is not None} for d in p["devices"]],
-                             name="devices")
-        return fleet_jobs(rec, inv, limit=p.get("limit"), timeout=p.get("timeout"), retries=p.get("retries"))
-    url = p.get("device") or (rec.device.url if rec.device else None)
+        devices = [{k: v for k, v in d.items() if v is not None} for d in p["devices"]]
+        return {"inventory": deployer.load_inventory(devices, name="devices"), **common}
+    url = p.get("device") or (rec.device.url if rec is not None and rec.device else None)
     if not url:
         raise UsageError("no device: pass device (a URL), devices, inventory, or set device.url in the recipe")
     unit = p["unit"] if p.get("unit") is not None else (
         rec.device.unit if rec.device and rec.device.unit is not None else 1)
-    return [Job(p.get("name") or rec.name, rec, device_url(url, timeout=p.get("timeout"), retries=p.get("retries")),
-                unit)]
-
-
-def refuse_one_device_twice(jobs):
-    """Two names for one device (same address and unit, any spelling) would write it twice in one run."""
-    seen = {}
-    for j in jobs:
-        for key in ((k, j.unit) for k in j.url.lock_keys):  # resolved addresses: localhost is 127.0.0.1
-            if key in seen:
-                raise UsageError(f"{seen[key][0]!r} and {j.name!r} are one device ({seen[key][1]} and "
-                                 f"{describe_url(j.url)}, unit {j.unit}); list it once")
-            seen[key] = (j.name, describe_url(j.url))
-    return jobs
+    one = [{"name": p.get("name") or rec.name, "url": url, "unit": unit}]
+    return {"inventory": deployer.load_inventory(one, name="device"), **common}
 
 
 READ_ARGS = dict(profile=dict(type="str"), recipe=dict(type="path"), name=dict(type="str"),
@@ -155,7 +131,8 @@ READ_ARGS = dict(profile=dict(type="str"), recipe=dict(type="path"), name=dict(t
 
 
 def read_devices(module):
-    """Read the devices a read-only task names: (read jobs, {name: values or the exception}). Writes nothing."""
+    """Read the devices a read-only task names: {name: deployer.pull's values (with their profile and device), or
+    the exception that stopped the device's read}. Writes nothing."""
     p = module.params
     if p.get("recipe"):
         base = deployer.load_recipe(p["recipe"])
@@ -163,26 +140,17 @@ def read_devices(module):
         base = deployer.recipe_from(p["profile"], {}, name=p.get("name") or "pulled")
     else:
         raise UsageError("pass profile (or recipe)")
-    jobs = refuse_one_device_twice(jobs_of(module, base))
-    read = []
-    for j in jobs:
-        prof = j.recipe.profile
-        names = p.get("parameters") or ([d.name for d in j.recipe.desired] if p.get("recipe") else pull_names(prof))
-        unknown = [n for n in names if prof.get(n) is None]
-        if unknown:
-            raise UsageError(f"unknown parameter {', '.join(unknown)} in profile {prof.id}")
-        read.append(ReadJob(j.name, prof, tuple(names), j.url, j.unit))
-    return read, read_fleet(read, parallel=p["parallel"])
+    # a recipe's parameters, or with only a profile every setting it has; parameters: only those
+    return deployer.pull(base, names=p.get("parameters") or None, parallel=p["parallel"], **targets_of(module, base))
 
 
-def values_text(read, values):
+def values_text(values):
     """(facts: name -> parameter -> engineering text, raw: name -> parameter -> words, unreachable lines)."""
     facts, raw, down = {}, {}, []
-    for j in read:
-        cur = values[j.name]
+    for name, cur in values.items():
         if isinstance(cur, Exception):
-            down.append(f"{j.name}: {cur}")
+            down.append(f"{name}: {cur}")
             continue
-        facts[j.name] = {n: j.profile.parameter(n).format_registers(v) for n, v in cur.items()}
-        raw[j.name] = {n: list(v) for n, v in cur.items()}
+        facts[name] = cur.texts()
+        raw[name] = {n: list(v) for n, v in cur.items()}
     return facts, raw, down

@@ -163,8 +163,6 @@ plans:
   returned: in check mode
 """
 
-import asyncio  # noqa: E402
-
 from ansible.module_utils.basic import AnsibleModule  # noqa: E402
 
 from ansible_collections.deployer.modbus.plugins.module_utils.deployer_agent import (  # noqa: E402
@@ -180,10 +178,9 @@ from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common im
     TARGET_EXCLUSIVE,
     check_target_args,
     input_error,
-    jobs_of,
     recipe_of,
-    refuse_one_device_twice,
     require_deployer,
+    targets_of,
 )
 
 
@@ -193,27 +190,29 @@ def _diff(name, rows):
             "before": "".join(f"{n}: {b}\n" for n, b, a in rows), "after": "".join(f"{n}: {a}\n" for n, b, a in rows)}
 
 
-def check(module, jobs):
+def check(module, rec):
     """Check mode: read each device, plan against what it holds, write nothing."""
-    from deployer.api import plan_fleet, plan_to_json
+    import deployer
 
-    planned = plan_fleet(jobs, parallel=module.params["parallel"], write_all=module.params["write_all"],
-                         state_dir=module.params["state_dir"])
+    p = module.params
+    fleet = deployer.plan(rec, parallel=p["parallel"], write_all=p["write_all"], state_dir=p["state_dir"],
+                          **targets_of(module, rec))
     plans, diffs, devices, down = [], [], [], []
-    for j in jobs:
-        plan = planned[j.name]
-        if isinstance(plan, Exception):
-            down.append(f"{j.name}: {plan}")
-            devices.append({"name": j.name, "status": "unreachable", "error": str(plan)})
+    for name, error in fleet.errors.items():
+        down.append(f"{name}: {error}")
+    for name in fleet:
+        if name in fleet.errors:
+            devices.append({"name": name, "status": "unreachable", "error": str(fleet.errors[name])})
             continue
-        rows = [(pp.name, j.recipe.profile.parameter(pp.name).format_registers(pp.current_raw)
+        plan, profile = fleet[name], fleet.profile(name)
+        rows = [(pp.name, profile.parameter(pp.name).format_registers(pp.current_raw)
                  if pp.current_raw is not None else "?", pp.desired)
                 for pp in plan.parameters if pp.action == "write"]
-        plans.append({"name": j.name, "plan": plan_to_json(plan)})
-        devices.append({"name": j.name, "status": "would change" if plan.writes else "ok",
+        plans.append({"name": name, "plan": plan.to_json()})
+        devices.append({"name": name, "status": "would change" if plan.writes else "ok",
                         "changes": [row[0] for row in rows]})
         if rows:
-            diffs.append(_diff(j.name, rows))
+            diffs.append(_diff(name, rows))
     result = {"changed": any(s["kind"] == "write" for p in plans for s in p["plan"]["steps"]), "plans": plans,
               "devices": devices, "diff": diffs}
     if down:
@@ -221,21 +220,20 @@ def check(module, jobs):
     module.exit_json(**result)
 
 
-def apply(module, rec, jobs):
-    from deployer.api import ApplyOptions, RunInterrupted, run_fleet_async, safe_options
+def apply(module, rec):
+    import deployer
+    from deployer.api import RunInterrupted
 
     p = module.params
-    options = safe_options(ApplyOptions(on_error=p["on_error"], write_all=p["write_all"], state_dir=p["state_dir"],
-                                        allow_broadcast=p["allow_broadcast"], allow_unhealthy=p["allow_unhealthy"],
-                                        command="ansible deployer.modbus.apply"),
-                           soak=p.get("soak"), health_interval=p["health_interval"])
     interrupted = None
     try:  # one journaled run (deployer status sees it); SIGINT/SIGTERM end it with its report
-        report = asyncio.run(run_fleet_async(jobs, recipe_name=None if rec is None else rec.path or rec.name,
-                                             parallel=p["parallel"], batch=p.get("batch"), batch_by=p["batch_by"],
-                                             max_failures=p.get("max_failures"), options=options,
-                                             report_path=p.get("report"), via="ansible", signals=True,
-                                             rollback_on_failure=p["rollback_on_failure"]))
+        report = deployer.apply(rec, parallel=p["parallel"], batch=p.get("batch"), batch_by=p["batch_by"],
+                                max_failures=p.get("max_failures"), on_error=p["on_error"], write_all=p["write_all"],
+                                allow_broadcast=p["allow_broadcast"], state_dir=p["state_dir"], soak=p.get("soak"),
+                                health_interval=p["health_interval"], allow_unhealthy=p["allow_unhealthy"],
+                                rollback_on_failure=p["rollback_on_failure"],
+                                report_path=p.get("report"), signals=True, caller="ansible deployer.modbus.apply",
+                                **targets_of(module, rec))
     except RunInterrupted as e:
         report, interrupted = e.report, e
     devices, diffs, problems = [], [], []
@@ -276,7 +274,8 @@ def main():
     )
     require_deployer(module)
     check_target_args(module)
-    from deployer.api import AgentError, DeployerError, InputError, UsageError
+    from deployer.api import DeployerError, InputError, UsageError
+    from deployer.errors import AgentError
 
     if module.params["allow_unhealthy"] and not module.params.get("soak"):
         module.fail_json(msg="allow_unhealthy goes with soak (only a soak reads the health checks before it "
@@ -295,11 +294,10 @@ def main():
     _check_outputs(module)
     try:
         rec = recipe_of(module)
-        jobs = refuse_one_device_twice(jobs_of(module, rec))
         if module.check_mode:
-            check(module, jobs)
+            check(module, rec)
         else:
-            apply(module, rec, jobs)
+            apply(module, rec)
     except (InputError, UsageError) as e:
         input_error(module, e)
     except DeployerError as e:  # a device or lock error before any device's run (each one's is in the report)

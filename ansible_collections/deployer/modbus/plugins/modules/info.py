@@ -113,7 +113,8 @@ def main():
                            supports_check_mode=True)
     require_deployer(module)
     check_target_args(module)
-    from deployer.api import AgentError, InputError, UsageError
+    from deployer.api import InputError, UsageError
+    from deployer.errors import AgentError
 
     if module.params.get("agent"):
         try:
@@ -123,10 +124,10 @@ def main():
         return
 
     try:
-        read, values = read_devices(module)
+        values = read_devices(module)
     except (InputError, UsageError) as e:
         input_error(module, e)
-    facts, raw, down = values_text(read, values)
+    facts, raw, down = values_text(values)
     result = {"changed": False, "ansible_facts": {"modbus_parameters": facts}, "raw": raw}
     if down:
         module.fail_json(msg="unreachable: " + "; ".join(down), **result)

@@ -91,24 +91,22 @@ def main():
                            mutually_exclusive=TARGET_EXCLUSIVE, supports_check_mode=True)
     require_deployer(module)
     check_target_args(module)
-    from deployer.api import InputError, UsageError, describe_url, pulled_recipe
+    from deployer.api import InputError, UsageError
 
     p = module.params
     if os.path.exists(p["dest"]) and not os.path.isdir(p["dest"]):
         module.fail_json(msg=f"dest {p['dest']} is not a folder; nothing was read")
     try:
-        read, values = read_devices(module)
+        values = read_devices(module)
     except (InputError, UsageError) as e:
         input_error(module, e)
-    facts, down = values_text(read, values)[::2]  # not the raw words
+    facts, down = values_text(values)[::2]  # not the raw words
     files, changed = [], False
-    for j in read:
-        cur = values[j.name]
+    for name, cur in values.items():
         if isinstance(cur, Exception):
             continue
-        path = os.path.join(p["dest"], f"{j.name}.yaml")
-        text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe_url(j.url), unit=j.unit,
-                             relative_to=path)
+        path = os.path.join(p["dest"], f"{name}.yaml")
+        text = cur.recipe_text(name=f"pulled-{name}", relative_to=path)
         old = None
         if os.path.isfile(path):
             with open(path, encoding="utf-8") as f:
