@@ -27,7 +27,7 @@ class ChangeRefused(UsageError):
     """The change control refuses the run: nothing was sent. ``missing``: what it lacks, each said."""
 
     def __init__(self, message: str, missing: Sequence[str]) -> None:
-        super().__init__(message + "".join(f"\n  - {m}" for m in missing))
+        super().__init__(" ".join([message, *(f"({n}) {m}" for n, m in enumerate(missing, 1))]))
         self.missing = list(missing)
 
 

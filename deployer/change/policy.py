@@ -98,6 +98,12 @@ def load(path: str) -> Policy | None:
     from ..fleet.inventory import load_inventory
     from ..load import yamlsrc
 
+    try:
+        with open(path, "rb") as f:
+            if b"change_control" not in f.read():  # a fleet's big inventory without a policy is not read twice
+                return None
+    except OSError:
+        pass  # the loader says it, at its position
     inv = load_inventory(path)  # checked against the schema, change_control included
     data, _ = yamlsrc.load(path)
     spec = data.get("change_control") if isinstance(data, dict) else None
@@ -149,6 +155,18 @@ class _Combined(Policy):
 def site(explicit: str | None = None, inventory: str | None = None) -> Policy | None:
     """The policy a command-line run goes by: ``explicit`` (``--policy``) or ``DEPLOYER_POLICY``, and the
     run's own inventory's; None when none of them has one."""
-    paths = [p for p in (explicit or os.environ.get(ENV) or None, inventory) if p]
-    found = [p for p in (load(path) for path in dict.fromkeys(paths)) if p is not None]
+    from ..errors import UsageError
+
+    named = explicit or os.environ.get(ENV) or None
+    found = []
+    if named:
+        pol = load(named)
+        if pol is None:
+            what = "--policy" if explicit else ENV
+            raise UsageError(f"{what} {named}: the inventory has no change_control: member (docs/change-control.md)")
+        found.append(pol)
+    if inventory and (named is None or os.path.abspath(inventory) != os.path.abspath(named)):
+        pol = load(inventory)
+        if pol is not None:
+            found.append(pol)
     return combined(found)
