@@ -266,6 +266,19 @@ def collector(fw: Forwarder) -> Any:
     return Collector()
 
 
+def for_agent(inventory: str, state_dir: str, registry: Any) -> Forwarder | None:
+    """The agent's forwarder, when its inventory's policy names ``audit.syslog`` (registered on /metrics)."""
+    from ..change import policy
+
+    pol = policy.load(inventory)
+    if pol is None or pol.audit.syslog is None:
+        return None
+    fw = Forwarder(record.folder_of(state_dir, pol.audit.trail), pol.audit.syslog, ca=pol.audit.syslog_ca,
+                   max_backlog=pol.audit.max_backlog)
+    registry.register(collector(fw))
+    return fw
+
+
 async def forward(folder: str, url: str, *, ca: str | None = None, follow: bool = False,
                   max_backlog: int = 10_000, settle: float = 1.0, retry_max: float = 30.0) -> Forwarder:
     """``audit forward``: send what is pending once (OSError when the receiver cannot take it), or follow the
