@@ -25,7 +25,8 @@ from deployer.testing.simulator import Simulator, SimulatorThread
 from tests.agent_helpers import PROFILE
 
 SSH_KEYGEN = shutil.which("ssh-keygen")
-needs_ssh = pytest.mark.skipif(SSH_KEYGEN is None, reason="ssh-keygen is not installed (apt-get install openssh-client)")
+needs_ssh = pytest.mark.skipif(SSH_KEYGEN is None,
+                               reason="ssh-keygen is not installed (apt-get install openssh-client)")
 
 RECIPE = """\
 recipe: line
