@@ -52,15 +52,19 @@ def _parse(line: bytes) -> dict[str, Any] | None:
     return rec
 
 
-def _blame(ls: Sequence[bytes], recs: Sequence[dict[str, Any] | None], i: int) -> Finding:
-    """The link into line i (0-based) breaks: which record is to blame."""
+def _blame(ls: Sequence[bytes], recs: Sequence[dict[str, Any] | None], i: int, head: Head | None) -> Finding:
+    """The link into line i (0-based) breaks: which record is to blame. The last line is pinned by the head."""
     rec = recs[i]
     assert rec is not None
     prev_rec = recs[i - 1] if i > 0 else None
     expected_seq = 1 if prev_rec is None else int(prev_rec["seq"]) + 1
 
-    def holds_from(k: int) -> bool:  # line k links to line k-1 (or the trail ends before it)
-        return k >= len(ls) or (recs[k] is not None and recs[k]["prev"] == line_hash(ls[k - 1])  # type: ignore[index]
+    def holds_from(k: int) -> bool:  # line k links to line k-1 (past the end: the head names the last line)
+        if k >= len(ls):
+            last = recs[-1]
+            return head is not None and last is not None and head.seq == last["seq"] and \
+                head.hash == line_hash(ls[-1])
+        return (recs[k] is not None and recs[k]["prev"] == line_hash(ls[k - 1])  # type: ignore[index]
                                 and recs[k]["seq"] == recs[k - 1]["seq"] + 1)  # type: ignore[index]
 
     if rec["prev"] == (GENESIS if i == 0 else line_hash(ls[i - 1])):
@@ -104,7 +108,7 @@ def verify(folder: str, *, copy: str | None = None, head: str | None = None) -> 
         expected_prev = GENESIS if i == 0 else line_hash(ls[i - 1])
         expected_seq = 1 if i == 0 else (recs[i - 1] or {}).get("seq", 0) + 1
         if rec["prev"] != expected_prev or rec["seq"] != expected_seq:
-            out.problems.append(_blame(ls, recs, i))
+            out.problems.append(_blame(ls, recs, i, read_head(folder)))
             break
     out.records = len(ls)
     if ls and recs[-1] is not None:
