@@ -314,3 +314,112 @@ def test_a_key_in_ssh_agent_signs_through_ssh_keygen(tmp_path: Path, monkeypatch
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+# ---- approvals through the agent ----------------------------------------------------------------------------
+
+
+def _post(url: str, body: object) -> tuple[int, dict[str, object]]:
+    import urllib.error
+    import urllib.request
+
+    req = urllib.request.Request(url + "/v1/approvals", data=json.dumps(body).encode(), method="POST",
+                                 headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=20) as resp:
+            return resp.status, json.loads(resp.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read())
+
+
+@needs_ssh
+def test_the_agent_takes_a_signed_approval_and_refuses_the_authors_and_an_anonymous_one(
+        tmp_path: Path, sim: Simulator) -> None:
+    from tests.agent_helpers import AgentProcess
+
+    for n in ("alice", "bob"):
+        keygen(tmp_path, n)
+    allowed(tmp_path, "alice", "bob")
+    inv = site(tmp_path, sim.url, "{approvals: 1}")
+    assert run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json", "--sign-key", "alice",
+               "--policy", str(inv)).returncode == 0
+    doc = json.loads((tmp_path / "p.json").read_text())
+    agent = AgentProcess(inv, tmp_path / "state")
+    try:
+        mine = sign(digest(doc), "alice", "approved", signer_of(str(tmp_path / "alice")))
+        status, answer = _post(agent.url, {"plan": doc, "signature": mine})
+        assert status == 403 and "cannot approve their own change" in str(answer["error"])
+        status, answer = _post(agent.url, {"plan": doc})  # nobody named (single-token mode): no attestation
+        assert status == 401 and "needs a named user" in str(answer["error"])
+        bobs = sign(digest(doc), "bob", "approved", signer_of(str(tmp_path / "bob")))
+        status, answer = _post(agent.url, {"plan": {**doc, "change": {**doc["change"], "reason": "x"}},
+                                           "signature": bobs})
+        assert status == 422 and "other content" in str(answer["error"])  # bob signed another plan
+        status, answer = _post(agent.url, {"plan": doc, "signature": bobs})
+        assert status == 200 and answer["missing"] == [], answer
+        (tmp_path / "p.json").write_text(json.dumps(answer["plan"], indent=2))
+    finally:
+        assert agent.terminate() == 0
+    assert run(tmp_path, "apply", "p.json", "--yes", "--policy", str(inv)).returncode == 0  # the agent let go
+    trail = [json.loads(x) for x in (tmp_path / "state/audit/trail.jsonl").read_text().splitlines()]
+    assert [(t["event"], t["via"]) for t in trail] == [("approve-refused", "agent")] * 3 + [("plan-signed", "agent")]
+
+
+@needs_ssh
+def test_an_agent_attests_for_its_user_only_with_a_key_trusted_to_attest(tmp_path: Path) -> None:
+    from deployer.change import attest, policy
+    from deployer.change.signers import parse
+
+    keygen(tmp_path, "alice")
+    signers = allowed(tmp_path, "alice")
+    doc = {"schema": "deployer.plan/2", "device": {"url": "tcp://127.0.0.1:1", "unit": 1},
+           "change": {"author": "alice", "reason": "r"}}
+    pol = policy.Policy(signers=parse(str(signers), signers.read_text()))
+    with pytest.raises(attest.Refused) as e:  # its key is not in allowed_signers yet: the line to add is said
+        attest.approve(doc, user="dave", entry=None, meaning="approved", policy=pol, key_folder=str(tmp_path / "ag"))
+    line = str(e.value).split(": ", 2)[-1]
+    assert e.value.status == 409 and 'namespaces="deployer-attest" ssh-ed25519 ' in line
+    text = signers.read_text() + line + "\n"
+    pol = policy.Policy(signers=parse(str(signers), text))
+    out = attest.approve(doc, user="dave", entry=None, meaning="approved", policy=pol, key_folder=str(tmp_path / "ag"))
+    v = verify(out["signature"], digest(doc), pol.signers)
+    assert v.holds and v.signer == "dave" and v.attested_by and v.attested_by.startswith("deployer-agent@")
+    with pytest.raises(attest.Refused):  # the author, authenticated, still cannot approve
+        attest.approve(doc, user="alice", entry=None, meaning="approved", policy=pol, key_folder=str(tmp_path / "ag"))
+    # a person's key (no namespaces option written out) cannot attest for somebody else
+    forged = sign(digest(doc), "bob", "approved", signer_of(str(tmp_path / "alice")), attested_by="alice")
+    assert "does not name the namespace deployer-attest" in verify(forged, digest(doc), pol.signers).why
+
+
+# ---- the printed record ------------------------------------------------------------------------------------
+
+
+@needs_ssh
+@pytest.mark.skipif(shutil.which("pdftotext") is None, reason="pdftotext (poppler-utils) is not installed")
+def test_the_printed_record_and_the_audit_page_carry_the_signatures(tmp_path: Path, sim: Simulator) -> None:
+    from tests.test_commissioning import _pdf_text
+    from tests.test_pages import CHROMIUM
+
+    if CHROMIUM is None:
+        pytest.skip("no Chromium")
+    for n in ("alice", "bob", "carol"):
+        keygen(tmp_path, n)
+    allowed(tmp_path, "alice", "bob", "carol")
+    policy = str(site(tmp_path, sim.url, "{approvals: 1, ticket: true}"))
+    assert run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json", "--ticket", "CHG-7",
+               "--reason", "new ramps", "--sign-key", "alice", "--policy", policy).returncode == 0
+    assert run(tmp_path, "sign", "p.json", "--meaning", "reviewed", "--key", "carol",
+               "--policy", policy).returncode == 0
+    assert run(tmp_path, "approve", "p.json", "--key", "bob", "--policy", policy).returncode == 0
+    r = run(tmp_path, "apply", "p.json", "--yes", "--policy", policy, "--html", "record.html")
+    assert r.returncode == 0, r.stderr
+    words = " ".join(_pdf_text(tmp_path / "record.html", tmp_path).split())
+    d = digest(json.loads((tmp_path / "p.json").read_text()))
+    assert "Change and electronic signatures" in words and d[:40] in words.replace(" ", "")
+    for who, meaning in (("alice", "authored"), ("carol", "reviewed"), ("bob", "approved")):
+        assert f"{who} {meaning} " in words, words
+    assert "author alice" in words and "ticket CHG-7" in words and "reason new ramps" in words
+    shown = run(tmp_path, "audit", "show", "--user", "bob", "--html", "audit.html")
+    assert shown.returncode == 0 and "plan-signed" in shown.stdout and "apply" not in shown.stdout
+    page = " ".join(_pdf_text(tmp_path / "audit.html", tmp_path).split())
+    assert "bob approved" in page and "every record holds" in page and "user bob" in page
