@@ -208,7 +208,9 @@ def test_without_a_policy_a_plan_signed_over_other_content_is_refused(tmp_path: 
     """No key is needed to see that a signature covers another digest: refused under any policy or none."""
     assert run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json").returncode == 0
     doc = json.loads((tmp_path / "p.json").read_text())
-    doc["signatures"] = [{"signer": "bob", "meaning": "approved", "digest": "sha256:" + "0" * 64}]
+    doc["signatures"] = [{**statement("sha256:" + "0" * 64, "bob", "approved"), "format": "sshsig",
+                          "namespace": "deployer", "signature": "-----BEGIN SSH SIGNATURE-----\n-----END SSH "
+                                                                "SIGNATURE-----\n"}]
     (tmp_path / "p.json").write_text(json.dumps(doc))
     sim.log.clear()
     r = run(tmp_path, "apply", "p.json", "--yes")
