@@ -425,3 +425,40 @@ def test_the_printed_record_and_the_audit_page_carry_the_signatures(tmp_path: Pa
     assert shown.returncode == 0 and "plan-signed" in shown.stdout and "apply" not in shown.stdout
     page = " ".join(_pdf_text(tmp_path / "audit.html", tmp_path).split())
     assert "bob approved" in page and "every record holds" in page and "user bob" in page
+
+
+@needs_ssh
+def test_released_inputs_signed_by_hand_with_ssh_keygen(tmp_path: Path, sim: Simulator) -> None:
+    """The recipe and profile released by hand (deployer writes the statement, ssh-keygen signs it), a policy that
+    requires signed inputs: a recipe applies while its signature holds and is refused, nothing sent, once a byte
+    of it changed; a plan records the signatures it was made with."""
+    assert SSH_KEYGEN is not None
+    key = keygen(tmp_path, "qa")
+    allowed(tmp_path, "qa")
+    policy = str(site(tmp_path, sim.url, "{signed_inputs: true}"))
+    refused = run(tmp_path, "apply", "r.yaml", "--device", sim.url, "--yes", "--policy", policy)
+    assert refused.returncode == 1 and "an approved signature of the recipe r.yaml (it carries none)" in refused.stderr
+    for f in ("r.yaml", "drive.yaml"):
+        st = run(tmp_path, "sign", f, "--meaning", "approved", "--signer", "qa", "--statement-out", f"{f}.st")
+        assert st.returncode == 0 and "ssh-keygen -Y sign" in st.stdout
+        subprocess.run([SSH_KEYGEN, "-Y", "sign", "-q", "-f", str(key), "-n", "deployer", str(tmp_path / f"{f}.st")],
+                       check=True)
+        added = run(tmp_path, "sign", f, "--meaning", "approved", "--statement", f"{f}.st", "--signature",
+                    f"{f}.st.sig")
+        assert added.returncode == 0 and f"{f}.signatures.json" in added.stdout, added.stderr
+    v = run(tmp_path, "verify", "r.yaml", "--policy", policy)
+    assert v.returncode == 0 and "approved  qa" in v.stdout
+    made = run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json", "--policy", policy)
+    assert made.returncode == 0
+    inputs = json.loads((tmp_path / "p.json").read_text())["change"]["inputs"]
+    assert [(i["kind"], len(i["signatures"])) for i in inputs] == [("recipe", 1), ("profile", 1)]
+    assert run(tmp_path, "apply", "p.json", "--yes", "--policy", policy).returncode == 0
+    sim.log.clear()
+    (tmp_path / "r.yaml").write_text(RECIPE.replace("3000 rpm", "3001 rpm"))
+    changed = run(tmp_path, "apply", "r.yaml", "--device", sim.url, "--yes", "--policy", policy)
+    assert changed.returncode == 1 and "made over other content" in changed.stderr and sim.log == []
+
+
+def test_reason_and_ticket_describe_a_saved_plan(tmp_path: Path) -> None:
+    r = run(tmp_path, "plan", "r.yaml", "--reason", "x")
+    assert r.returncode == 1 and "give --out PLAN.json" in r.stderr
