@@ -141,6 +141,9 @@ CLI_MAY_IMPORT = {
     "deployer.testing.simulator": "`deployer simulate` and `deployer demo` serve the simulator",
     "deployer.load.schema": "`deployer docs` and `profiles skeleton` show the JSON schemas",
     "deployer.agent": "`deployer agent` runs the site agent's server (its client is behind deployer.api)",
+    "deployer.change": "change control's own surface (digest, sign, verify, check_approvals; docs/change-control.md): "
+                       "plan --out's change member, approve, sign, verify",
+    "deployer.audit": "the audit trail: `audit verify/show/forward`, and each command's one call recording itself",
     "deployer.cli": "its own modules",
 }
 

@@ -15,9 +15,9 @@ from ..errors import EXIT_INVALID, EXIT_OK, UsageError
 from .base import echo, safe
 
 if TYPE_CHECKING:
+    from ..api import Recipe
     from ..change.signature import Signer
     from ..change.signers import AllowedSigners
-    from ..recipe.loader import Recipe
 
 
 @dataclass(frozen=True)
@@ -93,9 +93,9 @@ def signer_name(key: Signer, given: str | None, allowed: AllowedSigners | None) 
 
 def stamped(data: dict[str, Any], change: ChangeOptions, rec: Recipe) -> dict[str, Any]:
     """``plan --out``'s document with its ``change`` member (and the author's signature with ``--sign-key``)."""
+    from ..api import user_name
     from ..change import digest, sign
     from ..change.files import change_member, input_record
-    from ..portable import user_name
 
     files = [("recipe", rec.path), ("profile", rec.profile.source)]
     inputs = [input_record(kind, path) for kind, path in files if path and os.path.isfile(path)]
@@ -177,9 +177,9 @@ def _sign(path: str, meaning: str, *, key: str | None, signer: str | None, state
         name = signer_name(k, signer, allowed) if k is not None else (signer or _default())
         if statement_out is not None:
             st = make_statement(target.digest, name, meaning)
-            from ..state.durable import write_atomic
+            from ..api import write_output
 
-            write_atomic(statement_out, statement_bytes(st), what="the statement")
+            write_output(statement_out, statement_bytes(st), what="the statement")
             echo(f"statement written to {safe(statement_out)}; sign it with:\n  ssh-keygen -Y sign -f KEY -n deployer "
                  f"{safe(statement_out)}\nthen: deployer {'approve' if meaning == 'approved' else 'sign'} "
                  f"{safe(path)} --statement {safe(statement_out)} --signature {safe(statement_out)}.sig")
