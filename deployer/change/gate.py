@@ -15,8 +15,6 @@ from typing import TYPE_CHECKING, Any
 from ..errors import UsageError
 from . import policy as policies
 from .canonical import canonical, digest
-from .check import check_approvals, inputs_missing, stale, verdicts
-from .files import read_plan
 
 if TYPE_CHECKING:
     from ..execute.job import Job
@@ -49,6 +47,9 @@ def check_run(*, command: str, source: str | None, jobs: Sequence[Job], policy_p
     policy = policies.site(policy_path, inventory)
     planned = [j for j in jobs if j.plan is not None]
     if planned and source is not None:
+        from .check import check_approvals, stale
+        from .files import read_plan
+
         doc = read_plan(source)
         url_unit = [(_url(j), j.unit) for j in planned]
         missing = stale(doc) if policy is None else []
@@ -115,6 +116,7 @@ def _profiles_signed(doc: Mapping[str, Any], jobs: Sequence[Job]) -> list[str]:
 
 
 def _files_signed(job: Job, policy: policies.Policy) -> list[str]:
+    from .check import inputs_missing
     from .files import input_record
 
     files = [("recipe", job.recipe.path), ("profile", job.recipe.profile.source)]
@@ -122,6 +124,8 @@ def _files_signed(job: Job, policy: policies.Policy) -> list[str]:
 
 
 def _info(doc: Mapping[str, Any], policy: policies.Policy | None) -> dict[str, Any]:
+    from .check import verdicts
+
     change = doc.get("change") if isinstance(doc.get("change"), Mapping) else {}
     assert isinstance(change, Mapping)
     out: dict[str, Any] = {"digest": digest(doc)}

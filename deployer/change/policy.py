@@ -10,9 +10,10 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .signers import AllowedSigners
+if TYPE_CHECKING:
+    from .signers import AllowedSigners
 
 ENV = "DEPLOYER_POLICY"
 DEFAULT_BACKLOG = 10_000

@@ -16,7 +16,6 @@ import time
 from dataclasses import dataclass
 
 from ..errors import Diagnostic, InputError
-from .sshsig import SigError, public_from_blob
 
 KEY_TYPES = ("ssh-ed25519", "ssh-rsa", "ecdsa-sha2-nistp256", "ecdsa-sha2-nistp384", "ecdsa-sha2-nistp521",
              "sk-ssh-ed25519@openssh.com", "sk-ecdsa-sha2-nistp256@openssh.com", "ssh-dss")
@@ -151,6 +150,8 @@ def _when(text: str) -> datetime.datetime:
 
 
 def parse(path: str, text: str) -> AllowedSigners:
+    from .sshsig import SigError, public_from_blob
+
     signers, skipped, errors = [], [], []
     for n, raw in enumerate(text.splitlines(), 1):
         line = raw.strip()
