@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .canonical import digest
 from .policy import Policy, Rule, _described
-from .signature import Verdict, verify
-from .signers import AllowedSigners
+
+if TYPE_CHECKING:
+    from .signature import Verdict
+    from .signers import AllowedSigners
 
 
 def plan_device(doc: Mapping[str, Any]) -> tuple[str | None, int | None]:
@@ -22,6 +24,8 @@ def plan_device(doc: Mapping[str, Any]) -> tuple[str | None, int | None]:
 
 def verdicts(doc: Mapping[str, Any], allowed: AllowedSigners | None) -> list[Verdict]:
     """Every signature of a plan, checked against its digest now."""
+    from .signature import verify
+
     sigs = doc.get("signatures")
     d = digest(doc)
     return [verify(e, d, allowed) for e in (sigs if isinstance(sigs, list) else [])]
@@ -83,6 +87,8 @@ def _approvals(checked: Sequence[Verdict], author: str | None, needed: int) -> l
 
 def inputs_missing(inputs: Any, allowed: AllowedSigners | None) -> list[str]:
     """Each recipe and profile file the plan records must carry an ``approved`` signature over its bytes."""
+    from .signature import verify
+
     if not isinstance(inputs, list) or not inputs:
         return ["signed inputs: the plan records no input files (make it again with deployer plan ... --out)"]
     out = []

@@ -132,7 +132,9 @@ def _info(doc: Mapping[str, Any], policy: policies.Policy | None) -> dict[str, A
     for k in ("author", "reason", "ticket", "time"):
         if isinstance(change.get(k), str):
             out[k] = change[k]
-    out["signatures"] = [v.to_json() for v in verdicts(doc, policy.signers if policy is not None else None)]
+    sigs = doc.get("signatures")  # none: nothing to check (and cryptography need not load)
+    out["signatures"] = [v.to_json() for v in verdicts(doc, policy.signers if policy is not None else None)] \
+        if sigs else []
     if policy is None:  # nobody vouched for the keys: say the signatures were not checked against any
         for s in out["signatures"]:
             s["holds"] = None
