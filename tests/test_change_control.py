@@ -22,21 +22,11 @@ from deployer.change.signature import statement, statement_bytes
 from deployer.errors import InputError
 from deployer.profile import load_profile
 from deployer.testing.simulator import Simulator, SimulatorThread
-from tests.agent_helpers import PROFILE
+from tests.agent_helpers import PROFILE, RECIPE
 
 SSH_KEYGEN = shutil.which("ssh-keygen")
 needs_ssh = pytest.mark.skipif(SSH_KEYGEN is None,
                                reason="ssh-keygen is not installed (apt-get install openssh-client)")
-
-RECIPE = """\
-recipe: line
-profile: drive.yaml
-parameters:
-  accel: 2 s
-  decel: 3 s
-  speed: 3000 rpm
-"""
-
 
 def run(tmp: Path, *args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     """``deployer ARGS`` as its own process, in ``tmp``."""

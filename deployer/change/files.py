@@ -18,15 +18,17 @@ DETACHED = "deployer.signatures/1"
 MAX_FILE = 64 << 20
 
 
-def _read(path: str) -> bytes:
+def read_bounded(path: str, limit: int = MAX_FILE, what: str = "it") -> bytes:
+    """A file's bytes, at most ``limit`` of them (InputError: unreadable or larger)."""
     try:
         with open(path, "rb") as f:
-            data = f.read(MAX_FILE + 1)
+            data = f.read(limit + 1)
     except OSError as e:
-        raise InputError([Diagnostic(path, 0, 0, f"cannot read it: {e.strerror}")]) from None
-    if len(data) > MAX_FILE:
-        raise InputError([Diagnostic(path, 0, 0, "larger than 64 MiB")])
+        raise InputError([Diagnostic(path, 0, 0, f"cannot read {what}: {e.strerror}")]) from None
+    if len(data) > limit:
+        raise InputError([Diagnostic(path, 0, 0, f"{what} is larger than {limit >> 20} MiB")])
     return data
+
 
 
 def is_plan(data: bytes) -> bool:
@@ -35,7 +37,7 @@ def is_plan(data: bytes) -> bool:
 
 def read_plan(path: str) -> dict[str, Any]:
     """A plan file as the JSON document it is (strict JSON: duplicate keys and NaN refused, as the digest needs)."""
-    return parse_plan(_read(path), path)
+    return parse_plan(read_bounded(path), path)
 
 
 def parse_plan(data: bytes, path: str) -> dict[str, Any]:
@@ -70,7 +72,7 @@ def write_plan(path: str, doc: Mapping[str, Any]) -> None:
 
 def input_record(kind: str, path: str) -> dict[str, Any]:
     """A recipe or profile file the plan is made from: its path, its bytes' SHA-256, its detached signatures."""
-    data = _read(path)
+    data = read_bounded(path)
     sigs = detached(path).get("signatures") or []
     return {"kind": kind, "path": path, "sha256": hashlib.sha256(data).hexdigest(), "signatures": sigs}
 
@@ -100,7 +102,7 @@ def detached(path: str) -> dict[str, Any]:
     if not os.path.exists(side):
         return {"schema": DETACHED, "file": os.path.basename(path), "signatures": []}
     try:
-        doc = json.loads(_read(side).decode("utf-8"))
+        doc = json.loads(read_bounded(side).decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as e:
         raise InputError([Diagnostic(side, 0, 0, f"not a signatures file: {e}")]) from None
     if not isinstance(doc, dict) or doc.get("schema") != DETACHED or not isinstance(doc.get("signatures"), list):
@@ -113,7 +115,7 @@ class Signed:
 
     def __init__(self, path: str) -> None:
         self.path = path
-        data = _read(path)
+        data = read_bounded(path)
         self.plan = parse_plan(data, path) if is_plan(data) else None
         self.digest = digest(self.plan) if self.plan is not None else bytes_digest(data)
         self.side = None if self.plan is not None else detached(path)

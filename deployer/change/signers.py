@@ -193,13 +193,9 @@ def load(path: str) -> AllowedSigners:
 
 
 def _read(path: str) -> str:
-    try:
-        with open(path, "rb") as f:
-            data = f.read(MAX_FILE + 1)
-    except OSError as e:
-        raise InputError([Diagnostic(path, 0, 0, f"cannot read the allowed signers: {e.strerror}")]) from None
-    if len(data) > MAX_FILE:
-        raise InputError([Diagnostic(path, 0, 0, "the allowed signers file is larger than 1 MiB")])
+    from .files import read_bounded
+
+    data = read_bounded(path, MAX_FILE, "the allowed signers file")
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError:
