@@ -278,3 +278,23 @@ def test_the_agent_forwards_and_alarms_on_its_backlog(tmp_path: Path) -> None:
         assert _metrics(agent.url)["deployer_audit_forwarded_total"] >= head.seq - 1
     finally:
         assert agent.terminate() == 0
+
+
+def test_show_chooses_by_device_user_and_time(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tests.helpers import cli
+
+    folder = str(tmp_path / "audit")
+    trail.append(folder, [{**record.event("applied", user="ann", device="d1"), "time": "2026-01-01T10:00:00.000Z"},
+                          {**record.event("applied", user="ben", device="d2"), "time": "2026-01-02T10:00:00.000Z"},
+                          {**record.event("confirmed", user="ann"), "time": "2026-01-03T10:00:00.000Z"}])
+    code, out, _ = cli(capsys, "audit", "show", "--trail", folder, "--json", "--user", "ann")
+    assert code == 0 and [json.loads(x)["seq"] for x in out.splitlines()] == [1, 3]
+    code, out, _ = cli(capsys, "audit", "show", "--trail", folder, "--device", "d2")
+    assert code == 0 and out.startswith("2 2026-01-02T10:00:00.000Z applied ben device d2")
+    code, out, _ = cli(capsys, "audit", "show", "--trail", folder, "--json", "--since", "2026-01-02",
+                       "--until", "2026-01-03T09:00Z")
+    assert [json.loads(x)["seq"] for x in out.splitlines()] == [2]
+    code, _, err = cli(capsys, "audit", "show", "--trail", folder, "--since", "yesterday")
+    assert code == 1 and "--since yesterday: expected an ISO 8601 date" in err
+    code, out, _ = cli(capsys, "audit", "verify", "--trail", folder)
+    assert code == 0 and "3 records hold; head seq 3" in out
