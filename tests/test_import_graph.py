@@ -141,6 +141,9 @@ CLI_MAY_IMPORT = {
     "deployer.testing.simulator": "`deployer simulate` and `deployer demo` serve the simulator",
     "deployer.load.schema": "`deployer docs` and `profiles skeleton` show the JSON schemas",
     "deployer.agent": "`deployer agent` runs the site agent's server (its client is behind deployer.api)",
+    "deployer.change": "change control's own surface (digest, sign, verify, check_approvals; docs/change-control.md): "
+                       "plan --out's change member, approve, sign, verify",
+    "deployer.audit": "the audit trail: `audit verify/show/forward`, and each command's one call recording itself",
     "deployer.cli": "its own modules",
 }
 # deployer.api.commands is the command line's door into the rest: what it needs beyond the public API, in one
@@ -279,7 +282,8 @@ AGENT_NOT_YET_ON_THE_API = {
     "firstrestores.py": {"deployer.execute.job", "deployer.execute.session", "deployer.report"},
     "page.py": {"deployer.pages.assets"},
     "security.py": {"deployer.load.messages"},
-    "service.py": {"deployer.portable"},
+    "server.py": {"deployer.audit", "deployer.change"},
+    "service.py": {"deployer.audit.forward", "deployer.portable"},
 }
 
 

@@ -193,6 +193,38 @@ async def get_status(agent: Agent, request: web.Request) -> Any:
     return agent.status_json()
 
 
+# the authenticated user and role, as the users' middleware puts them on the request (None: single-token mode)
+USER, ROLE = "deployer.user", "deployer.role"
+
+
+async def approve_plan(agent: Agent, request: web.Request) -> Any:
+    """``POST /v1/approvals`` (role approver): ``{"plan": PLAN, "signature": ENTRY?, "meaning": "approved"}`` ->
+    the plan with the approval added (the client's signature checked, or the agent's attestation for the user),
+    its digest and what it still lacks; audited either way (change/attest.py decides)."""
+    from ..audit import record
+    from ..change import attest
+    from ..change import policy as policies
+
+    body = await _body(request)
+    user, role = request.get(USER), request.get(ROLE)
+    pol = policies.load(agent.settings.inventory)
+    trail = record.folder_of(agent.state_dir, pol.audit.trail if pol is not None else None)
+    plan = body.get("plan")
+    try:
+        out = attest.approve(plan, user=user, entry=body.get("signature"), meaning=str(body.get("meaning", "approved")),
+                             policy=pol, key_folder=agent.folder)
+    except attest.Refused as e:
+        record.append_cli(agent.state_dir, trail, [record.event(
+            "approve-refused", user=user, role=role, via="agent", result="refused",
+            detail={"why": str(e), "client": request.remote})])
+        raise ApiError("refused" if e.status in (403, 409, 422) else "usage", str(e), status=e.status) from None
+    sig = out["signature"]
+    record.append_cli(agent.state_dir, trail, [record.event(
+        "plan-signed", user=sig["signer"], role=role, via="agent", result="ok", plan=out["digest"],
+        detail={k: sig[k] for k in ("signer", "meaning", "time", "attested_by") if k in sig})])
+    return out
+
+
 async def get_openapi(agent: Agent, request: web.Request) -> Any:
     return web.FileResponse(os.path.join(os.path.dirname(__file__), "openapi.json"),
                             headers={"Content-Type": "application/json"})
@@ -221,6 +253,7 @@ ROUTES: tuple[tuple[str, str, Handler], ...] = (
     ("GET", "/v1/events", list_events),
     ("GET", "/v1/ledger", get_ledger),
     ("GET", "/v1/status", get_status),
+    ("POST", "/v1/approvals", approve_plan),
     ("GET", "/v1/openapi.json", get_openapi),
     ("GET", "/metrics", get_metrics),
 )

@@ -39,6 +39,9 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
     application = app(agent, token=token)
     if notifier is not None:
         application[METRICS].register(notifier)  # its queues and failures on /metrics
+    from ..audit.forward import for_agent  # the policy's audit.syslog: the trail forwarded, its backlog on /metrics
+
+    forwarder = for_agent(settings.inventory, settings.state_dir, application[METRICS])
     runner = Runner(application, access_log=None, handle_signals=False)
     await runner.setup()
     site = web.TCPSite(runner, host, port, reuse_address=True, ssl_context=tls)
@@ -54,6 +57,7 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
     from ..portable import interrupt_signals, on_signals
 
     stop = asyncio.Event()
+    forwarding: asyncio.Future[None] | None = None
     loop = asyncio.get_running_loop()
     undo = []
     if signals:  # the event loop's handlers, or signal.signal on Windows (no SIGHUP there: restart to reload)
@@ -63,6 +67,8 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
     try:
         if notifier is not None:
             notifier.start(url)  # before the agent's start: its first events are sent too
+        if forwarder is not None:
+            forwarding = asyncio.ensure_future(forwarder.run())
         await agent.start(url)
         print(f"listening on {url}", file=sys.stderr, flush=True)
         if on_ready is not None:
@@ -75,6 +81,9 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
         await runner.cleanup()
         if notifier is not None:
             await notifier.stop()
+        if forwarding is not None:
+            forwarding.cancel()
+            await asyncio.gather(forwarding, return_exceptions=True)
     return 0
 
 

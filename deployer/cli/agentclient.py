@@ -17,7 +17,7 @@ from .base import echo
 
 # options of apply that mean something only where the command line itself talks to the devices
 _LOCAL_ONLY = ("device", "unit", "timeout", "retries", "allow_broadcast", "html_path", "pause", "ask", "inventory",
-               "meta", "compact", "workers")  # meta, compact: the page's, with --html
+               "meta", "compact", "workers", "policy")  # meta, compact: with --html; policy: the agent's own
 
 
 def _client(url: str) -> Any:

@@ -63,6 +63,10 @@ def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: 
     _consent_to_move(prepared.moved, err, yes=yes, to_other_device=to_other_device)
     report, interrupted = _run(prepared, err, confirm=None if yes else _confirm_each(prepared, err),
                                as_json=as_json)
+    from ..audit.commands import after_run  # the audit trail's records and the plan's change in the report
+
+    after_run(report, command=request.command, change=prepared.change, state_dir=request.state_dir,
+              policy_path=request.policy, inventory=request.inventory, report_path=request.report_path)
     if request.html_path:
         from ..pages import run_page
         from .base import write_page
@@ -276,6 +280,9 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--allow-broadcast", is_flag=True, help="allow unit 0 (broadcast; nothing can be verified)"),
         click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
                      help="where snapshots and the audit log go"),
+        click.option("--policy", type=click.Path(dir_okay=False), metavar="INVENTORY",
+                     help="the site's change-control policy: an inventory's change_control: (default: the "
+                          "DEPLOYER_POLICY environment variable; --inventory's own counts too)"),
         click.option("--lock-timeout", type=float_range(LIMITS.lock_timeout), default=0, show_default=True, metavar="S",
                      help="wait up to S seconds for a device another run on this machine is writing"),
         click.option("--workers", type=int_range(LIMITS.workers), default=None, metavar="N",
@@ -536,6 +543,10 @@ def confirm(run: str | None, state_dir: str, agent_url: str | None) -> int:
 
     # NotCommitted (exit 4) names each device the commit did not reach
     done = confirm_outcome(run, state_dir=state_dir, on_confirmed=said)
+    from ..audit.commands import after_confirm
+
+    for what in after_confirm(confirmed[0] if confirmed else str(run), done, state_dir=state_dir):
+        echo(f"not recorded: {safe(what)}", err=True)
     sent, kept = done.get("committed") or [], done.get("kept") or []
     said_ = []
     if sent:

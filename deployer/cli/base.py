@@ -59,6 +59,8 @@ class LazyGroup(click.Group):
 _COMMANDS = {
     "agent": "deployer.cli.agent:agent",
     "apply": "deployer.cli.apply:apply",
+    "approve": "deployer.cli.change:approve",
+    "audit": "deployer.cli.audit:audit",
     "confirm": "deployer.cli.apply:confirm",
     "demo": "deployer.cli.simulate:demo",
     "diff": "deployer.cli.read:diff",
@@ -72,9 +74,11 @@ _COMMANDS = {
     "report": "deployer.cli.report:report",
     "rollback": "deployer.cli.apply:rollback",
     "scan": "deployer.cli.field:scan",
+    "sign": "deployer.cli.change:sign",
     "simulate": "deployer.cli.simulate:simulate",
     "status": "deployer.cli.apply:status",
     "validate": "deployer.cli.files:validate",
+    "verify": "deployer.cli.change:verify",
 }
 
 

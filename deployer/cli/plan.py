@@ -25,6 +25,7 @@ from .base import (
     recipe_or_inventory,
     safe,
 )
+from .change import ChangeOptions, change_options
 from .tables import Cell, show
 
 if TYPE_CHECKING:
@@ -179,10 +180,11 @@ def print_frames(plan: Plan, out: Console) -> None:
 @click.option("--per-device", is_flag=True,
               help="with --inventory: each device's own plan table (default: devices with identical changes together)")
 @agent_option
+@change_options
 def plan(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
          as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
          safe_change: bool, state_dir: str, inventory: str | None, limit: str | None, parallel: int, per_device: bool,
-         agent_url: str | None) -> int:
+         agent_url: str | None, change: ChangeOptions) -> int:
     """Show the requests that apply would send. Offline, or with --device against what the device holds.
 
     With --inventory and no RECIPE, each device's recipe from the inventory. With --agent URL: the changes
@@ -198,6 +200,8 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
 
     from ..api.commands import plan_to_json, plan_values, write_output
 
+    if change.given and not out_path:
+        raise UsageError("--reason, --ticket, --sign-key and --signer describe a saved plan: give --out PLAN.json")
     maybe = recipe_or_inventory(recipe, inventory)
     if inventory:
         if device or out_path or show_frames:
@@ -242,8 +246,16 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
 
     data = plan_to_json(p, plan_cost(p, rec.profile, url))  # the saved plan says what it costs, as printed
     if out_path:
+        from .change import stamped  # change control: who, why, which ticket, from which files; signed
+
+        data = stamped(data, change, rec)
         os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
         write_output(out_path, json.dumps(data, indent=2) + "\n", what="the plan")
+        from ..audit.commands import after_plan
+
+        for what in after_plan(data, out_path=out_path, device=data.get("device", {}).get("url"), state_dir=state_dir,
+                               policy_path=change.policy):
+            echo(f"not recorded: {safe(what)}", err=True)
     if as_json:
         echo(json.dumps(data, indent=2))
     else:

@@ -35,6 +35,10 @@ details.device > summary .where { color: var(--muted); margin-left: .6rem; }
 .outcome table.statuses { width: auto; }
 .sign { display: grid; grid-template-columns: repeat(3, 1fr); gap: 2rem; margin: 2.2rem 0 .6rem; }
 .sign div { border-top: 1px solid #000; padding-top: .2rem; font-size: 9pt; }
+.esig table { width: auto; }
+#audit { font-size: 8.5pt; } #audit td { vertical-align: top; } #audit table { margin: .1rem 0; }
+#audit .digest { word-break: break-all; } #audit td:nth-child(2) { white-space: nowrap; }
+.esig .digest { font-family: ui-monospace, monospace; font-size: 8.5pt; word-break: break-all; }
 .identity { margin: .2rem 0; } .word { white-space: nowrap; }
 .muted { color: var(--muted); } .manual { color: var(--muted); font-size: .9em; }
 td.drift { background: #fff1e5; font-weight: 600; } td.same { color: var(--muted); }
@@ -275,7 +279,8 @@ JS = r"""
     apply();
   }
 
-  if (DATA.kind === "drift") { driftPage(); } else { runPage(); }
+  // the audit trail's page is drawn whole by deployer (audit show chose its records): nothing to draw here
+  if (DATA.kind === "drift") { driftPage(); } else if (DATA.kind !== "audit") { runPage(); }
   // printing is the commissioning record: every device's section, open, with its table
   window.addEventListener("beforeprint", function () {
     document.querySelectorAll("details.device").forEach(function (sec) { fill(sec); sec.open = true; });

@@ -12,6 +12,8 @@ from typing import Any
 from ..load.messages import printable
 from ..report import Report
 from .assets import CSS, JS
+from .bidi import isolated as _isolated
+from .signatures import change_block
 
 # a device's parameters that did not end at their desired value
 _BAD = ("failed", "mismatch", "unverified")
@@ -22,32 +24,6 @@ def _json_for_script(data: Any) -> str:
     # makes the HTML parser swallow the page's own script up to a later "</script>". JSON has "<" only
     # inside strings, where \u003c reads back as the same text.
     return json.dumps(data, separators=(",", ":"), ensure_ascii=False).replace("<", "\\u003c")
-
-
-# bidi embeddings and overrides (closed by U+202C), isolates (closed by U+2069)
-_OPENS = {**{chr(c): "\u202c" for c in (0x202A, 0x202B, 0x202D, 0x202E)},
-          **{chr(c): "\u2069" for c in (0x2066, 0x2067, 0x2068)}}
-
-
-def _isolated(value: object) -> str:
-    """User text as HTML inside ``<bdi>``, its bidi controls balanced (an unmatched closer dropped, what
-    is left open closed at its end): a U+202E in a name cannot reorder the page's text after it (as
-    the script's txt())."""
-    opened: list[str] = []
-    out = []
-    for c in str(value):
-        if c in _OPENS:
-            opened.append(_OPENS[c])
-        elif c == "\u202c":
-            if not opened or opened[-1] != c:
-                continue
-            opened.pop()
-        elif c == "\u2069":
-            if c not in opened:
-                continue
-            del opened[len(opened) - 1 - opened[::-1].index(c):]
-        out.append(c)
-    return f"<bdi>{html.escape(''.join(out) + ''.join(reversed(opened)))}</bdi>"
 
 
 def _meta(rows: Sequence[tuple[str, Any]]) -> str:
@@ -164,7 +140,7 @@ def _outcome(report: Report, devices: Sequence[Mapping[str, Any]]) -> str:
             + f"<p><b>Commit</b>: {commit}</p>"
             + (f"<p class=error>{unknown} device{'s' if unknown != 1 else ''} in a state nobody knows: their "
                "values show as unknown, with the last value seen and when</p>" if unknown else "")
-            + "</div></div>" + _SIGN + "</section>")
+            + "</div></div>" + change_block((report.run or {}).get("change")) + _SIGN + "</section>")
 
 
 def _identity(identity: Mapping[str, str] | None) -> str | None:

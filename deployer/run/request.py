@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 from ..errors import UsageError
@@ -73,6 +73,7 @@ class RunRequest:
     report_path: str | None = None
     html_path: str | None = None
     workers: int | None = 0
+    policy: str | None = None  # the site's change-control policy (an inventory), else DEPLOYER_POLICY's
 
     @property
     def fleet(self) -> bool:
@@ -96,6 +97,7 @@ class PreparedRun:
     moved: str | None = None
     notices: list[str] = field(default_factory=list)
     refused: list[str] = field(default_factory=list)
+    change: dict[str, Any] | None = None  # a saved plan's change control, checked (digest, author, signatures)
 
 
 def is_plan_file(path: str) -> bool:
@@ -209,7 +211,11 @@ def prepare(r: RunRequest) -> PreparedRun:
         from ..state.durable import check_output
 
         check_output(r.html_path, what="the page")
-    return prepared
+    from ..change.gate import check_run  # the change control's one check, before anything is sent
+
+    change = check_run(command=r.command, source=r.source, jobs=prepared.jobs, policy_path=r.policy,
+                       inventory=r.inventory, state_dir=r.state_dir)
+    return replace(prepared, change=change) if change is not None else prepared
 
 
 def safe_plans(jobs: Sequence[Job], r: RunRequest, label: str | None) -> None:

@@ -1,0 +1,106 @@
+"""Whether a plan may run under a policy: ``check_approvals`` names everything it lacks."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+from .canonical import digest
+from .policy import Policy, Rule, _described
+
+if TYPE_CHECKING:
+    from .signature import Verdict
+    from .signers import AllowedSigners
+
+
+def plan_device(doc: Mapping[str, Any]) -> tuple[str | None, int | None]:
+    """The device a plan writes (URL as runs describe it, unit): the one place that reads the plan's insides."""
+    dev = doc.get("device")
+    if not isinstance(dev, Mapping):
+        return None, None
+    url, unit = dev.get("url"), dev.get("unit")
+    return (_described(url) if isinstance(url, str) else None), (unit if isinstance(unit, int) else None)
+
+
+def verdicts(doc: Mapping[str, Any], allowed: AllowedSigners | None) -> list[Verdict]:
+    """Every signature of a plan, checked against its digest now."""
+    from .signature import verify
+
+    sigs = doc.get("signatures")
+    d = digest(doc)
+    return [verify(e, d, allowed) for e in (sigs if isinstance(sigs, list) else [])]
+
+
+def stale(doc: Mapping[str, Any]) -> list[str]:
+    """Signatures made over another digest: the plan changed after they were made (no key needed to see it)."""
+    d = digest(doc)
+    sigs = doc.get("signatures")
+    out = []
+    for e in sigs if isinstance(sigs, list) else []:
+        if isinstance(e, Mapping) and e.get("digest") != d:
+            out.append(f"the {e.get('meaning', 'signature')} signature of {e.get('signer', '?')} was made over other "
+                       f"content ({str(e.get('digest'))[:19]}...; the plan is {d[:19]}... now): the plan changed "
+                       "after it was signed")
+    return out
+
+
+def check_approvals(doc: Mapping[str, Any], policy: Policy | None, rule: Rule | None = None) -> list[str]:
+    """What the plan ``doc`` lacks to run under ``policy`` (its device's rule, or ``rule``): empty when it may.
+
+    Every signature it carries must hold; the rule may ask for a reason, a ticket, signed inputs and N approvals
+    by distinct users other than the author, whose own ``authored`` signature must then hold."""
+    if rule is None:
+        url, unit = plan_device(doc)
+        rule = policy.rule_for(url, unit) if policy is not None else Rule()
+    if policy is None:
+        return stale(doc)
+    checked = verdicts(doc, policy.signers)
+    missing = [f"the signature {v.said()} does not hold: {v.why}" for v in checked if not v.holds]
+    change = doc.get("change") if isinstance(doc.get("change"), Mapping) else {}
+    assert isinstance(change, Mapping)
+    author = change.get("author") if isinstance(change.get("author"), str) else None
+    if rule.reason and not str(change.get("reason") or "").strip():
+        missing.append("a reason (deployer plan ... --out PLAN.json --reason TEXT)")
+    if rule.ticket and not str(change.get("ticket") or "").strip():
+        missing.append("a change ticket (deployer plan ... --out PLAN.json --ticket ID)")
+    if rule.approvals:
+        missing += _approvals(checked, author, rule.approvals)
+    if rule.signed_inputs:
+        missing += inputs_missing(change.get("inputs"), policy.signers)
+    return missing
+
+
+def _approvals(checked: Sequence[Verdict], author: str | None, needed: int) -> list[str]:
+    out = []
+    if author is None:
+        out.append("an author (the plan has no change.author: make it with deployer plan ... --out)")
+    elif not any(v.holds and v.meaning == "authored" and v.signer == author for v in checked):
+        out.append(f"the author's signature: {author} signs the plan as authored (deployer plan ... --out "
+                   f"PLAN.json --sign-key KEY, or deployer sign PLAN.json --meaning authored --key KEY)")
+    approvers = sorted({v.signer for v in checked if v.holds and v.meaning == "approved" and v.signer != author})
+    if len(approvers) < needed:
+        so_far = f"{len(approvers)} so far: {', '.join(approvers)}" if approvers else "none so far"
+        out.append(f"{needed} approval{'s' if needed != 1 else ''} by distinct users other than the author "
+                   f"{author or '?'} ({so_far}): deployer approve PLAN.json --key KEY")
+    return out
+
+
+def inputs_missing(inputs: Any, allowed: AllowedSigners | None) -> list[str]:
+    """Each recipe and profile file the plan records must carry an ``approved`` signature over its bytes."""
+    from .signature import verify
+
+    if not isinstance(inputs, list) or not inputs:
+        return ["signed inputs: the plan records no input files (make it again with deployer plan ... --out)"]
+    out = []
+    for item in inputs:
+        if not isinstance(item, Mapping):
+            out.append("signed inputs: an entry of change.inputs is not an object")
+            continue
+        what = f"{item.get('kind', 'input')} {item.get('path', '?')}"
+        sigs = item.get("signatures")
+        found = [verify(e, f"sha256:{item.get('sha256')}", allowed) for e in (sigs if isinstance(sigs, list) else [])]
+        if not any(v.holds and v.meaning == "approved" for v in found):
+            why = "; ".join(f"{v.said()}: {v.why}" for v in found if not v.holds) or "it carries none"
+            out.append(f"an approved signature of the {what} ({why}): deployer sign {item.get('path', 'FILE')} "
+                       "--meaning approved --key KEY, then make the plan again")
+    return out
