@@ -392,22 +392,8 @@ def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceRes
 async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,
                     on_done: Callable[[str, str | None], None] | None = None,
                     ) -> dict[str, dict[str, tuple[int, ...]] | TransportError | UsageError]:
-    """Current values of many devices (fleet plan, diff, pull): per device its registers or why not."""
-    out: dict[str, dict[str, tuple[int, ...]] | TransportError | UsageError] = {}
-
-    async def one(j: ReadJob) -> None:
-        try:
-            out[j.name] = await read_current(j.profile, j.names, j.url, j.unit)
-        except (TransportError, UsageError) as e:
-            out[j.name] = e
-        if on_done:
-            res = out[j.name]
-            on_done(j.name, str(res) if isinstance(res, Exception) else None)
-
-    await on_buses(jobs, parallel, one)
-    return {j.name: out[j.name] for j in jobs}
-
-
+    """Current values of many devices (diff, pull): per device its registers or why not."""
+    return await _each(jobs, parallel, lambda j: read_current(j.profile, j.names, j.url, j.unit), on_done)
 
 
 async def plan_many(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
@@ -415,19 +401,35 @@ async def plan_many(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool =
                     window: bool = False) -> dict[str, Plan | TransportError | UsageError]:
     """Each device's plan against what it holds now (fleet plan, check mode): its checks run, nothing written;
     per device its plan or why not. The devices of one recipe share its planner."""
-
-    out: dict[str, Plan | TransportError | UsageError] = {}
     planners = Planners()
+    return await _each(jobs, parallel, lambda j: plan_device(j.recipe, j.url, j.unit, write_all=write_all,
+                                                             state_dir=state_dir, planners=planners, window=window),
+                       on_done)
 
-    async def one(j: Job) -> None:
+
+class _Named(_HasBus, Protocol):
+    @property
+    def name(self) -> str: ...
+
+
+_T = TypeVar("_T")
+_N = TypeVar("_N", bound=_Named)
+
+
+async def _each(jobs: Sequence[_N], parallel: int, read: Callable[[_N], Awaitable[_T]],
+                on_done: Callable[[str, str | None], None] | None) -> dict[str, _T | TransportError | UsageError]:
+    """``read`` of every device (one at a time per bus, ``parallel`` at once): its result, or why there is none."""
+    out: dict[str, _T | TransportError | UsageError] = {}
+
+    async def one(j: _N) -> None:
+        name = j.name
         try:
-            out[j.name] = await plan_device(j.recipe, j.url, j.unit, write_all=write_all, state_dir=state_dir,
-                                            planners=planners, window=window)
+            out[name] = await read(j)
         except (TransportError, UsageError) as e:
-            out[j.name] = e
+            out[name] = e
         if on_done:
-            res = out[j.name]
-            on_done(j.name, str(res) if isinstance(res, Exception) else None)
+            res = out[name]
+            on_done(name, str(res) if isinstance(res, Exception) else None)
 
     await on_buses(jobs, parallel, one)
     return {j.name: out[j.name] for j in jobs}
