@@ -28,6 +28,7 @@ from ..errors import (
     Locked,
     StalePlan,
     Unreachable,
+    Untrusted,
     UsageError,
 )
 from ..planning.model import Plan, ReadRequest, Target
@@ -283,8 +284,8 @@ async def _locked(recipe: Recipe, url: tp.DeviceURL, unit: int, opts: ApplyOptio
                 await _apply(session, recipe, target, opts, res, results, learned.device_id(url, unit))
         finally:
             await transport.close()
-        if transport.late_answers:
-            res.notices.append(tp.late_notice(transport.late_answers, url))
+        if (doubt := session.trust.notice()) is not None:
+            res.notices.append(doubt)
         res.settle()
         if opts.keep_lock is not None and held and opts.keep_lock(res, held):
             held = []  # its window holds them now, until the commit or the rollback
@@ -391,6 +392,9 @@ async def _read_before(session: Session, recipe: Recipe, opts: ApplyOptions, res
             return None
         _identity_notice(opts, res)
         recipe = _taught_limits(recipe, opts, res, key)
+    except Untrusted as e:  # it answers, but what it answered cannot be told from another request's answer
+        res.status, res.error = "failed", f"{e}; nothing was written"
+        return None
     except DeviceGone as e:
         res.status, res.error = "unreachable", f"{e}; nothing was written"
         return None
