@@ -165,18 +165,27 @@ parameters:
 """
 
 
+def _deployer(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=300,
+                          env=os.environ | {"NO_COLOR": "1"})
+
+
+def _late_recipe(tmp_path: Path, port: str) -> Path:
+    profile_from(tmp_path, PROFILE)
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(f"recipe: late\nprofile: dev.yaml\ndevice: {{url: 'rtu://{port}?timeout={TIMEOUT:g}', "
+                      "unit: 1}\nparameters:\n  p1: 11\n  p2: 22\n")
+    return recipe
+
+
 def test_apply_to_an_always_late_device_snapshots_the_truth(socat_pair: tuple[str, str], tmp_path: Path) -> None:
     """A real `deployer apply` process: the snapshot holds what the device held, every request reached
     it once, the report says the device answered late."""
-    profile_from(tmp_path, PROFILE)
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text(f"recipe: late\nprofile: dev.yaml\ndevice: {{url: 'rtu://{socat_pair[1]}?timeout={TIMEOUT:g}', "
-                      "unit: 1}\nparameters:\n  p1: 11\n  p2: 22\n")
+    recipe = _late_recipe(tmp_path, socat_pair[1])
     dev = Device({100: 1, 200: 2}, delay=lambda i: LATE)
     with on_pty(dev, socat_pair[0]):
-        run = subprocess.run([sys.executable, "-m", "deployer", "apply", str(recipe), "--yes", "--report",
-                              str(tmp_path / "report.json"), "--state-dir", str(tmp_path / "state")],
-                             capture_output=True, text=True, timeout=300, env=os.environ | {"NO_COLOR": "1"})
+        run = _deployer("apply", str(recipe), "--yes", "--report", str(tmp_path / "report.json"), "--state-dir",
+                        str(tmp_path / "state"))
     assert run.returncode == 0, run.stdout + run.stderr
     report = json.loads((tmp_path / "report.json").read_text())
     d = report["devices"][0]
@@ -211,15 +220,11 @@ class _Counter(Device):
 def test_a_value_no_second_read_confirms_is_not_written(socat_pair: tuple[str, str], tmp_path: Path) -> None:
     """After a late answer every value must be confirmed; p2's never is (it changes at each read): the
     device is failed with nothing written, and the report names the late answer and the timeout that serves."""
-    profile_from(tmp_path, PROFILE)
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text(f"recipe: late\nprofile: dev.yaml\ndevice: {{url: 'rtu://{socat_pair[1]}?timeout={TIMEOUT:g}', "
-                      "unit: 1}\nparameters:\n  p1: 11\n  p2: 22\n")
+    recipe = _late_recipe(tmp_path, socat_pair[1])
     dev = _Counter({100: 1, 200: 2}, delay=lambda i: 2.5 * TIMEOUT if i == 0 else 0.0)
     with on_pty(dev, socat_pair[0]):
-        run = subprocess.run([sys.executable, "-m", "deployer", "apply", str(recipe), "--yes", "--report",
-                              str(tmp_path / "report.json"), "--state-dir", str(tmp_path / "state")],
-                             capture_output=True, text=True, timeout=300, env=os.environ | {"NO_COLOR": "1"})
+        run = _deployer("apply", str(recipe), "--yes", "--report", str(tmp_path / "report.json"), "--state-dir",
+                        str(tmp_path / "state"))
     assert run.returncode == 4, run.stdout + run.stderr
     d = json.loads((tmp_path / "report.json").read_text())["devices"][0]
     assert d["status"] == "failed" and d["snapshot"] is None
@@ -232,6 +237,55 @@ def test_a_value_no_second_read_confirms_is_not_written(socat_pair: tuple[str, s
     reads = [r["address"] for r in d["requests"] if r["function"] == 3]
     assert reads == [100, 100, 200, 200, 200, 200], reads  # p2: read, then three reads that never agreed
     assert "nothing was written" in run.stdout + run.stderr
+
+
+def test_diff_of_a_value_no_second_read_confirms_says_it_cannot_be_read(socat_pair: tuple[str, str],
+                                                                         tmp_path: Path) -> None:
+    recipe = _late_recipe(tmp_path, socat_pair[1])
+    dev = _Counter({100: 1, 200: 2}, delay=lambda i: 2.5 * TIMEOUT if i == 0 else 0.0)
+    with on_pty(dev, socat_pair[0]):
+        run = _deployer("diff", str(recipe))
+    assert run.returncode == 3, run.stdout + run.stderr
+    assert "went out of step" in run.stderr and "no read after" in run.stderr, run.stderr
+    assert "Traceback" not in run.stderr
+
+
+class _LiveAfterWrite(Device):
+    """Answers at once until it is written; then its first read answer comes late, and p2 reads one more
+    at every other read (a value that moves on its own)."""
+
+    written = late_done = False
+    flip = 0
+
+    def handle(self, req: bytes) -> bytes | None:
+        self.written = self.written or req[1] == 16
+        if not (self.written and req[1] == 3 and req[2:4] == b"\x00\xc8"):
+            return super().handle(req)
+        self.flip ^= 1
+        self.regs[200] += self.flip
+        try:
+            return super().handle(req)
+        finally:
+            self.regs[200] -= self.flip
+
+    def late(self, i: int, req: bytes) -> float:
+        if self.written and not self.late_done and req[1] == 3:
+            self.late_done = True
+            return 2.5 * TIMEOUT
+        return 0.0
+
+
+def test_a_read_back_no_second_read_confirms_is_not_ok(socat_pair: tuple[str, str], tmp_path: Path) -> None:
+    recipe = _late_recipe(tmp_path, socat_pair[1])
+    dev = _LiveAfterWrite({100: 1, 200: 2})
+    with on_pty(dev, socat_pair[0]):
+        run = _deployer("apply", str(recipe), "--yes", "--report", str(tmp_path / "report.json"), "--state-dir",
+                        str(tmp_path / "state"))
+    assert run.returncode == 4, run.stdout + run.stderr
+    d = json.loads((tmp_path / "report.json").read_text())["devices"][0]
+    assert dev.regs == {100: 11, 200: 22} and d["snapshot"] is not None  # written, then not verified
+    p2 = next(p for p in d["parameters"] if p["name"] == "p2")
+    assert p2["status"] != "ok" and "read-back failed" in p2["error"] and "no read after" in p2["error"], p2
 
 
 def test_simulator_over_rtu_tcp_slower_than_the_timeout(tmp_path: Path) -> None:
