@@ -14,7 +14,6 @@ import socket
 import struct
 import threading
 import time
-import tty
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
@@ -140,6 +139,8 @@ class SlowServer(Device):
 
     @contextmanager
     def running(self) -> Iterator[SlowServer]:
+        import tty  # POSIX (termios): the suite's serial tests need pseudo-terminals
+
         from umodbus import conf
         from umodbus.server.serial import get_server
         from umodbus.server.serial.rtu import RTUServer

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import sys
 from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager, contextmanager
 from dataclasses import dataclass, replace
@@ -31,6 +32,8 @@ from deployer.testing.simulator import Faults, Simulator
 from deployer.transport.urls import parse_url
 from tests.helpers import profile_from, pty_pair
 from tests.rtu_devices import SlowServer, on_pty, on_tcp
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="the devices sit on pseudo-terminals (POSIX)")
 
 TIMEOUT = 0.2
 FACTORS = (0.5, 1.5, 2.5, 4.0)
