@@ -246,6 +246,8 @@ class _FakeTransport:
         self.start = start
         self.regs: list[int] = []
         self.late_answers: list[float] = []
+        self.shifts = False  # as Modbus/TCP: answers tell their request (the session never doubts them)
+        self.desyncs = 0
 
     def set_pacing(self, after_connect: float, between: float) -> None:
         pass

@@ -22,6 +22,8 @@ on message text; the message (``str(e)``) is written for the user and may change
     │   ├── ConnectionLost         3  the connection dropped
     │   ├── ExceptionResponse      3  a Modbus exception response (``function``, ``code``)
     │   └── DeviceGone             3  no answer and the retry budget spent
+    │       └── Untrusted          3  serial answers came late or astray, and a value read after could not be
+    │                                 confirmed by a second read after the line fell silent (deployer.execute.trust)
     ├── Locked                     3  another run holds the device (``busy``), or no lock can be taken
     ├── StateError                 1  the state directory cannot be written (disk full, read-only) before a run
     ├── IdentityMismatch           4  the device is not the one the profile describes
@@ -79,6 +81,7 @@ __all__ = [
     "StateError",
     "TransportError",
     "Unreachable",
+    "Untrusted",
     "UsageError",
 ]
 
@@ -196,6 +199,13 @@ class ExceptionResponse(TransportError):
 
 class DeviceGone(TransportError):
     """The device stopped answering and the retry budget is spent."""
+
+
+class Untrusted(DeviceGone):
+    """On a serial line (RTU, ASCII, rtu+tcp) a request went unanswered, an answer came late or astray, and
+    a value read afterwards could not be confirmed: it may be the answer to another request, so nothing is
+    taken from it. A DeviceGone, so that every reader stops as for a silent device; the executor refuses to
+    write a device whose snapshot it would have held (``failed``, nothing written)."""
 
 
 class Locked(DeployerError):

@@ -36,6 +36,33 @@ run_cli = cli  # its name in tests written before there was one cli(); new tests
 
 
 @contextmanager
+def pty_pair(folder: Path, name: str = "tty") -> Iterator[tuple[str, str]]:
+    """Two linked pseudo-terminals made by socat (a null-modem cable): (FOLDER/NAMEA, FOLDER/NAMEB)."""
+    import shutil
+    import signal
+
+    if shutil.which("socat") is None:
+        pytest.skip("socat is not installed (CI installs it: apt-get install socat)")
+    a, b = str(folder / f"{name}A"), str(folder / f"{name}B")
+    proc = subprocess.Popen(["socat", "-d", "-d", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 5
+    while not (os.path.exists(a) and os.path.exists(b)):
+        if time.monotonic() > deadline or proc.poll() is not None:
+            proc.kill()
+            pytest.fail("socat did not create the pty pair")
+        time.sleep(0.02)
+    try:
+        yield a, b
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+@contextmanager
 def reaped(proc: subprocess.Popen[str]) -> Iterator[subprocess.Popen[str]]:
     """A process of a test, killed if it still runs when the test ends (a failed test leaves none behind)."""
     try:

@@ -10,153 +10,26 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import socket
+import re
 import struct
 import subprocess
 import sys
-import threading
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import pytest
-import serial
 import yaml
 
 from deployer.errors import BadAnswer
 from deployer.testing.simulator import Faults, Simulator
 from deployer.transport import clients as tp
 from tests.helpers import count, profile_from
+from tests.rtu_devices import Answer, Device, crc, on_pty, on_tcp, read_frame
 
-crc = pytest.importorskip("umodbus.client.serial.redundancy_check", reason="umodbus is a test extra")
-
-TIMEOUT = 0.6
-LATE = 0.9  # after the timeout, well before the line has been silent for another whole timeout
-
-
-def _request_size(buf: bytes) -> int:
-    """Length of the RTU request at the start of buf (0: not known yet)."""
-    if len(buf) < 2:
-        return 0
-    if buf[1] in (3, 6):
-        return 8
-    if buf[1] == 16:
-        return 9 + buf[6] if len(buf) >= 7 else 0
-    return len(buf)  # anything else: take it all (answered with exception 01)
-
-
-Answer = Callable[[int, bytes, bytes], bytes | None]  # (index, request, correct answer) -> what to send
-
-
-class Device:
-    """An RTU device on a byte stream: holding registers, a log of every request frame received,
-    and a rule for each answer (late, wrong unit, ...)."""
-
-    def __init__(self, regs: dict[int, int], *, delay: Callable[[int], float] = lambda i: 0.0,
-                 answer: Answer = lambda i, req, good: good) -> None:
-        self.regs = dict(regs)
-        self.frames: list[bytes] = []
-        self.delay = delay
-        self.answer = answer
-        self.stop = threading.Event()
-
-    def handle(self, req: bytes) -> bytes:
-        unit, fc = req[0], req[1]
-        if fc == 3:
-            addr, n = struct.unpack(">HH", req[2:6])
-            pdu = bytes([fc, 2 * n]) + b"".join(struct.pack(">H", self.regs.get(a, 0)) for a in range(addr, addr + n))
-        elif fc == 6:
-            addr, value = struct.unpack(">HH", req[2:6])
-            self.regs[addr] = value
-            pdu = req[1:6]
-        elif fc == 16:
-            addr, n = struct.unpack(">HH", req[2:6])
-            for i in range(n):
-                self.regs[addr + i] = struct.unpack(">H", req[7 + 2 * i:9 + 2 * i])[0]
-            pdu = req[1:6]
-        else:  # a function this device does not have: exception 01, as a real one answers
-            pdu = bytes([fc | 0x80, 1])
-        return bytes(crc.add_crc(bytes([unit]) + pdu))
-
-    def serve(self, read: Callable[[], bytes], write: Callable[[bytes], None]) -> None:
-        buf = b""
-        while not self.stop.is_set():
-            chunk = read()
-            if not chunk:
-                continue
-            buf += chunk
-            while (size := _request_size(buf)) and len(buf) >= size:
-                req, buf = buf[:size], buf[size:]
-                if crc.get_crc(req[:-2]) != req[-2:]:
-                    continue
-                i = len(self.frames)
-                self.frames.append(req)
-                good = self.handle(req)
-                out = self.answer(i, req, good)
-                time.sleep(self.delay(i))
-                if out is not None:
-                    write(out)
-
-
-@contextmanager
-def on_pty(dev: Device, path: str) -> Iterator[None]:
-    port = serial.Serial(path, timeout=0.05)
-    t = threading.Thread(target=dev.serve, args=(lambda: port.read(256), port.write), daemon=True)
-    t.start()
-    try:
-        yield
-    finally:
-        dev.stop.set()
-        t.join(5)
-        port.close()
-
-
-@contextmanager
-def on_tcp(dev: Device) -> Iterator[int]:
-    """A serial gateway on 127.0.0.1: RTU frames over TCP, one connection at a time."""
-    srv = socket.socket()
-    srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    srv.bind(("127.0.0.1", 0))
-    srv.listen(4)
-    srv.settimeout(0.05)
-
-    def run() -> None:
-        while not dev.stop.is_set():
-            try:
-                conn, _ = srv.accept()
-            except TimeoutError:
-                continue
-            conn.settimeout(0.05)
-
-            def read(c: socket.socket = conn) -> bytes:
-                try:
-                    data = c.recv(256)
-                except TimeoutError:
-                    return b""
-                if not data:
-                    raise ConnectionError
-                return data
-            try:
-                dev.serve(read, conn.sendall)
-            except OSError:
-                pass
-            finally:
-                conn.close()
-
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    try:
-        yield int(srv.getsockname()[1])
-    finally:
-        dev.stop.set()
-        t.join(5)
-        srv.close()
-
-
-def read_frame(address: int, n: int, unit: int = 1) -> bytes:
-    return bytes(crc.add_crc(struct.pack(">BBHH", unit, 3, address, n)))
+TIMEOUT = 0.2
+LATE = 0.3  # after the timeout, before the line has been silent for another whole timeout
 
 
 def _url(kind: str, where: str, port: int = 0) -> str:
@@ -175,15 +48,20 @@ def device_at(kind: str, dev: Device, socat_pair: tuple[str, str]) -> Iterator[s
             yield _url(kind, "", port)
 
 
-async def _two_reads(url: str, session_reads: list[tuple[int, int]]) -> tuple[list[list[int]], list[float]]:
-    """The executor's own retry loop (Session) over a real transport: reads in order."""
+Reads = tuple[list[list[int]], list[float], list[bytes]]
+
+
+async def _two_reads(url: str, session_reads: list[tuple[int, int]]) -> Reads:
+    """The executor's own retry loop (Session) over a real transport: reads in order; their values, the late
+    answers, and the request frames the session says it sent (confirming reads included)."""
     from deployer.execute.session import Session
 
     t = tp.open_transport(url)
     await t.connect()
     try:
         s = Session(t, 1, retries=t.url.retries, backoff=0.05, records=[])
-        return [await s.read(a, n) for a, n in session_reads], t.late_answers
+        values = [await s.read(a, n) for a, n in session_reads]
+        return values, t.late_answers, [read_frame(r.address, r.count) for r in s.records]
     finally:
         await t.close()
 
@@ -195,9 +73,10 @@ def test_a_late_answer_is_never_the_next_requests_answer(kind: str, socat_pair: 
     regs = {100 + i: 1 for i in range(10)} | {200 + i: 2 for i in range(10)}
     dev = Device(regs, delay=lambda i: LATE if i == 0 else 0.0)
     with device_at(kind, dev, socat_pair) as url:
-        values, late = asyncio.run(_two_reads(url, [(100, 10), (200, 10)]))
+        values, late, sent = asyncio.run(_two_reads(url, [(100, 10), (200, 10)]))
     assert values == [[1] * 10, [2] * 10]
-    assert dev.frames == [read_frame(100, 10), read_frame(200, 10)]  # each request reached the device once
+    # each request reached the device once; after the late answer each value was read again to confirm it
+    assert dev.frames == sent == [read_frame(100, 10)] * 2 + [read_frame(200, 10)] * 2
     assert len(late) == 1 and late[0] > TIMEOUT
 
 
@@ -206,10 +85,10 @@ def test_a_device_always_late_gets_every_request_once_and_right(kind: str, socat
     regs = {100 + i: 1 for i in range(10)} | {200 + i: 2 for i in range(10)}
     dev = Device(regs, delay=lambda i: LATE)
     with device_at(kind, dev, socat_pair) as url:
-        values, late = asyncio.run(_two_reads(url, [(100, 10), (200, 10), (100, 10)]))
+        values, late, sent = asyncio.run(_two_reads(url, [(100, 10), (200, 10), (100, 10)]))
     assert values == [[1] * 10, [2] * 10, [1] * 10]
-    assert dev.frames == [read_frame(100, 10), read_frame(200, 10), read_frame(100, 10)]
-    assert len(late) == 3
+    assert dev.frames == sent == [read_frame(a, 10) for a in (100, 100, 200, 200, 100, 100)]
+    assert len(late) == 6  # every answer came late, each was taken by its own request's retry
 
 
 def test_bytes_nobody_asked_for_are_drained_before_the_next_request(socat_pair: tuple[str, str]) -> None:
@@ -219,9 +98,10 @@ def test_bytes_nobody_asked_for_are_drained_before_the_next_request(socat_pair: 
     # answer 0 comes twice: the second copy (same shape as read 2's answer) arrives while the client settles
     dev = Device(regs, answer=lambda i, req, good: good + good if i == 0 else good)
     with device_at("rtu", dev, socat_pair) as url:
-        values, late = asyncio.run(_two_reads(url, [(100, 10), (200, 10)]))
+        values, late, sent = asyncio.run(_two_reads(url, [(100, 10), (200, 10)]))
     assert values == [[1] * 10, [2] * 10]
-    assert dev.frames == [read_frame(100, 10), read_frame(200, 10)] and late == []
+    # the second read came after bytes nobody asked for: it is read again once the line was silent
+    assert dev.frames == sent == [read_frame(100, 10), read_frame(200, 10), read_frame(200, 10)] and late == []
 
 
 def _bad(answer: Answer, request: Callable[[tp.Transport], Any], kind: str = "rtu",
@@ -285,18 +165,27 @@ parameters:
 """
 
 
+def _deployer(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=300,
+                          env=os.environ | {"NO_COLOR": "1"})
+
+
+def _late_recipe(tmp_path: Path, port: str) -> Path:
+    profile_from(tmp_path, PROFILE)
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(f"recipe: late\nprofile: dev.yaml\ndevice: {{url: 'rtu://{port}?timeout={TIMEOUT:g}', "
+                      "unit: 1}\nparameters:\n  p1: 11\n  p2: 22\n")
+    return recipe
+
+
 def test_apply_to_an_always_late_device_snapshots_the_truth(socat_pair: tuple[str, str], tmp_path: Path) -> None:
     """A real `deployer apply` process: the snapshot holds what the device held, every request reached
     it once, the report says the device answered late."""
-    profile_from(tmp_path, PROFILE)
-    recipe = tmp_path / "r.yaml"
-    recipe.write_text(f"recipe: late\nprofile: dev.yaml\ndevice: {{url: 'rtu://{socat_pair[1]}?timeout={TIMEOUT:g}', "
-                      "unit: 1}\nparameters:\n  p1: 11\n  p2: 22\n")
+    recipe = _late_recipe(tmp_path, socat_pair[1])
     dev = Device({100: 1, 200: 2}, delay=lambda i: LATE)
     with on_pty(dev, socat_pair[0]):
-        run = subprocess.run([sys.executable, "-m", "deployer", "apply", str(recipe), "--yes", "--report",
-                              str(tmp_path / "report.json"), "--state-dir", str(tmp_path / "state")],
-                             capture_output=True, text=True, timeout=300, env=os.environ | {"NO_COLOR": "1"})
+        run = _deployer("apply", str(recipe), "--yes", "--report", str(tmp_path / "report.json"), "--state-dir",
+                        str(tmp_path / "state"))
     assert run.returncode == 0, run.stdout + run.stderr
     report = json.loads((tmp_path / "report.json").read_text())
     d = report["devices"][0]
@@ -308,22 +197,109 @@ def test_apply_to_an_always_late_device_snapshots_the_truth(socat_pair: tuple[st
     got = [(f[1], struct.unpack(">H", f[2:4])[0], 1 if f[1] == 6 else struct.unpack(">H", f[4:6])[0])
            for f in dev.frames if f[1] in (3, 6, 16)]
     assert len(dev.frames) - len(got) == len(d["requests"]) - len(sent) <= 1
-    assert got == sent and len(got) == len(set(got)) + 2  # the two reads twice (snapshot, read-back), writes once
-    assert any("after the timeout" in n for n in d["notices"])
+    # every request the report lists reached the device, and nothing else: a retry goes out only when the
+    # late answer to its first copy did not come first (a loaded machine), never more often than counted
+    attempts = sum(r["attempts"] for r in d["requests"] if r["function"] in (3, 6, 16))
+    assert sorted(set(got)) == sorted(set(sent)) and len(sent) <= len(got) <= attempts
+    assert [g for g in sent if g[0] != 3] == [(16, 100, 1), (16, 200, 1)]  # each write once
+    # after the first late answer every value read (snapshot, read-back) was read again to confirm it
+    reads = [g[1] for g in sent if g[0] == 3]
+    assert reads[:2] == [100, 100] and reads.count(100) >= 4 and reads.count(200) >= 4, reads
+    assert any("after the timeout" in n and "confirming reads" in n for n in d["notices"]), d["notices"]
+
+
+class _Counter(Device):
+    """A device whose register 200 counts its reads (a live value): no two reads agree."""
+
+    def handle(self, req: bytes) -> bytes | None:
+        if req[1] == 3 and req[2:4] == b"\x00\xc8":
+            self.regs[200] += 1
+        return super().handle(req)
+
+
+def test_a_value_no_second_read_confirms_is_not_written(socat_pair: tuple[str, str], tmp_path: Path) -> None:
+    """After a late answer every value must be confirmed; p2's never is (it changes at each read): the
+    device is failed with nothing written, and the report names the late answer and the timeout that serves."""
+    recipe = _late_recipe(tmp_path, socat_pair[1])
+    dev = _Counter({100: 1, 200: 2}, delay=lambda i: 2.5 * TIMEOUT if i == 0 else 0.0)
+    with on_pty(dev, socat_pair[0]):
+        run = _deployer("apply", str(recipe), "--yes", "--report", str(tmp_path / "report.json"), "--state-dir",
+                        str(tmp_path / "state"))
+    assert run.returncode == 4, run.stdout + run.stderr
+    d = json.loads((tmp_path / "report.json").read_text())["devices"][0]
+    assert d["status"] == "failed" and d["snapshot"] is None
+    assert "no read after" in d["error"] and d["error"].endswith("nothing was written"), d["error"]
+    served = re.search(r"timeout=([0-9.]+) would have served", d["error"])
+    assert served and float(served[1]) >= 0.75, d["error"]  # 1.5 times the 0.5 s the device took, or more
+    assert "1 request went unanswered within the timeout (0.2 s)" in d["error"], d["error"]
+    assert any("went unanswered" in n and "would have served" in n for n in d["notices"]), d["notices"]
+    assert not [f for f in dev.frames if f[1] in (6, 16)] and dev.regs[100] == 1
+    reads = [r["address"] for r in d["requests"] if r["function"] == 3]
+    assert reads == [100, 100, 200, 200, 200, 200], reads  # p2: read, then three reads that never agreed
+    assert "nothing was written" in run.stdout + run.stderr
+
+
+def test_diff_of_a_value_no_second_read_confirms_says_it_cannot_be_read(socat_pair: tuple[str, str],
+                                                                         tmp_path: Path) -> None:
+    recipe = _late_recipe(tmp_path, socat_pair[1])
+    dev = _Counter({100: 1, 200: 2}, delay=lambda i: 2.5 * TIMEOUT if i == 0 else 0.0)
+    with on_pty(dev, socat_pair[0]):
+        run = _deployer("diff", str(recipe))
+    assert run.returncode == 3, run.stdout + run.stderr
+    assert "went out of step" in run.stderr and "no read after" in run.stderr, run.stderr
+    assert "Traceback" not in run.stderr
+
+
+class _LiveAfterWrite(Device):
+    """Answers at once until it is written; then its first read answer comes late, and p2 reads one more
+    at every other read (a value that moves on its own)."""
+
+    written = late_done = False
+    flip = 0
+
+    def handle(self, req: bytes) -> bytes | None:
+        self.written = self.written or req[1] == 16
+        if not (self.written and req[1] == 3 and req[2:4] == b"\x00\xc8"):
+            return super().handle(req)
+        self.flip ^= 1
+        self.regs[200] += self.flip
+        try:
+            return super().handle(req)
+        finally:
+            self.regs[200] -= self.flip
+
+    def late(self, i: int, req: bytes) -> float:
+        if self.written and not self.late_done and req[1] == 3:
+            self.late_done = True
+            return 2.5 * TIMEOUT
+        return 0.0
+
+
+def test_a_read_back_no_second_read_confirms_is_not_ok(socat_pair: tuple[str, str], tmp_path: Path) -> None:
+    recipe = _late_recipe(tmp_path, socat_pair[1])
+    dev = _LiveAfterWrite({100: 1, 200: 2})
+    with on_pty(dev, socat_pair[0]):
+        run = _deployer("apply", str(recipe), "--yes", "--report", str(tmp_path / "report.json"), "--state-dir",
+                        str(tmp_path / "state"))
+    assert run.returncode == 4, run.stdout + run.stderr
+    d = json.loads((tmp_path / "report.json").read_text())["devices"][0]
+    assert dev.regs == {100: 11, 200: 22} and d["snapshot"] is not None  # written, then not verified
+    p2 = next(p for p in d["parameters"] if p["name"] == "p2")
+    assert p2["status"] != "ok" and "read-back failed" in p2["error"] and "no read after" in p2["error"], p2
 
 
 def test_simulator_over_rtu_tcp_slower_than_the_timeout(tmp_path: Path) -> None:
     prof = profile_from(tmp_path, PROFILE)
     sim = Simulator(prof, listen="rtu+tcp://127.0.0.1:0", init={100: 1, 200: 2}, faults=Faults(latency_ms=LATE * 1000))
 
-    async def main() -> tuple[list[list[int]], list[float]]:
+    async def main() -> Reads:
         async with sim:
             return await _two_reads(f"{sim.url}?timeout={TIMEOUT:g}&retries=2",
                                     [(100, 1), (200, 1)])
 
-    values, late = asyncio.run(main())
-    assert values == [[1], [2]] and len(late) == 2
-    assert count(sim.log, 3, address=100) == 1 and count(sim.log, 3, address=200) == 1
+    values, late, sent = asyncio.run(main())
+    assert values == [[1], [2]] and len(late) == 4
+    assert count(sim.log, 3, address=100) == 2 and count(sim.log, 3, address=200) == 2 and len(sent) == 4
 
 
 def test_an_answer_in_the_same_turn_as_its_timeout_is_kept_for_the_retry() -> None:

@@ -22,18 +22,21 @@ async def connected(url: tp.DeviceURL, unit: int, profile: Profile | None, *,
                     records: list[RequestRecord] | None = None, backoff: float = 0.05,
                     notices: list[str] | None = None) -> AsyncIterator[Session]:
     """A session with the device at ``url``/``unit``, closed on the way out. Raises Unreachable when no connection
-    can be made. ``records``: every request is logged there; ``notices``: told of answers that came late."""
+    can be made. ``records``: every request is logged there; ``notices``: told when the serial line went out of
+    step (a late answer: the session's ``trust``)."""
     transport = tp.open_transport(url)
     p = pacing_for(url, profile)
     transport.set_pacing(p.after_connect, p.between_requests)
     await transport.connect()
-    try:
-        yield Session(transport, unit, retries=url.retries, backoff=backoff,
+    session = Session(transport, unit, retries=url.retries, backoff=backoff,
                       records=records if records is not None else [])
+    try:
+        yield session
     finally:
         await transport.close()
-        if transport.late_answers and notices is not None:
-            notices.append(tp.late_notice(transport.late_answers, url))
+        doubt = session.trust.notice()  # the line went out of step: how, what it cost, the timeout that serves
+        if doubt is not None and notices is not None:
+            notices.append(doubt)
 
 
 def opened(url: tp.DeviceURL, profile: Profile | None) -> tp.Transport:

@@ -21,7 +21,7 @@ import asyncio
 from collections import deque
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 
-from ..errors import DeviceGone, ExceptionResponse
+from ..errors import DeviceGone, ExceptionResponse, Untrusted
 from ..planning.model import Plan, Step, WriteRequest
 from ..planning.steps import secret_words
 from ..profile import Profile, object_name
@@ -90,6 +90,9 @@ class Execution:
                     words = await self.session.read(step.address, step.count, step.function)
                     assert self.prof.firmware is not None
                     self.revision = self.prof.firmware.revision_of(words)
+        except Untrusted as e:  # it answers, but what it answered cannot be told from another request's answer
+            res.status, res.error = "failed", f"{e}; nothing was written"
+            return False
         except DeviceGone as e:
             res.status, res.error = "unreachable", f"{e}; nothing was written"
             return False

@@ -22,6 +22,7 @@ from ..profile import Profile, object_name
 from ..report import DeviceResult, RequestRecord
 from ..state.lock import DeviceLock
 from ..transport import clients as tp
+from .trust import CONFIRMATIONS, Trust
 
 Confirm = Callable[[Plan, DeviceResult], Awaitable[bool]]
 
@@ -81,6 +82,10 @@ class Session:
     pymodbus's retries are off (a late answer to a first copy would hide a double write);
     here every attempt is counted and reported. Timeouts and exception 06 (busy) are
     retried with exponential backoff; FC03 and FC16 are idempotent, so a resend is safe.
+
+    ``trust`` (deployer.execute.trust) says which answers it believes: once a serial line went out of
+    step, every value read is confirmed by a read after the line fell silent (that read is a request of
+    its own, in ``records``), or ``Untrusted`` is raised.
     """
 
     def __init__(self, transport: tp.Transport, unit: int, *, retries: int, backoff: float,
@@ -91,6 +96,7 @@ class Session:
         self.backoff = backoff
         self.records = records
         self.gap_reads = True  # False once the device refused a read across undeclared registers
+        self.trust = Trust(transport)
         # what the executor is doing, stamped on every request it logs: the plan's step, and a deviation from it
         self.step: int | None = None
         self.deviation: str | None = None
@@ -117,14 +123,17 @@ class Session:
             record.attempts = attempt
             try:
                 result = await op()
+                self.trust.after()
                 record.result = "broadcast" if self.unit == 0 and record.function not in (1, 2, 3, 4) else "ok"
                 record.exception_code = None
                 return result
             except ExceptionResponse as e:
+                self.trust.after()
                 record.result, record.exception_code = "exception", e.code
                 if e.code != 6 or attempt > self.retries:
                     raise
             except NoResponse as e:
+                self.trust.after(e)
                 record.result, record.exception_code = "no response", None
                 if attempt > self.retries:
                     tries = f"{attempt} attempt{'s' if attempt > 1 else ''}"
@@ -136,6 +145,7 @@ class Session:
                 record.result, record.exception_code = "interrupted", None
                 raise
             except ConnectionLost as e:
+                self.trust.after(e)
                 record.result, record.exception_code = "connection lost", None
                 if attempt > self.retries:
                     raise DeviceGone(f"connection lost ({e})") from None
@@ -153,13 +163,21 @@ class Session:
         self._log(rec)
         try:
             objects = await self.transport.read_device_identification(self.unit)
+            self.trust.after()
         except ExceptionResponse as e:
+            self.trust.after()
             rec.result, rec.exception_code = "exception", e.code
             return None
-        except NoResponse:
+        except BadAnswer as e:  # something else came on the line: out of step
+            self.trust.after(e)
             rec.result = "no response"
             return None
-        except ConnectionLost:
+        except NoResponse:  # many devices keep silent on a function they lack: its answer, if ever, is no read's
+            self.trust.overlook()
+            rec.result = "no response"
+            return None
+        except ConnectionLost as e:
+            self.trust.after(e)
             rec.result = "connection lost"
             with contextlib.suppress(Unreachable):
                 await self.transport.reconnect()
@@ -167,12 +185,24 @@ class Session:
         return {object_name(i): v.decode("latin-1").strip(" \x00") for i, v in sorted(objects.items())}
 
     async def read(self, address: int, count: int, function: int = 3) -> list[int]:
-        """Registers (FC03, FC04) or bits as 0/1 (FC01, FC02) from ``address``."""
-        rec = RequestRecord(function, address, count)
+        """Registers (FC03, FC04) or bits as 0/1 (FC01, FC02) from ``address``; confirmed while in doubt
+        (``trust``), else Untrusted."""
         t, unit = self.transport, self.unit
-        out = await self._call(rec, lambda: t.read(function, address, count, unit))
+        op = lambda: t.read(function, address, count, unit)  # noqa: E731
+        out = await self._call(RequestRecord(function, address, count), op)
         assert out is not None
-        return out
+        if not self.trust.doubting:
+            return out
+        seen = [out]
+        for _ in range(CONFIRMATIONS):  # the line went out of step: a value is one two reads agree on
+            with t.in_sync():
+                again = await self._call(RequestRecord(function, address, count), op)
+            self.trust.rereads += 1
+            assert again is not None
+            if t.answered_in_sync and again == seen[-1]:
+                return again
+            seen.append(again)
+        raise self.trust.refusal(function, address, count, seen)
 
     async def write(self, req: WriteRequest) -> None:
         rec = RequestRecord(req.function, req.address, req.count)

@@ -54,6 +54,7 @@ class Faults:
     """Misbehaviour on demand. Mutable: tests and the demo switch faults while serving."""
 
     latency_ms: float = 0
+    late_reads: int | None = None  # a number: latency_ms delays only that many next reads (counted down); None: all
     baud: int | None = None  # delay answers by the line time of request + answer on a B-baud 8E1 line
     drop_every: int = 0  # swallow every Nth request (no answer)
     busy_first: int = 0  # answer the first N write requests with exception 06, writing nothing
@@ -757,6 +758,11 @@ class Simulator:
         """The answer's delay: the latency, and at a baud rate the time both frames take on the line."""
         f = self.faults
         delay = f.latency_ms / 1000
+        if f.late_reads is not None:  # a device late now and then (a busy moment), else prompt
+            if f.late_reads > 0 and values is None and fc in (1, 2, 3, 4):
+                f.late_reads -= 1
+            else:
+                delay = 0.0
         if f.baud and not (values is None and fc in (5, 6)):  # not pymodbus reading back a single write
             chars = _frame_chars(fc, count, True) + _frame_chars(fc, count, False)
             delay += (chars + 7) * 11 / f.baud  # 8E1 = 11 bits a character; 3.5 characters of silence per frame

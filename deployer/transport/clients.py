@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import contextlib
 import errno
 import functools
 import os
@@ -23,7 +24,7 @@ import ssl
 import struct
 import time
 import weakref
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -56,6 +57,21 @@ class Transport(abc.ABC):
     requests_sent: int  # requests put on the wire (every attempt counts)
     on_frame: Callable[[str, bytes], None] | None  # ("send" | "recv", raw bytes); recv may come in chunks
     late_answers: list[float]  # seconds after their request of answers that came after the timeout
+    # answers carry nothing that names their request (RTU, ASCII, rtu+tcp: no transaction id): an answer that
+    # came late can pass for the answer to the next request of its shape (deployer.execute.trust)
+    shifts: bool = False
+    desyncs: int = 0  # times the line went out of step on this transport's requests (shifts only)
+    answered_in_sync: bool = True  # the last answer was the first thing after a request sent in_sync()
+
+    def in_sync(self) -> contextlib.AbstractContextManager[None]:
+        """Requests sent inside wait until the line has been silent long enough that nothing sent earlier
+        is still answered, and ``answered_in_sync`` then says whether their answer came first."""
+        return contextlib.nullcontext()
+
+    def silence(self) -> tuple[float, float]:
+        """Seconds: the longest silence in_sync() waited for, and the longest the device stayed silent after a
+        request (from the first request sent since it last answered)."""
+        return 0.0, 0.0
 
     @abc.abstractmethod
     async def connect(self) -> None:
@@ -179,6 +195,9 @@ def bus_lock(url: DeviceURL) -> asyncio.Lock:
 
 READS = (1, 2, 3, 4)  # function codes whose answer carries a byte count
 STRAY_QUIET = 0.1  # seconds of silence that end the settling after bytes nobody asked for
+# how much longer than the longest wait seen the line must stay silent before a request whose answer must be its
+# own (a confirming read) or the retry of an unanswered one: an answer still on its way would have come meanwhile
+SILENCE_MARGIN = 1.5
 
 
 @dataclass(frozen=True)
@@ -191,6 +210,9 @@ class _Expect:
     count: int  # registers or bits read (FC01-04) or written (FC15, FC16); 1 for FC05, FC06
     value: int | None = None  # FC05, FC06: the value an answer echoes
     tid: int = 0  # Modbus/TCP transaction id (MBAP framing only)
+
+
+_NOBODY = _Expect(unit=-1, function=-1, address=0, count=0)  # frames nobody asked for are only counted
 
 
 async def _answer(future: asyncio.Future[Any], timeout: float) -> Any:
@@ -209,6 +231,11 @@ async def _answer(future: asyncio.Future[Any], timeout: float) -> Any:
             if future.done() and not future.cancelled():
                 future.exception()  # interrupted just as it timed out: its TimeoutError is seen, never logged
     return future.result()
+
+
+def _wake_up(future: asyncio.Future[None]) -> None:
+    if not future.done():
+        future.set_result(None)
 
 
 def _too_late(future: asyncio.Future[Any]) -> None:
@@ -232,9 +259,16 @@ class _Receiver:
     and it drops frames from another unit without a word. Here every frame is matched to the
     request in flight: unit, function, byte count, echoed address/count/value; Modbus/TCP also by
     transaction id. After a request went unanswered, or bytes came that nobody asked for, the line
-    is dirty: the next request first waits until nothing has arrived for a whole timeout
-    (``settle``) and discards it all, except a late answer to that very request, which a retry of
-    the same request takes instead of sending it again.
+    is dirty: the next request first waits until nothing has arrived for a whole timeout, or longer when
+    the device was seen to take longer (``settle``), and discards it all, except a late answer to that
+    very request, which a retry of the same request takes instead of sending it again.
+
+    An answer later than that settling still looks like the answer to the next request of its shape. So
+    the receiver also says how far an answer can be told apart: ``desyncs`` counts what put the line out of
+    step (unanswered requests, answers that were wrong, bytes nobody asked for), ``longest_wait`` is the
+    longest the device was seen to stay silent after a request, and a request sent ``synced`` (after the
+    line was silent for ``resync_wait``) has an answer ``in_sync`` when it was the first thing that came
+    after it. deployer.execute.trust decides what to believe from that.
     """
 
     def __init__(self, framing: str, trace: Callable[[bool, bytes], bytes]) -> None:
@@ -249,44 +283,74 @@ class _Receiver:
         self.late_for: _Expect | None = None  # the request that went unanswered
         self.late: bytes | TransportError | None = None  # its answer, when it came during the settling
         self.late_after = 0.0  # seconds after its request that the late answer came
+        self.late_in_sync = False  # the late answer is the first thing that came after a synced request
         self.sent_at = 0.0
+        self.desyncs = 0  # requests unanswered, answers wrong, stray bytes drained (serial framings)
+        self.waiting_since: float | None = None  # last request sent since bytes last came (None: none since)
+        self.longest_wait = 0.0  # longest silence from a request to the next bytes (at least the device's delay)
+        self.longest_silence = 0.0  # the same from the first request since bytes came (at most its delay)
+        self.silent_since: float | None = None  # first request sent since bytes last came
+        self.synced = False  # the request in flight was sent after the line had been silent for resync_wait
+        self.crossed = False  # something other than its answer came since the request in flight was sent
+        self.in_sync = False  # the last answer taken was the first thing that came after a synced request
+        self.owed = 0  # answers still to come: requests sent less frames received (serial framings)
+        self._wake: asyncio.Future[None] | None = None  # a settling's pause, ended early by a frame
 
     # -- called by pymodbus's protocol for every chunk received (replaces TransactionManager.callback_data)
 
     def feed(self, data: bytes, addr: object = None) -> int:
         chunk = bytes(data)
-        self.last_rx = time.monotonic()
+        now = self.last_rx = time.monotonic()
+        if self.waiting_since is not None:  # the first bytes since a request: how long the device stayed silent
+            self.longest_wait = max(self.longest_wait, now - self.waiting_since)
+            self.longest_silence = max(self.longest_silence, now - (self.silent_since or self.waiting_since))
+            self.waiting_since = self.silent_since = None
         self.trace(False, chunk)
         self.buf += chunk
         while self.buf:
             target = self.expect or self.late_for
             if target is None:
-                if self.framing != "mbap":
-                    self.dirty_since = self.dirty_since or self.last_rx  # nobody asked: drain before sending
-                self.buf.clear()
-                break
-            got = self._frame(target)
+                if self.framing == "mbap":
+                    self.buf.clear()
+                    break
+                self.dirty_since = self.dirty_since or self.last_rx  # nobody asked: drain before sending
+                self.crossed = True
+            got = self._frame(target or _NOBODY)
             if got is None:
                 break  # wait for more bytes
+            self.owed = max(0, self.owed - 1)  # a frame came: one answer less on its way
+            if self._wake is not None and not self._wake.done():
+                self._wake.set_result(None)  # a settling waits for less now
+            if target is None:
+                continue
             if self.expect is not None:
                 self._answer(got)
             elif isinstance(got, (bytes, ExceptionResponse)):
-                self.late, self.late_after = got, self.last_rx - self.sent_at  # the timed-out request's answer
-            # a frame that does not answer the timed-out request is discarded with the rest
+                self._keep_late(got)  # the timed-out request's answer
+            else:  # a frame that does not answer the timed-out request is discarded with the rest
+                self.crossed = True
         return len(data)
+
+    def _keep_late(self, got: bytes | ExceptionResponse) -> None:
+        self.late, self.late_after = got, self.last_rx - self.sent_at
+        self.late_in_sync = self.synced and not self.crossed
+        self.crossed = True  # anything after it is not the first to come
 
     def _answer(self, got: bytes | TransportError) -> None:
         if self.future is not None and self.future.done():
             # the timeout fired in this same turn of the loop, before the request's task saw it: the
             # answer is kept as the late answer of the request unanswered() is about to give up on
             if isinstance(got, (bytes, ExceptionResponse)):
-                self.late, self.late_after = got, self.last_rx - self.sent_at
+                self._keep_late(got)
             return
         if self.future is not None:
             self.future.set_result(got)
         self.expect = None
+        self.in_sync = self.synced and not self.crossed
+        self.crossed = True
         if isinstance(got, BadAnswer) and self.framing != "mbap":
             self.dirty_since = self.last_rx  # what is left of a garbled frame may still be coming
+            self.desyncs += 1
 
     def lost(self, exc: Exception | None) -> None:
         if self.future is not None and not self.future.done():
@@ -380,31 +444,85 @@ class _Receiver:
 
     # -- the request's side
 
-    async def settle(self, timeout: float) -> None:
-        """Wait until the line has been silent since it went dirty, discarding what came: for a whole
-        timeout after an unanswered request (a slow device's answer may still come), else for
-        STRAY_QUIET (a device answering twice, noise: the line is busy now, not slow)."""
-        if self.dirty_since is None:
+    def patience(self, timeout: float) -> float:
+        """Silence that ends the settling after an unanswered request: a whole timeout, or longer when the
+        device was seen to stay silent longer (its answer is then caught by the retry, not by the next request)."""
+        return max(timeout, SILENCE_MARGIN * self.longest_wait)
+
+    def resync_wait(self, timeout: float) -> float:
+        """Silence before a request whose answer must be its own, once every request sent had its answer:
+        twice the timeout, or longer when the device was seen to stay silent longer. While answers are
+        still owed (a slow device works through requests that timed out), until they came, or until the
+        line was silent for four times the timeout, or 1.5 times the longest silence seen from a request to
+        the next bytes: an answer that does not come then was lost (a request the device never heard)."""
+        quiet = max(2 * timeout, SILENCE_MARGIN * self.longest_wait)
+        if self.owed:
+            quiet = max(quiet, 4 * timeout, SILENCE_MARGIN * self.longest_silence)
+        return quiet
+
+    def _quiet(self, timeout: float, resync: bool) -> float:
+        if resync:
+            return self.resync_wait(timeout)
+        if self.long_settle and self.late is None:
+            return self.patience(timeout)
+        # bytes nobody asked for, or the late answer came: what else comes is drained briefly (a session that
+        # saw a request unanswered confirms its values after a resync anyway: deployer.execute.trust)
+        return min(timeout, STRAY_QUIET)
+
+    async def _pause(self, seconds: float) -> None:
+        """Sleep ``seconds``, or until a frame comes (the answer waited for, the last one owed)."""
+        loop = asyncio.get_running_loop()
+        self._wake = woken = loop.create_future()
+        timer = loop.call_later(seconds, _wake_up, woken)
+        try:
+            await woken
+        finally:
+            timer.cancel()
+            self._wake = None
+
+    async def settle(self, timeout: float, resync: _Expect | None = None) -> None:
+        """Wait until the line has been silent since it went dirty, discarding what came: for ``patience``
+        after an unanswered request (a slow device's answer may still come), else for STRAY_QUIET (a device
+        answering twice, noise: the line is busy now, not slow). ``resync``: the request about to go out,
+        whose answer must be its own: for ``resync_wait`` since the last request or bytes, dirty or not,
+        or until the late answer of its own timed-out copy came."""
+        if resync is None and self.dirty_since is None:
             return
-        quiet = timeout if self.long_settle else min(timeout, STRAY_QUIET)
-        while (left := quiet - (time.monotonic() - max(self.last_rx, self.dirty_since))) > 0:
-            await asyncio.sleep(left)
+        if self.dirty_since is not None and not self.long_settle:
+            self.desyncs += 1  # bytes nobody asked for came: someone's answer, but whose
+        while (left := self._quiet(timeout, resync is not None) - (time.monotonic() - max(
+                self.last_rx, self.dirty_since or 0.0, self.sent_at))) > 0:
+            if resync is not None and self.late is not None and self.late_for == resync:
+                self.long_settle = False  # taken by this request instead of sending it; drained before the next
+                return
+            await self._pause(left)
+        if resync is not None:
+            self.owed = 0  # what did not come in that silence is taken as lost
         self.dirty_since, self.long_settle = None, False
         self.buf.clear()
 
-    def start(self, want: _Expect | None) -> None:
-        """A request goes out now; ``want`` None: nobody answers (broadcast)."""
+    def start(self, want: _Expect | None, synced: bool = False) -> None:
+        """A request goes out now; ``want`` None: nobody answers (broadcast). ``synced``: after ``settle``
+        with ``resync``."""
         self.buf.clear()
         self.late_for = self.late = None
         self.expect = want
-        self.sent_at = time.monotonic()
+        self.sent_at = now = time.monotonic()
+        self.synced, self.crossed, self.in_sync = synced, False, False
+        if want is not None:
+            self.owed += 1
+            self.waiting_since = now
+            self.silent_since = self.silent_since or now
         self.future = asyncio.get_running_loop().create_future() if want is not None else None
 
-    def take_late(self, want: _Expect) -> tuple[bytes | TransportError, float] | None:
-        """A late answer to ``want`` itself that came while the line settled (the retry need not be sent)."""
-        late, late_for = self.late, self.late_for
-        self.late = self.late_for = None
-        return (late, self.late_after) if late is not None and late_for == want else None
+    def take_late(self, want: _Expect) -> tuple[bytes | TransportError, float, bool] | None:
+        """A late answer to ``want`` itself that came while the line settled (the retry need not be sent):
+        the answer, seconds after its request, and whether it was the first thing after a synced request."""
+        if self.late is None or self.late_for != want:
+            return None
+        late, self.late = self.late, None
+        self.late_for = None
+        return late, self.late_after, self.late_in_sync
 
     def unanswered(self) -> None:
         """The request in flight timed out: its answer may still come."""
@@ -413,6 +531,7 @@ class _Receiver:
             self.late_for = None  # a transaction id tells a late answer apart: nothing to wait for
         else:
             self.dirty_since, self.long_settle = time.monotonic(), True
+            self.desyncs += 1
 
 
 # ---- pymodbus-backed transports ----------------------------------------------------------------
@@ -471,6 +590,23 @@ class PymodbusTransport(Transport):
         self._rx: _Receiver | None = None  # reads the answers (see _Receiver)
         self.late_answers: list[float] = []  # seconds after the request, of answers taken late
         self._after_connect, self._between = pacing(url)  # pauses some devices need (URL options, profile)
+        self.shifts = self._shared  # RTU, ASCII, rtu+tcp: no transaction id
+        self.desyncs = 0
+        self.answered_in_sync = True
+        self._resync = False  # in in_sync(): requests wait for the resync silence
+        self._resynced = 0.0  # the longest resync silence waited for
+        self._slowest = 0.0  # the receiver's longest_silence, kept past a close
+
+    @contextlib.contextmanager
+    def in_sync(self) -> Iterator[None]:
+        self._resync, was = True, self._resync
+        try:
+            yield
+        finally:
+            self._resync = was
+
+    def silence(self) -> tuple[float, float]:
+        return self._resynced, max(self._slowest, *self.late_answers, 0.0)
 
     # -- hooks for the subclasses
 
@@ -564,23 +700,33 @@ class PymodbusTransport(Transport):
             raise ConnectionLost(f"{describe(self.url)}: not connected")
         rx = self._rx
         no_answer = want.unit == 0 and want.function not in READS
+        resync = self._resync and self.shifts and not no_answer
         # a shared line, or a device that needs pauses: requests of every device on its bus take turns
         bus = _bus(self.url) if self._paced() else None
         if bus is not None:
             await bus.lock.acquire()
+        desyncs = rx.desyncs
         try:
             if bus is not None:
                 self._claim(bus)
             # an unanswered request or stray bytes: let the line fall silent for a whole timeout first
             await rx.settle(self.url.timeout)
             late = rx.take_late(want)
+            if late is None and resync:  # this request's answer must be its own: no other may be on its way
+                self._resynced = max(self._resynced, rx.resync_wait(self.url.timeout))
+                await rx.settle(self.url.timeout, want)
+                late = rx.take_late(want)
             if late is not None:  # the timed-out copy of this very request was answered meanwhile
                 self.late_answers.append(late[1])
+                self.answered_in_sync = late[2]
                 return self._result(want, late[0])
+            self.answered_in_sync = False
             wait = max(self._quiet_until, bus.quiet_until if bus is not None else 0.0) - time.monotonic()
             if wait > 0:
                 await asyncio.sleep(wait)
-            rx.start(None if no_answer else want)
+                if resync:  # bytes may have come during the pause: silent long enough again
+                    await rx.settle(self.url.timeout, want)
+            rx.start(None if no_answer else want, resync)
             self.requests_sent += 1
             try:
                 await call(self._client)  # pymodbus builds the frame and writes it; the answer comes to rx
@@ -615,8 +761,11 @@ class PymodbusTransport(Transport):
                     bus.quiet_until = quiet
             if isinstance(got, ConnectionLost):
                 raise self._lost(str(got))
+            self.answered_in_sync = rx.in_sync
             return self._result(want, got)
         finally:
+            self.desyncs += rx.desyncs - desyncs
+            self._slowest = max(self._slowest, rx.longest_silence)
             if bus is not None:
                 bus.lock.release()
 
@@ -915,14 +1064,6 @@ _CLASSES: dict[str, type[PymodbusTransport]] = {
     "tcp": TcpTransport, "tls": TlsTransport, "rtu+tcp": RtuOverTcpTransport,
     "rtu": SerialTransport, "ascii": SerialTransport,
 }
-
-
-def late_notice(late: list[float], url: DeviceURL) -> str:
-    """What to tell about answers that came after the timeout (taken by the retry, not sent twice)."""
-    n = len(late)
-    return (f"the device answered {n} request{'s' if n != 1 else ''} after the timeout (up to {max(late):.2f} s, "
-            f"timeout {url.timeout:g} s): each was taken as its retry's answer, not sent again; raise the URL's "
-            f"timeout= to spare the wait")
 
 
 def open_transport(url: DeviceURL | str) -> Transport:
