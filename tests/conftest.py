@@ -14,6 +14,15 @@ from pathlib import Path
 
 import pytest
 
+# the notes agents started without a token leave for their user's clients (deployer.agent.local_token): in a
+# folder of this test session's own, not the user's home; child processes inherit it
+if "DEPLOYER_RUNTIME_DIR" not in os.environ:
+    import atexit
+    import tempfile
+
+    os.environ["DEPLOYER_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="deployer-runtime-")
+    atexit.register(shutil.rmtree, os.environ["DEPLOYER_RUNTIME_DIR"], True)
+
 
 @pytest.fixture
 def socat_pair(tmp_path: Path) -> Iterator[tuple[str, str]]:

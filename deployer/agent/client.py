@@ -20,7 +20,8 @@ ENV = "DEPLOYER_AGENT"
 
 
 class Agent:
-    """A client of one site agent: ``Agent("http://127.0.0.1:8470")``; ``token`` for an agent that asks for one,
+    """A client of one site agent: ``Agent("http://127.0.0.1:8470")``; ``token``: the agent's token (or a user's);
+    without one, for a loopback URL, the token an agent of this user made itself (``local_token.find``);
     ``ca`` (a PEM file) for an ``https://`` agent whose certificate the system's CAs do not vouch for.
 
     Methods map the HTTP API one to one (docs/agent.md); ``apply`` starts a run and follows it to its end.
@@ -31,6 +32,10 @@ class Agent:
         if u.scheme not in ("http", "https") or not u.netloc:
             raise AgentError(f"agent URL {url!r}: expected http://HOST:PORT", kind="usage", exit_code=1)
         self.url = url.rstrip("/")
+        if token is None:
+            from .local_token import find
+
+            token = find(self.url)
         self.token = token
         self.timeout = timeout
         self._ssl: ssl.SSLContext | None = None

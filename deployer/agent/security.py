@@ -1,8 +1,8 @@
 """Who may drive the agent: the bearer token, TLS, and where it may listen (docs/operations.md).
 
-Without a token the agent listens on loopback only and answers every request from there (every local user
-of the gateway can drive it). With ``--token-file`` every request needs ``Authorization: Bearer TOKEN``
-(compared in constant time). Beyond loopback only with a token and TLS: a token sent in clear text over a
+Every request needs a credential, in every mode: ``Authorization: Bearer TOKEN`` (compared in constant time)
+with the token of ``--token-file``, or the one the agent made itself when given none (``local_token``: then it
+listens on loopback only). Beyond loopback only with a token given and TLS: a token sent in clear text over a
 plant network is a token given away.
 """
 
@@ -14,14 +14,12 @@ import os
 import socket
 import ssl
 import sys
-import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Awaitable, Callable
 
 from aiohttp import web
-from prometheus_client.core import CounterMetricFamily, Metric
 
 from ..errors import UsageError
-from ..load.messages import printable
+from .refusals import Refusals, where
 
 # the page's shell (HTML, no data: its script fetches /v1 with the token the user gives it) needs none
 OPEN_PATHS = frozenset({"/"})
@@ -79,46 +77,20 @@ def is_loopback(host: str) -> bool:
 
 
 def check_listen(host: str, *, token: bool, tls: bool, listen: str) -> None:
-    """Beyond loopback only with a token and TLS; refused before anything starts."""
+    """Beyond loopback only with a token given and TLS; refused before anything starts."""
     if is_loopback(host):
         return
     if not token:
-        raise UsageError(f"--listen {listen}: without a token the agent listens on loopback only (127.0.0.1, ::1): "
-                         "anyone who reaches it could write the devices; give --token-file and --tls-cert/--tls-key")
+        raise UsageError(f"--listen {listen}: without --token-file the agent listens on loopback only (127.0.0.1, "
+                         "::1), with a token of its own for its own user; give --token-file and --tls-cert/--tls-key")
     if not tls:
         raise UsageError(f"--listen {listen}: beyond loopback the agent needs TLS as well as the token "
                          "(--tls-cert FILE --tls-key FILE): a token sent in clear text is given away")
 
 
-class Refusals:
-    """Requests refused for want of the token: counted (``/metrics``) and said on stderr, once a minute per
-    address at most (a scanner must not fill the gateway's log)."""
-
-    def __init__(self) -> None:
-        self.total = 0
-        self._said: dict[str, float] = {}
-
-    def refused(self, request: web.Request) -> None:
-        self.total += 1
-        who = request.remote or "?"
-        now = time.monotonic()
-        if now - self._said.get(who, -1e9) >= 60:
-            if len(self._said) > 1000:  # many addresses: forget the old ones rather than grow
-                self._said.clear()
-            self._said[who] = now
-            print(f"agent: refused a request without the right token from {who} ({request.method} "
-                  f"{printable(request.path[:200])}; said once a minute per address)", file=sys.stderr, flush=True)
-
-    def collect(self) -> Iterator[Metric]:
-        c = CounterMetricFamily("deployer_http_unauthorized_requests", "requests refused for want of the token")
-        c.add_metric([], self.total)
-        yield c
-
-
-def auth_middleware(token: str, refusals: Refusals | None = None) -> Callable[..., Awaitable[web.StreamResponse]]:
+def auth_middleware(token: str, refusals: Refusals) -> Callable[..., Awaitable[web.StreamResponse]]:
     """Every request but the page's shell needs ``Authorization: Bearer TOKEN`` (constant-time compare)."""
     expected = token.encode()
-    refusals = refusals if refusals is not None else Refusals()
 
     @web.middleware
     async def auth(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
@@ -127,7 +99,11 @@ def auth_middleware(token: str, refusals: Refusals | None = None) -> Callable[..
             return await handler(request)
         scheme, _, given = request.headers.get("Authorization", "").partition(" ")
         if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), expected):
-            refusals.refused(request)
+            refusals.unauthorized += 1
+            info = where(request)
+            why = "no credential" if not given.strip() else "a wrong token"
+            refusals.refused("login-refused", (info["remote"],), f"refused {info['method']} {info['path']} from "
+                             f"{info['remote']}: {why}", why=why, **info)
             body = {"error": {"kind": "unauthorized", "exit_code": 1,
                               "message": "this agent needs its token: Authorization: Bearer TOKEN "
                               "(deployer: --agent-token-file FILE or DEPLOYER_AGENT_TOKEN)"}}

@@ -19,12 +19,18 @@ from typing import Any
 from aiohttp import web
 
 from ..errors import DeployerError, InputError
+from .body import read as read_body
 from .core import Agent, ApiError, RunState
+from .door import Door, door_middleware
 from .metrics import CONTENT_TYPE, exposition, registry
+from .refusals import Refusals
 
 Handler = Callable[[Agent, web.Request], Awaitable[Any]]
+BODY = "deployer.body"  # the request's body, parsed and checked, as _bind puts it on the request
 MAX_BODY = 1 << 20  # requests are small JSON documents
 AGENT: web.AppKey[Agent] = web.AppKey("agent", Agent)
+DOOR: web.AppKey[Door] = web.AppKey("door", Door)
+REFUSALS: web.AppKey[Refusals] = web.AppKey("refusals", Refusals)
 
 
 def _device(agent: Agent, request: web.Request) -> Any:
@@ -43,15 +49,9 @@ def _run(agent: Agent, request: web.Request) -> RunState:
 
 
 async def _body(request: web.Request) -> dict[str, Any]:
-    if not request.can_read_body:
-        return {}
-    try:
-        data = await request.json()
-    except (ValueError, UnicodeDecodeError):
-        raise ApiError("usage", "the request body is not JSON", status=400) from None
-    if not isinstance(data, dict):
-        raise ApiError("usage", "the request body must be a JSON object", status=400)
-    return data
+    """The body as its route's schema allows it (checked before the handler runs: ``_bind``, body.py)."""
+    got: dict[str, Any] = request.get(BODY) or {}
+    return got
 
 
 def _int(request: web.Request, key: str, default: int, low: int, high: int) -> int:
@@ -71,7 +71,7 @@ def _int(request: web.Request, key: str, default: int, low: int, high: int) -> i
 
 
 async def get_agent(agent: Agent, request: web.Request) -> Any:
-    return {**agent.agent_json(), "auth": "token" if request.app[TOKEN] else "none"}
+    return {**agent.agent_json(), "auth": "token"}
 
 
 async def list_devices(agent: Agent, request: web.Request) -> Any:
@@ -226,7 +226,6 @@ ROUTES: tuple[tuple[str, str, Handler], ...] = (
 )
 
 METRICS: web.AppKey[Any] = web.AppKey("metrics", object)
-TOKEN: web.AppKey[bool] = web.AppKey("token", bool)
 
 
 def error_body(kind: str, message: str, exit_code: int, diagnostics: list[str] | None = None) -> dict[str, Any]:
@@ -260,18 +259,20 @@ async def errors(request: web.Request, handler: Callable[[web.Request], Awaitabl
         return web.json_response(error_body("internal", f"internal error: {type(e).__name__}: {e}", 4), status=500)
 
 
-def app(agent: Agent, *, token: str | None = None) -> web.Application:
-    """The agent's web application; with ``token`` every request but the page's shell needs it (security.py)."""
-    from .security import Refusals, auth_middleware
+def app(agent: Agent, *, token: str, door: Door | None = None) -> web.Application:
+    """The agent's web application: the door (door.py) first, then every request but the page's shell needs
+    the token (security.py), then the routes."""
+    from .security import auth_middleware
 
-    refusals = Refusals()
-    middlewares = [errors] + ([auth_middleware(token, refusals)] if token else [])
+    refusals = Refusals(agent)
+    door = door if door is not None else Door("127.0.0.1")
+    middlewares = [errors, door_middleware(door, refusals), auth_middleware(token, refusals)]
     application = web.Application(middlewares=middlewares, client_max_size=MAX_BODY)
     application[AGENT] = agent
-    application[TOKEN] = bool(token)
+    application[DOOR] = door
+    application[REFUSALS] = refusals
     application[METRICS] = registry(agent)
-    if token:
-        application[METRICS].register(refusals)
+    application[METRICS].register(refusals)
     for method, path, handler in ROUTES:
         application.router.add_route(method, path, _bind(agent, handler))
     from .page import page  # the live page: HTML for people, not part of the versioned API
@@ -282,6 +283,8 @@ def app(agent: Agent, *, token: str | None = None) -> web.Application:
 
 def _bind(agent: Agent, handler: Handler) -> Callable[[web.Request], Awaitable[web.StreamResponse]]:
     async def call(request: web.Request) -> web.StreamResponse:
+        if request.method != "GET":  # every body, whether the handler reads it or not: a malformed one is a 400
+            request[BODY] = await read_body(request)
         out = await handler(agent, request)
         if isinstance(out, web.StreamResponse):
             return out

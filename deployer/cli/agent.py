@@ -14,8 +14,12 @@ from .base import Duration
 @click.option("--listen", default="127.0.0.1:8470", show_default=True, metavar="HOST:PORT",
               help="where the HTTP API listens (beyond loopback only with --token-file and TLS); port 0: any free one")
 @click.option("--token-file", type=click.Path(dir_okay=False), metavar="FILE",
-              help="every request needs this token (Authorization: Bearer; first line of FILE). Without it "
-                   "every local user of the gateway can drive the agent")
+              help="every request needs this token (Authorization: Bearer; first line of FILE). Without it the agent "
+                   "makes one in STATE/agent/token (mode 0600), says so, and listens on loopback only; this user's "
+                   "deployer commands find it")
+@click.option("--allowed-host", "allowed_hosts", multiple=True, metavar="NAME",
+              help="another name clients reach the agent by (repeatable); besides its loopback names, the --listen "
+                   "host and this machine's names, a request whose Host or Origin names anything else is refused")
 @click.option("--tls-cert", type=click.Path(dir_okay=False), metavar="FILE",
               help="serve HTTPS with this certificate (PEM)")
 @click.option("--tls-key", type=click.Path(dir_okay=False), metavar="FILE", help="the certificate's private key (PEM)")
@@ -35,7 +39,7 @@ from .base import Duration
               metavar="FRACTION", help="warn when a register has taken this share of its profile's endurance")
 def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_drift: str, on_replace: str,
           bus_share: float, max_restores: int, endurance_warn: float, token_file: str | None,
-          tls_cert: str | None, tls_key: str | None, notify: tuple[str, ...]) -> int:
+          tls_cert: str | None, tls_key: str | None, notify: tuple[str, ...], allowed_hosts: tuple[str, ...]) -> int:
     """Run the site agent: own INVENTORY's devices, watch them, serve the HTTP API (until SIGTERM or Ctrl-C).
 
     It takes each device's lock (set DEPLOYER_LOCK_DIR for it and the command line alike), so a plain
@@ -60,4 +64,4 @@ def agent(inventory: str, state_dir: str, listen: str, check_every: float, on_dr
     tls = server_ssl(tls_cert, tls_key)
     for url in notify:
         check_url(url)
-    return asyncio.run(serve(settings, listen, token=token, tls=tls, notify=notify))
+    return asyncio.run(serve(settings, listen, token=token, tls=tls, notify=notify, allowed_hosts=allowed_hosts))

@@ -81,18 +81,12 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
         if not click.confirm("apply these changes through the agent?", default=False):
             echo("nothing was sent", err=True)
             return EXIT_OK
-    import socket
-
-    from ..api import user_name
-
-    who = f"{user_name()}@{socket.gethostname()}"  # os.uname and $USER are POSIX's
     body = {"command": "apply", "limit": kw.get("limit"), "batch": kw.get("batch"),
             "max_failures": kw.get("max_failures"), "parallel": kw.get("parallel"),
             "soak": _secs(kw.get("soak")), "health_interval": _secs(kw.get("health_interval")),
             "confirm_within": _secs(kw.get("confirm_within")), "rollback_on_failure": kw.get("rollback_on_failure"),
             "write_all": kw.get("write_all"), "force_endurance": force_endurance or None,
-            "recipe": os.path.abspath(source) if source else None,
-            "client": f"{' '.join(sys.argv[1:])[:150]} ({who})", "files_sha256": seen}
+            "recipe": os.path.abspath(source) if source else None, "files_sha256": seen}
     run = c.start_run(**body)
     echo(f"run {run['id']} started in the agent at {url}", err=True)
     end = c.follow(run["id"], lambda ev: _say(ev, url))

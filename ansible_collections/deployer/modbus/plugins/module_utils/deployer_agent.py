@@ -90,8 +90,7 @@ def agent_apply(module, client):
                        recipe=os.path.abspath(p["recipe"]) if p.get("recipe") else None,
                        batch=p.get("batch"), max_failures=p.get("max_failures"), parallel=p["parallel"],
                        soak=p.get("soak"), health_interval=p["health_interval"],
-                       rollback_on_failure=p["rollback_on_failure"], write_all=p["write_all"],
-                       client="ansible deployer.modbus.apply")
+                       rollback_on_failure=p["rollback_on_failure"], write_all=p["write_all"])
     report = end.get("report") or {}
     devices, diffs, problems, changed = [], [], [], False
     for d in report.get("devices") or []:
