@@ -249,7 +249,7 @@ def test_an_agent_given_no_token_makes_one_and_its_users_clients_find_it(tmp_pat
     # beyond loopback only with a token given (and TLS)
     p = subprocess.run([sys.executable, "-m", "deployer", "agent", str(inv), "--state-dir", str(state), "--listen",
                         "0.0.0.0:0"], capture_output=True, text=True, timeout=60)
-    assert p.returncode == 1 and "without --token-file the agent listens on loopback only" in p.stderr
+    assert p.returncode == 1 and "without --token-file or --users the agent listens on loopback only" in p.stderr
 
 
 def test_malformed_bodies_get_400_naming_what_is_wrong(tmp_path: Path, sim: Simulator) -> None:

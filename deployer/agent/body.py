@@ -24,6 +24,7 @@ from .core import ApiError
 if TYPE_CHECKING:
     import jsonschema
 
+BODY = "deployer.body"  # where the request carries its body once checked (server._bind puts it there)
 MAX_DEPTH = 32  # the API's bodies nest 3 levels; a saved plan in a body about 8
 
 # keys earlier clients sent that the agent no longer takes, and why

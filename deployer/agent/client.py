@@ -22,12 +22,14 @@ ENV = "DEPLOYER_AGENT"
 class Agent:
     """A client of one site agent: ``Agent("http://127.0.0.1:8470")``; ``token``: the agent's token (or a user's);
     without one, for a loopback URL, the token an agent of this user made itself (``local_token.find``);
-    ``ca`` (a PEM file) for an ``https://`` agent whose certificate the system's CAs do not vouch for.
+    ``ca`` (a PEM file) for an ``https://`` agent whose certificate the system's CAs do not vouch for; ``cert`` and
+    ``key`` (PEM files): a TLS client certificate, for an agent that maps certificates to users.
 
     Methods map the HTTP API one to one (docs/agent.md); ``apply`` starts a run and follows it to its end.
     """
 
-    def __init__(self, url: str, *, token: str | None = None, ca: str | None = None, timeout: float = 30.0) -> None:
+    def __init__(self, url: str, *, token: str | None = None, ca: str | None = None, timeout: float = 30.0,
+                 cert: str | None = None, key: str | None = None) -> None:
         u = urllib.parse.urlsplit(url)
         if u.scheme not in ("http", "https") or not u.netloc:
             raise AgentError(f"agent URL {url!r}: expected http://HOST:PORT", kind="usage", exit_code=1)
@@ -44,6 +46,14 @@ class Agent:
                 self._ssl = ssl.create_default_context(cafile=ca)
             except (OSError, ssl.SSLError) as e:
                 raise AgentError(f"agent CA file {ca}: cannot load it: {getattr(e, 'strerror', None) or e}",
+                                 kind="usage", exit_code=1) from None
+        if cert is not None:  # who we are, by certificate (the agent's users file maps it to a user)
+            if self._ssl is None:
+                self._ssl = ssl.create_default_context()
+            try:
+                self._ssl.load_cert_chain(cert, key)
+            except (OSError, ssl.SSLError) as e:
+                raise AgentError(f"client certificate {cert}: cannot load it: {getattr(e, 'strerror', None) or e}",
                                  kind="usage", exit_code=1) from None
 
     # ---- transport -------------------------------------------------------------------------------
@@ -158,6 +168,23 @@ class Agent:
 
     def status(self) -> dict[str, Any]:
         return dict(self.get("/v1/status"))
+
+    def whoami(self) -> dict[str, Any]:
+        """Who the agent takes this client for: user (None with a site token), roles, credential."""
+        return dict(self.get("/v1/whoami"))
+
+    def users(self) -> list[dict[str, Any]]:
+        return list(self.get("/v1/users")["users"])
+
+    def add_user(self, user: str, roles: list[str], **fields: Any) -> dict[str, Any]:
+        """Add a user (an admin's): the answer carries their token (shown once) unless ``token=False``."""
+        return dict(self.post("/v1/users", {"user": user, "roles": roles,
+                                            **{k: v for k, v in fields.items() if v is not None}}))
+
+    def change_user(self, user: str, **changes: Any) -> dict[str, Any]:
+        """Change a user (an admin's): ``roles``, ``disabled``, ``new_token``, ``name``, ``certificate``."""
+        return dict(self.post("/v1/users/" + urllib.parse.quote(user, safe=""),
+                              {k: v for k, v in changes.items() if v is not None}))
 
     def metrics(self) -> str:
         with self._open("GET", "/metrics") as resp:

@@ -13,6 +13,8 @@ from aiohttp import web
 
 from ..errors import UsageError
 from . import local_token
+from .access import Directory
+from .audit_events import audited
 from .core import Agent, Settings
 from .door import Door
 from .notify import Notifier
@@ -32,21 +34,28 @@ def parse_listen(text: str) -> tuple[str, int]:
 async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
                 on_ready: Callable[[str], None] | None = None, signals: bool = True,
                 token: str | None = None, tls: ssl.SSLContext | None = None, notify: Sequence[str] = (),
-                allowed_hosts: Sequence[str] = ()) -> int:
+                allowed_hosts: Sequence[str] = (), users: str | None = None) -> int:
     """Run the agent until SIGTERM/SIGINT (or the task is cancelled); 0 when it ended cleanly.
 
-    Without ``token`` the agent makes one of its own (``local_token``) and says where it is."""
+    ``users``: the users file (access.py); else ``token`` for the site; with neither the agent makes a token of
+    its own (``local_token``) and says where it is."""
     host, port = parse_listen(listen)
-    check_listen(host, token=token is not None, tls=tls is not None, listen=listen)
+    if users is not None and token is not None:
+        raise UsageError("--users and --token-file: one or the other (named users, or one token for the site)")
+    check_listen(host, token=token is not None or users is not None, tls=tls is not None, listen=listen)
+    directory = Directory(users, None) if users is not None else None  # checked before anything starts
     agent = Agent(settings)
     agent.open()  # the files are checked, the state folder is ours: nothing sent yet
     made: str | None = None
-    if token is None:
+    if token is None and directory is None:
         made, new = local_token.ensure(agent.folder)
         token = read_token(made, "the agent's token file")
+    if directory is not None:
+        directory.agent = agent
     notifier = Notifier(agent, notify) if notify else None
     door = Door(host, tuple(allowed_hosts))
-    application = app(agent, token=token, door=door)
+    application = app(agent, token=token, token_kind="agent token" if made else "token", users=directory,
+                      door=door)
     if notifier is not None:
         application[METRICS].register(notifier)  # its queues and failures on /metrics
     runner = Runner(application, access_log=None, handle_signals=False)
@@ -81,6 +90,10 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
         if notifier is not None:
             notifier.start(url)  # before the agent's start: its first events are sent too
         await agent.start(url)
+        if directory is not None:
+            on = sorted(u.name for u in directory.users.values() if not u.disabled)
+            audited(agent, "users-loaded", f"{len(on)} enabled users from {users}: {', '.join(on)[:300]}",
+                    file=users, users=on)
         print(f"listening on {url}", file=sys.stderr, flush=True)
         if on_ready is not None:
             on_ready(url)
