@@ -10,6 +10,7 @@ import json
 import os
 import re
 import shutil
+import socket
 import stat
 import subprocess
 import sys
@@ -64,7 +65,7 @@ def nothing_ran(c: Agent, sim: Simulator) -> None:
 @pytest.mark.skipif(CURL is None, reason="no curl")
 def test_a_cross_origin_post_starts_nothing_with_or_without_the_token(tmp_path: Path, sim: Simulator) -> None:
     inv = write_site(tmp_path, {"d1": sim.url})
-    agent = AgentProcess(inv, tmp_path / "state")
+    agent = AgentProcess(inv, tmp_path / "state", "--allowed-host", "gw-line3.example")
     try:
         url, c = agent.url, agent.client
         port = url.rsplit(":", 1)[1]
@@ -103,8 +104,10 @@ def test_a_cross_origin_post_starts_nothing_with_or_without_the_token(tmp_path: 
         assert origin_rec["detail"]["origin"] == "http://evil.example" and origin_rec["detail"]["path"] == "/v1/runs"
 
         # the agent's own names and origin pass: the same request with them starts the run
-        for host in (f"localhost:{port}", f"127.0.0.1:{port}"):
-            assert curl("-H", f"Host: {host}", *auth, url + "/v1/agent")[0] == 200
+        for host in (f"localhost:{port}", f"127.0.0.1:{port}", f"[::1]:{port}", f"gw-line3.example:{port}",
+                     f"GW-LINE3.example:{port}", f"{socket.gethostname()}:{port}"):
+            assert curl("-H", f"Host: {host}", *auth, url + "/v1/agent")[0] == 200, host
+        assert curl("-H", f"Host: gw-line4.example:{port}", *auth, url + "/v1/agent")[0] == 403  # not given
         status, body = curl("-X", "POST", "-H", "Content-Type: application/json", "-H", f"Origin: {url}", *auth,
                             "--data", '{"confirm_within": "10m"}', url + "/v1/runs")
         assert status == 202, body

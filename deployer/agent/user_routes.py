@@ -58,9 +58,10 @@ async def _edit(request: web.Request, change: Any) -> tuple[Any, dict[str, peopl
     d.editing += 1  # meanwhile the table stays as it was: the change is recorded as this admin's, below
     try:  # in a thread: the file's lock may wait for a command's edit, a new token's hash takes a while
         out, now = await asyncio.to_thread(people.edit, d.path, change)
+    except people.NoAdminLeft as e:
+        raise ApiError("refused", str(e), status=422) from None
     except UsageError as e:
-        raise ApiError("refused" if str(e).startswith("refused") else "usage", str(e),
-                       status=422 if str(e).startswith("refused") else 400) from None
+        raise ApiError("usage", str(e), status=400) from None
     finally:
         d.editing -= 1
     d.changed(now, by=_who(request))

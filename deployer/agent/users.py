@@ -13,7 +13,7 @@ made; the file keeps only its scrypt hash (``hashlib.scrypt``, RFC 7914, with a 
 with ``hmac.compare_digest``). The file is checked like every input file (``schemas/users.schema.json``, every
 problem as ``FILE:LINE:COL: error: ...``); ``edit`` is the one way the commands and the agent change it: under a
 lock, checked before it is written, written whole or not at all, never leaving no enabled admin where there was
-one. Standard library and the project's loaders only.
+one (``NoAdminLeft``). Standard library and the project's loaders only.
 """
 
 from __future__ import annotations
@@ -42,6 +42,10 @@ _TOKEN = re.compile(rf"^{PREFIX}_([0-9a-f]{{10}})_([A-Za-z0-9_-]{{20,100}})$")
 HEADER = ("# The deployer agent's users (deployer agent --users FILE; docs/agent.md). Tokens are kept as scrypt\n"
           "# hashes only. Changed by `deployer users ...`, which rewrites this file (comments are not kept:\n"
           "# use description:); the running agent takes a change up at its next request.\n")
+
+
+class NoAdminLeft(UsageError):
+    """An edit that would leave no enabled admin where there was one: refused (nobody could manage users)."""
 
 
 @dataclass(frozen=True)
@@ -231,7 +235,7 @@ def edit(path: str, change: Callable[[dict[str, Any]], T], *, create: bool = Fal
         text = dump(data)
         after = parse(*_reload(path, text))
         if enabled_admins(before) and not enabled_admins(after):
-            raise UsageError("refused: no enabled admin would be left (give another user the role admin first)")
+            raise NoAdminLeft("refused: no enabled admin would be left (give another user the role admin first)")
         with contextlib.suppress(FileExistsError):  # a new file: its owner's only (write_atomic keeps the mode)
             os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
         write_atomic(path, text, what="the users file")

@@ -61,7 +61,7 @@ def _show_token(name: str, token: str | None) -> None:
     if token is not None:
         echo(f"{safe(name)}'s token, shown this once (only its hash is kept; hand it over safely):",
              err=True)
-        click.echo(token)
+        echo(token)
 
 
 def _certificate(cn: str | None, sha256: str | None) -> dict[str, str] | None:
