@@ -178,6 +178,8 @@ def test_a_disabled_user_is_refused_at_once_without_a_restart(tmp_path: Path, si
         pid = agent.proc.pid
         op, boss = Agent(agent.url, token=tokens["op"]), Agent(agent.url, token=tokens["boss"])
         assert op.whoami()["user"] == "op"
+        me = cli("users", "whoami", "--agent", agent.url, DEPLOYER_AGENT_TOKEN=tokens["boss"])
+        assert me.returncode == 0 and me.stdout == "boss: admin (user token; the agent has users)\n", me.stderr
         # disabled by an edit of the file: refused at the very next request
         p = cli("users", "disable", "op", "--users", str(users))
         assert p.returncode == 0, p.stderr
@@ -385,3 +387,11 @@ def test_a_viewer_reads_the_live_page_with_their_own_token(tmp_path: Path, sim: 
         assert agent.terminate() == 0
     finally:
         agent.kill()
+
+
+def test_a_route_without_a_role_keeps_the_agent_from_starting(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A route added without its role in roles.ROUTE_ROLES is a mistake said before anything starts, not a
+    route anyone (or no one) may use by default."""
+    monkeypatch.setattr(server, "ROUTES", (*server.ROUTES, ("POST", "/v1/erase", server.get_status)))
+    with pytest.raises(ValueError, match=r"routes without a role in roles.ROUTE_ROLES: \[\('POST', '/v1/erase'\)\]"):
+        server.app(None, token="x" * 20)  # type: ignore[arg-type]
