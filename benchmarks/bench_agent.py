@@ -46,8 +46,9 @@ def _memory_mb(pid: int) -> tuple[float, float]:
     return rss / 1024, hwm / 1024
 
 
-def _agent(url: str) -> dict[str, Any]:
-    with urllib.request.urlopen(url + "/v1/agent", timeout=30) as r:
+def _agent(url: str, token: str) -> dict[str, Any]:
+    req = urllib.request.Request(url + "/v1/agent", headers={"Authorization": f"Bearer {token}"})
+    with urllib.request.urlopen(req, timeout=30) as r:
         return dict(json.loads(r.read()))
 
 
@@ -82,18 +83,20 @@ def run(quick: bool = False) -> dict[str, Any]:
                 url = m.group(1)
                 break
         ready = time.monotonic() - started
+        with open(os.path.join(work, "state", "agent", "token"), encoding="utf-8") as f:  # the one it made itself
+            token = f.readline().strip()
         # the device logs go to stderr (one line per event): drain them so the agent never blocks on the pipe
         import threading
 
         threading.Thread(target=lambda: [None for _ in agent.stderr], daemon=True).start()  # type: ignore[union-attr]
-        while _agent(url)["checks"] < 1:
+        while _agent(url, token)["checks"] < 1:
             time.sleep(0.2)
-        first = _agent(url)["last_check_seconds"]
+        first = _agent(url, token)["last_check_seconds"]
         cpu0, t0 = _cpu_seconds(agent.pid), time.monotonic()
         time.sleep(rounds * every)
         cpu1, t1 = _cpu_seconds(agent.pid), time.monotonic()
         rss, hwm = _memory_mb(agent.pid)
-        info = _agent(url)
+        info = _agent(url, token)
         return {"devices": devices, "parameters": PARAMETERS, "check_every_seconds": every,
                 "ready_seconds": round(ready, 2), "first_round_seconds": round(first, 2),
                 "last_round_seconds": round(info["last_check_seconds"], 2), "rounds_measured": rounds,

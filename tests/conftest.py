@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -11,6 +13,15 @@ from pathlib import Path
 import pytest
 
 from tests.helpers import pty_pair
+
+# the notes agents started without a token leave for their user's clients (deployer.agent.local_token): in a
+# folder of this test session's own, not the user's home; child processes inherit it
+if "DEPLOYER_RUNTIME_DIR" not in os.environ:
+    import atexit
+    import tempfile
+
+    os.environ["DEPLOYER_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="deployer-runtime-")
+    atexit.register(shutil.rmtree, os.environ["DEPLOYER_RUNTIME_DIR"], True)
 
 
 @pytest.fixture

@@ -146,7 +146,7 @@ def test_api_errors_are_json_and_a_second_agent_is_refused(tmp_path: Path, sim: 
             c.start_run(command="explode")  # type: ignore[arg-type]
         assert e.value.kind == "usage" and e.value.exit_code == 1
         info = c.info()
-        assert info["api"] == 1 and info["auth"] == "none" and info["url"] == agent.url
+        assert info["api"] == 1 and info["auth"] == "token" and info["url"] == agent.url
         with pytest.raises(AgentError) as e:  # the files changed since the client looked: nothing sent
             c.start_run(files_sha256="0" * 64)
         assert e.value.kind == "conflict" and "changed since you looked" in str(e.value)

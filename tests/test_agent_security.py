@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 
-from deployer.agent import security, server
+from deployer.agent import server
 from deployer.agent.client import Agent
 from deployer.errors import AgentError
 from deployer.profile import load_profile
@@ -84,7 +84,11 @@ def test_the_token_is_needed_on_every_route_and_accepted(tmp_path: Path, sim: Si
         assert len(c.events()) == before and "deployer_device_drifted" in c.metrics()
         refused = [line for line in c.metrics().splitlines() if line.startswith("deployer_http_unauthorized_requests")]
         assert refused and float(refused[0].split()[-1]) >= len(server.ROUTES) + 6
-        assert agent.log().count("refused a request without the right token from 127.0.0.1") == 1  # once a minute
+        # audited once a minute per address (the first at once), the rest counted into the next record
+        assert agent.log().count("agent: login-refused: refused ") == 1
+        first = [e for e in c.events() if e["kind"] == "login-refused"]
+        assert len(first) == 1 and first[0]["detail"]["remote"] == "127.0.0.1"
+        assert first[0]["detail"]["why"] == "no credential" and first[0]["detail"]["path"] == "/v1/devices"
         with pytest.raises(AgentError) as e:
             Agent(url).devices()
         assert e.value.kind == "unauthorized" and e.value.exit_code == 1
@@ -103,11 +107,23 @@ def test_the_token_is_needed_on_every_route_and_accepted(tmp_path: Path, sim: Si
     finally:
         agent.kill()
     assert "Traceback" not in agent.log()
+    # at the stop, the refusals counted since the first record are recorded with their number
+    import re
+
+    held = re.findall(r"agent: login-refused: .*\((\d+) more like it after the last record\)", agent.log())
+    assert held and int(held[0]) >= len(server.ROUTES) + 5, agent.log()
 
 
 def test_the_token_is_compared_in_constant_time() -> None:
-    source = inspect.getsource(security.auth_middleware)
-    assert "hmac.compare_digest" in source and "==" not in source.replace("request.method ==", "")
+    import re
+
+    from deployer.agent import access, users
+
+    for fn, secrets in ((access.Access.identify, ("given", "self._token")), (users.check_token, ("got", "want"))):
+        source = inspect.getsource(fn)
+        assert "hmac.compare_digest" in source, fn
+        for name in secrets:  # never compared as values: a time that depends on the first byte that differs
+            assert not re.search(rf"{re.escape(name)}(\.\w+\(\))?\s*[!=]=|[!=]=\s*{re.escape(name)}\b", source)
 
 
 def test_beyond_loopback_only_with_a_token_and_tls(tmp_path: Path, sim: Simulator, pki: dict[str, str]) -> None:
@@ -161,7 +177,7 @@ def test_bad_and_oversized_requests_get_json_errors(tmp_path: Path, sim: Simulat
     agent = AgentProcess(inv, tmp_path / "state")
     try:
         url = agent.url
-        json_h = {"Content-Type": "application/json"}
+        json_h = {"Content-Type": "application/json", "Authorization": f"Bearer {agent.client.token}"}
         cases: list[tuple[str, str, bytes | None, int, str]] = [
             ("POST", "/v1/runs", b"{not json", 400, "usage"),
             ("POST", "/v1/runs", b"[1, 2]", 400, "usage"),
@@ -185,7 +201,7 @@ def test_bad_and_oversized_requests_get_json_errors(tmp_path: Path, sim: Simulat
             answer_b = s.recv(65536)
         assert b"Traceback" not in answer_b
         with socket.create_connection((host, int(port)), timeout=10) as s:
-            s.sendall(b"GET /v1/agent HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 70000 + b"\r\n\r\n")
+            s.sendall(b"GET /v1/agent HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Big: " + b"a" * 70000 + b"\r\n\r\n")
             answer_b = s.recv(65536)
         assert answer_b.startswith(b"HTTP/1.") and b" 4" in answer_b[:13] and b"application/json" in answer_b
         assert agent.client.info()["api"] == 1
@@ -215,7 +231,9 @@ def test_the_served_openapi_document_states_the_security_and_the_errors(tmp_path
     assert doc["openapi"].startswith("3.") and doc["info"]["version"] == "1"
     assert doc["components"]["securitySchemes"]["bearer"] == {**doc["components"]["securitySchemes"]["bearer"],
                                                               "type": "http", "scheme": "bearer"}
-    assert doc["security"] == [{"bearer": []}, {}]  # a token when the agent has one; none on loopback without
+    # a credential in every mode (the agent makes a token when given none): a token, or a user's client certificate
+    assert doc["security"] == [{"bearer": []}, {"clientCertificate": []}]
+    assert doc["components"]["securitySchemes"]["clientCertificate"]["type"] == "mutualTLS"
     kinds = set(doc["components"]["schemas"]["Error"]["properties"]["error"]["properties"]["kind"]["enum"])
     sources = "".join(p.read_text() for p in Path(server.__file__).parent.glob("*.py"))
     raised = {k for pattern in (r'ApiError\("([a-z-]+)"', r'error_body\("([a-z-]+)"', r'"error": \{"kind": "([a-z-]+)"')
@@ -224,6 +242,13 @@ def test_the_served_openapi_document_states_the_security_and_the_errors(tmp_path
     for path, ops in doc["paths"].items():
         for method, op in ops.items():
             assert op["responses"]["401"] == {"$ref": "#/components/responses/Unauthorized"}, (method, path)
+            assert op["responses"]["403"] == {"$ref": "#/components/responses/Forbidden"}, (method, path)
+            if method != "get":  # a body only as application/json
+                assert op["responses"]["415"] == {"$ref": "#/components/responses/UnsupportedMediaType"}
+                schema = op.get("requestBody", {}).get("content", {}).get("application/json", {}).get("schema")
+                if schema is not None:  # the one the agent checks bodies against: no key it does not know
+                    name = schema["$ref"].rsplit("/", 1)[1]
+                    assert doc["components"]["schemas"][name]["additionalProperties"] is False, name
             assert op.get("operationId"), (method, path)
     inv = write_site(tmp_path, {"d1": sim.url})
     agent = AgentProcess(inv, tmp_path / "state", "--token-file", str(token_file(tmp_path)))

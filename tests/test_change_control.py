@@ -311,12 +311,12 @@ def test_a_key_in_ssh_agent_signs_through_ssh_keygen(tmp_path: Path, monkeypatch
 # ---- approvals through the agent ----------------------------------------------------------------------------
 
 
-def _post(url: str, body: object) -> tuple[int, dict[str, object]]:
+def _post(url: str, body: object, token: str | None) -> tuple[int, dict[str, object]]:
     import urllib.error
     import urllib.request
 
     req = urllib.request.Request(url + "/v1/approvals", data=json.dumps(body).encode(), method="POST",
-                                 headers={"Content-Type": "application/json"})
+                                 headers={"Content-Type": "application/json", "Authorization": f"Bearer {token}"})
     try:
         with urllib.request.urlopen(req, timeout=20) as resp:
             return resp.status, json.loads(resp.read())
@@ -338,23 +338,28 @@ def test_the_agent_takes_a_signed_approval_and_refuses_the_authors_and_an_anonym
     doc = json.loads((tmp_path / "p.json").read_text())
     agent = AgentProcess(inv, tmp_path / "state")
     try:
+        token = agent.client.token  # the token the agent made: the site's one token, no name (access.py)
         mine = sign(digest(doc), "alice", "approved", signer_of(str(tmp_path / "alice")))
-        status, answer = _post(agent.url, {"plan": doc, "signature": mine})
+        status, answer = _post(agent.url, {"plan": doc, "signature": mine}, token)
         assert status == 403 and "cannot approve their own change" in str(answer["error"])
-        status, answer = _post(agent.url, {"plan": doc})  # nobody named (single-token mode): no attestation
+        status, answer = _post(agent.url, {"plan": doc}, None)  # no credential at all
+        assert status == 401 and "needs a named user" not in str(answer["error"])
+        status, answer = _post(agent.url, {"plan": doc}, token)  # nobody named (one token): no attestation
         assert status == 401 and "needs a named user" in str(answer["error"])
         bobs = sign(digest(doc), "bob", "approved", signer_of(str(tmp_path / "bob")))
         status, answer = _post(agent.url, {"plan": {**doc, "change": {**doc["change"], "reason": "x"}},
-                                           "signature": bobs})
+                                           "signature": bobs}, token)
         assert status == 422 and "other content" in str(answer["error"])  # bob signed another plan
-        status, answer = _post(agent.url, {"plan": doc, "signature": bobs})
+        status, answer = _post(agent.url, {"plan": doc, "signature": bobs}, token)
         assert status == 200 and answer["missing"] == [], answer
         (tmp_path / "p.json").write_text(json.dumps(answer["plan"], indent=2))
     finally:
         assert agent.terminate() == 0
     assert run(tmp_path, "apply", "p.json", "--yes", "--policy", str(inv)).returncode == 0  # the agent let go
     trail = [json.loads(x) for x in (tmp_path / "state/audit/trail.jsonl").read_text().splitlines()]
-    assert [(t["event"], t["via"]) for t in trail] == [("approve-refused", "agent")] * 3 + [("plan-signed", "agent")]
+    asked = [(t["event"], t["via"]) for t in trail if t["event"] != "drift"]  # its watch records drift too
+    assert asked == [("approve-refused", "agent"), ("login-refused", "agent")] + [("approve-refused", "agent")] * 2 \
+        + [("plan-signed", "agent")]
 
 
 @needs_ssh

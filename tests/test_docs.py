@@ -51,9 +51,9 @@ def test_docs_command_writes_and_checks(capsys: pytest.CaptureFixture[str], tmp_
     code, _, err = cli(capsys, "docs", "--check", "--out", str(out))
     assert code == 1 and f"{out}/profile.md: stale" in err
     code, _, err = cli(capsys, "docs", "--out", str(out))
-    assert code == 0 and err == f"6 pages updated in {out}\n"
+    assert code == 0 and err == f"7 pages updated in {out}\n"
     assert sorted(p.name for p in out.iterdir()) == [
-        "inventory.md", "plan.md", "profile.md", "recipe.md", "report.md", "snapshot.md"]
+        "inventory.md", "plan.md", "profile.md", "recipe.md", "report.md", "snapshot.md", "users.md"]
     (out / "recipe.md").write_text("edited by hand\n")
     code, _, err = cli(capsys, "docs", "--check", "--out", str(out))
     assert code == 1 and err == f"{out}/recipe.md: stale (run: deployer docs --out {out})\n"

@@ -21,18 +21,25 @@ ENV = "DEPLOYER_AGENT"
 
 
 class Agent:
-    """A client of one site agent: ``Agent("http://127.0.0.1:8470")``; ``token`` for an agent that asks for one,
-    ``ca`` (a PEM file) for an ``https://`` agent whose certificate the system's CAs do not vouch for.
+    """A client of one site agent: ``Agent("http://127.0.0.1:8470")``; ``token``: the agent's token (or a user's);
+    without one, for a loopback URL, the token an agent of this user made itself (``local_token.find``);
+    ``ca`` (a PEM file) for an ``https://`` agent whose certificate the system's CAs do not vouch for; ``cert`` and
+    ``key`` (PEM files): a TLS client certificate, for an agent that maps certificates to users.
 
     Methods map the HTTP API one to one (docs/agent.md); ``apply`` starts a run and follows it to its end.
     """
 
     @checked("Agent")
-    def __init__(self, url: str, *, token: str | None = None, ca: str | None = None, timeout: float = 30.0) -> None:
+    def __init__(self, url: str, *, token: str | None = None, ca: str | None = None, timeout: float = 30.0,
+                 cert: str | None = None, key: str | None = None) -> None:
         u = urllib.parse.urlsplit(url)
         if u.scheme not in ("http", "https") or not u.netloc:
             raise AgentError(f"agent URL {url!r}: expected http://HOST:PORT", kind="usage", exit_code=1)
         self.url = url.rstrip("/")
+        if token is None:
+            from .local_token import find
+
+            token = find(self.url)
         self.token = token
         self.timeout = timeout
         self._ssl: ssl.SSLContext | None = None
@@ -41,6 +48,14 @@ class Agent:
                 self._ssl = ssl.create_default_context(cafile=ca)
             except (OSError, ssl.SSLError) as e:
                 raise AgentError(f"agent CA file {ca}: cannot load it: {getattr(e, 'strerror', None) or e}",
+                                 kind="usage", exit_code=1) from None
+        if cert is not None:  # who we are, by certificate (the agent's users file maps it to a user)
+            if self._ssl is None:
+                self._ssl = ssl.create_default_context()
+            try:
+                self._ssl.load_cert_chain(cert, key)
+            except (OSError, ssl.SSLError) as e:
+                raise AgentError(f"client certificate {cert}: cannot load it: {getattr(e, 'strerror', None) or e}",
                                  kind="usage", exit_code=1) from None
 
     # ---- transport -------------------------------------------------------------------------------
@@ -202,6 +217,35 @@ class Agent:
     @checked()
     def status(self) -> dict[str, Any]:
         return dict(self.get("/v1/status"))
+
+    @checked()
+    def whoami(self) -> dict[str, Any]:
+        """Who the agent takes this client for: user (None with a site token), roles, credential."""
+        return dict(self.get("/v1/whoami"))
+
+    @checked()
+    def users(self) -> list[dict[str, Any]]:
+        return list(self.get("/v1/users")["users"])
+
+    @checked()
+    def add_user(self, user: str, roles: list[str], *, name: str | None = None,
+                 certificate: dict[str, str] | None = None, token: bool | None = None) -> dict[str, Any]:
+        """Add a user (an admin's): ``name`` (printed), ``certificate`` (``{"cn": ...}`` or ``{"sha256": ...}``);
+        the answer carries their token (shown once) unless ``token=False``."""
+        fields = {"name": name, "certificate": certificate, "token": token}
+        return dict(self.post("/v1/users", {"user": user, "roles": roles,
+                                            **{k: v for k, v in fields.items() if v is not None}}))
+
+    @checked()
+    def change_user(self, user: str, *, roles: list[str] | None = None, disabled: bool | None = None,
+                    new_token: bool | None = None, name: str | None = None,
+                    certificate: dict[str, str] | None = None) -> dict[str, Any]:
+        """Change a user (an admin's): ``roles``, ``disabled``, ``new_token`` (the answer carries it, once),
+        ``name``, ``certificate``."""
+        changes = {"roles": roles, "disabled": disabled, "new_token": new_token, "name": name,
+                   "certificate": certificate}
+        return dict(self.post("/v1/users/" + urllib.parse.quote(user, safe=""),
+                              {k: v for k, v in changes.items() if v is not None}))
 
     @checked()
     def metrics(self) -> str:

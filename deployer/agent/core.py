@@ -286,6 +286,9 @@ class Agent:
         for hook in self.on_event:
             with contextlib.suppress(Exception):
                 hook(ev)
+        from .audit_events import trailed
+
+        trailed(self, kind, message, device, detail)  # what changes (or could change) a device: on the trail
         return ev
 
     # ---- ownership ----------------------------------------------------------------------------------
@@ -568,12 +571,15 @@ class Agent:
 
     # ---- runs ---------------------------------------------------------------------------------------
 
-    def start_apply(self, req: Mapping[str, Any]) -> RunState:
+    def start_apply(self, req: Mapping[str, Any], *, take_up: bool = True) -> RunState:
         """``POST /v1/runs`` with command apply: roll out the files for the selected devices (every check
-        before anything is sent; refusals are ApiError). The files are read again first: what is rolled out
-        is what they say now, checked (``files_sha256``: refused if they changed since the client looked)."""
-        with contextlib.suppress(ApiError):
-            self.reload()
+        before anything is sent; refusals are ApiError). ``take_up``: the files are read again first, so what
+        is rolled out is what they say now, checked (``files_sha256``: refused if they changed since the client
+        looked); without it (a user who may not take up an edit) what was taken up last is rolled out.
+        ``req["by"]``: who asked (access.Who.record), for the run's records."""
+        if take_up:
+            with contextlib.suppress(ApiError):
+                self.reload()
         if self.files_problem:
             raise ApiError("input", "the files are invalid; nothing was sent", status=400,
                            diagnostics=self.files_problem)
@@ -616,7 +622,7 @@ class Agent:
         self._check_endurance(jobs, force=bool(req.get("force_endurance")))
         options = {k: req[k] for k in ("limit", "batch", "max_failures", "parallel", "soak", "health_interval",
                                        "confirm_within", "allow_unhealthy", "rollback_on_failure", "write_all",
-                                       "client", "recipe")
+                                       "by", "recipe")
                    if req.get(k) is not None}
         return self.start_run(jobs, command="apply", options=options, opts=opts, label=self.settings.inventory,
                               batch=req.get("batch"), max_failures=req.get("max_failures"),
@@ -651,15 +657,17 @@ class Agent:
             except UsageError as e:
                 raise ApiError("usage", str(e), status=400) from None
         run_id = journal.new_run_id()
-        opts = replace(opts, state_dir=self.state_dir, run_id=run_id, command=f"agent {command}: "
-                       + str(options.get("client") or options.get("reason") or "")[:200])
+        by = options.get("by") or {}
+        who = by.get("user") or (f"the {by['credential']}" if by.get("credential") else None)
+        opts = replace(opts, state_dir=self.state_dir, run_id=run_id, command=f"agent {command}"
+                       + (f" by {who}" if who else "") + (f": {options['reason']}" if options.get("reason") else ""))
         run = RunState(run_id, command, [j.name for j in jobs], options)
         self.runs[run_id] = run
         for j in jobs:
             self.devices[j.name].run = run_id
         assert self.store is not None
         self.store.run_started(run_id, command, options)
-        run.emit("run-started", run=run_id, command=command, devices=run.devices)
+        run.emit("run-started", run=run_id, command=command, devices=run.devices, by=options.get("by"))
         run.task = asyncio.ensure_future(self._execute(run, jobs, opts, label=label, batch=batch,
                                                        max_failures=max_failures, parallel=parallel,
                                                        rollback_on_failure=rollback_on_failure, adopt=adopt))
@@ -777,7 +785,11 @@ class Agent:
         self.first.finished(self, run.id, report, state)
         self.store.run_ended(run.id, state, run.exit_code, report_path if report is not None else None)
         self.event("run-finished", f"run {run.id} ({run.command}) {state}, exit code {run.exit_code}",
-                   detail={"run": run.id, "exit_code": run.exit_code})
+                   detail={"run": run.id, "exit_code": run.exit_code, "by": run.options.get("by")})
+        if report is not None:
+            from .audit_events import run_finished
+
+            run_finished(self, report, command=run.command, by=run.options.get("by"))
         run.emit("run-finished", run=run.id, state=state, exit_code=run.exit_code, report=run.report,
                  error=None if error is None else str(error))
 
@@ -796,10 +808,10 @@ class Agent:
         if not jobs:
             raise ApiError("usage", "no device selected", status=400)
         self._check_endurance(jobs, force=bool(req.get("force_endurance")))
-        return self.start_run(jobs, command="restore", options={"reason": "requested", "client": req.get("client")},
+        return self.start_run(jobs, command="restore", options={"reason": "requested", "by": req.get("by")},
                               opts=ApplyOptions(), label="the adopted state")
 
-    async def start_rollback(self, run_id: str) -> RunState:
+    async def start_rollback(self, run_id: str, *, by: Mapping[str, Any] | None = None) -> RunState:
         """``POST /v1/runs/{id}/rollback``: restore what a finished run wrote, from its snapshots."""
         from ..run.rollback import report_jobs
 
@@ -818,7 +830,7 @@ class Agent:
         if not jobs:
             raise ApiError("usage", f"run {run_id} wrote nothing to roll back", status=400)
         return self.start_run(jobs, command="rollback", options={"reason": f"rollback of run {run_id}",
-                                                                 "notices": notices},
+                                                                 "notices": notices, "by": by},
                               opts=ApplyOptions(), label=path)
 
     def ledger_json(self) -> dict[str, Any]:
@@ -841,8 +853,8 @@ class Agent:
                 "runs": [r.to_json(report=False) for r in self.runs.values() if r.state in ("running", "waiting")],
                 "events": self.store.events(limit=20), "files_problems": self.files_problem}
 
-    def confirm(self, run_id: str | None) -> RunState:
-        """Confirm a run waiting in its confirm window (the one waiting when ``run_id`` is None)."""
+    def confirm(self, run_id: str | None, *, by: Mapping[str, Any] | None = None) -> RunState:
+        """Confirm a run waiting in its confirm window (the one waiting when ``run_id`` is None); ``by``: who."""
         from ..window.confirm import confirm_run
 
         waiting = [r for r in self.runs.values() if r.state == "waiting"]
@@ -871,7 +883,8 @@ class Agent:
         if run.window is not None:
             run.window["state"] = "confirmed"
         run.state = "running"
-        self.event("window-confirmed", f"run {run_id} confirmed", detail={"run": run_id})
+        self.event("window-confirmed", f"run {run_id} confirmed" + (f" by {by['user']}" if by and by.get("user")
+                                                                    else ""), detail={"run": run_id, "by": by})
         run.emit("window-confirmed", run=run_id)
         return run
 

@@ -64,7 +64,8 @@ JS = r"""
   function render(agent, devices, windows, pending, events) {
     var where = document.getElementById("where");
     where.replaceChildren(name(agent.url), " \u00b7 ", name(agent.inventory), " \u00b7 deployer " + agent.version +
-      " \u00b7 PID " + agent.pid + " \u00b7 auth " + agent.auth);
+      " \u00b7 PID " + agent.pid + " \u00b7 auth " + agent.auth,
+      agent.you && agent.you.user ? " \u00b7 you: " : "", agent.you && agent.you.user ? name(agent.you.user) : "");
     var counts = {};
     devices.forEach(function (d) { var s = d.drifted ? "drifted" : d.status; counts[s] = (counts[s] || 0) + 1; });
     var cbox = document.getElementById("counts");

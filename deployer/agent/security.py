@@ -1,30 +1,21 @@
-"""Who may drive the agent: the bearer token, TLS, and where it may listen (docs/operations.md).
+"""The agent's credentials as files, TLS, and where it may listen (docs/operations.md).
 
-Without a token the agent listens on loopback only and answers every request from there (every local user
-of the gateway can drive it). With ``--token-file`` every request needs ``Authorization: Bearer TOKEN``
-(compared in constant time). Beyond loopback only with a token and TLS: a token sent in clear text over a
-plant network is a token given away.
+Every request needs a credential, in every mode (access.py checks it): a user's (``--users FILE``), the site's
+token (``--token-file``), or the one the agent made itself when given neither (``local_token``: then it listens
+on loopback only). Beyond loopback only with users or a token given, and TLS: a token sent in clear text over a
+plant network is a token given away. ``--tls-client-ca`` asks clients for a certificate that CA signed; the
+users file maps certificates to users.
 """
 
 from __future__ import annotations
 
-import hmac
 import ipaddress
 import os
 import socket
 import ssl
 import sys
-import time
-from collections.abc import Awaitable, Callable, Iterator
-
-from aiohttp import web
-from prometheus_client.core import CounterMetricFamily, Metric
 
 from ..errors import UsageError
-from ..load.messages import printable
-
-# the page's shell (HTML, no data: its script fetches /v1 with the token the user gives it) needs none
-OPEN_PATHS = frozenset({"/"})
 
 
 def read_token(path: str, what: str = "--token-file") -> str:
@@ -50,9 +41,13 @@ def read_token(path: str, what: str = "--token-file") -> str:
     return text
 
 
-def server_ssl(cert: str | None, key: str | None) -> ssl.SSLContext | None:
-    """The TLS context of ``--tls-cert``/``--tls-key`` (both or neither); TLS 1.2 at least."""
+def server_ssl(cert: str | None, key: str | None, client_ca: str | None = None) -> ssl.SSLContext | None:
+    """The TLS context of ``--tls-cert``/``--tls-key`` (both or neither); TLS 1.2 at least. ``client_ca``
+    (``--tls-client-ca``): clients may present a certificate, which this CA must have signed (one it did not
+    sign ends the handshake); a client without one logs in with a token."""
     if cert is None and key is None:
+        if client_ca is not None:
+            raise UsageError("--tls-client-ca needs TLS: --tls-cert FILE --tls-key FILE")
         return None
     if cert is None or key is None:
         raise UsageError("--tls-cert and --tls-key go together")
@@ -63,6 +58,13 @@ def server_ssl(cert: str | None, key: str | None) -> ssl.SSLContext | None:
     except (OSError, ssl.SSLError) as e:
         raise UsageError(f"--tls-cert {cert} --tls-key {key}: cannot load them: "
                          f"{getattr(e, 'strerror', None) or e}") from None
+    if client_ca is not None:
+        try:
+            ctx.load_verify_locations(cafile=client_ca)
+        except (OSError, ssl.SSLError) as e:
+            raise UsageError(f"--tls-client-ca {client_ca}: cannot load it: "
+                             f"{getattr(e, 'strerror', None) or e}") from None
+        ctx.verify_mode = ssl.CERT_OPTIONAL
     return ctx
 
 
@@ -79,59 +81,13 @@ def is_loopback(host: str) -> bool:
 
 
 def check_listen(host: str, *, token: bool, tls: bool, listen: str) -> None:
-    """Beyond loopback only with a token and TLS; refused before anything starts."""
+    """Beyond loopback only with users or a token given (``token``), and TLS; refused before anything starts."""
     if is_loopback(host):
         return
     if not token:
-        raise UsageError(f"--listen {listen}: without a token the agent listens on loopback only (127.0.0.1, ::1): "
-                         "anyone who reaches it could write the devices; give --token-file and --tls-cert/--tls-key")
+        raise UsageError(f"--listen {listen}: without --token-file or --users the agent listens on loopback only "
+                         "(127.0.0.1, ::1), with a token of its own for its own user; give --users FILE (or "
+                         "--token-file) and --tls-cert/--tls-key")
     if not tls:
         raise UsageError(f"--listen {listen}: beyond loopback the agent needs TLS as well as the token "
                          "(--tls-cert FILE --tls-key FILE): a token sent in clear text is given away")
-
-
-class Refusals:
-    """Requests refused for want of the token: counted (``/metrics``) and said on stderr, once a minute per
-    address at most (a scanner must not fill the gateway's log)."""
-
-    def __init__(self) -> None:
-        self.total = 0
-        self._said: dict[str, float] = {}
-
-    def refused(self, request: web.Request) -> None:
-        self.total += 1
-        who = request.remote or "?"
-        now = time.monotonic()
-        if now - self._said.get(who, -1e9) >= 60:
-            if len(self._said) > 1000:  # many addresses: forget the old ones rather than grow
-                self._said.clear()
-            self._said[who] = now
-            print(f"agent: refused a request without the right token from {who} ({request.method} "
-                  f"{printable(request.path[:200])}; said once a minute per address)", file=sys.stderr, flush=True)
-
-    def collect(self) -> Iterator[Metric]:
-        c = CounterMetricFamily("deployer_http_unauthorized_requests", "requests refused for want of the token")
-        c.add_metric([], self.total)
-        yield c
-
-
-def auth_middleware(token: str, refusals: Refusals | None = None) -> Callable[..., Awaitable[web.StreamResponse]]:
-    """Every request but the page's shell needs ``Authorization: Bearer TOKEN`` (constant-time compare)."""
-    expected = token.encode()
-    refusals = refusals if refusals is not None else Refusals()
-
-    @web.middleware
-    async def auth(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
-                   ) -> web.StreamResponse:
-        if request.method == "GET" and request.path in OPEN_PATHS:
-            return await handler(request)
-        scheme, _, given = request.headers.get("Authorization", "").partition(" ")
-        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), expected):
-            refusals.refused(request)
-            body = {"error": {"kind": "unauthorized", "exit_code": 1,
-                              "message": "this agent needs its token: Authorization: Bearer TOKEN "
-                              "(deployer: --agent-token-file FILE or DEPLOYER_AGENT_TOKEN)"}}
-            return web.json_response(body, status=401, headers={"WWW-Authenticate": 'Bearer realm="deployer"'})
-        return await handler(request)
-
-    return auth

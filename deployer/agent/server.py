@@ -19,12 +19,21 @@ from typing import Any
 from aiohttp import web
 
 from ..errors import DeployerError, InputError
+from . import user_routes
+from .access import ROLE, USER, WHO, Access, Directory, Who, access_middleware
+from .body import BODY
+from .body import read as read_body
 from .core import Agent, ApiError, RunState
+from .door import Door, door_middleware
 from .metrics import CONTENT_TYPE, exposition, registry
+from .refusals import Refusals
+from .roles import ROUTE_ROLES, holds
 
 Handler = Callable[[Agent, web.Request], Awaitable[Any]]
 MAX_BODY = 1 << 20  # requests are small JSON documents
 AGENT: web.AppKey[Agent] = web.AppKey("agent", Agent)
+DOOR: web.AppKey[Door] = web.AppKey("door", Door)
+REFUSALS: web.AppKey[Refusals] = web.AppKey("refusals", Refusals)
 
 
 def _device(agent: Agent, request: web.Request) -> Any:
@@ -43,15 +52,9 @@ def _run(agent: Agent, request: web.Request) -> RunState:
 
 
 async def _body(request: web.Request) -> dict[str, Any]:
-    if not request.can_read_body:
-        return {}
-    try:
-        data = await request.json()
-    except (ValueError, UnicodeDecodeError):
-        raise ApiError("usage", "the request body is not JSON", status=400) from None
-    if not isinstance(data, dict):
-        raise ApiError("usage", "the request body must be a JSON object", status=400)
-    return data
+    """The body as its route's schema allows it (checked before the handler runs: ``_bind``, body.py)."""
+    got: dict[str, Any] = request.get(BODY) or {}
+    return got
 
 
 def _int(request: web.Request, key: str, default: int, low: int, high: int) -> int:
@@ -70,8 +73,16 @@ def _int(request: web.Request, key: str, default: int, low: int, high: int) -> i
 # ---- handlers -----------------------------------------------------------------------------------
 
 
+def _by(request: web.Request) -> dict[str, Any]:
+    """Who sent the request, as runs and events record it (access.Who.record)."""
+    who: Who = request[WHO]
+    return who.record()
+
+
 async def get_agent(agent: Agent, request: web.Request) -> Any:
-    return {**agent.agent_json(), "auth": "token" if request.app[TOKEN] else "none"}
+    who: Who = request[WHO]
+    return {**agent.agent_json(), "auth": request.app[user_routes.ACCESS].mode,
+            "you": {**who.record(), "roles": sorted(who.roles)}}
 
 
 async def list_devices(agent: Agent, request: web.Request) -> Any:
@@ -124,10 +135,11 @@ async def list_runs(agent: Agent, request: web.Request) -> Any:
 async def start_run(agent: Agent, request: web.Request) -> Any:
     body = await _body(request)
     command = body.get("command", "apply")
-    if command == "apply":
-        run = agent.start_apply(body)
+    who: Who = request[WHO]
+    if command == "apply":  # one who may take up an edit runs what the files say now; others what was taken up
+        run = agent.start_apply({**body, "by": who.record()}, take_up=holds(who.roles, "engineer"))
     elif command == "restore":
-        run = agent.start_restore(body)
+        run = agent.start_restore({**body, "by": who.record()})
     else:
         raise ApiError("usage", f"command: {command!r} is not apply or restore", status=400)
     return web.json_response(run.to_json(), status=202)
@@ -160,18 +172,18 @@ async def stream_run(agent: Agent, request: web.Request) -> web.StreamResponse:
 
 
 async def confirm_run(agent: Agent, request: web.Request) -> Any:
-    return agent.confirm(_run(agent, request).id).to_json(report=False)
+    return agent.confirm(_run(agent, request).id, by=_by(request)).to_json(report=False)
 
 
 async def rollback_run(agent: Agent, request: web.Request) -> Any:
-    run = await agent.start_rollback(_run(agent, request).id)
+    run = await agent.start_rollback(_run(agent, request).id, by=_by(request))
     return web.json_response(run.to_json(), status=202)
 
 
 async def confirm(agent: Agent, request: web.Request) -> Any:
     body = await _body(request)
     run = body.get("run")
-    return agent.confirm(None if run is None else str(run)).to_json(report=False)
+    return agent.confirm(None if run is None else str(run), by=_by(request)).to_json(report=False)
 
 
 async def list_windows(agent: Agent, request: web.Request) -> Any:
@@ -191,10 +203,6 @@ async def get_ledger(agent: Agent, request: web.Request) -> Any:
 
 async def get_status(agent: Agent, request: web.Request) -> Any:
     return agent.status_json()
-
-
-# the authenticated user and role, as the users' middleware puts them on the request (None: single-token mode)
-USER, ROLE = "deployer.user", "deployer.role"
 
 
 async def approve_plan(agent: Agent, request: web.Request) -> Any:
@@ -256,10 +264,13 @@ ROUTES: tuple[tuple[str, str, Handler], ...] = (
     ("POST", "/v1/approvals", approve_plan),
     ("GET", "/v1/openapi.json", get_openapi),
     ("GET", "/metrics", get_metrics),
+    ("GET", "/v1/whoami", user_routes.whoami),
+    ("GET", "/v1/users", user_routes.list_users),
+    ("POST", "/v1/users", user_routes.add_user),
+    ("POST", "/v1/users/{name}", user_routes.change_user),
 )
 
 METRICS: web.AppKey[Any] = web.AppKey("metrics", object)
-TOKEN: web.AppKey[bool] = web.AppKey("token", bool)
 
 
 def error_body(kind: str, message: str, exit_code: int, diagnostics: list[str] | None = None) -> dict[str, Any]:
@@ -293,18 +304,24 @@ async def errors(request: web.Request, handler: Callable[[web.Request], Awaitabl
         return web.json_response(error_body("internal", f"internal error: {type(e).__name__}: {e}", 4), status=500)
 
 
-def app(agent: Agent, *, token: str | None = None) -> web.Application:
-    """The agent's web application; with ``token`` every request but the page's shell needs it (security.py)."""
-    from .security import Refusals, auth_middleware
-
-    refusals = Refusals()
-    middlewares = [errors] + ([auth_middleware(token, refusals)] if token else [])
+def app(agent: Agent, *, token: str | None = None, token_kind: str = "token", users: Directory | None = None,
+        door: Door | None = None) -> web.Application:
+    """The agent's web application: the door (door.py) first, then who sends the request and whether their
+    role lets them (access.py: one site ``token``, or the ``users`` file), then the routes."""
+    refusals = Refusals(agent)
+    access = Access(agent, refusals, token=token, token_kind=token_kind, directory=users)
+    door = door if door is not None else Door("127.0.0.1")
+    missing = [(m, p) for m, p, _ in ROUTES if (m, p) not in ROUTE_ROLES]
+    if missing:  # a route nobody may use is a mistake, not a default: say it before anything starts
+        raise ValueError(f"routes without a role in roles.ROUTE_ROLES: {missing}")
+    middlewares = [errors, door_middleware(door, refusals), access_middleware(access)]
     application = web.Application(middlewares=middlewares, client_max_size=MAX_BODY)
     application[AGENT] = agent
-    application[TOKEN] = bool(token)
+    application[DOOR] = door
+    application[REFUSALS] = refusals
+    application[user_routes.ACCESS] = access
     application[METRICS] = registry(agent)
-    if token:
-        application[METRICS].register(refusals)
+    application[METRICS].register(refusals)
     for method, path, handler in ROUTES:
         application.router.add_route(method, path, _bind(agent, handler))
     from .page import page  # the live page: HTML for people, not part of the versioned API
@@ -315,6 +332,8 @@ def app(agent: Agent, *, token: str | None = None) -> web.Application:
 
 def _bind(agent: Agent, handler: Handler) -> Callable[[web.Request], Awaitable[web.StreamResponse]]:
     async def call(request: web.Request) -> web.StreamResponse:
+        if request.method != "GET":  # every body, whether the handler reads it or not: a malformed one is a 400
+            request[BODY] = await read_body(request)
         out = await handler(agent, request)
         if isinstance(out, web.StreamResponse):
             return out

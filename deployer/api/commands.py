@@ -361,6 +361,8 @@ def _filekind(data: object) -> str | None:
         return "recipe"
     if "devices" in data:
         return "inventory"
+    if "users" in data:
+        return "users"  # the agent's users file (deployer agent --users)
     params = data.get("parameters")
     declares = isinstance(params, dict) and any(isinstance(v, dict) and "register" in v for v in params.values())
     if "profile" in data and (declares or data.keys() & {"tables", "addressing", "limits", "identity", "commit"}):
@@ -407,13 +409,18 @@ def validate_file(path: str | os.PathLike[str]) -> str:
             recipes = {j.recipe.path for j in jobs}
             return (f"inventory: {_count(len(inv.devices), 'device')}"
                     + (f", {_count(len(recipes), 'recipe')}" if recipes else ""))
+        if kind == "users":
+            from ..agent.users import parse as parse_users
+
+            people = parse_users(data, src)
+            return f"users: {_count(len(people), 'user')}, {sum(not u.disabled for u in people.values())} enabled"
         if kind == "plan":
             saved = plan_from_json(data, where, src=src)
             return f"plan: {_count(len(saved.writes), 'write request')} for profile {saved.device.profile}"
         what = ("cannot tell what this file is" if isinstance(data, dict) else
                 f"expected a mapping, got {'a list' if isinstance(data, list) else 'a single value'}")
         raise InputError([src.error((), f"{what}: a profile has 'profile' and 'parameters', a recipe has "
-                                         "'recipe', an inventory has 'devices'")])
+                                         "'recipe', an inventory has 'devices', the agent's users file has 'users'")])
     finally:
         yamlsrc.forget(where)
 

@@ -77,6 +77,7 @@ _COMMANDS = {
     "sign": "deployer.cli.change:sign",
     "simulate": "deployer.cli.simulate:simulate",
     "status": "deployer.cli.apply:status",
+    "users": "deployer.cli.users:users",
     "validate": "deployer.cli.files:validate",
     "verify": "deployer.cli.change:verify",
 }
@@ -239,15 +240,27 @@ def _remember(ctx: click.Context, param: click.Parameter, value: str | None) -> 
 
 _agent_token_option = click.option(
     "--agent-token-file", metavar="FILE", type=click.Path(dir_okay=False), expose_value=False, callback=_remember,
-    help="the agent's token (its first line); or env DEPLOYER_AGENT_TOKEN")
+    help="the agent's token or your own (its first line); or env DEPLOYER_AGENT_TOKEN")
 _agent_ca_option = click.option(
     "--agent-ca", metavar="FILE", type=click.Path(dir_okay=False), expose_value=False, callback=_remember,
     envvar="DEPLOYER_AGENT_CA", help="CA certificate (PEM) an https:// agent's certificate is checked against")
+_agent_cert_option = click.option(
+    "--agent-cert", metavar="FILE", type=click.Path(dir_okay=False), expose_value=False, callback=_remember,
+    envvar="DEPLOYER_AGENT_CERT", help="your TLS client certificate (PEM, with its key or --agent-key) for an "
+    "agent that maps certificates to users (env DEPLOYER_AGENT_CERT)")
+_agent_key_option = click.option(
+    "--agent-key", metavar="FILE", type=click.Path(dir_okay=False), expose_value=False, callback=_remember,
+    envvar="DEPLOYER_AGENT_KEY", help="the client certificate's private key (PEM; env DEPLOYER_AGENT_KEY)")
+
+
+def agent_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    """The credentials of an agent's client: token file, CA, client certificate (``agentclient.client``)."""
+    return _agent_token_option(_agent_ca_option(_agent_cert_option(_agent_key_option(f))))
 
 
 def agent_option(f: Callable[..., Any]) -> Callable[..., Any]:
-    """``--agent URL`` with ``--agent-token-file`` and ``--agent-ca``."""
-    return _agent_url_option(_agent_token_option(_agent_ca_option(f)))
+    """``--agent URL`` with ``--agent-token-file``, ``--agent-ca`` and ``--agent-cert/--agent-key``."""
+    return _agent_url_option(agent_options(f))
 
 
 

@@ -590,7 +590,8 @@ def _reader_error(path: str, text: str, e: yaml.reader.ReaderError) -> Diagnosti
 _handed_over: dict[str, tuple[tuple[int, int, int], Any, Source]] = {}
 
 
-def _stamp(path: str) -> tuple[int, int, int] | None:
+def file_stamp(path: str) -> tuple[int, int, int] | None:
+    """What changes when a file does (its inode, size and modification time); None when it is not there."""
     try:
         st = os.stat(path)
     except OSError:
@@ -615,9 +616,9 @@ def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[
     p = os.fspath(path)
     if text is None and p in _handed_over:
         stamp, kept, kept_src = _handed_over.pop(p)
-        if stamp == _stamp(p):
+        if stamp == file_stamp(p):
             return kept, kept_src
-    stamp_before = _stamp(p) if hand_over else None
+    stamp_before = file_stamp(p) if hand_over else None
     if text is None:
         text = read_text(p)
     src = Source(p)
@@ -667,6 +668,6 @@ def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[
         ldr.dispose()
     if b.errors:
         raise InputError(b.errors)
-    if stamp_before is not None and stamp_before == _stamp(p):
+    if stamp_before is not None and stamp_before == file_stamp(p):
         _handed_over[p] = (stamp_before, value, src)
     return value, src

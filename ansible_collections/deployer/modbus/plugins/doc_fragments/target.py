@@ -90,7 +90,10 @@ options:
         description: The agent's token (C(deployer agent --token-file)); keep it in Ansible Vault.
         type: str
       token_file:
-        description: A file on the target whose first line is the token (when O(agent.token) is not given).
+        description:
+          - A file on the target whose first line is the token (when O(agent.token) is not given).
+          - With neither, for a loopback O(agent.url), the token an agent of the same user on the target made itself
+            (C(deployer agent) without C(--token-file)), as the C(deployer) commands find it.
         type: path
       ca:
         description: A CA certificate (PEM) on the target that the agent's TLS certificate is checked against.

@@ -91,8 +91,7 @@ def agent_apply(module, client):
                        batch=p.get("batch"), max_failures=p.get("max_failures"), parallel=p["parallel"],
                        soak=p.get("soak"), health_interval=p["health_interval"],
                        allow_unhealthy=p["allow_unhealthy"] or None,
-                       rollback_on_failure=p["rollback_on_failure"], write_all=p["write_all"],
-                       client="ansible deployer.modbus.apply")
+                       rollback_on_failure=p["rollback_on_failure"], write_all=p["write_all"])
     report = end.get("report") or {}
     devices, diffs, problems, changed = [], [], [], False
     for d in report.get("devices") or []:
