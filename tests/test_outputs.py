@@ -229,3 +229,19 @@ def test_journal_errors_are_state_errors(tmp_path: Path) -> None:
     (tmp_path / "audit.jsonl").mkdir()  # the journal cannot be opened for appending
     with pytest.raises(StateError, match="cannot write the journal"):
         journal.append(str(tmp_path), {"event": "x"})
+
+
+def test_appends_racing_from_several_processes_leave_no_empty_line(tmp_path: Path) -> None:
+    """Records longer than a page, appended at once by three processes: each comes back whole, and no line is
+    empty (a process that looked at the file's last byte while another's append was half-way in added a
+    newline for it: the CI's two-worker run read an empty journal line)."""
+    path = tmp_path / "audit.jsonl"
+    code = ("import sys\nfrom deployer.state import durable\n"
+            "for i in range(60):\n"
+            "    durable.append_lines(sys.argv[1], [{'k': sys.argv[2], 'i': i, 'pad': 'x' * 20000}])\n")
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(path), str(k)]) for k in range(3)]
+    assert all(p.wait(timeout=120) == 0 for p in procs)
+    lines = path.read_bytes().split(b"\n")
+    assert lines[-1] == b"" and b"" not in lines[:-1]
+    got = sorted((r["k"], r["i"]) for r in map(json.loads, lines[:-1]))
+    assert got == sorted((str(k), i) for k in range(3) for i in range(60))

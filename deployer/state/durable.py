@@ -33,7 +33,7 @@ from typing import Any
 from .. import portable
 from ..errors import UsageError
 from ..portable import O_BINARY, O_CLOEXEC, O_NOFOLLOW, write_all, writev_all
-from . import wal
+from . import oslock, wal
 
 # once a batch had company (a fleet: many devices waiting), the writer waits this long for more before it commits:
 # every batch costs two fsyncs (the log, the journal) and the system calls around them, each a moment a worker's
@@ -296,8 +296,10 @@ def append_lines(path: str, records: list[dict[str, Any]]) -> None:
     """JSON lines appended with a single write and fsync'ed: concurrent runs never interleave inside a line.
 
     Every record starts on its own line: when the file does not end with a newline (a line cut by a
-    crash or a full disk), a newline goes first, so the torn line costs only itself. Windows appends
-    are a seek and a write, not one step: there the file's lock (``state.oslock``) is held around them.
+    crash or a full disk), a newline goes first, so the torn line costs only itself. The file's lock
+    (``state.oslock``) is held from that look to the write: another process's append in flight shows a size
+    whose last byte is not yet its newline (Linux grows the file page by page), and a newline added for it
+    made an empty line; Windows' appends are a seek and a write, not one step.
     """
     append_bytes(path, [_line(r) for r in records])
 
@@ -307,10 +309,7 @@ def append_bytes(path: str, lines: list[bytes]) -> None:
     data = b"".join(lines)
     fd = _open_in_folder(path, os.O_RDWR | os.O_APPEND | os.O_CREAT | O_BINARY | O_CLOEXEC)
     try:
-        if portable.WINDOWS:
-            from . import oslock
-
-            oslock.backend().lock(fd)  # released by the close
+        oslock.backend().lock(fd)  # released by the close
         size = os.fstat(fd).st_size
         if size and _byte_at(fd, size - 1) != b"\n":
             data = b"\n" + data
