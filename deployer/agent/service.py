@@ -15,7 +15,7 @@ from ..errors import UsageError
 from .core import Agent, Settings
 from .notify import Notifier
 from .security import check_listen
-from .server import METRICS, app
+from .server import METRICS, STOP, app
 from .wire import Runner
 
 
@@ -30,13 +30,16 @@ def parse_listen(text: str) -> tuple[str, int]:
 async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
                 on_ready: Callable[[str], None] | None = None, signals: bool = True,
                 token: str | None = None, tls: ssl.SSLContext | None = None, notify: Sequence[str] = ()) -> int:
-    """Run the agent until SIGTERM/SIGINT (or the task is cancelled); 0 when it ended cleanly."""
+    """Run the agent until SIGTERM, SIGINT, Ctrl-Break or ``POST /v1/stop`` (or the task is cancelled); 0 when it
+    ended cleanly."""
     host, port = parse_listen(listen)
     check_listen(host, token=token is not None, tls=tls is not None, listen=listen)
     agent = Agent(settings)
     agent.open()  # the files are checked, the state folder is ours: nothing sent yet
     notifier = Notifier(agent, notify) if notify else None
     application = app(agent, token=token)
+    stop = asyncio.Event()
+    application[STOP] = stop.set  # POST /v1/stop: a service manager's way on Windows
     if notifier is not None:
         application[METRICS].register(notifier)  # its queues and failures on /metrics
     runner = Runner(application, access_log=None, handle_signals=False)
@@ -53,7 +56,6 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
     url = f"{'https' if tls is not None else 'http'}://{shown}:{sock[1]}"
     from ..portable import interrupt_signals, on_signals
 
-    stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     undo = []
     if signals:  # the event loop's handlers, or signal.signal on Windows (no SIGHUP there: restart to reload)
