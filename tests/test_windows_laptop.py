@@ -40,9 +40,9 @@ def commits(sim: Simulator) -> int:
 # ---- the agent stopped as Windows stops it ------------------------------------------------------------------
 
 
-def test_the_stop_route_ends_a_window_and_the_agent_as_sigterm_does(tmp_path: Path, sim: Simulator) -> None:
-    """A service manager's stop (Windows has no SIGTERM): only with the agent's token; then the window rolls back,
-    the store closes with its 'stopped' event, and the agent exits 0."""
+def test_the_stop_route_ends_a_window_and_the_agent_cleanly(tmp_path: Path, sim: Simulator) -> None:
+    """A service manager's stop (what the stop signal does on Linux; Windows has none): only with the agent's
+    token; then the window rolls back, the store closes with its 'stopped' event, and the agent exits 0."""
     inv = write_site(tmp_path, {"d1": sim.url})
     (tmp_path / "token").write_text(TOKEN + "\n")
     agent = AgentProcess(inv, tmp_path / "state", "--token-file", str(tmp_path / "token"))

@@ -102,6 +102,25 @@ def report_input_error(err: InputError, outcome: str = "nothing was sent to any 
     echo(f"{n} error{'s' if n != 1 else ''}; {outcome}", err=True)
 
 
+def stdin_is_terminal() -> bool:
+    """Whether a person can answer a question on stdin. ``isatty()``, except on Windows, where isatty is true of any
+    character device, NUL too (the input of a service, a scheduled task, ``< NUL``): there only a console, which
+    GetConsoleMode knows."""
+    try:
+        if not sys.stdin.isatty():
+            return False
+        fd = sys.stdin.fileno()
+    except (AttributeError, ValueError, OSError):
+        return False
+    if sys.platform == "win32":
+        import ctypes
+        import msvcrt
+
+        mode = ctypes.c_uint32()
+        return bool(ctypes.windll.kernel32.GetConsoleMode(msvcrt.get_osfhandle(fd), ctypes.byref(mode)))
+    return True
+
+
 def console(*, stderr: bool = False) -> Console:
     """stdout (or stderr) console; wide when not a terminal so piped lines are not squeezed. It never
     reads markup and escapes control characters (``text.SafeConsole``): style with ``text.styled``."""
