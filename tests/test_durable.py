@@ -54,7 +54,8 @@ def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_ar
     batch.append(_Pending(Line(str(journal), {"event": "device-finished", "name": "dev9"})))
     commit(batch, log)
     # the log's folder and its name made durable once, when the log is created; then one fsync each
-    assert synced == ["dir", "dir", "log", "journal"]  # the lines only after the files they name are logged
+    folders = [] if sys.platform == "win32" else ["dir", "dir"]  # Windows opens no folder to fsync
+    assert synced == [*folders, "log", "journal"]  # the lines only after the files they name are logged
     assert [p.outcome() for p in batch] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)] + [None]
     lines = _lines(journal)
     assert [x["name"] for x in lines] == ["dev0", "dev1", "dev2", "dev9"]  # submission order

@@ -81,7 +81,7 @@ TEMPLATE = """\
 
 def write(tmp: Path, text: str = TEMPLATE, name: str = "th1.json") -> str:
     path = tmp / name
-    path.write_text(text)
+    path.write_text(text, encoding="utf-8")
     return str(path)
 
 
