@@ -137,6 +137,8 @@ _WINDOWS_LACKS = (
     ("chmod", "checks Unix permission modes (Windows: ACLs)"),
     ("getuid", "checks Unix user ids"),
     ("/dev/", "uses POSIX device files"),
+    ("_run_on_a_terminal", "answers on a pseudo-terminal (pty, termios: POSIX; a Windows console is not one)"),
+    ("pty.openpty", "answers on a pseudo-terminal (pty, termios: POSIX; a Windows console is not one)"),
     ("resource.", "uses POSIX resource limits"),
 )
 
