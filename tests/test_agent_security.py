@@ -151,7 +151,7 @@ def test_beyond_loopback_only_with_a_token_and_tls(tmp_path: Path, sim: Simulato
             conn.request("GET", "/v1/agent", headers={"Authorization": f"Bearer {TOKEN}"})
             conn.getresponse().read()
         conn.close()
-        assert agent.terminate() == 0
+        assert agent.terminate(client=c) == 0
     finally:
         agent.kill()
 

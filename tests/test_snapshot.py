@@ -113,7 +113,7 @@ def test_fleet_apply_then_rollback_each_snapshot_from_elsewhere(
     snap_b = Path(by_name["drive-b"]["snapshot"])
     assert snap_b.is_absolute()
     text_b = snap_b.read_text()
-    assert f'profile: "{layout["profiles"] / "b.yaml"}"' in text_b and "accel: 30000 s" in text_b
+    assert f'profile: {json.dumps(str(layout["profiles"] / "b.yaml"))}' in text_b and "accel: 30000 s" in text_b
     assert "accel: [4, 37856]" in text_b  # the raw registers beside the engineering values
     text_a = Path(by_name["drive-a"]["snapshot"]).read_text()
     assert "decel: {raw: 700000}" in text_a  # outside A's range: raw, not dropped
