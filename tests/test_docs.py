@@ -305,3 +305,11 @@ def test_the_api_page_names_every_public_name() -> None:
     code = "".join(re.findall(r"```python\n(.*?)```", text, re.S))
     compile(code, "api.md", "exec")
     assert sorted({n for n in re.findall(r"\bdeployer\.(\w+)", code)} - set(deployer.__all__)) == []
+
+
+def test_the_wine_gaps_on_the_windows_page_are_the_suites() -> None:
+    """docs/windows.md's table of Wine's gaps is tests/conftest.py's WINE_GAPS, test for test and word for word."""
+    from tests.conftest import WINE_GAPS
+
+    text = (DOCS / "windows.md").read_text(encoding="utf-8")
+    assert dict(re.findall(r"^\| `(test_\w+)` \| (.+) \|$", text, re.M)) == WINE_GAPS
