@@ -148,6 +148,9 @@ suite() {
   # its standard input is a pipe this shell holds: it ends when the shell does, however the shell ends
   exec 3> >(python3 "$ROOT/tools/wine/ptys.py" "$WINEPREFIX" >"$fifo")
   read -r port <"$fifo"; rm -f "$fifo"
+  # the Wine server opens the COM ports' pseudo-terminals, and one that closes hangs it up: it then writes its
+  # object list out, to its own log rather than into the suite's output (it stays up 10 s after its last client)
+  /usr/lib/wine/wineserver64 -p10 2>>"$HOME_DIR/wineserver.log" || true
   DEPLOYER_WINE_PTYS=$port run -m pytest "$@"
 }
 
