@@ -892,23 +892,6 @@ class SerialTransport(PymodbusTransport):
     async def _why_not(self) -> str:
         return self._probe() or "cannot open the serial port"
 
-
-_WIN_OPEN = re.compile(r"could not open port .*: \w+\((\d+), '([^']*)', None, (\d+)\)$")
-
-
-def _windows_open_error(said: str, path: str) -> str | None:
-    """pyserial's Windows error (``could not open port '\\\\.\\COM7': FileNotFoundError(2, ...)``) said plainly,
-    by the port's name; None for any other text."""
-    found = _WIN_OPEN.search(said)
-    if found is None:
-        return None
-    name, winerror = (windows_port(path) or path), int(found.group(3))
-    if winerror in (2, 3):  # ERROR_FILE_NOT_FOUND, ERROR_PATH_NOT_FOUND
-        return f"no such serial port {name} (deployer scan --list-ports shows this system's serial ports)"
-    if winerror == 5:  # ERROR_ACCESS_DENIED: Windows opens a COM port for one program at a time
-        return f"{name} is in use by another program (a terminal, a vendor's tool): close it and run again"
-    return f"cannot open {name}: {found.group(2)}"
-
     def _claim(self, bus: _Bus) -> None:
         if self._line is not None:
             self._line.active = self
@@ -927,6 +910,23 @@ def _windows_open_error(said: str, path: str) -> str | None:
             bus = _bus(self.url)
             if bus.line is line:
                 bus.line = None
+
+
+_WIN_OPEN = re.compile(r"could not open port .*: \w+\((\d+), '([^']*)', None, (\d+)\)$")
+
+
+def _windows_open_error(said: str, path: str) -> str | None:
+    """pyserial's Windows error (``could not open port '\\\\.\\COM7': FileNotFoundError(2, ...)``) said plainly,
+    by the port's name; None for any other text."""
+    found = _WIN_OPEN.search(said)
+    if found is None:
+        return None
+    name, winerror = (windows_port(path) or path), int(found.group(3))
+    if winerror in (2, 3):  # ERROR_FILE_NOT_FOUND, ERROR_PATH_NOT_FOUND
+        return f"no such serial port {name} (deployer scan --list-ports shows this system's serial ports)"
+    if winerror == 5:  # ERROR_ACCESS_DENIED: Windows opens a COM port for one program at a time
+        return f"{name} is in use by another program (a terminal, a vendor's tool): close it and run again"
+    return f"cannot open {name}: {found.group(2)}"
 
 
 _CLASSES: dict[str, type[PymodbusTransport]] = {
