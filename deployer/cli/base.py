@@ -103,13 +103,18 @@ def report_input_error(err: InputError, outcome: str = "nothing was sent to any 
 
 
 def stdin_is_terminal() -> bool:
-    """Whether a person can answer a question on stdin. ``isatty()``, except on Windows, where isatty is true of any
-    character device, NUL too (the input of a service, a scheduled task, ``< NUL``): there only a console, which
-    GetConsoleMode knows."""
+    """Whether a person can answer a question on stdin (``is_terminal``)."""
+    return is_terminal(sys.stdin)
+
+
+def is_terminal(stream: Any) -> bool:
+    """Whether ``stream`` is a terminal. ``isatty()``, except on Windows, where isatty is true of any character
+    device, NUL too (the input of a service, a scheduled task, ``< NUL``, output to ``> NUL``): there only a
+    console, which GetConsoleMode knows."""
     try:
-        if not sys.stdin.isatty():
+        if not stream.isatty():
             return False
-        fd = sys.stdin.fileno()
+        fd = stream.fileno()
     except (AttributeError, ValueError, OSError):
         return False
     if sys.platform == "win32":
@@ -126,9 +131,8 @@ def console(*, stderr: bool = False) -> Console:
     reads markup and escapes control characters (``text.SafeConsole``): style with ``text.styled``."""
     from .text import SafeConsole  # only commands that print pay for importing rich
 
-    if stderr:
-        return SafeConsole(stderr=True)
-    return SafeConsole(width=None if sys.stdout.isatty() else 200)
+    stream = sys.stderr if stderr else sys.stdout
+    return SafeConsole(stderr=stderr, width=None if is_terminal(stream) else 200)
 
 
 def describe(url: DeviceURL) -> str:
@@ -162,7 +166,7 @@ def _output(text: str, path: str | None, summary: str, *, replace: bool | None =
             replace = bool(click.get_current_context().meta.get("deployer.force"))
         write_atomic(path, text, replace=replace)
         echo(summary, err=True)
-    elif sys.stdout.isatty():  # a file's text shown: nothing in it acts on the terminal
+    elif is_terminal(sys.stdout):  # a file's text shown: nothing in it acts on the terminal
         echo(text, nl=False)
     else:  # piped into a file or a program: the file's text exactly
         click.echo(text, nl=False)
