@@ -147,6 +147,8 @@ _WINDOWS_LACKS = (
 # on Windows itself they run. One entry per test; docs/windows.md reproduces this table (tests/test_docs.py checks).
 WINE_GAPS = {
     "test_scan_lists_serial_ports": "Wine 8 lacks Cfgmgr32.CM_MapCrToWin32Err, which pyserial's list_ports calls",
+    "test_port_held_by_another_process_is_unreachable_with_the_reason":
+        "Wine 8 opens a COM port for a second program, which Windows refuses (ERROR_ACCESS_DENIED)",
 }
 
 

@@ -848,6 +848,9 @@ class SerialTransport(PymodbusTransport):
                 line = self._opening = _SerialLine(self._settings())
                 try:
                     await super().connect()
+                    # pymodbus starts its port's transport on the loop's next turn; on Windows a transport
+                    # closed before that (a refusal right after opening) tried a fileno a COM port lacks
+                    await asyncio.sleep(0)
                 finally:
                     self._opening = None
                 line.client, line.rx = self._client, self._rx
@@ -880,6 +883,9 @@ class SerialTransport(PymodbusTransport):
         except Exception as e:  # pyserial raises SerialException, termios.error, ValueError
             # termios.error and OSError carry (errno, text): EINVAL is the line settings the port refuses
             code = e.args[0] if len(e.args) == 2 and isinstance(e.args[0], int) else getattr(e, "errno", None)
+            inner = _WIN_ERROR.search(str(e))  # pyserial on Windows: "... Original message: OSError(22, ...)"
+            if code is None and inner is not None:
+                code = int(inner.group(1))
             if code == errno.EINVAL:
                 settings = " ".join(f"{k}={o[k]}" for k in ("baudrate", "bytesize", "parity", "stopbits") if k in o)
                 return f"the port rejects these line settings ({settings or 'defaults'}): {os.strerror(code)}"
@@ -913,6 +919,7 @@ class SerialTransport(PymodbusTransport):
 
 
 _WIN_OPEN = re.compile(r"could not open port .*: \w+\((\d+), '([^']*)', None, (\d+)\)$")
+_WIN_ERROR = re.compile(r"\w+Error\((\d+), '[^']*', None, \d+\)")
 
 
 def _windows_open_error(said: str, path: str) -> str | None:
