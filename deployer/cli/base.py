@@ -131,8 +131,9 @@ def console(*, stderr: bool = False) -> Console:
     reads markup and escapes control characters (``text.SafeConsole``): style with ``text.styled``."""
     from .text import SafeConsole  # only commands that print pay for importing rich
 
-    stream = sys.stderr if stderr else sys.stdout
-    return SafeConsole(stderr=stderr, width=None if is_terminal(stream) else 200)
+    if stderr:
+        return SafeConsole(stderr=True)
+    return SafeConsole(width=None if is_terminal(sys.stdout) else 200)
 
 
 def describe(url: DeviceURL) -> str:
