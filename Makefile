@@ -8,7 +8,7 @@ LATEST := .venv-latest
 # PIP_CONSTRAINT (unlike -c) reaches pip's isolated build environment too: setuptools is pinned as well
 PINNED := PIP_CONSTRAINT=$(CURDIR)/constraints.txt
 
-.PHONY: demo test check lint bench fuzz docs site clean test-latest constraints
+.PHONY: demo test check lint bench fuzz docs site clean test-latest constraints test-windows
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -44,6 +44,14 @@ check:
 	$(BIN)/mypy --platform win32 deployer || rc=1; \
 	$(BIN)/mkdocs build --strict --site-dir build/site || rc=1; \
 	exit $$rc
+
+# The suite on a real Windows CPython (3.13, win_amd64) under Wine, with its own Wine prefix in build/wine/
+# (tools/wine/wine.sh: Wine and MinGW by apt-get as root, the Python and Windows wheels of constraints.txt's versions
+# by pip download; COM port pairs from socat's pseudo-terminals). Two workers: a Windows process under Wine takes
+# one to three seconds to start, and two cores are what the machine has. docs/windows.md says what it verifies.
+WINDOWS_WORKERS ?= 2
+test-windows: $(VENV)/.installed
+	HOSTPY=$(CURDIR)/$(BIN)/python tools/wine/wine.sh test -q -rs -p no:cacheprovider -n $(WINDOWS_WORKERS)
 
 # The suite against the newest release of every dependency, in a venv of its own; prints what differs
 # from constraints.txt first. Upkeep (what Dependabot would do): `make test-latest && make constraints`.

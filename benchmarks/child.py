@@ -45,6 +45,9 @@ def measured_all(args: list[str], cwd: str | None = None, max_bytes: int | None 
 
 def _main() -> None:
     spec = json.loads(sys.argv[1])
+    if sys.platform == "win32":
+        _main_windows(spec)
+        return
     t = time.perf_counter()
     limit = spec.get("max_bytes")
 
@@ -68,6 +71,65 @@ def _main() -> None:
                       "tree_pss_kb": tree[1],
                       "code": os.waitstatus_to_exitcode(status),
                       "written_bytes": usage.ru_oublock * 512}))  # Linux: the command's block output
+
+
+def _main_windows(spec: dict[str, object]) -> None:
+    """Windows has no rlimits and no wait4: the command runs in a job object, which bounds its memory
+    (``max_bytes``: the job's per-process commit limit) and counts the CPU time of the command and its own processes;
+    the peak memory is the command's largest commit charge (Windows' measure of what a process took), sampled every
+    20 ms while it runs and taken once more at its end (Wine: its job objects neither limit nor count, and an ended
+    process's counters read 0, so the samples and the process's own times are what it has)."""
+    if sys.platform != "win32":
+        raise AssertionError("Windows only")
+    import ctypes
+
+    class _JobLimits(ctypes.Structure):
+        """JOBOBJECT_EXTENDED_LIMIT_INFORMATION, as far as the limits set here."""
+        _fields_ = [("user_time_limits", ctypes.c_int64 * 2), ("flags", ctypes.c_uint32),
+                    ("working_set", ctypes.c_size_t * 2), ("active_processes", ctypes.c_uint32),
+                    ("affinity", ctypes.c_size_t), ("priority", ctypes.c_uint32), ("scheduling", ctypes.c_uint32),
+                    ("io", ctypes.c_uint64 * 6), ("process_memory_limit", ctypes.c_size_t),
+                    ("job_memory_limit", ctypes.c_size_t), ("peaks", ctypes.c_size_t * 2)]
+
+    k32 = ctypes.WinDLL("kernel32", use_last_error=True)
+    k32.CreateJobObjectW.restype = ctypes.c_void_p
+    job = k32.CreateJobObjectW(None, None)
+    info = _JobLimits()
+    info.flags = 0x2000  # JOB_OBJECT_LIMIT_KILL_ON_JOB_CLOSE: the command ends with its launcher
+    limit = spec.get("max_bytes")
+    if isinstance(limit, int):
+        info.flags |= 0x100  # JOB_OBJECT_LIMIT_PROCESS_MEMORY
+        info.process_memory_limit = limit
+    k32.SetInformationJobObject(ctypes.c_void_p(job), 9, ctypes.byref(info), ctypes.sizeof(info))
+    t = time.perf_counter()
+    args, cwd = spec["args"], spec["cwd"]
+    assert isinstance(args, list) and (cwd is None or isinstance(cwd, str))
+    proc = subprocess.Popen(args, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+    handle = ctypes.c_void_p(int(proc._handle))  # type: ignore[attr-defined,unused-ignore]
+    k32.AssignProcessToJobObject(ctypes.c_void_p(job), handle)  # its start-up (a few MB) may precede the limit
+    peak = 0
+    while proc.poll() is None:
+        peak = max(peak, _peak_commit(k32, handle))
+        time.sleep(0.02)
+    peak = max(peak, _peak_commit(k32, handle))
+    wall = time.perf_counter() - t
+    times = [ctypes.c_int64() for _ in range(4)]  # creation, exit, kernel, user (100 ns)
+    k32.GetProcessTimes(handle, *[ctypes.byref(x) for x in times])
+    acct = (ctypes.c_int64 * 6)()  # JOBOBJECT_BASIC_ACCOUNTING_INFORMATION: user, kernel first
+    k32.QueryInformationJobObject(ctypes.c_void_p(job), 1, ctypes.byref(acct), ctypes.sizeof(acct), None)
+    user, kernel = max(acct[0], times[3].value), max(acct[1], times[2].value)
+    print(json.dumps({"wall": wall, "cpu": (user + kernel) / 1e7, "sys": kernel / 1e7, "maxrss_kb": peak // 1024,
+                      "tree_rss_kb": peak // 1024, "tree_pss_kb": 0, "code": proc.returncode, "written_bytes": 0}))
+
+
+def _peak_commit(k32: object, handle: object) -> int:
+    import ctypes
+
+    counters = (ctypes.c_size_t * 10)()  # PROCESS_MEMORY_COUNTERS; its first word is cb (with PageFaultCount)
+    counters[0] = ctypes.sizeof(counters)
+    if not k32.K32GetProcessMemoryInfo(handle, ctypes.byref(counters), ctypes.sizeof(counters)):  # type: ignore
+        return 0
+    return int(max(counters[2], counters[9]))  # PeakWorkingSetSize, PeakPagefileUsage
 
 
 def _watch_tree(pid: int, peak: list[int], done: threading.Event) -> None:

@@ -151,6 +151,8 @@ def _loop_factory() -> Any:
 
 
 def _raise_nofile(need: int) -> None:
+    if sys.platform == "win32":
+        return  # no such limit: sockets are handles there
     import resource
 
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)

@@ -36,9 +36,9 @@ def __getattr__(name: str) -> Any:
         import importlib
 
         return importlib.import_module("deployer.aio")
-    # not for dunders or a submodule not imported yet (``from deployer import errors`` asks here first)
-    if (name.startswith("__") and name != "__all__") or _os.path.exists(_os.path.join(_HERE, name)) \
-            or _os.path.exists(_os.path.join(_HERE, f"{name}.py")):
+    # not for dunders or a submodule not imported yet (``from deployer import errors`` asks here first); by the
+    # folder's own spelling: Windows' and macOS' file names ignore case, and LIMITS is not limits.py there either
+    if (name.startswith("__") and name != "__all__") or name in _modules() or f"{name}.py" in _modules():
         raise AttributeError(f"module 'deployer' has no attribute {name!r}")
     from . import api
 
@@ -49,6 +49,16 @@ def __getattr__(name: str) -> Any:
     if name in REMOVED:  # a name earlier releases exported: one more release, with a warning
         return removed(name)
     raise AttributeError(f"module 'deployer' has no attribute {name!r}")
+
+
+_MODULES: frozenset[str] = frozenset()
+
+
+def _modules() -> frozenset[str]:
+    global _MODULES
+    if not _MODULES:
+        _MODULES = frozenset(_os.listdir(_HERE))
+    return _MODULES
 
 
 def __dir__() -> list[str]:

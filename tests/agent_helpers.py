@@ -96,11 +96,27 @@ class AgentProcess:
         self.kill()
         raise AssertionError("the agent did not start:\n" + "".join(self.stderr))
 
-    def terminate(self, timeout: float = 30) -> int:
-        self.proc.send_signal(signal.SIGTERM)
+    def terminate(self, timeout: float = 30, client: Agent | None = None) -> int:
+        """Stopped as its system's service manager stops it: SIGTERM on POSIX; on Windows, which has no SIGTERM to
+        send, ``POST /v1/stop`` with the agent's token (and, over TLS, its certificate as the CA)."""
+        if sys.platform == "win32":
+            (client or self.stop_route()).post("/v1/stop")
+        else:
+            self.proc.send_signal(signal.SIGTERM)
         rc = self.proc.wait(timeout=timeout)
         self._reader.join(timeout=5)
         return rc
+
+    def stop_route(self) -> Agent:
+        """A client with the credentials the agent was started with (``--token-file``, ``--tls-cert``), on loopback."""
+        args = self.proc.args
+        assert isinstance(args, list)
+
+        def option(name: str) -> str | None:
+            return str(args[args.index(name) + 1]) if name in args else None
+        token_file, cert = option("--token-file"), option("--tls-cert")
+        token = Path(token_file).read_text(encoding="utf-8").splitlines()[0].strip() if token_file else None
+        return Agent(self.url.replace("//0.0.0.0:", "//127.0.0.1:"), token=token, ca=cert, timeout=20)
 
     def kill(self) -> None:
         if self.proc.poll() is None:

@@ -24,7 +24,6 @@ import io
 import json
 import os
 import random
-import resource
 import shutil
 import sys
 import tempfile
@@ -245,7 +244,7 @@ def fuzz(files: int, seconds: float, seed: int, keep: str | None = None,
             "crash_details": crashes,
             "seconds": round(time.monotonic() - start, 1), "slowest_file_seconds": round(slowest[0], 3),
             "slowest_seed": slowest[1],
-            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1), "seed": seed}
+            "peak_rss_mb": round(_peak_rss_kb() / 1024, 1), "seed": seed}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -260,6 +259,23 @@ def main(argv: list[str] | None = None) -> int:
     res = fuzz(args.files, args.seconds, args.seed, args.keep, tuple(k.strip() for k in args.kinds.split(",")))
     print(json.dumps(res, indent=2))
     return 1 if res["crashes"] else 0
+
+
+
+def _peak_rss_kb() -> int:
+    """This process's peak resident memory: ru_maxrss (POSIX), PeakWorkingSetSize (Windows)."""
+    if sys.platform == "win32":
+        import ctypes
+
+        counters = (ctypes.c_size_t * 10)()  # PROCESS_MEMORY_COUNTERS: cb first, PeakWorkingSetSize third
+        counters[0] = ctypes.sizeof(counters)
+        k32 = ctypes.windll.kernel32
+        k32.GetCurrentProcess.restype = ctypes.c_void_p
+        k32.K32GetProcessMemoryInfo(ctypes.c_void_p(k32.GetCurrentProcess()), counters, ctypes.sizeof(counters))
+        return int(counters[2]) // 1024
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 
 if __name__ == "__main__":

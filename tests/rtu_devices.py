@@ -12,6 +12,7 @@ import os
 import select
 import socket
 import struct
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -174,8 +175,14 @@ class SlowServer(Device):
 
 @contextmanager
 def on_pty(dev: Device, path: str) -> Iterator[None]:
-    port = serial.Serial(path, timeout=0.05)
-    t = threading.Thread(target=dev.serve, args=(lambda: port.read(256), port.write), daemon=True)
+    port = serial.Serial(path, timeout=0 if sys.platform == "win32" else 0.05)
+
+    def read() -> bytes:
+        if sys.platform == "win32":  # polled, as pymodbus polls a COM port (Wine ends a read that times out
+            got = port.read(256)     # with ERROR_TIMEOUT, where Windows returns the bytes that came)
+            return got or (time.sleep(0.001) or b"")
+        return bytes(port.read(256))
+    t = threading.Thread(target=dev.serve, args=(read, port.write), daemon=True)
     t.start()
     try:
         yield

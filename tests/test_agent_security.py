@@ -24,7 +24,7 @@ from deployer.agent.client import Agent
 from deployer.errors import AgentError
 from deployer.profile import load_profile
 from deployer.testing.simulator import Simulator, SimulatorThread
-from tests.agent_helpers import PROFILE, AgentProcess, write_site
+from tests.agent_helpers import PROFILE, AgentProcess, until, write_site
 
 pytestmark = pytest.mark.timeout(90)
 TOKEN = "s3cret-token-of-the-site-0123456789"
@@ -70,7 +70,9 @@ def test_the_token_is_needed_on_every_route_and_accepted(tmp_path: Path, sim: Si
             status, hdrs, body = raw(url + "/v1/devices", headers=headers)
             assert status == 401 and hdrs["WWW-Authenticate"].startswith("Bearer")
             assert error_of(body)["kind"] == "unauthorized"
-        before = len(Agent(url, token=TOKEN).events())
+        # the watch's first check has said its drift (on a slow start it could come in the middle of the count)
+        before = len(until(lambda: [e for e in Agent(url, token=TOKEN).events() if e["kind"] == "drift"] and
+                           Agent(url, token=TOKEN).events(), why="the first check's drift event"))
         for method, path, _ in server.ROUTES:  # no route answers without the token, no write happens
             concrete = path.replace("{name}", "d1").replace("{id}", "nope")
             sent = b'{"command": "apply"}' if method == "POST" else None
@@ -167,7 +169,7 @@ def test_beyond_loopback_only_with_a_token_and_tls(tmp_path: Path, sim: Simulato
             conn.request("GET", "/v1/agent", headers={"Authorization": f"Bearer {TOKEN}"})
             conn.getresponse().read()
         conn.close()
-        assert agent.terminate() == 0
+        assert agent.terminate(client=c) == 0
     finally:
         agent.kill()
 

@@ -89,8 +89,8 @@ def test_every_route_checks_its_role_and_each_refusal_names_it(tmp_path: Path, s
                 assert status == 403 and err["kind"] == "forbidden", (method, path, name, body)
                 assert f"{name} may not {method} {concrete}: that needs the role {need}" in err["message"]
                 refused[need] = refused.get(need, 0) + 1
-        # only an admin sees the users; every role reads
-        assert set(refused) == {"engineer", "operator", "approver", "admin"} and refused["admin"] == 3 * 5
+        # only an admin sees the users (and stops the agent); every role reads
+        assert set(refused) == {"engineer", "operator", "approver", "admin"} and refused["admin"] == 4 * 5
         for need, n in refused.items():
             assert metric(c["boss"], "deployer_http_forbidden_requests_total", f'role="{need}"') == n
         # the one route of change control, approvals: not an operator's (the route answers to approvers only)

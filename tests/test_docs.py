@@ -49,14 +49,14 @@ def test_committed_reference_is_not_stale(capsys: pytest.CaptureFixture[str]) ->
 def test_docs_command_writes_and_checks(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     out = tmp_path / "ref"
     code, _, err = cli(capsys, "docs", "--check", "--out", str(out))
-    assert code == 1 and f"{out}/profile.md: stale" in err
+    assert code == 1 and f"{out / 'profile.md'}: stale" in err
     code, _, err = cli(capsys, "docs", "--out", str(out))
     assert code == 0 and err == f"7 pages updated in {out}\n"
     assert sorted(p.name for p in out.iterdir()) == [
         "inventory.md", "plan.md", "profile.md", "recipe.md", "report.md", "snapshot.md", "users.md"]
     (out / "recipe.md").write_text("edited by hand\n")
     code, _, err = cli(capsys, "docs", "--check", "--out", str(out))
-    assert code == 1 and err == f"{out}/recipe.md: stale (run: deployer docs --out {out})\n"
+    assert code == 1 and err == f"{out / 'recipe.md'}: stale (run: deployer docs --out {out})\n"
 
 
 def test_every_key_is_documented_with_its_facts() -> None:
@@ -208,7 +208,7 @@ def test_every_page_is_in_the_site_navigation() -> None:
                 found |= pages(value) if isinstance(value, list) else {str(value)}
         return found
 
-    on_disk = {str(p.relative_to(DOCS)) for p in DOCS.rglob("*.md")}
+    on_disk = {p.relative_to(DOCS).as_posix() for p in DOCS.rglob("*.md")}
     assert sorted(on_disk - pages(nav)) == [], "add these pages to the nav in mkdocs.yml"
     assert sorted(pages(nav) - on_disk) == []
 
@@ -267,12 +267,12 @@ def test_the_layout_table_names_every_module() -> None:
         if path.name in ("__init__.py", "__main__.py"):
             continue
         if path.parent == package:
-            if str(rel) not in rows:
-                missing.append(str(rel))
+            if rel.as_posix() not in rows:
+                missing.append(rel.as_posix())
             continue
         folder = f"{rel.parts[0]}/{rel.parts[1]}/"
         if f"`{path.stem}`" not in rows.get(folder, ""):
-            missing.append(str(rel))
+            missing.append(rel.as_posix())
     assert missing == [], "name these in the layout table of docs/contributing.md"
 
 
@@ -334,3 +334,11 @@ def test_the_api_page_examples_run(tmp_path: Path, monkeypatch: pytest.MonkeyPat
         assert deployer.diff(line3, sims[0].url) == [] and deployer.diff(line3, sims[1].url) != []  # rolled back
     out = capsys.readouterr().out
     assert "identity" in out and "{'F07': '10 s', 'stop_mode': 'coast'}" in out
+
+
+def test_the_wine_gaps_on_the_windows_page_are_the_suites() -> None:
+    """docs/windows.md's table of Wine's gaps is tests/conftest.py's WINE_GAPS, test for test and word for word."""
+    from tests.conftest import WINE_GAPS
+
+    text = (DOCS / "windows.md").read_text(encoding="utf-8")
+    assert dict(re.findall(r"^\| `(test_\w+)` \| (.+) \|$", text, re.M)) == WINE_GAPS

@@ -54,7 +54,8 @@ def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_ar
     batch.append(_Pending(Line(str(journal), {"event": "device-finished", "name": "dev9"})))
     commit(batch, log)
     # the log's folder and its name made durable once, when the log is created; then one fsync each
-    assert synced == ["dir", "dir", "log", "journal"]  # the lines only after the files they name are logged
+    folders = [] if sys.platform == "win32" else ["dir", "dir"]  # Windows opens no folder to fsync
+    assert synced == [*folders, "log", "journal"]  # the lines only after the files they name are logged
     assert [p.outcome() for p in batch] == [str(tmp_path / f"dev{i}.yaml") for i in range(3)] + [None]
     lines = _lines(journal)
     assert [x["name"] for x in lines] == ["dev0", "dev1", "dev2", "dev9"]  # submission order
@@ -62,7 +63,7 @@ def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_ar
     (segment,) = (tmp_path / ".wal").iterdir()
     logged = list(wal.records(segment.read_bytes()))
     assert [(path, body) for path, _, body in logged] == [
-        (str(tmp_path / f"dev{i}.yaml"), f"# I am {tmp_path}/dev{i}.yaml\n".encode()) for i in range(3)]
+        (str(tmp_path / f"dev{i}.yaml"), f"# I am {tmp_path / f'dev{i}.yaml'}\n".encode()) for i in range(3)]
     assert [digest for _, digest, _ in logged] == [x["snapshot_sha256"] for x in lines[:3]]
 
     synced.clear()
@@ -70,7 +71,7 @@ def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_ar
     assert synced == ["log", "journal"]  # the log exists: one fsync for the file, one for its line
     synced.clear()
     log.settle()
-    assert synced == ["file"] * 4 + ["dir"]
+    assert synced == ["file"] * 4 + folders[:1]
     assert not (tmp_path / ".wal").exists()  # settled: no log, and no empty folder beside the snapshots
 
 

@@ -247,7 +247,7 @@ def test_inventory_errors_name_their_devices_and_validate_checks_the_recipes(tmp
         validate_file(inv)
     msgs = [str(d) for d in e.value.diagnostics]
     assert msgs == [f"{inv}:3:82: error: D: 9000 s is out of range 0..600 s (devices zone-1, zone-2)",
-                    f"{inv}:4:20: error: recipe {tmp_path}/recipes/drives.yaml: no such file "
+                    f"{inv}:4:20: error: recipe {tmp_path / 'recipes' / 'drives.yaml'}: no such file "
                     "(devices drive-1, drive-2, drive-3)"]
     # the schema: groups take only a device's settings, not a url
     Path(inv).write_text(text.replace("slow: {parameters", "slow: {url: 'tcp://x', parameters"))

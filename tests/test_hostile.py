@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 from decimal import Decimal
@@ -28,12 +27,17 @@ HOSTILE = ["yaml-alias-bomb.yaml", "yaml-deep-nesting.yaml", "yaml-recursive-ali
 
 
 def _limited() -> None:  # a child that tries to take gigabytes fails instead of taking the machine
+    import resource
+
     resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))
+
+
+LIMITED = None if sys.platform == "win32" else _limited  # Windows has no rlimits
 
 
 def validate(*paths: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "deployer", "validate", *paths], capture_output=True, text=True,
-                          timeout=60, preexec_fn=_limited, cwd=ROOT)
+                          timeout=60, preexec_fn=LIMITED, cwd=ROOT)
 
 
 @pytest.mark.parametrize("name", HOSTILE)
@@ -132,7 +136,7 @@ def test_cached_conversions_equal_pint(a: str, b: str, x: Decimal) -> None:
 def test_fuzz_bounded() -> None:
     """A bounded mutation-fuzz run (`make fuzz` runs a longer one): no crash, no runaway time or memory."""
     proc = subprocess.run([sys.executable, "-m", "tests.fuzz", "--files", "1500", "--seconds", "40"],
-                          capture_output=True, text=True, timeout=300, preexec_fn=_limited, cwd=ROOT)
+                          capture_output=True, text=True, timeout=300, preexec_fn=LIMITED, cwd=ROOT)
     res = json.loads(proc.stdout)
     assert res["crashes"] == 0, res["crash_details"]
     assert res["files_tried"] >= 200

@@ -9,6 +9,7 @@ import os
 import sys
 from decimal import Decimal
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -226,11 +227,23 @@ def test_export_says_what_a_register_list_cannot_carry(capsys: pytest.CaptureFix
 # ------------------------------------------------------------------------------ clean errors, elsewhere
 
 
+def _why(call: Any, *args: Any) -> str:
+    """What the system says when ``call(*args)`` fails (its own words: Windows' differ from POSIX's)."""
+    try:
+        call(*args)
+    except OSError as e:
+        return str(e.strerror)
+    raise AssertionError(f"{call.__name__}{args} did not fail")
+
+
 def test_clean_errors_for_outputs_and_options(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code, _, err = cli(capsys, "docs", "--out", "/proc/nope/x")
-    assert code == 1 and "error: cannot write the pages into /proc/nope/x: No such file or directory" in err
+    blocked = tmp_path / "a-file" / "x"  # a folder that cannot be made: its parent is a file
+    (tmp_path / "a-file").write_text("")
+    code, _, err = cli(capsys, "docs", "--out", str(blocked))
+    assert code == 1 and f"error: cannot write the pages into {blocked}: {_why(os.makedirs, blocked)}" in err, err
     code, _, err = cli(capsys, "profiles", "new", str(tmp_path / "nodir" / "x.yaml"))
-    assert code == 1 and "x.yaml: No such file or directory" in err and "Traceback" not in err
+    missing = _why(open, tmp_path / "nodir" / "x.yaml", "x")
+    assert code == 1 and f"x.yaml: {missing}" in err and "Traceback" not in err, err
     code, _, err = cli(capsys, "explain", "k" * 100_000)
     assert code == 1 and len(err) < 300 and "(100000 characters)" in err
     pytest.importorskip("sunspec2")
@@ -261,7 +274,8 @@ def test_a_header_cell_spanning_lines(tmp_path: Path, capsys: pytest.CaptureFixt
     """Found by fuzzing: a quoted header cell with a line break (its row's later cells have no column on the
     first line) and a quote inside an unquoted cell (literal, as the csv module reads it)."""
     src = tmp_path / "h.csv"
-    src.write_text('name,address,type,Setting "range,"Remark\nmore",Note\nspeed,1,U16,,,\n')
+    # its own line ends, on Windows too (a CRLF file's cell is 'Remark\r\nmore', as the csv module reads it)
+    src.write_text('name,address,type,Setting "range,"Remark\nmore",Note\nspeed,1,U16,,,\n', newline="")
     out = tmp_path / "h.yaml"
     code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "h", "-o", str(out))
     assert code == 0, err

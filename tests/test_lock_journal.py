@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -53,13 +54,17 @@ def held_locks() -> list[dict[str, object]]:
 
 
 def test_two_applies_on_one_device_one_is_refused(tmp_path: Path) -> None:
-    # each answer takes 0.4 s: the first run holds the lock for about 3 s, long enough for the second to start
-    with SimulatorThread(builtin_profile("example-inverter"), faults=Faults(latency_ms=400)) as sim:
+    from deployer.window.confirm import awaiting
+
+    # the first run holds the lock in its confirm window until confirmed, however long the second takes to start
+    with SimulatorThread(builtin_profile("example-inverter")) as sim:
         a = start("apply", recipe(tmp_path, "first", FIRST), "--device", sim.url, "--yes", "--state-dir",
-                  str(tmp_path / "sa"), "--report", str(tmp_path / "a.json"))
-        wait_for(lambda: any(h.get("pid") == a.pid for h in held_locks()))
+                  str(tmp_path / "sa"), "--report", str(tmp_path / "a.json"), "--confirm-within", "1h")
+        wait_for(lambda: bool(awaiting(str(tmp_path / "sa"))) or a.poll() is not None)
+        assert any(h.get("pid") == a.pid for h in held_locks())
         code, out, err = run("apply", recipe(tmp_path, "second", SECOND), "--device", sim.url, "--yes", "--state-dir",
                              str(tmp_path / "sb"), "--report", str(tmp_path / "b.json"))
+        assert run("confirm", "--state-dir", str(tmp_path / "sa"))[0] == 0
         assert a.wait(timeout=60) == 0, a.stderr.read() if a.stderr else ""
         assert code == 3, out + err
         assert f"locked by PID {a.pid} on " in out + err and " since " in out + err
@@ -96,7 +101,7 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path: Path) -> None:
                               text=True).stdout.strip()
         os.ftruncate(held.fd, 0)
         os.lseek(held.fd, 0, os.SEEK_SET)
-        os.write(held.fd, json.dumps({"pid": int(dead), "host": os.uname().nodename, "since": time.time() - 60,
+        os.write(held.fd, json.dumps({"pid": int(dead), "host": socket.gethostname(), "since": time.time() - 60,
                                       "key": key, "command": "crashed run"}).encode())
         os.close(held.fd)  # the process "died": the kernel drops its flock, its record stays
         code, out, err = run("apply", recipe(tmp_path, "first", FIRST), "--device", sim.url, "--yes",

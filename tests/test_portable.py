@@ -306,7 +306,7 @@ def test_a_com_port_that_is_not_there_on_windows(tmp_path: Path, capsys: pytest.
     code, out, err = cli(capsys, "apply", str(rec), "--device", "rtu://COM250?baudrate=19200&parity=E", "--yes",
                          "--state-dir", str(tmp_path / "s"))
     said = " ".join((out + err).split())  # the console wraps long lines
-    assert code == 3 and "rtu://COM250?baudrate=19200&parity=E: cannot open the serial port" in said, said
+    assert code == 3 and "rtu://COM250?baudrate=19200&parity=E: no such serial port COM250" in said, said
     assert "Traceback" not in said
 
 
@@ -402,3 +402,17 @@ def test_what_mypy_cannot_see_goes_through_portable() -> None:
     found = [f"{p.relative_to(ROOT)}: {what}" for p in sorted(package.rglob("*.py")) if p.name != "portable.py"
              for what in ("os.kill(", ".add_signal_handler(") if what in p.read_text(encoding="utf-8")]
     assert found == [], "use deployer.portable (pid_alive, on_signals)"
+
+
+def test_pyserials_windows_open_errors_said_by_the_ports_name() -> None:
+    """pyserial's Windows backend says ``could not open port '\\\\\\\\.\\\\COM7': FileNotFoundError(2, ...)``: deployer
+    names the port as the user wrote it and says what to do (the Windows suite runs the real thing)."""
+    from deployer.transport.clients import _windows_open_error
+
+    gone = r"could not open port '\\\\.\\COM7': FileNotFoundError(2, 'The system cannot find the file.', None, 2)"
+    busy = r"could not open port '\\\\.\\COM3': PermissionError(13, 'Access is denied.', None, 5)"
+    assert _windows_open_error(gone, r"\\.\COM7") == ("no such serial port COM7 (deployer scan --list-ports shows this "
+                                                      "system's serial ports)")
+    assert _windows_open_error(busy, "com3") == ("COM3 is in use by another program (a terminal, a vendor's tool): "
+                                                 "close it and run again")
+    assert _windows_open_error("[Errno 2] could not open port /dev/ttyUSB9", "/dev/ttyUSB9") is None

@@ -82,4 +82,5 @@ def test_only_the_command_line_writes_the_units_cache(tmp_path: Path) -> None:
                               env=env)
         assert "Traceback" not in proc.stderr, proc.stderr
     assert _cache_files(lib_home) == []
-    assert any(f.startswith(".cache/deployer/units-") for f in _cache_files(cli_home)), _cache_files(cli_home)
+    assert any(f.replace(os.sep, "/").startswith(".cache/deployer/units-") for f in _cache_files(cli_home)), \
+        _cache_files(cli_home)

@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import itertools
 import ssl
+import sys
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
@@ -369,7 +370,9 @@ def test_port_held_by_another_process_is_unreachable_with_the_reason(pty_pair: t
 
     async def main() -> None:
         async with serve("rtu", path=a):  # the server holds end A exclusively
-            with pytest.raises(Unreachable, match="cannot open the serial port: .*exclusively lock"):
+            held = ("is in use by another program" if sys.platform == "win32"
+                    else "cannot open the serial port: .*exclusively lock")
+            with pytest.raises(Unreachable, match=held):
                 await tp.open_transport(f"rtu://{a}").connect()
     asyncio.run(main())
 

@@ -81,7 +81,7 @@ TEMPLATE = """\
 
 def write(tmp: Path, text: str = TEMPLATE, name: str = "th1.json") -> str:
     path = tmp / name
-    path.write_text(text)
+    path.write_text(text, encoding="utf-8")
     return str(path)
 
 
@@ -177,7 +177,7 @@ def test_round_trip_template_profile_recipe_plan(tmp_path: Path, capsys: pytest.
     (tmp_path / "r.yaml").write_text(
         "recipe: th\nprofile: th1.yaml\nparameters:\n  setpoint: 22.5 degC\n  hysteresis: 3\n  mode: heat, then cool\n"
         "  display_unit: °F\n  buzzer: false\n  led_on: true\n  led_level: 5\n  brightness: 200\n  trim: -3\n"
-        "  total: 305419896\n  gain: 1.5\n  password: 4321\n")
+        "  total: 305419896\n  gain: 1.5\n  password: 4321\n", encoding="utf-8")
     code, _, err = cli(capsys, "validate", out, str(tmp_path / "r.yaml"))
     assert code == 0, err
     plan = make_plan(load_recipe(str(tmp_path / "r.yaml")), Target(None, 1, out))

@@ -21,7 +21,7 @@ ABOUT = {
     "operator": "start runs (the files as an engineer took them up, or the adopted state back), confirm, roll back",
     "engineer": "take up an edit of the files: the plan of what would change, which runs then adopt",
     "approver": "approve (or review) a plan",
-    "admin": "users and policy",
+    "admin": "users and policy; stop the agent",
 }
 
 # (method, route pattern as aiohttp writes it) -> the role it needs
@@ -48,6 +48,7 @@ ROUTE_ROLES: dict[tuple[str, str], str] = {
     ("POST", "/v1/runs/{id}/rollback"): "operator",
     ("POST", "/v1/confirm"): "operator",
     ("POST", "/v1/approvals"): "approver",  # change control's route (docs/change-control.md)
+    ("POST", "/v1/stop"): "admin",  # ends the agent (a Windows service manager's SIGTERM): its devices go unheld
     ("GET", "/v1/users"): "admin",
     ("POST", "/v1/users"): "admin",
     ("POST", "/v1/users/{name}"): "admin",

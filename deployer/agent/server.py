@@ -109,6 +109,16 @@ async def reload(agent: Agent, request: web.Request) -> Any:
     return agent.reload()
 
 
+async def stop_agent(agent: Agent, request: web.Request) -> Any:
+    """What SIGTERM does, for a service manager on Windows (which has no SIGTERM): the agent's windows end, its
+    store closes, it exits 0. Behind the token like every route that changes state."""
+    stop = request.app.get(STOP)
+    if stop is None:  # an application served by a program of its own, not ``deployer agent``
+        raise ApiError("usage", "this agent is not run by deployer agent: it has no stop", status=409)
+    stop()
+    return {"stopping": True}
+
+
 async def check_now(agent: Agent, request: web.Request) -> Any:
     body = await _body(request)
     names = None
@@ -249,6 +259,7 @@ ROUTES: tuple[tuple[str, str, Handler], ...] = (
     ("GET", "/v1/desired", get_desired),
     ("GET", "/v1/pending", get_pending),
     ("POST", "/v1/reload", reload),
+    ("POST", "/v1/stop", stop_agent),
     ("POST", "/v1/check", check_now),
     ("GET", "/v1/runs", list_runs),
     ("POST", "/v1/runs", start_run),
@@ -271,6 +282,7 @@ ROUTES: tuple[tuple[str, str, Handler], ...] = (
 )
 
 METRICS: web.AppKey[Any] = web.AppKey("metrics", object)
+STOP: web.AppKey[Callable[[], None]] = web.AppKey("stop")  # set by service.serve: ends the agent
 
 
 def error_body(kind: str, message: str, exit_code: int, diagnostics: list[str] | None = None) -> dict[str, Any]:

@@ -19,7 +19,7 @@ from .core import Agent, Settings
 from .door import Door
 from .notify import Notifier
 from .security import check_listen, read_token
-from .server import METRICS, REFUSALS, app
+from .server import METRICS, REFUSALS, STOP, app
 from .wire import Runner
 
 
@@ -35,7 +35,8 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
                 on_ready: Callable[[str], None] | None = None, signals: bool = True,
                 token: str | None = None, tls: ssl.SSLContext | None = None, notify: Sequence[str] = (),
                 allowed_hosts: Sequence[str] = (), users: str | None = None) -> int:
-    """Run the agent until SIGTERM/SIGINT (or the task is cancelled); 0 when it ended cleanly.
+    """Run the agent until SIGTERM, SIGINT, Ctrl-Break or ``POST /v1/stop`` (or the task is cancelled); 0 when it
+    ended cleanly.
 
     ``users``: the users file (access.py); else ``token`` for the site; with neither the agent makes a token of
     its own (``local_token``) and says where it is."""
@@ -56,6 +57,8 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
     door = Door(host, tuple(allowed_hosts))
     application = app(agent, token=token, token_kind="agent token" if made else "token", users=directory,
                       door=door)
+    stop = asyncio.Event()
+    application[STOP] = stop.set  # POST /v1/stop: a service manager's way on Windows
     if notifier is not None:
         application[METRICS].register(notifier)  # its queues and failures on /metrics
     from ..audit.forward import for_agent  # the policy's audit.syslog: the trail forwarded, its backlog on /metrics
@@ -82,7 +85,6 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
               file=sys.stderr, flush=True)
     from ..portable import interrupt_signals, on_signals
 
-    stop = asyncio.Event()
     forwarding: asyncio.Future[None] | None = None
     loop = asyncio.get_running_loop()
     undo = []

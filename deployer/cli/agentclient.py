@@ -6,14 +6,13 @@ and exits with the code the same command has without the agent.
 from __future__ import annotations
 
 import json
-import sys
 from collections.abc import Mapping
 from typing import Any
 
 import click
 
 from ..errors import EXIT_CHANGES, EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, UsageError
-from .base import echo
+from .base import echo, stdin_is_terminal
 
 # options of apply that mean something only where the command line itself talks to the devices
 _LOCAL_ONLY = ("device", "unit", "timeout", "retries", "allow_broadcast", "html_path", "pause", "ask", "inventory",
@@ -76,7 +75,7 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
     c = client(url)
     seen: str | None = None  # the files shown: the agent refuses the run if they changed since
     if not kw.get("yes"):
-        if not sys.stdin.isatty():
+        if not stdin_is_terminal():
             raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
         pending = _pending(c)
         seen = pending.get("files_sha256")

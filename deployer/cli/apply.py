@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import sys
 import time
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
@@ -28,6 +27,7 @@ from .base import (
     limit_option,
     parallel_option,
     safe,
+    stdin_is_terminal,
 )
 from .outcome import print_outcome
 from .plan import print_plan
@@ -57,7 +57,7 @@ def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: 
         echo("nothing restored: every device was refused", err=True)
         return EXIT_FAILED
     request = prepared.request
-    if request.ask and not sys.stdin.isatty():
+    if request.ask and not stdin_is_terminal():
         raise UsageError("--ask asks before each batch: stdin is not a terminal (use --pause for an unattended run)")
     err = console(stderr=True)
     _consent_to_move(prepared.moved, err, yes=yes, to_other_device=to_other_device)
@@ -95,7 +95,7 @@ def _consent_to_move(moved: str | None, err: Console, *, yes: bool, to_other_dev
     if to_other_device:
         err.print(f"warning: {safe(moved)}; restoring it there (--to-other-device)")
         return
-    if yes or not sys.stdin.isatty():
+    if yes or not stdin_is_terminal():
         raise UsageError(f"{moved}: restoring a snapshot to another device needs --to-other-device "
                          "(--yes alone is not enough); nothing was sent")
     if not click.confirm(f"{safe(moved)}. Restore it to that other device?", default=False, err=True):
@@ -104,7 +104,7 @@ def _consent_to_move(moved: str | None, err: Console, *, yes: bool, to_other_dev
 
 def _confirm_each(prepared: PreparedRun, err: Console) -> Callable[[Plan, DeviceResult], Awaitable[bool]]:
     """The question before each device's write (one at a time, even for fleets); needs a terminal."""
-    if not sys.stdin.isatty():
+    if not stdin_is_terminal():
         raise UsageError("refusing to write without confirmation: stdin is not a terminal; pass --yes")
     ask_lock = asyncio.Lock()
     profiles = {j.name: j.recipe.profile for j in prepared.jobs}

@@ -108,6 +108,30 @@ def report_input_error(err: InputError, outcome: str = "nothing was sent to any 
     echo(f"{n} error{'s' if n != 1 else ''}; {outcome}", err=True)
 
 
+def stdin_is_terminal() -> bool:
+    """Whether a person can answer a question on stdin (``is_terminal``)."""
+    return is_terminal(sys.stdin)
+
+
+def is_terminal(stream: Any) -> bool:
+    """Whether ``stream`` is a terminal. ``isatty()``, except on Windows, where isatty is true of any character
+    device, NUL too (the input of a service, a scheduled task, ``< NUL``, output to ``> NUL``): there only a
+    console, which GetConsoleMode knows."""
+    try:
+        if not stream.isatty():
+            return False
+        fd = stream.fileno()
+    except (AttributeError, ValueError, OSError):
+        return False
+    if sys.platform == "win32":
+        import ctypes
+        import msvcrt
+
+        mode = ctypes.c_uint32()
+        return bool(ctypes.windll.kernel32.GetConsoleMode(msvcrt.get_osfhandle(fd), ctypes.byref(mode)))
+    return True
+
+
 def console(*, stderr: bool = False) -> Console:
     """stdout (or stderr) console; wide when not a terminal so piped lines are not squeezed. It never
     reads markup and escapes control characters (``text.SafeConsole``): style with ``text.styled``."""
@@ -115,7 +139,7 @@ def console(*, stderr: bool = False) -> Console:
 
     if stderr:
         return SafeConsole(stderr=True)
-    return SafeConsole(width=None if sys.stdout.isatty() else 200)
+    return SafeConsole(width=None if is_terminal(sys.stdout) else 200)
 
 
 def describe(url: DeviceURL) -> str:
@@ -149,7 +173,7 @@ def _output(text: str, path: str | None, summary: str, *, replace: bool | None =
             replace = bool(click.get_current_context().meta.get("deployer.force"))
         write_atomic(path, text, replace=replace)
         echo(summary, err=True)
-    elif sys.stdout.isatty():  # a file's text shown: nothing in it acts on the terminal
+    elif is_terminal(sys.stdout):  # a file's text shown: nothing in it acts on the terminal
         echo(text, nl=False)
     else:  # piped into a file or a program: the file's text exactly
         click.echo(text, nl=False)

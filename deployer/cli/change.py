@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import functools
 import os
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -12,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from ..errors import EXIT_INVALID, EXIT_OK, UsageError
-from .base import echo, safe
+from .base import echo, safe, stdin_is_terminal
 
 if TYPE_CHECKING:
     from ..api import Recipe
@@ -66,7 +65,7 @@ def open_key(path: str) -> Signer:
     try:
         return signer_of(path)
     except NeedsPassphrase:
-        if not sys.stdin.isatty():
+        if not stdin_is_terminal():  # Windows: NUL is a tty to isatty
             raise
     phrase = click.prompt(f"passphrase for {path}", hide_input=True, err=True)
     return signer_of(path, phrase.encode())

@@ -272,7 +272,10 @@ def _open_in_folder(path: str, flags: int) -> int:
         folder = os.path.dirname(path) or "."
         if os.path.isdir(folder):
             raise
-        os.makedirs(folder, exist_ok=True)
+        try:
+            os.makedirs(folder, exist_ok=True)
+        except FileExistsError:  # a file where the folder should be: Windows says "not found" of a path through it
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), folder) from None
         return os.open(path, flags, 0o644)
 
 

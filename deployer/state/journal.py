@@ -289,7 +289,9 @@ def snapshot_digest(state_dir: str, snapshot: str) -> str | None:
     """The SHA-256 the journal's ``device-started`` line recorded for ``snapshot`` (an absolute path), if any."""
     found = None
     with contextlib.suppress(OSError):
-        for rec in read(state_dir, containing=snapshot):
+        # the path as the line spells it: JSON doubles a backslash (every Windows path has some) and escapes
+        # what is not ASCII (a user name like Jürgen)
+        for rec in read(state_dir, containing=json.dumps(snapshot)[1:-1]):
             if rec is not None and rec.get("event") == "device-started" and rec.get("snapshot") == snapshot:
                 found = rec.get("snapshot_sha256") or found
     return found if isinstance(found, str) else None

@@ -20,6 +20,7 @@ import contextlib
 import errno
 import functools
 import os
+import re
 import ssl
 import struct
 import time
@@ -996,6 +997,9 @@ class SerialTransport(PymodbusTransport):
                 line = self._opening = _SerialLine(self._settings())
                 try:
                     await super().connect()
+                    # pymodbus starts its port's transport on the loop's next turn; on Windows a transport
+                    # closed before that (a refusal right after opening) tried a fileno a COM port lacks
+                    await asyncio.sleep(0)
                 finally:
                     self._opening = None
                 line.client, line.rx = self._client, self._rx
@@ -1028,10 +1032,13 @@ class SerialTransport(PymodbusTransport):
         except Exception as e:  # pyserial raises SerialException, termios.error, ValueError
             # termios.error and OSError carry (errno, text): EINVAL is the line settings the port refuses
             code = e.args[0] if len(e.args) == 2 and isinstance(e.args[0], int) else getattr(e, "errno", None)
+            inner = _WIN_ERROR.search(str(e))  # pyserial on Windows: "... Original message: OSError(22, ...)"
+            if code is None and inner is not None:
+                code = int(inner.group(1))
             if code == errno.EINVAL:
                 settings = " ".join(f"{k}={o[k]}" for k in ("baudrate", "bytesize", "parity", "stopbits") if k in o)
                 return f"the port rejects these line settings ({settings or 'defaults'}): {os.strerror(code)}"
-            return f"cannot open the serial port: {e}"
+            return _windows_open_error(str(e), self.url.path or "") or f"cannot open the serial port: {e}"
         finally:
             if port is not None:
                 port.close()
@@ -1058,6 +1065,24 @@ class SerialTransport(PymodbusTransport):
             bus = _bus(self.url)
             if bus.line is line:
                 bus.line = None
+
+
+_WIN_OPEN = re.compile(r"could not open port .*: \w+\((\d+), '([^']*)', None, (\d+)\)$")
+_WIN_ERROR = re.compile(r"\w+Error\((\d+), '[^']*', None, \d+\)")
+
+
+def _windows_open_error(said: str, path: str) -> str | None:
+    """pyserial's Windows error (``could not open port '\\\\.\\COM7': FileNotFoundError(2, ...)``) said plainly,
+    by the port's name; None for any other text."""
+    found = _WIN_OPEN.search(said)
+    if found is None:
+        return None
+    name, winerror = (windows_port(path) or path), int(found.group(3))
+    if winerror in (2, 3):  # ERROR_FILE_NOT_FOUND, ERROR_PATH_NOT_FOUND
+        return f"no such serial port {name} (deployer scan --list-ports shows this system's serial ports)"
+    if winerror == 5:  # ERROR_ACCESS_DENIED: Windows opens a COM port for one program at a time
+        return f"{name} is in use by another program (a terminal, a vendor's tool): close it and run again"
+    return f"cannot open {name}: {found.group(2)}"
 
 
 _CLASSES: dict[str, type[PymodbusTransport]] = {
