@@ -356,12 +356,24 @@ def on_signals(loop: object, signals: tuple[signal.Signals, ...],
         except (ValueError, OSError):
             continue
         undo.append(functools.partial(signal.signal, sig, old))
+        _quiet_wakeup()
 
     def restore() -> None:
         for u in reversed(undo):
             with contextlib.suppress(Exception):
                 u()
     return restore
+
+
+def _quiet_wakeup() -> None:
+    """The loop's signal wakeup socket, without the warning for a full one. The proactor loop (Windows) wakes on a
+    signal through a byte sent to its socket; a full socket means the loop has bytes to wake on already, yet
+    CPython prints "Exception ignored when trying to send to the signal wakeup fd" (BlockingIOError) into the
+    console (seen on Ctrl-Break under load). ``warn_on_full_buffer=False`` is the documented way for a socket
+    used only to wake up; other errors are still said."""
+    fd = signal.set_wakeup_fd(-1)
+    if fd != -1:
+        signal.set_wakeup_fd(fd, warn_on_full_buffer=False)
 
 
 def interrupt_signals() -> tuple[signal.Signals, ...]:
