@@ -204,10 +204,13 @@ def test_a_report_held_open_throughout_is_said_plainly(tmp_path: Path, sim: Simu
                         cwd=tmp_path)
     said = done.stdout + done.stderr
     assert "Traceback" not in said
-    if sys.platform == "win32":  # Windows replaces no file that is open: said, with what to do
-        assert done.returncode != 0 and f"cannot write the report {tmp_path / 'r.json'}" in said, said
-        assert "close the program" in said or "Permission denied" in said or "Access is denied" in said, said
-        assert sim.read("accel") == (20,)  # the device was written: the journal and the snapshot say so
+    if sys.platform == "win32":  # Windows replaces no file that is open: the report's first state cannot be
+        # written, so the run is refused before its first request, said with what to do, and journaled as refused
+        assert done.returncode == 1 and "cannot write the report r.json" in said, said
+        assert "close the program" in said, said
+        assert sim.read("accel") == (50,) and sim.log == []  # nothing sent
+        last = json.loads((tmp_path / "s" / "audit.jsonl").read_text(encoding="utf-8").splitlines()[-1])
+        assert last["event"] == "run-finished" and "cannot write the report" in last["refused"]
     else:  # POSIX replaces it: the holder keeps the old text
         assert done.returncode == 0, said
         assert json.loads((tmp_path / "r.json").read_text())["devices"][0]["status"] == "ok"

@@ -107,7 +107,7 @@ class LiveReport:
             self._at[name] = (offset, len(line))
             pieces.append(line + b"\n")
             offset += len(line) + 1
-        write_atomic(self.path, pieces)
+        write_atomic(self.path, pieces, what="the report")
         self._size = offset
         return os.open(self.path, os.O_WRONLY | os.O_APPEND | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0))
 

@@ -161,7 +161,11 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         journal.run_started(state_dir, run_id, command=command, argv=argv, recipe=applied, via=via,
                             devices=[(j.name, describe(j.url), j.unit) for j in jobs])
         info = {**run_info(opts.command or f"Python API: {command}", started), "id": run_id, "state_dir": state_dir}
-        live = LiveReport(report_path, label, jobs, sizes, run=info) if report_path else None
+        try:
+            live = LiveReport(report_path, label, jobs, sizes, run=info) if report_path else None
+        except UsageError as e:  # the report's first state could not be written: refused, nothing sent
+            journal.run_refused(state_dir, run_id, str(e), command=command, argv=argv, recipe=label)
+            raise
         opts = replace(opts, run_id=run_id, applied=applied, state_dir=state_dir,
                        on_writing=_both(opts.on_writing, live.writing if live is not None else None))
 

@@ -373,7 +373,10 @@ def disk_error(e: OSError) -> str:
     """An OSError of a state or output file, said plainly."""
     if e.errno == errno.ENOSPC:
         return "the disk is full"
-    return portable.path_error(e) or e.strerror or str(e)
+    said = portable.path_error(e) or e.strerror or str(e)
+    if portable.WINDOWS and isinstance(e, PermissionError):  # Windows replaces no file another program has open
+        said += " (on Windows also when another program has the file open: close the program, or choose another path)"
+    return said
 
 
 def write_atomic(path: str, text: str | bytes | Iterable[bytes], *, replace: bool = True, what: str = "") -> None:
