@@ -250,6 +250,24 @@ def test_backslashes_and_drive_letters_in_recipes_and_options(tmp_path: Path, si
     assert sim.read("accel") == (20,)
 
 
+@pytest.mark.skipif(sys.platform != "win32", reason="UNC paths (a server's share) are Windows' path syntax")
+def test_a_file_server_out_of_reach_is_said_by_its_unc_path_before_anything_is_sent(tmp_path: Path,
+                                                                                  sim: Simulator) -> None:
+    """Recipes, the state folder and the report on a share (\\\\server\\share\\...) the laptop cannot reach: each
+    said by its path, nothing sent. (A share that answers is not tested: Wine has no SMB client; docs/windows.md.)"""
+    share = "\\\\nohost.invalid\\plant"
+    said = deployer("validate", share + "\\recipes\\r.yaml", cwd=tmp_path)
+    assert said.returncode == 1 and said.stderr.startswith(share + "\\recipes\\r.yaml:"), said.stderr
+    (tmp_path / "drive.yaml").write_text(DRIVE)
+    (tmp_path / "r.yaml").write_text(SOAK_RECIPE)
+    for extra, what in ((["--state-dir", share + "\\state"], "the journal " + share + "\\state\\audit.jsonl"),
+                        (["--report", share + "\\r.json", "--state-dir", "s"], "the report " + share + "\\r.json")):
+        done = deployer("apply", "r.yaml", "--device", sim.url, "--yes", *extra, cwd=tmp_path)
+        out = done.stdout + done.stderr
+        assert done.returncode == 1 and f"cannot write {what}: " in out and "Traceback" not in out, out
+    assert sim.log == [] and sim.read("accel") == (50,)
+
+
 def test_crlf_files_read_as_lf_files_and_errors_at_the_same_place(tmp_path: Path, sim: Simulator) -> None:
     """Notepad and Excel write CRLF: recipes, profiles and inventories read the same, errors at the same LINE:COL."""
     lf = "recipe: r\nprofile: drive.yaml\nparameters:\n  accel: 2 s\n  decel: 900 s\n"
