@@ -156,6 +156,66 @@ def fchmod(fd: int, mode: int) -> None:
         f(fd, mode)
 
 
+# a secret file's access list on Windows: its owner, SYSTEM and the administrators, not inherited from its folder
+PRIVATE_SDDL = "D:P(A;;FA;;;OW)(A;;FA;;;SY)(A;;FA;;;BA)"
+
+
+def make_private(path: str) -> str:
+    """Let nobody but its user (and the system's administrators) read ``path``; what was done, for messages.
+
+    POSIX: mode 0600. Windows has no modes: the file gets an access list of its own (``PRIVATE_SDDL``), as
+    OpenSSH for Windows wants of a private key, whatever the folder would have handed down (a state folder in
+    C:\\site lets every local user read). Raises OSError when the system refuses."""
+    if sys.platform == "win32":  # the branch mypy checks only for Windows
+        import ctypes
+
+        advapi32 = ctypes.WinDLL("advapi32", use_last_error=True)
+        kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)
+        sd, dacl = ctypes.c_void_p(), ctypes.c_void_p()
+        present, defaulted = ctypes.c_int(), ctypes.c_int()
+        if not advapi32.ConvertStringSecurityDescriptorToSecurityDescriptorW(
+                ctypes.c_wchar_p(PRIVATE_SDDL), 1, ctypes.byref(sd), None):
+            raise ctypes.WinError(ctypes.get_last_error())
+        try:
+            if not advapi32.GetSecurityDescriptorDacl(sd, ctypes.byref(present), ctypes.byref(dacl),
+                                                      ctypes.byref(defaulted)):
+                raise ctypes.WinError(ctypes.get_last_error())
+            # SE_FILE_OBJECT; DACL_SECURITY_INFORMATION | PROTECTED_DACL_SECURITY_INFORMATION (not inherited)
+            err = advapi32.SetNamedSecurityInfoW(ctypes.c_wchar_p(path), 1, 0x00000004 | 0x80000000, None, None,
+                                                 dacl, None)
+            if err:
+                raise ctypes.WinError(err)
+        finally:
+            kernel32.LocalFree(sd)
+        return "only its owner and the administrators may read it"
+    os.chmod(path, 0o600)
+    return "mode 0600"
+
+
+def access_list(path: str) -> str | None:
+    """A file's access list as SDDL on Windows (None elsewhere): for tests and ``make_private``'s checks."""
+    if sys.platform == "win32":
+        import ctypes
+
+        advapi32 = ctypes.WinDLL("advapi32", use_last_error=True)
+        kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)
+        sd, text = ctypes.c_void_p(), ctypes.c_wchar_p()
+        err = advapi32.GetNamedSecurityInfoW(ctypes.c_wchar_p(path), 1, 0x00000004, None, None, None, None,
+                                             ctypes.byref(sd))
+        if err:
+            raise ctypes.WinError(err)
+        try:
+            if not advapi32.ConvertSecurityDescriptorToStringSecurityDescriptorW(sd, 1, 0x00000004,
+                                                                                 ctypes.byref(text), None):
+                raise ctypes.WinError(ctypes.get_last_error())
+            said = str(text.value)
+            kernel32.LocalFree(text)
+            return said
+        finally:
+            kernel32.LocalFree(sd)
+    return None
+
+
 def open_nofollow(path: str, flags: int, mode: int = 0o666) -> int:
     """``os.open`` that never goes through a symbolic link at ``path`` (OSError ELOOP if one is there).
 

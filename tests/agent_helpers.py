@@ -108,13 +108,17 @@ class AgentProcess:
         return rc
 
     def stop_route(self) -> Agent:
-        """A client with the credentials the agent was started with (``--token-file``, ``--tls-cert``), on loopback."""
+        """A client with the credentials the agent was started with (``--token-file``, else the token it made in its
+        state folder; ``--tls-cert``), on loopback."""
         args = self.proc.args
         assert isinstance(args, list)
 
         def option(name: str) -> str | None:
             return str(args[args.index(name) + 1]) if name in args else None
         token_file, cert = option("--token-file"), option("--tls-cert")
+        state = option("--state-dir")
+        if token_file is None and state is not None and "--users" not in args:  # the token it made itself
+            token_file = str(Path(state) / "agent" / "token")
         token = Path(token_file).read_text(encoding="utf-8").splitlines()[0].strip() if token_file else None
         return Agent(self.url.replace("//0.0.0.0:", "//127.0.0.1:"), token=token, ca=cert, timeout=20)
 

@@ -130,7 +130,7 @@ def test_every_route_checks_its_role_and_each_refusal_names_it(tmp_path: Path, s
         # a rollback through the agent: by whom, too
         back = c["lead"].rollback(run["id"])
         assert c["lead"].follow(back["id"])["exit_code"] == 0 and back["options"]["by"]["user"] == "lead"
-        assert agent.terminate() == 0
+        assert agent.terminate(client=Agent(agent.url, token=tokens["boss"], timeout=20)) == 0
     finally:
         agent.kill()
     assert "Traceback" not in agent.log()
@@ -155,7 +155,7 @@ def test_an_operator_rolls_out_the_files_as_an_engineer_took_them_up(tmp_path: P
         assert "2500 rpm" in json.dumps(eng.reload())  # the engineer takes it up: pending now
         assert op.follow(op.start_run()["id"])["exit_code"] == 0
         assert sim.read("speed") == (2500,)
-        assert agent.terminate() == 0
+        assert agent.terminate(client=Agent(agent.url, token=tokens["boss"], timeout=20)) == 0
     finally:
         agent.kill()
 
@@ -239,7 +239,7 @@ def test_a_disabled_user_is_refused_at_once_without_a_restart(tmp_path: Path, si
                      "user-roles-changed", "users-invalid", "login-refused", "access-refused"):
             assert kind in kinds, kind
         assert agent.proc.pid == pid and agent.proc.poll() is None  # never restarted
-        assert agent.terminate() == 0
+        assert agent.terminate(client=Agent(agent.url, token=tokens["boss"], timeout=20)) == 0
     finally:
         agent.kill()
     assert "Traceback" not in agent.log()
@@ -285,7 +285,7 @@ def test_client_certificates_map_to_users(tmp_path: Path, sim: Simulator, pki: d
         with pytest.raises(AgentError) as e:
             alice.devices()
         assert "alice is disabled" in str(e.value)
-        assert agent.terminate() == 0
+        assert agent.terminate(client=Agent(agent.url, token=tokens["boss"], ca=ca, timeout=20)) == 0
     finally:
         agent.kill()
 
@@ -383,7 +383,7 @@ def test_a_viewer_reads_the_live_page_with_their_own_token(tmp_path: Path, sim: 
         assert [r["data-device"] for r in doc.all("tr", "dev")] == ["d1"]
         where = next(e for e in doc.found if e.get("id") == "where")
         assert "auth users" in str(where["text"]) and "you: view" in str(where["text"])
-        assert agent.terminate() == 0
+        assert agent.terminate(client=Agent(agent.url, token=tokens["boss"], timeout=20)) == 0
     finally:
         agent.kill()
 

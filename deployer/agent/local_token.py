@@ -1,8 +1,9 @@
 """The token of an agent started without ``--token-file`` or ``--users``, and how its user's clients find it.
 
 No mode of the agent answers a request that carries no credential (a web page in a browser on the gateway
-could send one). An agent given none makes a token: ``STATE/agent/token`` (mode 0600, made once and kept
-across restarts; delete it and restart to change it) and says on stderr where it is, as Jupyter does. For the
+could send one). An agent given none makes a token: ``STATE/agent/token`` (mode 0600; on Windows an access list
+for its owner and the administrators alone; made once and kept across restarts; delete it and restart to change
+it) and says on stderr where it is, as Jupyter does. For the
 clients of the same user on the same machine it leaves a note while it runs, ``RUNTIME/agent-PORT.json``
 (the URL, its PID and the token file's path) in a folder of that user's own: ``$DEPLOYER_RUNTIME_DIR``, else
 ``$XDG_RUNTIME_DIR/deployer``, else ``~/.local/state/deployer/agents`` (``%LOCALAPPDATA%\\deployer\\agents``
@@ -46,7 +47,8 @@ def token_file(agent_folder: str) -> str:
 
 
 def ensure(agent_folder: str) -> tuple[str, bool]:
-    """The generated token's file (made now, mode 0600, when there is none) and whether it was made now."""
+    """The generated token's file (made now, mode 0600 or on Windows an access list of its own, when there is
+    none) and whether it was made now."""
     path = token_file(agent_folder)
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o600)
@@ -57,7 +59,19 @@ def ensure(agent_folder: str) -> tuple[str, bool]:
         os.fsync(fd)
     finally:
         os.close(fd)
+    if sys.platform == "win32":  # no modes there: an access list of its own (its folder's may let every user read)
+        from ..portable import make_private
+
+        try:
+            make_private(path)
+        except OSError as e:
+            os.unlink(path)
+            raise OSError(e.errno, f"cannot keep the token file {path} to its owner: {e.strerror or e}") from None
     return path, True
+
+
+# what keeps the token file to its user, as the agent says it
+PROTECTION = "only its owner and the administrators may read it" if sys.platform == "win32" else "mode 0600"
 
 
 def _note(port: int) -> str:

@@ -49,7 +49,11 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
     agent.open()  # the files are checked, the state folder is ours: nothing sent yet
     made: str | None = None
     if token is None and directory is None:
-        made, new = local_token.ensure(agent.folder)
+        try:
+            made, new = local_token.ensure(agent.folder)
+        except OSError as e:
+            await agent.stop()
+            raise UsageError(f"cannot make the agent's token in {agent.folder}: {e.strerror or e}") from None
         token = read_token(made, "the agent's token file")
     if directory is not None:
         directory.agent = agent
@@ -81,8 +85,8 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
     if made is not None:  # as Jupyter does: where the token is, for this user's clients and anyone told
         note = local_token.publish(url, made)
         print(f"agent: no --token-file: every request needs the token in {made} ({'made now' if new else 'kept'}, "
-              f"mode 0600); this user's deployer commands find it, anyone else: --agent-token-file {made}",
-              file=sys.stderr, flush=True)
+              f"{local_token.PROTECTION}); this user's deployer commands find it, anyone else: "
+              f"--agent-token-file {made}", file=sys.stderr, flush=True)
     from ..portable import interrupt_signals, on_signals
 
     forwarding: asyncio.Future[None] | None = None

@@ -200,13 +200,13 @@ class DeviceLock:
         if not self.shared and self.size:
             with contextlib.suppress(OSError):
                 portable.pwrite_all(self.fd, b" " * self.size, 0)
-        if self.mark and not self.shared:
+        if self.mark and not self.shared and not portable.WINDOWS:
             _remove(self.path)  # under its exclusive lock: whoever opened it finds it nameless (_checked)
         with contextlib.suppress(OSError):
             backend.unlock(self.fd)
         os.close(self.fd)
         self.fd = -1
-        if self.mark and self.shared:
+        if self.mark and (self.shared or portable.WINDOWS):  # Windows removes no file that is open, ours included
             _remove_unheld(self.path)
 
 
@@ -216,7 +216,7 @@ _holder_text = holder.describe
 def _remove(path: str) -> None:
     # a mark's file goes with its last holder: the owners' folder (in RAM on Linux) keeps no file per device ever
     # written, which the lock folder does for speed on disk (a file system's inode allocation, DeviceLock.release).
-    # Windows removes no file another process has open: the file then stays, which is harmless.
+    # Windows removes no file a process has open: the file then stays, which is harmless.
     with contextlib.suppress(OSError):
         os.remove(path)
 
@@ -229,11 +229,15 @@ def _remove_unheld(path: str) -> None:
         return
     try:
         if oslock.backend().try_lock(fd) and stat.S_ISREG(os.fstat(fd).st_mode) and os.fstat(fd).st_nlink == 1:
+            if portable.WINDOWS:  # removes no open file: closed first; one opened meanwhile stays (its removal fails)
+                os.close(fd)
+                fd = -1
             _remove(path)
     except OSError:
         pass
     finally:
-        os.close(fd)
+        if fd >= 0:
+            os.close(fd)
 
 
 def _read_record(fd: int) -> dict[str, Any]:
