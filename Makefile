@@ -37,8 +37,10 @@ test: $(VENV)/.installed-test
 # 200-228 s with two (four runs)
 TEST_WORKERS ?= $(shell $(PYTHON) -c "import os; print(min(4, (os.cpu_count() or 1) + 1))")
 check:
-	@rc=0; \
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --maxprocesses 4 || rc=1; \
+	@rc=0; rm -rf build/coverage; mkdir -p build/coverage; \
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --maxprocesses 4 --cov --cov-report= || rc=1; \
+	echo "coverage: $$($(BIN)/coverage report --format=total)% of deployer's lines ran, in the suite's processes and \
+	those it started (coverage report: per file)"; \
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections tools || rc=1; \
 	$(BIN)/mypy deployer tests tools || rc=1; \
 	$(BIN)/mypy --platform win32 deployer || rc=1; \

@@ -213,7 +213,7 @@ def test_what_the_rollout_keeps_of_a_workers_device_is_small(files: Path, quick:
     request = RunRequest(str(files / "new.yaml"), inventory=str(files / "fleet.yaml"), parallel=4,
                          workers=2, state_dir=str(files / "state"), report_path=str(files / "r.json"))
     report = asyncio.run(execute(prepare(request), keep_results=False))
-    assert [d.status for d in report.devices] == ["ok"] * len(quick)
+    assert [d.status for d in report.devices] == ["ok"] * len(quick), [(d.name, d.error) for d in report.devices]
     assert all(d.report_line is None and not d.parameters and not d.requests and d.tally for d in report.devices)
     doc = json.loads((files / "r.json").read_text())
     assert all(len(d["parameters"]) == N for d in doc["devices"])  # the file has them all

@@ -30,7 +30,7 @@ WINE=/usr/lib/wine/wine64
 HOSTPY=${HOSTPY:-$ROOT/.venv/bin/python}
 [ -x "$HOSTPY" ] || HOSTPY=python3
 # tools make test runs on Linux only: not installed on Windows
-NOT_ON_WINDOWS='^(mypy|ruff|types-.*|mkdocs|ansible-core)$'
+NOT_ON_WINDOWS='^(mypy|ruff|types-.*|mkdocs|ansible-core|coverage|pytest-cov)$'
 
 say() { printf 'wine: %s\n' "$*" >&2; }
 
