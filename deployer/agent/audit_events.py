@@ -27,7 +27,7 @@ class _Settings(Protocol):
 
 
 class Agent(Protocol):
-    """What of the agent its auditing needs (``core.Agent``; a protocol: core calls in here)."""
+    """What of the agent its auditing needs (``site.Site``; a protocol: the site calls in here)."""
 
     state_dir: str
 
