@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from ..load.messages import printable
 
 if TYPE_CHECKING:
-    from ..report import Report
+    from ..api import Report
 
 
 class _Settings(Protocol):

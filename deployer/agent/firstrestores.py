@@ -16,10 +16,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from ..api import Report
 from ..errors import DeployerError
 from ..execute.job import Job
 from ..execute.session import ApplyOptions
-from ..report import Report
 
 
 class Agent(Protocol):

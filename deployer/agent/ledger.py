@@ -6,10 +6,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from ..api import DeviceResult, Profile
 from ..execute.job import Job
-from ..profile import Profile
 from ..profile.model import SPACE
-from ..report import DeviceResult
 from .model import ApiError, Device
 from .site import Site
 from .store import Store

@@ -12,10 +12,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..api import DeviceResult, Recipe
 from ..errors import DeployerError
 from ..execute.job import Job
-from ..recipe.loader import Recipe
-from ..report import DeviceResult
 from ..state import journal, lock
 from ..window.state import WindowState
 

@@ -13,10 +13,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
+from ..api import DeviceResult, Report
 from ..errors import DeployerError, RunInterrupted, UsageError
 from ..execute.job import Job
 from ..execute.session import ApplyOptions
-from ..report import DeviceResult, Report
 from ..run.rollback import report_jobs
 from ..run.runner import fleet_options, run_async
 from ..state import journal

@@ -16,7 +16,6 @@ from typing import Any
 from ..errors import InputError, Locked, StateError
 from ..execute.job import Job
 from ..state import journal, lock
-from ..transport import clients as tp
 from . import desired as ds
 from .audit_events import trailed
 from .firstrestores import FirstRestores
@@ -123,7 +122,7 @@ class Site:
         if dev.owned:
             return
         try:
-            dev.locks = _take_now(dev.job.url, dev.job.unit)
+            dev.locks = _take_now(dev.job.url.lock_keys, dev.job.unit)
         except Locked as e:
             if dev.not_owned_why != str(e):
                 self.event("not-owned", f"{dev.name}: not owned yet: {e}", device=dev.name)
@@ -198,10 +197,10 @@ class Site:
                        detail={"files_sha256": files.sha256})
 
 
-def _take_now(url: tp.DeviceURL, unit: int) -> list[lock.DeviceLock]:
-    """The device's locks without waiting (the agent's start and each check try again), and its marks where
-    every process looks whatever its lock folder (``lock.agent_marks``)."""
-    keys = sorted(set(url.lock_keys))
+def _take_now(addresses: Sequence[str], unit: int) -> list[lock.DeviceLock]:
+    """The device's locks (its URL's ``lock_keys``) without waiting (the agent's start and each check try again),
+    and its marks where every process looks whatever its lock folder (``lock.agent_marks``)."""
+    keys = sorted(set(addresses))
     held: list[lock.DeviceLock] = []
     try:
         for b in keys:

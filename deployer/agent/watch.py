@@ -14,15 +14,14 @@ from dataclasses import replace
 from decimal import Decimal
 from typing import Any
 
+from ..api import Profile
 from ..errors import DeviceGone, ExceptionResponse, IdentityMismatch, TransportError, Unreachable
 from ..execute.connect import connected
 from ..execute.executor import check_identity
 from ..execute.job import Job
-from ..execute.session import ApplyOptions, Session
+from ..execute.session import ApplyOptions
 from ..execute.verify import values_of
 from ..planning.planner import plan_reads
-from ..profile import Profile
-from ..transport import clients as tp
 from ..transport.urls import describe
 from . import desired as ds
 from .model import ApiError, Device
@@ -106,7 +105,7 @@ class Watch:
         known = self.site.store.identity(dev.name)
         ask43 = known is None or known[2] is not False
         try:
-            values, objects, answered43 = await _read(prof, names, dev.job.url, dev.job.unit, ask43)
+            values, objects, answered43 = await _read(dev.job, prof, names, ask43)
         except _OtherModel as e:
             dev.last_check = time.time()
             if dev.replaced != str(e):
@@ -241,26 +240,22 @@ class _OtherModel(Exception):
     """The identity registers say another kind of device answers at the address."""
 
 
-async def _read(profile: Profile, names: Sequence[str], url: tp.DeviceURL, unit: int, ask43: bool
+async def _read(job: Job, profile: Profile, names: Sequence[str], ask43: bool
                 ) -> tuple[dict[str, tuple[int, ...]], dict[str, str] | None, bool]:
-    """One check's read: Function 43 objects (when the device answers it), the identity registers, the values."""
-    async with connected(url, unit, profile) as session:
-        return await _read_in(session, profile, names, url, unit, ask43)
-
-
-async def _read_in(session: Session, profile: Profile, names: Sequence[str], url: tp.DeviceURL, unit: int,
-                   ask43: bool) -> tuple[dict[str, tuple[int, ...]], dict[str, str] | None, bool]:
-    try:
-        objects = await session.identify() if ask43 else None
+    """One check's read at ``job``'s address: Function 43 objects (when the device answers it), the identity
+    registers, the values of ``names`` (as ``profile``, the adopted one, has them)."""
+    async with connected(job.url, job.unit, profile) as session:
         try:
-            await check_identity(session, profile)
-        except IdentityMismatch as e:
-            raise _OtherModel(str(e)) from None
-        params = [profile.parameter(n) for n in names]
-        values = values_of(params, await session.read_blocks(plan_reads(profile, list(names)), profile))
-        return values, objects, objects is not None
-    except ExceptionResponse as e:
-        raise Unreachable(f"{describe(url)} unit {unit}: reading answered {e}") from None
+            objects = await session.identify() if ask43 else None
+            try:
+                await check_identity(session, profile)
+            except IdentityMismatch as e:
+                raise _OtherModel(str(e)) from None
+            params = [profile.parameter(n) for n in names]
+            values = values_of(params, await session.read_blocks(plan_reads(profile, list(names)), profile))
+            return values, objects, objects is not None
+        except ExceptionResponse as e:
+            raise Unreachable(f"{describe(job.url)} unit {job.unit}: reading answered {e}") from None
 
 
 def drifted(profile: Profile, adopted: Mapping[str, tuple[int, ...]], values: Mapping[str, tuple[int, ...]]
