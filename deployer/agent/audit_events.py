@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from ..load.messages import printable
 
 if TYPE_CHECKING:
-    from ..report import Report
+    from ..api import Report
 
 
 class _Settings(Protocol):
@@ -27,7 +27,7 @@ class _Settings(Protocol):
 
 
 class Agent(Protocol):
-    """What of the agent its auditing needs (``core.Agent``; a protocol: core calls in here)."""
+    """What of the agent its auditing needs (``site.Site``; a protocol: the site calls in here)."""
 
     state_dir: str
 

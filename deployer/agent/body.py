@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 from aiohttp import web
 
 from ..load.messages import clip
-from .core import ApiError
+from .model import ApiError
 
 if TYPE_CHECKING:
     import jsonschema

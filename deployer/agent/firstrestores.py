@@ -16,14 +16,14 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from ..api import Report
 from ..errors import DeployerError
 from ..execute.job import Job
 from ..execute.session import ApplyOptions
-from ..report import Report
 
 
 class Agent(Protocol):
-    """What of the agent (``core.Agent``) the staging uses."""
+    """What of the agent (``runs.Runs``) the staging uses."""
 
     def start_run(self, jobs: Sequence[Job], *, command: str, options: dict[str, Any], opts: ApplyOptions,
                   label: str | None, batch: str | None = None, max_failures: str | None = None, parallel: int = 8,
@@ -65,7 +65,7 @@ class FirstRestores:
                                   options={"reason": f"first restores after the start: {why}", "batch": BATCH,
                                            "max_failures": "1", "staged": True},
                                   opts=opts, health_unchecked=True)
-        except DeployerError as e:  # the agent refused it (core.ApiError)
+        except DeployerError as e:  # the agent refused it (model.ApiError)
             self._stop(agent, f"the first restores after the start could not start: {e}", [j.name for j in jobs])
             return
         self.run = run.id

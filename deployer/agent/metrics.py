@@ -24,7 +24,8 @@ class AgentCollector(Collector):
         self.agent = agent
 
     def collect(self) -> Iterator[Metric]:
-        from .core import STATUSES
+        from .model import STATUSES
+        from .views import windows_json
 
         a = self.agent
         status = GaugeMetricFamily("deployer_device_status", "1 for the device's current status, 0 for the others",
@@ -60,18 +61,18 @@ class AgentCollector(Collector):
             owned.add_metric([d.name], 1.0 if d.owned else 0.0)
         yield from (status, drifted, drift_events, restores, replaced, writes, last, pending, owned)
         windows = GaugeMetricFamily("deployer_pending_windows", "open soak and confirm windows", labels=["kind"])
-        open_windows = a.windows_json() if a.store is not None else []
+        open_windows = windows_json(a) if a.store is not None else []
         for kind in ("soak", "confirm"):
             windows.add_metric([kind], sum(1 for w in open_windows if w["kind"] == kind))
         yield windows
         runs = GaugeMetricFamily("deployer_runs_in_flight", "runs the agent executes now")
-        runs.add_metric([], sum(1 for r in a.runs.values() if r.state in ("running", "waiting")))
+        runs.add_metric([], sum(1 for r in a.runs.live.values() if r.state in ("running", "waiting")))
         yield runs
         checks = CounterMetricFamily("deployer_checks", "rounds of the watch completed")
-        checks.add_metric([], a.checks)
+        checks.add_metric([], a.watch.checks)
         yield checks
         took = GaugeMetricFamily("deployer_check_duration_seconds", "how long the last round of the watch took")
-        took.add_metric([], a.check_seconds)
+        took.add_metric([], a.watch.check_seconds)
         yield took
 
 

@@ -19,13 +19,14 @@ from typing import Any
 from aiohttp import web
 
 from ..errors import DeployerError, InputError
-from . import user_routes
+from . import user_routes, views
 from .access import ROLE, USER, WHO, Access, Directory, Who, access_middleware
 from .body import BODY
 from .body import read as read_body
-from .core import Agent, ApiError, RunState
+from .core import Agent
 from .door import Door, door_middleware
 from .metrics import CONTENT_TYPE, exposition, registry
+from .model import ApiError, RunState
 from .refusals import Refusals
 from .roles import ROUTE_ROLES, holds
 
@@ -44,7 +45,7 @@ def _device(agent: Agent, request: web.Request) -> Any:
 
 
 def _run(agent: Agent, request: web.Request) -> RunState:
-    run = agent.runs.get(request.match_info["id"])
+    run = agent.runs.live.get(request.match_info["id"])
     if run is None:
         raise ApiError("not-found", f"no run {request.match_info['id']!r} in this agent since its start "
                        "(GET /v1/runs lists earlier ones from its database)", status=404)
@@ -81,32 +82,33 @@ def _by(request: web.Request) -> dict[str, Any]:
 
 async def get_agent(agent: Agent, request: web.Request) -> Any:
     who: Who = request[WHO]
-    return {**agent.agent_json(), "auth": request.app[user_routes.ACCESS].mode,
+    return {**views.agent_json(agent), "auth": request.app[user_routes.ACCESS].mode,
             "you": {**who.record(), "roles": sorted(who.roles)}}
 
 
 async def list_devices(agent: Agent, request: web.Request) -> Any:
-    return {"devices": [agent.device_json(d) for d in agent.devices.values()]}
+    return {"devices": [views.device_json(agent, d) for d in agent.devices.values()]}
 
 
 async def get_device(agent: Agent, request: web.Request) -> Any:
-    return agent.device_json(_device(agent, request), full=True)
+    return views.device_json(agent, _device(agent, request), full=True)
 
 
 async def get_desired(agent: Agent, request: web.Request) -> Any:
     out = {}
     for d in agent.devices.values():
-        full = agent.device_json(d, full=True)
+        full = views.device_json(agent, d, full=True)
         out[d.name] = {"recipe": full["adopted_recipe"], "values": full["adopted"]}
     return {"files_sha256": agent.files.sha256 if agent.files else None, "devices": out}
 
 
 async def get_pending(agent: Agent, request: web.Request) -> Any:
-    return agent.pending_json()
+    return views.pending_json(agent)
 
 
 async def reload(agent: Agent, request: web.Request) -> Any:
-    return agent.reload()
+    agent.reload()
+    return views.pending_json(agent)
 
 
 async def stop_agent(agent: Agent, request: web.Request) -> Any:
@@ -130,14 +132,15 @@ async def check_now(agent: Agent, request: web.Request) -> Any:
             names = [d.name for d in agent.files.inventory.select(str(body["limit"]))]
         except UsageError as e:
             raise ApiError("usage", str(e), status=400) from None
-    await agent.check(names)
-    return {"devices": [agent.device_json(d) for d in agent.devices.values() if names is None or d.name in names]}
+    await agent.watch.check(names)
+    return {"devices": [views.device_json(agent, d) for d in agent.devices.values()
+                        if names is None or d.name in names]}
 
 
 async def list_runs(agent: Agent, request: web.Request) -> Any:
     """This agent's runs since its start, then earlier ones from its database (their report files named)."""
     assert agent.store is not None
-    live = [r.to_json(report=False) for r in sorted(agent.runs.values(), key=lambda r: -r.started)]
+    live = [r.to_json(report=False) for r in sorted(agent.runs.live.values(), key=lambda r: -r.started)]
     seen = {r["id"] for r in live}
     return {"runs": live + [r for r in agent.store.runs(_int(request, "limit", 100, 1, 10000)) if r["id"] not in seen]}
 
@@ -147,9 +150,9 @@ async def start_run(agent: Agent, request: web.Request) -> Any:
     command = body.get("command", "apply")
     who: Who = request[WHO]
     if command == "apply":  # one who may take up an edit runs what the files say now; others what was taken up
-        run = agent.start_apply({**body, "by": who.record()}, take_up=holds(who.roles, "engineer"))
+        run = agent.commands.start_apply({**body, "by": who.record()}, take_up=holds(who.roles, "engineer"))
     elif command == "restore":
-        run = agent.start_restore({**body, "by": who.record()})
+        run = agent.commands.start_restore({**body, "by": who.record()})
     else:
         raise ApiError("usage", f"command: {command!r} is not apply or restore", status=400)
     return web.json_response(run.to_json(), status=202)
@@ -182,22 +185,22 @@ async def stream_run(agent: Agent, request: web.Request) -> web.StreamResponse:
 
 
 async def confirm_run(agent: Agent, request: web.Request) -> Any:
-    return agent.confirm(_run(agent, request).id, by=_by(request)).to_json(report=False)
+    return agent.commands.confirm(_run(agent, request).id, by=_by(request)).to_json(report=False)
 
 
 async def rollback_run(agent: Agent, request: web.Request) -> Any:
-    run = await agent.start_rollback(_run(agent, request).id, by=_by(request))
+    run = await agent.commands.start_rollback(_run(agent, request).id, by=_by(request))
     return web.json_response(run.to_json(), status=202)
 
 
 async def confirm(agent: Agent, request: web.Request) -> Any:
     body = await _body(request)
     run = body.get("run")
-    return agent.confirm(None if run is None else str(run), by=_by(request)).to_json(report=False)
+    return agent.commands.confirm(None if run is None else str(run), by=_by(request)).to_json(report=False)
 
 
 async def list_windows(agent: Agent, request: web.Request) -> Any:
-    return {"windows": agent.windows_json()}
+    return {"windows": views.windows_json(agent)}
 
 
 async def list_events(agent: Agent, request: web.Request) -> Any:
@@ -208,11 +211,11 @@ async def list_events(agent: Agent, request: web.Request) -> Any:
 
 
 async def get_ledger(agent: Agent, request: web.Request) -> Any:
-    return agent.ledger_json()
+    return agent.ledger.to_json()
 
 
 async def get_status(agent: Agent, request: web.Request) -> Any:
-    return agent.status_json()
+    return views.status_json(agent)
 
 
 async def approve_plan(agent: Agent, request: web.Request) -> Any:

@@ -126,7 +126,7 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
 
 
 def _reload(agent: Agent) -> None:
-    from .core import ApiError
+    from .model import ApiError
 
     with contextlib.suppress(ApiError):  # an invalid edit is an event; nothing changes
         agent.reload()

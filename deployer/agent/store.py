@@ -15,6 +15,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from ..errors import StateError
+from ..window.state import WindowState
 
 # each entry migrates the schema from its index to index + 1; applied in order, in one transaction each
 MIGRATIONS: tuple[str, ...] = (
@@ -183,23 +184,25 @@ class Store:
 
     # ---- windows ---------------------------------------------------------------------------------
 
-    def open_window(self, run: str, kind: str, devices: Sequence[str], deadline: float, report: str | None,
-                    options: Mapping[str, Any] | None = None) -> None:
+    def open_window(self, w: WindowState) -> None:
         self.db.execute("INSERT OR REPLACE INTO windows (run, kind, devices, deadline, boot_id, report, state, "
-                        "options, time) VALUES (?, ?, ?, ?, ?, ?, 'open', ?, ?)",
-                        (run, kind, json.dumps(list(devices)), deadline, boot_id(), report,
-                         json.dumps(dict(options or {})), time.time()))
+                        "options, time) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        (w.run, w.kind, json.dumps(w.devices), w.deadline_epoch, w.boot_id, w.report, w.state,
+                         json.dumps(w.options), time.time()))
 
-    def close_window(self, run: str, kind: str, state: str) -> None:
+    def close_window(self, w: WindowState, state: str) -> None:
+        """An open window ends (``state``: how); one already closed stays as it closed."""
+        if w.state != "open":
+            return
+        w.state = state
         self.db.execute("UPDATE windows SET state = ? WHERE run = ? AND kind = ? AND state = 'open'",
-                        (state, run, kind))
+                        (state, w.run, w.kind))
 
-    def windows(self, *, state: str | None = "open") -> list[dict[str, Any]]:
+    def windows(self, *, state: str | None = "open") -> list[WindowState]:
         sql = "SELECT run, kind, devices, deadline, boot_id, report, state, options FROM windows"
         rows = self.db.execute(sql + " WHERE state = ? ORDER BY time", (state,)) if state else \
             self.db.execute(sql + " ORDER BY time")
-        return [{"run": r, "kind": k, "devices": json.loads(d), "deadline_epoch": dl, "deadline": _iso(dl),
-                 "boot_id": b, "report": rep, "state": s, "options": json.loads(o)}
+        return [WindowState(r, k, json.loads(d), dl, report=rep or "", boot_id=b, state=s, options=json.loads(o))
                 for r, k, d, dl, b, rep, s, o in rows]
 
     # ---- runs ------------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ from ..errors import UsageError
 from . import users as people
 from .access import WHO, Access, Who
 from .body import BODY
-from .core import ApiError
+from .model import ApiError
 
 if TYPE_CHECKING:
     from .core import Agent

@@ -10,4 +10,6 @@ rollout (``fleet.rollout``) calls ``rollout.Window`` after each batch and at the
 - ``finish``: sending the held commit, rolling back
 - ``confirm``: waiting for ``deployer confirm``; the runs ``status`` shows as waiting or soaking
 - ``rollout``: the window of a rollout, batch by batch
+- ``state``: a window's state in one place (the site agent stores it; its run points to it)
+- ``recover``: a window a site agent left open, ended at its next start (rolled back, or resumed)
 """
