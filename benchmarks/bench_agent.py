@@ -27,8 +27,9 @@ ROUNDS = 6
 
 def _profile(n: int) -> str:
     lines = ["profile: bench-agent-drive", "parameters:"]
-    lines += [f"  p{i}: {{register: {i}, type: uint16, unit: s, scale: 0.1, min: 0, max: 600, default: 1}}"
-              for i in range(n)]
+    lines += [
+        f"  p{i}: {{register: {i}, type: uint16, unit: s, scale: 0.1, min: 0, max: 600, default: 1}}" for i in range(n)
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -60,20 +61,40 @@ def run(quick: bool = False) -> dict[str, Any]:
     with open(os.path.join(work, "drive.yaml"), "w") as f:
         f.write(_profile(PARAMETERS))
     with open(os.path.join(work, "r.yaml"), "w") as f:
-        f.write("recipe: bench\nprofile: drive.yaml\nparameters:\n" +
-                "".join(f"  p{i}: 0.1 s\n" for i in range(PARAMETERS)))
-    server = subprocess.Popen([sys.executable, "-m", "benchmarks.fleet_devices", os.path.join(work, "drive.yaml"),
-                               str(devices), "0"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        f.write(
+            "recipe: bench\nprofile: drive.yaml\nparameters:\n" + "".join(f"  p{i}: 0.1 s\n" for i in range(PARAMETERS))
+        )
+    server = subprocess.Popen(
+        [sys.executable, "-m", "benchmarks.fleet_devices", os.path.join(work, "drive.yaml"), str(devices), "0"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     agent = None
     try:
         assert server.stdout is not None
         urls = json.loads(server.stdout.readline())
         with open(os.path.join(work, "inv.yaml"), "w") as f:
-            f.write("devices:\n" + "".join(f"  d{i}: {{url: \"{u}\", recipe: r.yaml}}\n" for i, u in enumerate(urls)))
+            f.write("devices:\n" + "".join(f'  d{i}: {{url: "{u}", recipe: r.yaml}}\n' for i, u in enumerate(urls)))
         env = {**os.environ, "DEPLOYER_LOCK_DIR": os.path.join(work, "locks")}
-        agent = subprocess.Popen([sys.executable, "-m", "deployer", "agent", os.path.join(work, "inv.yaml"),
-                                  "--state-dir", os.path.join(work, "state"), "--listen", "127.0.0.1:0",
-                                  "--check-every", f"{every}s"], stderr=subprocess.PIPE, text=True, env=env)
+        agent = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "agent",
+                os.path.join(work, "inv.yaml"),
+                "--state-dir",
+                os.path.join(work, "state"),
+                "--listen",
+                "127.0.0.1:0",
+                "--check-every",
+                f"{every}s",
+            ],
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
         assert agent.stderr is not None
         started = time.monotonic()
         url = ""
@@ -97,13 +118,20 @@ def run(quick: bool = False) -> dict[str, Any]:
         cpu1, t1 = _cpu_seconds(agent.pid), time.monotonic()
         rss, hwm = _memory_mb(agent.pid)
         info = _agent(url, token)
-        return {"devices": devices, "parameters": PARAMETERS, "check_every_seconds": every,
-                "ready_seconds": round(ready, 2), "first_round_seconds": round(first, 2),
-                "last_round_seconds": round(info["last_check_seconds"], 2), "rounds_measured": rounds,
-                "cpu_percent_of_one_core": round(100 * (cpu1 - cpu0) / (t1 - t0), 1),
-                "cpu_ms_per_device_check": round(1000 * (cpu1 - cpu0) / (devices * (t1 - t0) / every), 2),
-                "rss_mb": round(rss, 1), "peak_rss_mb": round(hwm, 1),
-                "rss_kb_per_device": round(rss * 1024 / devices, 1)}
+        return {
+            "devices": devices,
+            "parameters": PARAMETERS,
+            "check_every_seconds": every,
+            "ready_seconds": round(ready, 2),
+            "first_round_seconds": round(first, 2),
+            "last_round_seconds": round(info["last_check_seconds"], 2),
+            "rounds_measured": rounds,
+            "cpu_percent_of_one_core": round(100 * (cpu1 - cpu0) / (t1 - t0), 1),
+            "cpu_ms_per_device_check": round(1000 * (cpu1 - cpu0) / (devices * (t1 - t0) / every), 2),
+            "rss_mb": round(rss, 1),
+            "peak_rss_mb": round(hwm, 1),
+            "rss_kb_per_device": round(rss * 1024 / devices, 1),
+        }
     finally:
         if agent is not None:
             agent.terminate()

@@ -73,8 +73,19 @@ def _free_port() -> int:
 @contextmanager
 def device(profile: str, latency_ms: float, log: str, gap_reads: bool = False) -> Any:
     port = _free_port()
-    args = [sys.executable, "-m", "deployer", "simulate", profile, "--listen", f"tcp://127.0.0.1:{port}",
-            "--latency-ms", str(latency_ms), "--log", log] + (["--gap-reads"] if gap_reads else [])
+    args = [
+        sys.executable,
+        "-m",
+        "deployer",
+        "simulate",
+        profile,
+        "--listen",
+        f"tcp://127.0.0.1:{port}",
+        "--latency-ms",
+        str(latency_ms),
+        "--log",
+        log,
+    ] + (["--gap-reads"] if gap_reads else [])
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=ROOT)
     try:
         deadline = time.monotonic() + 30
@@ -119,8 +130,10 @@ def _plan_file(work: str, recipe_path: str) -> str:
 
     rec = load_recipe(recipe_path)
     plan = make_plan(rec, Target(None, 1, "x"), write_all=True)
-    data = {"parameters": [[d.parameter.address, list(d.registers)] for d in rec.desired],
-            "blocks": [[w.address, list(w.registers)] for w in plan.writes]}
+    data = {
+        "parameters": [[d.parameter.address, list(d.registers)] for d in rec.desired],
+        "blocks": [[w.address, list(w.registers)] for w in plan.writes],
+    }
     path = os.path.join(work, "plan.json")
     Path(path).write_text(json.dumps(data))
     return path
@@ -139,11 +152,27 @@ def _contenders(work: str, latency: float, rounds: int) -> dict[str, Any]:
             for r in range(rounds if name != "naive" or latency < 20 else 1):
                 files = drive.write(os.path.join(work, name), N, max_read_gap=gap, salt=r + 1)
                 if name.startswith("deployer"):
-                    args = [sys.executable, "-m", "deployer", "apply", files["recipe"], "--device",
-                            f"tcp://127.0.0.1:{port}", "--yes", "--state-dir", os.path.join(work, "state")]
+                    args = [
+                        sys.executable,
+                        "-m",
+                        "deployer",
+                        "apply",
+                        files["recipe"],
+                        "--device",
+                        f"tcp://127.0.0.1:{port}",
+                        "--yes",
+                        "--state-dir",
+                        os.path.join(work, "state"),
+                    ]
                 else:
-                    args = [sys.executable, script, "127.0.0.1", str(port), _plan_file(work, files["recipe"]),
-                            "parameters" if name == "naive" else "blocks"]
+                    args = [
+                        sys.executable,
+                        script,
+                        "127.0.0.1",
+                        str(port),
+                        _plan_file(work, files["recipe"]),
+                        "parameters" if name == "naive" else "blocks",
+                    ]
                 seen = len(_log_lines(log))
                 wall, cpu, _rss, _ = timed(args)
                 walls.append(wall)
@@ -152,10 +181,15 @@ def _contenders(work: str, latency: float, rounds: int) -> dict[str, Any]:
                 reqs = _requests(_log_lines(log)[seen:])
         requests = reqs["fc16"] + reqs["fc03"]
         floor = requests * latency / 1000
-        out[name] = {"seconds": round(min(walls), 3), "median_seconds": round(statistics.median(walls), 3),
-                     "cpu_seconds": round(min(cpus), 3), "fc16": reqs["fc16"], "fc03": reqs["fc03"],
-                     "floor_seconds": round(floor, 3),
-                     "vs_floor_plus_startup": round(min(walls) / (floor + startup), 2)}
+        out[name] = {
+            "seconds": round(min(walls), 3),
+            "median_seconds": round(statistics.median(walls), 3),
+            "cpu_seconds": round(min(cpus), 3),
+            "fc16": reqs["fc16"],
+            "fc03": reqs["fc03"],
+            "floor_seconds": round(floor, 3),
+            "vs_floor_plus_startup": round(min(walls) / (floor + startup), 2),
+        }
     out["python_startup_seconds"] = round(startup, 3)
     out["deployer_vs_naive"] = round(out["naive"]["seconds"] / out["deployer"]["seconds"], 1)
     out["deployer_vs_skilled"] = round(out["deployer"]["seconds"] / out["skilled"]["seconds"], 2)
@@ -215,8 +249,12 @@ async def _phases(work: str, port: int, salt: int) -> dict[str, float]:
     assert all(after[d.name] == d.registers for d in rec.desired)
     from deployer.report import ParameterResult
 
-    res.parameters = [ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers,
-                                      before.get(d.name), after[d.name], "ok") for d in rec.desired]
+    res.parameters = [
+        ParameterResult(
+            d.name, d.parameter.address, d.parameter.count, d.text, d.registers, before.get(d.name), after[d.name], "ok"
+        )
+        for d in rec.desired
+    ]
     report = Report(files["recipe"], [res])
     json.dumps(report.to_json())
     from rich.console import Console

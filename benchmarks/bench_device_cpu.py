@@ -112,8 +112,16 @@ class _Bench:
     def results(self, d: _Device) -> None:
         """The device's result and its 100 parameter results (``apply_job``)."""
         prof = self.recipe.profile
-        d.res = DeviceResult(d.name, d.url, 1, prof.id, profile_ref=profile_ref(prof), recipe=self.recipe.path,
-                             batch=None, profile_sha256=prof.digest)
+        d.res = DeviceResult(
+            d.name,
+            d.url,
+            1,
+            prof.id,
+            profile_ref=profile_ref(prof),
+            recipe=self.recipe.path,
+            batch=None,
+            profile_sha256=prof.digest,
+        )
         d.results = self.shared.results()
         d.res.parameters = list(d.results.values())
 
@@ -135,14 +143,24 @@ class _Bench:
 
     def snapshot(self, d: _Device) -> None:
         """The snapshot file's text (``_save_snapshot``)."""
-        d.snap = snapshot_file(self.state, d.name, self.recipe, d.before, d.url, 1, applied=self.opts.applied,
-                               identity=None, values_text=d.entry.snapshot_values(self.recipe.profile, d.before))
+        d.snap = snapshot_file(
+            self.state,
+            d.name,
+            self.recipe,
+            d.before,
+            d.url,
+            1,
+            applied=self.opts.applied,
+            identity=None,
+            values_text=d.entry.snapshot_values(self.recipe.profile, d.before),
+        )
 
     def journal_started(self, d: _Device) -> None:
         """The plan's digest and the ``device-started`` line, encoded (``_save_snapshot``)."""
         digest = d.entry.digest(d.plan.device)
-        line = journal.device_started(RUN, name=d.name, url=d.url, unit=1, plan_digest=digest, batch=None,
-                                      restoring=None)
+        line = journal.device_started(
+            RUN, name=d.name, url=d.url, unit=1, plan_digest=digest, batch=None, restoring=None
+        )
         path = d.snap.first[0]
         d.line = _line({**line, "snapshot": path, "snapshot_sha256": "0" * 64})
         d.res.snapshot = path
@@ -164,8 +182,9 @@ class _Bench:
     def notices(self, d: _Device) -> None:
         """The read-back's time, the power-cycle notices (``_Device._apply``) and the device's status."""
         d.res.seen = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-        d.res.notices.extend([f"{n} takes effect after a power cycle" for n in self.shared.restart
-                              if d.results[n].status == "ok"])
+        d.res.notices.extend(
+            [f"{n} takes effect after a power cycle" for n in self.shared.restart if d.results[n].status == "ok"]
+        )
         d.res.settle()
         assert d.res.status == "ok", (d.res.status, d.res.error)
 
@@ -181,24 +200,37 @@ class _Bench:
         """What a fleet keeps of a device that ended ok (``fleet/rollout.py``)."""
         d.res = d.res.small()
 
-    STAGES = ("results", "values_before", "plan", "snapshot", "journal_started", "execute", "notices",
-              "journal_finished", "report_line", "small")
+    STAGES = (
+        "results",
+        "values_before",
+        "plan",
+        "snapshot",
+        "journal_started",
+        "execute",
+        "notices",
+        "journal_finished",
+        "report_line",
+        "small",
+    )
 
     def stages(self, devices: int) -> dict[str, float]:
         """Seconds of CPU per device of each stage, this round."""
-        ds = [_Device(f"dev{i:05d}", f"tcp://127.0.0.1:{20000 + i}", DeviceResult("", "", 1, ""))
-              for i in range(devices)]
+        ds = [
+            _Device(f"dev{i:05d}", f"tcp://127.0.0.1:{20000 + i}", DeviceResult("", "", 1, "")) for i in range(devices)
+        ]
         for d in ds:  # what the session recorded before the changes: the reads and Function 43
             d.res.requests = _requests()
         out = {}
         for stage in self.STAGES:
             gc.collect()  # each stage from a clean heap: a collection it triggers is its own
             if stage == "execute":
+
                 async def each() -> float:
                     t = time.process_time()
                     for d in ds:
                         await self._execute(d)
                     return time.process_time() - t
+
                 out[stage] = asyncio.run(each()) / devices
                 continue
             run: Callable[[_Device], None] = getattr(self, stage)
@@ -218,8 +250,9 @@ class _Bench:
             t = time.process_time()
             planners = dev.Planners()
             for i, url in enumerate(urls):
-                res, finishing = await dev.apply_job(Job(f"dev{i:05d}", self.recipe, url, 1), self.opts,
-                                                     planners=planners)
+                res, finishing = await dev.apply_job(
+                    Job(f"dev{i:05d}", self.recipe, url, 1), self.opts, planners=planners
+                )
                 assert finishing is not None
                 await finishing
                 assert res.status == "ok", (res.status, res.error)
@@ -233,8 +266,11 @@ class _Bench:
 
 
 def _requests() -> list[RequestRecord]:
-    return [RequestRecord(3, 0, 60, step=1), RequestRecord(3, 65, 65, step=2),
-            RequestRecord(43, 0, 1, "exception", 1, step=3)]
+    return [
+        RequestRecord(3, 0, 60, step=1),
+        RequestRecord(3, 65, 65, step=2),
+        RequestRecord(43, 0, 1, "exception", 1, step=3),
+    ]
 
 
 class _FakeTransport:
@@ -259,10 +295,10 @@ class _FakeTransport:
         pass
 
     async def read(self, function: int, address: int, count: int, unit: int) -> list[int]:
-        return self.regs[address:address + count]
+        return self.regs[address : address + count]
 
     async def write_registers(self, address: int, values: list[int], unit: int) -> None:
-        self.regs[address:address + len(values)] = values
+        self.regs[address : address + len(values)] = values
 
     async def write_register(self, address: int, value: int, unit: int) -> None:
         self.regs[address] = value
@@ -291,8 +327,11 @@ def _fakes(regs: dict[int, int]) -> Iterator[None]:
         return done
 
     start = [regs.get(a, 0) for a in range(max(regs) + 1)]
-    fakes: list[tuple[object, str, object]] = [(tp, "open_transport", lambda url: _FakeTransport(url, start)),
-                                               (dev, "durable", written), (dev, "queue", queued)]
+    fakes: list[tuple[object, str, object]] = [
+        (tp, "open_transport", lambda url: _FakeTransport(url, start)),
+        (dev, "durable", written),
+        (dev, "queue", queued),
+    ]
     saved = [(module, name, getattr(module, name)) for module, name, _ in fakes]
     for module, name, fake in fakes:
         setattr(module, name, fake)
@@ -316,9 +355,14 @@ def run(quick: bool = False, devices: int = 500, rounds: int = 7) -> dict[str, A
                 best[stage] = min(best.get(stage, float("inf")), seconds)
             whole = min(whole, bench.end_to_end(devices))
     us = {stage: round(s * 1e6, 1) for stage, s in best.items()}
-    return {"devices": devices, "parameters": PARAMETERS, "rounds": rounds,
-            "stages_us_per_device": us, "stages_total_us": round(sum(best.values()) * 1e6, 1),
-            "end_to_end_us_per_device": round(whole * 1e6, 1)}
+    return {
+        "devices": devices,
+        "parameters": PARAMETERS,
+        "rounds": rounds,
+        "stages_us_per_device": us,
+        "stages_total_us": round(sum(best.values()) * 1e6, 1),
+        "end_to_end_us_per_device": round(whole * 1e6, 1),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -329,13 +373,16 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     res = run(args.quick, args.devices, args.rounds)
     print(json.dumps(res, indent=2))
-    print(f"\nCPU per device, {res['parameters']} parameters, best of {res['rounds']} rounds of {res['devices']} "
-          "devices")
+    print(
+        f"\nCPU per device, {res['parameters']} parameters, best of {res['rounds']} rounds of {res['devices']} devices"
+    )
     for stage, us in res["stages_us_per_device"].items():
         print(f"  {stage:<18}{us:>9.1f} us")
     print(f"  {'stages, total':<18}{res['stages_total_us']:>9.1f} us")
-    print(f"  {'end to end':<18}{res['end_to_end_us_per_device']:>9.1f} us  (apply_job over a fake transport, "
-          "report line, small())")
+    print(
+        f"  {'end to end':<18}{res['end_to_end_us_per_device']:>9.1f} us  (apply_job over a fake transport, "
+        "report line, small())"
+    )
     return 0
 
 

@@ -66,13 +66,33 @@ def _apply(work: str, inventory: str, variant: int, parallel: int, devices: int)
         f.write(_recipe(PARAMETERS, variant))
     report = os.path.join(work, f"report{variant}.json")
     deployer = os.path.join(os.path.dirname(sys.executable), "deployer")
-    wall, cpu, rss, code = _run([deployer, "apply", recipe, "--inventory", inventory, "--yes",
-                                 "--parallel", str(parallel), "--report", report, "--state-dir", "state"], work)
+    wall, cpu, rss, code = _run(
+        [
+            deployer,
+            "apply",
+            recipe,
+            "--inventory",
+            inventory,
+            "--yes",
+            "--parallel",
+            str(parallel),
+            "--report",
+            report,
+            "--state-dir",
+            "state",
+        ],
+        work,
+    )
     with open(report) as f:
         summary = json.load(f)["summary"]
     assert code == 0 and summary["ok"] == devices, (code, summary)
-    return {"wall": wall, "cpu": cpu, "rss": rss, "fleet": summary["seconds"],
-            "requests": summary["write_requests"] + summary["read_requests"]}
+    return {
+        "wall": wall,
+        "cpu": cpu,
+        "rss": rss,
+        "fleet": summary["seconds"],
+        "requests": summary["write_requests"] + summary["read_requests"],
+    }
 
 
 def _bare_client(urls: list[str], parallel: int) -> float:
@@ -109,25 +129,44 @@ def run(quick: bool = False) -> dict[str, Any]:
     with open(os.path.join(work, "profile.yaml"), "w") as f:
         f.write(_profile(PARAMETERS))
     served = max(devices, scale[0] if scale else 0)
-    server = subprocess.Popen([sys.executable, "-m", "benchmarks.fleet_devices", os.path.join(work, "profile.yaml"),
-                               str(served), str(LATENCY_MS)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    server = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "benchmarks.fleet_devices",
+            os.path.join(work, "profile.yaml"),
+            str(served),
+            str(LATENCY_MS),
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert server.stdout is not None
         urls = json.loads(server.stdout.readline())
         inventory = _inventory(work, "inventory.yaml", urls[:devices])
         startup = _run([os.path.join(os.path.dirname(sys.executable), "deployer"), "--help"], work)
-        results: dict[str, Any] = {"devices": devices, "parameters": PARAMETERS, "latency_ms": LATENCY_MS,
-                                   "startup_seconds": round(startup[0], 3)}
+        results: dict[str, Any] = {
+            "devices": devices,
+            "parameters": PARAMETERS,
+            "latency_ms": LATENCY_MS,
+            "startup_seconds": round(startup[0], 3),
+        }
         base: dict[str, Any] = {}
         for variant, p in enumerate(parallel, 1):
             m = _apply(work, inventory, variant, p, devices)
             base = base or m
             results[f"parallel_{p}"] = {
-                "wall_seconds": round(m["wall"], 2), "speedup": round(base["wall"] / m["wall"], 1),
-                "fleet_seconds": round(m["fleet"], 2), "fleet_speedup": round(base["fleet"] / m["fleet"], 1),
+                "wall_seconds": round(m["wall"], 2),
+                "speedup": round(base["wall"] / m["wall"], 1),
+                "fleet_seconds": round(m["fleet"], 2),
+                "fleet_speedup": round(base["fleet"] / m["fleet"], 1),
                 "cpu_ms_per_device": round(m["cpu"] * 1000 / devices, 1),
                 "cpu_ms_per_device_after_startup": round((m["cpu"] - startup[1]) * 1000 / devices, 1),
-                "peak_rss_mb": round(m["rss"], 1), "requests_per_device": round(m["requests"] / devices, 1)}
+                "peak_rss_mb": round(m["rss"], 1),
+                "requests_per_device": round(m["requests"] / devices, 1),
+            }
             if p > 8:  # a bare client's time at this --parallel: what the devices alone allow (the floor)
                 results[f"parallel_{p}"]["bare_client_seconds"] = round(_bare_client(urls[:devices], p), 2)
         if scale:
@@ -135,9 +174,12 @@ def run(quick: bool = False) -> dict[str, Any]:
             m = _apply(work, _inventory(work, "inventory-scale.yaml", urls[:n]), len(parallel) + 1, p, n)
             small = results[f"parallel_{parallel[-1]}"]
             results[f"scale_{n}_devices_parallel_{p}"] = {
-                "wall_seconds": round(m["wall"], 2), "fleet_seconds": round(m["fleet"], 2),
-                "cpu_ms_per_device": round(m["cpu"] * 1000 / n, 1), "peak_rss_mb": round(m["rss"], 1),
-                "memory_kb_per_extra_device": round((m["rss"] - small["peak_rss_mb"]) * 1024 / (n - devices), 1)}
+                "wall_seconds": round(m["wall"], 2),
+                "fleet_seconds": round(m["fleet"], 2),
+                "cpu_ms_per_device": round(m["cpu"] * 1000 / n, 1),
+                "peak_rss_mb": round(m["rss"], 1),
+                "memory_kb_per_extra_device": round((m["rss"] - small["peak_rss_mb"]) * 1024 / (n - devices), 1),
+            }
         return results
     finally:
         if server.stdin:

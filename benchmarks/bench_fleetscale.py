@@ -57,12 +57,25 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @contextmanager
-def farm(devices: int, latency_ms: float, processes: int = 2, cost: dict[str, Any] | None = None
-         ) -> Iterator[list[str]]:
+def farm(
+    devices: int, latency_ms: float, processes: int = 2, cost: dict[str, Any] | None = None
+) -> Iterator[list[str]]:
     """The light farm's device URLs while it serves; ``cost`` gets its CPU per request when it ends."""
-    proc = subprocess.Popen([sys.executable, "-m", "benchmarks.light_devices", str(devices), str(latency_ms),
-                             "--processes", str(processes)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            text=True, cwd=ROOT)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "benchmarks.light_devices",
+            str(devices),
+            str(latency_ms),
+            "--processes",
+            str(processes),
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     try:
         assert proc.stdout is not None
         yield json.loads(proc.stdout.readline())
@@ -76,8 +89,12 @@ def farm(devices: int, latency_ms: float, processes: int = 2, cost: dict[str, An
             proc.kill()
         else:
             if cost is not None and served.get("requests"):
-                cost.update({"requests": served["requests"],
-                             "us_per_request": round(served["cpu"] / served["requests"] * 1e6, 1)})
+                cost.update(
+                    {
+                        "requests": served["requests"],
+                        "us_per_request": round(served["cpu"] / served["requests"] * 1e6, 1),
+                    }
+                )
 
 
 class Bench:
@@ -97,8 +114,9 @@ class Bench:
                 f.writelines(f"  dev{i:05d}: {{url: '{u}'}}\n" for i, u in enumerate(urls))
         return path
 
-    def apply(self, urls: list[str], parallel: int, report: bool = True, src: str | None = None,
-              workers: int | None = None) -> dict[str, Any]:
+    def apply(
+        self, urls: list[str], parallel: int, report: bool = True, src: str | None = None, workers: int | None = None
+    ) -> dict[str, Any]:
         """One ``deployer apply`` of ``urls``; ``src``: run the deployer package found in that folder (an older
         checkout, measured side by side) instead of this one; ``workers``: its ``--workers`` (None: the command
         line's default: forked workers, one per CPU, from 100 devices on Linux). Its device locks go to the
@@ -109,8 +127,18 @@ class Bench:
         with open(recipe, "w") as f:
             f.write(_recipe(PARAMETERS, self.variant % 2 + 1))
         path = os.path.join(self.work, f"report-{self.variant}.json")
-        cmd = [self.deployer, "apply", recipe, "--inventory", self.inventory(urls), "--yes", "--parallel",
-               str(parallel), "--state-dir", os.path.join(self.work, "state")]
+        cmd = [
+            self.deployer,
+            "apply",
+            recipe,
+            "--inventory",
+            self.inventory(urls),
+            "--yes",
+            "--parallel",
+            str(parallel),
+            "--state-dir",
+            os.path.join(self.work, "state"),
+        ]
         if workers is not None:
             cmd += ["--workers", str(workers)]
         env = {**os.environ, "DEPLOYER_LOCK_DIR": os.path.join(self.work, "locks")}
@@ -118,9 +146,14 @@ class Bench:
             env["PYTHONPATH"] = src
         _settle()
         m, err = measured_all(cmd + (["--report", path] if report else []), self.work, env=env)
-        common = {"wall": m["wall"], "cpu": m["cpu"], "sys": m.get("sys", 0.0),
-                  "rss_mb": m.get("tree_rss_kb", m["maxrss_kb"]) / 1024, "pss_mb": m.get("tree_pss_kb", 0) / 1024,
-                  "written": m["written_bytes"]}
+        common = {
+            "wall": m["wall"],
+            "cpu": m["cpu"],
+            "sys": m.get("sys", 0.0),
+            "rss_mb": m.get("tree_rss_kb", m["maxrss_kb"]) / 1024,
+            "pss_mb": m.get("tree_pss_kb", 0) / 1024,
+            "written": m["written_bytes"],
+        }
         if not report:
             assert m["code"] == 0, err[-2000:]
             return common
@@ -134,8 +167,12 @@ class Bench:
         size = os.path.getsize(path)
         del doc
         os.remove(path)
-        return {**common, "fleet": summary["seconds"], "report_bytes": size,
-                "requests": summary["write_requests"] + summary["read_requests"]}
+        return {
+            **common,
+            "fleet": summary["seconds"],
+            "report_bytes": size,
+            "requests": summary["write_requests"] + summary["read_requests"],
+        }
 
     def bare(self, urls: list[str], parallel: int) -> dict[str, Any]:
         spec = os.path.join(self.work, "bare.json")
@@ -213,8 +250,11 @@ def request_cost(url: str, n: int = 2000, rounds: int = 3) -> dict[str, Any]:
     for _ in range(rounds):
         a.append(asyncio.run(ours()))
         b.append(asyncio.run(bare()))
-    return {"deployer_us_per_request": round(min(a) / n * 1e6, 1), "bare_us_per_request": round(min(b) / n * 1e6, 1),
-            "ratio": round(min(a) / min(b), 2)}
+    return {
+        "deployer_us_per_request": round(min(a) / n * 1e6, 1),
+        "bare_us_per_request": round(min(b) / n * 1e6, 1),
+        "ratio": round(min(a) / min(b), 2),
+    }
 
 
 def _turns(kinds: list[str], repeats: int) -> Iterator[str]:
@@ -227,19 +267,33 @@ def _turns(kinds: list[str], repeats: int) -> Iterator[str]:
 
 def _row(m: dict[str, Any], n: int) -> dict[str, Any]:
     """One run's figures; CPU and peak memory are the command's and its worker processes' together."""
-    row = {"wall_seconds": round(m["wall"], 2), "cpu_ms_per_device": round(m["cpu"] * 1000 / n, 2),
-           "system_cpu_ms_per_device": round(m["sys"] * 1000 / n, 2),
-           "peak_rss_mb": round(m["rss_mb"], 1), "peak_pss_mb": round(m["pss_mb"], 1),
-           "written_mb": round(m["written"] / 1e6, 1)}
+    row = {
+        "wall_seconds": round(m["wall"], 2),
+        "cpu_ms_per_device": round(m["cpu"] * 1000 / n, 2),
+        "system_cpu_ms_per_device": round(m["sys"] * 1000 / n, 2),
+        "peak_rss_mb": round(m["rss_mb"], 1),
+        "peak_pss_mb": round(m["pss_mb"], 1),
+        "written_mb": round(m["written"] / 1e6, 1),
+    }
     if "fleet" in m:
-        row.update({"fleet_seconds": round(m["fleet"], 2), "report_mb": round(m["report_bytes"] / 1e6, 1),
-                    "report_bytes_per_device": round(m["report_bytes"] / n),
-                    "requests_per_device": round(m["requests"] / n, 1)})
+        row.update(
+            {
+                "fleet_seconds": round(m["fleet"], 2),
+                "report_mb": round(m["report_bytes"] / 1e6, 1),
+                "report_bytes_per_device": round(m["report_bytes"] / n),
+                "requests_per_device": round(m["requests"] / n, 1),
+            }
+        )
     return row
 
 
-def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int | None = None,
-        side_by_side: bool = True, before: str | None = None) -> dict[str, Any]:
+def run(
+    quick: bool = False,
+    sizes: tuple[int, ...] | None = None,
+    repeats: int | None = None,
+    side_by_side: bool = True,
+    before: str | None = None,
+) -> dict[str, Any]:
     sizes = sizes or ((10,) if quick else SIZES)
     repeats = repeats or (1 if quick else 2)
     pairs = ((20, 10, (4,)), (0, 10, (4,))) if quick else SIDE_BY_SIDE
@@ -258,8 +312,11 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                     for p in parallels:
                         got: dict[str, list[dict[str, Any]]] = {"ours": [], "one": [], "bare": []}
                         for kind in _turns(list(got), repeats):  # the machine's load falls on all three alike
-                            got[kind].append(b.bare(urls, p) if kind == "bare" else
-                                             b.apply(urls, p, workers=0 if kind == "one" else None))
+                            got[kind].append(
+                                b.bare(urls, p)
+                                if kind == "bare"
+                                else b.apply(urls, p, workers=0 if kind == "one" else None)
+                            )
                         ours, one, bare = got["ours"], got["one"], got["bare"]
                         best = min(ours, key=lambda m: m["fleet"])
                         alone = min(one, key=lambda m: m["fleet"])
@@ -269,8 +326,9 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                             "one_process_fleet_seconds": [round(m["fleet"], 3) for m in one],
                             "bare_seconds": [round(m["fleet"], 3) for m in bare],
                             "ratio": round(best["fleet"] / fastest["fleet"], 2),
-                            "ratios_per_pair": [round(a["fleet"] / c["fleet"], 2)
-                                                for a, c in zip(ours, bare, strict=True)],
+                            "ratios_per_pair": [
+                                round(a["fleet"] / c["fleet"], 2) for a, c in zip(ours, bare, strict=True)
+                            ],
                             "one_process_ratio": round(alone["fleet"] / fastest["fleet"], 2),
                             "deployer_cpu_ms_per_device": round(best["cpu"] * 1000 / n, 2),
                             "one_process_cpu_ms_per_device": round(alone["cpu"] * 1000 / n, 2),
@@ -278,7 +336,8 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                             "cpu_ratio": round(min(m["cpu"] for m in ours) / min(m["cpu"] for m in bare), 2),
                             # each run's, in the order of its fleet seconds: the kernel's work on the files
                             "deployer_system_cpu_ms_per_device": [round(m["sys"] * 1000 / n, 2) for m in ours],
-                            "bare_system_cpu_ms_per_device": [round(m["sys"] * 1000 / n, 2) for m in bare]}
+                            "bare_system_cpu_ms_per_device": [round(m["sys"] * 1000 / n, 2) for m in bare],
+                        }
         with farm(max(sizes), 20, cost=out.setdefault("farm_scale", {})) as urls:
             b.apply(urls[:10], 4)
             for n in sizes:
@@ -286,19 +345,28 @@ def run(quick: bool = False, sizes: tuple[int, ...] | None = None, repeats: int 
                 if before:  # the older checkout, alternating with this one on the same devices
                     scaled["old"] = []
                 for kind in _turns(list(scaled), repeats):
-                    scaled[kind].append(b.apply(urls[:n], 256, workers=0 if kind == "one" else None,
-                                                src=before if kind == "old" else None))
+                    scaled[kind].append(
+                        b.apply(
+                            urls[:n], 256, workers=0 if kind == "one" else None, src=before if kind == "old" else None
+                        )
+                    )
                 runs, one, old = scaled["runs"], scaled["one"], scaled.get("old", [])
                 best = min(runs, key=lambda m: m["wall"])
-                out[f"scale_{n}"] = {**_row(best, n), "walls": [round(m["wall"], 2) for m in runs],
-                                     "cpu_ms_per_device_each": [round(m["cpu"] * 1000 / n, 2) for m in runs],
-                                     "start_and_end_seconds": round(best["wall"] - best["fleet"], 2)}
+                out[f"scale_{n}"] = {
+                    **_row(best, n),
+                    "walls": [round(m["wall"], 2) for m in runs],
+                    "cpu_ms_per_device_each": [round(m["cpu"] * 1000 / n, 2) for m in runs],
+                    "start_and_end_seconds": round(best["wall"] - best["fleet"], 2),
+                }
                 alone = min(one, key=lambda m: m["wall"])
                 out[f"scale_{n}_one_process"] = {**_row(alone, n), "walls": [round(m["wall"], 2) for m in one]}
                 if old:
                     first = min(old, key=lambda m: m["wall"])
-                    out[f"scale_{n}_before"] = {**_row(first, n), "walls": [round(m["wall"], 2) for m in old],
-                                                "cpu_ms_per_device_each": [round(m["cpu"] * 1000 / n, 2) for m in old]}
+                    out[f"scale_{n}_before"] = {
+                        **_row(first, n),
+                        "walls": [round(m["wall"], 2) for m in old],
+                        "cpu_ms_per_device_each": [round(m["cpu"] * 1000 / n, 2) for m in old],
+                    }
             n = max(sizes)
             out[f"scale_{n}_no_report"] = _row(b.apply(urls[:n], 256, report=False), n)
         if len(sizes) > 1:  # what each further device adds to the peak (the run's fixed memory taken out);
@@ -320,5 +388,15 @@ if __name__ == "__main__":
     ap.add_argument("--no-side-by-side", action="store_true")
     ap.add_argument("--before", metavar="DIR", help="also run the deployer package of this checkout (side by side)")
     a = ap.parse_args()
-    print(json.dumps(run(a.quick, tuple(int(x) for x in a.sizes.split(",")) if a.sizes else None, a.repeats,
-                         not a.no_side_by_side, a.before), indent=2))
+    print(
+        json.dumps(
+            run(
+                a.quick,
+                tuple(int(x) for x in a.sizes.split(",")) if a.sizes else None,
+                a.repeats,
+                not a.no_side_by_side,
+                a.before,
+            ),
+            indent=2,
+        )
+    )

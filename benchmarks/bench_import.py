@@ -34,13 +34,19 @@ def run(quick: bool = False) -> dict[str, Any]:
                 (w.quick if quick and w.quick else w.make)(f)
             made = time.perf_counter() - t
             args = [a.replace("{f}", str(f)) for a in w.args]
-            wall, cpu, kb, code, err = measured([sys.executable, "-m", "deployer", "profiles", "import", *args],
-                                                cwd=str(ROOT), max_bytes=2 << 30)
-            out[w.name] = {"input_mb": round(f.stat().st_size / 1e6, 3) if f is not None else 0,
-                           "make_seconds": round(made, 2), "seconds": round(wall, 2), "cpu_seconds": round(cpu, 2),
-                           "peak_mb": round(kb / 1024, 1), "exit": code,
-                           "as_expected": code == w.code and w.expect in err and "Traceback" not in err,
-                           "message": (err.strip().splitlines() or [""])[0][-160:]}
+            wall, cpu, kb, code, err = measured(
+                [sys.executable, "-m", "deployer", "profiles", "import", *args], cwd=str(ROOT), max_bytes=2 << 30
+            )
+            out[w.name] = {
+                "input_mb": round(f.stat().st_size / 1e6, 3) if f is not None else 0,
+                "make_seconds": round(made, 2),
+                "seconds": round(wall, 2),
+                "cpu_seconds": round(cpu, 2),
+                "peak_mb": round(kb / 1024, 1),
+                "exit": code,
+                "as_expected": code == w.code and w.expect in err and "Traceback" not in err,
+                "message": (err.strip().splitlines() or [""])[0][-160:],
+            }
         for n in (2_000, 8_000) if quick else (8_000, 20_000):  # issue #28: was quadratic in the renaming
             out[f"wb-template, {n} channels of one name"] = one_name(Path(work), n)
     return out
@@ -55,14 +61,39 @@ def one_name(work: Path, n: int) -> dict[str, Any]:
     import json
 
     f = work / f"one-name-{n}.json"
-    f.write_text(json.dumps({"device_type": "x", "device": {"channels": [
-        {"name": "Temp", "reg_type": "input", "address": i} for i in range(n)]}}))
-    wall, cpu, kb, code, err = measured([sys.executable, "-m", "deployer", "profiles", "import", "wb-template",
-                                         str(f), "-o", str(work / f"one-name-{n}.yaml"), "--force"],
-                                        cwd=str(ROOT), max_bytes=2 << 30)
-    return {"input_mb": round(f.stat().st_size / 1e6, 3), "seconds": round(wall, 2), "cpu_seconds": round(cpu, 2),
-            "peak_mb": round(kb / 1024, 1), "exit": code, "as_expected": code == 0 and "Traceback" not in err,
-            "renamed": err.count("is taken: imported as")}
+    f.write_text(
+        json.dumps(
+            {
+                "device_type": "x",
+                "device": {"channels": [{"name": "Temp", "reg_type": "input", "address": i} for i in range(n)]},
+            }
+        )
+    )
+    wall, cpu, kb, code, err = measured(
+        [
+            sys.executable,
+            "-m",
+            "deployer",
+            "profiles",
+            "import",
+            "wb-template",
+            str(f),
+            "-o",
+            str(work / f"one-name-{n}.yaml"),
+            "--force",
+        ],
+        cwd=str(ROOT),
+        max_bytes=2 << 30,
+    )
+    return {
+        "input_mb": round(f.stat().st_size / 1e6, 3),
+        "seconds": round(wall, 2),
+        "cpu_seconds": round(cpu, 2),
+        "peak_mb": round(kb / 1024, 1),
+        "exit": code,
+        "as_expected": code == 0 and "Traceback" not in err,
+        "renamed": err.count("is taken: imported as"),
+    }
 
 
 if __name__ == "__main__":

@@ -29,23 +29,47 @@ CHROMIUM = next((p for p in (shutil.which(n) for n in ("chromium", "chromium-bro
 
 def _report(devices: int, parameters: int, folder: Path) -> Report:
     prof_file = folder / "drive.yaml"
-    prof_file.write_text("profile: drive\nparameters:\n" + "".join(
-        f"  P{i:03d}: {{register: {100 + i}, type: uint16, unit: s, scale: 0.1, max: 6000}}\n"
-        for i in range(parameters)))
+    prof_file.write_text(
+        "profile: drive\nparameters:\n"
+        + "".join(
+            f"  P{i:03d}: {{register: {100 + i}, type: uint16, unit: s, scale: 0.1, max: 6000}}\n"
+            for i in range(parameters)
+        )
+    )
     prof = load_profile(str(prof_file))
     out = []
     for d in range(devices):
-        res = DeviceResult(f"drive-{d:04d}", f"tcp://10.0.{d // 250}.{d % 250}:502", 1, prof.id,
-                           profile_ref=str(prof_file), profile_sha256=prof.digest, batch=1 + d // 100,
-                           seconds=0.4 + (d % 7) / 10)
-        res.requests = [RequestRecord(3, 100, parameters), RequestRecord(16, 100, parameters),
-                        RequestRecord(3, 100, parameters)]
+        res = DeviceResult(
+            f"drive-{d:04d}",
+            f"tcp://10.0.{d // 250}.{d % 250}:502",
+            1,
+            prof.id,
+            profile_ref=str(prof_file),
+            profile_sha256=prof.digest,
+            batch=1 + d // 100,
+            seconds=0.4 + (d % 7) / 10,
+        )
+        res.requests = [
+            RequestRecord(3, 100, parameters),
+            RequestRecord(16, 100, parameters),
+            RequestRecord(3, 100, parameters),
+        ]
         for i, p in enumerate(prof.parameters):
             failed = d % 97 == 0 and i == 5
-            res.parameters.append(ParameterResult(
-                p.name, p.address, 1, f"{(i + d) % 600 / 10:g} s", ((i + d) % 600,), (i,),
-                (i,) if failed else ((i + d) % 600,), "failed" if failed else "ok",
-                "exception 03 (illegal data value)" if failed else None, parameter=p))
+            res.parameters.append(
+                ParameterResult(
+                    p.name,
+                    p.address,
+                    1,
+                    f"{(i + d) % 600 / 10:g} s",
+                    ((i + d) % 600,),
+                    (i,),
+                    (i,) if failed else ((i + d) % 600,),
+                    "failed" if failed else "ok",
+                    "exception 03 (illegal data value)" if failed else None,
+                    parameter=p,
+                )
+            )
         res.settle()
         out.append(res)
     return Report("line.yaml", out, 412.0, run_info("deployer apply line.yaml --inventory line.yaml", time.time()))
@@ -54,17 +78,28 @@ def _report(devices: int, parameters: int, folder: Path) -> Report:
 def _browser_seconds(page: Path, folder: Path, runs: int) -> tuple[float, int | None]:
     assert CHROMIUM is not None
     times, ready = [], None
-    flags = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run", "--hide-scrollbars",
-             f"--user-data-dir={folder / 'profile'}"]
+    flags = [
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--no-first-run",
+        "--hide-scrollbars",
+        f"--user-data-dir={folder / 'profile'}",
+    ]
     for _ in range(runs):
         start = time.perf_counter()
         # a screenshot needs the page parsed, its script run, laid out and painted: what "opened" means
-        subprocess.run([CHROMIUM, *flags, f"--screenshot={folder / 'shot.png'}", "--window-size=1280,900",
-                        page.as_uri()], capture_output=True, timeout=300, check=True)
+        subprocess.run(
+            [CHROMIUM, *flags, f"--screenshot={folder / 'shot.png'}", "--window-size=1280,900", page.as_uri()],
+            capture_output=True,
+            timeout=300,
+            check=True,
+        )
         times.append(time.perf_counter() - start)
     if page.name != "blank.html":  # the page's own clock: navigation start to its last table drawn
-        proc = subprocess.run([CHROMIUM, *flags, "--dump-dom", page.as_uri()], capture_output=True, text=True,
-                              timeout=300)
+        proc = subprocess.run(
+            [CHROMIUM, *flags, "--dump-dom", page.as_uri()], capture_output=True, text=True, timeout=300
+        )
         m = re.search(r'data-ready="(\d+)"', proc.stdout)
         ready = int(m.group(1)) if m else None
     return statistics.median(times), ready
@@ -82,18 +117,27 @@ def run(quick: bool = False) -> dict[str, Any]:
         make = time.perf_counter() - start
         page = folder / "run.html"
         page.write_text(page_text, encoding="utf-8")
-        res: dict[str, Any] = {"devices": devices, "parameters": 100, "json_mb": round(json_bytes / 1e6, 2),
-                               "page_mb": round(os.path.getsize(page) / 1e6, 2),
-                               "page_vs_json": round(os.path.getsize(page) / json_bytes, 3),
-                               "make_page_seconds": round(make, 3)}
+        res: dict[str, Any] = {
+            "devices": devices,
+            "parameters": 100,
+            "json_mb": round(json_bytes / 1e6, 2),
+            "page_mb": round(os.path.getsize(page) / 1e6, 2),
+            "page_vs_json": round(os.path.getsize(page) / json_bytes, 3),
+            "make_page_seconds": round(make, 3),
+        }
         if CHROMIUM is not None:
             blank = folder / "blank.html"
             blank.write_text("<!DOCTYPE html><title>blank</title>")
             floor, _ = _browser_seconds(blank, folder, 3)
             wall, ready_ms = _browser_seconds(page, folder, 3)
-            res.update({"browser_blank_seconds": round(floor, 3), "browser_page_seconds": round(wall, 3),
-                        "load_seconds": round(wall - floor, 3),
-                        "script_ready_seconds": None if ready_ms is None else ready_ms / 1000})
+            res.update(
+                {
+                    "browser_blank_seconds": round(floor, 3),
+                    "browser_page_seconds": round(wall, 3),
+                    "load_seconds": round(wall - floor, 3),
+                    "script_ready_seconds": None if ready_ms is None else ready_ms / 1000,
+                }
+            )
         else:
             res["browser"] = "not measured: no Chromium"
         out[str(devices)] = res

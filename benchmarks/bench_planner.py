@@ -66,11 +66,17 @@ def bench(n: int, build: Callable[[int], tuple[list[Desired], Current]]) -> dict
         params, writes = plan_writes(ds, Limits(), current)
         dt = min(dt, time.perf_counter() - t)
     naive = n if current is None else sum(1 for d in ds if current[d.name] != d.registers)
-    return {"parameters": n, "seconds": round(dt, 4), "parameters_per_second": round(n / dt),
-            "microseconds_per_parameter": round(dt / n * 1e6, 3),
-            "requests": len(writes), "naive_requests": naive, "requests_vs_naive": round(len(writes) / naive, 4),
-            "registers_written": sum(w.count for w in writes),
-            "bridged": sum(1 for p in params if p.action == "bridge")}
+    return {
+        "parameters": n,
+        "seconds": round(dt, 4),
+        "parameters_per_second": round(n / dt),
+        "microseconds_per_parameter": round(dt / n * 1e6, 3),
+        "requests": len(writes),
+        "naive_requests": naive,
+        "requests_vs_naive": round(len(writes) / naive, 4),
+        "registers_written": sum(w.count for w in writes),
+        "bridged": sum(1 for p in params if p.action == "bridge"),
+    }
 
 
 def run(quick: bool = False) -> dict[str, Any]:
@@ -90,13 +96,17 @@ def run(quick: bool = False) -> dict[str, Any]:
 if __name__ == "__main__":
     res = run()
     print(json.dumps(res, indent=2))
-    print(f"\n{'mode':<11}{'parameters':>11}{'seconds':>9}{'params/s':>10}{'us/param':>9}{'requests':>9}"
-          f"{'naive':>8}{'registers':>10}{'bridged':>8}")
+    print(
+        f"\n{'mode':<11}{'parameters':>11}{'seconds':>9}{'params/s':>10}{'us/param':>9}{'requests':>9}"
+        f"{'naive':>8}{'registers':>10}{'bridged':>8}"
+    )
     for mode in ("write_all", "diff_aware", "dp_worst"):
         for r in res[mode]:
-            print(f"{mode:<11}{r['parameters']:>11}{r['seconds']:>9}{r['parameters_per_second']:>10}"
-                  f"{r['microseconds_per_parameter']:>9}{r['requests']:>9}{r['naive_requests']:>8}"
-                  f"{r['registers_written']:>10}{r['bridged']:>8}")
+            print(
+                f"{mode:<11}{r['parameters']:>11}{r['seconds']:>9}{r['parameters_per_second']:>10}"
+                f"{r['microseconds_per_parameter']:>9}{r['requests']:>9}{r['naive_requests']:>8}"
+                f"{r['registers_written']:>10}{r['bridged']:>8}"
+            )
         print(f"{mode} linearity (time per parameter, largest / smallest): {res[f'{mode}_linearity']}")
 
 
@@ -135,6 +145,11 @@ def against_yaml(n: int = 5000) -> dict[str, Any]:
     target = Target("tcp://127.0.0.1:502", 1, "drive")
     offline = best(lambda: make_plan(rec, target, None))
     diff = best(lambda: make_plan(rec, target, held))
-    return {"parameters": n, "yaml_pure_python_seconds": round(parse, 4), "plan_offline_seconds": round(offline, 4),
-            "plan_diff_aware_seconds": round(diff, 4), "offline_vs_yaml": round(offline / parse, 3),
-            "diff_aware_vs_yaml": round(diff / parse, 3)}
+    return {
+        "parameters": n,
+        "yaml_pure_python_seconds": round(parse, 4),
+        "plan_offline_seconds": round(offline, 4),
+        "plan_diff_aware_seconds": round(diff, 4),
+        "offline_vs_yaml": round(offline / parse, 3),
+        "diff_aware_vs_yaml": round(diff / parse, 3),
+    }

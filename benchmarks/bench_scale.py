@@ -45,9 +45,22 @@ def run(quick: bool = False) -> dict[str, Any]:
             with device(files["profile"], 0.0, os.path.join(work, f"s{n}.log")) as port:
                 for r in range(repeats):  # new values each run: everything is written
                     changed = drive.write(work, n, wide_every=4, name=f"s{n}", salt=r + 1)
-                    applies.append(timed([sys.executable, "-m", "deployer", "apply", changed["recipe"], "--device",
-                                          f"tcp://127.0.0.1:{port}", "--yes", "--state-dir",
-                                          os.path.join(work, "state")]))
+                    applies.append(
+                        timed(
+                            [
+                                sys.executable,
+                                "-m",
+                                "deployer",
+                                "apply",
+                                changed["recipe"],
+                                "--device",
+                                f"tcp://127.0.0.1:{port}",
+                                "--yes",
+                                "--state-dir",
+                                os.path.join(work, "state"),
+                            ]
+                        )
+                    )
             row["apply_seconds"] = round(min(a[0] for a in applies), 3)
             row["apply_peak_mb"] = round(max(a[2] for a in applies) / 1024, 1)
             out[str(n)] = row

@@ -42,9 +42,13 @@ async def concurrent(clients: int, per_client: int) -> float:
 
         async def work(c: AsyncModbusTcpClient) -> None:
             for i in range(per_client):
-                r = await (c.write_registers(0, [i] * 10, device_id=1) if i % 2 else
-                           c.read_holding_registers(0, count=10, device_id=1))
+                r = await (
+                    c.write_registers(0, [i] * 10, device_id=1)
+                    if i % 2
+                    else c.read_holding_registers(0, count=10, device_id=1)
+                )
                 assert not r.isError()
+
         t = time.perf_counter()
         await asyncio.gather(*(work(c) for c in cs))
         dt = time.perf_counter() - t
@@ -55,8 +59,10 @@ async def concurrent(clients: int, per_client: int) -> float:
 
 def run(quick: bool = False) -> dict[str, Any]:
     n = 300 if quick else 2000
-    return {"sequential_fc16_123_registers_per_second": round(asyncio.run(sequential(n))),
-            "concurrent_50_clients_requests_per_second": round(asyncio.run(concurrent(50, 40 if quick else 200)))}
+    return {
+        "sequential_fc16_123_registers_per_second": round(asyncio.run(sequential(n))),
+        "concurrent_50_clients_requests_per_second": round(asyncio.run(concurrent(50, 40 if quick else 200))),
+    }
 
 
 if __name__ == "__main__":

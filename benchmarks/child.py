@@ -19,15 +19,17 @@ import time
 HERE = os.path.abspath(__file__)
 
 
-def measured(args: list[str], cwd: str | None = None, max_bytes: int | None = None
-             ) -> tuple[float, float, int, int, str]:
+def measured(
+    args: list[str], cwd: str | None = None, max_bytes: int | None = None
+) -> tuple[float, float, int, int, str]:
     """See ``measured_all``; without the bytes written."""
     out, err = measured_all(args, cwd, max_bytes)
     return out["wall"], out["cpu"], int(out["maxrss_kb"]), int(out["code"]), err
 
 
-def measured_all(args: list[str], cwd: str | None = None, max_bytes: int | None = None,
-                 env: dict[str, str] | None = None) -> tuple[dict[str, float], str]:
+def measured_all(
+    args: list[str], cwd: str | None = None, max_bytes: int | None = None, env: dict[str, str] | None = None
+) -> tuple[dict[str, float], str]:
     """One command's ``wall`` seconds, ``cpu`` seconds (user + system), peak RSS (``maxrss_kb``), exit
     ``code`` and ``written_bytes`` (block output: what reached the disk's queue, not the page cache), and
     its stderr.
@@ -56,8 +58,13 @@ def _main() -> None:
 
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
-    proc = subprocess.Popen(spec["args"], cwd=spec["cwd"], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            preexec_fn=limited if limit else None)
+    proc = subprocess.Popen(
+        spec["args"],
+        cwd=spec["cwd"],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        preexec_fn=limited if limit else None,
+    )
     tree = [0, 0]  # the largest sums of the resident memory (RSS, PSS) of the command and its own processes
     done = threading.Event()
     threading.Thread(target=_watch_tree, args=(proc.pid, tree, done), daemon=True).start()
@@ -66,11 +73,20 @@ def _main() -> None:
     done.set()
     # ru_* of wait4 count the command and the processes it waited for (its workers): CPU is theirs together;
     # ru_maxrss is the largest of them, so the sum of the tree is sampled (tree_rss_kb, Linux)
-    print(json.dumps({"wall": wall, "cpu": usage.ru_utime + usage.ru_stime, "sys": usage.ru_stime,
-                      "maxrss_kb": usage.ru_maxrss, "tree_rss_kb": max(tree[0], usage.ru_maxrss),
-                      "tree_pss_kb": tree[1],
-                      "code": os.waitstatus_to_exitcode(status),
-                      "written_bytes": usage.ru_oublock * 512}))  # Linux: the command's block output
+    print(
+        json.dumps(
+            {
+                "wall": wall,
+                "cpu": usage.ru_utime + usage.ru_stime,
+                "sys": usage.ru_stime,
+                "maxrss_kb": usage.ru_maxrss,
+                "tree_rss_kb": max(tree[0], usage.ru_maxrss),
+                "tree_pss_kb": tree[1],
+                "code": os.waitstatus_to_exitcode(status),
+                "written_bytes": usage.ru_oublock * 512,
+            }
+        )
+    )  # Linux: the command's block output
 
 
 def _main_windows(spec: dict[str, object]) -> None:
@@ -85,11 +101,20 @@ def _main_windows(spec: dict[str, object]) -> None:
 
     class _JobLimits(ctypes.Structure):
         """JOBOBJECT_EXTENDED_LIMIT_INFORMATION, as far as the limits set here."""
-        _fields_ = [("user_time_limits", ctypes.c_int64 * 2), ("flags", ctypes.c_uint32),
-                    ("working_set", ctypes.c_size_t * 2), ("active_processes", ctypes.c_uint32),
-                    ("affinity", ctypes.c_size_t), ("priority", ctypes.c_uint32), ("scheduling", ctypes.c_uint32),
-                    ("io", ctypes.c_uint64 * 6), ("process_memory_limit", ctypes.c_size_t),
-                    ("job_memory_limit", ctypes.c_size_t), ("peaks", ctypes.c_size_t * 2)]
+
+        _fields_ = [
+            ("user_time_limits", ctypes.c_int64 * 2),
+            ("flags", ctypes.c_uint32),
+            ("working_set", ctypes.c_size_t * 2),
+            ("active_processes", ctypes.c_uint32),
+            ("affinity", ctypes.c_size_t),
+            ("priority", ctypes.c_uint32),
+            ("scheduling", ctypes.c_uint32),
+            ("io", ctypes.c_uint64 * 6),
+            ("process_memory_limit", ctypes.c_size_t),
+            ("job_memory_limit", ctypes.c_size_t),
+            ("peaks", ctypes.c_size_t * 2),
+        ]
 
     k32 = ctypes.WinDLL("kernel32", use_last_error=True)
     k32.CreateJobObjectW.restype = ctypes.c_void_p
@@ -118,8 +143,20 @@ def _main_windows(spec: dict[str, object]) -> None:
     acct = (ctypes.c_int64 * 6)()  # JOBOBJECT_BASIC_ACCOUNTING_INFORMATION: user, kernel first
     k32.QueryInformationJobObject(ctypes.c_void_p(job), 1, ctypes.byref(acct), ctypes.sizeof(acct), None)
     user, kernel = max(acct[0], times[3].value), max(acct[1], times[2].value)
-    print(json.dumps({"wall": wall, "cpu": (user + kernel) / 1e7, "sys": kernel / 1e7, "maxrss_kb": peak // 1024,
-                      "tree_rss_kb": peak // 1024, "tree_pss_kb": 0, "code": proc.returncode, "written_bytes": 0}))
+    print(
+        json.dumps(
+            {
+                "wall": wall,
+                "cpu": (user + kernel) / 1e7,
+                "sys": kernel / 1e7,
+                "maxrss_kb": peak // 1024,
+                "tree_rss_kb": peak // 1024,
+                "tree_pss_kb": 0,
+                "code": proc.returncode,
+                "written_bytes": 0,
+            }
+        )
+    )
 
 
 def _peak_commit(k32: object, handle: object) -> int:

@@ -64,8 +64,16 @@ def recipe_yaml(n: int, profile_path: str, *, salt: int = 0, url: str | None = N
     return "\n".join(lines) + "\n"
 
 
-def write(directory: str, n: int, *, max_read_gap: int = 0, salt: int = 0, url: str | None = None,
-          name: str | None = None, wide_every: int = 3) -> dict[str, Any]:
+def write(
+    directory: str,
+    n: int,
+    *,
+    max_read_gap: int = 0,
+    salt: int = 0,
+    url: str | None = None,
+    name: str | None = None,
+    wide_every: int = 3,
+) -> dict[str, Any]:
     """Write profile and recipe files into ``directory``; returns their paths."""
     os.makedirs(directory, exist_ok=True)
     base = name or f"drive{n}"

@@ -59,14 +59,14 @@ class Device:
                 return bytes((fc | 0x80, 3))
             if address + count > self.size:
                 return bytes((fc | 0x80, 2))
-            return bytes((fc, 2 * count)) + self.regs[2 * address:2 * (address + count)]
+            return bytes((fc, 2 * count)) + self.regs[2 * address : 2 * (address + count)]
         if fc == 6:
             if len(pdu) != 5:
                 return bytes((0x86, 3))
             _, address, _value = _ONE.unpack(pdu)
             if address >= self.size:
                 return bytes((0x86, 2))
-            self.regs[2 * address:2 * address + 2] = pdu[3:5]
+            self.regs[2 * address : 2 * address + 2] = pdu[3:5]
             return bytes(pdu)  # the echo
         if fc == 16:
             if len(pdu) < 6:
@@ -76,7 +76,7 @@ class Device:
                 return bytes((0x90, 3))
             if address + count > self.size:
                 return bytes((0x90, 2))
-            self.regs[2 * address:2 * (address + count)] = pdu[6:]
+            self.regs[2 * address : 2 * (address + count)] = pdu[6:]
             return bytes(pdu[:5])
         return bytes((fc | 0x80, 1))  # illegal function (43: no identification objects, as the simulator)
 
@@ -171,16 +171,31 @@ def main(argv: list[str] | None = None) -> None:
     if args.worker:  # one process's share: its URLs on stdout, then serve
         _raise_nofile(args.devices + 256)
         with asyncio.Runner(loop_factory=_loop_factory()) as runner:
-            runner.run(serve(args.devices, args.latency_ms, args.registers,
-                             lambda urls: print(json.dumps(urls), flush=True)))
+            runner.run(
+                serve(args.devices, args.latency_ms, args.registers, lambda urls: print(json.dumps(urls), flush=True))
+            )
         return
     k = max(1, min(args.processes, args.devices))
     shares = [args.devices // k + (1 if i < args.devices % k else 0) for i in range(k)]
-    workers = [subprocess.Popen([sys.executable, "-m", "benchmarks.light_devices", str(n), str(args.latency_ms),
-                                 "--registers", str(args.registers), "--worker"],
-                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-               for n in shares]
+    workers = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "benchmarks.light_devices",
+                str(n),
+                str(args.latency_ms),
+                "--registers",
+                str(args.registers),
+                "--worker",
+            ],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+        )
+        for n in shares
+    ]
     urls: list[str] = []
     # devices interleaved over the workers: a fleet's neighbours in inventory order land on different cores
     lists = []

@@ -1,7 +1,7 @@
 """Run every benchmark (benchmarks/bench_*.py) and print JSON and a table.
 
-    python -m benchmarks.run            # full sizes
-    python -m benchmarks.run --quick    # smaller sizes, for a smoke run
+python -m benchmarks.run            # full sizes
+python -m benchmarks.run --quick    # smaller sizes, for a smoke run
 """
 
 from __future__ import annotations
@@ -48,8 +48,12 @@ TARGETS = [
     ("plan, 5,000 parameters (s)", "scale/5000/plan_seconds", "<=", 0.5),
     # issue #46: a whole device plan (every step) within a quarter of PyYAML's pure-Python read of the files
     ("plan of 5,000 parameters / pure-Python YAML read, offline", "planner/against_yaml/offline_vs_yaml", "<=", 0.25),
-    ("plan of 5,000 parameters / pure-Python YAML read, diff-aware", "planner/against_yaml/diff_aware_vs_yaml", "<=",
-     0.25),
+    (
+        "plan of 5,000 parameters / pure-Python YAML read, diff-aware",
+        "planner/against_yaml/diff_aware_vs_yaml",
+        "<=",
+        0.25,
+    ),
     ("validate, 50,000 parameters (s)", "scale/50000/validate_seconds", "<=", 5.0),
     ("plan, 50,000 parameters (s)", "scale/50000/plan_seconds", "<=", 5.0),
     ("apply @5 ms: naive script / deployer", "apply/5ms/deployer_vs_naive", ">=", 10.0),
@@ -95,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     results: dict[str, Any] = {"python": sys.version.split()[0], "time": time.strftime("%Y-%m-%dT%H:%M:%SZ")}
     for mod in sorted(m.name for m in pkgutil.iter_modules(benchmarks.__path__) if m.name.startswith("bench_")):
-        name = mod[len("bench_"):]
+        name = mod[len("bench_") :]
         if args.only and name not in args.only:
             continue
         module = importlib.import_module(f"benchmarks.{mod}")

@@ -22,8 +22,9 @@ __all__ = ["apply", "confirm", "diff", "plan", "pull", "rollback", "status"]
 
 
 @checked("deployer.aio.confirm")
-async def confirm(run: str | None = None, *, state_dir: str | os.PathLike[str] = ".deployer",
-                  wait: bool = False) -> str:
+async def confirm(
+    run: str | None = None, *, state_dir: str | os.PathLike[str] = ".deployer", wait: bool = False
+) -> str:
     """``deployer.confirm`` for callers with their own event loop (``wait`` does not block the loop)."""
     return await asyncio.to_thread(_confirm, run, state_dir=state_dir, wait=wait)
 

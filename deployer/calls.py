@@ -24,8 +24,13 @@ T = TypeVar("T")
 _NAMED = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
 
 
-def call_problem(name: str, sig: inspect.Signature, args: tuple[Any, ...], kwargs: Mapping[str, Any],
-                 hints: Mapping[str, str] | None = None) -> str | None:
+def call_problem(
+    name: str,
+    sig: inspect.Signature,
+    args: tuple[Any, ...],
+    kwargs: Mapping[str, Any],
+    hints: Mapping[str, str] | None = None,
+) -> str | None:
     """What is wrong with calling ``name`` (a function of signature ``sig``) so, or None when nothing is.
 
     ``hints``: keyword -> what to say when it is given and the function has no such argument (a keyword an
@@ -58,26 +63,35 @@ def _names(names: list[str]) -> str:
 
 def _bind_problem(name: str, sig: inspect.Signature, args: tuple[Any, ...], kwargs: Mapping[str, Any]) -> str | None:
     params = [p for p in sig.parameters.values()]
-    positional = [p for p in params if p.kind in (inspect.Parameter.POSITIONAL_ONLY,
-                                                  inspect.Parameter.POSITIONAL_OR_KEYWORD)]
+    positional = [
+        p for p in params if p.kind in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    ]
     own = 1 if positional and positional[0].name == "self" else 0  # a method: its instance is no argument
     if not any(p.kind is inspect.Parameter.VAR_POSITIONAL for p in params) and len(args) > len(positional):
         shown = [p.name for p in positional[own:]]
-        return (f"{name}() takes {len(shown)} positional argument{'s' if len(shown) != 1 else ''} "
-                f"({_names(shown)}), got {len(args) - own}; pass the others by keyword")
-    twice = [p.name for p in positional[:len(args)] if p.name in kwargs]
+        return (
+            f"{name}() takes {len(shown)} positional argument{'s' if len(shown) != 1 else ''} "
+            f"({_names(shown)}), got {len(args) - own}; pass the others by keyword"
+        )
+    twice = [p.name for p in positional[: len(args)] if p.name in kwargs]
     if twice:
         return f"{name}() got {twice[0]!r} twice: by position and by keyword"
-    given = {p.name for p in positional[:len(args)]} | set(kwargs)
-    missing = [p.name for p in params if p.default is inspect.Parameter.empty and p.name not in given
-               and p.kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)]
+    given = {p.name for p in positional[: len(args)]} | set(kwargs)
+    missing = [
+        p.name
+        for p in params
+        if p.default is inspect.Parameter.empty
+        and p.name not in given
+        and p.kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)
+    ]
     if missing:
         return f"{name}() needs {_names([repr(m) for m in missing])}"
     return None
 
 
-def checked(name: str | None = None, *, hints: Mapping[str, str] | None = None
-            ) -> Callable[[Callable[P, T]], Callable[P, T]]:
+def checked(
+    name: str | None = None, *, hints: Mapping[str, str] | None = None
+) -> Callable[[Callable[P, T]], Callable[P, T]]:
     """A decorator: the function (or coroutine function, or method) refuses a call it cannot take with a
     UsageError saying why, before it runs. ``name``: how messages call it (``deployer.apply``; default its
     qualified name); ``hints``: see ``call_problem``."""
@@ -87,6 +101,7 @@ def checked(name: str | None = None, *, hints: Mapping[str, str] | None = None
         said = name or f.__qualname__
 
         if inspect.iscoroutinefunction(f):
+
             @functools.wraps(f)
             async def checked_coroutine(*args: Any, **kwargs: Any) -> Any:
                 why = call_problem(said, sig, args, kwargs, hints)
@@ -108,8 +123,9 @@ def checked(name: str | None = None, *, hints: Mapping[str, str] | None = None
     return wrap
 
 
-def blocking(name: str, twin: str, *, hints: Mapping[str, str] | None = None
-             ) -> Callable[[Callable[P, Coroutine[Any, Any, T]]], Callable[P, T]]:
+def blocking(
+    name: str, twin: str, *, hints: Mapping[str, str] | None = None
+) -> Callable[[Callable[P, Coroutine[Any, Any, T]]], Callable[P, T]]:
     """Makes the plain function of a coroutine function: it runs the coroutine in an event loop of its own.
     Called inside a running event loop (where it would block that loop) it says to await ``twin`` instead.
     ``name``: how messages call it; its arguments are checked as ``checked`` does. (A decorator factory: type

@@ -46,8 +46,11 @@ class Bound:
             shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:39] + "..."
             return f"{what} must be {kind} {self.text()}, got {type(value).__name__} {shown}"
         if not math.isfinite(value) or value > self.high or value < self.low or (self.low_open and value == self.low):
-            return f"{what} must be {self.text()}, got {value:g}" if isinstance(value, float) else \
-                f"{what} must be {self.text()}, got {value}"
+            return (
+                f"{what} must be {self.text()}, got {value:g}"
+                if isinstance(value, float)
+                else f"{what} must be {self.text()}, got {value}"
+            )
         return None
 
     def check(self, value: object, what: str) -> float:

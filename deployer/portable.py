@@ -117,7 +117,7 @@ def process_start(pid: int) -> float | None:
         return None
     sysconf = getattr(os, "sysconf", None)
     try:  # the command name may hold spaces and parentheses: the fields follow the last ')'
-        ticks = int(data[data.rindex(b")") + 2:].split()[19])
+        ticks = int(data[data.rindex(b")") + 2 :].split()[19])
         hz = int(sysconf("SC_CLK_TCK")) if sysconf is not None else 100  # USER_HZ: 100 on every Linux ABI
     except (ValueError, IndexError, OSError):
         return None
@@ -174,15 +174,18 @@ def make_private(path: str) -> str:
         sd, dacl = ctypes.c_void_p(), ctypes.c_void_p()
         present, defaulted = ctypes.c_int(), ctypes.c_int()
         if not advapi32.ConvertStringSecurityDescriptorToSecurityDescriptorW(
-                ctypes.c_wchar_p(PRIVATE_SDDL), 1, ctypes.byref(sd), None):
+            ctypes.c_wchar_p(PRIVATE_SDDL), 1, ctypes.byref(sd), None
+        ):
             raise ctypes.WinError(ctypes.get_last_error())
         try:
-            if not advapi32.GetSecurityDescriptorDacl(sd, ctypes.byref(present), ctypes.byref(dacl),
-                                                      ctypes.byref(defaulted)):
+            if not advapi32.GetSecurityDescriptorDacl(
+                sd, ctypes.byref(present), ctypes.byref(dacl), ctypes.byref(defaulted)
+            ):
                 raise ctypes.WinError(ctypes.get_last_error())
             # SE_FILE_OBJECT; DACL_SECURITY_INFORMATION | PROTECTED_DACL_SECURITY_INFORMATION (not inherited)
-            err = advapi32.SetNamedSecurityInfoW(ctypes.c_wchar_p(path), 1, 0x00000004 | 0x80000000, None, None,
-                                                 dacl, None)
+            err = advapi32.SetNamedSecurityInfoW(
+                ctypes.c_wchar_p(path), 1, 0x00000004 | 0x80000000, None, None, dacl, None
+            )
             if err:
                 raise ctypes.WinError(err)
         finally:
@@ -200,13 +203,15 @@ def access_list(path: str) -> str | None:
         advapi32 = ctypes.WinDLL("advapi32", use_last_error=True)
         kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)
         sd, text = ctypes.c_void_p(), ctypes.c_wchar_p()
-        err = advapi32.GetNamedSecurityInfoW(ctypes.c_wchar_p(path), 1, 0x00000004, None, None, None, None,
-                                             ctypes.byref(sd))
+        err = advapi32.GetNamedSecurityInfoW(
+            ctypes.c_wchar_p(path), 1, 0x00000004, None, None, None, None, ctypes.byref(sd)
+        )
         if err:
             raise ctypes.WinError(err)
         try:
-            if not advapi32.ConvertSecurityDescriptorToStringSecurityDescriptorW(sd, 1, 0x00000004,
-                                                                                 ctypes.byref(text), None):
+            if not advapi32.ConvertSecurityDescriptorToStringSecurityDescriptorW(
+                sd, 1, 0x00000004, ctypes.byref(text), None
+            ):
                 raise ctypes.WinError(ctypes.get_last_error())
             said = str(text.value)
             kernel32.LocalFree(text)
@@ -288,8 +293,17 @@ def replace(src: str, dst: str, *, attempts: int = 20, pause: float = 0.05) -> N
 
 
 # Windows opens a device, not a file, for these names, whatever the extension ("con.yaml" is the console)
-RESERVED_NAMES = frozenset({"CON", "PRN", "AUX", "NUL", "CONIN$", "CONOUT$", *(f"{p}{n}" for p in ("COM", "LPT")
-                                                                            for n in [*"123456789", "¹", "²", "³"])})
+RESERVED_NAMES = frozenset(
+    {
+        "CON",
+        "PRN",
+        "AUX",
+        "NUL",
+        "CONIN$",
+        "CONOUT$",
+        *(f"{p}{n}" for p in ("COM", "LPT") for n in [*"123456789", "¹", "²", "³"]),
+    }
+)
 NAME_LIMIT = 100  # characters of a file name made from a device or recipe name (Windows paths: 260 in all)
 
 
@@ -313,7 +327,7 @@ def file_name(name: str, limit: int = NAME_LIMIT) -> str:
     if safe.split(".")[0].upper() in RESERVED_NAMES:
         safe = "_" + safe
     if len(safe) > limit or len(safe.encode()) > limit:  # bytes too: Linux allows 255 bytes, a CJK letter is 3
-        cut = safe[:limit - 9]
+        cut = safe[: limit - 9]
         while len(cut.encode()) > limit - 9:
             cut = cut[:-1]
         safe = cut.rstrip(". ") + "-" + hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:8]
@@ -324,9 +338,12 @@ def path_error(e: OSError) -> str | None:
     """What a path's OSError means when it is about the path itself (too long), else None."""
     if e.errno == errno.ENAMETOOLONG or getattr(e, "winerror", None) == 206:  # ERROR_FILENAME_EXCED_RANGE
         where = f" ({len(str(e.filename))} characters)" if e.filename else ""
-        return (f"the path is too long{where}" + ("; Windows allows 259 characters unless long paths are "
-                                                   "enabled (LongPathsEnabled), or use a shorter --state folder"
-                                                   if WINDOWS else ""))
+        return f"the path is too long{where}" + (
+            "; Windows allows 259 characters unless long paths are "
+            "enabled (LongPathsEnabled), or use a shorter --state folder"
+            if WINDOWS
+            else ""
+        )
     return None
 
 
@@ -385,8 +402,9 @@ def raise_open_files(need: int) -> int | None:
     return None
 
 
-def on_signals(loop: object, signals: tuple[signal.Signals, ...],
-               handler: Callable[[signal.Signals], None]) -> Callable[[], None]:
+def on_signals(
+    loop: object, signals: tuple[signal.Signals, ...], handler: Callable[[signal.Signals], None]
+) -> Callable[[], None]:
     """Call ``handler(sig)`` in the event loop's thread when one of ``signals`` arrives; returns the undo.
 
     ``loop.add_signal_handler`` where the loop has it (POSIX); else (Windows' event loops raise
@@ -422,6 +440,7 @@ def on_signals(loop: object, signals: tuple[signal.Signals, ...],
         for u in reversed(undo):
             with contextlib.suppress(Exception):
                 u()
+
     return restore
 
 
@@ -445,7 +464,7 @@ def write_all(fd: int, data: bytes) -> None:
     """All of ``data`` (short writes resumed)."""
     view = memoryview(data)
     while view:
-        view = view[os.write(fd, view):]
+        view = view[os.write(fd, view) :]
 
 
 def pread(fd: int, size: int, offset: int) -> bytes:
@@ -479,7 +498,7 @@ def writev_all(fd: int, pieces: list[bytes]) -> None:
     batch = max(1, min(1024, os.sysconf("SC_IOV_MAX")))
     i = 0
     while i < len(pieces):
-        chunk = pieces[i:i + batch]
+        chunk = pieces[i : i + batch]
         n = os.writev(fd, chunk)
         total = sum(len(c) for c in chunk)
         if n == total:

@@ -27,8 +27,16 @@ ParamStatus = Literal["ok", "unchanged", "failed", "mismatch", "unverified", "sk
 # the write; interrupted: the run stopped (Ctrl-C, SIGTERM, a crash) while the device was in flight: with a
 # snapshot, writes may have gone out
 DeviceStatus = Literal["ok", "sent", "partial", "failed", "unreachable", "skipped", "rolled-back", "interrupted"]
-DEVICE_STATUSES: tuple[DeviceStatus, ...] = ("ok", "sent", "partial", "failed", "unreachable", "skipped",
-                                             "rolled-back", "interrupted")
+DEVICE_STATUSES: tuple[DeviceStatus, ...] = (
+    "ok",
+    "sent",
+    "partial",
+    "failed",
+    "unreachable",
+    "skipped",
+    "rolled-back",
+    "interrupted",
+)
 # the profile's commit steps: sent, held back (a soak or a confirmation waits), never sent, failed
 CommitState = Literal["sent", "held", "not sent", "failed"]
 
@@ -46,8 +54,14 @@ class RequestRecord:
     window: bool = False  # sent at a safe change's end (its commit's own plan, or the rollback), after the apply's
 
     def to_json(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"function": self.function, "address": self.address, "count": self.count,
-                               "result": self.result, "exception_code": self.exception_code, "attempts": self.attempts}
+        out: dict[str, Any] = {
+            "function": self.function,
+            "address": self.address,
+            "count": self.count,
+            "result": self.result,
+            "exception_code": self.exception_code,
+            "attempts": self.attempts,
+        }
         if self.step is not None:
             out["step"] = self.step
         if self.deviation is not None:
@@ -87,12 +101,18 @@ class ParameterResult:
         return None if self.parameter is None else show_registers(self.parameter, self.after_raw)
 
     def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "address": self.address, "count": self.count, "desired": self.desired,
-                "desired_raw": list(self.desired_raw),
-                "before_raw": None if self.before_raw is None else list(self.before_raw),
-                "after_raw": None if self.after_raw is None else list(self.after_raw),
-                "status": self.status, "error": self.error,
-                **({"register_type": self.register_type} if self.register_type != "holding" else {})}
+        return {
+            "name": self.name,
+            "address": self.address,
+            "count": self.count,
+            "desired": self.desired,
+            "desired_raw": list(self.desired_raw),
+            "before_raw": None if self.before_raw is None else list(self.before_raw),
+            "after_raw": None if self.after_raw is None else list(self.after_raw),
+            "status": self.status,
+            "error": self.error,
+            **({"register_type": self.register_type} if self.register_type != "holding" else {}),
+        }
 
 
 @dataclass(frozen=True, slots=True)
@@ -209,8 +229,14 @@ class DeviceResult:
         failed = len(written) - len(ok)  # sent, not ok: failed, mismatch or unverified
         if len(_WRITTEN) > 1024:  # a long-lived caller's many recipes: keep the table small
             _WRITTEN.clear()
-        tally = Tally(self.write_requests, self.read_requests, self.request_count, changed, failed,
-                      _WRITTEN.setdefault(written, written))
+        tally = Tally(
+            self.write_requests,
+            self.read_requests,
+            self.request_count,
+            changed,
+            failed,
+            _WRITTEN.setdefault(written, written),
+        )
         out.tally = tally
         return out
 
@@ -232,8 +258,14 @@ class DeviceResult:
     def _json(self, requests: list[Any], parameters: list[Any]) -> dict[str, Any]:
         """``to_json`` with these requests and parameters (``device_json`` puts its own texts in their place)."""
         out: dict[str, Any] = {
-            "name": self.name, "url": self.url, "unit": self.unit, "profile": self.profile,
-            "status": self.status, "snapshot": self.snapshot, "requests": requests, "parameters": parameters,
+            "name": self.name,
+            "url": self.url,
+            "unit": self.unit,
+            "profile": self.profile,
+            "status": self.status,
+            "snapshot": self.snapshot,
+            "requests": requests,
+            "parameters": parameters,
         }
         if self.error is not None:
             out["error"] = self.error
@@ -287,16 +319,24 @@ class Report:
 
     def summary(self) -> dict[str, Any]:
         counts: dict[str, int] = {s: sum(1 for d in self.devices if d.status == s) for s in DEVICE_STATUSES}
-        return {"devices": len(self.devices), **counts,
-                "write_requests": sum(d.write_requests for d in self.devices),
-                "read_requests": sum(d.read_requests for d in self.devices),
-                "requests": sum(d.request_count for d in self.devices),
-                "seconds": round(self.seconds, 3)}
+        return {
+            "devices": len(self.devices),
+            **counts,
+            "write_requests": sum(d.write_requests for d in self.devices),
+            "read_requests": sum(d.read_requests for d in self.devices),
+            "requests": sum(d.request_count for d in self.devices),
+            "seconds": round(self.seconds, 3),
+        }
 
     def to_json(self) -> dict[str, Any]:
         """The report document (schema ``deployer.report/3``) as plain values."""
-        return _document(self.recipe, [d.to_json() for d in self.devices], self.summary(), self.run_doc(),
-                         profiles_json(self.devices))
+        return _document(
+            self.recipe,
+            [d.to_json() for d in self.devices],
+            self.summary(),
+            self.run_doc(),
+            profiles_json(self.devices),
+        )
 
     def run_doc(self) -> dict[str, Any] | None:
         """The report's ``run``: ``run_info`` with the journal's run id and state folder, and the interruption."""
@@ -325,8 +365,13 @@ class Report:
         return EXIT_OK
 
 
-def _document(recipe: str | None, devices: list[Any], summary: dict[str, Any],
-              run: dict[str, Any] | None = None, profiles: dict[str, Any] | None = None) -> dict[str, Any]:
+def _document(
+    recipe: str | None,
+    devices: list[Any],
+    summary: dict[str, Any],
+    run: dict[str, Any] | None = None,
+    profiles: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     doc = {"schema": REPORT_SCHEMA, "recipe": recipe, "devices": devices, "summary": summary}
     if run is not None:
         doc["run"] = run
@@ -341,17 +386,42 @@ def _document(recipe: str | None, devices: list[Any], summary: dict[str, Any],
 # profile to show values in engineering units is stored in the report itself, once per distinct
 # profile: for each parameter the run wrote, how its registers read.
 
-_VIEW_DEFAULTS: dict[str, Any] = {"word_order": "big", "scale": "1", "offset": "0", "unit": None, "values": {},
-                                  "byte_swap": False, "mask": 0, "size": 0, "encoding": "ascii", "padding": "nul",
-                                  "register_type": "holding", "manual_number": "", "manual_text": ""}
+_VIEW_DEFAULTS: dict[str, Any] = {
+    "word_order": "big",
+    "scale": "1",
+    "offset": "0",
+    "unit": None,
+    "values": {},
+    "byte_swap": False,
+    "mask": 0,
+    "size": 0,
+    "encoding": "ascii",
+    "padding": "nul",
+    "register_type": "holding",
+    "manual_number": "",
+    "manual_text": "",
+}
 
 
 def parameter_view(p: Parameter) -> dict[str, Any]:
     """How a parameter's registers read (``Parameter.show_registers``), as JSON: what differs from the defaults."""
-    full = {"address": p.address, "type": p.type, "word_order": p.word_order, "scale": str(p.scale),
-            "offset": str(p.offset), "unit": p.unit, "values": dict(p.values), "byte_swap": p.byte_swap,
-            "mask": p.mask, "size": p.size, "encoding": p.encoding, "padding": p.padding,
-            "register_type": p.register_type, "manual_number": p.manual_number, "manual_text": p.manual_text}
+    full = {
+        "address": p.address,
+        "type": p.type,
+        "word_order": p.word_order,
+        "scale": str(p.scale),
+        "offset": str(p.offset),
+        "unit": p.unit,
+        "values": dict(p.values),
+        "byte_swap": p.byte_swap,
+        "mask": p.mask,
+        "size": p.size,
+        "encoding": p.encoding,
+        "padding": p.padding,
+        "register_type": p.register_type,
+        "manual_number": p.manual_number,
+        "manual_text": p.manual_text,
+    }
     return {k: v for k, v in full.items() if k not in _VIEW_DEFAULTS or v != _VIEW_DEFAULTS[k]}
 
 
@@ -382,18 +452,35 @@ def parameter_from_view(name: str, view: Any) -> Parameter | None:
         return None
     v = {**_VIEW_DEFAULTS, **view}
     try:
-        p = Parameter(name, int(v["address"]), str(v["type"]), word_order=str(v["word_order"]),
-                      scale=Decimal(str(v["scale"])), offset=Decimal(str(v["offset"])),
-                      unit=None if v["unit"] is None else str(v["unit"]),
-                      values=tuple((str(k), int(x)) for k, x in dict(v["values"]).items()),
-                      byte_swap=v["byte_swap"] is True, mask=int(v["mask"]), size=int(v["size"]),
-                      encoding=str(v["encoding"]), padding=str(v["padding"]), register_type=v["register_type"],
-                      manual_number=str(v["manual_number"]), manual_text=str(v["manual_text"]))
+        p = Parameter(
+            name,
+            int(v["address"]),
+            str(v["type"]),
+            word_order=str(v["word_order"]),
+            scale=Decimal(str(v["scale"])),
+            offset=Decimal(str(v["offset"])),
+            unit=None if v["unit"] is None else str(v["unit"]),
+            values=tuple((str(k), int(x)) for k, x in dict(v["values"]).items()),
+            byte_swap=v["byte_swap"] is True,
+            mask=int(v["mask"]),
+            size=int(v["size"]),
+            encoding=str(v["encoding"]),
+            padding=str(v["padding"]),
+            register_type=v["register_type"],
+            manual_number=str(v["manual_number"]),
+            manual_text=str(v["manual_text"]),
+        )
     except (KeyError, TypeError, ValueError, InvalidOperation):
         return None
-    if p.type not in (*codec.TYPE_NAMES, codec.STRING, codec.BOOL) or p.word_order not in ("big", "little") \
-            or p.register_type not in ("holding", "input", "coil", "discrete") or not 0 <= p.mask <= 0xFFFF \
-            or not 0 <= p.size <= 123 or not p.scale.is_finite() or not p.offset.is_finite():
+    if (
+        p.type not in (*codec.TYPE_NAMES, codec.STRING, codec.BOOL)
+        or p.word_order not in ("big", "little")
+        or p.register_type not in ("holding", "input", "coil", "discrete")
+        or not 0 <= p.mask <= 0xFFFF
+        or not 0 <= p.size <= 123
+        or not p.scale.is_finite()
+        or not p.offset.is_finite()
+    ):
         return None
     return p
 
@@ -408,8 +495,7 @@ def run_info(command: str | None, started: float) -> dict[str, Any]:
 
     user = user_name()  # a uid without a name (a container): the number says who
     when = datetime.datetime.fromtimestamp(started, datetime.UTC).isoformat(timespec="seconds")
-    return {"command": command, "user": user, "host": socket.gethostname(), "started": when,
-            "version": __version__}
+    return {"command": command, "user": user, "host": socket.gethostname(), "started": when, "version": __version__}
 
 
 def device_json(d: DeviceResult) -> bytes:
@@ -426,8 +512,12 @@ def device_json(d: DeviceResult) -> bytes:
     requests = "[" + ", ".join([_request_json(r) for r in d.requests]) + "]"
     params = "[" + ", ".join(_parameters_json(d.parameters)) + "]"
     # no string value can hold these texts unescaped, so the first match of each is the key itself
-    return json.dumps(d._json([], [])).replace('"requests": []', f'"requests": {requests}', 1).replace(
-        '"parameters": []', f'"parameters": {params}', 1).encode()
+    return (
+        json.dumps(d._json([], []))
+        .replace('"requests": []', f'"requests": {requests}', 1)
+        .replace('"parameters": []', f'"parameters": {params}', 1)
+        .encode()
+    )
 
 
 _ROWS: dict[tuple[Any, ...], str] = {}
@@ -437,8 +527,21 @@ _ROWS_KEPT = 1 << 16  # entries remembered (devices holding values of their own 
 def _parameters_json(params: Sequence[ParameterResult]) -> list[str]:
     """``json.dumps(p.to_json())`` of each parameter, from ``_ROWS`` where the same entry was made before."""
     # the key: all an entry says (comprehensions and map: a fleet does this for every parameter of every device)
-    keys = [(p.name, p.address, p.count, p.desired, p.desired_raw, p.before_raw, p.after_raw, p.status, p.error,
-             p.register_type) for p in params]
+    keys = [
+        (
+            p.name,
+            p.address,
+            p.count,
+            p.desired,
+            p.desired_raw,
+            p.before_raw,
+            p.after_raw,
+            p.status,
+            p.error,
+            p.register_type,
+        )
+        for p in params
+    ]
     try:
         texts = list(map(_ROWS.get, keys))
     except TypeError:  # registers given as lists (made in code): nothing kept
@@ -456,13 +559,16 @@ def _parameter_json(p: ParameterResult) -> str:
     """``json.dumps(p.to_json())``."""
     error = "null" if p.error is None else _text(p.error)
     kind = "" if p.register_type == "holding" else f', "register_type": {_text(p.register_type)}'
-    return (f'{{"name": {_text(p.name)}, "address": {p.address}, "count": {p.count}, "desired": {_text(p.desired)}, '
-            f'"desired_raw": {_words(p.desired_raw)}, "before_raw": {_words(p.before_raw)}, '
-            f'"after_raw": {_words(p.after_raw)}, "status": {_text(p.status)}, "error": {error}{kind}}}')
+    return (
+        f'{{"name": {_text(p.name)}, "address": {p.address}, "count": {p.count}, "desired": {_text(p.desired)}, '
+        f'"desired_raw": {_words(p.desired_raw)}, "before_raw": {_words(p.before_raw)}, '
+        f'"after_raw": {_words(p.after_raw)}, "status": {_text(p.status)}, "error": {error}{kind}}}'
+    )
 
 
-_REQUEST = operator.attrgetter("function", "address", "count", "result", "exception_code", "attempts", "step",
-                               "deviation", "window")
+_REQUEST = operator.attrgetter(
+    "function", "address", "count", "result", "exception_code", "attempts", "step", "deviation", "window"
+)
 _REQUESTS: dict[tuple[Any, ...], str] = {}
 
 
@@ -487,8 +593,13 @@ def _text(s: str) -> str:
     return json.dumps(s)
 
 
-def report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str, Any],
-                 run: dict[str, Any] | None = None, profiles: dict[str, Any] | None = None) -> list[bytes]:
+def report_parts(
+    recipe: str | None,
+    devices: Sequence[bytes],
+    summary: dict[str, Any],
+    run: dict[str, Any] | None = None,
+    profiles: dict[str, Any] | None = None,
+) -> list[bytes]:
     """The report document as pieces of JSON text, one device per line (each from ``device_json``).
 
     The pieces are written with one gathering write (``write_atomic``), never joined into one big
@@ -506,8 +617,15 @@ def report_parts(recipe: str | None, devices: Sequence[bytes], summary: dict[str
 
 def report_text(report: Report) -> str:
     """A report as JSON text, one device per line (``--json`` and the ``--report`` file of a fleet)."""
-    return b"".join(report_parts(report.recipe, [device_json(d) for d in report.devices],
-                                 report.summary(), report.run_doc(), profiles_json(report.devices))).decode()
+    return b"".join(
+        report_parts(
+            report.recipe,
+            [device_json(d) for d in report.devices],
+            report.summary(),
+            report.run_doc(),
+            profiles_json(report.devices),
+        )
+    ).decode()
 
 
 def write_json(data: dict[str, Any], path: str, *, what: str = "") -> None:
@@ -547,8 +665,17 @@ def stream_document(path: str, first: str, lines: Iterable[str]) -> dict[str, An
     it stands. Raises json.JSONDecodeError for anything else that is not JSON."""
     head = json.loads(first)
     if not isinstance(head, dict) or head.get("schema") != STREAM_SCHEMA:
-        raise InputError([Diagnostic(path, 1, 1, f"not a deployer report (a stream of another version: "
-                                                 f"{str(head.get('schema') if isinstance(head, dict) else head)!r})")])
+        raise InputError(
+            [
+                Diagnostic(
+                    path,
+                    1,
+                    1,
+                    f"not a deployer report (a stream of another version: "
+                    f"{str(head.get('schema') if isinstance(head, dict) else head)!r})",
+                )
+            ]
+        )
     devices: dict[str, Any] = {}
     for number, line in enumerate(lines, 2):
         if not line.endswith("\n"):  # cut short by a crash: only the last line can be
@@ -562,11 +689,20 @@ def stream_document(path: str, first: str, lines: Iterable[str]) -> dict[str, An
     listed = list(devices.values())
     counts: dict[str, int] = {s: sum(1 for d in listed if d.get("status") == s) for s in DEVICE_STATUSES}
     functions = [r.get("function") for d in listed for r in d.get("requests") or [] if isinstance(r, dict)]
-    summary: dict[str, Any] = {"devices": len(listed), **counts,
-                               "write_requests": sum(1 for f in functions if f in (5, 6, 15, 16)),
-                               "read_requests": sum(1 for f in functions if f in (1, 2, 3, 4)), "seconds": 0.0}
-    return _document(head.get("recipe"), listed, summary, head.get("run") if isinstance(head.get("run"), dict)
-                     else None, head.get("profiles") if isinstance(head.get("profiles"), dict) else None)
+    summary: dict[str, Any] = {
+        "devices": len(listed),
+        **counts,
+        "write_requests": sum(1 for f in functions if f in (5, 6, 15, 16)),
+        "read_requests": sum(1 for f in functions if f in (1, 2, 3, 4)),
+        "seconds": 0.0,
+    }
+    return _document(
+        head.get("recipe"),
+        listed,
+        summary,
+        head.get("run") if isinstance(head.get("run"), dict) else None,
+        head.get("profiles") if isinstance(head.get("profiles"), dict) else None,
+    )
 
 
 def report_from_json(doc: dict[str, Any], profiles: Sequence[Profile] = ()) -> Report:
@@ -591,18 +727,30 @@ def report_from_json(doc: dict[str, Any], profiles: Sequence[Profile] = ()) -> R
             entry = stored.get(ref)
             if name in given:  # named on the command line: the user's word over the report's
                 prof = given[name]
-                views[key] = ({p.name: p for p in prof.parameters},
-                              None if digest is None or prof.digest in (None, digest) else
-                              f"values shown with profile {prof.source or prof.id} as given; the run used another "
-                              f"version of it (SHA-256 {digest[:12]})")
+                views[key] = (
+                    {p.name: p for p in prof.parameters},
+                    None
+                    if digest is None or prof.digest in (None, digest)
+                    else f"values shown with profile {prof.source or prof.id} as given; the run used another "
+                    f"version of it (SHA-256 {digest[:12]})",
+                )
             elif isinstance(entry, dict) and isinstance(entry.get("parameters"), dict):
-                views[key] = ({n: q for n, v in entry["parameters"].items()
-                               if isinstance(n, str) and (q := parameter_from_view(n, v)) is not None}, None)
+                views[key] = (
+                    {
+                        n: q
+                        for n, v in entry["parameters"].items()
+                        if isinstance(n, str) and (q := parameter_from_view(n, v)) is not None
+                    },
+                    None,
+                )
             elif ref in builtin_profile_ids() and digest is None:  # part of deployer, not a file the report names
                 views[key] = ({p.name: p for p in builtin_profile(ref).parameters}, None)
             else:
-                views[key] = (None, f"values shown as registers: the report does not describe profile {name or ref} "
-                                    "(a report of an older version); name it with: deployer report --profile FILE")
+                views[key] = (
+                    None,
+                    f"values shown as registers: the report does not describe profile {name or ref} "
+                    "(a report of an older version); name it with: deployer report --profile FILE",
+                )
         return views[key]
 
     devices = []
@@ -614,18 +762,39 @@ def report_from_json(doc: dict[str, Any], profiles: Sequence[Profile] = ()) -> R
         notices = [str(n) for n in d.get("notices") or []]
         if notice is not None:
             notices.append(notice)
-        res = DeviceResult(str(d.get("name", "?")), str(d.get("url", "")), int(d.get("unit") or 0),
-                           str(d.get("profile", "")), status=d.get("status", "ok"), snapshot=d.get("snapshot"),
-                           error=d.get("error"), seconds=d.get("seconds"), profile_ref=d.get("profile_ref"),
-                           notices=notices, recipe=d.get("recipe"), batch=d.get("batch"), commit=d.get("commit"),
-                           profile_sha256=d.get("profile_sha256"),
-                           identity={str(k): str(v) for k, v in d["identity"].items()}
-                           if isinstance(d.get("identity"), dict) else None,
-                           learned={str(k): int(v) for k, v in (d.get("learned") or {}).items()},
-                           seen=None if d.get("seen") is None else str(d["seen"]))
-        res.requests = [RequestRecord(int(r.get("function", 0)), int(r.get("address", 0)), int(r.get("count", 0)),
-                                      r.get("result", "ok"), r.get("exception_code"), int(r.get("attempts", 1)))
-                        for r in d.get("requests") or [] if isinstance(r, dict)]
+        res = DeviceResult(
+            str(d.get("name", "?")),
+            str(d.get("url", "")),
+            int(d.get("unit") or 0),
+            str(d.get("profile", "")),
+            status=d.get("status", "ok"),
+            snapshot=d.get("snapshot"),
+            error=d.get("error"),
+            seconds=d.get("seconds"),
+            profile_ref=d.get("profile_ref"),
+            notices=notices,
+            recipe=d.get("recipe"),
+            batch=d.get("batch"),
+            commit=d.get("commit"),
+            profile_sha256=d.get("profile_sha256"),
+            identity={str(k): str(v) for k, v in d["identity"].items()}
+            if isinstance(d.get("identity"), dict)
+            else None,
+            learned={str(k): int(v) for k, v in (d.get("learned") or {}).items()},
+            seen=None if d.get("seen") is None else str(d["seen"]),
+        )
+        res.requests = [
+            RequestRecord(
+                int(r.get("function", 0)),
+                int(r.get("address", 0)),
+                int(r.get("count", 0)),
+                r.get("result", "ok"),
+                r.get("exception_code"),
+                int(r.get("attempts", 1)),
+            )
+            for r in d.get("requests") or []
+            if isinstance(r, dict)
+        ]
         for p in d.get("parameters") or []:
             if not isinstance(p, dict):
                 continue
@@ -635,10 +804,21 @@ def report_from_json(doc: dict[str, Any], profiles: Sequence[Profile] = ()) -> R
                 v = p.get(key)
                 return None if v is None else tuple(int(w) for w in v)
 
-            res.parameters.append(ParameterResult(
-                str(p.get("name", "?")), int(p.get("address", 0)), int(p.get("count", 0)), str(p.get("desired", "")),
-                raw("desired_raw") or (), raw("before_raw"), raw("after_raw"), p.get("status", "skipped"),
-                p.get("error"), str(p.get("register_type", "holding")), parameter=param))
+            res.parameters.append(
+                ParameterResult(
+                    str(p.get("name", "?")),
+                    int(p.get("address", 0)),
+                    int(p.get("count", 0)),
+                    str(p.get("desired", "")),
+                    raw("desired_raw") or (),
+                    raw("before_raw"),
+                    raw("after_raw"),
+                    p.get("status", "skipped"),
+                    p.get("error"),
+                    str(p.get("register_type", "holding")),
+                    parameter=param,
+                )
+            )
         devices.append(res)
     summary = doc.get("summary")
     seconds = float(summary.get("seconds") or 0.0) if isinstance(summary, dict) else 0.0
@@ -670,15 +850,27 @@ def check_report(path: str, data: Any, *, stream: bool = False) -> None:
     from .load import schema
 
     if data is not None:
-        if not isinstance(data, dict) or not isinstance(data.get("schema"), str) \
-                or not data["schema"].startswith("deployer.report/"):
-            raise InputError([Diagnostic(path, 1, 1, f"not a deployer report (no \"schema\": \"{REPORT_SCHEMA}\")")])
+        if (
+            not isinstance(data, dict)
+            or not isinstance(data.get("schema"), str)
+            or not data["schema"].startswith("deployer.report/")
+        ):
+            raise InputError([Diagnostic(path, 1, 1, f'not a deployer report (no "schema": "{REPORT_SCHEMA}")')])
         version = data["schema"].removeprefix("deployer.report/")
         current = int(REPORT_SCHEMA.rsplit("/", 1)[1])
         if not version.isdigit() or not 1 <= int(version) <= current:
-            raise InputError([Diagnostic(path, 1, 1, f"a report of version {clipped_repr(data['schema'])}: this "
-                                                     f"deployer reads versions 1 to {current} (deployer.report/"
-                                                     f"{current}); a newer deployer wrote it, or not deployer")])
+            raise InputError(
+                [
+                    Diagnostic(
+                        path,
+                        1,
+                        1,
+                        f"a report of version {clipped_repr(data['schema'])}: this "
+                        f"deployer reads versions 1 to {current} (deployer.report/"
+                        f"{current}); a newer deployer wrote it, or not deployer",
+                    )
+                ]
+            )
         if schema.is_valid({**data, "schema": REPORT_SCHEMA}, "report") is True:
             return
     raise InputError(_report_problems(path, data, stream=stream))
@@ -699,7 +891,7 @@ def _report_problems(path: str, data: Any, *, stream: bool) -> list[Diagnostic]:
             if data is None:
                 return list(e.diagnostics)
     if not isinstance(value, dict):
-        return [Diagnostic(path, 1, 1, f"not a deployer report (no \"schema\": \"{REPORT_SCHEMA}\")")]
+        return [Diagnostic(path, 1, 1, f'not a deployer report (no "schema": "{REPORT_SCHEMA}")')]
     found = schema.validate({**value, "schema": REPORT_SCHEMA}, "report", src)
 
     def numbers(v: Any, at: tuple[str | int, ...]) -> None:  # what JSON cannot hold as a float: 1e400
@@ -714,4 +906,3 @@ def _report_problems(path: str, data: Any, *, stream: bool) -> list[Diagnostic]:
 
     numbers(value, ())
     return found or [Diagnostic(path, 1, 1, "not a report deployer wrote (NaN, Infinity or a number out of range)")]
-

@@ -51,7 +51,7 @@ parameters:
 def write_site(tmp: Path, urls: dict[str, str], recipe: str = RECIPE, profile: str = PROFILE) -> Path:
     (tmp / "drive.yaml").write_text(profile)
     (tmp / "r.yaml").write_text(recipe)
-    lines = ["devices:"] + [f"  {n}: {{url: \"{u}\", recipe: r.yaml}}" for n, u in urls.items()]
+    lines = ["devices:"] + [f'  {n}: {{url: "{u}", recipe: r.yaml}}' for n, u in urls.items()]
     inv = tmp / "inv.yaml"
     inv.write_text("\n".join(lines) + "\n")
     return inv
@@ -60,14 +60,29 @@ def write_site(tmp: Path, urls: dict[str, str], recipe: str = RECIPE, profile: s
 class AgentProcess:
     """``deployer agent INVENTORY --listen 127.0.0.1:0 ...`` as a child process; ``url`` once it listens."""
 
-    def __init__(self, inventory: Path, state: Path, *args: str, check_every: str = "0.2s",
-                 first_restore_soak: str = "0") -> None:
+    def __init__(
+        self, inventory: Path, state: Path, *args: str, check_every: str = "0.2s", first_restore_soak: str = "0"
+    ) -> None:
         # the first restores' canary: its health read once after the write (the default watches it for 10 s)
-        cmd = [sys.executable, "-m", "deployer", "agent", str(inventory), "--state-dir", str(state),
-               "--listen", "127.0.0.1:0", "--check-every", check_every, "--first-restore-soak", first_restore_soak,
-               *args]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                     env=os.environ.copy())
+        cmd = [
+            sys.executable,
+            "-m",
+            "deployer",
+            "agent",
+            str(inventory),
+            "--state-dir",
+            str(state),
+            "--listen",
+            "127.0.0.1:0",
+            "--check-every",
+            check_every,
+            "--first-restore-soak",
+            first_restore_soak,
+            *args,
+        ]
+        self.proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy()
+        )
         self.lines: queue.Queue[str] = queue.Queue()
         self.stderr: list[str] = []
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -115,6 +130,7 @@ class AgentProcess:
 
         def option(name: str) -> str | None:
             return str(args[args.index(name) + 1]) if name in args else None
+
         token_file, cert = option("--token-file"), option("--tls-cert")
         state = option("--state-dir")
         if token_file is None and state is not None and "--users" not in args:  # the token it made itself

@@ -32,8 +32,10 @@ def socat_pair(tmp_path: Path) -> Iterator[tuple[str, str]]:
         from tests import comports
 
         if not comports.available():
-            pytest.skip("no virtual COM-port pair: make test-windows makes them under Wine; on a Windows machine "
-                        "none without com0com (an administrator's driver)")
+            pytest.skip(
+                "no virtual COM-port pair: make test-windows makes them under Wine; on a Windows machine "
+                "none without com0com (an administrator's driver)"
+            )
         with comports.ComPair() as pair:
             yield pair.a, pair.b
         return
@@ -50,8 +52,11 @@ def simulate_process(*args: str) -> tuple[subprocess.Popen[str], str, int]:
     import re
     import sys
 
-    proc = subprocess.Popen([sys.executable, "-m", "deployer", "simulate", *args, "--listen", "tcp://127.0.0.1:0"],
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "deployer", "simulate", *args, "--listen", "tcp://127.0.0.1:0"],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert proc.stderr is not None
     line = proc.stderr.readline()
     found = re.search(r" on (tcp://127\.0\.0\.1:(\d+)) ", line)
@@ -85,8 +90,14 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     server_crt, server_key = issue(d, "server", ca_key, ca_cert, server=True)
     client_crt, client_key = issue(d, "client", ca_key, ca_cert, server=False)
     other_ca, _, _ = make_ca(d, "other-ca")
-    return {"ca": ca, "server_crt": server_crt, "server_key": server_key, "client_crt": client_crt,
-            "client_key": client_key, "other_ca": other_ca}
+    return {
+        "ca": ca,
+        "server_crt": server_crt,
+        "server_key": server_key,
+        "client_crt": client_crt,
+        "client_key": client_key,
+        "other_ca": other_ca,
+    }
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -139,10 +150,12 @@ _WINDOWS_LACKS = (
 # on Windows itself they run. One entry per test; docs/windows.md reproduces this table (tests/test_docs.py checks).
 WINE_GAPS = {
     "test_scan_lists_serial_ports": "Wine 8 lacks Cfgmgr32.CM_MapCrToWin32Err, which pyserial's list_ports calls",
-    "test_port_held_by_another_process_is_unreachable_with_the_reason":
-        "Wine 8 opens a COM port for a second program, which Windows refuses (ERROR_ACCESS_DENIED)",
-    "test_the_agents_own_token_is_kept_to_its_owner_on_windows":
-        "Wine 8 keeps no access list given to a file (SetNamedSecurityInfoW succeeds and changes nothing)",
+    "test_port_held_by_another_process_is_unreachable_with_the_reason": (
+        "Wine 8 opens a COM port for a second program, which Windows refuses (ERROR_ACCESS_DENIED)"
+    ),
+    "test_the_agents_own_token_is_kept_to_its_owner_on_windows": (
+        "Wine 8 keeps no access list given to a file (SetNamedSecurityInfoW succeeds and changes nothing)"
+    ),
 }
 
 

@@ -23,8 +23,15 @@ def start(*args: str, cwd: str | None = None) -> subprocess.Popen[str]:
     """``deployer ARGS`` in a child whose console keys are ``press``'s: stdout and stderr piped, as text."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)}
-    return subprocess.Popen([sys.executable, "-m", "tests.console", "deployer", *args], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=env)
+    return subprocess.Popen(
+        [sys.executable, "-m", "tests.console", "deployer", *args],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=cwd,
+        env=env,
+    )
 
 
 def press(proc: subprocess.Popen[str], key: str) -> None:

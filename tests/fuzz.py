@@ -33,39 +33,191 @@ from pathlib import Path
 from xml.sax.saxutils import escape
 
 ROOT = Path(__file__).resolve().parent.parent
-TOKENS = ["&a ", "*a", "[", "]", "{", "}", ": ", "- ", "!!python/object:os.system ", "!!binary ", "<<: ", "? ",
-          "9" * 400, "1e999999999", "0x", "-", "\t", "\u2028", "\x00", "\ufeff", "'", '"', "#", "|", ">", "%YAML 1.2\n",
-          "---\n", "...\n", "~", "null", "yes", "1:30", ".nan", " ms", " degC", " furlong", "{raw: 1}",
-          "[" * 300, "extends: /dev/zero\n", "extends: fuzz-0.yaml\n", "profile: ../nope.yaml\n", "é", "\\u0000",
-          "010", "0o17", "-08", "1e-30", "device: {url: 'tcp://[::1'}\n", "device: {url: 'tcp://u:p@h#f'}\n",
-          "device: {url: 'tls://h?ca=/dev/zero&ca=x'}\n", "tcp://", "rtu+tcp://", "?timeout=", "&retries="]
+TOKENS = [
+    "&a ",
+    "*a",
+    "[",
+    "]",
+    "{",
+    "}",
+    ": ",
+    "- ",
+    "!!python/object:os.system ",
+    "!!binary ",
+    "<<: ",
+    "? ",
+    "9" * 400,
+    "1e999999999",
+    "0x",
+    "-",
+    "\t",
+    "\u2028",
+    "\x00",
+    "\ufeff",
+    "'",
+    '"',
+    "#",
+    "|",
+    ">",
+    "%YAML 1.2\n",
+    "---\n",
+    "...\n",
+    "~",
+    "null",
+    "yes",
+    "1:30",
+    ".nan",
+    " ms",
+    " degC",
+    " furlong",
+    "{raw: 1}",
+    "[" * 300,
+    "extends: /dev/zero\n",
+    "extends: fuzz-0.yaml\n",
+    "profile: ../nope.yaml\n",
+    "é",
+    "\\u0000",
+    "010",
+    "0o17",
+    "-08",
+    "1e-30",
+    "device: {url: 'tcp://[::1'}\n",
+    "device: {url: 'tcp://u:p@h#f'}\n",
+    "device: {url: 'tls://h?ca=/dev/zero&ca=x'}\n",
+    "tcp://",
+    "rtu+tcp://",
+    "?timeout=",
+    "&retries=",
+]
 
 
-CSV_TOKENS = [",", ";", "\t", '"', '""', "\n", "\r\n", "0x", "FFh", "-1", "3,000", "0,5", "1.000,5", "inf", "NaN",
-              "1e-999999999", "9" * 400, "0.01 s", "0 to 40000", "0...100 %", "0-400.00", "10 furlong", "=1/10",
-              "'=cmd", "@SUM(1)", "U16", "FLOAT", "STRING", "BOOL", "RW", "0=ramp;1=coast", "3..5", "\x00", "é",
-              "\u2028", "X: {register: 7}", "," * 300]
-XML_TOKENS = ["<", ">", "</row>", "<row>", '<c r="XFD1">', "<c>", "</c>", "<v>", "</v>", "<f>1/10</f>",
-              '<c t="s"><v>99', '<c t="inlineStr"><is><t>', "</t></is>", 'r="1048576"', 'r="A0"', "&amp;", "&#0;",
-              "<!DOCTYPE x>", "\x00", "é", "9" * 400]
-JSON_TOKENS = ["{", "}", "[", "]", ",", ":", '"', '"count": 100000000', '"count": -5', '"count": 0', '"count": "N"',
-               '"sf": 1000000000', '"sf": "Nope_SF"', '"size": 0', '"size": 99999', '"type": "string"',
-               '"type": "pad"', '"name": "X: {register: 7}"', '"value": 1e999', "null", "true", "9" * 400, "\\u0000"]
+CSV_TOKENS = [
+    ",",
+    ";",
+    "\t",
+    '"',
+    '""',
+    "\n",
+    "\r\n",
+    "0x",
+    "FFh",
+    "-1",
+    "3,000",
+    "0,5",
+    "1.000,5",
+    "inf",
+    "NaN",
+    "1e-999999999",
+    "9" * 400,
+    "0.01 s",
+    "0 to 40000",
+    "0...100 %",
+    "0-400.00",
+    "10 furlong",
+    "=1/10",
+    "'=cmd",
+    "@SUM(1)",
+    "U16",
+    "FLOAT",
+    "STRING",
+    "BOOL",
+    "RW",
+    "0=ramp;1=coast",
+    "3..5",
+    "\x00",
+    "é",
+    "\u2028",
+    "X: {register: 7}",
+    "," * 300,
+]
+XML_TOKENS = [
+    "<",
+    ">",
+    "</row>",
+    "<row>",
+    '<c r="XFD1">',
+    "<c>",
+    "</c>",
+    "<v>",
+    "</v>",
+    "<f>1/10</f>",
+    '<c t="s"><v>99',
+    '<c t="inlineStr"><is><t>',
+    "</t></is>",
+    'r="1048576"',
+    'r="A0"',
+    "&amp;",
+    "&#0;",
+    "<!DOCTYPE x>",
+    "\x00",
+    "é",
+    "9" * 400,
+]
+JSON_TOKENS = [
+    "{",
+    "}",
+    "[",
+    "]",
+    ",",
+    ":",
+    '"',
+    '"count": 100000000',
+    '"count": -5',
+    '"count": 0',
+    '"count": "N"',
+    '"sf": 1000000000',
+    '"sf": "Nope_SF"',
+    '"size": 0',
+    '"size": 99999',
+    '"type": "string"',
+    '"type": "pad"',
+    '"name": "X: {register: 7}"',
+    '"value": 1e999',
+    "null",
+    "true",
+    "9" * 400,
+    "\\u0000",
+]
 
 
 def vendor_csv(rnd: random.Random, rows: int = 12) -> str:
     """A vendor register list of the kinds issue #22 describes (units in cells, ranges, odd headers)."""
-    head = rnd.choice([["name", "address", "type", "unit", "scale", "min", "max", "access"],
-                       ["Parameter", "Reg", "Data Type", "Resolution", "Setting range", "R/W", "Remark"],
-                       ["Tag", "Modbus address", "Format", "Units", "Factor", "Low", "High", "Values", "Bits"]])
+    head = rnd.choice(
+        [
+            ["name", "address", "type", "unit", "scale", "min", "max", "access"],
+            ["Parameter", "Reg", "Data Type", "Resolution", "Setting range", "R/W", "Remark"],
+            ["Tag", "Modbus address", "Format", "Units", "Factor", "Low", "High", "Values", "Bits"],
+        ]
+    )
     sep = rnd.choice([",", ";", "\t"])
     out = [sep.join(head)]
     for i in range(rows):
-        cells = {"name": f"P{i:03d}", "parameter": f"P{i:03d}", "tag": f"P{i:03d}", "address": str(100 + i),
-                 "reg": f"{100 + i:04X}h", "modbus address": str(40001 + i), "type": "U16", "data type": "S16",
-                 "format": "FLOAT", "unit": "s", "units": "Hz", "scale": "0.1", "resolution": "0.01 s",
-                 "factor": "1", "min": "0", "max": "100", "setting range": "0 to 400.00", "low": "-10",
-                 "high": "10", "access": "RW", "r/w": "R", "remark": "x", "values": "0=off;1=on", "bits": ""}
+        cells = {
+            "name": f"P{i:03d}",
+            "parameter": f"P{i:03d}",
+            "tag": f"P{i:03d}",
+            "address": str(100 + i),
+            "reg": f"{100 + i:04X}h",
+            "modbus address": str(40001 + i),
+            "type": "U16",
+            "data type": "S16",
+            "format": "FLOAT",
+            "unit": "s",
+            "units": "Hz",
+            "scale": "0.1",
+            "resolution": "0.01 s",
+            "factor": "1",
+            "min": "0",
+            "max": "100",
+            "setting range": "0 to 400.00",
+            "low": "-10",
+            "high": "10",
+            "access": "RW",
+            "r/w": "R",
+            "remark": "x",
+            "values": "0=off;1=on",
+            "bits": "",
+        }
         out.append(sep.join(cells.get(h.lower(), "") for h in head))
     return "\n".join(out) + "\n"
 
@@ -74,23 +226,39 @@ def import_corpus() -> dict[str, list[tuple[str, str]]]:
     """Seeds of the importers: CSV register lists, sheet XML of workbooks, SunSpec model files."""
     rnd = random.Random(0)
     csvs = [(f"vendor-{i}.csv", vendor_csv(rnd)) for i in range(6)]
-    csvs += [(p.name, p.read_text(encoding="utf-8", errors="replace")) for p in sorted(
-        (ROOT / "tests" / "bad" / "import").glob("*.csv")) if p.stat().st_size < 20_000]
+    csvs += [
+        (p.name, p.read_text(encoding="utf-8", errors="replace"))
+        for p in sorted((ROOT / "tests" / "bad" / "import").glob("*.csv"))
+        if p.stat().st_size < 20_000
+    ]
     sheets = []
     for name, text in csvs[:6]:
         sep = max(",;\t", key=text.splitlines()[0].count)
         rows = list(csv.reader(io.StringIO(text), delimiter=sep))
-        sheets.append((name.replace(".csv", ".xlsx"), "".join(
-            f'<row r="{r}">' + "".join(f'<c r="{chr(65 + c)}{r}" t="inlineStr"><is><t>{escape(cell)}</t></is></c>'
-                                       for c, cell in enumerate(row)) + "</row>\n"
-            for r, row in enumerate(rows, 1))))
+        sheets.append(
+            (
+                name.replace(".csv", ".xlsx"),
+                "".join(
+                    f'<row r="{r}">'
+                    + "".join(
+                        f'<c r="{chr(65 + c)}{r}" t="inlineStr"><is><t>{escape(cell)}</t></is></c>'
+                        for c, cell in enumerate(row)
+                    )
+                    + "</row>\n"
+                    for r, row in enumerate(rows, 1)
+                ),
+            )
+        )
     bad = ROOT / "tests" / "bad" / "import"
     models = [(p.name, p.read_text(encoding="utf-8")) for p in sorted(bad.glob("*.json"))]
     try:
         from deployer.profile.importers.sunspec import models_dir
 
-        models += [(p.name, p.read_text(encoding="utf-8")) for p in sorted(Path(models_dir()).glob("model_*.json"))
-                   if p.stat().st_size < 12_000][:40]
+        models += [
+            (p.name, p.read_text(encoding="utf-8"))
+            for p in sorted(Path(models_dir()).glob("model_*.json"))
+            if p.stat().st_size < 12_000
+        ][:40]
     except Exception:  # pysunspec2 is an optional extra
         pass
     return {"csv": csvs, "xlsx": sheets, "sunspec": models}
@@ -111,7 +279,7 @@ def mutate(text: str, rnd: random.Random, tokens: list[str] = TOKENS) -> str:
         op = rnd.randrange(7)
         if op == 0 and text:  # flip a character
             i = rnd.randrange(len(text))
-            text = text[:i] + chr(rnd.choice([rnd.randrange(32, 127), rnd.randrange(0, 0x3000)])) + text[i + 1:]
+            text = text[:i] + chr(rnd.choice([rnd.randrange(32, 127), rnd.randrange(0, 0x3000)])) + text[i + 1 :]
         elif op == 1:  # drop a line
             del lines[rnd.randrange(len(lines))]
             text = "".join(lines)
@@ -169,8 +337,13 @@ def _import_one(kind: str, text: str, work: Path, n: int) -> Path:
     return path
 
 
-def fuzz(files: int, seconds: float, seed: int, keep: str | None = None,
-         kinds: tuple[str, ...] = ("yaml", "csv", "xlsx", "sunspec")) -> dict[str, object]:
+def fuzz(
+    files: int,
+    seconds: float,
+    seed: int,
+    keep: str | None = None,
+    kinds: tuple[str, ...] = ("yaml", "csv", "xlsx", "sunspec"),
+) -> dict[str, object]:
     rnd = random.Random(seed)
     seeds = corpus() if "yaml" in kinds else []
     imports = {k: v for k, v in import_corpus().items() if k in kinds and v}
@@ -207,8 +380,13 @@ def fuzz(files: int, seconds: float, seed: int, keep: str | None = None,
                     kept = Path(keep or work) / f"crash-{len(crashes)}{path.suffix}"
                     kept.parent.mkdir(parents=True, exist_ok=True)
                     shutil.copy(path, kept)
-                    crashes.append({"seed_file": name, "kept": str(kept),
-                                    "error": "".join(traceback.format_exception_only(type(e), e)).strip()[-500:]})
+                    crashes.append(
+                        {
+                            "seed_file": name,
+                            "kept": str(kept),
+                            "error": "".join(traceback.format_exception_only(type(e), e)).strip()[-500:],
+                        }
+                    )
                 dt = time.monotonic() - t0
                 if dt > slowest[0]:
                     slowest = (dt, name)
@@ -229,8 +407,13 @@ def fuzz(files: int, seconds: float, seed: int, keep: str | None = None,
                 kept = Path(keep or work) / f"crash-{len(crashes)}.yaml"
                 kept.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copy(path, kept)
-                crashes.append({"seed_file": name, "kept": str(kept),
-                                "error": "".join(traceback.format_exception_only(type(e), e)).strip()[-500:]})
+                crashes.append(
+                    {
+                        "seed_file": name,
+                        "kept": str(kept),
+                        "error": "".join(traceback.format_exception_only(type(e), e)).strip()[-500:],
+                    }
+                )
             dt = time.monotonic() - t0
             if dt > slowest[0]:
                 slowest = (dt, name)
@@ -239,12 +422,19 @@ def fuzz(files: int, seconds: float, seed: int, keep: str | None = None,
     finally:
         if not crashes:
             shutil.rmtree(work, ignore_errors=True)
-    return {"files_tried": tried, "per_kind": per_kind,
-            "valid_recipes_planned": valid, "mutants_imported": imported, "crashes": len(crashes),
-            "crash_details": crashes,
-            "seconds": round(time.monotonic() - start, 1), "slowest_file_seconds": round(slowest[0], 3),
-            "slowest_seed": slowest[1],
-            "peak_rss_mb": round(_peak_rss_kb() / 1024, 1), "seed": seed}
+    return {
+        "files_tried": tried,
+        "per_kind": per_kind,
+        "valid_recipes_planned": valid,
+        "mutants_imported": imported,
+        "crashes": len(crashes),
+        "crash_details": crashes,
+        "seconds": round(time.monotonic() - start, 1),
+        "slowest_file_seconds": round(slowest[0], 3),
+        "slowest_seed": slowest[1],
+        "peak_rss_mb": round(_peak_rss_kb() / 1024, 1),
+        "seed": seed,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -253,13 +443,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=600)
     ap.add_argument("--seed", type=int, default=int(os.environ.get("FUZZ_SEED", "1")))
     ap.add_argument("--keep", help="directory for crashing files")
-    ap.add_argument("--kinds", default="yaml,csv,xlsx,sunspec", help="what to fuzz: yaml (validate, plan), csv, "
-                    "xlsx, sunspec (profiles import)")
+    ap.add_argument(
+        "--kinds",
+        default="yaml,csv,xlsx,sunspec",
+        help="what to fuzz: yaml (validate, plan), csv, xlsx, sunspec (profiles import)",
+    )
     args = ap.parse_args(argv)
     res = fuzz(args.files, args.seconds, args.seed, args.keep, tuple(k.strip() for k in args.kinds.split(",")))
     print(json.dumps(res, indent=2))
     return 1 if res["crashes"] else 0
-
 
 
 def _peak_rss_kb() -> int:

@@ -34,7 +34,6 @@ def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
 run_cli = cli  # its name in tests written before there was one cli(); new tests say cli
 
 
-
 @contextmanager
 def pty_pair(folder: Path, name: str = "tty") -> Iterator[tuple[str, str]]:
     """Two linked pseudo-terminals made by socat (a null-modem cable): (FOLDER/NAMEA, FOLDER/NAMEB)."""
@@ -44,8 +43,11 @@ def pty_pair(folder: Path, name: str = "tty") -> Iterator[tuple[str, str]]:
     if shutil.which("socat") is None:
         pytest.skip("socat is not installed (CI installs it: apt-get install socat)")
     a, b = str(folder / f"{name}A"), str(folder / f"{name}B")
-    proc = subprocess.Popen(["socat", "-d", "-d", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        ["socat", "-d", "-d", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.monotonic() + 5
     while not (os.path.exists(a) and os.path.exists(b)):
         if time.monotonic() > deadline or proc.poll() is not None:
@@ -119,6 +121,7 @@ def run_with(sim: Simulator, body: Callable[[Simulator], Awaitable[T]]) -> T:
     async def main() -> T:
         async with sim:
             return await body(sim)
+
     return asyncio.run(main())
 
 
@@ -136,7 +139,7 @@ async def _cancel_the_rest() -> None:
 class Simulators:
     """Many simulators served by one event loop in one background thread (fleet tests).
 
-        with Simulators([Simulator(prof) for _ in range(50)]) as sims: ... sims[0].url ...
+    with Simulators([Simulator(prof) for _ in range(50)]) as sims: ... sims[0].url ...
     """
 
     def __init__(self, sims: list[Simulator]) -> None:
@@ -147,6 +150,7 @@ class Simulators:
     def _each(self, method: str) -> None:
         async def all_of() -> None:
             await asyncio.gather(*(getattr(s, method)() for s in self.sims))
+
         asyncio.run_coroutine_threadsafe(all_of(), self._loop).result(timeout=60)
 
     def __enter__(self) -> list[Simulator]:
@@ -167,10 +171,17 @@ class Simulators:
 
 
 @contextmanager
-def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None, *,
-                   maximum: dict[int, int] | None = None, max_write: int = 0, all_or_nothing: bool = False,
-                   fc06_only: bool = False, wire: list[tuple[int, int, int]] | None = None,
-                   connections: int = 1) -> Iterator[int]:
+def umodbus_server(
+    store: dict[int, int],
+    coils: dict[int, int] | None = None,
+    *,
+    maximum: dict[int, int] | None = None,
+    max_write: int = 0,
+    all_or_nothing: bool = False,
+    fc06_only: bool = False,
+    wire: list[tuple[int, int, int]] | None = None,
+    connections: int = 1,
+) -> Iterator[int]:
     """A device from another library (umodbus, Modbus/TCP on 127.0.0.1, unit 1); yields its port.
 
     Holding registers are ``store`` (functions 3, 6 and 16), coils ``coils`` (1, 5 and 15). It knows no
@@ -202,7 +213,7 @@ def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None, *
                     return bytes(pack_exception_pdu(16, 1))
                 if max_write and count > max_write:
                     return bytes(pack_exception_pdu(16, 3))
-                values = struct.unpack(f">{count}H", request_pdu[6:6 + 2 * count])
+                values = struct.unpack(f">{count}H", request_pdu[6 : 6 + 2 * count])
                 if all_or_nothing and any(v > limits.get(address + i, 0xFFFF) for i, v in enumerate(values)):
                     return bytes(pack_exception_pdu(16, 3))
             out: bytes = super().execute_route(meta_data, request_pdu)
@@ -210,8 +221,9 @@ def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None, *
 
     conf.SIGNED_VALUES = False
     socketserver.TCPServer.allow_reuse_address = True
-    server = get_server(socketserver.ThreadingTCPServer if connections > 1 else socketserver.TCPServer,
-                        ("127.0.0.1", 0), Quirky)
+    server = get_server(
+        socketserver.ThreadingTCPServer if connections > 1 else socketserver.TCPServer, ("127.0.0.1", 0), Quirky
+    )
 
     @server.route(slave_ids=[1], function_codes=[3], addresses=list(store))  # type: ignore[untyped-decorator]
     def read(slave_id: int, function_code: int, address: int) -> int:
@@ -224,6 +236,7 @@ def umodbus_server(store: dict[int, int], coils: dict[int, int] | None = None, *
         store[address] = value
 
     if coils:
+
         @server.route(slave_ids=[1], function_codes=[1], addresses=list(coils))  # type: ignore[untyped-decorator]
         def read_coil(slave_id: int, function_code: int, address: int) -> int:
             return coils[address]

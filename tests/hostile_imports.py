@@ -71,33 +71,47 @@ def _head(r: int = 1) -> bytes:
 
 def xlsx_dimension_bomb(path: Path) -> None:
     """<dimension ref="A1:XFD1048576"/> and one cell at XFD1048576 (openpyxl's read-only rows pad to it)."""
-    write_xlsx(path, _sheet([_head(), _row(2, [("A2", "speed"), ("B2", "1"), ("C2", "U16")]),
-                             b'<row r="1048576"><c r="XFD1048576"><v>1</v></c></row>'], "A1:XFD1048576"))
+    write_xlsx(
+        path,
+        _sheet(
+            [
+                _head(),
+                _row(2, [("A2", "speed"), ("B2", "1"), ("C2", "U16")]),
+                b'<row r="1048576"><c r="XFD1048576"><v>1</v></c></row>',
+            ],
+            "A1:XFD1048576",
+        ),
+    )
 
 
 def xlsx_rows(path: Path, n: int = 5_000_000) -> None:
     """``n`` identical rows (5M: 1.8 MB on disk, 200 MB of XML)."""
+
     def rows() -> Iterable[bytes]:
         yield _head()
         chunk = b"".join(f'<row r="{r}"><c r="A{r}"><v>1</v></c></row>'.encode() for r in range(2, 1002))
         for _ in range(n // 1000):
             yield chunk  # row numbers repeat per chunk: what counts is how many rows there are
+
     write_xlsx(path, _sheet(rows()))
 
 
 def xlsx_shared_string(path: Path, size: int = 400_000_000) -> None:
     """One shared string of ``size`` characters (400 MB in a 394 KB file)."""
+
     def strings() -> Iterable[bytes]:
         yield f'<?xml version="1.0" encoding="UTF-8"?>\n<sst {NS} count="1" uniqueCount="1"><si><t>'.encode()
         block = b"a" * (1 << 20)
         for _ in range(size // len(block)):
             yield block
         yield b"</t></si></sst>"
+
     write_xlsx(path, _sheet([_head(), b'<row r="2"><c r="A2" t="s"><v>0</v></c></row>']), strings())
 
 
 def xlsx_wide_row(path: Path, cells: int = 2_000_000) -> None:
     """A row of ``cells`` empty-valued cells (styled cells without values), within the zip bound."""
+
     def rows() -> Iterable[bytes]:
         yield _head()
         yield b'<row r="2">'
@@ -105,16 +119,23 @@ def xlsx_wide_row(path: Path, cells: int = 2_000_000) -> None:
         for _ in range(cells // 10_000):
             yield block
         yield b"</row>"
+
     write_xlsx(path, _sheet(rows()))
 
 
 def xlsx_formula(path: Path) -> None:
     """A resolution cell holding the formula =1/10 without a saved value (files written by scripts)."""
-    write_xlsx(path, _sheet([
-        _row(1, [("A1", "name"), ("B1", "address"), ("C1", "type"), ("D1", "unit"), ("E1", "scale")]),
-        b'<row r="2"><c r="A2" t="inlineStr"><is><t>F07</t></is></c><c r="B2"><v>4354</v></c>'
-        b'<c r="C2" t="inlineStr"><is><t>U16</t></is></c><c r="D2" t="inlineStr"><is><t>s</t></is></c>'
-        b'<c r="E2"><f>1/10</f></c></row>']))
+    write_xlsx(
+        path,
+        _sheet(
+            [
+                _row(1, [("A1", "name"), ("B1", "address"), ("C1", "type"), ("D1", "unit"), ("E1", "scale")]),
+                b'<row r="2"><c r="A2" t="inlineStr"><is><t>F07</t></is></c><c r="B2"><v>4354</v></c>'
+                b'<c r="C2" t="inlineStr"><is><t>U16</t></is></c><c r="D2" t="inlineStr"><is><t>s</t></is></c>'
+                b'<c r="E2"><f>1/10</f></c></row>',
+            ]
+        ),
+    )
 
 
 def xlsx_column_far_right(path: Path) -> None:
@@ -161,14 +182,41 @@ def csv_largest_valid(path: Path, n: int = 65_536) -> None:
 
 def sunspec_inner_count(path: Path, count: int = 100_000_000) -> None:
     """A 444-byte model whose curve's points repeat ``count`` times."""
-    path.write_text(json.dumps({"id": 64990, "group": {"name": "bomb", "type": "group", "points": [
-        {"name": "ID", "type": "uint16", "size": 1, "value": 64990, "mandatory": "M", "static": "S"},
-        {"name": "L", "type": "uint16", "size": 1, "mandatory": "M", "static": "S"}],
-        "groups": [{"name": "Crv", "type": "group", "count": 1, "points": [
-            {"name": "ActPt", "type": "uint16", "size": 1}],
-            "groups": [{"name": "Pt", "type": "group", "count": count, "points": [
-                {"name": "V", "type": "uint16", "size": 1}, {"name": "Var", "type": "int16", "size": 1}]}]}]}},
-        indent=1))
+    path.write_text(
+        json.dumps(
+            {
+                "id": 64990,
+                "group": {
+                    "name": "bomb",
+                    "type": "group",
+                    "points": [
+                        {"name": "ID", "type": "uint16", "size": 1, "value": 64990, "mandatory": "M", "static": "S"},
+                        {"name": "L", "type": "uint16", "size": 1, "mandatory": "M", "static": "S"},
+                    ],
+                    "groups": [
+                        {
+                            "name": "Crv",
+                            "type": "group",
+                            "count": 1,
+                            "points": [{"name": "ActPt", "type": "uint16", "size": 1}],
+                            "groups": [
+                                {
+                                    "name": "Pt",
+                                    "type": "group",
+                                    "count": count,
+                                    "points": [
+                                        {"name": "V", "type": "uint16", "size": 1},
+                                        {"name": "Var", "type": "int16", "size": 1},
+                                    ],
+                                }
+                            ],
+                        }
+                    ],
+                },
+            },
+            indent=1,
+        )
+    )
 
 
 @dataclass(frozen=True)
@@ -185,28 +233,88 @@ class Worst:
 
 
 WORST = [
-    Worst("xlsx_dimension_bomb", "dim.xlsx", xlsx_dimension_bomb, ("xlsx", "{f}", "--id", "x"),
-          "[Sheet1]:1048576:16384: error: a cell in column 16,384"),
-    Worst("xlsx_5M_rows", "rows.xlsx", xlsx_rows, ("xlsx", "{f}", "--id", "x"), "the workbook unpacks to",
-          quick=lambda p: xlsx_rows(p, 1_000_000)),
-    Worst("xlsx_400MB_shared_string", "sst.xlsx", xlsx_shared_string, ("xlsx", "{f}", "--id", "x"),
-          "the workbook unpacks to", quick=lambda p: xlsx_shared_string(p, 40_000_000)),
-    Worst("xlsx_2M_empty_cells_in_a_row", "wide.xlsx", xlsx_wide_row, ("xlsx", "{f}", "--id", "x"),
-          "more than 2,000,000 cells, empty ones included"),
-    Worst("csv_row_of_30M_cells", "cells.csv", csv_cells, ("csv", "{f}", "--id", "x"),
-          ":2:1: error: a row of more than 1,048,576 characters"),
-    Worst("csv_8MB_header_of_commas", "commas.csv", csv_header_of_commas, ("csv", "{f}", "--id", "x"),
-          ":1:1: error: a row of more than 1,048,576 characters"),
-    Worst("csv_1M_rows", "rows.csv", csv_rows, ("csv", "{f}", "--id", "x"),
-          ":65538:1: error: more than 65,536 register rows", quick=lambda p: csv_rows(p, 70_000)),
-    Worst("csv_1M_column_header", "header.csv", csv_header_columns, ("csv", "{f}", "--id", "x"),
-          ":1:1: error: a row of more than 1,048,576 characters"),
-    Worst("csv_65536_rows_valid", "valid.csv", csv_largest_valid, ("csv", "{f}", "--id", "x", "-o", "{f}.yaml"),
-          "profile x with", 0, quick=lambda p: csv_largest_valid(p, 5000)),
-    Worst("sunspec_inner_count_1e8", "bomb.json", sunspec_inner_count, ("sunspec", "{f}"),
-          "group Pt: count 100000000 repeats past register 65535"),
-    Worst("sunspec_705_count_Pt_1e8", "", lambda p: None, ("sunspec", "705", "--count", "Crv=1", "--count",
-                                                          "Pt=100000000"), "a group repeats 1 to 65535 times"),
+    Worst(
+        "xlsx_dimension_bomb",
+        "dim.xlsx",
+        xlsx_dimension_bomb,
+        ("xlsx", "{f}", "--id", "x"),
+        "[Sheet1]:1048576:16384: error: a cell in column 16,384",
+    ),
+    Worst(
+        "xlsx_5M_rows",
+        "rows.xlsx",
+        xlsx_rows,
+        ("xlsx", "{f}", "--id", "x"),
+        "the workbook unpacks to",
+        quick=lambda p: xlsx_rows(p, 1_000_000),
+    ),
+    Worst(
+        "xlsx_400MB_shared_string",
+        "sst.xlsx",
+        xlsx_shared_string,
+        ("xlsx", "{f}", "--id", "x"),
+        "the workbook unpacks to",
+        quick=lambda p: xlsx_shared_string(p, 40_000_000),
+    ),
+    Worst(
+        "xlsx_2M_empty_cells_in_a_row",
+        "wide.xlsx",
+        xlsx_wide_row,
+        ("xlsx", "{f}", "--id", "x"),
+        "more than 2,000,000 cells, empty ones included",
+    ),
+    Worst(
+        "csv_row_of_30M_cells",
+        "cells.csv",
+        csv_cells,
+        ("csv", "{f}", "--id", "x"),
+        ":2:1: error: a row of more than 1,048,576 characters",
+    ),
+    Worst(
+        "csv_8MB_header_of_commas",
+        "commas.csv",
+        csv_header_of_commas,
+        ("csv", "{f}", "--id", "x"),
+        ":1:1: error: a row of more than 1,048,576 characters",
+    ),
+    Worst(
+        "csv_1M_rows",
+        "rows.csv",
+        csv_rows,
+        ("csv", "{f}", "--id", "x"),
+        ":65538:1: error: more than 65,536 register rows",
+        quick=lambda p: csv_rows(p, 70_000),
+    ),
+    Worst(
+        "csv_1M_column_header",
+        "header.csv",
+        csv_header_columns,
+        ("csv", "{f}", "--id", "x"),
+        ":1:1: error: a row of more than 1,048,576 characters",
+    ),
+    Worst(
+        "csv_65536_rows_valid",
+        "valid.csv",
+        csv_largest_valid,
+        ("csv", "{f}", "--id", "x", "-o", "{f}.yaml"),
+        "profile x with",
+        0,
+        quick=lambda p: csv_largest_valid(p, 5000),
+    ),
+    Worst(
+        "sunspec_inner_count_1e8",
+        "bomb.json",
+        sunspec_inner_count,
+        ("sunspec", "{f}"),
+        "group Pt: count 100000000 repeats past register 65535",
+    ),
+    Worst(
+        "sunspec_705_count_Pt_1e8",
+        "",
+        lambda p: None,
+        ("sunspec", "705", "--count", "Crv=1", "--count", "Pt=100000000"),
+        "a group repeats 1 to 65535 times",
+    ),
 ]
 
 
@@ -219,21 +327,30 @@ CORPUS: dict[str, Callable[[Path], None]] = {
     "xlsx-too-many-rows.xlsx": xlsx_too_many_rows,
     "xlsx-shared-string-40MB.xlsx": lambda p: xlsx_shared_string(p, 40_000_000),
     "sunspec-inner-count.json": sunspec_inner_count,
-    "sunspec-negative-count.json": lambda p: _model(p, [], [{"name": "Crv", "type": "group", "count": -5, "points": [
-        {"name": "V", "type": "uint16", "size": 1}]}]),
-    "sunspec-point-name-injection.json": lambda p: _model(p, [
-        {"name": "X: {register: 7, type: uint16, access: read-write}\n  Z", "type": "uint16", "size": 1}]),
+    "sunspec-negative-count.json": lambda p: _model(
+        p, [], [{"name": "Crv", "type": "group", "count": -5, "points": [{"name": "V", "type": "uint16", "size": 1}]}]
+    ),
+    "sunspec-point-name-injection.json": lambda p: _model(
+        p, [{"name": "X: {register: 7, type: uint16, access: read-write}\n  Z", "type": "uint16", "size": 1}]
+    ),
     "sunspec-long-name.json": lambda p: _model(p, [{"name": "W" * 2000, "type": "uint16", "size": 1}]),
-    "sunspec-sf-too-large.json": lambda p: _model(p, [{"name": "W", "type": "uint16", "size": 1,
-                                                       "sf": 1000000000, "units": "W"}]),
+    "sunspec-sf-too-large.json": lambda p: _model(
+        p, [{"name": "W", "type": "uint16", "size": 1, "sf": 1000000000, "units": "W"}]
+    ),
 }
 
 
 def _model(path: Path, points: list[dict[str, object]], groups: list[dict[str, object]] | None = None) -> None:
     """A model definition of id 64991 with ID, L and ``points`` (and ``groups``), one key per line."""
-    group: dict[str, object] = {"name": "hostile", "type": "group", "points": [
-        {"name": "ID", "type": "uint16", "size": 1, "value": 64991, "mandatory": "M", "static": "S"},
-        {"name": "L", "type": "uint16", "size": 1, "mandatory": "M", "static": "S"}, *points]}
+    group: dict[str, object] = {
+        "name": "hostile",
+        "type": "group",
+        "points": [
+            {"name": "ID", "type": "uint16", "size": 1, "value": 64991, "mandatory": "M", "static": "S"},
+            {"name": "L", "type": "uint16", "size": 1, "mandatory": "M", "static": "S"},
+            *points,
+        ],
+    }
     if groups:
         group["groups"] = groups
     path.write_text(json.dumps({"id": 64991, "group": group}, indent=1) + "\n")

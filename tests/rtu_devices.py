@@ -56,8 +56,13 @@ class Device:
     """An RTU device on a byte stream: holding registers, a log of every request frame received,
     and a rule for each answer (late, wrong unit, ...)."""
 
-    def __init__(self, regs: dict[int, int], *, delay: Callable[[int], float] = lambda i: 0.0,
-                 answer: Answer = lambda i, req, good: good) -> None:
+    def __init__(
+        self,
+        regs: dict[int, int],
+        *,
+        delay: Callable[[int], float] = lambda i: 0.0,
+        answer: Answer = lambda i, req, good: good,
+    ) -> None:
         self.regs = dict(regs)
         self.frames: list[bytes] = []
         self.delay = delay
@@ -76,7 +81,7 @@ class Device:
         elif fc == 16:
             addr, n = struct.unpack(">HH", req[2:6])
             for i in range(n):
-                self.regs[addr + i] = struct.unpack(">H", req[7 + 2 * i:9 + 2 * i])[0]
+                self.regs[addr + i] = struct.unpack(">H", req[7 + 2 * i : 9 + 2 * i])[0]
             pdu = req[1:6]
         else:  # a function this device does not have: exception 01, as a real one answers
             pdu = bytes([fc | 0x80, 1])
@@ -179,9 +184,10 @@ def on_pty(dev: Device, path: str) -> Iterator[None]:
 
     def read() -> bytes:
         if sys.platform == "win32":  # polled, as pymodbus polls a COM port (Wine ends a read that times out
-            got = port.read(256)     # with ERROR_TIMEOUT, where Windows returns the bytes that came)
+            got = port.read(256)  # with ERROR_TIMEOUT, where Windows returns the bytes that came)
             return got or (time.sleep(0.001) or b"")
         return bytes(port.read(256))
+
     t = threading.Thread(target=dev.serve, args=(read, port.write), daemon=True)
     t.start()
     try:
@@ -217,6 +223,7 @@ def on_tcp(dev: Device) -> Iterator[int]:
                 if not data:
                     raise ConnectionError
                 return data
+
             try:
                 dev.serve(read, conn.sendall)
             except OSError:

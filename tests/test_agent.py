@@ -33,8 +33,12 @@ def external_write(sim: Simulator, address: int, value: int) -> None:
     port = sim.url.rsplit(":", 1)[1]
     if shutil.which("mbpoll") is None:  # pragma: no cover - installed where the suite runs
         pytest.skip("mbpoll is not installed")
-    subprocess.run(["mbpoll", "-m", "tcp", "-a", "1", "-t", "4", "-r", str(address), "-0", "-p", port,
-                    "127.0.0.1", str(value)], check=True, capture_output=True, timeout=20)
+    subprocess.run(
+        ["mbpoll", "-m", "tcp", "-a", "1", "-t", "4", "-r", str(address), "-0", "-p", port, "127.0.0.1", str(value)],
+        check=True,
+        capture_output=True,
+        timeout=20,
+    )
 
 
 def test_drift_made_externally_is_found_and_restored(tmp_path: Path, sim: Simulator) -> None:
@@ -81,9 +85,16 @@ def test_drift_only_reported_and_metrics_parse(tmp_path: Path, sim: Simulator) -
         assert event(c, "restored") is None
         text = c.metrics()
         fams = {f.name: f for f in text_string_to_metric_families(text)}
-        for name in ("deployer_device_status", "deployer_device_drifted", "deployer_drift_events",
-                     "deployer_drift_restores", "deployer_device_replaced", "deployer_register_writes",
-                     "deployer_last_check_timestamp_seconds", "deployer_pending_windows"):
+        for name in (
+            "deployer_device_status",
+            "deployer_device_drifted",
+            "deployer_drift_events",
+            "deployer_drift_restores",
+            "deployer_device_replaced",
+            "deployer_register_writes",
+            "deployer_last_check_timestamp_seconds",
+            "deployer_pending_windows",
+        ):
             assert name in fams, name
 
         def value(fam: str, **labels: str) -> float:
@@ -113,9 +124,25 @@ def test_a_plain_apply_to_an_owned_device_is_refused_nothing_sent(tmp_path: Path
     try:
         until(lambda: agent.client.device("d1")["last_check"], why="a check")
         seen = len(sim.log)
-        cli = subprocess.run([sys.executable, "-m", "deployer", "apply", str(tmp_path / "r.yaml"), "--device", sim.url,
-                              "--yes", "--lock-timeout", "30", "--state-dir", str(tmp_path / "cli")],
-                             capture_output=True, text=True, timeout=60)
+        cli = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "apply",
+                str(tmp_path / "r.yaml"),
+                "--device",
+                sim.url,
+                "--yes",
+                "--lock-timeout",
+                "30",
+                "--state-dir",
+                str(tmp_path / "cli"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert cli.returncode == 3, cli.stderr
         said = cli.stdout + cli.stderr
         assert f"owned by the deployer agent at {agent.url}" in said and "--agent" in said, said
@@ -126,8 +153,23 @@ def test_a_plain_apply_to_an_owned_device_is_refused_nothing_sent(tmp_path: Path
     finally:
         agent.kill()
     # the agent gone, its locks went with it: the same apply goes through
-    ok = subprocess.run([sys.executable, "-m", "deployer", "apply", str(tmp_path / "r.yaml"), "--device", sim.url,
-                         "--yes", "--state-dir", str(tmp_path / "cli")], capture_output=True, text=True, timeout=60)
+    ok = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "deployer",
+            "apply",
+            str(tmp_path / "r.yaml"),
+            "--device",
+            sim.url,
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "cli"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert ok.returncode == 0, ok.stderr
 
 
@@ -150,17 +192,48 @@ def test_api_errors_are_json_and_a_second_agent_is_refused(tmp_path: Path, sim: 
         with pytest.raises(AgentError) as e:  # the files changed since the client looked: nothing sent
             c.start_run(files_sha256="0" * 64)
         assert e.value.kind == "conflict" and "changed since you looked" in str(e.value)
-        asked = subprocess.run([sys.executable, "-m", "deployer", "apply", "--agent", agent.url],
-                               capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+        asked = subprocess.run(
+            [sys.executable, "-m", "deployer", "apply", "--agent", agent.url],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            stdin=subprocess.DEVNULL,
+        )
         assert asked.returncode == 1 and "pass --yes" in asked.stderr
         assert c.runs() == []
-        second = subprocess.run([sys.executable, "-m", "deployer", "agent", str(inv), "--state-dir",
-                                 str(tmp_path / "state"), "--listen", "127.0.0.1:0"],
-                                capture_output=True, text=True, timeout=60)
+        second = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "agent",
+                str(inv),
+                "--state-dir",
+                str(tmp_path / "state"),
+                "--listen",
+                "127.0.0.1:0",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert second.returncode == 1 and "another agent runs on the state folder" in second.stderr
-        wide = subprocess.run([sys.executable, "-m", "deployer", "agent", str(inv), "--state-dir",
-                               str(tmp_path / "other"), "--listen", "0.0.0.0:0"],
-                              capture_output=True, text=True, timeout=60)
+        wide = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "agent",
+                str(inv),
+                "--state-dir",
+                str(tmp_path / "other"),
+                "--listen",
+                "0.0.0.0:0",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert wide.returncode == 1 and "loopback only" in wide.stderr
         assert agent.terminate() == 0
     finally:
@@ -236,13 +309,28 @@ devices:
             agent.kill()
     bad = tmp_path / "bad.yaml"
     bad.write_text(inv.read_text().replace("check_every: 200ms", "check_every: soon"))
-    out = subprocess.run([sys.executable, "-m", "deployer", "agent", str(bad), "--state-dir", str(tmp_path / "s2"),
-                          "--listen", "127.0.0.1:0"], capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "deployer",
+            "agent",
+            str(bad),
+            "--state-dir",
+            str(tmp_path / "s2"),
+            "--listen",
+            "127.0.0.1:0",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 1 and "bad.yaml:5:" in out.stderr and "check_every" in out.stderr, out.stderr
 
 
-def test_sighup_reads_the_files_again_and_a_device_that_keeps_drifting_is_not_fought(tmp_path: Path,
-                                                                                      sim: Simulator) -> None:
+def test_sighup_reads_the_files_again_and_a_device_that_keeps_drifting_is_not_fought(
+    tmp_path: Path, sim: Simulator
+) -> None:
     import signal
 
     inv = write_site(tmp_path, {"d1": sim.url})
@@ -317,8 +405,10 @@ def test_watching_keeps_to_its_share_of_a_bus(tmp_path: Path) -> None:
         port = sim.url.rsplit(":", 1)[1]
         write_site(tmp_path, {})
         inv = tmp_path / "inv.yaml"
-        inv.write_text("defaults: {recipe: r.yaml}\ndevices:\n" + "".join(
-            f"  d{u}: {{url: \"tcp://127.0.0.1:{port}\", unit: {u}}}\n" for u in (1, 2, 3)))
+        inv.write_text(
+            "defaults: {recipe: r.yaml}\ndevices:\n"
+            + "".join(f'  d{u}: {{url: "tcp://127.0.0.1:{port}", unit: {u}}}\n' for u in (1, 2, 3))
+        )
         agent = AgentProcess(inv, tmp_path / "state", "--bus-share", "0.2", check_every="100ms")
         try:
             until(lambda: all(d["last_check"] for d in agent.client.devices()), why="all read")

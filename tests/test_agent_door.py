@@ -44,8 +44,9 @@ def sim(tmp_path: Path) -> Iterator[Simulator]:
 def curl(*args: str) -> tuple[int, dict[str, Any]]:
     """curl as the issue's attacker ran it: (HTTP status, the JSON answer)."""
     assert CURL is not None
-    p = subprocess.run([CURL, "-s", "-o", "-", "-w", "\n%{http_code}", *args], capture_output=True, text=True,
-                       timeout=60)
+    p = subprocess.run(
+        [CURL, "-s", "-o", "-", "-w", "\n%{http_code}", *args], capture_output=True, text=True, timeout=60
+    )
     body, _, status = p.stdout.rpartition("\n")
     return int(status), json.loads(body) if body.strip() else {}
 
@@ -81,8 +82,21 @@ def test_a_cross_origin_post_starts_nothing_with_or_without_the_token(tmp_path: 
         assert curl(*json_evil, *auth, "--data", "{}", url + "/v1/reload")[0] == 403
         # the same origin on another port is another origin; "null" (a sandboxed frame, a file) too
         for origin in ("http://127.0.0.1:1", "null", f"https://127.0.0.1:{port}", f"http://127.0.0.1:{port}/x"):
-            assert curl("-X", "POST", "-H", "Content-Type: application/json", "-H", f"Origin: {origin}", *auth,
-                        "--data", "{}", url + "/v1/runs")[0] == 403, origin
+            assert (
+                curl(
+                    "-X",
+                    "POST",
+                    "-H",
+                    "Content-Type: application/json",
+                    "-H",
+                    f"Origin: {origin}",
+                    *auth,
+                    "--data",
+                    "{}",
+                    url + "/v1/runs",
+                )[0]
+                == 403
+            ), origin
         # a simple request without an Origin (an old browser, a form posted from a file) lacks the content type
         status, body = curl("-X", "POST", "-H", "Content-Type: text/plain", *auth, "--data", "{}", url + "/v1/runs")
         said = body["error"]["message"]
@@ -92,8 +106,21 @@ def test_a_cross_origin_post_starts_nothing_with_or_without_the_token(tmp_path: 
         # DNS rebinding: a hostile name resolved to 127.0.0.1, the browser's own origin then: the Host tells
         status, body = curl("-H", f"Host: evil.example:{port}", *auth, url + "/v1/devices")
         assert status == 403 and "DNS rebinding" in body["error"]["message"]
-        assert curl("-X", "POST", "-H", f"Host: evil.example:{port}", "-H", "Content-Type: application/json", *auth,
-                    "--data", "{}", url + "/v1/runs")[0] == 403
+        assert (
+            curl(
+                "-X",
+                "POST",
+                "-H",
+                f"Host: evil.example:{port}",
+                "-H",
+                "Content-Type: application/json",
+                *auth,
+                "--data",
+                "{}",
+                url + "/v1/runs",
+            )[0]
+            == 403
+        )
         assert curl("-H", "Host: 127.0.0.1:1", *auth, url + "/v1/devices")[0] == 403  # another port
         assert curl("-H", "Sec-Fetch-Site: cross-site", *auth, url + "/v1/devices")[0] == 403
         nothing_ran(c, sim)
@@ -105,12 +132,28 @@ def test_a_cross_origin_post_starts_nothing_with_or_without_the_token(tmp_path: 
         assert origin_rec["detail"]["origin"] == "http://evil.example" and origin_rec["detail"]["path"] == "/v1/runs"
 
         # the agent's own names and origin pass: the same request with them starts the run
-        for host in (f"localhost:{port}", f"127.0.0.1:{port}", f"[::1]:{port}", f"gw-line3.example:{port}",
-                     f"GW-LINE3.example:{port}", f"{socket.gethostname()}:{port}"):
+        for host in (
+            f"localhost:{port}",
+            f"127.0.0.1:{port}",
+            f"[::1]:{port}",
+            f"gw-line3.example:{port}",
+            f"GW-LINE3.example:{port}",
+            f"{socket.gethostname()}:{port}",
+        ):
             assert curl("-H", f"Host: {host}", *auth, url + "/v1/agent")[0] == 200, host
         assert curl("-H", f"Host: gw-line4.example:{port}", *auth, url + "/v1/agent")[0] == 403  # not given
-        status, body = curl("-X", "POST", "-H", "Content-Type: application/json", "-H", f"Origin: {url}", *auth,
-                            "--data", '{"confirm_within": "10m"}', url + "/v1/runs")
+        status, body = curl(
+            "-X",
+            "POST",
+            "-H",
+            "Content-Type: application/json",
+            "-H",
+            f"Origin: {url}",
+            *auth,
+            "--data",
+            '{"confirm_within": "10m"}',
+            url + "/v1/runs",
+        )
         assert status == 202, body
         until(lambda: c.windows(), why="the run waits in its window")
         assert writes_in_log(sim.log) != {}  # the control: this one did reach the device
@@ -146,10 +189,26 @@ Promise.all([
 
 def chromium(url: str, profile: Path, *more: str) -> str:
     assert CHROMIUM is not None
-    p = subprocess.run([CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                        "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                        f"--user-data-dir={profile}", "--virtual-time-budget=15000", *more, "--dump-dom", url],
-                       capture_output=True, text=True, timeout=150)
+    p = subprocess.run(
+        [
+            CHROMIUM,
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            f"--user-data-dir={profile}",
+            "--virtual-time-budget=15000",
+            *more,
+            "--dump-dom",
+            url,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=150,
+    )
     assert p.returncode == 0, p.stderr
     return p.stdout
 
@@ -173,8 +232,11 @@ def test_a_hostile_page_in_chromium_starts_nothing(tmp_path: Path, sim: Simulato
     can, even with the token (as if it had leaked); and a rebound name loads the agent's page as its own."""
     inv = write_site(tmp_path, {"d1": sim.url})
     agent = AgentProcess(inv, tmp_path / "state")
-    handler = type("Hostile", (_Hostile,), {"page": HOSTILE.replace("AGENT", agent.url)
-                                             .replace("TOKEN", str(agent.client.token)).encode()})
+    handler = type(
+        "Hostile",
+        (_Hostile,),
+        {"page": HOSTILE.replace("AGENT", agent.url).replace("TOKEN", str(agent.client.token)).encode()},
+    )
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
@@ -192,8 +254,11 @@ def test_a_hostile_page_in_chromium_starts_nothing(tmp_path: Path, sim: Simulato
 
         # DNS rebinding: evil.example resolves to 127.0.0.1, so the agent's page would be evil.example's own
         port = agent.url.rsplit(":", 1)[1]
-        dom = chromium(f"http://evil.example:{port}/#token={c.token}", tmp_path / "profile2",
-                       "--host-resolver-rules=MAP evil.example 127.0.0.1")
+        dom = chromium(
+            f"http://evil.example:{port}/#token={c.token}",
+            tmp_path / "profile2",
+            "--host-resolver-rules=MAP evil.example 127.0.0.1",
+        )
         assert "is not this agent's name" in dom and "data-ready" not in dom, dom
         assert refused(c, "host") >= 1
         nothing_ran(c, sim)
@@ -213,8 +278,11 @@ def test_the_agents_own_token_is_kept_to_its_owner_on_windows(tmp_path: Path) ->
 
     path, new = local_token.ensure(str(tmp_path))
     said = portable.access_list(path) or ""
-    assert new and said.startswith("D:P") and sorted(re.findall(r"\([^)]*\)", said)) == sorted(
-        re.findall(r"\([^)]*\)", portable.PRIVATE_SDDL)), said  # not inherited; these three, nobody else
+    assert (
+        new
+        and said.startswith("D:P")
+        and sorted(re.findall(r"\([^)]*\)", said)) == sorted(re.findall(r"\([^)]*\)", portable.PRIVATE_SDDL))
+    ), said  # not inherited; these three, nobody else
 
 
 def test_an_agent_given_no_token_makes_one_and_its_users_clients_find_it(tmp_path: Path, sim: Simulator) -> None:
@@ -232,16 +300,31 @@ def test_an_agent_given_no_token_makes_one_and_its_users_clients_find_it(tmp_pat
         status, _, body = raw(agent.url + "/v1/devices")
         assert status == 401 and error_of(body)["kind"] == "unauthorized"
         env = {k: v for k, v in os.environ.items() if k != "DEPLOYER_AGENT_TOKEN"}
-        cli = subprocess.run([sys.executable, "-m", "deployer", "status", "--agent", agent.url], capture_output=True,
-                             text=True, timeout=60, env=env)
+        cli = subprocess.run(
+            [sys.executable, "-m", "deployer", "status", "--agent", agent.url],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=env,
+        )
         assert cli.returncode in (0, 2) and "d1" in cli.stdout, cli.stderr
         # another user's clients (another runtime folder here) find nothing, and are refused
         other = {**env, "DEPLOYER_RUNTIME_DIR": str(tmp_path / "elsewhere")}
-        cli = subprocess.run([sys.executable, "-m", "deployer", "status", "--agent", agent.url], capture_output=True,
-                             text=True, timeout=60, env=other)
+        cli = subprocess.run(
+            [sys.executable, "-m", "deployer", "status", "--agent", agent.url],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=other,
+        )
         assert cli.returncode == 1 and "needs its token" in cli.stderr and "Traceback" not in cli.stderr
-        cli = subprocess.run([sys.executable, "-m", "deployer", "status", "--agent", agent.url,
-                              "--agent-token-file", str(made)], capture_output=True, text=True, timeout=60, env=other)
+        cli = subprocess.run(
+            [sys.executable, "-m", "deployer", "status", "--agent", agent.url, "--agent-token-file", str(made)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=other,
+        )
         assert cli.returncode in (0, 2) and "d1" in cli.stdout, cli.stderr
         note = Path(os.environ["DEPLOYER_RUNTIME_DIR"]) / f"agent-{agent.url.rsplit(':', 1)[1]}.json"
         assert json.loads(note.read_text())["token_file"] == str(made)
@@ -256,7 +339,7 @@ def test_an_agent_given_no_token_makes_one_and_its_users_clients_find_it(tmp_pat
         assert f"(kept, {local_token.PROTECTION})" in again.log() and again.client.token == token
         port = again.url.rsplit(":", 1)[1]
         note = Path(os.environ["DEPLOYER_RUNTIME_DIR"]) / f"agent-{port}.json"
-        note.write_text(json.dumps({"url": again.url, "pid": 2 ** 22 + 1, "token_file": str(made)}))
+        note.write_text(json.dumps({"url": again.url, "pid": 2**22 + 1, "token_file": str(made)}))
         assert Agent(again.url).token is None
         with pytest.raises(AgentError) as e:
             Agent(again.url).devices()
@@ -265,8 +348,12 @@ def test_an_agent_given_no_token_makes_one_and_its_users_clients_find_it(tmp_pat
     finally:
         again.kill()
     # beyond loopback only with a token given (and TLS)
-    p = subprocess.run([sys.executable, "-m", "deployer", "agent", str(inv), "--state-dir", str(state), "--listen",
-                        "0.0.0.0:0"], capture_output=True, text=True, timeout=60)
+    p = subprocess.run(
+        [sys.executable, "-m", "deployer", "agent", str(inv), "--state-dir", str(state), "--listen", "0.0.0.0:0"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert p.returncode == 1 and "without --token-file or --users the agent listens on loopback only" in p.stderr
 
 

@@ -38,9 +38,13 @@ def site(tmp: Path, trip_a: bool = False) -> Iterator[tuple[Path, dict[str, Simu
     sims = [Simulator(pa, faults=trip) for _ in A] + [Simulator(pb)]
     with Simulators(sims):
         inv = tmp / "inv.yaml"
-        inv.write_text("devices:\n" + "".join(
-            f"  {n}: {{url: \"{s.url}\", recipe: {'rb' if n == 'b1' else 'ra'}.yaml}}\n"
-            for n, s in zip(NAMES, sims, strict=True)))
+        inv.write_text(
+            "devices:\n"
+            + "".join(
+                f'  {n}: {{url: "{s.url}", recipe: {"rb" if n == "b1" else "ra"}.yaml}}\n'
+                for n, s in zip(NAMES, sims, strict=True)
+            )
+        )
         yield inv, dict(zip(NAMES, sims, strict=True))
 
 
@@ -74,8 +78,9 @@ def test_the_first_restores_go_one_device_of_each_profile_first(tmp_path: Path) 
 def test_a_failing_canary_stops_the_first_restores_and_notifies(tmp_path: Path) -> None:
     receiver = Receiver()
     with site(tmp_path, trip_a=True) as (inv, sims):
-        agent = AgentProcess(inv, tmp_path / "state", "--on-drift", "restore", "--notify", receiver.url,
-                             first_restore_soak="1s")
+        agent = AgentProcess(
+            inv, tmp_path / "state", "--on-drift", "restore", "--notify", receiver.url, first_restore_soak="1s"
+        )
         try:
             c = agent.client
             stopped = until(lambda: event(c, "restores-stopped"), why="the restores stopped", timeout=60)
@@ -109,7 +114,7 @@ def test_an_apply_through_the_agent_keeps_health_before_the_change(tmp_path: Pat
     (tmp_path / "ra.yaml").write_text(RECIPE.format(name="ra", profile="a.yaml"))
     prof = load_profile(str(tmp_path / "a.yaml"))
     with Simulators([Simulator(prof, init={40: 3})]) as (sim,):
-        (tmp_path / "inv.yaml").write_text(f"devices:\n  d1: {{url: \"{sim.url}\", recipe: ra.yaml}}\n")
+        (tmp_path / "inv.yaml").write_text(f'devices:\n  d1: {{url: "{sim.url}", recipe: ra.yaml}}\n')
         agent = AgentProcess(tmp_path / "inv.yaml", tmp_path / "state")
         try:
             c = agent.client
@@ -118,8 +123,9 @@ def test_an_apply_through_the_agent_keeps_health_before_the_change(tmp_path: Pat
             end = c.apply(command="apply", soak="200ms", health_interval="100ms")
             (dev,) = end["report"]["devices"]
             assert end["exit_code"] == 4 and dev["status"] == "failed"
-            assert dev["error"].startswith("health check already failing before the change: register 0x0028 "
-                                           "(fault code is zero) is 3, expected 0")
+            assert dev["error"].startswith(
+                "health check already failing before the change: register 0x0028 (fault code is zero) is 3, expected 0"
+            )
             assert writes(list(sim.log)) == []
             end = c.apply(command="apply", soak="200ms", health_interval="100ms", allow_unhealthy=True)
             assert end["exit_code"] == 0 and sim.read("accel") == (20,)

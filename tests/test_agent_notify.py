@@ -100,8 +100,20 @@ def test_each_event_kind_is_posted_retried_and_never_holds_up_the_devices(tmp_pa
     rec = Receiver()
     dead = f"http://127.0.0.1:{dead_port()}/hook"  # a receiver that never answers holds up no other
     inv = write_site(tmp_path, {"d1": sim.url})
-    agent = AgentProcess(inv, tmp_path / "state", "--on-drift", "restore", "--on-replace", "restore",
-                         "--endurance-warn", "0.001", "--notify", rec.url, "--notify", dead)
+    agent = AgentProcess(
+        inv,
+        tmp_path / "state",
+        "--on-drift",
+        "restore",
+        "--on-replace",
+        "restore",
+        "--endurance-warn",
+        "0.001",
+        "--notify",
+        rec.url,
+        "--notify",
+        dead,
+    )
     second = None
     try:
         c = agent.client
@@ -110,8 +122,10 @@ def test_each_event_kind_is_posted_retried_and_never_holds_up_the_devices(tmp_pa
         end = c.apply(write_all=True)
         assert end["exit_code"] == 0, end
         run = c.start_run(write_all=True, confirm_within="0.3s")["id"]  # never confirmed: it expires
-        until(lambda: any(b["kind"] == "window-expired" and b["detail"]["run"] == run for b in rec.got),
-              why="window-expired posted")
+        until(
+            lambda: any(b["kind"] == "window-expired" and b["detail"]["run"] == run for b in rec.got),
+            why="window-expired posted",
+        )
         assert {"run-finished", "window-waiting", "endurance-warning"} <= rec.kinds()
 
         # a receiver that hangs: the run goes on and ends; what waits is sent once it answers again
@@ -120,25 +134,36 @@ def test_each_event_kind_is_posted_retried_and_never_holds_up_the_devices(tmp_pa
         assert end["exit_code"] == 0 and not rec.release.is_set()
         assert not any(b["kind"] == "run-finished" and b["detail"]["run"] == end["run"] for b in rec.got)
         rec.release.set()
-        until(lambda: any(b["kind"] == "run-finished" and b["detail"]["run"] == end["run"] for b in rec.got),
-              why="the run's end posted after the receiver came back")
+        until(
+            lambda: any(b["kind"] == "run-finished" and b["detail"]["run"] == end["run"] for b in rec.got),
+            why="the run's end posted after the receiver came back",
+        )
 
         # a receiver that is down (connection refused): the run is not held up; retried until it is up again
         rec.down()
         end = c.apply(write_all=True)
         assert end["exit_code"] == 0
-        until(lambda: any(line.startswith(f"agent: notify {rec.url}: ") and "retrying with back-off" in line
-                          for line in agent.stderr), why="the agent says it retries")
+        until(
+            lambda: any(
+                line.startswith(f"agent: notify {rec.url}: ") and "retrying with back-off" in line
+                for line in agent.stderr
+            ),
+            why="the agent says it retries",
+        )
         rec.up()
-        until(lambda: any(b["kind"] == "run-finished" and b["detail"]["run"] == end["run"] for b in rec.got),
-              why="the run's end posted once the receiver was up again")
+        until(
+            lambda: any(b["kind"] == "run-finished" and b["detail"]["run"] == end["run"] for b in rec.got),
+            why="the run's end posted once the receiver was up again",
+        )
         until(lambda: f"notify {rec.url}: delivered again" in agent.log(), why="the agent says so")  # after the answer
 
         # a receiver that fails (HTTP 503): the same event is sent again, with back-off, until it is taken
         rec.fail = 2
         sim.write("accel", [77])
-        drift = until(lambda: [b for b in rec.got if b["kind"] == "drift" and b["id"] > end_id(rec, end["run"])],
-                      why="the second drift posted")[0]
+        drift = until(
+            lambda: [b for b in rec.got if b["kind"] == "drift" and b["id"] > end_id(rec, end["run"])],
+            why="the second drift posted",
+        )[0]
         assert sum(1 for a in rec.attempts if a["id"] == drift["id"]) == 3
 
         # the drive is swapped for another unit of the same model: replaced (and restored)
@@ -153,8 +178,11 @@ def test_each_event_kind_is_posted_retried_and_never_holds_up_the_devices(tmp_pa
         ids = [b["id"] for b in rec.got]
         assert ids == sorted(ids) and len(set(ids)) == len(ids)  # in order, each once
         assert ids == [e["id"] for e in c.events(limit=10000) if e["id"] in set(ids)]
-        metrics = {(f.name, tuple(sm.labels.values())): sm.value
-                   for f in text_string_to_metric_families(c.metrics()) for sm in f.samples}
+        metrics = {
+            (f.name, tuple(sm.labels.values())): sm.value
+            for f in text_string_to_metric_families(c.metrics())
+            for sm in f.samples
+        }
         assert 10 <= metrics[("deployer_notify_sent", (rec.url,))] <= len(rec.got)
         assert metrics[("deployer_notify_failing", (dead,))] == 1.0
         assert metrics[("deployer_notify_waiting", (dead,))] >= len(rec.got)  # the dead one: all of them wait
@@ -203,6 +231,18 @@ def test_a_receiver_behind_basic_auth_gets_it_and_the_password_is_shown_nowhere(
         assert labels and all("s3cret" not in x and "ops:***@" in x for x in labels)
 
     asyncio.run(main())
-    assert seen == [("Basic " + base64.b64encode(b"ops:s3cret").decode(),
-                     {"version": 1, "agent": "http://127.0.0.1:8470", "id": 1, "time": "t", "device": "d1",
-                      "kind": "drift", "message": "m", "detail": {}})]
+    assert seen == [
+        (
+            "Basic " + base64.b64encode(b"ops:s3cret").decode(),
+            {
+                "version": 1,
+                "agent": "http://127.0.0.1:8470",
+                "id": 1,
+                "time": "t",
+                "device": "d1",
+                "kind": "drift",
+                "message": "m",
+                "detail": {},
+            },
+        )
+    ]

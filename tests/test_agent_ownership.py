@@ -33,8 +33,9 @@ def deployer(*args: str, lock_dir: Path | None) -> subprocess.CompletedProcess[s
     env = {k: v for k, v in os.environ.items() if k != lock.ENV}
     if lock_dir is not None:
         env[lock.ENV] = str(lock_dir)
-    return subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=60,
-                          env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=60, env=env
+    )
 
 
 @contextmanager
@@ -52,8 +53,16 @@ def test_an_apply_with_another_lock_folder_is_refused_nothing_sent(tmp_path: Pat
     """The agent runs with the test's DEPLOYER_LOCK_DIR; the shell's apply is given another one."""
     with owned(tmp_path, sim) as agent:
         seen = len(sim.log)
-        cli = deployer("apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--state-dir",
-                       str(tmp_path / "cli"), lock_dir=tmp_path / "another-lock-folder")
+        cli = deployer(
+            "apply",
+            str(tmp_path / "r.yaml"),
+            "--device",
+            sim.url,
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "cli"),
+            lock_dir=tmp_path / "another-lock-folder",
+        )
         assert cli.returncode == 3, cli.stderr
         said = " ".join((cli.stdout + cli.stderr).split())
         assert f"owned by the deployer agent at {agent.url}" in said and "--agent" in said, said
@@ -62,40 +71,79 @@ def test_an_apply_with_another_lock_folder_is_refused_nothing_sent(tmp_path: Pat
         assert [e for e in sim.log[seen:] if e.function in WRITES] == []
         assert (tmp_path / "another-lock-folder").is_dir()  # the apply took its own lock there: not enough
         assert agent.terminate() == 0
-    ok = deployer("apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--state-dir",
-                  str(tmp_path / "cli"), lock_dir=tmp_path / "another-lock-folder")
+    ok = deployer(
+        "apply",
+        str(tmp_path / "r.yaml"),
+        "--device",
+        sim.url,
+        "--yes",
+        "--state-dir",
+        str(tmp_path / "cli"),
+        lock_dir=tmp_path / "another-lock-folder",
+    )
     assert ok.returncode == 0, ok.stderr  # the agent gone, its marks went with it
 
 
 def test_a_broadcast_with_another_lock_folder_is_refused(tmp_path: Path, sim: Simulator) -> None:
     with owned(tmp_path, sim) as agent:
         seen = len(sim.log)
-        cli = deployer("apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--unit", "0", "--allow-broadcast",
-                       "--yes", "--state-dir", str(tmp_path / "cli"), lock_dir=tmp_path / "another")
+        cli = deployer(
+            "apply",
+            str(tmp_path / "r.yaml"),
+            "--device",
+            sim.url,
+            "--unit",
+            "0",
+            "--allow-broadcast",
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "cli"),
+            lock_dir=tmp_path / "another",
+        )
         said = " ".join((cli.stdout + cli.stderr).split())
         assert cli.returncode == 3 and "the site agent at " + agent.url in said, said
         assert [e for e in sim.log[seen:] if e.function in WRITES] == []
 
 
-def test_a_device_being_written_under_another_lock_folder_is_not_taken_by_an_agent(tmp_path: Path,
-                                                                                     sim: Simulator) -> None:
+def test_a_device_being_written_under_another_lock_folder_is_not_taken_by_an_agent(
+    tmp_path: Path, sim: Simulator
+) -> None:
     """A run holds its mark until its window ends: an agent starting meanwhile (restoring drift) does not own the
     device and writes nothing to it, then owns it once the run is over and restores the files' state."""
     inv = write_site(tmp_path, {"d1": sim.url})
     (tmp_path / "other.yaml").write_text((tmp_path / "r.yaml").read_text().replace("accel: 2 s", "accel: 4 s"))
     env = {k: v for k, v in os.environ.items() if k != lock.ENV}
     env[lock.ENV] = str(tmp_path / "shell-locks")
-    run = subprocess.Popen([sys.executable, "-m", "deployer", "apply", str(tmp_path / "other.yaml"), "--device",
-                            sim.url, "--yes", "--confirm-within", "1h", "--state-dir", str(tmp_path / "cli")],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    run = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "deployer",
+            "apply",
+            str(tmp_path / "other.yaml"),
+            "--device",
+            sim.url,
+            "--yes",
+            "--confirm-within",
+            "1h",
+            "--state-dir",
+            str(tmp_path / "cli"),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     agent: AgentProcess | None = None
     try:
         until(lambda: sim.read("accel") == (40,), why="the run's write")
         written = len([e for e in sim.log if e.function in WRITES])
         agent = AgentProcess(inv, tmp_path / "state", "--on-drift", "restore")
         c = agent.client
-        d1 = until(lambda: c.device("d1") if c.device("d1")["status"] == "not-owned" else None,
-                   why="not owned while the run holds it")
+        d1 = until(
+            lambda: c.device("d1") if c.device("d1")["status"] == "not-owned" else None,
+            why="not owned while the run holds it",
+        )
         assert "a run on this machine is writing it" in d1["not_owned"]
         checks = c.info()["checks"]
         until(lambda: c.info()["checks"] >= checks + 3, why="more rounds of checks")
@@ -129,10 +177,19 @@ def test_a_run_leaves_no_mark_behind(tmp_path: Path, sim: Simulator) -> None:
 
     from deployer.transport.clients import parse_url
 
-    names = [hashlib.sha256(lock.device_key(b, 1).encode()).hexdigest()[:24] + ".lock"
-             for b in parse_url(sim.url).lock_keys]
+    names = [
+        hashlib.sha256(lock.device_key(b, 1).encode()).hexdigest()[:24] + ".lock" for b in parse_url(sim.url).lock_keys
+    ]
     write_site(tmp_path, {"d1": sim.url})
-    ok = deployer("apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--state-dir",
-                  str(tmp_path / "cli"), lock_dir=tmp_path / "locks")
+    ok = deployer(
+        "apply",
+        str(tmp_path / "r.yaml"),
+        "--device",
+        sim.url,
+        "--yes",
+        "--state-dir",
+        str(tmp_path / "cli"),
+        lock_dir=tmp_path / "locks",
+    )
     assert ok.returncode == 0, ok.stderr
     assert names and not [n for n in names if os.path.exists(os.path.join(lock.owner_dir(), n))]

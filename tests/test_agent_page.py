@@ -15,8 +15,10 @@ from deployer.testing.simulator import SimulatorThread
 from tests.agent_helpers import PROFILE, RECIPE, AgentProcess, until
 from tests.test_pages import CHROMIUM, Elements, browser
 
-pytestmark = [pytest.mark.timeout(180),
-              pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (CI installs it: apt-get install chromium)")]
+pytestmark = [
+    pytest.mark.timeout(180),
+    pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (CI installs it: apt-get install chromium)"),
+]
 
 TOKEN = "page-token-0123456789abcdef"
 # device names are plain words (the inventory says so); what else a user names is not: the site's folder
@@ -31,8 +33,13 @@ def test_the_live_page_shows_devices_drift_windows_pending_and_events(tmp_path: 
     with SimulatorThread(prof) as s1, SimulatorThread(prof) as s2:
         (tmp_path / "r.yaml").write_text(RECIPE)
         inv = tmp_path / "inv.yaml"
-        inv.write_text("devices:\n" + "".join(f"  {json.dumps(n)}: {{url: {json.dumps(u)}, recipe: r.yaml}}\n"
-                                             for n, u in (("d1", s1.url), ("d2", s2.url))))
+        inv.write_text(
+            "devices:\n"
+            + "".join(
+                f"  {json.dumps(n)}: {{url: {json.dumps(u)}, recipe: r.yaml}}\n"
+                for n, u in (("d1", s1.url), ("d2", s2.url))
+            )
+        )
         (tmp_path / "token").write_text(TOKEN + "\n")
         agent = AgentProcess(inv, tmp_path / "state", "--token-file", str(tmp_path / "token"))
         try:
@@ -69,10 +76,15 @@ def test_the_live_page_shows_devices_drift_windows_pending_and_events(tmp_path: 
             assert "<title>deployer agent</title>" in proc.stdout  # no script of the name ran
             windows = [r for r in doc.all("tr") if r.get("data-run") == run]
             assert windows and "d2" in windows[0]["cells"][2]  # type: ignore[index]
-            pending = [list(r["cells"]) for r in doc.all("tr")  # type: ignore[call-overload]
-                       if r.get("data-device") and "dev" not in str(r.get("class"))]
-            assert sorted(p for p in pending if p[1] == "speed") == [["d1", "speed", "3000 rpm", "2500 rpm"],
-                                                                  ["d2", "speed", "3000 rpm", "2500 rpm"]], pending
+            pending = [
+                list(r["cells"])  # type: ignore[call-overload]
+                for r in doc.all("tr")
+                if r.get("data-device") and "dev" not in str(r.get("class"))
+            ]
+            assert sorted(p for p in pending if p[1] == "speed") == [
+                ["d1", "speed", "3000 rpm", "2500 rpm"],
+                ["d2", "speed", "3000 rpm", "2500 rpm"],
+            ], pending
             kinds = {r.get("data-kind") for r in doc.all("tr") if r.get("data-kind")}
             assert {"started", "drift", "window-waiting", "reload"} <= kinds, kinds
 

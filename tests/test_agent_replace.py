@@ -73,6 +73,7 @@ def test_replaced_device_restored_per_unit_untouched_other_model_refused(tmp_pat
         third = on_port(prof, port, quirks=Quirks(identity={0: "ACME", 1: "D200", 2: "3.0"}))
         other = third.sim
         try:
+
             def by_model() -> list[dict[str, Any]]:  # (a socket the agent connected to itself while the port
                 # was free answers nonsense, refused as another kind of device: not this event)
                 return [e for e in c.events(kind="replace-refused", device="d1") if "another model" in e["message"]]
@@ -124,13 +125,23 @@ def test_endurance_warns_then_refuses_unless_forced(tmp_path: Path) -> None:
             end = c.apply(write_all=True)
             assert end["exit_code"] == 0
             before = len(sim.log)
-            refused = subprocess.run([sys.executable, "-m", "deployer", "apply", "--yes", "--write-all"],
-                                     capture_output=True, text=True, timeout=60, env=env)
+            refused = subprocess.run(
+                [sys.executable, "-m", "deployer", "apply", "--yes", "--write-all"],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                env=env,
+            )
             assert refused.returncode == 1 and "past the rated endurance" in refused.stderr, refused.stderr
             assert "--force-endurance" in refused.stderr
             assert [e for e in sim.log[before:] if e.function in (6, 16)] == []
-            forced = subprocess.run([sys.executable, "-m", "deployer", "apply", "--yes", "--write-all",
-                                     "--force-endurance"], capture_output=True, text=True, timeout=60, env=env)
+            forced = subprocess.run(
+                [sys.executable, "-m", "deployer", "apply", "--yes", "--write-all", "--force-endurance"],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                env=env,
+            )
             assert forced.returncode == 0, forced.stderr
             assert agent.terminate() == 0
         finally:

@@ -37,8 +37,13 @@ def sim(tmp_path: Path) -> Iterator[Simulator]:
         yield s
 
 
-def raw(url: str, method: str = "GET", body: bytes | None = None, headers: dict[str, str] | None = None,
-        context: ssl.SSLContext | None = None) -> tuple[int, dict[str, str], bytes]:
+def raw(
+    url: str,
+    method: str = "GET",
+    body: bytes | None = None,
+    headers: dict[str, str] | None = None,
+    context: ssl.SSLContext | None = None,
+) -> tuple[int, dict[str, str], bytes]:
     req = urllib.request.Request(url, data=body, method=method, headers=headers or {})
     try:
         with urllib.request.urlopen(req, timeout=20, context=context) as resp:
@@ -65,14 +70,26 @@ def test_the_token_is_needed_on_every_route_and_accepted(tmp_path: Path, sim: Si
     agent = AgentProcess(inv, tmp_path / "state", "--token-file", str(token_file(tmp_path)))
     try:
         url = agent.url
-        for headers in ({}, {"Authorization": "Bearer wrong-token-wrong-token"}, {"Authorization": f"Basic {TOKEN}"},
-                        {"Authorization": f"Bearer {TOKEN}x"}, {"Authorization": "Bearer"}):
+        for headers in (
+            {},
+            {"Authorization": "Bearer wrong-token-wrong-token"},
+            {"Authorization": f"Basic {TOKEN}"},
+            {"Authorization": f"Bearer {TOKEN}x"},
+            {"Authorization": "Bearer"},
+        ):
             status, hdrs, body = raw(url + "/v1/devices", headers=headers)
             assert status == 401 and hdrs["WWW-Authenticate"].startswith("Bearer")
             assert error_of(body)["kind"] == "unauthorized"
         # the watch's first check has said its drift (on a slow start it could come in the middle of the count)
-        before = len(until(lambda: [e for e in Agent(url, token=TOKEN).events() if e["kind"] == "drift"] and
-                           Agent(url, token=TOKEN).events(), why="the first check's drift event"))
+        before = len(
+            until(
+                lambda: (
+                    [e for e in Agent(url, token=TOKEN).events() if e["kind"] == "drift"]
+                    and Agent(url, token=TOKEN).events()
+                ),
+                why="the first check's drift event",
+            )
+        )
         for method, path, _ in server.ROUTES:  # no route answers without the token, no write happens
             concrete = path.replace("{name}", "d1").replace("{id}", "nope")
             sent = b'{"command": "apply"}' if method == "POST" else None
@@ -99,11 +116,13 @@ def test_the_token_is_needed_on_every_route_and_accepted(tmp_path: Path, sim: Si
         cmd = [sys.executable, "-m", "deployer", "status", "--agent", url]
         no = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env=env)
         assert no.returncode == 1 and "needs its token" in no.stderr and "Traceback" not in no.stderr
-        by_file = subprocess.run([*cmd, "--agent-token-file", str(tmp_path / "token")], capture_output=True,
-                                 text=True, timeout=60, env=env)
+        by_file = subprocess.run(
+            [*cmd, "--agent-token-file", str(tmp_path / "token")], capture_output=True, text=True, timeout=60, env=env
+        )
         assert by_file.returncode in (0, 2), by_file.stderr
-        by_env = subprocess.run(cmd, capture_output=True, text=True, timeout=60,
-                                env={**env, "DEPLOYER_AGENT_TOKEN": TOKEN})
+        by_env = subprocess.run(
+            cmd, capture_output=True, text=True, timeout=60, env={**env, "DEPLOYER_AGENT_TOKEN": TOKEN}
+        )
         assert by_env.returncode == by_file.returncode and by_env.stdout == by_file.stdout
         assert agent.terminate() == 0
     finally:
@@ -143,8 +162,12 @@ def test_beyond_loopback_only_with_a_token_and_tls(tmp_path: Path, sim: Simulato
         "cannot load them": ["--token-file", tok, "--tls-cert", pki["ca"], "--tls-key", pki["server_key"]],
     }
     for why, args in refused.items():
-        p = subprocess.run([sys.executable, "-m", "deployer", "agent", str(inv), "--state-dir",
-                            str(tmp_path / "state"), *args], capture_output=True, text=True, timeout=60)
+        p = subprocess.run(
+            [sys.executable, "-m", "deployer", "agent", str(inv), "--state-dir", str(tmp_path / "state"), *args],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert p.returncode == 1 and why in p.stderr and "Traceback" not in p.stderr, (why, p.stderr)
     agent = AgentProcess(inv, tmp_path / "state", "--listen", "0.0.0.0:0", "--token-file", tok, *tls)
     try:
@@ -231,15 +254,21 @@ def test_the_served_openapi_document_states_the_security_and_the_errors(tmp_path
     doc_path = Path(server.__file__).with_name("openapi.json")
     doc = json.loads(doc_path.read_text())
     assert doc["openapi"].startswith("3.") and doc["info"]["version"] == "1"
-    assert doc["components"]["securitySchemes"]["bearer"] == {**doc["components"]["securitySchemes"]["bearer"],
-                                                              "type": "http", "scheme": "bearer"}
+    assert doc["components"]["securitySchemes"]["bearer"] == {
+        **doc["components"]["securitySchemes"]["bearer"],
+        "type": "http",
+        "scheme": "bearer",
+    }
     # a credential in every mode (the agent makes a token when given none): a token, or a user's client certificate
     assert doc["security"] == [{"bearer": []}, {"clientCertificate": []}]
     assert doc["components"]["securitySchemes"]["clientCertificate"]["type"] == "mutualTLS"
     kinds = set(doc["components"]["schemas"]["Error"]["properties"]["error"]["properties"]["kind"]["enum"])
     sources = "".join(p.read_text() for p in Path(server.__file__).parent.glob("*.py"))
-    raised = {k for pattern in (r'ApiError\("([a-z-]+)"', r'error_body\("([a-z-]+)"', r'"error": \{"kind": "([a-z-]+)"')
-              for k in re.findall(pattern, sources)}
+    raised = {
+        k
+        for pattern in (r'ApiError\("([a-z-]+)"', r'error_body\("([a-z-]+)"', r'"error": \{"kind": "([a-z-]+)"')
+        for k in re.findall(pattern, sources)
+    }
     assert raised and raised <= kinds, raised - kinds
     for path, ops in doc["paths"].items():
         for method, op in ops.items():

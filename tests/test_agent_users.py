@@ -27,8 +27,14 @@ from tests.agent_helpers import PROFILE, RECIPE, AgentProcess, event, until, wri
 from tests.test_agent_security import TOKEN, error_of, raw, token_file
 
 pytestmark = pytest.mark.timeout(180)
-PEOPLE = {"boss": ["admin"], "eng": ["engineer"], "op": ["operator"], "appr": ["approver"], "view": ["viewer"],
-          "lead": ["engineer", "operator"]}
+PEOPLE = {
+    "boss": ["admin"],
+    "eng": ["engineer"],
+    "op": ["operator"],
+    "appr": ["approver"],
+    "view": ["viewer"],
+    "lead": ["engineer", "operator"],
+}
 
 
 @pytest.fixture
@@ -53,8 +59,9 @@ def make_users(path: Path, who: dict[str, list[str]] = PEOPLE) -> dict[str, str]
 
 def cli(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
     e = {k: v for k, v in os.environ.items() if not k.startswith("DEPLOYER_AGENT")}
-    return subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=90,
-                          env={**e, **env})
+    return subprocess.run(
+        [sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=90, env={**e, **env}
+    )
 
 
 def metric(c: Agent, name: str, label: str = "") -> float:
@@ -83,8 +90,12 @@ def test_every_route_checks_its_role_and_each_refusal_names_it(tmp_path: Path, s
             for name, rs in PEOPLE.items():
                 if roles.holds(rs, need):
                     continue
-                status, _, body = raw(url + concrete, method, b"{}" if method == "POST" else None,
-                                      {"Authorization": f"Bearer {tokens[name]}", "Content-Type": "application/json"})
+                status, _, body = raw(
+                    url + concrete,
+                    method,
+                    b"{}" if method == "POST" else None,
+                    {"Authorization": f"Bearer {tokens[name]}", "Content-Type": "application/json"},
+                )
                 err = error_of(body)
                 assert status == 403 and err["kind"] == "forbidden", (method, path, name, body)
                 assert f"{name} may not {method} {concrete}: that needs the role {need}" in err["message"]
@@ -106,8 +117,11 @@ def test_every_route_checks_its_role_and_each_refusal_names_it(tmp_path: Path, s
         assert e.value.kind == "forbidden" and "needs the role operator" in str(e.value) and e.value.exit_code == 1
         assert c["view"].runs() == [] and writes_in_log(sim.log) == {}
         audit = [x for x in c["boss"].events() if x["kind"] == "access-refused"]
-        view_apply = [x for x in audit if x["detail"]["user"] == "view" and x["detail"]["path"] == "/v1/runs"
-                      and x["detail"]["method"] == "POST"]
+        view_apply = [
+            x
+            for x in audit
+            if x["detail"]["user"] == "view" and x["detail"]["path"] == "/v1/runs" and x["detail"]["method"] == "POST"
+        ]
         assert view_apply and view_apply[0]["detail"]["needed"] == "operator"
         assert view_apply[0]["detail"]["roles"] == ["viewer"] and view_apply[0]["detail"]["remote"] == "127.0.0.1"
         assert "refused POST /v1/runs to view (viewer): it needs the role operator" in agent.log()
@@ -217,8 +231,13 @@ def test_a_disabled_user_is_refused_at_once_without_a_restart(tmp_path: Path, si
         # a user added through the agent, with their roles changed
         out = boss.add_user("carol", ["approver"], name="Carol Weiss")
         carol = Agent(agent.url, token=out["token"])
-        assert carol.whoami() == {"user": "carol", "name": "Carol Weiss", "credential": "user token",
-                                  "roles": ["approver"], "mode": "users"}
+        assert carol.whoami() == {
+            "user": "carol",
+            "name": "Carol Weiss",
+            "credential": "user token",
+            "roles": ["approver"],
+            "mode": "users",
+        }
         boss.change_user("carol", roles=["viewer"])
         assert carol.whoami()["roles"] == ["viewer"]
         listed = cli("users", "list", "--agent", agent.url, DEPLOYER_AGENT_TOKEN=tokens["boss"])
@@ -235,8 +254,17 @@ def test_a_disabled_user_is_refused_at_once_without_a_restart(tmp_path: Path, si
         users.write_text(good)
         assert boss.whoami()["user"] == "boss"
         kinds = [x["kind"] for x in boss.events()]
-        for kind in ("users-loaded", "user-disabled", "user-enabled", "user-token-replaced", "user-added",
-                     "user-roles-changed", "users-invalid", "login-refused", "access-refused"):
+        for kind in (
+            "users-loaded",
+            "user-disabled",
+            "user-enabled",
+            "user-token-replaced",
+            "user-added",
+            "user-roles-changed",
+            "users-invalid",
+            "login-refused",
+            "access-refused",
+        ):
             assert kind in kinds, kind
         assert agent.proc.pid == pid and agent.proc.poll() is None  # never restarted
         assert agent.terminate(client=Agent(agent.url, token=tokens["boss"], timeout=20)) == 0
@@ -255,17 +283,43 @@ def test_client_certificates_map_to_users(tmp_path: Path, sim: Simulator, pki: d
     alice_crt, alice_key = issue(tmp_path, "alice.martin", key, cert, server=False)
     stranger_crt, stranger_key = issue(tmp_path, "stranger", key, cert, server=False)
     server_crt, server_key = issue(tmp_path, "gateway", key, cert, server=True)
-    out = subprocess.run([sys.executable, "-m", "deployer", "users", "add", "alice", "--role", "operator",
-                          "--cert-cn", "alice.martin", "--no-token", "--users", str(users)], capture_output=True,
-                         text=True, timeout=60)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "deployer",
+            "users",
+            "add",
+            "alice",
+            "--role",
+            "operator",
+            "--cert-cn",
+            "alice.martin",
+            "--no-token",
+            "--users",
+            str(users),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 0 and out.stdout == "", out.stderr  # no token: nothing printed
-    agent = AgentProcess(inv, tmp_path / "state", "--users", str(users), "--tls-cert", server_crt, "--tls-key",
-                         server_key, "--tls-client-ca", ca)
+    agent = AgentProcess(
+        inv,
+        tmp_path / "state",
+        "--users",
+        str(users),
+        "--tls-cert",
+        server_crt,
+        "--tls-key",
+        server_key,
+        "--tls-client-ca",
+        ca,
+    )
     try:
         url = "https://127.0.0.1:" + agent.url.rsplit(":", 1)[1]
         alice = Agent(url, ca=ca, cert=alice_crt, key=alice_key)
-        assert alice.whoami() == {"user": "alice", "credential": "certificate", "roles": ["operator"],
-                                  "mode": "users"}
+        assert alice.whoami() == {"user": "alice", "credential": "certificate", "roles": ["operator"], "mode": "users"}
         with pytest.raises(AgentError) as e:
             Agent(url, ca=ca, cert=stranger_crt, key=stranger_key).devices()
         assert e.value.kind == "unauthorized" and "(CN=stranger) that is no user's" in str(e.value)
@@ -301,12 +355,18 @@ def test_the_users_file_is_checked_like_every_input_file(tmp_path: Path, sim: Si
         f"  carl:\n    roles: [viewer]\n    token: {{id: '{entry['id']}', scrypt: '{entry['scrypt']}'}}\n"
         "  dora:\n    roles: []\n    disabled: maybe\n    password: hunter2\n"
         "  eve:\n    roles: [viewer]\n    token: {id: '0123456789',\n"
-        f"             scrypt: '$scrypt$ln=30,r=8,p=1${'A' * 22}${'A' * 43}'}}\n")
+        f"             scrypt: '$scrypt$ln=30,r=8,p=1${'A' * 22}${'A' * 43}'}}\n"
+    )
     p = cli("validate", str(bad))
     assert p.returncode == 1
     lines = [x for x in p.stderr.splitlines() if ": error: " in x]
-    want = [(2, 3, "'Alice' does not match"), (3, 13, "'boss' is not one of"), (11, 12, "should be non-empty"),
-            (12, 15, "expected true or false, got 'maybe'"), (13, 5, "unknown key 'password'")]
+    want = [
+        (2, 3, "'Alice' does not match"),
+        (3, 13, "'boss' is not one of"),
+        (11, 12, "should be non-empty"),
+        (12, 15, "expected true or false, got 'maybe'"),
+        (13, 5, "unknown key 'password'"),
+    ]
     for line, col, said in want:
         assert any(x.startswith(f"{bad}:{line}:{col}: error: ") and said in x for x in lines), (line, col, lines)
     # semantic problems once the shapes are right: a token id twice, a hash too costly to check
@@ -323,9 +383,11 @@ def test_the_users_file_is_checked_like_every_input_file(tmp_path: Path, sim: Si
     good = tmp_path / "good.yaml"
     make_users(good, {"boss": ["admin"]})
     assert cli("validate", str(good)).stdout.endswith("ok (users: 1 user, 1 enabled)\n")
-    for args, said in ((["--users", str(good), "--token-file", str(token_file(tmp_path))], "one or the other"),
-                       (["--tls-client-ca", str(good)], "--tls-client-ca maps certificates to users"),
-                       (["--users", str(tmp_path / "none.yaml")], "none.yaml")):
+    for args, said in (
+        (["--users", str(good), "--token-file", str(token_file(tmp_path))], "one or the other"),
+        (["--tls-client-ca", str(good)], "--tls-client-ca maps certificates to users"),
+        (["--users", str(tmp_path / "none.yaml")], "none.yaml"),
+    ):
         a = cli("agent", str(inv), "--state-dir", str(tmp_path / "state"), "--listen", "127.0.0.1:0", *args)
         assert a.returncode == 1 and said in a.stderr and "Traceback" not in a.stderr, (args, a.stderr)
 

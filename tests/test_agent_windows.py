@@ -33,8 +33,9 @@ def cli(*args: str, env_agent: str | None = None) -> subprocess.Popen[str]:
     env = os.environ.copy()
     if env_agent:
         env["DEPLOYER_AGENT"] = env_agent
-    return subprocess.Popen([sys.executable, "-m", "deployer", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env)
+    return subprocess.Popen(
+        [sys.executable, "-m", "deployer", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
 
 
 def commits(sim: Simulator) -> int:
@@ -42,7 +43,8 @@ def commits(sim: Simulator) -> int:
 
 
 def test_client_killed_in_its_window_then_confirmed_through_the_agent_another_expires(
-        tmp_path: Path, sims: tuple[Simulator, Simulator]) -> None:
+    tmp_path: Path, sims: tuple[Simulator, Simulator]
+) -> None:
     a, b = sims
     inv = write_site(tmp_path, {"d1": a.url, "d2": b.url})
     agent = AgentProcess(inv, tmp_path / "state")
@@ -63,8 +65,13 @@ def test_client_killed_in_its_window_then_confirmed_through_the_agent_another_ex
         assert win[0]["devices"] == ["d1"] and win[0]["kind"] == "confirm"
         run = win[0]["run"]
         assert a.read("accel") == (20,) and commits(a) == 0  # written, verified, commit held
-        ok = subprocess.run([sys.executable, "-m", "deployer", "confirm", run], capture_output=True, text=True,
-                            timeout=60, env={**os.environ, "DEPLOYER_AGENT": agent.url})
+        ok = subprocess.run(
+            [sys.executable, "-m", "deployer", "confirm", run],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env={**os.environ, "DEPLOYER_AGENT": agent.url},
+        )
         assert ok.returncode == 0, ok.stderr
         until(lambda: c.run(run)["state"] == "finished", why="the run's end")
         assert c.run(run)["exit_code"] == 0 and commits(a) == 1
@@ -101,8 +108,12 @@ def test_agent_killed_and_restarted_during_windows(tmp_path: Path, sims: tuple[S
     assert a.read("accel") == (20,) and b.read("accel") == (20,)  # both written, neither committed
     time.sleep(1.5)  # d2's window runs out while no agent lives
     # the journal (deployer status) names both runs meanwhile
-    st = subprocess.run([sys.executable, "-m", "deployer", "status", "--state-dir", str(state)], capture_output=True,
-                        text=True, timeout=60)
+    st = subprocess.run(
+        [sys.executable, "-m", "deployer", "status", "--state-dir", str(state)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert long_run in st.stdout + st.stderr and short_run in st.stdout + st.stderr
     again = AgentProcess(inv, state)
     try:
@@ -115,8 +126,12 @@ def test_agent_killed_and_restarted_during_windows(tmp_path: Path, sims: tuple[S
         # the other keeps waiting, and is confirmed through the restarted agent
         waiting = c.windows()
         assert [w["run"] for w in waiting] == [long_run], again.log()
-        ok = subprocess.run([sys.executable, "-m", "deployer", "confirm", "--agent", again.url], capture_output=True,
-                            text=True, timeout=60)
+        ok = subprocess.run(
+            [sys.executable, "-m", "deployer", "confirm", "--agent", again.url],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert ok.returncode == 0, ok.stderr
         until(lambda: commits(a) == 1, why="d1's commit")
         assert a.read("accel") == (20,)
@@ -124,13 +139,16 @@ def test_agent_killed_and_restarted_during_windows(tmp_path: Path, sims: tuple[S
         assert again.terminate() == 0
     finally:
         again.kill()
-    st = subprocess.run([sys.executable, "-m", "deployer", "status", "--state-dir", str(state)], capture_output=True,
-                        text=True, timeout=60)
+    st = subprocess.run(
+        [sys.executable, "-m", "deployer", "status", "--state-dir", str(state)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert long_run not in st.stdout and short_run not in st.stdout, st.stdout
 
 
-def test_after_a_reboot_every_open_window_counts_as_expired(tmp_path: Path,
-                                                           sims: tuple[Simulator, Simulator]) -> None:
+def test_after_a_reboot_every_open_window_counts_as_expired(tmp_path: Path, sims: tuple[Simulator, Simulator]) -> None:
     a, _ = sims
     inv = write_site(tmp_path, {"d1": a.url})
     state = tmp_path / "state"
@@ -158,16 +176,18 @@ def test_after_a_reboot_every_open_window_counts_as_expired(tmp_path: Path,
         again.kill()
 
 
-def test_cli_through_the_agent_plan_diff_status_rollback_and_ledger(tmp_path: Path,
-                                                                    sims: tuple[Simulator, Simulator]) -> None:
+def test_cli_through_the_agent_plan_diff_status_rollback_and_ledger(
+    tmp_path: Path, sims: tuple[Simulator, Simulator]
+) -> None:
     a, _ = sims
     inv = write_site(tmp_path, {"d1": a.url})
     agent = AgentProcess(inv, tmp_path / "state")
     env = {**os.environ, "DEPLOYER_AGENT": agent.url}
 
     def run(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=60,
-                              env=env)
+        return subprocess.run(
+            [sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=60, env=env
+        )
 
     try:
         c = agent.client
@@ -180,7 +200,8 @@ def test_cli_through_the_agent_plan_diff_status_rollback_and_ledger(tmp_path: Pa
         import deployer  # the agent's report, written where --report says (its folder made)
 
         assert [(d.name, d.status) for d in deployer.load_report(tmp_path / "out" / "run.json").devices] == [
-            ("d1", "ok")]
+            ("d1", "ok")
+        ]
         assert run("diff").returncode == 0
         # an edit of the files is pending, shown as a plan, never written by itself
         (tmp_path / "r.yaml").write_text((tmp_path / "r.yaml").read_text().replace("accel: 2 s", "accel: 4 s"))
@@ -221,8 +242,7 @@ def test_cli_through_the_agent_plan_diff_status_rollback_and_ledger(tmp_path: Pa
         agent.kill()
 
 
-def test_sigterm_during_a_window_rolls_back_and_ends_cleanly(tmp_path: Path,
-                                                           sims: tuple[Simulator, Simulator]) -> None:
+def test_sigterm_during_a_window_rolls_back_and_ends_cleanly(tmp_path: Path, sims: tuple[Simulator, Simulator]) -> None:
     a, _ = sims
     inv = write_site(tmp_path, {"d1": a.url})
     agent = AgentProcess(inv, tmp_path / "state")

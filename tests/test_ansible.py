@@ -29,24 +29,42 @@ PLAYBOOK_BIN = Path(sys.executable).parent / "ansible-playbook"
 PROFILE = builtin_profile("example-inverter")
 WANT = {"F07": (0, 1000), "F08": (0, 1200), "stop_mode": (1,)}
 
-pytestmark = [pytest.mark.timeout(300),
-              pytest.mark.skipif(not PLAYBOOK_BIN.exists() and shutil.which("ansible-playbook") is None,
-                                 reason="ansible-core is a test extra (pip install -e '.[test]')")]
+pytestmark = [
+    pytest.mark.timeout(300),
+    pytest.mark.skipif(
+        not PLAYBOOK_BIN.exists() and shutil.which("ansible-playbook") is None,
+        reason="ansible-core is a test extra (pip install -e '.[test]')",
+    ),
+]
 
 
 def playbook(tmp: Path, inventory: Path, *args: str) -> tuple[int, str, dict[str, list[dict[str, Any]]]]:
     """Run the example playbook; returns exit code, output and each host's task results (tree callback)."""
     tree = tmp / "tree"
     shutil.rmtree(tree, ignore_errors=True)
-    env = {**os.environ,
-           "ANSIBLE_COLLECTIONS_PATH": str(ROOT),  # the folder that holds ansible_collections/
-           "ANSIBLE_HOME": str(tmp / "ansible-home"), "ANSIBLE_LOCAL_TEMP": str(tmp / "ansible-tmp"),
-           "ANSIBLE_REMOTE_TEMP": str(tmp / "ansible-remote"), "ANSIBLE_NOCOLOR": "1",
-           "ANSIBLE_CALLBACKS_ENABLED": "ansible.builtin.tree", "ANSIBLE_CALLBACK_TREE_DIR": str(tree),
-           "ANSIBLE_HOST_KEY_CHECKING": "0", "ANSIBLE_RETRY_FILES_ENABLED": "0", "ANSIBLE_STDOUT_CALLBACK": "default"}
+    env = {
+        **os.environ,
+        "ANSIBLE_COLLECTIONS_PATH": str(ROOT),  # the folder that holds ansible_collections/
+        "ANSIBLE_HOME": str(tmp / "ansible-home"),
+        "ANSIBLE_LOCAL_TEMP": str(tmp / "ansible-tmp"),
+        "ANSIBLE_REMOTE_TEMP": str(tmp / "ansible-remote"),
+        "ANSIBLE_NOCOLOR": "1",
+        "ANSIBLE_CALLBACKS_ENABLED": "ansible.builtin.tree",
+        "ANSIBLE_CALLBACK_TREE_DIR": str(tree),
+        "ANSIBLE_HOST_KEY_CHECKING": "0",
+        "ANSIBLE_RETRY_FILES_ENABLED": "0",
+        "ANSIBLE_STDOUT_CALLBACK": "default",
+    }
     exe = str(PLAYBOOK_BIN) if PLAYBOOK_BIN.exists() else "ansible-playbook"
-    proc = subprocess.run([exe, "-i", str(inventory), str(PLAYBOOK), *args], capture_output=True, text=True,
-                          env=env, cwd=tmp, timeout=240, stdin=subprocess.DEVNULL)
+    proc = subprocess.run(
+        [exe, "-i", str(inventory), str(PLAYBOOK), *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp,
+        timeout=240,
+        stdin=subprocess.DEVNULL,
+    )
     results: dict[str, list[dict[str, Any]]] = {}
     if tree.exists():
         for f in tree.iterdir():
@@ -58,14 +76,20 @@ def inventory(tmp: Path, sites: dict[str, list[Simulator]], recipe: Path) -> Pat
     """Ansible's inventory: site-a lists its devices as host vars, site-b points at a deployer inventory."""
     lines = ["site_gateways:", "  hosts:"]
     for site, sims in sites.items():
-        lines += [f"    {site}:", "      ansible_connection: local",
-                  f"      ansible_python_interpreter: {sys.executable}",
-                  f"      deployer_recipe: {recipe}", f"      deployer_state_dir: {tmp / 'state'}",
-                  f"      deployer_pulled_dir: {tmp / 'pulled' / site}"]
+        lines += [
+            f"    {site}:",
+            "      ansible_connection: local",
+            f"      ansible_python_interpreter: {sys.executable}",
+            f"      deployer_recipe: {recipe}",
+            f"      deployer_state_dir: {tmp / 'state'}",
+            f"      deployer_pulled_dir: {tmp / 'pulled' / site}",
+        ]
         if site == "site-b":
             own = tmp / f"{site}-inventory.yaml"
-            own.write_text("defaults: {timeout: 1.0, retries: 0}\ndevices:\n" + "".join(
-                f"  {site}-d{i}: {{url: '{s.url}'}}\n" for i, s in enumerate(sims)))
+            own.write_text(
+                "defaults: {timeout: 1.0, retries: 0}\ndevices:\n"
+                + "".join(f"  {site}-d{i}: {{url: '{s.url}'}}\n" for i, s in enumerate(sims))
+            )
             lines.append(f"      deployer_inventory: {own}")
             continue
         lines.append("      modbus_devices:")
@@ -107,13 +131,14 @@ def test_playbook_check_apply_idempotent_and_a_rejected_value(tmp_path: Path) ->
         values = results["site-b"][0]["values"]  # the last task: pull (its values are the info task's facts)
         assert values["site-b-d0"] == {"F07": "10 s", "F08": "12 s", "stop_mode": "coast"}
         pulled = tmp_path / "pulled" / "site-a" / "site-a-d1.yaml"  # the pull task wrote recipe files
-        assert "F07: 10 s" in pulled.read_text() and f"url\": \"{sims[1].url}" in pulled.read_text()
+        assert "F07: 10 s" in pulled.read_text() and f'url": "{sims[1].url}' in pulled.read_text()
         # each host's apply is one journaled run (deployer status would list it, had it not finished)
         lines = [json.loads(x) for x in (tmp_path / "state" / "audit.jsonl").read_text().splitlines()]
         started = [x for x in lines if x["event"] == "run-started"]
         assert len(started) == 2 and all(x["via"] == "ansible" and x["command"] == "apply" for x in started)
-        assert sorted(d["name"] for x in started for d in x["devices"]) == [f"site-{s}-d{i}" for s in "ab"
-                                                                            for i in range(2)]
+        assert sorted(d["name"] for x in started for d in x["devices"]) == [
+            f"site-{s}-d{i}" for s in "ab" for i in range(2)
+        ]
         finished = {x["run"]: x for x in lines if x["event"] == "run-finished"}
         assert all(finished[x["run"]]["exit_code"] == 0 for x in started)
         assert "ok: [site-a]" in out and "modbus_devices" not in out.split("Keep them as recipe files")[1]

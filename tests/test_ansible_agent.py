@@ -24,19 +24,37 @@ PLAYBOOK = ROOT / "ansible_collections" / "deployer" / "modbus" / "playbooks" / 
 PLAYBOOK_BIN = Path(sys.executable).parent / "ansible-playbook"
 TOKENS = {"site-a": "site-a-token-0123456789", "site-b": "site-b-token-0123456789"}
 
-pytestmark = [pytest.mark.timeout(300),
-              pytest.mark.skipif(not PLAYBOOK_BIN.exists() and shutil.which("ansible-playbook") is None,
-                                 reason="ansible-core is a test extra (pip install -e '.[test]')")]
+pytestmark = [
+    pytest.mark.timeout(300),
+    pytest.mark.skipif(
+        not PLAYBOOK_BIN.exists() and shutil.which("ansible-playbook") is None,
+        reason="ansible-core is a test extra (pip install -e '.[test]')",
+    ),
+]
 
 
 def playbook(tmp: Path, inventory: Path, *args: str) -> tuple[int, str]:
-    env = {**os.environ, "ANSIBLE_COLLECTIONS_PATH": str(ROOT), "ANSIBLE_HOME": str(tmp / "ansible-home"),
-           "ANSIBLE_LOCAL_TEMP": str(tmp / "ansible-tmp"), "ANSIBLE_REMOTE_TEMP": str(tmp / "ansible-remote"),
-           "ANSIBLE_NOCOLOR": "1", "ANSIBLE_HOST_KEY_CHECKING": "0", "ANSIBLE_RETRY_FILES_ENABLED": "0",
-           "ANSIBLE_STDOUT_CALLBACK": "default"}
+    env = {
+        **os.environ,
+        "ANSIBLE_COLLECTIONS_PATH": str(ROOT),
+        "ANSIBLE_HOME": str(tmp / "ansible-home"),
+        "ANSIBLE_LOCAL_TEMP": str(tmp / "ansible-tmp"),
+        "ANSIBLE_REMOTE_TEMP": str(tmp / "ansible-remote"),
+        "ANSIBLE_NOCOLOR": "1",
+        "ANSIBLE_HOST_KEY_CHECKING": "0",
+        "ANSIBLE_RETRY_FILES_ENABLED": "0",
+        "ANSIBLE_STDOUT_CALLBACK": "default",
+    }
     exe = str(PLAYBOOK_BIN) if PLAYBOOK_BIN.exists() else "ansible-playbook"
-    proc = subprocess.run([exe, "-i", str(inventory), str(PLAYBOOK), *args], capture_output=True, text=True,
-                          env=env, cwd=tmp, timeout=240, stdin=subprocess.DEVNULL)
+    proc = subprocess.run(
+        [exe, "-i", str(inventory), str(PLAYBOOK), *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp,
+        timeout=240,
+        stdin=subprocess.DEVNULL,
+    )
     return proc.returncode, proc.stdout + proc.stderr
 
 
@@ -64,13 +82,17 @@ def test_a_playbook_rolls_out_through_two_agents(tmp_path: Path, pki: dict[str, 
                 inv = write_site(folder, {f"{site}-d1": sim.url})
                 (folder / "token").write_text(TOKENS[site] + "\n")
                 tls = ["--tls-cert", pki["server_crt"], "--tls-key", pki["server_key"]] if site == "site-a" else []
-                agents[site] = AgentProcess(inv, folder / "state", "--token-file", str(folder / "token"), *tls,
-                                            check_every="1h")
+                agents[site] = AgentProcess(
+                    inv, folder / "state", "--token-file", str(folder / "token"), *tls, check_every="1h"
+                )
                 url = agents[site].url
-                hosts += [f"    {site}:", "      ansible_connection: local",
-                          f"      ansible_python_interpreter: {sys.executable}",
-                          f"      deployer_agent_url: {json.dumps(url)}",
-                          f"      deployer_agent_token: {json.dumps(TOKENS[site])}"]
+                hosts += [
+                    f"    {site}:",
+                    "      ansible_connection: local",
+                    f"      ansible_python_interpreter: {sys.executable}",
+                    f"      deployer_agent_url: {json.dumps(url)}",
+                    f"      deployer_agent_token: {json.dumps(TOKENS[site])}",
+                ]
                 if tls:
                     hosts.append(f"      deployer_agent_ca: {json.dumps(pki['ca'])}")
             inventory = tmp_path / "hosts.yml"

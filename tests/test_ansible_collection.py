@@ -28,19 +28,22 @@ COLLECTION = ROOT / "ansible_collections" / "deployer" / "modbus"
 BIN = Path(sys.executable).parent
 PROFILE = builtin_profile("example-inverter")
 
-pytestmark = [pytest.mark.timeout(600),
-              pytest.mark.skipif(not (BIN / "ansible-doc").exists(),
-                                 reason="ansible-core is a test extra (pip install -e '.[test]')")]
+pytestmark = [
+    pytest.mark.timeout(600),
+    pytest.mark.skipif(
+        not (BIN / "ansible-doc").exists(), reason="ansible-core is a test extra (pip install -e '.[test]')"
+    ),
+]
 
 # ansible-test fetches a pip bootstrap script from its own CI host, which only the package index can
 # stand in for here: where the download fails it names the file to save by hand, and this script, saved
 # there, installs the pip version it asks for from the index instead.
-_GET_PIP = '''import ensurepip, os, subprocess, sys
+_GET_PIP = """import ensurepip, os, subprocess, sys
 ensurepip.bootstrap(upgrade=True)
 os.environ.pop("PIP_CONFIG_FILE", None)  # ensurepip points it at /dev/null; pip's own settings count
 args = [a for a in sys.argv[1:] if a not in ("--no-setuptools", "--no-wheel")]
 sys.exit(subprocess.call([sys.executable, "-m", "pip", "install", *args]))
-'''
+"""
 _SAVE_BY_HAND = re.compile(r"bootstrap script can be manually downloaded and saved to: (\S+)")
 
 
@@ -52,27 +55,43 @@ def test_validate_modules_is_clean(tmp_path: Path) -> None:
     shutil.copytree(COLLECTION, tree, ignore=shutil.ignore_patterns("__pycache__", "output"))
     env = {"HOME": str(home), "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}
     for _ in range(2):  # a second run once the bootstrap script is where ansible-test looks for it
-        proc = subprocess.run([str(BIN / "ansible-test"), "sanity", "--test", "validate-modules", "--python",
-                               f"{sys.version_info.major}.{sys.version_info.minor}", "--color", "no"],
-                              cwd=tree, env=env, capture_output=True, text=True, timeout=540)
+        proc = subprocess.run(
+            [
+                str(BIN / "ansible-test"),
+                "sanity",
+                "--test",
+                "validate-modules",
+                "--python",
+                f"{sys.version_info.major}.{sys.version_info.minor}",
+                "--color",
+                "no",
+            ],
+            cwd=tree,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=540,
+        )
         out = proc.stdout + proc.stderr
         wanted = _SAVE_BY_HAND.search(out)
         if proc.returncode == 0 or not wanted or Path(wanted[1]).exists():
             break
         Path(wanted[1]).parent.mkdir(parents=True, exist_ok=True)
         Path(wanted[1]).write_text(_GET_PIP)
-    if proc.returncode and any(w in out for w in ("No matching distribution", "Could not fetch URL",
-                                                   "Download failed", "does not have pip available")):
-        pytest.skip("ansible-test could not set up its environment from the package index: "
-                    + out.strip().splitlines()[-1])
+    if proc.returncode and any(
+        w in out
+        for w in ("No matching distribution", "Could not fetch URL", "Download failed", "does not have pip available")
+    ):
+        pytest.skip(
+            "ansible-test could not set up its environment from the package index: " + out.strip().splitlines()[-1]
+        )
     assert proc.returncode == 0, out
     assert 'Running sanity test "validate-modules"' in out and "ERROR" not in out
 
 
 def _doc(name: str, *args: str) -> str:
     env = {**os.environ, "ANSIBLE_COLLECTIONS_PATH": str(ROOT), "ANSIBLE_NOCOLOR": "1", "ANSIBLE_HOME": "/nonexistent"}
-    proc = subprocess.run([str(BIN / "ansible-doc"), *args, name], capture_output=True, text=True, env=env,
-                          timeout=120)
+    proc = subprocess.run([str(BIN / "ansible-doc"), *args, name], capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr
     return proc.stdout
 
@@ -87,8 +106,10 @@ def test_ansible_doc_shows_every_option_whole() -> None:
         assert f" {sub} " in out.split("suboptions:")[1]
     assert "check_mode" in out and "diff_mode" in out and "AUTHOR" in out
 
-    docs = {m: json.loads(_doc(f"deployer.modbus.{m}", "--json"))[f"deployer.modbus.{m}"]["doc"]
-            for m in ("apply", "info", "pull")}
+    docs = {
+        m: json.loads(_doc(f"deployer.modbus.{m}", "--json"))[f"deployer.modbus.{m}"]["doc"]
+        for m in ("apply", "info", "pull")
+    }
     for m, d in docs.items():
         assert d["author"] and d["attributes"]["check_mode"]["support"] == "full", m
         assert set(d["options"]) >= {"device", "devices", "inventory", "limit", "unit", "timeout", "retries"}, m
@@ -103,90 +124,147 @@ def test_ansible_doc_shows_every_option_whole() -> None:
 def run_module(tmp: Path, module: str, args: dict[str, Any], *, check: bool = False) -> tuple[int, dict[str, Any]]:
     """Run a module as Ansible does: ``python MODULE.py ARGS.json``; (exit code, its JSON result)."""
     argfile = tmp / f"args-{module}.json"
-    argfile.write_text(json.dumps({"ANSIBLE_MODULE_ARGS": {**args, "_ansible_check_mode": check,
-                                                             "_ansible_tmpdir": str(tmp)}}))
+    argfile.write_text(
+        json.dumps({"ANSIBLE_MODULE_ARGS": {**args, "_ansible_check_mode": check, "_ansible_tmpdir": str(tmp)}})
+    )
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.run([sys.executable, str(COLLECTION / "plugins" / "modules" / f"{module}.py"), str(argfile)],
-                          capture_output=True, text=True, env=env, cwd=tmp, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, str(COLLECTION / "plugins" / "modules" / f"{module}.py"), str(argfile)],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp,
+        timeout=120,
+    )
     out = proc.stdout
-    return proc.returncode, json.loads(out[out.index("{"):])
+    return proc.returncode, json.loads(out[out.index("{") :])
 
 
-@pytest.mark.parametrize(("args", "words"), [
-    ({"unit": 0}, "unit is 0, which is broadcast"),
-    ({"unit": 300}, "unit must be from 1 to 247"),
-    ({"unit": -5}, "unit must be from 1 to 247"),
-    ({"timeout": 0}, "timeout must be more than 0"),
-    ({"timeout": -1}, "timeout must be more than 0"),
-    ({"retries": 1_000_000_000}, "retries must be from 0 to 20"),
-    ({"parallel": 0}, "parallel must be from 1 to 1024"),
-    ({"limit": "a"}, "device names one device already"),
-])
-def test_out_of_range_options_are_refused_before_anything_is_sent(tmp_path: Path, args: dict[str, Any],
-                                                                   words: str) -> None:
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        ({"unit": 0}, "unit is 0, which is broadcast"),
+        ({"unit": 300}, "unit must be from 1 to 247"),
+        ({"unit": -5}, "unit must be from 1 to 247"),
+        ({"timeout": 0}, "timeout must be more than 0"),
+        ({"timeout": -1}, "timeout must be more than 0"),
+        ({"retries": 1_000_000_000}, "retries must be from 0 to 20"),
+        ({"parallel": 0}, "parallel must be from 1 to 1024"),
+        ({"limit": "a"}, "device names one device already"),
+    ],
+)
+def test_out_of_range_options_are_refused_before_anything_is_sent(
+    tmp_path: Path, args: dict[str, Any], words: str
+) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults())]) as (sim,):
-        code, res = run_module(tmp_path, "apply", {"profile": "example-inverter", "parameters": {"F07": "10 s"},
-                                                   "device": sim.url, "state_dir": str(tmp_path / "st"), **args})
+        code, res = run_module(
+            tmp_path,
+            "apply",
+            {
+                "profile": "example-inverter",
+                "parameters": {"F07": "10 s"},
+                "device": sim.url,
+                "state_dir": str(tmp_path / "st"),
+                **args,
+            },
+        )
         assert code == 1 and res["failed"] and words in res["msg"] and "nothing was sent" in res["msg"], res
         assert sim.log == []
 
 
 def test_devices_unit_zero_is_not_unit_one(tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults())]) as (sim,):
-        code, res = run_module(tmp_path, "apply", {
-            "profile": "example-inverter", "parameters": {"F07": "10 s"}, "state_dir": str(tmp_path / "st"),
-            "devices": [{"name": "a", "url": sim.url, "unit": 0}]})
+        code, res = run_module(
+            tmp_path,
+            "apply",
+            {
+                "profile": "example-inverter",
+                "parameters": {"F07": "10 s"},
+                "state_dir": str(tmp_path / "st"),
+                "devices": [{"name": "a", "url": sim.url, "unit": 0}],
+            },
+        )
         assert code == 1 and "devices[0].unit is 0, which is broadcast" in res["msg"]
         assert sim.log == []
 
 
 def test_limit_selects_from_devices(tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults()) for _ in range(2)]) as (a, b):
-        code, res = run_module(tmp_path, "apply", {
-            "profile": "example-inverter", "parameters": {"F07": "10 s"}, "state_dir": str(tmp_path / "st"),
-            "devices": [{"name": "a", "url": a.url}, {"name": "b", "url": b.url}], "limit": "a"})
+        code, res = run_module(
+            tmp_path,
+            "apply",
+            {
+                "profile": "example-inverter",
+                "parameters": {"F07": "10 s"},
+                "state_dir": str(tmp_path / "st"),
+                "devices": [{"name": "a", "url": a.url}, {"name": "b", "url": b.url}],
+                "limit": "a",
+            },
+        )
         assert code == 0, res
         assert [d["name"] for d in res["devices"]] == ["a"]
         assert a.read("F07") == (0, 1000) and b.read("F07") == (0, 500) and b.log == []
-        code, res = run_module(tmp_path, "apply", {
-            "profile": "example-inverter", "parameters": {"F07": "10 s"}, "state_dir": str(tmp_path / "st"),
-            "devices": [{"name": "a", "url": a.url}], "limit": "nobody"})
+        code, res = run_module(
+            tmp_path,
+            "apply",
+            {
+                "profile": "example-inverter",
+                "parameters": {"F07": "10 s"},
+                "state_dir": str(tmp_path / "st"),
+                "devices": [{"name": "a", "url": a.url}],
+                "limit": "nobody",
+            },
+        )
         assert code == 1 and "matches no device" in res["msg"] and "nothing was sent" in res["msg"]
 
 
 def test_one_device_listed_twice_is_refused(tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults())]) as (sim,):
         base = {"profile": "example-inverter", "parameters": {"F07": "10 s"}, "state_dir": str(tmp_path / "st")}
-        code, res = run_module(tmp_path, "apply", {**base, "devices": [{"name": "a", "url": sim.url},
-                                                                       {"name": "a", "url": sim.url}]})
+        code, res = run_module(
+            tmp_path, "apply", {**base, "devices": [{"name": "a", "url": sim.url}, {"name": "a", "url": sim.url}]}
+        )
         assert code == 1 and "devices lists 'a' more than once" in res["msg"]
-        code, res = run_module(tmp_path, "apply", {**base, "devices": [{"name": "a", "url": sim.url},
-                                                                       {"name": "b", "url": sim.url}]})
+        code, res = run_module(
+            tmp_path, "apply", {**base, "devices": [{"name": "a", "url": sim.url}, {"name": "b", "url": sim.url}]}
+        )
         assert code == 1 and "'a' and 'b' are one device" in res["msg"]
-        code, res = run_module(tmp_path, "info", {"profile": "example-inverter", "devices": [
-            {"name": "a", "url": sim.url}, {"name": "b", "url": sim.url}]})
+        code, res = run_module(
+            tmp_path,
+            "info",
+            {"profile": "example-inverter", "devices": [{"name": "a", "url": sim.url}, {"name": "b", "url": sim.url}]},
+        )
         assert code == 1 and "are one device" in res["msg"]
         assert sim.log == []
 
 
 def test_info_reads_and_writes_nothing_and_pull_writes_recipes(tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults())]) as (sim,):
-        code, res = run_module(tmp_path, "info", {"profile": "example-inverter", "device": sim.url, "name": "d",
-                                                  "parameters": ["F07", "stop_mode"]})
+        code, res = run_module(
+            tmp_path,
+            "info",
+            {"profile": "example-inverter", "device": sim.url, "name": "d", "parameters": ["F07", "stop_mode"]},
+        )
         assert code == 0 and res["changed"] is False, res
         assert res["ansible_facts"]["modbus_parameters"] == {"d": {"F07": "5 s", "stop_mode": "ramp"}}
         assert sorted(p.name for p in tmp_path.iterdir()) == ["args-info.json"]
 
         dest = tmp_path / "as-found"
-        code, res = run_module(tmp_path, "pull", {"profile": "example-inverter", "device": sim.url, "name": "d",
-                                                  "dest": str(dest)}, check=True)
+        code, res = run_module(
+            tmp_path,
+            "pull",
+            {"profile": "example-inverter", "device": sim.url, "name": "d", "dest": str(dest)},
+            check=True,
+        )
         assert code == 0 and res["changed"] is True and not dest.exists()
-        code, res = run_module(tmp_path, "pull", {"profile": "example-inverter", "device": sim.url, "name": "d",
-                                                  "dest": str(dest)})
+        code, res = run_module(
+            tmp_path, "pull", {"profile": "example-inverter", "device": sim.url, "name": "d", "dest": str(dest)}
+        )
         assert code == 0 and res["changed"] is True and res["files"] == [str(dest / "d.yaml")]
         assert "F07: 5 s" in (dest / "d.yaml").read_text()
-        code, res = run_module(tmp_path, "pull", {"profile": "example-inverter", "device": sim.url, "name": "d",
-                                                  "dest": str(dest)})
+        code, res = run_module(
+            tmp_path, "pull", {"profile": "example-inverter", "device": sim.url, "name": "d", "dest": str(dest)}
+        )
         assert code == 0 and res["changed"] is False
         assert not any(e.function in (5, 6, 15, 16) for e in sim.log)
 
@@ -217,8 +295,13 @@ def test_the_collection_uses_only_the_public_api() -> None:
 
 def test_a_device_already_in_alarm_is_not_written_by_a_soak_unless_allowed(tmp_path: Path) -> None:
     fault = PROFILE.health[0].address
-    base = {"profile": "example-inverter", "parameters": {"F07": "10 s"}, "state_dir": str(tmp_path / "st"),
-            "soak": "200ms", "health_interval": "100ms"}
+    base = {
+        "profile": "example-inverter",
+        "parameters": {"F07": "10 s"},
+        "state_dir": str(tmp_path / "st"),
+        "soak": "200ms",
+        "health_interval": "100ms",
+    }
     with Simulators([Simulator(PROFILE, init={fault: 7})]) as (sim,):
         code, res = run_module(tmp_path, "apply", {**base, "device": sim.url})
         assert code == 1 and res["devices"][0]["status"] == "failed"
@@ -228,6 +311,9 @@ def test_a_device_already_in_alarm_is_not_written_by_a_soak_unless_allowed(tmp_p
         assert code == 0, res
         assert sim.read("F07") == (0, 1000)
         sim.log.clear()
-        code, res = run_module(tmp_path, "apply", {**{k: v for k, v in base.items() if k != "soak"},
-                                                   "device": sim.url, "allow_unhealthy": True})
+        code, res = run_module(
+            tmp_path,
+            "apply",
+            {**{k: v for k, v in base.items() if k != "soak"}, "device": sim.url, "allow_unhealthy": True},
+        )
         assert code == 1 and "allow_unhealthy goes with soak" in res["msg"] and sim.log == []

@@ -26,8 +26,10 @@ def recipe(**values: str) -> deployer.Recipe:
 
 
 def devices(sims: list[Simulator], groups: tuple[str, ...] = ()) -> list[dict[str, object]]:
-    return [{"name": f"d{i}", "url": s.url, **({"groups": [groups[i - 1]]} if groups else {})}
-            for i, s in enumerate(sims, 1)]
+    return [
+        {"name": f"d{i}", "url": s.url, **({"groups": [groups[i - 1]]} if groups else {})}
+        for i, s in enumerate(sims, 1)
+    ]
 
 
 def test_apply_executes_exactly_the_plan_it_is_given(tmp_path: Path) -> None:
@@ -94,8 +96,9 @@ def test_a_fleet_plan_keeps_every_device_and_why_not(tmp_path: Path) -> None:
             deployer.apply(fleet, state_dir=tmp_path)
         assert not [e for s in sims for e in s.log if e.function in (6, 16)]
         started: list[str] = []
-        report = deployer.apply(fleet.without_errors(), state_dir=tmp_path, batch="1,100%", batch_by="group",
-                                on_start=started.append)
+        report = deployer.apply(
+            fleet.without_errors(), state_dir=tmp_path, batch="1,100%", batch_by="group", on_start=started.append
+        )
         assert sorted(started) == ["d1", "d2", "d3"] and report.exit_code == 0
         # the inventory's groups kept: the first batch takes one device of each group
         assert {d.name: d.batch for d in report.devices} == {"d1": 1, "d2": 1, "d3": 2}
@@ -111,7 +114,8 @@ def test_a_fleet_plan_is_applied_under_the_stale_plan_rule(tmp_path: Path) -> No
         report = deployer.apply(fleet, state_dir=tmp_path)
         assert [d.status for d in report.devices] == ["ok", "skipped"] and report.exit_code == 4
         assert "not written: the device changed since the plan was made (base_speed: now 1234 rpm)" in (
-            report.devices[1].error or "")
+            report.devices[1].error or ""
+        )
         assert not [e for e in sims[1].log if e.function in (6, 16)]
         with pytest.raises(deployer.UsageError, match="a FleetPlan runs in this process"):
             deployer.apply(fleet, workers=2)
@@ -125,9 +129,16 @@ def test_apply_a_recipe_to_an_inventory_and_roll_it_back(tmp_path: Path) -> None
     with Simulators([Simulator(PROFILE) for _ in range(2)]) as sims:
         before = [s.read("F07") for s in sims]
         done: list[str] = []
-        report = deployer.apply(recipe(), inventory=devices(sims), limit="d*", parallel=2, state_dir=tmp_path,
-                                report_path=tmp_path / "run.json", on_done=lambda r: done.append(r.status),
-                                caller="ansible deployer.modbus.apply")
+        report = deployer.apply(
+            recipe(),
+            inventory=devices(sims),
+            limit="d*",
+            parallel=2,
+            state_dir=tmp_path,
+            report_path=tmp_path / "run.json",
+            on_done=lambda r: done.append(r.status),
+            caller="ansible deployer.modbus.apply",
+        )
         assert report.exit_code == 0 and done == ["ok", "ok"]
         assert '"via": "ansible"' in (tmp_path / "audit.jsonl").read_text()
         assert all(s.read("F07") == (0, 1000) for s in sims)
@@ -136,8 +147,10 @@ def test_apply_a_recipe_to_an_inventory_and_roll_it_back(tmp_path: Path) -> None
         assert [s.read("F07") for s in sims] == before
         snapshot = report.devices[0].snapshot
         assert snapshot is not None
-        with pytest.raises(deployer.UsageError, match="restoring a snapshot to another device needs "
-                                                      "to_other_device=True; nothing was sent"):
+        with pytest.raises(
+            deployer.UsageError,
+            match="restoring a snapshot to another device needs to_other_device=True; nothing was sent",
+        ):
             deployer.rollback(snapshot, sims[1].url, state_dir=tmp_path)
         deployer.apply(recipe(), sims[0].url, state_dir=tmp_path)
         one = deployer.rollback(snapshot, state_dir=tmp_path)  # the snapshot of the first run: back to before it
@@ -169,9 +182,17 @@ def test_confirm_and_status(tmp_path: Path) -> None:
     with SimulatorThread(prof) as sim:
         waiting: list[str] = []
         result: list[deployer.Report] = []
-        run = threading.Thread(target=lambda: result.append(deployer.apply(
-            drive, sim.url, state_dir=tmp_path, confirm_within="60s",
-            on_confirm_wait=lambda run, deadline: waiting.append(run))))
+        run = threading.Thread(
+            target=lambda: result.append(
+                deployer.apply(
+                    drive,
+                    sim.url,
+                    state_dir=tmp_path,
+                    confirm_within="60s",
+                    on_confirm_wait=lambda run, deadline: waiting.append(run),
+                )
+            )
+        )
         run.start()
         wait_for(lambda: bool(waiting), "the run to wait")
         assert set(deployer.status(tmp_path).awaiting) == set(waiting)
@@ -182,6 +203,7 @@ def test_confirm_and_status(tmp_path: Path) -> None:
 
 def test_the_async_twins_run_in_the_callers_loop(tmp_path: Path) -> None:
     with SimulatorThread(PROFILE) as sim:
+
         async def inside() -> deployer.Report:
             plan = await deployer.aio.plan(recipe(), sim.url, state_dir=tmp_path)
             return await deployer.aio.apply(plan, state_dir=tmp_path)

@@ -43,18 +43,27 @@ def recipe_file(tmp: Path, body: str, profile: str = "example-inverter") -> str:
 
 
 def line3(tmp: Path) -> str:
-    return recipe_file(tmp, "  F07: 10 s\n  F08: 8 s\n  stop_mode: coast\n  base_speed: 1750 rpm\n  pid_gain: 2.5\n"
-                            "  preset[0]: {speed: 300, time: 2 s}\n  control_mode: sensorless-vector\n")
+    return recipe_file(
+        tmp,
+        "  F07: 10 s\n  F08: 8 s\n  stop_mode: coast\n  base_speed: 1750 rpm\n  pid_gain: 2.5\n"
+        "  preset[0]: {speed: 300, time: 2 s}\n  control_mode: sensorless-vector\n",
+    )
 
 
-def apply(sim: Simulator, recipe_path: str, tmp: Path, unit: int = 1, url_suffix: str = "?timeout=0.3",
-          **opts: object) -> DeviceResult:
+def apply(
+    sim: Simulator, recipe_path: str, tmp: Path, unit: int = 1, url_suffix: str = "?timeout=0.3", **opts: object
+) -> DeviceResult:
     rec = load_recipe(recipe_path)
 
     async def body(s: Simulator) -> DeviceResult:
         url = parse_url(s.url + url_suffix)
-        return await apply_device(rec, url, unit, options=ApplyOptions(state_dir=str(tmp / ".deployer"),
-                                                                        backoff=0.01, **opts))  # type: ignore[arg-type]
+        return await apply_device(
+            rec,
+            url,
+            unit,
+            options=ApplyOptions(state_dir=str(tmp / ".deployer"), backoff=0.01, **opts),  # type: ignore[arg-type]
+        )
+
     return run_with(sim, body)
 
 
@@ -100,6 +109,7 @@ def test_second_apply_writes_nothing(tmp_path: Path) -> None:
         second = await apply_device(rec, url, 1, options=opts)
         assert count(s.log[n:], 16) == 0
         return first, second
+
     first, second = run_with(sim, body)
     assert first.status == "ok" and second.status == "ok"
     assert {p.status for p in second.parameters} == {"unchanged"}
@@ -171,8 +181,14 @@ def test_device_stops_answering_mid_plan(tmp_path: Path) -> None:
         async def confirm(plan: object, res: object) -> bool:
             faults.drop_every = 1  # from now on every request is swallowed
             return True
-        return await apply_device(rec, parse_url(s.url + "?timeout=0.1&retries=1"), 1,
-                                  options=ApplyOptions(state_dir=str(tmp_path / ".d"), backoff=0.01, confirm=confirm))
+
+        return await apply_device(
+            rec,
+            parse_url(s.url + "?timeout=0.1&retries=1"),
+            1,
+            options=ApplyOptions(state_dir=str(tmp_path / ".d"), backoff=0.01, confirm=confirm),
+        )
+
     res = run_with(sim, body)
     assert res.status == "partial"
     statuses = [p.status for p in res.parameters]
@@ -187,8 +203,14 @@ def test_unreachable_device_exit_3(tmp_path: Path) -> None:
     rec = load_recipe(line3(tmp_path))
     import asyncio
 
-    res = asyncio.run(apply_device(rec, parse_url(f"tcp://127.0.0.1:{port}?timeout=0.2"), 1,
-                                   options=ApplyOptions(state_dir=str(tmp_path / ".d"))))
+    res = asyncio.run(
+        apply_device(
+            rec,
+            parse_url(f"tcp://127.0.0.1:{port}?timeout=0.2"),
+            1,
+            options=ApplyOptions(state_dir=str(tmp_path / ".d")),
+        )
+    )
     assert res.status == "unreachable" and res.requests == [] and res.snapshot is None
     assert Report("r", [res]).exit_code == 3
 
@@ -224,8 +246,11 @@ def test_broadcast_with_the_flag_is_sent_unverified_and_exit_0(tmp_path: Path) -
 def test_broadcast_that_cannot_be_sent_fails_with_exit_4(tmp_path: Path) -> None:
     # three requests (gaps between the registers); the simulator drops the connection at the second,
     # so the third finds no connection and, with no retries, cannot be sent
-    prof = profile_from(tmp_path, "profile: dev\nparameters:\n  a: {register: 0, type: uint16}\n"
-                                  "  b: {register: 10, type: uint16}\n  c: {register: 20, type: uint16}\n")
+    prof = profile_from(
+        tmp_path,
+        "profile: dev\nparameters:\n  a: {register: 0, type: uint16}\n"
+        "  b: {register: 10, type: uint16}\n  c: {register: 20, type: uint16}\n",
+    )
     sim = Simulator(prof, faults=Faults(disconnect_after=1))
     path = recipe_file(tmp_path, "  a: 1\n  b: 2\n  c: 3\n", profile=str(tmp_path / "dev.yaml"))
     res = apply(sim, path, tmp_path, unit=0, allow_broadcast=True, url_suffix="?timeout=0.3&retries=0")
@@ -266,8 +291,8 @@ def test_rollback_restores_every_register(tmp_path: Path) -> None:
         back = await apply_device(load_recipe(res.snapshot), url, 1, options=opts)
         assert back.status == "ok"
         store = prof.parameter("eeprom_store").address  # written by the commit action, by design
-        assert {a: v for a, v in s.registers().items() if a != store} == {
-            a: v for a, v in before.items() if a != store}
+        assert {a: v for a, v in s.registers().items() if a != store} == {a: v for a, v in before.items() if a != store}
+
     run_with(sim, body)
 
 
@@ -290,13 +315,18 @@ def test_read_current_and_pull_round_trip(tmp_path: Path) -> None:
         url = parse_url(s.url)
         names = [p.name for p in prof.parameters if p.readable and p.writable]
         cur = await read_current(prof, names, url, 1)
-        text = recipe_text("example-inverter", {prof.parameter(n): v for n, v in cur.items()}, name="pulled",
-                           device=DeviceSpec(s.url, 1))
+        text = recipe_text(
+            "example-inverter",
+            {prof.parameter(n): v for n, v in cur.items()},
+            name="pulled",
+            device=DeviceSpec(s.url, 1),
+        )
         f = tmp_path / "pulled.yaml"
         f.write_text(text)
         n = len(s.log)
         res = await apply_device(load_recipe(str(f)), url, 1, options=ApplyOptions(state_dir=str(tmp_path / ".d")))
         assert res.status == "ok" and count(s.log[n:], 16) == 0  # applies back as a no-op
+
     run_with(sim, body)
 
 
@@ -307,8 +337,19 @@ def test_audit_and_report_files_from_the_cli(tmp_path: Path) -> None:
     with SimulatorThread(builtin_profile("example-inverter")) as sim:
         report = tmp_path / "report.json"
         with pytest.raises(SystemExit) as exc:
-            main(["apply", line3(tmp_path), "--device", sim.url, "--yes", "--report", str(report),
-                  "--state-dir", str(tmp_path / ".d")])
+            main(
+                [
+                    "apply",
+                    line3(tmp_path),
+                    "--device",
+                    sim.url,
+                    "--yes",
+                    "--report",
+                    str(report),
+                    "--state-dir",
+                    str(tmp_path / ".d"),
+                ]
+            )
     assert exc.value.code == 0
     data = json.loads(report.read_text())
     jsonschema.validate(data, schema.schema("report"))
@@ -323,15 +364,21 @@ def test_audit_and_report_files_from_the_cli(tmp_path: Path) -> None:
 
 
 def test_device_without_fc16_gets_one_fc06_per_register(tmp_path: Path) -> None:
-    prof = profile_from(tmp_path, "profile: old\nlimits: {write_function: 6}\nparameters:\n"
-                                  "  speed: {register: 10, type: uint16}\n  ramp: {register: 11, type: uint32}\n",
-                        "old.yaml")
+    prof = profile_from(
+        tmp_path,
+        "profile: old\nlimits: {write_function: 6}\nparameters:\n"
+        "  speed: {register: 10, type: uint16}\n  ramp: {register: 11, type: uint32}\n",
+        "old.yaml",
+    )
     path = recipe_file(tmp_path, "  speed: 5\n  ramp: 70000\n", profile="old.yaml")
     sim = Simulator(prof)
     res = apply(sim, path, tmp_path)
     assert res.status == "ok", res
     assert [(e.function, e.address, e.values) for e in sim.log if e.function in (6, 16)] == [
-        (6, 10, [5]), (6, 11, [1]), (6, 12, [4464])]
+        (6, 10, [5]),
+        (6, 11, [1]),
+        (6, 12, [4464]),
+    ]
     assert sim.read("ramp") == (1, 4464)
 
 
@@ -345,15 +392,28 @@ def test_silence_mid_plan_then_the_read_back_tells_what_took(tmp_path: Path) -> 
         async def confirm(plan: object, res: object) -> bool:
             faults.drop_every = len(s.log) + 2  # the request after the first write
             return True
-        return await apply_device(rec, parse_url(s.url + "?timeout=0.2&retries=0"), 1,
-                                  options=ApplyOptions(state_dir=str(tmp_path / ".d"), confirm=confirm))
+
+        return await apply_device(
+            rec,
+            parse_url(s.url + "?timeout=0.2&retries=0"),
+            1,
+            options=ApplyOptions(state_dir=str(tmp_path / ".d"), confirm=confirm),
+        )
+
     res = run_with(sim, body)
-    plan = make_plan(rec, Target(None, 1, "example-inverter"), {p.name: p.before_raw for p in res.parameters
-                                                                if p.before_raw is not None})
+    plan = make_plan(
+        rec,
+        Target(None, 1, "example-inverter"),
+        {p.name: p.before_raw for p in res.parameters if p.before_raw is not None},
+    )
     first, second, *rest = plan.writes
     st = {p.name: p for p in res.parameters}
     assert all(st[n].status == "ok" for n in first.parameters)
-    assert all(st[n].status == "unverified" and "device stopped answering" in (st[n].error or "")
-               and "reads back" in (st[n].error or "") for n in second.parameters)
+    assert all(
+        st[n].status == "unverified"
+        and "device stopped answering" in (st[n].error or "")
+        and "reads back" in (st[n].error or "")
+        for n in second.parameters
+    )
     assert all(st[n].status == "skipped" and st[n].after_raw is not None for r in rest for n in r.parameters)
     assert res.status == "partial" and Report("r", [res]).exit_code == 4

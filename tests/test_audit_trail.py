@@ -37,8 +37,17 @@ DOWN = float(os.environ.get("DEPLOYER_TEST_SYSLOG_DOWN", "3"))
 
 def _trail(folder: str, n: int) -> list[bytes]:
     for i in range(n):
-        trail.append(folder, [record.event("applied", device=f"d{i % 3}", reason="ramps Ω",
-                                           detail={"parameters": [{"name": "accel", "old": "5 s", "new": f"{i} s"}]})])
+        trail.append(
+            folder,
+            [
+                record.event(
+                    "applied",
+                    device=f"d{i % 3}",
+                    reason="ramps Ω",
+                    detail={"parameters": [{"name": "accel", "old": "5 s", "new": f"{i} s"}]},
+                )
+            ],
+        )
     return trail.lines(folder)
 
 
@@ -61,7 +70,7 @@ def _tamper(lines: list[bytes], op: tuple[str, int, int, int]) -> list[bytes] | 
         at = b % len(out[k])
         if out[k][at] == c:
             return None
-        out[k] = out[k][:at] + bytes([c]) + out[k][at + 1:]
+        out[k] = out[k][:at] + bytes([c]) + out[k][at + 1 :]
     elif kind == "delete":
         del out[a % n]
     elif kind == "insert":
@@ -77,7 +86,8 @@ def _tamper(lines: list[bytes], op: tuple[str, int, int, int]) -> list[bytes] | 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(n=st.integers(2, 9), op=edits)
 def test_any_edit_removal_insertion_or_reordering_is_found_and_the_first_such_record_named(
-        n: int, op: tuple[str, int, int, int]) -> None:
+    n: int, op: tuple[str, int, int, int]
+) -> None:
     with tempfile.TemporaryDirectory() as folder:
         lines = _trail(folder, n)
         assert verify(folder).holds
@@ -87,12 +97,16 @@ def test_any_edit_removal_insertion_or_reordering_is_found_and_the_first_such_re
         Path(folder, trail.TRAIL).write_bytes(b"".join(x + b"\n" for x in changed))
         result = verify(folder)
         assert not result.holds, op
-        first = next(i for i in range(len(changed) + 1)
-                     if i >= len(changed) or i >= len(lines) or changed[i] != lines[i])
+        first = next(
+            i for i in range(len(changed) + 1) if i >= len(changed) or i >= len(lines) or changed[i] != lines[i]
+        )
         named = result.problems[0].line - 1
         # the first line that differs is named (a duplicate next to its original: either of the two same lines)
-        assert named == first or (first < len(changed) and named < len(changed) and changed[named] == changed[first]), \
-            (op, first, result.problems)
+        assert named == first or (first < len(changed) and named < len(changed) and changed[named] == changed[first]), (
+            op,
+            first,
+            result.problems,
+        )
 
 
 def test_a_line_cut_by_a_crash_is_kept_and_the_chain_goes_on(tmp_path: Path) -> None:
@@ -152,8 +166,11 @@ def _free_port() -> int:
 
 @contextmanager
 def receiver(port: int, out: Path) -> Iterator[subprocess.Popen[str]]:
-    proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "syslog_receiver.py"), str(port), str(out)],
-                            stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "tests" / "syslog_receiver.py"), str(port), str(out)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "listening"
         yield proc
@@ -178,9 +195,26 @@ def test_with_the_receiver_down_for_a_while_nothing_is_lost(tmp_path: Path) -> N
     folder = str(tmp_path / "audit")
     _trail(folder, 5)
     port, out = _free_port(), tmp_path / "received.log"
-    fw = subprocess.Popen([sys.executable, "-m", "deployer", "audit", "forward", "--trail", folder, "--follow",
-                           "--syslog", f"tcp://127.0.0.1:{port}", "--settle", "0.2", "--retry-max", "1"],
-                          stderr=subprocess.PIPE, text=True)
+    fw = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "deployer",
+            "audit",
+            "forward",
+            "--trail",
+            folder,
+            "--follow",
+            "--syslog",
+            f"tcp://127.0.0.1:{port}",
+            "--settle",
+            "0.2",
+            "--retry-max",
+            "1",
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         with receiver(port, out):
             until(lambda: len(_received(out)) == 5, why="the first five records at the receiver")
@@ -191,13 +225,20 @@ def test_with_the_receiver_down_for_a_while_nothing_is_lost(tmp_path: Path) -> N
         total = trail.read_head(folder)
         assert total is not None and total.seq > 5
         with receiver(port, out):
-            until(lambda: set(_received(out)) >= set(range(1, total.seq + 1)), timeout=60,
-                  why="every record once the receiver is back")
+            until(
+                lambda: set(_received(out)) >= set(range(1, total.seq + 1)),
+                timeout=60,
+                why="every record once the receiver is back",
+            )
         got = _received(out)
         for i, line in enumerate(trail.lines(folder)):  # as they are in the trail, byte for byte
             assert got[i + 1] == line
-        check = subprocess.run([sys.executable, "-m", "deployer", "audit", "verify", "--trail", folder, "--copy",
-                                str(out)], capture_output=True, text=True, timeout=60)
+        check = subprocess.run(
+            [sys.executable, "-m", "deployer", "audit", "verify", "--trail", folder, "--copy", str(out)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert check.returncode == 0 and f"{total.seq} records hold" in check.stdout, check.stdout + check.stderr
     finally:
         fw.terminate()
@@ -216,15 +257,37 @@ template(name="fields" type="string" string="%pri% %app-name% %msgid% %structure
 ruleset(name="audit") {{ action(type="omfile" file="{out}" template="fields") }}
 input(type="imtcp" address="127.0.0.1" port="{port}" ruleset="audit")
 """)
-    rs = subprocess.Popen(["rsyslogd", "-n", "-f", str(conf), "-i", str(tmp_path / "rsyslog.pid")],
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    rs = subprocess.Popen(
+        ["rsyslogd", "-n", "-f", str(conf), "-i", str(tmp_path / "rsyslog.pid")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
+
         def listening() -> bool:
             with socket.socket() as s:
                 return s.connect_ex(("127.0.0.1", port)) == 0
+
         until(listening, why="rsyslogd listening")
-        r = subprocess.run([sys.executable, "-m", "deployer", "audit", "forward", "--trail", folder, "--syslog",
-                            f"tcp://127.0.0.1:{port}", "--settle", "0.2"], capture_output=True, text=True, timeout=60)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "audit",
+                "forward",
+                "--trail",
+                folder,
+                "--syslog",
+                f"tcp://127.0.0.1:{port}",
+                "--settle",
+                "0.2",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert r.returncode == 0 and "30 record(s) forwarded" in r.stderr, r.stderr
         until(lambda: out.exists() and len(out.read_bytes().splitlines()) >= 30, why="rsyslog's file")
     finally:
@@ -240,15 +303,18 @@ input(type="imtcp" address="127.0.0.1" port="{port}" ruleset="audit")
         assert (pri, app, msgid) == ("109", "deployer", rec["event"])  # facility 13 (log audit), notice
         assert f'seq="{i}"' in sd and f'hash="{trail.line_hash(mine)}"' in sd
         assert msg.lstrip("\ufeff").encode() == mine  # the record itself, UTF-8 (Ω) intact
-    check = subprocess.run([sys.executable, "-m", "deployer", "audit", "verify", "--trail", folder, "--copy", str(out)],
-                           capture_output=True, text=True, timeout=60)
+    check = subprocess.run(
+        [sys.executable, "-m", "deployer", "audit", "verify", "--trail", folder, "--copy", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert check.returncode == 0, check.stdout + check.stderr
 
 
 def _metrics(agent: Any) -> dict[str, float]:
     text = agent.client.metrics()  # with the token the agent made (every route but "/" needs a credential)
-    return {ln.split(" ")[0]: float(ln.split(" ")[1]) for ln in text.splitlines()
-            if ln.startswith("deployer_audit_")}
+    return {ln.split(" ")[0]: float(ln.split(" ")[1]) for ln in text.splitlines() if ln.startswith("deployer_audit_")}
 
 
 def test_the_agent_forwards_and_alarms_on_its_backlog(tmp_path: Path) -> None:
@@ -264,11 +330,16 @@ def test_the_agent_forwards_and_alarms_on_its_backlog(tmp_path: Path) -> None:
         _trail(folder, 6)  # the receiver is down: the backlog passes 3
         until(lambda: _metrics(agent).get("deployer_audit_forward_backlog_alarm") == 1, why="the alarm")
         assert _metrics(agent)["deployer_audit_forward_up"] == 0
-        until(lambda: any(json.loads(x)["event"] == "forward-backlog" for x in trail.lines(folder)),
-              why="the forward-backlog record")
+        until(
+            lambda: any(json.loads(x)["event"] == "forward-backlog" for x in trail.lines(folder)),
+            why="the forward-backlog record",
+        )
         with receiver(port, out):
-            until(lambda: _metrics(agent).get("deployer_audit_forward_backlog_alarm") == 0, timeout=90,
-                  why="the backlog drained")
+            until(
+                lambda: _metrics(agent).get("deployer_audit_forward_backlog_alarm") == 0,
+                timeout=90,
+                why="the backlog drained",
+            )
             head = trail.read_head(folder)
             assert head is not None
             until(lambda: set(_received(out)) >= set(range(1, head.seq)), why="every record at the receiver")
@@ -283,15 +354,21 @@ def test_show_chooses_by_device_user_and_time(tmp_path: Path, capsys: pytest.Cap
     from tests.helpers import cli
 
     folder = str(tmp_path / "audit")
-    trail.append(folder, [{**record.event("applied", user="ann", device="d1"), "time": "2026-01-01T10:00:00.000Z"},
-                          {**record.event("applied", user="ben", device="d2"), "time": "2026-01-02T10:00:00.000Z"},
-                          {**record.event("confirmed", user="ann"), "time": "2026-01-03T10:00:00.000Z"}])
+    trail.append(
+        folder,
+        [
+            {**record.event("applied", user="ann", device="d1"), "time": "2026-01-01T10:00:00.000Z"},
+            {**record.event("applied", user="ben", device="d2"), "time": "2026-01-02T10:00:00.000Z"},
+            {**record.event("confirmed", user="ann"), "time": "2026-01-03T10:00:00.000Z"},
+        ],
+    )
     code, out, _ = cli(capsys, "audit", "show", "--trail", folder, "--json", "--user", "ann")
     assert code == 0 and [json.loads(x)["seq"] for x in out.splitlines()] == [1, 3]
     code, out, _ = cli(capsys, "audit", "show", "--trail", folder, "--device", "d2")
     assert code == 0 and out.startswith("2 2026-01-02T10:00:00.000Z applied ben device d2")
-    code, out, _ = cli(capsys, "audit", "show", "--trail", folder, "--json", "--since", "2026-01-02",
-                       "--until", "2026-01-03T09:00Z")
+    code, out, _ = cli(
+        capsys, "audit", "show", "--trail", folder, "--json", "--since", "2026-01-02", "--until", "2026-01-03T09:00Z"
+    )
     assert [json.loads(x)["seq"] for x in out.splitlines()] == [2]
     code, _, err = cli(capsys, "audit", "show", "--trail", folder, "--since", "yesterday")
     assert code == 1 and "--since yesterday: expected an ISO 8601 date" in err

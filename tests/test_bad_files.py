@@ -44,8 +44,9 @@ def test_bad_file(name: str, where: str, fragment: str) -> None:
     line, col = int(parts[-2]), int(parts[-1])
     got = [(os.path.normpath(d.path), d.line, d.col, d.message) for d in err.value.diagnostics]
     said = (fragment, fragment.replace("/", os.sep))  # a path in a message is the system's own spelling
-    assert any(p == os.path.normpath(file) and ln == line and c == col and any(f in m for f in said)
-               for p, ln, c, m in got), got
+    assert any(
+        p == os.path.normpath(file) and ln == line and c == col and any(f in m for f in said) for p, ln, c, m in got
+    ), got
 
 
 def test_deeper_than_libyaml_allows(tmp_path: Path) -> None:
@@ -78,8 +79,9 @@ def test_huge_file(tmp_path: Path) -> None:
 def test_cli_validate_all_bad_files_at_once() -> None:
     """One run over the whole corpus: exit 1, every file reported, no traceback."""
     files = sorted(str(p) for p in BAD.glob("*.yaml"))
-    proc = subprocess.run([sys.executable, "-m", "deployer", "validate", *files], capture_output=True, text=True,
-                          timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "deployer", "validate", *files], capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 1
     assert "Traceback" not in proc.stderr + proc.stdout
     assert f"{len(files)} of {len(files)} files invalid" in proc.stderr

@@ -16,20 +16,42 @@ from tests.helpers import cli
 pytestmark = pytest.mark.timeout(60)
 
 
-
-
 def test_broadcast_ends_sent_with_exit_0(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     recipe = tmp_path / "r.yaml"
     recipe.write_text("recipe: r\nprofile: example-inverter\nparameters: {F07: 10 s, stop_mode: coast}\n")
     with SimulatorThread(builtin_profile("example-inverter"), units=(1, 2)) as sim:
-        code, out, _ = cli(capsys, "apply", str(recipe), "--device", sim.url, "--unit", "0", "--allow-broadcast",
-                           "--yes", "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            str(recipe),
+            "--device",
+            sim.url,
+            "--unit",
+            "0",
+            "--allow-broadcast",
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0
         assert "(example-inverter): sent" in out
         assert "broadcast sent: every request went out; no device answers a broadcast" in out
-        code, out, _ = cli(capsys, "apply", str(recipe), "--device", sim.url, "--unit", "0", "--allow-broadcast",
-                           "--yes", "--json", "--report", str(tmp_path / "report.json"),
-                           "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            str(recipe),
+            "--device",
+            sim.url,
+            "--unit",
+            "0",
+            "--allow-broadcast",
+            "--yes",
+            "--json",
+            "--report",
+            str(tmp_path / "report.json"),
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0
         assert sim.read("F07", 1) == sim.read("F07", 2) == (0, 1000)
     report = json.loads(out)
@@ -48,9 +70,35 @@ def test_retrying_a_report_leaves_sent_broadcasts_alone(tmp_path: Path) -> None:
     from deployer.fleet.inventory import not_ok
 
     report = tmp_path / "run.json"
-    report.write_text(json.dumps({"schema": "deployer.report/1", "recipe": None, "devices": [
-        {"name": n, "url": "tcp://h", "unit": 1, "profile": "p", "status": s, "snapshot": None, "requests": [],
-         "parameters": []} for n, s in (("a", "ok"), ("all", "sent"), ("b", "partial"), ("c", "skipped"))],
-        "summary": {"devices": 4, "ok": 1, "partial": 1, "failed": 0, "unreachable": 0, "write_requests": 0,
-                    "read_requests": 0, "seconds": 0}}))
+    report.write_text(
+        json.dumps(
+            {
+                "schema": "deployer.report/1",
+                "recipe": None,
+                "devices": [
+                    {
+                        "name": n,
+                        "url": "tcp://h",
+                        "unit": 1,
+                        "profile": "p",
+                        "status": s,
+                        "snapshot": None,
+                        "requests": [],
+                        "parameters": [],
+                    }
+                    for n, s in (("a", "ok"), ("all", "sent"), ("b", "partial"), ("c", "skipped"))
+                ],
+                "summary": {
+                    "devices": 4,
+                    "ok": 1,
+                    "partial": 1,
+                    "failed": 0,
+                    "unreachable": 0,
+                    "write_requests": 0,
+                    "read_requests": 0,
+                    "seconds": 0,
+                },
+            }
+        )
+    )
     assert not_ok(str(report)) == ["b", "c"]

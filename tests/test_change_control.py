@@ -25,13 +25,21 @@ from deployer.testing.simulator import Simulator, SimulatorThread
 from tests.agent_helpers import PROFILE, RECIPE
 
 SSH_KEYGEN = shutil.which("ssh-keygen")
-needs_ssh = pytest.mark.skipif(SSH_KEYGEN is None,
-                               reason="ssh-keygen is not installed (apt-get install openssh-client)")
+needs_ssh = pytest.mark.skipif(
+    SSH_KEYGEN is None, reason="ssh-keygen is not installed (apt-get install openssh-client)"
+)
+
 
 def run(tmp: Path, *args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     """``deployer ARGS`` as its own process, in ``tmp``."""
-    return subprocess.run([sys.executable, "-m", "deployer", *args], cwd=tmp, capture_output=True, text=True,
-                          timeout=120, env={**os.environ, "DEPLOYER_POLICY": "", **(env or {})})
+    return subprocess.run(
+        [sys.executable, "-m", "deployer", *args],
+        cwd=tmp,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "DEPLOYER_POLICY": "", **(env or {})},
+    )
 
 
 def keygen(tmp: Path, name: str, kind: str = "ed25519") -> Path:
@@ -90,13 +98,43 @@ def test_signatures_go_both_ways_with_ssh_keygen(tmp_path: Path, kind: str) -> N
     entry = sign(d, "alice", "approved", signer_of(str(key)))
     (tmp_path / "st").write_bytes(statement_bytes(entry))
     (tmp_path / "st.sig").write_text(entry["signature"])
-    ok = subprocess.run([SSH_KEYGEN, "-Y", "verify", "-f", str(signers), "-I", "alice", "-n", "deployer",
-                         "-s", str(tmp_path / "st.sig")], stdin=(tmp_path / "st").open("rb"), capture_output=True)
+    ok = subprocess.run(
+        [
+            SSH_KEYGEN,
+            "-Y",
+            "verify",
+            "-f",
+            str(signers),
+            "-I",
+            "alice",
+            "-n",
+            "deployer",
+            "-s",
+            str(tmp_path / "st.sig"),
+        ],
+        stdin=(tmp_path / "st").open("rb"),
+        capture_output=True,
+    )
     assert ok.returncode == 0, ok.stderr
     # a changed byte of the statement: ssh-keygen refuses it as well
     (tmp_path / "st2").write_bytes(statement_bytes(entry).replace(b"approved", b"reviewed"))
-    bad = subprocess.run([SSH_KEYGEN, "-Y", "verify", "-f", str(signers), "-I", "alice", "-n", "deployer",
-                          "-s", str(tmp_path / "st.sig")], stdin=(tmp_path / "st2").open("rb"), capture_output=True)
+    bad = subprocess.run(
+        [
+            SSH_KEYGEN,
+            "-Y",
+            "verify",
+            "-f",
+            str(signers),
+            "-I",
+            "alice",
+            "-n",
+            "deployer",
+            "-s",
+            str(tmp_path / "st.sig"),
+        ],
+        stdin=(tmp_path / "st2").open("rb"),
+        capture_output=True,
+    )
     assert bad.returncode != 0
     # ssh-keygen signs, deployer verifies
     st = statement(d, "alice", "reviewed")
@@ -114,8 +152,21 @@ def test_signatures_go_both_ways_with_ssh_keygen(tmp_path: Path, kind: str) -> N
 def test_a_changed_byte_in_the_plan_fails_verification(tmp_path: Path, sim: Simulator) -> None:
     keygen(tmp_path, "alice")
     allowed(tmp_path, "alice")
-    r = run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json", "--reason", "new ramps",
-            "--sign-key", "alice", "--signer", "alice")
+    r = run(
+        tmp_path,
+        "plan",
+        "r.yaml",
+        "--device",
+        sim.url,
+        "--out",
+        "p.json",
+        "--reason",
+        "new ramps",
+        "--sign-key",
+        "alice",
+        "--signer",
+        "alice",
+    )
     assert r.returncode == 0, r.stderr
     v = run(tmp_path, "verify", "p.json", "--allowed-signers", "allowed_signers")
     assert v.returncode == 0 and "authored  alice" in v.stdout and ": holds" in v.stdout, v.stdout + v.stderr
@@ -130,13 +181,29 @@ def test_a_changed_byte_in_the_plan_fails_verification(tmp_path: Path, sim: Simu
 
 @needs_ssh
 def test_an_unapproved_plan_is_refused_with_nothing_sent_and_two_approvals_let_it_run(
-        tmp_path: Path, sim: Simulator) -> None:
+    tmp_path: Path, sim: Simulator
+) -> None:
     for n in ("alice", "bob", "carol", "mallory"):
         keygen(tmp_path, n)
     allowed(tmp_path, "alice", "bob", "carol")  # mallory's key is nobody's
     policy = str(site(tmp_path, sim.url))
-    made = run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json", "--reason", "faster ramps",
-               "--ticket", "CHG-1042", "--sign-key", "alice", "--policy", policy)
+    made = run(
+        tmp_path,
+        "plan",
+        "r.yaml",
+        "--device",
+        sim.url,
+        "--out",
+        "p.json",
+        "--reason",
+        "faster ramps",
+        "--ticket",
+        "CHG-1042",
+        "--sign-key",
+        "alice",
+        "--policy",
+        policy,
+    )
     assert made.returncode == 0, made.stderr
     doc = json.loads((tmp_path / "p.json").read_text())
     assert doc["change"]["author"] == "alice"  # the name allowed_signers gives the key
@@ -185,7 +252,10 @@ def test_an_unapproved_plan_is_refused_with_nothing_sent_and_two_approvals_let_i
     change = rep["run"]["change"]
     assert change["digest"] == digest(json.loads(good)) and change["author"] == "alice"
     assert [(s["signer"], s["meaning"], s["holds"]) for s in change["signatures"]] == [
-        ("alice", "authored", True), ("bob", "approved", True), ("carol", "approved", True)]
+        ("alice", "authored", True),
+        ("bob", "approved", True),
+        ("carol", "approved", True),
+    ]
     trail = [json.loads(x) for x in (tmp_path / ".deployer/audit/trail.jsonl").read_text().splitlines()]
     events = [t["event"] for t in trail]
     assert events.count("apply-refused") == 4 and events[-2:] == ["apply-authorized", "applied"]
@@ -198,9 +268,14 @@ def test_without_a_policy_a_plan_signed_over_other_content_is_refused(tmp_path: 
     """No key is needed to see that a signature covers another digest: refused under any policy or none."""
     assert run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json").returncode == 0
     doc = json.loads((tmp_path / "p.json").read_text())
-    doc["signatures"] = [{**statement("sha256:" + "0" * 64, "bob", "approved"), "format": "sshsig",
-                          "namespace": "deployer", "signature": "-----BEGIN SSH SIGNATURE-----\n-----END SSH "
-                                                                "SIGNATURE-----\n"}]
+    doc["signatures"] = [
+        {
+            **statement("sha256:" + "0" * 64, "bob", "approved"),
+            "format": "sshsig",
+            "namespace": "deployer",
+            "signature": "-----BEGIN SSH SIGNATURE-----\n-----END SSH SIGNATURE-----\n",
+        }
+    ]
     (tmp_path / "p.json").write_text(json.dumps(doc))
     sim.log.clear()
     r = run(tmp_path, "apply", "p.json", "--yes")
@@ -211,7 +286,7 @@ def test_a_recipe_is_refused_where_the_policy_needs_a_plan_and_runs_elsewhere(tm
     (tmp_path / "allowed_signers").write_text("")
     inv = site(tmp_path, sim.url)
     with inv.open("a") as f:
-        f.write("  spare: {url: \"tcp://127.0.0.1:1\", recipe: r.yaml}\n")
+        f.write('  spare: {url: "tcp://127.0.0.1:1", recipe: r.yaml}\n')
     r = run(tmp_path, "apply", "--inventory", str(inv), "--limit", "press", "--yes")
     assert r.returncode == 1 and "only an approved plan changes it" in r.stderr and writes(sim) == []
     r = run(tmp_path, "apply", "r.yaml", "--device", sim.url, "--yes", env={"DEPLOYER_POLICY": str(inv)})
@@ -243,8 +318,11 @@ devices:
     assert (r1.approvals, r1.reason, r1.ticket) == (2, True, True)
     assert pol.rule_for("tcp://127.0.0.1:5022", 1).approvals == 1
     assert pol.rule_for("tcp://127.0.0.1:5021", 2).approvals == 1  # another unit: another device
-    doc = {"schema": "deployer.plan/2", "device": {"url": "tcp://127.0.0.1:5021", "unit": 1},
-           "change": {"author": "alice"}}
+    doc = {
+        "schema": "deployer.plan/2",
+        "device": {"url": "tcp://127.0.0.1:5021", "unit": 1},
+        "change": {"author": "alice"},
+    }
     missing = check_approvals(doc, pol)
     assert any(m.startswith("a reason") for m in missing) and any(m.startswith("a change ticket") for m in missing)
     assert any("2 approvals by distinct users other than the author alice" in m for m in missing)
@@ -252,7 +330,7 @@ devices:
 
 def test_a_bad_policy_is_refused_at_its_position(tmp_path: Path) -> None:
     inv = tmp_path / "site.yaml"
-    inv.write_text("change_control:\n  require: {approvals: many}\ndevices:\n  d: {url: \"tcp://127.0.0.1:1\"}\n")
+    inv.write_text('change_control:\n  require: {approvals: many}\ndevices:\n  d: {url: "tcp://127.0.0.1:1"}\n')
     with pytest.raises(InputError) as e:
         load_policy(str(inv))
     assert e.value.diagnostics[0].line == 2
@@ -263,19 +341,25 @@ def test_allowed_signers_patterns_namespaces_and_validity(tmp_path: Path) -> Non
     key = keygen(tmp_path, "alice")
     kind, b64 = (tmp_path / "alice.pub").read_text().split()[:2]
     path = tmp_path / "as"
-    path.write_text(f"# site keys\n*@plant.example,!eve@plant.example namespaces=\"deployer,file\","
-                    f"valid-before=\"20300101Z\" {kind} {b64}\n"
-                    f"ca@plant.example cert-authority {kind} {b64}\n")
+    path.write_text(
+        f'# site keys\n*@plant.example,!eve@plant.example namespaces="deployer,file",'
+        f'valid-before="20300101Z" {kind} {b64}\n'
+        f"ca@plant.example cert-authority {kind} {b64}\n"
+    )
     signers = load_signers(str(path))
     assert signers.skipped and "certificates are not supported" in signers.skipped[0]
     d = "sha256:" + "11" * 32
     ok = verify(sign(d, "alice@plant.example", "approved", signer_of(str(key))), d, signers)
     assert ok.holds, ok.why
-    assert "not for 'eve@plant.example'" in verify(sign(d, "eve@plant.example", "approved", signer_of(str(key))),
-                                                   d, signers).why
-    path.write_text(f"alice namespaces=\"git\" {kind} {b64}\n")
-    assert "does not allow the namespace deployer" in verify(sign(d, "alice", "approved", signer_of(str(key))), d,
-                                                             load_signers(str(path))).why
+    assert (
+        "not for 'eve@plant.example'"
+        in verify(sign(d, "eve@plant.example", "approved", signer_of(str(key))), d, signers).why
+    )
+    path.write_text(f'alice namespaces="git" {kind} {b64}\n')
+    assert (
+        "does not allow the namespace deployer"
+        in verify(sign(d, "alice", "approved", signer_of(str(key))), d, load_signers(str(path))).why
+    )
     path.write_text(f"alice valid-before=20200101 {kind} {b64}\n")
     assert "valid-before" in verify(sign(d, "alice", "approved", signer_of(str(key))), d, load_signers(str(path))).why
     path.write_text(f"alice {kind} {b64}\nbob ssh-ed25519 not-base64!\n")
@@ -315,8 +399,12 @@ def _post(url: str, body: object, token: str | None) -> tuple[int, dict[str, obj
     import urllib.error
     import urllib.request
 
-    req = urllib.request.Request(url + "/v1/approvals", data=json.dumps(body).encode(), method="POST",
-                                 headers={"Content-Type": "application/json", "Authorization": f"Bearer {token}"})
+    req = urllib.request.Request(
+        url + "/v1/approvals",
+        data=json.dumps(body).encode(),
+        method="POST",
+        headers={"Content-Type": "application/json", "Authorization": f"Bearer {token}"},
+    )
     try:
         with urllib.request.urlopen(req, timeout=20) as resp:
             return resp.status, json.loads(resp.read())
@@ -326,15 +414,30 @@ def _post(url: str, body: object, token: str | None) -> tuple[int, dict[str, obj
 
 @needs_ssh
 def test_the_agent_takes_a_signed_approval_and_refuses_the_authors_and_an_anonymous_one(
-        tmp_path: Path, sim: Simulator) -> None:
+    tmp_path: Path, sim: Simulator
+) -> None:
     from tests.agent_helpers import AgentProcess
 
     for n in ("alice", "bob"):
         keygen(tmp_path, n)
     allowed(tmp_path, "alice", "bob")
     inv = site(tmp_path, sim.url, "{approvals: 1}")
-    assert run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json", "--sign-key", "alice",
-               "--policy", str(inv)).returncode == 0
+    assert (
+        run(
+            tmp_path,
+            "plan",
+            "r.yaml",
+            "--device",
+            sim.url,
+            "--out",
+            "p.json",
+            "--sign-key",
+            "alice",
+            "--policy",
+            str(inv),
+        ).returncode
+        == 0
+    )
     doc = json.loads((tmp_path / "p.json").read_text())
     agent = AgentProcess(inv, tmp_path / "state")
     try:
@@ -347,8 +450,9 @@ def test_the_agent_takes_a_signed_approval_and_refuses_the_authors_and_an_anonym
         status, answer = _post(agent.url, {"plan": doc}, token)  # nobody named (one token): no attestation
         assert status == 401 and "needs a named user" in str(answer["error"])
         bobs = sign(digest(doc), "bob", "approved", signer_of(str(tmp_path / "bob")))
-        status, answer = _post(agent.url, {"plan": {**doc, "change": {**doc["change"], "reason": "x"}},
-                                           "signature": bobs}, token)
+        status, answer = _post(
+            agent.url, {"plan": {**doc, "change": {**doc["change"], "reason": "x"}}, "signature": bobs}, token
+        )
         assert status == 422 and "other content" in str(answer["error"])  # bob signed another plan
         status, answer = _post(agent.url, {"plan": doc, "signature": bobs}, token)
         assert status == 200 and answer["missing"] == [], answer
@@ -358,8 +462,9 @@ def test_the_agent_takes_a_signed_approval_and_refuses_the_authors_and_an_anonym
     assert run(tmp_path, "apply", "p.json", "--yes", "--policy", str(inv)).returncode == 0  # the agent let go
     trail = [json.loads(x) for x in (tmp_path / "state/audit/trail.jsonl").read_text().splitlines()]
     asked = [(t["event"], t["via"]) for t in trail if t["event"] != "drift"]  # its watch records drift too
-    assert asked == [("approve-refused", "agent"), ("login-refused", "agent")] + [("approve-refused", "agent")] * 2 \
-        + [("plan-signed", "agent")]
+    assert asked == [("approve-refused", "agent"), ("login-refused", "agent")] + [("approve-refused", "agent")] * 2 + [
+        ("plan-signed", "agent")
+    ]
 
 
 @needs_ssh
@@ -369,8 +474,11 @@ def test_an_agent_attests_for_its_user_only_with_a_key_trusted_to_attest(tmp_pat
 
     keygen(tmp_path, "alice")
     signers = allowed(tmp_path, "alice")
-    doc = {"schema": "deployer.plan/2", "device": {"url": "tcp://127.0.0.1:1", "unit": 1},
-           "change": {"author": "alice", "reason": "r"}}
+    doc = {
+        "schema": "deployer.plan/2",
+        "device": {"url": "tcp://127.0.0.1:1", "unit": 1},
+        "change": {"author": "alice", "reason": "r"},
+    }
     pol = policy.Policy(signers=parse(str(signers), signers.read_text()))
     with pytest.raises(attest.Refused) as e:  # its key is not in allowed_signers yet: the line to add is said
         attest.approve(doc, user="dave", entry=None, meaning="approved", policy=pol, key_folder=str(tmp_path / "ag"))
@@ -403,10 +511,29 @@ def test_the_printed_record_and_the_audit_page_carry_the_signatures(tmp_path: Pa
         keygen(tmp_path, n)
     allowed(tmp_path, "alice", "bob", "carol")
     policy = str(site(tmp_path, sim.url, "{approvals: 1, ticket: true}"))
-    assert run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json", "--ticket", "CHG-7",
-               "--reason", "new ramps", "--sign-key", "alice", "--policy", policy).returncode == 0
-    assert run(tmp_path, "sign", "p.json", "--meaning", "reviewed", "--key", "carol",
-               "--policy", policy).returncode == 0
+    assert (
+        run(
+            tmp_path,
+            "plan",
+            "r.yaml",
+            "--device",
+            sim.url,
+            "--out",
+            "p.json",
+            "--ticket",
+            "CHG-7",
+            "--reason",
+            "new ramps",
+            "--sign-key",
+            "alice",
+            "--policy",
+            policy,
+        ).returncode
+        == 0
+    )
+    assert (
+        run(tmp_path, "sign", "p.json", "--meaning", "reviewed", "--key", "carol", "--policy", policy).returncode == 0
+    )
     assert run(tmp_path, "approve", "p.json", "--key", "bob", "--policy", policy).returncode == 0
     r = run(tmp_path, "apply", "p.json", "--yes", "--policy", policy, "--html", "record.html")
     assert r.returncode == 0, r.stderr
@@ -436,10 +563,12 @@ def test_released_inputs_signed_by_hand_with_ssh_keygen(tmp_path: Path, sim: Sim
     for f in ("r.yaml", "drive.yaml"):
         st = run(tmp_path, "sign", f, "--meaning", "approved", "--signer", "qa", "--statement-out", f"{f}.st")
         assert st.returncode == 0 and "ssh-keygen -Y sign" in st.stdout
-        subprocess.run([SSH_KEYGEN, "-Y", "sign", "-q", "-f", str(key), "-n", "deployer", str(tmp_path / f"{f}.st")],
-                       check=True)
-        added = run(tmp_path, "sign", f, "--meaning", "approved", "--statement", f"{f}.st", "--signature",
-                    f"{f}.st.sig")
+        subprocess.run(
+            [SSH_KEYGEN, "-Y", "sign", "-q", "-f", str(key), "-n", "deployer", str(tmp_path / f"{f}.st")], check=True
+        )
+        added = run(
+            tmp_path, "sign", f, "--meaning", "approved", "--statement", f"{f}.st", "--signature", f"{f}.st.sig"
+        )
         assert added.returncode == 0 and f"{f}.signatures.json" in added.stdout, added.stderr
     v = run(tmp_path, "verify", "r.yaml", "--policy", policy)
     assert v.returncode == 0 and "approved  qa" in v.stdout

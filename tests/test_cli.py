@@ -61,14 +61,23 @@ def test_plan_offline_table_json_out_and_frames(capsys: pytest.CaptureFixture[st
     jsonschema.validate(data, schema.schema("plan"))
     assert data == json.loads(plan_file.read_text())
     assert [s for s in data["steps"] if s["kind"] == "write"] == [
-        {"kind": "write", "function": 16, "address": 4354, "count": 2, "values": [0, 1000], "parameters": ["F07"],
-         "stage": 0}]
+        {
+            "kind": "write",
+            "function": 16,
+            "address": 4354,
+            "count": 2,
+            "values": [0, 1000],
+            "parameters": ["F07"],
+            "stage": 0,
+        }
+    ]
     assert [s["kind"] for s in data["steps"]] == ["snapshot", "device-id", "write", "verify"]
     assert data["parameters"][0]["current_raw"] is None and data["parameters"][0]["action"] == "write"
 
 
-def test_plan_against_the_device_and_detailed_exitcode(capsys: pytest.CaptureFixture[str], tmp_path: Path,
-                                                       inverter: SimulatorThread) -> None:
+def test_plan_against_the_device_and_detailed_exitcode(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, inverter: SimulatorThread
+) -> None:
     path = recipe(tmp_path)
     with inverter as sim:
         code, out, _ = cli(capsys, "plan", path, "--device", sim.url, "--detailed-exitcode")
@@ -81,8 +90,9 @@ def test_plan_against_the_device_and_detailed_exitcode(capsys: pytest.CaptureFix
         assert code == 0 and "No changes" in out
 
 
-def test_apply_saved_plan_and_stale_plan(capsys: pytest.CaptureFixture[str], tmp_path: Path,
-                                         inverter: SimulatorThread) -> None:
+def test_apply_saved_plan_and_stale_plan(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, inverter: SimulatorThread
+) -> None:
     path = recipe(tmp_path)
     plan_file = str(tmp_path / "plan.json")
     with inverter as sim:
@@ -112,8 +122,9 @@ def test_diff_exit_codes(capsys: pytest.CaptureFixture[str], tmp_path: Path, inv
         assert code == 0 and json.loads(out)["drift"] == []
 
 
-def test_pull_writes_a_valid_recipe_that_applies_as_a_no_op(capsys: pytest.CaptureFixture[str], tmp_path: Path,
-                                                           inverter: SimulatorThread) -> None:
+def test_pull_writes_a_valid_recipe_that_applies_as_a_no_op(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, inverter: SimulatorThread
+) -> None:
     out_file = tmp_path / "pulled.yaml"
     with inverter as sim:
         sim.write("F07", (0, 4321))
@@ -128,8 +139,13 @@ def test_pull_writes_a_valid_recipe_that_applies_as_a_no_op(capsys: pytest.Captu
 
 def test_apply_refuses_without_confirmation_when_not_a_terminal(tmp_path: Path) -> None:
     path = recipe(tmp_path)
-    proc = subprocess.run([sys.executable, "-m", "deployer", "apply", path, "--device", "tcp://127.0.0.1:1"],
-                          capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=30)
+    proc = subprocess.run(
+        [sys.executable, "-m", "deployer", "apply", path, "--device", "tcp://127.0.0.1:1"],
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        timeout=30,
+    )
     assert proc.returncode == 1 and "pass --yes" in proc.stderr and "Traceback" not in proc.stderr
 
 
@@ -140,8 +156,16 @@ def test_broadcast_refused(capsys: pytest.CaptureFixture[str], tmp_path: Path) -
 
 def test_unreachable_exit_3(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     port = dead_port()
-    code, out, err = cli(capsys, "apply", recipe(tmp_path), "--device", f"tcp://127.0.0.1:{port}?timeout=0.3",
-                         "--yes", "--state-dir", str(tmp_path / "s"))
+    code, out, err = cli(
+        capsys,
+        "apply",
+        recipe(tmp_path),
+        "--device",
+        f"tcp://127.0.0.1:{port}?timeout=0.3",
+        "--yes",
+        "--state-dir",
+        str(tmp_path / "s"),
+    )
     assert code == 3 and "unreachable" in out and "connection refused" in out
     assert not (tmp_path / "s" / "snapshots").exists()
     code, _, err = cli(capsys, "diff", recipe(tmp_path), "--device", f"tcp://127.0.0.1:{port}")
@@ -161,10 +185,22 @@ def test_fleet_in_parallel_with_per_device_overrides(capsys: pytest.CaptureFixtu
             "defaults: {timeout: 1.0, retries: 2}\ndevices:\n"
             f"  press-1: {{url: '{a.url}', unit: 1, groups: [line3]}}\n"
             f"  press-2: {{url: '{b.url}', unit: 1, groups: [line3], parameters: {{F07: 12 s}}}}\n"
-            f"  press-3: {{url: '{c.url}', unit: 1, groups: [line4]}}\n")
+            f"  press-3: {{url: '{c.url}', unit: 1, groups: [line4]}}\n"
+        )
         assert cli(capsys, "validate", str(inv))[0] == 0
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", str(inv), "--limit", "line3", "--yes",
-                           "--json", "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            str(inv),
+            "--limit",
+            "line3",
+            "--yes",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0
         report = json.loads(out)
         assert [d["name"] for d in report["devices"]] == ["press-1", "press-2"]
@@ -174,16 +210,30 @@ def test_fleet_in_parallel_with_per_device_overrides(capsys: pytest.CaptureFixtu
         assert sorted(s.split("-2026")[0] for s in snaps) == ["press-1", "press-2"]
 
 
-def test_fleet_on_one_serial_line_goes_one_device_at_a_time(capsys: pytest.CaptureFixture[str], tmp_path: Path,
-                                                          socat_pair: tuple[str, str]) -> None:
+def test_fleet_on_one_serial_line_goes_one_device_at_a_time(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, socat_pair: tuple[str, str]
+) -> None:
     a, b = socat_pair
     with SimulatorThread(builtin_profile("example-inverter"), listen=f"rtu://{a}", units=(1, 2)) as sim:
         inv = tmp_path / "inventory.yaml"
-        inv.write_text("devices:\n"
-                       f"  d1: {{url: 'rtu://{b}?baudrate=19200&timeout=1', unit: 1}}\n"
-                       f"  d2: {{url: 'rtu://{b}?baudrate=19200&timeout=1', unit: 2, parameters: {{F07: 7 s}}}}\n")
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", str(inv), "--yes", "--json",
-                           "--parallel", "8", "--state-dir", str(tmp_path / "s"))
+        inv.write_text(
+            "devices:\n"
+            f"  d1: {{url: 'rtu://{b}?baudrate=19200&timeout=1', unit: 1}}\n"
+            f"  d2: {{url: 'rtu://{b}?baudrate=19200&timeout=1', unit: 2, parameters: {{F07: 7 s}}}}\n"
+        )
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            str(inv),
+            "--yes",
+            "--json",
+            "--parallel",
+            "8",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0, out
         assert sim.read("F07", 1) == (0, 1000) and sim.read("F07", 2) == (0, 700)
         units = [e.unit for e in sim.log]
@@ -195,14 +245,16 @@ def test_rollback_command(capsys: pytest.CaptureFixture[str], tmp_path: Path, in
     path = recipe(tmp_path)
     with inverter as sim:
         before = sim.registers()
-        code, out, _ = cli(capsys, "apply", path, "--device", sim.url, "--yes", "--json",
-                           "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys, "apply", path, "--device", sim.url, "--yes", "--json", "--state-dir", str(tmp_path / "s")
+        )
         snapshot = json.loads(out)["devices"][0]["snapshot"]
         code, _, _ = cli(capsys, "rollback", snapshot, "--yes", "--state-dir", str(tmp_path / "s"))
         assert code == 0
         store = builtin_profile("example-inverter").parameter("eeprom_store").address
         assert {k: v for k, v in sim.registers().items() if k != store} == {
-            k: v for k, v in before.items() if k != store}
+            k: v for k, v in before.items() if k != store
+        }
 
 
 def test_demo_runs(capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -229,16 +281,18 @@ def test_demo_runs(capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypat
     assert LOCK_DIR_ENV == ENV  # the demo's locks go where the locks look (the command line names it itself)
 
 
-def _run_on_a_terminal(args: list[str], answer: bytes, timeout: float = 30,
-                       prompt: bytes = b"Write these values?") -> tuple[int, str]:
+def _run_on_a_terminal(
+    args: list[str], answer: bytes, timeout: float = 30, prompt: bytes = b"Write these values?"
+) -> tuple[int, str]:
     """Run deployer with a pseudo-terminal as stdin/stdout/stderr and type ``answer`` at the prompt."""
     import pty
     import select
     import time
 
     master, slave = pty.openpty()
-    proc = subprocess.Popen([sys.executable, "-m", "deployer", *args], stdin=slave, stdout=slave, stderr=slave,
-                            close_fds=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "deployer", *args], stdin=slave, stdout=slave, stderr=slave, close_fds=True
+    )
     os.close(slave)
     out = b""
     answered = False
@@ -266,16 +320,18 @@ def _run_on_a_terminal(args: list[str], answer: bytes, timeout: float = 30,
 @pytest.mark.parametrize(("answer", "expected_code", "written"), [(b"y\n", 0, True), (b"n\n", 1, False)])
 def test_apply_asks_on_a_terminal(tmp_path: Path, answer: bytes, expected_code: int, written: bool) -> None:
     with SimulatorThread(builtin_profile("example-inverter")) as sim:
-        code, out = _run_on_a_terminal(["apply", recipe(tmp_path), "--device", sim.url,
-                                        "--state-dir", str(tmp_path / "s")], answer)
+        code, out = _run_on_a_terminal(
+            ["apply", recipe(tmp_path), "--device", sim.url, "--state-dir", str(tmp_path / "s")], answer
+        )
         assert code == expected_code, out
         assert "5 s -> 10 s" in out  # the changes are shown before the question
         assert (sim.read("F07") == (0, 1000)) is written
         assert any(e.function == 16 for e in sim.log) is written
 
 
-def test_validate_a_saved_plan_and_write_all(capsys: pytest.CaptureFixture[str], tmp_path: Path,
-                                             inverter: SimulatorThread) -> None:
+def test_validate_a_saved_plan_and_write_all(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, inverter: SimulatorThread
+) -> None:
     path = recipe(tmp_path)
     plan_file = tmp_path / "plan.json"
     assert cli(capsys, "plan", path, "--out", str(plan_file))[0] == 0
@@ -284,27 +340,39 @@ def test_validate_a_saved_plan_and_write_all(capsys: pytest.CaptureFixture[str],
     with inverter as sim:
         cli(capsys, "apply", path, "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"))
         n = len(sim.log)
-        code, out, _ = cli(capsys, "apply", path, "--device", sim.url, "--yes", "--write-all", "--json",
-                           "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            path,
+            "--device",
+            sim.url,
+            "--yes",
+            "--write-all",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0
         assert {p["status"] for p in json.loads(out)["devices"][0]["parameters"]} == {"ok"}
         assert any(e.function == 16 for e in sim.log[n:])
 
 
-def test_fleet_problems_are_reported_before_anything_is_sent(capsys: pytest.CaptureFixture[str],
-                                                            tmp_path: Path) -> None:
+def test_fleet_problems_are_reported_before_anything_is_sent(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     inv = tmp_path / "inventory.yaml"
-    inv.write_text("devices:\n"
-                   "  a: {url: 'tcp://127.0.0.1:1?baud=3'}\n"
-                   "  b: {url: 'tcp://127.0.0.1:1', parameters: {F07: 7000 s}}\n")
+    inv.write_text(
+        "devices:\n  a: {url: 'tcp://127.0.0.1:1?baud=3'}\n  b: {url: 'tcp://127.0.0.1:1', parameters: {F07: 7000 s}}\n"
+    )
     code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", str(inv), "--yes")
     assert code == 1
     assert f"{inv}:2:12: error: unknown option 'baud'" in err and "(device a)\n" in err
     assert f"{inv}:3:51: error: F07: 7000 s is out of range 0..6000 s (device b)\n" in err
 
 
-def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pytest.CaptureFixture[str],
-                                                                    tmp_path: Path) -> None:
+def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     r = str(EXAMPLES / "omron-m1-accel.yaml")
     code, out, _ = cli(capsys, "plan", r)
     # the snapshot read (8 + 9 bytes), Function 43 (7 + 16: its texts not counted), the write (13 + 8), the read-back
@@ -332,14 +400,24 @@ def test_plan_line_time_follows_the_url_and_broadcast_has_no_answers(capsys: pyt
     assert "13 bytes on an RTU line" in out  # the request only: a broadcast is its writes alone
 
 
-def test_apply_saved_plan_names_its_snapshot_after_the_recipe(capsys: pytest.CaptureFixture[str], tmp_path: Path,
-                                                              inverter: SimulatorThread) -> None:
+def test_apply_saved_plan_names_its_snapshot_after_the_recipe(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, inverter: SimulatorThread
+) -> None:
     with inverter as sim:
         r = recipe(tmp_path)
         code, _, _ = cli(capsys, "plan", r, "--device", sim.url, "--out", str(tmp_path / "p.json"))
         assert code == 0
-        code, out, err = cli(capsys, "apply", str(tmp_path / "p.json"), "--device", sim.url, "--yes",
-                             "--state-dir", str(tmp_path / "s"), "--json")
+        code, out, err = cli(
+            capsys,
+            "apply",
+            str(tmp_path / "p.json"),
+            "--device",
+            sim.url,
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+            "--json",
+        )
         assert code == 0, err
         snap = json.loads(out)["devices"][0]["snapshot"]
         assert os.path.basename(snap).startswith("line-") and ".json" not in os.path.basename(snap)
@@ -352,11 +430,29 @@ def test_no_answer_after_busy_has_no_exception_code(capsys: pytest.CaptureFixtur
     # again (no answer: dropped)
     faults = Faults(busy_first=1, drop_every=5)
     with SimulatorThread(builtin_profile("example-inverter"), faults=faults) as sim:
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--device", sim.url + "?timeout=0.2", "--yes",
-                           "--retries", "1", "--state-dir", str(tmp_path / "s"), "--json")
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--device",
+            sim.url + "?timeout=0.2",
+            "--yes",
+            "--retries",
+            "1",
+            "--state-dir",
+            str(tmp_path / "s"),
+            "--json",
+        )
     assert code == 4
     requests = json.loads(out)["devices"][0]["requests"]
-    assert {"function": 16, "address": 4354, "count": 2, "result": "no response", "exception_code": None,
-            "attempts": 2, "step": 4} in requests
+    assert {
+        "function": 16,
+        "address": 4354,
+        "count": 2,
+        "result": "no response",
+        "exception_code": None,
+        "attempts": 2,
+        "step": 4,
+    } in requests
     for req in requests:
         assert (req["result"] == "exception") == (req["exception_code"] is not None), req

@@ -110,8 +110,9 @@ def test_hc900_manual_example_per_layout(layout: str) -> None:
     assert codec.layout_name(order, swap, "uint32") == layout
 
 
-@pytest.mark.parametrize(("swap", "layout"), [("none", "ABCD"), ("byte", "BADC"), ("word", "CDAB"),
-                                              ("word_byte", "DCBA")])
+@pytest.mark.parametrize(
+    ("swap", "layout"), [("none", "ABCD"), ("byte", "BADC"), ("word", "CDAB"), ("word_byte", "DCBA")]
+)
 def test_home_assistant_swap_names(swap: str, layout: str) -> None:
     # Home Assistant modbus integration: swap none|byte|word|word_byte
     assert codec.SWAPS[swap] == codec.LAYOUTS[layout]
@@ -119,18 +120,20 @@ def test_home_assistant_swap_names(swap: str, layout: str) -> None:
 
 def test_float32_layouts_of_one_value() -> None:
     # IEEE 754: 123.456f = 42F6E979h (bytes A=42 B=F6 C=E9 D=79)
-    expected = {"ABCD": (0x42F6, 0xE979), "CDAB": (0xE979, 0x42F6), "BADC": (0xF642, 0x79E9),
-                "DCBA": (0x79E9, 0xF642)}
+    expected = {"ABCD": (0x42F6, 0xE979), "CDAB": (0xE979, 0x42F6), "BADC": (0xF642, 0x79E9), "DCBA": (0x79E9, 0xF642)}
     for layout, regs in expected.items():
         assert codec.encode(123.456, "float32", *codec.LAYOUTS[layout]) == regs
 
 
-@pytest.mark.parametrize(("layout", "regs"), [
-    ("ABCDEFGH", (0x0102, 0x0304, 0x0506, 0x0708)),
-    ("GHEFCDAB", (0x0708, 0x0506, 0x0304, 0x0102)),
-    ("BADCFEHG", (0x0201, 0x0403, 0x0605, 0x0807)),
-    ("HGFEDCBA", (0x0807, 0x0605, 0x0403, 0x0201)),
-])
+@pytest.mark.parametrize(
+    ("layout", "regs"),
+    [
+        ("ABCDEFGH", (0x0102, 0x0304, 0x0506, 0x0708)),
+        ("GHEFCDAB", (0x0708, 0x0506, 0x0304, 0x0102)),
+        ("BADCFEHG", (0x0201, 0x0403, 0x0605, 0x0807)),
+        ("HGFEDCBA", (0x0807, 0x0605, 0x0403, 0x0201)),
+    ],
+)
 def test_64_bit_layouts(layout: str, regs: tuple[int, ...]) -> None:
     # bytes A..H = 01..08: each name spells which byte lands where
     order, swap = codec.LAYOUTS[layout]
@@ -179,8 +182,11 @@ def test_string_errors() -> None:
         codec.decode_string((0x41FC,))
 
 
-@given(st.text(alphabet=st.characters(min_codepoint=0x21, max_codepoint=0xFF), max_size=16),
-       st.sampled_from(["nul", "space"]), st.booleans())
+@given(
+    st.text(alphabet=st.characters(min_codepoint=0x21, max_codepoint=0xFF), max_size=16),
+    st.sampled_from(["nul", "space"]),
+    st.booleans(),
+)
 def test_string_round_trip(text: str, padding: str, swap: bool) -> None:
     regs = codec.encode_string(text, 8, "latin-1", padding, swap)
     assert len(regs) == 8
@@ -215,11 +221,17 @@ def test_field_round_trip_keeps_other_bits(lo: int, width: int, word: int, data:
     assert new & ~mask == word & ~mask
 
 
-@pytest.mark.parametrize(("name", "layout"), [
-    ("big-endian", "ABCD"), ("little-endian", "DCBA"),
-    ("big-endian-byte-swap", "BADC"), ("big-endian-word-swap", "CDAB"),
-    ("little-endian-byte-swap", "CDAB"), ("little-endian-word-swap", "BADC"),  # DCBA with bytes / words swapped
-])
+@pytest.mark.parametrize(
+    ("name", "layout"),
+    [
+        ("big-endian", "ABCD"),
+        ("little-endian", "DCBA"),
+        ("big-endian-byte-swap", "BADC"),
+        ("big-endian-word-swap", "CDAB"),
+        ("little-endian-byte-swap", "CDAB"),
+        ("little-endian-word-swap", "BADC"),  # DCBA with bytes / words swapped
+    ],
+)
 def test_layout_names_from_tools(name: str, layout: str) -> None:
     assert codec.LAYOUTS[name] == codec.LAYOUTS[layout]
 

@@ -76,7 +76,8 @@ SECRET = 48213  # the unlock password: must never appear in output, reports or s
 
 
 def test_an_unlock_password_from_the_environment_is_sent_and_never_shown(
-        capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     (tmp_path / "p.yaml").write_text("""profile: locked
 unlock:
   - {register: 100, raw: {env: DRIVE_PASSWORD}, description: password}
@@ -94,8 +95,17 @@ parameters:
     with SimulatorThread(prof) as sim:
         r = tmp_path / "r.yaml"
         r.write_text(f"recipe: r\nprofile: p.yaml\ndevice: {{url: '{sim.url}'}}\nparameters:\n  ramp: 7 s\n")
-        code, out, err = cli(capsys, "apply", str(r), "--yes", "--json", "--state-dir", str(tmp_path / "s"),
-                             "--report", str(tmp_path / "run.json"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            str(r),
+            "--yes",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+            "--report",
+            str(tmp_path / "run.json"),
+        )
         log = list(sim.log)
         assert sim.read("ramp") == (7,)  # the simulator takes writes only once unlocked: the password went out
     assert code == 0, err
@@ -107,8 +117,10 @@ parameters:
 
 def test_a_secret_from_a_file_that_is_not_a_number_is_refused_without_echoing_it(tmp_path: Path) -> None:
     (tmp_path / "pw").write_text("hunter2\n")
-    (tmp_path / "p.yaml").write_text("profile: locked\nunlock:\n  - {register: 100, raw: {file: pw}}\n"
-                                     "parameters:\n  ramp: {register: 1, type: uint16}\n")
+    (tmp_path / "p.yaml").write_text(
+        "profile: locked\nunlock:\n  - {register: 100, raw: {file: pw}}\n"
+        "parameters:\n  ramp: {register: 1, type: uint16}\n"
+    )
     with pytest.raises(InputError) as err:
         load_profile(str(tmp_path / "p.yaml"))
     assert "file pw does not hold an integer" in str(err.value) and "hunter2" not in str(err.value)
@@ -139,10 +151,17 @@ def test_health_checks_by_parameter_read_units_types_and_labels(tmp_path: Path) 
     (tmp_path / "p.yaml").write_text(HEALTH)
     volts, temp, power, fault, alarm, relay = load_profile(str(tmp_path / "p.yaml")).health
     assert (volts.holds([4500]), volts.holds([8001]), volts.failure([8001])) == (
-        True, False, "dc_bus_voltage is 800.1 V, expected 450..800 V")
+        True,
+        False,
+        "dc_bus_voltage is 800.1 V, expected 450..800 V",
+    )
     minus_31 = (-310) & 0xFFFF  # int16 two's complement
     assert (temp.function, temp.holds([(-300) & 0xFFFF]), temp.holds([minus_31]), temp.failure([minus_31])) == (
-        4, True, False, "probe_temp is -31 degC, expected -30..8 degC")
+        4,
+        True,
+        False,
+        "probe_temp is -31 degC, expected -30..8 degC",
+    )
     kw = [*struct.unpack(">HH", struct.pack(">f", 2.75))]
     assert power.count == 2 and not power.holds(kw) and power.failure(kw) == "power is 2.75 kW, expected at most 2.5 kW"
     assert fault.holds([0xFFF0]) and fault.failure([0x0001]) == "fault_state is overvoltage, expected none"
@@ -150,15 +169,21 @@ def test_health_checks_by_parameter_read_units_types_and_labels(tmp_path: Path) 
     assert (relay.function, relay.holds([1]), relay.holds([0])) == (1, True, False)
 
 
-@pytest.mark.parametrize(("check", "why"), [
-    ("{parameter: nope, max: 1}", "unknown parameter 'nope'"),
-    ("{parameter: dc_bus_voltage, max: 8 degC}", "convert"),
-    ("{parameter: dc_bus_voltage, register: 10, max: 1}", "names either a 'parameter'"),
-    ("{parameter: dc_bus_voltage, bits: 3, max: 1}", "'bits' comes from the parameter"),
-    ("{register: 10, min: -300}", "does not fit in the selected bits"),
-    ("{register: 10, max: 800 V}", "a raw value is an integer"),
-    ("{parameter: fault_state, equals: broken}", "'broken' is not a number with a unit or one of: none, overvoltage"),
-])
+@pytest.mark.parametrize(
+    ("check", "why"),
+    [
+        ("{parameter: nope, max: 1}", "unknown parameter 'nope'"),
+        ("{parameter: dc_bus_voltage, max: 8 degC}", "convert"),
+        ("{parameter: dc_bus_voltage, register: 10, max: 1}", "names either a 'parameter'"),
+        ("{parameter: dc_bus_voltage, bits: 3, max: 1}", "'bits' comes from the parameter"),
+        ("{register: 10, min: -300}", "does not fit in the selected bits"),
+        ("{register: 10, max: 800 V}", "a raw value is an integer"),
+        (
+            "{parameter: fault_state, equals: broken}",
+            "'broken' is not a number with a unit or one of: none, overvoltage",
+        ),
+    ],
+)
 def test_bad_health_checks_say_why(tmp_path: Path, check: str, why: str) -> None:
     (tmp_path / "p.yaml").write_text(HEALTH.split("health:")[0] + f"health:\n  - {check}\n")
     with pytest.raises(InputError) as err:
@@ -166,12 +191,24 @@ def test_bad_health_checks_say_why(tmp_path: Path, check: str, why: str) -> None
     assert why in str(err.value), str(err.value)
 
 
-def _apply(capsys: pytest.CaptureFixture[str], tmp: Path, url: str,
-           profile: str = "p.yaml") -> tuple[int, dict[str, Any]]:
+def _apply(
+    capsys: pytest.CaptureFixture[str], tmp: Path, url: str, profile: str = "p.yaml"
+) -> tuple[int, dict[str, Any]]:
     r = tmp / "r.yaml"
     r.write_text(f"recipe: r\nprofile: {profile}\ndevice: {{url: '{url}', unit: 1}}\nparameters:\n  ramp: 7 s\n")
-    code, out, _ = cli(capsys, "apply", str(r), "--yes", "--json", "--soak", "400ms", "--health-interval",
-                         "100ms", "--state-dir", str(tmp / "s"))
+    code, out, _ = cli(
+        capsys,
+        "apply",
+        str(r),
+        "--yes",
+        "--json",
+        "--soak",
+        "400ms",
+        "--health-interval",
+        "100ms",
+        "--state-dir",
+        str(tmp / "s"),
+    )
     return code, json.loads(out)["devices"][0]
 
 
@@ -184,7 +221,8 @@ def _init(prof_path: Path, **values: int) -> dict[int, int]:
 
 
 def test_a_soak_against_the_simulator_passes_then_a_cold_probe_below_zero_rolls_back(
-        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     (tmp_path / "p.yaml").write_text(HEALTH)
     prof = load_profile(str(tmp_path / "p.yaml"))
     with SimulatorThread(prof, init=_init(tmp_path / "p.yaml", probe_temp=-50)) as sim:
@@ -198,8 +236,9 @@ def test_a_soak_against_the_simulator_passes_then_a_cold_probe_below_zero_rolls_
         assert not [e for e in sim.log if e.function in (5, 6, 15, 16)]
     # the probe was below its range before the change: the device is not written, and the change not blamed
     assert code == 4 and dev["status"] == "failed" and dev["snapshot"] is None
-    assert dev["error"].startswith("health check already failing before the change: probe_temp is -31 degC, "
-                                   "expected -30..8 degC")
+    assert dev["error"].startswith(
+        "health check already failing before the change: probe_temp is -31 degC, expected -30..8 degC"
+    )
     with SimulatorThread(prof, init=_init(tmp_path / "p.yaml", alarm=1)) as sim:
         code, dev = _apply(capsys, tmp_path, sim.url)
     assert code == 4 and "alarm is true, expected false" in dev["error"]
@@ -240,32 +279,70 @@ def _mixed_line(tmp: Path, urls: dict[str, str]) -> str:
     (tmp / "relay-r.yaml").write_text("recipe: relay\nprofile: relay.yaml\nparameters:\n  safety_timer_s: 900 s\n")
     (tmp / "drive-r.yaml").write_text("recipe: drive\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
     inv = tmp / "line.yaml"
-    inv.write_text("defaults: {timeout: 1.0, retries: 0}\ngroups:\n"
-                   "  drives: {recipe: drive-r.yaml, profile: example-inverter}\n"
-                   "  relays: {recipe: relay-r.yaml, profile: relay.yaml}\n  east: {}\n  west: {}\ndevices:\n"
-                   + "".join(f"  {n}: {{url: '{u}', groups: [{'drives' if n.startswith('drive') else 'relays'}, "
-                             f"{'east' if int(n[-1]) % 2 else 'west'}]}}\n" for n, u in urls.items()))
+    inv.write_text(
+        "defaults: {timeout: 1.0, retries: 0}\ngroups:\n"
+        "  drives: {recipe: drive-r.yaml, profile: example-inverter}\n"
+        "  relays: {recipe: relay-r.yaml, profile: relay.yaml}\n  east: {}\n  west: {}\ndevices:\n"
+        + "".join(
+            f"  {n}: {{url: '{u}', groups: [{'drives' if n.startswith('drive') else 'relays'}, "
+            f"{'east' if int(n[-1]) % 2 else 'west'}]}}\n"
+            for n, u in urls.items()
+        )
+    )
     return str(inv)
 
 
 def test_each_batch_covers_every_profile_and_batch_by_group_uses_the_first_group(
-        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     relay = load_profile_text(tmp_path, RELAY)
     names = [f"drive{i}" for i in range(3)] + [f"relay{i}" for i in range(8)]
     sims = [Simulator(builtin_profile("example-inverter")) for _ in range(3)] + [Simulator(relay) for _ in range(8)]
     with Simulators(sims) as running:
         inv = _mixed_line(tmp_path, {n: s.url for n, s in zip(names, running, strict=True)})
-        code, out, err = cli(capsys, "apply", "--inventory", inv, "--yes", "--json", "--batch", "1,25%,100%",
-                             "--parallel", "1", "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            "--inventory",
+            inv,
+            "--yes",
+            "--json",
+            "--batch",
+            "1,25%,100%",
+            "--parallel",
+            "1",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0, err
         batch = {d["name"]: d["batch"] for d in json.loads(out)["devices"]}
         # batch 1: one of each profile; batch 2: 25% of each, rounded (3 -> 1, 8 -> 2); batch 3: the rest
-        assert batch == {"drive0": 1, "relay0": 1, "drive1": 2, "relay1": 2, "relay2": 2, "drive2": 3,
-                         **{f"relay{i}": 3 for i in range(3, 8)}}
+        assert batch == {
+            "drive0": 1,
+            "relay0": 1,
+            "drive1": 2,
+            "relay1": 2,
+            "relay2": 2,
+            "drive2": 3,
+            **{f"relay{i}": 3 for i in range(3, 8)},
+        }
         starts = {n: min(e.time for e in s.log if e.function in (6, 16)) for n, s in zip(names, running, strict=True)}
         assert max(starts[n] for n, b in batch.items() if b == 1) < min(starts[n] for n, b in batch.items() if b == 2)
-        code, out, _ = cli(capsys, "apply", "--inventory", inv, "--yes", "--json", "--batch", "1,100%",
-                           "--batch-by", "group", "--write-all", "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            "--inventory",
+            inv,
+            "--yes",
+            "--json",
+            "--batch",
+            "1,100%",
+            "--batch-by",
+            "group",
+            "--write-all",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0
         by_group = {d["name"]: d["batch"] for d in json.loads(out)["devices"]}
         assert [n for n, b in by_group.items() if b == 1] == ["drive0", "relay0"]  # drives, relays: first groups
@@ -275,12 +352,24 @@ def test_any_failed_canary_device_ends_the_rollout(capsys: pytest.CaptureFixture
     relay = load_profile_text(tmp_path, RELAY)
     names = ["drive0", "drive1", "relay0", "relay1"]
     broken = Faults(fail_registers=frozenset({0x30}))
-    sims = [Simulator(builtin_profile("example-inverter")) for _ in range(2)] + [Simulator(relay, faults=broken),
-                                                                                 Simulator(relay)]
+    sims = [Simulator(builtin_profile("example-inverter")) for _ in range(2)] + [
+        Simulator(relay, faults=broken),
+        Simulator(relay),
+    ]
     with Simulators(sims) as running:
         inv = _mixed_line(tmp_path, {n: s.url for n, s in zip(names, running, strict=True)})
-        code, out, _ = cli(capsys, "apply", "--inventory", inv, "--yes", "--json", "--batch", "1,100%",
-                           "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            "--inventory",
+            inv,
+            "--yes",
+            "--json",
+            "--batch",
+            "1,100%",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
     by = {d["name"]: d for d in json.loads(out)["devices"]}
     assert code == 4 and by["drive0"]["status"] == "ok" and by["relay0"]["status"] in ("failed", "partial")
     for n in ("drive1", "relay1"):  # the drive canary was fine: one failed canary of another profile still stops it
@@ -292,16 +381,20 @@ def load_profile_text(tmp: Path, text: str, name: str = "relay.yaml") -> Any:
     return load_profile(str(tmp / name))
 
 
-def test_pull_over_an_inventory_uses_each_devices_recipe_profile(capsys: pytest.CaptureFixture[str],
-                                                                 tmp_path: Path) -> None:
+def test_pull_over_an_inventory_uses_each_devices_recipe_profile(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     relay = load_profile_text(tmp_path, RELAY)
     with Simulators([Simulator(builtin_profile("example-inverter")), Simulator(relay)]) as (drive, rel):
-        (tmp_path / "relay-r.yaml").write_text("recipe: relay\nprofile: relay.yaml\nparameters:\n  "
-                                               "safety_timer_s: 900 s\n")
+        (tmp_path / "relay-r.yaml").write_text(
+            "recipe: relay\nprofile: relay.yaml\nparameters:\n  safety_timer_s: 900 s\n"
+        )
         (tmp_path / "drive-r.yaml").write_text("recipe: drive\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
         inv = tmp_path / "line.yaml"  # recipes only: no profile anywhere in the inventory
-        inv.write_text(f"devices:\n  drive0: {{url: '{drive.url}', recipe: drive-r.yaml}}\n"
-                       f"  relay0: {{url: '{rel.url}', recipe: relay-r.yaml}}\n")
+        inv.write_text(
+            f"devices:\n  drive0: {{url: '{drive.url}', recipe: drive-r.yaml}}\n"
+            f"  relay0: {{url: '{rel.url}', recipe: relay-r.yaml}}\n"
+        )
         code, _, err = cli(capsys, "pull", "--inventory", str(inv), "-o", str(tmp_path / "pulled"))
     assert code == 0, err
     assert "safety_timer_s: 0 s" in (tmp_path / "pulled" / "relay0.yaml").read_text()
@@ -321,9 +414,26 @@ def test_health_is_watched_while_the_confirmation_waits(tmp_path: Path) -> None:
         before = sim.registers()
         r = tmp_path / "r.yaml"
         r.write_text(f"recipe: r\nprofile: example-inverter\ndevice: {{url: '{sim.url}'}}\nparameters:\n  F07: 3 s\n")
-        proc = subprocess.Popen([sys.executable, "-m", "deployer", "apply", str(r), "--yes", "--json",
-                                 "--confirm-within", "1h", "--health-interval", "100ms", "--state-dir", state],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "apply",
+                str(r),
+                "--yes",
+                "--json",
+                "--confirm-within",
+                "1h",
+                "--health-interval",
+                "100ms",
+                "--state-dir",
+                state,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             wait_for(lambda: bool(awaiting(state)) or proc.poll() is not None)
             wait_for(lambda: sum(1 for e in sim.log if e.function == 3 and e.address == fault) >= 2)
@@ -369,8 +479,9 @@ FRIDGE = """{
 
 def _fridge(tmp: Path, capsys: pytest.CaptureFixture[str]) -> Any:
     (tmp / "fridge.json").write_text(FRIDGE)
-    code, _, err = cli(capsys, "profiles", "import", "wb-template", str(tmp / "fridge.json"), "-o",
-                       str(tmp / "fridge.yaml"))
+    code, _, err = cli(
+        capsys, "profiles", "import", "wb-template", str(tmp / "fridge.json"), "-o", str(tmp / "fridge.yaml")
+    )
     assert code == 0, err
     return load_profile(str(tmp / "fridge.yaml"))
 
@@ -379,13 +490,15 @@ def test_a_wb_template_set_point_is_planned_and_applied(capsys: pytest.CaptureFi
     prof = _fridge(tmp_path, capsys)
     with SimulatorThread(prof, quirks=Quirks(identity={0: "Acme", 1: "FR-1", 2: "2.3"})) as sim:
         r = tmp_path / "r.yaml"
-        r.write_text(f"recipe: r\nprofile: fridge.yaml\ndevice: {{url: '{sim.url}'}}\nparameters:\n"
-                     "  Temperature_Set_Point: -18.5 degC\n  Compressor_Relay: on\n  differential: 2\n")
+        r.write_text(
+            f"recipe: r\nprofile: fridge.yaml\ndevice: {{url: '{sim.url}'}}\nparameters:\n"
+            "  Temperature_Set_Point: -18.5 degC\n  Compressor_Relay: on\n  differential: 2\n"
+        )
         code, out, err = cli(capsys, "plan", str(r), "--json")
         assert code == 0, err
-        assert [(w["function"], w["address"], w["values"]) for w in json.loads(out)["steps"] if w["kind"] == "write"
-                ] == [
-            (16, 10, [(-185) & 0xFFFF]), (16, 12, [20]), (5, 3, [1])]
+        assert [
+            (w["function"], w["address"], w["values"]) for w in json.loads(out)["steps"] if w["kind"] == "write"
+        ] == [(16, 10, [(-185) & 0xFFFF]), (16, 12, [20]), (5, 3, [1])]
         code, out, err = cli(capsys, "apply", str(r), "--yes", "--json", "--state-dir", str(tmp_path / "s"))
         assert code == 0, out
         assert sim.read("Temperature_Set_Point") == ((-185) & 0xFFFF,) and sim.read("Compressor_Relay") == (1,)
@@ -393,17 +506,22 @@ def test_a_wb_template_set_point_is_planned_and_applied(capsys: pytest.CaptureFi
         code, out, err = cli(capsys, "pull", "--profile", str(tmp_path / "fridge.yaml"), "--device", sim.url)
         assert code == 0 and "Compressor_Relay" in out and "Defrost_Command" not in out
     r.write_text("recipe: r\nprofile: fridge.yaml\nparameters:\n  Defrost_Command: on\n")
-    assert _messages(r) == ["4:3: Defrost_Command is an action in profile acme_fridge (a momentary command such as "
-                            "a defrost or reset), not a setting: a recipe does not set it"]
+    assert _messages(r) == [
+        "4:3: Defrost_Command is an action in profile acme_fridge (a momentary command such as "
+        "a defrost or reset), not a setting: a recipe does not set it"
+    ]
 
 
-def test_a_firmware_gate_refuses_a_wrong_revision_before_any_write(capsys: pytest.CaptureFixture[str],
-                                                                   tmp_path: Path) -> None:
+def test_a_firmware_gate_refuses_a_wrong_revision_before_any_write(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     prof = _fridge(tmp_path, capsys)
     with SimulatorThread(prof, quirks=Quirks(identity={0: "Acme", 1: "FR-1", 2: "1.9.4"})) as sim:
         r = tmp_path / "r.yaml"
-        r.write_text(f"recipe: r\nprofile: fridge.yaml\ndevice: {{url: '{sim.url}'}}\nparameters:\n"
-                     "  Temperature_Set_Point: -18 degC\n  differential: 2\n")
+        r.write_text(
+            f"recipe: r\nprofile: fridge.yaml\ndevice: {{url: '{sim.url}'}}\nparameters:\n"
+            "  Temperature_Set_Point: -18 degC\n  differential: 2\n"
+        )
         code, out, _ = cli(capsys, "apply", str(r), "--yes", "--json", "--state-dir", str(tmp_path / "s"))
         log = list(sim.log)
     dev = json.loads(out)["devices"][0]
@@ -411,24 +529,30 @@ def test_a_firmware_gate_refuses_a_wrong_revision_before_any_write(capsys: pytes
     assert dev["error"] == ("firmware '1.9.4' (Function 43 revision): differential needs 2.0; nothing was written")
     assert not any(e.function in (5, 6, 15, 16) for e in log)
     # the whole profile can be gated too, and from a register that holds the revision as text
-    (tmp_path / "p.yaml").write_text("profile: gated\nfirmware: {register: 0x40, count: 2, format: text, "
-                                     "applies: '>=3, <4'}\nparameters:\n  x: {register: 1, type: uint16}\n"
-                                     "  fw: {register: 0x40, type: string, count: 2, access: read-only}\n")
+    (tmp_path / "p.yaml").write_text(
+        "profile: gated\nfirmware: {register: 0x40, count: 2, format: text, "
+        "applies: '>=3, <4'}\nparameters:\n  x: {register: 1, type: uint16}\n"
+        "  fw: {register: 0x40, type: string, count: 2, access: read-only}\n"
+    )
     gated = load_profile(str(tmp_path / "p.yaml"))
     with SimulatorThread(gated, init={0x40: 0x322E, 0x41: 0x3900}) as sim:  # "2.9"
-        (tmp_path / "g.yaml").write_text(f"recipe: g\nprofile: p.yaml\ndevice: {{url: '{sim.url}'}}\n"
-                                         "parameters:\n  x: 5\n")
-        code, out, _ = cli(capsys, "apply", str(tmp_path / "g.yaml"), "--yes", "--json", "--state-dir",
-                           str(tmp_path / "s"))
+        (tmp_path / "g.yaml").write_text(
+            f"recipe: g\nprofile: p.yaml\ndevice: {{url: '{sim.url}'}}\nparameters:\n  x: 5\n"
+        )
+        code, out, _ = cli(
+            capsys, "apply", str(tmp_path / "g.yaml"), "--yes", "--json", "--state-dir", str(tmp_path / "s")
+        )
         assert sim.read("x") == (0,)
     assert code == 4 and json.loads(out)["devices"][0]["error"] == (
-        "firmware '2.9' (register 0x0040) is not one profile gated applies to (>=3, <4); nothing was written")
+        "firmware '2.9' (register 0x0040) is not one profile gated applies to (>=3, <4); nothing was written"
+    )
 
 
 def test_a_jinja_template_says_how_to_render_it(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     src = tmp_path / "mr6.json.jinja"
-    src.write_text('{\n  "device_type": "mr6",\n  "device": {\n    {% for i in range(6) %}"x": {{ i }}{% endfor %}\n'
-                   "  }\n}\n")
+    src.write_text(
+        '{\n  "device_type": "mr6",\n  "device": {\n    {% for i in range(6) %}"x": {{ i }}{% endfor %}\n  }\n}\n'
+    )
     code, _, err = cli(capsys, "profiles", "import", "wb-template", str(src))
     assert code == 1 and f"{src}:4:5: error: a Jinja template (.json.jinja)" in err
     assert f"> {tmp_path / 'mr6.json'}, then import {tmp_path / 'mr6.json'}" in err and "Traceback" not in err
@@ -443,13 +567,13 @@ def _pdf_text(page: Path, tmp: Path) -> str:
     pdf = tmp / (page.stem + ".pdf")
     proc = browser(f"--print-to-pdf={pdf}", "--no-pdf-header-footer", page.as_uri(), tmp=tmp)
     assert proc.returncode == 0 and pdf.read_bytes().startswith(b"%PDF"), proc.stderr
-    return subprocess.run(["pdftotext", "-layout", str(pdf), "-"], capture_output=True, text=True,
-                          check=True).stdout
+    return subprocess.run(["pdftotext", "-layout", str(pdf), "-"], capture_output=True, text=True, check=True).stdout
 
 
 @pytest.mark.skipif(shutil.which("pdftotext") is None, reason="pdftotext (poppler-utils) is not installed")
 def test_the_printed_record_has_the_outcome_one_sign_off_page_numbers_identity_and_unknown_states(
-        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     from tests.test_pages import CHROMIUM
 
     if CHROMIUM is None:
@@ -457,20 +581,43 @@ def test_the_printed_record_has_the_outcome_one_sign_off_page_numbers_identity_a
     prof = builtin_profile("example-inverter")
     trip = parse_fault_rule("F07 < 2 s: 0x2000=7", prof)
     ident = Quirks(identity={0: "ACME", 1: "AC-7", 2: "2.1"})
-    sims = [Simulator(prof, quirks=ident), Simulator(prof, quirks=ident, faults=Faults(rules=(trip,))),
-            Simulator(prof, quirks=ident)]
+    sims = [
+        Simulator(prof, quirks=ident),
+        Simulator(prof, quirks=ident, faults=Faults(rules=(trip,))),
+        Simulator(prof, quirks=ident),
+    ]
     with Simulators(sims) as running:
         (tmp_path / "ok.yaml").write_text("recipe: ramp\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
         (tmp_path / "trip.yaml").write_text("recipe: trip\nprofile: example-inverter\nparameters:\n  F07: 1.5 s\n")
         inv = tmp_path / "line.yaml"
-        inv.write_text("meta: {site: Plant 3, project: P-2291 retrofit, customer: ACME Foods}\n"
-                       "defaults: {timeout: 1.0, retries: 0, recipe: ok.yaml}\ndevices:\n"
-                       + "".join(f"  drive-{i}: {{url: '{s.url}'{', recipe: trip.yaml' if i == 1 else ''}}}\n"
-                                 for i, s in enumerate(running)))
+        inv.write_text(
+            "meta: {site: Plant 3, project: P-2291 retrofit, customer: ACME Foods}\n"
+            "defaults: {timeout: 1.0, retries: 0, recipe: ok.yaml}\ndevices:\n"
+            + "".join(
+                f"  drive-{i}: {{url: '{s.url}'{', recipe: trip.yaml' if i == 1 else ''}}}\n"
+                for i, s in enumerate(running)
+            )
+        )
         page, report = tmp_path / "run.html", tmp_path / "run.json"
-        code, _, err = cli(capsys, "apply", "--inventory", str(inv), "--yes", "--soak", "300ms",
-                           "--health-interval", "100ms", "--state-dir", str(tmp_path / "st"), "--report",
-                           str(report), "--html", str(page), "--meta", "line=line 3")
+        code, _, err = cli(
+            capsys,
+            "apply",
+            "--inventory",
+            str(inv),
+            "--yes",
+            "--soak",
+            "300ms",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(tmp_path / "st"),
+            "--report",
+            str(report),
+            "--html",
+            str(page),
+            "--meta",
+            "line=line 3",
+        )
         assert code == 4, err
     run_id = json.loads(report.read_text())["run"]["id"]
     words = _pdf_text(page, tmp_path)
@@ -491,8 +638,10 @@ def test_the_printed_record_has_the_outcome_one_sign_off_page_numbers_identity_a
     doc = json.loads(report.read_text())
     dev = next(d for d in doc["devices"] if d["name"] == "drive-2")
     dev["status"], dev["seen"] = "failed", "2026-11-25T05:00:00Z"
-    dev["error"] = ("health check failed after 0.2 s of the 300ms soak: drive fault; the rollback did not verify "
-                    "(unreachable: no answer)")
+    dev["error"] = (
+        "health check failed after 0.2 s of the 300ms soak: drive fault; the rollback did not verify "
+        "(unreachable: no answer)"
+    )
     for p in dev["parameters"]:
         p["status"] = "unverified"
     report.write_text(json.dumps(doc))
@@ -520,8 +669,18 @@ def test_the_as_found_record_drops_the_run_columns(capsys: pytest.CaptureFixture
         inv = tmp_path / "line.yaml"
         inv.write_text(f"meta: {{site: Plant 3}}\ndevices:\n  drive-0: {{url: '{sim.url}'}}\n")
         page = tmp_path / "found.html"
-        code, _, err = cli(capsys, "pull", "--inventory", str(inv), "--profile", "example-inverter", "-o",
-                           str(tmp_path / "pulled"), "--html", str(page))
+        code, _, err = cli(
+            capsys,
+            "pull",
+            "--inventory",
+            str(inv),
+            "--profile",
+            "example-inverter",
+            "-o",
+            str(tmp_path / "pulled"),
+            "--html",
+            str(page),
+        )
         assert code == 0, err
     heads = [str(h["text"]) for h in Elements(dom(page, tmp_path)).all("th")]
     assert "batch" not in heads and "seconds" not in heads and "requests" not in heads and "device" in heads

@@ -55,15 +55,18 @@ def test_a_name_never_exported_is_no_attribute() -> None:
 
 def test_the_changelog_lists_every_removed_name_with_its_replacement() -> None:
     text = (ROOT / "CHANGELOG.md").read_text()
-    unreleased = text[text.index("## [Unreleased]"):text.index("\n## [", text.index("## [Unreleased]") + 5)]
-    deprecated = unreleased[unreleased.index("### Deprecated"):]
+    unreleased = text[text.index("## [Unreleased]") : text.index("\n## [", text.index("## [Unreleased]") + 5)]
+    deprecated = unreleased[unreleased.index("### Deprecated") :]
     rows = dict(re.findall(r"^  \| `(\w+)` \| (.+) \|$", deprecated, re.M))
     assert sorted(rows) == sorted(REMOVED)
     for name, said in rows.items():
         words = re.sub(r"[`]", "", said)
         wanted = replacement(name)
-        assert ("command line" in words) if wanted.startswith("no replacement") else (
-            wanted.split(" (")[0] in words or name in words), (name, said)
+        assert (
+            ("command line" in words)
+            if wanted.startswith("no replacement")
+            else (wanted.split(" (")[0] in words or name in words)
+        ), (name, said)
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -95,5 +98,4 @@ def test_the_old_calls_still_run(tmp_path: Path) -> None:
         plan = deployer.plan(recipe, sims[0].url, state_dir=tmp_path)
         assert old.plan_to_json(plan) == plan.to_json()
         assert len(old.plan_frames(plan, "rtu")) == len(plan.steps)
-        assert "F07: 10 s" in old.pulled_recipe(PROFILE, {"F07": (0, 1000)}, name="p", url=sims[0].url,
-                                                unit=1)
+        assert "F07: 10 s" in old.pulled_recipe(PROFILE, {"F07": (0, 1000)}, name="p", url=sims[0].url, unit=1)

@@ -54,12 +54,28 @@ def test_two_runs_by_two_spellings_exclude_each_other(tmp_path: Path) -> None:
     with SimulatorThread(builtin_profile("example-inverter")) as sim:
         port = sim.url.rsplit(":", 1)[1]
         # the first run holds the device until it is confirmed, however long the second takes to start
-        a = start("apply", recipe(tmp_path, "first", FIRST), "--device", f"tcp://127.0.0.1:{port}", "--yes",
-                  "--state-dir", str(tmp_path / "sa"), "--confirm-within", "1h")
+        a = start(
+            "apply",
+            recipe(tmp_path, "first", FIRST),
+            "--device",
+            f"tcp://127.0.0.1:{port}",
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "sa"),
+            "--confirm-within",
+            "1h",
+        )
         wait_for(lambda: bool(awaiting(str(tmp_path / "sa"))) or a.poll() is not None)
         assert any(r.get("pid") == a.pid for r in _records())
-        code, out, err = run("apply", recipe(tmp_path, "second", SECOND), "--device", f"tcp://localhost:{port}",
-                             "--yes", "--state-dir", str(tmp_path / "sb"))
+        code, out, err = run(
+            "apply",
+            recipe(tmp_path, "second", SECOND),
+            "--device",
+            f"tcp://localhost:{port}",
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "sb"),
+        )
         assert run("confirm", "--state-dir", str(tmp_path / "sa"))[0] == 0
         assert a.wait(timeout=60) == 0
         assert code == 3 and f"locked by PID {a.pid}" in out + err, out + err
@@ -101,8 +117,15 @@ def test_a_planted_lock_file_is_refused_and_its_target_untouched(plant: str, tmp
         else:
             os.mkfifo(path)
         try:
-            code, out, err = run("apply", recipe(tmp_path, "first", FIRST), "--device", sim.url, "--yes",
-                                 "--state-dir", str(tmp_path / "s"))
+            code, out, err = run(
+                "apply",
+                recipe(tmp_path, "first", FIRST),
+                "--device",
+                sim.url,
+                "--yes",
+                "--state-dir",
+                str(tmp_path / "s"),
+            )
         finally:
             path.unlink()
         assert code == 3, out + err
@@ -169,7 +192,8 @@ def test_a_waiter_on_a_removed_file_locks_the_new_one() -> None:
 
 @pytest.mark.skipif(sys.platform == "win32", reason="Windows removes no file that is open: the race cannot happen")
 def test_a_file_removed_between_the_open_and_the_lock_is_not_taken_for_the_lock(
-        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """The race itself: the holder (an older deployer) removes the file after this run opened it and before
     this run's lock; the lock taken must be the one of the file now at the path, never of the removed one."""
     from deployer.state import oslock
@@ -203,8 +227,18 @@ def test_a_refused_broadcast_names_who_writes_the_bus(tmp_path: Path) -> None:
         keys = urls.parse_url(sim.url).lock_keys
         other = asyncio.run(lock.acquire_device(keys, 2, command="deployer apply line3.yaml"))
         try:
-            code, out, err = run("apply", recipe(tmp_path, "first", FIRST), "--device", sim.url, "--unit", "0",
-                                 "--allow-broadcast", "--yes", "--state-dir", str(tmp_path / "s"))
+            code, out, err = run(
+                "apply",
+                recipe(tmp_path, "first", FIRST),
+                "--device",
+                sim.url,
+                "--unit",
+                "0",
+                "--allow-broadcast",
+                "--yes",
+                "--state-dir",
+                str(tmp_path / "s"),
+            )
         finally:
             for h in other:
                 h.release()
@@ -227,37 +261,69 @@ def test_an_inventory_naming_one_device_twice_is_refused(tmp_path: Path) -> None
         inv = tmp_path / "inv.yaml"
         inv.write_text(INVENTORY.format(port=port))
         code, out, err = run("validate", str(inv))
-        msg = (f"{inv}:3:19: error: devices 'press-1' and 'press-1b' are one device (tcp://127.0.0.1:{port} and "
-               f"tcp://localhost:{port}, unit 1): name each device once")
+        msg = (
+            f"{inv}:3:19: error: devices 'press-1' and 'press-1b' are one device (tcp://127.0.0.1:{port} and "
+            f"tcp://localhost:{port}, unit 1): name each device once"
+        )
         assert code == 1 and msg in out + err, out + err
-        code, out, err = run("apply", recipe(tmp_path, "first", FIRST), "--inventory", str(inv), "--yes",
-                             "--state-dir", str(tmp_path / "s"))
+        code, out, err = run(
+            "apply",
+            recipe(tmp_path, "first", FIRST),
+            "--inventory",
+            str(inv),
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 1 and msg in out + err, out + err
         assert not sim.log  # nothing was sent
         # --unit puts all three on one unit: press-2 is then press-1 too
         inv.write_text(INVENTORY.format(port=port).replace('  press-1b: {url: "tcp://localhost:' + port + '"}\n', ""))
-        code, out, err = run("apply", recipe(tmp_path, "first", FIRST), "--inventory", str(inv), "--unit", "1",
-                             "--yes", "--state-dir", str(tmp_path / "s"))
+        code, out, err = run(
+            "apply",
+            recipe(tmp_path, "first", FIRST),
+            "--inventory",
+            str(inv),
+            "--unit",
+            "1",
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 1 and "devices 'press-1' and 'press-2' are one device" in out + err, out + err
 
 
-@pytest.mark.parametrize(("text", "message"), [
-    ("tcp://[::1", "'tcp://[::1' is not a valid URL (Invalid IPv6 URL; an IPv6 host is written in brackets: "
-                   "tcp://[::1]:502)"),
-    ("tcp://user:pw@10.0.0.1", "unexpected user name or password in 'tcp://user:pw@10.0.0.1' (Modbus has no "
-                               "login; TLS uses cert= and key=)"),
-    ("tcp://10.0.0.1#frag", "unexpected '#frag' in 'tcp://10.0.0.1#frag' (a device URL has no fragment; options "
-                            "go after ?)"),
-    ("tcp://h?timeout=1&timeout=2", "option 'timeout' given 2 times in 'tcp://h?timeout=1&timeout=2': give it once"),
-    ("tls://h?ca=/dev/zero", "tls option ca: '/dev/zero' is not a regular file (expected a PEM file)"),
-])
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (
+            "tcp://[::1",
+            "'tcp://[::1' is not a valid URL (Invalid IPv6 URL; an IPv6 host is written in brackets: tcp://[::1]:502)",
+        ),
+        (
+            "tcp://user:pw@10.0.0.1",
+            "unexpected user name or password in 'tcp://user:pw@10.0.0.1' (Modbus has no "
+            "login; TLS uses cert= and key=)",
+        ),
+        (
+            "tcp://10.0.0.1#frag",
+            "unexpected '#frag' in 'tcp://10.0.0.1#frag' (a device URL has no fragment; options go after ?)",
+        ),
+        (
+            "tcp://h?timeout=1&timeout=2",
+            "option 'timeout' given 2 times in 'tcp://h?timeout=1&timeout=2': give it once",
+        ),
+        ("tls://h?ca=/dev/zero", "tls option ca: '/dev/zero' is not a regular file (expected a PEM file)"),
+    ],
+)
 def test_bad_urls_said_plainly(text: str, message: str, tmp_path: Path) -> None:
     with pytest.raises(BadURL) as e:
         urls.parse_url(text)
     assert str(e.value) == message
     r = tmp_path / "r.yaml"
-    r.write_text(f"recipe: r\nprofile: example-inverter\ndevice: {{url: {json.dumps(text)}}}\n"
-                 "parameters:\n  F07: 1 s\n")
+    r.write_text(
+        f"recipe: r\nprofile: example-inverter\ndevice: {{url: {json.dumps(text)}}}\nparameters:\n  F07: 1 s\n"
+    )
     code, out, err = run("validate", str(r))
     assert code == 1 and f"{r}:3:15: error: {message}" in out + err, out + err
 
@@ -285,7 +351,9 @@ def test_lock_records_say_who(tmp_path: Path) -> None:
 
 
 def test_release_by_another_process_is_safe(tmp_path: Path) -> None:
-    code = ("from deployer.state import lock; h = lock.try_lock('x'); import sys; sys.stdout.write(h.path); "
-            "sys.stdout.flush(); h.release()")
+    code = (
+        "from deployer.state import lock; h = lock.try_lock('x'); import sys; sys.stdout.write(h.path); "
+        "sys.stdout.flush(); h.release()"
+    )
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert p.returncode == 0 and Path(p.stdout).read_bytes().strip() == b""  # released there: no record left

@@ -83,8 +83,14 @@ def apply(sim: Simulator, path: str, tmp: Path, *, between: object = None) -> De
             if callable(between):
                 between(s)
             return True
-        return await apply_device(rec, parse_url(s.url + "?timeout=0.5"), 1,
-                                  options=ApplyOptions(state_dir=str(tmp / ".d"), backoff=0.01, confirm=confirm))
+
+        return await apply_device(
+            rec,
+            parse_url(s.url + "?timeout=0.5"),
+            1,
+            options=ApplyOptions(state_dir=str(tmp / ".d"), backoff=0.01, confirm=confirm),
+        )
+
     return run_with(sim, body)
 
 
@@ -100,20 +106,25 @@ def test_layouts_fields_and_strings_load(fields: Profile) -> None:
     assert fields.parameter("limit").encode(-2) == (0xFEFF, 0xFFFF)  # FFFFFFFEh reversed bytewise
 
 
-@pytest.mark.parametrize(("extra", "message"), [
-    ("  whole: {register: 0x30, type: uint16}\n", "whole (registers 0x0030-0x0030) overlaps the bit field"),
-    ("  clash: {register: 0x30, type: uint16, bits: 5..6}\n",
-     "clash (bits 5..6 of register 0x0030) overlaps mode (bits 3..5, line 7)"),
-    ("  late: {register: 0x30, type: bool, bits: 7, stage: 2}\n", "a register is written as one unit"),
-    ("  wide: {register: 0x50, type: bool, bits: 1..2}\n", "a bool field is one bit"),
-    ("  odd: {register: 0x50, type: uint16, mask: 0x0101}\n", "not one contiguous group of bits"),
-    ("  big: {register: 0x50, type: uint32, bits: 1}\n", "a bit field is uint16, int16 or bool"),
-    ("  s: {register: 0x50, type: string}\n", "a string needs 'count'"),
-    ("  s: {register: 0x50, type: string, count: 2, unit: s}\n", "'unit' does not apply to a string"),
-    ("  n: {register: 0x50, type: uint16, count: 2}\n", "'count' applies to strings only"),
-    ("  both: {register: 0x50, type: uint32, swap: word, byte_order: ABCD}\n", "both set the layout"),
-    ("  e: {register: 0x50, type: uint16, bits: 0..1, values: {a: 4}}\n", "value 4 of 'a' does not fit in 2 bits"),
-])
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        ("  whole: {register: 0x30, type: uint16}\n", "whole (registers 0x0030-0x0030) overlaps the bit field"),
+        (
+            "  clash: {register: 0x30, type: uint16, bits: 5..6}\n",
+            "clash (bits 5..6 of register 0x0030) overlaps mode (bits 3..5, line 7)",
+        ),
+        ("  late: {register: 0x30, type: bool, bits: 7, stage: 2}\n", "a register is written as one unit"),
+        ("  wide: {register: 0x50, type: bool, bits: 1..2}\n", "a bool field is one bit"),
+        ("  odd: {register: 0x50, type: uint16, mask: 0x0101}\n", "not one contiguous group of bits"),
+        ("  big: {register: 0x50, type: uint32, bits: 1}\n", "a bit field is uint16, int16 or bool"),
+        ("  s: {register: 0x50, type: string}\n", "a string needs 'count'"),
+        ("  s: {register: 0x50, type: string, count: 2, unit: s}\n", "'unit' does not apply to a string"),
+        ("  n: {register: 0x50, type: uint16, count: 2}\n", "'count' applies to strings only"),
+        ("  both: {register: 0x50, type: uint32, swap: word, byte_order: ABCD}\n", "both set the layout"),
+        ("  e: {register: 0x50, type: uint16, bits: 0..1, values: {a: 4}}\n", "value 4 of 'a' does not fit in 2 bits"),
+    ],
+)
 def test_profile_errors_with_positions(tmp_path: Path, extra: str, message: str) -> None:
     with pytest.raises(InputError) as e:
         profile_from(tmp_path, FIELDS + extra)
@@ -142,13 +153,16 @@ def test_two_fields_of_one_register_plan_as_one_word(tmp_path: Path, fields: Pro
     target = Target(None, 1, "dev.yaml")
     plan = make_plan(rec, target, {"direction": (0xF001,), "mode": (0xF001,), "name": (0, 0, 0, 0)})
     assert [(w.address, w.registers, w.parameters) for w in plan.writes] == [  # 0x30 and 0x31.. in one request
-        (0x30, (0xF00B, 0x4142, 0x2020, 0x2020, 0x2020), ("direction", "mode", "name"))]  # F001h's other bits kept
+        (0x30, (0xF00B, 0x4142, 0x2020, 0x2020, 0x2020), ("direction", "mode", "name"))
+    ]  # F001h's other bits kept
     # one field already right: the register still goes as one unit, that field as a bridge
     plan = make_plan(rec, target, {"direction": (0x0002,), "mode": (0x0002,)})
     assert {p.name: p.action for p in plan.parameters} == {"direction": "bridge", "mode": "write", "name": "write"}
     assert plan.writes[0].registers[0] == 0x000A
-    assert make_plan(rec, target, {"direction": (0x000A,), "mode": (0x000A,),
-                                   "name": rec.desired[-1].registers}).writes == ()
+    assert (
+        make_plan(rec, target, {"direction": (0x000A,), "mode": (0x000A,), "name": rec.desired[-1].registers}).writes
+        == ()
+    )
 
 
 # ---- bit fields against the simulator -------------------------------------------------------
@@ -182,8 +196,15 @@ def test_pull_fields_strings_and_layouts(tmp_path: Path, fields: Profile, capsys
             main(["pull", "--profile", str(tmp_path / "dev.yaml"), "--device", sim.url, "-o", str(out)])
         assert exc.value.code == 0, capsys.readouterr()
     text = out.read_text()
-    for line in ("enable: true", "direction: reverse", "mode: position", "jog_step: 1.5 mm", "name: \"ABC\"",
-                 "limit: -2", "gain: 1.5"):
+    for line in (
+        "enable: true",
+        "direction: reverse",
+        "mode: position",
+        "jog_step: 1.5 mm",
+        'name: "ABC"',
+        "limit: -2",
+        "gain: 1.5",
+    ):
         assert f"  {line}\n" in text, text
     pulled = load_recipe(str(out))
     assert {d.name: d.registers for d in pulled.desired}["name"] == (0x4142, 0x4320, 0x2020, 0x2020)
@@ -192,22 +213,35 @@ def test_pull_fields_strings_and_layouts(tmp_path: Path, fields: Profile, capsys
 # ---- guarded and sequenced writes -------------------------------------------------------------
 
 
-def test_guarded_profile_refuses_while_running(tmp_path: Path, drive: Profile,
-                                               capsys: pytest.CaptureFixture[str]) -> None:
+def test_guarded_profile_refuses_while_running(
+    tmp_path: Path, drive: Profile, capsys: pytest.CaptureFixture[str]
+) -> None:
     path = recipe(tmp_path, "  mode: torque\n  accel: 2 s\n", "drive.yaml")
     report = tmp_path / "report.json"
     with SimulatorThread(drive) as sim:
         sim.write("running", (0x0008,))  # the drive runs
         with pytest.raises(SystemExit) as exc:
-            main(["apply", path, "--device", sim.url, "--yes", "--report", str(report),
-                  "--state-dir", str(tmp_path / ".d")])
+            main(
+                [
+                    "apply",
+                    path,
+                    "--device",
+                    sim.url,
+                    "--yes",
+                    "--report",
+                    str(report),
+                    "--state-dir",
+                    str(tmp_path / ".d"),
+                ]
+            )
         log = list(sim.log)
     assert exc.value.code == 4
     assert count(log, 16) == 0 and count(log, 6) == 0  # nothing written, not even the unlock
     dev = json.loads(report.read_text())["devices"][0]
     assert dev["status"] == "failed"
-    assert dev["error"] == ("precondition failed: register 0x0010 bit 3 (drive stopped) is 1, expected 0; "
-                            "nothing was written")
+    assert dev["error"] == (
+        "precondition failed: register 0x0010 bit 3 (drive stopped) is 1, expected 0; nothing was written"
+    )
     assert "drive stopped" in capsys.readouterr().out
 
 
@@ -221,10 +255,12 @@ def test_unlock_writes_commit_lock_in_order_with_waits(tmp_path: Path, drive: Pr
     writes = [e for e in sim.log if e.function in (6, 16)]
     assert [(w.address, w.values) for w in writes] == [
         (0x20, [0x5AA5]),  # unlock
-        (0x30, [0x0008]), (0x35, [0x0000, 0x4020]),  # stage 0: mode, gain (2.5 = 40200000h, CDAB)
+        (0x30, [0x0008]),
+        (0x35, [0x0000, 0x4020]),  # stage 0: mode, gain (2.5 = 40200000h, CDAB)
         (0x40, [20]),  # stage 1: accel
         (0x21, [1]),  # commit: store to EEPROM
-        (0x20, [0])]  # lock
+        (0x20, [0]),
+    ]  # lock
     # never busy: every wait was kept (the device has no Function 43: that answers 01)
     assert not any(e.result.startswith("exception") for e in sim.log if e.function != 43)
     # the request log's timestamps (taken as each request arrives) show every wait
@@ -247,6 +283,7 @@ def test_simulator_models_the_lock_and_the_busy_wait(tmp_path: Path, drive: Prof
             assert not client.write_register(0x20, 0x5AA5, device_id=1).isError()
             assert client.write_register(0x40, 5, device_id=1).exception_code == 6  # busy for 120 ms
             import time
+
             time.sleep(0.15)
             assert not client.write_register(0x40, 5, device_id=1).isError()
             sim.write("running", (0x0008,))
@@ -271,6 +308,7 @@ def test_restart_notice_in_report_json(tmp_path: Path, drive: Profile) -> None:
     res = apply(Simulator(drive), recipe(tmp_path, "  accel: 3 s\n", "drive.yaml"), tmp_path)
     data = Report("r", [res]).to_json()
     import jsonschema
+
     jsonschema.validate(data, schema.schema("report"))
     assert data["devices"][0]["notices"] == ["accel takes effect after a power cycle"]
     assert data["devices"][0]["status"] == "ok"
@@ -288,14 +326,19 @@ def test_mbpoll_reads_our_layouts(tmp_path: Path, fields: Profile) -> None:
     with sim as s:
         rec = load_recipe(path)
         import asyncio
+
         res = asyncio.run(apply_device(rec, parse_url(s.url), 1, options=ApplyOptions(state_dir=str(tmp_path / ".d"))))
         assert res.status == "ok"
         port = s.url.rsplit(":", 1)[1]
 
         def poll(*args: str) -> str:
             assert MBPOLL is not None
-            out = subprocess.run([MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", *args, "127.0.0.1"],
-                                 capture_output=True, text=True, timeout=20)
+            out = subprocess.run(
+                [MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", *args, "127.0.0.1"],
+                capture_output=True,
+                text=True,
+                timeout=20,
+            )
             assert out.returncode == 0, out.stderr
             return out.stdout
 
@@ -315,6 +358,7 @@ def test_nothing_to_write_needs_no_guard(tmp_path: Path, drive: Profile) -> None
     async def body(s: Simulator) -> DeviceResult:
         s.write("running", (0x0008,))
         return await apply_device(rec, parse_url(s.url), 1, options=ApplyOptions(state_dir=str(tmp_path / ".d")))
+
     res = run_with(sim, body)
     assert res.status == "ok" and res.parameters[0].status == "unchanged"
     assert res.parameters[0].desired_raw == (0x0008,)  # the register's word, like before_raw and after_raw
@@ -337,6 +381,7 @@ def test_rollback_restores_a_fields_bits_and_keeps_the_rest(tmp_path: Path, fiel
     async def rollback(s: Simulator) -> DeviceResult:
         s.write("enable", (s.read("enable")[0] | 0x5001,))  # meanwhile: enable and jog_step changed on the panel
         return await apply_device(snapshot, parse_url(s.url), 1, options=ApplyOptions(state_dir=str(tmp_path / ".d")))
+
     back = run_with(sim, rollback)
     assert back.status == "ok", back.to_json()
     assert sim.read("mode") == (0x5001,)  # direction and mode as before the apply, the panel's bits kept
@@ -370,6 +415,7 @@ class _Recording(dict[int, int]):
 
     def __setitem__(self, address: int, value: int) -> None:
         import time
+
         self.writes.append((address, value, time.monotonic()))
         super().__setitem__(address, value)
 
@@ -377,16 +423,23 @@ class _Recording(dict[int, int]):
 def test_guarded_sequence_against_umodbus(tmp_path: Path, drive: Profile) -> None:
     from tests.helpers import umodbus_server
 
-    store = _Recording({a: 0 for a in (0x10, 0x20, 0x21, 0x30, 0x31, 0x32, 0x33, 0x34, 0x35, 0x36, 0x37, 0x38,
-                                       0x40)})
+    store = _Recording({a: 0 for a in (0x10, 0x20, 0x21, 0x30, 0x31, 0x32, 0x33, 0x34, 0x35, 0x36, 0x37, 0x38, 0x40)})
     store[0x10] = 0x0009  # running (bit 3) and a fault bit
     store[0x30] = 0x4001  # jog_step 4, enabled
     store.writes.clear()
     rec = load_recipe(recipe(tmp_path, "  mode: position\n  accel: 1.5 s\n", "drive.yaml"))
     with umodbus_server(store) as port:
+
         def run() -> DeviceResult:
-            return asyncio.run(apply_device(rec, parse_url(f"tcp://127.0.0.1:{port}?timeout=1"), 1,
-                                            options=ApplyOptions(state_dir=str(tmp_path / ".d"))))
+            return asyncio.run(
+                apply_device(
+                    rec,
+                    parse_url(f"tcp://127.0.0.1:{port}?timeout=1"),
+                    1,
+                    options=ApplyOptions(state_dir=str(tmp_path / ".d")),
+                )
+            )
+
         refused = run()
         assert refused.status == "failed" and "drive stopped" in (refused.error or "")
         assert store.writes == []  # nothing written
@@ -399,8 +452,9 @@ def test_guarded_sequence_against_umodbus(tmp_path: Path, drive: Profile) -> Non
     assert t[1] - t[0] >= 0.12 and t[2] - t[1] >= 0.10 and t[4] - t[3] >= 0.15  # unlock, stage 0, commit waits
 
 
-def test_rejected_field_register_and_a_saved_plan(tmp_path: Path, fields: Profile,
-                                                  capsys: pytest.CaptureFixture[str]) -> None:
+def test_rejected_field_register_and_a_saved_plan(
+    tmp_path: Path, fields: Profile, capsys: pytest.CaptureFixture[str]
+) -> None:
     with pytest.raises(InputError, match="a bit field must be readable"):
         profile_from(tmp_path, FIELDS + "  cmd: {register: 0x50, type: bool, bits: 0, access: write-only}\n", "wo.yaml")
     # the device refuses the control word: both fields of it fail, the string after it still goes
@@ -416,7 +470,8 @@ def test_rejected_field_register_and_a_saved_plan(tmp_path: Path, fields: Profil
         with pytest.raises(SystemExit):
             main(["plan", path, "--device", s.url, "--out", str(plan)])
         assert [s["values"] for s in json.loads(plan.read_text())["steps"] if s["kind"] == "write"] == [
-            [0x0009, 0x4142, 0x2020, 0x2020, 0x2020]]
+            [0x0009, 0x4142, 0x2020, 0x2020, 0x2020]
+        ]
         s.write("enable", (0x3001,))  # jog_step changes after the plan was made
         with pytest.raises(SystemExit) as exc:
             main(["apply", str(plan), "--yes", "--state-dir", str(tmp_path / ".d")])
@@ -425,6 +480,7 @@ def test_rejected_field_register_and_a_saved_plan(tmp_path: Path, fields: Profil
 
 
 # ---- planner property: a register of fields plans like one whole register ----------------------
+
 
 @st.composite
 def _field_case(draw: st.DrawFn) -> tuple[list[Desired], dict[str, tuple[int, ...]], list[Desired], int]:
@@ -460,8 +516,9 @@ def _field_case(draw: st.DrawFn) -> tuple[list[Desired], dict[str, tuple[int, ..
 
 @settings(max_examples=200, deadline=None)
 @given(_field_case())
-def test_fields_plan_like_whole_registers(case: tuple[list[Desired], dict[str, tuple[int, ...]], list[Desired], int]
-                                          ) -> None:
+def test_fields_plan_like_whole_registers(
+    case: tuple[list[Desired], dict[str, tuple[int, ...]], list[Desired], int],
+) -> None:
     desired, current, whole, limit = case
     limits = Limits(max_write_registers=limit)
     _, writes = plan_writes(desired, limits, current)
@@ -488,13 +545,35 @@ def test_builtin_example_drive_end_to_end(tmp_path: Path, capsys: pytest.Capture
     with SimulatorThread(prof) as sim:
         sim.write("ready", (0x0008 | 0x0001,))  # running
         with pytest.raises(SystemExit) as exc:
-            main(["apply", str(example), "--device", sim.url, "--yes", "--report", str(report),
-                  "--state-dir", str(tmp_path / ".d")])
+            main(
+                [
+                    "apply",
+                    str(example),
+                    "--device",
+                    sim.url,
+                    "--yes",
+                    "--report",
+                    str(report),
+                    "--state-dir",
+                    str(tmp_path / ".d"),
+                ]
+            )
         assert exc.value.code == 4 and count(sim.log, 16) == 0
         sim.write("ready", (0x0001,))  # stopped
         with pytest.raises(SystemExit) as exc:
-            main(["apply", str(example), "--device", sim.url, "--yes", "--report", str(report),
-                  "--state-dir", str(tmp_path / ".d")])
+            main(
+                [
+                    "apply",
+                    str(example),
+                    "--device",
+                    sim.url,
+                    "--yes",
+                    "--report",
+                    str(report),
+                    "--state-dir",
+                    str(tmp_path / ".d"),
+                ]
+            )
         assert exc.value.code == 0, capsys.readouterr()
         writes = [(e.address, e.values) for e in sim.log if e.function == 16]
         assert sim.read("axis_name")[:3] == (0x582D, 0x4158, 0x4953)  # "X-AXIS"
@@ -514,8 +593,14 @@ def test_field_register_unreadable_before_its_write_is_not_written(tmp_path: Pat
             # the next request (the read right before the write) gets no answer
             s.faults.drop_every = len(s.log) + 1
             return True
-        return await apply_device(rec, parse_url(s.url + "?timeout=0.2&retries=0"), 1,
-                                  options=ApplyOptions(state_dir=str(tmp_path / ".d"), confirm=confirm))
+
+        return await apply_device(
+            rec,
+            parse_url(s.url + "?timeout=0.2&retries=0"),
+            1,
+            options=ApplyOptions(state_dir=str(tmp_path / ".d"), confirm=confirm),
+        )
+
     res = run_with(sim, body)
     assert res.parameters[0].status == "failed"
     assert (res.parameters[0].error or "").startswith("reading the register to keep its other bits")
@@ -531,15 +616,27 @@ def test_simulate_set_makes_the_drive_run(tmp_path: Path, capsys: pytest.Capture
     proc, _, port = simulate_process("example-drive", "--set", "0x10=9")
     try:
         with pytest.raises(SystemExit) as exc:
-            main(["apply", str(example), "--device", f"tcp://127.0.0.1:{port}", "--yes",
-                  "--state-dir", str(tmp_path / ".d")])
+            main(
+                [
+                    "apply",
+                    str(example),
+                    "--device",
+                    f"tcp://127.0.0.1:{port}",
+                    "--yes",
+                    "--state-dir",
+                    str(tmp_path / ".d"),
+                ]
+            )
         assert exc.value.code == 4
         assert "precondition failed: register 0x0010 bit 3 (drive stopped) is 1" in capsys.readouterr().out
     finally:
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
-    for bad, message in (("0x10", "expected ADDR=RAW"), ("0x999=1", "not declared in profile example-drive"),
-                         ("0x10=70000", "a register holds 0..65535")):
+    for bad, message in (
+        ("0x10", "expected ADDR=RAW"),
+        ("0x999=1", "not declared in profile example-drive"),
+        ("0x10=70000", "a register holds 0..65535"),
+    ):
         with pytest.raises(SystemExit) as exc:
             main(["simulate", "example-drive", "--set", bad])
         assert exc.value.code == 1 and message in capsys.readouterr().err
@@ -554,8 +651,25 @@ def test_mbpoll_sees_the_guarded_drive(tmp_path: Path, drive: Profile) -> None:
 
         def poll(*args: str, write: str | None = None) -> subprocess.CompletedProcess[str]:
             assert MBPOLL is not None
-            return subprocess.run([MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", *args, "127.0.0.1",
-                                   *([write] if write else [])], capture_output=True, text=True, timeout=20)
+            return subprocess.run(
+                [
+                    MBPOLL,
+                    "-m",
+                    "tcp",
+                    "-p",
+                    port,
+                    "-a",
+                    "1",
+                    "-0",
+                    "-1",
+                    *args,
+                    "127.0.0.1",
+                    *([write] if write else []),
+                ],
+                capture_output=True,
+                text=True,
+                timeout=20,
+            )
 
         refused = poll("-r", "64", "-t", "4", write="15")  # accel while the parameters are locked
         assert refused.returncode != 0 and "Slave device or server failure" in refused.stdout + refused.stderr

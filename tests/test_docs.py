@@ -22,10 +22,7 @@ ROOT = Path(__file__).parent.parent
 DOCS = ROOT / "docs"
 # a fenced block preceded by <!-- example: partial --> is an excerpt; <!-- example: file=NAME --> names
 # the file it is written to (so recipes can name the profiles of the same page by path)
-FENCE = re.compile(r"(?:<!--\s*example:\s*(?P<mark>[^>]*?)\s*-->\s*\n)?```(?P<lang>yaml|json)\n(?P<body>.*?)```",
-                   re.S)
-
-
+FENCE = re.compile(r"(?:<!--\s*example:\s*(?P<mark>[^>]*?)\s*-->\s*\n)?```(?P<lang>yaml|json)\n(?P<body>.*?)```", re.S)
 
 
 @pytest.mark.parametrize("name", docgen.SCHEMAS)
@@ -34,8 +31,12 @@ def test_every_schema_property_has_a_description(name: str) -> None:
 
 
 def test_undescribed_finds_a_missing_description(monkeypatch: pytest.MonkeyPatch) -> None:
-    bare = {"description": "x", "type": "object", "properties": {"a": {"type": "integer"}},
-            "$defs": {"d": {"type": "object", "additionalProperties": {"type": "string"}}}}
+    bare = {
+        "description": "x",
+        "type": "object",
+        "properties": {"a": {"type": "integer"}},
+        "$defs": {"d": {"type": "object", "additionalProperties": {"type": "string"}}},
+    }
     monkeypatch.setattr(schema, "schema", lambda name: bare)
     assert docgen.undescribed("any") == ["#/properties/a", "#/$defs/d/additionalProperties", "#/$defs/d"]
 
@@ -53,7 +54,14 @@ def test_docs_command_writes_and_checks(capsys: pytest.CaptureFixture[str], tmp_
     code, _, err = cli(capsys, "docs", "--out", str(out))
     assert code == 0 and err == f"7 pages updated in {out}\n"
     assert sorted(p.name for p in out.iterdir()) == [
-        "inventory.md", "plan.md", "profile.md", "recipe.md", "report.md", "snapshot.md", "users.md"]
+        "inventory.md",
+        "plan.md",
+        "profile.md",
+        "recipe.md",
+        "report.md",
+        "snapshot.md",
+        "users.md",
+    ]
     (out / "recipe.md").write_text("edited by hand\n")
     code, _, err = cli(capsys, "docs", "--check", "--out", str(out))
     assert code == 1 and err == f"{out / 'recipe.md'}: stale (run: deployer docs --out {out})\n"
@@ -82,14 +90,18 @@ def test_explain(capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = cli(capsys, "explain", "max_frame")
     assert code == 1 and err == "error: no key 'max_frame' in any schema; did you mean max_frame_bytes?\n"
     code, out, _ = cli(capsys, "explain", "baudrate")
-    assert code == 0 and out == ("url: baudrate\n  device URL option (rtu, ascii) · default 19200 · allowed: "
-                                 "50..4000000\n  Every scheme and option, with what they mean: docs/urls.md\n")
+    assert code == 0 and out == (
+        "url: baudrate\n  device URL option (rtu, ascii) · default 19200 · allowed: "
+        "50..4000000\n  Every scheme and option, with what they mean: docs/urls.md\n"
+    )
     code, out, _ = cli(capsys, "explain", "timeout")  # an inventory key and a URL option
     assert code == 0 and "inventory: defaults.timeout" in out and "url: timeout\n" in out
     # a manual's word for what is called otherwise here points at our key
     code, out, _ = cli(capsys, "explain", "resolution")
-    assert code == 0 and out.startswith("'resolution' is not a key here: a parameter's resolution (a manual's "
-                                        "'0.01 s units') is its scale.\n\nprofile: parameters.PARAM.scale\n")
+    assert code == 0 and out.startswith(
+        "'resolution' is not a key here: a parameter's resolution (a manual's "
+        "'0.01 s units') is its scale.\n\nprofile: parameters.PARAM.scale\n"
+    )
     code, out, _ = cli(capsys, "explain", "slave")
     assert code == 0 and "\n\nrecipe: device.unit\n" in out and "profile:" not in out
 
@@ -204,7 +216,7 @@ def test_every_page_is_in_the_site_navigation() -> None:
     def pages(entries: list[object]) -> set[str]:
         found: set[str] = set()
         for entry in entries:
-            for value in (entry.values() if isinstance(entry, dict) else [entry]):
+            for value in entry.values() if isinstance(entry, dict) else [entry]:
                 found |= pages(value) if isinstance(value, list) else {str(value)}
         return found
 
@@ -284,8 +296,11 @@ def test_every_dependency_says_why_it_is_there() -> None:
     def norm(name: str) -> str:
         return re.sub(r"[-_.]+", "-", name).lower()
 
-    named = {norm(n) for row in re.findall(r"^\| ([^|]+) \|", (DOCS / "dependencies.md").read_text(), re.M)
-             for n in re.findall(r"[A-Za-z][\w.-]*", row.split("(")[0])}
+    named = {
+        norm(n)
+        for row in re.findall(r"^\| ([^|]+) \|", (DOCS / "dependencies.md").read_text(), re.M)
+        for n in re.findall(r"[A-Za-z][\w.-]*", row.split("(")[0])
+    }
     missing = sorted({norm(re.split(r"[\[<>=!~; ]", d)[0]) for d in wanted} - named)
     assert missing == [], "say why in docs/dependencies.md"
 
@@ -307,8 +322,9 @@ def test_the_api_page_names_every_public_name() -> None:
     assert sorted({n for n in re.findall(r"\bdeployer\.(\w+)", code)} - {*deployer.__all__, "aio"}) == []
 
 
-def test_the_api_page_examples_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                   capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_api_page_examples_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     """Every python block of docs/api.md runs as written, in order, against simulators at the addresses it
     names (the example recipes beside it, as in a checkout)."""
     import shutil

@@ -31,7 +31,8 @@ def _lines(path: Path) -> list[dict[str, Any]]:
 
 
 def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_are_fsynced_at_the_settle(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The files' text goes to the folder's write-ahead log (one write, one fsync), then the journal lines (one
     write, one fsync): no fsync per file before the first write. Settling fsyncs each file, then the folder,
     and removes the log."""
@@ -41,16 +42,23 @@ def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_ar
 
     def fsync(fd: int) -> None:
         st = os.fstat(fd)
-        synced.append("dir" if stat.S_ISDIR(st.st_mode) else "journal" if st.st_ino == _ino(journal)
-                      else "log" if Path(tmp_path / ".wal").is_dir() and st.st_ino in _inos(tmp_path / ".wal")
-                      else "file")
+        synced.append(
+            "dir"
+            if stat.S_ISDIR(st.st_mode)
+            else "journal"
+            if st.st_ino == _ino(journal)
+            else "log"
+            if Path(tmp_path / ".wal").is_dir() and st.st_ino in _inos(tmp_path / ".wal")
+            else "file"
+        )
         real(fd)
 
     journal.touch()
     monkeypatch.setattr(os, "fsync", fsync)
     log = wal.Log()
-    batch = [_Pending(_file(tmp_path, f"dev{i}", journal, {"event": "device-started", "name": f"dev{i}"}))
-             for i in range(3)]
+    batch = [
+        _Pending(_file(tmp_path, f"dev{i}", journal, {"event": "device-started", "name": f"dev{i}"})) for i in range(3)
+    ]
     batch.append(_Pending(Line(str(journal), {"event": "device-finished", "name": "dev9"})))
     commit(batch, log)
     # the log's folder and its name made durable once, when the log is created; then one fsync each
@@ -63,7 +71,8 @@ def test_a_batch_logs_its_files_with_one_fsync_then_the_journal_and_the_files_ar
     (segment,) = (tmp_path / ".wal").iterdir()
     logged = list(wal.records(segment.read_bytes()))
     assert [(path, body) for path, _, body in logged] == [
-        (str(tmp_path / f"dev{i}.yaml"), f"# I am {tmp_path / f'dev{i}.yaml'}\n".encode()) for i in range(3)]
+        (str(tmp_path / f"dev{i}.yaml"), f"# I am {tmp_path / f'dev{i}.yaml'}\n".encode()) for i in range(3)
+    ]
     assert [digest for _, digest, _ in logged] == [x["snapshot_sha256"] for x in lines[:3]]
 
     synced.clear()
@@ -86,8 +95,9 @@ def test_a_full_log_is_settled_beside_the_next_batches(tmp_path: Path, monkeypat
     assert len(log.settling) == 3 and len(log.segments) == 1
     log.settle()
     assert not log.pending() and not (tmp_path / ".wal").exists()
-    assert [p.outcome() for b in batches for p in b] == [str(tmp_path / f"dev{b}-{i}.yaml")
-                                                          for b in range(4) for i in range(3)]
+    assert [p.outcome() for b in batches for p in b] == [
+        str(tmp_path / f"dev{b}-{i}.yaml") for b in range(4) for i in range(3)
+    ]
 
 
 def _inos(folder: Path) -> set[int]:
@@ -151,7 +161,8 @@ def test_many_devices_at_once_each_get_their_own_durable_file_and_line(tmp_path:
 
 
 def test_after_a_crowded_batch_the_writer_gathers_the_next_one_and_a_lone_operation_never_waits(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Two operations committed together (a fleet): the next batch waits ``GATHER`` for the others, so operations
     queued meanwhile share its fsyncs; a writer whose batches hold one operation each (one device) never waits."""
     import threading
@@ -213,7 +224,8 @@ def test_an_unexpected_error_reaches_the_caller_and_the_writer_goes_on(tmp_path:
 
 
 def test_a_failed_log_fsync_fails_its_batch_and_the_next_batch_gets_a_new_log(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The log is the files' durability: when its fsync fails, none of the batch's files is durable (their
     devices are not written) and no journal line names them; the log is not appended to again."""
     journal = tmp_path / "audit.jsonl"
@@ -244,7 +256,8 @@ def test_a_failed_log_fsync_fails_its_batch_and_the_next_batch_gets_a_new_log(
 
 
 def test_a_file_that_cannot_be_fsynced_at_the_settle_leaves_its_log_for_recovery(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     log = wal.Log()
     commit([_Pending(_file(tmp_path, f"dev{i}", None, None)) for i in range(2)], log)
     real = os.fsync

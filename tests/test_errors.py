@@ -21,15 +21,21 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _classes() -> dict[str, type[DeployerError]]:
-    return {n: c for n, c in vars(errors).items()
-            if inspect.isclass(c) and issubclass(c, DeployerError) and c.__module__ == errors.__name__}
+    return {
+        n: c
+        for n, c in vars(errors).items()
+        if inspect.isclass(c) and issubclass(c, DeployerError) and c.__module__ == errors.__name__
+    }
 
 
 def test_the_documented_tree_is_the_tree() -> None:
     """The drawing in the module's docstring: every class, its parent (by indentation) and its exit code."""
     doc = errors.__doc__ or ""
-    drawn = [(m.start(1) - len(line) + len(line.lstrip()), m.group(1), int(m.group(2)))
-             for line in doc.splitlines() if (m := re.search(r"([A-Z]\w+) +(\d)  \S", line))]
+    drawn = [
+        (m.start(1) - len(line) + len(line.lstrip()), m.group(1), int(m.group(2)))
+        for line in doc.splitlines()
+        if (m := re.search(r"([A-Z]\w+) +(\d)  \S", line))
+    ]
     classes = _classes()
     assert [name for _, name, _ in drawn] and {name for _, name, _ in drawn} == set(classes)
     parents: dict[int, str] = {}
@@ -60,11 +66,19 @@ def test_errors_are_importable_from_deployer_errors_only() -> None:
     its public ones on purpose)."""
     import importlib
 
-    for mod in ("deployer.transport.clients", "deployer.transport.urls", "deployer.execute.session",
-                "deployer.profile.codec", "deployer.state.lock"):
+    for mod in (
+        "deployer.transport.clients",
+        "deployer.transport.urls",
+        "deployer.execute.session",
+        "deployer.profile.codec",
+        "deployer.state.lock",
+    ):
         m = importlib.import_module(mod)
-        handed_on = [n for n in errors.__all__ if n[0].isupper() and n in vars(m) and n not in m.__dict__.get(
-            "__all__", ()) and n not in _used_names(m)]
+        handed_on = [
+            n
+            for n in errors.__all__
+            if n[0].isupper() and n in vars(m) and n not in m.__dict__.get("__all__", ()) and n not in _used_names(m)
+        ]
         assert handed_on == [], (mod, handed_on)
     with pytest.raises(ModuleNotFoundError):
         importlib.import_module("deployer.load.diagnostics")
@@ -75,7 +89,8 @@ def _used_names(module: object) -> set[str]:
     source = Path(module.__file__).read_text()  # type: ignore[attr-defined]
     tree = ast.parse(source)
     return {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)} | {
-        n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
+        n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)
+    }
 
 
 def test_a_codec_error_says_its_kind() -> None:
@@ -95,18 +110,29 @@ def _text_decisions(tree: ast.AST) -> list[int]:
     """Lines deciding on an exception's text: ``str(e).startswith(...)``, ``"x" in str(e)``, ``.error.startswith``."""
 
     def is_str_of_name(node: ast.AST) -> bool:
-        return (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "str"
-                and len(node.args) == 1 and isinstance(node.args[0], ast.Name))
+        return (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Name)
+            and node.func.id == "str"
+            and len(node.args) == 1
+            and isinstance(node.args[0], ast.Name)
+        )
 
     out = []
     for node in ast.walk(tree):
-        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) \
-                and node.func.attr in ("startswith", "endswith"):
+        if (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr in ("startswith", "endswith")
+        ):
             obj = node.func.value
             if is_str_of_name(obj) or (isinstance(obj, ast.Attribute) and obj.attr in ("error", "message")):
                 out.append(node.lineno)
-        if isinstance(node, ast.Compare) and any(isinstance(op, ast.In | ast.NotIn) for op in node.ops) \
-                and any(is_str_of_name(c) for c in node.comparators):
+        if (
+            isinstance(node, ast.Compare)
+            and any(isinstance(op, ast.In | ast.NotIn) for op in node.ops)
+            and any(is_str_of_name(c) for c in node.comparators)
+        ):
             out.append(node.lineno)
     return out
 
@@ -119,8 +145,9 @@ def test_no_decision_is_taken_on_message_text() -> None:
 
 
 def test_the_text_check_finds_what_it_looks_for() -> None:
-    code = ('try:\n    pass\nexcept Exception as e:\n'
-            '    if str(e).startswith("cannot") or "x" in str(e):\n        pass\n')
+    code = (
+        'try:\n    pass\nexcept Exception as e:\n    if str(e).startswith("cannot") or "x" in str(e):\n        pass\n'
+    )
     assert _text_decisions(ast.parse(code)) == [4, 4]
 
 

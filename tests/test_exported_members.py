@@ -24,10 +24,36 @@ import deployer.aio
 from deployer import api
 
 PUBLIC = [
-    "LIMITS", "Agent", "DeployerError", "DeviceResult", "Drift", "FleetPlan", "InputError", "Inventory", "Plan",
-    "Profile", "Recipe", "Report", "RunInterrupted", "StalePlan", "Step", "TransportError", "UsageError",
-    "apply", "confirm", "diff", "load_inventory", "load_plan", "load_profile", "load_recipe", "load_report", "plan",
-    "pull", "recipe_from", "rollback", "status",
+    "LIMITS",
+    "Agent",
+    "DeployerError",
+    "DeviceResult",
+    "Drift",
+    "FleetPlan",
+    "InputError",
+    "Inventory",
+    "Plan",
+    "Profile",
+    "Recipe",
+    "Report",
+    "RunInterrupted",
+    "StalePlan",
+    "Step",
+    "TransportError",
+    "UsageError",
+    "apply",
+    "confirm",
+    "diff",
+    "load_inventory",
+    "load_plan",
+    "load_profile",
+    "load_recipe",
+    "load_report",
+    "plan",
+    "pull",
+    "recipe_from",
+    "rollback",
+    "status",
 ]
 AIO = ["apply", "confirm", "diff", "plan", "pull", "rollback", "status"]
 ROOT = Path(__file__).resolve().parent.parent
@@ -90,8 +116,10 @@ def test_load_profile_means_one_thing() -> None:
 
 
 def test_importing_the_package_does_not_load_the_api() -> None:
-    code = ("import sys, deployer\nfrom deployer import errors\n"
-            "print('deployer.api' in sys.modules, deployer.__version__ != '')")
+    code = (
+        "import sys, deployer\nfrom deployer import errors\n"
+        "print('deployer.api' in sys.modules, deployer.__version__ != '')"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.split() == ["False", "True"]
 
@@ -105,8 +133,11 @@ def _public_callables() -> list[tuple[str, Callable[..., Any]]]:
     out += [(f"deployer.aio.{n}", getattr(deployer.aio, n)) for n in AIO]
     agent = deployer.Agent("http://127.0.0.1:9")  # nothing is sent: the call is refused first
     out.append(("Agent", deployer.Agent))
-    out += [(f"Agent.{n}", getattr(agent, n)) for n, f in inspect.getmembers(deployer.Agent, inspect.isfunction)
-            if not n.startswith("_")]
+    out += [
+        (f"Agent.{n}", getattr(agent, n))
+        for n, f in inspect.getmembers(deployer.Agent, inspect.isfunction)
+        if not n.startswith("_")
+    ]
     return out
 
 
@@ -121,8 +152,15 @@ def _called(f: Callable[..., Any], **kw: Any) -> Any:
 
 def test_the_public_callables_are_found() -> None:
     names = {n for n, _ in _public_callables()}
-    assert {"deployer.apply", "deployer.aio.apply", "deployer.load_inventory", "Agent", "Agent.apply",
-            "Agent.start_run", "Agent.get"} <= names
+    assert {
+        "deployer.apply",
+        "deployer.aio.apply",
+        "deployer.load_inventory",
+        "Agent",
+        "Agent.apply",
+        "Agent.start_run",
+        "Agent.get",
+    } <= names
     assert len(names) >= 13 + 7 + 20
 
 
@@ -136,8 +174,9 @@ def test_a_misspelt_keyword_is_a_usage_error_naming_the_nearest() -> None:
     """For each public callable and each of its keyword arguments: that keyword misspelt (a letter doubled)."""
     checked = 0
     for name, f in _public_callables():
-        params = [p for p in inspect.signature(f).parameters.values()
-                  if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
+        params = [
+            p for p in inspect.signature(f).parameters.values() if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+        ]
         for p in params:
             typo = p.name + p.name[-1]
             with pytest.raises(deployer.UsageError) as e:
@@ -151,24 +190,36 @@ def test_a_misspelt_keyword_is_a_usage_error_naming_the_nearest() -> None:
 
 def test_the_famous_typo() -> None:
     recipe = deployer.recipe_from("example-inverter", {"F07": "10 s"})
-    with pytest.raises(deployer.UsageError, match=re.escape(
-            "deployer.apply() has no argument 'paralel'; did you mean 'parallel'?")):
+    with pytest.raises(
+        deployer.UsageError, match=re.escape("deployer.apply() has no argument 'paralel'; did you mean 'parallel'?")
+    ):
         deployer.apply(recipe, inventory=[{"name": "d1", "url": "tcp://127.0.0.1:9"}], paralel=4)  # type: ignore[call-arg]
 
 
-@pytest.mark.parametrize(("call", "words"), [
-    (lambda: deployer.apply(), "deployer.apply() needs 'what'"),  # type: ignore[call-arg]
-    (lambda: deployer.load_recipe(), "deployer.load_recipe() needs 'path'"),  # type: ignore[call-arg]
-    (lambda: deployer.plan(None, None, None, None),  # type: ignore[call-overload]
-     "takes 3 positional arguments (recipe, device and unit), got 4"),
-    (lambda: deployer.recipe_from("example-inverter", {}, "name"),  # type: ignore[call-arg]
-     "takes 2 positional arguments"),
-    (lambda: deployer.load_report("r.json", (), profiles=()), "got 'profiles' twice"),  # type: ignore[misc]
-    (lambda: deployer.apply(None, options=None),  # type: ignore[call-arg]
-     "ApplyOptions is gone: its fields are apply's keyword arguments"),
-    (lambda: deployer.Agent("http://h:1").events(1),  # type: ignore[call-arg]
-     "Agent.events() takes 0 positional arguments"),
-])
+@pytest.mark.parametrize(
+    ("call", "words"),
+    [
+        (lambda: deployer.apply(), "deployer.apply() needs 'what'"),  # type: ignore[call-arg]
+        (lambda: deployer.load_recipe(), "deployer.load_recipe() needs 'path'"),  # type: ignore[call-arg]
+        (
+            lambda: deployer.plan(None, None, None, None),  # type: ignore[call-overload]
+            "takes 3 positional arguments (recipe, device and unit), got 4",
+        ),
+        (
+            lambda: deployer.recipe_from("example-inverter", {}, "name"),  # type: ignore[call-arg]
+            "takes 2 positional arguments",
+        ),
+        (lambda: deployer.load_report("r.json", (), profiles=()), "got 'profiles' twice"),  # type: ignore[misc]
+        (
+            lambda: deployer.apply(None, options=None),  # type: ignore[call-arg]
+            "ApplyOptions is gone: its fields are apply's keyword arguments",
+        ),
+        (
+            lambda: deployer.Agent("http://h:1").events(1),  # type: ignore[call-arg]
+            "Agent.events() takes 0 positional arguments",
+        ),
+    ],
+)
 def test_calls_a_function_cannot_take_are_usage_errors(call: Callable[[], object], words: str) -> None:
     with pytest.raises(deployer.UsageError) as e:
         call()

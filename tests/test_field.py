@@ -56,17 +56,29 @@ def _apply(url: str, recipe: str, tmp: Path, **opts: object) -> DeviceResult:
     import asyncio
 
     rec = load_recipe(recipe)
-    return asyncio.run(apply_device(rec, parse_url(url + "?timeout=0.5"), 1, options=ApplyOptions(
-        state_dir=str(tmp / ".deployer"), backoff=0.01, **opts)))  # type: ignore[arg-type]
+    return asyncio.run(
+        apply_device(
+            rec,
+            parse_url(url + "?timeout=0.5"),
+            1,
+            options=ApplyOptions(state_dir=str(tmp / ".deployer"), backoff=0.01, **opts),  # type: ignore[arg-type]
+        )
+    )
 
 
-def _apply_sim(sim: Simulator, recipe: str, tmp: Path, url_suffix: str = "?timeout=0.5",
-               **opts: object) -> DeviceResult:
+def _apply_sim(
+    sim: Simulator, recipe: str, tmp: Path, url_suffix: str = "?timeout=0.5", **opts: object
+) -> DeviceResult:
     rec = load_recipe(recipe)
 
     async def body(s: Simulator) -> DeviceResult:
-        return await apply_device(rec, parse_url(s.url + url_suffix), 1, options=ApplyOptions(
-            state_dir=str(tmp / ".deployer"), backoff=0.01, **opts))  # type: ignore[arg-type]
+        return await apply_device(
+            rec,
+            parse_url(s.url + url_suffix),
+            1,
+            options=ApplyOptions(state_dir=str(tmp / ".deployer"), backoff=0.01, **opts),  # type: ignore[arg-type]
+        )
+
     return run_with(sim, body)
 
 
@@ -91,9 +103,16 @@ def test_all_or_nothing_device_blames_only_the_refused_value(tmp_path: Path, dev
     assert [sim.read(f"p{i}")[0] for i in range(N)] == [10 + i if i != BAD else 0 for i in range(N)]
     # bisection at parameter boundaries: each refused request of several parameters is sent again in halves
     assert _writes(sim) == [
-        (16, 100, 14, "exception 03"), (16, 100, 7, "exception 03"), (16, 100, 3, "ok"),
-        (16, 103, 4, "exception 03"), (16, 103, 2, "ok"), (16, 105, 2, "exception 03"),
-        (16, 105, 1, "exception 03"), (16, 106, 1, "ok"), (16, 107, 7, "ok")]
+        (16, 100, 14, "exception 03"),
+        (16, 100, 7, "exception 03"),
+        (16, 100, 3, "ok"),
+        (16, 103, 4, "exception 03"),
+        (16, 103, 2, "ok"),
+        (16, 105, 2, "exception 03"),
+        (16, 105, 1, "exception 03"),
+        (16, 106, 1, "ok"),
+        (16, 107, 7, "ok"),
+    ]
     extra = len(_writes(sim)) - 1
     assert extra <= 2 * math.ceil(math.log2(N))  # O(log n): a write per half on the way down
     assert not res.learned and not any("limits." in n for n in res.notices)  # a bad value, not a length limit
@@ -106,12 +125,14 @@ def test_in_order_device_keeps_todays_handling(tmp_path: Path, device_profile: P
     assert _writes(sim) == [(16, 100, 14, "exception 03"), (16, 106, 8, "ok")]
 
 
-def test_on_error_stop_splits_to_find_the_value_and_sends_nothing_after_it(tmp_path: Path,
-                                                                          device_profile: Profile) -> None:
+def test_on_error_stop_splits_to_find_the_value_and_sends_nothing_after_it(
+    tmp_path: Path, device_profile: Profile
+) -> None:
     sim = Simulator(device_profile, quirks=Quirks(all_or_nothing=True))
     res = _apply_sim(sim, _recipe(tmp_path), tmp_path, on_error="stop")
-    assert _statuses(res) == ({f"p{i}": "ok" for i in range(BAD)} | {f"p{BAD}": "failed"}
-                              | {f"p{i}": "skipped" for i in range(BAD + 1, N)})
+    assert _statuses(res) == (
+        {f"p{i}": "ok" for i in range(BAD)} | {f"p{BAD}": "failed"} | {f"p{i}": "skipped" for i in range(BAD + 1, N)}
+    )
     assert [sim.read(f"p{i}")[0] for i in range(N)] == [10 + i if i < BAD else 0 for i in range(N)]
     assert _writes(sim)[-1] == (16, 105, 1, "exception 03")  # the culprit found, nothing sent after it
 
@@ -127,8 +148,9 @@ def test_well_behaved_device_sees_no_extra_request(tmp_path: Path, device_profil
 # ---- learned limits --------------------------------------------------------------------------------
 
 
-def test_write_limit_is_learned_said_remembered_and_used(tmp_path: Path, device_profile: Profile,
-                                                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_write_limit_is_learned_said_remembered_and_used(
+    tmp_path: Path, device_profile: Profile, capsys: pytest.CaptureFixture[str]
+) -> None:
     recipe = _recipe(tmp_path, bad=False)
     state = str(tmp_path / ".deployer")
     with SimulatorThread(device_profile, quirks=Quirks(max_write_registers=4)) as sim:
@@ -137,12 +159,20 @@ def test_write_limit_is_learned_said_remembered_and_used(tmp_path: Path, device_
         assert [sim.read(f"p{i}")[0] for i in range(N)] == [10 + i for i in range(N)]
         # once the 7-register refusal proved to be about length, the next piece tries the size between 4 and 7
         # (5: refused, split), and then the device's limit is known: the rest goes in pieces of 4
-        assert _writes(sim) == [(16, 100, 14, "exception 03"), (16, 100, 7, "exception 03"), (16, 100, 3, "ok"),
-                                (16, 103, 4, "ok"), (16, 107, 5, "exception 03"), (16, 107, 2, "ok"),
-                                (16, 109, 3, "ok"), (16, 112, 2, "ok")]
+        assert _writes(sim) == [
+            (16, 100, 14, "exception 03"),
+            (16, 100, 7, "exception 03"),
+            (16, 100, 3, "ok"),
+            (16, 103, 4, "ok"),
+            (16, 107, 5, "exception 03"),
+            (16, 107, 2, "ok"),
+            (16, 109, 3, "ok"),
+            (16, 112, 2, "ok"),
+        ]
         profile_path = str(tmp_path / "dev.yaml")
         assert res.notices == [
-            "the device took 4-register writes and refused 5; set limits.max_write_registers: 4 in profile dev"]
+            "the device took 4-register writes and refused 5; set limits.max_write_registers: 4 in profile dev"
+        ]
         assert res.learned == {"max_write_registers": 4}
         (entry,) = learned.load(state)
         assert (entry.profile, entry.limits) == (profile_path, {"max_write_registers": 4})
@@ -156,8 +186,7 @@ def test_write_limit_is_learned_said_remembered_and_used(tmp_path: Path, device_
         assert "limits.max_write_registers: 4" in out
         assert "4 write requests (14 registers" in out
         sim.log.clear()
-        code, out, err = cli(capsys, "apply", recipe2, "--device", sim.url, "--yes", "--json",
-                                 "--state-dir", state)
+        code, out, err = cli(capsys, "apply", recipe2, "--device", sim.url, "--yes", "--json", "--state-dir", state)
         assert code == 0, err
         dev = json.loads(out)["devices"][0]
         assert not any(r["result"] == "exception" for r in dev["requests"] if r["function"] != 43)
@@ -192,8 +221,10 @@ def test_api_check_mode_plans_with_what_the_device_taught(tmp_path: Path, device
 def test_what_a_device_taught_is_kept_under_its_address_however_spelled() -> None:
     from deployer.transport.urls import parse_url
 
-    keys = {learned.device_id(parse_url(f"tcp://{host}:1502"), 3)
-            for host in ("127.0.0.1", "localhost", "127.1", "2130706433")}
+    keys = {
+        learned.device_id(parse_url(f"tcp://{host}:1502"), 3)
+        for host in ("127.0.0.1", "localhost", "127.1", "2130706433")
+    }
     assert len(keys) == 1 and next(iter(keys)).endswith("#unit3")
     assert learned.device_id(parse_url("tcp://127.0.0.2:1502"), 3) not in keys
 
@@ -206,8 +237,10 @@ def test_fc16_refused_with_01_falls_back_to_fc06_and_says_so(tmp_path: Path, dev
     res = _apply_sim(sim, _recipe(tmp_path, bad=False), tmp_path)
     assert res.status == "ok" and set(_statuses(res).values()) == {"ok"}
     assert _writes(sim) == [(16, 100, 14, "exception 01")] + [(6, 100 + i, 1, "ok") for i in range(N)]
-    assert res.notices == ["the device refused Function 16 writes (exception 01) and took Function 06; "
-                           "set limits.write_function: 6 in profile dev"]
+    assert res.notices == [
+        "the device refused Function 16 writes (exception 01) and took Function 06; "
+        "set limits.write_function: 6 in profile dev"
+    ]
     assert res.learned == {"write_function": 6}
     assert [sim.read(f"p{i}")[0] for i in range(N)] == [10 + i for i in range(N)]
 
@@ -227,8 +260,17 @@ def test_umodbus_all_or_nothing_device(tmp_path: Path) -> None:
     assert _statuses(res) == {f"p{i}": "ok" for i in range(N)} | {f"p{BAD}": "failed"}
     assert res.parameters[BAD].error == "exception 03 (illegal data value)"
     assert [store[100 + i] for i in range(N)] == [10 + i if i != BAD else 0 for i in range(N)]
-    assert [(a, n) for fc, a, n in wire if fc == 16] == [(100, 14), (100, 7), (100, 3), (103, 4), (103, 2),
-                                                          (105, 2), (105, 1), (106, 1), (107, 7)]
+    assert [(a, n) for fc, a, n in wire if fc == 16] == [
+        (100, 14),
+        (100, 7),
+        (100, 3),
+        (103, 4),
+        (103, 2),
+        (105, 2),
+        (105, 1),
+        (106, 1),
+        (107, 7),
+    ]
     assert res.identity is None  # umodbus answers 01 to Function 43: skipped quietly
     assert [r.exception_code for r in res.requests if r.function == 43] == [1]
 
@@ -251,11 +293,18 @@ def test_umodbus_write_limit_is_learned(tmp_path: Path) -> None:
         assert [store[100 + i] for i in range(N)] == [10 + i for i in range(N)]
         # 14 and 7 refused, 3 and 4 taken; the next piece tries 5 (between 4 and 7): taken; the last two
         # registers need no longer piece, so 6 is never tried: the limit is known to lie in 5..6
-        assert [(a, n) for fc, a, n in wire if fc == 16] == [(100, 14), (100, 7), (100, 3), (103, 4), (107, 5),
-                                                              (112, 2)]
+        assert [(a, n) for fc, a, n in wire if fc == 16] == [
+            (100, 14),
+            (100, 7),
+            (100, 3),
+            (103, 4),
+            (107, 5),
+            (112, 2),
+        ]
         assert res.learned == {"max_write_registers": 5}
-        assert res.notices == ["the device took 5-register writes and refused 7; "
-                               "set limits.max_write_registers: 5 in profile dev"]
+        assert res.notices == [
+            "the device took 5-register writes and refused 7; set limits.max_write_registers: 5 in profile dev"
+        ]
         wire.clear()
         res = _apply(f"tcp://127.0.0.1:{port}", _recipe(tmp_path, bad=False, offset=30), tmp_path)
     assert res.status == "ok" and not res.learned
@@ -320,9 +369,14 @@ def test_plan_time_estimate_includes_the_pauses(tmp_path: Path, capsys: pytest.C
     # read-back)
     assert "(1750 ms of it waits and pauses the device needs)" in out
     # the device URL's options override the profile's (a recipe's device.url: still an offline plan)
-    text = Path(recipe).read_text().replace(
-        "parameters:", 'device: {url: "tcp://127.0.0.1:502?pause_after_connect=0&pause_between_requests=0.1"}\n'
-                       "parameters:")
+    text = (
+        Path(recipe)
+        .read_text()
+        .replace(
+            "parameters:",
+            'device: {url: "tcp://127.0.0.1:502?pause_after_connect=0&pause_between_requests=0.1"}\nparameters:',
+        )
+    )
     Path(recipe).write_text(text)
     code, out, err = cli(capsys, "plan", recipe)
     assert code == 0, err
@@ -330,8 +384,9 @@ def test_plan_time_estimate_includes_the_pauses(tmp_path: Path, capsys: pytest.C
 
 
 def test_bad_pause_is_an_error_at_its_position(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    (tmp_path / "dev.yaml").write_text(_profile_text(strict=False).replace(
-        "parameters:", "limits: {pause_between_requests: soon}\nparameters:"))
+    (tmp_path / "dev.yaml").write_text(
+        _profile_text(strict=False).replace("parameters:", "limits: {pause_between_requests: soon}\nparameters:")
+    )
     code, _, err = cli(capsys, "validate", str(tmp_path / "dev.yaml"))
     assert code == 1
     assert f"{tmp_path / 'dev.yaml'}:2:" in err and "pause_between_requests" in err
@@ -359,35 +414,47 @@ def test_simulator_answers_function_43_as_the_spec_frames_it(device_profile: Pro
     assert answer == bytes.fromhex("0001 0000") + (len(pdu) + 1).to_bytes(2, "big") + b"\x01" + pdu
 
 
-def test_identity_is_read_reported_snapshotted_and_journaled(tmp_path: Path, device_profile: Profile,
-                                                           capsys: pytest.CaptureFixture[str]) -> None:
+def test_identity_is_read_reported_snapshotted_and_journaled(
+    tmp_path: Path, device_profile: Profile, capsys: pytest.CaptureFixture[str]
+) -> None:
     recipe = _recipe(tmp_path, bad=False)
     state = tmp_path / ".deployer"
     with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
-        code, out, err = cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--json",
-                                 "--state-dir", str(state))
+        code, out, err = cli(capsys, "apply", recipe, "--device", sim.url, "--yes", "--json", "--state-dir", str(state))
     assert code == 0, err
     dev = json.loads(out)["devices"][0]
     assert dev["identity"] == {"vendor": "ACME", "product_code": "AC-7", "revision": "2.1"}
     assert "identity:" in Path(dev["snapshot"]).read_text()
     snap = load_recipe(dev["snapshot"])
     assert snap.snapshot is not None and snap.snapshot.identity == dev["identity"]
-    finished = [json.loads(line) for line in (state / "audit.jsonl").read_text().splitlines()
-                if '"device-finished"' in line]
+    finished = [
+        json.loads(line) for line in (state / "audit.jsonl").read_text().splitlines() if '"device-finished"' in line
+    ]
     assert finished[-1]["identity"] == dev["identity"]
 
 
-def test_a_replaced_device_is_noted(tmp_path: Path, device_profile: Profile,
-                                    capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_replaced_device_is_noted(
+    tmp_path: Path, device_profile: Profile, capsys: pytest.CaptureFixture[str]
+) -> None:
     state = str(tmp_path / ".deployer")
     with SimulatorThread(device_profile, quirks=Quirks(identity=ACME)) as sim:
-        code, out, err = cli(capsys, "apply", _recipe(tmp_path, bad=False), "--device", sim.url, "--yes",
-                                 "--state-dir", state)
+        code, out, err = cli(
+            capsys, "apply", _recipe(tmp_path, bad=False), "--device", sim.url, "--yes", "--state-dir", state
+        )
         assert code == 0, err
         assert "identity: vendor 'ACME', product_code 'AC-7', revision '2.1'" in out
         sim.set_identity({0: "ACME", 1: "AC-9", 2: "3.0"})  # swapped for another model
-        code, out, err = cli(capsys, "apply", _recipe(tmp_path, bad=False, offset=40), "--device", sim.url,
-                                 "--yes", "--json", "--state-dir", state)
+        code, out, err = cli(
+            capsys,
+            "apply",
+            _recipe(tmp_path, bad=False, offset=40),
+            "--device",
+            sim.url,
+            "--yes",
+            "--json",
+            "--state-dir",
+            state,
+        )
     assert code == 0, err
     (note,) = [n for n in json.loads(out)["devices"][0]["notices"] if "identity changed" in n]
     assert "product_code 'AC-7'" in note and "product_code 'AC-9'" in note and "replaced" in note
@@ -395,28 +462,58 @@ def test_a_replaced_device_is_noted(tmp_path: Path, device_profile: Profile,
 
 def test_identity_object_check(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     text = _profile_text(strict=False).replace(
-        "parameters:", "identity:\n  - {object: vendor, equals: ACME}\n  - {object: product_code, equals: AC-7}\n"
-                       "parameters:")
+        "parameters:",
+        "identity:\n  - {object: vendor, equals: ACME}\n  - {object: product_code, equals: AC-7}\nparameters:",
+    )
     (tmp_path / "dev.yaml").write_text(text)
     body = "".join(f"  p{i}: {10 + i}\n" for i in range(N))
     (tmp_path / "r.yaml").write_text(f"recipe: r\nprofile: dev.yaml\nparameters:\n{body}")
     prof = profile_from(tmp_path, text, "dev.yaml")
     with SimulatorThread(prof) as sim:  # serves the profile's identity objects
-        code, out, err = cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--json",
-                                 "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            str(tmp_path / "r.yaml"),
+            "--device",
+            sim.url,
+            "--yes",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0, err
     with SimulatorThread(prof, quirks=Quirks(identity={0: "ACME", 1: "AC-9"})) as sim:
-        code, out, err = cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", "--json",
-                                 "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            str(tmp_path / "r.yaml"),
+            "--device",
+            sim.url,
+            "--yes",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         dev = json.loads(out)["devices"][0]
         assert code == 4 and dev["status"] == "failed"
-        assert dev["error"] == ("identity check failed: product_code is 'AC-9', expected 'AC-7': another kind of "
-                                "device answers here; nothing was written")
+        assert dev["error"] == (
+            "identity check failed: product_code is 'AC-9', expected 'AC-7': another kind of "
+            "device answers here; nothing was written"
+        )
         assert not [e for e in sim.log if e.function in (6, 16)]
     store = _store()
     with umodbus_server(store) as port:  # no Function 43 at all
-        code, out, err = cli(capsys, "apply", str(tmp_path / "r.yaml"), "--device", f"tcp://127.0.0.1:{port}",
-                                 "--yes", "--json", "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            str(tmp_path / "r.yaml"),
+            "--device",
+            f"tcp://127.0.0.1:{port}",
+            "--yes",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
     dev = json.loads(out)["devices"][0]
     assert code == 4 and dev["error"].startswith("identity check failed: the device does not answer Function 43")
     assert set(store.values()) == {0}
@@ -427,21 +524,26 @@ def test_identity_object_check(tmp_path: Path, capsys: pytest.CaptureFixture[str
 
 @pytest.mark.parametrize("scheme", ["rtu+tcp", "tcp"])
 def test_scan_finds_the_units_that_answer_and_writes_an_inventory(
-        tmp_path: Path, device_profile: Profile, capsys: pytest.CaptureFixture[str], scheme: str) -> None:
+    tmp_path: Path, device_profile: Profile, capsys: pytest.CaptureFixture[str], scheme: str
+) -> None:
     out_file = tmp_path / "inventory.yaml"
-    with SimulatorThread(device_profile, listen=f"{scheme}://127.0.0.1:0", units=(1, 3, 7),
-                         quirks=Quirks(identity=ACME)) as sim:
-        code, out, err = cli(capsys, "scan", sim.url, "--unit", "1-5", "--unit", "7,8", "--timeout", "0.3",
-                                 "-o", str(out_file), "--json")
+    with SimulatorThread(
+        device_profile, listen=f"{scheme}://127.0.0.1:0", units=(1, 3, 7), quirks=Quirks(identity=ACME)
+    ) as sim:
+        code, out, err = cli(
+            capsys, "scan", sim.url, "--unit", "1-5", "--unit", "7,8", "--timeout", "0.3", "-o", str(out_file), "--json"
+        )
         log = list(sim.log)
     assert code == 0, err
     data = json.loads(out)
     assert data["asked"] == 7
     assert [(u["unit"], u["answer"], u["identity"]) for u in data["units"]] == [
-        (unit, "exception 02", {"vendor": "ACME", "product_code": "AC-7", "revision": "2.1"}) for unit in (1, 3, 7)]
+        (unit, "exception 02", {"vendor": "ACME", "product_code": "AC-7", "revision": "2.1"}) for unit in (1, 3, 7)
+    ]
     # bounded: one request per silent unit (no retry), an FC03 and an FC43 per unit that answers
     assert sorted((e.unit, e.function) for e in log) == sorted(
-        [(u, 3) for u in (1, 2, 3, 4, 5, 7, 8)] + [(u, 43) for u in (1, 3, 7)])
+        [(u, 3) for u in (1, 2, 3, 4, 5, 7, 8)] + [(u, 43) for u in (1, 3, 7)]
+    )
     if scheme == "rtu+tcp":  # a serial line: silent units cost their timeout
         assert [e.result for e in log if e.unit not in (1, 3, 7)] == ["no answer"] * 4
     else:  # a TCP gateway answers 0Bh for units it cannot reach: no wait at all
@@ -454,7 +556,8 @@ def test_scan_finds_the_units_that_answer_and_writes_an_inventory(
 
 
 def test_scan_of_a_silent_bus_exits_3_and_bad_units_are_usage_errors(
-        device_profile: Profile, capsys: pytest.CaptureFixture[str]) -> None:
+    device_profile: Profile, capsys: pytest.CaptureFixture[str]
+) -> None:
     with SimulatorThread(device_profile, listen="rtu+tcp://127.0.0.1:0", units=(9,)) as sim:
         code, out, _ = cli(capsys, "scan", sim.url, "--unit", "1-2", "--timeout", "0.1")
     assert code == 3 and "0 of 2 unit ids answered" in out
@@ -484,13 +587,26 @@ parameters:
 
 
 def test_probe_finds_word_order_scale_unreadable_register_and_identity(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     truth = profile_from(tmp_path, DRIVE_TRUTH, "truth.yaml")
     guess = tmp_path / "guess.yaml"
     guess.write_text(DRIVE_GUESS)
     with SimulatorThread(truth, quirks=Quirks(identity=ACME)) as sim:
-        code, out, err = cli(capsys, "probe", str(guess), "--device", sim.url, "--expect", "gain=2.5",
-                                 "--expect", "count=70000", "--expect", "speed=50 Hz", "--json")
+        code, out, err = cli(
+            capsys,
+            "probe",
+            str(guess),
+            "--device",
+            sim.url,
+            "--expect",
+            "gain=2.5",
+            "--expect",
+            "count=70000",
+            "--expect",
+            "speed=50 Hz",
+            "--json",
+        )
         writes = [e for e in sim.log if e.function in (5, 6, 15, 16)]
     assert code == 2, err
     data = json.loads(out)
@@ -502,15 +618,19 @@ def test_probe_finds_word_order_scale_unreadable_register_and_identity(
         "gain: byte_order: CDAB",
         "count: byte_order: CDAB",
         "speed: scale: 0.1",
-        "byte_order: CDAB for the whole profile (top level) instead of per parameter"]
+        "byte_order: CDAB for the whole profile (top level) instead of per parameter",
+    ]
     seen = {f["parameter"]: f["seen"] for f in data["findings"] if f["parameter"] == "gain"}
     assert seen["gain"].startswith("gain: 2.5 is held as CDAB (the profile reads ABCD")
     assert writes == []  # read-only
 
     # the fixed profile fits: exit 0
     fixed = tmp_path / "fixed.yaml"
-    fixed.write_text(DRIVE_TRUTH.replace("profile: drive", "profile: drive-fixed").replace(
-        "parameters:", "identity:\n  - {object: product_code, equals: AC-7}\nparameters:"))
+    fixed.write_text(
+        DRIVE_TRUTH.replace("profile: drive", "profile: drive-fixed").replace(
+            "parameters:", "identity:\n  - {object: product_code, equals: AC-7}\nparameters:"
+        )
+    )
     with SimulatorThread(truth, quirks=Quirks(identity=ACME)) as sim:
         code, out, err = cli(capsys, "probe", str(fixed), "--device", sim.url, "--expect", "gain=2.5")
     assert code == 0, out + err
@@ -522,16 +642,18 @@ def test_probe_against_umodbus_finds_the_word_order(tmp_path: Path, capsys: pyte
     guess.write_text("profile: meter\nparameters:\n  energy: {register: 100, type: uint32}\n")
     store = {100: 0x1170, 101: 0x0001}  # 70000 with the low word first
     with umodbus_server(store) as port:
-        code, out, err = cli(capsys, "probe", str(guess), "--device", f"tcp://127.0.0.1:{port}",
-                                 "--expect", "energy=70000")
+        code, out, err = cli(
+            capsys, "probe", str(guess), "--device", f"tcp://127.0.0.1:{port}", "--expect", "energy=70000"
+        )
     assert code == 2, err
     assert "energy: 70000 is held as CDAB (the profile reads ABCD: 292552705)" in out
     assert "  - energy: byte_order: CDAB" in out
     assert "identity none (no Function 43)" in out
 
 
-def test_fleet_run_notes_the_replaced_device(tmp_path: Path, device_profile: Profile,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_fleet_run_notes_the_replaced_device(
+    tmp_path: Path, device_profile: Profile, capsys: pytest.CaptureFixture[str]
+) -> None:
     from tests.helpers import Simulators
 
     state = str(tmp_path / ".deployer")
@@ -539,23 +661,35 @@ def test_fleet_run_notes_the_replaced_device(tmp_path: Path, device_profile: Pro
     sims = [Simulator(device_profile, quirks=Quirks(identity=dict(ACME))) for _ in range(3)]
     with Simulators(sims) as (a, b, c):
         inv = tmp_path / "inventory.yaml"
-        inv.write_text("devices:\n" + "".join(f"  {n}: {{url: '{s.url}'}}\n" for n, s in zip("abc", (a, b, c),
-                                                                                          strict=True)))
+        inv.write_text(
+            "devices:\n" + "".join(f"  {n}: {{url: '{s.url}'}}\n" for n, s in zip("abc", (a, b, c), strict=True))
+        )
         code, _, err = cli(capsys, "apply", recipe, "--inventory", str(inv), "--yes", "--state-dir", state)
         assert code == 0, err
         b.set_identity({0: "OTHER", 1: "X-1", 2: "9"})  # someone swapped device b
-        code, out, err = cli(capsys, "apply", _recipe(tmp_path, bad=False, offset=50), "--inventory", str(inv),
-                                 "--yes", "--json", "--state-dir", state)
+        code, out, err = cli(
+            capsys,
+            "apply",
+            _recipe(tmp_path, bad=False, offset=50),
+            "--inventory",
+            str(inv),
+            "--yes",
+            "--json",
+            "--state-dir",
+            state,
+        )
     assert code == 0, err
-    notes = {d["name"]: [n for n in d.get("notices", []) if "identity changed" in n]
-             for d in json.loads(out)["devices"]}
+    notes = {
+        d["name"]: [n for n in d.get("notices", []) if "identity changed" in n] for d in json.loads(out)["devices"]
+    }
     assert notes["a"] == [] and notes["c"] == []
     (note,) = notes["b"]
     assert "vendor 'ACME'" in note and "vendor 'OTHER'" in note and "it may have been replaced" in note
 
 
 def test_pauses_are_kept_per_bus_across_the_devices_of_a_gateway(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """Two units behind one RTU gateway that drops requests coming within 100 ms of its last answer: with
     the pause on both devices' URL, a fleet run of both loses no request (the bus keeps it between them)."""
     from tests.helpers import Simulators
@@ -565,10 +699,22 @@ def test_pauses_are_kept_per_bus_across_the_devices_of_a_gateway(
     with Simulators([gateway]) as (gw,):
         inv = tmp_path / "inventory.yaml"
         url = f"{gw.url}?pause_between_requests=150ms&timeout=2"
-        inv.write_text(f"defaults: {{retries: 0}}\ndevices:\n  a: {{url: '{url}', unit: 1}}\n"
-                       f"  b: {{url: '{url}', unit: 2}}\n")
-        code, out, err = cli(capsys, "apply", recipe, "--inventory", str(inv), "--yes", "--json",
-                                 "--state-dir", str(tmp_path / "s"), "--parallel", "2")
+        inv.write_text(
+            f"defaults: {{retries: 0}}\ndevices:\n  a: {{url: '{url}', unit: 1}}\n  b: {{url: '{url}', unit: 2}}\n"
+        )
+        code, out, err = cli(
+            capsys,
+            "apply",
+            recipe,
+            "--inventory",
+            str(inv),
+            "--yes",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+            "--parallel",
+            "2",
+        )
         log = list(gw.log)
     assert code == 0, err
     assert [d["status"] for d in json.loads(out)["devices"]] == ["ok", "ok"]
@@ -590,6 +736,7 @@ def test_scan_of_a_serial_line(socat_pair: tuple[str, str], device_profile: Prof
         async with sim:
             result = await scan(parse_url(f"rtu://{b}?baudrate=19200&timeout=0.2"), range(1, 7))
             return [u.unit for u in result.units], [bytes.fromhex(e.request_hex) for e in sim.log]
+
     found, requests = asyncio.run(main())
     assert found == [2, 5]
     # the simulator hears every request on the line; units 2 and 5 are also asked for their identity

@@ -70,8 +70,13 @@ def names(n: int) -> list[str]:
 
 
 def test_limit_takes_names_groups_globs_exclusions_and_reports(tmp_path: Path) -> None:
-    inv = Inventory("inv.yaml", tuple(FleetDevice(n, "tcp://h", groups=(g,)) for n, g in
-                                      [("press-1", "line3"), ("press-2", "line3"), ("saw-1", "line4")]))
+    inv = Inventory(
+        "inv.yaml",
+        tuple(
+            FleetDevice(n, "tcp://h", groups=(g,))
+            for n, g in [("press-1", "line3"), ("press-2", "line3"), ("saw-1", "line4")]
+        ),
+    )
     assert [d.name for d in select(inv, "line3")] == ["press-1", "press-2"]
     assert [d.name for d in select(inv, "saw-1, press-2")] == ["press-2", "saw-1"]  # inventory order
     assert [d.name for d in select(inv, "press-*")] == ["press-1", "press-2"]
@@ -82,11 +87,35 @@ def test_limit_takes_names_groups_globs_exclusions_and_reports(tmp_path: Path) -
     report = tmp_path / "report.json"
 
     def report_of(*devices: tuple[str, str]) -> str:  # a report of version 1, as small as one is valid
-        return json.dumps({"schema": "deployer.report/1", "recipe": None, "devices": [
-            {"name": n, "url": "tcp://h", "unit": 1, "profile": "p", "status": s, "snapshot": None, "requests": [],
-             "parameters": []} for n, s in devices], "summary": {
-            "devices": len(devices), "ok": 0, "partial": 0, "failed": 0, "unreachable": 0, "write_requests": 0,
-            "read_requests": 0, "seconds": 0}})
+        return json.dumps(
+            {
+                "schema": "deployer.report/1",
+                "recipe": None,
+                "devices": [
+                    {
+                        "name": n,
+                        "url": "tcp://h",
+                        "unit": 1,
+                        "profile": "p",
+                        "status": s,
+                        "snapshot": None,
+                        "requests": [],
+                        "parameters": [],
+                    }
+                    for n, s in devices
+                ],
+                "summary": {
+                    "devices": len(devices),
+                    "ok": 0,
+                    "partial": 0,
+                    "failed": 0,
+                    "unreachable": 0,
+                    "write_requests": 0,
+                    "read_requests": 0,
+                    "seconds": 0,
+                },
+            }
+        )
 
     report.write_text(report_of(("press-1", "ok"), ("press-2", "skipped"), ("saw-1", "partial")))
     assert not_ok(str(report)) == ["press-2", "saw-1"]
@@ -118,9 +147,21 @@ def test_fifty_devices_three_faulty(capsys: pytest.CaptureFixture[str], tmp_path
         urls = {n: s.url for n, s in zip(names(50), sims, strict=True)}
         urls["d07"] = f"tcp://127.0.0.1:{dead_port()}"
         report_file = tmp_path / "report.json"
-        code, out, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
-                             "--parallel", "16", "--json", "--report", str(report_file),
-                             "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--parallel",
+            "16",
+            "--json",
+            "--report",
+            str(report_file),
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 4
         report = json.loads(out)
         jsonschema.validate(report, schema.schema("report"))
@@ -139,18 +180,39 @@ def test_fifty_devices_three_faulty(capsys: pytest.CaptureFixture[str], tmp_path
         for n, sim in zip(names(50), sims, strict=True):
             if n in healthy:
                 assert holds_recipe(sim), n
-        assert report["summary"] == {**report["summary"], "devices": 50, "ok": 48, "partial": 1, "unreachable": 1,
-                                     "failed": 0, "skipped": 0}
+        assert report["summary"] == {
+            **report["summary"],
+            "devices": 50,
+            "ok": 48,
+            "partial": 1,
+            "unreachable": 1,
+            "failed": 0,
+            "skipped": 0,
+        }
         assert "d07: unreachable" in err and "d23: partial" in err  # a line per device without a terminal
         assert err.count("\n") >= 50
 
 
 def test_failing_canary_stops_the_rollout_before_any_other_device_hears_a_request(
-        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     with fleet(10, {0: Faults(fail_registers=frozenset({F08}))}) as sims:
         urls = {n: s.url for n, s in zip(names(10), sims, strict=True)}
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
-                           "--batch", "1,50%", "--parallel", "8", "--json", "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--batch",
+            "1,50%",
+            "--parallel",
+            "8",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 4
         report = json.loads(out)
         jsonschema.validate(report, schema.schema("report"))
@@ -166,8 +228,21 @@ def test_failing_canary_stops_the_rollout_before_any_other_device_hears_a_reques
 def test_batches_run_one_after_the_other(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with fleet(7) as sims:
         urls = {n: s.url for n, s in zip(names(7), sims, strict=True)}
-        code, _, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
-                         "--batch", "1,2", "--parallel", "8", "--json", "--state-dir", str(tmp_path / "s"))
+        code, _, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--batch",
+            "1,2",
+            "--parallel",
+            "8",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0
         spans = [(min(e.time for e in s.log), max(e.time for e in s.log)) for s in sims]
         batches = [[0], [1, 2], [3, 4], [5, 6]]
@@ -179,8 +254,21 @@ def test_max_failures_stops_starting_devices(capsys: pytest.CaptureFixture[str],
     bad = {1, 3, 4, 6, 8}
     with fleet(12, {i: Faults(fail_registers=frozenset({F08})) for i in bad}) as sims:
         urls = {n: s.url for n, s in zip(names(12), sims, strict=True)}
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
-                           "--max-failures", "2", "--parallel", "2", "--json", "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--max-failures",
+            "2",
+            "--parallel",
+            "2",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 4
         devices = json.loads(out)["devices"]
         failed = [d["name"] for d in devices if d["status"] in ("failed", "partial")]
@@ -196,15 +284,32 @@ def test_max_failures_stops_starting_devices(capsys: pytest.CaptureFixture[str],
 
 
 def test_an_unreachable_device_spends_the_failure_budget_and_batches_are_recorded(
-        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     # the issue's run: --batch 1,20%,100% --max-failures 1 over ten devices, one of them dead (d01, batch 2)
     with fleet(10) as sims:
         urls = {n: s.url for n, s in zip(names(10), sims, strict=True)}
         urls["d01"] = f"tcp://127.0.0.1:{dead_port()}"
         report_file, state = tmp_path / "run.json", tmp_path / "s"
-        code, out, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
-                             "--batch", "1,20%,100%", "--max-failures", "1", "--parallel", "1", "--json",
-                             "--report", str(report_file), "--state-dir", str(state))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--batch",
+            "1,20%,100%",
+            "--max-failures",
+            "1",
+            "--parallel",
+            "1",
+            "--json",
+            "--report",
+            str(report_file),
+            "--state-dir",
+            str(state),
+        )
         assert code == 4
         report = json.loads(out)
         jsonschema.validate(report, schema.schema("report"))
@@ -225,29 +330,66 @@ def test_an_unreachable_device_spends_the_failure_budget_and_batches_are_recorde
         assert [(x["name"], x["batch"]) for x in lines if x["event"] == "device-finished"] == [("d00", 1)]
         finished = next(x for x in lines if x["event"] == "run-finished")
         assert {d["name"]: (d["batch"], d["status"]) for d in finished["devices"]} == {
-            n: (by[n]["batch"], by[n]["status"]) for n in names(10)}
+            n: (by[n]["batch"], by[n]["status"]) for n in names(10)
+        }
         # a skipped device is not a failure: with a budget of 2, the dead one alone does not stop the rollout
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inventory(tmp_path, urls), "--yes",
-                           "--batch", "1,20%,100%", "--max-failures", "2", "--parallel", "1", "--json",
-                           "--state-dir", str(state))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--batch",
+            "1,20%,100%",
+            "--max-failures",
+            "2",
+            "--parallel",
+            "1",
+            "--json",
+            "--state-dir",
+            str(state),
+        )
         assert code == 4
         assert [d["status"] for d in json.loads(out)["devices"]].count("ok") == 9
 
 
-def test_retry_from_the_report_touches_exactly_the_devices_that_failed(capsys: pytest.CaptureFixture[str],
-                                                                       tmp_path: Path) -> None:
+def test_retry_from_the_report_touches_exactly_the_devices_that_failed(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     with fleet(6, {2: Faults(fail_registers=frozenset({F08})), 4: Faults(busy_first=100)}) as sims:
         urls = {n: s.url for n, s in zip(names(6), sims[:6], strict=True)}
         inv = inventory(tmp_path, urls)
         report_file = str(tmp_path / "run1.json")
-        code, _, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--report", report_file,
-                         "--state-dir", str(tmp_path / "s"))
+        code, _, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            inv,
+            "--yes",
+            "--report",
+            report_file,
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 4 and sorted(not_ok(report_file)) == ["d02", "d04"]
         for s in sims:  # the faults are fixed on site
             s.faults.fail_registers, s.faults.busy_first = frozenset(), 0
             s.log.clear()
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--json",
-                           "--limit", f"@{report_file}", "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            inv,
+            "--yes",
+            "--json",
+            "--limit",
+            f"@{report_file}",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0
         assert [d["name"] for d in json.loads(out)["devices"]] == ["d02", "d04"]
         assert [i for i, s in enumerate(sims) if s.log] == [2, 4]
@@ -256,19 +398,40 @@ def test_retry_from_the_report_touches_exactly_the_devices_that_failed(capsys: p
 
 def test_report_file_survives_kill_9(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """Killed mid-run: the report names the finished devices as they ended, the rest 'not finished'."""
-    with fleet(6, {i: Faults(latency_ms=60) for i in range(6)} | {1: Faults(fail_registers=frozenset({F08}))}) \
-            as sims:
+    with fleet(6, {i: Faults(latency_ms=60) for i in range(6)} | {1: Faults(fail_registers=frozenset({F08}))}) as sims:
         urls = {n: s.url for n, s in zip(names(6), sims[:6], strict=True)}
         inv = inventory(tmp_path, urls)
         report_file = tmp_path / "report.json"
-        proc = subprocess.Popen([sys.executable, "-m", "deployer", "apply", recipe(tmp_path), "--inventory", inv,
-                                 "--yes", "--parallel", "1", "--report", str(report_file), "--state-dir",
-                                 str(tmp_path / "s")], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "apply",
+                recipe(tmp_path),
+                "--inventory",
+                inv,
+                "--yes",
+                "--parallel",
+                "1",
+                "--report",
+                str(report_file),
+                "--state-dir",
+                str(tmp_path / "s"),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         try:
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline:  # until two devices have finished
-                if report_file.exists() and sum(d["status"] not in ("skipped", "interrupted") for d in
-                                                 read_report(str(report_file))["devices"]) >= 2:
+                if (
+                    report_file.exists()
+                    and sum(
+                        d["status"] not in ("skipped", "interrupted") for d in read_report(str(report_file))["devices"]
+                    )
+                    >= 2
+                ):
                     break
                 time.sleep(0.01)
             os.kill(proc.pid, signal.SIGKILL)
@@ -295,10 +458,24 @@ def test_devices_on_one_gateway_are_never_served_at_once(capsys: pytest.CaptureF
     gw = Simulator(PROFILE, listen="rtu+tcp://127.0.0.1:0", units=(1, 2, 3, 4), faults=Faults(latency_ms=5))
     with Simulators([gw, Simulator(PROFILE), Simulator(PROFILE)]) as (gateway, a, b):
         inv = tmp_path / "inventory.yaml"
-        inv.write_text("devices:\n" + "".join(f"  g{u}: {{url: '{gateway.url}', unit: {u}}}\n" for u in (1, 2, 3, 4))
-                       + f"  a: {{url: '{a.url}'}}\n  b: {{url: '{b.url}'}}\n")
-        code, _, _ = cli(capsys, "apply", recipe(tmp_path), "--inventory", str(inv), "--yes", "--json",
-                         "--parallel", "8", "--state-dir", str(tmp_path / "s"))
+        inv.write_text(
+            "devices:\n"
+            + "".join(f"  g{u}: {{url: '{gateway.url}', unit: {u}}}\n" for u in (1, 2, 3, 4))
+            + f"  a: {{url: '{a.url}'}}\n  b: {{url: '{b.url}'}}\n"
+        )
+        code, _, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            str(inv),
+            "--yes",
+            "--json",
+            "--parallel",
+            "8",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0
         assert all(holds_recipe(gateway, u) for u in (1, 2, 3, 4)) and holds_recipe(a) and holds_recipe(b)
         times = {u: [e.time for e in gateway.log if e.unit == u] for u in (1, 2, 3, 4)}
@@ -315,8 +492,10 @@ def test_fleet_diff_names_exactly_the_drifted_devices(capsys: pytest.CaptureFixt
     with fleet(8) as sims:
         urls = {n: s.url for n, s in zip(names(8), sims, strict=True)}
         inv = inventory(tmp_path, urls)
-        assert cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir",
-                   str(tmp_path / "s"))[0] == 0
+        assert (
+            cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir", str(tmp_path / "s"))[0]
+            == 0
+        )
         code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv)
         assert code == 0 and "drift on 0 of 8 devices" in out
         sims[2].write("F07", (0, 999))
@@ -326,9 +505,14 @@ def test_fleet_diff_names_exactly_the_drifted_devices(capsys: pytest.CaptureFixt
         code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv)
         assert code == 2
         assert "drift on 2 of 8 devices: d02, d05" in out
-        assert out.splitlines()[:6] == ["6 devices: as the recipe says", "  d00, d01, d03, d04, d06, d07",
-                                        "1 device: F07 9.99 s (recipe 10 s)", "  d02",
-                                        "1 device: stop_mode ramp (recipe coast)", "  d05"]
+        assert out.splitlines()[:6] == [
+            "6 devices: as the recipe says",
+            "  d00, d01, d03, d04, d06, d07",
+            "1 device: F07 9.99 s (recipe 10 s)",
+            "  d02",
+            "1 device: stop_mode ramp (recipe coast)",
+            "  d05",
+        ]
         code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv, "--per-device")
         rows = [line.split() for line in out.splitlines() if line.split()[:1] in (["d02"], ["d05"])]
         assert rows == [["d02", "F07", "10", "s", "9.99", "s", "drift"], ["d05", "stop_mode", "coast", "ramp", "drift"]]
@@ -351,11 +535,15 @@ def test_fleet_plan_and_diff_group_identical_changes(capsys: pytest.CaptureFixtu
         code, out, err = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "!d06")
         assert code == 3, err
         assert out.splitlines() == [
-            "4 devices: F07 5 s -> 10 s, F08 5 s -> 12 s, stop_mode ramp -> coast", "  d00..d03",
-            "1 device: F07 5 s -> 10 s, stop_mode ramp -> coast", "  d04",
-            "1 device: as desired", "  d05",
+            "4 devices: F07 5 s -> 10 s, F08 5 s -> 12 s, stop_mode ramp -> coast",
+            "  d00..d03",
+            "1 device: F07 5 s -> 10 s, stop_mode ramp -> coast",
+            "  d04",
+            "1 device: as desired",
+            "  d05",
             "2 unreachable: dead-1, dead-2",
-            "5 of 8 devices would change (5 write requests); --per-device shows each device's plan"]
+            "5 of 8 devices would change (5 write requests); --per-device shows each device's plan",
+        ]
         code, out, err = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "d0*", "--per-device")
         assert code == 0 and out.count("current -> desired") == 6 and "d05" not in out.splitlines()[0]
         assert "6 of 7 devices would change: d00, d01, d02, d03, d04, d06" in out
@@ -366,19 +554,39 @@ def test_fleet_plan_and_diff_group_identical_changes(capsys: pytest.CaptureFixtu
         assert code == 0, err
         assert out.splitlines()[0] == "2 devices: 5 changes" and out.splitlines()[-2] == "  d00, d01"
         # the drift matrix: the drifted devices as columns, '=' where a device holds its recipe's value
-        assert cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--limit", "d0*", "--yes",
-                   "--state-dir", str(tmp_path / "s"))[0] == 0
+        assert (
+            cli(
+                capsys,
+                "apply",
+                recipe(tmp_path),
+                "--inventory",
+                inv,
+                "--limit",
+                "d0*",
+                "--yes",
+                "--state-dir",
+                str(tmp_path / "s"),
+            )[0]
+            == 0
+        )
         sims[1].write("F07", (0, 999))
         sims[3].write("F07", (0, 999))
         sims[6].write("stop_mode", (0,))
         code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv, "--limit", "d0*", "--matrix")
         assert code == 2
         assert [" ".join(ln.split()) for ln in out.splitlines()] == [
-            "parameter recipe d01 d03 d06", "F07 10 s 9.99 s 9.99 s =", "stop_mode coast = = ramp",
-            "drift on 3 of 7 devices: d01, d03, d06"]
+            "parameter recipe d01 d03 d06",
+            "F07 10 s 9.99 s 9.99 s =",
+            "stop_mode coast = = ramp",
+            "drift on 3 of 7 devices: d01, d03, d06",
+        ]
         code, out, _ = cli(capsys, "diff", recipe(tmp_path), "--inventory", inv, "--limit", "d0*")
-        assert code == 2 and out.splitlines()[:4] == ["4 devices: as the recipe says", "  d00, d02, d04, d05",
-                                                     "2 devices: F07 9.99 s (recipe 10 s)", "  d01, d03"]
+        assert code == 2 and out.splitlines()[:4] == [
+            "4 devices: as the recipe says",
+            "  d00, d02, d04, d05",
+            "2 devices: F07 9.99 s (recipe 10 s)",
+            "  d01, d03",
+        ]
         code, _, err = cli(capsys, "plan", recipe(tmp_path), "--per-device")
         assert code == 1 and "--per-device needs --inventory" in err
 
@@ -391,21 +599,25 @@ def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path)
         sims[1].write("F07", (0, 1000))
         sims[1].write("F08", (0, 1200))
         sims[1].write("stop_mode", (1,))
-        code, out, _ = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "a,b",
-                           "--detailed-exitcode")
+        code, out, _ = cli(
+            capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "a,b", "--detailed-exitcode"
+        )
         assert code == 2 and "2 of 3 devices would change (2 write requests)" in out
         assert "2 devices: F07 5 s -> 10 s, F08 5 s -> 12 s, stop_mode ramp -> coast\n  d00, d02\n" in out
-        code, out, _ = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "d01",
-                           "--detailed-exitcode", "--json")
-        assert code == 0 and all(s["kind"] not in ("write", "unlock", "commit") for s in json.loads(out)["devices"][0][
-            "plan"]["steps"])
+        code, out, _ = cli(
+            capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "d01", "--detailed-exitcode", "--json"
+        )
+        assert code == 0 and all(
+            s["kind"] not in ("write", "unlock", "commit") for s in json.loads(out)["devices"][0]["plan"]["steps"]
+        )
         code, _, err = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--detailed-exitcode")
         assert code == 3 and "dead: unreachable" in err
         assert not any(e.function == 16 for s in sims for e in s.log)  # plan only reads
 
         folder = tmp_path / "pulled"
-        code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "--limit", "a,b",
-                           "-o", str(folder))
+        code, _, err = cli(
+            capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "--limit", "a,b", "-o", str(folder)
+        )
         assert code == 0 and "3 recipes written" in err
         assert sorted(os.listdir(folder)) == ["d00.yaml", "d01.yaml", "d02.yaml"]
         assert "F07: 10 s" in (folder / "d01.yaml").read_text() and "F07: 5 s" in (folder / "d00.yaml").read_text()
@@ -429,8 +641,13 @@ def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path
             if not seen:
                 seen.append({d["name"]: d.get("error") for d in read_report(str(report_file))["devices"]})
 
-        report = deployer.apply(rec, inventory=inventory(tmp_path, urls), report_path=report_file, on_start=started,
-                                state_dir=tmp_path / "s")
+        report = deployer.apply(
+            rec,
+            inventory=inventory(tmp_path, urls),
+            report_path=report_file,
+            on_start=started,
+            state_dir=tmp_path / "s",
+        )
         assert seen == [{n: "not finished (interrupted run)" for n in names(3)}]
         assert report.exit_code == 0 and json.loads(report_file.read_text())["summary"]["ok"] == 3
 
@@ -442,10 +659,27 @@ def test_open_file_limit_is_raised_or_the_run_refused_up_front(tmp_path: Path) -
     inv = inventory(tmp_path, urls)
 
     def run(soft: int, hard: int) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "deployer", "apply", recipe(tmp_path), "--inventory", inv,
-                               "--yes", "--parallel", "8", "--state-dir", str(tmp_path / "s")],
-                              capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
-                              preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard)))
+        return subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "apply",
+                recipe(tmp_path),
+                "--inventory",
+                inv,
+                "--yes",
+                "--parallel",
+                "8",
+                "--state-dir",
+                str(tmp_path / "s"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            stdin=subprocess.DEVNULL,
+            preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard)),
+        )
 
     low = run(40, 50)  # 3 sockets + headroom do not fit under a hard limit of 50
     assert low.returncode == 1 and "allows 50 (ulimit -Hn)" in low.stderr and "Traceback" not in low.stderr
@@ -457,9 +691,24 @@ def test_open_file_limit_is_raised_or_the_run_refused_up_front(tmp_path: Path) -
 def test_without_a_terminal_one_plain_unwrapped_line_per_device(tmp_path: Path) -> None:
     long = [f"line3-press-{i}-in-the-north-hall-next-to-the-big-door" for i in range(3)]
     urls = {n: f"tcp://127.0.0.1:{dead_port()}?timeout=0.2&retries=0" for n in long}
-    done = subprocess.run([sys.executable, "-m", "deployer", "apply", recipe(tmp_path), "--inventory",
-                           inventory(tmp_path, urls), "--yes", "--state-dir", str(tmp_path / "s")],
-                          capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "deployer",
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        stdin=subprocess.DEVNULL,
+    )
     assert done.returncode == 3, done.stderr
     lines = [x for x in done.stderr.splitlines() if x.startswith("line3-")]
     assert sorted(x.split(":")[0] for x in lines) == long  # one line each, for logs and CI
@@ -470,8 +719,12 @@ def test_without_a_terminal_one_plain_unwrapped_line_per_device(tmp_path: Path) 
 def test_python_api_one_device_and_a_cheap_import(tmp_path: Path) -> None:
     import deployer
 
-    proc = subprocess.run([sys.executable, "-c", "import sys, deployer; print('deployer.api' in sys.modules, "
-                           "'pymodbus' in sys.modules)"], capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-c", "import sys, deployer; print('deployer.api' in sys.modules, 'pymodbus' in sys.modules)"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.stdout.split() == ["False", "False"]  # the API (and pymodbus) load on first use
     with fleet(1) as (sim,):
         rec = deployer.load_recipe(recipe(tmp_path))
@@ -489,18 +742,22 @@ def test_python_api_one_device_and_a_cheap_import(tmp_path: Path) -> None:
             deployer.recipe_from("example-inverter", {"F7": "20 s"})
 
 
-def test_bad_fleet_options_are_refused_before_anything_is_sent(capsys: pytest.CaptureFixture[str],
-                                                               tmp_path: Path) -> None:
+def test_bad_fleet_options_are_refused_before_anything_is_sent(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     with fleet(2) as sims:
         inv = inventory(tmp_path, {n: s.url for n, s in zip(names(2), sims, strict=True)})
         state = tmp_path / "s"
-        for args, message in [(["--batch", "0"], "--batch: '0' is not a positive count"),
-                              (["--max-failures", "x%"], "--max-failures: 'x%'"),
-                              (["--limit", "d9*"], "'d9*' matches no device name or group"),
-                              (["--limit", f"@{tmp_path / 'none.json'}"], "cannot read the report"),
-                              (["--report", "/proc/deployer-report.json"], "cannot write the report")]:
-            code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir",
-                               str(state), *args)
+        for args, message in [
+            (["--batch", "0"], "--batch: '0' is not a positive count"),
+            (["--max-failures", "x%"], "--max-failures: 'x%'"),
+            (["--limit", "d9*"], "'d9*' matches no device name or group"),
+            (["--limit", f"@{tmp_path / 'none.json'}"], "cannot read the report"),
+            (["--report", "/proc/deployer-report.json"], "cannot write the report"),
+        ]:
+            code, _, err = cli(
+                capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir", str(state), *args
+            )
             assert code == 1 and message in err, err
         code, _, err = cli(capsys, "apply", recipe(tmp_path), "--device", sims[0].url, "--yes", "--batch", "1")
         assert code == 1 and "need --inventory" in err
@@ -512,12 +769,35 @@ def test_rollback_of_a_fleet_run_takes_a_limit(capsys: pytest.CaptureFixture[str
     with fleet(3) as sims:
         inv = inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)})
         run = str(tmp_path / "run.json")
-        assert cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--report", run,
-                   "--state-dir", str(tmp_path / "s"))[0] == 0
+        assert (
+            cli(
+                capsys,
+                "apply",
+                recipe(tmp_path),
+                "--inventory",
+                inv,
+                "--yes",
+                "--report",
+                run,
+                "--state-dir",
+                str(tmp_path / "s"),
+            )[0]
+            == 0
+        )
         for s in sims:
             s.log.clear()
-        code, out, err = cli(capsys, "rollback", "--report", run, "--limit", "d0[12]", "--yes", "--json",
-                             "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "rollback",
+            "--report",
+            run,
+            "--limit",
+            "d0[12]",
+            "--yes",
+            "--json",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0, out + err
         assert [d["name"] for d in json.loads(out)["devices"]] == ["d01", "d02"]
         assert not sims[0].log and holds_recipe(sims[0])
@@ -533,8 +813,9 @@ def test_declining_one_device_of_a_fleet_skips_only_that_one(tmp_path: Path) -> 
 
     with fleet(3) as sims:
         rec = deployer.load_recipe(recipe(tmp_path))
-        jobs = deployer.api.commands.fleet_jobs(rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims,
-                                                                                                   strict=True)}))
+        jobs = deployer.api.commands.fleet_jobs(
+            rec, inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)})
+        )
 
         async def confirm(plan: object, res: deployer.DeviceResult) -> bool:
             return res.name != "d01"
@@ -548,16 +829,31 @@ def test_declining_one_device_of_a_fleet_skips_only_that_one(tmp_path: Path) -> 
 def test_live_progress_on_a_terminal_and_the_summary(tmp_path: Path) -> None:
     from tests.test_cli import _run_on_a_terminal
 
-    with fleet(6, {i: Faults(latency_ms=40) for i in range(6)} | {2: Faults(fail_registers=frozenset({F08}))}) \
-            as sims:
+    with fleet(6, {i: Faults(latency_ms=40) for i in range(6)} | {2: Faults(fail_registers=frozenset({F08}))}) as sims:
         inv = inventory(tmp_path, {n: s.url for n, s in zip(names(6), sims, strict=True)})
-        code, out = _run_on_a_terminal(["apply", recipe(tmp_path), "--inventory", inv, "--yes", "--parallel", "2",
-                                        "--state-dir", str(tmp_path / "s")], b"", prompt=b"never asked")
+        code, out = _run_on_a_terminal(
+            [
+                "apply",
+                recipe(tmp_path),
+                "--inventory",
+                inv,
+                "--yes",
+                "--parallel",
+                "2",
+                "--state-dir",
+                str(tmp_path / "s"),
+            ],
+            b"",
+            prompt=b"never asked",
+        )
         assert code == 4, out
         assert "in flight" in out and "ETA" in out and "writing: d0" in out  # the live display
         out = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", out)  # colours and cursor movements
-        rows = {line.split()[0]: line.split()[1:] for line in out.splitlines()
-                if line.strip().startswith("d0") and len(line.split()) >= 6}
+        rows = {
+            line.split()[0]: line.split()[1:]
+            for line in out.splitlines()
+            if line.strip().startswith("d0") and len(line.split()) >= 6
+        }
         assert rows["d02"][:3] == ["partial", "2", "1"]  # status, changed, failed
         assert rows["d00"][:3] == ["ok", "3", "0"]
         assert "6 devices: 5 ok, 1 partial" in out
@@ -575,11 +871,14 @@ def test_each_distinct_recipe_is_checked_once(tmp_path: Path, monkeypatch: pytes
         def counting(*a: object, _real: object = real, _name: str = name, **k: object) -> object:
             calls[_name] += 1
             return _real(*a, **k)  # type: ignore[operator]
+
         monkeypatch.setattr(fleet_module, name, counting)
     other = tmp_path / "other.yaml"  # another device type: the same parameters, other registers
-    other.write_text("profile: other\nparameters:\n  F07: {register: 10, type: uint32, unit: s, scale: 0.01}\n"
-                     "  F08: {register: 12, type: uint32, unit: s, scale: 0.01}\n"
-                     "  stop_mode: {register: 14, type: uint16, values: {ramp: 0, coast: 1}}\n")
+    other.write_text(
+        "profile: other\nparameters:\n  F07: {register: 10, type: uint32, unit: s, scale: 0.01}\n"
+        "  F08: {register: 12, type: uint32, unit: s, scale: 0.01}\n"
+        "  stop_mode: {register: 14, type: uint16, values: {ramp: 0, coast: 1}}\n"
+    )
     lines = ["devices:"]
     for i in range(60):
         extra = ""
@@ -607,9 +906,11 @@ def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Pat
     from deployer.report import read_report
 
     inv = tmp_path / "inventory.yaml"
-    inv.write_text("devices:\n" + "".join(f"  {n}: {{url: 'tcp://127.0.0.1:{1000 + i}'}}\n"
-                                          for i, n in enumerate(names(3)))
-                   + f"  {names(4)[3]}: {{url: 'tcp://127.0.0.1:1003', parameters: {{F07: 12 s}}}}\n")  # own values
+    inv.write_text(
+        "devices:\n"
+        + "".join(f"  {n}: {{url: 'tcp://127.0.0.1:{1000 + i}'}}\n" for i, n in enumerate(names(3)))
+        + f"  {names(4)[3]}: {{url: 'tcp://127.0.0.1:1003', parameters: {{F07: 12 s}}}}\n"
+    )  # own values
     jobs = fleet_jobs(load_inventory(str(inv)), load_recipe(recipe(tmp_path)), None)
     assert jobs[3].recipe is not jobs[0].recipe
     live = LiveReport(str(tmp_path / "r.json"), "r.yaml", jobs, [2, 2], run={"id": "run-1"})
@@ -619,16 +920,28 @@ def test_the_report_files_first_state_is_every_device_not_finished(tmp_path: Pat
     assert set(head.pop("profiles")) == {"example-inverter"}  # what the report says of its profile, once
     assert head == {"schema": "deployer.report-stream/3", "recipe": "r.yaml", "run": {"id": "run-1"}}
     # one small line per device: the skipped device without its parameters (the journal has what recovery needs)
-    small = [skipped_result(j, NOT_FINISHED, b, parameters=False).to_json() for j, b in zip(jobs, (1, 1, 2, 2),
-                                                                                          strict=True)]
+    small = [
+        skipped_result(j, NOT_FINISHED, b, parameters=False).to_json() for j, b in zip(jobs, (1, 1, 2, 2), strict=True)
+    ]
     assert [json.loads(x) for x in lines[1:]] == small
     assert all(len(x) < 300 + len(str(tmp_path)) * 2 for x in lines[1:])  # name, url, paths: no parameters
     doc = read_report(str(tmp_path / "r.json"))  # read as the document it stands for
     jsonschema.validate(doc, schema.schema("report"))
     assert doc["devices"] == small and doc["run"] == {"id": "run-1"}
-    assert doc["summary"] | {"seconds": 0} == {"devices": 4, "ok": 0, "sent": 0, "partial": 0, "failed": 0,
-                                                "unreachable": 0, "skipped": 4, "rolled-back": 0, "interrupted": 0,
-                                                "write_requests": 0, "read_requests": 0, "seconds": 0}
+    assert doc["summary"] | {"seconds": 0} == {
+        "devices": 4,
+        "ok": 0,
+        "sent": 0,
+        "partial": 0,
+        "failed": 0,
+        "unreachable": 0,
+        "skipped": 4,
+        "rolled-back": 0,
+        "interrupted": 0,
+        "write_requests": 0,
+        "read_requests": 0,
+        "seconds": 0,
+    }
 
 
 def test_a_device_is_reported_done_once_its_journal_line_is_on_disk(tmp_path: Path) -> None:
@@ -648,21 +961,24 @@ def test_a_device_is_reported_done_once_its_journal_line_is_on_disk(tmp_path: Pa
     with fleet(6) as sims:
         inv = inventory(tmp_path, {n: s.url for n, s in zip(names(6), sims, strict=True)})
         jobs = fleet_jobs(load_inventory(inv), load_recipe(recipe(tmp_path)), None)
-        report = asyncio.run(apply_many(jobs, parallel=2, on_done=on_done,
-                                        options=ApplyOptions(state_dir=str(state), run_id="run-1")))
+        report = asyncio.run(
+            apply_many(jobs, parallel=2, on_done=on_done, options=ApplyOptions(state_dir=str(state), run_id="run-1"))
+        )
         assert report.exit_code == 0 and all(holds_recipe(s) for s in sims)
     assert seen == {n: ["device-started", "device-finished"] for n in names(6)}
 
 
-def test_a_caller_running_the_cli_in_process_keeps_its_garbage_collector(capsys: pytest.CaptureFixture[str],
-                                                                         tmp_path: Path) -> None:
+def test_a_caller_running_the_cli_in_process_keeps_its_garbage_collector(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     import gc
 
     threshold, frozen = gc.get_threshold(), gc.get_freeze_count()
     with fleet(2) as sims:
         inv = inventory(tmp_path, {n: s.url for n, s in zip(names(2), sims, strict=True)})
-        code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes",
-                           "--state-dir", str(tmp_path / "s"))
+        code, _, err = cli(
+            capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir", str(tmp_path / "s")
+        )
     assert code == 0, err
     assert (gc.get_threshold(), gc.get_freeze_count()) == (threshold, frozen)  # tuned only in the command's process
 
@@ -671,8 +987,16 @@ def test_one_report_document_in_both_forms() -> None:
     """report_text (files, --json of fleets) and Report.to_json (the API) are one document."""
     from deployer.report import DeviceResult, ParameterResult, Report, RequestRecord, report_text
 
-    a = DeviceResult("a", "tcp://127.0.0.1:1", 1, "example-inverter", status="ok", seconds=0.5,
-                     error='quote " and "devices": [] inside', notices=["n"])
+    a = DeviceResult(
+        "a",
+        "tcp://127.0.0.1:1",
+        1,
+        "example-inverter",
+        status="ok",
+        seconds=0.5,
+        error='quote " and "devices": [] inside',
+        notices=["n"],
+    )
     a.parameters = [ParameterResult("F07", 0x100, 1, "10 s", (100,), (50,), (100,), "ok")]
     a.requests = [RequestRecord(16, 0x100, 1)]
     b = DeviceResult("b", "rtu:///dev/x", 0, "example-inverter", status="unreachable", error="gone")
@@ -688,7 +1012,11 @@ def test_runs_of_numbered_names_are_shown_as_ranges() -> None:
     assert compact(["d00", "d01", "d02", "d03"]) == ["d00..d03"]
     assert compact(["d00", "d01", "d03"]) == ["d00", "d01", "d03"]  # two in a row stay names
     assert compact(["a", "press-1", "press-2", "press-3", "press-5", "x9", "x10", "x11"]) == [
-        "a", "press-1..press-3", "press-5", "x9..x11"]
+        "a",
+        "press-1..press-3",
+        "press-5",
+        "x9..x11",
+    ]
     assert compact(["p08", "p09", "p10", "q1", "q2", "r3"]) == ["p08..p10", "q1", "q2", "r3"]
     assert compact(["p8", "p09", "p10"]) == ["p8", "p09", "p10"]  # zero-padded and not: not one run
     assert compact(["line3-a", "line4-a", "line5-a"]) == ["line3-a", "line4-a", "line5-a"]  # the number must end it
@@ -706,8 +1034,14 @@ def test_the_streamed_report_is_the_document_the_report_writer_makes(tmp_path: P
         urls["d02"] = f"tcp://127.0.0.1:{dead_port()}"  # nobody listens: unreachable
         inv = inventory(tmp_path, urls)
         report_file = tmp_path / "r.json"
-        report = deployer.apply(deployer.load_recipe(recipe(tmp_path)), inventory=inv, report_path=report_file,
-                                parallel=1, max_failures="3", state_dir=tmp_path / "s")
+        report = deployer.apply(
+            deployer.load_recipe(recipe(tmp_path)),
+            inventory=inv,
+            report_path=report_file,
+            parallel=1,
+            max_failures="3",
+            state_dir=tmp_path / "s",
+        )
         written = json.loads(report_file.read_text())
         assert written == json.loads(report_text(report))
         jsonschema.validate(written, schema.schema("report"))

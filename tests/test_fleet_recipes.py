@@ -61,7 +61,8 @@ def line(tmp: Path, urls: dict[str, str], extra_devices: str = "") -> str:
         f"  zone-2: {{url: '{urls['zone-2']}', groups: [zones], parameters: {{setpoint: 200 degC}}}}\n"
         f"  drive-1: {{url: '{urls['drive-1']}', groups: [drives]}}\n"
         f"  drive-2: {{url: '{urls['drive-2']}', groups: [drives], parameters: {{F08: 9 s}}}}\n"
-        f"  drive-3: {{url: '{urls['drive-3']}', groups: [drives, slow]}}\n" + extra_devices)
+        f"  drive-3: {{url: '{urls['drive-3']}', groups: [drives, slow]}}\n" + extra_devices
+    )
     return str(inv)
 
 
@@ -100,8 +101,13 @@ def _pid_file(tmp: Path) -> Path:
 
 def test_settings_come_from_device_then_groups_in_order_then_defaults(tmp_path: Path) -> None:
     urls = {n: f"tcp://127.0.0.1:{5000 + i}" for i, n in enumerate(NAMES)}
-    inv = load_inventory(line(tmp_path, urls, "  odd-1: {url: 'tcp://h', unit: 9, groups: [slow, drives], "
-                                              "recipe: recipes/drive.yaml, timeout: 3}\n"))
+    inv = load_inventory(
+        line(
+            tmp_path,
+            urls,
+            "  odd-1: {url: 'tcp://h', unit: 9, groups: [slow, drives], recipe: recipes/drive.yaml, timeout: 3}\n",
+        )
+    )
     by = {d.name: d for d in inv.devices}
     assert by["zone-1"].recipe == str(tmp_path / "recipes" / "zone.yaml")
     assert by["zone-1"].profile == str(tmp_path / "profiles" / "pid.yaml")  # relative to the inventory
@@ -113,18 +119,23 @@ def test_settings_come_from_device_then_groups_in_order_then_defaults(tmp_path: 
     assert by["odd-1"].unit == 9 and by["odd-1"].timeout == 3.0
     # parameters merge per name: defaults < groups (in the device's order) < the device
     small = tmp_path / "small.yaml"
-    small.write_text("defaults: {parameters: {F07: 1 s, F08: 1 s, stop_mode: ramp}, unit: 2}\n"
-                     "groups: {a: {parameters: {F08: 2 s}, unit: 3}, b: {parameters: {F08: 3 s, stop_mode: coast}}}\n"
-                     "devices:\n  x: {url: 'tcp://h', groups: [b, a], parameters: {F07: 4 s}}\n"
-                     "  y: {url: 'tcp://h', groups: [a, b, line9]}\n  z: {url: 'tcp://h'}\n")
+    small.write_text(
+        "defaults: {parameters: {F07: 1 s, F08: 1 s, stop_mode: ramp}, unit: 2}\n"
+        "groups: {a: {parameters: {F08: 2 s}, unit: 3}, b: {parameters: {F08: 3 s, stop_mode: coast}}}\n"
+        "devices:\n  x: {url: 'tcp://h', groups: [b, a], parameters: {F07: 4 s}}\n"
+        "  y: {url: 'tcp://h', groups: [a, b, line9]}\n  z: {url: 'tcp://h'}\n"
+    )
     got = {d.name: ({e.name: e.value for e in d.overrides}, d.unit) for d in load_inventory(small).devices}
-    assert got == {"x": ({"F07": "4 s", "F08": "2 s", "stop_mode": "coast"}, 3),
-                   "y": ({"F07": "1 s", "F08": "3 s", "stop_mode": "coast"}, 3),
-                   "z": ({"F07": "1 s", "F08": "1 s", "stop_mode": "ramp"}, 2)}
+    assert got == {
+        "x": ({"F07": "4 s", "F08": "2 s", "stop_mode": "coast"}, 3),
+        "y": ({"F07": "1 s", "F08": "3 s", "stop_mode": "coast"}, 3),
+        "z": ({"F07": "1 s", "F08": "1 s", "stop_mode": "ramp"}, 2),
+    }
 
 
-def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str], tmp_path: Path,
-                                             sims: list[Simulator]) -> None:
+def test_mixed_line_plan_apply_diff_rollback(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, sims: list[Simulator]
+) -> None:
     state = str(tmp_path / "state")
     with Simulators(sims):
         inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)})
@@ -137,12 +148,14 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         code, out, err = cli(capsys, "plan", "--inventory", inv)  # the summary: one line per distinct change
         assert code == 0 and out.splitlines()[:2] == [
             "1 device: P 0 % -> 12 %, I 0 s -> 120 s, D 0 s -> 30 s, setpoint 0 degC -> 180 degC",
-            "  zone-1"]
+            "  zone-1",
+        ]
         assert writes(sims) == 0
 
         report = tmp_path / "run.json"
-        code, out, err = cli(capsys, "apply", "--inventory", inv, "--yes", "--json", "--report", str(report),
-                             "--state-dir", state)
+        code, out, err = cli(
+            capsys, "apply", "--inventory", inv, "--yes", "--json", "--report", str(report), "--state-dir", state
+        )
         assert code == 0, err
         data = json.loads(out)
         jsonschema.validate(data, schema.schema("report"))
@@ -171,8 +184,9 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         assert code == 2 and "drift on 1 of 5 devices: drive-2" in out and "10 s" in out
 
         # drive-2 no longer holds what the run wrote: --all-or-nothing refuses them all, nothing sent
-        code, out, err = cli(capsys, "rollback", "--from-report", str(report), "--yes", "--state-dir", state,
-                             "--all-or-nothing")
+        code, out, err = cli(
+            capsys, "rollback", "--from-report", str(report), "--yes", "--state-dir", state, "--all-or-nothing"
+        )
         assert code == 1 and "drive-2 no longer holds what the run wrote (F08)" in err, out + err
         assert all({p: s.read(p) for p in WANT[n]} != before[n] for n, s in zip(NAMES, sims, strict=True))
         # by default the other four are restored and drive-2 is refused by name (exit 4)
@@ -181,8 +195,18 @@ def test_mixed_line_plan_apply_diff_rollback(capsys: pytest.CaptureFixture[str],
         assert "refused 1 changed device: drive-2" in err
         for n, s in zip(NAMES, sims, strict=True):
             assert ({p: s.read(p) for p in WANT[n]} == before[n]) == (n != "drive-2"), n
-        code, out, err = cli(capsys, "rollback", "--from-report", str(report), "--yes", "--state-dir", state,
-                             "--limit", "drive-2", "--even-if-changed")
+        code, out, err = cli(
+            capsys,
+            "rollback",
+            "--from-report",
+            str(report),
+            "--yes",
+            "--state-dir",
+            state,
+            "--limit",
+            "drive-2",
+            "--even-if-changed",
+        )
         assert code == 0, out + err
         for n, s in zip(NAMES, sims, strict=True):
             assert {p: s.read(p) for p in WANT[n]} == before[n], n
@@ -192,15 +216,36 @@ def mbpoll(sim: Simulator, register: int, count: int = 1, write: tuple[int, ...]
     """mbpoll on a simulator's holding registers (protocol addresses): read ``count`` of them, or write ``write``."""
     assert MBPOLL is not None
     port = sim.url.rsplit(":", 1)[1]
-    done = subprocess.run([MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-t", "4", "-0", "-1", "-r", str(register),
-                           *([] if write else ["-c", str(count)]), "127.0.0.1", *map(str, write)],
-                          capture_output=True, text=True, timeout=20)
+    done = subprocess.run(
+        [
+            MBPOLL,
+            "-m",
+            "tcp",
+            "-p",
+            port,
+            "-a",
+            "1",
+            "-t",
+            "4",
+            "-0",
+            "-1",
+            "-r",
+            str(register),
+            *([] if write else ["-c", str(count)]),
+            "127.0.0.1",
+            *map(str, write),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=20,
+    )
     assert done.returncode == 0, done.stderr
     return done.stdout
 
 
-def test_a_recipe_for_one_type_over_a_mixed_line_names_the_devices_once(capsys: pytest.CaptureFixture[str],
-                                                                          tmp_path: Path) -> None:
+def test_a_recipe_for_one_type_over_a_mixed_line_names_the_devices_once(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     urls = {n: f"tcp://127.0.0.1:{dead_port()}" for n in NAMES}
     inv = line(tmp_path, urls)
     zone = str(tmp_path / "recipes" / "zone.yaml")
@@ -208,18 +253,23 @@ def test_a_recipe_for_one_type_over_a_mixed_line_names_the_devices_once(capsys: 
     assert code == 1
     # the RECIPE goes to every device, with each device's profile: the drives do not know P
     problem = [ln for ln in err.splitlines() if "unknown parameter 'P'" in ln]
-    assert problem == [f"{zone}:4:3: error: unknown parameter 'P' in profile example-inverter "
-                       "(devices drive-1, drive-2, drive-3; the inventory gives them recipes of their own: "
-                       "leave out RECIPE to use those)"]
+    assert problem == [
+        f"{zone}:4:3: error: unknown parameter 'P' in profile example-inverter "
+        "(devices drive-1, drive-2, drive-3; the inventory gives them recipes of their own: "
+        "leave out RECIPE to use those)"
+    ]
     assert "nothing was sent to any device" in err
 
 
-def test_a_device_without_a_recipe_stops_the_run_before_anything_is_sent(capsys: pytest.CaptureFixture[str],
-                                                                         tmp_path: Path,
-                                                                         sims: list[Simulator]) -> None:
+def test_a_device_without_a_recipe_stops_the_run_before_anything_is_sent(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, sims: list[Simulator]
+) -> None:
     with Simulators(sims):
-        inv = line(tmp_path, {n: s.url for n, s in zip(NAMES, sims, strict=True)},
-                   "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:2', groups: [zone]}\n")
+        inv = line(
+            tmp_path,
+            {n: s.url for n, s in zip(NAMES, sims, strict=True)},
+            "  spare-1: {url: 'tcp://127.0.0.1:1'}\n  spare-2: {url: 'tcp://127.0.0.1:2', groups: [zone]}\n",
+        )
         for command in ("plan", "diff", "apply"):
             more = ["--yes", "--state-dir", str(tmp_path / "s")] if command == "apply" else []
             code, _, err = cli(capsys, command, "--inventory", inv, *more)
@@ -241,22 +291,26 @@ def test_inventory_errors_name_their_devices_and_validate_checks_the_recipes(tmp
     assert validate_file(inv) == "inventory: 5 devices, 2 recipes"
     text = Path(inv).read_text()
     # a group's bad value concerns every device of the group; a missing recipe file is said where it is named
-    Path(inv).write_text(text.replace("parameters: {D: 30 s}", "parameters: {D: 9000 s}")
-                         .replace("recipes/drive.yaml", "recipes/drives.yaml"))
+    Path(inv).write_text(
+        text.replace("parameters: {D: 30 s}", "parameters: {D: 9000 s}").replace(
+            "recipes/drive.yaml", "recipes/drives.yaml"
+        )
+    )
     with pytest.raises(InputError) as e:
         validate_file(inv)
     msgs = [str(d) for d in e.value.diagnostics]
-    assert msgs == [f"{inv}:3:82: error: D: 9000 s is out of range 0..600 s (devices zone-1, zone-2)",
-                    f"{inv}:4:20: error: recipe {tmp_path / 'recipes' / 'drives.yaml'}: no such file "
-                    "(devices drive-1, drive-2, drive-3)"]
+    assert msgs == [
+        f"{inv}:3:82: error: D: 9000 s is out of range 0..600 s (devices zone-1, zone-2)",
+        f"{inv}:4:20: error: recipe {tmp_path / 'recipes' / 'drives.yaml'}: no such file "
+        "(devices drive-1, drive-2, drive-3)",
+    ]
     # the schema: groups take only a device's settings, not a url
     Path(inv).write_text(text.replace("slow: {parameters", "slow: {url: 'tcp://x', parameters"))
     with pytest.raises(InputError, match=r"line5.yaml:5:10: error: .*url"):
         validate_file(inv)
 
 
-def test_counts_read_as_english_and_percent_as_a_symbol(capsys: pytest.CaptureFixture[str],
-                                                        tmp_path: Path) -> None:
+def test_counts_read_as_english_and_percent_as_a_symbol(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     (tmp_path / "profiles").mkdir()
     (tmp_path / "profiles" / "pid.yaml").write_text(PID_PROFILE)
     one = tmp_path / "one.yaml"
@@ -290,9 +344,17 @@ def test_the_ansible_module_takes_the_inventorys_recipes(tmp_path: Path) -> None
     task = Module(inventory=inv)
     assert common.recipe_of(task) is None  # no recipe, profile or parameters: each device's own
     fleet = deployer.plan(None, offline=True, state_dir=None, **common.targets_of(task, None))
-    assert {n: fleet[n].recipe_name for n in fleet} == {"zone-1": "zone", "zone-2": "zone", "drive-1": "drive",
-                                                        "drive-2": "drive", "drive-3": "drive"}
-    with pytest.raises(InputError, match=r"unknown parameter 'F07' in profile pid-controller \(devices zone-1, "
-                                         "zone-2; the inventory gives them recipes of their own"):
+    assert {n: fleet[n].recipe_name for n in fleet} == {
+        "zone-1": "zone",
+        "zone-2": "zone",
+        "drive-1": "drive",
+        "drive-2": "drive",
+        "drive-3": "drive",
+    }
+    with pytest.raises(
+        InputError,
+        match=r"unknown parameter 'F07' in profile pid-controller \(devices zone-1, "
+        "zone-2; the inventory gives them recipes of their own",
+    ):
         drive = common.recipe_of(Module(inventory=inv, recipe=str(tmp_path / "recipes" / "drive.yaml")))
         deployer.plan(drive, offline=True, state_dir=None, **common.targets_of(task, drive))

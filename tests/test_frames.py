@@ -41,8 +41,7 @@ def test_oriental_az_operation_data_no3() -> None:
     plan = plan_of(EXAMPLES / "oriental-az-op3.yaml", 4)
     (w,) = plan.writes
     assert (w.address, w.count) == (0x18C6, 6)
-    assert request_frame(w, 4, "rtu") == hexbytes(
-        "04 10 18 C6 00 06 0C 00 00 27 10 00 00 4E 20 00 00 01 F4 6C A0")
+    assert request_frame(w, 4, "rtu") == hexbytes("04 10 18 C6 00 06 0C 00 00 27 10 00 00 4E 20 00 00 01 F4 6C A0")
     assert response_frame(w, 4, "rtu") == hexbytes("04 10 18 C6 00 06 A6 C3")
 
 
@@ -110,13 +109,21 @@ def test_omron_by_hand() -> None:
 
 
 def test_oriental_by_hand() -> None:
-    rec = by_hand("oriental-az", {"operation_data[3].starting_rate": Decimal(10000),
-                                  "operation_data[3].stopping_rate": Decimal(20000),
-                                  "operation_data[3].operating_current": Decimal(500)})
+    rec = by_hand(
+        "oriental-az",
+        {
+            "operation_data[3].starting_rate": Decimal(10000),
+            "operation_data[3].stopping_rate": Decimal(20000),
+            "operation_data[3].operating_current": Decimal(500),
+        },
+    )
     plan = make_plan(rec, Target(None, 4, "oriental-az"))
     (w,) = plan.writes
-    assert w.parameters == ("operation_data[3].starting_rate", "operation_data[3].stopping_rate",
-                            "operation_data[3].operating_current")
+    assert w.parameters == (
+        "operation_data[3].starting_rate",
+        "operation_data[3].stopping_rate",
+        "operation_data[3].operating_current",
+    )
     assert request_frame(w, 4, "rtu") == hexbytes("04 10 18 C6 00 06 0C 00 00 27 10 00 00 4E 20 00 00 01 F4 6C A0")
     assert response_frame(w, 4, "rtu") == hexbytes("04 10 18 C6 00 06 A6 C3")
     # TCP: the same PDU behind an MBAP header whose length counts unit + PDU (1 + 18 = 0x13)
@@ -166,8 +173,9 @@ def test_frames_refuse_what_no_device_could_take() -> None:
 def test_every_planned_frame_has_a_valid_crc(tmp_path: Path) -> None:
     """A whole table of operation data: requests of at most 27 registers at 64-byte frames."""
     p = tmp_path / "r.yaml"
-    entries = "\n".join(f"  operation_data[{i}]: {{starting_rate: {1000 + i}, stopping_rate: {2000 + i}}}"
-                        for i in range(8))
+    entries = "\n".join(
+        f"  operation_data[{i}]: {{starting_rate: {1000 + i}, stopping_rate: {2000 + i}}}" for i in range(8)
+    )
     p.write_text(f"recipe: t\nprofile: oriental-az\nparameters:\n{entries}\n")
     plan = plan_of(p, 4)
     assert len(plan.writes) == 8  # entries are 0x40 apart: nothing contiguous between them
@@ -218,12 +226,19 @@ def test_serial_frames_over_a_pty_pair(framing: Framing, socat_pair: tuple[str, 
     import serial  # pyserial, which pymodbus's serial transport uses
 
     ours, device = socat_pair
-    rec = by_hand("oriental-az", {"operation_data[3].starting_rate": Decimal(10000),
-                                  "operation_data[3].stopping_rate": Decimal(20000),
-                                  "operation_data[3].operating_current": Decimal(500)})
+    rec = by_hand(
+        "oriental-az",
+        {
+            "operation_data[3].starting_rate": Decimal(10000),
+            "operation_data[3].stopping_rate": Decimal(20000),
+            "operation_data[3].operating_current": Decimal(500),
+        },
+    )
     (w,) = make_plan(rec, Target(None, 4, "oriental-az")).writes
-    with SimulatorThread(rec.profile, listen=f"{framing}://{device}", units=(4,)) as sim, \
-            serial.Serial(ours, 19200, timeout=5) as port:
+    with (
+        SimulatorThread(rec.profile, listen=f"{framing}://{device}", units=(4,)) as sim,
+        serial.Serial(ours, 19200, timeout=5) as port,
+    ):
         assert sim.read("operation_data[3].stopping_rate", unit=4) != (0, 20000)
         port.write(request_frame(w, 4, framing))
         want = response_frame(w, 4, framing)

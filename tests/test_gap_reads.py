@@ -42,7 +42,9 @@ def test_plan_reads_span_one_register_gaps_of_the_drive(tmp_path: Path) -> None:
 
 
 def test_gap_limit_and_write_only_registers_bound_a_read(tmp_path: Path) -> None:
-    prof = profile_from(tmp_path, """\
+    prof = profile_from(
+        tmp_path,
+        """\
 profile: dev
 limits: {max_read_gap: 2}
 parameters:
@@ -51,7 +53,8 @@ parameters:
   c: {register: 7, type: uint16}     # a gap of 3: a new block
   w: {register: 9, type: uint16, access: write-only}
   d: {register: 10, type: uint16}    # a write-only register in the gap: a new block
-""")
+""",
+    )
     reads = plan_reads(prof, ["a", "b", "c", "d"])
     assert [(r.address, r.count) for r in reads] == [(0, 4), (7, 1), (10, 1)]
     assert [(r.address, r.count) for r in plan_reads(prof, ["a", "b"], gaps=False)] == [(0, 1), (3, 1)]
@@ -59,8 +62,9 @@ parameters:
 
 def test_max_read_gap_is_checked_by_the_schema(tmp_path: Path) -> None:
     with pytest.raises(InputError) as err:
-        profile_from(tmp_path, "profile: dev\nlimits: {max_read_gap: -1}\n"
-                               "parameters:\n  a: {register: 0, type: uint16}\n")
+        profile_from(
+            tmp_path, "profile: dev\nlimits: {max_read_gap: -1}\nparameters:\n  a: {register: 0, type: uint16}\n"
+        )
     assert "max_read_gap" in str(err.value)
 
 
@@ -68,8 +72,13 @@ def _apply(sim: Simulator, path: str, tmp: Path) -> DeviceResult:
     rec = load_recipe(path)
 
     async def body(s: Simulator) -> DeviceResult:
-        return await apply_device(rec, parse_url(s.url + "?timeout=0.5"), 1,
-                                  options=ApplyOptions(state_dir=str(tmp / ".deployer"), backoff=0.01))
+        return await apply_device(
+            rec,
+            parse_url(s.url + "?timeout=0.5"),
+            1,
+            options=ApplyOptions(state_dir=str(tmp / ".deployer"), backoff=0.01),
+        )
+
     return run_with(sim, body)
 
 
@@ -102,8 +111,9 @@ def test_fallback_on_a_device_that_refuses_gap_reads(tmp_path: Path) -> None:
     assert all(p.status in ("ok", "unchanged") for p in res.parameters)
     # the refused block and the gap-free ones that stand in for the rest of the snapshot's and the read-back's
     # blocks are named deviations of the plan (tests/contract.py): the plan made against what it held before
-    plan = plan_to_json(make_plan(rec, Target(res.url, 1, "x"), {p.name: tuple(p.before_raw or ()) for p in
-                                                                  res.parameters}))
+    plan = plan_to_json(
+        make_plan(rec, Target(res.url, 1, "x"), {p.name: tuple(p.before_raw or ()) for p in res.parameters})
+    )
     contract.check(plan, res.to_json(), sim.log)
     assert {r.deviation for r in res.requests} == {None, "gap-free"}
     # the device never saw a write to an undeclared register
@@ -118,13 +128,17 @@ def test_read_current_falls_back_too(tmp_path: Path) -> None:
 
     async def body(s: Simulator) -> dict[str, tuple[int, ...]]:
         return await read_current(rec.profile, names, parse_url(s.url + "?timeout=0.5"), 1)
+
     values = run_with(Simulator(rec.profile), body)
     assert set(values) == set(names)
 
 
 def test_simulator_gap_reads_answer_zeros_and_refuse_writes(tmp_path: Path) -> None:
-    prof = profile_from(tmp_path, "profile: dev\nparameters:\n  a: {register: 0, type: uint16, default: 7}\n"
-                                  "  b: {register: 2, type: uint16, default: 9}\n")
+    prof = profile_from(
+        tmp_path,
+        "profile: dev\nparameters:\n  a: {register: 0, type: uint16, default: 7}\n"
+        "  b: {register: 2, type: uint16, default: 9}\n",
+    )
     from deployer.errors import ExceptionResponse
     from deployer.transport.clients import open_transport
 
@@ -138,5 +152,6 @@ def test_simulator_gap_reads_answer_zeros_and_refuse_writes(tmp_path: Path) -> N
             return regs, err.value.code
         finally:
             await t.close()
+
     regs, code = run_with(Simulator(prof, gap_reads=True), body)
     assert regs == [7, 0, 9] and code == 2

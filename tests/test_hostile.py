@@ -21,9 +21,16 @@ from deployer.recipe import text as recipe_text_module
 
 ROOT = Path(__file__).resolve().parent.parent
 BAD = ROOT / "tests" / "bad"
-HOSTILE = ["yaml-alias-bomb.yaml", "yaml-deep-nesting.yaml", "yaml-recursive-alias.yaml", "recipe-100000-digits.yaml",
-           "recipe-100000-digit-string.yaml", "recipe-extends-dev-zero.yaml", "profile-table-bomb.yaml",
-           "recipe-extends-diamond.yaml"]
+HOSTILE = [
+    "yaml-alias-bomb.yaml",
+    "yaml-deep-nesting.yaml",
+    "yaml-recursive-alias.yaml",
+    "recipe-100000-digits.yaml",
+    "recipe-100000-digit-string.yaml",
+    "recipe-extends-dev-zero.yaml",
+    "profile-table-bomb.yaml",
+    "recipe-extends-diamond.yaml",
+]
 
 
 def _limited() -> None:  # a child that tries to take gigabytes fails instead of taking the machine
@@ -36,8 +43,14 @@ LIMITED = None if sys.platform == "win32" else _limited  # Windows has no rlimit
 
 
 def validate(*paths: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "deployer", "validate", *paths], capture_output=True, text=True,
-                          timeout=60, preexec_fn=LIMITED, cwd=ROOT)
+    return subprocess.run(
+        [sys.executable, "-m", "deployer", "validate", *paths],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        preexec_fn=LIMITED,
+        cwd=ROOT,
+    )
 
 
 @pytest.mark.parametrize("name", HOSTILE)
@@ -84,8 +97,10 @@ def test_anchors_within_limits_keep_positions(tmp_path: Path) -> None:
     f = tmp_path / "r.yaml"
     f.write_text("common: &c {value: 10 s, rounding: nearest}\nparameters:\n  F07: *c\n  F08: *c\n")
     value, src = yamlsrc.load(f)
-    assert value["parameters"] == {"F07": {"value": "10 s", "rounding": "nearest"},
-                                   "F08": {"value": "10 s", "rounding": "nearest"}}
+    assert value["parameters"] == {
+        "F07": {"value": "10 s", "rounding": "nearest"},
+        "F08": {"value": "10 s", "rounding": "nearest"},
+    }
     assert value["parameters"]["F07"] is not value["parameters"]["F08"]  # a copy per alias
     assert src.pos(("parameters", "F08", "rounding")) == (1, 36)  # where the anchored value is written
     assert src.pos(("parameters", "F08"), key=True) == (4, 3)
@@ -120,9 +135,20 @@ def test_reads_back_never_claims_a_plain_string_wrongly(text: str) -> None:
             assert yaml.safe_load(f"k: {text}") == {"k": text}
 
 
-@pytest.mark.parametrize(("a", "b"), [("ms", "s"), ("min", "s"), ("rpm", "Hz"), ("%", "dimensionless"), ("in", "mm"),
-                                      ("degC", "K"), ("degF", "degC"), ("psi", "kPa")])
-@given(st.decimals(min_value=-10**6, max_value=10**6, places=4, allow_nan=False, allow_infinity=False))
+@pytest.mark.parametrize(
+    ("a", "b"),
+    [
+        ("ms", "s"),
+        ("min", "s"),
+        ("rpm", "Hz"),
+        ("%", "dimensionless"),
+        ("in", "mm"),
+        ("degC", "K"),
+        ("degF", "degC"),
+        ("psi", "kPa"),
+    ],
+)
+@given(st.decimals(min_value=-(10**6), max_value=10**6, places=4, allow_nan=False, allow_infinity=False))
 @settings(max_examples=50, deadline=None)
 def test_cached_conversions_equal_pint(a: str, b: str, x: Decimal) -> None:
     """The factor kept (in memory and on disk) gives what pint's own arithmetic gives, both with the guard digits,
@@ -135,8 +161,14 @@ def test_cached_conversions_equal_pint(a: str, b: str, x: Decimal) -> None:
 
 def test_fuzz_bounded() -> None:
     """A bounded mutation-fuzz run (`make fuzz` runs a longer one): no crash, no runaway time or memory."""
-    proc = subprocess.run([sys.executable, "-m", "tests.fuzz", "--files", "1500", "--seconds", "40"],
-                          capture_output=True, text=True, timeout=300, preexec_fn=LIMITED, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, "-m", "tests.fuzz", "--files", "1500", "--seconds", "40"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=LIMITED,
+        cwd=ROOT,
+    )
     res = json.loads(proc.stdout)
     assert res["crashes"] == 0, res["crash_details"]
     assert res["files_tried"] >= 200

@@ -30,15 +30,18 @@ LABEL = f"[bold]{FAKE}"
 PROFILE = (
     "profile: hostile\n"
     "parameters:\n"
-    '  mode: {register: 1, type: uint16, values: {off: 0, "<!--<script>": 1, "' + LABEL.replace(ESC, "\\e")
+    '  mode: {register: 1, type: uint16, values: {off: 0, "<!--<script>": 1, "'
+    + LABEL.replace(ESC, "\\e")
     + '": 2, "x\\u202eko": 3}}\n'
     "  label: {register: 10, type: string, count: 32}\n"
 )
 
 
 def recipe_text(mode: str, label: str) -> str:
-    return (f"recipe: {json.dumps(RECIPE_NAME)}\nprofile: prof.yaml\nparameters:\n"
-            f"  mode: {json.dumps(mode)}\n  label: {json.dumps(label)}\n")
+    return (
+        f"recipe: {json.dumps(RECIPE_NAME)}\nprofile: prof.yaml\nparameters:\n"
+        f"  mode: {json.dumps(mode)}\n  label: {json.dumps(label)}\n"
+    )
 
 
 # what a terminal acts on: every control (but the line breaks the program prints), bidi and format characters
@@ -68,8 +71,9 @@ def test_ordinary_text_is_shown_as_it_is() -> None:
         assert printable(text) == text
 
 
-def test_hostile_names_through_the_real_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+def test_hostile_names_through_the_real_commands(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.chdir(tmp_path)
     Path("prof.yaml").write_text(PROFILE)
     prof = load_profile("prof.yaml")
@@ -88,8 +92,19 @@ def test_hostile_names_through_the_real_commands(tmp_path: Path, capsys: pytest.
     with SimulatorThread(prof) as sim:
         code, out, _ = run("plan", "r.yaml", "--device", sim.url)
         assert code == 0 and "[bold]\\e[2K\\e[1Afake: ok" in out
-        code, out, err = run("apply", "r.yaml", "--device", sim.url, "--yes", "--report", "run.json",
-                             "--html", "run.html", "--state-dir", "st")
+        code, out, err = run(
+            "apply",
+            "r.yaml",
+            "--device",
+            sim.url,
+            "--yes",
+            "--report",
+            "run.json",
+            "--html",
+            "run.html",
+            "--state-dir",
+            "st",
+        )
         assert code == 0, err
         assert "[/red]\\e[2K\\e[1Afake: ok\\u202e " in out  # the name as it is, escaped, not a closing tag
         assert sim.read("mode") == (2,)  # the label's value reached the device
@@ -102,9 +117,21 @@ def test_hostile_names_through_the_real_commands(tmp_path: Path, capsys: pytest.
     code, out, _ = run("report", "run.json", "--html", "again.html")
     assert code == 0 and "[/red]\\e[2K\\e[1Afake: ok\\u202e " in out and "<!--<script>\\n\\e[2K\\e[1Afake: ok" in out
     # an unfinished run whose journal holds hostile text: status shows it escaped
-    journal.append("st", {"event": "run-started", "run": f"r1{ESC}[2K", "time": "t", "user": f"u{ESC}[1A",
-                          "pid": 1, "command": "apply", "via": "cli", "argv": ["--inventory", f"i{ESC}.yaml"],
-                          "recipe": None, "devices": [{"name": f"d\n{FAKE}", "url": "tcp://h:1", "unit": 1}]})
+    journal.append(
+        "st",
+        {
+            "event": "run-started",
+            "run": f"r1{ESC}[2K",
+            "time": "t",
+            "user": f"u{ESC}[1A",
+            "pid": 1,
+            "command": "apply",
+            "via": "cli",
+            "argv": ["--inventory", f"i{ESC}.yaml"],
+            "recipe": None,
+            "devices": [{"name": f"d\n{FAKE}", "url": "tcp://h:1", "unit": 1}],
+        },
+    )
     code, out, _ = run("status", "--state-dir", "st")
     assert code == 2 and "apply --inventory i\\e.yaml by u\\e[1A at t" in out, out
     code, _, err = run("report", f"missing{ESC}[2K.json")
@@ -112,8 +139,9 @@ def test_hostile_names_through_the_real_commands(tmp_path: Path, capsys: pytest.
     assert_harmless(*outputs)
 
 
-def test_the_page_keeps_its_script_and_table_whole(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_page_keeps_its_script_and_table_whole(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     """An enum label and a string register holding ``<!--<script>``: the data block must not swallow the
     page's own script (the device table would stay empty), and nothing the data holds runs."""
     from tests.test_pages import CHROMIUM, Elements, dom
@@ -124,8 +152,20 @@ def test_the_page_keeps_its_script_and_table_whole(tmp_path: Path, capsys: pytes
     Path("prof.yaml").write_text(PROFILE)
     Path("r.yaml").write_text(recipe_text("<!--<script>", "<script>document.title='owned'</script>"))
     with SimulatorThread(load_profile("prof.yaml")) as sim:
-        code, _, err = run_cli(capsys, "apply", "r.yaml", "--device", sim.url, "--yes", "--html", "run.html",
-                               "--report", "run.json", "--state-dir", "st")
+        code, _, err = run_cli(
+            capsys,
+            "apply",
+            "r.yaml",
+            "--device",
+            sim.url,
+            "--yes",
+            "--html",
+            "run.html",
+            "--report",
+            "run.json",
+            "--state-dir",
+            "st",
+        )
     assert code == 0, err
     page = Path("run.html").read_text()
     assert "<!--" not in page.split("<script type=application/json id=data>")[1].split("</script>")[0]
@@ -136,7 +176,8 @@ def test_the_page_keeps_its_script_and_table_whole(tmp_path: Path, capsys: pytes
     assert "<!--<script>" in record and "<script>document.title='owned'</script>" in record
     assert "owned" not in str(doc.all("title")[0]["text"])
     assert [s for s in doc.all("script") if not s.get("type")] and not [
-        s for s in doc.all("script") if "owned" in str(s["text"]) and not s.get("type")]
+        s for s in doc.all("script") if "owned" in str(s["text"]) and not s.get("type")
+    ]
     # the name's U+202E is isolated: inside a <bdi>, closed before the page's own text goes on
     names = [b for b in doc.all("bdi") if str(b["text"]).startswith("[/red]")]
     assert names and all(str(b["text"]).endswith("\u202e\u202c") for b in names)
@@ -160,8 +201,9 @@ def test_printable_leaves_nothing_a_terminal_acts_on(text: str) -> None:
     assert "\n" not in shown and (printable(text, newlines=True).count("\n") == text.count("\n"))
 
 
-def test_a_hostile_name_applied_to_a_device_of_another_library(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_hostile_name_applied_to_a_device_of_another_library(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The same hostile recipe against umodbus (not our simulator): the device holds the label's value,
     the output shows every name escaped."""
     from tests.helpers import umodbus_server
@@ -171,8 +213,18 @@ def test_a_hostile_name_applied_to_a_device_of_another_library(tmp_path: Path, c
     Path("r.yaml").write_text(recipe_text(LABEL, f"<!--<script>\n{FAKE}"))
     store = {a: 0 for a in (1, *range(10, 42))}
     with umodbus_server(store) as port:
-        code, out, err = run_cli(capsys, "apply", "r.yaml", "--device", f"tcp://127.0.0.1:{port}", "--yes",
-                                 "--state-dir", "st", "--report", "run.json")
+        code, out, err = run_cli(
+            capsys,
+            "apply",
+            "r.yaml",
+            "--device",
+            f"tcp://127.0.0.1:{port}",
+            "--yes",
+            "--state-dir",
+            "st",
+            "--report",
+            "run.json",
+        )
     assert code == 0, err
     assert store[1] == 2 and store[10] == 0x3C21  # the label's raw value; '<!' the string's first register
     assert "[/red]\\e[2K\\e[1Afake: ok\\u202e " in out
@@ -182,8 +234,9 @@ def test_a_hostile_name_applied_to_a_device_of_another_library(tmp_path: Path, c
     assert_harmless(out, err)
 
 
-def test_on_a_real_terminal_only_colours_go_out(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                monkeypatch: pytest.MonkeyPatch) -> None:
+def test_on_a_real_terminal_only_colours_go_out(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     """``deployer report`` of the hostile run with its output on a pseudo-terminal (rich draws its colours
     there): the only escape sequences that reach the terminal are colour changes (SGR, ``ESC [ ... m``),
     never the names' cursor movements or line erasures."""
@@ -196,13 +249,18 @@ def test_on_a_real_terminal_only_colours_go_out(tmp_path: Path, capsys: pytest.C
     Path("prof.yaml").write_text(PROFILE)
     Path("r.yaml").write_text(recipe_text(LABEL, f"<!--<script>\n{FAKE}"))
     with SimulatorThread(load_profile("prof.yaml")) as sim:
-        code, _, err = run_cli(capsys, "apply", "r.yaml", "--device", sim.url, "--yes", "--state-dir", "st",
-                               "--report", "run.json")
+        code, _, err = run_cli(
+            capsys, "apply", "r.yaml", "--device", sim.url, "--yes", "--state-dir", "st", "--report", "run.json"
+        )
     assert code == 0, err
     leader, follower = pty.openpty()
-    proc = subprocess.Popen([sys.executable, "-m", "deployer", "report", "run.json"], stdout=follower,
-                            stderr=follower, stdin=subprocess.DEVNULL, env={**os.environ, "COLUMNS": "200",
-                                                                            "TERM": "xterm-256color"})
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "deployer", "report", "run.json"],
+        stdout=follower,
+        stderr=follower,
+        stdin=subprocess.DEVNULL,
+        env={**os.environ, "COLUMNS": "200", "TERM": "xterm-256color"},
+    )
     os.close(follower)
     chunks = []
     while True:

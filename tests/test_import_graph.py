@@ -123,9 +123,12 @@ def test_the_library_does_not_import_the_command_line() -> None:
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ImportFrom):
                 target = node.module or ""
-                assert not (target.startswith("deployer.cli") or target == "cli" or target.startswith("cli.")
-                            or (node.level and "cli" in [a.name for a in node.names] and target in ("", "deployer"))
-                            ), f"{mod} imports the command line"
+                assert not (
+                    target.startswith("deployer.cli")
+                    or target == "cli"
+                    or target.startswith("cli.")
+                    or (node.level and "cli" in [a.name for a in node.names] and target in ("", "deployer"))
+                ), f"{mod} imports the command line"
 
 
 # ---- the command line is a client of the library's API ---------------------------------------------------
@@ -142,7 +145,7 @@ CLI_MAY_IMPORT = {
     "deployer.load.schema": "`deployer docs` and `profiles skeleton` show the JSON schemas",
     "deployer.agent": "`deployer agent` runs the site agent's server (its client is behind deployer.api)",
     "deployer.change": "change control's own surface (digest, sign, verify, check_approvals; docs/change-control.md): "
-                       "plan --out's change member, approve, sign, verify",
+    "plan --out's change member, approve, sign, verify",
     "deployer.audit": "the audit trail: `audit verify/show/forward`, and each command's one call recording itself",
     "deployer.cli": "its own modules",
 }
@@ -182,8 +185,11 @@ def cli_imports_outside_the_api() -> dict[str, set[str]]:
     for mod, path in _modules().items():
         if not mod.startswith("deployer.cli"):
             continue
-        bad = {t for t in _imports_of(path, mod, path.name == "__init__.py")
-               if not any(t == a or t.startswith(a + ".") for a in allowed)}
+        bad = {
+            t
+            for t in _imports_of(path, mod, path.name == "__init__.py")
+            if not any(t == a or t.startswith(a + ".") for a in allowed)
+        }
         if bad:
             out[mod] = bad
     return out
@@ -221,8 +227,12 @@ def public_names() -> dict[str, set[str]]:
     import deployer.aio
     from deployer import api, errors
 
-    return {"deployer": set(api.__all__), "deployer.api": set(api.__all__), "deployer.aio": set(deployer.aio.__all__),
-            "deployer.errors": set(errors.__all__)}
+    return {
+        "deployer": set(api.__all__),
+        "deployer.api": set(api.__all__),
+        "deployer.aio": set(deployer.aio.__all__),
+        "deployer.errors": set(errors.__all__),
+    }
 
 
 def private_uses(path: Path, mod: str | None = None, own: str | None = None) -> list[str]:
@@ -245,15 +255,25 @@ def private_uses(path: Path, mod: str | None = None, own: str | None = None) -> 
             if target not in public:
                 out.append(f"{path.name}:{node.lineno}: imports {target}")
                 continue
-            out += [f"{path.name}:{node.lineno}: {target}.{a.name} is not public" for a in node.names
-                    if a.name not in public[target] and f"{target}.{a.name}" not in public]
+            out += [
+                f"{path.name}:{node.lineno}: {target}.{a.name} is not public"
+                for a in node.names
+                if a.name not in public[target] and f"{target}.{a.name}" not in public
+            ]
         elif isinstance(node, ast.Import):
-            out += [f"{path.name}:{node.lineno}: imports {a.name}" for a in node.names
-                    if a.name.startswith("deployer") and a.name not in public]
+            out += [
+                f"{path.name}:{node.lineno}: imports {a.name}"
+                for a in node.names
+                if a.name.startswith("deployer") and a.name not in public
+            ]
         elif isinstance(node, ast.Attribute):
             chain = ast.unparse(node.value)
-            if chain in public and chain != "deployer.errors" and node.attr not in public[chain] \
-                    and f"{chain}.{node.attr}" not in public:
+            if (
+                chain in public
+                and chain != "deployer.errors"
+                and node.attr not in public[chain]
+                and f"{chain}.{node.attr}" not in public
+            ):
                 out.append(f"{path.name}:{node.lineno}: {chain}.{node.attr} is not public")
     return out
 
@@ -272,30 +292,61 @@ AGENT_NOT_YET_ON_THE_API = {
     "access.py": {"deployer.load.messages", "deployer.load.yamlsrc"},
     "audit_events.py": {"deployer.audit", "deployer.change", "deployer.load.messages"},
     "body.py": {"deployer.load.messages"},
-    "commands.py": {"deployer.execute.job", "deployer.execute.session", "deployer.load.durations",
-                    "deployer.run.rollback", "deployer.state", "deployer.window.confirm"},
+    "commands.py": {
+        "deployer.execute.job",
+        "deployer.execute.session",
+        "deployer.load.durations",
+        "deployer.run.rollback",
+        "deployer.state",
+        "deployer.window.confirm",
+    },
     "core.py": {"deployer.load.durations", "deployer.portable", "deployer.state", "deployer.window.recover"},
-    "desired.py": {"deployer.execute.job", "deployer.fleet.inventory", "deployer.profile", "deployer.recipe.loader",
-                   "deployer.recipe.model", "deployer.recipe.text", "deployer.state.durable",
-                   "deployer.transport.urls"},
+    "desired.py": {
+        "deployer.execute.job",
+        "deployer.fleet.inventory",
+        "deployer.profile",
+        "deployer.recipe.loader",
+        "deployer.recipe.model",
+        "deployer.recipe.text",
+        "deployer.state.durable",
+        "deployer.transport.urls",
+    },
     "firstrestores.py": {"deployer.execute.job", "deployer.execute.session"},
     "ledger.py": {"deployer.execute.job", "deployer.profile.model"},
     "local_token.py": {"deployer.portable"},
     "model.py": {"deployer.execute.job", "deployer.state", "deployer.window.state"},
     "page.py": {"deployer.pages.assets"},
     "refusals.py": {"deployer.load.messages"},
-    "runs.py": {"deployer.execute.job", "deployer.execute.session", "deployer.run.rollback", "deployer.run.runner",
-                "deployer.state", "deployer.window", "deployer.window.soak", "deployer.window.state"},
+    "runs.py": {
+        "deployer.execute.job",
+        "deployer.execute.session",
+        "deployer.run.rollback",
+        "deployer.run.runner",
+        "deployer.state",
+        "deployer.window",
+        "deployer.window.soak",
+        "deployer.window.state",
+    },
     "server.py": {"deployer.audit", "deployer.change"},
     "service.py": {"deployer.audit.forward", "deployer.portable"},
     "site.py": {"deployer.execute.job", "deployer.portable", "deployer.state"},
     "store.py": {"deployer.window.state"},
     "users.py": {"deployer.load", "deployer.portable", "deployer.state", "deployer.state.durable"},
-    "views.py": {"deployer.planning.model", "deployer.planning.planfile", "deployer.planning.steps",
-                 "deployer.transport.urls"},
-    "watch.py": {"deployer.execute.connect", "deployer.execute.executor", "deployer.execute.job",
-                 "deployer.execute.session", "deployer.execute.verify", "deployer.planning.planner",
-                 "deployer.transport.urls"},
+    "views.py": {
+        "deployer.planning.model",
+        "deployer.planning.planfile",
+        "deployer.planning.steps",
+        "deployer.transport.urls",
+    },
+    "watch.py": {
+        "deployer.execute.connect",
+        "deployer.execute.executor",
+        "deployer.execute.job",
+        "deployer.execute.session",
+        "deployer.execute.verify",
+        "deployer.planning.planner",
+        "deployer.transport.urls",
+    },
 }
 
 
@@ -305,8 +356,10 @@ def agent_private_uses() -> dict[str, set[str]]:
         if p.name == "client.py":
             continue
         mod = "deployer.agent" + ("" if p.name == "__init__.py" else f".{p.stem}")
-        uses = {u.split(": imports ", 1)[1] if ": imports " in u else u.split(": ", 1)[1]
-                for u in private_uses(p, mod if p.name != "__init__.py" else mod + ".x", own="deployer.agent")}
+        uses = {
+            u.split(": imports ", 1)[1] if ": imports " in u else u.split(": ", 1)[1]
+            for u in private_uses(p, mod if p.name != "__init__.py" else mod + ".x", own="deployer.agent")
+        }
         if uses:
             out[p.name] = uses
     return out
@@ -317,13 +370,18 @@ def test_the_site_agent_uses_only_public_names_or_says_what_not_yet() -> None:
 
 
 def test_the_public_names_check_sees_what_is_not_public(tmp_path: Path) -> None:
-    code = ("import deployer\nfrom deployer.api import plan, fleet_jobs\nfrom deployer.errors import AgentError\n"
-            "from deployer.execute.job import Job\nimport deployer.fleet\n"
-            "def f():\n    deployer.apply(None)\n    deployer.plan_fleet([])\n")
+    code = (
+        "import deployer\nfrom deployer.api import plan, fleet_jobs\nfrom deployer.errors import AgentError\n"
+        "from deployer.execute.job import Job\nimport deployer.fleet\n"
+        "def f():\n    deployer.apply(None)\n    deployer.plan_fleet([])\n"
+    )
     (tmp_path / "m.py").write_text(code)
     assert private_uses(tmp_path / "m.py") == [
-        "m.py:2: deployer.api.fleet_jobs is not public", "m.py:4: imports deployer.execute.job",
-        "m.py:5: imports deployer.fleet", "m.py:8: deployer.plan_fleet is not public"]
+        "m.py:2: deployer.api.fleet_jobs is not public",
+        "m.py:4: imports deployer.execute.job",
+        "m.py:5: imports deployer.fleet",
+        "m.py:8: deployer.plan_fleet is not public",
+    ]
 
 
 # ---- small classes: the site agent and the window in pieces (issue 46 item 6) ----------------------------------

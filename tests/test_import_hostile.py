@@ -75,8 +75,9 @@ def test_worst_inputs_are_bounded(worst: hostile_imports.Worst, tmp_path: Path) 
     if f is not None:
         (worst.quick or worst.make)(f)
     args = [a.replace("{f}", str(f)) for a in worst.args]
-    _, _, peak_kb, code, err = measured([sys.executable, "-m", "deployer", "profiles", "import", *args],
-                                        cwd=str(ROOT), max_bytes=2 << 30)
+    _, _, peak_kb, code, err = measured(
+        [sys.executable, "-m", "deployer", "profiles", "import", *args], cwd=str(ROOT), max_bytes=2 << 30
+    )
     assert code == worst.code and worst.expect in err, err[-2000:]
     assert "Traceback" not in err
     assert peak_kb / 1024 < 400, f"{worst.name}: {peak_kb / 1024:.0f} MB"
@@ -94,14 +95,17 @@ def write_csv(path: Path, rows: list[list[str]], delimiter: str = ",") -> Path:
 def test_vendor_cells_as_they_are(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A vendor's sheet: a resolution with its unit, ranges in three spellings, limits with units, and
     columns the importer does not know: every one of those named in a warning at its header cell."""
-    src = write_csv(tmp_path / "v.csv", [
-        ["Parameter", "Address", "Type", "Resolution", "Setting range", "Unit", "Remark", "Factory note"],
-        ["F002", "2", "U16", "0.01 s", "0 to 400.00", "", "accel", "x"],
-        ["F003", "3", "U16", "0.1", "0-400.00", "s", "", ""],
-        ["F004", "4", "U16", "", "0...100 %", "", "", ""],
-        ["F005", "5", "U16", "10 ms", "0 s to 6 s", "s", "", ""],  # converted into the unit column's unit
-        ["F006", "6", "S16", "0.1", "-10 - -5", "Hz", "", ""],
-    ])
+    src = write_csv(
+        tmp_path / "v.csv",
+        [
+            ["Parameter", "Address", "Type", "Resolution", "Setting range", "Unit", "Remark", "Factory note"],
+            ["F002", "2", "U16", "0.01 s", "0 to 400.00", "", "accel", "x"],
+            ["F003", "3", "U16", "0.1", "0-400.00", "s", "", ""],
+            ["F004", "4", "U16", "", "0...100 %", "", "", ""],
+            ["F005", "5", "U16", "10 ms", "0 s to 6 s", "s", "", ""],  # converted into the unit column's unit
+            ["F006", "6", "S16", "0.1", "-10 - -5", "Hz", "", ""],
+        ],
+    )
     out = tmp_path / "v.yaml"
     code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "v", "-o", str(out))
     assert code == 0, err
@@ -123,9 +127,12 @@ def test_vendor_cells_as_they_are(tmp_path: Path, capsys: pytest.CaptureFixture[
 def test_decimal_marks(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """'3,000' is refused at its cell unless --decimal-comma or --decimal-point says which it is; unambiguous
     cells are read in the default mode (0,5 and 1.000,5 with a comma, 1,234.5 and 1,000,000 with a point)."""
-    rows = [["name", "address", "type", "scale", "min", "max"],
-            ["a", "1", "FLOAT", "", "0,5", "1.000,5"], ["b", "3", "FLOAT", "", "1,234.5", "1,000,000"],
-            ["c", "5", "U16", "", "0", "3,000"]]
+    rows = [
+        ["name", "address", "type", "scale", "min", "max"],
+        ["a", "1", "FLOAT", "", "0,5", "1.000,5"],
+        ["b", "3", "FLOAT", "", "1,234.5", "1,000,000"],
+        ["c", "5", "U16", "", "0", "3,000"],
+    ]
     src = write_csv(tmp_path / "d.csv", rows, ";")
     code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "d")
     assert code == 1 and f"{src}:4:12: error: max: '3,000' is ambiguous" in err
@@ -133,11 +140,15 @@ def test_decimal_marks(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     code, _, err = cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "--decimal-point", "-o", str(out))
     assert code == 1 and "'0,5' is not a number (',' separates groups of three digits)" in err
     src = write_csv(tmp_path / "d.csv", [rows[0], rows[3]], ";")
-    assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "--decimal-point", "-o", str(out),
-               "--force")[0] == 0
+    assert (
+        cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "--decimal-point", "-o", str(out), "--force")[0]
+        == 0
+    )
     assert load_profile(out).parameter("c").max == 3000
-    assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "--decimal-comma", "-o", str(out),
-               "--force")[0] == 0
+    assert (
+        cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "--decimal-comma", "-o", str(out), "--force")[0]
+        == 0
+    )
     assert load_profile(out).parameter("c").max == 3
     src = write_csv(tmp_path / "d.csv", rows[:3], ";")
     assert cli(capsys, "profiles", "import", "csv", str(src), "--id", "d", "-o", str(out), "--force")[0] == 0
@@ -150,11 +161,19 @@ def test_xlsx_formula_with_a_saved_value_is_read(tmp_path: Path, capsys: pytest.
     """A formula whose value the spreadsheet program saved is that value; without one, see the corpus."""
     pytest.importorskip("openpyxl")
     src = tmp_path / "f.xlsx"
-    hostile_imports.write_xlsx(src, hostile_imports._sheet([
-        hostile_imports._row(1, [("A1", "name"), ("B1", "address"), ("C1", "type"), ("D1", "unit"), ("E1", "scale")]),
-        b'<row r="2"><c r="A2" t="inlineStr"><is><t>F07</t></is></c><c r="B2"><v>4354</v></c>'
-        b'<c r="C2" t="inlineStr"><is><t>U16</t></is></c><c r="D2" t="inlineStr"><is><t>s</t></is></c>'
-        b'<c r="E2"><f>1/10</f><v>0.1</v></c></row>']))
+    hostile_imports.write_xlsx(
+        src,
+        hostile_imports._sheet(
+            [
+                hostile_imports._row(
+                    1, [("A1", "name"), ("B1", "address"), ("C1", "type"), ("D1", "unit"), ("E1", "scale")]
+                ),
+                b'<row r="2"><c r="A2" t="inlineStr"><is><t>F07</t></is></c><c r="B2"><v>4354</v></c>'
+                b'<c r="C2" t="inlineStr"><is><t>U16</t></is></c><c r="D2" t="inlineStr"><is><t>s</t></is></c>'
+                b'<c r="E2"><f>1/10</f><v>0.1</v></c></row>',
+            ]
+        ),
+    )
     out = tmp_path / "f.yaml"
     code, _, err = cli(capsys, "profiles", "import", "xlsx", str(src), "--id", "f", "-o", str(out))
     assert code == 0, err
@@ -202,15 +221,17 @@ def test_export_escapes_formulas_and_reads_back(tmp_path: Path, capsys: pytest.C
         '  a: {register: 1, type: uint16, description: "=HYPERLINK(\\"http://x\\",\\"y\\")"}\n'
         '  b: {register: 2, type: int16, min: -10, max: 10, description: "-2+3"}\n'
         '  c: {register: 3, type: uint16, description: "@SUM(1)"}\n'
-        '  d: {register: 4, type: uint16, description: "+1"}\n')
+        '  d: {register: 4, type: uint16, description: "+1"}\n'
+    )
     code, text, err = cli(capsys, "profiles", "export", "csv", str(tmp_path / "p.yaml"))
     assert code == 0
     rows = list(csv.reader(text.splitlines()))
-    assert [r[8] for r in rows[1:]] == ["'=HYPERLINK(\"http://x\",\"y\")", "'-2+3", "'@SUM(1)", "'+1"]
+    assert [r[8] for r in rows[1:]] == ['\'=HYPERLINK("http://x","y")', "'-2+3", "'@SUM(1)", "'+1"]
     assert rows[2][5:7] == ["-10", "10"]  # numbers stay numbers
     (tmp_path / "p.csv").write_text(text)
-    code, _, err = cli(capsys, "profiles", "import", "csv", str(tmp_path / "p.csv"), "--id", "p", "-o",
-                       str(tmp_path / "back.yaml"))
+    code, _, err = cli(
+        capsys, "profiles", "import", "csv", str(tmp_path / "p.csv"), "--id", "p", "-o", str(tmp_path / "back.yaml")
+    )
     assert code == 0, err
     back = load_profile(tmp_path / "back.yaml")
     assert [p.description for p in back.parameters] == ['=HYPERLINK("http://x","y")', "-2+3", "@SUM(1)", "+1"]
@@ -219,8 +240,15 @@ def test_export_escapes_formulas_and_reads_back(tmp_path: Path, capsys: pytest.C
 def test_export_says_what_a_register_list_cannot_carry(capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = cli(capsys, "profiles", "export", "csv", "example-drive")
     assert code == 0
-    for what in ("1 identity check", "1 precondition", "1 unlock write", "1 lock write", "1 commit action",
-                 "1 stage wait", "addressing: register-number"):
+    for what in (
+        "1 identity check",
+        "1 precondition",
+        "1 unlock write",
+        "1 lock write",
+        "1 commit action",
+        "1 stage wait",
+        "addressing: register-number",
+    ):
         assert f"warning: example-drive: {what}" in err, err
 
 

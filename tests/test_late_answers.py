@@ -104,8 +104,9 @@ def test_bytes_nobody_asked_for_are_drained_before_the_next_request(socat_pair: 
     assert dev.frames == sent == [read_frame(100, 10), read_frame(200, 10), read_frame(200, 10)] and late == []
 
 
-def _bad(answer: Answer, request: Callable[[tp.Transport], Any], kind: str = "rtu",
-         socat_pair: tuple[str, str] = ("", "")) -> str:
+def _bad(
+    answer: Answer, request: Callable[[tp.Transport], Any], kind: str = "rtu", socat_pair: tuple[str, str] = ("", "")
+) -> str:
     dev = Device({100 + i: 7 for i in range(4)}, answer=answer)
 
     async def main() -> str:
@@ -133,20 +134,27 @@ def test_wrong_answers_are_named_not_called_silence(kind: str, socat_pair: tuple
 
     def short(i: int, req: bytes, good: bytes) -> bytes:
         return bytes(crc.add_crc(bytes([1, 3, 6]) + good[3:9]))
-    assert _bad(short, read, kind, socat_pair) == \
-        "an answer with 6 bytes of registers to a read of 4 registers (8 bytes)"
+
+    assert (
+        _bad(short, read, kind, socat_pair) == "an answer with 6 bytes of registers to a read of 4 registers (8 bytes)"
+    )
 
     def echo(i: int, req: bytes, good: bytes) -> bytes:
         return bytes(crc.add_crc(bytes([1, 16]) + struct.pack(">HH", 101, 2)))
-    assert _bad(echo, lambda t: t.write_registers(100, [1, 2], 1), kind, socat_pair) == \
-        "an answer echoing address 101, count 2 to a write of address 100, count 2"
+
+    assert (
+        _bad(echo, lambda t: t.write_registers(100, [1, 2], 1), kind, socat_pair)
+        == "an answer echoing address 101, count 2 to a write of address 100, count 2"
+    )
 
     def other_fc(i: int, req: bytes, good: bytes) -> bytes:
         return bytes(crc.add_crc(bytes([1, 4, 8]) + bytes(8)))
+
     assert _bad(other_fc, read, kind, socat_pair) == "an answer with function code 4 to a function 3 request"
 
     def garbled(i: int, req: bytes, good: bytes) -> bytes:
         return good[:-1] + bytes([good[-1] ^ 0xFF])
+
     assert _bad(garbled, read, kind, socat_pair) == "a garbled answer (CRC error)"
 
 
@@ -166,15 +174,22 @@ parameters:
 
 
 def _deployer(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=300,
-                          env=os.environ | {"NO_COLOR": "1"})
+    return subprocess.run(
+        [sys.executable, "-m", "deployer", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=os.environ | {"NO_COLOR": "1"},
+    )
 
 
 def _late_recipe(tmp_path: Path, port: str) -> Path:
     profile_from(tmp_path, PROFILE)
     recipe = tmp_path / "r.yaml"
-    recipe.write_text(f"recipe: late\nprofile: dev.yaml\ndevice: {{url: 'rtu://{port}?timeout={TIMEOUT:g}', "
-                      "unit: 1}\nparameters:\n  p1: 11\n  p2: 22\n")
+    recipe.write_text(
+        f"recipe: late\nprofile: dev.yaml\ndevice: {{url: 'rtu://{port}?timeout={TIMEOUT:g}', "
+        "unit: 1}\nparameters:\n  p1: 11\n  p2: 22\n"
+    )
     return recipe
 
 
@@ -184,8 +199,15 @@ def test_apply_to_an_always_late_device_snapshots_the_truth(socat_pair: tuple[st
     recipe = _late_recipe(tmp_path, socat_pair[1])
     dev = Device({100: 1, 200: 2}, delay=lambda i: LATE)
     with on_pty(dev, socat_pair[0]):
-        run = _deployer("apply", str(recipe), "--yes", "--report", str(tmp_path / "report.json"), "--state-dir",
-                        str(tmp_path / "state"))
+        run = _deployer(
+            "apply",
+            str(recipe),
+            "--yes",
+            "--report",
+            str(tmp_path / "report.json"),
+            "--state-dir",
+            str(tmp_path / "state"),
+        )
     assert run.returncode == 0, run.stdout + run.stderr
     report = json.loads((tmp_path / "report.json").read_text())
     d = report["devices"][0]
@@ -194,8 +216,11 @@ def test_apply_to_an_always_late_device_snapshots_the_truth(socat_pair: tuple[st
     assert dev.regs[100] == 11 and dev.regs[200] == 22
     # register requests (the device's identification, FC43, is asked once too and answered exception 01)
     sent = [(r["function"], r["address"], r["count"]) for r in d["requests"] if r["function"] in (3, 6, 16)]
-    got = [(f[1], struct.unpack(">H", f[2:4])[0], 1 if f[1] == 6 else struct.unpack(">H", f[4:6])[0])
-           for f in dev.frames if f[1] in (3, 6, 16)]
+    got = [
+        (f[1], struct.unpack(">H", f[2:4])[0], 1 if f[1] == 6 else struct.unpack(">H", f[4:6])[0])
+        for f in dev.frames
+        if f[1] in (3, 6, 16)
+    ]
     assert len(dev.frames) - len(got) == len(d["requests"]) - len(sent) <= 1
     # every request the report lists reached the device, and nothing else: a retry goes out only when the
     # late answer to its first copy did not come first (a loaded machine), never more often than counted
@@ -223,8 +248,15 @@ def test_a_value_no_second_read_confirms_is_not_written(socat_pair: tuple[str, s
     recipe = _late_recipe(tmp_path, socat_pair[1])
     dev = _Counter({100: 1, 200: 2}, delay=lambda i: 2.5 * TIMEOUT if i == 0 else 0.0)
     with on_pty(dev, socat_pair[0]):
-        run = _deployer("apply", str(recipe), "--yes", "--report", str(tmp_path / "report.json"), "--state-dir",
-                        str(tmp_path / "state"))
+        run = _deployer(
+            "apply",
+            str(recipe),
+            "--yes",
+            "--report",
+            str(tmp_path / "report.json"),
+            "--state-dir",
+            str(tmp_path / "state"),
+        )
     assert run.returncode == 4, run.stdout + run.stderr
     d = json.loads((tmp_path / "report.json").read_text())["devices"][0]
     assert d["status"] == "failed" and d["snapshot"] is None
@@ -239,8 +271,9 @@ def test_a_value_no_second_read_confirms_is_not_written(socat_pair: tuple[str, s
     assert "nothing was written" in run.stdout + run.stderr
 
 
-def test_diff_of_a_value_no_second_read_confirms_says_it_cannot_be_read(socat_pair: tuple[str, str],
-                                                                         tmp_path: Path) -> None:
+def test_diff_of_a_value_no_second_read_confirms_says_it_cannot_be_read(
+    socat_pair: tuple[str, str], tmp_path: Path
+) -> None:
     recipe = _late_recipe(tmp_path, socat_pair[1])
     dev = _Counter({100: 1, 200: 2}, delay=lambda i: 2.5 * TIMEOUT if i == 0 else 0.0)
     with on_pty(dev, socat_pair[0]):
@@ -279,8 +312,15 @@ def test_a_read_back_no_second_read_confirms_is_not_ok(socat_pair: tuple[str, st
     recipe = _late_recipe(tmp_path, socat_pair[1])
     dev = _LiveAfterWrite({100: 1, 200: 2})
     with on_pty(dev, socat_pair[0]):
-        run = _deployer("apply", str(recipe), "--yes", "--report", str(tmp_path / "report.json"), "--state-dir",
-                        str(tmp_path / "state"))
+        run = _deployer(
+            "apply",
+            str(recipe),
+            "--yes",
+            "--report",
+            str(tmp_path / "report.json"),
+            "--state-dir",
+            str(tmp_path / "state"),
+        )
     assert run.returncode == 4, run.stdout + run.stderr
     d = json.loads((tmp_path / "report.json").read_text())["devices"][0]
     assert dev.regs == {100: 11, 200: 22} and d["snapshot"] is not None  # written, then not verified
@@ -294,8 +334,7 @@ def test_simulator_over_rtu_tcp_slower_than_the_timeout(tmp_path: Path) -> None:
 
     async def main() -> Reads:
         async with sim:
-            return await _two_reads(f"{sim.url}?timeout={TIMEOUT:g}&retries=2",
-                                    [(100, 1), (200, 1)])
+            return await _two_reads(f"{sim.url}?timeout={TIMEOUT:g}&retries=2", [(100, 1), (200, 1)])
 
     values, late, sent = asyncio.run(main())
     assert values == [[1], [2]] and len(late) == 4

@@ -67,7 +67,6 @@ class Point:
     folder: Path  # the profile's, and the points' state folders
 
 
-
 def _check(res: DeviceResult, before: dict[int, int], point: Point, writes_before: int) -> str:
     """What the report says is so on the device; returns the outcome ("ok", "refused", ...)."""
     holds = point.holds()
@@ -94,12 +93,15 @@ async def _story(point: Point, start: float) -> tuple[str, str]:
     state = point.folder / point.name.replace(" ", "-")
     state.mkdir()
     recipe_file = state / "r.yaml"
-    recipe_file.write_text(f"recipe: late\nprofile: {point.folder / 'dev.yaml'}\n"
-                           f"device: {{url: '{point.url}', unit: 1}}\n"
-                           "parameters: {" + ", ".join(f"{n}: {v}" for n, v in RECIPE.items()) + "}\n")
+    recipe_file.write_text(
+        f"recipe: late\nprofile: {point.folder / 'dev.yaml'}\n"
+        f"device: {{url: '{point.url}', unit: 1}}\n"
+        "parameters: {" + ", ".join(f"{n}: {v}" for n, v in RECIPE.items()) + "}\n"
+    )
     url = parse_url(point.url)
-    opts = ApplyOptions(state_dir=str(state / "state"), lock_dir=str(state / "locks"),
-                        on_writing=lambda _r: point.arm())  # once: the read-back's first read is late
+    opts = ApplyOptions(
+        state_dir=str(state / "state"), lock_dir=str(state / "locks"), on_writing=lambda _r: point.arm()
+    )  # once: the read-back's first read is late
     before, writes = point.holds(), point.writes()
     point.arm()
     res = await apply_device(load_recipe(str(recipe_file)), url, 1, name=point.name, options=opts)
@@ -108,8 +110,9 @@ async def _story(point: Point, start: float) -> tuple[str, str]:
         return applied, "-"
     before, writes = point.holds(), point.writes()
     point.arm()
-    back = await apply_device(load_recipe(res.snapshot), url, 1, name=point.name,
-                              options=replace(opts, hold_commit=True))  # as `deployer rollback` does
+    back = await apply_device(
+        load_recipe(res.snapshot), url, 1, name=point.name, options=replace(opts, hold_commit=True)
+    )  # as `deployer rollback` does
     rolled = _check(back, before, point, writes)
     if rolled == "ok":
         assert point.holds() == HELD, point.name
@@ -130,12 +133,14 @@ async def _simulators(line: str, tmp: Path) -> AsyncIterator[list[Point]]:
             faults = Faults(latency_ms=factor * TIMEOUT * 1000, late_reads=None if mode == "always" else 0)
             if line == "rtu":
                 a, b = stack.enter_context(pty_pair(tmp, f"{factor:g}{mode}"))
-                sim = await stack.enter_async_context(Simulator(prof, listen=f"rtu://{a}", init=dict(HELD),
-                                                                faults=faults))
+                sim = await stack.enter_async_context(
+                    Simulator(prof, listen=f"rtu://{a}", init=dict(HELD), faults=faults)
+                )
                 url = f"rtu://{b}?timeout={TIMEOUT:g}"
             else:
-                sim = await stack.enter_async_context(Simulator(prof, listen="rtu+tcp://127.0.0.1:0",
-                                                                init=dict(HELD), faults=faults))
+                sim = await stack.enter_async_context(
+                    Simulator(prof, listen="rtu+tcp://127.0.0.1:0", init=dict(HELD), faults=faults)
+                )
                 url = f"{sim.url}?timeout={TIMEOUT:g}"
 
             def arm(f: Faults = faults) -> None:
@@ -174,13 +179,13 @@ def _servers(line: str, tmp: Path) -> Iterator[list[Point]]:
             def writes(d: SlowServer = dev) -> int:
                 return sum(1 for f in d.frames if f[1] in (6, 16))
 
-            points.append(Point(factor, mode, f"umodbus {line} {factor:g}x {mode}", url, holds, writes, dev.arm,
-                                tmp))
+            points.append(Point(factor, mode, f"umodbus {line} {factor:g}x {mode}", url, holds, writes, dev.arm, tmp))
         yield points
 
 
 def test_a_late_answer_never_becomes_a_value(tmp_path: Path) -> None:
     """The whole matrix at once: the simulator and umodbus, on a pty and over rtu+tcp, 8 points each."""
+
     async def main() -> dict[Point, tuple[str, str] | BaseException]:
         async with contextlib.AsyncExitStack() as stack:
             points: list[Point] = []
@@ -188,18 +193,25 @@ def test_a_late_answer_never_becomes_a_value(tmp_path: Path) -> None:
                 kind, line = group.split("-", 1)
                 folder = tmp_path / group
                 folder.mkdir()
-                points += (await stack.enter_async_context(_simulators(line, folder)) if kind == "simulator"
-                           else stack.enter_context(_servers(line, folder)))
-            got = await asyncio.gather(*(_story(p, i * START_GAP) for i, p in enumerate(points)),
-                                       return_exceptions=True)
+                points += (
+                    await stack.enter_async_context(_simulators(line, folder))
+                    if kind == "simulator"
+                    else stack.enter_context(_servers(line, folder))
+                )
+            got = await asyncio.gather(
+                *(_story(p, i * START_GAP) for i, p in enumerate(points)), return_exceptions=True
+            )
             return {p: g for p, g in zip(points, got, strict=True)}
 
     outcomes = asyncio.run(main())
     wrong = [f"{p.name}: {g!r}" for p, g in outcomes.items() if isinstance(g, BaseException)]
     # a device early enough, or late once and answering within its request's retries (up to 2.5x), must also
     # be written and rolled back: a refusal there would be the rule refusing too much
-    wrong += [f"{p.name}: {g} (must be written and rolled back)" for p, g in outcomes.items()
-              if (p.factor < 1 or (p.mode == "once" and p.factor < 3)) and g != ("ok", "ok")]
+    wrong += [
+        f"{p.name}: {g} (must be written and rolled back)"
+        for p, g in outcomes.items()
+        if (p.factor < 1 or (p.mode == "once" and p.factor < 3)) and g != ("ok", "ok")
+    ]
     assert not wrong, "\n".join(wrong)
 
 
@@ -221,15 +233,18 @@ def test_the_agent_takes_no_late_answer_for_drift(live: bool, tmp_path: Path) ->
     nothing is restored, though p2 differs from what was adopted."""
     from tests.agent_helpers import AgentProcess, kinds, until, write_site
 
-    dev = _LiveP2(dict(HELD), 2.5 * TIMEOUT, always=False) if live else \
-        SlowServer(dict(HELD), 2.5 * TIMEOUT, always=True)
+    dev = (
+        _LiveP2(dict(HELD), 2.5 * TIMEOUT, always=False) if live else SlowServer(dict(HELD), 2.5 * TIMEOUT, always=True)
+    )
     dev.arm()  # live-value: the first read is late, the session is in doubt from then on
     with dev.running(), on_tcp(dev) as port:
-        inv = write_site(tmp_path, {"d1": f"rtu+tcp://127.0.0.1:{port}?timeout={TIMEOUT:g}"},
-                         recipe="recipe: held\nprofile: drive.yaml\nparameters: {p1: 1, p2: 2, p3: 3}\n",
-                         profile=PROFILE)
-        agent = AgentProcess(inv, tmp_path / "state", "--on-drift", "restore", "--bus-share", "1",
-                             check_every="1h")
+        inv = write_site(
+            tmp_path,
+            {"d1": f"rtu+tcp://127.0.0.1:{port}?timeout={TIMEOUT:g}"},
+            recipe="recipe: held\nprofile: drive.yaml\nparameters: {p1: 1, p2: 2, p3: 3}\n",
+            profile=PROFILE,
+        )
+        agent = AgentProcess(inv, tmp_path / "state", "--on-drift", "restore", "--bus-share", "1", check_every="1h")
         try:
             c = agent.client
             d = until(lambda: (x := c.device("d1"))["status"] != "unknown" and x, timeout=60, why="the first check")

@@ -23,8 +23,13 @@ ROOT = Path(__file__).resolve().parent.parent
 @pytest.fixture(scope="module")
 def farm() -> Iterator[list[str]]:
     """Three devices in two processes of their own (as the benchmark runs them), 64 registers each."""
-    proc = subprocess.Popen([sys.executable, "-m", "benchmarks.light_devices", "3", "0", "--processes", "2",
-                             "--registers", "64"], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "benchmarks.light_devices", "3", "0", "--processes", "2", "--registers", "64"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     try:
         assert proc.stdout is not None
         urls = json.loads(proc.stdout.readline())
@@ -72,22 +77,40 @@ def test_mbpoll_reads_what_it_wrote(farm: list[str]) -> None:
     port = str(_port(farm[2]))
     base = [MBPOLL, "-m", "tcp", "-a", "1", "-0", "-t", "4", "-p", port]
     subprocess.run([*base, "-r", "30", "127.0.0.1", "11", "22", "33"], check=True, capture_output=True, timeout=20)
-    out = subprocess.run([*base, "-r", "29", "-c", "5", "-1", "127.0.0.1"], check=True, capture_output=True,
-                         text=True, timeout=20).stdout
+    out = subprocess.run(
+        [*base, "-r", "29", "-c", "5", "-1", "127.0.0.1"], check=True, capture_output=True, text=True, timeout=20
+    ).stdout
     assert "[29]: \t0\n[30]: \t11\n[31]: \t22\n[32]: \t33\n[33]: \t0\n" in out
-    bad = subprocess.run([*base, "-r", "100", "-c", "2", "-1", "127.0.0.1"], capture_output=True, text=True,
-                         timeout=20)
+    bad = subprocess.run([*base, "-r", "100", "-c", "2", "-1", "127.0.0.1"], capture_output=True, text=True, timeout=20)
     assert "Illegal data address" in bad.stdout + bad.stderr
 
 
 def test_a_fleet_apply_writes_and_verifies_through_it(farm: list[str], tmp_path: Path) -> None:
-    (tmp_path / "p.yaml").write_text("profile: p\nparameters:\n"
-                                     "  a: {register: 40, type: uint16}\n  b: {register: 41, type: uint32}\n")
+    (tmp_path / "p.yaml").write_text(
+        "profile: p\nparameters:\n  a: {register: 40, type: uint16}\n  b: {register: 41, type: uint32}\n"
+    )
     (tmp_path / "r.yaml").write_text("recipe: r\nprofile: p.yaml\nparameters: {a: 5, b: 70000}\n")
     (tmp_path / "inv.yaml").write_text("devices:\n" + "".join(f"  d{i}: {{url: '{u}'}}\n" for i, u in enumerate(farm)))
-    proc = subprocess.run([sys.executable, "-m", "deployer", "apply", "r.yaml", "--inventory", "inv.yaml", "--yes",
-                           "--report", "rep.json", "--state-dir", "st"], cwd=tmp_path, capture_output=True, text=True,
-                          timeout=60)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "deployer",
+            "apply",
+            "r.yaml",
+            "--inventory",
+            "inv.yaml",
+            "--yes",
+            "--report",
+            "rep.json",
+            "--state-dir",
+            "st",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 0, proc.stderr
     report = json.loads((tmp_path / "rep.json").read_text())
     assert [d["status"] for d in report["devices"]] == ["ok"] * 3

@@ -34,8 +34,9 @@ def recipe(tmp: Path, name: str, body: str) -> str:
 
 
 def start(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "deployer", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "deployer", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
 
 
 def run(*args: str) -> tuple[int, str, str]:
@@ -58,12 +59,32 @@ def test_two_applies_on_one_device_one_is_refused(tmp_path: Path) -> None:
 
     # the first run holds the lock in its confirm window until confirmed, however long the second takes to start
     with SimulatorThread(builtin_profile("example-inverter")) as sim:
-        a = start("apply", recipe(tmp_path, "first", FIRST), "--device", sim.url, "--yes", "--state-dir",
-                  str(tmp_path / "sa"), "--report", str(tmp_path / "a.json"), "--confirm-within", "1h")
+        a = start(
+            "apply",
+            recipe(tmp_path, "first", FIRST),
+            "--device",
+            sim.url,
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "sa"),
+            "--report",
+            str(tmp_path / "a.json"),
+            "--confirm-within",
+            "1h",
+        )
         wait_for(lambda: bool(awaiting(str(tmp_path / "sa"))) or a.poll() is not None)
         assert any(h.get("pid") == a.pid for h in held_locks())
-        code, out, err = run("apply", recipe(tmp_path, "second", SECOND), "--device", sim.url, "--yes", "--state-dir",
-                             str(tmp_path / "sb"), "--report", str(tmp_path / "b.json"))
+        code, out, err = run(
+            "apply",
+            recipe(tmp_path, "second", SECOND),
+            "--device",
+            sim.url,
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "sb"),
+            "--report",
+            str(tmp_path / "b.json"),
+        )
         assert run("confirm", "--state-dir", str(tmp_path / "sa"))[0] == 0
         assert a.wait(timeout=60) == 0, a.stderr.read() if a.stderr else ""
         assert code == 3, out + err
@@ -77,11 +98,22 @@ def test_two_applies_on_one_device_one_is_refused(tmp_path: Path) -> None:
 
 def test_lock_timeout_waits_for_the_other_run(tmp_path: Path) -> None:
     with SimulatorThread(builtin_profile("example-inverter"), faults=Faults(latency_ms=40)) as sim:
-        a = start("apply", recipe(tmp_path, "first", FIRST), "--device", sim.url, "--yes", "--state-dir",
-                  str(tmp_path / "s"))
+        a = start(
+            "apply", recipe(tmp_path, "first", FIRST), "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s")
+        )
         wait_for(lambda: any(h.get("pid") == a.pid for h in held_locks()))
-        code, out, err = run("apply", recipe(tmp_path, "second", SECOND), "--device", sim.url, "--yes",
-                             "--state-dir", str(tmp_path / "s"), "--lock-timeout", "30", "--json")
+        code, out, err = run(
+            "apply",
+            recipe(tmp_path, "second", SECOND),
+            "--device",
+            sim.url,
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+            "--lock-timeout",
+            "30",
+            "--json",
+        )
         assert a.wait(timeout=60) == 0
         assert code == 0, out + err
         # the second run read the device only after the first had verified: its "before" is the first's values
@@ -97,15 +129,34 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path: Path) -> None:
         url = parse_url(sim.url)
         key = lock.device_key(url.bus, 1)
         held = lock.try_lock(key, command="crashed run")
-        dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                              text=True).stdout.strip()
+        dead = subprocess.run(
+            [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+        ).stdout.strip()
         os.ftruncate(held.fd, 0)
         os.lseek(held.fd, 0, os.SEEK_SET)
-        os.write(held.fd, json.dumps({"pid": int(dead), "host": socket.gethostname(), "since": time.time() - 60,
-                                      "key": key, "command": "crashed run"}).encode())
+        os.write(
+            held.fd,
+            json.dumps(
+                {
+                    "pid": int(dead),
+                    "host": socket.gethostname(),
+                    "since": time.time() - 60,
+                    "key": key,
+                    "command": "crashed run",
+                }
+            ).encode(),
+        )
         os.close(held.fd)  # the process "died": the kernel drops its flock, its record stays
-        code, out, err = run("apply", recipe(tmp_path, "first", FIRST), "--device", sim.url, "--yes",
-                             "--state-dir", str(tmp_path / "s"), "--json")
+        code, out, err = run(
+            "apply",
+            recipe(tmp_path, "first", FIRST),
+            "--device",
+            sim.url,
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+            "--json",
+        )
         assert code == 0, err
         dev = json.loads(out)["devices"][0]
         assert any(f"stale lock of PID {dead}" in n for n in dev["notices"]), dev
@@ -169,8 +220,18 @@ def test_a_broadcast_and_a_unit_on_one_bus_exclude_each_other(tmp_path: Path) ->
         bus = parse_url(sim.url).bus
         other = asyncio.run(lock.acquire_device(bus, 2, command="another run"))  # a run writing unit 2
         try:
-            code, out, err = run("apply", r, "--device", sim.url, "--unit", "0", "--allow-broadcast", "--yes",
-                                 "--state-dir", str(tmp_path / "s"))
+            code, out, err = run(
+                "apply",
+                r,
+                "--device",
+                sim.url,
+                "--unit",
+                "0",
+                "--allow-broadcast",
+                "--yes",
+                "--state-dir",
+                str(tmp_path / "s"),
+            )
             assert code == 3 and "the bus is in use" in out + err, out + err
             assert not any(e.function == 16 for e in sim.log)
             # another unit of the bus is not blocked by it
@@ -181,8 +242,15 @@ def test_a_broadcast_and_a_unit_on_one_bus_exclude_each_other(tmp_path: Path) ->
                 h.release()
         broadcast = asyncio.run(lock.acquire_device(bus, 0, command="a broadcast"))
         try:
-            code, out, err = run("apply", recipe(tmp_path, "second", SECOND), "--device", sim.url, "--yes",
-                                 "--state-dir", str(tmp_path / "s"))
+            code, out, err = run(
+                "apply",
+                recipe(tmp_path, "second", SECOND),
+                "--device",
+                sim.url,
+                "--yes",
+                "--state-dir",
+                str(tmp_path / "s"),
+            )
             assert code == 3 and f"locked by PID {os.getpid()}" in out + err and "a broadcast" in out + err
         finally:
             for h in broadcast:

@@ -53,8 +53,9 @@ def test_the_profile_carries_the_manuals_number_and_text(tmp_path: Path) -> None
 
 def test_a_bare_number_is_kept_as_written(tmp_path: Path) -> None:
     """ABB numbers parameters 22.10: a float would make it 22.1."""
-    (tmp_path / "p.yaml").write_text("profile: p\nparameters:\n  a: {register: 1, type: uint16, "
-                                     "manual: {number: 22.10, text: Speed ref}}\n")
+    (tmp_path / "p.yaml").write_text(
+        "profile: p\nparameters:\n  a: {register: 1, type: uint16, manual: {number: 22.10, text: Speed ref}}\n"
+    )
     assert load_profile(str(tmp_path / "p.yaml")).parameter("a").manual == "22.10 Speed ref"
 
 
@@ -84,11 +85,33 @@ def test_the_printed_record_shows_it_beside_the_key(tmp_path: Path, capsys: pyte
     prof, recipe = files(tmp_path)
     page, report, again, found = (tmp_path / n for n in ("run.html", "run.json", "again.html", "found.html"))
     with Simulators([Simulator(load_profile(str(prof)))]) as (sim,):
-        code, _, err = cli(capsys, "apply", str(recipe), "--device", sim.url, "--yes", "--state-dir",
-                           str(tmp_path / "s"), "--html", str(page), "--report", str(report))
+        code, _, err = cli(
+            capsys,
+            "apply",
+            str(recipe),
+            "--device",
+            sim.url,
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+            "--html",
+            str(page),
+            "--report",
+            str(report),
+        )
         assert code == 0, err
-        code, _, err = cli(capsys, "pull", "--device", sim.url, "--profile", str(prof), "-o",
-                           str(tmp_path / "pulled.yaml"), "--html", str(found))
+        code, _, err = cli(
+            capsys,
+            "pull",
+            "--device",
+            sim.url,
+            "--profile",
+            str(prof),
+            "-o",
+            str(tmp_path / "pulled.yaml"),
+            "--html",
+            str(found),
+        )
         assert code == 0, err
     # the report file says it in its profile view: report --html needs no profile file
     views = json.loads(report.read_text())["profiles"]
@@ -98,8 +121,11 @@ def test_the_printed_record_shows_it_beside_the_key(tmp_path: Path, capsys: pyte
     assert cli(capsys, "report", str(report), "--html", str(again))[0] in (0, 4)
     for p in (page, again, found):
         doc = Elements(dom(p, tmp_path))
-        rows = {r["cells"][0].split()[0]: r["cells"][0]  # type: ignore[index]
-                for r in doc.all("tr") if r["cells"] and str(r["cells"][0]).startswith("ramp_")}  # type: ignore[index]
+        rows = {
+            r["cells"][0].split()[0]: r["cells"][0]  # type: ignore[index]
+            for r in doc.all("tr")
+            if r["cells"] and str(r["cells"][0]).startswith("ramp_")  # type: ignore[index]
+        }
         assert rows["ramp_up_time"] == f"ramp_up_time {UP}", (p.name, rows)
         assert rows["ramp_down_time"] == "ramp_down_time 3-42 Ramp 1 Ramp Down Time"
         assert [e["text"] for e in doc.all("span", "manual")][:1] == [UP]

@@ -41,12 +41,14 @@ def files(tmp: Path, ramp: str = "3 s", profile: str = FC102) -> tuple[Path, Pat
     return tmp / "fc102.yaml", r
 
 
-def test_a_coil_commit_step_is_sent_as_function_05_after_the_read_back(tmp_path: Path,
-                                                                         capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_coil_commit_step_is_sent_as_function_05_after_the_read_back(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     prof, recipe = files(tmp_path)
     with Simulators([Simulator(load_profile(str(prof)), nonvolatile=True)]) as (sim,):
-        code, out, err = cli(capsys, "apply", str(recipe), "--device", sim.url, "--yes", "--json",
-                             "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys, "apply", str(recipe), "--device", sim.url, "--yes", "--json", "--state-dir", str(tmp_path / "s")
+        )
         log = list(sim.log)
         stored = sim.stored()
     assert code == 0, err
@@ -59,14 +61,16 @@ def test_a_coil_commit_step_is_sent_as_function_05_after_the_read_back(tmp_path:
     assert (stored[3410], stored[3411]) == (0, 300)  # 3 s, stored
 
 
-def test_a_coil_commit_deployed_and_rolled_back_stores_the_restored_values(tmp_path: Path,
-                                                                            capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_coil_commit_deployed_and_rolled_back_stores_the_restored_values(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The issue's case: restored values must be stored too, or the next power cycle brings the change back."""
     prof, recipe = files(tmp_path)
     with Simulators([Simulator(load_profile(str(prof)), nonvolatile=True)]) as (sim,):
         before = (sim.read("ramp_up_time"), sim.read("ramp_down_time"))
-        code, out, err = cli(capsys, "apply", str(recipe), "--device", sim.url, "--yes", "--json",
-                             "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys, "apply", str(recipe), "--device", sim.url, "--yes", "--json", "--state-dir", str(tmp_path / "s")
+        )
         assert code == 0, err
         snapshot = json.loads(out)["devices"][0]["snapshot"]
         sim.power_cycle()  # stored: the change survives a power cycle
@@ -80,16 +84,16 @@ def test_a_coil_commit_deployed_and_rolled_back_stores_the_restored_values(tmp_p
         assert (sim.read("ramp_up_time"), sim.read("ramp_down_time")) == before  # the restored values survive
 
 
-def test_writes_without_the_commit_are_gone_after_a_power_cycle(tmp_path: Path,
-                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+def test_writes_without_the_commit_are_gone_after_a_power_cycle(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The same registers written by a profile that knows no commit step: RAM only."""
     prof, _ = files(tmp_path)
     no_commit = tmp_path / "nocommit"
     no_commit.mkdir()
     _, bare = files(no_commit, profile=re.sub(r"commit:\n  - .*\n", "", FC102))
     with Simulators([Simulator(load_profile(str(prof)), nonvolatile=True)]) as (sim,):
-        code, _, err = cli(capsys, "apply", str(bare), "--device", sim.url, "--yes", "--state-dir",
-                           str(tmp_path / "s"))
+        code, _, err = cli(capsys, "apply", str(bare), "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"))
         assert code == 0, err
         assert sim.read("ramp_up_time") == (0, 300)
         sim.power_cycle()
@@ -107,15 +111,33 @@ def test_deployer_simulate_nonvolatile_power_cycles_on_sigusr2(tmp_path: Path) -
     prof, _ = files(tmp_path)
     (tmp_path / "bare").mkdir()
     _, bare = files(tmp_path / "bare", profile=re.sub(r"commit:\n  - .*\n", "", FC102))
-    proc = subprocess.Popen([sys.executable, "-m", "deployer", "simulate", str(prof), "--listen",
-                             "tcp://127.0.0.1:0", "--nonvolatile"], stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "deployer", "simulate", str(prof), "--listen", "tcp://127.0.0.1:0", "--nonvolatile"],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     with reaped(proc):
         assert proc.stderr is not None
         line = proc.stderr.readline()
         url = re.search(r"on (tcp://\S+)", line)
         assert url and "SIGUSR2: a power cycle" in line, line
-        run = subprocess.run([sys.executable, "-m", "deployer", "apply", str(bare), "--device", url[1], "--yes",
-                              "--state-dir", str(tmp_path / "s")], capture_output=True, text=True, timeout=60)
+        run = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "apply",
+                str(bare),
+                "--device",
+                url[1],
+                "--yes",
+                "--state-dir",
+                str(tmp_path / "s"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert run.returncode == 0, run.stderr
         plan = [sys.executable, "-m", "deployer", "plan", str(bare), "--device", url[1], "--detailed-exitcode"]
         assert subprocess.run(plan, capture_output=True, text=True, timeout=60).returncode == 0  # holds it now
@@ -129,15 +151,21 @@ def test_deployer_simulate_nonvolatile_power_cycles_on_sigusr2(tmp_path: Path) -
 def test_coil_unlock_and_lock_steps_and_a_coil_health_check(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A device whose parameters are locked until coil 70 is on: unlock and lock as Function 05 around the writes;
     a coil health check read before a safe change (and failing: nothing written)."""
-    text = FC102.replace("commit:\n", "unlock:\n  - {register: 71, register_type: coil, raw: true}\n"
-                                      "lock:\n  - {register: 71, register_type: coil, raw: false}\ncommit:\n")
+    text = FC102.replace(
+        "commit:\n",
+        "unlock:\n  - {register: 71, register_type: coil, raw: true}\n"
+        "lock:\n  - {register: 71, register_type: coil, raw: false}\ncommit:\n",
+    )
     prof, recipe = files(tmp_path, profile=text)
     p = load_profile(str(prof))
-    assert [(a.register_type, a.address, a.registers) for a in (*p.unlock, *p.lock)] == [("coil", 70, (1,)),
-                                                                                        ("coil", 70, (0,))]
+    assert [(a.register_type, a.address, a.registers) for a in (*p.unlock, *p.lock)] == [
+        ("coil", 70, (1,)),
+        ("coil", 70, (0,)),
+    ]
     with Simulators([Simulator(p, nonvolatile=True)]) as (sim,):
-        code, out, err = cli(capsys, "apply", str(recipe), "--device", sim.url, "--yes", "--state-dir",
-                             str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys, "apply", str(recipe), "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s")
+        )
         assert code == 0, out + err
         coils = [(e.address, e.values) for e in sim.log if e.function == 5]
         assert coils == [(70, [1]), (65, [1]), (70, [0])]  # unlock, commit, lock
@@ -145,19 +173,32 @@ def test_coil_unlock_and_lock_steps_and_a_coil_health_check(tmp_path: Path, caps
         sim.set_register(66, 1, table="coil")  # an alarm
         recipe.write_text(recipe.read_text().replace("3 s", "4 s"))
         seen = len(sim.log)
-        code, out, err = cli(capsys, "apply", str(recipe), "--device", sim.url, "--yes", "--soak", "1s",
-                             "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            str(recipe),
+            "--device",
+            sim.url,
+            "--yes",
+            "--soak",
+            "1s",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 4
         assert "health check already failing before the change: coil 0x0042 (no alarm) is 1, expected 0" in out + err
         assert [e for e in sim.log[seen:] if e.function in WRITES] == []
         assert any(e.function == 1 and e.address == 66 for e in sim.log[seen:])
 
 
-@pytest.mark.parametrize(("item", "message"), [
-    ("{register: 66, register_type: coil, raw: 2}", "a coil is written 1 or 0 (true or false), not 2"),
-    ("{register: 66, register_type: coil, raw: 1, type: uint32}", "a coil is one bit: 'type' does not apply"),
-    ("{register: 66, raw: true}", "true/false is a coil's value"),
-])
+@pytest.mark.parametrize(
+    ("item", "message"),
+    [
+        ("{register: 66, register_type: coil, raw: 2}", "a coil is written 1 or 0 (true or false), not 2"),
+        ("{register: 66, register_type: coil, raw: 1, type: uint32}", "a coil is one bit: 'type' does not apply"),
+        ("{register: 66, raw: true}", "true/false is a coil's value"),
+    ],
+)
 def test_bad_coil_steps_are_refused_at_their_position(tmp_path: Path, item: str, message: str) -> None:
     text = re.sub(r"commit:\n  - .*\n", f"commit:\n  - {item}\n", FC102)
     (tmp_path / "p.yaml").write_text(text)
@@ -178,14 +219,26 @@ def test_a_coil_commit_against_umodbus(tmp_path: Path, capsys: pytest.CaptureFix
     """An independent device (umodbus) receives the commit as Function 05 on coil 65."""
     from tests.helpers import umodbus_server
 
-    text = FC102.replace("addressing: register-number\n", "").replace("3411", "3410").replace("3421", "3420") \
-        .replace("register: 66", "register: 65").replace("health:\n  - {register: 67, register_type: coil, equals: 0, "
-                                                         "description: no alarm}\n", "")
+    text = (
+        FC102.replace("addressing: register-number\n", "")
+        .replace("3411", "3410")
+        .replace("3421", "3420")
+        .replace("register: 66", "register: 65")
+        .replace("health:\n  - {register: 67, register_type: coil, equals: 0, description: no alarm}\n", "")
+    )
     _, recipe = files(tmp_path, profile=text)
     store = {3410: 0, 3411: 1000, 3420: 0, 3421: 1000}
     wire: list[tuple[int, int, int]] = []
     with umodbus_server(store, coils={65: 0}, wire=wire) as port:
-        code, _, err = cli(capsys, "apply", str(recipe), "--device", f"tcp://127.0.0.1:{port}", "--yes",
-                           "--state-dir", str(tmp_path / "s"))
+        code, _, err = cli(
+            capsys,
+            "apply",
+            str(recipe),
+            "--device",
+            f"tcp://127.0.0.1:{port}",
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
     assert code == 0, err
     assert wire[-1] == (5, 65, 1) and store[3411] == 300

@@ -31,8 +31,14 @@ RECIPE = "recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n"
 
 
 def run(*args: str, cwd: Path | None = None) -> tuple[int, str]:
-    p = subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=60,
-                       cwd=cwd, env=os.environ | {"PYTHONPATH": str(Path(__file__).parent.parent)})
+    p = subprocess.run(
+        [sys.executable, "-m", "deployer", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=cwd,
+        env=os.environ | {"PYTHONPATH": str(Path(__file__).parent.parent)},
+    )
     return p.returncode, p.stdout + p.stderr
 
 
@@ -57,8 +63,17 @@ def _commands(tmp: Path, sim: Simulator, out: str) -> dict[str, list[str]]:
     csv = tmp / "in.csv"
     csv.write_text("name,address,type\nspeed,0,uint16\n")
     return {
-        "apply --report": ["apply", str(recipe), "--device", sim.url, "--yes", "--state-dir", str(tmp / "s"),
-                           "--report", out],
+        "apply --report": [
+            "apply",
+            str(recipe),
+            "--device",
+            sim.url,
+            "--yes",
+            "--state-dir",
+            str(tmp / "s"),
+            "--report",
+            out,
+        ],
         "plan --out": ["plan", str(recipe), "--out", out],
         "pull -o": ["pull", "--profile", "example-inverter", "--device", sim.url, "-o", out],
         "profiles import csv -o": ["profiles", "import", "csv", str(csv), "--id", "x", "-o", out],
@@ -84,16 +99,16 @@ def test_every_output_refuses_what_is_not_a_regular_file(kind: str, tmp_path: Pa
         writes = sum(1 for e in sim.log if e.function == 16)
         code, text = run(*args)  # a FIFO would block for ever: run()'s timeout fails the test
         assert code == 1, (name, text)
-        assert (f"{out}: it is {what}; deployer writes only regular files" in text
-                or (kind == "folder" and f"'{out}' is a directory" in text)), (name, text)  # click's check first
+        assert f"{out}: it is {what}; deployer writes only regular files" in text or (
+            kind == "folder" and f"'{out}' is a directory" in text
+        ), (name, text)  # click's check first
         assert victim.read_text() == "keep me\n"
         assert sum(1 for e in sim.log if e.function == 16) == writes, name  # refused before anything was sent
     if kind == "symlink":
         assert out.is_symlink() and os.readlink(out) == str(victim)
 
 
-def test_reports_plans_and_pulls_replace_a_file_imports_and_exports_need_force(tmp_path: Path,
-                                                                               sim: Simulator) -> None:
+def test_reports_plans_and_pulls_replace_a_file_imports_and_exports_need_force(tmp_path: Path, sim: Simulator) -> None:
     out = tmp_path / "out"
     for name, args in _commands(tmp_path, sim, str(out)).items():
         out.write_text("old\n")
@@ -124,8 +139,9 @@ def test_docs_rewrites_its_own_pages_and_refuses_other_files(tmp_path: Path) -> 
     assert run("docs", "--out", str(d), "--force")[0] == 0 and "# Recipe files" in page.read_text()
 
 
-def test_write_atomic_keeps_the_old_file_whole_when_the_write_fails(tmp_path: Path,
-                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+def test_write_atomic_keeps_the_old_file_whole_when_the_write_fails(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     out = tmp_path / "report.json"
     out.write_text("old\n")
 
@@ -146,8 +162,11 @@ def full_disk(tmp_path: Path) -> Iterator[Path]:
     d.mkdir()
     if sys.platform == "win32":
         pytest.skip("a small tmpfs is Linux's (Windows: no mount command)")
-    if os.getuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=32k", "tmpfs", str(d)],
-                                          capture_output=True).returncode != 0:
+    if (
+        os.getuid() != 0
+        or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=32k", "tmpfs", str(d)], capture_output=True).returncode
+        != 0
+    ):
         pytest.skip("mounting a small tmpfs needs root")
     try:
         yield d
@@ -174,12 +193,11 @@ def test_a_full_state_directory_is_said_plainly(full_disk: Path, tmp_path: Path,
     (full_disk / "s").mkdir(exist_ok=True)
     _fill(full_disk, 4096)
     writes = sum(1 for e in sim.log if e.function == 16)
-    code, text = run("apply", str(recipe), "--device", sim.url, "--yes", "--state-dir", str(full_disk / "s"),
-                     "--json")
+    code, text = run("apply", str(recipe), "--device", sim.url, "--yes", "--state-dir", str(full_disk / "s"), "--json")
     assert "Traceback" not in text
     if code == 4:
         # the report, then what could not be recorded (the audit trail's records too: the disk is full)
-        dev = json.JSONDecoder().raw_decode(text[text.index("{"):])[0]["devices"][0]
+        dev = json.JSONDecoder().raw_decode(text[text.index("{") :])[0]["devices"][0]
         assert dev["status"] == "failed" and "cannot save the snapshot" in dev["error"]
         assert "the disk is full; nothing was written" in dev["error"]
         assert sum(1 for e in sim.log if e.function == 16) == writes
@@ -199,8 +217,15 @@ def test_a_torn_journal_line_costs_only_itself(tmp_path: Path) -> None:
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(st.one_of(st.dictionaries(st.sampled_from(["event", "run", "x"]), st.text(max_size=8), max_size=3),
-                          st.text(alphabet='{}":,ab\n ', max_size=20)), max_size=8))
+@given(
+    st.lists(
+        st.one_of(
+            st.dictionaries(st.sampled_from(["event", "run", "x"]), st.text(max_size=8), max_size=3),
+            st.text(alphabet='{}":,ab\n ', max_size=20),
+        ),
+        max_size=8,
+    )
+)
 def test_every_record_is_read_back_whatever_fragments_lie_between(items: list[object]) -> None:
     """Records appended after any fragments (torn lines, garbage) each come back as a line of their own."""
     import tempfile
@@ -239,9 +264,11 @@ def test_appends_racing_from_several_processes_leave_no_empty_line(tmp_path: Pat
     empty (a process that looked at the file's last byte while another's append was half-way in added a
     newline for it: the CI's two-worker run read an empty journal line)."""
     path = tmp_path / "audit.jsonl"
-    code = ("import sys\nfrom deployer.state import durable\n"
-            "for i in range(60):\n"
-            "    durable.append_lines(sys.argv[1], [{'k': sys.argv[2], 'i': i, 'pad': 'x' * 20000}])\n")
+    code = (
+        "import sys\nfrom deployer.state import durable\n"
+        "for i in range(60):\n"
+        "    durable.append_lines(sys.argv[1], [{'k': sys.argv[2], 'i': i, 'pad': 'x' * 20000}])\n"
+    )
     procs = [subprocess.Popen([sys.executable, "-c", code, str(path), str(k)]) for k in range(3)]
     assert all(p.wait(timeout=120) == 0 for p in procs)
     lines = path.read_bytes().split(b"\n")

@@ -21,8 +21,9 @@ from tests.helpers import cli
 
 pytestmark = pytest.mark.timeout(120)
 
-PACED = PROFILE.replace("endurance: 1000\n", "endurance: 1000\nlimits: {pause_after_connect: 150ms, "
-                                                "pause_between_requests: 80}\n")
+PACED = PROFILE.replace(
+    "endurance: 1000\n", "endurance: 1000\nlimits: {pause_after_connect: 150ms, pause_between_requests: 80}\n"
+)
 QUIRKS = Quirks(pause_after_connect_ms=120, request_gap_ms=60)
 
 
@@ -53,6 +54,7 @@ def command(name: str) -> Callable[[Callable[..., None]], Callable[..., None]]:
     def register(f: Callable[..., None]) -> Callable[..., None]:
         COMMANDS[name] = f
         return f
+
     return register
 
 
@@ -110,8 +112,19 @@ def _(capsys: pytest.CaptureFixture[str], tmp: Path, recipe: str, profile: str, 
 
 @command("the window's rollback (not confirmed)")
 def _(capsys: pytest.CaptureFixture[str], tmp: Path, recipe: str, profile: str, url: str) -> None:
-    _, out, err = cli(capsys, "apply", recipe, "--device", url, "--yes", "--json", "--state-dir",
-                         str(tmp / "s"), "--confirm-within", "0.5s")
+    _, out, err = cli(
+        capsys,
+        "apply",
+        recipe,
+        "--device",
+        url,
+        "--yes",
+        "--json",
+        "--state-dir",
+        str(tmp / "s"),
+        "--confirm-within",
+        "0.5s",
+    )
     assert json.loads(out)["devices"][0]["status"] == "rolled-back", (out, err)
 
 
@@ -122,8 +135,7 @@ def _(capsys: pytest.CaptureFixture[str], tmp: Path, recipe: str, profile: str, 
 
 
 @pytest.mark.parametrize("name", list(COMMANDS))
-def test_every_command_keeps_the_profiles_pauses(name: str, tmp_path: Path,
-                                                 capsys: pytest.CaptureFixture[str]) -> None:
+def test_every_command_keeps_the_profiles_pauses(name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     profile, recipe = _site(tmp_path)
     with SimulatorThread(load_profile(profile), quirks=QUIRKS) as sim:
         COMMANDS[name](capsys, tmp_path, recipe, profile, sim.url + "?timeout=0.3&retries=0")
@@ -134,8 +146,15 @@ def test_scan_keeps_the_urls_pauses(tmp_path: Path, capsys: pytest.CaptureFixtur
     """scan knows no profile: the URL's pauses are the bus's."""
     profile, _ = _site(tmp_path)
     with SimulatorThread(load_profile(profile), quirks=QUIRKS) as sim:
-        code, out, err = cli(capsys, "scan", sim.url + "?pause_after_connect=150ms&pause_between_requests=80ms",
-                             "--unit", "1-2", "--timeout", "0.3")
+        code, out, err = cli(
+            capsys,
+            "scan",
+            sim.url + "?pause_after_connect=150ms&pause_between_requests=80ms",
+            "--unit",
+            "1-2",
+            "--timeout",
+            "0.3",
+        )
         assert code == 0 and "1 of 2 unit ids answered" in out, (out, err)
         _kept(sim)
 
@@ -146,8 +165,11 @@ def test_the_agents_reads_keep_the_profiles_pauses(tmp_path: Path) -> None:
         inv = write_site(tmp_path / "site", {"d1": sim.url + "?timeout=0.3&retries=0"}, profile=PACED)
         agent = AgentProcess(inv, tmp_path / "state", "--on-drift", "report")
         try:
-            until(lambda: len([e for e in sim.log if e.function == 3]) >= 6 or None, timeout=30,
-                  why="the agent reads its device")
+            until(
+                lambda: len([e for e in sim.log if e.function == 3]) >= 6 or None,
+                timeout=30,
+                why="the agent reads its device",
+            )
         finally:
             agent.terminate()
         _kept(sim)

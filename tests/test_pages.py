@@ -25,15 +25,29 @@ F08 = PROFILE.parameter("F08").address
 RECIPE = "recipe: line\nprofile: example-inverter\nparameters:\n  F07: 10 s\n  F08: 12 s\n  stop_mode: coast\n"
 CHROMIUM = next((p for p in (shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome")) if p), None)
 
-pytestmark = [pytest.mark.timeout(300),
-              pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (CI installs it: apt-get install chromium)")]
+pytestmark = [
+    pytest.mark.timeout(300),
+    pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (CI installs it: apt-get install chromium)"),
+]
 
 
 def browser(*args: str, tmp: Path) -> subprocess.CompletedProcess[str]:
     assert CHROMIUM is not None
-    return subprocess.run([CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                           f"--user-data-dir={tmp / 'chromium-profile'}", "--virtual-time-budget=10000", *args],
-                          capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [
+            CHROMIUM,
+            "--headless=new",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--no-first-run",
+            f"--user-data-dir={tmp / 'chromium-profile'}",
+            "--virtual-time-budget=10000",
+            *args,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 def dom(page: Path, tmp: Path, fragment: str = "") -> str:
@@ -85,8 +99,11 @@ class Elements(html.parser.HTMLParser):
 
 def visible_rows(doc: Elements) -> list[str]:
     """The device table's rows that show: their cells' texts joined by spaces."""
-    return [" ".join(r["cells"]) for r in doc.all("tr", "dev")  # type: ignore[arg-type]
-            if "hidden" not in str(r.get("class", ""))]
+    return [
+        " ".join(r["cells"])  # type: ignore[arg-type]
+        for r in doc.all("tr", "dev")
+        if "hidden" not in str(r.get("class", ""))
+    ]
 
 
 def fleet_files(tmp: Path, sims: list[Simulator], down_port: int) -> tuple[Path, Path]:
@@ -94,20 +111,37 @@ def fleet_files(tmp: Path, sims: list[Simulator], down_port: int) -> tuple[Path,
     rec.write_text(RECIPE)
     inv = tmp / "inventory.yaml"
     names = [f"press-{i}" for i in range(len(sims))]
-    inv.write_text("defaults: {timeout: 0.5, retries: 0}\ndevices:\n"
-                   + "".join(f"  {n}: {{url: '{s.url}'}}\n" for n, s in zip(names, sims, strict=True))
-                   + f"  press-down: {{url: 'tcp://127.0.0.1:{down_port}'}}\n")
+    inv.write_text(
+        "defaults: {timeout: 0.5, retries: 0}\ndevices:\n"
+        + "".join(f"  {n}: {{url: '{s.url}'}}\n" for n, s in zip(names, sims, strict=True))
+        + f"  press-down: {{url: 'tcp://127.0.0.1:{down_port}'}}\n"
+    )
     return rec, inv
 
 
-def test_a_fleet_run_as_a_page_failures_first_counts_filters(capsys: pytest.CaptureFixture[str],
-                                                              tmp_path: Path) -> None:
+def test_a_fleet_run_as_a_page_failures_first_counts_filters(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     faults = [Faults(), Faults(), Faults(fail_registers=frozenset({F08})), Faults()]
     with Simulators([Simulator(PROFILE, faults=f) for f in faults]) as sims:
         rec, inv = fleet_files(tmp_path, sims, dead_port())
         page, report = tmp_path / "run.html", tmp_path / "run.json"
-        code = cli(capsys, "apply", str(rec), "--inventory", str(inv), "--yes", "--batch", "1,100%",
-                   "--state-dir", str(tmp_path / "st"), "--report", str(report), "--html", str(page))[0]
+        code = cli(
+            capsys,
+            "apply",
+            str(rec),
+            "--inventory",
+            str(inv),
+            "--yes",
+            "--batch",
+            "1,100%",
+            "--state-dir",
+            str(tmp_path / "st"),
+            "--report",
+            str(report),
+            "--html",
+            str(page),
+        )[0]
         assert code == 4
     text = page.read_text()
     assert "http://" not in text and "https://" not in text  # nothing to fetch: opens offline, from file://
@@ -151,8 +185,21 @@ def test_the_page_prints_as_the_commissioning_record(capsys: pytest.CaptureFixtu
         rec, inv = fleet_files(tmp_path, sims, dead_port())
         inv.write_text("\n".join(inv.read_text().splitlines()[:-1]) + "\n")  # both devices answer
         page = tmp_path / "run.html"
-        assert cli(capsys, "apply", str(rec), "--inventory", str(inv), "--yes", "--state-dir",
-                   str(tmp_path / "st"), "--html", str(page))[0] == 0
+        assert (
+            cli(
+                capsys,
+                "apply",
+                str(rec),
+                "--inventory",
+                str(inv),
+                "--yes",
+                "--state-dir",
+                str(tmp_path / "st"),
+                "--html",
+                str(page),
+            )[0]
+            == 0
+        )
     pdf = tmp_path / "record.pdf"
     proc = browser(f"--print-to-pdf={pdf}", "--no-pdf-header-footer", page.as_uri(), tmp=tmp_path)
     assert proc.returncode == 0 and pdf.read_bytes().startswith(b"%PDF")
@@ -166,8 +213,18 @@ def test_pull_writes_the_as_found_record(capsys: pytest.CaptureFixture[str], tmp
     with Simulators([Simulator(PROFILE) for _ in range(2)]) as sims:
         _, inv = fleet_files(tmp_path, sims, dead_port())
         page = tmp_path / "found.html"
-        code = cli(capsys, "pull", "--inventory", str(inv), "--profile", "example-inverter", "-o",
-                   str(tmp_path / "pulled"), "--html", str(page))[0]
+        code = cli(
+            capsys,
+            "pull",
+            "--inventory",
+            str(inv),
+            "--profile",
+            "example-inverter",
+            "-o",
+            str(tmp_path / "pulled"),
+            "--html",
+            str(page),
+        )[0]
         assert code == 3  # press-down does not answer
     doc = Elements(dom(page, tmp_path))
     assert [r.split()[0] for r in visible_rows(doc)] == ["press-down", "press-0", "press-1"]
@@ -180,8 +237,10 @@ def test_drift_matrix_page(capsys: pytest.CaptureFixture[str], tmp_path: Path) -
     with Simulators([Simulator(PROFILE) for _ in range(3)]) as sims:
         rec, inv = fleet_files(tmp_path, sims, dead_port())
         inv.write_text("\n".join(inv.read_text().splitlines()[:-1]) + "\n")
-        assert cli(capsys, "apply", str(rec), "--inventory", str(inv), "--yes", "--state-dir",
-                   str(tmp_path / "st"))[0] == 0
+        assert (
+            cli(capsys, "apply", str(rec), "--inventory", str(inv), "--yes", "--state-dir", str(tmp_path / "st"))[0]
+            == 0
+        )
         sims[1].write("F07", (0, 700))  # someone changed press-1 at its panel
         page = tmp_path / "drift.html"
         code = cli(capsys, "diff", str(rec), "--inventory", str(inv), "--html", str(page))[0]
@@ -189,22 +248,55 @@ def test_drift_matrix_page(capsys: pytest.CaptureFixture[str], tmp_path: Path) -
     doc = Elements(dom(page, tmp_path))
     drift = doc.all("td", "drift")
     assert len(drift) == 1 and drift[0]["text"] == "7 s → 10 s"
-    assert [r["cells"][0] for r in doc.all("tr")  # type: ignore[index]
-            if "hidden" not in str(r.get("class", "")) and r.get("data-i") is not None] == ["F07"]  # drifted only
+    assert [
+        r["cells"][0]  # type: ignore[index]
+        for r in doc.all("tr")
+        if "hidden" not in str(r.get("class", "")) and r.get("data-i") is not None
+    ] == ["F07"]  # drifted only
     everything = Elements(dom(page, tmp_path)).all("tr")
     assert len([r for r in everything if r.get("data-i") is not None]) == 3
 
 
 def test_hostile_names_and_an_old_report(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """Names and values are text, never markup; a report of an older version shows what it has."""
-    old = {"schema": "deployer.report/1", "recipe": "line3.yaml", "devices": [
-        {"name": "<script>document.title='owned'</script>", "url": "tcp://10.0.0.11:502", "unit": 1,
-         "profile": "example-inverter", "status": "partial", "snapshot": None, "requests": [],
-         "parameters": [{"name": "F07", "address": 4354, "count": 2, "desired": "10 s </script><b>x",
-                         "desired_raw": [0, 1000], "before_raw": [0, 500], "after_raw": [0, 500],
-                         "status": "failed", "error": "exception 03 (illegal data value)"}]}],
-        "summary": {"devices": 1, "ok": 0, "partial": 1, "failed": 0, "unreachable": 0, "write_requests": 1,
-                    "read_requests": 2, "seconds": 0.2}}
+    old = {
+        "schema": "deployer.report/1",
+        "recipe": "line3.yaml",
+        "devices": [
+            {
+                "name": "<script>document.title='owned'</script>",
+                "url": "tcp://10.0.0.11:502",
+                "unit": 1,
+                "profile": "example-inverter",
+                "status": "partial",
+                "snapshot": None,
+                "requests": [],
+                "parameters": [
+                    {
+                        "name": "F07",
+                        "address": 4354,
+                        "count": 2,
+                        "desired": "10 s </script><b>x",
+                        "desired_raw": [0, 1000],
+                        "before_raw": [0, 500],
+                        "after_raw": [0, 500],
+                        "status": "failed",
+                        "error": "exception 03 (illegal data value)",
+                    }
+                ],
+            }
+        ],
+        "summary": {
+            "devices": 1,
+            "ok": 0,
+            "partial": 1,
+            "failed": 0,
+            "unreachable": 0,
+            "write_requests": 1,
+            "read_requests": 2,
+            "seconds": 0.2,
+        },
+    }
     report = tmp_path / "old.json"
     report.write_text(json.dumps(old))
     page = tmp_path / "old.html"

@@ -77,8 +77,11 @@ def brute_force(ds: list[Desired], limit: int, must: set[str]) -> tuple[int, int
         # contiguous pieces of at most `limit` registers: try every split
         groups: list[list[Desired]] = []
         for d in seq:
-            if groups and groups[-1][-1].parameter.end == d.parameter.address and \
-                    groups[-1][-1].parameter.stage == d.parameter.stage:
+            if (
+                groups
+                and groups[-1][-1].parameter.end == d.parameter.address
+                and groups[-1][-1].parameter.stage == d.parameter.stage
+            ):
                 groups[-1].append(d)
             else:
                 groups.append([d])
@@ -141,8 +144,7 @@ def test_every_named_register_written_once_and_nothing_else(case) -> None:  # ty
 def test_request_count_is_the_brute_force_minimum(case) -> None:  # type: ignore[no-untyped-def]
     ds, limits, _ = case
     _, writes = plan_writes(ds, limits)
-    assert (len(writes), sum(w.count for w in writes)) == brute_force(ds, limits.write_registers,
-                                                                       {d.name for d in ds})
+    assert (len(writes), sum(w.count for w in writes)) == brute_force(ds, limits.write_registers, {d.name for d in ds})
 
 
 @settings(max_examples=300, deadline=None)
@@ -292,7 +294,8 @@ def test_fc06_plans_write_each_named_register_once_in_order(case) -> None:  # ty
     assert [(w.address, w.registers[0]) for w in writes] == [
         (d.parameter.address + k, v)
         for d in sorted(changed, key=lambda d: (d.parameter.stage, d.parameter.address))
-        for k, v in enumerate(d.registers)]
+        for k, v in enumerate(d.registers)
+    ]
     assert {p.name for p in params if p.action == "write"} == {d.name for d in changed}
     assert all(p.action != "bridge" for p in params)  # one request per register: bridging saves nothing
 
@@ -451,23 +454,41 @@ def test_make_plan_reads_only_readable_recipe_parameters() -> None:
 def _plan() -> Plan:
     ds = [desired(param("a", 0, 2)), desired(param("b", 2)), desired(param("c", 3))]
     prof = Profile(id="t", parameters=tuple(d.parameter for d in ds))
-    return make_plan(Recipe("r", "r.yaml", prof, tuple(ds)), Target("tcp://h:502", 1, "t"),
-                     {"a": (0, 0), "b": ds[1].registers, "c": (0,)})
+    return make_plan(
+        Recipe("r", "r.yaml", prof, tuple(ds)),
+        Target("tcp://h:502", 1, "t"),
+        {"a": (0, 0), "b": ds[1].registers, "c": (0,)},
+    )
 
 
 def test_plan_json_has_the_design_shape_and_validates() -> None:
     data = json.loads(json.dumps(plan_to_json(_plan())))
     jsonschema.Draft202012Validator(schema.schema("plan")).validate(data)
-    assert set(data) == {"schema", "recipe", "device", "profile_sha256", "pacing", "parameters", "steps",
-                         "recipe_name"}
-    assert data["parameters"][0] == {"name": "a", "address": 0, "count": 2, "desired": "7", "desired_raw": [0, 7],
-                                     "current_raw": [0, 0], "action": "write", "stage": 0}
+    assert set(data) == {"schema", "recipe", "device", "profile_sha256", "pacing", "parameters", "steps", "recipe_name"}
+    assert data["parameters"][0] == {
+        "name": "a",
+        "address": 0,
+        "count": 2,
+        "desired": "7",
+        "desired_raw": [0, 7],
+        "current_raw": [0, 0],
+        "action": "write",
+        "stage": 0,
+    }
     assert data["steps"] == [
         {"kind": "snapshot", "function": 3, "address": 0, "count": 4, "parameters": ["a", "b", "c"]},
         {"kind": "device-id", "function": 43, "address": 0, "count": 1, "note": "vendor, product code, revision"},
-        {"kind": "write", "function": 16, "address": 0, "count": 4, "values": [0, 7, 7, 7],
-         "parameters": ["a", "b", "c"], "stage": 0},
-        {"kind": "verify", "function": 3, "address": 0, "count": 4, "parameters": ["a", "b", "c"]}]
+        {
+            "kind": "write",
+            "function": 16,
+            "address": 0,
+            "count": 4,
+            "values": [0, 7, 7, 7],
+            "parameters": ["a", "b", "c"],
+            "stage": 0,
+        },
+        {"kind": "verify", "function": 3, "address": 0, "count": 4, "parameters": ["a", "b", "c"]},
+    ]
     assert [p["action"] for p in data["parameters"]] == ["write", "bridge", "write"]
 
 
@@ -475,24 +496,33 @@ def _write(d: dict[str, Any]) -> dict[str, Any]:
     return next(s for s in d["steps"] if s["kind"] == "write")
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda d: _write(d)["values"].__setitem__(0, 65536), "65536 is greater than the maximum"),
-    (lambda d: d.pop("steps"), "'steps' is a required property"),
-    (lambda d: _write(d).__setitem__("count", 3), "count 3 but 4 values"),
-    (lambda d: d["parameters"][1].__setitem__("action", "unchanged"), "b is 'unchanged' but is in a write"),
-    (lambda d: _write(d).__setitem__("parameters", ["a", "b"]), "does not carry exactly"),
-    (lambda d: _write(d).__setitem__("parameters", ["a", "b", "zz"]), "names 'zz'"),
-    (lambda d: d["parameters"][0].__setitem__("desired_raw", [7]), "1 registers for count 2"),
-    (lambda d: _write(d).__setitem__("function", 6), "does not carry exactly"),
-    (lambda d: _write(d).__setitem__("function", 3), "function 3 does not fit a write step"),
-    (lambda d: d["steps"][0].__setitem__("values", [1, 2, 3, 4]), "a snapshot step reads: it carries no values"),
-    (lambda d: d["steps"].insert(0, dict(_write(d))), "a snapshot step after a later kind of step"),
-    (lambda d: d["steps"].append({"kind": "unlock", "function": 16, "address": 9, "count": 1, "values": [1],
-                                  "parameters": ["a"]}), "an unlock step after a later kind of step"),
-    (lambda d: d["steps"][0].__setitem__("expect", {"equals": 1}), "only identity and precondition steps"),
-    (lambda d: d.__setitem__("schema", "deployer.plan/1"), "make it again with: deployer plan r.yaml --device "
-                                                           "tcp://h:502 --out p.json"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda d: _write(d)["values"].__setitem__(0, 65536), "65536 is greater than the maximum"),
+        (lambda d: d.pop("steps"), "'steps' is a required property"),
+        (lambda d: _write(d).__setitem__("count", 3), "count 3 but 4 values"),
+        (lambda d: d["parameters"][1].__setitem__("action", "unchanged"), "b is 'unchanged' but is in a write"),
+        (lambda d: _write(d).__setitem__("parameters", ["a", "b"]), "does not carry exactly"),
+        (lambda d: _write(d).__setitem__("parameters", ["a", "b", "zz"]), "names 'zz'"),
+        (lambda d: d["parameters"][0].__setitem__("desired_raw", [7]), "1 registers for count 2"),
+        (lambda d: _write(d).__setitem__("function", 6), "does not carry exactly"),
+        (lambda d: _write(d).__setitem__("function", 3), "function 3 does not fit a write step"),
+        (lambda d: d["steps"][0].__setitem__("values", [1, 2, 3, 4]), "a snapshot step reads: it carries no values"),
+        (lambda d: d["steps"].insert(0, dict(_write(d))), "a snapshot step after a later kind of step"),
+        (
+            lambda d: d["steps"].append(
+                {"kind": "unlock", "function": 16, "address": 9, "count": 1, "values": [1], "parameters": ["a"]}
+            ),
+            "an unlock step after a later kind of step",
+        ),
+        (lambda d: d["steps"][0].__setitem__("expect", {"equals": 1}), "only identity and precondition steps"),
+        (
+            lambda d: d.__setitem__("schema", "deployer.plan/1"),
+            "make it again with: deployer plan r.yaml --device tcp://h:502 --out p.json",
+        ),
+    ],
+)
 def test_inconsistent_plans_are_refused_at_file_0_0(edit, message) -> None:  # type: ignore[no-untyped-def]
     data = json.loads(json.dumps(plan_to_json(_plan())))
     edit(data)
@@ -531,8 +561,9 @@ def test_plan_cost_numbers() -> None:
     rtu = (8 + 13) + (7 + 16) + (17 + 8) + (8 + 13)
     assert (c.requests, c.reads, c.writes, c.bytes, c.framing, c.line) == (4, 3, 1, rtu, "rtu", "19200 baud 8E1")
     assert c.seconds == pytest.approx((rtu + 8 * 3.5) * char, abs=1e-6) and c.waits == 0
-    broadcast = plan_cost(replace(plan, device=Target(None, 0, "t"), steps=tuple(
-        s for s in plan.steps if s.kind == "write")))
+    broadcast = plan_cost(
+        replace(plan, device=Target(None, 0, "t"), steps=tuple(s for s in plan.steps if s.kind == "write"))
+    )
     assert broadcast.bytes == 17  # unit 0: nobody answers, nothing is read
     assert broadcast.seconds == pytest.approx((17 + 3.5) * char, abs=1e-6)
     fc6 = replace(plan, steps=(Step("write", 6, 0, 1, (1,), ("a",)),))

@@ -39,16 +39,26 @@ def env(posixless: bool = True) -> dict[str, str]:
 
 
 def python(code: str, *args: str, posixless: bool = True, cwd: Path | None = None) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code), *args], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env(posixless), cwd=cwd)
+    return subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(code), *args],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env(posixless),
+        cwd=cwd,
+    )
 
 
 def test_the_lock_folder_does_not_follow_tmpdir(monkeypatch: pytest.MonkeyPatch) -> None:
     # a service, a login shell and each macOS user see other TMPDIRs: they must still share locks
     monkeypatch.delenv(lock.ENV, raising=False)
     monkeypatch.setenv("TMPDIR", os.path.join(os.sep, "somewhere", "else"))
-    expected = (os.path.join(os.environ.get("PROGRAMDATA", r"C:\ProgramData"), "deployer", "locks")
-                if sys.platform == "win32" else "/tmp/deployer-locks")
+    expected = (
+        os.path.join(os.environ.get("PROGRAMDATA", r"C:\ProgramData"), "deployer", "locks")
+        if sys.platform == "win32"
+        else "/tmp/deployer-locks"
+    )
     assert lock.lock_dir() == lock.default_lock_dir() == expected
     monkeypatch.setenv(lock.ENV, os.path.join(os.sep, "srv", "locks"))
     assert lock.lock_dir() == os.path.join(os.sep, "srv", "locks")
@@ -76,8 +86,9 @@ HOLDER = """
 """
 
 
-def holder(url: str, unit: int, *, hold: bool, posixless: bool,
-           wait: float = 0) -> tuple[subprocess.Popen[str], dict[str, object]]:
+def holder(
+    url: str, unit: int, *, hold: bool, posixless: bool, wait: float = 0
+) -> tuple[subprocess.Popen[str], dict[str, object]]:
     p = python(HOLDER, url, str(unit), "hold" if hold else "once", str(wait), posixless=posixless)
     assert p.stdout is not None
     line = p.stdout.readline()
@@ -148,8 +159,9 @@ def test_com_ports_in_device_urls() -> None:
 def test_a_com_port_elsewhere_is_said_plainly(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     rec = tmp_path / "r.yaml"
     rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
-    code, out, err = cli(capsys, "apply", str(rec), "--device", "rtu://COM3", "--yes",
-                         "--state-dir", str(tmp_path / "s"))
+    code, out, err = cli(
+        capsys, "apply", str(rec), "--device", "rtu://COM3", "--yes", "--state-dir", str(tmp_path / "s")
+    )
     said = " ".join((out + err).split())  # the console wraps long lines
     assert code == 3 and "no such serial device 'COM3' (COM ports are Windows' names" in said, said
     assert "Traceback" not in said
@@ -161,9 +173,10 @@ def test_scan_lists_serial_ports(capsys: pytest.CaptureFixture[str]) -> None:
     ports = json.loads(out)
     from serial.tools import list_ports
 
-    assert [p["device"] for p in ports] == sorted((str(p.device) for p in list_ports.comports()),
-                                                  key=lambda d: [int(t) if t.isdigit() else t
-                                                                 for t in re.split(r"(\d+)", d)])
+    assert [p["device"] for p in ports] == sorted(
+        (str(p.device) for p in list_ports.comports()),
+        key=lambda d: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", d)],
+    )
     assert all(p["url"].startswith("rtu://") for p in ports)
     code, out, err = cli(capsys, "scan", "tcp://127.0.0.1:1", "--list-ports")
     assert code == 1 and "without a URL" in err
@@ -174,12 +187,23 @@ def test_scan_lists_serial_ports(capsys: pytest.CaptureFixture[str]) -> None:
 # ---- file names and paths --------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("name", "safe"), [
-    ("line3/drive 7", "line3_drive_7"),
-    ("CON", "_CON"), ("aux", "_aux"), ("nul.old", "_nul.old"), ("COM1", "_COM1"), ("lpt9.x", "_lpt9.x"),
-    ("COM10", "COM10"), ("CONSOLE", "CONSOLE"), ("con-1", "con-1"),
-    ("drive.", "drive"), ("..", "_"), ("", "_"),
-])
+@pytest.mark.parametrize(
+    ("name", "safe"),
+    [
+        ("line3/drive 7", "line3_drive_7"),
+        ("CON", "_CON"),
+        ("aux", "_aux"),
+        ("nul.old", "_nul.old"),
+        ("COM1", "_COM1"),
+        ("lpt9.x", "_lpt9.x"),
+        ("COM10", "COM10"),
+        ("CONSOLE", "CONSOLE"),
+        ("con-1", "con-1"),
+        ("drive.", "drive"),
+        ("..", "_"),
+        ("", "_"),
+    ],
+)
 def test_file_names_from_device_and_recipe_names(name: str, safe: str) -> None:
     assert portable.file_name(name) == safe
 
@@ -189,8 +213,9 @@ def test_long_names_stay_apart_and_within_the_limit() -> None:
     assert a != b and len(a) == len(b) == portable.NAME_LIMIT
 
 
-def test_a_reserved_device_name_gets_a_snapshot_and_a_pulled_recipe(tmp_path: Path,
-                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_reserved_device_name_gets_a_snapshot_and_a_pulled_recipe(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     from deployer.profile import builtin_profile
     from deployer.state.snapshot import last_identity, snapshot_file
     from deployer.testing.simulator import SimulatorThread
@@ -286,14 +311,25 @@ def test_the_serial_transport_through_a_port_over_tcp(tmp_path: Path, capsys: py
     with SimulatorThread(builtin_profile("example-inverter"), listen="rtu+tcp://127.0.0.1:0") as sim:
         port = sim.url.rsplit(":", 1)[1]
         device = f"rtu://socket://127.0.0.1:{port}?baudrate=19200&parity=E"
-        code, out, err = cli(capsys, "apply", str(rec), "--device", device, "--yes",
-                             "--state-dir", str(tmp_path / "s"), "--report", str(tmp_path / "r.json"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            str(rec),
+            "--device",
+            device,
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+            "--report",
+            str(tmp_path / "r.json"),
+        )
         assert code == 0, out + err
         assert sim.read("base_speed") == (1750,) and sim.read("F07") == (0, 1000)
         writes = [e for e in sim.log if e.function in (6, 16)]
         assert writes and all(e.unit == 1 for e in sim.log)
-        code, out, err = cli(capsys, "rollback", "--from-report", str(tmp_path / "r.json"), "--yes",
-                             "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys, "rollback", "--from-report", str(tmp_path / "r.json"), "--yes", "--state-dir", str(tmp_path / "s")
+        )
         assert code == 0, out + err
         assert sim.read("base_speed") == (1500,)
 
@@ -303,8 +339,16 @@ def test_a_com_port_that_is_not_there_on_windows(tmp_path: Path, capsys: pytest.
     # pyserial's Windows backend opens \\.\COM250: the device namespace, as COM10 and above need
     rec = tmp_path / "r.yaml"
     rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n")
-    code, out, err = cli(capsys, "apply", str(rec), "--device", "rtu://COM250?baudrate=19200&parity=E", "--yes",
-                         "--state-dir", str(tmp_path / "s"))
+    code, out, err = cli(
+        capsys,
+        "apply",
+        str(rec),
+        "--device",
+        "rtu://COM250?baudrate=19200&parity=E",
+        "--yes",
+        "--state-dir",
+        str(tmp_path / "s"),
+    )
     said = " ".join((out + err).split())  # the console wraps long lines
     assert code == 3 and "rtu://COM250?baudrate=19200&parity=E: no such serial port COM250" in said, said
     assert "Traceback" not in said
@@ -315,16 +359,21 @@ def test_output_in_a_code_page_without_the_character(tmp_path: Path) -> None:
     # Windows writes to pipes and files in cp1252: a name it cannot encode is a '?', not a traceback
     rec = tmp_path / "r.yaml"
     rec.write_text("recipe: Ωmega\nprofile: example-inverter\nparameters:\n  F07: 10 s\n", encoding="utf-8")
-    p = subprocess.run([sys.executable, "-m", "deployer", "validate", str(rec)], capture_output=True,
-                       env={**env(posixless=False), "PYTHONIOENCODING": "cp1252", "PYTHONUTF8": "0"}, timeout=60)
+    p = subprocess.run(
+        [sys.executable, "-m", "deployer", "validate", str(rec)],
+        capture_output=True,
+        env={**env(posixless=False), "PYTHONIOENCODING": "cp1252", "PYTHONUTF8": "0"},
+        timeout=60,
+    )
     # stdout: Python's default there is to fail on such a character (stderr would escape it)
     assert p.returncode == 0 and b"ok (recipe ?mega" in p.stdout and b"Traceback" not in p.stderr, p.stderr
 
 
 def test_reserved_names_in_output_paths(tmp_path: Path) -> None:
-    assert [portable.reserved_name(p) for p in ("CON", "out/con.json", "x\\Aux.txt", "COM1.yaml", "CONSOLE.json",
-                                                 "com10.json", "report.json")] == [
-        "CON", "CON", "AUX", "COM1", None, None, None]
+    assert [
+        portable.reserved_name(p)
+        for p in ("CON", "out/con.json", "x\\Aux.txt", "COM1.yaml", "CONSOLE.json", "com10.json", "report.json")
+    ] == ["CON", "CON", "AUX", "COM1", None, None, None]
     if sys.platform == "win32":  # the same name is an ordinary file elsewhere
         with pytest.raises(durable.OutputRefused, match="Windows reserves the name CON"):
             durable.check_output(str(tmp_path / "con.json"))
@@ -361,8 +410,9 @@ def test_replace_retries_while_windows_has_the_file_open(tmp_path: Path, monkeyp
 
 
 @pytest.mark.portable
-def test_pymodbus_polling_as_on_windows_keeps_the_gaps(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+def test_pymodbus_polling_as_on_windows_keeps_the_gaps(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     # On Windows pymodbus polls a serial port (force_poll) instead of waiting on it; here it is made to poll
     # the socket:// port the same way, and a device that ignores requests sooner than 40 ms after its last
     # answer (the simulator's quirk) must see none: the gaps deployer keeps start when a reply is seen.
@@ -381,14 +431,23 @@ def test_pymodbus_polling_as_on_windows_keeps_the_gaps(tmp_path: Path, capsys: p
     monkeypatch.setattr(serialtransport.SerialTransport, "force_poll", True)
     monkeypatch.setattr(serialtransport.SerialTransport, "polling_task", polling_task)
     rec = tmp_path / "r.yaml"
-    rec.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n  F08: 8 s\n"
-                   "  base_speed: 1750 rpm\n")
-    with SimulatorThread(builtin_profile("example-inverter"), listen="rtu+tcp://127.0.0.1:0",
-                         quirks=Quirks(request_gap_ms=40)) as sim:
+    rec.write_text(
+        "recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10 s\n  F08: 8 s\n  base_speed: 1750 rpm\n"
+    )
+    with SimulatorThread(
+        builtin_profile("example-inverter"), listen="rtu+tcp://127.0.0.1:0", quirks=Quirks(request_gap_ms=40)
+    ) as sim:
         port = sim.url.rsplit(":", 1)[1]
-        code, out, err = cli(capsys, "apply", str(rec), "--device",
-                             f"rtu://socket://127.0.0.1:{port}?pause_between_requests=60ms", "--yes",
-                             "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            str(rec),
+            "--device",
+            f"rtu://socket://127.0.0.1:{port}?pause_between_requests=60ms",
+            "--yes",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0, out + err
         assert polls and sim.read("base_speed") == (1750,)
         assert [e for e in sim.log if e.result == "too soon"] == []
@@ -399,8 +458,13 @@ def test_what_mypy_cannot_see_goes_through_portable() -> None:
     # `mypy --platform win32` (make test) finds the os and signal names Windows lacks; these two exist there
     # but mean something else: os.kill(pid, 0) ends the process, add_signal_handler raises NotImplementedError
     package = ROOT / "deployer"
-    found = [f"{p.relative_to(ROOT)}: {what}" for p in sorted(package.rglob("*.py")) if p.name != "portable.py"
-             for what in ("os.kill(", ".add_signal_handler(") if what in p.read_text(encoding="utf-8")]
+    found = [
+        f"{p.relative_to(ROOT)}: {what}"
+        for p in sorted(package.rglob("*.py"))
+        if p.name != "portable.py"
+        for what in ("os.kill(", ".add_signal_handler(")
+        if what in p.read_text(encoding="utf-8")
+    ]
     assert found == [], "use deployer.portable (pid_alive, on_signals)"
 
 
@@ -411,8 +475,10 @@ def test_pyserials_windows_open_errors_said_by_the_ports_name() -> None:
 
     gone = r"could not open port '\\\\.\\COM7': FileNotFoundError(2, 'The system cannot find the file.', None, 2)"
     busy = r"could not open port '\\\\.\\COM3': PermissionError(13, 'Access is denied.', None, 5)"
-    assert _windows_open_error(gone, r"\\.\COM7") == ("no such serial port COM7 (deployer scan --list-ports shows this "
-                                                      "system's serial ports)")
-    assert _windows_open_error(busy, "com3") == ("COM3 is in use by another program (a terminal, a vendor's tool): "
-                                                 "close it and run again")
+    assert _windows_open_error(gone, r"\\.\COM7") == (
+        "no such serial port COM7 (deployer scan --list-ports shows this system's serial ports)"
+    )
+    assert _windows_open_error(busy, "com3") == (
+        "COM3 is in use by another program (a terminal, a vendor's tool): close it and run again"
+    )
     assert _windows_open_error("[Errno 2] could not open port /dev/ttyUSB9", "/dev/ttyUSB9") is None

@@ -26,24 +26,34 @@ from deployer.testing.simulator import SimulatorThread
 from tests.helpers import wait_for
 from tests.test_portable import env, python
 
-pytestmark = [pytest.mark.timeout(180),
-              pytest.mark.skipif(not sys.platform.startswith("linux"),
-                                 reason="the POSIX-less harness hides Linux's POSIX modules (Windows runs the "
-                                        "suite itself in CI)")]
+pytestmark = [
+    pytest.mark.timeout(180),
+    pytest.mark.skipif(
+        not sys.platform.startswith("linux"),
+        reason="the POSIX-less harness hides Linux's POSIX modules (Windows runs the suite itself in CI)",
+    ),
+]
 
 FIRST = "  F07: 10 s\n  F08: 8 s\n  stop_mode: coast\n  base_speed: 1750 rpm\n  preset[0]: {speed: 300, time: 2 s}\n"
 SECOND = "  F07: 20 s\n  F08: 9 s\n  stop_mode: ramp\n  base_speed: 1600 rpm\n  preset[0]: {speed: 900, time: 3 s}\n"
 
 
 def deployer(cwd: Path, *args: str) -> tuple[int, str, str]:
-    p = subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=90,
-                       cwd=cwd, env=env())
+    p = subprocess.run(
+        [sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=90, cwd=cwd, env=env()
+    )
     return p.returncode, p.stdout, p.stderr
 
 
 def start(cwd: Path, *args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "deployer", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=cwd, env=env())
+    return subprocess.Popen(
+        [sys.executable, "-m", "deployer", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=cwd,
+        env=env(),
+    )
 
 
 def recipe(tmp: Path, name: str, body: str) -> str:
@@ -130,13 +140,15 @@ def test_command_line_and_api_over_tcp_without_posix(tmp_path: Path) -> None:
         assert code == 0, out + err
         # a worker process without os.fork: this Python started again, as on Windows
         (tmp_path / "inv.yaml").write_text(f"devices:\n  one: {{url: '{url}'}}\n")
-        code, out, err = deployer(tmp_path, "apply", second, "--inventory", "inv.yaml", "--workers", "1", "--yes",
-                                  "--report", "w.json")
+        code, out, err = deployer(
+            tmp_path, "apply", second, "--inventory", "inv.yaml", "--workers", "1", "--yes", "--report", "w.json"
+        )
         assert code == 0 and sim.read("base_speed") == (1600,), out + err
         assert json.loads((tmp_path / "w.json").read_text())["devices"][0]["status"] == "ok"
         # a safe-change window: the lock held through a soak, then a confirmation from another process
-        code, out, err = deployer(tmp_path, "apply", first, "--device", url, "--yes", "--soak", "1s",
-                                  "--health-interval", "200ms")
+        code, out, err = deployer(
+            tmp_path, "apply", first, "--device", url, "--yes", "--soak", "1s", "--health-interval", "200ms"
+        )
         assert code == 0 and sim.read("base_speed") == (1750,), out + err
         w = start(tmp_path, "apply", second, "--device", url, "--yes", "--confirm-within", "60s")
         wait_for(lambda: "confirm-awaited" in (tmp_path / ".deployer" / "audit.jsonl").read_text(), "the wait")
@@ -145,7 +157,8 @@ def test_command_line_and_api_over_tcp_without_posix(tmp_path: Path) -> None:
         assert w.wait(timeout=60) == 0, w.communicate()
         assert sim.read("base_speed") == (1600,)
 
-        api = python("""
+        api = python(
+            """
             import json, sys
             from deployer import api
             r = api.load_recipe(sys.argv[2])
@@ -153,7 +166,11 @@ def test_command_line_and_api_over_tcp_without_posix(tmp_path: Path) -> None:
             rep = api.apply(r, sys.argv[1], state_dir="api-state")
             print(json.dumps({"writes": len(plan.writes), "exit": rep.exit_code, "drift": len(api.diff(r, sys.argv[1])),
                               "status": rep.devices[0].status}))
-        """, url, first, cwd=tmp_path)
+        """,
+            url,
+            first,
+            cwd=tmp_path,
+        )
         out, err = api.communicate(timeout=90)
         assert api.returncode == 0, err
         assert json.loads(out) == {"writes": json.loads(out)["writes"], "exit": 0, "drift": 0, "status": "ok"}
@@ -169,8 +186,9 @@ def test_one_writer_per_device_and_ctrl_c_without_posix(tmp_path: Path) -> None:
         sim.faults.latency_ms = 300  # each answer takes 0.3 s: the first run holds its lock for seconds
         a = start(tmp_path, "apply", first, "--device", f"tcp://127.0.0.1:{port}", "--yes", "--state-dir", "sa")
         wait_for(lambda: a.pid in holders(), "the first run's lock")
-        code, out, err = deployer(tmp_path, "apply", second, "--device", f"tcp://localhost:{port}", "--yes",
-                                  "--state-dir", "sb")
+        code, out, err = deployer(
+            tmp_path, "apply", second, "--device", f"tcp://localhost:{port}", "--yes", "--state-dir", "sb"
+        )
         assert a.wait(timeout=60) == 0, a.communicate()[1]
         assert code == 3 and f"locked by PID {a.pid}" in out + err, out + err
         assert sim.read("base_speed") == (1750,)  # only the first run wrote
@@ -218,8 +236,7 @@ def test_the_agent_without_posix(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
             ino = next((tmp_path / "state").rglob("agent.lock")).stat().st_ino
             held = [ln.split() for ln in Path("/proc/locks").read_text().splitlines()]
             assert any(f[1] == "OFDLCK" and f[5].endswith(f":{ino}") and f[6] == str(1 << 30) for f in held), held
-            code, out, err = deployer(tmp_path, "apply", "r.yaml", "--device", sim.url, "--yes",
-                                      "--state-dir", "other")
+            code, out, err = deployer(tmp_path, "apply", "r.yaml", "--device", sim.url, "--yes", "--state-dir", "other")
             assert code == 3 and "owned by the deployer agent" in " ".join((out + err).split()), out + err
             assert agent.terminate() == 0, agent.log()
         finally:
@@ -231,8 +248,20 @@ def test_ctrl_c_during_a_soak_rolls_back_without_posix(tmp_path: Path) -> None:
     second = recipe(tmp_path, "second", SECOND)
     with SimulatorThread(builtin_profile("example-inverter")) as sim:
         before = sim.registers()
-        c = start(tmp_path, "apply", second, "--device", sim.url, "--yes", "--soak", "1h", "--health-interval",
-                  "100ms", "--state-dir", "s")
+        c = start(
+            tmp_path,
+            "apply",
+            second,
+            "--device",
+            sim.url,
+            "--yes",
+            "--soak",
+            "1h",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            "s",
+        )
         try:
             audit = tmp_path / "s" / "audit.jsonl"
             wait_for(lambda: audit.exists() and "soak-started" in audit.read_text(), "the soak")

@@ -29,7 +29,8 @@ pytestmark = pytest.mark.timeout(300)
 
 N = 12  # parameters, each in its own write request (gaps between them), read in one request
 PROFILE = "profile: slow\nlimits: {max_read_gap: 9}\nparameters:\n" + "".join(
-    f"  p{i}: {{register: {10 * i}, type: uint16}}\n" for i in range(N))
+    f"  p{i}: {{register: {10 * i}, type: uint16}}\n" for i in range(N)
+)
 RECIPE = "recipe: new\nprofile: slow.yaml\nparameters:\n" + "".join(f"  p{i}: 7\n" for i in range(N))
 
 
@@ -54,14 +55,25 @@ def writes(sim: Simulator) -> int:
 
 
 def start(*args: str, cwd: Path) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "deployer", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=cwd,
-                            env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)})
+    return subprocess.Popen(
+        [sys.executable, "-m", "deployer", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)},
+    )
 
 
 def deployer(*args: str, cwd: Path) -> tuple[int, str, str]:
-    p = subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=120,
-                       cwd=cwd, env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)})
+    p = subprocess.run(
+        [sys.executable, "-m", "deployer", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)},
+    )
     return p.returncode, p.stdout, p.stderr
 
 
@@ -78,8 +90,9 @@ def fleet(files: Path) -> Iterator[list[Simulator]]:
         for i, s in enumerate(sims):
             for k, v in enumerate(before(i)):
                 s.write(f"p{k}", (v,))
-        (files / "fleet.yaml").write_text("defaults: {timeout: 5}\ndevices:\n" + "".join(
-            f"  d{i}: {{url: '{s.url}'}}\n" for i, s in enumerate(sims)))
+        (files / "fleet.yaml").write_text(
+            "defaults: {timeout: 5}\ndevices:\n" + "".join(f"  d{i}: {{url: '{s.url}'}}\n" for i, s in enumerate(sims))
+        )
         yield sims
 
 
@@ -90,14 +103,29 @@ def half_way(sims: list[Simulator]) -> bool:
 
 
 def fleet_apply(files: Path, workers: int = 0) -> subprocess.Popen[str]:
-    return start("apply", "new.yaml", "--inventory", "fleet.yaml", "--parallel", "4", "--yes",
-                 "--report", "run.json", "--state-dir", "state", "--workers", str(workers), cwd=files)
+    return start(
+        "apply",
+        "new.yaml",
+        "--inventory",
+        "fleet.yaml",
+        "--parallel",
+        "4",
+        "--yes",
+        "--report",
+        "run.json",
+        "--state-dir",
+        "state",
+        "--workers",
+        str(workers),
+        cwd=files,
+    )
 
 
 # in this process, and in two worker processes (fleet.workers): the same outcome, the same report
 @pytest.mark.parametrize("workers", [0, 2])
 def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
-        files: Path, fleet: list[Simulator], workers: int) -> None:
+    files: Path, fleet: list[Simulator], workers: int
+) -> None:
     with reaped(fleet_apply(files, workers)) as proc:
         wait_for(lambda: half_way(fleet), "devices half-written")
         children = process_children(proc.pid)  # its workers (Linux)
@@ -128,8 +156,9 @@ def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
     for k, path in enumerate(logged):
         Path(path).write_bytes(b"") if k == 0 else Path(path).unlink()
 
-    code, out, err = deployer("rollback", "--from-report", "run.json", "--yes", "--state-dir", "state",
-                              "--report", "back.json", cwd=files)
+    code, out, err = deployer(
+        "rollback", "--from-report", "run.json", "--yes", "--state-dir", "state", "--report", "back.json", cwd=files
+    )
     assert code == 0, out + err
     if logged:
         assert f"restored {len(logged)} snapshot(s)" in err
@@ -148,8 +177,9 @@ def test_kill_9_mid_fleet_then_rollback_from_the_report_restores_every_device(
 
 
 @pytest.mark.parametrize("workers", [0, 2])
-def test_sigint_mid_fleet_ends_with_an_exact_report_and_rolls_back(files: Path, fleet: list[Simulator],
-                                                                   workers: int) -> None:
+def test_sigint_mid_fleet_ends_with_an_exact_report_and_rolls_back(
+    files: Path, fleet: list[Simulator], workers: int
+) -> None:
     with reaped(fleet_apply(files, workers)) as proc:
         wait_for(lambda: half_way(fleet), "devices half-written")
         proc.send_signal(signal.SIGINT)
@@ -193,8 +223,9 @@ def test_sigterm_mid_apply_of_one_device(files: Path) -> None:
     with SimulatorThread(prof, faults=Faults(latency_ms=150), gap_reads=True) as sim:
         for k, v in enumerate(before(0)):
             sim.write(f"p{k}", (v,))
-        proc = start("apply", "new.yaml", "--device", sim.url, "--yes", "--report", "one.json",
-                     "--state-dir", "state", cwd=files)
+        proc = start(
+            "apply", "new.yaml", "--device", sim.url, "--yes", "--report", "one.json", "--state-dir", "state", cwd=files
+        )
         wait_for(lambda: 2 <= writes(sim) <= N - 6, "writes")
         # the report file was written before the first request, like a fleet's
         first = read_report(str(files / "one.json"))
@@ -206,7 +237,8 @@ def test_sigterm_mid_apply_of_one_device(files: Path) -> None:
         assert dev["status"] == "interrupted" and dev["snapshot"] and os.path.isfile(dev["snapshot"])
         assert f"undo with: deployer rollback {dev['snapshot']}" in err and "interrupted (SIGTERM)" in err
         assert any(r["result"] == "interrupted" for r in dev["requests"]) or writes(sim) == sum(
-            1 for r in dev["requests"] if r["function"] == 16)
+            1 for r in dev["requests"] if r["function"] == 16
+        )
         now = holds(sim)
         for k, p in enumerate(dev["parameters"]):
             if p["status"] == "skipped":
@@ -238,8 +270,14 @@ def test_an_api_apply_is_journaled_and_status_sees_it_killed(files: Path) -> Non
         script = files / "api_run.py"
         script.write_text(API_RUN)
         env = {**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)}
-        p = subprocess.run([sys.executable, str(script), "new.yaml", sim.url, "state"], capture_output=True,
-                           text=True, cwd=files, env=env, timeout=120)
+        p = subprocess.run(
+            [sys.executable, str(script), "new.yaml", sim.url, "state"],
+            capture_output=True,
+            text=True,
+            cwd=files,
+            env=env,
+            timeout=120,
+        )
         assert p.returncode == 0, p.stderr
         run, exit_code = p.stdout.split()
         assert exit_code == "0"
@@ -251,8 +289,13 @@ def test_an_api_apply_is_journaled_and_status_sees_it_killed(files: Path) -> Non
         for k, v in enumerate(before(0)):
             sim.write(f"p{k}", (v,))
         sim.log.clear()
-        proc = subprocess.Popen([sys.executable, str(script), "new.yaml", sim.url, "state"], cwd=files, env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc = subprocess.Popen(
+            [sys.executable, str(script), "new.yaml", sim.url, "state"],
+            cwd=files,
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         wait_for(lambda: writes(sim) >= 2, "writes")
         proc.kill()
         proc.wait(timeout=30)
@@ -293,8 +336,9 @@ def test_an_edited_snapshot_is_refused_unless_accepted(files: Path) -> None:
     with SimulatorThread(prof, gap_reads=True) as sim:
         for k, v in enumerate(before(0)):
             sim.write(f"p{k}", (v,))
-        code, out, err = deployer("apply", "new.yaml", "--device", sim.url, "--yes", "--report", "run.json",
-                                  "--state-dir", "state", cwd=files)
+        code, out, err = deployer(
+            "apply", "new.yaml", "--device", sim.url, "--yes", "--report", "run.json", "--state-dir", "state", cwd=files
+        )
         assert code == 0, out + err
         dev = json.loads((files / "run.json").read_text())["devices"][0]
         snap = Path(dev["snapshot"])
@@ -315,8 +359,9 @@ def test_an_edited_snapshot_is_refused_unless_accepted(files: Path) -> None:
         # --force (the profile changed) is not that consent
         code, out, err = deployer("rollback", str(snap), "--yes", "--force", "--state-dir", "state", cwd=files)
         assert code == 1 and writes(sim) == writes_before
-        code, out, err = deployer("rollback", str(snap), "--yes", "--accept-edited-snapshot", "--state-dir", "state",
-                                  cwd=files)
+        code, out, err = deployer(
+            "rollback", str(snap), "--yes", "--accept-edited-snapshot", "--state-dir", "state", cwd=files
+        )
         assert code == 0 and "restoring it as it is now" in err, out + err
         assert holds(sim) == (555, *before(0)[1:])
         # a copy no report or journal knows: restored, with a plain notice that it could not be checked
@@ -330,14 +375,17 @@ def test_an_edited_snapshot_is_refused_unless_accepted(files: Path) -> None:
 
 def test_a_rollout_and_its_retry_roll_back_in_one_command(files: Path) -> None:
     prof = load_profile(files / "slow.yaml")
-    sims = [Simulator(prof, gap_reads=True, faults=Faults(fail_registers=frozenset({50}) if i == 1 else frozenset()))
-            for i in range(3)]
+    sims = [
+        Simulator(prof, gap_reads=True, faults=Faults(fail_registers=frozenset({50}) if i == 1 else frozenset()))
+        for i in range(3)
+    ]
     with Simulators(sims):
         for i, s in enumerate(sims):
             for k, v in enumerate(before(i)):
                 s.write(f"p{k}", (v,))
-        (files / "fleet.yaml").write_text("devices:\n" + "".join(f"  d{i}: {{url: '{s.url}'}}\n"
-                                                                 for i, s in enumerate(sims)))
+        (files / "fleet.yaml").write_text(
+            "devices:\n" + "".join(f"  d{i}: {{url: '{s.url}'}}\n" for i, s in enumerate(sims))
+        )
         run = ("apply", "new.yaml", "--inventory", "fleet.yaml", "--yes", "--state-dir", "state")
         code, out, err = deployer(*run, "--report", "run1.json", cwd=files)
         assert code == 4, out + err
@@ -348,8 +396,16 @@ def test_a_rollout_and_its_retry_roll_back_in_one_command(files: Path) -> None:
         assert all(holds(s) == (7,) * N for s in sims)
         # someone changed d0 since: with --all-or-nothing refused, nothing sent, unless --even-if-changed
         sims[0].write("p3", (42,))
-        back = ("rollback", "--from-report", "run1.json", "--from-report", "retry2.json", "--yes",
-                "--state-dir", "state")
+        back = (
+            "rollback",
+            "--from-report",
+            "run1.json",
+            "--from-report",
+            "retry2.json",
+            "--yes",
+            "--state-dir",
+            "state",
+        )
         code, out, err = deployer(*back, "--all-or-nothing", cwd=files)
         assert code == 1 and "d0 no longer holds what the run wrote (p3)" in err and "--even-if-changed" in err
         assert holds(sims[0])[3] == 42 and holds(sims[2]) == (7,) * N
@@ -368,8 +424,9 @@ def test_rollback_force_restores_only_where_the_snapshot_read(files: Path) -> No
     with SimulatorThread(prof, gap_reads=True) as sim:
         for k, v in enumerate(before(0)):
             sim.write(f"p{k}", (v,))
-        code, out, err = deployer("apply", "new.yaml", "--device", sim.url, "--yes", "--json", "--state-dir", "state",
-                                  cwd=files)
+        code, out, err = deployer(
+            "apply", "new.yaml", "--device", sim.url, "--yes", "--json", "--state-dir", "state", cwd=files
+        )
         assert code == 0, err
         snap = json.loads(out)["devices"][0]["snapshot"]
         assert "  addresses:\n    p0: [0, 1]\n    p1: [10, 1]\n" in Path(snap).read_text()
@@ -379,8 +436,9 @@ def test_rollback_force_restores_only_where_the_snapshot_read(files: Path) -> No
         assert code == 1 and "changed since this snapshot was taken" in err
         writes_before = writes(sim)
         # with another parameter now at 10, restoring p1 there would write over it: refused, nothing sent
-        (files / "slow.yaml").write_text(PROFILE.replace("p1: {register: 10,", "p1: {register: 12,")
-                                         + "  q: {register: 10, type: uint16}\n")
+        (files / "slow.yaml").write_text(
+            PROFILE.replace("p1: {register: 10,", "p1: {register: 12,") + "  q: {register: 10, type: uint16}\n"
+        )
         code, out, err = deployer("rollback", snap, "--yes", "--force", "--state-dir", "state", cwd=files)
         assert code == 1 and "p1 moved: the snapshot read it at 10 (0x000A)" in err and "q at 10" in err, err
         assert writes(sim) == writes_before

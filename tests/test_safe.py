@@ -41,8 +41,10 @@ def recipe(tmp: Path, f07: str, url: str | None = None, name: str = "r.yaml") ->
 
 def inventory(tmp: Path, urls: dict[str, str]) -> str:
     p = tmp / "inventory.yaml"
-    p.write_text("defaults: {timeout: 2.0, retries: 1}\ndevices:\n"
-                 + "".join(f"  {n}: {{url: '{u}'}}\n" for n, u in urls.items()))
+    p.write_text(
+        "defaults: {timeout: 2.0, retries: 1}\ndevices:\n"
+        + "".join(f"  {n}: {{url: '{u}'}}\n" for n, u in urls.items())
+    )
     return str(p)
 
 
@@ -56,15 +58,18 @@ def reads_of(log: list[LogEntry], address: int) -> list[int]:
 
 
 def deployer(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "deployer", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "deployer", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
 
 
 # ---- profiles and durations -----------------------------------------------------------------------
 
 
 def test_health_checks_load_with_bits_ranges_and_input_registers(tmp_path: Path) -> None:
-    prof = profile_from(tmp_path, """profile: p
+    prof = profile_from(
+        tmp_path,
+        """profile: p
 addressing: modicon
 health:
   - {register: 40049, equals: 0, description: drive fault code is zero}
@@ -72,7 +77,8 @@ health:
   - {register: 30010, register_type: input, min: 100, max: 850, description: DC bus}
 parameters:
   x: {register: 40065, type: uint16}
-""")
+""",
+    )
     fault, alarm, bus = prof.health
     assert (fault.address, fault.function, fault.holds(0), fault.holds(7)) == (48, 3, True, False)
     assert alarm.holds(0xFFF7) and not alarm.holds(0x0008)
@@ -81,8 +87,10 @@ parameters:
     assert alarm.failure(8) == "register 0x0031 bit 3 (no alarm) is 1, expected 0"
 
 
-@pytest.mark.parametrize(("text", "seconds"), [("250ms", 0.25), ("30s", 30), ("5m", 300), ("1h", 3600),
-                                               ("1.5 s", 1.5), ("2", 2), ("2min", 120)])
+@pytest.mark.parametrize(
+    ("text", "seconds"),
+    [("250ms", 0.25), ("30s", 30), ("5m", 300), ("1h", 3600), ("1.5 s", 1.5), ("2", 2), ("2min", 120)],
+)
 def test_durations(text: str, seconds: float) -> None:
     assert parse_duration(text) == seconds
     assert parse_duration(format_duration(seconds)) == seconds
@@ -112,8 +120,19 @@ def test_soak_without_health_checks_is_refused_up_front(capsys: pytest.CaptureFi
 
 def test_a_healthy_soak_ends_ok_and_the_commit_follows_it(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with SimulatorThread(PROFILE) as sim:
-        code, out, err = cli(capsys, "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "300ms",
-                             "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--json",
+            "--soak",
+            "300ms",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0 and "watching the health of ramp for 300ms (every 100ms)" in err
         dev = json.loads(out)["devices"][0]
         assert dev["status"] == "ok" and dev["commit"] == "sent"
@@ -127,13 +146,26 @@ def test_a_healthy_soak_ends_ok_and_the_commit_follows_it(capsys: pytest.Capture
     assert events.index("soak-started") < events.index("soak-finished") < events.index("commit")
 
 
-def test_a_fault_during_the_soak_rolls_back_exactly_and_never_commits(capsys: pytest.CaptureFixture[str],
-                                                                      tmp_path: Path) -> None:
+def test_a_fault_during_the_soak_rolls_back_exactly_and_never_commits(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     with SimulatorThread(PROFILE, faults=Faults(rules=(TRIP,))) as sim:
         before = sim.registers()
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "1.5 s", sim.url), "--yes", "--json", "--soak", "1h",
-                           "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"),
-                           "--report", str(tmp_path / "run.json"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "1.5 s", sim.url),
+            "--yes",
+            "--json",
+            "--soak",
+            "1h",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(tmp_path / "s"),
+            "--report",
+            str(tmp_path / "run.json"),
+        )
         after = sim.registers()
         log = list(sim.log)
     assert code == 4
@@ -153,10 +185,14 @@ def test_a_fault_during_the_soak_rolls_back_exactly_and_never_commits(capsys: py
     failed = next(r for r in journal if r["event"] == "health-failed")
     assert "is 7, expected 0" in failed["reason"]
     assert [r["event"] for r in journal if r["event"] in ("soak-started", "rolled-back", "soak-finished")] == [
-        "soak-started", "rolled-back", "soak-finished"]
+        "soak-started",
+        "rolled-back",
+        "soak-finished",
+    ]
     # a rollback from that report leaves the device alone: it was already restored
-    code, _, err = cli(capsys, "rollback", "--report", str(tmp_path / "run.json"), "--yes",
-                       "--state-dir", str(tmp_path / "s"))
+    code, _, err = cli(
+        capsys, "rollback", "--report", str(tmp_path / "run.json"), "--yes", "--state-dir", str(tmp_path / "s")
+    )
     assert code == 1 and "already rolled it back" in err
 
 
@@ -167,13 +203,27 @@ def test_a_fault_written_by_mbpoll_during_the_soak_rolls_back(tmp_path: Path) ->
     with SimulatorThread(PROFILE) as sim:
         before = sim.registers()
         state = tmp_path / "s"
-        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "1h",
-                        "--health-interval", "100ms", "--state-dir", str(state))
+        proc = deployer(
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--json",
+            "--soak",
+            "1h",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(state),
+        )
         try:
             wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 2)  # the soak is under way
             port = sim.url.rsplit(":", 1)[1]
-            poke = subprocess.run([MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", "-r", str(FAULT), "-t",
-                                   "4", "127.0.0.1", "9"], capture_output=True, text=True, timeout=30)
+            poke = subprocess.run(
+                [MBPOLL, "-m", "tcp", "-p", port, "-a", "1", "-0", "-1", "-r", str(FAULT), "-t", "4", "127.0.0.1", "9"],
+                capture_output=True,
+                text=True,
+                timeout=30,
+            )
             assert poke.returncode == 0, poke.stdout + poke.stderr
             out, err = proc.communicate(timeout=120)
         finally:
@@ -193,9 +243,12 @@ def test_the_simulator_trips_only_when_the_rule_holds(tmp_path: Path) -> None:
     coast = parse_fault_rule("stop_mode == coast: 0x2000=3", PROFILE)
     assert coast.by_label and coast.value == 1
     assert parse_fault_rule("F07 <= 1500 ms: 8192=1", PROFILE).value == 1.5
-    for bad, why in [("F07 ~ 2 s: 1=1", "not a fault rule"),
-                     ("nope < 2: 1=1", "not a numeric holding-register parameter"),
-                     ("F07 < 2 Hz: 1=1", "convertible"), ("F07 < x: 1=1", "not a number")]:
+    for bad, why in [
+        ("F07 ~ 2 s: 1=1", "not a fault rule"),
+        ("nope < 2: 1=1", "not a numeric holding-register parameter"),
+        ("F07 < 2 Hz: 1=1", "convertible"),
+        ("F07 < x: 1=1", "not a number"),
+    ]:
         with pytest.raises(ValueError, match=why):
             parse_fault_rule(bad, PROFILE)
     with pytest.raises(ValueError, match="not declared"):
@@ -203,19 +256,34 @@ def test_the_simulator_trips_only_when_the_rule_holds(tmp_path: Path) -> None:
 
 
 def test_health_on_input_registers_reads_function_04(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    prof = profile_from(tmp_path, """profile: p
+    prof = profile_from(
+        tmp_path,
+        """profile: p
 health:
   - {register: 0x10, register_type: input, max: 850, description: DC bus below 850}
 commit:
   - {register: 0x20, raw: 1, description: store}
 parameters:
   x: {register: 0x40, type: uint16}
-""", "p.yaml")
+""",
+        "p.yaml",
+    )
     with SimulatorThread(prof, init={prof.health[0].key: 900}) as sim:
         r = tmp_path / "r.yaml"
         r.write_text(f"recipe: r\nprofile: p.yaml\ndevice: {{url: '{sim.url}'}}\nparameters:\n  x: 5\n")
-        code, out, _ = cli(capsys, "apply", str(r), "--yes", "--json", "--soak", "10s", "--health-interval", "100ms",
-                           "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            str(r),
+            "--yes",
+            "--json",
+            "--soak",
+            "10s",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         log = list(sim.log)
         assert sim.read("x") == (0,)
     assert code == 4
@@ -230,13 +298,18 @@ parameters:
 def test_confirmed_from_another_shell_sends_the_commit(tmp_path: Path) -> None:
     state = str(tmp_path / "s")
     with SimulatorThread(PROFILE) as sim:
-        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--confirm-within", "1h",
-                        "--state-dir", state)
+        proc = deployer(
+            "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--confirm-within", "1h", "--state-dir", state
+        )
         try:
             wait_for(lambda: bool(awaiting(state)) or proc.poll() is not None)
             assert writes_to(list(sim.log), COMMIT) == []  # held back while it waits
-            confirmed = subprocess.run([sys.executable, "-m", "deployer", "confirm", "--state-dir", state],
-                                       capture_output=True, text=True, timeout=60)
+            confirmed = subprocess.run(
+                [sys.executable, "-m", "deployer", "confirm", "--state-dir", state],
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
             assert confirmed.returncode == 0, confirmed.stderr
             out, err = proc.communicate(timeout=120)
         finally:
@@ -253,12 +326,20 @@ def test_confirmed_from_another_shell_sends_the_commit(tmp_path: Path) -> None:
     assert not os.listdir(os.path.join(state, "pending"))  # the report kept while waiting is gone
 
 
-def test_not_confirmed_in_time_rolls_back_without_a_commit(capsys: pytest.CaptureFixture[str],
-                                                           tmp_path: Path) -> None:
+def test_not_confirmed_in_time_rolls_back_without_a_commit(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with SimulatorThread(PROFILE) as sim:
         before = sim.registers()
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json",
-                           "--confirm-within", "200ms", "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--json",
+            "--confirm-within",
+            "200ms",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         after = sim.registers()
         log = list(sim.log)
     assert code == 4
@@ -269,13 +350,15 @@ def test_not_confirmed_in_time_rolls_back_without_a_commit(capsys: pytest.Captur
     assert "confirm-expired" in events and "rolled-back" in events
 
 
-def test_a_killed_waiter_is_shown_by_status_and_its_restore_command_works(capsys: pytest.CaptureFixture[str],
-                                                                          tmp_path: Path) -> None:
+def test_a_killed_waiter_is_shown_by_status_and_its_restore_command_works(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     state = str(tmp_path / "s")
     with SimulatorThread(PROFILE) as sim:
         before = sim.registers()
-        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--confirm-within", "1h",
-                        "--state-dir", state)
+        proc = deployer(
+            "apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--confirm-within", "1h", "--state-dir", state
+        )
         try:
             wait_for(lambda: bool(awaiting(state)) or proc.poll() is not None)
         finally:
@@ -291,7 +374,8 @@ def test_a_killed_waiter_is_shown_by_status_and_its_restore_command_works(capsys
         assert code == 0, err
         # restored; a rollback then stores the restored values (the profile's commit), as every rollback does
         assert {a: v for a, v in sim.registers().items() if a != COMMIT} == {
-            a: v for a, v in before.items() if a != COMMIT}
+            a: v for a, v in before.items() if a != COMMIT
+        }
 
 
 def test_confirm_without_a_waiting_run_says_so(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -302,13 +386,28 @@ def test_confirm_without_a_waiting_run_says_so(capsys: pytest.CaptureFixture[str
 # ---- fleets -----------------------------------------------------------------------------------------
 
 
-def test_a_canary_failing_health_is_rolled_back_and_the_rest_skipped(capsys: pytest.CaptureFixture[str],
-                                                                     tmp_path: Path) -> None:
+def test_a_canary_failing_health_is_rolled_back_and_the_rest_skipped(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults(rules=(TRIP,)) if i == 0 else None) for i in range(4)]) as sims:
         urls = {f"d{i}": s.url for i, s in enumerate(sims)}
-        code, out, err = cli(capsys, "apply", recipe(tmp_path, "1.5 s"), "--inventory", inventory(tmp_path, urls),
-                             "--yes", "--json", "--batch", "1,100%", "--soak", "1h", "--health-interval", "100ms",
-                             "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "1.5 s"),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--json",
+            "--batch",
+            "1,100%",
+            "--soak",
+            "1h",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         logs = [list(s.log) for s in sims]
     assert code == 4
     assert "d0: rolled-back - health check failed after" in err  # a progress line when the soak rolls it back
@@ -321,16 +420,32 @@ def test_a_canary_failing_health_is_rolled_back_and_the_rest_skipped(capsys: pyt
         assert log == []
 
 
-def test_rollback_on_failure_restores_the_devices_that_passed(capsys: pytest.CaptureFixture[str],
-                                                               tmp_path: Path) -> None:
+def test_rollback_on_failure_restores_the_devices_that_passed(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     """Batch 1 = d0 (healthy) and d1 (trips): d1 is rolled back by its soak, the rollout stops, and
     --rollback-on-failure restores d0 too (its committed values are committed back)."""
     with Simulators([Simulator(PROFILE, faults=Faults(rules=(TRIP,)) if i == 1 else None) for i in range(3)]) as sims:
         before = [s.registers() for s in sims]
         urls = {f"d{i}": s.url for i, s in enumerate(sims)}
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "1.5 s"), "--inventory", inventory(tmp_path, urls),
-                           "--yes", "--json", "--batch", "2,100%", "--soak", "300ms", "--health-interval", "100ms",
-                           "--rollback-on-failure", "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "1.5 s"),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--json",
+            "--batch",
+            "2,100%",
+            "--soak",
+            "300ms",
+            "--health-interval",
+            "100ms",
+            "--rollback-on-failure",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         after = [s.registers() for s in sims]
         logs = [list(s.log) for s in sims]
     assert code == 4
@@ -349,9 +464,25 @@ def test_rollback_on_failure_restores_the_devices_that_passed(capsys: pytest.Cap
 def test_health_failures_count_against_max_failures(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults(rules=(TRIP,)) if i == 1 else None) for i in range(4)]) as sims:
         urls = {f"d{i}": s.url for i, s in enumerate(sims)}
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "1.5 s"), "--inventory", inventory(tmp_path, urls),
-                           "--yes", "--json", "--batch", "1", "--soak", "200ms", "--health-interval", "100ms",
-                           "--max-failures", "1", "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "1.5 s"),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--json",
+            "--batch",
+            "1",
+            "--soak",
+            "200ms",
+            "--health-interval",
+            "100ms",
+            "--max-failures",
+            "1",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
     statuses = [d["status"] for d in json.loads(out)["devices"]]
     assert code == 4 and statuses == ["ok", "rolled-back", "skipped", "skipped"]
 
@@ -367,24 +498,44 @@ def test_ask_needs_a_terminal_and_pause_needs_batches(capsys: pytest.CaptureFixt
 def test_pause_between_batches_is_announced(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE) for _ in range(2)]) as sims:
         urls = {f"d{i}": s.url for i, s in enumerate(sims)}
-        code, _, err = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", inventory(tmp_path, urls),
-                           "--yes", "--batch", "1", "--pause", "100ms", "--state-dir", str(tmp_path / "s"))
+        code, _, err = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "3 s"),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--batch",
+            "1",
+            "--pause",
+            "100ms",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
     assert code == 0 and "batch 1 done (1 ok); batch 2 starts in 100ms" in err
 
 
 # ---- the Ansible module --------------------------------------------------------------------------
 
 
-@pytest.mark.skipif(not Path(sys.executable).with_name("ansible-playbook").exists()
-                    and shutil.which("ansible-playbook") is None, reason="ansible-core is a test extra")
+@pytest.mark.skipif(
+    not Path(sys.executable).with_name("ansible-playbook").exists() and shutil.which("ansible-playbook") is None,
+    reason="ansible-core is a test extra",
+)
 def test_the_ansible_module_soaks_and_rolls_back_a_tripping_device(tmp_path: Path) -> None:
     from tests.test_ansible import inventory as hosts
     from tests.test_ansible import playbook, recap
 
     recipe_file = Path(recipe(tmp_path, "1.5 s"))
     with Simulators([Simulator(PROFILE, faults=Faults(rules=(TRIP,)) if i == 3 else None) for i in range(4)]) as sims:
-        code, out, _ = playbook(tmp_path, hosts(tmp_path, {"site-a": sims[:2], "site-b": sims[2:]}, recipe_file),
-                                "-e", "deployer_soak=300ms", "-e", "deployer_health_interval=100ms")
+        code, out, _ = playbook(
+            tmp_path,
+            hosts(tmp_path, {"site-a": sims[:2], "site-b": sims[2:]}, recipe_file),
+            "-e",
+            "deployer_soak=300ms",
+            "-e",
+            "deployer_health_interval=100ms",
+        )
         logs = [list(s.log) for s in sims]
     assert code != 0
     assert recap(out, "site-a")["failed"] == 0 and recap(out, "site-b")["failed"] == 1
@@ -416,8 +567,9 @@ def test_the_api_soaks_and_confirms(tmp_path: Path) -> None:
             runs.append(run)
             waiting.set()
 
-        task = asyncio.create_task(deployer.aio.apply(rec, state_dir=state, confirm_within="1h",
-                                                      on_confirm_wait=on_wait))
+        task = asyncio.create_task(
+            deployer.aio.apply(rec, state_dir=state, confirm_within="1h", on_confirm_wait=on_wait)
+        )
         await waiting.wait()
         assert writes_to(list(sim.log), COMMIT) == [writes_to(list(sim.log), COMMIT)[0]]  # only the first run's
         assert deployer.confirm(state_dir=state) == runs[0]
@@ -433,12 +585,22 @@ def test_the_api_soaks_and_confirms(tmp_path: Path) -> None:
 
 
 def test_a_run_killed_during_its_soak_is_shown_by_status_with_its_restore_command(
-        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     state = str(tmp_path / "s")
     with SimulatorThread(PROFILE) as sim:
         before = sim.registers()
-        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1h", "--health-interval",
-                        "100ms", "--state-dir", state)
+        proc = deployer(
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--soak",
+            "1h",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            state,
+        )
         try:
             # the soak's first read is the second one (the first is before the write)
             wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 2 or proc.poll() is not None)
@@ -452,21 +614,51 @@ def test_a_run_killed_during_its_soak_is_shown_by_status_with_its_restore_comman
         code, _, err = cli(capsys, *restore.split()[1:])
         assert code == 0, err
         assert {a: v for a, v in sim.registers().items() if a != COMMIT} == {
-            a: v for a, v in before.items() if a != COMMIT}
+            a: v for a, v in before.items() if a != COMMIT
+        }
 
 
-def test_limit_from_a_report_retries_the_rolled_back_devices(capsys: pytest.CaptureFixture[str],
-                                                             tmp_path: Path) -> None:
+def test_limit_from_a_report_retries_the_rolled_back_devices(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults(rules=(TRIP,)) if i == 1 else None) for i in range(3)]) as sims:
         urls = {f"d{i}": s.url for i, s in enumerate(sims)}
         inv, run = inventory(tmp_path, urls), str(tmp_path / "run.json")
-        code, _, _ = cli(capsys, "apply", recipe(tmp_path, "1.5 s"), "--inventory", inv, "--yes", "--soak", "200ms",
-                         "--health-interval", "100ms", "--report", run, "--state-dir", str(tmp_path / "s"))
+        code, _, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "1.5 s"),
+            "--inventory",
+            inv,
+            "--yes",
+            "--soak",
+            "200ms",
+            "--health-interval",
+            "100ms",
+            "--report",
+            run,
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 4
         sims[1].set_register(FAULT, 0)  # the drive's fault was reset
-        code, out, err = cli(capsys, "apply", recipe(tmp_path, "2.5 s", name="safer.yaml"), "--inventory", inv,
-                           "--limit", f"@{run}", "--yes", "--json", "--soak", "200ms", "--health-interval", "100ms",
-                           "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "2.5 s", name="safer.yaml"),
+            "--inventory",
+            inv,
+            "--limit",
+            f"@{run}",
+            "--yes",
+            "--json",
+            "--soak",
+            "200ms",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
     assert code == 0, err
     assert [(d["name"], d["status"]) for d in json.loads(out)["devices"]] == [("d1", "ok")]
 
@@ -479,10 +671,29 @@ def test_ask_on_a_terminal_stops_the_rollout_on_no(tmp_path: Path) -> None:
     with Simulators([Simulator(PROFILE) for _ in range(2)]) as sims:
         urls = {f"d{i}": s.url for i, s in enumerate(sims)}
         master, slave = pty.openpty()
-        proc = subprocess.Popen([sys.executable, "-m", "deployer", "apply", recipe(tmp_path, "3 s"), "--inventory",
-                                 inventory(tmp_path, urls), "--yes", "--batch", "1", "--ask", "--report",
-                                 str(tmp_path / "run.json"), "--state-dir", str(tmp_path / "s")],
-                                stdin=slave, stdout=slave, stderr=slave, close_fds=True)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "apply",
+                recipe(tmp_path, "3 s"),
+                "--inventory",
+                inventory(tmp_path, urls),
+                "--yes",
+                "--batch",
+                "1",
+                "--ask",
+                "--report",
+                str(tmp_path / "run.json"),
+                "--state-dir",
+                str(tmp_path / "s"),
+            ],
+            stdin=slave,
+            stdout=slave,
+            stderr=slave,
+            close_fds=True,
+        )
         os.close(slave)
         seen = b""
         try:
@@ -509,10 +720,25 @@ def test_devices_behind_one_gateway_soak_together(capsys: pytest.CaptureFixture[
     connection; only the unit whose new ramp trips it is rolled back."""
     with Simulators([Simulator(PROFILE, units=(1, 2), faults=Faults(rules=(TRIP,)))]) as (sim,):
         inv = tmp_path / "inventory.yaml"
-        inv.write_text(f"defaults: {{timeout: 2.0, retries: 1}}\ndevices:\n  d1: {{url: '{sim.url}', unit: 1}}\n"
-                       f"  d2: {{url: '{sim.url}', unit: 2, parameters: {{F07: 1.5 s}}}}\n")
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", str(inv), "--yes", "--json",
-                           "--soak", "1s", "--health-interval", "100ms", "--state-dir", str(tmp_path / "s"))
+        inv.write_text(
+            f"defaults: {{timeout: 2.0, retries: 1}}\ndevices:\n  d1: {{url: '{sim.url}', unit: 1}}\n"
+            f"  d2: {{url: '{sim.url}', unit: 2, parameters: {{F07: 1.5 s}}}}\n"
+        )
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "3 s"),
+            "--inventory",
+            str(inv),
+            "--yes",
+            "--json",
+            "--soak",
+            "1s",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         log = list(sim.log)
     assert code == 4
     d1, d2 = json.loads(out)["devices"]
@@ -537,8 +763,9 @@ def test_ctrl_c_while_a_change_is_held_rolls_it_back(tmp_path: Path, held: list[
         proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", *held, "--state-dir", state)
         try:
             # the soak's first read: the second one (the first is before the write)
-            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), FAULT)) >= 2
-                     or proc.poll() is not None)
+            wait_for(
+                lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), FAULT)) >= 2 or proc.poll() is not None
+            )
             proc.send_signal(signal.SIGINT)
             proc.communicate(timeout=120)
         finally:
@@ -553,8 +780,19 @@ def test_ctrl_c_while_a_change_is_held_rolls_it_back(tmp_path: Path, held: list[
 def test_confirm_during_the_soak_says_it_comes_after(tmp_path: Path) -> None:
     state = str(tmp_path / "s")
     with SimulatorThread(PROFILE) as sim:
-        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1h", "--health-interval",
-                        "100ms", "--confirm-within", "1h", "--state-dir", state)
+        proc = deployer(
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--soak",
+            "1h",
+            "--health-interval",
+            "100ms",
+            "--confirm-within",
+            "1h",
+            "--state-dir",
+            state,
+        )
         try:
             # the soak's first read is the second one (the first is before the write)
             wait_for(lambda: len(reads_of(list(sim.log), FAULT)) >= 2 or proc.poll() is not None)

@@ -33,24 +33,33 @@ def test_a_shared_plan_is_the_devices_own_plan_and_digest(tmp_path: Path) -> Non
         plan, entry = shared.plan(target, held, False)
         own = make_plan(rec, target, held)
         assert plan == own
-        assert entry.digest(target) == plan_digest(own) == hashlib.sha256(json.dumps(
-            plan_to_json(own), sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode()).hexdigest()
+        assert (
+            entry.digest(target)
+            == plan_digest(own)
+            == hashlib.sha256(
+                json.dumps(plan_to_json(own), sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode()
+            ).hexdigest()
+        )
     a, entry_a = shared.plan(Target("tcp://a:1", 1, "x"), held, False)
     b, entry_b = shared.plan(Target("tcp://b:1", 1, "x"), held, False)
     assert a.steps is b.steps and entry_a is entry_b  # planned once
     other, _ = shared.plan(Target("tcp://a:1", 1, "x"), {**held, "F08": (0, 1)}, False)
-    assert other.parameters != a.parameters and shared.plan(other.device, {**held, "F08": (0, 1)}, False)[
-        1].digest(other.device) == plan_digest(other)
+    assert other.parameters != a.parameters and shared.plan(other.device, {**held, "F08": (0, 1)}, False)[1].digest(
+        other.device
+    ) == plan_digest(other)
     assert other == make_plan(rec, Target("tcp://a:1", 1, "x"), {**held, "F08": (0, 1)})
     assert Shared(Planner(rec, write_all=True)).plan(Target("tcp://a:1", 1, "x"), held, False)[0] == make_plan(
-        rec, Target("tcp://a:1", 1, "x"), held, write_all=True)
+        rec, Target("tcp://a:1", 1, "x"), held, write_all=True
+    )
 
 
 def test_a_small_result_keeps_what_the_summary_and_the_journal_need() -> None:
     d = DeviceResult("a", "tcp://127.0.0.1:1", 1, "example-inverter", status="ok")
-    d.parameters = [ParameterResult("F07", 0x100, 2, "10 s", (0, 1000), (0, 500), (0, 1000), "ok"),
-                    ParameterResult("F08", 0x102, 2, "12 s", (0, 1200), (0, 1200), (0, 1200), "unchanged"),
-                    ParameterResult("stop_mode", 0x104, 1, "coast", (1,), (0,), (0,), "mismatch")]
+    d.parameters = [
+        ParameterResult("F07", 0x100, 2, "10 s", (0, 1000), (0, 500), (0, 1000), "ok"),
+        ParameterResult("F08", 0x102, 2, "12 s", (0, 1200), (0, 1200), (0, 1200), "unchanged"),
+        ParameterResult("stop_mode", 0x104, 1, "coast", (1,), (0,), (0,), "mismatch"),
+    ]
     d.requests = [RequestRecord(3, 0x100, 5), RequestRecord(16, 0x100, 2), RequestRecord(3, 0x100, 5)]
     small = d.small()
     assert small.parameters == [] and small.requests == []
@@ -59,12 +68,23 @@ def test_a_small_result_keeps_what_the_summary_and_the_journal_need() -> None:
     assert small.written == ("F07", "stop_mode") and small.changed_count == 1 and small.failed_count == 1
 
 
-def test_a_fleet_keeps_ok_devices_small_and_its_report_and_journal_whole(capsys: pytest.CaptureFixture[str],
-                                                                         tmp_path: Path) -> None:
+def test_a_fleet_keeps_ok_devices_small_and_its_report_and_journal_whole(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     with fleet(3) as sims:
         inv = inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)})
-        code, out, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--report",
-                             str(tmp_path / "r.json"), "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path),
+            "--inventory",
+            inv,
+            "--yes",
+            "--report",
+            str(tmp_path / "r.json"),
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
     assert code == 0, err
     doc = json.loads((tmp_path / "r.json").read_text())
     assert [len(d["parameters"]) for d in doc["devices"]] == [3, 3, 3]
@@ -74,8 +94,12 @@ def test_a_fleet_keeps_ok_devices_small_and_its_report_and_journal_whole(capsys:
     assert [d["written"] for d in finished["devices"]] == [["F07", "F08", "stop_mode"]] * 3
     s = doc["summary"]  # the table and the totals, from the small results, say what the file says
     ids = s["requests"] - s["write_requests"] - s["read_requests"]
-    assert f"3 devices: 3 ok; {s['requests']} requests ({s['read_requests']} reads, {s['write_requests']} writes, " \
-           f"{ids} device identification)" in out and ids == 3
+    assert (
+        f"3 devices: 3 ok; {s['requests']} requests ({s['read_requests']} reads, {s['write_requests']} writes, "
+        f"{ids} device identification)"
+        in out
+        and ids == 3
+    )
     for d in doc["devices"]:
         assert re.search(rf"{d['name']}\s+ok\s+3\s+0\s+{len(d['requests'])}\s", out), out
 
@@ -104,22 +128,38 @@ def test_apply_many_keeps_ok_devices_small_when_asked(tmp_path: Path) -> None:
     with fleet(3, {1: Faults(fail_registers=frozenset({PROFILE.parameter("F08").address}))}) as sims:
         inv = inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)})
         jobs = fleet_jobs(load_inventory(inv), deployer.load_recipe(recipe(tmp_path)), None)
-        report = asyncio.run(apply_many(jobs, keep_results=False, on_done=lambda r: seen.update({r.name: len(
-            r.parameters)}), options=ApplyOptions(state_dir=str(tmp_path / "s"))))
+        report = asyncio.run(
+            apply_many(
+                jobs,
+                keep_results=False,
+                on_done=lambda r: seen.update({r.name: len(r.parameters)}),
+                options=ApplyOptions(state_dir=str(tmp_path / "s")),
+            )
+        )
     assert seen == {"d00": 3, "d01": 3, "d02": 3}  # whole when the report file takes them
     assert [(d.status, len(d.parameters), d.tally is not None) for d in report.devices] == [
-        ("ok", 0, True), ("partial", 3, False), ("ok", 0, True)]  # a device that needs a look keeps its detail
+        ("ok", 0, True),
+        ("partial", 3, False),
+        ("ok", 0, True),
+    ]  # a device that needs a look keeps its detail
     assert report.summary()["write_requests"] == sum(d.write_requests for d in report.devices) > 0
 
 
 def test_a_devices_report_line_is_its_json_whatever_its_texts() -> None:
     from deployer.report import device_json
 
-    d = DeviceResult("dé\"v", "tcp://127.0.0.1:1", 1, "p", status="partial", error='"parameters": [] \u2028 x',
-                     notices=["ünïcode", "\x00"])
+    d = DeviceResult(
+        'dé"v',
+        "tcp://127.0.0.1:1",
+        1,
+        "p",
+        status="partial",
+        error='"parameters": [] \u2028 x',
+        notices=["ünïcode", "\x00"],
+    )
     d.parameters = [
         ParameterResult("F07", 0x100, 2, "10 s", (0, 1000), (0, 500), (0, 1000), "ok"),
-        ParameterResult("n\"ame\\", 0, 1, "tëxt \"q\"", [7], None, [7], "mismatch", "reads back \"8\"\n"),  # type: ignore[arg-type]
+        ParameterResult('n"ame\\', 0, 1, 'tëxt "q"', [7], None, [7], "mismatch", 'reads back "8"\n'),  # type: ignore[arg-type]
         ParameterResult("c", 5, 1, "on", (1,), (0,), None, "unverified", "x", register_type="coil"),
         ParameterResult("s", 6, 1, "5", (), (), (), "skipped", None, register_type="input"),
     ]
@@ -180,26 +220,58 @@ def test_a_stream_the_disk_refused_for_a_while_ends_whole(tmp_path: Path, monkey
 
 def _varied() -> DeviceResult:
     """A device's result with one parameter of every kind and outcome."""
-    d = DeviceResult("dev \"1\"", "tcp://127.0.0.1:1", 1, "example-drive", status="partial", error="x; y",
-                     notices=["motor_poles takes effect after a power cycle"], profile_ref="example-drive",
-                     recipe="/r.yaml", batch=2, seen="2024-01-01T00:00:00Z", identity={"vendor": "ACME"})
+    d = DeviceResult(
+        'dev "1"',
+        "tcp://127.0.0.1:1",
+        1,
+        "example-drive",
+        status="partial",
+        error="x; y",
+        notices=["motor_poles takes effect after a power cycle"],
+        profile_ref="example-drive",
+        recipe="/r.yaml",
+        batch=2,
+        seen="2024-01-01T00:00:00Z",
+        identity={"vendor": "ACME"},
+    )
     d.parameters = [
         ParameterResult("u16", 0x100, 1, "10 s", (1000,), (500,), (1000,), "ok"),
         ParameterResult("u32", 0x101, 2, "100000 count", (1, 34464), (0, 0), (1, 34464), "ok"),
-        ParameterResult("f32", 0x103, 2, "2500.5 rpm", (0x4000, 0x451C), (0, 0x453B), (0, 0x453B), "mismatch",
-                        "reads back 3000 rpm (0000h 453Bh)"),
+        ParameterResult(
+            "f32",
+            0x103,
+            2,
+            "2500.5 rpm",
+            (0x4000, 0x451C),
+            (0, 0x453B),
+            (0, 0x453B),
+            "mismatch",
+            "reads back 3000 rpm (0000h 453Bh)",
+        ),
         ParameterResult("field", 0x200, 1, "ccw", (0x0002,), (0x0030,), (0x0032,), "ok"),
-        ParameterResult("name", 0x201, 8, 'X "1" #', (0x5820, 0x2231, 0x2220, 0x2320, 0x2020, 0x2020, 0x2020,
-                                                       0x2020), (0x4158,) * 8, (0x4158,) * 8, "failed",
-                        "exception 04 (server device failure)"),
+        ParameterResult(
+            "name",
+            0x201,
+            8,
+            'X "1" #',
+            (0x5820, 0x2231, 0x2220, 0x2320, 0x2020, 0x2020, 0x2020, 0x2020),
+            (0x4158,) * 8,
+            (0x4158,) * 8,
+            "failed",
+            "exception 04 (server device failure)",
+        ),
         ParameterResult("relay", 19, 1, "true", (1,), (0,), (1,), "ok", register_type="coil"),
         ParameterResult("temp", 8, 1, "21.5 degC", (215,), (215,), (215,), "unchanged", register_type="input"),
         ParameterResult("password", 0x20, 1, "4", (4,), None, None, "unverified", "write-only: cannot be read back"),
         ParameterResult("later", 0x21, 1, "1", (1,), (0,), None, "skipped"),
         ParameterResult("same", 0x23, 1, "3", (3,), (3,), (3,), "ok"),  # written, the value it held already
     ]
-    d.requests = [RequestRecord(3, 0x100, 60), RequestRecord(16, 0x201, 8, "exception", 4),
-                  RequestRecord(43, 0, 1, "no response", None, 2), RequestRecord(15, 19, 1)]
+    d.requests = [
+        RequestRecord(3, 0x100, 60),
+        RequestRecord(16, 0x201, 8, "exception", 4),
+        RequestRecord(43, 0, 1, "no response", None, 2),
+        RequestRecord(15, 19, 1),
+    ]
     return d
 
 
@@ -220,8 +292,13 @@ def test_a_report_line_follows_every_field_of_its_parameters_and_requests(monkey
                 continue
             e = _varied()
             old = getattr(e.parameters[i], f.name)
-            new = "mismatch" if f.name == "status" else "coil" if f.name == "register_type" else \
-                changed.get(type(old), "an error")
+            new = (
+                "mismatch"
+                if f.name == "status"
+                else "coil"
+                if f.name == "register_type"
+                else changed.get(type(old), "an error")
+            )
             setattr(e.parameters[i], f.name, new)
             assert device_json(e) == json.dumps(e.to_json()).encode(), (i, f.name)
     for f in dataclasses.fields(RequestRecord):
@@ -248,21 +325,30 @@ def test_a_small_result_counts_every_outcome_as_the_full_one() -> None:
     again = small.small()
     assert again.tally == small.tally and again.parameters == [] and again.requests == []
     assert {f: getattr(small, f) for f in ("name", "status", "notices", "identity", "batch", "seen")} == {
-        f: getattr(d, f) for f in ("name", "status", "notices", "identity", "batch", "seen")}
+        f: getattr(d, f) for f in ("name", "status", "notices", "identity", "batch", "seen")
+    }
 
 
 def test_a_recipes_results_are_made_as_their_fields_say(tmp_path: Path) -> None:
     """The shared positional arguments follow ParameterResult's fields (a field moved would shift them)."""
-    (tmp_path / "d.yaml").write_text("recipe: d\nprofile: example-drive\nparameters:\n  control_mode: speed\n"
-                                     "  encoder_resolution: 262144 count\n  direction: ccw\n  brake_mode: dynamic\n"
-                                     "  axis_name: X1\n  speed_limit: 2500.5 rpm\n")
+    (tmp_path / "d.yaml").write_text(
+        "recipe: d\nprofile: example-drive\nparameters:\n  control_mode: speed\n"
+        "  encoder_resolution: 262144 count\n  direction: ccw\n  brake_mode: dynamic\n"
+        "  axis_name: X1\n  speed_limit: 2500.5 rpm\n"
+    )
     rec = deployer.load_recipe(str(tmp_path / "d.yaml"))
     got = parameter_results(rec)
     assert list(got) == [d.name for d in rec.desired]
     for d in rec.desired:
         r = got[d.name]
-        assert r == ParameterResult(name=d.name, address=d.parameter.address, count=d.parameter.count,
-                                    desired=d.text, desired_raw=d.registers, register_type=d.parameter.register_type)
+        assert r == ParameterResult(
+            name=d.name,
+            address=d.parameter.address,
+            count=d.parameter.count,
+            desired=d.text,
+            desired_raw=d.registers,
+            register_type=d.parameter.register_type,
+        )
         assert r.parameter is d.parameter and r.status == "skipped"
         assert r.before_raw is None and r.after_raw is None and r.error is None
     assert parameter_results(rec)[rec.desired[0].name] is not got[rec.desired[0].name]  # each device its own
@@ -298,8 +384,9 @@ def test_devices_holding_other_values_get_their_own_plan_and_snapshot(tmp_path: 
     _, a = shared.plan(Target("tcp://a:1", 1, "x"), held, False)
     assert a.snapshot_values(rec.profile, held) == snapshot_values(rec.profile, held)
     _, b = shared.plan(Target("tcp://b:1", 1, "x"), other, False)
-    assert b is not a and b.snapshot_values(rec.profile, other) == snapshot_values(rec.profile, other) != \
-        a.snapshot_values(rec.profile, held)
+    assert b is not a and b.snapshot_values(rec.profile, other) == snapshot_values(
+        rec.profile, other
+    ) != a.snapshot_values(rec.profile, held)
     assert shared.plan(Target("tcp://c:1", 1, "x"), dict(held), False)[1] is a
 
 
@@ -313,20 +400,36 @@ def test_a_fleets_snapshots_are_what_each_device_held(tmp_path: Path, capsys: py
     from tests.helpers import Simulators
 
     prof = builtin_profile("example-drive")
-    (tmp_path / "d.yaml").write_text("recipe: d\nprofile: example-drive\nparameters:\n  control_mode: speed\n"
-                                     "  encoder_resolution: 262144 count\n  enable_on_power_up: true\n"
-                                     "  direction: ccw\n  brake_mode: dynamic\n  jog_steps: 3.5 mm\n"
-                                     "  axis_name: X1\n  speed_limit: 2500.5 rpm\n")
+    (tmp_path / "d.yaml").write_text(
+        "recipe: d\nprofile: example-drive\nparameters:\n  control_mode: speed\n"
+        "  encoder_resolution: 262144 count\n  enable_on_power_up: true\n"
+        "  direction: ccw\n  brake_mode: dynamic\n  jog_steps: 3.5 mm\n"
+        "  axis_name: X1\n  speed_limit: 2500.5 rpm\n"
+    )
 
     def holding(name: str, words: list[int]) -> dict[int, int]:
         return {prof.parameter(name).key + i: w for i, w in enumerate(words)}
 
-    sims = [Simulator(prof), Simulator(prof, init=holding("axis_name", [0x5932] + [0x2020] * 7)),  # "Y2"
-            Simulator(prof), Simulator(prof, init=holding("speed_limit", [0, 0x4500]))]  # 2048 rpm, CDAB
+    sims = [
+        Simulator(prof),
+        Simulator(prof, init=holding("axis_name", [0x5932] + [0x2020] * 7)),  # "Y2"
+        Simulator(prof),
+        Simulator(prof, init=holding("speed_limit", [0, 0x4500])),
+    ]  # 2048 rpm, CDAB
     with Simulators(sims):
         inv = inventory(tmp_path, {n: s.url for n, s in zip(names(4), sims, strict=True)})
-        code, _, err = cli(capsys, "apply", str(tmp_path / "d.yaml"), "--inventory", inv, "--yes", "--report",
-                           str(tmp_path / "r.json"), "--state-dir", str(tmp_path / "s"))
+        code, _, err = cli(
+            capsys,
+            "apply",
+            str(tmp_path / "d.yaml"),
+            "--inventory",
+            inv,
+            "--yes",
+            "--report",
+            str(tmp_path / "r.json"),
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
     assert code == 0, err
     texts = []
     for dev in json.loads((tmp_path / "r.json").read_text())["devices"]:
@@ -335,9 +438,17 @@ def test_a_fleets_snapshots_are_what_each_device_held(tmp_path: Path, capsys: py
         text = Path(path).read_text()
         taken = re.search(r'^  taken: "(.*)"$', text, re.M)
         assert taken is not None
-        assert text == snapshot_text(prof, held, name=dev["name"], url=dev["url"], unit=1,
-                                     taken=time.strptime(taken[1], "%Y-%m-%dT%H:%M:%SZ"),
-                                     applied=str(tmp_path / "d.yaml"), label="d", path=path)
+        assert text == snapshot_text(
+            prof,
+            held,
+            name=dev["name"],
+            url=dev["url"],
+            unit=1,
+            taken=time.strptime(taken[1], "%Y-%m-%dT%H:%M:%SZ"),
+            applied=str(tmp_path / "d.yaml"),
+            label="d",
+            path=path,
+        )
         texts.append(text.split("  registers:", 1)[1])
     assert texts[0] == texts[2] and len({texts[0], texts[1], texts[3]}) == 3
 
@@ -348,8 +459,12 @@ def test_devices_that_taught_the_same_limits_share_one_recipe_and_its_plans(tmp_
 
     rec = deployer.load_recipe(recipe(tmp_path))
     state = str(tmp_path / "s")
-    for device, limits in (("a#unit1", {"max_write_registers": 2}), ("b#unit1", {"max_write_registers": 2}),
-                           ("c#unit1", {"write_function": 6}), ("d#unit1", {"max_write_registers": 123})):
+    for device, limits in (
+        ("a#unit1", {"max_write_registers": 2}),
+        ("b#unit1", {"max_write_registers": 2}),
+        ("c#unit1", {"write_function": 6}),
+        ("d#unit1", {"max_write_registers": 123}),
+    ):
         learned.remember(state, learned.Entry(profile_ref(rec.profile), device, limits, "refused", "2024-01-01"))
     planners = Planners()
 
@@ -363,9 +478,12 @@ def test_devices_that_taught_the_same_limits_share_one_recipe_and_its_plans(tmp_
     assert taught("d#unit1") is rec and taught("e#unit1") is rec  # nothing tighter, nothing taught
     held = {"F07": (0, 500), "F08": (0, 1), "stop_mode": (0,)}
     none = Pacing()
-    plan, entry = planners.shared(a, write_all=False, commit=True, pacing=none).plan(Target("tcp://a:1", 1, "x"),
-                                                                                      held, False)
+    plan, entry = planners.shared(a, write_all=False, commit=True, pacing=none).plan(
+        Target("tcp://a:1", 1, "x"), held, False
+    )
     assert plan == make_plan(a, Target("tcp://a:1", 1, "x"), held)
     assert all(w.count <= 2 for w in plan.writes)
-    assert planners.shared(b, write_all=False, commit=True, pacing=none).plan(Target("tcp://b:1", 1, "x"), held,
-                                                                              False)[1] is entry
+    assert (
+        planners.shared(b, write_all=False, commit=True, pacing=none).plan(Target("tcp://b:1", 1, "x"), held, False)[1]
+        is entry
+    )

@@ -52,6 +52,7 @@ def run(profile: Profile, body: Any, **kw: Any) -> Any:
                 return await body(sim, client)
             finally:
                 client.close()
+
     return asyncio.run(main())
 
 
@@ -73,6 +74,7 @@ def test_defaults_and_reads(dev: Profile) -> None:
         assert exc(await c.read_holding_registers(104, count=2, device_id=1)) == 2  # write-only 105
         assert exc(await c.read_holding_registers(106, count=1, device_id=1)) == 2  # gap
         assert exc(await c.read_holding_registers(100, count=5, device_id=1)) == 3  # above max_read 4
+
     run(dev, body)
 
 
@@ -83,6 +85,7 @@ def test_partial_write_stops_at_the_bad_value(dev: Profile) -> None:
         assert exc(r) == 3
         assert sim.read("a") == (5,) and sim.read("b") == (0, 2) and sim.read("c") == (0,)
         assert sim.log[-1].result == "exception 03"
+
     run(dev, body)
 
 
@@ -97,17 +100,22 @@ def test_read_only_split_and_limits(dev: Profile) -> None:
         assert sim.read("far") == (9,)
         assert {k: v for k, v in sim.registers().items() if k != 200} == {k: v for k, v in before.items() if k != 200}
         assert exc(await c.write_registers(105, [3], device_id=1)) is None  # write-only accepts writes
+
     run(dev, body)
 
 
 def test_write_limit_answers_03_and_writes_nothing(tmp_path: Path) -> None:
-    prof = profile_from(tmp_path, "profile: p\nlimits: {max_write_registers: 4}\nparameters:\n"
-                        + "".join(f"  r{i}: {{register: {i}, type: uint16}}\n" for i in range(10)))
+    prof = profile_from(
+        tmp_path,
+        "profile: p\nlimits: {max_write_registers: 4}\nparameters:\n"
+        + "".join(f"  r{i}: {{register: {i}, type: uint16}}\n" for i in range(10)),
+    )
 
     async def body(sim: Simulator, c: AsyncModbusTcpClient) -> None:
         assert exc(await c.write_registers(0, [9] * 5, device_id=1)) == 3
         assert all(v == 0 for v in sim.registers().values())
         assert exc(await c.write_registers(0, [9] * 4, device_id=1)) is None
+
     run(prof, body)
 
 
@@ -123,6 +131,7 @@ def test_unknown_function_and_unknown_unit(dev: Profile) -> None:
         writer.close()
         # exception 01 (illegal function); pymodbus 3.16 puts 80h, not C1h, in the function byte
         assert answer[:7] == bytes.fromhex("0001 0000 0003 01") and answer[7] & 0x80 and answer[8] == 1
+
     run(dev, body)
 
 
@@ -130,8 +139,8 @@ def _mbap_frames(data: bytes) -> list[bytes]:
     """Split Modbus/TCP answers: each is its MBAP header (7 bytes, length counts unit + PDU) and PDU."""
     frames, i = [], 0
     while i + 6 <= len(data):
-        n = int.from_bytes(data[i + 4:i + 6], "big")
-        frames.append(data[i:i + 6 + n])
+        n = int.from_bytes(data[i + 4 : i + 6], "big")
+        frames.append(data[i : i + 6 + n])
         i += 6 + n
     return frames
 
@@ -154,8 +163,10 @@ def test_pipelined_requests_are_each_answered_in_order(dev: Profile) -> None:
     async def body(sim: Simulator, c: AsyncModbusTcpClient) -> None:
         # 100 reads in one segment (a gateway or a pipelining client sends them so); pymodbus's own
         # handler answered only the first of a segment, and none once the segment passed 260 bytes
-        reads = b"".join(tid.to_bytes(2, "big") + bytes.fromhex("0000 0006 01 03 0064")
-                         + (1 + tid % 4).to_bytes(2, "big") for tid in range(1, 101))
+        reads = b"".join(
+            tid.to_bytes(2, "big") + bytes.fromhex("0000 0006 01 03 0064") + (1 + tid % 4).to_bytes(2, "big")
+            for tid in range(1, 101)
+        )
         frames = await _exchange(sim, reads, 100)
         assert [int.from_bytes(f[:2], "big") for f in frames] == list(range(1, 101))
         regs = [1, 0, 2, 0]
@@ -163,19 +174,32 @@ def test_pipelined_requests_are_each_answered_in_order(dev: Profile) -> None:
             n = 1 + tid % 4
             assert f[7:9] == bytes([3, 2 * n]) and f[9:] == b"".join(r.to_bytes(2, "big") for r in regs[:n])
         # writes and reads interleaved in one segment take effect in order
-        mixed = (bytes.fromhex("0201 0000 0006 01 06 0064 0005") + bytes.fromhex("0202 0000 0006 01 03 0064 0001")
-                 + bytes.fromhex("0203 0000 0006 01 06 0064 0009") + bytes.fromhex("0204 0000 0006 01 03 0064 0001"))
+        mixed = (
+            bytes.fromhex("0201 0000 0006 01 06 0064 0005")
+            + bytes.fromhex("0202 0000 0006 01 03 0064 0001")
+            + bytes.fromhex("0203 0000 0006 01 06 0064 0009")
+            + bytes.fromhex("0204 0000 0006 01 03 0064 0001")
+        )
         frames = await _exchange(sim, mixed, 4)
         assert [f[:2].hex() for f in frames] == ["0201", "0202", "0203", "0204"]
         assert frames[1][9:] == bytes.fromhex("0005") and frames[3][9:] == bytes.fromhex("0009")
         assert sim.read("a") == (9,)
+
     run(dev, body)
 
 
-@pytest.mark.parametrize("request_pdu",
-                         ["08 0000 0000", "0B", "11", "14 07 06 0004 0001 0002", "18 0064", "2B 0E 01 00"],
-                         ids=["08-diagnostics", "0B-comm-event-counter", "11-report-server-id",
-                              "14-read-file-record", "18-read-fifo", "2B-device-identification"])
+@pytest.mark.parametrize(
+    "request_pdu",
+    ["08 0000 0000", "0B", "11", "14 07 06 0004 0001 0002", "18 0064", "2B 0E 01 00"],
+    ids=[
+        "08-diagnostics",
+        "0B-comm-event-counter",
+        "11-report-server-id",
+        "14-read-file-record",
+        "18-read-fifo",
+        "2B-device-identification",
+    ],
+)
 def test_functions_a_drive_does_not_have_answer_01(dev: Profile, request_pdu: str) -> None:
     async def body(sim: Simulator, c: AsyncModbusTcpClient) -> None:
         pdu = bytes.fromhex(request_pdu)
@@ -183,6 +207,7 @@ def test_functions_a_drive_does_not_have_answer_01(dev: Profile, request_pdu: st
         (answer,) = await _exchange(sim, frame, 1)
         assert answer[:2] == bytes.fromhex("0007") and answer[7] & 0x80 and answer[8] == 1, answer.hex()
         assert sim.log[-1].result == "exception 01"
+
     run(dev, body)
 
 
@@ -192,6 +217,7 @@ def test_broadcast_applies_to_every_unit_without_answer(dev: Profile) -> None:
         await asyncio.sleep(0.2)
         assert sim.read("a", 1) == (42,) and sim.read("a", 2) == (42,)
         assert sim.log[-1].result == "broadcast"
+
     run(dev, body, units=(1, 2))
 
 
@@ -208,6 +234,7 @@ def test_busy_drop_fail_register(dev: Profile) -> None:
             r = await c.read_holding_registers(100, count=1, device_id=1)
             raise AssertionError(f"answered: {r}")
         assert [e.result for e in sim.log] == ["exception 06", "ok", "exception 04", "dropped"]
+
     run(dev, body, faults=faults)
 
 
@@ -216,6 +243,7 @@ def test_latency_and_baud_delay(dev: Profile) -> None:
         t = time.monotonic()
         await c.read_holding_registers(100, count=1, device_id=1)
         return time.monotonic() - t
+
     assert run(dev, body, faults=Faults(latency_ms=200)) >= 0.2
     # 8 + 7 characters + 7 for the silent intervals at 300 baud, 11 bits each: 0.8 s
     assert run(dev, body, faults=Faults(baud=300)) >= 0.8
@@ -228,6 +256,7 @@ def test_disconnect_after(dev: Profile) -> None:
         with pytest.raises(ModbusException):
             await c.read_holding_registers(100, count=1, device_id=1)
         assert sim.log[-1].result == "disconnected"
+
     run(dev, body, faults=Faults(disconnect_after=2))
 
 
@@ -237,6 +266,7 @@ def test_log_file_and_state_file(dev: Profile, tmp_path: Path) -> None:
     async def body(sim: Simulator, c: AsyncModbusTcpClient) -> None:
         await c.write_registers(100, [8], device_id=1)
         await c.read_holding_registers(99, count=1, device_id=1)
+
     run(dev, body, log_path=str(log), state_path=str(state))
     lines = [json.loads(x) for x in log.read_text().splitlines()]
     assert [(x["function"], x["address"], x["result"]) for x in lines] == [(16, 100, "ok"), (3, 99, "exception 02")]
@@ -264,9 +294,11 @@ def test_fifty_concurrent_clients_ten_thousand_requests() -> None:
                     errors += r.isError()
                 c.close()
                 return errors
+
             errors = sum(await asyncio.gather(*(worker(k) for k in range(50))))
             assert len(sim.log) == 10_000
             return errors
+
     assert asyncio.run(main()) == 0
 
 
@@ -292,6 +324,7 @@ def test_rtu_over_pty(dev: Profile, socat_pair: tuple[str, str]) -> None:
                     raise AssertionError(r)
             finally:
                 c.close()
+
     asyncio.run(main())
 
 
@@ -309,6 +342,7 @@ def test_cli_simulate_serves_and_dumps_state(tmp_path: Path) -> None:
             assert await c.connect()
             await c.write_registers(0x1102, [0, 1000], device_id=1)
             c.close()
+
         asyncio.run(query())
         proc.send_signal(signal.SIGUSR1)  # dump while serving
         deadline = time.monotonic() + 10
@@ -353,8 +387,9 @@ def test_mbpoll_reads_and_writes_over_tcp(dev: Profile) -> None:
 def test_mbpoll_over_rtu(dev: Profile, socat_pair: tuple[str, str]) -> None:
     a, b = socat_pair
     with SimulatorThread(dev, listen=f"rtu://{a}"):
-        out = mbpoll("-m", "rtu", "-b", "19200", "-P", "none", "-a", "1", "-0", "-r", "100", "-c", "3", "-t", "4",
-                     "-1", b)
+        out = mbpoll(
+            "-m", "rtu", "-b", "19200", "-P", "none", "-a", "1", "-0", "-r", "100", "-c", "3", "-t", "4", "-1", b
+        )
         assert out.returncode == 0, out.stdout + out.stderr
         assert "[100]: \t1" in out.stdout and "[102]: \t2" in out.stdout
 
@@ -368,5 +403,6 @@ def test_init_from_recipe(dev: Profile, tmp_path: Path) -> None:
 
     async def body(sim: Simulator, c: AsyncModbusTcpClient) -> None:
         assert (await c.read_holding_registers(100, count=3, device_id=1)).registers == [9, 0, 300]
+
     run(dev, body, init=init)
     assert os.path.exists(tmp_path / "dev.yaml")

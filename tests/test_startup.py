@@ -15,8 +15,13 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _imported(*args: str) -> set[str]:
-    proc = subprocess.run([sys.executable, "-X", "importtime", "-m", "deployer", *args], capture_output=True,
-                          text=True, timeout=60, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "deployer", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     return {line.rsplit("|", 1)[1].strip() for line in proc.stderr.splitlines() if line.startswith("import time:")}
 
@@ -43,9 +48,11 @@ def test_validate_and_offline_plan_do_not_import_pymodbus() -> None:
 
 def test_a_command_imports_only_its_own_module() -> None:
     """LazyGroup: `validate` loads deployer.cli.files, not the other command modules."""
-    code = ("import sys\nfrom deployer.cli import main\ntry:\n"
-            "    main(['validate', 'recipes/examples/conveyor-line3.yaml'])\nexcept SystemExit:\n    pass\n"
-            "print(' '.join(sorted(m for m in sys.modules if m.startswith('deployer.cli'))))")
+    code = (
+        "import sys\nfrom deployer.cli import main\ntry:\n"
+        "    main(['validate', 'recipes/examples/conveyor-line3.yaml'])\nexcept SystemExit:\n    pass\n"
+        "print(' '.join(sorted(m for m in sys.modules if m.startswith('deployer.cli'))))"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert proc.stdout.split()[-3:] == ["deployer.cli", "deployer.cli.base", "deployer.cli.files"], proc.stderr
 
@@ -57,6 +64,7 @@ def test_validate_parses_each_file_once(monkeypatch: pytest.MonkeyPatch) -> None
     def counting(self: yamlsrc._Builder) -> object:
         parsed.append(self.src.path)
         return build(self)
+
     monkeypatch.setattr(yamlsrc._Builder, "build", counting)
     validate_file(str(ROOT / "recipes/examples/omron-m1-accel.yaml"))
     assert len(parsed) == len(set(parsed)), parsed  # the recipe once, its profile once
@@ -74,13 +82,17 @@ def test_only_the_command_line_writes_the_units_cache(tmp_path: Path) -> None:
     recipe = tmp_path / "r.yaml"
     recipe.write_text("recipe: r\nprofile: example-inverter\nparameters:\n  F07: 10000 ms\n  F08: 0.1 min\n")
     lib_home, cli_home = tmp_path / "lib", tmp_path / "cli"
-    for home, code in ((lib_home, f"import deployer; deployer.load_recipe({str(recipe)!r})"),
-                       (cli_home, f"from deployer.cli import main; main(['validate', {str(recipe)!r}])")):
+    for home, code in (
+        (lib_home, f"import deployer; deployer.load_recipe({str(recipe)!r})"),
+        (cli_home, f"from deployer.cli import main; main(['validate', {str(recipe)!r}])"),
+    ):
         home.mkdir()
         env = {**os.environ, "HOME": str(home), "XDG_CACHE_HOME": str(home / ".cache")}
-        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT,
-                              env=env)
+        proc = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT, env=env
+        )
         assert "Traceback" not in proc.stderr, proc.stderr
     assert _cache_files(lib_home) == []
-    assert any(f.replace(os.sep, "/").startswith(".cache/deployer/units-") for f in _cache_files(cli_home)), \
+    assert any(f.replace(os.sep, "/").startswith(".cache/deployer/units-") for f in _cache_files(cli_home)), (
         _cache_files(cli_home)
+    )

@@ -35,8 +35,9 @@ def sunspec_device(models: list[tuple[str, dict[str, int], dict[str, int]]], bas
         tables += draft.tables
         at += 2 + next(s["default"] for n, s, _ in draft.parameters if n == f"m{at}.L")
     here = Origin("device", 1, 1)
-    params.insert(0, ("SunS", {"register": base, "type": "string", "count": 2, "default": "SunS",
-                               "access": "read-only"}, here))
+    params.insert(
+        0, ("SunS", {"register": base, "type": "string", "count": 2, "default": "SunS", "access": "read-only"}, here)
+    )
     params.append(("end", {"register": at, "type": "uint16", "access": "read-only", "default": 0xFFFF}, here))
     return check(Draft({"profile": "device", "addressing": "address"}, params, tables), "device.yaml")[1]
 
@@ -46,8 +47,13 @@ def test_device_model_chain_into_one_profile(tmp_path: Path, capsys: pytest.Capt
 
     # common (1), three-phase inverter (103) with its scale factors, MPPT (160) with 2 modules: a count
     # the model leaves to the device's length L
-    device = sunspec_device([("1", {}, {}), ("103", {"A_SF": -2, "V_SF": -1, "W_SF": 1}, {}),
-                             ("160", {"DCA_SF": -2, "DCV_SF": -1}, {"module": 2})])
+    device = sunspec_device(
+        [
+            ("1", {}, {}),
+            ("103", {"A_SF": -2, "V_SF": -1, "W_SF": 1}, {}),
+            ("160", {"DCA_SF": -2, "DCV_SF": -1}, {"module": 2}),
+        ]
+    )
     out = tmp_path / "dev.yaml"
     with SimulatorThread(device) as sim:
         code, _, err = cli(capsys, "profiles", "import", "sunspec", "--device", sim.url, "-o", str(out))
@@ -65,11 +71,16 @@ def test_device_model_chain_into_one_profile(tmp_path: Path, capsys: pytest.Capt
     prof = load_profile(out)
     # the same models at the same addresses as pysunspec2 finds them
     assert found == {1: (40002, 66), 103: (40070, 50), 160: (40122, 48)}
-    assert [(c.address, c.raw) for c in prof.identity] == [(40000, 0x5375), (40001, 0x6E53), (40002, 1),
-                                                          (40070, 103), (40122, 160)]
+    assert [(c.address, c.raw) for c in prof.identity] == [
+        (40000, 0x5375),
+        (40001, 0x6E53),
+        (40002, 1),
+        (40070, 103),
+        (40122, 160),
+    ]
     assert prof.parameter("common.Mn").address == 40004
     w = prof.parameter("inverter_three_phase.W")
-    assert (w.address, w.unit, w.scale) == (40070 + 14, "W", 10 ** their_w_sf)
+    assert (w.address, w.unit, w.scale) == (40070 + 14, "W", 10**their_w_sf)
     a = prof.parameter("inverter_three_phase.A")
     assert (a.unit, str(a.scale)) == ("A", "0.01")
     assert their_modules == 2 and prof.parameter("mppt_module[1].DCA").address == 40122 + 10 + 20 + 9
@@ -81,7 +92,8 @@ def test_device_model_chain_into_one_profile(tmp_path: Path, capsys: pytest.Capt
         assert code == 0, err
     again = load_profile(tmp_path / "2.yaml")
     assert [(p.name, p.address, p.unit, p.scale) for p in again.parameters] == [
-        (p.name, p.address, p.unit, p.scale) for p in prof.parameters]
+        (p.name, p.address, p.unit, p.scale) for p in prof.parameters
+    ]
     # and a recipe plans onto it: the common model's device address (DA, read-write) at 40002 + 66
     (tmp_path / "r.yaml").write_text("recipe: r\nprofile: dev.yaml\nparameters:\n  common.DA: 5\n")
     plan = make_plan(load_recipe(tmp_path / "r.yaml"), Target(None, 1, str(out)))
@@ -95,11 +107,13 @@ def test_device_scale_factors_and_counts_of_one_model(tmp_path: Path, capsys: py
     addr_dcv_sf = next(p.address for p in device.parameters if p.name == "m40070.DCV_SF")
     out = tmp_path / "mppt.yaml"
     with SimulatorThread(device, init={addr_dcv_sf: 0x8000}) as sim:
-        code, _, err = cli(capsys, "profiles", "import", "sunspec", "160", "--at", "40070", "--device", sim.url,
-                           "-o", str(out))
+        code, _, err = cli(
+            capsys, "profiles", "import", "sunspec", "160", "--at", "40070", "--device", sim.url, "-o", str(out)
+        )
         assert code == 0, err
-        assert "DCV_SF at 40073: the device reports not implemented (8000h): the points it scales are imported " \
-               "raw" in err
+        assert (
+            "DCV_SF at 40073: the device reports not implemented (8000h): the points it scales are imported raw" in err
+        )
         assert "scale factors from" in err and "DCA_SF=-2" in err
         # a MODEL that is not where --at points
         code, _, err = cli(capsys, "profiles", "import", "sunspec", "103", "--at", "40070", "--device", sim.url)
@@ -123,7 +137,8 @@ def test_device_chain_found_where_devices_put_it(tmp_path: Path, capsys: pytest.
         assert code == 0, err
         assert "1 at 2 (L=66)" in err
         code, _, err = cli(capsys, "profiles", "import", "sunspec", "--device", sim.url, "--at", "40002")
-        assert code == 3 and "reading 2 registers at 40000 answered exception 02 (illegal data address): check --at" \
-            in err
+        assert (
+            code == 3 and "reading 2 registers at 40000 answered exception 02 (illegal data address): check --at" in err
+        )
     prof = load_profile(out)
     assert prof.parameter("SunS").address == 0 and prof.parameter("common.Mn").address == 4

@@ -30,8 +30,9 @@ def test_rich_only_on_a_terminal_and_for_a_screenful() -> None:
 
 def test_plan_of_5000_parameters_prints_every_row(tmp_path: Path) -> None:
     files = drive.write(str(tmp_path), 5000, wide_every=4)
-    proc = subprocess.run([sys.executable, "-m", "deployer", "plan", files["recipe"]], capture_output=True, text=True,
-                          timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "deployer", "plan", files["recipe"]], capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.splitlines()
     assert sum(1 for ln in lines if ln.startswith(" P0")) == 5000

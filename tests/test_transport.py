@@ -36,22 +36,32 @@ REGS = 100  # every server holds registers 0..99 (others: exception 02)
 
 
 def _devices(units: tuple[int, ...]) -> list[SimDevice]:
-    async def action(fc: int, start: int, address: int, count: int, registers: list[int],
-                     values: list[int] | list[bool] | None) -> ExcCodes | None:
+    async def action(
+        fc: int, start: int, address: int, count: int, registers: list[int], values: list[int] | list[bool] | None
+    ) -> ExcCodes | None:
         # a device-like range check: values above 1000 are refused with exception 03
         if values is not None and any(int(v) > 1000 for v in values):
             return ExcCodes.ILLEGAL_VALUE
         return None
 
-    return [SimDevice(id=u, simdata=[SimData(address=0, values=[0] * REGS, datatype=DataType.REGISTERS)],
-                      action=action) for u in units]
+    return [
+        SimDevice(id=u, simdata=[SimData(address=0, values=[0] * REGS, datatype=DataType.REGISTERS)], action=action)
+        for u in units
+    ]
 
 
 @contextlib.asynccontextmanager
-async def serve(kind: str, *, units: tuple[int, ...] = (1,), path: str = "", sslctx: ssl.SSLContext | None = None,
-                trace_pdu: Callable[[bool, ModbusPDU], ModbusPDU | None] | None = None,
-                trace_packet: Callable[[bool, bytes], bytes] | None = None) -> AsyncIterator[int]:
+async def serve(
+    kind: str,
+    *,
+    units: tuple[int, ...] = (1,),
+    path: str = "",
+    sslctx: ssl.SSLContext | None = None,
+    trace_pdu: Callable[[bool, ModbusPDU], ModbusPDU | None] | None = None,
+    trace_packet: Callable[[bool, bytes], bytes] | None = None,
+) -> AsyncIterator[int]:
     """A pymodbus server; yields its TCP port (0 for serial)."""
+
     def silent_for_others(sending: bool, pdu: ModbusPDU) -> ModbusPDU | None:
         # pymodbus 3.16 answers 04 for a unit without a SimDevice even with ignore_missing_devices:
         # a real RS-485 device (and a gateway's line) stays silent instead
@@ -59,8 +69,7 @@ async def serve(kind: str, *, units: tuple[int, ...] = (1,), path: str = "", ssl
             return None
         return trace_pdu(sending, pdu) if trace_pdu is not None else pdu
 
-    common: dict[str, Any] = {"trace_pdu": silent_for_others, "trace_packet": trace_packet,
-                              "broadcast_enable": True}
+    common: dict[str, Any] = {"trace_pdu": silent_for_others, "trace_packet": trace_packet, "broadcast_enable": True}
     server: Any
     if kind == "tcp":
         server = ModbusTcpServer(_devices(units), framer=FramerType.SOCKET, address=("127.0.0.1", 0), **common)
@@ -69,8 +78,9 @@ async def serve(kind: str, *, units: tuple[int, ...] = (1,), path: str = "", ssl
     elif kind == "tls":
         server = ModbusTlsServer(_devices(units), sslctx=sslctx, address=("127.0.0.1", 0), **common)
     else:  # a real RS-485 device stays silent for other unit ids
-        server = ModbusSerialServer(_devices(units), framer=FramerType.RTU if kind == "rtu" else FramerType.ASCII,
-                                    port=path, **common)
+        server = ModbusSerialServer(
+            _devices(units), framer=FramerType.RTU if kind == "rtu" else FramerType.ASCII, port=path, **common
+        )
     await server.serve_forever(background=True)
     try:
         sockets = getattr(server.transport, "sockets", None)
@@ -95,20 +105,31 @@ def sent(t: tp.Transport) -> list[bytes]:
 # ---- URLs ------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("text", "expect"), [
-    ("tcp://10.0.0.11", ("tcp", "10.0.0.11", 502, None, {})),
-    ("tcp://10.0.0.11:5020?timeout=0.5&retries=4", ("tcp", "10.0.0.11", 5020, None, {"timeout": "0.5",
-                                                                                     "retries": "4"})),
-    ("TCP://[::1]:5020", ("tcp", "::1", 5020, None, {})),
-    ("rtu:///dev/ttyUSB0?baudrate=19200&parity=e&stopbits=1&bytesize=8",
-     ("rtu", None, None, "/dev/ttyUSB0", {"baudrate": "19200", "parity": "E", "stopbits": "1", "bytesize": "8"})),
-    ("ascii:///dev/ttyS0?baudrate=9600&bytesize=7&parity=E",
-     ("ascii", None, None, "/dev/ttyS0", {"baudrate": "9600", "bytesize": "7", "parity": "E"})),
-    ("rtu+tcp://gw.local:4001", ("rtu+tcp", "gw.local", 4001, None, {})),
-    ("tls://plc", ("tls", "plc", 802, None, {})),
-    ("tls://plc:8802?verify=false&server_hostname=plc.example",
-     ("tls", "plc", 8802, None, {"verify": "false", "server_hostname": "plc.example"})),
-])
+@pytest.mark.parametrize(
+    ("text", "expect"),
+    [
+        ("tcp://10.0.0.11", ("tcp", "10.0.0.11", 502, None, {})),
+        (
+            "tcp://10.0.0.11:5020?timeout=0.5&retries=4",
+            ("tcp", "10.0.0.11", 5020, None, {"timeout": "0.5", "retries": "4"}),
+        ),
+        ("TCP://[::1]:5020", ("tcp", "::1", 5020, None, {})),
+        (
+            "rtu:///dev/ttyUSB0?baudrate=19200&parity=e&stopbits=1&bytesize=8",
+            ("rtu", None, None, "/dev/ttyUSB0", {"baudrate": "19200", "parity": "E", "stopbits": "1", "bytesize": "8"}),
+        ),
+        (
+            "ascii:///dev/ttyS0?baudrate=9600&bytesize=7&parity=E",
+            ("ascii", None, None, "/dev/ttyS0", {"baudrate": "9600", "bytesize": "7", "parity": "E"}),
+        ),
+        ("rtu+tcp://gw.local:4001", ("rtu+tcp", "gw.local", 4001, None, {})),
+        ("tls://plc", ("tls", "plc", 802, None, {})),
+        (
+            "tls://plc:8802?verify=false&server_hostname=plc.example",
+            ("tls", "plc", 8802, None, {"verify": "false", "server_hostname": "plc.example"}),
+        ),
+    ],
+)
 def test_parse_url(text: str, expect: tuple[str, str | None, int | None, str | None, dict[str, str]]) -> None:
     u = tp.parse_url(text)
     assert (u.scheme, u.host, u.port, u.path, u.options) == expect
@@ -123,29 +144,35 @@ def test_timeout_and_retries_from_url_or_arguments() -> None:
     assert (u.timeout, u.retries) == (1.0, 2)
 
 
-@pytest.mark.parametrize(("text", "message"), [
-    ("10.0.0.1", "'10.0.0.1' is not a device URL (expected e.g. tcp://HOST:502 or rtu:///dev/ttyUSB0)"),
-    ("tpc://10.0.0.1", "unknown scheme 'tpc' in 'tpc://10.0.0.1'; did you mean 'tcp'?"),
-    ("foo://h", "unknown scheme 'foo' in 'foo://h' (known: tcp, tls, rtu, ascii, rtu+tcp)"),
-    ("rtu:///dev/x?baud=9600", "unknown option 'baud' in rtu URL; did you mean 'baudrate'?"),
-    ("tcp://h?baudrate=9600", "unknown option 'baudrate' in tcp URL (known: device_identification, "
-                              "pause_after_connect, pause_between_requests, retries, timeout)"),
-    ("rtu:///dev/x?parity=X", "option parity=X must be N, E or O"),
-    ("rtu:///dev/x?baudrate=fast", "option baudrate='fast' is not an integer"),
-    ("rtu:///dev/x?timeout=abc", "option timeout='abc' is not a number"),
-    ("tcp://h?retries=1.5", "option retries='1.5' is not an integer"),
-    ("tcp://h:1?timeout=0", "option timeout=0 is out of range (0.001..600)"),
-    ("ascii:///dev/x?bytesize=9", "option bytesize=9 is out of range (5..8)"),
-    ("rtu:///dev/x?stopbits=3", "option stopbits=3 is out of range (1..2)"),
-    ("rtu+tcp://gw", "rtu+tcp URL needs a port: rtu+tcp://HOST:PORT (the gateway's TCP port)"),
-    ("rtu://", "rtu URL needs a serial device path: rtu:///dev/ttyUSB0 or rtu://COM3"),
-    ("tcp://:502", "tcp URL needs a host: tcp://HOST:PORT"),
-    ("tcp://h:99999", "bad port in 'tcp://h:99999'"),
-    ("tcp://h:0", "bad port in 'tcp://h:0' (1..65535)"),
-    ("tcp://h/x", "unexpected path '/x' in tcp URL"),
-    ("tls://h?verify=maybe", "option verify=maybe must be true or false"),
-    ("tls://h?cert=/nonexistent.crt&key=/x", "tls option cert: no such file '/nonexistent.crt'"),
-])
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("10.0.0.1", "'10.0.0.1' is not a device URL (expected e.g. tcp://HOST:502 or rtu:///dev/ttyUSB0)"),
+        ("tpc://10.0.0.1", "unknown scheme 'tpc' in 'tpc://10.0.0.1'; did you mean 'tcp'?"),
+        ("foo://h", "unknown scheme 'foo' in 'foo://h' (known: tcp, tls, rtu, ascii, rtu+tcp)"),
+        ("rtu:///dev/x?baud=9600", "unknown option 'baud' in rtu URL; did you mean 'baudrate'?"),
+        (
+            "tcp://h?baudrate=9600",
+            "unknown option 'baudrate' in tcp URL (known: device_identification, "
+            "pause_after_connect, pause_between_requests, retries, timeout)",
+        ),
+        ("rtu:///dev/x?parity=X", "option parity=X must be N, E or O"),
+        ("rtu:///dev/x?baudrate=fast", "option baudrate='fast' is not an integer"),
+        ("rtu:///dev/x?timeout=abc", "option timeout='abc' is not a number"),
+        ("tcp://h?retries=1.5", "option retries='1.5' is not an integer"),
+        ("tcp://h:1?timeout=0", "option timeout=0 is out of range (0.001..600)"),
+        ("ascii:///dev/x?bytesize=9", "option bytesize=9 is out of range (5..8)"),
+        ("rtu:///dev/x?stopbits=3", "option stopbits=3 is out of range (1..2)"),
+        ("rtu+tcp://gw", "rtu+tcp URL needs a port: rtu+tcp://HOST:PORT (the gateway's TCP port)"),
+        ("rtu://", "rtu URL needs a serial device path: rtu:///dev/ttyUSB0 or rtu://COM3"),
+        ("tcp://:502", "tcp URL needs a host: tcp://HOST:PORT"),
+        ("tcp://h:99999", "bad port in 'tcp://h:99999'"),
+        ("tcp://h:0", "bad port in 'tcp://h:0' (1..65535)"),
+        ("tcp://h/x", "unexpected path '/x' in tcp URL"),
+        ("tls://h?verify=maybe", "option verify=maybe must be true or false"),
+        ("tls://h?cert=/nonexistent.crt&key=/x", "tls option cert: no such file '/nonexistent.crt'"),
+    ],
+)
 def test_bad_urls(text: str, message: str) -> None:
     with pytest.raises(BadURL) as err:
         tp.parse_url(text)
@@ -157,14 +184,28 @@ def test_describe_hides_key_files_and_open_transport_picks_the_class(tmp_path: P
     key.write_text("x")
     u = tp.parse_url(f"tls://plc:802?cert={key}&key={key}&ca={key}&verify=false&timeout=2")
     assert tp.describe(u) == "tls://plc:802?verify=false"
-    assert tp.describe(tp.parse_url("rtu:///dev/ttyUSB0?parity=E&baudrate=9600&timeout=1")) == \
-        "rtu:///dev/ttyUSB0?baudrate=9600&parity=E"
+    assert (
+        tp.describe(tp.parse_url("rtu:///dev/ttyUSB0?parity=E&baudrate=9600&timeout=1"))
+        == "rtu:///dev/ttyUSB0?baudrate=9600&parity=E"
+    )
     assert tp.describe(tp.parse_url("tcp://[::1]")) == "tcp://[::1]:502"
-    kinds = {s: type(tp.open_transport(u)) for s, u in [
-        ("tcp", "tcp://h"), ("tls", "tls://h"), ("rtu+tcp", "rtu+tcp://h:1"), ("rtu", "rtu:///dev/x"),
-        ("ascii", "ascii:///dev/x")]}
-    assert kinds == {"tcp": tp.TcpTransport, "tls": tp.TlsTransport, "rtu+tcp": tp.RtuOverTcpTransport,
-                     "rtu": tp.SerialTransport, "ascii": tp.SerialTransport}
+    kinds = {
+        s: type(tp.open_transport(u))
+        for s, u in [
+            ("tcp", "tcp://h"),
+            ("tls", "tls://h"),
+            ("rtu+tcp", "rtu+tcp://h:1"),
+            ("rtu", "rtu:///dev/x"),
+            ("ascii", "ascii:///dev/x"),
+        ]
+    }
+    assert kinds == {
+        "tcp": tp.TcpTransport,
+        "tls": tp.TlsTransport,
+        "rtu+tcp": tp.RtuOverTcpTransport,
+        "rtu": tp.SerialTransport,
+        "ascii": tp.SerialTransport,
+    }
 
 
 def test_bus_keys(tmp_path: Path) -> None:
@@ -194,6 +235,7 @@ def test_tcp_round_trip_and_counters() -> None:
                 assert t.requests_sent == 3
             # MBAP: transaction id, protocol 0, length 13, unit 1, FC16 at 10, 3 registers, 6 bytes
             assert frames[0][2:] == bytes.fromhex("0000 000D 01 10 000A 0003 06 0001 0002 03E8")
+
     asyncio.run(main())
 
 
@@ -208,6 +250,7 @@ def test_exception_response_carries_function_and_code() -> None:
                 await t.write_registers(0, [5, 2000], 1)
             assert (err.value.function, err.value.code) == (16, 3)
             assert await t.read_holding_registers(0, 2, 1) == [0, 0]  # the connection is still usable
+
     asyncio.run(main())
 
 
@@ -222,6 +265,7 @@ def test_refused_connection_is_unreachable_fast() -> None:
         assert str(err.value) == f"tcp://127.0.0.1:{port}: connection refused"
         with pytest.raises(ConnectionLost):
             await t.read_holding_registers(0, 1, 1)
+
     asyncio.run(main())
 
 
@@ -232,8 +276,10 @@ def test_swallowed_request_is_no_response_after_the_timeout() -> None:
         return None if swallow["on"] and not sending else pdu
 
     async def main() -> None:
-        async with (serve("tcp", trace_pdu=trace_pdu) as port,
-                    tp.open_transport(f"tcp://127.0.0.1:{port}?timeout=0.3") as t):
+        async with (
+            serve("tcp", trace_pdu=trace_pdu) as port,
+            tp.open_transport(f"tcp://127.0.0.1:{port}?timeout=0.3") as t,
+        ):
             assert await t.read_holding_registers(0, 1, 1) == [0]
             swallow["on"] = True
             start = time.monotonic()
@@ -242,6 +288,7 @@ def test_swallowed_request_is_no_response_after_the_timeout() -> None:
             elapsed = time.monotonic() - start
             assert 0.25 <= elapsed < 1.5  # one attempt: pymodbus's own retries are off
             assert t.requests_sent == 2
+
     asyncio.run(main())
 
 
@@ -256,6 +303,7 @@ def test_server_gone_is_connection_lost_then_unreachable() -> None:
             await t.read_holding_registers(0, 1, 1)
         with pytest.raises(Unreachable, match="connection refused"):
             await t.reconnect()
+
     asyncio.run(main())
 
 
@@ -270,6 +318,7 @@ def test_broadcast_does_not_wait_for_an_answer() -> None:
             assert await t.read_holding_registers(20, 1, 1) == [42]
             assert time.monotonic() - start >= tp.BROADCAST_TURNAROUND
             assert await t.read_holding_registers(20, 1, 2) == [42]
+
     asyncio.run(main())
 
 
@@ -296,8 +345,9 @@ def test_tls_mutual_authentication(pki: dict[str, str]) -> None:
             async with t:
                 assert await t.read_holding_registers(5, 2, 1) == [0, 1000]
             with pytest.raises(Unreachable, match="TLS handshake failed.*match"):
-                await tp.open_transport(f"tls://127.0.0.1:{port}?{mine}&ca={pki['ca']}"
-                                        f"&server_hostname=plc.example").connect()
+                await tp.open_transport(
+                    f"tls://127.0.0.1:{port}?{mine}&ca={pki['ca']}&server_hostname=plc.example"
+                ).connect()
             with pytest.raises(Unreachable) as err:
                 await tp.open_transport(f"tls://127.0.0.1:{port}?{mine}&ca={pki['other_ca']}&timeout=2").connect()
             assert str(err.value).startswith(f"tls://127.0.0.1:{port}: TLS handshake failed: ")
@@ -306,11 +356,13 @@ def test_tls_mutual_authentication(pki: dict[str, str]) -> None:
             t = tp.open_transport(f"tls://127.0.0.1:{port}?{mine}&ca={pki['other_ca']}&verify=false")
             async with t:
                 assert await t.read_holding_registers(5, 2, 1) == [0, 1000]
+
     asyncio.run(main())
 
 
 def test_tls_without_client_certificate_is_refused_by_the_device(pki: dict[str, str]) -> None:
     """TLS 1.3: the handshake completes on our side and the server closes once it misses our certificate."""
+
     async def main() -> None:
         async with serve("tls", sslctx=server_context(pki)) as port:
             t = tp.open_transport(f"tls://127.0.0.1:{port}?ca={pki['ca']}&timeout=0.5")
@@ -318,6 +370,7 @@ def test_tls_without_client_certificate_is_refused_by_the_device(pki: dict[str, 
             with pytest.raises(ConnectionLost, match="before any answer .*client certificate"):
                 await t.read_holding_registers(0, 1, 1)
             await t.close()
+
     asyncio.run(main())
 
 
@@ -327,6 +380,7 @@ def test_tls_refused_is_not_reported_as_a_handshake_failure(pki: dict[str, str])
         with pytest.raises(Unreachable) as err:
             await tp.open_transport(f"tls://127.0.0.1:{port}?ca={pki['ca']}").connect()
         assert str(err.value) == f"tls://127.0.0.1:{port}: connection refused"
+
     asyncio.run(main())
 
 
@@ -334,8 +388,11 @@ def test_tls_refused_is_not_reported_as_a_handshake_failure(pki: dict[str, str])
 
 
 def rtu_frame(address: int, values: list[int], unit: int) -> bytes:
-    return bytes(FramerRTU(DecodePDU(False)).buildFrame(
-        WriteMultipleRegistersRequest(address=address, registers=values, dev_id=unit)))
+    return bytes(
+        FramerRTU(DecodePDU(False)).buildFrame(
+            WriteMultipleRegistersRequest(address=address, registers=values, dev_id=unit)
+        )
+    )
 
 
 def test_rtu_over_tcp_gateway() -> None:
@@ -351,6 +408,7 @@ def test_rtu_over_tcp_gateway() -> None:
                     await quick.read_holding_registers(16, 1, 5)
             assert frames[0] == rtu_frame(16, [0, 1000, 500], 4)
             assert frames[0] == bytes.fromhex("04 10 0010 0003 06 0000 03E8 01F4") + frames[0][-2:]
+
     asyncio.run(main())
 
 
@@ -362,6 +420,7 @@ def test_missing_serial_device_is_unreachable(tmp_path: Path) -> None:
         with pytest.raises(Unreachable) as err:
             await tp.open_transport(f"rtu://{tmp_path}/ttyNOPE").connect()
         assert str(err.value) == f"rtu://{tmp_path}/ttyNOPE: no such serial device '{tmp_path}/ttyNOPE'"
+
     asyncio.run(main())
 
 
@@ -370,10 +429,14 @@ def test_port_held_by_another_process_is_unreachable_with_the_reason(pty_pair: t
 
     async def main() -> None:
         async with serve("rtu", path=a):  # the server holds end A exclusively
-            held = ("is in use by another program" if sys.platform == "win32"
-                    else "cannot open the serial port: .*exclusively lock")
+            held = (
+                "is in use by another program"
+                if sys.platform == "win32"
+                else "cannot open the serial port: .*exclusively lock"
+            )
             with pytest.raises(Unreachable, match=held):
                 await tp.open_transport(f"rtu://{a}").connect()
+
     asyncio.run(main())
 
 
@@ -386,10 +449,13 @@ def test_line_settings_a_pty_rejects_are_reported_and_leave_the_port_free(pty_pa
             async with tp.open_transport(f"ascii://{b}?bytesize=7&parity=E"):
                 pass  # a kernel that accepts it: nothing to report
         except Unreachable as e:
-            assert str(e) == (f"ascii://{b}?bytesize=7&parity=E: the port rejects these line settings "
-                              f"(bytesize=7 parity=E): Invalid argument")
+            assert str(e) == (
+                f"ascii://{b}?bytesize=7&parity=E: the port rejects these line settings "
+                f"(bytesize=7 parity=E): Invalid argument"
+            )
         async with tp.open_transport(f"ascii://{b}") as t:  # 8N1 opens at once: nothing kept the port locked
             assert t.requests_sent == 0
+
     asyncio.run(main())
 
 
@@ -409,6 +475,7 @@ def test_rtu_round_trip_on_a_pty(pty_pair: tuple[str, str]) -> None:
                 with pytest.raises(NoResponse):  # nobody at unit 9: a serial line stays silent
                     await t.read_holding_registers(30, 1, 9)
             assert frames[0] == rtu_frame(30, [11, 22, 33], 3)
+
     asyncio.run(main())
 
 
@@ -423,6 +490,7 @@ def test_rtu_broadcast_reaches_every_unit(pty_pair: tuple[str, str]) -> None:
             assert await t.read_holding_registers(60, 2, 1) == [7, 8]  # after the turnaround delay
             assert time.monotonic() - start >= tp.BROADCAST_TURNAROUND
             assert await t.read_holding_registers(60, 2, 2) == [7, 8]
+
     asyncio.run(main())
 
 
@@ -437,9 +505,11 @@ def test_ascii_bytes_on_the_wire(pty_pair: tuple[str, str]) -> None:
                 await t.write_registers(0x0010, [0, 1000], 4)
                 assert await t.read_holding_registers(0x0010, 2, 4) == [0, 1000]
             built = FramerAscii(DecodePDU(False)).buildFrame(
-                WriteMultipleRegistersRequest(address=0x0010, registers=[0, 1000], dev_id=4))
+                WriteMultipleRegistersRequest(address=0x0010, registers=[0, 1000], dev_id=4)
+            )
             # LRC by hand: 04+10+00+10+00+02+04+00+00+03+E8 = 115h; -15h & FFh = EBh
             assert frames[0] == built == b":04100010000204000003E8EB\r\n"
+
     asyncio.run(main())
 
 
@@ -460,6 +530,7 @@ def test_rtu_keeps_the_silent_interval_between_frames(pty_pair: tuple[str, str])
             gap = 3.5 * 10 / 1200  # 8N1: 10 bits a character
             assert len(sends) == 4
             assert all(s - r >= gap * 0.95 for s, r in zip(sends[1:], last_recv, strict=True))
+
     asyncio.run(main())
 
 
@@ -474,8 +545,7 @@ def test_two_transports_on_one_line_never_interleave(pty_pair: tuple[str, str]) 
             events: list[tuple[int, str, float, bytes]] = []
             transports = [tp.open_transport(f"rtu://{b}?baudrate={baud}&timeout=1") for _ in (1, 2)]
             for unit, t in enumerate(transports, 1):
-                t.on_frame = (lambda u: lambda d, data: events.append(
-                    (u, d, time.monotonic(), data)))(unit)
+                t.on_frame = (lambda u: lambda d, data: events.append((u, d, time.monotonic(), data)))(unit)
                 await t.connect()
 
             async def worker(unit: int, t: tp.Transport) -> None:
@@ -497,6 +567,7 @@ def test_two_transports_on_one_line_never_interleave(pty_pair: tuple[str, str]) 
                 answers = [e for e in events if e[1] == "recv" and prev_ts < e[2] < ts]
                 assert answers and all(e[0] == prev_u for e in answers)
                 assert ts - answers[-1][2] >= gap * 0.95
+
     asyncio.run(main())
 
 
@@ -512,6 +583,7 @@ def test_one_port_different_settings_is_refused(pty_pair: tuple[str, str]) -> No
         # closed by its last user: the port opens again with other settings
         async with tp.open_transport(f"rtu://{b}?baudrate=19200"):
             pass
+
     asyncio.run(main())
 
 
@@ -546,6 +618,7 @@ def test_bus_lock_is_reentrant_for_its_holder(pty_pair: tuple[str, str]) -> None
                 lock.release()
             await one.close()
             await two.close()
+
     asyncio.run(main())
 
 
@@ -571,6 +644,7 @@ def test_umodbus_interop(umodbus_server: tuple[int, dict[int, int]]) -> None:
             with pytest.raises(ExceptionResponse) as err:
                 await t.read_holding_registers(200, 1, 1)  # no route: umodbus answers 02
             assert err.value.code == 2
+
     asyncio.run(main())
     assert store == {100: 0, 101: 1000, 102: 65535}
 

@@ -112,29 +112,36 @@ def test_only_whole_records_restore_and_only_snapshot_files_of_the_logs_own_fold
 def test_a_process_that_ends_settles_its_log_and_one_that_lives_on_settles_it_when_idle(tmp_path: Path) -> None:
     """The Python API's ``save_snapshot`` in a script that simply ends: no log is left behind (the exit handler
     settles it); in a process that lives on (the agent), the writer settles it once idle for ``wal.IDLE``."""
-    script = ("import sys\n"
-              "from deployer.recipe.loader import load_recipe\n"
-              "from deployer.state.snapshot import save_snapshot\n"
-              "rec = load_recipe(sys.argv[2])\n"
-              "values = {d.name: d.registers for d in rec.desired}\n"
-              "print(save_snapshot(sys.argv[1], 'press-1', rec, values, 'tcp://127.0.0.1:1502', 1))\n")
+    script = (
+        "import sys\n"
+        "from deployer.recipe.loader import load_recipe\n"
+        "from deployer.state.snapshot import save_snapshot\n"
+        "rec = load_recipe(sys.argv[2])\n"
+        "values = {d.name: d.registers for d in rec.desired}\n"
+        "print(save_snapshot(sys.argv[1], 'press-1', rec, values, 'tcp://127.0.0.1:1502', 1))\n"
+    )
     (tmp_path / "r.yaml").write_text("recipe: r\nprofile: example-drive\nparameters:\n  motor_poles: 4\n")
-    out = subprocess.run([sys.executable, "-c", script, str(tmp_path / "state"), str(tmp_path / "r.yaml")],
-                         capture_output=True, text=True, timeout=60, check=True,
-                         env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)}).stdout
+    out = subprocess.run(
+        [sys.executable, "-c", script, str(tmp_path / "state"), str(tmp_path / "r.yaml")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)},
+    ).stdout
     assert Path(out.strip()).is_file()
     assert not (tmp_path / "state" / "snapshots" / wal.FOLDER).exists()
 
     path = durable.durable_now(_snapshot(tmp_path, "dev-20261127T120000Z", "recipe: dev\n"))
     assert path is not None and (tmp_path / wal.FOLDER).is_dir()
-    wait_for(lambda: not (tmp_path / wal.FOLDER).exists(), "the idle writer to settle its log",
-             timeout=wal.IDLE + 10)
+    wait_for(lambda: not (tmp_path / wal.FOLDER).exists(), "the idle writer to settle its log", timeout=wal.IDLE + 10)
     assert Path(path).read_text() == "recipe: dev\n"
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="Windows removes no file that is open: the race cannot happen")
 def test_a_new_segment_taken_and_removed_by_a_recover_before_its_lock_is_made_again(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Between a segment's create and its lock, another process's recover can take it for a dead process's (it
     has no records yet) and remove it: the writer's lock would then hold a file nobody finds after a crash. The
     writer sees its path gone and makes another one."""

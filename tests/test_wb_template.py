@@ -101,7 +101,14 @@ def test_every_key_becomes_the_profile_parameter(tmp_path: Path, capsys: pytest.
     p = {q.name: q for q in prof.parameters}
     sp = p["setpoint"]
     assert (sp.address, sp.type, str(sp.scale), sp.unit, sp.min, sp.max, sp.default) == (
-        100, "int16", "0.1", "degC", Decimal(-20), Decimal(50), Decimal("21.5"))
+        100,
+        "int16",
+        "0.1",
+        "degC",
+        Decimal(-20),
+        Decimal(50),
+        Decimal("21.5"),
+    )
     hy = p["hysteresis"]  # register = (value - offset) / scale: 2 -> raw 2
     assert (hy.address, hy.scale, hy.offset, hy.to_raw(Decimal(2))) == (0x65, Decimal("0.5"), Decimal(1), 2)
     assert p["mode"].address == 102 and p["mode"].values == (("off", 0), ("heat", 1), ("heat, then cool", 2))
@@ -112,14 +119,24 @@ def test_every_key_becomes_the_profile_parameter(tmp_path: Path, capsys: pytest.
     assert (p["led_on"].type, p["led_on"].mask, p["led_level"].mask) == ("bool", 0x0001, 0x0070)
     assert "needs firmware 2.1.0 or later" in p["led_level"].description
     assert (p["brightness"].mask, p["brightness"].max, p["trim"].mask, p["trim"].type) == (
-        0xFF, Decimal(200), 0xFF, "int16")
+        0xFF,
+        Decimal(200),
+        0xFF,
+        "int16",
+    )
     assert (p["total"].type, p["total"].word_order) == ("uint32", "little")
     assert [p[n].type for n in ("delta", "gain", "big", "offset64", "precise")] == [
-        "int32", "float32", "uint64", "int64", "float64"]
+        "int32",
+        "float32",
+        "uint64",
+        "int64",
+        "float64",
+    ]
     # two ids at one register: imported once, the alias named in the description, the condition kept
     assert "cool_sp_alias" not in p
-    assert p["cool_setpoint"].description == ("Cooling set point; applies when mode==2; also named cool_sp_alias in "
-                                              "the template (applies when mode!=2)")
+    assert p["cool_setpoint"].description == (
+        "Cooling set point; applies when mode==2; also named cool_sp_alias in the template (applies when mode!=2)"
+    )
     # read at 130, written at 131: read-only here, the write address kept; write-only at 140
     assert (p["relay_limit"].access, p["relay_limit"].address) == ("read-only", 130)
     assert "written at register 131 (write_address)" in p["relay_limit"].description
@@ -128,7 +145,10 @@ def test_every_key_becomes_the_profile_parameter(tmp_path: Path, capsys: pytest.
     assert "ui_only" not in p and "counts" not in p
     # channels: read-only values of their tables; one reading a parameter's register is that parameter
     assert (p["Temperature"].register_type, p["Temperature"].access, p["Temperature"].unit) == (
-        "input", "read-only", "degC")
+        "input",
+        "read-only",
+        "degC",
+    )
     assert (p["Relay_1"].register_type, p["Relay_1"].access) == ("coil", "read-write")  # writable unless readonly
     tsp = p["Temperature_Set_Point"]  # a set point channel (s16, scale 0.1, not readonly): deployable
     assert (tsp.access, tsp.type, tsp.scale, tsp.unit) == ("read-write", "int16", Decimal("0.1"), "degC")
@@ -154,12 +174,16 @@ def test_warnings_name_the_key_and_its_position(tmp_path: Path, capsys: pytest.C
         raise AssertionError(needle)
 
     for where, message in [
-        (at('"cool_setpoint"', "condition"), "parameter 'cool_setpoint': condition 'mode==2' cannot be said in a "
-                                             "profile: kept in the description"),
-        (at('"relay_limit"', "write_address"), "parameter 'relay_limit': read at 130 but written at write_address "
-                                               "131"),
-        (at('"ui_only"', "readonly"), "parameter 'ui_only': readonly: true marks a setting of the web configurator "
-                                      "only, with no register in the device: left out"),
+        (
+            at('"cool_setpoint"', "condition"),
+            "parameter 'cool_setpoint': condition 'mode==2' cannot be said in a profile: kept in the description",
+        ),
+        (at('"relay_limit"', "write_address"), "parameter 'relay_limit': read at 130 but written at write_address 131"),
+        (
+            at('"ui_only"', "readonly"),
+            "parameter 'ui_only': readonly: true marks a setting of the web configurator "
+            "only, with no register in the device: left out",
+        ),
         (at('"counts"', "format"), "parameter 'counts': format bcd16 has no profile type"),
         (at('"setup"', "setup"), "setup: 1 writes the driver sends at start-up"),
     ]:
@@ -177,7 +201,9 @@ def test_round_trip_template_profile_recipe_plan(tmp_path: Path, capsys: pytest.
     (tmp_path / "r.yaml").write_text(
         "recipe: th\nprofile: th1.yaml\nparameters:\n  setpoint: 22.5 degC\n  hysteresis: 3\n  mode: heat, then cool\n"
         "  display_unit: °F\n  buzzer: false\n  led_on: true\n  led_level: 5\n  brightness: 200\n  trim: -3\n"
-        "  total: 305419896\n  gain: 1.5\n  password: 4321\n", encoding="utf-8")
+        "  total: 305419896\n  gain: 1.5\n  password: 4321\n",
+        encoding="utf-8",
+    )
     code, _, err = cli(capsys, "validate", out, str(tmp_path / "r.yaml"))
     assert code == 0, err
     plan = make_plan(load_recipe(str(tmp_path / "r.yaml")), Target(None, 1, out))
@@ -186,40 +212,61 @@ def test_round_trip_template_profile_recipe_plan(tmp_path: Path, capsys: pytest.
         (16, 100, (225, 4, 2, 0x0051, 200, 0x00FD, 0x5678, 0x1234)),
         (16, 110, (0x3FC0, 0x0000)),  # float 1.5
         (16, 140, (4321,)),
-        (15, 5, (1, 0))]  # display_unit °F, buzzer off: one FC15
+        (15, 5, (1, 0)),
+    ]  # display_unit °F, buzzer off: one FC15
     code, out_text, err = cli(capsys, "plan", str(tmp_path / "r.yaml"), "--json")
     assert code == 0, err
     writes = [s for s in json.loads(out_text)["steps"] if s["kind"] == "write"]
-    assert writes[3] == {"kind": "write", "function": 15, "address": 5, "count": 2, "values": [1, 0],
-                         "parameters": ["display_unit", "buzzer"], "stage": 0}
+    assert writes[3] == {
+        "kind": "write",
+        "function": 15,
+        "address": 5,
+        "count": 2,
+        "values": [1, 0],
+        "parameters": ["display_unit", "buzzer"],
+        "stage": 0,
+    }
 
 
 def test_object_form_and_no_channels(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    src = write(tmp_path, """{"device_type": "obj", "device": {"name": "o", "id": "o",
+    src = write(
+        tmp_path,
+        """{"device_type": "obj", "device": {"name": "o", "id": "o",
         "parameters": {"speed": {"title": "Speed", "address": 1, "format": "u16", "max": 3000, "default": 1500},
                        "dir": {"title": "Direction", "address": "2:0:1", "enum": [0, 1],
                                "enum_titles": ["forward", "reverse"]}},
-        "channels": [{"name": "Speed now", "reg_type": "input", "address": 7}]}}""", "obj.json")
+        "channels": [{"name": "Speed now", "reg_type": "input", "address": 7}]}}""",
+        "obj.json",
+    )
     code, out, err = cli(capsys, "profiles", "import", "wb-template", src, "--no-channels", "--id", "my-obj")
     assert code == 0, err
     assert out.splitlines()[2:] == [
-        "profile: \"my-obj\"",
-        "description: \"o (wb-mqtt-serial template obj)\"",
+        'profile: "my-obj"',
+        'description: "o (wb-mqtt-serial template obj)"',
         "parameters:",
-        "  speed: {register: 0x0001, type: \"uint16\", max: 3000, default: 1500, description: \"Speed\"}",
-        "  dir: {register: 0x0002, mask: 1, type: \"bool\", values: {forward: 0, reverse: 1}, description: "
-        "\"Direction\"}"]
+        '  speed: {register: 0x0001, type: "uint16", max: 3000, default: 1500, description: "Speed"}',
+        '  dir: {register: 0x0002, mask: 1, type: "bool", values: {forward: 0, reverse: 1}, description: "Direction"}',
+    ]
 
 
-@pytest.mark.parametrize(("text", "message"), [
-    ('{"device_type": "x", "device": {"protocol": "milur", "channels": []}}',
-     "1:45: error: protocol 'milur' is not Modbus: only Modbus templates become profiles"),
-    ('{"device_type": "x", "device": {"parameters": [{"id" "a", "address": 1}]}}',
-     "1:54: error: invalid JSON: expected ',' or '}'"),
-    ('{"device_type": "x"}', "1:1: error: not a wb-mqtt-serial device template"),
-    ('{"device_type": "x", "device": {"parameters": [{"id": "a", "readonly": true}]}}',
-     "1:32: error: the template has no parameter or channel with a Modbus register"),
-])
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (
+            '{"device_type": "x", "device": {"protocol": "milur", "channels": []}}',
+            "1:45: error: protocol 'milur' is not Modbus: only Modbus templates become profiles",
+        ),
+        (
+            '{"device_type": "x", "device": {"parameters": [{"id" "a", "address": 1}]}}',
+            "1:54: error: invalid JSON: expected ',' or '}'",
+        ),
+        ('{"device_type": "x"}', "1:1: error: not a wb-mqtt-serial device template"),
+        (
+            '{"device_type": "x", "device": {"parameters": [{"id": "a", "readonly": true}]}}',
+            "1:32: error: the template has no parameter or channel with a Modbus register",
+        ),
+    ],
+)
 def test_bad_templates(tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, message: str) -> None:
     src = write(tmp_path, text, "bad.json")
     code, _, err = cli(capsys, "profiles", "import", "wb-template", src)
@@ -228,9 +275,13 @@ def test_bad_templates(tmp_path: Path, capsys: pytest.CaptureFixture[str], text:
 
 
 def test_profile_problems_point_into_the_template(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    src = write(tmp_path, '{"device_type": "x", "device": {"parameters": [\n'
-                          '  {"id": "a", "address": 1, "format": "u16"},\n'
-                          '  {"id": "b", "address": 1, "format": "u32"}]}}', "ov.json")
+    src = write(
+        tmp_path,
+        '{"device_type": "x", "device": {"parameters": [\n'
+        '  {"id": "a", "address": 1, "format": "u16"},\n'
+        '  {"id": "b", "address": 1, "format": "u32"}]}}',
+        "ov.json",
+    )
     code, out, err = cli(capsys, "profiles", "import", "wb-template", src)
     assert code == 0, err  # an overlap is handled (the second left out), not refused
     assert f"{src}:3:3: b overlaps a (line 2) in register 1: left out" in err
@@ -246,7 +297,6 @@ def test_hostile_input_is_bounded(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert code == 1 and "20001 parameters and channels; at most 20000" in err
 
 
-
 def test_the_repository_ships_no_wb_mqtt_serial_template() -> None:
     """Their MIT-WB licence allows use on Wiren Board controllers only (docs/importers.md): deployer ships none,
     nor a profile made from one; the tests write their own."""
@@ -258,9 +308,14 @@ def test_the_repository_ships_no_wb_mqtt_serial_template() -> None:
         listed = subprocess.run(["git", "ls-files"], cwd=root, capture_output=True, text=True, timeout=60, check=True)
         files = [root / f for f in listed.stdout.splitlines()]
     except (OSError, subprocess.SubprocessError):  # a source tree without git: every file but the environments'
-        files = [Path(d) / f for d, dirs, names in os.walk(root)
-                 if not any(part.startswith(".") or part in ("build", "node_modules") for part in Path(d).parts[
-                     len(root.parts):]) for f in names]
+        files = [
+            Path(d) / f
+            for d, dirs, names in os.walk(root)
+            if not any(
+                part.startswith(".") or part in ("build", "node_modules") for part in Path(d).parts[len(root.parts) :]
+            )
+            for f in names
+        ]
     assert len(files) > 100
     found = []
     for f in files:

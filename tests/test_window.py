@@ -31,8 +31,28 @@ def journal(state: str | Path) -> list[dict[str, Any]]:
 def mbpoll_write(port: int | str, address: int, *values: int) -> None:
     """Write holding registers with libmodbus's client (another tool changing the device by hand)."""
     assert MBPOLL is not None
-    poke = subprocess.run([MBPOLL, "-m", "tcp", "-p", str(port), "-a", "1", "-0", "-1", "-r", str(address), "-t",
-                           "4", "127.0.0.1", *map(str, values)], capture_output=True, text=True, timeout=30)
+    poke = subprocess.run(
+        [
+            MBPOLL,
+            "-m",
+            "tcp",
+            "-p",
+            str(port),
+            "-a",
+            "1",
+            "-0",
+            "-1",
+            "-r",
+            str(address),
+            "-t",
+            "4",
+            "127.0.0.1",
+            *map(str, values),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert poke.returncode == 0, poke.stdout + poke.stderr
 
 
@@ -57,22 +77,35 @@ needs_mbpoll = pytest.mark.skipif(MBPOLL is None, reason="mbpoll (libmodbus) is 
 # ---- 1. the window holds the device's lock ------------------------------------------------------------
 
 
-def test_a_second_run_is_refused_during_the_window_by_any_spelling_and_status_lists_the_lock(
-        tmp_path: Path) -> None:
+def test_a_second_run_is_refused_during_the_window_by_any_spelling_and_status_lists_the_lock(tmp_path: Path) -> None:
     """A waits for its confirmation; B (another state folder, the device spelled localhost) is refused with A's
     run id, window, deadline and command, sends nothing; `status` of B's folder lists A's lock; confirmed, A
     commits once."""
     state_a, state_b = str(tmp_path / "a"), str(tmp_path / "b")
     with SimulatorThread(PROFILE) as sim:
         port = sim.url.rsplit(":", 1)[1]
-        a = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--confirm-within", "1h",
-                     "--state-dir", state_a)
+        a = deployer(
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--json",
+            "--confirm-within",
+            "1h",
+            "--state-dir",
+            state_a,
+        )
         try:
             wait_for(lambda: bool(awaiting(state_a)) or a.poll() is not None)
             (waiting,) = awaiting(state_a)
             seen = [e for e in sim.log if e.function != 3 or e.address != PROFILE.health[0].address]
-            b = run("apply", recipe(tmp_path, "4 s", f"tcp://localhost:{port}", "r2.yaml"), "--yes", "--json",
-                    "--state-dir", state_b)
+            b = run(
+                "apply",
+                recipe(tmp_path, "4 s", f"tcp://localhost:{port}", "r2.yaml"),
+                "--yes",
+                "--json",
+                "--state-dir",
+                state_b,
+            )
             # B sent nothing at all (A watches the health register while it waits)
             assert [e for e in sim.log if e.function != 3 or e.address != PROFILE.health[0].address] == seen
             assert b.returncode == 3, b.stderr
@@ -101,19 +134,37 @@ def test_a_second_run_is_refused_during_the_window_by_any_spelling_and_status_li
     assert json.loads(out)["devices"][0]["commit"] == "sent" and len(writes_to(log, COMMIT)) == 1
     assert sim.read("F07") == (0, 300)  # A's value: B never wrote
     assert holder.held(os.environ["DEPLOYER_LOCK_DIR"]) == [] or all(
-        r["run"] != waiting.run for r in holder.held(os.environ["DEPLOYER_LOCK_DIR"]))
+        r["run"] != waiting.run for r in holder.held(os.environ["DEPLOYER_LOCK_DIR"])
+    )
 
 
 def test_a_second_run_with_lock_timeout_waits_for_the_window_to_end(tmp_path: Path) -> None:
     """B waits (--lock-timeout) while A soaks; it writes only after A's soak passed and A's commit went out."""
     with SimulatorThread(PROFILE) as sim:
-        a = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--soak", "1500ms", "--health-interval",
-                     "100ms", "--state-dir", str(tmp_path / "a"))
+        a = deployer(
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--soak",
+            "1500ms",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(tmp_path / "a"),
+        )
         try:
             # the soak's first read: the second one (the first is the safe change's, before the write)
             wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2 or a.poll() is not None)
-            b = run("apply", recipe(tmp_path, "4 s", sim.url, "r2.yaml"), "--yes", "--json", "--lock-timeout", "60",
-                    "--state-dir", str(tmp_path / "b"))
+            b = run(
+                "apply",
+                recipe(tmp_path, "4 s", sim.url, "r2.yaml"),
+                "--yes",
+                "--json",
+                "--lock-timeout",
+                "60",
+                "--state-dir",
+                str(tmp_path / "b"),
+            )
             a.communicate(timeout=120)
         finally:
             if a.poll() is None:
@@ -134,20 +185,32 @@ def test_a_device_of_another_library_in_a_window_gets_nothing_from_a_second_run(
     store = {0x10: 0, 0x20: 0, 0x30: 0}
     wire: list[tuple[int, int, int]] = []
     with umodbus_server(store, wire=wire, connections=2) as port:
+
         def recipe_for(name: str, host: str, x: int) -> str:
             r = tmp_path / f"{name}.yaml"
-            r.write_text(f"recipe: {name}\nprofile: w.yaml\ndevice: {{url: 'tcp://{host}:{port}'}}\n"
-                         f"parameters:\n  x: {x}\n")
+            r.write_text(
+                f"recipe: {name}\nprofile: w.yaml\ndevice: {{url: 'tcp://{host}:{port}'}}\nparameters:\n  x: {x}\n"
+            )
             return str(r)
 
         state_a = str(tmp_path / "a")
-        a = deployer("apply", recipe_for("a", "127.0.0.1", 5), "--yes", "--json", "--confirm-within", "1h",
-                     "--state-dir", state_a)
+        a = deployer(
+            "apply",
+            recipe_for("a", "127.0.0.1", 5),
+            "--yes",
+            "--json",
+            "--confirm-within",
+            "1h",
+            "--state-dir",
+            state_a,
+        )
         try:
             wait_for(lambda: bool(awaiting(state_a)) or a.poll() is not None)
             (waiting,) = awaiting(state_a)
+
             def others() -> list[tuple[int, int, int]]:
                 return [w for w in list(wire) if w[:2] != (3, 0x20)]  # A reads its health register while it waits
+
             seen = others()
             b = run("apply", recipe_for("b", "localhost", 6), "--yes", "--json", "--state-dir", str(tmp_path / "b"))
             assert others() == seen  # not one request of B's reached the device
@@ -179,14 +242,27 @@ def test_a_parameter_changed_by_hand_during_the_window_is_never_committed(tmp_pa
     held = ["--confirm-within", "1h"] if window == "confirm" else ["--soak", "1500ms", "--health-interval", "100ms"]
     with SimulatorThread(PROFILE) as sim:
         before = sim.registers()
-        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", *held, "--state-dir", state,
-                        "--report", str(tmp_path / "run.json"))
+        proc = deployer(
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--json",
+            *held,
+            "--state-dir",
+            state,
+            "--report",
+            str(tmp_path / "run.json"),
+        )
         try:
             if window == "confirm":
                 wait_for(lambda: bool(awaiting(state)) or proc.poll() is not None)
             else:
-                wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2  # the soak's first
-                         or proc.poll() is not None)
+                wait_for(
+                    lambda: (
+                        len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2  # the soak's first
+                        or proc.poll() is not None
+                    )
+                )
             mbpoll_write(sim.url.rsplit(":", 1)[1], F07, 0, 999)
             if window == "confirm":
                 confirmed = run("confirm", "--state-dir", state)
@@ -211,7 +287,8 @@ def test_a_parameter_changed_by_hand_during_the_window_is_never_committed(tmp_pa
     # the device: F07 as mbpoll left it, everything else as before, never committed
     assert after[F07 + 1] == 999 and writes_to(log, COMMIT) == []
     assert {a: v for a, v in after.items() if a not in (F07, F07 + 1)} == {
-        a: v for a, v in before.items() if a not in (F07, F07 + 1)}
+        a: v for a, v in before.items() if a not in (F07, F07 + 1)
+    }
     lines = journal(state)
     (commit,) = [r for r in lines if r["event"] == "commit"]
     assert commit["result"] == "not sent" and "F07 holds 9.99 s" in commit["error"]
@@ -230,10 +307,21 @@ def test_an_independent_device_changed_by_an_independent_client_is_not_committed
     wire: list[tuple[int, int, int]] = []
     with umodbus_server(store, wire=wire, connections=2) as port:  # the run and mbpoll
         r = tmp_path / "r.yaml"
-        r.write_text(f"recipe: r\nprofile: w.yaml\ndevice: {{url: 'tcp://127.0.0.1:{port}'}}\n"
-                     "parameters:\n  x: 5\n  y: 6\n")
-        proc = deployer("apply", str(r), "--yes", "--json", "--soak", "1500ms", "--health-interval", "100ms",
-                        "--state-dir", str(tmp_path / "s"))
+        r.write_text(
+            f"recipe: r\nprofile: w.yaml\ndevice: {{url: 'tcp://127.0.0.1:{port}'}}\nparameters:\n  x: 5\n  y: 6\n"
+        )
+        proc = deployer(
+            "apply",
+            str(r),
+            "--yes",
+            "--json",
+            "--soak",
+            "1500ms",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         try:
             wait_for(lambda: any(w[:2] == (3, 0x20) for w in list(wire)) or proc.poll() is not None)
             mbpoll_write(port, 0x10, 77)
@@ -254,11 +342,24 @@ def test_an_independent_device_changed_by_an_independent_client_is_not_committed
 
 @pytest.mark.parametrize("held", [[], ["--soak", "200ms", "--health-interval", "100ms"]])
 def test_a_refused_commit_fails_the_device_and_a_retry_sends_it_with_nothing_to_write(
-        capsys: pytest.CaptureFixture[str], tmp_path: Path, held: list[str]) -> None:
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, held: list[str]
+) -> None:
     with Simulators([Simulator(PROFILE, faults=Faults(fail_registers=frozenset({COMMIT})))]) as (sim,):
         inv, report = inventory(tmp_path, {"d0": sim.url}), str(tmp_path / "run.json")
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", inv, "--yes", "--json", *held,
-                           "--report", report, "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "3 s"),
+            "--inventory",
+            inv,
+            "--yes",
+            "--json",
+            *held,
+            "--report",
+            report,
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 4
         dev = json.loads(out)["devices"][0]
         assert dev["status"] == "failed" and dev["commit"] == "failed"
@@ -267,8 +368,20 @@ def test_a_refused_commit_fails_the_device_and_a_retry_sends_it_with_nothing_to_
         assert len(writes_to(list(sim.log), COMMIT)) == 1
         sim.faults.fail_registers = frozenset()  # the device takes its commit again
         seen = len(sim.log)
-        code, out, err = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", inv, "--yes", "--json",
-                             "--limit", f"@{report}", *held, "--state-dir", str(tmp_path / "s"))
+        code, out, err = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "3 s"),
+            "--inventory",
+            inv,
+            "--yes",
+            "--json",
+            "--limit",
+            f"@{report}",
+            *held,
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         retry = list(sim.log)[seen:]
     assert code == 0, err
     dev = json.loads(out)["devices"][0]
@@ -277,15 +390,20 @@ def test_a_refused_commit_fails_the_device_and_a_retry_sends_it_with_nothing_to_
     assert [e.address for e in retry if e.function in (6, 16)] == [COMMIT]  # the commit, nothing else
 
 
-def test_commit_steps_go_as_function_06_to_a_device_that_refuses_16(capsys: pytest.CaptureFixture[str],
-                                                                    tmp_path: Path) -> None:
+def test_commit_steps_go_as_function_06_to_a_device_that_refuses_16(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
     """umodbus answering 01 to Function 16 (and 02 for a commit register it lacks, in the second run)."""
-    prof = profile_from(tmp_path, """profile: w
+    prof = profile_from(
+        tmp_path,
+        """profile: w
 commit:
   - {register: 0x30, raw: 1, description: store}
 parameters:
   x: {register: 0x10, type: uint16}
-""", "w.yaml")
+""",
+        "w.yaml",
+    )
     assert prof.commit
     wire: list[tuple[int, int, int]] = []
     store = {0x10: 0, 0x30: 0}
@@ -309,15 +427,26 @@ parameters:
 # ---- 7. --rollback-on-failure: every batch alike --------------------------------------------------------
 
 
-def test_rollback_on_failure_with_the_failure_in_the_last_batch_rolls_back(capsys: pytest.CaptureFixture[str],
-                                                                          tmp_path: Path) -> None:
-    with Simulators([Simulator(PROFILE), Simulator(PROFILE, faults=Faults(fail_registers=frozenset({F07})))]
-                    ) as sims:
+def test_rollback_on_failure_with_the_failure_in_the_last_batch_rolls_back(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    with Simulators([Simulator(PROFILE), Simulator(PROFILE, faults=Faults(fail_registers=frozenset({F07})))]) as sims:
         before = [s.registers() for s in sims]
         urls = {f"d{i}": s.url for i, s in enumerate(sims)}
-        code, out, _ = cli(capsys, "apply", recipe(tmp_path, "3 s"), "--inventory", inventory(tmp_path, urls),
-                           "--yes", "--json", "--batch", "1", "--rollback-on-failure",
-                           "--state-dir", str(tmp_path / "s"))
+        code, out, _ = cli(
+            capsys,
+            "apply",
+            recipe(tmp_path, "3 s"),
+            "--inventory",
+            inventory(tmp_path, urls),
+            "--yes",
+            "--json",
+            "--batch",
+            "1",
+            "--rollback-on-failure",
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         after = [s.registers() for s in sims]
     assert code == 4
     d0, d1 = json.loads(out)["devices"]
@@ -331,8 +460,9 @@ def test_rollback_on_failure_with_the_failure_in_the_last_batch_rolls_back(capsy
 
 
 @pytest.mark.parametrize("held", [["--confirm-within", "1h"], ["--soak", "1h", "--health-interval", "100ms"]])
-def test_the_restore_status_recommends_sends_no_commit_and_drops_the_run(capsys: pytest.CaptureFixture[str],
-                                                                         tmp_path: Path, held: list[str]) -> None:
+def test_the_restore_status_recommends_sends_no_commit_and_drops_the_run(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, held: list[str]
+) -> None:
     import signal
 
     state = str(tmp_path / "s")
@@ -341,8 +471,13 @@ def test_the_restore_status_recommends_sends_no_commit_and_drops_the_run(capsys:
         proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", *held, "--state-dir", state)
         try:
             # the window's first health read: the second (the first is before the write)
-            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2
-                     or proc.poll() is not None)
+            wait_for(
+                lambda: (
+                    bool(awaiting(state))
+                    or len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2
+                    or proc.poll() is not None
+                )
+            )
         finally:
             proc.send_signal(signal.SIGKILL)
             proc.communicate(timeout=60)
@@ -371,20 +506,37 @@ def _page_devices(page: Path) -> list[dict[str, Any]]:
     return devices
 
 
-@pytest.mark.parametrize(("sig", "held"), [("SIGINT", ["--soak", "1h", "--health-interval", "100ms"]),
-                                           ("SIGTERM", ["--confirm-within", "1h"])])
+@pytest.mark.parametrize(
+    ("sig", "held"),
+    [("SIGINT", ["--soak", "1h", "--health-interval", "100ms"]), ("SIGTERM", ["--confirm-within", "1h"])],
+)
 def test_an_interrupted_window_tells_one_story_everywhere(tmp_path: Path, sig: str, held: list[str]) -> None:
     import signal
 
     state, report, page = str(tmp_path / "s"), tmp_path / "r.json", tmp_path / "r.html"
     with SimulatorThread(PROFILE) as sim:
         before = sim.registers()
-        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", *held, "--report", str(report),
-                        "--html", str(page), "--state-dir", state)
+        proc = deployer(
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            *held,
+            "--report",
+            str(report),
+            "--html",
+            str(page),
+            "--state-dir",
+            state,
+        )
         try:
             # the window's first health read: the second (the first is before the write)
-            wait_for(lambda: bool(awaiting(state)) or len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2
-                     or proc.poll() is not None)
+            wait_for(
+                lambda: (
+                    bool(awaiting(state))
+                    or len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2
+                    or proc.poll() is not None
+                )
+            )
             proc.send_signal(getattr(signal, sig))
             out, err = proc.communicate(timeout=120)
         finally:
@@ -418,8 +570,7 @@ def small_disk(tmp_path: Path) -> Any:
     where.mkdir()
     if sh.which("mount") is None:
         pytest.skip("no mount command")
-    got = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)], capture_output=True,
-                         text=True)
+    got = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(where)], capture_output=True, text=True)
     if got.returncode != 0:
         pytest.skip(f"cannot mount a small tmpfs here (needs root or CAP_SYS_ADMIN): {got.stderr.strip()}")
     try:
@@ -448,8 +599,18 @@ def test_a_soak_on_a_full_disk_still_rolls_back_and_records_it(tmp_path: Path, s
     state = small_disk / "s"
     with SimulatorThread(PROFILE) as sim:
         before = sim.registers()
-        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--json", "--soak", "1h",
-                        "--health-interval", "100ms", "--state-dir", str(state))
+        proc = deployer(
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--json",
+            "--soak",
+            "1h",
+            "--health-interval",
+            "100ms",
+            "--state-dir",
+            str(state),
+        )
         try:
             # the soak's first read: the second one (the first is the safe change's, before the write)
             wait_for(lambda: len(reads_of(list(sim.log), PROFILE.health[0].address)) >= 2 or proc.poll() is not None)
@@ -479,8 +640,17 @@ def test_a_state_folder_that_refuses_every_write_never_stops_a_rollback(tmp_path
     report = tmp_path / "r.json"  # the report on another disk: it can say what the journal could not
     with SimulatorThread(PROFILE) as sim:
         before = sim.registers()
-        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--confirm-within", "3s",
-                        "--state-dir", str(state), "--report", str(report))
+        proc = deployer(
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--confirm-within",
+            "3s",
+            "--state-dir",
+            str(state),
+            "--report",
+            str(report),
+        )
         try:
             wait_for(lambda: bool(awaiting(str(state))) or proc.poll() is not None)
             remount = subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], capture_output=True, text=True)
@@ -509,11 +679,24 @@ def test_a_disk_full_after_the_write_says_what_reached_the_device(tmp_path: Path
     so on stdout, names the report and page it could not write, exits 4; the snapshot stays named."""
     state, report = small_disk / "s", small_disk / "r.json"
     with SimulatorThread(PROFILE, faults=Faults(latency_ms=300)) as sim:
-        proc = deployer("apply", recipe(tmp_path, "3 s", sim.url), "--yes", "--state-dir", str(state),
-                        "--report", str(report), "--html", str(small_disk / "r.html"))
+        proc = deployer(
+            "apply",
+            recipe(tmp_path, "3 s", sim.url),
+            "--yes",
+            "--state-dir",
+            str(state),
+            "--report",
+            str(report),
+            "--html",
+            str(small_disk / "r.html"),
+        )
         try:
-            wait_for(lambda: ((state / "audit.jsonl").exists() and "device-started" in (state / "audit.jsonl")
-                     .read_text()) or proc.poll() is not None)
+            wait_for(
+                lambda: (
+                    ((state / "audit.jsonl").exists() and "device-started" in (state / "audit.jsonl").read_text())
+                    or proc.poll() is not None
+                )
+            )
             fill(small_disk)
             out, err = proc.communicate(timeout=120)
         finally:
@@ -540,14 +723,31 @@ def test_a_wall_clock_step_back_does_not_delay_the_rollback(tmp_path: Path) -> N
     import time
 
     state, step = str(tmp_path / "s"), tmp_path / "step"
-    shifted = ("import os, sys, time\n_t = time.time\n"
-               f"time.time = lambda: _t() - (60 if os.path.exists({str(step)!r}) else 0)\n"
-               "from deployer.cli import main\nmain(sys.argv[1:])\n")
+    shifted = (
+        "import os, sys, time\n_t = time.time\n"
+        f"time.time = lambda: _t() - (60 if os.path.exists({str(step)!r}) else 0)\n"
+        "from deployer.cli import main\nmain(sys.argv[1:])\n"
+    )
     with SimulatorThread(PROFILE) as sim:
         before = sim.registers()
-        proc = subprocess.Popen([sys.executable, "-c", shifted, "apply", recipe(tmp_path, "3 s", sim.url), "--yes",
-                                 "--json", "--confirm-within", "2s", "--state-dir", state],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                shifted,
+                "apply",
+                recipe(tmp_path, "3 s", sim.url),
+                "--yes",
+                "--json",
+                "--confirm-within",
+                "2s",
+                "--state-dir",
+                state,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             wait_for(lambda: bool(awaiting(state)) or proc.poll() is not None)
             (waiting,) = awaiting(state)
@@ -575,9 +775,16 @@ def test_a_reused_pid_is_not_taken_for_the_waiting_run(tmp_path: Path) -> None:
     assert now is not None or sys.platform != "linux"
     if now is None:
         pytest.skip("this system does not say when a process started")
-    line = {"event": "confirm-awaited", "run": "R1", "time": "2026-01-01T00:00:00Z", "pid": os.getpid(),
-            "pid_start": now - 100.0, "deadline": "2099-01-01T00:00:00Z", "deadline_epoch": 4070908800.0,
-            "report": str(state / "pending" / "R1.json")}
+    line = {
+        "event": "confirm-awaited",
+        "run": "R1",
+        "time": "2026-01-01T00:00:00Z",
+        "pid": os.getpid(),
+        "pid_start": now - 100.0,
+        "deadline": "2099-01-01T00:00:00Z",
+        "deadline_epoch": 4070908800.0,
+        "report": str(state / "pending" / "R1.json"),
+    }
     (state / "audit.jsonl").write_text(json.dumps(line) + "\n")
     (waiting,) = awaiting(str(state))
     assert not waiting.alive
@@ -612,9 +819,25 @@ def test_confirming_a_profile_without_a_commit_step_says_the_values_were_kept(tm
     (tmp_path / "r.yaml").write_text("recipe: r\nprofile: plain.yaml\nparameters:\n  x: 7\n")
     state = str(tmp_path / "s")
     with SimulatorThread(plain) as sim:
-        a = subprocess.Popen([sys.executable, "-m", "deployer", "apply", str(tmp_path / "r.yaml"), "--device",
-                              sim.url, "--yes", "--confirm-within", "1h", "--state-dir", state],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        a = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "deployer",
+                "apply",
+                str(tmp_path / "r.yaml"),
+                "--device",
+                sim.url,
+                "--yes",
+                "--confirm-within",
+                "1h",
+                "--state-dir",
+                state,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             wait_for(lambda: bool(awaiting(state)) or a.poll() is not None)
             confirmed = run("confirm", "--state-dir", state)

@@ -72,11 +72,11 @@ def test_the_stop_route_ends_a_window_and_the_agent_cleanly(tmp_path: Path, sim:
 
 
 @pytest.mark.parametrize("key", console.keys())
-def test_ctrl_c_and_ctrl_break_in_the_agents_console_end_it_cleanly(tmp_path: Path, sim: Simulator,
-                                                                     key: str) -> None:
+def test_ctrl_c_and_ctrl_break_in_the_agents_console_end_it_cleanly(tmp_path: Path, sim: Simulator, key: str) -> None:
     inv = write_site(tmp_path, {"d1": sim.url})
-    proc = console.start("agent", str(inv), "--state-dir", str(tmp_path / "state"), "--listen", "127.0.0.1:0",
-                         "--check-every", "0.2s")
+    proc = console.start(
+        "agent", str(inv), "--state-dir", str(tmp_path / "state"), "--listen", "127.0.0.1:0", "--check-every", "0.2s"
+    )
     try:
         assert proc.stderr is not None
         seen = ""
@@ -112,18 +112,37 @@ SOAK_RECIPE = "recipe: r\nprofile: drive.yaml\nparameters:\n  accel: 2 s\n"
 
 
 @pytest.mark.parametrize("key", console.keys())
-@pytest.mark.parametrize("held", [["--soak", "1h", "--health-interval", "100ms"], ["--confirm-within", "1h"]],
-                         ids=["soak", "confirm"])
-def test_a_console_key_during_a_soak_or_a_confirm_window_rolls_back(tmp_path: Path, sim: Simulator, key: str,
-                                                                     held: list[str]) -> None:
+@pytest.mark.parametrize(
+    "held", [["--soak", "1h", "--health-interval", "100ms"], ["--confirm-within", "1h"]], ids=["soak", "confirm"]
+)
+def test_a_console_key_during_a_soak_or_a_confirm_window_rolls_back(
+    tmp_path: Path, sim: Simulator, key: str, held: list[str]
+) -> None:
     (tmp_path / "r.yaml").write_text(SOAK_RECIPE)
     state, report = tmp_path / "s", tmp_path / "r.json"
-    proc = console.start("apply", str(tmp_path / "r.yaml"), "--device", sim.url, "--yes", *held,
-                         "--report", str(report), "--state-dir", str(state))
+    proc = console.start(
+        "apply",
+        str(tmp_path / "r.yaml"),
+        "--device",
+        sim.url,
+        "--yes",
+        *held,
+        "--report",
+        str(report),
+        "--state-dir",
+        str(state),
+    )
     try:
         audit = state / "audit.jsonl"
-        until(lambda: bool(awaiting(str(state))) or (audit.exists() and "soak-started" in audit.read_text("utf-8"))
-              or proc.poll() is not None, 60, why="the window")
+        until(
+            lambda: (
+                bool(awaiting(str(state)))
+                or (audit.exists() and "soak-started" in audit.read_text("utf-8"))
+                or proc.poll() is not None
+            ),
+            60,
+            why="the window",
+        )
         console.press(proc, key)
         out, err = proc.communicate(timeout=60)
     finally:
@@ -143,8 +162,9 @@ def test_a_console_key_during_a_soak_or_a_confirm_window_rolls_back(tmp_path: Pa
 
 
 def deployer(*args: str, cwd: Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=120,
-                          cwd=cwd, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "deployer", *args], capture_output=True, text=True, timeout=120, cwd=cwd, env=env
+    )
 
 
 def _held_until_a_write_begins(path: Path, done: threading.Event) -> threading.Thread:
@@ -160,6 +180,7 @@ def _held_until_a_write_begins(path: Path, done: threading.Event) -> threading.T
                     return
         finally:
             f.close()
+
     t = threading.Thread(target=hold, daemon=True)
     t.start()
     return t
@@ -169,15 +190,39 @@ def test_a_report_and_the_learned_file_held_open_are_replaced_once_let_go(tmp_pa
     """Windows refuses to replace a file another program has open; deployer retries while it is held briefly (a
     scanner), so the run ends whole: report, page and learned limits written."""
     (tmp_path / "r.yaml").write_text(SOAK_RECIPE)
-    first = deployer("apply", "r.yaml", "--device", sim.url, "--yes", "--report", "r.json", "--html", "r.html",
-                     "--state-dir", "s", cwd=tmp_path)
+    first = deployer(
+        "apply",
+        "r.yaml",
+        "--device",
+        sim.url,
+        "--yes",
+        "--report",
+        "r.json",
+        "--html",
+        "r.html",
+        "--state-dir",
+        "s",
+        cwd=tmp_path,
+    )
     assert first.returncode == 0, first.stderr
     held = [tmp_path / "r.json", tmp_path / "r.html"]
     done = threading.Event()
     threads = [_held_until_a_write_begins(p, done) for p in held]
     sim.write("accel", (50,))
-    again = deployer("apply", "r.yaml", "--device", sim.url, "--yes", "--report", "r.json", "--html", "r.html",
-                     "--state-dir", "s", cwd=tmp_path)
+    again = deployer(
+        "apply",
+        "r.yaml",
+        "--device",
+        sim.url,
+        "--yes",
+        "--report",
+        "r.json",
+        "--html",
+        "r.html",
+        "--state-dir",
+        "s",
+        cwd=tmp_path,
+    )
     done.set()
     for t in threads:
         t.join(timeout=60)
@@ -200,8 +245,9 @@ def test_a_report_held_open_throughout_is_said_plainly(tmp_path: Path, sim: Simu
     (tmp_path / "r.yaml").write_text(SOAK_RECIPE)
     (tmp_path / "r.json").write_text("{}\n")
     with open(tmp_path / "r.json", "rb"):
-        done = deployer("apply", "r.yaml", "--device", sim.url, "--yes", "--report", "r.json", "--state-dir", "s",
-                        cwd=tmp_path)
+        done = deployer(
+            "apply", "r.yaml", "--device", sim.url, "--yes", "--report", "r.json", "--state-dir", "s", cwd=tmp_path
+        )
     said = done.stdout + done.stderr
     assert "Traceback" not in said
     if sys.platform == "win32":  # Windows replaces no file that is open: the report's first state cannot be
@@ -233,14 +279,34 @@ def test_backslashes_and_drive_letters_in_recipes_and_options(tmp_path: Path, si
     absolute.write_text(f"recipe: abs\nprofile: '{tmp_path / 'profiles' / 'drive.yaml'}'\nparameters: {{accel: 3 s}}\n")
     assert str(tmp_path)[1:3] == ":\\"
     assert deployer("validate", "recipes\\rel.yaml", str(absolute), cwd=tmp_path).returncode == 0
-    done = deployer("apply", "recipes\\rel.yaml", "--device", sim.url, "--yes", "--report", "out\\..\\r.json",
-                    "--state-dir", ".\\state", cwd=tmp_path)
+    done = deployer(
+        "apply",
+        "recipes\\rel.yaml",
+        "--device",
+        sim.url,
+        "--yes",
+        "--report",
+        "out\\..\\r.json",
+        "--state-dir",
+        ".\\state",
+        cwd=tmp_path,
+    )
     assert done.returncode == 0, done.stderr
     assert sim.read("accel") == (20,) and (tmp_path / "r.json").exists()
     # the extended-length form of a path (\\?\C:\...), as UNC tools write it, for the state folder and the report
     long_form = "\\\\?\\" + str(tmp_path / "state2")
-    done = deployer("apply", str(absolute), "--device", sim.url, "--yes", "--state-dir", long_form,
-                    "--report", "\\\\?\\" + str(tmp_path / "r2.json"), cwd=tmp_path)
+    done = deployer(
+        "apply",
+        str(absolute),
+        "--device",
+        sim.url,
+        "--yes",
+        "--state-dir",
+        long_form,
+        "--report",
+        "\\\\?\\" + str(tmp_path / "r2.json"),
+        cwd=tmp_path,
+    )
     assert done.returncode == 0, done.stderr
     assert sim.read("accel") == (30,) and (tmp_path / "r2.json").exists()
     snaps = list((tmp_path / "state2" / "snapshots").iterdir())
@@ -251,8 +317,9 @@ def test_backslashes_and_drive_letters_in_recipes_and_options(tmp_path: Path, si
 
 
 @pytest.mark.skipif(sys.platform != "win32", reason="UNC paths (a server's share) are Windows' path syntax")
-def test_a_file_server_out_of_reach_is_said_by_its_unc_path_before_anything_is_sent(tmp_path: Path,
-                                                                                  sim: Simulator) -> None:
+def test_a_file_server_out_of_reach_is_said_by_its_unc_path_before_anything_is_sent(
+    tmp_path: Path, sim: Simulator
+) -> None:
     """Recipes, the state folder and the report on a share (\\\\server\\share\\...) the laptop cannot reach: each
     said by its path, nothing sent. (A share that answers is not tested: Wine has no SMB client; docs/windows.md.)"""
     share = "\\\\nohost.invalid\\plant"
@@ -260,8 +327,10 @@ def test_a_file_server_out_of_reach_is_said_by_its_unc_path_before_anything_is_s
     assert said.returncode == 1 and said.stderr.startswith(share + "\\recipes\\r.yaml:"), said.stderr
     (tmp_path / "drive.yaml").write_text(DRIVE)
     (tmp_path / "r.yaml").write_text(SOAK_RECIPE)
-    for extra, what in ((["--state-dir", share + "\\state"], "the journal " + share + "\\state\\audit.jsonl"),
-                        (["--report", share + "\\r.json", "--state-dir", "s"], "the report " + share + "\\r.json")):
+    for extra, what in (
+        (["--state-dir", share + "\\state"], "the journal " + share + "\\state\\audit.jsonl"),
+        (["--report", share + "\\r.json", "--state-dir", "s"], "the report " + share + "\\r.json"),
+    ):
         done = deployer("apply", "r.yaml", "--device", sim.url, "--yes", *extra, cwd=tmp_path)
         out = done.stdout + done.stderr
         assert done.returncode == 1 and f"cannot write {what}: " in out and "Traceback" not in out, out
@@ -276,7 +345,8 @@ def test_crlf_files_read_as_lf_files_and_errors_at_the_same_place(tmp_path: Path
         (tmp_path / name / "drive.yaml").write_bytes(DRIVE.encode().replace(b"\n", ends))
         (tmp_path / name / "r.yaml").write_bytes(lf.encode().replace(b"\n", ends))
         (tmp_path / name / "inv.yaml").write_bytes(
-            f"devices:\n  d1: {{url: '{sim.url}', recipe: r.yaml}}\n".encode().replace(b"\n", ends))
+            f"devices:\n  d1: {{url: '{sim.url}', recipe: r.yaml}}\n".encode().replace(b"\n", ends)
+        )
     said = {n: deployer("validate", "r.yaml", "inv.yaml", cwd=tmp_path / n) for n in ("lf", "crlf")}
     assert said["lf"].returncode == said["crlf"].returncode == 1
     assert said["crlf"].stderr == said["lf"].stderr and "r.yaml:5:10: error: decel" in said["lf"].stderr
@@ -297,10 +367,28 @@ def test_non_ascii_user_and_folder_names_and_the_per_user_cache(tmp_path: Path, 
     (site / "drive.yaml").write_text(DRIVE, encoding="utf-8")
     (site / "Rezept ä.yaml").write_text(SOAK_RECIPE, encoding="utf-8")
     env = {k: v for k, v in os.environ.items() if k != "XDG_CACHE_HOME"}
-    env.update({"HOME": str(home), "USERPROFILE": str(home), "LOCALAPPDATA": str(home / "AppData" / "Local"),
-                "USERNAME": "Jürgen", "USER": "Jürgen"})
-    done = deployer("apply", "Rezept ä.yaml", "--device", sim.url, "--yes", "--report", "Bericht ü.json",
-                    "--state-dir", "Zustand ö", cwd=site, env=env)
+    env.update(
+        {
+            "HOME": str(home),
+            "USERPROFILE": str(home),
+            "LOCALAPPDATA": str(home / "AppData" / "Local"),
+            "USERNAME": "Jürgen",
+            "USER": "Jürgen",
+        }
+    )
+    done = deployer(
+        "apply",
+        "Rezept ä.yaml",
+        "--device",
+        sim.url,
+        "--yes",
+        "--report",
+        "Bericht ü.json",
+        "--state-dir",
+        "Zustand ö",
+        cwd=site,
+        env=env,
+    )
     assert done.returncode == 0, done.stdout + done.stderr
     assert sim.read("accel") == (20,)
     cache = home / "AppData" / "Local" / "deployer" if sys.platform == "win32" else home / ".cache" / "deployer"
@@ -312,7 +400,8 @@ def test_non_ascii_user_and_folder_names_and_the_per_user_cache(tmp_path: Path, 
     refused = deployer("rollback", str(snap), "--yes", "--state-dir", "Zustand ö", cwd=site, env=env)
     assert refused.returncode == 1 and "was changed after it was written" in refused.stderr, refused.stderr
     snap.write_bytes(snap.read_bytes().replace(b"accel: 9 s", b"accel: 5 s"))
-    back = deployer("rollback", "--from-report", "Bericht ü.json", "--yes", "--state-dir", "Zustand ö", cwd=site,
-                    env=env)
+    back = deployer(
+        "rollback", "--from-report", "Bericht ü.json", "--yes", "--state-dir", "Zustand ö", cwd=site, env=env
+    )
     assert back.returncode == 0, back.stdout + back.stderr
     assert sim.read("accel") == (50,)

@@ -48,6 +48,7 @@ _WORKER = "from deployer.fleet.workers import main; main()"
 def _children(pid: int, how: str) -> list[int]:
     """The worker processes of run ``pid`` (Linux's /proc), started as ``how`` says: "fork" (the command's own
     command line) or "spawn" (this Python started again)."""
+
     def cmdline(p: int) -> str:
         try:
             with open(f"/proc/{p}/cmdline", "rb") as f:
@@ -77,8 +78,9 @@ def quick(files: Path) -> Iterator[list[Simulator]]:  # noqa: F811
     prof = load_profile(files / "slow.yaml")
     sims = [Simulator(prof, gap_reads=True) for _ in range(10)]
     with Simulators(sims):
-        (files / "fleet.yaml").write_text("defaults: {timeout: 5}\ndevices:\n" + "".join(
-            f"  d{i}: {{url: '{s.url}'}}\n" for i, s in enumerate(sims)))
+        (files / "fleet.yaml").write_text(
+            "defaults: {timeout: 5}\ndevices:\n" + "".join(f"  d{i}: {{url: '{s.url}'}}\n" for i, s in enumerate(sims))
+        )
         yield sims
 
 
@@ -88,9 +90,22 @@ def test_two_workers_report_what_one_process_reports(files: Path, quick: list[Si
         for i, s in enumerate(quick):  # the same starting point for both runs
             for k, v in enumerate(before(i)):
                 s.write(f"p{k}", (v,))
-        code, out, err = deployer("apply", "new.yaml", "--inventory", "fleet.yaml", "--parallel", "4", "--yes",
-                                  "--report", f"run{workers}.json", "--state-dir", f"state{workers}",
-                                  "--workers", str(workers), cwd=files)
+        code, out, err = deployer(
+            "apply",
+            "new.yaml",
+            "--inventory",
+            "fleet.yaml",
+            "--parallel",
+            "4",
+            "--yes",
+            "--report",
+            f"run{workers}.json",
+            "--state-dir",
+            f"state{workers}",
+            "--workers",
+            str(workers),
+            cwd=files,
+        )
         assert code == 0, out + err
         assert all(holds(s) == (7,) * N for s in quick)
         reports.append(json.loads((files / f"run{workers}.json").read_text()))
@@ -98,8 +113,9 @@ def test_two_workers_report_what_one_process_reports(files: Path, quick: list[Si
             assert os.path.isfile(d["snapshot"]) and d["status"] == "ok"
     one, two = reports
     assert _same(one) == _same(two)
-    assert {k: v for k, v in one["summary"].items() if k != "seconds"} == \
-        {k: v for k, v in two["summary"].items() if k != "seconds"}
+    assert {k: v for k, v in one["summary"].items() if k != "seconds"} == {
+        k: v for k, v in two["summary"].items() if k != "seconds"
+    }
     assert one["profiles"] == two["profiles"]
     for workers in (0, 2):  # the journal: each device started (its snapshot named) and finished, then the run
         lines = audit(files / f"state{workers}")
@@ -114,8 +130,12 @@ def test_two_workers_report_what_one_process_reports(files: Path, quick: list[Si
 # on Linux the command forks its workers; DEPLOYER_WORKER_START=spawn (and other systems) start Python again
 @needs_proc
 @pytest.mark.parametrize("how", ["fork", "spawn"])
-def test_a_killed_run_takes_its_workers_with_it(files: Path, fleet: list[Simulator], how: str,  # noqa: F811
-                                                monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_killed_run_takes_its_workers_with_it(
+    files: Path,  # noqa: F811
+    fleet: list[Simulator],  # noqa: F811
+    how: str,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     if how == "spawn":
         monkeypatch.setenv(START_ENV, "spawn")
     with reaped(fleet_apply(files, 2)) as proc:
@@ -162,8 +182,21 @@ def test_a_worker_that_dies_ends_the_run_truthfully(files: Path, fleet: list[Sim
 
 
 def test_a_safe_change_keeps_its_devices_in_one_process(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
-    code, _, err = deployer("apply", "new.yaml", "--inventory", "fleet.yaml", "--parallel", "4", "--yes",
-                              "--workers", "2", "--rollback-on-failure", "--state-dir", "state", cwd=files)
+    code, _, err = deployer(
+        "apply",
+        "new.yaml",
+        "--inventory",
+        "fleet.yaml",
+        "--parallel",
+        "4",
+        "--yes",
+        "--workers",
+        "2",
+        "--rollback-on-failure",
+        "--state-dir",
+        "state",
+        cwd=files,
+    )
     assert code == 1 and "--workers 2: --rollback-on-failure rolls devices back from this process" in err, err
     assert all(not s.log for s in fleet)  # refused before anything was sent
     assert not (files / "state" / "audit.jsonl").exists()
@@ -178,13 +211,19 @@ def test_how_many_workers_a_run_takes(monkeypatch: pytest.MonkeyPatch) -> None:
     assert worker_count(3, 2, 256, plain, rollback_on_failure=False) == 2  # never more than devices at once
     assert worker_count(3, 10_000, 1, plain, rollback_on_failure=False) == 1
     assert worker_count(None, MIN_DEVICES - 1, 256, plain, rollback_on_failure=False) == 0  # too few to gain
-    assert worker_count(None, 10_000, 256, plain, rollback_on_failure=False) == auto_count(10_000, 256) == (
-        0 if cpus < 2 else min(cpus, 32))
+    assert (
+        worker_count(None, 10_000, 256, plain, rollback_on_failure=False)
+        == auto_count(10_000, 256)
+        == (0 if cpus < 2 else min(cpus, 32))
+    )
     assert auto_count(10_000, 8) == (0 if cpus < 2 else 1)  # eight devices at once per worker at least
     # forked ones start at once: from 100 devices
     assert auto_count(MIN_DEVICES_FORKED - 1, 256, forked=True) == 0
-    assert auto_count(MIN_DEVICES_FORKED, 256, forked=True) == auto_count(MIN_DEVICES, 256, forked=False) == (
-        0 if cpus < 2 else min(cpus, 32))
+    assert (
+        auto_count(MIN_DEVICES_FORKED, 256, forked=True)
+        == auto_count(MIN_DEVICES, 256, forked=False)
+        == (0 if cpus < 2 else min(cpus, 32))
+    )
     assert MIN_DEVICES_FORKED < MIN_DEVICES - 1 and auto_count(MIN_DEVICES - 1, 256, forked=False) == 0
     for opts, rb in ((ApplyOptions(soak=5.0), False), (ApplyOptions(confirm_within=60.0), False), (plain, True)):
         assert worker_count(None, 10_000, 256, opts, rollback_on_failure=rb) == 0  # auto: stays in one process
@@ -200,8 +239,22 @@ def test_a_report_of_a_killed_worker_run_reads_back(files: Path, fleet: list[Sim
         proc.wait(timeout=30)
     report = read_report(str(files / "run.json"))
     assert report["run"]["id"] and len(report["devices"]) == len(fleet)
-    code, out, err = deployer("apply", "new.yaml", "--inventory", "fleet.yaml", "--limit", "@run.json", "--yes",
-                              "--workers", "2", "--parallel", "4", "--state-dir", "state", cwd=files)
+    code, out, err = deployer(
+        "apply",
+        "new.yaml",
+        "--inventory",
+        "fleet.yaml",
+        "--limit",
+        "@run.json",
+        "--yes",
+        "--workers",
+        "2",
+        "--parallel",
+        "4",
+        "--state-dir",
+        "state",
+        cwd=files,
+    )
     assert code == 0, out + err
     assert all(holds(s) == (7,) * N for s in fleet)
 
@@ -210,8 +263,14 @@ def test_what_the_rollout_keeps_of_a_workers_device_is_small(files: Path, quick:
     """The command's process keeps a count per finished device, not its parameters nor its 17 KB report line."""
     from deployer.run.request import RunRequest, execute, prepare
 
-    request = RunRequest(str(files / "new.yaml"), inventory=str(files / "fleet.yaml"), parallel=4,
-                         workers=2, state_dir=str(files / "state"), report_path=str(files / "r.json"))
+    request = RunRequest(
+        str(files / "new.yaml"),
+        inventory=str(files / "fleet.yaml"),
+        parallel=4,
+        workers=2,
+        state_dir=str(files / "state"),
+        report_path=str(files / "r.json"),
+    )
     report = asyncio.run(execute(prepare(request), keep_results=False))
     assert [d.status for d in report.devices] == ["ok"] * len(quick), [(d.name, d.error) for d in report.devices]
     assert all(d.report_line is None and not d.parameters and not d.requests and d.tally for d in report.devices)
@@ -219,11 +278,14 @@ def test_what_the_rollout_keeps_of_a_workers_device_is_small(files: Path, quick:
     assert all(len(d["parameters"]) == N for d in doc["devices"])  # the file has them all
 
 
-@pytest.mark.parametrize("boot", [
-    "import sys; sys.exit(3)",  # never connects
-    "import socket, sys, time; p = int(sys.argv[1]); t = bytes.fromhex(sys.stdin.readline().strip()); "
-    "s = socket.create_connection(('127.0.0.1', p)); s.sendall(t); time.sleep(0.2); sys.exit(4)",  # dies unready
-])
+@pytest.mark.parametrize(
+    "boot",
+    [
+        "import sys; sys.exit(3)",  # never connects
+        "import socket, sys, time; p = int(sys.argv[1]); t = bytes.fromhex(sys.stdin.readline().strip()); "
+        "s = socket.create_connection(('127.0.0.1', p)); s.sendall(t); time.sleep(0.2); sys.exit(4)",  # dies unready
+    ],
+)
 def test_workers_that_cannot_start_are_said_before_anything_is_sent(boot: str, monkeypatch: pytest.MonkeyPatch) -> None:
     import asyncio
 
@@ -235,8 +297,11 @@ def test_workers_that_cannot_start_are_said_before_anything_is_sent(boot: str, m
         pool = await workers.Pool.launch(2, [], fork=False)
         await pool.setup(ApplyOptions(), lines=True, small_ok=True, files=100, timeout=30)
 
-    with pytest.raises(UsageError, match=r"cannot start 2 worker processes: a worker process (exited at its start|"
-                                         r"ended before it was ready).*nothing was sent.*--workers 0"):
+    with pytest.raises(
+        UsageError,
+        match=r"cannot start 2 worker processes: a worker process (exited at its start|"
+        r"ended before it was ready).*nothing was sent.*--workers 0",
+    ):
         asyncio.run(start())
 
 
@@ -258,8 +323,11 @@ def test_forked_workers_that_die_unready_are_said_before_anything_is_sent(monkey
 
     codes, said = asyncio.run(start())
     assert codes == [3, 3]  # reaped
-    assert re.search(r"cannot start 2 worker processes: a worker process ended before it was ready.*"
-                     r"nothing was sent.*--workers 0", said), said
+    assert re.search(
+        r"cannot start 2 worker processes: a worker process ended before it was ready.*"
+        r"nothing was sent.*--workers 0",
+        said,
+    ), said
 
 
 def test_when_workers_are_forked(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -282,8 +350,7 @@ def test_when_workers_are_forked(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 @needs_proc
-def test_a_fleet_on_a_terminal_forks_its_workers_before_its_live_display(
-        files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
+def test_a_fleet_on_a_terminal_forks_its_workers_before_its_live_display(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
     """The live display's refresh thread starts with the first device, after the workers were forked (a process
     with threads would start Python again for them)."""
     import pty
@@ -291,10 +358,31 @@ def test_a_fleet_on_a_terminal_forks_its_workers_before_its_live_display(
     import threading
 
     master, slave = pty.openpty()
-    proc = subprocess.Popen([sys.executable, "-m", "deployer", "apply", "new.yaml", "--inventory", "fleet.yaml",
-                             "--parallel", "4", "--yes", "--workers", "2", "--state-dir", "state"],
-                            stdin=slave, stdout=slave, stderr=slave, cwd=files, close_fds=True, text=True,
-                            env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)})
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "deployer",
+            "apply",
+            "new.yaml",
+            "--inventory",
+            "fleet.yaml",
+            "--parallel",
+            "4",
+            "--yes",
+            "--workers",
+            "2",
+            "--state-dir",
+            "state",
+        ],
+        stdin=slave,
+        stdout=slave,
+        stderr=slave,
+        cwd=files,
+        close_fds=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)},
+    )
     os.close(slave)
     shown = bytearray()
 

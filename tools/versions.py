@@ -13,8 +13,10 @@ import argparse
 import re
 import sys
 
-HEADER = ("# Versions the test suite passed with (make test installs these; make test-latest tries the newest).\n"
-          "# Regenerate with: make test-latest && make constraints   (commit the file once make test passes)\n")
+HEADER = (
+    "# Versions the test suite passed with (make test installs these; make test-latest tries the newest).\n"
+    "# Regenerate with: make test-latest && make constraints   (commit the file once make test passes)\n"
+)
 _PIN = re.compile(r"^([A-Za-z0-9][A-Za-z0-9._-]*)==(\S+)")
 
 
@@ -48,8 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     new = pins(sys.stdin.read().splitlines())
     if args.write:
         with open(args.constraints, "w", encoding="utf-8") as f:
-            f.write(HEADER + "".join(f"{name}=={version}\n" for name, version in
-                                     (new[k] for k in sorted(new))))
+            f.write(HEADER + "".join(f"{name}=={version}\n" for name, version in (new[k] for k in sorted(new))))
         print(f"{args.constraints}: {len(new)} pinned versions written")
         return 0
     with open(args.constraints, encoding="utf-8") as f:

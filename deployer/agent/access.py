@@ -62,8 +62,11 @@ class Who:
         return out
 
     def said(self) -> str:
-        return f"{self.user} ({', '.join(sorted(self.roles, key=ROLES.index))})" if self.user else \
-            f"the holder of the {self.credential}"
+        return (
+            f"{self.user} ({', '.join(sorted(self.roles, key=ROLES.index))})"
+            if self.user
+            else f"the holder of the {self.credential}"
+        )
 
 
 class Refused(Exception):
@@ -96,8 +99,14 @@ class Directory:
                 said = "; ".join(map(str, e.diagnostics)) if isinstance(e, InputError) else str(e)
                 self.problem = said[:2000]
                 if self.agent is not None:
-                    audited(self.agent, "users-invalid", f"the users file {self.path} is invalid: every request "
-                            f"is refused until it is fixed: {said[:500]}", file=self.path, problem=said[:2000])
+                    audited(
+                        self.agent,
+                        "users-invalid",
+                        f"the users file {self.path} is invalid: every request "
+                        f"is refused until it is fixed: {said[:500]}",
+                        file=self.path,
+                        problem=said[:2000],
+                    )
                 return None
             self.problem = None
             self.changed(now, by=None)
@@ -112,9 +121,15 @@ class Directory:
             for kind, name, fields in changes(before, now):
                 who = by.user if by is not None else None
                 via = "api" if by is not None else "file"
-                audited(self.agent, kind, f"{kind.replace('-', ' ')}: {name}"
-                        + (f" by {who}" if who else " (an edit of the users file)"), user=name, by=who, via=via,
-                        **fields)
+                audited(
+                    self.agent,
+                    kind,
+                    f"{kind.replace('-', ' ')}: {name}" + (f" by {who}" if who else " (an edit of the users file)"),
+                    user=name,
+                    by=who,
+                    via=via,
+                    **fields,
+                )
 
     async def by_token(self, token: str) -> people.User:
         users = self.current()
@@ -147,8 +162,9 @@ class Directory:
         raise Refused(f"a client certificate (CN={cn}) that is no user's")
 
 
-def changes(before: Mapping[str, people.User], after: Mapping[str, people.User]
-            ) -> list[tuple[str, str, dict[str, Any]]]:
+def changes(
+    before: Mapping[str, people.User], after: Mapping[str, people.User]
+) -> list[tuple[str, str, dict[str, Any]]]:
     """What changed between two tables of users, as audit records: (kind, user, fields)."""
     out: list[tuple[str, str, dict[str, Any]]] = []
     for name in sorted(before.keys() | after.keys()):
@@ -176,8 +192,15 @@ def changes(before: Mapping[str, people.User], after: Mapping[str, people.User]
 class Access:
     """The agent's mode (one site token, or the users file) and its refusals."""
 
-    def __init__(self, agent: Agent | None, refusals: Refusals, *, token: str | None = None,
-                 token_kind: str = "token", directory: Directory | None = None) -> None:
+    def __init__(
+        self,
+        agent: Agent | None,
+        refusals: Refusals,
+        *,
+        token: str | None = None,
+        token_kind: str = "token",
+        directory: Directory | None = None,
+    ) -> None:
         if (token is None) == (directory is None):
             raise ValueError("one site token or a users file")
         self.agent, self.refusals, self.directory = agent, refusals, directory
@@ -247,8 +270,9 @@ def access_middleware(access: Access) -> Callable[..., Awaitable[web.StreamRespo
     refusals = access.refusals
 
     @web.middleware
-    async def check(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
-                    ) -> web.StreamResponse:
+    async def check(
+        request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+    ) -> web.StreamResponse:
         if request.method == "GET" and request.path in OPEN_PATHS:
             return await handler(request)
         info = where(request)
@@ -256,22 +280,40 @@ def access_middleware(access: Access) -> Callable[..., Awaitable[web.StreamRespo
             who = await access.identify(request)
         except Refused as e:
             refusals.unauthorized += 1
-            refusals.refused("login-refused", (info["remote"],), f"refused {info['method']} {info['path']} from "
-                             f"{info['remote']}: {e}", why=str(e), **info)
-            hint = ("this agent needs your token: Authorization: Bearer TOKEN (deployer: --agent-token-file FILE "
-                    "or DEPLOYER_AGENT_TOKEN; deployer users token NAME makes a new one)" if access.mode == "users"
-                    else "this agent needs its token: Authorization: Bearer TOKEN (deployer: --agent-token-file "
-                    "FILE or DEPLOYER_AGENT_TOKEN; an agent given no --token-file keeps it in STATE/agent/token)")
+            refusals.refused(
+                "login-refused",
+                (info["remote"],),
+                f"refused {info['method']} {info['path']} from {info['remote']}: {e}",
+                why=str(e),
+                **info,
+            )
+            hint = (
+                "this agent needs your token: Authorization: Bearer TOKEN (deployer: --agent-token-file FILE "
+                "or DEPLOYER_AGENT_TOKEN; deployer users token NAME makes a new one)"
+                if access.mode == "users"
+                else "this agent needs its token: Authorization: Bearer TOKEN (deployer: --agent-token-file "
+                "FILE or DEPLOYER_AGENT_TOKEN; an agent given no --token-file keeps it in STATE/agent/token)"
+            )
             return _refuse(401, "unauthorized", f"{e}: {hint}" if str(e) != "no credential" else hint)
         role = needed_role(request)
         if role is not None and not holds(who.roles, role):
             refusals.forbidden[role] = refusals.forbidden.get(role, 0) + 1
-            refusals.refused("access-refused", (str(who.user), request.method, info["path"]),
-                             f"refused {info['method']} {info['path']} to {who.said()}: it needs the role {role}",
-                             user=who.user, roles=sorted(who.roles), needed=role, **info)
-            return _refuse(403, "forbidden", f"{printable(who.user or '?')} may not {request.method} "
-                           f"{info['path']}: that needs the role {role}, which {who.user} does not hold "
-                           f"(they hold {', '.join(sorted(who.roles, key=ROLES.index))})")
+            refusals.refused(
+                "access-refused",
+                (str(who.user), request.method, info["path"]),
+                f"refused {info['method']} {info['path']} to {who.said()}: it needs the role {role}",
+                user=who.user,
+                roles=sorted(who.roles),
+                needed=role,
+                **info,
+            )
+            return _refuse(
+                403,
+                "forbidden",
+                f"{printable(who.user or '?')} may not {request.method} "
+                f"{info['path']}: that needs the role {role}, which {who.user} does not hold "
+                f"(they hold {', '.join(sorted(who.roles, key=ROLES.index))})",
+            )
         request[WHO], request[USER], request[ROLE] = who, who.user, role
         return await handler(request)
 

@@ -34,14 +34,40 @@ class Agent(Protocol):
     @property
     def settings(self) -> _Settings: ...
 
-    def event(self, kind: str, message: str, *, device: str | None = None,
-              detail: Mapping[str, Any] | None = None) -> dict[str, Any]: ...
+    def event(
+        self, kind: str, message: str, *, device: str | None = None, detail: Mapping[str, Any] | None = None
+    ) -> dict[str, Any]: ...
+
 
 # the agent's own events that change, or could change, a device; or say a change did not happen
-TRAILED = frozenset({"drift", "drift-cleared", "restored", "restore-failed", "restore-limit", "restores-stopped",
-                     "replaced", "replace-refused", "window-confirmed", "window-expired", "adopt-failed", "reload"})
-REFUSED = frozenset({"request-refused", "login-refused", "access-refused", "replace-refused", "restore-failed",
-                     "restores-stopped", "window-expired", "adopt-failed"})
+TRAILED = frozenset(
+    {
+        "drift",
+        "drift-cleared",
+        "restored",
+        "restore-failed",
+        "restore-limit",
+        "restores-stopped",
+        "replaced",
+        "replace-refused",
+        "window-confirmed",
+        "window-expired",
+        "adopt-failed",
+        "reload",
+    }
+)
+REFUSED = frozenset(
+    {
+        "request-refused",
+        "login-refused",
+        "access-refused",
+        "replace-refused",
+        "restore-failed",
+        "restores-stopped",
+        "window-expired",
+        "adopt-failed",
+    }
+)
 
 
 def audited(agent: Agent, kind: str, message: str, **fields: Any) -> dict[str, Any]:
@@ -72,12 +98,19 @@ def run_finished(agent: Agent, report: Report, *, command: str, by: Mapping[str,
     _append(agent, records)
 
 
-def _record(kind: str, message: str, detail: Mapping[str, Any], *, user: str | None = None,
-            device: str | None = None) -> dict[str, Any]:
+def _record(
+    kind: str, message: str, detail: Mapping[str, Any], *, user: str | None = None, device: str | None = None
+) -> dict[str, Any]:
     from ..audit import record
 
-    return record.event(kind, user=user or "agent", via="agent", device=device,
-                        result="refused" if kind in REFUSED else "ok", detail={"message": message, **detail})
+    return record.event(
+        kind,
+        user=user or "agent",
+        via="agent",
+        device=device,
+        result="refused" if kind in REFUSED else "ok",
+        detail={"message": message, **detail},
+    )
 
 
 def _append(agent: Agent, records: Sequence[Mapping[str, Any]]) -> None:
@@ -92,5 +125,8 @@ def _append(agent: Agent, records: Sequence[Mapping[str, Any]]) -> None:
         record.append_cli(agent.state_dir, pol.audit.trail if pol is not None else None, records)
     except DeployerError as e:  # the trail cannot take it (a full disk, an invalid policy): said, not hidden
         with contextlib.suppress(Exception):
-            agent.event("audit-not-recorded", f"the audit trail could not take {len(records)} record(s): {e}",
-                        detail={"events": [r.get("event") for r in records]})
+            agent.event(
+                "audit-not-recorded",
+                f"the audit trail could not take {len(records)} record(s): {e}",
+                detail={"events": [r.get("event") for r in records]},
+            )

@@ -55,8 +55,9 @@ def parse(raw: bytes) -> dict[str, Any]:
     except RecursionError:
         raise ApiError("usage", f"the request body nests deeper than {MAX_DEPTH} levels", status=400) from None
     except json.JSONDecodeError as e:
-        raise ApiError("usage", f"the request body is not JSON: {e.msg} at line {e.lineno} column {e.colno}",
-                       status=400) from None
+        raise ApiError(
+            "usage", f"the request body is not JSON: {e.msg} at line {e.lineno} column {e.colno}", status=400
+        ) from None
     except ValueError as e:  # a constant or number refused above
         raise ApiError("usage", f"the request body is not JSON the agent takes: {e}", status=400) from None
     if not isinstance(data, dict):
@@ -125,6 +126,9 @@ async def read(request: web.Request) -> dict[str, Any]:
     route = request.match_info.route.resource
     problems = list(_problems(data, route.canonical if route is not None else request.path, request.method))
     if problems:
-        raise ApiError("usage", f"the request body is not what {request.method} {request.path[:100]} takes: "
-                       + "; ".join(problems[:10]), status=400)
+        raise ApiError(
+            "usage",
+            f"the request body is not what {request.method} {request.path[:100]} takes: " + "; ".join(problems[:10]),
+            status=400,
+        )
     return data

@@ -30,8 +30,16 @@ class Agent:
     """
 
     @checked("Agent")
-    def __init__(self, url: str, *, token: str | None = None, ca: str | None = None, timeout: float = 30.0,
-                 cert: str | None = None, key: str | None = None) -> None:
+    def __init__(
+        self,
+        url: str,
+        *,
+        token: str | None = None,
+        ca: str | None = None,
+        timeout: float = 30.0,
+        cert: str | None = None,
+        key: str | None = None,
+    ) -> None:
         u = urllib.parse.urlsplit(url)
         if u.scheme not in ("http", "https") or not u.netloc:
             raise AgentError(f"agent URL {url!r}: expected http://HOST:PORT", kind="usage", exit_code=1)
@@ -47,21 +55,33 @@ class Agent:
             try:
                 self._ssl = ssl.create_default_context(cafile=ca)
             except (OSError, ssl.SSLError) as e:
-                raise AgentError(f"agent CA file {ca}: cannot load it: {getattr(e, 'strerror', None) or e}",
-                                 kind="usage", exit_code=1) from None
+                raise AgentError(
+                    f"agent CA file {ca}: cannot load it: {getattr(e, 'strerror', None) or e}",
+                    kind="usage",
+                    exit_code=1,
+                ) from None
         if cert is not None:  # who we are, by certificate (the agent's users file maps it to a user)
             if self._ssl is None:
                 self._ssl = ssl.create_default_context()
             try:
                 self._ssl.load_cert_chain(cert, key)
             except (OSError, ssl.SSLError) as e:
-                raise AgentError(f"client certificate {cert}: cannot load it: {getattr(e, 'strerror', None) or e}",
-                                 kind="usage", exit_code=1) from None
+                raise AgentError(
+                    f"client certificate {cert}: cannot load it: {getattr(e, 'strerror', None) or e}",
+                    kind="usage",
+                    exit_code=1,
+                ) from None
 
     # ---- transport -------------------------------------------------------------------------------
 
-    def _open(self, method: str, path: str, body: Mapping[str, Any] | None = None,
-              query: Mapping[str, Any] | None = None, timeout: float | None = None) -> Any:
+    def _open(
+        self,
+        method: str,
+        path: str,
+        body: Mapping[str, Any] | None = None,
+        query: Mapping[str, Any] | None = None,
+        timeout: float | None = None,
+    ) -> Any:
         q = {k: v for k, v in (query or {}).items() if v is not None}
         target = self.url + path + ("?" + urllib.parse.urlencode(q) if q else "")
         data = None if body is None else json.dumps(dict(body)).encode()
@@ -77,12 +97,14 @@ class Agent:
             raise _refusal(e) from None
         except (urllib.error.URLError, OSError) as e:
             why = getattr(e, "reason", e)
-            raise AgentError(f"cannot reach the agent at {self.url}: {why}", kind="unreachable",
-                             exit_code=EXIT_UNREACHABLE) from None
+            raise AgentError(
+                f"cannot reach the agent at {self.url}: {why}", kind="unreachable", exit_code=EXIT_UNREACHABLE
+            ) from None
 
     @checked()
-    def request(self, method: str, path: str, body: Mapping[str, Any] | None = None,
-                query: Mapping[str, Any] | None = None) -> Any:
+    def request(
+        self, method: str, path: str, body: Mapping[str, Any] | None = None, query: Mapping[str, Any] | None = None
+    ) -> Any:
         """Any call of the HTTP API: its JSON answer (None for an empty one); ``query``: the URL's parameters."""
         with self._open(method, path, body, query) as resp:
             raw = resp.read()
@@ -131,20 +153,43 @@ class Agent:
         return dict(self.get("/v1/runs/" + urllib.parse.quote(run_id, safe="")))
 
     @checked()
-    def start_run(self, *, command: Literal["apply", "restore"] = "apply", limit: str | None = None,
-                  recipe: str | None = None, files_sha256: str | None = None, batch: str | None = None,
-                  max_failures: str | None = None, parallel: int | None = None, soak: str | None = None,
-                  health_interval: str | None = None, confirm_within: str | None = None,
-                  rollback_on_failure: bool | None = None, write_all: bool | None = None,
-                  force_endurance: bool | None = None, client: str | None = None,
-                  allow_unhealthy: bool | None = None) -> dict[str, Any]:
+    def start_run(
+        self,
+        *,
+        command: Literal["apply", "restore"] = "apply",
+        limit: str | None = None,
+        recipe: str | None = None,
+        files_sha256: str | None = None,
+        batch: str | None = None,
+        max_failures: str | None = None,
+        parallel: int | None = None,
+        soak: str | None = None,
+        health_interval: str | None = None,
+        confirm_within: str | None = None,
+        rollback_on_failure: bool | None = None,
+        write_all: bool | None = None,
+        force_endurance: bool | None = None,
+        client: str | None = None,
+        allow_unhealthy: bool | None = None,
+    ) -> dict[str, Any]:
         """``POST /v1/runs``: its options as the HTTP API takes them (docs/agent.md; None: the agent's default)."""
-        options = {"command": command, "limit": limit, "recipe": recipe, "files_sha256": files_sha256,
-                   "batch": batch, "max_failures": max_failures, "parallel": parallel, "soak": soak,
-                   "health_interval": health_interval, "confirm_within": confirm_within,
-                   "allow_unhealthy": allow_unhealthy,
-                   "rollback_on_failure": rollback_on_failure, "write_all": write_all,
-                   "force_endurance": force_endurance, "client": client}
+        options = {
+            "command": command,
+            "limit": limit,
+            "recipe": recipe,
+            "files_sha256": files_sha256,
+            "batch": batch,
+            "max_failures": max_failures,
+            "parallel": parallel,
+            "soak": soak,
+            "health_interval": health_interval,
+            "confirm_within": confirm_within,
+            "allow_unhealthy": allow_unhealthy,
+            "rollback_on_failure": rollback_on_failure,
+            "write_all": write_all,
+            "force_endurance": force_endurance,
+            "client": client,
+        }
         return dict(self.post("/v1/runs", {k: v for k, v in options.items() if v is not None}))
 
     @checked()
@@ -170,25 +215,50 @@ class Agent:
                         return ev
             except (TimeoutError, ConnectionError, urllib.error.URLError) as e:
                 if isinstance(e, urllib.error.URLError) and not isinstance(e.reason, (TimeoutError, ConnectionError)):
-                    raise AgentError(f"lost the agent at {self.url}: {e.reason}", kind="unreachable",
-                                     exit_code=EXIT_UNREACHABLE) from None
+                    raise AgentError(
+                        f"lost the agent at {self.url}: {e.reason}", kind="unreachable", exit_code=EXIT_UNREACHABLE
+                    ) from None
 
     @checked()
-    def apply(self, *, on_event: Callable[[dict[str, Any]], None] | None = None,
-              command: Literal["apply", "restore"] = "apply", limit: str | None = None, recipe: str | None = None,
-              files_sha256: str | None = None, batch: str | None = None, max_failures: str | None = None,
-              parallel: int | None = None, soak: str | None = None, health_interval: str | None = None,
-              confirm_within: str | None = None, rollback_on_failure: bool | None = None,
-              write_all: bool | None = None, force_endurance: bool | None = None,
-              client: str | None = None, allow_unhealthy: bool | None = None) -> dict[str, Any]:
+    def apply(
+        self,
+        *,
+        on_event: Callable[[dict[str, Any]], None] | None = None,
+        command: Literal["apply", "restore"] = "apply",
+        limit: str | None = None,
+        recipe: str | None = None,
+        files_sha256: str | None = None,
+        batch: str | None = None,
+        max_failures: str | None = None,
+        parallel: int | None = None,
+        soak: str | None = None,
+        health_interval: str | None = None,
+        confirm_within: str | None = None,
+        rollback_on_failure: bool | None = None,
+        write_all: bool | None = None,
+        force_endurance: bool | None = None,
+        client: str | None = None,
+        allow_unhealthy: bool | None = None,
+    ) -> dict[str, Any]:
         """Start a run (its options as ``start_run``'s) and follow it to its end: the ``run-finished`` event
         (``report``, ``exit_code``); ``on_event`` is told each event as it comes."""
-        run = self.start_run(command=command, limit=limit, recipe=recipe, files_sha256=files_sha256, batch=batch,
-                             max_failures=max_failures, parallel=parallel, soak=soak,
-                             health_interval=health_interval, confirm_within=confirm_within,
-                             rollback_on_failure=rollback_on_failure, write_all=write_all,
-                             allow_unhealthy=allow_unhealthy,
-                             force_endurance=force_endurance, client=client)
+        run = self.start_run(
+            command=command,
+            limit=limit,
+            recipe=recipe,
+            files_sha256=files_sha256,
+            batch=batch,
+            max_failures=max_failures,
+            parallel=parallel,
+            soak=soak,
+            health_interval=health_interval,
+            confirm_within=confirm_within,
+            rollback_on_failure=rollback_on_failure,
+            write_all=write_all,
+            allow_unhealthy=allow_unhealthy,
+            force_endurance=force_endurance,
+            client=client,
+        )
         return self.follow(run["id"], on_event)
 
     @checked()
@@ -206,8 +276,9 @@ class Agent:
         return list(self.get("/v1/windows")["windows"])
 
     @checked()
-    def events(self, *, after: int = 0, limit: int | None = None, device: str | None = None,
-               kind: str | None = None) -> list[dict[str, Any]]:
+    def events(
+        self, *, after: int = 0, limit: int | None = None, device: str | None = None, kind: str | None = None
+    ) -> list[dict[str, Any]]:
         return list(self.get("/v1/events", {"after": after, "limit": limit, "device": device, "kind": kind})["events"])
 
     @checked()
@@ -228,24 +299,47 @@ class Agent:
         return list(self.get("/v1/users")["users"])
 
     @checked()
-    def add_user(self, user: str, roles: list[str], *, name: str | None = None,
-                 certificate: dict[str, str] | None = None, token: bool | None = None) -> dict[str, Any]:
+    def add_user(
+        self,
+        user: str,
+        roles: list[str],
+        *,
+        name: str | None = None,
+        certificate: dict[str, str] | None = None,
+        token: bool | None = None,
+    ) -> dict[str, Any]:
         """Add a user (an admin's): ``name`` (printed), ``certificate`` (``{"cn": ...}`` or ``{"sha256": ...}``);
         the answer carries their token (shown once) unless ``token=False``."""
         fields = {"name": name, "certificate": certificate, "token": token}
-        return dict(self.post("/v1/users", {"user": user, "roles": roles,
-                                            **{k: v for k, v in fields.items() if v is not None}}))
+        return dict(
+            self.post("/v1/users", {"user": user, "roles": roles, **{k: v for k, v in fields.items() if v is not None}})
+        )
 
     @checked()
-    def change_user(self, user: str, *, roles: list[str] | None = None, disabled: bool | None = None,
-                    new_token: bool | None = None, name: str | None = None,
-                    certificate: dict[str, str] | None = None) -> dict[str, Any]:
+    def change_user(
+        self,
+        user: str,
+        *,
+        roles: list[str] | None = None,
+        disabled: bool | None = None,
+        new_token: bool | None = None,
+        name: str | None = None,
+        certificate: dict[str, str] | None = None,
+    ) -> dict[str, Any]:
         """Change a user (an admin's): ``roles``, ``disabled``, ``new_token`` (the answer carries it, once),
         ``name``, ``certificate``."""
-        changes = {"roles": roles, "disabled": disabled, "new_token": new_token, "name": name,
-                   "certificate": certificate}
-        return dict(self.post("/v1/users/" + urllib.parse.quote(user, safe=""),
-                              {k: v for k, v in changes.items() if v is not None}))
+        changes = {
+            "roles": roles,
+            "disabled": disabled,
+            "new_token": new_token,
+            "name": name,
+            "certificate": certificate,
+        }
+        return dict(
+            self.post(
+                "/v1/users/" + urllib.parse.quote(user, safe=""), {k: v for k, v in changes.items() if v is not None}
+            )
+        )
 
     @checked()
     def metrics(self) -> str:
@@ -257,7 +351,11 @@ def _refusal(e: urllib.error.HTTPError) -> AgentError:
     try:
         body = json.loads(e.read() or b"{}")
         err = body["error"]
-        return AgentError(str(err["message"]), kind=str(err.get("kind", "internal")),
-                          exit_code=int(err.get("exit_code", 4)), diagnostics=err.get("diagnostics") or ())
+        return AgentError(
+            str(err["message"]),
+            kind=str(err.get("kind", "internal")),
+            exit_code=int(err.get("exit_code", 4)),
+            diagnostics=err.get("diagnostics") or (),
+        )
     except (ValueError, KeyError, TypeError):
         return AgentError(f"the agent answered HTTP {e.code} {e.reason}", kind="internal", exit_code=4)

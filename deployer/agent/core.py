@@ -50,13 +50,19 @@ class Agent(Site):
         need = sum(2 * len(j.url.lock_keys) for j in self.files.jobs.values()) + self.settings.parallel + 128
         hard = raise_open_files(need)
         if hard is not None:
-            raise StateError(f"the agent needs about {need} open files for {len(self.files.jobs)} devices, but this "
-                             f"system allows {hard} (ulimit -Hn; LimitNOFILE= in its systemd unit)")
+            raise StateError(
+                f"the agent needs about {need} open files for {len(self.files.jobs)} devices, but this "
+                f"system allows {hard} (ulimit -Hn; LimitNOFILE= in its systemd unit)"
+            )
         lock.set_agent(url)
         self.own()
-        self.event("started", f"agent started at {url}: {len(self.devices)} devices, check every "
-                   f"{format_duration(self.settings.check_every)}, on drift {self.settings.on_drift}, "
-                   f"on replace {self.settings.on_replace}", detail={"pid": os.getpid(), "boot_id": self.boot})
+        self.event(
+            "started",
+            f"agent started at {url}: {len(self.devices)} devices, check every "
+            f"{format_duration(self.settings.check_every)}, on drift {self.settings.on_drift}, "
+            f"on replace {self.settings.on_replace}",
+            detail={"pid": os.getpid(), "boot_id": self.boot},
+        )
         await recover(self.runs, self.store.windows(), self.boot)
         self._watching = asyncio.ensure_future(self.watch.forever())
 

@@ -67,8 +67,9 @@ def adopted_dir(state_dir: str) -> str:
     return os.path.join(os.path.abspath(state_dir), "agent", "adopted")
 
 
-def write_adopted(state_dir: str, job: Job, values: Mapping[str, Sequence[int]], *, why: str,
-                  path: str | None = None) -> tuple[str, str]:
+def write_adopted(
+    state_dir: str, job: Job, values: Mapping[str, Sequence[int]], *, why: str, path: str | None = None
+) -> tuple[str, str]:
     """Write the adopted state of one device as a recipe (values by parameter name); its path and SHA-256.
     ``path``: somewhere else than the adopted folder (a replaced unit's restore)."""
     prof = job.recipe.profile
@@ -76,8 +77,13 @@ def write_adopted(state_dir: str, job: Job, values: Mapping[str, Sequence[int]],
     os.makedirs(os.path.dirname(path), exist_ok=True)
     ref = os.path.abspath(prof.source) if prof.source else prof.id
     params: dict[Parameter, Sequence[int]] = {prof.parameter(n): v for n, v in values.items()}
-    text = recipe_text(ref, params, name=job.name, device=DeviceSpec(describe(job.url), job.unit),
-                       comment=f"adopted by the deployer agent: {why}")
+    text = recipe_text(
+        ref,
+        params,
+        name=job.name,
+        device=DeviceSpec(describe(job.url), job.unit),
+        comment=f"adopted by the deployer agent: {why}",
+    )
     write_atomic(path, text, replace=True, what="the adopted state")
     return path, hashlib.sha256(text.encode()).hexdigest()
 
@@ -94,15 +100,19 @@ def _safe(name: str) -> str:
     return keep or "device"
 
 
-def differences(profile: Profile, adopted: Mapping[str, Sequence[int]], files: Recipe
-                ) -> list[dict[str, Any]]:
+def differences(profile: Profile, adopted: Mapping[str, Sequence[int]], files: Recipe) -> list[dict[str, Any]]:
     """The files' values that differ from the adopted ones (pending changes), in the files' order."""
     out = []
     for d in files.desired:
         have = adopted.get(d.name)
         if have is None or not d.parameter.same_value(tuple(have), d.registers):
-            out.append({"name": d.name, "adopted": None if have is None else d.parameter.show_registers(tuple(have)),
-                        "files": d.text})
+            out.append(
+                {
+                    "name": d.name,
+                    "adopted": None if have is None else d.parameter.show_registers(tuple(have)),
+                    "files": d.text,
+                }
+            )
     files_names = {d.name for d in files.desired}
     for n, v in adopted.items():
         if n not in files_names:

@@ -126,42 +126,73 @@ def _machine_names() -> Iterable[str]:
     return [n for n in out if n]
 
 
-def _refuse(refusals: Refusals, request: web.Request, why: str, status: int, kind: str,
-            message: str) -> web.StreamResponse:
+def _refuse(
+    refusals: Refusals, request: web.Request, why: str, status: int, kind: str, message: str
+) -> web.StreamResponse:
     refusals.door[why] = refusals.door.get(why, 0) + 1
     info = where(request)
-    refusals.refused("request-refused", (why, info["remote"]), f"refused {info['method']} {info['path']} from "
-                     f"{info['remote']}: {message}", why=why, **info,
-                     host=request.headers.get("Host", "")[:200] or None,
-                     origin=request.headers.get("Origin", "")[:200] or None)
+    refusals.refused(
+        "request-refused",
+        (why, info["remote"]),
+        f"refused {info['method']} {info['path']} from {info['remote']}: {message}",
+        why=why,
+        **info,
+        host=request.headers.get("Host", "")[:200] or None,
+        origin=request.headers.get("Origin", "")[:200] or None,
+    )
     body = {"error": {"kind": kind, "message": message, "exit_code": 1}}
     return web.json_response(body, status=status)
 
 
 def door_middleware(door: Door, refusals: Refusals) -> Callable[..., Awaitable[web.StreamResponse]]:
     @web.middleware
-    async def check(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
-                    ) -> web.StreamResponse:
+    async def check(
+        request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+    ) -> web.StreamResponse:
         sock = request.transport.get_extra_info("sockname") if request.transport is not None else None
         reached = str(sock[0]) if sock else None
         host = request.headers.get("Host")
         if host is not None and not door.host_ok(host, reached):
-            return _refuse(refusals, request, "host", 403, "forbidden",
-                           f"Host {host[:100]!r} is not this agent's name (a name that merely resolves to it, as in "
-                           "DNS rebinding, is refused; deployer agent --allowed-host NAME adds a name)")
+            return _refuse(
+                refusals,
+                request,
+                "host",
+                403,
+                "forbidden",
+                f"Host {host[:100]!r} is not this agent's name (a name that merely resolves to it, as in "
+                "DNS rebinding, is refused; deployer agent --allowed-host NAME adds a name)",
+            )
         origin = request.headers.get("Origin")
         if origin is not None and not door.origin_ok(origin, reached):
-            return _refuse(refusals, request, "origin", 403, "forbidden",
-                           f"Origin {origin[:100]!r} is not this agent: a page from elsewhere cannot use it")
+            return _refuse(
+                refusals,
+                request,
+                "origin",
+                403,
+                "forbidden",
+                f"Origin {origin[:100]!r} is not this agent: a page from elsewhere cannot use it",
+            )
         site = request.headers.get("Sec-Fetch-Site")
         if site is not None and site.lower() not in ("same-origin", "none"):
-            return _refuse(refusals, request, "fetch-site", 403, "forbidden",
-                           f"a {site[:40]} browser request: a page from elsewhere cannot use this agent")
+            return _refuse(
+                refusals,
+                request,
+                "fetch-site",
+                403,
+                "forbidden",
+                f"a {site[:40]} browser request: a page from elsewhere cannot use this agent",
+            )
         if request.method not in _READS and request.content_type != "application/json":
             got = request.headers.get("Content-Type")
-            return _refuse(refusals, request, "content-type", 415, "usage",
-                           f"a {request.method} request must say Content-Type: application/json "
-                           f"({'it said ' + repr(got[:100]) if got else 'it said none'}), with a JSON body or none")
+            return _refuse(
+                refusals,
+                request,
+                "content-type",
+                415,
+                "usage",
+                f"a {request.method} request must say Content-Type: application/json "
+                f"({'it said ' + repr(got[:100]) if got else 'it said none'}), with a JSON body or none",
+            )
         return await handler(request)
 
     return check

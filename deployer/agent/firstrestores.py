@@ -25,12 +25,25 @@ from ..execute.session import ApplyOptions
 class Agent(Protocol):
     """What of the agent (``runs.Runs``) the staging uses."""
 
-    def start_run(self, jobs: Sequence[Job], *, command: str, options: dict[str, Any], opts: ApplyOptions,
-                  label: str | None, batch: str | None = None, max_failures: str | None = None, parallel: int = 8,
-                  rollback_on_failure: bool = False, adopt: bool = False, health_unchecked: bool = False) -> Any: ...
+    def start_run(
+        self,
+        jobs: Sequence[Job],
+        *,
+        command: str,
+        options: dict[str, Any],
+        opts: ApplyOptions,
+        label: str | None,
+        batch: str | None = None,
+        max_failures: str | None = None,
+        parallel: int = 8,
+        rollback_on_failure: bool = False,
+        adopt: bool = False,
+        health_unchecked: bool = False,
+    ) -> Any: ...
 
-    def event(self, kind: str, message: str, *, device: str | None = None,
-              detail: Mapping[str, Any] | None = None) -> dict[str, Any]: ...
+    def event(
+        self, kind: str, message: str, *, device: str | None = None, detail: Mapping[str, Any] | None = None
+    ) -> dict[str, Any]: ...
 
 
 BATCH = "1,100%"  # one device of each profile, then the rest
@@ -61,10 +74,21 @@ class FirstRestores:
         opts = ApplyOptions(soak=self.soak if watched else None)
         why = ", ".join(f"{j.name} ({w})" for j, w in self.kept)
         try:
-            run = agent.start_run(jobs, command="restore", label="the adopted state", batch=BATCH, max_failures="1",
-                                  options={"reason": f"first restores after the start: {why}", "batch": BATCH,
-                                           "max_failures": "1", "staged": True},
-                                  opts=opts, health_unchecked=True)
+            run = agent.start_run(
+                jobs,
+                command="restore",
+                label="the adopted state",
+                batch=BATCH,
+                max_failures="1",
+                options={
+                    "reason": f"first restores after the start: {why}",
+                    "batch": BATCH,
+                    "max_failures": "1",
+                    "staged": True,
+                },
+                opts=opts,
+                health_unchecked=True,
+            )
         except DeployerError as e:  # the agent refused it (model.ApiError)
             self._stop(agent, f"the first restores after the start could not start: {e}", [j.name for j in jobs])
             return
@@ -75,20 +99,31 @@ class FirstRestores:
         if run_id != self.run:
             return
         if report is None:
-            self._stop(agent, f"the first restores after the start ended {state} (run {run_id})",
-                       [j.name for j, _ in self.kept])
+            self._stop(
+                agent,
+                f"the first restores after the start ended {state} (run {run_id})",
+                [j.name for j, _ in self.kept],
+            )
             return
         bad = [d for d in report.devices if d.status != "ok"]
         if not bad:
             return
         failed = [d for d in bad if d.status != "skipped"]
         first = failed[0] if failed else bad[0]
-        self._stop(agent, f"the first restores after the start stopped at {first.name} ({first.status}: "
-                   f"{first.error or 'see its parameters'}) in run {run_id}", [d.name for d in bad])
+        self._stop(
+            agent,
+            f"the first restores after the start stopped at {first.name} ({first.status}: "
+            f"{first.error or 'see its parameters'}) in run {run_id}",
+            [d.name for d in bad],
+        )
 
     def _stop(self, agent: Agent, why: str, devices: Sequence[str]) -> None:
         self.stopped = why
         detail: dict[str, Any] = {"run": self.run, "not_restored": list(devices)}
-        agent.event("restores-stopped", f"{why}; not restored: {', '.join(devices)}. Automatic restores are off "
-                    "until the agent restarts (drift is reported); restore through the agent after a look "
-                    "(POST /v1/runs with command restore)", detail=detail)
+        agent.event(
+            "restores-stopped",
+            f"{why}; not restored: {', '.join(devices)}. Automatic restores are off "
+            "until the agent restarts (drift is reported); restore through the agent after a look "
+            "(POST /v1/runs with command restore)",
+            detail=detail,
+        )

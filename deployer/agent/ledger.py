@@ -66,9 +66,13 @@ class Ledger:
             budget, what = have[k]
             used = sum(counts.get(k, (0, 0)))
             if used >= budget * self.agent.settings.endurance_warn:
-                self.agent.event("endurance-warning", f"{dev.name}: register 0x{k & 0xFFFF:04X} ({what}) has taken "
-                                 f"{used} of the {budget} writes its memory is rated for", device=dev.name,
-                                 detail={"register": k, "writes": used, "endurance": budget})
+                self.agent.event(
+                    "endurance-warning",
+                    f"{dev.name}: register 0x{k & 0xFFFF:04X} ({what}) has taken "
+                    f"{used} of the {budget} writes its memory is rated for",
+                    device=dev.name,
+                    detail={"register": k, "writes": used, "endurance": budget},
+                )
 
     def check(self, jobs: Sequence[Job], *, force: bool) -> None:
         """Refuse (ApiError, nothing sent) a run that would write a register past its budget, unless ``force``."""
@@ -81,12 +85,17 @@ class Ledger:
             for k in sorted(keys & set(have)):
                 used = sum(counts.get(k, (0, 0)))
                 if used >= have[k][0]:
-                    over.append(f"{j.name} register 0x{k & 0xFFFF:04X} ({have[k][1]}): {used} of "
-                                f"{have[k][0]} writes")
+                    over.append(f"{j.name} register 0x{k & 0xFFFF:04X} ({have[k][1]}): {used} of {have[k][0]} writes")
         if over and not force:
             self.agent.event("endurance-refused", "past the endurance budget: " + "; ".join(over))
-            raise ApiError("refused", "past the rated endurance of its memory, nothing sent: " + "; ".join(over)
-                           + " (force_endurance, --force-endurance, to write anyway)", status=422, exit_code=1)
+            raise ApiError(
+                "refused",
+                "past the rated endurance of its memory, nothing sent: "
+                + "; ".join(over)
+                + " (force_endurance, --force-endurance, to write anyway)",
+                status=422,
+                exit_code=1,
+            )
 
     def to_json(self) -> dict[str, Any]:
         """``GET /v1/ledger``: per device, each register's writes and commits, and its budget."""
@@ -96,7 +105,19 @@ class Ledger:
             prof = dev.adopted.profile if dev.adopted else dev.job.recipe.profile
             have = budgets(prof)
             regs = counts.get(dev.name, {})
-            out.append({"name": dev.name, "registers": [
-                {"register": k, "address": k & 0xFFFF, "writes": w, "commits": c,
-                 "budget": have[k][0] if k in have else None} for k, (w, c) in sorted(regs.items())]})
+            out.append(
+                {
+                    "name": dev.name,
+                    "registers": [
+                        {
+                            "register": k,
+                            "address": k & 0xFFFF,
+                            "writes": w,
+                            "commits": c,
+                            "budget": have[k][0] if k in have else None,
+                        }
+                        for k, (w, c) in sorted(regs.items())
+                    ],
+                }
+            )
         return {"devices": out}

@@ -92,8 +92,12 @@ def publish(url: str, path: str) -> str | None:
             json.dump({"url": url, "pid": os.getpid(), "token_file": os.path.abspath(path)}, f)
         os.replace(tmp, note)
     except OSError as e:
-        print(f"agent: cannot leave the note for this user's clients in {os.path.dirname(note)}: "
-              f"{e.strerror or e} (they need --agent-token-file {path})", file=sys.stderr, flush=True)
+        print(
+            f"agent: cannot leave the note for this user's clients in {os.path.dirname(note)}: "
+            f"{e.strerror or e} (they need --agent-token-file {path})",
+            file=sys.stderr,
+            flush=True,
+        )
         return None
     return note
 

@@ -28,24 +28,33 @@ class AgentCollector(Collector):
         from .views import windows_json
 
         a = self.agent
-        status = GaugeMetricFamily("deployer_device_status", "1 for the device's current status, 0 for the others",
-                                   labels=["device", "status"])
-        drifted = GaugeMetricFamily("deployer_device_drifted", "1 while the device does not hold the adopted state",
-                                    labels=["device"])
-        drift_events = CounterMetricFamily("deployer_drift_events", "drift found (each time it starts)",
-                                           labels=["device"])
-        restores = CounterMetricFamily("deployer_drift_restores", "restores of the adopted state that verified",
-                                       labels=["device"])
-        replaced = CounterMetricFamily("deployer_device_replaced", "times the device was found replaced",
-                                       labels=["device"])
-        writes = CounterMetricFamily("deployer_register_writes", "write and commit requests sent (the ledger)",
-                                     labels=["device"])
-        last = GaugeMetricFamily("deployer_last_check_timestamp_seconds", "when the device was last read",
-                                 labels=["device"])
-        pending = GaugeMetricFamily("deployer_device_pending_changes",
-                                    "parameters whose files' value is not adopted yet", labels=["device"])
-        owned = GaugeMetricFamily("deployer_device_owned", "1 when the agent holds the device's lock",
-                                  labels=["device"])
+        status = GaugeMetricFamily(
+            "deployer_device_status", "1 for the device's current status, 0 for the others", labels=["device", "status"]
+        )
+        drifted = GaugeMetricFamily(
+            "deployer_device_drifted", "1 while the device does not hold the adopted state", labels=["device"]
+        )
+        drift_events = CounterMetricFamily(
+            "deployer_drift_events", "drift found (each time it starts)", labels=["device"]
+        )
+        restores = CounterMetricFamily(
+            "deployer_drift_restores", "restores of the adopted state that verified", labels=["device"]
+        )
+        replaced = CounterMetricFamily(
+            "deployer_device_replaced", "times the device was found replaced", labels=["device"]
+        )
+        writes = CounterMetricFamily(
+            "deployer_register_writes", "write and commit requests sent (the ledger)", labels=["device"]
+        )
+        last = GaugeMetricFamily(
+            "deployer_last_check_timestamp_seconds", "when the device was last read", labels=["device"]
+        )
+        pending = GaugeMetricFamily(
+            "deployer_device_pending_changes", "parameters whose files' value is not adopted yet", labels=["device"]
+        )
+        owned = GaugeMetricFamily(
+            "deployer_device_owned", "1 when the agent holds the device's lock", labels=["device"]
+        )
         for d in a.devices.values():
             current = "running" if d.run else d.status
             for s in STATUSES:

@@ -26,8 +26,9 @@ STATUSES = ("ok", "drifted", "unreachable", "replaced", "running", "not-owned", 
 class ApiError(DeployerError):
     """A request the agent refuses: ``kind`` and HTTP ``status`` for the answer, ``exit_code`` for the CLI."""
 
-    def __init__(self, kind: str, message: str, *, status: int, exit_code: int = 1,
-                 diagnostics: Sequence[str] = ()) -> None:
+    def __init__(
+        self, kind: str, message: str, *, status: int, exit_code: int = 1, diagnostics: Sequence[str] = ()
+    ) -> None:
         super().__init__(message)
         self.kind, self.status, self.diagnostics = kind, status, list(diagnostics)
         object.__setattr__(self, "exit_code", exit_code)  # per refusal: what the command line would exit with
@@ -103,11 +104,17 @@ class RunState:
         self.changed = asyncio.Event()
 
     def to_json(self, *, report: bool = True) -> dict[str, Any]:
-        out: dict[str, Any] = {"id": self.id, "command": self.command, "state": self.state, "devices": self.devices,
-                               "options": self.options, "started": iso(self.started),
-                               "finished": None if self.finished is None else iso(self.finished),
-                               "exit_code": self.exit_code,
-                               "window": None if self.window is None else self.window.run_json()}
+        out: dict[str, Any] = {
+            "id": self.id,
+            "command": self.command,
+            "state": self.state,
+            "devices": self.devices,
+            "options": self.options,
+            "started": iso(self.started),
+            "finished": None if self.finished is None else iso(self.finished),
+            "exit_code": self.exit_code,
+            "window": None if self.window is None else self.window.run_json(),
+        }
         if report:
             out["report"] = self.report
         return out

@@ -50,9 +50,16 @@ def _shown(url: str) -> str:
 
 def payload(agent_url: str, ev: Mapping[str, Any]) -> dict[str, Any]:
     """What is POSTed: the event as ``GET /v1/events`` shows it, with the agent's address and a version."""
-    return {"version": PAYLOAD_VERSION, "agent": agent_url, "id": ev.get("id"), "time": ev.get("time"),
-            "device": ev.get("device"), "kind": ev.get("kind"), "message": ev.get("message"),
-            "detail": ev.get("detail")}
+    return {
+        "version": PAYLOAD_VERSION,
+        "agent": agent_url,
+        "id": ev.get("id"),
+        "time": ev.get("time"),
+        "device": ev.get("device"),
+        "kind": ev.get("kind"),
+        "message": ev.get("message"),
+        "detail": ev.get("detail"),
+    }
 
 
 @dataclass
@@ -68,8 +75,14 @@ class _Receiver:
 class Notifier:
     """Sends the agent's events to ``urls``; ``start`` inside the agent's event loop, ``stop`` at its end."""
 
-    def __init__(self, agent: Agent, urls: Sequence[str], *, first_backoff: float = FIRST_BACKOFF,
-                 max_backoff: float = MAX_BACKOFF) -> None:
+    def __init__(
+        self,
+        agent: Agent,
+        urls: Sequence[str],
+        *,
+        first_backoff: float = FIRST_BACKOFF,
+        max_backoff: float = MAX_BACKOFF,
+    ) -> None:
         self.receivers = [_Receiver(check_url(u)) for u in dict.fromkeys(urls)]
         self.first_backoff, self.max_backoff = first_backoff, max_backoff
         self.agent_url = ""
@@ -83,8 +96,9 @@ class Notifier:
         self.agent_url = agent_url
         self._loop = asyncio.get_running_loop()
         self._thread = threading.get_ident()
-        self._session = aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=TIMEOUT),
-                                              headers={"User-Agent": "deployer-agent"})
+        self._session = aiohttp.ClientSession(
+            timeout=aiohttp.ClientTimeout(total=TIMEOUT), headers={"User-Agent": "deployer-agent"}
+        )
         self._tasks = [asyncio.ensure_future(self._send_forever(r)) for r in self.receivers]
 
     def put(self, ev: Mapping[str, Any]) -> None:
@@ -102,8 +116,12 @@ class Notifier:
         for r in self.receivers:
             if len(r.queue) == r.queue.maxlen:
                 r.dropped += 1
-                print(f"agent: notify {_shown(r.url)}: {QUEUE} events waiting, the oldest dropped "
-                      f"({r.dropped} so far; GET /v1/events has them all)", file=sys.stderr, flush=True)
+                print(
+                    f"agent: notify {_shown(r.url)}: {QUEUE} events waiting, the oldest dropped "
+                    f"({r.dropped} so far; GET /v1/events has them all)",
+                    file=sys.stderr,
+                    flush=True,
+                )
             r.queue.append(body)
             r.wake.set()
 
@@ -125,12 +143,18 @@ class Notifier:
                         print(f"agent: notify {_shown(r.url)}: delivered again", file=sys.stderr, flush=True)
                     r.failing, backoff = False, self.first_backoff
                 else:  # the receiver says this event is wrong: retrying would not change its mind
-                    print(f"agent: notify {_shown(r.url)}: event {body['id']} {why}; not sent again",
-                          file=sys.stderr, flush=True)
+                    print(
+                        f"agent: notify {_shown(r.url)}: event {body['id']} {why}; not sent again",
+                        file=sys.stderr,
+                        flush=True,
+                    )
                 continue
             if not r.failing:
-                print(f"agent: notify {_shown(r.url)}: {why}; retrying with back-off (up to {self.max_backoff:g} s)",
-                      file=sys.stderr, flush=True)
+                print(
+                    f"agent: notify {_shown(r.url)}: {why}; retrying with back-off (up to {self.max_backoff:g} s)",
+                    file=sys.stderr,
+                    flush=True,
+                )
             r.failing = True
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, self.max_backoff)
@@ -159,8 +183,11 @@ class Notifier:
             await self._session.close()
         for r in self.receivers:
             if r.queue:
-                print(f"agent: notify {_shown(r.url)}: {len(r.queue)} events not delivered (GET /v1/events has them)",
-                      file=sys.stderr, flush=True)
+                print(
+                    f"agent: notify {_shown(r.url)}: {len(r.queue)} events not delivered (GET /v1/events has them)",
+                    file=sys.stderr,
+                    flush=True,
+                )
 
     async def _drained(self) -> None:
         while any(r.queue for r in self.receivers):
@@ -171,8 +198,9 @@ class Notifier:
         waiting = GaugeMetricFamily("deployer_notify_waiting", "events queued for the receiver", labels=["url"])
         sent = CounterMetricFamily("deployer_notify_sent", "events the receiver took", labels=["url"])
         dropped = CounterMetricFamily("deployer_notify_dropped", "events dropped from a full queue", labels=["url"])
-        failing = GaugeMetricFamily("deployer_notify_failing", "1 while deliveries to the receiver fail",
-                                    labels=["url"])
+        failing = GaugeMetricFamily(
+            "deployer_notify_failing", "1 while deliveries to the receiver fail", labels=["url"]
+        )
         for r in self.receivers:
             label = [_shown(r.url)]
             waiting.add_metric(label, len(r.queue))
@@ -182,5 +210,7 @@ class Notifier:
         yield from (waiting, sent, dropped, failing)
 
     def status(self) -> list[dict[str, Any]]:
-        return [{"url": r.url, "waiting": len(r.queue), "sent": r.sent, "dropped": r.dropped, "failing": r.failing}
-                for r in self.receivers]
+        return [
+            {"url": r.url, "waiting": len(r.queue), "sent": r.sent, "dropped": r.dropped, "failing": r.failing}
+            for r in self.receivers
+        ]

@@ -15,7 +15,9 @@ from aiohttp import web
 
 from ..pages.assets import CSS as REPORT_CSS
 
-CSS = REPORT_CSS + """
+CSS = (
+    REPORT_CSS
+    + """
 header .where { color: var(--muted); } #state { margin: .2rem 0 .6rem; }
 td.drift-none { color: var(--muted); }
 .st-owned, .st-ok { color: var(--ok); }
@@ -24,6 +26,7 @@ td.drift-none { color: var(--muted); }
 td.name, td.time { white-space: nowrap; }
 form.token { margin: 1rem 0; display: flex; gap: .5rem; } form.token input { font: inherit; min-width: 24rem; }
 """
+)
 
 JS = r"""
 "use strict";
@@ -160,22 +163,31 @@ def _sha(text: str) -> str:
     return "'sha256-" + base64.b64encode(hashlib.sha256(text.encode()).digest()).decode() + "'"
 
 
-HTML = ("<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\">"
-        "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
-        f"<title>deployer agent</title><style>{CSS}</style></head><body>"
-        "<header><h1>deployer agent</h1><div class=\"where\" id=\"where\"></div></header><main>"
-        "<div id=\"state\"><p class=\"notice\">reading the agent ...</p></div>"
-        "<div class=\"counts\" id=\"counts\"></div>"
-        "<h2>Devices</h2><div id=\"devices\"></div><h2>Open windows</h2><div id=\"windows\"></div>"
-        "<h2>Pending changes of the files</h2><div id=\"problems\"></div><div id=\"pending\"></div>"
-        "<h2>Last events</h2><div id=\"events\"></div>"
-        f"</main><script>{JS}</script></body></html>")
+HTML = (
+    '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
+    '<meta name="viewport" content="width=device-width, initial-scale=1">'
+    f"<title>deployer agent</title><style>{CSS}</style></head><body>"
+    '<header><h1>deployer agent</h1><div class="where" id="where"></div></header><main>'
+    '<div id="state"><p class="notice">reading the agent ...</p></div>'
+    '<div class="counts" id="counts"></div>'
+    '<h2>Devices</h2><div id="devices"></div><h2>Open windows</h2><div id="windows"></div>'
+    '<h2>Pending changes of the files</h2><div id="problems"></div><div id="pending"></div>'
+    '<h2>Last events</h2><div id="events"></div>'
+    f"</main><script>{JS}</script></body></html>"
+)
 
-CSP = (f"default-src 'none'; script-src {_sha(JS)}; style-src {_sha(CSS)}; connect-src 'self'; img-src 'self' data:; "
-       "base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
-HEADERS = {"Content-Type": "text/html; charset=utf-8", "Content-Security-Policy": CSP,
-           "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer", "X-Frame-Options": "DENY",
-           "Cache-Control": "no-store"}
+CSP = (
+    f"default-src 'none'; script-src {_sha(JS)}; style-src {_sha(CSS)}; connect-src 'self'; img-src 'self' data:; "
+    "base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
+)
+HEADERS = {
+    "Content-Type": "text/html; charset=utf-8",
+    "Content-Security-Policy": CSP,
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",
+    "X-Frame-Options": "DENY",
+    "Cache-Control": "no-store",
+}
 
 
 async def page(request: web.Request) -> web.Response:

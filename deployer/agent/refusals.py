@@ -74,23 +74,28 @@ class Refusals:
     def _record(self, kind: str, message: str, fields: dict[str, Any], repeated: int, *, last: bool = False) -> None:
         if self.agent is None or self.agent.store is None:
             return
-        more = (f" ({repeated} more like it {'since' if not last else 'after'} the last record)"
-                if repeated else "")
+        more = f" ({repeated} more like it {'since' if not last else 'after'} the last record)" if repeated else ""
         audited(self.agent, kind, message + more, **fields, repeated=repeated or None)
 
     def collect(self) -> Iterator[Metric]:
-        u = CounterMetricFamily("deployer_http_unauthorized_requests",
-                                "requests refused for want of a valid credential (none, a wrong one, a disabled user)")
+        u = CounterMetricFamily(
+            "deployer_http_unauthorized_requests",
+            "requests refused for want of a valid credential (none, a wrong one, a disabled user)",
+        )
         u.add_metric([], self.unauthorized)
         yield u
-        f = CounterMetricFamily("deployer_http_forbidden_requests", "requests refused for want of a role",
-                                labels=["role"])
+        f = CounterMetricFamily(
+            "deployer_http_forbidden_requests", "requests refused for want of a role", labels=["role"]
+        )
         for role, n in sorted(self.forbidden.items()):
             f.add_metric([role], n)
         yield f
-        d = CounterMetricFamily("deployer_http_refused_requests",
-                                "requests refused at the door: a Host or Origin not the agent's own, a cross-site "
-                                "browser request, a body not sent as application/json", labels=["why"])
+        d = CounterMetricFamily(
+            "deployer_http_refused_requests",
+            "requests refused at the door: a Host or Origin not the agent's own, a cross-site "
+            "browser request, a body not sent as application/json",
+            labels=["why"],
+        )
         for why, n in sorted(self.door.items()):
             d.add_metric([why], n)
         yield d

@@ -69,7 +69,10 @@ def role_of(method: str, path: str) -> str | None:
     parts = path.split("/")
     for (m, pattern), role in ROUTE_ROLES.items():
         want = pattern.split("/")
-        if m == method and len(want) == len(parts) and all(
-                w == p or (w.startswith("{") and w.endswith("}") and p) for w, p in zip(want, parts, strict=True)):
+        if (
+            m == method
+            and len(want) == len(parts)
+            and all(w == p or (w.startswith("{") and w.endswith("}") and p) for w, p in zip(want, parts, strict=True))
+        ):
             return role
     return None

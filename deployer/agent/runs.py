@@ -38,25 +38,46 @@ class Runs:
         self.live: dict[str, RunState] = {}  # the runs since the agent's start (earlier ones: the store's)
         self.tasks: set[asyncio.Task[Any]] = set()  # the waits of windows an earlier agent left open
 
-    def event(self, kind: str, message: str, *, device: str | None = None,
-              detail: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    def event(
+        self, kind: str, message: str, *, device: str | None = None, detail: Mapping[str, Any] | None = None
+    ) -> dict[str, Any]:
         return self.site.event(kind, message, device=device, detail=detail)
 
-    def start_run(self, jobs: Sequence[Job], *, command: str, options: dict[str, Any], opts: ApplyOptions,
-                  label: str | None, batch: str | None = None, max_failures: str | None = None, parallel: int = 8,
-                  rollback_on_failure: bool = False, adopt: bool = False, health_unchecked: bool = False) -> RunState:
+    def start_run(
+        self,
+        jobs: Sequence[Job],
+        *,
+        command: str,
+        options: dict[str, Any],
+        opts: ApplyOptions,
+        label: str | None,
+        batch: str | None = None,
+        max_failures: str | None = None,
+        parallel: int = 8,
+        rollback_on_failure: bool = False,
+        adopt: bool = False,
+        health_unchecked: bool = False,
+    ) -> RunState:
         """Start a run of ``jobs`` (ApiError: refused, nothing sent). ``health_unchecked``: a soak may include
         profiles without health checks (the agent's staged first restores); a client's soak may not."""
         devices = self.site.devices
         busy = [j.name for j in jobs if devices[j.name].run is not None]
         if busy:
-            raise ApiError("conflict", f"{', '.join(busy)}: in run {devices[busy[0]].run} now; wait for it",
-                           status=409, exit_code=3)
+            raise ApiError(
+                "conflict",
+                f"{', '.join(busy)}: in run {devices[busy[0]].run} now; wait for it",
+                status=409,
+                exit_code=3,
+            )
         unowned = [j.name for j in jobs if not devices[j.name].owned]
         if unowned:
             why = devices[unowned[0]].not_owned_why or "its lock is held elsewhere"
-            raise ApiError("locked", f"{', '.join(unowned)}: not owned by the agent ({why}); nothing was sent",
-                           status=409, exit_code=3)
+            raise ApiError(
+                "locked",
+                f"{', '.join(unowned)}: not owned by the agent ({why}); nothing was sent",
+                status=409,
+                exit_code=3,
+            )
         try:
             fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures)
             if opts.soak is not None and not health_unchecked:
@@ -66,17 +87,33 @@ class Runs:
         run_id = journal.new_run_id()
         by = options.get("by") or {}
         who = by.get("user") or (f"the {by['credential']}" if by.get("credential") else None)
-        opts = replace(opts, state_dir=self.state_dir, run_id=run_id, command=f"agent {command}"
-                       + (f" by {who}" if who else "") + (f": {options['reason']}" if options.get("reason") else ""))
+        opts = replace(
+            opts,
+            state_dir=self.state_dir,
+            run_id=run_id,
+            command=f"agent {command}"
+            + (f" by {who}" if who else "")
+            + (f": {options['reason']}" if options.get("reason") else ""),
+        )
         run = RunState(run_id, command, [j.name for j in jobs], options)
         self.live[run_id] = run
         for j in jobs:
             devices[j.name].run = run_id
         self._store.run_started(run_id, command, options)
         run.emit("run-started", run=run_id, command=command, devices=run.devices, by=options.get("by"))
-        run.task = asyncio.ensure_future(self._execute(run, jobs, opts, label=label, batch=batch,
-                                                       max_failures=max_failures, parallel=parallel,
-                                                       rollback_on_failure=rollback_on_failure, adopt=adopt))
+        run.task = asyncio.ensure_future(
+            self._execute(
+                run,
+                jobs,
+                opts,
+                label=label,
+                batch=batch,
+                max_failures=max_failures,
+                parallel=parallel,
+                rollback_on_failure=rollback_on_failure,
+                adopt=adopt,
+            )
+        )
         return run
 
     @property
@@ -84,9 +121,19 @@ class Runs:
         assert self.site.store is not None
         return self.site.store
 
-    async def _execute(self, run: RunState, jobs: Sequence[Job], opts: ApplyOptions, *, label: str | None,
-                       batch: str | None, max_failures: str | None, parallel: int, rollback_on_failure: bool,
-                       adopt: bool) -> None:
+    async def _execute(
+        self,
+        run: RunState,
+        jobs: Sequence[Job],
+        opts: ApplyOptions,
+        *,
+        label: str | None,
+        batch: str | None,
+        max_failures: str | None,
+        parallel: int,
+        rollback_on_failure: bool,
+        adopt: bool,
+    ) -> None:
         reports = os.path.join(self.site.folder, "reports")
         os.makedirs(reports, exist_ok=True)
         report_path = os.path.join(reports, f"{run.id}.json")
@@ -114,12 +161,24 @@ class Runs:
         state = "finished"
         error: DeployerError | None = None
         try:
-            report = await run_async(list(jobs), command=run.command, label=label, argv=[], via="agent",
-                                     options=opts, parallel=parallel, batch=batch, max_failures=max_failures,
-                                     report_path=report_path, on_start=started, on_done=done, on_changed=changed,
-                                     on_confirm_wait=lambda _, deadline: self._waiting(run, deadline),
-                                     on_soak=lambda n, names: self._soaking(run, n, names, opts.soak or 0),
-                                     rollback_on_failure=rollback_on_failure)
+            report = await run_async(
+                list(jobs),
+                command=run.command,
+                label=label,
+                argv=[],
+                via="agent",
+                options=opts,
+                parallel=parallel,
+                batch=batch,
+                max_failures=max_failures,
+                report_path=report_path,
+                on_start=started,
+                on_done=done,
+                on_changed=changed,
+                on_confirm_wait=lambda _, deadline: self._waiting(run, deadline),
+                on_soak=lambda n, names: self._soaking(run, n, names, opts.soak or 0),
+                rollback_on_failure=rollback_on_failure,
+            )
         except RunInterrupted as e:
             report, state = e.report, "interrupted"
         except DeployerError as e:  # refused before anything was sent (a stale plan ...)
@@ -139,19 +198,29 @@ class Runs:
         run.state, run.finished = state, time.time()
         self.site.first.finished(self, run.id, report, state)
         self._store.run_ended(run.id, state, run.exit_code, report_path if report is not None else None)
-        self.event("run-finished", f"run {run.id} ({run.command}) {state}, exit code {run.exit_code}",
-                   detail={"run": run.id, "exit_code": run.exit_code, "by": run.options.get("by")})
+        self.event(
+            "run-finished",
+            f"run {run.id} ({run.command}) {state}, exit code {run.exit_code}",
+            detail={"run": run.id, "exit_code": run.exit_code, "by": run.options.get("by")},
+        )
         if report is not None:
             run_finished(self.site, report, command=run.command, by=run.options.get("by"))
-        run.emit("run-finished", run=run.id, state=state, exit_code=run.exit_code, report=run.report,
-                 error=None if error is None else str(error))
+        run.emit(
+            "run-finished",
+            run=run.id,
+            state=state,
+            exit_code=run.exit_code,
+            report=run.report,
+            error=None if error is None else str(error),
+        )
 
     # ---- its windows ----------------------------------------------------------------------------------
 
     def _soaking(self, run: RunState, number: int, names: list[str], seconds: float) -> None:
         """A batch's soak starts: its window opened (in the store, and the run's)."""
-        run.window = WindowState.opened(run.id, "soak", names, time.time() + seconds, state_dir=self.state_dir,
-                                        boot_id=self.site.boot)
+        run.window = WindowState.opened(
+            run.id, "soak", names, time.time() + seconds, state_dir=self.state_dir, boot_id=self.site.boot
+        )
         self._store.open_window(run.window)
         run.emit("soak-started", batch=number, devices=names, deadline=run.window.deadline)
 
@@ -160,13 +229,17 @@ class Runs:
         names = [n for n, r in run.results.items() if r.status == "ok" and r.snapshot is not None]
         if run.window is not None and run.window.kind == "soak":
             self.close_window(run.window, "passed")
-        run.window = w = WindowState.opened(run.id, "confirm", names, deadline, state_dir=self.state_dir,
-                                            boot_id=self.site.boot)
+        run.window = w = WindowState.opened(
+            run.id, "confirm", names, deadline, state_dir=self.state_dir, boot_id=self.site.boot
+        )
         self._store.open_window(w)
         run.state = "waiting"
-        self.event("window-waiting", f"run {run.id} waits for its confirmation until {w.deadline} "
-                   f"({', '.join(names)}): deployer confirm --agent {self.site.url} {run.id}",
-                   detail={"run": run.id, "devices": names, "deadline": w.deadline})
+        self.event(
+            "window-waiting",
+            f"run {run.id} waits for its confirmation until {w.deadline} "
+            f"({', '.join(names)}): deployer confirm --agent {self.site.url} {run.id}",
+            detail={"run": run.id, "devices": names, "deadline": w.deadline},
+        )
         run.emit("window-waiting", run=run.id, devices=names, deadline=w.deadline, deadline_epoch=deadline)
 
     def _window_ends(self, run: RunState, report: Report | None) -> None:
@@ -195,22 +268,32 @@ class Runs:
             if r.status == "ok" and r.commit in (None, "sent"):
                 after = {p.name: tuple(p.after_raw) for p in r.parameters if p.after_raw is not None}
                 if adopt:
-                    self.site.adopt(dev, by_name[r.name], ds.values_of(by_name[r.name].recipe), run=run.id,
-                                    why=f"run {run.id}")
+                    self.site.adopt(
+                        dev, by_name[r.name], ds.values_of(by_name[r.name].recipe), run=run.id, why=f"run {run.id}"
+                    )
                 elif run.command == "rollback":  # what was restored is the state to keep, not what was undone
                     back = {n: v for n, v in ds.values_of(by_name[r.name].recipe).items() if n in dev.adopted_values}
-                    self.site.adopt(dev, dev.job, {**dev.adopted_values, **back}, run=run.id,
-                                    why=f"rollback run {run.id}")
+                    self.site.adopt(
+                        dev, dev.job, {**dev.adopted_values, **back}, run=run.id, why=f"rollback run {run.id}"
+                    )
                 dev.asleft = {n: v for n, v in after.items() if n in dev.adopted_values}
                 self._store.set_asleft(r.name, dev.asleft, f"run {run.id}")
                 if run.command == "restore":
                     dev.drift_restores += 1
                     dev.drift, dev.status, dev.replaced = [], "ok", None
-                    self.event("restored", f"{r.name}: restored ({run.options.get('reason')}) by run {run.id}",
-                               device=r.name, detail={"run": run.id})
+                    self.event(
+                        "restored",
+                        f"{r.name}: restored ({run.options.get('reason')}) by run {run.id}",
+                        device=r.name,
+                        detail={"run": run.id},
+                    )
             elif run.command == "restore":
-                self.event("restore-failed", f"{r.name}: the restore run {run.id} ended {r.status}: {r.error}",
-                           device=r.name, detail={"run": run.id})
+                self.event(
+                    "restore-failed",
+                    f"{r.name}: the restore run {run.id} ended {r.status}: {r.error}",
+                    device=r.name,
+                    detail={"run": run.id},
+                )
         self.site.pending()
 
     # ---- windows an earlier agent left open (window.recover) -----------------------------------------
@@ -224,8 +307,9 @@ class Runs:
         jobs = [j for j in jobs if j.name in self.site.devices]
         if not jobs:
             return None
-        run = self.start_run(jobs, command="rollback", options={"reason": reason},
-                             opts=ApplyOptions(hold_commit=True), label=report)
+        run = self.start_run(
+            jobs, command="rollback", options={"reason": reason}, opts=ApplyOptions(hold_commit=True), label=report
+        )
         if run.task is not None:
             await asyncio.shield(run.task)
         return run.id
@@ -240,8 +324,11 @@ class Runs:
         held = [self.site.devices[n] for n in w.devices if n in self.site.devices]
         for dev in held:
             dev.run = w.run
-        self.event("window-waiting", f"run {w.run} (from before the agent's restart) waits for its confirmation "
-                   f"until {w.deadline}", detail={"run": w.run, "devices": w.devices})
+        self.event(
+            "window-waiting",
+            f"run {w.run} (from before the agent's restart) waits for its confirmation until {w.deadline}",
+            detail={"run": w.run, "devices": w.devices},
+        )
         try:
             confirmed = await recover.wait(run, w)
         finally:
@@ -263,6 +350,10 @@ class Runs:
         if result.commit == "sent":  # the run's end, which its agent did not live to see: adopted now
             dev = self.site.devices[job.name]
             values = {p.name: tuple(p.desired_raw) for p in result.parameters if p.status in ("ok", "unchanged")}
-            self.site.adopt(dev, dev.job, {**dev.adopted_values, **values}, run=run,
-                            why=f"run {run}, confirmed after the agent's restart")
-
+            self.site.adopt(
+                dev,
+                dev.job,
+                {**dev.adopted_values, **values},
+                run=run,
+                why=f"run {run}, confirmed after the agent's restart",
+            )

@@ -26,8 +26,10 @@ def read_token(path: str, what: str = "--token-file") -> str:
     except (OSError, UnicodeDecodeError) as e:
         raise UsageError(f"{what} {path}: cannot read it: {getattr(e, 'strerror', None) or e}") from None
     if len(text) < 16:
-        raise UsageError(f"{what} {path}: the token must be at least 16 characters on the first line "
-                         "(e.g. python3 -c 'import secrets; print(secrets.token_urlsafe(32))')")
+        raise UsageError(
+            f"{what} {path}: the token must be at least 16 characters on the first line "
+            "(e.g. python3 -c 'import secrets; print(secrets.token_urlsafe(32))')"
+        )
     if any(c.isspace() or not c.isprintable() for c in text):
         raise UsageError(f"{what} {path}: the token must not contain spaces or control characters")
     if os.name == "posix" and what == "--token-file":
@@ -36,8 +38,11 @@ def read_token(path: str, what: str = "--token-file") -> str:
         except OSError:
             mode = 0
         if mode & 0o077:  # said, not refused: systemd's LoadCredential= copies are 0400 anyway
-            print(f"warning: {what} {path} can be read by other users of this machine (chmod 600 it)",
-                  file=sys.stderr, flush=True)
+            print(
+                f"warning: {what} {path} can be read by other users of this machine (chmod 600 it)",
+                file=sys.stderr,
+                flush=True,
+            )
     return text
 
 
@@ -56,14 +61,16 @@ def server_ssl(cert: str | None, key: str | None, client_ca: str | None = None) 
     try:
         ctx.load_cert_chain(cert, key)
     except (OSError, ssl.SSLError) as e:
-        raise UsageError(f"--tls-cert {cert} --tls-key {key}: cannot load them: "
-                         f"{getattr(e, 'strerror', None) or e}") from None
+        raise UsageError(
+            f"--tls-cert {cert} --tls-key {key}: cannot load them: {getattr(e, 'strerror', None) or e}"
+        ) from None
     if client_ca is not None:
         try:
             ctx.load_verify_locations(cafile=client_ca)
         except (OSError, ssl.SSLError) as e:
-            raise UsageError(f"--tls-client-ca {client_ca}: cannot load it: "
-                             f"{getattr(e, 'strerror', None) or e}") from None
+            raise UsageError(
+                f"--tls-client-ca {client_ca}: cannot load it: {getattr(e, 'strerror', None) or e}"
+            ) from None
         ctx.verify_mode = ssl.CERT_OPTIONAL
     return ctx
 
@@ -85,9 +92,13 @@ def check_listen(host: str, *, token: bool, tls: bool, listen: str) -> None:
     if is_loopback(host):
         return
     if not token:
-        raise UsageError(f"--listen {listen}: without --token-file or --users the agent listens on loopback only "
-                         "(127.0.0.1, ::1), with a token of its own for its own user; give --users FILE (or "
-                         "--token-file) and --tls-cert/--tls-key")
+        raise UsageError(
+            f"--listen {listen}: without --token-file or --users the agent listens on loopback only "
+            "(127.0.0.1, ::1), with a token of its own for its own user; give --users FILE (or "
+            "--token-file) and --tls-cert/--tls-key"
+        )
     if not tls:
-        raise UsageError(f"--listen {listen}: beyond loopback the agent needs TLS as well as the token "
-                         "(--tls-cert FILE --tls-key FILE): a token sent in clear text is given away")
+        raise UsageError(
+            f"--listen {listen}: beyond loopback the agent needs TLS as well as the token "
+            "(--tls-cert FILE --tls-key FILE): a token sent in clear text is given away"
+        )

@@ -47,8 +47,12 @@ def _device(agent: Agent, request: web.Request) -> Any:
 def _run(agent: Agent, request: web.Request) -> RunState:
     run = agent.runs.live.get(request.match_info["id"])
     if run is None:
-        raise ApiError("not-found", f"no run {request.match_info['id']!r} in this agent since its start "
-                       "(GET /v1/runs lists earlier ones from its database)", status=404)
+        raise ApiError(
+            "not-found",
+            f"no run {request.match_info['id']!r} in this agent since its start "
+            "(GET /v1/runs lists earlier ones from its database)",
+            status=404,
+        )
     return run
 
 
@@ -82,8 +86,11 @@ def _by(request: web.Request) -> dict[str, Any]:
 
 async def get_agent(agent: Agent, request: web.Request) -> Any:
     who: Who = request[WHO]
-    return {**views.agent_json(agent), "auth": request.app[user_routes.ACCESS].mode,
-            "you": {**who.record(), "roles": sorted(who.roles)}}
+    return {
+        **views.agent_json(agent),
+        "auth": request.app[user_routes.ACCESS].mode,
+        "you": {**who.record(), "roles": sorted(who.roles)},
+    }
 
 
 async def list_devices(agent: Agent, request: web.Request) -> Any:
@@ -133,8 +140,9 @@ async def check_now(agent: Agent, request: web.Request) -> Any:
         except UsageError as e:
             raise ApiError("usage", str(e), status=400) from None
     await agent.watch.check(names)
-    return {"devices": [views.device_json(agent, d) for d in agent.devices.values()
-                        if names is None or d.name in names]}
+    return {
+        "devices": [views.device_json(agent, d) for d in agent.devices.values() if names is None or d.name in names]
+    }
 
 
 async def list_runs(agent: Agent, request: web.Request) -> Any:
@@ -205,9 +213,14 @@ async def list_windows(agent: Agent, request: web.Request) -> Any:
 
 async def list_events(agent: Agent, request: web.Request) -> Any:
     assert agent.store is not None
-    return {"events": agent.store.events(after=_int(request, "after", 0, 0, 1 << 62),
-                                         limit=_int(request, "limit", 1000, 1, 10000),
-                                         device=request.query.get("device"), kind=request.query.get("kind"))}
+    return {
+        "events": agent.store.events(
+            after=_int(request, "after", 0, 0, 1 << 62),
+            limit=_int(request, "limit", 1000, 1, 10000),
+            device=request.query.get("device"),
+            kind=request.query.get("kind"),
+        )
+    }
 
 
 async def get_ledger(agent: Agent, request: web.Request) -> Any:
@@ -232,23 +245,53 @@ async def approve_plan(agent: Agent, request: web.Request) -> Any:
     trail = record.folder_of(agent.state_dir, pol.audit.trail if pol is not None else None)
     plan = body.get("plan")
     try:
-        out = attest.approve(plan, user=user, entry=body.get("signature"), meaning=str(body.get("meaning", "approved")),
-                             policy=pol, key_folder=agent.folder)
+        out = attest.approve(
+            plan,
+            user=user,
+            entry=body.get("signature"),
+            meaning=str(body.get("meaning", "approved")),
+            policy=pol,
+            key_folder=agent.folder,
+        )
     except attest.Refused as e:
-        record.append_cli(agent.state_dir, trail, [record.event(
-            "approve-refused", user=user, role=role, via="agent", result="refused",
-            detail={"why": str(e), "client": request.remote})])
+        record.append_cli(
+            agent.state_dir,
+            trail,
+            [
+                record.event(
+                    "approve-refused",
+                    user=user,
+                    role=role,
+                    via="agent",
+                    result="refused",
+                    detail={"why": str(e), "client": request.remote},
+                )
+            ],
+        )
         raise ApiError("refused" if e.status in (403, 409, 422) else "usage", str(e), status=e.status) from None
     sig = out["signature"]
-    record.append_cli(agent.state_dir, trail, [record.event(
-        "plan-signed", user=sig["signer"], role=role, via="agent", result="ok", plan=out["digest"],
-        detail={k: sig[k] for k in ("signer", "meaning", "time", "attested_by") if k in sig})])
+    record.append_cli(
+        agent.state_dir,
+        trail,
+        [
+            record.event(
+                "plan-signed",
+                user=sig["signer"],
+                role=role,
+                via="agent",
+                result="ok",
+                plan=out["digest"],
+                detail={k: sig[k] for k in ("signer", "meaning", "time", "attested_by") if k in sig},
+            )
+        ],
+    )
     return out
 
 
 async def get_openapi(agent: Agent, request: web.Request) -> Any:
-    return web.FileResponse(os.path.join(os.path.dirname(__file__), "openapi.json"),
-                            headers={"Content-Type": "application/json"})
+    return web.FileResponse(
+        os.path.join(os.path.dirname(__file__), "openapi.json"), headers={"Content-Type": "application/json"}
+    )
 
 
 async def get_metrics(agent: Agent, request: web.Request) -> Any:
@@ -296,19 +339,24 @@ def error_body(kind: str, message: str, exit_code: int, diagnostics: list[str] |
 
 
 @web.middleware
-async def errors(request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
-                 ) -> web.StreamResponse:
+async def errors(
+    request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+) -> web.StreamResponse:
     """Every refusal and failure as the one JSON error shape; never a traceback to the client."""
     try:
         return await handler(request)
     except ApiError as e:
         return web.json_response(error_body(e.kind, str(e), e.exit_code, e.diagnostics), status=e.status)
     except InputError as e:
-        return web.json_response(error_body("input", "invalid input; nothing was sent", e.exit_code,
-                                            [str(d) for d in e.diagnostics]), status=400)
+        return web.json_response(
+            error_body("input", "invalid input; nothing was sent", e.exit_code, [str(d) for d in e.diagnostics]),
+            status=400,
+        )
     except DeployerError as e:
-        return web.json_response(error_body("usage" if e.exit_code == 1 else "conflict", str(e), e.exit_code),
-                                 status=400 if e.exit_code == 1 else 409)
+        return web.json_response(
+            error_body("usage" if e.exit_code == 1 else "conflict", str(e), e.exit_code),
+            status=400 if e.exit_code == 1 else 409,
+        )
     except web.HTTPException as e:  # aiohttp's own: 404 for an unknown path, 405, 413 too large ...
         kind = "not-found" if e.status == 404 else "usage"
         return web.json_response(error_body(kind, e.reason or str(e), 1), status=e.status)
@@ -319,8 +367,14 @@ async def errors(request: web.Request, handler: Callable[[web.Request], Awaitabl
         return web.json_response(error_body("internal", f"internal error: {type(e).__name__}: {e}", 4), status=500)
 
 
-def app(agent: Agent, *, token: str | None = None, token_kind: str = "token", users: Directory | None = None,
-        door: Door | None = None) -> web.Application:
+def app(
+    agent: Agent,
+    *,
+    token: str | None = None,
+    token_kind: str = "token",
+    users: Directory | None = None,
+    door: Door | None = None,
+) -> web.Application:
     """The agent's web application: the door (door.py) first, then who sends the request and whether their
     role lets them (access.py: one site ``token``, or the ``users`` file), then the routes."""
     refusals = Refusals(agent)
@@ -353,5 +407,6 @@ def _bind(agent: Agent, handler: Handler) -> Callable[[web.Request], Awaitable[w
         if isinstance(out, web.StreamResponse):
             return out
         return web.json_response(out)
+
     call.__name__ = handler.__name__
     return call

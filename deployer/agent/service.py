@@ -31,10 +31,18 @@ def parse_listen(text: str) -> tuple[str, int]:
     return host.strip("[]") or "127.0.0.1", int(port)
 
 
-async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
-                on_ready: Callable[[str], None] | None = None, signals: bool = True,
-                token: str | None = None, tls: ssl.SSLContext | None = None, notify: Sequence[str] = (),
-                allowed_hosts: Sequence[str] = (), users: str | None = None) -> int:
+async def serve(
+    settings: Settings,
+    listen: str = "127.0.0.1:8470",
+    *,
+    on_ready: Callable[[str], None] | None = None,
+    signals: bool = True,
+    token: str | None = None,
+    tls: ssl.SSLContext | None = None,
+    notify: Sequence[str] = (),
+    allowed_hosts: Sequence[str] = (),
+    users: str | None = None,
+) -> int:
     """Run the agent until SIGTERM, SIGINT, Ctrl-Break or ``POST /v1/stop`` (or the task is cancelled); 0 when it
     ended cleanly.
 
@@ -59,8 +67,7 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
         directory.agent = agent
     notifier = Notifier(agent, notify) if notify else None
     door = Door(host, tuple(allowed_hosts))
-    application = app(agent, token=token, token_kind="agent token" if made else "token", users=directory,
-                      door=door)
+    application = app(agent, token=token, token_kind="agent token" if made else "token", users=directory, door=door)
     stop = asyncio.Event()
     application[STOP] = stop.set  # POST /v1/stop: a service manager's way on Windows
     if notifier is not None:
@@ -84,9 +91,13 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
     note = None
     if made is not None:  # as Jupyter does: where the token is, for this user's clients and anyone told
         note = local_token.publish(url, made)
-        print(f"agent: no --token-file: every request needs the token in {made} ({'made now' if new else 'kept'}, "
-              f"{local_token.PROTECTION}); this user's deployer commands find it, anyone else: "
-              f"--agent-token-file {made}", file=sys.stderr, flush=True)
+        print(
+            f"agent: no --token-file: every request needs the token in {made} ({'made now' if new else 'kept'}, "
+            f"{local_token.PROTECTION}); this user's deployer commands find it, anyone else: "
+            f"--agent-token-file {made}",
+            file=sys.stderr,
+            flush=True,
+        )
     from ..portable import interrupt_signals, on_signals
 
     forwarding: asyncio.Future[None] | None = None
@@ -104,8 +115,13 @@ async def serve(settings: Settings, listen: str = "127.0.0.1:8470", *,
         await agent.start(url)
         if directory is not None:
             on = sorted(u.name for u in directory.users.values() if not u.disabled)
-            audited(agent, "users-loaded", f"{len(on)} enabled users from {users}: {', '.join(on)[:300]}",
-                    file=users, users=on)
+            audited(
+                agent,
+                "users-loaded",
+                f"{len(on)} enabled users from {users}: {', '.join(on)[:300]}",
+                file=users,
+                users=on,
+            )
         print(f"listening on {url}", file=sys.stderr, flush=True)
         if on_ready is not None:
             on_ready(url)

@@ -53,8 +53,10 @@ class Site:
             got = False
         if not got:
             os.close(fd)
-            raise StateError(f"another agent runs on the state folder {self.state_dir} "
-                             f"({os.path.join(self.folder, 'agent.lock')} is locked)") from None
+            raise StateError(
+                f"another agent runs on the state folder {self.state_dir} "
+                f"({os.path.join(self.folder, 'agent.lock')} is locked)"
+            ) from None
         self._folder_lock = fd
         self.store = Store(os.path.join(self.folder, "agent.sqlite3"))
         self.store.prune_events(self.settings.keep_events)
@@ -80,21 +82,30 @@ class Site:
         the one adopted no longer loads), its locks. Devices no longer listed are forgotten."""
         assert self.files is not None and self.store is not None
         adopted = self.store.adopted()
-        counts = {(d, k): n for d, k, n in self.store.db.execute(
-            "SELECT device, kind, count(*) FROM events WHERE device IS NOT NULL GROUP BY device, kind")}
+        counts = {
+            (d, k): n
+            for d, k, n in self.store.db.execute(
+                "SELECT device, kind, count(*) FROM events WHERE device IS NOT NULL GROUP BY device, kind"
+            )
+        }
         for name, job in self.files.jobs.items():
             dev = self.devices[name] = Device(name, job)
             self._configure(dev)
-            dev.drift_events, dev.drift_restores, dev.replaced_total = (counts.get((name, k), 0) for k in
-                                                                       ("drift", "restored", "replaced"))
+            dev.drift_events, dev.drift_restores, dev.replaced_total = (
+                counts.get((name, k), 0) for k in ("drift", "restored", "replaced")
+            )
             dev.writes = sum(w + c for w, c in self.store.ledger(name).get(name, {}).values())
             row = adopted.get(name)
             try:
                 if row is not None and os.path.exists(row[0]):
                     dev.adopted = ds.load_adopted(row[0])
             except InputError as e:  # an adopted file that no longer loads (its profile changed): say so
-                self.event("adopt-failed", f"{name}: the adopted state {row[0] if row else ''} no longer loads: "
-                           f"{'; '.join(map(str, e.diagnostics))}; adopting the files", device=name)
+                self.event(
+                    "adopt-failed",
+                    f"{name}: the adopted state {row[0] if row else ''} no longer loads: "
+                    f"{'; '.join(map(str, e.diagnostics))}; adopting the files",
+                    device=name,
+                )
             if dev.adopted is None:
                 self.adopt(dev, job, ds.values_of(job.recipe), run=None, why="the files at the agent's start")
             else:
@@ -136,14 +147,23 @@ class Site:
 
     # ---- events -----------------------------------------------------------------------------------
 
-    def event(self, kind: str, message: str, *, device: str | None = None,
-              detail: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    def event(
+        self, kind: str, message: str, *, device: str | None = None, detail: Mapping[str, Any] | None = None
+    ) -> dict[str, Any]:
         """An event: in the database (committed before anyone is told), the journal, stderr, the hooks."""
         assert self.store is not None
         ev = self.store.event(kind, message, device=device, detail=detail)
         with contextlib.suppress(OSError):
-            journal.append(self.state_dir, {"event": f"agent-{kind}", "time": journal._now(), "device": device,
-                                            "message": message, "pid": os.getpid()})
+            journal.append(
+                self.state_dir,
+                {
+                    "event": f"agent-{kind}",
+                    "time": journal._now(),
+                    "device": device,
+                    "message": message,
+                    "pid": os.getpid(),
+                },
+            )
         print(f"agent: {kind}: {message}", file=sys.stderr, flush=True)
         for hook in self.on_event:
             with contextlib.suppress(Exception):
@@ -153,8 +173,7 @@ class Site:
 
     # ---- adoption and the files ---------------------------------------------------------------------
 
-    def adopt(self, dev: Device, job: Job, values: Mapping[str, Sequence[int]], *, run: str | None,
-              why: str) -> None:
+    def adopt(self, dev: Device, job: Job, values: Mapping[str, Sequence[int]], *, run: str | None, why: str) -> None:
         assert self.store is not None
         path, sha = ds.write_adopted(self.state_dir, job, values, why=why)
         dev.adopted = ds.load_adopted(path)
@@ -176,8 +195,11 @@ class Site:
         except InputError as e:
             diags = [str(d) for d in e.diagnostics]
             self.files_problem = diags
-            self.event("reload-failed", f"the files are invalid; nothing changed: {len(diags)} error(s)",
-                       detail={"diagnostics": diags})
+            self.event(
+                "reload-failed",
+                f"the files are invalid; nothing changed: {len(diags)} error(s)",
+                detail={"diagnostics": diags},
+            )
             raise ApiError("input", "the files are invalid; nothing changed", status=400, diagnostics=diags) from None
         old = self.files
         self.files, self.files_problem = files, []
@@ -190,11 +212,15 @@ class Site:
         if old is None or old.sha256 != files.sha256:
             added = sorted(set(files.jobs) - set(self.devices))
             removed = sorted(set(self.devices) - set(files.jobs))
-            extra = (f"; new devices ({', '.join(added)}) are owned from the agent's next start" if added else "") + \
-                    (f"; devices no longer listed ({', '.join(removed)}) stay owned until then" if removed else "")
+            extra = (f"; new devices ({', '.join(added)}) are owned from the agent's next start" if added else "") + (
+                f"; devices no longer listed ({', '.join(removed)}) stay owned until then" if removed else ""
+            )
             n = sum(1 for d in self.devices.values() if d.pending)
-            self.event("reload", f"files read: {n} device(s) with pending changes{extra}",
-                       detail={"files_sha256": files.sha256})
+            self.event(
+                "reload",
+                f"files read: {n} device(s) with pending changes{extra}",
+                detail={"files_sha256": files.sha256},
+            )
 
 
 def _take_now(addresses: Sequence[str], unit: int) -> list[lock.DeviceLock]:

@@ -68,8 +68,10 @@ class Store:
     def _migrate(self) -> None:
         (version,) = self.db.execute("PRAGMA user_version").fetchone()
         if version > SCHEMA_VERSION:
-            raise StateError(f"the agent database {self.path} has schema version {version}, newer than this "
-                             f"deployer knows ({SCHEMA_VERSION}): upgrade deployer (an older one never writes it)")
+            raise StateError(
+                f"the agent database {self.path} has schema version {version}, newer than this "
+                f"deployer knows ({SCHEMA_VERSION}): upgrade deployer (an older one never writes it)"
+            )
         for v in range(version, SCHEMA_VERSION):
             self.db.execute("BEGIN IMMEDIATE")
             try:
@@ -90,16 +92,32 @@ class Store:
 
     # ---- events -------------------------------------------------------------------------------
 
-    def event(self, kind: str, message: str, *, device: str | None = None, detail: Mapping[str, Any] | None = None,
-              when: float | None = None) -> dict[str, Any]:
+    def event(
+        self,
+        kind: str,
+        message: str,
+        *,
+        device: str | None = None,
+        detail: Mapping[str, Any] | None = None,
+        when: float | None = None,
+    ) -> dict[str, Any]:
         t = time.time() if when is None else when
-        cur = self.db.execute("INSERT INTO events (time, device, kind, message, detail) VALUES (?, ?, ?, ?, ?)",
-                              (t, device, kind, message, json.dumps(dict(detail or {}))))
-        return {"id": cur.lastrowid, "time": _iso(t), "device": device, "kind": kind, "message": message,
-                "detail": dict(detail or {})}
+        cur = self.db.execute(
+            "INSERT INTO events (time, device, kind, message, detail) VALUES (?, ?, ?, ?, ?)",
+            (t, device, kind, message, json.dumps(dict(detail or {}))),
+        )
+        return {
+            "id": cur.lastrowid,
+            "time": _iso(t),
+            "device": device,
+            "kind": kind,
+            "message": message,
+            "detail": dict(detail or {}),
+        }
 
-    def events(self, *, after: int = 0, limit: int = 1000, device: str | None = None,
-               kind: str | None = None) -> list[dict[str, Any]]:
+    def events(
+        self, *, after: int = 0, limit: int = 1000, device: str | None = None, kind: str | None = None
+    ) -> list[dict[str, Any]]:
         sql = "SELECT id, time, device, kind, message, detail FROM events WHERE id > ?"
         args: list[Any] = [after]
         if device is not None:
@@ -110,8 +128,10 @@ class Store:
             args.append(kind)
         # the newest ``limit`` after ``after``, oldest first
         rows = self.db.execute(f"SELECT * FROM ({sql} ORDER BY id DESC LIMIT ?) ORDER BY id", (*args, limit))
-        return [{"id": i, "time": _iso(t), "device": d, "kind": k, "message": m, "detail": json.loads(x)}
-                for i, t, d, k, m, x in rows]
+        return [
+            {"id": i, "time": _iso(t), "device": d, "kind": k, "message": m, "detail": json.loads(x)}
+            for i, t, d, k, m, x in rows
+        ]
 
     def prune_events(self, older_than: float) -> None:
         self.db.execute("DELETE FROM events WHERE time < ?", (time.time() - older_than,))
@@ -128,7 +148,8 @@ class Store:
                     "INSERT INTO ledger (device, register, writes, commits, first, last) VALUES (?, ?, ?, ?, ?, ?) "
                     "ON CONFLICT (device, register) DO UPDATE SET writes = writes + excluded.writes, "
                     "commits = commits + excluded.commits, last = excluded.last",
-                    (device, key, writes.get(key, 0), commits.get(key, 0), now, now))
+                    (device, key, writes.get(key, 0), commits.get(key, 0), now, now),
+                )
             self.db.execute("COMMIT")
         except BaseException:
             self.db.execute("ROLLBACK")
@@ -145,24 +166,36 @@ class Store:
 
     # ---- identities, as-left values, adoptions ---------------------------------------------------
 
-    def set_identity(self, device: str, objects: Mapping[str, str] | None, registers: Mapping[str, int],
-                     fc43: bool | None) -> None:
-        self.db.execute("INSERT OR REPLACE INTO identities (device, objects, registers, fc43, time) "
-                        "VALUES (?, ?, ?, ?, ?)",
-                        (device, None if objects is None else json.dumps(dict(objects)),
-                         json.dumps(dict(registers)), None if fc43 is None else int(fc43), time.time()))
+    def set_identity(
+        self, device: str, objects: Mapping[str, str] | None, registers: Mapping[str, int], fc43: bool | None
+    ) -> None:
+        self.db.execute(
+            "INSERT OR REPLACE INTO identities (device, objects, registers, fc43, time) VALUES (?, ?, ?, ?, ?)",
+            (
+                device,
+                None if objects is None else json.dumps(dict(objects)),
+                json.dumps(dict(registers)),
+                None if fc43 is None else int(fc43),
+                time.time(),
+            ),
+        )
 
     def identity(self, device: str) -> tuple[dict[str, str] | None, dict[str, int], bool | None] | None:
         row = self.db.execute("SELECT objects, registers, fc43 FROM identities WHERE device = ?", (device,)).fetchone()
         if row is None:
             return None
         objects, registers, fc43 = row
-        return (None if objects is None else json.loads(objects), json.loads(registers),
-                None if fc43 is None else bool(fc43))
+        return (
+            None if objects is None else json.loads(objects),
+            json.loads(registers),
+            None if fc43 is None else bool(fc43),
+        )
 
     def set_asleft(self, device: str, values: Mapping[str, Sequence[int]], source: str) -> None:
-        self.db.execute('INSERT OR REPLACE INTO asleft (device, "values", source, time) VALUES (?, ?, ?, ?)',
-                        (device, json.dumps({k: list(v) for k, v in values.items()}), source, time.time()))
+        self.db.execute(
+            'INSERT OR REPLACE INTO asleft (device, "values", source, time) VALUES (?, ?, ?, ?)',
+            (device, json.dumps({k: list(v) for k, v in values.items()}), source, time.time()),
+        )
 
     def asleft(self, device: str) -> tuple[dict[str, tuple[int, ...]], str, float] | None:
         row = self.db.execute('SELECT "values", source, time FROM asleft WHERE device = ?', (device,)).fetchone()
@@ -171,12 +204,16 @@ class Store:
         return {k: tuple(v) for k, v in json.loads(row[0]).items()}, row[1], row[2]
 
     def adopt(self, device: str, recipe: str, sha256: str, run: str | None) -> None:
-        self.db.execute("INSERT OR REPLACE INTO adopted (device, recipe, sha256, run, time) VALUES (?, ?, ?, ?, ?)",
-                        (device, recipe, sha256, run, time.time()))
+        self.db.execute(
+            "INSERT OR REPLACE INTO adopted (device, recipe, sha256, run, time) VALUES (?, ?, ?, ?, ?)",
+            (device, recipe, sha256, run, time.time()),
+        )
 
     def adopted(self) -> dict[str, tuple[str, str, str | None, float]]:
-        return {d: (r, s, run, t) for d, r, s, run, t
-                in self.db.execute("SELECT device, recipe, sha256, run, time FROM adopted")}
+        return {
+            d: (r, s, run, t)
+            for d, r, s, run, t in self.db.execute("SELECT device, recipe, sha256, run, time FROM adopted")
+        }
 
     def forget(self, devices: Iterable[str]) -> None:
         for d in devices:
@@ -185,42 +222,76 @@ class Store:
     # ---- windows ---------------------------------------------------------------------------------
 
     def open_window(self, w: WindowState) -> None:
-        self.db.execute("INSERT OR REPLACE INTO windows (run, kind, devices, deadline, boot_id, report, state, "
-                        "options, time) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                        (w.run, w.kind, json.dumps(w.devices), w.deadline_epoch, w.boot_id, w.report, w.state,
-                         json.dumps(w.options), time.time()))
+        self.db.execute(
+            "INSERT OR REPLACE INTO windows (run, kind, devices, deadline, boot_id, report, state, "
+            "options, time) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (
+                w.run,
+                w.kind,
+                json.dumps(w.devices),
+                w.deadline_epoch,
+                w.boot_id,
+                w.report,
+                w.state,
+                json.dumps(w.options),
+                time.time(),
+            ),
+        )
 
     def close_window(self, w: WindowState, state: str) -> None:
         """An open window ends (``state``: how); one already closed stays as it closed."""
         if w.state != "open":
             return
         w.state = state
-        self.db.execute("UPDATE windows SET state = ? WHERE run = ? AND kind = ? AND state = 'open'",
-                        (state, w.run, w.kind))
+        self.db.execute(
+            "UPDATE windows SET state = ? WHERE run = ? AND kind = ? AND state = 'open'", (state, w.run, w.kind)
+        )
 
     def windows(self, *, state: str | None = "open") -> list[WindowState]:
         sql = "SELECT run, kind, devices, deadline, boot_id, report, state, options FROM windows"
-        rows = self.db.execute(sql + " WHERE state = ? ORDER BY time", (state,)) if state else \
-            self.db.execute(sql + " ORDER BY time")
-        return [WindowState(r, k, json.loads(d), dl, report=rep or "", boot_id=b, state=s, options=json.loads(o))
-                for r, k, d, dl, b, rep, s, o in rows]
+        rows = (
+            self.db.execute(sql + " WHERE state = ? ORDER BY time", (state,))
+            if state
+            else self.db.execute(sql + " ORDER BY time")
+        )
+        return [
+            WindowState(r, k, json.loads(d), dl, report=rep or "", boot_id=b, state=s, options=json.loads(o))
+            for r, k, d, dl, b, rep, s, o in rows
+        ]
 
     # ---- runs ------------------------------------------------------------------------------------
 
     def run_started(self, run: str, command: str, options: Mapping[str, Any]) -> None:
-        self.db.execute("INSERT OR REPLACE INTO runs (id, command, options, state, started) VALUES (?, ?, ?, ?, ?)",
-                        (run, command, json.dumps(dict(options)), "running", time.time()))
+        self.db.execute(
+            "INSERT OR REPLACE INTO runs (id, command, options, state, started) VALUES (?, ?, ?, ?, ?)",
+            (run, command, json.dumps(dict(options)), "running", time.time()),
+        )
 
     def run_ended(self, run: str, state: str, exit_code: int | None, report: str | None) -> None:
-        self.db.execute("UPDATE runs SET state = ?, exit_code = ?, report = ?, finished = ? WHERE id = ?",
-                        (state, exit_code, report, time.time(), run))
+        self.db.execute(
+            "UPDATE runs SET state = ?, exit_code = ?, report = ?, finished = ? WHERE id = ?",
+            (state, exit_code, report, time.time(), run),
+        )
 
     def runs(self, limit: int = 100) -> list[dict[str, Any]]:
-        rows = self.db.execute("SELECT id, command, options, state, exit_code, report, started, finished FROM runs "
-                               "ORDER BY started DESC LIMIT ?", (limit,))
-        return [{"id": i, "command": c, "options": json.loads(o), "state": s, "exit_code": x, "report_path": r,
-                 "started": _iso(st), "finished": None if f is None else _iso(f)}
-                for i, c, o, s, x, r, st, f in rows]
+        rows = self.db.execute(
+            "SELECT id, command, options, state, exit_code, report, started, finished FROM runs "
+            "ORDER BY started DESC LIMIT ?",
+            (limit,),
+        )
+        return [
+            {
+                "id": i,
+                "command": c,
+                "options": json.loads(o),
+                "state": s,
+                "exit_code": x,
+                "report_path": r,
+                "started": _iso(st),
+                "finished": None if f is None else _iso(f),
+            }
+            for i, c, o, s, x, r, st, f in rows
+        ]
 
 
 def _iso(t: float) -> str:

@@ -39,8 +39,11 @@ async def whoami(agent: Agent, request: web.Request) -> Any:
 def _directory(request: web.Request) -> Any:
     d = request.app[ACCESS].directory
     if d is None:
-        raise ApiError("conflict", "this agent has no users (it runs with one token for the site); start it with "
-                       "--users FILE to have them", status=409)
+        raise ApiError(
+            "conflict",
+            "this agent has no users (it runs with one token for the site); start it with --users FILE to have them",
+            status=409,
+        )
     return d
 
 

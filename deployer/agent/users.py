@@ -39,9 +39,11 @@ MAX_SCRYPT = (20, 32, 16)  # a file's own figures beyond these are refused (a ch
 _HASH = re.compile(r"^\$scrypt\$ln=(\d+),r=(\d+),p=(\d+)\$([A-Za-z0-9+/]+={0,2})\$([A-Za-z0-9+/]+={0,2})$")
 _NUMBERISH = re.compile(r"[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)(?:[eE][-+]?[0-9]+)?")
 _TOKEN = re.compile(rf"^{PREFIX}_([0-9a-f]{{10}})_([A-Za-z0-9_-]{{20,100}})$")
-HEADER = ("# The deployer agent's users (deployer agent --users FILE; docs/agent.md). Tokens are kept as scrypt\n"
-          "# hashes only. Changed by `deployer users ...`, which rewrites this file (comments are not kept:\n"
-          "# use description:); the running agent takes a change up at its next request.\n")
+HEADER = (
+    "# The deployer agent's users (deployer agent --users FILE; docs/agent.md). Tokens are kept as scrypt\n"
+    "# hashes only. Changed by `deployer users ...`, which rewrites this file (comments are not kept:\n"
+    "# use description:); the running agent takes a change up at its next request.\n"
+)
 
 
 class NoAdminLeft(UsageError):
@@ -62,8 +64,14 @@ class User:
     def to_json(self) -> dict[str, Any]:
         """What the API and ``deployer users list`` show of a user (never the token's hash)."""
         cert = {"cn": self.cert_cn} if self.cert_cn else {"sha256": self.cert_sha256} if self.cert_sha256 else None
-        return {"user": self.name, "name": self.full_name, "roles": sorted(self.roles, key=ROLES.index),
-                "token": self.token_id is not None, "certificate": cert, "disabled": self.disabled}
+        return {
+            "user": self.name,
+            "name": self.full_name,
+            "roles": sorted(self.roles, key=ROLES.index),
+            "token": self.token_id is not None,
+            "certificate": cert,
+            "disabled": self.disabled,
+        }
 
 
 # ---- tokens -----------------------------------------------------------------------------------------------
@@ -147,27 +155,54 @@ def parse(data: Any, src: Any) -> dict[str, User]:
     for name, spec in (data.get("users") or {}).items():
         token = spec.get("token") or {}
         cert = spec.get("certificate") or {}
-        for key, value in (("token id", token.get("id")), ("certificate cn", cert.get("cn")),
-                           ("certificate sha256", str(cert.get("sha256") or "").lower() or None)):
+        for key, value in (
+            ("token id", token.get("id")),
+            ("certificate cn", cert.get("cn")),
+            ("certificate sha256", str(cert.get("sha256") or "").lower() or None),
+        ):
             if value is None:
                 continue
             other = seen.setdefault((key, value), name)
             if other != name:
                 part = ("token", "id") if key == "token id" else ("certificate", key.split()[1])
-                errors.append(src.error(("users", name, *part), f"{key} {value!r} is {other}'s already: one "
-                                        "credential names one user"))
+                errors.append(
+                    src.error(
+                        ("users", name, *part), f"{key} {value!r} is {other}'s already: one credential names one user"
+                    )
+                )
         m = _HASH.match(token.get("scrypt") or "")
         if m is not None and any(int(v) > top for v, top in zip(m.group(1, 2, 3), MAX_SCRYPT, strict=True)):
-            errors.append(src.error(("users", name, "token", "scrypt"), "scrypt figures beyond ln=20, r=32, "
-                                    "p=16: a check would take the gateway's memory or minutes (make a new token)"))
-        elif m is not None and (int(m.group(1)) < 1 or int(m.group(2)) < 1 or int(m.group(3)) < 1
-                                or not _decodes(m.group(4)) or len(_unb64(m.group(5)) if _decodes(m.group(5))
-                                                                    else b"") < 16):
-            errors.append(src.error(("users", name, "token", "scrypt"), "not a hash deployer made (figures of "
-                                    "at least 1, a salt and a digest of 16 bytes or more, in base64)"))
-        out[name] = User(name, frozenset(spec["roles"]), spec.get("name"), token.get("id"), token.get("scrypt"),
-                         cert.get("cn"), str(cert["sha256"]).lower() if cert.get("sha256") else None,
-                         bool(spec.get("disabled", False)))
+            errors.append(
+                src.error(
+                    ("users", name, "token", "scrypt"),
+                    "scrypt figures beyond ln=20, r=32, "
+                    "p=16: a check would take the gateway's memory or minutes (make a new token)",
+                )
+            )
+        elif m is not None and (
+            int(m.group(1)) < 1
+            or int(m.group(2)) < 1
+            or int(m.group(3)) < 1
+            or not _decodes(m.group(4))
+            or len(_unb64(m.group(5)) if _decodes(m.group(5)) else b"") < 16
+        ):
+            errors.append(
+                src.error(
+                    ("users", name, "token", "scrypt"),
+                    "not a hash deployer made (figures of "
+                    "at least 1, a salt and a digest of 16 bytes or more, in base64)",
+                )
+            )
+        out[name] = User(
+            name,
+            frozenset(spec["roles"]),
+            spec.get("name"),
+            token.get("id"),
+            token.get("scrypt"),
+            cert.get("cn"),
+            str(cert["sha256"]).lower() if cert.get("sha256") else None,
+            bool(spec.get("disabled", False)),
+        )
     if errors:
         raise InputError(errors)
     return out
@@ -185,8 +220,9 @@ def dump(doc: Mapping[str, Any]) -> str:
         return dumper.represent_scalar("tag:yaml.org,2002:str", value, style=style)
 
     Dumper.add_representer(str, text)
-    return HEADER + yaml.dump(dict(doc), Dumper=Dumper, sort_keys=False, default_flow_style=None, allow_unicode=True,
-                              width=200)
+    return HEADER + yaml.dump(
+        dict(doc), Dumper=Dumper, sort_keys=False, default_flow_style=None, allow_unicode=True, width=200
+    )
 
 
 def enabled_admins(users: Mapping[str, User]) -> set[str]:
@@ -202,8 +238,10 @@ def _locked(path: str) -> Iterator[None]:
     try:
         fd = os.open(path + ".lock", os.O_RDWR | os.O_CREAT | O_CLOEXEC | O_BINARY, 0o600)
     except OSError as e:
-        raise UsageError(f"cannot change the users file {path}: its lock {path}.lock: {e.strerror or e} (the agent "
-                         "changes it only where it may write; else change it as its owner: --users FILE)") from None
+        raise UsageError(
+            f"cannot change the users file {path}: its lock {path}.lock: {e.strerror or e} (the agent "
+            "changes it only where it may write; else change it as its owner: --users FILE)"
+        ) from None
     try:
         oslock.backend().lock(fd)
         yield

@@ -59,8 +59,12 @@ class Watch:
         """Read every owned device (devices of one bus one after the other, within the bus share);
         ``due_only``: those whose own interval has passed since their last check."""
         now = time.time()
-        todo = [d for d in self.devices.values() if (names is None or d.name in names)
-                and not (due_only and d.last_check is not None and now - d.last_check < d.check_every * 0.95)]
+        todo = [
+            d
+            for d in self.devices.values()
+            if (names is None or d.name in names)
+            and not (due_only and d.last_check is not None and now - d.last_check < d.check_every * 0.95)
+        ]
         for d in todo:
             if not d.owned:
                 self.site.take(d)
@@ -111,8 +115,11 @@ class Watch:
             if dev.replaced != str(e):
                 dev.replaced, dev.status = str(e), "replaced"
                 dev.replaced_total += 1
-                self.event("replace-refused", f"{dev.name}: another kind of device answers: {e}; nothing written",
-                           device=dev.name)
+                self.event(
+                    "replace-refused",
+                    f"{dev.name}: another kind of device answers: {e}; nothing written",
+                    device=dev.name,
+                )
             return
         except (TransportError, DeviceGone) as e:
             dev.last_check = time.time()
@@ -149,14 +156,23 @@ class Watch:
         dev.drift, dev.status = drift, "drifted"
         if first:
             dev.drift_events += 1
-            self.event("drift", f"{dev.name}: {', '.join(_said(d) for d in drift)}", device=dev.name,
-                       detail={"parameters": drift})
+            self.event(
+                "drift",
+                f"{dev.name}: {', '.join(_said(d) for d in drift)}",
+                device=dev.name,
+                detail={"parameters": drift},
+            )
         if dev.on_drift == "restore":
             self._restore(dev, "drift")
 
-    def _replaced(self, dev: Device, known: tuple[dict[str, str] | None, dict[str, int], bool | None] | None,
-                  objects: dict[str, str] | None, was_unreachable: bool,
-                  values: Mapping[str, tuple[int, ...]]) -> str | None:
+    def _replaced(
+        self,
+        dev: Device,
+        known: tuple[dict[str, str] | None, dict[str, int], bool | None] | None,
+        objects: dict[str, str] | None,
+        was_unreachable: bool,
+        values: Mapping[str, tuple[int, ...]],
+    ) -> str | None:
         """Why this looks like another unit than the one last seen (None: the same one)."""
         if known is not None and known[0] is not None and objects is not None:
             before, now = known[0], objects
@@ -166,8 +182,9 @@ class Watch:
         if was_unreachable and dev.adopted is not None:
             prof = dev.adopted.profile
             # a unit's own settings (its address ...) are set on a replacement before it answers at all
-            compared = [(n, prof.parameter(n).default_registers()) for n in dev.adopted_values
-                        if not prof.parameter(n).per_unit]
+            compared = [
+                (n, prof.parameter(n).default_registers()) for n in dev.adopted_values if not prof.parameter(n).per_unit
+            ]
             compared = [(n, d) for n, d in compared if d is not None and n in values]
             differs = [n for n, d in compared if not prof.parameter(n).same_value(dev.adopted_values[n], d)]
             at_default = [n for n, d in compared if prof.parameter(n).same_value(values[n], d)]
@@ -184,14 +201,22 @@ class Watch:
                 if dev.replaced != said:
                     dev.replaced, dev.status = said, "replaced"
                     dev.replaced_total += 1
-                    self.event("replace-refused", f"{dev.name}: {said}", device=dev.name,
-                               detail={"before": known[0], "now": objects})
+                    self.event(
+                        "replace-refused",
+                        f"{dev.name}: {said}",
+                        device=dev.name,
+                        detail={"before": known[0], "now": objects},
+                    )
                 dev.status = "replaced"
                 return False
         dev.status, dev.replaced = "replaced", why
         dev.replaced_total += 1
-        self.event("replaced", f"{dev.name}: replaced: {why}", device=dev.name,
-                   detail={"before": None if known is None else known[0], "now": objects})
+        self.event(
+            "replaced",
+            f"{dev.name}: replaced: {why}",
+            device=dev.name,
+            detail={"before": None if known is None else known[0], "now": objects},
+        )
         if dev.on_replace == "restore":
             self._restore(dev, "replaced")
         return True
@@ -211,9 +236,12 @@ class Watch:
         if len(dev.restores) >= self.settings.max_restores:
             if len(dev.restores) == self.settings.max_restores:
                 dev.restores.append(now)  # said once per hour, not at every check
-                self.event("restore-limit", f"{dev.name}: drifted again after {self.settings.max_restores} restores "
-                           "within an hour: reported, not fought (restore it through the agent after a look)",
-                           device=dev.name)
+                self.event(
+                    "restore-limit",
+                    f"{dev.name}: drifted again after {self.settings.max_restores} restores "
+                    "within an hour: reported, not fought (restore it through the agent after a look)",
+                    device=dev.name,
+                )
             return
         dev.restores.append(now)
         recipe = dev.adopted
@@ -223,15 +251,21 @@ class Watch:
             prof = dev.adopted.profile
             values = {n: v for n, v in values.items() if n in dev.adopted_values and not prof.parameter(n).per_unit}
             path = os.path.join(self.site.folder, "restore", f"{ds._safe(dev.name)}.yaml")
-            ds.write_adopted(self.site.state_dir, replace(dev.job, recipe=dev.adopted), values,
-                             why="as left, for a replaced unit (per-unit parameters left out)", path=path)
+            ds.write_adopted(
+                self.site.state_dir,
+                replace(dev.job, recipe=dev.adopted),
+                values,
+                why="as left, for a replaced unit (per-unit parameters left out)",
+                path=path,
+            )
             recipe = ds.load_adopted(path)
         job = Job(dev.name, recipe, dev.job.url, dev.job.unit)
         if self.first.keep(job, why):  # the first round's restores start together, staged, after that round
             return
         try:
-            self.runs.start_run([job], command="restore", options={"reason": why}, opts=ApplyOptions(),
-                                label=recipe.path)
+            self.runs.start_run(
+                [job], command="restore", options={"reason": why}, opts=ApplyOptions(), label=recipe.path
+            )
         except ApiError as e:
             self.event("restore-failed", f"{dev.name}: {e}", device=dev.name)
 
@@ -240,8 +274,9 @@ class _OtherModel(Exception):
     """The identity registers say another kind of device answers at the address."""
 
 
-async def _read(job: Job, profile: Profile, names: Sequence[str], ask43: bool
-                ) -> tuple[dict[str, tuple[int, ...]], dict[str, str] | None, bool]:
+async def _read(
+    job: Job, profile: Profile, names: Sequence[str], ask43: bool
+) -> tuple[dict[str, tuple[int, ...]], dict[str, str] | None, bool]:
     """One check's read at ``job``'s address: Function 43 objects (when the device answers it), the identity
     registers, the values of ``names`` (as ``profile``, the adopted one, has them)."""
     async with connected(job.url, job.unit, profile) as session:
@@ -258,8 +293,9 @@ async def _read(job: Job, profile: Profile, names: Sequence[str], ask43: bool
             raise Unreachable(f"{describe(job.url)} unit {job.unit}: reading answered {e}") from None
 
 
-def drifted(profile: Profile, adopted: Mapping[str, tuple[int, ...]], values: Mapping[str, tuple[int, ...]]
-            ) -> list[dict[str, Any]]:
+def drifted(
+    profile: Profile, adopted: Mapping[str, tuple[int, ...]], values: Mapping[str, tuple[int, ...]]
+) -> list[dict[str, Any]]:
     """The adopted parameters the device does not hold (beyond their tolerance), or cannot be read."""
     out = []
     for n, want in adopted.items():
@@ -275,9 +311,15 @@ def drifted(profile: Profile, adopted: Mapping[str, tuple[int, ...]], values: Ma
                     continue
             except Exception:  # a value the codec cannot show is drift, not a crash
                 pass
-        out.append({"name": n, "adopted": p.show_registers(want),
-                    "device": None if have is None else p.show_registers(have),
-                    "adopted_raw": list(want), "device_raw": None if have is None else list(have)})
+        out.append(
+            {
+                "name": n,
+                "adopted": p.show_registers(want),
+                "device": None if have is None else p.show_registers(have),
+                "adopted_raw": list(want),
+                "device_raw": None if have is None else list(have),
+            }
+        )
     return out
 
 

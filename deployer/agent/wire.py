@@ -19,8 +19,9 @@ def _body(status: int, message: str) -> dict[str, Any]:
 
 
 class _Handler(RequestHandler):
-    def handle_error(self, request: BaseRequest, status: int = 500, exc: BaseException | None = None,
-                     message: str | None = None) -> web.StreamResponse:
+    def handle_error(
+        self, request: BaseRequest, status: int = 500, exc: BaseException | None = None, message: str | None = None
+    ) -> web.StreamResponse:
         if request.writer.output_size > 0:  # an answer was under way: nothing more can be said on it
             raise ConnectionError("the answer was already being sent")
         try:

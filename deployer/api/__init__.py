@@ -85,9 +85,32 @@ diff = blocking("deployer.diff", "deployer.aio.diff")(reading.diff)
 pull = blocking("deployer.pull", "deployer.aio.pull")(reading.pull)
 
 # the names above that __all__ lists, imported to be served from here
-_PUBLIC = (Agent, DeployerError, InputError, RunInterrupted, StalePlan, TransportError, UsageError, Inventory,
-           FleetPlan, LIMITS, Plan, Step, Profile, Recipe, DeviceResult, Report, Drift, load_inventory, load_plan,
-           load_recipe, load_report, recipe_from, confirm, status)
+_PUBLIC = (
+    Agent,
+    DeployerError,
+    InputError,
+    RunInterrupted,
+    StalePlan,
+    TransportError,
+    UsageError,
+    Inventory,
+    FleetPlan,
+    LIMITS,
+    Plan,
+    Step,
+    Profile,
+    Recipe,
+    DeviceResult,
+    Report,
+    Drift,
+    load_inventory,
+    load_plan,
+    load_recipe,
+    load_report,
+    recipe_from,
+    confirm,
+    status,
+)
 
 
 def __getattr__(name: str) -> Any:

@@ -112,8 +112,10 @@ def need_inventory(inventory: object, call: str) -> Inventory:
         return load_inventory(inventory)
     if isinstance(inventory, Sequence) and not isinstance(inventory, bytes):
         return inventory_from(inventory, "<devices>")
-    raise UsageError(f"{call} takes the inventory as a file, a list of devices or an Inventory "
-                     f"(deployer.load_inventory(...)), got {kind(inventory)}")
+    raise UsageError(
+        f"{call} takes the inventory as a file, a list of devices or an Inventory "
+        f"(deployer.load_inventory(...)), got {kind(inventory)}"
+    )
 
 
 def device_url(url: object, *, timeout: float | None = None, retries: int | None = None) -> DeviceURL:
@@ -128,8 +130,9 @@ def device_url(url: object, *, timeout: float | None = None, retries: int | None
     return parse_url(url, timeout=timeout, retries=retries)  # BadURL is a UsageError
 
 
-def target(recipe: Recipe, device: object, unit: int | None, *, timeout: float | None = None,
-           retries: int | None = None) -> tuple[DeviceURL, int]:
+def target(
+    recipe: Recipe, device: object, unit: int | None, *, timeout: float | None = None, retries: int | None = None
+) -> tuple[DeviceURL, int]:
     """The device and unit a call means: given, else the recipe's."""
     need_unit(unit)
     text = device if device is not None else (recipe.device.url if recipe.device else None)
@@ -149,7 +152,7 @@ def duration(value: object, what: str) -> float:
     from ..load.durations import parse_duration
 
     if isinstance(value, bool) or not isinstance(value, str | int | float):
-        raise UsageError(f"{what} takes a duration such as \"30s\" or a number of seconds, got {kind(value)}")
+        raise UsageError(f'{what} takes a duration such as "30s" or a number of seconds, got {kind(value)}')
     try:
         seconds = parse_duration(value)
     except ValueError as e:

@@ -64,15 +64,67 @@ if TYPE_CHECKING:  # their modules import pymodbus: loaded when a command needs 
 
 # what the command line takes from here (for the linters and type checkers; it promises nothing to anyone else)
 __all__ = [
-    "DeviceURL", "Job", "PreparedRun", "ReadJob", "RunRequest", "address_text", "builtin_profiles", "check_folder",
-    "check_output", "confirm_outcome", "defaults_diff", "describe_url", "device_url", "diff_values", "file_name",
-    "fleet_jobs", "forget_learned", "format_decimal", "import_csv", "import_sunspec", "import_sunspec_chain",
-    "import_wb_template", "import_xlsx", "imported_profile", "layout_name", "learned_limits", "mask_shift",
-    "non_default", "out_of_range", "plan_async", "plan_cost", "plan_fleet_async", "plan_to_json", "plan_values",
-    "prepare_run", "probe", "profile_csv", "profile_skeleton", "pull_async", "pull_jobs", "pull_names",
-    "pulled_recipe", "read_fleet_async", "read_jobs", "register_address", "report_from_json", "report_text",
-    "resolve_run", "run_info", "run_prepared_async", "run_status", "scan", "serial_ports", "snapshot_text",
-    "sunspec_models", "sunspec_reported", "taught_recipe", "url_option", "user_name", "validate_file", "write_output",
+    "DeviceURL",
+    "Job",
+    "PreparedRun",
+    "ReadJob",
+    "RunRequest",
+    "address_text",
+    "builtin_profiles",
+    "check_folder",
+    "check_output",
+    "confirm_outcome",
+    "defaults_diff",
+    "describe_url",
+    "device_url",
+    "diff_values",
+    "file_name",
+    "fleet_jobs",
+    "forget_learned",
+    "format_decimal",
+    "import_csv",
+    "import_sunspec",
+    "import_sunspec_chain",
+    "import_wb_template",
+    "import_xlsx",
+    "imported_profile",
+    "layout_name",
+    "learned_limits",
+    "mask_shift",
+    "non_default",
+    "out_of_range",
+    "plan_async",
+    "plan_cost",
+    "plan_fleet_async",
+    "plan_to_json",
+    "plan_values",
+    "prepare_run",
+    "probe",
+    "profile_csv",
+    "profile_skeleton",
+    "pull_async",
+    "pull_jobs",
+    "pull_names",
+    "pulled_recipe",
+    "read_fleet_async",
+    "read_jobs",
+    "register_address",
+    "report_from_json",
+    "report_text",
+    "resolve_run",
+    "run_info",
+    "run_prepared_async",
+    "run_status",
+    "scan",
+    "serial_ports",
+    "snapshot_text",
+    "sunspec_models",
+    "sunspec_reported",
+    "taught_recipe",
+    "url_option",
+    "user_name",
+    "validate_file",
+    "write_output",
     "writing_caches",
 ]
 
@@ -93,26 +145,41 @@ def describe_url(url: DeviceURL) -> str:
     return describe(url)
 
 
-async def plan_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-                     write_all: bool = False, offline: bool = False, state_dir: str | None = ".deployer",
-                     notices: list[str] | None = None, window: bool = False) -> Plan:
+async def plan_async(
+    recipe: Recipe,
+    device: str | DeviceURL | None = None,
+    unit: int | None = None,
+    *,
+    write_all: bool = False,
+    offline: bool = False,
+    state_dir: str | None = ".deployer",
+    notices: list[str] | None = None,
+    window: bool = False,
+) -> Plan:
     """The requests apply would send: against what the device holds now, or ``offline`` the full write plan;
     ``window``: a safe change's plan (the health checks read before the change)."""
     need_recipe(recipe, "plan")
     need_unit(unit)
     if offline:
         u = unit if unit is not None else 1
-        return make_plan(recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all,
-                         window=window)
+        return make_plan(
+            recipe, Target(None, u, recipe.profile_ref or recipe.profile.id), None, write_all=write_all, window=window
+        )
     url, u = target(recipe, device, unit)
     from ..execute.read import plan_device
 
-    return await plan_device(recipe, url, u, write_all=write_all, state_dir=state_dir, notices=notices,
-                             window=window)
+    return await plan_device(recipe, url, u, write_all=write_all, state_dir=state_dir, notices=notices, window=window)
 
 
-def plan_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]] | None, device: DeviceURL | None = None,
-                unit: int = 1, *, write_all: bool = False, window: bool = False) -> Plan:
+def plan_values(
+    recipe: Recipe,
+    current: Mapping[str, tuple[int, ...]] | None,
+    device: DeviceURL | None = None,
+    unit: int = 1,
+    *,
+    write_all: bool = False,
+    window: bool = False,
+) -> Plan:
     """The plan of ``recipe`` against values already read (``current``: {name: registers}, as ``pull`` and
     ``read_fleet`` give them), or with ``current`` None the full write plan, offline. ``device`` and ``unit``:
     what the plan names as its target (``device`` None: none). Nothing is read or sent; the limits taught
@@ -121,8 +188,15 @@ def plan_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]] | None, d
     from ..transport.urls import identification
 
     where = Target(describe(device) if device is not None else None, unit, recipe.profile_ref or recipe.profile.id)
-    return make_plan(recipe, where, current, write_all=write_all, pacing=pacing_for(device, recipe.profile),
-                     device_id=None if device is None else identification(device), window=window)
+    return make_plan(
+        recipe,
+        where,
+        current,
+        write_all=write_all,
+        pacing=pacing_for(device, recipe.profile),
+        device_id=None if device is None else identification(device),
+        window=window,
+    )
 
 
 def plan_cost(plan: Plan, profile: Profile, device: DeviceURL | None = None) -> Cost:
@@ -134,8 +208,9 @@ def plan_cost(plan: Plan, profile: Profile, device: DeviceURL | None = None) -> 
     return cost(plan, profile, device)
 
 
-def taught_recipe(recipe: Recipe, device: str | DeviceURL, unit: int = 1, *, state_dir: str = ".deployer"
-                  ) -> tuple[Recipe, str | None]:
+def taught_recipe(
+    recipe: Recipe, device: str | DeviceURL, unit: int = 1, *, state_dir: str = ".deployer"
+) -> tuple[Recipe, str | None]:
     """``recipe`` with the limits ``device`` taught an earlier apply in force, as ``plan`` and ``apply`` use
     them, and the note that says so (None: nothing taught, the recipe unchanged).
 
@@ -150,8 +225,9 @@ def taught_recipe(recipe: Recipe, device: str | DeviceURL, unit: int = 1, *, sta
     return out, None if entry is None else learned.note(entry)
 
 
-async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int = 1, *,
-                     names: Sequence[str] | None = None) -> dict[str, tuple[int, ...]]:
+async def pull_async(
+    profile: str | Profile, device: str | DeviceURL, unit: int = 1, *, names: Sequence[str] | None = None
+) -> dict[str, tuple[int, ...]]:
     """``pull`` for callers with their own event loop."""
     need_unit(unit)
     if not isinstance(profile, (str, Profile)):
@@ -166,8 +242,15 @@ async def pull_async(profile: str | Profile, device: str | DeviceURL, unit: int 
     return await read_current(prof, pull_names(prof) if names is None else list(names), device_url(device), unit)
 
 
-def fleet_jobs(recipe: Recipe | None, inventory: str | Inventory, *, limit: str | None = None,
-               timeout: float | None = None, retries: int | None = None, unit: int | None = None) -> list[Job]:
+def fleet_jobs(
+    recipe: Recipe | None,
+    inventory: str | Inventory,
+    *,
+    limit: str | None = None,
+    timeout: float | None = None,
+    retries: int | None = None,
+    unit: int | None = None,
+) -> list[Job]:
     """One checked job per selected device: ``recipe`` (None: each device's own from the inventory) with
     the device's profile and overrides.
 
@@ -199,8 +282,15 @@ def read_jobs(jobs: Sequence[Job]) -> list[ReadJob]:
     return [ReadJob(j.name, j.recipe.profile, tuple(d.name for d in j.recipe.desired), j.url, j.unit) for j in jobs]
 
 
-def pull_jobs(inventory: str | Inventory, *, limit: str | None = None, profile: str | Profile | None = None,
-              timeout: float | None = None, retries: int | None = None, unit: int | None = None) -> list[ReadJob]:
+def pull_jobs(
+    inventory: str | Inventory,
+    *,
+    limit: str | None = None,
+    profile: str | Profile | None = None,
+    timeout: float | None = None,
+    retries: int | None = None,
+    unit: int | None = None,
+) -> list[ReadJob]:
     """What ``pull --inventory`` reads: one ``ReadJob`` per selected device, of every parameter ``pull_names``
     gives for the device's profile: its own (or its groups'), else its recipe's, as plan, apply and diff use it,
     else ``profile``. ``timeout``, ``retries`` and ``unit`` stand for the inventory's where given. Read them
@@ -216,9 +306,12 @@ def pull_jobs(inventory: str | Inventory, *, limit: str | None = None, profile: 
     return pull_reads(profile, inv, limit=limit, names=None, timeout=timeout, retries=retries, unit=unit)
 
 
-async def read_fleet_async(jobs: Sequence[ReadJob], *, parallel: int = 8,
-                           on_done: Callable[[str, str | None], None] | None = None,
-                           ) -> dict[str, dict[str, tuple[int, ...]] | TransportError | UsageError]:
+async def read_fleet_async(
+    jobs: Sequence[ReadJob],
+    *,
+    parallel: int = 8,
+    on_done: Callable[[str, str | None], None] | None = None,
+) -> dict[str, dict[str, tuple[int, ...]] | TransportError | UsageError]:
     """Current values of many devices: name -> registers by parameter, or the error that stopped the read."""
     from ..fleet.rollout import read_many
     from ..run.runner import ensure_files
@@ -228,16 +321,22 @@ async def read_fleet_async(jobs: Sequence[ReadJob], *, parallel: int = 8,
     return await read_many(jobs, parallel=parallel, on_done=on_done)
 
 
-async def plan_fleet_async(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
-                           on_done: Callable[[str, str | None], None] | None = None,
-                           state_dir: str | None = ".deployer", window: bool = False,
-                           ) -> dict[str, Plan | TransportError | UsageError]:
+async def plan_fleet_async(
+    jobs: Sequence[Job],
+    *,
+    parallel: int = 8,
+    write_all: bool = False,
+    on_done: Callable[[str, str | None], None] | None = None,
+    state_dir: str | None = ".deployer",
+    window: bool = False,
+) -> dict[str, Plan | TransportError | UsageError]:
     """``plan_fleet`` for callers with their own event loop; ``on_done(name, error or None)`` per device read."""
     from ..fleet.rollout import plan_many
 
     need_parallel(parallel)
-    return await plan_many(jobs, parallel=parallel, write_all=write_all, state_dir=state_dir, on_done=on_done,
-                           window=window)
+    return await plan_many(
+        jobs, parallel=parallel, write_all=write_all, state_dir=state_dir, on_done=on_done, window=window
+    )
 
 
 def prepare_run(request: RunRequest) -> PreparedRun:
@@ -273,8 +372,9 @@ def writing_caches() -> contextlib.AbstractContextManager[None]:
     return writing()
 
 
-def probe(profile: str | Profile, device: str | DeviceURL, unit: int = 1, *,
-          expect: Mapping[str, str] | None = None) -> ProbeResult:
+def probe(
+    profile: str | Profile, device: str | DeviceURL, unit: int = 1, *, expect: Mapping[str, str] | None = None
+) -> ProbeResult:
     """Check a profile against a live device, read-only (``deployer probe``): its identity, every readable
     parameter, and for ``expect`` (name -> a value known to be held, in the parameter's unit) the byte/word
     layout or scale that gives it. Returns a result with ``identity``, ``values``, ``findings`` and
@@ -333,8 +433,9 @@ def learned_limits(state_dir: str = ".deployer") -> tuple[str, list[LearnedEntry
     return learned.path_of(os.fspath(state_dir)), learned.load(os.fspath(state_dir))
 
 
-def forget_learned(state_dir: str = ".deployer", *, profile: str | None = None, device: str | DeviceURL | None = None,
-                   unit: int = 1) -> list[LearnedEntry]:
+def forget_learned(
+    state_dir: str = ".deployer", *, profile: str | None = None, device: str | DeviceURL | None = None, unit: int = 1
+) -> list[LearnedEntry]:
     """Forget what devices taught (``deployer learned forget``): of ``profile`` (a built-in id or a file), of
     ``device`` (a URL, with ``unit``), or everything when neither is given. Returns the entries forgotten.
 
@@ -407,8 +508,9 @@ def validate_file(path: str | os.PathLike[str]) -> str:
             # recipe (from the inventory) with its overrides; devices without one get theirs on the command line
             jobs = _fleet_jobs(inv, None, None, require_recipe=False)
             recipes = {j.recipe.path for j in jobs}
-            return (f"inventory: {_count(len(inv.devices), 'device')}"
-                    + (f", {_count(len(recipes), 'recipe')}" if recipes else ""))
+            return f"inventory: {_count(len(inv.devices), 'device')}" + (
+                f", {_count(len(recipes), 'recipe')}" if recipes else ""
+            )
         if kind == "users":
             from ..agent.users import parse as parse_users
 
@@ -417,16 +519,35 @@ def validate_file(path: str | os.PathLike[str]) -> str:
         if kind == "plan":
             saved = plan_from_json(data, where, src=src)
             return f"plan: {_count(len(saved.writes), 'write request')} for profile {saved.device.profile}"
-        what = ("cannot tell what this file is" if isinstance(data, dict) else
-                f"expected a mapping, got {'a list' if isinstance(data, list) else 'a single value'}")
-        raise InputError([src.error((), f"{what}: a profile has 'profile' and 'parameters', a recipe has "
-                                         "'recipe', an inventory has 'devices', the agent's users file has 'users'")])
+        what = (
+            "cannot tell what this file is"
+            if isinstance(data, dict)
+            else f"expected a mapping, got {'a list' if isinstance(data, list) else 'a single value'}"
+        )
+        raise InputError(
+            [
+                src.error(
+                    (),
+                    f"{what}: a profile has 'profile' and 'parameters', a recipe has "
+                    "'recipe', an inventory has 'devices', the agent's users file has 'users'",
+                )
+            ]
+        )
     finally:
         yamlsrc.forget(where)
 
 
-def snapshot_text(profile: str | Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str,
-                  unit: int = 1, applied: str, path: str, taken: float | None = None) -> str:
+def snapshot_text(
+    profile: str | Profile,
+    values: Mapping[str, tuple[int, ...]],
+    *,
+    name: str,
+    url: str,
+    unit: int = 1,
+    applied: str,
+    path: str,
+    taken: float | None = None,
+) -> str:
     """A snapshot's text as ``apply`` writes it before its first write (a recipe that ``rollback`` restores
     bit for bit): what device ``name`` at ``url`` unit ``unit`` held (``values``: {parameter: registers}) at
     ``taken`` (seconds since the epoch; None: now) before ``applied`` (a recipe's path or name), saved as
@@ -444,8 +565,9 @@ def snapshot_text(profile: str | Profile, values: Mapping[str, tuple[int, ...]],
     if unknown:
         raise UsageError(f"snapshot_text: profile {prof.id} has no parameter {', '.join(map(repr, unknown))}")
     when = time.gmtime(time.time() if taken is None else taken)
-    return _snapshot_text(prof, values, name=name, url=url, unit=unit, taken=when, applied=applied, label=applied,
-                          path=path)
+    return _snapshot_text(
+        prof, values, name=name, url=url, unit=unit, taken=when, applied=applied, label=applied, path=path
+    )
 
 
 def url_option(name: str) -> tuple[list[str], str | None, str | None]:
@@ -486,9 +608,16 @@ def profile_skeleton(profile_id: str, path: str = "FILE") -> str:
     return _skeleton(profile_id, path)
 
 
-def import_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = None, addressing: str = "address",
-               delimiter: str | None = None, byte_order: str | None = None, decimal: str | None = None
-               ) -> tuple[Draft, list[str]]:
+def import_csv(
+    path: str,
+    *,
+    profile_id: str,
+    columns: Mapping[str, str] | None = None,
+    addressing: str = "address",
+    delimiter: str | None = None,
+    byte_order: str | None = None,
+    decimal: str | None = None,
+) -> tuple[Draft, list[str]]:
     """A vendor's CSV register list (``profiles import csv``) as a draft profile, and warnings; make the profile
     with ``imported_profile``. ``columns``: our column -> its header; ``addressing``: ``address``,
     ``register-number`` or ``modicon``; ``decimal``: ``comma`` or ``point`` (None: told cell by cell).
@@ -499,13 +628,27 @@ def import_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None 
     """
     from ..profile.importers.spreadsheet import read_csv
 
-    return read_csv(path, profile_id=profile_id, columns=columns, addressing=addressing, delimiter=delimiter,
-                    byte_order=byte_order, decimal=decimal)
+    return read_csv(
+        path,
+        profile_id=profile_id,
+        columns=columns,
+        addressing=addressing,
+        delimiter=delimiter,
+        byte_order=byte_order,
+        decimal=decimal,
+    )
 
 
-def import_xlsx(path: str, *, profile_id: str, sheet: str | None = None, columns: Mapping[str, str] | None = None,
-                addressing: str = "address", byte_order: str | None = None, decimal: str | None = None
-                ) -> tuple[Draft, list[str]]:
+def import_xlsx(
+    path: str,
+    *,
+    profile_id: str,
+    sheet: str | None = None,
+    columns: Mapping[str, str] | None = None,
+    addressing: str = "address",
+    byte_order: str | None = None,
+    decimal: str | None = None,
+) -> tuple[Draft, list[str]]:
     """A register list in an Excel workbook (``profiles import xlsx``; needs openpyxl), as ``import_csv`` reads
     a CSV file; ``sheet``: the worksheet (None: the first).
 
@@ -515,12 +658,18 @@ def import_xlsx(path: str, *, profile_id: str, sheet: str | None = None, columns
     """
     from ..profile.importers.spreadsheet import read_xlsx
 
-    return read_xlsx(path, profile_id=profile_id, sheet=sheet, columns=columns, addressing=addressing,
-                     byte_order=byte_order, decimal=decimal)
+    return read_xlsx(
+        path,
+        profile_id=profile_id,
+        sheet=sheet,
+        columns=columns,
+        addressing=addressing,
+        byte_order=byte_order,
+        decimal=decimal,
+    )
 
 
-def import_wb_template(path: str, *, profile_id: str | None = None, channels: bool = True
-                       ) -> tuple[Draft, list[str]]:
+def import_wb_template(path: str, *, profile_id: str | None = None, channels: bool = True) -> tuple[Draft, list[str]]:
     """A wb-mqtt-serial device template (``profiles import wb-template``) as a draft profile, and warnings (the
     last one counting the entries left out, when some were): its parameters become settings, its channels
     read-only values (``channels`` False: left out). ``profile_id`` None: the template's device_type.
@@ -534,8 +683,10 @@ def import_wb_template(path: str, *, profile_id: str | None = None, channels: bo
     warnings = imported.warnings
     if imported.left_out:
         n = imported.left_out
-        warnings = [*warnings, f"{path}: {n} {'entry' if n == 1 else 'entries'} of the template left out "
-                               "(see the warnings above)"]
+        warnings = [
+            *warnings,
+            f"{path}: {n} {'entry' if n == 1 else 'entries'} of the template left out (see the warnings above)",
+        ]
     return imported.draft, warnings
 
 
@@ -559,10 +710,16 @@ def register_address(text: str) -> int:
     return parse_register(text)
 
 
-def import_sunspec(model: str, *, at: int = 40002, scale_factors: Mapping[str, int] | None = None,
-                   counts: Mapping[str, int] | None = None, profile_id: str | None = None,
-                   point_values: Mapping[str, int] | None = None, length: int | None = None
-                   ) -> tuple[Draft, list[str]]:
+def import_sunspec(
+    model: str,
+    *,
+    at: int = 40002,
+    scale_factors: Mapping[str, int] | None = None,
+    counts: Mapping[str, int] | None = None,
+    profile_id: str | None = None,
+    point_values: Mapping[str, int] | None = None,
+    length: int | None = None,
+) -> tuple[Draft, list[str]]:
     """A SunSpec model (its number, name or a model JSON file; pysunspec2's definitions) as a draft profile with
     its ID register at protocol address ``at``, and warnings (``profiles import sunspec``). ``scale_factors``
     and ``counts``: what the device reports (by point and group name); ``point_values`` and ``length``: its
@@ -574,12 +731,20 @@ def import_sunspec(model: str, *, at: int = 40002, scale_factors: Mapping[str, i
     """
     from ..profile.importers.sunspec import read_model
 
-    return read_model(model, at=at, scale_factors=scale_factors, counts=counts, profile_id=profile_id,
-                      point_values=point_values, length=length)
+    return read_model(
+        model,
+        at=at,
+        scale_factors=scale_factors,
+        counts=counts,
+        profile_id=profile_id,
+        point_values=point_values,
+        length=length,
+    )
 
 
-def sunspec_models(device: str | DeviceURL, unit: int = 1, *, at: int = 40002, model: str | None = None,
-                   search: bool = False) -> list[SunSpecModel]:
+def sunspec_models(
+    device: str | DeviceURL, unit: int = 1, *, at: int = 40002, model: str | None = None, search: bool = False
+) -> list[SunSpecModel]:
     """Read a SunSpec device's models, read-only: ``model`` at ``at`` (its ID checked), or with ``model`` None
     the whole chain from the 'SunS' marker two registers before ``at`` to the end marker (``search``: also
     where devices put it, 0 and 50000). Each with its ID, address, length L and registers.
@@ -608,8 +773,10 @@ def sunspec_models(device: str | DeviceURL, unit: int = 1, *, at: int = 40002, m
                 except ExceptionResponse as e:
                     said = f"{describe(url)} unit {unit}: reading {n} registers at {a} answered {e}"
                     if e.code == 2:
-                        raise sunspec.NotThere(f"{said}: check --at (SunSpec devices put 'SunS' at 40000, 0 or "
-                                               "50000, the first model's ID 2 registers after it)") from None
+                        raise sunspec.NotThere(
+                            f"{said}: check --at (SunSpec devices put 'SunS' at 40000, 0 or "
+                            "50000, the first model's ID 2 registers after it)"
+                        ) from None
                     raise TransportError(said) from None
             return out
 
@@ -634,9 +801,14 @@ def sunspec_reported(model: str, found: SunSpecModel) -> tuple[dict[str, int], d
     return reported(model, found)
 
 
-def import_sunspec_chain(models: list[SunSpecModel], *, scale_factors: Mapping[str, int] | None = None,
-                         counts: Mapping[str, int] | None = None, profile_id: str | None = None,
-                         source: str = "the device") -> tuple[Draft, list[str]]:
+def import_sunspec_chain(
+    models: list[SunSpecModel],
+    *,
+    scale_factors: Mapping[str, int] | None = None,
+    counts: Mapping[str, int] | None = None,
+    profile_id: str | None = None,
+    source: str = "the device",
+) -> tuple[Draft, list[str]]:
     """One draft profile of a device's whole model chain (``sunspec_models`` without a model): each model's
     points named MODEL.POINT (common.Mn, inverter.W), its scale factors and counts as the device reports them
     (``scale_factors`` and ``counts`` given here win), the markers and model IDs as its identity.

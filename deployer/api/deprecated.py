@@ -36,8 +36,10 @@ _CLI = "no replacement in the API: a helper of deployer's command line now (depl
 # removed name -> (where it lives now, "module:attribute"; what stands for it now)
 REMOVED: dict[str, tuple[str, str]] = {
     "AgentError": ("deployer.errors:AgentError", _ERRORS),
-    "ApplyOptions": ("deployer.execute.session:ApplyOptions",
-                     "the keyword arguments of deployer.apply (state_dir=, write_all=, on_error=, soak= ...)"),
+    "ApplyOptions": (
+        "deployer.execute.session:ApplyOptions",
+        "the keyword arguments of deployer.apply (state_dir=, write_all=, on_error=, soak= ...)",
+    ),
     "BadURL": ("deployer.errors:BadURL", _ERRORS),
     "Bound": ("deployer.limits:Bound", "the type of deployer.LIMITS's fields (deployer.LIMITS.parallel ...)"),
     "CodecError": ("deployer.errors:CodecError", _ERRORS),
@@ -66,16 +68,20 @@ REMOVED: dict[str, tuple[str, str]] = {
     "device_url": ("deployer.api.checks:device_url", "a device URL as text; timeout= and retries= of each call"),
     "diff_async": ("deployer.api.deprecated:diff_async", "deployer.aio.diff"),
     "diff_values": ("deployer.api.values:diff_values", "deployer.diff"),
-    "duration": ("deployer.api.checks:duration", "durations as text (\"30s\") or seconds, taken by deployer.apply"),
+    "duration": ("deployer.api.checks:duration", 'durations as text ("30s") or seconds, taken by deployer.apply'),
     "file_name": ("deployer.portable:file_name", _CLI),
     "fleet_jobs": ("deployer.api.commands:fleet_jobs", "deployer.plan(recipe, inventory=...)"),
     "forget_learned": ("deployer.api.commands:forget_learned", _CLI + " (deployer learned forget)"),
     "import_csv": ("deployer.api.commands:import_csv", _CLI + " (deployer profiles import csv)"),
     "import_sunspec": ("deployer.api.commands:import_sunspec", _CLI + " (deployer profiles import sunspec)"),
-    "import_sunspec_chain": ("deployer.api.commands:import_sunspec_chain",
-                             _CLI + " (deployer profiles import sunspec)"),
-    "import_wb_template": ("deployer.api.commands:import_wb_template",
-                           _CLI + " (deployer profiles import wb-template)"),
+    "import_sunspec_chain": (
+        "deployer.api.commands:import_sunspec_chain",
+        _CLI + " (deployer profiles import sunspec)",
+    ),
+    "import_wb_template": (
+        "deployer.api.commands:import_wb_template",
+        _CLI + " (deployer profiles import wb-template)",
+    ),
     "import_xlsx": ("deployer.api.commands:import_xlsx", _CLI + " (deployer profiles import xlsx)"),
     "imported_profile": ("deployer.api.commands:imported_profile", _CLI + " (deployer profiles import)"),
     "inventory_from": ("deployer.api.deprecated:inventory_from", "deployer.load_inventory(devices)"),
@@ -93,8 +99,10 @@ REMOVED: dict[str, tuple[str, str]] = {
     "probe": ("deployer.api.commands:probe", _CLI + " (deployer probe)"),
     "profile_csv": ("deployer.api.commands:profile_csv", _CLI + " (deployer profiles export csv)"),
     "profile_skeleton": ("deployer.api.commands:profile_skeleton", _CLI + " (deployer profiles new)"),
-    "profile_table": ("deployer.cli.profiles:profile_table",
-                      "no replacement in the API: the command line's own now (deployer profiles show)"),
+    "profile_table": (
+        "deployer.cli.profiles:profile_table",
+        "no replacement in the API: the command line's own now (deployer profiles show)",
+    ),
     "pull_async": ("deployer.api.commands:pull_async", "deployer.aio.pull"),
     "pull_jobs": ("deployer.api.commands:pull_jobs", "deployer.pull(what, inventory=...)"),
     "pull_names": ("deployer.api.values:pull_names", "deployer.pull (it reads those)"),
@@ -107,15 +115,19 @@ REMOVED: dict[str, tuple[str, str]] = {
     "report_from_json": ("deployer.report:report_from_json", "deployer.load_report (a report file)"),
     "report_text": ("deployer.report:report_text", "Report.to_json()"),
     "resolve_run": ("deployer.api.runs:resolve_run", _CLI + " (deployer status --resolve)"),
-    "run_fleet": ("deployer.api.deprecated:run_fleet", "deployer.apply(fleet_plan) or deployer.apply(recipe, "
-                                                       "inventory=...)"),
+    "run_fleet": (
+        "deployer.api.deprecated:run_fleet",
+        "deployer.apply(fleet_plan) or deployer.apply(recipe, inventory=...)",
+    ),
     "run_fleet_async": ("deployer.api.deprecated:run_fleet_async", "deployer.aio.apply"),
     "run_info": ("deployer.report:run_info", "Report.run"),
     "run_prepared": ("deployer.api.deprecated:run_prepared", "deployer.apply and deployer.rollback"),
     "run_prepared_async": ("deployer.api.commands:run_prepared_async", "deployer.aio.apply and deployer.aio.rollback"),
     "run_status": ("deployer.api.runs:status", "deployer.status"),
-    "safe_options": ("deployer.api.deprecated:safe_options", "deployer.apply(..., soak=, health_interval=, "
-                                                             "confirm_within=)"),
+    "safe_options": (
+        "deployer.api.deprecated:safe_options",
+        "deployer.apply(..., soak=, health_interval=, confirm_within=)",
+    ),
     "scan": ("deployer.api.commands:scan", _CLI + " (deployer scan)"),
     "serial_ports": ("deployer.api.commands:serial_ports", _CLI + " (deployer scan --list-ports)"),
     "snapshot_text": ("deployer.api.commands:snapshot_text", _CLI),
@@ -140,9 +152,12 @@ def removed(name: str, *, stacklevel: int = 3) -> Any:
     the caller's line: ``stacklevel`` counts this function and the module ``__getattr__`` calling it)."""
     where, _ = REMOVED[name]
     text = replacement(name)
-    warnings.warn(f"deployer.{name} is deprecated and goes in the next release; "
-                  + (text if text.startswith("no replacement") else f"use {text}"), DeprecationWarning,
-                  stacklevel=stacklevel)
+    warnings.warn(
+        f"deployer.{name} is deprecated and goes in the next release; "
+        + (text if text.startswith("no replacement") else f"use {text}"),
+        DeprecationWarning,
+        stacklevel=stacklevel,
+    )
     module, _, attr = where.partition(":")
     return getattr(importlib.import_module(module), attr)
 
@@ -166,9 +181,13 @@ def _need_options(options: object, call: str) -> ApplyOptions:
     return options
 
 
-def safe_options(options: ApplyOptions | None, *, soak: float | str | None = None,
-                 health_interval: float | str | None = None,
-                 confirm_within: float | str | None = None) -> ApplyOptions:
+def safe_options(
+    options: ApplyOptions | None,
+    *,
+    soak: float | str | None = None,
+    health_interval: float | str | None = None,
+    confirm_within: float | str | None = None,
+) -> ApplyOptions:
     """``options`` with a soak and a confirmation window (durations as "30s" or seconds).
 
     A confirmation needs a run id to be named by: one is made when ``options`` has none.
@@ -191,12 +210,19 @@ def safe_options(options: ApplyOptions | None, *, soak: float | str | None = Non
     return opts
 
 
-async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None, *,
-                      options: ApplyOptions | None = None, name: str | None = None,
-                      soak: float | str | None = None, health_interval: float | str | None = None,
-                      confirm_within: float | str | None = None,
-                      on_confirm_wait: Callable[[str, float], None] | None = None,
-                      report_path: str | None = None) -> Report:
+async def apply_async(
+    recipe: Recipe,
+    device: str | DeviceURL | None = None,
+    unit: int | None = None,
+    *,
+    options: ApplyOptions | None = None,
+    name: str | None = None,
+    soak: float | str | None = None,
+    health_interval: float | str | None = None,
+    confirm_within: float | str | None = None,
+    on_confirm_wait: Callable[[str, float], None] | None = None,
+    report_path: str | None = None,
+) -> Report:
     """Apply to one device; the report says per parameter what it holds now (never raises for a device fault).
 
     A safe change: ``soak`` ("30s", or seconds) watches the profile's health checks after the write and
@@ -214,8 +240,14 @@ async def apply_async(recipe: Recipe, device: str | DeviceURL | None = None, uni
     from ..execute.job import Job
     from ..run.runner import run_async
 
-    return await run_async([Job(name or recipe.name, recipe, url, u)], label=recipe.path or recipe.name,
-                           parallel=1, options=opts, report_path=report_path, on_confirm_wait=on_confirm_wait)
+    return await run_async(
+        [Job(name or recipe.name, recipe, url, u)],
+        label=recipe.path or recipe.name,
+        parallel=1,
+        options=opts,
+        report_path=report_path,
+        on_confirm_wait=on_confirm_wait,
+    )
 
 
 async def diff_async(recipe: Recipe, device: str | DeviceURL | None = None, unit: int | None = None) -> list[Drift]:
@@ -227,27 +259,53 @@ async def diff_async(recipe: Recipe, device: str | DeviceURL | None = None, unit
     return diff_values(recipe, await read_current(recipe.profile, [d.name for d in recipe.desired], url, u))
 
 
-async def apply_fleet_async(recipe: Recipe | None, inventory: str | Inventory, *, limit: str | None = None,
-                            parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
-                            options: ApplyOptions | None = None, report_path: str | None = None,
-                            on_start: Callable[[Job], None] | None = None,
-                            on_done: Callable[[DeviceResult], None] | None = None,
-                            batch_by: str = "profile") -> Report:
+async def apply_fleet_async(
+    recipe: Recipe | None,
+    inventory: str | Inventory,
+    *,
+    limit: str | None = None,
+    parallel: int = 8,
+    batch: str | None = None,
+    max_failures: str | None = None,
+    options: ApplyOptions | None = None,
+    report_path: str | None = None,
+    on_start: Callable[[Job], None] | None = None,
+    on_done: Callable[[DeviceResult], None] | None = None,
+    batch_by: str = "profile",
+) -> Report:
     """Apply to the devices of an inventory (``limit`` selects): staged, with a failure budget, see ``run_fleet``.
 
     ``recipe`` None: each device gets the recipe the inventory gives it."""
-    return await run_fleet_async(fleet_jobs(recipe, inventory, limit=limit),
-                                 recipe_name=None if recipe is None else recipe.path or recipe.name,
-                                 parallel=parallel, batch=batch, max_failures=max_failures, options=options,
-                                 report_path=report_path, on_start=on_start, on_done=on_done, batch_by=batch_by)
+    return await run_fleet_async(
+        fleet_jobs(recipe, inventory, limit=limit),
+        recipe_name=None if recipe is None else recipe.path or recipe.name,
+        parallel=parallel,
+        batch=batch,
+        max_failures=max_failures,
+        options=options,
+        report_path=report_path,
+        on_start=on_start,
+        on_done=on_done,
+        batch_by=batch_by,
+    )
 
 
-async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None, parallel: int = 8,
-                          batch: str | None = None, max_failures: str | None = None,
-                          options: ApplyOptions | None = None, report_path: str | None = None,
-                          on_start: Callable[[Job], None] | None = None,
-                          on_done: Callable[[DeviceResult], None] | None = None,
-                          via: str = "api", signals: bool = False, batch_by: str = "profile", **safe: Any) -> Report:
+async def run_fleet_async(
+    jobs: Sequence[Job],
+    *,
+    recipe_name: str | None = None,
+    parallel: int = 8,
+    batch: str | None = None,
+    max_failures: str | None = None,
+    options: ApplyOptions | None = None,
+    report_path: str | None = None,
+    on_start: Callable[[Job], None] | None = None,
+    on_done: Callable[[DeviceResult], None] | None = None,
+    via: str = "api",
+    signals: bool = False,
+    batch_by: str = "profile",
+    **safe: Any,
+) -> Report:
     """Apply jobs as one journaled fleet run (``run.runner.run_async``): ``batch`` ("1,10%,100%") stages it,
     ``max_failures`` ("2", "5%") caps it. Each batch takes its count or share of every profile of the line (one
     device of each profile first), or of every group with ``batch_by="group"`` (a device counts in the first
@@ -267,9 +325,21 @@ async def run_fleet_async(jobs: Sequence[Job], *, recipe_name: str | None = None
         need_path(report_path, "run_fleet", "report_path")
     from ..run.runner import run_async
 
-    return await run_async(jobs, label=recipe_name, parallel=parallel, batch=batch, max_failures=max_failures,
-                           options=options, report_path=report_path, on_start=on_start, on_done=on_done, via=via,
-                           signals=signals, batch_by=batch_by, **safe)
+    return await run_async(
+        jobs,
+        label=recipe_name,
+        parallel=parallel,
+        batch=batch,
+        max_failures=max_failures,
+        options=options,
+        report_path=report_path,
+        on_start=on_start,
+        on_done=on_done,
+        via=via,
+        signals=signals,
+        batch_by=batch_by,
+        **safe,
+    )
 
 
 def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) -> Report:
@@ -285,8 +355,9 @@ def apply_fleet(recipe: Recipe | None, inventory: str | Inventory, **kw: Any) ->
     if recipe is not None:
         need_recipe(recipe, "apply_fleet")
     need_inventory(inventory, "apply_fleet")
-    return in_own_loop(lambda: apply_fleet_async(recipe, inventory, **kw), "deployer.apply_fleet",
-                       "deployer.apply_fleet_async")
+    return in_own_loop(
+        lambda: apply_fleet_async(recipe, inventory, **kw), "deployer.apply_fleet", "deployer.apply_fleet_async"
+    )
 
 
 def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
@@ -299,20 +370,23 @@ def run_fleet(jobs: Sequence[Job], **kw: Any) -> Report:
     return in_own_loop(lambda: run_fleet_async(jobs, **kw), "deployer.run_fleet", "deployer.run_fleet_async")
 
 
-def read_fleet(jobs: Sequence[ReadJob], *, parallel: int = 8) -> dict[str, dict[str, tuple[int, ...]] | TransportError
-                                                                    | UsageError]:
+def read_fleet(
+    jobs: Sequence[ReadJob], *, parallel: int = 8
+) -> dict[str, dict[str, tuple[int, ...]] | TransportError | UsageError]:
     """Current values of many devices, ``parallel`` at a time (one per bus): name -> registers by
     parameter, or the error that stopped that device's read (never raised for one device).
 
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return in_own_loop(lambda: read_fleet_async(jobs, parallel=parallel), "deployer.read_fleet",
-                       "deployer.read_fleet_async")
+    return in_own_loop(
+        lambda: read_fleet_async(jobs, parallel=parallel), "deployer.read_fleet", "deployer.read_fleet_async"
+    )
 
 
-def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
-               state_dir: str | None = ".deployer") -> dict[str, Plan | TransportError | UsageError]:
+def plan_fleet(
+    jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False, state_dir: str | None = ".deployer"
+) -> dict[str, Plan | TransportError | UsageError]:
     """Check mode for many devices: read each, plan against what it holds, write nothing; with the limits
     each device taught an earlier apply in force (kept in ``state_dir``; None: the profiles' alone).
 
@@ -322,8 +396,11 @@ def plan_fleet(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = Fals
     Raises:
         UsageError: too few open files for ``parallel``.
     """
-    return in_own_loop(lambda: plan_fleet_async(jobs, parallel=parallel, write_all=write_all, state_dir=state_dir),
-                       "deployer.plan_fleet", "deployer.plan_fleet_async")
+    return in_own_loop(
+        lambda: plan_fleet_async(jobs, parallel=parallel, write_all=write_all, state_dir=state_dir),
+        "deployer.plan_fleet",
+        "deployer.plan_fleet_async",
+    )
 
 
 def inventory_from(devices: Iterable[Mapping[str, Any]], *, name: str = "<devices>") -> Inventory:
@@ -353,8 +430,9 @@ def run_prepared(prepared: PreparedRun, **kw: Any) -> Report:
         StalePlan: a saved plan no longer matches its device. Declined: ``confirm`` answered no.
         RunInterrupted: the run was interrupted (``.report`` says what every device holds).
     """
-    return in_own_loop(lambda: run_prepared_async(prepared, **kw), "deployer.run_prepared",
-                       "deployer.run_prepared_async")
+    return in_own_loop(
+        lambda: run_prepared_async(prepared, **kw), "deployer.run_prepared", "deployer.run_prepared_async"
+    )
 
 
 def plan_frames(plan: Plan, framing: str) -> list[tuple[bytes, bytes | None]]:

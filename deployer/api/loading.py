@@ -36,8 +36,9 @@ def load_recipe(path: str | os.PathLike[str], *, force: bool = False) -> Recipe:
 
 
 @checked("deployer.load_inventory")
-def load_inventory(source: str | os.PathLike[str] | Sequence[Mapping[str, Any]], *, name: str = "<devices>"
-                   ) -> Inventory:
+def load_inventory(
+    source: str | os.PathLike[str] | Sequence[Mapping[str, Any]], *, name: str = "<devices>"
+) -> Inventory:
     """An inventory: a file, or a list of devices given in code (Ansible host vars, a database), checked as a
     file is.
 
@@ -56,8 +57,9 @@ def load_inventory(source: str | os.PathLike[str] | Sequence[Mapping[str, Any]],
     devices: list[Mapping[str, Any]] = []
     for i, device in enumerate(source):
         if not isinstance(device, Mapping):
-            raise UsageError(f"load_inventory: device {i + 1} of the list is not a mapping (name, url ...), "
-                             f"got {kind(device)}")
+            raise UsageError(
+                f"load_inventory: device {i + 1} of the list is not a mapping (name, url ...), got {kind(device)}"
+            )
         devices.append(device)
     if not isinstance(name, str):
         raise UsageError(f"load_inventory takes name as a str, got {kind(name)}")
@@ -103,8 +105,9 @@ def load_report(path: str | os.PathLike[str], profiles: Sequence[str | Profile] 
 
 
 @checked("deployer.recipe_from")
-def recipe_from(profile: str | Profile, parameters: Mapping[str, Any], *, name: str = "inline",
-                base: Recipe | None = None) -> Recipe:
+def recipe_from(
+    profile: str | Profile, parameters: Mapping[str, Any], *, name: str = "inline", base: Recipe | None = None
+) -> Recipe:
     """A recipe from values given in code (``{"F07": "10 s"}``), on its own or over ``base``'s values.
 
     ``profile``: a Profile, a built-in id or a profile file (ignored when ``base`` is given).

@@ -33,8 +33,7 @@ if TYPE_CHECKING:
     from ..fleet.rollout import ReadJob
 
 
-async def _read_many(jobs: Sequence[ReadJob], parallel: int
-                     ) -> dict[str, dict[str, tuple[int, ...]] | DeployerError]:
+async def _read_many(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tuple[int, ...]] | DeployerError]:
     from ..fleet.rollout import read_many
     from ..run.runner import ensure_files
 
@@ -48,22 +47,45 @@ def _selected(inventory: InventoryLike, limit: str | None, call: str) -> Invento
 
 
 @overload
-async def diff(recipe: Recipe | None, device: str | None = None, unit: int | None = None, *, inventory: None = None,
-               limit: None = None, timeout: float | None = None, retries: int | None = None, parallel: int = 8
-               ) -> list[Drift]: ...
+async def diff(
+    recipe: Recipe | None,
+    device: str | None = None,
+    unit: int | None = None,
+    *,
+    inventory: None = None,
+    limit: None = None,
+    timeout: float | None = None,
+    retries: int | None = None,
+    parallel: int = 8,
+) -> list[Drift]: ...
 
 
 @overload
-async def diff(recipe: Recipe | None, device: None = None, unit: int | None = None, *, inventory: InventoryLike,
-               limit: str | None = None, timeout: float | None = None, retries: int | None = None, parallel: int = 8
-               ) -> dict[str, list[Drift] | DeployerError]: ...
+async def diff(
+    recipe: Recipe | None,
+    device: None = None,
+    unit: int | None = None,
+    *,
+    inventory: InventoryLike,
+    limit: str | None = None,
+    timeout: float | None = None,
+    retries: int | None = None,
+    parallel: int = 8,
+) -> dict[str, list[Drift] | DeployerError]: ...
 
 
 @checked("deployer.aio.diff")
-async def diff(recipe: Recipe | None, device: str | None = None, unit: int | None = None, *,
-               inventory: InventoryLike | None = None, limit: str | None = None, timeout: float | None = None,
-               retries: int | None = None, parallel: int = 8
-               ) -> list[Drift] | dict[str, list[Drift] | DeployerError]:
+async def diff(
+    recipe: Recipe | None,
+    device: str | None = None,
+    unit: int | None = None,
+    *,
+    inventory: InventoryLike | None = None,
+    limit: str | None = None,
+    timeout: float | None = None,
+    retries: int | None = None,
+    parallel: int = 8,
+) -> list[Drift] | dict[str, list[Drift] | DeployerError]:
     """The recipe's parameters a device does not hold now (read only): a list of ``Drift``, ``[]`` when it matches.
     ``device`` and ``unit`` default to the recipe's. With ``inventory`` (and ``limit``, ``parallel`` as for
     ``plan``; ``recipe`` None: each device's own): name -> its drift, or the error that stopped its read.
@@ -93,8 +115,10 @@ async def diff(recipe: Recipe | None, device: str | None = None, unit: int | Non
         raise UsageError(f"no device selected from {inv.path}")
     from ..fleet.rollout import ReadJob
 
-    read = await _read_many([ReadJob(j.name, j.recipe.profile, tuple(d.name for d in j.recipe.desired), j.url,
-                                     j.unit) for j in jobs], parallel)
+    read = await _read_many(
+        [ReadJob(j.name, j.recipe.profile, tuple(d.name for d in j.recipe.desired), j.url, j.unit) for j in jobs],
+        parallel,
+    )
     out: dict[str, list[Drift] | DeployerError] = {}
     for j in jobs:
         got = read[j.name]
@@ -102,8 +126,16 @@ async def diff(recipe: Recipe | None, device: str | None = None, unit: int | Non
     return out
 
 
-def pull_reads(what: str | Profile | Recipe | None, inv: Inventory, *, limit: str | None, names: Sequence[str] | None,
-               timeout: float | None, retries: int | None, unit: int | None) -> list[ReadJob]:
+def pull_reads(
+    what: str | Profile | Recipe | None,
+    inv: Inventory,
+    *,
+    limit: str | None,
+    names: Sequence[str] | None,
+    timeout: float | None,
+    retries: int | None,
+    unit: int | None,
+) -> list[ReadJob]:
     """One read per selected device: of the recipe's parameters (``what`` a Recipe: each device's profile and
     recipe as the inventory gives them, a device named twice refused as for apply), else of every setting of the
     device's profile (its own, else its recipe's from the inventory, else ``what``: a Profile or a profile's id
@@ -113,8 +145,7 @@ def pull_reads(what: str | Profile | Recipe | None, inv: Inventory, *, limit: st
 
     if isinstance(what, Recipe):
         jobs = fleet_jobs(inv, what, limit, timeout=timeout, retries=retries, unit=unit)
-        return [ReadJob(j.name, j.recipe.profile, tuple(names or _recipe_names(j.recipe)), j.url, j.unit)
-                for j in jobs]
+        return [ReadJob(j.name, j.recipe.profile, tuple(names or _recipe_names(j.recipe)), j.url, j.unit) for j in jobs]
     cache = RecipeCache(None, inv.path)  # profile paths are relative to the inventory, as for plan and apply
     out: list[ReadJob] = []
     errors: list[Diagnostic] = []
@@ -128,16 +159,18 @@ def pull_reads(what: str | Profile | Recipe | None, inv: Inventory, *, limit: st
                 prof = what if isinstance(what, Profile) else resolve_profile(what)
             else:
                 raise UsageError("no profile: set profile (or a recipe) in the inventory, or pass one")
-            url = device_url(dev.url, timeout=timeout or dev.timeout,
-                             retries=retries if retries is not None else dev.retries)
+            url = device_url(
+                dev.url, timeout=timeout or dev.timeout, retries=retries if retries is not None else dev.retries
+            )
         except UsageError as e:
             errors.append(Diagnostic(inv.path, *dev.where, f"{dev.name}: {e}"))
             continue
         except InputError as e:
             errors.extend(e.diagnostics)
             continue
-        out.append(ReadJob(dev.name, prof, tuple(names or pull_names(prof)), url,
-                           unit if unit is not None else dev.unit))
+        out.append(
+            ReadJob(dev.name, prof, tuple(names or pull_names(prof)), url, unit if unit is not None else dev.unit)
+        )
     if errors:
         raise InputError(errors)
     return out
@@ -149,23 +182,48 @@ def _recipe_names(recipe: Recipe) -> list[str]:
 
 
 @overload
-async def pull(what: str | os.PathLike[str] | Profile | Recipe, device: str | None = None, unit: int | None = None,
-               *, names: Sequence[str] | None = None, inventory: None = None, limit: None = None,
-               timeout: float | None = None, retries: int | None = None, parallel: int = 8) -> Pulled: ...
+async def pull(
+    what: str | os.PathLike[str] | Profile | Recipe,
+    device: str | None = None,
+    unit: int | None = None,
+    *,
+    names: Sequence[str] | None = None,
+    inventory: None = None,
+    limit: None = None,
+    timeout: float | None = None,
+    retries: int | None = None,
+    parallel: int = 8,
+) -> Pulled: ...
 
 
 @overload
-async def pull(what: str | os.PathLike[str] | Profile | Recipe | None, device: None = None, unit: int | None = None,
-               *, names: Sequence[str] | None = None, inventory: InventoryLike, limit: str | None = None,
-               timeout: float | None = None, retries: int | None = None, parallel: int = 8
-               ) -> dict[str, Pulled | DeployerError]: ...
+async def pull(
+    what: str | os.PathLike[str] | Profile | Recipe | None,
+    device: None = None,
+    unit: int | None = None,
+    *,
+    names: Sequence[str] | None = None,
+    inventory: InventoryLike,
+    limit: str | None = None,
+    timeout: float | None = None,
+    retries: int | None = None,
+    parallel: int = 8,
+) -> dict[str, Pulled | DeployerError]: ...
 
 
 @checked("deployer.aio.pull")
-async def pull(what: str | os.PathLike[str] | Profile | Recipe | None, device: str | None = None,
-               unit: int | None = None, *, names: Sequence[str] | None = None, inventory: InventoryLike | None = None,
-               limit: str | None = None, timeout: float | None = None, retries: int | None = None, parallel: int = 8
-               ) -> Pulled | dict[str, Pulled | DeployerError]:
+async def pull(
+    what: str | os.PathLike[str] | Profile | Recipe | None,
+    device: str | None = None,
+    unit: int | None = None,
+    *,
+    names: Sequence[str] | None = None,
+    inventory: InventoryLike | None = None,
+    limit: str | None = None,
+    timeout: float | None = None,
+    retries: int | None = None,
+    parallel: int = 8,
+) -> Pulled | dict[str, Pulled | DeployerError]:
     """What a device holds (read only), as ``Pulled``: parameter name -> register words, with its profile and
     device (``texts()`` in engineering units, ``recipe_text()`` a recipe that sets them).
 
@@ -199,8 +257,13 @@ async def pull(what: str | os.PathLike[str] | Profile | Recipe | None, device: s
                 raise UsageError("pull takes a device URL (tcp://HOST:PORT, rtu:///dev/ttyUSB0 ...)")
             url, u, prof = device_url(device, timeout=timeout, retries=retries), 1 if unit is None else unit, chosen
             wanted = need_names(names, prof, "pull") or pull_names(prof)
-        return Pulled(await _read(prof, wanted, url, u), profile=prof, device=describe(url), unit=u,
-                      name=chosen.name if isinstance(chosen, Recipe) else prof.id)
+        return Pulled(
+            await _read(prof, wanted, url, u),
+            profile=prof,
+            device=describe(url),
+            unit=u,
+            name=chosen.name if isinstance(chosen, Recipe) else prof.id,
+        )
     if device is not None:
         raise UsageError("device and inventory exclude each other")
     parallel = need_parallel(parallel)
@@ -216,8 +279,11 @@ async def pull(what: str | os.PathLike[str] | Profile | Recipe | None, device: s
     out: dict[str, Pulled | DeployerError] = {}
     for j in jobs:
         got = read[j.name]
-        out[j.name] = got if isinstance(got, DeployerError) else Pulled(got, profile=j.profile, device=describe(j.url),
-                                                                        unit=j.unit, name=j.name)
+        out[j.name] = (
+            got
+            if isinstance(got, DeployerError)
+            else Pulled(got, profile=j.profile, device=describe(j.url), unit=j.unit, name=j.name)
+        )
     return out
 
 

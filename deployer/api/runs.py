@@ -66,8 +66,9 @@ def confirm(run: str | None = None, *, state_dir: str | os.PathLike[str] = ".dep
     return target.run
 
 
-def confirm_outcome(run: str | None = None, *, state_dir: str = ".deployer",
-                    on_confirmed: Callable[[str], None] | None = None) -> dict[str, Any]:
+def confirm_outcome(
+    run: str | None = None, *, state_dir: str = ".deployer", on_confirmed: Callable[[str], None] | None = None
+) -> dict[str, Any]:
     """Confirm a run that waits, as ``confirm`` does, and wait for what it did: its outcome record
     (``committed``: the devices its commit reached). ``on_confirmed(run)`` is called once the confirmation is
     given, before the wait (the run reads its parameters again first).
@@ -102,8 +103,16 @@ def status(state_dir: str | os.PathLike[str] = ".deployer") -> RunStatus:
     runs, torn = journal.unfinished(folder)
     locks_in = lock.lock_dir()
     locks = holder.held(locks_in)
-    return RunStatus(journal.path_of(folder), runs, torn, {a.run: a for a in awaiting(folder)}, soaking(folder),
-                     locks_in, locks, holder.summary(locks) if locks else [])
+    return RunStatus(
+        journal.path_of(folder),
+        runs,
+        torn,
+        {a.run: a for a in awaiting(folder)},
+        soaking(folder),
+        locks_in,
+        locks,
+        holder.summary(locks) if locks else [],
+    )
 
 
 def resolve_run(run: str, *, state_dir: str = ".deployer") -> Unfinished:
@@ -120,5 +129,6 @@ def resolve_run(run: str, *, state_dir: str = ".deployer") -> Unfinished:
     try:
         return journal.resolve(folder, run)
     except KeyError:
-        raise UsageError(f"no run {printable(str(run))} needs a look in {journal.path_of(folder)} "
-                         "(deployer status lists them)") from None
+        raise UsageError(
+            f"no run {printable(str(run))} needs a look in {journal.path_of(folder)} (deployer status lists them)"
+        ) from None

@@ -24,10 +24,14 @@ class Drift:
     device_raw: tuple[int, ...] | None
 
     def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "desired": self.desired, "device": self.device,
-                "desired_raw": list(self.desired_raw),
-                "device_raw": None if self.device_raw is None else list(self.device_raw),
-                "status": "drift" if self.device_raw is not None else "not readable"}
+        return {
+            "name": self.name,
+            "desired": self.desired,
+            "device": self.device,
+            "desired_raw": list(self.desired_raw),
+            "device_raw": None if self.device_raw is None else list(self.device_raw),
+            "status": "drift" if self.device_raw is not None else "not readable",
+        }
 
 
 def diff_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]]) -> list[Drift]:
@@ -36,8 +40,9 @@ def diff_values(recipe: Recipe, current: Mapping[str, tuple[int, ...]]) -> list[
     for d in recipe.desired:
         cur = current.get(d.name)
         if cur is None or not d.parameter.same_value(cur, d.registers):  # a bit field compares its own bits
-            out.append(Drift(d.name, d.text, d.registers,
-                             None if cur is None else d.parameter.format_registers(cur), cur))
+            out.append(
+                Drift(d.name, d.text, d.registers, None if cur is None else d.parameter.format_registers(cur), cur)
+            )
     return out
 
 
@@ -52,8 +57,13 @@ class FromDefault:
     device_raw: tuple[int, ...]
 
     def to_json(self) -> dict[str, Any]:
-        return {"name": self.name, "default": self.default, "device": self.device,
-                "default_raw": list(self.default_raw), "device_raw": list(self.device_raw)}
+        return {
+            "name": self.name,
+            "default": self.default,
+            "device": self.device,
+            "default_raw": list(self.default_raw),
+            "device_raw": list(self.device_raw),
+        }
 
 
 def defaults_diff(profile: Profile, current: Mapping[str, tuple[int, ...]]) -> tuple[list[FromDefault], list[str]]:
@@ -97,8 +107,16 @@ def out_of_range(profile: Profile, values: Mapping[str, Sequence[int]]) -> list[
     return [n for n, regs in values.items() if value_text(profile.parameter(n), regs) is None]
 
 
-def pulled_recipe(profile: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
-                  comment: str = "", relative_to: str | None = None) -> str:
+def pulled_recipe(
+    profile: Profile,
+    values: Mapping[str, tuple[int, ...]],
+    *,
+    name: str,
+    url: str,
+    unit: int,
+    comment: str = "",
+    relative_to: str | None = None,
+) -> str:
     """Recipe text that sets every given parameter to the values read (applies back as a no-op); values a recipe
     cannot set (``out_of_range``) are kept as comments. ``relative_to``: where the text will be written (a
     profile file is named relative to it)."""
@@ -107,10 +125,18 @@ def pulled_recipe(profile: Profile, values: Mapping[str, tuple[int, ...]], *, na
 
     ref = profile.id
     if profile.source:
-        ref = os.path.relpath(profile.source, os.path.dirname(os.path.abspath(relative_to))) if relative_to \
+        ref = (
+            os.path.relpath(profile.source, os.path.dirname(os.path.abspath(relative_to)))
+            if relative_to
             else profile.source
-    return recipe_text(ref, {profile.parameter(n): v for n, v in values.items()}, name=name,
-                       device=DeviceSpec(url, unit), comment=comment)
+        )
+    return recipe_text(
+        ref,
+        {profile.parameter(n): v for n, v in values.items()},
+        name=name,
+        device=DeviceSpec(url, unit),
+        comment=comment,
+    )
 
 
 class Pulled(dict[str, tuple[int, ...]]):
@@ -122,8 +148,9 @@ class Pulled(dict[str, tuple[int, ...]]):
     back as a no-op), ``out_of_range()`` the values no recipe can set (the recipe keeps them as comments).
     """
 
-    def __init__(self, values: Mapping[str, tuple[int, ...]], *, profile: Profile, device: str, unit: int,
-                 name: str) -> None:
+    def __init__(
+        self, values: Mapping[str, tuple[int, ...]], *, profile: Profile, device: str, unit: int, name: str
+    ) -> None:
         super().__init__(values)
         self.profile = profile
         self.device = device
@@ -141,9 +168,17 @@ class Pulled(dict[str, tuple[int, ...]]):
         """The names whose values lie outside the profile's range: no recipe can set them."""
         return out_of_range(self.profile, self)
 
-    def recipe_text(self, *, name: str | None = None, comment: str = "",
-                    relative_to: str | os.PathLike[str] | None = None) -> str:
+    def recipe_text(
+        self, *, name: str | None = None, comment: str = "", relative_to: str | os.PathLike[str] | None = None
+    ) -> str:
         """Recipe text that sets every value read (named ``name``, default ``pulled-DEVICE``; ``comment`` on top);
         ``relative_to``: the file it will be written to (a profile file is named relative to it)."""
-        return pulled_recipe(self.profile, self, name=name or f"pulled-{self.name}", url=self.device, unit=self.unit,
-                             comment=comment, relative_to=None if relative_to is None else os.fspath(relative_to))
+        return pulled_recipe(
+            self.profile,
+            self,
+            name=name or f"pulled-{self.name}",
+            url=self.device,
+            unit=self.unit,
+            comment=comment,
+            relative_to=None if relative_to is None else os.fspath(relative_to),
+        )

@@ -47,10 +47,14 @@ def message(line: bytes, rec: Mapping[str, Any]) -> bytes:
     structured data its seq, hash and prev, the message its line (UTF-8 with a BOM)."""
     event = str(rec.get("event") or "")
     severity = WARNING if event in record.REFUSALS or event in ("trail-torn", "forward-backlog") else NOTICE
-    sd = (f'[{SD_ID} seq="{_sd_value(str(rec.get("seq")))}" hash="{trail.line_hash(line)}" '
-          f'prev="{_sd_value(str(rec.get("prev")))}"]')
-    head = (f"<{FACILITY * 8 + severity}>1 {_token(rec.get('time'), 64)} {_token(rec.get('host'), 255)} deployer "
-            f"{_token(rec.get('pid'), 128)} {_token(event, 32)} {sd} ")
+    sd = (
+        f'[{SD_ID} seq="{_sd_value(str(rec.get("seq")))}" hash="{trail.line_hash(line)}" '
+        f'prev="{_sd_value(str(rec.get("prev")))}"]'
+    )
+    head = (
+        f"<{FACILITY * 8 + severity}>1 {_token(rec.get('time'), 64)} {_token(rec.get('host'), 255)} deployer "
+        f"{_token(rec.get('pid'), 128)} {_token(event, 32)} {sd} "
+    )
     return head.encode("ascii") + BOM + line
 
 
@@ -90,8 +94,17 @@ class Forwarder:
     """One trail to one receiver. ``run`` until cancelled; ``up``, ``sent``, ``failures``, ``backlog`` for
     /metrics (``metrics.collector``)."""
 
-    def __init__(self, folder: str, url: str, *, ca: str | None = None, max_backlog: int = 10_000,
-                 settle: float = 1.0, retry_max: float = 30.0, poll: float = 0.5) -> None:
+    def __init__(
+        self,
+        folder: str,
+        url: str,
+        *,
+        ca: str | None = None,
+        max_backlog: int = 10_000,
+        settle: float = 1.0,
+        retry_max: float = 30.0,
+        poll: float = 0.5,
+    ) -> None:
         self.folder, self.url = folder, url
         self.host, self.port, self.ssl = target(url, ca)
         self.max_backlog, self.settle, self.retry_max, self.poll = max_backlog, settle, retry_max, poll
@@ -134,9 +147,11 @@ class Forwarder:
 
         c = self.cursor
         with contextlib.suppress(UsageError, OSError):
-            write_atomic(os.path.join(self.folder, CURSOR),
-                         json.dumps({"url": self.url, "offset": c.offset, "seq": c.seq, "hash": c.hash,
-                                     "alarmed": c.alarmed}) + "\n")
+            write_atomic(
+                os.path.join(self.folder, CURSOR),
+                json.dumps({"url": self.url, "offset": c.offset, "seq": c.seq, "hash": c.hash, "alarmed": c.alarmed})
+                + "\n",
+            )
 
     # ---- sending --------------------------------------------------------------------------------------
 
@@ -146,8 +161,11 @@ class Forwarder:
 
     async def _connect(self) -> None:
         self._reader, self._writer = await asyncio.wait_for(
-            asyncio.open_connection(self.host, self.port, ssl=self.ssl,
-                                    server_hostname=self.host if self.ssl else None), 10)
+            asyncio.open_connection(
+                self.host, self.port, ssl=self.ssl, server_hostname=self.host if self.ssl else None
+            ),
+            10,
+        )
         self.up = True
 
     async def _close(self) -> None:
@@ -211,10 +229,22 @@ class Forwarder:
             self._save()
             name = "forward-backlog" if over else "forward-restored"
             with contextlib.suppress(OSError):
-                trail.append(self.folder, [record.event(
-                    name, via="forwarder", result="alarm" if over else "ok",
-                    detail={"syslog": self.url, "backlog": self.backlog, "max_backlog": self.max_backlog,
-                            "error": self.last_error})])
+                trail.append(
+                    self.folder,
+                    [
+                        record.event(
+                            name,
+                            via="forwarder",
+                            result="alarm" if over else "ok",
+                            detail={
+                                "syslog": self.url,
+                                "backlog": self.backlog,
+                                "max_backlog": self.max_backlog,
+                                "error": self.last_error,
+                            },
+                        )
+                    ],
+                )
 
     async def run(self, stop: asyncio.Event | None = None) -> None:
         """Forward until ``stop`` is set (or the task is cancelled); a failed connection is tried again with
@@ -251,17 +281,25 @@ def collector(fw: Forwarder) -> Any:
 
     class Collector:
         def collect(self) -> Iterator[Metric]:
-            yield GaugeMetricFamily("deployer_audit_forward_up", "1 while the syslog receiver is connected",
-                                    value=1 if fw.up else 0)
-            yield GaugeMetricFamily("deployer_audit_forward_backlog", "audit records not yet confirmed by the "
-                                    "syslog receiver", value=fw.backlog)
-            yield GaugeMetricFamily("deployer_audit_forward_backlog_alarm", "1 while the backlog is past "
-                                    "max_backlog (a forward-backlog record says when it began)",
-                                    value=1 if fw.cursor.alarmed else 0)
-            yield CounterMetricFamily("deployer_audit_forwarded", "audit records the syslog receiver confirmed",
-                                      value=fw.sent)
-            yield CounterMetricFamily("deployer_audit_forward_failures", "connections to the syslog receiver that "
-                                      "failed", value=fw.failures)
+            yield GaugeMetricFamily(
+                "deployer_audit_forward_up", "1 while the syslog receiver is connected", value=1 if fw.up else 0
+            )
+            yield GaugeMetricFamily(
+                "deployer_audit_forward_backlog",
+                "audit records not yet confirmed by the syslog receiver",
+                value=fw.backlog,
+            )
+            yield GaugeMetricFamily(
+                "deployer_audit_forward_backlog_alarm",
+                "1 while the backlog is past max_backlog (a forward-backlog record says when it began)",
+                value=1 if fw.cursor.alarmed else 0,
+            )
+            yield CounterMetricFamily(
+                "deployer_audit_forwarded", "audit records the syslog receiver confirmed", value=fw.sent
+            )
+            yield CounterMetricFamily(
+                "deployer_audit_forward_failures", "connections to the syslog receiver that failed", value=fw.failures
+            )
 
     return Collector()
 
@@ -273,14 +311,26 @@ def for_agent(inventory: str, state_dir: str, registry: Any) -> Forwarder | None
     pol = policy.load(inventory)
     if pol is None or pol.audit.syslog is None:
         return None
-    fw = Forwarder(record.folder_of(state_dir, pol.audit.trail), pol.audit.syslog, ca=pol.audit.syslog_ca,
-                   max_backlog=pol.audit.max_backlog)
+    fw = Forwarder(
+        record.folder_of(state_dir, pol.audit.trail),
+        pol.audit.syslog,
+        ca=pol.audit.syslog_ca,
+        max_backlog=pol.audit.max_backlog,
+    )
     registry.register(collector(fw))
     return fw
 
 
-async def forward(folder: str, url: str, *, ca: str | None = None, follow: bool = False,
-                  max_backlog: int = 10_000, settle: float = 1.0, retry_max: float = 30.0) -> Forwarder:
+async def forward(
+    folder: str,
+    url: str,
+    *,
+    ca: str | None = None,
+    follow: bool = False,
+    max_backlog: int = 10_000,
+    settle: float = 1.0,
+    retry_max: float = 30.0,
+) -> Forwarder:
     """``audit forward``: send what is pending once (OSError when the receiver cannot take it), or follow the
     trail until SIGTERM/SIGINT."""
     fw = Forwarder(folder, url, ca=ca, max_backlog=max_backlog, settle=settle, retry_max=retry_max)

@@ -28,15 +28,36 @@ def folder_of(state_dir: str, configured: str | None = None) -> str:
     return configured or os.path.join(os.path.abspath(state_dir), FOLDER)
 
 
-def event(name: str, *, user: str | None = None, role: str | None = None, via: str = "cli",
-          reason: str | None = None, device: str | None = None, result: str | None = None,
-          run: str | None = None, plan: str | None = None, detail: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def event(
+    name: str,
+    *,
+    user: str | None = None,
+    role: str | None = None,
+    via: str = "cli",
+    reason: str | None = None,
+    device: str | None = None,
+    result: str | None = None,
+    run: str | None = None,
+    plan: str | None = None,
+    detail: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
     """One record's fields; ``user`` defaults to the operating system's user."""
     from ..portable import user_name
 
-    return {"event": name, "user": user or user_name(), "role": role, "via": via, "host": socket.gethostname(),
-            "pid": os.getpid(), "reason": reason, "device": device, "result": result, "run": run, "plan": plan,
-            "detail": dict(detail or {})}
+    return {
+        "event": name,
+        "user": user or user_name(),
+        "role": role,
+        "via": via,
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+        "reason": reason,
+        "device": device,
+        "result": result,
+        "run": run,
+        "plan": plan,
+        "detail": dict(detail or {}),
+    }
 
 
 def append_cli(state_dir: str, configured: str | None, records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
@@ -57,8 +78,9 @@ def _values(p: Any) -> tuple[Any, Any]:
     return old, new
 
 
-def run_records(report: Report, *, command: str, change: Mapping[str, Any] | None = None,
-                via: str = "cli") -> list[dict[str, Any]]:
+def run_records(
+    report: Report, *, command: str, change: Mapping[str, Any] | None = None, via: str = "cli"
+) -> list[dict[str, Any]]:
     """A finished apply or rollback: a record per device that was started, with each parameter's old and new
     value and status (``applied`` or ``rolled-back``), the plan's digest and reason where it ran a plan."""
     name = "rolled-back" if command == "rollback" else "applied"
@@ -71,10 +93,25 @@ def run_records(report: Report, *, command: str, change: Mapping[str, Any] | Non
         for p in d.parameters:
             old, new = _values(p)
             params.append({"name": p.name, "old": old, "new": new, "desired": p.desired, "status": p.status})
-        out.append(event(name, reason=change.get("reason"), device=d.name, result=d.status, run=report.run_id,
-                         plan=change.get("digest"), via=via,
-                         detail={"url": d.url, "unit": d.unit, "profile": d.profile, "snapshot": d.snapshot,
-                                 "error": d.error, "parameters": params,
-                                 **({"author": change["author"]} if change.get("author") else {}),
-                                 **({"ticket": change["ticket"]} if change.get("ticket") else {})}))
+        out.append(
+            event(
+                name,
+                reason=change.get("reason"),
+                device=d.name,
+                result=d.status,
+                run=report.run_id,
+                plan=change.get("digest"),
+                via=via,
+                detail={
+                    "url": d.url,
+                    "unit": d.unit,
+                    "profile": d.profile,
+                    "snapshot": d.snapshot,
+                    "error": d.error,
+                    "parameters": params,
+                    **({"author": change["author"]} if change.get("author") else {}),
+                    **({"ticket": change["ticket"]} if change.get("ticket") else {}),
+                },
+            )
+        )
     return out

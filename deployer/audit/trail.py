@@ -25,8 +25,22 @@ TRAIL = "trail.jsonl"
 HEAD = "head.json"
 LOCK = "trail.lock"
 GENESIS = "0" * 64
-KEYS = ("seq", "time", "event", "user", "role", "via", "host", "pid", "reason", "device", "result", "run", "plan",
-        "detail")
+KEYS = (
+    "seq",
+    "time",
+    "event",
+    "user",
+    "role",
+    "via",
+    "host",
+    "pid",
+    "reason",
+    "device",
+    "result",
+    "run",
+    "plan",
+    "detail",
+)
 _TAIL_CHUNK = 65536
 
 
@@ -83,13 +97,13 @@ def _tail(fd: int, size: int) -> tuple[bytes | None, bytes]:
     data = pread(fd, size - start, start)
     while True:
         end = data.rfind(b"\n")
-        torn = data[end + 1:] if end >= 0 else data
+        torn = data[end + 1 :] if end >= 0 else data
         body = data[:end] if end >= 0 else b""
         cut = body.rfind(b"\n")
         if cut >= 0 or start == 0:
             if end < 0 and start == 0:
                 return None, torn
-            return body[cut + 1:], torn
+            return body[cut + 1 :], torn
         step = min(start, _TAIL_CHUNK * 16)
         start -= step
         data = pread(fd, step, start) + data
@@ -124,9 +138,17 @@ def append(folder: str, records: Sequence[Mapping[str, Any]]) -> list[dict[str, 
             todo = list(records)
             if torn:  # a line a crash cut short: kept whole in a record of its own, the chain goes on
                 os.ftruncate(fd, size - len(torn))
-                todo.insert(0, {"event": "trail-torn", "result": "kept", "detail": {
-                    "bytes": base64.b64encode(torn).decode(), "why": "a record cut short by a crash while it was "
-                                                                     "appended; its bytes are kept here"}})
+                todo.insert(
+                    0,
+                    {
+                        "event": "trail-torn",
+                        "result": "kept",
+                        "detail": {
+                            "bytes": base64.b64encode(torn).decode(),
+                            "why": "a record cut short by a crash while it was appended; its bytes are kept here",
+                        },
+                    },
+                )
             seq = _seq_of(last, folder)
             prev = GENESIS if last is None else line_hash(last)
             out, lines = [], []

@@ -46,8 +46,12 @@ def _parse(line: bytes) -> dict[str, Any] | None:
         rec = json.loads(line)
     except ValueError:
         return None
-    if not isinstance(rec, dict) or not isinstance(rec.get("seq"), int) or isinstance(rec.get("seq"), bool) \
-            or not isinstance(rec.get("prev"), str):
+    if (
+        not isinstance(rec, dict)
+        or not isinstance(rec.get("seq"), int)
+        or isinstance(rec.get("seq"), bool)
+        or not isinstance(rec.get("prev"), str)
+    ):
         return None
     return rec
 
@@ -62,16 +66,21 @@ def _blame(ls: Sequence[bytes], recs: Sequence[dict[str, Any] | None], i: int, h
     def holds_from(k: int) -> bool:  # line k links to line k-1 (past the end: the head names the last line)
         if k >= len(ls):
             last = recs[-1]
-            return head is not None and last is not None and head.seq == last["seq"] and \
-                head.hash == line_hash(ls[-1])
-        return (recs[k] is not None and recs[k]["prev"] == line_hash(ls[k - 1])  # type: ignore[index]
-                                and recs[k]["seq"] == recs[k - 1]["seq"] + 1)  # type: ignore[index]
+            return head is not None and last is not None and head.seq == last["seq"] and head.hash == line_hash(ls[-1])
+        return (
+            recs[k] is not None
+            and recs[k]["prev"] == line_hash(ls[k - 1])  # type: ignore[index]
+            and recs[k]["seq"] == recs[k - 1]["seq"] + 1  # type: ignore[index]
+        )
 
     if rec["prev"] == (GENESIS if i == 0 else line_hash(ls[i - 1])):
         return Finding(i + 1, f"seq {rec['seq']} where {expected_seq} was due (its seq was changed)")
     if i > 0 and rec["seq"] == expected_seq and holds_from(i + 1):
-        return Finding(i, f"record seq {prev_rec['seq']} was changed: the next record's prev no longer "  # type: ignore[index]
-                          "matches it")
+        return Finding(
+            i,
+            f"record seq {prev_rec['seq']} was changed: the next record's prev no longer "  # type: ignore[index]
+            "matches it",
+        )
     if rec["seq"] > expected_seq and holds_from(i + 1):
         gone = f"seq {expected_seq}" if rec["seq"] == expected_seq + 1 else f"seq {expected_seq} to {rec['seq'] - 1}"
         return Finding(i + 1, f"records are missing before it ({gone} removed)")
@@ -97,8 +106,10 @@ def verify(folder: str, *, copy: str | None = None, head: str | None = None) -> 
     except FileNotFoundError:
         pass
     if torn:  # a crash's cut line: set aside here as the next append does
-        out.notes.append(f"line {len(ls)} is cut short (a crash while it was appended); the next append keeps its "
-                         "bytes in a trail-torn record")
+        out.notes.append(
+            f"line {len(ls)} is cut short (a crash while it was appended); the next append keeps its "
+            "bytes in a trail-torn record"
+        )
         ls = ls[:-1]
     recs = [_parse(x) for x in ls]
     for i, rec in enumerate(recs):
@@ -127,16 +138,28 @@ def _parse_head(text: str) -> Head | None:
     return Head(int(seq), h.lower()) if seq.isdigit() and re.fullmatch(r"[0-9a-fA-F]{64}", h) else None
 
 
-def _check_head(out: Result, head: Head | None, what: str, ls: Sequence[bytes],
-                recs: Sequence[dict[str, Any] | None], *, exact: bool = True) -> None:
+def _check_head(
+    out: Result,
+    head: Head | None,
+    what: str,
+    ls: Sequence[bytes],
+    recs: Sequence[dict[str, Any] | None],
+    *,
+    exact: bool = True,
+) -> None:
     if head is None:
         if ls:
             out.notes.append(f"{what} cannot be read: a cut-off tail cannot be told")
         return
     if head.seq > out.last_seq:
         gone = f"seq {out.last_seq + 1}" + (f" to {head.seq}" if head.seq > out.last_seq + 1 else "")
-        out.problems.append(Finding(len(ls) + 1, f"the trail ends at seq {out.last_seq} but {what} names seq "
-                                                 f"{head.seq}: the end was cut off ({gone} removed)"))
+        out.problems.append(
+            Finding(
+                len(ls) + 1,
+                f"the trail ends at seq {out.last_seq} but {what} names seq "
+                f"{head.seq}: the end was cut off ({gone} removed)",
+            )
+        )
         return
     at = next((i for i, r in enumerate(recs) if r is not None and r["seq"] == head.seq), None)
     if at is None:
@@ -144,8 +167,10 @@ def _check_head(out: Result, head: Head | None, what: str, ls: Sequence[bytes],
     elif line_hash(ls[at]) != head.hash:
         out.problems.append(Finding(at + 1, f"record seq {head.seq} was changed: it no longer matches {what}"))
     elif exact and head.seq < out.last_seq:
-        out.notes.append(f"{what} is {out.last_seq - head.seq} record(s) behind the trail (a crash between an "
-                         "append and its head's update)")
+        out.notes.append(
+            f"{what} is {out.last_seq - head.seq} record(s) behind the trail (a crash between an "
+            "append and its head's update)"
+        )
 
 
 def _check_copy(out: Result, copy: str, ls: Sequence[bytes], recs: Sequence[dict[str, Any] | None]) -> None:
@@ -165,12 +190,16 @@ def _check_copy(out: Result, copy: str, ls: Sequence[bytes], recs: Sequence[dict
             mine = by_seq.get(int(rec["seq"]))
             if mine is None:
                 where = len(ls) + 1 if rec["seq"] > out.last_seq else 1
-                out.problems.append(Finding(where, f"record seq {rec['seq']} of the copy ({copy} line {n}) is not "
-                                                   "in the trail: removed"))
+                out.problems.append(
+                    Finding(
+                        where, f"record seq {rec['seq']} of the copy ({copy} line {n}) is not in the trail: removed"
+                    )
+                )
                 return
             if mine != line_hash(line):
                 i = next(k for k, r in enumerate(recs) if r is not None and r["seq"] == rec["seq"])
-                out.problems.append(Finding(i + 1, f"record seq {rec['seq']} differs from the copy ({copy} line "
-                                                   f"{n}): changed"))
+                out.problems.append(
+                    Finding(i + 1, f"record seq {rec['seq']} differs from the copy ({copy} line {n}): changed")
+                )
                 return
     out.notes.append(f"{seen} record(s) of the copy {copy} are in the trail as they were sent")

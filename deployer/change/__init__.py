@@ -25,14 +25,33 @@ if TYPE_CHECKING:
     from .signers import load as load_signers
 
 # loaded on first use: a run without change control never imports cryptography (about 60 ms)
-_WHERE = {"digest": ("canonical", "digest"), "check_approvals": ("check", "check_approvals"),
-          "Policy": ("policy", "Policy"), "Rule": ("policy", "Rule"), "load_policy": ("policy", "load"),
-          "MEANINGS": ("signature", "MEANINGS"), "Verdict": ("signature", "Verdict"), "sign": ("signature", "sign"),
-          "signer_of": ("signature", "signer_of"), "verify": ("signature", "verify"),
-          "load_signers": ("signers", "load")}
+_WHERE = {
+    "digest": ("canonical", "digest"),
+    "check_approvals": ("check", "check_approvals"),
+    "Policy": ("policy", "Policy"),
+    "Rule": ("policy", "Rule"),
+    "load_policy": ("policy", "load"),
+    "MEANINGS": ("signature", "MEANINGS"),
+    "Verdict": ("signature", "Verdict"),
+    "sign": ("signature", "sign"),
+    "signer_of": ("signature", "signer_of"),
+    "verify": ("signature", "verify"),
+    "load_signers": ("signers", "load"),
+}
 
-__all__ = ["MEANINGS", "Policy", "Rule", "Verdict", "check_approvals", "digest", "load_policy", "load_signers",
-           "sign", "signer_of", "verify"]
+__all__ = [
+    "MEANINGS",
+    "Policy",
+    "Rule",
+    "Verdict",
+    "check_approvals",
+    "digest",
+    "load_policy",
+    "load_signers",
+    "sign",
+    "signer_of",
+    "verify",
+]
 
 
 def __getattr__(name: str) -> Any:

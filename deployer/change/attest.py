@@ -36,7 +36,8 @@ def agent_key(folder: str) -> KeyFile:
         from cryptography.hazmat.primitives.asymmetric import ed25519
 
         pem = ed25519.Ed25519PrivateKey.generate().private_bytes(
-            serialization.Encoding.PEM, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption())
+            serialization.Encoding.PEM, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption()
+        )
         os.makedirs(folder, exist_ok=True)
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o600)
@@ -54,20 +55,27 @@ def _attester(key: KeyFile, allowed: AllowedSigners | None) -> str:
     from .signature import ATTEST_NAMESPACE
     from .sshsig import key_line
 
-    names = [s.principals[0] for s in (allowed.signers if allowed else ()) if s.key == key.public_blob()
-             and s.namespaces is not None and ATTEST_NAMESPACE in s.namespaces and s.principals]
+    names = [
+        s.principals[0]
+        for s in (allowed.signers if allowed else ())
+        if s.key == key.public_blob() and s.namespaces is not None and ATTEST_NAMESPACE in s.namespaces and s.principals
+    ]
     if not names:
         import socket
 
         line = f'deployer-agent@{socket.gethostname()} namespaces="{ATTEST_NAMESPACE}" {key_line(key.key.public_key())}'
         where = allowed.path if allowed else "none configured yet: change_control.allowed_signers"
-        raise Refused(f"this agent's key is not trusted to attest approvals: add this line to the site's "
-                      f"allowed_signers ({where}): {line}", 409)
+        raise Refused(
+            f"this agent's key is not trusted to attest approvals: add this line to the site's "
+            f"allowed_signers ({where}): {line}",
+            409,
+        )
     return names[0]
 
 
-def approve(doc: Any, *, user: str | None, entry: Any, meaning: str, policy: policies.Policy | None,
-            key_folder: str) -> dict[str, Any]:
+def approve(
+    doc: Any, *, user: str | None, entry: Any, meaning: str, policy: policies.Policy | None, key_folder: str
+) -> dict[str, Any]:
     """Add an approval (or a review) to the plan ``doc``: the client's ``entry`` when given (it must hold and be
     the authenticated user's, when there is one), else the agent's attestation for ``user``. Returns
     ``{digest, signature, plan, missing}``; Refused says why not."""
@@ -97,8 +105,11 @@ def approve(doc: Any, *, user: str | None, entry: Any, meaning: str, policy: pol
         signer, new = v.signer, dict(entry)
     else:
         if user is None:
-            raise Refused("an approval through the agent needs a named user (or a signature made with your own key: "
-                          "deployer approve PLAN.json --key KEY)", 401)
+            raise Refused(
+                "an approval through the agent needs a named user (or a signature made with your own key: "
+                "deployer approve PLAN.json --key KEY)",
+                401,
+            )
         signer, new = user, None
     if meaning == "approved" and signer == author:
         raise Refused(f"{signer} is the plan's author: an author cannot approve their own change", 403)
@@ -110,5 +121,9 @@ def approve(doc: Any, *, user: str | None, entry: Any, meaning: str, policy: pol
         key = agent_key(key_folder)
         new = sign(d, signer, meaning, key, attested_by=_attester(key, allowed))
     plan = {**doc, "signatures": [*sigs, new]}
-    return {"digest": d, "signature": new, "plan": plan,
-            "missing": check_approvals(plan, policy) if policy is not None else []}
+    return {
+        "digest": d,
+        "signature": new,
+        "plan": plan,
+        "missing": check_approvals(plan, policy) if policy is not None else [],
+    }

@@ -38,9 +38,11 @@ def stale(doc: Mapping[str, Any]) -> list[str]:
     out = []
     for e in sigs if isinstance(sigs, list) else []:
         if isinstance(e, Mapping) and e.get("digest") != d:
-            out.append(f"the {e.get('meaning', 'signature')} signature of {e.get('signer', '?')} was made over other "
-                       f"content ({str(e.get('digest'))[:19]}...; the plan is {d[:19]}... now): the plan changed "
-                       "after it was signed")
+            out.append(
+                f"the {e.get('meaning', 'signature')} signature of {e.get('signer', '?')} was made over other "
+                f"content ({str(e.get('digest'))[:19]}...; the plan is {d[:19]}... now): the plan changed "
+                "after it was signed"
+            )
     return out
 
 
@@ -75,13 +77,17 @@ def _approvals(checked: Sequence[Verdict], author: str | None, needed: int) -> l
     if author is None:
         out.append("an author (the plan has no change.author: make it with deployer plan ... --out)")
     elif not any(v.holds and v.meaning == "authored" and v.signer == author for v in checked):
-        out.append(f"the author's signature: {author} signs the plan as authored (deployer plan ... --out "
-                   f"PLAN.json --sign-key KEY, or deployer sign PLAN.json --meaning authored --key KEY)")
+        out.append(
+            f"the author's signature: {author} signs the plan as authored (deployer plan ... --out "
+            f"PLAN.json --sign-key KEY, or deployer sign PLAN.json --meaning authored --key KEY)"
+        )
     approvers = sorted({v.signer for v in checked if v.holds and v.meaning == "approved" and v.signer != author})
     if len(approvers) < needed:
         so_far = f"{len(approvers)} so far: {', '.join(approvers)}" if approvers else "none so far"
-        out.append(f"{needed} approval{'s' if needed != 1 else ''} by distinct users other than the author "
-                   f"{author or '?'} ({so_far}): deployer approve PLAN.json --key KEY")
+        out.append(
+            f"{needed} approval{'s' if needed != 1 else ''} by distinct users other than the author "
+            f"{author or '?'} ({so_far}): deployer approve PLAN.json --key KEY"
+        )
     return out
 
 
@@ -101,6 +107,8 @@ def inputs_missing(inputs: Any, allowed: AllowedSigners | None) -> list[str]:
         found = [verify(e, f"sha256:{item.get('sha256')}", allowed) for e in (sigs if isinstance(sigs, list) else [])]
         if not any(v.holds and v.meaning == "approved" for v in found):
             why = "; ".join(f"{v.said()}: {v.why}" for v in found if not v.holds) or "it carries none"
-            out.append(f"an approved signature of the {what} ({why}): deployer sign {item.get('path', 'FILE')} "
-                       "--meaning approved --key KEY, then make the plan again")
+            out.append(
+                f"an approved signature of the {what} ({why}): deployer sign {item.get('path', 'FILE')} "
+                "--meaning approved --key KEY, then make the plan again"
+            )
     return out

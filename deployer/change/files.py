@@ -30,7 +30,6 @@ def read_bounded(path: str, limit: int = MAX_FILE, what: str = "it") -> bytes:
     return data
 
 
-
 def is_plan(data: bytes) -> bool:
     return data.lstrip().startswith(b"{") and b'"deployer.plan/' in data[:4096]
 
@@ -77,8 +76,9 @@ def input_record(kind: str, path: str) -> dict[str, Any]:
     return {"kind": kind, "path": path, "sha256": hashlib.sha256(data).hexdigest(), "signatures": sigs}
 
 
-def change_member(author: str, *, reason: str | None, ticket: str | None,
-                  inputs: list[dict[str, Any]]) -> dict[str, Any]:
+def change_member(
+    author: str, *, reason: str | None, ticket: str | None, inputs: list[dict[str, Any]]
+) -> dict[str, Any]:
     """The ``change`` member ``plan --out`` writes: who, when, where, why, which ticket, from which files."""
     out: dict[str, Any] = {"author": author, "time": utc_now(), "host": socket.gethostname()}
     if reason:
@@ -141,8 +141,9 @@ class Signed:
             return self.path
         assert self.side is not None
         self.side["signatures"] = [*self.side["signatures"], dict(entry)]
-        write_atomic(sidecar(self.path), json.dumps(self.side, indent=2, ensure_ascii=False) + "\n",
-                     what="the signatures")
+        write_atomic(
+            sidecar(self.path), json.dumps(self.side, indent=2, ensure_ascii=False) + "\n", what="the signatures"
+        )
         return sidecar(self.path)
 
     @property

@@ -38,8 +38,15 @@ def _same_plan(doc: Mapping[str, Any], plan: Plan) -> bool:
     return all(canonical(doc.get(k)) == canonical(v) for k, v in loaded.items())
 
 
-def check_run(*, command: str, source: str | None, jobs: Sequence[Job], policy_path: str | None,
-              inventory: str | None, state_dir: str) -> dict[str, Any] | None:
+def check_run(
+    *,
+    command: str,
+    source: str | None,
+    jobs: Sequence[Job],
+    policy_path: str | None,
+    inventory: str | None,
+    state_dir: str,
+) -> dict[str, Any] | None:
     """Refuse (ChangeRefused) a run the change control does not allow; for a saved plan, what the report and
     the record say of its change (digest, author, reason, ticket, signatures checked), else None."""
     if command != "apply":
@@ -60,14 +67,14 @@ def check_run(*, command: str, source: str | None, jobs: Sequence[Job], policy_p
             if rule.signed_inputs:
                 missing += _profiles_signed(doc, planned)
         if not all(_same_plan(doc, j.plan) for j in planned if j.plan is not None):
-            missing.append(f"{source} changed while it was read (the plan loaded is not the document checked): "
-                           "run it again")
+            missing.append(
+                f"{source} changed while it was read (the plan loaded is not the document checked): run it again"
+            )
         missing = list(dict.fromkeys(missing))
         info = _info(doc, policy)
         if missing:
             _audit(state_dir, policy, "apply-refused", info, "refused", missing=missing)
-            raise ChangeRefused(f"{source}: the change control refuses this plan; nothing was sent. It lacks:",
-                                missing)
+            raise ChangeRefused(f"{source}: the change control refuses this plan; nothing was sent. It lacks:", missing)
         if policy is not None:
             _audit(state_dir, policy, "apply-authorized", info, "ok")  # fail closed: unrecorded, not run
         return info
@@ -77,9 +84,11 @@ def check_run(*, command: str, source: str | None, jobs: Sequence[Job], policy_p
     for j in jobs:
         rule = policy.rule_for(_url(j), j.unit, j.name)
         if rule.needs_plan:
-            refused.append(f"{j.name}: its change control needs {rule.said()}: only an approved plan changes it "
-                           "(deployer plan RECIPE --device URL --out PLAN.json --reason TEXT, deployer approve, "
-                           "deployer apply PLAN.json)")
+            refused.append(
+                f"{j.name}: its change control needs {rule.said()}: only an approved plan changes it "
+                "(deployer plan RECIPE --device URL --out PLAN.json --reason TEXT, deployer approve, "
+                "deployer apply PLAN.json)"
+            )
         elif rule.signed_inputs:
             refused += [f"{j.name}: {m}" for m in _files_signed(j, policy)]
     if refused:
@@ -133,8 +142,9 @@ def _info(doc: Mapping[str, Any], policy: policies.Policy | None) -> dict[str, A
         if isinstance(change.get(k), str):
             out[k] = change[k]
     sigs = doc.get("signatures")  # none: nothing to check (and cryptography need not load)
-    out["signatures"] = [v.to_json() for v in verdicts(doc, policy.signers if policy is not None else None)] \
-        if sigs else []
+    out["signatures"] = (
+        [v.to_json() for v in verdicts(doc, policy.signers if policy is not None else None)] if sigs else []
+    )
     if policy is None:  # nobody vouched for the keys: say the signatures were not checked against any
         for s in out["signatures"]:
             s["holds"] = None
@@ -142,10 +152,21 @@ def _info(doc: Mapping[str, Any], policy: policies.Policy | None) -> dict[str, A
     return out
 
 
-def _audit(state_dir: str, policy: policies.Policy | None, event: str, info: Mapping[str, Any], result: str,
-           **detail: Any) -> None:
+def _audit(
+    state_dir: str, policy: policies.Policy | None, event: str, info: Mapping[str, Any], result: str, **detail: Any
+) -> None:
     from ..audit import record
 
-    record.append_cli(state_dir, policy.audit.trail if policy is not None else None,
-                      [record.event(event, result=result, reason=info.get("reason"), plan=info.get("digest"),
-                                    detail={**{k: v for k, v in info.items() if k != "signatures"}, **detail})])
+    record.append_cli(
+        state_dir,
+        policy.audit.trail if policy is not None else None,
+        [
+            record.event(
+                event,
+                result=result,
+                reason=info.get("reason"),
+                plan=info.get("digest"),
+                detail={**{k: v for k, v in info.items() if k != "signatures"}, **detail},
+            )
+        ],
+    )

@@ -30,8 +30,13 @@ class Rule:
     why: tuple[str, ...] = ()
 
     def stricter(self, other: Rule) -> Rule:
-        return Rule(max(self.approvals, other.approvals), self.reason or other.reason, self.ticket or other.ticket,
-                    self.signed_inputs or other.signed_inputs, tuple(dict.fromkeys(self.why + other.why)))
+        return Rule(
+            max(self.approvals, other.approvals),
+            self.reason or other.reason,
+            self.ticket or other.ticket,
+            self.signed_inputs or other.signed_inputs,
+            tuple(dict.fromkeys(self.why + other.why)),
+        )
 
     @property
     def needs_plan(self) -> bool:
@@ -44,8 +49,11 @@ class Rule:
 
     def said(self) -> str:
         parts = [f"{self.approvals} approval{'s' if self.approvals != 1 else ''}"] if self.approvals else []
-        parts += [w for w, on in (("a reason", self.reason), ("a ticket", self.ticket),
-                                  ("signed inputs", self.signed_inputs)) if on]
+        parts += [
+            w
+            for w, on in (("a reason", self.reason), ("a ticket", self.ticket), ("signed inputs", self.signed_inputs))
+            if on
+        ]
         return ", ".join(parts) + (f" ({'; '.join(self.why)})" if self.why else "")
 
 
@@ -79,8 +87,13 @@ class Policy:
 
 def _rule(spec: Any, why: str) -> Rule:
     spec = spec or {}
-    return Rule(int(spec.get("approvals", 0)), bool(spec.get("reason", False)), bool(spec.get("ticket", False)),
-                bool(spec.get("signed_inputs", False)), (why,))
+    return Rule(
+        int(spec.get("approvals", 0)),
+        bool(spec.get("reason", False)),
+        bool(spec.get("ticket", False)),
+        bool(spec.get("signed_inputs", False)),
+        (why,),
+    )
 
 
 def _described(url: str) -> str:
@@ -123,11 +136,18 @@ def load(path: str) -> Policy | None:
     name = os.path.basename(path)
     groups = {g: _rule(r, f"{name} group {g}") for g, r in (spec.get("groups") or {}).items()}
     a = spec.get("audit") or {}
-    audit = Audit(rel(a.get("trail")), a.get("syslog"), rel(a.get("syslog_ca")),
-                  int(a.get("max_backlog", DEFAULT_BACKLOG)))
+    audit = Audit(
+        rel(a.get("trail")), a.get("syslog"), rel(a.get("syslog_ca")), int(a.get("max_backlog", DEFAULT_BACKLOG))
+    )
     devices = tuple((d.name, _described(d.url), d.unit, d.groups) for d in inv.devices)
-    return Policy((path,), _rule(spec.get("require"), f"{name} require") if spec.get("require") else Rule(),
-                  groups, devices, signers, audit)
+    return Policy(
+        (path,),
+        _rule(spec.get("require"), f"{name} require") if spec.get("require") else Rule(),
+        groups,
+        devices,
+        signers,
+        audit,
+    )
 
 
 def combined(policies: Sequence[Policy]) -> Policy | None:
@@ -137,9 +157,15 @@ def combined(policies: Sequence[Policy]) -> Policy | None:
     if len(policies) == 1:
         return policies[0]
     first = policies[0]
-    return _Combined(tuple(s for p in policies for s in p.sources), first.default, {}, (),
-                     next((p.signers for p in policies if p.signers is not None), None),
-                     next((p.audit for p in policies if p.audit != Audit()), Audit()), tuple(policies))
+    return _Combined(
+        tuple(s for p in policies for s in p.sources),
+        first.default,
+        {},
+        (),
+        next((p.signers for p in policies if p.signers is not None), None),
+        next((p.audit for p in policies if p.audit != Audit()), Audit()),
+        tuple(policies),
+    )
 
 
 @dataclass(frozen=True)

@@ -25,8 +25,9 @@ ATTEST_NAMESPACE = "deployer-attest"  # an agent signing for the user it authent
 _STATEMENT_KEYS = ("schema", "digest", "signer", "meaning", "time", "attested_by")
 
 
-def statement(digest: str, signer: str, meaning: str, *, time: str | None = None,
-              attested_by: str | None = None) -> dict[str, str]:
+def statement(
+    digest: str, signer: str, meaning: str, *, time: str | None = None, attested_by: str | None = None
+) -> dict[str, str]:
     if meaning not in MEANINGS:
         raise UsageError(f"meaning {meaning!r}: one of {', '.join(MEANINGS)}")
     if not signer.strip() or any(c.isspace() or c == "," for c in signer):
@@ -69,8 +70,11 @@ class KeyFile:
             else:
                 key = serialization.load_pem_private_key(data, passphrase)
         except TypeError:  # encrypted and no passphrase, or a passphrase for a plain key
-            raise NeedsPassphrase(path) if passphrase is None else UsageError(
-                f"--key {path}: the key is not encrypted, but a passphrase was given") from None
+            raise (
+                NeedsPassphrase(path)
+                if passphrase is None
+                else UsageError(f"--key {path}: the key is not encrypted, but a passphrase was given")
+            ) from None
         except ValueError as e:
             why = "wrong passphrase" if passphrase is not None else str(e)
             raise UsageError(f"--key {path}: cannot read the private key ({why})") from None
@@ -89,8 +93,10 @@ class KeyFile:
 
 class NeedsPassphrase(UsageError):
     def __init__(self, path: str) -> None:
-        super().__init__(f"--key {path}: the key is encrypted: its passphrase is needed (asked on a terminal; "
-                         "or give the public key, KEY.pub, and ssh-keygen signs with your ssh-agent)")
+        super().__init__(
+            f"--key {path}: the key is encrypted: its passphrase is needed (asked on a terminal; "
+            "or give the public key, KEY.pub, and ssh-keygen signs with your ssh-agent)"
+        )
         self.path = path
 
 
@@ -101,8 +107,10 @@ class SshKeygen:
         self.path = public_path
         exe = shutil.which("ssh-keygen")
         if exe is None:
-            raise UsageError(f"--key {public_path} is a public key: signing with it needs ssh-keygen (OpenSSH), "
-                             "which is not installed")
+            raise UsageError(
+                f"--key {public_path} is a public key: signing with it needs ssh-keygen (OpenSSH), "
+                "which is not installed"
+            )
         self.exe = exe
         try:
             with open(public_path, encoding="utf-8") as f:
@@ -114,8 +122,13 @@ class SshKeygen:
             raise UsageError(f"--key {public_path}: not an OpenSSH public key line") from None
 
     def sign(self, message: bytes, namespace: str) -> str:
-        proc = subprocess.run([self.exe, "-Y", "sign", "-q", "-f", self.path, "-n", namespace], input=message,
-                              capture_output=True, timeout=300, check=False)
+        proc = subprocess.run(
+            [self.exe, "-Y", "sign", "-q", "-f", self.path, "-n", namespace],
+            input=message,
+            capture_output=True,
+            timeout=300,
+            check=False,
+        )
         if proc.returncode != 0:
             why = proc.stderr.decode("utf-8", "replace").strip() or f"exit code {proc.returncode}"
             raise UsageError(f"ssh-keygen -Y sign -f {self.path}: {why}")
@@ -172,8 +185,13 @@ class Verdict:
         return f"{self.meaning} by {self.signer}{via} at {self.time}"
 
     def to_json(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"signer": self.signer, "meaning": self.meaning, "time": self.time,
-                               "digest": self.digest, "holds": self.holds}
+        out: dict[str, Any] = {
+            "signer": self.signer,
+            "meaning": self.meaning,
+            "time": self.time,
+            "digest": self.digest,
+            "holds": self.holds,
+        }
         if self.why:
             out["why"] = self.why
         if self.attested_by:
@@ -193,8 +211,16 @@ def verify(entry: Any, digest: str, allowed: AllowedSigners | None) -> Verdict:
     attested = entry.get("attested_by")
 
     def no(why: str, key: str = "") -> Verdict:
-        return Verdict(shown["signer"], shown["meaning"], shown["time"], shown["digest"], False, why,
-                       attested if isinstance(attested, str) else None, key)
+        return Verdict(
+            shown["signer"],
+            shown["meaning"],
+            shown["time"],
+            shown["digest"],
+            False,
+            why,
+            attested if isinstance(attested, str) else None,
+            key,
+        )
 
     if any(not isinstance(v, str) for v in fields.values()) or (attested is not None and not isinstance(attested, str)):
         return no("signer, meaning, time and digest must be texts")
@@ -206,8 +232,9 @@ def verify(entry: Any, digest: str, allowed: AllowedSigners | None) -> Verdict:
     if when is None:
         return no(f"time {shown['time']!r} is not an ISO 8601 time")
     if shown["digest"] != digest:
-        return no(f"it was made over other content ({shown['digest'][:19]}...): the content changed after it "
-                  "was signed")
+        return no(
+            f"it was made over other content ({shown['digest'][:19]}...): the content changed after it was signed"
+        )
     namespace = ATTEST_NAMESPACE if attested is not None else NAMESPACE
     try:
         sig = sshsig.parse(str(entry.get("signature")))
@@ -221,8 +248,16 @@ def verify(entry: Any, digest: str, allowed: AllowedSigners | None) -> Verdict:
     why = allowed.trusted(principal, sig.public_key, namespace, when, explicit_namespace=attested is not None)
     if why is not None:
         return no(f"{why} ({fp})", fp)
-    return Verdict(shown["signer"], shown["meaning"], shown["time"], digest, True, "",
-                   attested if isinstance(attested, str) else None, fp)
+    return Verdict(
+        shown["signer"],
+        shown["meaning"],
+        shown["time"],
+        digest,
+        True,
+        "",
+        attested if isinstance(attested, str) else None,
+        fp,
+    )
 
 
 def default_signer() -> str:

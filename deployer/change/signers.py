@@ -17,8 +17,16 @@ from dataclasses import dataclass
 
 from ..errors import Diagnostic, InputError
 
-KEY_TYPES = ("ssh-ed25519", "ssh-rsa", "ecdsa-sha2-nistp256", "ecdsa-sha2-nistp384", "ecdsa-sha2-nistp521",
-             "sk-ssh-ed25519@openssh.com", "sk-ecdsa-sha2-nistp256@openssh.com", "ssh-dss")
+KEY_TYPES = (
+    "ssh-ed25519",
+    "ssh-rsa",
+    "ecdsa-sha2-nistp256",
+    "ecdsa-sha2-nistp384",
+    "ecdsa-sha2-nistp521",
+    "sk-ssh-ed25519@openssh.com",
+    "sk-ecdsa-sha2-nistp256@openssh.com",
+    "ssh-dss",
+)
 MAX_FILE = 1 << 20
 
 
@@ -43,8 +51,15 @@ class AllowedSigners:
     signers: tuple[Signer, ...]
     skipped: tuple[str, ...] = ()  # lines not used, and why (certificate authorities)
 
-    def trusted(self, principal: str, key: bytes, namespace: str, when: datetime.datetime | None, *,
-                explicit_namespace: bool = False) -> str | None:
+    def trusted(
+        self,
+        principal: str,
+        key: bytes,
+        namespace: str,
+        when: datetime.datetime | None,
+        *,
+        explicit_namespace: bool = False,
+    ) -> str | None:
         """None when ``key`` may sign as ``principal`` in ``namespace`` at ``when``; else why not.
         ``explicit_namespace``: the line must name the namespace (an agent attesting for others)."""
         lines = [s for s in self.signers if s.key == key]
@@ -72,8 +87,13 @@ class AllowedSigners:
 
     def principals_of(self, key: bytes) -> list[str]:
         """The plain names (no patterns) a key is listed for."""
-        return [p for s in self.signers if s.key == key for p in s.principals
-                if not p.startswith("!") and not set(p) & set("*?")]
+        return [
+            p
+            for s in self.signers
+            if s.key == key
+            for p in s.principals
+            if not p.startswith("!") and not set(p) & set("*?")
+        ]
 
 
 def matches(name: str, patterns: tuple[str, ...]) -> bool:
@@ -178,9 +198,16 @@ def parse(path: str, text: str) -> AllowedSigners:
                 continue
             public_from_blob(blob)  # a key we can use, of the type the line says
             ns = opts.get("namespaces")
-            signers.append(Signer(principals, blob, None if ns is None else tuple(x for x in ns.split(",") if x),
-                                  _when(opts["valid-after"]) if "valid-after" in opts else None,
-                                  _when(opts["valid-before"]) if "valid-before" in opts else None, n))
+            signers.append(
+                Signer(
+                    principals,
+                    blob,
+                    None if ns is None else tuple(x for x in ns.split(",") if x),
+                    _when(opts["valid-after"]) if "valid-after" in opts else None,
+                    _when(opts["valid-before"]) if "valid-before" in opts else None,
+                    n,
+                )
+            )
         except (ValueError, binascii.Error, SigError) as e:
             errors.append(Diagnostic(path, n, 1, f"allowed signers: {e}"))
     if errors:

@@ -65,7 +65,7 @@ class _Reader:
     def take(self, n: int) -> bytes:
         if n < 0 or self.at + n > len(self.data):
             raise SigError("the signature is cut short")
-        out = self.data[self.at:self.at + n]
+        out = self.data[self.at : self.at + n]
         self.at += n
         return out
 
@@ -130,8 +130,13 @@ def fingerprint(blob: bytes) -> str:
 
 
 def _signed_data(namespace: str, hash_name: str, message: bytes) -> bytes:
-    return MAGIC + _string(namespace.encode()) + _string(b"") + _string(hash_name.encode()) + \
-        _string(HASHES[hash_name](message).digest())
+    return (
+        MAGIC
+        + _string(namespace.encode())
+        + _string(b"")
+        + _string(hash_name.encode())
+        + _string(HASHES[hash_name](message).digest())
+    )
 
 
 def _raw_signature(key: PrivateKey, data: bytes) -> bytes:
@@ -147,11 +152,17 @@ def _raw_signature(key: PrivateKey, data: bytes) -> bytes:
 
 def sign(key: PrivateKey, message: bytes, namespace: str) -> str:
     """The armored SSH signature of ``message`` in ``namespace`` (SHA-512, as ``ssh-keygen -Y sign``)."""
-    blob = MAGIC + struct.pack(">I", VERSION) + _string(key_blob(key.public_key())) + \
-        _string(namespace.encode()) + _string(b"") + _string(b"sha512") + \
-        _string(_raw_signature(key, _signed_data(namespace, "sha512", message)))
+    blob = (
+        MAGIC
+        + struct.pack(">I", VERSION)
+        + _string(key_blob(key.public_key()))
+        + _string(namespace.encode())
+        + _string(b"")
+        + _string(b"sha512")
+        + _string(_raw_signature(key, _signed_data(namespace, "sha512", message)))
+    )
     text = base64.b64encode(blob).decode()
-    return "\n".join([BEGIN, *(text[i:i + 70] for i in range(0, len(text), 70)), END]) + "\n"
+    return "\n".join([BEGIN, *(text[i : i + 70] for i in range(0, len(text), 70)), END]) + "\n"
 
 
 @dataclass(frozen=True)

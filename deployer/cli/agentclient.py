@@ -15,8 +15,21 @@ from ..errors import EXIT_CHANGES, EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Usage
 from .base import echo, stdin_is_terminal
 
 # options of apply that mean something only where the command line itself talks to the devices
-_LOCAL_ONLY = ("device", "unit", "timeout", "retries", "allow_broadcast", "html_path", "pause", "ask", "inventory",
-               "meta", "compact", "workers", "policy")  # meta, compact: with --html; policy: the agent's own
+_LOCAL_ONLY = (
+    "device",
+    "unit",
+    "timeout",
+    "retries",
+    "allow_broadcast",
+    "html_path",
+    "pause",
+    "ask",
+    "inventory",
+    "meta",
+    "compact",
+    "workers",
+    "policy",
+)  # meta, compact: with --html; policy: the agent's own
 
 
 def client(url: str) -> Any:
@@ -31,17 +44,23 @@ def client(url: str) -> Any:
     given = meta.meta if meta is not None else {}
     path = given.get("deployer.agent.agent_token_file")
     token = read_token(path, "--agent-token-file") if path else (os.environ.get("DEPLOYER_AGENT_TOKEN") or None)
-    return Agent(url, token=token, ca=given.get("deployer.agent.agent_ca"),
-                 cert=given.get("deployer.agent.agent_cert"), key=given.get("deployer.agent.agent_key"))
-
+    return Agent(
+        url,
+        token=token,
+        ca=given.get("deployer.agent.agent_ca"),
+        cert=given.get("deployer.agent.agent_cert"),
+        key=given.get("deployer.agent.agent_key"),
+    )
 
 
 def _refuse_local(kw: Mapping[str, Any], what: str) -> None:
     given = [k for k in _LOCAL_ONLY if kw.get(k) not in (None, False, ())]
     if given:
         names = ", ".join("--" + k.removesuffix("_path").replace("_", "-") for k in given)
-        raise UsageError(f"{names}: not with --agent ({what} runs in the agent, on its inventory's devices; "
-                         "edit the inventory instead)")
+        raise UsageError(
+            f"{names}: not with --agent ({what} runs in the agent, on its inventory's devices; "
+            "edit the inventory instead)"
+        )
 
 
 def _say(ev: Mapping[str, Any], url: str) -> None:
@@ -55,23 +74,29 @@ def _say(ev: Mapping[str, Any], url: str) -> None:
     elif kind == "soak-started":
         echo(f"soaking {', '.join(ev['devices'])} until {ev['deadline']}", err=True)
     elif kind == "window-waiting":
-        echo(f"waiting for the confirmation until {ev['deadline']} (the agent holds the window: this command "
-                   f"may end): deployer confirm --agent {url} {ev['run']}", err=True)
+        echo(
+            f"waiting for the confirmation until {ev['deadline']} (the agent holds the window: this command "
+            f"may end): deployer confirm --agent {url} {ev['run']}",
+            err=True,
+        )
     elif kind == "window-confirmed":
         echo("confirmed: the commit goes out", err=True)
     elif kind == "window-expired":
         echo("not confirmed in time: rolled back", err=True)
 
 
-def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "apply",
-          force_endurance: bool = False) -> int:
+def apply(
+    url: str, source: str | None, kw: dict[str, Any], *, command: str = "apply", force_endurance: bool = False
+) -> int:
     """``deployer apply --agent URL [RECIPE]``: the agent rolls out its files (RECIPE must be the one they name)."""
     import os
 
     _refuse_local(kw, command)
     if source is not None and source.endswith(".json"):
-        raise UsageError("a saved plan is not applied through the agent: it rolls out the validated files "
-                         "(deployer plan --agent shows what would change)")
+        raise UsageError(
+            "a saved plan is not applied through the agent: it rolls out the validated files "
+            "(deployer plan --agent shows what would change)"
+        )
     c = client(url)
     seen: str | None = None  # the files shown: the agent refuses the run if they changed since
     if not kw.get("yes"):
@@ -83,13 +108,22 @@ def apply(url: str, source: str | None, kw: dict[str, Any], *, command: str = "a
         if not click.confirm("apply these changes through the agent?", default=False):
             echo("nothing was sent", err=True)
             return EXIT_OK
-    body = {"command": "apply", "limit": kw.get("limit"), "batch": kw.get("batch"),
-            "max_failures": kw.get("max_failures"), "parallel": kw.get("parallel"),
-            "soak": _secs(kw.get("soak")), "health_interval": _secs(kw.get("health_interval")),
-            "confirm_within": _secs(kw.get("confirm_within")), "allow_unhealthy": kw.get("allow_unhealthy") or None,
-            "rollback_on_failure": kw.get("rollback_on_failure"),
-            "write_all": kw.get("write_all"), "force_endurance": force_endurance or None,
-            "recipe": os.path.abspath(source) if source else None, "files_sha256": seen}
+    body = {
+        "command": "apply",
+        "limit": kw.get("limit"),
+        "batch": kw.get("batch"),
+        "max_failures": kw.get("max_failures"),
+        "parallel": kw.get("parallel"),
+        "soak": _secs(kw.get("soak")),
+        "health_interval": _secs(kw.get("health_interval")),
+        "confirm_within": _secs(kw.get("confirm_within")),
+        "allow_unhealthy": kw.get("allow_unhealthy") or None,
+        "rollback_on_failure": kw.get("rollback_on_failure"),
+        "write_all": kw.get("write_all"),
+        "force_endurance": force_endurance or None,
+        "recipe": os.path.abspath(source) if source else None,
+        "files_sha256": seen,
+    }
     run = c.start_run(**body)
     echo(f"run {run['id']} started in the agent at {url}", err=True)
     end = c.follow(run["id"], lambda ev: _say(ev, url))
@@ -110,8 +144,9 @@ def _finish(end: Mapping[str, Any], kw: Mapping[str, Any]) -> int:
             path = str(kw["report_path"])
             os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
             write_output(path, json.dumps(doc, indent=2) + "\n")
-        print_outcome(report_from_json(doc), fleet_run=True, as_json=bool(kw.get("as_json")),
-                       report_path=kw.get("report_path"))
+        print_outcome(
+            report_from_json(doc), fleet_run=True, as_json=bool(kw.get("as_json")), report_path=kw.get("report_path")
+        )
     return int(end.get("exit_code") or 0)
 
 
@@ -192,8 +227,10 @@ def status(url: str, *, as_json: bool) -> int:
         pend = f", {d['pending']} pending" if d.get("pending") else ""
         echo(f"  {d['name']}: {d['status']}{pend}{' - ' + extra if extra else ''}")
     for w in s["windows"]:
-        echo(f"  window: run {w['run']} ({w['kind']}) {', '.join(w['devices'])} until {w['deadline']}: "
-                   f"deployer confirm --agent {a['url']} {w['run']}")
+        echo(
+            f"  window: run {w['run']} ({w['kind']}) {', '.join(w['devices'])} until {w['deadline']}: "
+            f"deployer confirm --agent {a['url']} {w['run']}"
+        )
     for r in s["runs"]:
         echo(f"  run {r['id']} ({r['command']}): {r['state']}")
     if not (s["devices"] or s["windows"] or s["runs"]):

@@ -61,12 +61,18 @@ def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: 
         raise UsageError("--ask asks before each batch: stdin is not a terminal (use --pause for an unattended run)")
     err = console(stderr=True)
     _consent_to_move(prepared.moved, err, yes=yes, to_other_device=to_other_device)
-    report, interrupted = _run(prepared, err, confirm=None if yes else _confirm_each(prepared, err),
-                               as_json=as_json)
+    report, interrupted = _run(prepared, err, confirm=None if yes else _confirm_each(prepared, err), as_json=as_json)
     from ..audit.commands import after_run  # the audit trail's records and the plan's change in the report
 
-    after_run(report, command=request.command, change=prepared.change, state_dir=request.state_dir,
-              policy_path=request.policy, inventory=request.inventory, report_path=request.report_path)
+    after_run(
+        report,
+        command=request.command,
+        change=prepared.change,
+        state_dir=request.state_dir,
+        policy_path=request.policy,
+        inventory=request.inventory,
+        report_path=request.report_path,
+    )
     if request.html_path:
         from ..pages import run_page
         from .base import write_page
@@ -82,8 +88,10 @@ def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: 
     for what in [*report.unrecorded, *(f"{d.name}: {u}" for d in report.devices for u in d.unrecorded)]:
         echo(f"not recorded: {safe(what)}", err=True)
     if prepared.refused:
-        err.print(f"refused {len(prepared.refused)} changed device{'s' if len(prepared.refused) != 1 else ''}: "
-                  + ", ".join(safe(r.split(' ', 1)[0]) for r in prepared.refused))
+        err.print(
+            f"refused {len(prepared.refused)} changed device{'s' if len(prepared.refused) != 1 else ''}: "
+            + ", ".join(safe(r.split(" ", 1)[0]) for r in prepared.refused)
+        )
         return max(report.exit_code, EXIT_FAILED)
     return report.exit_code
 
@@ -96,8 +104,10 @@ def _consent_to_move(moved: str | None, err: Console, *, yes: bool, to_other_dev
         err.print(f"warning: {safe(moved)}; restoring it there (--to-other-device)")
         return
     if yes or not stdin_is_terminal():
-        raise UsageError(f"{moved}: restoring a snapshot to another device needs --to-other-device "
-                         "(--yes alone is not enough); nothing was sent")
+        raise UsageError(
+            f"{moved}: restoring a snapshot to another device needs --to-other-device "
+            "(--yes alone is not enough); nothing was sent"
+        )
     if not click.confirm(f"{safe(moved)}. Restore it to that other device?", default=False, err=True):
         raise UsageError("nothing was written (declined)")
 
@@ -116,27 +126,47 @@ def _confirm_each(prepared: PreparedRun, err: Console) -> Callable[[Plan, Device
             err.print(styled((res.name, "bold"), f" {res.url} unit {res.unit}:"))
             print_plan(p, profiles[res.name], changes_only=True, out=err)
             return await asyncio.to_thread(click.confirm, "Write these values?", default=False, err=True)
+
     return confirm
 
 
-def _run(prepared: PreparedRun, err: Console, *, confirm: Callable[[Plan, DeviceResult], Awaitable[bool]] | None,
-         as_json: bool) -> tuple[Report, bool]:
+def _run(
+    prepared: PreparedRun,
+    err: Console,
+    *,
+    confirm: Callable[[Plan, DeviceResult], Awaitable[bool]] | None,
+    as_json: bool,
+) -> tuple[Report, bool]:
     """The run (through the library), with its display; (its report, whether it was interrupted)."""
     from ..api import RunInterrupted
     from ..api.commands import run_prepared_async
 
     r = prepared.request
-    hooks = _safe_hooks(err, r.state_dir, pause=r.pause, ask=r.ask, soak=r.soak, interval=r.health_interval,
-                        staged=bool(r.batch), fleet=r.fleet)
+    hooks = _safe_hooks(
+        err,
+        r.state_dir,
+        pause=r.pause,
+        ask=r.ask,
+        soak=r.soak,
+        interval=r.health_interval,
+        staged=bool(r.batch),
+        fleet=r.fleet,
+    )
     ctx = cli_context()
-    kw: dict[str, Any] = dict(confirm=confirm, command_line=command_line(r.command), argv=ctx.argv, via="cli",
-                              signals=True, **hooks)
+    kw: dict[str, Any] = dict(
+        confirm=confirm, command_line=command_line(r.command), argv=ctx.argv, via="cli", signals=True, **hooks
+    )
     # a fleet's table shows only the devices that need a look: the others' details are in the report file
     kw["keep_results"] = bool(as_json or r.html_path or not r.fleet)
     try:
         if r.fleet:
-            return _run_fleet(prepared, kw, err, live=err.is_terminal and confirm is None and not r.ask
-                              and r.confirm_within is None, staged=bool(r.batch)), False
+            return _run_fleet(
+                prepared,
+                kw,
+                err,
+                live=err.is_terminal and confirm is None and not r.ask and r.confirm_within is None,
+                staged=bool(r.batch),
+            ), False
         return asyncio.run(run_prepared_async(prepared, **kw)), False
     except RunInterrupted as e:
         return e.report, True
@@ -158,34 +188,49 @@ def _run_fleet(prepared: PreparedRun, kw: dict[str, Any], err: Console, *, live:
     # a live display on a terminal (not while asking questions), else a line per device
     progress = FleetProgress(len(prepared.jobs), err, live=live, staged=staged, later=True)  # workers first
     with progress:
-        return asyncio.run(run_prepared_async(prepared, on_start=lambda j: progress.start(j.name),
-                                              on_done=progress.device_done, **kw))
+        return asyncio.run(
+            run_prepared_async(prepared, on_start=lambda j: progress.start(j.name), on_done=progress.device_done, **kw)
+        )
 
 
 def interrupted_outcome(report: Report) -> str:
     """What an interrupted run left, device by device as its report says (the report file, the page and
     stdout say the same): may hold new values, rolled back, kept, failed; or nothing written."""
+
     def names(ds: list[DeviceResult]) -> str:
         return ", ".join(safe(d.name) for d in ds)
 
     wrote = [d for d in report.devices if d.snapshot]
-    groups = [([d for d in wrote if d.status == "interrupted"], "may hold some new values", ""),
-              ([d for d in wrote if d.status == "rolled-back"], "rolled back to what it held before (verified)",
-               "rolled back to what they held before (verified)"),
-              ([d for d in wrote if d.status == "ok"], "keeps the new values (verified)",
-               "keep the new values (verified)"),
-              ([d for d in wrote if d.status not in ("interrupted", "rolled-back", "ok")],
-               "did not end as it should (see its status and error)", "did not end as they should (see the report)")]
-    said = [f"{_n(len(ds), 'device')} {many or one} ({names(ds)})" if len(ds) > 1 else f"{names(ds)} {one}"
-            for ds, one, many in groups if ds]
+    groups = [
+        ([d for d in wrote if d.status == "interrupted"], "may hold some new values", ""),
+        (
+            [d for d in wrote if d.status == "rolled-back"],
+            "rolled back to what it held before (verified)",
+            "rolled back to what they held before (verified)",
+        ),
+        ([d for d in wrote if d.status == "ok"], "keeps the new values (verified)", "keep the new values (verified)"),
+        (
+            [d for d in wrote if d.status not in ("interrupted", "rolled-back", "ok")],
+            "did not end as it should (see its status and error)",
+            "did not end as they should (see the report)",
+        ),
+    ]
+    said = [
+        f"{_n(len(ds), 'device')} {many or one} ({names(ds)})" if len(ds) > 1 else f"{names(ds)} {one}"
+        for ds, one, many in groups
+        if ds
+    ]
     return "; ".join(said) if said else "nothing was written"
 
 
 def _said_interrupted(report: Report, report_path: str | None) -> None:
     """After Ctrl-C or SIGTERM: what may have been written, and how to undo it (plain lines, never wrapped)."""
     written = [d for d in report.devices if d.status == "interrupted" and d.snapshot]
-    echo(f"interrupted ({report.interrupted}): {interrupted_outcome(report)}; the journal "
-         f"{safe(report.state_dir)}/audit.jsonl has it as run {report.run_id}", err=True)
+    echo(
+        f"interrupted ({report.interrupted}): {interrupted_outcome(report)}; the journal "
+        f"{safe(report.state_dir)}/audit.jsonl has it as run {report.run_id}",
+        err=True,
+    )
     if len(written) == 1:
         echo(f"undo with: deployer rollback {safe(written[0].snapshot)}", err=True)
     elif written and report_path:
@@ -194,9 +239,17 @@ def _said_interrupted(report: Report, report_path: str | None) -> None:
         echo("undo with: deployer rollback SNAPSHOT, for each snapshot above", err=True)
 
 
-def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
-                soak: float | None = None, interval: float = 1.0, staged: bool = False, fleet: bool = False
-                ) -> dict[str, Any]:
+def _safe_hooks(
+    err: Console,
+    state_dir: str,
+    *,
+    pause: float | None,
+    ask: bool,
+    soak: float | None = None,
+    interval: float = 1.0,
+    staged: bool = False,
+    fleet: bool = False,
+) -> dict[str, Any]:
     """apply_many's keywords for a safe change: a pause and a question between batches, the confirmation wait."""
     from ..load.durations import format_duration
 
@@ -206,9 +259,9 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
         if pause:
             err.print(f"batch {number - 1} done ({done}); batch {number} starts in {format_duration(pause)}")
             await asyncio.sleep(pause)
-        if ask and not await asyncio.to_thread(click.confirm, f"batch {number - 1} done ({done}). "
-                                                              f"Continue with batch {number}?", default=False,
-                                               err=True):
+        if ask and not await asyncio.to_thread(
+            click.confirm, f"batch {number - 1} done ({done}). Continue with batch {number}?", default=False, err=True
+        ):
             return f"not started: stopped at the question before batch {number} (--ask)"
         return None
 
@@ -218,17 +271,26 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
         left = round(left) if left >= 1 else round(left, 3)
         from .text import styled
 
-        err.print(styled(("waiting for confirmation", "bold"),
-                         f" until {time.strftime('%H:%M:%S UTC', time.gmtime(deadline))} ({format_duration(left)} "
-                         "left): confirm from another shell with"))
-        err.print(f"    deployer confirm {run} --state-dir {safe(state_dir)}\n"
-                  "without it every device written is rolled back and the commit is never sent")
+        err.print(
+            styled(
+                ("waiting for confirmation", "bold"),
+                f" until {time.strftime('%H:%M:%S UTC', time.gmtime(deadline))} ({format_duration(left)} "
+                "left): confirm from another shell with",
+            )
+        )
+        err.print(
+            f"    deployer confirm {run} --state-dir {safe(state_dir)}\n"
+            "without it every device written is rolled back and the commit is never sent"
+        )
 
     def soaking(number: int, names: list[str]) -> None:
         which = safe(names[0]) if len(names) == 1 else _n(len(names), "device")
-        err.print(f"{f'batch {number}: ' if number > 1 or staged else ''}watching the health of {which} for "
-                  f"{format_duration(soak or 0)} (every {format_duration(interval)}); a failed check rolls that device "
-                  "back", soft_wrap=True)
+        err.print(
+            f"{f'batch {number}: ' if number > 1 or staged else ''}watching the health of {which} for "
+            f"{format_duration(soak or 0)} (every {format_duration(interval)}); a failed check rolls that device "
+            "back",
+            soft_wrap=True,
+        )
 
     told: set[str] = set()
 
@@ -237,13 +299,16 @@ def _safe_hooks(err: Console, state_dir: str, *, pause: float | None, ask: bool,
             from .text import styled
 
             told.add(r.name)
-            err.print(styled(r.name, ": ", (r.status, "bold yellow"), f" - {r.error}" if r.error else ""),
-                      soft_wrap=True)
+            err.print(
+                styled(r.name, ": ", (r.status, "bold yellow"), f" - {r.error}" if r.error else ""), soft_wrap=True
+            )
 
-    return {"between_batches": between, "on_confirm_wait": waiting,
-            "on_soak": soaking, **({"on_changed": changed} if fleet else {})}
-
-
+    return {
+        "between_batches": between,
+        "on_confirm_wait": waiting,
+        "on_soak": soaking,
+        **({"on_changed": changed} if fleet else {}),
+    }
 
 
 def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -251,45 +316,93 @@ def apply_options(f: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--yes", "-y", is_flag=True, help="do not ask for confirmation"),
         click.option("--report", "report_path", type=click.Path(dir_okay=False), help="write the report JSON here"),
         click.option("--json", "as_json", is_flag=True, help="print the report JSON"),
-        click.option("--meta", multiple=True, metavar="KEY=VALUE",
-                     help="with --html: a line of the record's page header (site=..., project=..., customer=..., "
-                          "line=...; repeatable; wins over the inventory's meta:)"),
-        click.option("--compact", is_flag=True,
-                     help="with --html: a record for large lines: one table row per device, parameters only for "
-                          "devices that changed or did not end ok"),
-        click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
-                     help="also write the report as one self-contained HTML page (sortable, filterable; it "
-                          "prints as the commissioning record: as found / as left per device)"),
+        click.option(
+            "--meta",
+            multiple=True,
+            metavar="KEY=VALUE",
+            help="with --html: a line of the record's page header (site=..., project=..., customer=..., "
+            "line=...; repeatable; wins over the inventory's meta:)",
+        ),
+        click.option(
+            "--compact",
+            is_flag=True,
+            help="with --html: a record for large lines: one table row per device, parameters only for "
+            "devices that changed or did not end ok",
+        ),
+        click.option(
+            "--html",
+            "html_path",
+            type=click.Path(dir_okay=False),
+            metavar="FILE",
+            help="also write the report as one self-contained HTML page (sortable, filterable; it "
+            "prints as the commissioning record: as found / as left per device)",
+        ),
         fleet_option,
         limit_option,
-        click.option("--batch", metavar="1,10%,100%",
-                     help="staged rollout: each batch takes this count or % of every profile of the selection "
-                          "(1,25%,100%: one device of each profile first; % rounded, never 0; the last repeats); "
-                          "each batch finishes before the next; any canary (batch 1) device not ending ok, or a "
-                          "later batch with no ok device, ends the rollout"),
-        click.option("--batch-by", type=click.Choice(BATCH_BY), default="profile", show_default=True,
-                     help="what each --batch share is taken of: every profile, or every group (a device counts "
-                          "in the first group it lists)"),
-        click.option("--max-failures", metavar="N|P%",
-                     help="after this many devices did not end ok (failed, partial, unreachable, interrupted or "
-                          "rolled back count; skipped ones never), start no new device"),
+        click.option(
+            "--batch",
+            metavar="1,10%,100%",
+            help="staged rollout: each batch takes this count or % of every profile of the selection "
+            "(1,25%,100%: one device of each profile first; % rounded, never 0; the last repeats); "
+            "each batch finishes before the next; any canary (batch 1) device not ending ok, or a "
+            "later batch with no ok device, ends the rollout",
+        ),
+        click.option(
+            "--batch-by",
+            type=click.Choice(BATCH_BY),
+            default="profile",
+            show_default=True,
+            help="what each --batch share is taken of: every profile, or every group (a device counts "
+            "in the first group it lists)",
+        ),
+        click.option(
+            "--max-failures",
+            metavar="N|P%",
+            help="after this many devices did not end ok (failed, partial, unreachable, interrupted or "
+            "rolled back count; skipped ones never), start no new device",
+        ),
         parallel_option,
-        click.option("--on-error", type=click.Choice(["continue", "stop"]), default="continue", show_default=True,
-                     help="after a rejected value: send the rest, or skip it"),
+        click.option(
+            "--on-error",
+            type=click.Choice(["continue", "stop"]),
+            default="continue",
+            show_default=True,
+            help="after a rejected value: send the rest, or skip it",
+        ),
         click.option("--write-all", is_flag=True, help="write every parameter, even those already right"),
         click.option("--allow-broadcast", is_flag=True, help="allow unit 0 (broadcast; nothing can be verified)"),
-        click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
-                     help="where snapshots and the audit log go"),
-        click.option("--policy", type=click.Path(dir_okay=False), metavar="INVENTORY",
-                     help="the site's change-control policy: an inventory's change_control: (default: the "
-                          "DEPLOYER_POLICY environment variable; --inventory's own counts too)"),
-        click.option("--lock-timeout", type=float_range(LIMITS.lock_timeout), default=0, show_default=True, metavar="S",
-                     help="wait up to S seconds for a device another run on this machine is writing"),
-        click.option("--workers", type=int_range(LIMITS.workers), default=None, metavar="N",
-                     help="worker processes running a fleet's devices (0: all in this process; default: one per "
-                          "CPU for 100 devices or more on Linux, where they are forked, 1,000 elsewhere, unless "
-                          "--soak, --confirm-within, --rollback-on-failure or a question per device keeps them in "
-                          "this process)"),
+        click.option(
+            "--state-dir",
+            default=".deployer",
+            show_default=True,
+            type=click.Path(file_okay=False),
+            help="where snapshots and the audit log go",
+        ),
+        click.option(
+            "--policy",
+            type=click.Path(dir_okay=False),
+            metavar="INVENTORY",
+            help="the site's change-control policy: an inventory's change_control: (default: the "
+            "DEPLOYER_POLICY environment variable; --inventory's own counts too)",
+        ),
+        click.option(
+            "--lock-timeout",
+            type=float_range(LIMITS.lock_timeout),
+            default=0,
+            show_default=True,
+            metavar="S",
+            help="wait up to S seconds for a device another run on this machine is writing",
+        ),
+        click.option(
+            "--workers",
+            type=int_range(LIMITS.workers),
+            default=None,
+            metavar="N",
+            help="worker processes running a fleet's devices (0: all in this process; default: one per "
+            "CPU for 100 devices or more on Linux, where they are forked, 1,000 elsewhere, unless "
+            "--soak, --confirm-within, --rollback-on-failure or a question per device keeps them in "
+            "this process)",
+        ),
     ]
     for opt in reversed(opts):
         f = opt(f)
@@ -300,26 +413,47 @@ def safe_options(f: Callable[..., Any]) -> Callable[..., Any]:
     from .base import Duration
 
     opts = [
-        click.option("--soak", type=Duration(LIMITS.soak), metavar="DURATION",
-                     help="after the verified write, read the profile's health checks for this long (30s, 5m, 1h; "
-                          "a bare number is seconds); a failed check rolls that device back from its snapshot "
-                          "(status rolled-back, exit 4); the commit is sent only after the soak passed"),
-        click.option("--health-interval", type=Duration(LIMITS.health_interval), default="1s", show_default=True,
-                     metavar="DURATION",
-                     help="time between two rounds of health checks during --soak"),
-        click.option("--confirm-within", type=Duration(LIMITS.confirm_within), metavar="DURATION",
-                     help="hold the profile's commit back until `deployer confirm` (another shell, same "
-                          "--state-dir); not confirmed in time: every device written is rolled back"),
-        click.option("--allow-unhealthy", is_flag=True,
-                     help="with --soak or --confirm-within: write a device although one of its health checks fails "
-                          "already (else it is not written: failed, 'health check already failing before the "
-                          "change'); its window then does not hold that check against the change"),
-        click.option("--rollback-on-failure", is_flag=True,
-                     help="when the rollout stops (a failed batch or canary, --max-failures), roll back every "
-                          "device it wrote"),
+        click.option(
+            "--soak",
+            type=Duration(LIMITS.soak),
+            metavar="DURATION",
+            help="after the verified write, read the profile's health checks for this long (30s, 5m, 1h; "
+            "a bare number is seconds); a failed check rolls that device back from its snapshot "
+            "(status rolled-back, exit 4); the commit is sent only after the soak passed",
+        ),
+        click.option(
+            "--health-interval",
+            type=Duration(LIMITS.health_interval),
+            default="1s",
+            show_default=True,
+            metavar="DURATION",
+            help="time between two rounds of health checks during --soak",
+        ),
+        click.option(
+            "--confirm-within",
+            type=Duration(LIMITS.confirm_within),
+            metavar="DURATION",
+            help="hold the profile's commit back until `deployer confirm` (another shell, same "
+            "--state-dir); not confirmed in time: every device written is rolled back",
+        ),
+        click.option(
+            "--allow-unhealthy",
+            is_flag=True,
+            help="with --soak or --confirm-within: write a device although one of its health checks fails "
+            "already (else it is not written: failed, 'health check already failing before the "
+            "change'); its window then does not hold that check against the change",
+        ),
+        click.option(
+            "--rollback-on-failure",
+            is_flag=True,
+            help="when the rollout stops (a failed batch or canary, --max-failures), roll back every device it wrote",
+        ),
         click.option("--pause", type=Duration(LIMITS.pause), metavar="DURATION", help="wait this long between batches"),
-        click.option("--ask", is_flag=True,
-                     help="ask before each batch after the first (needs a terminal; --yes does not answer it)"),
+        click.option(
+            "--ask",
+            is_flag=True,
+            help="ask before each batch after the first (needs a terminal; --yes does not answer it)",
+        ),
     ]
     for opt in reversed(opts):
         f = opt(f)
@@ -331,8 +465,11 @@ def safe_options(f: Callable[..., Any]) -> Callable[..., Any]:
 @apply_options
 @safe_options
 @agent_option
-@click.option("--force-endurance", is_flag=True,
-              help="with --agent: write although a register is past the endurance its profile states")
+@click.option(
+    "--force-endurance",
+    is_flag=True,
+    help="with --agent: write although a register is past the endurance its profile states",
+)
 def apply(source: str | None, **kw: Any) -> int:
     """Write a recipe (or a saved plan) to a device, read it back, report what it holds.
 
@@ -352,22 +489,48 @@ def apply(source: str | None, **kw: Any) -> int:
 @click.command()
 @click.argument("snapshot", required=False, type=click.Path(dir_okay=False, exists=True))
 @apply_options
-@click.option("--from-report", "from_reports", multiple=True, type=click.Path(dir_okay=False), metavar="RUN.json",
-              help="every device that run may have written, each from its own snapshot (repeatable)")
-@click.option("--force", is_flag=True,
-              help="restore the recorded raw registers, each where the snapshot read it, although the profile "
-                   "changed since the snapshot")
-@click.option("--to-other-device", is_flag=True,
-              help="consent to restore a snapshot to another device or unit than the one it was taken from")
-@click.option("--accept-edited-snapshot", is_flag=True,
-              help="consent to restore a snapshot whose SHA-256 differs from the one its report or journal recorded")
-@click.option("--even-if-changed", is_flag=True,
-              help="with --from-report: restore devices that no longer hold what the run wrote (else each such "
-                   "device is refused by name, the others restored, and the exit code is 4)")
-@click.option("--all-or-nothing", is_flag=True,
-              help="with --from-report: one changed device refuses them all, nothing sent (the old behaviour)")
-@click.option("--save-report", type=click.Path(dir_okay=False), metavar="FILE", hidden=True,
-              help="the old form rollback --report RUN.json: write this rollback's own report here")
+@click.option(
+    "--from-report",
+    "from_reports",
+    multiple=True,
+    type=click.Path(dir_okay=False),
+    metavar="RUN.json",
+    help="every device that run may have written, each from its own snapshot (repeatable)",
+)
+@click.option(
+    "--force",
+    is_flag=True,
+    help="restore the recorded raw registers, each where the snapshot read it, although the profile "
+    "changed since the snapshot",
+)
+@click.option(
+    "--to-other-device",
+    is_flag=True,
+    help="consent to restore a snapshot to another device or unit than the one it was taken from",
+)
+@click.option(
+    "--accept-edited-snapshot",
+    is_flag=True,
+    help="consent to restore a snapshot whose SHA-256 differs from the one its report or journal recorded",
+)
+@click.option(
+    "--even-if-changed",
+    is_flag=True,
+    help="with --from-report: restore devices that no longer hold what the run wrote (else each such "
+    "device is refused by name, the others restored, and the exit code is 4)",
+)
+@click.option(
+    "--all-or-nothing",
+    is_flag=True,
+    help="with --from-report: one changed device refuses them all, nothing sent (the old behaviour)",
+)
+@click.option(
+    "--save-report",
+    type=click.Path(dir_okay=False),
+    metavar="FILE",
+    hidden=True,
+    help="the old form rollback --report RUN.json: write this rollback's own report here",
+)
 @agent_option
 def rollback(snapshot: str | None, **kw: Any) -> int:
     """Restore a snapshot that apply saved, to the device it was taken from.
@@ -388,9 +551,11 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
         return agentclient.rollback(url, from_reports, kw)
     if snapshot is None and not from_reports and kw["report_path"] and os.path.isfile(kw["report_path"]):
         # the old reading form: rollback --report RUN.json [--save-report FILE]
-        echo(f"warning: rollback --report {safe(kw['report_path'])} reads an earlier run's report: say "
-             f"--from-report {safe(kw['report_path'])} (--report FILE writes this rollback's report, as on apply)",
-             err=True)
+        echo(
+            f"warning: rollback --report {safe(kw['report_path'])} reads an earlier run's report: say "
+            f"--from-report {safe(kw['report_path'])} (--report FILE writes this rollback's report, as on apply)",
+            err=True,
+        )
         from_reports, kw["report_path"] = (kw["report_path"],), save
     elif save:
         raise UsageError("--save-report belongs to the old form rollback --report RUN.json; use --report FILE")
@@ -402,8 +567,13 @@ def rollback(snapshot: str | None, **kw: Any) -> int:
 
 
 @click.command()
-@click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
-              help="where snapshots and the audit log are")
+@click.option(
+    "--state-dir",
+    default=".deployer",
+    show_default=True,
+    type=click.Path(file_okay=False),
+    help="where snapshots and the audit log are",
+)
 @click.option("--json", "as_json", is_flag=True, help="print the runs that need a look as JSON")
 @click.option("--resolve", metavar="RUN", help="acknowledge a run listed here after a look (recorded in the audit log)")
 @agent_option
@@ -422,20 +592,52 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
 
     if resolve is not None:
         r = resolve_run(resolve, state_dir=state_dir)
-        echo(f"resolved run {safe(r.run)} ({_what_ran(r)} by {safe(r.user)} at {safe(r.time)}); "
-             f"recorded in {safe(run_status(state_dir).journal)}")
+        echo(
+            f"resolved run {safe(r.run)} ({_what_ran(r)} by {safe(r.user)} at {safe(r.time)}); "
+            f"recorded in {safe(run_status(state_dir).journal)}"
+        )
         return EXIT_OK
     st = run_status(state_dir)
     runs, torn, waits, soaks, folder, locks = st.runs, st.unreadable, st.awaiting, st.soaking, st.lock_folder, st.locks
     if as_json:
-        echo(json.dumps({"locks": locks, "unfinished": [
-            {"run": r.run, "time": r.time, "user": r.user, "pid": r.pid, "running": r.running, "command": r.command,
-             "via": r.via, "argv": r.argv, "recipe": r.recipe, "devices": r.devices, "interrupted": r.interrupted,
-             "finished": r.finished, "ended": r.ended,
-             **({"awaiting_confirmation": {"deadline": waits[r.run].until(), "report": waits[r.run].report,
-                                           "waiting": waits[r.run].alive}} if r.run in waits else {}),
-             **({"soaking": {"report": soaks[r.run]}} if r.run in soaks else {}),
-             } for r in runs]}, indent=2))
+        echo(
+            json.dumps(
+                {
+                    "locks": locks,
+                    "unfinished": [
+                        {
+                            "run": r.run,
+                            "time": r.time,
+                            "user": r.user,
+                            "pid": r.pid,
+                            "running": r.running,
+                            "command": r.command,
+                            "via": r.via,
+                            "argv": r.argv,
+                            "recipe": r.recipe,
+                            "devices": r.devices,
+                            "interrupted": r.interrupted,
+                            "finished": r.finished,
+                            "ended": r.ended,
+                            **(
+                                {
+                                    "awaiting_confirmation": {
+                                        "deadline": waits[r.run].until(),
+                                        "report": waits[r.run].report,
+                                        "waiting": waits[r.run].alive,
+                                    }
+                                }
+                                if r.run in waits
+                                else {}
+                            ),
+                            **({"soaking": {"report": soaks[r.run]}} if r.run in soaks else {}),
+                        }
+                        for r in runs
+                    ],
+                },
+                indent=2,
+            )
+        )
         return EXIT_CHANGES if runs else EXIT_OK
     if not runs:
         echo(f"no unfinished runs in {safe(st.journal)}")
@@ -445,32 +647,47 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
             echo(f"  {safe(line)}")
     for r in runs:
         state = "still running" if r.running else (f"interrupted ({safe(r.ended)})" if r.ended else "did not finish")
-        echo(f"{_what_ran(r)} by {safe(r.user)} at {safe(r.time)} (run {safe(r.run)}, PID {safe(r.pid)}): "
-             f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished")
+        echo(
+            f"{_what_ran(r)} by {safe(r.user)} at {safe(r.time)} (run {safe(r.run)}, PID {safe(r.pid)}): "
+            f"{state}; {_n(len(r.devices), 'device')} selected, {len(r.finished)} finished"
+        )
         dirs = "" if state_dir == ".deployer" else f" --state-dir {safe(state_dir)}"
         a = waits.get(r.run)
         if a is not None and a.alive:
-            echo(f"  awaits confirmation until {a.until()} ({max(0.0, a.left()):.0f} s left): "
-                 f"deployer confirm {safe(r.run)} --state-dir {safe(state_dir)}")
+            echo(
+                f"  awaits confirmation until {a.until()} ({max(0.0, a.left()):.0f} s left): "
+                f"deployer confirm {safe(r.run)} --state-dir {safe(state_dir)}"
+            )
         elif a is not None:
-            echo(f"  awaited confirmation (until {safe(a.deadline)}) when its process died: its devices hold values "
-                       "that were never committed (a power cycle also reverts them on devices whose commit stores "
-                       "to non-volatile memory)")
-            echo(f"    restore them with: deployer rollback --from-report {safe(a.report)} --state-dir "
-                 f"{safe(state_dir)} --yes")
+            echo(
+                f"  awaited confirmation (until {safe(a.deadline)}) when its process died: its devices hold values "
+                "that were never committed (a power cycle also reverts them on devices whose commit stores "
+                "to non-volatile memory)"
+            )
+            echo(
+                f"    restore them with: deployer rollback --from-report {safe(a.report)} --state-dir "
+                f"{safe(state_dir)} --yes"
+            )
         if r.run in soaks and not r.running:
-            echo("  died while its change soaked: its devices hold values whose health was not proven and "
-                       "that were never committed (a power cycle also reverts them on devices whose commit stores "
-                       "to non-volatile memory)")
+            echo(
+                "  died while its change soaked: its devices hold values whose health was not proven and "
+                "that were never committed (a power cycle also reverts them on devices whose commit stores "
+                "to non-volatile memory)"
+            )
             if soaks[r.run]:
-                echo(f"    restore them with: deployer rollback --from-report {safe(soaks[r.run])} "
-                     f"--state-dir {safe(state_dir)} --yes")
+                echo(
+                    f"    restore them with: deployer rollback --from-report {safe(soaks[r.run])} "
+                    f"--state-dir {safe(state_dir)} --yes"
+                )
         for d in r.interrupted:
             where = f"{safe(d.get('url'))} unit {safe(d.get('unit'))}"
             echo(f"  interrupted while writing: {safe(d.get('name'))} {where}; snapshot {safe(d.get('snapshot'))}")
             if r.command == "rollback" and d.get("restoring"):  # its snapshot holds the values being undone
-                echo(f"    the rollback did not finish: re-run it with: deployer rollback {safe(d['restoring'])}"
-                     + ("" if d.get("restoring") == r.recipe else f" --device {safe(d.get('url'))}") + dirs)
+                echo(
+                    f"    the rollback did not finish: re-run it with: deployer rollback {safe(d['restoring'])}"
+                    + ("" if d.get("restoring") == r.recipe else f" --device {safe(d.get('url'))}")
+                    + dirs
+                )
             else:
                 check = _diff_command(r, d)
                 undo = f"undo with: deployer rollback {safe(d.get('snapshot'))}{dirs}"
@@ -478,8 +695,7 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
         done = {(d.get("name"), d.get("url"), d.get("unit")) for d in (*r.finished, *r.interrupted)}
         never = [d for d in r.devices if (d.get("name"), d.get("url"), d.get("unit")) not in done]
         if never and not r.running and not r.ended:
-            echo(f"  not written (never started or nothing to write): "
-                 f"{', '.join(safe(d.get('name')) for d in never)}")
+            echo(f"  not written (never started or nothing to write): {', '.join(safe(d.get('name')) for d in never)}")
         if not r.running:
             echo(f"  after a look: deployer status --resolve {safe(r.run)}{dirs}")
     if torn:
@@ -519,8 +735,13 @@ def _diff_command(r: Any, d: dict[str, Any]) -> str | None:
 
 @click.command()
 @click.argument("run", required=False)
-@click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
-              help="the state directory of the run that waits (apply --confirm-within)")
+@click.option(
+    "--state-dir",
+    default=".deployer",
+    show_default=True,
+    type=click.Path(file_okay=False),
+    help="the state directory of the run that waits (apply --confirm-within)",
+)
 @agent_option
 def confirm(run: str | None, state_dir: str, agent_url: str | None) -> int:
     """Confirm a run that waits (apply --confirm-within): its held-back commit is sent.
@@ -552,7 +773,8 @@ def confirm(run: str | None, state_dir: str, agent_url: str | None) -> int:
     if sent:
         said_.append(f"the commit was sent to {', '.join(safe(n) for n in sent)}")
     if kept:
-        said_.append(f"kept as written on {', '.join(safe(n) for n in kept)} (its profile has no commit step: "
-                     "nothing to store)")
+        said_.append(
+            f"kept as written on {', '.join(safe(n) for n in kept)} (its profile has no commit step: nothing to store)"
+        )
     echo(f"run {safe(confirmed[0])}: " + ("; ".join(said_) or "confirmed"))
     return EXIT_OK

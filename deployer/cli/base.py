@@ -185,8 +185,9 @@ def _set_force(ctx: click.Context, _param: click.Parameter, value: bool) -> bool
 
 
 # -o FILE of a command that makes a file (import, export): replacing an existing file takes --force
-force_option = click.option("--force", is_flag=True, expose_value=False, callback=_set_force,
-                            help="overwrite an existing output file")
+force_option = click.option(
+    "--force", is_flag=True, expose_value=False, callback=_set_force, help="overwrite an existing output file"
+)
 
 
 def int_range(bound: Bound) -> click.IntRange:
@@ -236,24 +237,34 @@ class Duration(click.ParamType[float]):
         return seconds
 
 
-
 def device_options(f: Callable[..., Any]) -> Callable[..., Any]:
     for opt in reversed(_device_options):
         f = opt(f)
     return f
 
 
-LIMIT_HELP = ("inventory devices: names, groups and glob patterns, comma-separated (!X excludes); "
-              "@REPORT.json = the devices of that report that did not end ok")
+LIMIT_HELP = (
+    "inventory devices: names, groups and glob patterns, comma-separated (!X excludes); "
+    "@REPORT.json = the devices of that report that did not end ok"
+)
 fleet_option = click.option("--inventory", type=click.Path(dir_okay=False), help="every device of an inventory")
 limit_option = click.option("--limit", metavar="SEL", help=LIMIT_HELP)
-parallel_option = click.option("--parallel", type=int_range(LIMITS.parallel), default=8, show_default=True,
-                               help="devices at once (devices on one bus always go one at a time)")
+parallel_option = click.option(
+    "--parallel",
+    type=int_range(LIMITS.parallel),
+    default=8,
+    show_default=True,
+    help="devices at once (devices on one bus always go one at a time)",
+)
 # the commands that can run through the site agent (deployer.cli.agentclient talks to it)
 _agent_url_option = click.option(
-    "--agent", "agent_url", metavar="URL", envvar="DEPLOYER_AGENT",
+    "--agent",
+    "agent_url",
+    metavar="URL",
+    envvar="DEPLOYER_AGENT",
     help="run through the site agent at URL (deployer agent; env DEPLOYER_AGENT): it owns the devices, executes, "
-         "and holds the windows")
+    "and holds the windows",
+)
 
 
 def _remember(ctx: click.Context, param: click.Parameter, value: str | None) -> None:
@@ -263,18 +274,41 @@ def _remember(ctx: click.Context, param: click.Parameter, value: str | None) -> 
 
 
 _agent_token_option = click.option(
-    "--agent-token-file", metavar="FILE", type=click.Path(dir_okay=False), expose_value=False, callback=_remember,
-    help="the agent's token or your own (its first line); or env DEPLOYER_AGENT_TOKEN")
+    "--agent-token-file",
+    metavar="FILE",
+    type=click.Path(dir_okay=False),
+    expose_value=False,
+    callback=_remember,
+    help="the agent's token or your own (its first line); or env DEPLOYER_AGENT_TOKEN",
+)
 _agent_ca_option = click.option(
-    "--agent-ca", metavar="FILE", type=click.Path(dir_okay=False), expose_value=False, callback=_remember,
-    envvar="DEPLOYER_AGENT_CA", help="CA certificate (PEM) an https:// agent's certificate is checked against")
+    "--agent-ca",
+    metavar="FILE",
+    type=click.Path(dir_okay=False),
+    expose_value=False,
+    callback=_remember,
+    envvar="DEPLOYER_AGENT_CA",
+    help="CA certificate (PEM) an https:// agent's certificate is checked against",
+)
 _agent_cert_option = click.option(
-    "--agent-cert", metavar="FILE", type=click.Path(dir_okay=False), expose_value=False, callback=_remember,
-    envvar="DEPLOYER_AGENT_CERT", help="your TLS client certificate (PEM, with its key or --agent-key) for an "
-    "agent that maps certificates to users (env DEPLOYER_AGENT_CERT)")
+    "--agent-cert",
+    metavar="FILE",
+    type=click.Path(dir_okay=False),
+    expose_value=False,
+    callback=_remember,
+    envvar="DEPLOYER_AGENT_CERT",
+    help="your TLS client certificate (PEM, with its key or --agent-key) for an "
+    "agent that maps certificates to users (env DEPLOYER_AGENT_CERT)",
+)
 _agent_key_option = click.option(
-    "--agent-key", metavar="FILE", type=click.Path(dir_okay=False), expose_value=False, callback=_remember,
-    envvar="DEPLOYER_AGENT_KEY", help="the client certificate's private key (PEM; env DEPLOYER_AGENT_KEY)")
+    "--agent-key",
+    metavar="FILE",
+    type=click.Path(dir_okay=False),
+    expose_value=False,
+    callback=_remember,
+    envvar="DEPLOYER_AGENT_KEY",
+    help="the client certificate's private key (PEM; env DEPLOYER_AGENT_KEY)",
+)
 
 
 def agent_options(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -287,9 +321,9 @@ def agent_option(f: Callable[..., Any]) -> Callable[..., Any]:
     return _agent_url_option(agent_options(f))
 
 
-
-def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float | None,
-            retries: int | None, *, required: bool) -> tuple[DeviceURL | None, int]:
+def _target(
+    recipe: Recipe, device: str | None, unit: int | None, timeout: float | None, retries: int | None, *, required: bool
+) -> tuple[DeviceURL | None, int]:
     """The device URL and unit from the options, else the recipe's; parsed before any I/O."""
     from ..api.commands import device_url  # not the transports: an offline plan does not import pymodbus
 
@@ -302,8 +336,7 @@ def _target(recipe: Recipe, device: str | None, unit: int | None, timeout: float
     return device_url(text, timeout=timeout, retries=retries), u  # BadURL is a UsageError
 
 
-def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: int
-                ) -> dict[str, tuple[int, ...]] | None:
+def read_device(profile: Profile, names: Sequence[str], url: DeviceURL, unit: int) -> dict[str, tuple[int, ...]] | None:
     """Current values for plan --device, diff and pull; None (after saying why) when unreachable."""
     import asyncio  # not at import: --version and --help need no event loop
 
@@ -321,8 +354,9 @@ def _unreachable(values: Mapping[str, object]) -> list[str]:
     return [n for n, v in values.items() if isinstance(v, Exception)]
 
 
-def _fleet(rec: Recipe | None, inventory: str, limit: str | None, timeout: float | None, retries: int | None,
-           unit: int | None) -> list[Job]:
+def _fleet(
+    rec: Recipe | None, inventory: str, limit: str | None, timeout: float | None, retries: int | None, unit: int | None
+) -> list[Job]:
     from ..api.commands import fleet_jobs
 
     return fleet_jobs(rec, inventory, limit=limit, timeout=timeout, retries=retries, unit=unit)

@@ -34,23 +34,40 @@ class ChangeOptions:
 
 def change_options(f: Callable[..., Any]) -> Callable[..., Any]:
     """``--reason``, ``--ticket``, ``--sign-key``, ``--signer`` for ``plan --out``, handed over as one ``change``."""
+
     @functools.wraps(f)
     def wrapped(*args: Any, **kw: Any) -> Any:
-        kw["change"] = ChangeOptions(kw.pop("reason"), kw.pop("ticket"), kw.pop("sign_key"), kw.pop("signer"),
-                                     kw.pop("policy"))
+        kw["change"] = ChangeOptions(
+            kw.pop("reason"), kw.pop("ticket"), kw.pop("sign_key"), kw.pop("signer"), kw.pop("policy")
+        )
         return f(*args, **kw)
 
     opts = [
-        click.option("--reason", metavar="TEXT", help="with --out: why this change (recorded in the plan, covered by "
-                                                      "its signatures; a site policy can require it)"),
+        click.option(
+            "--reason",
+            metavar="TEXT",
+            help="with --out: why this change (recorded in the plan, covered by "
+            "its signatures; a site policy can require it)",
+        ),
         click.option("--ticket", metavar="ID", help="with --out: the change ticket (a site policy can require it)"),
-        click.option("--sign-key", type=click.Path(dir_okay=False), metavar="KEY",
-                     help="with --out: sign the plan as its author (an SSH or Ed25519 private key; a public key "
-                          "KEY.pub signs through ssh-keygen and your ssh-agent)"),
-        click.option("--signer", metavar="NAME", help="the name you sign as (default: the name allowed_signers "
-                                                      "gives the key, else your user name)"),
-        click.option("--policy", type=click.Path(dir_okay=False), metavar="INVENTORY",
-                     help="the site's change-control policy, for its allowed_signers (default: DEPLOYER_POLICY)"),
+        click.option(
+            "--sign-key",
+            type=click.Path(dir_okay=False),
+            metavar="KEY",
+            help="with --out: sign the plan as its author (an SSH or Ed25519 private key; a public key "
+            "KEY.pub signs through ssh-keygen and your ssh-agent)",
+        ),
+        click.option(
+            "--signer",
+            metavar="NAME",
+            help="the name you sign as (default: the name allowed_signers gives the key, else your user name)",
+        ),
+        click.option(
+            "--policy",
+            type=click.Path(dir_okay=False),
+            metavar="INVENTORY",
+            help="the site's change-control policy, for its allowed_signers (default: DEPLOYER_POLICY)",
+        ),
     ]
     out: Callable[..., Any] = wrapped
     for opt in reversed(opts):
@@ -100,8 +117,10 @@ def stamped(data: dict[str, Any], change: ChangeOptions, rec: Recipe) -> dict[st
     inputs = [input_record(kind, path) for kind, path in files if path and os.path.isfile(path)]
     key = open_key(change.key) if change.key else None
     author = signer_name(key, change.signer, _signers(change.policy)) if key is not None else user_name()
-    doc = {**{k: v for k, v in data.items() if k != "signatures"},
-           "change": change_member(author, reason=change.reason, ticket=change.ticket, inputs=inputs)}
+    doc = {
+        **{k: v for k, v in data.items() if k != "signatures"},
+        "change": change_member(author, reason=change.reason, ticket=change.ticket, inputs=inputs),
+    }
     if key is not None:
         doc["signatures"] = [sign(digest(doc), author, "authored", key)]
     return doc
@@ -112,22 +131,51 @@ def stamped(data: dict[str, Any], change: ChangeOptions, rec: Recipe) -> dict[st
 
 def _key_options(f: Callable[..., Any]) -> Callable[..., Any]:
     opts = [
-        click.option("--key", type=click.Path(dir_okay=False), metavar="KEY",
-                     help="sign with this key: an SSH private key (OpenSSH format; Ed25519, ECDSA, RSA) or an "
-                          "Ed25519 PEM key; a public key KEY.pub signs through ssh-keygen (ssh-agent, tokens)"),
-        click.option("--signer", metavar="NAME", help="the name you sign as, as allowed_signers lists it (default: "
-                                                      "the one name it gives the key, else your user name)"),
-        click.option("--statement-out", type=click.Path(dir_okay=False), metavar="FILE",
-                     help="only write the statement to sign (then: ssh-keygen -Y sign -f KEY -n deployer FILE)"),
-        click.option("--statement", type=click.Path(dir_okay=False, exists=True), metavar="FILE",
-                     help="a statement written by --statement-out, signed by ssh-keygen: give --signature too"),
-        click.option("--signature", type=click.Path(dir_okay=False, exists=True), metavar="FILE.sig",
-                     help="ssh-keygen -Y sign's signature of --statement"),
-        click.option("--policy", type=click.Path(dir_okay=False), metavar="INVENTORY",
-                     help="the site's change-control policy (default: DEPLOYER_POLICY): its allowed_signers and "
-                          "what the plan still lacks"),
-        click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
-                     help="where the audit trail is (STATE/audit), unless the policy names its folder"),
+        click.option(
+            "--key",
+            type=click.Path(dir_okay=False),
+            metavar="KEY",
+            help="sign with this key: an SSH private key (OpenSSH format; Ed25519, ECDSA, RSA) or an "
+            "Ed25519 PEM key; a public key KEY.pub signs through ssh-keygen (ssh-agent, tokens)",
+        ),
+        click.option(
+            "--signer",
+            metavar="NAME",
+            help="the name you sign as, as allowed_signers lists it (default: "
+            "the one name it gives the key, else your user name)",
+        ),
+        click.option(
+            "--statement-out",
+            type=click.Path(dir_okay=False),
+            metavar="FILE",
+            help="only write the statement to sign (then: ssh-keygen -Y sign -f KEY -n deployer FILE)",
+        ),
+        click.option(
+            "--statement",
+            type=click.Path(dir_okay=False, exists=True),
+            metavar="FILE",
+            help="a statement written by --statement-out, signed by ssh-keygen: give --signature too",
+        ),
+        click.option(
+            "--signature",
+            type=click.Path(dir_okay=False, exists=True),
+            metavar="FILE.sig",
+            help="ssh-keygen -Y sign's signature of --statement",
+        ),
+        click.option(
+            "--policy",
+            type=click.Path(dir_okay=False),
+            metavar="INVENTORY",
+            help="the site's change-control policy (default: DEPLOYER_POLICY): its allowed_signers and "
+            "what the plan still lacks",
+        ),
+        click.option(
+            "--state-dir",
+            default=".deployer",
+            show_default=True,
+            type=click.Path(file_okay=False),
+            help="where the audit trail is (STATE/audit), unless the policy names its folder",
+        ),
     ]
     for opt in reversed(opts):
         f = opt(f)
@@ -147,16 +195,27 @@ def approve(plan: str, **kw: Any) -> int:
 
 @click.command()
 @click.argument("file", type=click.Path(dir_okay=False, exists=True))
-@click.option("--meaning", type=click.Choice(["authored", "reviewed", "approved"]), required=True,
-              help="what the signature means")
+@click.option(
+    "--meaning", type=click.Choice(["authored", "reviewed", "approved"]), required=True, help="what the signature means"
+)
 @_key_options
 def sign(file: str, meaning: str, **kw: Any) -> int:
     """Sign a saved plan (into its signatures) or a recipe or profile (into FILE.signatures.json)."""
     return _sign(file, meaning, **kw)
 
 
-def _sign(path: str, meaning: str, *, key: str | None, signer: str | None, statement_out: str | None,
-          statement: str | None, signature: str | None, policy: str | None, state_dir: str) -> int:
+def _sign(
+    path: str,
+    meaning: str,
+    *,
+    key: str | None,
+    signer: str | None,
+    statement_out: str | None,
+    statement: str | None,
+    signature: str | None,
+    policy: str | None,
+    state_dir: str,
+) -> int:
     from ..audit import commands
     from ..change.files import Signed
     from ..change.signature import statement as make_statement
@@ -179,15 +238,24 @@ def _sign(path: str, meaning: str, *, key: str | None, signer: str | None, state
             from ..api.commands import write_output
 
             write_output(statement_out, statement_bytes(st), what="the statement")
-            echo(f"statement written to {safe(statement_out)}; sign it with:\n  ssh-keygen -Y sign -f KEY -n deployer "
-                 f"{safe(statement_out)}\nthen: deployer {'approve' if meaning == 'approved' else 'sign'} "
-                 f"{safe(path)} --statement {safe(statement_out)} --signature {safe(statement_out)}.sig")
+            echo(
+                f"statement written to {safe(statement_out)}; sign it with:\n  ssh-keygen -Y sign -f KEY -n deployer "
+                f"{safe(statement_out)}\nthen: deployer {'approve' if meaning == 'approved' else 'sign'} "
+                f"{safe(path)} --statement {safe(statement_out)} --signature {safe(statement_out)}.sig"
+            )
             return EXIT_OK
         entry = None
     why = _refusal(target, name, meaning)
     if why is not None:
-        for what in commands.refused(event="approve-refused", path=path, digest=target.digest, user=name, why=why,
-                                     state_dir=state_dir, policy_path=policy):
+        for what in commands.refused(
+            event="approve-refused",
+            path=path,
+            digest=target.digest,
+            user=name,
+            why=why,
+            state_dir=state_dir,
+            policy_path=policy,
+        ):
             echo(f"not recorded: {safe(what)}", err=True)
         raise UsageError(f"{path}: {why}; nothing was signed")
     if entry is None:
@@ -196,10 +264,13 @@ def _sign(path: str, meaning: str, *, key: str | None, signer: str | None, state
         assert k is not None
         entry = make(target.digest, name, meaning, k)
     written = target.add(entry)
-    echo(f"{entry['meaning']} by {safe(name)} at {entry['time']}: signature over {target.digest} added to "
-         f"{safe(written)}")
-    for what in commands.signed(path=path, digest=target.digest, entry=entry, author=target.author,
-                                state_dir=state_dir, policy_path=policy):
+    echo(
+        f"{entry['meaning']} by {safe(name)} at {entry['time']}: signature over {target.digest} added to "
+        f"{safe(written)}"
+    )
+    for what in commands.signed(
+        path=path, digest=target.digest, entry=entry, author=target.author, state_dir=state_dir, policy_path=policy
+    ):
         echo(f"not recorded: {safe(what)}", err=True)
     _lacks(target.path, policy)
     return EXIT_OK
@@ -215,8 +286,13 @@ def _refusal(target: Any, name: str, meaning: str) -> str | None:
     """Four eyes: the author never approves their own plan; nobody signs the same meaning twice."""
     if meaning == "approved" and target.author is not None and name == target.author:
         return f"{name} is the plan's author: an author cannot approve their own change"
-    if any(isinstance(s, dict) and s.get("signer") == name and s.get("meaning") == meaning
-           and s.get("digest") == target.digest for s in target.signatures):
+    if any(
+        isinstance(s, dict)
+        and s.get("signer") == name
+        and s.get("meaning") == meaning
+        and s.get("digest") == target.digest
+        for s in target.signatures
+    ):
         return f"{name} has signed it as {meaning} already"
     return None
 
@@ -264,10 +340,18 @@ def _lacks(path: str, policy_path: str | None) -> None:
 
 @click.command()
 @click.argument("file", type=click.Path(dir_okay=False, exists=True))
-@click.option("--allowed-signers", type=click.Path(dir_okay=False, exists=True), metavar="FILE",
-              help="the trusted keys (OpenSSH allowed_signers; default: the policy's)")
-@click.option("--policy", type=click.Path(dir_okay=False), metavar="INVENTORY",
-              help="the site's change-control policy (default: DEPLOYER_POLICY): also says what a plan lacks")
+@click.option(
+    "--allowed-signers",
+    type=click.Path(dir_okay=False, exists=True),
+    metavar="FILE",
+    help="the trusted keys (OpenSSH allowed_signers; default: the policy's)",
+)
+@click.option(
+    "--policy",
+    type=click.Path(dir_okay=False),
+    metavar="INVENTORY",
+    help="the site's change-control policy (default: DEPLOYER_POLICY): also says what a plan lacks",
+)
 @click.option("--json", "as_json", is_flag=True, help="print what was found as JSON")
 def verify(file: str, allowed_signers: str | None, policy: str | None, as_json: bool) -> int:
     """Say who signed FILE (a saved plan, or a recipe or profile with FILE.signatures.json), when, with which
@@ -288,8 +372,19 @@ def verify(file: str, allowed_signers: str | None, policy: str | None, as_json: 
     change = (target.plan or {}).get("change") or {}
     ok = bool(verdicts) and all(v.holds for v in verdicts) and not missing
     if as_json:
-        echo(json.dumps({"file": file, "digest": target.digest, "change": change,
-                         "signatures": [v.to_json() for v in verdicts], "missing": missing, "holds": ok}, indent=2))
+        echo(
+            json.dumps(
+                {
+                    "file": file,
+                    "digest": target.digest,
+                    "change": change,
+                    "signatures": [v.to_json() for v in verdicts],
+                    "missing": missing,
+                    "holds": ok,
+                },
+                indent=2,
+            )
+        )
         return EXIT_OK if ok else EXIT_INVALID
     echo(f"{safe(file)}: {target.digest}")
     if isinstance(change, dict) and change:
@@ -299,8 +394,10 @@ def verify(file: str, allowed_signers: str | None, policy: str | None, as_json: 
         echo("no signatures")
     for v in verdicts:
         state = "holds" if v.holds else f"does NOT hold: {safe(v.why)}"
-        echo(f"  {v.meaning:<9} {safe(v.signer)}{f' (attested by {safe(v.attested_by)})' if v.attested_by else ''} "
-             f"at {safe(v.time)}: {state}")
+        echo(
+            f"  {v.meaning:<9} {safe(v.signer)}{f' (attested by {safe(v.attested_by)})' if v.attested_by else ''} "
+            f"at {safe(v.time)}: {state}"
+        )
     if allowed is None and verdicts:
         echo("no allowed signers (--allowed-signers FILE, or a policy's): nobody vouches for these keys", err=True)
     for m in missing:

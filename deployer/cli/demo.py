@@ -102,8 +102,12 @@ def _steps(work: str, *, fast: bool, kept: bool) -> int:
     faults = Faults()
     with SimulatorThread(profile, listen="tcp://127.0.0.1:0", faults=faults) as sim:
         url = sim.url
-        files = {"conveyor-base.yaml": BASE, "conveyor-line3.yaml": LINE3.format(url=url),
-                 "line3-retune.yaml": RETUNE, "line3-fast-ramp.yaml": FAST_RAMP}
+        files = {
+            "conveyor-base.yaml": BASE,
+            "conveyor-line3.yaml": LINE3.format(url=url),
+            "line3-retune.yaml": RETUNE,
+            "line3-fast-ramp.yaml": FAST_RAMP,
+        }
         for name, text in files.items():
             with open(os.path.join(work, name), "w", encoding="utf-8") as f:
                 f.write(text)
@@ -126,20 +130,31 @@ def _steps(work: str, *, fast: bool, kept: bool) -> int:
             return code
 
         click.secho("deployer demo", bold=True)
-        where = f"Files are in {work}." if kept else "Files are in a temporary folder, removed at the end " \
-                                                    "(deployer demo --keep DIR keeps them)."
+        where = (
+            f"Files are in {work}."
+            if kept
+            else "Files are in a temporary folder, removed at the end (deployer demo --keep DIR keeps them)."
+        )
         click.echo(f"A simulated example-inverter listens on {url} (unit 1). {where}")
-        step("1. Validate", "Recipes and profiles are checked before anything is sent: schema, units, ranges, "
-                            "resolution. This recipe extends a shared base:")
+        step(
+            "1. Validate",
+            "Recipes and profiles are checked before anything is sent: schema, units, ranges, "
+            "resolution. This recipe extends a shared base:",
+        )
         click.echo(LINE3.format(url=url))
         codes = [run(["validate", line3])]
         step("2. Plan, offline", "The planner packs contiguous registers into the fewest FC16 requests.")
         codes.append(run(["plan", line3]))
-        step("3. Plan against the device", "With --device the plan reads what the device holds and shows only "
-                                          "what changes (current -> desired).")
+        step(
+            "3. Plan against the device",
+            "With --device the plan reads what the device holds and shows only what changes (current -> desired).",
+        )
         codes.append(run(["plan", line3, "--device", url]))
-        step("4. Apply", "A snapshot of the current values is saved (and made durable) before the first write; "
-                         "then the writes, a read-back of every parameter and the report.")
+        step(
+            "4. Apply",
+            "A snapshot of the current values is saved (and made durable) before the first write; "
+            "then the writes, a read-back of every parameter and the report.",
+        )
         codes.append(run(["apply", line3, "--yes", "--state-dir", state]))
         snapshots = sorted(n for n in os.listdir(os.path.join(state, "snapshots")) if n.endswith(".yaml"))
         first_snapshot = os.path.join(state, "snapshots", snapshots[0]) if snapshots else None
@@ -148,25 +163,49 @@ def _steps(work: str, *, fast: bool, kept: bool) -> int:
         step("6. Drift", "Someone changes F07 on the panel; diff notices (exit code 2).")
         sim.write("F07", profile.parameter("F07").encode(1234))
         codes.append(run(["diff", line3]))
-        step("7. A partial failure", "The drive rejects one register (exception 04). The report says exactly "
-                                     "which parameter failed; the ones after it go out in a follow-up request.")
+        step(
+            "7. A partial failure",
+            "The drive rejects one register (exception 04). The report says exactly "
+            "which parameter failed; the ones after it go out in a follow-up request.",
+        )
         faults.fail_registers = frozenset({bad})
         codes.append(run(["apply", retune, "--yes", "--state-dir", state, "--device", url]))
         faults.fail_registers = frozenset()
         if first_snapshot:
-            step("8. Rollback", "The first snapshot is a recipe that knows its device and profile: rollback "
-                                "writes back exactly the registers the device held, to that device.")
+            step(
+                "8. Rollback",
+                "The first snapshot is a recipe that knows its device and profile: rollback "
+                "writes back exactly the registers the device held, to that device.",
+            )
             codes.append(run(["rollback", first_snapshot, "--yes", "--state-dir", state]))
             step("9. Verify", "Diff against the snapshot: no drift left.")
             codes.append(run(["diff", first_snapshot, "--device", url]))
         faults.rules = (parse_fault_rule("F07 < 2 s: 0x2000=7", profile),)
-        step("10. A change the drive does not survive", "The write reads back right, but the drive trips on the "
-                                                        "new ramp. --soak watches the profile's health checks "
-                                                        "(fault code zero) after the write; the first failed check "
-                                                        "rolls the device back from its snapshot, and the commit "
-                                                        "(store to EEPROM) is never sent.")
-        codes.append(run(["apply", fast_ramp, "--yes", "--state-dir", state, "--device", url,
-                          "--soak", "1s" if fast else "3s", "--health-interval", "250ms"]))
+        step(
+            "10. A change the drive does not survive",
+            "The write reads back right, but the drive trips on the "
+            "new ramp. --soak watches the profile's health checks "
+            "(fault code zero) after the write; the first failed check "
+            "rolls the device back from its snapshot, and the commit "
+            "(store to EEPROM) is never sent.",
+        )
+        codes.append(
+            run(
+                [
+                    "apply",
+                    fast_ramp,
+                    "--yes",
+                    "--state-dir",
+                    state,
+                    "--device",
+                    url,
+                    "--soak",
+                    "1s" if fast else "3s",
+                    "--health-interval",
+                    "250ms",
+                ]
+            )
+        )
         if kept:
             click.echo()
             click.echo(f"Audit log: {os.path.join(state, 'audit.jsonl')}")

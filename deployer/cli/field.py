@@ -10,8 +10,13 @@ from ..errors import EXIT_OK, UsageError
 from .base import TIMEOUT, console, echo, safe
 from .tables import show
 
-_STATE = click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
-                      help="the state directory apply keeps what devices taught in")
+_STATE = click.option(
+    "--state-dir",
+    default=".deployer",
+    show_default=True,
+    type=click.Path(file_okay=False),
+    help="the state directory apply keeps what devices taught in",
+)
 
 
 @click.group()
@@ -34,8 +39,11 @@ def learned_list(state_dir: str, as_json: bool) -> int:
     if not entries:
         out.print(f"nothing learned in {safe(path)}")
         return EXIT_OK
-    show(out, ["profile", "device", "limits", "seen", "when"],
-         [[e.profile, e.device, e.describe_limits(), e.seen, e.when] for e in entries])
+    show(
+        out,
+        ["profile", "device", "limits", "seen", "when"],
+        [[e.profile, e.device, e.describe_limits(), e.seen, e.when] for e in entries],
+    )
     return EXIT_OK
 
 
@@ -85,19 +93,49 @@ def _unit_ids(specs: tuple[str, ...]) -> list[int]:
 
 @click.command()
 @click.argument("url", required=False)
-@click.option("--list-ports", is_flag=True,
-              help="list this system's serial ports (COM3, /dev/ttyUSB0) with their adapters instead of scanning")
-@click.option("--unit", "units", multiple=True, metavar="IDS",
-              help="unit ids to ask: 7, 1-32, 1,3,10-12 (repeatable; default 1-247)")
-@click.option("--timeout", type=click.FloatRange(min=0.001, max=60), default=0.2, show_default=True,
-              help="seconds to wait for each unit (a silent unit costs this once)")
-@click.option("--register", type=click.IntRange(0, 65535), default=0, show_default=True,
-              help="the holding register each unit is asked for (any answer, an exception too, counts)")
-@click.option("-o", "--output", "output", type=click.Path(dir_okay=False),
-              help="write an inventory fragment of the units that answered")
+@click.option(
+    "--list-ports",
+    is_flag=True,
+    help="list this system's serial ports (COM3, /dev/ttyUSB0) with their adapters instead of scanning",
+)
+@click.option(
+    "--unit",
+    "units",
+    multiple=True,
+    metavar="IDS",
+    help="unit ids to ask: 7, 1-32, 1,3,10-12 (repeatable; default 1-247)",
+)
+@click.option(
+    "--timeout",
+    type=click.FloatRange(min=0.001, max=60),
+    default=0.2,
+    show_default=True,
+    help="seconds to wait for each unit (a silent unit costs this once)",
+)
+@click.option(
+    "--register",
+    type=click.IntRange(0, 65535),
+    default=0,
+    show_default=True,
+    help="the holding register each unit is asked for (any answer, an exception too, counts)",
+)
+@click.option(
+    "-o",
+    "--output",
+    "output",
+    type=click.Path(dir_okay=False),
+    help="write an inventory fragment of the units that answered",
+)
 @click.option("--json", "as_json", is_flag=True, help="print the result as JSON")
-def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: float, register: int,
-         output: str | None, as_json: bool) -> int:
+def scan(
+    url: str | None,
+    list_ports: bool,
+    units: tuple[str, ...],
+    timeout: float,
+    register: int,
+    output: str | None,
+    as_json: bool,
+) -> int:
     """Which unit ids answer on URL (a serial bus or a gateway), with their identity (Function 43).
 
     Read-only. Each unit costs one FC03 request without retry (at most --timeout when silent), then a
@@ -109,8 +147,7 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
             raise UsageError("--list-ports lists this system's serial ports: give it without a URL")
         return _list_ports(as_json)
     if url is None:
-        raise UsageError("scan needs a URL (rtu://COM3, rtu:///dev/ttyUSB0, rtu+tcp://GATEWAY:PORT), "
-                         "or --list-ports")
+        raise UsageError("scan needs a URL (rtu://COM3, rtu:///dev/ttyUSB0, rtu+tcp://GATEWAY:PORT), or --list-ports")
     from ..api.commands import device_url as parse_url
     from ..api.commands import scan as run_scan
     from ..errors import EXIT_UNREACHABLE, BadURL, TransportError
@@ -121,8 +158,10 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
     except BadURL as e:
         raise UsageError(str(e)) from None
     err = console(stderr=True)
-    err.print(f"asking {len(ids)} unit id{'s' if len(ids) != 1 else ''} on {safe(url)} "
-              f"(at most {len(ids) * device_url.timeout:.1f} s)")
+    err.print(
+        f"asking {len(ids)} unit id{'s' if len(ids) != 1 else ''} on {safe(url)} "
+        f"(at most {len(ids) * device_url.timeout:.1f} s)"
+    )
     try:
         result = run_scan(device_url, ids, register=register)
     except TransportError as e:
@@ -133,18 +172,36 @@ def scan(url: str | None, list_ports: bool, units: tuple[str, ...], timeout: flo
 
         write_atomic(output, result.inventory_text(url))
     if as_json:
-        echo(json.dumps({"url": result.url, "asked": result.asked, "seconds": round(result.seconds, 3),
-                               "units": [{"unit": u.unit, "answer": u.answer, "identity": u.identity}
-                                         for u in result.units]}, indent=2))
+        echo(
+            json.dumps(
+                {
+                    "url": result.url,
+                    "asked": result.asked,
+                    "seconds": round(result.seconds, 3),
+                    "units": [{"unit": u.unit, "answer": u.answer, "identity": u.identity} for u in result.units],
+                },
+                indent=2,
+            )
+        )
     else:
         out = console()
         if result.units:
-            show(out, ["unit", "answer", "vendor", "product code", "revision"],
-                 [[str(u.unit), u.answer, *((u.identity or {}).get(k, "-") for k in ("vendor", "product_code",
-                                                                                     "revision"))]
-                  for u in result.units])
-        out.print(f"{len(result.units)} of {result.asked} unit ids answered on {safe(result.url)} "
-                  f"in {result.seconds:.1f} s" + (f"; inventory written to {safe(output)}" if output else ""))
+            show(
+                out,
+                ["unit", "answer", "vendor", "product code", "revision"],
+                [
+                    [
+                        str(u.unit),
+                        u.answer,
+                        *((u.identity or {}).get(k, "-") for k in ("vendor", "product_code", "revision")),
+                    ]
+                    for u in result.units
+                ],
+            )
+        out.print(
+            f"{len(result.units)} of {result.asked} unit ids answered on {safe(result.url)} "
+            f"in {result.seconds:.1f} s" + (f"; inventory written to {safe(output)}" if output else "")
+        )
     return EXIT_OK if result.units else EXIT_UNREACHABLE
 
 
@@ -156,8 +213,11 @@ def _list_ports(as_json: bool) -> int:
     if as_json:
         echo(json.dumps([p.to_json() for p in ports], indent=2))
     elif ports:
-        show(console(), ["port", "URL", "description", "hardware id"],
-             [[p.device, p.url, p.description, p.hwid] for p in ports])
+        show(
+            console(),
+            ["port", "URL", "description", "hardware id"],
+            [[p.device, p.url, p.description, p.hwid] for p in ports],
+        )
     else:
         echo("no serial ports found (a USB adapter that is plugged in but not listed needs its driver)", err=True)
     return EXIT_OK if ports else EXIT_UNREACHABLE
@@ -167,9 +227,14 @@ def _list_ports(as_json: bool) -> int:
 @click.argument("profile")
 @click.option("--device", "device", metavar="URL", required=True, help="the live device to check the profile against")
 @click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True, help="its unit id")
-@click.option("--expect", "expect", multiple=True, metavar="NAME=VALUE",
-              help="a value you know the device holds (e.g. read on its panel), in the parameter's unit: "
-                   "finds the byte/word layout or scale that gives it. Repeatable.")
+@click.option(
+    "--expect",
+    "expect",
+    multiple=True,
+    metavar="NAME=VALUE",
+    help="a value you know the device holds (e.g. read on its panel), in the parameter's unit: "
+    "finds the byte/word layout or scale that gives it. Repeatable.",
+)
 @click.option("--timeout", type=TIMEOUT, help="seconds per attempt")
 @click.option("--json", "as_json", is_flag=True, help="print the findings as JSON")
 def probe(profile: str, device: str, unit: int, expect: tuple[str, ...], timeout: float | None, as_json: bool) -> int:
@@ -205,15 +270,26 @@ def probe(profile: str, device: str, unit: int, expect: tuple[str, ...], timeout
         return EXIT_UNREACHABLE
     changes = result.changes
     if as_json:
-        echo(json.dumps({"profile": prof.id, "identity": result.identity, "values": result.values,
-                               "findings": [{"parameter": f.name, "seen": f.what, "change": f.change}
-                                            for f in result.findings], "changes": changes}, indent=2))
+        echo(
+            json.dumps(
+                {
+                    "profile": prof.id,
+                    "identity": result.identity,
+                    "values": result.values,
+                    "findings": [{"parameter": f.name, "seen": f.what, "change": f.change} for f in result.findings],
+                    "changes": changes,
+                },
+                indent=2,
+            )
+        )
     else:
         out = console()
         ident = ", ".join(f"{safe(k)} {safe(repr(v))}" for k, v in (result.identity or {}).items())
-        out.print(f"profile {safe(prof.id)} against {safe(device)} unit {unit}: identity "
-                  f"{ident or 'none (no Function 43)'}; "
-                  f"{len(result.values)} of {sum(1 for p in prof.parameters if p.readable)} readable parameters read")
+        out.print(
+            f"profile {safe(prof.id)} against {safe(device)} unit {unit}: identity "
+            f"{ident or 'none (no Function 43)'}; "
+            f"{len(result.values)} of {sum(1 for p in prof.parameters if p.readable)} readable parameters read"
+        )
         for f in result.findings:
             out.print(f"  {safe(f.what)}")
         if changes:

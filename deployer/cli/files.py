@@ -37,8 +37,14 @@ def validate(files: tuple[str, ...]) -> int:
 
 
 @click.command("docs")
-@click.option("--out", "out_dir", default=os.path.join("docs", "reference"), show_default=True,
-              type=click.Path(file_okay=False), help="where the reference pages go")
+@click.option(
+    "--out",
+    "out_dir",
+    default=os.path.join("docs", "reference"),
+    show_default=True,
+    type=click.Path(file_okay=False),
+    help="where the reference pages go",
+)
 @click.option("--check", is_flag=True, help="write nothing; exit 1 when a page differs from the schemas")
 @click.option("--force", is_flag=True, help="overwrite files of the pages' names that are not generated pages")
 def docs_command(out_dir: str, check: bool, force: bool) -> int:
@@ -90,7 +96,9 @@ def explain(key: str) -> int:
     if not texts:
         names = sorted({k.path for k in all_keys()} | {k.path.rsplit(".", 1)[-1] for k in all_keys()})
         hint = difflib.get_close_matches(name, names, n=3) if len(name) <= 100 else []
-        raise UsageError(f"no key '{clip(key)}' in any schema" + (f"; did you mean {', '.join(hint)}?" if hint else
-                                                                  "; try e.g. 'deployer explain scale'"))
+        raise UsageError(
+            f"no key '{clip(key)}' in any schema"
+            + (f"; did you mean {', '.join(hint)}?" if hint else "; try e.g. 'deployer explain scale'")
+        )
     echo("\n\n".join(texts))
     return EXIT_OK

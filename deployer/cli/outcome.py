@@ -15,9 +15,19 @@ if TYPE_CHECKING:
 
 
 _STATUS_ORDER = {"failed": 0, "mismatch": 1, "unverified": 2, "rolled-back": 3, "skipped": 4, "ok": 5, "unchanged": 6}
-_STATUS_STYLE = {"ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red",
-                 "unverified": "yellow", "skipped": "yellow", "partial": "yellow", "unreachable": "bold red",
-                 "sent": "cyan", "interrupted": "bold red", "rolled-back": "bold yellow"}
+_STATUS_STYLE = {
+    "ok": "green",
+    "unchanged": "dim",
+    "failed": "bold red",
+    "mismatch": "bold red",
+    "unverified": "yellow",
+    "skipped": "yellow",
+    "partial": "yellow",
+    "unreachable": "bold red",
+    "sent": "cyan",
+    "interrupted": "bold red",
+    "rolled-back": "bold yellow",
+}
 
 
 def _words(raw: tuple[int, ...] | None) -> str:
@@ -32,19 +42,38 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
     for d in report.devices:
         if only_not_ok and d.status in ("ok", "skipped"):
             continue
-        out.print(styled((d.name, "bold"), f" {d.url} unit {d.unit} ({d.profile}): ",
-                         (d.status, _STATUS_STYLE.get(d.status, "")), f" - {d.error}" if d.error else ""))
+        out.print(
+            styled(
+                (d.name, "bold"),
+                f" {d.url} unit {d.unit} ({d.profile}): ",
+                (d.status, _STATUS_STYLE.get(d.status, "")),
+                f" - {d.error}" if d.error else "",
+            )
+        )
         rows = sorted(d.parameters, key=lambda p: (_STATUS_ORDER.get(p.status, 9), p.address))
         if only_not_ok:
             rows = [p for p in rows if p.status not in ("ok", "unchanged")]
         if d.status != "unreachable" and rows:
-            show(out, ["parameter", "before", "desired", "after", "status", ""],
-                 [[p.name, p.before or _words(p.before_raw), p.desired, p.after or _words(p.after_raw),
-                   (p.status, _STATUS_STYLE.get(p.status, "")),
-                   p.error or ""] for p in rows])
+            show(
+                out,
+                ["parameter", "before", "desired", "after", "status", ""],
+                [
+                    [
+                        p.name,
+                        p.before or _words(p.before_raw),
+                        p.desired,
+                        p.after or _words(p.after_raw),
+                        (p.status, _STATUS_STYLE.get(p.status, "")),
+                        p.error or "",
+                    ]
+                    for p in rows
+                ],
+            )
         if d.status == "sent":
-            out.print("broadcast sent: every request went out; no device answers a broadcast, so nothing was "
-                      "read back or verified")
+            out.print(
+                "broadcast sent: every request went out; no device answers a broadcast, so nothing was "
+                "read back or verified"
+            )
         if d.identity:
             out.print("identity: " + ", ".join(f"{safe(k)} {safe(repr(v))}" for k, v in d.identity.items()))
         for note in d.notices:
@@ -55,17 +84,23 @@ def print_report(report: Report, out: Console, *, only_not_ok: bool = False) -> 
         if d.status == "rolled-back" and d.commit == "not sent":
             out.print("commit: not sent (the profile's commit steps)")
         elif d.commit in ("held", "not sent"):
-            out.print(f"commit: {safe(d.commit)} (the profile's commit steps): the values written are not stored to "
-                      "non-volatile memory; on devices that keep Modbus writes in RAM they revert at a power cycle")
+            out.print(
+                f"commit: {safe(d.commit)} (the profile's commit steps): the values written are not stored to "
+                "non-volatile memory; on devices that keep Modbus writes in RAM they revert at a power cycle"
+            )
         if d.snapshot and d.status != "rolled-back":
             out.print(f"snapshot: {safe(d.snapshot)}  (undo with: deployer rollback {safe(d.snapshot)})")
         out.print(requests_text(d), soft_wrap=True)
     s = report.summary()
     if len(report.devices) > 1 and not only_not_ok:
-        out.print(f"{_n(s['devices'], 'device')}: {s['ok']} ok, " + (f"{s['sent']} sent, " if s["sent"] else "")
-                  + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable"
-                  + (f", {s['rolled-back']} rolled back" if s["rolled-back"] else "")
-                  + (f", {s['interrupted']} interrupted" if s["interrupted"] else "") + f" in {s['seconds']:.2f} s")
+        out.print(
+            f"{_n(s['devices'], 'device')}: {s['ok']} ok, "
+            + (f"{s['sent']} sent, " if s["sent"] else "")
+            + f"{s['partial']} partial, {s['failed']} failed, {s['unreachable']} unreachable"
+            + (f", {s['rolled-back']} rolled back" if s["rolled-back"] else "")
+            + (f", {s['interrupted']} interrupted" if s["interrupted"] else "")
+            + f" in {s['seconds']:.2f} s"
+        )
 
 
 def deviations_text(d: DeviceResult) -> str:
@@ -89,8 +124,9 @@ def requests_text(d: DeviceResult) -> str:
     if ids:
         parts.append(f"{ids} device identification")
     again = d.repeated
-    return (f"{_n(d.request_count, 'request')}: {', '.join(parts)}"
-            + (f" ({again} of them sent again after no answer or a busy answer)" if again else ""))
+    return f"{_n(d.request_count, 'request')}: {', '.join(parts)}" + (
+        f" ({again} of them sent again after no answer or a busy answer)" if again else ""
+    )
 
 
 def print_outcome(report: Report, *, fleet_run: bool, as_json: bool, report_path: str | None) -> None:

@@ -39,8 +39,9 @@ def _hexwords(regs: Sequence[int] | None) -> str:
     return "-" if regs is None else " ".join([format(w, "04X") for w in regs])
 
 
-def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console,
-               url: DeviceURL | None = None, steps: bool = True) -> None:
+def print_plan(
+    plan: Plan, profile: Profile, *, changes_only: bool, out: Console, url: DeviceURL | None = None, steps: bool = True
+) -> None:
     """The plan's parameters (``changes_only``: those it writes, current -> desired) and, with ``steps``, every
     step apply takes on the device in order, and what that costs."""
     from ..api.commands import address_text, plan_cost
@@ -68,8 +69,10 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
     if rows:
         show(out, headers, rows)
         if not changes_only and any(profile.parameter(pp.name).mask for pp in plan.parameters):
-            out.print("bit fields: raw shows their own bits; apply reads each such register right before writing "
-                      "it (a read-modify-write step) and keeps its other bits as the device holds them")
+            out.print(
+                "bit fields: raw shows their own bits; apply reads each such register right before writing "
+                "it (a read-modify-write step) and keeps its other bits as the device holds them"
+            )
     elif changes_only:
         out.print("No changes: the device already holds every value of the recipe.")
     if steps:
@@ -80,23 +83,38 @@ def print_plan(plan: Plan, profile: Profile, *, changes_only: bool, out: Console
     unchanged = sum(1 for pp in plan.parameters if pp.action == "unchanged")
     coils = sum(s.count for s in writes if s.function in (5, 15))
     registers = sum(s.count for s in writes)
-    units = (f"{_n(cost.bytes, 'character')} on an ASCII line" if cost.framing == "ascii"
-             else f"{_n(cost.bytes, 'byte')} in Modbus/TCP frames" if cost.framing == "tcp"
-             else f"{_n(cost.bytes, 'byte')} on an RTU line")
-    when = (f"about {cost.seconds * 1000:.0f} ms at {cost.line}" if cost.framing != "tcp"
-            else f"{cost.waits * 1000:.0f} ms of waits")
-    waits = f" ({cost.waits * 1000:.0f} ms of it waits and pauses the device needs)" \
-        if cost.waits and cost.framing != "tcp" else ""
+    units = (
+        f"{_n(cost.bytes, 'character')} on an ASCII line"
+        if cost.framing == "ascii"
+        else f"{_n(cost.bytes, 'byte')} in Modbus/TCP frames"
+        if cost.framing == "tcp"
+        else f"{_n(cost.bytes, 'byte')} on an RTU line"
+    )
+    when = (
+        f"about {cost.seconds * 1000:.0f} ms at {cost.line}"
+        if cost.framing != "tcp"
+        else f"{cost.waits * 1000:.0f} ms of waits"
+    )
+    waits = (
+        f" ({cost.waits * 1000:.0f} ms of it waits and pauses the device needs)"
+        if cost.waits and cost.framing != "tcp"
+        else ""
+    )
     out.print(
         f"{_n(len(writes), 'write request')} "
         f"({_what(registers, coils)}; one request per parameter would take {naive})"
         + (f", {unchanged} unchanged" if unchanged else "")
         + f"; {_n(cost.requests, 'request')} in all ({_n(cost.reads, 'read')}, {_n(cost.writes, 'write')}): "
         + f"{units}, {when}{waits}"
-        + (" (broadcast: no answers)" if plan.device.unit == 0 else ""), soft_wrap=True)
+        + (" (broadcast: no answers)" if plan.device.unit == 0 else ""),
+        soft_wrap=True,
+    )
     if cost.non_volatile_writes:
-        out.print(f"non-volatile memory: {_n(cost.non_volatile_writes, 'write')} "
-                  f"(storing {_n(len(cost.stores), 'parameter')})", soft_wrap=True)
+        out.print(
+            f"non-volatile memory: {_n(cost.non_volatile_writes, 'write')} "
+            f"(storing {_n(len(cost.stores), 'parameter')})",
+            soft_wrap=True,
+        )
 
 
 def _what(registers: int, coils: int) -> str:
@@ -117,8 +135,11 @@ def step_text(step: Step) -> str:
             what += ": " + ("(secret)" if step.values is None else _hexwords(step.values))
         if step.expect is not None:
             mask = step.expect.mask
-            what += (f": must hold 0x{step.expect.equals:04X}" if mask == 0xFFFF
-                     else f": bits 0x{mask:04X} must be {step.expect.equals}")
+            what += (
+                f": must hold 0x{step.expect.equals:04X}"
+                if mask == 0xFFFF
+                else f": bits 0x{mask:04X} must be {step.expect.equals}"
+            )
         if step.parameters:
             what += f" ({safe(', '.join(step.parameters))})"
         elif step.note:
@@ -138,8 +159,7 @@ def print_steps(plan: Plan, out: Console) -> None:
     out.print("steps, in the order apply sends them:")
     width = len(str(len(plan.steps)))
     for i, step in enumerate(plan.steps, 1):
-        out.print(f"  {i:>{width}}  {step.kind:<17}  {step_text(step)}", markup=False, highlight=False,
-                  soft_wrap=True)
+        out.print(f"  {i:>{width}}  {step.kind:<17}  {step_text(step)}", markup=False, highlight=False, soft_wrap=True)
 
 
 def print_frames(plan: Plan, out: Console) -> None:
@@ -150,15 +170,25 @@ def print_frames(plan: Plan, out: Console) -> None:
         out.print(f"step {i} ({step.kind}): {step_text(step)}", markup=False, highlight=False, soft_wrap=True)
         for framing in ("rtu", "ascii", "tcp"):
             q, a = step_frames(step, unit, framing, i)
-            out.print(f"  {framing:5} query    {shown(step, q, unit, framing, i)}", markup=False, highlight=False,
-                      soft_wrap=True)
+            out.print(
+                f"  {framing:5} query    {shown(step, q, unit, framing, i)}",
+                markup=False,
+                highlight=False,
+                soft_wrap=True,
+            )
             if a is None or not step.writes:
-                why = ("none (broadcast)" if unit == 0 else "the device's identification objects" if a is None
-                       else f"{len(a)} {'characters' if framing == 'ascii' else 'bytes'}, carrying the values read")
+                why = (
+                    "none (broadcast)"
+                    if unit == 0
+                    else "the device's identification objects"
+                    if a is None
+                    else f"{len(a)} {'characters' if framing == 'ascii' else 'bytes'}, carrying the values read"
+                )
                 out.print(f"  {'':5} response {why}", markup=False, highlight=False, soft_wrap=True)
                 continue
-            out.print(f"  {'':5} response {shown(step, a, unit, framing, i, answer=True)}", markup=False,
-                      highlight=False)
+            out.print(
+                f"  {'':5} response {shown(step, a, unit, framing, i, answer=True)}", markup=False, highlight=False
+            )
 
 
 @click.command()
@@ -169,22 +199,49 @@ def print_frames(plan: Plan, out: Console) -> None:
 @click.option("--detailed-exitcode", is_flag=True, help="exit 2 when something would change, 0 when nothing would")
 @click.option("--show-frames", is_flag=True, help="print the exact bytes of each request (RTU, ASCII, TCP)")
 @click.option("--write-all", is_flag=True, help="plan every parameter, even those the device already holds")
-@click.option("--safe-change", is_flag=True,
-              help="the plan of a safe change (apply --soak or --confirm-within): it reads the profile's health checks "
-                   "before writing, and a device already failing one is not written")
-@click.option("--state-dir", default=".deployer", show_default=True, type=click.Path(file_okay=False),
-              help="where apply keeps what devices taught (limits found by their refusals); plan uses it")
+@click.option(
+    "--safe-change",
+    is_flag=True,
+    help="the plan of a safe change (apply --soak or --confirm-within): it reads the profile's health checks "
+    "before writing, and a device already failing one is not written",
+)
+@click.option(
+    "--state-dir",
+    default=".deployer",
+    show_default=True,
+    type=click.Path(file_okay=False),
+    help="where apply keeps what devices taught (limits found by their refusals); plan uses it",
+)
 @fleet_option
 @limit_option
 @parallel_option
-@click.option("--per-device", is_flag=True,
-              help="with --inventory: each device's own plan table (default: devices with identical changes together)")
+@click.option(
+    "--per-device",
+    is_flag=True,
+    help="with --inventory: each device's own plan table (default: devices with identical changes together)",
+)
 @agent_option
 @change_options
-def plan(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-         as_json: bool, out_path: str | None, detailed_exitcode: bool, show_frames: bool, write_all: bool,
-         safe_change: bool, state_dir: str, inventory: str | None, limit: str | None, parallel: int, per_device: bool,
-         agent_url: str | None, change: ChangeOptions) -> int:
+def plan(
+    recipe: str | None,
+    device: str | None,
+    unit: int | None,
+    timeout: float | None,
+    retries: int | None,
+    as_json: bool,
+    out_path: str | None,
+    detailed_exitcode: bool,
+    show_frames: bool,
+    write_all: bool,
+    safe_change: bool,
+    state_dir: str,
+    inventory: str | None,
+    limit: str | None,
+    parallel: int,
+    per_device: bool,
+    agent_url: str | None,
+    change: ChangeOptions,
+) -> int:
     """Show the requests that apply would send. Offline, or with --device against what the device holds.
 
     With --inventory and no RECIPE, each device's recipe from the inventory. With --agent URL: the changes
@@ -193,8 +250,10 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         from . import agentclient
 
         if recipe or device or inventory or out_path or show_frames:
-            raise UsageError("with --agent, plan shows the agent's pending changes: no RECIPE, --device, "
-                             "--inventory, --out or --show-frames")
+            raise UsageError(
+                "with --agent, plan shows the agent's pending changes: no RECIPE, --device, "
+                "--inventory, --out or --show-frames"
+            )
         return agentclient.plan(agent_url, as_json=as_json, detailed_exitcode=detailed_exitcode)
     import os
 
@@ -206,9 +265,17 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     if inventory:
         if device or out_path or show_frames:
             raise UsageError("with --inventory, --device, --out and --show-frames do not apply (one plan per device)")
-        return plan_fleet(maybe, _fleet(maybe, inventory, limit, timeout, retries, unit), parallel=parallel,
-                          as_json=as_json, detailed_exitcode=detailed_exitcode, write_all=write_all,
-                          state_dir=state_dir, per_device=per_device, window=safe_change)
+        return plan_fleet(
+            maybe,
+            _fleet(maybe, inventory, limit, timeout, retries, unit),
+            parallel=parallel,
+            as_json=as_json,
+            detailed_exitcode=detailed_exitcode,
+            write_all=write_all,
+            state_dir=state_dir,
+            per_device=per_device,
+            window=safe_change,
+        )
     if limit or per_device:
         raise UsageError(f"{'--limit' if limit else '--per-device'} needs --inventory")
     assert maybe is not None
@@ -227,8 +294,9 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         assert url is not None
         notes: list[str] = []
         try:
-            p = asyncio.run(plan_async(rec, url, u, write_all=write_all, state_dir=state_dir, notices=notes,
-                                       window=safe_change))
+            p = asyncio.run(
+                plan_async(rec, url, u, write_all=write_all, state_dir=state_dir, notices=notes, window=safe_change)
+            )
         except TransportError as e:
             echo(f"error: {safe(e)}", err=True)
             return EXIT_UNREACHABLE
@@ -253,8 +321,13 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         write_output(out_path, json.dumps(data, indent=2) + "\n", what="the plan")
         from ..audit.commands import after_plan
 
-        for what in after_plan(data, out_path=out_path, device=data.get("device", {}).get("url"), state_dir=state_dir,
-                               policy_path=change.policy):
+        for what in after_plan(
+            data,
+            out_path=out_path,
+            device=data.get("device", {}).get("url"),
+            state_dir=state_dir,
+            policy_path=change.policy,
+        ):
             echo(f"not recorded: {safe(what)}", err=True)
     if as_json:
         echo(json.dumps(data, indent=2))
@@ -271,8 +344,18 @@ def plan(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     return EXIT_OK
 
 
-def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_json: bool, detailed_exitcode: bool,
-               write_all: bool, per_device: bool = False, state_dir: str = ".deployer", window: bool = False) -> int:
+def plan_fleet(
+    rec: Recipe | None,
+    jobs: Sequence[Job],
+    *,
+    parallel: int,
+    as_json: bool,
+    detailed_exitcode: bool,
+    write_all: bool,
+    per_device: bool = False,
+    state_dir: str = ".deployer",
+    window: bool = False,
+) -> int:
     """A plan per device against what it holds, devices with identical changes together (``per_device``:
     each device's table); exit 3 if any device could not be read, else as plan."""
     from ..api.commands import plan_cost, plan_to_json
@@ -282,10 +365,23 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     plans = {n: p for n, p in values.items() if not isinstance(p, Exception)}
     changing = [n for n, p in plans.items() if p.writes]
     if as_json:
-        echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
-            {"name": j.name, "plan": plan_to_json(plans[j.name], plan_cost(plans[j.name], j.recipe.profile, j.url))}
-            if j.name in plans
-            else {"name": j.name, "error": str(values[j.name])} for j in jobs]}, indent=2))
+        echo(
+            json.dumps(
+                {
+                    "recipe": rec.path if rec else None,
+                    "devices": [
+                        {
+                            "name": j.name,
+                            "plan": plan_to_json(plans[j.name], plan_cost(plans[j.name], j.recipe.profile, j.url)),
+                        }
+                        if j.name in plans
+                        else {"name": j.name, "error": str(values[j.name])}
+                        for j in jobs
+                    ],
+                },
+                indent=2,
+            )
+        )
     elif per_device:
         out = console()
         for j in jobs:
@@ -295,18 +391,26 @@ def plan_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
                 out.print(styled((j.name, "bold"), f" {describe(j.url)} unit {j.unit}:"))
                 print_plan(plans[j.name], j.recipe.profile, changes_only=True, out=out)
         down = _unreachable(values)
-        out.print(f"{len(changing)} of {_n(len(jobs), 'device')} would change"
-                  + (f": {', '.join(safe(n) for n in changing)}" if changing else "")
-                  + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else ""))
+        out.print(
+            f"{len(changing)} of {_n(len(jobs), 'device')} would change"
+            + (f": {', '.join(safe(n) for n in changing)}" if changing else "")
+            + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else "")
+        )
     else:
         from .summary import plan_changes, print_groups
 
         out = console()
-        print_groups(out, {j.name: plan_changes(plans[j.name], j.recipe.profile) for j in jobs if j.name in plans},
-                     _unreachable(values), same="as desired")
+        print_groups(
+            out,
+            {j.name: plan_changes(plans[j.name], j.recipe.profile) for j in jobs if j.name in plans},
+            _unreachable(values),
+            same="as desired",
+        )
         writes = sum(len(p.writes) for p in plans.values())
-        out.print(f"{len(changing)} of {_n(len(jobs), 'device')} would change ({_n(writes, 'write request')}); "
-                  "--per-device shows each device's plan")
+        out.print(
+            f"{len(changing)} of {_n(len(jobs), 'device')} would change ({_n(writes, 'write request')}); "
+            "--per-device shows each device's plan"
+        )
     if _unreachable(values):
         return EXIT_UNREACHABLE
     return EXIT_CHANGES if detailed_exitcode and changing else EXIT_OK

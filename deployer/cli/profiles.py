@@ -51,9 +51,12 @@ def _pairs(items: Sequence[str], what: str) -> dict[str, str]:
 
 
 _decimal_option = click.option(
-    "--decimal-comma/--decimal-point", "decimal", default=None,
+    "--decimal-comma/--decimal-point",
+    "decimal",
+    default=None,
     help="The decimal mark of every number cell. Default: '.', and ',' where it cannot be a thousands "
-         "separator (0,5 or 1.000,5); a cell such as 3,000 is then an error at its position.")
+    "separator (0,5 or 1.000,5); a cell such as 3,000 is then an error at its position.",
+)
 
 
 def _mark(decimal: bool | None) -> str | None:
@@ -81,8 +84,12 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
 
     for w in warnings:
         echo(safe(w) if ": warning: " in w else f"warning: {safe(w)}", err=True)
-    text, prof = imported_profile(draft, out or "<stdout>", f"Imported by 'deployer profiles import' from {source}.\n"
-                                                "Check it against the manual before the first deployment.")
+    text, prof = imported_profile(
+        draft,
+        out or "<stdout>",
+        f"Imported by 'deployer profiles import' from {source}.\n"
+        "Check it against the manual before the first deployment.",
+    )
     _output(text, out, f"{out}: profile {prof.id} with {_n(len(prof.parameters), 'parameter')}")
     return EXIT_OK
 
@@ -92,23 +99,49 @@ def _write_imported(draft: Any, out: str | None, source: str, warnings: Sequence
 @click.option("--id", "profile_id", required=True, help="Profile id to write (e.g. acme-drive).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
 @force_option
-@click.option("--column", "columns", multiple=True, metavar="OURS=HEADER",
-              help="Which header holds a column, e.g. --column address='Reg No'. Repeatable.")
-@click.option("--addressing", type=click.Choice(["address", "register-number", "modicon"]), default="address",
-              show_default=True, help="How the address column counts.")
+@click.option(
+    "--column",
+    "columns",
+    multiple=True,
+    metavar="OURS=HEADER",
+    help="Which header holds a column, e.g. --column address='Reg No'. Repeatable.",
+)
+@click.option(
+    "--addressing",
+    type=click.Choice(["address", "register-number", "modicon"]),
+    default="address",
+    show_default=True,
+    help="How the address column counts.",
+)
 @click.option("--delimiter", help="Cell separator (default: sniffed from , ; or tab).")
-@click.option("--byte-order", help="Layout of rows without a byte_order cell: ABCD, CDAB, BADC, DCBA (or "
-              "none, byte, word, word_byte).")
+@click.option(
+    "--byte-order",
+    help="Layout of rows without a byte_order cell: ABCD, CDAB, BADC, DCBA (or none, byte, word, word_byte).",
+)
 @_decimal_option
-def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Sequence[str], addressing: str,
-                        delimiter: str | None, byte_order: str | None, decimal: bool | None) -> int:
+def profiles_import_csv(
+    file: str,
+    profile_id: str,
+    out: str | None,
+    columns: Sequence[str],
+    addressing: str,
+    delimiter: str | None,
+    byte_order: str | None,
+    decimal: bool | None,
+) -> int:
     """A profile from a CSV register list (columns: name, address, type, unit, scale, min, max, range, access ...)."""
     from ..api.commands import import_csv
 
     with _import_errors():
-        draft, warnings = import_csv(file, profile_id=profile_id, columns=_pairs(columns, "--column"),
-                                   addressing=addressing, delimiter=delimiter, byte_order=byte_order,
-                                   decimal=_mark(decimal))
+        draft, warnings = import_csv(
+            file,
+            profile_id=profile_id,
+            columns=_pairs(columns, "--column"),
+            addressing=addressing,
+            delimiter=delimiter,
+            byte_order=byte_order,
+            decimal=_mark(decimal),
+        )
         return _write_imported(draft, out, file, warnings)
 
 
@@ -118,21 +151,48 @@ def profiles_import_csv(file: str, profile_id: str, out: str | None, columns: Se
 @click.option("--sheet", help="Worksheet to read (default: the first).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
 @force_option
-@click.option("--column", "columns", multiple=True, metavar="OURS=HEADER",
-              help="Which header holds a column, e.g. --column address='Reg No'. Repeatable.")
-@click.option("--addressing", type=click.Choice(["address", "register-number", "modicon"]), default="address",
-              show_default=True, help="How the address column counts.")
-@click.option("--byte-order", help="Layout of rows without a byte_order cell: ABCD, CDAB, BADC, DCBA (or "
-              "none, byte, word, word_byte).")
+@click.option(
+    "--column",
+    "columns",
+    multiple=True,
+    metavar="OURS=HEADER",
+    help="Which header holds a column, e.g. --column address='Reg No'. Repeatable.",
+)
+@click.option(
+    "--addressing",
+    type=click.Choice(["address", "register-number", "modicon"]),
+    default="address",
+    show_default=True,
+    help="How the address column counts.",
+)
+@click.option(
+    "--byte-order",
+    help="Layout of rows without a byte_order cell: ABCD, CDAB, BADC, DCBA (or none, byte, word, word_byte).",
+)
 @_decimal_option
-def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str | None, columns: Sequence[str],
-                         addressing: str, byte_order: str | None, decimal: bool | None) -> int:
+def profiles_import_xlsx(
+    file: str,
+    profile_id: str,
+    sheet: str | None,
+    out: str | None,
+    columns: Sequence[str],
+    addressing: str,
+    byte_order: str | None,
+    decimal: bool | None,
+) -> int:
     """A profile from an Excel register list (the same columns as csv; needs openpyxl)."""
     from ..api.commands import import_xlsx
 
     with _import_errors():
-        draft, warnings = import_xlsx(file, profile_id=profile_id, sheet=sheet, columns=_pairs(columns, "--column"),
-                                    addressing=addressing, byte_order=byte_order, decimal=_mark(decimal))
+        draft, warnings = import_xlsx(
+            file,
+            profile_id=profile_id,
+            sheet=sheet,
+            columns=_pairs(columns, "--column"),
+            addressing=addressing,
+            byte_order=byte_order,
+            decimal=_mark(decimal),
+        )
         return _write_imported(draft, out, file, warnings)
 
 
@@ -141,8 +201,11 @@ def profiles_import_xlsx(file: str, profile_id: str, sheet: str | None, out: str
 @click.option("--id", "profile_id", help="Profile id to write (default: the template's device_type).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
 @force_option
-@click.option("--no-channels", is_flag=True, help="Leave out the polled channels (read-only values); keep the "
-              "parameters (settings) only.")
+@click.option(
+    "--no-channels",
+    is_flag=True,
+    help="Leave out the polled channels (read-only values); keep the parameters (settings) only.",
+)
 def profiles_import_wb_template(file: str, profile_id: str | None, out: str | None, no_channels: bool) -> int:
     """A profile from a wb-mqtt-serial device template (JSON with // comments): parameters become settings,
     channels read-only values.
@@ -172,29 +235,58 @@ def profiles_export_csv(profile: str, out: str | None) -> int:
     prof = load_profile(profile)
     text, lost = profile_csv(prof)
     for what in lost:
-        echo(f"warning: {safe(prof.source or prof.id)}: {safe(what)}: not in a register list; importing the list "
-                   "will not bring it back", err=True)
+        echo(
+            f"warning: {safe(prof.source or prof.id)}: {safe(what)}: not in a register list; importing the list "
+            "will not bring it back",
+            err=True,
+        )
     _output(text, out, f"{out}: {_n(len(prof.parameters), 'register row')} of profile {prof.id}")
     return EXIT_OK
 
 
 @profiles_import.command("sunspec")
 @click.argument("model", required=False)
-@click.option("--at", "at", help="Protocol address of the model's ID register (default 40002: the first model "
-              "after 'SunS'; with --device and no MODEL and no --at, 'SunS' is looked for at 40000, 0 and 50000).")
-@click.option("--sf", "sfs", multiple=True, metavar="NAME=N", help="A scale factor the device reports, e.g. "
-              "--sf WMax_SF=0 (-10 to 10). Repeatable.")
-@click.option("--count", "counts", multiple=True, metavar="GROUP=N", help="Repetitions of a group whose count the "
-              "device reports, e.g. --count curve=4. Repeatable.")
-@click.option("--device", metavar="URL", help="Read the scale factors and group counts from this device (the "
-              "model at --at); without MODEL, read the device's whole model chain from 'SunS' (see --at) into one "
-              "profile. --sf and --count win over what it says.")
+@click.option(
+    "--at",
+    "at",
+    help="Protocol address of the model's ID register (default 40002: the first model "
+    "after 'SunS'; with --device and no MODEL and no --at, 'SunS' is looked for at 40000, 0 and 50000).",
+)
+@click.option(
+    "--sf",
+    "sfs",
+    multiple=True,
+    metavar="NAME=N",
+    help="A scale factor the device reports, e.g. --sf WMax_SF=0 (-10 to 10). Repeatable.",
+)
+@click.option(
+    "--count",
+    "counts",
+    multiple=True,
+    metavar="GROUP=N",
+    help="Repetitions of a group whose count the device reports, e.g. --count curve=4. Repeatable.",
+)
+@click.option(
+    "--device",
+    metavar="URL",
+    help="Read the scale factors and group counts from this device (the "
+    "model at --at); without MODEL, read the device's whole model chain from 'SunS' (see --at) into one "
+    "profile. --sf and --count win over what it says.",
+)
 @click.option("--unit", type=click.IntRange(1, 247), default=1, show_default=True, help="unit id of --device")
 @click.option("--id", "profile_id", help="Profile id (default: sunspec-MODEL-NAME, or sunspec-device).")
 @click.option("-o", "--out", help="Profile file to write (default: stdout).")
 @force_option
-def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], counts: Sequence[str],
-                            device: str | None, unit: int, profile_id: str | None, out: str | None) -> int:
+def profiles_import_sunspec(
+    model: str | None,
+    at: str,
+    sfs: Sequence[str],
+    counts: Sequence[str],
+    device: str | None,
+    unit: int,
+    profile_id: str | None,
+    out: str | None,
+) -> int:
     """A profile from a SunSpec model (number, name or model JSON) using pysunspec2's definitions, or from a
     device's whole model chain (--device without MODEL)."""
     from ..api.commands import import_sunspec, import_sunspec_chain, sunspec_reported
@@ -215,8 +307,9 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
     if not 2 <= address <= 0xFFFF:
         raise UsageError(f"--at {_clip(at or '')}: not a register address (40002, 0x9C42 or 9C42h)")
     if model is None and device is None:
-        raise UsageError("give a MODEL (121, settings or a model JSON file), or --device URL to read the device's "
-                         "models")
+        raise UsageError(
+            "give a MODEL (121, settings or a model JSON file), or --device URL to read the device's models"
+        )
     with _import_errors():
         if device is not None:
             got = _from_device(device, unit, address, model, search=at is None)
@@ -225,18 +318,28 @@ def profiles_import_sunspec(model: str | None, at: str, sfs: Sequence[str], coun
             if model is None:
                 chain = ", ".join(f"{m.model_id} at {m.at} (L={m.length})" for m in got[0])
                 echo(f"models on {safe(device)}: {safe(chain or 'none')}", err=True)
-                draft, warnings = import_sunspec_chain(got[0], scale_factors=factors, counts=repeats,
-                                                      profile_id=profile_id, source=device)
+                draft, warnings = import_sunspec_chain(
+                    got[0], scale_factors=factors, counts=repeats, profile_id=profile_id, source=device
+                )
                 return _write_imported(draft, out, f"the SunSpec device {device}", warnings)
             (dm,) = got[0]
             found, points, warnings = sunspec_reported(model, dm)
-            echo(f"scale factors from {safe(device)}: " + ", ".join(f"{safe(n)}={v}" for n, v in found.items()),
-                 err=True)
-            draft, more = import_sunspec(model, at=address, scale_factors={**found, **factors}, counts=repeats,
-                                             point_values=points, length=dm.length, profile_id=profile_id)
+            echo(
+                f"scale factors from {safe(device)}: " + ", ".join(f"{safe(n)}={v}" for n, v in found.items()), err=True
+            )
+            draft, more = import_sunspec(
+                model,
+                at=address,
+                scale_factors={**found, **factors},
+                counts=repeats,
+                point_values=points,
+                length=dm.length,
+                profile_id=profile_id,
+            )
             return _write_imported(draft, out, f"SunSpec model {model}", [*warnings, *more])
-        draft, warnings = import_sunspec(model or "", at=address, scale_factors=factors, counts=repeats,
-                                             profile_id=profile_id)
+        draft, warnings = import_sunspec(
+            model or "", at=address, scale_factors=factors, counts=repeats, profile_id=profile_id
+        )
         return _write_imported(draft, out, f"SunSpec model {model}", warnings)
 
 
@@ -254,8 +357,9 @@ def _whole(text: str, what: str) -> int:
     return int(text)
 
 
-def _from_device(device: str, unit: int, at: int, model: str | None, *, search: bool = False
-                 ) -> tuple[list[Any]] | None:
+def _from_device(
+    device: str, unit: int, at: int, model: str | None, *, search: bool = False
+) -> tuple[list[Any]] | None:
     """The device's model at ``at`` (MODEL given) or its whole chain; None (after saying why) when unreachable."""
     from ..api.commands import sunspec_models
 
@@ -279,10 +383,15 @@ def profiles_show(profile: str) -> int:
     out.print(styled((prof.id, "bold"), f": {prof.description}"))
     lim = prof.limits
     layout, table = profile_table(prof)
-    out.print(f"addressing {prof.addressing}, byte order {layout}; up to {_n(lim.write_registers, 'register')} "
-              f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read"
-              + (f"; {lim.write_coils} coils per write (FC15), {lim.read_coils} per read"
-                 if any(p.register_type == "coil" for p in prof.parameters) else ""))
+    out.print(
+        f"addressing {prof.addressing}, byte order {layout}; up to {_n(lim.write_registers, 'register')} "
+        f"per write (FC{lim.write_function:02d}), {lim.read_registers} per read"
+        + (
+            f"; {lim.write_coils} coils per write (FC15), {lim.read_coils} per read"
+            if any(p.register_type == "coil" for p in prof.parameters)
+            else ""
+        )
+    )
     rows: list[list[Cell]] = [list(row) for row in table]
     heads = ["parameter", "address", "type", "unit", "resolution", "range", "access", "default", "description"]
     if any(p.manual for p in prof.parameters):  # beside the key: the parameter as the manual names it
@@ -291,6 +400,7 @@ def profiles_show(profile: str) -> int:
             row.insert(1, p.manual)
     show(out, heads, rows)
     return EXIT_OK
+
 
 @profiles.command("new")
 @click.argument("output", type=click.Path(dir_okay=False))
@@ -338,13 +448,31 @@ def profile_table(profile: str | Profile) -> tuple[str, list[list[str]]]:
 
     rows: list[list[str]] = []
     for p in prof.parameters:
-        rng = "" if p.min is None and p.max is None else (
-            f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
+        rng = (
+            ""
+            if p.min is None and p.max is None
+            else (f"{'' if p.min is None else format_decimal(p.min)}..{'' if p.max is None else format_decimal(p.max)}")
+        )
         if p.values:
             rng = ", ".join(f"{label}={raw}" for label, raw in p.values)
-        default = "" if p.default is None else p.default if isinstance(p.default, str) else (
-            str(bool(p.default)).lower() if p.type == "bool" else format_decimal(p.default))
-        rows.append([p.name, address_text(p.register_type, p.address), type_text(p), p.unit or "",
-                     "" if p.is_string or p.type == "bool" else format_decimal(p.scale), rng, p.access, default,
-                     p.description])
+        default = (
+            ""
+            if p.default is None
+            else p.default
+            if isinstance(p.default, str)
+            else (str(bool(p.default)).lower() if p.type == "bool" else format_decimal(p.default))
+        )
+        rows.append(
+            [
+                p.name,
+                address_text(p.register_type, p.address),
+                type_text(p),
+                p.unit or "",
+                "" if p.is_string or p.type == "bool" else format_decimal(p.scale),
+                rng,
+                p.access,
+                default,
+                p.description,
+            ]
+        )
     return layout_name(prof.word_order, prof.byte_swap), rows

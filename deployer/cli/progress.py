@@ -23,16 +23,36 @@ if TYPE_CHECKING:
     from ..api.commands import Job, ReadJob
     from .tables import Cell
 
-STYLE = {"rolled-back": "bold yellow", "interrupted": "bold red",
-         "ok": "green", "unchanged": "dim", "failed": "bold red", "mismatch": "bold red", "unverified": "yellow",
-         "skipped": "yellow", "partial": "yellow", "unreachable": "bold red", "drift": "yellow", "sent": "cyan"}
+STYLE = {
+    "rolled-back": "bold yellow",
+    "interrupted": "bold red",
+    "ok": "green",
+    "unchanged": "dim",
+    "failed": "bold red",
+    "mismatch": "bold red",
+    "unverified": "yellow",
+    "skipped": "yellow",
+    "partial": "yellow",
+    "unreachable": "bold red",
+    "drift": "yellow",
+    "sent": "cyan",
+}
 
 
 class FleetProgress:
     """Feed it ``start(name)`` and ``done(name, status, detail)``; use it as a context manager."""
 
-    def __init__(self, total: int, err: Console, *, live: bool, verb: str = "writing", lines: bool = True,
-                 staged: bool = False, later: bool = False) -> None:
+    def __init__(
+        self,
+        total: int,
+        err: Console,
+        *,
+        live: bool,
+        verb: str = "writing",
+        lines: bool = True,
+        staged: bool = False,
+        later: bool = False,
+    ) -> None:
         self.total = total
         self.staged = staged  # --batch: each device's line says its batch
         self.err = err
@@ -58,8 +78,15 @@ class FleetProgress:
                 TimeRemainingColumn,
             )
 
-            self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=err)
+            self._bar = Progress(
+                TextColumn("{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeElapsedColumn(),
+                TextColumn("ETA"),
+                TimeRemainingColumn(),
+                console=err,
+            )
             self._task = self._bar.add_task(self._description(), total=total)
             self._live = Live(self, console=err, refresh_per_second=8, transient=False)
 
@@ -92,8 +119,9 @@ class FleetProgress:
         self._bar.update(self._task, description=self._description())
         now = sorted(self.in_flight, key=self.in_flight.__getitem__)
         shown = ", ".join(safe(n) for n in now[:8]) + (f" and {len(now) - 8} more" if len(now) > 8 else "")
-        return Group(self._bar, Text(f"{self.verb}: {shown}" if now else "", style="dim", overflow="ellipsis",
-                                     no_wrap=True))
+        return Group(
+            self._bar, Text(f"{self.verb}: {shown}" if now else "", style="dim", overflow="ellipsis", no_wrap=True)
+        )
 
     def start(self, name: str) -> None:
         self._show()
@@ -126,19 +154,35 @@ def fleet_summary(report: Report, out: Console) -> None:
     rows: list[list[Cell]] = []
     for d in report.devices:
         secs = "-" if d.seconds is None else f"{d.seconds:.2f}"
-        rows.append([d.name, *([str(d.batch or "-")] if staged else []), (d.status, STYLE.get(d.status, "")),
-                     str(d.changed_count), str(d.failed_count), str(d.request_count), secs,
-                     d.error or ""])  # escaped by show
-    show(out, ["device", *(["batch"] if staged else []), "status", "changed", "failed", "requests", "seconds", ""],
-         rows)
+        rows.append(
+            [
+                d.name,
+                *([str(d.batch or "-")] if staged else []),
+                (d.status, STYLE.get(d.status, "")),
+                str(d.changed_count),
+                str(d.failed_count),
+                str(d.request_count),
+                secs,
+                d.error or "",
+            ]
+        )  # escaped by show
+    show(
+        out, ["device", *(["batch"] if staged else []), "status", "changed", "failed", "requests", "seconds", ""], rows
+    )
     s = report.summary()
-    parts = [f"{s[k]} {k}" for k in ("ok", "sent", "partial", "failed", "unreachable", "rolled-back", "interrupted",
-                                     "skipped")
-             if s[k] or k == "ok"]
+    parts = [
+        f"{s[k]} {k}"
+        for k in ("ok", "sent", "partial", "failed", "unreachable", "rolled-back", "interrupted", "skipped")
+        if s[k] or k == "ok"
+    ]
     ids = s["requests"] - s["write_requests"] - s["read_requests"]
-    out.print(f"{_n(s['devices'], 'device')}: {', '.join(parts)}; {_n(s['requests'], 'request')} ("
-              f"{_n(s['read_requests'], 'read')}, {_n(s['write_requests'], 'write')}"
-              + (f", {ids} device identification" if ids else "") + f") in {s['seconds']:.2f} s", soft_wrap=True)
+    out.print(
+        f"{_n(s['devices'], 'device')}: {', '.join(parts)}; {_n(s['requests'], 'request')} ("
+        f"{_n(s['read_requests'], 'read')}, {_n(s['write_requests'], 'write')}"
+        + (f", {ids} device identification" if ids else "")
+        + f") in {s['seconds']:.2f} s",
+        soft_wrap=True,
+    )
 
 
 def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tuple[int, ...]] | Exception]:
@@ -148,25 +192,36 @@ def read_fleet(jobs: Sequence[ReadJob], parallel: int) -> dict[str, dict[str, tu
     err = console(stderr=True)
     progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
     with progress:
-        values = asyncio.run(read_fleet_async(
-            jobs, parallel=parallel, on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")))
+        values = asyncio.run(
+            read_fleet_async(
+                jobs, parallel=parallel, on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")
+            )
+        )
     for name, v in values.items():
         if isinstance(v, Exception):
             echo(f"{safe(name)}: unreachable - {safe(v)}", err=True)
     return dict(values)
 
 
-def plan_fleet(jobs: Sequence[Job], parallel: int, *, write_all: bool, state_dir: str,
-               window: bool = False) -> dict[str, Plan | Exception]:
+def plan_fleet(
+    jobs: Sequence[Job], parallel: int, *, write_all: bool, state_dir: str, window: bool = False
+) -> dict[str, Plan | Exception]:
     """Every device's plan against what it holds (a live display on a terminal); errors are said on stderr."""
     from ..api.commands import plan_fleet_async
 
     err = console(stderr=True)
     progress = FleetProgress(len(jobs), err, live=err.is_terminal, verb="reading", lines=False)
     with progress:
-        plans = asyncio.run(plan_fleet_async(
-            jobs, parallel=parallel, write_all=write_all, state_dir=state_dir, window=window,
-            on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok")))
+        plans = asyncio.run(
+            plan_fleet_async(
+                jobs,
+                parallel=parallel,
+                write_all=write_all,
+                state_dir=state_dir,
+                window=window,
+                on_done=lambda n, e: progress.done(n, "unreachable" if e else "ok"),
+            )
+        )
     for name, v in plans.items():
         if isinstance(v, Exception):
             echo(f"{safe(name)}: unreachable - {safe(v)}", err=True)

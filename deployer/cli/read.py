@@ -45,20 +45,45 @@ if TYPE_CHECKING:
 @fleet_option
 @limit_option
 @parallel_option
-@click.option("--per-device", is_flag=True,
-              help="with --inventory: one row per device and parameter (default: devices with identical drift "
-                   "together)")
+@click.option(
+    "--per-device",
+    is_flag=True,
+    help="with --inventory: one row per device and parameter (default: devices with identical drift together)",
+)
 @click.option("--matrix", is_flag=True, help="with --inventory: a table of parameters x drifted devices")
-@click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
-              help="with --inventory: also write the parameters x devices matrix as one self-contained HTML page "
-                   "(drifted cells marked, filterable)")
-@click.option("--defaults", is_flag=True, help="compare the device with its factory settings (the profile's "
-              "defaults) instead of a recipe: every readable parameter that has a default")
+@click.option(
+    "--html",
+    "html_path",
+    type=click.Path(dir_okay=False),
+    metavar="FILE",
+    help="with --inventory: also write the parameters x devices matrix as one self-contained HTML page "
+    "(drifted cells marked, filterable)",
+)
+@click.option(
+    "--defaults",
+    is_flag=True,
+    help="compare the device with its factory settings (the profile's "
+    "defaults) instead of a recipe: every readable parameter that has a default",
+)
 @click.option("--profile", "profile_ref", metavar="ID|FILE", help="with --defaults and no RECIPE: the device's profile")
 @agent_option
-def diff(recipe: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-         as_json: bool, inventory: str | None, limit: str | None, parallel: int, per_device: bool,
-         matrix: bool, html_path: str | None, defaults: bool, profile_ref: str | None, agent_url: str | None) -> int:
+def diff(
+    recipe: str | None,
+    device: str | None,
+    unit: int | None,
+    timeout: float | None,
+    retries: int | None,
+    as_json: bool,
+    inventory: str | None,
+    limit: str | None,
+    parallel: int,
+    per_device: bool,
+    matrix: bool,
+    html_path: str | None,
+    defaults: bool,
+    profile_ref: str | None,
+    agent_url: str | None,
+) -> int:
     """Drift check: exit 2 when the device (any device of --inventory) differs from the recipe, 0 when it matches.
 
     With --inventory and no RECIPE, each device against its recipe from the inventory. With --defaults,
@@ -68,8 +93,10 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
         from . import agentclient
 
         if recipe or device or inventory or defaults:
-            raise UsageError("with --agent, diff compares the agent's devices with its adopted state: no RECIPE, "
-                             "--device, --inventory or --defaults")
+            raise UsageError(
+                "with --agent, diff compares the agent's devices with its adopted state: no RECIPE, "
+                "--device, --inventory or --defaults"
+            )
         return agentclient.diff(agent_url, limit=limit, as_json=as_json)
     from ..api.commands import diff_values
 
@@ -85,11 +112,19 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
             raise UsageError("--device and --inventory exclude each other")
         if per_device and matrix:
             raise UsageError("--per-device and --matrix exclude each other")
-        return diff_fleet(maybe, _fleet(maybe, inventory, limit, timeout, retries, unit), parallel=parallel,
-                          as_json=as_json, view="per-device" if per_device else "matrix" if matrix else "grouped",
-                          html_path=html_path)
-    given = [o for o, v in (("--limit", limit), ("--per-device", per_device), ("--matrix", matrix),
-                            ("--html", html_path)) if v]
+        return diff_fleet(
+            maybe,
+            _fleet(maybe, inventory, limit, timeout, retries, unit),
+            parallel=parallel,
+            as_json=as_json,
+            view="per-device" if per_device else "matrix" if matrix else "grouped",
+            html_path=html_path,
+        )
+    given = [
+        o
+        for o, v in (("--limit", limit), ("--per-device", per_device), ("--matrix", matrix), ("--html", html_path))
+        if v
+    ]
     if given:
         raise UsageError(f"{given[0]} needs --inventory")
     assert maybe is not None
@@ -102,20 +137,34 @@ def diff(recipe: str | None, device: str | None, unit: int | None, timeout: floa
     rows = diff_values(rec, current)
     drift = [r for r in rows if r.device_raw is not None]
     if as_json:
-        echo(json.dumps({"recipe": recipe, "device": describe(url), "unit": u,
-                               "drift": [r.to_json() for r in rows]}, indent=2))
+        echo(
+            json.dumps(
+                {"recipe": recipe, "device": describe(url), "unit": u, "drift": [r.to_json() for r in rows]}, indent=2
+            )
+        )
     elif rows:
         show(console(), ["parameter", "recipe", "device value", ""], drift_rows(rows))
-        console().print(f"{len(drift)} of {_n(len(rec.desired), 'parameter')} "
-                        f"differ{'s' if len(drift) == 1 else ''} from the recipe")
+        console().print(
+            f"{len(drift)} of {_n(len(rec.desired), 'parameter')} "
+            f"differ{'s' if len(drift) == 1 else ''} from the recipe"
+        )
     else:
-        console().print("no drift: the device holds " + ("the recipe's value" if len(rec.desired) == 1 else
-                                                         f"all {len(rec.desired)} values of the recipe"))
+        console().print(
+            "no drift: the device holds "
+            + ("the recipe's value" if len(rec.desired) == 1 else f"all {len(rec.desired)} values of the recipe")
+        )
     return EXIT_CHANGES if drift else EXIT_OK
 
 
-def diff_defaults(recipe: str | None, profile_ref: str | None, device: str | None, unit: int | None,
-                  timeout: float | None, retries: int | None, as_json: bool) -> int:
+def diff_defaults(
+    recipe: str | None,
+    profile_ref: str | None,
+    device: str | None,
+    unit: int | None,
+    timeout: float | None,
+    retries: int | None,
+    as_json: bool,
+) -> int:
     """diff --defaults: what differs from the factory settings; exit 2 when something does."""
     from ..api import load_profile as resolve_profile
     from ..api import load_recipe
@@ -140,30 +189,60 @@ def diff_defaults(recipe: str | None, profile_ref: str | None, device: str | Non
     differs, _ = defaults_diff(prof, current)
     no_default = [p.name for p in prof.parameters if p.readable and p.default is None and not p.action]
     if as_json:
-        echo(json.dumps({"profile": prof.id, "device": describe(url), "unit": u,
-                               "differs": [d.to_json() for d in differs], "compared": len(names),
-                               "no_default": no_default}, indent=2))
+        echo(
+            json.dumps(
+                {
+                    "profile": prof.id,
+                    "device": describe(url),
+                    "unit": u,
+                    "differs": [d.to_json() for d in differs],
+                    "compared": len(names),
+                    "no_default": no_default,
+                },
+                indent=2,
+            )
+        )
     else:
         out = console()
         if differs:
-            show(out, ["parameter", "factory default", "device value"],
-                 [[d.name, d.default, (d.device, "yellow")] for d in differs])
-        out.print(f"{len(differs)} of {_n(len(names), 'parameter')} with a factory default differ from it"
-                  if differs else f"factory settings: all {_n(len(names), 'parameter')} with a default hold it")
+            show(
+                out,
+                ["parameter", "factory default", "device value"],
+                [[d.name, d.default, (d.device, "yellow")] for d in differs],
+            )
+        out.print(
+            f"{len(differs)} of {_n(len(names), 'parameter')} with a factory default differ from it"
+            if differs
+            else f"factory settings: all {_n(len(names), 'parameter')} with a default hold it"
+        )
         if no_default:
-            out.print(f"not compared: {_n(len(no_default), 'parameter')} without a default in profile "
-                      f"{safe(prof.id)}")
+            out.print(f"not compared: {_n(len(no_default), 'parameter')} without a default in profile {safe(prof.id)}")
     return EXIT_CHANGES if differs else EXIT_OK
 
 
 def drift_rows(rows: Sequence[Drift], device: str | None = None) -> list[list[Cell]]:
     """parameter, recipe, device value, status (with the device's name first for fleets)."""
-    return [[*([device] if device is not None else []), r.name, r.desired, r.device or "-",
-             ("drift", "yellow") if r.device_raw is not None else "not readable"] for r in rows]
+    return [
+        [
+            *([device] if device is not None else []),
+            r.name,
+            r.desired,
+            r.device or "-",
+            ("drift", "yellow") if r.device_raw is not None else "not readable",
+        ]
+        for r in rows
+    ]
 
 
-def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_json: bool,
-               view: str = "grouped", html_path: str | None = None) -> int:
+def diff_fleet(
+    rec: Recipe | None,
+    jobs: Sequence[Job],
+    *,
+    parallel: int,
+    as_json: bool,
+    view: str = "grouped",
+    html_path: str | None = None,
+) -> int:
     """The fleet's drift: devices with identical drift together (``view`` ``per-device``: a row per device
     and parameter; ``matrix``: parameters x drifted devices); exit 2 naming every drifted device, 3 if
     any could not be read."""
@@ -177,54 +256,104 @@ def diff_fleet(rec: Recipe | None, jobs: Sequence[Job], *, parallel: int, as_jso
     if html_path:
         _drift_page(jobs, values, rows, html_path)
     if as_json:
-        echo(json.dumps({"recipe": rec.path if rec else None, "devices": [
-            {"name": j.name, "url": describe(j.url), "unit": j.unit, "drift": [d.to_json() for d in rows[j.name]]}
-            if j.name in rows else {"name": j.name, "url": describe(j.url), "unit": j.unit,
-                                    "error": str(values[j.name])} for j in jobs],
-            "drifted": drifted, "unreachable": down}, indent=2))
+        echo(
+            json.dumps(
+                {
+                    "recipe": rec.path if rec else None,
+                    "devices": [
+                        {
+                            "name": j.name,
+                            "url": describe(j.url),
+                            "unit": j.unit,
+                            "drift": [d.to_json() for d in rows[j.name]],
+                        }
+                        if j.name in rows
+                        else {"name": j.name, "url": describe(j.url), "unit": j.unit, "error": str(values[j.name])}
+                        for j in jobs
+                    ],
+                    "drifted": drifted,
+                    "unreachable": down,
+                },
+                indent=2,
+            )
+        )
     else:
         from .summary import drift_changes, drift_matrix, print_groups
 
         out = console()
         if view == "per-device":
-            show(out, ["device", "parameter", "recipe", "device value", ""],
-                 [row for j in jobs for row in drift_rows(rows.get(j.name, []), j.name)])
+            show(
+                out,
+                ["device", "parameter", "recipe", "device value", ""],
+                [row for j in jobs for row in drift_rows(rows.get(j.name, []), j.name)],
+            )
         elif view == "matrix":
-            headers, body = drift_matrix(rows, {j.name: {d.name: d.text for d in j.recipe.desired}
-                                                for j in jobs if j.name in rows})
+            headers, body = drift_matrix(
+                rows, {j.name: {d.name: d.text for d in j.recipe.desired} for j in jobs if j.name in rows}
+            )
             show(out, headers, body)
         else:
             print_groups(out, {n: drift_changes(r) for n, r in rows.items()}, [], same="as the recipe says")
-        out.print(f"drift on {len(drifted)} of {_n(len(jobs), 'device')}"
-                  + (f": {', '.join(safe(n) for n in drifted)}" if drifted else "")
-                  + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else ""))
+        out.print(
+            f"drift on {len(drifted)} of {_n(len(jobs), 'device')}"
+            + (f": {', '.join(safe(n) for n in drifted)}" if drifted else "")
+            + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else "")
+        )
     if down:
         return EXIT_UNREACHABLE
     return EXIT_CHANGES if drifted else EXIT_OK
 
 
 @click.command()
-@click.option("--profile", "profile_ref", metavar="ID|FILE",
-              help="the device's profile (with --inventory: for devices whose entry names neither a profile nor "
-                   "a recipe; otherwise each device's recipe's profile)")
+@click.option(
+    "--profile",
+    "profile_ref",
+    metavar="ID|FILE",
+    help="the device's profile (with --inventory: for devices whose entry names neither a profile nor "
+    "a recipe; otherwise each device's recipe's profile)",
+)
 @click.option("--device", metavar="URL")
 @click.option("--unit", type=click.IntRange(1, 247), help="unit id (default 1, or the inventory's)")
 @click.option("--timeout", type=TIMEOUT)
 @click.option("--retries", type=RETRIES)
-@click.option("-o", "--output", type=click.Path(), help="write the recipe here (default: stdout); "
-              "with --inventory a folder: one NAME.yaml per device")
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(),
+    help="write the recipe here (default: stdout); with --inventory a folder: one NAME.yaml per device",
+)
 @click.option("--name", help="the recipe's name (default: pulled-PROFILE)")
-@click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
-              help="also write what each device holds as one self-contained HTML page: the as-found half of the "
-                   "commissioning record (prints a section per device with a signature line)")
-@click.option("--non-default", is_flag=True, help="write only the values that differ from the factory settings "
-              "(the profile's defaults; parameters without a default are kept)")
+@click.option(
+    "--html",
+    "html_path",
+    type=click.Path(dir_okay=False),
+    metavar="FILE",
+    help="also write what each device holds as one self-contained HTML page: the as-found half of the "
+    "commissioning record (prints a section per device with a signature line)",
+)
+@click.option(
+    "--non-default",
+    is_flag=True,
+    help="write only the values that differ from the factory settings "
+    "(the profile's defaults; parameters without a default are kept)",
+)
 @fleet_option
 @limit_option
 @parallel_option
-def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout: float | None, retries: int | None,
-         output: str | None, name: str | None, html_path: str | None, non_default: bool, inventory: str | None,
-         limit: str | None, parallel: int) -> int:
+def pull(
+    profile_ref: str | None,
+    device: str | None,
+    unit: int | None,
+    timeout: float | None,
+    retries: int | None,
+    output: str | None,
+    name: str | None,
+    html_path: str | None,
+    non_default: bool,
+    inventory: str | None,
+    limit: str | None,
+    parallel: int,
+) -> int:
     """Read every writable parameter of a device into a recipe that applies back as a no-op."""
     from ..api import load_profile as resolve_profile
     from ..api.commands import check_output, device_url, out_of_range, pull_names, pulled_recipe
@@ -234,8 +363,18 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
             raise UsageError("with --inventory, --device and --name do not apply (one recipe per device)")
         if not output:
             raise UsageError("with --inventory, pass -o DIR: one recipe per device goes there")
-        return pull_fleet(inventory, limit, profile_ref, output, timeout=timeout, retries=retries, unit=unit,
-                          parallel=parallel, html_path=html_path, non_default=non_default)
+        return pull_fleet(
+            inventory,
+            limit,
+            profile_ref,
+            output,
+            timeout=timeout,
+            retries=retries,
+            unit=unit,
+            parallel=parallel,
+            html_path=html_path,
+            non_default=non_default,
+        )
     if limit:
         raise UsageError("--limit needs --inventory")
     if not profile_ref or not device:
@@ -253,12 +392,14 @@ def pull(profile_ref: str | None, device: str | None, unit: int | None, timeout:
     comment = _pulled_from(describe(url), u)
     if non_default:
         current, comment = _non_default(prof, current, comment)
-    text = pulled_recipe(prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u,
-                         comment=comment, relative_to=output)
+    text = pulled_recipe(
+        prof, current, name=name or f"pulled-{prof.id}", url=describe(url), unit=u, comment=comment, relative_to=output
+    )
     # a value outside the profile's range is kept as a comment, not set: count only what the recipe sets
     left = out_of_range(prof, current)
     said = f"{_n(len(current) - len(left), 'parameter')} written to {output}" + (
-        f"; {len(left)} outside the profile's range kept as comments: {', '.join(left)}" if left else "")
+        f"; {len(left)} outside the profile's range kept as comments: {', '.join(left)}" if left else ""
+    )
     _output(text, output, said, replace=True)
     return EXIT_OK
 
@@ -267,22 +408,37 @@ def _pulled_from(url: str, unit: int) -> str:
     return f"Pulled from {url} unit {unit} at {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}"
 
 
-def _non_default(prof: Profile, current: dict[str, tuple[int, ...]], comment: str,
-                 ) -> tuple[dict[str, tuple[int, ...]], str]:
+def _non_default(
+    prof: Profile,
+    current: dict[str, tuple[int, ...]],
+    comment: str,
+) -> tuple[dict[str, tuple[int, ...]], str]:
     """pull --non-default: the values that are not factory settings, and a comment saying what was left out."""
     from ..api.commands import non_default
 
     kept = non_default(prof, current)
     unknown = sum(1 for n in kept if prof.parameter(n).default is None)
-    comment += (f"\nOnly the values that differ from the factory defaults of profile {prof.id}: "
-                f"{_n(len(current) - len(kept), 'parameter')} at the default left out"
-                + (f"; {_n(unknown, 'parameter')} without a default in the profile kept" if unknown else ""))
+    comment += (
+        f"\nOnly the values that differ from the factory defaults of profile {prof.id}: "
+        f"{_n(len(current) - len(kept), 'parameter')} at the default left out"
+        + (f"; {_n(unknown, 'parameter')} without a default in the profile kept" if unknown else "")
+    )
     return kept, comment
 
 
-def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folder: str, *, timeout: float | None,
-               retries: int | None, unit: int | None, parallel: int, html_path: str | None = None,
-               non_default: bool = False) -> int:
+def pull_fleet(
+    inventory: str,
+    limit: str | None,
+    profile_ref: str | None,
+    folder: str,
+    *,
+    timeout: float | None,
+    retries: int | None,
+    unit: int | None,
+    parallel: int,
+    html_path: str | None = None,
+    non_default: bool = False,
+) -> int:
     """DIR/NAME.yaml per device, each with the device's profile; exit 3 if any device could not be read."""
     from ..api.commands import check_folder, pull_jobs, pulled_recipe
     from ..api.commands import write_output as write_atomic
@@ -301,18 +457,25 @@ def pull_fleet(inventory: str, limit: str | None, profile_ref: str | None, folde
         comment = _pulled_from(describe(j.url), j.unit)
         if non_default:
             cur, comment = _non_default(j.profile, dict(cur), comment)
-        text = pulled_recipe(j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit,
-                             comment=comment, relative_to=path)
+        text = pulled_recipe(
+            j.profile, cur, name=f"pulled-{j.name}", url=describe(j.url), unit=j.unit, comment=comment, relative_to=path
+        )
         write_atomic(path, text)
         written += 1
     down = _unreachable(values)
     if html_path:
         from .base import record_meta
 
-        _as_found_page([(j.name, describe(j.url), j.unit, j.profile, values[j.name]) for j in jobs], html_path,
-                       record_meta(inventory))
-    echo(f"{_n(written, 'recipe')} written to {safe(folder)}"
-         + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else ""), err=True)
+        _as_found_page(
+            [(j.name, describe(j.url), j.unit, j.profile, values[j.name]) for j in jobs],
+            html_path,
+            record_meta(inventory),
+        )
+    echo(
+        f"{_n(written, 'recipe')} written to {safe(folder)}"
+        + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else ""),
+        err=True,
+    )
     return EXIT_UNREACHABLE if down else EXIT_OK
 
 
@@ -322,8 +485,9 @@ def _safe(name: str) -> str:
     return file_name(name)  # the same name on every system: no CON.yaml, no 300-character name
 
 
-def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], path: str,
-                   meta: Sequence[tuple[str, str]] = ()) -> None:
+def _as_found_page(
+    devices: Sequence[tuple[str, str, int, Profile, object]], path: str, meta: Sequence[tuple[str, str]] = ()
+) -> None:
     """``pull --html``: per device its values (engineering text and registers), or why it could not be read."""
     from ..api.commands import run_info
     from ..pages import as_found_page
@@ -333,8 +497,10 @@ def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], pat
     for name, url, unit, prof, cur in devices:
         entry: dict[str, object] = {"name": name, "url": url, "unit": unit, "profile": prof.id, "sha": prof.digest}
         if isinstance(cur, dict):
-            entry["values"] = [(n, prof.parameter(n).show_registers(tuple(v)), tuple(v), prof.parameter(n).manual)
-                               for n, v in cur.items()]
+            entry["values"] = [
+                (n, prof.parameter(n).show_registers(tuple(v)), tuple(v), prof.parameter(n).manual)
+                for n, v in cur.items()
+            ]
         else:
             entry["error"] = str(cur)
         entries.append(entry)
@@ -342,8 +508,9 @@ def _as_found_page(devices: Sequence[tuple[str, str, int, Profile, object]], pat
     echo(f"page: {safe(path)}", err=True)
 
 
-def _drift_page(jobs: Sequence[Job], values: Mapping[str, object], rows: Mapping[str, Sequence[Drift]],
-                path: str) -> None:
+def _drift_page(
+    jobs: Sequence[Job], values: Mapping[str, object], rows: Mapping[str, Sequence[Drift]], path: str
+) -> None:
     """``diff --inventory --html``: parameters x devices; each cell what the device holds, marked where it
     is not the recipe's value."""
     from ..api.commands import run_info

@@ -10,18 +10,36 @@ from .base import cli
 
 @cli.command()
 @click.argument("report_file", metavar="RUN.json", type=click.Path(dir_okay=False))
-@click.option("--html", "html_path", type=click.Path(dir_okay=False), metavar="FILE",
-              help="write the report as one self-contained HTML page (sortable, filterable; it prints as the "
-                   "commissioning record: the outcome and one sign-off block, then as found / as left per device)")
-@click.option("--meta", multiple=True, metavar="KEY=VALUE",
-              help="with --html: a line of the record's page header (site=..., project=..., customer=..., line=...)")
-@click.option("--compact", is_flag=True,
-              help="with --html: one table row per device, parameters only for devices that changed or did not end ok")
-@click.option("--profile", "profile_refs", multiple=True, metavar="ID|FILE",
-              help="show the values of this profile's devices with it (a report of an older version does not "
-                   "describe its profiles); repeatable")
-def report(report_file: str, html_path: str | None, meta: tuple[str, ...], compact: bool,
-           profile_refs: tuple[str, ...]) -> int:
+@click.option(
+    "--html",
+    "html_path",
+    type=click.Path(dir_okay=False),
+    metavar="FILE",
+    help="write the report as one self-contained HTML page (sortable, filterable; it prints as the "
+    "commissioning record: the outcome and one sign-off block, then as found / as left per device)",
+)
+@click.option(
+    "--meta",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="with --html: a line of the record's page header (site=..., project=..., customer=..., line=...)",
+)
+@click.option(
+    "--compact",
+    is_flag=True,
+    help="with --html: one table row per device, parameters only for devices that changed or did not end ok",
+)
+@click.option(
+    "--profile",
+    "profile_refs",
+    multiple=True,
+    metavar="ID|FILE",
+    help="show the values of this profile's devices with it (a report of an older version does not "
+    "describe its profiles); repeatable",
+)
+def report(
+    report_file: str, html_path: str | None, meta: tuple[str, ...], compact: bool, profile_refs: tuple[str, ...]
+) -> int:
     """Show a run's report (apply --report, rollback --report, a fleet's live report file).
 
     Values are shown in engineering units as the report describes its profiles (or with a --profile

@@ -42,12 +42,15 @@ def plan_changes(plan: Plan, profile: Profile) -> tuple[str, ...]:
 
 def drift_changes(rows: Sequence[Drift]) -> tuple[str, ...]:
     """How a device differs from its recipe, one text per parameter: ``F08 10 s (recipe 12 s)``."""
-    return tuple(f"{d.name} {d.device} (recipe {d.desired})" if d.device_raw is not None
-                 else f"{d.name} not readable (recipe {d.desired})" for d in rows)
+    return tuple(
+        f"{d.name} {d.device} (recipe {d.desired})"
+        if d.device_raw is not None
+        else f"{d.name} not readable (recipe {d.desired})"
+        for d in rows
+    )
 
 
-def print_groups(out: Console, changes: Mapping[str, tuple[str, ...]], down: Sequence[str], *,
-                 same: str) -> None:
+def print_groups(out: Console, changes: Mapping[str, tuple[str, ...]], down: Sequence[str], *, same: str) -> None:
     """``36 devices: F07 10 s -> 12 s, F08 ...`` and the devices' names, one group after the other;
     ``same`` says what devices without changes are (``as desired``); then the unreachable ones."""
     from .tables import show
@@ -92,12 +95,18 @@ def compact(names: Sequence[str]) -> list[str]:
 
 def _follows(before: str, name: str) -> bool:
     a, b = _NUMBERED.match(before), _NUMBERED.match(name)
-    return (a is not None and b is not None and a[1] == b[1] and int(b[2]) == int(a[2]) + 1
-            and (len(a[2]) == len(b[2]) or not (a[2].startswith("0") or b[2].startswith("0"))))
+    return (
+        a is not None
+        and b is not None
+        and a[1] == b[1]
+        and int(b[2]) == int(a[2]) + 1
+        and (len(a[2]) == len(b[2]) or not (a[2].startswith("0") or b[2].startswith("0")))
+    )
 
 
-def drift_matrix(rows: Mapping[str, Sequence[Drift]], wanted: Mapping[str, Mapping[str, str]]
-                 ) -> tuple[list[str], list[list[str]]]:
+def drift_matrix(
+    rows: Mapping[str, Sequence[Drift]], wanted: Mapping[str, Mapping[str, str]]
+) -> tuple[list[str], list[list[str]]]:
     """Headers and rows of a parameter x device table of drift: the drifted devices as columns, in
     inventory order; a cell holds the device's value where it drifts, ``=`` where the device holds its
     recipe's value, ``?`` where it cannot be read, and nothing where the device's recipe lacks the

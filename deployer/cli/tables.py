@@ -40,8 +40,9 @@ def show(out: Console, headers: Sequence[str], rows: Sequence[Sequence[Cell]]) -
 
         table = Table(*headers, box=None)
         for row in rows:  # Text, not markup: a parameter named 'preset[0].speed' stays as it is
-            table.add_row(*(Text(printable(c)) if isinstance(c, str) else Text(printable(c[0]), style=c[1])
-                            for c in row))
+            table.add_row(
+                *(Text(printable(c)) if isinstance(c, str) else Text(printable(c[0]), style=c[1]) for c in row)
+            )
         out.print(table)
         return
     out.file.write(plain(headers, rows))

@@ -20,16 +20,28 @@ from .base import agent_options, echo, safe
 
 
 def _where(f: Callable[..., Any]) -> Callable[..., Any]:
-    f = click.option("--users", "users_file", metavar="FILE", type=click.Path(dir_okay=False), envvar="DEPLOYER_USERS",
-                     help="change the users file itself (env DEPLOYER_USERS); the running agent takes it up")(f)
-    f = click.option("--agent", "agent_url", metavar="URL", envvar="DEPLOYER_AGENT",
-                     help="ask the agent at URL, as an admin (env DEPLOYER_AGENT); audited with your name")(f)
+    f = click.option(
+        "--users",
+        "users_file",
+        metavar="FILE",
+        type=click.Path(dir_okay=False),
+        envvar="DEPLOYER_USERS",
+        help="change the users file itself (env DEPLOYER_USERS); the running agent takes it up",
+    )(f)
+    f = click.option(
+        "--agent",
+        "agent_url",
+        metavar="URL",
+        envvar="DEPLOYER_AGENT",
+        help="ask the agent at URL, as an admin (env DEPLOYER_AGENT); audited with your name",
+    )(f)
     return agent_options(f)
 
 
 def _role_option(f: Callable[..., Any]) -> Callable[..., Any]:
-    return click.option("--role", "roles", multiple=True, required=True, type=click.Choice(ROLES),
-                        help="a role (repeatable)")(f)
+    return click.option(
+        "--role", "roles", multiple=True, required=True, type=click.Choice(ROLES), help="a role (repeatable)"
+    )(f)
 
 
 def _one(users_file: str | None, agent_url: str | None) -> str | None:
@@ -59,8 +71,7 @@ def _entry(doc: dict[str, Any], name: str) -> dict[str, Any]:
 
 def _show_token(name: str, token: str | None) -> None:
     if token is not None:
-        echo(f"{safe(name)}'s token, shown this once (only its hash is kept; hand it over safely):",
-             err=True)
+        echo(f"{safe(name)}'s token, shown this once (only its hash is kept; hand it over safely):", err=True)
         echo(token)
 
 
@@ -87,8 +98,16 @@ def users() -> None:
 @click.option("--cert-sha256", metavar="HEX", help="the same, by the certificate's SHA-256 fingerprint")
 @click.option("--no-token", is_flag=True, help="no token (a client certificate only)")
 @_where
-def add(name: str, roles: tuple[str, ...], full_name: str | None, cert_cn: str | None, cert_sha256: str | None,
-        no_token: bool, users_file: str | None, agent_url: str | None) -> int:
+def add(
+    name: str,
+    roles: tuple[str, ...],
+    full_name: str | None,
+    cert_cn: str | None,
+    cert_sha256: str | None,
+    no_token: bool,
+    users_file: str | None,
+    agent_url: str | None,
+) -> int:
     """Add the user NAME with --role ...; prints their token once (the file makes itself with the first user)."""
     agent_url = _one(users_file, agent_url)
     cert = _certificate(cert_cn, cert_sha256)
@@ -97,8 +116,9 @@ def add(name: str, roles: tuple[str, ...], full_name: str | None, cert_cn: str |
     if agent_url is not None:
         from .agentclient import client
 
-        out = client(agent_url).add_user(name, list(roles), name=full_name, certificate=cert,
-                                         token=False if no_token else None)
+        out = client(agent_url).add_user(
+            name, list(roles), name=full_name, certificate=cert, token=False if no_token else None
+        )
         echo(f"{safe(name)}: added ({', '.join(roles)}) in the agent at {safe(agent_url)}", err=True)
         _show_token(name, out.get("token"))
         return EXIT_OK
@@ -144,11 +164,18 @@ def list_users(as_json: bool, users_file: str | None, agent_url: str | None) -> 
         echo(json.dumps({"users": shown}, indent=2))
         return EXIT_OK
     for u in shown:
-        creds = [c for c in ("token" if u["token"] else None,
-                             f"certificate {next(iter(u['certificate'].items()))[1]}" if u["certificate"] else None)
-                 if c]
-        echo(f"{safe(u['user'])}{' (' + safe(u['name']) + ')' if u['name'] else ''}: {', '.join(u['roles'])}; "
-             f"{', '.join(creds) or 'no credential'}{'; DISABLED' if u['disabled'] else ''}")
+        creds = [
+            c
+            for c in (
+                "token" if u["token"] else None,
+                f"certificate {next(iter(u['certificate'].items()))[1]}" if u["certificate"] else None,
+            )
+            if c
+        ]
+        echo(
+            f"{safe(u['user'])}{' (' + safe(u['name']) + ')' if u['name'] else ''}: {', '.join(u['roles'])}; "
+            f"{', '.join(creds) or 'no credential'}{'; DISABLED' if u['disabled'] else ''}"
+        )
     if not shown:
         echo("no users")
     return EXIT_OK
@@ -219,8 +246,9 @@ def token_command(name: str, users_file: str | None, agent_url: str | None) -> i
 
 
 @users.command("whoami")
-@click.option("--agent", "agent_url", metavar="URL", envvar="DEPLOYER_AGENT", required=True,
-              help="the agent (env DEPLOYER_AGENT)")
+@click.option(
+    "--agent", "agent_url", metavar="URL", envvar="DEPLOYER_AGENT", required=True, help="the agent (env DEPLOYER_AGENT)"
+)
 @agent_options
 def whoami(agent_url: str) -> int:
     """Who the agent takes you for: your user, roles and credential."""
@@ -228,6 +256,8 @@ def whoami(agent_url: str) -> int:
 
     me = client(agent_url).whoami()
     who = me.get("user") or f"no user: the holder of the site's {me.get('credential')}"
-    echo(f"{safe(who)}: {', '.join(me.get('roles') or [])} ({safe(me.get('credential'))}; the agent has "
-         f"{'users' if me.get('mode') == 'users' else 'one token for the site'})")
+    echo(
+        f"{safe(who)}: {', '.join(me.get('roles') or [])} ({safe(me.get('credential'))}; the agent has "
+        f"{'users' if me.get('mode') == 'users' else 'one token for the site'})"
+    )
     return EXIT_OK

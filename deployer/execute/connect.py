@@ -18,9 +18,15 @@ from .session import Session
 
 
 @contextlib.asynccontextmanager
-async def connected(url: tp.DeviceURL, unit: int, profile: Profile | None, *,
-                    records: list[RequestRecord] | None = None, backoff: float = 0.05,
-                    notices: list[str] | None = None) -> AsyncIterator[Session]:
+async def connected(
+    url: tp.DeviceURL,
+    unit: int,
+    profile: Profile | None,
+    *,
+    records: list[RequestRecord] | None = None,
+    backoff: float = 0.05,
+    notices: list[str] | None = None,
+) -> AsyncIterator[Session]:
     """A session with the device at ``url``/``unit``, closed on the way out. Raises Unreachable when no connection
     can be made. ``records``: every request is logged there; ``notices``: told when the serial line went out of
     step (a late answer: the session's ``trust``)."""
@@ -28,8 +34,9 @@ async def connected(url: tp.DeviceURL, unit: int, profile: Profile | None, *,
     p = pacing_for(url, profile)
     transport.set_pacing(p.after_connect, p.between_requests)
     await transport.connect()
-    session = Session(transport, unit, retries=url.retries, backoff=backoff,
-                      records=records if records is not None else [])
+    session = Session(
+        transport, unit, retries=url.retries, backoff=backoff, records=records if records is not None else []
+    )
     try:
         yield session
     finally:

@@ -87,8 +87,22 @@ class Shared:
         self.restart = tuple(p.name for p in params if p.restart)
         self._plans: dict[tuple[Any, ...], _Entry] = {}
         # each ParameterResult's arguments, in its fields' order (a fleet makes 100 per device)
-        self._results = tuple((d.name, d.parameter.address, d.parameter.count, d.text, d.registers, None, None,
-                               "skipped", None, d.parameter.register_type, d.parameter) for d in recipe.desired)
+        self._results = tuple(
+            (
+                d.name,
+                d.parameter.address,
+                d.parameter.count,
+                d.text,
+                d.registers,
+                None,
+                None,
+                "skipped",
+                None,
+                d.parameter.register_type,
+                d.parameter,
+            )
+            for d in recipe.desired
+        )
         keys = [p.key + i for p in params for i in range(p.count)]
         self._words = operator.itemgetter(*keys) if len(keys) > 1 else None  # one key: itemgetter gives no tuple
         self._seen: dict[tuple[int, ...], dict[str, tuple[int, ...]]] = {}
@@ -130,9 +144,18 @@ class Shared:
 
 def parameter_results(recipe: Recipe) -> dict[str, ParameterResult]:
     """A result per recipe parameter, in recipe order, each ``skipped`` until something happens to it."""
-    return {d.name: ParameterResult(d.name, d.parameter.address, d.parameter.count, d.text, d.registers,
-                                    register_type=d.parameter.register_type, parameter=d.parameter)
-            for d in recipe.desired}
+    return {
+        d.name: ParameterResult(
+            d.name,
+            d.parameter.address,
+            d.parameter.count,
+            d.text,
+            d.registers,
+            register_type=d.parameter.register_type,
+            parameter=d.parameter,
+        )
+        for d in recipe.desired
+    }
 
 
 class Planners:
@@ -154,21 +177,40 @@ class Planners:
             hit = self._taught[key] = (recipe, recipe if prof is recipe.profile else replace(recipe, profile=prof))
         return hit[1]
 
-    def shared(self, recipe: Recipe, *, write_all: bool, commit: bool, pacing: Pacing,
-               device_id: bool | None = None, window: bool = False) -> Shared:
+    def shared(
+        self,
+        recipe: Recipe,
+        *,
+        write_all: bool,
+        commit: bool,
+        pacing: Pacing,
+        device_id: bool | None = None,
+        window: bool = False,
+    ) -> Shared:
         """``device_id``: whether the device is asked Function 43 (None: as the recipe's profile says); ``window``:
         a safe change's plans (the health checks read before the change)."""
         ask = recipe.profile.limits.device_identification if device_id is None else device_id
         key = (id(recipe), write_all, commit, pacing, ask, window)
         hit = self._by.get(key)
         if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
-            hit = self._by[key] = (recipe, Shared(Planner(recipe, write_all=write_all, commit=commit, pacing=pacing,
-                                                          device_id=ask, window=window)))
+            hit = self._by[key] = (
+                recipe,
+                Shared(
+                    Planner(recipe, write_all=write_all, commit=commit, pacing=pacing, device_id=ask, window=window)
+                ),
+            )
         return hit[1]
 
 
-async def apply_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, name: str | None = None,
-                       options: ApplyOptions | None = None, plan: Plan | None = None) -> DeviceResult:
+async def apply_device(
+    recipe: Recipe,
+    url: tp.DeviceURL,
+    unit: int,
+    *,
+    name: str | None = None,
+    options: ApplyOptions | None = None,
+    plan: Plan | None = None,
+) -> DeviceResult:
     """Apply ``recipe`` to one device and say exactly what it holds afterwards; ``plan``: a saved plan of it,
     executed unchanged (refused when the device changed since it was made).
 
@@ -194,26 +236,39 @@ async def journal_line(res: DeviceResult, finishing: Awaitable[object]) -> None:
 
 def new_result(job: Job, batch: int | None = None) -> DeviceResult:
     prof = job.recipe.profile
-    res = DeviceResult(job.name, tp.describe(job.url), job.unit, prof.id, profile_ref=profile_ref(prof),
-                       recipe=job.recipe.path, batch=batch, profile_sha256=prof.digest)
+    res = DeviceResult(
+        job.name,
+        tp.describe(job.url),
+        job.unit,
+        prof.id,
+        profile_ref=profile_ref(prof),
+        recipe=job.recipe.path,
+        batch=batch,
+        profile_sha256=prof.digest,
+    )
     if job.recipe.snapshot is not None and job.recipe.path is not None:
         res.restored = os.path.abspath(job.recipe.path)
     return res
 
 
-async def apply_job(job: Job, opts: ApplyOptions, *, batch: int | None = None, planners: Planners | None = None
-                    ) -> tuple[DeviceResult, Awaitable[object] | None]:
+async def apply_job(
+    job: Job, opts: ApplyOptions, *, batch: int | None = None, planners: Planners | None = None
+) -> tuple[DeviceResult, Awaitable[object] | None]:
     """``apply_device`` for a run's job, handing back the wait for its ``device-finished`` line instead of
     waiting: a fleet frees the device's slot (and lock) for the next device while that fsync happens.
     ``batch``: a staged fleet's batch number, for the report and the journal; ``planners``: the run's."""
     recipe, unit = job.recipe, job.unit
     res = new_result(job, batch)
     if unit == 0 and not opts.allow_broadcast:
-        raise UsageError("unit 0 is broadcast (no device answers, nothing can be verified); to send it anyway, "
-                         "allow broadcast (--allow-broadcast; ApplyOptions(allow_broadcast=True) in Python)")
+        raise UsageError(
+            "unit 0 is broadcast (no device answers, nothing can be verified); to send it anyway, "
+            "allow broadcast (--allow-broadcast; ApplyOptions(allow_broadcast=True) in Python)"
+        )
     if unit == 0 and (recipe.profile.preconditions or any(d.parameter.mask for d in recipe.desired)):
-        raise UsageError("a broadcast cannot read: bit fields (which keep the register's other bits) and "
-                         f"preconditions of profile {recipe.profile.id} need a device that answers")
+        raise UsageError(
+            "a broadcast cannot read: bit fields (which keep the register's other bits) and "
+            f"preconditions of profile {recipe.profile.id} need a device that answers"
+        )
     if job.commit_owed or job.hold_commit:
         opts = replace(opts, commit_owed=job.commit_owed, hold_commit=opts.hold_commit or job.hold_commit)
     device = _Device(job, opts, res, planners or Planners())
@@ -235,12 +290,17 @@ class DeviceInterrupted(asyncio.CancelledError):
 def interrupted(res: DeviceResult, results: dict[str, ParameterResult]) -> None:
     """What an interrupted device's report says: every write that went out is unverified, the one that was
     out when the run stopped may have been applied, the rest was not sent."""
-    out = [(r.address, r.address + r.count) for r in res.requests
-           if r.result == "interrupted" and r.function in WRITE_FUNCTIONS]
+    out = [
+        (r.address, r.address + r.count)
+        for r in res.requests
+        if r.result == "interrupted" and r.function in WRITE_FUNCTIONS
+    ]
     for p in results.values():
         if any(a < p.address + p.count and p.address < b for a, b in out):
-            p.status, p.error = "unverified", "the run was interrupted while its write request was out: " \
-                                              "it may have been applied"
+            p.status, p.error = (
+                "unverified",
+                "the run was interrupted while its write request was out: it may have been applied",
+            )
         elif p.status == "unverified" and p.error == PENDING:
             p.error = "written; not read back: the run was interrupted"
         elif p.status == "skipped" and p.error is None:
@@ -249,15 +309,18 @@ def interrupted(res: DeviceResult, results: dict[str, ParameterResult]) -> None:
     if res.snapshot is None:
         res.error = "the run was interrupted before the first write to this device; nothing was written"
     else:
-        res.error = ("the run was interrupted while writing this device: some parameters may hold new values; "
-                     f"restore with: deployer rollback {res.snapshot}")
+        res.error = (
+            "the run was interrupted while writing this device: some parameters may hold new values; "
+            f"restore with: deployer rollback {res.snapshot}"
+        )
 
 
 class _Device:
     """One device's apply in progress."""
 
-    def __init__(self, job: Job, opts: ApplyOptions, res: DeviceResult, planners: Planners, *,
-                 window: bool | None = None) -> None:
+    def __init__(
+        self, job: Job, opts: ApplyOptions, res: DeviceResult, planners: Planners, *, window: bool | None = None
+    ) -> None:
         self.job = job
         self.window = opts.window if window is None else window  # a safe change's plan (plan --soak: no run)
         self.opts = opts
@@ -274,16 +337,30 @@ class _Device:
     def _shared(self, recipe: Recipe) -> Shared:
         """The run's planner for ``recipe``, asking Function 43 unless the URL or the (taught) profile says not."""
         ask = identification(self.job.url)
-        return self.planners.shared(recipe, write_all=self.opts.write_all, commit=not self.opts.hold_commit,
-                                    pacing=self.pacing, window=self.window,
-                                    device_id=recipe.profile.limits.device_identification if ask is None else ask)
+        return self.planners.shared(
+            recipe,
+            write_all=self.opts.write_all,
+            commit=not self.opts.hold_commit,
+            pacing=self.pacing,
+            window=self.window,
+            device_id=recipe.profile.limits.device_identification if ask is None else ask,
+        )
 
     async def locked(self) -> tuple[DeviceResult, Awaitable[object] | None]:
         job, opts, res = self.job, self.opts, self.res
         try:
-            held = [] if opts.lock_held else await lock.acquire_device(
-                job.url.lock_keys, job.unit, timeout=opts.lock_timeout, command=lock.command_line(),
-                directory=opts.lock_dir, run=opts.run_id)
+            held = (
+                []
+                if opts.lock_held
+                else await lock.acquire_device(
+                    job.url.lock_keys,
+                    job.unit,
+                    timeout=opts.lock_timeout,
+                    command=lock.command_line(),
+                    directory=opts.lock_dir,
+                    run=opts.run_id,
+                )
+            )
         except Locked as e:
             res.status, res.error = "unreachable", f"{e}; nothing was sent"
             return res, None
@@ -293,8 +370,14 @@ class _Device:
                 self.over_taught()
             entered = False
             try:
-                async with connected(job.url, job.unit, self.recipe.profile, records=res.requests,
-                                     backoff=opts.backoff, notices=res.notices) as session:
+                async with connected(
+                    job.url,
+                    job.unit,
+                    self.recipe.profile,
+                    records=res.requests,
+                    backoff=opts.backoff,
+                    notices=res.notices,
+                ) as session:
                     entered = True
                     if job.unit == 0:
                         await self._broadcast(session)
@@ -320,8 +403,11 @@ class _Device:
         never answered Function 43 is not asked it again)."""
         res = self.res
         try:  # the run checked the file before it started: damaged since, it is not used (and said)
-            taught = learned.lookup(self.opts.state_dir, profile_ref(self.job.recipe.profile),
-                                    learned.device_id(self.job.url, self.job.unit))
+            taught = learned.lookup(
+                self.opts.state_dir,
+                profile_ref(self.job.recipe.profile),
+                learned.device_id(self.job.url, self.job.unit),
+            )
         except InputError as e:
             res.notices.append(f"what devices taught is not used: {e}")
             return
@@ -338,9 +424,11 @@ class _Device:
         if taught is None:
             return
         if taught.identity is not None and res.identity is not None and taught.identity != res.identity:
-            res.notices.append("the device's identity changed since it taught "
-                               f"{taught.describe_limits()} ({_identity_text(taught.identity)}, now "
-                               f"{_identity_text(res.identity)}): not used")
+            res.notices.append(
+                "the device's identity changed since it taught "
+                f"{taught.describe_limits()} ({_identity_text(taught.identity)}, now "
+                f"{_identity_text(res.identity)}): not used"
+            )
             self.taught, self.recipe, self.shared = None, self.job.recipe, self._shared(self.job.recipe)
             ex.recipe, ex.prof = self.recipe, self.recipe.profile
             return
@@ -353,8 +441,7 @@ class _Device:
         from ..errors import DeviceGone
 
         res, results = self.res, self.results
-        plan = self.job.plan or self.shared.plan(Target(res.url, 0, profile_ref(self.recipe.profile)), None,
-                                                 False)[0]
+        plan = self.job.plan or self.shared.plan(Target(res.url, 0, profile_ref(self.recipe.profile)), None, False)[0]
         steps = [s for s in plan.steps if s.kind == "write"]
         for i, step in enumerate(steps):
             session.step = plan.steps.index(step) + 1
@@ -363,7 +450,7 @@ class _Device:
             except DeviceGone as e:
                 for n in step.parameters:
                     results[n].status, results[n].error = "unverified", f"broadcast may not have gone out: {e}"
-                for rest in steps[i + 1:]:
+                for rest in steps[i + 1 :]:
                     for n in rest.parameters:
                         results[n].status, results[n].error = "skipped", "not sent: an earlier broadcast request failed"
                 res.status, res.error = "failed", f"broadcast request at 0x{step.address:04X} could not be sent: {e}"
@@ -379,7 +466,7 @@ class _Device:
         target = Target(res.url, job.unit, profile_ref(prof))
         saved = job.plan
         # 1. the checks: identity, what the device holds (the snapshot), its identification and firmware
-        if not await ex.checks(saved.steps[:saved.checks] if saved is not None else self.shared.planner.checks):
+        if not await ex.checks(saved.steps[: saved.checks] if saved is not None else self.shared.planner.checks):
             return
         before = ex.before
         for n, regs in before.items():
@@ -416,8 +503,9 @@ class _Device:
         if any(s.kind == "write" for s in plan.steps) and res.snapshot is not None:
             res.seen = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())  # the read-back: what "as left" shows
         self._remember()
-        res.notices.extend([f"{n} takes effect after a power cycle" for n in self.shared.restart
-                            if results[n].status == "ok"])
+        res.notices.extend(
+            [f"{n} takes effect after a power cycle" for n in self.shared.restart if results[n].status == "ok"]
+        )
 
     def _identity_notice(self) -> None:
         """The same name answering with other Function 43 objects than at its last snapshot: a replaced device."""
@@ -425,9 +513,11 @@ class _Device:
         if res.identity is not None:
             last = last_identity(self.opts.state_dir, res.name)
             if last is not None and last[1] != res.identity:
-                res.notices.append(f"the device's identity changed since its last snapshot "
-                                   f"({os.path.basename(last[0])}: {_identity_text(last[1])}; now "
-                                   f"{_identity_text(res.identity)}): it may have been replaced")
+                res.notices.append(
+                    f"the device's identity changed since its last snapshot "
+                    f"({os.path.basename(last[0])}: {_identity_text(last[1])}; now "
+                    f"{_identity_text(res.identity)}): it may have been replaced"
+                )
 
     def _silent(self, ex: Execution) -> None:
         """The device answered its reads but not Function 43: learned, so that it costs one timeout once."""
@@ -436,7 +526,8 @@ class _Device:
         self.res.notices.append(
             f"the device did not answer Function 43 (device identification) within {self.job.url.timeout:g} s: it is "
             f"not asked again ('deployer learned forget' asks again); set limits.device_identification: false in "
-            f"profile {prof.id} if its devices have none")
+            f"profile {prof.id} if its devices have none"
+        )
 
     def _remember(self) -> None:
         res, opts = self.res, self.opts
@@ -444,10 +535,19 @@ class _Device:
             return
         prof = self.recipe.profile
         try:
-            learned.remember(opts.state_dir, learned.Entry(
-                profile_ref(prof), learned.device_id(self.job.url, self.job.unit), dict(res.learned),
-                next((n for n in res.notices if "; set limits." in n), ""), learned.now(), res.identity,
-                res.url, res.unit))
+            learned.remember(
+                opts.state_dir,
+                learned.Entry(
+                    profile_ref(prof),
+                    learned.device_id(self.job.url, self.job.unit),
+                    dict(res.learned),
+                    next((n for n in res.notices if "; set limits." in n), ""),
+                    learned.now(),
+                    res.identity,
+                    res.url,
+                    res.unit,
+                ),
+            )
         except InputError as e:  # damaged since the run started: said, not overwritten
             res.notices.append(f"what the device taught is not remembered: {e}")
         except UsageError as e:  # a full disk: the device's outcome stands, only the lesson is lost
@@ -460,13 +560,29 @@ class _Device:
         applied = opts.applied or (os.path.abspath(recipe.path) if recipe.path else None)  # a fleet: its own
         entry = self.entry
         values = None if entry is None else entry.snapshot_values(recipe.profile, before)
-        snap = snapshot_file(opts.state_dir, res.name, recipe, before, res.url, res.unit, applied=applied,
-                             identity=res.identity, values_text=values)
+        snap = snapshot_file(
+            opts.state_dir,
+            res.name,
+            recipe,
+            before,
+            res.url,
+            res.unit,
+            applied=applied,
+            identity=res.identity,
+            values_text=values,
+        )
         if opts.run_id is not None:
             digest = entry.digest(plan.device) if entry is not None else plan_digest(plan)
             snap.journal = journal.path_of(opts.state_dir)
-            snap.line = journal.device_started(opts.run_id, name=res.name, url=res.url, unit=res.unit,
-                                               plan_digest=digest, batch=res.batch, restoring=res.restored)
+            snap.line = journal.device_started(
+                opts.run_id,
+                name=res.name,
+                url=res.url,
+                unit=res.unit,
+                plan_digest=digest,
+                batch=res.batch,
+                restoring=res.restored,
+            )
         try:
             res.snapshot = await durable(snap)
             res.snapshot_sha256 = snap.digest
@@ -474,23 +590,32 @@ class _Device:
                 snapshot_written(res.snapshot)
         except OSError as e:
             if not opts.restoring:  # no snapshot, no write: nothing could be undone
-                res.status, res.error = "failed", (f"cannot save the snapshot in {opts.state_dir}: {disk_error(e)}; "
-                                                   "nothing was written")
+                res.status, res.error = (
+                    "failed",
+                    (f"cannot save the snapshot in {opts.state_dir}: {disk_error(e)}; nothing was written"),
+                )
                 return False
             # a window's rollback restores values the run verified: a full disk must not stop it
-            res.unrecorded.append(f"the snapshot of what it held before the rollback could not be saved in "
-                                  f"{opts.state_dir}: {disk_error(e)}")
+            res.unrecorded.append(
+                f"the snapshot of what it held before the rollback could not be saved in "
+                f"{opts.state_dir}: {disk_error(e)}"
+            )
         return True
 
 
 def _stale(plan: Plan, prof: Profile, before: dict[str, tuple[int, ...]]) -> None:
     """Raise StalePlan, naming each value, when the device no longer holds what ``plan`` was made against."""
-    changed = [pp.name for pp in plan.parameters
-               if pp.current_raw is not None and not prof.parameter(pp.name).same_value(before.get(pp.name),
-                                                                                        pp.current_raw)]
+    changed = [
+        pp.name
+        for pp in plan.parameters
+        if pp.current_raw is not None and not prof.parameter(pp.name).same_value(before.get(pp.name), pp.current_raw)
+    ]
     if changed:
-        raise StalePlan("the device changed since the plan was made (" + ", ".join(
-            f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed) + "); make a new plan")
+        raise StalePlan(
+            "the device changed since the plan was made ("
+            + ", ".join(f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed)
+            + "); make a new plan"
+        )
 
 
 def _identity_text(identity: dict[str, str]) -> str:

@@ -36,15 +36,30 @@ from .verify import PENDING, _attempted, _verify
 BeforeWrite = Callable[[], Awaitable[bool]]
 
 # the kinds of deviation, for the report's readers (docs/reference/report.md)
-DEVIATIONS = ("split", "function-06", "recovery-read", "follow-up", "gap-free", "read-modify-write",
-              "more-objects", "confirm-read")
+DEVIATIONS = (
+    "split",
+    "function-06",
+    "recovery-read",
+    "follow-up",
+    "gap-free",
+    "read-modify-write",
+    "more-objects",
+    "confirm-read",
+)
 
 
 class Execution:
     """One device's plan being executed: the session, the results it fills in, and what the checks read."""
 
-    def __init__(self, session: Session, recipe: Recipe, res: DeviceResult, results: dict[str, ParameterResult],
-                 options: ApplyOptions, values: Callable[[Mapping[int, int]], dict[str, tuple[int, ...]]]) -> None:
+    def __init__(
+        self,
+        session: Session,
+        recipe: Recipe,
+        res: DeviceResult,
+        results: dict[str, ParameterResult],
+        options: ApplyOptions,
+        values: Callable[[Mapping[int, int]], dict[str, tuple[int, ...]]],
+    ) -> None:
         self.session = session
         self.recipe = recipe
         self.prof: Profile = recipe.profile
@@ -81,8 +96,11 @@ class Execution:
                         return False
                 elif step.kind == "snapshot":  # all of them at once: a refused gap re-plans the rest together
                     if n == snapshot[0]:
-                        regs.update(await self.session.read_blocks([steps[k - 1].read() for k in snapshot],
-                                                                   self.prof, steps=snapshot))
+                        regs.update(
+                            await self.session.read_blocks(
+                                [steps[k - 1].read() for k in snapshot], self.prof, steps=snapshot
+                            )
+                        )
                 elif step.kind == "device-id":
                     res.identity = await self.session.identify()
                     self.silent_identification = self.session.records[-1].result == "no response"
@@ -106,8 +124,10 @@ class Execution:
             res.status, res.error = "failed", f"{why}; nothing was written"
             return False
         if not self.session.gap_reads:  # the refused read is in res.requests; say why the reads that follow differ
-            res.notices.append("the device refused a read across undeclared registers (exception 02): "
-                               "it is read in gap-free blocks (the profile's limits.max_read_gap is not for it)")
+            res.notices.append(
+                "the device refused a read across undeclared registers (exception 02): "
+                "it is read in gap-free blocks (the profile's limits.max_read_gap is not for it)"
+            )
         return True
 
     async def _identity(self, step: Step) -> str | None:
@@ -117,8 +137,10 @@ class Execution:
             return None
         what = f" ({step.note})" if step.note else ""
         table = "input register" if step.function == 4 else "register"
-        return (f"identity check failed: {table} 0x{step.address:04X}{what} holds 0x{value:04X}, expected "
-                f"0x{step.expect.equals:04X}: another kind of device answers here")
+        return (
+            f"identity check failed: {table} 0x{step.address:04X}{what} holds 0x{value:04X}, expected "
+            f"0x{step.expect.equals:04X}: another kind of device answers here"
+        )
 
     def _objects(self, asked: bool) -> str | None:
         """Why the device's Function 43 objects are not what the profile's identity checks expect, if they are not."""
@@ -127,13 +149,18 @@ class Execution:
             name = object_name(chk.object_id)
             what = f" ({chk.description})" if chk.description else ""
             if identity is None:
-                how = ("the device does not answer Function 43 (device identification)" if asked
-                       else "Function 43 (device identification) is not asked of this device")
+                how = (
+                    "the device does not answer Function 43 (device identification)"
+                    if asked
+                    else "Function 43 (device identification) is not asked of this device"
+                )
                 return f"identity check failed: {how}; {name}{what} should be {chk.equals!r}"
             if identity.get(name) != chk.equals:
                 have = repr(identity[name]) if name in identity else "missing"
-                return (f"identity check failed: {name}{what} is {have}, expected {chk.equals!r}: another kind of "
-                        f"device answers here")
+                return (
+                    f"identity check failed: {name}{what} is {have}, expected {chk.equals!r}: another kind of "
+                    f"device answers here"
+                )
         return None
 
     def _firmware(self, asked: bool) -> str | None:
@@ -150,19 +177,25 @@ class Execution:
             identity = self.res.identity
             revision = None if identity is None else identity.get(name)
             if revision is None:
-                why = ("its Function 43 answer has no " + name if identity is not None
-                       else "the device does not answer Function 43 (device identification)" if asked
-                       else "Function 43 (device identification) is not asked of this device")
-                return (f"firmware revision unknown: {why}; profile {prof.id} needs it (set firmware.register where "
-                        "the device reports it)")
+                why = (
+                    "its Function 43 answer has no " + name
+                    if identity is not None
+                    else "the device does not answer Function 43 (device identification)"
+                    if asked
+                    else "Function 43 (device identification) is not asked of this device"
+                )
+                return (
+                    f"firmware revision unknown: {why}; profile {prof.id} needs it (set firmware.register where "
+                    "the device reports it)"
+                )
         assert revision is not None
         if src.applies is not None and not matches(src.applies, revision):
-            return (f"firmware {revision!r} ({src.describe()}) is not one profile {prof.id} applies to "
-                    f"({src.applies})")
+            return f"firmware {revision!r} ({src.describe()}) is not one profile {prof.id} applies to ({src.applies})"
         wrong = [p for p in gated if p.firmware is not None and not matches(p.firmware, revision)]
         if wrong:
             said = ", ".join(f"{p.name} needs {p.firmware}" for p in wrong[:5]) + (
-                f" and {len(wrong) - 5} more" if len(wrong) > 5 else "")
+                f" and {len(wrong) - 5} more" if len(wrong) > 5 else ""
+            )
             return f"firmware {revision!r} ({src.describe()}): {said}"
         return None
 
@@ -232,8 +265,13 @@ class Execution:
         if step.expect.holds(word):
             return True
         what = f"register 0x{step.address:04X}" + _bits(step.expect.mask) + (f" ({step.note})" if step.note else "")
-        res.status, res.error = "failed", (f"precondition failed: {what} is {step.expect.found(word)}, expected "
-                                           f"{step.expect.equals}; nothing was written")
+        res.status, res.error = (
+            "failed",
+            (
+                f"precondition failed: {what} is {step.expect.found(word)}, expected "
+                f"{step.expect.equals}; nothing was written"
+            ),
+        )
         return False
 
     async def _health(self, step: Step, unhealthy: list[tuple[int, str]]) -> bool:
@@ -245,8 +283,10 @@ class Execution:
             if not self.opts.window:
                 self.res.notices.append(f"a health check could not be read before the change: {e}")
                 return True
-            self.res.status, self.res.error = "failed", (f"the health checks could not be read before the change: "
-                                                         f"{e}; nothing was written")
+            self.res.status, self.res.error = (
+                "failed",
+                (f"the health checks could not be read before the change: {e}; nothing was written"),
+            )
             return False
         for i, c in enumerate(self.prof.health):
             if (c.function, c.address, c.count) == (step.function, step.address, step.count) and not c.holds(words):
@@ -261,17 +301,25 @@ class Execution:
         said = "; ".join(why for _, why in unhealthy)
         res = self.res
         if self.opts.window and not self.opts.allow_unhealthy:
-            res.status, res.error = "failed", (
-                f"health check already failing before the change: {said} (the change is not to blame for it; to "
-                "write it anyway: --allow-unhealthy); nothing was written")
+            res.status, res.error = (
+                "failed",
+                (
+                    f"health check already failing before the change: {said} (the change is not to blame for it; to "
+                    "write it anyway: --allow-unhealthy); nothing was written"
+                ),
+            )
             return False
         if self.opts.window:
             res.unhealthy_before = tuple(i for i, _ in unhealthy)
-            res.notices.append(f"health check already failing before the change, written anyway (--allow-unhealthy): "
-                               f"{said}; its window does not hold that check against the change")
+            res.notices.append(
+                f"health check already failing before the change, written anyway (--allow-unhealthy): "
+                f"{said}; its window does not hold that check against the change"
+            )
         else:
-            res.notices.append(f"health check failing before the change: {said} (written all the same: only a "
-                               "safe change, --soak or --confirm-within, is judged by the health checks)")
+            res.notices.append(
+                f"health check failing before the change: {said} (written all the same: only a "
+                "safe change, --soak or --confirm-within, is judged by the health checks)"
+            )
         return True
 
     async def _unlock(self, step: Step, writes: bool) -> bool:
@@ -352,8 +400,10 @@ class Execution:
                         req = await _remerge(self.session, self.prof, req, desired, results)
                 except (DeviceGone, ExceptionResponse) as e:  # nothing of this request was sent
                     for nm in req.parameters:
-                        results[nm].status, results[nm].error = \
-                            "failed", f"reading the register to keep its other bits: {e}"
+                        results[nm].status, results[nm].error = (
+                            "failed",
+                            f"reading the register to keep its other bits: {e}",
+                        )
                     self.stopped = self.opts.on_error == "stop"
                     continue
             if not await self._send(req, how, pending, desired):
@@ -361,8 +411,9 @@ class Execution:
         if step.wait:
             await asyncio.sleep(step.wait)
 
-    def _merged(self, req: WriteRequest, desired: dict[str, tuple[int, ...]], merged: Mapping[int, int]
-                ) -> WriteRequest:
+    def _merged(
+        self, req: WriteRequest, desired: dict[str, tuple[int, ...]], merged: Mapping[int, int]
+    ) -> WriteRequest:
         """The planned write with each bit field's register merged anew over what its read found."""
         from ..planning.planner import merge_fields
 
@@ -376,12 +427,19 @@ class Execution:
                 desired[m.name] = self.results[m.name].desired_raw = (word,)
         out = WriteRequest(req.function, req.address, tuple(regs), req.parameters, req.stage)
         if out.registers != req.registers:  # another field changed since the snapshot: kept as the device holds it
-            self.res.notices.append(f"the register at 0x{req.address:04X} changed since the plan was made: its "
-                                    "other bits are written as the device holds them now")
+            self.res.notices.append(
+                f"the register at 0x{req.address:04X} changed since the plan was made: its "
+                "other bits are written as the device holds them now"
+            )
         return out
 
-    async def _send(self, req: WriteRequest, how: str | None, pending: deque[tuple[WriteRequest, str | None]],
-                    desired: dict[str, tuple[int, ...]]) -> bool:
+    async def _send(
+        self,
+        req: WriteRequest,
+        how: str | None,
+        pending: deque[tuple[WriteRequest, str | None]],
+        desired: dict[str, tuple[int, ...]],
+    ) -> bool:
         """Send one request (``how``: the deviation it is part of) and handle the answer; False when the device
         went away (every later write is skipped; the read-back decides what the last one did)."""
         results, session = self.results, self.session
@@ -433,8 +491,7 @@ class Execution:
         res.notices.extend(self.learning.notices(results, self.prof.id))
         verify = [n for n, s in enumerate(plan.steps, 1) if s.kind == "verify"]
         try:  # after a silence too: it may be back
-            regs = await self.session.read_blocks([plan.steps[n - 1].read() for n in verify], self.prof,
-                                                  steps=verify)
+            regs = await self.session.read_blocks([plan.steps[n - 1].read() for n in verify], self.prof, steps=verify)
         except (DeviceGone, ExceptionResponse) as e:
             for nm in self.written:
                 if results[nm].error == PENDING:
@@ -463,8 +520,7 @@ class Execution:
             await self._action(step)
         except (DeviceGone, ExceptionResponse) as e:
             res.status, res.commit = "failed", "failed"
-            why = (f"commit '{step.note or hex(step.address)}' failed: {e}; the values are verified, in RAM, "
-                   "not stored")
+            why = f"commit '{step.note or hex(step.address)}' failed: {e}; the values are verified, in RAM, not stored"
             res.error = f"{res.error}; {why}" if res.error else why
             return False
         res.commit = "sent"
@@ -515,4 +571,7 @@ async def check_identity(session: Session, profile: Profile) -> None:
             raise IdentityMismatch(
                 f"identity check failed: {table} 0x{chk.address:04X}{what} holds 0x{value:04X}, expected "
                 f"0x{chk.raw:04X}: another kind of device answers here",
-                address=chk.address, expected=chk.raw, found=value)
+                address=chk.address,
+                expected=chk.raw,
+                found=value,
+            )

@@ -54,8 +54,9 @@ def parse_expected(p: Parameter, text: str) -> Decimal:
             return codec.from_raw(raw, p.scale, p.offset)
     m = re.fullmatch(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*", text)
     if m is None:
-        raise UsageError(f"--expect {p.name}={text}: expected a number (in {p.unit or 'the parameter units'}) "
-                         "or one of its labels")
+        raise UsageError(
+            f"--expect {p.name}={text}: expected a number (in {p.unit or 'the parameter units'}) or one of its labels"
+        )
     try:
         value = Decimal(m.group(1))
     except InvalidOperation:
@@ -99,28 +100,46 @@ async def _identity(session: Session, profile: Profile, result: ProbeResult) -> 
         try:
             (word,) = await session.read(chk.address, 1)
         except ExceptionResponse as e:
-            result.findings.append(Finding("identity", f"identity register 0x{chk.address:04X} answers {e}",
-                                           f"check identity register {chk.address} (0x{chk.address:04X})"))
+            result.findings.append(
+                Finding(
+                    "identity",
+                    f"identity register 0x{chk.address:04X} answers {e}",
+                    f"check identity register {chk.address} (0x{chk.address:04X})",
+                )
+            )
             continue
         if word != chk.raw:
-            result.findings.append(Finding(
-                "identity", f"identity register 0x{chk.address:04X} holds {word} (0x{word:04X}), the profile "
-                            f"expects {chk.raw}", "another kind of device, or the profile's identity raw value "
-                                                  f"for 0x{chk.address:04X} should be {word}"))
+            result.findings.append(
+                Finding(
+                    "identity",
+                    f"identity register 0x{chk.address:04X} holds {word} (0x{word:04X}), the profile expects {chk.raw}",
+                    "another kind of device, or the profile's identity raw value "
+                    f"for 0x{chk.address:04X} should be {word}",
+                )
+            )
     result.identity = await session.identify()
     objects = result.identity or {}
     for obj in profile.identity_objects:
         name = object_name(obj.object_id)
         if objects.get(name) != obj.equals:
-            result.findings.append(Finding("identity", f"{name} is {objects.get(name)!r}, the profile expects "
-                                                       f"{obj.equals!r}",
-                                           f"identity object {name} should equal {objects.get(name)!r}"
-                                           if name in objects else "the device has no Function 43 identity: "
-                                                                   "drop the identity object checks"))
+            result.findings.append(
+                Finding(
+                    "identity",
+                    f"{name} is {objects.get(name)!r}, the profile expects {obj.equals!r}",
+                    f"identity object {name} should equal {objects.get(name)!r}"
+                    if name in objects
+                    else "the device has no Function 43 identity: drop the identity object checks",
+                )
+            )
     if objects and not profile.identity_objects and "product_code" in objects:
-        result.findings.append(Finding("identity", f"the device identifies itself ({_text(objects)})",
-                                       f"identity: - {{object: product_code, equals: {objects['product_code']!r}}} "
-                                       "(recognises the device before any write)"))
+        result.findings.append(
+            Finding(
+                "identity",
+                f"the device identifies itself ({_text(objects)})",
+                f"identity: - {{object: product_code, equals: {objects['product_code']!r}}} "
+                "(recognises the device before any write)",
+            )
+        )
 
 
 async def _read_all(session: Session, profile: Profile, result: ProbeResult) -> dict[int, int]:
@@ -139,10 +158,14 @@ async def _read_all(session: Session, profile: Profile, result: ProbeResult) -> 
             try:
                 regs.update(await session.read_blocks(plan_reads(profile, [p.name], gaps=False)))
             except ExceptionResponse as e:
-                result.findings.append(Finding(
-                    p.name, f"{p.name} at 0x{p.address:04X} answers {e} when read",
-                    f"{p.name}: access: write-only if it is a command register, else check its address "
-                    f"(0x{p.address:04X})"))
+                result.findings.append(
+                    Finding(
+                        p.name,
+                        f"{p.name} at 0x{p.address:04X} answers {e} when read",
+                        f"{p.name}: access: write-only if it is a command register, else check its address "
+                        f"(0x{p.address:04X})",
+                    )
+                )
     return regs
 
 
@@ -156,9 +179,13 @@ def _range(p: Parameter, words: tuple[int, ...], result: ProbeResult) -> None:
         return
     if not bounds[0] <= raw <= bounds[1]:
         lo, hi = (p.show_registers(p.encode(b)) for b in bounds)
-        result.findings.append(Finding(
-            p.name, f"{p.name} reads {p.show_registers(words)}, outside its declared range {lo}..{hi}",
-            f"{p.name}: check its scale, type and byte_order, or widen min/max"))
+        result.findings.append(
+            Finding(
+                p.name,
+                f"{p.name} reads {p.show_registers(words)}, outside its declared range {lo}..{hi}",
+                f"{p.name}: check its scale, type and byte_order, or widen min/max",
+            )
+        )
 
 
 def _close(a: Decimal, b: Decimal) -> bool:
@@ -188,22 +215,36 @@ def _layout(p: Parameter, words: tuple[int, ...], value: Decimal, result: ProbeR
     if fits:
         layout = fits[0]
         change = f"{p.name}: swap: byte" if p.count == 1 else f"{p.name}: byte_order: {layout}"
-        result.findings.append(Finding(
-            p.name, f"{p.name}: {value} is held as {layout} (the profile reads {mine}: "
-                    f"{p.show_registers(words)})", change))
+        result.findings.append(
+            Finding(
+                p.name,
+                f"{p.name}: {value} is held as {layout} (the profile reads {mine}: {p.show_registers(words)})",
+                change,
+            )
+        )
         return
     raw = p.decode(words)
     if not isinstance(raw, float) and raw and value:
         ratio = (value - p.offset) / Decimal(raw)
         exp = ratio.adjusted()
         if ratio == Decimal(10) ** exp:
-            result.findings.append(Finding(
-                p.name, f"{p.name} holds raw {raw}; {value} means scale {Decimal(10) ** exp} (the profile says "
-                        f"{p.scale})", f"{p.name}: scale: {Decimal(10) ** exp}"))
+            result.findings.append(
+                Finding(
+                    p.name,
+                    f"{p.name} holds raw {raw}; {value} means scale {Decimal(10) ** exp} (the profile says {p.scale})",
+                    f"{p.name}: scale: {Decimal(10) ** exp}",
+                )
+            )
             return
-    result.findings.append(Finding(p.name, f"{p.name} reads {p.show_registers(words)} "
-                                           f"({' '.join(f'{w:04X}h' for w in words)}); no byte or word layout "
-                                           f"gives {value}", f"{p.name}: check its address and type"))
+    result.findings.append(
+        Finding(
+            p.name,
+            f"{p.name} reads {p.show_registers(words)} "
+            f"({' '.join(f'{w:04X}h' for w in words)}); no byte or word layout "
+            f"gives {value}",
+            f"{p.name}: check its address and type",
+        )
+    )
 
 
 def _common_layout(profile: Profile, result: ProbeResult) -> None:
@@ -211,9 +252,15 @@ def _common_layout(profile: Profile, result: ProbeResult) -> None:
     per = [f.change for f in result.findings if f.change and ": byte_order: " in f.change]
     layouts = {c.rsplit(" ", 1)[1] for c in per if c is not None}
     if len(per) > 1 and len(layouts) == 1:
-        result.findings.append(Finding("profile", f"{len(per)} parameters agree on {layouts.pop()}",
-                                       f"byte_order: {per[0].rsplit(' ', 1)[1]} for the whole profile "
-                                       "(top level) instead of per parameter" if per[0] else None))
+        result.findings.append(
+            Finding(
+                "profile",
+                f"{len(per)} parameters agree on {layouts.pop()}",
+                f"byte_order: {per[0].rsplit(' ', 1)[1]} for the whole profile (top level) instead of per parameter"
+                if per[0]
+                else None,
+            )
+        )
 
 
 def _text(objects: Mapping[str, str]) -> str:

@@ -20,10 +20,18 @@ from .session import ApplyOptions
 from .verify import values_of
 
 
-async def plan_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, write_all: bool = False,
-                      state_dir: str | None = ".deployer", planners: Planners | None = None,
-                      records: list[RequestRecord] | None = None, notices: list[str] | None = None,
-                      window: bool = False) -> Plan:
+async def plan_device(
+    recipe: Recipe,
+    url: tp.DeviceURL,
+    unit: int,
+    *,
+    write_all: bool = False,
+    state_dir: str | None = ".deployer",
+    planners: Planners | None = None,
+    records: list[RequestRecord] | None = None,
+    notices: list[str] | None = None,
+    window: bool = False,
+) -> Plan:
     """The plan ``apply`` would execute on the device now: the plan's checks run on it (identity, the current
     values, its identification and firmware: reads only), and the plan made against what they read, over the
     limits the device taught an earlier apply (``state_dir``; None: the profile's alone).
@@ -41,23 +49,29 @@ async def plan_device(recipe: Recipe, url: tp.DeviceURL, unit: int, *, write_all
     dev = _Device(job, opts, res, planners or Planners(), window=window)
     if state_dir is not None:
         dev.over_taught()
-    async with connected(url, unit, recipe.profile, records=records if records is not None else res.requests,
-                         notices=res.notices) as session:
+    async with connected(
+        url, unit, recipe.profile, records=records if records is not None else res.requests, notices=res.notices
+    ) as session:
         ex = Execution(session, recipe, res, dev.results, opts, dev.shared.values)
         if not await ex.checks(dev.shared.planner.checks):
             why = (res.error or "").removesuffix("; nothing was written")
             raise Unreachable(f"{tp.describe(url)} unit {unit}: {why}")
         dev.keep_taught(ex)
-        plan, _ = dev.shared.plan(Target(tp.describe(url), unit, profile_ref(dev.recipe.profile)), ex.before,
-                                  False)
+        plan, _ = dev.shared.plan(Target(tp.describe(url), unit, profile_ref(dev.recipe.profile)), ex.before, False)
     if notices is not None:
         notices.extend(res.notices)
     return plan
 
 
-async def read_current(profile: Profile, names: Sequence[str], url: tp.DeviceURL, unit: int,
-                       records: list[RequestRecord] | None = None, *, backoff: float = 0.05,
-                       ) -> dict[str, tuple[int, ...]]:
+async def read_current(
+    profile: Profile,
+    names: Sequence[str],
+    url: tp.DeviceURL,
+    unit: int,
+    records: list[RequestRecord] | None = None,
+    *,
+    backoff: float = 0.05,
+) -> dict[str, tuple[int, ...]]:
     """Current registers of the named readable parameters (diff, pull), after the profile's identity check.
     Raises Unreachable / UsageError."""
     if unit == 0:

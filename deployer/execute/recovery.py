@@ -24,8 +24,13 @@ from .session import Session
 from .verify import _attempted, values_of
 
 
-async def _remerge(session: Session, prof: Profile, req: WriteRequest, desired: dict[str, tuple[int, ...]],
-                   results: dict[str, ParameterResult]) -> WriteRequest:
+async def _remerge(
+    session: Session,
+    prof: Profile,
+    req: WriteRequest,
+    desired: dict[str, tuple[int, ...]],
+    results: dict[str, ParameterResult],
+) -> WriteRequest:
     """Bit fields: read their registers right before the write and merge the new bits into what the
     device holds now (another field may have changed since the snapshot: keep it, never guess)."""
     readable = prof.readable_fields()
@@ -62,8 +67,12 @@ def _groups(prof: Profile, req: WriteRequest) -> list[list[Parameter]]:
 def _part(req: WriteRequest, groups: list[list[Parameter]]) -> WriteRequest:
     lo = groups[0][0].address
     hi = max(p.end for g in groups for p in g)
-    return replace(req, address=lo, registers=req.registers[lo - req.address:hi - req.address],
-                   parameters=tuple(p.name for g in groups for p in g))
+    return replace(
+        req,
+        address=lo,
+        registers=req.registers[lo - req.address : hi - req.address],
+        parameters=tuple(p.name for g in groups for p in g),
+    )
 
 
 def halves(prof: Profile, req: WriteRequest) -> tuple[WriteRequest, WriteRequest] | None:
@@ -94,8 +103,10 @@ def single_writes(prof: Profile, req: WriteRequest) -> list[WriteRequest]:
     """``req`` as Function 06 requests, one per register in ascending address order (the planner's
     way for devices without Function 16)."""
     params = [prof.parameter(n) for n in req.parameters]
-    return [WriteRequest(6, a, (w,), tuple(p.name for p in params if p.address <= a < p.end), req.stage)
-            for a, w in zip(range(req.address, req.address + req.count), req.registers, strict=True)]
+    return [
+        WriteRequest(6, a, (w,), tuple(p.name for p in params if p.address <= a < p.end), req.stage)
+        for a, w in zip(range(req.address, req.address + req.count), req.registers, strict=True)
+    ]
 
 
 @dataclass
@@ -118,9 +129,12 @@ class Learning:
         """Sizes of the requests refused for their length alone: every value in them was taken
         afterwards (of those written so far, with ``done``)."""
         taken = None if done is None else set(done)
-        return [size for size, names in self.refused
-                if size > self.accepted > 0
-                and all(results[n].status != "failed" and (taken is None or n in taken) for n in names)]
+        return [
+            size
+            for size, names in self.refused
+            if size > self.accepted > 0
+            and all(results[n].status != "failed" and (taken is None or n in taken) for n in names)
+        ]
 
     def update_cap(self, results: Mapping[str, ParameterResult], written: Iterable[str]) -> int:
         """Once a refusal proved to be for length alone, later requests go in pieces the device takes.
@@ -149,12 +163,16 @@ class Learning:
 
     def notices(self, results: Mapping[str, ParameterResult], profile: str) -> list[str]:
         if self.fc06 and self.fc06_took:
-            return ["the device refused Function 16 writes (exception 01) and took Function 06; "
-                    f"set limits.write_function: 6 in profile {profile}"]
+            return [
+                "the device refused Function 16 writes (exception 01) and took Function 06; "
+                f"set limits.write_function: 6 in profile {profile}"
+            ]
         refused = self.length_refusals(results)
         if refused:
-            return [f"the device took {self.accepted}-register writes and refused {min(refused)}; "
-                    f"set limits.max_write_registers: {self.accepted} in profile {profile}"]
+            return [
+                f"the device took {self.accepted}-register writes and refused {min(refused)}; "
+                f"set limits.max_write_registers: {self.accepted} in profile {profile}"
+            ]
         return []
 
 
@@ -165,9 +183,16 @@ class Recovery:
     took_all: bool = False  # the device complained, yet every value is there: go on as after a plain answer
 
 
-async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: ExceptionResponse,
-                   desired: Mapping[str, tuple[int, ...]], results: dict[str, ParameterResult],
-                   written: set[str], notices: list[str] | None = None) -> Recovery:
+async def _recover(
+    session: Session,
+    prof: Profile,
+    req: WriteRequest,
+    exc: ExceptionResponse,
+    desired: Mapping[str, tuple[int, ...]],
+    results: dict[str, ParameterResult],
+    written: set[str],
+    notices: list[str] | None = None,
+) -> Recovery:
     """After an exception: read the request's registers back to see which took.
 
     A device may answer an exception (04, server device failure) to a write it carried out: the
@@ -183,8 +208,9 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: Exce
     params = sorted({prof.parameter(n) for n in req.parameters}, key=lambda p: p.address)
     error = f"exception {exc.code:02d} ({ExceptionResponse.NAMES.get(exc.code, 'unknown')})"
     try:
-        now = values_of(params, await session.read_blocks(plan_reads(prof, [p.name for p in params if p.readable]),
-                                                           prof))
+        now = values_of(
+            params, await session.read_blocks(plan_reads(prof, [p.name for p in params if p.readable]), prof)
+        )
     except (DeviceGone, ExceptionResponse) as e:  # cannot tell what took: say so, send nothing more of it
         _attempted(results, req.parameters, written, f"{error}; reading back failed: {e}")
         return Recovery()
@@ -212,9 +238,11 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: Exce
     _attempted(results, unknown, written, f"write-only, next to a rejected value ({error})")
     if rejected is None:  # everything took although the device complained: the read-back decides
         if notices is not None:
-            notices.append(f"the device answered {error} to the write of {', '.join(req.parameters)} at "
-                           f"0x{req.address:04X}, but reading back shows the values took: reported by the "
-                           "read-back (check the device's diagnostics)")
+            notices.append(
+                f"the device answered {error} to the write of {', '.join(req.parameters)} at "
+                f"0x{req.address:04X}, but reading back shows the values took: reported by the "
+                "read-back (check the device's diagnostics)"
+            )
         return Recovery(took_all=True)
     results[rejected.name].status, results[rejected.name].error = "failed", error
     for p in params:  # bit fields of the rejected register went with it
@@ -223,5 +251,5 @@ async def _recover(session: Session, prof: Profile, req: WriteRequest, exc: Exce
     rest = [p for p in params if p.address > rejected.address]
     if not rest or req.function == 6:  # an FC06 request carries one register: nothing after it
         return Recovery()
-    regs = req.registers[rest[0].address - req.address:]  # bit fields of one register share its word
+    regs = req.registers[rest[0].address - req.address :]  # bit fields of one register share its word
     return Recovery(replace(req, address=rest[0].address, registers=regs, parameters=tuple(p.name for p in rest)))

@@ -41,8 +41,13 @@ class ScanResult:
         return inventory_text(self, url_text, when or time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
 
 
-async def scan(url: tp.DeviceURL, units: Iterable[int], *, register: int = 0,
-               on_unit: Callable[[int, UnitFound | None], None] | None = None) -> ScanResult:
+async def scan(
+    url: tp.DeviceURL,
+    units: Iterable[int],
+    *,
+    register: int = 0,
+    on_unit: Callable[[int, UnitFound | None], None] | None = None,
+) -> ScanResult:
     """Ask each unit of ``units`` on ``url`` (its ``timeout`` per unit, no retries). Raises Unreachable."""
     url = replace(url, retries=0)
     transport = opened(url, None)  # one connection for every unit: the bus's pacing (the URL's) for all
@@ -97,9 +102,11 @@ def inventory_text(result: ScanResult, url_text: str, when: str) -> str:
     """An inventory fragment listing the units that answered (``deployer validate`` accepts it)."""
     import json
 
-    lines = [f"# deployer scan {url_text}: {len(result.units)} of {result.asked} unit ids answered ({when})",
-             "# give each device a profile and a recipe (or groups), then: deployer plan --inventory FILE",
-             "devices:" if result.units else "devices: {}"]
+    lines = [
+        f"# deployer scan {url_text}: {len(result.units)} of {result.asked} unit ids answered ({when})",
+        "# give each device a profile and a recipe (or groups), then: deployer plan --inventory FILE",
+        "devices:" if result.units else "devices: {}",
+    ]
     for u in result.units:
         what = ", ".join(f"{k} {v}" for k, v in (u.identity or {}).items()) or f"no identification ({u.answer})"
         lines.append(f"  unit-{u.unit}:  # {what}")

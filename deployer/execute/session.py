@@ -88,8 +88,9 @@ class Session:
     its own, in ``records``), or ``Untrusted`` is raised.
     """
 
-    def __init__(self, transport: tp.Transport, unit: int, *, retries: int, backoff: float,
-                 records: list[RequestRecord]) -> None:
+    def __init__(
+        self, transport: tp.Transport, unit: int, *, retries: int, backoff: float, records: list[RequestRecord]
+    ) -> None:
         self.transport = transport
         self.unit = unit
         self.retries = retries
@@ -216,8 +217,9 @@ class Session:
         else:
             await self._call(rec, lambda: _none(t.write_registers(req.address, list(req.registers), unit)))
 
-    async def read_blocks(self, reads: Iterable[ReadRequest], profile: Profile | None = None, *,
-                          steps: Sequence[int] | None = None) -> dict[int, int]:
+    async def read_blocks(
+        self, reads: Iterable[ReadRequest], profile: Profile | None = None, *, steps: Sequence[int] | None = None
+    ) -> dict[int, int]:
         """Registers of every block, by key (Parameter.key; a holding register's key is its address).
 
         With ``profile``: when the device refuses a read across undeclared registers (exception 02), the rest of
@@ -238,8 +240,12 @@ class Session:
                 gap_free = todo[i:] != replaced
                 if numbers is not None:  # each new block stands in for the planned one holding its first register
                     planned = list(zip(replaced, numbers[i:], strict=True))
-                    numbers[i:] = [next((n for p, n in planned if read_key(p) <= read_key(r) < read_key(p) + p.count),
-                                        planned[0][1]) for r in todo[i:]]
+                    numbers[i:] = [
+                        next(
+                            (n for p, n in planned if read_key(p) <= read_key(r) < read_key(p) + p.count), planned[0][1]
+                        )
+                        for r in todo[i:]
+                    ]
             r = todo[i]
             if numbers is not None:
                 self.step = numbers[i]
@@ -250,8 +256,12 @@ class Session:
                 else:
                     values = await self.read(r.address, r.count, r.function)
             except ExceptionResponse as e:
-                if (profile is None or not profile.limits.max_read_gap or e.code != 2
-                        or gap_free_reads(profile, [r]) == (r,)):
+                if (
+                    profile is None
+                    or not profile.limits.max_read_gap
+                    or e.code != 2
+                    or gap_free_reads(profile, [r]) == (r,)
+                ):
                     raise  # not about a gap
                 self.gap_reads = False
                 continue

@@ -62,12 +62,16 @@ class Trust:
         """What put the line out of step, for the report."""
         t, said = self.transport, []
         if self.unanswered:
-            said.append(f"{self.unanswered} request{'s' if self.unanswered != 1 else ''} went unanswered within the "
-                        f"timeout ({t.url.timeout:g} s)")
+            said.append(
+                f"{self.unanswered} request{'s' if self.unanswered != 1 else ''} went unanswered within the "
+                f"timeout ({t.url.timeout:g} s)"
+            )
         if t.late_answers:
             n = len(t.late_answers)
-            said.append(f"the device answered {n} request{'s' if n != 1 else ''} after the timeout (up to "
-                        f"{max(t.late_answers):.2f} s)")
+            said.append(
+                f"the device answered {n} request{'s' if n != 1 else ''} after the timeout (up to "
+                f"{max(t.late_answers):.2f} s)"
+            )
         if self.wrong:
             said.append(f"{len(self.wrong)} wrong answer{'s' if len(self.wrong) != 1 else ''} ({self.wrong[0]})")
         if self.lost:
@@ -87,7 +91,8 @@ class Trust:
         return Untrusted(
             f"the serial line went out of step ({self._what()}), so an answer could be another request's: the read "
             f"of {count} {what} at 0x{address:04X} (function {function}) gave {got}, and no read after {silence:.2f} s "
-            f"of silence agreed with the one before it; nothing of it is taken{self._advice()}")
+            f"of silence agreed with the one before it; nothing of it is taken{self._advice()}"
+        )
 
     def notice(self) -> str | None:
         """What the device's report says when the session was in doubt (None: it never was)."""
@@ -95,9 +100,11 @@ class Trust:
             return None
         silence, _ = self.transport.silence()
         n = self.rereads
-        return (f"the serial line went out of step ({self._what()}): every value read after it was read again after "
-                f"{silence:.2f} s of silence and taken only when both reads agreed ({n} confirming "
-                f"read{'s' if n != 1 else ''}){self._advice()}")
+        return (
+            f"the serial line went out of step ({self._what()}): every value read after it was read again after "
+            f"{silence:.2f} s of silence and taken only when both reads agreed ({n} confirming "
+            f"read{'s' if n != 1 else ''}){self._advice()}"
+        )
 
     def _advice(self) -> str:
         """The timeout that would have served: 1.5 times the longest the device stayed silent, when that
@@ -107,5 +114,7 @@ class Trust:
         if slowest <= t.url.timeout:
             return ""
         served = math.ceil(slowest * 1.5 * 10) / 10
-        return (f"; the device stayed silent up to {slowest:.2f} s after a request: timeout={served:g} would have "
-                f"served (set it on the URL)")
+        return (
+            f"; the device stayed silent up to {slowest:.2f} s after a request: timeout={served:g} would have "
+            f"served (set it on the URL)"
+        )

@@ -36,8 +36,9 @@ def _values(layout: Iterable[tuple[str, int, int]], regs: Mapping[int, int]) -> 
 PENDING = "not read back yet"
 
 
-def _attempted(results: dict[str, ParameterResult], names: Collection[str], written: set[str],
-               error: str = PENDING) -> None:
+def _attempted(
+    results: dict[str, ParameterResult], names: Collection[str], written: set[str], error: str = PENDING
+) -> None:
     """Mark parameters as sent: unverified until the read-back says ok or mismatch."""
     written.update(names)
     for n in names:
@@ -45,8 +46,13 @@ def _attempted(results: dict[str, ParameterResult], names: Collection[str], writ
         r.status, r.error = "unverified", error
 
 
-def _verify(results: dict[str, ParameterResult], prof: Profile, after: Mapping[str, tuple[int, ...]],
-            written: set[str], unanswered: Collection[str] = ()) -> None:
+def _verify(
+    results: dict[str, ParameterResult],
+    prof: Profile,
+    after: Mapping[str, tuple[int, ...]],
+    written: set[str],
+    unanswered: Collection[str] = (),
+) -> None:
     """Statuses from the read-back: what was sent must read back equal; the rest is reported as is.
 
     ``unanswered``: parameters of a write the device did not answer (it may not have applied it).

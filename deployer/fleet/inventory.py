@@ -75,11 +75,16 @@ def select(inv: Inventory, limit: str | None) -> tuple[FleetDevice, ...]:
             names = set(not_ok(word[1:]))
             unknown = sorted(names - {d.name for d in inv.devices})
             if unknown:
-                raise UsageError(f"--limit {word}: devices {', '.join(unknown)} are not in {inv.path} "
-                                 "(a report of another inventory?)")
+                raise UsageError(
+                    f"--limit {word}: devices {', '.join(unknown)} are not in {inv.path} "
+                    "(a report of another inventory?)"
+                )
         else:
-            names = {d.name for d in inv.devices
-                     if fnmatch.fnmatchcase(d.name, word) or any(fnmatch.fnmatchcase(g, word) for g in d.groups)}
+            names = {
+                d.name
+                for d in inv.devices
+                if fnmatch.fnmatchcase(d.name, word) or any(fnmatch.fnmatchcase(g, word) for g in d.groups)
+            }
             if not names:
                 raise UsageError(f"--limit: '{word}' matches no device name or group in {inv.path}")
         if exclude:
@@ -106,8 +111,9 @@ def not_ok(report_path: str) -> list[str]:
         data = read_report(report_path)
     except OSError as e:
         raise UsageError(f"--limit @{report_path}: cannot read the report: {e.strerror}") from None
-    return [str(d.get("name")) for d in data["devices"]
-            if isinstance(d, dict) and d.get("status") not in ("ok", "sent")]
+    return [
+        str(d.get("name")) for d in data["devices"] if isinstance(d, dict) and d.get("status") not in ("ok", "sent")
+    ]
 
 
 def commits_owed(limit: str | None) -> set[str]:
@@ -124,8 +130,13 @@ def commits_owed(limit: str | None) -> set[str]:
             data = read_report(word[1:])
         except OSError:
             continue  # select() says why it cannot be read
-        out |= {str(d.get("name")) for d in data["devices"] if isinstance(d, dict)
-                and d.get("status") not in ("ok", "sent") and d.get("commit") in ("failed", "not sent", "held")}
+        out |= {
+            str(d.get("name"))
+            for d in data["devices"]
+            if isinstance(d, dict)
+            and d.get("status") not in ("ok", "sent")
+            and d.get("commit") in ("failed", "not sent", "held")
+        }
     return out
 
 
@@ -209,18 +220,23 @@ def _inventory(p: str, data: Any, src: yamlsrc.Source, here: str) -> Inventory:
         if prof is not None and is_profile_path(prof):
             prof = os.path.normpath(os.path.join(here, prof))
         rec = got.get("recipe")
-        devices.append(FleetDevice(
-            name=name, url=spec["url"], unit=int(got.get("unit", 1)), profile=prof,
-            groups=tuple(spec.get("groups", ())),
-            timeout=float(got.get("timeout", 0) or 0) or None,
-            retries=got.get("retries"),
-            overrides=tuple(params.values()),
-            where=src.pos(("devices", name, "url")),
-            # relative to the inventory, spelled as the inventory's own path is (as a RECIPE argument would be)
-            recipe=None if rec is None else os.path.normpath(os.path.join(os.path.dirname(p), rec)),
-            at=at,
-            agent=agent,
-        ))
+        devices.append(
+            FleetDevice(
+                name=name,
+                url=spec["url"],
+                unit=int(got.get("unit", 1)),
+                profile=prof,
+                groups=tuple(spec.get("groups", ())),
+                timeout=float(got.get("timeout", 0) or 0) or None,
+                retries=got.get("retries"),
+                overrides=tuple(params.values()),
+                where=src.pos(("devices", name, "url")),
+                # relative to the inventory, spelled as the inventory's own path is (as a RECIPE argument would be)
+                recipe=None if rec is None else os.path.normpath(os.path.join(os.path.dirname(p), rec)),
+                at=at,
+                agent=agent,
+            )
+        )
     if errors:
         raise InputError(errors)
     meta = tuple((str(k), str(v)) for k, v in (data.get("meta") or {}).items())
@@ -248,8 +264,14 @@ def _same_devices(path: str, devices: Sequence[tuple[FleetDevice, int]], *, chec
         for k in keys:
             first = seen.setdefault((k, unit), dev)
             if first is not dev:
-                errors.append(Diagnostic(path, *dev.where, f"devices '{first.name}' and '{dev.name}' are one device "
-                                         f"({first.url} and {dev.url}, unit {unit}): name each device once"))
+                errors.append(
+                    Diagnostic(
+                        path,
+                        *dev.where,
+                        f"devices '{first.name}' and '{dev.name}' are one device "
+                        f"({first.url} and {dev.url}, unit {unit}): name each device once",
+                    )
+                )
                 break
     return errors
 
@@ -277,8 +299,11 @@ class RecipeCache:
 
         if ref not in self._profiles:
             try:
-                self._profiles[ref] = (resolve_profile(ref) if self.inventory is None
-                                       else resolve_profile(ref, relative_to=self.inventory, kind="inventory"))
+                self._profiles[ref] = (
+                    resolve_profile(ref)
+                    if self.inventory is None
+                    else resolve_profile(ref, relative_to=self.inventory, kind="inventory")
+                )
             except (InputError, UsageError) as e:
                 self._profiles[ref] = e
         got = self._profiles[ref]
@@ -289,8 +314,11 @@ class RecipeCache:
     def base(self, path: str | None, profile_ref: str | None) -> Recipe:
         """The recipe at ``path`` (None: the command line's) for a device of ``profile_ref`` (None: the recipe's)."""
         given = self.recipe
-        if given is not None and (path is None or path == given.path) \
-                and (profile_ref is None or profile_ref == given.profile_ref):
+        if (
+            given is not None
+            and (path is None or path == given.path)
+            and (profile_ref is None or profile_ref == given.profile_ref)
+        ):
             return given
         if path is None:
             assert given is not None and given.path is not None  # a recipe built in code has no file to reload
@@ -323,8 +351,16 @@ class RecipeCache:
         return got
 
 
-def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, timeout: float | None = None,
-               retries: int | None = None, unit: int | None = None, require_recipe: bool = True) -> list[Job]:
+def fleet_jobs(
+    inv: Inventory,
+    recipe: Recipe | None,
+    limit: str | None,
+    *,
+    timeout: float | None = None,
+    retries: int | None = None,
+    unit: int | None = None,
+    require_recipe: bool = True,
+) -> list[Job]:
     """One job per selected device: its recipe (``recipe``, else the one the inventory gives it) with the
     device's profile and overrides, its URL parsed.
 
@@ -357,20 +393,41 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
                 if recipe is None and dev.recipe is None and not require_recipe:
                     parse_url(dev.url)
                 elif recipe is None and dev.recipe is None:
-                    found = [Diagnostic(inv.path, *dev.at.get("device", dev.where),
-                                        "no recipe: give the device one (recipe: in its entry, one of its groups "
-                                        "or defaults) or name one on the command line" + _group_hint(inv, dev))]
+                    found = [
+                        Diagnostic(
+                            inv.path,
+                            *dev.at.get("device", dev.where),
+                            "no recipe: give the device one (recipe: in its entry, one of its groups "
+                            "or defaults) or name one on the command line" + _group_hint(inv, dev),
+                        )
+                    ]
                 else:
                     r = cache.for_device(dev.profile, dev.overrides, None if recipe is not None else dev.recipe)
                     if r.snapshot is not None:
-                        found = [Diagnostic(inv.path, *dev.at.get("recipe", dev.where),
-                                            f"{r.path} is one device's snapshot: it restores only the device it was "
-                                            "taken from (a fleet run: deployer rollback --from-report REPORT.json)")]
+                        found = [
+                            Diagnostic(
+                                inv.path,
+                                *dev.at.get("recipe", dev.where),
+                                f"{r.path} is one device's snapshot: it restores only the device it was "
+                                "taken from (a fleet run: deployer rollback --from-report REPORT.json)",
+                            )
+                        ]
                     else:
-                        url = parse_url(dev.url, timeout=timeout or dev.timeout,
-                                        retries=retries if retries is not None else dev.retries)
-                        jobs.append(Job(dev.name, r, url, unit if unit is not None else dev.unit,
-                                        dev.groups[0] if dev.groups else None, commit_owed=dev.name in owed))
+                        url = parse_url(
+                            dev.url,
+                            timeout=timeout or dev.timeout,
+                            retries=retries if retries is not None else dev.retries,
+                        )
+                        jobs.append(
+                            Job(
+                                dev.name,
+                                r,
+                                url,
+                                unit if unit is not None else dev.unit,
+                                dev.groups[0] if dev.groups else None,
+                                commit_owed=dev.name in owed,
+                            )
+                        )
             except InputError as e:
                 found = [_at_inventory(inv, dev, d) for d in e.diagnostics]
             except UsageError as e:  # BadURL too
@@ -378,8 +435,9 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
         for d in found:
             concerns.setdefault(d, []).append(dev.name)
     # one device named twice (--unit may make it so), said with the rest
-    for d in _same_devices(inv.path, [(dev, unit if unit is not None else dev.unit) for dev in inv.select(limit)],
-                           check_urls=False):
+    for d in _same_devices(
+        inv.path, [(dev, unit if unit is not None else dev.unit) for dev in inv.select(limit)], check_urls=False
+    ):
         concerns.setdefault(d, [])
     if concerns:
         # the RECIPE argument replaces the recipes the inventory gives: say so where that is likely the mistake
@@ -388,9 +446,16 @@ def fleet_jobs(inv: Inventory, recipe: Recipe | None, limit: str | None, *, time
         def said(d: Diagnostic, names: list[str]) -> str:
             if not names:  # concerns the inventory itself (a device named twice)
                 return d.message
-            return f"{d.message} ({_devices(names)}" + (
-                "; the inventory gives them recipes of their own: leave out RECIPE to use those"
-                if set(names) <= own else "") + ")"
+            return (
+                f"{d.message} ({_devices(names)}"
+                + (
+                    "; the inventory gives them recipes of their own: leave out RECIPE to use those"
+                    if set(names) <= own
+                    else ""
+                )
+                + ")"
+            )
+
         raise InputError(Diagnostic(d.path, d.line, d.col, said(d, names)) for d, names in concerns.items())
     return jobs
 

@@ -71,8 +71,15 @@ class LiveReport:
     its details afterwards) and hand it to the writer thread; ``close`` assembles the final document.
     """
 
-    def __init__(self, path: str, recipe: str | None, jobs: Sequence[Job], batches: Sequence[int] | None = None, *,
-                 run: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self,
+        path: str,
+        recipe: str | None,
+        jobs: Sequence[Job],
+        batches: Sequence[int] | None = None,
+        *,
+        run: dict[str, Any] | None = None,
+    ) -> None:
         from .rollout import batch_numbers
 
         self.path = path
@@ -88,8 +95,10 @@ class LiveReport:
         self._error: OSError | None = None
         self._size = 0
         self.profiles = profiles_of(jobs)
-        head = json.dumps({"schema": STREAM_SCHEMA, "recipe": recipe, "run": run,
-                           "profiles": self.profiles}).encode() + b"\n"
+        head = (
+            json.dumps({"schema": STREAM_SCHEMA, "recipe": recipe, "run": run, "profiles": self.profiles}).encode()
+            + b"\n"
+        )
         batch_of = batch_numbers(jobs, batches)
         first: list[tuple[str, bytes]] = [(j.name, placeholder(j, batch_of.get(j.name))) for j in jobs]
         self._fd = self._create(head, first)  # on disk before the first device starts
@@ -153,7 +162,7 @@ class LiveReport:
             writev_all(self._fd, pieces)
             os.fsync(self._fd)
         except OSError as e:  # the run goes on (the journal has what recovery needs); the lines are kept
-            self._error = e   # for the next write, and close() says so if the disk never takes them
+            self._error = e  # for the next write, and close() says so if the disk never takes them
             with contextlib.suppress(OSError):
                 os.ftruncate(self._fd, self._size)  # no line cut short in the middle of the stream
             with self._cond:
@@ -201,8 +210,9 @@ class LiveReport:
                     self._pending.append((d.name, device_json(d)))
                     self._final.add(d.name)
         if self._fd < 0 and self._pending:  # stopped before (a caller's own stop): append these too
-            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | getattr(os, "O_CLOEXEC", 0)
-                               | getattr(os, "O_BINARY", 0))
+            self._fd = os.open(
+                self.path, os.O_WRONLY | os.O_APPEND | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+            )
         self.stop()
         if self._error is not None:  # lines the disk did not take: the stream is not the run's report
             from ..errors import UsageError

@@ -26,8 +26,9 @@ class FleetPlan:
     plan refuses the whole apply: plan again, or apply ``fleet.without_errors()``.
     """
 
-    def __init__(self, jobs: Sequence[Job], results: Mapping[str, Plan | DeployerError], *, recipe: str | None,
-                 inventory: str) -> None:
+    def __init__(
+        self, jobs: Sequence[Job], results: Mapping[str, Plan | DeployerError], *, recipe: str | None, inventory: str
+    ) -> None:
         self._jobs = {j.name: j for j in jobs}
         self._results = {j.name: results[j.name] for j in jobs}
         self.recipe = recipe  # what was planned (a recipe's path or name; None: each device's own from the inventory)
@@ -79,15 +80,23 @@ class FleetPlan:
 
     def without_errors(self) -> FleetPlan:
         """This plan without the devices that have none."""
-        return FleetPlan([j for n, j in self._jobs.items() if n in self.plans], self._results, recipe=self.recipe,
-                         inventory=self.inventory)
+        return FleetPlan(
+            [j for n, j in self._jobs.items() if n in self.plans],
+            self._results,
+            recipe=self.recipe,
+            inventory=self.inventory,
+        )
 
     def to_json(self) -> dict[str, Any]:
         """As ``deployer plan --inventory --json`` prints it: the recipe, and per device its plan (a saved plan's
         JSON) or its error."""
-        return {"recipe": self.recipe, "devices": [
-            {"name": n, "plan": r.to_json()} if isinstance(r, Plan) else {"name": n, "error": str(r)}
-            for n, r in self._results.items()]}
+        return {
+            "recipe": self.recipe,
+            "devices": [
+                {"name": n, "plan": r.to_json()} if isinstance(r, Plan) else {"name": n, "error": str(r)}
+                for n, r in self._results.items()
+            ],
+        }
 
 
 def executable_jobs(fleet: FleetPlan) -> list[Job]:
@@ -97,7 +106,9 @@ def executable_jobs(fleet: FleetPlan) -> list[Job]:
     if missing:
         shown = "; ".join(f"{n}: {e}" for n, e in list(missing.items())[:5])
         more = f" (and {len(missing) - 5} more)" if len(missing) > 5 else ""
-        raise UsageError(f"the fleet plan has no plan for {len(missing)} device{'s' if len(missing) != 1 else ''} "
-                         f"({shown}{more}): plan again, or apply the plan's without_errors()")
+        raise UsageError(
+            f"the fleet plan has no plan for {len(missing)} device{'s' if len(missing) != 1 else ''} "
+            f"({shown}{more}): plan again, or apply the plan's without_errors()"
+        )
     plans = fleet.plans
     return [replace(j, plan=plans[n]) for n, j in fleet._jobs.items()]

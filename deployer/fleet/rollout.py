@@ -45,8 +45,7 @@ class _HasBus(Protocol):
 _J = TypeVar("_J", bound=_HasBus)
 
 
-async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Awaitable[Awaitable[None] | None]]
-                   ) -> None:
+async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Awaitable[Awaitable[None] | None]]) -> None:
     """Run ``work`` for every job, at most ``parallel`` at once; jobs on one bus strictly one after the other.
 
     ``work`` may hand back what its job still waits for without needing its slot (a journal fsync):
@@ -77,8 +76,9 @@ async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Await
     try:
         # every worker ends before this does, also when the run is cancelled (Ctrl-C): gather would otherwise
         # raise at the first cancelled one while devices on others still say what they hold, or write on
-        outcomes = await asyncio.gather(*(worker() for _ in range(min(max(1, parallel), len(buses)))),
-                                        return_exceptions=True)
+        outcomes = await asyncio.gather(
+            *(worker() for _ in range(min(max(1, parallel), len(buses)))), return_exceptions=True
+        )
     finally:
         if waits:  # the devices done but for their journal line: said done before this returns
             await asyncio.gather(*waits, return_exceptions=True)
@@ -90,9 +90,18 @@ async def on_buses(jobs: Sequence[_J], parallel: int, work: Callable[[_J], Await
 def skipped_result(job: Job, reason: str, batch: int | None = None, *, parameters: bool = True) -> DeviceResult:
     """A device a fleet run did not start: nothing was sent to it (``batch``: the one it would have run in;
     ``parameters``: False leaves out the recipe's parameters, for the report file's "not finished" lines)."""
-    r = DeviceResult(job.name, tp.describe(job.url), job.unit, job.recipe.profile.id, status="skipped", error=reason,
-                     profile_ref=profile_ref(job.recipe.profile), recipe=job.recipe.path, batch=batch,
-                     profile_sha256=job.recipe.profile.digest)
+    r = DeviceResult(
+        job.name,
+        tp.describe(job.url),
+        job.unit,
+        job.recipe.profile.id,
+        status="skipped",
+        error=reason,
+        profile_ref=profile_ref(job.recipe.profile),
+        recipe=job.recipe.path,
+        batch=batch,
+        profile_sha256=job.recipe.profile.digest,
+    )
     if parameters:
         r.parameters = list(parameter_results(job.recipe).values())
     return r
@@ -120,8 +129,10 @@ class Budget:
         n = self.failures
         if self.limit is None or n < self.limit:
             return None
-        return (f"not started: {n} device{'s' if n != 1 else ''} did not end ok (--max-failures {self.limit}: "
-                "failed, partial, unreachable and rolled-back devices count)")
+        return (
+            f"not started: {n} device{'s' if n != 1 else ''} did not end ok (--max-failures {self.limit}: "
+            "failed, partial, unreachable and rolled-back devices count)"
+        )
 
 
 def batch_numbers(jobs: Sequence[Job], batches: Sequence[int] | None) -> dict[str, int]:
@@ -131,23 +142,31 @@ def batch_numbers(jobs: Sequence[Job], batches: Sequence[int] | None) -> dict[st
     out: dict[str, int] = {}
     pos = 0
     for number, size in enumerate(batches, 1):
-        for j in jobs[pos:pos + size]:
+        for j in jobs[pos : pos + size]:
             out[j.name] = number
         pos += size
     return out
 
 
-async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOptions | None = None,
-                     recipe_name: str | None = None,
-                     on_done: Callable[[DeviceResult], None] | None = None,
-                     on_start: Callable[[Job], None] | None = None,
-                     batches: Sequence[int] | None = None, max_failures: int | None = None,
-                     rollback_on_failure: bool = False,
-                     between_batches: Callable[[int, Report], Awaitable[str | None]] | None = None,
-                     on_confirm_wait: Callable[[str, float], None] | None = None,
-                     on_changed: Callable[[DeviceResult], None] | None = None,
-                     on_soak: Callable[[int, list[str]], None] | None = None,
-                     keep_results: bool = True, pool: Pool | None = None, report_lines: bool = True) -> Report:
+async def apply_many(
+    jobs: Sequence[Job],
+    *,
+    parallel: int = 8,
+    options: ApplyOptions | None = None,
+    recipe_name: str | None = None,
+    on_done: Callable[[DeviceResult], None] | None = None,
+    on_start: Callable[[Job], None] | None = None,
+    batches: Sequence[int] | None = None,
+    max_failures: int | None = None,
+    rollback_on_failure: bool = False,
+    between_batches: Callable[[int, Report], Awaitable[str | None]] | None = None,
+    on_confirm_wait: Callable[[str, float], None] | None = None,
+    on_changed: Callable[[DeviceResult], None] | None = None,
+    on_soak: Callable[[int, list[str]], None] | None = None,
+    keep_results: bool = True,
+    pool: Pool | None = None,
+    report_lines: bool = True,
+) -> Report:
     """Apply to many devices: in parallel, except that devices on one bus go one at a time.
 
     ``batches`` (sizes, in job order; ``batch_plan`` orders a mixed line) stage the rollout: each batch
@@ -176,10 +195,19 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
     window = Window(opts, recipe_name, on_changed=on_changed, on_soak=on_soak, on_confirm_wait=on_confirm_wait)
     if window.held:  # a device keeps its lock from its first write until its window ends
         opts = replace(opts, keep_lock=window.keep)
-    rollout = _Rollout(jobs, opts, recipe_name, batch_numbers(jobs, batches), Budget(max_failures), window,
-                       on_done=on_done, on_start=on_start)
-    rollout.small_ok = (not keep_results and opts.soak is None and opts.confirm_within is None
-                        and not rollback_on_failure)
+    rollout = _Rollout(
+        jobs,
+        opts,
+        recipe_name,
+        batch_numbers(jobs, batches),
+        Budget(max_failures),
+        window,
+        on_done=on_done,
+        on_start=on_start,
+    )
+    rollout.small_ok = (
+        not keep_results and opts.soak is None and opts.confirm_within is None and not rollback_on_failure
+    )
     if pool is not None:
         why = ineligible(opts, rollback_on_failure=rollback_on_failure)
         if why is not None:
@@ -187,8 +215,12 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
             raise UsageError(f"worker processes cannot run this fleet: {why} (run it with --workers 0)")
         rollout.started -= pool.seconds  # launching the workers is part of the phase, though it came first
         try:
-            await pool.setup(opts, lines=report_lines and on_done is not None, small_ok=rollout.small_ok,
-                             files=min(parallel, len(jobs)) + 64)
+            await pool.setup(
+                opts,
+                lines=report_lines and on_done is not None,
+                small_ok=rollout.small_ok,
+                files=min(parallel, len(jobs)) + 64,
+            )
         except BaseException:
             window.close()
             raise
@@ -207,9 +239,18 @@ async def apply_many(jobs: Sequence[Job], *, parallel: int = 8, options: ApplyOp
 class _Rollout:
     """One ``apply_many``: the devices' results so far, the failure budget, and why it stopped (if it did)."""
 
-    def __init__(self, jobs: Sequence[Job], opts: ApplyOptions, recipe_name: str | None, batch_of: dict[str, int],
-                 budget: Budget, window: Window, *, on_done: Callable[[DeviceResult], None] | None,
-                 on_start: Callable[[Job], None] | None) -> None:
+    def __init__(
+        self,
+        jobs: Sequence[Job],
+        opts: ApplyOptions,
+        recipe_name: str | None,
+        batch_of: dict[str, int],
+        budget: Budget,
+        window: Window,
+        *,
+        on_done: Callable[[DeviceResult], None] | None,
+        on_start: Callable[[Job], None] | None,
+    ) -> None:
         self.jobs = jobs
         self.opts = opts
         self.recipe_name = recipe_name
@@ -225,12 +266,13 @@ class _Rollout:
         self.pool: Pool | None = None  # worker processes running the devices (None: this process does)
         self.planners = Planners()  # the devices of one recipe share its planner and their plans
 
-    async def batches(self, sizes: Sequence[int], parallel: int,
-                      between: Callable[[int, Report], Awaitable[str | None]] | None) -> None:
+    async def batches(
+        self, sizes: Sequence[int], parallel: int, between: Callable[[int, Report], Awaitable[str | None]] | None
+    ) -> None:
         jobs = self.jobs
         pos = 0
         for number, size in enumerate(sizes, 1):
-            batch = jobs[pos:pos + size]
+            batch = jobs[pos : pos + size]
             if number > 1 and self.stop is None and between is not None:
                 self.stop = await between(number, self.report())
             pos += size
@@ -277,9 +319,18 @@ class _Rollout:
             why = "declined at the confirmation prompt" if isinstance(e, Declined) else str(e)
             r = skipped_result(j, f"not written: {why}", batch)
         except UsageError as e:
-            r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=str(e),
-                             profile_ref=profile_ref(j.recipe.profile), recipe=j.recipe.path, batch=batch,
-                             profile_sha256=j.recipe.profile.digest)
+            r = DeviceResult(
+                j.name,
+                tp.describe(j.url),
+                j.unit,
+                j.recipe.profile.id,
+                status="failed",
+                error=str(e),
+                profile_ref=profile_ref(j.recipe.profile),
+                recipe=j.recipe.path,
+                batch=batch,
+                profile_sha256=j.recipe.profile.digest,
+            )
             r.parameters = list(parameter_results(j.recipe).values())
         r.seconds = time.monotonic() - t
         self.done[j.name] = r
@@ -319,9 +370,18 @@ class _Rollout:
             r = self.lost(j, batch, call, said[0])
             self.stop = self.stop or "not started: a worker process ended unexpectedly"
         elif kind == "failed":  # the UsageError of one(), or an error in deployer: the device failed, said so
-            r = DeviceResult(j.name, tp.describe(j.url), j.unit, j.recipe.profile.id, status="failed", error=said[0],
-                             profile_ref=profile_ref(j.recipe.profile), recipe=j.recipe.path, batch=batch,
-                             profile_sha256=j.recipe.profile.digest)
+            r = DeviceResult(
+                j.name,
+                tp.describe(j.url),
+                j.unit,
+                j.recipe.profile.id,
+                status="failed",
+                error=said[0],
+                profile_ref=profile_ref(j.recipe.profile),
+                recipe=j.recipe.path,
+                batch=batch,
+                profile_sha256=j.recipe.profile.digest,
+            )
             r.parameters = list(parameter_results(j.recipe).values())
             r.seconds = time.monotonic() - call.started
         else:
@@ -347,9 +407,16 @@ class _Rollout:
         """A device whose worker process went away while it ran: what is known (its snapshot, if its writes had
         started), said as an interrupted device."""
         r = call.writing or skipped_result(j, "", batch, parameters=False)
-        r = replace(r, status="interrupted", seconds=time.monotonic() - call.started,
-                    error=(f"{why}; some parameters may hold new values: restore with: deployer rollback {r.snapshot}"
-                           if r.snapshot else f"{why} before its first write; nothing was written"))
+        r = replace(
+            r,
+            status="interrupted",
+            seconds=time.monotonic() - call.started,
+            error=(
+                f"{why}; some parameters may hold new values: restore with: deployer rollback {r.snapshot}"
+                if r.snapshot
+                else f"{why} before its first write; nothing was written"
+            ),
+        )
         if not r.parameters:
             r.parameters = list(parameter_results(j.recipe).values())
         return r
@@ -359,15 +426,23 @@ class _Rollout:
 
     def report(self) -> Report:
         """Every device that ran so far, in job order."""
-        return Report(self.recipe_name, [self.done[j.name] for j in self.jobs if j.name in self.done],
-                      time.monotonic() - self.started)
+        return Report(
+            self.recipe_name,
+            [self.done[j.name] for j in self.jobs if j.name in self.done],
+            time.monotonic() - self.started,
+        )
 
     def interrupted(self) -> Report:
         """Every device in flight has said what it holds (gather waits for them); the rest never started."""
-        return Report(self.recipe_name, [self.done.get(j.name) or skipped_result(j, "not started: the run was "
-                                                                                    "interrupted",
-                                                                                 self.batch_of.get(j.name))
-                                         for j in self.jobs], time.monotonic() - self.started)
+        return Report(
+            self.recipe_name,
+            [
+                self.done.get(j.name)
+                or skipped_result(j, "not started: the run was interrupted", self.batch_of.get(j.name))
+                for j in self.jobs
+            ],
+            time.monotonic() - self.started,
+        )
 
 
 def canary_failed(batch: Sequence[Job], done: Mapping[str, DeviceResult]) -> str | None:
@@ -384,27 +459,46 @@ def batch_failed(number: int, batch: Sequence[Job], done: Mapping[str, DeviceRes
     ran = [done[j.name] for j in batch if done[j.name].status != "skipped"]
     if not ran or any(r.status == "ok" for r in ran):
         return None
-    which = (f"the canary {ran[0].name}" if len(batch) == 1 else f"its only device that ran, {ran[0].name}," if
-             len(ran) == 1 else f"all {len(ran)} devices that ran")
+    which = (
+        f"the canary {ran[0].name}"
+        if len(batch) == 1
+        else f"its only device that ran, {ran[0].name},"
+        if len(ran) == 1
+        else f"all {len(ran)} devices that ran"
+    )
     return f"not started: batch {number} failed ({which} did not end ok)"
 
 
-async def read_many(jobs: Sequence[ReadJob], *, parallel: int = 8,
-                    on_done: Callable[[str, str | None], None] | None = None,
-                    ) -> dict[str, dict[str, tuple[int, ...]] | TransportError | UsageError]:
+async def read_many(
+    jobs: Sequence[ReadJob],
+    *,
+    parallel: int = 8,
+    on_done: Callable[[str, str | None], None] | None = None,
+) -> dict[str, dict[str, tuple[int, ...]] | TransportError | UsageError]:
     """Current values of many devices (diff, pull): per device its registers or why not."""
     return await _each(jobs, parallel, lambda j: read_current(j.profile, j.names, j.url, j.unit), on_done)
 
 
-async def plan_many(jobs: Sequence[Job], *, parallel: int = 8, write_all: bool = False,
-                    state_dir: str | None = ".deployer", on_done: Callable[[str, str | None], None] | None = None,
-                    window: bool = False) -> dict[str, Plan | TransportError | UsageError]:
+async def plan_many(
+    jobs: Sequence[Job],
+    *,
+    parallel: int = 8,
+    write_all: bool = False,
+    state_dir: str | None = ".deployer",
+    on_done: Callable[[str, str | None], None] | None = None,
+    window: bool = False,
+) -> dict[str, Plan | TransportError | UsageError]:
     """Each device's plan against what it holds now (fleet plan, check mode): its checks run, nothing written;
     per device its plan or why not. The devices of one recipe share its planner."""
     planners = Planners()
-    return await _each(jobs, parallel, lambda j: plan_device(j.recipe, j.url, j.unit, write_all=write_all,
-                                                             state_dir=state_dir, planners=planners, window=window),
-                       on_done)
+    return await _each(
+        jobs,
+        parallel,
+        lambda j: plan_device(
+            j.recipe, j.url, j.unit, write_all=write_all, state_dir=state_dir, planners=planners, window=window
+        ),
+        on_done,
+    )
 
 
 class _Named(_HasBus, Protocol):
@@ -416,8 +510,12 @@ _T = TypeVar("_T")
 _N = TypeVar("_N", bound=_Named)
 
 
-async def _each(jobs: Sequence[_N], parallel: int, read: Callable[[_N], Awaitable[_T]],
-                on_done: Callable[[str, str | None], None] | None) -> dict[str, _T | TransportError | UsageError]:
+async def _each(
+    jobs: Sequence[_N],
+    parallel: int,
+    read: Callable[[_N], Awaitable[_T]],
+    on_done: Callable[[str, str | None], None] | None,
+) -> dict[str, _T | TransportError | UsageError]:
     """``read`` of every device (one at a time per bus, ``parallel`` at once): its result, or why there is none."""
     out: dict[str, _T | TransportError | UsageError] = {}
 
@@ -511,7 +609,7 @@ def batch_plan(jobs: Sequence[Job], spec: str | None, by: str = "profile") -> tu
         batch = []
         for k, group in kinds.items():
             n = min(_per_kind(word, totals[k]), totals[k] - taken[k])
-            batch += group[taken[k]:taken[k] + n]
+            batch += group[taken[k] : taken[k] + n]
             taken[k] += n
         order += sorted(batch, key=lambda j: position[j.name])
         sizes.append(len(batch))

@@ -101,9 +101,14 @@ class _Link(asyncio.Protocol):
     ``tokens`` (the rollout's end): the secrets of the workers it started; nothing a connection sends is
     unpickled before it has said one of them, and ``on_token(i, link)`` tells which worker it is."""
 
-    def __init__(self, on_message: Callable[[Any], None] | None = None, on_lost: Callable[[], None] | None = None,
-                 *, tokens: dict[bytes, int] | None = None,
-                 on_token: Callable[[int, _Link], None] | None = None) -> None:
+    def __init__(
+        self,
+        on_message: Callable[[Any], None] | None = None,
+        on_lost: Callable[[], None] | None = None,
+        *,
+        tokens: dict[bytes, int] | None = None,
+        on_token: Callable[[int, _Link], None] | None = None,
+    ) -> None:
         self.on_message = on_message
         self.on_lost = on_lost
         self.tokens = tokens
@@ -136,7 +141,7 @@ class _Link(asyncio.Protocol):
             end = pos + _FRAME.size + size
             if len(buf) < end:
                 break
-            message = pickle.loads(buf[pos + _FRAME.size:end])
+            message = pickle.loads(buf[pos + _FRAME.size : end])
             pos = end
             if self.on_message is not None:
                 self.on_message(message)
@@ -194,8 +199,14 @@ def _dressed(r: DeviceResult, job: Job) -> DeviceResult:
         if len(_WRITTEN) > 1024:
             _WRITTEN.clear()
         # its fields given, not ``replace``d: a fleet does this for every device
-        r.tally = type(t)(write_requests=t.write_requests, read_requests=t.read_requests, requests=t.requests,
-                          changed=t.changed, failed=t.failed, written=_WRITTEN.setdefault(t.written, t.written))
+        r.tally = type(t)(
+            write_requests=t.write_requests,
+            read_requests=t.read_requests,
+            requests=t.requests,
+            changed=t.changed,
+            failed=t.failed,
+            written=_WRITTEN.setdefault(t.written, t.written),
+        )
     return r
 
 
@@ -216,7 +227,8 @@ class Call:
     started: float = field(default_factory=time.monotonic)
     done: asyncio.Future[tuple[Any, ...]] = field(default_factory=lambda: asyncio.get_running_loop().create_future())
     recorded: asyncio.Future[tuple[DeviceResult, bytes | None]] = field(
-        default_factory=lambda: asyncio.get_running_loop().create_future())
+        default_factory=lambda: asyncio.get_running_loop().create_future()
+    )
     writing: DeviceResult | None = None  # what the device said when its writes started (its snapshot)
 
 
@@ -225,8 +237,10 @@ class NotStarted(UsageError):
 
 
 def _not_started(count: int, why: str) -> NotStarted:
-    return NotStarted(f"cannot start {count} worker processes: {why}; nothing was sent to any device (run the fleet "
-                      "in one process with --workers 0)")
+    return NotStarted(
+        f"cannot start {count} worker processes: {why}; nothing was sent to any device (run the fleet "
+        "in one process with --workers 0)"
+    )
 
 
 class _Process(Protocol):
@@ -281,8 +295,7 @@ class _Worker:
 def forkable() -> bool:
     """Whether workers are forked (see the module's docstring): Linux, no other thread in this process, and not
     turned off with ``DEPLOYER_WORKER_START=spawn``."""
-    return (portable.can_fork() and os.environ.get(START_ENV, "").lower() != "spawn"
-            and threading.active_count() == 1)
+    return portable.can_fork() and os.environ.get(START_ENV, "").lower() != "spawn" and threading.active_count() == 1
 
 
 class Pool:
@@ -321,15 +334,24 @@ class Pool:
         pool.seconds = time.monotonic() - t
         return pool
 
-    async def setup(self, opts: ApplyOptions, *, lines: bool, small_ok: bool, files: int,
-                    timeout: float = 60.0) -> None:
+    async def setup(
+        self, opts: ApplyOptions, *, lines: bool, small_ok: bool, files: int, timeout: float = 60.0
+    ) -> None:
         """Give every worker the recipes and the run's options, and wait until each is ready. ``lines``: the
         workers encode each device's report line; ``small_ok``: a device that ended ok comes back as its small
         result; ``files``: the open files each may need. Raises NotStarted (the workers ended; nothing sent to
         any device) when they cannot start."""
         self.on_writing = opts.on_writing
-        setup = ("setup", self.setup_recipes, _portable(opts), sys.argv, lines, small_ok, opts.on_writing is not None,
-                 files)
+        setup = (
+            "setup",
+            self.setup_recipes,
+            _portable(opts),
+            sys.argv,
+            lines,
+            small_ok,
+            opts.on_writing is not None,
+            files,
+        )
         try:
             await asyncio.wait_for(self._setup(setup), timeout)
         except BaseException as e:
@@ -380,14 +402,16 @@ class Pool:
             w.connected.set_result(link)
 
         loop = asyncio.get_running_loop()
-        self._server = await loop.create_server(lambda: _Link(tokens=tokens, on_token=connected),
-                                                "127.0.0.1", 0)
+        self._server = await loop.create_server(lambda: _Link(tokens=tokens, on_token=connected), "127.0.0.1", 0)
         port = self._server.sockets[0].getsockname()[1]
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-            [_package_root(), *filter(None, [os.environ.get("PYTHONPATH")])])}
+        env = {
+            **os.environ,
+            "PYTHONPATH": os.pathsep.join([_package_root(), *filter(None, [os.environ.get("PYTHONPATH")])]),
+        }
         for token in tokens:
-            proc = await asyncio.create_subprocess_exec(sys.executable, "-c", _BOOT, str(port),
-                                                        stdin=asyncio.subprocess.PIPE, env=env)
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-c", _BOOT, str(port), stdin=asyncio.subprocess.PIPE, env=env
+            )
             self.workers.append(_Worker(proc))
             assert proc.stdin is not None
             proc.stdin.write(token.hex().encode() + b"\n")
@@ -442,8 +466,11 @@ class Pool:
     def _lost(self, w: _Worker) -> None:
         """A worker's connection ended: its devices in flight fail with WorkerGone, it takes no new one."""
         code = f" (exit code {w.process.returncode})" if w.process.returncode is not None else ""
-        w.gone = WorkerGone(f"the worker process running it ended unexpectedly{code}" if w.ready.done() else
-                            f"a worker process ended before it was ready{code}")
+        w.gone = WorkerGone(
+            f"the worker process running it ended unexpectedly{code}"
+            if w.ready.done()
+            else f"a worker process ended before it was ready{code}"
+        )
         if not w.ready.done():
             w.ready.set_exception(w.gone)
             w.ready.add_done_callback(_retrieved)
@@ -466,8 +493,20 @@ class Pool:
             call.recorded.add_done_callback(_retrieved)
             return call
         w.calls[call.index] = call
-        w.send(("start", call.index, batch, job.name, job.url, job.unit, self.recipes[id(job.recipe)], job.group,
-                job.hold_commit, job.commit_owed))
+        w.send(
+            (
+                "start",
+                call.index,
+                batch,
+                job.name,
+                job.url,
+                job.unit,
+                self.recipes[id(job.recipe)],
+                job.group,
+                job.hold_commit,
+                job.commit_owed,
+            )
+        )
         return call
 
     def cancel(self, call: Call) -> None:
@@ -619,6 +658,7 @@ async def _serve(connect: Callable[[_Link], Awaitable[None]]) -> None:
 
     index_of: dict[str, int] = {}  # the devices in flight here, by name
     if writing:
+
         def on_writing(r: DeviceResult) -> None:  # what the report file says of it now: its snapshot
             send(("writing", index_of[r.name], r.head()))
 

@@ -48,10 +48,11 @@ def validator(name: str) -> jsonschema.protocols.Validator:
     """The validator of a bundled schema, built once per process (building one costs milliseconds)."""
     import jsonschema  # only commands that check files pay for importing it
 
-    checker = jsonschema.Draft202012Validator.TYPE_CHECKER.redefine_many(
-        {"number": _is_number, "integer": _is_integer})
-    cls = jsonschema.validators.extend(jsonschema.Draft202012Validator,  # type: ignore[no-untyped-call]
-                                       type_checker=checker)
+    checker = jsonschema.Draft202012Validator.TYPE_CHECKER.redefine_many({"number": _is_number, "integer": _is_integer})
+    cls = jsonschema.validators.extend(
+        jsonschema.Draft202012Validator,  # type: ignore[no-untyped-call]
+        type_checker=checker,
+    )
     v: jsonschema.protocols.Validator = cls(schema(name))
     return v
 
@@ -121,8 +122,11 @@ def _explain(err: jsonschema.ValidationError, src: Source) -> Iterable[Diagnosti
                     continue
                 hint = difflib.get_close_matches(k, allowed, n=1)
                 msg = f"unknown key '{clip(k)}'" + (f" in {where}" if where else "")
-                msg += f"; did you mean '{hint[0]}'?" if hint else (
-                    f" (expected one of: {', '.join(allowed)})" if allowed else "")
+                msg += (
+                    f"; did you mean '{hint[0]}'?"
+                    if hint
+                    else (f" (expected one of: {', '.join(allowed)})" if allowed else "")
+                )
                 yield src.error((*at, k), msg, key=True)
         elif e.validator == "required":
             yield src.error(at, f"{prefix}{_clip_message(e)}")
@@ -149,8 +153,15 @@ def _clip_message(e: jsonschema.ValidationError) -> str:
 
 
 def _type_words(t: Any) -> str:
-    names = {"object": "a mapping", "array": "a list", "string": "a string", "number": "a number",
-             "integer": "an integer", "boolean": "true or false", "null": "nothing"}
+    names = {
+        "object": "a mapping",
+        "array": "a list",
+        "string": "a string",
+        "number": "a number",
+        "integer": "an integer",
+        "boolean": "true or false",
+        "null": "nothing",
+    }
     if isinstance(t, list):
         return " or ".join(names.get(str(x), str(x)) for x in t)
     return names.get(t, str(t))

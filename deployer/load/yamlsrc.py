@@ -51,7 +51,8 @@ Path_ = tuple[str | int, ...]
 
 _STD = "tag:yaml.org,2002:"
 _STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP = (
-    f"{_STD}{t}" for t in ("str", "int", "float", "bool", "null", "timestamp"))
+    f"{_STD}{t}" for t in ("str", "int", "float", "bool", "null", "timestamp")
+)
 _MAP, _SEQ, _MERGE = f"{_STD}map", f"{_STD}seq", f"{_STD}merge"
 _SCALAR_TAGS = {_STR, _INT, _FLOAT, _BOOL, _NULL, _TIMESTAMP}
 MAX_EXPONENT = 400  # decimal exponents beyond any register value (a float64 ends near 1e308)
@@ -189,8 +190,12 @@ class _Builder:
                     tag = ev.tag
                     if tag is None or tag == "!":
                         tag = tags.get((text, ev.implicit)) or self._tag(ev)
-                    if (tag != _MERGE and text not in out and len(out) < MAX_ENTRIES
-                            and (text[:1] != "0" or _leading_zero(text, tag, ev) is None)):
+                    if (
+                        tag != _MERGE
+                        and text not in out
+                        and len(out) < MAX_ENTRIES
+                        and (text[:1] != "0" or _leading_zero(text, tag, ev) is None)
+                    ):
                         top.key_at = kat = (*top.at, text)
                         keys[kat] = pos
                         top.key = text
@@ -435,8 +440,11 @@ class _Builder:
             return None
         if d and not -MAX_EXPONENT <= d.adjusted() <= MAX_EXPONENT:  # 1e999999999: no register holds it, and
             # decimal arithmetic on it overflows
-            self.err(pos, f"{clip(text)} is too {'large' if d.adjusted() > 0 else 'close to 0'} "
-                          f"(exponents -{MAX_EXPONENT}..{MAX_EXPONENT})")
+            self.err(
+                pos,
+                f"{clip(text)} is too {'large' if d.adjusted() > 0 else 'close to 0'} "
+                f"(exponents -{MAX_EXPONENT}..{MAX_EXPONENT})",
+            )
             return None
         return d
 
@@ -454,14 +462,18 @@ def _leading_zero(text: str, tag: str, ev: Any) -> str | None:
         d, o = int(sign + t, 10), _int(text)
         if d == o:  # 00, 07: the same either way, but say it plainly
             return f"'{text}' has a leading zero; write {d}, or quote it if it is text"
-        return (f"'{text}' has a leading zero: YAML 1.1 reads it as octal ({o}), other tools as {d}; write {d} "
-                f"(or {sign}0x{abs(o):X} for {o}), or quote it if it is text")
+        return (
+            f"'{text}' has a leading zero: YAML 1.1 reads it as octal ({o}), other tools as {d}; write {d} "
+            f"(or {sign}0x{abs(o):X} for {o}), or quote it if it is text"
+        )
     if tag == _STR and t.isdigit():  # 08, 09: not octal, text in YAML 1.1, a number to a reader
         return f"'{text}' has a leading zero; write {int(sign + t)}, or quote it if it is text"
     if tag == _STR and t[1] in "oO" and len(t) > 2 and all(c in "01234567" for c in t[2:]):
         o = int(sign + t[2:], 8)
-        return (f"'{text}' is octal {o} in YAML 1.2 but text in YAML 1.1; write {o} (or {sign}0x{abs(o):X}), "
-                "or quote it if it is text")
+        return (
+            f"'{text}' is octal {o} in YAML 1.2 but text in YAML 1.1; write {o} (or {sign}0x{abs(o):X}), "
+            "or quote it if it is text"
+        )
     return None
 
 
@@ -511,8 +523,16 @@ def read_text(path: str) -> str:
         if not stat.S_ISREG(st.st_mode):
             raise InputError([Diagnostic(path, 0, 0, "not a regular file (a device, FIFO or socket)")])
         if st.st_size > MAX_FILE_BYTES:
-            raise InputError([Diagnostic(path, 1, 1, f"file too large ({st.st_size / 1e6:.1f} MB; limit "
-                                                     f"{MAX_FILE_BYTES // (1024 * 1024)} MiB)")])
+            raise InputError(
+                [
+                    Diagnostic(
+                        path,
+                        1,
+                        1,
+                        f"file too large ({st.st_size / 1e6:.1f} MB; limit {MAX_FILE_BYTES // (1024 * 1024)} MiB)",
+                    )
+                ]
+            )
         chunks = []
         left = MAX_FILE_BYTES + 1  # the file may grow while we read
         while left > 0:
@@ -523,8 +543,9 @@ def read_text(path: str) -> str:
             left -= len(chunk)
         data = b"".join(chunks)
         if len(data) > MAX_FILE_BYTES:
-            raise InputError([Diagnostic(path, 1, 1, f"file too large (more than "
-                                                     f"{MAX_FILE_BYTES // (1024 * 1024)} MiB)")])
+            raise InputError(
+                [Diagnostic(path, 1, 1, f"file too large (more than {MAX_FILE_BYTES // (1024 * 1024)} MiB)")]
+            )
     except OSError as e:
         raise InputError([Diagnostic(path, 0, 0, f"cannot read: {e.strerror}")]) from None
     finally:
@@ -535,9 +556,7 @@ def read_text(path: str) -> str:
         before = data[: e.start]
         line = before.count(b"\n") + 1
         col = e.start - (before.rfind(b"\n") + 1) + 1
-        raise InputError(
-            [Diagnostic(path, line, col, f"not UTF-8 text (byte 0x{data[e.start]:02x})")]
-        ) from None
+        raise InputError([Diagnostic(path, line, col, f"not UTF-8 text (byte 0x{data[e.start]:02x})")]) from None
 
 
 # A libyaml error within this many bytes of the start is found again by the pure-Python parser (about
@@ -604,8 +623,9 @@ def forget(path: str | os.PathLike[str]) -> None:
     _handed_over.pop(os.fspath(path), None)
 
 
-def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[Any] = FastLoader,
-         hand_over: bool = False) -> tuple[Any, Source]:
+def load(
+    path: str | os.PathLike[str], text: str | None = None, *, loader: type[Any] = FastLoader, hand_over: bool = False
+) -> tuple[Any, Source]:
     """Load one YAML (or JSON, a subset) document. Raises InputError.
 
     ``loader``: a PyYAML loader class (``yaml.SafeLoader`` forces the pure-Python parser).
@@ -637,8 +657,16 @@ def load(path: str | os.PathLike[str], text: str | None = None, *, loader: type[
         ldr.get_event()  # DocumentEnd
         if not ldr.check_event(yaml.StreamEndEvent):
             ev = ldr.get_event()
-            raise InputError([Diagnostic(p, ev.start_mark.line + 1, ev.start_mark.column + 1,
-                                         "expected a single document in the file, found another one")])
+            raise InputError(
+                [
+                    Diagnostic(
+                        p,
+                        ev.start_mark.line + 1,
+                        ev.start_mark.column + 1,
+                        "expected a single document in the file, found another one",
+                    )
+                ]
+            )
     except yaml.MarkedYAMLError as e:
         if loader is not yaml.SafeLoader:
             # libyaml reads ahead and has limits of its own that change between releases (the one in

@@ -5,8 +5,10 @@ from __future__ import annotations
 import html
 
 # bidi embeddings and overrides (closed by U+202C), isolates (closed by U+2069)
-_OPENS = {**{chr(c): "\u202c" for c in (0x202A, 0x202B, 0x202D, 0x202E)},
-          **{chr(c): "\u2069" for c in (0x2066, 0x2067, 0x2068)}}
+_OPENS = {
+    **{chr(c): "\u202c" for c in (0x202A, 0x202B, 0x202D, 0x202E)},
+    **{chr(c): "\u2069" for c in (0x2066, 0x2067, 0x2068)},
+}
 
 
 def isolated(value: object) -> str:
@@ -25,6 +27,6 @@ def isolated(value: object) -> str:
         elif c == "\u2069":
             if c not in opened:
                 continue
-            del opened[len(opened) - 1 - opened[::-1].index(c):]
+            del opened[len(opened) - 1 - opened[::-1].index(c) :]
         out.append(c)
     return f"<bdi>{html.escape(''.join(out) + ''.join(reversed(opened)))}</bdi>"

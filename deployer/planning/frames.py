@@ -68,28 +68,39 @@ def _check(req: WriteRequest | ReadRequest, unit: int, transaction_id: int) -> N
 
 # the most one request of each function carries (Modbus Application Protocol v1.1b3, 6.1-6.12)
 _TOP = {1: 2000, 2: 2000, 3: 125, 4: 125, 5: 1, 6: 1, 15: 1968, 16: 123}
-_READS = {1: ReadCoilsRequest, 2: ReadDiscreteInputsRequest, 3: ReadHoldingRegistersRequest,
-          4: ReadInputRegistersRequest}
-_READ_ANSWERS = {1: ReadCoilsResponse, 2: ReadDiscreteInputsResponse, 3: ReadHoldingRegistersResponse,
-                 4: ReadInputRegistersResponse}
+_READS = {
+    1: ReadCoilsRequest,
+    2: ReadDiscreteInputsRequest,
+    3: ReadHoldingRegistersRequest,
+    4: ReadInputRegistersRequest,
+}
+_READ_ANSWERS = {
+    1: ReadCoilsResponse,
+    2: ReadDiscreteInputsResponse,
+    3: ReadHoldingRegistersResponse,
+    4: ReadInputRegistersResponse,
+}
 
 
 def request_pdu(req: WriteRequest | ReadRequest, unit: int, transaction_id: int = 0) -> ModbusPDU:
     _check(req, unit, transaction_id)
     if isinstance(req, ReadRequest):
-        return _READS[req.function](address=req.address, count=req.count, dev_id=unit,
-                                    transaction_id=transaction_id)
+        return _READS[req.function](address=req.address, count=req.count, dev_id=unit, transaction_id=transaction_id)
     if req.function == 5:
-        return WriteSingleCoilRequest(address=req.address, bits=[bool(req.registers[0])], dev_id=unit,
-                                      transaction_id=transaction_id)
+        return WriteSingleCoilRequest(
+            address=req.address, bits=[bool(req.registers[0])], dev_id=unit, transaction_id=transaction_id
+        )
     if req.function == 15:
-        return WriteMultipleCoilsRequest(address=req.address, bits=[bool(b) for b in req.registers], dev_id=unit,
-                                         transaction_id=transaction_id)
+        return WriteMultipleCoilsRequest(
+            address=req.address, bits=[bool(b) for b in req.registers], dev_id=unit, transaction_id=transaction_id
+        )
     if req.function == 6:
-        return WriteSingleRegisterRequest(address=req.address, registers=list(req.registers), dev_id=unit,
-                                          transaction_id=transaction_id)
-    return WriteMultipleRegistersRequest(address=req.address, registers=list(req.registers), dev_id=unit,
-                                         transaction_id=transaction_id)
+        return WriteSingleRegisterRequest(
+            address=req.address, registers=list(req.registers), dev_id=unit, transaction_id=transaction_id
+        )
+    return WriteMultipleRegistersRequest(
+        address=req.address, registers=list(req.registers), dev_id=unit, transaction_id=transaction_id
+    )
 
 
 def request_frame(req: WriteRequest | ReadRequest, unit: int, framing: Framing, transaction_id: int = 1) -> bytes:
@@ -97,8 +108,13 @@ def request_frame(req: WriteRequest | ReadRequest, unit: int, framing: Framing, 
     return _frame(request_pdu(req, unit, transaction_id if framing == "tcp" else 0), framing)
 
 
-def response_frame(req: WriteRequest | ReadRequest, unit: int, framing: Framing,
-                   registers: Sequence[int] | None = None, transaction_id: int = 1) -> bytes:
+def response_frame(
+    req: WriteRequest | ReadRequest,
+    unit: int,
+    framing: Framing,
+    registers: Sequence[int] | None = None,
+    transaction_id: int = 1,
+) -> bytes:
     """The normal answer of a device to ``req`` (for reads, carrying ``registers`` or bits 0/1, default zeros)."""
     tid = transaction_id if framing == "tcp" else 0
     _check(req, unit, tid)
@@ -114,13 +130,15 @@ def response_frame(req: WriteRequest | ReadRequest, unit: int, framing: Framing,
         else:
             pdu = _READ_ANSWERS[req.function](registers=regs, dev_id=unit, transaction_id=tid)
     elif req.function == 5:
-        pdu = WriteSingleCoilResponse(address=req.address, bits=[bool(req.registers[0])], dev_id=unit,
-                                      transaction_id=tid)
+        pdu = WriteSingleCoilResponse(
+            address=req.address, bits=[bool(req.registers[0])], dev_id=unit, transaction_id=tid
+        )
     elif req.function == 15:
         pdu = WriteMultipleCoilsResponse(address=req.address, count=req.count, dev_id=unit, transaction_id=tid)
     elif req.function == 6:
-        pdu = WriteSingleRegisterResponse(address=req.address, registers=list(req.registers), dev_id=unit,
-                                          transaction_id=tid)
+        pdu = WriteSingleRegisterResponse(
+            address=req.address, registers=list(req.registers), dev_id=unit, transaction_id=tid
+        )
     else:
         pdu = WriteMultipleRegistersResponse(address=req.address, count=req.count, dev_id=unit, transaction_id=tid)
     return _frame(pdu, framing)
@@ -150,8 +168,9 @@ def step_frames(step: Step, unit: int, framing: Framing, transaction_id: int = 1
     return query, None if unit == 0 else response_frame(req, unit, framing, transaction_id=transaction_id)
 
 
-def shown(step: Step, frame: bytes, unit: int, framing: Framing, transaction_id: int = 1, *, answer: bool = False
-          ) -> str:
+def shown(
+    step: Step, frame: bytes, unit: int, framing: Framing, transaction_id: int = 1, *, answer: bool = False
+) -> str:
     """A frame as text (hex bytes; ASCII as its characters) with a secret step's words and the checksum that
     depends on them masked (``**``): the bytes that change when the words do."""
     text = frame.decode("ascii").strip() if framing == "ascii" else frame.hex(" ").upper()
@@ -160,14 +179,17 @@ def shown(step: Step, frame: bytes, unit: int, framing: Framing, transaction_id:
     variants = []
     for word in (0x0000, 0xFFFF, 0x5A5A):
         req = _as_request(step, (word,) * step.count)
-        f = response_frame(req, unit, framing, transaction_id=transaction_id) if answer \
+        f = (
+            response_frame(req, unit, framing, transaction_id=transaction_id)
+            if answer
             else request_frame(req, unit, framing, transaction_id)
+        )
         variants.append(f.decode("ascii").strip() if framing == "ascii" else f.hex(" ").upper())
     if framing == "ascii":
-        return "".join("*" if len({v[i] for v in variants}) > 1 or i >= len(text) - 2 else c
-                       for i, c in enumerate(text))
+        return "".join(
+            "*" if len({v[i] for v in variants}) > 1 or i >= len(text) - 2 else c for i, c in enumerate(text)
+        )
     parts = [v.split(" ") for v in variants]
     own = text.split(" ")
     check = 2 if framing == "rtu" else 0  # the CRC depends on the words whatever their value
-    return " ".join("**" if len({p[i] for p in parts}) > 1 or i >= len(own) - check else b
-                    for i, b in enumerate(own))
+    return " ".join("**" if len({p[i] for p in parts}) > 1 or i >= len(own) - check else b for i, b in enumerate(own))

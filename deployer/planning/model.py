@@ -23,10 +23,34 @@ DEVICE_ID = 43  # Read Device Identification (MEI type 14): basic objects
 
 # The kinds of step, in the order they can come. The first four check the device and read what it holds,
 # before anything is planned against it (``CHECKS``); the rest change it.
-StepKind = Literal["identity", "snapshot", "device-id", "firmware", "precondition", "health", "unlock",
-                   "read-modify-write", "write", "verify", "commit", "lock"]
-STEP_KINDS: tuple[StepKind, ...] = ("identity", "snapshot", "device-id", "firmware", "precondition", "health",
-                                    "unlock", "read-modify-write", "write", "verify", "commit", "lock")
+StepKind = Literal[
+    "identity",
+    "snapshot",
+    "device-id",
+    "firmware",
+    "precondition",
+    "health",
+    "unlock",
+    "read-modify-write",
+    "write",
+    "verify",
+    "commit",
+    "lock",
+]
+STEP_KINDS: tuple[StepKind, ...] = (
+    "identity",
+    "snapshot",
+    "device-id",
+    "firmware",
+    "precondition",
+    "health",
+    "unlock",
+    "read-modify-write",
+    "write",
+    "verify",
+    "commit",
+    "lock",
+)
 CHECKS: frozenset[str] = frozenset(("identity", "snapshot", "device-id", "firmware"))
 
 
@@ -229,9 +253,18 @@ def step_to_json(s: Step) -> dict[str, Any]:
 
 
 def cost_to_json(c: Cost) -> dict[str, Any]:
-    return {"requests": c.requests, "reads": c.reads, "writes": c.writes, "bytes": c.bytes, "framing": c.framing,
-            "line": c.line, "seconds": c.seconds, "waits": c.waits, "non_volatile_writes": c.non_volatile_writes,
-            "stores": list(c.stores)}
+    return {
+        "requests": c.requests,
+        "reads": c.reads,
+        "writes": c.writes,
+        "bytes": c.bytes,
+        "framing": c.framing,
+        "line": c.line,
+        "seconds": c.seconds,
+        "waits": c.waits,
+        "non_volatile_writes": c.non_volatile_writes,
+        "stores": list(c.stores),
+    }
 
 
 def plan_to_json(plan: Plan, cost: Cost | None = None) -> dict[str, Any]:
@@ -243,12 +276,20 @@ def plan_to_json(plan: Plan, cost: Cost | None = None) -> dict[str, Any]:
         "device": {"url": plan.device.url, "unit": plan.device.unit, "profile": plan.device.profile},
         "profile_sha256": plan.profile_sha256,
         "pacing": {"after_connect": plan.pacing.after_connect, "between_requests": plan.pacing.between_requests},
-        "parameters": [{"name": p.name, "address": p.address, "count": p.count, "desired": p.desired,
-                        "desired_raw": list(p.desired_raw),
-                        "current_raw": None if p.current_raw is None else list(p.current_raw),
-                        "action": p.action, "stage": p.stage,
-                        **({"register_type": p.register_type} if p.register_type != "holding" else {})}
-                       for p in plan.parameters],
+        "parameters": [
+            {
+                "name": p.name,
+                "address": p.address,
+                "count": p.count,
+                "desired": p.desired,
+                "desired_raw": list(p.desired_raw),
+                "current_raw": None if p.current_raw is None else list(p.current_raw),
+                "action": p.action,
+                "stage": p.stage,
+                **({"register_type": p.register_type} if p.register_type != "holding" else {}),
+            }
+            for p in plan.parameters
+        ],
         "steps": [step_to_json(s) for s in plan.steps],
     }
     if cost is not None:

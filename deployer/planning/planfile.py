@@ -32,10 +32,18 @@ if TYPE_CHECKING:
 def _step(d: dict[str, Any]) -> Step:
     values = d.get("values", ())
     e = d.get("expect")
-    return Step(d["kind"], int(d["function"]), int(d["address"]), int(d["count"]),
-                None if values is None else tuple(int(x) for x in values),
-                tuple(str(n) for n in d.get("parameters", ())), int(d.get("stage", 0)), float(d.get("wait", 0)),
-                None if e is None else Expect(int(e["equals"]), int(e.get("mask", 0xFFFF))), str(d.get("note", "")))
+    return Step(
+        d["kind"],
+        int(d["function"]),
+        int(d["address"]),
+        int(d["count"]),
+        None if values is None else tuple(int(x) for x in values),
+        tuple(str(n) for n in d.get("parameters", ())),
+        int(d.get("stage", 0)),
+        float(d.get("wait", 0)),
+        None if e is None else Expect(int(e["equals"]), int(e.get("mask", 0xFFFF))),
+        str(d.get("note", "")),
+    )
 
 
 # the place of each kind in a plan: reads before a bit-field write share the writes' place
@@ -69,18 +77,34 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
         again = f"deployer plan {data.get('recipe') or 'RECIPE'}"
         url = data.get("device", {}).get("url") if isinstance(data.get("device"), dict) else None
         again += f" --device {url}" if isinstance(url, str) else ""
-        raise InputError([error(("schema",), f"this plan was made by an older deployer ({data['schema']}), whose "
-                                             "plans did not list every step apply takes; make it again with: "
-                                             f"{again} --out {path}")])
+        raise InputError(
+            [
+                error(
+                    ("schema",),
+                    f"this plan was made by an older deployer ({data['schema']}), whose "
+                    "plans did not list every step apply takes; make it again with: "
+                    f"{again} --out {path}",
+                )
+            ]
+        )
     errors = schema.validate(data, "plan", source or yamlsrc.Source(path))
     if errors:
         raise InputError(errors if source is not None else [Diagnostic(path, 0, 0, e.message) for e in errors])
     dev = data["device"]
-    params = tuple(PlannedParameter(str(p["name"]), int(p["address"]), int(p["count"]), str(p["desired"]),
-                                    tuple(int(x) for x in p["desired_raw"]),
-                                    None if p.get("current_raw") is None else tuple(int(x) for x in p["current_raw"]),
-                                    p["action"], int(p.get("stage", 0)), str(p.get("register_type", "holding")))
-                   for p in data["parameters"])
+    params = tuple(
+        PlannedParameter(
+            str(p["name"]),
+            int(p["address"]),
+            int(p["count"]),
+            str(p["desired"]),
+            tuple(int(x) for x in p["desired_raw"]),
+            None if p.get("current_raw") is None else tuple(int(x) for x in p["current_raw"]),
+            p["action"],
+            int(p.get("stage", 0)),
+            str(p.get("register_type", "holding")),
+        )
+        for p in data["parameters"]
+    )
     steps = tuple(_step(d) for d in data["steps"])
     problems = _check_parameters(params, error)
     problems += _check_steps(steps, [("values" in d) for d in data["steps"]], params, error)
@@ -88,10 +112,15 @@ def plan_from_json(data: Any, path: str = "<plan>", *, src: Source | None = None
         raise InputError(problems)
     name = data.get("recipe_name")
     pacing = data.get("pacing") or {}
-    return Plan(data.get("recipe"), Target(dev.get("url"), int(dev["unit"]), str(dev["profile"])), params, steps,
-                recipe_name=None if name is None else str(name),
-                pacing=Pacing(float(pacing.get("after_connect", 0)), float(pacing.get("between_requests", 0))),
-                profile_sha256=data.get("profile_sha256"))
+    return Plan(
+        data.get("recipe"),
+        Target(dev.get("url"), int(dev["unit"]), str(dev["profile"])),
+        params,
+        steps,
+        recipe_name=None if name is None else str(name),
+        pacing=Pacing(float(pacing.get("after_connect", 0)), float(pacing.get("between_requests", 0))),
+        profile_sha256=data.get("profile_sha256"),
+    )
 
 
 def _check_parameters(params: tuple[PlannedParameter, ...], error: Any) -> list[Diagnostic]:
@@ -102,18 +131,25 @@ def _check_parameters(params: tuple[PlannedParameter, ...], error: Any) -> list[
             problems.append(error(("parameters", k, "name"), f"{pp.name} is listed twice"))
         seen.add(pp.name)
         if len(pp.desired_raw) != pp.count:
-            problems.append(error(("parameters", k, "desired_raw"),
-                                  f"{pp.name}: {len(pp.desired_raw)} registers for count {pp.count}"))
+            problems.append(
+                error(
+                    ("parameters", k, "desired_raw"), f"{pp.name}: {len(pp.desired_raw)} registers for count {pp.count}"
+                )
+            )
         if pp.current_raw is not None and len(pp.current_raw) != pp.count:
-            problems.append(error(("parameters", k, "current_raw"),
-                                  f"{pp.name}: {len(pp.current_raw)} registers for count {pp.count}"))
+            problems.append(
+                error(
+                    ("parameters", k, "current_raw"), f"{pp.name}: {len(pp.current_raw)} registers for count {pp.count}"
+                )
+            )
         if pp.address + pp.count > 0x10000:
             problems.append(error(("parameters", k, "address"), f"{pp.name} runs past register 65535"))
     return problems
 
 
-def _check_steps(steps: tuple[Step, ...], valued: list[bool], params: tuple[PlannedParameter, ...], error: Any
-                 ) -> list[Diagnostic]:
+def _check_steps(
+    steps: tuple[Step, ...], valued: list[bool], params: tuple[PlannedParameter, ...], error: Any
+) -> list[Diagnostic]:
     """Every write carries exactly what its parameters desire, reads write nothing, the kinds keep their order."""
     by_name = {pp.name: pp for pp in params}
     problems: list[Diagnostic] = []
@@ -122,8 +158,12 @@ def _check_steps(steps: tuple[Step, ...], valued: list[bool], params: tuple[Plan
     for k, s in enumerate(steps):
         at = ("steps", k)
         if _RANK[s.kind] < rank:
-            problems.append(error((*at, "kind"), f"{_a(s.kind)} step after a later kind of step: steps keep the "
-                                                 f"order {', '.join(STEP_KINDS)}"))
+            problems.append(
+                error(
+                    (*at, "kind"),
+                    f"{_a(s.kind)} step after a later kind of step: steps keep the order {', '.join(STEP_KINDS)}",
+                )
+            )
         rank = max(rank, _RANK[s.kind])
         if s.address + s.count > 0x10000:
             problems.append(error((*at, "address"), "the request runs past register 65535"))
@@ -135,8 +175,9 @@ def _check_steps(steps: tuple[Step, ...], valued: list[bool], params: tuple[Plan
             problems.append(error((*at, "function"), f"function {s.function} does not fit {_a(s.kind)} step"))
         if not writes and valued[k]:
             problems.append(error((*at, "values"), f"{_a(s.kind)} step reads: it carries no values"))
-        if (s.expect is not None and s.kind not in ("identity", "precondition")) or \
-                (s.expect is None and s.kind in ("identity", "precondition")):
+        if (s.expect is not None and s.kind not in ("identity", "precondition")) or (
+            s.expect is None and s.kind in ("identity", "precondition")
+        ):
             problems.append(error((*at, "expect"), "only identity and precondition steps (all of them) expect a value"))
         if s.writes and s.values is not None and len(s.values) != s.count:
             problems.append(error((*at, "values"), f"count {s.count} but {len(s.values)} values"))
@@ -147,9 +188,12 @@ def _check_steps(steps: tuple[Step, ...], valued: list[bool], params: tuple[Plan
             problems.append(error((*at, "parameters"), f"{_a(s.kind)} step writes the profile's action, no parameter"))
     for k, pp in enumerate(params):
         if (pp.name in written) != (pp.action != "unchanged"):
-            problems.append(error(("parameters", k, "action"),
-                                  f"{pp.name} is '{pp.action}' but is {'' if pp.name in written else 'not '}"
-                                  "in a write step"))
+            problems.append(
+                error(
+                    ("parameters", k, "action"),
+                    f"{pp.name} is '{pp.action}' but is {'' if pp.name in written else 'not '}in a write step",
+                )
+            )
     return problems
 
 
@@ -157,8 +201,9 @@ def _a(kind: str) -> str:
     return f"an {kind}" if kind[0] in "aeiou" else f"a {kind}"
 
 
-def _check_write(s: Step, by_name: dict[str, PlannedParameter], written: set[str], at: tuple[Any, ...],
-                 error: Any) -> list[Diagnostic]:
+def _check_write(
+    s: Step, by_name: dict[str, PlannedParameter], written: set[str], at: tuple[Any, ...], error: Any
+) -> list[Diagnostic]:
     problems: list[Diagnostic] = []
     if s.values is None:
         return [error((*at, "values"), "a write step's values are the recipe's: never secret")]
@@ -172,18 +217,24 @@ def _check_write(s: Step, by_name: dict[str, PlannedParameter], written: set[str
             problems.append(error((*at, "parameters"), f"names '{n}', which is not among the parameters"))
             continue
         if pp.register_type != table:
-            problems.append(error((*at, "function"), f"function {s.function} writes {table}s, but {n} is a "
-                                                     f"{pp.register_type}"))
+            problems.append(
+                error((*at, "function"), f"function {s.function} writes {table}s, but {n} is a {pp.register_type}")
+            )
         written.add(n)
         regs.update({pp.address + i: v for i, v in enumerate(pp.desired_raw)})
     if s.function in (5, 6):  # one word of one parameter (one coil)
         ok = s.count == 1 and len(s.parameters) == 1 and regs.get(s.address) == s.values[0]
     else:  # whole parameters, back to back from the request's address, nothing more
-        ok = sorted(regs) == list(range(s.address, s.address + s.count)) and \
-            [regs[a] for a in sorted(regs)] == list(s.values)
+        ok = sorted(regs) == list(range(s.address, s.address + s.count)) and [regs[a] for a in sorted(regs)] == list(
+            s.values
+        )
     if not ok and all(n in by_name for n in s.parameters):
-        problems.append(error((*at, "values"), f"the request at {s.address} does not carry exactly the desired "
-                                               f"values of {', '.join(s.parameters)}"))
+        problems.append(
+            error(
+                (*at, "values"),
+                f"the request at {s.address} does not carry exactly the desired values of {', '.join(s.parameters)}",
+            )
+        )
     return problems
 
 
@@ -201,8 +252,9 @@ def check_actions(plan: Plan, prof: Profile) -> list[str]:
             wrong.append(f"step {i} ({s.kind} at 0x{s.address:04X}) is no {s.kind} action of profile {prof.id}")
             continue
         if s.values is not None and s.values != words:
-            wrong.append(f"step {i} ({s.kind} at 0x{s.address:04X}) writes other words than profile {prof.id}'s "
-                         f"{s.kind}")
+            wrong.append(
+                f"step {i} ({s.kind} at 0x{s.address:04X}) writes other words than profile {prof.id}'s {s.kind}"
+            )
         elif s.values is None and not _secret_at(prof, s):
             wrong.append(f"step {i} ({s.kind} at 0x{s.address:04X}) hides words the profile does not keep secret")
     return wrong
@@ -210,8 +262,10 @@ def check_actions(plan: Plan, prof: Profile) -> list[str]:
 
 def _secret_at(prof: Profile, s: Step) -> bool:
     actions = {"unlock": prof.unlock, "commit": prof.commit, "lock": prof.lock}[s.kind]
-    return any(a.secret and a.is_coil == (s.function == 5) and a.address <= s.address < a.address + len(a.registers)
-               for a in actions)
+    return any(
+        a.secret and a.is_coil == (s.function == 5) and a.address <= s.address < a.address + len(a.registers)
+        for a in actions
+    )
 
 
 def load_plan(path: str) -> tuple[Recipe, Plan]:
@@ -247,16 +301,25 @@ def plan_recipe(p: Plan, path: str = "<plan>", error: Callable[[Path_, str], Dia
         raise InputError([at(("device", "profile"), str(e))]) from None
     errors = []
     if p.profile_sha256 != prof.digest:
-        errors.append(at(("profile_sha256",), f"profile {prof.id} changed since the plan was made "
-                                              f"({prof.source or 'built-in'}): make the plan again"))
+        errors.append(
+            at(
+                ("profile_sha256",),
+                f"profile {prof.id} changed since the plan was made ({prof.source or 'built-in'}): make the plan again",
+            )
+        )
     errors += [at(("steps",), why) for why in check_actions(p, prof)]
     desired = []
     for i, pp in enumerate(p.parameters):
         param = prof.get(pp.name)
-        if param is None or param.address != pp.address or param.count != len(pp.desired_raw) or \
-                param.register_type != pp.register_type:
-            errors.append(at(("parameters", i, "name"),
-                             f"{pp.name} does not match profile {prof.id} (address or size differ)"))
+        if (
+            param is None
+            or param.address != pp.address
+            or param.count != len(pp.desired_raw)
+            or param.register_type != pp.register_type
+        ):
+            errors.append(
+                at(("parameters", i, "name"), f"{pp.name} does not match profile {prof.id} (address or size differ)")
+            )
             continue
         if param.is_string:
             try:
@@ -267,13 +330,20 @@ def plan_recipe(p: Plan, path: str = "<plan>", error: Callable[[Path_, str], Dia
         raw = None if param.is_string else param.decode(pp.desired_raw)
         bounds = param.raw_bounds()
         if not param.writable or (raw is not None and bounds is not None and not bounds[0] <= raw <= bounds[1]):
-            errors.append(at(("parameters", i, "desired_raw"),
-                             f"{pp.name}: raw {raw} is not writable within the profile's range"))
+            errors.append(
+                at(("parameters", i, "desired_raw"), f"{pp.name}: raw {raw} is not writable within the profile's range")
+            )
             continue
         desired.append(Desired(param, pp.desired, pp.desired_raw))
     if errors:
         raise InputError(errors)
     # named after the recipe it was made from (snapshots, reports), not after the plan file
     name = p.recipe_name or os.path.splitext(os.path.basename(p.recipe or path))[0]
-    return Recipe(name=name, path=p.recipe, profile=prof, desired=tuple(desired),
-                  device=DeviceSpec(p.device.url, p.device.unit), profile_ref=p.device.profile)
+    return Recipe(
+        name=name,
+        path=p.recipe,
+        profile=prof,
+        desired=tuple(desired),
+        device=DeviceSpec(p.device.url, p.device.unit),
+        profile_ref=p.device.profile,
+    )

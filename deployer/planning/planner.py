@@ -145,33 +145,62 @@ class _Units:
         fields = any(p.mask for p in params)
         bounds: Sequence[int] = range(n + 1)
         if fields:
-            bounds = [0, *(k for k in range(1, n) if not (params[k].mask and params[k - 1].mask
-                                                           and addrs[k] == addrs[k - 1]
-                                                           and stages[k] == stages[k - 1])), n]
-        return cls(ordered, params, [p.name for p in params], addrs, [p.count for p in params], stages,
-                   [tuple(d.registers) for d in ordered], bounds, fields,
-                   any(p.register_type != "holding" for p in params))
+            bounds = [
+                0,
+                *(
+                    k
+                    for k in range(1, n)
+                    if not (
+                        params[k].mask
+                        and params[k - 1].mask
+                        and addrs[k] == addrs[k - 1]
+                        and stages[k] == stages[k - 1]
+                    )
+                ),
+                n,
+            ]
+        return cls(
+            ordered,
+            params,
+            [p.name for p in params],
+            addrs,
+            [p.count for p in params],
+            stages,
+            [tuple(d.registers) for d in ordered],
+            bounds,
+            fields,
+            any(p.register_type != "holding" for p in params),
+        )
 
     def check(self, limit: int, fc6: bool) -> None:
         """Refuse what no plan can carry: read-only, too big for one request, wrong size, overlapping."""
-        names, sizes, addrs, stages, regs, bounds = self.names, self.sizes, self.addrs, self.stages, self.regs, \
-            self.bounds
+        names, sizes, addrs, stages, regs, bounds = (
+            self.names,
+            self.sizes,
+            self.addrs,
+            self.stages,
+            self.regs,
+            self.bounds,
+        )
         for u in range(len(bounds) - 1):
             k = bounds[u]
             if not self.params[k].writable:
                 raise UsageError(f"{names[k]} is a read-only {self.params[k].register_type}: it cannot be written")
             if not fc6 and sizes[k] > limit:
-                raise UsageError(f"{names[k]} needs {sizes[k]} registers in one request, but the device takes "
-                                 f"at most {limit} per request (limits in the profile)")
+                raise UsageError(
+                    f"{names[k]} needs {sizes[k]} registers in one request, but the device takes "
+                    f"at most {limit} per request (limits in the profile)"
+                )
             for m in range(k, bounds[u + 1]):
                 if len(regs[m]) != sizes[m]:
-                    raise UsageError(f"{names[m]}: {len(regs[m])} register values for a {sizes[m]}-register "
-                                     "parameter")
+                    raise UsageError(f"{names[m]}: {len(regs[m])} register values for a {sizes[m]}-register parameter")
             # two values for one register would make the plan's outcome depend on request order
             h = k - 1
             if u and stages[h] == stages[k] and addrs[k] < addrs[h] + sizes[h]:
-                raise UsageError(f"{names[k]} overlaps {names[h]} (registers {addrs[k]} and "
-                                 f"{addrs[h]}..{addrs[h] + sizes[h] - 1}): each register may be planned once")
+                raise UsageError(
+                    f"{names[k]} overlaps {names[h]} (registers {addrs[k]} and "
+                    f"{addrs[h]}..{addrs[h] + sizes[h] - 1}): each register may be planned once"
+                )
 
     def must_write(self, current: Mapping[str, tuple[int, ...]] | None, write_all: bool) -> list[bool]:
         """Per parameter: whether the device does not hold it already (unknown counts as not)."""
@@ -188,8 +217,11 @@ class _Units:
         for u in range(len(bounds) - 1):
             lo, hi = bounds[u], bounds[u + 1]
             if self.params[lo].mask:
-                known = None if current is None else next((current[names[k]][0] for k in range(lo, hi)
-                                                            if names[k] in current), None)
+                known = (
+                    None
+                    if current is None
+                    else next((current[names[k]][0] for k in range(lo, hi) if names[k] in current), None)
+                )
                 merged = (merge_fields(self.params[lo:hi], [regs[k][0] for k in range(lo, hi)], known),)
                 for k in range(lo, hi):
                     regs[k] = merged
@@ -199,15 +231,19 @@ class _Units:
         stages, addrs, sizes, bounds, coils = self.stages, self.addrs, self.sizes, self.bounds, self.coils
         nu = len(bounds) - 1
         j = i + 1
-        while j < nu and stages[bounds[j]] == stages[bounds[i]] and \
-                addrs[bounds[j]] == addrs[bounds[j - 1]] + sizes[bounds[j - 1]] and \
-                (not coils or addrs[bounds[j]] >> 16 == addrs[bounds[j - 1]] >> 16):
+        while (
+            j < nu
+            and stages[bounds[j]] == stages[bounds[i]]
+            and addrs[bounds[j]] == addrs[bounds[j - 1]] + sizes[bounds[j - 1]]
+            and (not coils or addrs[bounds[j]] >> 16 == addrs[bounds[j - 1]] >> 16)
+        ):
             j += 1
         return j
 
 
-def _coil_run(t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], actions: list[Action],
-              limits: Limits) -> list[WriteRequest]:
+def _coil_run(
+    t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], actions: list[Action], limits: Limits
+) -> list[WriteRequest]:
     """Coils (FC15, FC05 for a single coil): no fields, one bit each; a coil is a unit of its own."""
     out: list[WriteRequest] = []
     for a, b in _plan_run([1] * (j - i), must[i:j], limits.write_coils):
@@ -215,13 +251,21 @@ def _coil_run(t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], a
         for k in ks:
             if not must_p[k]:
                 actions[k] = "bridge"
-        out.append(WriteRequest(5 if len(ks) == 1 else 15, t.addrs[ks[0]] & 0xFFFF,
-                                tuple(t.regs[k][0] for k in ks), tuple(t.names[k] for k in ks), t.stages[ks[0]]))
+        out.append(
+            WriteRequest(
+                5 if len(ks) == 1 else 15,
+                t.addrs[ks[0]] & 0xFFFF,
+                tuple(t.regs[k][0] for k in ks),
+                tuple(t.names[k] for k in ks),
+                t.stages[ks[0]],
+            )
+        )
     return out
 
 
-def _fc6_run(t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], actions: list[Action]
-             ) -> list[WriteRequest]:
+def _fc6_run(
+    t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], actions: list[Action]
+) -> list[WriteRequest]:
     """FC06 carries one register, so the "never split" rule cannot hold on such devices: a 2/4-register
     value goes as one FC06 per word, in ascending address order (the word at the lower address first,
     whatever the word order), the words of one parameter back to back with nothing in between. No
@@ -230,16 +274,19 @@ def _fc6_run(t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], ac
     for u in range(i, j):
         if must[u]:
             k = t.bounds[u]
-            out.extend(WriteRequest(6, (t.addrs[k] & 0xFFFF) + w, (word,), tuple(t.names[k:t.bounds[u + 1]]),
-                                    t.stages[k]) for w, word in enumerate(t.regs[k]))
+            out.extend(
+                WriteRequest(6, (t.addrs[k] & 0xFFFF) + w, (word,), tuple(t.names[k : t.bounds[u + 1]]), t.stages[k])
+                for w, word in enumerate(t.regs[k])
+            )
             for m in range(k, t.bounds[u + 1]):
                 if not must_p[m]:
                     actions[m] = "bridge"
     return out
 
 
-def _fc16_run(t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], actions: list[Action],
-              limit: int) -> list[WriteRequest]:
+def _fc16_run(
+    t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], actions: list[Action], limit: int
+) -> list[WriteRequest]:
     """Holding registers: the fewest FC16 requests over the run (``_plan_run``), bridging what is right."""
     out: list[WriteRequest] = []
     bounds = t.bounds
@@ -254,8 +301,13 @@ def _fc16_run(t: _Units, i: int, j: int, must: list[bool], must_p: list[bool], a
     return out
 
 
-def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str, tuple[int, ...]] | None = None,
-                *, write_all: bool = False) -> tuple[tuple[PlannedParameter, ...], tuple[WriteRequest, ...]]:
+def plan_writes(
+    desired: Sequence[Desired],
+    limits: Limits,
+    current: Mapping[str, tuple[int, ...]] | None = None,
+    *,
+    write_all: bool = False,
+) -> tuple[tuple[PlannedParameter, ...], tuple[WriteRequest, ...]]:
     """The fewest write requests carrying ``desired`` (see the proof above).
 
     ``current``: parameter name -> registers the device holds; a missing name (or None for all)
@@ -271,7 +323,7 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
     nu = len(t.bounds) - 1
     if t.fields:
         t.merge_fields(current)
-        must = [any(must_p[t.bounds[u]:t.bounds[u + 1]]) for u in range(nu)]
+        must = [any(must_p[t.bounds[u] : t.bounds[u + 1]]) for u in range(nu)]
     actions: list[Action] = ["write" if m else "unchanged" for m in must_p]
     writes: list[WriteRequest] = []
     i = 0
@@ -285,10 +337,19 @@ def plan_writes(desired: Sequence[Desired], limits: Limits, current: Mapping[str
             writes += _fc16_run(t, i, j, must, must_p, actions, limit)
         i = j
     planned = tuple(
-        PlannedParameter(t.names[k], t.addrs[k] & 0xFFFF, t.sizes[k], t.ordered[k].text, t.regs[k],
-                         None if current is None or t.names[k] not in current else tuple(current[t.names[k]]),
-                         actions[k], t.stages[k], t.params[k].register_type)
-        for k in range(len(t.names)))
+        PlannedParameter(
+            t.names[k],
+            t.addrs[k] & 0xFFFF,
+            t.sizes[k],
+            t.ordered[k].text,
+            t.regs[k],
+            None if current is None or t.names[k] not in current else tuple(current[t.names[k]]),
+            actions[k],
+            t.stages[k],
+            t.params[k].register_type,
+        )
+        for k in range(len(t.names))
+    )
     return planned, tuple(writes)
 
 
@@ -374,4 +435,3 @@ def gap_free_reads(profile: Profile, reads: Sequence[ReadRequest]) -> tuple[Read
         if p.readable and k >= 0 and p.key + p.count <= spans[k][1]:
             inside.append(p.name)
     return plan_reads(profile, inside, gaps=False)
-

@@ -68,11 +68,23 @@ def action_steps(kind: StepKind, prof: Profile, actions: Iterable[WriteAction]) 
             out.append(Step(kind, 5, a.address, 1, values, (), wait=a.wait_ms / 1000, note=a.description))
         elif prof.limits.write_function == 6:
             n = len(a.registers)
-            out.extend(Step(kind, 6, a.address + i, 1, None if values is None else (values[i],), (),
-                            wait=a.wait_ms / 1000 if i == n - 1 else 0.0, note=a.description) for i in range(n))
+            out.extend(
+                Step(
+                    kind,
+                    6,
+                    a.address + i,
+                    1,
+                    None if values is None else (values[i],),
+                    (),
+                    wait=a.wait_ms / 1000 if i == n - 1 else 0.0,
+                    note=a.description,
+                )
+                for i in range(n)
+            )
         else:
-            out.append(Step(kind, 16, a.address, len(a.registers), values, (), wait=a.wait_ms / 1000,
-                            note=a.description))
+            out.append(
+                Step(kind, 16, a.address, len(a.registers), values, (), wait=a.wait_ms / 1000, note=a.description)
+            )
     return out
 
 
@@ -83,7 +95,7 @@ def secret_words(prof: Profile, step: Step) -> tuple[int, ...]:
         if a.is_coil != (step.function == 5):  # a coil and a register at one address are two places
             continue
         if a.address <= step.address and step.address + step.count <= a.address + len(a.registers):
-            return a.registers[step.address - a.address:step.address - a.address + step.count]
+            return a.registers[step.address - a.address : step.address - a.address + step.count]
     raise KeyError(f"no {step.kind} action of profile {prof.id} at 0x{step.address:04X}")
 
 
@@ -111,8 +123,16 @@ class Planner:
     which reads the profile's health checks before the change.
     """
 
-    def __init__(self, recipe: Recipe, *, write_all: bool = False, device_id: bool | None = None, commit: bool = True,
-                 pacing: Pacing = NO_PAUSES, window: bool = False) -> None:
+    def __init__(
+        self,
+        recipe: Recipe,
+        *,
+        write_all: bool = False,
+        device_id: bool | None = None,
+        commit: bool = True,
+        pacing: Pacing = NO_PAUSES,
+        window: bool = False,
+    ) -> None:
         prof = recipe.profile
         self.recipe = recipe
         self.write_all = write_all
@@ -121,32 +141,39 @@ class Planner:
         names = [d.name for d in recipe.desired if d.parameter.readable]
         self.reads = plan_reads(prof, names)
         covered = _covered(self.reads, prof, names)
-        checks = [Step("identity", READ_FUNCTION[c.register_type], c.address, 1, expect=Expect(c.raw),
-                       note=c.description) for c in prof.identity]
-        checks += [Step("snapshot", r.function, r.address, r.count, (), ps) for r, ps in zip(self.reads, covered,
-                                                                                           strict=True)]
+        checks = [
+            Step("identity", READ_FUNCTION[c.register_type], c.address, 1, expect=Expect(c.raw), note=c.description)
+            for c in prof.identity
+        ]
+        checks += [
+            Step("snapshot", r.function, r.address, r.count, (), ps) for r, ps in zip(self.reads, covered, strict=True)
+        ]
         if prof.limits.device_identification if device_id is None else device_id:
             checks.append(Step("device-id", DEVICE_ID, 0, 1, note="vendor, product code, revision"))
         src = prof.firmware
         gated = any(d.parameter.firmware is not None for d in recipe.desired)
         if src is not None and src.address is not None and (src.applies is not None or gated):
-            checks.append(Step("firmware", READ_FUNCTION[src.register_type], src.address, src.count,
-                               note=src.describe()))
+            checks.append(
+                Step("firmware", READ_FUNCTION[src.register_type], src.address, src.count, note=src.describe())
+            )
         self.checks: tuple[Step, ...] = tuple(checks)
-        self.verify = tuple(Step("verify", r.function, r.address, r.count, (), ps)
-                            for r, ps in zip(self.reads, covered, strict=True))
-        self.preconditions = tuple(Step("precondition", 3, c.address, 1, expect=Expect(c.equals, c.mask),
-                                        note=c.description) for c in prof.preconditions)
-        self.health = tuple(Step("health", c.function, c.address, c.count, note=c.what())
-                            for c in prof.health) if window else ()
+        self.verify = tuple(
+            Step("verify", r.function, r.address, r.count, (), ps) for r, ps in zip(self.reads, covered, strict=True)
+        )
+        self.preconditions = tuple(
+            Step("precondition", 3, c.address, 1, expect=Expect(c.equals, c.mask), note=c.description)
+            for c in prof.preconditions
+        )
+        self.health = (
+            tuple(Step("health", c.function, c.address, c.count, note=c.what()) for c in prof.health) if window else ()
+        )
         self.unlock = tuple(action_steps("unlock", prof, prof.unlock))
         self.commits = tuple(action_steps("commit", prof, prof.commit)) if commit else ()
         self.lock = tuple(action_steps("lock", prof, prof.lock)) if prof.unlock else ()
         self.names = tuple(d.name for d in recipe.desired)
         self._plans: dict[tuple[bool, bool, tuple[tuple[int, ...] | None, ...] | None], Plan] = {}
 
-    def plan(self, target: Target, current: Mapping[str, tuple[int, ...]] | None, *,
-             commit_owed: bool = False) -> Plan:
+    def plan(self, target: Target, current: Mapping[str, tuple[int, ...]] | None, *, commit_owed: bool = False) -> Plan:
         """The device's plan against ``current`` (name -> registers it holds; None: not read, an offline plan).
 
         Devices of this recipe holding the same values get the same plan (only ``target`` differs), made once.
@@ -165,15 +192,22 @@ class Planner:
         recipe = self.recipe
         prof = recipe.profile
         broadcast = target.unit == 0
-        params, writes = plan_writes(recipe.desired, prof.limits, None if broadcast else current,
-                                     write_all=self.write_all or broadcast)
+        params, writes = plan_writes(
+            recipe.desired, prof.limits, None if broadcast else current, write_all=self.write_all or broadcast
+        )
         if broadcast:
-            steps = [Step("write", w.function, w.address, w.count, w.registers, w.parameters, w.stage)
-                     for w in writes]
+            steps = [Step("write", w.function, w.address, w.count, w.registers, w.parameters, w.stage) for w in writes]
         else:
             steps = [*self.checks, *self._changes(prof, writes, commit_owed)]
-        return Plan(recipe.path, target, params, tuple(steps), recipe_name=recipe.name, pacing=self.pacing,
-                    profile_sha256=prof.digest)
+        return Plan(
+            recipe.path,
+            target,
+            params,
+            tuple(steps),
+            recipe_name=recipe.name,
+            pacing=self.pacing,
+            profile_sha256=prof.digest,
+        )
 
     def _changes(self, prof: Profile, writes: Sequence[WriteRequest], commit_owed: bool) -> list[Step]:
         if not writes:
@@ -185,8 +219,10 @@ class Planner:
         for i, w in enumerate(writes):
             merged = [n for n in w.parameters if n in fields] if fields else []
             if merged:  # the register's other bits as the device holds them right before the write
-                out += [Step("read-modify-write", r.function, r.address, r.count, (), tuple(merged))
-                        for r in plan_reads(prof, merged)]
+                out += [
+                    Step("read-modify-write", r.function, r.address, r.count, (), tuple(merged))
+                    for r in plan_reads(prof, merged)
+                ]
             last_of_stage = i + 1 == len(writes) or writes[i + 1].stage != w.stage
             wait = prof.wait_after(w.stage) / 1000 if last_of_stage else 0.0
             out.append(Step("write", w.function, w.address, w.count, w.registers, w.parameters, w.stage, wait))
@@ -194,10 +230,18 @@ class Planner:
         return out
 
 
-def make_plan(recipe: Recipe, target: Target, current: Mapping[str, tuple[int, ...]] | None = None, *,
-              write_all: bool = False, device_id: bool | None = None, commit: bool = True,
-              pacing: Pacing = NO_PAUSES, window: bool = False) -> Plan:
+def make_plan(
+    recipe: Recipe,
+    target: Target,
+    current: Mapping[str, tuple[int, ...]] | None = None,
+    *,
+    write_all: bool = False,
+    device_id: bool | None = None,
+    commit: bool = True,
+    pacing: Pacing = NO_PAUSES,
+    window: bool = False,
+) -> Plan:
     """One device's whole plan (``Planner`` for a single device)."""
-    return Planner(recipe, write_all=write_all, device_id=device_id, commit=commit, pacing=pacing,
-                   window=window).plan(target, current)
-
+    return Planner(recipe, write_all=write_all, device_id=device_id, commit=commit, pacing=pacing, window=window).plan(
+        target, current
+    )

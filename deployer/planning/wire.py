@@ -86,5 +86,15 @@ def plan_cost(plan: Plan, profile: Profile | None = None, device: DeviceURL | No
         nv, stores = len(worn), tuple(n for s in worn for n in s.parameters if n in lasting)
     else:
         nv, stores = 0, ()
-    return Cost(requests=n, reads=n - len(writes), writes=len(writes), bytes=total, framing=framing, line=line,
-                seconds=round(seconds + waits, 6), waits=round(waits, 6), non_volatile_writes=nv, stores=stores)
+    return Cost(
+        requests=n,
+        reads=n - len(writes),
+        writes=len(writes),
+        bytes=total,
+        framing=framing,
+        line=line,
+        seconds=round(seconds + waits, 6),
+        waits=round(waits, 6),
+        non_volatile_writes=nv,
+        stores=stores,
+    )

@@ -46,16 +46,27 @@ BOOL = "bool"  # a one-bit field: false/true
 
 # Layout names users find in manuals (and Home Assistant's ``swap``) -> (word_order, byte_swap)
 LAYOUTS: dict[str, tuple[str, bool]] = {
-    "ABCD": ("big", False), "ABCDEFGH": ("big", False), "big-endian": ("big", False),
-    "CDAB": ("little", False), "GHEFCDAB": ("little", False), "big-endian-word-swap": ("little", False),
+    "ABCD": ("big", False),
+    "ABCDEFGH": ("big", False),
+    "big-endian": ("big", False),
+    "CDAB": ("little", False),
+    "GHEFCDAB": ("little", False),
+    "big-endian-word-swap": ("little", False),
     "little-endian-byte-swap": ("little", False),  # Modbus Poll's name for CDAB
-    "BADC": ("big", True), "BADCFEHG": ("big", True), "big-endian-byte-swap": ("big", True),
+    "BADC": ("big", True),
+    "BADCFEHG": ("big", True),
+    "big-endian-byte-swap": ("big", True),
     "little-endian-word-swap": ("big", True),
-    "DCBA": ("little", True), "HGFEDCBA": ("little", True), "little-endian": ("little", True),
+    "DCBA": ("little", True),
+    "HGFEDCBA": ("little", True),
+    "little-endian": ("little", True),
 }
 # Home Assistant modbus: swap: none | byte | word | word_byte
 SWAPS: dict[str, tuple[str, bool]] = {
-    "none": ("big", False), "byte": ("big", True), "word": ("little", False), "word_byte": ("little", True),
+    "none": ("big", False),
+    "byte": ("big", True),
+    "word": ("little", False),
+    "word_byte": ("little", True),
 }
 ENCODINGS: dict[str, str] = {"ascii": "ascii", "latin-1": "latin-1"}  # profile name -> Python codec
 PADDING: dict[str, bytes] = {"nul": b"\0", "space": b" "}
@@ -65,7 +76,7 @@ def layout_name(word_order: str, byte_swap: bool, type_: str = "uint32") -> str:
     """The manual's name for a layout of ``type_``: 'CDAB', 'BADCFEHG', 'BA' ..."""
     size = 2 * _TYPES[type_][0] if type_ in _TYPES else 4
     letters = list("ABCDEFGH"[:size])
-    words = [letters[i:i + 2] for i in range(0, size, 2)]
+    words = [letters[i : i + 2] for i in range(0, size, 2)]
     if byte_swap:
         words = [w[::-1] for w in words]
     if word_order == "little":
@@ -158,8 +169,7 @@ def encode(raw: Raw, type_: str, word_order: str = "big", byte_swap: bool = Fals
     return tuple(words)
 
 
-def decode(registers: tuple[int, ...] | list[int], type_: str, word_order: str = "big",
-           byte_swap: bool = False) -> Raw:
+def decode(registers: tuple[int, ...] | list[int], type_: str, word_order: str = "big", byte_swap: bool = False) -> Raw:
     """Registers -> raw value (inverse of encode)."""
     count, signed, flt = _TYPES[type_]
     if len(registers) != count:
@@ -213,22 +223,22 @@ def registers_to_engineering(
 # ---- strings ---------------------------------------------------------------------------------
 
 
-def encode_string(text: str, count: int, encoding: str = "ascii", padding: str = "nul",
-                  byte_swap: bool = False) -> tuple[int, ...]:
+def encode_string(
+    text: str, count: int, encoding: str = "ascii", padding: str = "nul", byte_swap: bool = False
+) -> tuple[int, ...]:
     """Text -> ``count`` registers, two characters each, padded. CodecError if it does not fit."""
     try:
         data = text.encode(ENCODINGS[encoding])
     except UnicodeEncodeError as e:
-        raise CodecError(f"{text[e.start:e.end]!r} at character {e.start + 1} is not {encoding}") from None
+        raise CodecError(f"{text[e.start : e.end]!r} at character {e.start + 1} is not {encoding}") from None
     if len(data) > 2 * count:
         held = "1 register holds" if count == 1 else f"{count} registers hold"
         raise CodecError(f"'{text}' is {len(data)} characters; {held} at most {2 * count}")
     data = data.ljust(2 * count, PADDING[padding])
-    return tuple(int.from_bytes(data[i:i + 2], "little" if byte_swap else "big") for i in range(0, len(data), 2))
+    return tuple(int.from_bytes(data[i : i + 2], "little" if byte_swap else "big") for i in range(0, len(data), 2))
 
 
-def decode_string(registers: tuple[int, ...] | list[int], encoding: str = "ascii",
-                  byte_swap: bool = False) -> str:
+def decode_string(registers: tuple[int, ...] | list[int], encoding: str = "ascii", byte_swap: bool = False) -> str:
     """Registers -> text without trailing NUL/space padding. CodecError for bytes outside the encoding."""
     data = b"".join(int(w).to_bytes(2, "little" if byte_swap else "big") for w in registers)
     try:

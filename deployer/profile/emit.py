@@ -65,8 +65,14 @@ class Draft:
                     errors.append(Diagnostic(origin.path, origin.line, origin.col, f"{section} name {why}"))
                 elif (section, name) in seen:
                     first = seen[section, name]
-                    errors.append(Diagnostic(origin.path, origin.line, origin.col, f"{section} '{name}' is already "
-                                             f"defined at {first.path}:{first.line}:{first.col}"))
+                    errors.append(
+                        Diagnostic(
+                            origin.path,
+                            origin.line,
+                            origin.col,
+                            f"{section} '{name}' is already defined at {first.path}:{first.line}:{first.col}",
+                        )
+                    )
                 seen.setdefault((section, name), origin)
                 for fname in spec.get("fields", {}) if section == "table" else ():
                     why = _name_problem(fname, _TABLE_NAME)
@@ -89,8 +95,9 @@ class Draft:
             for name, spec, origin in items:
                 if section == "tables":
                     head = {k: v for k, v in spec.items() if k != "fields"}
-                    lines.append(f"  {key(name)}: {{{', '.join(f'{key(k)}: {flow(v)}' for k, v in head.items())}, "
-                                 "fields: {")
+                    lines.append(
+                        f"  {key(name)}: {{{', '.join(f'{key(k)}: {flow(v)}' for k, v in head.items())}, fields: {{"
+                    )
                     origins[len(lines)] = origin
                     for fname, fspec in spec["fields"].items():
                         lines.append(f"    {key(fname)}: {flow(fspec)},")
@@ -223,8 +230,7 @@ def _comment(c: str) -> str:
 def _same(a: Any, b: Any) -> bool:
     """Data equal as YAML reads it back (floats are read as exact decimals)."""
     if isinstance(a, dict):
-        return isinstance(b, dict) and list(map(str, a)) == list(map(str, b)) and all(
-            _same(a[k], b[k]) for k in a)
+        return isinstance(b, dict) and list(map(str, a)) == list(map(str, b)) and all(_same(a[k], b[k]) for k in a)
     if isinstance(a, list | tuple):
         return isinstance(b, list | tuple) and len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
     if isinstance(a, float):
@@ -241,8 +247,16 @@ def check(draft: Draft, out_path: str, comment: str = "") -> tuple[str, Profile]
     try:
         data, src = yamlsrc.load(out_path, text)
         if not _same(draft.data(), data):  # the writer's promise, checked: nothing added, nothing lost
-            raise InputError([Diagnostic(out_path, 1, 1, "internal error: the written profile does not read "
-                                                         "back as imported; please report this input")])
+            raise InputError(
+                [
+                    Diagnostic(
+                        out_path,
+                        1,
+                        1,
+                        "internal error: the written profile does not read back as imported; please report this input",
+                    )
+                ]
+            )
         prof = profile_from_data(out_path, text, data, src)
     except InputError as e:
         raise InputError(traced(e.diagnostics, origins, out_path)) from None
@@ -257,7 +271,8 @@ def traced(diagnostics: Sequence[Diagnostic], origins: Mapping[int, Origin], out
             out.append(d)
             continue
         # "... (line N)" names another generated line: say its source line instead
-        message = re.sub(r"\bline (\d+)", lambda m: f"line {origins[int(m[1])].line}" if int(m[1]) in origins
-                         else m[0], d.message)
+        message = re.sub(
+            r"\bline (\d+)", lambda m: f"line {origins[int(m[1])].line}" if int(m[1]) in origins else m[0], d.message
+        )
         out.append(Diagnostic(o.path, o.line, o.col, message))
     return out

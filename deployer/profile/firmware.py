@@ -14,7 +14,13 @@ from dataclasses import dataclass
 
 _TERM = re.compile(r"^\s*(>=|<=|==|=|>|<)?\s*v?(\d+(?:\.\d+)*)\s*$")
 _OPS: dict[str, Callable[[tuple[int, ...], tuple[int, ...]], bool]] = {
-    ">=": operator.ge, "<=": operator.le, "==": operator.eq, "=": operator.eq, ">": operator.gt, "<": operator.lt}
+    ">=": operator.ge,
+    "<=": operator.le,
+    "==": operator.eq,
+    "=": operator.eq,
+    ">": operator.gt,
+    "<": operator.lt,
+}
 
 
 def numbers(revision: str) -> tuple[int, ...] | None:
@@ -32,8 +38,7 @@ def check_range(text: str) -> str | None:
     """Why ``text`` is not a revision range, or None."""
     for term in str(text).split(","):
         if not _TERM.match(term):
-            return (f"'{term.strip()}' is not a revision or a comparison with one (e.g. '2.1', '>=1.2, <2', "
-                    "'==3.0.4')")
+            return f"'{term.strip()}' is not a revision or a comparison with one (e.g. '2.1', '>=1.2, <2', '==3.0.4')"
     return None
 
 

@@ -43,8 +43,10 @@ def unknown_profile(id_: str, relative_to: str | os.PathLike[str] | None = None,
     where = f"the {kind}" if relative_to else "the current directory"
     guess = next((id_ + ext for ext in (".yaml", ".yml") if os.path.isfile(os.path.join(base, id_ + ext))), None)
     hint = f"did you mean '{guess}'?" if guess else f"e.g. '{id_}.yaml'"
-    return (f"unknown built-in profile '{id_}' (built-in: {known}); a profile file works too: "
-            f"its path relative to {where}, ending in .yaml, {hint}")
+    return (
+        f"unknown built-in profile '{id_}' (built-in: {known}); a profile file works too: "
+        f"its path relative to {where}, ending in .yaml, {hint}"
+    )
 
 
 def builtin_profile(id_: str) -> Profile:
@@ -122,10 +124,13 @@ def wire_address(number: int, addressing: str, register_type: str = "holding") -
         accepts = "00001-65536 (addresses 0-65535)"
     else:
         lo5, lo6 = d * 10000 + 1, d * 100000 + 1
-        accepts = (f"{lo5:05d}-{lo5 + 9998:05d} (5 digits, addresses 0-9998) or {lo6:06d}-{lo6 + 65535:06d} "
-                   "(6 digits, addresses 0-65535)")
-    raise ValueError(f"{number} is not a {_TABLE_WORDS[register_type]} reference: addressing: modicon accepts "
-                     f"{accepts}{hint}")
+        accepts = (
+            f"{lo5:05d}-{lo5 + 9998:05d} (5 digits, addresses 0-9998) or {lo6:06d}-{lo6 + 65535:06d} "
+            "(6 digits, addresses 0-65535)"
+        )
+    raise ValueError(
+        f"{number} is not a {_TABLE_WORDS[register_type]} reference: addressing: modicon accepts {accepts}{hint}"
+    )
 
 
 def _modicon_table(number: int) -> str | None:
@@ -187,8 +192,9 @@ class _Checks:
     def error(self, at: yamlsrc.Path_, message: str) -> None:
         self.errors.append(self.src.error(at, message))
 
-    def address_of(self, value: object, at: yamlsrc.Path_, extra: int = 0,
-                   register_type: str = "holding") -> int | None:
+    def address_of(
+        self, value: object, at: yamlsrc.Path_, extra: int = 0, register_type: str = "holding"
+    ) -> int | None:
         """A register reference as the profile's addressing counts it -> its wire address (None: an error)."""
         try:
             number = parse_register(value)
@@ -259,8 +265,20 @@ def _limits(c: _Checks) -> Limits:
 
 # ---- parameters ---------------------------------------------------------------------------------
 
-_NOT_FOR_BITS = ("bits", "mask", "scale", "offset", "unit", "cycles_as_angles", "count", "encoding", "padding",
-                 "byte_order", "swap", "word_order")
+_NOT_FOR_BITS = (
+    "bits",
+    "mask",
+    "scale",
+    "offset",
+    "unit",
+    "cycles_as_angles",
+    "count",
+    "encoding",
+    "padding",
+    "byte_order",
+    "swap",
+    "word_order",
+)
 
 
 def _parameters(c: _Checks) -> list[Parameter]:
@@ -273,15 +291,21 @@ def _parameters(c: _Checks) -> list[Parameter]:
     return params
 
 
-def _parameter(c: _Checks, name: str, spec: dict[str, Any], address: int, at: yamlsrc.Path_,
-               eng_offset: object = 0) -> Parameter:
+def _parameter(
+    c: _Checks, name: str, spec: dict[str, Any], address: int, at: yamlsrc.Path_, eng_offset: object = 0
+) -> Parameter:
     """One parameter (a table entry's field too); its problems go to ``c.errors``."""
     table = spec.get("register_type", "holding")
     src = c.src
     local: list[Diagnostic] = []
     if "type" not in spec and table not in model.BIT_TABLES:
-        local.append(src.error(at, f"{name}: 'type' is required for {_PLURAL[table]} (uint16, int32, "
-                                   "float32 ...); only coils and discrete inputs are bool without it"))
+        local.append(
+            src.error(
+                at,
+                f"{name}: 'type' is required for {_PLURAL[table]} (uint16, int32, "
+                "float32 ...); only coils and discrete inputs are bool without it",
+            )
+        )
     type_ = spec.get("type", codec.BOOL if table in model.BIT_TABLES else "uint16")
     order, swap = _layout(spec, c.layout, at, src, local)
     access = spec.get("access", "read-only" if table in ("discrete", "input") else "read-write")
@@ -338,15 +362,19 @@ def _manual(spec: dict[str, Any]) -> dict[str, str]:
     return {"manual_number": str(m.get("number", "")).strip(), "manual_text": str(m.get("text", "")).strip()}
 
 
-def _shape_problems(src: yamlsrc.Source, spec: dict[str, Any], at: yamlsrc.Path_, table: str, type_: str,
-                    access: str) -> list[Diagnostic]:
+def _shape_problems(
+    src: yamlsrc.Source, spec: dict[str, Any], at: yamlsrc.Path_, table: str, type_: str, access: str
+) -> list[Diagnostic]:
     """Keys that do not fit the parameter's table or type (a coil's scale, a string's unit ...)."""
     out: list[Diagnostic] = []
     if table in model.BIT_TABLES:
         if type_ != codec.BOOL:
             out.append(src.error((*at, "type"), f"a {table} is one bit: type bool (or no type), not {type_}"))
-        out += [src.error((*at, key), f"'{key}' does not apply to a {table} (one bit, 0 or 1)")
-                for key in _NOT_FOR_BITS if key in spec]
+        out += [
+            src.error((*at, key), f"'{key}' does not apply to a {table} (one bit, 0 or 1)")
+            for key in _NOT_FOR_BITS
+            if key in spec
+        ]
     if table in ("discrete", "input") and access != "read-only":
         what = "a discrete input" if table == "discrete" else "an input register"
         out.append(src.error((*at, "access"), f"{what} is read-only (it cannot be written)"))
@@ -354,23 +382,28 @@ def _shape_problems(src: yamlsrc.Source, spec: dict[str, Any], at: yamlsrc.Path_
         if type_ not in ("uint16", "int16", codec.BOOL):
             out.append(src.error((*at, "type"), f"a bit field is uint16, int16 or bool, not {type_}"))
         if spec.get("access") == "write-only":  # its register is written whole: the other bits come from a read
-            out.append(src.error((*at, "access"), "a bit field must be readable: apply reads its register "
-                                                  "to keep the other bits"))
+            out.append(
+                src.error(
+                    (*at, "access"), "a bit field must be readable: apply reads its register to keep the other bits"
+                )
+            )
     elif table not in model.BIT_TABLES and type_ == codec.BOOL:
         out.append(src.error((*at, "type"), "type bool is a one-bit field: give 'bits: N'"))
     if type_ == codec.STRING:
         if "count" not in spec:
             out.append(src.error(at, f"{at[-1]}: a string needs 'count' (its registers)"))
-        out += [src.error((*at, key), f"'{key}' does not apply to a string")
-                for key in ("scale", "unit", "min", "max", "values") if key in spec]
+        out += [
+            src.error((*at, key), f"'{key}' does not apply to a string")
+            for key in ("scale", "unit", "min", "max", "values")
+            if key in spec
+        ]
     elif "count" in spec or "encoding" in spec or "padding" in spec:
         key = next(k for k in ("count", "encoding", "padding") if k in spec)
         out.append(src.error((*at, key), f"'{key}' applies to strings only (type: string)"))
     return out
 
 
-def _mask(src: yamlsrc.Source, spec: dict[str, Any], at: yamlsrc.Path_, table: str,
-          local: list[Diagnostic]) -> int:
+def _mask(src: yamlsrc.Source, spec: dict[str, Any], at: yamlsrc.Path_, table: str, local: list[Diagnostic]) -> int:
     """A bit field's mask (0: the whole value)."""
     if table in model.BIT_TABLES or not ("bits" in spec or "mask" in spec):
         return 0
@@ -386,22 +419,26 @@ def _mask(src: yamlsrc.Source, spec: dict[str, Any], at: yamlsrc.Path_, table: s
     return mask
 
 
-def _range_problems(src: yamlsrc.Source, param: Parameter, spec: dict[str, Any],
-                    at: yamlsrc.Path_) -> list[Diagnostic]:
+def _range_problems(src: yamlsrc.Source, param: Parameter, spec: dict[str, Any], at: yamlsrc.Path_) -> list[Diagnostic]:
     """Scale, span, unit, min/max and the labels' raw values of a well-formed parameter."""
     out: list[Diagnostic] = []
     if param.scale == 0:
         out.append(src.error((*at, "scale"), "scale must not be 0"))
     if param.address + param.count > 0x10000:
-        out.append(src.error(at, f"{param.name}: registers {param.address}..{param.address + param.count - 1} "
-                                 "run past 65535"))
+        out.append(
+            src.error(at, f"{param.name}: registers {param.address}..{param.address + param.count - 1} run past 65535")
+        )
     problem = units.check(spec["unit"]) if "unit" in spec else None
     if problem:
         out.append(src.error((*at, "unit"), problem))
     elif param.cycles_as_angles and (param.unit is None or not units.turns_apply(param.unit)):
-        out.append(src.error((*at, "cycles_as_angles"), "'cycles_as_angles' is for a parameter whose unit is an "
-                                                        "angle (rad, deg, rad/s) or a cycle (rev, rpm, Hz)"
-                                                        + ("" if param.unit else "; this one has no unit")))
+        out.append(
+            src.error(
+                (*at, "cycles_as_angles"),
+                "'cycles_as_angles' is for a parameter whose unit is an "
+                "angle (rad, deg, rad/s) or a cycle (rev, rpm, Hz)" + ("" if param.unit else "; this one has no unit"),
+            )
+        )
     why = None if param.firmware is None else firmware.check_range(param.firmware)
     if why:
         out.append(src.error((*at, "firmware"), f"firmware: {why}"))
@@ -426,8 +463,9 @@ def _range_problems(src: yamlsrc.Source, param: Parameter, spec: dict[str, Any],
     return out
 
 
-def _with_default(src: yamlsrc.Source, param: Parameter, d: object, at: yamlsrc.Path_,
-                  local: list[Diagnostic]) -> Parameter:
+def _with_default(
+    src: yamlsrc.Source, param: Parameter, d: object, at: yamlsrc.Path_, local: list[Diagnostic]
+) -> Parameter:
     """``param`` with its factory default, checked like a recipe value."""
     try:
         if param.is_string:
@@ -438,15 +476,12 @@ def _with_default(src: yamlsrc.Source, param: Parameter, d: object, at: yamlsrc.
         elif isinstance(d, str):
             labels = dict(param.values)
             if d not in labels:
-                raise CodecError(f"'{d}' is not one of the labels "
-                                       f"{messages.label_list(labels) or '(none)'}")
+                raise CodecError(f"'{d}' is not one of the labels {messages.label_list(labels) or '(none)'}")
             default_eng = codec.from_raw(labels[d], param.scale, param.offset)
         else:
             default_eng = Decimal(d)  # type: ignore[arg-type]
             param.to_raw(default_eng)
-        if (param.min is not None and default_eng < param.min) or (
-            param.max is not None and default_eng > param.max
-        ):
+        if (param.min is not None and default_eng < param.min) or (param.max is not None and default_eng > param.max):
             raise CodecError(f"{_fmt(default_eng)} is outside {_fmt(param.min)}..{_fmt(param.max)}")
         return replace(param, default=default_eng)
     except CodecError as e:
@@ -462,19 +497,25 @@ def _tables(c: _Checks, params: list[Parameter]) -> None:
     for tname, table in tables.items():
         declared += int(table["count"]) * len(table["fields"])
         if declared > yamlsrc.MAX_ENTRIES:
-            c.error(("tables", tname, "count"),
-                    f"table {tname}: the profile would declare at least {declared} parameters; at "
-                    f"most {yamlsrc.MAX_ENTRIES} (a device has {yamlsrc.MAX_ENTRIES} registers)")
+            c.error(
+                ("tables", tname, "count"),
+                f"table {tname}: the profile would declare at least {declared} parameters; at "
+                f"most {yamlsrc.MAX_ENTRIES} (a device has {yamlsrc.MAX_ENTRIES} registers)",
+            )
             raise InputError(c.errors)
     for tname, table in tables.items():
         tat: yamlsrc.Path_ = ("tables", tname)
         table_types = {f.get("register_type", "holding") for f in table["fields"].values()}
         if len(table_types) > 1:
-            c.error((*tat, "fields"), f"table {tname}: its fields are in one Modbus table "
-                                      f"(register_type), not {', '.join(sorted(table_types))}")
+            c.error(
+                (*tat, "fields"),
+                f"table {tname}: its fields are in one Modbus table "
+                f"(register_type), not {', '.join(sorted(table_types))}",
+            )
             continue
-        base = c.address_of(table["base"], (*tat, "base"),
-                            register_type=table_types.pop() if table_types else "holding")
+        base = c.address_of(
+            table["base"], (*tat, "base"), register_type=table_types.pop() if table_types else "holding"
+        )
         if base is None:
             continue
         count, stride = table["count"], table["stride"]
@@ -487,8 +528,11 @@ def _tables(c: _Checks, params: list[Parameter]) -> None:
                 c.error((*tat, "fields", fname, "offset"), f"field {fname} runs past the table's stride {stride}")
         for i in range(count):
             for fname, fspec in table["fields"].items():
-                params.append(_parameter(c, f"{tname}[{i}].{fname}", fspec, base + i * stride + fspec["offset"],
-                                         (*tat, "fields", fname)))
+                params.append(
+                    _parameter(
+                        c, f"{tname}[{i}].{fname}", fspec, base + i * stride + fspec["offset"], (*tat, "fields", fname)
+                    )
+                )
 
 
 def _overlaps(c: _Checks, params: list[Parameter]) -> None:
@@ -519,26 +563,42 @@ def _field_mates(c: _Checks, q: Parameter, mates: list[Parameter]) -> None:
     """A bit field beside other fields of its register: bits apart, and one stage."""
     clash = next((f for f in mates if f.mask & q.mask), None)
     if clash is not None:
-        c.errors.append(Diagnostic(c.src.path, q.line, q.col,
-                                   f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) overlaps "
-                                   f"{clash.name} (bits {_bits(clash.mask)}, line {clash.line})"))
+        c.errors.append(
+            Diagnostic(
+                c.src.path,
+                q.line,
+                q.col,
+                f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) overlaps "
+                f"{clash.name} (bits {_bits(clash.mask)}, line {clash.line})",
+            )
+        )
     other = next((f for f in mates if f.stage != q.stage), None)
     if other is not None:
-        c.errors.append(Diagnostic(c.src.path, q.line, q.col,
-                                   f"{q.name} is in stage {q.stage} but {other.name} (line {other.line}) of the "
-                                   f"same register {_hex(q.address)} is in stage {other.stage}: a register is "
-                                   "written as one unit"))
+        c.errors.append(
+            Diagnostic(
+                c.src.path,
+                q.line,
+                q.col,
+                f"{q.name} is in stage {q.stage} but {other.name} (line {other.line}) of the "
+                f"same register {_hex(q.address)} is in stage {other.stage}: a register is "
+                "written as one unit",
+            )
+        )
     mates.append(q)
 
 
 def _overlap_text(q: Parameter, prev: Parameter) -> str:
     if q.mask:
-        return (f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) shares its register with "
-                f"{prev.name} (line {prev.line}), which is not a bit field: only bit fields share a register")
+        return (
+            f"{q.name} (bits {_bits(q.mask)} of register {_hex(q.address)}) shares its register with "
+            f"{prev.name} (line {prev.line}), which is not a bit field: only bit fields share a register"
+        )
     if prev.mask:
-        return (f"{q.name} (registers {_hex(q.address)}-{_hex(q.end - 1)}) overlaps the bit field {prev.name} "
-                f"(bits {_bits(prev.mask)} of register {_hex(prev.address)}, line {prev.line}): only bit fields "
-                "share a register")
+        return (
+            f"{q.name} (registers {_hex(q.address)}-{_hex(q.end - 1)}) overlaps the bit field {prev.name} "
+            f"(bits {_bits(prev.mask)} of register {_hex(prev.address)}, line {prev.line}): only bit fields "
+            "share a register"
+        )
     return f"{q.name} ({_span(q)}) overlaps {prev.name} ({_span(prev)}, line {prev.line})"
 
 
@@ -550,8 +610,11 @@ def _identity(c: _Checks) -> tuple[list[IdentityCheck], list[IdentityObject]]:
     identity_objects: list[IdentityObject] = []
     for i, item in enumerate(c.data.get("identity") or []):
         if ("register" in item) == ("object" in item):
-            c.error(("identity", i), "an identity check is either {register: R, raw: N} or "
-                                     "{object: vendor|product_code|revision|..., equals: TEXT}")
+            c.error(
+                ("identity", i),
+                "an identity check is either {register: R, raw: N} or "
+                "{object: vendor|product_code|revision|..., equals: TEXT}",
+            )
             continue
         if "object" in item:
             obj = item["object"]
@@ -580,20 +643,27 @@ def _actions(c: _Checks, key: str) -> tuple[CommitAction, ...]:
         if table == "coil":
             coil = _coil_value(c, item, raw, secret, at)
             if coil is not None and a is not None:
-                out.append(CommitAction(a, (coil,), item.get("description", ""), int(item.get("wait", 0)), secret,
-                                        "coil"))
+                out.append(
+                    CommitAction(a, (coil,), item.get("description", ""), int(item.get("wait", 0)), secret, "coil")
+                )
             continue
         if isinstance(raw, bool):
-            c.error((*at, "raw"), "true/false is a coil's value: a register's raw value is an integer "
-                                  "(register_type: coil for a coil)")
+            c.error(
+                (*at, "raw"),
+                "true/false is a coil's value: a register's raw value is an integer (register_type: coil for a coil)",
+            )
             continue
         try:
-            regs = tuple(int(r) for r in raw) if isinstance(raw, list) else codec.encode(
-                int(raw), item.get("type", "uint16"), c.layout[0], c.layout[1])
+            regs = (
+                tuple(int(r) for r in raw)
+                if isinstance(raw, list)
+                else codec.encode(int(raw), item.get("type", "uint16"), c.layout[0], c.layout[1])
+            )
         except (CodecError, ValueError) as e:
             # a secret's value is never echoed: say where it came from
-            c.error((*at, "raw"), f"the value from {secret} does not fit {item.get('type', 'uint16')}"
-                    if secret else str(e))
+            c.error(
+                (*at, "raw"), f"the value from {secret} does not fit {item.get('type', 'uint16')}" if secret else str(e)
+            )
             continue
         if a is not None:
             out.append(CommitAction(a, regs, item.get("description", ""), int(item.get("wait", 0)), secret))
@@ -607,8 +677,11 @@ def _coil_value(c: _Checks, item: dict[str, Any], raw: object, secret: str, at: 
         return None
     if isinstance(raw, bool) or raw in (0, 1):
         return 1 if raw else 0
-    c.error((*at, "raw"), f"a coil is written 1 or 0 (true or false), not "
-                          f"{'the value from ' + secret if secret else messages.clipped_repr(raw)}")
+    c.error(
+        (*at, "raw"),
+        f"a coil is written 1 or 0 (true or false), not "
+        f"{'the value from ' + secret if secret else messages.clipped_repr(raw)}",
+    )
     return None
 
 
@@ -682,16 +755,16 @@ def _firmware(c: _Checks, params: list[Parameter]) -> firmware.FirmwareSource | 
     if why:
         c.error((*at, "applies"), f"firmware.applies: {why}")
     if "register" in spec and "object" in spec:
-        c.error((*at, "register"), "firmware: the revision comes from an 'object' (Function 43) or a 'register', "
-                                   "not both")
+        c.error(
+            (*at, "register"), "firmware: the revision comes from an 'object' (Function 43) or a 'register', not both"
+        )
         return None
     if "register" in spec:
         table = spec.get("register_type", "holding")
         a = c.address_of(spec["register"], (*at, "register"), register_type=table)
         if a is None:
             return None
-        return firmware.FirmwareSource(None, a, int(spec.get("count", 1)), table, spec.get("format") == "text",
-                                       applies)
+        return firmware.FirmwareSource(None, a, int(spec.get("count", 1)), table, spec.get("format") == "text", applies)
     obj = spec.get("object", "revision")
     oid = IDENTITY_OBJECTS[obj] if isinstance(obj, str) else int(obj)
     return firmware.FirmwareSource(oid, applies=applies)
@@ -706,8 +779,11 @@ def _health(c: _Checks, params: list[Parameter]) -> list[HealthCheck]:
     for i, item in enumerate(c.data.get("health") or []):
         at: yamlsrc.Path_ = ("health", i)
         if ("register" in item) == ("parameter" in item):
-            c.error(at, "a health check names either a 'parameter' (values in its units or labels) or a "
-                        "'register' (raw values)")
+            c.error(
+                at,
+                "a health check names either a 'parameter' (values in its units or labels) or a "
+                "'register' (raw values)",
+            )
             continue
         if not any(k in item for k in ("equals", "min", "max")):
             c.error(at, "a health check needs 'equals' (a value) or 'min'/'max' (a range)")
@@ -741,8 +817,11 @@ def _raw_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_) -> HealthCh
         if v is None:
             continue
         if isinstance(v, bool) or not isinstance(v, int):
-            c.error((*at, key), f"{key}: a raw value is an integer, not {messages.clipped_repr(v)} (values in "
-                                "units or labels: name the parameter, {parameter: NAME, ...})")
+            c.error(
+                (*at, key),
+                f"{key}: a raw value is an integer, not {messages.clipped_repr(v)} (values in "
+                "units or labels: name the parameter, {parameter: NAME, ...})",
+            )
             bad = True
         elif not lo <= v <= hi:
             c.error((*at, key), f"{v} does not fit in the selected bits ({lo}..{hi})")
@@ -752,8 +831,15 @@ def _raw_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_) -> HealthCh
         bad = True
     if a is None or bad:
         return None
-    return HealthCheck(a, mask, _int_or_none(item.get("equals")), _int_or_none(item.get("min")),
-                       _int_or_none(item.get("max")), table, item.get("description", ""))
+    return HealthCheck(
+        a,
+        mask,
+        _int_or_none(item.get("equals")),
+        _int_or_none(item.get("min")),
+        _int_or_none(item.get("max")),
+        table,
+        item.get("description", ""),
+    )
 
 
 def _bit_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_, a: int | None, table: str) -> HealthCheck | None:
@@ -771,8 +857,9 @@ def _bit_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_, a: int | No
     return HealthCheck(a, 0xFFFF, int(v), None, None, table, item.get("description", ""))  # type: ignore[arg-type]
 
 
-def _parameter_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_,
-                      by_name: dict[str, Parameter]) -> HealthCheck | None:
+def _parameter_health(
+    c: _Checks, item: dict[str, Any], at: yamlsrc.Path_, by_name: dict[str, Parameter]
+) -> HealthCheck | None:
     """``{parameter: NAME, min: 450 V, max: 800 V}`` or ``{parameter: NAME, equals: none}``: the parameter's own
     type, scale, unit and labels, in any of the four tables."""
     name = str(item["parameter"])
@@ -786,8 +873,10 @@ def _parameter_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_,
         c.error((*at, "parameter"), f"unknown parameter '{name}'" + (f"; did you mean '{hint}'?" if hint else ""))
         return None
     if p.is_string or not p.readable:
-        c.error((*at, "parameter"), f"{name} is {'a string' if p.is_string else 'write-only'}: a health check "
-                                    "reads a number")
+        c.error(
+            (*at, "parameter"),
+            f"{name} is {'a string' if p.is_string else 'write-only'}: a health check reads a number",
+        )
         return None
     got: dict[str, Decimal] = {}
     eq: codec.Raw | None = None
@@ -810,8 +899,9 @@ def _parameter_health(c: _Checks, item: dict[str, Any], at: yamlsrc.Path_,
     if low is not None and high is not None and low > high:
         c.error((*at, "min"), f"min {_fmt(low)} is greater than max {_fmt(high)}")
         return None
-    return HealthCheck(p.address, 0xFFFF, eq, None, None, p.register_type, item.get("description", ""),
-                       parameter=p, low=low, high=high)
+    return HealthCheck(
+        p.address, 0xFFFF, eq, None, None, p.register_type, item.get("description", ""), parameter=p, low=low, high=high
+    )
 
 
 def _int_or_none(v: object) -> int | None:
@@ -849,8 +939,9 @@ def _bits(mask: int) -> str:
     return str(shift) if width == 1 else f"{shift}..{shift + width - 1}"
 
 
-def _layout(spec: dict[str, Any], default: tuple[str, bool], at: yamlsrc.Path_, src: yamlsrc.Source,
-            errors: list[Diagnostic]) -> tuple[str, bool]:
+def _layout(
+    spec: dict[str, Any], default: tuple[str, bool], at: yamlsrc.Path_, src: yamlsrc.Source, errors: list[Diagnostic]
+) -> tuple[str, bool]:
     """(word_order, byte_swap) from ``byte_order`` (ABCD ...), ``swap`` (Home Assistant) or ``word_order``."""
     given = [k for k in ("byte_order", "swap", "word_order") if k in spec]
     if len(given) > 1:

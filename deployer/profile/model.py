@@ -56,26 +56,54 @@ class Limits:
             return 1
         # FC16 RTU frame: unit(1) fc(1) addr(2) qty(2) bytecount(1) data(2n) crc(2) = 9 + 2n;
         # the same in ASCII: ':' + 2 x (7 + 2n) + LRC(2) + CR LF(2) = 19 + 4n characters
-        return max(0, min(PROTOCOL_MAX_WRITE, self.max_write_registers, (self.max_frame_bytes - 9) // 2,
-                          (self.max_ascii_chars - 19) // 4))
+        return max(
+            0,
+            min(
+                PROTOCOL_MAX_WRITE,
+                self.max_write_registers,
+                (self.max_frame_bytes - 9) // 2,
+                (self.max_ascii_chars - 19) // 4,
+            ),
+        )
 
     @property
     def read_registers(self) -> int:
         """Registers one FC03 request may ask for; the answer frame is 5 + 2n bytes (11 + 4n ASCII characters)."""
-        return max(0, min(PROTOCOL_MAX_READ, self.max_read_registers, (self.max_frame_bytes - 5) // 2,
-                          (self.max_ascii_chars - 11) // 4))
+        return max(
+            0,
+            min(
+                PROTOCOL_MAX_READ,
+                self.max_read_registers,
+                (self.max_frame_bytes - 5) // 2,
+                (self.max_ascii_chars - 11) // 4,
+            ),
+        )
 
     @property
     def write_coils(self) -> int:
         """Coils one FC15 request may carry: its RTU frame is 9 + ceil(n / 8) bytes (19 + 2 ceil(n / 8) ASCII)."""
-        return max(0, min(PROTOCOL_MAX_WRITE_COILS, self.max_write_coils, (self.max_frame_bytes - 9) * 8,
-                          (self.max_ascii_chars - 19) // 2 * 8))
+        return max(
+            0,
+            min(
+                PROTOCOL_MAX_WRITE_COILS,
+                self.max_write_coils,
+                (self.max_frame_bytes - 9) * 8,
+                (self.max_ascii_chars - 19) // 2 * 8,
+            ),
+        )
 
     @property
     def read_coils(self) -> int:
         """Coils (or discrete inputs) one FC01/FC02 may ask for: the answer is 5 + ceil(n / 8) bytes."""
-        return max(0, min(PROTOCOL_MAX_READ_COILS, self.max_read_coils, (self.max_frame_bytes - 5) * 8,
-                          (self.max_ascii_chars - 11) // 2 * 8))
+        return max(
+            0,
+            min(
+                PROTOCOL_MAX_READ_COILS,
+                self.max_read_coils,
+                (self.max_frame_bytes - 5) * 8,
+                (self.max_ascii_chars - 11) // 2 * 8,
+            ),
+        )
 
     def read_limit(self, register_type: str) -> int:
         return self.read_coils if register_type in BIT_TABLES else self.read_registers
@@ -250,8 +278,10 @@ class Parameter:
             raise CodecError(f"a {self.register_type} holds 0 or 1, not {raw}")
         if self.mask and rng and not rng[0] <= raw <= rng[1]:
             width = codec.mask_shift(self.mask)[1]
-            raise CodecError(f"raw value {raw} does not fit in the field's "
-                                   f"{width} bit{'s' if width != 1 else ''} ({rng[0]}..{rng[1]})")
+            raise CodecError(
+                f"raw value {raw} does not fit in the field's "
+                f"{width} bit{'s' if width != 1 else ''} ({rng[0]}..{rng[1]})"
+            )
         return raw
 
     def encode(self, raw: codec.Raw) -> tuple[int, ...]:
@@ -337,8 +367,15 @@ class IdentityCheck:
 
 
 # Function 43 / 14 objects by name (Modbus Application Protocol v1.1b3, 6.21)
-IDENTITY_OBJECTS = {"vendor": 0, "product_code": 1, "revision": 2, "vendor_url": 3, "product_name": 4,
-                    "model_name": 5, "application_name": 6}
+IDENTITY_OBJECTS = {
+    "vendor": 0,
+    "product_code": 1,
+    "revision": 2,
+    "vendor_url": 3,
+    "product_name": 4,
+    "model_name": 5,
+    "application_name": 6,
+}
 
 
 def object_name(object_id: int) -> str:
@@ -462,8 +499,9 @@ class HealthCheck:
             return self.parameter.name + (f" ({self.description})" if self.description else "")
         shift, width = codec.mask_shift(self.mask)
         bits = "" if self.mask == 0xFFFF else (f" bit {shift}" if width == 1 else f" bits {shift}..{shift + width - 1}")
-        kind = {"input": "input register", "coil": "coil", "discrete": "discrete input"}.get(self.register_type,
-                                                                                           "register")
+        kind = {"input": "input register", "coil": "coil", "discrete": "discrete input"}.get(
+            self.register_type, "register"
+        )
         return f"{kind} 0x{self.address:04X}{bits}" + (f" ({self.description})" if self.description else "")
 
     def failure(self, words: int | Sequence[int]) -> str:
@@ -500,8 +538,10 @@ class CommitAction:
     def __repr__(self) -> str:
         regs = f"<secret from {self.secret}>" if self.secret else repr(self.registers)
         table = "" if self.register_type == "holding" else f", register_type={self.register_type!r}"
-        return (f"CommitAction(address={self.address}, registers={regs}, description={self.description!r}, "
-                f"wait_ms={self.wait_ms}{table})")
+        return (
+            f"CommitAction(address={self.address}, registers={regs}, description={self.description!r}, "
+            f"wait_ms={self.wait_ms}{table})"
+        )
 
 
 WriteAction = CommitAction

@@ -32,9 +32,19 @@ from typing import Any
 from ..state.caches import writes_allowed
 
 # whole unit texts as the field writes them -> as pint reads them
-_ALIASES = {"%": "percent", "‰": "permille", "%RH": "percent", "% RH": "percent", "%rH": "percent",
-            "r/min": "rpm", "r/s": "rps", "rev/min": "rpm", "rev/s": "rps",
-            "kg/cm2": "kgf/cm**2", "kg/cm²": "kgf/cm**2"}  # a gauge's kg/cm2 is a pressure (pint: mass per area)
+_ALIASES = {
+    "%": "percent",
+    "‰": "permille",
+    "%RH": "percent",
+    "% RH": "percent",
+    "%rH": "percent",
+    "r/min": "rpm",
+    "r/s": "rps",
+    "rev/min": "rpm",
+    "rev/s": "rps",
+    "kg/cm2": "kgf/cm**2",
+    "kg/cm²": "kgf/cm**2",
+}  # a gauge's kg/cm2 is a pressure (pint: mass per area)
 # m2, m3, mm2, ft3 as written on nameplates and in manuals: a power (pint reads 'm3' as an unknown unit);
 # 'Nm3' (normal cubic metres, which depend on reference conditions) stays unknown
 _POWERS = re.compile(r"(?<![\w])(km|dm|cm|mm|m|ft|in|yd)([23])(?![\w])")
@@ -68,8 +78,11 @@ def precise() -> Any:
 
 def _cache_base() -> str:
     """Where deployer keeps its caches: ~/.cache/deployer (XDG_CACHE_HOME; %LOCALAPPDATA% on Windows)."""
-    base = (os.environ.get("XDG_CACHE_HOME") or (os.name == "nt" and os.environ.get("LOCALAPPDATA"))
-            or os.path.join(os.path.expanduser("~"), ".cache"))
+    base = (
+        os.environ.get("XDG_CACHE_HOME")
+        or (os.name == "nt" and os.environ.get("LOCALAPPDATA"))
+        or os.path.join(os.path.expanduser("~"), ".cache")
+    )
     return os.path.join(base, "deployer")
 
 
@@ -80,8 +93,12 @@ def registry() -> Any:
 
     import pint
 
-    kwargs: dict[str, Any] = {"non_int_type": Decimal, "autoconvert_offset_to_baseunit": True,
-                              "on_redefinition": "ignore", "filename": None}
+    kwargs: dict[str, Any] = {
+        "non_int_type": Decimal,
+        "autoconvert_offset_to_baseunit": True,
+        "on_redefinition": "ignore",
+        "filename": None,
+    }
     with precise():  # the definitions' numbers too: computed as they are read
         ureg: Any = None
         if writes_allowed():
@@ -137,8 +154,18 @@ class _DiskCache:
             st = os.stat(origin)
             base = _cache_base()
             # the field's definitions in the key too: answers given under other definitions are not these
-            ours = zlib.crc32("\n".join((*FIELD_DEFINITIONS, _ANGLE_OF_A_TURN, str(_GUARD.prec), _CACHE_FORMAT,
-                                          json.dumps(_ALIASES), _POWERS.pattern)).encode())
+            ours = zlib.crc32(
+                "\n".join(
+                    (
+                        *FIELD_DEFINITIONS,
+                        _ANGLE_OF_A_TURN,
+                        str(_GUARD.prec),
+                        _CACHE_FORMAT,
+                        json.dumps(_ALIASES),
+                        _POWERS.pattern,
+                    )
+                ).encode()
+            )
             key = f"{zlib.crc32(origin.encode()):08x}-{st.st_mtime_ns}-{ours:08x}"
             self.path = os.path.join(base, f"units-{key}.json")
             with open(self.path, encoding="utf-8") as f:
@@ -247,10 +274,16 @@ def _turned(src: Any, to_unit: str) -> Any:
 
 
 # units people write for one thing that pint reads as another: the hint when the conversion fails
-_MISREAD = {"C": "the coulomb (a temperature is degC or °C)", "F": "the farad (a temperature is degF or °F)",
-            "deg": "an angle (a temperature is degC or degF)", "°": "an angle (a temperature is °C or °F)",
-            "degree": "an angle (a temperature is degC or degF)", "a": "a year (the ampere is A)",
-            "ton": "a mass of 2000 lb (a ton of refrigeration is TR)", "pu": "a mass (per-unit values have no unit)"}
+_MISREAD = {
+    "C": "the coulomb (a temperature is degC or °C)",
+    "F": "the farad (a temperature is degF or °F)",
+    "deg": "an angle (a temperature is degC or degF)",
+    "°": "an angle (a temperature is °C or °F)",
+    "degree": "an angle (a temperature is degC or degF)",
+    "a": "a year (the ampere is A)",
+    "ton": "a mass of 2000 lb (a ton of refrigeration is TR)",
+    "pu": "a mass (per-unit values have no unit)",
+}
 
 
 def _not_convertible(from_unit: str, to_unit: str, as_turns: bool) -> str:
@@ -258,8 +291,10 @@ def _not_convertible(from_unit: str, to_unit: str, as_turns: bool) -> str:
     why = f"'{_clip(from_unit)}' is not convertible to '{_clip(to_unit)}' ({dims[0]} vs. {dims[1]})"
     misread = [f"'{u.strip()}' is {_MISREAD[u.strip()]}" for u in (from_unit, to_unit) if u.strip() in _MISREAD]
     if as_turns:
-        why += ("; a cycle (rev, rpm, Hz) is not an angle (rad, deg, rad/s) unless the profile says "
-                "'cycles_as_angles: true' for the parameter (one cycle = 2 pi rad = 360 deg)")
+        why += (
+            "; a cycle (rev, rpm, Hz) is not an angle (rad, deg, rad/s) unless the profile says "
+            "'cycles_as_angles: true' for the parameter (one cycle = 2 pi rad = 360 deg)"
+        )
     elif misread:
         why += "; " + ", ".join(misread)
     elif dims[0] == dims[1] == "[temperature]":

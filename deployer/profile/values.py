@@ -30,8 +30,9 @@ def label(labels: Mapping[str, int], text: str) -> tuple[str, int] | None:
     if len(folded) == 1:
         return folded[0], labels[folded[0]]
     if folded:
-        raise ValueError(f"'{text}' matches the labels {messages.label_list(folded)}, which differ only in case: "
-                         "write one exactly")
+        raise ValueError(
+            f"'{text}' matches the labels {messages.label_list(folded)}, which differ only in case: write one exactly"
+        )
     return None
 
 
@@ -55,7 +56,7 @@ def engineering(param: Parameter, value: Any, written: str | None = None) -> Dec
         return hit
     thousands = THOUSANDS.match(text)
     if thousands:
-        fixed = thousands[1].replace(",", "") + text[thousands.end(1):]
+        fixed = thousands[1].replace(",", "") + text[thousands.end(1) :]
         raise ValueError(f"'{text}': write numbers without thousands separators: {fixed}")
     m = NUMBER.match(text)
     if not m:

@@ -60,8 +60,9 @@ class Entry:
 # ---- loading ----------------------------------------------------------------------------
 
 
-def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
-                profile: Profile | None = None, force: bool = False) -> Recipe:
+def load_recipe(
+    path: str | os.PathLike[str], *, extra: Sequence[Entry] = (), profile: Profile | None = None, force: bool = False
+) -> Recipe:
     """Load, resolve and check a recipe; all problems at once as an InputError.
 
     ``extra`` entries (an inventory's per-device overrides) win over the file's values;
@@ -106,8 +107,14 @@ def load_recipe(path: str | os.PathLike[str], *, extra: Sequence[Entry] = (),
     snap_data = top_data.get("snapshot")
     if snap_data is not None and prof_ref is not None and _is_relative_path(prof_ref) and profile is None:
         # a snapshot lives in the snapshots folder: a relative profile path would resolve there by accident
-        raise InputError([top_src.error(("profile",), f"a snapshot names its profile by absolute path or built-in "
-                                                      f"id, not the relative path '{prof_ref}'")])
+        raise InputError(
+            [
+                top_src.error(
+                    ("profile",),
+                    f"a snapshot names its profile by absolute path or built-in id, not the relative path '{prof_ref}'",
+                )
+            ]
+        )
     prof = profile
     if prof is None:
         assert prof_ref is not None and prof_src is not None  # the schema requires one in the chain
@@ -183,20 +190,31 @@ def _snapshot_info(data: Mapping[str, Any], prof: Profile, src: yamlsrc.Source, 
     recorded = data.get("profile_sha256")
     changed = recorded is not None and prof.digest is not None and recorded != prof.digest
     if changed and not force:
-        raise InputError([src.error(("snapshot", "profile_sha256"), (
-            f"profile {prof.source or prof.id} changed since this snapshot was taken (sha256 {str(recorded)[:12]}... "
-            f"then, {str(prof.digest)[:12]}... now): its values were decoded with the old profile. Check the profile; "
-            "--force restores the recorded raw registers"))])
+        raise InputError(
+            [
+                src.error(
+                    ("snapshot", "profile_sha256"),
+                    (
+                        f"profile {prof.source or prof.id} changed since this snapshot was taken "
+                        f"(sha256 {str(recorded)[:12]}... then, {str(prof.digest)[:12]}... now): its values were "
+                        "decoded with the old profile. Check the profile; "
+                        "--force restores the recorded raw registers"
+                    ),
+                )
+            ]
+        )
     regs = {str(k): tuple(int(w) for w in v) for k, v in (data.get("registers") or {}).items()}
     ident = data.get("identity")
     identity = {str(k): str(v) for k, v in ident.items()} if isinstance(ident, dict) else None
-    addresses = {str(k): (int(v[0]), int(v[1])) for k, v in (data.get("addresses") or {}).items()} \
-        if "addresses" in data else None  # snapshots of older versions do not say
+    addresses = (
+        {str(k): (int(v[0]), int(v[1])) for k, v in (data.get("addresses") or {}).items()}
+        if "addresses" in data
+        else None
+    )  # snapshots of older versions do not say
     return SnapshotInfo(recorded, regs, data.get("taken"), data.get("applied"), changed, identity, addresses)
 
 
-def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source,
-                    errors: list[Diagnostic]) -> list[Desired]:
+def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source, errors: list[Diagnostic]) -> list[Desired]:
     """--force with a changed profile: the recorded raw words, each where the snapshot read it (a
     parameter the profile moved goes back to its recorded address, unless another parameter of the
     profile now lies there)."""
@@ -212,13 +230,26 @@ def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source,
             errors.append(src.error(at, f"{name} is read-only in profile {prof.id} now", key=True))
         elif snap.addresses is not None and name in snap.addresses and snap.addresses[name][0] != param.address:
             old = snap.addresses[name][0]
-            there = sorted(q.name for q in prof.parameters if q.name != name and q.register_type == param.register_type
-                           and q.address < old + param.count and old < q.address + q.count)
+            there = sorted(
+                q.name
+                for q in prof.parameters
+                if q.name != name
+                and q.register_type == param.register_type
+                and q.address < old + param.count
+                and old < q.address + q.count
+            )
             if there:
-                errors.append(src.error(("snapshot", "addresses", name), (
-                    f"{name} moved: the snapshot read it at {old} (0x{old:04X}), profile {prof.id} now puts it at "
-                    f"{param.address} (0x{param.address:04X}) and {', '.join(there)} at {old}: restoring it there "
-                    "would write over that; restore it with a recipe")))
+                errors.append(
+                    src.error(
+                        ("snapshot", "addresses", name),
+                        (
+                            f"{name} moved: the snapshot read it at {old} (0x{old:04X}), profile {prof.id} now puts "
+                            f"it at {param.address} (0x{param.address:04X}) and {', '.join(there)} at {old}: "
+                            "restoring it there "
+                            "would write over that; restore it with a recipe"
+                        ),
+                    )
+                )
                 continue
             param = replace(param, address=old)  # back where it was read: the device's layout then
             out.append(Desired(param, param.show_registers(tuple(words)), words))
@@ -227,8 +258,14 @@ def _from_registers(prof: Profile, snap: SnapshotInfo, src: yamlsrc.Source,
     return out
 
 
-def _check_snapshot(prof: Profile, desired: Sequence[Desired], snap: SnapshotInfo, entries: Mapping[str, Entry],
-                    src: yamlsrc.Source, errors: list[Diagnostic]) -> list[Desired]:
+def _check_snapshot(
+    prof: Profile,
+    desired: Sequence[Desired],
+    snap: SnapshotInfo,
+    entries: Mapping[str, Entry],
+    src: yamlsrc.Source,
+    errors: list[Diagnostic],
+) -> list[Desired]:
     """The engineering values must say what the recorded registers say: an edited snapshot is refused.
 
     Returns the recorded values no text can say (NaN, infinity): restored from their registers.
@@ -239,10 +276,16 @@ def _check_snapshot(prof: Profile, desired: Sequence[Desired], snap: SnapshotInf
         if rec is None:
             errors.append(e.src.error(e.at, f"{d.name} is not among the snapshot's recorded registers", key=True))
         elif not d.parameter.same_value(rec, d.registers):  # a bit field: its own bits of the word
-            errors.append(e.src.error(e.at, (
-                f"{d.name}: {d.text} does not match the registers the snapshot recorded "
-                f"({' '.join(f'{w:04X}h' for w in rec)}); a snapshot restores what the device held: "
-                "to write other values, use a recipe")))
+            errors.append(
+                e.src.error(
+                    e.at,
+                    (
+                        f"{d.name}: {d.text} does not match the registers the snapshot recorded "
+                        f"({' '.join(f'{w:04X}h' for w in rec)}); a snapshot restores what the device held: "
+                        "to write other values, use a recipe"
+                    ),
+                )
+            )
     named = {d.name for d in desired}
     extra = []
     for name, words in snap.registers.items():
@@ -252,23 +295,32 @@ def _check_snapshot(prof: Profile, desired: Sequence[Desired], snap: SnapshotInf
         if param is not None and param.writable and param.count == len(words) and snapshot_value(param, words) is None:
             extra.append(Desired(param, param.show_registers(tuple(words)), words))
             continue
-        errors.append(src.error(("snapshot", "registers", name),
-                                f"{name} was recorded but is missing from parameters: a snapshot restores every "
-                                "value it recorded (edit neither; use a recipe to restore fewer)", key=True))
+        errors.append(
+            src.error(
+                ("snapshot", "registers", name),
+                f"{name} was recorded but is missing from parameters: a snapshot restores every "
+                "value it recorded (edit neither; use a recipe to restore fewer)",
+                key=True,
+            )
+        )
     return extra
 
 
 MAX_EXTENDS_FILES = 256  # files one recipe may load through 'extends', repeats counted
 
 
-def _load_chain(path: str, stack: list[str], errors: list[Diagnostic],
-                ref: tuple[yamlsrc.Source, yamlsrc.Path_] | None = None,
-                loaded: list[int] | None = None) -> list[tuple[dict[str, Any], yamlsrc.Source]]:
+def _load_chain(
+    path: str,
+    stack: list[str],
+    errors: list[Diagnostic],
+    ref: tuple[yamlsrc.Source, yamlsrc.Path_] | None = None,
+    loaded: list[int] | None = None,
+) -> list[tuple[dict[str, Any], yamlsrc.Source]]:
     """The recipe at ``path`` and its ``extends`` bases, bases first."""
     real = os.path.realpath(path)
     if real in stack:
         assert ref is not None
-        chain = " -> ".join(os.path.basename(s) for s in [*stack[stack.index(real):], real])
+        chain = " -> ".join(os.path.basename(s) for s in [*stack[stack.index(real) :], real])
         errors.append(ref[0].error(ref[1], f"'extends' makes a cycle: {chain}"))
         return []
     loaded = loaded if loaded is not None else [0]
@@ -276,8 +328,9 @@ def _load_chain(path: str, stack: list[str], errors: list[Diagnostic],
     if loaded[0] > MAX_EXTENDS_FILES:  # hostile input: bases that extend the same bases many times over
         assert ref is not None
         if loaded[0] == MAX_EXTENDS_FILES + 1:
-            errors.append(ref[0].error(ref[1], f"'extends' loads more than {MAX_EXTENDS_FILES} files "
-                                               "(repeats counted)"))
+            errors.append(
+                ref[0].error(ref[1], f"'extends' loads more than {MAX_EXTENDS_FILES} files (repeats counted)")
+            )
         return []
     try:
         data, src = yamlsrc.load(path)
@@ -327,8 +380,9 @@ def expand(name: str, value: Any, src: yamlsrc.Source, at: yamlsrc.Path_) -> Ite
 _INDEXED = re.compile(r"^([A-Za-z_][\w-]*)\[(\d+)\]\.(.+)$")
 
 
-def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnostic], *,
-             trusted: bool = False) -> Desired | None:
+def _desired(
+    prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnostic], *, trusted: bool = False
+) -> Desired | None:
     """One entry -> its Desired value (or an error). ``trusted``: a snapshot's ``{raw}`` value held by the
     device itself, which the profile's documented range does not block (the type's range still does)."""
     param = prof.get(e.name)
@@ -343,19 +397,23 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
             fail(f"{e.name}: index {m[2]} is out of range; table {m[1]} has entries 0..{size - 1}", key=True)
             return None
         hint = messages.closest(e.name, prof.names())
-        fail(f"unknown parameter '{e.name}' in profile {prof.id}" + (f"; did you mean '{hint}'?" if hint else ""),
-             key=True)
+        fail(
+            f"unknown parameter '{e.name}' in profile {prof.id}" + (f"; did you mean '{hint}'?" if hint else ""),
+            key=True,
+        )
         return None
     if not param.writable:
         fail(f"{e.name} is read-only in profile {prof.id}", key=True)
         return None
     if param.action:
-        fail(f"{e.name} is an action in profile {prof.id} (a momentary command such as a defrost or reset), not a "
-             "setting: a recipe does not set it", key=True)
+        fail(
+            f"{e.name} is an action in profile {prof.id} (a momentary command such as a defrost or reset), not a "
+            "setting: a recipe does not set it",
+            key=True,
+        )
         return None
     value = e.value
-    rounding: Literal["exact", "nearest"] = (
-        "nearest" if "nearest" in (param.rounding, recipe_rounding) else "exact")
+    rounding: Literal["exact", "nearest"] = "nearest" if "nearest" in (param.rounding, recipe_rounding) else "exact"
     if param.is_string:
         if isinstance(value, dict) or value is None:
             fail("a string parameter takes text")
@@ -389,8 +447,10 @@ def _desired(prof: Profile, e: Entry, recipe_rounding: str, errors: list[Diagnos
     except CodecError as err:
         msg = str(err)
         if err.kind == "resolution" and param.unit:  # the resolution and the value said with the unit
-            msg = msg.replace(f"resolution {codec.format_decimal(param.scale)}",
-                              f"resolution {codec.format_decimal(param.scale)} {param.unit}")
+            msg = msg.replace(
+                f"resolution {codec.format_decimal(param.scale)}",
+                f"resolution {codec.format_decimal(param.scale)} {param.unit}",
+            )
             msg = msg.replace(codec.format_decimal(eng), f"{codec.format_decimal(eng)} {param.unit}", 1)
         fail(msg)
         return None

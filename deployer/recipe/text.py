@@ -76,8 +76,9 @@ def _reads_back(text: str) -> bool:
         tag = _RESOLVER.resolve(yaml.ScalarNode, text, (True, False))  # type: ignore[no-untyped-call]
         return bool(tag == "tag:yaml.org,2002:str")
     try:  # both parsers must agree (libyaml reads some text with tabs differently)
-        return all(yaml.load(f"k: {text}", Loader=loader) == {"k": text}
-                   for loader in (yamlsrc.FastLoader, yaml.SafeLoader))
+        return all(
+            yaml.load(f"k: {text}", Loader=loader) == {"k": text} for loader in (yamlsrc.FastLoader, yaml.SafeLoader)
+        )
     except yaml.YAMLError:
         return False
 
@@ -102,19 +103,33 @@ def snapshot_value(param: Parameter, registers: Sequence[int]) -> str | None:
     return f"{{raw: {raw}}}"
 
 
-def recipe_text(profile_ref: str, values: Mapping[Parameter, Sequence[int]], *, name: str,
-                device: DeviceSpec | None = None, comment: str = "", snapshot: SnapshotInfo | None = None) -> str:
+def recipe_text(
+    profile_ref: str,
+    values: Mapping[Parameter, Sequence[int]],
+    *,
+    name: str,
+    device: DeviceSpec | None = None,
+    comment: str = "",
+    snapshot: SnapshotInfo | None = None,
+) -> str:
     """A recipe that sets every given parameter to the given registers (YAML text).
 
     Values outside the profile's range are kept as comments (a recipe cannot set them), except in
     a snapshot (``snapshot`` given), which records them as ``{raw: N}`` plus every raw register.
     """
     return recipe_head(profile_ref, name=name, device=device, comment=comment, snapshot=snapshot) + values_text(
-        list(values.items()), snapshot is not None)
+        list(values.items()), snapshot is not None
+    )
 
 
-def recipe_head(profile_ref: str, *, name: str, device: DeviceSpec | None = None, comment: str = "",
-                snapshot: SnapshotInfo | None = None) -> str:
+def recipe_head(
+    profile_ref: str,
+    *,
+    name: str,
+    device: DeviceSpec | None = None,
+    comment: str = "",
+    snapshot: SnapshotInfo | None = None,
+) -> str:
     """``recipe_text`` up to its values: the comment, the recipe's name, profile and device, the snapshot's facts."""
     lines = [f"# {c}" for c in comment.splitlines()] if comment else []
     lines.append(f"recipe: {json.dumps(name)}")
@@ -124,8 +139,11 @@ def recipe_head(profile_ref: str, *, name: str, device: DeviceSpec | None = None
         lines.append(f"device: {json.dumps(dev)}")
     if snapshot is not None:
         lines.append("snapshot:  # what rollback restores: these raw registers, as the device held them")
-        for k, v in (("profile_sha256", snapshot.profile_sha256), ("taken", snapshot.taken),
-                     ("applied", snapshot.applied)):
+        for k, v in (
+            ("profile_sha256", snapshot.profile_sha256),
+            ("taken", snapshot.taken),
+            ("applied", snapshot.applied),
+        ):
             if v is not None:
                 lines.append(f"  {k}: {json.dumps(v)}")
         if snapshot.identity is not None:  # Function 43 objects: a later run tells a replaced device

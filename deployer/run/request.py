@@ -127,21 +127,29 @@ def _check_combinations(r: RunRequest) -> None:
     if not r.fleet and (r.batch or r.max_failures or r.limit):
         raise UsageError("--limit, --batch and --max-failures need --inventory")
     if r.allow_unhealthy and r.soak is None and r.confirm_within is None:
-        raise UsageError("--allow-unhealthy goes with --soak or --confirm-within (only a safe change reads the "
-                         "health checks before it writes)")
+        raise UsageError(
+            "--allow-unhealthy goes with --soak or --confirm-within (only a safe change reads the "
+            "health checks before it writes)"
+        )
     if (r.pause is not None or r.ask) and not r.batch:
         raise UsageError("--pause and --ask go between batches: give --batch too")
     if r.from_reports and (r.inventory or r.device or r.unit is not None):
-        raise UsageError("rollback --from-report restores each device from its own snapshot, to the device it "
-                         "was taken from: --inventory, --device and --unit do not apply")
+        raise UsageError(
+            "rollback --from-report restores each device from its own snapshot, to the device it "
+            "was taken from: --inventory, --device and --unit do not apply"
+        )
     if r.source is None and not r.from_reports and not r.inventory:
-        raise UsageError(f"pass {'SNAPSHOT' if r.command == 'rollback' else 'RECIPE'}, or --inventory FILE "
-                         "whose devices name their recipes")
+        raise UsageError(
+            f"pass {'SNAPSHOT' if r.command == 'rollback' else 'RECIPE'}, or --inventory FILE "
+            "whose devices name their recipes"
+        )
     if r.inventory and r.device:
         raise UsageError("--device and --inventory exclude each other")
     if r.command == "rollback" and r.source is not None and r.inventory:
-        raise UsageError(f"{r.source} is one device's snapshot: it restores only the device it was taken from. "
-                         "To roll back a fleet run, use: deployer rollback --from-report REPORT.json")
+        raise UsageError(
+            f"{r.source} is one device's snapshot: it restores only the device it was taken from. "
+            "To roll back a fleet run, use: deployer rollback --from-report REPORT.json"
+        )
 
 
 def _fleet_jobs(recipe: Recipe | None, r: RunRequest) -> list[Job]:
@@ -190,16 +198,35 @@ def prepare(r: RunRequest) -> PreparedRun:
     _check_combinations(r)
     if r.from_reports:  # every device those runs wrote, each from its own snapshot
         refused: list[str] = []  # devices changed since the run, left alone
-        jobs, notices = report_jobs(r.from_reports, limit=r.limit, force=r.force, timeout=r.timeout,
-                                    retries=r.retries, accept_edited=r.accept_edited_snapshot,
-                                    even_if_changed=r.even_if_changed, refused=None if r.all_or_nothing else refused)
-        prepared = PreparedRun(r, jobs, r.from_reports[0] if len(r.from_reports) == 1 else ", ".join(r.from_reports),
-                               notices=list(notices), refused=refused)
+        jobs, notices = report_jobs(
+            r.from_reports,
+            limit=r.limit,
+            force=r.force,
+            timeout=r.timeout,
+            retries=r.retries,
+            accept_edited=r.accept_edited_snapshot,
+            even_if_changed=r.even_if_changed,
+            refused=None if r.all_or_nothing else refused,
+        )
+        prepared = PreparedRun(
+            r,
+            jobs,
+            r.from_reports[0] if len(r.from_reports) == 1 else ", ".join(r.from_reports),
+            notices=list(notices),
+            refused=refused,
+        )
     elif r.source is None:  # each device's recipe from the inventory
         prepared = PreparedRun(r, _fleet_jobs(None, r), None)
     elif r.command == "rollback":
-        job, moved, notices = snapshot_job(r.source, device=r.device, unit=r.unit, timeout=r.timeout,
-                                           retries=r.retries, force=r.force, accept_edited=r.accept_edited_snapshot)
+        job, moved, notices = snapshot_job(
+            r.source,
+            device=r.device,
+            unit=r.unit,
+            timeout=r.timeout,
+            retries=r.retries,
+            force=r.force,
+            accept_edited=r.accept_edited_snapshot,
+        )
         prepared = PreparedRun(r, [job], r.source, moved=moved, notices=list(notices))
     else:
         prepared = _recipe_jobs(r)
@@ -213,8 +240,14 @@ def prepare(r: RunRequest) -> PreparedRun:
         check_output(r.html_path, what="the page")
     from ..change.gate import check_run  # the change control's one check, before anything is sent
 
-    change = check_run(command=r.command, source=r.source, jobs=prepared.jobs, policy_path=r.policy,
-                       inventory=r.inventory, state_dir=r.state_dir)
+    change = check_run(
+        command=r.command,
+        source=r.source,
+        jobs=prepared.jobs,
+        policy_path=r.policy,
+        inventory=r.inventory,
+        state_dir=r.state_dir,
+    )
     return replace(prepared, change=change) if change is not None else prepared
 
 
@@ -226,16 +259,26 @@ def safe_plans(jobs: Sequence[Job], r: RunRequest, label: str | None) -> None:
     for j in jobs:
         if j.plan is not None and j.recipe.profile.health and not any(s.kind == "health" for s in j.plan.steps):
             made = j.plan.recipe or "RECIPE"
-            raise UsageError(f"{label or 'the plan'} is not the plan of a safe change: it reads no health checks "
-                             "before writing (a device already in alarm would be written, then rolled back and the "
-                             f"change blamed); make it with: deployer plan {made} --device URL --safe-change "
-                             f"--out PLAN.json (Python: plan(..., safe_change=True))")
+            raise UsageError(
+                f"{label or 'the plan'} is not the plan of a safe change: it reads no health checks "
+                "before writing (a device already in alarm would be written, then rolled back and the "
+                f"change blamed); make it with: deployer plan {made} --device URL --safe-change "
+                f"--out PLAN.json (Python: plan(..., safe_change=True))"
+            )
 
 
-async def execute(prepared: PreparedRun, *, confirm: Confirm | None = None, command_line: str | None = None,
-                  argv: Sequence[str] = (), via: str = "api", signals: bool = False,
-                  on_start: Callable[[Job], None] | None = None,
-                  on_done: Callable[[DeviceResult], None] | None = None, **hooks: Any) -> Report:
+async def execute(
+    prepared: PreparedRun,
+    *,
+    confirm: Confirm | None = None,
+    command_line: str | None = None,
+    argv: Sequence[str] = (),
+    via: str = "api",
+    signals: bool = False,
+    on_start: Callable[[Job], None] | None = None,
+    on_done: Callable[[DeviceResult], None] | None = None,
+    **hooks: Any,
+) -> Report:
     """Run a prepared request as one journaled run; its report (RunInterrupted carries it when interrupted).
 
     ``confirm(plan, device)``: asked before each device's write (None: no question). ``command_line``
@@ -247,14 +290,36 @@ async def execute(prepared: PreparedRun, *, confirm: Confirm | None = None, comm
 
     r = prepared.request
     safe_plans(prepared.jobs, r, prepared.label)
-    options = ApplyOptions(on_error=r.on_error, write_all=r.write_all, allow_broadcast=r.allow_broadcast,
-                           state_dir=os.fspath(r.state_dir), confirm=confirm,
-                           lock_timeout=r.lock_timeout, soak=r.soak, health_interval=r.health_interval,
-                           confirm_within=r.confirm_within, allow_unhealthy=r.allow_unhealthy,
-                           command=command_line)
-    return await run_async(prepared.jobs, command=r.command, label=prepared.label, argv=argv, via=via,
-                           options=options, parallel=r.parallel, batch=r.batch, max_failures=r.max_failures,
-                           batch_by=r.batch_by,
-                           report_path=r.report_path, signals=signals, refuse_broadcast=True,
-                           rollback_on_failure=r.rollback_on_failure, on_start=on_start, on_done=on_done,
-                           workers=r.workers, **hooks)
+    options = ApplyOptions(
+        on_error=r.on_error,
+        write_all=r.write_all,
+        allow_broadcast=r.allow_broadcast,
+        state_dir=os.fspath(r.state_dir),
+        confirm=confirm,
+        lock_timeout=r.lock_timeout,
+        soak=r.soak,
+        health_interval=r.health_interval,
+        confirm_within=r.confirm_within,
+        allow_unhealthy=r.allow_unhealthy,
+        command=command_line,
+    )
+    return await run_async(
+        prepared.jobs,
+        command=r.command,
+        label=prepared.label,
+        argv=argv,
+        via=via,
+        options=options,
+        parallel=r.parallel,
+        batch=r.batch,
+        max_failures=r.max_failures,
+        batch_by=r.batch_by,
+        report_path=r.report_path,
+        signals=signals,
+        refuse_broadcast=True,
+        rollback_on_failure=r.rollback_on_failure,
+        on_start=on_start,
+        on_done=on_done,
+        workers=r.workers,
+        **hooks,
+    )

@@ -44,14 +44,15 @@ def check_digest(path: str, expected: str | None, where: str, *, accept_edited: 
     except OSError:
         return None  # loading it says what is wrong
     if expected is None:
-        return (f"note: {path}: no report or journal records this snapshot's SHA-256, so it cannot be checked "
-                "for edits")
+        return f"note: {path}: no report or journal records this snapshot's SHA-256, so it cannot be checked for edits"
     if actual == expected:
         return None
     if not accept_edited:
-        raise UsageError(f"{path} was changed after it was written (SHA-256 {actual[:12]}..., {where} recorded "
-                         f"{expected[:12]}...): it may no longer hold what the device held. Nothing was sent; "
-                         "--accept-edited-snapshot restores it as it is now")
+        raise UsageError(
+            f"{path} was changed after it was written (SHA-256 {actual[:12]}..., {where} recorded "
+            f"{expected[:12]}...): it may no longer hold what the device held. Nothing was sent; "
+            "--accept-edited-snapshot restores it as it is now"
+        )
     return f"warning: {path} was changed after it was written; restoring it as it is now (--accept-edited-snapshot)"
 
 
@@ -64,8 +65,10 @@ def _not_a_snapshot_file(path: str) -> str | None:
     import stat
 
     if os.path.basename(os.path.dirname(path)) != "snapshots" or not _SNAPSHOT_NAME.match(os.path.basename(path)):
-        return ("not a snapshot file deployer writes (STATE/snapshots/NAME-YYYYMMDDTHHMMSSZ.yaml): not opened; "
-                "restore a snapshot you chose with: deployer rollback SNAPSHOT")
+        return (
+            "not a snapshot file deployer writes (STATE/snapshots/NAME-YYYYMMDDTHHMMSSZ.yaml): not opened; "
+            "restore a snapshot you chose with: deployer rollback SNAPSHOT"
+        )
     try:
         st = os.lstat(path)
     except OSError as e:
@@ -75,17 +78,28 @@ def _not_a_snapshot_file(path: str) -> str | None:
     return None
 
 
-def snapshot_job(path: str, *, device: str | None = None, unit: int | None = None, timeout: float | None = None,
-                 retries: int | None = None, force: bool = False,
-                 accept_edited: bool = False) -> tuple[Job, str | None, list[str]]:
+def snapshot_job(
+    path: str,
+    *,
+    device: str | None = None,
+    unit: int | None = None,
+    timeout: float | None = None,
+    retries: int | None = None,
+    force: bool = False,
+    accept_edited: bool = False,
+) -> tuple[Job, str | None, list[str]]:
     """The job restoring one snapshot; why it needs consent (``--to-other-device``) when ``device`` or
     ``unit`` is not the device the snapshot was taken from (else None); notices for the user.
 
     The snapshot's SHA-256 is checked against the journal of the state folder it lies in (``check_digest``)."""
     state = state_of(path)
     notices = recovered(state)
-    note = check_digest(path, journal.snapshot_digest(state, os.path.abspath(path)),
-                        f"the journal {journal.path_of(state)}", accept_edited=accept_edited)
+    note = check_digest(
+        path,
+        journal.snapshot_digest(state, os.path.abspath(path)),
+        f"the journal {journal.path_of(state)}",
+        accept_edited=accept_edited,
+    )
     rec = load_recipe(path, force=force)
     taken = rec.device.url if rec.device is not None else None
     taken_unit = rec.device.unit if rec.device is not None and rec.device.unit is not None else 1
@@ -162,8 +176,11 @@ def read_run(path: str) -> Restores:
             journal_problem = f"its journal {journal.path_of(state)} is not a regular file (not opened)"
         else:
             try:
-                started = {str(r.get("name")): r for r in journal.records(state, run)
-                           if r.get("event") == "device-started" and r.get("snapshot")}
+                started = {
+                    str(r.get("name")): r
+                    for r in journal.records(state, run)
+                    if r.get("event") == "device-started" and r.get("snapshot")
+                }
             except OSError as e:
                 journal_problem = f"its journal {journal.path_of(state)} cannot be read ({e.strerror})"
     else:
@@ -188,17 +205,40 @@ def read_run(path: str) -> Restores:
             if digest is None:
                 digest = journal.snapshot_digest(state_of(snap), snap)
                 where = journal.path_of(state_of(snap))
-            out.found.append(RunSnapshot(name, url, unit, snap, "report", digest, where, _wrote(dev),
-                                         dev.get("commit") in ("held", "not sent")))
+            out.found.append(
+                RunSnapshot(
+                    name,
+                    url,
+                    unit,
+                    snap,
+                    "report",
+                    digest,
+                    where,
+                    _wrote(dev),
+                    dev.get("commit") in ("held", "not sent"),
+                )
+            )
             continue
         if rec is not None:
-            out.found.append(RunSnapshot(name, url, unit, str(rec["snapshot"]), "journal",
-                                         rec.get("snapshot_sha256"), journal.path_of(str(state))))
-            out.notices.append(f"{name}: the report does not name its snapshot (the run ended before it could "
-                               f"say so); the journal does: {rec['snapshot']}")
+            out.found.append(
+                RunSnapshot(
+                    name,
+                    url,
+                    unit,
+                    str(rec["snapshot"]),
+                    "journal",
+                    rec.get("snapshot_sha256"),
+                    journal.path_of(str(state)),
+                )
+            )
+            out.notices.append(
+                f"{name}: the report does not name its snapshot (the run ended before it could "
+                f"say so); the journal does: {rec['snapshot']}"
+            )
             continue
-        unknown = dev.get("status") == "interrupted" or (dev.get("status") == "skipped"
-                                                          and dev.get("error") == NOT_FINISHED)
+        unknown = dev.get("status") == "interrupted" or (
+            dev.get("status") == "skipped" and dev.get("error") == NOT_FINISHED
+        )
         if unknown and journal_problem is not None:
             out.found.append(RunSnapshot(name, url, unit, None, "report"))
         else:
@@ -212,10 +252,17 @@ def read_run(path: str) -> Restores:
     return out
 
 
-def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool = False,
-                timeout: float | None = None, retries: int | None = None,
-                accept_edited: bool = False, even_if_changed: bool = False,
-                refused: list[str] | None = None) -> tuple[list[Job], list[str]]:
+def report_jobs(
+    paths: Sequence[str],
+    *,
+    limit: str | None = None,
+    force: bool = False,
+    timeout: float | None = None,
+    retries: int | None = None,
+    accept_edited: bool = False,
+    even_if_changed: bool = False,
+    refused: list[str] | None = None,
+) -> tuple[list[Job], list[str]]:
     """One job per device earlier runs (a rollout and its retries) may have written: the snapshot of the
     earliest run that wrote it, to its own device; and the notices for the user. ``limit`` selects among
     those devices by name or pattern. A device that no longer holds what the newest run that wrote it read
@@ -246,21 +293,26 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
     found = sorted(first.values(), key=lambda f: -last[(f.url, f.unit)][0])
     newest = {f.name: last[(f.url, f.unit)][1] for f in found}
     if limit:  # names and patterns select among that run's devices (it has no groups)
-        chosen = {d.name for d in select(Inventory(paths[0], tuple(FleetDevice(f.name, f.url) for f in found)),
-                                         limit)}
+        chosen = {d.name for d in select(Inventory(paths[0], tuple(FleetDevice(f.name, f.url) for f in found)), limit)}
         found = [f for f in found if f.name in chosen]
     blind = [f.name for f in found if f.snapshot is None]
     if blind:
-        raise UsageError(f"{', '.join(blind)} may have been written by the run of {', '.join(paths)}, and no "
-                         "snapshot of them is known (" + "; ".join(problems) + "): nothing was sent. Find their "
-                         "snapshots with deployer status, restore them with "
-                         "deployer rollback SNAPSHOT, and leave them out here with --limit '!NAME'")
+        raise UsageError(
+            f"{', '.join(blind)} may have been written by the run of {', '.join(paths)}, and no "
+            "snapshot of them is known (" + "; ".join(problems) + "): nothing was sent. Find their "
+            "snapshots with deployer status, restore them with "
+            "deployer rollback SNAPSHOT, and leave them out here with --limit '!NAME'"
+        )
     if not found and undone and not nothing:
-        raise UsageError(f"{', '.join(paths)}: every device of that run was already rolled back ("
-                         + "; ".join(notices) + "): nothing to roll back")
+        raise UsageError(
+            f"{', '.join(paths)}: every device of that run was already rolled back ("
+            + "; ".join(notices)
+            + "): nothing to roll back"
+        )
     if not found:
-        raise UsageError(f"{', '.join(paths)}: no device of that run has a snapshot (nothing was written): "
-                         "nothing to roll back")
+        raise UsageError(
+            f"{', '.join(paths)}: no device of that run has a snapshot (nothing was written): nothing to roll back"
+        )
     jobs: list[Job] = []
     errors: list[Diagnostic] = []
     for state in dict.fromkeys(state_of(f.snapshot) for f in found if f.snapshot is not None):
@@ -277,18 +329,38 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
         try:
             rec = load_recipe(f.snapshot, force=force)
         except InputError as e:  # what is wrong, where, but never the file's text: a report chose the file
-            errors.extend(Diagnostic(d.path, d.line, d.col, f"{f.name}: not a snapshot deployer wrote (what it "
-                                     f"holds is not shown here; check it with: deployer validate {d.path})")
-                          for d in e.diagnostics[:1])
+            errors.extend(
+                Diagnostic(
+                    d.path,
+                    d.line,
+                    d.col,
+                    f"{f.name}: not a snapshot deployer wrote (what it "
+                    f"holds is not shown here; check it with: deployer validate {d.path})",
+                )
+                for d in e.diagnostics[:1]
+            )
             continue
         if rec.snapshot is None:
-            errors.append(Diagnostic(f.snapshot, 1, 1, f"{f.name}: not a snapshot (a recipe without its snapshot "
-                                                       "block); named by " + f.where))
+            errors.append(
+                Diagnostic(
+                    f.snapshot,
+                    1,
+                    1,
+                    f"{f.name}: not a snapshot (a recipe without its snapshot block); named by " + f.where,
+                )
+            )
             continue
         if not _has_device(rec):
-            errors.append(Diagnostic(f.snapshot, 1, 1, f"{f.name}: not a snapshot with its device (made by an "
-                                                       "older deployer?): roll it back with rollback SNAPSHOT "
-                                                       "--device URL"))
+            errors.append(
+                Diagnostic(
+                    f.snapshot,
+                    1,
+                    1,
+                    f"{f.name}: not a snapshot with its device (made by an "
+                    "older deployer?): roll it back with rollback SNAPSHOT "
+                    "--device URL",
+                )
+            )
             continue
         assert rec.device is not None and rec.device.url is not None
         u = rec.device.unit if rec.device.unit is not None else 1
@@ -301,9 +373,11 @@ def report_jobs(paths: Sequence[str], *, limit: str | None = None, force: bool =
             refused.extend(f"{why}: not restored (--even-if-changed restores it anyway)" for why in changed.values())
             jobs = [j for j in jobs if j.name not in changed]
         elif changed:
-            raise UsageError("; ".join(changed.values()) + ": changed since the run wrote it (someone else wrote it "
-                             "since?); nothing was sent. --even-if-changed restores the snapshot anyway, or leave it "
-                             "out with --limit '!NAME'")
+            raise UsageError(
+                "; ".join(changed.values()) + ": changed since the run wrote it (someone else wrote it "
+                "since?); nothing was sent. --even-if-changed restores the snapshot anyway, or leave it "
+                "out with --limit '!NAME'"
+            )
     # one device in the run twice (older deployers allowed it): its snapshots are restored last written
     # first, so the earliest one, what it held before the run, is the one that stays
     twice: dict[tuple[tuple[str, ...], int], list[int]] = {}
@@ -323,8 +397,13 @@ def _changed(jobs: Sequence[Job], wrote: dict[str, dict[str, tuple[int, ...]]]) 
 
     from ..fleet.rollout import ReadJob, read_many
 
-    reads = [ReadJob(j.name, j.recipe.profile, tuple(n for n in wrote.get(j.name, {}) if j.recipe.profile.get(n)),
-                     j.url, j.unit) for j in jobs if wrote.get(j.name)]
+    reads = [
+        ReadJob(
+            j.name, j.recipe.profile, tuple(n for n in wrote.get(j.name, {}) if j.recipe.profile.get(n)), j.url, j.unit
+        )
+        for j in jobs
+        if wrote.get(j.name)
+    ]
     now = asyncio.run(read_many(reads, parallel=8)) if reads else {}
     out = {}
     for name, values in now.items():

@@ -44,16 +44,17 @@ from ..state.durable import Line, disk_error, durable, settled
 from ..transport.urls import describe
 from ..window.soak import check_soak_profiles
 
-__all__ = ["check_broadcast", "check_writable", "ensure_files", "fleet_options", "run",
-           "run_async", "worker_count"]
+__all__ = ["check_broadcast", "check_writable", "ensure_files", "fleet_options", "run", "run_async", "worker_count"]
 
 
 def check_broadcast(jobs: Sequence[Job], allow_broadcast: bool) -> None:
     """Unit 0 writes every device of a bus and nobody answers: only with explicit consent."""
     for j in jobs:
         if j.unit == 0 and not allow_broadcast:
-            raise UsageError(f"{j.name}: unit 0 is broadcast (no device answers, nothing can be verified); "
-                             "pass --allow-broadcast to send it anyway")
+            raise UsageError(
+                f"{j.name}: unit 0 is broadcast (no device answers, nothing can be verified); "
+                "pass --allow-broadcast to send it anyway"
+            )
 
 
 def ensure_files(parallel: int, devices: int) -> None:
@@ -61,12 +62,15 @@ def ensure_files(parallel: int, devices: int) -> None:
     need = min(parallel, devices) + 64  # sockets, plus the report, snapshots, logs and the interpreter's own
     hard = raise_open_files(need)  # POSIX only: Windows has no such limit on sockets
     if hard is not None:
-        raise UsageError(f"--parallel {parallel} needs about {need} open files, but this system allows {hard} "
-                         f"(ulimit -Hn); use --parallel {max(1, hard - 64)} or raise the limit")
+        raise UsageError(
+            f"--parallel {parallel} needs about {need} open files, but this system allows {hard} "
+            f"(ulimit -Hn); use --parallel {max(1, hard - 64)} or raise the limit"
+        )
 
 
-def worker_count(workers: int | None, devices: int, parallel: int, opts: ApplyOptions, *,
-                 rollback_on_failure: bool) -> int:
+def worker_count(
+    workers: int | None, devices: int, parallel: int, opts: ApplyOptions, *, rollback_on_failure: bool
+) -> int:
     """The worker processes a run takes (``fleet.workers``): ``workers`` itself (never more than devices at once),
     or for None one per CPU when the fleet is big enough; 0 where the devices must stay in this process. A count
     given for such a run is a UsageError before anything happens."""
@@ -90,8 +94,9 @@ def check_writable(folder: str, what: str) -> None:
         raise UsageError(f"cannot write {what}: {disk_error(e)}") from None
 
 
-def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failures: str | None,
-                  report_path: str | None = None) -> tuple[list[int], int | None]:
+def fleet_options(
+    devices: int, *, parallel: int, batch: str | None, max_failures: str | None, report_path: str | None = None
+) -> tuple[list[int], int | None]:
     """Check a run's options before anything happens: batch sizes, failure budget, open files,
     and that the report file can be written (it is written before the first device starts)."""
     sizes = batch_sizes(batch, devices)
@@ -105,14 +110,27 @@ def fleet_options(devices: int, *, parallel: int, batch: str | None, max_failure
     return sizes, budget
 
 
-async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str | None = None,
-                    argv: Sequence[str] = (), via: str = "api", options: ApplyOptions | None = None,
-                    parallel: int = 8, batch: str | None = None, max_failures: str | None = None,
-                    batch_by: str = "profile",
-                    report_path: str | None = None, signals: bool = False, refuse_broadcast: bool = False,
-                    on_start: Callable[[Job], None] | None = None,
-                    on_done: Callable[[DeviceResult], None] | None = None, keep_results: bool = True,
-                    workers: int | None = 0, **safe: Any) -> Report:
+async def run_async(
+    jobs: Sequence[Job],
+    *,
+    command: str = "apply",
+    label: str | None = None,
+    argv: Sequence[str] = (),
+    via: str = "api",
+    options: ApplyOptions | None = None,
+    parallel: int = 8,
+    batch: str | None = None,
+    max_failures: str | None = None,
+    batch_by: str = "profile",
+    report_path: str | None = None,
+    signals: bool = False,
+    refuse_broadcast: bool = False,
+    on_start: Callable[[Job], None] | None = None,
+    on_done: Callable[[DeviceResult], None] | None = None,
+    keep_results: bool = True,
+    workers: int | None = 0,
+    **safe: Any,
+) -> Report:
     """Run ``jobs`` as one journaled run (see the module's docstring); the report of every device.
 
     ``label``: what is applied (recipe, plan or snapshot file; the report's ``recipe``). ``command``,
@@ -138,10 +156,12 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         check_broadcast(jobs, opts.allow_broadcast)
     if opts.soak is not None:  # a soak watches the profiles' health checks: each profile must have some
         check_soak_profiles([j.recipe.profile for j in jobs])
-    _, budget = fleet_options(len(jobs), parallel=parallel, batch=batch, max_failures=max_failures,
-                              report_path=report_path)
-    workers = worker_count(workers, len(jobs), parallel, opts,
-                           rollback_on_failure=bool(safe.get("rollback_on_failure")))
+    _, budget = fleet_options(
+        len(jobs), parallel=parallel, batch=batch, max_failures=max_failures, report_path=report_path
+    )
+    workers = worker_count(
+        workers, len(jobs), parallel, opts, rollback_on_failure=bool(safe.get("rollback_on_failure"))
+    )
     jobs, sizes = batch_plan(jobs, batch, batch_by)  # each batch covers every profile (or group) of the line
     # before the journal's line and the report file: this process has no other thread yet (the report's comes
     # with it), so the workers may be forked; spawned ones import meanwhile. Nothing is sent until their setup.
@@ -158,16 +178,28 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
 
             learned.load(state_dir)
         run_id = opts.run_id or journal.new_run_id()  # a confirmation window names its run before it starts
-        journal.run_started(state_dir, run_id, command=command, argv=argv, recipe=applied, via=via,
-                            devices=[(j.name, describe(j.url), j.unit) for j in jobs])
+        journal.run_started(
+            state_dir,
+            run_id,
+            command=command,
+            argv=argv,
+            recipe=applied,
+            via=via,
+            devices=[(j.name, describe(j.url), j.unit) for j in jobs],
+        )
         info = {**run_info(opts.command or f"Python API: {command}", started), "id": run_id, "state_dir": state_dir}
         try:
             live = LiveReport(report_path, label, jobs, sizes, run=info) if report_path else None
         except UsageError as e:  # the report's first state could not be written: refused, nothing sent
             journal.run_refused(state_dir, run_id, str(e), command=command, argv=argv, recipe=label)
             raise
-        opts = replace(opts, run_id=run_id, applied=applied, state_dir=state_dir,
-                       on_writing=_both(opts.on_writing, live.writing if live is not None else None))
+        opts = replace(
+            opts,
+            run_id=run_id,
+            applied=applied,
+            state_dir=state_dir,
+            on_writing=_both(opts.on_writing, live.writing if live is not None else None),
+        )
 
         done = _both(live.finished if live is not None else None, on_done)
         # a finished device's result changed (a soak rolled it back): its line anew, then the caller's
@@ -175,10 +207,21 @@ async def run_async(jobs: Sequence[Job], *, command: str = "apply", label: str |
         why: list[str] = []
         restore = _on_signals(why) if signals else (lambda: None)
         try:
-            report = await apply_many(jobs, parallel=parallel, options=opts, recipe_name=label, on_start=on_start,
-                                      on_done=done, batches=sizes, max_failures=budget,
-                                      on_changed=changed, keep_results=keep_results, pool=pool,
-                                      report_lines=live is not None, **safe)
+            report = await apply_many(
+                jobs,
+                parallel=parallel,
+                options=opts,
+                recipe_name=label,
+                on_start=on_start,
+                on_done=done,
+                batches=sizes,
+                max_failures=budget,
+                on_changed=changed,
+                keep_results=keep_results,
+                pool=pool,
+                report_lines=live is not None,
+                **safe,
+            )
         except RunInterrupted as e:
             report = e.report
             report.interrupted = why[0] if why else "cancelled"
@@ -221,8 +264,10 @@ async def _record_end(report: Report, live: LiveReport | None, *, command: str, 
     try:
         await durable(Line(path, journal.finished_record(report.run_id, report, command=command, argv=argv)))
     except OSError as e:
-        report.unrecorded.append(f"the journal {path} could not record the run's end (run-finished): "
-                                 f"{disk_error(e)}; deployer status lists it as unfinished")
+        report.unrecorded.append(
+            f"the journal {path} could not record the run's end (run-finished): "
+            f"{disk_error(e)}; deployer status lists it as unfinished"
+        )
 
 
 def run(jobs: Sequence[Job], **kw: object) -> Report:
@@ -230,14 +275,16 @@ def run(jobs: Sequence[Job], **kw: object) -> Report:
     return asyncio.run(run_async(jobs, **kw))  # type: ignore[arg-type]
 
 
-def _both(a: Callable[[DeviceResult], None] | None,
-          b: Callable[[DeviceResult], None] | None) -> Callable[[DeviceResult], None] | None:
+def _both(
+    a: Callable[[DeviceResult], None] | None, b: Callable[[DeviceResult], None] | None
+) -> Callable[[DeviceResult], None] | None:
     if a is None or b is None:
         return a or b
 
     def call(r: DeviceResult) -> None:
         a(r)
         b(r)
+
     return call
 
 

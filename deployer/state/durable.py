@@ -218,8 +218,13 @@ def commit(batch: list[_Pending], log: wal.Log | None = None) -> None:
             continue
         if p.data is None:  # not through ``submit`` (its file created here): encoded now
             try:
-                p.data = (_line(op.record) if isinstance(op, Line) else None if op.journal is None or op.line is None
-                          else _line({**op.line, op.path_key: p.path, f"{op.path_key}_sha256": p.digest}))
+                p.data = (
+                    _line(op.record)
+                    if isinstance(op, Line)
+                    else None
+                    if op.journal is None or op.line is None
+                    else _line({**op.line, op.path_key: p.path, f"{op.path_key}_sha256": p.digest})
+                )
             except (TypeError, ValueError) as e:
                 failed[id(p)] = e
                 continue
@@ -344,8 +349,10 @@ def check_output(path: str, *, replace: bool = True, what: str = "") -> None:
     name = f"{what} {path}" if what else path
     device = portable.reserved_name(path) if portable.WINDOWS else None
     if device is not None:
-        raise OutputRefused(f"refusing to write {name}: Windows reserves the name {device} for a device, whatever "
-                            f"its extension (choose another name)")
+        raise OutputRefused(
+            f"refusing to write {name}: Windows reserves the name {device} for a device, whatever "
+            f"its extension (choose another name)"
+        )
     try:
         st = os.lstat(path)
     except FileNotFoundError:
@@ -354,8 +361,9 @@ def check_output(path: str, *, replace: bool = True, what: str = "") -> None:
         raise OutputRefused(f"cannot write {name}: {e.strerror}") from None
     kind = _kind(st.st_mode)
     if kind is not None:
-        raise OutputRefused(f"refusing to write {name}: it is {kind}; deployer writes only regular files "
-                            f"(choose another path)")
+        raise OutputRefused(
+            f"refusing to write {name}: it is {kind}; deployer writes only regular files (choose another path)"
+        )
     if not replace:
         raise OutputRefused(f"{name} exists; pass --force to overwrite it")
 
@@ -364,9 +372,19 @@ def _kind(mode: int) -> str | None:
     """What a path is when it is not a regular file."""
     if stat.S_ISREG(mode):
         return None
-    return ("a symbolic link" if stat.S_ISLNK(mode) else "a folder" if stat.S_ISDIR(mode) else
-            "a FIFO" if stat.S_ISFIFO(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else
-            "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+    return (
+        "a symbolic link"
+        if stat.S_ISLNK(mode)
+        else "a folder"
+        if stat.S_ISDIR(mode)
+        else "a FIFO"
+        if stat.S_ISFIFO(mode)
+        else "a device"
+        if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+        else "a socket"
+        if stat.S_ISSOCK(mode)
+        else "not a regular file"
+    )
 
 
 def disk_error(e: OSError) -> str:

@@ -61,9 +61,20 @@ def new(key: str, *, command: str, run: str | None = None, agent: str | None = N
     """The record of the process taking a lock now."""
     pid = os.getpid()
     start, boot, host = _me(pid)
-    return {"format": FORMAT, "key": key, "pid": pid, "pid_start": start, "boot_id": boot,
-            "host": host, "since": time.time(), "command": command, "run": run, "window": None,
-            "deadline": None, "agent": agent}
+    return {
+        "format": FORMAT,
+        "key": key,
+        "pid": pid,
+        "pid_start": start,
+        "boot_id": boot,
+        "host": host,
+        "since": time.time(),
+        "command": command,
+        "run": run,
+        "window": None,
+        "deadline": None,
+        "agent": agent,
+    }
 
 
 def in_window(record: dict[str, Any], window: str, deadline: float | None) -> dict[str, Any]:
@@ -115,8 +126,9 @@ def held(directory: str) -> list[dict[str, Any]]:
         if not name.endswith(".lock"):
             continue
         try:
-            fd = portable.open_nofollow(os.path.join(directory, name),
-                                        os.O_RDONLY | portable.O_NONBLOCK | portable.O_BINARY)
+            fd = portable.open_nofollow(
+                os.path.join(directory, name), os.O_RDONLY | portable.O_NONBLOCK | portable.O_BINARY
+            )
         except OSError:
             continue
         try:
@@ -128,8 +140,11 @@ def held(directory: str) -> list[dict[str, Any]]:
         finally:
             os.close(fd)
         pid, start = rec.get("pid"), rec.get("pid_start")
-        if (rec.get("host") == host and isinstance(pid, int)
-                and process_alive(pid, start if isinstance(start, int | float) else None)):
+        if (
+            rec.get("host") == host
+            and isinstance(pid, int)
+            and process_alive(pid, start if isinstance(start, int | float) else None)
+        ):
             out.append(rec)
     return out
 

@@ -56,8 +56,12 @@ def deadline(seconds: float) -> dict[str, Any]:
     reboot) and on the monotonic clock (what the waiting process goes by: a clock step changes nothing), with
     this boot's id (a monotonic time means nothing in another boot)."""
     now = time.time()
-    return {"deadline": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(now + seconds)),
-            "deadline_epoch": now + seconds, "deadline_monotonic": time.monotonic() + seconds, "boot_id": boot_id()}
+    return {
+        "deadline": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(now + seconds)),
+        "deadline_epoch": now + seconds,
+        "deadline_monotonic": time.monotonic() + seconds,
+        "boot_id": boot_id(),
+    }
 
 
 def path_of(state_dir: str) -> str:
@@ -74,22 +78,58 @@ def append(state_dir: str, record: dict[str, Any]) -> None:
         raise StateError(f"cannot write the journal {path_of(state_dir)}: {disk_error(e)}") from None
 
 
-def run_started(state_dir: str, run: str, *, command: str, argv: Sequence[str], recipe: str | None,
-                devices: Iterable[tuple[str, str, int]], via: str = "cli") -> None:
+def run_started(
+    state_dir: str,
+    run: str,
+    *,
+    command: str,
+    argv: Sequence[str],
+    recipe: str | None,
+    devices: Iterable[tuple[str, str, int]],
+    via: str = "cli",
+) -> None:
     """``via``: who started the run (``cli``, ``api``, ``ansible``)."""
-    append(state_dir, {"event": "run-started", "run": run, "time": _now(), "user": user_name(), "pid": os.getpid(),
-                       "command": command, "via": via, "argv": list(argv), "recipe": recipe,
-                       "devices": [{"name": n, "url": u, "unit": un} for n, u, un in devices]})
+    append(
+        state_dir,
+        {
+            "event": "run-started",
+            "run": run,
+            "time": _now(),
+            "user": user_name(),
+            "pid": os.getpid(),
+            "command": command,
+            "via": via,
+            "argv": list(argv),
+            "recipe": recipe,
+            "devices": [{"name": n, "url": u, "unit": un} for n, u, un in devices],
+        },
+    )
 
 
-def device_started(run: str, *, name: str, url: str, unit: int, plan_digest: str,
-                   batch: int | None = None, restoring: str | None = None) -> dict[str, Any]:
+def device_started(
+    run: str,
+    *,
+    name: str,
+    url: str,
+    unit: int,
+    plan_digest: str,
+    batch: int | None = None,
+    restoring: str | None = None,
+) -> dict[str, Any]:
     """The ``device-started`` record, without its ``snapshot`` (``durable`` adds the file's final path).
     ``batch``: a fleet run's batch number (not in the record of a single device's run); ``restoring``:
     a rollback's snapshot that this device is being restored from."""
-    rec: dict[str, Any] = {"event": "device-started", "run": run, "time": _now(), "name": name, "url": url,
-                           "unit": unit, **({"batch": batch} if batch is not None else {}), "snapshot": None,
-                           "plan_sha256": plan_digest}
+    rec: dict[str, Any] = {
+        "event": "device-started",
+        "run": run,
+        "time": _now(),
+        "name": name,
+        "url": url,
+        "unit": unit,
+        **({"batch": batch} if batch is not None else {}),
+        "snapshot": None,
+        "plan_sha256": plan_digest,
+    }
     if restoring is not None:
         rec["restoring"] = restoring
     return rec
@@ -97,8 +137,12 @@ def device_started(run: str, *, name: str, url: str, unit: int, plan_digest: str
 
 def snapshots_restored(restored: Sequence[str], log: str) -> dict[str, Any]:
     """The line saying which snapshots were restored from the write-ahead log folder ``log`` (``state.wal``)."""
-    return {"event": "snapshots-restored", "time": _now(), "snapshots": list(restored),
-            "why": f"a process ended before its snapshots were fsync'ed; restored from the write-ahead log in {log}"}
+    return {
+        "event": "snapshots-restored",
+        "time": _now(),
+        "snapshots": list(restored),
+        "why": f"a process ended before its snapshots were fsync'ed; restored from the write-ahead log in {log}",
+    }
 
 
 def device_finished(run: str, res: DeviceResult) -> dict[str, Any]:
@@ -107,9 +151,16 @@ def device_finished(run: str, res: DeviceResult) -> dict[str, Any]:
 
 
 def _device(d: DeviceResult) -> dict[str, Any]:
-    out: dict[str, Any] = {"name": d.name, "url": d.url, "unit": d.unit, **_batch(d), "status": d.status,
-                           "snapshot": d.snapshot,
-                           "written": _written(d), "write_requests": d.write_requests}
+    out: dict[str, Any] = {
+        "name": d.name,
+        "url": d.url,
+        "unit": d.unit,
+        **_batch(d),
+        "status": d.status,
+        "snapshot": d.snapshot,
+        "written": _written(d),
+        "write_requests": d.write_requests,
+    }
     if d.restored is not None:
         out["restored"] = d.restored
     if d.identity is not None:
@@ -134,8 +185,13 @@ def run_finished(state_dir: str, run: str | None, report: Report, *, command: st
 def finished_record(run: str | None, report: Report, *, command: str, argv: Sequence[str] = ()) -> dict[str, Any]:
     """The ``run-finished`` record (``run_finished`` appends it; the runner queues it behind its devices' lines)."""
     rec: dict[str, Any] = {
-        "event": "run-finished", "run": run,
-        "time": _now(), "user": user_name(), "command": command, "argv": list(argv), "recipe": report.recipe,
+        "event": "run-finished",
+        "run": run,
+        "time": _now(),
+        "user": user_name(),
+        "command": command,
+        "argv": list(argv),
+        "recipe": report.recipe,
         "exit_code": report.exit_code,
         "devices": [_device(d) for d in report.devices],
     }
@@ -144,11 +200,25 @@ def finished_record(run: str | None, report: Report, *, command: str, argv: Sequ
     return rec
 
 
-def run_refused(state_dir: str, run: str, why: str, *, command: str, argv: Sequence[str] = (),
-                recipe: str | None = None) -> None:
+def run_refused(
+    state_dir: str, run: str, why: str, *, command: str, argv: Sequence[str] = (), recipe: str | None = None
+) -> None:
     """A run that ended before its first write (a stale saved plan, a "no" at the prompt): nothing to look at."""
-    append(state_dir, {"event": "run-finished", "run": run, "time": _now(), "user": user_name(), "command": command,
-                       "argv": list(argv), "recipe": recipe, "exit_code": 1, "refused": why, "devices": []})
+    append(
+        state_dir,
+        {
+            "event": "run-finished",
+            "run": run,
+            "time": _now(),
+            "user": user_name(),
+            "command": command,
+            "argv": list(argv),
+            "recipe": recipe,
+            "exit_code": 1,
+            "refused": why,
+            "devices": [],
+        },
+    )
 
 
 @dataclass
@@ -179,8 +249,7 @@ def _key(rec: dict[str, Any]) -> tuple[Any, Any, Any]:
     return rec.get("name"), rec.get("url"), rec.get("unit")
 
 
-def read(state_dir: str, *, containing: str | None = None, missing_ok: bool = True
-         ) -> Iterator[dict[str, Any] | None]:
+def read(state_dir: str, *, containing: str | None = None, missing_ok: bool = True) -> Iterator[dict[str, Any] | None]:
     """The journal's records in order, and None for each line that is not JSON (a torn line); JSON that
     is not an object is passed over.
 
@@ -238,9 +307,17 @@ def unfinished(state_dir: str) -> tuple[list[Unfinished], int]:
         if not run:
             continue
         if event == "run-started":
-            runs[run] = Unfinished(run, rec.get("time", ""), rec.get("user", ""), rec.get("pid"),
-                                   rec.get("command", ""), rec.get("argv", []), rec.get("recipe"),
-                                   rec.get("devices", []), via=str(rec.get("via", "cli")))
+            runs[run] = Unfinished(
+                run,
+                rec.get("time", ""),
+                rec.get("user", ""),
+                rec.get("pid"),
+                rec.get("command", ""),
+                rec.get("argv", []),
+                rec.get("recipe"),
+                rec.get("devices", []),
+                via=str(rec.get("via", "cli")),
+            )
         elif event == "device-started" and run in runs:
             runs[run].interrupted.append(rec)
         elif event == "device-finished" and run in runs:
@@ -271,8 +348,7 @@ def resolve(state_dir: str, run: str, *, note: str | None = None) -> Unfinished:
     listed = {u.run: u for u in unfinished(state_dir)[0]}
     if run not in listed:
         raise KeyError(run)
-    rec: dict[str, Any] = {"event": "run-resolved", "run": run, "time": _now(), "user": user_name(),
-                           "pid": os.getpid()}
+    rec: dict[str, Any] = {"event": "run-resolved", "run": run, "time": _now(), "user": user_name(), "pid": os.getpid()}
     if note:
         rec["note"] = note
     append(state_dir, rec)
@@ -281,8 +357,11 @@ def resolve(state_dir: str, run: str, *, note: str | None = None) -> Unfinished:
 
 def records(state_dir: str, run: str) -> list[dict[str, Any]]:
     """Every readable line of one run, in order (OSError when the journal cannot be read)."""
-    return [rec for rec in read(state_dir, containing=f'"{run}"', missing_ok=False)
-            if rec is not None and rec.get("run") == run]
+    return [
+        rec
+        for rec in read(state_dir, containing=f'"{run}"', missing_ok=False)
+        if rec is not None and rec.get("run") == run
+    ]
 
 
 def snapshot_digest(state_dir: str, snapshot: str) -> str | None:

@@ -49,19 +49,31 @@ class Entry:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"profile": self.profile, "device": self.device, "url": self.url, "unit": self.unit,
-                               "limits": dict(self.limits), "seen": self.seen, "when": self.when}
+        out: dict[str, Any] = {
+            "profile": self.profile,
+            "device": self.device,
+            "url": self.url,
+            "unit": self.unit,
+            "limits": dict(self.limits),
+            "seen": self.seen,
+            "when": self.when,
+        }
         if self.identity is not None:
             out["identity"] = dict(self.identity)
         return out
 
     @staticmethod
     def from_json(d: Mapping[str, Any]) -> Entry:
-        return Entry(str(d["profile"]), str(d["device"]),
-                     {k: int(v) for k, v in dict(d.get("limits") or {}).items() if k in LIMIT_KEYS},
-                     str(d.get("seen", "")), str(d.get("when", "")),
-                     None if d.get("identity") is None else {str(k): str(v) for k, v in dict(d["identity"]).items()},
-                     str(d.get("url", "")), int(d.get("unit", 0)))
+        return Entry(
+            str(d["profile"]),
+            str(d["device"]),
+            {k: int(v) for k, v in dict(d.get("limits") or {}).items() if k in LIMIT_KEYS},
+            str(d.get("seen", "")),
+            str(d.get("when", "")),
+            None if d.get("identity") is None else {str(k): str(v) for k, v in dict(d["identity"]).items()},
+            str(d.get("url", "")),
+            int(d.get("unit", 0)),
+        )
 
     def describe_limits(self) -> str:
         return ", ".join(f"limits.{k}: {v}" for k, v in sorted(self.limits.items()))
@@ -84,17 +96,25 @@ def _no_constant(name: str) -> Any:
     raise ValueError(f"{name} is not a number deployer writes")
 
 
-_ENTRY_KEYS = {"profile": str, "device": str, "url": str, "unit": int, "limits": dict, "seen": str, "when": str,
-               "identity": dict}
+_ENTRY_KEYS = {
+    "profile": str,
+    "device": str,
+    "url": str,
+    "unit": int,
+    "limits": dict,
+    "seen": str,
+    "when": str,
+    "identity": dict,
+}
 
 
 def _problems(data: Any) -> list[tuple[tuple[str | int, ...], str]]:
     """Where ``data`` is not a learned file as deployer writes it: (path, message) each."""
     if not isinstance(data, dict):
-        return [((), "expected a mapping with \"schema\" and \"devices\"")]
+        return [((), 'expected a mapping with "schema" and "devices"')]
     out: list[tuple[tuple[str | int, ...], str]] = []
     if data.get("schema") != SCHEMA:
-        out.append((("schema",), f"expected \"schema\": \"{SCHEMA}\""))
+        out.append((("schema",), f'expected "schema": "{SCHEMA}"'))
     out.extend(((k,), f"unknown key {k!r}") for k in data if k not in ("schema", "devices"))
     devices = data.get("devices")
     if not isinstance(devices, list):
@@ -130,8 +150,11 @@ def _problems(data: Any) -> list[tuple[tuple[str | int, ...], str]]:
                 out.append((at, f"limits.{k}: {v} is not 0 (the device does not answer Function 43)"))
         ident = d.get("identity")
         if isinstance(ident, dict):
-            out.extend((("devices", i, "identity", k), f"identity: expected text, got {_shown(v)}")
-                       for k, v in ident.items() if not isinstance(v, str))
+            out.extend(
+                (("devices", i, "identity", k), f"identity: expected text, got {_shown(v)}")
+                for k, v in ident.items()
+                if not isinstance(v, str)
+            )
     return out
 
 
@@ -163,8 +186,10 @@ def load(state_dir: str) -> list[Entry]:
 
 def _clear(state_dir: str) -> str:
     there = "" if os.path.abspath(state_dir) == os.path.abspath(".deployer") else f" --state-dir {state_dir}"
-    return (f"not a learned file deployer wrote: fix it, or clear it with: deployer learned forget --all{there} "
-            "(devices teach their limits again on the next apply)")
+    return (
+        f"not a learned file deployer wrote: fix it, or clear it with: deployer learned forget --all{there} "
+        "(devices teach their limits again on the next apply)"
+    )
 
 
 def _refuse(path: str, raw: bytes, data: Any, state_dir: str) -> NoReturn:
@@ -176,9 +201,10 @@ def _refuse(path: str, raw: bytes, data: Any, state_dir: str) -> NoReturn:
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
-        line = raw[:e.start].count(b"\n") + 1
-        raise InputError([Diagnostic(path, line, e.start - (raw.rfind(b"\n", 0, e.start) + 1) + 1,
-                                     f"not UTF-8 text; {hint}")]) from None
+        line = raw[: e.start].count(b"\n") + 1
+        raise InputError(
+            [Diagnostic(path, line, e.start - (raw.rfind(b"\n", 0, e.start) + 1) + 1, f"not UTF-8 text; {hint}")]
+        ) from None
     try:
         json.loads(text, parse_constant=_no_constant)
     except json.JSONDecodeError as e:  # not JSON: where the JSON reader stopped
@@ -208,8 +234,9 @@ def _locked(state_dir: str) -> Iterator[None]:
 
 
 def _save(state_dir: str, entries: list[Entry]) -> None:
-    write_atomic(path_of(state_dir), json.dumps({"schema": SCHEMA, "devices": [e.to_json() for e in entries]},
-                                                indent=2) + "\n")
+    write_atomic(
+        path_of(state_dir), json.dumps({"schema": SCHEMA, "devices": [e.to_json() for e in entries]}, indent=2) + "\n"
+    )
     _READ.pop(path_of(state_dir), None)  # this process's own change: seen by its next lookup
 
 
@@ -220,8 +247,16 @@ def remember(state_dir: str, entry: Entry) -> None:
         entries = load(state_dir)
         old = next((e for e in entries if (e.profile, e.device) == (entry.profile, entry.device)), None)
         if old is not None and old.identity == entry.identity:
-            entry = Entry(entry.profile, entry.device, {**old.limits, **entry.limits}, entry.seen, entry.when,
-                          entry.identity, entry.url, entry.unit)
+            entry = Entry(
+                entry.profile,
+                entry.device,
+                {**old.limits, **entry.limits},
+                entry.seen,
+                entry.when,
+                entry.identity,
+                entry.url,
+                entry.unit,
+            )
         entries = [e for e in entries if (e.profile, e.device) != (entry.profile, entry.device)] + [entry]
         _save(state_dir, entries)
 
@@ -239,8 +274,9 @@ def forget(state_dir: str, *, profile: str | None = None, device: str | None = N
                 return [Entry("(a damaged learned file)", path_of(state_dir), {}, "", "")]
         else:
             entries = load(state_dir)
-        gone = [e for e in entries
-                if (profile is None or e.profile == profile) and (device is None or e.device == device)]
+        gone = [
+            e for e in entries if (profile is None or e.profile == profile) and (device is None or e.device == device)
+        ]
         if gone:
             _save(state_dir, [e for e in entries if e not in gone])
         return gone
@@ -306,8 +342,10 @@ def with_limits(profile: Profile, entry: Entry) -> Profile:
 
 def note(entry: Entry) -> str:
     """The visible note of a plan or apply that uses what a device taught."""
-    return (f"using what this device taught on {entry.when}: {entry.describe_limits()} "
-            f"({entry.seen.split(';')[0]}); 'deployer learned forget' drops it")
+    return (
+        f"using what this device taught on {entry.when}: {entry.describe_limits()} "
+        f"({entry.seen.split(';')[0]}); 'deployer learned forget' drops it"
+    )
 
 
 def device_id(url: DeviceURL, unit: int) -> str:

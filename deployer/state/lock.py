@@ -119,7 +119,7 @@ def run_marks(buses: Sequence[str], unit: int, directory: str | None = None) -> 
 
     def why(key: str, e: Locked) -> Locked:
         if unit == 0 and e.busy:  # units of the bus are owned (or written) by others: say by whom
-            return Locked(_bus_users(key[:-len("#bus")], d) or str(e), busy=False)
+            return Locked(_bus_users(key[: -len("#bus")], d) or str(e), busy=False)
         return e
 
     return _marks(wanted, command_line(), why)
@@ -133,13 +133,14 @@ def agent_marks(buses: Sequence[str], unit: int) -> list[DeviceLock]:
     if _same_folder(lock_dir(), d):
         return []
     keys = sorted(set(buses))
-    return _marks([(f"{b}#bus", True) for b in keys] + [(device_key(b, unit), False) for b in keys],
-                  "deployer agent",
-                  lambda _key, e: Locked(f"a run on this machine is writing it (its mark in {d}): {e}", busy=e.busy))
+    return _marks(
+        [(f"{b}#bus", True) for b in keys] + [(device_key(b, unit), False) for b in keys],
+        "deployer agent",
+        lambda _key, e: Locked(f"a run on this machine is writing it (its mark in {d}): {e}", busy=e.busy),
+    )
 
 
-def _marks(wanted: Sequence[tuple[str, bool]], command: str, why: Callable[[str, Locked], Locked]
-           ) -> list[DeviceLock]:
+def _marks(wanted: Sequence[tuple[str, bool]], command: str, why: Callable[[str, Locked], Locked]) -> list[DeviceLock]:
     """Each mark of ``wanted`` ((key, shared) in ``owner_dir``), or none: ``why(key, refusal)`` is raised."""
     held: list[DeviceLock] = []
     try:
@@ -287,15 +288,22 @@ def _directory(d: str) -> None:
             os.chmod(d, 0o1777)  # every user's runs share it
             st = os.lstat(d)
     except OSError as e:
-        raise Locked(f"cannot use the lock directory {d}: {e.strerror} (set {ENV} to another folder)",
-                     busy=False) from None
+        raise Locked(
+            f"cannot use the lock directory {d}: {e.strerror} (set {ENV} to another folder)", busy=False
+        ) from None
     if not stat.S_ISDIR(st.st_mode) or portable.is_link(st):
         what = "a symbolic link" if portable.is_link(st) else "not a folder"
-        raise Locked(f"cannot use the lock directory {d}: it is {what} (a lock folder must be a real folder; "
-                     f"set {ENV} to another folder)", busy=False)
+        raise Locked(
+            f"cannot use the lock directory {d}: it is {what} (a lock folder must be a real folder; "
+            f"set {ENV} to another folder)",
+            busy=False,
+        )
     if portable.has_modes() and st.st_mode & 0o022 and not st.st_mode & stat.S_ISVTX:
-        raise Locked(f"cannot use the lock directory {d}: others may write in it but it is not sticky, so they could "
-                     f"replace lock files (chmod 1777 {d}, or set {ENV} to another folder)", busy=False)
+        raise Locked(
+            f"cannot use the lock directory {d}: others may write in it but it is not sticky, so they could "
+            f"replace lock files (chmod 1777 {d}, or set {ENV} to another folder)",
+            busy=False,
+        )
     _ready.add(d)
 
 
@@ -307,14 +315,20 @@ def _open(path: str) -> int:
     opening instead.
     """
     try:
-        return portable.open_nofollow(path, os.O_RDWR | os.O_CREAT | portable.O_NONBLOCK | portable.O_CLOEXEC
-                                      | portable.O_BINARY, 0o666)
+        return portable.open_nofollow(
+            path, os.O_RDWR | os.O_CREAT | portable.O_NONBLOCK | portable.O_CLOEXEC | portable.O_BINARY, 0o666
+        )
     except OSError as e:
         if e.errno == errno.ELOOP:
-            raise Locked(f"refusing the lock file {path}: it is a symbolic link (planted? remove it)",
-                         busy=False) from None
-        hint = (" (on Windows every account whose runs share the lock folder needs the right to modify files "
-                "there: see docs/windows.md)" if portable.WINDOWS and isinstance(e, PermissionError) else "")
+            raise Locked(
+                f"refusing the lock file {path}: it is a symbolic link (planted? remove it)", busy=False
+            ) from None
+        hint = (
+            " (on Windows every account whose runs share the lock folder needs the right to modify files "
+            "there: see docs/windows.md)"
+            if portable.WINDOWS and isinstance(e, PermissionError)
+            else ""
+        )
         raise Locked(f"cannot open the lock file {path}: {e.strerror}{hint}", busy=False) from None
 
 
@@ -331,8 +345,13 @@ def _checked(fd: int, path: str) -> bool:
     st = os.fstat(fd)
     if st.st_nlink == 0 and stat.S_ISREG(st.st_mode):
         return False
-    why = ("not a regular file" if not stat.S_ISREG(st.st_mode) else
-           f"it has {st.st_nlink} names (a hard link to another file?)" if st.st_nlink != 1 else None)
+    why = (
+        "not a regular file"
+        if not stat.S_ISREG(st.st_mode)
+        else f"it has {st.st_nlink} names (a hard link to another file?)"
+        if st.st_nlink != 1
+        else None
+    )
     if why is not None:
         os.close(fd)
         raise Locked(f"refusing the lock file {path}: {why}; remove it", busy=False)
@@ -342,8 +361,9 @@ def _checked(fd: int, path: str) -> bool:
     return True
 
 
-def try_lock(key: str, *, command: str = "", directory: str | None = None, shared: bool = False,
-             run: str | None = None) -> DeviceLock:
+def try_lock(
+    key: str, *, command: str = "", directory: str | None = None, shared: bool = False, run: str | None = None
+) -> DeviceLock:
     """Take the lock now or raise Locked naming the holder.
 
     ``shared``: many holders at once (the bus lock of runs writing single units); an exclusive holder
@@ -370,8 +390,11 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
                 raise Locked("the bus is in use: another run is writing a device on it") from None
             if record.get("agent"):  # waiting does not help: the agent holds it until it stops
                 a = record["agent"]
-                raise Locked(f"owned by the deployer agent at {a} (PID {record.get('pid', '?')}): run it through the "
-                             f"agent (deployer apply --agent {a} ...), or stop the agent", busy=False) from None
+                raise Locked(
+                    f"owned by the deployer agent at {a} (PID {record.get('pid', '?')}): run it through the "
+                    f"agent (deployer apply --agent {a} ...), or stop the agent",
+                    busy=False,
+                ) from None
             raise Locked(f"locked by {_holder_text(record)}") from None
         break
     if shared:
@@ -387,8 +410,16 @@ def try_lock(key: str, *, command: str = "", directory: str | None = None, share
     return DeviceLock(key, path, fd, stale, record=record, size=size)
 
 
-async def acquire(key: str, *, timeout: float = 0.0, command: str = "", directory: str | None = None,
-                  poll: float = 0.1, shared: bool = False, run: str | None = None) -> DeviceLock:
+async def acquire(
+    key: str,
+    *,
+    timeout: float = 0.0,
+    command: str = "",
+    directory: str | None = None,
+    poll: float = 0.1,
+    shared: bool = False,
+    run: str | None = None,
+) -> DeviceLock:
     """One lock; waits up to ``timeout`` seconds (0: fail at once). Raises Locked."""
     if key in _owned:  # this process (the agent) holds it already: nothing to take, nothing to release
         return DeviceLock(key, _owned[key].path, -1, shared=shared)
@@ -404,8 +435,15 @@ async def acquire(key: str, *, timeout: float = 0.0, command: str = "", director
         await asyncio.sleep(poll)
 
 
-async def acquire_device(buses: str | Sequence[str], unit: int, *, timeout: float = 0.0, command: str = "",
-                         directory: str | None = None, run: str | None = None) -> list[DeviceLock]:
+async def acquire_device(
+    buses: str | Sequence[str],
+    unit: int,
+    *,
+    timeout: float = 0.0,
+    command: str = "",
+    directory: str | None = None,
+    run: str | None = None,
+) -> list[DeviceLock]:
     """The locks a run writing ``unit`` on ``buses`` holds: each bus's, shared, then the unit's, exclusive.
 
     ``buses``: the device's lock keys (DeviceURL.lock_keys: one per address its host resolves to).
@@ -422,11 +460,12 @@ async def acquire_device(buses: str | Sequence[str], unit: int, *, timeout: floa
         for key, shared in wanted:
             left = max(0.0, timeout - (time.monotonic() - start))
             try:
-                held.append(await acquire(key, timeout=left, command=command, directory=directory, shared=shared,
-                                          run=run))
+                held.append(
+                    await acquire(key, timeout=left, command=command, directory=directory, shared=shared, run=run)
+                )
             except Locked as e:
                 if unit == 0 and e.busy:
-                    who = _bus_users(key[:-len("#bus")], directory)
+                    who = _bus_users(key[: -len("#bus")], directory)
                     if who is not None:
                         raise Locked(who) from None
                 raise

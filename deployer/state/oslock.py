@@ -89,15 +89,31 @@ def _windows_range() -> Any:
         from ctypes import wintypes
 
         class Overlapped(ctypes.Structure):
-            _fields_ = [("Internal", ctypes.c_void_p), ("InternalHigh", ctypes.c_void_p),
-                        ("Offset", wintypes.DWORD), ("OffsetHigh", wintypes.DWORD), ("hEvent", wintypes.HANDLE)]
+            _fields_ = [
+                ("Internal", ctypes.c_void_p),
+                ("InternalHigh", ctypes.c_void_p),
+                ("Offset", wintypes.DWORD),
+                ("OffsetHigh", wintypes.DWORD),
+                ("hEvent", wintypes.HANDLE),
+            ]
 
         kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)
-        kernel32.LockFileEx.argtypes = [wintypes.HANDLE, wintypes.DWORD, wintypes.DWORD, wintypes.DWORD,
-                                        wintypes.DWORD, ctypes.POINTER(Overlapped)]
+        kernel32.LockFileEx.argtypes = [
+            wintypes.HANDLE,
+            wintypes.DWORD,
+            wintypes.DWORD,
+            wintypes.DWORD,
+            wintypes.DWORD,
+            ctypes.POINTER(Overlapped),
+        ]
         kernel32.LockFileEx.restype = wintypes.BOOL
-        kernel32.UnlockFileEx.argtypes = [wintypes.HANDLE, wintypes.DWORD, wintypes.DWORD, wintypes.DWORD,
-                                          ctypes.POINTER(Overlapped)]
+        kernel32.UnlockFileEx.argtypes = [
+            wintypes.HANDLE,
+            wintypes.DWORD,
+            wintypes.DWORD,
+            wintypes.DWORD,
+            ctypes.POINTER(Overlapped),
+        ]
         kernel32.UnlockFileEx.restype = wintypes.BOOL
         fail_immediately, exclusive, error_lock_violation, error_not_locked = 0x1, 0x2, 33, 158
 
@@ -117,6 +133,7 @@ def _windows_range() -> Any:
             if err == error_lock_violation:
                 return False
             raise ctypes.WinError(err)
+
         return call
     raise OSError(errno.ENOSYS, "LockFileEx exists only on Windows")
 
@@ -127,8 +144,13 @@ def _ofd_range() -> Any:
         raise OSError(errno.ENOSYS, "no file lock on this system: fcntl cannot be imported")
 
     class Flock64(ctypes.Structure):
-        _fields_ = [("l_type", ctypes.c_short), ("l_whence", ctypes.c_short), ("l_start", ctypes.c_int64),
-                    ("l_len", ctypes.c_int64), ("l_pid", ctypes.c_int32)]
+        _fields_ = [
+            ("l_type", ctypes.c_short),
+            ("l_whence", ctypes.c_short),
+            ("l_start", ctypes.c_int64),
+            ("l_len", ctypes.c_int64),
+            ("l_pid", ctypes.c_int32),
+        ]
 
     libc = ctypes.CDLL(None, use_errno=True)
     fcntl_ = libc.fcntl
@@ -145,6 +167,7 @@ def _ofd_range() -> Any:
         if err in _BUSY and what != "unlock":
             return False
         raise OSError(err, os.strerror(err))
+
     return call
 
 

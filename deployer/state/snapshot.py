@@ -44,8 +44,10 @@ def recover(state_dir: str) -> list[str]:
     folder = snapshot_dir(state_dir)
     restored = wal.recover(folder)
     if restored:
-        append_lines(journal.path_of(os.path.abspath(state_dir)),
-                     [journal.snapshots_restored(restored, os.path.join(folder, wal.FOLDER))])
+        append_lines(
+            journal.path_of(os.path.abspath(state_dir)),
+            [journal.snapshots_restored(restored, os.path.join(folder, wal.FOLDER))],
+        )
     return restored
 
 
@@ -55,17 +57,29 @@ def recovered(state_dir: str) -> list[str]:
     try:
         restored = recover(state_dir)
     except OSError as e:
-        raise UsageError(f"cannot restore the snapshots in {state_dir} from their write-ahead log: "
-                         f"{disk_error(e)}; nothing was sent") from None
+        raise UsageError(
+            f"cannot restore the snapshots in {state_dir} from their write-ahead log: {disk_error(e)}; nothing was sent"
+        ) from None
     if not restored:
         return []
-    return [f"note: restored {len(restored)} snapshot(s) in {state_dir} from the write-ahead log a process left "
-            f"when it ended before fsync'ing them: {', '.join(restored)}"]
+    return [
+        f"note: restored {len(restored)} snapshot(s) in {state_dir} from the write-ahead log a process left "
+        f"when it ended before fsync'ing them: {', '.join(restored)}"
+    ]
 
 
-def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
-                  url: str, unit: int, *, applied: str | None = None,
-                  identity: Mapping[str, str] | None = None, values_text: str | None = None) -> NewFile:
+def snapshot_file(
+    state_dir: str,
+    name: str,
+    recipe: Recipe,
+    values: Mapping[str, tuple[int, ...]],
+    url: str,
+    unit: int,
+    *,
+    applied: str | None = None,
+    identity: Mapping[str, str] | None = None,
+    values_text: str | None = None,
+) -> NewFile:
     """The snapshot of what the device held, ready for ``durable``: a new file (never overwriting
     another run's snapshot from the same second), rendered for its first candidate path.
     ``values_text``: ``snapshot_values(recipe.profile, values)``, when the caller has it already."""
@@ -75,18 +89,41 @@ def snapshot_file(state_dir: str, name: str, recipe: Recipe, values: Mapping[str
     safe = file_name(name)  # valid on every system: no CON or AUX, no 300-character name
 
     def text(path: str) -> str:
-        return snapshot_text(recipe.profile, values, name=name, url=url, unit=unit, taken=now, applied=applied,
-                             label=recipe.name, path=path, identity=identity, values_text=values_text, safe=safe)
+        return snapshot_text(
+            recipe.profile,
+            values,
+            name=name,
+            url=url,
+            unit=unit,
+            taken=now,
+            applied=applied,
+            label=recipe.name,
+            path=path,
+            identity=identity,
+            values_text=values_text,
+            safe=safe,
+        )
 
     first = os.path.join(directory, f"{safe}-{stamp}.yaml")
     later = (os.path.join(directory, f"{safe}-{stamp}-{n}.yaml") for n in itertools.count(2))
     return NewFile(later, text, (first, text(first)))
 
 
-def snapshot_text(prof: Profile, values: Mapping[str, tuple[int, ...]], *, name: str, url: str, unit: int,
-                  taken: time.struct_time, applied: str | None, label: str, path: str,
-                  identity: Mapping[str, str] | None = None, values_text: str | None = None,
-                  safe: str | None = None) -> str:
+def snapshot_text(
+    prof: Profile,
+    values: Mapping[str, tuple[int, ...]],
+    *,
+    name: str,
+    url: str,
+    unit: int,
+    taken: time.struct_time,
+    applied: str | None,
+    label: str,
+    path: str,
+    identity: Mapping[str, str] | None = None,
+    values_text: str | None = None,
+    safe: str | None = None,
+) -> str:
     """A snapshot's text: what device ``name`` (``url`` unit ``unit``) held at ``taken`` (UTC) before
     ``applied`` (a recipe's path; None: the recipe ``label`` given in code) was applied, to be saved as ``path``.
     ``values_text``: ``snapshot_values(prof, values)``, when the caller has it already (the devices of a fleet
@@ -94,10 +131,14 @@ def snapshot_text(prof: Profile, values: Mapping[str, tuple[int, ...]], *, name:
     stamp = time.strftime("%Y%m%dT%H%M%SZ", taken)
     info = SnapshotInfo(prof.digest, values, time.strftime("%Y-%m-%dT%H:%M:%SZ", taken), applied, identity=identity)
     safe = file_name(name) if safe is None else safe
-    head = recipe_head(profile_ref(prof), name=f"snapshot-{safe}-{stamp}", device=DeviceSpec(url, unit),
-                       comment=f"Snapshot: what {url} unit {unit} held before applying '{applied or label}'.\n"
-                               f"Restore with: deployer rollback {path}",
-                       snapshot=info)
+    head = recipe_head(
+        profile_ref(prof),
+        name=f"snapshot-{safe}-{stamp}",
+        device=DeviceSpec(url, unit),
+        comment=f"Snapshot: what {url} unit {unit} held before applying '{applied or label}'.\n"
+        f"Restore with: deployer rollback {path}",
+        snapshot=info,
+    )
     return head + (snapshot_values(prof, values) if values_text is None else values_text)
 
 
@@ -156,7 +197,7 @@ def last_identity(state_dir: str, name: str) -> tuple[str, dict[str, str]] | Non
             with open(path, encoding="utf-8") as f:
                 for line in f:
                     if line.startswith("  identity: "):
-                        data = json.loads(line[len("  identity: "):])
+                        data = json.loads(line[len("  identity: ") :])
                         if isinstance(data, dict):
                             return path, {str(k): str(v) for k, v in data.items()}
                     if line.startswith("parameters:"):
@@ -166,8 +207,16 @@ def last_identity(state_dir: str, name: str) -> tuple[str, dict[str, str]] | Non
     return None
 
 
-def save_snapshot(state_dir: str, name: str, recipe: Recipe, values: Mapping[str, tuple[int, ...]],
-                  url: str, unit: int, *, applied: str | None = None) -> str:
+def save_snapshot(
+    state_dir: str,
+    name: str,
+    recipe: Recipe,
+    values: Mapping[str, tuple[int, ...]],
+    url: str,
+    unit: int,
+    *,
+    applied: str | None = None,
+) -> str:
     """Write the values the device held as a snapshot, durable (its text in the write-ahead log, ``state.wal``)
     before any write; the file itself is fsync'ed when the log is settled (at the latest when the process ends).
 

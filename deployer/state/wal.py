@@ -67,8 +67,8 @@ def records(data: bytes) -> Iterator[tuple[str, str, bytes]]:
             return
         if not (isinstance(path, str) and isinstance(digest, str) and isinstance(size, int) and size >= 0):
             return
-        body = data[end + 1:end + 1 + size]
-        if len(body) != size or data[end + 1 + size:end + 2 + size] != b"\n":
+        body = data[end + 1 : end + 1 + size]
+        if len(body) != size or data[end + 1 + size : end + 2 + size] != b"\n":
             return
         yield path, digest, body
         pos = end + 2 + size

@@ -66,7 +66,13 @@ class Faults:
 
 
 _OPS: dict[str, Callable[[Decimal, Decimal], bool]] = {
-    "<=": operator.le, ">=": operator.ge, "==": operator.eq, "!=": operator.ne, "<": operator.lt, ">": operator.gt}
+    "<=": operator.le,
+    ">=": operator.ge,
+    "==": operator.eq,
+    "!=": operator.ne,
+    "<": operator.lt,
+    ">": operator.gt,
+}
 _RULE = re.compile(r"\s*([A-Za-z_][\w.\[\]]*)\s*(<=|>=|==|!=|<|>)\s*(.+?)\s*:\s*(\S+?)\s*=\s*(\S+)\s*")
 
 
@@ -127,8 +133,10 @@ def parse_identity(items: Sequence[str]) -> dict[int, str] | None:
         key = key.strip()
         oid = IDENTITY_OBJECTS.get(key, int(key) if key.isdigit() else -1)
         if not sep or not 0 <= oid <= 255:
-            raise ValueError(f"--identity {item}: expected OBJECT=TEXT with OBJECT one of "
-                             f"{', '.join(IDENTITY_OBJECTS)} or an object id 0..255")
+            raise ValueError(
+                f"--identity {item}: expected OBJECT=TEXT with OBJECT one of "
+                f"{', '.join(IDENTITY_OBJECTS)} or an object id 0..255"
+            )
         objects = {**(objects or {}), oid: text}
     return objects
 
@@ -140,8 +148,10 @@ def parse_fault_rule(text: str, profile: Profile) -> FaultRule:
 
     m = _RULE.fullmatch(text)
     if m is None:
-        raise ValueError(f"'{text}' is not a fault rule: PARAMETER OP VALUE: REGISTER=RAW, e.g. 'F07 < 2 s: 0x30=7' "
-                         "(OP one of < <= > >= == !=)")
+        raise ValueError(
+            f"'{text}' is not a fault rule: PARAMETER OP VALUE: REGISTER=RAW, e.g. 'F07 < 2 s: 0x30=7' "
+            "(OP one of < <= > >= == !=)"
+        )
     name, op, value, reg, raw = m.groups()
     p = profile.get(name)
     if p is None or p.is_string or p.register_type != "holding":
@@ -208,16 +218,18 @@ def parse_listen(url: str) -> _Listen:
     u = urllib.parse.urlsplit(url)
     if u.scheme in ("rtu", "ascii"):
         q = urllib.parse.parse_qs(u.query)
-        return _Listen(u.scheme, path=urllib.parse.unquote(u.netloc + u.path),
-                       baudrate=int(q.get("baudrate", ["19200"])[-1]))
+        return _Listen(
+            u.scheme, path=urllib.parse.unquote(u.netloc + u.path), baudrate=int(q.get("baudrate", ["19200"])[-1])
+        )
     if u.scheme in ("tcp", "rtu+tcp", "tls"):
         opts = {k: v[-1] for k, v in urllib.parse.parse_qs(u.query).items()}
         if u.scheme == "tls" and not {"cert", "key"} <= opts.keys():
             raise ValueError("tls listen URL needs ?cert=FILE&key=FILE (and ca=FILE to require client certificates)")
-        return _Listen(u.scheme, host=u.hostname or "127.0.0.1", port=5020 if u.port is None else u.port,
-                       options=opts)
-    raise ValueError(f"cannot listen on '{url}' (tcp://HOST:PORT, tls://HOST:PORT?cert=&key=&ca=, "
-                     "rtu+tcp://HOST:PORT, rtu:///dev/X, ascii:///dev/X)")
+        return _Listen(u.scheme, host=u.hostname or "127.0.0.1", port=5020 if u.port is None else u.port, options=opts)
+    raise ValueError(
+        f"cannot listen on '{url}' (tcp://HOST:PORT, tls://HOST:PORT?cert=&key=&ca=, "
+        "rtu+tcp://HOST:PORT, rtu:///dev/X, ascii:///dev/X)"
+    )
 
 
 def _frame_chars(function: int, count: int, request: bool) -> int:
@@ -234,8 +246,16 @@ def _frame_chars(function: int, count: int, request: bool) -> int:
 
 
 # the table each function code reaches
-_FC_TABLE: dict[int, RegisterType] = {1: "coil", 5: "coil", 15: "coil", 2: "discrete", 4: "input",
-                                      3: "holding", 6: "holding", 16: "holding"}
+_FC_TABLE: dict[int, RegisterType] = {
+    1: "coil",
+    5: "coil",
+    15: "coil",
+    2: "discrete",
+    4: "input",
+    3: "holding",
+    6: "holding",
+    16: "holding",
+}
 
 
 def initial_registers(profile: Profile) -> dict[int, int]:
@@ -328,8 +348,11 @@ class _DeviceIdRequest(ReadDeviceInformationRequest):
             start = self.object_id if self.object_id in objects and lo <= self.object_id <= hi else lo
             wanted = {i for i in objects if start <= i <= hi}
         return ReadDeviceInformationResponse(
-            read_code=self.read_code, information={i: objects[i].encode("latin-1") for i in sorted(wanted)},
-            dev_id=device_id, transaction_id=self.transaction_id)
+            read_code=self.read_code,
+            information={i: objects[i].encode("latin-1") for i in sorted(wanted)},
+            dev_id=device_id,
+            transaction_id=self.transaction_id,
+        )
 
 
 # What the simulated device answers (the tables its profile does not use answer 01 as well); every
@@ -382,11 +405,16 @@ class _InOrderHandler(ServerRequestHandler):
         used = 0
         while used < len(data):
             try:
-                n, pdu = self.framer.handleFrame(self.trace_packet(False, data[used:]), self.request_dev_id,
-                                                 self.request_transaction_id)
+                n, pdu = self.framer.handleFrame(
+                    self.trace_packet(False, data[used:]), self.request_dev_id, self.request_transaction_id
+                )
             except ModbusIOException as exc:  # what pymodbus's handler answers to an undecodable frame
-                reply = ExceptionResponse(exc.fcode or 0, exception_code=ExcCodes.ILLEGAL_FUNCTION,
-                                          device_id=exc.dev_id, transaction=exc.transaction_id)
+                reply = ExceptionResponse(
+                    exc.fcode or 0,
+                    exception_code=ExcCodes.ILLEGAL_FUNCTION,
+                    device_id=exc.dev_id,
+                    transaction=exc.transaction_id,
+                )
                 self.server_send(reply, addr)  # type: ignore[no-untyped-call]
                 return len(data)
             if not n:
@@ -419,10 +447,21 @@ class _InOrderHandler(ServerRequestHandler):
 
 
 class Simulator:
-    def __init__(self, profile: Profile, *, listen: str = "tcp://127.0.0.1:0", units: Sequence[int] = (1,),
-                 init: Mapping[int, int] | None = None, faults: Faults | None = None,
-                 log_path: str | None = None, state_path: str | None = None, strict_limits: bool = True,
-                 gap_reads: bool = False, quirks: Quirks | None = None, nonvolatile: bool = False) -> None:
+    def __init__(
+        self,
+        profile: Profile,
+        *,
+        listen: str = "tcp://127.0.0.1:0",
+        units: Sequence[int] = (1,),
+        init: Mapping[int, int] | None = None,
+        faults: Faults | None = None,
+        log_path: str | None = None,
+        state_path: str | None = None,
+        strict_limits: bool = True,
+        gap_reads: bool = False,
+        quirks: Quirks | None = None,
+        nonvolatile: bool = False,
+    ) -> None:
         if not profile.parameters:
             raise ValueError(f"profile {profile.id} declares no registers to simulate")
         self.profile = profile
@@ -457,8 +496,9 @@ class Simulator:
         self._used.update(REGISTER_TYPES[a >> 16] for a in self._extra)
         self._unlock_regs = {a.key + i: w for a in profile.unlock for i, w in enumerate(a.registers)}
         # the writes after which the device is busy for a while: (key, the words written) -> ms
-        self._waits = {(a.key, a.registers): a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit)
-                       if a.wait_ms}
+        self._waits = {
+            (a.key, a.registers): a.wait_ms for a in (*profile.unlock, *profile.lock, *profile.commit) if a.wait_ms
+        }
         # RAM and non-volatile memory (``nonvolatile``): what a power cycle brings back, per unit, by key; the
         # writes that store RAM there are the profile's commit actions (key, the words written)
         self.nonvolatile = nonvolatile
@@ -478,8 +518,10 @@ class Simulator:
         self._start_values = start
         for rule in self.faults.rules:
             if rule.register not in self._owner and rule.register not in self._extra:
-                raise ValueError(f"fault rule '{rule.text}': register {rule.register} is not declared in profile "
-                                 f"{profile.id} (a parameter, or a register of its health checks)")
+                raise ValueError(
+                    f"fault rule '{rule.text}': register {rule.register} is not declared in profile "
+                    f"{profile.id} (a parameter, or a register of its health checks)"
+                )
         self.functions = FUNCTIONS  # the function codes this device answers; others get exception 01
         if self.identity_objects():  # Function 43 / 14 (device identification) when it has objects
             self.functions = self.functions | {43}
@@ -489,11 +531,15 @@ class Simulator:
     async def start(self) -> None:
         devices = [self._device(unit) for unit in self.units]
         if self.nonvolatile:  # what it powered up with is what its memory holds
-            self._stored = {u: {k: self._start_values.get(k, 0) for k in (*self._owner, *self._extra)}
-                            for u in self.units}
+            self._stored = {
+                u: {k: self._start_values.get(k, 0) for k in (*self._owner, *self._extra)} for u in self.units
+            }
         lst = self.listen
-        common: dict[str, Any] = {"broadcast_enable": True, "trace_pdu": self._trace_pdu,
-                                  "trace_connect": self._trace_connect}
+        common: dict[str, Any] = {
+            "broadcast_enable": True,
+            "trace_pdu": self._trace_pdu,
+            "trace_connect": self._trace_connect,
+        }
         if lst.scheme == "tcp":
             self._server = ModbusTcpServer(devices, framer=FramerType.SOCKET, address=(lst.host, lst.port), **common)
         elif lst.scheme == "tls":
@@ -501,16 +547,18 @@ class Simulator:
             ctx.load_cert_chain(lst.options["cert"], lst.options["key"])
             if "ca" in lst.options:  # Modbus/TCP Security: mutual authentication
                 ctx.verify_mode = ssl.CERT_REQUIRED
-            self._server = ModbusTlsServer(devices, framer=FramerType.TLS, sslctx=ctx, address=(lst.host, lst.port),
-                                           **common)
+            self._server = ModbusTlsServer(
+                devices, framer=FramerType.TLS, sslctx=ctx, address=(lst.host, lst.port), **common
+            )
         elif lst.scheme == "rtu+tcp":
-            self._server = ModbusTcpServer(devices, framer=FramerType.RTU, address=(lst.host, lst.port),
-                                           ignore_missing_devices=True, **common)
+            self._server = ModbusTcpServer(
+                devices, framer=FramerType.RTU, address=(lst.host, lst.port), ignore_missing_devices=True, **common
+            )
         else:
             framer = FramerType.RTU if lst.scheme == "rtu" else FramerType.ASCII
-            self._server = ModbusSerialServer(devices, framer=framer, port=lst.path, baudrate=lst.baudrate,
-                                              ignore_missing_devices=True,
-                                              **common)
+            self._server = ModbusSerialServer(
+                devices, framer=framer, port=lst.path, baudrate=lst.baudrate, ignore_missing_devices=True, **common
+            )
         self._core = self._server.context
         self._server.context = _Units(self._core, self)
         # this server's decoder (each connection's framer copies it) answers Function 43 / 14 itself
@@ -589,8 +637,10 @@ class Simulator:
         """Power off and on (``nonvolatile``): every register holds again what non-volatile memory holds, the
         values of the last commit (or of the start); what was written since, without a commit, is gone."""
         if not self.nonvolatile:
-            raise ValueError("a power cycle changes nothing without the RAM and non-volatile memory model "
-                             "(Simulator(..., nonvolatile=True); deployer simulate --nonvolatile)")
+            raise ValueError(
+                "a power cycle changes nothing without the RAM and non-volatile memory model "
+                "(Simulator(..., nonvolatile=True); deployer simulate --nonvolatile)"
+            )
         for u, image in self._stored.items():
             for k, v in image.items():
                 self._set(u, k, v)
@@ -644,8 +694,9 @@ class Simulator:
         data: dict[str, Any] = {"profile": self.profile.id, "units": state}
         others = [t for t in REGISTER_TYPES[1:] if t in self._used]
         if others:  # coils, discrete inputs, input registers by table (addresses of each table)
-            data["tables"] = {str(u): {t: {str(a): v for a, v in self.registers(u, t).items()} for t in others}
-                              for u in self.units}
+            data["tables"] = {
+                str(u): {t: {str(a): v for a, v in self.registers(u, t).items()} for t in others} for u in self.units
+            }
         write_atomic(path, json.dumps(data, indent=1))
 
     # ---- the device ----------------------------------------------------------------------------
@@ -658,34 +709,50 @@ class Simulator:
                 continue
             done.add(p.key)
             writable = any(q.writable for q in self._owner[p.key])
-            tables[p.register_type].append(SimData(
-                address=p.address, values=[self._start_values[a] for a in range(p.key, p.key + p.count)],
-                datatype=DataType.REGISTERS, readonly=not writable))
+            tables[p.register_type].append(
+                SimData(
+                    address=p.address,
+                    values=[self._start_values[a] for a in range(p.key, p.key + p.count)],
+                    datatype=DataType.REGISTERS,
+                    readonly=not writable,
+                )
+            )
         for a in self._extra:  # e.g. a health check's input register
-            tables[REGISTER_TYPES[a >> 16]].append(SimData(address=a & 0xFFFF, values=[self._start_values.get(a, 0)],
-                                                           datatype=DataType.REGISTERS))
+            tables[REGISTER_TYPES[a >> 16]].append(
+                SimData(address=a & 0xFFFF, values=[self._start_values.get(a, 0)], datatype=DataType.REGISTERS)
+            )
         for t in ("holding", "input"):
             if self.gap_reads:  # read-only zeros in every gap between declared registers
                 declared = sorted({a & 0xFFFF for a in (*self._owner, *self._extra) if a >> 16 == SPACE[t]})
-                tables[t] += [SimData(address=a + 1, values=[0] * (b - a - 1), datatype=DataType.REGISTERS,
-                                      readonly=True) for a, b in itertools.pairwise(declared) if b - a > 1]
+                tables[t] += [
+                    SimData(address=a + 1, values=[0] * (b - a - 1), datatype=DataType.REGISTERS, readonly=True)
+                    for a, b in itertools.pairwise(declared)
+                    if b - a > 1
+                ]
             tables[t].sort(key=lambda b: b.address)
             if not tables[t]:  # pymodbus wants every table; check_table answers 01 for an unused one
                 tables[t] = [SimData(address=0, values=[0], datatype=DataType.REGISTERS, readonly=True)]
         for t in BIT_TABLES:  # one run of bits from the first declared one to the last; check_table
-            space = SPACE[t]   # refuses the undeclared ones in between
+            space = SPACE[t]  # refuses the undeclared ones in between
             keys = sorted(k for k in (*self._owner, *self._extra) if k >> 16 == space)  # a coil commit step too
             lo, hi = (keys[0], keys[-1]) if keys else (space << 16, space << 16)
-            tables[t] = [SimData(address=lo & 0xFFFF, values=[bool(self._start_values.get(k, 0))
-                                                              for k in range(lo, hi + 1)], datatype=DataType.BITS)]
+            tables[t] = [
+                SimData(
+                    address=lo & 0xFFFF,
+                    values=[bool(self._start_values.get(k, 0)) for k in range(lo, hi + 1)],
+                    datatype=DataType.BITS,
+                )
+            ]
 
-        async def action(fc: int, start: int, address: int, count: int, registers: list[int],
-                         values: list[int] | list[bool] | None) -> ExcCodes | None:
+        async def action(
+            fc: int, start: int, address: int, count: int, registers: list[int], values: list[int] | list[bool] | None
+        ) -> ExcCodes | None:
             words = None if values is None else [int(v) for v in values]
             return await self._action(fc, start, address, count, registers, words, unit)
 
-        return SimDevice(id=unit, simdata=(tables["coil"], tables["discrete"], tables["holding"], tables["input"]),
-                         action=action)
+        return SimDevice(
+            id=unit, simdata=(tables["coil"], tables["discrete"], tables["holding"], tables["input"]), action=action
+        )
 
     def check_table(self, fc: int, address: int, count: int, *, write: bool) -> ExcCodes | None:
         """The checks pymodbus cannot make on bits, and unused tables (see _Units); None: go on."""
@@ -702,8 +769,12 @@ class Simulator:
             return ExcCodes.ILLEGAL_VALUE
         space = SPACE[table]
         # gap reads: undeclared bits between two declared ones read as 0 (the first and last must exist)
-        gaps = self.gap_reads and not write and (space << 16 | address) in self._owner and \
-            (space << 16 | (address + count - 1)) in self._owner
+        gaps = (
+            self.gap_reads
+            and not write
+            and (space << 16 | address) in self._owner
+            and (space << 16 | (address + count - 1)) in self._owner
+        )
         for a in range(address, address + count):
             owners = self._owner.get(space << 16 | a)
             if owners is None:
@@ -734,8 +805,16 @@ class Simulator:
                 return c.what()
         return None
 
-    async def _action(self, fc: int, start: int, address: int, count: int, registers: list[int],
-                      values: list[int] | None, unit: int = 1) -> ExcCodes | None:
+    async def _action(
+        self,
+        fc: int,
+        start: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        values: list[int] | None,
+        unit: int = 1,
+    ) -> ExcCodes | None:
         """The device's answer to one request (None: a normal answer), stores a write's values as it goes."""
         if fc not in _FC_TABLE or (fc == 16 and self.quirks.fc06_only):  # e.g. FC22/23: not implemented
             return ExcCodes.ILLEGAL_FUNCTION
@@ -743,8 +822,7 @@ class Simulator:
             count = self._bit_count  # pymodbus passes the registers the bits live in
         await self._line_time(fc, count, values)
         if fc == 4:
-            return ExcCodes.ILLEGAL_VALUE if self.strict_limits and count > self.profile.limits.read_registers \
-                else None
+            return ExcCodes.ILLEGAL_VALUE if self.strict_limits and count > self.profile.limits.read_registers else None
         if fc in (1, 2) or (fc == 5 and values is None):
             return None  # checked by check_table
         if fc in (5, 15):
@@ -777,8 +855,11 @@ class Simulator:
     def _refused_now(self, registers: Sequence[int], start: int, unit: int) -> bool:
         """Parameters locked (unlock values not in place) or a precondition failing (the drive running).
         ``registers`` from ``start``: the holding registers as the request being served sees them."""
-        current = {a: registers[a - start] for a in (*self._unlock_regs, *(
-            c.address for c in self.profile.preconditions)) if 0 <= a - start < len(registers)}
+        current = {
+            a: registers[a - start]
+            for a in (*self._unlock_regs, *(c.address for c in self.profile.preconditions))
+            if 0 <= a - start < len(registers)
+        }
         current.update((k, self._get(unit, k)) for k in self._unlock_regs if k >> 16)  # a coil unlock step
         return not self.unlocked(current) or bool(self.guarded(current))
 
@@ -811,15 +892,27 @@ class Simulator:
                 return ExcCodes.ILLEGAL_ADDRESS
         return None
 
-    def _write_refused(self, fc: int, start: int, address: int, count: int, registers: list[int],
-                       values: list[int], params: list[Parameter], unit: int) -> ExcCodes | None:
+    def _write_refused(
+        self,
+        fc: int,
+        start: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        values: list[int],
+        params: list[Parameter],
+        unit: int,
+    ) -> ExcCodes | None:
         """What refuses a register write as a whole, before any value is stored."""
         q, limits = self.quirks, self.profile.limits
         if self._busy():
             return ExcCodes.DEVICE_BUSY
         touches_parameters = any(a not in self._action_regs for a in range(address, address + count))
-        if touches_parameters and (self._unlock_regs or self.profile.preconditions) \
-                and self._refused_now(registers, start, unit):
+        if (
+            touches_parameters
+            and (self._unlock_regs or self.profile.preconditions)
+            and self._refused_now(registers, start, unit)
+        ):
             return ExcCodes.DEVICE_FAILURE  # parameters locked, or the drive is running
         if self.strict_limits and fc == 16 and count > limits.write_registers:
             return ExcCodes.ILLEGAL_VALUE
@@ -833,8 +926,17 @@ class Simulator:
             return self._refusal(params, address, count, values)
         return None
 
-    def _register_write(self, fc: int, start: int, address: int, count: int, registers: list[int],
-                        values: list[int], params: list[Parameter], unit: int) -> ExcCodes | None:
+    def _register_write(
+        self,
+        fc: int,
+        start: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        values: list[int],
+        params: list[Parameter],
+        unit: int,
+    ) -> ExcCodes | None:
         refused = self._write_refused(fc, start, address, count, registers, values, params, unit)
         if refused is not None:
             return refused
@@ -843,10 +945,10 @@ class Simulator:
             lo, hi = max(p.address, address), min(p.end, address + count)
             if any(a in f.fail_registers for a in range(lo, hi)):
                 return ExcCodes.DEVICE_FAILURE
-            new = list(values[lo - address: hi - address])
+            new = list(values[lo - address : hi - address])
             if hi - lo == p.count and not self._in_range(p, new):
                 return ExcCodes.ILLEGAL_VALUE
-            registers[lo - start: hi - start] = new
+            registers[lo - start : hi - start] = new
         for a in range(address, address + count):  # registers of unlock/lock/commit writes only
             if not self._owner.get(a):
                 registers[a - start] = values[a - address]
@@ -855,18 +957,24 @@ class Simulator:
             return ExcCodes.DEVICE_FAILURE  # written all the same: a device that complains about what it did
         return None
 
-    def _after_write(self, start: int, address: int, count: int, registers: list[int], values: list[int],
-                     unit: int) -> None:
+    def _after_write(
+        self, start: int, address: int, count: int, registers: list[int], values: list[int], unit: int
+    ) -> None:
         """What a write sets off: fault rules (a drive that trips on a too-short acceleration time), the busy
         time of a declared wait (storing to EEPROM), and with ``nonvolatile`` the profile's commit storing RAM."""
         for rule in self.faults.rules:
             p = self.profile.parameter(rule.parameter)
-            if rule.register - start in range(len(registers)) and rule.holds(p, registers[p.address - start:
-                                                                                           p.end - start]):
+            if rule.register - start in range(len(registers)) and rule.holds(
+                p, registers[p.address - start : p.end - start]
+            ):
                 registers[rule.register - start] = rule.raw
+
         def written(a: int, words: tuple[int, ...]) -> bool:
-            return address <= a and a + len(words) <= address + count and \
-                tuple(values[a - address:a - address + len(words)]) == words
+            return (
+                address <= a
+                and a + len(words) <= address + count
+                and tuple(values[a - address : a - address + len(words)]) == words
+            )
 
         for (a, words), wait in self._waits.items():
             if written(a, words):  # a coil's key is beyond any register's address: never matches here
@@ -880,7 +988,7 @@ class Simulator:
             lo, hi = max(p.address, address), min(p.end, address + count)
             if any(a in self.faults.fail_registers for a in range(lo, hi)):
                 return ExcCodes.DEVICE_FAILURE
-            if hi - lo == p.count and not self._in_range(p, list(values[lo - address: hi - address])):
+            if hi - lo == p.count and not self._in_range(p, list(values[lo - address : hi - address])):
                 return ExcCodes.ILLEGAL_VALUE
         return None
 
@@ -903,8 +1011,10 @@ class Simulator:
     def _too_soon(self) -> bool:
         """A request inside the pause the device needs after a connect or after its last answer."""
         q, now = self.quirks, time.monotonic()
-        return (now - self._connected_at < q.pause_after_connect_ms / 1000
-                or now - self._answered_at < q.request_gap_ms / 1000)
+        return (
+            now - self._connected_at < q.pause_after_connect_ms / 1000
+            or now - self._answered_at < q.request_gap_ms / 1000
+        )
 
     def _trace_pdu(self, sending: bool, pdu: Any) -> Any:
         fc = int(pdu.function_code) & 0x7F
@@ -921,7 +1031,7 @@ class Simulator:
         if fc in (5, 15):  # coils as 0/1 (pdu.bits is padded to whole bytes for FC15)
             regs = [1 if b else 0 for b in (pdu.bits or [])]
             if fc == 15 and pdu.count:
-                regs = regs[:int(pdu.count)]
+                regs = regs[: int(pdu.count)]
             elif fc == 5:
                 regs = regs[:1]
         count = int(getattr(pdu, "count", 0) or len(regs) or 1)
@@ -929,8 +1039,15 @@ class Simulator:
             body = pdu.encode()
         except Exception:  # an unknown function: nothing to re-encode
             body = b""
-        entry = LogEntry(time.time(), int(pdu.dev_id), fc, int(getattr(pdu, "address", 0) or 0), count,
-                         regs if fc in (5, 6, 15, 16) else None, bytes([pdu.dev_id, fc]).hex() + body.hex())
+        entry = LogEntry(
+            time.time(),
+            int(pdu.dev_id),
+            fc,
+            int(getattr(pdu, "address", 0) or 0),
+            count,
+            regs if fc in (5, 6, 15, 16) else None,
+            bytes([pdu.dev_id, fc]).hex() + body.hex(),
+        )
         self.log.append(entry)
         self._requests += 1
         self._window += 1
@@ -1008,10 +1125,12 @@ async def serve(sim: Simulator, *, on_ready: Any = None) -> None:
         path = sim.state_path
         undo.append(on_signals(loop, (signal.SIGUSR1,), lambda _sig: sim.dump_state(path)))
     if sim.nonvolatile and hasattr(signal, "SIGUSR2"):  # POSIX only; in Python: Simulator.power_cycle()
+
         def power_cycle(_sig: object) -> None:
             sim.power_cycle()
-            print(f"power cycle {sim.power_cycles}: RAM holds what non-volatile memory holds", file=sys.stderr,
-                  flush=True)
+            print(
+                f"power cycle {sim.power_cycles}: RAM holds what non-volatile memory holds", file=sys.stderr, flush=True
+            )
 
         undo.append(on_signals(loop, (signal.SIGUSR2,), power_cycle))
     await sim.start()

@@ -248,7 +248,7 @@ def _words(pdu: bytes) -> list[int]:
     """The registers of a read's answer PDU (function, byte count, big-endian words)."""
     n, odd = divmod(len(pdu) - 2, 2)
     if n < 0 or odd:  # never from a checked answer; as the word-by-word reading would have it
-        return [int.from_bytes(pdu[i:i + 2], "big") for i in range(2, len(pdu), 2)]
+        return [int.from_bytes(pdu[i : i + 2], "big") for i in range(2, len(pdu), 2)]
     return list(struct.unpack_from(f">{n}H", pdu, 2))
 
 
@@ -372,7 +372,7 @@ class _Receiver:
             if end < 0:
                 return None
             text = bytes(self.buf[1:end])
-            del self.buf[:end + 2]
+            del self.buf[: end + 2]
             try:
                 raw = bytes.fromhex(text.decode("ascii"))
             except ValueError:
@@ -384,8 +384,17 @@ class _Receiver:
         if len(self.buf) < 3:
             return None
         fc = self.buf[1]
-        size = (5 if fc & 0x80 else 5 + self.buf[2] if fc in READS else 8 if fc in (5, 6, 15, 16) else
-                ReadDeviceInformationResponse.calculateRtuFrameSize(bytes(self.buf)) if fc == 43 else 0)
+        size = (
+            5
+            if fc & 0x80
+            else 5 + self.buf[2]
+            if fc in READS
+            else 8
+            if fc in (5, 6, 15, 16)
+            else ReadDeviceInformationResponse.calculateRtuFrameSize(bytes(self.buf))
+            if fc == 43
+            else 0
+        )
         if size == 0:
             self.buf.clear()
             return BadAnswer(f"an answer with function code {fc} to a function {want.function} request")
@@ -431,16 +440,19 @@ class _Receiver:
                 got = pdu[1] if len(pdu) > 1 else 0
                 what = "bits" if bits else "registers"
                 one = ("coil" if want.function == 1 else "input") if bits else "register"
-                return BadAnswer(f"an answer with {got} bytes of {what} to a read of {want.count} "
-                                 f"{one}{'s' if want.count != 1 else ''} ({size} bytes)")
+                return BadAnswer(
+                    f"an answer with {got} bytes of {what} to a read of {want.count} "
+                    f"{one}{'s' if want.count != 1 else ''} ({size} bytes)"
+                )
             return pdu
         echo_a = int.from_bytes(pdu[1:3], "big") if len(pdu) == 5 else -1
         echo_b = int.from_bytes(pdu[3:5], "big") if len(pdu) == 5 else -1
         b = want.count if want.function in (15, 16) else want.value
         if echo_a != want.address or echo_b != b:
             what = "count" if want.function in (15, 16) else "value"
-            return BadAnswer(f"an answer echoing address {echo_a}, {what} {echo_b} to a write of address "
-                             f"{want.address}, {what} {b}")
+            return BadAnswer(
+                f"an answer echoing address {echo_a}, {what} {echo_b} to a write of address {want.address}, {what} {b}"
+            )
         return pdu
 
     # -- the request's side
@@ -491,8 +503,10 @@ class _Receiver:
             return
         if self.dirty_since is not None and not self.long_settle:
             self.desyncs += 1  # bytes nobody asked for came: someone's answer, but whose
-        while (left := self._quiet(timeout, resync is not None) - (time.monotonic() - max(
-                self.last_rx, self.dirty_since or 0.0, self.sent_at))) > 0:
+        while (
+            left := self._quiet(timeout, resync is not None)
+            - (time.monotonic() - max(self.last_rx, self.dirty_since or 0.0, self.sent_at))
+        ) > 0:
             if resync is not None and self.late is not None and self.late_for == resync:
                 self.long_settle = False  # taken by this request instead of sending it; drained before the next
                 return
@@ -557,8 +571,9 @@ def _silent_interval(url: DeviceURL) -> float:
 def _receiver(client: Any, url: DeviceURL) -> _Receiver:
     """Take over reading a pymodbus client's answers (its transaction manager only sends, from now on)."""
     ctx = client.ctx
-    rx = _Receiver("mbap" if url.scheme in ("tcp", "tls") else "ascii" if url.scheme == "ascii" else "rtu",
-                   ctx.trace_packet)
+    rx = _Receiver(
+        "mbap" if url.scheme in ("tcp", "tls") else "ascii" if url.scheme == "ascii" else "rtu", ctx.trace_packet
+    )
     ctx.callback_data = rx.feed
     gone = ctx.callback_disconnected
 
@@ -632,8 +647,13 @@ class PymodbusTransport(Transport):
     def _common(self) -> dict[str, Any]:
         # retries=0: a late answer to a first copy would hide a double write (docs/design.md, transports)
         # reconnect_delay=0: pymodbus must not reconnect behind our back, the executor decides
-        return {"timeout": self.url.timeout, "retries": 0, "trace_packet": self._trace,
-                "reconnect_delay": 0, "reconnect_delay_max": 0}
+        return {
+            "timeout": self.url.timeout,
+            "retries": 0,
+            "trace_packet": self._trace,
+            "reconnect_delay": 0,
+            "reconnect_delay_max": 0,
+        }
 
     async def _why_not(self) -> str:
         """Why connect() returned False (pymodbus swallows the reason): probe once more ourselves."""
@@ -732,8 +752,9 @@ class PymodbusTransport(Transport):
             try:
                 await call(self._client)  # pymodbus builds the frame and writes it; the answer comes to rx
                 if rx.expect is not None and rx.framing == "mbap":
-                    rx.expect = _Expect(want.unit, want.function, want.address, want.count, want.value,
-                                        self._client.ctx.next_tid)  # the id pymodbus just used
+                    rx.expect = _Expect(
+                        want.unit, want.function, want.address, want.count, want.value, self._client.ctx.next_tid
+                    )  # the id pymodbus just used
                 if no_answer:
                     return None
                 assert rx.future is not None
@@ -780,49 +801,65 @@ class PymodbusTransport(Transport):
         """Called under the bus lock before a request (the shared serial line routes its frames here)."""
 
     async def read_holding_registers(self, address: int, count: int, unit: int) -> list[int]:
-        pdu = await self._run(_Expect(unit, 3, address, count), lambda c: c.read_holding_registers(
-            address, count=count, device_id=unit, no_response_expected=True))
+        pdu = await self._run(
+            _Expect(unit, 3, address, count),
+            lambda c: c.read_holding_registers(address, count=count, device_id=unit, no_response_expected=True),
+        )
         assert pdu is not None
         return _words(pdu)
 
     async def write_registers(self, address: int, values: list[int], unit: int) -> None:
-        await self._run(_Expect(unit, 16, address, len(values)), lambda c: c.write_registers(
-            address, values, device_id=unit, no_response_expected=True))
+        await self._run(
+            _Expect(unit, 16, address, len(values)),
+            lambda c: c.write_registers(address, values, device_id=unit, no_response_expected=True),
+        )
 
     async def write_register(self, address: int, value: int, unit: int) -> None:
-        await self._run(_Expect(unit, 6, address, 1, value), lambda c: c.write_register(
-            address, value, device_id=unit, no_response_expected=True))
+        await self._run(
+            _Expect(unit, 6, address, 1, value),
+            lambda c: c.write_register(address, value, device_id=unit, no_response_expected=True),
+        )
 
     async def read(self, function: int, address: int, count: int, unit: int) -> list[int]:
         if function == 3:
             return await self.read_holding_registers(address, count, unit)
         if function == 4:
-            pdu = await self._run(_Expect(unit, 4, address, count), lambda c: c.read_input_registers(
-                address, count=count, device_id=unit, no_response_expected=True))
+            pdu = await self._run(
+                _Expect(unit, 4, address, count),
+                lambda c: c.read_input_registers(address, count=count, device_id=unit, no_response_expected=True),
+            )
             assert pdu is not None
             return _words(pdu)
         if function in (1, 2):
             call = "read_coils" if function == 1 else "read_discrete_inputs"
-            pdu = await self._run(_Expect(unit, function, address, count), lambda c: getattr(c, call)(
-                address, count=count, device_id=unit, no_response_expected=True))
+            pdu = await self._run(
+                _Expect(unit, function, address, count),
+                lambda c: getattr(c, call)(address, count=count, device_id=unit, no_response_expected=True),
+            )
             assert pdu is not None
             return [(pdu[2 + i // 8] >> (i % 8)) & 1 for i in range(count)]  # least significant bit first
         raise ValueError(f"function {function} is not a read")
 
     async def write_coil(self, address: int, value: bool, unit: int) -> None:
-        await self._run(_Expect(unit, 5, address, 1, 0xFF00 if value else 0), lambda c: c.write_coil(
-            address, value, device_id=unit, no_response_expected=True))
+        await self._run(
+            _Expect(unit, 5, address, 1, 0xFF00 if value else 0),
+            lambda c: c.write_coil(address, value, device_id=unit, no_response_expected=True),
+        )
 
     async def write_coils(self, address: int, values: list[bool], unit: int) -> None:
-        await self._run(_Expect(unit, 15, address, len(values)), lambda c: c.write_coils(
-            address, values, device_id=unit, no_response_expected=True))
+        await self._run(
+            _Expect(unit, 15, address, len(values)),
+            lambda c: c.write_coils(address, values, device_id=unit, no_response_expected=True),
+        )
 
     async def read_device_identification(self, unit: int, read_code: int = 1) -> dict[int, bytes]:
         objects: dict[int, bytes] = {}
         object_id = 0
         for _ in range(8):  # 'more follows' pages; a device repeating itself must not loop for ever
-            pdu = await self._run(_Expect(unit, 43, read_code, object_id), functools.partial(
-                _read_identification, read_code=read_code, object_id=object_id, unit=unit))
+            pdu = await self._run(
+                _Expect(unit, 43, read_code, object_id),
+                functools.partial(_read_identification, read_code=read_code, object_id=object_id, unit=unit),
+            )
             r: Any = _DECODER.decode(pdu or b"")  # pymodbus parses the objects
             if r is None:
                 raise BadAnswer("an identification answer pymodbus cannot read")
@@ -835,8 +872,9 @@ class PymodbusTransport(Transport):
 
 
 def _read_identification(client: Any, *, read_code: int, object_id: int, unit: int) -> Any:
-    return client.read_device_information(read_code=read_code, object_id=object_id, device_id=unit,
-                                          no_response_expected=True)
+    return client.read_device_information(
+        read_code=read_code, object_id=object_id, device_id=unit, no_response_expected=True
+    )
 
 
 _DECODER = DecodePDU(False)  # answers (is_server False)
@@ -854,13 +892,13 @@ class TcpTransport(PymodbusTransport):
     """tcp://: Modbus/TCP (MBAP header)."""
 
     def _make_client(self) -> Any:
-        return AsyncModbusTcpClient(self.url.host or "", port=self.url.port or 502, framer=FramerType.SOCKET,
-                                    **self._common())
+        return AsyncModbusTcpClient(
+            self.url.host or "", port=self.url.port or 502, framer=FramerType.SOCKET, **self._common()
+        )
 
     async def _why_not(self) -> str:
         try:
-            _, writer = await asyncio.wait_for(asyncio.open_connection(self.url.host, self.url.port),
-                                               self.url.timeout)
+            _, writer = await asyncio.wait_for(asyncio.open_connection(self.url.host, self.url.port), self.url.timeout)
         except ConnectionRefusedError:
             return "connection refused"
         except TimeoutError:
@@ -875,8 +913,9 @@ class RtuOverTcpTransport(TcpTransport):
     """rtu+tcp://: RTU frames (unit id + CRC) over a TCP socket to a serial gateway; shares the gateway's bus."""
 
     def _make_client(self) -> Any:
-        return AsyncModbusTcpClient(self.url.host or "", port=self.url.port or 0, framer=FramerType.RTU,
-                                    **self._common())
+        return AsyncModbusTcpClient(
+            self.url.host or "", port=self.url.port or 0, framer=FramerType.RTU, **self._common()
+        )
 
 
 class _HostnameContext(ssl.SSLContext):
@@ -884,8 +923,14 @@ class _HostnameContext(ssl.SSLContext):
 
     hostname: str | None = None
 
-    def wrap_bio(self, incoming: ssl.MemoryBIO, outgoing: ssl.MemoryBIO, server_side: bool = False,
-                 server_hostname: str | bytes | None = None, session: ssl.SSLSession | None = None) -> ssl.SSLObject:
+    def wrap_bio(
+        self,
+        incoming: ssl.MemoryBIO,
+        outgoing: ssl.MemoryBIO,
+        server_side: bool = False,
+        server_hostname: str | bytes | None = None,
+        session: ssl.SSLSession | None = None,
+    ) -> ssl.SSLObject:
         return super().wrap_bio(incoming, outgoing, server_side, self.hostname or server_hostname, session)
 
 
@@ -915,19 +960,23 @@ class TlsTransport(TcpTransport):
         return super()._lost(why)
 
     def _make_client(self) -> Any:
-        return AsyncModbusTlsClient(self.url.host or "", port=self.url.port or 802, sslctx=self.ssl_context(),
-                                    **self._common())
+        return AsyncModbusTlsClient(
+            self.url.host or "", port=self.url.port or 802, sslctx=self.ssl_context(), **self._common()
+        )
 
     async def _why_not(self) -> str:
         try:
             _, writer = await asyncio.wait_for(
-                asyncio.open_connection(self.url.host, self.url.port, ssl=self.ssl_context()), self.url.timeout)
+                asyncio.open_connection(self.url.host, self.url.port, ssl=self.ssl_context()), self.url.timeout
+            )
         except ssl.SSLError as e:
             why = e.reason or str(e)
             if isinstance(e, ssl.SSLCertVerificationError) and e.verify_message:
                 why += f": {e.verify_message}"  # e.g. "Hostname mismatch, certificate is not valid for 'x'"
-            return (f"TLS handshake failed: {why} (check ca=, cert= and key=, or verify=false for a "
-                    f"self-signed device certificate)")
+            return (
+                f"TLS handshake failed: {why} (check ca=, cert= and key=, or verify=false for a "
+                f"self-signed device certificate)"
+            )
         except ConnectionRefusedError:
             return "connection refused"
         except TimeoutError:
@@ -970,16 +1019,24 @@ class SerialTransport(PymodbusTransport):
         # one client serves every transport on the port: the line routes frames to the active one
         common["trace_packet"] = self._opening.trace if self._opening is not None else self._trace
         return AsyncModbusSerialClient(
-            self.url.serial_device, framer=FramerType.RTU if self.url.scheme == "rtu" else FramerType.ASCII,
-            baudrate=line.baudrate, bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits, **common)
+            self.url.serial_device,
+            framer=FramerType.RTU if self.url.scheme == "rtu" else FramerType.ASCII,
+            baudrate=line.baudrate,
+            bytesize=line.bytesize,
+            parity=line.parity,
+            stopbits=line.stopbits,
+            **common,
+        )
 
     async def connect(self) -> None:
         path = self.url.path or ""
         where = describe(self.url)
         if windows_port(path) is not None:
             if os.name != "nt":
-                raise Unreachable(f"{where}: no such serial device '{path}' (COM ports are Windows' names; "
-                                  f"deployer scan --list-ports shows this system's serial ports)")
+                raise Unreachable(
+                    f"{where}: no such serial device '{path}' (COM ports are Windows' names; "
+                    f"deployer scan --list-ports shows this system's serial ports)"
+                )
         elif not path.startswith(("socket://", "rfc2217://", "loop://")) and not os.path.exists(path):
             raise Unreachable(f"{where}: no such serial device '{path}'")
         if self._line is not None:
@@ -1006,8 +1063,10 @@ class SerialTransport(PymodbusTransport):
                 bus.line = line
             elif line.settings != self._settings():
                 have = "{} baudrate={} bytesize={} parity={} stopbits={}".format(*line.settings)
-                raise Unreachable(f"{where}: the port is already open here as {have}; devices on one line must "
-                                  f"use the same framing and settings")
+                raise Unreachable(
+                    f"{where}: the port is already open here as {have}; devices on one line must "
+                    f"use the same framing and settings"
+                )
             line.users += 1
             self._line, self._client, self._rx = line, line.client, line.rx
 
@@ -1024,9 +1083,15 @@ class SerialTransport(PymodbusTransport):
             import serial  # here, not at import: on Linux pyserial needs termios, which TCP never does
 
             line = self.url.line
-            port = serial.serial_for_url(self.url.serial_device, exclusive=True, baudrate=line.baudrate,
-                                         bytesize=line.bytesize, parity=line.parity, stopbits=line.stopbits,
-                                         timeout=self.url.timeout)
+            port = serial.serial_for_url(
+                self.url.serial_device,
+                exclusive=True,
+                baudrate=line.baudrate,
+                bytesize=line.bytesize,
+                parity=line.parity,
+                stopbits=line.stopbits,
+                timeout=self.url.timeout,
+            )
             port.timeout = 0  # what pymodbus sets next: it reconfigures the port
             port.write_timeout = 0
         except Exception as e:  # pyserial raises SerialException, termios.error, ValueError
@@ -1086,8 +1151,11 @@ def _windows_open_error(said: str, path: str) -> str | None:
 
 
 _CLASSES: dict[str, type[PymodbusTransport]] = {
-    "tcp": TcpTransport, "tls": TlsTransport, "rtu+tcp": RtuOverTcpTransport,
-    "rtu": SerialTransport, "ascii": SerialTransport,
+    "tcp": TcpTransport,
+    "tls": TlsTransport,
+    "rtu+tcp": RtuOverTcpTransport,
+    "rtu": SerialTransport,
+    "ascii": SerialTransport,
 }
 
 

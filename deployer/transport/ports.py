@@ -24,8 +24,13 @@ class SerialPort:
         return f"rtu://{windows_port(self.device) or self.device}"
 
     def to_json(self) -> dict[str, str | None]:
-        return {"device": self.device, "url": self.url, "description": self.description, "hwid": self.hwid,
-                "manufacturer": self.manufacturer}
+        return {
+            "device": self.device,
+            "url": self.url,
+            "description": self.description,
+            "hwid": self.hwid,
+            "manufacturer": self.manufacturer,
+        }
 
 
 def serial_ports() -> list[SerialPort]:
@@ -37,6 +42,8 @@ def serial_ports() -> list[SerialPort]:
     def order(p: SerialPort) -> tuple[object, ...]:
         return tuple(int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.device))
 
-    found = [SerialPort(str(p.device), str(p.description or ""), str(p.hwid or ""), p.manufacturer)
-             for p in list_ports.comports()]
+    found = [
+        SerialPort(str(p.device), str(p.description or ""), str(p.hwid or ""), p.manufacturer)
+        for p in list_ports.comports()
+    ]
     return sorted(found, key=order)

@@ -32,8 +32,10 @@ class LineSettings:
     stopbits: int
 
     def __str__(self) -> str:
-        return (f"{self.baudrate} baud, {self.bytesize} data bits, parity {self.parity}, "
-                f"{self.stopbits} stop bit{'s' if self.stopbits != 1 else ''}")
+        return (
+            f"{self.baudrate} baud, {self.bytesize} data bits, parity {self.parity}, "
+            f"{self.stopbits} stop bit{'s' if self.stopbits != 1 else ''}"
+        )
 
 
 SERIAL_DEFAULTS = LineSettings(19200, 8, "N", 1)  # rtu:// and ascii:// alike
@@ -94,8 +96,12 @@ class DeviceURL:
         """Serial line settings (rtu, ascii; for other schemes only the defaults, used for timing)."""
         o = self.options
         d = SERIAL_DEFAULTS
-        return LineSettings(int(o.get("baudrate", d.baudrate)), int(o.get("bytesize", d.bytesize)),
-                            o.get("parity", d.parity), int(o.get("stopbits", d.stopbits)))
+        return LineSettings(
+            int(o.get("baudrate", d.baudrate)),
+            int(o.get("bytesize", d.bytesize)),
+            o.get("parity", d.parity),
+            int(o.get("stopbits", d.stopbits)),
+        )
 
 
 # COM1..COM256 as Windows names them, bare or in the device namespace (\\.\COM10); any other
@@ -132,12 +138,16 @@ def _addresses(host: str) -> tuple[str, ...]:
 def no_answer_hint(url: DeviceURL, unit: int) -> str:
     """What to check when a device does not answer: on serial lines, mostly the line settings and unit id."""
     if url.scheme in ("rtu", "ascii"):
-        return (f" at {url.line}, unit {unit}: check that the device uses the same baud rate, parity, data bits "
-                f"and stop bits and answers to unit {unit} (URL options baudrate, parity, bytesize, stopbits; "
-                f"--unit)")
+        return (
+            f" at {url.line}, unit {unit}: check that the device uses the same baud rate, parity, data bits "
+            f"and stop bits and answers to unit {unit} (URL options baudrate, parity, bytesize, stopbits; "
+            f"--unit)"
+        )
     if url.scheme == "rtu+tcp":
-        return (f" through the gateway, unit {unit}: check the unit id and that the gateway's serial line "
-                f"settings (baud rate, parity, data bits, stop bits) match the device's")
+        return (
+            f" through the gateway, unit {unit}: check the unit id and that the gateway's serial line "
+            f"settings (baud rate, parity, data bits, stop bits) match the device's"
+        )
     return ""
 
 
@@ -155,8 +165,11 @@ _OPTIONS: dict[str, set[str]] = {
 # numeric options: (type, lowest, highest); docs/urls.md shows the same ranges (a test compares them)
 NUMERIC_OPTIONS: dict[str, tuple[type[int] | type[float], float, float]] = {
     # a URL's timeout and retries within the bounds every caller has (deployer.LIMITS)
-    "timeout": (float, 0.001, LIMITS.timeout.high), "retries": (int, int(LIMITS.retries.low), int(LIMITS.retries.high)),
-    "baudrate": (int, 50, 4_000_000), "bytesize": (int, 5, 8), "stopbits": (int, 1, 2),
+    "timeout": (float, 0.001, LIMITS.timeout.high),
+    "retries": (int, int(LIMITS.retries.low), int(LIMITS.retries.high)),
+    "baudrate": (int, 50, 4_000_000),
+    "bytesize": (int, 5, 8),
+    "stopbits": (int, 1, 2),
 }
 
 
@@ -164,20 +177,35 @@ def option_facts(option: str) -> tuple[list[str], str | None, str | None]:
     """(schemes that take it, its default, what it allows) for a URL option: what `explain` shows."""
     schemes = [s for s, opts in _OPTIONS.items() if option in opts]
     line = SERIAL_DEFAULTS
-    defaults = {"timeout": DEFAULT_TIMEOUT, "retries": DEFAULT_RETRIES, "baudrate": line.baudrate,
-                "pause_after_connect": "the profile's limits.pause_after_connect (0)",
-                "pause_between_requests": "the profile's limits.pause_between_requests (0)",
-                "bytesize": line.bytesize, "parity": line.parity, "stopbits": line.stopbits, "verify": "true",
-                "server_hostname": "the URL's host",
-                "device_identification": "the profile's limits.device_identification (true)"}
-    allowed = {"parity": "N, E, O", "pause_after_connect": "a duration: 250ms, 1s (a bare number is seconds)",
-               "pause_between_requests": "a duration: 250ms, 1s (a bare number is seconds)",
-               "verify": "true, false (also 1, 0, yes, no)",
-               "device_identification": "true, false (also 1, 0, yes, no)",
-               "cert": "a PEM file", "key": "a PEM file", "ca": "a PEM file"}
+    defaults = {
+        "timeout": DEFAULT_TIMEOUT,
+        "retries": DEFAULT_RETRIES,
+        "baudrate": line.baudrate,
+        "pause_after_connect": "the profile's limits.pause_after_connect (0)",
+        "pause_between_requests": "the profile's limits.pause_between_requests (0)",
+        "bytesize": line.bytesize,
+        "parity": line.parity,
+        "stopbits": line.stopbits,
+        "verify": "true",
+        "server_hostname": "the URL's host",
+        "device_identification": "the profile's limits.device_identification (true)",
+    }
+    allowed = {
+        "parity": "N, E, O",
+        "pause_after_connect": "a duration: 250ms, 1s (a bare number is seconds)",
+        "pause_between_requests": "a duration: 250ms, 1s (a bare number is seconds)",
+        "verify": "true, false (also 1, 0, yes, no)",
+        "device_identification": "true, false (also 1, 0, yes, no)",
+        "cert": "a PEM file",
+        "key": "a PEM file",
+        "ca": "a PEM file",
+    }
     default = defaults.get(option)
-    return schemes, None if default is None else str(default), (
-        range_text(option) if option in NUMERIC_OPTIONS else allowed.get(option))
+    return (
+        schemes,
+        None if default is None else str(default),
+        (range_text(option) if option in NUMERIC_OPTIONS else allowed.get(option)),
+    )
 
 
 def range_text(option: str) -> str:
@@ -200,12 +228,11 @@ def parse_url(text: str, *, timeout: float | None = None, retries: int | None = 
             except ValueError as e:
                 raise BadURL(f"option {key}: {e}") from None
     if "device_identification" in options and options["device_identification"].lower() not in _TRUTH:
-        raise BadURL(f"option device_identification: {options['device_identification']!r} is none of "
-                     "true, false, 1, 0, yes, no")
-    to = _number(options, "timeout") if "timeout" in options else (timeout if timeout is not None
-                                                                    else DEFAULT_TIMEOUT)
-    rt = _number(options, "retries") if "retries" in options else (retries if retries is not None
-                                                                    else DEFAULT_RETRIES)
+        raise BadURL(
+            f"option device_identification: {options['device_identification']!r} is none of true, false, 1, 0, yes, no"
+        )
+    to = _number(options, "timeout") if "timeout" in options else (timeout if timeout is not None else DEFAULT_TIMEOUT)
+    rt = _number(options, "retries") if "retries" in options else (retries if retries is not None else DEFAULT_RETRIES)
     if scheme in ("rtu", "ascii"):
         return DeviceURL(scheme, path=_serial_path(u, scheme, options), options=options, timeout=to, retries=rt)
     host, port = _host_port(text, u, scheme)
@@ -222,13 +249,16 @@ def _split(text: str) -> tuple[urllib.parse.SplitResult, str]:
     try:
         u = urllib.parse.urlsplit(raw)
     except ValueError as e:  # "Invalid IPv6 URL": an unclosed [
-        raise BadURL(f"'{text}' is not a valid URL ({e}; an IPv6 host is written in brackets: "
-                     f"tcp://[::1]:502)") from None
+        raise BadURL(
+            f"'{text}' is not a valid URL ({e}; an IPv6 host is written in brackets: tcp://[::1]:502)"
+        ) from None
     scheme = u.scheme.lower()
     if scheme not in _OPTIONS:
         hint = difflib.get_close_matches(scheme, list(_OPTIONS), n=1)
-        raise BadURL(f"unknown scheme '{scheme}' in '{text}'" + (f"; did you mean '{hint[0]}'?" if hint else
-                                                                  f" (known: {', '.join(_OPTIONS)})"))
+        raise BadURL(
+            f"unknown scheme '{scheme}' in '{text}'"
+            + (f"; did you mean '{hint[0]}'?" if hint else f" (known: {', '.join(_OPTIONS)})")
+        )
     if u.fragment or raw.endswith("#"):
         raise BadURL(f"unexpected '#{u.fragment}' in '{text}' (a device URL has no fragment; options go after ?)")
     if "@" in u.netloc:
@@ -244,8 +274,10 @@ def _options(text: str, query: str, scheme: str) -> dict[str, str]:
             raise BadURL(f"option '{key}' given {len(values)} times in '{text}': give it once")
         if key not in _OPTIONS[scheme]:
             hint = difflib.get_close_matches(key, sorted(_OPTIONS[scheme]), n=1)
-            raise BadURL(f"unknown option '{key}' in {scheme} URL" + (f"; did you mean '{hint[0]}'?" if hint else
-                         f" (known: {', '.join(sorted(_OPTIONS[scheme]))})"))
+            raise BadURL(
+                f"unknown option '{key}' in {scheme} URL"
+                + (f"; did you mean '{hint[0]}'?" if hint else f" (known: {', '.join(sorted(_OPTIONS[scheme]))})")
+            )
         options[key] = values[-1]
     return options
 
@@ -313,10 +345,8 @@ def pacing(url: DeviceURL, after_connect_ms: float = 0, between_ms: float = 0) -
     """Seconds of (pause after connecting, least gap between requests): the URL's options, else the
     profile's ``limits`` given here."""
     o = url.options
-    after = (parse_duration(o["pause_after_connect"]) if "pause_after_connect" in o
-             else after_connect_ms / 1000)
-    between = (parse_duration(o["pause_between_requests"]) if "pause_between_requests" in o
-               else between_ms / 1000)
+    after = parse_duration(o["pause_after_connect"]) if "pause_after_connect" in o else after_connect_ms / 1000
+    between = parse_duration(o["pause_between_requests"]) if "pause_between_requests" in o else between_ms / 1000
     return after, between
 
 

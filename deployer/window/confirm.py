@@ -19,9 +19,16 @@ from .held import pending_path
 from .held import record as _journal
 
 
-async def await_confirmation(run: str, seconds: float, options: ApplyOptions, *,
-                             on_wait: Callable[[float], None] | None = None, poll: float = 0.2,
-                             results: Sequence[DeviceResult] = (), gone: asyncio.Event | None = None) -> bool:
+async def await_confirmation(
+    run: str,
+    seconds: float,
+    options: ApplyOptions,
+    *,
+    on_wait: Callable[[float], None] | None = None,
+    poll: float = 0.2,
+    results: Sequence[DeviceResult] = (),
+    gone: asyncio.Event | None = None,
+) -> bool:
     """Wait until ``deployer confirm`` wrote a ``confirmed`` line for ``run`` (True) or ``seconds`` ran out.
 
     The wait runs on the monotonic clock (a step of the wall clock changes nothing); the journal's
@@ -35,9 +42,19 @@ async def await_confirmation(run: str, seconds: float, options: ApplyOptions, *,
     path = journal.path_of(options.state_dir)
     until = journal.deadline(seconds)
     deadline = until["deadline_monotonic"]
-    _journal(options, {"event": "confirm-awaited", "run": run, "time": journal._now(), "pid": os.getpid(),
-                       "pid_start": holder.process_start(os.getpid()), **until,
-                       "report": pending_path(options.state_dir, run)}, *results)
+    _journal(
+        options,
+        {
+            "event": "confirm-awaited",
+            "run": run,
+            "time": journal._now(),
+            "pid": os.getpid(),
+            "pid_start": holder.process_start(os.getpid()),
+            **until,
+            "report": pending_path(options.state_dir, run),
+        },
+        *results,
+    )
     offset = _size(path)
     if on_wait is not None:
         on_wait(until["deadline_epoch"])
@@ -50,9 +67,16 @@ async def await_confirmation(run: str, seconds: float, options: ApplyOptions, *,
             _journal(options, {"event": "confirm-expired", "run": run, "time": journal._now()}, *results)
             return False
         if gone is not None and gone.is_set():
-            _journal(options, {"event": "confirm-interrupted", "run": run, "time": journal._now(),
-                               "reason": "every device waiting failed its health checks and was rolled back"},
-                     *results)
+            _journal(
+                options,
+                {
+                    "event": "confirm-interrupted",
+                    "run": run,
+                    "time": journal._now(),
+                    "reason": "every device waiting failed its health checks and was rolled back",
+                },
+                *results,
+            )
             return False
         try:
             await asyncio.sleep(min(poll, left))
@@ -133,11 +157,17 @@ def awaiting(state_dir: str) -> list[Awaiting]:
             recipes[run] = rec.get("recipe")
         elif event == "confirm-awaited":
             pid = rec.get("pid")
-            out[run] = Awaiting(run, pid if isinstance(pid, int) else None, str(rec.get("deadline", "")),
-                                _number(rec.get("deadline_epoch")) or 0.0, str(rec.get("report", "")),
-                                recipes.get(run), _number(rec.get("pid_start")),
-                                _number(rec.get("deadline_monotonic")),
-                                str(rec["boot_id"]) if rec.get("boot_id") else None)
+            out[run] = Awaiting(
+                run,
+                pid if isinstance(pid, int) else None,
+                str(rec.get("deadline", "")),
+                _number(rec.get("deadline_epoch")) or 0.0,
+                str(rec.get("report", "")),
+                recipes.get(run),
+                _number(rec.get("pid_start")),
+                _number(rec.get("deadline_monotonic")),
+                str(rec["boot_id"]) if rec.get("boot_id") else None,
+            )
         elif event in ("confirmed", "confirm-expired", "confirm-interrupted", "run-finished"):
             out.pop(run, None)
     return list(out.values())
@@ -165,33 +195,53 @@ def confirm_run(state_dir: str, run: str | None = None) -> Awaiting:
     if run is not None:
         match = [a for a in waiting if a.run == run]
         if not match:
-            raise UsageError(f"run {run} does not wait for a confirmation in {where}"
-                             + (f" (waiting: {', '.join(a.run for a in waiting)})" if waiting else ""))
+            raise UsageError(
+                f"run {run} does not wait for a confirmation in {where}"
+                + (f" (waiting: {', '.join(a.run for a in waiting)})" if waiting else "")
+            )
         target = match[0]
     elif not waiting:
         soaks = soaking(state_dir)
         soaking_now = sorted(r.run for r in journal.unfinished(state_dir)[0] if r.run in soaks and r.running)
         if soaking_now:
-            raise UsageError(f"run {', '.join(soaking_now)} is still soaking: it asks for the confirmation once its "
-                             "soak passed (deployer status shows it)")
+            raise UsageError(
+                f"run {', '.join(soaking_now)} is still soaking: it asks for the confirmation once its "
+                "soak passed (deployer status shows it)"
+            )
         raise UsageError(f"no run waits for a confirmation in {where} (wrong --state-dir?)")
     elif len(waiting) > 1:
-        raise UsageError("several runs wait for a confirmation: name one (deployer confirm RUN): "
-                         + ", ".join(f"{a.run} ({a.recipe or '?'}, until {a.until()})" for a in waiting))
+        raise UsageError(
+            "several runs wait for a confirmation: name one (deployer confirm RUN): "
+            + ", ".join(f"{a.run} ({a.recipe or '?'}, until {a.until()})" for a in waiting)
+        )
     else:
         target = waiting[0]
     if not target.alive:
-        raise UsageError(f"run {target.run} waited for a confirmation, but its process (PID {target.pid}) is gone: "
-                         "nothing can send its commit. Its devices hold uncommitted values; restore them with: "
-                         f"deployer rollback --from-report {target.report} --state-dir {state_dir} --yes")
+        raise UsageError(
+            f"run {target.run} waited for a confirmation, but its process (PID {target.pid}) is gone: "
+            "nothing can send its commit. Its devices hold uncommitted values; restore them with: "
+            f"deployer rollback --from-report {target.report} --state-dir {state_dir} --yes"
+        )
     if target.left() <= 0:
-        raise UsageError(f"run {target.run}: the confirmation time ran out at {target.until()}; "
-                         "it is rolling back (see deployer status)")
+        raise UsageError(
+            f"run {target.run}: the confirmation time ran out at {target.until()}; "
+            "it is rolling back (see deployer status)"
+        )
     options = ApplyOptions(state_dir=state_dir, run_id=target.run)  # on a full disk, the run's reserve takes it
-    if not _journal(options, {"event": "confirmed", "run": target.run, "time": journal._now(),
-                              "user": journal.user_name(), "pid": os.getpid()}):
-        raise StateError(f"cannot write the journal {where}: the confirmation was not recorded, so run {target.run} "
-                         f"does not see it (disk full?); it rolls back at {target.until()} unless confirmed")
+    if not _journal(
+        options,
+        {
+            "event": "confirmed",
+            "run": target.run,
+            "time": journal._now(),
+            "user": journal.user_name(),
+            "pid": os.getpid(),
+        },
+    ):
+        raise StateError(
+            f"cannot write the journal {where}: the confirmation was not recorded, so run {target.run} "
+            f"does not see it (disk full?); it rolls back at {target.until()} unless confirmed"
+        )
     return target
 
 
@@ -202,12 +252,16 @@ def outcome(state_dir: str, target: Awaiting, *, poll: float = 0.1) -> dict[str,
     a step failed, the time ran out first) or the run's process ended without saying."""
     while True:
         for rec in journal.read(state_dir, containing=target.run):
-            if rec is not None and rec.get("run") == target.run and rec.get("event") in ("confirm-outcome",
-                                                                                         "run-finished"):
+            if (
+                rec is not None
+                and rec.get("run") == target.run
+                and rec.get("event") in ("confirm-outcome", "run-finished")
+            ):
                 return _said(target, rec)
         if not target.alive:
-            raise NotCommitted(f"run {target.run} ended without saying whether it sent its commit "
-                               "(see deployer status)")
+            raise NotCommitted(
+                f"run {target.run} ended without saying whether it sent its commit (see deployer status)"
+            )
         time.sleep(poll)
 
 
@@ -215,11 +269,15 @@ def _said(target: Awaiting, rec: dict[str, Any]) -> dict[str, Any]:
     if rec.get("event") == "run-finished":  # an older run, or one that could not write its outcome line
         bad = [d for d in rec.get("devices") or [] if isinstance(d, dict) and d.get("status") not in ("ok", "sent")]
         if bad:
-            raise NotCommitted(f"run {target.run}: the commit was not sent to "
-                               + ", ".join(f"{d.get('name')} ({d.get('status')})" for d in bad))
+            raise NotCommitted(
+                f"run {target.run}: the commit was not sent to "
+                + ", ".join(f"{d.get('name')} ({d.get('status')})" for d in bad)
+            )
         return rec
     failed = rec.get("not_committed") or {}
     if isinstance(failed, dict) and failed:
-        raise NotCommitted(f"run {target.run}: the commit was not sent to "
-                           + "; ".join(f"{name}: {why}" for name, why in failed.items()))
+        raise NotCommitted(
+            f"run {target.run}: the commit was not sent to "
+            + "; ".join(f"{name}: {why}" for name, why in failed.items())
+        )
     return rec

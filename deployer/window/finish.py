@@ -58,9 +58,16 @@ async def _locks(w: Written, options: ApplyOptions) -> str | None:
     if w.locks:
         return None
     try:
-        w.locks.extend(await lock.acquire_device(w.url.lock_keys, w.unit, timeout=options.lock_timeout,
-                                                 command=lock.command_line(), directory=options.lock_dir,
-                                                 run=options.run_id))
+        w.locks.extend(
+            await lock.acquire_device(
+                w.url.lock_keys,
+                w.unit,
+                timeout=options.lock_timeout,
+                command=lock.command_line(),
+                directory=options.lock_dir,
+                run=options.run_id,
+            )
+        )
     except Locked as e:
         return str(e)
     return None
@@ -73,13 +80,11 @@ async def recheck(session: Session, w: Written) -> Changed:
     params = [prof.parameter(p.name) for p in ours]
     if not params:
         return []
-    now = values_of(params, await session.read_blocks(plan_reads(prof, [p.name for p in params if p.readable]),
-                                                      prof))
+    now = values_of(params, await session.read_blocks(plan_reads(prof, [p.name for p in params if p.readable]), prof))
     out: Changed = []
     for p in ours:
         found = now.get(p.name)
-        if found is not None and p.after_raw is not None and not prof.parameter(p.name).same_value(found,
-                                                                                                  p.after_raw):
+        if found is not None and p.after_raw is not None and not prof.parameter(p.name).same_value(found, p.after_raw):
             out.append((p, found))
     return out
 
@@ -87,8 +92,11 @@ async def recheck(session: Session, w: Written) -> Changed:
 def changed_text(w: Written, changed: Changed) -> str:
     """``F07 holds 9.99 s, the run wrote 3 s; ...``: each changed parameter, found and written."""
     prof = w.recipe.profile
-    return "; ".join(f"{p.name} holds {show_registers(prof.parameter(p.name), found)}, the run wrote "
-                     f"{show_registers(prof.parameter(p.name), p.after_raw)}" for p, found in changed)
+    return "; ".join(
+        f"{p.name} holds {show_registers(prof.parameter(p.name), found)}, the run wrote "
+        f"{show_registers(prof.parameter(p.name), p.after_raw)}"
+        for p, found in changed
+    )
 
 
 async def _read_again(w: Written, options: ApplyOptions, records: list[RequestRecord]) -> Changed | str:
@@ -136,9 +144,20 @@ async def _roll_back(w: Written, why: str, options: ApplyOptions) -> None:
     left = {p.name for p, _ in changed}
     snap = replace(snap, desired=tuple(d for d in snap.desired if d.name not in left))
     # a device whose commit was sent gets the restored values committed too (else its memory keeps the change)
-    back_opts = replace(options, hold_commit=res.commit != "sent", confirm=None, run_id=None,
-                        write_all=False, applied=res.snapshot, soak=None, confirm_within=None, keep_lock=None,
-                        lock_held=True, on_writing=None, restoring=True)  # its result says what the rollback did
+    back_opts = replace(
+        options,
+        hold_commit=res.commit != "sent",
+        confirm=None,
+        run_id=None,
+        write_all=False,
+        applied=res.snapshot,
+        soak=None,
+        confirm_within=None,
+        keep_lock=None,
+        lock_held=True,
+        on_writing=None,
+        restoring=True,
+    )  # its result says what the rollback did
     back = None
     if snap.desired:
         try:
@@ -154,8 +173,9 @@ async def _roll_back(w: Written, why: str, options: ApplyOptions) -> None:
         p.error = f"changed during the window: {changed_text(w, [(p, found)])}; left as found, not rolled back"
     if changed:
         res.status = "failed"
-        res.error = (f"{why}; changed since the run wrote it: {changed_text(w, changed)}: left as found"
-                     + (f"; the run's other parameters rolled back ({_back_status(back)})" if back else ""))
+        res.error = f"{why}; changed since the run wrote it: {changed_text(w, changed)}: left as found" + (
+            f"; the run's other parameters rolled back ({_back_status(back)})" if back else ""
+        )
     elif back is not None and back.status == "ok":
         res.status, res.error = "rolled-back", f"{why}; rolled back from the snapshot (verified)"
     elif back is not None:
@@ -199,9 +219,21 @@ def _merge(w: Written, back: DeviceResult) -> None:
 
 def _journal_rollback(options: ApplyOptions, w: Written, why: str) -> None:
     if options.run_id is not None:
-        record(options, {"event": "rolled-back", "run": options.run_id, "time": journal._now(), "name": w.name,
-                         "url": w.result.url, "unit": w.unit, "status": w.result.status, "reason": why,
-                         "snapshot": w.result.snapshot}, w.result)
+        record(
+            options,
+            {
+                "event": "rolled-back",
+                "run": options.run_id,
+                "time": journal._now(),
+                "name": w.name,
+                "url": w.result.url,
+                "unit": w.unit,
+                "status": w.result.status,
+                "reason": why,
+                "snapshot": w.result.snapshot,
+            },
+            w.result,
+        )
 
 
 def _taught(options: ApplyOptions, w: Written) -> Profile:
@@ -236,9 +268,20 @@ async def send_commit(w: Written, options: ApplyOptions) -> None:
 def _journal_commit(options: ApplyOptions, w: Written, changed: str | None) -> None:
     res = w.result
     if options.run_id is not None:
-        record(options, {"event": "commit", "run": options.run_id, "time": journal._now(), "name": w.name,
-                         "url": res.url, "unit": w.unit, "result": res.commit,
-                         **({"error": res.error or changed} if res.commit != "sent" else {})}, res)
+        record(
+            options,
+            {
+                "event": "commit",
+                "run": options.run_id,
+                "time": journal._now(),
+                "name": w.name,
+                "url": res.url,
+                "unit": w.unit,
+                "result": res.commit,
+                **({"error": res.error or changed} if res.commit != "sent" else {}),
+            },
+            res,
+        )
 
 
 async def _commit(w: Written, options: ApplyOptions) -> str | None:
@@ -252,31 +295,64 @@ async def _commit(w: Written, options: ApplyOptions) -> str | None:
         res.status, res.error, res.commit = "failed", f"commit not sent: {busy}", "not sent"
         return None
     ours = [p for p in res.parameters if p.status == "ok" and p.after_raw is not None]
-    rec = replace(w.recipe, profile=prof, desired=tuple(
-        Desired(prof.parameter(p.name), p.desired, tuple(p.after_raw)) for p in ours if p.after_raw is not None))
+    rec = replace(
+        w.recipe,
+        profile=prof,
+        desired=tuple(
+            Desired(prof.parameter(p.name), p.desired, tuple(p.after_raw)) for p in ours if p.after_raw is not None
+        ),
+    )
     plan = Planner(rec, device_id=False, pacing=pacing_for(w.url, prof)).plan(
-        Target(res.url, w.unit, profile_ref(prof)), {p.name: tuple(p.after_raw) for p in ours if p.after_raw},
-        commit_owed=True)
-    results = {p.name: ParameterResult(p.name, p.address, p.count, p.desired, tuple(p.after_raw or ()),
-                                       status="ok", parameter=prof.parameter(p.name)) for p in ours}
+        Target(res.url, w.unit, profile_ref(prof)),
+        {p.name: tuple(p.after_raw) for p in ours if p.after_raw},
+        commit_owed=True,
+    )
+    results = {
+        p.name: ParameterResult(
+            p.name,
+            p.address,
+            p.count,
+            p.desired,
+            tuple(p.after_raw or ()),
+            status="ok",
+            parameter=prof.parameter(p.name),
+        )
+        for p in ours
+    }
     try:
         async with connected(w.url, w.unit, prof, records=res.requests, backoff=options.backoff) as session:
-            ex = Execution(session, rec, res, results, replace(options, hold_commit=False, soak=None,
-                                                               confirm_within=None),
-                           lambda regs: values_of([d.parameter for d in rec.desired], regs))
-            if not await ex.checks(plan.steps[:plan.checks]):
+            ex = Execution(
+                session,
+                rec,
+                res,
+                results,
+                replace(options, hold_commit=False, soak=None, confirm_within=None),
+                lambda regs: values_of([d.parameter for d in rec.desired], regs),
+            )
+            if not await ex.checks(plan.steps[: plan.checks]):
                 why = res.error or "the device could not be read"
-                res.status, res.error, res.commit = "failed", f"commit not sent: re-reading the parameters failed: " \
-                    f"{why.removesuffix('; nothing was written')}", "not sent"
+                res.status, res.error, res.commit = (
+                    "failed",
+                    f"commit not sent: re-reading the parameters failed: {why.removesuffix('; nothing was written')}",
+                    "not sent",
+                )
                 return None
-            changed = [(p, ex.before[p.name]) for p in ours if p.name in ex.before and p.after_raw is not None
-                       and not prof.parameter(p.name).same_value(ex.before[p.name], p.after_raw)]
+            changed = [
+                (p, ex.before[p.name])
+                for p in ours
+                if p.name in ex.before
+                and p.after_raw is not None
+                and not prof.parameter(p.name).same_value(ex.before[p.name], p.after_raw)
+            ]
             if changed:
                 res.commit = "not sent"
                 return changed_text(w, changed)
             await ex.changes(plan)
     except (Unreachable, DeviceGone, ExceptionResponse) as e:
-        res.status, res.error, res.commit = "failed", f"commit not sent: re-reading the parameters failed: {e}", \
-            "not sent"
+        res.status, res.error, res.commit = (
+            "failed",
+            f"commit not sent: re-reading the parameters failed: {e}",
+            "not sent",
+        )
         return None
     return None

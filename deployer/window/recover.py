@@ -31,8 +31,9 @@ class Agent(Protocol):
 
     state_dir: str
 
-    def event(self, kind: str, message: str, *, device: str | None = None,
-              detail: Mapping[str, Any] | None = None) -> dict[str, Any]: ...
+    def event(
+        self, kind: str, message: str, *, device: str | None = None, detail: Mapping[str, Any] | None = None
+    ) -> dict[str, Any]: ...
 
     def close_window(self, w: WindowState, state: str) -> None: ...
 
@@ -73,8 +74,11 @@ async def roll_back(agent: Agent, w: WindowState, why: str) -> None:
     """The window is over without a confirmation: its devices rolled back from the run's snapshots (even values
     changed since: the window's owner is gone), the report it held given up."""
     agent.close_window(w, "expired")
-    agent.event("window-expired", f"run {w.run}: {why}; rolling back {', '.join(w.devices)}",
-                detail={"run": w.run, "devices": w.devices})
+    agent.event(
+        "window-expired",
+        f"run {w.run}: {why}; rolling back {', '.join(w.devices)}",
+        detail={"run": w.run, "devices": w.devices},
+    )
     try:
         back = await agent.roll_back(w.report, reason=f"window of run {w.run}: {why}")
     except DeployerError as e:

@@ -36,10 +36,15 @@ class Window:
     deadline)`` once the run waits for its confirmation.
     """
 
-    def __init__(self, opts: ApplyOptions, recipe_name: str | None, *,
-                 on_changed: Callable[[DeviceResult], None] | None = None,
-                 on_soak: Callable[[int, list[str]], None] | None = None,
-                 on_confirm_wait: Callable[[str, float], None] | None = None) -> None:
+    def __init__(
+        self,
+        opts: ApplyOptions,
+        recipe_name: str | None,
+        *,
+        on_changed: Callable[[DeviceResult], None] | None = None,
+        on_soak: Callable[[int, list[str]], None] | None = None,
+        on_confirm_wait: Callable[[str, float], None] | None = None,
+    ) -> None:
         self.opts = opts
         self.recipe_name = recipe_name
         self.on_changed = on_changed
@@ -94,9 +99,15 @@ class Window:
         opts = self.opts
         if stop is not None and rollback_on_failure:
             reason = f"rolled back: the rollout stopped ({stop.removeprefix('not started: ')})"
-            await per_line([w for w in devices if w.result.snapshot is not None
-                            and w.result.status not in ("rolled-back", "skipped", "unreachable")],
-                           lambda w: roll_back(w, reason, opts))
+            await per_line(
+                [
+                    w
+                    for w in devices
+                    if w.result.snapshot is not None
+                    and w.result.status not in ("rolled-back", "skipped", "unreachable")
+                ],
+                lambda w: roll_back(w, reason, opts),
+            )
         if opts.confirm_within is not None:
             await self.confirm_or_roll_back(devices)
         settle_commits(devices)
@@ -131,18 +142,32 @@ class Window:
         # the health checks go on being read until the answer: a device that fails meanwhile is rolled back at once
         stop, gone = asyncio.Event(), asyncio.Event()
         watched = [w for w in waiting if w.recipe.profile.health]
-        watcher = asyncio.ensure_future(soak(watched, replace(opts, soak=opts.confirm_within), report=pending,
-                                             until=stop, during="the confirmation wait")) if watched else None
+        watcher = (
+            asyncio.ensure_future(
+                soak(
+                    watched,
+                    replace(opts, soak=opts.confirm_within),
+                    report=pending,
+                    until=stop,
+                    during="the confirmation wait",
+                )
+            )
+            if watched
+            else None
+        )
         if watcher is not None and len(watched) == len(waiting):  # all of them rolled back: nothing to confirm
-            watcher.add_done_callback(lambda _: gone.set() if not any(w.result.status == "ok" for w in waiting)
-                                      else None)
+            watcher.add_done_callback(
+                lambda _: gone.set() if not any(w.result.status == "ok" for w in waiting) else None
+            )
         try:
-            confirmed = await await_confirmation(run, opts.confirm_within, opts, on_wait=on_wait,
-                                                 results=[w.result for w in waiting], gone=gone)
+            confirmed = await await_confirmation(
+                run, opts.confirm_within, opts, on_wait=on_wait, results=[w.result for w in waiting], gone=gone
+            )
         except asyncio.CancelledError:  # Ctrl-C while waiting: the answer is no, at once
             stop.set()
-            rolling = asyncio.ensure_future(self._stop_watching(watcher, waiting, "interrupted while waiting for "
-                                                                                  "the confirmation"))
+            rolling = asyncio.ensure_future(
+                self._stop_watching(watcher, waiting, "interrupted while waiting for the confirmation")
+            )
             await asyncio.shield(rolling)
             raise
         stop.set()
@@ -156,18 +181,29 @@ class Window:
             why = f"not confirmed within {format_duration(opts.confirm_within)}"
             await per_line(holding, lambda w: roll_back(w, why, opts))
         # what `deployer confirm` waits for, to say whether the commit went out
-        record(opts, {"event": "confirm-outcome", "run": run, "time": journal._now(), "confirmed": confirmed,
-                      "committed": [w.name for w in waiting if w.result.commit == "sent"],
-                      # confirmed, with no commit step to send: the values stay as written (in RAM where the
-                      # device keeps Modbus writes there)
-                      "kept": [w.name for w in waiting if not w.recipe.profile.commit and w.result.status == "ok"],
-                      "not_committed": {w.name: w.result.error or w.result.status for w in waiting
-                                        if w.result.status != "ok"
-                                        or (w.recipe.profile.commit and w.result.commit != "sent")}},
-               *(w.result for w in waiting))
+        record(
+            opts,
+            {
+                "event": "confirm-outcome",
+                "run": run,
+                "time": journal._now(),
+                "confirmed": confirmed,
+                "committed": [w.name for w in waiting if w.result.commit == "sent"],
+                # confirmed, with no commit step to send: the values stay as written (in RAM where the
+                # device keeps Modbus writes there)
+                "kept": [w.name for w in waiting if not w.recipe.profile.commit and w.result.status == "ok"],
+                "not_committed": {
+                    w.name: w.result.error or w.result.status
+                    for w in waiting
+                    if w.result.status != "ok" or (w.recipe.profile.commit and w.result.commit != "sent")
+                },
+            },
+            *(w.result for w in waiting),
+        )
 
-    async def _stop_watching(self, watcher: asyncio.Future[list[Written]] | None, waiting: Sequence[Written],
-                             why: str) -> None:
+    async def _stop_watching(
+        self, watcher: asyncio.Future[list[Written]] | None, waiting: Sequence[Written], why: str
+    ) -> None:
         """Interrupted while waiting: the health watch ends, then every device still holding the change is
         rolled back."""
         if watcher is not None:

@@ -32,22 +32,31 @@ def check_soak_profiles(profiles: Sequence[Profile]) -> None:
     """``--soak`` watches the profile's health checks: a profile without any is refused up front."""
     bare = sorted({p.id for p in profiles if not p.health})
     if bare:
-        raise UsageError(f"--soak watches the profile's health checks, and profile {', '.join(bare)} declares none "
-                         "(health: in the profile, e.g. - {register: 48, equals: 0, description: drive fault code "
-                         "is zero}); use --confirm-within to hold the commit without checks")
+        raise UsageError(
+            f"--soak watches the profile's health checks, and profile {', '.join(bare)} declares none "
+            "(health: in the profile, e.g. - {register: 48, equals: 0, description: drive fault code "
+            "is zero}); use --confirm-within to hold the commit without checks"
+        )
 
 
-async def read_health(session: Session, prof: Profile,
-                      skip: Sequence[int] = ()) -> tuple[HealthCheck, list[int]] | None:
+async def read_health(
+    session: Session, prof: Profile, skip: Sequence[int] = ()
+) -> tuple[HealthCheck, list[int]] | None:
     """The first failed check and the words read, or None when the device is healthy. ``skip``: the indices of
     checks not read (those failing before a change written anyway: ``DeviceResult.unhealthy_before``)."""
     failing = await failing_checks(session, prof, skip, first=True)
     return (failing[0][1], failing[0][2]) if failing else None
 
 
-async def soak(devices: Sequence[Written], options: ApplyOptions, *,
-               on_failed: Callable[[Written], None] | None = None, report: str | None = None,
-               until: asyncio.Event | None = None, during: str | None = None) -> list[Written]:
+async def soak(
+    devices: Sequence[Written],
+    options: ApplyOptions,
+    *,
+    on_failed: Callable[[Written], None] | None = None,
+    report: str | None = None,
+    until: asyncio.Event | None = None,
+    during: str | None = None,
+) -> list[Written]:
     """Watch ``devices`` together for ``options.soak`` seconds; roll back each one whose health fails.
 
     ``until``: the watch also ends (the devices still healthy pass) once this is set: ``confirm`` watches
@@ -75,9 +84,20 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
         for h in w.locks:  # (a confirmation wait that watches the health says so itself)
             h.in_window("soak", time.time() + options.soak)
     if journaled is not None:
-        _journal(options, {"event": "soak-started", "run": run, "time": journal._now(), "seconds": options.soak,
-                           "interval": options.health_interval, "devices": [w.name for w in todo],
-                           "report": report, **journal.deadline(options.soak)}, *(w.result for w in todo))
+        _journal(
+            options,
+            {
+                "event": "soak-started",
+                "run": run,
+                "time": journal._now(),
+                "seconds": options.soak,
+                "interval": options.health_interval,
+                "devices": [w.name for w in todo],
+                "report": report,
+                **journal.deadline(options.soak),
+            },
+            *(w.result for w in todo),
+        )
     passed: list[Written] = []
     failed: list[Written] = []
 
@@ -119,15 +139,28 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
             await _pause(min(options.health_interval, left), until)
         seen = time.monotonic() - start
         if why is None:
-            w.result.notices.append(f"{during or 'soak'} passed: {reads} health reads over "
-                                    f"{format_duration(seen if during else options.soak or 0)}")
+            w.result.notices.append(
+                f"{during or 'soak'} passed: {reads} health reads over "
+                f"{format_duration(seen if during else options.soak or 0)}"
+            )
             passed.append(w)
             return
         window = during or f"the {format_duration(options.soak or 0)} soak"
         why = f"health check failed after {seen:.1f} s of {window}: {why}"
         if run is not None:
-            _journal(options, {"event": "health-failed", "run": run, "time": journal._now(), "name": w.name,
-                               "url": w.result.url, "unit": w.unit, "reason": why}, w.result)
+            _journal(
+                options,
+                {
+                    "event": "health-failed",
+                    "run": run,
+                    "time": journal._now(),
+                    "name": w.name,
+                    "url": w.result.url,
+                    "unit": w.unit,
+                    "reason": why,
+                },
+                w.result,
+            )
         failed.append(w)
         if on_failed is not None:
             on_failed(w)
@@ -170,11 +203,19 @@ async def soak(devices: Sequence[Written], options: ApplyOptions, *,
         for transport, _, _ in lines.values():
             await transport.close()
         if journaled is not None:
-            _journal(options, {"event": "soak-finished", "run": run, "time": journal._now(),
-                               "passed": [w.name for w in passed],
-                               "rolled_back": [w.name for w in failed if w.result.status == "rolled-back"],
-                               "failed": [w.name for w in failed if w.result.status != "rolled-back"],
-                               **({"interrupted": True} if interrupted else {})}, *(w.result for w in todo))
+            _journal(
+                options,
+                {
+                    "event": "soak-finished",
+                    "run": run,
+                    "time": journal._now(),
+                    "passed": [w.name for w in passed],
+                    "rolled_back": [w.name for w in failed if w.result.status == "rolled-back"],
+                    "failed": [w.name for w in failed if w.result.status != "rolled-back"],
+                    **({"interrupted": True} if interrupted else {}),
+                },
+                *(w.result for w in todo),
+            )
     return [w for w in todo if w in passed]
 
 

@@ -30,8 +30,9 @@ class WindowState:
     options: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
-    def opened(cls, run: str, kind: str, devices: Sequence[str], deadline: float, *, state_dir: str,
-               boot_id: str) -> WindowState:
+    def opened(
+        cls, run: str, kind: str, devices: Sequence[str], deadline: float, *, state_dir: str, boot_id: str
+    ) -> WindowState:
         return cls(run, kind, list(devices), deadline, pending_path(state_dir, run), boot_id)
 
     @property
@@ -50,17 +51,29 @@ class WindowState:
 
     def run_json(self) -> dict[str, Any]:
         """What a run says of its window."""
-        out: dict[str, Any] = {"kind": self.kind, "devices": self.devices, "deadline": self.deadline,
-                               "deadline_epoch": self.deadline_epoch}
+        out: dict[str, Any] = {
+            "kind": self.kind,
+            "devices": self.devices,
+            "deadline": self.deadline,
+            "deadline_epoch": self.deadline_epoch,
+        }
         if self.state != "open":
             out["state"] = self.state
         return out
 
     def to_json(self, now: float) -> dict[str, Any]:
         """What ``GET /v1/windows`` says of it."""
-        return {"run": self.run, "kind": self.kind, "devices": self.devices, "deadline_epoch": self.deadline_epoch,
-                "deadline": _iso(self.deadline_epoch, millis=True), "boot_id": self.boot_id, "report": self.report,
-                "state": self.state, "seconds_left": max(0.0, self.deadline_epoch - now)}
+        return {
+            "run": self.run,
+            "kind": self.kind,
+            "devices": self.devices,
+            "deadline_epoch": self.deadline_epoch,
+            "deadline": _iso(self.deadline_epoch, millis=True),
+            "boot_id": self.boot_id,
+            "report": self.report,
+            "state": self.state,
+            "seconds_left": max(0.0, self.deadline_epoch - now),
+        }
 
 
 def _iso(t: float, *, millis: bool = False) -> str:

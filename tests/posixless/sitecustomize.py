@@ -25,13 +25,39 @@ with contextlib.suppress(ImportError):
 for _name in ("fcntl", "pwd", "grp", "resource", "termios"):
     sys.modules[_name] = None  # type: ignore[assignment]  # import raises ModuleNotFoundError
 
-for _name in ("getuid", "geteuid", "getgid", "getegid", "fchmod", "O_NOFOLLOW", "O_CLOEXEC", "O_NONBLOCK",
-              "pread", "writev", "sysconf", "fork", "uname", "getpgid", "setsid", "killpg"):
+for _name in (
+    "getuid",
+    "geteuid",
+    "getgid",
+    "getegid",
+    "fchmod",
+    "O_NOFOLLOW",
+    "O_CLOEXEC",
+    "O_NONBLOCK",
+    "pread",
+    "writev",
+    "sysconf",
+    "fork",
+    "uname",
+    "getpgid",
+    "setsid",
+    "killpg",
+):
     if hasattr(os, _name):
         delattr(os, _name)
 
-for _name in ("SIGHUP", "SIGUSR1", "SIGUSR2", "SIGKILL", "SIGALRM", "SIGQUIT", "alarm", "setitimer",
-              "pthread_kill", "pthread_sigmask"):  # Windows' signal module has none of these
+for _name in (
+    "SIGHUP",
+    "SIGUSR1",
+    "SIGUSR2",
+    "SIGKILL",
+    "SIGALRM",
+    "SIGQUIT",
+    "alarm",
+    "setitimer",
+    "pthread_kill",
+    "pthread_sigmask",
+):  # Windows' signal module has none of these
     if hasattr(signal, _name):
         delattr(signal, _name)
 

@@ -72,9 +72,18 @@ class Pair(socketserver.StreamRequestHandler):
                     for link in links:
                         link.unlink(missing_ok=True)
                     proc = subprocess.Popen(
-                        ["socat", "-r", str(work / "a2b"), "-R", str(work / "b2a"),
-                         f"pty,raw,echo=0,link={links[0]}", f"pty,raw,echo=0,link={links[1]}"],
-                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                        [
+                            "socat",
+                            "-r",
+                            str(work / "a2b"),
+                            "-R",
+                            str(work / "b2a"),
+                            f"pty,raw,echo=0,link={links[0]}",
+                            f"pty,raw,echo=0,link={links[1]}",
+                        ],
+                        stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL,
+                    )
                     _running.add(proc)
                     deadline = time.monotonic() + 10
                     while not all(link.is_symlink() for link in links) and time.monotonic() < deadline:

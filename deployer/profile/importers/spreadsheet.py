@@ -50,8 +50,16 @@ COLUMNS: dict[str, tuple[str, ...]] = {
     "scale": ("scale", "resolution", "factor", "multiplier", "gain"),
     "min": ("min", "minimum", "low", "rangemin"),
     "max": ("max", "maximum", "high", "rangemax"),
-    "range": ("range", "settingrange", "setrange", "valuerange", "limits", "adjustablerange", "datarange",
-              "setpointrange"),
+    "range": (
+        "range",
+        "settingrange",
+        "setrange",
+        "valuerange",
+        "limits",
+        "adjustablerange",
+        "datarange",
+        "setpointrange",
+    ),
     "access": ("access", "rw", "r/w", "mode", "accesstype"),
     "description": ("description", "desc", "comment", "label"),
     "bits": ("bits", "bit"),
@@ -88,9 +96,12 @@ _DIGITS = re.compile(r"[0-9]{1,9}")  # small counts; str.isdigit() also accepts 
 _ADDRESS = re.compile(r"(?:0[xX][0-9A-Fa-f]{1,8}|[0-9A-Fa-f]{1,8}[hH]|[0-9]{1,9})")
 _NUM = r"[-+]?(?:[0-9](?:[0-9.,']*[0-9])?|[.,][0-9]+)(?:[eE][-+]?[0-9]+)?"
 _QUANTITY = re.compile(rf"\s*(?P<num>{_NUM})\s*(?P<unit>[^\d\s.,+-][^\d]*?)?\s*")
-_RANGE = re.compile(rf"\s*(?P<lo>{_NUM})\s*(?P<lou>[^\d\s.,+\-~–—…][^\d]*?)?\s*"
-                    r"(?:\bto\b|\bbis\b|\.\.\.?|…|~|–|—|-)"
-                    rf"\s*(?P<hi>{_NUM})\s*(?P<hiu>[^\d\s.,+-][^\d]*?)?\s*", re.IGNORECASE)
+_RANGE = re.compile(
+    rf"\s*(?P<lo>{_NUM})\s*(?P<lou>[^\d\s.,+\-~–—…][^\d]*?)?\s*"
+    r"(?:\bto\b|\bbis\b|\.\.\.?|…|~|–|—|-)"
+    rf"\s*(?P<hi>{_NUM})\s*(?P<hiu>[^\d\s.,+-][^\d]*?)?\s*",
+    re.IGNORECASE,
+)
 _FORMULA_CHARS = "=+-@\t\r"  # a cell starting with one of these is a formula to a spreadsheet program
 _FORMULA_STARTS = tuple(_FORMULA_CHARS)
 
@@ -138,9 +149,16 @@ def _cell_starts(line: str, delimiter: str) -> list[int]:
     return starts
 
 
-def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = None,
-             addressing: str = "address", delimiter: str | None = None, byte_order: str | None = None,
-             decimal: str | None = None) -> tuple[Draft, list[str]]:
+def read_csv(
+    path: str,
+    *,
+    profile_id: str,
+    columns: Mapping[str, str] | None = None,
+    addressing: str = "address",
+    delimiter: str | None = None,
+    byte_order: str | None = None,
+    decimal: str | None = None,
+) -> tuple[Draft, list[str]]:
     """The register list at ``path`` as a Draft profile and warnings; InputError with every bad cell at once.
 
     ``decimal``: "comma" or "point" for the decimal mark of every number cell; None: a comma is a decimal
@@ -151,8 +169,17 @@ def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = 
     if nul >= 0:
         line = text.count("\n", 0, nul) + 1
         col = nul - (text.rfind("\n", 0, nul) + 1) + 1
-        raise InputError([Diagnostic(path, line, col, "a NUL character: is this UTF-16 text without a byte-order "
-                                                      "mark? Save the list as UTF-8 (CSV UTF-8 in Excel)")])
+        raise InputError(
+            [
+                Diagnostic(
+                    path,
+                    line,
+                    col,
+                    "a NUL character: is this UTF-16 text without a byte-order "
+                    "mark? Save the list as UTF-8 (CSV UTF-8 in Excel)",
+                )
+            ]
+        )
     if delimiter is None:
         try:
             delimiter = csv.Sniffer().sniff(text[:4096], delimiters=",;\t").delimiter
@@ -160,8 +187,15 @@ def read_csv(path: str, *, profile_id: str, columns: Mapping[str, str] | None = 
             delimiter = ","
     if len(delimiter) != 1:
         raise UsageError(f"--delimiter {delimiter!r}: one character")
-    return _draft(path, _csv_rows(path, text, delimiter), profile_id=profile_id, columns=columns,
-                  addressing=addressing, byte_order=byte_order, decimal=decimal)
+    return _draft(
+        path,
+        _csv_rows(path, text, delimiter),
+        profile_id=profile_id,
+        columns=columns,
+        addressing=addressing,
+        byte_order=byte_order,
+        decimal=decimal,
+    )
 
 
 _LINE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n)|[^\r\n]+\Z")
@@ -187,8 +221,14 @@ def _csv_rows(path: str, text: str, delimiter: str) -> Iterator[Row]:
                 state.first = ln
             state.chars += len(ln)
             if state.chars > MAX_RECORD:
-                raise _Stop(Diagnostic(path, state.line, 1, f"a row of more than {MAX_RECORD:,} characters "
-                                                              "(a register list's rows are short)"))
+                raise _Stop(
+                    Diagnostic(
+                        path,
+                        state.line,
+                        1,
+                        f"a row of more than {MAX_RECORD:,} characters (a register list's rows are short)",
+                    )
+                )
             yield ln
 
     old = csv.field_size_limit()
@@ -209,13 +249,25 @@ def _csv_rows(path: str, text: str, delimiter: str) -> Iterator[Row]:
                 raise _Stop(Diagnostic(path, start, 1, f"more than {MAX_ROWS:,} rows"))
             if len(cells) > MAX_COLUMNS:
                 starts = _cell_starts(state.first[:MAX_RECORD], delimiter)
-                raise _Stop(Diagnostic(path, start, starts[MAX_COLUMNS] if len(starts) > MAX_COLUMNS else 1,
-                                       f"a row of {len(cells):,} cells; at most {MAX_COLUMNS}"))
+                raise _Stop(
+                    Diagnostic(
+                        path,
+                        start,
+                        starts[MAX_COLUMNS] if len(starts) > MAX_COLUMNS else 1,
+                        f"a row of {len(cells):,} cells; at most {MAX_COLUMNS}",
+                    )
+                )
             starts = _cell_starts(state.first, delimiter)
             for i, c in enumerate(cells):
                 if len(c) > MAX_CELL:
-                    raise _Stop(Diagnostic(path, start, starts[i] if i < len(starts) else 1,
-                                           f"a cell of {len(c):,} characters; at most {MAX_CELL:,}"))
+                    raise _Stop(
+                        Diagnostic(
+                            path,
+                            start,
+                            starts[i] if i < len(starts) else 1,
+                            f"a cell of {len(c):,} characters; at most {MAX_CELL:,}",
+                        )
+                    )
             yield Row(start, cells, starts)
             state.chars = 0
     finally:
@@ -225,15 +277,24 @@ def _csv_rows(path: str, text: str, delimiter: str) -> Iterator[Row]:
 # --------------------------------------------------------------------------------------------- xlsx
 
 
-def read_xlsx(path: str, *, profile_id: str, sheet: str | None = None, columns: Mapping[str, str] | None = None,
-              addressing: str = "address", byte_order: str | None = None, decimal: str | None = None
-              ) -> tuple[Draft, list[str]]:
+def read_xlsx(
+    path: str,
+    *,
+    profile_id: str,
+    sheet: str | None = None,
+    columns: Mapping[str, str] | None = None,
+    addressing: str = "address",
+    byte_order: str | None = None,
+    decimal: str | None = None,
+) -> tuple[Draft, list[str]]:
     """A register list in an Excel workbook (openpyxl, the 'xlsx' extra); problems point at FILE[SHEET]:ROW:COLUMN."""
     try:
         import openpyxl
     except ImportError:
-        raise UsageError("reading .xlsx needs openpyxl: pip install 'modbus-deployer[xlsx]' "
-                         "(from a clone of the repository: pip install -e '.[xlsx]')") from None
+        raise UsageError(
+            "reading .xlsx needs openpyxl: pip install 'modbus-deployer[xlsx]' "
+            "(from a clone of the repository: pip install -e '.[xlsx]')"
+        ) from None
     _regular_file(path)
     try:
         with zipfile.ZipFile(path) as z:
@@ -241,22 +302,40 @@ def read_xlsx(path: str, *, profile_id: str, sheet: str | None = None, columns: 
     except (zipfile.BadZipFile, OSError, ValueError) as e:
         raise InputError([Diagnostic(path, 1, 1, f"not an Excel workbook (.xlsx is a zip archive): {e}")]) from None
     if len(infos) > MAX_XLSX_PARTS:
-        raise InputError([Diagnostic(path, 1, 1, f"the workbook's zip holds {len(infos):,} files; at most "
-                                                 f"{MAX_XLSX_PARTS:,}")])
+        raise InputError(
+            [Diagnostic(path, 1, 1, f"the workbook's zip holds {len(infos):,} files; at most {MAX_XLSX_PARTS:,}")]
+        )
     total = sum(i.file_size for i in infos)
     if total > MAX_XLSX_BYTES:
         biggest = max(infos, key=lambda i: i.file_size)
-        raise InputError([Diagnostic(path, 1, 1, f"the workbook unpacks to {total / 1e6:.1f} MB (its largest part "
-                                                 f"{_show(biggest.filename)}: {biggest.file_size / 1e6:.1f} MB); at "
-                                                 f"most {MAX_XLSX_BYTES // (1024 * 1024)} MiB")])
+        raise InputError(
+            [
+                Diagnostic(
+                    path,
+                    1,
+                    1,
+                    f"the workbook unpacks to {total / 1e6:.1f} MB (its largest part "
+                    f"{_show(biggest.filename)}: {biggest.file_size / 1e6:.1f} MB); at "
+                    f"most {MAX_XLSX_BYTES // (1024 * 1024)} MiB",
+                )
+            ]
+        )
     try:
         book = openpyxl.load_workbook(path, read_only=True, data_only=True)
     except Exception as e:  # openpyxl raises its own, zipfile's and XML errors for files it cannot read
         raise InputError([Diagnostic(path, 1, 1, f"cannot read the workbook: {messages.clip(str(e), 200)}")]) from None
     try:
         if sheet is not None and sheet not in book.sheetnames:
-            raise InputError([Diagnostic(path, 1, 1, f"no sheet {_show(sheet)} (sheets: "
-                                                     f"{messages.clip(', '.join(book.sheetnames), 200)})")])
+            raise InputError(
+                [
+                    Diagnostic(
+                        path,
+                        1,
+                        1,
+                        f"no sheet {_show(sheet)} (sheets: {messages.clip(', '.join(book.sheetnames), 200)})",
+                    )
+                ]
+            )
         ws = book[sheet] if sheet is not None else book.worksheets[0]
         where = f"{path}[{ws.title}]"
         part = getattr(ws, "_worksheet_path", None)  # openpyxl's read-only sheet knows its part in the zip
@@ -266,8 +345,15 @@ def read_xlsx(path: str, *, profile_id: str, sheet: str | None = None, columns: 
     finally:
         book.close()
     with zipfile.ZipFile(path) as z:
-        return _draft(where, _sheet_rows(where, z, part, strings), profile_id=profile_id, columns=columns,
-                      addressing=addressing, byte_order=byte_order, decimal=decimal)
+        return _draft(
+            where,
+            _sheet_rows(where, z, part, strings),
+            profile_id=profile_id,
+            columns=columns,
+            addressing=addressing,
+            byte_order=byte_order,
+            decimal=decimal,
+        )
 
 
 def _regular_file(path: str) -> None:
@@ -281,8 +367,16 @@ def _regular_file(path: str) -> None:
     if not stat.S_ISREG(st.st_mode):
         raise InputError([Diagnostic(path, 0, 0, "not a regular file (a directory, device, FIFO or socket)")])
     if st.st_size > MAX_XLSX_BYTES:
-        raise InputError([Diagnostic(path, 1, 1, f"file too large ({st.st_size / 1e6:.1f} MB; limit "
-                                                 f"{MAX_XLSX_BYTES // (1024 * 1024)} MiB)")])
+        raise InputError(
+            [
+                Diagnostic(
+                    path,
+                    1,
+                    1,
+                    f"file too large ({st.st_size / 1e6:.1f} MB; limit {MAX_XLSX_BYTES // (1024 * 1024)} MiB)",
+                )
+            ]
+        )
 
 
 _REF = re.compile(r"([A-Z]{1,3})([0-9]{1,7})\Z")
@@ -323,8 +417,11 @@ class _SheetReader:
         if tag == "c":
             self.n_cells += 1
             if self.n_cells > MAX_XLSX_CELLS:
-                raise _Stop(Diagnostic(self.where, self.line, self.col + 1, f"more than {MAX_XLSX_CELLS:,} cells, "
-                                                                            "empty ones included"))
+                raise _Stop(
+                    Diagnostic(
+                        self.where, self.line, self.col + 1, f"more than {MAX_XLSX_CELLS:,} cells, empty ones included"
+                    )
+                )
             ref = _REF.match(attrs.get("r", ""))
             self.col = _column_number(ref[1]) if ref else self.col + 1
             self.kind = attrs.get("t", "n")
@@ -354,8 +451,7 @@ class _SheetReader:
         if self.text is not None:
             self.text.append(data)
             if len(self.text) > 64 and sum(map(len, self.text)) > MAX_CELL:
-                raise _Stop(Diagnostic(self.where, self.line, self.col, f"a cell of more than {MAX_CELL:,} "
-                                                                         "characters"))
+                raise _Stop(Diagnostic(self.where, self.line, self.col, f"a cell of more than {MAX_CELL:,} characters"))
 
     def end(self, tag: str) -> None:
         tag = tag.rpartition(":")[2]
@@ -368,18 +464,33 @@ class _SheetReader:
             if value is None and not self.has_formula:
                 return
             if self.col > MAX_COLUMNS:
-                raise _Stop(Diagnostic(self.where, self.line, self.col, f"a cell in column {self.col:,}; a register "
-                                                                        f"list has at most {MAX_COLUMNS} columns"))
+                raise _Stop(
+                    Diagnostic(
+                        self.where,
+                        self.line,
+                        self.col,
+                        f"a cell in column {self.col:,}; a register list has at most {MAX_COLUMNS} columns",
+                    )
+                )
             if value is not None and len(value) > MAX_CELL:
-                raise _Stop(Diagnostic(self.where, self.line, self.col, f"a cell of {len(value):,} characters; at "
-                                                                        f"most {MAX_CELL:,}"))
+                raise _Stop(
+                    Diagnostic(
+                        self.where, self.line, self.col, f"a cell of {len(value):,} characters; at most {MAX_CELL:,}"
+                    )
+                )
             self.cells[self.col] = value or ""
             if value is None:
                 self.formulas[self.col - 1] = "=" + "".join(self.formula or [])
         elif tag == "row":
             width = max(self.cells, default=0)
-            self.done.append(Row(self.line, [self.cells.get(i, "") for i in range(1, width + 1)],
-                                 list(range(1, width + 1)), self.formulas or None))
+            self.done.append(
+                Row(
+                    self.line,
+                    [self.cells.get(i, "") for i in range(1, width + 1)],
+                    list(range(1, width + 1)),
+                    self.formulas or None,
+                )
+            )
 
     def _value(self) -> str | None:
         """The cell's saved value as text; None when it has none (empty, or a formula never calculated)."""
@@ -422,8 +533,15 @@ def _sheet_rows(where: str, z: zipfile.ZipFile, part: str, strings: list[str]) -
                 if not chunk:
                     return
     except expat.ExpatError as e:
-        raise _Stop(Diagnostic(where, 1, 1, f"the sheet's XML ({part}) is broken at its line {e.lineno}, column "
-                                            f"{e.offset + 1}: {expat.ErrorString(e.code)}")) from None
+        raise _Stop(
+            Diagnostic(
+                where,
+                1,
+                1,
+                f"the sheet's XML ({part}) is broken at its line {e.lineno}, column "
+                f"{e.offset + 1}: {expat.ErrorString(e.code)}",
+            )
+        ) from None
     except (zipfile.BadZipFile, OSError, EOFError) as e:
         raise _Stop(Diagnostic(where, 1, 1, f"cannot read the sheet from the workbook: {e}")) from None
 
@@ -431,13 +549,22 @@ def _sheet_rows(where: str, z: zipfile.ZipFile, part: str, strings: list[str]) -
 # ------------------------------------------------------------------------------------------ the rows
 
 
-def _draft(path: str, rows: Iterable[Row], *, profile_id: str, columns: Mapping[str, str] | None, addressing: str,
-           byte_order: str | None, decimal: str | None) -> tuple[Draft, list[str]]:
+def _draft(
+    path: str,
+    rows: Iterable[Row],
+    *,
+    profile_id: str,
+    columns: Mapping[str, str] | None,
+    addressing: str,
+    byte_order: str | None,
+    decimal: str | None,
+) -> tuple[Draft, list[str]]:
     errors: list[Diagnostic] = []
     warnings: list[str] = []
     if byte_order and byte_order not in codec.LAYOUTS and byte_order not in codec.SWAPS:
-        raise UsageError(f"--byte-order {messages.clip(byte_order)}: expected one of "
-                         f"{', '.join([*codec.LAYOUTS, *codec.SWAPS])}")
+        raise UsageError(
+            f"--byte-order {messages.clip(byte_order)}: expected one of {', '.join([*codec.LAYOUTS, *codec.SWAPS])}"
+        )
     if decimal not in (None, "comma", "point"):
         raise UsageError(f"decimal mark {_show(str(decimal))}: comma or point")
     wanted: dict[str, str] = {}  # header key -> our column
@@ -481,22 +608,43 @@ def _draft(path: str, rows: Iterable[Row], *, profile_id: str, columns: Mapping[
             where = columns_of(first.cells)
             missing = [c for c in REQUIRED if c not in where]
             shown = messages.clip(", ".join(messages.clip(c, 30) for c in first.cells[:30]), 300)
-            raise InputError([Diagnostic(path, first.line, 1, f"no column for {', '.join(missing)} in the header "
-                                                              f"({shown}); name it with --column {missing[0]}=HEADER")])
+            raise InputError(
+                [
+                    Diagnostic(
+                        path,
+                        first.line,
+                        1,
+                        f"no column for {', '.join(missing)} in the header "
+                        f"({shown}); name it with --column {missing[0]}=HEADER",
+                    )
+                ]
+            )
         for i, h in enumerate(header_row.cells):
             if h.strip() and where.get(wanted.get(_key(h), "")) != i:
                 used = wanted.get(_key(h))
-                why = (f"a second '{used}' column (the first is column {header_row.column(where[used])})" if used
-                       else f"not a column this importer knows; name it with --column OURS={_show(h.strip())} "
-                            f"(ours: {', '.join(COLUMNS)})")
-                warnings.append(f"{path}:{header_row.line}:{header_row.column(i)}: warning: column "
-                                f"{_show(h.strip())} is not used: {why}")
+                why = (
+                    f"a second '{used}' column (the first is column {header_row.column(where[used])})"
+                    if used
+                    else f"not a column this importer knows; name it with --column OURS={_show(h.strip())} "
+                    f"(ours: {', '.join(COLUMNS)})"
+                )
+                warnings.append(
+                    f"{path}:{header_row.line}:{header_row.column(i)}: warning: column "
+                    f"{_show(h.strip())} is not used: {why}"
+                )
         seen: dict[str, int] = {}
         for row in it:
             _one_row(path, row, where, seen, parameters, errors, decimal)
             if len(parameters) > MAX_PARAMETERS:
-                raise _Stop(Diagnostic(path, row.line, 1, f"more than {MAX_PARAMETERS:,} register rows (a profile "
-                                                          f"holds at most {MAX_PARAMETERS:,} parameters)"))
+                raise _Stop(
+                    Diagnostic(
+                        path,
+                        row.line,
+                        1,
+                        f"more than {MAX_PARAMETERS:,} register rows (a profile "
+                        f"holds at most {MAX_PARAMETERS:,} parameters)",
+                    )
+                )
     except _Stop as stop:
         raise InputError([*errors, stop.diagnostic]) from None
     if errors:
@@ -511,9 +659,15 @@ def _draft(path: str, rows: Iterable[Row], *, profile_id: str, columns: Mapping[
     return Draft(head, parameters, []), warnings
 
 
-def _one_row(path: str, row: Row, where: dict[str, int], seen: dict[str, int],
-             parameters: list[tuple[str, dict[str, Any], Origin]], errors: list[Diagnostic], decimal: str | None
-             ) -> None:
+def _one_row(
+    path: str,
+    row: Row,
+    where: dict[str, int],
+    seen: dict[str, int],
+    parameters: list[tuple[str, dict[str, Any], Origin]],
+    errors: list[Diagnostic],
+    decimal: str | None,
+) -> None:
     cells = row.cells
     if not any(c.strip() for c in cells) or cells[0].lstrip().startswith("#"):
         return
@@ -530,8 +684,11 @@ def _one_row(path: str, row: Row, where: dict[str, int], seen: dict[str, int],
         if i >= len(cells):
             continue
         if row.formulas and i in row.formulas:
-            err(col, f"the formula {_show(row.formulas[i])} has no saved value (the file was written by a program "
-                     "that does not calculate): open and save it in a spreadsheet program, or enter the value")
+            err(
+                col,
+                f"the formula {_show(row.formulas[i])} has no saved value (the file was written by a program "
+                "that does not calculate): open and save it in a spreadsheet program, or enter the value",
+            )
         text = cells[i].strip()
         if text[:1] == "'" and text[1:2] in _FORMULA_STARTS:  # 'profiles export csv' escapes formulas
             text = text[1:]
@@ -595,13 +752,19 @@ def _address_and_type(spec: dict[str, Any], name: str, cell: Cell, err: Err) -> 
     if not _ADDRESS.fullmatch(address):
         err("address", f"not a register address: {_show(address)} (a number, 0x1A2B or 1A2Bh)")
         return None
-    spec["register"] = int(address[2:], 16) if address[:2].lower() == "0x" else (
-        int(address[:-1], 16) if address[-1:] in "hH" else int(address))
+    spec["register"] = (
+        int(address[2:], 16)
+        if address[:2].lower() == "0x"
+        else (int(address[:-1], 16) if address[-1:] in "hH" else int(address))
+    )
     type_text = cell("type")
     type_ = TYPES.get(type_text.lower().replace(" ", "").replace("_", ""))
     if type_ is None:
-        err("type", f"unknown type {_show(type_text)} (known: {', '.join(sorted(set(TYPES.values())))} "
-                    f"and names like U16, S32, REAL, DWORD)")
+        err(
+            "type",
+            f"unknown type {_show(type_text)} (known: {', '.join(sorted(set(TYPES.values())))} "
+            f"and names like U16, S32, REAL, DWORD)",
+        )
         return None
     bits = cell("bits")
     if type_ == "bool" and not bits:
@@ -685,8 +848,9 @@ def _order_and_default(spec: dict[str, Any], type_: str, cell: Cell, err: Err, d
                 err("default", f"default: {e}")
 
 
-def _quantities(spec: dict[str, Any], cell: Callable[[str], str], err: Callable[[str, str], None],
-                decimal: str | None) -> None:
+def _quantities(
+    spec: dict[str, Any], cell: Callable[[str], str], err: Callable[[str, str], None], decimal: str | None
+) -> None:
     """Resolution, limits, range and default of a numeric row; each may carry a unit ('0.01 s', '0 to 100 %')."""
     unit: str | None = spec.get("unit")
 
@@ -815,8 +979,10 @@ def _decimal_mark(body: str, decimal: str | None, text: str) -> str:
     if body.count(",") == 1:
         whole, _, frac = body.partition(",")
         if len(frac) == 3 and whole.lstrip("0"):
-            raise _Bad(f"{_show(text)} is ambiguous: {whole}{frac} with a thousands separator, or "
-                       f"{whole}.{frac} with a decimal comma; pass --decimal-comma or --decimal-point")
+            raise _Bad(
+                f"{_show(text)} is ambiguous: {whole}{frac} with a thousands separator, or "
+                f"{whole}.{frac} with a decimal comma; pass --decimal-comma or --decimal-point"
+            )
         return ","
     if body.count(".") > 1:
         return ","  # 1.000.000
@@ -844,8 +1010,26 @@ def _values(text: str) -> dict[str, int]:
 # ------------------------------------------------------------------------------------------- export
 
 
-EXPORT_COLUMNS = ("name", "address", "type", "unit", "scale", "min", "max", "access", "description", "values",
-                  "bits", "count", "byte_order", "default", "encoding", "padding", "stage", "restart")
+EXPORT_COLUMNS = (
+    "name",
+    "address",
+    "type",
+    "unit",
+    "scale",
+    "min",
+    "max",
+    "access",
+    "description",
+    "values",
+    "bits",
+    "count",
+    "byte_order",
+    "default",
+    "encoding",
+    "padding",
+    "stage",
+    "restart",
+)
 _PLAIN_NUMBER = re.compile(r"-?[0-9]+(\.[0-9]+)?([eE][-+]?[0-9]+)?")
 
 
@@ -862,9 +1046,14 @@ def not_exported(profile: Any) -> list[str]:
     from ..model import Limits
 
     lost: list[str] = []
-    for what, items in (("identity check", profile.identity), ("precondition", profile.preconditions),
-                        ("unlock write", profile.unlock), ("lock write", profile.lock),
-                        ("commit action", profile.commit), ("stage wait", profile.stage_waits)):
+    for what, items in (
+        ("identity check", profile.identity),
+        ("precondition", profile.preconditions),
+        ("unlock write", profile.unlock),
+        ("lock write", profile.lock),
+        ("commit action", profile.commit),
+        ("stage wait", profile.stage_waits),
+    ):
         if items:
             lost.append(f"{len(items)} {what}{'' if len(items) == 1 else 's'}")
     if profile.limits != Limits():
@@ -893,15 +1082,32 @@ def profile_to_csv(profile: Any) -> str:
             shift, width = codec.mask_shift(p.mask)
             bits = str(shift) if width == 1 else f"{shift}..{shift + width - 1}"
         swap = swaps[(p.word_order, p.byte_swap)]
-        default = "" if p.default is None else p.default if isinstance(p.default, str) else codec.format_decimal(
-            p.default)
-        w.writerow([_safe_cell(c) for c in (
-            p.name, p.address, p.type, p.unit or "",
-            "" if p.scale == 1 else codec.format_decimal(p.scale),
-            "" if p.min is None else codec.format_decimal(p.min),
-            "" if p.max is None else codec.format_decimal(p.max),
-            p.access, p.description, ";".join(f"{v}={k}" for k, v in p.values), bits,
-            p.count if p.is_string else "", "" if swap == "none" else swap, default,
-            p.encoding if p.is_string else "", p.padding if p.is_string else "", p.stage or "",
-            "yes" if p.restart else "")])
+        default = (
+            "" if p.default is None else p.default if isinstance(p.default, str) else codec.format_decimal(p.default)
+        )
+        w.writerow(
+            [
+                _safe_cell(c)
+                for c in (
+                    p.name,
+                    p.address,
+                    p.type,
+                    p.unit or "",
+                    "" if p.scale == 1 else codec.format_decimal(p.scale),
+                    "" if p.min is None else codec.format_decimal(p.min),
+                    "" if p.max is None else codec.format_decimal(p.max),
+                    p.access,
+                    p.description,
+                    ";".join(f"{v}={k}" for k, v in p.values),
+                    bits,
+                    p.count if p.is_string else "",
+                    "" if swap == "none" else swap,
+                    default,
+                    p.encoding if p.is_string else "",
+                    p.padding if p.is_string else "",
+                    p.stage or "",
+                    "yes" if p.restart else "",
+                )
+            ]
+        )
     return buf.getvalue()

@@ -35,23 +35,53 @@ SF_RANGE = range(-10, 11)  # the SunSpec specification's scale factors (sunssf);
 MAX_REGISTERS = 0x10000
 
 _TYPES: dict[str, tuple[str, int]] = {  # SunSpec type -> (our type, registers)
-    "uint16": ("uint16", 1), "int16": ("int16", 1), "uint32": ("uint32", 2), "int32": ("int32", 2),
-    "uint64": ("uint64", 4), "int64": ("int64", 4), "float32": ("float32", 2), "float64": ("float64", 4),
-    "acc16": ("uint16", 1), "acc32": ("uint32", 2), "acc64": ("uint64", 4),
-    "enum16": ("uint16", 1), "enum32": ("uint32", 2), "bitfield16": ("uint16", 1), "bitfield32": ("uint32", 2),
-    "sunssf": ("int16", 1), "pad": ("uint16", 1), "count": ("uint16", 1), "ipaddr": ("uint32", 2),
-    "eui48": ("uint64", 4), "ipv6addr": ("string", 8), "string": ("string", 0),
+    "uint16": ("uint16", 1),
+    "int16": ("int16", 1),
+    "uint32": ("uint32", 2),
+    "int32": ("int32", 2),
+    "uint64": ("uint64", 4),
+    "int64": ("int64", 4),
+    "float32": ("float32", 2),
+    "float64": ("float64", 4),
+    "acc16": ("uint16", 1),
+    "acc32": ("uint32", 2),
+    "acc64": ("uint64", 4),
+    "enum16": ("uint16", 1),
+    "enum32": ("uint32", 2),
+    "bitfield16": ("uint16", 1),
+    "bitfield32": ("uint32", 2),
+    "sunssf": ("int16", 1),
+    "pad": ("uint16", 1),
+    "count": ("uint16", 1),
+    "ipaddr": ("uint32", 2),
+    "eui48": ("uint64", 4),
+    "ipv6addr": ("string", 8),
+    "string": ("string", 0),
 }
-_UNITS = {"Secs": "s", "Sec": "s", "mSecs": "ms", "C": "degC", "Pct": "%", "Degrees": "deg", "W/m2": "W/m**2",
-          "WH": "Wh", "AH": "Ah", "ohms": "ohm", "HPa": "hPa", "mps": "m/s"}
+_UNITS = {
+    "Secs": "s",
+    "Sec": "s",
+    "mSecs": "ms",
+    "C": "degC",
+    "Pct": "%",
+    "Degrees": "deg",
+    "W/m2": "W/m**2",
+    "WH": "Wh",
+    "AH": "Ah",
+    "ohms": "ohm",
+    "HPa": "hPa",
+    "mps": "m/s",
+}
 
 
 def models_dir() -> str:
     try:
         import sunspec2
     except ImportError:
-        raise UsageError("SunSpec import needs the pysunspec2 package: pip install 'modbus-deployer[sunspec]' "
-                         "(from a clone of the repository: pip install -e '.[sunspec]')") from None
+        raise UsageError(
+            "SunSpec import needs the pysunspec2 package: pip install 'modbus-deployer[sunspec]' "
+            "(from a clone of the repository: pip install -e '.[sunspec]')"
+        ) from None
     return os.path.join(os.path.dirname(sunspec2.__file__), "models", "json")
 
 
@@ -79,10 +109,17 @@ def scale_factor_points(model: str) -> list[str]:
     return [str(p["name"]) for p in data["group"]["points"] if p.get("type") == "sunssf"]
 
 
-def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping[str, int] | None = None,
-               counts: Mapping[str, int] | None = None, profile_id: str | None = None,
-               point_values: Mapping[str, int] | None = None, length: int | None = None,
-               prefix: str = "") -> tuple[Draft, list[str]]:
+def read_model(
+    model: str,
+    *,
+    at: int = SUNSPEC_BASE + 2,
+    scale_factors: Mapping[str, int] | None = None,
+    counts: Mapping[str, int] | None = None,
+    profile_id: str | None = None,
+    point_values: Mapping[str, int] | None = None,
+    length: int | None = None,
+    prefix: str = "",
+) -> tuple[Draft, list[str]]:
     """The model as a Draft profile with its ID point at protocol address ``at``, and warnings.
 
     ``counts``: repetitions of groups whose count the device reports (group name -> N, from --count).
@@ -113,13 +150,12 @@ def read_model(model: str, *, at: int = SUNSPEC_BASE + 2, scale_factors: Mapping
     if r.length_spec is not None:
         r.length_spec["default"] = r.offset - 2  # the registers after ID and L
     for name, spec, _ in r.parameters:
-        if name[len(prefix):] in r.count_points and name.startswith(prefix):
-            spec["default"] = r.count_points[name[len(prefix):]]
+        if name[len(prefix) :] in r.count_points and name.startswith(prefix):
+            spec["default"] = r.count_points[name[len(prefix) :]]
     if r.errors:
         raise InputError(r.errors)
     if at + r.offset > MAX_REGISTERS:
-        raise UsageError(f"--at {at}: model {model_id} is {r.offset} registers long and would end past register "
-                         "65535")
+        raise UsageError(f"--at {at}: model {model_id} is {r.offset} registers long and would end past register 65535")
     return Draft(_header(r, group, model_id, profile_id), r.parameters, r.tables), r.warnings
 
 
@@ -128,23 +164,41 @@ def _header(r: _ModelReader, group: Mapping[str, Any], model_id: int, profile_id
     at = r.at
     identity = [{"register": at, "raw": model_id, "description": f"SunSpec model ID {model_id}"}]
     if at == SUNSPEC_BASE + 2:  # the first model: the "SunS" marker right before it is part of the map
-        marker = {"description": "SunSpec marker 'SunS'", "type": "string", "count": 2, "access": "read-only",
-                  "default": "SunS"}
+        marker = {
+            "description": "SunSpec marker 'SunS'",
+            "type": "string",
+            "count": 2,
+            "access": "read-only",
+            "default": "SunS",
+        }
         r.parameters.insert(0, ("SunS", {"register": SUNSPEC_BASE, **marker}, Origin(r.path, 1, 1)))
-        identity[:0] = [{"register": SUNSPEC_BASE, "raw": 0x5375, "description": "'Su' of the SunS marker"},
-                        {"register": SUNSPEC_BASE + 1, "raw": 0x6E53, "description": "'nS' of the SunS marker"}]
-    return {"profile": profile_id or f"sunspec-{model_id}-{group.get('name', 'model')}",
-            "description": f"SunSpec model {model_id} ({group.get('label', group.get('name'))}) at address {at}, "
-                           "imported from pysunspec2's model definitions",
-            "addressing": "address",
-            "identity": identity}
+        identity[:0] = [
+            {"register": SUNSPEC_BASE, "raw": 0x5375, "description": "'Su' of the SunS marker"},
+            {"register": SUNSPEC_BASE + 1, "raw": 0x6E53, "description": "'nS' of the SunS marker"},
+        ]
+    return {
+        "profile": profile_id or f"sunspec-{model_id}-{group.get('name', 'model')}",
+        "description": f"SunSpec model {model_id} ({group.get('label', group.get('name'))}) at address {at}, "
+        "imported from pysunspec2's model definitions",
+        "addressing": "address",
+        "identity": identity,
+    }
 
 
 class _ModelReader:
     """One model laid out from ``at``: its points, then its groups (tables); the errors and warnings found."""
 
-    def __init__(self, path: str, src: yamlsrc.Source, at: int, prefix: str, sfs: dict[str, int],
-                 counts: dict[str, int], values: dict[str, int], length: int | None) -> None:
+    def __init__(
+        self,
+        path: str,
+        src: yamlsrc.Source,
+        at: int,
+        prefix: str,
+        sfs: dict[str, int],
+        counts: dict[str, int],
+        values: dict[str, int],
+        length: int | None,
+    ) -> None:
         self.path, self.src, self.at, self.prefix = path, src, at, prefix
         self.sfs, self.counts, self.values, self.length = sfs, counts, values, length
         self.errors: list[Diagnostic] = []
@@ -160,8 +214,7 @@ class _ModelReader:
 
     # ---- one point ----------------------------------------------------------------------------
 
-    def spec_of(self, point: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any] | None,
-                                                                                            int]:
+    def spec_of(self, point: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any] | None, int]:
         """A point as a parameter spec (None: an error said), and its registers."""
         ptype = str(point.get("type"))
         size = int(point.get("size", 1))
@@ -191,15 +244,19 @@ class _ModelReader:
         if said is None or not self._symbols(point, at_, ptype, spec):
             return None, size
         desc = said
-        if isinstance(point.get("value"), int) and not isinstance(point["value"], bool) and (
-                abs(point["value"]) < 1 << 64):
+        if (
+            isinstance(point.get("value"), int)
+            and not isinstance(point["value"], bool)
+            and (abs(point["value"]) < 1 << 64)
+        ):
             spec["default"] = point["value"]
         if desc:
             spec = {"description": desc, **spec}
         return spec, size
 
-    def _scale(self, point: dict[str, Any], at_: yamlsrc.Path_, prefix: str, spec: dict[str, Any],
-               desc: str) -> str | None:
+    def _scale(
+        self, point: dict[str, Any], at_: yamlsrc.Path_, prefix: str, spec: dict[str, Any], desc: str
+    ) -> str | None:
         """The point's scale factor: fixed, given (--sf), or unknown (imported raw, said); the description, or
         None after an error."""
         sf = point.get("sf")
@@ -214,8 +271,9 @@ class _ModelReader:
             else:  # a unit would convert '10 kW' with scale 1: raw numbers only, until the factor is known
                 unit_text = f" {spec.pop('unit')}" if "unit" in spec else ""
                 desc = f"{desc} (raw: the value in{unit_text} is raw x 10^{sf}; import with --sf {sf}=N or --device)"
-                self.warnings.append(f"{prefix}{point['name']}: scale factor {sf} unknown: imported raw, without its "
-                                     "unit")
+                self.warnings.append(
+                    f"{prefix}{point['name']}: scale factor {sf} unknown: imported raw, without its unit"
+                )
         return desc
 
     def _symbols(self, point: dict[str, Any], at_: yamlsrc.Path_, ptype: str, spec: dict[str, Any]) -> bool:
@@ -241,11 +299,18 @@ class _ModelReader:
     def _point(self, point: dict[str, Any], spec: dict[str, Any], origin: Origin) -> None:
         name = self.prefix + str(point["name"])
         register = self.at + self.offset
-        if point.get("type") == "bitfield16" and point.get("symbols") and all(
-                isinstance(sym.get("value"), int) and 0 <= sym["value"] <= 15 for sym in point["symbols"]):
+        if (
+            point.get("type") == "bitfield16"
+            and point.get("symbols")
+            and all(isinstance(sym.get("value"), int) and 0 <= sym["value"] <= 15 for sym in point["symbols"])
+        ):
             for s in point["symbols"]:  # one bool field per documented bit
-                field_spec = {"description": f"{spec.get('description', name)}: {s['name']}",
-                              "type": "bool", "bits": int(s["value"]), "access": spec["access"]}
+                field_spec = {
+                    "description": f"{spec.get('description', name)}: {s['name']}",
+                    "type": "bool",
+                    "bits": int(s["value"]),
+                    "access": spec["access"],
+                }
                 self.parameters.append((f"{name}.{s['name']}", {"register": register, **field_spec}, origin))
             return
         if point.get("type") == "sunssf" and point["name"] in self.sfs:
@@ -277,20 +342,24 @@ class _ModelReader:
         if is_int and declared > 0:
             return int(declared)
         if is_int and declared < 0:
-            self.error((*at_, "count"), f"group {name}: count {declared} is negative (a count is a number of "
-                                        "repetitions, or 0: as many as the model's length holds)")
+            self.error(
+                (*at_, "count"),
+                f"group {name}: count {declared} is negative (a count is a number of "
+                "repetitions, or 0: as many as the model's length holds)",
+            )
             return None
         if declared == 0 and self.length is not None and size:
             left = self.length + 2 - self.offset
             if left >= 0 and left % size == 0:
                 return left // size
         what = f"the point {declared}" if isinstance(declared, str) else "0: as many as the model's length L holds"
-        self.warnings.append(f"group {self.prefix}{name}: its count is {what} (set by the device); not imported "
-                             f"(give it with --count {name}=N, or import with --device)")
+        self.warnings.append(
+            f"group {self.prefix}{name}: its count is {what} (set by the device); not imported "
+            f"(give it with --count {name}=N, or import with --device)"
+        )
         return None
 
-    def fields_of(self, sub: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any],
-                                                                                             int] | None:
+    def fields_of(self, sub: dict[str, Any], at_: yamlsrc.Path_, prefix: str = "") -> tuple[dict[str, Any], int] | None:
         """A group's points as table fields (offset from the entry's start), and the entry's size. A group
         nested in it (a curve's points) becomes fields Pt0_V, Pt0_Var, Pt1_V ... after the group's own."""
         out: dict[str, Any] = {}
@@ -312,8 +381,7 @@ class _ModelReader:
             size += got[1]
         return out, size
 
-    def _inner(self, inner: dict[str, Any], inner_at: yamlsrc.Path_, start: int) -> tuple[dict[str, Any],
-                                                                                            int] | None:
+    def _inner(self, inner: dict[str, Any], inner_at: yamlsrc.Path_, start: int) -> tuple[dict[str, Any], int] | None:
         """A nested group's repetitions as fields from ``start``, and their registers."""
         got = self.fields_of(inner, inner_at, "-")
         if got is None:
@@ -324,11 +392,16 @@ class _ModelReader:
             return None
         if n_inner * max(inner_size, 1) >= MAX_REGISTERS or n_inner * len(inner_fields) > yamlsrc.MAX_ENTRIES:
             where = f"--count {inner.get('name')}={n_inner}" if inner.get("name") in self.counts else "count"
-            self.error((*inner_at, "count"), f"group {inner.get('name')}: {where}: {n_inner} x {inner_size} "
-                                             "registers run past register 65535")
+            self.error(
+                (*inner_at, "count"),
+                f"group {inner.get('name')}: {where}: {n_inner} x {inner_size} registers run past register 65535",
+            )
             return None
-        out = {f"{inner['name']}{i}_{name[1:]}": {**spec, "offset": start + i * inner_size + spec["offset"]}
-               for i in range(n_inner) for name, spec in inner_fields.items()}
+        out = {
+            f"{inner['name']}{i}_{name[1:]}": {**spec, "offset": start + i * inner_size + spec["offset"]}
+            for i in range(n_inner)
+            for name, spec in inner_fields.items()
+        }
         return out, n_inner * inner_size
 
     def groups(self, group: Mapping[str, Any]) -> None:
@@ -347,13 +420,20 @@ class _ModelReader:
             line, col = self.src.pos((*at_, "name"))
             if self.at + self.offset + stride * count > MAX_REGISTERS or count * len(fields) > yamlsrc.MAX_ENTRIES:
                 where = f"--count {sub.get('name')}={count}" if sub.get("name") in self.counts else "count"
-                self.error((*at_, "count"), f"group {sub.get('name')}: {where}: {count} x {stride} registers from "
-                                            f"register {self.at + self.offset} run past 65535")
+                self.error(
+                    (*at_, "count"),
+                    f"group {sub.get('name')}: {where}: {count} x {stride} registers from "
+                    f"register {self.at + self.offset} run past 65535",
+                )
                 break
             if fields:
-                self.tables.append((table_prefix + str(sub["name"]), {
-                    "count": count, "base": self.at + self.offset, "stride": stride, "fields": fields},
-                    Origin(self.path, line, col)))
+                self.tables.append(
+                    (
+                        table_prefix + str(sub["name"]),
+                        {"count": count, "base": self.at + self.offset, "stride": stride, "fields": fields},
+                        Origin(self.path, line, col),
+                    )
+                )
             self.offset += stride * count
 
 
@@ -369,8 +449,10 @@ def _schema_problems(data: Any, src: yamlsrc.Source) -> list[Diagnostic]:
     with open(os.path.join(models_dir(), "schema.json"), encoding="utf-8") as f:
         schema = json.load(f)
     errors = sorted(jsonschema.Draft7Validator(schema).iter_errors(data), key=lambda e: list(map(str, e.path)))
-    return [src.error(tuple(e.absolute_path), f"{'.'.join(map(str, e.absolute_path)) or 'model'}: {e.message}")
-            for e in errors[:20]]
+    return [
+        src.error(tuple(e.absolute_path), f"{'.'.join(map(str, e.absolute_path)) or 'model'}: {e.message}")
+        for e in errors[:20]
+    ]
 
 
 # ------------------------------------------------------------------------------- a device's models
@@ -411,9 +493,11 @@ async def device_chain(read: Read, at: int, *, search: bool = False) -> list[Dev
             break
     if tuple(marker) != MARKER:
         where = "40000, 0 or 50000" if search else str(at - 2)
-        raise UsageError(f"no SunSpec marker 'SunS' at {where} (the device has {marker[0]:04X}h {marker[1]:04X}h at "
-                         f"{at - 2}): check --at (the first model's ID sits 2 registers after 'SunS', which devices "
-                         "put at 40000, 0 or 50000)")
+        raise UsageError(
+            f"no SunSpec marker 'SunS' at {where} (the device has {marker[0]:04X}h {marker[1]:04X}h at "
+            f"{at - 2}): check --at (the first model's ID sits 2 registers after 'SunS', which devices "
+            "put at 40000, 0 or 50000)"
+        )
     models: list[DeviceModel] = []
     while True:
         if at + 2 > MAX_REGISTERS or len(models) >= MAX_MODELS:
@@ -461,17 +545,24 @@ def reported(model: str | int, dm: DeviceModel, prefix: str = "") -> tuple[dict[
                     sfs[name] = value
                 else:
                     why = "not implemented (8000h)" if raw == 0x8000 else f"{value}, not -10 to 10"
-                    warnings.append(f"{prefix}{name} at {dm.at + offset}: the device reports {why}: the points it "
-                                    "scales are imported raw")
+                    warnings.append(
+                        f"{prefix}{name} at {dm.at + offset}: the device reports {why}: the points it "
+                        "scales are imported raw"
+                    )
             elif point.get("type") in ("count", "uint16"):
                 points[name] = raw
         offset += size
     return sfs, points, warnings
 
 
-def chain_draft(models: list[DeviceModel], *, scale_factors: Mapping[str, int] | None = None,
-                counts: Mapping[str, int] | None = None, profile_id: str | None = None,
-                source: str = "the device") -> tuple[Draft, list[str]]:
+def chain_draft(
+    models: list[DeviceModel],
+    *,
+    scale_factors: Mapping[str, int] | None = None,
+    counts: Mapping[str, int] | None = None,
+    profile_id: str | None = None,
+    source: str = "the device",
+) -> tuple[Draft, list[str]]:
     """One profile of a device's whole model chain: each model's points named MODEL.POINT (common.Mn,
     inverter.W; a second model of one kind gets _2), its scale factors and counts as the device reports
     them (``scale_factors``/``counts`` given by hand win), the markers and model IDs as its identity."""
@@ -485,8 +576,10 @@ def chain_draft(models: list[DeviceModel], *, scale_factors: Mapping[str, int] |
         try:
             path = model_path(str(dm.model_id))
         except UsageError:
-            warnings.append(f"model {dm.model_id} at {dm.at} (L={dm.length}): pysunspec2 has no definition of it; "
-                            "its registers are not in the profile")
+            warnings.append(
+                f"model {dm.model_id} at {dm.at} (L={dm.length}): pysunspec2 has no definition of it; "
+                "its registers are not in the profile"
+            )
             identity.append({"register": dm.at, "raw": dm.model_id, "description": f"SunSpec model ID {dm.model_id}"})
             ids.append(str(dm.model_id))
             continue
@@ -497,32 +590,73 @@ def chain_draft(models: list[DeviceModel], *, scale_factors: Mapping[str, int] |
         sfs, points, said = reported(dm.model_id, dm, prefix)
         warnings.extend(said)
         sfs.update(scale_factors or {})
-        draft, said = read_model(str(dm.model_id), at=dm.at, scale_factors=sfs, counts=counts, point_values=points,
-                                 length=dm.length, prefix=prefix)
+        draft, said = read_model(
+            str(dm.model_id),
+            at=dm.at,
+            scale_factors=sfs,
+            counts=counts,
+            point_values=points,
+            length=dm.length,
+            prefix=prefix,
+        )
         warnings.extend(said)
         laid_out = next((spec.get("default") for n, spec, _ in draft.parameters if n == f"{prefix}L"), None)
         if laid_out is not None and laid_out != dm.length:
-            warnings.append(f"model {dm.model_id} at {dm.at}: the device says L={dm.length}, the definition lays "
-                            f"out {laid_out} registers")
+            warnings.append(
+                f"model {dm.model_id} at {dm.at}: the device says L={dm.length}, the definition lays "
+                f"out {laid_out} registers"
+            )
         parameters.extend(p for p in draft.parameters if p[0] != "SunS")
         tables.extend(draft.tables)
         identity.append(draft.header["identity"][-1])
         ids.append(str(dm.model_id))
     end = models[-1].at + 2 + models[-1].length if models else SUNSPEC_BASE + 2
     first = models[0].at if models else SUNSPEC_BASE + 2
-    marker = {"register": first - 2, "description": "SunSpec marker 'SunS'", "type": "string", "count": 2,
-              "access": "read-only", "default": "SunS"}
+    marker = {
+        "register": first - 2,
+        "description": "SunSpec marker 'SunS'",
+        "type": "string",
+        "count": 2,
+        "access": "read-only",
+        "default": "SunS",
+    }
     here = Origin(source, 1, 1)
     parameters.insert(0, ("SunS", marker, here))
-    parameters.append(("end.ID", {"register": end, "description": "end of the model chain", "type": "uint16",
-                                  "access": "read-only", "default": END}, here))
-    parameters.append(("end.L", {"register": end + 1, "description": "end of the model chain", "type": "uint16",
-                                 "access": "read-only", "default": 0}, here))
-    identity[:0] = [{"register": first - 2, "raw": MARKER[0], "description": "'Su' of the SunS marker"},
-                    {"register": first - 1, "raw": MARKER[1], "description": "'nS' of the SunS marker"}]
-    header = {"profile": profile_id or "sunspec-device",
-              "description": f"SunSpec device with models {', '.join(ids)} (its model chain from 'SunS' at "
-                             f"{first - 2}), imported from {source} and pysunspec2's model definitions",
-              "addressing": "address",
-              "identity": identity}
+    parameters.append(
+        (
+            "end.ID",
+            {
+                "register": end,
+                "description": "end of the model chain",
+                "type": "uint16",
+                "access": "read-only",
+                "default": END,
+            },
+            here,
+        )
+    )
+    parameters.append(
+        (
+            "end.L",
+            {
+                "register": end + 1,
+                "description": "end of the model chain",
+                "type": "uint16",
+                "access": "read-only",
+                "default": 0,
+            },
+            here,
+        )
+    )
+    identity[:0] = [
+        {"register": first - 2, "raw": MARKER[0], "description": "'Su' of the SunS marker"},
+        {"register": first - 1, "raw": MARKER[1], "description": "'nS' of the SunS marker"},
+    ]
+    header = {
+        "profile": profile_id or "sunspec-device",
+        "description": f"SunSpec device with models {', '.join(ids)} (its model chain from 'SunS' at "
+        f"{first - 2}), imported from {source} and pysunspec2's model definitions",
+        "addressing": "address",
+        "identity": identity,
+    }
     return Draft(header, parameters, tables), warnings

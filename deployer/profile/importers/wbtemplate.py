@@ -30,26 +30,102 @@ from ...load import yamlsrc
 from .. import codec, firmware, units
 from ..emit import Draft, Origin
 
-_FORMATS: dict[str, str] = {"u16": "uint16", "s16": "int16", "u32": "uint32", "s32": "int32", "u64": "uint64",
-                            "s64": "int64", "float": "float32", "double": "float64", "u8": "uint16", "s8": "int16",
-                            "string8": "string"}
-_REG_TYPES: dict[str, str] = {"holding": "holding", "holding_single": "holding", "holding_multi": "holding",
-                              "coil": "coil", "discrete": "discrete", "input": "input", "press_counter": "input"}
+_FORMATS: dict[str, str] = {
+    "u16": "uint16",
+    "s16": "int16",
+    "u32": "uint32",
+    "s32": "int32",
+    "u64": "uint64",
+    "s64": "int64",
+    "float": "float32",
+    "double": "float64",
+    "u8": "uint16",
+    "s8": "int16",
+    "string8": "string",
+}
+_REG_TYPES: dict[str, str] = {
+    "holding": "holding",
+    "holding_single": "holding",
+    "holding_multi": "holding",
+    "coil": "coil",
+    "discrete": "discrete",
+    "input": "input",
+    "press_counter": "input",
+}
 # the control types that imply a unit (wb-mqtt-serial's deprecated types; "value" + units replaces them)
-_TYPE_UNITS: dict[str, str] = {"temperature": "degC", "voltage": "V", "current": "A", "power": "W",
-                               "power_consumption": "kWh", "rel_humidity": "percent"}
+_TYPE_UNITS: dict[str, str] = {
+    "temperature": "degC",
+    "voltage": "V",
+    "current": "A",
+    "power": "W",
+    "power_consumption": "kWh",
+    "rel_humidity": "percent",
+}
 # units as templates write them -> as pint reads them
-_UNITS: dict[str, str] = {"deg C": "degC", "°C": "degC", "%": "percent", "%, RH": "percent", "lx": "lux",
-                          "m^3/h": "m**3/h", "m^3": "m**3", "Ohm": "ohm", "mOhm": "milliohm", "VA": "V*A",
-                          "var": "V*A", "varh": "V*A*h", "VAh": "V*A*h", "kvarh": "kV*A*h", "kVAh": "kV*A*h",
-                          "mm/h": "mm/h", "deg": "degree"}
+_UNITS: dict[str, str] = {
+    "deg C": "degC",
+    "°C": "degC",
+    "%": "percent",
+    "%, RH": "percent",
+    "lx": "lux",
+    "m^3/h": "m**3/h",
+    "m^3": "m**3",
+    "Ohm": "ohm",
+    "mOhm": "milliohm",
+    "VA": "V*A",
+    "var": "V*A",
+    "varh": "V*A*h",
+    "VAh": "V*A*h",
+    "kvarh": "kV*A*h",
+    "kVAh": "kV*A*h",
+    "mm/h": "mm/h",
+    "deg": "degree",
+}
 # keys that only arrange the web configurator or the poll loop: nothing a profile or a deployment needs
-_UI_KEYS = frozenset({"title", "id", "name", "group", "order", "required", "type", "sporadic", "semi-sporadic",
-                      "read_period_ms", "read_rate_limit_ms", "enabled", "original_name", "vrf", "round_to",
-                      "description", "hidden", "units", "unit", "readonly", "enum", "enum_titles", "default",
-                      "min", "max", "scale", "offset", "format", "reg_type", "address", "write_address",
-                      "word_order", "byte_order", "string_data_size", "error_value", "unsupported_value",
-                      "on_value", "off_value", "fw", "condition"})
+_UI_KEYS = frozenset(
+    {
+        "title",
+        "id",
+        "name",
+        "group",
+        "order",
+        "required",
+        "type",
+        "sporadic",
+        "semi-sporadic",
+        "read_period_ms",
+        "read_rate_limit_ms",
+        "enabled",
+        "original_name",
+        "vrf",
+        "round_to",
+        "description",
+        "hidden",
+        "units",
+        "unit",
+        "readonly",
+        "enum",
+        "enum_titles",
+        "default",
+        "min",
+        "max",
+        "scale",
+        "offset",
+        "format",
+        "reg_type",
+        "address",
+        "write_address",
+        "word_order",
+        "byte_order",
+        "string_data_size",
+        "error_value",
+        "unsupported_value",
+        "on_value",
+        "off_value",
+        "fw",
+        "condition",
+    }
+)
 _NAME = re.compile(r"[^A-Za-z0-9_.-]+")
 _ADDRESS = re.compile(r"^\s*(0[xX][0-9A-Fa-f]+|\d+)(?::(\d+):(\d+))?\s*$")
 MAX_TEMPLATE_ENTRIES = 20000  # parameters + channels: the largest real template has a few thousand channels
@@ -119,16 +195,28 @@ def read_wb_template(path: str, *, profile_id: str | None = None, channels: bool
     try:
         data, src = yamlsrc.load(path, text)
     except InputError as bad:  # the YAML parser reads the JSON: say JSON
-        raise InputError([replace(d, message=d.message.replace("invalid YAML", "invalid JSON"))
-                          for d in bad.diagnostics]) from None
+        raise InputError(
+            [replace(d, message=d.message.replace("invalid YAML", "invalid JSON")) for d in bad.diagnostics]
+        ) from None
     if not isinstance(data, dict) or not isinstance(data.get("device"), dict):
-        raise InputError([src.error((), "not a wb-mqtt-serial device template: expected an object with 'device' "
-                                         "(and 'device_type')")])
+        raise InputError(
+            [
+                src.error(
+                    (), "not a wb-mqtt-serial device template: expected an object with 'device' (and 'device_type')"
+                )
+            ]
+        )
     dev: dict[str, Any] = data["device"]
     protocol = dev.get("protocol", "modbus")
     if protocol not in ("modbus", "modbus_io"):
-        raise InputError([src.error(("device", "protocol"), f"protocol '{protocol}' is not Modbus: only Modbus "
-                                                            "templates become profiles")])
+        raise InputError(
+            [
+                src.error(
+                    ("device", "protocol"),
+                    f"protocol '{protocol}' is not Modbus: only Modbus templates become profiles",
+                )
+            ]
+        )
     translate = _translations(dev)
     warnings: list[str] = []
 
@@ -140,16 +228,23 @@ def read_wb_template(path: str, *, profile_id: str | None = None, channels: bool
     if isinstance(raw_params, Mapping):
         items: list[tuple[yamlsrc.Path_, Any]] = [
             (("device", "parameters", k), {**v, "id": k} if isinstance(v, Mapping) else v)
-            for k, v in raw_params.items()]
+            for k, v in raw_params.items()
+        ]
     elif isinstance(raw_params, list):
         items = [(("device", "parameters", i), v) for i, v in enumerate(raw_params)]
     else:
         raise InputError([src.error(("device", "parameters"), "parameters: expected a list or an object")])
     chans: list[tuple[yamlsrc.Path_, Any]] = (
-        [(("device", "channels", i), v) for i, v in enumerate(dev.get("channels") or [])] if channels else [])
+        [(("device", "channels", i), v) for i, v in enumerate(dev.get("channels") or [])] if channels else []
+    )
     if len(items) + len(chans) > MAX_TEMPLATE_ENTRIES:
-        raise InputError([src.error(("device",), f"{len(items) + len(chans)} parameters and channels; at most "
-                                                 f"{MAX_TEMPLATE_ENTRIES}")])
+        raise InputError(
+            [
+                src.error(
+                    ("device",), f"{len(items) + len(chans)} parameters and channels; at most {MAX_TEMPLATE_ENTRIES}"
+                )
+            ]
+        )
     errors = []
     entries: list[_Entry] = []
     left_out = 0
@@ -171,8 +266,11 @@ def read_wb_template(path: str, *, profile_id: str | None = None, channels: bool
     for what in ("setup", "subdevices"):
         if dev.get(what):
             n = len(dev[what]) if isinstance(dev[what], list) else 1
-            why = ("writes the driver sends at start-up; a recipe sets parameters instead" if what == "setup"
-                   else "nested device templates")
+            why = (
+                "writes the driver sends at start-up; a recipe sets parameters instead"
+                if what == "setup"
+                else "nested device templates"
+            )
             warn(("device", what), f"{what}: {n} {why}: not imported")
     if not kept:
         raise InputError([src.error(("device",), "the template has no parameter or channel with a Modbus register")])
@@ -180,8 +278,7 @@ def read_wb_template(path: str, *, profile_id: str | None = None, channels: bool
     device_type = str(data.get("device_type", "wb-device"))
     pid = profile_id or (_NAME.sub("-", device_type).strip("-._") or "wb-device")
     title = translate(str(data.get("title") or dev.get("name") or device_type))
-    header: dict[str, Any] = {"profile": pid,
-                              "description": f"{title} (wb-mqtt-serial template {device_type})"}
+    header: dict[str, Any] = {"profile": pid, "description": f"{title} (wb-mqtt-serial template {device_type})"}
     limits = {}
     for key in ("max_write_registers", "max_read_registers"):
         v = dev.get(key)
@@ -215,11 +312,22 @@ def _refuse_jinja(path: str, text: str) -> None:
     line = text.count("\n", 0, pos) + 1
     col = pos - (text.rfind("\n", 0, pos) + 1) + 1
     out = path.removesuffix(".jinja") if path.endswith(".json.jinja") else f"{path}.json"
-    raise InputError([Diagnostic(path, line, col, (
-        "a Jinja template (.json.jinja): wb-mqtt-serial renders it into JSON before use. Render it first, with "
-        "the values your device needs (or its defaults): python3 -c 'import jinja2, sys; "
-        "print(jinja2.Template(open(sys.argv[1]).read()).render())' "
-        f"{path} > {out}, then import {out}"))])
+    raise InputError(
+        [
+            Diagnostic(
+                path,
+                line,
+                col,
+                (
+                    "a Jinja template (.json.jinja): wb-mqtt-serial renders it into JSON before use. "
+                    "Render it first, with the values your device needs (or its defaults): "
+                    "python3 -c 'import jinja2, sys; "
+                    "print(jinja2.Template(open(sys.argv[1]).read()).render())' "
+                    f"{path} > {out}, then import {out}"
+                ),
+            )
+        ]
+    )
 
 
 def _plain(v: Any) -> Any:
@@ -238,6 +346,7 @@ def _translations(dev: Mapping[str, Any]) -> Any:
         if isinstance(en, Mapping) and isinstance(en.get(text), str):
             return str(en[text])
         return text
+
     return translate
 
 
@@ -286,8 +395,16 @@ class _Item:
         return self.table in ("coil", "discrete") or bool(self.mask and codec.mask_shift(self.mask)[1] == 1)
 
 
-def _entry(item: Mapping[str, Any], at: yamlsrc.Path_, src: yamlsrc.Source, path: str, warn: Any,
-           translate: Any, *, channel: bool) -> _Entry | None:
+def _entry(
+    item: Mapping[str, Any],
+    at: yamlsrc.Path_,
+    src: yamlsrc.Source,
+    path: str,
+    warn: Any,
+    translate: Any,
+    *,
+    channel: bool,
+) -> _Entry | None:
     """One parameter or channel as a profile parameter, or None (left out, with a warning)."""
     kind = "channel" if channel else "parameter"
     raw_name = str(item.get("id") if not channel or item.get("id") else item.get("name") or "")
@@ -331,8 +448,10 @@ def _kept(e: _Item, raw_name: str, kind: str) -> bool:
         e.say(None, f"a channel of a nested device ({item['device_type']}): left out")
         return False
     if not e.channel and item.get("readonly") is True:
-        e.say("readonly", "readonly: true marks a setting of the web configurator only, with no register in the "
-                          "device: left out")
+        e.say(
+            "readonly",
+            "readonly: true marks a setting of the web configurator only, with no register in the device: left out",
+        )
         return False
     if item.get("address", item.get("write_address")) is None:
         e.say(None, "no address: left out")
@@ -386,9 +505,12 @@ def _address_and_access(e: _Item) -> str | None:
             return None
         if wparsed[0] != e.address and access == "read-write":
             # read at one register, written at another: a profile has one address per parameter
-            e.say("write_address", f"read at {e.address} but written at write_address {wparsed[0]}: imported "
-                                   "read-only at address (a profile has one register per parameter); the write "
-                                   "address is in its description")
+            e.say(
+                "write_address",
+                f"read at {e.address} but written at write_address {wparsed[0]}: imported "
+                "read-only at address (a profile has one register per parameter); the write "
+                "address is in its description",
+            )
             e.notes.append(f"written at register {wparsed[0]} (write_address)")
             access = "read-only"
     elif e.addr_key == "write_address":
@@ -498,8 +620,11 @@ def _enum(e: _Item) -> None:
     if not isinstance(titles, list) or len(titles) != len(enum):
         e.notes.append("allowed values: " + ", ".join(str(v) for v in enum))
         if titles is not None:
-            e.say("enum_titles", f"{len(titles) if isinstance(titles, list) else 0} enum_titles for {len(enum)} "
-                                 "enum values: kept in the description as numbers")
+            e.say(
+                "enum_titles",
+                f"{len(titles) if isinstance(titles, list) else 0} enum_titles for {len(enum)} "
+                "enum values: kept in the description as numbers",
+            )
         return
     labels = e.labels
     for v, t in zip(enum, titles, strict=True):
@@ -527,8 +652,10 @@ def _bounds(e: _Item) -> None:
         if v is None:
             e.say(key, f"{key} {e.item[key]!r} is not a number: ignored")
         elif not _fits(v, e.spec, e.scale, e.offset):
-            e.say(key, f"{key} {v} does not fit in {e.spec.get('type', 'the register')} ({e.fmt}): kept in the "
-                       "description")
+            e.say(
+                key,
+                f"{key} {v} does not fit in {e.spec.get('type', 'the register')} ({e.fmt}): kept in the description",
+            )
             e.notes.append(f"{key} {v}")
         else:
             e.spec[key] = v
@@ -551,8 +678,11 @@ def _default(e: _Item) -> None:
             spec["default"] = match
     elif e.is_bit:
         spec["default"] = bool(d)
-    elif ("min" in spec and d < spec["min"]) or ("max" in spec and d > spec["max"]) or \
-            not _fits(d, spec, e.scale, e.offset):
+    elif (
+        ("min" in spec and d < spec["min"])
+        or ("max" in spec and d > spec["max"])
+        or not _fits(d, spec, e.scale, e.offset)
+    ):
         e.say("default", f"default {d} is outside min..max or the type: kept in the description")
         e.notes.append(f"default {d}")
     else:
@@ -615,8 +745,9 @@ def _resolve_shared(entries: list[_Entry], warnings: list[str]) -> tuple[list[_E
             if (clash.address, clash.mask, clash.count) == (e.address, e.mask, e.count):
                 when = [n for n in e.notes if n.startswith(("applies when", "needs firmware"))]
                 if e.name != clash.name:
-                    clash.notes.append(f"also named {e.name} in the template"
-                                       + (f" ({'; '.join(when)})" if when else ""))
+                    clash.notes.append(
+                        f"also named {e.name} in the template" + (f" ({'; '.join(when)})" if when else "")
+                    )
                 if _ambiguous(clash, e):  # said once per register below, with every other name it has
                     aliases.setdefault(id(clash), (clash, where, []))[2].append(e.name)
             else:
@@ -639,10 +770,12 @@ def _resolve_shared(entries: list[_Entry], warnings: list[str]) -> tuple[list[_E
         kept.append(e)
     for clash, where, names_ in aliases.values():
         one = len(names_) == 1
-        warnings.append(f"{where}: {', '.join(names_)} {'shares its' if one else 'share the'} register "
-                        f"{clash.address} with {clash.name} (line {clash.origin.line}): imported once, as "
-                        f"{clash.name}; {names_[0] if one else 'they'} {'is' if one else 'are'} named in its "
-                        "description")
+        warnings.append(
+            f"{where}: {', '.join(names_)} {'shares its' if one else 'share the'} register "
+            f"{clash.address} with {clash.name} (line {clash.origin.line}): imported once, as "
+            f"{clash.name}; {names_[0] if one else 'they'} {'is' if one else 'are'} named in its "
+            "description"
+        )
     return kept, dropped
 
 

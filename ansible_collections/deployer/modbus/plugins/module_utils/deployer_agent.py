@@ -15,8 +15,7 @@ AGENT_SPEC = dict(
 )
 
 # what means something only where the module itself talks to the devices: the agent's inventory says it
-NOT_WITH_AGENT = ("device", "devices", "inventory", "profile", "parameters", "name", "unit", "timeout",
-                  "retries")
+NOT_WITH_AGENT = ("device", "devices", "inventory", "profile", "parameters", "name", "unit", "timeout", "retries")
 
 
 def agent_exclusive(more=()):
@@ -43,13 +42,22 @@ def agent_failed(module, e, **result):
     msg = f"agent {module.params['agent']['url']}: {e}"
     if getattr(e, "diagnostics", None):
         msg += ": " + "; ".join(e.diagnostics)
-    module.fail_json(msg=msg, kind=getattr(e, "kind", None), exit_code=getattr(e, "exit_code", None),
-                     errors=list(getattr(e, "diagnostics", []) or []), **result)
+    module.fail_json(
+        msg=msg,
+        kind=getattr(e, "kind", None),
+        exit_code=getattr(e, "exit_code", None),
+        errors=list(getattr(e, "diagnostics", []) or []),
+        **result,
+    )
 
 
 def _diff(name, rows):
-    return {"before_header": name, "after_header": name,
-            "before": "".join(f"{n}: {b}\n" for n, b, a in rows), "after": "".join(f"{n}: {a}\n" for n, b, a in rows)}
+    return {
+        "before_header": name,
+        "after_header": name,
+        "before": "".join(f"{n}: {b}\n" for n, b, a in rows),
+        "after": "".join(f"{n}: {a}\n" for n, b, a in rows),
+    }
 
 
 def agent_check(module, client):
@@ -64,17 +72,29 @@ def agent_check(module, client):
         name = d["name"]
         if d.get("status") in ("unreachable", "not-owned"):
             down.append(f"{name}: {d.get('unreachable') or d.get('not_owned') or d['status']}")
-        rows = {c["name"]: (c["name"], c["device"] if c["device"] is not None else "?", c["adopted"])
-                for c in d.get("drift") or []}
+        rows = {
+            c["name"]: (c["name"], c["device"] if c["device"] is not None else "?", c["adopted"])
+            for c in d.get("drift") or []
+        }
         for c in (pending.get(name) or {}).get("changes") or []:
             before = rows[c["name"]][1] if c["name"] in rows else c["adopted"]
             rows[c["name"]] = (c["name"], before if before is not None else "?", c["files"])
-        devices.append({"name": name, "status": "would change" if rows else d.get("status"),
-                        "changes": sorted(rows), "plan": (pending.get(name) or {}).get("plan")})
+        devices.append(
+            {
+                "name": name,
+                "status": "would change" if rows else d.get("status"),
+                "changes": sorted(rows),
+                "plan": (pending.get(name) or {}).get("plan"),
+            }
+        )
         if rows:
             diffs.append(_diff(name, [rows[k] for k in sorted(rows)]))
-    result = {"changed": bool(diffs), "devices": devices, "diff": diffs,
-              "plans": [{"name": d["name"], "plan": d["plan"]} for d in devices if d["plan"] is not None]}
+    result = {
+        "changed": bool(diffs),
+        "devices": devices,
+        "diff": diffs,
+        "plans": [{"name": d["name"], "plan": d["plan"]} for d in devices if d["plan"] is not None],
+    }
     if down:
         module.fail_json(msg="; ".join(down), **result)
     module.exit_json(**result)
@@ -86,37 +106,63 @@ def agent_apply(module, client):
     import os
 
     p = module.params
-    end = client.apply(command="apply", limit=p.get("limit"),
-                       recipe=os.path.abspath(p["recipe"]) if p.get("recipe") else None,
-                       batch=p.get("batch"), max_failures=p.get("max_failures"), parallel=p["parallel"],
-                       soak=p.get("soak"), health_interval=p["health_interval"],
-                       allow_unhealthy=p["allow_unhealthy"] or None,
-                       rollback_on_failure=p["rollback_on_failure"], write_all=p["write_all"])
+    end = client.apply(
+        command="apply",
+        limit=p.get("limit"),
+        recipe=os.path.abspath(p["recipe"]) if p.get("recipe") else None,
+        batch=p.get("batch"),
+        max_failures=p.get("max_failures"),
+        parallel=p["parallel"],
+        soak=p.get("soak"),
+        health_interval=p["health_interval"],
+        allow_unhealthy=p["allow_unhealthy"] or None,
+        rollback_on_failure=p["rollback_on_failure"],
+        write_all=p["write_all"],
+    )
     report = end.get("report") or {}
     devices, diffs, problems, changed = [], [], [], False
     for d in report.get("devices") or []:
         params = d.get("parameters") or []
-        moved = [(q["name"], q.get("before") or "?", q.get("after") or q.get("desired"))
-                 for q in params if q.get("status") == "ok" and q.get("before_raw") != q.get("after_raw")]
+        moved = [
+            (q["name"], q.get("before") or "?", q.get("after") or q.get("desired"))
+            for q in params
+            if q.get("status") == "ok" and q.get("before_raw") != q.get("after_raw")
+        ]
         bad = [q for q in params if q.get("status") in ("failed", "mismatch", "unverified")]
         wrote = any(r.get("function") in (5, 6, 15, 16, 23) for r in d.get("requests") or [])
         changed = changed or wrote or bool(moved)
-        devices.append({"name": d["name"], "status": d["status"], "changed": [row[0] for row in moved],
-                        "failed": {q["name"]: q.get("error") for q in bad}, "error": d.get("error")})
+        devices.append(
+            {
+                "name": d["name"],
+                "status": d["status"],
+                "changed": [row[0] for row in moved],
+                "failed": {q["name"]: q.get("error") for q in bad},
+                "error": d.get("error"),
+            }
+        )
         if moved:
             diffs.append(_diff(d["name"], moved))
         if d["status"] != "ok":
-            what = ", ".join(f"{q['name']} {q['status']}" + (f" ({q['error']})" if q.get("error") else "")
-                             for q in bad)
-            problems.append(f"{d['name']} {d['status']}" + (f": {what}" if what else "")
-                            + (f" - {d['error']}" if d.get("error") else ""))
-    result = {"changed": changed, "devices": devices, "report": report, "diff": diffs, "run": end.get("run"),
-              "exit_code": end.get("exit_code")}
+            what = ", ".join(f"{q['name']} {q['status']}" + (f" ({q['error']})" if q.get("error") else "") for q in bad)
+            problems.append(
+                f"{d['name']} {d['status']}"
+                + (f": {what}" if what else "")
+                + (f" - {d['error']}" if d.get("error") else "")
+            )
+    result = {
+        "changed": changed,
+        "devices": devices,
+        "report": report,
+        "diff": diffs,
+        "run": end.get("run"),
+        "exit_code": end.get("exit_code"),
+    }
     if end.get("exit_code") != 0 or problems:
-        problems = problems or [f"the agent's run ended with exit code {end.get('exit_code')}"
-                                + (f": {end['error']}" if end.get("error") else "")]
-        module.fail_json(msg=f"run {end.get('run')} in the agent {p['agent']['url']}: " + "; ".join(problems),
-                         **result)
+        problems = problems or [
+            f"the agent's run ended with exit code {end.get('exit_code')}"
+            + (f": {end['error']}" if end.get("error") else "")
+        ]
+        module.fail_json(msg=f"run {end.get('run')} in the agent {p['agent']['url']}: " + "; ".join(problems), **result)
     module.exit_json(**result)
 
 
@@ -131,9 +177,13 @@ def agent_info(module, client):
             down.append(f"{d['name']}: {d.get('unreachable') or d.get('not_owned') or d.get('status')}")
             continue
         facts[d["name"]] = dict(full["last_values"])
-    result = {"changed": False, "ansible_facts": {"modbus_parameters": facts},
-              "devices": [{k: d.get(k) for k in ("name", "status", "drifted", "drift", "pending", "last_check")}
-                          for d in checked]}
+    result = {
+        "changed": False,
+        "ansible_facts": {"modbus_parameters": facts},
+        "devices": [
+            {k: d.get(k) for k in ("name", "status", "drifted", "drift", "pending", "last_check")} for d in checked
+        ],
+    }
     if down:
         module.fail_json(msg="unreachable: " + "; ".join(down), **result)
     module.exit_json(**result)

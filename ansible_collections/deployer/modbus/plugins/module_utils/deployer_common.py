@@ -11,6 +11,7 @@ import traceback
 try:
     import deployer
     from deployer.api import LIMITS, InputError, UsageError
+
     HAS_DEPLOYER = True
     IMPORT_ERROR = ""
 except ImportError:  # said clearly by the module, not as a traceback
@@ -56,8 +57,10 @@ def check_target_args(module):
         if not lo <= unit <= hi:
             problems.append(f"{what} must be from 1 to 247 (0 is broadcast), got {unit}")
         elif unit == 0 and not p.get("allow_broadcast"):
-            problems.append(f"{what} is 0, which is broadcast: nobody answers it, so nothing can be verified; "
-                            "set allow_broadcast: true to send it anyway")
+            problems.append(
+                f"{what} is 0, which is broadcast: nobody answers it, so nothing can be verified; "
+                "set allow_broadcast: true to send it anyway"
+            )
     # deployer's bounds (deployer.LIMITS), the same the command line and the Python API check
     for key in ("parallel", "timeout", "retries"):
         if p.get(key) is not None:
@@ -76,16 +79,20 @@ def check_target_args(module):
 
 def require_deployer(module):
     if not HAS_DEPLOYER:
-        module.fail_json(msg=f"the deployer Python package is not importable by {sys.executable}; set "
-                             "ansible_python_interpreter to a Python that has it (pip install modbus-deployer)",
-                         exception=IMPORT_ERROR)
+        module.fail_json(
+            msg=f"the deployer Python package is not importable by {sys.executable}; set "
+            "ansible_python_interpreter to a Python that has it (pip install modbus-deployer)",
+            exception=IMPORT_ERROR,
+        )
 
 
 def input_error(module, e):
     """An invalid recipe, profile, inventory or option: every problem, with its position, nothing sent."""
     if isinstance(e, InputError):
-        module.fail_json(msg="invalid input; nothing was sent: " + "; ".join(str(d) for d in e.diagnostics),
-                         errors=[str(d) for d in e.diagnostics])
+        module.fail_json(
+            msg="invalid input; nothing was sent: " + "; ".join(str(d) for d in e.diagnostics),
+            errors=[str(d) for d in e.diagnostics],
+        )
     module.fail_json(msg=f"{e}; nothing was sent")
 
 
@@ -120,14 +127,21 @@ def targets_of(module, rec):
     url = p.get("device") or (rec.device.url if rec is not None and rec.device else None)
     if not url:
         raise UsageError("no device: pass device (a URL), devices, inventory, or set device.url in the recipe")
-    unit = p["unit"] if p.get("unit") is not None else (
-        rec.device.unit if rec.device and rec.device.unit is not None else 1)
+    unit = (
+        p["unit"]
+        if p.get("unit") is not None
+        else (rec.device.unit if rec.device and rec.device.unit is not None else 1)
+    )
     one = [{"name": p.get("name") or rec.name, "url": url, "unit": unit}]
     return {"inventory": deployer.load_inventory(one, name="device"), **common}
 
 
-READ_ARGS = dict(profile=dict(type="str"), recipe=dict(type="path"), name=dict(type="str"),
-                 parameters=dict(type="list", elements="str"))
+READ_ARGS = dict(
+    profile=dict(type="str"),
+    recipe=dict(type="path"),
+    name=dict(type="str"),
+    parameters=dict(type="list", elements="str"),
+)
 
 
 def read_devices(module):

@@ -186,8 +186,12 @@ from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common im
 
 def _diff(name, rows):
     """Ansible's before/after text for one device: one line per parameter that changes."""
-    return {"before_header": name, "after_header": name,
-            "before": "".join(f"{n}: {b}\n" for n, b, a in rows), "after": "".join(f"{n}: {a}\n" for n, b, a in rows)}
+    return {
+        "before_header": name,
+        "after_header": name,
+        "before": "".join(f"{n}: {b}\n" for n, b, a in rows),
+        "after": "".join(f"{n}: {a}\n" for n, b, a in rows),
+    }
 
 
 def check(module, rec):
@@ -195,8 +199,9 @@ def check(module, rec):
     import deployer
 
     p = module.params
-    fleet = deployer.plan(rec, parallel=p["parallel"], write_all=p["write_all"], state_dir=p["state_dir"],
-                          **targets_of(module, rec))
+    fleet = deployer.plan(
+        rec, parallel=p["parallel"], write_all=p["write_all"], state_dir=p["state_dir"], **targets_of(module, rec)
+    )
     plans, diffs, devices, down = [], [], [], []
     for name, error in fleet.errors.items():
         down.append(f"{name}: {error}")
@@ -205,16 +210,27 @@ def check(module, rec):
             devices.append({"name": name, "status": "unreachable", "error": str(fleet.errors[name])})
             continue
         plan, profile = fleet[name], fleet.profile(name)
-        rows = [(pp.name, profile.parameter(pp.name).format_registers(pp.current_raw)
-                 if pp.current_raw is not None else "?", pp.desired)
-                for pp in plan.parameters if pp.action == "write"]
+        rows = [
+            (
+                pp.name,
+                profile.parameter(pp.name).format_registers(pp.current_raw) if pp.current_raw is not None else "?",
+                pp.desired,
+            )
+            for pp in plan.parameters
+            if pp.action == "write"
+        ]
         plans.append({"name": name, "plan": plan.to_json()})
-        devices.append({"name": name, "status": "would change" if plan.writes else "ok",
-                        "changes": [row[0] for row in rows]})
+        devices.append(
+            {"name": name, "status": "would change" if plan.writes else "ok", "changes": [row[0] for row in rows]}
+        )
         if rows:
             diffs.append(_diff(name, rows))
-    result = {"changed": any(s["kind"] == "write" for p in plans for s in p["plan"]["steps"]), "plans": plans,
-              "devices": devices, "diff": diffs}
+    result = {
+        "changed": any(s["kind"] == "write" for p in plans for s in p["plan"]["steps"]),
+        "plans": plans,
+        "devices": devices,
+        "diff": diffs,
+    }
     if down:
         module.fail_json(msg="unreachable: " + "; ".join(down), **result)
     module.exit_json(**result)
@@ -227,30 +243,58 @@ def apply(module, rec):
     p = module.params
     interrupted = None
     try:  # one journaled run (deployer status sees it); SIGINT/SIGTERM end it with its report
-        report = deployer.apply(rec, parallel=p["parallel"], batch=p.get("batch"), batch_by=p["batch_by"],
-                                max_failures=p.get("max_failures"), on_error=p["on_error"], write_all=p["write_all"],
-                                allow_broadcast=p["allow_broadcast"], state_dir=p["state_dir"], soak=p.get("soak"),
-                                health_interval=p["health_interval"], allow_unhealthy=p["allow_unhealthy"],
-                                rollback_on_failure=p["rollback_on_failure"],
-                                report_path=p.get("report"), signals=True, caller="ansible deployer.modbus.apply",
-                                **targets_of(module, rec))
+        report = deployer.apply(
+            rec,
+            parallel=p["parallel"],
+            batch=p.get("batch"),
+            batch_by=p["batch_by"],
+            max_failures=p.get("max_failures"),
+            on_error=p["on_error"],
+            write_all=p["write_all"],
+            allow_broadcast=p["allow_broadcast"],
+            state_dir=p["state_dir"],
+            soak=p.get("soak"),
+            health_interval=p["health_interval"],
+            allow_unhealthy=p["allow_unhealthy"],
+            rollback_on_failure=p["rollback_on_failure"],
+            report_path=p.get("report"),
+            signals=True,
+            caller="ansible deployer.modbus.apply",
+            **targets_of(module, rec),
+        )
     except RunInterrupted as e:
         report, interrupted = e.report, e
     devices, diffs, problems = [], [], []
     for d in report.devices:
-        changed = [(q.name, q.before or "?", q.after or q.desired) for q in d.parameters
-                   if q.status == "ok" and q.before_raw != q.after_raw]
+        changed = [
+            (q.name, q.before or "?", q.after or q.desired)
+            for q in d.parameters
+            if q.status == "ok" and q.before_raw != q.after_raw
+        ]
         bad = [q for q in d.parameters if q.status in ("failed", "mismatch", "unverified")]
-        devices.append({"name": d.name, "status": d.status, "changed": [row[0] for row in changed],
-                        "failed": {q.name: q.error for q in bad}, "error": d.error})
+        devices.append(
+            {
+                "name": d.name,
+                "status": d.status,
+                "changed": [row[0] for row in changed],
+                "failed": {q.name: q.error for q in bad},
+                "error": d.error,
+            }
+        )
         if changed:
             diffs.append(_diff(d.name, changed))
         if d.status != "ok":
             what = ", ".join(f"{q.name} {q.status}" + (f" ({q.error})" if q.error else "") for q in bad)
-            problems.append(f"{d.name} {d.status}" + (f": {what}" if what else "")
-                            + (f" - {d.error}" if d.error else ""))
-    result = {"changed": any(d.write_requests for d in report.devices), "devices": devices,
-              "report": report.to_json(), "diff": diffs, "run": report.run_id}
+            problems.append(
+                f"{d.name} {d.status}" + (f": {what}" if what else "") + (f" - {d.error}" if d.error else "")
+            )
+    result = {
+        "changed": any(d.write_requests for d in report.devices),
+        "devices": devices,
+        "report": report.to_json(),
+        "diff": diffs,
+        "run": report.run_id,
+    }
     if interrupted is not None:
         problems.insert(0, f"{interrupted} (run {report.run_id} in {report.state_dir})")
     if problems:
@@ -261,14 +305,24 @@ def apply(module, rec):
 def main():
     module = AnsibleModule(
         argument_spec=dict(
-            recipe=dict(type="path"), profile=dict(type="str"), parameters=dict(type="dict"), name=dict(type="str"),
-            batch=dict(type="str"), batch_by=dict(type="str", default="profile", choices=["profile", "group"]),
-            max_failures=dict(type="str"), write_all=dict(type="bool", default=False),
+            recipe=dict(type="path"),
+            profile=dict(type="str"),
+            parameters=dict(type="dict"),
+            name=dict(type="str"),
+            batch=dict(type="str"),
+            batch_by=dict(type="str", default="profile", choices=["profile", "group"]),
+            max_failures=dict(type="str"),
+            write_all=dict(type="bool", default=False),
             on_error=dict(type="str", default="continue", choices=["continue", "stop"]),
-            state_dir=dict(type="path", default=".deployer"), report=dict(type="path"), soak=dict(type="str"),
-            health_interval=dict(type="str", default="1s"), allow_unhealthy=dict(type="bool", default=False),
+            state_dir=dict(type="path", default=".deployer"),
+            report=dict(type="path"),
+            soak=dict(type="str"),
+            health_interval=dict(type="str", default="1s"),
+            allow_unhealthy=dict(type="bool", default=False),
             rollback_on_failure=dict(type="bool", default=False),
-            agent=dict(type="dict", options=AGENT_SPEC), **TARGET_ARGS),
+            agent=dict(type="dict", options=AGENT_SPEC),
+            **TARGET_ARGS,
+        ),
         mutually_exclusive=TARGET_EXCLUSIVE + agent_exclusive(("report",)),
         supports_check_mode=True,
     )
@@ -278,8 +332,10 @@ def main():
     from deployer.errors import AgentError
 
     if module.params["allow_unhealthy"] and not module.params.get("soak"):
-        module.fail_json(msg="allow_unhealthy goes with soak (only a soak reads the health checks before it "
-                             "writes); nothing was sent")
+        module.fail_json(
+            msg="allow_unhealthy goes with soak (only a soak reads the health checks before it "
+            "writes); nothing was sent"
+        )
 
     if module.params.get("agent"):  # the agent executes; nothing here talks Modbus or writes a state folder
         try:
@@ -303,8 +359,10 @@ def main():
     except DeployerError as e:  # a device or lock error before any device's run (each one's is in the report)
         module.fail_json(msg=f"{type(e).__name__}: {e}")
     except OSError as e:  # the state folder or the report file failed during the run
-        module.fail_json(msg=f"cannot write {e.filename or p_state(module)}: {e.strerror or e}; the report of "
-                             "the run is in the journal (deployer status)")
+        module.fail_json(
+            msg=f"cannot write {e.filename or p_state(module)}: {e.strerror or e}; the report of "
+            "the run is in the journal (deployer status)"
+        )
 
 
 def p_state(module):

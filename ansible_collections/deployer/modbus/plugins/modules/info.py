@@ -108,9 +108,11 @@ from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common im
 
 
 def main():
-    module = AnsibleModule(argument_spec=dict(**READ_ARGS, **TARGET_ARGS, agent=dict(type="dict", options=AGENT_SPEC)),
-                           mutually_exclusive=TARGET_EXCLUSIVE + agent_exclusive(("recipe",)),
-                           supports_check_mode=True)
+    module = AnsibleModule(
+        argument_spec=dict(**READ_ARGS, **TARGET_ARGS, agent=dict(type="dict", options=AGENT_SPEC)),
+        mutually_exclusive=TARGET_EXCLUSIVE + agent_exclusive(("recipe",)),
+        supports_check_mode=True,
+    )
     require_deployer(module)
     check_target_args(module)
     from deployer.api import InputError, UsageError

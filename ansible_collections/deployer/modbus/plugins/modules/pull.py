@@ -87,8 +87,11 @@ from ansible_collections.deployer.modbus.plugins.module_utils.deployer_common im
 
 
 def main():
-    module = AnsibleModule(argument_spec=dict(dest=dict(type="path", required=True), **READ_ARGS, **TARGET_ARGS),
-                           mutually_exclusive=TARGET_EXCLUSIVE, supports_check_mode=True)
+    module = AnsibleModule(
+        argument_spec=dict(dest=dict(type="path", required=True), **READ_ARGS, **TARGET_ARGS),
+        mutually_exclusive=TARGET_EXCLUSIVE,
+        supports_check_mode=True,
+    )
     require_deployer(module)
     check_target_args(module)
     from deployer.api import InputError, UsageError
