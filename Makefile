@@ -42,6 +42,7 @@ check:
 	echo "coverage: $$($(BIN)/coverage report --format=total)% of deployer's lines ran, in the suite's processes and \
 	those it started (coverage report: per file)"; \
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections tools || rc=1; \
+	$(BIN)/ruff format --check deployer tests benchmarks ansible_collections tools || rc=1; \
 	$(BIN)/mypy deployer tests tools || rc=1; \
 	$(BIN)/mypy --platform win32 deployer || rc=1; \
 	$(BIN)/mkdocs build --strict --site-dir build/site || rc=1; \
@@ -74,8 +75,11 @@ test-latest:
 constraints: $(LATEST)/.installed
 	$(LATEST)/bin/pip freeze --all --exclude-editable | $(LATEST)/bin/python tools/versions.py --write constraints.txt
 
+# the same commands as .pre-commit-config.yaml's hooks (tests/test_habits.py); `ruff format deployer tests ...` fixes
+# what the format check finds
 lint: $(VENV)/.installed-test
 	$(BIN)/ruff check deployer tests benchmarks ansible_collections tools
+	$(BIN)/ruff format --check deployer tests benchmarks ansible_collections tools
 	$(BIN)/mypy deployer tests tools
 	$(BIN)/mypy --platform win32 deployer   # Windows' branches (ctypes, msvcrt) type-check here too
 
