@@ -50,27 +50,7 @@ class Agent:
             token = find(self.url)
         self.token = token
         self.timeout = timeout
-        self._ssl: ssl.SSLContext | None = None
-        if ca is not None:  # the agent's own CA (a gateway's certificate is rarely one the system trusts)
-            try:
-                self._ssl = ssl.create_default_context(cafile=ca)
-            except (OSError, ssl.SSLError) as e:
-                raise AgentError(
-                    f"agent CA file {ca}: cannot load it: {getattr(e, 'strerror', None) or e}",
-                    kind="usage",
-                    exit_code=1,
-                ) from None
-        if cert is not None:  # who we are, by certificate (the agent's users file maps it to a user)
-            if self._ssl is None:
-                self._ssl = ssl.create_default_context()
-            try:
-                self._ssl.load_cert_chain(cert, key)
-            except (OSError, ssl.SSLError) as e:
-                raise AgentError(
-                    f"client certificate {cert}: cannot load it: {getattr(e, 'strerror', None) or e}",
-                    kind="usage",
-                    exit_code=1,
-                ) from None
+        self._ssl = _tls(ca, cert, key)
 
     # ---- transport -------------------------------------------------------------------------------
 
@@ -328,18 +308,9 @@ class Agent:
     ) -> dict[str, Any]:
         """Change a user (an admin's): ``roles``, ``disabled``, ``new_token`` (the answer carries it, once),
         ``name``, ``certificate``."""
-        changes = {
-            "roles": roles,
-            "disabled": disabled,
-            "new_token": new_token,
-            "name": name,
-            "certificate": certificate,
-        }
-        return dict(
-            self.post(
-                "/v1/users/" + urllib.parse.quote(user, safe=""), {k: v for k, v in changes.items() if v is not None}
-            )
-        )
+        changes = dict(roles=roles, disabled=disabled, new_token=new_token, name=name, certificate=certificate)
+        path = "/v1/users/" + urllib.parse.quote(user, safe="")
+        return dict(self.post(path, {k: v for k, v in changes.items() if v is not None}))
 
     @checked()
     def metrics(self) -> str:
@@ -359,3 +330,27 @@ def _refusal(e: urllib.error.HTTPError) -> AgentError:
         )
     except (ValueError, KeyError, TypeError):
         return AgentError(f"the agent answered HTTP {e.code} {e.reason}", kind="internal", exit_code=4)
+
+
+def _tls(ca: str | None, cert: str | None, key: str | None) -> ssl.SSLContext | None:
+    """The client's TLS context: the agent's own CA (a gateway's certificate is rarely one the system trusts) and who
+    we are by certificate (the agent's users file maps it to a user); None: the system's defaults."""
+    context = None
+    if ca is not None:
+        try:
+            context = ssl.create_default_context(cafile=ca)
+        except (OSError, ssl.SSLError) as e:
+            raise AgentError(
+                f"agent CA file {ca}: cannot load it: {getattr(e, 'strerror', None) or e}", kind="usage", exit_code=1
+            ) from None
+    if cert is not None:
+        context = context or ssl.create_default_context()
+        try:
+            context.load_cert_chain(cert, key)
+        except (OSError, ssl.SSLError) as e:
+            raise AgentError(
+                f"client certificate {cert}: cannot load it: {getattr(e, 'strerror', None) or e}",
+                kind="usage",
+                exit_code=1,
+            ) from None
+    return context

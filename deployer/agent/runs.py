@@ -23,7 +23,6 @@ from ..state import journal
 from ..window import recover
 from ..window.soak import check_soak_profiles
 from ..window.state import WindowState
-from . import desired as ds
 from .audit_events import run_finished
 from .ledger import Ledger
 from .model import ApiError, RunState
@@ -190,7 +189,7 @@ class Runs:
                 self.site.devices[j.name].run = None
             self._window_ends(run, report)
         if report is not None:
-            self._ended(run, report, by_name, adopt=adopt)
+            self.site.run_ended(run, report, by_name, adopt=adopt)
             run.report = report.to_json()
             run.exit_code = report.exit_code
         else:
@@ -260,41 +259,6 @@ class Runs:
         self._store.close_window(w, state)
 
     # ---- what a run leaves ----------------------------------------------------------------------------
-
-    def _ended(self, run: RunState, report: Report, by_name: Mapping[str, Job], *, adopt: bool) -> None:
-        """Each device that ended ok: what it holds adopted (an apply, a rollback), its as-left values kept."""
-        for r in report.devices:
-            dev = self.site.devices[r.name]
-            if r.status == "ok" and r.commit in (None, "sent"):
-                after = {p.name: tuple(p.after_raw) for p in r.parameters if p.after_raw is not None}
-                if adopt:
-                    self.site.adopt(
-                        dev, by_name[r.name], ds.values_of(by_name[r.name].recipe), run=run.id, why=f"run {run.id}"
-                    )
-                elif run.command == "rollback":  # what was restored is the state to keep, not what was undone
-                    back = {n: v for n, v in ds.values_of(by_name[r.name].recipe).items() if n in dev.adopted_values}
-                    self.site.adopt(
-                        dev, dev.job, {**dev.adopted_values, **back}, run=run.id, why=f"rollback run {run.id}"
-                    )
-                dev.asleft = {n: v for n, v in after.items() if n in dev.adopted_values}
-                self._store.set_asleft(r.name, dev.asleft, f"run {run.id}")
-                if run.command == "restore":
-                    dev.drift_restores += 1
-                    dev.drift, dev.status, dev.replaced = [], "ok", None
-                    self.event(
-                        "restored",
-                        f"{r.name}: restored ({run.options.get('reason')}) by run {run.id}",
-                        device=r.name,
-                        detail={"run": run.id},
-                    )
-            elif run.command == "restore":
-                self.event(
-                    "restore-failed",
-                    f"{r.name}: the restore run {run.id} ended {r.status}: {r.error}",
-                    device=r.name,
-                    detail={"run": run.id},
-                )
-        self.site.pending()
 
     # ---- windows an earlier agent left open (window.recover) -----------------------------------------
 

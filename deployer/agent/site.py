@@ -11,7 +11,7 @@ import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import InputError, Locked, StateError
 from ..execute.job import Job
@@ -19,8 +19,11 @@ from ..state import journal, lock
 from . import desired as ds
 from .audit_events import trailed
 from .firstrestores import FirstRestores
-from .model import ApiError, Device, Settings
+from .model import ApiError, Device, RunState, Settings
 from .store import Store, boot_id
+
+if TYPE_CHECKING:
+    from ..api import Report
 
 
 class Site:
@@ -179,6 +182,41 @@ class Site:
         dev.adopted = ds.load_adopted(path)
         dev.adopted_values = ds.values_of(dev.adopted)
         self.store.adopt(dev.name, path, sha, run)
+
+    def run_ended(self, run: RunState, report: Report, by_name: Mapping[str, Job], *, adopt: bool) -> None:
+        """Each device that ended ok: what it holds adopted (an apply, a rollback), its as-left values kept."""
+        store = self.store
+        assert store is not None
+        for r in report.devices:
+            dev = self.devices[r.name]
+            if r.status == "ok" and r.commit in (None, "sent"):
+                after = {p.name: tuple(p.after_raw) for p in r.parameters if p.after_raw is not None}
+                if adopt:
+                    self.adopt(
+                        dev, by_name[r.name], ds.values_of(by_name[r.name].recipe), run=run.id, why=f"run {run.id}"
+                    )
+                elif run.command == "rollback":  # what was restored is the state to keep, not what was undone
+                    back = {n: v for n, v in ds.values_of(by_name[r.name].recipe).items() if n in dev.adopted_values}
+                    self.adopt(dev, dev.job, {**dev.adopted_values, **back}, run=run.id, why=f"rollback run {run.id}")
+                dev.asleft = {n: v for n, v in after.items() if n in dev.adopted_values}
+                store.set_asleft(r.name, dev.asleft, f"run {run.id}")
+                if run.command == "restore":
+                    dev.drift_restores += 1
+                    dev.drift, dev.status, dev.replaced = [], "ok", None
+                    self.event(
+                        "restored",
+                        f"{r.name}: restored ({run.options.get('reason')}) by run {run.id}",
+                        device=r.name,
+                        detail={"run": run.id},
+                    )
+            elif run.command == "restore":
+                self.event(
+                    "restore-failed",
+                    f"{r.name}: the restore run {run.id} ended {r.status}: {r.error}",
+                    device=r.name,
+                    detail={"run": run.id},
+                )
+        self.pending()
 
     def pending(self) -> None:
         """Per device: the files' values that are not the adopted ones."""
