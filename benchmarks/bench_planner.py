@@ -93,23 +93,6 @@ def run(quick: bool = False) -> dict[str, Any]:
     return out
 
 
-if __name__ == "__main__":
-    res = run()
-    print(json.dumps(res, indent=2))
-    print(
-        f"\n{'mode':<11}{'parameters':>11}{'seconds':>9}{'params/s':>10}{'us/param':>9}{'requests':>9}"
-        f"{'naive':>8}{'registers':>10}{'bridged':>8}"
-    )
-    for mode in ("write_all", "diff_aware", "dp_worst"):
-        for r in res[mode]:
-            print(
-                f"{mode:<11}{r['parameters']:>11}{r['seconds']:>9}{r['parameters_per_second']:>10}"
-                f"{r['microseconds_per_parameter']:>9}{r['requests']:>9}{r['naive_requests']:>8}"
-                f"{r['registers_written']:>10}{r['bridged']:>8}"
-            )
-        print(f"{mode} linearity (time per parameter, largest / smallest): {res[f'{mode}_linearity']}")
-
-
 def against_yaml(n: int = 5000) -> dict[str, Any]:
     """A whole device plan (every step: checks, writes, read-back) of the benchmark drive's ``n`` parameters,
     offline and against values held (a third changed), beside PyYAML's pure-Python loader reading the same
@@ -153,3 +136,20 @@ def against_yaml(n: int = 5000) -> dict[str, Any]:
         "offline_vs_yaml": round(offline / parse, 3),
         "diff_aware_vs_yaml": round(diff / parse, 3),
     }
+
+
+if __name__ == "__main__":
+    res = run()
+    print(json.dumps(res, indent=2))
+    print(
+        f"\n{'mode':<11}{'parameters':>11}{'seconds':>9}{'params/s':>10}{'us/param':>9}{'requests':>9}"
+        f"{'naive':>8}{'registers':>10}{'bridged':>8}"
+    )
+    for mode in ("write_all", "diff_aware", "dp_worst"):
+        for r in res[mode]:
+            print(
+                f"{mode:<11}{r['parameters']:>11}{r['seconds']:>9}{r['parameters_per_second']:>10}"
+                f"{r['microseconds_per_parameter']:>9}{r['requests']:>9}{r['naive_requests']:>8}"
+                f"{r['registers_written']:>10}{r['bridged']:>8}"
+            )
+        print(f"{mode} linearity (time per parameter, largest / smallest): {res[f'{mode}_linearity']}")
