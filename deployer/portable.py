@@ -195,32 +195,6 @@ def make_private(path: str) -> str:
     return "mode 0600"
 
 
-def access_list(path: str) -> str | None:
-    """A file's access list as SDDL on Windows (None elsewhere): for tests and ``make_private``'s checks."""
-    if sys.platform == "win32":
-        import ctypes
-
-        advapi32 = ctypes.WinDLL("advapi32", use_last_error=True)
-        kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)
-        sd, text = ctypes.c_void_p(), ctypes.c_wchar_p()
-        err = advapi32.GetNamedSecurityInfoW(
-            ctypes.c_wchar_p(path), 1, 0x00000004, None, None, None, None, ctypes.byref(sd)
-        )
-        if err:
-            raise ctypes.WinError(err)
-        try:
-            if not advapi32.ConvertSecurityDescriptorToStringSecurityDescriptorW(
-                sd, 1, 0x00000004, ctypes.byref(text), None
-            ):
-                raise ctypes.WinError(ctypes.get_last_error())
-            said = str(text.value)
-            kernel32.LocalFree(text)
-            return said
-        finally:
-            kernel32.LocalFree(sd)
-    return None
-
-
 def open_nofollow(path: str, flags: int, mode: int = 0o666) -> int:
     """``os.open`` that never goes through a symbolic link at ``path`` (OSError ELOOP if one is there).
 
@@ -418,6 +392,7 @@ def on_signals(
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
     undo: list[Callable[[], object]] = []
+    quiet = False
     for sig in signals:
         try:
             loop.add_signal_handler(sig, handler, sig)
@@ -434,6 +409,8 @@ def on_signals(
         except (ValueError, OSError):
             continue
         undo.append(functools.partial(signal.signal, sig, old))
+        quiet = True
+    if quiet:  # handed over through the loop's wakeup socket (the proactor loop's way)
         _quiet_wakeup()
 
     def restore() -> None:

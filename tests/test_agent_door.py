@@ -270,6 +270,32 @@ def test_a_hostile_page_in_chromium_starts_nothing(tmp_path: Path, sim: Simulato
     assert "Traceback" not in agent.log()
 
 
+def _access_list(path: str) -> str | None:
+    """A file's access list as SDDL on Windows (None elsewhere)."""
+    if sys.platform == "win32":
+        import ctypes
+
+        advapi32 = ctypes.WinDLL("advapi32", use_last_error=True)
+        kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)
+        sd, text = ctypes.c_void_p(), ctypes.c_wchar_p()
+        err = advapi32.GetNamedSecurityInfoW(
+            ctypes.c_wchar_p(path), 1, 0x00000004, None, None, None, None, ctypes.byref(sd)
+        )
+        if err:
+            raise ctypes.WinError(err)
+        try:
+            if not advapi32.ConvertSecurityDescriptorToStringSecurityDescriptorW(
+                sd, 1, 0x00000004, ctypes.byref(text), None
+            ):
+                raise ctypes.WinError(ctypes.get_last_error())
+            said = str(text.value)
+            kernel32.LocalFree(text)
+            return said
+        finally:
+            kernel32.LocalFree(sd)
+    return None
+
+
 @pytest.mark.skipif(sys.platform != "win32", reason="access lists are Windows' (POSIX: mode 0600, the test below)")
 def test_the_agents_own_token_is_kept_to_its_owner_on_windows(tmp_path: Path) -> None:
     """Windows has no modes: the token file gets an access list of its own, for its owner, SYSTEM and the
@@ -277,7 +303,7 @@ def test_the_agents_own_token_is_kept_to_its_owner_on_windows(tmp_path: Path) ->
     from deployer import portable
 
     path, new = local_token.ensure(str(tmp_path))
-    said = portable.access_list(path) or ""
+    said = _access_list(path) or ""
     assert (
         new
         and said.startswith("D:P")
