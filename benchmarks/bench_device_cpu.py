@@ -135,11 +135,7 @@ class _Bench:
         """The plan of the devices holding these values, for this device (``Shared.plan``, ``_Device._apply``)."""
         prof = self.recipe.profile
         d.plan, d.entry = self.shared.plan(Target(d.url, 1, profile_ref(prof)), d.before, False)
-        for pp in d.plan.parameters:
-            if pp.action == "unchanged":
-                d.results[pp.name].status = "unchanged"
-            elif prof.parameter(pp.name).mask:
-                d.results[pp.name].desired_raw = pp.desired_raw
+        dev.planned_results(d.results, d.plan, d.entry, prof)
 
     def snapshot(self, d: _Device) -> None:
         """The snapshot file's text (``_save_snapshot``)."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import AsyncIterator
 
+from ..planning.model import Pacing
 from ..planning.steps import pacing_for
 from ..profile import Profile
 from ..report import RequestRecord
@@ -26,12 +27,13 @@ async def connected(
     records: list[RequestRecord] | None = None,
     backoff: float = 0.05,
     notices: list[str] | None = None,
+    pacing: Pacing | None = None,
 ) -> AsyncIterator[Session]:
     """A session with the device at ``url``/``unit``, closed on the way out. Raises Unreachable when no connection
     can be made. ``records``: every request is logged there; ``notices``: told when the serial line went out of
-    step (a late answer: the session's ``trust``)."""
+    step (a late answer: the session's ``trust``); ``pacing``: ``pacing_for(url, profile)`` when the caller has it."""
     transport = tp.open_transport(url)
-    p = pacing_for(url, profile)
+    p = pacing if pacing is not None else pacing_for(url, profile)
     transport.set_pacing(p.after_connect, p.between_requests)
     await transport.connect()
     session = Session(

@@ -12,6 +12,7 @@ recipe and set of limits the devices taught; one plan per set of values held).
 from __future__ import annotations
 
 import asyncio
+import copy
 import hashlib
 import itertools
 import json
@@ -57,6 +58,7 @@ class _Entry:
 
     plan: Plan  # planned for no device in particular
     rest: bytes  # the plan's canonical JSON after its "device" (which sorts first)
+    facts: tuple[tuple[str, ...], tuple[tuple[str, tuple[int, ...]], ...]]  # ``plan_facts``
     snapshot: str | None = None  # the values part of their snapshots' text, once the first one was made
 
     def snapshot_values(self, prof: Profile, before: dict[str, tuple[int, ...]]) -> str:
@@ -71,6 +73,28 @@ class _Entry:
         h = hashlib.sha256(b'{"device":' + head + b",")
         h.update(self.rest)
         return h.hexdigest()
+
+
+def plan_facts(plan: Plan, prof: Profile) -> tuple[tuple[str, ...], tuple[tuple[str, tuple[int, ...]], ...]]:
+    """The parameters the plan leaves unchanged, and the bit fields it writes with the word planned for each."""
+    return (
+        tuple(pp.name for pp in plan.parameters if pp.action == "unchanged"),
+        tuple(
+            (pp.name, pp.desired_raw)
+            for pp in plan.parameters
+            if pp.action != "unchanged" and prof.parameter(pp.name).mask
+        ),
+    )
+
+
+def planned_results(results: dict[str, ParameterResult], plan: Plan, entry: _Entry | None, prof: Profile) -> None:
+    """What the plan does with each parameter, in its result: ``unchanged`` said; a bit field's register goes
+    whole, so its result wants the word planned. Asked of the shared entry once for all its devices."""
+    unchanged, fields = entry.facts if entry is not None else plan_facts(plan, prof)
+    for n in unchanged:
+        results[n].status = "unchanged"
+    for n, raw in fields:
+        results[n].desired_raw = raw
 
 
 class Shared:
@@ -138,8 +162,11 @@ class Shared:
             plan = self.planner.plan(Target("", target.unit, ""), before, commit_owed=commit_owed)
             doc = plan_to_json(plan)
             del doc["device"]
-            hit = self._plans[key] = _Entry(plan, canonical(doc)[1:])
-        return replace(hit.plan, device=target), hit
+            hit = self._plans[key] = _Entry(plan, canonical(doc)[1:], plan_facts(plan, self.recipe.profile))
+            _ = plan.writes, plan.checks, plan._desired, plan._read_back  # made once: each device's copy has them
+        plan = copy.copy(hit.plan)  # keeps what the executor derived from the plan once (``Plan._desired``)
+        object.__setattr__(plan, "device", target)
+        return plan, hit
 
 
 def parameter_results(recipe: Recipe) -> dict[str, ParameterResult]:
@@ -377,6 +404,7 @@ class _Device:
                     records=res.requests,
                     backoff=opts.backoff,
                     notices=res.notices,
+                    pacing=self.pacing,  # what the plan says (no limit a device teaches is a pause)
                 ) as session:
                     entered = True
                     if job.unit == 0:
@@ -482,11 +510,7 @@ class _Device:
             self.keep_taught(ex)
             prof = self.recipe.profile
             plan, self.entry = self.shared.plan(target, before, opts.commit_owed)
-        for pp in plan.parameters:
-            if pp.action == "unchanged":
-                results[pp.name].status = "unchanged"
-            elif prof.parameter(pp.name).mask:  # a field's register goes whole: report the word planned
-                results[pp.name].desired_raw = pp.desired_raw
+        planned_results(results, plan, self.entry, prof)
 
         async def before_write() -> bool:
             if opts.confirm is not None and not await opts.confirm(plan, res):

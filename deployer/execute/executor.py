@@ -206,10 +206,10 @@ class Execution:
         first step of a plan that writes a recipe parameter (the snapshot on disk); False stops the device there,
         nothing written."""
         steps = plan.steps
-        writes = any(s.kind == "write" for s in steps)
+        writes = bool(plan.writes)
         if not writes:
             _verify(self.results, self.prof, self.before, written=set())
-        desired = {pp.name: tuple(pp.desired_raw) for pp in plan.parameters}
+        desired = dict(plan._desired)
         merged: dict[int, int] = {}  # a bit field's register as read right before its write
         ready = before_write is None or not writes
         unhealthy: list[tuple[int, str]] = []  # the health checks failing before the change: index, why
@@ -483,15 +483,15 @@ class Execution:
 
     async def _read_back(self, plan: Plan) -> None:
         """The verify steps (all of them, once), compared with what was sent; what the device taught noted."""
-        if self.verified or not any(s.kind == "write" for s in plan.steps):
+        if self.verified or not plan.writes:
             return
         self.verified = True
         res, results = self.res, self.results
         res.learned.update(self.learning.limits(results))
         res.notices.extend(self.learning.notices(results, self.prof.id))
-        verify = [n for n, s in enumerate(plan.steps, 1) if s.kind == "verify"]
+        verify, reads = plan._read_back
         try:  # after a silence too: it may be back
-            regs = await self.session.read_blocks([plan.steps[n - 1].read() for n in verify], self.prof, steps=verify)
+            regs = await self.session.read_blocks(reads, self.prof, steps=verify)
         except (DeviceGone, ExceptionResponse) as e:
             for nm in self.written:
                 if results[nm].error == PENDING:

@@ -221,6 +221,20 @@ class Plan:
             n += 1
         return n
 
+    # what the executor asks of every device's plan, made once per plan: the devices of a fleet holding the same
+    # values run copies of one plan (``copy.copy`` keeps these), and 100 parameters' worth of it was 5% of a
+    # device's CPU
+    @functools.cached_property
+    def _desired(self) -> dict[str, tuple[int, ...]]:
+        """The raw registers planned for each parameter (the executor's copy of it may change)."""
+        return {pp.name: tuple(pp.desired_raw) for pp in self.parameters}
+
+    @functools.cached_property
+    def _read_back(self) -> tuple[tuple[int, ...], tuple[ReadRequest, ...]]:
+        """The verify steps' numbers (from 1) and their reads."""
+        numbers = tuple(n for n, s in enumerate(self.steps, 1) if s.kind == "verify")
+        return numbers, tuple(self.steps[n - 1].read() for n in numbers)
+
     @property
     def changes(self) -> bool:
         """Whether executing the plan writes anything."""

@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import functools
 import hashlib
 import json
 import os
@@ -89,6 +90,7 @@ def lock_dir() -> str:
     return os.environ.get(ENV) or default_lock_dir()
 
 
+@functools.cache  # asked per device of a fleet; a process's answer does not change
 def owner_dir() -> str:
     """Where agents mark the devices they own and runs the units they write, whatever each one's lock folder:
     a fixed folder no setting moves. Linux: /dev/shm, which a systemd service shares with every other process
@@ -122,7 +124,7 @@ def run_marks(buses: Sequence[str], unit: int, directory: str | None = None) -> 
             return Locked(_bus_users(key[: -len("#bus")], d) or str(e), busy=False)
         return e
 
-    return _marks(wanted, command_line(), why)
+    return _marks(wanted, command_line(), why, d)
 
 
 def agent_marks(buses: Sequence[str], unit: int) -> list[DeviceLock]:
@@ -137,16 +139,20 @@ def agent_marks(buses: Sequence[str], unit: int) -> list[DeviceLock]:
         [(f"{b}#bus", True) for b in keys] + [(device_key(b, unit), False) for b in keys],
         "deployer agent",
         lambda _key, e: Locked(f"a run on this machine is writing it (its mark in {d}): {e}", busy=e.busy),
+        d,
     )
 
 
-def _marks(wanted: Sequence[tuple[str, bool]], command: str, why: Callable[[str, Locked], Locked]) -> list[DeviceLock]:
-    """Each mark of ``wanted`` ((key, shared) in ``owner_dir``), or none: ``why(key, refusal)`` is raised."""
+def _marks(
+    wanted: Sequence[tuple[str, bool]], command: str, why: Callable[[str, Locked], Locked], d: str
+) -> list[DeviceLock]:
+    """Each mark of ``wanted`` ((key, shared) in ``d``, the owners' folder), or none: ``why(key, refusal)`` is
+    raised."""
     held: list[DeviceLock] = []
     try:
         for key, shared in wanted:
             try:
-                h = try_lock(key, command=command, directory=owner_dir(), shared=shared)
+                h = try_lock(key, command=command, directory=d, shared=shared)
             except Locked as e:
                 raise why(key, e) from None
             h.mark = True
@@ -198,6 +204,16 @@ class DeviceLock:
         if self.fd < 0:
             return
         backend = oslock.backend()
+        if self.mark and self.shared and backend.name == "flock":
+            # the last holder removes a mark's file: ours turned exclusive says we are (flock converts the lock
+            # of the same open file; refused, it may drop ours, which we let go of anyway). Four system calls
+            # where unlocking and opening the file again to lock it took eight: a fleet does it per device.
+            with contextlib.suppress(OSError):
+                if backend.try_lock(self.fd) and _alone(self.fd):
+                    _remove(self.path)
+            os.close(self.fd)
+            self.fd = -1
+            return
         if not self.shared and self.size:
             with contextlib.suppress(OSError):
                 portable.pwrite_all(self.fd, b" " * self.size, 0)
@@ -229,7 +245,7 @@ def _remove_unheld(path: str) -> None:
     except OSError:
         return
     try:
-        if oslock.backend().try_lock(fd) and stat.S_ISREG(os.fstat(fd).st_mode) and os.fstat(fd).st_nlink == 1:
+        if oslock.backend().try_lock(fd) and _alone(fd):
             if portable.WINDOWS:  # removes no open file: closed first; one opened meanwhile stays (its removal fails)
                 os.close(fd)
                 fd = -1
@@ -239,6 +255,12 @@ def _remove_unheld(path: str) -> None:
     finally:
         if fd >= 0:
             os.close(fd)
+
+
+def _alone(fd: int) -> bool:
+    """Whether the (locked) file is a plain one with one name: still the one at its path, removable as ours."""
+    st = os.fstat(fd)
+    return stat.S_ISREG(st.st_mode) and st.st_nlink == 1
 
 
 def _read_record(fd: int) -> dict[str, Any]:
