@@ -83,8 +83,11 @@ def run_records(
 ) -> list[dict[str, Any]]:
     """A finished apply or rollback: a record per device that was started, with each parameter's old and new
     value and status (``applied`` or ``rolled-back``), the plan's digest and reason where it ran a plan."""
+    from ..portable import user_name
+
     name = "rolled-back" if command == "rollback" else "applied"
     change = change or {}
+    user = user_name()  # once: without $USER it reads the password database (a fleet has thousands of records)
     out = []
     for d in report.devices:
         if d.status == "skipped" and not d.parameters:
@@ -96,6 +99,7 @@ def run_records(
         out.append(
             event(
                 name,
+                user=user,
                 reason=change.get("reason"),
                 device=d.name,
                 result=d.status,
