@@ -173,3 +173,30 @@ def test_the_agents_reads_keep_the_profiles_pauses(tmp_path: Path) -> None:
         finally:
             agent.terminate()
         _kept(sim)
+
+
+def test_a_rollback_from_a_snapshot_talks_to_the_device_as_its_apply_did(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The pauses, timeout and retries the apply's URL gave are in the snapshot: ``rollback SNAPSHOT`` keeps them
+    (a gateway that needs them is not lost to the defaults); a timeout given to the rollback goes over them."""
+    from deployer.run.rollback import snapshot_job
+
+    (tmp_path / "drive.yaml").write_text(PROFILE)
+    (tmp_path / "r.yaml").write_text(RECIPE)
+    paced = "?pause_after_connect=150ms&pause_between_requests=80ms&timeout=0.3&retries=0"
+    with SimulatorThread(load_profile(str(tmp_path / "drive.yaml")), quirks=QUIRKS) as sim:
+        doc = _apply(capsys, str(tmp_path / "r.yaml"), sim.url + paced, str(tmp_path / "s"))
+        snapshot = str(doc["devices"][0]["snapshot"])  # type: ignore[index]
+        assert doc["devices"][0]["url"] == sim.url  # type: ignore[index]  # the report's URL as ever
+        text = Path(snapshot).read_text()
+        assert "pause_between_requests=80ms" in text and "timeout=0.3" in text and "retries=0" in text, text
+        del sim.log[:]
+        code, out, err = cli(capsys, "rollback", snapshot, "--yes", "--state-dir", str(tmp_path / "s"))
+        assert code == 0, (out, err)
+        _kept(sim)
+    job, _, _ = snapshot_job(snapshot)
+    assert (job.url.timeout, job.url.retries) == (0.3, 0)
+    job, _, _ = snapshot_job(snapshot, timeout=2.0, retries=3)
+    assert (job.url.timeout, job.url.retries) == (2.0, 3)
+    assert job.url.options["pause_between_requests"] == "80ms"

@@ -469,7 +469,10 @@ A snapshot **is a recipe** ([recipe reference](recipe.md)), checked by the same 
 applies it. What makes it self-contained:
 
 - `profile` names the profile unambiguously: a built-in id or the file's absolute path;
-- `device` is the device it was read from (URL without certificate paths, and unit);
+- `device` is the device it was read from (URL without certificate paths, and unit); the URL keeps what it
+  takes to talk to the device as the apply did: its `timeout` and `retries` where they were not the
+  defaults (from the URL or the inventory), its pauses and `device_identification` as the URL gave them
+  (`rollback --timeout`/`--retries` go over the recorded ones);
 - the `snapshot` block ([`snapshot`](recipe.md#snapshot) in the recipe reference) records
   `profile_sha256` (the profile's text then), `taken`, `applied` (the recipe written after it)
   and `registers`: every parameter's raw words as the device held them;

@@ -589,7 +589,7 @@ class _Device:
             res.name,
             recipe,
             before,
-            res.url,
+            tp.recorded(self.job.url, res.url),  # with its timeout and pauses: a rollback talks to it as this run did
             res.unit,
             applied=applied,
             identity=res.identity,

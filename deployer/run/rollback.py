@@ -24,14 +24,17 @@ from ..recipe.loader import Recipe, load_recipe
 from ..report import read_report
 from ..state import journal
 from ..state.snapshot import recovered, state_of
-from ..transport.urls import DeviceURL, describe, parse_url
+from ..transport.urls import DeviceURL, describe, overridden, parse_url
 
 
-def _url(text: str, timeout: float | None, retries: int | None) -> DeviceURL:
+def _url(text: str, timeout: float | None, retries: int | None, *, recorded: bool = False) -> DeviceURL:
+    """``recorded``: a snapshot's URL, which keeps the apply's timeout and retries; those given now go over them
+    (a URL typed now keeps its own, as everywhere)."""
     try:
-        return parse_url(text, timeout=timeout, retries=retries)
+        url = parse_url(text, timeout=timeout, retries=retries)
     except BadURL as e:
         raise UsageError(str(e)) from None
+    return overridden(url, timeout, retries) if recorded else url
 
 
 def check_digest(path: str, expected: str | None, where: str, *, accept_edited: bool) -> str | None:
@@ -106,7 +109,7 @@ def snapshot_job(
     text = device or taken
     if text is None:
         raise UsageError("no device: pass --device URL or set device.url in the recipe")
-    url = _url(text, timeout, retries)
+    url = _url(text, timeout, retries, recorded=device is None)
     u = unit if unit is not None else taken_unit
     moved = None
     if rec.snapshot is not None and taken is not None:
@@ -364,7 +367,7 @@ def report_jobs(
             continue
         assert rec.device is not None and rec.device.url is not None
         u = rec.device.unit if rec.device.unit is not None else 1
-        jobs.append(Job(f.name, rec, _url(rec.device.url, timeout, retries), u, hold_commit=f.held))
+        jobs.append(Job(f.name, rec, _url(rec.device.url, timeout, retries, recorded=True), u, hold_commit=f.held))
     if errors:
         raise InputError(errors)
     if not even_if_changed:

@@ -14,7 +14,7 @@ import re
 import socket
 import urllib.parse
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from ..errors import BadURL
@@ -359,6 +359,41 @@ def describe(url: DeviceURL) -> str:
     host = f"[{url.host}]" if url.host and ":" in url.host else url.host
     q = "?verify=false" if url.scheme == "tls" and not verify(url) else ""
     return f"{url.scheme}://{host}:{url.port}{q}"
+
+
+_CONNECTION = ("timeout", "retries", "pause_after_connect", "pause_between_requests", "device_identification")
+
+
+def recorded(url: DeviceURL, described: str | None = None) -> str:
+    """``describe(url)`` (``described``, when the caller has it) with what it takes to talk to the device again: its
+    timeout and retries where they are not the defaults (from the URL or an inventory's defaults), its pauses and
+    ``device_identification`` as the URL gave them. What a snapshot keeps: ``rollback SNAPSHOT`` of a slow gateway
+    is paced as the apply was."""
+    text = describe(url) if described is None else described
+    extra = {k: url.options[k] for k in _CONNECTION[2:] if k in url.options}
+    if url.timeout != DEFAULT_TIMEOUT:
+        extra["timeout"] = f"{url.timeout:g}"
+    if url.retries != DEFAULT_RETRIES:
+        extra["retries"] = str(url.retries)
+    if not extra:
+        return text
+    q = urllib.parse.urlencode(sorted(extra.items()), safe="")
+    return f"{text}&{q}" if "?" in text else f"{text}?{q}"
+
+
+def overridden(url: DeviceURL, timeout: float | None, retries: int | None) -> DeviceURL:
+    """``url`` with the ``timeout``/``retries`` a person gave now over the ones the URL recorded (a snapshot's)."""
+    options = dict(url.options)
+    if timeout is not None:
+        options.pop("timeout", None)
+    if retries is not None:
+        options.pop("retries", None)
+    return replace(
+        url,
+        options=options,
+        timeout=url.timeout if timeout is None else timeout,
+        retries=url.retries if retries is None else retries,
+    )
 
 
 _TRUTH = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
