@@ -1,5 +1,6 @@
 """Many sites through Ansible: the example playbook playbooks/agents.yml drives two real site agents
-(deployer agent processes, one with TLS, both with tokens) through the collection's apply with agent:.
+(deployer agent processes: one with TLS whose user is the playbook's client certificate, one with a token) through
+the collection's apply with agent:.
 Check mode writes nothing, a real run writes and verifies, a second run is unchanged, and a failed site
 stops the rollout before the next site is touched."""
 
@@ -67,7 +68,21 @@ def writes(sim: Simulator) -> int:
     return sum(1 for e in sim.log if e.function in (6, 16))
 
 
-def test_a_playbook_rolls_out_through_two_agents(tmp_path: Path, pki: dict[str, str]) -> None:
+def test_a_playbook_rolls_out_through_two_agents(tmp_path: Path) -> None:
+    from deployer.agent import users as people
+    from tests.certs import issue, make_ca
+
+    ca, ca_key, ca_cert = make_ca(tmp_path, "site-a-ca")
+    server_crt, server_key = issue(tmp_path, "gateway-a", ca_key, ca_cert, server=True)
+    client_crt, client_key = issue(tmp_path, "ansible.ci", ca_key, ca_cert, server=False)
+    users = tmp_path / "users.yaml"  # site-a's: the controller's certificate is a user who runs and takes up edits
+    people.edit(
+        str(users),
+        lambda doc: doc["users"].update(
+            {"ansible": {"roles": ["operator", "engineer"], "certificate": {"cn": "ansible.ci"}}}
+        ),
+        create=True,
+    )
     (tmp_path / "drive.yaml").write_text(PROFILE)
     prof = load_profile(str(tmp_path / "drive.yaml"))
     with SimulatorThread(prof, faults=Faults()) as sa, SimulatorThread(prof) as sb:
@@ -81,20 +96,27 @@ def test_a_playbook_rolls_out_through_two_agents(tmp_path: Path, pki: dict[str, 
                 (folder / "drive.yaml").write_text(PROFILE)
                 inv = write_site(folder, {f"{site}-d1": sim.url})
                 (folder / "token").write_text(TOKENS[site] + "\n")
-                tls = ["--tls-cert", pki["server_crt"], "--tls-key", pki["server_key"]] if site == "site-a" else []
-                agents[site] = AgentProcess(
-                    inv, folder / "state", "--token-file", str(folder / "token"), *tls, check_every="1h"
+                how = (
+                    ["--tls-cert", server_crt, "--tls-key", server_key, "--tls-client-ca", ca, "--users", str(users)]
+                    if site == "site-a"
+                    else ["--token-file", str(folder / "token")]
                 )
+                agents[site] = AgentProcess(inv, folder / "state", *how, check_every="1h")
                 url = agents[site].url
                 hosts += [
                     f"    {site}:",
                     "      ansible_connection: local",
                     f"      ansible_python_interpreter: {sys.executable}",
                     f"      deployer_agent_url: {json.dumps(url)}",
-                    f"      deployer_agent_token: {json.dumps(TOKENS[site])}",
                 ]
-                if tls:
-                    hosts.append(f"      deployer_agent_ca: {json.dumps(pki['ca'])}")
+                if site == "site-a":
+                    hosts += [
+                        f"      deployer_agent_ca: {json.dumps(ca)}",
+                        f"      deployer_agent_cert: {json.dumps(client_crt)}",
+                        f"      deployer_agent_key: {json.dumps(client_key)}",
+                    ]
+                else:
+                    hosts.append(f"      deployer_agent_token: {json.dumps(TOKENS[site])}")
             inventory = tmp_path / "hosts.yml"
             inventory.write_text("\n".join(hosts) + "\n")
             assert agents["site-a"].url.startswith("https://")
@@ -115,10 +137,19 @@ def test_a_playbook_rolls_out_through_two_agents(tmp_path: Path, pki: dict[str, 
             for sim in sims.values():
                 assert sim.read("accel") == (20,) and sim.read("speed") == (3000,) and sim.read("address") == (7,)
             for site, a in agents.items():
-                got = Agent(a.url, token=TOKENS[site], ca=pki["ca"] if site == "site-a" else None).runs()
+                c = (
+                    Agent(a.url, ca=ca, cert=client_crt, key=client_key)
+                    if site == "site-a"
+                    else Agent(a.url, token=TOKENS[site])
+                )
+                got = c.runs()
                 assert len(got) == 1 and got[0]["exit_code"] == 0, got
                 # who asked, from the credential (a site token names nobody), not from anything the client says
-                assert got[0]["options"]["by"] == {"user": None, "credential": "token"}
+                assert got[0]["options"]["by"] == (
+                    {"user": "ansible", "credential": "certificate"}
+                    if site == "site-a"
+                    else {"user": None, "credential": "token"}
+                ), got[0]["options"]["by"]
 
             # a second run: nothing to do
             before = {s: writes(sim) for s, sim in sims.items()}

@@ -98,6 +98,14 @@ options:
       ca:
         description: A CA certificate (PEM) on the target that the agent's TLS certificate is checked against.
         type: path
+      cert:
+        description:
+          - A client certificate (PEM) on the target, for an agent that maps certificates to its users
+            (C(deployer agent --tls-client-ca) with C(--users)); with O(agent.key), instead of a token.
+        type: path
+      key:
+        description: The private key (PEM) of O(agent.cert), on the target.
+        type: path
       timeout:
         description: Seconds to wait for each answer of the agent.
         type: float

@@ -11,6 +11,8 @@ AGENT_SPEC = dict(
     token=dict(type="str", no_log=True),
     token_file=dict(type="path"),
     ca=dict(type="path"),
+    cert=dict(type="path"),
+    key=dict(type="path", no_log=False),  # a path, not the key
     timeout=dict(type="float", default=30.0),
 )
 
@@ -23,7 +25,8 @@ def agent_exclusive(more=()):
 
 
 def client_of(module):
-    """deployer.Agent for the task's agent: option (token given, or read from token_file on the target)."""
+    """deployer.Agent for the task's agent: option (token given, or read from token_file on the target; or a client
+    certificate the agent maps to a user, --tls-client-ca)."""
     from deployer.api import Agent
 
     a = module.params["agent"]
@@ -34,7 +37,13 @@ def client_of(module):
                 token = f.readline().strip()
         except OSError as e:
             module.fail_json(msg=f"agent.token_file {a['token_file']}: {e.strerror or e}; nothing was sent")
-    return Agent(a["url"], token=token or None, ca=a.get("ca"), timeout=a["timeout"])
+    if bool(a.get("cert")) != bool(a.get("key")):
+        module.fail_json(
+            msg="agent.cert and agent.key go together (the client certificate and its key); nothing was sent"
+        )
+    return Agent(
+        a["url"], token=token or None, ca=a.get("ca"), cert=a.get("cert"), key=a.get("key"), timeout=a["timeout"]
+    )
 
 
 def agent_failed(module, e, **result):
