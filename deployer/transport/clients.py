@@ -44,10 +44,10 @@ from .urls import SERIAL_DEFAULTS as SERIAL_DEFAULTS
 from .urls import DeviceURL as DeviceURL
 from .urls import LineSettings as LineSettings
 from .urls import describe as describe
-from .urls import recorded as recorded
 from .urls import no_answer_hint as no_answer_hint
 from .urls import pacing as pacing
 from .urls import parse_url as parse_url
+from .urls import recorded as recorded
 from .urls import verify as _verify
 from .urls import windows_port
 
