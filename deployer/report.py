@@ -485,15 +485,16 @@ def parameter_from_view(name: str, view: Any) -> Parameter | None:
     return p
 
 
-def run_info(command: str | None, started: float) -> dict[str, Any]:
-    """Who ran what, where and when, for the report (``started``: the run's start, seconds since the epoch)."""
+def run_info(command: str | None, started: float, user: str | None = None) -> dict[str, Any]:
+    """Who ran what, where and when, for the report (``started``: the run's start, seconds since the epoch;
+    ``user``: the person, where the process's own user is not who asked: the agent's authenticated user)."""
     import datetime
     import socket
 
     from . import __version__
     from .portable import user_name
 
-    user = user_name()  # a uid without a name (a container): the number says who
+    user = user or user_name()  # a uid without a name (a container): the number says who
     when = datetime.datetime.fromtimestamp(started, datetime.UTC).isoformat(timespec="seconds")
     return {"command": command, "user": user, "host": socket.gethostname(), "started": when, "version": __version__}
 

@@ -22,6 +22,7 @@ from deployer.agent import users as people
 from deployer.agent.client import Agent
 from deployer.errors import AgentError
 from deployer.profile import load_profile
+from deployer.state import journal
 from deployer.testing.simulator import Simulator, SimulatorThread
 from tests.agent_helpers import PROFILE, RECIPE, AgentProcess, event, until, write_site, writes_in_log
 from tests.test_agent_security import TOKEN, error_of, raw, token_file
@@ -141,6 +142,13 @@ def test_every_route_checks_its_role_and_each_refusal_names_it(tmp_path: Path, s
         assert confirmed is not None and confirmed["detail"]["by"]["user"] == "lead"
         assert "confirmed by lead" in confirmed["message"]
         assert end["report"]["run"]["command"] == "agent apply by op"  # the report says who, from the credential
+        assert end["report"]["run"]["user"] == "op"  # and the journal: the person, not the agent's own account
+        started = [
+            json.loads(line)
+            for line in Path(journal.path_of(str(tmp_path / "state"))).read_text(encoding="utf-8").splitlines()
+            if '"run-started"' in line
+        ]
+        assert [(x["user"], x["via"]) for x in started if x["run"] == run["id"]] == [("op", "agent")], started
         # a rollback through the agent: by whom, too
         back = c["lead"].rollback(run["id"])
         assert c["lead"].follow(back["id"])["exit_code"] == 0 and back["options"]["by"]["user"] == "lead"

@@ -166,6 +166,7 @@ class Runs:
                 label=label,
                 argv=[],
                 via="agent",
+                user=(run.options.get("by") or {}).get("user"),  # the person the credential names (None: a site token)
                 options=opts,
                 parallel=parallel,
                 batch=batch,

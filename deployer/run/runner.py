@@ -129,6 +129,7 @@ async def run_async(
     on_done: Callable[[DeviceResult], None] | None = None,
     keep_results: bool = True,
     workers: int | None = 0,
+    user: str | None = None,
     **safe: Any,
 ) -> Report:
     """Run ``jobs`` as one journaled run (see the module's docstring); the report of every device.
@@ -144,7 +145,8 @@ async def run_async(
     ``keep_results`` False: devices that ended ok come back as ``DeviceResult.small()`` (counts, no
     requests or parameters: the report file has them), as ``apply_many`` says. ``workers``: worker processes
     running the devices (``fleet.workers``; 0: none; None: one per CPU for a big plain fleet); a run that must
-    keep its devices in this process (a soak, a question per device) refuses a count given.
+    keep its devices in this process (a soak, a question per device) refuses a count given. ``user``: who asked,
+    for the journal and the report, where it is not this process's user (the agent's authenticated user).
 
     Raises UsageError (nothing sent) for bad options, StalePlan or Declined when the run was refused
     before any write, RunInterrupted (with ``.report``) when it was interrupted.
@@ -186,8 +188,13 @@ async def run_async(
             recipe=applied,
             via=via,
             devices=[(j.name, describe(j.url), j.unit) for j in jobs],
+            user=user,
         )
-        info = {**run_info(opts.command or f"Python API: {command}", started), "id": run_id, "state_dir": state_dir}
+        info = {
+            **run_info(opts.command or f"Python API: {command}", started, user),
+            "id": run_id,
+            "state_dir": state_dir,
+        }
         try:
             live = LiveReport(report_path, label, jobs, sizes, run=info) if report_path else None
         except UsageError as e:  # the report's first state could not be written: refused, nothing sent

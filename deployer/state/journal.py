@@ -87,15 +87,17 @@ def run_started(
     recipe: str | None,
     devices: Iterable[tuple[str, str, int]],
     via: str = "cli",
+    user: str | None = None,
 ) -> None:
-    """``via``: who started the run (``cli``, ``api``, ``ansible``)."""
+    """``via``: who started the run (``cli``, ``api``, ``ansible``, ``agent``); ``user``: who asked, where it is not
+    this process's user (the agent's authenticated user)."""
     append(
         state_dir,
         {
             "event": "run-started",
             "run": run,
             "time": _now(),
-            "user": user_name(),
+            "user": user or user_name(),
             "pid": os.getpid(),
             "command": command,
             "via": via,
