@@ -195,3 +195,22 @@ def test_a_run_leaves_no_mark_behind(tmp_path: Path, sim: Simulator) -> None:
     )
     assert ok.returncode == 0, ok.stderr
     assert names and not [n for n in names if os.path.exists(os.path.join(lock.owner_dir(), n))]
+
+
+def test_status_lists_the_devices_an_agent_owns_whatever_the_lock_folders(tmp_path: Path, sim: Simulator) -> None:
+    """``deployer status`` in a shell given another lock folder still sees the agent's devices (its marks)."""
+    import json
+
+    with owned(tmp_path, sim) as agent:
+        st = deployer("status", "--state-dir", str(tmp_path / "cli"), lock_dir=tmp_path / "another")
+        said = " ".join(st.stdout.split())
+        assert st.returncode == 0, st.stderr
+        assert "devices site agents of this machine own" in said and f"the site agent at {agent.url}" in said, said
+        doc = json.loads(
+            deployer("status", "--json", "--state-dir", str(tmp_path / "cli"), lock_dir=tmp_path / "another").stdout
+        )
+        assert [r["agent"] for r in doc["owned"]] == [agent.url] * len(doc["owned"]) and doc["owned"], doc
+        # given the agent's own lock folder, its locks say it: not twice
+        same = deployer("status", "--state-dir", str(tmp_path / "cli"), lock_dir=Path(os.environ[lock.ENV]))
+        assert "devices held on this machine now" in same.stdout, same.stdout
+        assert "devices site agents of this machine own" not in same.stdout, same.stdout

@@ -3,8 +3,9 @@ acknowledging one after a look (``resolve_run``, the command line's)."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from ..calls import checked
@@ -12,8 +13,6 @@ from ..errors import UsageError
 from .checks import kind, need_flag, need_path
 
 if TYPE_CHECKING:
-    import os
-
     from ..state.journal import Unfinished
     from ..window.confirm import Awaiting
 
@@ -25,7 +24,10 @@ class RunStatus:
     who ran what and its devices), ``unreadable`` lines of the audit log (cut off by a crash), the runs
     ``awaiting`` a confirmation (run id -> when and whether its process still waits) and those that died
     ``soaking`` (run id -> its report file), the device ``locks`` held on this machine now (in ``lock_folder``,
-    every run's whatever its state folder; ``held`` says them one line per holder), and the ``journal`` read."""
+    every run's whatever its state folder; ``held`` says them one line per holder), the devices site agents of this
+    machine own (``owned``: their marks' records in ``owner_folder``, which no setting moves; ``owners`` says them
+    one line per agent; empty where the lock folder is that folder: its locks are the marks), and the ``journal``
+    read."""
 
     journal: str
     runs: list[Unfinished]
@@ -35,6 +37,9 @@ class RunStatus:
     lock_folder: str
     locks: list[dict[str, Any]]
     held: list[str]
+    owner_folder: str = ""
+    owned: list[dict[str, Any]] = field(default_factory=list)
+    owners: list[str] = field(default_factory=list)
 
 
 def _run_id(run: object, call: str) -> str | None:
@@ -103,6 +108,14 @@ def status(state_dir: str | os.PathLike[str] = ".deployer") -> RunStatus:
     runs, torn = journal.unfinished(folder)
     locks_in = lock.lock_dir()
     locks = holder.held(locks_in)
+    owners_in = lock.owner_dir()
+    same = os.path.normcase(os.path.abspath(owners_in)) == os.path.normcase(os.path.abspath(locks_in))
+    seen = {(r.get("key"), r.get("pid")) for r in locks}  # an agent given this lock folder: said there already
+    owned = (
+        []
+        if same
+        else [r for r in holder.held(owners_in) if r.get("agent") and (r.get("key"), r.get("pid")) not in seen]
+    )
     return RunStatus(
         journal.path_of(folder),
         runs,
@@ -112,6 +125,9 @@ def status(state_dir: str | os.PathLike[str] = ".deployer") -> RunStatus:
         locks_in,
         locks,
         holder.summary(locks) if locks else [],
+        owners_in,
+        owned,
+        holder.summary(owned) if owned else [],
     )
 
 

@@ -604,6 +604,7 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
             json.dumps(
                 {
                     "locks": locks,
+                    "owned": st.owned,
                     "unfinished": [
                         {
                             "run": r.run,
@@ -644,6 +645,10 @@ def status(state_dir: str, as_json: bool, resolve: str | None, agent_url: str | 
     if locks:
         echo(f"devices held on this machine now ({safe(folder)}):")
         for line in st.held:
+            echo(f"  {safe(line)}")
+    if st.owned:  # whatever lock folder each agent was given
+        echo(f"devices site agents of this machine own ({safe(st.owner_folder)}):")
+        for line in st.owners:
             echo(f"  {safe(line)}")
     for r in runs:
         state = "still running" if r.running else (f"interrupted ({safe(r.ended)})" if r.ended else "did not finish")
