@@ -222,8 +222,7 @@ class Plan:
         return n
 
     # what the executor asks of every device's plan, made once per plan: the devices of a fleet holding the same
-    # values run copies of one plan (``copy.copy`` keeps these), and 100 parameters' worth of it was 5% of a
-    # device's CPU
+    # values run copies of one plan (``copy.copy`` keeps these) instead of working 100 parameters' worth out again
     @functools.cached_property
     def _desired(self) -> dict[str, tuple[int, ...]]:
         """The raw registers planned for each parameter (the executor's copy of it may change)."""
