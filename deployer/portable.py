@@ -160,8 +160,12 @@ def fchmod(fd: int, mode: int) -> None:
 PRIVATE_SDDL = "D:P(A;;FA;;;OW)(A;;FA;;;SY)(A;;FA;;;BA)"
 
 
-def make_private(path: str) -> str:
-    """Let nobody but its user (and the system's administrators) read ``path``; what was done, for messages.
+# what ``make_private`` does here, for messages
+PRIVATE = "only its owner and the administrators may read it" if sys.platform == "win32" else "mode 0600"
+
+
+def make_private(path: str) -> None:
+    """Let nobody but its user (and the system's administrators) read ``path`` (``PRIVATE`` says how).
 
     POSIX: mode 0600. Windows has no modes: the file gets an access list of its own (``PRIVATE_SDDL``), as
     OpenSSH for Windows wants of a private key, whatever the folder would have handed down (a state folder in
@@ -190,9 +194,8 @@ def make_private(path: str) -> str:
                 raise ctypes.WinError(err)
         finally:
             kernel32.LocalFree(sd)
-        return "only its owner and the administrators may read it"
+        return
     os.chmod(path, 0o600)
-    return "mode 0600"
 
 
 def open_nofollow(path: str, flags: int, mode: int = 0o666) -> int:

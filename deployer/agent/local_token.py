@@ -24,6 +24,8 @@ import sys
 import urllib.parse
 from typing import Any
 
+from .. import portable
+
 ENV = "DEPLOYER_RUNTIME_DIR"
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
@@ -60,10 +62,8 @@ def ensure(agent_folder: str) -> tuple[str, bool]:
     finally:
         os.close(fd)
     if sys.platform == "win32":  # no modes there: an access list of its own (its folder's may let every user read)
-        from ..portable import make_private
-
         try:
-            make_private(path)
+            portable.make_private(path)
         except OSError as e:
             os.unlink(path)
             raise OSError(e.errno, f"cannot keep the token file {path} to its owner: {e.strerror or e}") from None
@@ -71,7 +71,7 @@ def ensure(agent_folder: str) -> tuple[str, bool]:
 
 
 # what keeps the token file to its user, as the agent says it
-PROTECTION = "only its owner and the administrators may read it" if sys.platform == "win32" else "mode 0600"
+PROTECTION = portable.PRIVATE
 
 
 def _note(port: int) -> str:

@@ -3,7 +3,6 @@ acknowledging one after a look (``resolve_run``, the command line's)."""
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -13,6 +12,8 @@ from ..errors import UsageError
 from .checks import kind, need_flag, need_path
 
 if TYPE_CHECKING:
+    import os
+
     from ..state.journal import Unfinished
     from ..window.confirm import Awaiting
 
@@ -109,7 +110,7 @@ def status(state_dir: str | os.PathLike[str] = ".deployer") -> RunStatus:
     locks_in = lock.lock_dir()
     locks = holder.held(locks_in)
     owners_in = lock.owner_dir()
-    same = os.path.normcase(os.path.abspath(owners_in)) == os.path.normcase(os.path.abspath(locks_in))
+    same = lock.same_folder(owners_in, locks_in)
     seen = {(r.get("key"), r.get("pid")) for r in locks}  # an agent given this lock folder: said there already
     owned = (
         []

@@ -102,7 +102,7 @@ def owner_dir() -> str:
     return "/tmp/deployer-owners"
 
 
-def _same_folder(a: str, b: str) -> bool:
+def same_folder(a: str, b: str) -> bool:
     return os.path.normcase(os.path.abspath(a)) == os.path.normcase(os.path.abspath(b))
 
 
@@ -112,7 +112,7 @@ def run_marks(buses: Sequence[str], unit: int, directory: str | None = None) -> 
     lock folder it was given. None needed where the lock folder is the owners' folder (the locks are the marks),
     nor for a device this process (the agent) owns."""
     d = owner_dir()
-    if _same_folder(directory or lock_dir(), d):
+    if same_folder(directory or lock_dir(), d):
         return []
     keys = sorted(set(buses))
     wanted = [(f"{b}#bus", False) for b in keys] if unit == 0 else [(device_key(b, unit), True) for b in keys]
@@ -132,7 +132,7 @@ def agent_marks(buses: Sequence[str], unit: int) -> list[DeviceLock]:
     agent's address), in ``owner_dir``; none when its lock folder is that folder. Raises Locked when a run holds
     the unit now (the agent tries again at its next check)."""
     d = owner_dir()
-    if _same_folder(lock_dir(), d):
+    if same_folder(lock_dir(), d):
         return []
     keys = sorted(set(buses))
     return _marks(
@@ -204,26 +204,23 @@ class DeviceLock:
         if self.fd < 0:
             return
         backend = oslock.backend()
-        if self.mark and self.shared and backend.name == "flock":
-            # the last holder removes a mark's file: ours turned exclusive says we are (flock converts the lock
-            # of the same open file; refused, it may drop ours, which we let go of anyway). Four system calls
-            # where unlocking and opening the file again to lock it took eight: a fleet does it per device.
-            with contextlib.suppress(OSError):
-                if backend.try_lock(self.fd) and _alone(self.fd):
-                    _remove(self.path)
-            os.close(self.fd)
-            self.fd = -1
-            return
         if not self.shared and self.size:
             with contextlib.suppress(OSError):
                 portable.pwrite_all(self.fd, b" " * self.size, 0)
-        if self.mark and not self.shared and not portable.WINDOWS:
-            _remove(self.path)  # under its exclusive lock: whoever opened it finds it nameless (_checked)
+        # a mark's file goes with its last holder, removed under an exclusive lock so that whoever opened it meanwhile
+        # finds it nameless (_checked): one held exclusively, or a shared one turned exclusive (flock converts the lock
+        # of the same open file; refused, it may drop ours, which we let go of anyway). Five system calls a device of
+        # a fleet, where unlocking and opening the file again to lock it took eight. Windows removes no open file.
+        here = self.mark and not portable.WINDOWS and (not self.shared or backend.name == "flock")
+        if here:
+            with contextlib.suppress(OSError):
+                if (not self.shared or backend.try_lock(self.fd)) and _alone(self.fd):
+                    _remove(self.path)
         with contextlib.suppress(OSError):
             backend.unlock(self.fd)
         os.close(self.fd)
         self.fd = -1
-        if self.mark and (self.shared or portable.WINDOWS):  # Windows removes no file that is open, ours included
+        if self.mark and not here:  # Windows (ours closed first), or a shared mark without flock's conversion
             _remove_unheld(self.path)
 
 
