@@ -24,7 +24,7 @@ import sys
 import urllib.parse
 from typing import Any
 
-from .. import portable
+from ..portable import PRIVATE, make_private
 
 ENV = "DEPLOYER_RUNTIME_DIR"
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -63,7 +63,7 @@ def ensure(agent_folder: str) -> tuple[str, bool]:
         os.close(fd)
     if sys.platform == "win32":  # no modes there: an access list of its own (its folder's may let every user read)
         try:
-            portable.make_private(path)
+            make_private(path)
         except OSError as e:
             os.unlink(path)
             raise OSError(e.errno, f"cannot keep the token file {path} to its owner: {e.strerror or e}") from None
@@ -71,7 +71,7 @@ def ensure(agent_folder: str) -> tuple[str, bool]:
 
 
 # what keeps the token file to its user, as the agent says it
-PROTECTION = portable.PRIVATE
+PROTECTION = PRIVATE
 
 
 def _note(port: int) -> str:
