@@ -199,15 +199,19 @@ def on_pty(dev: Device, path: str) -> Iterator[None]:
 
 
 @contextmanager
-def on_tcp(dev: Device) -> Iterator[int]:
-    """A serial gateway on 127.0.0.1: RTU frames over TCP, one connection at a time."""
+def on_tcp(dev: Device, *, backlog: int = 4, accepting: threading.Event | None = None) -> Iterator[int]:
+    """A serial gateway on 127.0.0.1: RTU frames over TCP, one connection at a time; ``backlog``: how many
+    connections the system queues for it; ``accepting``: it takes none until this is set."""
     srv = socket.socket()
     srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     srv.bind(("127.0.0.1", 0))
-    srv.listen(4)
+    srv.listen(backlog)
     srv.settimeout(0.05)
 
     def run() -> None:
+        while accepting is not None and not accepting.wait(0.05):
+            if dev.stop.is_set():
+                return
         while not dev.stop.is_set():
             try:
                 conn, _ = srv.accept()

@@ -269,6 +269,53 @@ def test_refused_connection_is_unreachable_fast() -> None:
     asyncio.run(main())
 
 
+def _connecting_to(port: int) -> bool:
+    """A socket of this machine's (IPv4) sends SYNs to ``port`` unanswered: state SYN_SENT in /proc/net/tcp."""
+    rows = Path("/proc/net/tcp").read_text().splitlines()[1:]
+    return any(r.split()[2].endswith(f":{port:04X}") and r.split()[3] == "02" for r in rows)
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="Linux drops a SYN while its listener's queue is full")
+@pytest.mark.parametrize("retries", [2, 0])
+def test_a_connection_that_fails_though_the_device_takes_others_is_tried_again(retries: int) -> None:
+    """A gateway whose one connection slot another master holds a moment: Linux drops the client's SYN (and
+    sends it again only after a second); the slot frees while pymodbus waits, its connect times out, and our
+    probe gets through: the failure has passed, so the connection is tried again (``retries``), and made.
+    Without retries, unreachable, saying so."""
+    import socket
+    import threading
+
+    from tests.rtu_devices import Device, on_tcp, read_frame
+
+    dev, accepting = Device({0: 7}), threading.Event()
+    with on_tcp(dev, backlog=0, accepting=accepting) as port:
+        other = socket.create_connection(("127.0.0.1", port))  # the other master, queued: the queue is full
+
+        async def free_the_slot() -> None:
+            while not _connecting_to(port):  # our SYN, dropped
+                await asyncio.sleep(0.005)
+            other.close()
+            accepting.set()
+
+        async def main() -> list[int]:
+            freeing = asyncio.create_task(free_the_slot())
+            try:
+                async with tp.open_transport(f"rtu+tcp://127.0.0.1:{port}?timeout=0.5&retries={retries}") as t:
+                    return await t.read_holding_registers(0, 1, 1)
+            finally:
+                await freeing
+
+        if retries:
+            assert asyncio.run(main()) == [7]
+        else:
+            with pytest.raises(Unreachable) as err:
+                asyncio.run(main())
+            assert str(err.value) == (
+                f"rtu+tcp://127.0.0.1:{port}: connection failed, though a test connection right after got through"
+            )
+    assert dev.frames == ([read_frame(0, 1)] if retries else [])
+
+
 def test_swallowed_request_is_no_response_after_the_timeout() -> None:
     swallow = {"on": False}
 

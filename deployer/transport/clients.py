@@ -19,6 +19,7 @@ import asyncio
 import contextlib
 import errno
 import functools
+import itertools
 import os
 import re
 import ssl
@@ -50,6 +51,8 @@ from .urls import parse_url as parse_url
 from .urls import recorded as recorded
 from .urls import verify as _verify
 from .urls import windows_port
+
+_BACKOFF = 0.05  # seconds before a connection's second attempt, doubling: as the session's retries (docs/urls.md)
 
 
 class Transport(abc.ABC):
@@ -656,8 +659,9 @@ class PymodbusTransport(Transport):
             "reconnect_delay_max": 0,
         }
 
-    async def _why_not(self) -> str:
-        """Why connect() returned False (pymodbus swallows the reason): probe once more ourselves."""
+    async def _why_not(self) -> str | None:
+        """Why connect() returned False (pymodbus swallows the reason): probe once more ourselves. None: the
+        probe got through, the failure has passed."""
         return "connection failed"
 
     def _lost(self, why: str) -> ConnectionLost:
@@ -675,20 +679,33 @@ class PymodbusTransport(Transport):
     async def connect(self) -> None:
         where = describe(self.url)
         self._answered = False
-        try:
-            client = self._make_client()
-        except ssl.SSLError as e:
-            raise Unreachable(f"{where}: TLS setup failed: {e.reason or e}") from None
-        except (OSError, ValueError) as e:
-            raise Unreachable(f"{where}: {e}") from None
-        try:
-            ok = await client.connect()
-        except Exception as e:  # asyncio and pyserial raise a zoo of errors for a bad peer
+        for attempt in itertools.count():
+            try:
+                client = self._make_client()
+            except ssl.SSLError as e:
+                raise Unreachable(f"{where}: TLS setup failed: {e.reason or e}") from None
+            except (OSError, ValueError) as e:
+                raise Unreachable(f"{where}: {e}") from None
+            try:
+                ok = await client.connect()
+            except Exception as e:  # asyncio and pyserial raise a zoo of errors for a bad peer
+                client.close()
+                raise Unreachable(f"{where}: cannot connect: {e}") from None
+            if ok and client.connected:
+                break
             client.close()
-            raise Unreachable(f"{where}: cannot connect: {e}") from None
-        if not ok or not client.connected:
-            client.close()
-            raise Unreachable(f"{where}: {await self._why_not()}")
+            why = await self._why_not()
+            if why is not None:
+                raise Unreachable(f"{where}: {why}")
+            if attempt >= self.url.retries:
+                times = f" {attempt + 1} times" if attempt else ""
+                raise Unreachable(
+                    f"{where}: connection failed{times}, though a test connection right after got through"
+                )
+            # the device took our probe's connection: the failure passed (a gateway's connection slots full a
+            # moment, this process too busy to see its connection made within the timeout); tried again, as a
+            # request that timed out is
+            await asyncio.sleep(_BACKOFF * 2**attempt)
         if _connected_to_itself(client):
             # on loopback, a connect to a port nothing listens on can meet itself (TCP simultaneous open)
             # when the kernel hands out that very port as the local one: no device, refused as such
@@ -897,7 +914,7 @@ class TcpTransport(PymodbusTransport):
             self.url.host or "", port=self.url.port or 502, framer=FramerType.SOCKET, **self._common()
         )
 
-    async def _why_not(self) -> str:
+    async def _why_not(self) -> str | None:
         try:
             _, writer = await asyncio.wait_for(asyncio.open_connection(self.url.host, self.url.port), self.url.timeout)
         except ConnectionRefusedError:
@@ -907,7 +924,7 @@ class TcpTransport(PymodbusTransport):
         except OSError as e:
             return f"cannot connect: {e.strerror or e}"
         writer.close()
-        return "connection failed"
+        return None
 
 
 class RtuOverTcpTransport(TcpTransport):
@@ -965,7 +982,7 @@ class TlsTransport(TcpTransport):
             self.url.host or "", port=self.url.port or 802, sslctx=self.ssl_context(), **self._common()
         )
 
-    async def _why_not(self) -> str:
+    async def _why_not(self) -> str | None:
         try:
             _, writer = await asyncio.wait_for(
                 asyncio.open_connection(self.url.host, self.url.port, ssl=self.ssl_context()), self.url.timeout
@@ -985,7 +1002,7 @@ class TlsTransport(TcpTransport):
         except OSError as e:
             return f"cannot connect: {e.strerror or e}"
         writer.close()
-        return "TLS connection failed"
+        return None
 
 
 class _SerialLine:
