@@ -20,10 +20,10 @@ HERE = os.path.abspath(__file__)
 
 
 def measured(
-    args: list[str], cwd: str | None = None, max_bytes: int | None = None
+    args: list[str], cwd: str | None = None, max_bytes: int | None = None, env: dict[str, str] | None = None
 ) -> tuple[float, float, int, int, str]:
     """See ``measured_all``; without the bytes written."""
-    out, err = measured_all(args, cwd, max_bytes)
+    out, err = measured_all(args, cwd, max_bytes, env)
     return out["wall"], out["cpu"], int(out["maxrss_kb"]), int(out["code"]), err
 
 

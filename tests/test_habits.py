@@ -21,11 +21,11 @@ def _recipe(target: str) -> list[str]:
 
 
 def _tools(lines: list[str]) -> list[list[str]]:
-    """Each ``$(BIN)/tool args`` command of ``lines`` (one that starts a line or follows a ``;``), as argv without
-    the venv's folder (comments, ``|| rc=1`` and other shell around it left out)."""
+    """Each ``$(BIN)/tool args`` command of ``lines`` (one that starts a line, a subshell or follows a ``;``), as
+    argv without the venv's folder (comments, redirections, ``|| rc=1`` and other shell around it left out)."""
     out = []
     for line in lines:
-        for cmd in re.findall(r"(?:^|;)\s*\$\(BIN\)/([^|;#]+)", line):  # commands, not $(...) inside an echo
+        for cmd in re.findall(r"(?:^|[;&]|(?<!\$)\()\s*\$\(BIN\)/([^|;#&>]+)", line):  # not $(...) in an echo
             out.append(shlex.split(cmd))
     return out
 
