@@ -36,10 +36,13 @@ test: $(VENV)/.installed-test
 # and on child processes), which the extra process fills. On two cores: 170-209 s with three (five runs),
 # 200-228 s with two (four runs).
 # mypy (16 s of one core, its two runs one after the other: they share a cache) runs beside the suite, which kept
-# two cores 84% busy; its output comes after the suite's
+# two cores 84% busy; its output comes after the suite's.
+# compileall: the suite starts hundreds of Python processes (the command line, agents, workers); where
+# PYTHONDONTWRITEBYTECODE is set (CI's machines) each compiled deployer's sources again, 0.1 s of CPU a process
 TEST_WORKERS ?= $(shell $(PYTHON) -c "import os; print(min(4, (os.cpu_count() or 1) + 1))")
 check:
 	@rc=0; rm -rf build/coverage build/mypy; mkdir -p build/coverage build/mypy; \
+	$(BIN)/python -m compileall -q -j 0 deployer tests benchmarks > /dev/null || rc=1; \
 	( $(BIN)/mypy deployer tests tools > build/mypy/out 2>&1; a=$$?; \
 	  $(BIN)/mypy --platform win32 deployer >> build/mypy/out 2>&1; echo $$(( a | $$? )) > build/mypy/rc ) & \
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --maxprocesses 4 --cov --cov-report= || rc=1; \
