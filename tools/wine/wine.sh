@@ -151,8 +151,8 @@ suite() {
   # the Wine server opens the COM ports' pseudo-terminals, and one that closes hangs it up: it then writes its
   # object list out, to its own log rather than into the suite's output (it stays up 10 s after its last client)
   /usr/lib/wine/wineserver64 -p10 2>>"$HOME_DIR/wineserver.log" || true
-  # compiled once: the suite starts hundreds of Windows Pythons, and with PYTHONDONTWRITEBYTECODE in the environment
-  # (Wine hands it on) each compiled deployer's sources again
+  # compiled once: with PYTHONDONTWRITEBYTECODE in the environment (Wine hands it on) each of the suite's Windows
+  # Pythons compiled deployer's sources again (a small part of the seconds a process takes to start under Wine)
   run -m compileall -q deployer tests benchmarks >/dev/null
   DEPLOYER_WINE_PTYS=$port run -m pytest "$@"
 }
