@@ -361,16 +361,13 @@ def describe(url: DeviceURL) -> str:
     return f"{url.scheme}://{host}:{url.port}{q}"
 
 
-_CONNECTION = ("timeout", "retries", "pause_after_connect", "pause_between_requests", "device_identification")
-
-
 def recorded(url: DeviceURL, described: str | None = None) -> str:
     """``describe(url)`` (``described``, when the caller has it) with what it takes to talk to the device again: its
     timeout and retries where they are not the defaults (from the URL or an inventory's defaults), its pauses and
     ``device_identification`` as the URL gave them. What a snapshot keeps: ``rollback SNAPSHOT`` of a slow gateway
     is paced as the apply was."""
     text = describe(url) if described is None else described
-    extra = {k: url.options[k] for k in _CONNECTION[2:] if k in url.options}
+    extra = {k: v for k, v in url.options.items() if k in _COMMON and k not in ("timeout", "retries")}
     if url.timeout != DEFAULT_TIMEOUT:
         extra["timeout"] = f"{url.timeout:g}"
     if url.retries != DEFAULT_RETRIES:
