@@ -280,6 +280,8 @@ class _FakeTransport:
         self.late_answers: list[float] = []
         self.shifts = False  # as Modbus/TCP: answers tell their request (the session never doubts them)
         self.desyncs = 0
+        self.connect_failures = 0
+        self.backoff = 0.0
 
     def set_pacing(self, after_connect: float, between: float) -> None:
         pass

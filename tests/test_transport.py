@@ -280,11 +280,13 @@ def _connecting_to(port: int) -> bool:
 def test_a_connection_that_fails_though_the_device_takes_others_is_tried_again(retries: int) -> None:
     """A gateway whose one connection slot another master holds a moment: Linux drops the client's SYN (and
     sends it again only after a second); the slot frees while pymodbus waits, its connect times out, and our
-    probe gets through: the failure has passed, so the connection is tried again (``retries``), and made.
+    probe gets through: the failure has passed, so the connection is tried again (``retries``), and made; the
+    device's report says so (its notices), and the session's backoff (0 here) is the wait before the next try.
     Without retries, unreachable, saying so."""
     import socket
     import threading
 
+    from deployer.execute.connect import connected
     from tests.rtu_devices import Device, on_tcp, read_frame
 
     dev, accepting = Device({0: 7}), threading.Event()
@@ -297,16 +299,24 @@ def test_a_connection_that_fails_though_the_device_takes_others_is_tried_again(r
             other.close()
             accepting.set()
 
+        notices: list[str] = []
+
         async def main() -> list[int]:
             freeing = asyncio.create_task(free_the_slot())
+            url = tp.parse_url(f"rtu+tcp://127.0.0.1:{port}?timeout=0.5&retries={retries}")
             try:
-                async with tp.open_transport(f"rtu+tcp://127.0.0.1:{port}?timeout=0.5&retries={retries}") as t:
-                    return await t.read_holding_registers(0, 1, 1)
+                async with connected(url, 1, None, backoff=0, notices=notices) as session:
+                    assert session.transport.backoff == 0
+                    return await session.transport.read_holding_registers(0, 1, 1)
             finally:
                 await freeing
 
         if retries:
             assert asyncio.run(main()) == [7]
+            assert notices == [
+                "connecting failed once, though a test connection right after got through each time; tried again "
+                "(the URL's retries): the device or its gateway was slow to take a connection"
+            ]
         else:
             with pytest.raises(Unreachable) as err:
                 asyncio.run(main())

@@ -35,6 +35,7 @@ async def connected(
     transport = tp.open_transport(url)
     p = pacing if pacing is not None else pacing_for(url, profile)
     transport.set_pacing(p.after_connect, p.between_requests)
+    transport.backoff = backoff
     await transport.connect()
     session = Session(
         transport, unit, retries=url.retries, backoff=backoff, records=records if records is not None else []
@@ -46,6 +47,17 @@ async def connected(
         doubt = session.trust.notice()  # the line went out of step: how, what it cost, the timeout that serves
         if doubt is not None and notices is not None:
             notices.append(doubt)
+        if transport.connect_failures and notices is not None:  # a gateway's slots full a moment, a busy machine
+            notices.append(connect_notice(transport.connect_failures))
+
+
+def connect_notice(failures: int) -> str:
+    """What the report says of connections that failed though the device took a test connection right after."""
+    times = "once" if failures == 1 else f"{failures} times"
+    return (
+        f"connecting failed {times}, though a test connection right after got through each time; tried again "
+        "(the URL's retries): the device or its gateway was slow to take a connection"
+    )
 
 
 def opened(url: tp.DeviceURL, profile: Profile | None) -> tp.Transport:

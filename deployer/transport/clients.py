@@ -52,7 +52,7 @@ from .urls import recorded as recorded
 from .urls import verify as _verify
 from .urls import windows_port
 
-_BACKOFF = 0.05  # seconds before a connection's second attempt, doubling: as the session's retries (docs/urls.md)
+_BACKOFF = 0.05  # seconds before a connection's second attempt, doubling, unless its caller gives the session's
 
 
 class Transport(abc.ABC):
@@ -62,6 +62,10 @@ class Transport(abc.ABC):
     requests_sent: int  # requests put on the wire (every attempt counts)
     on_frame: Callable[[str, bytes], None] | None  # ("send" | "recv", raw bytes); recv may come in chunks
     late_answers: list[float]  # seconds after their request of answers that came after the timeout
+    # connections that failed though a test connection right after got through, before the one made (each tried
+    # again, up to the URL's retries, ``backoff`` seconds after the first, doubling: as the session's requests)
+    connect_failures: int = 0
+    backoff: float = _BACKOFF
     # answers carry nothing that names their request (RTU, ASCII, rtu+tcp: no transaction id): an answer that
     # came late can pass for the answer to the next request of its shape (deployer.execute.trust)
     shifts: bool = False
@@ -705,7 +709,8 @@ class PymodbusTransport(Transport):
             # the device took our probe's connection: the failure passed (a gateway's connection slots full a
             # moment, this process too busy to see its connection made within the timeout); tried again, as a
             # request that timed out is
-            await asyncio.sleep(_BACKOFF * 2**attempt)
+            self.connect_failures += 1
+            await asyncio.sleep(self.backoff * 2**attempt)
         if _connected_to_itself(client):
             # on loopback, a connect to a port nothing listens on can meet itself (TCP simultaneous open)
             # when the kernel hands out that very port as the local one: no device, refused as such
