@@ -286,7 +286,7 @@ def test_a_connection_that_fails_though_the_device_takes_others_is_tried_again(r
     import socket
     import threading
 
-    from deployer.execute.connect import connected
+    from deployer.execute.connect import connect_notice, connected
     from tests.rtu_devices import Device, on_tcp, read_frame
 
     dev, accepting = Device({0: 7}), threading.Event()
@@ -300,6 +300,7 @@ def test_a_connection_that_fails_though_the_device_takes_others_is_tried_again(r
             accepting.set()
 
         notices: list[str] = []
+        failures: list[int] = []
 
         async def main() -> list[int]:
             freeing = asyncio.create_task(free_the_slot())
@@ -307,16 +308,19 @@ def test_a_connection_that_fails_though_the_device_takes_others_is_tried_again(r
             try:
                 async with connected(url, 1, None, backoff=0, notices=notices) as session:
                     assert session.transport.backoff == 0
+                    failures.append(session.transport.connect_failures)
                     return await session.transport.read_holding_registers(0, 1, 1)
             finally:
                 await freeing
 
         if retries:
             assert asyncio.run(main()) == [7]
-            assert notices == [
+            # once here; twice when a loaded machine's loop missed the second connection within the timeout too
+            assert failures[0] in (1, 2) and notices == [connect_notice(failures[0])]
+            assert connect_notice(1) == (
                 "connecting failed once, though a test connection right after got through each time; tried again "
                 "(the URL's retries): the device or its gateway was slow to take a connection"
-            ]
+            )
         else:
             with pytest.raises(Unreachable) as err:
                 asyncio.run(main())
