@@ -9,7 +9,6 @@ and a rejected value that fails its host naming the parameter.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -20,7 +19,7 @@ import pytest
 
 from deployer.profile import builtin_profile
 from deployer.testing.simulator import Faults, Simulator
-from tests.helpers import Simulators
+from tests.helpers import Simulators, without_coverage
 
 ROOT = Path(__file__).parent.parent
 COLLECTION = ROOT / "ansible_collections" / "deployer" / "modbus"
@@ -43,7 +42,7 @@ def playbook(tmp: Path, inventory: Path, *args: str) -> tuple[int, str, dict[str
     tree = tmp / "tree"
     shutil.rmtree(tree, ignore_errors=True)
     env = {
-        **os.environ,
+        **without_coverage(),  # ansible's forks each started coverage (helpers)
         "ANSIBLE_COLLECTIONS_PATH": str(ROOT),  # the folder that holds ansible_collections/
         "ANSIBLE_HOME": str(tmp / "ansible-home"),
         "ANSIBLE_LOCAL_TEMP": str(tmp / "ansible-tmp"),

@@ -7,7 +7,6 @@ stops the rollout before the next site is touched."""
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -19,6 +18,7 @@ from deployer.agent.client import Agent
 from deployer.profile import load_profile
 from deployer.testing.simulator import Faults, Simulator, SimulatorThread
 from tests.agent_helpers import PROFILE, RECIPE, AgentProcess, write_site
+from tests.helpers import without_coverage
 
 ROOT = Path(__file__).parent.parent
 PLAYBOOK = ROOT / "ansible_collections" / "deployer" / "modbus" / "playbooks" / "agents.yml"
@@ -36,7 +36,7 @@ pytestmark = [
 
 def playbook(tmp: Path, inventory: Path, *args: str) -> tuple[int, str]:
     env = {
-        **os.environ,
+        **without_coverage(),  # ansible's forks each started coverage (helpers)
         "ANSIBLE_COLLECTIONS_PATH": str(ROOT),
         "ANSIBLE_HOME": str(tmp / "ansible-home"),
         "ANSIBLE_LOCAL_TEMP": str(tmp / "ansible-tmp"),

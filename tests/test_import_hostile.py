@@ -23,7 +23,7 @@ from deployer.profile import load_profile
 from deployer.profile.emit import Draft, Origin, check
 from deployer.recipe.loader import load_recipe
 from tests import hostile_imports
-from tests.helpers import cli
+from tests.helpers import cli, without_coverage
 
 pytestmark = pytest.mark.timeout(300)
 ROOT = Path(__file__).resolve().parent.parent
@@ -77,7 +77,7 @@ def test_worst_inputs_are_bounded(worst: hostile_imports.Worst, tmp_path: Path) 
     args = [a.replace("{f}", str(f)) for a in worst.args]
     # without coverage's tracer (make test's COVERAGE_PROCESS_CONFIG): the memory and the bounds are the importer's,
     # and traced, these inputs took 2.5 times the CPU (27.6 s against 11.0 s), a tenth of make test's time
-    env = {k: v for k, v in os.environ.items() if not k.startswith("COVERAGE_")}
+    env = without_coverage()
     _, _, peak_kb, code, err = measured(
         [sys.executable, "-m", "deployer", "profiles", "import", *args], cwd=str(ROOT), max_bytes=2 << 30, env=env
     )
