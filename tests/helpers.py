@@ -21,12 +21,12 @@ from deployer.testing.simulator import LogEntry, Simulator
 T = TypeVar("T")
 
 
-def without_coverage(env: dict[str, str] | None = None) -> dict[str, str]:
-    """``env`` (default: this process's) without make test's COVERAGE_* settings, for child processes that coverage
-    would only slow down: Ansible's (ansible-playbook and a fork per task and host, each starting coverage: a third of
-    their tests' CPU; what they run of deployer is its public API, measured in-process) and the hostile imports'
+def without_coverage() -> dict[str, str]:
+    """This process's environment without make test's COVERAGE_* settings, for child processes that coverage would
+    only slow down: Ansible's (ansible-playbook and a fork per task and host, each starting coverage: a third of
+    test_ansible.py's CPU; what they run of deployer is its public API, measured in-process) and the hostile imports'
     bounded runs (their memory and their bounds must be the importer's)."""
-    return {k: v for k, v in (os.environ if env is None else env).items() if not k.startswith("COVERAGE_")}
+    return {k: v for k, v in os.environ.items() if not k.startswith("COVERAGE_")}
 
 
 def cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:

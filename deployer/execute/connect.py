@@ -53,10 +53,13 @@ async def connected(
 
 def connect_notice(failures: int) -> str:
     """What the report says of connections that failed though the device took a test connection right after."""
-    times = "once" if failures == 1 else f"{failures} times"
+    if failures == 1:
+        what = "once, though a test connection right after it"
+    else:
+        what = f"{failures} times, though a test connection after each"
     return (
-        f"connecting failed {times}, though a test connection right after got through each time; tried again "
-        "(the URL's retries): the device or its gateway was slow to take a connection"
+        f"connecting failed {what} got through; tried again (the URL's retries): the device or its gateway was slow "
+        "to take a connection"
     )
 
 
