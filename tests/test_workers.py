@@ -403,9 +403,10 @@ def test_a_fleet_on_a_terminal_forks_its_workers_before_its_live_display(files: 
     with reaped(proc):
         wait_for(lambda: half_way(fleet), "devices half-written")
         assert len(_children(proc.pid, "fork")) == 2
-        assert proc.wait(timeout=120) == 0
+        code = proc.wait(timeout=120)
     reader.join(timeout=10)
     os.close(master)
     text = shown.decode(errors="replace")
+    assert code == 0, text[-4000:]  # what the terminal showed says which device did not end ok, and why
     assert "in flight" in text and "10 devices: 10 ok" in text, text[-2000:]
     assert all(holds(s) == (7,) * N for s in fleet)
