@@ -137,6 +137,39 @@ def test_a_missing_folder_is_made_by_the_files_create(tmp_path: Path) -> None:
     assert (tmp_path / "state" / "snapshots" / "first.yaml").read_text() == f"# I am {new.path}\n"
 
 
+def test_a_folder_another_process_makes_meanwhile_is_used(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fleet's workers make their first snapshots in a new folder together: when the folder appears between one
+    worker's failed open and its look at the folder (another worker made it), that worker opens again; it used to
+    raise the open's "No such file or directory" and fail its device. Here the other worker's mkdir comes right
+    after the first open fails, as it did in a fleet on a loaded machine."""
+    folder = tmp_path / "state" / "snapshots"
+    real_open = os.open
+    raced: list[str] = []
+
+    def open_(path: Any, flags: int, mode: int = 0o777, **kw: Any) -> int:
+        try:
+            return real_open(path, flags, mode, **kw)
+        except FileNotFoundError:
+            if not raced and str(path).startswith(str(folder)):
+                raced.append(str(path))
+                folder.mkdir(parents=True)  # the other worker, a moment later
+            raise
+
+    monkeypatch.setattr(os, "open", open_)  # the one os module durable uses too
+    new = _Pending(_file(folder, "d1", tmp_path / "audit.jsonl", {"name": "d1"}))
+    commit([new])
+    monkeypatch.undo()
+    assert raced == [str(folder / "d1.yaml")]
+    assert new.outcome() == str(folder / "d1.yaml") and (folder / "d1.yaml").is_file()
+    if os.name == "nt":  # a symbolic link needs a privilege there
+        return
+    # a folder that is not one (a link to nowhere): an error, not a loop
+    gone = tmp_path / "dangling"
+    gone.symlink_to(tmp_path / "nowhere")
+    with pytest.raises(NotADirectoryError):
+        durable._open_in_folder(str(gone / "x.yaml"), os.O_WRONLY | os.O_CREAT | os.O_EXCL)
+
+
 def test_many_devices_at_once_each_get_their_own_durable_file_and_line(tmp_path: Path) -> None:
     journal = tmp_path / "audit.jsonl"
 

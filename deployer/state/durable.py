@@ -270,17 +270,20 @@ def _create(p: _Pending) -> None:
 
 def _open_in_folder(path: str, flags: int) -> int:
     """``os.open`` of a file to create, its folder made where it is missing: asked of the system only then, since a
-    fleet creates a snapshot per device and its writer appends to the journal every batch."""
+    fleet creates a snapshot per device and its writer appends to the journal every batch.
+
+    The folder may appear between the open that failed and the look at it: a fleet's worker processes create
+    their first snapshots in a new folder together, and the one that lost the race opens again (it used to fail
+    its device: "cannot save the snapshot ...: No such file or directory"). An open that fails again raises."""
     try:
         return os.open(path, flags, 0o644)
     except FileNotFoundError:
         folder = os.path.dirname(path) or "."
-        if os.path.isdir(folder):
-            raise
-        try:
-            os.makedirs(folder, exist_ok=True)
-        except FileExistsError:  # a file where the folder should be: Windows says "not found" of a path through it
-            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), folder) from None
+        if not os.path.isdir(folder):
+            try:
+                os.makedirs(folder, exist_ok=True)
+            except FileExistsError:  # a file where the folder should be: Windows says "not found" of a path through it
+                raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), folder) from None
         return os.open(path, flags, 0o644)
 
 
