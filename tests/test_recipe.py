@@ -173,6 +173,32 @@ def test_snapshot_text_loads_back_to_the_same_registers(tmp_path: Path) -> None:
     assert values(p) == {d.name: d.registers for d in r.desired}
 
 
+def test_recipe_text_writes_floats_as_a_person_would(tmp_path: Path) -> None:
+    # a pulled float32 of 4500 rpm read '4.5e+03 rpm'; an exponent only where repr would use one
+    write(
+        tmp_path,
+        "p.yaml",
+        "profile: p\nparameters:\n"
+        "  speed: {register: 0, type: float32, unit: rpm}\n"
+        "  tiny: {register: 2, type: float32}\n"
+        "  gain: {register: 4, type: float64}\n"
+        "  half: {register: 8, type: float32}\n",
+    )
+    prof = load_profile(str(tmp_path / "p.yaml"))
+    regs = {
+        prof.parameter("speed"): prof.parameter("speed").encode(4500.0),
+        prof.parameter("tiny"): prof.parameter("tiny").encode(1.5e-7),
+        prof.parameter("gain"): prof.parameter("gain").encode(120000.0),
+        prof.parameter("half"): prof.parameter("half").encode(0.5),
+    }
+    text = recipe_text("p.yaml", regs, name="r")
+    assert "speed: 4500 rpm\n" in text
+    assert "tiny: 1.5e-07\n" in text
+    assert "gain: 120000.0\n" in text
+    assert "half: 0.5\n" in text
+    assert values(write(tmp_path, "r.yaml", text)) == {p.name: r for p, r in regs.items()}
+
+
 def test_recipe_text_keeps_out_of_range_values_as_comments(tmp_path: Path) -> None:
     prof = builtin_profile("example-inverter")
     f07 = prof.parameter("F07")

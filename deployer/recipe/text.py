@@ -52,10 +52,17 @@ def value_text(param: Parameter, registers: Sequence[int]) -> str | None:
     if param.type == codec.BOOL:
         return "true" if raw else "false"
     if param.is_float and param.scale == 1 and param.offset == 0:
-        text = codec.shortest_float_repr(float(raw), param.type)
+        text = _positional(codec.shortest_float_repr(float(raw), param.type))
     else:
         text = codec.format_decimal(param.to_engineering(tuple(registers)))
     return f"{text} {param.unit}" if param.unit else text
+
+
+def _positional(text: str) -> str:
+    """A number's shortest text written out as a person would ('4.5e+03' -> '4500', a float32's 4500 rpm), as
+    Python's ``repr`` does: with an exponent only below 0.0001 or from 1e16 on (a 3.4e+38 stays so)."""
+    d = Decimal(text)
+    return format(d, "f") if d.is_finite() and -4 <= d.adjusted() < 16 else text
 
 
 # Text YAML certainly reads back as the same plain string when the implicit resolvers call it a
