@@ -542,7 +542,8 @@ def test_fleet_plan_and_diff_group_identical_changes(capsys: pytest.CaptureFixtu
             "1 device: as desired",
             "  d05",
             "2 unreachable: dead-1, dead-2",
-            "5 of 8 devices would change (5 write requests); --per-device shows each device's plan",
+            "5 of 8 devices would change (5 write requests; 33 requests in all, 5 writes to non-volatile memory); "
+            "--per-device shows each device's plan",
         ]
         code, out, err = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "d0*", "--per-device")
         assert code == 0 and out.count("current -> desired") == 6 and "d05" not in out.splitlines()[0]
@@ -602,7 +603,9 @@ def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path)
         code, out, _ = cli(
             capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "a,b", "--detailed-exitcode"
         )
-        assert code == 2 and "2 of 3 devices would change (2 write requests)" in out
+        assert code == 2 and (
+            "2 of 3 devices would change (2 write requests; 15 requests in all, 2 writes to non-volatile memory)" in out
+        )
         assert "2 devices: F07 5 s -> 10 s, F08 5 s -> 12 s, stop_mode ramp -> coast\n  d00, d02\n" in out
         code, out, _ = cli(
             capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "d01", "--detailed-exitcode", "--json"
@@ -626,6 +629,26 @@ def test_fleet_plan_and_pull(capsys: pytest.CaptureFixture[str], tmp_path: Path)
         assert code == 3 and "dead" in err
         code, _, err = cli(capsys, "pull", "--profile", "example-inverter", "--inventory", inv, "-o", "/proc/x")
         assert code == 1 and "cannot write recipes into /proc/x" in err
+
+
+def test_a_fleet_plan_counts_the_requests_its_apply_sends(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    # every device's checks, writes, read-back and commit: what the devices log during the apply that follows
+    with fleet(3) as sims:
+        inv = inventory(tmp_path, {n: s.url for n, s in zip(names(3), sims, strict=True)})
+        for n, v in WANT.items():  # d01 holds the recipe already: its checks only
+            sims[1].write(n, v)
+        code, out, err = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv)
+        assert code == 0, err
+        said = re.search(r"\((\d+) write requests?; (\d+) requests in all, (\d+) writes? to non-volatile memory\)", out)
+        assert said is not None, out
+        for s in sims:
+            s.log.clear()
+        code, _, err = cli(capsys, "apply", recipe(tmp_path), "--inventory", inv, "--yes", "--state-dir", str(tmp_path))
+        assert code == 0, err
+        logged = [e for s in sims for e in s.log]
+        commits = [e for e in logged if e.function == 16 and e.address == 0x08FF]  # the profile's commit: 0x0900
+        assert (len(logged), len(commits)) == (int(said[2]), int(said[3])) == (15, 2)
+        assert len([e for e in logged if e.function == 16]) - len(commits) == int(said[1])
 
 
 def test_the_report_file_lists_every_device_before_the_first_one_starts(tmp_path: Path) -> None:

@@ -407,9 +407,13 @@ def plan_fleet(
             same="as desired",
         )
         writes = sum(len(p.writes) for p in plans.values())
+        costs = [plan_cost(plans[j.name], j.recipe.profile, j.url) for j in jobs if j.name in plans]
+        stored = sum(c.non_volatile_writes for c in costs)  # what the fleet's commits wear, as a device's plan says
         out.print(
-            f"{len(changing)} of {_n(len(jobs), 'device')} would change ({_n(writes, 'write request')}); "
-            "--per-device shows each device's plan"
+            f"{len(changing)} of {_n(len(jobs), 'device')} would change ({_n(writes, 'write request')}; "
+            f"{_n(sum(c.requests for c in costs), 'request')} in all"
+            + (f", {_n(stored, 'write')} to non-volatile memory" if stored else "")
+            + "); --per-device shows each device's plan"
         )
     if _unreachable(values):
         return EXIT_UNREACHABLE
