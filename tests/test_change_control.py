@@ -264,6 +264,56 @@ def test_an_unapproved_plan_is_refused_with_nothing_sent_and_two_approvals_let_i
     assert {p["name"]: (p["old"], p["new"]) for p in applied["detail"]["parameters"]}["accel"] == ("5 s", "2 s")
 
 
+def test_one_key_under_two_names_is_one_person(tmp_path: Path, sim: Simulator) -> None:
+    """Four eyes are two people: allowed_signers may give a key several names ("alice,alice-ops ..."), but the
+    author's key approving under another name, or one key approving twice, is not a second person's approval:
+    refused by approve, and not counted by apply when such a signature was added by hand."""
+    for n in ("alice", "bob"):
+        keygen(tmp_path, n)
+    allowed(tmp_path, "alice", "bob")
+    pub = {n: " ".join((tmp_path / f"{n}.pub").read_text().split()[:2]) for n in ("alice", "bob")}
+    with open(tmp_path / "allowed_signers", "a") as f:
+        f.write(f"alice-ops {pub['alice']}\nbob-ops {pub['bob']}\n")
+    policy = str(site(tmp_path, sim.url, "{approvals: 2}"))
+
+    which = run(
+        tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json", "--sign-key", "alice", "--policy", policy
+    )
+    assert which.returncode == 1 and "lists the key for alice, alice-ops: say which" in which.stderr
+    made = run(
+        tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json", "--sign-key", "alice", "--signer", "alice",
+        "--policy", policy,
+    )  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    own = run(tmp_path, "approve", "p.json", "--key", "alice", "--signer", "alice-ops", "--policy", policy)
+    assert own.returncode == 1 and "signed the plan as its author alice" in own.stderr
+    assert run(tmp_path, "approve", "p.json", "--key", "bob", "--signer", "bob", "--policy", policy).returncode == 0
+    twice = run(tmp_path, "approve", "p.json", "--key", "bob", "--signer", "bob-ops", "--policy", policy)
+    assert twice.returncode == 1 and "approved it already, as bob: one key is one person" in twice.stderr
+
+    # the same signatures made outside approve (by hand, or an older deployer) hold, and still do not count
+    doc = json.loads((tmp_path / "p.json").read_text())
+    d = digest(doc)
+    doc["signatures"] += [
+        sign(d, "alice-ops", "approved", signer_of(str(tmp_path / "alice"))),
+        sign(d, "bob-ops", "approved", signer_of(str(tmp_path / "bob"))),
+    ]
+    (tmp_path / "p.json").write_text(json.dumps(doc, indent=2))
+    held = [
+        v.signer
+        for v in (verify(e, d, load_signers(str(tmp_path / "allowed_signers"))) for e in doc["signatures"])
+        if v.holds
+    ]
+    assert held == ["alice", "bob", "alice-ops", "bob-ops"]
+    sim.log.clear()
+    refused = run(tmp_path, "apply", "p.json", "--yes", "--policy", policy)
+    assert refused.returncode == 1 and "(1 so far: bob; not counted: approved by alice-ops" in refused.stderr
+    assert (
+        "with the key of the author alice" in refused.stderr and "with the key that approved as bob" in refused.stderr
+    )
+    assert sim.log == []
+
+
 def test_without_a_policy_a_plan_signed_over_other_content_is_refused(tmp_path: Path, sim: Simulator) -> None:
     """No key is needed to see that a signature covers another digest: refused under any policy or none."""
     assert run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json").returncode == 0
@@ -420,7 +470,8 @@ def test_the_agent_takes_a_signed_approval_and_refuses_the_authors_and_an_anonym
 
     for n in ("alice", "bob"):
         keygen(tmp_path, n)
-    allowed(tmp_path, "alice", "bob")
+    alice_pub = " ".join((tmp_path / "alice.pub").read_text().split()[:2])
+    allowed(tmp_path, "alice", "bob", extra=f"alice-ops {alice_pub}\n")  # one person, two names
     inv = site(tmp_path, sim.url, "{approvals: 1}")
     assert (
         run(
@@ -432,6 +483,8 @@ def test_the_agent_takes_a_signed_approval_and_refuses_the_authors_and_an_anonym
             "--out",
             "p.json",
             "--sign-key",
+            "alice",
+            "--signer",
             "alice",
             "--policy",
             str(inv),
@@ -445,6 +498,9 @@ def test_the_agent_takes_a_signed_approval_and_refuses_the_authors_and_an_anonym
         mine = sign(digest(doc), "alice", "approved", signer_of(str(tmp_path / "alice")))
         status, answer = _post(agent.url, {"plan": doc, "signature": mine}, token)
         assert status == 403 and "cannot approve their own change" in str(answer["error"])
+        other = sign(digest(doc), "alice-ops", "approved", signer_of(str(tmp_path / "alice")))
+        status, answer = _post(agent.url, {"plan": doc, "signature": other}, token)  # the author's key, another name
+        assert status == 403 and "signed the plan as its author alice" in str(answer["error"])
         status, answer = _post(agent.url, {"plan": doc}, None)  # no credential at all
         assert status == 401 and "needs a named user" not in str(answer["error"])
         status, answer = _post(agent.url, {"plan": doc}, token)  # nobody named (one token): no attestation
@@ -462,9 +518,9 @@ def test_the_agent_takes_a_signed_approval_and_refuses_the_authors_and_an_anonym
     assert run(tmp_path, "apply", "p.json", "--yes", "--policy", str(inv)).returncode == 0  # the agent let go
     trail = [json.loads(x) for x in (tmp_path / "state/audit/trail.jsonl").read_text().splitlines()]
     asked = [(t["event"], t["via"]) for t in trail if t["event"] != "drift"]  # its watch records drift too
-    assert asked == [("approve-refused", "agent"), ("login-refused", "agent")] + [("approve-refused", "agent")] * 2 + [
-        ("plan-signed", "agent")
-    ]
+    assert asked == [("approve-refused", "agent")] * 2 + [("login-refused", "agent")] + [
+        ("approve-refused", "agent")
+    ] * 2 + [("plan-signed", "agent")]
 
 
 @needs_ssh

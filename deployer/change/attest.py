@@ -13,7 +13,7 @@ from typing import Any
 from ..errors import UsageError
 from . import policy as policies
 from .canonical import digest
-from .check import check_approvals, stale
+from .check import check_approvals, same_person, stale
 from .signature import MEANINGS, KeyFile, sign, verify
 from .signers import AllowedSigners
 
@@ -113,6 +113,10 @@ def approve(
         signer, new = user, None
     if meaning == "approved" and signer == author:
         raise Refused(f"{signer} is the plan's author: an author cannot approve their own change", 403)
+    if meaning == "approved" and new is not None:  # a user's own signature: its key is a person too
+        why = same_person(doc.get("signatures"), author, v.key)
+        if why is not None:
+            raise Refused(why, 403)
     found = doc.get("signatures")
     sigs: list[Any] = found if isinstance(found, list) else []
     if any(isinstance(s, Mapping) and s.get("signer") == signer and s.get("meaning") == meaning for s in sigs):

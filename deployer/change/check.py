@@ -81,14 +81,61 @@ def _approvals(checked: Sequence[Verdict], author: str | None, needed: int) -> l
             f"the author's signature: {author} signs the plan as authored (deployer plan ... --out "
             f"PLAN.json --sign-key KEY, or deployer sign PLAN.json --meaning authored --key KEY)"
         )
-    approvers = sorted({v.signer for v in checked if v.holds and v.meaning == "approved" and v.signer != author})
+    # four eyes are two people, and a key is one person whatever names allowed_signers gives it ("alice,alice-ops
+    # ssh-ed25519 ..."): an approval with the author's own key, or with a key counted already, does not count. An
+    # agent's key attests for the users it authenticated: those are told apart by their names.
+    own = {v.key for v in checked if v.holds and v.meaning == "authored" and v.signer == author and not v.attested_by}
+    approvers: list[str] = []
+    keys: dict[str, str] = {}
+    void: list[str] = []
+    for v in sorted(checked, key=lambda v: v.signer):
+        if not (v.holds and v.meaning == "approved") or v.signer == author or v.signer in approvers:
+            continue
+        if not v.attested_by:
+            if v.key in own:
+                void.append(f"{v.said()} was made with the key of the author {author}")
+                continue
+            if v.key in keys:
+                void.append(f"{v.said()} was made with the key that approved as {keys[v.key]}")
+                continue
+            keys[v.key] = v.signer
+        approvers.append(v.signer)
     if len(approvers) < needed:
         so_far = f"{len(approvers)} so far: {', '.join(approvers)}" if approvers else "none so far"
+        uncounted = "".join(f"; not counted: {why}" for why in void)
         out.append(
             f"{needed} approval{'s' if needed != 1 else ''} by distinct users other than the author "
-            f"{author or '?'} ({so_far}): deployer approve PLAN.json --key KEY"
+            f"{author or '?'} ({so_far}{uncounted}): deployer approve PLAN.json --key KEY"
         )
     return out
+
+
+def direct_keys(signatures: Any, meaning: str) -> dict[str, str]:
+    """Key fingerprint -> signer of the ``meaning`` signatures among ``signatures`` made with a person's own key (not
+    attested by an agent): whose key a new signature's is. Read from each signature, not checked here."""
+    from . import sshsig
+
+    out: dict[str, str] = {}
+    for e in signatures if isinstance(signatures, list) else []:
+        if not isinstance(e, Mapping) or e.get("meaning") != meaning or "attested_by" in e:
+            continue
+        try:
+            out.setdefault(sshsig.fingerprint(sshsig.parse(str(e.get("signature"))).public_key), str(e.get("signer")))
+        except sshsig.SigError:
+            continue
+    return out
+
+
+def same_person(signatures: Any, author: Any, key: str) -> str | None:
+    """Why an approval made with the key ``key`` (a fingerprint) would not be a second person's: the key made the
+    author's signature, or approved already under another name. None: it may approve."""
+    authored = direct_keys(signatures, "authored")
+    if isinstance(author, str) and authored.get(key) == author:
+        return f"the key ({key}) signed the plan as its author {author}: an author cannot approve their own change"
+    approved = direct_keys(signatures, "approved")
+    if key in approved:
+        return f"the key ({key}) approved it already, as {approved[key]}: one key is one person"
+    return None
 
 
 def inputs_missing(inputs: Any, allowed: AllowedSigners | None) -> list[str]:

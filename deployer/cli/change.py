@@ -98,13 +98,21 @@ def _signers(policy_path: str | None, allowed: str | None = None) -> AllowedSign
 
 
 def signer_name(key: Signer, given: str | None, allowed: AllowedSigners | None) -> str:
-    """``--signer``, else the one plain name allowed_signers lists the key for, else the user's name."""
+    """``--signer``, else the one plain name allowed_signers lists the key for (the user's name where it lists several
+    and that is one of them; else UsageError: which one is for the signer to say), else the user's name."""
     from ..change.signature import default_signer
 
     if given:
         return given
-    names = allowed.principals_of(key.public_blob()) if allowed is not None else []
-    return names[0] if len(set(names)) == 1 else default_signer()
+    names = sorted(set(allowed.principals_of(key.public_blob()))) if allowed is not None else []
+    if len(names) == 1:
+        return names[0]
+    me = default_signer()
+    if names and me not in names:  # signed as the user's name, the signature could never hold
+        raise UsageError(
+            f"allowed_signers lists the key for {', '.join(names)}: say which you sign as with --signer NAME"
+        )
+    return me
 
 
 def stamped(data: dict[str, Any], change: ChangeOptions, rec: Recipe) -> dict[str, Any]:
@@ -188,8 +196,8 @@ def _key_options(f: Callable[..., Any]) -> Callable[..., Any]:
 def approve(plan: str, **kw: Any) -> int:
     """Approve a saved plan: an `approved` signature over its digest, added to PLAN.
 
-    Refused for the plan's author (four eyes) and for a second approval by the same signer. Says what the plan
-    still lacks under the site policy."""
+    Refused for the plan's author (four eyes), by name or by the key of their signature, and for a second approval
+    by the same signer or key. Says what the plan still lacks under the site policy."""
     return _sign(plan, "approved", **kw)
 
 
@@ -217,6 +225,7 @@ def _sign(
     state_dir: str,
 ) -> int:
     from ..audit import commands
+    from ..change.check import same_person
     from ..change.files import Signed
     from ..change.signature import statement as make_statement
     from ..change.signature import statement_bytes
@@ -225,6 +234,7 @@ def _sign(
     allowed = _signers(policy)
     if sum(x is not None for x in (key, statement_out, statement)) != 1 or (statement is None) != (signature is None):
         raise UsageError("give --key KEY, or --statement-out FILE, or --statement FILE with --signature FILE.sig")
+    k = None
     if statement is not None and signature is not None:
         entry = _external(statement, signature, target.digest)
         name = entry["signer"]
@@ -246,6 +256,8 @@ def _sign(
             return EXIT_OK
         entry = None
     why = _refusal(target, name, meaning)
+    if why is None and meaning == "approved":
+        why = same_person(target.signatures, target.author, _key_of(entry, k))
     if why is not None:
         for what in commands.refused(
             event="approve-refused",
@@ -274,6 +286,14 @@ def _sign(
         echo(f"not recorded: {safe(what)}", err=True)
     _lacks(target.path, policy)
     return EXIT_OK
+
+
+def _key_of(entry: dict[str, str] | None, key: Any) -> str:
+    """The fingerprint of the key an approval is (or was, by hand) made with."""
+    from ..change import sshsig
+
+    blob = sshsig.parse(entry["signature"]).public_key if entry is not None else key.public_blob()
+    return sshsig.fingerprint(blob)
 
 
 def _default() -> str:
