@@ -357,6 +357,37 @@ def test_validate_a_saved_plan_and_write_all(
         assert any(e.function == 16 for e in sim.log[n:])
 
 
+def test_a_plan_or_a_report_where_a_recipe_belongs_is_named_and_validate_knows_a_report(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, inverter: SimulatorThread
+) -> None:
+    # ten "unknown key" errors told a user who gave diff a saved plan nothing; one line says what the file is
+    path = recipe(tmp_path)
+    plan_file, report_file = tmp_path / "plan.json", tmp_path / "run.json"
+    with inverter as sim:
+        assert cli(capsys, "plan", path, "--device", sim.url, "--out", str(plan_file))[0] == 0
+        code, _, err = cli(
+            capsys, "apply", path, "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"),
+            "--report", str(report_file),
+        )  # fmt: skip
+        assert code == 0, err
+        sim.log.clear()
+        for command in ("diff", "plan"):
+            code, _, err = cli(capsys, command, str(plan_file), "--device", sim.url)
+            assert code == 1 and err.splitlines() == [
+                f"{plan_file}:2:3: error: this is a saved plan, not a recipe: 'deployer apply {plan_file}' runs it "
+                "unchanged (plan, diff and pull take a recipe)",
+                "1 error; nothing was sent to any device",
+            ]
+        code, _, err = cli(capsys, "diff", str(report_file), "--device", sim.url)
+        assert code == 1 and f"this is a run's report, not a recipe: 'deployer report {report_file}' shows it" in err
+        assert sim.log == []
+    code, out, _ = cli(capsys, "validate", str(report_file), str(plan_file))
+    assert code == 0 and f"{report_file}: ok (report: 1 device, 1 ok)" in out
+    report_file.write_text(report_file.read_text().replace('"devices"', '"devizes"'))
+    code, out, err = cli(capsys, "validate", str(report_file))
+    assert code == 1 and "'devices' is a required property" in err
+
+
 def test_fleet_problems_are_reported_before_anything_is_sent(
     capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:

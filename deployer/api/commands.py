@@ -458,6 +458,8 @@ def _filekind(data: object) -> str | None:
         return None
     if str(data.get("schema", "")).startswith("deployer.plan/"):
         return "plan"
+    if str(data.get("schema", "")).startswith("deployer.report/"):
+        return "report"  # before "recipe": a report names its recipe
     if "recipe" in data:
         return "recipe"
     if "devices" in data:
@@ -478,7 +480,7 @@ def _count(count: int, noun: str) -> str:
 
 
 def validate_file(path: str | os.PathLike[str]) -> str:
-    """Check one file of any kind (a profile, recipe, inventory or saved plan, told by its keys) as
+    """Check one file of any kind (a profile, recipe, inventory, users file, saved plan or report, told by its keys) as
     ``deployer validate`` does, nothing sent; returns a one-line summary ("recipe line3: 4 parameters for
     profile example-inverter"). An inventory is checked as ``plan`` and ``apply`` would check it: each
     device's profile, URL, and its recipe with its overrides.
@@ -519,6 +521,15 @@ def validate_file(path: str | os.PathLike[str]) -> str:
         if kind == "plan":
             saved = plan_from_json(data, where, src=src)
             return f"plan: {_count(len(saved.writes), 'write request')} for profile {saved.device.profile}"
+        if kind == "report":
+            from .loading import load_report
+
+            report = load_report(where)
+            statuses: dict[str, int] = {}
+            for d in report.devices:
+                statuses[d.status] = statuses.get(d.status, 0) + 1
+            said = ", ".join(f"{n} {status}" for status, n in statuses.items())
+            return f"report: {_count(len(report.devices), 'device')}" + (f", {said}" if said else "")
         what = (
             "cannot tell what this file is"
             if isinstance(data, dict)
@@ -529,7 +540,8 @@ def validate_file(path: str | os.PathLike[str]) -> str:
                 src.error(
                     (),
                     f"{what}: a profile has 'profile' and 'parameters', a recipe has "
-                    "'recipe', an inventory has 'devices', the agent's users file has 'users'",
+                    "'recipe', an inventory has 'devices', the agent's users file has 'users', a saved plan or a "
+                    "report its 'schema'",
                 )
             ]
         )

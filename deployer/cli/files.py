@@ -21,7 +21,7 @@ def validate_file(path: str) -> str:
 @click.command()
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
 def validate(files: tuple[str, ...]) -> int:
-    """Check profiles, recipes and inventories (and saved plans); exit 1 if any is invalid."""
+    """Check profiles, recipes and inventories (and saved plans and reports); exit 1 if any is invalid."""
     bad = 0
     for f in files:
         try:

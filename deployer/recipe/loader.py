@@ -342,6 +342,10 @@ def _load_chain(
     if not isinstance(data, dict):
         errors.append(src.error((), "a recipe must be a mapping (recipe: ..., profile: ..., parameters: ...)"))
         return []
+    other = _other_document(str(data.get("schema", "")), path)
+    if other is not None:  # said at once: its keys read as a recipe's would be ten errors of no use
+        errors.append(src.error(("schema",), f"this is {other}", key=True))
+        return []
     schema_errors = schema.validate(data, RECIPE_SCHEMA, src)
     if schema_errors:
         errors.extend(schema_errors)
@@ -363,6 +367,17 @@ def _load_chain(
             break
     out.append((data, src))
     return out
+
+
+def _other_document(kind: str, path: str) -> str | None:
+    """What a deployer file given where a recipe belongs is instead (its ``schema``), and what takes it."""
+    if kind.startswith("deployer.plan/"):
+        return (
+            f"a saved plan, not a recipe: 'deployer apply {path}' runs it unchanged (plan, diff and pull take a recipe)"
+        )
+    if kind.startswith("deployer.report/"):
+        return f"a run's report, not a recipe: 'deployer report {path}' shows it"
+    return None
 
 
 _TABLE_ENTRY = re.compile(r"^[A-Za-z_][\w-]*\[\d+\]$")
