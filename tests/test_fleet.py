@@ -547,7 +547,10 @@ def test_fleet_plan_and_diff_group_identical_changes(capsys: pytest.CaptureFixtu
         ]
         code, out, err = cli(capsys, "plan", recipe(tmp_path), "--inventory", inv, "--limit", "d0*", "--per-device")
         assert code == 0 and out.count("current -> desired") == 6 and "d05" not in out.splitlines()[0]
-        assert "6 of 7 devices would change: d00, d01, d02, d03, d04, d06" in out
+        assert (
+            "6 of 7 devices would change (6 write requests; 39 requests in all, 6 writes to non-volatile memory): "
+            "d00, d01, d02, d03, d04, d06\n"
+        ) in out
         # a change list longer than a line goes into a table under its group
         many = tmp_path / "many.yaml"
         many.write_text(RECIPE + "  base_speed: 1600 rpm\n  torque_limit: 120 %\n")

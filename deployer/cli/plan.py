@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import click
@@ -344,6 +344,20 @@ def plan(
     return EXIT_OK
 
 
+def _fleet_cost(jobs: Sequence[Job], plans: Mapping[str, Plan]) -> str:
+    """What the fleet's apply would send, as a device's plan states its cost: the recipes' write requests, every
+    request (each device's checks and read-back too), and the writes that wear non-volatile memory (commits)."""
+    from ..api.commands import plan_cost
+
+    costs = [plan_cost(plans[j.name], j.recipe.profile, j.url) for j in jobs if j.name in plans]
+    stored = sum(c.non_volatile_writes for c in costs)
+    return (
+        f"{_n(sum(len(p.writes) for p in plans.values()), 'write request')}; "
+        f"{_n(sum(c.requests for c in costs), 'request')} in all"
+        + (f", {_n(stored, 'write')} to non-volatile memory" if stored else "")
+    )
+
+
 def plan_fleet(
     rec: Recipe | None,
     jobs: Sequence[Job],
@@ -392,7 +406,7 @@ def plan_fleet(
                 print_plan(plans[j.name], j.recipe.profile, changes_only=True, out=out)
         down = _unreachable(values)
         out.print(
-            f"{len(changing)} of {_n(len(jobs), 'device')} would change"
+            f"{len(changing)} of {_n(len(jobs), 'device')} would change ({_fleet_cost(jobs, plans)})"
             + (f": {', '.join(safe(n) for n in changing)}" if changing else "")
             + (f"; {len(down)} unreachable: {', '.join(safe(n) for n in down)}" if down else "")
         )
@@ -406,14 +420,9 @@ def plan_fleet(
             _unreachable(values),
             same="as desired",
         )
-        writes = sum(len(p.writes) for p in plans.values())
-        costs = [plan_cost(plans[j.name], j.recipe.profile, j.url) for j in jobs if j.name in plans]
-        stored = sum(c.non_volatile_writes for c in costs)  # what the fleet's commits wear, as a device's plan says
         out.print(
-            f"{len(changing)} of {_n(len(jobs), 'device')} would change ({_n(writes, 'write request')}; "
-            f"{_n(sum(c.requests for c in costs), 'request')} in all"
-            + (f", {_n(stored, 'write')} to non-volatile memory" if stored else "")
-            + "); --per-device shows each device's plan"
+            f"{len(changing)} of {_n(len(jobs), 'device')} would change ({_fleet_cost(jobs, plans)}); "
+            "--per-device shows each device's plan"
         )
     if _unreachable(values):
         return EXIT_UNREACHABLE
