@@ -110,14 +110,15 @@ def _approvals(checked: Sequence[Verdict], author: str | None, needed: int) -> l
     return out
 
 
-def direct_keys(signatures: Any, meaning: str) -> dict[str, str]:
-    """Key fingerprint -> signer of the ``meaning`` signatures among ``signatures`` made with a person's own key (not
-    attested by an agent): whose key a new signature's is. Read from each signature, not checked here."""
+def direct_keys(signatures: Any, meaning: str, digest: str) -> dict[str, str]:
+    """Key fingerprint -> signer of the ``meaning`` signatures over ``digest`` among ``signatures`` made with a
+    person's own key (not attested by an agent): whose key a new signature's is. Read from each signature, not
+    checked here."""
     from . import sshsig
 
     out: dict[str, str] = {}
     for e in signatures if isinstance(signatures, list) else []:
-        if not isinstance(e, Mapping) or e.get("meaning") != meaning or "attested_by" in e:
+        if not isinstance(e, Mapping) or e.get("meaning") != meaning or "attested_by" in e or e.get("digest") != digest:
             continue
         try:
             out.setdefault(sshsig.fingerprint(sshsig.parse(str(e.get("signature"))).public_key), str(e.get("signer")))
@@ -126,13 +127,13 @@ def direct_keys(signatures: Any, meaning: str) -> dict[str, str]:
     return out
 
 
-def same_person(signatures: Any, author: Any, key: str) -> str | None:
-    """Why an approval made with the key ``key`` (a fingerprint) would not be a second person's: the key made the
-    author's signature, or approved already under another name. None: it may approve."""
-    authored = direct_keys(signatures, "authored")
+def same_person(signatures: Any, author: Any, key: str, digest: str) -> str | None:
+    """Why an approval over ``digest`` made with the key ``key`` (a fingerprint) would not be a second person's: the
+    key made the author's signature, or approved already under another name. None: it may approve."""
+    authored = direct_keys(signatures, "authored", digest)
     if isinstance(author, str) and authored.get(key) == author:
         return f"the key ({key}) signed the plan as its author {author}: an author cannot approve their own change"
-    approved = direct_keys(signatures, "approved")
+    approved = direct_keys(signatures, "approved", digest)
     if key in approved:
         return f"the key ({key}) approved it already, as {approved[key]}: one key is one person"
     return None

@@ -257,7 +257,7 @@ def _sign(
         entry = None
     why = _refusal(target, name, meaning)
     if why is None and meaning == "approved":
-        why = same_person(target.signatures, target.author, _key_of(entry, k))
+        why = same_person(target.signatures, target.author, _key_of(entry, k), target.digest)
     if why is not None:
         for what in commands.refused(
             event="approve-refused",
