@@ -314,6 +314,51 @@ def test_one_key_under_two_names_is_one_person(tmp_path: Path, sim: Simulator) -
     assert sim.log == []
 
 
+@needs_ssh
+def test_an_approval_signed_by_hand_names_its_signer_and_one_that_does_not_hold_blocks_nobody(
+    tmp_path: Path, sim: Simulator
+) -> None:
+    assert SSH_KEYGEN is not None
+    for n in ("alice", "bob"):
+        keygen(tmp_path, n)
+    allowed(tmp_path, "alice", "bob")
+    policy = str(site(tmp_path, sim.url, "{approvals: 1}"))
+    made = run(
+        tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json", "--sign-key", "alice", "--policy", policy
+    )
+    assert made.returncode == 0, made.stderr
+    # the statement names its signer: the user's name, unknown to the site, would make a signature that never holds
+    nobody = run(tmp_path, "approve", "p.json", "--statement-out", "st.json", "--policy", policy, env={"USER": "zed"})
+    assert (
+        nobody.returncode == 1 and "names nobody zed: say who signs the statement with --signer NAME" in nobody.stderr
+    )
+    (tmp_path / "st.json.sig").write_text("not a signature\n")
+    assert (
+        run(
+            tmp_path, "approve", "p.json", "--statement-out", "st.json", "--signer", "bob", "--policy", policy
+        ).returncode
+        == 0
+    )
+    bad = run(tmp_path, "approve", "p.json", "--statement", "st.json", "--signature", "st.json.sig", "--policy", policy)
+    assert bad.returncode == 1 and bad.stderr.startswith("error: --signature st.json.sig: not an SSH signature")
+    # bob's key signs a statement naming carol (written, but it holds for nobody), then bob approves as bob
+    (tmp_path / "st.json.sig").unlink()
+    assert (
+        run(
+            tmp_path, "approve", "p.json", "--statement-out", "st.json", "--signer", "carol", "--policy", policy
+        ).returncode
+        == 0
+    )
+    subprocess.run([SSH_KEYGEN, "-Y", "sign", "-q", "-f", "bob", "-n", "deployer", "st.json"], cwd=tmp_path, check=True)
+    wrong = run(
+        tmp_path, "approve", "p.json", "--statement", "st.json", "--signature", "st.json.sig", "--policy", policy
+    )
+    assert wrong.returncode == 0 and "not for 'carol'" in wrong.stderr
+    bob = run(tmp_path, "approve", "p.json", "--key", "bob", "--policy", policy)  # not "approved it already"
+    assert bob.returncode == 0 and "approved by bob" in bob.stdout, bob.stderr
+    assert "approval by distinct users" not in bob.stderr and "not for 'carol'" in bob.stderr  # it must go
+
+
 def test_without_a_policy_a_plan_signed_over_other_content_is_refused(tmp_path: Path, sim: Simulator) -> None:
     """No key is needed to see that a signature covers another digest: refused under any policy or none."""
     assert run(tmp_path, "plan", "r.yaml", "--device", sim.url, "--out", "p.json").returncode == 0

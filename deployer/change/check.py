@@ -110,30 +110,28 @@ def _approvals(checked: Sequence[Verdict], author: str | None, needed: int) -> l
     return out
 
 
-def direct_keys(signatures: Any, meaning: str, digest: str) -> dict[str, str]:
-    """Key fingerprint -> signer of the ``meaning`` signatures over ``digest`` among ``signatures`` made with a
-    person's own key (not attested by an agent): whose key a new signature's is. Read from each signature, not
-    checked here."""
-    from . import sshsig
+def direct_keys(signatures: Any, meaning: str, digest: str, allowed: AllowedSigners | None) -> dict[str, str]:
+    """Key fingerprint -> signer of the ``meaning`` signatures among ``signatures`` that hold over ``digest`` and were
+    made with a person's own key (not attested by an agent): whose key a new signature's is."""
+    from .signature import verify
 
     out: dict[str, str] = {}
     for e in signatures if isinstance(signatures, list) else []:
-        if not isinstance(e, Mapping) or e.get("meaning") != meaning or "attested_by" in e or e.get("digest") != digest:
-            continue
-        try:
-            out.setdefault(sshsig.fingerprint(sshsig.parse(str(e.get("signature"))).public_key), str(e.get("signer")))
-        except sshsig.SigError:
-            continue
+        if isinstance(e, Mapping) and e.get("meaning") == meaning and "attested_by" not in e:
+            v = verify(e, digest, allowed)
+            if v.holds:
+                out.setdefault(v.key, v.signer)
     return out
 
 
-def same_person(signatures: Any, author: Any, key: str, digest: str) -> str | None:
+def same_person(signatures: Any, author: Any, key: str, digest: str, allowed: AllowedSigners | None) -> str | None:
     """Why an approval over ``digest`` made with the key ``key`` (a fingerprint) would not be a second person's: the
-    key made the author's signature, or approved already under another name. None: it may approve."""
-    authored = direct_keys(signatures, "authored", digest)
+    key made the author's signature, or approved already under another name (signatures that hold under
+    ``allowed``: one that does not counts for nobody). None: it may approve."""
+    authored = direct_keys(signatures, "authored", digest, allowed)
     if isinstance(author, str) and authored.get(key) == author:
         return f"the key ({key}) signed the plan as its author {author}: an author cannot approve their own change"
-    approved = direct_keys(signatures, "approved", digest)
+    approved = direct_keys(signatures, "approved", digest, allowed)
     if key in approved:
         return f"the key ({key}) approved it already, as {approved[key]}: one key is one person"
     return None

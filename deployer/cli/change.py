@@ -243,6 +243,9 @@ def _sign(
     else:
         k = open_key(key) if key is not None else None
         name = signer_name(k, signer, allowed) if k is not None else (signer or _default())
+        if k is None and signer is None and allowed is not None and not any(s.names(name) for s in allowed.signers):
+            # the statement names who signs it: as the user's name, unknown to the site, it could never hold
+            raise UsageError(f"{allowed.path} names nobody {name}: say who signs the statement with --signer NAME")
         if statement_out is not None:
             st = make_statement(target.digest, name, meaning)
             from ..api.commands import write_output
@@ -257,7 +260,7 @@ def _sign(
         entry = None
     why = _refusal(target, name, meaning)
     if why is None and meaning == "approved":
-        why = same_person(target.signatures, target.author, _key_of(entry, k), target.digest)
+        why = same_person(target.signatures, target.author, _key_of(entry, k), target.digest, allowed)
     if why is not None:
         for what in commands.refused(
             event="approve-refused",
@@ -321,6 +324,7 @@ def _external(statement: str, signature: str, digest: str) -> dict[str, str]:
     """A statement and ssh-keygen's signature of it, as an entry; the statement must be this file's."""
     import json
 
+    from ..change import sshsig
     from ..change.signature import STATEMENT, entry_of, statement_bytes
 
     try:
@@ -335,6 +339,10 @@ def _external(statement: str, signature: str, digest: str) -> dict[str, str]:
         raise UsageError(f"--statement {statement}: not a statement written by --statement-out")
     if st.get("digest") != digest:
         raise UsageError(f"--statement {statement} is for other content ({st.get('digest')}); this file is {digest}")
+    try:
+        sshsig.parse(armor)  # its key is asked of it (a second person's?) before it is added
+    except sshsig.SigError as e:
+        raise UsageError(f"--signature {signature}: {e}") from None
     return entry_of(st, armor)
 
 
