@@ -50,6 +50,20 @@ def keygen(tmp: Path, name: str, kind: str = "ed25519") -> Path:
     return key
 
 
+def pykeygen(tmp: Path, name: str) -> Path:
+    """An Ed25519 key pair in OpenSSH's formats, made by pyca's cryptography: where no ssh-keygen is (Windows)."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ed25519
+
+    key = ed25519.Ed25519PrivateKey.generate()
+    (tmp / name).write_bytes(
+        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption())
+    )
+    pub = key.public_key().public_bytes(serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH)
+    (tmp / f"{name}.pub").write_bytes(pub + f" {name}\n".encode())
+    return tmp / name
+
+
 def allowed(tmp: Path, *names: str, extra: str = "") -> Path:
     lines = []
     for n in names:
@@ -269,7 +283,7 @@ def test_one_key_under_two_names_is_one_person(tmp_path: Path, sim: Simulator) -
     author's key approving under another name, or one key approving twice, is not a second person's approval:
     refused by approve, and not counted by apply when such a signature was added by hand."""
     for n in ("alice", "bob"):
-        keygen(tmp_path, n)
+        pykeygen(tmp_path, n)  # no ssh-keygen needed: it runs on Windows too
     allowed(tmp_path, "alice", "bob")
     pub = {n: " ".join((tmp_path / f"{n}.pub").read_text().split()[:2]) for n in ("alice", "bob")}
     with open(tmp_path / "allowed_signers", "a") as f:
