@@ -27,7 +27,7 @@ from ..profile.codec import format_decimal, layout_name, mask_shift
 from ..profile.model import address_text
 from ..recipe.loader import Recipe
 from ..recipe.loader import load_recipe as _load_recipe
-from ..report import Report, report_from_json, report_text, run_info
+from ..report import DEVICE_STATUSES, Report, report_from_json, report_text, run_info
 from ..run.request import PreparedRun, RunRequest
 from ..transport.urls import DeviceURL, describe
 from .checks import (
@@ -456,10 +456,11 @@ def forget_learned(
 def _filekind(data: object) -> str | None:
     if not isinstance(data, dict):
         return None
-    if str(data.get("schema", "")).startswith("deployer.plan/"):
-        return "plan"
-    if str(data.get("schema", "")).startswith("deployer.report/"):
-        return "report"  # before "recipe": a report names its recipe
+    from ..load.schema import document_of
+
+    told = document_of(data)
+    if told is not None:
+        return told  # before "recipe": a plan and a report name their recipe
     if "recipe" in data:
         return "recipe"
     if "devices" in data:
@@ -524,12 +525,9 @@ def validate_file(path: str | os.PathLike[str]) -> str:
         if kind == "report":
             from .loading import load_report
 
-            report = load_report(where)
-            statuses: dict[str, int] = {}
-            for d in report.devices:
-                statuses[d.status] = statuses.get(d.status, 0) + 1
-            said = ", ".join(f"{n} {status}" for status, n in statuses.items())
-            return f"report: {_count(len(report.devices), 'device')}" + (f", {said}" if said else "")
+            summary = load_report(where).summary()
+            said = ", ".join(f"{summary[s]} {s}" for s in DEVICE_STATUSES if summary[s])
+            return f"report: {_count(summary['devices'], 'device')}" + (f", {said}" if said else "")
         what = (
             "cannot tell what this file is"
             if isinstance(data, dict)

@@ -114,7 +114,7 @@ def approve(
     if meaning == "approved" and signer == author:
         raise Refused(f"{signer} is the plan's author: an author cannot approve their own change", 403)
     if meaning == "approved" and entry is not None:  # a user's own signature: its key is one person too
-        why = same_person(doc.get("signatures"), author, v.key, d, allowed)
+        why = same_person(doc.get("signatures"), author, signer, v.key, d, allowed)
         if why is not None:
             raise Refused(why, 403)
     found = doc.get("signatures")

@@ -81,28 +81,14 @@ def _approvals(checked: Sequence[Verdict], author: str | None, needed: int) -> l
             f"the author's signature: {author} signs the plan as authored (deployer plan ... --out "
             f"PLAN.json --sign-key KEY, or deployer sign PLAN.json --meaning authored --key KEY)"
         )
-    # four eyes are two people, and a key is one person whatever names allowed_signers gives it ("alice,alice-ops
-    # ssh-ed25519 ..."): an approval with the author's own key, or with a key counted already, does not count. An
-    # agent's key attests for the users it authenticated: those are told apart by their names.
-    own = {v.key for v in checked if v.holds and v.meaning == "authored" and v.signer == author and not v.attested_by}
-    approvers: list[str] = []
-    keys: dict[str, str] = {}
-    void: list[str] = []
-    for v in sorted(checked, key=lambda v: v.signer):
-        if not (v.holds and v.meaning == "approved") or v.signer == author or v.signer in approvers:
-            continue
-        if not v.attested_by:
-            if v.key in own:
-                void.append(f"{v.said()} was made with the key of the author {author}")
-                continue
-            if v.key in keys:
-                void.append(f"{v.said()} was made with the key that approved as {keys[v.key]}")
-                continue
-            keys[v.key] = v.signer
-        approvers.append(v.signer)
+    approvers, void = _counted(sorted(checked, key=lambda v: v.signer), author)
     if len(approvers) < needed:
         so_far = f"{len(approvers)} so far: {', '.join(approvers)}" if approvers else "none so far"
-        uncounted = "".join(f"; not counted: {why}" for why in void)
+        uncounted = "".join(
+            f"; not counted: {v.said()} was made with the key "
+            + (f"of the author {author}" if other is None else f"that approved as {other}")
+            for v, other in void
+        )
         out.append(
             f"{needed} approval{'s' if needed != 1 else ''} by distinct users other than the author "
             f"{author or '?'} ({so_far}{uncounted}): deployer approve PLAN.json --key KEY"
@@ -110,31 +96,48 @@ def _approvals(checked: Sequence[Verdict], author: str | None, needed: int) -> l
     return out
 
 
-def direct_keys(signatures: Any, meaning: str, digest: str, allowed: AllowedSigners | None) -> dict[str, str]:
-    """Key fingerprint -> signer of the ``meaning`` signatures among ``signatures`` that hold over ``digest`` and were
-    made with a person's own key (not attested by an agent): whose key a new signature's is."""
-    from .signature import verify
+def _counted(checked: Sequence[Verdict], author: str | None) -> tuple[list[str], list[tuple[Verdict, str | None]]]:
+    """The approvals that count, in ``checked``'s order: their signers, and the ones that hold but do not count with
+    why (None: made with the author's key; a name: with the key that approved as that name).
 
-    out: dict[str, str] = {}
-    for e in signatures if isinstance(signatures, list) else []:
-        if isinstance(e, Mapping) and e.get("meaning") == meaning and "attested_by" not in e:
-            v = verify(e, digest, allowed)
-            if v.holds:
-                out.setdefault(v.key, v.signer)
-    return out
+    Four eyes are two people, and a key is one person whatever names allowed_signers gives it ("alice,alice-ops
+    ssh-ed25519 ..."): an approval with the author's own key, or with a key counted already, does not count. An
+    agent's key attests for the users it authenticated: those are told apart by their names."""
+    own = {v.key for v in checked if v.holds and v.meaning == "authored" and v.signer == author and not v.attested_by}
+    approvers: list[str] = []
+    keys: dict[str, str] = {}
+    void: list[tuple[Verdict, str | None]] = []
+    for v in checked:
+        if not (v.holds and v.meaning == "approved") or v.signer == author or v.signer in approvers:
+            continue
+        if not v.attested_by:
+            if v.key in own or v.key in keys:
+                void.append((v, keys.get(v.key) if v.key not in own else None))
+                continue
+            keys[v.key] = v.signer
+        approvers.append(v.signer)
+    return approvers, void
 
 
-def same_person(signatures: Any, author: Any, key: str, digest: str, allowed: AllowedSigners | None) -> str | None:
-    """Why an approval over ``digest`` made with the key ``key`` (a fingerprint) would not be a second person's: the
-    key made the author's signature, or approved already under another name (signatures that hold under
-    ``allowed``: one that does not counts for nobody). None: it may approve."""
-    authored = direct_keys(signatures, "authored", digest, allowed)
-    if isinstance(author, str) and authored.get(key) == author:
+def same_person(
+    signatures: Any, author: Any, signer: str, key: str, digest: str, allowed: AllowedSigners | None
+) -> str | None:
+    """Why ``signer``'s approval over ``digest`` with the key ``key`` (a fingerprint) would not count as a second
+    person's, by the rule the policy counts with (``_counted``): the key made the author's signature, or approved
+    already under another name. None: it may approve."""
+    from .signature import Verdict, verify
+
+    entries = signatures if isinstance(signatures, list) else []
+    checked = sorted((verify(e, digest, allowed) for e in entries), key=lambda v: v.signer)  # as the policy orders them
+    new = Verdict(signer, "approved", "", digest, True, "", None, key)
+    _, void = _counted([*checked, new], author if isinstance(author, str) else None)
+    mine = [other for v, other in void if v is new]
+    if not mine:
+        return None
+    other = mine[0]
+    if other is None:
         return f"the key ({key}) signed the plan as its author {author}: an author cannot approve their own change"
-    approved = direct_keys(signatures, "approved", digest, allowed)
-    if key in approved:
-        return f"the key ({key}) approved it already, as {approved[key]}: one key is one person"
-    return None
+    return f"the key ({key}) approved it already, as {other}: one key is one person"
 
 
 def inputs_missing(inputs: Any, allowed: AllowedSigners | None) -> list[str]:

@@ -85,6 +85,10 @@ class AllowedSigners:
             return None
         return why
 
+    def knows(self, principal: str) -> bool:
+        """Whether any line names ``principal`` (whatever its key)."""
+        return any(s.names(principal) for s in self.signers)
+
     def principals_of(self, key: bytes) -> list[str]:
         """The plain names (no patterns) a key is listed for."""
         return [

@@ -243,7 +243,7 @@ def _sign(
     else:
         k = open_key(key) if key is not None else None
         name = signer_name(k, signer, allowed) if k is not None else (signer or _default())
-        if k is None and signer is None and allowed is not None and not any(s.names(name) for s in allowed.signers):
+        if k is None and signer is None and allowed is not None and not allowed.knows(name):
             # the statement names who signs it: as the user's name, unknown to the site, it could never hold
             raise UsageError(f"{allowed.path} names nobody {name}: say who signs the statement with --signer NAME")
         if statement_out is not None:
@@ -260,7 +260,7 @@ def _sign(
         entry = None
     why = _refusal(target, name, meaning)
     if why is None and meaning == "approved":
-        why = same_person(target.signatures, target.author, _key_of(entry, k), target.digest, allowed)
+        why = same_person(target.signatures, target.author, name, _key_of(entry, k), target.digest, allowed)
     if why is not None:
         for what in commands.refused(
             event="approve-refused",

@@ -31,6 +31,13 @@ def _is_integer(_checker: Any, instance: Any) -> bool:
     return isinstance(instance, Decimal) and instance == instance.to_integral_value()
 
 
+def document_of(data: object) -> str | None:
+    """Which deployer document a file's ``schema`` member names: "plan" (``deployer.plan/N``), "report"
+    (``deployer.report/N``), else None (the other files are told by their keys)."""
+    kind = str(data.get("schema", "")) if isinstance(data, dict) else ""
+    return next((k for k in ("plan", "report") if kind.startswith(f"deployer.{k}/")), None)
+
+
 @cache
 def schema(name: str) -> dict[str, Any]:
     """A bundled JSON Schema by name ('profile', 'recipe', 'inventory', 'plan', 'report').

@@ -342,7 +342,7 @@ def _load_chain(
     if not isinstance(data, dict):
         errors.append(src.error((), "a recipe must be a mapping (recipe: ..., profile: ..., parameters: ...)"))
         return []
-    other = _other_document(str(data.get("schema", "")), path)
+    other = _other_document(schema.document_of(data), path)
     if other is not None:  # said at once: its keys read as a recipe's would be ten errors of no use
         errors.append(src.error(("schema",), f"this is {other}", key=True))
         return []
@@ -369,13 +369,13 @@ def _load_chain(
     return out
 
 
-def _other_document(kind: str, path: str) -> str | None:
-    """What a deployer file given where a recipe belongs is instead (its ``schema``), and what takes it."""
-    if kind.startswith("deployer.plan/"):
+def _other_document(kind: str | None, path: str) -> str | None:
+    """What a deployer file given where a recipe belongs is instead (``schema.document_of``), and what takes it."""
+    if kind == "plan":
         return (
             f"a saved plan, not a recipe: 'deployer apply {path}' runs it unchanged (plan, diff and pull take a recipe)"
         )
-    if kind.startswith("deployer.report/"):
+    if kind == "report":
         return f"a run's report, not a recipe: 'deployer report {path}' shows it"
     return None
 
