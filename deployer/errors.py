@@ -130,11 +130,21 @@ class BadURL(UsageError):
 
 
 class StalePlan(UsageError):
-    """apply PLAN.json: the device no longer holds what the plan was made against."""
+    """apply PLAN.json: the device no longer holds what the plan was made against.
+
+    ``result``: that device as it was found (its parameters with the values read, nothing written; a
+    ``DeviceResult``), and ``report``: the refused run's report holding it (a ``Report``): what ``--json`` and
+    ``--report`` give of a refused run. None where no device was read yet."""
+
+    result: Any = None
+    report: Any = None
 
 
 class Declined(UsageError):
-    """The user answered no at the confirmation prompt."""
+    """The user answered no at the confirmation prompt (``result``, ``report``: as ``StalePlan``'s)."""
+
+    result: Any = None
+    report: Any = None
 
 
 class CodecError(DeployerError, ValueError):

@@ -117,12 +117,18 @@ def test_a_fleet_plan_is_applied_under_the_stale_plan_rule(tmp_path: Path) -> No
             report.devices[1].error or ""
         )
         assert not [e for e in sims[1].log if e.function in (6, 16)]
+        # the skipped device says what it was found holding, each parameter's value read
+        base = next(p for p in report.devices[1].parameters if p.name == "base_speed")
+        assert base.status == "skipped" and base.before_raw == (1234,)
         with pytest.raises(deployer.UsageError, match="a FleetPlan runs in this process"):
             deployer.apply(fleet, workers=2)
         one = deployer.plan(recipe(), inventory=devices(sims)[1:], state_dir=tmp_path)
         sims[1].write("base_speed", (1235,))
-        with pytest.raises(deployer.StalePlan, match="base_speed"):
+        with pytest.raises(deployer.StalePlan, match="base_speed") as refused:
             deployer.apply(one, state_dir=tmp_path)
+        (alone,) = refused.value.report.devices  # the refused run's report: the device as it was found
+        assert alone.status == "skipped" and alone.error.startswith("not written: the device changed")
+        assert next(p.before_raw for p in alone.parameters if p.name == "base_speed") == (1235,)
 
 
 def test_apply_a_recipe_to_an_inventory_and_roll_it_back(tmp_path: Path) -> None:

@@ -110,6 +110,21 @@ def test_apply_saved_plan_and_stale_plan(
         code, _, err = cli(capsys, "apply", plan_file, "--yes", "--state-dir", str(tmp_path / "s"))
         assert code == 1 and "changed since the plan was made" in err and "F07: now 1.23 s" in err
         assert not any(e.function == 16 for e in sim.log[n:])
+        # refused, a script still gets the report: the device skipped, holding what it was found holding
+        saved = tmp_path / "refused.json"
+        code, out, err = cli(
+            capsys, "apply", plan_file, "--yes", "--json", "--report", str(saved), "--state-dir", str(tmp_path / "s")
+        )
+        assert code == 1 and "F07: now 1.23 s" in err
+        for doc in (json.loads(out), json.loads(saved.read_text())):
+            jsonschema.validate(doc, schema.schema("report"))
+            (device,) = doc["devices"]
+            assert device["status"] == "skipped" and "F07: now 1.23 s" in device["error"], device
+            assert device["error"].startswith("not written: the device changed since the plan was made")
+            f07 = next(p for p in device["parameters"] if p["name"] == "F07")
+            assert f07["status"] == "skipped" and f07["before_raw"] == [0, 123], f07
+            assert doc["summary"]["skipped"] == 1 and doc["summary"]["write_requests"] == 0
+        assert not any(e.function == 16 for e in sim.log[n:])
 
 
 def test_diff_exit_codes(capsys: pytest.CaptureFixture[str], tmp_path: Path, inverter: SimulatorThread) -> None:

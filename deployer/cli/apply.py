@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from ..errors import EXIT_CHANGES, EXIT_FAILED, EXIT_OK, UsageError
+from ..errors import EXIT_CHANGES, EXIT_FAILED, EXIT_OK, Declined, StalePlan, UsageError
 from ..limits import BATCH_BY, LIMITS
 from .base import (
     _n,
@@ -170,6 +170,10 @@ def _run(
         return asyncio.run(run_prepared_async(prepared, **kw)), False
     except RunInterrupted as e:
         return e.report, True
+    except (StalePlan, Declined) as e:  # refused before the first write: a caller reading stdout gets the report
+        if as_json and e.report is not None:
+            print_outcome(e.report, fleet_run=False, as_json=True, report_path=r.report_path)
+        raise
 
 
 def _run_fleet(prepared: PreparedRun, kw: dict[str, Any], err: Console, *, live: bool, staged: bool) -> Report:

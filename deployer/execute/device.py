@@ -504,7 +504,11 @@ class _Device:
             self._silent(ex)
         # 2. the plan: the saved one must still match the device (the stale-plan rule), else made now against it
         if saved is not None:
-            _stale(saved, prof, before)
+            try:
+                _stale(saved, prof, before)
+            except StalePlan as e:
+                _refused(res, e, str(e))
+                raise
             plan = saved
         else:
             self.keep_taught(ex)
@@ -523,7 +527,11 @@ class _Device:
             return True
 
         # 4. the rest of the plan: preconditions, unlock, writes, read-back, commit, lock
-        await ex.changes(plan, before_write)
+        try:
+            await ex.changes(plan, before_write)
+        except Declined as e:
+            _refused(res, e, "declined at the confirmation prompt")
+            raise
         if any(s.kind == "write" for s in plan.steps) and res.snapshot is not None:
             res.seen = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())  # the read-back: what "as left" shows
         self._remember()
@@ -625,6 +633,13 @@ class _Device:
                 f"{opts.state_dir}: {disk_error(e)}"
             )
         return True
+
+
+def _refused(res: DeviceResult, e: StalePlan | Declined, why: str) -> None:
+    """``e`` made to carry the device as it was found: skipped, its values read, nothing written (the report of a
+    run refused before its first write says what each parameter holds)."""
+    res.status, res.error = "skipped", f"not written: {why}"
+    e.result = res
 
 
 def _stale(plan: Plan, prof: Profile, before: dict[str, tuple[int, ...]]) -> None:

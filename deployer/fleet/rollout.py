@@ -317,7 +317,7 @@ class _Rollout:
             # in a fleet, a "no" or a stale plan (deployer.apply of a FleetPlan) is that device's: the others were
             # asked, or are checked against their own plans, on their own; nothing was written to this one
             why = "declined at the confirmation prompt" if isinstance(e, Declined) else str(e)
-            r = skipped_result(j, f"not written: {why}", batch)
+            r = e.result or skipped_result(j, f"not written: {why}", batch)  # with the values read, where there are
         except UsageError as e:
             r = DeviceResult(
                 j.name,

@@ -233,8 +233,15 @@ async def run_async(
             report = e.report
             report.interrupted = why[0] if why else "cancelled"
         except (StalePlan, Declined, NotStarted) as e:  # nothing was written anywhere: the run ends, and says why
+            refused = _refused_report(e, label, time.time() - started, info, run_id, state_dir)
             if live is not None:
-                live.stop()
+                if refused is None:
+                    live.stop()
+                else:  # the report file says what the device was found holding, as --json does
+                    try:
+                        live.close(refused)
+                    except UsageError as le:
+                        refused.unrecorded.append(str(le))
             journal.run_refused(state_dir, run_id, str(e), command=command, argv=argv, recipe=label)
             raise
         finally:
@@ -249,6 +256,18 @@ async def run_async(
     finally:  # also when the journal's line or the report file could not be started (closing again does nothing)
         if pool is not None:
             await pool.close()
+
+
+def _refused_report(
+    e: Exception, label: str | None, seconds: float, info: dict[str, Any], run_id: str, state_dir: str
+) -> Report | None:
+    """The report of a one-device run refused before its first write (a stale plan, a "no"), set on the error as
+    ``e.report``: the device skipped with the values it was found holding. None where no device was read."""
+    if not isinstance(e, StalePlan | Declined) or e.result is None:
+        return None
+    e.report = Report(label, [e.result], seconds, run=info, run_id=run_id, state_dir=state_dir)
+    report: Report = e.report
+    return report
 
 
 async def _record_end(report: Report, live: LiveReport | None, *, command: str, argv: Sequence[str]) -> None:
