@@ -459,7 +459,8 @@ async def apply(
             the wrong type or out of their bounds, a report file that cannot be written, a soak on a profile
             without health checks; nothing was sent.
         InputError: an invalid inventory, or a device's profile, recipe or overrides (all at once).
-        StalePlan: a device no longer holds what its plan was made against (nothing was written anywhere).
+        StalePlan: a device no longer holds what its plan was made against (nothing was written anywhere;
+            ``.report``: the refused run's report, the device ``skipped`` with the values it was found holding).
         RunInterrupted: the run was interrupted (``.report`` says what every device holds).
     """
     from ..run.request import PreparedRun
