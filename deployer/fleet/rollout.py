@@ -317,7 +317,8 @@ class _Rollout:
             # in a fleet, a "no" or a stale plan (deployer.apply of a FleetPlan) is that device's: the others were
             # asked, or are checked against their own plans, on their own; nothing was written to this one
             why = "declined at the confirmation prompt" if isinstance(e, Declined) else str(e)
-            r = e.result or skipped_result(j, f"not written: {why}", batch)  # with the values read, where there are
+            # the device as it was found (its values read), where it was read before the refusal
+            r = e.result if e.result is not None else skipped_result(j, f"not written: {why}", batch)
         except UsageError as e:
             r = DeviceResult(
                 j.name,

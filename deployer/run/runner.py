@@ -265,8 +265,8 @@ def _refused_report(
     ``e.report``: the device skipped with the values it was found holding. None where no device was read."""
     if not isinstance(e, StalePlan | Declined) or e.result is None:
         return None
-    e.report = Report(label, [e.result], seconds, run=info, run_id=run_id, state_dir=state_dir)
-    report: Report = e.report
+    report = Report(label, [e.result], seconds, run=info, run_id=run_id, state_dir=state_dir)
+    e.report = report
     return report
 
 
