@@ -201,6 +201,62 @@ def test_write_limit_is_learned_said_remembered_and_used(
     assert learned.load(state) == []
 
 
+def test_a_parameter_longer_than_the_writes_a_device_takes_is_said_so_then_and_later(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A 6-register name on a device taking 2 registers a write: no split can carry it. The apply that finds out
+    says its length may be what was refused (not only "illegal data value"); later plans and applies refuse it
+    before the first byte, naming the limit as what the device taught, not the profile (which allows it), and how
+    to drop it; once forgotten, the profile's limits plan it again."""
+    prof = tmp_path / "dev.yaml"
+    prof.write_text(
+        "profile: dev\nparameters:\n  p0: {register: 100, type: uint16}\n  p1: {register: 101, type: uint16}\n"
+        "  p2: {register: 102, type: uint16}\n  name: {register: 110, type: string, count: 6, padding: space}\n"
+    )
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text("recipe: r\nprofile: dev.yaml\nparameters: {p0: 1, p1: 2, p2: 3, name: LONG-AXIS-1}\n")
+    state = str(tmp_path / "s")
+    with SimulatorThread(load_recipe(str(recipe)).profile, quirks=Quirks(max_write_registers=2)) as sim:
+        code, out, err = cli(capsys, "apply", str(recipe), "--device", sim.url, "--yes", "--json", "--state-dir", state)
+        dev = json.loads(out)["devices"][0]
+        assert code == 4 and dev["status"] == "partial", (out, err)
+        (name,) = [p for p in dev["parameters"] if p["name"] == "name"]
+        assert name["status"] == "failed"
+        assert name["error"] == (
+            "exception 03 (illegal data value): the device took writes of up to 2 registers in this run, and "
+            "name needs 6 in one request (its length may be what it refused)"
+        )
+        assert {p["name"]: p["status"] for p in dev["parameters"]} == {
+            "p0": "ok",
+            "p1": "ok",
+            "p2": "ok",
+            "name": "failed",
+        }
+        assert dev["learned"] == {"max_write_registers": 2}
+
+        why = (
+            "name needs 6 registers in one request, but the device takes at most 2 per request "
+            "(limits.max_write_registers), which this device taught on "
+        )
+        code, out, err = cli(capsys, "plan", str(recipe), "--device", sim.url, "--state-dir", state)
+        assert code == 1 and why in err and "(not its profile: limits.max_write_registers: 2)" in err, (out, err)
+        assert "'deployer learned forget' drops what it taught" in err
+        sim.log.clear()
+        code, out, err = cli(capsys, "apply", str(recipe), "--device", sim.url, "--yes", "--json", "--state-dir", state)
+        dev = json.loads(out)["devices"][0]
+        assert code == 4 and dev["status"] == "failed" and why in dev["error"], (out, err)
+        assert not [e for e in sim.log if e.function in (6, 16)]  # refused before the first byte
+        # the recipe naming its device: the plan made without reading it says the same
+        (tmp_path / "r2.yaml").write_text(recipe.read_text() + f"device: {{url: '{sim.url}'}}\n")
+        code, out, err = cli(capsys, "plan", str(tmp_path / "r2.yaml"), "--state-dir", state)
+        assert code == 1 and why in err, (out, err)
+
+        code, out, err = cli(capsys, "learned", "forget", "--all", "--state-dir", state)
+        assert code == 0, err
+        code, out, err = cli(capsys, "plan", str(recipe), "--device", sim.url, "--state-dir", state)
+        assert code == 0 and "taught" not in out + err, (out, err)
+
+
 def test_api_check_mode_plans_with_what_the_device_taught(tmp_path: Path, device_profile: Profile) -> None:
     """deployer.plan and plan_fleet (Ansible's check mode) plan as apply will send: with the learned limit."""
     import deployer

@@ -191,17 +191,27 @@ class Planners:
 
     def __init__(self) -> None:
         self._by: dict[tuple[Any, ...], tuple[Recipe, Shared]] = {}
-        self._taught: dict[tuple[Any, ...], tuple[Recipe, Recipe]] = {}
+        self._taught: dict[tuple[Any, ...], tuple[Recipe, Recipe, bool]] = {}
 
     def over_limits(self, recipe: Recipe, taught: learned.Entry) -> Recipe:
         """``recipe`` with its profile over the limits a device taught (``learned.with_limits``); ``recipe`` itself
         when they change nothing. One recipe for all the devices that taught the same limits: their plans are
-        shared as other devices' are."""
+        shared as other devices' are. Raises UsageError when no plan can carry the recipe over them (a string longer
+        than the writes the device takes), naming where the limit came from: not the profile."""
         key = (id(recipe), tuple(sorted(taught.limits.items())))
         hit = self._taught.get(key)
         if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
             prof = learned.with_limits(recipe.profile, taught)  # from the limits alone
-            hit = self._taught[key] = (recipe, recipe if prof is recipe.profile else replace(recipe, profile=prof))
+            over, refused = recipe, False
+            if prof is not recipe.profile:
+                over = replace(recipe, profile=prof)
+                try:  # once for all the devices that taught these limits
+                    learned.check(recipe, over, taught)
+                except UsageError:
+                    refused = True
+            hit = self._taught[key] = (recipe, over, refused)
+        if hit[2]:
+            learned.check(recipe, hit[1], taught)  # raises, with the date this device taught them
         return hit[1]
 
     def shared(

@@ -489,6 +489,7 @@ class Execution:
         res, results = self.res, self.results
         res.learned.update(self.learning.limits(results))
         res.notices.extend(self.learning.notices(results, self.prof.id))
+        self.learning.explain(results)
         verify, reads = plan._read_back
         try:  # after a silence too: it may be back
             regs = await self.session.read_blocks(reads, self.prof, steps=verify)

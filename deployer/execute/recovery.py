@@ -176,6 +176,20 @@ class Learning:
         return []
 
 
+    def explain(self, results: Mapping[str, ParameterResult]) -> None:
+        """A parameter the device refused that is longer than every write it took: its length may be the reason (a
+        string of 8 registers where the device takes 2 at a time, which no split can help), and its error says so
+        where it would otherwise read as a bad value."""
+        if self.fc06 or not self.accepted:
+            return
+        for r in results.values():
+            if r.status == "failed" and r.count > self.accepted and (r.error or "").startswith("exception 03"):
+                r.error = (
+                    f"{r.error}: the device took writes of up to {self.accepted} registers in this run, and "
+                    f"{r.name} needs {r.count} in one request (its length may be what it refused)"
+                )
+
+
 @dataclass(frozen=True)
 class Recovery:
     follow_up: WriteRequest | None = None  # what is still to be sent after the refused value

@@ -189,7 +189,7 @@ class _Units:
             if not fc6 and sizes[k] > limit:
                 raise UsageError(
                     f"{names[k]} needs {sizes[k]} registers in one request, but the device takes "
-                    f"at most {limit} per request (limits in the profile)"
+                    f"at most {limit} per request (limits.max_write_registers)"
                 )
             for m in range(k, bounds[u + 1]):
                 if len(regs[m]) != sizes[m]:

@@ -21,7 +21,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, NoReturn
 
-from ..errors import Diagnostic, InputError
+from ..errors import Diagnostic, InputError, UsageError
 from ..load.messages import clipped_repr
 from ..portable import O_BINARY, O_CLOEXEC
 from ..profile import Limits, Profile, profile_ref
@@ -348,6 +348,23 @@ def note(entry: Entry) -> str:
     )
 
 
+def check(recipe: Recipe, over: Recipe, entry: Entry) -> None:
+    """Raise UsageError when no plan can carry ``recipe`` over the limits ``entry`` taught (``over``: the recipe
+    over them) and its profile alone allows one (a string longer than the writes the device takes): the error
+    says where the limit came from, and how to drop it; the profile does not say it, so the user would look there
+    in vain."""
+    from ..planning.planner import plan_writes
+
+    try:
+        plan_writes(over.desired, over.profile.limits)
+    except UsageError as e:
+        plan_writes(recipe.desired, recipe.profile.limits)  # refused by the profile alone too: said as it is
+        raise UsageError(
+            f"{e}, which this device taught on {entry.when} (not its profile: {entry.describe_limits()}); "
+            "'deployer learned forget' drops what it taught"
+        ) from None
+
+
 def device_id(url: DeviceURL, unit: int) -> str:
     """The key a device's entries are kept under: its resolved address (as its lock's), and unit.
 
@@ -359,7 +376,8 @@ def device_id(url: DeviceURL, unit: int) -> str:
 
 
 def for_recipe(recipe: Recipe, state_dir: str, url: DeviceURL, unit: int) -> tuple[Recipe, Entry | None]:
-    """``recipe`` with what its device taught in force (and the entry used), else unchanged."""
+    """``recipe`` with what its device taught in force (and the entry used), else unchanged. Raises UsageError
+    where no plan can carry it over those limits (``check``)."""
     from dataclasses import replace
 
     entry = lookup(state_dir, profile_ref(recipe.profile), device_id(url, unit))
@@ -368,4 +386,6 @@ def for_recipe(recipe: Recipe, state_dir: str, url: DeviceURL, unit: int) -> tup
     prof = with_limits(recipe.profile, entry)
     if prof is recipe.profile:
         return recipe, None
-    return replace(recipe, profile=prof), entry
+    over = replace(recipe, profile=prof)
+    check(recipe, over, entry)
+    return over, entry
