@@ -58,10 +58,11 @@ c.close()
 """
 
 
-def as_installed() -> None:
-    """Byte-compile the package, as `pip install` does: a checkout run with PYTHONDONTWRITEBYTECODE
-    (set on this machine) would otherwise compile every module of ours in every run (30-50 ms)."""
-    compileall.compile_dir(str(ROOT / "deployer"), quiet=1)
+def as_installed(checkout: str | Path | None = None) -> None:
+    """Byte-compile the package (of this checkout, or of another one measured beside it), as `pip install` does:
+    a checkout run with PYTHONDONTWRITEBYTECODE (set on this machine) would otherwise compile every module of ours
+    in every run (30-50 ms), and a worker process the modules it imports late, during its devices."""
+    compileall.compile_dir(str(Path(checkout or ROOT) / "deployer"), quiet=1)
 
 
 def _free_port() -> int:

@@ -298,6 +298,8 @@ def run(
     repeats = repeats or (1 if quick else 2)
     pairs = ((20, 10, (4,)), (0, 10, (4,))) if quick else SIDE_BY_SIDE
     as_installed()
+    if before:  # compiled as this one is: else its processes would compile it, and the figures favour this one
+        as_installed(before)
     out: dict[str, Any] = {"parameters": PARAMETERS}
     with tempfile.TemporaryDirectory(prefix="bench-fleetscale-") as work:
         b = Bench(work)
