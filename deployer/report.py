@@ -11,7 +11,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
-from .errors import EXIT_FAILED, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
+from .errors import EXIT_FAILED, EXIT_INVALID, EXIT_OK, EXIT_UNREACHABLE, Diagnostic, InputError
 from .load.messages import clipped_repr
 from .state.durable import write_atomic
 
@@ -310,6 +310,7 @@ class Report:
     interrupted: str | None = None  # why the run stopped early ("SIGINT", "SIGTERM", "cancelled"), else None
     unrecorded: list[str] = field(default_factory=list)  # what the run could not record (the report file, the
     # journal's run-finished line: a full disk); the devices' outcome stands, the run exits 4
+    refused: str | None = None  # why the run was refused before its first write (a stale saved plan, a "no"): exit 1
 
     def __repr__(self) -> str:
         # short on purpose: asyncio.run's SIGINT bookkeeping (signal.getsignal on a partial holding the
@@ -354,6 +355,8 @@ class Report:
 
         A broadcast that went out (``sent``) counts as success: the user asked for an unverifiable write.
         """
+        if self.refused is not None:
+            return EXIT_INVALID  # as the command line exits: nothing was written, the plan or the answer said no
         if not self.devices:
             return EXIT_OK
         if all(d.status == "unreachable" for d in self.devices) and not self.unrecorded:

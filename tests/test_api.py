@@ -127,6 +127,8 @@ def test_a_fleet_plan_is_applied_under_the_stale_plan_rule(tmp_path: Path) -> No
         with pytest.raises(deployer.StalePlan, match="base_speed") as refused:
             deployer.apply(one, state_dir=tmp_path)
         (alone,) = refused.value.report.devices  # the refused run's report: the device as it was found
+        assert refused.value.report.exit_code == 1  # as the command line exits: refused, nothing written
+        assert refused.value.report.refused == str(refused.value)
         assert alone.status == "skipped" and alone.error.startswith("not written: the device changed")
         assert next(p.before_raw for p in alone.parameters if p.name == "base_speed") == (1235,)
 

@@ -265,7 +265,7 @@ def _refused_report(
     ``e.report``: the device skipped with the values it was found holding. None where no device was read."""
     if not isinstance(e, StalePlan | Declined) or e.result is None:
         return None
-    report = Report(label, [e.result], seconds, run=info, run_id=run_id, state_dir=state_dir)
+    report = Report(label, [e.result], seconds, run=info, run_id=run_id, state_dir=state_dir, refused=str(e))
     e.report = report
     return report
 
