@@ -452,6 +452,7 @@ class Execution:
             self.learning.took(req)
             _attempted(results, req.parameters, self.written)
         except ExceptionResponse as e:
+            self.learning.refusals += 1
             if e.code == 1 and req.function == 16 and not self.learning.fc06:  # no Function 16: nothing was written
                 self.learning.fc06 = True
                 pending.extendleft((w, "function-06") for w in reversed(single_writes(self.prof, req)))

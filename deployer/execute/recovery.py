@@ -118,6 +118,7 @@ class Learning:
     fc06: bool = False  # Function 16 answered 01: the writes go as Function 06
     fc06_took: bool = False  # ... and a Function 06 write was taken
     cap: int = 0  # registers per Function 16 request from now on (0: as planned)
+    refusals: int = 0  # writes answered with an exception (any)
 
     def took(self, req: WriteRequest) -> None:
         if req.function == 16:
@@ -180,7 +181,7 @@ class Learning:
         """A parameter the device refused that is longer than every write it took: its length may be the reason (a
         string of 8 registers where the device takes 2 at a time, which no split can help), and its error says so
         where it would otherwise read as a bad value."""
-        if self.fc06 or not self.accepted:
+        if self.fc06 or not self.accepted or not self.refusals:  # a fleet's devices: nothing refused, no loop
             return
         for r in results.values():
             if r.status == "failed" and r.count > self.accepted and (r.error or "").startswith("exception 03"):
