@@ -176,7 +176,6 @@ class Learning:
             ]
         return []
 
-
     def explain(self, results: Mapping[str, ParameterResult]) -> None:
         """A parameter the device refused that is longer than every write it took: its length may be the reason (a
         string of 8 registers where the device takes 2 at a time, which no split can help), and its error says so
