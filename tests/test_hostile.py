@@ -18,6 +18,7 @@ from deployer.errors import InputError
 from deployer.load import yamlsrc
 from deployer.profile import units
 from deployer.recipe import text as recipe_text_module
+from tests.helpers import without_coverage
 
 ROOT = Path(__file__).resolve().parent.parent
 BAD = ROOT / "tests" / "bad"
@@ -168,6 +169,9 @@ def test_fuzz_bounded() -> None:
         timeout=300,
         preexec_fn=LIMITED,
         cwd=ROOT,
+        # without make test's coverage: its bounds (time, memory) are the loaders', and coverage's tracer made the
+        # run 2-3x slower (the suite's longest CPU after Ansible's); its random inputs would move the figure
+        env=without_coverage(),
     )
     res = json.loads(proc.stdout)
     assert res["crashes"] == 0, res["crash_details"]
