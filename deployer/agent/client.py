@@ -7,15 +7,19 @@ Every refusal comes back as ``AgentError`` with the exit code the same command h
 from __future__ import annotations
 
 import json
-import ssl
-import urllib.error
 import urllib.parse
-import urllib.request
 from collections.abc import Callable, Iterator, Mapping
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from ..calls import checked
 from ..errors import EXIT_UNREACHABLE, AgentError
+
+if TYPE_CHECKING:
+    import ssl
+    import urllib.error
+
+# ssl and urllib.request (with http.client and email) are loaded by the first request: every command imports this
+# module through deployer.api, and they were a fifth of an offline command's start-up (validate, plan)
 
 ENV = "DEPLOYER_AGENT"
 
@@ -62,6 +66,9 @@ class Agent:
         query: Mapping[str, Any] | None = None,
         timeout: float | None = None,
     ) -> Any:
+        import urllib.error
+        import urllib.request
+
         q = {k: v for k, v in (query or {}).items() if v is not None}
         target = self.url + path + ("?" + urllib.parse.urlencode(q) if q else "")
         data = None if body is None else json.dumps(dict(body)).encode()
@@ -184,6 +191,8 @@ class Agent:
     @checked()
     def follow(self, run_id: str, on_event: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
         """Follow a run to its end (reconnecting where the stream broke); its ``run-finished`` event."""
+        import urllib.error
+
         seen = 0
         while True:
             try:
@@ -335,6 +344,10 @@ def _refusal(e: urllib.error.HTTPError) -> AgentError:
 def _tls(ca: str | None, cert: str | None, key: str | None) -> ssl.SSLContext | None:
     """The client's TLS context: the agent's own CA (a gateway's certificate is rarely one the system trusts) and who
     we are by certificate (the agent's users file maps it to a user); None: the system's defaults."""
+    if ca is None and cert is None:
+        return None
+    import ssl
+
     context = None
     if ca is not None:
         try:
