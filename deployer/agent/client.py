@@ -66,27 +66,17 @@ class Agent:
         query: Mapping[str, Any] | None = None,
         timeout: float | None = None,
     ) -> Any:
-        import urllib.error
-        import urllib.request
-
         q = {k: v for k, v in (query or {}).items() if v is not None}
         target = self.url + path + ("?" + urllib.parse.urlencode(q) if q else "")
         data = None if body is None else json.dumps(dict(body)).encode()
-        req = urllib.request.Request(target, data=data, method=method)
-        req.add_header("Accept", "application/json")
+        headers = {"Accept": "application/json"}
         if data is not None:
-            req.add_header("Content-Type", "application/json")
+            headers["Content-Type"] = "application/json"
         if self.token:
-            req.add_header("Authorization", f"Bearer {self.token}")
-        try:
-            return urllib.request.urlopen(req, timeout=self.timeout if timeout is None else timeout, context=self._ssl)
-        except urllib.error.HTTPError as e:
-            raise _refusal(e) from None
-        except (urllib.error.URLError, OSError) as e:
-            why = getattr(e, "reason", e)
-            raise AgentError(
-                f"cannot reach the agent at {self.url}: {why}", kind="unreachable", exit_code=EXIT_UNREACHABLE
-            ) from None
+            headers["Authorization"] = f"Bearer {self.token}"
+        return _urlopen(
+            self.url, target, method, data, headers, self.timeout if timeout is None else timeout, self._ssl
+        )
 
     @checked()
     def request(
@@ -325,6 +315,32 @@ class Agent:
     def metrics(self) -> str:
         with self._open("GET", "/metrics") as resp:
             return str(resp.read().decode())
+
+
+def _urlopen(
+    agent: str,
+    target: str,
+    method: str,
+    data: bytes | None,
+    headers: dict[str, str],
+    timeout: float,
+    context: ssl.SSLContext | None,
+) -> Any:
+    """The agent's answer to one request (its response, open); its refusal or unreachability as AgentError."""
+    import urllib.error
+    import urllib.request
+
+    try:
+        return urllib.request.urlopen(
+            urllib.request.Request(target, data=data, headers=headers, method=method), timeout=timeout, context=context
+        )
+    except urllib.error.HTTPError as e:
+        raise _refusal(e) from None
+    except (urllib.error.URLError, OSError) as e:
+        why = getattr(e, "reason", e)
+        raise AgentError(
+            f"cannot reach the agent at {agent}: {why}", kind="unreachable", exit_code=EXIT_UNREACHABLE
+        ) from None
 
 
 def _refusal(e: urllib.error.HTTPError) -> AgentError:
