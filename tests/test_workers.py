@@ -183,6 +183,43 @@ def test_a_worker_that_dies_ends_the_run_truthfully(files: Path, fleet: list[Sim
         assert holds(s) == before(i), f"d{i}"
 
 
+def test_a_device_whose_worker_died_before_saying_it_writes_names_its_snapshot_from_the_journal(
+    tmp_path: Path,
+) -> None:
+    """A worker says "writing" (its snapshot) to the run's process in a message sent after its first write went out
+    to the device; killed in between, the message is lost. The device-started line its journal had on disk before
+    that write names the snapshot: the report says the device may hold new values and how to restore it, never
+    "nothing was written". A device that had not started writing says so."""
+    from deployer.execute.job import Job
+    from deployer.fleet.rollout import Budget, _Rollout
+    from deployer.fleet.workers import Call
+    from deployer.recipe.loader import load_recipe
+    from deployer.state import journal
+    from deployer.transport.urls import parse_url
+    from deployer.window.rollout import Window
+
+    (tmp_path / "r.yaml").write_text("recipe: r\nprofile: example-inverter\nparameters: {F07: 10 s}\n")
+    rec = load_recipe(str(tmp_path / "r.yaml"))
+    state, run = str(tmp_path / "state"), "20261129T000000Z-1"
+    jobs = [Job(n, rec, parse_url(f"tcp://127.0.0.1:{port}"), 1) for n, port in (("d1", 1502), ("d2", 1503))]
+    snapshot = str(tmp_path / "state" / "snapshots" / "d1-20261129T000000Z.yaml")
+    line = journal.device_started(run, name="d1", url="tcp://127.0.0.1:1502", unit=1, plan_digest="0" * 64)
+    os.makedirs(state)
+    journal.append(state, {**line, "snapshot": snapshot, "snapshot_sha256": "a" * 64})
+    opts = ApplyOptions(state_dir=state, run_id=run)
+    why = "worker process 1 (PID 4242) ended unexpectedly"
+
+    async def main() -> list[Any]:
+        rollout = _Rollout(jobs, opts, "r", {}, Budget(None), Window(opts, "r"), on_done=None, on_start=None)
+        return [rollout.lost(j, None, Call(i, None), why) for i, j in enumerate(jobs)]  # type: ignore[arg-type]
+
+    d1, d2 = asyncio.run(main())
+    assert (d1.status, d1.snapshot, d1.snapshot_sha256) == ("interrupted", snapshot, "a" * 64)
+    assert d1.error == f"{why}; some parameters may hold new values: restore with: deployer rollback {snapshot}"
+    assert (d2.status, d2.snapshot) == ("interrupted", None)
+    assert d2.error == f"{why} before its first write; nothing was written"
+
+
 def test_a_safe_change_keeps_its_devices_in_one_process(files: Path, fleet: list[Simulator]) -> None:  # noqa: F811
     code, _, err = deployer(
         "apply",

@@ -18,6 +18,7 @@ from ..execute.session import ApplyOptions, raise_if_cancelled
 from ..planning.model import Plan
 from ..profile import Profile, profile_ref
 from ..report import DeviceResult, Report
+from ..state import journal
 from ..transport import clients as tp
 from ..window.held import Written
 from ..window.rollout import Window
@@ -265,6 +266,7 @@ class _Rollout:
         self.started = time.monotonic()
         self.pool: Pool | None = None  # worker processes running the devices (None: this process does)
         self.planners = Planners()  # the devices of one recipe share its planner and their plans
+        self.journal_seen: dict[str, dict[str, dict[str, object]]] = {}  # ``started_by``: per worker gone
 
     async def batches(
         self, sizes: Sequence[int], parallel: int, between: Callable[[int, Report], Awaitable[str | None]] | None
@@ -407,7 +409,7 @@ class _Rollout:
     def lost(self, j: Job, batch: int | None, call: Call, why: str) -> DeviceResult:
         """A device whose worker process went away while it ran: what is known (its snapshot, if its writes had
         started), said as an interrupted device."""
-        r = call.writing or skipped_result(j, "", batch, parameters=False)
+        r = call.writing or self.started_by(j, batch, why) or skipped_result(j, "", batch, parameters=False)
         r = replace(
             r,
             status="interrupted",
@@ -420,6 +422,30 @@ class _Rollout:
         )
         if not r.parameters:
             r.parameters = list(parameter_results(j.recipe).values())
+        return r
+
+    def started_by(self, j: Job, batch: int | None, why: str) -> DeviceResult | None:
+        """A lost device whose "writing" message never reached this process (the worker died with it unsent, its
+        first write already out): the journal's ``device-started`` line, on disk before that write, names its
+        snapshot. The journal is read once per worker that went away (``why`` names it)."""
+        run = self.opts.run_id
+        if run is None:
+            return None
+        started = self.journal_seen.get(why)
+        if started is None:
+            try:
+                records = journal.records(self.opts.state_dir, run)
+            except OSError:
+                records = []
+            started = self.journal_seen[why] = {
+                str(rec.get("name")): rec for rec in records if rec.get("event") == "device-started"
+            }
+        rec = started.get(j.name, {})
+        snapshot, digest = rec.get("snapshot"), rec.get("snapshot_sha256")
+        if not isinstance(snapshot, str):
+            return None
+        r = skipped_result(j, "", batch, parameters=False)
+        r.snapshot, r.snapshot_sha256 = snapshot, digest if isinstance(digest, str) else None
         return r
 
     def written(self, batch: Sequence[Job]) -> list[Written]:
