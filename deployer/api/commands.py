@@ -215,7 +215,9 @@ def taught_recipe(
     them, and the note that says so (None: nothing taught, the recipe unchanged).
 
     Raises:
-        UsageError: a bad URL or unit. InputError: a learned file deployer did not write.
+        UsageError: a bad URL or unit; a recipe no plan can carry over what the device taught (a parameter longer
+            than the writes it takes: the message names the limit as taught, and when). InputError: a learned file
+            deployer did not write.
     """
     from ..state import learned
 
