@@ -191,7 +191,7 @@ class Planners:
 
     def __init__(self) -> None:
         self._by: dict[tuple[Any, ...], tuple[Recipe, Shared]] = {}
-        self._taught: dict[tuple[Any, ...], tuple[Recipe, Recipe, bool]] = {}
+        self._taught: dict[tuple[Any, ...], tuple[Recipe, Recipe, UsageError | None]] = {}
 
     def over_limits(self, recipe: Recipe, taught: learned.Entry) -> Recipe:
         """``recipe`` with its profile over the limits a device taught (``learned.with_limits``); ``recipe`` itself
@@ -202,16 +202,11 @@ class Planners:
         hit = self._taught.get(key)
         if hit is None or hit[0] is not recipe:  # the recipe is kept in the entry, so its id is not reused
             prof = learned.with_limits(recipe.profile, taught)  # from the limits alone
-            over, refused = recipe, False
-            if prof is not recipe.profile:
-                over = replace(recipe, profile=prof)
-                try:  # once for all the devices that taught these limits
-                    learned.check(recipe, over, taught)
-                except UsageError:
-                    refused = True
-            hit = self._taught[key] = (recipe, over, refused)
-        if hit[2]:
-            learned.check(recipe, hit[1], taught)  # raises, with the date this device taught them
+            over = recipe if prof is recipe.profile else replace(recipe, profile=prof)
+            # planned once for all the devices that taught these limits; said with the date each one taught them
+            hit = self._taught[key] = (recipe, over, None if over is recipe else learned.refusal(recipe, over))
+        if hit[2] is not None:
+            raise learned.taught(hit[2], taught)
         return hit[1]
 
     def shared(

@@ -348,21 +348,27 @@ def note(entry: Entry) -> str:
     )
 
 
-def check(recipe: Recipe, over: Recipe, entry: Entry) -> None:
-    """Raise UsageError when no plan can carry ``recipe`` over the limits ``entry`` taught (``over``: the recipe
-    over them) and its profile alone allows one (a string longer than the writes the device takes): the error
-    says where the limit came from, and how to drop it; the profile does not say it, so the user would look there
-    in vain."""
+def refusal(recipe: Recipe, over: Recipe) -> UsageError | None:
+    """Why no plan can carry ``recipe`` over the limits a device taught (``over``: the recipe over them) where its
+    profile alone allows one (a string longer than the writes the device takes): the planner's refusal, or None.
+    A recipe the profile alone refuses raises that refusal, as it is."""
     from ..planning.planner import plan_writes
 
     try:
         plan_writes(over.desired, over.profile.limits)
     except UsageError as e:
-        plan_writes(recipe.desired, recipe.profile.limits)  # refused by the profile alone too: said as it is
-        raise UsageError(
-            f"{e}, which this device taught on {entry.when} (not its profile: {entry.describe_limits()}); "
-            "'deployer learned forget' drops what it taught"
-        ) from None
+        plan_writes(recipe.desired, recipe.profile.limits)
+        return e
+    return None
+
+
+def taught(e: UsageError, entry: Entry) -> UsageError:
+    """``refusal`` said with where the limit came from, and how to drop it: the profile does not say it, so the user
+    would look there in vain."""
+    return UsageError(
+        f"{e}, which this device taught on {entry.when} (not its profile: {entry.describe_limits()}); "
+        "'deployer learned forget' drops what it taught"
+    )
 
 
 def device_id(url: DeviceURL, unit: int) -> str:
@@ -377,7 +383,7 @@ def device_id(url: DeviceURL, unit: int) -> str:
 
 def for_recipe(recipe: Recipe, state_dir: str, url: DeviceURL, unit: int) -> tuple[Recipe, Entry | None]:
     """``recipe`` with what its device taught in force (and the entry used), else unchanged. Raises UsageError
-    where no plan can carry it over those limits (``check``)."""
+    where no plan can carry it over those limits (``refusal``)."""
     from dataclasses import replace
 
     entry = lookup(state_dir, profile_ref(recipe.profile), device_id(url, unit))
@@ -387,5 +393,7 @@ def for_recipe(recipe: Recipe, state_dir: str, url: DeviceURL, unit: int) -> tup
     if prof is recipe.profile:
         return recipe, None
     over = replace(recipe, profile=prof)
-    check(recipe, over, entry)
+    e = refusal(recipe, over)
+    if e is not None:
+        raise taught(e, entry)
     return over, entry
