@@ -1,6 +1,6 @@
 """Every command keeps a profile's pauses: one way to a device (``deployer/execute/connect.py``) for all of them.
 
-The simulated device drops a request that comes sooner than 120 ms after a connection opened or 60 ms after its
+The simulated device drops a request that comes sooner than 60 ms after a connection opened or 60 ms after its
 last answer (a gateway that needs its pauses); the profile asks for 150 ms and 80 ms. With no retries and a
 short timeout, a command that did not keep them would lose a request and fail; the device's request log shows
 the gaps (its timestamps) and no request "too soon".
@@ -24,7 +24,10 @@ pytestmark = pytest.mark.timeout(120)
 PACED = PROFILE.replace(
     "endurance: 1000\n", "endurance: 1000\nlimits: {pause_after_connect: 150ms, pause_between_requests: 80}\n"
 )
-QUIRKS = Quirks(pause_after_connect_ms=120, request_gap_ms=60)
+# The device dates a connection when its event loop accepts it, which can be well after the client's connect
+# returned (under Wine, on a loaded machine: more than 30 ms), so the pause after connect has a wide margin. A
+# command that keeps no pause sends within a millisecond or two of connecting and is still caught.
+QUIRKS = Quirks(pause_after_connect_ms=60, request_gap_ms=60)
 
 
 def _site(tmp: Path) -> tuple[str, str]:
