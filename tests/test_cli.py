@@ -104,6 +104,11 @@ def test_apply_saved_plan_and_stale_plan(
         jsonschema.validate(report, schema.schema("report"))
         plan = json.loads(Path(plan_file).read_text())
         contract.check(plan, report["devices"][0], sim.log[n:])  # the device received exactly the saved plan
+        # run a second time: refused (the values it was made against are gone), and said why, nothing written
+        n = len(sim.log)
+        code, _, err = cli(capsys, "apply", plan_file, "--yes", "--state-dir", str(tmp_path / "s"))
+        assert code == 1 and "it now holds every value the plan writes (did the plan run already?)" in err, err
+        assert not any(e.function == 16 for e in sim.log[n:])
         # the device changed since: the same plan is refused, nothing written
         sim.write("F07", (0, 123))
         n = len(sim.log)

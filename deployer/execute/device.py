@@ -654,12 +654,19 @@ def _stale(plan: Plan, prof: Profile, before: dict[str, tuple[int, ...]]) -> Non
         for pp in plan.parameters
         if pp.current_raw is not None and not prof.parameter(pp.name).same_value(before.get(pp.name), pp.current_raw)
     ]
-    if changed:
+    if not changed:
+        return
+    if all(prof.parameter(pp.name).same_value(before.get(pp.name), pp.desired_raw) for pp in plan.parameters):
+        # the usual cause: the plan ran already (a second apply of the same file); said, so nobody hunts a culprit
         raise StalePlan(
-            "the device changed since the plan was made ("
-            + ", ".join(f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed)
-            + "); make a new plan"
+            "the device changed since the plan was made: it now holds every value the plan writes (did the plan "
+            "run already?); a new plan shows what is left to do, if anything"
         )
+    raise StalePlan(
+        "the device changed since the plan was made ("
+        + ", ".join(f"{n}: now {show_registers(prof.parameter(n), before.get(n))}" for n in changed)
+        + "); make a new plan"
+    )
 
 
 def _identity_text(identity: dict[str, str]) -> str:
