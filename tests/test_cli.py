@@ -33,6 +33,19 @@ def recipe(tmp: Path, body: str = "  F07: 10 s\n  stop_mode: coast\n", name: str
     return str(p)
 
 
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["aply"], "No such command 'aply'. Did you mean 'apply'?"),  # the group imports its commands lazily
+        (["audit", "verfy"], "No such command 'verfy'. Did you mean 'verify'?"),  # a subgroup, as click says it
+        (["zzz"], "No such command 'zzz'.\n"),
+    ],
+)
+def test_a_misspelt_command_names_the_nearest(capsys: pytest.CaptureFixture[str], args: list[str], said: str) -> None:
+    code, _, err = cli(capsys, *args)
+    assert code != 0 and said in err and err.count("Did you mean") <= 1, err
+
+
 def test_validate_examples(capsys: pytest.CaptureFixture[str]) -> None:
     files = sorted(str(p) for p in EXAMPLES.glob("*.yaml"))
     code, out, _ = cli(capsys, "validate", *files)

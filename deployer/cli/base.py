@@ -48,6 +48,20 @@ class LazyGroup(click.Group):
             raise TypeError(f"{self.lazy[cmd_name]} is not a click command")
         return command
 
+    def resolve_command(
+        self, ctx: click.Context, args: list[str]
+    ) -> tuple[str | None, click.Command | None, list[str]]:
+        try:
+            return super().resolve_command(ctx, args)
+        except click.UsageError as e:
+            import difflib
+
+            # click names the nearest of the commands it has imported, and these are not yet: the nearest said here
+            near = difflib.get_close_matches(args[0], self.list_commands(ctx), n=1) if args else []
+            if near and str(e.message).startswith("No such command") and "Did you mean" not in e.format_message():
+                raise click.UsageError(f"{e.message} Did you mean {near[0]!r}?", ctx) from None
+            raise
+
     def invoke(self, ctx: click.Context) -> Any:
         from ..api.commands import writing_caches  # a command runs (not the group's --help or --version
 
