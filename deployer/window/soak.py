@@ -119,9 +119,10 @@ async def soak(
         transport, one_at_a_time, connected = lines[w.url.bus]
         records: list[Any] = []
         session = Session(transport, w.unit, retries=w.url.retries, backoff=options.backoff, records=records)
-        reads = 0
+        reads = rounds = 0
         why: str | None = await asyncio.shield(connected)
         while why is None:
+            rounds += 1
             try:
                 async with one_at_a_time:
                     bad = await read_health(session, w.recipe.profile, w.result.unhealthy_before)
@@ -146,7 +147,9 @@ async def soak(
             passed.append(w)
             return
         window = during or f"the {format_duration(options.soak or 0)} soak"
-        why = f"health check failed after {seen:.1f} s of {window}: {why}"
+        # "after 0.0 s" alone read as a clock gone wrong: the first check comes right after the write
+        first = " (its first check, right after the write)" if rounds == 1 else ""
+        why = f"health check failed after {seen:.1f} s of {window}{first}: {why}"
         if run is not None:
             _journal(
                 options,
