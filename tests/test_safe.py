@@ -175,7 +175,7 @@ def test_a_fault_during_the_soak_rolls_back_exactly_and_never_commits(
     assert dev["status"] == "rolled-back" and dev["commit"] == "not sent"
     assert "register 0x2000 (drive fault code is zero) is 7, expected 0" in dev["error"]
     assert "rolled back from the snapshot (verified)" in dev["error"]
-    assert "of the 1h soak (its first check, right after the write): " in dev["error"]  # it trips on the write
+    assert "of the 1h soak (its first check after the write): " in dev["error"]  # it trips on the write
     assert report["summary"]["rolled-back"] == 1
     f07 = next(p for p in dev["parameters"] if p["name"] == "F07")
     assert f07["status"] == "rolled-back" and f07["after_raw"] == f07["before_raw"] == [0, 500]

@@ -147,8 +147,8 @@ async def soak(
             passed.append(w)
             return
         window = during or f"the {format_duration(options.soak or 0)} soak"
-        # "after 0.0 s" alone read as a clock gone wrong: the first check comes right after the write
-        first = " (its first check, right after the write)" if rounds == 1 else ""
+        # "after 0.0 s" alone read like a clock gone wrong: a device that trips on the write fails its first check
+        first = " (its first check after the write)" if rounds == 1 else ""
         why = f"health check failed after {seen:.1f} s of {window}{first}: {why}"
         if run is not None:
             _journal(
