@@ -212,3 +212,22 @@ def test_a_rollback_from_a_snapshot_talks_to_the_device_as_its_apply_did(
     job, _, _ = snapshot_job(snapshot, timeout=5.0, retries=3)
     assert (job.url.timeout, job.url.retries) == (5.0, 3)
     assert job.url.options["pause_between_requests"] == "80ms"
+
+
+def test_a_saved_plan_keeps_the_pauses_it_was_made_with(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A saved plan names its device without the URL's options, but the pauses it was made with are part of it
+    (its ``pacing``): ``apply PLAN.json`` keeps them without being given the URL's options again."""
+    (tmp_path / "drive.yaml").write_text(PROFILE)  # no pauses of its own: the URL's are the device's
+    (tmp_path / "r.yaml").write_text(RECIPE)
+    paced = "?pause_after_connect=150ms&pause_between_requests=80ms&timeout=2&retries=0"
+    with SimulatorThread(load_profile(str(tmp_path / "drive.yaml")), quirks=QUIRKS) as sim:
+        plan = str(tmp_path / "p.json")
+        code, out, err = cli(capsys, "plan", str(tmp_path / "r.yaml"), "--device", sim.url + paced, "--out", plan)
+        assert code == 0, (out, err)
+        assert json.loads(Path(plan).read_text())["pacing"] == {"after_connect": 0.15, "between_requests": 0.08}
+        del sim.log[:]
+        code, out, err = cli(
+            capsys, "apply", plan, "--yes", "--timeout", "2", "--retries", "0", "--state-dir", str(tmp_path / "s")
+        )
+        assert code == 0, (out, err, _log(sim))
+        _kept(sim)

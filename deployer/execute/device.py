@@ -362,6 +362,11 @@ class _Device:
         self.taught: learned.Entry | None = None  # what the device taught an earlier run, in force
         self.entry: _Entry | None = None  # the shared plan this device runs (None: a saved plan)
         self.pacing = pacing_for(job.url, job.recipe.profile)
+        if job.plan is not None:  # a saved plan's pauses are part of it, though its URL keeps no options
+            p = job.plan.pacing
+            self.pacing = Pacing(
+                max(self.pacing.after_connect, p.after_connect), max(self.pacing.between_requests, p.between_requests)
+            )
         self.shared = self._shared(job.recipe)
         self.results = self.shared.results()
         res.parameters = list(self.results.values())
