@@ -52,8 +52,9 @@ def test_docs_command_writes_and_checks(capsys: pytest.CaptureFixture[str], tmp_
     code, _, err = cli(capsys, "docs", "--check", "--out", str(out))
     assert code == 1 and f"{out / 'profile.md'}: stale" in err
     code, _, err = cli(capsys, "docs", "--out", str(out))
-    assert code == 0 and err == f"7 pages updated in {out}\n"
+    assert code == 0 and err == f"8 pages updated in {out}\n"
     assert sorted(p.name for p in out.iterdir()) == [
+        "fleetplan.md",
         "inventory.md",
         "plan.md",
         "profile.md",

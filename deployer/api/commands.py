@@ -524,6 +524,12 @@ def validate_file(path: str | os.PathLike[str]) -> str:
         if kind == "plan":
             saved = plan_from_json(data, where, src=src)
             return f"plan: {_count(len(saved.writes), 'write request')} for profile {saved.device.profile}"
+        if kind == "fleetplan":  # checked as a saved plan is: the profiles are checked when it runs
+            from ..fleet.plans import read_fleet_plan
+
+            _, plans, _ = read_fleet_plan(where)  # takes the document over: every device's plan at its positions
+            writes = sum(len(p.writes) for _, _, p in plans)
+            return f"fleet plan: {_count(len(plans), 'device')}, {_count(writes, 'write request')}"
         if kind == "report":
             from .loading import load_report
 

@@ -8,9 +8,10 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from ..calls import checked
-from ..errors import UsageError
+from ..errors import Diagnostic, InputError, UsageError
 from ..fleet.inventory import Inventory, inventory_from
 from ..fleet.inventory import load_inventory as _load_inventory
+from ..fleet.plans import is_fleet_plan_file
 from ..load.yamlsrc import Source
 from ..planning.model import Plan
 from ..profile import Profile, load_profile, resolve_profile
@@ -78,7 +79,12 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
     """
     from ..planning.planfile import load_plan as _load_plan
 
-    return _load_plan(need_path(path, "load_plan", "the plan file"))[1]
+    where = need_path(path, "load_plan", "the plan file")
+    if is_fleet_plan_file(where):  # every device's plan: a FleetPlan, which apply executes as a fleet
+        raise InputError(
+            [Diagnostic(where, 1, 1, "a saved fleet plan, not one device's: load it with deployer.FleetPlan.load()")]
+        )
+    return _load_plan(where)[1]
 
 
 @checked("deployer.load_report")

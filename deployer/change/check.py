@@ -22,6 +22,14 @@ def plan_device(doc: Mapping[str, Any]) -> tuple[str | None, int | None]:
     return (_described(url) if isinstance(url, str) else None), (unit if isinstance(unit, int) else None)
 
 
+def plan_devices(doc: Mapping[str, Any]) -> list[tuple[str | None, int | None]]:
+    """Every device a plan writes: a saved plan's one, or each device of a saved fleet plan."""
+    devices = doc.get("devices")
+    if not str(doc.get("schema", "")).startswith("deployer.fleetplan/") or not isinstance(devices, list):
+        return [plan_device(doc)]
+    return [plan_device(e["plan"]) for e in devices if isinstance(e, Mapping) and isinstance(e.get("plan"), Mapping)]
+
+
 def verdicts(doc: Mapping[str, Any], allowed: AllowedSigners | None) -> list[Verdict]:
     """Every signature of a plan, checked against its digest now."""
     from .signature import verify
@@ -51,11 +59,14 @@ def check_approvals(doc: Mapping[str, Any], policy: Policy | None, rule: Rule | 
 
     Every signature it carries must hold; the rule may ask for a reason, a ticket, signed inputs and N approvals
     by distinct users other than the author, whose own ``authored`` signature must then hold."""
-    if rule is None:
-        url, unit = plan_device(doc)
-        rule = policy.rule_for(url, unit) if policy is not None else Rule()
     if policy is None:
         return stale(doc)
+    if rule is None:  # a fleet plan: what the rules of all its devices ask, each said once
+        return list(
+            dict.fromkeys(
+                m for url, unit in plan_devices(doc) for m in check_approvals(doc, policy, policy.rule_for(url, unit))
+            )
+        )
     checked = verdicts(doc, policy.signers)
     missing = [f"the signature {v.said()} does not hold: {v.why}" for v in checked if not v.holds]
     change = doc.get("change") if isinstance(doc.get("change"), Mapping) else {}

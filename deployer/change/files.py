@@ -31,7 +31,10 @@ def read_bounded(path: str, limit: int = MAX_FILE, what: str = "it") -> bytes:
 
 
 def is_plan(data: bytes) -> bool:
-    return data.lstrip().startswith(b"{") and b'"deployer.plan/' in data[:4096]
+    """A saved plan or a saved fleet plan (both are signed and approved alike), by its first bytes."""
+    return data.lstrip().startswith(b"{") and (
+        b'"deployer.plan/' in data[:4096] or b'"deployer.fleetplan/' in data[:4096]
+    )
 
 
 def read_plan(path: str) -> dict[str, Any]:
@@ -57,7 +60,9 @@ def parse_plan(data: bytes, path: str) -> dict[str, Any]:
         raise InputError([Diagnostic(path, e.lineno, e.colno, f"not JSON: {e.msg}")]) from None
     except ValueError as e:
         raise InputError([Diagnostic(path, 0, 0, f"not a plan: {e}")]) from None
-    if not isinstance(doc, dict) or not str(doc.get("schema", "")).startswith("deployer.plan/"):
+    if not isinstance(doc, dict) or not str(doc.get("schema", "")).startswith(
+        ("deployer.plan/", "deployer.fleetplan/")
+    ):
         raise InputError([Diagnostic(path, 1, 1, "not a saved plan (deployer plan ... --out PLAN.json)")])
     return doc
 

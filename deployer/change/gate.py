@@ -29,11 +29,17 @@ class ChangeRefused(UsageError):
         self.missing = list(missing)
 
 
-def _same_plan(doc: Mapping[str, Any], plan: Plan) -> bool:
+def _same_plan(doc: Mapping[str, Any], plan: Plan, name: str) -> bool:
     """The plan apply loaded is what the signed document says, member for member (the file was read twice:
-    once by the loader, once here)."""
+    once by the loader, once here); in a saved fleet plan, device ``name``'s."""
     from ..planning.planfile import plan_to_json
 
+    if str(doc.get("schema", "")).startswith("deployer.fleetplan/"):
+        devices = doc.get("devices")
+        found = [e["plan"] for e in devices or [] if isinstance(e, Mapping) and e.get("name") == name and "plan" in e]
+        if len(found) != 1 or not isinstance(found[0], Mapping):
+            return False
+        doc = found[0]
     loaded = plan_to_json(plan)
     return all(canonical(doc.get(k)) == canonical(v) for k, v in loaded.items())
 
@@ -66,7 +72,7 @@ def check_run(
                 missing += check_approvals(doc, policy, rule)
             if rule.signed_inputs:
                 missing += _profiles_signed(doc, planned)
-        if not all(_same_plan(doc, j.plan) for j in planned if j.plan is not None):
+        if not all(_same_plan(doc, j.plan, j.name) for j in planned if j.plan is not None):
             missing.append(
                 f"{source} changed while it was read (the plan loaded is not the document checked): run it again"
             )

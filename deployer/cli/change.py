@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -115,14 +115,18 @@ def signer_name(key: Signer, given: str | None, allowed: AllowedSigners | None) 
     return me
 
 
-def stamped(data: dict[str, Any], change: ChangeOptions, rec: Recipe) -> dict[str, Any]:
-    """``plan --out``'s document with its ``change`` member (and the author's signature with ``--sign-key``)."""
+def stamped(
+    data: dict[str, Any], change: ChangeOptions, rec: Recipe | None, files: Sequence[tuple[str, str | None]] = ()
+) -> dict[str, Any]:
+    """``plan --out``'s document with its ``change`` member (and the author's signature with ``--sign-key``). Its
+    inputs: ``rec``'s recipe and profile files, else ``files`` (kind, path): a fleet's recipes, profiles, inventory."""
     from ..api.commands import user_name
     from ..change import digest, sign
     from ..change.files import change_member, input_record
 
-    files = [("recipe", rec.path), ("profile", rec.profile.source)]
-    inputs = [input_record(kind, path) for kind, path in files if path and os.path.isfile(path)]
+    if rec is not None:
+        files = [("recipe", rec.path), ("profile", rec.profile.source)]
+    inputs = [input_record(kind, path) for kind, path in dict.fromkeys(files) if path and os.path.isfile(path)]
     key = open_key(change.key) if change.key else None
     author = signer_name(key, change.signer, _signers(change.policy)) if key is not None else user_name()
     doc = {

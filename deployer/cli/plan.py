@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, cast
 
 import click
 
@@ -25,7 +25,7 @@ from .base import (
     recipe_or_inventory,
     safe,
 )
-from .change import ChangeOptions, change_options
+from .change import ChangeOptions, change_options, stamped
 from .tables import Cell, show
 
 if TYPE_CHECKING:
@@ -195,7 +195,12 @@ def print_frames(plan: Plan, out: Console) -> None:
 @click.argument("recipe", required=False, type=click.Path(dir_okay=False))
 @device_options
 @click.option("--json", "as_json", is_flag=True, help="print the plan as JSON")
-@click.option("--out", "out_path", type=click.Path(dir_okay=False), help="write the plan (JSON) for 'apply PLAN.json'")
+@click.option(
+    "--out",
+    "out_path",
+    type=click.Path(dir_okay=False),
+    help="write the plan (JSON) for 'apply PLAN.json' (with --inventory: every device's, for 'apply FLEET.json')",
+)
 @click.option("--detailed-exitcode", is_flag=True, help="exit 2 when something would change, 0 when nothing would")
 @click.option("--show-frames", is_flag=True, help="print the exact bytes of each request (RTU, ASCII, TCP)")
 @click.option("--write-all", is_flag=True, help="plan every parameter, even those the device already holds")
@@ -263,8 +268,12 @@ def plan(
         raise UsageError("--reason, --ticket, --sign-key and --signer describe a saved plan: give --out PLAN.json")
     maybe = recipe_or_inventory(recipe, inventory)
     if inventory:
-        if device or out_path or show_frames:
-            raise UsageError("with --inventory, --device, --out and --show-frames do not apply (one plan per device)")
+        if device or show_frames:
+            raise UsageError("with --inventory, --device and --show-frames do not apply (one plan per device)")
+        if out_path:  # before reading the devices
+            from ..api.commands import check_output
+
+            check_output(out_path, what="the fleet plan")
         return plan_fleet(
             maybe,
             _fleet(maybe, inventory, limit, timeout, retries, unit),
@@ -275,6 +284,9 @@ def plan(
             state_dir=state_dir,
             per_device=per_device,
             window=safe_change,
+            inventory=inventory,
+            out_path=out_path,
+            change=change,
         )
     if limit or per_device:
         raise UsageError(f"{'--limit' if limit else '--per-device'} needs --inventory")
@@ -369,33 +381,41 @@ def plan_fleet(
     per_device: bool = False,
     state_dir: str = ".deployer",
     window: bool = False,
+    inventory: str | None = None,
+    out_path: str | None = None,
+    change: ChangeOptions | None = None,
 ) -> int:
     """A plan per device against what it holds, devices with identical changes together (``per_device``:
-    each device's table); exit 3 if any device could not be read, else as plan."""
+    each device's table); exit 3 if any device could not be read, else as plan. ``out_path``: the saved fleet plan
+    written there (refused, nothing written, when a device has no plan)."""
+    from ..api import FleetPlan
     from ..api.commands import plan_cost, plan_to_json
     from .progress import plan_fleet as planned_fleet  # rich: only fleets pay for importing it
 
     values = planned_fleet(jobs, parallel, write_all=write_all, state_dir=state_dir, window=window)
     plans = {n: p for n, p in values.items() if not isinstance(p, Exception)}
     changing = [n for n, p in plans.items() if p.writes]
-    if as_json:
-        echo(
-            json.dumps(
-                {
-                    "recipe": rec.path if rec else None,
-                    "devices": [
-                        {
-                            "name": j.name,
-                            "plan": plan_to_json(plans[j.name], plan_cost(plans[j.name], j.recipe.profile, j.url)),
-                        }
-                        if j.name in plans
-                        else {"name": j.name, "error": str(values[j.name])}
-                        for j in jobs
-                    ],
-                },
-                indent=2,
-            )
+    data: dict[str, Any] | None = None
+    if as_json or out_path:  # the saved fleet plan: each device's plan as a saved plan says it, with its cost
+        fleet = FleetPlan(
+            jobs, cast(Mapping[str, Any], values), recipe=rec.path if rec else None, inventory=inventory or ""
         )
+        data = fleet.to_json(
+            {j.name: plan_to_json(p, plan_cost(p, j.recipe.profile, j.url)) for j in jobs if (p := plans.get(j.name))}
+        )
+    if out_path:
+        assert data is not None
+        if len(plans) < len(jobs):
+            down = [n for n in values if n not in plans]
+            raise UsageError(
+                f"no fleet plan written: {_n(len(down), 'device')} could not be planned "
+                f"({'; '.join(f'{safe(n)}: {safe(str(values[n]))}' for n in down[:5])}"
+                f"{' ...' if len(down) > 5 else ''}); a saved fleet plan runs every device it names: bring them "
+                "back, or leave them out with --limit"
+            )
+        data = _save_fleet_plan(data, out_path, jobs, change, state_dir)
+    if as_json:
+        echo(json.dumps(data, indent=2))
     elif per_device:
         out = console()
         for j in jobs:
@@ -424,6 +444,33 @@ def plan_fleet(
             f"{len(changing)} of {_n(len(jobs), 'device')} would change ({_fleet_cost(jobs, plans)}); "
             "--per-device shows each device's plan"
         )
+    if out_path and not as_json:
+        console().print(
+            f"fleet plan written to {safe(out_path)} ({_n(len(jobs), 'device')}); run it unchanged with: "
+            f"deployer apply {safe(out_path)}"
+        )
     if _unreachable(values):
         return EXIT_UNREACHABLE
     return EXIT_CHANGES if detailed_exitcode and changing else EXIT_OK
+
+
+def _save_fleet_plan(
+    data: dict[str, Any], out_path: str, jobs: Sequence[Job], change: ChangeOptions | None, state_dir: str
+) -> dict[str, Any]:
+    """``plan --inventory --out``: the fleet plan with its change (who, why, from which recipes and profiles),
+    signed with ``--sign-key``, and the audit trail's record of it; the document written."""
+    import os
+
+    from ..api.commands import write_output
+    from ..audit.commands import after_plan
+
+    change = change or ChangeOptions()
+    files: list[tuple[str, str | None]] = []
+    for j in jobs:
+        files += [("recipe", j.recipe.path), ("profile", j.recipe.profile.source)]
+    doc = stamped(data, change, None, files)
+    os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
+    write_output(out_path, json.dumps(doc, indent=2) + "\n", what="the fleet plan")
+    for what in after_plan(doc, out_path=out_path, device=None, state_dir=state_dir, policy_path=change.policy):
+        echo(f"not recorded: {safe(what)}", err=True)
+    return doc

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+import os
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
@@ -11,8 +12,14 @@ from ..planning.model import Plan
 from ..transport.urls import describe
 
 if TYPE_CHECKING:  # its module imports the transports (pymodbus): an offline plan does not need them
+    from ..errors import Diagnostic
     from ..execute.job import Job
+    from ..load.yamlsrc import Path_
     from ..profile import Profile
+
+    ErrorAt = Callable[[Path_, str], Diagnostic]  # a problem said at a position of one device's plan
+
+FLEET_SCHEMA = "deployer.fleetplan/1"
 
 
 class FleetPlan:
@@ -78,6 +85,13 @@ class FleetPlan:
         job = self._jobs[name]
         return describe(job.url), job.unit
 
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> FleetPlan:
+        """A saved fleet plan file (``plan --inventory --out``, or ``to_json()`` written to a file), each device's
+        plan checked as ``deployer.load_plan`` checks one: ``apply`` executes it unchanged. Raises InputError with
+        every problem at its position."""
+        return load_fleet_plan(os.fspath(path))
+
     def without_errors(self) -> FleetPlan:
         """This plan without the devices that have none."""
         return FleetPlan(
@@ -87,13 +101,24 @@ class FleetPlan:
             inventory=self.inventory,
         )
 
-    def to_json(self) -> dict[str, Any]:
-        """As ``deployer plan --inventory --json`` prints it: the recipe, and per device its plan (a saved plan's
-        JSON) or its error."""
+    def to_json(self, plans: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """A saved fleet plan (docs/reference/fleetplan.md), as ``deployer plan --inventory --json`` prints it and
+        ``--out`` writes it: the recipe and inventory, and per device its group and its plan (a saved plan's JSON)
+        or its error. ``plans``: each device's plan JSON where the caller made it (with its cost)."""
         return {
+            "schema": FLEET_SCHEMA,
             "recipe": self.recipe,
+            "inventory": self.inventory,
             "devices": [
-                {"name": n, "plan": r.to_json()} if isinstance(r, Plan) else {"name": n, "error": str(r)}
+                {
+                    "name": n,
+                    "group": self._jobs[n].group,
+                    **(
+                        {"plan": plans[n] if plans is not None and n in plans else r.to_json()}
+                        if isinstance(r, Plan)
+                        else {"error": str(r)}
+                    ),
+                }
                 for n, r in self._results.items()
             ],
         }
@@ -112,3 +137,99 @@ def executable_jobs(fleet: FleetPlan) -> list[Job]:
         )
     plans = fleet.plans
     return [replace(j, plan=plans[n]) for n, j in fleet._jobs.items()]
+
+
+def is_fleet_plan_file(path: str) -> bool:
+    """A saved fleet plan (``plan --inventory --out``), by its first bytes: it writes its schema first."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return head.lstrip().startswith(b"{") and b'"deployer.fleetplan/' in head
+
+
+def read_fleet_plan(
+    path: str,
+) -> tuple[dict[str, Any], list[tuple[str, str | None, Plan]], Callable[[int], ErrorAt]]:
+    """A saved fleet plan file's document, and each device's name, group and plan, checked as a saved plan is
+    (``plan_from_json``: its format and consistency, every problem at its position in the file), all problems at
+    once (InputError); with the function that says a problem at a position of device ``i``'s plan. A device saved
+    without a plan (an edited file: ``plan --out`` writes none) is one: a saved fleet plan runs every device it
+    names."""
+    from ..errors import InputError
+    from ..load import yamlsrc
+    from ..planning.planfile import plan_from_json
+
+    data, src = yamlsrc.load(path)
+    if not isinstance(data, dict) or data.get("schema") != FLEET_SCHEMA:
+        raise InputError([src.error(("schema",), f"not a saved fleet plan ({FLEET_SCHEMA})")])
+    devices = data.get("devices")
+    if not isinstance(devices, list) or not devices:
+        raise InputError([src.error(("devices",), "a saved fleet plan lists its devices, each with its plan")])
+    # each device's positions, its plan's paths made relative to the plan (one pass over the file's positions)
+    subs: dict[int, yamlsrc.Source] = {i: yamlsrc.Source(path) for i in range(len(devices))}
+    for table, member in ((src.values, "values"), (src.keys, "keys")):
+        for at, pos in table.items():
+            if len(at) >= 3 and at[0] == "devices" and at[2] == "plan" and isinstance(at[1], int) and at[1] in subs:
+                getattr(subs[at[1]], member)[at[3:]] = pos
+    errors: list[Diagnostic] = []
+    out: list[tuple[str, str | None, Plan]] = []
+    seen: set[str] = set()
+    for i, entry in enumerate(devices):
+        name: Any = entry.get("name") if isinstance(entry, dict) else None
+        if not isinstance(name, str) or not name or name in seen:
+            errors.append(src.error(("devices", i), "each device has a name of its own"))
+            continue
+        seen.add(name)
+        if "plan" not in entry:
+            why = f" ({entry['error']})" if isinstance(entry.get("error"), str) else ""
+            errors.append(src.error(("devices", i), f"{name} has no plan{why}: plan the fleet again"))
+            continue
+        try:
+            plan = plan_from_json(entry["plan"], path, src=subs[i])
+        except InputError as e:
+            errors.extend(e.diagnostics)
+            continue
+        group = entry.get("group")
+        out.append((name, group if isinstance(group, str) else None, plan))
+    if errors:
+        raise InputError(errors)
+    return data, out, lambda i: subs[i].error
+
+
+def load_fleet_plan(path: str, *, timeout: float | None = None, retries: int | None = None) -> FleetPlan:
+    """A saved fleet plan file, to run (``read_fleet_plan``): each device's plan checked against its profile as
+    ``apply PLAN.json`` checks one, all problems at once (InputError). ``timeout``/``retries``: override each device
+    URL's, as for a fleet."""
+    from ..errors import InputError
+    from ..execute.job import Job
+    from ..planning.planfile import plan_recipe
+    from ..transport.urls import parse_url
+
+    data, plans, error_at = read_fleet_plan(path)
+    errors: list[Diagnostic] = []
+    jobs: list[Job] = []
+    for i, (name, group, plan) in enumerate(plans):
+        at = error_at(i)
+        try:
+            rec = plan_recipe(plan, path, at)
+            if plan.device.url is None:
+                raise InputError([at(("device", "url"), f"{name}: the plan names no device URL")])
+            url = parse_url(plan.device.url, timeout=timeout, retries=retries)
+        except InputError as e:
+            errors.extend(e.diagnostics)
+            continue
+        except UsageError as e:  # a URL that does not parse
+            errors.append(at(("device", "url"), f"{name}: {e}"))
+            continue
+        jobs.append(Job(name, rec, url, plan.device.unit, group=group))
+    if errors:
+        raise InputError(errors)
+    recipe = data.get("recipe")
+    return FleetPlan(
+        jobs,
+        {name: plan for name, _, plan in plans},
+        recipe=recipe if isinstance(recipe, str) else None,
+        inventory=str(data.get("inventory") or path),
+    )

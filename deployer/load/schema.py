@@ -32,10 +32,11 @@ def _is_integer(_checker: Any, instance: Any) -> bool:
 
 
 def document_of(data: object) -> str | None:
-    """Which deployer document a file's ``schema`` member names: "plan" (``deployer.plan/N``), "report"
-    (``deployer.report/N``), else None (the other files are told by their keys)."""
+    """Which deployer document a file's ``schema`` member names: "plan" (``deployer.plan/N``), "fleetplan"
+    (``deployer.fleetplan/N``), "report" (``deployer.report/N``), else None (the other files are told by their
+    keys)."""
     kind = str(data.get("schema", "")) if isinstance(data, dict) else ""
-    return next((k for k in ("plan", "report") if kind.startswith(f"deployer.{k}/")), None)
+    return next((k for k in ("plan", "fleetplan", "report") if kind.startswith(f"deployer.{k}/")), None)
 
 
 @cache

@@ -375,6 +375,8 @@ def _other_document(kind: str | None, path: str) -> str | None:
         return (
             f"a saved plan, not a recipe: 'deployer apply {path}' runs it unchanged (plan, diff and pull take a recipe)"
         )
+    if kind == "fleetplan":
+        return f"a saved fleet plan, not a recipe: 'deployer apply {path}' runs it unchanged"
     if kind == "report":
         return f"a run's report, not a recipe: 'deployer report {path}' shows it"
     return None

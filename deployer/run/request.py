@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 from ..errors import UsageError
+from ..fleet.plans import is_fleet_plan_file
 from ..limits import LIMITS
 
 if TYPE_CHECKING:
@@ -77,8 +78,12 @@ class RunRequest:
 
     @property
     def fleet(self) -> bool:
-        """An inventory's devices, or every device of earlier runs: reported as a fleet."""
-        return bool(self.inventory or self.from_reports)
+        """An inventory's devices, every device of earlier runs, or a saved fleet plan's: reported as a fleet."""
+        return bool(
+            self.inventory
+            or self.from_reports
+            or (self.command == "apply" and self.source is not None and is_fleet_plan_file(self.source))
+        )
 
 
 @dataclass(frozen=True)
@@ -172,6 +177,8 @@ def _recipe_jobs(r: RunRequest) -> PreparedRun:
 
     assert r.source is not None
     expected = None
+    if is_fleet_plan_file(r.source):
+        return _fleet_plan_jobs(r)
     if is_plan_file(r.source):
         if r.inventory or r.write_all:
             raise UsageError("a saved plan runs unchanged: --inventory and --write-all do not apply to it")
@@ -188,6 +195,30 @@ def _recipe_jobs(r: RunRequest) -> PreparedRun:
     unit = r.unit if r.unit is not None else (rec.device.unit if rec.device and rec.device.unit is not None else 1)
     url = parse_url(text, timeout=r.timeout, retries=r.retries)  # BadURL is a UsageError
     return PreparedRun(r, [Job(rec.name, rec, url, unit, plan=expected)], r.source)
+
+
+def _fleet_plan_jobs(r: RunRequest) -> PreparedRun:
+    """apply FLEET.json: every device the saved fleet plan names, each executing its own plan unchanged."""
+    from ..fleet.plans import executable_jobs, load_fleet_plan
+
+    assert r.source is not None
+    given = [
+        o
+        for o, v in (
+            ("--inventory", r.inventory),
+            ("--limit", r.limit),
+            ("--device", r.device),
+            ("--unit", r.unit is not None),
+            ("--write-all", r.write_all),
+        )
+        if v
+    ]
+    if given:
+        raise UsageError(
+            f"a saved fleet plan runs unchanged, on every device it names: {', '.join(given)} do not apply to it "
+            "(plan the fleet again for other devices)"
+        )
+    return PreparedRun(r, executable_jobs(load_fleet_plan(r.source, timeout=r.timeout, retries=r.retries)), r.source)
 
 
 def prepare(r: RunRequest) -> PreparedRun:
@@ -256,14 +287,15 @@ def safe_plans(jobs: Sequence[Job], r: RunRequest, label: str | None) -> None:
     already in alarm would be written, then rolled back and the change blamed). UsageError, nothing sent."""
     if r.soak is None and r.confirm_within is None:
         return
+    fleet = r.source is not None and is_fleet_plan_file(r.source)
     for j in jobs:
         if j.plan is not None and j.recipe.profile.health and not any(s.kind == "health" for s in j.plan.steps):
-            made = j.plan.recipe or "RECIPE"
+            made = "[RECIPE] --inventory FILE" if fleet else f"{j.plan.recipe or 'RECIPE'} --device URL"
+            where = f"--safe-change --out {'FLEET' if fleet else 'PLAN'}.json"
             raise UsageError(
                 f"{label or 'the plan'} is not the plan of a safe change: it reads no health checks "
                 "before writing (a device already in alarm would be written, then rolled back and the "
-                f"change blamed); make it with: deployer plan {made} --device URL --safe-change "
-                f"--out PLAN.json (Python: plan(..., safe_change=True))"
+                f"change blamed); make it with: deployer plan {made} {where} (Python: plan(..., safe_change=True))"
             )
 
 

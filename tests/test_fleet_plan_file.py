@@ -1,0 +1,215 @@
+"""A saved fleet plan (``plan --inventory --out FLEET.json``): every device's plan in one file that a second person
+approves, and ``apply FLEET.json`` executes exactly those plans, with a fleet's batches, canaries and report.
+
+Simulators on 127.0.0.1; what each device received is its request log, compared with its plan step by step.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jsonschema
+import pytest
+
+import deployer
+from deployer.change import digest
+from deployer.load import schema
+from deployer.profile import Profile, load_profile
+from deployer.testing.simulator import Simulator, SimulatorThread
+from tests import contract
+from tests.agent_helpers import PROFILE, RECIPE
+from tests.conftest import dead_port
+from tests.helpers import cli
+
+
+def _site(tmp: Path, urls: dict[str, str], policy: str = "") -> Path:
+    (tmp / "drive.yaml").write_text(PROFILE)
+    (tmp / "r.yaml").write_text(RECIPE)
+    groups = ["line3", "line4", "line4"]
+    lines = [policy, "devices:"] + [
+        f'  {n}: {{url: "{u}", recipe: r.yaml, groups: [{g}]}}' for (n, u), g in zip(urls.items(), groups, strict=False)
+    ]
+    inv = tmp / "site.yaml"
+    inv.write_text("\n".join(lines) + "\n")
+    return inv
+
+
+def _writes(sim: Simulator) -> list[tuple[int, int]]:
+    return [(e.function, e.address) for e in sim.log if e.function in (5, 6, 15, 16)]
+
+
+def test_a_saved_fleet_plan_runs_exactly_its_plans_and_only_once(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    prof = load_profile_text(tmp_path)
+    with SimulatorThread(prof) as a, SimulatorThread(prof) as b, SimulatorThread(prof) as c:
+        sims = {"d1": a, "d2": b, "d3": c}
+        inv = _site(tmp_path, {n: s.url for n, s in sims.items()})
+        out = str(tmp_path / "fleet.json")
+        code, text, err = cli(capsys, "plan", "--inventory", str(inv), "--out", out)
+        assert code == 0, err
+        said = " ".join(text.split())  # the console wraps long lines
+        assert f"fleet plan written to {out} (3 devices); run it unchanged with: deployer apply {out}" in said
+        doc = json.loads(Path(out).read_text())
+        assert doc["schema"] == "deployer.fleetplan/1" and doc["inventory"] == str(inv)
+        assert [(d["name"], d["group"]) for d in doc["devices"]] == [("d1", "line3"), ("d2", "line4"), ("d3", "line4")]
+        assert doc["change"]["author"] and [i["kind"] for i in doc["change"]["inputs"]] == ["recipe", "profile"]
+        jsonschema.validate(doc, schema.schema("fleetplan"))
+        assert all(s.log == [] or not _writes(s) for s in sims.values())  # planning reads only
+        # in Python: a FleetPlan (deployer.load_plan takes one device's plan, and says what takes this one)
+        fleet = deployer.FleetPlan.load(out)
+        assert list(fleet) == ["d1", "d2", "d3"] and fleet.device("d2") == (b.url, 1) and fleet.changes
+        with pytest.raises(deployer.InputError, match=r"a saved fleet plan, not one device's: .*FleetPlan.load"):
+            deployer.load_plan(out)
+        again = tmp_path / "again.json"  # to_json() and load() go both ways
+        again.write_text(json.dumps(fleet.to_json()))
+        assert deployer.FleetPlan.load(again).plans == fleet.plans
+        # --json prints the same document (without the change a saved one records)
+        code, text, _ = cli(capsys, "plan", "--inventory", str(inv), "--json")
+        shown = json.loads(text)
+        assert code == 0 and [d["plan"] for d in shown["devices"]] == [d["plan"] for d in doc["devices"]]
+
+        for s in sims.values():
+            s.log.clear()
+        code, text, err = cli(
+            capsys, "apply", out, "--yes", "--json", "--batch", "1,100%", "--batch-by", "group", "--state-dir",
+            str(tmp_path / "s"),
+        )  # fmt: skip
+        assert code == 0, err
+        report = json.loads(text)
+        jsonschema.validate(report, schema.schema("report"))
+        by = {d["name"]: d for d in report["devices"]}
+        assert {n: (d["status"], d["batch"]) for n, d in by.items()} == {
+            "d1": ("ok", 1),
+            "d2": ("ok", 1),
+            "d3": ("ok", 2),
+        }
+        for entry in doc["devices"]:  # each device received exactly its saved plan
+            contract.check(entry["plan"], by[entry["name"]], list(sims[entry["name"]].log))
+        assert [s.read("accel") for s in sims.values()] == [(20,), (20,), (20,)]
+
+        # run a second time: every device refused before its first write, and said why
+        for s in sims.values():
+            s.log.clear()
+        code, text, err = cli(capsys, "apply", out, "--yes", "--json", "--state-dir", str(tmp_path / "s"))
+        again = json.loads(text)
+        assert code == 4 and [d["status"] for d in again["devices"]] == ["skipped"] * 3, err
+        assert all("did the plan run already?" in d["error"] for d in again["devices"])
+        assert all(_writes(s) == [] for s in sims.values())
+
+
+def load_profile_text(tmp: Path) -> Profile:
+    (tmp / "drive.yaml").write_text(PROFILE)
+    return load_profile(str(tmp / "drive.yaml"))
+
+
+def test_a_fleet_plan_is_written_whole_or_not_at_all(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """A device that cannot be planned (unreachable) leaves no file: the saved plan runs every device it names."""
+    prof = load_profile_text(tmp_path)
+    with SimulatorThread(prof) as a:
+        inv = _site(tmp_path, {"d1": a.url, "gone": f"tcp://127.0.0.1:{dead_port()}?timeout=0.5&retries=0"})
+        out = tmp_path / "fleet.json"
+        code, _, err = cli(capsys, "plan", "--inventory", str(inv), "--out", str(out))
+        assert code == 1 and "no fleet plan written: 1 device could not be planned (gone:" in err, err
+        assert "--limit" in err and not out.exists()
+        # left out, the others make a plan; what a saved fleet plan does not take is refused, naming it
+        code, _, err = cli(capsys, "plan", "--inventory", str(inv), "--limit", "!gone", "--out", str(out))
+        assert code == 0 and out.exists(), err
+        code, _, err = cli(capsys, "apply", str(out), "--yes", "--soak", "1s")  # not made for a safe change
+        assert (
+            code == 1 and "make it with: deployer plan [RECIPE] --inventory FILE --safe-change --out FLEET.json" in err
+        ), err
+        for extra in (["--limit", "d1"], ["--device", a.url], ["--inventory", str(inv)], ["--write-all"]):
+            code, _, err = cli(capsys, "apply", str(out), "--yes", *extra)
+            assert code == 1 and "a saved fleet plan runs unchanged, on every device it names" in err, (extra, err)
+        assert [e for e in a.log if e.function == 16] == []
+        # an edited file: a device without its plan is refused at its position, nothing sent
+        doc = json.loads(out.read_text())
+        del doc["devices"][0]["plan"]
+        out.write_text(json.dumps(doc, indent=2))
+        code, _, err = cli(capsys, "apply", str(out), "--yes")
+        assert code == 1 and f"{out}:6:5: error: d1 has no plan: plan the fleet again" in err, err
+        code, _, err = cli(capsys, "validate", str(out))
+        assert code == 1 and "d1 has no plan" in err, err
+
+
+def _run(tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "deployer", *args],
+        cwd=tmp,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "DEPLOYER_POLICY": ""},
+    )
+
+
+def _key(tmp: Path, name: str) -> None:
+    """An Ed25519 key pair in OpenSSH's formats (pyca's cryptography: no ssh-keygen needed), in allowed_signers."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ed25519
+
+    key = ed25519.Ed25519PrivateKey.generate()
+    (tmp / name).write_bytes(
+        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption())
+    )
+    pub = key.public_key().public_bytes(serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH).decode()
+    with (tmp / "allowed_signers").open("a") as f:
+        f.write(f"{name} {pub}\n")
+
+
+def test_a_fleet_plan_is_approved_once_for_all_its_devices_and_runs_only_as_approved(tmp_path: Path) -> None:
+    """The policy asks line3 for an approval and a reason; the fleet plan's one approval covers its devices, and
+    a value changed after it is refused on every device, nothing sent."""
+    for n in ("alice", "bob"):
+        _key(tmp_path, n)
+    prof = load_profile_text(tmp_path)
+    with SimulatorThread(prof) as a, SimulatorThread(prof) as b:
+        policy = (
+            "change_control:\n  allowed_signers: allowed_signers\n  groups:\n    line3: {approvals: 1, reason: true}"
+        )
+        inv = str(_site(tmp_path, {"d1": a.url, "d2": b.url}, policy))
+        made = _run(tmp_path, "plan", "--inventory", inv, "--out", "f.json", "--sign-key", "alice", "--policy", inv)
+        assert made.returncode == 0, made.stderr
+        refused = _run(tmp_path, "apply", "f.json", "--yes", "--policy", inv)
+        assert refused.returncode == 1 and "nothing was sent" in refused.stderr, refused.stderr
+        assert "a reason (deployer plan" in refused.stderr
+        assert "1 approval by distinct users other than the author alice (none so far)" in refused.stderr
+        assert _writes(a) == [] and _writes(b) == []
+
+        again = _run(
+            tmp_path, "plan", "--inventory", inv, "--out", "f.json", "--sign-key", "alice", "--reason",
+            "faster ramps", "--policy", inv,
+        )  # fmt: skip
+        assert again.returncode == 0, again.stderr
+        self_ = _run(tmp_path, "approve", "f.json", "--key", "alice", "--policy", inv)
+        assert self_.returncode == 1 and "author cannot approve their own change" in self_.stderr
+        bob = _run(tmp_path, "approve", "f.json", "--key", "bob", "--policy", inv)
+        assert bob.returncode == 0 and "has what its policy requires" in bob.stderr, bob.stderr
+
+        good = (tmp_path / "f.json").read_text()
+        doc = json.loads(good)  # d2's accel 2.1 s instead of 2 s, consistently: valid, but not what was approved
+        plan = doc["devices"][1]["plan"]
+        accel = next(p for p in plan["parameters"] if p["name"] == "accel")
+        accel["desired"], accel["desired_raw"] = "2.1 s", [21]
+        step = next(s for s in plan["steps"] if s["kind"] == "write" and "accel" in s["parameters"])
+        step["values"][accel["address"] - step["address"]] = 21
+        (tmp_path / "f.json").write_text(json.dumps(doc, indent=2))
+        changed = _run(tmp_path, "apply", "f.json", "--yes", "--policy", inv)
+        assert changed.returncode == 1 and "made over other content" in changed.stderr, changed.stderr
+        assert _writes(a) == [] and _writes(b) == []
+
+        (tmp_path / "f.json").write_text(good)
+        ran = _run(tmp_path, "apply", "f.json", "--yes", "--policy", inv, "--report", "rep.json")
+        assert ran.returncode == 0, ran.stderr
+        assert a.read("accel") == b.read("accel") == (20,)
+        rep = json.loads((tmp_path / "rep.json").read_text())
+        assert rep["run"]["change"]["digest"] == digest(json.loads(good))
+        assert [(s["signer"], s["meaning"], s["holds"]) for s in rep["run"]["change"]["signatures"]] == [
+            ("alice", "authored", True),
+            ("bob", "approved", True),
+        ]
