@@ -213,3 +213,20 @@ def test_a_fleet_plan_is_approved_once_for_all_its_devices_and_runs_only_as_appr
             ("alice", "authored", True),
             ("bob", "approved", True),
         ]
+
+
+def test_a_fleet_plan_too_large_to_read_back_is_not_written(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """apply reads a fleet plan within the input limits every file is read in: plan --out refuses one beyond them."""
+    from deployer.load import yamlsrc
+
+    prof = load_profile_text(tmp_path)
+    with SimulatorThread(prof) as a, SimulatorThread(prof) as b:
+        inv = _site(tmp_path, {"d1": a.url, "d2": b.url})
+        monkeypatch.setattr(yamlsrc, "MAX_NODES", 100)  # a small file's limit: this fleet's plan is over it
+        out = tmp_path / "fleet.json"
+        code, _, err = cli(capsys, "plan", "--inventory", str(inv), "--out", str(out))
+    assert code == 1 and not out.exists(), err
+    assert "no fleet plan written: it would be " in err and "more than a file may hold (32 MiB, 100 values" in err, err
+    assert "plan the fleet in parts, a group or a range of names at a time (--limit)" in err
