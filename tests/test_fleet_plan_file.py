@@ -7,9 +7,6 @@ Simulators on 127.0.0.1; what each device received is its request log, compared 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import jsonschema
@@ -24,6 +21,7 @@ from tests import contract
 from tests.agent_helpers import PROFILE, RECIPE
 from tests.conftest import dead_port
 from tests.helpers import cli
+from tests.test_change_control import allowed, pykeygen, run
 
 
 def _site(tmp: Path, urls: dict[str, str], policy: str = "") -> Path:
@@ -137,58 +135,34 @@ def test_a_fleet_plan_is_written_whole_or_not_at_all(capsys: pytest.CaptureFixtu
         assert code == 1 and "d1 has no plan" in err, err
 
 
-def _run(tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "deployer", *args],
-        cwd=tmp,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={**os.environ, "DEPLOYER_POLICY": ""},
-    )
-
-
-def _key(tmp: Path, name: str) -> None:
-    """An Ed25519 key pair in OpenSSH's formats (pyca's cryptography: no ssh-keygen needed), in allowed_signers."""
-    from cryptography.hazmat.primitives import serialization
-    from cryptography.hazmat.primitives.asymmetric import ed25519
-
-    key = ed25519.Ed25519PrivateKey.generate()
-    (tmp / name).write_bytes(
-        key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.OpenSSH, serialization.NoEncryption())
-    )
-    pub = key.public_key().public_bytes(serialization.Encoding.OpenSSH, serialization.PublicFormat.OpenSSH).decode()
-    with (tmp / "allowed_signers").open("a") as f:
-        f.write(f"{name} {pub}\n")
-
-
 def test_a_fleet_plan_is_approved_once_for_all_its_devices_and_runs_only_as_approved(tmp_path: Path) -> None:
     """The policy asks line3 for an approval and a reason; the fleet plan's one approval covers its devices, and
     a value changed after it is refused on every device, nothing sent."""
     for n in ("alice", "bob"):
-        _key(tmp_path, n)
+        pykeygen(tmp_path, n)  # no ssh-keygen needed (Windows)
+    allowed(tmp_path, "alice", "bob")
     prof = load_profile_text(tmp_path)
     with SimulatorThread(prof) as a, SimulatorThread(prof) as b:
         policy = (
             "change_control:\n  allowed_signers: allowed_signers\n  groups:\n    line3: {approvals: 1, reason: true}"
         )
         inv = str(_site(tmp_path, {"d1": a.url, "d2": b.url}, policy))
-        made = _run(tmp_path, "plan", "--inventory", inv, "--out", "f.json", "--sign-key", "alice", "--policy", inv)
+        made = run(tmp_path, "plan", "--inventory", inv, "--out", "f.json", "--sign-key", "alice", "--policy", inv)
         assert made.returncode == 0, made.stderr
-        refused = _run(tmp_path, "apply", "f.json", "--yes", "--policy", inv)
+        refused = run(tmp_path, "apply", "f.json", "--yes", "--policy", inv)
         assert refused.returncode == 1 and "nothing was sent" in refused.stderr, refused.stderr
         assert "a reason (deployer plan" in refused.stderr
         assert "1 approval by distinct users other than the author alice (none so far)" in refused.stderr
         assert _writes(a) == [] and _writes(b) == []
 
-        again = _run(
+        again = run(
             tmp_path, "plan", "--inventory", inv, "--out", "f.json", "--sign-key", "alice", "--reason",
             "faster ramps", "--policy", inv,
         )  # fmt: skip
         assert again.returncode == 0, again.stderr
-        self_ = _run(tmp_path, "approve", "f.json", "--key", "alice", "--policy", inv)
+        self_ = run(tmp_path, "approve", "f.json", "--key", "alice", "--policy", inv)
         assert self_.returncode == 1 and "author cannot approve their own change" in self_.stderr
-        bob = _run(tmp_path, "approve", "f.json", "--key", "bob", "--policy", inv)
+        bob = run(tmp_path, "approve", "f.json", "--key", "bob", "--policy", inv)
         assert bob.returncode == 0 and "has what its policy requires" in bob.stderr, bob.stderr
 
         good = (tmp_path / "f.json").read_text()
@@ -199,12 +173,12 @@ def test_a_fleet_plan_is_approved_once_for_all_its_devices_and_runs_only_as_appr
         step = next(s for s in plan["steps"] if s["kind"] == "write" and "accel" in s["parameters"])
         step["values"][accel["address"] - step["address"]] = 21
         (tmp_path / "f.json").write_text(json.dumps(doc, indent=2))
-        changed = _run(tmp_path, "apply", "f.json", "--yes", "--policy", inv)
+        changed = run(tmp_path, "apply", "f.json", "--yes", "--policy", inv)
         assert changed.returncode == 1 and "made over other content" in changed.stderr, changed.stderr
         assert _writes(a) == [] and _writes(b) == []
 
         (tmp_path / "f.json").write_text(good)
-        ran = _run(tmp_path, "apply", "f.json", "--yes", "--policy", inv, "--report", "rep.json")
+        ran = run(tmp_path, "apply", "f.json", "--yes", "--policy", inv, "--report", "rep.json")
         assert ran.returncode == 0, ran.stderr
         assert a.read("accel") == b.read("accel") == (20,)
         rep = json.loads((tmp_path / "rep.json").read_text())
