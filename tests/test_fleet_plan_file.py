@@ -63,6 +63,8 @@ def test_a_saved_fleet_plan_runs_exactly_its_plans_and_only_once(
         assert list(fleet) == ["d1", "d2", "d3"] and fleet.device("d2") == (b.url, 1) and fleet.changes
         with pytest.raises(deployer.InputError, match=r"a saved fleet plan, not one device's: .*FleetPlan.load"):
             deployer.load_plan(out)
+        with pytest.raises(deployer.UsageError, match="has no argument 'paht'; did you mean 'path'"):
+            deployer.FleetPlan.load(paht=out)  # type: ignore[call-arg]
         again = tmp_path / "again.json"  # to_json() and load() go both ways
         again.write_text(json.dumps(fleet.to_json()))
         assert deployer.FleetPlan.load(again).plans == fleet.plans

@@ -18,6 +18,7 @@ from ..calls import in_own_loop
 from ..errors import InputError, TransportError, UsageError
 from ..fleet.inventory import Inventory, load_inventory
 from ..fleet.inventory import fleet_jobs as _fleet_jobs
+from ..fleet.plans import fleet_plan_text
 from ..planning.model import Cost, Plan, Target
 from ..planning.planfile import plan_to_json
 from ..planning.steps import make_plan
@@ -80,6 +81,7 @@ __all__ = [
     "diff_values",
     "file_name",
     "fleet_jobs",
+    "fleet_plan_text",
     "forget_learned",
     "format_decimal",
     "import_csv",

@@ -461,7 +461,7 @@ def _save_fleet_plan(
     signed with ``--sign-key``, and the audit trail's record of it; the document written."""
     import os
 
-    from ..api.commands import write_output
+    from ..api.commands import fleet_plan_text, write_output
     from ..audit.commands import after_plan
 
     change = change or ChangeOptions()
@@ -469,31 +469,9 @@ def _save_fleet_plan(
     for j in jobs:
         files += [("recipe", j.recipe.path), ("profile", j.recipe.profile.source)]
     doc = stamped(data, change, None, files)
-    text = json.dumps(doc, indent=2) + "\n"
-    _readable(text, doc)
+    text = fleet_plan_text(doc)  # refused when apply could not read it back
     os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
     write_output(out_path, text, what="the fleet plan")
     for what in after_plan(doc, out_path=out_path, device=None, state_dir=state_dir, policy_path=change.policy):
         echo(f"not recorded: {safe(what)}", err=True)
     return doc
-
-
-def _readable(text: str, doc: Any) -> None:
-    """A fleet plan that ``apply`` could not read back (the input limits every file is read within) is not written:
-    UsageError saying how to plan it in parts."""
-    from ..load.yamlsrc import MAX_FILE_BYTES, MAX_NODES
-
-    def values(x: Any) -> int:  # as the loader counts them: every value, keys not
-        if isinstance(x, dict):
-            return 1 + sum(values(v) for v in x.values())
-        if isinstance(x, list):
-            return 1 + sum(values(v) for v in x)
-        return 1
-
-    size, count = len(text.encode()), values(doc)
-    if size > MAX_FILE_BYTES or count > MAX_NODES:
-        raise UsageError(
-            f"no fleet plan written: it would be {size / 1e6:.1f} MB and {count:,} values, more than a file may hold "
-            f"({MAX_FILE_BYTES >> 20} MiB, {MAX_NODES:,} values: docs/input-limits.md); plan the fleet in parts, a "
-            "group or a range of names at a time (--limit)"
-        )

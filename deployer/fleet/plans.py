@@ -7,6 +7,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
+from ..calls import checked
 from ..errors import DeployerError, UsageError
 from ..planning.model import Plan
 from ..transport.urls import describe
@@ -86,10 +87,13 @@ class FleetPlan:
         return describe(job.url), job.unit
 
     @classmethod
+    @checked("deployer.FleetPlan.load")
     def load(cls, path: str | os.PathLike[str]) -> FleetPlan:
         """A saved fleet plan file (``plan --inventory --out``, or ``to_json()`` written to a file), each device's
         plan checked as ``deployer.load_plan`` checks one: ``apply`` executes it unchanged. Raises InputError with
-        every problem at its position."""
+        every problem at its position, UsageError when ``path`` is not a path."""
+        if not isinstance(path, (str, os.PathLike)):
+            raise UsageError(f"deployer.FleetPlan.load() takes the fleet plan file's path, got {type(path).__name__}")
         return load_fleet_plan(os.fspath(path))
 
     def without_errors(self) -> FleetPlan:
@@ -122,6 +126,31 @@ class FleetPlan:
                 for n, r in self._results.items()
             ],
         }
+
+
+def fleet_plan_text(doc: Mapping[str, Any]) -> str:
+    """A fleet plan document as its file's text; UsageError when ``apply`` could not read it back (the input limits
+    every file is read within), saying how large it would be and how to plan the fleet in parts."""
+    import json
+
+    from ..load.yamlsrc import MAX_FILE_BYTES, MAX_NODES
+
+    def values(x: Any) -> int:  # as the loader counts them: every value, keys not
+        if isinstance(x, dict):
+            return 1 + sum(values(v) for v in x.values())
+        if isinstance(x, list):
+            return 1 + sum(values(v) for v in x)
+        return 1
+
+    text = json.dumps(doc, indent=2) + "\n"
+    size, count = len(text.encode()), values(doc)
+    if size > MAX_FILE_BYTES or count > MAX_NODES:
+        raise UsageError(
+            f"no fleet plan written: it would be {size / 1e6:.1f} MB and {count:,} values, more than a file may hold "
+            f"({MAX_FILE_BYTES >> 20} MiB, {MAX_NODES:,} values: docs/input-limits.md); plan the fleet in parts, a "
+            "group or a range of names at a time (--limit)"
+        )
+    return text
 
 
 def executable_jobs(fleet: FleetPlan) -> list[Job]:
