@@ -46,6 +46,7 @@ def test_a_saved_fleet_plan_runs_exactly_its_plans_and_only_once(
     prof = load_profile_text(tmp_path)
     with SimulatorThread(prof) as a, SimulatorThread(prof) as b, SimulatorThread(prof) as c:
         sims = {"d1": a, "d2": b, "d3": c}
+        c.write("speed", (1200,))  # d3 holds other values than d1 and d2: a plan of its own
         inv = _site(tmp_path, {n: s.url for n, s in sims.items()})
         out = str(tmp_path / "fleet.json")
         code, text, err = cli(capsys, "plan", "--inventory", str(inv), "--out", out)
@@ -55,6 +56,13 @@ def test_a_saved_fleet_plan_runs_exactly_its_plans_and_only_once(
         doc = json.loads(Path(out).read_text())
         assert doc["schema"] == "deployer.fleetplan/1" and doc["inventory"] == str(inv)
         assert [(d["name"], d["group"]) for d in doc["devices"]] == [("d1", "line3"), ("d2", "line4"), ("d3", "line4")]
+        # d2 holds what d1 holds: d1's plan, for d2 (written once); d3 has its own
+        assert [("plan" in d, d.get("plan_of")) for d in doc["devices"]] == [(True, None), (False, "d1"), (True, None)]
+        assert doc["devices"][1]["device"] == {
+            "url": b.url,
+            "unit": 1,
+            "profile": doc["devices"][0]["plan"]["device"]["profile"],
+        }
         assert doc["change"]["author"] and [i["kind"] for i in doc["change"]["inputs"]] == ["recipe", "profile"]
         jsonschema.validate(doc, schema.schema("fleetplan"))
         assert all(s.log == [] or not _writes(s) for s in sims.values())  # planning reads only
@@ -68,10 +76,11 @@ def test_a_saved_fleet_plan_runs_exactly_its_plans_and_only_once(
         again = tmp_path / "again.json"  # to_json() and load() go both ways
         again.write_text(json.dumps(fleet.to_json()))
         assert deployer.FleetPlan.load(again).plans == fleet.plans
+        assert fleet["d2"].device.url == b.url and fleet["d2"].steps == fleet["d1"].steps
         # --json prints the same document (without the change a saved one records)
         code, text, _ = cli(capsys, "plan", "--inventory", str(inv), "--json")
         shown = json.loads(text)
-        assert code == 0 and [d["plan"] for d in shown["devices"]] == [d["plan"] for d in doc["devices"]]
+        assert code == 0 and shown["devices"] == doc["devices"]
 
         for s in sims.values():
             s.log.clear()
@@ -88,8 +97,8 @@ def test_a_saved_fleet_plan_runs_exactly_its_plans_and_only_once(
             "d2": ("ok", 1),
             "d3": ("ok", 2),
         }
-        for entry in doc["devices"]:  # each device received exactly its saved plan
-            contract.check(entry["plan"], by[entry["name"]], list(sims[entry["name"]].log))
+        for name, sim in sims.items():  # each device received exactly its saved plan
+            contract.check(fleet[name].to_json(), by[name], list(sim.log))
         assert [s.read("accel") for s in sims.values()] == [(20,), (20,), (20,)]
 
         # run a second time: every device refused before its first write, and said why
@@ -100,6 +109,12 @@ def test_a_saved_fleet_plan_runs_exactly_its_plans_and_only_once(
         assert code == 4 and [d["status"] for d in again["devices"]] == ["skipped"] * 3, err
         assert all("did the plan run already?" in d["error"] for d in again["devices"])
         assert all(_writes(s) == [] for s in sims.values())
+        # an edited file whose device names a plan it does not hold: refused at its position, nothing sent
+        edited = json.loads(Path(out).read_text())
+        edited["devices"][1]["plan_of"] = "d9"
+        Path(out).write_text(json.dumps(edited, indent=2))
+        code, _, err = cli(capsys, "apply", out, "--yes")
+        assert code == 1 and "d2: plan_of names no earlier device's plan" in err and f"{out}:" in err, err
 
 
 def load_profile_text(tmp: Path) -> Profile:
@@ -168,8 +183,9 @@ def test_a_fleet_plan_is_approved_once_for_all_its_devices_and_runs_only_as_appr
         assert bob.returncode == 0 and "has what its policy requires" in bob.stderr, bob.stderr
 
         good = (tmp_path / "f.json").read_text()
-        doc = json.loads(good)  # d2's accel 2.1 s instead of 2 s, consistently: valid, but not what was approved
-        plan = doc["devices"][1]["plan"]
+        doc = json.loads(good)  # accel 2.1 s instead of 2 s in d1's plan (d2's too: it shares it), consistently
+        assert doc["devices"][1]["plan_of"] == "d1"
+        plan = doc["devices"][0]["plan"]
         accel = next(p for p in plan["parameters"] if p["name"] == "accel")
         accel["desired"], accel["desired_raw"] = "2.1 s", [21]
         step = next(s for s in plan["steps"] if s["kind"] == "write" and "accel" in s["parameters"])

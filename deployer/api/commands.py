@@ -529,8 +529,8 @@ def validate_file(path: str | os.PathLike[str]) -> str:
         if kind == "fleetplan":  # checked as a saved plan is: the profiles are checked when it runs
             from ..fleet.plans import read_fleet_plan
 
-            _, plans, _ = read_fleet_plan(where)  # takes the document over: every device's plan at its positions
-            writes = sum(len(p.writes) for _, _, p in plans)
+            _, plans = read_fleet_plan(where)  # takes the document over: every device's plan at its positions
+            writes = sum(len(p.writes) for _, _, p, _, _ in plans)
             return f"fleet plan: {_count(len(plans), 'device')}, {_count(writes, 'write request')}"
         if kind == "report":
             from .loading import load_report

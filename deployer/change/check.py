@@ -27,7 +27,31 @@ def plan_devices(doc: Mapping[str, Any]) -> list[tuple[str | None, int | None]]:
     devices = doc.get("devices")
     if not str(doc.get("schema", "")).startswith("deployer.fleetplan/") or not isinstance(devices, list):
         return [plan_device(doc)]
-    return [plan_device(e["plan"]) for e in devices if isinstance(e, Mapping) and isinstance(e.get("plan"), Mapping)]
+    out = []
+    for e in devices:
+        if isinstance(e, Mapping) and isinstance(e.get("plan"), Mapping):
+            out.append(plan_device(e["plan"]))
+        elif isinstance(e, Mapping) and "plan_of" in e:  # an earlier device's plan, for its own device
+            out.append(plan_device(e))
+    return out
+
+
+def fleet_entry_plan(doc: Mapping[str, Any], name: str) -> Mapping[str, Any] | None:
+    """Device ``name``'s plan in a saved fleet plan, as a saved plan's JSON (a shared plan with the device's own
+    ``device``); None when the document does not hold exactly one."""
+    devices = doc.get("devices")
+    entries = [e for e in devices if isinstance(e, Mapping)] if isinstance(devices, list) else []
+    found = [e for e in entries if e.get("name") == name]
+    if len(found) != 1:
+        return None
+    entry = found[0]
+    if "plan_of" in entry:
+        base = fleet_entry_plan(doc, str(entry["plan_of"])) if entry["plan_of"] != name else None
+        if base is None or not isinstance(entry.get("device"), Mapping):
+            return None
+        return {**base, "device": entry["device"]}
+    plan = entry.get("plan")
+    return plan if isinstance(plan, Mapping) else None
 
 
 def verdicts(doc: Mapping[str, Any], allowed: AllowedSigners | None) -> list[Verdict]:

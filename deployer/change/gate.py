@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 from ..errors import UsageError
 from . import policy as policies
 from .canonical import canonical, digest
+from .check import fleet_entry_plan
 
 if TYPE_CHECKING:
     from ..execute.job import Job
@@ -35,11 +36,10 @@ def _same_plan(doc: Mapping[str, Any], plan: Plan, name: str) -> bool:
     from ..planning.planfile import plan_to_json
 
     if str(doc.get("schema", "")).startswith("deployer.fleetplan/"):
-        devices = doc.get("devices")
-        found = [e["plan"] for e in devices or [] if isinstance(e, Mapping) and e.get("name") == name and "plan" in e]
-        if len(found) != 1 or not isinstance(found[0], Mapping):
+        found = fleet_entry_plan(doc, name)
+        if found is None:
             return False
-        doc = found[0]
+        doc = found
     loaded = plan_to_json(plan)
     return all(canonical(doc.get(k)) == canonical(v) for k, v in loaded.items())
 

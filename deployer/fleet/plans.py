@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import replace
@@ -9,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..calls import checked
 from ..errors import DeployerError, UsageError
-from ..planning.model import Plan
+from ..planning.model import Plan, Target
 from ..transport.urls import describe
 
 if TYPE_CHECKING:  # its module imports the transports (pymodbus): an offline plan does not need them
@@ -17,6 +18,7 @@ if TYPE_CHECKING:  # its module imports the transports (pymodbus): an offline pl
     from ..execute.job import Job
     from ..load.yamlsrc import Path_
     from ..profile import Profile
+    from ..recipe.loader import Recipe
 
     ErrorAt = Callable[[Path_, str], Diagnostic]  # a problem said at a position of one device's plan
 
@@ -107,25 +109,26 @@ class FleetPlan:
 
     def to_json(self, plans: Mapping[str, Any] | None = None) -> dict[str, Any]:
         """A saved fleet plan (docs/reference/fleetplan.md), as ``deployer plan --inventory --json`` prints it and
-        ``--out`` writes it: the recipe and inventory, and per device its group and its plan (a saved plan's JSON)
-        or its error. ``plans``: each device's plan JSON where the caller made it (with its cost)."""
-        return {
-            "schema": FLEET_SCHEMA,
-            "recipe": self.recipe,
-            "inventory": self.inventory,
-            "devices": [
-                {
-                    "name": n,
-                    "group": self._jobs[n].group,
-                    **(
-                        {"plan": plans[n] if plans is not None and n in plans else r.to_json()}
-                        if isinstance(r, Plan)
-                        else {"error": str(r)}
-                    ),
-                }
-                for n, r in self._results.items()
-            ],
-        }
+        ``--out`` writes it: the recipe and inventory, and per device its group and its plan (a saved plan's JSON),
+        or the name of an earlier device whose plan it is but for the device (``plan_of``: a fleet's devices mostly
+        hold the same values, and a file of every plan in full held 600 devices of 100 parameters), or its error.
+        ``plans``: each device's plan JSON where the caller made it (with its cost)."""
+        first: dict[str, str] = {}  # a plan's JSON without its device -> the device that has it in full
+        devices: list[dict[str, Any]] = []
+        for n, r in self._results.items():
+            entry: dict[str, Any] = {"name": n, "group": self._jobs[n].group}
+            if not isinstance(r, Plan):
+                entry["error"] = str(r)
+            else:
+                doc = plans[n] if plans is not None and n in plans else r.to_json()
+                key = json.dumps({k: v for k, v in doc.items() if k != "device"}, sort_keys=True)
+                if key in first:
+                    entry["plan_of"], entry["device"] = first[key], doc["device"]
+                else:
+                    first[key] = n
+                    entry["plan"] = doc
+            devices.append(entry)
+        return {"schema": FLEET_SCHEMA, "recipe": self.recipe, "inventory": self.inventory, "devices": devices}
 
 
 def fleet_plan_text(doc: Mapping[str, Any]) -> str:
@@ -178,14 +181,12 @@ def is_fleet_plan_file(path: str) -> bool:
     return head.lstrip().startswith(b"{") and b'"deployer.fleetplan/' in head
 
 
-def read_fleet_plan(
-    path: str,
-) -> tuple[dict[str, Any], list[tuple[str, str | None, Plan]], Callable[[int], ErrorAt]]:
+def read_fleet_plan(path: str) -> tuple[dict[str, Any], list[tuple[str, str | None, Plan, ErrorAt, str]]]:
     """A saved fleet plan file's document, and each device's name, group and plan, checked as a saved plan is
     (``plan_from_json``: its format and consistency, every problem at its position in the file), all problems at
-    once (InputError); with the function that says a problem at a position of device ``i``'s plan. A device saved
-    without a plan (an edited file: ``plan --out`` writes none) is one: a saved fleet plan runs every device it
-    names."""
+    once (InputError), with what says a problem at a position of the plan and the device whose entry writes it in
+    full (itself, or the one its ``plan_of`` names). A device saved without a plan (an edited file: ``plan --out``
+    writes none) is one: a saved fleet plan runs every device it names."""
     from ..errors import InputError
     from ..load import yamlsrc
     from ..planning.planfile import plan_from_json
@@ -203,7 +204,8 @@ def read_fleet_plan(
             if len(at) >= 3 and at[0] == "devices" and at[2] == "plan" and isinstance(at[1], int) and at[1] in subs:
                 getattr(subs[at[1]], member)[at[3:]] = pos
     errors: list[Diagnostic] = []
-    out: list[tuple[str, str | None, Plan]] = []
+    out: list[tuple[str, str | None, Plan, ErrorAt, str]] = []
+    full: dict[str, tuple[Plan, ErrorAt]] = {}  # the devices whose plan is written in full
     seen: set[str] = set()
     for i, entry in enumerate(devices):
         name: Any = entry.get("name") if isinstance(entry, dict) else None
@@ -211,6 +213,23 @@ def read_fleet_plan(
             errors.append(src.error(("devices", i), "each device has a name of its own"))
             continue
         seen.add(name)
+        group = entry.get("group")
+        group = group if isinstance(group, str) else None
+        if "plan_of" in entry:  # an earlier device's plan, for this device
+            of, dev = entry.get("plan_of"), entry.get("device")
+            if of not in full:
+                errors.append(src.error(("devices", i, "plan_of"), f"{name}: plan_of names no earlier device's plan"))
+                continue
+            plan, said = full[str(of)]
+            if not (isinstance(dev, dict) and isinstance(dev.get("unit"), int) and isinstance(dev.get("url"), str)):
+                errors.append(src.error(("devices", i, "device"), f"{name}: its device's url and unit are needed"))
+                continue
+            if dev.get("profile") != plan.device.profile:
+                errors.append(src.error(("devices", i, "device"), f"{name}: not the profile of {of}'s plan"))
+                continue
+            shared = replace(plan, device=Target(dev["url"], dev["unit"], plan.device.profile))
+            out.append((name, group, shared, said, str(of)))
+            continue
         if "plan" not in entry:
             why = f" ({entry['error']})" if isinstance(entry.get("error"), str) else ""
             errors.append(src.error(("devices", i), f"{name} has no plan{why}: plan the fleet again"))
@@ -220,11 +239,11 @@ def read_fleet_plan(
         except InputError as e:
             errors.extend(e.diagnostics)
             continue
-        group = entry.get("group")
-        out.append((name, group if isinstance(group, str) else None, plan))
+        full[name] = plan, subs[i].error
+        out.append((name, group, plan, subs[i].error, name))
     if errors:
         raise InputError(errors)
-    return data, out, lambda i: subs[i].error
+    return data, out
 
 
 def load_fleet_plan(path: str, *, timeout: float | None = None, retries: int | None = None) -> FleetPlan:
@@ -234,15 +253,20 @@ def load_fleet_plan(path: str, *, timeout: float | None = None, retries: int | N
     from ..errors import InputError
     from ..execute.job import Job
     from ..planning.planfile import plan_recipe
+    from ..recipe.model import DeviceSpec
     from ..transport.urls import parse_url
 
-    data, plans, error_at = read_fleet_plan(path)
+    data, plans = read_fleet_plan(path)
     errors: list[Diagnostic] = []
     jobs: list[Job] = []
-    for i, (name, group, plan) in enumerate(plans):
-        at = error_at(i)
+    recipes: dict[str, Recipe] = {}  # each plan's recipe, checked against its profile once, by its device in full
+    for name, group, plan, at, base in plans:
         try:
-            rec = plan_recipe(plan, path, at)
+            rec = recipes.get(base)
+            if rec is None:
+                rec = recipes[base] = plan_recipe(plan, path, at)
+            elif base != name:  # a shared plan: its recipe, for this device
+                rec = replace(rec, device=DeviceSpec(plan.device.url, plan.device.unit))
             if plan.device.url is None:
                 raise InputError([at(("device", "url"), f"{name}: the plan names no device URL")])
             url = parse_url(plan.device.url, timeout=timeout, retries=retries)
@@ -258,7 +282,7 @@ def load_fleet_plan(path: str, *, timeout: float | None = None, retries: int | N
     recipe = data.get("recipe")
     return FleetPlan(
         jobs,
-        {name: plan for name, _, plan in plans},
+        {name: plan for name, _, plan, _, _ in plans},
         recipe=recipe if isinstance(recipe, str) else None,
         inventory=str(data.get("inventory") or path),
     )
