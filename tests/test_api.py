@@ -73,7 +73,8 @@ def test_a_saved_plan_loads_and_runs(tmp_path: Path) -> None:
 
 def test_an_offline_plan_names_the_device_and_its_pacing() -> None:
     plan = deployer.plan(recipe(), "tcp://10.0.0.11:502?pause_between_requests=50ms", offline=True, state_dir=None)
-    assert plan.device.url == "tcp://10.0.0.11:502" and plan.pacing.between_requests == 0.05
+    # the URL as the plan runs it again: its pause kept (a secret would not be)
+    assert plan.device.url == "tcp://10.0.0.11:502?pause_between_requests=50ms" and plan.pacing.between_requests == 0.05
     assert [pp.current_raw for pp in plan.parameters] == [None, None]
 
 

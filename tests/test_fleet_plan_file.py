@@ -41,8 +41,9 @@ def _writes(sim: Simulator) -> list[tuple[int, int]]:
 
 
 def test_a_saved_fleet_plan_runs_exactly_its_plans_and_only_once(
-    capsys: pytest.CaptureFixture[str], tmp_path: Path
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.chdir(tmp_path)  # plan --out records in the state folder's audit trail: here
     prof = load_profile_text(tmp_path)
     with SimulatorThread(prof) as a, SimulatorThread(prof) as b, SimulatorThread(prof) as c:
         sims = {"d1": a, "d2": b, "d3": c}
@@ -122,8 +123,11 @@ def load_profile_text(tmp: Path) -> Profile:
     return load_profile(str(tmp / "drive.yaml"))
 
 
-def test_a_fleet_plan_is_written_whole_or_not_at_all(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+def test_a_fleet_plan_is_written_whole_or_not_at_all(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A device that cannot be planned (unreachable) leaves no file: the saved plan runs every device it names."""
+    monkeypatch.chdir(tmp_path)  # plan --out records in the state folder's audit trail: here
     prof = load_profile_text(tmp_path)
     with SimulatorThread(prof) as a:
         inv = _site(tmp_path, {"d1": a.url, "gone": f"tcp://127.0.0.1:{dead_port()}?timeout=0.5&retries=0"})
@@ -222,3 +226,40 @@ def test_a_fleet_plan_too_large_to_read_back_is_not_written(
     assert code == 1 and not out.exists(), err
     assert "no fleet plan written: it would be " in err and "more than a file may hold (32 MiB, 100 values" in err, err
     assert "plan the fleet in parts, a group or a range of names at a time (--limit)" in err
+
+
+def test_a_saved_plan_talks_to_each_device_as_its_plan_was_made(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A saved plan keeps its device's timeout, retries and pauses (no secret): an inventory's slow gateway is not
+    lost to the defaults at apply; a timeout given to the apply goes over them."""
+    monkeypatch.chdir(tmp_path)  # plan --out records in the state folder's audit trail: here
+    from deployer.run.request import RunRequest, prepare
+
+    prof = load_profile_text(tmp_path)
+    with SimulatorThread(prof) as a, SimulatorThread(prof) as b:
+        (tmp_path / "r.yaml").write_text(RECIPE)
+        inv = tmp_path / "site.yaml"
+        inv.write_text(
+            f'devices:\n  d1: {{url: "{a.url}", recipe: r.yaml}}\n'
+            f'  d2: {{url: "{b.url}?pause_between_requests=20ms", recipe: r.yaml, timeout: 2.5, retries: 0}}\n'
+        )
+        out = tmp_path / "fleet.json"
+        assert cli(capsys, "plan", "--inventory", str(inv), "--out", str(out))[0] == 0
+        single = tmp_path / "p.json"
+        assert (
+            cli(capsys, "plan", str(tmp_path / "r.yaml"), "--device", f"{b.url}?timeout=2.5", "--out", str(single))[0]
+            == 0
+        )
+    doc = json.loads(out.read_text())
+    assert doc["devices"][0]["plan"]["device"]["url"] == a.url  # the defaults: nothing to keep
+    recorded = doc["devices"][1]["plan"]["device"]["url"]
+    assert recorded == f"{b.url}?pause_between_requests=20ms&retries=0&timeout=2.5", recorded
+    assert json.loads(single.read_text())["device"]["url"] == f"{b.url}?timeout=2.5"
+
+    def urls(source: Path, **given: object) -> list[tuple[float, int]]:
+        jobs = prepare(RunRequest(str(source), **given)).jobs  # type: ignore[arg-type]
+        return [(j.url.timeout, j.url.retries) for j in jobs]
+
+    assert urls(out) == [(1.0, 2), (2.5, 0)] and urls(out, timeout=5.0, retries=3) == [(5.0, 3), (5.0, 3)]
+    assert urls(single) == [(2.5, 2)] and urls(single, timeout=5.0) == [(5.0, 2)]

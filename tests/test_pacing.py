@@ -214,9 +214,12 @@ def test_a_rollback_from_a_snapshot_talks_to_the_device_as_its_apply_did(
     assert job.url.options["pause_between_requests"] == "80ms"
 
 
-def test_a_saved_plan_keeps_the_pauses_it_was_made_with(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """A saved plan names its device without the URL's options, but the pauses it was made with are part of it
-    (its ``pacing``): ``apply PLAN.json`` keeps them without being given the URL's options again."""
+def test_a_saved_plan_keeps_the_pauses_it_was_made_with(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The pauses a saved plan was made with are part of it (its ``pacing``, and its URL's options):
+    ``apply PLAN.json`` keeps them without being given the URL again."""
+    monkeypatch.chdir(tmp_path)  # plan --out records in the state folder's audit trail: here
     (tmp_path / "drive.yaml").write_text(PROFILE)  # no pauses of its own: the URL's are the device's
     (tmp_path / "r.yaml").write_text(RECIPE)
     paced = "?pause_after_connect=150ms&pause_between_requests=80ms&timeout=2&retries=0"

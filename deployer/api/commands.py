@@ -30,7 +30,7 @@ from ..recipe.loader import Recipe
 from ..recipe.loader import load_recipe as _load_recipe
 from ..report import DEVICE_STATUSES, Report, report_from_json, report_text, run_info
 from ..run.request import PreparedRun, RunRequest
-from ..transport.urls import DeviceURL, describe
+from ..transport.urls import DeviceURL, describe, recorded
 from .checks import (
     device_url,
     kind,
@@ -189,7 +189,7 @@ def plan_values(
     from ..planning.steps import pacing_for
     from ..transport.urls import identification
 
-    where = Target(describe(device) if device is not None else None, unit, recipe.profile_ref or recipe.profile.id)
+    where = Target(recorded(device) if device is not None else None, unit, recipe.profile_ref or recipe.profile.id)
     return make_plan(
         recipe,
         where,

@@ -23,7 +23,7 @@ from ..limits import LIMITS
 from ..planning.model import Plan, Target
 from ..recipe.loader import Recipe
 from ..report import DeviceResult, Report
-from ..transport.urls import DeviceURL, describe
+from ..transport.urls import DeviceURL, recorded
 from .checks import (
     kind,
     need_batch_by,
@@ -99,7 +99,7 @@ def _offline_plan(
     ref = recipe.profile_ref or recipe.profile.id
     return make_plan(
         recipe,
-        Target(describe(url) if url is not None else None, unit, ref),
+        Target(recorded(url) if url is not None else None, unit, ref),
         None,
         write_all=write_all,
         pacing=pacing_for(url, recipe.profile),
@@ -330,6 +330,10 @@ def _apply_jobs(
 
         rec = plan_recipe(what)
         url, u = target(rec, device, unit, timeout=timeout, retries=retries)
+        if device is None:  # the plan's URL: a timeout given now goes over its own
+            from ..transport.urls import overridden
+
+            url = overridden(url, timeout, retries)
         return [Job(name or rec.name, rec, url, u, plan=what)], what.recipe or rec.name, False
     if what is not None:
         need_recipe(what, "apply")

@@ -57,7 +57,8 @@ async def plan_device(
             why = (res.error or "").removesuffix("; nothing was written")
             raise Unreachable(f"{tp.describe(url)} unit {unit}: {why}")
         dev.keep_taught(ex)
-        plan, _ = dev.shared.plan(Target(tp.describe(url), unit, profile_ref(dev.recipe.profile)), ex.before, False)
+        # the URL as a saved plan runs it again: its timeout, retries and pauses, no secret (as a snapshot keeps it)
+        plan, _ = dev.shared.plan(Target(tp.recorded(url), unit, profile_ref(dev.recipe.profile)), ex.before, False)
     if notices is not None:
         notices.extend(res.notices)
     return plan

@@ -254,7 +254,7 @@ def load_fleet_plan(path: str, *, timeout: float | None = None, retries: int | N
     from ..execute.job import Job
     from ..planning.planfile import plan_recipe
     from ..recipe.model import DeviceSpec
-    from ..transport.urls import parse_url
+    from ..transport.urls import overridden, parse_url
 
     data, plans = read_fleet_plan(path)
     errors: list[Diagnostic] = []
@@ -269,7 +269,7 @@ def load_fleet_plan(path: str, *, timeout: float | None = None, retries: int | N
                 rec = replace(rec, device=DeviceSpec(plan.device.url, plan.device.unit))
             if plan.device.url is None:
                 raise InputError([at(("device", "url"), f"{name}: the plan names no device URL")])
-            url = parse_url(plan.device.url, timeout=timeout, retries=retries)
+            url = overridden(parse_url(plan.device.url), timeout, retries)  # given now, over the plan's own
         except InputError as e:
             errors.extend(e.diagnostics)
             continue

@@ -173,7 +173,7 @@ def _recipe_jobs(r: RunRequest) -> PreparedRun:
     from ..execute.job import Job
     from ..planning.planfile import load_plan
     from ..recipe.loader import load_recipe
-    from ..transport.urls import parse_url
+    from ..transport.urls import overridden, parse_url
 
     assert r.source is not None
     expected = None
@@ -194,6 +194,8 @@ def _recipe_jobs(r: RunRequest) -> PreparedRun:
         raise UsageError("no device: pass --device URL or set device.url in the recipe")
     unit = r.unit if r.unit is not None else (rec.device.unit if rec.device and rec.device.unit is not None else 1)
     url = parse_url(text, timeout=r.timeout, retries=r.retries)  # BadURL is a UsageError
+    if expected is not None and r.device is None:  # the saved plan's URL: a timeout given now goes over its own
+        url = overridden(url, r.timeout, r.retries)
     return PreparedRun(r, [Job(rec.name, rec, url, unit, plan=expected)], r.source)
 
 
