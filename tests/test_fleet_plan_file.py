@@ -116,6 +116,12 @@ def test_a_saved_fleet_plan_runs_exactly_its_plans_and_only_once(
         Path(out).write_text(json.dumps(edited, indent=2))
         code, _, err = cli(capsys, "apply", out, "--yes")
         assert code == 1 and "d2: plan_of names no earlier device's plan" in err and f"{out}:" in err, err
+        edited["devices"][1]["plan_of"] = "d1"  # and a plan beside it: which one would run is not for a reader to guess
+        edited["devices"][1]["plan"] = edited["devices"][2]["plan"]
+        Path(out).write_text(json.dumps(edited, indent=2))
+        code, _, err = cli(capsys, "apply", out, "--yes")
+        assert code == 1 and "d2: a plan and a plan_of: give one of them" in err, err
+        assert all(_writes(s) == [] for s in sims.values())
 
 
 def load_profile_text(tmp: Path) -> Profile:

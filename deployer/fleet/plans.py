@@ -134,8 +134,6 @@ class FleetPlan:
 def fleet_plan_text(doc: Mapping[str, Any]) -> str:
     """A fleet plan document as its file's text; UsageError when ``apply`` could not read it back (the input limits
     every file is read within), saying how large it would be and how to plan the fleet in parts."""
-    import json
-
     from ..load.yamlsrc import MAX_FILE_BYTES, MAX_NODES
 
     def values(x: Any) -> int:  # as the loader counts them: every value, keys not
@@ -215,6 +213,9 @@ def read_fleet_plan(path: str) -> tuple[dict[str, Any], list[tuple[str, str | No
         seen.add(name)
         group = entry.get("group")
         group = group if isinstance(group, str) else None
+        if "plan_of" in entry and "plan" in entry:  # a reviewer would read one plan and apply run the other
+            errors.append(src.error(("devices", i, "plan_of"), f"{name}: a plan and a plan_of: give one of them"))
+            continue
         if "plan_of" in entry:  # an earlier device's plan, for this device
             of, dev = entry.get("plan_of"), entry.get("device")
             if of not in full:
