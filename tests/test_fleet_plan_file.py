@@ -180,6 +180,9 @@ def test_a_fleet_plan_is_approved_once_for_all_its_devices_and_runs_only_as_appr
         assert refused.returncode == 1 and "nothing was sent" in refused.stderr, refused.stderr
         assert "a reason (deployer plan" in refused.stderr
         assert "1 approval by distinct users other than the author alice (none so far)" in refused.stderr
+        # without --policy too: the inventory the plan was made from governs it (no way around its policy)
+        bare = run(tmp_path, "apply", "f.json", "--yes")
+        assert bare.returncode == 1 and "1 approval by distinct users" in bare.stderr, bare.stderr
         assert _writes(a) == [] and _writes(b) == []
 
         again = run(

@@ -48,7 +48,7 @@ def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: 
     meta_given: tuple[str, ...] = options.pop("meta", ())
     compact: bool = options.pop("compact", False)
     prepared = prepare_run(RunRequest(source, **options))
-    meta = record_meta(prepared.request.inventory, meta_given) if prepared.request.html_path else []
+    meta = record_meta(prepared.inventory, meta_given) if prepared.request.html_path else []
     for n in prepared.notices:
         echo(safe(n), err=True)
     for n in prepared.refused:
@@ -70,7 +70,7 @@ def run_apply(source: str | None, *, yes: bool, as_json: bool, to_other_device: 
         change=prepared.change,
         state_dir=request.state_dir,
         policy_path=request.policy,
-        inventory=request.inventory,
+        inventory=prepared.inventory,
         report_path=request.report_path,
     )
     if request.html_path:

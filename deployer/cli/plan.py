@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, cast
 
@@ -260,8 +261,6 @@ def plan(
                 "--inventory, --out or --show-frames"
             )
         return agentclient.plan(agent_url, as_json=as_json, detailed_exitcode=detailed_exitcode)
-    import os
-
     from ..api.commands import plan_to_json, plan_values, write_output
 
     if change.given and not out_path:
@@ -398,7 +397,10 @@ def plan_fleet(
     data: dict[str, Any] | None = None
     if as_json or out_path:  # the saved fleet plan: each device's plan as a saved plan says it, with its cost
         fleet = FleetPlan(
-            jobs, cast(Mapping[str, Any], values), recipe=rec.path if rec else None, inventory=inventory or ""
+            jobs,
+            cast(Mapping[str, Any], values),
+            recipe=rec.path if rec else None,
+            inventory=os.path.abspath(inventory) if inventory else "",  # its policy governs apply FLEET.json too
         )
         data = fleet.to_json(
             {j.name: plan_to_json(p, plan_cost(p, j.recipe.profile, j.url)) for j in jobs if (p := plans.get(j.name))}
@@ -459,8 +461,6 @@ def _save_fleet_plan(
 ) -> dict[str, Any]:
     """``plan --inventory --out``: the fleet plan with its change (who, why, from which recipes and profiles),
     signed with ``--sign-key``, and the audit trail's record of it; the document written."""
-    import os
-
     from ..api.commands import fleet_plan_text, write_output
     from ..audit.commands import after_plan
 

@@ -103,6 +103,9 @@ class PreparedRun:
     notices: list[str] = field(default_factory=list)
     refused: list[str] = field(default_factory=list)
     change: dict[str, Any] | None = None  # a saved plan's change control, checked (digest, author, signatures)
+    # the inventory whose change_control: governs the run besides --policy: the request's, or the one a saved fleet
+    # plan was made from (so that planning it first is no way around that inventory's policy)
+    inventory: str | None = None
 
 
 def is_plan_file(path: str) -> bool:
@@ -220,7 +223,9 @@ def _fleet_plan_jobs(r: RunRequest) -> PreparedRun:
             f"a saved fleet plan runs unchanged, on every device it names: {', '.join(given)} do not apply to it "
             "(plan the fleet again for other devices)"
         )
-    return PreparedRun(r, executable_jobs(load_fleet_plan(r.source, timeout=r.timeout, retries=r.retries)), r.source)
+    fleet = load_fleet_plan(r.source, timeout=r.timeout, retries=r.retries)
+    made_from = fleet.inventory if os.path.isfile(fleet.inventory) else None  # where it still is
+    return PreparedRun(r, executable_jobs(fleet), r.source, inventory=made_from)
 
 
 def prepare(r: RunRequest) -> PreparedRun:
@@ -273,15 +278,16 @@ def prepare(r: RunRequest) -> PreparedRun:
         check_output(r.html_path, what="the page")
     from ..change.gate import check_run  # the change control's one check, before anything is sent
 
+    inventory = r.inventory or prepared.inventory
     change = check_run(
         command=r.command,
         source=r.source,
         jobs=prepared.jobs,
         policy_path=r.policy,
-        inventory=r.inventory,
+        inventory=inventory,
         state_dir=r.state_dir,
     )
-    return replace(prepared, change=change) if change is not None else prepared
+    return replace(prepared, change=change, inventory=inventory)
 
 
 def safe_plans(jobs: Sequence[Job], r: RunRequest, label: str | None) -> None:
