@@ -228,7 +228,8 @@ def test_out_of_bounds_arguments_are_usage_errors_that_name_them(call: object, w
 
 
 def test_the_bounds_hold_at_their_edges() -> None:
-    assert deployer.plan(recipe(), "tcp://h:502", timeout=600, retries=20, offline=True).device.url == "tcp://h:502"
+    at_edges = deployer.plan(recipe(), "tcp://h:502", timeout=600, retries=20, offline=True)
+    assert at_edges.device.url == "tcp://h:502?retries=20&timeout=600"  # kept: apply of the plan talks to it so
     assert deployer.plan(recipe(), "tcp://h:502", timeout=0.001, retries=0, offline=True).writes
     assert deployer.LIMITS.parallel.check(1024, "parallel") == 1024
     with pytest.raises(deployer.UsageError, match="health_interval must be from 0.1 to 3600 seconds, got 0.05"):
