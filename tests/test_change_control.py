@@ -14,6 +14,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -92,6 +93,15 @@ devices:
   press: {{url: "{url}", recipe: r.yaml, groups: [line]}}
 """)
     return inv
+
+
+def accel_changed(plan: dict[str, Any]) -> None:
+    """A saved plan's accel 2.1 s instead of 2 s, consistently (its parameter and its write step): the plan is
+    valid, just not the one approved."""
+    accel = next(p for p in plan["parameters"] if p["name"] == "accel")
+    accel["desired"], accel["desired_raw"] = "2.1 s", [21]
+    step = next(s for s in plan["steps"] if s["kind"] == "write" and "accel" in s["parameters"])
+    step["values"][accel["address"] - step["address"]] = 21
 
 
 def writes(sim: Simulator) -> list[tuple[int, int]]:
@@ -250,10 +260,7 @@ def test_an_unapproved_plan_is_refused_with_nothing_sent_and_two_approvals_let_i
     # modified after approval: a value in the plan changed by one byte -> refused, nothing sent
     good = (tmp_path / "p.json").read_text()
     doc = json.loads(good)  # accel 2.1 s instead of 2 s, consistently: the plan is valid, just not the approved one
-    accel = next(p for p in doc["parameters"] if p["name"] == "accel")
-    accel["desired"], accel["desired_raw"] = "2.1 s", [21]
-    step = next(s for s in doc["steps"] if s["kind"] == "write" and "accel" in s["parameters"])
-    step["values"][accel["address"] - step["address"]] = 21
+    accel_changed(doc)
     (tmp_path / "p.json").write_text(json.dumps(doc, indent=2))
     changed = run(tmp_path, "apply", "p.json", "--yes", "--policy", policy)
     assert changed.returncode == 1 and "made over other content" in changed.stderr and sim.log == []

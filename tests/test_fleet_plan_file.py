@@ -21,7 +21,7 @@ from tests import contract
 from tests.agent_helpers import PROFILE, RECIPE
 from tests.conftest import dead_port
 from tests.helpers import cli
-from tests.test_change_control import allowed, pykeygen, run
+from tests.test_change_control import accel_changed, allowed, pykeygen, run
 
 
 def _site(tmp: Path, urls: dict[str, str], policy: str = "") -> Path:
@@ -198,11 +198,7 @@ def test_a_fleet_plan_is_approved_once_for_all_its_devices_and_runs_only_as_appr
         good = (tmp_path / "f.json").read_text()
         doc = json.loads(good)  # accel 2.1 s instead of 2 s in d1's plan (d2's too: it shares it), consistently
         assert doc["devices"][1]["plan_of"] == "d1"
-        plan = doc["devices"][0]["plan"]
-        accel = next(p for p in plan["parameters"] if p["name"] == "accel")
-        accel["desired"], accel["desired_raw"] = "2.1 s", [21]
-        step = next(s for s in plan["steps"] if s["kind"] == "write" and "accel" in s["parameters"])
-        step["values"][accel["address"] - step["address"]] = 21
+        accel_changed(doc["devices"][0]["plan"])
         (tmp_path / "f.json").write_text(json.dumps(doc, indent=2))
         changed = run(tmp_path, "apply", "f.json", "--yes", "--policy", inv)
         assert changed.returncode == 1 and "made over other content" in changed.stderr, changed.stderr

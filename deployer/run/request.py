@@ -9,6 +9,7 @@ before a write, showing progress) comes in as callbacks.
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -76,7 +77,7 @@ class RunRequest:
     workers: int | None = 0
     policy: str | None = None  # the site's change-control policy (an inventory), else DEPLOYER_POLICY's
 
-    @property
+    @functools.cached_property  # asked several times a run; a saved fleet plan is told by reading its file
     def fleet(self) -> bool:
         """An inventory's devices, every device of earlier runs, or a saved fleet plan's: reported as a fleet."""
         return bool(
@@ -295,7 +296,7 @@ def safe_plans(jobs: Sequence[Job], r: RunRequest, label: str | None) -> None:
     already in alarm would be written, then rolled back and the change blamed). UsageError, nothing sent."""
     if r.soak is None and r.confirm_within is None:
         return
-    fleet = r.source is not None and is_fleet_plan_file(r.source)
+    fleet = r.fleet  # a saved fleet plan's jobs (an inventory's run makes its plans: none of them is saved)
     for j in jobs:
         if j.plan is not None and j.recipe.profile.health and not any(s.kind == "health" for s in j.plan.steps):
             made = "[RECIPE] --inventory FILE" if fleet else f"{j.plan.recipe or 'RECIPE'} --device URL"
