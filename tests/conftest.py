@@ -100,6 +100,31 @@ def pki(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     }
 
 
+def _state_files(folder: Path) -> dict[str, tuple[int, int]]:
+    out = {}
+    for dirpath, _dirs, files in os.walk(folder):
+        for name in files:
+            try:
+                st = os.stat(os.path.join(dirpath, name))
+            except OSError:
+                continue
+            out[os.path.join(dirpath, name)] = (st.st_size, st.st_mtime_ns)
+    return out
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _repository_state_untouched() -> Iterator[None]:
+    """No test writes into the checkout's own state folder (``.deployer``, the default ``--state-dir`` of a
+    command run where the suite runs): a test leaves its journal, snapshots and audit records in its own folder."""
+    folder = Path(__file__).resolve().parent.parent / ".deployer"
+    before = _state_files(folder)
+    yield
+    changed = sorted(f for f, st in _state_files(folder).items() if before.get(f) != st)
+    assert not changed, (
+        f"tests wrote into {folder} (give the command a --state-dir of the test's own): {', '.join(changed)}"
+    )
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _own_lock_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """Device locks in a folder of this test session: parallel test runs on one machine stay apart. For the

@@ -69,7 +69,16 @@ def test_plan_offline_table_json_out_and_frames(capsys: pytest.CaptureFixture[st
     assert "01 10 11 02 00 02 04 00 00 03 E8 B2 98" in out and "01 10 11 02 00 02 E5 34" in out
     assert ":01101102000204000003E8EB" in out
     plan_file = tmp_path / "plan.json"
-    code, out, _ = cli(capsys, "plan", str(EXAMPLES / "omron-m1-accel.yaml"), "--json", "--out", str(plan_file))
+    code, out, _ = cli(
+        capsys,
+        "plan",
+        str(EXAMPLES / "omron-m1-accel.yaml"),
+        "--json",
+        "--out",
+        str(plan_file),
+        "--state-dir",
+        str(tmp_path / "s"),
+    )
     data = json.loads(out)
     jsonschema.validate(data, schema.schema("plan"))
     assert data == json.loads(plan_file.read_text())
@@ -109,7 +118,10 @@ def test_apply_saved_plan_and_stale_plan(
     path = recipe(tmp_path)
     plan_file = str(tmp_path / "plan.json")
     with inverter as sim:
-        assert cli(capsys, "plan", path, "--device", sim.url, "--out", plan_file)[0] == 0
+        assert (
+            cli(capsys, "plan", path, "--device", sim.url, "--out", plan_file, "--state-dir", str(tmp_path / "s"))[0]
+            == 0
+        )
         n = len(sim.log)
         code, out, _ = cli(capsys, "apply", plan_file, "--yes", "--json", "--state-dir", str(tmp_path / "s"))
         assert code == 0, out
@@ -367,7 +379,7 @@ def test_validate_a_saved_plan_and_write_all(
 ) -> None:
     path = recipe(tmp_path)
     plan_file = tmp_path / "plan.json"
-    assert cli(capsys, "plan", path, "--out", str(plan_file))[0] == 0
+    assert cli(capsys, "plan", path, "--out", str(plan_file), "--state-dir", str(tmp_path / "s"))[0] == 0
     code, out, _ = cli(capsys, "validate", str(plan_file))
     assert code == 0 and "plan: 2 write requests for profile example-inverter" in out
     with inverter as sim:
@@ -397,7 +409,12 @@ def test_a_plan_or_a_report_where_a_recipe_belongs_is_named_and_validate_knows_a
     path = recipe(tmp_path)
     plan_file, report_file = tmp_path / "plan.json", tmp_path / "run.json"
     with inverter as sim:
-        assert cli(capsys, "plan", path, "--device", sim.url, "--out", str(plan_file))[0] == 0
+        assert (
+            cli(capsys, "plan", path, "--device", sim.url, "--out", str(plan_file), "--state-dir", str(tmp_path / "s"))[
+                0
+            ]
+            == 0
+        )
         code, _, err = cli(
             capsys, "apply", path, "--device", sim.url, "--yes", "--state-dir", str(tmp_path / "s"),
             "--report", str(report_file),
@@ -469,7 +486,17 @@ def test_apply_saved_plan_names_its_snapshot_after_the_recipe(
 ) -> None:
     with inverter as sim:
         r = recipe(tmp_path)
-        code, _, _ = cli(capsys, "plan", r, "--device", sim.url, "--out", str(tmp_path / "p.json"))
+        code, _, _ = cli(
+            capsys,
+            "plan",
+            r,
+            "--device",
+            sim.url,
+            "--out",
+            str(tmp_path / "p.json"),
+            "--state-dir",
+            str(tmp_path / "s"),
+        )
         assert code == 0
         code, out, err = cli(
             capsys,

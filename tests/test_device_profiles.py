@@ -468,7 +468,7 @@ def test_rejected_field_register_and_a_saved_plan(
         plan = tmp_path / "plan.json"
         path = recipe(tmp_path, "  mode: torque\n  name: AB\n")
         with pytest.raises(SystemExit):
-            main(["plan", path, "--device", s.url, "--out", str(plan)])
+            main(["plan", path, "--device", s.url, "--out", str(plan), "--state-dir", str(tmp_path / "s")])
         assert [s["values"] for s in json.loads(plan.read_text())["steps"] if s["kind"] == "write"] == [
             [0x0009, 0x4142, 0x2020, 0x2020, 0x2020]
         ]

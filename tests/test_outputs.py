@@ -74,7 +74,7 @@ def _commands(tmp: Path, sim: Simulator, out: str) -> dict[str, list[str]]:
             "--report",
             out,
         ],
-        "plan --out": ["plan", str(recipe), "--out", out],
+        "plan --out": ["plan", str(recipe), "--out", out, "--state-dir", str(tmp / "s")],
         "pull -o": ["pull", "--profile", "example-inverter", "--device", sim.url, "-o", out],
         "profiles import csv -o": ["profiles", "import", "csv", str(csv), "--id", "x", "-o", out],
         "profiles export csv -o": ["profiles", "export", "csv", "example-inverter", "-o", out],

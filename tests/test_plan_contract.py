@@ -302,8 +302,12 @@ def test_a_safe_changes_plan_reads_the_health_checks_first(tmp_path: Path, capsy
     recipe = str(EXAMPLES / RECIPES["example-inverter"])  # its profile watches the fault code at 0x2000
     with SimulatorThread(builtin_profile("example-inverter")) as sim:
         plain, safe = str(tmp_path / "plain.json"), str(tmp_path / "safe.json")
-        assert cli(capsys, "plan", recipe, "--device", sim.url, "--out", plain)[0] == 0
-        assert cli(capsys, "plan", recipe, "--device", sim.url, "--out", safe, "--safe-change")[0] == 0
+        state = str(tmp_path / "s")
+        assert cli(capsys, "plan", recipe, "--device", sim.url, "--out", plain, "--state-dir", state)[0] == 0
+        assert (
+            cli(capsys, "plan", recipe, "--device", sim.url, "--out", safe, "--safe-change", "--state-dir", state)[0]
+            == 0
+        )
         kinds = [s["kind"] for s in json.loads(Path(safe).read_text())["steps"]]
         assert "health" not in [s["kind"] for s in json.loads(Path(plain).read_text())["steps"]]
         assert kinds.index("health") == kinds.index("write") - 1  # no precondition, no unlock in this profile

@@ -327,7 +327,9 @@ def test_saved_plan_with_coils_runs_unchanged(tmp_path: Path, plc: Profile, caps
     path = recipe(tmp_path, "  relay1: false\n  relay2: true\n")
     with SimulatorThread(plc) as sim:
         plan_file = str(tmp_path / "plan.json")
-        code, _, err = cli(capsys, "plan", path, "--device", sim.url, "--out", plan_file)
+        code, _, err = cli(
+            capsys, "plan", path, "--device", sim.url, "--out", plan_file, "--state-dir", str(tmp_path / "s")
+        )
         assert code == 0, err
         data = json.loads(Path(plan_file).read_text())
         write = next(s for s in data["steps"] if s["kind"] == "write")
