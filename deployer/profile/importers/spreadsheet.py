@@ -959,7 +959,8 @@ def number(text: str, decimal: str | None = None) -> int | float:
         raise _Bad(f"{_show(text)} is not a number") from None
     if not d.is_finite():
         raise _Bad(f"{_show(text)} is not a finite number")
-    if d and not Decimal("1e-30") <= abs(d) < Decimal(10) ** MAX_DIGITS:
+    # by its exponent: arithmetic on 1e6999999999 (abs, a comparison) overflows Decimal's context
+    if d and not -30 <= d.adjusted() < MAX_DIGITS:
         raise _Bad(f"{_show(text)} is outside the range a profile holds (1e-30 .. 1e30)")
     if d == d.to_integral_value() and not dot and not exp:
         return int(d)
