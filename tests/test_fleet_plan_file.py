@@ -121,6 +121,19 @@ def test_a_saved_fleet_plan_runs_exactly_its_plans_and_only_once(
         Path(out).write_text(json.dumps(edited, indent=2))
         code, _, err = cli(capsys, "apply", out, "--yes")
         assert code == 1 and "d2: a plan and a plan_of: give one of them" in err, err
+        del edited["devices"][1]["plan"]  # plan_of not a name, a unit off the bus: said where, never a traceback
+        for field, value, said in (
+            ("plan_of", ["d1"], "d2: plan_of names no earlier device's plan"),
+            ("plan_of", {"a": 1}, "d2: plan_of names no earlier device's plan"),
+            ("unit", -1, "d2: unit -1 is outside 0..247"),
+            ("unit", True, "d2: its device's url and unit are needed"),
+        ):
+            entry = json.loads(json.dumps(edited))
+            (entry["devices"][1] if field == "plan_of" else entry["devices"][1]["device"])[field] = value
+            Path(out).write_text(json.dumps(entry, indent=2))
+            for command in ("validate", "apply"):
+                code, _, err = cli(capsys, command, out, *(["--yes"] if command == "apply" else []))
+                assert code == 1 and said in err and f"{out}:" in err, (field, value, err)
         assert all(_writes(s) == [] for s in sims.values())
 
 

@@ -335,3 +335,52 @@ def test_a_safe_changes_plan_reads_the_health_checks_first(tmp_path: Path, capsy
         applied = sum(r["attempts"] for r in device["requests"] if not r.get("window"))
         contract.check(json.loads(Path(safe).read_text()), device, sim.log[n : n + applied])
         assert [(r["function"], r["address"]) for r in device["requests"] if r.get("window")][-1] == (16, 2303)
+
+
+def _step(plan: dict[str, Any], kind: str) -> dict[str, Any]:
+    return next(s for s in plan["steps"] if s["kind"] == kind)
+
+
+GUARDS: dict[str, Any] = {  # an edit of a saved plan of the example drive, and what refuses it
+    "identity check dropped": (
+        lambda p: p["steps"].remove(_step(p, "identity")),
+        "the plan's identity steps are not profile example-drive's: a plan checks its identity checks",
+    ),
+    "identity check moved": (
+        lambda p: _step(p, "identity").__setitem__("address", 1),
+        "the plan's identity steps are not profile example-drive's",
+    ),
+    "precondition dropped": (
+        lambda p: p["steps"].remove(_step(p, "precondition")),
+        "the plan's precondition steps are not profile example-drive's",
+    ),
+    "precondition turned round": (  # "drive stopped" made "drive running"
+        lambda p: _step(p, "precondition")["expect"].__setitem__("equals", 1),
+        "the plan's precondition steps are not profile example-drive's",
+    ),
+    "lock written as a coil": (
+        lambda p: _step(p, "lock").__setitem__("function", 15),
+        "step 13 (lock at 0x001F) is no lock action of profile example-drive",
+    ),
+}
+
+
+@pytest.mark.parametrize("edit", list(GUARDS))
+def test_a_saved_plan_runs_only_with_the_profiles_checks_and_actions(
+    edit: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A saved plan keeps the profile's identity checks and preconditions (the wrong device, a running drive: nothing
+    written) and writes its actions where the profile has them: an edited one is refused before the first byte."""
+    change, message = GUARDS[edit]
+    recipe = str(EXAMPLES / "example-drive-axis1.yaml")
+    state = str(tmp_path / "s")
+    with SimulatorThread(builtin_profile("example-drive")) as sim:
+        plan_file = tmp_path / "p.json"
+        assert cli(capsys, "plan", recipe, "--device", sim.url, "--out", str(plan_file), "--state-dir", state)[0] == 0
+        plan = json.loads(plan_file.read_text())
+        change(plan)
+        plan_file.write_text(json.dumps(plan, indent=1))
+        sent = len(sim.log)
+        code, _, err = cli(capsys, "apply", str(plan_file), "--yes", "--state-dir", state)
+        assert code == 1 and message in err and err.startswith(f"{plan_file}:"), err
+        assert len(sim.log) == sent  # nothing sent

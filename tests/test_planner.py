@@ -508,6 +508,7 @@ def _write(d: dict[str, Any]) -> dict[str, Any]:
         (lambda d: d["parameters"][0].__setitem__("desired_raw", [7]), "1 registers for count 2"),
         (lambda d: _write(d).__setitem__("function", 6), "does not carry exactly"),
         (lambda d: _write(d).__setitem__("function", 3), "function 3 does not fit a write step"),
+        (lambda d: d["steps"][0].__setitem__("count", 126), "function 3 carries at most 125 in one request"),
         (lambda d: d["steps"][0].__setitem__("values", [1, 2, 3, 4]), "a snapshot step reads: it carries no values"),
         (lambda d: d["steps"].insert(0, dict(_write(d))), "a snapshot step after a later kind of step"),
         (

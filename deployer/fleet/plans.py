@@ -218,12 +218,18 @@ def read_fleet_plan(path: str) -> tuple[dict[str, Any], list[tuple[str, str | No
             continue
         if "plan_of" in entry:  # an earlier device's plan, for this device
             of, dev = entry.get("plan_of"), entry.get("device")
-            if of not in full:
+            if not isinstance(of, str) or of not in full:
                 errors.append(src.error(("devices", i, "plan_of"), f"{name}: plan_of names no earlier device's plan"))
                 continue
-            plan, said = full[str(of)]
-            if not (isinstance(dev, dict) and isinstance(dev.get("unit"), int) and isinstance(dev.get("url"), str)):
+            plan, said = full[of]
+            unit = dev.get("unit") if isinstance(dev, dict) else None
+            if not (isinstance(dev, dict) and isinstance(unit, int) and isinstance(dev.get("url"), str)) or isinstance(
+                unit, bool
+            ):
                 errors.append(src.error(("devices", i, "device"), f"{name}: its device's url and unit are needed"))
+                continue
+            if not 0 <= unit <= 247:  # as a plan's own device (the plan schema)
+                errors.append(src.error(("devices", i, "device", "unit"), f"{name}: unit {unit} is outside 0..247"))
                 continue
             if dev.get("profile") != plan.device.profile:
                 errors.append(src.error(("devices", i, "device"), f"{name}: not the profile of {of}'s plan"))

@@ -34,7 +34,7 @@ from pymodbus.pdu.register_message import (
 )
 
 from ..errors import UsageError
-from .model import DEVICE_ID, ReadRequest, Step, WriteRequest
+from .model import DEVICE_ID, MOST_PER_REQUEST, ReadRequest, Step, WriteRequest
 
 Framing = Literal["rtu", "ascii", "tcp"]
 _FRAMERS = {"rtu": FramerRTU, "ascii": FramerAscii, "tcp": FramerSocket}
@@ -51,9 +51,9 @@ def _check(req: WriteRequest | ReadRequest, unit: int, transaction_id: int) -> N
         raise UsageError(f"unit {unit} is outside 0..255")
     if not 0 <= transaction_id <= 0xFFFF:
         raise UsageError(f"transaction id {transaction_id} is outside 0..65535")
-    if req.function not in _TOP:
-        raise UsageError(f"function {req.function} is none of {', '.join(map(str, sorted(_TOP)))}")
-    top = _TOP[req.function]
+    if req.function not in MOST_PER_REQUEST:
+        raise UsageError(f"function {req.function} is none of {', '.join(map(str, sorted(MOST_PER_REQUEST)))}")
+    top = MOST_PER_REQUEST[req.function]
     what = "coils" if req.function in (1, 2, 5, 15) else "registers"
     if not 1 <= req.count <= top:
         raise UsageError(f"a function {req.function} request carries 1..{top} {what}, not {req.count}")
@@ -66,8 +66,6 @@ def _check(req: WriteRequest | ReadRequest, unit: int, transaction_id: int) -> N
             raise UsageError(f"a register value at {req.address} is outside 0..65535")
 
 
-# the most one request of each function carries (Modbus Application Protocol v1.1b3, 6.1-6.12)
-_TOP = {1: 2000, 2: 2000, 3: 125, 4: 125, 5: 1, 6: 1, 15: 1968, 16: 123}
 _READS = {
     1: ReadCoilsRequest,
     2: ReadDiscreteInputsRequest,

@@ -20,6 +20,8 @@ COIL_WRITES = (5, 15)  # Write Single Coil, Write Multiple Coils
 WRITE_FUNCTIONS = (5, 6, 15, 16)
 READ_FUNCTIONS = (1, 2, 3, 4)
 DEVICE_ID = 43  # Read Device Identification (MEI type 14): basic objects
+# the most one request of each function carries (Modbus Application Protocol v1.1b3, 6.1-6.12)
+MOST_PER_REQUEST = {1: 2000, 2: 2000, 3: 125, 4: 125, 5: 1, 6: 1, 15: 1968, 16: 123}
 
 # The kinds of step, in the order they can come. The first four check the device and read what it holds,
 # before anything is planned against it (``CHECKS``); the rest change it.

@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Any
 from ..errors import CodecError, Diagnostic, InputError, UsageError
 from .model import (
     COIL_WRITES,
+    MOST_PER_REQUEST,
     OLD_SCHEMAS,
     STEP_KINDS,
     Expect,
@@ -19,7 +20,7 @@ from .model import (
 from .model import plan_to_json as plan_to_json  # where saved plans are read and written: its other half
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Sequence
 
     from ..load.yamlsrc import Path_, Source
     from ..profile import Profile
@@ -167,6 +168,9 @@ def _check_steps(
         rank = max(rank, _RANK[s.kind])
         if s.address + s.count > 0x10000:
             problems.append(error((*at, "address"), "the request runs past register 65535"))
+        most = MOST_PER_REQUEST.get(s.function)
+        if most is not None and s.count > most:  # the device would refuse it, and pymodbus will not encode it
+            problems.append(error((*at, "count"), f"function {s.function} carries at most {most} in one request"))
         writes = s.kind in ("unlock", "write", "commit", "lock")
         if writes != s.writes:
             problems.append(error((*at, "function"), f"function {s.function} does not fit {_a(s.kind)} step"))
@@ -263,9 +267,38 @@ def check_actions(plan: Plan, prof: Profile) -> list[str]:
 def _secret_at(prof: Profile, s: Step) -> bool:
     actions = {"unlock": prof.unlock, "commit": prof.commit, "lock": prof.lock}[s.kind]
     return any(
-        a.secret and a.is_coil == (s.function == 5) and a.address <= s.address < a.address + len(a.registers)
+        a.secret and a.is_coil == (s.function in COIL_WRITES) and a.address <= s.address < a.address + len(a.registers)
         for a in actions
     )
+
+
+def check_guards(plan: Plan, prof: Profile) -> list[str]:
+    """The plan's identity, precondition and health steps that are not the profile's (a saved plan edited or made
+    for another profile): they keep a device of another type, a running drive or a failing one from being written,
+    so a plan runs only with every one of them, each as the profile has it. A broadcast reads nothing."""
+    from .steps import health_steps, identity_steps, precondition_steps
+
+    if plan.device.unit == 0:
+        return []
+
+    def said(steps: Sequence[Step]) -> list[tuple[int, int, int, Expect | None]]:
+        return [(s.function, s.address, s.count, s.expect) for s in steps]
+
+    def of(kind: str) -> list[Step]:
+        return [s for s in plan.steps if s.kind == kind]
+
+    writes = any(s.kind == "write" for s in plan.steps)
+    wanted = (
+        ("identity", identity_steps(prof), "its identity checks"),
+        ("precondition", precondition_steps(prof) if writes else (), "its preconditions (before a write)"),
+        ("health", health_steps(prof) if of("health") else (), "its health checks"),
+    )
+    return [
+        f"the plan's {kind} steps are not profile {prof.id}'s: a plan checks {what}, each as the profile has it "
+        "(make the plan again)"
+        for kind, steps, what in wanted
+        if said(of(kind)) != said(steps)
+    ]
 
 
 def load_plan(path: str) -> tuple[Recipe, Plan]:
@@ -307,7 +340,7 @@ def plan_recipe(p: Plan, path: str = "<plan>", error: Callable[[Path_, str], Dia
                 f"profile {prof.id} changed since the plan was made ({prof.source or 'built-in'}): make the plan again",
             )
         )
-    errors += [at(("steps",), why) for why in check_actions(p, prof)]
+    errors += [at(("steps",), why) for why in check_actions(p, prof) + check_guards(p, prof)]
     desired = []
     for i, pp in enumerate(p.parameters):
         param = prof.get(pp.name)

@@ -88,11 +88,34 @@ def action_steps(kind: StepKind, prof: Profile, actions: Iterable[WriteAction]) 
     return out
 
 
+def identity_steps(prof: Profile) -> tuple[Step, ...]:
+    """The profile's identity checks as steps: each register read and compared (the wrong device: nothing written)."""
+    return tuple(
+        Step("identity", READ_FUNCTION[c.register_type], c.address, 1, expect=Expect(c.raw), note=c.description)
+        for c in prof.identity
+    )
+
+
+def precondition_steps(prof: Profile) -> tuple[Step, ...]:
+    """The profile's preconditions as steps, each with its condition ("drive stopped"): read before anything is
+    written."""
+    return tuple(
+        Step("precondition", 3, c.address, 1, expect=Expect(c.equals, c.mask), note=c.description)
+        for c in prof.preconditions
+    )
+
+
+def health_steps(prof: Profile) -> tuple[Step, ...]:
+    """The profile's health checks as steps: a safe change's reads before it writes."""
+    return tuple(Step("health", c.function, c.address, c.count, note=c.what()) for c in prof.health)
+
+
 def secret_words(prof: Profile, step: Step) -> tuple[int, ...]:
-    """A secret step's words, from the profile's action it was planned from (the same kind, address, count)."""
+    """A secret step's words, from the profile's action it was planned from (the same kind, address, count, and
+    the function the action is planned with: Function 05 for a coil, 06 or 16 for registers)."""
     actions = {"unlock": prof.unlock, "commit": prof.commit, "lock": prof.lock}.get(step.kind, ())
     for a in actions:
-        if a.is_coil != (step.function == 5):  # a coil and a register at one address are two places
+        if step.function not in ((5,) if a.is_coil else (6, 16)):  # a coil and a register at one address are two places
             continue
         if a.address <= step.address and step.address + step.count <= a.address + len(a.registers):
             return a.registers[step.address - a.address : step.address - a.address + step.count]
@@ -141,10 +164,7 @@ class Planner:
         names = [d.name for d in recipe.desired if d.parameter.readable]
         self.reads = plan_reads(prof, names)
         covered = _covered(self.reads, prof, names)
-        checks = [
-            Step("identity", READ_FUNCTION[c.register_type], c.address, 1, expect=Expect(c.raw), note=c.description)
-            for c in prof.identity
-        ]
+        checks = list(identity_steps(prof))
         checks += [
             Step("snapshot", r.function, r.address, r.count, (), ps) for r, ps in zip(self.reads, covered, strict=True)
         ]
@@ -160,13 +180,8 @@ class Planner:
         self.verify = tuple(
             Step("verify", r.function, r.address, r.count, (), ps) for r, ps in zip(self.reads, covered, strict=True)
         )
-        self.preconditions = tuple(
-            Step("precondition", 3, c.address, 1, expect=Expect(c.equals, c.mask), note=c.description)
-            for c in prof.preconditions
-        )
-        self.health = (
-            tuple(Step("health", c.function, c.address, c.count, note=c.what()) for c in prof.health) if window else ()
-        )
+        self.preconditions = precondition_steps(prof)
+        self.health = health_steps(prof) if window else ()
         self.unlock = tuple(action_steps("unlock", prof, prof.unlock))
         self.commits = tuple(action_steps("commit", prof, prof.commit)) if commit else ()
         self.lock = tuple(action_steps("lock", prof, prof.lock)) if prof.unlock else ()
