@@ -180,6 +180,25 @@ def test_fuzz_bounded() -> None:
     assert res["slowest_file_seconds"] < 10  # a hang guard, not a speed target
 
 
+def test_plan_fuzz_bounded() -> None:
+    """A bounded run of the saved plans' fuzzer (`make fuzz` runs a longer one): an edited plan or fleet plan is
+    refused or runs, never a crash, and never writes a register or coil its honest plan does not write."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "tests.plan_fuzz", "--mutants", "100", "--seconds", "60"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+        env=without_coverage(),  # as the file fuzzer: the mutants' paths would move the coverage figure
+    )
+    res = json.loads(proc.stdout)
+    assert res["crashes"] == 0, res["crash_details"]
+    assert res["surprises"] == 0, res["surprise_details"]
+    assert res["mutants_tried"] >= 30 and res["exit_codes"].get("apply 0", 0) > 0, (
+        res
+    )  # some edited plans ran (seed 1: 2 of the first 30)
+
+
 def test_values_per_file_are_bounded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """An 8 MB file of small lists would build millions of values: the count stops it (here at 1,000)."""
     monkeypatch.setattr(yamlsrc, "MAX_NODES", 1000)
