@@ -100,7 +100,8 @@ bench: $(VENV)/.installed
 
 fuzz: $(VENV)/.installed-test
 	$(BIN)/python -m tests.fuzz --files 200000 --seconds 900
-	$(BIN)/python -m tests.plan_fuzz --mutants 20000 --seconds 600
+	$(BIN)/python -m tests.plan_fuzz --mutants 10000 --seconds 300
+	$(BIN)/python -m tests.plan_fuzz --mutants 10000 --seconds 300 --device coils
 
 clean:
 	rm -rf $(VENV) $(LATEST) .pytest_cache .mypy_cache .ruff_cache build *.egg-info

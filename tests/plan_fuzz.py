@@ -1,16 +1,17 @@
 """Mutation fuzzing of saved plans: an edited plan or fleet plan is refused or runs, never a crash, and never writes
 a register or coil its honest plan does not write.
 
-    python -m tests.plan_fuzz --mutants 20000 --seconds 300    # `make fuzz`
-    python -m tests.plan_fuzz --mutants 200 --seconds 60       # what `make test` runs (tests/test_hostile.py)
+    python -m tests.plan_fuzz --mutants 10000 --seconds 300     # `make fuzz` (and again with --device coils)
+    python -m tests.plan_fuzz --mutants 100 --seconds 60        # what `make test` runs (tests/test_hostile.py)
 
-Three simulated example drives (identity check, a precondition, unlock, commit and lock, bit fields) on 127.0.0.1;
-a saved plan of one (`plan --device --out`) and a saved fleet plan of all three (`plan --inventory --out`), made
-once. Each mutant is one to three edits of either document (a value replaced by another type, a huge or negative
-number, a long string, a key dropped or added, an entry repeated, a number nudged), given to `deployer validate`
-and `deployer apply --yes` with the drives reset to the values the plans were made against, so the writes really
-go out. Printed as JSON: mutants tried, exit codes, crashes (with the file kept), places written that the honest
-plans do not write. Exit 1 on either.
+Three simulated example drives (identity check, a precondition, unlock, commit and lock, bit fields) on 127.0.0.1,
+or with ``--device coils`` three devices whose unlock, lock and commit are coils at the addresses of two register
+parameters (``COILS_PROFILE``); a saved plan of one (`plan --device --out`) and a saved fleet plan of all three
+(`plan --inventory --out`), made once. Each mutant is one to three edits of either document (a value replaced by
+another type, a huge or negative number, a long string, a key dropped or added, an entry repeated, a number
+nudged), given to `deployer validate` and `deployer apply --yes` with the devices reset to the values the plans
+were made against, so the writes really go out. Printed as JSON: mutants tried, exit codes, crashes (with the file
+kept), places written that the honest plans do not write. Exit 1 on either.
 """
 
 from __future__ import annotations
@@ -31,6 +32,28 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 RECIPE = str(ROOT / "recipes" / "examples" / "example-drive-axis1.yaml")
+# a device whose unlock, lock and commit are coils (Function 05), with coil and register parameters and a coil
+# health check: where a coil and a register share an address, writing one for the other is the mistake to catch
+COILS_PROFILE = """\
+profile: coils
+unlock:
+  - {register: 71, register_type: coil, raw: true}
+lock:
+  - {register: 71, register_type: coil, raw: false}
+commit:
+  - {register: 66, register_type: coil, raw: 1, description: store to EEPROM}
+health:
+  - {register: 67, register_type: coil, equals: 0, description: no alarm}
+parameters:
+  speed: {register: 66, type: uint16, default: 5, max: 1000}
+  ramp: {register: 71, type: uint32, unit: s, scale: 0.01, max: 3600, default: 10}
+  relay1: {register: 19, register_type: coil, default: true}
+  relay2: {register: 20, register_type: coil}
+  mode: {register: 21, register_type: coil, values: {auto: 0, manual: 1}}
+"""
+COILS_RECIPE = (
+    "recipe: c\nprofile: coils.yaml\nparameters:\n  speed: 700\n  ramp: 2.5 s\n  relay1: false\n  mode: manual\n"
+)
 VALUES: list[Any] = [
     None,
     -1,
@@ -117,14 +140,21 @@ def _written(log: list[Any]) -> set[tuple[bool, int]]:
     }
 
 
-def run(mutants: int, seconds: float, seed: int, keep: str | None = None) -> dict[str, Any]:
-    from deployer.profile import builtin_profile
+def run(mutants: int, seconds: float, seed: int, keep: str | None = None, device: str = "drive") -> dict[str, Any]:
+    """``device``: ``drive`` (the built-in example drive) or ``coils`` (``COILS_PROFILE``)."""
+    from deployer.profile import builtin_profile, load_profile
     from deployer.testing.simulator import Simulator
     from tests.helpers import Simulators
 
-    profile = builtin_profile("example-drive")
     rnd = random.Random(seed)
     work = Path(tempfile.mkdtemp(prefix="deployer-plan-fuzz-"))
+    recipe = RECIPE
+    if device == "coils":
+        (work / "coils.yaml").write_text(COILS_PROFILE)
+        (work / "coils-recipe.yaml").write_text(COILS_RECIPE)
+        profile, recipe = load_profile(str(work / "coils.yaml")), str(work / "coils-recipe.yaml")
+    else:
+        profile = builtin_profile("example-drive")
     kept = Path(keep) if keep else work
     state = str(work / "state")
     codes: dict[str, int] = {}
@@ -142,7 +172,7 @@ def run(mutants: int, seconds: float, seed: int, keep: str | None = None) -> dic
             ("--device", sims[0].url, "--out", str(single)),
             ("--inventory", str(inventory), "--out", str(fleet)),
         ):
-            code, err = _cli("plan", RECIPE, *where, "--state-dir", state)
+            code, err = _cli("plan", recipe, *where, "--state-dir", state)
             if code not in (0, 2):
                 raise SystemExit(f"cannot make the plans to mutate: {err}")
         docs = [json.loads(single.read_text()), json.loads(fleet.read_text())]
@@ -185,6 +215,7 @@ def run(mutants: int, seconds: float, seed: int, keep: str | None = None) -> dic
         "surprises": len(surprises),
         "surprise_details": surprises[:10],
         "seed": seed,
+        "device": device,
     }
 
 
@@ -194,8 +225,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=300)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--keep", help="directory for the mutants that crashed or wrote where they may not")
+    ap.add_argument("--device", choices=("drive", "coils"), default="drive", help="whose plans are mutated")
     a = ap.parse_args(argv)
-    res = run(a.mutants, a.seconds, a.seed, a.keep)
+    res = run(a.mutants, a.seconds, a.seed, a.keep, a.device)
     print(json.dumps(res, indent=1))
     return 1 if res["crashes"] or res["surprises"] else 0
 
