@@ -8,6 +8,7 @@ import subprocess
 import sys
 from decimal import Decimal
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -160,10 +161,10 @@ def test_cached_conversions_equal_pint(a: str, b: str, x: Decimal) -> None:
     assert units.convert(x, a, b) == units._tidy(+exact)
 
 
-def test_fuzz_bounded() -> None:
-    """A bounded mutation-fuzz run (`make fuzz` runs a longer one): no crash, no runaway time or memory."""
+def _fuzzed(*args: str) -> dict[str, Any]:
+    """A bounded fuzzing run (``python -m ARGS``), its JSON figures."""
     proc = subprocess.run(
-        [sys.executable, "-m", "tests.fuzz", "--files", "1500", "--seconds", "40"],
+        [sys.executable, "-m", *args],
         capture_output=True,
         text=True,
         timeout=300,
@@ -173,7 +174,12 @@ def test_fuzz_bounded() -> None:
         # run 2-3x slower (the suite's longest CPU after Ansible's); its random inputs would move the figure
         env=without_coverage(),
     )
-    res = json.loads(proc.stdout)
+    return json.loads(proc.stdout)  # type: ignore[no-any-return]
+
+
+def test_fuzz_bounded() -> None:
+    """A bounded mutation-fuzz run (`make fuzz` runs a longer one): no crash, no runaway time or memory."""
+    res = _fuzzed("tests.fuzz", "--files", "1500", "--seconds", "40")
     assert res["crashes"] == 0, res["crash_details"]
     assert res["files_tried"] >= 200
     assert res["peak_rss_mb"] < 400
@@ -183,20 +189,11 @@ def test_fuzz_bounded() -> None:
 def test_plan_fuzz_bounded() -> None:
     """A bounded run of the saved plans' fuzzer (`make fuzz` runs a longer one): an edited plan or fleet plan is
     refused or runs, never a crash, and never writes a register or coil its honest plan does not write."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "tests.plan_fuzz", "--mutants", "100", "--seconds", "60"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=ROOT,
-        env=without_coverage(),  # as the file fuzzer: the mutants' paths would move the coverage figure
-    )
-    res = json.loads(proc.stdout)
+    res = _fuzzed("tests.plan_fuzz", "--mutants", "100", "--seconds", "60")
     assert res["crashes"] == 0, res["crash_details"]
     assert res["surprises"] == 0, res["surprise_details"]
-    assert res["mutants_tried"] >= 30 and res["exit_codes"].get("apply 0", 0) > 0, (
-        res
-    )  # some edited plans ran (seed 1: 2 of the first 30)
+    # some edited plans ran (seed 1: 2 of the first 30 mutants)
+    assert res["mutants_tried"] >= 30 and res["exit_codes"].get("apply 0", 0) > 0, res
 
 
 def test_values_per_file_are_bounded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
