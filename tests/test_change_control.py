@@ -589,6 +589,24 @@ def test_the_agent_takes_a_signed_approval_and_refuses_the_authors_and_an_anonym
     ] * 2 + [("plan-signed", "agent")]
 
 
+def test_sign_and_approve_refuse_a_file_that_is_no_plan_apply_can_run(tmp_path: Path) -> None:
+    """A signature says a plan was read: `sign` and `approve` check a plan as `validate` does first (nothing signed,
+    the errors at their positions), where a reviewer could sign a file that `apply` refuses."""
+    key = pykeygen(tmp_path, "bob")
+    (tmp_path / "drive.yaml").write_text(PROFILE)
+    (tmp_path / "r.yaml").write_text(RECIPE)
+    assert run(tmp_path, "plan", "r.yaml", "--out", "p.json").returncode == 0
+    doc = json.loads((tmp_path / "p.json").read_text())
+    doc["steps"] = "x"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc, indent=2))
+    before = bad.read_text()
+    for args in (("sign", "bad.json", "--meaning", "reviewed"), ("approve", "bad.json")):
+        r = run(tmp_path, *args, "--key", str(key), "--signer", "bob")
+        assert r.returncode == 1 and "bad.json:" in r.stderr and "steps: expected a list" in r.stderr, r.stderr
+    assert bad.read_text() == before
+
+
 @needs_ssh
 def test_an_agent_attests_for_its_user_only_with_a_key_trusted_to_attest(tmp_path: Path) -> None:
     from deployer.change import attest, policy
@@ -596,12 +614,18 @@ def test_an_agent_attests_for_its_user_only_with_a_key_trusted_to_attest(tmp_pat
 
     keygen(tmp_path, "alice")
     signers = allowed(tmp_path, "alice")
-    doc = {
-        "schema": "deployer.plan/2",
-        "device": {"url": "tcp://127.0.0.1:1", "unit": 1},
-        "change": {"author": "alice", "reason": "r"},
-    }
+    (tmp_path / "drive.yaml").write_text(PROFILE)
+    (tmp_path / "r.yaml").write_text(RECIPE)
+    made = run(tmp_path, "plan", "r.yaml", "--out", "p.json")  # offline: the recipe's values against none read
+    assert made.returncode == 0, made.stderr
+    doc = json.loads((tmp_path / "p.json").read_text())
+    doc["change"] = {**doc["change"], "author": "alice", "reason": "r"}
     pol = policy.Policy(signers=parse(str(signers), signers.read_text()))
+    with pytest.raises(attest.Refused) as e:  # what is no plan apply can run is approved by nobody
+        attest.approve(
+            {**doc, "steps": "x"}, user="dave", entry=None, meaning="approved", policy=pol, key_folder=str(tmp_path)
+        )
+    assert e.value.status == 422 and "not a saved plan apply can run: steps: expected a list" in str(e.value)
     with pytest.raises(attest.Refused) as e:  # its key is not in allowed_signers yet: the line to add is said
         attest.approve(doc, user="dave", entry=None, meaning="approved", policy=pol, key_folder=str(tmp_path / "ag"))
     line = str(e.value).split(": ", 2)[-1]

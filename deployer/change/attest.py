@@ -83,6 +83,14 @@ def approve(
         raise Refused("plan: a saved plan document (deployer plan ... --out PLAN.json) is needed", 400)
     if meaning not in MEANINGS or meaning == "authored":
         raise Refused(f"meaning {meaning!r}: approved or reviewed", 400)
+    from ..errors import InputError
+    from ..planning.planfile import plan_from_json
+
+    try:  # an approval says a plan was read: one apply can run (as deployer validate checks it)
+        plan_from_json(doc, "plan")
+    except InputError as e:
+        said = "; ".join(d.message for d in e.diagnostics[:5])
+        raise Refused(f"plan: not a saved plan apply can run: {said}", 422) from None
     try:
         d = digest(doc)
     except (TypeError, ValueError) as e:

@@ -235,6 +235,10 @@ def _sign(
     from ..change.signature import statement_bytes
 
     target = Signed(path)
+    if target.plan is not None:  # a signature says a plan was read: it is one apply can run (as validate checks it)
+        from ..api.commands import validate_file
+
+        validate_file(path)
     allowed = _signers(policy)
     if sum(x is not None for x in (key, statement_out, statement)) != 1 or (statement is None) != (signature is None):
         raise UsageError("give --key KEY, or --statement-out FILE, or --statement FILE with --signature FILE.sig")
