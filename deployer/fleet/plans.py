@@ -223,9 +223,7 @@ def read_fleet_plan(path: str) -> tuple[dict[str, Any], list[tuple[str, str | No
                 continue
             plan, said = full[of]
             unit = dev.get("unit") if isinstance(dev, dict) else None
-            if not (isinstance(dev, dict) and isinstance(unit, int) and isinstance(dev.get("url"), str)) or isinstance(
-                unit, bool
-            ):
+            if type(unit) is not int or not isinstance(dev, dict) or not isinstance(dev.get("url"), str):  # not True
                 errors.append(src.error(("devices", i, "device"), f"{name}: its device's url and unit are needed"))
                 continue
             if not 0 <= unit <= 247:  # as a plan's own device (the plan schema)

@@ -13,6 +13,8 @@ import functools
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from ..profile.model import PROTOCOL_MAX_READ, PROTOCOL_MAX_READ_COILS, PROTOCOL_MAX_WRITE, PROTOCOL_MAX_WRITE_COILS
+
 PLAN_SCHEMA = "deployer.plan/2"
 OLD_SCHEMAS = ("deployer.plan/1",)  # refused with the command that makes the plan again
 Action = Literal["write", "unchanged", "bridge"]
@@ -21,7 +23,16 @@ WRITE_FUNCTIONS = (5, 6, 15, 16)
 READ_FUNCTIONS = (1, 2, 3, 4)
 DEVICE_ID = 43  # Read Device Identification (MEI type 14): basic objects
 # the most one request of each function carries (Modbus Application Protocol v1.1b3, 6.1-6.12)
-MOST_PER_REQUEST = {1: 2000, 2: 2000, 3: 125, 4: 125, 5: 1, 6: 1, 15: 1968, 16: 123}
+MOST_PER_REQUEST = {
+    1: PROTOCOL_MAX_READ_COILS,
+    2: PROTOCOL_MAX_READ_COILS,
+    3: PROTOCOL_MAX_READ,
+    4: PROTOCOL_MAX_READ,
+    5: 1,
+    6: 1,
+    15: PROTOCOL_MAX_WRITE_COILS,
+    16: PROTOCOL_MAX_WRITE,
+}
 
 # The kinds of step, in the order they can come. The first four check the device and read what it holds,
 # before anything is planned against it (``CHECKS``); the rest change it.

@@ -265,9 +265,11 @@ def check_actions(plan: Plan, prof: Profile) -> list[str]:
 
 
 def _secret_at(prof: Profile, s: Step) -> bool:
+    from .steps import writes_action
+
     actions = {"unlock": prof.unlock, "commit": prof.commit, "lock": prof.lock}[s.kind]
     return any(
-        a.secret and a.is_coil == (s.function in COIL_WRITES) and a.address <= s.address < a.address + len(a.registers)
+        a.secret and writes_action(a, s.function) and a.address <= s.address < a.address + len(a.registers)
         for a in actions
     )
 

@@ -110,12 +110,18 @@ def health_steps(prof: Profile) -> tuple[Step, ...]:
     return tuple(Step("health", c.function, c.address, c.count, note=c.what()) for c in prof.health)
 
 
+def writes_action(a: WriteAction, function: int) -> bool:
+    """Whether a request of ``function`` is how the profile's action ``a`` is sent (``action_steps``): Function 05
+    for a coil, 06 or 16 for registers. A coil and a register at one address are two places."""
+    return function in ((5,) if a.is_coil else (6, 16))
+
+
 def secret_words(prof: Profile, step: Step) -> tuple[int, ...]:
     """A secret step's words, from the profile's action it was planned from (the same kind, address, count, and
-    the function the action is planned with: Function 05 for a coil, 06 or 16 for registers)."""
+    the function the action is planned with: ``writes_action``)."""
     actions = {"unlock": prof.unlock, "commit": prof.commit, "lock": prof.lock}.get(step.kind, ())
     for a in actions:
-        if step.function not in ((5,) if a.is_coil else (6, 16)):  # a coil and a register at one address are two places
+        if not writes_action(a, step.function):
             continue
         if a.address <= step.address and step.address + step.count <= a.address + len(a.registers):
             return a.registers[step.address - a.address : step.address - a.address + step.count]
