@@ -6,6 +6,7 @@ import itertools
 import json
 from collections.abc import Sequence
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import jsonschema
@@ -531,6 +532,22 @@ def test_inconsistent_plans_are_refused_at_file_0_0(edit, message) -> None:  # t
         plan_from_json(data, "p.json")
     text = str(e.value)
     assert message in text and text.startswith("p.json:0:0: error: ")
+
+
+def test_a_saved_plan_of_a_function_06_device_with_bit_fields_loads() -> None:
+    """A device that takes only Function 06 (its profile says so, or it taught it): the word its bit fields share goes
+    as one request naming them all, and the saved plan of it loads as the planner made it (it was refused)."""
+    from deployer.profile import builtin_profile
+    from deployer.recipe.loader import load_recipe
+
+    prof = builtin_profile("example-drive")
+    rec = load_recipe(str(Path(__file__).resolve().parent.parent / "recipes" / "examples" / "example-drive-axis1.yaml"))
+    rec = replace(rec, profile=replace(prof, limits=replace(prof.limits, write_function=6)))
+    current = {d.name: tuple(0 for _ in d.registers) for d in rec.desired}
+    plan = make_plan(rec, Target("tcp://h:502", 1, "example-drive"), current)
+    shared = [s for s in plan.steps if s.kind == "write" and len(s.parameters) > 1]
+    assert shared and all(s.function == 6 and s.count == 1 for s in shared)
+    assert plan_from_json(json.loads(json.dumps(plan_to_json(plan))), "p.json") == plan
 
 
 def test_plan_errors_carry_positions_with_a_source(tmp_path) -> None:  # type: ignore[no-untyped-def]

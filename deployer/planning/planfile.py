@@ -226,8 +226,10 @@ def _check_write(
             )
         written.add(n)
         regs.update({pp.address + i: v for i, v in enumerate(pp.desired_raw)})
-    if s.function in (5, 6):  # one word of one parameter (one coil)
-        ok = s.count == 1 and len(s.parameters) == 1 and regs.get(s.address) == s.values[0]
+    if s.function in (5, 6):  # one word of one parameter (one coil), or the one word its bit fields share
+        ok = (
+            s.count == 1 and regs.get(s.address) == s.values[0] and (len(s.parameters) == 1 or set(regs) == {s.address})
+        )
     else:  # whole parameters, back to back from the request's address, nothing more
         ok = sorted(regs) == list(range(s.address, s.address + s.count)) and [regs[a] for a in sorted(regs)] == list(
             s.values
